@@ -1,0 +1,300 @@
+"""Tests for torchflow.resampling."""
+
+import math
+
+import pytest
+import torch
+
+from torchflow.resampling import (
+    RESAMPLERS,
+    effective_sample_size,
+    gather_particles,
+    get_resampler,
+    multinomial,
+    normalize_log_weights,
+    residual,
+    resample_if_needed,
+    stratified,
+    systematic,
+)
+
+SCHEMES = sorted(RESAMPLERS)
+
+# N = 10 weights chosen so that no N * w_i is close to an integer:
+# N w = [0.3, 1.7, 0.55, 2.1, 0.05, 1.2, 0.95, 1.45, 0.8, 0.9].
+W = torch.tensor(
+    [0.03, 0.17, 0.055, 0.21, 0.005, 0.12, 0.095, 0.145, 0.08, 0.09],
+    dtype=torch.float64,
+)
+N = W.numel()
+B = 2000
+
+
+def _gen(seed=0):
+    g = torch.Generator()
+    g.manual_seed(seed)
+    return g
+
+
+def _counts(indices, n):
+    """Offspring counts (B, n) from indices (B, M)."""
+    counts = torch.zeros(indices.shape[0], n, dtype=torch.int64)
+    return counts.scatter_add_(1, indices, torch.ones_like(indices))
+
+
+def _batch_log_w(dtype=torch.float64):
+    return W.log().to(dtype).expand(B, N).clone()
+
+
+# ---------------------------------------------------------------------------
+# Weight utilities
+# ---------------------------------------------------------------------------
+def test_normalize_log_weights():
+    lw = torch.tensor([[0.0, 1.0, 2.0], [-1000.0, -1001.0, -float("inf")]])
+    out = normalize_log_weights(lw)
+    assert out.shape == lw.shape
+    torch.testing.assert_close(torch.logsumexp(out, dim=1), torch.zeros(2))
+    assert out[1, 2] == -float("inf")
+
+
+def test_ess_uniform_and_one_hot():
+    lw_uniform = torch.full((3, 7), 2.5, dtype=torch.float64)
+    torch.testing.assert_close(
+        effective_sample_size(lw_uniform), torch.full((3,), 7.0, dtype=torch.float64)
+    )
+    lw_hot = torch.full((2, 7), -float("inf"))
+    lw_hot[0, 3] = 0.0
+    lw_hot[1, 6] = -4.0
+    torch.testing.assert_close(effective_sample_size(lw_hot), torch.ones(2))
+
+
+def test_ess_matches_definition():
+    lw = torch.randn(5, 9, generator=_gen(1), dtype=torch.float64)
+    w = torch.softmax(lw, dim=1)
+    torch.testing.assert_close(effective_sample_size(lw), 1.0 / (w**2).sum(dim=1))
+
+
+# ---------------------------------------------------------------------------
+# Statistical tests
+# ---------------------------------------------------------------------------
+@pytest.mark.parametrize("scheme", SCHEMES)
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_mean_offspring_unbiased(scheme, dtype):
+    idx = RESAMPLERS[scheme](_batch_log_w(dtype), _gen(123))
+    assert idx.shape == (B, N) and idx.dtype == torch.int64
+    assert int(idx.min()) >= 0 and int(idx.max()) < N
+    mean = _counts(idx, N).double().mean(dim=0)
+    # Tolerance: for multinomial resampling the offspring count of particle i
+    # is Binomial(N, w_i) with sd sqrt(N w_i (1 - w_i)), so the mean over B
+    # i.i.d. trials has standard error sqrt(N w_i (1 - w_i) / B). Systematic,
+    # stratified and residual resampling are unbiased with lower variance, so
+    # the multinomial standard error is a valid conservative bound. 5 standard
+    # errors => false-failure probability ~6e-7 per particle (seeded anyway).
+    se = torch.sqrt(N * W * (1 - W) / B)
+    assert torch.all((mean - N * W).abs() < 5 * se), (mean, N * W)
+
+
+def _random_log_weights(b, n, seed):
+    return 2.0 * torch.randn(b, n, generator=_gen(seed), dtype=torch.float64)
+
+
+def test_systematic_counts_floor_ceil():
+    lw = _random_log_weights(500, 17, seed=7)
+    nw = 17 * torch.softmax(lw, dim=1)
+    counts = _counts(systematic(lw, _gen(3)), 17)
+    assert torch.all(counts >= torch.floor(nw))
+    assert torch.all(counts <= torch.ceil(nw))
+    # also on the fixed weight vector
+    counts = _counts(systematic(_batch_log_w(), _gen(4)), N)
+    assert torch.all(counts >= torch.floor(N * W)) and torch.all(counts <= torch.ceil(N * W))
+
+
+@pytest.mark.parametrize("scheme", ["systematic", "stratified"])
+def test_inverse_cdf_schemes_sorted(scheme):
+    idx = RESAMPLERS[scheme](_random_log_weights(200, 13, seed=8), _gen(5))
+    assert torch.all(idx[:, 1:] >= idx[:, :-1])
+
+
+def test_residual_deterministic_part():
+    lw = _random_log_weights(500, 17, seed=9)
+    nw = 17 * torch.softmax(lw, dim=1)
+    counts = _counts(residual(lw, _gen(6)), 17)
+    assert torch.all(counts >= torch.floor(nw))
+    assert torch.all(counts.sum(dim=1) == 17)
+    counts = _counts(residual(_batch_log_w(), _gen(7)), N)
+    assert torch.all(counts >= torch.floor(N * W))
+
+
+# ---------------------------------------------------------------------------
+# Deterministic edge cases
+# ---------------------------------------------------------------------------
+@pytest.mark.parametrize("scheme", ["systematic", "residual"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("n", [1, 7, 10, 100])
+def test_uniform_weights_each_particle_once(scheme, dtype, n):
+    lw = torch.full((300, n), -3.7, dtype=dtype)
+    idx = RESAMPLERS[scheme](lw, _gen(11))
+    expected = torch.arange(n).expand(300, n)
+    if scheme == "systematic":
+        assert torch.equal(idx, expected)
+    else:
+        assert torch.equal(idx.sort(dim=1).values, expected)
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_one_hot_weights(scheme, dtype):
+    n = 8
+    hot = torch.tensor([0, 3, 7, 5])
+    lw = torch.full((4, n), -float("inf"), dtype=dtype)
+    lw[torch.arange(4), hot] = 1.3
+    idx = RESAMPLERS[scheme](lw, _gen(12))
+    assert torch.equal(idx, hot[:, None].expand(4, n))
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_zero_weights_never_selected(scheme, dtype):
+    n = 10
+    lw = torch.randn(500, n, generator=_gen(13)).to(dtype)
+    zero = torch.zeros(500, n, dtype=torch.bool)
+    zero[:, ::2] = True  # leading and interior zeros
+    zero[250:] = torch.zeros(n, dtype=torch.bool)
+    zero[250:, n // 2 :] = True  # trailing zeros
+    lw = lw.masked_fill(zero, -float("inf"))
+    idx = RESAMPLERS[scheme](lw, _gen(14))
+    assert not torch.any(zero.gather(1, idx))
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_same_seed_same_indices(scheme):
+    lw = _random_log_weights(50, 12, seed=15)
+    a = RESAMPLERS[scheme](lw, _gen(42))
+    b = RESAMPLERS[scheme](lw, _gen(42))
+    c = RESAMPLERS[scheme](lw, _gen(43))
+    assert torch.equal(a, b)
+    assert not torch.equal(a, c)
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_default_generator(scheme):
+    idx = RESAMPLERS[scheme](_random_log_weights(4, 6, seed=16))
+    assert idx.shape == (4, 6) and idx.dtype == torch.int64
+
+
+def test_get_resampler():
+    for name in SCHEMES:
+        assert get_resampler(name) is RESAMPLERS[name]
+    assert set(RESAMPLERS) == {"multinomial", "systematic", "stratified", "residual"}
+    with pytest.raises(ValueError, match="name") as info:
+        get_resampler("bogus")
+    for name in SCHEMES:
+        assert name in str(info.value)
+
+
+# ---------------------------------------------------------------------------
+# resample_if_needed
+# ---------------------------------------------------------------------------
+def _mixed_batch():
+    n = 6
+    lw = torch.zeros(4, n, dtype=torch.float64)  # rows 0, 2: uniform (ESS = N)
+    lw[1] = torch.tensor([10.0, 0, 0, 0, 0, 0])  # ESS ~ 1
+    lw[3] = torch.tensor([0.0, -50, -50, 5, -50, -50])  # ESS ~ 1
+    return lw
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_resample_if_needed_only_low_ess(scheme):
+    lw = _mixed_batch() + 3.0  # unnormalised
+    n = lw.shape[1]
+    idx, resampled, new_lw = resample_if_needed(lw, _gen(17), scheme=scheme, ess_threshold=0.5)
+    assert torch.equal(resampled, torch.tensor([False, True, False, True]))
+    keep = ~resampled
+    assert torch.equal(idx[keep], torch.arange(n).expand(int(keep.sum()), n))
+    torch.testing.assert_close(new_lw[keep], normalize_log_weights(lw)[keep])
+    torch.testing.assert_close(
+        new_lw[resampled], torch.full((2, n), -math.log(n), dtype=torch.float64)
+    )
+    assert idx.dtype == torch.int64 and new_lw.dtype == lw.dtype
+    # heavy particles dominate the resampled rows
+    assert torch.all(idx[1] == 0) and torch.all(idx[3] == 3)
+
+
+def test_resample_if_needed_thresholds():
+    lw = _mixed_batch()
+    n = lw.shape[1]
+    idx, resampled, new_lw = resample_if_needed(lw, _gen(18), ess_threshold=0.0)
+    assert not resampled.any()
+    assert torch.equal(idx, torch.arange(n).expand(4, n))
+    torch.testing.assert_close(new_lw, normalize_log_weights(lw))
+    _, resampled, _ = resample_if_needed(lw, _gen(18), ess_threshold=1.0)
+    assert resampled[1] and resampled[3]
+
+
+def test_resample_if_needed_float32():
+    lw = _mixed_batch().float()
+    idx, resampled, new_lw = resample_if_needed(lw, _gen(19), scheme="residual")
+    assert new_lw.dtype == torch.float32 and idx.dtype == torch.int64
+    assert torch.equal(resampled, torch.tensor([False, True, False, True]))
+
+
+# ---------------------------------------------------------------------------
+# gather_particles
+# ---------------------------------------------------------------------------
+def test_gather_particles_shapes_and_values():
+    b, n, d = 3, 5, 2
+    x = torch.randn(b, n, d, generator=_gen(20))
+    cov = torch.randn(b, n, d, d, generator=_gen(21))
+    idx = systematic(torch.randn(b, n, generator=_gen(22)), _gen(23))
+    gx = gather_particles(x, idx)
+    gc = gather_particles(cov, idx)
+    assert gx.shape == (b, n, d) and gc.shape == (b, n, d, d)
+    for i in range(b):
+        for j in range(n):
+            assert torch.equal(gx[i, j], x[i, idx[i, j]])
+            assert torch.equal(gc[i, j], cov[i, idx[i, j]])
+    assert gather_particles(torch.randn(b, n), idx).shape == (b, n)
+
+
+def test_gather_particles_bad_input():
+    x = torch.randn(3, 5, 2)
+    with pytest.raises(ValueError, match="indices"):
+        gather_particles(x, torch.zeros(3, dtype=torch.int64))
+    with pytest.raises(ValueError, match="indices"):
+        gather_particles(x, torch.zeros(3, 5))
+    with pytest.raises(ValueError, match="indices"):
+        gather_particles(x, torch.zeros(2, 5, dtype=torch.int64))
+    with pytest.raises(ValueError, match="x"):
+        gather_particles(torch.randn(3), torch.zeros(3, 5, dtype=torch.int64))
+
+
+# ---------------------------------------------------------------------------
+# Bad input
+# ---------------------------------------------------------------------------
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_bad_log_weights(scheme):
+    fn = RESAMPLERS[scheme]
+    with pytest.raises(ValueError, match=r"log_weights.*\(B, N\)"):
+        fn(torch.zeros(5))
+    with pytest.raises(ValueError, match="log_weights.*floating"):
+        fn(torch.zeros(2, 5, dtype=torch.int64))
+    with pytest.raises(ValueError, match="log_weights"):
+        fn(torch.full((2, 5), -float("inf")))
+    with pytest.raises(ValueError, match="log_weights"):
+        fn(torch.tensor([[0.0, float("nan")]]))
+
+
+def test_bad_inputs_utilities():
+    with pytest.raises(ValueError, match="log_weights"):
+        normalize_log_weights(torch.zeros(5))
+    with pytest.raises(ValueError, match="log_weights"):
+        effective_sample_size(torch.zeros(1, 2, 3))
+    lw = torch.zeros(2, 5)
+    with pytest.raises(ValueError, match="log_weights"):
+        resample_if_needed(torch.zeros(5), None)
+    with pytest.raises(ValueError, match="scheme") as info:
+        resample_if_needed(lw, None, scheme="bogus")
+    assert "systematic" in str(info.value)
+    for bad in (1.5, -0.1, float("nan"), "0.5"):
+        with pytest.raises(ValueError, match="ess_threshold"):
+            resample_if_needed(lw, None, ess_threshold=bad)

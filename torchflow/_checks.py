@@ -1,0 +1,112 @@
+"""Input validation shared by models, filters and the experiment runner.
+
+Every check raises ``ValueError``/``TypeError`` (never ``assert``, which ``python -O`` strips)
+with a message naming the argument, what was expected and what arrived, in the style of
+``torch.distributions``.
+"""
+from __future__ import annotations
+
+from typing import Optional, Sequence, Union
+
+import torch
+
+Dim = Union[int, None]
+
+
+class NonFiniteError(FloatingPointError):
+    """A filter produced a NaN or infinite value.
+
+    Attributes:
+        filter_name: name of the filter that produced it.
+        step: 1-based time step.
+        trials: indices of the offending trials (within the batch that was being filtered).
+    """
+
+    def __init__(self, filter_name: str, step: int, trials: Sequence[int], what: str = "estimate"):
+        self.filter_name = filter_name
+        self.step = step
+        self.trials = list(trials)
+        shown = self.trials[:10]
+        more = "" if len(self.trials) <= 10 else f" (and {len(self.trials) - 10} more)"
+        super().__init__(
+            f"{filter_name}: non-finite {what} at time step {step} in trial(s) {shown}{more}"
+        )
+
+
+def check_tensor(
+    name: str,
+    x,
+    shape: Sequence[Dim],
+    letters: str,
+    *,
+    dtype: Optional[torch.dtype] = None,
+    device: Optional[torch.device] = None,
+) -> torch.Tensor:
+    """Check that ``x`` is a tensor of the given shape (``None`` = any size) and dtype/device.
+
+    Args:
+        name: argument name used in the error message.
+        x: the value to check.
+        shape: expected sizes; ``None`` entries match anything.
+        letters: the letters of the shape, e.g. ``"(B, T, m)"``.
+        dtype, device: if given, ``x`` must match them.
+
+    Returns:
+        ``x`` unchanged.
+    """
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor {letters}, got {type(x).__name__}")
+    expected = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+    if x.dim() != len(shape) or any(s is not None and s != xs for s, xs in zip(shape, x.shape)):
+        raise ValueError(f"{name}: expected {letters} = {expected}, got {tuple(x.shape)}")
+    if dtype is not None and x.dtype != dtype:
+        raise TypeError(f"{name}: expected dtype {dtype} (the model's), got {x.dtype}")
+    if device is not None and x.device.type != torch.device(device).type:
+        raise ValueError(f"{name}: expected device {device} (the model's), got {x.device}")
+    return x
+
+
+def check_finite(name: str, x: torch.Tensor) -> torch.Tensor:
+    """Raise if ``x`` holds NaN or inf, reporting how many and the first offending trial."""
+    bad = ~torch.isfinite(x)
+    if bool(bad.any()):
+        n_bad = int(bad.sum())
+        trials = torch.nonzero(bad.reshape(x.shape[0], -1).any(-1)).flatten().tolist() if x.dim() else []
+        raise ValueError(f"{name}: {n_bad} non-finite value(s) (NaN/inf), in trial(s) {trials[:10]}")
+    return x
+
+
+def check_psd(name: str, cov: torch.Tensor, *, tol: float = 1e-10) -> torch.Tensor:
+    """Raise if the batch of matrices ``cov (..., d, d)`` is not symmetric positive semi-definite.
+
+    The error names the first offending batch index (the trial, for ``(B, d, d)`` inputs).
+    """
+    if cov.dim() < 2 or cov.shape[-1] != cov.shape[-2]:
+        raise ValueError(f"{name}: expected square matrices (..., d, d), got {tuple(cov.shape)}")
+    check_finite(name, cov.reshape(-1, *cov.shape[-2:]) if cov.dim() > 2 else cov.unsqueeze(0))
+    scale = cov.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp_min(1.0)
+    asym = (cov - cov.transpose(-1, -2)).abs().amax((-1, -2))
+    bad_sym = asym > 1e-8 * scale
+    # fast path: Cholesky of cov + tol * scale * I succeeds for every PSD matrix
+    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    _, info = torch.linalg.cholesky_ex(0.5 * (cov + cov.transpose(-1, -2)) + (tol * scale)[..., None, None] * eye)
+    if not bool(bad_sym.any()) and not bool((info > 0).any()):
+        return cov
+    eig_min = torch.linalg.eigvalsh(0.5 * (cov + cov.transpose(-1, -2))).amin(-1)
+    bad_psd = eig_min < -tol * scale
+    bad = (bad_sym | bad_psd).reshape(-1)
+    if bool(bad.any()):
+        idx = int(torch.nonzero(bad)[0])
+        why = "not symmetric" if bool(bad_sym.reshape(-1)[idx]) else (
+            f"not positive semi-definite (smallest eigenvalue {float(eig_min.reshape(-1)[idx]):.3g})"
+        )
+        raise ValueError(f"{name}: covariance at batch index {idx} (trial) is {why}")
+    return cov
+
+
+def check_same(name: str, x: torch.Tensor, ref: torch.Tensor, ref_name: str = "the model") -> None:
+    """Raise if ``x`` and ``ref`` differ in dtype or device (names both sides)."""
+    if x.dtype != ref.dtype:
+        raise TypeError(f"{name}: dtype {x.dtype} does not match {ref_name}'s dtype {ref.dtype}")
+    if x.device != ref.device:
+        raise ValueError(f"{name}: device {x.device} does not match {ref_name}'s device {ref.device}")

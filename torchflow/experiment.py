@@ -1,0 +1,247 @@
+"""Batched Monte Carlo runner: simulate once, run every filter on the same data, score it.
+
+``run_experiment`` is plain Python (no Hydra): ``experiments/run.py`` builds its arguments from
+``configs/`` and writes the result files.
+"""
+from __future__ import annotations
+
+import math
+import time
+import zlib
+from dataclasses import dataclass, field
+from typing import Dict, List, Mapping, Optional, Union
+
+import torch
+
+from . import metrics
+from ._checks import NonFiniteError
+from .filters.base import Filter
+from .filters.kalman import KalmanFilter
+from .models.base import StateSpaceModel, Trajectory
+from .models.linear_gaussian import LinearGaussian
+
+SUMMARY_COLUMNS = [
+    "filter", "n_particles", "trials", "steps", "mse", "omat", "omat_kept_mean", "omat_kept_sd",
+    "ospa", "ess", "log_evidence", "log_evidence_relmse", "lost_tracks", "sec_per_step", "error",
+]
+_DTYPES = {"float64": torch.float64, "float32": torch.float32, "double": torch.float64, "float": torch.float32}
+
+
+@dataclass
+class ExperimentResult:
+    """Tidy results.
+
+    Attributes:
+        summary: one dict per filter with :data:`SUMMARY_COLUMNS` (``None`` where undefined).
+        per_trial: one dict per filter x trial (mse, omat, ospa, ess, log_evidence, lost).
+        per_step: one dict per filter x step with metric means over trials.
+        trajectory: the simulated data (CPU tensors).
+    """
+
+    summary: List[dict]
+    per_trial: List[dict]
+    per_step: List[dict]
+    trajectory: Optional[Trajectory] = None
+    config: dict = field(default_factory=dict)
+
+
+def resolve_dtype(dtype: Union[str, torch.dtype]) -> torch.dtype:
+    if isinstance(dtype, torch.dtype):
+        return dtype
+    if dtype not in _DTYPES:
+        raise ValueError(f"dtype: expected one of {sorted(_DTYPES)}, got {dtype!r}")
+    return _DTYPES[dtype]
+
+
+def resolve_device(device: Union[str, torch.device]) -> torch.device:
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("device: 'cuda' requested but torch.cuda.is_available() is False")
+    return dev
+
+
+def filter_seed(seed: int, name: str) -> int:
+    """Seed of a filter's generator: depends on the run seed and the filter's name only, so a
+    filter's numbers do not change when other filters are added to the run."""
+    return (int(seed) * 1_000_003 + zlib.crc32(name.encode())) % (2**63 - 1)
+
+
+def choose_chunk_size(filters: Mapping[str, Filter], trials: int, memory_budget_gb: float) -> int:
+    """Largest chunk of trials whose estimated per-step memory fits the budget (at least 1)."""
+    per_trial = max((f.bytes_per_trial() for f in filters.values()), default=1)
+    return max(1, min(trials, int(memory_budget_gb * 2**30 // max(per_trial, 1))))
+
+
+def _simulate(model: StateSpaceModel, trials: int, steps: int, inits_per_track: int, generator):
+    if inits_per_track < 1:
+        raise ValueError(f"inits_per_track: expected >= 1, got {inits_per_track}")
+    n_tracks = math.ceil(trials / inits_per_track)
+    traj = model.simulate(n_tracks, steps, generator)
+    if inits_per_track > 1:
+        rep = lambda t: t.repeat_interleave(inits_per_track, 0)[:trials]  # noqa: E731
+        traj = Trajectory(rep(traj.states), rep(traj.observations))
+    mean, cov = model.initial_belief(traj.states[:, 0], generator)
+    return traj, mean, cov
+
+
+def run_experiment(
+    model: StateSpaceModel,
+    filters: Mapping[str, Filter],
+    *,
+    trials: int = 10,
+    steps: int = 10,
+    seed: int = 0,
+    inits_per_track: int = 1,
+    chunk_size: Optional[int] = None,
+    memory_budget_gb: float = 4.0,
+    device: Union[str, torch.device] = "cpu",
+    dtype: Union[str, torch.dtype] = "float64",
+    ospa_cutoff: float = 40.0,
+    ospa_order: float = 1.0,
+    lost_threshold: float = 2.0,
+    progress: bool = True,
+) -> ExperimentResult:
+    """Simulate ``trials`` trajectories once and run every filter on the same observations.
+
+    Args:
+        model: the state-space model (moved to ``device``/``dtype``).
+        filters: ``{name: filter}``; each filter must hold ``model``.
+        trials: Monte Carlo trials B.
+        steps: time steps T.
+        seed: seeds the simulation; each filter gets its own generator from
+            :func:`filter_seed` (seed, name), re-seeded per chunk from the chunk's first trial.
+        inits_per_track: trials share a trajectory in groups of this size, each with its own
+            prior draw (Li & Coates: 100 trajectories x 5 initialisations).
+        chunk_size: trials per chunk; ``None`` picks it from ``memory_budget_gb``.
+        device, dtype: where and in what precision filters run (metrics use float64).
+        ospa_cutoff, ospa_order, lost_threshold: metric settings (tracking models).
+        progress: show a tqdm progress bar.
+
+    A filter that raises (including a non-finite estimate) does not stop the run: its row gets
+    the error message and the other filters still run.
+    """
+    dev, dt = resolve_device(device), resolve_dtype(dtype)
+    if trials < 1 or steps < 1:
+        raise ValueError(f"trials, steps: expected >= 1, got {trials}, {steps}")
+    model.to(device=dev, dtype=dt)
+    for name, f in filters.items():
+        if f.model is not model:
+            raise ValueError(f"filters[{name!r}]: holds a different model instance than `model`")
+        f.to(device=dev, dtype=dt)
+    gen = torch.Generator(device=dev).manual_seed(int(seed))
+    traj, mean0, cov0 = _simulate(model, trials, steps, inits_per_track, gen)
+    chunk = int(chunk_size) if chunk_size else choose_chunk_size(filters, trials, memory_budget_gb)
+    starts = list(range(0, trials, chunk))
+    truth = traj.states[:, 1:].double()
+    tracking = model.has_positions
+    true_pos = model.positions(truth) if tracking else None
+
+    reference_logz = None
+    if isinstance(model, LinearGaussian):
+        with torch.no_grad():
+            kf = KalmanFilter(model, validate=False)
+            reference_logz = torch.cat([kf(traj.observations[s:s + chunk], mean0[s:s + chunk], cov0[s:s + chunk]).log_evidence
+                                        for s in starts]).double()
+
+    bar = None
+    if progress:
+        try:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=len(filters) * trials * steps, unit="trial-step", leave=False, dynamic_ncols=True)
+        except ImportError:  # pragma: no cover
+            bar = None
+
+    summary, per_trial, per_step = [], [], []
+    for name, f in filters.items():
+        n_part = getattr(f, "n_particles", None)
+        row = {c: None for c in SUMMARY_COLUMNS}
+        row.update(filter=name, n_particles=n_part, trials=trials, steps=steps)
+        if bar is not None:
+            bar.set_description(name)
+        est, logz, ess = [], [], []
+        elapsed = 0.0
+        try:
+            with torch.no_grad():
+                for s in starts:
+                    sl = slice(s, s + chunk)
+                    g = torch.Generator(device=dev).manual_seed(filter_seed(seed, name) + s)
+                    n_b = traj.observations[sl].shape[0]
+                    cb = (lambda n=n_b: bar.update(n)) if bar is not None else None
+                    if dev.type == "cuda":
+                        torch.cuda.synchronize()
+                    t0 = time.perf_counter()
+                    try:
+                        res = f(traj.observations[sl], mean0[sl], cov0[sl], g, progress=cb)
+                    except NonFiniteError as e:  # report trial indices in the whole run
+                        raise NonFiniteError(name, e.step, [s + i for i in e.trials]) from None
+                    if dev.type == "cuda":
+                        torch.cuda.synchronize()
+                    elapsed += time.perf_counter() - t0
+                    est.append(res.estimates.double())
+                    logz.append(res.log_evidence.double())
+                    if res.ess is not None:
+                        ess.append(res.ess.double())
+        except Exception as e:  # one failing filter must not lose the others' results
+            row["error"] = f"{type(e).__name__}: {e}"
+            summary.append(row)
+            continue
+        est = torch.cat(est)
+        logz = torch.cat(logz)
+        ess_bt = torch.cat(ess) if ess else None
+        mse_bt = metrics.mse(est, truth)
+        cols = {"mse": mse_bt}
+        if tracking:
+            est_pos = model.positions(est)
+            cols["omat"] = metrics.omat(est_pos, true_pos)
+            cols["ospa"] = metrics.ospa(est_pos, true_pos, cutoff=ospa_cutoff, order=ospa_order)
+        if ess_bt is not None:
+            cols["ess"] = ess_bt
+        row["sec_per_step"] = elapsed / (trials * steps)
+        row["log_evidence"] = float(logz.mean())
+        for k, v in cols.items():
+            row[k] = float(v.mean())
+        lost = None
+        if tracking:
+            lost = metrics.lost_tracks(cols["omat"], threshold=lost_threshold)
+            row["lost_tracks"] = int(lost.sum())
+            kept = cols["omat"].mean(1)[~lost]
+            row["omat_kept_mean"] = float(kept.mean()) if kept.numel() else None
+            row["omat_kept_sd"] = float(kept.std()) if kept.numel() > 1 else None
+        if reference_logz is not None:
+            row["log_evidence_relmse"] = float(metrics.log_evidence_relative_error(logz, reference_logz).mean())
+        summary.append(row)
+        for b in range(trials):
+            r = {"filter": name, "trial": b, "log_evidence": float(logz[b])}
+            r.update({k: float(v[b].mean()) for k, v in cols.items()})
+            if lost is not None:
+                r["lost"] = bool(lost[b])
+            per_trial.append(r)
+        means = {k: v.mean(0) for k, v in cols.items()}
+        for t in range(steps):
+            r = {"filter": name, "step": t + 1}
+            r.update({k: float(v[t]) for k, v in means.items()})
+            per_step.append(r)
+    if bar is not None:
+        bar.close()
+    config = dict(trials=trials, steps=steps, seed=seed, inits_per_track=inits_per_track, chunk_size=chunk,
+                  device=str(dev), dtype=str(dt).replace("torch.", ""))
+    cpu_traj = Trajectory(traj.states.cpu(), traj.observations.cpu())
+    return ExperimentResult(summary, per_trial, per_step, cpu_traj, config)
+
+
+def format_table(summary: List[dict], columns: Optional[List[str]] = None) -> str:
+    """Markdown table of the summary rows, dropping columns that are empty in every row."""
+    columns = columns or SUMMARY_COLUMNS
+    cols = [c for c in columns if any(r.get(c) is not None for r in summary)]
+
+    def fmt(v):
+        if v is None:
+            return ""
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        return str(v)
+
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    lines += ["| " + " | ".join(fmt(r.get(c)) for c in cols) + " |" for r in summary]
+    return "\n".join(lines)

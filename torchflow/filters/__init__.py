@@ -1,0 +1,18 @@
+"""Filters: every filter is an ``nn.Module`` with the ``init`` / ``step`` / ``forward`` contract."""
+from .base import Filter, FilterResult, GaussianState, ParticleFilterBase, ParticleState
+from .bootstrap import BootstrapParticleFilter
+from .kalman import ExtendedKalmanFilter, KalmanFilter, UnscentedKalmanFilter, ekf_predict, kalman_update
+
+__all__ = [
+    "Filter",
+    "FilterResult",
+    "GaussianState",
+    "ParticleState",
+    "ParticleFilterBase",
+    "KalmanFilter",
+    "ExtendedKalmanFilter",
+    "UnscentedKalmanFilter",
+    "BootstrapParticleFilter",
+    "kalman_update",
+    "ekf_predict",
+]

@@ -1,0 +1,295 @@
+"""The filter contract shared by every filter: ``init`` / ``step`` / ``forward``."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, Optional, Tuple
+
+import torch
+from torch import nn
+
+from .. import resampling
+from .._checks import NonFiniteError, check_finite, check_psd, check_same, check_tensor
+from ..models.base import StateSpaceModel
+
+
+@dataclass
+class GaussianState:
+    """Belief of a Kalman-type filter after a step.
+
+    Attributes:
+        mean: ``(B, d)`` posterior mean (the estimate).
+        cov: ``(B, d, d)`` posterior covariance.
+        log_evidence_increment: ``(B,)`` log p(z_k | z_{1:k-1}) of the step (0 after ``init``).
+        step: number of observations processed.
+    """
+
+    mean: torch.Tensor
+    cov: torch.Tensor
+    log_evidence_increment: torch.Tensor
+    step: int = 0
+
+    @property
+    def estimate(self) -> torch.Tensor:
+        return self.mean
+
+    @property
+    def ess(self) -> Optional[torch.Tensor]:
+        return None
+
+
+@dataclass
+class ParticleState:
+    """Belief of a particle filter after a step.
+
+    Attributes:
+        particles: ``(B, N, d)``.
+        log_weights: ``(B, N)`` normalised log-weights (after any resampling).
+        estimate: ``(B, d)`` weighted mean before resampling.
+        ess: ``(B,)`` effective sample size before resampling.
+        log_evidence_increment: ``(B,)`` log of the estimate of p(z_k | z_{1:k-1}).
+        resampled: ``(B,)`` bool, which trials were resampled this step.
+        cov: optional per-particle covariances ``(B, N, d, d)`` (PF-PF) or per-trial ``(B, d, d)``.
+        step: number of observations processed.
+        extras: filter-specific tensors with a leading ``(B, N)`` that follow resampling.
+    """
+
+    particles: torch.Tensor
+    log_weights: torch.Tensor
+    estimate: torch.Tensor
+    ess: torch.Tensor
+    log_evidence_increment: torch.Tensor
+    resampled: torch.Tensor
+    cov: Optional[torch.Tensor] = None
+    step: int = 0
+    extras: Dict[str, torch.Tensor] = field(default_factory=dict)
+
+
+@dataclass
+class FilterResult:
+    """Output of :meth:`Filter.forward`.
+
+    Attributes:
+        estimates: ``(B, T, d)`` state estimates after each observation.
+        log_evidence: ``(B,)`` log p(z_{1:T}) (exact for the KF, an unbiased-in-exp estimate for
+            particle filters); differentiable where the filter is.
+        log_evidence_increments: ``(B, T)``.
+        ess: ``(B, T)`` effective sample size before resampling, ``None`` for Kalman-type filters.
+        covariances: ``(B, T, d, d)`` posterior covariances if requested and defined.
+        particles: ``(B, T, N, d)`` particles if requested (large).
+        log_weights: ``(B, T, N)`` log-weights if particles were requested.
+    """
+
+    estimates: torch.Tensor
+    log_evidence: torch.Tensor
+    log_evidence_increments: torch.Tensor
+    ess: Optional[torch.Tensor] = None
+    covariances: Optional[torch.Tensor] = None
+    particles: Optional[torch.Tensor] = None
+    log_weights: Optional[torch.Tensor] = None
+
+
+class Filter(nn.Module):
+    """Base class: a filter holds its model (a submodule) and its settings, never the belief.
+
+    Subclasses implement :meth:`init` and :meth:`step`; :meth:`forward` runs them over time,
+    validates inputs and raises :class:`~torchflow._checks.NonFiniteError` naming the filter,
+    step and trials where an estimate stops being finite.
+
+    Args:
+        model: the :class:`~torchflow.models.StateSpaceModel` to filter.
+        validate: check input shapes, dtypes, devices and covariances (cheap; turn off in
+            tight loops).
+        name: label used in error messages and result tables (defaults to the class's).
+    """
+
+    uses_particles = False
+
+    def __init__(self, model: StateSpaceModel, *, validate: bool = True, name: Optional[str] = None):
+        super().__init__()
+        if not isinstance(model, StateSpaceModel):
+            raise TypeError(f"model: expected a torchflow StateSpaceModel, got {type(model).__name__}")
+        self.model = model
+        self.validate = validate
+        self.name = name or type(self).__name__
+
+    # ---- contract ------------------------------------------------------------------------------
+    def init(self, mean: torch.Tensor, cov: torch.Tensor, n_particles: Optional[int] = None,
+             generator: Optional[torch.Generator] = None):
+        """Initial state from the prior ``N(mean (B, d), cov (B, d, d))``."""
+        raise NotImplementedError
+
+    def step(self, state, z: torch.Tensor, generator: Optional[torch.Generator] = None):
+        """Process one observation ``z (B, m)``; returns the new state."""
+        raise NotImplementedError
+
+    def bytes_per_trial(self, n_particles: Optional[int] = None) -> int:
+        """Rough peak memory of one trial in one step, used to size chunks of trials."""
+        d, m = self.model.state_dim, self.model.obs_dim
+        return 8 * 8 * (d * d + m * d + m * m)
+
+    # ---- helpers -------------------------------------------------------------------------------
+    def check_prior(self, mean: torch.Tensor, cov: torch.Tensor, batch_size: Optional[int] = None
+                    ) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Validate (and broadcast ``(d,)``/``(d, d)`` to) ``mean (B, d)``, ``cov (B, d, d)``."""
+        d = self.model.state_dim
+        ref = self.model._reference_tensor()
+        if isinstance(mean, torch.Tensor) and mean.dim() == 1 and batch_size is not None:
+            mean = mean.expand(batch_size, -1)
+        if isinstance(cov, torch.Tensor) and cov.dim() == 2 and batch_size is not None:
+            cov = cov.expand(batch_size, -1, -1)
+        check_tensor("mean", mean, (batch_size, d), "(B, d)")
+        check_tensor("cov", cov, (mean.shape[0], d, d), "(B, d, d)")
+        check_same("mean", mean, ref)
+        check_same("cov", cov, ref)
+        if self.validate:
+            check_finite("mean", mean)
+            check_psd("cov", cov)
+        return mean, cov
+
+    def forward(
+        self,
+        observations: torch.Tensor,
+        mean: torch.Tensor,
+        cov: torch.Tensor,
+        generator: Optional[torch.Generator] = None,
+        *,
+        n_particles: Optional[int] = None,
+        return_covariances: bool = False,
+        return_particles: bool = False,
+        progress=None,
+    ) -> FilterResult:
+        """Filter ``observations (B, T, m)`` from the prior ``N(mean (B, d), cov (B, d, d))``.
+
+        Args:
+            observations: ``(B, T, m)``.
+            mean, cov: prior per trial (``(d,)`` / ``(d, d)`` are broadcast over trials).
+            generator: source of all randomness.
+            n_particles: override the filter's particle count (particle filters).
+            return_covariances: also return per-step covariances (Gaussian filters).
+            return_particles: also return per-step particles and log-weights (large).
+            progress: optional callable invoked after each step (e.g. a progress bar update).
+        """
+        if self.validate:
+            self.model.check_observations(observations)
+        mean, cov = self.check_prior(mean, cov, observations.shape[0])
+        state = self.init(mean, cov, n_particles, generator)
+        est, inc, ess, covs, parts, lws = [], [], [], [], [], []
+        for t in range(observations.shape[1]):
+            state = self.step(state, observations[:, t], generator)
+            bad = ~torch.isfinite(state.estimate).all(-1)
+            if bool(bad.any()):
+                raise NonFiniteError(self.name, t + 1, torch.nonzero(bad).flatten().tolist())
+            est.append(state.estimate)
+            inc.append(state.log_evidence_increment)
+            if state.ess is not None:
+                ess.append(state.ess)
+            if return_covariances and isinstance(state, GaussianState):
+                covs.append(state.cov)
+            if return_particles and isinstance(state, ParticleState):
+                parts.append(state.particles)
+                lws.append(state.log_weights)
+            if progress is not None:
+                progress()
+        inc_t = torch.stack(inc, 1)
+        return FilterResult(
+            estimates=torch.stack(est, 1),
+            log_evidence=inc_t.sum(1),
+            log_evidence_increments=inc_t,
+            ess=torch.stack(ess, 1) if ess else None,
+            covariances=torch.stack(covs, 1) if covs else None,
+            particles=torch.stack(parts, 1) if parts else None,
+            log_weights=torch.stack(lws, 1) if lws else None,
+        )
+
+
+def _resampling_module():
+    return resampling
+
+
+class ParticleFilterBase(Filter):
+    """Shared weighting / resampling path of all particle filters.
+
+    Args:
+        model: the state-space model.
+        n_particles: particles per trial N.
+        resampling: ``multinomial``, ``systematic``, ``stratified`` or ``residual``.
+        ess_threshold: resample a trial when ESS < ess_threshold * N (0 never, 1 nearly always).
+        regularization: ``None`` (off), a float variance, or a list of d per-coordinate variances
+            of Gaussian jitter added to the particles of resampled trials.
+    """
+
+    uses_particles = True
+
+    def __init__(self, model, *, n_particles: int = 500, resampling: str = "systematic",
+                 ess_threshold: float = 0.5, regularization=None, validate: bool = True,
+                 name: Optional[str] = None):
+        super().__init__(model, validate=validate, name=name)
+        if int(n_particles) < 1:
+            raise ValueError(f"n_particles: expected a positive integer, got {n_particles}")
+        _resampling_module().get_resampler(resampling)  # validates the name
+        if not 0.0 <= float(ess_threshold) <= 1.0:
+            raise ValueError(f"ess_threshold: expected a fraction in [0, 1], got {ess_threshold}")
+        self.n_particles = int(n_particles)
+        self.resampling_scheme = resampling
+        self.ess_threshold = float(ess_threshold)
+        d = model.state_dim
+        if regularization is None:
+            self.register_buffer("regularization_std", None)
+        else:
+            var = torch.as_tensor(regularization, dtype=torch.float64)
+            if var.dim() == 0:
+                var = var.expand(d)
+            if var.shape != (d,) or bool((var < 0).any()):
+                raise ValueError(f"regularization: expected a non-negative variance or {d} of them, "
+                                 f"got {tuple(var.shape)}")
+            self.register_buffer("regularization_std", var.sqrt().to(model.dtype))
+
+    def bytes_per_trial(self, n_particles=None):
+        N = n_particles or self.n_particles
+        d, m = self.model.state_dim, self.model.obs_dim
+        return 8 * N * (6 * d + 3 * m + 8)
+
+    def _resolve_n(self, n_particles):
+        N = self.n_particles if n_particles is None else int(n_particles)
+        if N < 1:
+            raise ValueError(f"n_particles: expected a positive integer, got {n_particles}")
+        return N
+
+    def weight_and_resample(
+        self,
+        particles: torch.Tensor,
+        prev_log_weights: torch.Tensor,
+        log_increment: torch.Tensor,
+        generator: Optional[torch.Generator],
+        step: int,
+        *,
+        cov: Optional[torch.Tensor] = None,
+        extras: Optional[Dict[str, torch.Tensor]] = None,
+    ) -> ParticleState:
+        """Update normalised ``prev_log_weights (B, N)`` by ``log_increment (B, N)``, estimate,
+        then resample the low-ESS trials (particles, per-particle ``cov`` and ``extras`` follow).
+
+        The step's evidence increment is ``logsumexp(prev_log_weights + log_increment)`` — the
+        standard unbiased estimator of p(z_k | z_{1:k-1}) when the previous weights are normalised.
+        """
+        lw = prev_log_weights + log_increment
+        inc = torch.logsumexp(lw, dim=-1)
+        lw = lw - inc.unsqueeze(-1)
+        w = lw.exp()
+        estimate = torch.einsum("bn,bnd->bd", w, particles)
+        ess = 1.0 / w.pow(2).sum(-1)
+        idx, resampled, lw_new = resampling.resample_if_needed(
+            lw, generator, scheme=self.resampling_scheme, ess_threshold=self.ess_threshold)
+        if bool(resampled.any()):
+            particles = resampling.gather_particles(particles, idx)
+            if cov is not None and cov.dim() == 4:
+                cov = resampling.gather_particles(cov, idx)
+            if extras:
+                extras = {k: resampling.gather_particles(v, idx) for k, v in extras.items()}
+            if self.regularization_std is not None:
+                noise = torch.randn(particles.shape, dtype=particles.dtype, device=particles.device,
+                                    generator=generator) * self.regularization_std
+                particles = particles + noise * resampled[:, None, None].to(particles.dtype)
+        return ParticleState(particles=particles, log_weights=lw_new, estimate=estimate, ess=ess,
+                             log_evidence_increment=inc, resampled=resampled, cov=cov, step=step,
+                             extras=extras or {})

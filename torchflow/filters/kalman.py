@@ -1,0 +1,175 @@
+"""Kalman-type filters: Kalman (exact, linear-Gaussian), extended and unscented Kalman filters."""
+from __future__ import annotations
+
+from typing import Optional, Tuple
+
+import torch
+
+from .. import linalg
+from ..models.linear_gaussian import LinearGaussian
+from .base import Filter, GaussianState
+
+
+def kalman_update(
+    mean_pred: torch.Tensor,
+    cov_pred: torch.Tensor,
+    z: torch.Tensor,
+    z_pred: torch.Tensor,
+    H: torch.Tensor,
+    R: torch.Tensor,
+) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Linear(ised) Gaussian measurement update, any leading batch shape ``(...)``.
+
+    Args:
+        mean_pred: ``(..., d)`` predicted mean.
+        cov_pred: ``(..., d, d)`` predicted covariance P.
+        z: ``(..., m)`` observation (broadcastable).
+        z_pred: ``(..., m)`` predicted measurement (``H mean_pred`` for a linear model).
+        H: ``(..., m, d)`` measurement Jacobian.
+        R: ``(..., m, m)`` measurement noise covariance (broadcastable).
+
+    Returns:
+        posterior mean ``(..., d)``, covariance ``(..., d, d)`` (Joseph form, symmetrised) and
+        the log-density of ``z`` under ``N(z_pred, S)``, ``S = H P H^T + R``: ``(...)``.
+    """
+    HP = H @ cov_pred  # (..., m, d)
+    S = linalg.symmetrize(HP @ H.transpose(-1, -2) + R)
+    L = linalg.safe_cholesky(S)
+    Kt = torch.cholesky_solve(HP, L)  # (..., m, d) = S^{-1} H P  (= K^T)
+    K = Kt.transpose(-1, -2)
+    innov = z - z_pred
+    mean = mean_pred + linalg.matvec(K, innov)
+    d = mean_pred.shape[-1]
+    IKH = torch.eye(d, dtype=H.dtype, device=H.device) - K @ H
+    cov = linalg.symmetrize(IKH @ cov_pred @ IKH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2))
+    loglik = linalg.mvn_log_prob(z, z_pred, L)
+    return mean, cov, loglik
+
+
+def ekf_predict(model, mean: torch.Tensor, cov: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """EKF prediction ``(g(m), G P G^T + Q)`` for ``mean (..., d)``, ``cov (..., d, d)``."""
+    G = model.transition_jacobian(mean)
+    return model.transition_mean(mean), linalg.symmetrize(G @ cov @ G.transpose(-1, -2) + model.transition_cov(mean))
+
+
+class ExtendedKalmanFilter(Filter):
+    """Extended Kalman filter: linearise g at the posterior mean and h at the predicted mean.
+
+    Jacobians come from the model (``torch.func`` by default, analytic where the model provides
+    them). On a linear-Gaussian model it is the Kalman filter.
+    """
+
+    def init(self, mean, cov, n_particles=None, generator=None):
+        return GaussianState(mean, cov, torch.zeros_like(mean[:, 0]), 0)
+
+    def predict(self, state: GaussianState):
+        return ekf_predict(self.model, state.mean, state.cov)
+
+    def step(self, state, z, generator=None):
+        m_pred, P_pred = self.predict(state)
+        mean, cov, ll = kalman_update(
+            m_pred, P_pred, z, self.model.measure(m_pred), self.model.measurement_jacobian(m_pred),
+            self.model.measurement_cov(m_pred))
+        return GaussianState(mean, cov, ll, state.step + 1)
+
+
+class KalmanFilter(ExtendedKalmanFilter):
+    """Exact Kalman filter for :class:`~torchflow.models.LinearGaussian` models.
+
+    Log-evidence ``sum_k log N(z_k; H m_k^-, H P_k^- H^T + R)`` is exact and differentiable in the
+    model's parameters.
+    """
+
+    def __init__(self, model, *, validate: bool = True, name: Optional[str] = None):
+        if not isinstance(model, LinearGaussian):
+            raise TypeError(f"model: KalmanFilter needs a LinearGaussian model, got {type(model).__name__} "
+                            "(use ExtendedKalmanFilter or UnscentedKalmanFilter for nonlinear models)")
+        super().__init__(model, validate=validate, name=name)
+
+    def init(self, mean, cov, n_particles=None, generator=None):
+        # The Riccati recursion does not depend on the data: when every trial starts from the same
+        # covariance, run it once and share it (a stride-0 expanded view keeps the (B, d, d) shape).
+        if cov.shape[0] > 1 and bool((cov == cov[:1]).all()):
+            cov = cov[:1].expand_as(cov)
+        return GaussianState(mean, cov, torch.zeros_like(mean[:, 0]), 0)
+
+    def predict(self, state):
+        F = self.model.transition_matrix()
+        return state.mean @ F.transpose(-1, -2), linalg.symmetrize(F @ state.cov @ F.transpose(-1, -2) + self.model.Q)
+
+    def step(self, state, z, generator=None):
+        B = state.mean.shape[0]
+        shared = B > 1 and state.cov.stride(0) == 0
+        if shared:
+            state = GaussianState(state.mean, state.cov[:1], state.log_evidence_increment, state.step)
+        m_pred, P_pred = self.predict(state)
+        H = self.model.measurement_matrix()
+        mean, cov, ll = kalman_update(m_pred, P_pred, z, m_pred @ H.transpose(-1, -2), H, self.model.R)
+        if shared:
+            cov = cov.expand(B, -1, -1)
+        return GaussianState(mean, cov, ll, state.step + 1)
+
+
+class UnscentedKalmanFilter(Filter):
+    """Unscented Kalman filter (scaled sigma points, Wan & van der Merwe).
+
+    ``2d + 1`` sigma points ``m``, ``m +- sqrt(d + lambda) L_i`` with ``lambda = alpha^2 (d + kappa) - d``.
+    Exact on linear-Gaussian models for any admissible (alpha, beta, kappa).
+
+    Args:
+        alpha, beta, kappa: sigma-point spread and weights. Defaults ``alpha = 1``, ``beta = 2``,
+            ``kappa = None`` meaning ``3 - d`` (Julier & Uhlmann's ``d + kappa = 3`` rule). On the
+            acoustic model (d = 16, prior sd 10 m) ``kappa = 0`` puts sigma points 40 m from the
+            mean, outside the field, and the UKF diverges (OMAT ~23 m vs ~5.7 m with 3 - d).
+    """
+
+    def __init__(self, model, *, alpha: float = 1.0, beta: float = 2.0, kappa: Optional[float] = None,
+                 validate: bool = True, name: Optional[str] = None):
+        super().__init__(model, validate=validate, name=name)
+        d = model.state_dim
+        if kappa is None:
+            kappa = 3.0 - d
+        lam = alpha**2 * (d + kappa) - d
+        if d + lam <= 0:
+            raise ValueError(f"alpha, kappa: need alpha^2 (d + kappa) > 0, got alpha={alpha}, kappa={kappa}, d={d}")
+        self.alpha, self.beta, self.kappa = float(alpha), float(beta), float(kappa)
+        self._scale = (d + lam) ** 0.5
+        wm = torch.full((2 * d + 1,), 0.5 / (d + lam), dtype=torch.float64)
+        wc = wm.clone()
+        wm[0] = lam / (d + lam)
+        wc[0] = lam / (d + lam) + (1 - alpha**2 + beta)
+        self.register_buffer("wm", wm.to(model.dtype))
+        self.register_buffer("wc", wc.to(model.dtype))
+
+    def sigma_points(self, mean, cov):
+        """``(..., d)``, ``(..., d, d)`` -> sigma points ``(..., 2d + 1, d)``."""
+        L = linalg.safe_cholesky(cov) * self._scale
+        cols = L.transpose(-1, -2)  # rows = columns of L
+        m = mean.unsqueeze(-2)
+        return torch.cat([m, m + cols, m - cols], dim=-2)
+
+    def _moments(self, Y):
+        mean = torch.einsum("s,...sd->...d", self.wm, Y)
+        D = Y - mean.unsqueeze(-2)
+        return mean, D
+
+    def init(self, mean, cov, n_particles=None, generator=None):
+        return GaussianState(mean, cov, torch.zeros_like(mean[:, 0]), 0)
+
+    def step(self, state, z, generator=None):
+        model = self.model
+        X = model.transition_mean(self.sigma_points(state.mean, state.cov))
+        m_pred, DX = self._moments(X)
+        P_pred = linalg.symmetrize(torch.einsum("s,...si,...sj->...ij", self.wc, DX, DX) + model.transition_cov(m_pred))
+        X = self.sigma_points(m_pred, P_pred)
+        Z = model.measure(X)
+        z_pred, DZ = self._moments(Z)
+        DX = X - m_pred.unsqueeze(-2)
+        S = linalg.symmetrize(torch.einsum("s,...si,...sj->...ij", self.wc, DZ, DZ) + model.measurement_cov(m_pred))
+        C = torch.einsum("s,...si,...sj->...ij", self.wc, DX, DZ)  # (..., d, m)
+        L = linalg.safe_cholesky(S)
+        K = torch.cholesky_solve(C.transpose(-1, -2), L).transpose(-1, -2)  # C S^{-1}
+        mean = m_pred + linalg.matvec(K, z - z_pred)
+        cov = linalg.symmetrize(P_pred - K @ S @ K.transpose(-1, -2))
+        ll = linalg.mvn_log_prob(z, z_pred, L)
+        return GaussianState(mean, cov, ll, state.step + 1)

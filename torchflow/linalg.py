@@ -1,0 +1,139 @@
+"""Batched linear algebra used by every filter: Cholesky with jitter, solves, log-dets, MVN log-pdf.
+
+All functions take arbitrary leading batch dimensions ``(..., d, d)``. No matrix inverse is ever
+formed: solves go through Cholesky factors.
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional, Tuple
+
+import torch
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+def symmetrize(A: torch.Tensor) -> torch.Tensor:
+    """Return ``(A + A^T) / 2`` for ``A (..., d, d)``."""
+    return 0.5 * (A + A.transpose(-1, -2))
+
+
+def safe_cholesky(
+    A: torch.Tensor, *, max_tries: int = 6, jitter: Optional[float] = None
+) -> torch.Tensor:
+    """Lower Cholesky factor of ``A (..., d, d)``, adding diagonal jitter where it fails.
+
+    Matrices that factor cleanly are untouched. For those that do not, jitter
+    ``eps * 10^k * mean(diag)`` (k = 0, 1, ...) is added to those matrices only, where ``eps`` is the
+    dtype's machine epsilon times 10 unless ``jitter`` is given.
+
+    Raises:
+        torch.linalg.LinAlgError: if a matrix still fails after ``max_tries`` increases; the
+            message names the first failing batch index.
+    """
+    L, info = torch.linalg.cholesky_ex(A)
+    if not bool((info > 0).any()):
+        return L
+    d = A.shape[-1]
+    eye = torch.eye(d, dtype=A.dtype, device=A.device)
+    base = jitter if jitter is not None else 10.0 * torch.finfo(A.dtype).eps
+    scale = A.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(A.dtype).tiny)
+    failed = info > 0
+    for k in range(max_tries):
+        add = (base * 10.0**k) * scale
+        A_j = A + torch.where(failed, add, torch.zeros_like(add))[..., None, None] * eye
+        L_j, info = torch.linalg.cholesky_ex(A_j)
+        L = torch.where(failed[..., None, None], L_j, L)
+        failed = failed & (info > 0)
+        if not bool(failed.any()):
+            return L
+    idx = int(torch.nonzero(failed.reshape(-1))[0])
+    raise torch.linalg.LinAlgError(
+        f"safe_cholesky: matrix at batch index {idx} is not positive definite even with jitter "
+        f"{base * 10.0 ** (max_tries - 1):.1e} x mean diagonal"
+    )
+
+
+def chol_solve(L: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
+    """Solve ``(L L^T) X = B`` for ``X`` given lower ``L (..., d, d)`` and ``B (..., d, k)``."""
+    return torch.cholesky_solve(B, L)
+
+
+def chol_logdet(L: torch.Tensor) -> torch.Tensor:
+    """``log det(L L^T)`` for lower Cholesky factor ``L (..., d, d)`` -> ``(...)``."""
+    return 2.0 * torch.log(L.diagonal(dim1=-2, dim2=-1)).sum(-1)
+
+
+def mvn_log_prob(x: torch.Tensor, mean: torch.Tensor, scale_tril: torch.Tensor) -> torch.Tensor:
+    """Log-density of ``N(mean, L L^T)`` at ``x``.
+
+    Args:
+        x: ``(..., d)`` points.
+        mean: ``(..., d)`` broadcastable to ``x``.
+        scale_tril: ``(..., d, d)`` lower Cholesky factor, broadcastable.
+
+    Returns:
+        ``(...)`` log-densities.
+    """
+    diff = x - mean
+    d = diff.shape[-1]
+    if scale_tril.dim() > 2 and scale_tril.shape[:-2].numel() == 1:
+        scale_tril = scale_tril.reshape(d, d)
+    if scale_tril.dim() == 2:
+        # one shared factor: a single triangular solve with all points as right-hand sides
+        flat = diff.reshape(-1, d)
+        sol = torch.linalg.solve_triangular(scale_tril, flat.transpose(0, 1), upper=False).transpose(0, 1)
+        sol = sol.reshape(diff.shape)
+    else:
+        shape = torch.broadcast_shapes(diff.shape[:-1], scale_tril.shape[:-2])
+        diff = diff.expand(*shape, d)
+        L = scale_tril.expand(*shape, d, d)
+        sol = torch.linalg.solve_triangular(L, diff.unsqueeze(-1), upper=False).squeeze(-1)
+    return -0.5 * (sol.pow(2).sum(-1) + d * _LOG_2PI) - torch.log(scale_tril.diagonal(dim1=-2, dim2=-1)).sum(-1)
+
+
+def matvec(A: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``A x`` for matrices ``A (m, d)`` or ``(..., m, d)`` and vectors ``x (..., d)`` -> ``(..., m)``.
+
+    A single shared matrix (2-D, or batch of size one) is applied as one matrix product
+    ``x @ A^T``, much faster than a batch of matrix-vector products."""
+    if A.dim() > 2 and A.shape[:-2].numel() == 1:
+        A = A.reshape(A.shape[-2:])
+    if A.dim() == 2:
+        return x @ A.transpose(0, 1)
+    return (A @ x.unsqueeze(-1)).squeeze(-1)
+
+
+def sample_mvn(
+    mean: torch.Tensor, scale_tril: torch.Tensor, sample_shape: Tuple[int, ...], generator=None
+) -> torch.Tensor:
+    """Draw ``mean + L xi`` with ``xi ~ N(0, I)``.
+
+    Args:
+        mean: ``(..., d)``.
+        scale_tril: ``(..., d, d)`` broadcastable with ``mean``.
+        sample_shape: extra dims inserted right after the leading batch dims of ``mean``'s first
+            dim. Samples have shape ``(mean.shape[0], *sample_shape, d)`` when ``mean`` is ``(B, d)``.
+        generator: ``torch.Generator`` or ``None``.
+    """
+    d = mean.shape[-1]
+    B = mean.shape[:-1]
+    xi = torch.randn(*B, *sample_shape, d, dtype=mean.dtype, device=mean.device, generator=generator)
+    k = len(sample_shape)
+    m = mean.reshape(*B, *([1] * k), d)
+    L = scale_tril.reshape(*scale_tril.shape[:-2], *([1] * k), d, d) if scale_tril.dim() > 2 else scale_tril
+    return m + matvec(L, xi)
+
+
+def weighted_mean_cov(
+    x: torch.Tensor, log_weights: torch.Tensor
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Weighted mean ``(B, d)`` and covariance ``(B, d, d)`` of particles ``x (B, N, d)``.
+
+    ``log_weights (B, N)`` need not be normalised.
+    """
+    w = torch.softmax(log_weights, dim=-1)
+    mean = torch.einsum("bn,bnd->bd", w, x)
+    diff = x - mean.unsqueeze(1)
+    cov = torch.einsum("bn,bni,bnj->bij", w, diff, diff)
+    return mean, symmetrize(cov)

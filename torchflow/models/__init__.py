@@ -1,0 +1,13 @@
+"""State-space models: the interface every filter consumes, and the models of the seed papers."""
+from .acoustic import AcousticTracking
+from .base import StateSpaceModel, Trajectory
+from .linear_gaussian import LinearGaussian, SensorNetwork, sensor_network_covariance
+
+__all__ = [
+    "StateSpaceModel",
+    "Trajectory",
+    "LinearGaussian",
+    "SensorNetwork",
+    "sensor_network_covariance",
+    "AcousticTracking",
+]

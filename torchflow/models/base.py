@@ -1,0 +1,173 @@
+"""The single model interface every filter consumes."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+import torch
+from torch import nn
+
+from .. import linalg
+from .._checks import check_finite, check_tensor
+from ..linearize import jacobian
+
+
+@dataclass
+class Trajectory:
+    """Simulated data.
+
+    Attributes:
+        states: ``(B, T+1, d)`` true states, index 0 is the initial state x_0.
+        observations: ``(B, T, m)`` measurements z_1..z_T.
+    """
+
+    states: torch.Tensor
+    observations: torch.Tensor
+
+    def __getitem__(self, idx) -> "Trajectory":
+        """Select trials, e.g. ``traj[0:10]``."""
+        return Trajectory(self.states[idx], self.observations[idx])
+
+
+class StateSpaceModel(nn.Module):
+    """Base class of state-space models ``x_k = g(x_{k-1}) + v_k``, ``z_k = h(x_k) + w_k``.
+
+    The filter-side distributions (``transition_*``, ``measurement_*``) are what the filters use;
+    :meth:`simulate` may use a different, "true" process (e.g. the acoustic model's filter noise
+    is inflated relative to its true noise). Model functions take any leading batch shape
+    ``(..., d)`` and broadcast. Parameters are buffers or ``nn.Parameter``s so they can be learned.
+
+    Subclasses implement :meth:`transition_mean`, :meth:`transition_cov`, :meth:`measure`,
+    :meth:`measurement_cov`, :meth:`initial_state` and :meth:`initial_belief`; they may override
+    :meth:`measurement_jacobian` with an analytic Jacobian.
+    """
+
+    state_dim: int
+    obs_dim: int
+
+    # ---- dtype / device --------------------------------------------------------------------
+    @property
+    def dtype(self) -> torch.dtype:
+        return self._reference_tensor().dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self._reference_tensor().device
+
+    def _reference_tensor(self) -> torch.Tensor:
+        for t in self.parameters():
+            return t
+        for t in self.buffers():
+            return t
+        raise RuntimeError(f"{type(self).__name__} has no parameters or buffers")
+
+    # ---- dynamics ----------------------------------------------------------------------------
+    def transition_mean(self, x: torch.Tensor) -> torch.Tensor:
+        """Noise-free dynamics g(x, E[v]): ``(..., d) -> (..., d)``."""
+        raise NotImplementedError
+
+    def transition_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """Cov[x_k | x_{k-1}] used by filters: broadcastable ``(d, d)`` or ``(..., d, d)``."""
+        raise NotImplementedError
+
+    def transition_scale_tril(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """Lower Cholesky factor of :meth:`transition_cov`."""
+        return linalg.safe_cholesky(self.transition_cov(x))
+
+    def transition_jacobian(self, x: torch.Tensor) -> torch.Tensor:
+        """d g / d x at ``x (..., d)`` -> ``(..., d, d)`` (torch.func by default)."""
+        return jacobian(self.transition_mean, x)
+
+    def sample_transition(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
+        """Draw x_k ~ p(x_k | x_{k-1} = x) for ``x (..., d)``."""
+        L = self.transition_scale_tril(x)
+        xi = torch.randn(x.shape, dtype=x.dtype, device=x.device, generator=generator)
+        return self.transition_mean(x) + linalg.matvec(L, xi)
+
+    def transition_log_prob(self, x_next: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """log p(x_next | x) -> ``(...)``."""
+        return linalg.mvn_log_prob(x_next, self.transition_mean(x), self.transition_scale_tril(x))
+
+    # ---- measurement -------------------------------------------------------------------------
+    def measure(self, x: torch.Tensor) -> torch.Tensor:
+        """Noise-free measurement h(x, 0): ``(..., d) -> (..., m)``."""
+        raise NotImplementedError
+
+    def measurement_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """R: broadcastable ``(m, m)`` or ``(..., m, m)``."""
+        raise NotImplementedError
+
+    def measurement_scale_tril(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
+        return linalg.safe_cholesky(self.measurement_cov(x))
+
+    def measurement_jacobian(self, x: torch.Tensor) -> torch.Tensor:
+        """dh/dx at ``x (..., d)`` -> ``(..., m, d)``; torch.func (vmapped jacrev) by default."""
+        return jacobian(self.measure, x)
+
+    def measurement_log_prob(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """log p(z | x) for ``z`` broadcastable to ``(..., m)`` -> ``(...)``."""
+        return linalg.mvn_log_prob(z, self.measure(x), self.measurement_scale_tril(x))
+
+    def sample_measurement(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
+        """Draw z ~ p(z | x) for ``x (..., d)`` -> ``(..., m)``."""
+        mean = self.measure(x)
+        L = self.measurement_scale_tril(x)
+        xi = torch.randn(mean.shape, dtype=x.dtype, device=x.device, generator=generator)
+        return mean + linalg.matvec(L, xi)
+
+    # ---- truth and priors --------------------------------------------------------------------
+    def true_transition_scale_tril(self) -> torch.Tensor:
+        """Cholesky factor of the noise used by :meth:`simulate` (defaults to the filter's)."""
+        return self.transition_scale_tril()
+
+    def initial_state(self, batch_size: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
+        """True initial states x_0 -> ``(B, d)``."""
+        raise NotImplementedError
+
+    def initial_belief(
+        self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
+    ) -> Tuple[torch.Tensor, torch.Tensor]:
+        """The filters' prior for each trial given the true ``states0 (B, d)``.
+
+        Returns:
+            mean ``(B, d)`` and covariance ``(B, d, d)``.
+        """
+        raise NotImplementedError
+
+    def simulate(
+        self, batch_size: int, steps: int, generator: Optional[torch.Generator] = None
+    ) -> Trajectory:
+        """Simulate ``batch_size`` independent trajectories of ``steps`` steps.
+
+        Returns:
+            :class:`Trajectory` with states ``(B, T+1, d)`` and observations ``(B, T, m)``.
+        """
+        with torch.no_grad():
+            x = self.initial_state(batch_size, generator)
+            L = self.true_transition_scale_tril()
+            states = [x]
+            obs = []
+            for _ in range(steps):
+                xi = torch.randn(x.shape, dtype=x.dtype, device=x.device, generator=generator)
+                x = self.transition_mean(x) + linalg.matvec(L, xi)
+                states.append(x)
+                obs.append(self.sample_measurement(x, generator))
+            return Trajectory(torch.stack(states, 1), torch.stack(obs, 1))
+
+    # ---- tracking ------------------------------------------------------------------------------
+    @property
+    def has_positions(self) -> bool:
+        return False
+
+    def positions(self, x: torch.Tensor) -> torch.Tensor:
+        """Target positions ``(..., C, 2 or 3)`` of states ``(..., d)`` (tracking models only)."""
+        raise NotImplementedError(f"{type(self).__name__} has no target positions")
+
+    # ---- validation ----------------------------------------------------------------------------
+    def check_observations(self, observations: torch.Tensor) -> torch.Tensor:
+        """Raise a clear error unless ``observations`` is a finite ``(B, T, m)`` tensor on the
+        model's dtype and device."""
+        check_tensor("observations", observations, (None, None, self.obs_dim), "(B, T, m)",
+                     dtype=self.dtype, device=self.device)
+        check_finite("observations", observations)
+        return observations

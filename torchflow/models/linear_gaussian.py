@@ -1,0 +1,158 @@
+"""Linear-Gaussian state-space model and the spatial sensor network of Li & Coates (2017) §V."""
+from __future__ import annotations
+
+import math
+from typing import Optional, Tuple
+
+import torch
+from torch import nn
+
+from .._checks import check_psd, check_tensor
+from .base import StateSpaceModel
+
+
+def _as_param(value, learnable: bool) -> torch.Tensor:
+    t = torch.as_tensor(value, dtype=torch.get_default_dtype() if not torch.is_tensor(value) else None)
+    t = t.clone()
+    return nn.Parameter(t, requires_grad=True) if learnable else t
+
+
+class LinearGaussian(StateSpaceModel):
+    """``x_k = F x_{k-1} + v_k``, ``v ~ N(0, Q)``; ``z_k = H x_k + w_k``, ``w ~ N(0, R)``.
+
+    The true initial state is drawn from ``N(m0, P0)`` and the filters' prior is the same
+    ``N(m0, P0)``, so the Kalman filter is the exact posterior and its log-evidence is exact.
+    ``P0`` may be singular (e.g. 0: a known initial state).
+
+    Args:
+        F: ``(d, d)`` transition matrix.
+        Q: ``(d, d)`` process noise covariance (positive definite).
+        H: ``(m, d)`` measurement matrix (m may differ from d).
+        R: ``(m, m)`` measurement noise covariance (positive definite).
+        m0: ``(d,)`` initial mean (default zeros).
+        P0: ``(d, d)`` initial covariance (default zeros: x_0 = m0 known).
+        learnable: register F, Q, H, R as ``nn.Parameter`` (else buffers).
+    """
+
+    def __init__(self, F, Q, H, R, m0=None, P0=None, *, learnable: bool = False):
+        super().__init__()
+        F = torch.as_tensor(F, dtype=torch.float64)
+        d = F.shape[-1]
+        H = torch.as_tensor(H, dtype=torch.float64)
+        m = H.shape[0]
+        check_tensor("F", F, (d, d), "(d, d)")
+        check_tensor("H", H, (m, d), "(m, d)")
+        Q = check_tensor("Q", torch.as_tensor(Q, dtype=torch.float64), (d, d), "(d, d)")
+        R = check_tensor("R", torch.as_tensor(R, dtype=torch.float64), (m, m), "(m, m)")
+        check_psd("Q", Q)
+        check_psd("R", R)
+        m0 = torch.zeros(d, dtype=torch.float64) if m0 is None else torch.as_tensor(m0, dtype=torch.float64)
+        P0 = torch.zeros(d, d, dtype=torch.float64) if P0 is None else torch.as_tensor(P0, dtype=torch.float64)
+        check_tensor("m0", m0, (d,), "(d,)")
+        check_tensor("P0", P0, (d, d), "(d, d)")
+        check_psd("P0", P0)
+        self.state_dim, self.obs_dim = d, m
+        for name, val in (("F", F), ("Q", Q), ("H", H), ("R", R)):
+            if learnable:
+                setattr(self, name, nn.Parameter(val.clone()))
+            else:
+                self.register_buffer(name, val.clone())
+        self.register_buffer("m0", m0.clone())
+        self.register_buffer("P0", P0.clone())
+
+    # analytic, constant matrices
+    def transition_matrix(self) -> torch.Tensor:
+        return self.F
+
+    def measurement_matrix(self) -> torch.Tensor:
+        return self.H
+
+    def transition_mean(self, x):
+        return x @ self.F.transpose(-1, -2)
+
+    def transition_cov(self, x=None):
+        return self.Q
+
+    def transition_jacobian(self, x):
+        return self.F.expand(*x.shape[:-1], *self.F.shape)
+
+    def measure(self, x):
+        return x @ self.H.transpose(-1, -2)
+
+    def measurement_cov(self, x=None):
+        return self.R
+
+    def measurement_jacobian(self, x):
+        return self.H.expand(*x.shape[:-1], *self.H.shape)
+
+    def initial_state(self, batch_size, generator=None):
+        from ..linalg import safe_cholesky
+
+        xi = torch.randn(batch_size, self.state_dim, dtype=self.dtype, device=self.device, generator=generator)
+        if bool((self.P0 == 0).all()):
+            return self.m0.expand(batch_size, -1).clone()
+        return self.m0 + xi @ safe_cholesky(self.P0).transpose(-1, -2)
+
+    def initial_belief(self, states0, generator=None) -> Tuple[torch.Tensor, torch.Tensor]:
+        B = states0.shape[0]
+        return self.m0.expand(B, -1).clone(), self.P0.expand(B, -1, -1).clone()
+
+
+def sensor_network_covariance(
+    grid_size: int, alpha0: float = 3.0, alpha1: float = 0.01, beta: float = 20.0
+) -> torch.Tensor:
+    """Process noise of the spatial sensor network: ``Sigma_ij = alpha0 exp(-|R_i - R_j|^2 / beta)
+    + alpha1 delta_ij`` over a ``grid_size x grid_size`` grid with unit spacing (``d = grid_size^2``).
+
+    Sensor order: x fastest (index ``s = grid_size * iy + ix``).
+    """
+    coords = torch.linspace(1.0, float(grid_size), grid_size, dtype=torch.float64)
+    yy, xx = torch.meshgrid(coords, coords, indexing="ij")
+    R = torch.stack([xx.reshape(-1), yy.reshape(-1)], -1)  # (d, 2), x fastest
+    sq = (R[:, None, :] - R[None, :, :]).pow(2).sum(-1)
+    d = grid_size * grid_size
+    return alpha0 * torch.exp(-sq / beta) + alpha1 * torch.eye(d, dtype=torch.float64)
+
+
+class SensorNetwork(LinearGaussian):
+    """Linear-Gaussian spatial sensor network (Li & Coates 2017 §V; MODELS.md §2).
+
+    ``x_k = alpha x_{k-1} + v_k`` with ``v ~ N(0, Sigma)`` (:func:`sensor_network_covariance`),
+    ``z_k = x_k + w_k`` with ``w ~ N(0, sigma_z^2 I)``, one sensor per grid cell, ``x_0 = 0`` known
+    (``prior_var = 0``) unless ``prior_var > 0`` gives ``x_0 ~ N(0, prior_var I)``.
+
+    Args:
+        d: state dimension, a perfect square (default 64).
+        alpha, alpha0, alpha1, beta: dynamics constants (0.9, 3, 0.01, 20).
+        sigma_z: measurement noise standard deviation (0.5).
+        prior_var: variance of the (true and assumed) initial state (0: known x_0 = 0).
+        learnable: make F, Q, H, R ``nn.Parameter``s.
+    """
+
+    def __init__(
+        self,
+        *,
+        d: int = 64,
+        alpha: float = 0.9,
+        alpha0: float = 3.0,
+        alpha1: float = 0.01,
+        beta: float = 20.0,
+        sigma_z: float = 0.5,
+        prior_var: float = 0.0,
+        learnable: bool = False,
+    ):
+        g = int(round(math.sqrt(d)))
+        if g * g != d:
+            raise ValueError(f"d: expected a perfect square (grid side^2), got {d}")
+        if sigma_z <= 0:
+            raise ValueError(f"sigma_z: expected > 0, got {sigma_z}")
+        eye = torch.eye(d, dtype=torch.float64)
+        super().__init__(
+            F=alpha * eye,
+            Q=sensor_network_covariance(g, alpha0, alpha1, beta),
+            H=eye,
+            R=sigma_z**2 * eye,
+            m0=torch.zeros(d, dtype=torch.float64),
+            P0=prior_var * eye,
+            learnable=learnable,
+        )

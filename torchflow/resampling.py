@@ -1,0 +1,475 @@
+"""Batched particle resampling.
+
+All functions operate on a batch of ``B`` independent trials, each carrying
+``N`` particles, and take *log* weights of shape ``(B, N)``. Weights never
+need to be normalised on input; normalisation is done in log space with
+``torch.logsumexp`` (or, for the cumulative weights used by the resamplers,
+relative to the per-trial maximum log weight, which is equivalent and
+overflow-free). Zero weights are expressed as ``-inf`` log weights and such
+particles are never selected.
+
+Randomness comes only from the ``torch.Generator`` passed as ``generator``
+(``None`` means torch's default generator). Random numbers are drawn with
+``torch.rand`` on the device of ``log_weights``; each resampler consumes a
+fixed number of uniforms per call (independent of the weight values), so the
+same generator state always yields the same indices.
+
+Every resampler returns ``indices`` of shape ``(B, N)`` and dtype
+``torch.int64``: ``indices[b, j]`` is the parent (ancestor) of particle ``j``
+in trial ``b`` after resampling. Use :func:`gather_particles` to apply them.
+
+Implementation note: the inverse-CDF resamplers compare positions
+``p_j in [0, N)`` with the *scaled* cumulative weights ``S_i = N * c_i``
+where ``c`` is the normalised cumulative sum whose last entry (and every
+entry after the last positive weight) is exactly ``1``, i.e. ``S`` ends
+exactly at ``N``. This is the same as comparing ``u_j = p_j / N`` with ``c``,
+but keeps integer positions exact (uniform weights give ``S_i = i + 1``
+exactly), and ``p_j`` is kept strictly below its upper bound, so zero-weight
+particles (leading, interior or trailing) can never be selected.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from typing import Callable, Dict, Optional, Tuple
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "normalize_log_weights",
+    "effective_sample_size",
+    "multinomial",
+    "systematic",
+    "stratified",
+    "residual",
+    "RESAMPLERS",
+    "get_resampler",
+    "resample_if_needed",
+    "gather_particles",
+]
+
+Resampler = Callable[..., Tensor]
+
+
+# ---------------------------------------------------------------------------
+# Validation helpers
+# ---------------------------------------------------------------------------
+def _check_log_weights(log_weights: object, name: str = "log_weights") -> Tensor:
+    """Validates a ``(B, N)`` floating-point log-weight tensor.
+
+    Checks the type, shape (2-D with ``N >= 1``) and dtype, and that the
+    values are usable: no NaN, no ``+inf`` and at least one finite entry per
+    trial (otherwise the weights cannot be normalised).
+
+    Args:
+        log_weights: Candidate tensor, expected shape ``(B, N)``.
+        name: Argument name used in error messages.
+
+    Returns:
+        The same tensor.
+
+    Raises:
+        ValueError: If any of the checks fails.
+    """
+    if not isinstance(log_weights, Tensor):
+        raise ValueError(
+            f"{name} must be a torch.Tensor of shape (B, N), "
+            f"got {type(log_weights).__name__}"
+        )
+    if log_weights.dim() != 2:
+        raise ValueError(
+            f"{name} must have shape (B, N) (2-D), got shape "
+            f"{tuple(log_weights.shape)} ({log_weights.dim()}-D)"
+        )
+    if log_weights.shape[1] < 1:
+        raise ValueError(
+            f"{name} must have shape (B, N) with N >= 1 particles, got shape "
+            f"{tuple(log_weights.shape)}"
+        )
+    if not log_weights.is_floating_point():
+        raise ValueError(
+            f"{name} must have a floating-point dtype, got {log_weights.dtype}"
+        )
+    if log_weights.numel() > 0:
+        has_nan_or_posinf = torch.isnan(log_weights).any() | torch.isposinf(
+            log_weights
+        ).any()
+        row_ok = torch.isfinite(log_weights).any(dim=1).all()
+        if bool(has_nan_or_posinf):
+            raise ValueError(f"{name} must not contain NaN or +inf values")
+        if not bool(row_ok):
+            raise ValueError(
+                f"every trial (row) of {name} must contain at least one finite "
+                f"log weight; got a row that is entirely -inf"
+            )
+    return log_weights
+
+
+def _working_dtype(dtype: torch.dtype) -> torch.dtype:
+    """Returns the dtype used for internal computations (at least float32)."""
+    return torch.promote_types(dtype, torch.float32)
+
+
+def _unnormalized_weights(log_weights: Tensor) -> Tensor:
+    """Returns ``exp(log_weights - max)`` per trial, shape ``(B, N)``.
+
+    The maximum entry of each row is exactly ``1``; ``-inf`` maps to ``0``.
+    """
+    lw = log_weights.to(_working_dtype(log_weights.dtype))
+    return torch.exp(lw - lw.amax(dim=1, keepdim=True))
+
+
+def _scaled_cdf(weights: Tensor) -> Tensor:
+    """Scaled cumulative weights ``N * cumsum(w) / sum(w)``, shape ``(B, N)``.
+
+    Every entry whose cumulative sum already equals the total (in particular
+    the last entry) is set to exactly ``N``, so the normalised CDF ends at
+    exactly ``1``. Values are clamped to ``<= N`` to keep rows sorted.
+
+    Args:
+        weights: Non-negative weights, shape ``(B, N)``, each row with a
+            positive sum.
+
+    Returns:
+        Tensor of shape ``(B, N)``, non-decreasing along dim 1.
+    """
+    n = weights.shape[1]
+    cs = torch.cumsum(weights, dim=1)
+    total = cs[:, -1:]
+    scaled = (cs * (n / total)).clamp(max=float(n))
+    return torch.where(cs >= total, torch.full_like(scaled, float(n)), scaled)
+
+
+def _invert_cdf(scaled_cdf: Tensor, positions: Tensor) -> Tensor:
+    """Finds, per position, the particle whose CDF interval contains it.
+
+    Args:
+        scaled_cdf: Output of :func:`_scaled_cdf`, shape ``(B, N)``.
+        positions: Positions in ``[0, N)``, shape ``(B, M)``.
+
+    Returns:
+        int64 indices of shape ``(B, M)``, clamped to ``N - 1``.
+    """
+    n = scaled_cdf.shape[1]
+    idx = torch.searchsorted(scaled_cdf.contiguous(), positions.contiguous(), right=True)
+    return idx.clamp_(max=n - 1)
+
+
+def _below(x: Tensor, upper: Tensor) -> Tensor:
+    """Clamps ``x`` to be strictly below ``upper`` (elementwise, broadcast)."""
+    return torch.minimum(x, torch.nextafter(upper, torch.zeros_like(upper)))
+
+
+def _rand(shape: Tuple[int, ...], like: Tensor, generator: Optional[torch.Generator]) -> Tensor:
+    """Uniform ``[0, 1)`` draws on ``like``'s device in the working dtype."""
+    return torch.rand(
+        shape,
+        generator=generator,
+        device=like.device,
+        dtype=_working_dtype(like.dtype),
+    )
+
+
+# ---------------------------------------------------------------------------
+# Weight utilities
+# ---------------------------------------------------------------------------
+def normalize_log_weights(log_weights: Tensor) -> Tensor:
+    """Normalises log weights so that each trial's weights sum to one.
+
+    Args:
+        log_weights: Unnormalised log weights, shape ``(B, N)``.
+
+    Returns:
+        Log weights of shape ``(B, N)`` (same dtype) with
+        ``logsumexp(result, dim=1) == 0``.
+
+    Raises:
+        ValueError: If ``log_weights`` is not a 2-D floating-point tensor with
+            at least one finite entry per row, or contains NaN / ``+inf``.
+    """
+    _check_log_weights(log_weights)
+    # Shift by the row maximum first: exact, and avoids cancellation when the
+    # log weights are large in magnitude (e.g. -1000 in float32).
+    shifted = log_weights - log_weights.amax(dim=1, keepdim=True)
+    return shifted - torch.logsumexp(shifted, dim=1, keepdim=True)
+
+
+def effective_sample_size(log_weights: Tensor) -> Tensor:
+    """Effective sample size ``1 / sum_i w_i^2`` of normalised weights.
+
+    Computed in log space as ``exp(-logsumexp(2 * log_w_normalised))``.
+    Ranges from ``1`` (one particle holds all the weight) to ``N`` (uniform).
+
+    Args:
+        log_weights: Unnormalised log weights, shape ``(B, N)``.
+
+    Returns:
+        ESS per trial, shape ``(B,)``, same dtype as ``log_weights``.
+
+    Raises:
+        ValueError: On invalid ``log_weights`` (see :func:`normalize_log_weights`).
+    """
+    lw = normalize_log_weights(log_weights)
+    return torch.exp(-torch.logsumexp(2.0 * lw, dim=1))
+
+
+# ---------------------------------------------------------------------------
+# Resamplers
+# ---------------------------------------------------------------------------
+def multinomial(log_weights: Tensor, generator: Optional[torch.Generator] = None) -> Tensor:
+    """Multinomial resampling: ``N`` i.i.d. draws from the weights.
+
+    Uses inverse-CDF sampling with ``N`` independent uniforms per trial. The
+    offspring count of particle ``i`` is ``Binomial(N, w_i)``.
+
+    Args:
+        log_weights: Unnormalised log weights, shape ``(B, N)``.
+        generator: Source of randomness; ``None`` uses torch's default.
+
+    Returns:
+        Ancestor indices, shape ``(B, N)``, dtype ``torch.int64``.
+
+    Raises:
+        ValueError: On invalid ``log_weights``.
+    """
+    _check_log_weights(log_weights)
+    b, n = log_weights.shape
+    cdf = _scaled_cdf(_unnormalized_weights(log_weights))
+    positions = _below(_rand((b, n), log_weights, generator) * n, cdf.new_tensor(float(n)))
+    return _invert_cdf(cdf, positions)
+
+
+def systematic(log_weights: Tensor, generator: Optional[torch.Generator] = None) -> Tensor:
+    """Systematic resampling: one uniform ``U`` per trial, ``u_i = (U + i) / N``.
+
+    Indices are the inverse CDF (``searchsorted`` of the cumulative weights,
+    normalised to end at exactly ``1``) at the ``u_i``, clamped to ``N - 1``.
+    The returned indices are non-decreasing, and the offspring count of
+    particle ``i`` is always ``floor(N w_i)`` or ``ceil(N w_i)``.
+
+    Args:
+        log_weights: Unnormalised log weights, shape ``(B, N)``.
+        generator: Source of randomness; ``None`` uses torch's default.
+
+    Returns:
+        Ancestor indices, shape ``(B, N)``, dtype ``torch.int64``.
+
+    Raises:
+        ValueError: On invalid ``log_weights``.
+    """
+    _check_log_weights(log_weights)
+    b, n = log_weights.shape
+    cdf = _scaled_cdf(_unnormalized_weights(log_weights))
+    u = _rand((b, 1), log_weights, generator)
+    i = torch.arange(n, device=cdf.device, dtype=cdf.dtype)
+    positions = _below(i + u, i + 1.0)  # N * u_i, kept in [i, i + 1)
+    return _invert_cdf(cdf, positions)
+
+
+def stratified(log_weights: Tensor, generator: Optional[torch.Generator] = None) -> Tensor:
+    """Stratified resampling: ``u_i = (i + U_i) / N`` with independent ``U_i``.
+
+    Args:
+        log_weights: Unnormalised log weights, shape ``(B, N)``.
+        generator: Source of randomness; ``None`` uses torch's default.
+
+    Returns:
+        Ancestor indices (non-decreasing per trial), shape ``(B, N)``,
+        dtype ``torch.int64``.
+
+    Raises:
+        ValueError: On invalid ``log_weights``.
+    """
+    _check_log_weights(log_weights)
+    b, n = log_weights.shape
+    cdf = _scaled_cdf(_unnormalized_weights(log_weights))
+    u = _rand((b, n), log_weights, generator)
+    i = torch.arange(n, device=cdf.device, dtype=cdf.dtype)
+    positions = _below(i + u, i + 1.0)  # N * u_i, kept in [i, i + 1)
+    return _invert_cdf(cdf, positions)
+
+
+def residual(log_weights: Tensor, generator: Optional[torch.Generator] = None) -> Tensor:
+    """Residual resampling.
+
+    Particle ``i`` first receives ``floor(N w_i)`` deterministic copies: output
+    position ``j`` below the total deterministic count ``K`` gets index
+    ``searchsorted(cumsum(counts), j, right=True)``. The remaining ``N - K``
+    positions are filled with multinomial draws from the residual weights
+    ``N w_i - floor(N w_i)`` (renormalised). Rows whose residual is all zero
+    (then ``K == N``) fall back to the weights themselves, which keeps the
+    computation NaN-free; the fallback draws are never used. ``N`` uniforms
+    are drawn per trial regardless of ``K``.
+
+    Args:
+        log_weights: Unnormalised log weights, shape ``(B, N)``.
+        generator: Source of randomness; ``None`` uses torch's default.
+
+    Returns:
+        Ancestor indices, shape ``(B, N)``, dtype ``torch.int64``.
+
+    Raises:
+        ValueError: On invalid ``log_weights``.
+    """
+    _check_log_weights(log_weights)
+    b, n = log_weights.shape
+    w = _unnormalized_weights(log_weights)
+    # N * w_i, computed so that uniform weights give exactly 1.
+    nw = w * (n / w.sum(dim=1, keepdim=True))
+    floors = torch.floor(nw)
+    counts = floors.to(torch.int64)
+    ccounts = torch.cumsum(counts, dim=1)  # (B, N)
+    n_det = ccounts[:, -1:].clamp(max=n)  # (B, 1)
+
+    j = torch.arange(n, device=w.device, dtype=torch.int64).expand(b, n)
+    det_idx = torch.searchsorted(ccounts, j.contiguous(), right=True).clamp_(max=n - 1)
+
+    res = (nw - floors).clamp(min=0.0)
+    res_ok = res.sum(dim=1, keepdim=True) > 0
+    res = torch.where(res_ok, res, w)  # guard: all-zero residual rows
+    cdf = _scaled_cdf(res)
+    positions = _below(_rand((b, n), log_weights, generator) * n, cdf.new_tensor(float(n)))
+    rand_idx = _invert_cdf(cdf, positions)
+
+    return torch.where(j < n_det, det_idx, rand_idx)
+
+
+RESAMPLERS: Dict[str, Resampler] = {
+    "multinomial": multinomial,
+    "systematic": systematic,
+    "stratified": stratified,
+    "residual": residual,
+}
+"""Registry of resampling schemes, name -> ``fn(log_weights, generator=None)``."""
+
+
+def _get_resampler(name: object, arg_name: str) -> Resampler:
+    if not isinstance(name, str) or name not in RESAMPLERS:
+        raise ValueError(
+            f"{arg_name} must be one of {sorted(RESAMPLERS)}, got {name!r}"
+        )
+    return RESAMPLERS[name]
+
+
+def get_resampler(name: str) -> Resampler:
+    """Looks up a resampling scheme by name.
+
+    Args:
+        name: One of ``"multinomial"``, ``"systematic"``, ``"stratified"``,
+            ``"residual"``.
+
+    Returns:
+        The resampler ``fn(log_weights, generator=None) -> (B, N) int64``.
+
+    Raises:
+        ValueError: If ``name`` is not a known scheme (message lists the valid
+            names).
+    """
+    return _get_resampler(name, "name")
+
+
+# ---------------------------------------------------------------------------
+# Adaptive resampling and gathering
+# ---------------------------------------------------------------------------
+def resample_if_needed(
+    log_weights: Tensor,
+    generator: Optional[torch.Generator] = None,
+    *,
+    scheme: str = "systematic",
+    ess_threshold: float = 0.5,
+) -> Tuple[Tensor, Tensor, Tensor]:
+    """Resamples only the trials whose effective sample size is too low.
+
+    Trial ``b`` is resampled iff ``ESS_b < ess_threshold * N`` (strict).
+    Hence ``ess_threshold = 0`` never resamples, and ``ess_threshold = 1``
+    resamples every trial whose weights are not (numerically) uniform; since
+    the ESS of uniform weights is ``N`` only up to rounding, uniform trials may
+    also be resampled at ``1`` (harmless: they get uniform weights again).
+
+    The resampler is evaluated for all trials at once (no data-dependent
+    subsetting), so the generator is advanced identically whatever the
+    weights; the exception is ``ess_threshold == 0``, where nothing is drawn.
+
+    Args:
+        log_weights: Unnormalised log weights, shape ``(B, N)``.
+        generator: Source of randomness; ``None`` uses torch's default.
+        scheme: Name of the resampling scheme (a key of :data:`RESAMPLERS`).
+        ess_threshold: Fraction of ``N`` in ``[0, 1]``.
+
+    Returns:
+        A tuple ``(indices, resampled, new_log_weights)``:
+
+        * ``indices``: ``(B, N)`` int64 ancestor indices; ``arange(N)`` for
+          trials that were not resampled.
+        * ``resampled``: ``(B,)`` bool, which trials were resampled.
+        * ``new_log_weights``: ``(B, N)`` normalised log weights (dtype of the
+          input): ``-log N`` for resampled trials, the normalised input
+          otherwise.
+
+    Raises:
+        ValueError: On invalid ``log_weights``, unknown ``scheme`` or
+            ``ess_threshold`` outside ``[0, 1]``.
+    """
+    _check_log_weights(log_weights)
+    resampler = _get_resampler(scheme, "scheme")
+    if (
+        isinstance(ess_threshold, bool)
+        or not isinstance(ess_threshold, numbers.Real)
+        or not (0.0 <= float(ess_threshold) <= 1.0)
+    ):
+        raise ValueError(
+            f"ess_threshold must be a real number in [0, 1], got {ess_threshold!r}"
+        )
+    threshold = float(ess_threshold)
+    b, n = log_weights.shape
+
+    lw = normalize_log_weights(log_weights)
+    identity = torch.arange(n, device=lw.device, dtype=torch.int64).expand(b, n)
+    if threshold == 0.0:
+        resampled = torch.zeros(b, dtype=torch.bool, device=lw.device)
+        return identity.clone(), resampled, lw
+
+    ess = torch.exp(-torch.logsumexp(2.0 * lw, dim=1))
+    resampled = ess < threshold * n
+    indices = torch.where(resampled[:, None], resampler(log_weights, generator), identity)
+    uniform = torch.full_like(lw, -math.log(n))
+    new_log_weights = torch.where(resampled[:, None], uniform, lw)
+    return indices, resampled, new_log_weights
+
+
+def gather_particles(x: Tensor, indices: Tensor) -> Tensor:
+    """Selects particles per trial according to ancestor indices.
+
+    ``out[b, j, ...] = x[b, indices[b, j], ...]``. Works for any trailing
+    shape, e.g. states ``(B, N, d)`` and covariances ``(B, N, d, d)``, and is
+    differentiable with respect to ``x``.
+
+    Args:
+        x: Per-particle quantities, shape ``(B, N, *rest)``.
+        indices: Integer ancestor indices, shape ``(B, M)`` (usually
+            ``M == N``), values in ``[0, N)``.
+
+    Returns:
+        Tensor of shape ``(B, M, *rest)``.
+
+    Raises:
+        ValueError: If ``x`` has fewer than 2 dims, ``indices`` is not a 2-D
+            integer tensor, or the batch sizes differ.
+    """
+    if not isinstance(x, Tensor) or x.dim() < 2:
+        shape = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+        raise ValueError(f"x must be a tensor of shape (B, N, *rest), got {shape}")
+    if not isinstance(indices, Tensor) or indices.dim() != 2:
+        shape = tuple(indices.shape) if isinstance(indices, Tensor) else type(indices).__name__
+        raise ValueError(f"indices must be a tensor of shape (B, N), got {shape}")
+    if indices.dtype.is_floating_point or indices.dtype.is_complex or indices.dtype == torch.bool:
+        raise ValueError(f"indices must have an integer dtype, got {indices.dtype}")
+    if indices.shape[0] != x.shape[0]:
+        raise ValueError(
+            f"indices must have shape (B, N) with B = x.shape[0] = {x.shape[0]}, "
+            f"got shape {tuple(indices.shape)}"
+        )
+    batch = torch.arange(x.shape[0], device=x.device)[:, None]
+    return x[batch, indices.to(device=x.device, dtype=torch.int64)]
