@@ -7,7 +7,7 @@ from typing import Dict, Optional, Tuple
 import torch
 from torch import nn
 
-from .. import resampling
+from .. import resampling as _resampling
 from .._checks import NonFiniteError, check_finite, check_psd, check_same, check_tensor
 from ..models.base import StateSpaceModel
 
@@ -202,10 +202,6 @@ class Filter(nn.Module):
         )
 
 
-def _resampling_module():
-    return resampling
-
-
 class ParticleFilterBase(Filter):
     """Shared weighting / resampling path of all particle filters.
 
@@ -226,7 +222,9 @@ class ParticleFilterBase(Filter):
         super().__init__(model, validate=validate, name=name)
         if int(n_particles) < 1:
             raise ValueError(f"n_particles: expected a positive integer, got {n_particles}")
-        _resampling_module().get_resampler(resampling)  # validates the name
+        if resampling not in _resampling.RESAMPLERS:
+            raise ValueError(f"resampling: expected one of {sorted(_resampling.RESAMPLERS)}, "
+                             f"got {resampling!r}")
         if not 0.0 <= float(ess_threshold) <= 1.0:
             raise ValueError(f"ess_threshold: expected a fraction in [0, 1], got {ess_threshold}")
         self.n_particles = int(n_particles)
@@ -274,18 +272,21 @@ class ParticleFilterBase(Filter):
         """
         lw = prev_log_weights + log_increment
         inc = torch.logsumexp(lw, dim=-1)
+        bad = ~torch.isfinite(inc) | torch.isnan(lw).any(-1)
+        if bool(bad.any()):
+            raise NonFiniteError(self.name, step, torch.nonzero(bad).flatten().tolist(), what="weights")
         lw = lw - inc.unsqueeze(-1)
         w = lw.exp()
         estimate = torch.einsum("bn,bnd->bd", w, particles)
         ess = 1.0 / w.pow(2).sum(-1)
-        idx, resampled, lw_new = resampling.resample_if_needed(
+        idx, resampled, lw_new = _resampling.resample_if_needed(
             lw, generator, scheme=self.resampling_scheme, ess_threshold=self.ess_threshold)
         if bool(resampled.any()):
-            particles = resampling.gather_particles(particles, idx)
+            particles = _resampling.gather_particles(particles, idx)
             if cov is not None and cov.dim() == 4:
-                cov = resampling.gather_particles(cov, idx)
+                cov = _resampling.gather_particles(cov, idx)
             if extras:
-                extras = {k: resampling.gather_particles(v, idx) for k, v in extras.items()}
+                extras = {k: _resampling.gather_particles(v, idx) for k, v in extras.items()}
             if self.regularization_std is not None:
                 noise = torch.randn(particles.shape, dtype=particles.dtype, device=particles.device,
                                     generator=generator) * self.regularization_std

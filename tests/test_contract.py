@@ -1,0 +1,158 @@
+"""One contract test over all filters, plus bad-input errors and reproducibility."""
+import pytest
+import torch
+
+from torchflow._checks import NonFiniteError
+from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, KalmanFilter,
+                               UnscentedKalmanFilter)
+from torchflow.models import AcousticTracking, SensorNetwork
+from conftest import cuda, random_lg
+
+# (name, model factory, filter factory): every filter on every model it supports
+CONFIGS = [
+    ("kf-lg", lambda: random_lg(3, 2), lambda m: KalmanFilter(m)),
+    ("ekf-lg", lambda: random_lg(3, 2), lambda m: ExtendedKalmanFilter(m)),
+    ("ukf-lg", lambda: random_lg(3, 2), lambda m: UnscentedKalmanFilter(m)),
+    ("bpf-lg", lambda: random_lg(3, 2), lambda m: BootstrapParticleFilter(m, n_particles=64)),
+    ("ekf-acoustic", AcousticTracking, lambda m: ExtendedKalmanFilter(m)),
+    ("ukf-acoustic", AcousticTracking, lambda m: UnscentedKalmanFilter(m)),
+    ("bpf-acoustic", AcousticTracking, lambda m: BootstrapParticleFilter(m, n_particles=64)),
+]
+IDS = [c[0] for c in CONFIGS]
+
+
+def _run(make_model, make_filter, dtype, device="cpu", B=3, T=4, seed=0):
+    model = make_model().to(device=device, dtype=dtype)
+    f = make_filter(model)
+    g = torch.Generator(device=device).manual_seed(seed)
+    traj = model.simulate(B, T, g)
+    mean, cov = model.initial_belief(traj.states[:, 0], g)
+    return f, model, f(traj.observations, mean, cov, g, return_particles=True, return_covariances=True)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("name,make_model,make_filter", CONFIGS, ids=IDS)
+def test_contract_shapes_dtype(name, make_model, make_filter, dtype):
+    f, model, res = _run(make_model, make_filter, dtype)
+    B, T, d = 3, 4, model.state_dim
+    assert res.estimates.shape == (B, T, d) and res.estimates.dtype == dtype
+    assert res.log_evidence.shape == (B,) and res.log_evidence_increments.shape == (B, T)
+    assert torch.isfinite(res.estimates).all() and torch.isfinite(res.log_evidence).all()
+    torch.testing.assert_close(res.log_evidence, res.log_evidence_increments.sum(1))
+    if f.uses_particles:
+        assert res.ess.shape == (B, T) and res.ess.dtype == dtype
+        assert ((res.ess >= 1 - 1e-4) & (res.ess <= 64 + 1e-3)).all()
+        assert res.particles.shape == (B, T, 64, d)
+        torch.testing.assert_close(res.log_weights.logsumexp(-1), torch.zeros(B, T, dtype=dtype), atol=1e-5, rtol=0)
+    else:
+        assert res.ess is None
+        assert res.covariances.shape == (B, T, d, d)
+
+
+@cuda
+@pytest.mark.parametrize("name,make_model,make_filter", CONFIGS, ids=IDS)
+def test_contract_cuda(name, make_model, make_filter):
+    f, model, res = _run(make_model, make_filter, torch.float64, device="cuda")
+    assert res.estimates.device.type == "cuda" and res.log_evidence.device.type == "cuda"
+
+
+@pytest.mark.parametrize("name,make_model,make_filter", CONFIGS, ids=IDS)
+def test_same_seed_same_numbers(name, make_model, make_filter):
+    _, _, a = _run(make_model, make_filter, torch.float64, seed=7)
+    _, _, b = _run(make_model, make_filter, torch.float64, seed=7)
+    assert torch.equal(a.estimates, b.estimates) and torch.equal(a.log_evidence, b.log_evidence)
+
+
+def test_different_seed_different_particles():
+    _, _, a = _run(lambda: random_lg(3, 2), lambda m: BootstrapParticleFilter(m, n_particles=64), torch.float64, seed=1)
+    _, _, b = _run(lambda: random_lg(3, 2), lambda m: BootstrapParticleFilter(m, n_particles=64), torch.float64, seed=2)
+    assert not torch.equal(a.estimates, b.estimates)
+
+
+# ---- bad inputs -------------------------------------------------------------------------------
+@pytest.fixture
+def lg_setup():
+    model = random_lg(3, 2)
+    traj = model.simulate(4, 5, torch.Generator().manual_seed(0))
+    mean, cov = model.initial_belief(traj.states[:, 0])
+    return model, traj.observations, mean, cov
+
+
+@pytest.mark.parametrize("make", [KalmanFilter, lambda m: BootstrapParticleFilter(m, n_particles=8)])
+def test_wrong_observation_shape(lg_setup, make):
+    model, obs, mean, cov = lg_setup
+    with pytest.raises(ValueError, match=r"observations: expected \(B, T, m\) = \(\*, \*, 2\), got \(4, 5, 3\)"):
+        make(model)(torch.zeros(4, 5, 3, dtype=torch.float64), mean, cov)
+    with pytest.raises(ValueError, match="observations"):
+        make(model)(obs[0], mean, cov)
+
+
+def test_nan_observations(lg_setup):
+    model, obs, mean, cov = lg_setup
+    obs = obs.clone()
+    obs[2, 3, 1] = float("nan")
+    with pytest.raises(ValueError, match=r"observations: 1 non-finite .* trial\(s\) \[2\]"):
+        KalmanFilter(model)(obs, mean, cov)
+
+
+def test_prior_errors(lg_setup):
+    model, obs, mean, cov = lg_setup
+    kf = ExtendedKalmanFilter(model)
+    bad = cov.clone()
+    bad[1] = -torch.eye(3, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"cov: covariance at batch index 1 .* not positive semi-definite"):
+        kf(obs, mean, bad)
+    with pytest.raises(ValueError, match=r"mean: expected \(B, d\) = \(4, 3\), got \(4, 2\)"):
+        kf(obs, mean[:, :2], cov)
+    with pytest.raises(ValueError, match=r"cov: expected \(B, d, d\)"):
+        kf(obs, mean, cov[:, :2])
+
+
+def test_dtype_and_device_mismatch(lg_setup):
+    model, obs, mean, cov = lg_setup
+    with pytest.raises(TypeError, match=r"observations: expected dtype torch.float64 .*got torch.float32"):
+        KalmanFilter(model)(obs.float(), mean, cov)
+    with pytest.raises(TypeError, match=r"mean: dtype torch.float32 does not match the model's dtype torch.float64"):
+        KalmanFilter(model)(obs, mean.float(), cov)
+    if torch.cuda.is_available():
+        with pytest.raises(ValueError, match="device"):
+            KalmanFilter(model)(obs.cuda(), mean, cov)
+
+
+def test_bad_constructor_arguments():
+    model = random_lg(3, 2)
+    with pytest.raises(ValueError, match="n_particles"):
+        BootstrapParticleFilter(model, n_particles=0)
+    with pytest.raises(ValueError, match="ess_threshold"):
+        BootstrapParticleFilter(model, ess_threshold=2.0)
+    with pytest.raises(ValueError, match="resampl"):
+        BootstrapParticleFilter(model, resampling="bogus")
+    with pytest.raises(ValueError, match="regularization"):
+        BootstrapParticleFilter(model, regularization=[1.0, 2.0])
+    with pytest.raises(TypeError, match="model"):
+        ExtendedKalmanFilter("not a model")
+
+
+class _NaNLikelihood(SensorNetwork):
+    """A model whose likelihood turns NaN at the third step for trial 1 only."""
+
+    calls = 0
+
+    def measurement_log_prob(self, z, x):
+        out = super().measurement_log_prob(z, x)
+        type(self).calls += 1
+        if type(self).calls == 3:
+            out = out.clone()
+            out[1] = float("nan")
+        return out
+
+
+def test_non_finite_error_names_filter_step_trial():
+    model = _NaNLikelihood(d=4)
+    _NaNLikelihood.calls = 0
+    traj = model.simulate(3, 5, torch.Generator().manual_seed(0))
+    mean, cov = model.initial_belief(traj.states[:, 0])
+    f = BootstrapParticleFilter(model, n_particles=16, name="bpf-test")
+    with pytest.raises(NonFiniteError, match=r"bpf-test: non-finite weights at time step 3 in trial\(s\) \[1\]") as e:
+        f(traj.observations, mean, cov, torch.Generator().manual_seed(0))
+    assert e.value.step == 3 and e.value.trials == [1]

@@ -1,0 +1,116 @@
+"""Kalman-family exactness: KF vs an independent dense joint-Gaussian computation; EKF/UKF = KF."""
+import pytest
+import torch
+from torch.func import functional_call
+
+from torchflow.filters import ExtendedKalmanFilter, KalmanFilter, UnscentedKalmanFilter
+from conftest import random_lg
+
+
+def dense_joint(model, z):
+    """log p(z_{1:T}) and E[x_k | z_{1:k}] for every k from the joint Gaussian of (x_{0:T}, z_{1:T}),
+    built directly from the model matrices (no recursion shared with the filter)."""
+    F, Q, H, R, m0, P0 = model.F, model.Q, model.H, model.R, model.m0, model.P0
+    B, T, m = z.shape
+    d = F.shape[0]
+    # x_k = F^k x_0 + sum_{j=1..k} F^{k-j} v_j: build the linear map from (x_0, v_1..v_T) to x_{0:T}
+    n_src = d * (T + 1)
+    M = torch.zeros(d * (T + 1), n_src, dtype=F.dtype)
+    Fp = [torch.linalg.matrix_power(F, k) for k in range(T + 1)]
+    for k in range(T + 1):
+        for j in range(k + 1):
+            M[k * d:(k + 1) * d, j * d:(j + 1) * d] = Fp[k - j]
+    src_cov = torch.block_diag(P0, *([Q] * T))
+    Cx = M @ src_cov @ M.T
+    mx = M[:, :d] @ m0
+    Hb = torch.block_diag(*([H] * T))
+    Cx1 = Cx[d:, d:]  # x_{1:T}
+    Cz = Hb @ Cx1 @ Hb.T + torch.block_diag(*([R] * T))
+    mz = Hb @ mx[d:]
+    zf = z.reshape(B, T * m)
+    logz = torch.distributions.MultivariateNormal(mz, covariance_matrix=Cz).log_prob(zf)
+    means = []
+    for k in range(1, T + 1):
+        idx = slice(0, k * m)
+        Cxz = Cx1[(k - 1) * d:k * d] @ Hb[idx].T  # Cov(x_k, z_{1:k})
+        gain = torch.linalg.solve(Cz[idx, idx], Cxz.T).T
+        means.append(mx[k * d:(k + 1) * d] + (zf[:, idx] - mz[idx]) @ gain.T)
+    return logz, torch.stack(means, 1)
+
+
+def _data(model, B=4, T=6, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    traj = model.simulate(B, T, g)
+    mean, cov = model.initial_belief(traj.states[:, 0])
+    return traj, mean, cov
+
+
+def test_kf_matches_dense_joint_gaussian(small_lg):
+    traj, mean, cov = _data(small_lg)
+    res = KalmanFilter(small_lg)(traj.observations, mean, cov)
+    logz, means = dense_joint(small_lg, traj.observations)
+    torch.testing.assert_close(res.log_evidence, logz, atol=1e-10, rtol=0)
+    torch.testing.assert_close(res.estimates, means, atol=1e-10, rtol=0)
+
+
+def test_kf_per_trial_priors_match_shared_path(small_lg):
+    """Different prior covariances per trial take the unshared Riccati path; equal ones share it.
+    Both must agree trial by trial."""
+    traj, mean, cov = _data(small_lg)
+    kf = KalmanFilter(small_lg)
+    shared = kf(traj.observations, mean, cov, return_covariances=True)
+    cov2 = cov.clone()
+    cov2[1] = cov2[1] * 2.0  # trial 1 differs -> no sharing
+    unshared = kf(traj.observations, mean, cov2, return_covariances=True)
+    for b in (0, 2, 3):
+        torch.testing.assert_close(shared.estimates[b], unshared.estimates[b], atol=1e-12, rtol=0)
+        torch.testing.assert_close(shared.covariances[b], unshared.covariances[b], atol=1e-12, rtol=0)
+    assert not torch.allclose(shared.estimates[1], unshared.estimates[1])
+
+
+@pytest.mark.parametrize("cls", [ExtendedKalmanFilter, UnscentedKalmanFilter])
+@pytest.mark.parametrize("dm", [(3, 2), (2, 4)])
+def test_ekf_ukf_equal_kf_on_linear_models(cls, dm):
+    model = random_lg(*dm, seed=3)
+    traj, mean, cov = _data(model)
+    ref = KalmanFilter(model)(traj.observations, mean, cov, return_covariances=True)
+    out = cls(model)(traj.observations, mean, cov, return_covariances=True)
+    torch.testing.assert_close(out.estimates, ref.estimates, atol=1e-9, rtol=0)
+    torch.testing.assert_close(out.covariances, ref.covariances, atol=1e-9, rtol=0)
+    torch.testing.assert_close(out.log_evidence, ref.log_evidence, atol=1e-9, rtol=0)
+
+
+def test_ukf_other_sigma_point_settings_still_exact(small_lg):
+    traj, mean, cov = _data(small_lg)
+    ref = KalmanFilter(small_lg)(traj.observations, mean, cov)
+    out = UnscentedKalmanFilter(small_lg, alpha=0.5, beta=0.0, kappa=1.0)(traj.observations, mean, cov)
+    torch.testing.assert_close(out.log_evidence, ref.log_evidence, atol=1e-9, rtol=0)
+
+
+def test_kf_log_evidence_gradcheck():
+    model = random_lg(2, 2, seed=5, learnable=True)
+    traj, mean, cov = _data(model, B=2, T=3)
+    kf = KalmanFilter(model)
+    names = ["F", "Q", "H"]
+
+    def f(Fm, Qm, Hm):
+        Qs = 0.5 * (Qm + Qm.T)
+        out = functional_call(kf, {"model.F": Fm, "model.Q": Qs, "model.H": Hm},
+                              (traj.observations, mean, cov))
+        return out.log_evidence
+
+    inputs = tuple(getattr(model, n).detach().clone().requires_grad_(True) for n in names)
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5)
+
+
+def test_kf_log_evidence_backward_to_parameters():
+    model = random_lg(3, 2, seed=6, learnable=True)
+    traj, mean, cov = _data(model)
+    KalmanFilter(model)(traj.observations, mean, cov).log_evidence.sum().backward()
+    for p in (model.F, model.Q, model.H, model.R):
+        assert p.grad is not None and torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0
+
+
+def test_kf_requires_linear_model(acoustic):
+    with pytest.raises(TypeError, match="LinearGaussian"):
+        KalmanFilter(acoustic)
