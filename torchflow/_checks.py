@@ -83,6 +83,9 @@ def check_psd(name: str, cov: torch.Tensor, *, tol: float = 1e-10) -> torch.Tens
     """
     if cov.dim() < 2 or cov.shape[-1] != cov.shape[-2]:
         raise ValueError(f"{name}: expected square matrices (..., d, d), got {tuple(cov.shape)}")
+    if cov.dim() == 3 and cov.shape[0] > 1 and (cov.stride(0) == 0 or bool((cov == cov[:1]).all())):
+        check_psd(name, cov[:1], tol=tol)  # one prior shared by every trial: check it once
+        return cov
     check_finite(name, cov.reshape(-1, *cov.shape[-2:]) if cov.dim() > 2 else cov.unsqueeze(0))
     scale = cov.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp_min(1.0)
     asym = (cov - cov.transpose(-1, -2)).abs().amax((-1, -2))

@@ -121,6 +121,9 @@ def sample_mvn(
     xi = torch.randn(*B, *sample_shape, d, dtype=mean.dtype, device=mean.device, generator=generator)
     k = len(sample_shape)
     m = mean.reshape(*B, *([1] * k), d)
+    if scale_tril.dim() > 2 and k == 1 and mean.dim() == 2:
+        # (B, N, d) @ (B, d, d)^T: one batched matrix product instead of B*N matrix-vector products
+        return torch.baddbmm(m, xi, scale_tril.expand(*B, d, d).transpose(-1, -2))
     L = scale_tril.reshape(*scale_tril.shape[:-2], *([1] * k), d, d) if scale_tril.dim() > 2 else scale_tril
     return m + matvec(L, xi)
 

@@ -99,15 +99,29 @@ class KalmanFilter(ExtendedKalmanFilter):
 
     def step(self, state, z, generator=None):
         B = state.mean.shape[0]
-        shared = B > 1 and state.cov.stride(0) == 0
-        if shared:
-            state = GaussianState(state.mean, state.cov[:1], state.log_evidence_increment, state.step)
+        if B > 1 and state.cov.stride(0) == 0:
+            return self._shared_step(state, z)
         m_pred, P_pred = self.predict(state)
         H = self.model.measurement_matrix()
         mean, cov, ll = kalman_update(m_pred, P_pred, z, m_pred @ H.transpose(-1, -2), H, self.model.R)
-        if shared:
-            cov = cov.expand(B, -1, -1)
         return GaussianState(mean, cov, ll, state.step + 1)
+
+    def _shared_step(self, state, z):
+        """All trials share one covariance: run the Riccati step once on ``(d, d)`` matrices and
+        update the ``(B, d)`` means with three matrix products."""
+        F, Q, H, R = self.model.F, self.model.Q, self.model.H, self.model.R
+        P = state.cov[0]
+        P_pred = linalg.symmetrize(F @ P @ F.T + Q)
+        HP = H @ P_pred
+        S = linalg.symmetrize(HP @ H.T + R)
+        L = linalg.safe_cholesky(S)
+        Kt = torch.cholesky_solve(HP, L)  # (m, d) = K^T
+        cov = linalg.symmetrize(P_pred - Kt.T @ HP)  # P - K S K^T; one shared, well-conditioned matrix
+        m_pred = state.mean @ F.T  # (B, d)
+        innov = z - m_pred @ H.T  # (B, m)
+        mean = torch.addmm(m_pred, innov, Kt)
+        ll = linalg.mvn_log_prob(innov, torch.zeros_like(innov[:1]), L)
+        return GaussianState(mean, cov.expand(state.mean.shape[0], -1, -1), ll, state.step + 1)
 
 
 class UnscentedKalmanFilter(Filter):

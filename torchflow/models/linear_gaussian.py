@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import math
+
+from ..linalg import _LOG_2PI
 from typing import Optional, Tuple
 
 import torch
@@ -84,6 +86,31 @@ class LinearGaussian(StateSpaceModel):
 
     def measurement_jacobian(self, x):
         return self.H.expand(*x.shape[:-1], *self.H.shape)
+
+    def sample_transition(self, x, generator=None):
+        """``x F^T + xi L_Q^T`` as two fused matrix products over all leading dims."""
+        d = self.state_dim
+        flat = x.reshape(-1, d)
+        xi = torch.randn(flat.shape, dtype=x.dtype, device=x.device, generator=generator)
+        out = flat @ self.F.T
+        out = torch.addmm(out, xi, self.transition_scale_tril().T)
+        return out.reshape(x.shape)
+
+    def measurement_log_prob(self, z, x):
+        """Whitened residual ``L_R^{-1} z - (L_R^{-1} H) x``: the triangular solve is applied to
+        ``H`` and ``z`` once, not to every particle's residual. ``z (..., m)`` broadcasts with
+        ``x (..., d)``."""
+        L = self.measurement_scale_tril()
+        m, d = self.obs_dim, self.state_dim
+        W = torch.linalg.solve_triangular(L, self.H, upper=False)  # (m, d)
+        zs = z.reshape(-1, m)
+        wz = torch.linalg.solve_triangular(L, zs.T, upper=False).T.reshape(z.shape)
+        if x.dim() == 3 and wz.dim() == 3 and wz.shape[1] == 1:
+            u = torch.baddbmm(wz, x, W.T.expand(x.shape[0], d, m), alpha=-1.0)  # (B, N, m)
+        else:
+            u = wz - x @ W.T
+        quad = torch.linalg.vector_norm(u, dim=-1).square()
+        return -0.5 * (quad + m * _LOG_2PI) - torch.log(L.diagonal()).sum()
 
     def initial_state(self, batch_size, generator=None):
         from ..linalg import safe_cholesky
