@@ -153,6 +153,6 @@ def test_non_finite_error_names_filter_step_trial():
     traj = model.simulate(3, 5, torch.Generator().manual_seed(0))
     mean, cov = model.initial_belief(traj.states[:, 0])
     f = BootstrapParticleFilter(model, n_particles=16, name="bpf-test")
-    with pytest.raises(NonFiniteError, match=r"bpf-test: non-finite weights at time step 3 in trial\(s\) \[1\]") as e:
+    with pytest.raises(NonFiniteError, match=r"bpf-test: non-finite particles or weights at time step 3 in trial\(s\) \[1\]") as e:
         f(traj.observations, mean, cov, torch.Generator().manual_seed(0))
     assert e.value.step == 3 and e.value.trials == [1]

@@ -84,6 +84,12 @@ def mvn_log_prob(x: torch.Tensor, mean: torch.Tensor, scale_tril: torch.Tensor) 
         flat = diff.reshape(-1, d)
         sol = torch.linalg.solve_triangular(scale_tril, flat.transpose(0, 1), upper=False).transpose(0, 1)
         sol = sol.reshape(diff.shape)
+    elif scale_tril.dim() == diff.dim() + 1 and scale_tril.dim() >= 4 and scale_tril.shape[-3] == 1:
+        # one factor per (...) shared by the N points diff (..., N, d): N right-hand sides
+        shape = torch.broadcast_shapes(diff.shape[:-2], scale_tril.shape[:-3])
+        L = scale_tril.squeeze(-3).expand(*shape, d, d)
+        rhs = diff.expand(*shape, *diff.shape[-2:]).transpose(-1, -2)
+        sol = torch.linalg.solve_triangular(L, rhs, upper=False).transpose(-1, -2)
     else:
         shape = torch.broadcast_shapes(diff.shape[:-1], scale_tril.shape[:-2])
         diff = diff.expand(*shape, d)
@@ -101,6 +107,9 @@ def matvec(A: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         A = A.reshape(A.shape[-2:])
     if A.dim() == 2:
         return x @ A.transpose(0, 1)
+    if A.dim() == x.dim() + 1 and A.dim() >= 4 and A.shape[-3] == 1 and x.shape[-2] > 1:
+        # one matrix per (...) shared by the N vectors x (..., N, d): a batched matrix product
+        return x @ A.squeeze(-3).transpose(-1, -2)
     return (A @ x.unsqueeze(-1)).squeeze(-1)
 
 

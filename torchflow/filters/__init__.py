@@ -1,6 +1,7 @@
 """Filters: every filter is an ``nn.Module`` with the ``init`` / ``step`` / ``forward`` contract."""
 from .base import Filter, FilterResult, GaussianState, ParticleFilterBase, ParticleState
 from .bootstrap import BootstrapParticleFilter
+from .pfpf import ParticleFlowFilter, ParticleFlowParticleFilter
 from .kalman import ExtendedKalmanFilter, KalmanFilter, UnscentedKalmanFilter, ekf_predict, kalman_update
 
 __all__ = [
@@ -13,6 +14,8 @@ __all__ = [
     "ExtendedKalmanFilter",
     "UnscentedKalmanFilter",
     "BootstrapParticleFilter",
+    "ParticleFlowParticleFilter",
+    "ParticleFlowFilter",
     "kalman_update",
     "ekf_predict",
 ]

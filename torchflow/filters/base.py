@@ -48,6 +48,8 @@ class ParticleState:
         ess: ``(B,)`` effective sample size before resampling.
         log_evidence_increment: ``(B,)`` log of the estimate of p(z_k | z_{1:k-1}).
         resampled: ``(B,)`` bool, which trials were resampled this step.
+        n_repaired: ``(B,)`` number of steps so far in which non-finite particles or weights were
+            repaired (``nonfinite="recover"``).
         cov: optional per-particle covariances ``(B, N, d, d)`` (PF-PF) or per-trial ``(B, d, d)``.
         step: number of observations processed.
         extras: filter-specific tensors with a leading ``(B, N)`` that follow resampling.
@@ -59,6 +61,7 @@ class ParticleState:
     ess: torch.Tensor
     log_evidence_increment: torch.Tensor
     resampled: torch.Tensor
+    n_repaired: Optional[torch.Tensor] = None
     cov: Optional[torch.Tensor] = None
     step: int = 0
     extras: Dict[str, torch.Tensor] = field(default_factory=dict)
@@ -77,6 +80,8 @@ class FilterResult:
         covariances: ``(B, T, d, d)`` posterior covariances if requested and defined.
         particles: ``(B, T, N, d)`` particles if requested (large).
         log_weights: ``(B, T, N)`` log-weights if particles were requested.
+        n_repaired: ``(B,)`` steps in which non-finite particles/weights were repaired, for
+            particle filters run with ``nonfinite="recover"`` (``None`` otherwise).
     """
 
     estimates: torch.Tensor
@@ -86,6 +91,7 @@ class FilterResult:
     covariances: Optional[torch.Tensor] = None
     particles: Optional[torch.Tensor] = None
     log_weights: Optional[torch.Tensor] = None
+    n_repaired: Optional[torch.Tensor] = None
 
 
 class Filter(nn.Module):
@@ -199,6 +205,7 @@ class Filter(nn.Module):
             covariances=torch.stack(covs, 1) if covs else None,
             particles=torch.stack(parts, 1) if parts else None,
             log_weights=torch.stack(lws, 1) if lws else None,
+            n_repaired=getattr(state, "n_repaired", None),
         )
 
 
@@ -212,14 +219,22 @@ class ParticleFilterBase(Filter):
         ess_threshold: resample a trial when ESS < ess_threshold * N (0 never, 1 nearly always).
         regularization: ``None`` (off), a float variance, or a list of d per-coordinate variances
             of Gaussian jitter added to the particles of resampled trials.
+        nonfinite: ``"raise"``: a NaN/inf weight raises :class:`NonFiniteError` naming the filter,
+            step and trials; ``"recover"``: particles with a NaN/inf position or log-weight get
+            weight zero (and a finite fallback position); a trial left with no valid particle keeps
+            its previous weights and the fallback particles. Either way the repair is counted
+            per trial in ``n_repaired``.
     """
 
     uses_particles = True
 
     def __init__(self, model, *, n_particles: int = 500, resampling: str = "systematic",
-                 ess_threshold: float = 0.5, regularization=None, validate: bool = True,
-                 name: Optional[str] = None):
+                 ess_threshold: float = 0.5, regularization=None, nonfinite: str = "raise",
+                 validate: bool = True, name: Optional[str] = None):
         super().__init__(model, validate=validate, name=name)
+        if nonfinite not in ("raise", "recover"):
+            raise ValueError(f"nonfinite: expected 'raise' or 'recover', got {nonfinite!r}")
+        self.nonfinite = nonfinite
         if int(n_particles) < 1:
             raise ValueError(f"n_particles: expected a positive integer, got {n_particles}")
         if resampling not in _resampling.RESAMPLERS:
@@ -263,19 +278,48 @@ class ParticleFilterBase(Filter):
         *,
         cov: Optional[torch.Tensor] = None,
         extras: Optional[Dict[str, torch.Tensor]] = None,
+        fallback: Optional[torch.Tensor] = None,
+        n_repaired: Optional[torch.Tensor] = None,
     ) -> ParticleState:
         """Update normalised ``prev_log_weights (B, N)`` by ``log_increment (B, N)``, estimate,
         then resample the low-ESS trials (particles, per-particle ``cov`` and ``extras`` follow).
 
         The step's evidence increment is ``logsumexp(prev_log_weights + log_increment)`` — the
         standard unbiased estimator of p(z_k | z_{1:k-1}) when the previous weights are normalised.
+
+        Args:
+            fallback: ``(B, N, d)`` finite positions used for repaired particles (e.g. the
+                pre-flow prior samples); defaults to zeros.
+            n_repaired: ``(B,)`` running repair count to extend.
         """
+        B = particles.shape[0]
+        if n_repaired is None:
+            n_repaired = torch.zeros(B, dtype=torch.long, device=particles.device)
+        bad_p = torch.isnan(log_increment) | (log_increment == float("inf")) | ~torch.isfinite(particles).all(-1)
+        if bool(bad_p.any()):
+            if self.nonfinite == "raise":
+                trials = torch.nonzero(bad_p.any(-1)).flatten().tolist()
+                raise NonFiniteError(self.name, step, trials, what="particles or weights")
+            n_repaired = n_repaired + bad_p.any(-1).long()
+            log_increment = log_increment.masked_fill(bad_p, float("-inf"))
+            fb = torch.zeros_like(particles) if fallback is None else fallback
+            particles = torch.where(bad_p.unsqueeze(-1), fb, particles)
         lw = prev_log_weights + log_increment
         inc = torch.logsumexp(lw, dim=-1)
-        bad = ~torch.isfinite(inc) | torch.isnan(lw).any(-1)
-        if bool(bad.any()):
-            raise NonFiniteError(self.name, step, torch.nonzero(bad).flatten().tolist(), what="weights")
-        lw = lw - inc.unsqueeze(-1)
+        dead = ~torch.isfinite(inc)  # no particle with positive weight (all -inf)
+        if bool(dead.any()):
+            if self.nonfinite == "raise":
+                raise NonFiniteError(self.name, step, torch.nonzero(dead).flatten().tolist(), what="weights")
+            n_repaired = n_repaired + (dead & ~bad_p.any(-1)).long()
+            lw = torch.where(dead.unsqueeze(-1), prev_log_weights, lw)
+            if fallback is not None:
+                particles = torch.where(dead[:, None, None], fallback, particles)
+            inc = torch.where(dead, torch.logsumexp(lw, dim=-1), inc)
+            inc = inc.masked_fill(dead, float("-inf"))  # the evidence estimate of that step is zero
+            lw_norm = lw - torch.logsumexp(lw, dim=-1, keepdim=True)
+        else:
+            lw_norm = lw - inc.unsqueeze(-1)
+        lw = lw_norm
         w = lw.exp()
         estimate = torch.einsum("bn,bnd->bd", w, particles)
         ess = 1.0 / w.pow(2).sum(-1)
@@ -283,7 +327,7 @@ class ParticleFilterBase(Filter):
             lw, generator, scheme=self.resampling_scheme, ess_threshold=self.ess_threshold)
         if bool(resampled.any()):
             particles = _resampling.gather_particles(particles, idx)
-            if cov is not None and cov.dim() == 4:
+            if cov is not None and cov.dim() == 4 and cov.shape[1] == particles.shape[1]:
                 cov = _resampling.gather_particles(cov, idx)
             if extras:
                 extras = {k: _resampling.gather_particles(v, idx) for k, v in extras.items()}
@@ -292,5 +336,5 @@ class ParticleFilterBase(Filter):
                                     generator=generator) * self.regularization_std
                 particles = particles + noise * resampled[:, None, None].to(particles.dtype)
         return ParticleState(particles=particles, log_weights=lw_new, estimate=estimate, ess=ess,
-                             log_evidence_increment=inc, resampled=resampled, cov=cov, step=step,
-                             extras=extras or {})
+                             log_evidence_increment=inc, resampled=resampled, n_repaired=n_repaired,
+                             cov=cov, step=step, extras=extras or {})

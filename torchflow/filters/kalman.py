@@ -48,7 +48,7 @@ def kalman_update(
 
 def ekf_predict(model, mean: torch.Tensor, cov: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
     """EKF prediction ``(g(m), G P G^T + Q)`` for ``mean (..., d)``, ``cov (..., d, d)``."""
-    G = model.transition_jacobian(mean)
+    G = model.transition_matrix() if model.linear_dynamics else model.transition_jacobian(mean)
     return model.transition_mean(mean), linalg.symmetrize(G @ cov @ G.transpose(-1, -2) + model.transition_cov(mean))
 
 
@@ -62,14 +62,20 @@ class ExtendedKalmanFilter(Filter):
     def init(self, mean, cov, n_particles=None, generator=None):
         return GaussianState(mean, cov, torch.zeros_like(mean[:, 0]), 0)
 
-    def predict(self, state: GaussianState):
-        return ekf_predict(self.model, state.mean, state.cov)
+    def predict(self, mean: torch.Tensor, cov: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """``(..., d)``, ``(..., d, d)`` -> predicted mean and covariance (any leading shape)."""
+        return ekf_predict(self.model, mean, cov)
+
+    def update(self, mean_pred: torch.Tensor, cov_pred: torch.Tensor, z: torch.Tensor):
+        """Measurement update linearised at ``mean_pred (..., d)``; ``z`` broadcasts to ``(..., m)``.
+        Returns mean ``(..., d)``, covariance ``(..., d, d)`` and log N(z; h(mean_pred), S) ``(...)``."""
+        model = self.model
+        H = model.measurement_matrix() if model.linear_measurement else model.measurement_jacobian(mean_pred)
+        return kalman_update(mean_pred, cov_pred, z, model.measure(mean_pred), H, model.measurement_cov(mean_pred))
 
     def step(self, state, z, generator=None):
-        m_pred, P_pred = self.predict(state)
-        mean, cov, ll = kalman_update(
-            m_pred, P_pred, z, self.model.measure(m_pred), self.model.measurement_jacobian(m_pred),
-            self.model.measurement_cov(m_pred))
+        m_pred, P_pred = self.predict(state.mean, state.cov)
+        mean, cov, ll = self.update(m_pred, P_pred, z)
         return GaussianState(mean, cov, ll, state.step + 1)
 
 
@@ -93,18 +99,11 @@ class KalmanFilter(ExtendedKalmanFilter):
             cov = cov[:1].expand_as(cov)
         return GaussianState(mean, cov, torch.zeros_like(mean[:, 0]), 0)
 
-    def predict(self, state):
-        F = self.model.transition_matrix()
-        return state.mean @ F.transpose(-1, -2), linalg.symmetrize(F @ state.cov @ F.transpose(-1, -2) + self.model.Q)
-
     def step(self, state, z, generator=None):
         B = state.mean.shape[0]
         if B > 1 and state.cov.stride(0) == 0:
             return self._shared_step(state, z)
-        m_pred, P_pred = self.predict(state)
-        H = self.model.measurement_matrix()
-        mean, cov, ll = kalman_update(m_pred, P_pred, z, m_pred @ H.transpose(-1, -2), H, self.model.R)
-        return GaussianState(mean, cov, ll, state.step + 1)
+        return super().step(state, z, generator)
 
     def _shared_step(self, state, z):
         """All trials share one covariance: run the Riccati step once on ``(d, d)`` matrices and
@@ -170,20 +169,30 @@ class UnscentedKalmanFilter(Filter):
     def init(self, mean, cov, n_particles=None, generator=None):
         return GaussianState(mean, cov, torch.zeros_like(mean[:, 0]), 0)
 
-    def step(self, state, z, generator=None):
-        model = self.model
-        X = model.transition_mean(self.sigma_points(state.mean, state.cov))
+    def _cov(self, D1, D2):
+        return torch.einsum("s,...si,...sj->...ij", self.wc, D1, D2)
+
+    def predict(self, mean: torch.Tensor, cov: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Unscented prediction for ``(..., d)``, ``(..., d, d)`` (any leading shape)."""
+        X = self.model.transition_mean(self.sigma_points(mean, cov))
         m_pred, DX = self._moments(X)
-        P_pred = linalg.symmetrize(torch.einsum("s,...si,...sj->...ij", self.wc, DX, DX) + model.transition_cov(m_pred))
-        X = self.sigma_points(m_pred, P_pred)
-        Z = model.measure(X)
-        z_pred, DZ = self._moments(Z)
-        DX = X - m_pred.unsqueeze(-2)
-        S = linalg.symmetrize(torch.einsum("s,...si,...sj->...ij", self.wc, DZ, DZ) + model.measurement_cov(m_pred))
-        C = torch.einsum("s,...si,...sj->...ij", self.wc, DX, DZ)  # (..., d, m)
+        return m_pred, linalg.symmetrize(self._cov(DX, DX) + self.model.transition_cov(m_pred))
+
+    def update(self, mean_pred: torch.Tensor, cov_pred: torch.Tensor, z: torch.Tensor):
+        """Unscented update with sigma points redrawn from ``N(mean_pred, cov_pred)``; ``z``
+        broadcasts to ``(..., m)``. Returns mean, covariance and log N(z; z_hat, S)."""
+        X = self.sigma_points(mean_pred, cov_pred)
+        z_pred, DZ = self._moments(self.model.measure(X))
+        DX = X - mean_pred.unsqueeze(-2)
+        S = linalg.symmetrize(self._cov(DZ, DZ) + self.model.measurement_cov(mean_pred))
+        C = self._cov(DX, DZ)  # (..., d, m)
         L = linalg.safe_cholesky(S)
-        K = torch.cholesky_solve(C.transpose(-1, -2), L).transpose(-1, -2)  # C S^{-1}
-        mean = m_pred + linalg.matvec(K, z - z_pred)
-        cov = linalg.symmetrize(P_pred - K @ S @ K.transpose(-1, -2))
-        ll = linalg.mvn_log_prob(z, z_pred, L)
+        Kt = torch.cholesky_solve(C.transpose(-1, -2), L)  # S^{-1} C^T = K^T
+        mean = mean_pred + linalg.matvec(Kt.transpose(-1, -2), z - z_pred)
+        cov = linalg.symmetrize(cov_pred - C @ Kt)  # P - K S K^T = P - C S^{-1} C^T
+        return mean, cov, linalg.mvn_log_prob(z, z_pred, L)
+
+    def step(self, state, z, generator=None):
+        m_pred, P_pred = self.predict(state.mean, state.cov)
+        mean, cov, ll = self.update(m_pred, P_pred, z)
         return GaussianState(mean, cov, ll, state.step + 1)

@@ -40,6 +40,7 @@ class AcousticTracking(StateSpaceModel):
     """
 
     n_targets = 4
+    linear_dynamics = True
 
     def __init__(
         self,
@@ -90,6 +91,9 @@ class AcousticTracking(StateSpaceModel):
     # ---- dynamics --------------------------------------------------------------------------
     def transition_mean(self, x):
         return x @ self.F.transpose(-1, -2)
+
+    def transition_matrix(self):
+        return self.F
 
     def transition_jacobian(self, x):
         return self.F.expand(*x.shape[:-1], *self.F.shape)

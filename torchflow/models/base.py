@@ -44,6 +44,11 @@ class StateSpaceModel(nn.Module):
 
     state_dim: int
     obs_dim: int
+    #: ``True`` when g is linear, ``g(x) = transition_matrix() @ x``: filters then skip Jacobians and
+    #: share covariance recursions that cannot differ between particles.
+    linear_dynamics: bool = False
+    #: ``True`` when h is linear, ``h(x) = measurement_matrix() @ x``.
+    linear_measurement: bool = False
 
     # ---- dtype / device --------------------------------------------------------------------
     @property
@@ -78,6 +83,10 @@ class StateSpaceModel(nn.Module):
         """d g / d x at ``x (..., d)`` -> ``(..., d, d)`` (torch.func by default)."""
         return jacobian(self.transition_mean, x)
 
+    def transition_matrix(self) -> torch.Tensor:
+        """``(d, d)`` matrix of a linear transition (only when :attr:`linear_dynamics`)."""
+        raise NotImplementedError(f"{type(self).__name__} has no constant transition matrix")
+
     def sample_transition(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         """Draw x_k ~ p(x_k | x_{k-1} = x) for ``x (..., d)``."""
         L = self.transition_scale_tril(x)
@@ -103,6 +112,10 @@ class StateSpaceModel(nn.Module):
     def measurement_jacobian(self, x: torch.Tensor) -> torch.Tensor:
         """dh/dx at ``x (..., d)`` -> ``(..., m, d)``; torch.func (vmapped jacrev) by default."""
         return jacobian(self.measure, x)
+
+    def measurement_matrix(self) -> torch.Tensor:
+        """``(m, d)`` matrix of a linear measurement (only when :attr:`linear_measurement`)."""
+        raise NotImplementedError(f"{type(self).__name__} has no constant measurement matrix")
 
     def measurement_log_prob(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """log p(z | x) for ``z`` broadcastable to ``(..., m)`` -> ``(...)``."""

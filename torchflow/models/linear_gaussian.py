@@ -62,6 +62,9 @@ class LinearGaussian(StateSpaceModel):
         self.register_buffer("m0", m0.clone())
         self.register_buffer("P0", P0.clone())
 
+    linear_dynamics = True
+    linear_measurement = True
+
     # analytic, constant matrices
     def transition_matrix(self) -> torch.Tensor:
         return self.F
