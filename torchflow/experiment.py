@@ -22,7 +22,7 @@ from .models.linear_gaussian import LinearGaussian
 
 SUMMARY_COLUMNS = [
     "filter", "n_particles", "trials", "steps", "mse", "omat", "omat_kept_mean", "omat_kept_sd",
-    "ospa", "ess", "log_evidence", "log_evidence_relmse", "lost_tracks", "sec_per_step", "error",
+    "ospa", "ess", "log_evidence", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step", "error",
 ]
 _DTYPES = {"float64": torch.float64, "float32": torch.float32, "double": torch.float64, "float": torch.float32}
 
@@ -159,7 +159,7 @@ def run_experiment(
         row.update(filter=name, n_particles=n_part, trials=trials, steps=steps)
         if bar is not None:
             bar.set_description(name)
-        est, logz, ess = [], [], []
+        est, logz, ess, repaired = [], [], [], []
         elapsed = 0.0
         try:
             with torch.no_grad():
@@ -182,6 +182,8 @@ def run_experiment(
                     logz.append(res.log_evidence.double())
                     if res.ess is not None:
                         ess.append(res.ess.double())
+                    if res.n_repaired is not None:
+                        repaired.append(res.n_repaired)
         except Exception as e:  # one failing filter must not lose the others' results
             row["error"] = f"{type(e).__name__}: {e}"
             summary.append(row)
@@ -199,6 +201,8 @@ def run_experiment(
             cols["ess"] = ess_bt
         row["sec_per_step"] = elapsed / (trials * steps)
         row["log_evidence"] = float(logz.mean())
+        if repaired:
+            row["repaired"] = int(torch.cat(repaired).sum())
         for k, v in cols.items():
             row[k] = float(v.mean())
         lost = None

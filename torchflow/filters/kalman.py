@@ -35,7 +35,7 @@ def kalman_update(
     HP = H @ cov_pred  # (..., m, d)
     S = linalg.symmetrize(HP @ H.transpose(-1, -2) + R)
     L = linalg.safe_cholesky(S)
-    Kt = torch.cholesky_solve(HP, L)  # (..., m, d) = S^{-1} H P  (= K^T)
+    Kt = linalg.chol_solve(L, HP)  # (..., m, d) = S^{-1} H P  (= K^T)
     K = Kt.transpose(-1, -2)
     innov = z - z_pred
     mean = mean_pred + linalg.matvec(K, innov)
@@ -114,7 +114,7 @@ class KalmanFilter(ExtendedKalmanFilter):
         HP = H @ P_pred
         S = linalg.symmetrize(HP @ H.T + R)
         L = linalg.safe_cholesky(S)
-        Kt = torch.cholesky_solve(HP, L)  # (m, d) = K^T
+        Kt = linalg.chol_solve(L, HP)  # (m, d) = K^T
         cov = linalg.symmetrize(P_pred - Kt.T @ HP)  # P - K S K^T; one shared, well-conditioned matrix
         m_pred = state.mean @ F.T  # (B, d)
         innov = z - m_pred @ H.T  # (B, m)
@@ -187,7 +187,7 @@ class UnscentedKalmanFilter(Filter):
         S = linalg.symmetrize(self._cov(DZ, DZ) + self.model.measurement_cov(mean_pred))
         C = self._cov(DX, DZ)  # (..., d, m)
         L = linalg.safe_cholesky(S)
-        Kt = torch.cholesky_solve(C.transpose(-1, -2), L)  # S^{-1} C^T = K^T
+        Kt = linalg.chol_solve(L, C.transpose(-1, -2))  # S^{-1} C^T = K^T
         mean = mean_pred + linalg.matvec(Kt.transpose(-1, -2), z - z_pred)
         cov = linalg.symmetrize(cov_pred - C @ Kt)  # P - K S K^T = P - C S^{-1} C^T
         return mean, cov, linalg.mvn_log_prob(z, z_pred, L)

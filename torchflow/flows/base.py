@@ -9,7 +9,7 @@ linearisation point(s) with the same coefficients and accumulates ``log|det(I + 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Callable, Optional
 
 import torch
 from torch import nn
@@ -20,17 +20,38 @@ from ..schedules import ExponentialSchedule, LambdaSchedule
 
 @dataclass
 class FlowCoefficients:
-    """Drift of one pseudo-time step.
+    """Drift ``A x + b`` of one pseudo-time step.
+
+    ``A`` is either an explicit tensor, ``(B, d, d)`` (global), ``(B, 1, d, d)`` (shared by a
+    trial's particles) or ``(B, N, d, d)`` (local), or, when forming it would cost more than
+    applying it, an operator ``apply_A(V)`` acting on stacked vectors ``V (..., d, k)``.
 
     Attributes:
-        A: ``(B, d, d)`` (global) or ``(B, N, d, d)`` (local).
+        A: explicit matrix or ``None``.
         b: ``(B, d)`` or ``(B, N, d)``.
-        log_det: ``log|det(I + eps A)|``, ``(B,)`` or ``(B, N)``.
+        log_det: ``log|det(I + eps A)|``, ``(B,)``, ``(B, 1)`` or ``(B, N)``.
+        apply_A: operator form of A (used when ``A`` is ``None``).
     """
 
-    A: torch.Tensor
+    A: Optional[torch.Tensor]
     b: torch.Tensor
     log_det: torch.Tensor
+    apply_A: Optional[Callable[[torch.Tensor], torch.Tensor]] = None
+
+    def drift(self, *points: torch.Tensor):
+        """``A x + b`` for each ``x`` of ``points`` (all batched like ``b``, or ``(B, N, d)`` for a
+        global A)."""
+        if self.A is not None:
+            if self.A.dim() == 3 and points[0].dim() == 3:  # global A, particles (B, N, d)
+                return [torch.baddbmm(self.b.unsqueeze(1) if self.b.dim() == 2 else self.b, x,
+                                      self.A.transpose(-1, -2)) if x.dim() == 3 else linalg.matvec(self.A, x) + self.b
+                        for x in points]
+            if self.A.dim() >= 4 and self.A.shape[-3] > 1 and len(points) > 1:
+                AX = self.A @ torch.stack(points, -1)  # per-point A: one product for all vectors
+                return [AX[..., i] + self.b for i in range(len(points))]
+            return [linalg.matvec(self.A, x) + self.b for x in points]
+        AX = self.apply_A(torch.stack(points, -1))  # one pass for all the vectors
+        return [AX[..., i] + self.b for i in range(len(points))]
 
 
 @dataclass
@@ -124,12 +145,11 @@ def integrate_flow(
         eps, lam = eps_all[j], lam_all[j]
         c = flow.coefficients(model, z, aux, prior, lam, eps)
         if flow.local:
-            # A is (B, N, d, d), or (B, 1, d, d) when every particle's linearisation coincides
-            eta = eta + eps * (linalg.matvec(c.A, eta) + c.b)
-            aux = aux + eps * (linalg.matvec(c.A, aux) + c.b)
-            log_det = log_det + c.log_det
+            d_eta, d_aux = c.drift(eta, aux)
         else:
-            eta = eta + eps * (torch.baddbmm(c.b.unsqueeze(1), eta, c.A.transpose(-1, -2)))
-            aux = aux + eps * (linalg.matvec(c.A, aux) + c.b)
-            log_det = log_det + c.log_det.unsqueeze(-1)
+            (d_eta,) = c.drift(eta)
+            (d_aux,) = c.drift(aux)
+        eta = eta + eps * d_eta
+        aux = aux + eps * d_aux
+        log_det = log_det + (c.log_det if c.log_det.dim() == 2 else c.log_det.unsqueeze(-1))
     return FlowOutput(eta, log_det, aux)

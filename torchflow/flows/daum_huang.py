@@ -45,24 +45,32 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps) -> FlowCoefficients:
     """EDH/LEDH drift from the whitened linearisation.
 
     Args:
-        W: ``(..., m, d)`` whitened Jacobian; y: ``(..., m)`` whitened pseudo-measurement.
+        W: ``(..., m, d)`` whitened Jacobian (or ``(m, d)`` shared); y: ``(..., m)`` whitened
+            pseudo-measurement.
         L: ``(..., d, d)`` Cholesky factor of the prior covariance P.
         eta_bar0: ``(..., d)`` prior mean.
         lam, eps: pseudo-time after the step, step size.
+
+    A is formed explicitly (one Cholesky solve with d right-hand sides) and then applied to
+    stacked vectors: on CPU the number of batched small products, not their size, sets the cost.
     """
     d = L.shape[-1]
     eye = torch.eye(d, dtype=L.dtype, device=L.device)
     WL = W @ L  # (..., m, d)
-    S = WL.transpose(-1, -2) @ WL  # L^T J L, (..., d, d)
-    LtJ = WL.transpose(-1, -2) @ W  # L^T J
+    WLt = WL.transpose(-1, -2)
+    S = WLt @ WL  # L^T J L, (..., d, d)
     K = linalg.safe_cholesky(eye + lam * S)
     K2 = linalg.safe_cholesky(eye + (lam - 0.5 * eps) * S)
-    A = -0.5 * (L @ torch.cholesky_solve(LtJ, K))  # -1/2 L (I + lam S)^{-1} L^T J
-    g = linalg.matvec(W.transpose(-1, -2), y)  # H^T R^{-1} (z - e)
-    Pg = linalg.matvec(L, linalg.matvec(L.transpose(-1, -2), g))
-    u = Pg + lam * linalg.matvec(A, Pg) + linalg.matvec(A, eta_bar0)
-    b = u + 2 * lam * linalg.matvec(A, u)
     log_det = linalg.chol_logdet(K2) - linalg.chol_logdet(K)
+    A = -0.5 * (L @ linalg.chol_solve(K, WLt @ W))  # -1/2 L (I + lam S)^{-1} L^T J
+    Pg = linalg.matvec(L, linalg.matvec(WLt, y))  # P H^T R^{-1} (z - e) = L (W L)^T y
+    if A.dim() >= 4 and A.shape[-3] > 1:  # per-point A: one product for both vectors
+        AV = A @ torch.stack([Pg, eta_bar0.expand_as(Pg)], -1)
+        APg, Aeta0 = AV[..., 0], AV[..., 1]
+    else:
+        APg, Aeta0 = linalg.matvec(A, Pg), linalg.matvec(A, eta_bar0)
+    u = Pg + lam * APg + Aeta0
+    b = u + 2 * lam * linalg.matvec(A, u)
     return FlowCoefficients(A, b, log_det)
 
 
