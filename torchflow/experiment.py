@@ -200,7 +200,8 @@ def run_experiment(
         if ess_bt is not None:
             cols["ess"] = ess_bt
         row["sec_per_step"] = elapsed / (trials * steps)
-        row["log_evidence"] = float(logz.mean())
+        if f.estimates_evidence:
+            row["log_evidence"] = float(logz.mean())
         if repaired:
             row["repaired"] = int(torch.cat(repaired).sum())
         for k, v in cols.items():
@@ -212,7 +213,7 @@ def run_experiment(
             kept = cols["omat"].mean(1)[~lost]
             row["omat_kept_mean"] = float(kept.mean()) if kept.numel() else None
             row["omat_kept_sd"] = float(kept.std()) if kept.numel() > 1 else None
-        if reference_logz is not None:
+        if reference_logz is not None and f.estimates_evidence:
             row["log_evidence_relmse"] = float(metrics.log_evidence_relative_error(logz, reference_logz).mean())
         summary.append(row)
         for b in range(trials):

@@ -109,6 +109,9 @@ class Filter(nn.Module):
     """
 
     uses_particles = False
+    #: whether ``log_evidence`` is an estimate of p(z_{1:T}) worth scoring (False for filters that
+    #: only carry a Gaussian approximation of it, such as the unweighted flow filters)
+    estimates_evidence = True
 
     def __init__(self, model: StateSpaceModel, *, validate: bool = True, name: Optional[str] = None):
         super().__init__()

@@ -131,6 +131,8 @@ class ParticleFlowFilter(Filter):
         model, flow, schedule, n_particles, covariance: as for :class:`ParticleFlowParticleFilter`.
     """
 
+    estimates_evidence = False
+
     def __init__(self, model, *, flow=None, schedule: Optional[LambdaSchedule] = None,
                  n_particles: int = 500, covariance: str = "ekf", validate: bool = True,
                  name: Optional[str] = None):
