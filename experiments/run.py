@@ -90,6 +90,7 @@ def main(cfg: DictConfig) -> None:
         ospa_order=float(cfg.metrics.ospa_order),
         lost_threshold=float(cfg.metrics.lost_threshold),
         progress=bool(cfg.progress),
+        on_filter_done=lambda rows: _write_csv(out / "summary.csv", rows, SUMMARY_COLUMNS),  # partial results
     )
     _write_csv(out / "summary.csv", result.summary, SUMMARY_COLUMNS)
     _write_csv(out / "per_step.csv", result.per_step)

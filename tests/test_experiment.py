@@ -24,7 +24,10 @@ def test_runner_lg_rows_and_reference_evidence():
     model = SensorNetwork(d=16)
     filters = {"kf": KalmanFilter(model), "bpf": BootstrapParticleFilter(model, n_particles=100),
                "broken": _Broken(model)}
-    res = run_experiment(model, filters, trials=6, steps=4, seed=3, progress=False)
+    seen = []
+    res = run_experiment(model, filters, trials=6, steps=4, seed=3, progress=False,
+                         on_filter_done=lambda rows: seen.append([r["filter"] for r in rows]))
+    assert seen == [["kf"], ["kf", "bpf"], ["kf", "bpf", "broken"]]
     rows = {r["filter"]: r for r in res.summary}
     assert set(rows) == {"kf", "bpf", "broken"}
     assert rows["kf"]["log_evidence_relmse"] == 0.0 and rows["kf"]["ess"] is None

@@ -9,7 +9,7 @@ import math
 import time
 import zlib
 from dataclasses import dataclass, field
-from typing import Dict, List, Mapping, Optional, Union
+from typing import Callable, Dict, List, Mapping, Optional, Union
 
 import torch
 
@@ -100,6 +100,7 @@ def run_experiment(
     ospa_order: float = 1.0,
     lost_threshold: float = 2.0,
     progress: bool = True,
+    on_filter_done: Optional[Callable[[List[dict]], None]] = None,
 ) -> ExperimentResult:
     """Simulate ``trials`` trajectories once and run every filter on the same observations.
 
@@ -116,6 +117,8 @@ def run_experiment(
         device, dtype: where and in what precision filters run (metrics use float64).
         ospa_cutoff, ospa_order, lost_threshold: metric settings (tracking models).
         progress: show a tqdm progress bar.
+        on_filter_done: called with the summary rows so far after each filter finishes (or
+            fails), so a caller can save partial results of long runs.
 
     A filter that raises (including a non-finite estimate) does not stop the run: its row gets
     the error message and the other filters still run.
@@ -187,6 +190,8 @@ def run_experiment(
         except Exception as e:  # one failing filter must not lose the others' results
             row["error"] = f"{type(e).__name__}: {e}"
             summary.append(row)
+            if on_filter_done is not None:
+                on_filter_done(summary)
             continue
         est = torch.cat(est)
         logz = torch.cat(logz)
@@ -227,6 +232,8 @@ def run_experiment(
             r = {"filter": name, "step": t + 1}
             r.update({k: float(v[t]) for k, v in means.items()})
             per_step.append(r)
+        if on_filter_done is not None:
+            on_filter_done(summary)
     if bar is not None:
         bar.close()
     config = dict(trials=trials, steps=steps, seed=seed, inits_per_track=inits_per_track, chunk_size=chunk,

@@ -39,13 +39,8 @@ class FlowCoefficients:
     apply_A: Optional[Callable[[torch.Tensor], torch.Tensor]] = None
 
     def drift(self, *points: torch.Tensor):
-        """``A x + b`` for each ``x`` of ``points`` (all batched like ``b``, or ``(B, N, d)`` for a
-        global A)."""
+        """``A x + b`` for each ``x`` of ``points`` (each batched like ``b``)."""
         if self.A is not None:
-            if self.A.dim() == 3 and points[0].dim() == 3:  # global A, particles (B, N, d)
-                return [torch.baddbmm(self.b.unsqueeze(1) if self.b.dim() == 2 else self.b, x,
-                                      self.A.transpose(-1, -2)) if x.dim() == 3 else linalg.matvec(self.A, x) + self.b
-                        for x in points]
             if self.A.dim() >= 4 and self.A.shape[-3] > 1 and len(points) > 1:
                 AX = self.A @ torch.stack(points, -1)  # per-point A: one product for all vectors
                 return [AX[..., i] + self.b for i in range(len(points))]
@@ -141,15 +136,27 @@ def integrate_flow(
     aux = prior.mean
     log_det = torch.zeros(B, N, dtype=particles.dtype, device=particles.device)
     eta = particles
+    if not flow.local:
+        # A global flow moves every particle of a trial by the same affine map: compose it on
+        # (d, d) matrices, M <- (I + eps A) M, c <- (I + eps A) c + eps b, and apply it once.
+        eye = torch.eye(d, dtype=particles.dtype, device=particles.device)
+        M = eye.expand(B, d, d)
+        c = torch.zeros(B, d, dtype=particles.dtype, device=particles.device)
+        for j in range(len(eps_all)):
+            eps, lam = eps_all[j], lam_all[j]
+            co = flow.coefficients(model, z, aux, prior, lam, eps)
+            step = eye + eps * co.A  # (B, d, d)
+            M = step @ M
+            c = linalg.matvec(step, c) + eps * co.b
+            aux = linalg.matvec(step, aux) + eps * co.b
+            log_det = log_det + co.log_det.unsqueeze(-1)
+        eta = torch.baddbmm(c.unsqueeze(1), particles, M.transpose(-1, -2))
+        return FlowOutput(eta, log_det, aux)
     for j in range(len(eps_all)):
         eps, lam = eps_all[j], lam_all[j]
         c = flow.coefficients(model, z, aux, prior, lam, eps)
-        if flow.local:
-            d_eta, d_aux = c.drift(eta, aux)
-        else:
-            (d_eta,) = c.drift(eta)
-            (d_aux,) = c.drift(aux)
+        d_eta, d_aux = c.drift(eta, aux)
         eta = eta + eps * d_eta
         aux = aux + eps * d_aux
-        log_det = log_det + (c.log_det if c.log_det.dim() == 2 else c.log_det.unsqueeze(-1))
+        log_det = log_det + c.log_det
     return FlowOutput(eta, log_det, aux)
