@@ -21,12 +21,15 @@ class GaussianState:
         cov: ``(B, d, d)`` posterior covariance.
         log_evidence_increment: ``(B,)`` log p(z_k | z_{1:k-1}) of the step (0 after ``init``).
         step: number of observations processed.
+        n_particles: particles drawn per step by sampling-based Gaussian filters (the unweighted
+            flow filters), ``None`` for Kalman-type filters.
     """
 
     mean: torch.Tensor
     cov: torch.Tensor
     log_evidence_increment: torch.Tensor
     step: int = 0
+    n_particles: Optional[int] = None
 
     @property
     def estimate(self) -> torch.Tensor:

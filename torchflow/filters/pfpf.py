@@ -38,7 +38,23 @@ def _flow(flow):
     return flow
 
 
-class ParticleFlowParticleFilter(ParticleFilterBase):
+class _FlowFilterMixin:
+    """Flow, schedule and covariance tracker shared by the flow filters."""
+
+    def _init_flow(self, model, flow, schedule, covariance):
+        self.flow = _flow(flow)
+        self.schedule = schedule or ExponentialSchedule()
+        self.covariance = covariance
+        self.tracker = _tracker(model, covariance)
+
+    def _flow_bytes(self, N: int, cov_mats: int) -> int:
+        """Rough per-trial memory: ``cov_mats`` d x d matrices per particle for local flows."""
+        d, m = self.model.state_dim, self.model.obs_dim
+        per_point = cov_mats * d * d + 4 * m * d + 8 * d + 4 * m
+        return 8 * (N * per_point if self.flow.local else N * (8 * d + 3 * m) + 4 * per_point)
+
+
+class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
     """Particle flow particle filter (PF-PF; Li & Coates 2017, Algorithms 1-2).
 
     Each step, for particle i: draw ``eta_0^i ~ p(. | x_{k-1}^i)``, migrate it with the flow from
@@ -70,16 +86,10 @@ class ParticleFlowParticleFilter(ParticleFilterBase):
                  validate: bool = True, name: Optional[str] = None):
         super().__init__(model, n_particles=n_particles, resampling=resampling, ess_threshold=ess_threshold,
                          regularization=regularization, nonfinite=nonfinite, validate=validate, name=name)
-        self.flow = _flow(flow)
-        self.schedule = schedule or ExponentialSchedule()
-        self.covariance = covariance
-        self.tracker = _tracker(model, covariance)
+        self._init_flow(model, flow, schedule, covariance)
 
     def bytes_per_trial(self, n_particles=None):
-        N = n_particles or self.n_particles
-        d, m = self.model.state_dim, self.model.obs_dim
-        per_point = 12 * d * d + 4 * m * d + 8 * d + 4 * m
-        return 8 * (N * per_point if self.flow.local else N * (8 * d + 3 * m) + 4 * per_point)
+        return self._flow_bytes(n_particles or self.n_particles, cov_mats=12)
 
     def init(self, mean, cov, n_particles=None, generator=None):
         N = self._resolve_n(n_particles)
@@ -118,7 +128,7 @@ class ParticleFlowParticleFilter(ParticleFilterBase):
                                         fallback=eta0, n_repaired=state.n_repaired)
 
 
-class ParticleFlowFilter(Filter):
+class ParticleFlowFilter(_FlowFilterMixin, Filter):
     """Particle flow filter without importance weights (Ding & Coates 2012; the "EDH"/"LEDH" rows
     of the seed tables).
 
@@ -140,26 +150,18 @@ class ParticleFlowFilter(Filter):
         if int(n_particles) < 1:
             raise ValueError(f"n_particles: expected a positive integer, got {n_particles}")
         self.n_particles = int(n_particles)
-        self.flow = _flow(flow)
-        self.schedule = schedule or ExponentialSchedule()
-        self.covariance = covariance
-        self.tracker = _tracker(model, covariance)
+        self._init_flow(model, flow, schedule, covariance)
 
     def bytes_per_trial(self, n_particles=None):
-        N = n_particles or self.n_particles
-        d, m = self.model.state_dim, self.model.obs_dim
-        per_point = 8 * d * d + 4 * m * d + 8 * d + 4 * m
-        return 8 * (N * per_point if self.flow.local else N * (8 * d + 3 * m) + 4 * per_point)
+        return self._flow_bytes(n_particles or self.n_particles, cov_mats=8)
 
     def init(self, mean, cov, n_particles=None, generator=None):
         N = self.n_particles if n_particles is None else int(n_particles)
-        state = GaussianState(mean, cov, torch.zeros_like(mean[:, 0]), 0)
-        state.n_particles = N  # carried for step()
-        return state
+        return GaussianState(mean, cov, torch.zeros_like(mean[:, 0]), 0, n_particles=N)
 
     def step(self, state: GaussianState, z, generator=None):
         model = self.model
-        N = getattr(state, "n_particles", self.n_particles)
+        N = state.n_particles or self.n_particles
         B, d = state.mean.shape
         L_prev = linalg.safe_cholesky(state.cov)
         x_prev = linalg.sample_mvn(state.mean, L_prev, (N,), generator)  # re-draw (B, N, d)
@@ -172,6 +174,4 @@ class ParticleFlowFilter(Filter):
             prior = FlowPrior(m_pred, L)
         out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule)
         _, P_post, ll = self.tracker.update(m_pred, P_pred, z)
-        new = GaussianState(out.particles.mean(1), P_post, ll, state.step + 1)
-        new.n_particles = N
-        return new
+        return GaussianState(out.particles.mean(1), P_post, ll, state.step + 1, n_particles=N)

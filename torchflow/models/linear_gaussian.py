@@ -33,10 +33,12 @@ class LinearGaussian(StateSpaceModel):
         R: ``(m, m)`` measurement noise covariance (positive definite).
         m0: ``(d,)`` initial mean (default zeros).
         P0: ``(d, d)`` initial covariance (default zeros: x_0 = m0 known).
-        learnable: register F, Q, H, R as ``nn.Parameter`` (else buffers).
+        learnable: ``True`` registers F, Q, H, R as ``nn.Parameter`` (else buffers); a list such as
+            ``["F", "H"]`` makes only those learnable. Q and R are used as given: keep them
+            positive definite (or learn only F and H) when optimising.
     """
 
-    def __init__(self, F, Q, H, R, m0=None, P0=None, *, learnable: bool = False):
+    def __init__(self, F, Q, H, R, m0=None, P0=None, *, learnable=False):
         super().__init__()
         F = torch.as_tensor(F, dtype=torch.float64)
         d = F.shape[-1]
@@ -54,8 +56,15 @@ class LinearGaussian(StateSpaceModel):
         check_tensor("P0", P0, (d, d), "(d, d)")
         check_psd("P0", P0)
         self.state_dim, self.obs_dim = d, m
-        for name, val in (("F", F), ("Q", Q), ("H", H), ("R", R)):
-            if learnable:
+        names = ("F", "Q", "H", "R")
+        if isinstance(learnable, bool):
+            learn = set(names) if learnable else set()
+        else:
+            learn = set(learnable)
+            if not learn <= set(names):
+                raise ValueError(f"learnable: expected a bool or a subset of {list(names)}, got {sorted(learn)}")
+        for name, val in zip(names, (F, Q, H, R)):
+            if name in learn:
                 setattr(self, name, nn.Parameter(val.clone()))
             else:
                 self.register_buffer(name, val.clone())

@@ -1,0 +1,79 @@
+"""PyTorch Lightning wrapper: learn a model's parameters by maximising a filter's log-evidence.
+
+The core library never imports Lightning; import this module explicitly::
+
+    from torchflow.lightning import FilterLightningModule, TrajectoryDataset
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import pytorch_lightning as pl
+import torch
+from torch.utils.data import Dataset
+
+from .filters.base import Filter
+from .models.base import Trajectory
+
+
+class TrajectoryDataset(Dataset):
+    """Trials of observations with their filter priors, as ``(observations (T, m), mean (d,), cov (d, d))``.
+
+    Args:
+        trajectory: simulated or recorded data, observations ``(B, T, m)``.
+        mean, cov: per-trial priors ``(B, d)``, ``(B, d, d)``.
+    """
+
+    def __init__(self, trajectory: Trajectory, mean: torch.Tensor, cov: torch.Tensor):
+        B = trajectory.observations.shape[0]
+        if mean.shape[0] != B or cov.shape[0] != B:
+            raise ValueError(f"mean, cov: expected {B} trials like the observations, got {mean.shape[0]}, {cov.shape[0]}")
+        self.obs, self.mean, self.cov = trajectory.observations, mean, cov
+
+    def __len__(self) -> int:
+        return self.obs.shape[0]
+
+    def __getitem__(self, i):
+        return self.obs[i], self.mean[i], self.cov[i]
+
+
+class FilterLightningModule(pl.LightningModule):
+    """Maximum-likelihood learning through a filter: the loss is the negative log-evidence per
+    time step, averaged over the trials of a batch (exact for the Kalman filter; for particle
+    filters the gradient of the particle log-evidence estimate, with resampling treated as fixed).
+
+    Args:
+        filter: any torchflow filter whose model has ``nn.Parameter``s (e.g. ``learnable=True``).
+        lr: Adam learning rate.
+        seed: seeds the filter's ``torch.Generator`` (re-seeded per batch index for reproducibility).
+    """
+
+    def __init__(self, filter: Filter, *, lr: float = 1e-2, seed: int = 0):
+        super().__init__()
+        if not any(p.requires_grad for p in filter.parameters()):
+            raise ValueError("filter: its model has no learnable parameters (construct it with learnable=True)")
+        self.filter = filter
+        self.lr = float(lr)
+        self.seed = int(seed)
+
+    def forward(self, observations, mean, cov, generator: Optional[torch.Generator] = None):
+        return self.filter(observations, mean, cov, generator)
+
+    def _loss(self, batch, batch_idx):
+        obs, mean, cov = batch
+        g = torch.Generator(device=obs.device).manual_seed(self.seed + batch_idx)
+        res = self.filter(obs, mean, cov, g)
+        return -res.log_evidence.mean() / obs.shape[1]
+
+    def training_step(self, batch, batch_idx):
+        loss = self._loss(batch, batch_idx)
+        self.log("train_nll_per_step", loss, prog_bar=True, batch_size=batch[0].shape[0])
+        return loss
+
+    def validation_step(self, batch, batch_idx):
+        loss = self._loss(batch, batch_idx)
+        self.log("val_nll_per_step", loss, prog_bar=True, batch_size=batch[0].shape[0])
+        return loss
+
+    def configure_optimizers(self):
+        return torch.optim.Adam([p for p in self.filter.parameters() if p.requires_grad], lr=self.lr)
