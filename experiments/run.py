@@ -74,6 +74,9 @@ def main(cfg: DictConfig) -> None:
     model = instantiate(cfg.model)
     filters = {}
     for name, fcfg in cfg.filter.items():
+        if "_target_" not in fcfg:  # e.g. an experiment's per-filter setting for a filter not selected
+            print(f"(filter.{name}: settings given but the filter is not selected; skipped)", file=sys.stderr)
+            continue
         filters[name] = instantiate(fcfg, model=model, name=name)
     result = run_experiment(
         model,

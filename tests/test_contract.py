@@ -4,7 +4,8 @@ import torch
 
 from torchflow._checks import NonFiniteError
 from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, KalmanFilter,
-                               UnscentedKalmanFilter)
+                               ParticleFlowFilter, ParticleFlowParticleFilter, UnscentedKalmanFilter)
+from torchflow.schedules import ExponentialSchedule
 from torchflow.models import AcousticTracking, SensorNetwork
 from conftest import cuda, random_lg
 
@@ -18,6 +19,13 @@ CONFIGS = [
     ("ukf-acoustic", AcousticTracking, lambda m: UnscentedKalmanFilter(m)),
     ("bpf-acoustic", AcousticTracking, lambda m: BootstrapParticleFilter(m, n_particles=64)),
 ]
+_SCHED = ExponentialSchedule(8, 1.3)
+for _flow in ("edh", "ledh"):
+    for _mname, _make_model in (("lg", lambda: random_lg(3, 2)), ("acoustic", AcousticTracking)):
+        CONFIGS.append((f"pfpf_{_flow}-{_mname}", _make_model,
+                        lambda m, fl=_flow: ParticleFlowParticleFilter(m, flow=fl, n_particles=64, schedule=_SCHED)))
+        CONFIGS.append((f"{_flow}-{_mname}", _make_model,
+                        lambda m, fl=_flow: ParticleFlowFilter(m, flow=fl, n_particles=64, schedule=_SCHED)))
 IDS = [c[0] for c in CONFIGS]
 
 
@@ -39,7 +47,9 @@ def test_contract_shapes_dtype(name, make_model, make_filter, dtype):
     assert res.log_evidence.shape == (B,) and res.log_evidence_increments.shape == (B, T)
     assert torch.isfinite(res.estimates).all() and torch.isfinite(res.log_evidence).all()
     torch.testing.assert_close(res.log_evidence, res.log_evidence_increments.sum(1))
-    if f.uses_particles:
+    if isinstance(f, ParticleFlowFilter):  # particles re-drawn each step, Gaussian belief
+        assert res.ess is None and res.covariances.shape == (B, T, d, d)
+    elif f.uses_particles:
         assert res.ess.shape == (B, T) and res.ess.dtype == dtype
         assert ((res.ess >= 1 - 1e-4) & (res.ess <= 64 + 1e-3)).all()
         assert res.particles.shape == (B, T, 64, d)

@@ -266,7 +266,7 @@ class ParticleFilterBase(Filter):
     def bytes_per_trial(self, n_particles=None):
         N = n_particles or self.n_particles
         d, m = self.model.state_dim, self.model.obs_dim
-        return 8 * N * (6 * d + 3 * m + 8)
+        return 8 * N * (6 * d + 3 * m + 8) + N * self.model.bytes_per_point()
 
     def _resolve_n(self, n_particles):
         N = self.n_particles if n_particles is None else int(n_particles)

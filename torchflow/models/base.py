@@ -167,6 +167,11 @@ class StateSpaceModel(nn.Module):
                 obs.append(self.sample_measurement(x, generator))
             return Trajectory(torch.stack(states, 1), torch.stack(obs, 1))
 
+    def bytes_per_point(self) -> int:
+        """Rough memory of evaluating the model at one point (intermediates of ``measure``,
+        log-densities); filters multiply it by their particle count to size chunks of trials."""
+        return 8 * 4 * (self.state_dim + self.obs_dim)
+
     # ---- tracking ------------------------------------------------------------------------------
     @property
     def has_positions(self) -> bool:
