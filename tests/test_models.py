@@ -58,7 +58,8 @@ def test_acoustic_prior_draw(acoustic):
 
 
 def test_acoustic_filter_noise_option():
-    assert torch.equal(AcousticTracking(filter_noise="true").transition_cov(), AcousticTracking().V_true)
+    assert torch.equal(AcousticTracking(filter_noise="truth").transition_cov(), AcousticTracking().V_true)
+    assert AcousticTracking(filter_noise=True).filter_noise == "truth"  # YAML `true`
     assert AcousticTracking().transition_cov()[0, 0] == 3.0
     with pytest.raises(ValueError, match="filter_noise"):
         AcousticTracking(filter_noise="bogus")

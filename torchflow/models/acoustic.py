@@ -28,8 +28,9 @@ class AcousticTracking(StateSpaceModel):
         psi: source amplitude Psi (10).
         d0: distance offset d0 (0.1).
         true_noise_scale: true process noise ``V = blockdiag(scale * G)`` (0.05).
-        filter_noise: ``"inflated"`` (Li & Coates' V_f, default) or ``"true"`` (use V for the
-            filters too, as Pal & Coates' code does).
+        filter_noise: ``"inflated"`` (Li & Coates' V_f, default) or ``"truth"`` (use the true V
+            for the filters too, as Pal & Coates' code does; ``"true"``/``True`` are accepted, since
+            YAML reads ``true`` as a boolean).
         area: side of the square field in metres (40).
         sensor_grid: sensors per side (5), placed on ``linspace(0, area, sensor_grid)``.
         prior_std: per-target prior standard deviations of [px, py, vx, vy] ([10, 10, 1, 1]).
@@ -60,8 +61,10 @@ class AcousticTracking(StateSpaceModel):
         super().__init__()
         if sigma_w <= 0:
             raise ValueError(f"sigma_w: expected > 0, got {sigma_w}")
-        if filter_noise not in ("inflated", "true"):
-            raise ValueError(f"filter_noise: expected 'inflated' or 'true', got {filter_noise!r}")
+        if filter_noise is True or filter_noise == "true":
+            filter_noise = "truth"
+        if filter_noise not in ("inflated", "truth"):
+            raise ValueError(f"filter_noise: expected 'inflated' or 'truth', got {filter_noise!r}")
         C = self.n_targets
         self.state_dim, self.obs_dim = 4 * C, sensor_grid * sensor_grid
         f64 = dict(dtype=torch.float64)
@@ -72,6 +75,7 @@ class AcousticTracking(StateSpaceModel):
         self.register_buffer("F", _blockdiag(F1, C))
         self.register_buffer("V_true", V)
         self.register_buffer("V_filter", _blockdiag(Vf1, C) if filter_noise == "inflated" else V.clone())
+        self.filter_noise = filter_noise
         ticks = torch.linspace(0.0, area, sensor_grid, **f64)
         sy, sx = torch.meshgrid(ticks, ticks, indexing="ij")
         self.register_buffer("sensors", torch.stack([sx.reshape(-1), sy.reshape(-1)], -1))  # (m, 2), x fastest
