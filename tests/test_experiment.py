@@ -44,7 +44,7 @@ def test_runner_chunking_does_not_change_deterministic_filters():
     model = SensorNetwork(d=16)
     a = run_experiment(model, {"kf": KalmanFilter(model)}, trials=7, steps=3, progress=False)
     b = run_experiment(model, {"kf": KalmanFilter(model)}, trials=7, steps=3, chunk_size=3, progress=False)
-    assert b.config["chunk_size"] == 3
+    assert b.config["chunk_size"] == {"kf": 3}
     assert [r["mse"] for r in a.per_trial] == pytest.approx([r["mse"] for r in b.per_trial], abs=1e-12)
 
 
@@ -78,6 +78,17 @@ def test_runner_errors():
     with pytest.raises(ValueError, match="different model"):
         run_experiment(model, {"kf": KalmanFilter(SensorNetwork(d=16))}, progress=False)
     assert choose_chunk_size({"kf": KalmanFilter(model)}, 10, 1e-9) == 1
+
+
+def test_runner_caps_local_flow_chunks():
+    from torchflow.filters import ParticleFlowParticleFilter
+
+    model = AcousticTracking()
+    filters = {"pfpf_ledh": ParticleFlowParticleFilter(model, flow="ledh", n_particles=4000),
+               "pfpf_edh": ParticleFlowParticleFilter(model, flow="edh", n_particles=4000),
+               "ekf": ExtendedKalmanFilter(model)}
+    res = run_experiment(model, filters, trials=5, steps=1, progress=False)
+    assert res.config["chunk_size"] == {"pfpf_ledh": 2, "pfpf_edh": 5, "ekf": 5}
 
 
 def _cli(tmp_path, *args):

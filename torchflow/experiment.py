@@ -110,10 +110,12 @@ def run_experiment(
         trials: Monte Carlo trials B.
         steps: time steps T.
         seed: seeds the simulation; each filter gets its own generator from
-            :func:`filter_seed` (seed, name), re-seeded per chunk from the chunk's first trial.
+            :func:`filter_seed` (seed, name), re-seeded per chunk from the chunk's first trial, so
+            a filter's numbers depend on the seed, its name and its chunk size only.
         inits_per_track: trials share a trajectory in groups of this size, each with its own
             prior draw (Li & Coates: 100 trajectories x 5 initialisations).
-        chunk_size: trials per chunk; ``None`` picks it from ``memory_budget_gb``.
+        chunk_size: trials per chunk for every filter; ``None`` picks each filter's from
+            ``memory_budget_gb`` and :meth:`Filter.preferred_chunk_trials`.
         device, dtype: where and in what precision filters run (metrics use float64).
         ospa_cutoff, ospa_order, lost_threshold: metric settings (tracking models).
         progress: show a tqdm progress bar.
@@ -135,6 +137,17 @@ def run_experiment(
     traj, mean0, cov0 = _simulate(model, trials, steps, inits_per_track, gen)
     chunk = int(chunk_size) if chunk_size else choose_chunk_size(filters, trials, memory_budget_gb)
     starts = list(range(0, trials, chunk))
+
+    def filter_chunk(f: Filter) -> int:
+        """A filter's chunk of trials: ``chunk_size`` if given, else the most its memory estimate
+        allows, capped by the filter's preferred batch (local flows slow down past ~1e4 points)."""
+        if chunk_size:
+            return int(chunk_size)
+        c = choose_chunk_size({"f": f}, trials, memory_budget_gb)
+        pref = f.preferred_chunk_trials()
+        return min(c, pref) if pref else c
+
+    chunks = {name: filter_chunk(f) for name, f in filters.items()}
     truth = traj.states[:, 1:].double()
     tracking = model.has_positions
     true_pos = model.positions(truth) if tracking else None
@@ -164,10 +177,11 @@ def run_experiment(
             bar.set_description(name)
         est, logz, ess, repaired = [], [], [], []
         elapsed = 0.0
+        f_chunk = chunks[name]
         try:
             with torch.no_grad():
-                for s in starts:
-                    sl = slice(s, s + chunk)
+                for s in range(0, trials, f_chunk):
+                    sl = slice(s, s + f_chunk)
                     g = torch.Generator(device=dev).manual_seed(filter_seed(seed, name) + s)
                     n_b = traj.observations[sl].shape[0]
                     cb = (lambda n=n_b: bar.update(n)) if bar is not None else None
@@ -236,7 +250,7 @@ def run_experiment(
             on_filter_done(summary)
     if bar is not None:
         bar.close()
-    config = dict(trials=trials, steps=steps, seed=seed, inits_per_track=inits_per_track, chunk_size=chunk,
+    config = dict(trials=trials, steps=steps, seed=seed, inits_per_track=inits_per_track, chunk_size=chunks,
                   device=str(dev), dtype=str(dt).replace("torch.", ""))
     cpu_traj = Trajectory(traj.states.cpu(), traj.observations.cpu())
     return ExperimentResult(summary, per_trial, per_step, cpu_traj, config)

@@ -139,6 +139,11 @@ class Filter(nn.Module):
         d, m = self.model.state_dim, self.model.obs_dim
         return 8 * 8 * (d * d + m * d + m * m)
 
+    def preferred_chunk_trials(self, n_particles: Optional[int] = None) -> Optional[int]:
+        """Largest number of trials per call that runs at full speed (``None``: no limit beyond
+        memory). Used by the experiment runner when no ``chunk_size`` is given."""
+        return None
+
     # ---- helpers -------------------------------------------------------------------------------
     def check_prior(self, mean: torch.Tensor, cov: torch.Tensor, batch_size: Optional[int] = None
                     ) -> Tuple[torch.Tensor, torch.Tensor]:
