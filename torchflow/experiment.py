@@ -135,9 +135,6 @@ def run_experiment(
         f.to(device=dev, dtype=dt)
     gen = torch.Generator(device=dev).manual_seed(int(seed))
     traj, mean0, cov0 = _simulate(model, trials, steps, inits_per_track, gen)
-    chunk = int(chunk_size) if chunk_size else choose_chunk_size(filters, trials, memory_budget_gb)
-    starts = list(range(0, trials, chunk))
-
     def filter_chunk(f: Filter) -> int:
         """A filter's chunk of trials: ``chunk_size`` if given, else the most its memory estimate
         allows, capped by the filter's preferred batch (local flows slow down past ~1e4 points)."""
@@ -156,8 +153,9 @@ def run_experiment(
     if isinstance(model, LinearGaussian):
         with torch.no_grad():
             kf = KalmanFilter(model, validate=False)
-            reference_logz = torch.cat([kf(traj.observations[s:s + chunk], mean0[s:s + chunk], cov0[s:s + chunk]).log_evidence
-                                        for s in starts]).double()
+            c = filter_chunk(kf)
+            reference_logz = torch.cat([kf(traj.observations[s:s + c], mean0[s:s + c], cov0[s:s + c]).log_evidence
+                                        for s in range(0, trials, c)]).double()
 
     bar = None
     if progress:
