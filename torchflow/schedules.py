@@ -64,3 +64,35 @@ class UniformSchedule(LambdaSchedule):
 
     def step_sizes(self):
         return torch.full((self.n_steps,), 1.0 / self.n_steps, dtype=torch.float64)
+
+
+class GeometricSchedule(LambdaSchedule):
+    """Seed 002's schedule (Zhang et al. 2024): a first step ``first_step`` (Delta_1), each next
+    step ``ratio`` (beta) times the previous, and a last step that closes at lambda = 1:
+    ``eps_j = Delta_1 beta^(j-1)`` while ``sum < 1``, then ``eps_n = 1 - lambda_(n-1)``.
+
+    The step count follows from the two knobs: ``Delta_1 = 1e-4, beta = 2`` gives 14 steps,
+    ``Delta_1 = 1e-5, beta = 1.5`` gives 27.
+    """
+
+    def __init__(self, first_step: float = 1e-4, ratio: float = 2.0):
+        if not 0 < first_step <= 1:
+            raise ValueError(f"first_step: expected in (0, 1], got {first_step}")
+        if ratio < 1:
+            raise ValueError(f"ratio: expected >= 1, got {ratio}")
+        self.first_step, self.ratio = float(first_step), float(ratio)
+        eps, total = [], 0.0
+        while total + self.first_step * self.ratio ** len(eps) < 1.0 - 1e-12:
+            eps.append(self.first_step * self.ratio ** len(eps))
+            total += eps[-1]
+            if len(eps) > 100_000:
+                raise ValueError(f"first_step={first_step}, ratio={ratio}: more than 1e5 steps")
+        eps.append(1.0 - total)
+        self._eps = eps
+        self.n_steps = len(eps)
+
+    def step_sizes(self):
+        return torch.tensor(self._eps, dtype=torch.float64)
+
+    def __repr__(self) -> str:
+        return f"GeometricSchedule(first_step={self.first_step}, ratio={self.ratio}, n_steps={self.n_steps})"

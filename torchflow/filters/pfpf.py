@@ -11,7 +11,8 @@ from typing import Optional
 import torch
 
 from .. import linalg
-from ..flows import EDHFlow, FlowPrior, LEDHFlow, ParticleFlow, integrate_flow
+from ..flows import (EDHFlow, FlowPrior, GeodesicFlow, GromovFlow, LEDHFlow, OptimalDiffusionFlow, ParticleFlow,
+                     integrate_flow)
 from ..schedules import ExponentialSchedule, LambdaSchedule
 from .base import Filter, GaussianState, ParticleFilterBase, ParticleState
 from .kalman import ExtendedKalmanFilter, UnscentedKalmanFilter
@@ -29,7 +30,8 @@ def _flow(flow):
     if flow is None:
         return LEDHFlow()
     if isinstance(flow, str):
-        flows = {"edh": EDHFlow, "ledh": LEDHFlow}
+        flows = {"edh": EDHFlow, "ledh": LEDHFlow, "geodesic": GeodesicFlow, "gromov": GromovFlow,
+                 "osd": OptimalDiffusionFlow}
         if flow not in flows:
             raise ValueError(f"flow: expected a ParticleFlow or one of {sorted(flows)}, got {flow!r}")
         return flows[flow]()
@@ -81,7 +83,11 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
 
     Args:
         model: state-space model.
-        flow: a :class:`~torchflow.flows.ParticleFlow` (or ``"edh"``/``"ledh"``); default LEDH.
+        flow: a :class:`~torchflow.flows.ParticleFlow` (or ``"edh"``, ``"ledh"``, ``"geodesic"``,
+            ``"gromov"``, ``"osd"``); default LEDH. With a stochastic flow (Gromov, optimised
+            diffusion) the weight divides by the particle's exact Gaussian proposal density,
+            ``N(x_k; mu_1, S_1)``, tracked through the flow from ``N(f(x_{k-1}), V)``
+            (Pal & Coates 2019, Algorithm 1), instead of using ``theta^i``.
         schedule: lambda schedule (default exponential, 29 steps, ratio 1.2).
         n_particles: N.
         covariance: ``"ekf"`` or ``"ukf"`` covariance tracking.
@@ -100,7 +106,7 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
         self._init_flow(model, flow, schedule, covariance)
 
     def bytes_per_trial(self, n_particles=None):
-        return self._flow_bytes(n_particles or self.n_particles, cov_mats=12)
+        return self._flow_bytes(n_particles or self.n_particles, cov_mats=18 if self.flow.stochastic else 12)
 
     def init(self, mean, cov, n_particles=None, generator=None):
         N = self._resolve_n(n_particles)
@@ -118,11 +124,24 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
                              torch.zeros(B, dtype=torch.bool, device=mean.device),
                              n_repaired=torch.zeros(B, dtype=torch.long, device=mean.device), cov=P)
 
+    def _migrate(self, model, eta0, x_prev, z, prior, generator, log_q0):
+        """Flow ``eta0`` and return the particles with their proposal log-density ``(B, N)``.
+
+        Deterministic flows: ``log q(x) = log p(eta0 | x_prev) - log|det d x / d eta0|``.
+        Stochastic flows: the exact Gaussian law of the Euler-Maruyama map started from the
+        (Gaussian) transition ``N(f(x_prev), V)`` (Pal & Coates 2019, Algorithm 1)."""
+        if not self.flow.stochastic:
+            out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule)
+            return out.particles, log_q0 - out.log_det
+        start = FlowPrior(model.transition_mean(x_prev), model.transition_scale_tril(x_prev))
+        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, generator=generator, proposal=start)
+        return out.particles, out.log_proposal
+
     def step(self, state: ParticleState, z, generator=None):
         model = self.model
         x_prev = state.particles  # (B, N, d)
         eta0 = model.sample_transition(x_prev, generator)
-        log_q0 = model.transition_log_prob(eta0, x_prev)
+        log_q0 = None if self.flow.stochastic else model.transition_log_prob(eta0, x_prev)
         if self.flow.local:
             m_pred, P_pred = self.tracker.predict(x_prev, state.cov)  # (B, N, d), (B, N, d, d)
             z_upd = z.unsqueeze(1)
@@ -130,10 +149,8 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
             m_pred, P_pred = self.tracker.predict(state.estimate, state.cov)  # (B, d), (B, d, d)
             z_upd = z
         prior = FlowPrior(m_pred, linalg.safe_cholesky(P_pred))
-        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule)
-        x = out.particles
-        log_inc = (model.transition_log_prob(x, x_prev) + model.measurement_log_prob(z.unsqueeze(1), x)
-                   - log_q0 + out.log_det)
+        x, log_q = self._migrate(model, eta0, x_prev, z, prior, generator, log_q0)
+        log_inc = model.transition_log_prob(x, x_prev) + model.measurement_log_prob(z.unsqueeze(1), x) - log_q
         _, P_post, _ = self.tracker.update(m_pred, P_pred, z_upd)
         return self.weight_and_resample(x, state.log_weights, log_inc, generator, state.step + 1, cov=P_post,
                                         fallback=eta0, n_repaired=state.n_repaired)
@@ -183,6 +200,6 @@ class ParticleFlowFilter(_FlowFilterMixin, Filter):
             prior = FlowPrior(model.transition_mean(x_prev), L.unsqueeze(1))  # (B, 1, d, d) broadcasts
         else:
             prior = FlowPrior(m_pred, L)
-        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule)
+        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, generator=generator)
         _, P_post, ll = self.tracker.update(m_pred, P_pred, z)
         return GaussianState(out.particles.mean(1), P_post, ll, state.step + 1, n_particles=N)

@@ -5,6 +5,13 @@ Shapes: a *global* flow (EDH-type) linearises once per trial, so its coefficient
 ``A (B, d, d)``, ``b (B, d)``; a *local* flow (LEDH-type) once per particle, ``A (B, N, d, d)``,
 ``b (B, N, d)``. The integrator migrates the particles ``(B, N, d)`` and the auxiliary
 linearisation point(s) with the same coefficients and accumulates ``log|det(I + eps A)|``.
+
+A *stochastic* flow also states a diffusion ``Q = G G^T`` (``noise_factor`` G); the integrator
+then takes Euler-Maruyama steps ``eta <- eta + eps (A eta + b) + sqrt(eps) G xi`` and, given the
+Gaussian law ``N(mu_0, S_0)`` the particles were drawn from, tracks each particle's proposal law
+exactly: the coefficients depend only on the deterministic auxiliary point, so ``eta_1`` is
+Gaussian with ``mu_j = (I + eps_j A_j) mu_{j-1} + eps_j b_j`` and
+``S_j = (I + eps_j A_j) S_{j-1} (I + eps_j A_j)^T + eps_j Q_j``.
 """
 from __future__ import annotations
 
@@ -29,14 +36,18 @@ class FlowCoefficients:
     Attributes:
         A: explicit matrix or ``None``.
         b: ``(B, d)`` or ``(B, N, d)``.
-        log_det: ``log|det(I + eps A)|``, ``(B,)``, ``(B, 1)`` or ``(B, N)``.
+        log_det: ``log|det(I + eps A)|``, ``(B,)``, ``(B, 1)`` or ``(B, N)``; ``None`` for
+            stochastic flows (their map is not a bijection of eta_0).
         apply_A: operator form of A (used when ``A`` is ``None``).
+        noise_factor: stochastic flows only: ``G`` with ``G G^T = Q``, ``(..., d, r)`` batched like
+            ``A`` (``r`` need not equal ``d``: a rank-deficient Q has a thin exact factor).
     """
 
     A: Optional[torch.Tensor]
     b: torch.Tensor
-    log_det: torch.Tensor
+    log_det: Optional[torch.Tensor]
     apply_A: Optional[Callable[[torch.Tensor], torch.Tensor]] = None
+    noise_factor: Optional[torch.Tensor] = None
 
     def drift(self, *points: torch.Tensor):
         """``A x + b`` for each ``x`` of ``points`` (each batched like ``b``)."""
@@ -68,13 +79,20 @@ class FlowOutput:
 
     Attributes:
         particles: ``(B, N, d)`` migrated particles (``eta_1``).
-        log_det: ``(B, N)`` log|det| of the particle map ``eta_0 -> eta_1``.
+        log_det: ``(B, N)`` log|det| of the particle map ``eta_0 -> eta_1`` (deterministic flows;
+            ``None`` for stochastic ones).
         aux: final auxiliary point(s), ``(B, d)`` or ``(B, N, d)``.
+        log_proposal: stochastic flows given a ``proposal``: ``(B, N)`` log-density of each
+            particle under its exact Gaussian law ``N(mu_1, S_1)``; otherwise ``None``.
+        proposal_mean, proposal_cov: that law, ``(B, N, d)`` and ``(B, N|1, d, d)`` (or ``None``).
     """
 
     particles: torch.Tensor
-    log_det: torch.Tensor
+    log_det: Optional[torch.Tensor]
     aux: torch.Tensor
+    log_proposal: Optional[torch.Tensor] = None
+    proposal_mean: Optional[torch.Tensor] = None
+    proposal_cov: Optional[torch.Tensor] = None
 
 
 class ParticleFlow(nn.Module):
@@ -82,9 +100,11 @@ class ParticleFlow(nn.Module):
 
     Attributes:
         local: linearise per particle (True) or once per trial at the migrating mean (False).
+        stochastic: the flow has a diffusion term (``noise_factor``) and no log-det.
     """
 
     local: bool = False
+    stochastic: bool = False
 
     def coefficients(self, model, z: torch.Tensor, aux: torch.Tensor, prior: FlowPrior,
                      lam: torch.Tensor, eps: torch.Tensor) -> FlowCoefficients:
@@ -112,26 +132,38 @@ def integrate_flow(
     z: torch.Tensor,
     prior: FlowPrior,
     schedule: Optional[LambdaSchedule] = None,
+    *,
+    generator: Optional[torch.Generator] = None,
+    proposal: Optional[FlowPrior] = None,
 ) -> FlowOutput:
-    """Euler-integrate ``d eta / d lambda = A eta + b`` from lambda = 0 to 1.
+    """Integrate ``d eta = (A eta + b) d lambda [+ Q^{1/2} dW]`` from lambda = 0 to 1.
 
-    The auxiliary point starts at ``prior.mean`` and migrates with the same coefficients; for a
-    local flow each particle has its own. The accumulated ``log|det(I + eps_j A_j)|`` is the
-    log-Jacobian of the particle map, which the PF-PF weight needs.
+    The auxiliary point starts at ``prior.mean`` and migrates deterministically with the same
+    drift; for a local flow each particle has its own. A deterministic flow (Euler) accumulates
+    ``log|det(I + eps_j A_j)|``, the log-Jacobian of the particle map, which the PF-PF weight
+    needs. A stochastic flow (Euler-Maruyama, noise from ``generator``) instead propagates the
+    particles' Gaussian law from ``proposal`` and returns each particle's log-density under it.
 
     Args:
-        flow: the flow (states A, b).
+        flow: the flow (states A, b and, if stochastic, the diffusion factor).
         model: state-space model.
-        particles: ``(B, N, d)`` samples eta_0 from the prior.
+        particles: ``(B, N, d)`` samples eta_0.
         z: ``(B, m)``.
-        prior: :class:`FlowPrior`, ``(B, d)`` (global) or ``(B, N, d)`` (local).
+        prior: :class:`FlowPrior`, ``(B, d)`` (global) or ``(B, N, d)`` (local): the Gaussian the
+            flow is built for (the homotopy starts from it).
         schedule: lambda schedule (default: exponential, 29 steps, ratio 1.2).
+        generator: ``torch.Generator`` for the diffusion noise (stochastic flows).
+        proposal: stochastic flows: the law ``eta_0 ~ N(mean, scale_tril scale_tril^T)`` the
+            particles were drawn from, mean ``(B, N, d)``, factor broadcastable to
+            ``(B, N, d, d)``. When given, the output carries ``log_proposal``.
 
     Returns:
         :class:`FlowOutput`.
     """
     schedule = schedule or ExponentialSchedule()
     eps_all, lam_all = schedule.steps(dtype=particles.dtype, device=particles.device)
+    if flow.stochastic:
+        return _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, generator, proposal)
     B, N, d = particles.shape
     aux = prior.mean
     log_det = torch.zeros(B, N, dtype=particles.dtype, device=particles.device)
@@ -160,3 +192,43 @@ def integrate_flow(
         aux = aux + eps * d_aux
         log_det = log_det + c.log_det
     return FlowOutput(eta, log_det, aux)
+
+
+def _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, generator, proposal):
+    """Euler-Maruyama for stochastic flows, with the exact Gaussian proposal recursion."""
+    B, N, d = particles.shape
+    eye = torch.eye(d, dtype=particles.dtype, device=particles.device)
+    aux, eta = prior.mean, particles
+    track = proposal is not None
+    if track:
+        mu = proposal.mean.expand(B, N, d)
+        L0 = proposal.scale_tril
+        Sig = L0 @ L0.transpose(-1, -2)
+        if Sig.dim() == 2:
+            Sig = Sig.expand(B, 1, d, d)
+    for j in range(len(eps_all)):
+        eps, lam = eps_all[j], lam_all[j]
+        co = flow.coefficients(model, z, aux, prior, lam, eps)
+        A, b, G = co.A, co.b, co.noise_factor
+        if A is None or G is None:
+            raise TypeError(f"{type(flow).__name__}: a stochastic flow must give an explicit A and a noise_factor")
+        if flow.local:  # aux is per particle: one stacked product for every vector
+            drifts = FlowCoefficients(A, b, None).drift(eta, aux, *([mu] if track else []))
+            aux = aux + eps * drifts[1]
+            d_eta, d_mu = drifts[0], drifts[-1]
+        else:  # one (B, d, .) matrix per trial: move the trial's aux, view the rest per particle
+            aux = aux + eps * (linalg.matvec(A, aux) + b)
+            A, b, G = A.unsqueeze(-3), b.unsqueeze(-2), G.unsqueeze(-3)
+            drifts = FlowCoefficients(A, b, None).drift(eta, *([mu] if track else []))
+            d_eta, d_mu = drifts[0], drifts[-1]
+        xi = torch.randn(B, N, G.shape[-1], dtype=eta.dtype, device=eta.device, generator=generator)
+        eta = eta + eps * d_eta + eps.sqrt() * linalg.matvec(G, xi)
+        if track:
+            mu = mu + eps * d_mu
+            T = eye + eps * A
+            Sig = T @ Sig @ T.transpose(-1, -2) + eps * (G @ G.transpose(-1, -2))
+    if not track:
+        return FlowOutput(eta, None, aux)
+    Sig = linalg.symmetrize(Sig)
+    log_q = linalg.mvn_log_prob(eta, mu, linalg.safe_cholesky(Sig))
+    return FlowOutput(eta, None, aux, log_proposal=log_q, proposal_mean=mu, proposal_cov=Sig)

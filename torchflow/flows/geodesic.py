@@ -1,0 +1,236 @@
+"""Geodesic, Gromov and optimised-diffusion flows (Daum & Huang's Gromov flow; Pal & Coates 2019;
+Dai & Daum; seed 002 for the optimised diffusion).
+
+All three transport the Gaussian homotopy ``p(x, lambda) = N(m(lambda), M(lambda)^{-1})`` with
+
+    M(lambda) = P^{-1} + lambda J,   J = H^T R^{-1} H,
+    m(lambda) = M^{-1} (P^{-1} eta_bar_0 + lambda H^T R^{-1} (z - e)),
+
+from the prior ``N(eta_bar_0, P)`` (lambda = 0) to the linearised posterior (lambda = 1), where
+``H = dh/dx`` and ``e = h(eta_bar) - H eta_bar`` at the linearisation point ``eta_bar``. The
+stochastic flows follow the SDE ``d eta = (A eta + b) d lambda + Q^{1/2} dW`` (Euler-Maruyama:
+``eta <- eta + eps (A eta + b) + sqrt(eps) G xi`` with ``G G^T = Q``, ``xi ~ N(0, I)``), whose
+Fokker-Planck equation carries the factor 1/2 on Q. Adding a diffusion Q to a flow with drift
+``A_0 x + b_0`` leaves the density path unchanged when the drift gains ``Q grad log p / 2``:
+
+    A = A_0 - Q M / 2,   b = b_0 + Q M m / 2.
+
+* **Geodesic** (deterministic): ``A = -M^{-1} J``, ``b = M^{-1} H^T R^{-1} (z - e)``. It is the
+  Gromov drift without its diffusion, so it over-contracts (the cloud's covariance shrinks at twice
+  the posterior's rate); as a PF-PF proposal it is exact but its weights degenerate.
+* **Gromov** (stochastic): the same drift, ``Q = M^{-1} J M^{-1}``; with ``A_0`` the EDH drift
+  ``-M^{-1} J / 2`` the rule above gives exactly the geodesic drift, so the density path is the
+  Gaussian homotopy.
+* **Optimised diffusion** (stochastic): ``Q = c M^{-1}`` on top of the EDH drift, so
+  ``A = -M^{-1} J / 2 - (c/2) I``, ``b = b_EDH + (c/2) m``, with ``c`` minimising
+  ``kappa(A) + alpha c`` (:func:`optimal_diffusion_scale`).
+
+Everything is computed in the square-root information form of :mod:`.daum_huang`: with
+``P = L L^T``, ``W = L_R^{-1} H``, ``S = (W L)^T (W L)`` and ``K K^T = I + lambda S``,
+
+    M^{-1} = L (I + lambda S)^{-1} L^T,     G_gromov = M^{-1} W^T = L K^{-T} K^{-1} (W L)^T,
+    M^{-1} J = G_gromov W,                   M^{-1} H^T R^{-1} (z - e) = G_gromov y,
+    m(lambda) = (I - lambda M^{-1} J) eta_bar_0 + lambda M^{-1} H^T R^{-1} (z - e).
+
+``G_gromov`` is an exact ``d x m`` factor of the Gromov diffusion, ``G G^T = M^{-1} J M^{-1}``,
+whatever its rank: when J is rank-deficient (velocities unobserved, ``m < d``) Q is singular and a
+Cholesky factor of Q does not exist; this factor needs none. (Any ``G`` with ``G G^T = Q`` gives
+the same Euler-Maruyama law; the symmetric PSD root ``Q^{1/2}`` is available with
+``noise_root="symmetric"`` and costs an eigendecomposition per point.)
+"""
+from __future__ import annotations
+
+from typing import Union
+
+import torch
+
+from .. import linalg
+from .base import FlowCoefficients, FlowPrior, ParticleFlow
+from .daum_huang import _whiten
+
+
+def _homotopy_terms(W, y, L, lam):
+    """Shared quantities of the Gaussian homotopy at pseudo-time ``lam``.
+
+    Args:
+        W: ``(..., m, d)`` (or ``(m, d)``) whitened Jacobian; y: ``(..., m)`` whitened
+            pseudo-measurement; L: ``(..., d, d)`` prior Cholesky factor.
+
+    Returns:
+        ``S (..., d, d)``, ``K (..., d, d)`` (Cholesky of ``I + lam S``), ``G = M^{-1} W^T
+        (..., d, m)``, ``C = M^{-1} J (..., d, d)`` and ``g = M^{-1} H^T R^{-1} (z - e) (..., d)``.
+    """
+    d = L.shape[-1]
+    eye = torch.eye(d, dtype=L.dtype, device=L.device)
+    WL = W @ L
+    WLt = WL.transpose(-1, -2)
+    S = WLt @ WL
+    K = linalg.safe_cholesky(eye + lam * S)
+    G = L @ linalg.chol_solve(K, WLt)
+    C = G @ W
+    g = linalg.matvec(G, y)
+    return S, K, G, C, g
+
+
+def symmetric_sqrt(Q: torch.Tensor) -> torch.Tensor:
+    """Symmetric PSD square root of a symmetric PSD ``Q (..., d, d)``: ``U diag(sqrt(max(l, 0))) U^T``.
+
+    Negative eigenvalues (round-off of a singular Q) are clamped to zero, so a rank-deficient Q
+    keeps its rank; no jitter is added."""
+    lam, U = torch.linalg.eigh(linalg.symmetrize(Q))
+    return (U * lam.clamp_min(0).sqrt().unsqueeze(-2)) @ U.transpose(-1, -2)
+
+
+def _noise_root(G: torch.Tensor, mode: str) -> torch.Tensor:
+    if mode == "factor":
+        return G
+    return symmetric_sqrt(G @ G.transpose(-1, -2))
+
+
+_NOISE_ROOTS = ("factor", "symmetric")
+
+
+class _HomotopyFlow(ParticleFlow):
+    """Common constructor: local (per-particle) or global (per-trial) linearisation."""
+
+    def __init__(self, local: bool = True):
+        super().__init__()
+        self.local = bool(local)
+
+    def extra_repr(self) -> str:
+        return f"local={self.local}"
+
+
+class GeodesicFlow(_HomotopyFlow):
+    """Deterministic geodesic flow ``d eta / d lambda = M^{-1} H^T R^{-1} (z - h(eta))`` (linearised):
+    ``A = -M^{-1} J``, ``b = M^{-1} H^T R^{-1} (z - e)``; per-particle by default (the PF-PF(Geodesic)
+    of Pal & Coates 2019).
+
+    The Euler step's determinant is exact and positive,
+    ``det(I + eps A) = det(I + (lambda - eps) S) / det(I + lambda S)``, both factors SPD because
+    ``lambda_j - eps_j = lambda_{j-1} >= 0``.
+    """
+
+    def coefficients(self, model, z, aux, prior: FlowPrior, lam, eps):
+        W, y = _whiten(model, aux, z)
+        L = prior.scale_tril
+        S, K, G, C, g = _homotopy_terms(W, y, L, lam)
+        eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
+        K2 = linalg.safe_cholesky(eye + (lam - eps) * S)
+        return FlowCoefficients(-C, g, linalg.chol_logdet(K2) - linalg.chol_logdet(K))
+
+
+class GromovFlow(_HomotopyFlow):
+    """Gromov stochastic flow: the geodesic drift plus diffusion ``Q = M^{-1} J M^{-1}``, so the
+    particle cloud follows the Gaussian homotopy in distribution (exact on linear-Gaussian models
+    as the schedule is refined).
+
+    Args:
+        local: per-particle linearisation (default) or one per trial.
+        noise_root: ``"factor"`` (default) uses the exact ``d x m`` factor ``M^{-1} W^T`` of Q;
+            ``"symmetric"`` uses the symmetric PSD root ``Q^{1/2}`` (eigendecomposition).
+    """
+
+    stochastic = True
+
+    def __init__(self, local: bool = True, noise_root: str = "factor"):
+        super().__init__(local)
+        if noise_root not in _NOISE_ROOTS:
+            raise ValueError(f"noise_root: expected one of {_NOISE_ROOTS}, got {noise_root!r}")
+        self.noise_root = noise_root
+
+    def coefficients(self, model, z, aux, prior: FlowPrior, lam, eps):
+        W, y = _whiten(model, aux, z)
+        S, K, G, C, g = _homotopy_terms(W, y, prior.scale_tril, lam)
+        return FlowCoefficients(-C, g, None, noise_factor=_noise_root(G, self.noise_root))
+
+    def extra_repr(self) -> str:
+        return f"local={self.local}, noise_root={self.noise_root!r}"
+
+
+def diffusion_condition_number(k: torch.Tensor, c) -> torch.Tensor:
+    """``kappa(A_s)`` for ``A_s = A - (c/2) I`` when ``-A`` has eigenvalues ``k (..., d)`` (>= 0):
+    ``(k_max + c/2) / (k_min + c/2)``."""
+    half = torch.as_tensor(c, dtype=k.dtype, device=k.device) / 2
+    return (k.amax(-1) + half) / (k.amin(-1) + half)
+
+
+def optimal_diffusion_scale(k_min: torch.Tensor, k_max: torch.Tensor, alpha: float) -> torch.Tensor:
+    """Closed-form minimiser of ``J(c) = kappa(c) + alpha c`` over ``c >= 0``.
+
+    With ``Q = c M^{-1}`` and our SDE convention (diffusion enters the Fokker-Planck equation as
+    ``div(Q grad p) / 2``) the drift is ``A_s = A - (c/2) I``, so the eigenvalues of ``-A_s`` are
+    ``k + c/2`` and ``kappa(c) = (k_max + c/2) / (k_min + c/2)``. With ``s = c/2``,
+    ``dJ/ds = -(k_max - k_min)/(k_min + s)^2 + 2 alpha`` vanishes at
+    ``s = sqrt((k_max - k_min) / (2 alpha)) - k_min`` and J is convex for ``s > -k_min``, hence
+
+        c* = 2 max{0, sqrt((k_max - k_min) / (2 alpha)) - k_min}.
+
+    (Seed 002 prints ``max{0, sqrt((k_max - k_min)/alpha) - k_min}``, which is the same minimiser
+    for the convention ``A_s = A - c I``.)
+    """
+    if alpha <= 0:
+        raise ValueError(f"alpha: expected > 0, got {alpha}")
+    return 2 * (torch.sqrt((k_max - k_min).clamp_min(0) / (2 * alpha)) - k_min).clamp_min(0)
+
+
+class OptimalDiffusionFlow(_HomotopyFlow):
+    """EDH drift plus diffusion ``Q = c M^{-1}`` with ``c`` minimising the stiffness objective
+    ``kappa(A_s) + alpha c`` at every pseudo-time step and linearisation point (Dai & Daum;
+    seed 002's optimised stochastic flow).
+
+    ``-A_EDH = M^{-1} J / 2`` has eigenvalues ``k_i = s_i / (2 (1 + lambda s_i))`` with ``s_i`` the
+    eigenvalues of ``S = L^T J L``, so only ``S``'s extreme eigenvalues are needed. ``c`` is a
+    tuning constant of the proposal (the PF-PF weight stays exact for any ``c``), so it is
+    computed without gradient.
+
+    Args:
+        alpha: weight of the diffusion magnitude in the objective (default 0.1, seed 002).
+        c: ``"optimal"`` (default) or a fixed non-negative diffusion scale (``c = 0`` is EDH/LEDH).
+        local: per-particle linearisation (default) or one per trial.
+        noise_root: ``"factor"`` (``sqrt(c) L K^{-T}``) or ``"symmetric"``.
+    """
+
+    stochastic = True
+
+    def __init__(self, alpha: float = 0.1, c: Union[str, float] = "optimal", local: bool = True,
+                 noise_root: str = "factor"):
+        super().__init__(local)
+        if float(alpha) <= 0:
+            raise ValueError(f"alpha: expected > 0, got {alpha}")
+        if not (c == "optimal" or (isinstance(c, (int, float)) and not isinstance(c, bool) and c >= 0)):
+            raise ValueError(f"c: expected 'optimal' or a float >= 0, got {c!r}")
+        if noise_root not in _NOISE_ROOTS:
+            raise ValueError(f"noise_root: expected one of {_NOISE_ROOTS}, got {noise_root!r}")
+        self.alpha, self.c, self.noise_root = float(alpha), c, noise_root
+
+    def scale(self, S: torch.Tensor, lam) -> torch.Tensor:
+        """Diffusion scale ``c`` per linearisation point ``(...)`` from ``S (..., d, d)``."""
+        if self.c != "optimal":
+            return torch.full(S.shape[:-2], float(self.c), dtype=S.dtype, device=S.device)
+        with torch.no_grad():
+            s = torch.linalg.eigvalsh(S.detach()).clamp_min(0)
+            k = s / (2 * (1 + lam * s))  # eigenvalues of -A_EDH, increasing in s
+            return optimal_diffusion_scale(k[..., 0], k[..., -1], self.alpha)
+
+    def coefficients(self, model, z, aux, prior: FlowPrior, lam, eps):
+        W, y = _whiten(model, aux, z)
+        L, eta0 = prior.scale_tril, prior.mean
+        S, K, G, C, g = _homotopy_terms(W, y, L, lam)
+        c = self.scale(S, lam)  # (...)
+        half_c = (c / 2).unsqueeze(-1)
+        eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
+        m = eta0 - lam * linalg.matvec(C, eta0) + lam * g  # homotopy mean m(lambda)
+        A = -0.5 * C - half_c.unsqueeze(-1) * eye
+        b = g - 0.5 * linalg.matvec(C, m) + half_c * m
+        # Q = c M^{-1} = (sqrt(c) L K^{-T}) (sqrt(c) L K^{-T})^T
+        LKt = torch.linalg.solve_triangular(K, L.transpose(-1, -2), upper=False).transpose(-1, -2)
+        factor = half_c.mul(2).sqrt().unsqueeze(-1) * LKt
+        return FlowCoefficients(A, b, None, noise_factor=_noise_root(factor, self.noise_root))
+
+    def extra_repr(self) -> str:
+        return f"alpha={self.alpha}, c={self.c!r}, local={self.local}, noise_root={self.noise_root!r}"
+
+
+__all__ = ["GeodesicFlow", "GromovFlow", "OptimalDiffusionFlow", "optimal_diffusion_scale",
+           "diffusion_condition_number", "symmetric_sqrt"]
