@@ -20,7 +20,7 @@ CONFIGS = [
     ("bpf-acoustic", AcousticTracking, lambda m: BootstrapParticleFilter(m, n_particles=64)),
 ]
 _SCHED = ExponentialSchedule(8, 1.3)
-for _flow in ("edh", "ledh"):
+for _flow in ("edh", "ledh", "geodesic", "gromov", "osd"):
     for _mname, _make_model in (("lg", lambda: random_lg(3, 2)), ("acoustic", AcousticTracking)):
         CONFIGS.append((f"pfpf_{_flow}-{_mname}", _make_model,
                         lambda m, fl=_flow: ParticleFlowParticleFilter(m, flow=fl, n_particles=64, schedule=_SCHED)))

@@ -75,10 +75,13 @@ def _homotopy_terms(W, y, L, lam):
 def symmetric_sqrt(Q: torch.Tensor) -> torch.Tensor:
     """Symmetric PSD square root of a symmetric PSD ``Q (..., d, d)``: ``U diag(sqrt(max(l, 0))) U^T``.
 
-    Negative eigenvalues (round-off of a singular Q) are clamped to zero, so a rank-deficient Q
-    keeps its rank; no jitter is added."""
+    Eigenvalues within round-off of zero (``|l| <= d eps_machine l_max``, the eigensolver's own
+    accuracy) are set to zero before the square root, which would otherwise magnify ``1e-16`` to
+    ``1e-8``; so a rank-deficient Q keeps its rank. No jitter is added."""
     lam, U = torch.linalg.eigh(linalg.symmetrize(Q))
-    return (U * lam.clamp_min(0).sqrt().unsqueeze(-2)) @ U.transpose(-1, -2)
+    tol = lam.amax(-1, keepdim=True).clamp_min(0) * Q.shape[-1] * torch.finfo(Q.dtype).eps
+    root = torch.where(lam > tol, lam, torch.zeros_like(lam)).sqrt()
+    return (U * root.unsqueeze(-2)) @ U.transpose(-1, -2)
 
 
 def _noise_root(G: torch.Tensor, mode: str) -> torch.Tensor:
@@ -166,8 +169,11 @@ def optimal_diffusion_scale(k_min: torch.Tensor, k_max: torch.Tensor, alpha: flo
 
         c* = 2 max{0, sqrt((k_max - k_min) / (2 alpha)) - k_min}.
 
-    (Seed 002 prints ``max{0, sqrt((k_max - k_min)/alpha) - k_min}``, which is the same minimiser
-    for the convention ``A_s = A - c I``.)
+    Seed 002 prints ``max{0, sqrt((k_max - k_min)/alpha) - k_min}``: the minimiser of
+    ``kappa + alpha c'`` for the convention ``A_s = A - c' I`` (a diffusion without the factor 1/2,
+    so the same physical noise has ``c' = c/2``). Our objective penalises that noise as
+    ``alpha c = 2 alpha c'``, so ``c*/2`` is seed 002's formula with ``alpha -> 2 alpha``; to
+    reproduce seed 002's minimiser exactly, halve ``alpha``.
     """
     if alpha <= 0:
         raise ValueError(f"alpha: expected > 0, got {alpha}")
