@@ -49,16 +49,18 @@ from .base import FlowCoefficients, FlowPrior, ParticleFlow
 from .daum_huang import _whiten
 
 
-def _homotopy_terms(W, y, L, lam):
+def _homotopy_terms(W, y, L, lam, need_factor: bool = False):
     """Shared quantities of the Gaussian homotopy at pseudo-time ``lam``.
 
     Args:
         W: ``(..., m, d)`` (or ``(m, d)``) whitened Jacobian; y: ``(..., m)`` whitened
             pseudo-measurement; L: ``(..., d, d)`` prior Cholesky factor.
+        need_factor: also return ``G = M^{-1} W^T (..., d, m)`` (the Gromov diffusion factor);
+            otherwise ``C`` and ``g`` come from one solve with ``d + 1`` right-hand sides.
 
     Returns:
-        ``S (..., d, d)``, ``K (..., d, d)`` (Cholesky of ``I + lam S``), ``G = M^{-1} W^T
-        (..., d, m)``, ``C = M^{-1} J (..., d, d)`` and ``g = M^{-1} H^T R^{-1} (z - e) (..., d)``.
+        ``S (..., d, d)``, ``K (..., d, d)`` (Cholesky of ``I + lam S``), ``G`` or ``None``,
+        ``C = M^{-1} J (..., d, d)`` and ``g = M^{-1} H^T R^{-1} (z - e) (..., d)``.
     """
     d = L.shape[-1]
     eye = torch.eye(d, dtype=L.dtype, device=L.device)
@@ -66,10 +68,14 @@ def _homotopy_terms(W, y, L, lam):
     WLt = WL.transpose(-1, -2)
     S = WLt @ WL
     K = linalg.safe_cholesky(eye + lam * S)
-    G = L @ linalg.chol_solve(K, WLt)
-    C = G @ W
-    g = linalg.matvec(G, y)
-    return S, K, G, C, g
+    if need_factor:
+        G = L @ linalg.chol_solve(K, WLt)
+        return S, K, G, G @ W, linalg.matvec(G, y)
+    WLty = linalg.matvec(WLt, y)  # (..., d)
+    shape = torch.broadcast_shapes(WLt.shape[:-2], WLty.shape[:-1])
+    rhs = torch.cat([(WLt @ W).expand(*shape, d, d), WLty.expand(*shape, d).unsqueeze(-1)], -1)
+    X = L @ linalg.chol_solve(K, rhs)  # [M^-1 J | M^-1 H^T R^-1 (z - e)]
+    return S, K, None, X[..., :d], X[..., d]
 
 
 def symmetric_sqrt(Q: torch.Tensor) -> torch.Tensor:
@@ -144,7 +150,7 @@ class GromovFlow(_HomotopyFlow):
 
     def coefficients(self, model, z, aux, prior: FlowPrior, lam, eps):
         W, y = _whiten(model, aux, z)
-        S, K, G, C, g = _homotopy_terms(W, y, prior.scale_tril, lam)
+        S, K, G, C, g = _homotopy_terms(W, y, prior.scale_tril, lam, need_factor=True)
         return FlowCoefficients(-C, g, None, noise_factor=_noise_root(G, self.noise_root))
 
     def extra_repr(self) -> str:
