@@ -2,7 +2,8 @@
 
     python experiments/collect.py multirun/<label>/<time> [--columns omat,ospa,ess,sec_per_step]
 
-Prints a markdown table and writes ``sweep_summary.csv`` into the sweep directory. Jobs that failed
+Prints a markdown table (columns: the overrides that vary between jobs, then the summary columns)
+and writes ``sweep_summary.csv`` into the sweep directory. Jobs that failed
 or are still running (no ``summary.csv``) are listed, not dropped silently.
 """
 from __future__ import annotations
@@ -34,6 +35,8 @@ def collect(sweep_dir: Path, columns=None):
         with open(summary) as fh:
             for r in csv.DictReader(fh):
                 rows.append({"job": job.name, **ov, **r})
+    # overrides shared by every job describe the sweep, not a row: keep only those that vary
+    keys = [k for k in keys if len({r.get(k) for r in rows}) > 1]
     cols = ["job", *keys, "filter", "n_particles", "trials", *(columns or DEFAULT_COLUMNS)]
     cols = list(dict.fromkeys(c for c in cols if any(c in r for r in rows)))
     return rows, cols, missing

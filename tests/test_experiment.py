@@ -123,3 +123,14 @@ def test_cli_multirun_sweep_writes_one_folder_per_job(tmp_path):
     assert jobs == ["0", "1"]
     for j in jobs:
         assert (tmp_path / "sweep" / j / "summary.csv").exists()
+    # the collector gathers both jobs with their overrides; a job without results is reported
+    (tmp_path / "sweep" / "2").mkdir()
+    out = subprocess.run([sys.executable, str(ROOT / "experiments" / "collect.py"), str(tmp_path / "sweep")],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    lines = [ln for ln in out.stdout.splitlines() if ln.startswith("| ")]
+    assert lines[0].startswith("| job | seed | filter") and len(lines) == 3
+    assert "jobs without summary.csv" in out.stderr and "2" in out.stderr
+    with open(tmp_path / "sweep" / "sweep_summary.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [(r["job"], r["seed"], r["filter"]) for r in rows] == [("0", "0", "kf"), ("1", "1", "kf")]
