@@ -459,3 +459,18 @@ def test_hydra_composes_the_new_flow_filters_and_schedule():
     assert type(fs["pfpf_geodesic"].flow) is GeodesicFlow and isinstance(fs["geodesic"], ParticleFlowFilter)
     assert type(fs["pfpf_osd"].flow) is OptimalDiffusionFlow and fs["pfpf_osd"].flow.alpha == 0.5
     assert isinstance(fs["pfpf_osd"].schedule, GeometricSchedule) and len(fs["pfpf_osd"].schedule) == 14
+
+
+@pytest.mark.parametrize("flow", [GeodesicFlow(), OptimalDiffusionFlow(), GromovFlow()], ids=["geodesic", "osd", "gromov"])
+def test_shared_prior_factor_path_equals_per_particle_path(flow):
+    """Linear models share one prior factor per trial, (B, 1, d, d); the shared-solve path must give
+    the same coefficients as the same factor expanded per particle, (B, N, d, d)."""
+    model, mean, P, z, *_ = _lg_problem(3, 5)
+    N = 7
+    L = linalg.safe_cholesky(P).unsqueeze(1)
+    aux = mean.unsqueeze(1) + torch.randn(2, N, 3, dtype=F64, generator=torch.Generator().manual_seed(0))
+    lam, eps = torch.tensor(0.3, dtype=F64), torch.tensor(0.05, dtype=F64)
+    shared = flow.coefficients(model, z, aux, FlowPrior(aux, L), lam, eps)
+    full = flow.coefficients(model, z, aux, FlowPrior(aux, L.expand(2, N, 3, 3)), lam, eps)
+    torch.testing.assert_close(shared.A.expand_as(full.A), full.A)
+    torch.testing.assert_close(shared.b, full.b)

@@ -72,6 +72,13 @@ def _homotopy_terms(W, y, L, lam, need_factor: bool = False):
         G = L @ linalg.chol_solve(K, WLt)
         return S, K, G, G @ W, linalg.matvec(G, y)
     WLty = linalg.matvec(WLt, y)  # (..., d)
+    if K.dim() == WLty.dim() + 1 and K.dim() >= 4 and K.shape[-3] == 1 and WLty.shape[-2] > 1:
+        # one factor per trial shared by N points (linear models): solve the d x d system once
+        # per trial, with the N vectors as extra right-hand sides of the same solve
+        Ks, Ls = K.squeeze(-3), L.expand(K.shape).squeeze(-3)
+        rhs = torch.cat([(WLt @ W).expand(K.shape).squeeze(-3), WLty.transpose(-1, -2)], -1)
+        X = Ls @ linalg.chol_solve(Ks, rhs)  # (..., d, d + N)
+        return S, K, None, X[..., :d].unsqueeze(-3), X[..., d:].transpose(-1, -2)
     shape = torch.broadcast_shapes(WLt.shape[:-2], WLty.shape[:-1])
     rhs = torch.cat([(WLt @ W).expand(*shape, d, d), WLty.expand(*shape, d).unsqueeze(-1)], -1)
     X = L @ linalg.chol_solve(K, rhs)  # [M^-1 J | M^-1 H^T R^-1 (z - e)]
