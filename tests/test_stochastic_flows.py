@@ -353,7 +353,7 @@ def test_stochastic_flow_is_reproducible_and_uses_the_generator():
 
 
 # ---- filters ----------------------------------------------------------------------------------------
-@pytest.mark.parametrize("flow", ["gromov", "osd"])
+@pytest.mark.parametrize("flow", ["gromov", "osd", GromovFlow(local=False)], ids=["gromov", "osd", "gromov-global"])
 def test_pfpf_stochastic_log_evidence_unbiased_on_lg(flow):
     """E[Z_hat / Z] = 1 within 4 standard errors over 400 runs on the same data (as for LEDH).
 
