@@ -69,14 +69,14 @@ def test_coefficients_match_dense_formulas(model_name):
     Mi, J, g, m = _dense_homotopy(model, aux, z, P, eta0, lam)
     a, zz = aux.unsqueeze(0), z.unsqueeze(0)
     geo = GeodesicFlow(local=False).coefficients(model, zz, a, prior, lam, eps)
-    torch.testing.assert_close(geo.A[0], -Mi @ J)
+    torch.testing.assert_close(geo.dense_A()[0], -Mi @ J)
     torch.testing.assert_close(geo.b[0], g)
     I = torch.eye(len(eta0), dtype=F64)
     torch.testing.assert_close(geo.log_det[0], torch.linalg.slogdet(I - eps * Mi @ J)[1])
     gro = GromovFlow(local=False).coefficients(model, zz, a, prior, lam, eps)
     G = gro.noise_factor[0]
     torch.testing.assert_close(G @ G.T, Mi @ J @ Mi)
-    torch.testing.assert_close(gro.A, geo.A)
+    torch.testing.assert_close(gro.dense_A(), geo.dense_A())
     sym = GromovFlow(local=False, noise_root="symmetric").coefficients(model, zz, a, prior, lam, eps).noise_factor[0]
     torch.testing.assert_close(sym, sym.T)
     torch.testing.assert_close(sym @ sym, Mi @ J @ Mi)
@@ -84,7 +84,7 @@ def test_coefficients_match_dense_formulas(model_name):
     osd = OptimalDiffusionFlow(c=c, local=False).coefficients(model, zz, a, prior, lam, eps)
     edh = EDHFlow().coefficients(model, zz, a, prior, lam, eps)
     # A_s = A_EDH - Q M / 2, b_s = b_EDH + Q M m / 2 with Q = c M^-1
-    torch.testing.assert_close(osd.A[0], edh.A[0] - c / 2 * I)
+    torch.testing.assert_close(osd.dense_A()[0], edh.dense_A()[0] - c / 2 * I)
     torch.testing.assert_close(osd.b[0], edh.b[0] + c / 2 * m)
     torch.testing.assert_close(osd.noise_factor[0] @ osd.noise_factor[0].T, c * Mi)
 
@@ -97,14 +97,14 @@ def test_osd_with_zero_diffusion_is_edh_and_gromov_is_edh_plus_its_diffusion():
     lam, eps = torch.tensor(0.3, dtype=F64), torch.tensor(0.05, dtype=F64)
     edh = EDHFlow().coefficients(model, z, aux, prior, lam, eps)
     osd0 = OptimalDiffusionFlow(c=0.0, local=False).coefficients(model, z, aux, prior, lam, eps)
-    torch.testing.assert_close(osd0.A, edh.A, rtol=0, atol=1e-13)
+    torch.testing.assert_close(osd0.dense_A(), edh.dense_A(), rtol=0, atol=1e-13)
     torch.testing.assert_close(osd0.b, edh.b, rtol=0, atol=1e-12)
     assert float(osd0.noise_factor.abs().max()) == 0.0
     # Gromov = EDH drift with Q = M^-1 J M^-1 added by the Fokker-Planck rule A_s = A - Q M / 2
     gro = GromovFlow(local=False).coefficients(model, z, aux, prior, lam, eps)
     Q = gro.noise_factor @ gro.noise_factor.transpose(-1, -2)
     M = torch.linalg.inv(L @ L.transpose(-1, -2)) + lam * model.H.T @ torch.linalg.inv(model.R) @ model.H
-    torch.testing.assert_close(gro.A, edh.A - 0.5 * Q @ M)
+    torch.testing.assert_close(gro.dense_A(), edh.dense_A() - 0.5 * Q @ M)
 
 
 def test_symmetric_sqrt_keeps_rank_of_singular_q():
@@ -170,7 +170,7 @@ def test_optimal_c_minimises_objective(case):
     lam, eps = torch.tensor(0.2, dtype=F64), torch.tensor(0.01, dtype=F64)
 
     def A_at(c):
-        return OptimalDiffusionFlow(c=float(c), local=False).coefficients(model, z, mean, prior, lam, eps).A[0]
+        return OptimalDiffusionFlow(c=float(c), local=False).coefficients(model, z, mean, prior, lam, eps).dense_A()[0]
 
     flow = OptimalDiffusionFlow(alpha=alpha, local=False)
     W, _ = _whiten(model, mean, z)
@@ -272,7 +272,8 @@ def test_stochastic_recursion_with_zero_diffusion_equals_log_det_weight():
 
         def coefficients(self, *a):
             co = super().coefficients(*a)
-            return FlowCoefficients(co.A, co.b, None, noise_factor=torch.zeros_like(co.A[..., :1]))
+            return FlowCoefficients(co.A, co.b, None, noise_factor=torch.zeros_like(co.A[..., :1]),
+                                    support=co.support)
 
     model = AcousticTracking()
     g = torch.Generator().manual_seed(0)

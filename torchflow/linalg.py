@@ -54,13 +54,38 @@ def safe_cholesky(
     )
 
 
+#: batched triangular solves on CPU loop over the batch calling MKL's trsm, which with more
+#: than one thread pays a parallel-region start per tiny matrix: 2000 solves of 8 x 8 with 17
+#: right-hand sides take 2.1-4.4 ms with 2 threads and 0.6-0.9 ms with 1 on this 2-core machine
+#: (torch 2.13, MKL 2024.2). Batches of matrices up to this size are solved single-threaded.
+SERIAL_SOLVE_MAX_DIM = 64
+
+
+def solve_triangular(A: torch.Tensor, B: torch.Tensor, *, upper: bool, left: bool = True) -> torch.Tensor:
+    """``torch.linalg.solve_triangular``, run with one intra-op thread for a CPU batch of small
+    matrices (see :data:`SERIAL_SOLVE_MAX_DIM`); otherwise unchanged."""
+    if A.device.type == "cpu" and A.dim() > 2 and A.shape[-1] <= SERIAL_SOLVE_MAX_DIM \
+            and A.shape[:-2].numel() > 1:
+        n = torch.get_num_threads()
+        if n > 1:
+            torch.set_num_threads(1)
+            try:
+                return torch.linalg.solve_triangular(A, B, upper=upper, left=left)
+            finally:
+                torch.set_num_threads(n)
+    return torch.linalg.solve_triangular(A, B, upper=upper, left=left)
+
+
 def chol_solve(L: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
     """Solve ``(L L^T) X = B`` for ``X`` given lower ``L (..., d, d)`` and ``B (..., d, k)``.
 
     Two batched triangular solves: on CPU this is ~1.7x faster than ``torch.cholesky_solve`` for
-    large batches of small matrices (5000 x 16 x 16: 9.9 ms vs 16.7 ms)."""
-    Y = torch.linalg.solve_triangular(L, B, upper=False)
-    return torch.linalg.solve_triangular(L.transpose(-1, -2), Y, upper=True)
+    large batches of small matrices (5000 x 16 x 16: 9.9 ms vs 16.7 ms). They are posed on the
+    transposed system (``X^T (L L^T) = B^T``, right-hand solves), whose result comes back in
+    row-major layout: batched products with it are then ~1.5x faster than with the column-major
+    result of left-hand solves."""
+    Zt = solve_triangular(L.transpose(-1, -2), B.transpose(-1, -2), upper=True, left=False)
+    return solve_triangular(L, Zt, upper=False, left=False).transpose(-1, -2)
 
 
 def chol_logdet(L: torch.Tensor) -> torch.Tensor:
@@ -93,12 +118,12 @@ def mvn_log_prob(x: torch.Tensor, mean: torch.Tensor, scale_tril: torch.Tensor) 
         shape = torch.broadcast_shapes(diff.shape[:-2], scale_tril.shape[:-3])
         L = scale_tril.squeeze(-3).expand(*shape, d, d)
         rhs = diff.expand(*shape, *diff.shape[-2:]).transpose(-1, -2)
-        sol = torch.linalg.solve_triangular(L, rhs, upper=False).transpose(-1, -2)
+        sol = solve_triangular(L, rhs, upper=False).transpose(-1, -2)
     else:
         shape = torch.broadcast_shapes(diff.shape[:-1], scale_tril.shape[:-2])
         diff = diff.expand(*shape, d)
         L = scale_tril.expand(*shape, d, d)
-        sol = torch.linalg.solve_triangular(L, diff.unsqueeze(-1), upper=False).squeeze(-1)
+        sol = solve_triangular(L, diff.unsqueeze(-1), upper=False).squeeze(-1)
     return -0.5 * (sol.pow(2).sum(-1) + d * _LOG_2PI) - torch.log(scale_tril.diagonal(dim1=-2, dim2=-1)).sum(-1)
 
 

@@ -15,8 +15,8 @@ Gaussian with ``mu_j = (I + eps_j A_j) mu_{j-1} + eps_j b_j`` and
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Callable, Optional
+from dataclasses import dataclass, replace
+from typing import Callable, Optional, Tuple
 
 import torch
 from torch import nn
@@ -41,6 +41,15 @@ class FlowCoefficients:
         apply_A: operator form of A (used when ``A`` is ``None``).
         noise_factor: stochastic flows only: ``G`` with ``G G^T = Q``, ``(..., d, r)`` batched like
             ``A`` (``r`` need not equal ``d``: a rank-deficient Q has a thin exact factor).
+        noise_cov, noise_apply, noise_dim: the same diffusion in operator form (used instead of
+            ``noise_factor`` when given): ``Q (..., d, d)``, ``xi (..., r) -> G xi`` and ``r``;
+            cheaper when G is a product of small factors.
+        noise_cov_pair: ``(Q1, Q2)`` with ``Q = Q1 Q2^T`` (``(..., d, k)`` each), instead of
+            ``noise_cov``: lets the integrator fuse the addition into a product.
+        support: when the measurement reads only ``k`` of the ``d`` state coordinates
+            (:attr:`~torchflow.models.StateSpaceModel.measurement_support`), A's other columns are
+            zero and ``A`` holds only the ``(..., d, k)`` nonzero ones: ``A x = A x[..., support]``.
+            ``None``: ``A`` is the full ``(..., d, d)``.
     """
 
     A: Optional[torch.Tensor]
@@ -48,14 +57,50 @@ class FlowCoefficients:
     log_det: Optional[torch.Tensor]
     apply_A: Optional[Callable[[torch.Tensor], torch.Tensor]] = None
     noise_factor: Optional[torch.Tensor] = None
+    support: Optional[torch.Tensor] = None
+    noise_cov: Optional[torch.Tensor] = None
+    noise_apply: Optional[Callable[[torch.Tensor], torch.Tensor]] = None
+    noise_dim: Optional[int] = None
+    noise_cov_pair: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
+
+    def diffusion_cov(self) -> torch.Tensor:
+        """``Q = G G^T`` (given, or formed from ``noise_factor``)."""
+        if self.noise_cov is not None:
+            return self.noise_cov
+        if self.noise_cov_pair is not None:
+            return self.noise_cov_pair[0] @ self.noise_cov_pair[1].transpose(-1, -2)
+        return self.noise_factor @ self.noise_factor.transpose(-1, -2)
+
+    def diffuse(self, xi: torch.Tensor) -> torch.Tensor:
+        """``G xi`` for standard normal draws ``xi (..., r)`` batched like ``b``."""
+        if self.noise_apply is not None:
+            return self.noise_apply(xi)
+        return linalg.matvec(self.noise_factor, xi)
+
+    @property
+    def noise_rank(self) -> int:
+        """r, the number of standard normal draws per point the diffusion uses."""
+        return self.noise_dim if self.noise_dim is not None else self.noise_factor.shape[-1]
+
+    def cols(self, x: torch.Tensor) -> torch.Tensor:
+        """The coordinates of ``x (..., d)`` that A acts on (all, or ``support``)."""
+        return x if self.support is None else x.index_select(-1, self.support)
+
+    def dense_A(self) -> torch.Tensor:
+        """A as a full ``(..., d, d)`` matrix (zero columns outside ``support`` filled in)."""
+        if self.support is None:
+            return self.A
+        d = self.b.shape[-1]
+        return self.A.new_zeros(*self.A.shape[:-1], d).index_copy(-1, self.support, self.A)
 
     def drift(self, *points: torch.Tensor):
         """``A x + b`` for each ``x`` of ``points`` (each batched like ``b``)."""
         if self.A is not None:
             if self.A.dim() >= 4 and self.A.shape[-3] > 1 and len(points) > 1:
-                AX = self.A @ torch.stack(points, -1)  # per-point A: one product for all vectors
+                # per-point A: one product for all vectors
+                AX = self.A @ torch.stack([self.cols(x) for x in points], -1)
                 return [AX[..., i] + self.b for i in range(len(points))]
-            return [linalg.matvec(self.A, x) + self.b for x in points]
+            return [linalg.matvec(self.A, self.cols(x)) + self.b for x in points]
         AX = self.apply_A(torch.stack(points, -1))  # one pass for all the vectors
         return [AX[..., i] + self.b for i in range(len(points))]
 
@@ -71,6 +116,41 @@ class FlowPrior:
 
     mean: torch.Tensor
     scale_tril: torch.Tensor
+    #: filled by :meth:`reduced`: ``support (k,)`` (``None``: all coordinates), ``root (..., d, d)``
+    #: a square root of P (``root root^T = P``) whose rows ``support`` vanish beyond column k,
+    #: ``cols = root[..., :k]`` and ``cols_support = root[..., support, :k]`` (lower triangular).
+    support: Optional[torch.Tensor] = None
+    root: Optional[torch.Tensor] = None
+    cols: Optional[torch.Tensor] = None
+    cols_support: Optional[torch.Tensor] = None
+    cov_cols: Optional[torch.Tensor] = None  # P[..., :, support] = cols cols_support^T, (..., d, k)
+
+    def reduced(self, model) -> "FlowPrior":
+        """This prior with the factors the flows use, adapted to the model's measurement support.
+
+        If h reads only the coordinates ``s`` (k of d), factor P in the order ``(s, rest)``:
+        ``P[perm, perm] = L' L'^T`` and ``root = L'[inv_perm]``. Then ``W root = [W_s L'_ss, 0]``
+        for the whitened Jacobian W (zero outside ``s``), so ``S = root^T J root`` is
+        ``blockdiag(S_k, 0)`` and every flow quantity follows from ``k x k`` systems: exact, not an
+        approximation. Computed once per filter step (P is fixed during the flow); without a
+        support ``root = cols = cols_support = scale_tril``.
+        """
+        if self.cols is not None:
+            return self
+        L = self.scale_tril
+        d = L.shape[-1]
+        sup = getattr(model, "measurement_support", None)
+        if sup is None or len(sup) == d:
+            return replace(self, root=L, cols=L, cols_support=L, cov_cols=L @ L.transpose(-1, -2))
+        k, chosen = len(sup), set(sup)
+        perm = torch.tensor(list(sup) + [i for i in range(d) if i not in chosen], device=L.device)
+        inv = torch.argsort(perm)
+        P = L @ L.transpose(-1, -2)
+        Lp = linalg.safe_cholesky(P.index_select(-1, perm).index_select(-2, perm))
+        root = Lp.index_select(-2, inv)
+        cols, cols_s = root[..., :k].contiguous(), Lp[..., :k, :k].contiguous()  # views are slow in bmm
+        return replace(self, support=perm[:k], root=root, cols=cols, cols_support=cols_s,
+                       cov_cols=cols @ cols_s.transpose(-1, -2))
 
 
 @dataclass
@@ -165,6 +245,7 @@ def integrate_flow(
     if flow.stochastic:
         return _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, generator, proposal)
     B, N, d = particles.shape
+    prior = prior.reduced(model)
     aux = prior.mean
     log_det = torch.zeros(B, N, dtype=particles.dtype, device=particles.device)
     eta = particles
@@ -177,7 +258,7 @@ def integrate_flow(
         for j in range(len(eps_all)):
             eps, lam = eps_all[j], lam_all[j]
             co = flow.coefficients(model, z, aux, prior, lam, eps)
-            step = eye + eps * co.A  # (B, d, d)
+            step = eye + eps * co.dense_A()  # (B, d, d)
             M = step @ M
             c = linalg.matvec(step, c) + eps * co.b
             aux = linalg.matvec(step, aux) + eps * co.b
@@ -194,10 +275,38 @@ def integrate_flow(
     return FlowOutput(eta, log_det, aux)
 
 
+def _flat3(x: torch.Tensor, batch) -> torch.Tensor:
+    return x.expand(*batch, *x.shape[-2:]).reshape(-1, *x.shape[-2:])
+
+
+def _propagate_cov(Sig, co: "FlowCoefficients", eps, eye):
+    """``(I + eps A) Sig (I + eps A)^T + eps Q``, ``Sig (..., d, d)``.
+
+    With a measurement support A has only k nonzero columns ``A_s (..., d, k)``:
+    ``V = (I + eps A) Sig = Sig + eps A_s Sig[s, :]`` and ``V (I + eps A)^T = V + eps V[:, s] A_s^T``,
+    two ``d x k x d`` products fused with their additions (``baddbmm``), and ``Q`` given as a pair
+    ``Q = Q1 Q2^T`` is added by a third; no separate passes over the ``d x d`` matrices."""
+    if co.support is None:
+        T = eye + eps * co.dense_A()
+        return T @ Sig @ T.transpose(-1, -2) + eps * co.diffusion_cov()
+    A, sup, e = co.A, co.support, float(eps)
+    pair = co.noise_cov_pair
+    shapes = [Sig.shape[:-2], A.shape[:-2]] + ([p.shape[:-2] for p in pair] if pair is not None else [])
+    batch = torch.broadcast_shapes(*shapes)
+    S3, A3 = _flat3(Sig, batch), _flat3(A, batch)
+    V = torch.baddbmm(S3, A3, S3.index_select(-2, sup), alpha=e)
+    out = torch.baddbmm(V, V.index_select(-1, sup), A3.transpose(-1, -2), alpha=e)
+    if pair is not None:
+        out = torch.baddbmm(out, _flat3(pair[0], batch), _flat3(pair[1], batch).transpose(-1, -2), alpha=e)
+        return out.reshape(*batch, *Sig.shape[-2:])
+    return out.reshape(*batch, *Sig.shape[-2:]) + eps * co.diffusion_cov()
+
+
 def _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, generator, proposal):
     """Euler-Maruyama for stochastic flows, with the exact Gaussian proposal recursion."""
     B, N, d = particles.shape
     eye = torch.eye(d, dtype=particles.dtype, device=particles.device)
+    prior = prior.reduced(model)
     aux, eta = prior.mean, particles
     track = proposal is not None
     if track:
@@ -210,23 +319,25 @@ def _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, ge
         eps, lam = eps_all[j], lam_all[j]
         co = flow.coefficients(model, z, aux, prior, lam, eps)
         A, b, G = co.A, co.b, co.noise_factor
-        if A is None or G is None:
+        if A is None or (G is None and co.noise_apply is None):
             raise TypeError(f"{type(flow).__name__}: a stochastic flow must give an explicit A and a noise_factor")
         if flow.local:  # aux is per particle: one stacked product for every vector
-            drifts = FlowCoefficients(A, b, None).drift(eta, aux, *([mu] if track else []))
+            drifts = co.drift(eta, aux, *([mu] if track else []))
             aux = aux + eps * drifts[1]
             d_eta, d_mu = drifts[0], drifts[-1]
         else:  # one (B, d, .) matrix per trial: move the trial's aux, view the rest per particle
-            aux = aux + eps * (linalg.matvec(A, aux) + b)
-            A, b, G = A.unsqueeze(-3), b.unsqueeze(-2), G.unsqueeze(-3)
-            drifts = FlowCoefficients(A, b, None).drift(eta, *([mu] if track else []))
+            aux = aux + eps * co.drift(aux)[0]
+            if co.noise_factor is None:
+                raise TypeError(f"{type(flow).__name__}: a global stochastic flow must give a noise_factor")
+            A, b, G = A.unsqueeze(-3), b.unsqueeze(-2), co.noise_factor.unsqueeze(-3)
+            drifts = FlowCoefficients(A, b, None, support=co.support).drift(eta, *([mu] if track else []))
             d_eta, d_mu = drifts[0], drifts[-1]
-        xi = torch.randn(B, N, G.shape[-1], dtype=eta.dtype, device=eta.device, generator=generator)
-        eta = eta + eps * d_eta + eps.sqrt() * linalg.matvec(G, xi)
+            co = FlowCoefficients(A, b, None, noise_factor=G, support=co.support)
+        xi = torch.randn(B, N, co.noise_rank, dtype=eta.dtype, device=eta.device, generator=generator)
+        eta = eta + eps * d_eta + eps.sqrt() * co.diffuse(xi)
         if track:
             mu = mu + eps * d_mu
-            T = eye + eps * A
-            Sig = T @ Sig @ T.transpose(-1, -2) + eps * (G @ G.transpose(-1, -2))
+            Sig = _propagate_cov(Sig, co, eps, eye)
     if not track:
         return FlowOutput(eta, None, aux)
     Sig = linalg.symmetrize(Sig)

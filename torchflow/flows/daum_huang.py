@@ -25,53 +25,100 @@ from .. import linalg
 from .base import FlowCoefficients, FlowPrior, ParticleFlow, _bcast_obs
 
 
-def _whiten(model, aux: torch.Tensor, z: torch.Tensor):
-    """Whitened linearisation at ``aux (..., d)``: ``W = L_R^{-1} H (..., m, d)`` and the whitened
-    pseudo-measurement ``y = L_R^{-1} (z - e) (..., m)`` with ``e = h(aux) - H aux``."""
-    # a linear measurement has one H for every point: keep it unbatched (m, d)
-    H = model.measurement_matrix() if model.linear_measurement else model.measurement_jacobian(aux)
-    e = model.measure(aux) - linalg.matvec(H, aux)
+def _whiten(model, aux: torch.Tensor, z: torch.Tensor, support=None):
+    """Whitened linearisation at ``aux (..., d)``: ``W = L_R^{-1} H (..., m, k)`` and the whitened
+    pseudo-measurement ``y = L_R^{-1} (z - e) (..., m)`` with ``e = h(aux) - H aux``.
+
+    With ``support`` (a :class:`FlowPrior` ``support``, the model's measured coordinates) H is
+    only the ``k`` nonzero columns of the Jacobian; otherwise all ``d``."""
     LR = model.measurement_scale_tril(aux)
-    resid = _bcast_obs(z, aux) - e
-    if LR.dim() == 2 and bool((LR == torch.diag(LR.diagonal())).all()):
+    if not model.linear_measurement and LR.dim() == 2:
         dr = LR.diagonal()
-        return H / dr.unsqueeze(-1), resid / dr
-    W = torch.linalg.solve_triangular(LR, H, upper=False)
-    y = torch.linalg.solve_triangular(LR, resid.unsqueeze(-1), upper=False).squeeze(-1)
+        if bool((LR == torch.diag(dr)).all()) and bool((dr == dr[0]).all()):
+            # R = sigma^2 I: whiten inside the model's linearisation (scale 1 / sigma), so
+            # W = H / sigma and y = (z - h) / sigma + W x_s need no pass over the Jacobian
+            inv_sigma = 1 / dr[0]
+            hx, W = model.linearize_measurement(aux, support=support is not None, scale=inv_sigma)
+            xs = aux if support is None else aux.index_select(-1, support)
+            return W, _bcast_obs(z, aux) * inv_sigma - hx + linalg.matvec(W, xs)
+    # a linear measurement has one H for every point: keep it unbatched (m, d)
+    if model.linear_measurement:
+        H = model.measurement_matrix()
+        H = H if support is None else H.index_select(-1, support)
+        hx = model.measure(aux)
+    else:
+        hx, H = model.linearize_measurement(aux, support=support is not None)
+    xs = aux if support is None else aux.index_select(-1, support)
+    e = hx - linalg.matvec(H, xs)
+    resid = _bcast_obs(z, aux) - e
+    if LR.dim() == 2:
+        dr = LR.diagonal()
+        if bool((LR == torch.diag(dr)).all()):
+            if bool((dr == dr[0]).all()):  # R = sigma^2 I: a scalar (much faster than a broadcast)
+                return H / dr[0], resid / dr[0]
+            return H / dr.unsqueeze(-1), resid / dr
+    W = linalg.solve_triangular(LR, H, upper=False)
+    y = linalg.solve_triangular(LR, resid.unsqueeze(-1), upper=False).squeeze(-1)
     return W, y
 
 
-def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps) -> FlowCoefficients:
+def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, support=None,
+                            P_cols=None) -> FlowCoefficients:
     """EDH/LEDH drift from the whitened linearisation.
 
     Args:
-        W: ``(..., m, d)`` whitened Jacobian (or ``(m, d)`` shared); y: ``(..., m)`` whitened
+        W: ``(..., m, k)`` whitened Jacobian (or ``(m, k)`` shared); y: ``(..., m)`` whitened
             pseudo-measurement.
-        L: ``(..., d, d)`` Cholesky factor of the prior covariance P.
+        L: ``(..., d, k)`` square root of the prior covariance P: its Cholesky factor
+            (``k = d``), or the first k columns of :attr:`FlowPrior.root` when the measurement
+            reads only the coordinates ``support``.
         eta_bar0: ``(..., d)`` prior mean.
         lam, eps: pseudo-time after the step, step size.
+        L_support: rows ``support`` of L, ``(..., k, k)`` (default: L itself, k = d).
+        support: ``(k,)`` measured coordinates or ``None``.
+        P_cols: ``L L_support^T = P[..., :, support]`` if precomputed (:attr:`FlowPrior.cov_cols`).
 
-    A is formed explicitly (one Cholesky solve with d right-hand sides) and then applied to
-    stacked vectors: on CPU the number of batched small products, not their size, sets the cost.
+    A is formed explicitly (one Cholesky solve with k right-hand sides) and then applied to
+    stacked vectors: on CPU the number and size of batched small products set the cost, and with
+    a support every system is ``k x k`` (8 x 8 for acoustic tracking instead of 16 x 16).
     """
-    d = L.shape[-1]
-    eye = torch.eye(d, dtype=L.dtype, device=L.device)
-    WL = W @ L  # (..., m, d)
-    WLt = WL.transpose(-1, -2)
-    S = WLt @ WL  # L^T J L, (..., d, d)
+    Ls = L if L_support is None else L_support
+    k = Ls.shape[-1]
+    eye = torch.eye(k, dtype=L.dtype, device=L.device)
+    T, S, Wy = _gram_terms(W, y, Ls)
     K = linalg.safe_cholesky(eye + lam * S)
     K2 = linalg.safe_cholesky(eye + (lam - 0.5 * eps) * S)
     log_det = linalg.chol_logdet(K2) - linalg.chol_logdet(K)
-    A = -0.5 * (L @ linalg.chol_solve(K, WLt @ W))  # -1/2 L (I + lam S)^{-1} L^T J
-    Pg = linalg.matvec(L, linalg.matvec(WLt, y))  # P H^T R^{-1} (z - e) = L (W L)^T y
+    A = -0.5 * (L @ linalg.chol_solve(K, T))  # -1/2 L (I + lam S)^{-1} L^T J, (..., d, k)
+    # P H^T R^{-1} (z - e) = L L_s^T W^T y
+    Pg = linalg.matvec(L, linalg.matvec(Ls.transpose(-1, -2), Wy)) if P_cols is None else linalg.matvec(P_cols, Wy)
+    co = FlowCoefficients(A, Pg, log_det, support=support)  # b is set below
     if A.dim() >= 4 and A.shape[-3] > 1:  # per-point A: one product for both vectors
-        AV = A @ torch.stack([Pg, eta_bar0.expand_as(Pg)], -1)
+        AV = A @ torch.stack([co.cols(Pg), co.cols(eta_bar0).expand_as(co.cols(Pg))], -1)
         APg, Aeta0 = AV[..., 0], AV[..., 1]
     else:
-        APg, Aeta0 = linalg.matvec(A, Pg), linalg.matvec(A, eta_bar0)
+        APg, Aeta0 = linalg.matvec(A, co.cols(Pg)), linalg.matvec(A, co.cols(eta_bar0))
     u = Pg + lam * APg + Aeta0
-    b = u + 2 * lam * linalg.matvec(A, u)
-    return FlowCoefficients(A, b, log_det)
+    co.b = u + 2 * lam * linalg.matvec(A, co.cols(u))
+    return co
+
+
+def _gram_terms(W, y, Ls):
+    """``T = L_s^T J``, ``S = L_s^T J L_s`` and ``W^T y`` with ``J = W^T W``: the Gram matrix is formed
+    first (one ``k x m x k`` product per point, then ``k x k`` ones), fewer and smaller batched
+    products than going through ``W L_s``."""
+    J = W.transpose(-1, -2) @ W  # (..., k, k), or (k, k) for a shared W
+    Wy = y @ W if W.dim() == 2 else (W * y.unsqueeze(-1)).sum(-2)  # W^T y, (..., k)
+    T = Ls.transpose(-1, -2) @ J
+    S = linalg.symmetrize(T @ Ls)
+    return T, S, Wy
+
+
+def _support_terms(model, aux, z, prior: FlowPrior):
+    """Reduced prior and whitened linearisation shared by every flow's ``coefficients``."""
+    prior = prior.reduced(model)
+    W, y = _whiten(model, aux, z, prior.support)
+    return prior, W, y
 
 
 class EDHFlow(ParticleFlow):
@@ -81,8 +128,9 @@ class EDHFlow(ParticleFlow):
     local = False
 
     def coefficients(self, model, z, aux, prior: FlowPrior, lam, eps):
-        W, y = _whiten(model, aux, z)
-        return daum_huang_coefficients(W, y, prior.scale_tril, prior.mean, lam, eps)
+        prior, W, y = _support_terms(model, aux, z, prior)
+        return daum_huang_coefficients(W, y, prior.cols, prior.mean, lam, eps, L_support=prior.cols_support,
+                                       support=prior.support, P_cols=prior.cov_cols)
 
 
 class LEDHFlow(EDHFlow):

@@ -46,43 +46,81 @@ import torch
 
 from .. import linalg
 from .base import FlowCoefficients, FlowPrior, ParticleFlow
-from .daum_huang import _whiten
+from .daum_huang import _gram_terms, _support_terms
 
 
-def _homotopy_terms(W, y, L, lam, need_factor: bool = False):
+def _homotopy_terms(W, y, L, lam, need_factor: bool = False, L_support=None):
     """Shared quantities of the Gaussian homotopy at pseudo-time ``lam``.
 
     Args:
-        W: ``(..., m, d)`` (or ``(m, d)``) whitened Jacobian; y: ``(..., m)`` whitened
-            pseudo-measurement; L: ``(..., d, d)`` prior Cholesky factor.
+        W: ``(..., m, k)`` (or ``(m, k)``) whitened Jacobian; y: ``(..., m)`` whitened
+            pseudo-measurement; L: ``(..., d, k)`` square root of P (its Cholesky factor, k = d,
+            or :attr:`FlowPrior.cols` when the measurement reads only k coordinates);
+            L_support: ``(..., k, k)`` rows of L at those coordinates (default L).
         need_factor: also return ``G = M^{-1} W^T (..., d, m)`` (the Gromov diffusion factor);
-            otherwise ``C`` and ``g`` come from one solve with ``d + 1`` right-hand sides.
+            otherwise ``C`` and ``g`` come from one solve with ``k + 1`` right-hand sides.
 
     Returns:
-        ``S (..., d, d)``, ``K (..., d, d)`` (Cholesky of ``I + lam S``), ``G`` or ``None``,
-        ``C = M^{-1} J (..., d, d)`` and ``g = M^{-1} H^T R^{-1} (z - e) (..., d)``.
+        ``S (..., k, k)``, ``K (..., k, k)`` (Cholesky of ``I + lam S``), ``G`` or ``None``,
+        ``C = M^{-1} J (..., d, k)`` (the nonzero columns) and
+        ``g = M^{-1} H^T R^{-1} (z - e) (..., d)``.
     """
-    d = L.shape[-1]
-    eye = torch.eye(d, dtype=L.dtype, device=L.device)
-    WL = W @ L
-    WLt = WL.transpose(-1, -2)
-    S = WLt @ WL
+    Lk = L if L_support is None else L_support
+    k = Lk.shape[-1]
+    eye = torch.eye(k, dtype=L.dtype, device=L.device)
+    T, S, Wy = _gram_terms(W, y, Lk)  # L_s^T J, L_s^T J L_s, W^T y
     K = linalg.safe_cholesky(eye + lam * S)
     if need_factor:
-        G = L @ linalg.chol_solve(K, WLt)
+        G = L @ linalg.chol_solve(K, (W @ Lk).transpose(-1, -2))
         return S, K, G, G @ W, linalg.matvec(G, y)
-    WLty = linalg.matvec(WLt, y)  # (..., d)
+    WLty = linalg.matvec(Lk.transpose(-1, -2), Wy)  # (W L_s)^T y, (..., k)
     if K.dim() == WLty.dim() + 1 and K.dim() >= 4 and K.shape[-3] == 1 and WLty.shape[-2] > 1:
-        # one factor per trial shared by N points (linear models): solve the d x d system once
+        # one factor per trial shared by N points (linear models): solve the k x k system once
         # per trial, with the N vectors as extra right-hand sides of the same solve
-        Ks, Ls = K.squeeze(-3), L.expand(K.shape).squeeze(-3)
-        rhs = torch.cat([(WLt @ W).expand(K.shape).squeeze(-3), WLty.transpose(-1, -2)], -1)
-        X = Ls @ linalg.chol_solve(Ks, rhs)  # (..., d, d + N)
-        return S, K, None, X[..., :d].unsqueeze(-3), X[..., d:].transpose(-1, -2)
-    shape = torch.broadcast_shapes(WLt.shape[:-2], WLty.shape[:-1])
-    rhs = torch.cat([(WLt @ W).expand(*shape, d, d), WLty.expand(*shape, d).unsqueeze(-1)], -1)
+        Ks = K.squeeze(-3)
+        Ls = L.expand(*K.shape[:-2], *L.shape[-2:]).squeeze(-3)
+        rhs = torch.cat([T.expand(K.shape).squeeze(-3), WLty.transpose(-1, -2)], -1)
+        X = Ls @ linalg.chol_solve(Ks, rhs)  # (..., d, k + N)
+        return S, K, None, X[..., :k].unsqueeze(-3), X[..., k:].transpose(-1, -2)
+    shape = torch.broadcast_shapes(T.shape[:-2], WLty.shape[:-1])
+    rhs = torch.cat([T.expand(*shape, k, k), WLty.expand(*shape, k).unsqueeze(-1)], -1)
     X = L @ linalg.chol_solve(K, rhs)  # [M^-1 J | M^-1 H^T R^-1 (z - e)]
-    return S, K, None, X[..., :d], X[..., d]
+    return S, K, None, X[..., :k], X[..., k]
+
+
+def _gromov_operator_terms(W, y, L, lam, L_support=None):
+    """Gromov coefficients with the diffusion in operator form (per-point linearisation).
+
+    With ``N = M^{-1}[:, s] = L (I + lam S)^{-1} L_s^T (..., d, k)`` (the columns of M^{-1} at the
+    measured coordinates, where J lives): ``C = M^{-1} J = N J_s``, ``G = M^{-1} W^T = N W_s^T``
+    and ``Q = G G^T = N J_s N^T = C N^T``. One solve with ``2k + 1`` right-hand sides gives C, g and
+    N; ``G xi = N (W_s^T xi)`` never forms the ``d x m`` factor.
+
+    Returns ``S, K, C, g, N, apply`` with ``Q = C N^T`` and ``apply(xi (..., m)) = G xi``.
+    """
+    Lk = L if L_support is None else L_support
+    k = Lk.shape[-1]
+    eye = torch.eye(k, dtype=L.dtype, device=L.device)
+    T, S, Wy = _gram_terms(W, y, Lk)
+    K = linalg.safe_cholesky(eye + lam * S)
+    LkT = Lk.transpose(-1, -2)
+    WLty = linalg.matvec(LkT, Wy)
+    shape = torch.broadcast_shapes(T.shape[:-2], LkT.shape[:-2], WLty.shape[:-1], K.shape[:-2])
+    rhs = torch.cat([T.expand(*shape, k, k), WLty.expand(*shape, k).unsqueeze(-1), LkT.expand(*shape, k, k)], -1)
+    X = L @ linalg.chol_solve(K, rhs)  # (..., d, 2k + 1) = [C | g | N]
+    C, g, Nc = X[..., :k], X[..., k], X[..., k + 1:]
+
+    def apply(xi):
+        Wxi = xi @ W if W.dim() == 2 else (W * xi.unsqueeze(-1)).sum(-2)  # W_s^T xi, (..., k)
+        return linalg.matvec(Nc, Wxi)
+
+    return S, K, C, g, Nc, apply
+
+
+def _terms(model, aux, z, prior, lam, need_factor=False):
+    """Reduced prior plus :func:`_homotopy_terms` at ``aux``."""
+    prior, W, y = _support_terms(model, aux, z, prior)
+    return (prior, *_homotopy_terms(W, y, prior.cols, lam, need_factor, L_support=prior.cols_support))
 
 
 def symmetric_sqrt(Q: torch.Tensor) -> torch.Tensor:
@@ -128,12 +166,10 @@ class GeodesicFlow(_HomotopyFlow):
     """
 
     def coefficients(self, model, z, aux, prior: FlowPrior, lam, eps):
-        W, y = _whiten(model, aux, z)
-        L = prior.scale_tril
-        S, K, G, C, g = _homotopy_terms(W, y, L, lam)
-        eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
+        prior, S, K, G, C, g = _terms(model, aux, z, prior, lam)
+        eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
         K2 = linalg.safe_cholesky(eye + (lam - eps) * S)
-        return FlowCoefficients(-C, g, linalg.chol_logdet(K2) - linalg.chol_logdet(K))
+        return FlowCoefficients(-C, g, linalg.chol_logdet(K2) - linalg.chol_logdet(K), support=prior.support)
 
 
 class GromovFlow(_HomotopyFlow):
@@ -156,9 +192,13 @@ class GromovFlow(_HomotopyFlow):
         self.noise_root = noise_root
 
     def coefficients(self, model, z, aux, prior: FlowPrior, lam, eps):
-        W, y = _whiten(model, aux, z)
-        S, K, G, C, g = _homotopy_terms(W, y, prior.scale_tril, lam, need_factor=True)
-        return FlowCoefficients(-C, g, None, noise_factor=_noise_root(G, self.noise_root))
+        if self.local and self.noise_root == "factor":
+            prior, W, y = _support_terms(model, aux, z, prior)
+            S, K, C, g, Nc, apply = _gromov_operator_terms(W, y, prior.cols, lam, L_support=prior.cols_support)
+            return FlowCoefficients(-C, g, None, support=prior.support, noise_cov_pair=(C, Nc), noise_apply=apply,
+                                    noise_dim=W.shape[-2])
+        prior, S, K, G, C, g = _terms(model, aux, z, prior, lam, need_factor=True)
+        return FlowCoefficients(-C, g, None, noise_factor=_noise_root(G, self.noise_root), support=prior.support)
 
     def extra_repr(self) -> str:
         return f"local={self.local}, noise_root={self.noise_root!r}"
@@ -223,27 +263,33 @@ class OptimalDiffusionFlow(_HomotopyFlow):
             raise ValueError(f"noise_root: expected one of {_NOISE_ROOTS}, got {noise_root!r}")
         self.alpha, self.c, self.noise_root = float(alpha), c, noise_root
 
-    def scale(self, S: torch.Tensor, lam) -> torch.Tensor:
-        """Diffusion scale ``c`` per linearisation point ``(...)`` from ``S (..., d, d)``."""
+    def scale(self, S: torch.Tensor, lam, d: int = None) -> torch.Tensor:
+        """Diffusion scale ``c`` per linearisation point ``(...)`` from ``S (..., k, k)``; when
+        ``k < d`` (a measurement support) the remaining eigenvalues of the full S are zero."""
         if self.c != "optimal":
             return torch.full(S.shape[:-2], float(self.c), dtype=S.dtype, device=S.device)
         with torch.no_grad():
             s = torch.linalg.eigvalsh(S.detach()).clamp_min(0)
+            if d is not None and d > s.shape[-1]:
+                s = torch.cat([s.new_zeros(*s.shape[:-1], 1), s], -1)
             k = s / (2 * (1 + lam * s))  # eigenvalues of -A_EDH, increasing in s
             return optimal_diffusion_scale(k[..., 0], k[..., -1], self.alpha)
 
     def coefficients(self, model, z, aux, prior: FlowPrior, lam, eps):
-        W, y = _whiten(model, aux, z)
-        L, eta0 = prior.scale_tril, prior.mean
-        S, K, G, C, g = _homotopy_terms(W, y, L, lam)
-        c = self.scale(S, lam)  # (...)
+        prior, S, K, G, C, g = _terms(model, aux, z, prior, lam)
+        eta0, d, k = prior.mean, g.shape[-1], S.shape[-1]
+        c = self.scale(S, lam, d)  # (...)
         half_c = (c / 2).unsqueeze(-1)
-        eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
-        m = eta0 - lam * linalg.matvec(C, eta0) + lam * g  # homotopy mean m(lambda)
-        A = -0.5 * C - half_c.unsqueeze(-1) * eye
-        b = g - 0.5 * linalg.matvec(C, m) + half_c * m
-        # Q = c M^{-1} = (sqrt(c) L K^{-T}) (sqrt(c) L K^{-T})^T
-        LKt = torch.linalg.solve_triangular(K, L.transpose(-1, -2), upper=False).transpose(-1, -2)
+        eye = torch.eye(d, dtype=S.dtype, device=S.device)
+        Cc = FlowCoefficients(C, g, None, support=prior.support)  # M^{-1} J on its nonzero columns
+        m = eta0 - lam * linalg.matvec(C, Cc.cols(eta0)) + lam * g  # homotopy mean m(lambda)
+        A = -0.5 * Cc.dense_A() - half_c.unsqueeze(-1) * eye
+        b = g - 0.5 * linalg.matvec(C, Cc.cols(m)) + half_c * m
+        # Q = c M^{-1} = c root blockdiag((I + lam S)^{-1}, I) root^T = F F^T with
+        # F = sqrt(c) [cols K^{-T}, root[..., k:]]
+        LKt = linalg.solve_triangular(K, prior.cols.transpose(-1, -2), upper=False).transpose(-1, -2)
+        if k < d:
+            LKt = torch.cat([LKt, prior.root[..., k:].expand(*LKt.shape[:-1], d - k)], -1)
         factor = half_c.mul(2).sqrt().unsqueeze(-1) * LKt
         return FlowCoefficients(A, b, None, noise_factor=_noise_root(factor, self.noise_root))
 

@@ -145,14 +145,42 @@ class AcousticTracking(StateSpaceModel):
         m = self.obs_dim
         return -0.5 * resid.pow(2).sum(-1) - m * torch.log(self.sigma_w) - 0.5 * m * linalg._LOG_2PI
 
+    @property
+    def measurement_support(self):
+        """The measurement reads positions only: ``(0, 1, 4, 5, ...)``, k = 2C = 8 of d = 16."""
+        return tuple(4 * c + i for c in range(self.n_targets) for i in (0, 1))
+
+    def _sensor_offsets(self, x):
+        """Per-sensor offsets and ranges ``(..., m, C)`` (sensor-major, so the Jacobian needs no
+        transpose)."""
+        pos = self.positions(x)  # (..., C, 2)
+        dx = pos[..., 0].unsqueeze(-2) - self.sensors[:, 0:1]  # (..., m, C)
+        dy = pos[..., 1].unsqueeze(-2) - self.sensors[:, 1:2]
+        return dx, dy, torch.sqrt(dx * dx + dy * dy)
+
+    def _support_jacobian(self, dx, dy, r, inv, psi):
+        # d/dp [Psi / (r + d0)] = -Psi (p - s) / (r (r + d0)^2); inv = 1 / (r + d0)
+        coef = (-psi) * inv * inv / r.clamp_min(torch.finfo(r.dtype).tiny)
+        return torch.stack([coef * dx, coef * dy], -1).flatten(-2)  # (..., m, 2C)
+
+    def measurement_jacobian_support(self, x):
+        """Position columns of the Jacobian, ``(..., 25, 8)`` in the order of
+        :attr:`measurement_support`: dz_s/dpx_c = -Psi (px_c - s_x) / (r (r + d0)^2)."""
+        dx, dy, r = self._sensor_offsets(x)
+        return self._support_jacobian(dx, dy, r, 1 / (r + self.d0), self.psi)
+
+    def linearize_measurement(self, x, support=False, scale=None):
+        if not support:
+            return super().linearize_measurement(x, support, scale)
+        dx, dy, r = self._sensor_offsets(x)
+        inv = 1 / (r + self.d0)
+        psi = self.psi if scale is None else self.psi * scale  # fold the scale into Psi: free
+        return psi * inv.sum(-1), self._support_jacobian(dx, dy, r, inv, psi)
+
     def measurement_jacobian(self, x):
-        """Analytic Jacobian ``(..., 25, 16)``:
-        dz_s/dpx_c = -Psi (px_c - s_x) / (r (r + d0)^2); zero for velocities."""
-        diff, r = self._ranges(x)  # (..., C, m, 2), (..., C, m)
-        coef = -self.psi / (r.clamp_min(torch.finfo(r.dtype).tiny) * (r + self.d0) ** 2)
-        dpos = coef.unsqueeze(-1) * diff  # (..., C, m, 2)
+        """Analytic Jacobian ``(..., 25, 16)``; zero for velocities."""
         J = torch.zeros(*x.shape[:-1], self.obs_dim, self.n_targets, 4, dtype=x.dtype, device=x.device)
-        J[..., :2] = dpos.movedim(-3, -2)  # (..., m, C, 2)
+        J[..., :2] = self.measurement_jacobian_support(x).reshape(*x.shape[:-1], self.obs_dim, self.n_targets, 2)
         return J.reshape(*x.shape[:-1], self.obs_dim, self.state_dim)
 
     # ---- truth and prior -------------------------------------------------------------------

@@ -113,6 +113,27 @@ class StateSpaceModel(nn.Module):
         """dh/dx at ``x (..., d)`` -> ``(..., m, d)``; torch.func (vmapped jacrev) by default."""
         return jacobian(self.measure, x)
 
+    #: state coordinates the measurement depends on (``None``: all). A model whose h reads only
+    #: some coordinates (positions, not velocities) declares them here; the flows then linearise
+    #: in that k-dimensional subspace (``k x k`` systems instead of ``d x d``), exactly.
+    measurement_support: Optional[Tuple[int, ...]] = None
+
+    def measurement_jacobian_support(self, x: torch.Tensor) -> torch.Tensor:
+        """dh/dx restricted to :attr:`measurement_support`: ``(..., m, k)`` (the other columns of
+        the Jacobian are zero). Default: columns of :meth:`measurement_jacobian`."""
+        J = self.measurement_jacobian(x)
+        return J if self.measurement_support is None else J[..., list(self.measurement_support)]
+
+    def linearize_measurement(self, x: torch.Tensor, support: bool = False, scale=None):
+        """``(h(x) (..., m), dh/dx (..., m, d))`` at ``x (..., d)``; with ``support`` the Jacobian
+        is :meth:`measurement_jacobian_support`'s ``(..., m, k)``; with a scalar ``scale`` both are
+        multiplied by it (the flows whiten by ``1 / sigma`` when ``R = sigma^2 I``). Models with an
+        analytic Jacobian override this to share work between the two (the flows call it every
+        pseudo-time step)."""
+        H = self.measurement_jacobian_support(x) if support else self.measurement_jacobian(x)
+        h = self.measure(x)
+        return (h, H) if scale is None else (h * scale, H * scale)
+
     def measurement_matrix(self) -> torch.Tensor:
         """``(m, d)`` matrix of a linear measurement (only when :attr:`linear_measurement`)."""
         raise NotImplementedError(f"{type(self).__name__} has no constant measurement matrix")
