@@ -152,3 +152,76 @@ def test_edh_flow_global_path_with_support():
     b = integrate_flow(EDHFlow(), FullSupportAcoustic(), x, z, prior)
     torch.testing.assert_close(a.particles, b.particles, rtol=1e-9, atol=1e-9)
     torch.testing.assert_close(a.log_det, b.log_det, rtol=1e-9, atol=1e-9)
+
+
+# ---- noise, structure and memory --------------------------------------------------------------------
+def test_standard_normal_fast_path_is_reproducible_and_normal():
+    from torchflow.linalg import FAST_NORMAL_MIN, standard_normal
+
+    n = 4 * FAST_NORMAL_MIN
+    a = standard_normal((n,), dtype=F64, device="cpu", generator=torch.Generator().manual_seed(7))
+    b = standard_normal((n,), dtype=F64, device="cpu", generator=torch.Generator().manual_seed(7))
+    c = standard_normal((n,), dtype=F64, device="cpu", generator=torch.Generator().manual_seed(8))
+    assert torch.equal(a, b) and not torch.equal(a, c)
+    # moments within 5 Monte Carlo standard errors: mean (1/sqrt n), variance (sqrt(2/n)), kurtosis
+    se = n ** -0.5
+    assert abs(float(a.mean())) < 5 * se
+    assert abs(float(a.var()) - 1) < 5 * (2 ** 0.5) * se
+    assert abs(float((a**4).mean()) - 3) < 5 * (96 ** 0.5) * se
+    # the generator advances: two draws from one generator differ
+    g = torch.Generator().manual_seed(7)
+    first = standard_normal((n,), dtype=F64, device="cpu", generator=g)
+    assert not torch.equal(first, standard_normal((n,), dtype=F64, device="cpu", generator=g))
+    # small or float32 draws are torch.randn's
+    small = standard_normal((5, 3), dtype=F64, device="cpu", generator=torch.Generator().manual_seed(1))
+    torch.testing.assert_close(small, torch.randn(5, 3, dtype=F64, generator=torch.Generator().manual_seed(1)))
+
+
+def test_sensor_network_scaled_identity_paths_equal_general_paths():
+    from torchflow.models import SensorNetwork
+
+    fast, general = SensorNetwork(d=16), SensorNetwork(d=16, learnable=True)  # parameters: general path
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(3, 1000, 16, dtype=F64, generator=g)
+    z = torch.randn(3, 1, 16, dtype=F64, generator=g)
+    torch.testing.assert_close(fast.measurement_log_prob(z, x), general.measurement_log_prob(z, x).detach())
+    ref = linalg.mvn_log_prob(z, x, linalg.safe_cholesky(fast.R))
+    torch.testing.assert_close(fast.measurement_log_prob(z, x), ref)
+    a = fast.sample_transition(x, torch.Generator().manual_seed(4))
+    b = general.sample_transition(x, torch.Generator().manual_seed(4)).detach()
+    torch.testing.assert_close(a, b)
+
+
+def test_particle_chunking_gives_the_same_filter_output():
+    """Blocks of particles (likelihoods; local flows) change only round-off for deterministic
+    flows and the bootstrap PF."""
+    from torchflow.filters import BootstrapParticleFilter
+
+    model = AcousticTracking()
+    traj = model.simulate(2, 3, torch.Generator().manual_seed(1))
+    mean, cov = model.initial_belief(traj.states[:, 0], torch.Generator().manual_seed(2))
+    for make in (lambda c: BootstrapParticleFilter(model, n_particles=300, particle_chunk=c),
+                 lambda c: ParticleFlowParticleFilter(model, flow="ledh", n_particles=60, particle_chunk=c),
+                 lambda c: ParticleFlowParticleFilter(model, flow="edh", n_particles=60, particle_chunk=c)):
+        with torch.no_grad():
+            whole = make(None)(traj.observations, mean, cov, torch.Generator().manual_seed(5))
+            parts = make(23)(traj.observations, mean, cov, torch.Generator().manual_seed(5))
+        torch.testing.assert_close(parts.estimates, whole.estimates, rtol=1e-9, atol=1e-9)
+        torch.testing.assert_close(parts.log_evidence, whole.log_evidence, rtol=1e-9, atol=1e-9)
+    with pytest.raises(ValueError, match="particle_chunk"):
+        BootstrapParticleFilter(model, particle_chunk=0)
+
+
+def test_plan_memory_and_runner_chunk_particles_under_a_small_budget():
+    from torchflow.experiment import run_experiment
+    from torchflow.filters import BootstrapParticleFilter
+
+    model = AcousticTracking()
+    f = BootstrapParticleFilter(model, n_particles=2000)
+    per_trial = f.bytes_per_trial()
+    assert f.plan_memory(10 * per_trial) is None
+    c = f.plan_memory(per_trial / 4)
+    assert c is not None and 400 <= c <= 500
+    res = run_experiment(model, {"bpf": BootstrapParticleFilter(model, n_particles=2000)}, trials=2, steps=2,
+                         memory_budget_gb=per_trial / 4 / 2**30, progress=False)
+    assert res.config["chunk_size"]["bpf"] == 1 and 400 <= res.config["particle_chunk"]["bpf"] <= 500

@@ -141,6 +141,8 @@ def run_experiment(
         if chunk_size:
             return int(chunk_size)
         c = choose_chunk_size({"f": f}, trials, memory_budget_gb)
+        if c == 1 and hasattr(f, "plan_memory"):  # one trial may still exceed it: chunk particles
+            f.plan_memory(memory_budget_gb * 2**30)
         pref = f.preferred_chunk_trials()
         return min(c, pref) if pref else c
 
@@ -248,7 +250,9 @@ def run_experiment(
             on_filter_done(summary)
     if bar is not None:
         bar.close()
+    particle_chunks = {name: getattr(f, "particle_chunk", None) for name, f in filters.items()}
     config = dict(trials=trials, steps=steps, seed=seed, inits_per_track=inits_per_track, chunk_size=chunks,
+                  particle_chunk=particle_chunks, memory_budget_gb=memory_budget_gb,
                   device=str(dev), dtype=str(dt).replace("torch.", ""))
     cpu_traj = Trajectory(traj.states.cpu(), traj.observations.cpu())
     return ExperimentResult(summary, per_trial, per_step, cpu_traj, config)

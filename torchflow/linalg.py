@@ -76,6 +76,33 @@ def solve_triangular(A: torch.Tensor, B: torch.Tensor, *, upper: bool, left: boo
     return torch.linalg.solve_triangular(A, B, upper=upper, left=left)
 
 
+#: CPU float64 draws of at least this many numbers come from numpy's ziggurat sampler (SFC64
+#: bit generator, ~8 ns per draw here) seeded from the caller's torch.Generator; torch's own CPU
+#: float64 normal sampler costs ~21 ns per draw, which made the bootstrap PF RNG-bound.
+FAST_NORMAL_MIN = 1 << 16
+
+
+def standard_normal(shape, *, dtype: torch.dtype, device, generator: Optional[torch.Generator] = None,
+                    fast: bool = True) -> torch.Tensor:
+    """``N(0, 1)`` draws of ``shape``, all randomness from ``generator`` (torch's default if None).
+
+    Large float64 CPU draws (``>= FAST_NORMAL_MIN`` numbers, ``fast=True``) take one 62-bit seed
+    from ``generator`` and fill the tensor with numpy's ziggurat normals (``np.random.SFC64``):
+    exact float64 normals, 2.5x faster than ``torch.randn`` on CPU, and the same seed gives the same
+    numbers. Everything else (GPU, float32, small draws) is ``torch.randn``.
+    """
+    device = torch.device(device) if device is not None else torch.device("cpu")
+    n = math.prod(shape)
+    if fast and device.type == "cpu" and dtype == torch.float64 and n >= FAST_NORMAL_MIN:
+        import numpy as np
+
+        seed = int(torch.randint(0, 2**62, (), generator=generator))
+        out = torch.empty(shape, dtype=dtype)
+        np.random.Generator(np.random.SFC64(seed)).standard_normal(out=out.numpy().reshape(-1))
+        return out
+    return torch.randn(shape, dtype=dtype, device=device, generator=generator)
+
+
 def chol_solve(L: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
     """Solve ``(L L^T) X = B`` for ``X`` given lower ``L (..., d, d)`` and ``B (..., d, k)``.
 
@@ -156,7 +183,7 @@ def sample_mvn(
     """
     d = mean.shape[-1]
     B = mean.shape[:-1]
-    xi = torch.randn(*B, *sample_shape, d, dtype=mean.dtype, device=mean.device, generator=generator)
+    xi = standard_normal((*B, *sample_shape, d), dtype=mean.dtype, device=mean.device, generator=generator)
     k = len(sample_shape)
     m = mean.reshape(*B, *([1] * k), d)
     if scale_tril.dim() > 2 and k == 1 and mean.dim() == 2:

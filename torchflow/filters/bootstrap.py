@@ -27,6 +27,7 @@ class BootstrapParticleFilter(ParticleFilterBase):
 
     def step(self, state, z, generator=None):
         x = self.model.sample_transition(state.particles, generator)  # (B, N, d)
-        ll = self.model.measurement_log_prob(z.unsqueeze(1), x)  # (B, N)
+        z1 = z.unsqueeze(1)
+        ll = self.per_particle(lambda xs: self.model.measurement_log_prob(z1, xs), x)  # (B, N)
         return self.weight_and_resample(x, state.log_weights, ll, generator, state.step + 1,
                                         fallback=state.particles, n_repaired=state.n_repaired)

@@ -95,14 +95,17 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
             :class:`~torchflow.filters.base.ParticleFilterBase`.
         nonfinite: ``"recover"`` (default) repairs and counts non-finite particles, ``"raise"``
             raises.
+        particle_chunk: flow (local flows) and weigh at most this many particles at a time to
+            bound memory; ``None``: all (see :meth:`~torchflow.filters.base.ParticleFilterBase.plan_memory`).
     """
 
     def __init__(self, model, *, flow=None, schedule: Optional[LambdaSchedule] = None,
                  n_particles: int = 500, covariance: str = "ekf", resampling: str = "systematic",
                  ess_threshold: float = 0.5, regularization=None, nonfinite: str = "recover",
-                 validate: bool = True, name: Optional[str] = None):
+                 particle_chunk: Optional[int] = None, validate: bool = True, name: Optional[str] = None):
         super().__init__(model, n_particles=n_particles, resampling=resampling, ess_threshold=ess_threshold,
-                         regularization=regularization, nonfinite=nonfinite, validate=validate, name=name)
+                         regularization=regularization, nonfinite=nonfinite, particle_chunk=particle_chunk,
+                         validate=validate, name=name)
         self._init_flow(model, flow, schedule, covariance)
 
     def bytes_per_trial(self, n_particles=None):
@@ -148,9 +151,22 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
         else:
             m_pred, P_pred = self.tracker.predict(state.estimate, state.cov)  # (B, d), (B, d, d)
             z_upd = z
-        prior = FlowPrior(m_pred, linalg.safe_cholesky(P_pred))
-        x, log_q = self._migrate(model, eta0, x_prev, z, prior, generator, log_q0)
-        log_inc = model.transition_log_prob(x, x_prev) + model.measurement_log_prob(z.unsqueeze(1), x) - log_q
+        L_pred = linalg.safe_cholesky(P_pred)
+        z1 = z.unsqueeze(1)
+
+        def weigh(x, x_prev, log_q):
+            return model.transition_log_prob(x, x_prev) + model.measurement_log_prob(z1, x) - log_q
+
+        if self.flow.local:
+            # every particle flows with its own prior: blocks of particles are independent
+            def block(eta0, x_prev, m, L, log_q0):
+                x, log_q = self._migrate(model, eta0, x_prev, z, FlowPrior(m, L), generator, log_q0)
+                return x, weigh(x, x_prev, log_q)
+
+            x, log_inc = self.per_particle(block, eta0, x_prev, m_pred, L_pred, log_q0)
+        else:
+            x, log_q = self._migrate(model, eta0, x_prev, z, FlowPrior(m_pred, L_pred), generator, log_q0)
+            log_inc = self.per_particle(weigh, x, x_prev, log_q)
         _, P_post, _ = self.tracker.update(m_pred, P_pred, z_upd)
         return self.weight_and_resample(x, state.log_weights, log_inc, generator, state.step + 1, cov=P_post,
                                         fallback=eta0, n_repaired=state.n_repaired)

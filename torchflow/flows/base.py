@@ -333,7 +333,7 @@ def _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, ge
             drifts = FlowCoefficients(A, b, None, support=co.support).drift(eta, *([mu] if track else []))
             d_eta, d_mu = drifts[0], drifts[-1]
             co = FlowCoefficients(A, b, None, noise_factor=G, support=co.support)
-        xi = torch.randn(B, N, co.noise_rank, dtype=eta.dtype, device=eta.device, generator=generator)
+        xi = linalg.standard_normal((B, N, co.noise_rank), dtype=eta.dtype, device=eta.device, generator=generator)
         eta = eta + eps * d_eta + eps.sqrt() * co.diffuse(xi)
         if track:
             mu = mu + eps * d_mu

@@ -90,7 +90,7 @@ class StateSpaceModel(nn.Module):
     def sample_transition(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         """Draw x_k ~ p(x_k | x_{k-1} = x) for ``x (..., d)``."""
         L = self.transition_scale_tril(x)
-        xi = torch.randn(x.shape, dtype=x.dtype, device=x.device, generator=generator)
+        xi = linalg.standard_normal(x.shape, dtype=x.dtype, device=x.device, generator=generator)
         return self.transition_mean(x) + linalg.matvec(L, xi)
 
     def transition_log_prob(self, x_next: torch.Tensor, x: torch.Tensor) -> torch.Tensor:

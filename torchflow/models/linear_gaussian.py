@@ -9,6 +9,7 @@ from typing import Optional, Tuple
 import torch
 from torch import nn
 
+from .. import linalg
 from .._checks import check_psd, check_tensor
 from .base import StateSpaceModel
 
@@ -100,18 +101,28 @@ class LinearGaussian(StateSpaceModel):
         return self.H.expand(*x.shape[:-1], *self.H.shape)
 
     def sample_transition(self, x, generator=None):
-        """``x F^T + xi L_Q^T`` as two fused matrix products over all leading dims."""
+        """``x F^T + xi L_Q^T`` as two fused matrix products over all leading dims (a scaled
+        identity F, e.g. the sensor network's ``0.9 I``, is a scaled addition instead)."""
         d = self.state_dim
         flat = x.reshape(-1, d)
-        xi = torch.randn(flat.shape, dtype=x.dtype, device=x.device, generator=generator)
-        out = flat @ self.F.T
-        out = torch.addmm(out, xi, self.transition_scale_tril().T)
+        xi = linalg.standard_normal(flat.shape, dtype=x.dtype, device=x.device, generator=generator)
+        out = xi @ self.transition_scale_tril().T
+        alpha = _scaled_identity(self.F)
+        if alpha is not None:
+            out.add_(flat, alpha=alpha)
+        else:
+            out.addmm_(flat, self.F.T)  # in place: no copy of the (B N, d) result
         return out.reshape(x.shape)
 
     def measurement_log_prob(self, z, x):
         """Whitened residual ``L_R^{-1} z - (L_R^{-1} H) x``: the triangular solve is applied to
         ``H`` and ``z`` once, not to every particle's residual. ``z (..., m)`` broadcasts with
         ``x (..., d)``."""
+        h, r = _scaled_identity(self.H), _scaled_identity(self.R)
+        if h is not None and r is not None and r > 0:  # z = h x + w, R = r I: elementwise residuals
+            m = self.obs_dim
+            quad = torch.linalg.vector_norm(x * h - z if h != 1.0 else x - z, dim=-1).square() / r
+            return -0.5 * (quad + m * _LOG_2PI) - 0.5 * m * math.log(r)
         L = self.measurement_scale_tril()
         m, d = self.obs_dim, self.state_dim
         W = torch.linalg.solve_triangular(L, self.H, upper=False)  # (m, d)
@@ -135,6 +146,19 @@ class LinearGaussian(StateSpaceModel):
     def initial_belief(self, states0, generator=None) -> Tuple[torch.Tensor, torch.Tensor]:
         B = states0.shape[0]
         return self.m0.expand(B, -1).clone(), self.P0.expand(B, -1, -1).clone()
+
+
+def _scaled_identity(M: torch.Tensor) -> Optional[float]:
+    """``c`` if the square matrix ``M == c I`` exactly (and carries no gradient), else ``None``.
+    Lets the samplers and likelihoods replace products by scalings for models such as the sensor
+    network (F = 0.9 I, H = I, R = 0.25 I); a learnable matrix always takes the general path so
+    that every entry receives its gradient."""
+    if M.requires_grad or M.dim() != 2 or M.shape[0] != M.shape[1]:
+        return None
+    c = M[0, 0]
+    if bool((M == c * torch.eye(M.shape[0], dtype=M.dtype, device=M.device)).all()):
+        return float(c)
+    return None
 
 
 def sensor_network_covariance(
