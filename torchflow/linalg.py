@@ -108,9 +108,12 @@ def chol_solve(L: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
 
     Two batched triangular solves: on CPU this is ~1.7x faster than ``torch.cholesky_solve`` for
     large batches of small matrices (5000 x 16 x 16: 9.9 ms vs 16.7 ms). They are posed on the
-    transposed system (``X^T (L L^T) = B^T``, right-hand solves), whose result comes back in
-    row-major layout: batched products with it are then ~1.5x faster than with the column-major
-    result of left-hand solves."""
+    transposed system (``X^T (L L^T) = B^T``, right-hand solves) for a batch of matrices, whose
+    result comes back in row-major layout: batched products with it are then ~1.5x faster than
+    with the column-major result of left-hand solves."""
+    if L.dim() == 2:  # one matrix: left-hand solves are faster (64 x 64: 19 vs 34 us)
+        Y = torch.linalg.solve_triangular(L, B, upper=False)
+        return torch.linalg.solve_triangular(L.transpose(-1, -2), Y, upper=True)
     Zt = solve_triangular(L.transpose(-1, -2), B.transpose(-1, -2), upper=True, left=False)
     return solve_triangular(L, Zt, upper=False, left=False).transpose(-1, -2)
 

@@ -6,7 +6,7 @@ from typing import Optional, Tuple
 import torch
 
 from .. import linalg
-from ..models.linear_gaussian import LinearGaussian
+from ..models.linear_gaussian import LinearGaussian, _scaled_identity
 from .base import Filter, GaussianState
 
 
@@ -109,15 +109,17 @@ class KalmanFilter(ExtendedKalmanFilter):
         """All trials share one covariance: run the Riccati step once on ``(d, d)`` matrices and
         update the ``(B, d)`` means with three matrix products."""
         F, Q, H, R = self.model.F, self.model.Q, self.model.H, self.model.R
+        # a scaled identity F or H (the sensor network: 0.9 I, I) is a scaling, not a product
+        f, h = _scaled_identity(F), _scaled_identity(H)
         P = state.cov[0]
-        P_pred = linalg.symmetrize(F @ P @ F.T + Q)
-        HP = H @ P_pred
-        S = linalg.symmetrize(HP @ H.T + R)
+        P_pred = linalg.symmetrize((f * f) * P + Q if f is not None else F @ P @ F.T + Q)
+        HP = h * P_pred if h is not None else H @ P_pred
+        S = linalg.symmetrize((h * HP if h is not None else HP @ H.T) + R)
         L = linalg.safe_cholesky(S)
         Kt = linalg.chol_solve(L, HP)  # (m, d) = K^T
         cov = linalg.symmetrize(P_pred - Kt.T @ HP)  # P - K S K^T; one shared, well-conditioned matrix
-        m_pred = state.mean @ F.T  # (B, d)
-        innov = z - m_pred @ H.T  # (B, m)
+        m_pred = f * state.mean if f is not None else state.mean @ F.T  # (B, d)
+        innov = z - (h * m_pred if h is not None else m_pred @ H.T)  # (B, m)
         mean = torch.addmm(m_pred, innov, Kt)
         ll = linalg.mvn_log_prob(innov, torch.zeros_like(innov[:1]), L)
         return GaussianState(mean, cov.expand(state.mean.shape[0], -1, -1), ll, state.step + 1)

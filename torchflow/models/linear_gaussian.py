@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import weakref
 
 from ..linalg import _LOG_2PI
 from typing import Optional, Tuple
@@ -155,10 +156,17 @@ def _scaled_identity(M: torch.Tensor) -> Optional[float]:
     that every entry receives its gradient."""
     if M.requires_grad or M.dim() != 2 or M.shape[0] != M.shape[1]:
         return None
+    hit = _SCALED_IDENTITY.get(id(M))
+    if hit is not None and hit[0]() is M and hit[1] == M._version:
+        return hit[2]
     c = M[0, 0]
-    if bool((M == c * torch.eye(M.shape[0], dtype=M.dtype, device=M.device)).all()):
-        return float(c)
-    return None
+    value = float(c) if bool((M == c * torch.eye(M.shape[0], dtype=M.dtype, device=M.device)).all()) else None
+    _SCALED_IDENTITY[id(M)] = (weakref.ref(M), M._version, value)
+    return value
+
+
+#: id(tensor) -> (weakref, version, result): the check runs once per matrix and in-place edit
+_SCALED_IDENTITY: dict = {}
 
 
 def sensor_network_covariance(
