@@ -475,3 +475,9 @@ def test_shared_prior_factor_path_equals_per_particle_path(flow):
     full = flow.coefficients(model, z, aux, FlowPrior(aux, L.expand(2, N, 3, 3)), lam, eps)
     torch.testing.assert_close(shared.A.expand_as(full.A), full.A)
     torch.testing.assert_close(shared.b, full.b)
+    if flow.stochastic:  # the diffusion too, and it stays shared (one d x d law per trial)
+        Qs, Qf = shared.diffusion_cov(), full.diffusion_cov()
+        assert Qs.shape[1] == 1
+        torch.testing.assert_close(Qs.expand_as(Qf), Qf)
+        xi = torch.randn(2, N, shared.noise_rank, dtype=F64, generator=torch.Generator().manual_seed(1))
+        torch.testing.assert_close(shared.diffuse(xi), full.diffuse(xi))

@@ -13,7 +13,6 @@ trials x steps, i.e. comparable with the per-step times the papers report for a 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -29,7 +28,9 @@ from torchflow.models import AcousticTracking  # noqa: E402
 from torchflow import metrics  # noqa: E402
 
 
-def main():
+def run(argv=None) -> dict:
+    """Run the benchmark (``argv``: CLI options); writes no files. Returns ``{"rows", "markdown", "args"}``."""
+    argv = list(sys.argv[1:] if argv is None else argv)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--trials", type=int, default=100)
     ap.add_argument("--steps", type=int, default=5)
@@ -40,8 +41,8 @@ def main():
     ap.add_argument("--filters", default="ledh,edh,gromov,geodesic,osd,bpf",
                     help="comma-separated subset of ledh,edh,gromov,geodesic,osd,bpf")
     ap.add_argument("--quick", action="store_true", help="10 trials, 3 steps")
-    ap.add_argument("--out", default=str(Path(__file__).with_name("results_pfpf.md")))
-    a = ap.parse_args()
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
     if a.quick:
         a.trials, a.steps = 10, 3
     dtype = getattr(torch, a.dtype)
@@ -80,7 +81,7 @@ def main():
     head = (f"Machine: {platform.platform()}, {os.cpu_count()} CPUs, torch {torch.__version__} "
             f"({torch.get_num_threads()} threads), load {load}\n"
             f"Acoustic sigma_w={a.sigma_w}, {a.trials} trials x {a.steps} steps, {a.dtype}.\n"
-            f"Command: `python experiments/benchmarks/bench_pfpf.py {' '.join(sys.argv[1:])}`\n\n")
+            f"Command: `python experiments/benchmarks/bench_pfpf.py {' '.join(argv)}`\n\n")
     ref = next((r["sec_per_trial_step"] for r in rows if r["filter"] == "PF-PF(LEDH)"), None)
     for r in rows:
         r["vs_ledh"] = r["sec_per_trial_step"] / ref if ref else float("nan")
@@ -89,9 +90,16 @@ def main():
     table += "\n".join(f"| {r['filter']} | {r['N']} | {r['chunk']} | {r['sec_per_trial_step']:.4g} | {r['vs_ledh']:.2f} | "
                        f"{r['whole_run_s']:.1f} | "
                        f"{r['omat']:.3f} | {r['ess']:.1f} |" for r in rows)
-    Path(a.out).write_text("## PF-PF benchmark\n\n" + head + table + "\n")
-    Path(a.out).with_suffix(".json").write_text(json.dumps({"args": vars(a), "rows": rows}, indent=2))
-    print(head + table)
+    md = "## PF-PF benchmark" + (" (--quick)" if a.quick else "") + "\n\n" + head + table + "\n"
+    return {"rows": rows, "markdown": md, "args": vars(a)}
+
+
+def main(argv=None):
+    res = run(argv)
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from _common import write_results
+
+    write_results(res, "pfpf", res["args"]["quick"], res["args"]["out"])
 
 
 if __name__ == "__main__":

@@ -105,10 +105,20 @@ def _gromov_operator_terms(W, y, L, lam, L_support=None):
     K = linalg.safe_cholesky(eye + lam * S)
     LkT = Lk.transpose(-1, -2)
     WLty = linalg.matvec(LkT, Wy)
-    shape = torch.broadcast_shapes(T.shape[:-2], LkT.shape[:-2], WLty.shape[:-1], K.shape[:-2])
-    rhs = torch.cat([T.expand(*shape, k, k), WLty.expand(*shape, k).unsqueeze(-1), LkT.expand(*shape, k, k)], -1)
-    X = L @ linalg.chol_solve(K, rhs)  # (..., d, 2k + 1) = [C | g | N]
-    C, g, Nc = X[..., :k], X[..., k], X[..., k + 1:]
+    mshape = torch.broadcast_shapes(T.shape[:-2], LkT.shape[:-2], K.shape[:-2])
+    if len(mshape) == WLty.dim() - 1 and len(mshape) >= 2 and mshape[-1] == 1 and WLty.shape[-2] > 1:
+        # linear measurement, shared prior: C and N are shared by a trial's points (one solve per
+        # trial); g solves the same system with the points' vectors as right-hand sides
+        rhs = torch.cat([T.expand(*mshape, k, k), LkT.expand(*mshape, k, k)], -1)
+        X = L @ linalg.chol_solve(K, rhs)  # (..., 1, d, 2k) = [C | N]
+        C, Nc = X[..., :k], X[..., k:]
+        Ks, Ls = K.expand(*mshape, k, k).squeeze(-3), L.expand(*mshape, *L.shape[-2:]).squeeze(-3)
+        g = (Ls @ linalg.chol_solve(Ks, WLty.transpose(-1, -2))).transpose(-1, -2)
+    else:
+        shape = torch.broadcast_shapes(mshape, WLty.shape[:-1])
+        rhs = torch.cat([T.expand(*shape, k, k), WLty.expand(*shape, k).unsqueeze(-1), LkT.expand(*shape, k, k)], -1)
+        X = L @ linalg.chol_solve(K, rhs)  # (..., d, 2k + 1) = [C | g | N]
+        C, g, Nc = X[..., :k], X[..., k], X[..., k + 1:]
 
     def apply(xi):
         Wxi = xi @ W if W.dim() == 2 else (W * xi.unsqueeze(-1)).sum(-2)  # W_s^T xi, (..., k)

@@ -1,0 +1,124 @@
+"""The whole benchmark suite in one command: peers side by side, PF-PF family, GFLOP/s, large-N memory
+runs, float32 accuracy and scaling curves.
+
+    pip install -e ".[bench]"                                   # filterpy, particles, stonesoup, matplotlib
+    python experiments/benchmarks/run_all.py                    # everything (~20-25 min on 2 CPU cores)
+    python experiments/benchmarks/run_all.py --quick            # smoke test of every section (~2 min)
+    python experiments/benchmarks/run_all.py --only foundation,acoustic
+
+Sections (each is also a script of its own in this folder, with its own options and docstring):
+
+* ``foundation`` (``bench_foundation.py``): Kalman filter and UKF vs filterpy, bootstrap PF vs
+  ``particles`` (LG sensor network d = 64, N = 200 and 1e4);
+* ``acoustic`` (``bench_acoustic.py``): Gromov flow filter, PF-PF(Gromov), PF-PF(LEDH) and BPF vs
+  Stone Soup's GromovFlowParticleUpdater and bootstrap ParticleUpdater (acoustic, N = 500);
+* ``pfpf`` (``bench_pfpf.py``): the PF-PF family side by side (acoustic, N = 500);
+* ``flops`` (``bench_flops.py``): PF-PF(LEDH) achieved GFLOP/s vs measured matrix-product throughput;
+* ``memory`` (``bench_memory.py``): BPF with 1e6 particles and PF-PF(LEDH) with 1e4 under a memory budget;
+* ``float32`` (``bench_float32.py``): float32 accuracy against float64 on the LG and acoustic tables;
+* ``scaling`` (``bench_scaling.py``): time per trial-step against N, d and B (plot).
+
+Writes ``experiments/benchmarks/results_all.md`` (``results_all_quick.md`` with ``--quick``): a
+headline table of every goal ratio, then each section's own report; each section also writes its
+own ``results_<section>.md``/``.json`` (and the scaling PNG). A section that fails is reported as
+failed (with the error) and the others still run: nothing is lost.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import time
+import traceback
+from pathlib import Path
+
+_HERE = Path(__file__).resolve().parent
+_REPO = _HERE.parents[1]
+for p in (str(_REPO), str(_HERE)):
+    if p not in sys.path:
+        sys.path.insert(0, p)
+
+from _common import write_results  # noqa: E402
+
+SECTIONS = ["foundation", "acoustic", "pfpf", "flops", "memory", "float32", "scaling"]
+
+
+def _headline(results: dict) -> list:
+    """Rows (benchmark, ours, peer, ratio, goal, met) of every goal the issue states."""
+    rows = []
+    for r in results.get("foundation", {}).get("rows", []):
+        rows.append((r["name"], r.get("setting", ""), r["per_ts_ours"], r["per_ts_peer"], r["ratio"], r.get("goal"),
+                     r.get("met")))
+    ac = results.get("acoustic", {}).get("rows", [])
+    ref = next((r for r in ac if r["name"].startswith("GromovFlowParticleUpdater")), None)
+    boot = next((r for r in ac if r["name"].startswith("ParticleUpdater")), None)
+    for r in ac:
+        if r["side"] == "ours" and ref is not None:
+            rows.append((f"{r['name']} vs Stone Soup Gromov", "acoustic N=500",
+                         r["per_ts"], ref["per_ts"], r["vs_stonesoup_gromov"], r.get("goal"), r.get("met")))
+        if r["name"].startswith("BPF") and boot is not None:
+            rows.append(("BPF (torchflow) vs Stone Soup bootstrap", "acoustic N=500", r["per_ts"], boot["per_ts"],
+                         r["vs_stonesoup_bootstrap"], None, None))
+    return rows
+
+
+def _fmt(x, f="{:.3g}"):
+    return "-" if x is None else f.format(x)
+
+
+def run(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--only", default=",".join(SECTIONS), help="comma list of sections")
+    ap.add_argument("--skip", default="", help="comma list of sections to leave out")
+    ap.add_argument("--quick", action="store_true", help="pass --quick to every section")
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
+    chosen = [s for s in a.only.split(",") if s and s not in a.skip.split(",")]
+    for s in chosen:
+        if s not in SECTIONS:
+            raise SystemExit(f"--only/--skip: unknown section {s!r}; expected some of {SECTIONS}")
+    results, failures, times = {}, {}, {}
+    for s in chosen:
+        mod = importlib.import_module(f"bench_{s}")
+        sub = ["--quick"] if a.quick else []
+        t0 = time.perf_counter()
+        print(f"=== {s} ===", flush=True)
+        try:
+            res = mod.run(sub)
+            results[s] = res
+            write_results(res, s, a.quick)
+        except BaseException as exc:  # a failing section must not lose the others' results
+            if isinstance(exc, KeyboardInterrupt):
+                raise
+            failures[s] = "".join(traceback.format_exception_only(type(exc), exc)).strip()
+            print(f"[{s}] FAILED: {failures[s]}", flush=True)
+        times[s] = time.perf_counter() - t0
+    lines = ["# torchflow benchmark suite" + (" (--quick smoke test: sizes reduced)" if a.quick else ""), "",
+             f"Command: `python experiments/benchmarks/run_all.py{' ' + ' '.join(argv) if argv else ''}`", "",
+             "## Goals (same machine, same run)", "",
+             "| benchmark | setting | ours s/trial-step | peer s/trial-step | ratio peer/ours | goal | met |",
+             "|---|---|---|---|---|---|---|"]
+    for name, setting, ours, peer, ratio, goal, met in _headline(results):
+        lines.append(f"| {name} | {setting} | {_fmt(ours, '{:.4g}')} | {_fmt(peer, '{:.4g}')} | {_fmt(ratio, '{:.1f}x')} "
+                     f"| {_fmt(goal, '>= {:.0f}x')} | {'-' if met is None else ('yes' if met else 'NO')} |")
+    lines.append("")
+    lines.append("Section times: " + ", ".join(f"{s} {t:.0f} s" for s, t in times.items()))
+    for s, msg in failures.items():
+        lines.append(f"- section **{s} FAILED**: `{msg[-400:]}`")
+    lines.append("")
+    for s in chosen:
+        if s in results:
+            lines += [results[s]["markdown"].replace("\n## ", "\n### ").replace("## ", "## ", 1), ""]
+        if s == "scaling" and s in results and results[s].get("plot"):
+            lines += [f"![scaling curves]({Path(results[s]['plot']).name})", ""]
+    md = "\n".join(lines) + "\n"
+    out = Path(a.out) if a.out else _HERE / ("results_all_quick.md" if a.quick else "results_all.md")
+    out.write_text(md)
+    print(md)
+    print(f"wrote {out}")
+    return dict(results=results, failures=failures, markdown=md)
+
+
+if __name__ == "__main__":
+    res = run(sys.argv[1:])
+    sys.exit(1 if res["failures"] else 0)
