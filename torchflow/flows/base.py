@@ -96,10 +96,8 @@ class FlowCoefficients:
     def drift(self, *points: torch.Tensor):
         """``A x + b`` for each ``x`` of ``points`` (each batched like ``b``)."""
         if self.A is not None:
-            if self.A.dim() >= 4 and self.A.shape[-3] > 1 and len(points) > 1:
-                # per-point A: one product for all vectors
-                AX = self.A @ torch.stack([self.cols(x) for x in points], -1)
-                return [AX[..., i] + self.b for i in range(len(points))]
+            # one matrix-vector product per point set: with MKL a batched d x k @ k x 2 product
+            # costs more than two d x k @ k x 1 ones (16 x 8, 2000 matrices: 0.73 vs 2 x 0.2 ms)
             return [linalg.matvec(self.A, self.cols(x)) + self.b for x in points]
         AX = self.apply_A(torch.stack(points, -1))  # one pass for all the vectors
         return [AX[..., i] + self.b for i in range(len(points))]

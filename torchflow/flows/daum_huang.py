@@ -93,12 +93,9 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
     # P H^T R^{-1} (z - e) = L L_s^T W^T y
     Pg = linalg.matvec(L, linalg.matvec(Ls.transpose(-1, -2), Wy)) if P_cols is None else linalg.matvec(P_cols, Wy)
     co = FlowCoefficients(A, Pg, log_det, support=support)  # b is set below
-    if A.dim() >= 4 and A.shape[-3] > 1:  # per-point A: one product for both vectors
-        AV = A @ torch.stack([co.cols(Pg), co.cols(eta_bar0).expand_as(co.cols(Pg))], -1)
-        APg, Aeta0 = AV[..., 0], AV[..., 1]
-    else:
-        APg, Aeta0 = linalg.matvec(A, co.cols(Pg)), linalg.matvec(A, co.cols(eta_bar0))
-    u = Pg + lam * APg + Aeta0
+    # b = (I + 2 lam A) u,  u = (I + lam A) Pg + A eta_bar0 = Pg + A (lam Pg + eta_bar0): two
+    # single-vector products (a batched d x k @ k x 2 product costs more than two d x k @ k x 1)
+    u = Pg + linalg.matvec(A, co.cols(lam * Pg + eta_bar0))
     co.b = u + 2 * lam * linalg.matvec(A, co.cols(u))
     return co
 
