@@ -116,6 +116,10 @@ def run_experiment(
             prior draw (Li & Coates: 100 trajectories x 5 initialisations).
         chunk_size: trials per chunk for every filter; ``None`` picks each filter's from
             ``memory_budget_gb`` and :meth:`Filter.preferred_chunk_trials`.
+        memory_budget_gb: memory one chunk may use (by the filters' own estimates). When even one
+            trial exceeds it, a particle filter without an explicit ``particle_chunk`` gets one
+            (:meth:`~torchflow.filters.base.ParticleFilterBase.plan_memory`), so e.g. a 1e6-particle
+            bootstrap PF runs in blocks of particles; ``result.config["particle_chunk"]`` records it.
         device, dtype: where and in what precision filters run (metrics use float64).
         ospa_cutoff, ospa_order, lost_threshold: metric settings (tracking models).
         progress: show a tqdm progress bar.
@@ -141,7 +145,7 @@ def run_experiment(
         if chunk_size:
             return int(chunk_size)
         c = choose_chunk_size({"f": f}, trials, memory_budget_gb)
-        if c == 1 and hasattr(f, "plan_memory"):  # one trial may still exceed it: chunk particles
+        if c == 1 and getattr(f, "particle_chunk", 0) is None:  # one trial may still exceed it: chunk particles
             f.plan_memory(memory_budget_gb * 2**30)
         pref = f.preferred_chunk_trials()
         return min(c, pref) if pref else c
