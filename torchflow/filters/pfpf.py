@@ -63,7 +63,11 @@ class _FlowFilterMixin:
         """Rough per-trial memory: ``cov_mats`` d x d matrices per particle for local flows."""
         d, m = self.model.state_dim, self.model.obs_dim
         per_point = cov_mats * d * d + 4 * m * d + 8 * d + 4 * m
-        flow = N * per_point if self.flow.local else N * (8 * d + 3 * m) + 4 * per_point
+        shared = (self.covariance == "ekf" and self.model.linear_dynamics and self.model.linear_measurement)
+        if shared:  # linear models: one prior factor and Jacobian per trial, vectors per particle
+            flow = cov_mats * d * d + N * (8 * d + 3 * m)
+        else:
+            flow = N * per_point if self.flow.local else N * (8 * d + 3 * m) + 4 * per_point
         return 8 * flow + N * self.model.bytes_per_point()
 
 
