@@ -225,3 +225,29 @@ def test_plan_memory_and_runner_chunk_particles_under_a_small_budget():
     res = run_experiment(model, {"bpf": BootstrapParticleFilter(model, n_particles=2000)}, trials=2, steps=2,
                          memory_budget_gb=per_trial / 4 / 2**30, progress=False)
     assert res.config["chunk_size"]["bpf"] == 1 and 400 <= res.config["particle_chunk"]["bpf"] <= 500
+
+
+def test_float32_daum_huang_drift_is_promoted_where_float32_cancels():
+    """sigma_w = 0.001: the EDH/LEDH offset b cancels terms ~lam |S| ~ 1e11 times larger than itself.
+    With the float64 promotion a float32 run's drift matches float64's; without it, it is off by far
+    more than the cloud's width (bench_float32: PF-PF(LEDH) lost every track)."""
+    model = AcousticTracking(sigma_w=0.001)
+    traj = model.simulate(1, 2, torch.Generator().manual_seed(0))
+    z = traj.observations[:, 1]
+    g = torch.Generator().manual_seed(1)
+    aux = traj.states[:, 1].unsqueeze(1) + 0.3 * torch.randn(1, 20, 16, dtype=F64, generator=g)
+    P = torch.diag(torch.tensor([2.0, 2.0, 0.1, 0.1] * 4, dtype=F64)).expand(1, 20, 16, 16)
+    lam, eps = torch.tensor(0.6, dtype=F64), torch.tensor(0.05, dtype=F64)
+    ref = LEDHFlow().coefficients(model, z, aux, FlowPrior(aux, linalg.safe_cholesky(P)), lam, eps)
+    m32 = AcousticTracking(sigma_w=0.001).to(torch.float32)
+    prior32 = FlowPrior(aux.float(), linalg.safe_cholesky(P.float()))
+    step64 = eps * (ref.drift(aux)[0])
+    flow = LEDHFlow()
+    co = flow.coefficients(m32, z.float(), aux.float(), prior32, lam.float(), eps.float())
+    assert co.b.dtype == torch.float32
+    err = (eps.float() * co.drift(aux.float())[0]).double() - step64
+    assert float(err.abs().max()) < 1e-3  # metres, one pseudo-time step
+    flow.promote_low_precision = False
+    co = flow.coefficients(m32, z.float(), aux.float(), prior32, lam.float(), eps.float())
+    bad = (eps.float() * co.drift(aux.float())[0]).double() - step64
+    assert float(bad.abs().max()) > 100 * float(err.abs().max())  # the failure the promotion prevents

@@ -120,12 +120,29 @@ def _support_terms(model, aux, z, prior: FlowPrior):
 
 class EDHFlow(ParticleFlow):
     """Exact Daum-Huang flow: one linearisation per trial at the migrating mean (Daum & Huang
-    2010; the PF-PF(EDH) proposal of Li & Coates 2017)."""
+    2010; the PF-PF(EDH) proposal of Li & Coates 2017).
+
+    Attributes:
+        promote_low_precision: in float32 (or half) runs, compute the drift's ``k x k`` algebra in
+            float64 (default True). Its offset ``b`` cancels terms ``~lam |S|`` times larger than
+            itself, and ``S = L^T H^T R^-1 H L`` reaches ~5e11 on acoustic tracking with
+            sigma_w = 0.001: in float32 that drift is wrong by metres and PF-PF(EDH/LEDH) lose every
+            track (``experiments/benchmarks/results_float32.md``). Everything else stays in the
+            run's precision.
+    """
 
     local = False
+    promote_low_precision = True
 
     def coefficients(self, model, z, aux, prior: FlowPrior, lam, eps):
         prior, W, y = _support_terms(model, aux, z, prior)
+        dt = prior.cols.dtype
+        if self.promote_low_precision and dt in (torch.float32, torch.float16, torch.bfloat16):
+            up = (lambda t: None if t is None else t.to(torch.float64))  # noqa: E731
+            # P_cols is not reused: it was rounded independently of L in low precision
+            co = daum_huang_coefficients(up(W), up(y), up(prior.cols), up(prior.mean), up(lam), up(eps),
+                                         L_support=up(prior.cols_support), support=prior.support)
+            return FlowCoefficients(co.A.to(dt), co.b.to(dt), co.log_det.to(dt), support=co.support)
         return daum_huang_coefficients(W, y, prior.cols, prior.mean, lam, eps, L_support=prior.cols_support,
                                        support=prior.support, P_cols=prior.cov_cols)
 
