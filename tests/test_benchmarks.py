@@ -15,11 +15,12 @@ import run_all  # noqa: E402
 
 
 def test_status_and_goal_flags():
-    ok = dict(finite=True, position_rmse=3.0)
+    ok = dict(finite=True, position_rmse=3.0, omat=0.6)
     assert bench_acoustic.status(ok) == "tracking"
+    assert bench_acoustic.status(dict(ok, omat=9.0)) == "finite, tracks lost"
     assert bench_acoustic.status(dict(finite=True, position_rmse=1e70)) == "diverged"
     assert bench_acoustic.status(dict(finite=False, position_rmse=float("nan"))) == "diverged"
-    assert bench_acoustic.status(dict(ok, failures=["step 2 raised"])) == "diverged, then raised"
+    assert bench_acoustic.status(dict(finite=True, position_rmse=1e70, failures=["step 2"])) == "diverged, then raised"
 
 
 def test_headline_collects_every_goal():

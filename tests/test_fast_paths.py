@@ -172,6 +172,22 @@ def test_standard_normal_fast_path_is_reproducible_and_normal():
     g = torch.Generator().manual_seed(7)
     first = standard_normal((n,), dtype=F64, device="cpu", generator=g)
     assert not torch.equal(first, standard_normal((n,), dtype=F64, device="cpu", generator=g))
+    # above FAST_NORMAL_BLOCK: independent streams per block, the same numbers for any thread count
+    from torchflow.linalg import FAST_NORMAL_BLOCK
+
+    big = (2 * FAST_NORMAL_BLOCK + 5,)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        x2 = standard_normal(big, dtype=F64, device="cpu", generator=torch.Generator().manual_seed(9))
+        torch.set_num_threads(1)
+        x1 = standard_normal(big, dtype=F64, device="cpu", generator=torch.Generator().manual_seed(9))
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(x1, x2)
+    blocks = x1[: 2 * FAST_NORMAL_BLOCK].reshape(2, -1)
+    assert not torch.equal(blocks[0], blocks[1])
+    assert abs(float(torch.corrcoef(blocks)[0, 1])) < 5 * FAST_NORMAL_BLOCK ** -0.5
     # small or float32 draws are torch.randn's
     small = standard_normal((5, 3), dtype=F64, device="cpu", generator=torch.Generator().manual_seed(1))
     torch.testing.assert_close(small, torch.randn(5, 3, dtype=F64, generator=torch.Generator().manual_seed(1)))

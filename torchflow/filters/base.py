@@ -194,8 +194,8 @@ class Filter(nn.Module):
         est, inc, ess, covs, parts, lws = [], [], [], [], [], []
         for t in range(observations.shape[1]):
             state = self.step(state, observations[:, t], generator)
-            bad = ~torch.isfinite(state.estimate).all(-1)
-            if bool(bad.any()):
+            if not bool(torch.isfinite(state.estimate).all()):
+                bad = ~torch.isfinite(state.estimate).all(-1)
                 raise NonFiniteError(self.name, t + 1, torch.nonzero(bad).flatten().tolist())
             est.append(state.estimate)
             inc.append(state.log_evidence_increment)

@@ -112,9 +112,10 @@ class KalmanFilter(ExtendedKalmanFilter):
         # a scaled identity F or H (the sensor network: 0.9 I, I) is a scaling, not a product
         f, h = _scaled_identity(F), _scaled_identity(H)
         P = state.cov[0]
-        P_pred = linalg.symmetrize((f * f) * P + Q if f is not None else F @ P @ F.T + Q)
+        # scalings and sums of symmetric matrices are exactly symmetric: symmetrize only products
+        P_pred = (f * f) * P + Q if f is not None else linalg.symmetrize(F @ P @ F.T + Q)
         HP = h * P_pred if h is not None else H @ P_pred
-        S = linalg.symmetrize((h * HP if h is not None else HP @ H.T) + R)
+        S = h * HP + R if h is not None else linalg.symmetrize(HP @ H.T + R)
         L = linalg.safe_cholesky(S)
         Kt = linalg.chol_solve(L, HP)  # (m, d) = K^T
         cov = linalg.symmetrize(P_pred - Kt.T @ HP)  # P - K S K^T; one shared, well-conditioned matrix
