@@ -131,7 +131,8 @@ def run(argv=None) -> dict:
                         est = torch.as_tensor(np.asarray(r["estimates"], dtype=np.float64))
                         if est.numel():  # OMAT over the completed steps (inf where non-finite)
                             tru = traj.states[b, 1: 1 + est.shape[0]]
-                            om = metrics.omat(model.positions(est.nan_to_num(1e300)), model.positions(tru))
+                            om = metrics.omat(model.positions(est.nan_to_num(1e300)).unsqueeze(0),
+                                              model.positions(tru).unsqueeze(0))
                             omats.append(float(om.mean()))
                         finite.append(r["finite"])
                         if r.get("error"):
@@ -200,7 +201,7 @@ def markdown(info, rows, a) -> str:
         met = "-" if r.get("met") is None else ("yes" if r["met"] else "NO")
         lines.append(f"| {r['name']} | {_f(r['per_ts'], '{:.4g}')} | {_f(r.get('vs_stonesoup_gromov'), '{:.1f}x')} "
                      f"| {_f(r.get('vs_stonesoup_bootstrap'), '{:.1f}x')} | {goal} | {met} "
-                     f"| {_f(r['position_rmse'], '{:.3g}')} | {_f(r.get('omat'), '{:.3f}')} | {status(r)} "
+                     f"| {_f(r['position_rmse'], '{:.3g}')} | {_f(r.get('omat'), '{:.3g}')} | {status(r)} "
                      f"| {r.get('chunk', '-')} |")
     lines.append("")
     if info.get("peer_note"):

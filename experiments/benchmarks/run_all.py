@@ -5,6 +5,7 @@ runs, float32 accuracy and scaling curves.
     python experiments/benchmarks/run_all.py                    # everything (~20-25 min on 2 CPU cores)
     python experiments/benchmarks/run_all.py --quick            # smoke test of every section (~2 min)
     python experiments/benchmarks/run_all.py --only foundation,acoustic
+    python experiments/benchmarks/run_all.py --only acoustic --merge   # rerun one section, keep the rest
 
 Sections (each is also a script of its own in this folder, with its own options and docstring):
 
@@ -71,6 +72,8 @@ def run(argv=None) -> dict:
     ap.add_argument("--only", default=",".join(SECTIONS), help="comma list of sections")
     ap.add_argument("--skip", default="", help="comma list of sections to leave out")
     ap.add_argument("--quick", action="store_true", help="pass --quick to every section")
+    ap.add_argument("--merge", action="store_true",
+                    help="include the saved results_<section>.md/.json of the sections not run now")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     chosen = [s for s in a.only.split(",") if s and s not in a.skip.split(",")]
@@ -93,6 +96,15 @@ def run(argv=None) -> dict:
             failures[s] = "".join(traceback.format_exception_only(type(exc), exc)).strip()
             print(f"[{s}] FAILED: {failures[s]}", flush=True)
         times[s] = time.perf_counter() - t0
+    if a.merge:  # re-running one section keeps the others' last results
+        import json
+
+        for s in SECTIONS:
+            md = _HERE / (f"results_{s}_quick.md" if a.quick else f"results_{s}.md")
+            if s not in results and s not in failures and md.exists() and md.with_suffix(".json").exists():
+                saved = json.loads(md.with_suffix(".json").read_text())
+                results[s] = dict(saved, markdown=md.read_text())
+        chosen = [s for s in SECTIONS if s in results or s in failures]
     lines = ["# torchflow benchmark suite" + (" (--quick smoke test: sizes reduced)" if a.quick else ""), "",
              f"Command: `python experiments/benchmarks/run_all.py{' ' + ' '.join(argv) if argv else ''}`", "",
              "## Goals (same machine, same run)", "",
