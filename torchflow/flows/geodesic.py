@@ -49,7 +49,7 @@ from .base import FlowCoefficients, FlowPrior, ParticleFlow
 from .daum_huang import _gram_terms, _support_terms
 
 
-def _homotopy_terms(W, y, L, lam, need_factor: bool = False, L_support=None):
+def _homotopy_terms(W, y, L, lam, need_factor: bool = False, L_support=None, extra=None):
     """Shared quantities of the Gaussian homotopy at pseudo-time ``lam``.
 
     Args:
@@ -59,78 +59,45 @@ def _homotopy_terms(W, y, L, lam, need_factor: bool = False, L_support=None):
             L_support: ``(..., k, k)`` rows of L at those coordinates (default L).
         need_factor: also return ``G = M^{-1} W^T (..., d, m)`` (the Gromov diffusion factor);
             otherwise ``C`` and ``g`` come from one solve with ``k + 1`` right-hand sides.
+        extra: ``(..., k, r)`` further right-hand sides ``V`` of the same solve; returns
+            ``E = L (I + lam S)^{-1} V`` (e.g. ``V = L_s^T`` gives ``M^{-1}[:, s]``).
 
     Returns:
         ``S (..., k, k)``, ``K (..., k, k)`` (Cholesky of ``I + lam S``), ``G`` or ``None``,
-        ``C = M^{-1} J (..., d, k)`` (the nonzero columns) and
-        ``g = M^{-1} H^T R^{-1} (z - e) (..., d)``.
+        ``C = M^{-1} J (..., d, k)`` (the nonzero columns), ``g = M^{-1} H^T R^{-1} (z - e) (..., d)``
+        and ``E (..., d, r)`` or ``None``.
     """
     Lk = L if L_support is None else L_support
     k = Lk.shape[-1]
+    r = 0 if extra is None else extra.shape[-1]
     eye = torch.eye(k, dtype=L.dtype, device=L.device)
     T, S, Wy = _gram_terms(W, y, Lk)  # L_s^T J, L_s^T J L_s, W^T y
     K = linalg.safe_cholesky(eye + lam * S)
     if need_factor:
         G = L @ linalg.chol_solve(K, (W @ Lk).transpose(-1, -2))
-        return S, K, G, G @ W, linalg.matvec(G, y)
+        return S, K, G, G @ W, linalg.matvec(G, y), None
     WLty = linalg.matvec(Lk.transpose(-1, -2), Wy)  # (W L_s)^T y, (..., k)
+    mats = [T] if extra is None else [T, extra]
     if K.dim() == WLty.dim() + 1 and K.dim() >= 4 and K.shape[-3] == 1 and WLty.shape[-2] > 1:
         # one factor per trial shared by N points (linear models): solve the k x k system once
         # per trial, with the N vectors as extra right-hand sides of the same solve
         Ks = K.squeeze(-3)
         Ls = L.expand(*K.shape[:-2], *L.shape[-2:]).squeeze(-3)
-        rhs = torch.cat([T.expand(K.shape).squeeze(-3), WLty.transpose(-1, -2)], -1)
-        X = Ls @ linalg.chol_solve(Ks, rhs)  # (..., d, k + N)
-        return S, K, None, X[..., :k].unsqueeze(-3), X[..., k:].transpose(-1, -2)
-    shape = torch.broadcast_shapes(T.shape[:-2], WLty.shape[:-1])
-    rhs = torch.cat([T.expand(*shape, k, k), WLty.expand(*shape, k).unsqueeze(-1)], -1)
-    X = L @ linalg.chol_solve(K, rhs)  # [M^-1 J | M^-1 H^T R^-1 (z - e)]
-    return S, K, None, X[..., :k], X[..., k]
-
-
-def _gromov_operator_terms(W, y, L, lam, L_support=None):
-    """Gromov coefficients with the diffusion in operator form (per-point linearisation).
-
-    With ``N = M^{-1}[:, s] = L (I + lam S)^{-1} L_s^T (..., d, k)`` (the columns of M^{-1} at the
-    measured coordinates, where J lives): ``C = M^{-1} J = N J_s``, ``G = M^{-1} W^T = N W_s^T``
-    and ``Q = G G^T = N J_s N^T = C N^T``. One solve with ``2k + 1`` right-hand sides gives C, g and
-    N; ``G xi = N (W_s^T xi)`` never forms the ``d x m`` factor.
-
-    Returns ``S, K, C, g, N, apply`` with ``Q = C N^T`` and ``apply(xi (..., m)) = G xi``.
-    """
-    Lk = L if L_support is None else L_support
-    k = Lk.shape[-1]
-    eye = torch.eye(k, dtype=L.dtype, device=L.device)
-    T, S, Wy = _gram_terms(W, y, Lk)
-    K = linalg.safe_cholesky(eye + lam * S)
-    LkT = Lk.transpose(-1, -2)
-    WLty = linalg.matvec(LkT, Wy)
-    mshape = torch.broadcast_shapes(T.shape[:-2], LkT.shape[:-2], K.shape[:-2])
-    if len(mshape) == WLty.dim() - 1 and len(mshape) >= 2 and mshape[-1] == 1 and WLty.shape[-2] > 1:
-        # linear measurement, shared prior: C and N are shared by a trial's points (one solve per
-        # trial); g solves the same system with the points' vectors as right-hand sides
-        rhs = torch.cat([T.expand(*mshape, k, k), LkT.expand(*mshape, k, k)], -1)
-        X = L @ linalg.chol_solve(K, rhs)  # (..., 1, d, 2k) = [C | N]
-        C, Nc = X[..., :k], X[..., k:]
-        Ks, Ls = K.expand(*mshape, k, k).squeeze(-3), L.expand(*mshape, *L.shape[-2:]).squeeze(-3)
-        g = (Ls @ linalg.chol_solve(Ks, WLty.transpose(-1, -2))).transpose(-1, -2)
-    else:
-        shape = torch.broadcast_shapes(mshape, WLty.shape[:-1])
-        rhs = torch.cat([T.expand(*shape, k, k), WLty.expand(*shape, k).unsqueeze(-1), LkT.expand(*shape, k, k)], -1)
-        X = L @ linalg.chol_solve(K, rhs)  # (..., d, 2k + 1) = [C | g | N]
-        C, g, Nc = X[..., :k], X[..., k], X[..., k + 1:]
-
-    def apply(xi):
-        Wxi = xi @ W if W.dim() == 2 else (W * xi.unsqueeze(-1)).sum(-2)  # W_s^T xi, (..., k)
-        return linalg.matvec(Nc, Wxi)
-
-    return S, K, C, g, Nc, apply
+        rhs = torch.cat([M.expand(*K.shape[:-1], M.shape[-1]).squeeze(-3) for M in mats]
+                        + [WLty.transpose(-1, -2)], -1)
+        X = Ls @ linalg.chol_solve(Ks, rhs)  # (..., d, k + r + N)
+        E = X[..., k:k + r].unsqueeze(-3) if r else None
+        return S, K, None, X[..., :k].unsqueeze(-3), X[..., k + r:].transpose(-1, -2), E
+    shape = torch.broadcast_shapes(T.shape[:-2], WLty.shape[:-1], *([extra.shape[:-2]] if r else []))
+    rhs = torch.cat([M.expand(*shape, k, M.shape[-1]) for M in mats] + [WLty.expand(*shape, k).unsqueeze(-1)], -1)
+    X = L @ linalg.chol_solve(K, rhs)  # [M^-1 J | L (I + lam S)^-1 V | M^-1 H^T R^-1 (z - e)]
+    return S, K, None, X[..., :k], X[..., k + r], (X[..., k:k + r] if r else None)
 
 
 def _terms(model, aux, z, prior, lam, need_factor=False):
-    """Reduced prior plus :func:`_homotopy_terms` at ``aux``."""
+    """Reduced prior plus :func:`_homotopy_terms` at ``aux`` (without ``E``)."""
     prior, W, y = _support_terms(model, aux, z, prior)
-    return (prior, *_homotopy_terms(W, y, prior.cols, lam, need_factor, L_support=prior.cols_support))
+    return (prior, *_homotopy_terms(W, y, prior.cols, lam, need_factor, L_support=prior.cols_support)[:5])
 
 
 def symmetric_sqrt(Q: torch.Tensor) -> torch.Tensor:
@@ -203,8 +170,18 @@ class GromovFlow(_HomotopyFlow):
 
     def coefficients(self, model, z, aux, prior: FlowPrior, lam, eps):
         if self.local and self.noise_root == "factor":
+            # operator form: with N = M^{-1}[:, s] = L (I + lam S)^{-1} L_s^T (the columns of M^{-1}
+            # at the measured coordinates, where J lives), C = M^{-1} J = N J_s,
+            # G = M^{-1} W^T = N W_s^T and Q = G G^T = C N^T; G xi = N (W_s^T xi) never forms the
+            # d x m factor, and N comes from the same solve as C and g
             prior, W, y = _support_terms(model, aux, z, prior)
-            S, K, C, g, Nc, apply = _gromov_operator_terms(W, y, prior.cols, lam, L_support=prior.cols_support)
+            Lk = prior.cols_support
+            S, K, _, C, g, Nc = _homotopy_terms(W, y, prior.cols, lam, L_support=Lk, extra=Lk.transpose(-1, -2))
+
+            def apply(xi):
+                Wxi = xi @ W if W.dim() == 2 else (W * xi.unsqueeze(-1)).sum(-2)  # W_s^T xi, (..., k)
+                return linalg.matvec(Nc, Wxi)
+
             return FlowCoefficients(-C, g, None, support=prior.support, noise_cov_pair=(C, Nc), noise_apply=apply,
                                     noise_dim=W.shape[-2])
         prior, S, K, G, C, g = _terms(model, aux, z, prior, lam, need_factor=True)
