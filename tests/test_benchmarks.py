@@ -62,3 +62,15 @@ def test_memory_case_runs_in_its_own_process():
     assert "error" not in row, row
     assert row["particles"] == 3000 and row["particle_chunk"] is not None and row["particle_chunk"] < 3000
     assert row["peak_rss_gb"] > 0 and row["s_per_step"] > 0
+
+
+def test_run_all_merge_reassembles_saved_sections(tmp_path):
+    """``--merge`` with no section run rebuilds the report from the saved results files."""
+    saved = [s for s in run_all.SECTIONS if (_BENCH / f"results_{s}.json").exists()]
+    if "foundation" not in saved:
+        pytest.skip("no saved foundation results in this checkout")
+    out = tmp_path / "all.md"
+    res = run_all.run(["--only", "", "--merge", "--out", str(out)])
+    assert not res["failures"] and set(res["results"]) == set(saved)
+    text = out.read_text()
+    assert "| Kalman filter vs filterpy |" in text and "## Foundation benchmarks" in text
