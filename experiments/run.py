@@ -93,6 +93,7 @@ def main(cfg: DictConfig) -> None:
         ospa_order=float(cfg.metrics.ospa_order),
         lost_threshold=float(cfg.metrics.lost_threshold),
         progress=bool(cfg.progress),
+        rng_backend=str(cfg.get("rng_backend", "auto")),
         on_filter_done=lambda rows: _write_csv(out / "summary.csv", rows, SUMMARY_COLUMNS),  # partial results
     )
     _write_csv(out / "summary.csv", result.summary, SUMMARY_COLUMNS)

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import math
 import time
-import zlib
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Mapping, Optional, Union
 
@@ -19,6 +18,7 @@ from .filters.base import Filter
 from .filters.kalman import KalmanFilter
 from .models.base import StateSpaceModel, Trajectory
 from .models.linear_gaussian import LinearGaussian
+from .random import TrialStreams
 
 SUMMARY_COLUMNS = [
     "filter", "n_particles", "trials", "steps", "mse", "omat", "omat_kept_mean", "omat_kept_sd",
@@ -60,12 +60,6 @@ def resolve_device(device: Union[str, torch.device]) -> torch.device:
     return dev
 
 
-def filter_seed(seed: int, name: str) -> int:
-    """Seed of a filter's generator: depends on the run seed and the filter's name only, so a
-    filter's numbers do not change when other filters are added to the run."""
-    return (int(seed) * 1_000_003 + zlib.crc32(name.encode())) % (2**63 - 1)
-
-
 def choose_chunk_size(filters: Mapping[str, Filter], trials: int, memory_budget_gb: float) -> int:
     """Largest chunk of trials whose estimated per-step memory fits the budget (at least 1)."""
     per_trial = max((f.bytes_per_trial() for f in filters.values()), default=1)
@@ -100,6 +94,7 @@ def run_experiment(
     ospa_order: float = 1.0,
     lost_threshold: float = 2.0,
     progress: bool = True,
+    rng_backend: str = "auto",
     on_filter_done: Optional[Callable[[List[dict]], None]] = None,
 ) -> ExperimentResult:
     """Simulate ``trials`` trajectories once and run every filter on the same observations.
@@ -109,9 +104,11 @@ def run_experiment(
         filters: ``{name: filter}``; each filter must hold ``model``.
         trials: Monte Carlo trials B.
         steps: time steps T.
-        seed: seeds the simulation; each filter gets its own generator from
-            :func:`filter_seed` (seed, name), re-seeded per chunk from the chunk's first trial, so
-            a filter's numbers depend on the seed, its name and its chunk size only.
+        seed: seeds the simulation and every filter's randomness. Each trial of a filter draws
+            from its own stream, :class:`~torchflow.random.TrialStreams` keyed by (seed, trial
+            index, the filter's :attr:`~torchflow.filters.base.Filter.stream_name`), so a trial's
+            numbers do not depend on ``chunk_size``, ``memory_budget_gb``, the order of the
+            filters or their config names (same device and ``rng_backend``).
         inits_per_track: trials share a trajectory in groups of this size, each with its own
             prior draw (Li & Coates: 100 trajectories x 5 initialisations).
         chunk_size: trials per chunk for every filter; ``None`` picks each filter's from
@@ -122,7 +119,9 @@ def run_experiment(
             bootstrap PF runs in blocks of particles; ``result.config["particle_chunk"]`` records it.
         device, dtype: where and in what precision filters run (metrics use float64).
         ospa_cutoff, ospa_order, lost_threshold: metric settings (tracking models).
-        progress: show a tqdm progress bar.
+        progress: show a tqdm progress bar per filter (its time estimate is that filter's own).
+        rng_backend: back end of the per-trial streams, ``auto`` (numpy on CPU, philox on GPU),
+            ``numpy`` or ``philox`` (see :mod:`torchflow.random`).
         on_filter_done: called with the summary rows so far after each filter finishes (or
             fails), so a caller can save partial results of long runs.
 
@@ -186,8 +185,8 @@ def run_experiment(
             with torch.no_grad():
                 for s in range(0, trials, f_chunk):
                     sl = slice(s, s + f_chunk)
-                    g = torch.Generator(device=dev).manual_seed(filter_seed(seed, name) + s)
                     n_b = traj.observations[sl].shape[0]
+                    g = TrialStreams(seed, range(s, s + n_b), key=f.stream_name, backend=rng_backend)
                     cb = (lambda n=n_b: bar.update(n)) if bar is not None else None
                     if dev.type == "cuda":
                         torch.cuda.synchronize()
@@ -256,7 +255,7 @@ def run_experiment(
         bar.close()
     particle_chunks = {name: getattr(f, "particle_chunk", None) for name, f in filters.items()}
     config = dict(trials=trials, steps=steps, seed=seed, inits_per_track=inits_per_track, chunk_size=chunks,
-                  particle_chunk=particle_chunks, memory_budget_gb=memory_budget_gb,
+                  particle_chunk=particle_chunks, memory_budget_gb=memory_budget_gb, rng_backend=rng_backend,
                   device=str(dev), dtype=str(dt).replace("torch.", ""))
     cpu_traj = Trajectory(traj.states.cpu(), traj.observations.cpu())
     return ExperimentResult(summary, per_trial, per_step, cpu_traj, config)

@@ -10,6 +10,8 @@ from typing import Optional, Tuple
 
 import torch
 
+from .random import TrialStreams
+
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
@@ -86,6 +88,9 @@ def standard_normal(shape, *, dtype: torch.dtype, device, generator: Optional[to
                     fast: bool = True) -> torch.Tensor:
     """``N(0, 1)`` draws of ``shape``, all randomness from ``generator`` (torch's default if None).
 
+    A :class:`~torchflow.random.TrialStreams` generator draws each trial's share (``shape[0]`` is
+    trials, or a trial-major multiple of them) from that trial's own stream.
+
     Large float64 CPU draws (``>= FAST_NORMAL_MIN`` numbers, ``fast=True``) take one 62-bit seed
     from ``generator`` and fill the tensor with numpy's ziggurat normals (``np.random.SFC64``):
     exact float64 normals, 2.5x faster than ``torch.randn`` on CPU per thread, and the same seed
@@ -95,6 +100,8 @@ def standard_normal(shape, *, dtype: torch.dtype, device, generator: Optional[to
     draws) is ``torch.randn``.
     """
     device = torch.device(device) if device is not None else torch.device("cpu")
+    if isinstance(generator, TrialStreams):  # per-trial streams (leading dim: trials)
+        return generator.normal(shape, dtype=dtype, device=device)
     n = math.prod(shape)
     if fast and device.type == "cpu" and dtype == torch.float64 and n >= FAST_NORMAL_MIN:
         import numpy as np

@@ -8,8 +8,9 @@ relative to the per-trial maximum log weight, which is equivalent and
 overflow-free). Zero weights are expressed as ``-inf`` log weights and such
 particles are never selected.
 
-Randomness comes only from the ``torch.Generator`` passed as ``generator``
-(``None`` means torch's default generator). Random numbers are drawn with
+Randomness comes only from the ``torch.Generator`` (or per-trial
+:class:`~torchflow.random.TrialStreams`) passed as ``generator`` (``None`` means
+torch's default generator). Random numbers are drawn with
 ``torch.rand`` on the device of ``log_weights``; each resampler consumes a
 fixed number of uniforms per call (independent of the weight values), so the
 same generator state always yields the same indices.
@@ -36,6 +37,8 @@ from typing import Callable, Dict, Optional, Tuple
 
 import torch
 from torch import Tensor
+
+from . import random as _random
 
 __all__ = [
     "normalize_log_weights",
@@ -163,13 +166,9 @@ def _below(x: Tensor, upper: Tensor) -> Tensor:
 
 
 def _rand(shape: Tuple[int, ...], like: Tensor, generator: Optional[torch.Generator]) -> Tensor:
-    """Uniform ``[0, 1)`` draws on ``like``'s device in the working dtype."""
-    return torch.rand(
-        shape,
-        generator=generator,
-        device=like.device,
-        dtype=_working_dtype(like.dtype),
-    )
+    """Uniform ``[0, 1)`` draws on ``like``'s device in the working dtype (a
+    :class:`~torchflow.random.TrialStreams` draws each trial's row from its own stream)."""
+    return _random.uniform(shape, generator=generator, device=like.device, dtype=_working_dtype(like.dtype))
 
 
 # ---------------------------------------------------------------------------

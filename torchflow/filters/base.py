@@ -11,6 +11,7 @@ from .. import linalg
 from .. import resampling as _resampling
 from .._checks import NonFiniteError, check_finite, check_psd, check_same, check_tensor
 from ..models.base import StateSpaceModel
+from ..random import check_generator
 
 
 @dataclass
@@ -113,6 +114,13 @@ class Filter(nn.Module):
     """
 
     uses_particles = False
+    #: whether the filter draws random numbers (then ``forward`` requires a generator)
+    uses_randomness = False
+    #: stable name of the filter's random streams (:class:`~torchflow.random.TrialStreams` key in
+    #: :func:`~torchflow.experiment.run_experiment`): part of the reproducibility contract, so it
+    #: is declared per filter family and never derived from config or class names; ``None`` means
+    #: the class name. Filters with the same stream name share common random numbers in one run.
+    random_stream: Optional[str] = None
     #: whether ``log_evidence`` is an estimate of p(z_{1:T}) worth scoring (False for filters that
     #: only carry a Gaussian approximation of it, such as the unweighted flow filters)
     estimates_evidence = True
@@ -134,6 +142,11 @@ class Filter(nn.Module):
     def step(self, state, z: torch.Tensor, generator: Optional[torch.Generator] = None):
         """Process one observation ``z (B, m)``; returns the new state."""
         raise NotImplementedError
+
+    @property
+    def stream_name(self) -> str:
+        """The key of this filter's random streams (:attr:`random_stream` or the class name)."""
+        return self.random_stream or type(self).__name__
 
     def bytes_per_trial(self, n_particles: Optional[int] = None) -> int:
         """Rough peak memory of one trial in one step, used to size chunks of trials."""
@@ -181,7 +194,10 @@ class Filter(nn.Module):
         Args:
             observations: ``(B, T, m)``.
             mean, cov: prior per trial (``(d,)`` / ``(d, d)`` are broadcast over trials).
-            generator: source of all randomness.
+            generator: source of all randomness: a ``torch.Generator`` (one stream for the
+                batch) or :class:`~torchflow.random.TrialStreams` (one stream per trial, so a
+                trial's numbers do not depend on the batch it runs in). Required by filters that
+                draw random numbers (particle filters, flow filters).
             n_particles: override the filter's particle count (particle filters).
             return_covariances: also return per-step covariances (Gaussian filters).
             return_particles: also return per-step particles and log-weights (large).
@@ -190,6 +206,8 @@ class Filter(nn.Module):
         if self.validate:
             self.model.check_observations(observations)
         mean, cov = self.check_prior(mean, cov, observations.shape[0])
+        if self.uses_randomness:
+            check_generator(generator, f"{self.name}: generator")
         state = self.init(mean, cov, n_particles, generator)
         est, inc, ess, covs, parts, lws = [], [], [], [], [], []
         for t in range(observations.shape[1]):
@@ -243,6 +261,7 @@ class ParticleFilterBase(Filter):
     """
 
     uses_particles = True
+    uses_randomness = True
 
     def __init__(self, model, *, n_particles: int = 500, resampling: str = "systematic",
                  ess_threshold: float = 0.5, regularization=None, nonfinite: str = "raise",
@@ -299,23 +318,25 @@ class ParticleFilterBase(Filter):
         self.particle_chunk = None if per_trial <= budget_bytes else max(1, int(N * budget_bytes // per_trial))
         return self.particle_chunk
 
-    def per_particle(self, fn, *tensors):
+    def per_particle(self, fn, *tensors, pass_slice: bool = False):
         """``fn(*tensors)`` evaluated on blocks of at most :attr:`particle_chunk` particles.
 
         Tensors whose dim 1 has the particle count N (taken from the first one) are sliced
         along it; others (``None``, per-trial or ``(B, 1, ...)`` shared ones) are passed whole.
         Outputs (a tensor or a tuple of them, particles on dim 1) are concatenated. Bounds the
         memory of per-particle model evaluations (e.g. the acoustic likelihood's ``(B, N, C, m)``
-        intermediates) without changing the result beyond round-off."""
+        intermediates) without changing the result beyond round-off. ``pass_slice=True`` also
+        passes the block's particle ``slice`` as the keyword ``particles``."""
         N = tensors[0].shape[1]
         c = self.particle_chunk
+        kw = (lambda sl: {"particles": sl}) if pass_slice else (lambda sl: {})
         if not c or N <= c:
-            return fn(*tensors)
+            return fn(*tensors, **kw(slice(0, N)))
         blocks = []
         for s in range(0, N, c):
             args = [t[:, s:s + c] if isinstance(t, torch.Tensor) and t.dim() > 1 and t.shape[1] == N else t
                     for t in tensors]
-            blocks.append(fn(*args))
+            blocks.append(fn(*args, **kw(slice(s, s + c))))
         if isinstance(blocks[0], tuple):
             return tuple(torch.cat(parts, 1) for parts in zip(*blocks))
         return torch.cat(blocks, 1)
@@ -391,10 +412,12 @@ class ParticleFilterBase(Filter):
                 cov = _resampling.gather_particles(cov, idx)
             if extras:
                 extras = {k: _resampling.gather_particles(v, idx) for k, v in extras.items()}
-            if self.regularization_std is not None:
-                noise = linalg.standard_normal(particles.shape, dtype=particles.dtype, device=particles.device,
-                                               generator=generator) * self.regularization_std
-                particles = particles + noise * resampled[:, None, None].to(particles.dtype)
+        if self.regularization_std is not None:
+            # drawn whether or not any trial resampled, so that each trial's stream advances the
+            # same way whatever the other trials in its batch do
+            noise = linalg.standard_normal(particles.shape, dtype=particles.dtype, device=particles.device,
+                                           generator=generator) * self.regularization_std
+            particles = particles + noise * resampled[:, None, None].to(particles.dtype)
         return ParticleState(particles=particles, log_weights=lw_new, estimate=estimate, ess=ess,
                              log_evidence_increment=inc, resampled=resampled, n_repaired=n_repaired,
                              cov=cov, step=step, extras=extras or {})

@@ -15,6 +15,8 @@ class BootstrapParticleFilter(ParticleFilterBase):
     resampling. See :class:`~torchflow.filters.base.ParticleFilterBase` for the arguments.
     """
 
+    random_stream = "bpf"
+
     def init(self, mean, cov, n_particles=None, generator=None):
         N = self._resolve_n(n_particles)
         B, d = mean.shape

@@ -103,6 +103,8 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
             bound memory; ``None``: all (see :meth:`~torchflow.filters.base.ParticleFilterBase.plan_memory`).
     """
 
+    random_stream = "pfpf"
+
     def __init__(self, model, *, flow=None, schedule: Optional[LambdaSchedule] = None,
                  n_particles: int = 500, covariance: str = "ekf", resampling: str = "systematic",
                  ess_threshold: float = 0.5, regularization=None, nonfinite: str = "recover",
@@ -131,7 +133,7 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
                              torch.zeros(B, dtype=torch.bool, device=mean.device),
                              n_repaired=torch.zeros(B, dtype=torch.long, device=mean.device), cov=P)
 
-    def _migrate(self, model, eta0, x_prev, z, prior, generator, log_q0):
+    def _migrate(self, model, eta0, x_prev, z, prior, generator, log_q0, noise=None):
         """Flow ``eta0`` and return the particles with their proposal log-density ``(B, N)``.
 
         Deterministic flows: ``log q(x) = log p(eta0 | x_prev) - log|det d x / d eta0|``.
@@ -141,7 +143,8 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
             out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule)
             return out.particles, log_q0 - out.log_det
         start = FlowPrior(model.transition_mean(x_prev), model.transition_scale_tril(x_prev))
-        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, generator=generator, proposal=start)
+        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, generator=generator, proposal=start,
+                             noise=noise)
         return out.particles, out.log_proposal
 
     def step(self, state: ParticleState, z, generator=None):
@@ -163,11 +166,26 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
 
         if self.flow.local:
             # every particle flows with its own prior: blocks of particles are independent
-            def block(eta0, x_prev, m, L, log_q0):
-                x, log_q = self._migrate(model, eta0, x_prev, z, FlowPrior(m, L), generator, log_q0)
+            B, N = eta0.shape[:2]
+            blocked = bool(self.particle_chunk) and N > self.particle_chunk
+            tape = {}
+
+            def draw(sl):
+                """A block's diffusion noise: slices of whole-cloud draws (one per pseudo-time step,
+                drawn when the first block needs it), so blocking does not change the numbers."""
+                def noise(j, shape):
+                    if j not in tape:
+                        tape[j] = linalg.standard_normal((B, N, shape[-1]), dtype=eta0.dtype, device=eta0.device,
+                                                         generator=generator)
+                    return tape[j][:, sl]
+                return noise
+
+            def block(eta0, x_prev, m, L, log_q0, particles):
+                kw = {"noise": draw(particles)} if blocked and self.flow.stochastic else {}
+                x, log_q = self._migrate(model, eta0, x_prev, z, FlowPrior(m, L), generator, log_q0, **kw)
                 return x, weigh(x, x_prev, log_q)
 
-            x, log_inc = self.per_particle(block, eta0, x_prev, m_pred, L_pred, log_q0)
+            x, log_inc = self.per_particle(block, eta0, x_prev, m_pred, L_pred, log_q0, pass_slice=True)
         else:
             x, log_q = self._migrate(model, eta0, x_prev, z, FlowPrior(m_pred, L_pred), generator, log_q0)
             log_inc = self.per_particle(weigh, x, x_prev, log_q)
@@ -190,6 +208,8 @@ class ParticleFlowFilter(_FlowFilterMixin, Filter):
     """
 
     estimates_evidence = False
+    uses_randomness = True
+    random_stream = "flow_filter"
 
     def __init__(self, model, *, flow=None, schedule: Optional[LambdaSchedule] = None,
                  n_particles: int = 500, covariance: str = "ekf", validate: bool = True,

@@ -213,6 +213,7 @@ def integrate_flow(
     *,
     generator: Optional[torch.Generator] = None,
     proposal: Optional[FlowPrior] = None,
+    noise=None,
 ) -> FlowOutput:
     """Integrate ``d eta = (A eta + b) d lambda [+ Q^{1/2} dW]`` from lambda = 0 to 1.
 
@@ -234,6 +235,9 @@ def integrate_flow(
         proposal: stochastic flows: the law ``eta_0 ~ N(mean, scale_tril scale_tril^T)`` the
             particles were drawn from, mean ``(B, N, d)``, factor broadcastable to
             ``(B, N, d, d)``. When given, the output carries ``log_proposal``.
+        noise: stochastic flows: optional ``noise(j, shape) -> (B, N, r)`` standard normals of
+            pseudo-time step ``j`` (instead of drawing them from ``generator``); a filter that
+            flows particles in blocks uses it to keep the draws those of the whole cloud.
 
     Returns:
         :class:`FlowOutput`.
@@ -241,7 +245,8 @@ def integrate_flow(
     schedule = schedule or ExponentialSchedule()
     eps_all, lam_all = schedule.steps(dtype=particles.dtype, device=particles.device)
     if flow.stochastic:
-        return _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, generator, proposal)
+        return _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, generator, proposal,
+                                     noise)
     B, N, d = particles.shape
     prior = prior.reduced(model)
     aux = prior.mean
@@ -300,7 +305,7 @@ def _propagate_cov(Sig, co: "FlowCoefficients", eps, eye):
     return out.reshape(*batch, *Sig.shape[-2:]) + eps * co.diffusion_cov()
 
 
-def _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, generator, proposal):
+def _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, generator, proposal, noise=None):
     """Euler-Maruyama for stochastic flows, with the exact Gaussian proposal recursion."""
     B, N, d = particles.shape
     eye = torch.eye(d, dtype=particles.dtype, device=particles.device)
@@ -331,7 +336,11 @@ def _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, ge
             drifts = FlowCoefficients(A, b, None, support=co.support).drift(eta, *([mu] if track else []))
             d_eta, d_mu = drifts[0], drifts[-1]
             co = FlowCoefficients(A, b, None, noise_factor=G, support=co.support)
-        xi = linalg.standard_normal((B, N, co.noise_rank), dtype=eta.dtype, device=eta.device, generator=generator)
+        if noise is not None:
+            xi = noise(j, (B, N, co.noise_rank))
+        else:
+            xi = linalg.standard_normal((B, N, co.noise_rank), dtype=eta.dtype, device=eta.device,
+                                        generator=generator)
         eta = eta + eps * d_eta + eps.sqrt() * co.diffuse(xi)
         if track:
             mu = mu + eps * d_mu

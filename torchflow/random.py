@@ -1,0 +1,294 @@
+"""Per-trial random streams: a trial's numbers do not depend on how the trials were batched.
+
+A :class:`TrialStreams` is a generator for a batch of ``B`` Monte Carlo trials in which trial
+``b`` draws from its own stream, keyed by ``(seed, key, trial_index[b])``. Every draw has a
+leading trial dimension (``(B, ...)``, or ``(B*k, ...)`` laid out trial-major); trial ``b`` gets
+the next numbers of stream ``b``. So a trial's particles, resampling and flow noise are the same
+whether it runs alone, in a chunk of 10 or in one call of 400, on 1 or 2 threads, first or
+last, in one process or in several: chunking only selects which streams run together
+(:meth:`TrialStreams.select`).
+
+Filters accept a ``TrialStreams`` wherever they accept a ``torch.Generator`` (argument
+``generator``); :func:`torchflow.experiment.run_experiment` always passes one. With a plain
+``torch.Generator`` the batch shares one stream (fine for a single call, but then trial ``b``'s
+numbers depend on the batch it ran in).
+
+Back ends (``backend=``):
+
+* ``"numpy"`` (default on CPU): one ``numpy.random.Generator(SFC64)`` per trial, seeded by a
+  ``SeedSequence([seed, key, trial])``; normals by numpy's ziggurat (exact float64 / float32
+  normals, ~5-8 ns per draw), large draws filled by trials in parallel threads (numpy releases
+  the GIL; the numbers do not depend on the thread count).
+* ``"philox"`` (default on CUDA, available on every device): counter-based Philox4x32-10
+  (Salmon et al. 2011) evaluated with tensor operations on the draw's device: key = 64 bits of
+  the trial's ``SeedSequence``, counter = (number of draws so far, element index). Uniforms take
+  53 (float64) or 24 (float32) bits; normals use Box-Muller. No loop over trials; the integer
+  bits are identical on CPU and CUDA, the transcendental functions of Box-Muller may differ in
+  the last ulp between devices.
+
+Determinism contract: same seed, key, trial index, back end and device -> the same numbers,
+whatever the chunking. The two back ends give different (equally valid) numbers, so CPU
+(numpy) and CUDA (philox) runs agree only statistically; pass ``backend="philox"`` on CPU to get
+the CUDA run's integer stream.
+"""
+from __future__ import annotations
+
+import math
+import zlib
+from concurrent.futures import ThreadPoolExecutor
+from typing import Optional, Sequence, Union
+
+import numpy as np
+import torch
+
+__all__ = ["TrialStreams", "normal", "uniform", "check_generator", "stream_key"]
+
+#: numbers per call from which the numpy back end fills trials on several threads
+PARALLEL_MIN = 1 << 19
+_POOLS: dict = {}
+
+
+def stream_key(name: Union[str, int]) -> int:
+    """32-bit key of a stream name (CRC32 of its UTF-8 bytes; ints pass through, mod 2**32)."""
+    if isinstance(name, (int, np.integer)) and not isinstance(name, bool):
+        return int(name) % 2**32
+    if isinstance(name, str):
+        return zlib.crc32(name.encode())
+    raise TypeError(f"key: expected a str or int stream name, got {type(name).__name__}")
+
+
+def _pool(n: int) -> ThreadPoolExecutor:
+    if n not in _POOLS:
+        _POOLS[n] = ThreadPoolExecutor(max_workers=n)
+    return _POOLS[n]
+
+
+class TrialStreams:
+    """Independent random streams, one per Monte Carlo trial.
+
+    Args:
+        seed: the run's seed (a non-negative int).
+        trials: the trials' global indices ``(B,)`` (an int ``B`` means ``range(B)``). Trial
+            ``i`` draws the same numbers whichever batch it is in.
+        key: a name (or int) separating uses of one seed, e.g. the filter family
+            (:attr:`torchflow.filters.base.Filter.random_stream`), so that a filter's numbers do
+            not change when its config is renamed or other filters join the run.
+        backend: ``"numpy"``, ``"philox"`` or ``"auto"`` (numpy on CPU, philox elsewhere; decided
+            at the first draw from that draw's device).
+
+    Draws advance every stream by the same count, so streams stay aligned; :meth:`select`
+    returns a ``TrialStreams`` over a subset that continues those streams' states.
+    """
+
+    def __init__(self, seed: int, trials: Union[int, Sequence[int], torch.Tensor], key: Union[str, int] = 0,
+                 *, backend: str = "auto"):
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or int(seed) < 0:
+            raise ValueError(f"seed: expected a non-negative int, got {seed!r}")
+        if backend not in ("auto", "numpy", "philox"):
+            raise ValueError(f"backend: expected 'auto', 'numpy' or 'philox', got {backend!r}")
+        if isinstance(trials, (int, np.integer)) and not isinstance(trials, bool):
+            if int(trials) < 1:
+                raise ValueError(f"trials: expected a positive number of trials, got {trials}")
+            idx = list(range(int(trials)))
+        else:
+            idx = [int(t) for t in (trials.tolist() if isinstance(trials, torch.Tensor) else trials)]
+            if not idx or min(idx) < 0:
+                raise ValueError(f"trials: expected non-empty non-negative trial indices, got {idx[:10]}")
+        self.seed = int(seed)
+        self.key = stream_key(key)
+        self.trials = idx
+        self.backend = backend
+        self._np = None        # list of numpy Generators (numpy back end), created lazily
+        self._counter = 0      # philox: 128-bit blocks consumed per trial so far
+        self._keys = None      # philox: (B, 2) int64 key words
+
+    # ---- construction ------------------------------------------------------------------------
+    @classmethod
+    def from_generator(cls, generator: torch.Generator, batch_size: int, key: Union[str, int] = 0,
+                       backend: str = "auto") -> "TrialStreams":
+        """Streams for trials ``0..B-1`` seeded by one 62-bit draw from ``generator``."""
+        seed = int(torch.randint(0, 2**62, (), generator=generator))
+        return cls(seed, batch_size, key, backend=backend)
+
+    def __len__(self) -> int:
+        return len(self.trials)
+
+    def __repr__(self) -> str:
+        shown = self.trials if len(self.trials) <= 6 else self.trials[:3] + ["..."] + self.trials[-2:]
+        return f"TrialStreams(seed={self.seed}, key={self.key}, trials={shown}, backend={self.backend!r})"
+
+    def _seed_sequence(self, trial: int) -> np.random.SeedSequence:
+        return np.random.SeedSequence([self.seed, self.key, trial])
+
+    def _resolve_backend(self, device: torch.device) -> str:
+        if self.backend == "auto":
+            self.backend = "numpy" if device.type == "cpu" else "philox"
+        return self.backend
+
+    def select(self, index: Union[slice, Sequence[int]]) -> "TrialStreams":
+        """Streams of a subset of this batch's trials (positions ``index``), continuing their
+        current states; the subset draws what those trials would have drawn in the full batch."""
+        pos = list(range(len(self.trials)))[index] if isinstance(index, slice) else [int(i) for i in index]
+        out = TrialStreams.__new__(TrialStreams)
+        out.seed, out.key, out.backend = self.seed, self.key, self.backend
+        out.trials = [self.trials[i] for i in pos]
+        out._counter = self._counter
+        out._np = None if self._np is None else [self._np[i] for i in pos]
+        out._keys = None if self._keys is None else self._keys[pos]
+        return out
+
+    # ---- draws -------------------------------------------------------------------------------
+    def _per_trial(self, shape) -> int:
+        shape = tuple(int(s) for s in shape)
+        B = len(self.trials)
+        if not shape or shape[0] % B:
+            raise ValueError(f"shape: draws from TrialStreams need a leading trial dimension that is a "
+                             f"multiple of B = {B} (trial-major), got {shape}")
+        return math.prod(shape) // B
+
+    def normal(self, shape, *, dtype: torch.dtype = torch.float64, device=None) -> torch.Tensor:
+        """Standard normal draws of ``shape`` (leading dim a multiple of B, trial-major)."""
+        return self._draw("normal", shape, dtype, device)
+
+    def uniform(self, shape, *, dtype: torch.dtype = torch.float64, device=None) -> torch.Tensor:
+        """Uniform ``[0, 1)`` draws of ``shape`` (leading dim a multiple of B, trial-major)."""
+        return self._draw("uniform", shape, dtype, device)
+
+    def _draw(self, kind, shape, dtype, device) -> torch.Tensor:
+        device = torch.device("cpu") if device is None else torch.device(device)
+        if dtype not in (torch.float64, torch.float32):
+            raise TypeError(f"dtype: TrialStreams draws float64 or float32, got {dtype}")
+        n = self._per_trial(shape)
+        backend = self._resolve_backend(device)
+        if backend == "numpy":
+            out = self._numpy_draw(kind, n, dtype)
+            return out.reshape(shape).to(device)
+        return self._philox_draw(kind, n, dtype, device).reshape(shape)
+
+    def _numpy_draw(self, kind, n, dtype) -> torch.Tensor:
+        if self._np is None:
+            self._np = [np.random.Generator(np.random.SFC64(self._seed_sequence(t))) for t in self.trials]
+        B = len(self.trials)
+        out = torch.empty((B, n), dtype=dtype)
+        arr = out.numpy()
+        np_dtype = np.float64 if dtype == torch.float64 else np.float32
+        gens = self._np
+        if n == 0:
+            return out
+        if kind == "normal":
+            def fill(b):
+                gens[b].standard_normal(out=arr[b], dtype=np_dtype)
+        else:
+            def fill(b):
+                gens[b].random(out=arr[b], dtype=np_dtype)
+        workers = min(torch.get_num_threads(), B)
+        if workers > 1 and B * n >= PARALLEL_MIN:
+            list(_pool(workers).map(fill, range(B)))
+        else:
+            for b in range(B):
+                fill(b)
+        return out
+
+    # ---- philox back end ---------------------------------------------------------------------
+    def _philox_keys(self, device) -> torch.Tensor:
+        if self._keys is None:
+            words = [self._seed_sequence(t).generate_state(2, np.uint32) for t in self.trials]
+            self._keys = torch.tensor(np.stack(words).astype(np.int64))
+        return self._keys.to(device)
+
+    def _philox_draw(self, kind, n, dtype, device) -> torch.Tensor:
+        B = len(self.trials)
+        # words per number: float64 uniforms use two 32-bit words (53 bits), float32 one (24 bits);
+        # Box-Muller turns two uniforms into two normals
+        per = 2 if dtype == torch.float64 else 1
+        n_even = n + (n % 2) if kind == "normal" else n
+        words = n_even * per
+        blocks = -(-words // 4)
+        keys = self._philox_keys(device)                                             # (B, 2)
+        ctr = self._counter + torch.arange(blocks, device=device, dtype=torch.int64)  # (blocks,)
+        c = [(ctr & 0xFFFFFFFF).expand(B, blocks), (ctr >> 32).expand(B, blocks),
+             torch.zeros(B, blocks, dtype=torch.int64, device=device),
+             torch.zeros(B, blocks, dtype=torch.int64, device=device)]
+        k0 = keys[:, :1].expand(B, blocks)
+        k1 = keys[:, 1:].expand(B, blocks)
+        bits = philox4x32(c, (k0, k1)).reshape(B, -1)[:, :words]                       # (B, words)
+        self._counter += blocks
+        if per == 2:
+            k = (bits[:, 0::2] >> 5) * 67108864 + (bits[:, 1::2] >> 6)  # 27 + 26 = 53 bits
+            scale, wdt = 1.0 / 9007199254740992.0, torch.float64
+        else:
+            k = bits >> 8  # 24 bits
+            scale, wdt = 1.0 / 16777216.0, torch.float32
+        if kind == "uniform":  # k / 2**bits: exact, in [0, 1)
+            return (k.to(wdt) * scale).to(dtype)
+        u = (k.to(wdt) + 0.5) * scale  # (0, 1]: log(u) is finite
+        u1, u2 = u[:, 0::2], u[:, 1::2]
+        r = torch.sqrt(-2.0 * torch.log(u1))
+        theta = (2.0 * math.pi) * u2
+        z = torch.stack((r * torch.cos(theta), r * torch.sin(theta)), -1).reshape(B, -1)[:, :n]
+        return z.to(dtype)
+
+
+_M0, _M1 = 0xD2511F53, 0xCD9E8D57
+_W0, _W1 = 0x9E3779B9, 0xBB67AE85
+_MASK = 0xFFFFFFFF
+
+
+def philox4x32(counter, key, rounds: int = 10):
+    """Philox4x32 (Salmon et al., SC'11) on int64 tensors holding 32-bit words.
+
+    Args:
+        counter: four broadcastable int64 tensors (words c0..c3, each in [0, 2**32)).
+        key: two int64 tensors (k0, k1).
+    Returns:
+        ``(..., 4)`` int64 tensor of output words.
+    """
+    c0, c1, c2, c3 = counter
+    k0, k1 = key
+    for r in range(rounds):
+        p0 = c0 * _M0  # < 2**64: int64 wraps, and the bit pattern is exact mod 2**64
+        p1 = c2 * _M1
+        hi0 = (p0 >> 32) & _MASK
+        lo0 = p0 & _MASK
+        hi1 = (p1 >> 32) & _MASK
+        lo1 = p1 & _MASK
+        c0, c1, c2, c3 = hi1 ^ c1 ^ k0, lo1, hi0 ^ c3 ^ k1, lo0
+        if r < rounds - 1:
+            k0 = (k0 + _W0) & _MASK
+            k1 = (k1 + _W1) & _MASK
+    return torch.stack((c0, c1, c2, c3), -1)
+
+
+Generatorish = Union[torch.Generator, TrialStreams]
+
+
+def check_generator(generator, who: str = "generator") -> Generatorish:
+    """Raise unless ``generator`` is a ``torch.Generator`` or :class:`TrialStreams`.
+
+    ``None`` is refused: a filter that silently fell back on torch's global random state would not
+    be reproducible from its arguments."""
+    if isinstance(generator, (torch.Generator, TrialStreams)):
+        return generator
+    hint = ""
+    if isinstance(generator, (int, np.integer)) and not isinstance(generator, bool):
+        hint = f" (for a seed, pass torch.Generator().manual_seed({int(generator)}))"
+    elif generator is None:
+        hint = " (randomness comes only from a passed generator: pass torch.Generator().manual_seed(seed))"
+    raise TypeError(f"{who}: expected a torch.Generator or torchflow.random.TrialStreams, "
+                    f"got {type(generator).__name__}{hint}")
+
+
+def normal(shape, *, dtype, device, generator: Optional[Generatorish]) -> Optional[torch.Tensor]:
+    """``N(0, 1)`` draws from a :class:`TrialStreams` (``None`` for other generators: the caller
+    draws with torch)."""
+    if isinstance(generator, TrialStreams):
+        return generator.normal(shape, dtype=dtype, device=device)
+    return None
+
+
+def uniform(shape, *, dtype, device, generator: Optional[Generatorish]) -> torch.Tensor:
+    """Uniform ``[0, 1)`` draws from a ``torch.Generator``, a :class:`TrialStreams` or (``None``)
+    torch's default generator."""
+    if isinstance(generator, TrialStreams):
+        return generator.uniform(shape, dtype=dtype, device=device)
+    return torch.rand(shape, generator=generator, dtype=dtype, device=device)
