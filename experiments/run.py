@@ -22,6 +22,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a source checkout too
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 from torchflow.experiment import SUMMARY_COLUMNS, format_table, run_experiment  # noqa: E402
 
@@ -35,7 +36,13 @@ def _write_csv(path: Path, rows, columns=None):
             w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in columns})
 
 
-def _plot(path: Path, per_step, title: str):
+#: one colour per filter, the same on every panel and in the track picture
+_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
+            "#bcbd22", "#17becf"]
+_LABELS = {"omat": "OMAT (m)", "ospa": "OSPA (m)", "mse": "MSE", "ess": "ESS"}
+
+
+def _matplotlib():
     try:
         import matplotlib
 
@@ -43,50 +50,210 @@ def _plot(path: Path, per_step, title: str):
         import matplotlib.pyplot as plt
     except ImportError:
         print("(matplotlib not installed: no plots; pip install matplotlib)")
+        return None
+    return plt
+
+
+def _colours(names):
+    return {n: _COLOURS[i % len(_COLOURS)] for i, n in enumerate(names)}
+
+
+def _plot(path: Path, per_step, summary, title: str):
+    """Per-step metric means, one panel per metric; a filter keeps its colour on every panel and
+    one legend lists them all. ESS is drawn as a fraction of each filter's N (filters of
+    different N share the axis); a panel says which filters have no value there."""
+    plt = _matplotlib()
+    if plt is None:
         return
     keys = [k for k in ("omat", "ospa", "mse", "ess") if any(k in r for r in per_step)]
     if not keys:
         return
-    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.4), squeeze=False)
+    names = list(dict.fromkeys(r["filter"] for r in summary))
+    colour = _colours(names)
+    n_of = {r["filter"]: r.get("n_particles") for r in summary}
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.6), squeeze=False)
+    handles = {}
     for ax, key in zip(axes[0], keys):
-        for name in dict.fromkeys(r["filter"] for r in per_step):
+        missing = []
+        for name in names:
             rows = [r for r in per_step if r["filter"] == name and key in r]
-            if rows:
-                ax.plot([r["step"] for r in rows], [r[key] for r in rows], label=name)
+            if not rows:
+                missing.append(name)
+                continue
+            y = [r[key] for r in rows]
+            if key == "ess":
+                y = [v / n_of[name] for v in y]
+            (h,) = ax.plot([r["step"] for r in rows], y, color=colour[name], label=name)
+            handles[name] = h
         ax.set_xlabel("time step")
-        ax.set_ylabel(key)
-        if key in ("mse", "ess"):
+        Ns = sorted({n_of[n] for n in names if n not in missing and n_of.get(n)})
+        if key == "ess":
+            ax.set_ylabel(f"ESS / N (N = {Ns[0]})" if len(Ns) == 1 else "ESS / N (each filter's N)")
+            ax.set_ylim(0, 1.05)
+        else:
+            ax.set_ylabel(_LABELS.get(key, key))
+        if key == "mse":
             ax.set_yscale("log")
+        if missing:
+            ax.set_title("not defined for: " + ", ".join(missing), fontsize=7)
         ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=8)
+    fig.legend([handles[n] for n in names if n in handles], [n for n in names if n in handles],
+               loc="lower center", ncol=min(len(handles), 6), fontsize=8, frameon=False)
     fig.suptitle(title)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
-@hydra.main(config_path="../configs", config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> None:
+def _plot_tracks(path: Path, model, trajectory, examples, summary, title: str):
+    """Trial 0 of a tracking model: sensors, true tracks (start marked) and each filter's
+    estimated tracks in the filter's colour."""
+    plt = _matplotlib()
+    if plt is None or not examples:
+        return
+    names = list(dict.fromkeys(r["filter"] for r in summary))
+    colour = _colours(names)
+    true_pos = model.positions(trajectory.states[0].to(model.dtype)).cpu()  # (T+1, C, 2)
+    fig, ax = plt.subplots(figsize=(5.6, 5.6))
+    sensors = getattr(model, "sensors", None)
+    if sensors is not None:
+        s = sensors.cpu()
+        ax.scatter(s[:, 0], s[:, 1], marker="^", s=18, color="0.6", label="sensors")
+    for c in range(true_pos.shape[1]):
+        ax.plot(true_pos[:, c, 0], true_pos[:, c, 1], color="k", lw=2.2, label="truth" if c == 0 else None)
+        ax.plot(true_pos[0, c, 0], true_pos[0, c, 1], "ko", ms=5)
+    for name in names:
+        if name not in examples:
+            continue
+        est = model.positions(examples[name].to(model.dtype)).cpu()  # (T, C, 2)
+        for c in range(est.shape[1]):
+            ax.plot(est[:, c, 0], est[:, c, 1], color=colour[name], lw=1.2, ls="--", label=name if c == 0 else None)
+    area = getattr(model, "area", None)
+    if area:
+        ax.set_xlim(0, area)
+        ax.set_ylim(0, area)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1))
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+
+
+_FLOW_NAMES = {"EDHFlow": "edh", "LEDHFlow": "ledh", "GeodesicFlow": "geodesic", "GromovFlow": "gromov",
+               "OptimalDiffusionFlow": "osd"}
+
+
+def flow_label(flow) -> str:
+    """Config-style name of a flow: ``ledh``, ``gromov``; ``_global`` for a per-trial linearisation
+    of a flow that is per particle by default."""
+    name = _FLOW_NAMES.get(type(flow).__name__, type(flow).__name__)
+    if name not in ("edh", "ledh") and not getattr(flow, "local", True):
+        name += "_global"
+    return name
+
+
+def row_label(key: str, f) -> str:
+    """A result row's label: the config key, plus the flow it really ran when an override made
+    the key's name wrong (``pfpf_ledh`` run with ``flow@filter.pfpf_ledh.flow=edh`` ->
+    ``pfpf_ledh[flow=edh]``)."""
+    flow = getattr(f, "flow", None)
+    if flow is None:
+        return key
+    fl = flow_label(flow)
+    return key if key in (fl, f"pfpf_{fl}") else f"{key}[flow={fl}]"
+
+
+class UsageError(Exception):
+    """A bad command line: printed as one line, exit status 2."""
+
+
+def _reason(e: BaseException) -> str:
+    """The message of the error that caused ``e`` (Hydra wraps constructor errors)."""
+    from hydra.errors import InstantiationException
+
+    if isinstance(e, InstantiationException):
+        cause = e.__cause__ or e.__context__
+        key = ""
+        for line in str(e).splitlines():
+            if line.startswith("full_key:"):
+                key = line.split(":", 1)[1].strip() + ": "
+        if cause is not None:
+            return key + str(cause).strip("'\"")
+    return str(e)
+
+
+def _group_options(group: str):
+    d = CONFIGS / group
+    return sorted(p.stem for p in d.glob("*.yaml")) if d.is_dir() else None
+
+
+def check_selections(argv) -> None:
+    """Refuse unknown config names in group selections (``filter=[a,b]``, ``model=x``,
+    ``flow@filter.pfpf_ledh.flow=edh``, sweeps ``filter=a,b``) with the list of valid names,
+    before Hydra composes anything."""
+    for arg in argv:
+        if "=" not in arg or arg.startswith(("hydra.", "-")):
+            continue
+        lhs, rhs = arg.split("=", 1)
+        group = lhs.lstrip("+~").split("@", 1)[0]
+        if "." in group or "/" in group:
+            continue
+        options = _group_options(group)
+        if options is None:
+            continue
+        values = [v.strip() for v in rhs.strip("[]").split(",") if v.strip()]
+        if rhs.strip().startswith(("range(", "choice(", "glob(", "interval(")) or rhs.strip() in ("null", ""):
+            continue
+        unknown = [v for v in values if v not in options]
+        if unknown:
+            raise UsageError(f"{lhs}: unknown {group} config {', '.join(repr(u) for u in unknown)}; "
+                             f"available: {', '.join(options)}")
+
+
+def _write_results(out: Path, cfg, result, model) -> None:
+    _write_csv(out / "summary.csv", result.summary, SUMMARY_COLUMNS)
+    _write_csv(out / "per_step.csv", result.per_step)
+    _write_csv(out / "per_trial.csv", result.per_trial)
+    with open(out / "results.json", "w") as fh:
+        json.dump({"config": OmegaConf.to_container(cfg, resolve=True), "run": result.config,
+                   "summary": result.summary, "interrupted": result.interrupted, "not_run": result.not_run},
+                  fh, indent=2)
+    if cfg.get("plots", True) and result.per_step:
+        model_name = cfg.model._target_.split(".")[-1]
+        _plot(out / "per_step.png", result.per_step, result.summary, f"{model_name}, {cfg.trials} trials")
+        if model.has_positions and result.trajectory is not None:
+            _plot_tracks(out / "tracks.png", model, result.trajectory, result.examples, result.summary,
+                         f"{model_name}: trial 0, true and estimated tracks")
+
+
+def _run(cfg: DictConfig) -> int:
     out = Path(HydraConfig.get().runtime.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     if not cfg.get("filter"):
-        raise ValueError("filter: select at least one filter, e.g. filter=[kf,bpf]")
+        raise UsageError("filter: select at least one filter, e.g. filter=[kf,bpf]; available: "
+                         + ", ".join(_group_options("filter")))
     model = instantiate(cfg.model)
     filters = {}
-    for name, fcfg in cfg.filter.items():
+    for key, fcfg in cfg.filter.items():
         if "_target_" not in fcfg:  # e.g. an experiment's per-filter setting for a filter not selected
-            print(f"(filter.{name}: settings given but the filter is not selected; skipped)", file=sys.stderr)
+            print(f"(filter.{key}: settings given but the filter is not selected; skipped)", file=sys.stderr)
             continue
-        filters[name] = instantiate(fcfg, model=model, name=name)
+        f = instantiate(fcfg, model=model, name=key)
+        label = row_label(key, f)
+        f.name = label
+        filters[label] = f
     result = run_experiment(
         model,
         filters,
-        trials=int(cfg.trials),
-        steps=int(cfg.steps),
-        seed=int(cfg.seed),
-        inits_per_track=int(cfg.inits_per_track),
+        trials=cfg.trials,
+        steps=cfg.steps,
+        seed=cfg.seed,
+        inits_per_track=cfg.inits_per_track,
         chunk_size=cfg.chunk_size,
-        memory_budget_gb=float(cfg.memory_budget_gb),
+        memory_budget_gb=cfg.memory_budget_gb,
         device=cfg.device,
         dtype=cfg.dtype,
         ospa_cutoff=float(cfg.metrics.ospa_cutoff),
@@ -96,22 +263,53 @@ def main(cfg: DictConfig) -> None:
         rng_backend=str(cfg.get("rng_backend", "auto")),
         on_filter_done=lambda rows: _write_csv(out / "summary.csv", rows, SUMMARY_COLUMNS),  # partial results
     )
-    _write_csv(out / "summary.csv", result.summary, SUMMARY_COLUMNS)
-    _write_csv(out / "per_step.csv", result.per_step)
-    _write_csv(out / "per_trial.csv", result.per_trial)
-    with open(out / "results.json", "w") as fh:
-        json.dump({"config": OmegaConf.to_container(cfg, resolve=True), "run": result.config,
-                   "summary": result.summary}, fh, indent=2)
-    if cfg.get("plots", True):
-        _plot(out / "per_step.png", result.per_step, f"{cfg.model._target_.split('.')[-1]}, {cfg.trials} trials")
+    _write_results(out, cfg, result, model)
     model_name = cfg.model._target_.split(".")[-1]
     print(f"\n{model_name}: {cfg.trials} trials x {cfg.steps} steps, seed {cfg.seed}, {cfg.device}/{cfg.dtype}")
     print(format_table(result.summary))
-    errors = [r for r in result.summary if r.get("error")]
-    for r in errors:
-        print(f"!! {r['filter']} failed: {r['error']}", file=sys.stderr)
+    for r in result.summary:
+        if r.get("error"):
+            print(f"!! {r['filter']} failed: {r['error']}", file=sys.stderr)
     print(f"results: {os.path.relpath(out)}")
+    if result.interrupted:
+        skipped = f"; not run: {', '.join(result.not_run)}" if result.not_run else ""
+        print(f"interrupted (Ctrl-C): the results of the filters that finished are written{skipped}",
+              file=sys.stderr)
+        return 130
+    return 0
 
+
+@hydra.main(config_path="../configs", config_name="config", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    """Run one job; a bad setting or an interruption ends it with one line, not a traceback."""
+    try:
+        code = _run(cfg)
+    except KeyboardInterrupt:
+        print("interrupted (Ctrl-C) outside a filter run: only summary.csv (rows of the filters that "
+              "finished, if any) was written", file=sys.stderr)
+        code = 130
+    except Exception as e:  # noqa: BLE001 - configuration errors: name the setting, no traceback
+        from hydra.errors import InstantiationException
+        from omegaconf.errors import OmegaConfBaseException
+
+        if not isinstance(e, (ValueError, TypeError, UsageError, InstantiationException, OmegaConfBaseException)):
+            raise
+        print(f"error: {_reason(e)}", file=sys.stderr)
+        code = 2
+    if code:
+        sys.exit(code)
+
+
+def _pid_resolver() -> str:
+    return str(os.getpid())
+
+
+OmegaConf.register_new_resolver("tf_pid", _pid_resolver, replace=True)
 
 if __name__ == "__main__":
+    try:
+        check_selections(sys.argv[1:])
+    except UsageError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
     main()

@@ -8,6 +8,7 @@ from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, Ka
 from torchflow.schedules import ExponentialSchedule
 from torchflow.models import AcousticTracking, SensorNetwork
 from conftest import cuda, random_lg
+from torchflow.random import TrialStreams
 
 # (name, model factory, filter factory): every filter on every model it supports
 CONFIGS = [
@@ -29,13 +30,14 @@ for _flow in ("edh", "ledh", "geodesic", "gromov", "osd"):
 IDS = [c[0] for c in CONFIGS]
 
 
-def _run(make_model, make_filter, dtype, device="cpu", B=3, T=4, seed=0):
+def _run(make_model, make_filter, dtype, device="cpu", B=3, T=4, seed=0, streams=False):
     model = make_model().to(device=device, dtype=dtype)
     f = make_filter(model)
     g = torch.Generator(device=device).manual_seed(seed)
     traj = model.simulate(B, T, g)
     mean, cov = model.initial_belief(traj.states[:, 0], g)
-    return f, model, f(traj.observations, mean, cov, g, return_particles=True, return_covariances=True)
+    run_gen = TrialStreams(seed, B, f.stream_name) if streams else g
+    return f, model, f(traj.observations, mean, cov, run_gen, return_particles=True, return_covariances=True)
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
@@ -64,12 +66,30 @@ def test_contract_shapes_dtype(name, make_model, make_filter, dtype):
 def test_contract_cuda(name, make_model, make_filter):
     f, model, res = _run(make_model, make_filter, torch.float64, device="cuda")
     assert res.estimates.device.type == "cuda" and res.log_evidence.device.type == "cuda"
+    # per-trial streams (counter-based Philox on the GPU), as the experiment runner uses them
+    f, model, res = _run(make_model, make_filter, torch.float32, device="cuda", streams=True)
+    assert res.estimates.device.type == "cuda" and torch.isfinite(res.estimates).all()
 
 
 @pytest.mark.parametrize("name,make_model,make_filter", CONFIGS, ids=IDS)
-def test_same_seed_same_numbers(name, make_model, make_filter):
-    _, _, a = _run(make_model, make_filter, torch.float64, seed=7)
-    _, _, b = _run(make_model, make_filter, torch.float64, seed=7)
+def test_filter_built_before_the_model_moves(name, make_model, make_filter):
+    """A filter built around a model that is then converted (dtype here; device on a GPU) works:
+    filters keep no tensors of their own that miss the model's conversion."""
+    model = make_model()
+    f = make_filter(model)
+    model.float()
+    g = torch.Generator().manual_seed(0)
+    traj = model.simulate(2, 2, g)
+    mean, cov = model.initial_belief(traj.states[:, 0], g)
+    res = f(traj.observations, mean, cov, g)
+    assert res.estimates.dtype == torch.float32 and torch.isfinite(res.estimates).all()
+
+
+@pytest.mark.parametrize("name,make_model,make_filter", CONFIGS, ids=IDS)
+@pytest.mark.parametrize("streams", [False, True], ids=["generator", "streams"])
+def test_same_seed_same_numbers(name, make_model, make_filter, streams):
+    _, _, a = _run(make_model, make_filter, torch.float64, seed=7, streams=streams)
+    _, _, b = _run(make_model, make_filter, torch.float64, seed=7, streams=streams)
     assert torch.equal(a.estimates, b.estimates) and torch.equal(a.log_evidence, b.log_evidence)
 
 

@@ -6,6 +6,7 @@ with a message naming the argument, what was expected and what arrived, in the s
 """
 from __future__ import annotations
 
+import numbers
 from typing import Optional, Sequence, Union
 
 import torch
@@ -113,3 +114,14 @@ def check_same(name: str, x: torch.Tensor, ref: torch.Tensor, ref_name: str = "t
         raise TypeError(f"{name}: dtype {x.dtype} does not match {ref_name}'s dtype {ref.dtype}")
     if x.device != ref.device:
         raise ValueError(f"{name}: device {x.device} does not match {ref_name}'s device {ref.device}")
+
+
+def check_count(name: str, value, *, minimum: int = 1, hint: str = "") -> int:
+    """An integer ``>= minimum`` (a bool, a fractional float or a string is refused, not truncated)."""
+    ok = isinstance(value, numbers.Integral) and not isinstance(value, bool)
+    if not ok and isinstance(value, float) and value.is_integer():
+        ok = True
+    if not ok or int(value) < minimum:
+        what = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
+        raise ValueError(f"{name}: expected {what}{hint}, got {value!r} ({type(value).__name__})")
+    return int(value)

@@ -7,13 +7,14 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Mapping, Optional, Union
 
 import torch
 
 from . import metrics
-from ._checks import NonFiniteError
+from ._checks import NonFiniteError, check_count
 from .filters.base import Filter
 from .filters.kalman import KalmanFilter
 from .models.base import StateSpaceModel, Trajectory
@@ -36,6 +37,11 @@ class ExperimentResult:
         per_trial: one dict per filter x trial (mse, omat, ospa, ess, log_evidence, lost).
         per_step: one dict per filter x step with metric means over trials.
         trajectory: the simulated data (CPU tensors).
+        config: the run's settings (chunk sizes, particle chunks, seed, device, ...).
+        examples: ``{filter: (T, d)}`` estimates of trial 0 (for the track picture).
+        interrupted: the run was stopped (Ctrl-C); the rows hold what finished, the interrupted
+            filter's row says so in ``error``.
+        not_run: filters that did not start because of the interruption.
     """
 
     summary: List[dict]
@@ -43,6 +49,9 @@ class ExperimentResult:
     per_step: List[dict]
     trajectory: Optional[Trajectory] = None
     config: dict = field(default_factory=dict)
+    examples: Dict[str, torch.Tensor] = field(default_factory=dict)
+    interrupted: bool = False
+    not_run: List[str] = field(default_factory=list)
 
 
 def resolve_dtype(dtype: Union[str, torch.dtype]) -> torch.dtype:
@@ -54,9 +63,15 @@ def resolve_dtype(dtype: Union[str, torch.dtype]) -> torch.dtype:
 
 
 def resolve_device(device: Union[str, torch.device]) -> torch.device:
-    dev = torch.device(device)
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        dev = None
+    if dev is None or dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"device: expected 'cpu', 'cuda' or 'cuda:<index>', got {device!r}")
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device: 'cuda' requested but torch.cuda.is_available() is False")
+        raise ValueError("device: 'cuda' requested but torch.cuda.is_available() is False "
+                         "(a CPU-only torch build, or no GPU visible)")
     return dev
 
 
@@ -128,9 +143,16 @@ def run_experiment(
     A filter that raises (including a non-finite estimate) does not stop the run: its row gets
     the error message and the other filters still run.
     """
+    trials = check_count("trials", trials)
+    steps = check_count("steps", steps)
+    inits_per_track = check_count("inits_per_track", inits_per_track)
+    seed = check_count("seed", seed, minimum=0)
+    if chunk_size is not None:
+        chunk_size = check_count("chunk_size", chunk_size, hint=" (or None: from memory_budget_gb)")
+    if isinstance(memory_budget_gb, bool) or not isinstance(memory_budget_gb, (int, float)) \
+            or not math.isfinite(memory_budget_gb) or memory_budget_gb <= 0:
+        raise ValueError(f"memory_budget_gb: expected a positive number of GiB, got {memory_budget_gb!r}")
     dev, dt = resolve_device(device), resolve_dtype(dtype)
-    if trials < 1 or steps < 1:
-        raise ValueError(f"trials, steps: expected >= 1, got {trials}, {steps}")
     model.to(device=dev, dtype=dt)
     for name, f in filters.items():
         if f.model is not model:
@@ -145,7 +167,11 @@ def run_experiment(
             return int(chunk_size)
         c = choose_chunk_size({"f": f}, trials, memory_budget_gb)
         if c == 1 and getattr(f, "particle_chunk", 0) is None:  # one trial may still exceed it: chunk particles
-            f.plan_memory(memory_budget_gb * 2**30)
+            pc = f.plan_memory(memory_budget_gb * 2**30)
+            if pc is not None:
+                warnings.warn(f"memory_budget_gb={memory_budget_gb:g}: {f.name} runs one trial at a time in blocks "
+                              f"of {pc} of its {f.n_particles} particles (estimated {f.bytes_per_trial() / 2**30:.3g} "
+                              "GiB per trial); raise the budget if this machine has more memory", stacklevel=4)
         pref = f.preferred_chunk_trials()
         return min(c, pref) if pref else c
 
@@ -162,22 +188,23 @@ def run_experiment(
             reference_logz = torch.cat([kf(traj.observations[s:s + c], mean0[s:s + c], cov0[s:s + c]).log_evidence
                                         for s in range(0, trials, c)]).double()
 
-    bar = None
-    if progress:
-        try:
-            from tqdm.auto import tqdm
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:  # pragma: no cover
+        tqdm = None
 
-            bar = tqdm(total=len(filters) * trials * steps, unit="trial-step", leave=False, dynamic_ncols=True)
-        except ImportError:  # pragma: no cover
-            bar = None
-
-    summary, per_trial, per_step = [], [], []
-    for name, f in filters.items():
+    summary, per_trial, per_step, examples = [], [], [], {}
+    interrupted = False
+    for i_f, (name, f) in enumerate(filters.items()):
         n_part = getattr(f, "n_particles", None)
         row = {c: None for c in SUMMARY_COLUMNS}
         row.update(filter=name, n_particles=n_part, trials=trials, steps=steps)
-        if bar is not None:
-            bar.set_description(name)
+        # one bar per filter: its time estimate is that filter's own, not an average over filters
+        # of very different cost
+        bar = None
+        if progress and tqdm is not None:
+            bar = tqdm(total=trials * steps, unit="trial-step", leave=False, dynamic_ncols=True,
+                       desc=f"[{i_f + 1}/{len(filters)}] {name}")
         est, logz, ess, repaired = [], [], [], []
         elapsed = 0.0
         f_chunk = chunks[name]
@@ -204,13 +231,25 @@ def run_experiment(
                         ess.append(res.ess.double())
                     if res.n_repaired is not None:
                         repaired.append(res.n_repaired)
+        except KeyboardInterrupt:  # keep what finished; the caller writes it and says so
+            interrupted = True
+            row["error"] = f"interrupted after {sum(e.shape[0] for e in est)} of {trials} trials"
+            summary.append(row)
+            if bar is not None:
+                bar.close()
+            break
         except Exception as e:  # one failing filter must not lose the others' results
             row["error"] = f"{type(e).__name__}: {e}"
             summary.append(row)
+            if bar is not None:
+                bar.close()
             if on_filter_done is not None:
                 on_filter_done(summary)
             continue
+        if bar is not None:
+            bar.close()
         est = torch.cat(est)
+        examples[name] = est[0].cpu()
         logz = torch.cat(logz)
         ess_bt = torch.cat(ess) if ess else None
         mse_bt = metrics.mse(est, truth)
@@ -251,14 +290,14 @@ def run_experiment(
             per_step.append(r)
         if on_filter_done is not None:
             on_filter_done(summary)
-    if bar is not None:
-        bar.close()
+    not_run = [n for n in filters if n not in {r["filter"] for r in summary}]
     particle_chunks = {name: getattr(f, "particle_chunk", None) for name, f in filters.items()}
     config = dict(trials=trials, steps=steps, seed=seed, inits_per_track=inits_per_track, chunk_size=chunks,
                   particle_chunk=particle_chunks, memory_budget_gb=memory_budget_gb, rng_backend=rng_backend,
                   device=str(dev), dtype=str(dt).replace("torch.", ""))
     cpu_traj = Trajectory(traj.states.cpu(), traj.observations.cpu())
-    return ExperimentResult(summary, per_trial, per_step, cpu_traj, config)
+    return ExperimentResult(summary, per_trial, per_step, cpu_traj, config, examples=examples,
+                            interrupted=interrupted, not_run=not_run)
 
 
 def format_table(summary: List[dict], columns: Optional[List[str]] = None) -> str:

@@ -9,7 +9,7 @@ from torch import nn
 
 from .. import linalg
 from .. import resampling as _resampling
-from .._checks import NonFiniteError, check_finite, check_psd, check_same, check_tensor
+from .._checks import NonFiniteError, check_count, check_finite, check_psd, check_same, check_tensor
 from ..models.base import StateSpaceModel
 from ..random import check_generator
 
@@ -203,6 +203,7 @@ class Filter(nn.Module):
             return_particles: also return per-step particles and log-weights (large).
             progress: optional callable invoked after each step (e.g. a progress bar update).
         """
+        self.model.check_dtype(self.name)
         if self.validate:
             self.model.check_observations(observations)
         mean, cov = self.check_prior(mean, cov, observations.shape[0])
@@ -267,14 +268,12 @@ class ParticleFilterBase(Filter):
                  ess_threshold: float = 0.5, regularization=None, nonfinite: str = "raise",
                  particle_chunk: Optional[int] = None, validate: bool = True, name: Optional[str] = None):
         super().__init__(model, validate=validate, name=name)
-        if particle_chunk is not None and int(particle_chunk) < 1:
-            raise ValueError(f"particle_chunk: expected a positive integer or None, got {particle_chunk}")
-        self.particle_chunk = None if particle_chunk is None else int(particle_chunk)
+        self.particle_chunk = None if particle_chunk is None else check_count(
+            "particle_chunk", particle_chunk, hint=" or None")
         if nonfinite not in ("raise", "recover"):
             raise ValueError(f"nonfinite: expected 'raise' or 'recover', got {nonfinite!r}")
         self.nonfinite = nonfinite
-        if int(n_particles) < 1:
-            raise ValueError(f"n_particles: expected a positive integer, got {n_particles}")
+        n_particles = check_count("n_particles", n_particles)
         if resampling not in _resampling.RESAMPLERS:
             raise ValueError(f"resampling: expected one of {sorted(_resampling.RESAMPLERS)}, "
                              f"got {resampling!r}")
@@ -342,10 +341,7 @@ class ParticleFilterBase(Filter):
         return torch.cat(blocks, 1)
 
     def _resolve_n(self, n_particles):
-        N = self.n_particles if n_particles is None else int(n_particles)
-        if N < 1:
-            raise ValueError(f"n_particles: expected a positive integer, got {n_particles}")
-        return N
+        return self.n_particles if n_particles is None else check_count("n_particles", n_particles)
 
     def weight_and_resample(
         self,

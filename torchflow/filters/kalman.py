@@ -154,8 +154,9 @@ class UnscentedKalmanFilter(Filter):
         wc = wm.clone()
         wm[0] = lam / (d + lam)
         wc[0] = lam / (d + lam) + (1 - alpha**2 + beta)
-        self.register_buffer("wm", wm.to(model.dtype))
-        self.register_buffer("wc", wc.to(model.dtype))
+        # on the model's device and dtype (a filter built around a CUDA model must not keep CPU weights)
+        self.register_buffer("wm", wm.to(device=model.device, dtype=model.dtype))
+        self.register_buffer("wc", wc.to(device=model.device, dtype=model.dtype))
 
     def sigma_points(self, mean, cov):
         """``(..., d)``, ``(..., d, d)`` -> sigma points ``(..., 2d + 1, d)``."""
@@ -165,7 +166,7 @@ class UnscentedKalmanFilter(Filter):
         return torch.cat([m, m + cols, m - cols], dim=-2)
 
     def _moments(self, Y):
-        mean = torch.einsum("s,...sd->...d", self.wm, Y)
+        mean = torch.einsum("s,...sd->...d", self.wm.to(Y), Y)  # .to: no-op unless the model moved alone
         D = Y - mean.unsqueeze(-2)
         return mean, D
 
@@ -173,7 +174,7 @@ class UnscentedKalmanFilter(Filter):
         return GaussianState(mean, cov, torch.zeros_like(mean[:, 0]), 0)
 
     def _cov(self, D1, D2):
-        return torch.einsum("s,...si,...sj->...ij", self.wc, D1, D2)
+        return torch.einsum("s,...si,...sj->...ij", self.wc.to(D1), D1, D2)
 
     def predict(self, mean: torch.Tensor, cov: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
         """Unscented prediction for ``(..., d)``, ``(..., d, d)`` (any leading shape)."""

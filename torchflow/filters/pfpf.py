@@ -14,6 +14,7 @@ from .. import linalg
 from ..flows import (EDHFlow, FlowPrior, GeodesicFlow, GromovFlow, LEDHFlow, OptimalDiffusionFlow, ParticleFlow,
                      integrate_flow)
 from ..schedules import ExponentialSchedule, LambdaSchedule
+from .._checks import check_count
 from .base import Filter, GaussianState, ParticleFilterBase, ParticleState
 from .kalman import ExtendedKalmanFilter, UnscentedKalmanFilter
 
@@ -215,16 +216,14 @@ class ParticleFlowFilter(_FlowFilterMixin, Filter):
                  n_particles: int = 500, covariance: str = "ekf", validate: bool = True,
                  name: Optional[str] = None):
         super().__init__(model, validate=validate, name=name)
-        if int(n_particles) < 1:
-            raise ValueError(f"n_particles: expected a positive integer, got {n_particles}")
-        self.n_particles = int(n_particles)
+        self.n_particles = check_count("n_particles", n_particles)
         self._init_flow(model, flow, schedule, covariance)
 
     def bytes_per_trial(self, n_particles=None):
         return self._flow_bytes(n_particles or self.n_particles, cov_mats=8)
 
     def init(self, mean, cov, n_particles=None, generator=None):
-        N = self.n_particles if n_particles is None else int(n_particles)
+        N = self.n_particles if n_particles is None else check_count("n_particles", n_particles)
         return GaussianState(mean, cov, torch.zeros_like(mean[:, 0]), 0, n_particles=N)
 
     def step(self, state: GaussianState, z, generator=None):

@@ -204,6 +204,7 @@ class AcousticTracking(StateSpaceModel):
         """
         from .base import Trajectory
 
+        batch_size, steps = self.check_simulate_args(batch_size, steps, generator)
         C = self.n_targets
         with torch.no_grad():
             x0 = self.initial_state(batch_size).reshape(batch_size * C, 4)
@@ -237,6 +238,9 @@ class AcousticTracking(StateSpaceModel):
     def initial_belief(self, states0, generator=None) -> Tuple[torch.Tensor, torch.Tensor]:
         """Prior mean ``m_0 = x_0 + sigma_0 * xi``, redrawn until all four positions lie in the
         field; covariance ``diag(sigma_0^2)``. Returns ``(B, 16)``, ``(B, 16, 16)``."""
+        if not isinstance(generator, torch.Generator):
+            raise TypeError(f"AcousticTracking.initial_belief: generator: expected a torch.Generator (the prior "
+                            f"mean is drawn), got {type(generator).__name__}")
         B = states0.shape[0]
         mean = torch.empty_like(states0)
         todo = torch.arange(B, device=states0.device)

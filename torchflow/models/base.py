@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from .. import linalg
-from .._checks import check_finite, check_tensor
+from .._checks import check_count, check_finite, check_tensor
 from ..linearize import jacobian
 
 
@@ -176,6 +176,7 @@ class StateSpaceModel(nn.Module):
         Returns:
             :class:`Trajectory` with states ``(B, T+1, d)`` and observations ``(B, T, m)``.
         """
+        batch_size, steps = self.check_simulate_args(batch_size, steps, generator)
         with torch.no_grad():
             x = self.initial_state(batch_size, generator)
             L = self.true_transition_scale_tril()
@@ -203,10 +204,34 @@ class StateSpaceModel(nn.Module):
         raise NotImplementedError(f"{type(self).__name__} has no target positions")
 
     # ---- validation ----------------------------------------------------------------------------
+    def check_dtype(self, who: str) -> None:
+        """Raise unless the model is in float32 or float64 (the precisions filters support)."""
+        if self.dtype not in (torch.float32, torch.float64):
+            raise TypeError(f"{who}: the model is in {self.dtype}; filters and simulation run in float32 or "
+                            "float64 (convert with model.double() or model.float())")
+
+    def check_simulate_args(self, batch_size, steps, generator) -> Tuple[int, int]:
+        """Validate :meth:`simulate`'s arguments; returns ``(batch_size, steps)`` as ints."""
+        who = f"{type(self).__name__}.simulate"
+        batch_size = check_count(f"{who}: batch_size", batch_size)
+        steps = check_count(f"{who}: steps", steps)
+        if not isinstance(generator, torch.Generator):
+            hint = ""
+            if isinstance(generator, int) and not isinstance(generator, bool):
+                hint = f" (for a seed, pass torch.Generator().manual_seed({generator}))"
+            elif generator is None:
+                hint = " (randomness comes only from a passed generator)"
+            raise TypeError(f"{who}: generator: expected a torch.Generator, got {type(generator).__name__}{hint}")
+        self.check_dtype(who)
+        return batch_size, steps
+
     def check_observations(self, observations: torch.Tensor) -> torch.Tensor:
         """Raise a clear error unless ``observations`` is a finite ``(B, T, m)`` tensor on the
         model's dtype and device."""
         check_tensor("observations", observations, (None, None, self.obs_dim), "(B, T, m)",
                      dtype=self.dtype, device=self.device)
+        if observations.shape[0] == 0 or observations.shape[1] == 0:
+            raise ValueError(f"observations: expected (B, T, m) with at least one trial and one time step, "
+                             f"got {tuple(observations.shape)}")
         check_finite("observations", observations)
         return observations
