@@ -56,8 +56,20 @@ def main(argv=None):
     ap.add_argument("--columns", default=None, help="comma-separated summary columns")
     args = ap.parse_args(argv)
     if not args.sweep_dir.is_dir():
-        sys.exit(f"sweep_dir: {args.sweep_dir} is not a directory")
+        print(f"error: sweep_dir: expected a sweep folder (multirun/<label>/<time>), got {args.sweep_dir}, "
+              "which is not a directory", file=sys.stderr)
+        sys.exit(2)
     rows, cols, missing = collect(args.sweep_dir, args.columns.split(",") if args.columns else None)
+    if not rows and not missing:
+        hint = (" (it is a single run: its table is summary.csv there)" if (args.sweep_dir / "summary.csv").exists()
+                else "")
+        print(f"error: sweep_dir: {args.sweep_dir} holds no sweep jobs (numbered folders 0, 1, ... written by "
+              f"`run.py -m`){hint}", file=sys.stderr)
+        sys.exit(2)
+    if not rows:
+        print(f"error: sweep_dir: no job in {args.sweep_dir} has a summary.csv yet (failed or running: "
+              f"{', '.join(missing)})", file=sys.stderr)
+        sys.exit(2)
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
     for r in rows:

@@ -59,15 +59,22 @@ def _colours(names):
 
 
 def _plot(path: Path, per_step, summary, title: str):
-    """Per-step metric means, one panel per metric; a filter keeps its colour on every panel and
-    one legend lists them all. ESS is drawn as a fraction of each filter's N (filters of
-    different N share the axis); a panel says which filters have no value there."""
     plt = _matplotlib()
     if plt is None:
         return
+    fig = per_step_figure(plt, per_step, summary, title)
+    if fig is not None:
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+
+
+def per_step_figure(plt, per_step, summary, title: str):
+    """Per-step metric means, one panel per metric; a filter keeps its colour on every panel and
+    one legend lists them all. ESS is drawn as a fraction of each filter's N (filters of
+    different N share the axis); a panel says which filters have no value there."""
     keys = [k for k in ("omat", "ospa", "mse", "ess") if any(k in r for r in per_step)]
     if not keys:
-        return
+        return None
     names = list(dict.fromkeys(r["filter"] for r in summary))
     colour = _colours(names)
     n_of = {r["filter"]: r.get("n_particles") for r in summary}
@@ -101,8 +108,7 @@ def _plot(path: Path, per_step, summary, title: str):
                loc="lower center", ncol=min(len(handles), 6), fontsize=8, frameon=False)
     fig.suptitle(title)
     fig.tight_layout(rect=(0, 0.1, 1, 1))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig
 
 
 def _plot_tracks(path: Path, model, trajectory, examples, summary, title: str):
@@ -130,8 +136,8 @@ def _plot_tracks(path: Path, model, trajectory, examples, summary, title: str):
             ax.plot(est[:, c, 0], est[:, c, 1], color=colour[name], lw=1.2, ls="--", label=name if c == 0 else None)
     area = getattr(model, "area", None)
     if area:
-        ax.set_xlim(0, area)
-        ax.set_ylim(0, area)
+        ax.set_xlim(-0.03 * area, 1.03 * area)
+        ax.set_ylim(-0.03 * area, 1.03 * area)
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")

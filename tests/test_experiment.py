@@ -134,3 +134,88 @@ def test_cli_multirun_sweep_writes_one_folder_per_job(tmp_path):
     with open(tmp_path / "sweep" / "sweep_summary.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert [(r["job"], r["seed"], r["filter"]) for r in rows] == [("0", "0", "kf"), ("1", "1", "kf")]
+
+
+def _run_module():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("tf_run", ROOT / "experiments" / "run.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_per_step_plot_keeps_one_colour_per_filter_and_scales_ess_by_n():
+    plt = pytest.importorskip("matplotlib.pyplot")
+    run = _run_module()
+    model = AcousticTracking()
+    filters = {"ekf": ExtendedKalmanFilter(model), "ukf": UnscentedKalmanFilter(model),
+               "bpf": BootstrapParticleFilter(model, n_particles=40)}
+    res = run_experiment(model, filters, trials=2, steps=3, progress=False)
+    fig = run.per_step_figure(plt, res.per_step, res.summary, "t")
+    colours = {}
+    for ax in fig.axes:
+        for line in ax.get_lines():
+            colours.setdefault(line.get_label(), set()).add(line.get_color())
+    assert set(colours) == {"ekf", "ukf", "bpf"}
+    assert all(len(c) == 1 for c in colours.values())          # the same colour on every panel
+    assert len({next(iter(c)) for c in colours.values()}) == 3  # and different filters differ
+    ess_ax = [ax for ax in fig.axes if "ESS" in ax.get_ylabel()][0]
+    assert ess_ax.get_ylabel() == "ESS / N (N = 40)"
+    assert [ln.get_label() for ln in ess_ax.get_lines()] == ["bpf"]
+    assert "ekf, ukf" in ess_ax.get_title()
+    y = ess_ax.get_lines()[0].get_ydata()
+    assert (y > 0).all() and (y <= 1).all()
+    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["ekf", "ukf", "bpf"]
+    plt.close(fig)
+
+
+def test_row_label_names_the_flow_that_ran():
+    run = _run_module()
+    from torchflow.filters import ParticleFlowParticleFilter, ParticleFlowFilter
+
+    model = SensorNetwork(d=4)
+    assert run.row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="edh")) == "pfpf_ledh[flow=edh]"
+    assert run.row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="ledh")) == "pfpf_ledh"
+    assert run.row_label("gromov", ParticleFlowFilter(model, flow="gromov")) == "gromov"
+    assert run.row_label("bpf", BootstrapParticleFilter(model)) == "bpf"
+
+
+def test_runner_keeps_finished_filters_on_interrupt():
+    class _Interrupt(Filter):
+        def init(self, mean, cov, n_particles=None, generator=None):
+            raise KeyboardInterrupt
+
+    model = SensorNetwork(d=4)
+    res = run_experiment(model, {"kf": KalmanFilter(model), "stop": _Interrupt(model),
+                                 "bpf": BootstrapParticleFilter(model, n_particles=10)},
+                         trials=3, steps=2, progress=False)
+    assert res.interrupted and res.not_run == ["bpf"]
+    assert [r["filter"] for r in res.summary] == ["kf", "stop"]
+    assert res.summary[1]["error"] == "interrupted after 0 of 3 trials"
+    assert len(res.per_trial) == 3 and res.examples["kf"].shape == (2, 4)
+
+
+def test_cli_ctrl_c_writes_finished_results(tmp_path):
+    """SIGINT while the second filter runs: exit 130, one line, every file for the first filter."""
+    import signal
+    import time
+
+    cmd = [sys.executable, str(ROOT / "experiments" / "run.py"), "model=linear_gaussian", "filter=[kf,bpf]",
+           "trials=200", "steps=200", "n_particles=20000", "progress=false", f"hydra.run.dir={tmp_path}/run"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    summary = tmp_path / "run" / "summary.csv"
+    deadline = time.time() + 120
+    while not summary.exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    assert summary.exists(), proc.communicate()[1][-2000:]
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err[-2000:]
+    assert "Traceback" not in err and "interrupted (Ctrl-C)" in err
+    for name in ("summary.csv", "per_step.csv", "per_trial.csv", "results.json"):
+        assert (tmp_path / "run" / name).exists(), name
+    rows = list(csv.DictReader(open(summary)))
+    assert [r["filter"] for r in rows] == ["kf", "bpf"] and rows[1]["error"].startswith("interrupted after")
+    assert json.loads((tmp_path / "run" / "results.json").read_text())["interrupted"] is True

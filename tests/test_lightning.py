@@ -48,3 +48,20 @@ def test_lightning_rejects_filter_without_parameters():
     traj, mean, cov = _data()
     with pytest.raises(ValueError, match="learnable"):
         FilterLightningModule(KalmanFilter(LinearGaussian(torch.eye(2), torch.eye(2), torch.eye(2), torch.eye(2))))
+
+
+def test_lightning_no_validation_warning_and_validated_variant(tmp_path, recwarn):
+    from torchflow.lightning import ValidatedFilterLightningModule
+
+    traj, mean, cov = _data(B=16, T=5)
+    eye = torch.eye(2, dtype=torch.float64)
+    model = LinearGaussian(0.5 * eye, 0.2 * eye, eye, 0.1 * eye, torch.zeros(2, dtype=torch.float64), eye,
+                           learnable=["F"])
+    data = DataLoader(TrajectoryDataset(traj, mean, cov), batch_size=8)
+    trainer = pl.Trainer(max_epochs=1, default_root_dir=tmp_path, enable_progress_bar=False, accelerator="cpu")
+    trainer.fit(FilterLightningModule(KalmanFilter(model), lr=0.05), data)
+    assert not [w for w in recwarn if "validation_step" in str(w.message)]
+    module = ValidatedFilterLightningModule(KalmanFilter(model), lr=0.05)
+    trainer = pl.Trainer(max_epochs=1, default_root_dir=tmp_path, enable_progress_bar=False, accelerator="cpu")
+    trainer.fit(module, data, val_dataloaders=data)
+    assert "val_nll_per_step" in trainer.callback_metrics

@@ -3,6 +3,9 @@
 The core library never imports Lightning; import this module explicitly::
 
     from torchflow.lightning import FilterLightningModule, TrajectoryDataset
+
+Lightning's ``Trainer`` writes logs and checkpoints under its ``default_root_dir`` (the working
+folder unless given): pass ``default_root_dir=...`` or ``logger=False, enable_checkpointing=False``.
 """
 from __future__ import annotations
 
@@ -70,10 +73,16 @@ class FilterLightningModule(pl.LightningModule):
         self.log("train_nll_per_step", loss, prog_bar=True, batch_size=batch[0].shape[0])
         return loss
 
+    def configure_optimizers(self):
+        return torch.optim.Adam([p for p in self.filter.parameters() if p.requires_grad], lr=self.lr)
+
+
+class ValidatedFilterLightningModule(FilterLightningModule):
+    """:class:`FilterLightningModule` with a validation loop (logs ``val_nll_per_step``): pass
+    ``val_dataloaders`` to ``Trainer.fit``. A separate class because Lightning warns on every run
+    when a module defines ``validation_step`` and no validation data is given."""
+
     def validation_step(self, batch, batch_idx):
         loss = self._loss(batch, batch_idx)
         self.log("val_nll_per_step", loss, prog_bar=True, batch_size=batch[0].shape[0])
         return loss
-
-    def configure_optimizers(self):
-        return torch.optim.Adam([p for p in self.filter.parameters() if p.requires_grad], lr=self.lr)

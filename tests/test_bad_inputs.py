@@ -1,0 +1,149 @@
+"""Bad input gets a clear error naming the argument, what it expects and what it received.
+
+One case per row of the bad-input table of issue 10 (unclear and silent cases), through the Python
+API and through the command line (one line on stderr, exit status 2, no traceback).
+"""
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchflow.experiment import run_experiment
+from torchflow.filters import BootstrapParticleFilter, KalmanFilter, ParticleFlowFilter, ParticleFlowParticleFilter
+from torchflow.models import AcousticTracking, SensorNetwork
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def acoustic_data():
+    model = AcousticTracking()
+    g = torch.Generator().manual_seed(0)
+    traj = model.simulate(2, 3, g)
+    mean, cov = model.initial_belief(traj.states[:, 0], g)
+    return model, traj, mean, cov
+
+
+@pytest.mark.parametrize("args, match", [
+    ((0, 3), r"AcousticTracking.simulate: batch_size: expected a positive integer, got 0 \(int\)"),
+    ((-1, 3), r"batch_size: expected a positive integer, got -1 \(int\)"),
+    ((2, 0), r"steps: expected a positive integer, got 0 \(int\)"),
+    ((2.5, 3), r"batch_size: expected a positive integer, got 2.5 \(float\)"),
+])
+def test_simulate_counts(args, match):
+    with pytest.raises(ValueError, match=match):
+        AcousticTracking().simulate(*args, torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match=match.replace("AcousticTracking", "SensorNetwork")):
+        SensorNetwork(d=4).simulate(*args, torch.Generator().manual_seed(0))
+
+
+@pytest.mark.parametrize("gen, match", [
+    (0, r"generator: expected a torch.Generator, got int \(for a seed, pass torch.Generator\(\).manual_seed\(0\)\)"),
+    (None, r"generator: expected a torch.Generator, got NoneType"),
+])
+def test_simulate_generator(gen, match):
+    with pytest.raises(TypeError, match=match):
+        AcousticTracking().simulate(2, 3, gen)
+
+
+def test_zero_time_steps(acoustic_data):
+    model, traj, mean, cov = acoustic_data
+    for f in (KalmanFilter(SensorNetwork(d=25)), BootstrapParticleFilter(model, n_particles=8)):
+        obs = traj.observations[:, :0].to(f.model.dtype)
+        m, c = (mean, cov) if f.model is model else (torch.zeros(2, 25, dtype=torch.float64),
+                                                     torch.eye(25, dtype=torch.float64).expand(2, 25, 25))
+        with pytest.raises(ValueError, match=r"observations: expected \(B, T, m\) with at least one trial and one "
+                                             r"time step, got \(2, 0, 25\)"):
+            f(obs, m, c, torch.Generator().manual_seed(0))
+
+
+@pytest.mark.parametrize("make", [
+    lambda m: BootstrapParticleFilter(m, n_particles=8),
+    lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=8),
+    lambda m: ParticleFlowFilter(m, flow="edh", n_particles=8),
+])
+@pytest.mark.parametrize("gen, match", [
+    (3, r"generator: expected a torch.Generator or torchflow.random.TrialStreams, got int \(for a seed, pass "
+        r"torch.Generator\(\).manual_seed\(3\)\)"),
+    (None, r"generator: expected a torch.Generator or torchflow.random.TrialStreams, got NoneType"),
+])
+def test_filter_generator(acoustic_data, make, gen, match):
+    model, traj, mean, cov = acoustic_data
+    with pytest.raises(TypeError, match=match):
+        make(model)(traj.observations, mean, cov, gen)
+
+
+def test_float16_model(acoustic_data):
+    model, traj, mean, cov = acoustic_data
+    f = BootstrapParticleFilter(model, n_particles=8)
+    model.half()
+    with pytest.raises(TypeError, match=r"BootstrapParticleFilter: the model is in torch.float16; filters and "
+                                        r"simulation run in float32 or float64"):
+        f(traj.observations.half(), mean.half(), cov.half(), torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match=r"dtype: expected one of .*, got 'float16'"):
+        run_experiment(SensorNetwork(d=4), {"kf": KalmanFilter(SensorNetwork(d=4))}, dtype="float16")
+
+
+@pytest.mark.parametrize("value", [2.5, 2.7, True, "abc", 0, -3])
+def test_n_particles_not_truncated(value):
+    with pytest.raises(ValueError, match=rf"n_particles: expected a positive integer, got {value!r}"):
+        BootstrapParticleFilter(SensorNetwork(d=4), n_particles=value)
+    with pytest.raises(ValueError, match=rf"n_particles: expected a positive integer, got {value!r}"):
+        ParticleFlowFilter(SensorNetwork(d=4), n_particles=value)
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(memory_budget_gb=0), r"memory_budget_gb: expected a positive number of GiB, got 0"),
+    (dict(memory_budget_gb=-1.0), r"memory_budget_gb: expected a positive number of GiB, got -1.0"),
+    (dict(chunk_size=0), r"chunk_size: expected a positive integer \(or None: from memory_budget_gb\), got 0"),
+    (dict(chunk_size=2.5), r"chunk_size: expected a positive integer .* got 2.5"),
+    (dict(trials="abc"), r"trials: expected a positive integer, got 'abc' \(str\)"),
+    (dict(steps=0), r"steps: expected a positive integer, got 0"),
+    (dict(seed=-1), r"seed: expected an integer >= 0, got -1"),
+    (dict(device="tpu"), r"device: expected 'cpu', 'cuda' or 'cuda:<index>', got 'tpu'"),
+])
+def test_runner_arguments(kw, match):
+    model = SensorNetwork(d=4)
+    with pytest.raises(ValueError, match=match):
+        run_experiment(model, {"kf": KalmanFilter(model)}, progress=False, **kw)
+
+
+def test_tiny_memory_budget_warns_with_the_plan():
+    model = SensorNetwork(d=4)
+    with pytest.warns(UserWarning, match=r"memory_budget_gb=1e-06: BootstrapParticleFilter runs one trial at a "
+                                         r"time in blocks of \d+ of its 100 particles"):
+        res = run_experiment(model, {"bpf": BootstrapParticleFilter(model, n_particles=100)}, trials=2, steps=2,
+                             memory_budget_gb=1e-6, progress=False)
+    assert res.config["particle_chunk"]["bpf"] >= 1
+
+
+@pytest.mark.parametrize("override, match", [
+    ("device=tpu", "error: device: expected 'cpu', 'cuda' or 'cuda:<index>', got 'tpu'"),
+    ("trials=abc", "error: trials: expected a positive integer, got 'abc' (str)"),
+    ("filter=[nope]", "error: filter: unknown filter config 'nope'; available: bpf, edh, ekf,"),
+    ("n_particles=2.5", "error: filter.bpf: n_particles: expected a positive integer, got 2.5 (float)"),
+    ("n_particles=True", "error: filter.bpf: n_particles: expected a positive integer, got True (bool)"),
+    ("memory_budget_gb=0", "error: memory_budget_gb: expected a positive number of GiB, got 0"),
+    ("chunk_size=0", "error: chunk_size: expected a positive integer (or None: from memory_budget_gb), got 0"),
+    ("flow@filter.pfpf_ledh.flow=nope", "error: flow@filter.pfpf_ledh.flow: unknown flow config 'nope'; available:"),
+])
+def test_cli_one_line_errors(tmp_path, override, match):
+    cmd = [sys.executable, str(ROOT / "experiments" / "run.py"), "model=linear_gaussian", "model.d=4",
+           "filter=[bpf]", "trials=2", "steps=2", "n_particles=10", "progress=false", "plots=false",
+           f"hydra.run.dir={tmp_path}/run", override]
+    out = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert match in out.stderr and "Traceback" not in out.stderr, out.stderr[-2000:]
+
+
+def test_collect_on_a_single_run_folder(tmp_path):
+    (tmp_path / "summary.csv").write_text("filter\nkf\n")
+    out = subprocess.run([sys.executable, str(ROOT / "experiments" / "collect.py"), str(tmp_path)],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2
+    assert "holds no sweep jobs" in out.stderr and "single run" in out.stderr
+    out = subprocess.run([sys.executable, str(ROOT / "experiments" / "collect.py"), str(tmp_path / "nope")],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "not a directory" in out.stderr
