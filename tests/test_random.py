@@ -46,6 +46,23 @@ def test_trial_draws_do_not_depend_on_the_batch(backend, dtype):
                            TrialStreams(5, 6, "k", backend=backend).normal((6, 3)))
 
 
+def test_large_draws_in_blocks_do_not_depend_on_batch_or_threads():
+    from torchflow.random import BLOCK
+
+    n = 2 * BLOCK + 5  # three blocks per trial, filled on parallel threads
+    full = TrialStreams(9, 3, "big").normal((3, n))
+    alone = TrialStreams(9, [2], "big").normal((1, n))
+    assert torch.equal(full[2], alone[0])
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        serial = TrialStreams(9, 3, "big").normal((3, n))
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(serial, full)
+    assert abs(float(full.mean())) < 5 / math.sqrt(full.numel())
+
+
 def test_select_continues_the_streams():
     a = TrialStreams(1, 4, "k")
     b = TrialStreams(1, 4, "k")
@@ -114,6 +131,7 @@ def _per_trial(res, name):
     return [r for r in res.per_trial if r["filter"] == name]
 
 
+@pytest.mark.filterwarnings("ignore:memory_budget_gb")
 def test_runner_numbers_do_not_depend_on_chunks_budget_or_names():
     """The issue's check, scaled down: BPF per-trial numbers are identical (==) for every chunk
     size and memory budget; renaming the filter or adding others changes nothing."""

@@ -17,8 +17,9 @@ Back ends (``backend=``):
 
 * ``"numpy"`` (default on CPU): one ``numpy.random.Generator(SFC64)`` per trial, seeded by a
   ``SeedSequence([seed, key, trial])``; normals by numpy's ziggurat (exact float64 / float32
-  normals, ~5-8 ns per draw), large draws filled by trials in parallel threads (numpy releases
-  the GIL; the numbers do not depend on the thread count).
+  normals, ~5-8 ns per draw). Large draws are filled on parallel threads (numpy releases the
+  GIL), one task per trial or, for more than :data:`BLOCK` numbers per trial, per block of the
+  trial's draw from child streams the trial spawns; the numbers do not depend on the thread count.
 * ``"philox"`` (default on CUDA, available on every device): counter-based Philox4x32-10
   (Salmon et al. 2011) evaluated with tensor operations on the draw's device: key = 64 bits of
   the trial's ``SeedSequence``, counter = (number of draws so far, element index). Uniforms take
@@ -45,6 +46,9 @@ __all__ = ["TrialStreams", "normal", "uniform", "check_generator", "stream_key"]
 
 #: numbers per call from which the numpy back end fills trials on several threads
 PARALLEL_MIN = 1 << 19
+#: numbers per block of a trial's large draw (numpy back end): a draw of more than this many numbers
+#: per trial is filled from child streams, one per block, on several threads
+BLOCK = 1 << 18
 _POOLS: dict = {}
 
 
@@ -172,21 +176,30 @@ class TrialStreams:
         out = torch.empty((B, n), dtype=dtype)
         arr = out.numpy()
         np_dtype = np.float64 if dtype == torch.float64 else np.float32
-        gens = self._np
         if n == 0:
             return out
+        # one task per trial; a trial drawing more than BLOCK numbers fills its draw in blocks from
+        # child generators it spawns (deterministic, and independent of B), so large draws of a
+        # few trials still use every thread
+        tasks = []
+        for b, gen in enumerate(self._np):
+            if n <= BLOCK:
+                tasks.append((gen, arr[b]))
+            else:
+                kids = gen.spawn(-(-n // BLOCK))
+                tasks += [(kid, arr[b, i * BLOCK:(i + 1) * BLOCK]) for i, kid in enumerate(kids)]
         if kind == "normal":
-            def fill(b):
-                gens[b].standard_normal(out=arr[b], dtype=np_dtype)
+            def fill(task):
+                task[0].standard_normal(out=task[1], dtype=np_dtype)
         else:
-            def fill(b):
-                gens[b].random(out=arr[b], dtype=np_dtype)
-        workers = min(torch.get_num_threads(), B)
+            def fill(task):
+                task[0].random(out=task[1], dtype=np_dtype)
+        workers = min(torch.get_num_threads(), len(tasks))
         if workers > 1 and B * n >= PARALLEL_MIN:
-            list(_pool(workers).map(fill, range(B)))
+            list(_pool(workers).map(fill, tasks))
         else:
-            for b in range(B):
-                fill(b)
+            for task in tasks:
+                fill(task)
         return out
 
     # ---- philox back end ---------------------------------------------------------------------

@@ -36,6 +36,7 @@ import torch  # noqa: E402
 
 from _common import loadavg, write_results  # noqa: E402
 from torchflow import metrics  # noqa: E402
+from torchflow.random import TrialStreams  # noqa: E402
 from torchflow.filters import BootstrapParticleFilter, ParticleFlowFilter, ParticleFlowParticleFilter  # noqa: E402
 from torchflow.models import AcousticTracking  # noqa: E402
 
@@ -64,7 +65,8 @@ def time_ours(f, traj, mean, cov, seed):
         f(traj.observations[:1, :1], mean[:1], cov[:1], torch.Generator().manual_seed(seed))  # warm-up
         t0 = time.perf_counter()
         parts = [f(traj.observations[s:s + chunk], mean[s:s + chunk], cov[s:s + chunk],
-                   torch.Generator().manual_seed(seed + s)) for s in range(0, B, chunk)]
+                   TrialStreams(seed, range(s, min(s + chunk, B)), key=f.stream_name))  # as the runner
+                 for s in range(0, B, chunk)]
         wall = time.perf_counter() - t0
     est = torch.cat([p.estimates for p in parts])
     return wall, est, min(chunk, B)

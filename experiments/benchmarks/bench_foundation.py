@@ -88,6 +88,7 @@ import scipy.linalg  # noqa: E402,F401  (load scipy's BLAS before threadpoolctl 
 import torch  # noqa: E402
 
 import torchflow  # noqa: E402
+from torchflow.random import TrialStreams  # noqa: E402
 
 
 # ---------------------------------------------------------------------------------------------
@@ -339,13 +340,13 @@ def bench_bpf(args, N: int, bpf_trials: int, peer_trials: int):
     bpf = torchflow.filters.BootstrapParticleFilter(
         model, n_particles=N, resampling="systematic", ess_threshold=0.5)
 
-    run_gen = torch.Generator().manual_seed(args.seed + 2)
-
     chunk = bpf.preferred_chunk_trials()  # cache-sized calls (3 trials at N = 1e4, d = 64)
 
     def ours():
         with torch.no_grad():
-            parts = [bpf(traj_ours.observations[s:s + chunk], mean[s:s + chunk], cov[s:s + chunk], run_gen)
+            # per-trial streams, as run_experiment uses them
+            parts = [bpf(traj_ours.observations[s:s + chunk], mean[s:s + chunk], cov[s:s + chunk],
+                         TrialStreams(args.seed + 2, range(s, min(s + chunk, bpf_trials)), key="bpf"))
                      for s in range(0, bpf_trials, chunk)]
         return (torch.cat([p.estimates for p in parts]), torch.cat([p.ess for p in parts], 0))
 

@@ -23,6 +23,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
+from torchflow.random import TrialStreams  # noqa: E402
 from torchflow.filters import BootstrapParticleFilter, ParticleFlowParticleFilter  # noqa: E402
 from torchflow.models import AcousticTracking  # noqa: E402
 from torchflow import metrics  # noqa: E402
@@ -67,7 +68,8 @@ def run(argv=None) -> dict:
             for i in range(0, a.trials, chunk):
                 sl = slice(i, i + chunk)
                 t0 = time.perf_counter()
-                res = f(traj.observations[sl], mean[sl], cov[sl], g)
+                streams = TrialStreams(0, range(i, min(i + chunk, a.trials)), key=f.stream_name)  # as the runner
+                res = f(traj.observations[sl], mean[sl], cov[sl], streams)
                 dt += time.perf_counter() - t0
                 est.append(res.estimates)
                 ess.append(res.ess)

@@ -18,6 +18,9 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import loadavg  # noqa: E402
 
 from torchflow.filters import BootstrapParticleFilter, ParticleFlowParticleFilter  # noqa: E402
 from torchflow.models import AcousticTracking, SensorNetwork  # noqa: E402
@@ -75,11 +78,44 @@ def run(argv=None) -> dict:
                          ratio=best["streams"] / best["generator"]))
         print(f"{name:34s} generator {best['generator']:.3e}  streams {best['streams']:.3e}  "
               f"ratio {rows[-1]['ratio']:.3f}", flush=True)
-    out = {"threads": a.threads, "repeats": a.repeats, "rows": rows}
+    md = ["# Per-trial random streams: cost", "",
+          f"`python experiments/benchmarks/bench_streams.py{' --quick' if a.quick else ''}`; {a.threads} threads, "
+          f"minimum over {a.repeats} interleaved repeats, load {loadavg()}. Seconds per trial-step of the same filter "
+          "calls with one `torch.Generator` per call and with `TrialStreams` (one stream per trial, as "
+          "`run_experiment` uses them).", "",
+          "| case | trials x steps | generator s | streams s | streams / generator |", "|---|---|---|---|---|"]
+    md += [f"| {r['case']} | {r['trials']} x {r['steps']} | {r['generator']:.4g} | {r['streams']:.4g} | "
+           f"{r['ratio']:.3f} |" for r in rows]
+    # the draws alone: the filters' time is ~30 % normals at most (BPF, N=1e4, d=64), so the
+    # draw cost bounds the filters' cost far more tightly than whole-call timings on a noisy VM
+    from torchflow import linalg
+
+    draws = []
+    for B, n in ((25, 12_800), (100, 12_800), (3, 640_000), (8, 12_500)):
+        best = {}
+        for k, mk in (("generator", lambda: torch.Generator().manual_seed(0)),
+                      ("streams", lambda: TrialStreams(0, B, "bench"))):
+            gen, t_best = mk(), float("inf")
+            for _ in range(5 * a.repeats):
+                t0 = time.perf_counter()
+                linalg.standard_normal((B, n), dtype=torch.float64, device="cpu", generator=gen)
+                t_best = min(t_best, time.perf_counter() - t0)
+            best[k] = t_best / (B * n) * 1e9
+        draws.append(dict(B=B, n=n, generator_ns=best["generator"], streams_ns=best["streams"],
+                          ratio=best["streams"] / best["generator"]))
+        print(draws[-1], flush=True)
+    md += ["", "Normal draws alone (float64, ns per number, minimum of repeats):", "",
+           "| trials x numbers per trial | generator ns | streams ns | ratio |", "|---|---|---|---|"]
+    md += [f"| {r['B']} x {r['n']} | {r['generator_ns']:.2f} | {r['streams_ns']:.2f} | {r['ratio']:.3f} |"
+           for r in draws]
+    out = {"threads": a.threads, "repeats": a.repeats, "rows": rows, "draws": draws, "markdown": "\n".join(md) + "\n"}
     if a.out:
         Path(a.out).write_text(json.dumps(out, indent=2))
     return out
 
 
 if __name__ == "__main__":
-    run()
+    from _common import write_results
+
+    res = run()
+    write_results(res, "streams", "--quick" in sys.argv)

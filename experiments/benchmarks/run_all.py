@@ -41,7 +41,7 @@ for p in (str(_REPO), str(_HERE)):
 
 from _common import write_results  # noqa: E402
 
-SECTIONS = ["foundation", "acoustic", "pfpf", "flops", "memory", "float32", "scaling"]
+SECTIONS = ["foundation", "acoustic", "pfpf", "flops", "memory", "float32", "scaling", "streams"]
 
 
 def _headline(results: dict) -> list:
