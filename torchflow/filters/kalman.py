@@ -6,7 +6,6 @@ from typing import Optional, Tuple
 import torch
 
 from .. import linalg
-from ..models.linear_gaussian import LinearGaussian, _scaled_identity
 from .base import Filter, GaussianState
 
 
@@ -80,17 +79,21 @@ class ExtendedKalmanFilter(Filter):
 
 
 class KalmanFilter(ExtendedKalmanFilter):
-    """Exact Kalman filter for :class:`~torchflow.models.LinearGaussian` models.
+    """Exact Kalman filter for linear-Gaussian models: any model that declares
+    :attr:`~torchflow.models.StateSpaceModel.linear_dynamics` and ``linear_measurement`` (with
+    additive Gaussian noise), e.g. :class:`~torchflow.models.LinearGaussian`.
 
     Log-evidence ``sum_k log N(z_k; H m_k^-, H P_k^- H^T + R)`` is exact and differentiable in the
     model's parameters.
     """
 
     def __init__(self, model, *, validate: bool = True, name: Optional[str] = None):
-        if not isinstance(model, LinearGaussian):
-            raise TypeError(f"model: KalmanFilter needs a LinearGaussian model, got {type(model).__name__} "
-                            "(use ExtendedKalmanFilter or UnscentedKalmanFilter for nonlinear models)")
         super().__init__(model, validate=validate, name=name)
+        if not (model.linear_dynamics and model.linear_measurement):
+            raise TypeError(f"model: KalmanFilter needs a linear-Gaussian model (a LinearGaussian, or any model "
+                            f"declaring linear_dynamics and linear_measurement), got {type(model).__name__} (linear_dynamics={model.linear_dynamics}, "
+                            f"linear_measurement={model.linear_measurement}; use ExtendedKalmanFilter or "
+                            "UnscentedKalmanFilter for nonlinear models)")
 
     def init(self, mean, cov, n_particles=None, generator=None):
         # The Riccati recursion does not depend on the data: when every trial starts from the same
@@ -108,9 +111,12 @@ class KalmanFilter(ExtendedKalmanFilter):
     def _shared_step(self, state, z):
         """All trials share one covariance: run the Riccati step once on ``(d, d)`` matrices and
         update the ``(B, d)`` means with three matrix products."""
-        F, Q, H, R = self.model.F, self.model.Q, self.model.H, self.model.R
-        # a scaled identity F or H (the sensor network: 0.9 I, I) is a scaling, not a product
-        f, h = _scaled_identity(F), _scaled_identity(H)
+        model = self.model
+        F, Q = model.transition_matrix(), model.transition_cov()
+        H, R = model.measurement_matrix(), model.measurement_cov()
+        # a scaled identity F or H (the sensor network: 0.9 I, I; declared by the model) is a
+        # scaling, not a product
+        f, h = model.transition_matrix_scale, model.measurement_matrix_scale
         P = state.cov[0]
         # scalings and sums of symmetric matrices are exactly symmetric: symmetrize only products
         P_pred = (f * f) * P + Q if f is not None else linalg.symmetrize(F @ P @ F.T + Q)

@@ -30,17 +30,18 @@ def _whiten(model, aux: torch.Tensor, z: torch.Tensor, support=None):
     pseudo-measurement ``y = L_R^{-1} (z - e) (..., m)`` with ``e = h(aux) - H aux``.
 
     With ``support`` (a :class:`FlowPrior` ``support``, the model's measured coordinates) H is
-    only the ``k`` nonzero columns of the Jacobian; otherwise all ``d``."""
+    only the ``k`` nonzero columns of the Jacobian; otherwise all ``d``. The noise structure is the
+    model's declared :attr:`~torchflow.models.StateSpaceModel.measurement_noise` (no test of R
+    here, so no host synchronisation)."""
+    noise = model.measurement_noise
     LR = model.measurement_scale_tril(aux)
-    if not model.linear_measurement and LR.dim() == 2:
-        dr = LR.diagonal()
-        if bool((LR == torch.diag(dr)).all()) and bool((dr == dr[0]).all()):
-            # R = sigma^2 I: whiten inside the model's linearisation (scale 1 / sigma), so
-            # W = H / sigma and y = (z - h) / sigma + W x_s need no pass over the Jacobian
-            inv_sigma = 1 / dr[0]
-            hx, W = model.linearize_measurement(aux, support=support is not None, scale=inv_sigma)
-            xs = aux if support is None else aux.index_select(-1, support)
-            return W, _bcast_obs(z, aux) * inv_sigma - hx + linalg.matvec(W, xs)
+    xs = aux if support is None else aux.index_select(-1, support)
+    if noise == "scalar" and not model.linear_measurement:
+        # R = sigma^2 I: whiten inside the model's linearisation (scale 1 / sigma), so
+        # W = H / sigma and y = (z - h) / sigma + W x_s need no pass over the Jacobian
+        inv_sigma = 1 / LR.diagonal(dim1=-2, dim2=-1)[..., 0]  # 0-d: "scalar" R is constant
+        hx, W = model.linearize_measurement(aux, support=support is not None, scale=inv_sigma)
+        return W, _bcast_obs(z, aux) * inv_sigma - hx + linalg.matvec(W, xs)
     # a linear measurement has one H for every point: keep it unbatched (m, d)
     if model.linear_measurement:
         H = model.measurement_matrix()
@@ -48,15 +49,14 @@ def _whiten(model, aux: torch.Tensor, z: torch.Tensor, support=None):
         hx = model.measure(aux)
     else:
         hx, H = model.linearize_measurement(aux, support=support is not None)
-    xs = aux if support is None else aux.index_select(-1, support)
     e = hx - linalg.matvec(H, xs)
     resid = _bcast_obs(z, aux) - e
-    if LR.dim() == 2:
-        dr = LR.diagonal()
-        if bool((LR == torch.diag(dr)).all()):
-            if bool((dr == dr[0]).all()):  # R = sigma^2 I: a scalar (much faster than a broadcast)
-                return H / dr[0], resid / dr[0]
-            return H / dr.unsqueeze(-1), resid / dr
+    if noise == "scalar":
+        sigma = LR.diagonal(dim1=-2, dim2=-1)[..., 0]
+        return H / sigma, resid / sigma  # a 0-d scale: much faster than a broadcast
+    if noise == "diagonal":
+        dr = LR.diagonal(dim1=-2, dim2=-1)
+        return H / dr.unsqueeze(-1), resid / dr
     W = linalg.solve_triangular(LR, H, upper=False)
     y = linalg.solve_triangular(LR, resid.unsqueeze(-1), upper=False).squeeze(-1)
     return W, y
@@ -86,8 +86,8 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
     k = Ls.shape[-1]
     eye = torch.eye(k, dtype=L.dtype, device=L.device)
     T, S, Wy = _gram_terms(W, y, Ls)
-    K = linalg.safe_cholesky(eye + lam * S)
-    K2 = linalg.safe_cholesky(eye + (lam - 0.5 * eps) * S)
+    K = linalg.cholesky_unit_shift(eye + lam * S)
+    K2 = linalg.cholesky_unit_shift(eye + (lam - 0.5 * eps) * S)
     log_det = linalg.chol_logdet(K2) - linalg.chol_logdet(K)
     A = -0.5 * (L @ linalg.chol_solve(K, T))  # -1/2 L (I + lam S)^{-1} L^T J, (..., d, k)
     # P H^T R^{-1} (z - e) = L L_s^T W^T y

@@ -42,6 +42,7 @@ class AcousticTracking(StateSpaceModel):
 
     n_targets = 4
     linear_dynamics = True
+    measurement_noise = "scalar"  # R = sigma_w^2 I
 
     def __init__(
         self,

@@ -49,6 +49,16 @@ class StateSpaceModel(nn.Module):
     linear_dynamics: bool = False
     #: ``True`` when h is linear, ``h(x) = measurement_matrix() @ x``.
     linear_measurement: bool = False
+    #: structure of the measurement noise R, declared by the model and never detected at run time:
+    #: ``"scalar"`` (``R = sigma^2 I``, constant), ``"diagonal"`` (constant), ``"dense"`` (constant)
+    #: or ``"state_dependent"`` (``measurement_cov(x)`` varies with x). Flows whiten with it.
+    measurement_noise: str = "dense"
+    #: ``c`` when the (constant) transition matrix is exactly ``c I`` (declared; ``None`` otherwise)
+    transition_matrix_scale: Optional[float] = None
+    #: ``c`` when the (constant) measurement matrix is exactly ``c I`` (declared; ``None`` otherwise)
+    measurement_matrix_scale: Optional[float] = None
+    #: ``r`` when the (constant) measurement noise is exactly ``r I`` (declared; ``None`` otherwise)
+    measurement_noise_scale: Optional[float] = None
 
     # ---- dtype / device --------------------------------------------------------------------
     @property

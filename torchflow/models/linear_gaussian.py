@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import math
-import weakref
 
 from ..linalg import _LOG_2PI
 from typing import Optional, Tuple
@@ -38,9 +37,14 @@ class LinearGaussian(StateSpaceModel):
         learnable: ``True`` registers F, Q, H, R as ``nn.Parameter`` (else buffers); a list such as
             ``["F", "H"]`` makes only those learnable. Q and R are used as given: keep them
             positive definite (or learn only F and H) when optimising.
+        measurement_noise: the declared structure of R (``"scalar"``, ``"diagonal"``, ``"dense"``);
+            ``None`` reads it from R once, here (``"dense"`` for a learnable R).
+
+    The structure (R's, and whether F or H is a scaled identity) is fixed at construction: change
+    F, H or R in place only through learning (learnable matrices are treated as general).
     """
 
-    def __init__(self, F, Q, H, R, m0=None, P0=None, *, learnable=False):
+    def __init__(self, F, Q, H, R, m0=None, P0=None, *, learnable=False, measurement_noise: Optional[str] = None):
         super().__init__()
         F = torch.as_tensor(F, dtype=torch.float64)
         d = F.shape[-1]
@@ -72,6 +76,24 @@ class LinearGaussian(StateSpaceModel):
                 self.register_buffer(name, val.clone())
         self.register_buffer("m0", m0.clone())
         self.register_buffer("P0", P0.clone())
+        # structure declared once, here (filters never test the matrices at run time); a learnable
+        # matrix is general, so that every entry receives its gradient. F, H, R are fixed after
+        # construction unless learnable.
+        self.transition_matrix_scale = None if "F" in learn else _identity_scale(F)
+        self.measurement_matrix_scale = None if "H" in learn else _identity_scale(H)
+        self.measurement_noise_scale = None if "R" in learn else _identity_scale(R)
+        if measurement_noise is None:
+            off = R - torch.diag_embed(R.diagonal())
+            measurement_noise = ("dense" if "R" in learn or bool((off != 0).any()) else
+                                 "scalar" if self.measurement_noise_scale is not None else "diagonal")
+        if measurement_noise not in ("scalar", "diagonal", "dense"):
+            raise ValueError(f"measurement_noise: expected 'scalar', 'diagonal', 'dense' or None, got "
+                             f"{measurement_noise!r}")
+        if measurement_noise == "scalar" and self.measurement_noise_scale is None:
+            raise ValueError("measurement_noise: declared 'scalar' but R is not a constant multiple of I")
+        if measurement_noise == "diagonal" and bool((R != torch.diag_embed(R.diagonal())).any()):
+            raise ValueError("measurement_noise: declared 'diagonal' but R has off-diagonal entries")
+        self.measurement_noise = measurement_noise
 
     linear_dynamics = True
     linear_measurement = True
@@ -108,7 +130,7 @@ class LinearGaussian(StateSpaceModel):
         flat = x.reshape(-1, d)
         xi = linalg.standard_normal(flat.shape, dtype=x.dtype, device=x.device, generator=generator)
         out = xi @ self.transition_scale_tril().T
-        alpha = _scaled_identity(self.F)
+        alpha = self.transition_matrix_scale
         if alpha is not None:
             out.add_(flat, alpha=alpha)
         else:
@@ -119,7 +141,7 @@ class LinearGaussian(StateSpaceModel):
         """Whitened residual ``L_R^{-1} z - (L_R^{-1} H) x``: the triangular solve is applied to
         ``H`` and ``z`` once, not to every particle's residual. ``z (..., m)`` broadcasts with
         ``x (..., d)``."""
-        h, r = _scaled_identity(self.H), _scaled_identity(self.R)
+        h, r = self.measurement_matrix_scale, self.measurement_noise_scale
         if h is not None and r is not None and r > 0:  # z = h x + w, R = r I: elementwise residuals
             m = self.obs_dim
             quad = torch.linalg.vector_norm(x * h - z if h != 1.0 else x - z, dim=-1).square() / r
@@ -149,24 +171,15 @@ class LinearGaussian(StateSpaceModel):
         return self.m0.expand(B, -1).clone(), self.P0.expand(B, -1, -1).clone()
 
 
-def _scaled_identity(M: torch.Tensor) -> Optional[float]:
-    """``c`` if the square matrix ``M == c I`` exactly (and carries no gradient), else ``None``.
-    Lets the samplers and likelihoods replace products by scalings for models such as the sensor
-    network (F = 0.9 I, H = I, R = 0.25 I); a learnable matrix always takes the general path so
-    that every entry receives its gradient."""
-    if M.requires_grad or M.dim() != 2 or M.shape[0] != M.shape[1]:
+def _identity_scale(M: torch.Tensor) -> Optional[float]:
+    """``c`` if the square matrix ``M == c I`` exactly, else ``None`` (read once, at construction).
+    Lets the samplers, likelihoods and the Kalman filter replace products by scalings for models
+    such as the sensor network (F = 0.9 I, H = I, R = 0.25 I)."""
+    if M.dim() != 2 or M.shape[0] != M.shape[1]:
         return None
-    hit = _SCALED_IDENTITY.get(id(M))
-    if hit is not None and hit[0]() is M and hit[1] == M._version:
-        return hit[2]
     c = M[0, 0]
-    value = float(c) if bool((M == c * torch.eye(M.shape[0], dtype=M.dtype, device=M.device)).all()) else None
-    _SCALED_IDENTITY[id(M)] = (weakref.ref(M), M._version, value)
-    return value
+    return float(c) if bool((M == c * torch.eye(M.shape[0], dtype=M.dtype, device=M.device)).all()) else None
 
-
-#: id(tensor) -> (weakref, version, result): the check runs once per matrix and in-place edit
-_SCALED_IDENTITY: dict = {}
 
 
 def sensor_network_covariance(
