@@ -59,7 +59,7 @@ Resampler = Callable[..., Tensor]
 # ---------------------------------------------------------------------------
 # Validation helpers
 # ---------------------------------------------------------------------------
-def _check_log_weights(log_weights: object, name: str = "log_weights") -> Tensor:
+def _check_log_weights(log_weights: object, name: str = "log_weights", values: bool = True) -> Tensor:
     """Validates a ``(B, N)`` floating-point log-weight tensor.
 
     Checks the type, shape (2-D with ``N >= 1``) and dtype, and that the
@@ -69,6 +69,8 @@ def _check_log_weights(log_weights: object, name: str = "log_weights") -> Tensor
     Args:
         log_weights: Candidate tensor, expected shape ``(B, N)``.
         name: Argument name used in error messages.
+        values: also check the values (NaN, +inf, rows of -inf); these checks read the
+            tensor back to the host, so filters whose weights are finite by construction skip them.
 
     Returns:
         The same tensor.
@@ -95,7 +97,7 @@ def _check_log_weights(log_weights: object, name: str = "log_weights") -> Tensor
         raise ValueError(
             f"{name} must have a floating-point dtype, got {log_weights.dtype}"
         )
-    if log_weights.numel() > 0:
+    if values and log_weights.numel() > 0:  # value checks synchronise with the device
         has_nan_or_posinf = torch.isnan(log_weights).any() | torch.isposinf(
             log_weights
         ).any()
@@ -174,7 +176,7 @@ def _rand(shape: Tuple[int, ...], like: Tensor, generator: Optional[torch.Genera
 # ---------------------------------------------------------------------------
 # Weight utilities
 # ---------------------------------------------------------------------------
-def normalize_log_weights(log_weights: Tensor) -> Tensor:
+def normalize_log_weights(log_weights: Tensor, *, validate: bool = True) -> Tensor:
     """Normalises log weights so that each trial's weights sum to one.
 
     Args:
@@ -188,7 +190,7 @@ def normalize_log_weights(log_weights: Tensor) -> Tensor:
         ValueError: If ``log_weights`` is not a 2-D floating-point tensor with
             at least one finite entry per row, or contains NaN / ``+inf``.
     """
-    _check_log_weights(log_weights)
+    _check_log_weights(log_weights, values=validate)
     # Shift by the row maximum first: exact, and avoids cancellation when the
     # log weights are large in magnitude (e.g. -1000 in float32).
     shifted = log_weights - log_weights.amax(dim=1, keepdim=True)
@@ -217,7 +219,7 @@ def effective_sample_size(log_weights: Tensor) -> Tensor:
 # ---------------------------------------------------------------------------
 # Resamplers
 # ---------------------------------------------------------------------------
-def multinomial(log_weights: Tensor, generator: Optional[torch.Generator] = None) -> Tensor:
+def multinomial(log_weights: Tensor, generator: Optional[torch.Generator] = None, *, validate: bool = True) -> Tensor:
     """Multinomial resampling: ``N`` i.i.d. draws from the weights.
 
     Uses inverse-CDF sampling with ``N`` independent uniforms per trial. The
@@ -233,14 +235,14 @@ def multinomial(log_weights: Tensor, generator: Optional[torch.Generator] = None
     Raises:
         ValueError: On invalid ``log_weights``.
     """
-    _check_log_weights(log_weights)
+    _check_log_weights(log_weights, values=validate)
     b, n = log_weights.shape
     cdf = _scaled_cdf(_unnormalized_weights(log_weights))
     positions = _below(_rand((b, n), log_weights, generator) * n, cdf.new_tensor(float(n)))
     return _invert_cdf(cdf, positions)
 
 
-def systematic(log_weights: Tensor, generator: Optional[torch.Generator] = None) -> Tensor:
+def systematic(log_weights: Tensor, generator: Optional[torch.Generator] = None, *, validate: bool = True) -> Tensor:
     """Systematic resampling: one uniform ``U`` per trial, ``u_i = (U + i) / N``.
 
     Indices are the inverse CDF (``searchsorted`` of the cumulative weights,
@@ -258,7 +260,7 @@ def systematic(log_weights: Tensor, generator: Optional[torch.Generator] = None)
     Raises:
         ValueError: On invalid ``log_weights``.
     """
-    _check_log_weights(log_weights)
+    _check_log_weights(log_weights, values=validate)
     b, n = log_weights.shape
     cdf = _scaled_cdf(_unnormalized_weights(log_weights))
     u = _rand((b, 1), log_weights, generator)
@@ -267,7 +269,7 @@ def systematic(log_weights: Tensor, generator: Optional[torch.Generator] = None)
     return _invert_cdf(cdf, positions)
 
 
-def stratified(log_weights: Tensor, generator: Optional[torch.Generator] = None) -> Tensor:
+def stratified(log_weights: Tensor, generator: Optional[torch.Generator] = None, *, validate: bool = True) -> Tensor:
     """Stratified resampling: ``u_i = (i + U_i) / N`` with independent ``U_i``.
 
     Args:
@@ -281,7 +283,7 @@ def stratified(log_weights: Tensor, generator: Optional[torch.Generator] = None)
     Raises:
         ValueError: On invalid ``log_weights``.
     """
-    _check_log_weights(log_weights)
+    _check_log_weights(log_weights, values=validate)
     b, n = log_weights.shape
     cdf = _scaled_cdf(_unnormalized_weights(log_weights))
     u = _rand((b, n), log_weights, generator)
@@ -290,7 +292,7 @@ def stratified(log_weights: Tensor, generator: Optional[torch.Generator] = None)
     return _invert_cdf(cdf, positions)
 
 
-def residual(log_weights: Tensor, generator: Optional[torch.Generator] = None) -> Tensor:
+def residual(log_weights: Tensor, generator: Optional[torch.Generator] = None, *, validate: bool = True) -> Tensor:
     """Residual resampling.
 
     Particle ``i`` first receives ``floor(N w_i)`` deterministic copies: output
@@ -312,7 +314,7 @@ def residual(log_weights: Tensor, generator: Optional[torch.Generator] = None) -
     Raises:
         ValueError: On invalid ``log_weights``.
     """
-    _check_log_weights(log_weights)
+    _check_log_weights(log_weights, values=validate)
     b, n = log_weights.shape
     w = _unnormalized_weights(log_weights)
     # N * w_i, computed so that uniform weights give exactly 1.
@@ -378,6 +380,7 @@ def resample_if_needed(
     *,
     scheme: str = "systematic",
     ess_threshold: float = 0.5,
+    validate: bool = True,
 ) -> Tuple[Tensor, Tensor, Tensor]:
     """Resamples only the trials whose effective sample size is too low.
 
@@ -396,6 +399,8 @@ def resample_if_needed(
         generator: Source of randomness; ``None`` uses torch's default.
         scheme: Name of the resampling scheme (a key of :data:`RESAMPLERS`).
         ess_threshold: Fraction of ``N`` in ``[0, 1]``.
+        validate: check the weights' values (NaN, +inf, all -inf rows); a filter whose weights
+            are valid by construction passes ``False`` to avoid the host synchronisation.
 
     Returns:
         A tuple ``(indices, resampled, new_log_weights)``:
@@ -411,7 +416,7 @@ def resample_if_needed(
         ValueError: On invalid ``log_weights``, unknown ``scheme`` or
             ``ess_threshold`` outside ``[0, 1]``.
     """
-    _check_log_weights(log_weights)
+    _check_log_weights(log_weights, values=validate)
     resampler = _get_resampler(scheme, "scheme")
     if (
         isinstance(ess_threshold, bool)
@@ -424,7 +429,7 @@ def resample_if_needed(
     threshold = float(ess_threshold)
     b, n = log_weights.shape
 
-    lw = normalize_log_weights(log_weights)
+    lw = normalize_log_weights(log_weights, validate=False)
     identity = torch.arange(n, device=lw.device, dtype=torch.int64).expand(b, n)
     if threshold == 0.0:
         resampled = torch.zeros(b, dtype=torch.bool, device=lw.device)
@@ -432,7 +437,7 @@ def resample_if_needed(
 
     ess = torch.exp(-torch.logsumexp(2.0 * lw, dim=1))
     resampled = ess < threshold * n
-    indices = torch.where(resampled[:, None], resampler(log_weights, generator), identity)
+    indices = torch.where(resampled[:, None], resampler(log_weights, generator, validate=False), identity)
     uniform = torch.full_like(lw, -math.log(n))
     new_log_weights = torch.where(resampled[:, None], uniform, lw)
     return indices, resampled, new_log_weights

@@ -58,6 +58,8 @@ class ParticleState:
         cov: optional per-particle covariances ``(B, N, d, d)`` (PF-PF) or per-trial ``(B, d, d)``.
         step: number of observations processed.
         extras: filter-specific tensors with a leading ``(B, N)`` that follow resampling.
+        invalid: ``(B,)`` bool, trials with NaN/inf particles or weights this step (filters run with
+            ``nonfinite="raise"``; ``forward`` raises :class:`NonFiniteError` for them), else ``None``.
     """
 
     particles: torch.Tensor
@@ -70,6 +72,7 @@ class ParticleState:
     cov: Optional[torch.Tensor] = None
     step: int = 0
     extras: Dict[str, torch.Tensor] = field(default_factory=dict)
+    invalid: Optional[torch.Tensor] = None
 
 
 @dataclass
@@ -213,9 +216,14 @@ class Filter(nn.Module):
         est, inc, ess, covs, parts, lws = [], [], [], [], [], []
         for t in range(observations.shape[1]):
             state = self.step(state, observations[:, t], generator)
-            if not bool(torch.isfinite(state.estimate).all()):
-                bad = ~torch.isfinite(state.estimate).all(-1)
-                raise NonFiniteError(self.name, t + 1, torch.nonzero(bad).flatten().tolist())
+            # one host synchronisation per time step, here, outside the step
+            bad = ~torch.isfinite(state.estimate).all(-1)
+            invalid = getattr(state, "invalid", None)
+            if invalid is not None:
+                bad = bad | invalid
+            if bool(bad.any()):
+                what = "particles or weights" if invalid is not None and bool(invalid.any()) else "estimate"
+                raise NonFiniteError(self.name, t + 1, torch.nonzero(bad).flatten().tolist(), what=what)
             est.append(state.estimate)
             inc.append(state.log_evidence_increment)
             if state.ess is not None:
@@ -370,44 +378,44 @@ class ParticleFilterBase(Filter):
         B = particles.shape[0]
         if n_repaired is None:
             n_repaired = torch.zeros(B, dtype=torch.long, device=particles.device)
-        # a particle with a non-finite coordinate has a non-finite coordinate sum (inf - inf = nan):
-        # one reduction instead of an elementwise isfinite over (B, N, d)
+        # No host synchronisation: every branch below is a masked update over all trials. With
+        # nonfinite="raise", the offending trials are flagged in ``state.invalid`` and
+        # :meth:`Filter.forward` raises after the step (one check per time step).
+        # A particle with a non-finite coordinate has a non-finite coordinate sum (inf - inf = nan):
+        # one reduction instead of an elementwise isfinite over (B, N, d).
         bad_p = torch.isnan(log_increment) | (log_increment == float("inf")) | ~torch.isfinite(particles.sum(-1))
-        if bool(bad_p.any()):
-            if self.nonfinite == "raise":
-                trials = torch.nonzero(bad_p.any(-1)).flatten().tolist()
-                raise NonFiniteError(self.name, step, trials, what="particles or weights")
-            n_repaired = n_repaired + bad_p.any(-1).long()
+        bad_trial = bad_p.any(-1)
+        recover = self.nonfinite == "recover"
+        if recover:
+            n_repaired = n_repaired + bad_trial.long()
             log_increment = log_increment.masked_fill(bad_p, float("-inf"))
             fb = torch.zeros_like(particles) if fallback is None else fallback
             particles = torch.where(bad_p.unsqueeze(-1), fb, particles)
         lw = prev_log_weights + log_increment
         inc = torch.logsumexp(lw, dim=-1)
-        dead = ~torch.isfinite(inc)  # no particle with positive weight (all -inf)
-        if bool(dead.any()):
-            if self.nonfinite == "raise":
-                raise NonFiniteError(self.name, step, torch.nonzero(dead).flatten().tolist(), what="weights")
-            n_repaired = n_repaired + (dead & ~bad_p.any(-1)).long()
+        dead = ~torch.isfinite(inc)  # no particle with positive weight (all -inf), or NaN
+        if recover:
+            n_repaired = n_repaired + (dead & ~bad_trial).long()
             lw = torch.where(dead.unsqueeze(-1), prev_log_weights, lw)
             if fallback is not None:
                 particles = torch.where(dead[:, None, None], fallback, particles)
-            inc = torch.where(dead, torch.logsumexp(lw, dim=-1), inc)
-            inc = inc.masked_fill(dead, float("-inf"))  # the evidence estimate of that step is zero
-            lw_norm = lw - torch.logsumexp(lw, dim=-1, keepdim=True)
+            invalid = None
         else:
-            lw_norm = lw - inc.unsqueeze(-1)
-        lw = lw_norm
+            invalid = bad_trial | dead
+        # rows that were not dead see the same lw, hence the same logsumexp as ``inc``
+        lw = lw - torch.logsumexp(lw, dim=-1, keepdim=True)
+        inc = inc.masked_fill(dead, float("-inf"))  # the evidence estimate of a dead step is zero
         w = lw.exp()
         estimate = torch.einsum("bn,bnd->bd", w, particles)
         ess = 1.0 / w.pow(2).sum(-1)
         idx, resampled, lw_new = _resampling.resample_if_needed(
-            lw, generator, scheme=self.resampling_scheme, ess_threshold=self.ess_threshold)
-        if bool(resampled.any()):
-            particles = _resampling.gather_particles(particles, idx)
-            if cov is not None and cov.dim() == 4 and cov.shape[1] == particles.shape[1]:
-                cov = _resampling.gather_particles(cov, idx)
-            if extras:
-                extras = {k: _resampling.gather_particles(v, idx) for k, v in extras.items()}
+            lw, generator, scheme=self.resampling_scheme, ess_threshold=self.ess_threshold, validate=False)
+        # gathered in every trial (identity indices where not resampled): no test of ``resampled``
+        particles = _resampling.gather_particles(particles, idx)
+        if cov is not None and cov.dim() == 4 and cov.shape[1] == particles.shape[1]:
+            cov = _resampling.gather_particles(cov, idx)
+        if extras:
+            extras = {k: _resampling.gather_particles(v, idx) for k, v in extras.items()}
         if self.regularization_std is not None:
             # drawn whether or not any trial resampled, so that each trial's stream advances the
             # same way whatever the other trials in its batch do
@@ -416,4 +424,4 @@ class ParticleFilterBase(Filter):
             particles = particles + noise * resampled[:, None, None].to(particles.dtype)
         return ParticleState(particles=particles, log_weights=lw_new, estimate=estimate, ess=ess,
                              log_evidence_increment=inc, resampled=resampled, n_repaired=n_repaired,
-                             cov=cov, step=step, extras=extras or {})
+                             cov=cov, step=step, extras=extras or {}, invalid=invalid)

@@ -76,6 +76,9 @@ class AcousticTracking(StateSpaceModel):
         self.register_buffer("F", _blockdiag(F1, C))
         self.register_buffer("V_true", V)
         self.register_buffer("V_filter", _blockdiag(Vf1, C) if filter_noise == "inflated" else V.clone())
+        # the filters' noise is constant: factor it once (no factorisation, and no host
+        # synchronisation, per filter step)
+        self.register_buffer("V_filter_tril", linalg.safe_cholesky(self.V_filter))
         self.filter_noise = filter_noise
         ticks = torch.linspace(0.0, area, sensor_grid, **f64)
         sy, sx = torch.meshgrid(ticks, ticks, indexing="ij")
@@ -105,6 +108,9 @@ class AcousticTracking(StateSpaceModel):
 
     def transition_cov(self, x=None):
         return self.V_filter
+
+    def transition_scale_tril(self, x=None):
+        return self.V_filter_tril
 
     def true_transition_scale_tril(self):
         return linalg.safe_cholesky(self.V_true)

@@ -76,6 +76,8 @@ class LinearGaussian(StateSpaceModel):
                 self.register_buffer(name, val.clone())
         self.register_buffer("m0", m0.clone())
         self.register_buffer("P0", P0.clone())
+        # a constant Q is factored once (a learnable one at every use, so that it has a gradient)
+        self.register_buffer("Q_tril", None if "Q" in learn else linalg.safe_cholesky(Q))
         # structure declared once, here (filters never test the matrices at run time); a learnable
         # matrix is general, so that every entry receives its gradient. F, H, R are fixed after
         # construction unless learnable.
@@ -110,6 +112,9 @@ class LinearGaussian(StateSpaceModel):
 
     def transition_cov(self, x=None):
         return self.Q
+
+    def transition_scale_tril(self, x=None):
+        return self.Q_tril if self.Q_tril is not None else linalg.safe_cholesky(self.Q)
 
     def transition_jacobian(self, x):
         return self.F.expand(*x.shape[:-1], *self.F.shape)
