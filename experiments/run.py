@@ -169,7 +169,9 @@ def row_label(key: str, f) -> str:
     if flow is None:
         return key
     fl = flow_label(flow)
-    return key if key in (fl, f"pfpf_{fl}") else f"{key}[flow={fl}]"
+    named = [n for n in sorted(set(_FLOW_NAMES.values()), key=len, reverse=True) if n in key.split("_")]
+    expected = named[0] if named else "ledh"  # a key naming no flow (pfpf_clustered) runs LEDH by default
+    return key if fl == expected else f"{key}[flow={fl}]"
 
 
 class UsageError(Exception):
@@ -219,6 +221,33 @@ def check_selections(argv) -> None:
                              f"available: {', '.join(options)}")
 
 
+def omat_box_figure(plt, per_trial, summary, title: str):
+    """Per-trial time-averaged OMAT of every filter as a box at the filter's time per step (log
+    axis): accuracy against cost, as seed 004's Fig. 5. ``None`` without OMAT."""
+    names = [r["filter"] for r in summary if r.get("omat") is not None and r.get("sec_per_step")]
+    if not names:
+        return None
+    colour = _colours([r["filter"] for r in summary])
+    fig, ax = plt.subplots(figsize=(8.5, 4.2))
+    for name in names:
+        vals = [r["omat"] for r in per_trial if r["filter"] == name and "omat" in r]
+        x = next(r["sec_per_step"] for r in summary if r["filter"] == name)
+        bp = ax.boxplot([vals], positions=[x], widths=[x * 0.25], patch_artist=True, manage_ticks=False)
+        for part in ("boxes", "medians", "whiskers", "caps", "fliers"):
+            for artist in bp[part]:
+                artist.set_color(colour[name])
+        bp["boxes"][0].set_facecolor("none")
+        bp["boxes"][0].set_label(name)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1))
+    ax.set_xscale("log")
+    ax.set_xlabel("seconds per trial-step (this run)")
+    ax.set_ylabel("time-averaged OMAT per trial (m)")
+    ax.grid(alpha=0.3)
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
 def _write_results(out: Path, cfg, result, model) -> None:
     _write_csv(out / "summary.csv", result.summary, SUMMARY_COLUMNS)
     _write_csv(out / "per_step.csv", result.per_step)
@@ -233,6 +262,12 @@ def _write_results(out: Path, cfg, result, model) -> None:
         if model.has_positions and result.trajectory is not None:
             _plot_tracks(out / "tracks.png", model, result.trajectory, result.examples, result.summary,
                          f"{model_name}: trial 0, true and estimated tracks")
+            plt = _matplotlib()
+            fig = omat_box_figure(plt, result.per_trial, result.summary,
+                                  f"{model_name}: per-trial OMAT against time per step, {cfg.trials} trials")
+            if fig is not None:
+                fig.savefig(out / "omat_box.png", dpi=110)
+                plt.close(fig)
 
 
 def _run(cfg: DictConfig) -> int:

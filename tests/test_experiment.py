@@ -179,6 +179,12 @@ def test_row_label_names_the_flow_that_ran():
     assert run.row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="ledh")) == "pfpf_ledh"
     assert run.row_label("gromov", ParticleFlowFilter(model, flow="gromov")) == "gromov"
     assert run.row_label("bpf", BootstrapParticleFilter(model)) == "bpf"
+    from torchflow.filters import ClusteredParticleFlowParticleFilter
+
+    assert run.row_label("pfpf_clustered", ClusteredParticleFlowParticleFilter(model)) == "pfpf_clustered"
+    assert run.row_label("pfpf_clustered_k30", ClusteredParticleFlowParticleFilter(model)) == "pfpf_clustered_k30"
+    assert (run.row_label("pfpf_clustered", ClusteredParticleFlowParticleFilter(model, flow="geodesic"))
+            == "pfpf_clustered[flow=geodesic]")
 
 
 def test_runner_keeps_finished_filters_on_interrupt():
@@ -219,3 +225,15 @@ def test_cli_ctrl_c_writes_finished_results(tmp_path):
     rows = list(csv.DictReader(open(summary)))
     assert [r["filter"] for r in rows] == ["kf", "bpf"] and rows[1]["error"].startswith("interrupted after")
     assert json.loads((tmp_path / "run" / "results.json").read_text())["interrupted"] is True
+
+
+def test_omat_box_figure_one_box_per_filter():
+    plt = pytest.importorskip("matplotlib.pyplot")
+    run = _run_module()
+    model = AcousticTracking()
+    filters = {"ekf": ExtendedKalmanFilter(model), "bpf": BootstrapParticleFilter(model, n_particles=40)}
+    res = run_experiment(model, filters, trials=3, steps=2, progress=False)
+    fig = run.omat_box_figure(plt, res.per_trial, res.summary, "t")
+    ax = fig.axes[0]
+    assert ax.get_xscale() == "log" and [t.get_text() for t in ax.get_legend().get_texts()] == ["ekf", "bpf"]
+    plt.close(fig)

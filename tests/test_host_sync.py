@@ -57,3 +57,11 @@ def test_pfpf_step_reads_back_only_for_covariance_factorisations(flow):
     model = AcousticTracking()
     n = _second_step(model, ParticleFlowParticleFilter(model, flow=flow, n_particles=32))
     assert n <= 4, n
+
+
+def test_clustered_pfpf_step_reads_back_only_for_covariance_factorisations():
+    from torchflow.filters import ClusteredParticleFlowParticleFilter
+
+    model = AcousticTracking()
+    n = _second_step(model, ClusteredParticleFlowParticleFilter(model, n_clusters=5, n_particles=32))
+    assert n <= 4, n

@@ -1,7 +1,7 @@
 """Filters: every filter is an ``nn.Module`` with the ``init`` / ``step`` / ``forward`` contract."""
 from .base import Filter, FilterResult, GaussianState, ParticleFilterBase, ParticleState
 from .bootstrap import BootstrapParticleFilter
-from .pfpf import ParticleFlowFilter, ParticleFlowParticleFilter
+from .pfpf import ClusteredParticleFlowParticleFilter, ParticleFlowFilter, ParticleFlowParticleFilter
 from .kalman import ExtendedKalmanFilter, KalmanFilter, UnscentedKalmanFilter, ekf_predict, kalman_update
 
 __all__ = [
@@ -15,6 +15,7 @@ __all__ = [
     "UnscentedKalmanFilter",
     "BootstrapParticleFilter",
     "ParticleFlowParticleFilter",
+    "ClusteredParticleFlowParticleFilter",
     "ParticleFlowFilter",
     "kalman_update",
     "ekf_predict",
