@@ -53,3 +53,12 @@ def mild_lg(d=3, m=2, seed=0):
     eye_d = torch.eye(d, dtype=torch.float64)
     return LinearGaussian(0.9 * eye_d, 0.5 * eye_d, H, 0.1 * torch.eye(m, dtype=torch.float64),
                           torch.zeros(d, dtype=torch.float64), 0.1 * eye_d)
+
+
+def replicated(model, B, T, seed=0):
+    """One observation sequence replicated over B trials (unbiasedness is conditional on z)."""
+    g = torch.Generator().manual_seed(seed)
+    traj = model.simulate(1, T, g)
+    obs = traj.observations.expand(B, -1, -1).contiguous()
+    mean, cov = model.initial_belief(traj.states[:, 0].expand(B, -1))
+    return obs, mean, cov

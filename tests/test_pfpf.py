@@ -12,16 +12,10 @@ from torchflow.flows import EDHFlow, LEDHFlow
 from torchflow.models import AcousticTracking
 from torchflow.schedules import ExponentialSchedule, UniformSchedule
 from torchflow import metrics
-from conftest import mild_lg, random_lg
+from conftest import mild_lg, random_lg, replicated
 
 
-def _replicated(model, B, T, seed=0):
-    """One observation sequence replicated over B trials (unbiasedness is conditional on z)."""
-    g = torch.Generator().manual_seed(seed)
-    traj = model.simulate(1, T, g)
-    obs = traj.observations.expand(B, -1, -1).contiguous()
-    mean, cov = model.initial_belief(traj.states[:, 0].expand(B, -1))
-    return obs, mean, cov
+_replicated = replicated
 
 
 @pytest.mark.parametrize("flow", ["ledh", "edh"])

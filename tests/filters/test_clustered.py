@@ -5,19 +5,14 @@ import math
 import pytest
 import torch
 
-from conftest import mild_lg, random_lg
+from conftest import mild_lg, random_lg, replicated
 from torchflow.filters import ClusteredParticleFlowParticleFilter, KalmanFilter, ParticleFlowParticleFilter
 from torchflow.flows import cluster_distance, kmedoids
 from torchflow.models import AcousticTracking
 from torchflow.random import TrialStreams
 
 
-def _replicated(model, B, T, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    traj = model.simulate(1, T, g)
-    obs = traj.observations.expand(B, -1, -1).contiguous()
-    mean, cov = model.initial_belief(traj.states[:, 0].expand(B, -1))
-    return obs, mean, cov
+_replicated = replicated
 
 
 def test_k_equal_n_is_pfpf_ledh_on_the_same_draws():
