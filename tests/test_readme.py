@@ -28,6 +28,7 @@ SHRINK_PY = [
     ('default_root_dir="outputs/lightning"', 'default_root_dir=OUT'),
     ("n_particles=500, covariance", "n_particles=30, covariance"),
     ("GromovFlow(), n_particles=500", "GromovFlow(), n_particles=30"),
+    ("n_clusters=100, alpha=0.25, n_particles=500", "n_clusters=5, alpha=0.25, n_particles=30"),
 ]
 #: command-line sizes: replaced where the command sets them, appended where it does not
 SHRINK_CLI = {"trials": "2", "steps": "2", "n_particles": "20"}
