@@ -162,16 +162,22 @@ def flow_label(flow) -> str:
 
 
 def row_label(key: str, f) -> str:
-    """A result row's label: the config key, plus the flow it really ran when an override made
-    the key's name wrong (``pfpf_ledh`` run with ``flow@filter.pfpf_ledh.flow=edh`` ->
-    ``pfpf_ledh[flow=edh]``)."""
+    """A result row's label: the config key, plus the flow and linearisation points it really ran
+    when an override made the key's name wrong (``pfpf_ledh`` run with
+    ``flow@filter.pfpf_ledh.flow=edh`` -> ``pfpf_ledh[flow=edh]``; with
+    ``filter.pfpf_ledh.points=global`` -> ``pfpf_ledh[points=global]``)."""
     flow = getattr(f, "flow", None)
     if flow is None:
         return key
     fl = flow_label(flow)
     named = [n for n in sorted(set(_FLOW_NAMES.values()), key=len, reverse=True) if n in key.split("_")]
     expected = named[0] if named else "ledh"  # a key naming no flow (pfpf_clustered) runs LEDH by default
-    return key if fl == expected else f"{key}[flow={fl}]"
+    tags = [] if fl == expected else [f"flow={fl}"]
+    points = getattr(f, "points", None)
+    default_points = "clustered" if "clustered" in key.split("_") else ("particle" if flow.local else "global")
+    if points is not None and points != default_points:
+        tags.append(f"points={points}")
+    return f"{key}[{','.join(tags)}]" if tags else key
 
 
 class UsageError(Exception):

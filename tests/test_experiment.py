@@ -237,3 +237,16 @@ def test_omat_box_figure_one_box_per_filter():
     ax = fig.axes[0]
     assert ax.get_xscale() == "log" and [t.get_text() for t in ax.get_legend().get_texts()] == ["ekf", "bpf"]
     plt.close(fig)
+
+
+def test_row_label_names_overridden_points():
+    run = _run_module()
+    from torchflow.filters import ParticleFlowParticleFilter
+
+    model = SensorNetwork(d=4)
+    assert run.row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="ledh", points="global")) \
+        == "pfpf_ledh[points=global]"
+    assert run.row_label("pfpf_edh", ParticleFlowParticleFilter(model, flow="ledh", points="particle")) \
+        == "pfpf_edh[flow=ledh]"
+    assert run.row_label("pfpf_edh", ParticleFlowParticleFilter(model, flow="edh", points="clustered")) \
+        == "pfpf_edh[points=clustered]"

@@ -15,6 +15,7 @@ from .. import resampling as _resampling
 from ..flows.points import cluster_distance, kmedoids
 from ..flows import (EDHFlow, FlowPrior, GeodesicFlow, GromovFlow, LEDHFlow, OptimalDiffusionFlow, ParticleFlow,
                      integrate_flow)
+from ..flows.base import resolve_points
 from ..schedules import ExponentialSchedule, LambdaSchedule
 from .._checks import check_count
 from .base import Filter, GaussianState, ParticleFilterBase, ParticleState
@@ -46,11 +47,13 @@ def _flow(flow):
 class _FlowFilterMixin:
     """Flow, schedule and covariance tracker shared by the flow filters."""
 
-    def _init_flow(self, model, flow, schedule, covariance):
+    def _init_flow(self, model, flow, schedule, covariance, points=None):
         self.flow = _flow(flow)
         self.schedule = schedule or ExponentialSchedule()
         self.covariance = covariance
         self.tracker = _tracker(model, covariance)
+        #: where the flow is linearised: "global", "particle" or "clustered" (default: the flow's own)
+        self.points = resolve_points(self.flow, points)
 
     #: per-particle (local) flows batch d x d products over trials x particles; on a 2-core CPU
     #: their time per trial-step is flat up to ~1e4 points per call and doubles at 2e4 (acoustic,
@@ -58,7 +61,7 @@ class _FlowFilterMixin:
     points_per_call = 10_000
 
     def preferred_chunk_trials(self, n_particles=None):
-        if not self.flow.local:
+        if self.points != "particle":
             return None
         return max(1, self.points_per_call // int(n_particles or self.n_particles))
 
@@ -70,7 +73,7 @@ class _FlowFilterMixin:
         if shared:  # linear models: one prior factor and Jacobian per trial, vectors per particle
             flow = cov_mats * d * d + N * (8 * d + 3 * m)
         else:
-            flow = N * per_point if self.flow.local else N * (8 * d + 3 * m) + 4 * per_point
+            flow = N * per_point if self.points == "particle" else N * (8 * d + 3 * m) + 4 * per_point
         return 8 * flow + N * self.model.bytes_per_point()
 
 
@@ -98,35 +101,61 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
         schedule: lambda schedule (default exponential, 29 steps, ratio 1.2).
         n_particles: N.
         covariance: ``"ekf"`` or ``"ukf"`` covariance tracking.
+        points: where the flow is linearised: ``"particle"`` (each particle's auxiliary point, P
+            per particle), ``"global"`` (the trial's migrating mean, one P per trial),
+            ``"clustered"`` (K medoids, one P per trial; see
+            :class:`ClusteredParticleFlowParticleFilter`) or ``None``: the flow's own default
+            (LEDH and the per-particle homotopy flows: particle; EDH: global). Any flow pairs with
+            any points (clustered: deterministic flows).
+        n_clusters, alpha, sweeps, jacobian_in_weight: clustered points only, see
+            :class:`ClusteredParticleFlowParticleFilter`.
         resampling, ess_threshold, regularization: see
             :class:`~torchflow.filters.base.ParticleFilterBase`.
         nonfinite: ``"recover"`` (default) repairs and counts non-finite particles, ``"raise"``
             raises.
-        particle_chunk: flow (local flows) and weigh at most this many particles at a time to
-            bound memory; ``None``: all (see :meth:`~torchflow.filters.base.ParticleFilterBase.plan_memory`).
+        particle_chunk: flow (per-particle points) and weigh at most this many particles at a time
+            to bound memory; ``None``: all (see :meth:`~torchflow.filters.base.ParticleFilterBase.plan_memory`).
     """
 
     random_stream = "pfpf"
 
     def __init__(self, model, *, flow=None, schedule: Optional[LambdaSchedule] = None,
-                 n_particles: int = 500, covariance: str = "ekf", resampling: str = "systematic",
-                 ess_threshold: float = 0.5, regularization=None, nonfinite: str = "recover",
-                 particle_chunk: Optional[int] = None, validate: bool = True, name: Optional[str] = None):
+                 n_particles: int = 500, covariance: str = "ekf", points: Optional[str] = None,
+                 n_clusters: int = 100, alpha: float = 0.25, sweeps: int = 10, jacobian_in_weight: bool = True,
+                 resampling: str = "systematic", ess_threshold: float = 0.5, regularization=None,
+                 nonfinite: str = "recover", particle_chunk: Optional[int] = None, validate: bool = True,
+                 name: Optional[str] = None):
         super().__init__(model, n_particles=n_particles, resampling=resampling, ess_threshold=ess_threshold,
                          regularization=regularization, nonfinite=nonfinite, particle_chunk=particle_chunk,
                          validate=validate, name=name)
-        self._init_flow(model, flow, schedule, covariance)
+        self._init_flow(model, flow, schedule, covariance, points)
+        if self.points == "clustered" and self.flow.stochastic:
+            raise ValueError(f"flow: clustered linearisation points need a deterministic flow (ledh, edh, geodesic), "
+                             f"got {type(self.flow).__name__}")
+        self.n_clusters = check_count("n_clusters", n_clusters)
+        self.sweeps = check_count("sweeps", sweeps)
+        if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0.0 <= float(alpha) <= 1.0:
+            raise ValueError(f"alpha: expected a weight in [0, 1], got {alpha!r}")
+        self.alpha = float(alpha)
+        if not isinstance(jacobian_in_weight, bool):
+            raise TypeError(f"jacobian_in_weight: expected a bool, got {type(jacobian_in_weight).__name__}")
+        self.jacobian_in_weight = jacobian_in_weight
 
     def bytes_per_trial(self, n_particles=None):
-        return self._flow_bytes(n_particles or self.n_particles, cov_mats=18 if self.flow.stochastic else 12)
+        N = n_particles or self.n_particles
+        flow = self._flow_bytes(N, cov_mats=18 if self.flow.stochastic else 12)
+        if self.points != "clustered":
+            return flow
+        K, d = min(self.n_clusters, N), self.model.state_dim
+        return flow + 8 * (4 * N * N + 6 * K * d * d + 2 * N * d * d)  # N x N distances, K maps, gathers
 
     def init(self, mean, cov, n_particles=None, generator=None):
         N = self._resolve_n(n_particles)
         B, d = mean.shape
         particles = linalg.sample_mvn(mean, linalg.safe_cholesky(cov), (N,), generator)
         lw = torch.full((B, N), -math.log(N), dtype=mean.dtype, device=mean.device)
-        P = cov
-        if self.flow.local:
+        P = cov  # one covariance per trial (global and clustered points)
+        if self.points == "particle":
             # EKF covariances of a linear model evolve identically for every particle: keep one per
             # trial, (B, 1, d, d), which broadcasts against the particles
             shared = self.covariance == "ekf" and self.model.linear_dynamics and self.model.linear_measurement
@@ -143,19 +172,21 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
         Stochastic flows: the exact Gaussian law of the Euler-Maruyama map started from the
         (Gaussian) transition ``N(f(x_prev), V)`` (Pal & Coates 2019, Algorithm 1)."""
         if not self.flow.stochastic:
-            out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule)
+            out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, points=self.points)
             return out.particles, log_q0 - out.log_det
         start = FlowPrior(model.transition_mean(x_prev), model.transition_scale_tril(x_prev))
         out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, generator=generator, proposal=start,
-                             noise=noise)
+                             noise=noise, points=self.points)
         return out.particles, out.log_proposal
 
     def step(self, state: ParticleState, z, generator=None):
+        if self.points == "clustered":
+            return self._clustered_step(state, z, generator)
         model = self.model
         x_prev = state.particles  # (B, N, d)
         eta0 = model.sample_transition(x_prev, generator)
         log_q0 = None if self.flow.stochastic else model.transition_log_prob(eta0, x_prev)
-        if self.flow.local:
+        if self.points == "particle":
             m_pred, P_pred = self.tracker.predict(x_prev, state.cov)  # (B, N, d), (B, N, d, d)
             z_upd = z.unsqueeze(1)
         else:
@@ -167,7 +198,7 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
         def weigh(x, x_prev, log_q):
             return model.transition_log_prob(x, x_prev) + model.measurement_log_prob(z1, x) - log_q
 
-        if self.flow.local:
+        if self.points == "particle":
             # every particle flows with its own prior: blocks of particles are independent
             B, N = eta0.shape[:2]
             blocked = bool(self.particle_chunk) and N > self.particle_chunk
@@ -196,6 +227,44 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
         return self.weight_and_resample(x, state.log_weights, log_inc, generator, state.step + 1, cov=P_post,
                                         fallback=eta0, n_repaired=state.n_repaired)
 
+    def cluster(self, eta_bar, z, L):
+        """``(index (B, N), medoids (B, K))`` of the particles' predictions ``eta_bar (B, N, d)``."""
+        B, N, _ = eta_bar.shape
+        if self.n_clusters >= N:
+            ar = torch.arange(N, device=eta_bar.device).expand(B, N)
+            return ar, ar
+        prior = FlowPrior(eta_bar, L.unsqueeze(1))
+        zero = torch.zeros((), dtype=eta_bar.dtype, device=eta_bar.device)
+        zeta = LEDHFlow().coefficients(self.model, z, eta_bar, prior, zero, zero).drift(eta_bar)[0]
+        dist = cluster_distance(eta_bar, zeta, self.alpha, self.model.measurement_support)
+        return kmedoids(dist, self.n_clusters, self.sweeps)
+
+    def _clustered_step(self, state: ParticleState, z, generator=None):
+        model = self.model
+        x_prev = state.particles  # (B, N, d)
+        eta0 = model.sample_transition(x_prev, generator)
+        log_q0 = model.transition_log_prob(eta0, x_prev)
+        m_pred, P_pred = self.tracker.predict(state.estimate, state.cov)  # (B, d), (B, d, d)
+        L_pred = linalg.safe_cholesky(P_pred)
+        eta_bar = model.transition_mean(x_prev)
+        index, medoids = self.cluster(eta_bar, z, L_pred)
+        prior = FlowPrior(_resampling.gather_particles(eta_bar, medoids), L_pred.unsqueeze(1))
+        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, index=index)
+        log_q = log_q0 - out.log_det if self.jacobian_in_weight else log_q0
+        z1 = z.unsqueeze(1)
+
+        def weigh(x, x_prev, log_q):
+            return model.transition_log_prob(x, x_prev) + model.measurement_log_prob(z1, x) - log_q
+
+        log_inc = self.per_particle(weigh, out.particles, x_prev, log_q)
+        _, P_post, _ = self.tracker.update(m_pred, P_pred, z)
+        return self.weight_and_resample(out.particles, state.log_weights, log_inc, generator, state.step + 1,
+                                        cov=P_post, fallback=eta0, n_repaired=state.n_repaired)
+
+    def extra_repr(self) -> str:
+        extra = f", n_clusters={self.n_clusters}, alpha={self.alpha}, jacobian_in_weight={self.jacobian_in_weight}"
+        return f"points={self.points!r}" + (extra if self.points == "clustered" else "")
+
 
 class ClusteredParticleFlowParticleFilter(ParticleFlowParticleFilter):
     """Clustered PF-PF(LEDH) (seed 004, Li & Coates; MODELS.md §11): the flow is linearised at K
@@ -223,76 +292,12 @@ class ClusteredParticleFlowParticleFilter(ParticleFlowParticleFilter):
             algorithm, which omits it.
         flow: a deterministic flow (default LEDH drift; ``"geodesic"`` also works); stochastic
             flows per cluster are not implemented.
-        other arguments: as :class:`ParticleFlowParticleFilter`.
+        other arguments: as :class:`ParticleFlowParticleFilter`, which this is with
+        ``points="clustered"`` (any PF-PF takes ``points``; this class only changes the default).
     """
 
-    def __init__(self, model, *, n_clusters: int = 100, alpha: float = 0.25, sweeps: int = 10,
-                 jacobian_in_weight: bool = True, flow=None, **kwargs):
-        super().__init__(model, flow=flow, **kwargs)
-        if self.flow.stochastic:
-            raise ValueError(f"flow: the clustered PF-PF needs a deterministic flow (ledh, edh, geodesic), got "
-                             f"{type(self.flow).__name__}")
-        self.n_clusters = check_count("n_clusters", n_clusters)
-        self.sweeps = check_count("sweeps", sweeps)
-        if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0.0 <= float(alpha) <= 1.0:
-            raise ValueError(f"alpha: expected a weight in [0, 1], got {alpha!r}")
-        self.alpha = float(alpha)
-        if not isinstance(jacobian_in_weight, bool):
-            raise TypeError(f"jacobian_in_weight: expected a bool, got {type(jacobian_in_weight).__name__}")
-        self.jacobian_in_weight = jacobian_in_weight
-        self._velocity = LEDHFlow()  # the lambda = 0 velocities zeta that the distance correlates
-
-    def bytes_per_trial(self, n_particles=None):
-        N = n_particles or self.n_particles
-        K = min(self.n_clusters, N)
-        d = self.model.state_dim
-        # the N x N distance and masks, K composed d x d maps, N gathered maps
-        return 8 * (4 * N * N + 6 * K * d * d + 2 * N * d * d) + self._flow_bytes(N, cov_mats=2)
-
-    def preferred_chunk_trials(self, n_particles=None):
-        return None
-
-    def init(self, mean, cov, n_particles=None, generator=None):
-        state = super().init(mean, cov, n_particles, generator)
-        state.cov = cov  # one covariance per trial (B, d, d), as PF-PF(EDH)
-        return state
-
-    def cluster(self, eta_bar, z, L):
-        """``(index (B, N), medoids (B, K))`` of the particles' predictions ``eta_bar (B, N, d)``."""
-        B, N, _ = eta_bar.shape
-        if self.n_clusters >= N:
-            ar = torch.arange(N, device=eta_bar.device).expand(B, N)
-            return ar, ar
-        prior = FlowPrior(eta_bar, L.unsqueeze(1))
-        zero = torch.zeros((), dtype=eta_bar.dtype, device=eta_bar.device)
-        zeta = self._velocity.coefficients(self.model, z, eta_bar, prior, zero, zero).drift(eta_bar)[0]
-        dist = cluster_distance(eta_bar, zeta, self.alpha, self.model.measurement_support)
-        return kmedoids(dist, self.n_clusters, self.sweeps)
-
-    def step(self, state: ParticleState, z, generator=None):
-        model = self.model
-        x_prev = state.particles  # (B, N, d)
-        eta0 = model.sample_transition(x_prev, generator)
-        log_q0 = model.transition_log_prob(eta0, x_prev)
-        m_pred, P_pred = self.tracker.predict(state.estimate, state.cov)  # (B, d), (B, d, d)
-        L_pred = linalg.safe_cholesky(P_pred)
-        eta_bar = model.transition_mean(x_prev)
-        index, medoids = self.cluster(eta_bar, z, L_pred)
-        prior = FlowPrior(_resampling.gather_particles(eta_bar, medoids), L_pred.unsqueeze(1))
-        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, index=index)
-        log_q = log_q0 - out.log_det if self.jacobian_in_weight else log_q0
-        z1 = z.unsqueeze(1)
-
-        def weigh(x, x_prev, log_q):
-            return model.transition_log_prob(x, x_prev) + model.measurement_log_prob(z1, x) - log_q
-
-        log_inc = self.per_particle(weigh, out.particles, x_prev, log_q)
-        _, P_post, _ = self.tracker.update(m_pred, P_pred, z)
-        return self.weight_and_resample(out.particles, state.log_weights, log_inc, generator, state.step + 1,
-                                        cov=P_post, fallback=eta0, n_repaired=state.n_repaired)
-
-    def extra_repr(self) -> str:
-        return f"n_clusters={self.n_clusters}, alpha={self.alpha}, jacobian_in_weight={self.jacobian_in_weight}"
+    def __init__(self, model, *, points: Optional[str] = "clustered", **kwargs):
+        super().__init__(model, points=points, **kwargs)
 
 
 class ParticleFlowFilter(_FlowFilterMixin, Filter):
@@ -313,11 +318,13 @@ class ParticleFlowFilter(_FlowFilterMixin, Filter):
     random_stream = "flow_filter"
 
     def __init__(self, model, *, flow=None, schedule: Optional[LambdaSchedule] = None,
-                 n_particles: int = 500, covariance: str = "ekf", validate: bool = True,
-                 name: Optional[str] = None):
+                 n_particles: int = 500, covariance: str = "ekf", points: Optional[str] = None,
+                 validate: bool = True, name: Optional[str] = None):
         super().__init__(model, validate=validate, name=name)
         self.n_particles = check_count("n_particles", n_particles)
-        self._init_flow(model, flow, schedule, covariance)
+        self._init_flow(model, flow, schedule, covariance, points)
+        if self.points == "clustered":
+            raise ValueError("points: the unweighted flow filter takes 'global' or 'particle' points")
 
     def bytes_per_trial(self, n_particles=None):
         return self._flow_bytes(n_particles or self.n_particles, cov_mats=8)
@@ -335,10 +342,11 @@ class ParticleFlowFilter(_FlowFilterMixin, Filter):
         eta0 = model.sample_transition(x_prev, generator)
         m_pred, P_pred = self.tracker.predict(state.mean, state.cov)  # (B, d), (B, d, d)
         L = linalg.safe_cholesky(P_pred)
-        if self.flow.local:
+        if self.points == "particle":
             prior = FlowPrior(model.transition_mean(x_prev), L.unsqueeze(1))  # (B, 1, d, d) broadcasts
         else:
             prior = FlowPrior(m_pred, L)
-        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, generator=generator)
+        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, generator=generator,
+                             points=self.points)
         _, P_post, ll = self.tracker.update(m_pred, P_pred, z)
         return GaussianState(out.particles.mean(1), P_post, ll, state.step + 1, n_particles=N)

@@ -173,11 +173,26 @@ class FlowOutput:
     proposal_cov: Optional[torch.Tensor] = None
 
 
+POINTS = ("global", "particle", "clustered")
+
+
+def resolve_points(flow, points: Optional[str]) -> str:
+    """The linearisation points to use: ``points`` if given, else the flow's default
+    (``"particle"`` for a per-particle flow such as LEDH, ``"global"`` for EDH)."""
+    if points is None:
+        return "particle" if flow.local else "global"
+    if points not in POINTS:
+        raise ValueError(f"points: expected one of {POINTS} or None (the flow's default), got {points!r}")
+    return points
+
+
 class ParticleFlow(nn.Module):
     """Base class of flows. Subclasses implement :meth:`coefficients`.
 
     Attributes:
-        local: linearise per particle (True) or once per trial at the migrating mean (False).
+        local: the flow's default linearisation points: per particle (True) or once per trial at
+            the migrating mean (False). Filters and :func:`integrate_flow` take ``points`` to pair
+            any flow with any points (global, per particle, clustered).
         stochastic: the flow has a diffusion term (``noise_factor``) and no log-det.
     """
 
@@ -215,6 +230,7 @@ def integrate_flow(
     proposal: Optional[FlowPrior] = None,
     noise=None,
     index: Optional[torch.Tensor] = None,
+    points: Optional[str] = None,
 ) -> FlowOutput:
     """Integrate ``d eta = (A eta + b) d lambda [+ Q^{1/2} dW]`` from lambda = 0 to 1.
 
@@ -236,6 +252,10 @@ def integrate_flow(
         proposal: stochastic flows: the law ``eta_0 ~ N(mean, scale_tril scale_tril^T)`` the
             particles were drawn from, mean ``(B, N, d)``, factor broadcastable to
             ``(B, N, d, d)``. When given, the output carries ``log_proposal``.
+        points: where the flow is linearised: ``"global"`` (once per trial, at the migrating mean:
+            ``prior`` is per trial), ``"particle"`` (at every particle's auxiliary point: ``prior``
+            per particle) or ``"clustered"`` (at K points, with ``index``); default: the flow's
+            own (:attr:`ParticleFlow.local`), or ``"clustered"`` when ``index`` is given.
         index: clustered linearisation points: ``(B, N)`` cluster of each particle; ``prior`` then
             holds one point per cluster (mean ``(B, K, d)``, factor broadcastable to
             ``(B, K, d, d)``), the flow is linearised at the K points and each particle moves with
@@ -249,17 +269,21 @@ def integrate_flow(
     """
     schedule = schedule or ExponentialSchedule()
     eps_all, lam_all = schedule.steps(dtype=particles.dtype, device=particles.device)
-    if index is not None:
+    points = resolve_points(flow, points if index is None or points is not None else "clustered")
+    if points == "clustered":
+        if index is None:
+            raise ValueError("index: clustered linearisation points need the (B, N) cluster index")
         return _integrate_clustered(flow, model, particles, z, prior, eps_all, lam_all, index)
+    local = points == "particle"
     if flow.stochastic:
         return _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, generator, proposal,
-                                     noise)
+                                     noise, local)
     B, N, d = particles.shape
     prior = prior.reduced(model)
     aux = prior.mean
     log_det = torch.zeros(B, N, dtype=particles.dtype, device=particles.device)
     eta = particles
-    if not flow.local:
+    if not local:
         # A global flow moves every particle of a trial by the same affine map: compose it on
         # (d, d) matrices, M <- (I + eps A) M, c <- (I + eps A) c + eps b, and apply it once.
         eye = torch.eye(d, dtype=particles.dtype, device=particles.device)
@@ -348,7 +372,8 @@ def _propagate_cov(Sig, co: "FlowCoefficients", eps, eye):
     return out.reshape(*batch, *Sig.shape[-2:]) + eps * co.diffusion_cov()
 
 
-def _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, generator, proposal, noise=None):
+def _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, generator, proposal, noise=None,
+                          local=True):
     """Euler-Maruyama for stochastic flows, with the exact Gaussian proposal recursion."""
     B, N, d = particles.shape
     eye = torch.eye(d, dtype=particles.dtype, device=particles.device)
@@ -367,7 +392,7 @@ def _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, ge
         A, b, G = co.A, co.b, co.noise_factor
         if A is None or (G is None and co.noise_apply is None):
             raise TypeError(f"{type(flow).__name__}: a stochastic flow must give an explicit A and a noise_factor")
-        if flow.local:  # aux is per particle: one stacked product for every vector
+        if local:  # aux is per particle: one stacked product for every vector
             drifts = co.drift(eta, aux, *([mu] if track else []))
             aux = aux + eps * drifts[1]
             d_eta, d_mu = drifts[0], drifts[-1]

@@ -169,7 +169,7 @@ class GromovFlow(_HomotopyFlow):
         self.noise_root = noise_root
 
     def coefficients(self, model, z, aux, prior: FlowPrior, lam, eps):
-        if self.local and self.noise_root == "factor":
+        if aux.dim() > 2 and self.noise_root == "factor":  # points per particle: (B, N, d)
             # operator form: with N = M^{-1}[:, s] = L (I + lam S)^{-1} L_s^T (the columns of M^{-1}
             # at the measured coordinates, where J lives), C = M^{-1} J = N J_s,
             # G = M^{-1} W^T = N W_s^T and Q = G G^T = C N^T; G xi = N (W_s^T xi) never forms the
