@@ -3,7 +3,7 @@ import importlib.util
 import math
 from pathlib import Path
 
-_PATH = Path(__file__).resolve().parents[1] / "experiments" / "benchmarks" / "bench_scaling.py"
+_PATH = Path(__file__).resolve().parents[2] / "experiments" / "benchmarks" / "bench_scaling.py"
 
 
 def _load():

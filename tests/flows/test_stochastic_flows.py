@@ -448,7 +448,7 @@ def test_hydra_composes_the_new_flow_filters_and_schedule():
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
-    cfg_dir = str(Path(__file__).resolve().parents[1] / "configs")
+    cfg_dir = str(Path(__file__).resolve().parents[2] / "configs")
     names = ["geodesic", "gromov", "pfpf_geodesic", "pfpf_gromov", "pfpf_osd"]
     with initialize_config_dir(config_dir=cfg_dir, version_base="1.3"):
         cfg = compose("config", overrides=["model=linear_gaussian", "model.d=4", f"filter=[{','.join(names)}]",

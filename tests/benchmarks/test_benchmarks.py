@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-_BENCH = Path(__file__).resolve().parents[1] / "experiments" / "benchmarks"
+_BENCH = Path(__file__).resolve().parents[2] / "experiments" / "benchmarks"
 sys.path.insert(0, str(_BENCH))
 
 import bench_acoustic  # noqa: E402

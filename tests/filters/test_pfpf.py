@@ -176,7 +176,7 @@ def test_hydra_pairs_any_pfpf_with_any_flow_and_schedule():
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
-    cfg_dir = str(Path(__file__).resolve().parents[1] / "configs")
+    cfg_dir = str(Path(__file__).resolve().parents[2] / "configs")
     with initialize_config_dir(config_dir=cfg_dir, version_base="1.3"):
         cfg = compose("config", overrides=["model=linear_gaussian", "model.d=4", "filter=[pfpf_ledh,pfpf_edh,edh]",
                                            "flow@filter.pfpf_ledh.flow=edh", "schedule@filter.pfpf_edh.schedule=uniform",
