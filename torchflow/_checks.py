@@ -125,3 +125,26 @@ def check_count(name: str, value, *, minimum: int = 1, hint: str = "") -> int:
         what = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
         raise ValueError(f"{name}: expected {what}{hint}, got {value!r} ({type(value).__name__})")
     return int(value)
+
+
+def shape_str(shape) -> str:
+    """``(2, 3)``; a 1-d shape as ``(5,)``."""
+    return "(" + ", ".join(str(int(s)) for s in shape) + ")" if len(shape) != 1 else f"({int(shape[0])},)"
+
+
+def check_float_tensor(x, name: str, expected: str, ndim: Optional[int] = None) -> torch.Tensor:
+    """Raise unless ``x`` is a floating-point tensor (with ``ndim`` dimensions if given);
+    ``expected`` is the shape in letters, e.g. ``"(B, N)"``."""
+    if not isinstance(x, torch.Tensor):
+        raise ValueError(f"{name}: expected a torch.Tensor of shape {expected}, got {type(x).__name__}")
+    if ndim is not None and x.dim() != ndim:
+        raise ValueError(f"{name}: expected shape {expected}, got {shape_str(x.shape)}")
+    if not torch.is_floating_point(x):
+        raise ValueError(f"{name}: expected a floating-point tensor of shape {expected}, got dtype {x.dtype}")
+    return x
+
+
+def check_same_device(a: torch.Tensor, b: torch.Tensor, name_a: str, name_b: str) -> None:
+    """Raise unless ``a`` is on ``b``'s device."""
+    if a.device != b.device:
+        raise ValueError(f"{name_a}: expected a tensor on the same device as {name_b} ({b.device}), got {a.device}")

@@ -23,6 +23,8 @@ import math
 
 import torch
 
+from ._checks import check_float_tensor, check_same_device, shape_str
+
 __all__ = [
     "mse",
     "omat",
@@ -44,25 +46,6 @@ _BRUTE_FORCE_CHUNK_ELEMS = 1 << 24
 # ---------------------------------------------------------------------------
 # Input validation helpers
 # ---------------------------------------------------------------------------
-
-
-def _shape_str(shape) -> str:
-    return "(" + ", ".join(str(int(s)) for s in shape) + ")" if len(shape) != 1 else f"({int(shape[0])},)"
-
-
-def _check_tensor(x, name: str, expected: str, ndim: int | None = None) -> None:
-    """Checks that ``x`` is a floating-point tensor with ``ndim`` dimensions."""
-    if not isinstance(x, torch.Tensor):
-        raise ValueError(f"{name}: expected a torch.Tensor of shape {expected}, got {type(x).__name__}")
-    if ndim is not None and x.dim() != ndim:
-        raise ValueError(f"{name}: expected shape {expected}, got {_shape_str(x.shape)}")
-    if not torch.is_floating_point(x):
-        raise ValueError(f"{name}: expected a floating-point tensor of shape {expected}, got dtype {x.dtype}")
-
-
-def _check_same_device(a: torch.Tensor, b: torch.Tensor, name_a: str, name_b: str) -> None:
-    if a.device != b.device:
-        raise ValueError(f"{name_a}: expected a tensor on the same device as {name_b} ({b.device}), got {a.device}")
 
 
 def _promote(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -147,14 +130,14 @@ def mse(estimates: torch.Tensor, states: torch.Tensor) -> torch.Tensor:
         ValueError: If the inputs are not floating-point tensors of matching
             shape ``(B, T, d)`` on the same device.
     """
-    _check_tensor(states, "states", "(B, T, d)", ndim=3)
-    _check_tensor(estimates, "estimates", f"(B, T, d) matching states {_shape_str(states.shape)}")
+    check_float_tensor(states, "states", "(B, T, d)", ndim=3)
+    check_float_tensor(estimates, "estimates", f"(B, T, d) matching states {shape_str(states.shape)}")
     if estimates.shape != states.shape:
         raise ValueError(
-            f"estimates: expected (B, T, d) matching states {_shape_str(states.shape)}, "
-            f"got {_shape_str(estimates.shape)}"
+            f"estimates: expected (B, T, d) matching states {shape_str(states.shape)}, "
+            f"got {shape_str(estimates.shape)}"
         )
-    _check_same_device(estimates, states, "estimates", "states")
+    check_same_device(estimates, states, "estimates", "states")
     if states.shape[-1] == 0:
         raise ValueError("states: expected (B, T, d) with d >= 1, got d = 0")
     estimates, states = _promote(estimates, states)
@@ -188,19 +171,19 @@ def omat(est_positions: torch.Tensor, true_positions: torch.Tensor) -> torch.Ten
             tensors of matching shape with ``k`` in ``{2, 3}`` and ``C >= 1``,
             or are on different devices.
     """
-    _check_tensor(true_positions, "true_positions", "(B, T, C, k)", ndim=4)
-    ref = _shape_str(true_positions.shape)
+    check_float_tensor(true_positions, "true_positions", "(B, T, C, k)", ndim=4)
+    ref = shape_str(true_positions.shape)
     if true_positions.shape[-1] not in (2, 3):
         raise ValueError(f"true_positions: expected (B, T, C, k) with k in {{2, 3}}, got {ref}")
     if true_positions.shape[-2] == 0:
         raise ValueError(f"true_positions: expected (B, T, C, k) with C >= 1, got {ref}")
-    _check_tensor(est_positions, "est_positions", f"(B, T, C, k) matching true_positions {ref}")
+    check_float_tensor(est_positions, "est_positions", f"(B, T, C, k) matching true_positions {ref}")
     if est_positions.shape != true_positions.shape:
         raise ValueError(
             f"est_positions: expected (B, T, C, k) matching true_positions {ref}, "
-            f"got {_shape_str(est_positions.shape)}"
+            f"got {shape_str(est_positions.shape)}"
         )
-    _check_same_device(est_positions, true_positions, "est_positions", "true_positions")
+    check_same_device(est_positions, true_positions, "est_positions", "true_positions")
     est_positions, true_positions = _promote(est_positions, true_positions)
     dist = _pairwise_dist(true_positions, est_positions)  # (B, T, C, C)
     return _min_assignment_cost(dist) / true_positions.shape[-2]
@@ -239,15 +222,15 @@ def ospa(
             matching ``B``, ``T`` and ``k`` on the same device, or if
             ``cutoff``/``order`` are out of range.
     """
-    _check_tensor(X, "X", "(B, T, m, k)", ndim=4)
-    _check_tensor(Y, "Y", f"(B, T, n, k) matching X {_shape_str(X.shape)} in B, T, k", ndim=4)
+    check_float_tensor(X, "X", "(B, T, m, k)", ndim=4)
+    check_float_tensor(Y, "Y", f"(B, T, n, k) matching X {shape_str(X.shape)} in B, T, k", ndim=4)
     if Y.shape[:2] != X.shape[:2] or Y.shape[-1] != X.shape[-1]:
         raise ValueError(
-            f"Y: expected (B, T, n, k) matching X {_shape_str(X.shape)} in B, T, k, got {_shape_str(Y.shape)}"
+            f"Y: expected (B, T, n, k) matching X {shape_str(X.shape)} in B, T, k, got {shape_str(Y.shape)}"
         )
     if X.shape[-1] == 0:
-        raise ValueError(f"X: expected (B, T, m, k) with k >= 1, got {_shape_str(X.shape)}")
-    _check_same_device(Y, X, "Y", "X")
+        raise ValueError(f"X: expected (B, T, m, k) with k >= 1, got {shape_str(X.shape)}")
+    check_same_device(Y, X, "Y", "X")
     cutoff = float(cutoff)
     order = float(order)
     if not (math.isfinite(cutoff) and cutoff > 0):
@@ -283,9 +266,9 @@ def ess(log_weights: torch.Tensor) -> torch.Tensor:
         ValueError: If ``log_weights`` is not a floating-point tensor with at
             least one dimension and ``N >= 1``.
     """
-    _check_tensor(log_weights, "log_weights", "(..., N)")
+    check_float_tensor(log_weights, "log_weights", "(..., N)")
     if log_weights.dim() == 0 or log_weights.shape[-1] == 0:
-        raise ValueError(f"log_weights: expected (..., N) with N >= 1, got {_shape_str(log_weights.shape)}")
+        raise ValueError(f"log_weights: expected (..., N) with N >= 1, got {shape_str(log_weights.shape)}")
     lse = torch.logsumexp(log_weights, dim=-1)
     lse2 = torch.logsumexp(2.0 * log_weights, dim=-1)
     return torch.exp(2.0 * lse - lse2)
@@ -308,14 +291,14 @@ def log_evidence_relative_error(log_evidence: torch.Tensor, reference: torch.Ten
         ValueError: If the inputs are not floating-point ``(B,)`` tensors of
             matching shape on the same device.
     """
-    _check_tensor(reference, "reference", "(B,)", ndim=1)
-    ref = _shape_str(reference.shape)
-    _check_tensor(log_evidence, "log_evidence", f"(B,) matching reference {ref}")
+    check_float_tensor(reference, "reference", "(B,)", ndim=1)
+    ref = shape_str(reference.shape)
+    check_float_tensor(log_evidence, "log_evidence", f"(B,) matching reference {ref}")
     if log_evidence.shape != reference.shape:
         raise ValueError(
-            f"log_evidence: expected (B,) matching reference {ref}, got {_shape_str(log_evidence.shape)}"
+            f"log_evidence: expected (B,) matching reference {ref}, got {shape_str(log_evidence.shape)}"
         )
-    _check_same_device(log_evidence, reference, "log_evidence", "reference")
+    check_same_device(log_evidence, reference, "log_evidence", "reference")
     log_evidence, reference = _promote(log_evidence, reference)
     return ((log_evidence - reference) / reference).square()
 
@@ -336,9 +319,9 @@ def lost_tracks(omat_per_step: torch.Tensor, threshold: float = 2.0) -> torch.Te
         ValueError: If ``omat_per_step`` is not a floating-point ``(B, T)``
             tensor with ``T >= 1``, or ``threshold`` is not finite.
     """
-    _check_tensor(omat_per_step, "omat_per_step", "(B, T)", ndim=2)
+    check_float_tensor(omat_per_step, "omat_per_step", "(B, T)", ndim=2)
     if omat_per_step.shape[1] == 0:
-        raise ValueError(f"omat_per_step: expected (B, T) with T >= 1, got {_shape_str(omat_per_step.shape)}")
+        raise ValueError(f"omat_per_step: expected (B, T) with T >= 1, got {shape_str(omat_per_step.shape)}")
     threshold = float(threshold)
     if not math.isfinite(threshold):
         raise ValueError(f"threshold: expected a finite float, got {threshold}")

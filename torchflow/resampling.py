@@ -39,6 +39,7 @@ import torch
 from torch import Tensor
 
 from . import random as _random
+from ._checks import check_float_tensor, shape_str
 
 __all__ = [
     "normalize_log_weights",
@@ -78,37 +79,17 @@ def _check_log_weights(log_weights: object, name: str = "log_weights", values: b
     Raises:
         ValueError: If any of the checks fails.
     """
-    if not isinstance(log_weights, Tensor):
-        raise ValueError(
-            f"{name} must be a torch.Tensor of shape (B, N), "
-            f"got {type(log_weights).__name__}"
-        )
-    if log_weights.dim() != 2:
-        raise ValueError(
-            f"{name} must have shape (B, N) (2-D), got shape "
-            f"{tuple(log_weights.shape)} ({log_weights.dim()}-D)"
-        )
+    check_float_tensor(log_weights, name, "(B, N)", ndim=2)
     if log_weights.shape[1] < 1:
-        raise ValueError(
-            f"{name} must have shape (B, N) with N >= 1 particles, got shape "
-            f"{tuple(log_weights.shape)}"
-        )
-    if not log_weights.is_floating_point():
-        raise ValueError(
-            f"{name} must have a floating-point dtype, got {log_weights.dtype}"
-        )
+        raise ValueError(f"{name}: expected (B, N) with N >= 1 particles, got {shape_str(log_weights.shape)}")
     if values and log_weights.numel() > 0:  # value checks synchronise with the device
-        has_nan_or_posinf = torch.isnan(log_weights).any() | torch.isposinf(
-            log_weights
-        ).any()
+        has_nan_or_posinf = torch.isnan(log_weights).any() | torch.isposinf(log_weights).any()
         row_ok = torch.isfinite(log_weights).any(dim=1).all()
         if bool(has_nan_or_posinf):
-            raise ValueError(f"{name} must not contain NaN or +inf values")
+            raise ValueError(f"{name}: expected no NaN or +inf values, got some")
         if not bool(row_ok):
-            raise ValueError(
-                f"every trial (row) of {name} must contain at least one finite "
-                f"log weight; got a row that is entirely -inf"
-            )
+            raise ValueError(f"{name}: expected at least one finite log weight in every trial (row), got a row "
+                             "that is entirely -inf")
     return log_weights
 
 
@@ -349,7 +330,7 @@ RESAMPLERS: Dict[str, Resampler] = {
 def _get_resampler(name: object, arg_name: str) -> Resampler:
     if not isinstance(name, str) or name not in RESAMPLERS:
         raise ValueError(
-            f"{arg_name} must be one of {sorted(RESAMPLERS)}, got {name!r}"
+            f"{arg_name}: expected one of {sorted(RESAMPLERS)}, got {name!r}"
         )
     return RESAMPLERS[name]
 
@@ -424,7 +405,7 @@ def resample_if_needed(
         or not (0.0 <= float(ess_threshold) <= 1.0)
     ):
         raise ValueError(
-            f"ess_threshold must be a real number in [0, 1], got {ess_threshold!r}"
+            f"ess_threshold: expected a real number in [0, 1], got {ess_threshold!r}"
         )
     threshold = float(ess_threshold)
     b, n = log_weights.shape
@@ -464,15 +445,15 @@ def gather_particles(x: Tensor, indices: Tensor) -> Tensor:
     """
     if not isinstance(x, Tensor) or x.dim() < 2:
         shape = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
-        raise ValueError(f"x must be a tensor of shape (B, N, *rest), got {shape}")
+        raise ValueError(f"x: expected a tensor of shape (B, N, *rest), got {shape}")
     if not isinstance(indices, Tensor) or indices.dim() != 2:
         shape = tuple(indices.shape) if isinstance(indices, Tensor) else type(indices).__name__
-        raise ValueError(f"indices must be a tensor of shape (B, N), got {shape}")
+        raise ValueError(f"indices: expected a tensor of shape (B, N), got {shape}")
     if indices.dtype.is_floating_point or indices.dtype.is_complex or indices.dtype == torch.bool:
-        raise ValueError(f"indices must have an integer dtype, got {indices.dtype}")
+        raise ValueError(f"indices: expected an integer dtype, got {indices.dtype}")
     if indices.shape[0] != x.shape[0]:
         raise ValueError(
-            f"indices must have shape (B, N) with B = x.shape[0] = {x.shape[0]}, "
+            f"indices: expected shape (B, N) with B = x.shape[0] = {x.shape[0]}, "
             f"got shape {tuple(indices.shape)}"
         )
     batch = torch.arange(x.shape[0], device=x.device)[:, None]
