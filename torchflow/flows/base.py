@@ -163,6 +163,11 @@ class FlowOutput:
         log_proposal: stochastic flows given a ``proposal``: ``(B, N)`` log-density of each
             particle under its exact Gaussian law ``N(mu_1, S_1)``; otherwise ``None``.
         proposal_mean, proposal_cov: that law, ``(B, N, d)`` and ``(B, N|1, d, d)`` (or ``None``).
+        image_mean, image_cov: with ``gaussian_image=True``, the image of each point's prior
+            ``N(prior.mean, P)`` under the linearised flow (stochastic flows: with their diffusion),
+            batched like the points: ``(B, d)``/``(B, d, d)`` (global), ``(B, N|K, d)`` and
+            ``(B, N|K|1, d, d)`` (per particle, clustered). Gaussian and Gaussian-sum particle
+            filters and flow-induced mixture proposals are built from it.
     """
 
     particles: torch.Tensor
@@ -171,6 +176,8 @@ class FlowOutput:
     log_proposal: Optional[torch.Tensor] = None
     proposal_mean: Optional[torch.Tensor] = None
     proposal_cov: Optional[torch.Tensor] = None
+    image_mean: Optional[torch.Tensor] = None
+    image_cov: Optional[torch.Tensor] = None
 
 
 POINTS = ("global", "particle", "clustered")
@@ -231,6 +238,7 @@ def integrate_flow(
     noise=None,
     index: Optional[torch.Tensor] = None,
     points: Optional[str] = None,
+    gaussian_image: bool = False,
 ) -> FlowOutput:
     """Integrate ``d eta = (A eta + b) d lambda [+ Q^{1/2} dW]`` from lambda = 0 to 1.
 
@@ -256,6 +264,8 @@ def integrate_flow(
             ``prior`` is per trial), ``"particle"`` (at every particle's auxiliary point: ``prior``
             per particle) or ``"clustered"`` (at K points, with ``index``); default: the flow's
             own (:attr:`ParticleFlow.local`), or ``"clustered"`` when ``index`` is given.
+        gaussian_image: also return the image ``(image_mean, image_cov)`` of each point's prior
+            Gaussian (costs a ``d x d`` covariance recursion per point).
         index: clustered linearisation points: ``(B, N)`` cluster of each particle; ``prior`` then
             holds one point per cluster (mean ``(B, K, d)``, factor broadcastable to
             ``(B, K, d, d)``), the flow is linearised at the K points and each particle moves with
@@ -273,13 +283,14 @@ def integrate_flow(
     if points == "clustered":
         if index is None:
             raise ValueError("index: clustered linearisation points need the (B, N) cluster index")
-        return _integrate_clustered(flow, model, particles, z, prior, eps_all, lam_all, index)
+        return _integrate_clustered(flow, model, particles, z, prior, eps_all, lam_all, index, gaussian_image)
     local = points == "particle"
     if flow.stochastic:
         return _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, generator, proposal,
-                                     noise, local)
+                                     noise, local, gaussian_image)
     B, N, d = particles.shape
     prior = prior.reduced(model)
+    image = _Image(prior, gaussian_image)
     aux = prior.mean
     log_det = torch.zeros(B, N, dtype=particles.dtype, device=particles.device)
     eta = particles
@@ -298,7 +309,9 @@ def integrate_flow(
             aux = linalg.matvec(step, aux) + eps * co.b
             log_det = log_det + co.log_det.unsqueeze(-1)
         eta = torch.baddbmm(c.unsqueeze(1), particles, M.transpose(-1, -2))
-        return FlowOutput(eta, log_det, aux)
+        if image.on:  # the composed map applied to the prior: M P M^T
+            image.cov = linalg.symmetrize(M @ image.cov @ M.transpose(-1, -2))
+        return image.output(FlowOutput(eta, log_det, aux))
     for j in range(len(eps_all)):
         eps, lam = eps_all[j], lam_all[j]
         c = flow.coefficients(model, z, aux, prior, lam, eps)
@@ -306,7 +319,33 @@ def integrate_flow(
         eta = eta + eps * d_eta
         aux = aux + eps * d_aux
         log_det = log_det + c.log_det
-    return FlowOutput(eta, log_det, aux)
+        image.step(c, eps)
+    return image.output(FlowOutput(eta, log_det, aux))
+
+
+class _Image:
+    """The Gaussian image of the points' prior ``N(mean, P)``: the mean is the auxiliary point
+    itself; the covariance follows ``S <- (I + eps A) S (I + eps A)^T (+ eps Q)``."""
+
+    def __init__(self, prior: "FlowPrior", on: bool):
+        self.on = on
+        if on:
+            L = prior.scale_tril
+            self.cov = L @ L.transpose(-1, -2)
+            d = L.shape[-1]
+            self.eye = torch.eye(d, dtype=L.dtype, device=L.device)
+
+    def step(self, co: "FlowCoefficients", eps) -> None:
+        if not self.on:
+            return
+        if co.noise_factor is None and co.noise_cov is None and co.noise_cov_pair is None:
+            co = replace(co, noise_cov=co.b.new_zeros(()))  # deterministic: no diffusion term
+        self.cov = _propagate_cov(self.cov, co, eps, self.eye)
+
+    def output(self, out: "FlowOutput") -> "FlowOutput":
+        if self.on:
+            out.image_mean, out.image_cov = out.aux, linalg.symmetrize(self.cov)
+        return out
 
 
 def _gather_points(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
@@ -317,7 +356,7 @@ def _gather_points(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return x.gather(1, flat)
 
 
-def _integrate_clustered(flow, model, particles, z, prior, eps_all, lam_all, index):
+def _integrate_clustered(flow, model, particles, z, prior, eps_all, lam_all, index, gaussian_image=False):
     """Deterministic flow linearised at K points, ``prior.mean (B, K, d)``: at every pseudo-time
     step the coefficients are computed at the K points (which migrate with their own drift) and
     gathered to the particles of each cluster; ``log|det|`` of a cluster's map is the sum of its
@@ -330,6 +369,7 @@ def _integrate_clustered(flow, model, particles, z, prior, eps_all, lam_all, ind
     if index.shape != (B, N):
         raise ValueError(f"index: expected (B, N) = ({B}, {N}) cluster indices, got {tuple(index.shape)}")
     prior = prior.reduced(model)
+    image = _Image(prior, gaussian_image)
     aux = prior.mean  # (B, K, d)
     eta = particles
     log_det = torch.zeros(B, aux.shape[1], dtype=particles.dtype, device=particles.device)
@@ -337,12 +377,13 @@ def _integrate_clustered(flow, model, particles, z, prior, eps_all, lam_all, ind
         eps, lam = eps_all[j], lam_all[j]
         co = flow.coefficients(model, z, aux, prior, lam, eps)
         aux = aux + eps * co.drift(aux)[0]
+        image.step(co, eps)
         A = co.A  # deterministic flows state A explicitly
         at_particles = FlowCoefficients(_gather_points(A, index), _gather_points(co.b, index), None,
                                         support=co.support)
         eta = eta + eps * at_particles.drift(eta)[0]
         log_det = log_det + co.log_det
-    return FlowOutput(eta, _gather_points(log_det.unsqueeze(-1), index).squeeze(-1), aux)
+    return image.output(FlowOutput(eta, _gather_points(log_det.unsqueeze(-1), index).squeeze(-1), aux))
 
 
 def _flat3(x: torch.Tensor, batch) -> torch.Tensor:
@@ -373,11 +414,12 @@ def _propagate_cov(Sig, co: "FlowCoefficients", eps, eye):
 
 
 def _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, generator, proposal, noise=None,
-                          local=True):
+                          local=True, gaussian_image=False):
     """Euler-Maruyama for stochastic flows, with the exact Gaussian proposal recursion."""
     B, N, d = particles.shape
     eye = torch.eye(d, dtype=particles.dtype, device=particles.device)
     prior = prior.reduced(model)
+    image = _Image(prior, gaussian_image)
     aux, eta = prior.mean, particles
     track = proposal is not None
     if track:
@@ -392,6 +434,7 @@ def _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, ge
         A, b, G = co.A, co.b, co.noise_factor
         if A is None or (G is None and co.noise_apply is None):
             raise TypeError(f"{type(flow).__name__}: a stochastic flow must give an explicit A and a noise_factor")
+        image.step(co, eps)  # at the points, before the particles' view of the coefficients
         if local:  # aux is per particle: one stacked product for every vector
             drifts = co.drift(eta, aux, *([mu] if track else []))
             aux = aux + eps * drifts[1]
@@ -414,7 +457,7 @@ def _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, ge
             mu = mu + eps * d_mu
             Sig = _propagate_cov(Sig, co, eps, eye)
     if not track:
-        return FlowOutput(eta, None, aux)
+        return image.output(FlowOutput(eta, None, aux))
     Sig = linalg.symmetrize(Sig)
     log_q = linalg.mvn_log_prob(eta, mu, linalg.safe_cholesky(Sig))
-    return FlowOutput(eta, None, aux, log_proposal=log_q, proposal_mean=mu, proposal_cov=Sig)
+    return image.output(FlowOutput(eta, None, aux, log_proposal=log_q, proposal_mean=mu, proposal_cov=Sig))
