@@ -37,7 +37,7 @@ def test_pfpf_log_evidence_unbiased_on_lg(flow, covariance):
 def test_pfpf_without_jacobian_term_would_be_biased(monkeypatch):
     """Sanity check of the test above: dropping log|det| from the weights biases Z_hat far
     beyond the tolerance, so the unbiasedness test can fail."""
-    import torchflow.filters.pfpf as pfpf_mod
+    import torchflow.proposals as proposals_mod
     from torchflow.flows import base as flow_base
 
     real = flow_base.integrate_flow
@@ -46,7 +46,7 @@ def test_pfpf_without_jacobian_term_would_be_biased(monkeypatch):
         out = real(*a, **k)
         return flow_base.FlowOutput(out.particles, torch.zeros_like(out.log_det), out.aux)
 
-    monkeypatch.setattr(pfpf_mod, "integrate_flow", no_det)
+    monkeypatch.setattr(proposals_mod, "integrate_flow", no_det)
     model = mild_lg()
     obs, mean, cov = _replicated(model, 400, 6)
     logz = KalmanFilter(model)(obs[:1], mean[:1], cov[:1]).log_evidence

@@ -375,13 +375,13 @@ def test_pfpf_stochastic_log_evidence_unbiased_on_lg(flow):
 def test_pfpf_gromov_without_proposal_density_would_be_biased(monkeypatch):
     """The test above can fail: weighting Gromov particles as if the flow were deterministic
     (dropping the tracked proposal density for p(eta_0)) biases Z_hat far beyond its tolerance."""
-    from torchflow.filters import pfpf as pfpf_mod
+    from torchflow.proposals import StochasticFlowProposal
 
-    def wrong(self, model, eta0, x_prev, z, prior, generator, log_q0):
+    def wrong(self, model, eta0, x_prev, z, prior, generator, log_q0, noise=None):
         out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, generator=generator)
         return out.particles, model.transition_log_prob(eta0, x_prev)
 
-    monkeypatch.setattr(pfpf_mod.ParticleFlowParticleFilter, "_migrate", wrong)
+    monkeypatch.setattr(StochasticFlowProposal, "_migrate", wrong)
     model = mild_lg()
     obs, mean, cov = _replicated(model, 400, 6)
     logz = KalmanFilter(model)(obs[:1], mean[:1], cov[:1]).log_evidence

@@ -325,6 +325,28 @@ class ParticleFilterBase(Filter):
         self.particle_chunk = None if per_trial <= budget_bytes else max(1, int(N * budget_bytes // per_trial))
         return self.particle_chunk
 
+    # ``self.proposal`` (:mod:`torchflow.proposals`) is set by every subclass's ``__init__`` (a
+    # submodule: no class attribute, which would shadow it)
+
+    def step(self, state: "ParticleState", z: torch.Tensor, generator: Optional[torch.Generator] = None):
+        """One step of every particle filter: propose, weigh, resample.
+
+        ``log w_k = log w_{k-1} + log p(x_k | x_{k-1}) + log p(z_k | x_k) - log q(x_k | x_{k-1}, z_k)``;
+        a proposal that draws from the transition (``log_q`` is ``None``) leaves the likelihood
+        alone. Per-particle evaluations run in blocks of :attr:`particle_chunk`."""
+        prop = self.proposal.propose(self, state, z, generator)
+        model = self.model
+        z1 = z.unsqueeze(1)
+        if prop.log_q is None:
+            log_inc = self.per_particle(lambda xs: model.measurement_log_prob(z1, xs), prop.particles)
+        else:
+            def weigh(x, x_prev, log_q):
+                return model.transition_log_prob(x, x_prev) + model.measurement_log_prob(z1, x) - log_q
+
+            log_inc = self.per_particle(weigh, prop.particles, state.particles, prop.log_q)
+        return self.weight_and_resample(prop.particles, state.log_weights, log_inc, generator, state.step + 1,
+                                        cov=prop.cov, fallback=prop.fallback, n_repaired=state.n_repaired)
+
     def per_particle(self, fn, *tensors, pass_slice: bool = False):
         """``fn(*tensors)`` evaluated on blocks of at most :attr:`particle_chunk` particles.
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 import torch
 
 from .. import linalg
+from ..proposals import BootstrapProposal
 from .base import ParticleFilterBase, ParticleState
 
 
@@ -17,6 +18,10 @@ class BootstrapParticleFilter(ParticleFilterBase):
 
     random_stream = "bpf"
 
+    def __init__(self, model, **kwargs):
+        super().__init__(model, **kwargs)
+        self.proposal = BootstrapProposal()
+
     def init(self, mean, cov, n_particles=None, generator=None):
         N = self._resolve_n(n_particles)
         B, d = mean.shape
@@ -26,10 +31,3 @@ class BootstrapParticleFilter(ParticleFilterBase):
         zero = torch.zeros(B, dtype=mean.dtype, device=mean.device)
         return ParticleState(particles, lw, mean, torch.full_like(zero, float(N)), zero,
                              torch.zeros(B, dtype=torch.bool, device=mean.device))
-
-    def step(self, state, z, generator=None):
-        x = self.model.sample_transition(state.particles, generator)  # (B, N, d)
-        z1 = z.unsqueeze(1)
-        ll = self.per_particle(lambda xs: self.model.measurement_log_prob(z1, xs), x)  # (B, N)
-        return self.weight_and_resample(x, state.log_weights, ll, generator, state.step + 1,
-                                        fallback=state.particles, n_repaired=state.n_repaired)

@@ -11,23 +11,13 @@ from typing import Optional
 import torch
 
 from .. import linalg
-from .. import resampling as _resampling
-from ..flows.points import cluster_distance, kmedoids
 from ..flows import (EDHFlow, FlowPrior, GeodesicFlow, GromovFlow, LEDHFlow, OptimalDiffusionFlow, ParticleFlow,
                      integrate_flow)
 from ..flows.base import resolve_points
+from ..proposals import _tracker, flow_proposal
 from ..schedules import ExponentialSchedule, LambdaSchedule
 from .._checks import check_count
 from .base import Filter, GaussianState, ParticleFilterBase, ParticleState
-from .kalman import ExtendedKalmanFilter, UnscentedKalmanFilter
-
-
-def _tracker(model, covariance: str):
-    if covariance == "ekf":
-        return ExtendedKalmanFilter(model, validate=False)
-    if covariance == "ukf":
-        return UnscentedKalmanFilter(model, validate=False)
-    raise ValueError(f"covariance: expected 'ekf' or 'ukf', got {covariance!r}")
 
 
 def _flow(flow):
@@ -128,18 +118,31 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
         super().__init__(model, n_particles=n_particles, resampling=resampling, ess_threshold=ess_threshold,
                          regularization=regularization, nonfinite=nonfinite, particle_chunk=particle_chunk,
                          validate=validate, name=name)
-        self._init_flow(model, flow, schedule, covariance, points)
-        if self.points == "clustered" and self.flow.stochastic:
+        flow = _flow(flow)
+        if resolve_points(flow, points) == "clustered" and flow.stochastic:
             raise ValueError(f"flow: clustered linearisation points need a deterministic flow (ledh, edh, geodesic), "
-                             f"got {type(self.flow).__name__}")
-        self.n_clusters = check_count("n_clusters", n_clusters)
-        self.sweeps = check_count("sweeps", sweeps)
+                             f"got {type(flow).__name__}")
+        n_clusters = check_count("n_clusters", n_clusters)
+        sweeps = check_count("sweeps", sweeps)
         if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0.0 <= float(alpha) <= 1.0:
             raise ValueError(f"alpha: expected a weight in [0, 1], got {alpha!r}")
-        self.alpha = float(alpha)
         if not isinstance(jacobian_in_weight, bool):
             raise TypeError(f"jacobian_in_weight: expected a bool, got {type(jacobian_in_weight).__name__}")
-        self.jacobian_in_weight = jacobian_in_weight
+        #: the flow proposal (:mod:`torchflow.proposals`): flow, schedule, points and covariance tracker
+        self.proposal = flow_proposal(model, flow, schedule=schedule, covariance=covariance, points=points,
+                                      n_clusters=n_clusters, alpha=float(alpha), sweeps=sweeps,
+                                      jacobian_in_weight=jacobian_in_weight)
+
+    # the proposal's settings, read through the filter
+    flow = property(lambda self: self.proposal.flow)
+    schedule = property(lambda self: self.proposal.schedule)
+    tracker = property(lambda self: self.proposal.tracker)
+    points = property(lambda self: self.proposal.points)
+    covariance = property(lambda self: self.proposal.covariance)
+    n_clusters = property(lambda self: self.proposal.n_clusters)
+    alpha = property(lambda self: self.proposal.alpha)
+    sweeps = property(lambda self: self.proposal.sweeps)
+    jacobian_in_weight = property(lambda self: self.proposal.jacobian_in_weight)
 
     def bytes_per_trial(self, n_particles=None):
         N = n_particles or self.n_particles
@@ -164,102 +167,6 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
         return ParticleState(particles, lw, mean, torch.full_like(zero, float(N)), zero,
                              torch.zeros(B, dtype=torch.bool, device=mean.device),
                              n_repaired=torch.zeros(B, dtype=torch.long, device=mean.device), cov=P)
-
-    def _migrate(self, model, eta0, x_prev, z, prior, generator, log_q0, noise=None):
-        """Flow ``eta0`` and return the particles with their proposal log-density ``(B, N)``.
-
-        Deterministic flows: ``log q(x) = log p(eta0 | x_prev) - log|det d x / d eta0|``.
-        Stochastic flows: the exact Gaussian law of the Euler-Maruyama map started from the
-        (Gaussian) transition ``N(f(x_prev), V)`` (Pal & Coates 2019, Algorithm 1)."""
-        if not self.flow.stochastic:
-            out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, points=self.points)
-            return out.particles, log_q0 - out.log_det
-        start = FlowPrior(model.transition_mean(x_prev), model.transition_scale_tril(x_prev))
-        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, generator=generator, proposal=start,
-                             noise=noise, points=self.points)
-        return out.particles, out.log_proposal
-
-    def step(self, state: ParticleState, z, generator=None):
-        if self.points == "clustered":
-            return self._clustered_step(state, z, generator)
-        model = self.model
-        x_prev = state.particles  # (B, N, d)
-        eta0 = model.sample_transition(x_prev, generator)
-        log_q0 = None if self.flow.stochastic else model.transition_log_prob(eta0, x_prev)
-        if self.points == "particle":
-            m_pred, P_pred = self.tracker.predict(x_prev, state.cov)  # (B, N, d), (B, N, d, d)
-            z_upd = z.unsqueeze(1)
-        else:
-            m_pred, P_pred = self.tracker.predict(state.estimate, state.cov)  # (B, d), (B, d, d)
-            z_upd = z
-        L_pred = linalg.safe_cholesky(P_pred)
-        z1 = z.unsqueeze(1)
-
-        def weigh(x, x_prev, log_q):
-            return model.transition_log_prob(x, x_prev) + model.measurement_log_prob(z1, x) - log_q
-
-        if self.points == "particle":
-            # every particle flows with its own prior: blocks of particles are independent
-            B, N = eta0.shape[:2]
-            blocked = bool(self.particle_chunk) and N > self.particle_chunk
-            tape = {}
-
-            def draw(sl):
-                """A block's diffusion noise: slices of whole-cloud draws (one per pseudo-time step,
-                drawn when the first block needs it), so blocking does not change the numbers."""
-                def noise(j, shape):
-                    if j not in tape:
-                        tape[j] = linalg.standard_normal((B, N, shape[-1]), dtype=eta0.dtype, device=eta0.device,
-                                                         generator=generator)
-                    return tape[j][:, sl]
-                return noise
-
-            def block(eta0, x_prev, m, L, log_q0, particles):
-                kw = {"noise": draw(particles)} if blocked and self.flow.stochastic else {}
-                x, log_q = self._migrate(model, eta0, x_prev, z, FlowPrior(m, L), generator, log_q0, **kw)
-                return x, weigh(x, x_prev, log_q)
-
-            x, log_inc = self.per_particle(block, eta0, x_prev, m_pred, L_pred, log_q0, pass_slice=True)
-        else:
-            x, log_q = self._migrate(model, eta0, x_prev, z, FlowPrior(m_pred, L_pred), generator, log_q0)
-            log_inc = self.per_particle(weigh, x, x_prev, log_q)
-        _, P_post, _ = self.tracker.update(m_pred, P_pred, z_upd)
-        return self.weight_and_resample(x, state.log_weights, log_inc, generator, state.step + 1, cov=P_post,
-                                        fallback=eta0, n_repaired=state.n_repaired)
-
-    def cluster(self, eta_bar, z, L):
-        """``(index (B, N), medoids (B, K))`` of the particles' predictions ``eta_bar (B, N, d)``."""
-        B, N, _ = eta_bar.shape
-        if self.n_clusters >= N:
-            ar = torch.arange(N, device=eta_bar.device).expand(B, N)
-            return ar, ar
-        prior = FlowPrior(eta_bar, L.unsqueeze(1))
-        zero = torch.zeros((), dtype=eta_bar.dtype, device=eta_bar.device)
-        zeta = LEDHFlow().coefficients(self.model, z, eta_bar, prior, zero, zero).drift(eta_bar)[0]
-        dist = cluster_distance(eta_bar, zeta, self.alpha, self.model.measurement_support)
-        return kmedoids(dist, self.n_clusters, self.sweeps)
-
-    def _clustered_step(self, state: ParticleState, z, generator=None):
-        model = self.model
-        x_prev = state.particles  # (B, N, d)
-        eta0 = model.sample_transition(x_prev, generator)
-        log_q0 = model.transition_log_prob(eta0, x_prev)
-        m_pred, P_pred = self.tracker.predict(state.estimate, state.cov)  # (B, d), (B, d, d)
-        L_pred = linalg.safe_cholesky(P_pred)
-        eta_bar = model.transition_mean(x_prev)
-        index, medoids = self.cluster(eta_bar, z, L_pred)
-        prior = FlowPrior(_resampling.gather_particles(eta_bar, medoids), L_pred.unsqueeze(1))
-        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, index=index)
-        log_q = log_q0 - out.log_det if self.jacobian_in_weight else log_q0
-        z1 = z.unsqueeze(1)
-
-        def weigh(x, x_prev, log_q):
-            return model.transition_log_prob(x, x_prev) + model.measurement_log_prob(z1, x) - log_q
-
-        log_inc = self.per_particle(weigh, out.particles, x_prev, log_q)
-        _, P_post, _ = self.tracker.update(m_pred, P_pred, z)
-        return self.weight_and_resample(out.particles, state.log_weights, log_inc, generator, state.step + 1,
-                                        cov=P_post, fallback=eta0, n_repaired=state.n_repaired)
 
     def extra_repr(self) -> str:
         extra = f", n_clusters={self.n_clusters}, alpha={self.alpha}, jacobian_in_weight={self.jacobian_in_weight}"

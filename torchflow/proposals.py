@@ -1,0 +1,203 @@
+"""Proposals of the particle filters: ``q(x_k | x_{k-1}, z_k)`` as small objects.
+
+A particle filter step is (:meth:`torchflow.filters.base.ParticleFilterBase.step`):
+``propose`` -> weigh with ``log p(x | x_prev) + log p(z | x) - log q`` -> resample; the weight
+formula lives in one place (the base), the proposals only say how particles are drawn and with
+what density:
+
+* :class:`BootstrapProposal`: ``q`` is the transition, so the weight is the likelihood alone.
+* :class:`InvertibleFlowProposal`: a deterministic flow moves ``eta_0 ~ p(. | x_{k-1})``;
+  ``log q = log p(eta_0 | x_{k-1}) - log|det d eta_1 / d eta_0|`` (Li & Coates 2017).
+* :class:`StochasticFlowProposal`: a stochastic flow's Euler-Maruyama law, tracked exactly from
+  the Gaussian transition (Pal & Coates 2019, Algorithm 1).
+
+The flow proposals own the flow, the lambda schedule, the linearisation points (global, per
+particle, clustered) and the covariance tracker (EKF/UKF) that gives the flow its prior; a
+proposal without a tracker (the Gaussian PFs to come) simply has none.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+from torch import nn
+
+from . import linalg
+from . import resampling as _resampling
+from .flows import FlowPrior, LEDHFlow, ParticleFlow, integrate_flow
+from .flows.base import resolve_points
+from .flows.points import cluster_distance, kmedoids
+from .schedules import ExponentialSchedule, LambdaSchedule
+
+
+@dataclass
+class Proposed:
+    """What a proposal returns for one step.
+
+    Attributes:
+        particles: ``(B, N, d)`` the proposed ``x_k``.
+        log_q: ``(B, N)`` log proposal density of each particle given its parent, or ``None``
+            when ``q`` is the transition itself (the weight is then the likelihood alone).
+        cov: the filter state's covariance after the step (flow proposals' tracker), or ``None``.
+        fallback: ``(B, N, d)`` finite positions for particles repaired by ``nonfinite="recover"``.
+    """
+
+    particles: torch.Tensor
+    log_q: Optional[torch.Tensor]
+    cov: Optional[torch.Tensor] = None
+    fallback: Optional[torch.Tensor] = None
+
+
+class Proposal(nn.Module):
+    """Base class: :meth:`propose` draws the step's particles and states their density."""
+
+    def propose(self, filt, state, z: torch.Tensor, generator) -> Proposed:
+        """Particles for observation ``z (B, m)`` from ``state`` (a ``ParticleState``); ``filt`` is
+        the particle filter (its model, and :meth:`per_particle` for memory-bounded blocks)."""
+        raise NotImplementedError
+
+
+class BootstrapProposal(Proposal):
+    """``q = p(x_k | x_{k-1})``: draw from the transition; the weight is the likelihood."""
+
+    def propose(self, filt, state, z, generator) -> Proposed:
+        x = filt.model.sample_transition(state.particles, generator)  # (B, N, d)
+        return Proposed(x, None, fallback=state.particles)
+
+
+def _tracker(model, covariance: str):
+    from .filters.kalman import ExtendedKalmanFilter, UnscentedKalmanFilter
+
+    if covariance == "ekf":
+        return ExtendedKalmanFilter(model, validate=False)
+    if covariance == "ukf":
+        return UnscentedKalmanFilter(model, validate=False)
+    raise ValueError(f"covariance: expected 'ekf' or 'ukf', got {covariance!r}")
+
+
+class FlowProposal(Proposal):
+    """A particle flow as proposal (base of the invertible and stochastic flow proposals).
+
+    Args:
+        model: the state-space model (for the covariance tracker).
+        flow: a :class:`~torchflow.flows.ParticleFlow`.
+        schedule: lambda schedule (default exponential, 29 steps, ratio 1.2).
+        covariance: ``"ekf"`` or ``"ukf"``: the tracker that gives the flow its prior P.
+        points: ``"particle"``, ``"global"``, ``"clustered"`` or ``None`` (the flow's default).
+        n_clusters, alpha, sweeps, jacobian_in_weight: clustered points (see
+            :class:`~torchflow.filters.ClusteredParticleFlowParticleFilter`).
+    """
+
+    def __init__(self, model, flow: ParticleFlow, schedule: Optional[LambdaSchedule] = None,
+                 covariance: str = "ekf", points: Optional[str] = None, n_clusters: int = 100,
+                 alpha: float = 0.25, sweeps: int = 10, jacobian_in_weight: bool = True):
+        super().__init__()
+        self.flow = flow
+        self.schedule = schedule or ExponentialSchedule()
+        self.covariance = covariance
+        self.tracker = _tracker(model, covariance)
+        self.points = resolve_points(flow, points)
+        self.n_clusters, self.alpha, self.sweeps = n_clusters, alpha, sweeps
+        self.jacobian_in_weight = jacobian_in_weight
+
+    def _migrate(self, model, eta0, x_prev, z, prior, generator, log_q0, noise=None):
+        """Flow ``eta0`` with ``prior``; returns the particles and their log-density ``(B, N)``."""
+        raise NotImplementedError
+
+    def propose(self, filt, state, z, generator) -> Proposed:
+        if self.points == "clustered":
+            return self._propose_clustered(filt, state, z, generator)
+        model = filt.model
+        x_prev = state.particles  # (B, N, d)
+        eta0 = model.sample_transition(x_prev, generator)
+        log_q0 = None if self.flow.stochastic else model.transition_log_prob(eta0, x_prev)
+        if self.points == "particle":
+            m_pred, P_pred = self.tracker.predict(x_prev, state.cov)  # (B, N, d), (B, N, d, d)
+            z_upd = z.unsqueeze(1)
+        else:
+            m_pred, P_pred = self.tracker.predict(state.estimate, state.cov)  # (B, d), (B, d, d)
+            z_upd = z
+        L_pred = linalg.safe_cholesky(P_pred)
+        if self.points == "particle":
+            # every particle flows with its own prior: blocks of particles are independent
+            B, N = eta0.shape[:2]
+            blocked = bool(filt.particle_chunk) and N > filt.particle_chunk
+            tape = {}
+
+            def draw(sl):
+                """A block's diffusion noise: slices of whole-cloud draws (one per pseudo-time step,
+                drawn when the first block needs it), so blocking does not change the numbers."""
+                def noise(j, shape):
+                    if j not in tape:
+                        tape[j] = linalg.standard_normal((B, N, shape[-1]), dtype=eta0.dtype, device=eta0.device,
+                                                         generator=generator)
+                    return tape[j][:, sl]
+                return noise
+
+            def block(eta0, x_prev, m, L, log_q0, particles):
+                kw = {"noise": draw(particles)} if blocked and self.flow.stochastic else {}
+                return self._migrate(model, eta0, x_prev, z, FlowPrior(m, L), generator, log_q0, **kw)
+
+            x, log_q = filt.per_particle(block, eta0, x_prev, m_pred, L_pred, log_q0, pass_slice=True)
+        else:
+            x, log_q = self._migrate(model, eta0, x_prev, z, FlowPrior(m_pred, L_pred), generator, log_q0)
+        _, P_post, _ = self.tracker.update(m_pred, P_pred, z_upd)
+        return Proposed(x, log_q, cov=P_post, fallback=eta0)
+
+    # ---- clustered points (seed 004) -----------------------------------------------------------
+    def cluster(self, model, eta_bar, z, L):
+        """``(index (B, N), medoids (B, K))`` of the particles' predictions ``eta_bar (B, N, d)``."""
+        B, N, _ = eta_bar.shape
+        if self.n_clusters >= N:
+            ar = torch.arange(N, device=eta_bar.device).expand(B, N)
+            return ar, ar
+        prior = FlowPrior(eta_bar, L.unsqueeze(1))
+        zero = torch.zeros((), dtype=eta_bar.dtype, device=eta_bar.device)
+        zeta = LEDHFlow().coefficients(model, z, eta_bar, prior, zero, zero).drift(eta_bar)[0]
+        dist = cluster_distance(eta_bar, zeta, self.alpha, model.measurement_support)
+        return kmedoids(dist, self.n_clusters, self.sweeps)
+
+    def _propose_clustered(self, filt, state, z, generator) -> Proposed:
+        model = filt.model
+        x_prev = state.particles  # (B, N, d)
+        eta0 = model.sample_transition(x_prev, generator)
+        log_q0 = model.transition_log_prob(eta0, x_prev)
+        m_pred, P_pred = self.tracker.predict(state.estimate, state.cov)  # (B, d), (B, d, d)
+        L_pred = linalg.safe_cholesky(P_pred)
+        eta_bar = model.transition_mean(x_prev)
+        index, medoids = self.cluster(model, eta_bar, z, L_pred)
+        prior = FlowPrior(_resampling.gather_particles(eta_bar, medoids), L_pred.unsqueeze(1))
+        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, index=index)
+        log_q = log_q0 - out.log_det if self.jacobian_in_weight else log_q0
+        _, P_post, _ = self.tracker.update(m_pred, P_pred, z)
+        return Proposed(out.particles, log_q, cov=P_post, fallback=eta0)
+
+
+class InvertibleFlowProposal(FlowProposal):
+    """Deterministic flow: ``log q(x) = log p(eta_0 | x_prev) - log|det d x / d eta_0|``."""
+
+    def _migrate(self, model, eta0, x_prev, z, prior, generator, log_q0, noise=None):
+        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, points=self.points)
+        return out.particles, log_q0 - out.log_det
+
+
+class StochasticFlowProposal(FlowProposal):
+    """Stochastic flow: the exact Gaussian law of the Euler-Maruyama map started from the Gaussian
+    transition ``N(f(x_prev), V)`` (Pal & Coates 2019, Algorithm 1)."""
+
+    def _migrate(self, model, eta0, x_prev, z, prior, generator, log_q0, noise=None):
+        start = FlowPrior(model.transition_mean(x_prev), model.transition_scale_tril(x_prev))
+        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, generator=generator, proposal=start,
+                             noise=noise, points=self.points)
+        return out.particles, out.log_proposal
+
+
+def flow_proposal(model, flow: ParticleFlow, **kwargs) -> FlowProposal:
+    """The flow proposal for ``flow``: invertible (deterministic flows) or stochastic."""
+    cls = StochasticFlowProposal if flow.stochastic else InvertibleFlowProposal
+    return cls(model, flow, **kwargs)
+
+
+__all__ = ["Proposed", "Proposal", "BootstrapProposal", "FlowProposal", "InvertibleFlowProposal",
+           "StochasticFlowProposal", "flow_proposal"]
