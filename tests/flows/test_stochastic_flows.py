@@ -270,8 +270,8 @@ def test_stochastic_recursion_with_zero_diffusion_equals_log_det_weight():
     class ZeroNoiseGeodesic(GeodesicFlow):
         stochastic = True
 
-        def coefficients(self, *a):
-            co = super().coefficients(*a)
+        def coefficients_at(self, *a):
+            co = super().coefficients_at(*a)
             return FlowCoefficients(co.A, co.b, None, noise_factor=torch.zeros_like(co.A[..., :1]),
                                     support=co.support)
 

@@ -123,7 +123,7 @@ class FlowPrior:
     cols_support: Optional[torch.Tensor] = None
     cov_cols: Optional[torch.Tensor] = None  # P[..., :, support] = cols cols_support^T, (..., d, k)
 
-    def reduced(self, model) -> "FlowPrior":
+    def reduced(self, support) -> "FlowPrior":
         """This prior with the factors the flows use, adapted to the model's measurement support.
 
         If h reads only the coordinates ``s`` (k of d), factor P in the order ``(s, rest)``:
@@ -137,7 +137,8 @@ class FlowPrior:
             return self
         L = self.scale_tril
         d = L.shape[-1]
-        sup = getattr(model, "measurement_support", None)
+        # ``support``: the measured coordinates (a tuple or None), or a model that declares them
+        sup = getattr(support, "measurement_support", support)
         if sup is None or len(sup) == d:
             return replace(self, root=L, cols=L, cols_support=L, cov_cols=L @ L.transpose(-1, -2))
         k, chosen = len(sup), set(sup)
@@ -206,18 +207,28 @@ class ParticleFlow(nn.Module):
     local: bool = False
     stochastic: bool = False
 
-    def coefficients(self, model, z: torch.Tensor, aux: torch.Tensor, prior: FlowPrior,
-                     lam: torch.Tensor, eps: torch.Tensor) -> FlowCoefficients:
-        """Drift at pseudo-time ``lam`` (after the step of size ``eps``), linearised at ``aux``.
+    def coefficients_at(self, lin, prior: FlowPrior, lam: torch.Tensor, eps: torch.Tensor) -> FlowCoefficients:
+        """Drift (and diffusion) at pseudo-time ``lam`` (after the step of size ``eps``), from
+        explicit tensors only: a flow never sees the model.
 
         Args:
-            model: the state-space model (measurement function, Jacobian, noise).
-            z: ``(B, m)`` observation.
-            aux: linearisation point(s), ``(B, d)`` (global) or ``(B, N, d)`` (local).
-            prior: the flow's Gaussian prior, batched like ``aux``.
+            lin: :class:`~torchflow.flows.measurement.Linearisation`, the whitened measurement at
+                the linearisation points: ``W (..., m, k)`` (or ``(m, k)`` shared) and ``y (..., m)``.
+            prior: the flow's Gaussian prior at the points, reduced to the measured coordinates
+                (:meth:`FlowPrior.reduced`), batched like the points.
             lam, eps: 0-d tensors.
         """
         raise NotImplementedError
+
+    def coefficients(self, model, z: torch.Tensor, aux: torch.Tensor, prior: FlowPrior,
+                     lam: torch.Tensor, eps: torch.Tensor) -> FlowCoefficients:
+        """Convenience: :meth:`coefficients_at` with the model's own measurement term linearised at
+        ``aux`` (``(B, d)`` or ``(B, L, d)``); ``z (B, m)``."""
+        from .measurement import GaussianMeasurement
+
+        meas = GaussianMeasurement.from_model(model, z)
+        prior = prior.reduced(meas.support)
+        return self.coefficients_at(meas.at(aux, prior.support), prior, lam, eps)
 
 
 def _bcast_obs(z: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -239,6 +250,7 @@ def integrate_flow(
     index: Optional[torch.Tensor] = None,
     points: Optional[str] = None,
     gaussian_image: bool = False,
+    measurement=None,
 ) -> FlowOutput:
     """Integrate ``d eta = (A eta + b) d lambda [+ Q^{1/2} dW]`` from lambda = 0 to 1.
 
@@ -264,6 +276,10 @@ def integrate_flow(
             ``prior`` is per trial), ``"particle"`` (at every particle's auxiliary point: ``prior``
             per particle) or ``"clustered"`` (at K points, with ``index``); default: the flow's
             own (:attr:`ParticleFlow.local`), or ``"clustered"`` when ``index`` is given.
+        measurement: the :class:`~torchflow.flows.measurement.GaussianMeasurement` to linearise
+            at the points (default: the model's own, ``GaussianMeasurement.from_model(model, z)``);
+            a filter passes its own for state-dependent noise, mixture components or data
+            association. The flow itself only sees the whitened tensors at the points.
         gaussian_image: also return the image ``(image_mean, image_cov)`` of each point's prior
             Gaussian (costs a ``d x d`` covariance recursion per point).
         index: clustered linearisation points: ``(B, N)`` cluster of each particle; ``prior`` then
@@ -280,16 +296,20 @@ def integrate_flow(
     schedule = schedule or ExponentialSchedule()
     eps_all, lam_all = schedule.steps(dtype=particles.dtype, device=particles.device)
     points = resolve_points(flow, points if index is None or points is not None else "clustered")
+    if measurement is None:
+        from .measurement import GaussianMeasurement
+
+        measurement = GaussianMeasurement.from_model(model, z)
     if points == "clustered":
         if index is None:
             raise ValueError("index: clustered linearisation points need the (B, N) cluster index")
-        return _integrate_clustered(flow, model, particles, z, prior, eps_all, lam_all, index, gaussian_image)
+        return _integrate_clustered(flow, measurement, particles, prior, eps_all, lam_all, index, gaussian_image)
     local = points == "particle"
     if flow.stochastic:
-        return _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, generator, proposal,
+        return _integrate_stochastic(flow, measurement, particles, prior, eps_all, lam_all, generator, proposal,
                                      noise, local, gaussian_image)
     B, N, d = particles.shape
-    prior = prior.reduced(model)
+    prior = prior.reduced(measurement.support)
     image = _Image(prior, gaussian_image)
     aux = prior.mean
     log_det = torch.zeros(B, N, dtype=particles.dtype, device=particles.device)
@@ -302,7 +322,7 @@ def integrate_flow(
         c = torch.zeros(B, d, dtype=particles.dtype, device=particles.device)
         for j in range(len(eps_all)):
             eps, lam = eps_all[j], lam_all[j]
-            co = flow.coefficients(model, z, aux, prior, lam, eps)
+            co = flow.coefficients_at(measurement.at(aux, prior.support), prior, lam, eps)
             step = eye + eps * co.dense_A()  # (B, d, d)
             M = step @ M
             c = linalg.matvec(step, c) + eps * co.b
@@ -314,7 +334,7 @@ def integrate_flow(
         return image.output(FlowOutput(eta, log_det, aux))
     for j in range(len(eps_all)):
         eps, lam = eps_all[j], lam_all[j]
-        c = flow.coefficients(model, z, aux, prior, lam, eps)
+        c = flow.coefficients_at(measurement.at(aux, prior.support), prior, lam, eps)
         d_eta, d_aux = c.drift(eta, aux)
         eta = eta + eps * d_eta
         aux = aux + eps * d_aux
@@ -356,7 +376,7 @@ def _gather_points(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return x.gather(1, flat)
 
 
-def _integrate_clustered(flow, model, particles, z, prior, eps_all, lam_all, index, gaussian_image=False):
+def _integrate_clustered(flow, measurement, particles, prior, eps_all, lam_all, index, gaussian_image=False):
     """Deterministic flow linearised at K points, ``prior.mean (B, K, d)``: at every pseudo-time
     step the coefficients are computed at the K points (which migrate with their own drift) and
     gathered to the particles of each cluster; ``log|det|`` of a cluster's map is the sum of its
@@ -368,14 +388,14 @@ def _integrate_clustered(flow, model, particles, z, prior, eps_all, lam_all, ind
     B, N, d = particles.shape
     if index.shape != (B, N):
         raise ValueError(f"index: expected (B, N) = ({B}, {N}) cluster indices, got {tuple(index.shape)}")
-    prior = prior.reduced(model)
+    prior = prior.reduced(measurement.support)
     image = _Image(prior, gaussian_image)
     aux = prior.mean  # (B, K, d)
     eta = particles
     log_det = torch.zeros(B, aux.shape[1], dtype=particles.dtype, device=particles.device)
     for j in range(len(eps_all)):
         eps, lam = eps_all[j], lam_all[j]
-        co = flow.coefficients(model, z, aux, prior, lam, eps)
+        co = flow.coefficients_at(measurement.at(aux, prior.support), prior, lam, eps)
         aux = aux + eps * co.drift(aux)[0]
         image.step(co, eps)
         A = co.A  # deterministic flows state A explicitly
@@ -413,12 +433,12 @@ def _propagate_cov(Sig, co: "FlowCoefficients", eps, eye):
     return out.reshape(*batch, *Sig.shape[-2:]) + eps * co.diffusion_cov()
 
 
-def _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, generator, proposal, noise=None,
+def _integrate_stochastic(flow, measurement, particles, prior, eps_all, lam_all, generator, proposal, noise=None,
                           local=True, gaussian_image=False):
     """Euler-Maruyama for stochastic flows, with the exact Gaussian proposal recursion."""
     B, N, d = particles.shape
     eye = torch.eye(d, dtype=particles.dtype, device=particles.device)
-    prior = prior.reduced(model)
+    prior = prior.reduced(measurement.support)
     image = _Image(prior, gaussian_image)
     aux, eta = prior.mean, particles
     track = proposal is not None
@@ -430,7 +450,7 @@ def _integrate_stochastic(flow, model, particles, z, prior, eps_all, lam_all, ge
             Sig = Sig.expand(B, 1, d, d)
     for j in range(len(eps_all)):
         eps, lam = eps_all[j], lam_all[j]
-        co = flow.coefficients(model, z, aux, prior, lam, eps)
+        co = flow.coefficients_at(measurement.at(aux, prior.support), prior, lam, eps)
         A, b, G = co.A, co.b, co.noise_factor
         if A is None or (G is None and co.noise_apply is None):
             raise TypeError(f"{type(flow).__name__}: a stochastic flow must give an explicit A and a noise_factor")

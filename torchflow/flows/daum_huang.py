@@ -22,44 +22,14 @@ from __future__ import annotations
 import torch
 
 from .. import linalg
-from .base import FlowCoefficients, FlowPrior, ParticleFlow, _bcast_obs
+from .base import FlowCoefficients, FlowPrior, ParticleFlow
+from .measurement import Linearisation, whiten
 
 
 def _whiten(model, aux: torch.Tensor, z: torch.Tensor, support=None):
-    """Whitened linearisation at ``aux (..., d)``: ``W = L_R^{-1} H (..., m, k)`` and the whitened
-    pseudo-measurement ``y = L_R^{-1} (z - e) (..., m)`` with ``e = h(aux) - H aux``.
-
-    With ``support`` (a :class:`FlowPrior` ``support``, the model's measured coordinates) H is
-    only the ``k`` nonzero columns of the Jacobian; otherwise all ``d``. The noise structure is the
-    model's declared :attr:`~torchflow.models.StateSpaceModel.measurement_noise` (no test of R
-    here, so no host synchronisation)."""
-    noise = model.measurement_noise
-    LR = model.measurement_scale_tril(aux)
-    xs = aux if support is None else aux.index_select(-1, support)
-    if noise == "scalar" and not model.linear_measurement:
-        # R = sigma^2 I: whiten inside the model's linearisation (scale 1 / sigma), so
-        # W = H / sigma and y = (z - h) / sigma + W x_s need no pass over the Jacobian
-        inv_sigma = 1 / LR.diagonal(dim1=-2, dim2=-1)[..., 0]  # 0-d: "scalar" R is constant
-        hx, W = model.linearize_measurement(aux, support=support is not None, scale=inv_sigma)
-        return W, _bcast_obs(z, aux) * inv_sigma - hx + linalg.matvec(W, xs)
-    # a linear measurement has one H for every point: keep it unbatched (m, d)
-    if model.linear_measurement:
-        H = model.measurement_matrix()
-        H = H if support is None else H.index_select(-1, support)
-        hx = model.measure(aux)
-    else:
-        hx, H = model.linearize_measurement(aux, support=support is not None)
-    e = hx - linalg.matvec(H, xs)
-    resid = _bcast_obs(z, aux) - e
-    if noise == "scalar":
-        sigma = LR.diagonal(dim1=-2, dim2=-1)[..., 0]
-        return H / sigma, resid / sigma  # a 0-d scale: much faster than a broadcast
-    if noise == "diagonal":
-        dr = LR.diagonal(dim1=-2, dim2=-1)
-        return H / dr.unsqueeze(-1), resid / dr
-    W = linalg.solve_triangular(LR, H, upper=False)
-    y = linalg.solve_triangular(LR, resid.unsqueeze(-1), upper=False).squeeze(-1)
-    return W, y
+    """``(W, y)`` of the model's measurement at ``aux`` (kept for callers of the old helper; see
+    :meth:`~torchflow.flows.measurement.GaussianMeasurement.at`)."""
+    return whiten(model, aux, z, support)
 
 
 def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, support=None,
@@ -111,13 +81,6 @@ def _gram_terms(W, y, Ls):
     return T, S, Wy
 
 
-def _support_terms(model, aux, z, prior: FlowPrior):
-    """Reduced prior and whitened linearisation shared by every flow's ``coefficients``."""
-    prior = prior.reduced(model)
-    W, y = _whiten(model, aux, z, prior.support)
-    return prior, W, y
-
-
 class EDHFlow(ParticleFlow):
     """Exact Daum-Huang flow: one linearisation per trial at the migrating mean (Daum & Huang
     2010; the PF-PF(EDH) proposal of Li & Coates 2017).
@@ -134,8 +97,8 @@ class EDHFlow(ParticleFlow):
     local = False
     promote_low_precision = True
 
-    def coefficients(self, model, z, aux, prior: FlowPrior, lam, eps):
-        prior, W, y = _support_terms(model, aux, z, prior)
+    def coefficients_at(self, lin: Linearisation, prior: FlowPrior, lam, eps):
+        W, y = lin.W, lin.y
         dt = prior.cols.dtype
         if self.promote_low_precision and dt in (torch.float32, torch.float16, torch.bfloat16):
             up = (lambda t: None if t is None else t.to(torch.float64))  # noqa: E731

@@ -46,7 +46,8 @@ import torch
 
 from .. import linalg
 from .base import FlowCoefficients, FlowPrior, ParticleFlow
-from .daum_huang import _gram_terms, _support_terms
+from .daum_huang import _gram_terms
+from .measurement import Linearisation
 
 
 def _homotopy_terms(W, y, L, lam, need_factor: bool = False, L_support=None, extra=None):
@@ -94,10 +95,9 @@ def _homotopy_terms(W, y, L, lam, need_factor: bool = False, L_support=None, ext
     return S, K, None, X[..., :k], X[..., k + r], (X[..., k:k + r] if r else None)
 
 
-def _terms(model, aux, z, prior, lam, need_factor=False):
-    """Reduced prior plus :func:`_homotopy_terms` at ``aux`` (without ``E``)."""
-    prior, W, y = _support_terms(model, aux, z, prior)
-    return (prior, *_homotopy_terms(W, y, prior.cols, lam, need_factor, L_support=prior.cols_support)[:5])
+def _terms(lin: Linearisation, prior, lam, need_factor=False):
+    """:func:`_homotopy_terms` of the whitened measurement ``lin`` (without ``E``)."""
+    return (prior, *_homotopy_terms(lin.W, lin.y, prior.cols, lam, need_factor, L_support=prior.cols_support)[:5])
 
 
 def symmetric_sqrt(Q: torch.Tensor) -> torch.Tensor:
@@ -142,8 +142,8 @@ class GeodesicFlow(_HomotopyFlow):
     ``lambda_j - eps_j = lambda_{j-1} >= 0``.
     """
 
-    def coefficients(self, model, z, aux, prior: FlowPrior, lam, eps):
-        prior, S, K, G, C, g = _terms(model, aux, z, prior, lam)
+    def coefficients_at(self, lin: Linearisation, prior: FlowPrior, lam, eps):
+        prior, S, K, G, C, g = _terms(lin, prior, lam)
         eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
         K2 = linalg.cholesky_unit_shift(eye + (lam - eps) * S)
         return FlowCoefficients(-C, g, linalg.chol_logdet(K2) - linalg.chol_logdet(K), support=prior.support)
@@ -168,13 +168,13 @@ class GromovFlow(_HomotopyFlow):
             raise ValueError(f"noise_root: expected one of {_NOISE_ROOTS}, got {noise_root!r}")
         self.noise_root = noise_root
 
-    def coefficients(self, model, z, aux, prior: FlowPrior, lam, eps):
-        if aux.dim() > 2 and self.noise_root == "factor":  # points per particle: (B, N, d)
+    def coefficients_at(self, lin: Linearisation, prior: FlowPrior, lam, eps):
+        if prior.mean.dim() > 2 and self.noise_root == "factor":  # points per particle: (B, N, d)
             # operator form: with N = M^{-1}[:, s] = L (I + lam S)^{-1} L_s^T (the columns of M^{-1}
             # at the measured coordinates, where J lives), C = M^{-1} J = N J_s,
             # G = M^{-1} W^T = N W_s^T and Q = G G^T = C N^T; G xi = N (W_s^T xi) never forms the
             # d x m factor, and N comes from the same solve as C and g
-            prior, W, y = _support_terms(model, aux, z, prior)
+            W, y = lin.W, lin.y
             Lk = prior.cols_support
             S, K, _, C, g, Nc = _homotopy_terms(W, y, prior.cols, lam, L_support=Lk, extra=Lk.transpose(-1, -2))
 
@@ -184,7 +184,7 @@ class GromovFlow(_HomotopyFlow):
 
             return FlowCoefficients(-C, g, None, support=prior.support, noise_cov_pair=(C, Nc), noise_apply=apply,
                                     noise_dim=W.shape[-2])
-        prior, S, K, G, C, g = _terms(model, aux, z, prior, lam, need_factor=True)
+        prior, S, K, G, C, g = _terms(lin, prior, lam, need_factor=True)
         return FlowCoefficients(-C, g, None, noise_factor=_noise_root(G, self.noise_root), support=prior.support)
 
     def extra_repr(self) -> str:
@@ -262,8 +262,8 @@ class OptimalDiffusionFlow(_HomotopyFlow):
             k = s / (2 * (1 + lam * s))  # eigenvalues of -A_EDH, increasing in s
             return optimal_diffusion_scale(k[..., 0], k[..., -1], self.alpha)
 
-    def coefficients(self, model, z, aux, prior: FlowPrior, lam, eps):
-        prior, S, K, G, C, g = _terms(model, aux, z, prior, lam)
+    def coefficients_at(self, lin: Linearisation, prior: FlowPrior, lam, eps):
+        prior, S, K, G, C, g = _terms(lin, prior, lam)
         eta0, d, k = prior.mean, g.shape[-1], S.shape[-1]
         c = self.scale(S, lam, d)  # (...)
         half_c = (c / 2).unsqueeze(-1)

@@ -1,0 +1,111 @@
+"""The measurement term a flow is given: explicit tensors at the linearisation points.
+
+A flow never sees the model. The filter (or :func:`~torchflow.flows.integrate_flow` on its
+behalf) describes the Gaussian measurement term with a :class:`GaussianMeasurement`: the
+observation ``z``, how to evaluate ``h`` and its Jacobian at points it chooses, and the noise ``R``
+with its *declared* structure (``scalar``, ``diagonal``, ``dense``). At every pseudo-time step the
+integrator evaluates it at the current points and hands the flow the whitened tensors of
+:class:`Linearisation`:
+
+    W = L_R^{-1} H (..., m, k),     y = L_R^{-1} (z - h(x) + H x) (..., m),
+
+``H`` restricted to the measured coordinates (``support``, k of d) when the model declares them.
+A filter with a state-dependent R, per-component moments (Gaussian-sum filters) or one term per
+associated measurement builds its own ``GaussianMeasurement``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional, Sequence, Tuple
+
+import torch
+
+from .. import linalg
+
+
+@dataclass
+class Linearisation:
+    """Whitened measurement at the linearisation points: ``W (..., m, k)`` (or ``(m, k)``, shared by
+    every point of a linear measurement) and ``y (..., m)``."""
+
+    W: torch.Tensor
+    y: torch.Tensor
+
+
+def _bcast_obs(z: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """``z (B, m)`` viewed to broadcast against points ``like (B, ..., d)``."""
+    return z.reshape(z.shape[0], *([1] * (like.dim() - 2)), z.shape[-1])
+
+
+class GaussianMeasurement:
+    """``z = h(x) + w``, ``w ~ N(0, R)``, as the flows need it.
+
+    Args:
+        z: ``(B, m)`` observation.
+        linearise: ``(points (..., d), support: bool, scale) -> (h (..., m), H (..., m, k|d))``, the
+            measurement and its Jacobian at the points (restricted to the support columns when
+            ``support`` is True; both multiplied by ``scale`` when given).
+        scale_tril: ``points -> L_R`` (``(m, m)``, or ``(..., m, m)`` for a state-dependent R).
+        noise: the declared structure of R: ``"scalar"``, ``"diagonal"`` or ``"dense"``.
+        matrix: ``(m, d)`` measurement matrix of a linear measurement (one H for every point), else
+            ``None``.
+        measure: ``points -> h(points)`` (used with ``matrix``).
+        support: the state coordinates h reads (``None``: all).
+    """
+
+    def __init__(self, z: torch.Tensor, linearise: Callable, scale_tril: Callable, noise: str,
+                 matrix: Optional[torch.Tensor] = None, measure: Optional[Callable] = None,
+                 support: Optional[Sequence[int]] = None):
+        if noise not in ("scalar", "diagonal", "dense"):
+            raise ValueError(f"noise: expected 'scalar', 'diagonal' or 'dense', got {noise!r}")
+        self.z, self.linearise, self.scale_tril, self.noise = z, linearise, scale_tril, noise
+        self.matrix, self.measure = matrix, measure
+        self.support = None if support is None else tuple(support)
+
+    @classmethod
+    def from_model(cls, model, z: torch.Tensor) -> "GaussianMeasurement":
+        """The model's own measurement term (its declared noise structure and support)."""
+        noise = model.measurement_noise
+        if noise not in ("scalar", "diagonal", "dense"):  # state-dependent R: general whitening
+            noise = "dense"
+        linear = model.linear_measurement
+        return cls(z, model.linearize_measurement, model.measurement_scale_tril, noise,
+                   matrix=model.measurement_matrix() if linear else None, measure=model.measure if linear else None,
+                   support=model.measurement_support)
+
+    def at(self, points: torch.Tensor, support: Optional[torch.Tensor] = None) -> Linearisation:
+        """Whitened linearisation at ``points (..., d)``; ``support`` is the ``(k,)`` index of the
+        measured coordinates (:attr:`FlowPrior.support`) or ``None``. No test of R's values: its
+        structure is declared (no host synchronisation)."""
+        LR = self.scale_tril(points)
+        xs = points if support is None else points.index_select(-1, support)
+        if self.noise == "scalar" and self.matrix is None:
+            # R = sigma^2 I: whiten inside the linearisation (scale 1 / sigma), so W = H / sigma
+            # and y = (z - h) / sigma + W x_s need no pass over the Jacobian
+            inv_sigma = 1 / LR.diagonal(dim1=-2, dim2=-1)[..., 0]  # 0-d: "scalar" R is constant
+            hx, W = self.linearise(points, support=support is not None, scale=inv_sigma)
+            return Linearisation(W, _bcast_obs(self.z, points) * inv_sigma - hx + linalg.matvec(W, xs))
+        if self.matrix is not None:  # a linear measurement has one H for every point: keep (m, d)
+            H = self.matrix if support is None else self.matrix.index_select(-1, support)
+            hx = self.measure(points)
+        else:
+            hx, H = self.linearise(points, support=support is not None)
+        resid = _bcast_obs(self.z, points) - (hx - linalg.matvec(H, xs))
+        if self.noise == "scalar":
+            sigma = LR.diagonal(dim1=-2, dim2=-1)[..., 0]
+            return Linearisation(H / sigma, resid / sigma)  # a 0-d scale: much faster than a broadcast
+        if self.noise == "diagonal":
+            dr = LR.diagonal(dim1=-2, dim2=-1)
+            return Linearisation(H / dr.unsqueeze(-1), resid / dr)
+        W = linalg.solve_triangular(LR, H, upper=False)
+        y = linalg.solve_triangular(LR, resid.unsqueeze(-1), upper=False).squeeze(-1)
+        return Linearisation(W, y)
+
+
+__all__ = ["GaussianMeasurement", "Linearisation"]
+
+
+def whiten(model, points: torch.Tensor, z: torch.Tensor, support=None) -> Tuple[torch.Tensor, torch.Tensor]:
+    """``(W, y)`` of the model's measurement at ``points`` (a convenience for tests and users)."""
+    lin = GaussianMeasurement.from_model(model, z).at(points, support)
+    return lin.W, lin.y
