@@ -162,12 +162,18 @@ class FlowProposal(Proposal):
         model = filt.model
         x_prev = state.particles  # (B, N, d)
         eta0 = model.sample_transition(x_prev, generator)
-        log_q0 = model.transition_log_prob(eta0, x_prev)
+        log_q0 = None if self.flow.stochastic else model.transition_log_prob(eta0, x_prev)
         m_pred, P_pred = self.tracker.predict(state.estimate, state.cov)  # (B, d), (B, d, d)
         L_pred = linalg.safe_cholesky(P_pred)
         eta_bar = model.transition_mean(x_prev)
         index, medoids = self.cluster(model, eta_bar, z, L_pred)
         prior = FlowPrior(_resampling.gather_particles(eta_bar, medoids), L_pred.unsqueeze(1))
+        if self.flow.stochastic:  # each particle's exact Gaussian law, from the transition
+            start = FlowPrior(model.transition_mean(x_prev), model.transition_scale_tril(x_prev))
+            out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, index=index, generator=generator,
+                                 proposal=start)
+            return Proposed(out.particles, out.log_proposal, cov=self.tracker.update(m_pred, P_pred, z)[1],
+                            fallback=eta0)
         out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, index=index)
         log_q = log_q0 - out.log_det if self.jacobian_in_weight else log_q0
         _, P_post, _ = self.tracker.update(m_pred, P_pred, z)

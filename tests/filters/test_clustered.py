@@ -109,11 +109,39 @@ def test_clustered_on_acoustic_and_argument_errors():
     res = ClusteredParticleFlowParticleFilter(model, n_clusters=10, n_particles=60)(
         traj.observations, mean, cov, TrialStreams(0, 2, "pfpf"))
     assert torch.isfinite(res.estimates).all() and torch.isfinite(res.log_evidence).all()
-    with pytest.raises(ValueError, match="deterministic flow"):
-        ClusteredParticleFlowParticleFilter(model, flow="gromov")
+    gromov = ClusteredParticleFlowParticleFilter(model, flow="gromov", n_clusters=10, n_particles=60)(
+        traj.observations, mean, cov, TrialStreams(0, 2, "pfpf"))
+    assert torch.isfinite(gromov.estimates).all() and torch.isfinite(gromov.log_evidence).all()
     with pytest.raises(ValueError, match=r"n_clusters: expected a positive integer, got 0"):
         ClusteredParticleFlowParticleFilter(model, n_clusters=0)
     with pytest.raises(ValueError, match=r"alpha: expected a weight in \[0, 1\], got 2"):
         ClusteredParticleFlowParticleFilter(model, alpha=2)
     with pytest.raises(TypeError, match="jacobian_in_weight: expected a bool"):
         ClusteredParticleFlowParticleFilter(model, jacobian_in_weight="yes")
+
+
+@pytest.mark.parametrize("K", [1, 4])
+def test_clustered_gromov_log_evidence_unbiased_on_lg(K):
+    """Stochastic flow with clustered points: each particle's Gaussian law is tracked exactly, so
+    the evidence stays unbiased (same test as above)."""
+    model = mild_lg()
+    obs, mean, cov = _replicated(model, 400, 6)
+    logz = KalmanFilter(model)(obs[:1], mean[:1], cov[:1]).log_evidence
+    f = ClusteredParticleFlowParticleFilter(model, flow="gromov", n_clusters=K, n_particles=64)
+    r = torch.exp(f(obs, mean, cov, TrialStreams(2, 400, "pfpf")).log_evidence - logz)
+    se = r.std() / math.sqrt(r.numel())
+    assert abs(float(r.mean()) - 1) < 4 * float(se), (float(r.mean()), float(se))
+    assert float(se) < 0.05
+
+
+def test_clustered_gromov_with_k_equal_n_is_pfpf_gromov_on_lg():
+    model = random_lg(3, 2, seed=4)
+    g = torch.Generator().manual_seed(0)
+    traj = model.simulate(3, 4, g)
+    mean, cov = model.initial_belief(traj.states[:, 0])
+    a = ParticleFlowParticleFilter(model, flow="gromov", n_particles=16)(traj.observations, mean, cov,
+                                                                           TrialStreams(0, 3, "pfpf"))
+    b = ClusteredParticleFlowParticleFilter(model, flow="gromov", n_clusters=16, n_particles=16)(
+        traj.observations, mean, cov, TrialStreams(0, 3, "pfpf"))
+    torch.testing.assert_close(b.estimates, a.estimates, rtol=0, atol=1e-10)
+    torch.testing.assert_close(b.log_evidence, a.log_evidence, rtol=0, atol=1e-10)

@@ -77,7 +77,7 @@ def test_gromov_operator_noise_is_the_exact_factor():
     prior = FlowPrior(aux, linalg.safe_cholesky(P))
     lam, eps = torch.tensor(0.5, dtype=F64), torch.tensor(0.05, dtype=F64)
     co = GromovFlow().coefficients(model, z, aux, prior, lam, eps)
-    assert co.noise_apply is not None and co.noise_dim == 25
+    assert co.noise_product is not None and co.noise_rank == 25  # G = U V^T, never formed
     xi = torch.randn(1, 3, 25, dtype=F64, generator=torch.Generator().manual_seed(3))
     Gxi = co.diffuse(xi)
     for n in range(3):

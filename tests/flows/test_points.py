@@ -48,8 +48,6 @@ def test_points_errors():
     model, obs, mean, cov = _data()
     with pytest.raises(ValueError, match=r"points: expected one of \('global', 'particle', 'clustered'\) or None"):
         ParticleFlowParticleFilter(model, points="medoids")
-    with pytest.raises(ValueError, match="clustered linearisation points need a deterministic flow"):
-        ParticleFlowParticleFilter(model, flow="gromov", points="clustered")
     x = torch.zeros(3, 5, 16, dtype=torch.float64)
     with pytest.raises(ValueError, match="index: clustered linearisation points need the"):
         integrate_flow(LEDHFlow(), model, x, obs[:, 0], None, points="clustered")

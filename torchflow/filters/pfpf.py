@@ -96,7 +96,7 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
             ``"clustered"`` (K medoids, one P per trial; see
             :class:`ClusteredParticleFlowParticleFilter`) or ``None``: the flow's own default
             (LEDH and the per-particle homotopy flows: particle; EDH: global). Any flow pairs with
-            any points (clustered: deterministic flows).
+            any points.
         n_clusters, alpha, sweeps, jacobian_in_weight: clustered points only, see
             :class:`ClusteredParticleFlowParticleFilter`.
         resampling, ess_threshold, regularization: see
@@ -119,9 +119,6 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
                          regularization=regularization, nonfinite=nonfinite, particle_chunk=particle_chunk,
                          validate=validate, name=name)
         flow = _flow(flow)
-        if resolve_points(flow, points) == "clustered" and flow.stochastic:
-            raise ValueError(f"flow: clustered linearisation points need a deterministic flow (ledh, edh, geodesic), "
-                             f"got {type(flow).__name__}")
         n_clusters = check_count("n_clusters", n_clusters)
         sweeps = check_count("sweeps", sweeps)
         if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0.0 <= float(alpha) <= 1.0:
@@ -197,8 +194,9 @@ class ClusteredParticleFlowParticleFilter(ParticleFlowParticleFilter):
         jacobian_in_weight: include ``theta^(k)`` in the weight (default True: the proposal density
             needs it, since it differs between clusters); False reproduces the seed's printed
             algorithm, which omits it.
-        flow: a deterministic flow (default LEDH drift; ``"geodesic"`` also works); stochastic
-            flows per cluster are not implemented.
+        flow: any flow (default LEDH drift). With a stochastic flow (``"gromov"``, ``"osd"``) each
+            particle takes its cluster's drift and diffusion and is weighted by its exact Gaussian
+            proposal density, as PF-PF(Gromov).
         other arguments: as :class:`ParticleFlowParticleFilter`, which this is with
         ``points="clustered"`` (any PF-PF takes ``points``; this class only changes the default).
     """

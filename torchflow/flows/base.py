@@ -44,6 +44,9 @@ class FlowCoefficients:
         noise_cov, noise_apply, noise_dim: the same diffusion in operator form (used instead of
             ``noise_factor`` when given): ``Q (..., d, d)``, ``xi (..., r) -> G xi`` and ``r``;
             cheaper when G is a product of small factors.
+        noise_product: ``(U, V)`` with ``G = U V^T`` (``U (..., d, k)``, ``V (..., r, k)`` or a shared
+            ``(r, k)``): ``G xi = U (V^T xi)`` without forming the ``d x r`` factor (Gromov's
+            ``M^{-1}[:, s] W_s^T``); plain tensors, so it can be gathered to clustered particles.
         noise_cov_pair: ``(Q1, Q2)`` with ``Q = Q1 Q2^T`` (``(..., d, k)`` each), instead of
             ``noise_cov``: lets the integrator fuse the addition into a product.
         support: when the measurement reads only ``k`` of the ``d`` state coordinates
@@ -62,6 +65,7 @@ class FlowCoefficients:
     noise_apply: Optional[Callable[[torch.Tensor], torch.Tensor]] = None
     noise_dim: Optional[int] = None
     noise_cov_pair: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
+    noise_product: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
 
     def diffusion_cov(self) -> torch.Tensor:
         """``Q = G G^T`` (given, or formed from ``noise_factor``)."""
@@ -73,6 +77,10 @@ class FlowCoefficients:
 
     def diffuse(self, xi: torch.Tensor) -> torch.Tensor:
         """``G xi`` for standard normal draws ``xi (..., r)`` batched like ``b``."""
+        if self.noise_product is not None:
+            U, V = self.noise_product
+            Vxi = xi @ V if V.dim() == 2 else (V * xi.unsqueeze(-1)).sum(-2)  # V^T xi, (..., k)
+            return linalg.matvec(U, Vxi)
         if self.noise_apply is not None:
             return self.noise_apply(xi)
         return linalg.matvec(self.noise_factor, xi)
@@ -80,7 +88,31 @@ class FlowCoefficients:
     @property
     def noise_rank(self) -> int:
         """r, the number of standard normal draws per point the diffusion uses."""
-        return self.noise_dim if self.noise_dim is not None else self.noise_factor.shape[-1]
+        if self.noise_dim is not None:
+            return self.noise_dim
+        if self.noise_product is not None:
+            return self.noise_product[1].shape[-2]
+        return self.noise_factor.shape[-1]
+
+    @property
+    def has_noise(self) -> bool:
+        return self.noise_factor is not None or self.noise_apply is not None or self.noise_product is not None
+
+    def gather(self, index: torch.Tensor) -> "FlowCoefficients":
+        """These coefficients, computed at L points ``(B, L|1, ...)``, for the particles of each
+        point's cluster (``index (B, N)``); shared tensors (no point dimension) stay as they are.
+        ``log_det`` is not gathered (it belongs to the points)."""
+        if self.noise_apply is not None or self.apply_A is not None:
+            raise NotImplementedError("coefficients given as closures (apply_A, noise_apply) cannot be gathered "
+                                      "to clustered particles: give tensors (A, noise_factor or noise_product)")
+
+        def g(t):
+            return None if t is None or t.dim() < 3 else _gather_points(t, index)
+
+        pair = lambda p: None if p is None else (g(p[0]), p[1] if p[1].dim() < 3 else g(p[1]))  # noqa: E731
+        return FlowCoefficients(g(self.A), g(self.b), None, noise_factor=g(self.noise_factor), support=self.support,
+                                noise_cov=g(self.noise_cov), noise_dim=self.noise_dim,
+                                noise_cov_pair=pair(self.noise_cov_pair), noise_product=pair(self.noise_product))
 
     def cols(self, x: torch.Tensor) -> torch.Tensor:
         """The coordinates of ``x (..., d)`` that A acts on (all, or ``support``)."""
@@ -303,7 +335,8 @@ def integrate_flow(
     if points == "clustered":
         if index is None:
             raise ValueError("index: clustered linearisation points need the (B, N) cluster index")
-        return _integrate_clustered(flow, measurement, particles, prior, eps_all, lam_all, index, gaussian_image)
+        return _integrate_clustered(flow, measurement, particles, prior, eps_all, lam_all, index, gaussian_image,
+                                    generator, proposal)
     local = points == "particle"
     if flow.stochastic:
         return _integrate_stochastic(flow, measurement, particles, prior, eps_all, lam_all, generator, proposal,
@@ -376,15 +409,15 @@ def _gather_points(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return x.gather(1, flat)
 
 
-def _integrate_clustered(flow, measurement, particles, prior, eps_all, lam_all, index, gaussian_image=False):
-    """Deterministic flow linearised at K points, ``prior.mean (B, K, d)``: at every pseudo-time
-    step the coefficients are computed at the K points (which migrate with their own drift) and
-    gathered to the particles of each cluster; ``log|det|`` of a cluster's map is the sum of its
-    steps' exact log-dets. Cheaper than composing d x d maps per cluster whenever
-    ``K d > N k / d`` (k: measured coordinates), e.g. K = 100 of N = 500 on acoustic tracking."""
-    if flow.stochastic:
-        raise NotImplementedError(f"{type(flow).__name__}: clustered linearisation points are implemented for "
-                                  "deterministic flows (EDH/LEDH drift, geodesic) only")
+def _integrate_clustered(flow, measurement, particles, prior, eps_all, lam_all, index, gaussian_image=False,
+                         generator=None, proposal=None):
+    """Flow linearised at K points, ``prior.mean (B, K, d)``: at every pseudo-time step the
+    coefficients are computed at the K points (which migrate with their own drift) and gathered to
+    the particles of each cluster (:meth:`FlowCoefficients.gather`). Deterministic flows: a
+    cluster's ``log|det|`` is the sum of its steps' exact log-dets. Stochastic flows: the
+    particles take Euler-Maruyama steps with their cluster's drift and diffusion, and given
+    ``proposal`` each particle's Gaussian law is tracked exactly, as for per-particle points.
+    Cheaper than composing d x d maps per cluster whenever ``K d > N k / d``."""
     B, N, d = particles.shape
     if index.shape != (B, N):
         raise ValueError(f"index: expected (B, N) = ({B}, {N}) cluster indices, got {tuple(index.shape)}")
@@ -393,17 +426,37 @@ def _integrate_clustered(flow, measurement, particles, prior, eps_all, lam_all, 
     aux = prior.mean  # (B, K, d)
     eta = particles
     log_det = torch.zeros(B, aux.shape[1], dtype=particles.dtype, device=particles.device)
+    track = flow.stochastic and proposal is not None
+    if track:
+        eye = torch.eye(d, dtype=particles.dtype, device=particles.device)
+        mu = proposal.mean.expand(B, N, d)
+        Sig = proposal.scale_tril @ proposal.scale_tril.transpose(-1, -2)
+        if Sig.dim() == 2:
+            Sig = Sig.expand(B, 1, d, d)
     for j in range(len(eps_all)):
         eps, lam = eps_all[j], lam_all[j]
         co = flow.coefficients_at(measurement.at(aux, prior.support), prior, lam, eps)
         aux = aux + eps * co.drift(aux)[0]
         image.step(co, eps)
-        A = co.A  # deterministic flows state A explicitly
-        at_particles = FlowCoefficients(_gather_points(A, index), _gather_points(co.b, index), None,
-                                        support=co.support)
-        eta = eta + eps * at_particles.drift(eta)[0]
-        log_det = log_det + co.log_det
-    return image.output(FlowOutput(eta, _gather_points(log_det.unsqueeze(-1), index).squeeze(-1), aux))
+        at_particles = co.gather(index)
+        if not flow.stochastic:
+            eta = eta + eps * at_particles.drift(eta)[0]
+            log_det = log_det + co.log_det
+            continue
+        drifts = at_particles.drift(eta, *([mu] if track else []))
+        xi = linalg.standard_normal((B, N, at_particles.noise_rank), dtype=eta.dtype, device=eta.device,
+                                    generator=generator)
+        eta = eta + eps * drifts[0] + eps.sqrt() * at_particles.diffuse(xi)
+        if track:
+            mu = mu + eps * drifts[-1]
+            Sig = _propagate_cov(Sig, at_particles, eps, eye)
+    if not flow.stochastic:
+        return image.output(FlowOutput(eta, _gather_points(log_det.unsqueeze(-1), index).squeeze(-1), aux))
+    if not track:
+        return image.output(FlowOutput(eta, None, aux))
+    Sig = linalg.symmetrize(Sig)
+    log_q = linalg.mvn_log_prob(eta, mu, linalg.safe_cholesky(Sig))
+    return image.output(FlowOutput(eta, None, aux, log_proposal=log_q, proposal_mean=mu, proposal_cov=Sig))
 
 
 def _flat3(x: torch.Tensor, batch) -> torch.Tensor:
@@ -452,7 +505,7 @@ def _integrate_stochastic(flow, measurement, particles, prior, eps_all, lam_all,
         eps, lam = eps_all[j], lam_all[j]
         co = flow.coefficients_at(measurement.at(aux, prior.support), prior, lam, eps)
         A, b, G = co.A, co.b, co.noise_factor
-        if A is None or (G is None and co.noise_apply is None):
+        if A is None or not co.has_noise:
             raise TypeError(f"{type(flow).__name__}: a stochastic flow must give an explicit A and a noise_factor")
         image.step(co, eps)  # at the points, before the particles' view of the coefficients
         if local:  # aux is per particle: one stacked product for every vector

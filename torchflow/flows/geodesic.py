@@ -177,13 +177,8 @@ class GromovFlow(_HomotopyFlow):
             W, y = lin.W, lin.y
             Lk = prior.cols_support
             S, K, _, C, g, Nc = _homotopy_terms(W, y, prior.cols, lam, L_support=Lk, extra=Lk.transpose(-1, -2))
-
-            def apply(xi):
-                Wxi = xi @ W if W.dim() == 2 else (W * xi.unsqueeze(-1)).sum(-2)  # W_s^T xi, (..., k)
-                return linalg.matvec(Nc, Wxi)
-
-            return FlowCoefficients(-C, g, None, support=prior.support, noise_cov_pair=(C, Nc), noise_apply=apply,
-                                    noise_dim=W.shape[-2])
+            return FlowCoefficients(-C, g, None, support=prior.support, noise_cov_pair=(C, Nc),
+                                    noise_product=(Nc, W))
         prior, S, K, G, C, g = _terms(lin, prior, lam, need_factor=True)
         return FlowCoefficients(-C, g, None, noise_factor=_noise_root(G, self.noise_root), support=prior.support)
 
