@@ -317,7 +317,7 @@ def integrate_flow(
         index: clustered linearisation points: ``(B, N)`` cluster of each particle; ``prior`` then
             holds one point per cluster (mean ``(B, K, d)``, factor broadcastable to
             ``(B, K, d, d)``), the flow is linearised at the K points and each particle moves with
-            its cluster's affine map (deterministic flows; seed 004).
+            its cluster's drift (and diffusion, for stochastic flows; seed 004).
         noise: stochastic flows: optional ``noise(j, shape) -> (B, N, r)`` standard normals of
             pseudo-time step ``j`` (instead of drawing them from ``generator``); a filter that
             flows particles in blocks uses it to keep the draws those of the whole cloud.
