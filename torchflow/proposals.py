@@ -85,8 +85,10 @@ class FlowProposal(Proposal):
         schedule: lambda schedule (default exponential, 29 steps, ratio 1.2).
         covariance: ``"ekf"`` or ``"ukf"``: the tracker that gives the flow its prior P.
         points: ``"particle"``, ``"global"``, ``"clustered"`` or ``None`` (the flow's default).
-        n_clusters, alpha, sweeps, jacobian_in_weight: clustered points (see
+        n_clusters, alpha, sweeps: clustered points (see
             :class:`~torchflow.filters.ClusteredParticleFlowParticleFilter`).
+        jacobian_in_weight: invertible flows: include ``log|det|`` in ``log q`` (default True;
+            False is seed 004's printed weight, whose evidence is biased: a knob for comparison).
     """
 
     def __init__(self, model, flow: ParticleFlow, schedule: Optional[LambdaSchedule] = None,
@@ -100,14 +102,14 @@ class FlowProposal(Proposal):
         self.points = resolve_points(flow, points)
         self.n_clusters, self.alpha, self.sweeps = n_clusters, alpha, sweeps
         self.jacobian_in_weight = jacobian_in_weight
+        self._velocity = LEDHFlow()  # clustered points: the lambda = 0 velocities the distance correlates
 
-    def _migrate(self, model, eta0, x_prev, z, prior, generator, log_q0, noise=None):
-        """Flow ``eta0`` with ``prior``; returns the particles and their log-density ``(B, N)``."""
+    def _migrate(self, model, eta0, x_prev, z, prior, generator, log_q0, noise=None, index=None):
+        """Flow ``eta0`` with ``prior`` (at clustered points: with the cluster ``index``); returns
+        the particles and their log-density ``(B, N)``."""
         raise NotImplementedError
 
     def propose(self, filt, state, z, generator) -> Proposed:
-        if self.points == "clustered":
-            return self._propose_clustered(filt, state, z, generator)
         model = filt.model
         x_prev = state.particles  # (B, N, d)
         eta0 = model.sample_transition(x_prev, generator)
@@ -140,6 +142,12 @@ class FlowProposal(Proposal):
                 return self._migrate(model, eta0, x_prev, z, FlowPrior(m, L), generator, log_q0, **kw)
 
             x, log_q = filt.per_particle(block, eta0, x_prev, m_pred, L_pred, log_q0, pass_slice=True)
+        elif self.points == "clustered":
+            # one shared P (as global points); cluster k's flow starts at its medoid's prediction
+            eta_bar = model.transition_mean(x_prev)
+            index, medoids = self.cluster(model, eta_bar, z, L_pred)
+            prior = FlowPrior(_resampling.gather_particles(eta_bar, medoids), L_pred.unsqueeze(1))
+            x, log_q = self._migrate(model, eta0, x_prev, z, prior, generator, log_q0, index=index)
         else:
             x, log_q = self._migrate(model, eta0, x_prev, z, FlowPrior(m_pred, L_pred), generator, log_q0)
         _, P_post, _ = self.tracker.update(m_pred, P_pred, z_upd)
@@ -154,48 +162,28 @@ class FlowProposal(Proposal):
             return ar, ar
         prior = FlowPrior(eta_bar, L.unsqueeze(1))
         zero = torch.zeros((), dtype=eta_bar.dtype, device=eta_bar.device)
-        zeta = LEDHFlow().coefficients(model, z, eta_bar, prior, zero, zero).drift(eta_bar)[0]
+        zeta = self._velocity.coefficients(model, z, eta_bar, prior, zero, zero).drift(eta_bar)[0]
         dist = cluster_distance(eta_bar, zeta, self.alpha, model.measurement_support)
         return kmedoids(dist, self.n_clusters, self.sweeps)
-
-    def _propose_clustered(self, filt, state, z, generator) -> Proposed:
-        model = filt.model
-        x_prev = state.particles  # (B, N, d)
-        eta0 = model.sample_transition(x_prev, generator)
-        log_q0 = None if self.flow.stochastic else model.transition_log_prob(eta0, x_prev)
-        m_pred, P_pred = self.tracker.predict(state.estimate, state.cov)  # (B, d), (B, d, d)
-        L_pred = linalg.safe_cholesky(P_pred)
-        eta_bar = model.transition_mean(x_prev)
-        index, medoids = self.cluster(model, eta_bar, z, L_pred)
-        prior = FlowPrior(_resampling.gather_particles(eta_bar, medoids), L_pred.unsqueeze(1))
-        if self.flow.stochastic:  # each particle's exact Gaussian law, from the transition
-            start = FlowPrior(model.transition_mean(x_prev), model.transition_scale_tril(x_prev))
-            out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, index=index, generator=generator,
-                                 proposal=start)
-            return Proposed(out.particles, out.log_proposal, cov=self.tracker.update(m_pred, P_pred, z)[1],
-                            fallback=eta0)
-        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, index=index)
-        log_q = log_q0 - out.log_det if self.jacobian_in_weight else log_q0
-        _, P_post, _ = self.tracker.update(m_pred, P_pred, z)
-        return Proposed(out.particles, log_q, cov=P_post, fallback=eta0)
 
 
 class InvertibleFlowProposal(FlowProposal):
     """Deterministic flow: ``log q(x) = log p(eta_0 | x_prev) - log|det d x / d eta_0|``."""
 
-    def _migrate(self, model, eta0, x_prev, z, prior, generator, log_q0, noise=None):
-        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, points=self.points)
-        return out.particles, log_q0 - out.log_det
+    def _migrate(self, model, eta0, x_prev, z, prior, generator, log_q0, noise=None, index=None):
+        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, points=self.points, index=index)
+        # jacobian_in_weight=False: seed 004's printed weight (biased evidence; a knob for comparison)
+        return out.particles, (log_q0 - out.log_det if self.jacobian_in_weight else log_q0)
 
 
 class StochasticFlowProposal(FlowProposal):
     """Stochastic flow: the exact Gaussian law of the Euler-Maruyama map started from the Gaussian
     transition ``N(f(x_prev), V)`` (Pal & Coates 2019, Algorithm 1)."""
 
-    def _migrate(self, model, eta0, x_prev, z, prior, generator, log_q0, noise=None):
+    def _migrate(self, model, eta0, x_prev, z, prior, generator, log_q0, noise=None, index=None):
         start = FlowPrior(model.transition_mean(x_prev), model.transition_scale_tril(x_prev))
         out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, generator=generator, proposal=start,
-                             noise=noise, points=self.points)
+                             noise=noise, points=self.points, index=index)
         return out.particles, out.log_proposal
 
 

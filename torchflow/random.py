@@ -42,7 +42,7 @@ from typing import Optional, Sequence, Union
 import numpy as np
 import torch
 
-__all__ = ["TrialStreams", "normal", "uniform", "check_generator", "stream_key"]
+__all__ = ["TrialStreams", "uniform", "check_generator", "stream_key"]
 
 #: numbers per call from which the numpy back end fills trials on several threads
 PARALLEL_MIN = 1 << 19
@@ -289,14 +289,6 @@ def check_generator(generator, who: str = "generator") -> Generatorish:
         hint = " (randomness comes only from a passed generator: pass torch.Generator().manual_seed(seed))"
     raise TypeError(f"{who}: expected a torch.Generator or torchflow.random.TrialStreams, "
                     f"got {type(generator).__name__}{hint}")
-
-
-def normal(shape, *, dtype, device, generator: Optional[Generatorish]) -> Optional[torch.Tensor]:
-    """``N(0, 1)`` draws from a :class:`TrialStreams` (``None`` for other generators: the caller
-    draws with torch)."""
-    if isinstance(generator, TrialStreams):
-        return generator.normal(shape, dtype=dtype, device=device)
-    return None
 
 
 def uniform(shape, *, dtype, device, generator: Optional[Generatorish]) -> torch.Tensor:

@@ -12,12 +12,12 @@ from torchflow.filters.kalman import kalman_update
 from torchflow.flows import (EDHFlow, FlowCoefficients, FlowPrior, GeodesicFlow, GromovFlow, LEDHFlow,
                              OptimalDiffusionFlow, diffusion_condition_number, integrate_flow,
                              optimal_diffusion_scale, symmetric_sqrt)
-from torchflow.flows.daum_huang import _whiten
+from torchflow.flows.measurement import whiten
 from torchflow.models import AcousticTracking
 from torchflow.schedules import ExponentialSchedule, GeometricSchedule, UniformSchedule
 from conftest import mild_lg, random_lg
 from test_flows import _lg_problem, _prior
-from test_pfpf import _replicated
+from conftest import replicated as _replicated
 
 F64 = torch.float64
 
@@ -173,7 +173,7 @@ def test_optimal_c_minimises_objective(case):
         return OptimalDiffusionFlow(c=float(c), local=False).coefficients(model, z, mean, prior, lam, eps).dense_A()[0]
 
     flow = OptimalDiffusionFlow(alpha=alpha, local=False)
-    W, _ = _whiten(model, mean, z)
+    W, _ = whiten(model, mean, z)
     L = prior.scale_tril
     S = (W @ L).transpose(-1, -2) @ (W @ L)
     c_star = float(flow.scale(S, lam)[0])
@@ -377,7 +377,7 @@ def test_pfpf_gromov_without_proposal_density_would_be_biased(monkeypatch):
     (dropping the tracked proposal density for p(eta_0)) biases Z_hat far beyond its tolerance."""
     from torchflow.proposals import StochasticFlowProposal
 
-    def wrong(self, model, eta0, x_prev, z, prior, generator, log_q0, noise=None):
+    def wrong(self, model, eta0, x_prev, z, prior, generator, log_q0, noise=None, index=None):
         out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, generator=generator)
         return out.particles, model.transition_log_prob(eta0, x_prev)
 

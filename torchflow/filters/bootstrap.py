@@ -1,6 +1,8 @@
 """Bootstrap particle filter (Gordon, Salmond & Smith 1993)."""
 from __future__ import annotations
 
+import math
+
 import torch
 
 from .. import linalg
@@ -27,7 +29,7 @@ class BootstrapParticleFilter(ParticleFilterBase):
         B, d = mean.shape
         L = linalg.safe_cholesky(cov)
         particles = linalg.sample_mvn(mean, L, (N,), generator)  # (B, N, d)
-        lw = torch.full((B, N), -torch.log(torch.tensor(float(N))).item(), dtype=mean.dtype, device=mean.device)
+        lw = torch.full((B, N), -math.log(N), dtype=mean.dtype, device=mean.device)
         zero = torch.zeros(B, dtype=mean.dtype, device=mean.device)
         return ParticleState(particles, lw, mean, torch.full_like(zero, float(N)), zero,
                              torch.zeros(B, dtype=torch.bool, device=mean.device))

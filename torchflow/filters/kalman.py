@@ -91,9 +91,9 @@ class KalmanFilter(ExtendedKalmanFilter):
         super().__init__(model, validate=validate, name=name)
         if not (model.linear_dynamics and model.linear_measurement):
             raise TypeError(f"model: KalmanFilter needs a linear-Gaussian model (a LinearGaussian, or any model "
-                            f"declaring linear_dynamics and linear_measurement), got {type(model).__name__} (linear_dynamics={model.linear_dynamics}, "
-                            f"linear_measurement={model.linear_measurement}; use ExtendedKalmanFilter or "
-                            "UnscentedKalmanFilter for nonlinear models)")
+                            f"declaring linear_dynamics and linear_measurement), got {type(model).__name__} "
+                            f"(linear_dynamics={model.linear_dynamics}, linear_measurement={model.linear_measurement}; "
+                            "use ExtendedKalmanFilter or UnscentedKalmanFilter for nonlinear models)")
 
     def init(self, mean, cov, n_particles=None, generator=None):
         # The Riccati recursion does not depend on the data: when every trial starts from the same

@@ -97,8 +97,10 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
             :class:`ClusteredParticleFlowParticleFilter`) or ``None``: the flow's own default
             (LEDH and the per-particle homotopy flows: particle; EDH: global). Any flow pairs with
             any points.
-        n_clusters, alpha, sweeps, jacobian_in_weight: clustered points only, see
+        n_clusters, alpha, sweeps: clustered points only, see
             :class:`ClusteredParticleFlowParticleFilter`.
+        jacobian_in_weight: deterministic flows: keep ``log|det|`` in the weight (default True;
+            False is seed 004's printed weight, whose evidence is biased).
         resampling, ess_threshold, regularization: see
             :class:`~torchflow.filters.base.ParticleFilterBase`.
         nonfinite: ``"recover"`` (default) repairs and counts non-finite particles, ``"raise"``

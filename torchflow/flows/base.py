@@ -263,11 +263,6 @@ class ParticleFlow(nn.Module):
         return self.coefficients_at(meas.at(aux, prior.support), prior, lam, eps)
 
 
-def _bcast_obs(z: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """``z (B, m)`` viewed to broadcast against points ``like (B, ..., d)``."""
-    return z.reshape(z.shape[0], *([1] * (like.dim() - 2)), z.shape[-1])
-
-
 def integrate_flow(
     flow: ParticleFlow,
     model,
@@ -429,10 +424,7 @@ def _integrate_clustered(flow, measurement, particles, prior, eps_all, lam_all, 
     track = flow.stochastic and proposal is not None
     if track:
         eye = torch.eye(d, dtype=particles.dtype, device=particles.device)
-        mu = proposal.mean.expand(B, N, d)
-        Sig = proposal.scale_tril @ proposal.scale_tril.transpose(-1, -2)
-        if Sig.dim() == 2:
-            Sig = Sig.expand(B, 1, d, d)
+        mu, Sig = _initial_law(proposal, B, N, d)
     for j in range(len(eps_all)):
         eps, lam = eps_all[j], lam_all[j]
         co = flow.coefficients_at(measurement.at(aux, prior.support), prior, lam, eps)
@@ -452,11 +444,7 @@ def _integrate_clustered(flow, measurement, particles, prior, eps_all, lam_all, 
             Sig = _propagate_cov(Sig, at_particles, eps, eye)
     if not flow.stochastic:
         return image.output(FlowOutput(eta, _gather_points(log_det.unsqueeze(-1), index).squeeze(-1), aux))
-    if not track:
-        return image.output(FlowOutput(eta, None, aux))
-    Sig = linalg.symmetrize(Sig)
-    log_q = linalg.mvn_log_prob(eta, mu, linalg.safe_cholesky(Sig))
-    return image.output(FlowOutput(eta, None, aux, log_proposal=log_q, proposal_mean=mu, proposal_cov=Sig))
+    return _stochastic_output(eta, aux, image, *((mu, Sig) if track else ()))
 
 
 def _flat3(x: torch.Tensor, batch) -> torch.Tensor:
@@ -496,11 +484,7 @@ def _integrate_stochastic(flow, measurement, particles, prior, eps_all, lam_all,
     aux, eta = prior.mean, particles
     track = proposal is not None
     if track:
-        mu = proposal.mean.expand(B, N, d)
-        L0 = proposal.scale_tril
-        Sig = L0 @ L0.transpose(-1, -2)
-        if Sig.dim() == 2:
-            Sig = Sig.expand(B, 1, d, d)
+        mu, Sig = _initial_law(proposal, B, N, d)
     for j in range(len(eps_all)):
         eps, lam = eps_all[j], lam_all[j]
         co = flow.coefficients_at(measurement.at(aux, prior.support), prior, lam, eps)
@@ -529,7 +513,20 @@ def _integrate_stochastic(flow, measurement, particles, prior, eps_all, lam_all,
         if track:
             mu = mu + eps * d_mu
             Sig = _propagate_cov(Sig, co, eps, eye)
-    if not track:
+    return _stochastic_output(eta, aux, image, *((mu, Sig) if track else ()))
+
+
+def _initial_law(proposal: FlowPrior, B: int, N: int, d: int):
+    """``(mu (B, N, d), Sig (B, N|1, d, d))`` of the law the particles were drawn from."""
+    L0 = proposal.scale_tril
+    Sig = L0 @ L0.transpose(-1, -2)
+    return proposal.mean.expand(B, N, d), (Sig.expand(B, 1, d, d) if Sig.dim() == 2 else Sig)
+
+
+def _stochastic_output(eta, aux, image, mu=None, Sig=None) -> FlowOutput:
+    """Result of a stochastic flow; with the tracked law ``N(mu, Sig)`` each particle's
+    log-density under it (the proposal density of Pal & Coates' Algorithm 1)."""
+    if mu is None:
         return image.output(FlowOutput(eta, None, aux))
     Sig = linalg.symmetrize(Sig)
     log_q = linalg.mvn_log_prob(eta, mu, linalg.safe_cholesky(Sig))

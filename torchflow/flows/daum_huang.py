@@ -23,13 +23,7 @@ import torch
 
 from .. import linalg
 from .base import FlowCoefficients, FlowPrior, ParticleFlow
-from .measurement import Linearisation, whiten
-
-
-def _whiten(model, aux: torch.Tensor, z: torch.Tensor, support=None):
-    """``(W, y)`` of the model's measurement at ``aux`` (kept for callers of the old helper; see
-    :meth:`~torchflow.flows.measurement.GaussianMeasurement.at`)."""
-    return whiten(model, aux, z, support)
+from .measurement import Linearisation
 
 
 def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, support=None,

@@ -102,10 +102,10 @@ class GaussianMeasurement:
         return Linearisation(W, y)
 
 
-__all__ = ["GaussianMeasurement", "Linearisation"]
-
-
 def whiten(model, points: torch.Tensor, z: torch.Tensor, support=None) -> Tuple[torch.Tensor, torch.Tensor]:
     """``(W, y)`` of the model's measurement at ``points`` (a convenience for tests and users)."""
     lin = GaussianMeasurement.from_model(model, z).at(points, support)
     return lin.W, lin.y
+
+
+__all__ = ["GaussianMeasurement", "Linearisation", "whiten"]
