@@ -156,7 +156,7 @@ def flow_label(flow) -> str:
     """Config-style name of a flow: ``ledh``, ``gromov``; ``_global`` for a per-trial linearisation
     of a flow that is per particle by default."""
     name = _FLOW_NAMES.get(type(flow).__name__, type(flow).__name__)
-    if name not in ("edh", "ledh") and not getattr(flow, "local", True):
+    if name not in ("edh", "ledh") and getattr(flow, "points", "particle") != "particle":
         name += "_global"
     return name
 
@@ -173,8 +173,8 @@ def row_label(key: str, f) -> str:
     named = [n for n in sorted(set(_FLOW_NAMES.values()), key=len, reverse=True) if n in key.split("_")]
     expected = named[0] if named else "ledh"  # a key naming no flow (pfpf_clustered) runs LEDH by default
     tags = [] if fl == expected else [f"flow={fl}"]
-    points = getattr(f, "points", None)
-    default_points = "clustered" if "clustered" in key.split("_") else ("particle" if flow.local else "global")
+    points = getattr(getattr(f, "points", None), "name", None)
+    default_points = "clustered" if "clustered" in key.split("_") else flow.points
     if points is not None and points != default_points:
         tags.append(f"points={points}")
     return f"{key}[{','.join(tags)}]" if tags else key

@@ -24,10 +24,7 @@ import torch
 from torch import nn
 
 from . import linalg
-from . import resampling as _resampling
-from .flows import FlowPrior, LEDHFlow, ParticleFlow, integrate_flow
-from .flows.base import resolve_points
-from .flows.points import cluster_distance, kmedoids
+from .flows import FlowPrior, ParticleFlow, integrate_flow, resolve_points
 from .schedules import ExponentialSchedule, LambdaSchedule
 
 
@@ -39,7 +36,8 @@ class Proposed:
         particles: ``(B, N, d)`` the proposed ``x_k``.
         log_q: ``(B, N)`` log proposal density of each particle given its parent, or ``None``
             when ``q`` is the transition itself (the weight is then the likelihood alone).
-        cov: the filter state's covariance after the step (flow proposals' tracker), or ``None``.
+        cov: the filter state's covariance after the step (flow proposals' tracker: a
+            :class:`~torchflow.covariances.Covariance`), or ``None``.
         fallback: ``(B, N, d)`` finite positions for particles repaired by ``nonfinite="recover"``.
     """
 
@@ -79,49 +77,53 @@ def _tracker(model, covariance: str):
 class FlowProposal(Proposal):
     """A particle flow as proposal (base of the invertible and stochastic flow proposals).
 
+    Each step: the tracker predicts the flow's Gaussian prior where the state's covariance lives
+    (at each particle, or at the trial's estimate: :mod:`torchflow.covariances`), the
+    linearisation points place it (:meth:`~torchflow.flows.points.LinearisationPoints.place`),
+    the flow migrates ``eta_0 ~ p(. | x_{k-1})``, and the tracker updates the covariance. Nothing
+    here depends on which points are used, beyond the declared ``per_particle`` (particles that
+    flow independently may be flowed in blocks to bound memory).
+
     Args:
         model: the state-space model (for the covariance tracker).
         flow: a :class:`~torchflow.flows.ParticleFlow`.
         schedule: lambda schedule (default exponential, 29 steps, ratio 1.2).
         covariance: ``"ekf"`` or ``"ukf"``: the tracker that gives the flow its prior P.
-        points: ``"particle"``, ``"global"``, ``"clustered"`` or ``None`` (the flow's default).
-        n_clusters, alpha, sweeps: clustered points (see
-            :class:`~torchflow.filters.ClusteredParticleFlowParticleFilter`).
+        points: a :class:`~torchflow.flows.points.LinearisationPoints`, a name (``"particle"``,
+            ``"global"``, ``"clustered"``) or ``None`` (the flow's default).
+        n_clusters, alpha, sweeps: knobs of clustered points given by name
+            (:class:`~torchflow.flows.points.ClusteredPoints`).
         jacobian_in_weight: invertible flows: include ``log|det|`` in ``log q`` (default True;
             False is seed 004's printed weight, whose evidence is biased: a knob for comparison).
     """
 
     def __init__(self, model, flow: ParticleFlow, schedule: Optional[LambdaSchedule] = None,
-                 covariance: str = "ekf", points: Optional[str] = None, n_clusters: int = 100,
+                 covariance: str = "ekf", points=None, n_clusters: int = 100,
                  alpha: float = 0.25, sweeps: int = 10, jacobian_in_weight: bool = True):
         super().__init__()
         self.flow = flow
         self.schedule = schedule or ExponentialSchedule()
         self.covariance = covariance
         self.tracker = _tracker(model, covariance)
-        self.points = resolve_points(flow, points)
-        self.n_clusters, self.alpha, self.sweeps = n_clusters, alpha, sweeps
+        #: the linearisation-point strategy (:mod:`torchflow.flows.points`)
+        self.points = resolve_points(flow, points, n_clusters=n_clusters, alpha=alpha, sweeps=sweeps)
         self.jacobian_in_weight = jacobian_in_weight
-        self._velocity = LEDHFlow()  # clustered points: the lambda = 0 velocities the distance correlates
 
     def _migrate(self, model, eta0, x_prev, z, prior, generator, log_q0, noise=None, index=None):
-        """Flow ``eta0`` with ``prior`` (at clustered points: with the cluster ``index``); returns
+        """Flow ``eta0`` from ``prior`` at the points (``index``: each particle's point); returns
         the particles and their log-density ``(B, N)``."""
         raise NotImplementedError
 
     def propose(self, filt, state, z, generator) -> Proposed:
-        model = filt.model
+        model, pts, cov = filt.model, self.points, state.cov
         x_prev = state.particles  # (B, N, d)
         eta0 = model.sample_transition(x_prev, generator)
         log_q0 = None if self.flow.stochastic else model.transition_log_prob(eta0, x_prev)
-        if self.points == "particle":
-            m_pred, P_pred = self.tracker.predict(x_prev, state.cov)  # (B, N, d), (B, N, d, d)
-            z_upd = z.unsqueeze(1)
-        else:
-            m_pred, P_pred = self.tracker.predict(state.estimate, state.cov)  # (B, d), (B, d, d)
-            z_upd = z
+        at = x_prev if cov.per_particle else state.estimate
+        m_pred, P_pred = self.tracker.predict(at, cov.matrix)  # (B, [N,] d), (B, [N|1,] d, d)
         L_pred = linalg.safe_cholesky(P_pred)
-        if self.points == "particle":
+        prior, index = pts.place(model, x_prev, m_pred, L_pred, z)
+        if pts.per_particle:
             # every particle flows with its own prior: blocks of particles are independent
             B, N = eta0.shape[:2]
             blocked = bool(filt.particle_chunk) and N > filt.particle_chunk
@@ -141,30 +143,11 @@ class FlowProposal(Proposal):
                 kw = {"noise": draw(particles)} if blocked and self.flow.stochastic else {}
                 return self._migrate(model, eta0, x_prev, z, FlowPrior(m, L), generator, log_q0, **kw)
 
-            x, log_q = filt.per_particle(block, eta0, x_prev, m_pred, L_pred, log_q0, pass_slice=True)
-        elif self.points == "clustered":
-            # one shared P (as global points); cluster k's flow starts at its medoid's prediction
-            eta_bar = model.transition_mean(x_prev)
-            index, medoids = self.cluster(model, eta_bar, z, L_pred)
-            prior = FlowPrior(_resampling.gather_particles(eta_bar, medoids), L_pred.unsqueeze(1))
-            x, log_q = self._migrate(model, eta0, x_prev, z, prior, generator, log_q0, index=index)
+            x, log_q = filt.per_particle(block, eta0, x_prev, prior.mean, prior.scale_tril, log_q0, pass_slice=True)
         else:
-            x, log_q = self._migrate(model, eta0, x_prev, z, FlowPrior(m_pred, L_pred), generator, log_q0)
-        _, P_post, _ = self.tracker.update(m_pred, P_pred, z_upd)
-        return Proposed(x, log_q, cov=P_post, fallback=eta0)
-
-    # ---- clustered points (seed 004) -----------------------------------------------------------
-    def cluster(self, model, eta_bar, z, L):
-        """``(index (B, N), medoids (B, K))`` of the particles' predictions ``eta_bar (B, N, d)``."""
-        B, N, _ = eta_bar.shape
-        if self.n_clusters >= N:
-            ar = torch.arange(N, device=eta_bar.device).expand(B, N)
-            return ar, ar
-        prior = FlowPrior(eta_bar, L.unsqueeze(1))
-        zero = torch.zeros((), dtype=eta_bar.dtype, device=eta_bar.device)
-        zeta = self._velocity.coefficients(model, z, eta_bar, prior, zero, zero).drift(eta_bar)[0]
-        dist = cluster_distance(eta_bar, zeta, self.alpha, model.measurement_support)
-        return kmedoids(dist, self.n_clusters, self.sweeps)
+            x, log_q = self._migrate(model, eta0, x_prev, z, prior, generator, log_q0, index=index)
+        _, P_post, _ = self.tracker.update(m_pred, P_pred, z.unsqueeze(1) if cov.per_particle else z)
+        return Proposed(x, log_q, cov=cov.like(P_post), fallback=eta0)
 
 
 class InvertibleFlowProposal(FlowProposal):

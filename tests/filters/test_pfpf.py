@@ -38,7 +38,7 @@ def test_pfpf_without_jacobian_term_would_be_biased(monkeypatch):
     """Sanity check of the test above: dropping log|det| from the weights biases Z_hat far
     beyond the tolerance, so the unbiasedness test can fail."""
     import torchflow.proposals as proposals_mod
-    from torchflow.flows import base as flow_base
+    from torchflow.flows import integrate as flow_base
 
     real = flow_base.integrate_flow
 

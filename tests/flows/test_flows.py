@@ -42,7 +42,7 @@ def _lg_problem(d, m, seed=2):
 
 
 def _prior(flow, mean, L, N):
-    if flow.local:
+    if flow.points == "particle":
         B, d = mean.shape
         return FlowPrior(mean.unsqueeze(1).expand(B, N, d), L.unsqueeze(1).expand(B, N, d, d))
     return FlowPrior(mean, L)

@@ -49,7 +49,7 @@ def test_geodesic_image_mean_is_exact_and_cov_over_contracted(schedule):
     """No diffusion: the mean follows the posterior mean exactly, the covariance shrinks to
     P+ P^-1 P+ (twice the posterior's rate: the documented over-contraction)."""
     model, mean, P, z, x, post_m, post_P = _setup()
-    out = integrate_flow(GeodesicFlow(local=False), model, x, z, _prior(mean, P, "global", 5), schedule,
+    out = integrate_flow(GeodesicFlow(points="global"), model, x, z, _prior(mean, P, "global", 5), schedule,
                          gaussian_image=True)
     torch.testing.assert_close(out.image_mean, post_m, rtol=0, atol=1e-10)
     torch.testing.assert_close(out.image_cov, post_P @ torch.linalg.solve(P, post_P), rtol=0, atol=1e-10)
@@ -79,7 +79,7 @@ def test_image_for_particle_and_clustered_points_and_stochastic_osd():
     own = integrate_flow(LEDHFlow(), model, pts, z, FlowPrior(pts, L[:, None]), gaussian_image=True)
     torch.testing.assert_close(clus.image_mean, own.image_mean, rtol=0, atol=1e-12)
     torch.testing.assert_close(clus.image_cov.expand_as(own.image_cov), own.image_cov, rtol=0, atol=1e-12)
-    osd = integrate_flow(OptimalDiffusionFlow(local=False), model, x, z, _prior(mean, P, "global", 6),
+    osd = integrate_flow(OptimalDiffusionFlow(points="global"), model, x, z, _prior(mean, P, "global", 6),
                          gaussian_image=True, generator=torch.Generator().manual_seed(0))
     assert torch.isfinite(osd.image_cov).all() and osd.image_mean.shape == (2, 3)
     # without the flag nothing extra is computed

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from torchflow.filters import ParticleFlowFilter, ParticleFlowParticleFilter
-from torchflow.flows import EDHFlow, GeodesicFlow, GromovFlow, LEDHFlow, integrate_flow
+from torchflow.flows import ClusteredPoints, EDHFlow, GeodesicFlow, GromovFlow, LEDHFlow, integrate_flow
 from torchflow.models import AcousticTracking
 from torchflow.random import TrialStreams
 
@@ -20,10 +20,10 @@ def _data(B=3, T=3):
 @pytest.mark.parametrize("flow, points, reference", [
     (LEDHFlow(), "global", EDHFlow()),
     (EDHFlow(), "particle", LEDHFlow()),
-    (GeodesicFlow(), "global", GeodesicFlow(local=False)),
-    (GeodesicFlow(local=False), "particle", GeodesicFlow()),
-    (GromovFlow(), "global", GromovFlow(local=False)),
-    (GromovFlow(local=False), "particle", GromovFlow()),
+    (GeodesicFlow(), "global", GeodesicFlow(points="global")),
+    (GeodesicFlow(points="global"), "particle", GeodesicFlow()),
+    (GromovFlow(), "global", GromovFlow(points="global")),
+    (GromovFlow(points="global"), "particle", GromovFlow()),
 ])
 def test_points_override_equals_the_flow_that_fixes_them(flow, points, reference):
     model, obs, mean, cov = _data()
@@ -40,13 +40,20 @@ def test_flow_filter_takes_points_too():
                                                                                 TrialStreams(0, 3, "x"))
     b = ParticleFlowFilter(model, flow="edh", n_particles=24)(obs, mean, cov, TrialStreams(0, 3, "x"))
     torch.testing.assert_close(a.estimates, b.estimates, rtol=0, atol=1e-10)
-    with pytest.raises(ValueError, match="points: the unweighted flow filter takes 'global' or 'particle'"):
-        ParticleFlowFilter(model, points="clustered")
+    # the flow filter takes any strategy: clustered points with K = N are its per-particle points
+    # (each particle's prior at its noise-free prediction, the trial's P)
+    c = ParticleFlowFilter(model, flow="ledh", points=ClusteredPoints(n_clusters=24), n_particles=24)(
+        obs, mean, cov, TrialStreams(0, 3, "x"))
+    d = ParticleFlowFilter(model, flow="ledh", n_particles=24)(obs, mean, cov, TrialStreams(0, 3, "x"))
+    torch.testing.assert_close(c.estimates, d.estimates, rtol=0, atol=1e-10)
+    e = ParticleFlowFilter(model, flow="ledh", points=ClusteredPoints(n_clusters=4), n_particles=24)(
+        obs, mean, cov, TrialStreams(0, 3, "x"))
+    assert torch.isfinite(e.estimates).all() and not torch.allclose(e.estimates, d.estimates)
 
 
 def test_points_errors():
     model, obs, mean, cov = _data()
-    with pytest.raises(ValueError, match=r"points: expected one of \('global', 'particle', 'clustered'\) or None"):
+    with pytest.raises(ValueError, match=r"points: expected one of \('global', 'particle', 'clustered'\), a LinearisationPoints or None"):
         ParticleFlowParticleFilter(model, points="medoids")
     x = torch.zeros(3, 5, 16, dtype=torch.float64)
     with pytest.raises(ValueError, match="index: clustered linearisation points need the"):

@@ -68,20 +68,20 @@ def test_coefficients_match_dense_formulas(model_name):
     prior = FlowPrior(eta0.unsqueeze(0), torch.linalg.cholesky(P).unsqueeze(0))
     Mi, J, g, m = _dense_homotopy(model, aux, z, P, eta0, lam)
     a, zz = aux.unsqueeze(0), z.unsqueeze(0)
-    geo = GeodesicFlow(local=False).coefficients(model, zz, a, prior, lam, eps)
+    geo = GeodesicFlow(points="global").coefficients(model, zz, a, prior, lam, eps)
     torch.testing.assert_close(geo.dense_A()[0], -Mi @ J)
     torch.testing.assert_close(geo.b[0], g)
     I = torch.eye(len(eta0), dtype=F64)
     torch.testing.assert_close(geo.log_det[0], torch.linalg.slogdet(I - eps * Mi @ J)[1])
-    gro = GromovFlow(local=False).coefficients(model, zz, a, prior, lam, eps)
+    gro = GromovFlow(points="global").coefficients(model, zz, a, prior, lam, eps)
     G = gro.noise_factor[0]
     torch.testing.assert_close(G @ G.T, Mi @ J @ Mi)
     torch.testing.assert_close(gro.dense_A(), geo.dense_A())
-    sym = GromovFlow(local=False, noise_root="symmetric").coefficients(model, zz, a, prior, lam, eps).noise_factor[0]
+    sym = GromovFlow(points="global", noise_root="symmetric").coefficients(model, zz, a, prior, lam, eps).noise_factor[0]
     torch.testing.assert_close(sym, sym.T)
     torch.testing.assert_close(sym @ sym, Mi @ J @ Mi)
     c = 0.7
-    osd = OptimalDiffusionFlow(c=c, local=False).coefficients(model, zz, a, prior, lam, eps)
+    osd = OptimalDiffusionFlow(c=c, points="global").coefficients(model, zz, a, prior, lam, eps)
     edh = EDHFlow().coefficients(model, zz, a, prior, lam, eps)
     # A_s = A_EDH - Q M / 2, b_s = b_EDH + Q M m / 2 with Q = c M^-1
     torch.testing.assert_close(osd.dense_A()[0], edh.dense_A()[0] - c / 2 * I)
@@ -96,12 +96,12 @@ def test_osd_with_zero_diffusion_is_edh_and_gromov_is_edh_plus_its_diffusion():
     aux = mean + 0.1
     lam, eps = torch.tensor(0.3, dtype=F64), torch.tensor(0.05, dtype=F64)
     edh = EDHFlow().coefficients(model, z, aux, prior, lam, eps)
-    osd0 = OptimalDiffusionFlow(c=0.0, local=False).coefficients(model, z, aux, prior, lam, eps)
+    osd0 = OptimalDiffusionFlow(c=0.0, points="global").coefficients(model, z, aux, prior, lam, eps)
     torch.testing.assert_close(osd0.dense_A(), edh.dense_A(), rtol=0, atol=1e-13)
     torch.testing.assert_close(osd0.b, edh.b, rtol=0, atol=1e-12)
     assert float(osd0.noise_factor.abs().max()) == 0.0
     # Gromov = EDH drift with Q = M^-1 J M^-1 added by the Fokker-Planck rule A_s = A - Q M / 2
-    gro = GromovFlow(local=False).coefficients(model, z, aux, prior, lam, eps)
+    gro = GromovFlow(points="global").coefficients(model, z, aux, prior, lam, eps)
     Q = gro.noise_factor @ gro.noise_factor.transpose(-1, -2)
     M = torch.linalg.inv(L @ L.transpose(-1, -2)) + lam * model.H.T @ torch.linalg.inv(model.R) @ model.H
     torch.testing.assert_close(gro.dense_A(), edh.dense_A() - 0.5 * Q @ M)
@@ -131,7 +131,7 @@ def test_gromov_diffusion_is_rank_deficient_on_acoustic_and_integrates_finite():
     L = linalg.safe_cholesky(P)
     z = traj.observations[:, 2]
     lam, eps = torch.tensor(0.5, dtype=F64), torch.tensor(0.1, dtype=F64)
-    co = GromovFlow(local=False).coefficients(model, z, mean, FlowPrior(mean, L), lam, eps)
+    co = GromovFlow(points="global").coefficients(model, z, mean, FlowPrior(mean, L), lam, eps)
     Q = co.noise_factor @ co.noise_factor.transpose(-1, -2)
     assert (torch.linalg.matrix_rank(Q, rtol=1e-10) <= 8).all()
     for root in ("factor", "symmetric"):
@@ -170,9 +170,9 @@ def test_optimal_c_minimises_objective(case):
     lam, eps = torch.tensor(0.2, dtype=F64), torch.tensor(0.01, dtype=F64)
 
     def A_at(c):
-        return OptimalDiffusionFlow(c=float(c), local=False).coefficients(model, z, mean, prior, lam, eps).dense_A()[0]
+        return OptimalDiffusionFlow(c=float(c), points="global").coefficients(model, z, mean, prior, lam, eps).dense_A()[0]
 
-    flow = OptimalDiffusionFlow(alpha=alpha, local=False)
+    flow = OptimalDiffusionFlow(alpha=alpha, points="global")
     W, _ = whiten(model, mean, z)
     L = prior.scale_tril
     S = (W @ L).transpose(-1, -2) @ (W @ L)
@@ -237,7 +237,7 @@ def test_gromov_proposal_recursion_is_the_exact_posterior_at_any_schedule(local)
     L = linalg.safe_cholesky(P)
     N = 5
     x0 = linalg.sample_mvn(mean, L, (N,), g)
-    flow = GromovFlow(local=local)
+    flow = GromovFlow(points="particle" if local else "global")
     for sched in (UniformSchedule(1), ExponentialSchedule(5, 1.5), GeometricSchedule(1e-3, 2.0)):
         out = integrate_flow(flow, model, x0, z, _prior(flow, mean, L, N), sched, generator=g,
                              proposal=FlowPrior(mean.unsqueeze(1).expand(2, N, 4), L.unsqueeze(1)))
@@ -254,7 +254,7 @@ def test_osd_proposal_recursion_converges_to_the_posterior_as_schedule_is_refine
     x0 = mean.unsqueeze(1)
     errs = []
     for n in (10, 100, 1000):
-        out = integrate_flow(OptimalDiffusionFlow(local=False), model, x0, z, FlowPrior(mean, L), UniformSchedule(n),
+        out = integrate_flow(OptimalDiffusionFlow(points="global"), model, x0, z, FlowPrior(mean, L), UniformSchedule(n),
                              generator=g, proposal=FlowPrior(x0, L.unsqueeze(1)))
         errs.append(max(float((out.proposal_mean[:, 0] - post_m).abs().max()),
                         float((out.proposal_cov[:, 0] - post_P).abs().max())))
@@ -310,8 +310,8 @@ def test_geodesic_log_det_equals_jacobian_of_full_map():
     assert sign > 0 and abs(float(out.log_det[0, 0]) - float(logabs)) < 1e-9
 
 
-@pytest.mark.parametrize("flow", [GromovFlow(local=False), GromovFlow(), GromovFlow(local=False, noise_root="symmetric"),
-                                  OptimalDiffusionFlow(local=False)], ids=["gromov-global", "gromov-local", "gromov-sym", "osd"])
+@pytest.mark.parametrize("flow", [GromovFlow(points="global"), GromovFlow(), GromovFlow(points="global", noise_root="symmetric"),
+                                  OptimalDiffusionFlow(points="global")], ids=["gromov-global", "gromov-local", "gromov-sym", "osd"])
 def test_stochastic_cloud_matches_kf_posterior_in_distribution(flow):
     """Prior samples pushed through the stochastic flow have the KF posterior's mean and covariance
     within 5 Monte Carlo sd (plus, for the optimised diffusion, its Euler bias at 200 steps; the
@@ -338,7 +338,7 @@ def test_geodesic_cloud_over_contracts():
     N = 20000
     L = linalg.safe_cholesky(P)
     x0 = linalg.sample_mvn(mean, L, (N,), g)
-    out = integrate_flow(GeodesicFlow(local=False), model, x0, z, FlowPrior(mean, L), UniformSchedule(200))
+    out = integrate_flow(GeodesicFlow(points="global"), model, x0, z, FlowPrior(mean, L), UniformSchedule(200))
     _, C = linalg.weighted_mean_cov(out.particles, torch.zeros(2, N, dtype=F64))
     assert (torch.linalg.eigvalsh(post_P - C) > 0).any(-1).all() and (C.diagonal(0, -2, -1) < post_P.diagonal(0, -2, -1)).all()
 
@@ -347,14 +347,14 @@ def test_stochastic_flow_is_reproducible_and_uses_the_generator():
     model, mean, P, z, *_ = _lg_problem(3, 5)
     L = linalg.safe_cholesky(P)
     x0 = linalg.sample_mvn(mean, L, (50,), torch.Generator().manual_seed(0))
-    run = lambda s: integrate_flow(GromovFlow(local=False), model, x0, z, FlowPrior(mean, L), UniformSchedule(5),  # noqa: E731
+    run = lambda s: integrate_flow(GromovFlow(points="global"), model, x0, z, FlowPrior(mean, L), UniformSchedule(5),  # noqa: E731
                                    generator=torch.Generator().manual_seed(s)).particles
     torch.testing.assert_close(run(1), run(1), rtol=0, atol=0)
     assert (run(1) - run(2)).abs().max() > 1e-3
 
 
 # ---- filters ----------------------------------------------------------------------------------------
-@pytest.mark.parametrize("flow", ["gromov", "osd", GromovFlow(local=False)], ids=["gromov", "osd", "gromov-global"])
+@pytest.mark.parametrize("flow", ["gromov", "osd", GromovFlow(points="global")], ids=["gromov", "osd", "gromov-global"])
 def test_pfpf_stochastic_log_evidence_unbiased_on_lg(flow):
     """E[Z_hat / Z] = 1 within 4 standard errors over 400 runs on the same data (as for LEDH).
 

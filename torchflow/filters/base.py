@@ -10,6 +10,7 @@ from torch import nn
 from .. import linalg
 from .. import resampling as _resampling
 from .._checks import NonFiniteError, check_count, check_finite, check_psd, check_same, check_tensor
+from ..covariances import Covariance
 from ..models.base import StateSpaceModel
 from ..random import check_generator
 
@@ -55,7 +56,8 @@ class ParticleState:
         resampled: ``(B,)`` bool, which trials were resampled this step.
         n_repaired: ``(B,)`` number of steps so far in which non-finite particles or weights were
             repaired (``nonfinite="recover"``).
-        cov: optional per-particle covariances ``(B, N, d, d)`` (PF-PF) or per-trial ``(B, d, d)``.
+        cov: optional :class:`~torchflow.covariances.Covariance` carried between steps (a PF-PF's
+            tracked covariance: per trial or per particle, typed, not guessed from its shape).
         step: number of observations processed.
         extras: filter-specific tensors with a leading ``(B, N)`` that follow resampling.
         invalid: ``(B,)`` bool, trials with NaN/inf particles or weights this step (filters run with
@@ -69,7 +71,7 @@ class ParticleState:
     log_evidence_increment: torch.Tensor
     resampled: torch.Tensor
     n_repaired: Optional[torch.Tensor] = None
-    cov: Optional[torch.Tensor] = None
+    cov: Optional[Covariance] = None
     step: int = 0
     extras: Dict[str, torch.Tensor] = field(default_factory=dict)
     invalid: Optional[torch.Tensor] = None
@@ -381,7 +383,7 @@ class ParticleFilterBase(Filter):
         generator: Optional[torch.Generator],
         step: int,
         *,
-        cov: Optional[torch.Tensor] = None,
+        cov: Optional[Covariance] = None,
         extras: Optional[Dict[str, torch.Tensor]] = None,
         fallback: Optional[torch.Tensor] = None,
         n_repaired: Optional[torch.Tensor] = None,
@@ -434,8 +436,8 @@ class ParticleFilterBase(Filter):
             lw, generator, scheme=self.resampling_scheme, ess_threshold=self.ess_threshold, validate=False)
         # gathered in every trial (identity indices where not resampled): no test of ``resampled``
         particles = _resampling.gather_particles(particles, idx)
-        if cov is not None and cov.dim() == 4 and cov.shape[1] == particles.shape[1]:
-            cov = _resampling.gather_particles(cov, idx)
+        if cov is not None:  # its type says whether it follows the particles
+            cov = cov.resampled(idx)
         if extras:
             extras = {k: _resampling.gather_particles(v, idx) for k, v in extras.items()}
         if self.regularization_std is not None:

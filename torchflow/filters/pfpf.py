@@ -12,11 +12,11 @@ import torch
 
 from .. import linalg
 from ..flows import (EDHFlow, FlowPrior, GeodesicFlow, GromovFlow, LEDHFlow, OptimalDiffusionFlow, ParticleFlow,
-                     integrate_flow)
-from ..flows.base import resolve_points
+                     integrate_flow, resolve_points)
 from ..proposals import _tracker, flow_proposal
 from ..schedules import ExponentialSchedule, LambdaSchedule
 from .._checks import check_count
+from ..flows.points import ClusteredPoints
 from .base import Filter, GaussianState, ParticleFilterBase, ParticleState
 
 
@@ -42,7 +42,7 @@ class _FlowFilterMixin:
         self.schedule = schedule or ExponentialSchedule()
         self.covariance = covariance
         self.tracker = _tracker(model, covariance)
-        #: where the flow is linearised: "global", "particle" or "clustered" (default: the flow's own)
+        #: where the flow is linearised (:mod:`torchflow.flows.points`; default: the flow's own)
         self.points = resolve_points(self.flow, points)
 
     #: per-particle (local) flows batch d x d products over trials x particles; on a 2-core CPU
@@ -51,7 +51,7 @@ class _FlowFilterMixin:
     points_per_call = 10_000
 
     def preferred_chunk_trials(self, n_particles=None):
-        if self.points != "particle":
+        if not self.points.per_particle:
             return None
         return max(1, self.points_per_call // int(n_particles or self.n_particles))
 
@@ -63,7 +63,7 @@ class _FlowFilterMixin:
         if shared:  # linear models: one prior factor and Jacobian per trial, vectors per particle
             flow = cov_mats * d * d + N * (8 * d + 3 * m)
         else:
-            flow = N * per_point if self.points == "particle" else N * (8 * d + 3 * m) + 4 * per_point
+            flow = N * per_point if self.points.per_particle else N * (8 * d + 3 * m) + 4 * per_point
         return 8 * flow + N * self.model.bytes_per_point()
 
 
@@ -91,13 +91,14 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
         schedule: lambda schedule (default exponential, 29 steps, ratio 1.2).
         n_particles: N.
         covariance: ``"ekf"`` or ``"ukf"`` covariance tracking.
-        points: where the flow is linearised: ``"particle"`` (each particle's auxiliary point, P
-            per particle), ``"global"`` (the trial's migrating mean, one P per trial),
-            ``"clustered"`` (K medoids, one P per trial; see
-            :class:`ClusteredParticleFlowParticleFilter`) or ``None``: the flow's own default
-            (LEDH and the per-particle homotopy flows: particle; EDH: global). Any flow pairs with
-            any points.
-        n_clusters, alpha, sweeps: clustered points only, see
+        points: where the flow is linearised (:mod:`torchflow.flows.points`): ``"particle"``
+            (each particle's auxiliary point, P per particle), ``"global"`` (the trial's migrating
+            mean, one P per trial), ``"clustered"`` (K medoids, one P per trial; see
+            :class:`ClusteredParticleFlowParticleFilter`), a
+            :class:`~torchflow.flows.points.LinearisationPoints`, or ``None``: the flow's own
+            default (LEDH and the per-particle homotopy flows: particle; EDH: global). Any flow
+            pairs with any points.
+        n_clusters, alpha, sweeps: knobs of clustered points given by name, see
             :class:`ClusteredParticleFlowParticleFilter`.
         jacobian_in_weight: deterministic flows: keep ``log|det|`` in the weight (default True;
             False is seed 004's printed weight, whose evidence is biased).
@@ -121,15 +122,13 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
                          regularization=regularization, nonfinite=nonfinite, particle_chunk=particle_chunk,
                          validate=validate, name=name)
         flow = _flow(flow)
-        n_clusters = check_count("n_clusters", n_clusters)
-        sweeps = check_count("sweeps", sweeps)
-        if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0.0 <= float(alpha) <= 1.0:
-            raise ValueError(f"alpha: expected a weight in [0, 1], got {alpha!r}")
+        # the clustered knobs are checked whatever the points (a config sets them for every PF-PF)
+        ClusteredPoints(n_clusters, alpha, sweeps)
         if not isinstance(jacobian_in_weight, bool):
             raise TypeError(f"jacobian_in_weight: expected a bool, got {type(jacobian_in_weight).__name__}")
         #: the flow proposal (:mod:`torchflow.proposals`): flow, schedule, points and covariance tracker
         self.proposal = flow_proposal(model, flow, schedule=schedule, covariance=covariance, points=points,
-                                      n_clusters=n_clusters, alpha=float(alpha), sweeps=sweeps,
+                                      n_clusters=n_clusters, alpha=alpha, sweeps=sweeps,
                                       jacobian_in_weight=jacobian_in_weight)
 
     # the proposal's settings, read through the filter
@@ -138,17 +137,14 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
     tracker = property(lambda self: self.proposal.tracker)
     points = property(lambda self: self.proposal.points)
     covariance = property(lambda self: self.proposal.covariance)
-    n_clusters = property(lambda self: self.proposal.n_clusters)
-    alpha = property(lambda self: self.proposal.alpha)
-    sweeps = property(lambda self: self.proposal.sweeps)
     jacobian_in_weight = property(lambda self: self.proposal.jacobian_in_weight)
 
     def bytes_per_trial(self, n_particles=None):
         N = n_particles or self.n_particles
         flow = self._flow_bytes(N, cov_mats=18 if self.flow.stochastic else 12)
-        if self.points != "clustered":
+        if not isinstance(self.points, ClusteredPoints):
             return flow
-        K, d = min(self.n_clusters, N), self.model.state_dim
+        K, d = min(self.points.n_clusters, N), self.model.state_dim
         return flow + 8 * (4 * N * N + 6 * K * d * d + 2 * N * d * d)  # N x N distances, K maps, gathers
 
     def init(self, mean, cov, n_particles=None, generator=None):
@@ -156,20 +152,17 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
         B, d = mean.shape
         particles = linalg.sample_mvn(mean, linalg.safe_cholesky(cov), (N,), generator)
         lw = torch.full((B, N), -math.log(N), dtype=mean.dtype, device=mean.device)
-        P = cov  # one covariance per trial (global and clustered points)
-        if self.points == "particle":
-            # EKF covariances of a linear model evolve identically for every particle: keep one per
-            # trial, (B, 1, d, d), which broadcasts against the particles
-            shared = self.covariance == "ekf" and self.model.linear_dynamics and self.model.linear_measurement
-            P = cov.unsqueeze(1) if shared else cov.unsqueeze(1).expand(B, N, d, d)
+        # the covariance type follows the points; EKF covariances of a linear model evolve
+        # identically for every particle (declared, so per-particle points keep one per trial)
+        identical = self.covariance == "ekf" and self.model.linear_dynamics and self.model.linear_measurement
+        P = self.points.covariance(cov, N, identical=identical)
         zero = torch.zeros(B, dtype=mean.dtype, device=mean.device)
         return ParticleState(particles, lw, mean, torch.full_like(zero, float(N)), zero,
                              torch.zeros(B, dtype=torch.bool, device=mean.device),
                              n_repaired=torch.zeros(B, dtype=torch.long, device=mean.device), cov=P)
 
     def extra_repr(self) -> str:
-        extra = f", n_clusters={self.n_clusters}, alpha={self.alpha}, jacobian_in_weight={self.jacobian_in_weight}"
-        return f"points={self.points!r}" + (extra if self.points == "clustered" else "")
+        return f"points={self.points!r}, jacobian_in_weight={self.jacobian_in_weight}"
 
 
 class ClusteredParticleFlowParticleFilter(ParticleFlowParticleFilter):
@@ -230,8 +223,6 @@ class ParticleFlowFilter(_FlowFilterMixin, Filter):
         super().__init__(model, validate=validate, name=name)
         self.n_particles = check_count("n_particles", n_particles)
         self._init_flow(model, flow, schedule, covariance, points)
-        if self.points == "clustered":
-            raise ValueError("points: the unweighted flow filter takes 'global' or 'particle' points")
 
     def bytes_per_trial(self, n_particles=None):
         return self._flow_bytes(n_particles or self.n_particles, cov_mats=8)
@@ -249,11 +240,11 @@ class ParticleFlowFilter(_FlowFilterMixin, Filter):
         eta0 = model.sample_transition(x_prev, generator)
         m_pred, P_pred = self.tracker.predict(state.mean, state.cov)  # (B, d), (B, d, d)
         L = linalg.safe_cholesky(P_pred)
-        if self.points == "particle":
-            prior = FlowPrior(model.transition_mean(x_prev), L.unsqueeze(1))  # (B, 1, d, d) broadcasts
+        if self.points.per_particle:  # each particle's prior: its noise-free prediction, the trial's P
+            prior, index = FlowPrior(model.transition_mean(x_prev), L.unsqueeze(1)), None
         else:
-            prior = FlowPrior(m_pred, L)
+            prior, index = self.points.place(model, x_prev, m_pred, L, z)
         out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, generator=generator,
-                             points=self.points)
+                             points=self.points, index=index)
         _, P_post, ll = self.tracker.update(m_pred, P_pred, z)
         return GaussianState(out.particles.mean(1), P_post, ll, state.step + 1, n_particles=N)

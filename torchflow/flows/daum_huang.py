@@ -88,7 +88,7 @@ class EDHFlow(ParticleFlow):
             run's precision.
     """
 
-    local = False
+    points = "global"
     promote_low_precision = True
 
     def coefficients_at(self, lin: Linearisation, prior: FlowPrior, lam, eps):
@@ -108,4 +108,4 @@ class LEDHFlow(EDHFlow):
     """Localised exact Daum-Huang flow: each particle linearises at its own auxiliary point
     (Ding & Coates 2012; the PF-PF(LEDH) proposal of Li & Coates 2017)."""
 
-    local = True
+    points = "particle"

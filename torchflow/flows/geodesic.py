@@ -122,14 +122,18 @@ _NOISE_ROOTS = ("factor", "symmetric")
 
 
 class _HomotopyFlow(ParticleFlow):
-    """Common constructor: local (per-particle) or global (per-trial) linearisation."""
+    """Common constructor: the default linearisation points (per particle unless told)."""
 
-    def __init__(self, local: bool = True):
+    def __init__(self, points: str = "particle"):
         super().__init__()
-        self.local = bool(local)
+        from .points import POINTS
+
+        if points not in POINTS:
+            raise ValueError(f"points: expected one of {tuple(POINTS)}, got {points!r}")
+        self.points = points
 
     def extra_repr(self) -> str:
-        return f"local={self.local}"
+        return f"points={self.points!r}"
 
 
 class GeodesicFlow(_HomotopyFlow):
@@ -155,21 +159,21 @@ class GromovFlow(_HomotopyFlow):
     as the schedule is refined).
 
     Args:
-        local: per-particle linearisation (default) or one per trial.
+        points: default linearisation points, ``"particle"`` (default) or ``"global"``.
         noise_root: ``"factor"`` (default) uses the exact ``d x m`` factor ``M^{-1} W^T`` of Q;
             ``"symmetric"`` uses the symmetric PSD root ``Q^{1/2}`` (eigendecomposition).
     """
 
     stochastic = True
 
-    def __init__(self, local: bool = True, noise_root: str = "factor"):
-        super().__init__(local)
+    def __init__(self, points: str = "particle", noise_root: str = "factor"):
+        super().__init__(points)
         if noise_root not in _NOISE_ROOTS:
             raise ValueError(f"noise_root: expected one of {_NOISE_ROOTS}, got {noise_root!r}")
         self.noise_root = noise_root
 
     def coefficients_at(self, lin: Linearisation, prior: FlowPrior, lam, eps):
-        if prior.mean.dim() > 2 and self.noise_root == "factor":  # points per particle: (B, N, d)
+        if prior.mean.dim() > 2 and self.noise_root == "factor":  # points (B, L, d)
             # operator form: with N = M^{-1}[:, s] = L (I + lam S)^{-1} L_s^T (the columns of M^{-1}
             # at the measured coordinates, where J lives), C = M^{-1} J = N J_s,
             # G = M^{-1} W^T = N W_s^T and Q = G G^T = C N^T; G xi = N (W_s^T xi) never forms the
@@ -183,7 +187,7 @@ class GromovFlow(_HomotopyFlow):
         return FlowCoefficients(-C, g, None, noise_factor=_noise_root(G, self.noise_root), support=prior.support)
 
     def extra_repr(self) -> str:
-        return f"local={self.local}, noise_root={self.noise_root!r}"
+        return f"points={self.points!r}, noise_root={self.noise_root!r}"
 
 
 def diffusion_condition_number(k: torch.Tensor, c) -> torch.Tensor:
@@ -228,15 +232,15 @@ class OptimalDiffusionFlow(_HomotopyFlow):
     Args:
         alpha: weight of the diffusion magnitude in the objective (default 0.1, seed 002).
         c: ``"optimal"`` (default) or a fixed non-negative diffusion scale (``c = 0`` is EDH/LEDH).
-        local: per-particle linearisation (default) or one per trial.
+        points: default linearisation points, ``"particle"`` (default) or ``"global"``.
         noise_root: ``"factor"`` (``sqrt(c) L K^{-T}``) or ``"symmetric"``.
     """
 
     stochastic = True
 
-    def __init__(self, alpha: float = 0.1, c: Union[str, float] = "optimal", local: bool = True,
+    def __init__(self, alpha: float = 0.1, c: Union[str, float] = "optimal", points: str = "particle",
                  noise_root: str = "factor"):
-        super().__init__(local)
+        super().__init__(points)
         if float(alpha) <= 0:
             raise ValueError(f"alpha: expected > 0, got {alpha}")
         if not (c == "optimal" or (isinstance(c, (int, float)) and not isinstance(c, bool) and c >= 0)):
@@ -276,7 +280,7 @@ class OptimalDiffusionFlow(_HomotopyFlow):
         return FlowCoefficients(A, b, None, noise_factor=_noise_root(factor, self.noise_root))
 
     def extra_repr(self) -> str:
-        return f"alpha={self.alpha}, c={self.c!r}, local={self.local}, noise_root={self.noise_root!r}"
+        return f"alpha={self.alpha}, c={self.c!r}, points={self.points!r}, noise_root={self.noise_root!r}"
 
 
 __all__ = ["GeodesicFlow", "GromovFlow", "OptimalDiffusionFlow", "optimal_diffusion_scale",

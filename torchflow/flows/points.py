@@ -1,17 +1,37 @@
-"""Clustered linearisation points (seed 004, Li & Coates; MODELS.md §11): the mixed particle
-distance and a batched K-medoids.
+"""Linearisation points: where a flow is linearised, as strategy objects.
 
-A clustered flow linearises at K medoids instead of at every particle and moves each particle with
-its cluster's affine map (:func:`~torchflow.flows.integrate_flow` with ``index``). Everything here
-is batched over trials: no Python loop over trials, particles or clusters (the K-medoids loop runs
-over a fixed number of sweeps, like pseudo-time steps), and no host synchronisation (no
-convergence test: a converged assignment is a fixed point of the sweep).
+A flow's coefficients are computed at L points per trial, ``(B, L, d)``, and each particle moves
+with the coefficients of its point (:func:`~torchflow.flows.integrate_flow`):
+
+* :class:`GlobalPoints`: L = 1, the trial's migrating mean (EDH, PF-PF(EDH));
+* :class:`ParticlePoints`: L = N, each particle's own auxiliary point (LEDH, PF-PF(LEDH));
+* :class:`ClusteredPoints`: L = K medoids of a batched K-medoids on the mixed particle distance,
+  with a ``(B, N) -> K`` index (seed 004, Li & Coates; MODELS.md §11).
+
+A strategy says three things, and nothing else in the flow layer or the particle filters depends
+on which strategy it is:
+
+* :meth:`LinearisationPoints.covariance`: the type of covariance a PF-PF carries for it
+  (:mod:`torchflow.covariances`: per trial, or per particle);
+* :meth:`LinearisationPoints.place`: the flow's Gaussian prior at the points and each particle's
+  point, from the tracker's prediction (a filter's view);
+* :meth:`LinearisationPoints.arrange`: the prior as ``(B, L, d)`` and the index (the integrator's
+  view). ``index = None`` means the points broadcast against the particles (L = 1) or are the
+  particles (L = N, :attr:`~LinearisationPoints.per_particle`).
+
+A new kind of points is a subclass here, registered in :data:`POINTS`; it needs no edit of the
+integrator or of the particle filters. Everything is batched over trials: the K-medoids loop runs
+over a fixed number of sweeps (like pseudo-time steps), with no convergence test and so no host
+synchronisation (a converged assignment is a fixed point of the sweep).
 """
 from __future__ import annotations
 
-from typing import Optional, Sequence, Tuple
+from typing import Optional, Sequence, Tuple, Union
 
 import torch
+
+from ..covariances import Covariance, ParticleCovariance, TrialCovariance
+from .base import FlowPrior
 
 
 def cluster_distance(eta_bar: torch.Tensor, zeta: torch.Tensor, alpha: float = 0.25,
@@ -81,3 +101,170 @@ def kmedoids(dist: torch.Tensor, n_clusters: int, sweeps: int = 20) -> Tuple[tor
         medoids = torch.where(member.any(-1), best, medoids)
     index = dist.gather(2, medoids[:, None, :].expand(B, N, K)).argmin(-1)
     return index, medoids
+
+
+class LinearisationPoints:
+    """Base of the linearisation-point strategies (see the module docstring).
+
+    Attributes:
+        name: the config name (``points=<name>``).
+        per_particle: the points are the particles themselves (L = N): a per-particle flow prior,
+            covariance tracked per particle, and particles that flow independently (so a filter
+            may flow them in blocks to bound memory).
+    """
+
+    name = ""
+    per_particle = False
+
+    def covariance(self, cov: torch.Tensor, n_particles: int, identical: bool = False) -> Covariance:
+        """The covariance a PF-PF carries from the prior ``cov (B, d, d)``: per trial by default.
+        ``identical`` declares that per-particle covariances would all be equal (ignored here)."""
+        return TrialCovariance(cov)
+
+    def place(self, model, x_prev: torch.Tensor, mean: torch.Tensor, scale_tril: torch.Tensor,
+              z: torch.Tensor) -> Tuple[FlowPrior, Optional[torch.Tensor]]:
+        """The flow's Gaussian prior at the points and each particle's point.
+
+        Args:
+            model: the state-space model.
+            x_prev: ``(B, N, d)`` the previous particles.
+            mean, scale_tril: the tracker's prediction where the covariance lives (per trial:
+                ``(B, d)``, ``(B, d, d)``; per particle: ``(B, N, d)``, ``(B, N|1, d, d)``).
+            z: ``(B, m)`` the observation.
+
+        Returns:
+            ``(prior, index)``: the prior as :meth:`arrange` takes it, and ``(B, N)`` or ``None``.
+        """
+        return FlowPrior(mean, scale_tril), None
+
+    def arrange(self, prior: FlowPrior, particles: torch.Tensor,
+                index: Optional[torch.Tensor]) -> Tuple[FlowPrior, Optional[torch.Tensor], bool]:
+        """The integrator's view: ``(prior at (B, L, d) points, index (B, N) or None, squeeze)``;
+        ``squeeze``: the caller gave per-trial tensors ``(B, d)``, so outputs at the points drop L."""
+        raise NotImplementedError
+
+    def extra_repr(self) -> str:
+        return ""
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.extra_repr()})"
+
+
+class GlobalPoints(LinearisationPoints):
+    """One point per trial (L = 1): the migrating mean of the trial's prior."""
+
+    name = "global"
+
+    def arrange(self, prior, particles, index):
+        if index is not None:
+            raise ValueError("index: global points take no cluster index (use points='clustered')")
+        if prior.mean.dim() == 3:
+            _check_points("prior.mean", prior.mean, particles, 1)
+            return prior, None, False
+        L = prior.scale_tril
+        L = L.unsqueeze(-3) if L.dim() == 3 else L  # (d, d) shared by all trials stays as it is
+        return FlowPrior(prior.mean.unsqueeze(-2), L), None, True
+
+
+class ParticlePoints(LinearisationPoints):
+    """One point per particle (L = N): each particle's auxiliary point, its own prior and
+    (in a PF-PF) its own tracked covariance."""
+
+    name = "particle"
+    per_particle = True
+
+    def covariance(self, cov, n_particles, identical=False):
+        B, d = cov.shape[0], cov.shape[-1]
+        P = cov.unsqueeze(1)
+        return ParticleCovariance(P if identical else P.expand(B, n_particles, d, d), identical=identical)
+
+    def arrange(self, prior, particles, index):
+        if index is not None:
+            raise ValueError("index: per-particle points take no cluster index (use points='clustered')")
+        _check_points("prior.mean", prior.mean, particles, particles.shape[1])
+        return prior, None, False
+
+
+class ClusteredPoints(LinearisationPoints):
+    """K medoids (seed 004, Li & Coates; MODELS.md §11): the particles' noise-free predictions
+    ``eta_bar^i = g(x_{k-1}^i)`` are clustered by :func:`kmedoids` on :func:`cluster_distance`
+    (Euclidean on the measured coordinates and the correlation of the lambda = 0 LEDH velocities);
+    cluster k's flow starts at its medoid's ``eta_bar`` with the trial's covariance.
+
+    The labels depend on the previous particles and ``z_k`` only, never on the transition noise,
+    so each particle's map ``eta_0 -> eta_1`` is affine and invertible.
+
+    Args:
+        n_clusters: K (default 100); ``K >= N`` makes every particle its own medoid.
+        alpha: weight of the Euclidean part of the distance, in [0, 1] (default 0.25).
+        sweeps: K-medoids assign/update sweeps (default 10).
+    """
+
+    name = "clustered"
+
+    def __init__(self, n_clusters: int = 100, alpha: float = 0.25, sweeps: int = 10):
+        from .._checks import check_count
+
+        self.n_clusters = check_count("n_clusters", n_clusters)
+        self.sweeps = check_count("sweeps", sweeps)
+        if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0.0 <= float(alpha) <= 1.0:
+            raise ValueError(f"alpha: expected a weight in [0, 1], got {alpha!r}")
+        self.alpha = float(alpha)
+
+    def place(self, model, x_prev, mean, scale_tril, z):
+        from .. import resampling
+
+        eta_bar = model.transition_mean(x_prev)  # (B, N, d)
+        index, medoids = self.cluster(model, eta_bar, z, scale_tril)
+        return FlowPrior(resampling.gather_particles(eta_bar, medoids), scale_tril.unsqueeze(-3)), index
+
+    def cluster(self, model, eta_bar: torch.Tensor, z: torch.Tensor, scale_tril: torch.Tensor):
+        """``(index (B, N), medoids (B, K))`` of the predictions ``eta_bar (B, N, d)``, with the
+        trial's prior factor ``scale_tril (B, d, d)`` for the lambda = 0 velocities."""
+        from .daum_huang import LEDHFlow
+
+        B, N, _ = eta_bar.shape
+        if self.n_clusters >= N:
+            ar = torch.arange(N, device=eta_bar.device).expand(B, N)
+            return ar, ar
+        prior = FlowPrior(eta_bar, scale_tril.unsqueeze(-3))
+        zero = torch.zeros((), dtype=eta_bar.dtype, device=eta_bar.device)
+        zeta = LEDHFlow().coefficients(model, z, eta_bar, prior, zero, zero).drift(eta_bar)[0]
+        dist = cluster_distance(eta_bar, zeta, self.alpha, model.measurement_support)
+        return kmedoids(dist, self.n_clusters, self.sweeps)
+
+    def arrange(self, prior, particles, index):
+        B, N = particles.shape[:2]
+        if index is None:
+            raise ValueError("index: clustered linearisation points need the (B, N) cluster index")
+        if index.shape != (B, N):
+            raise ValueError(f"index: expected (B, N) = ({B}, {N}) cluster indices, got {tuple(index.shape)}")
+        return prior, index, False
+
+    def extra_repr(self) -> str:
+        return f"n_clusters={self.n_clusters}, alpha={self.alpha}, sweeps={self.sweeps}"
+
+
+def _check_points(name: str, mean: torch.Tensor, particles: torch.Tensor, L: int) -> None:
+    B, _, d = particles.shape
+    if mean.shape != (B, L, d):
+        raise ValueError(f"{name}: expected ({B}, {L}, {d}) for these points, got {tuple(mean.shape)}")
+
+
+#: the strategies by config name
+POINTS = {"global": GlobalPoints, "particle": ParticlePoints, "clustered": ClusteredPoints}
+
+
+def resolve_points(flow, points: Union[None, str, LinearisationPoints] = None, **knobs) -> LinearisationPoints:
+    """The strategy for ``points``: a :class:`LinearisationPoints`, a name of :data:`POINTS`
+    (built with ``knobs``, e.g. ``n_clusters`` for clustered points), or ``None`` for the flow's
+    own default (:attr:`~torchflow.flows.ParticleFlow.points`)."""
+    if isinstance(points, LinearisationPoints):
+        return points
+    if points is None:
+        points = flow.points
+    if points not in POINTS:
+        raise ValueError(f"points: expected one of {tuple(POINTS)}, a LinearisationPoints or None "
+                         f"(the flow's default), got {points!r}")
+    cls = POINTS[points]
+    return cls(**knobs) if cls is ClusteredPoints else cls()

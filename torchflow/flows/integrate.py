@@ -1,0 +1,238 @@
+"""The one integrator of every flow and every kind of linearisation points.
+
+:func:`integrate_flow` steps ``d eta = (A eta + b) d lambda [+ Q^{1/2} dW]`` over a lambda schedule.
+At every pseudo-time step the flow's coefficients are computed at the L linearisation points
+``(B, L, d)`` of the strategy (:mod:`~torchflow.flows.points`: L = 1 global, L = N per particle,
+L = K clustered), the points move with their own drift, and each particle moves with its point's
+coefficients (gathered by the ``(B, N) -> L`` index, or broadcast). There is one loop for all of
+them; two choices in it are costs, not meanings:
+
+* a deterministic flow with few points (``L d^2 <= N k``, k measured coordinates) composes each
+  point's affine map on ``d x d`` matrices, ``M <- (I + eps A) M``, and applies it to the particles
+  once at the end, instead of moving the particles at every step;
+* per-particle points (L = N) move the particles, the points and the tracked means with one
+  stacked product.
+
+Outputs: migrated particles; ``log|det|`` of each particle's map (deterministic flows); each
+particle's Gaussian law ``N(mu_1, S_1)`` and density (stochastic flows given ``proposal``: the
+coefficients depend only on the deterministic points, so
+``mu_j = (I + eps_j A_j) mu_{j-1} + eps_j b_j``, ``S_j = (I + eps_j A_j) S_{j-1} (I + eps_j A_j)^T + eps_j Q_j``);
+and, on request, the Gaussian image ``(mu_1, Sigma_1)`` of each point's prior.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Optional, Union
+
+import torch
+
+from .. import linalg
+from ..schedules import ExponentialSchedule, LambdaSchedule
+from .base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow, _gather_points
+from .points import LinearisationPoints, resolve_points
+
+
+def integrate_flow(
+    flow: ParticleFlow,
+    model,
+    particles: torch.Tensor,
+    z: torch.Tensor,
+    prior: FlowPrior,
+    schedule: Optional[LambdaSchedule] = None,
+    *,
+    generator: Optional[torch.Generator] = None,
+    proposal: Optional[FlowPrior] = None,
+    noise=None,
+    index: Optional[torch.Tensor] = None,
+    points: Union[None, str, LinearisationPoints] = None,
+    gaussian_image: bool = False,
+    measurement=None,
+) -> FlowOutput:
+    """Integrate a flow from lambda = 0 to 1 (see the module docstring).
+
+    Deterministic flows take Euler steps and accumulate ``log|det(I + eps_j A_j)|``, the
+    log-Jacobian of the particle map, which the PF-PF weight needs. Stochastic flows take
+    Euler-Maruyama steps (noise from ``generator``) and, given ``proposal``, return each
+    particle's log-density under its exact Gaussian law.
+
+    Args:
+        flow: the flow (states A, b and, if stochastic, the diffusion).
+        model: state-space model (its measurement term, unless ``measurement`` is given).
+        particles: ``(B, N, d)`` samples eta_0.
+        z: ``(B, m)``.
+        prior: :class:`FlowPrior` at the points: ``(B, d)`` or ``(B, 1, d)`` (global),
+            ``(B, N, d)`` (per particle), ``(B, K, d)`` (clustered); factors broadcastable to
+            ``(B, L, d, d)``. The homotopy of each point starts from it.
+        schedule: lambda schedule (default: exponential, 29 steps, ratio 1.2).
+        generator: random generator for the diffusion noise (stochastic flows).
+        proposal: stochastic flows: the law ``eta_0 ~ N(mean, scale_tril scale_tril^T)`` the
+            particles were drawn from, mean ``(B, N, d)``, factor broadcastable to
+            ``(B, N, d, d)``. When given, the output carries ``log_proposal``.
+        points: where the flow is linearised: a :class:`~torchflow.flows.points.LinearisationPoints`
+            or its name (``"global"``, ``"particle"``, ``"clustered"``); default: the flow's own
+            (:attr:`ParticleFlow.points`), or ``"clustered"`` when ``index`` is given.
+        index: ``(B, N)`` the point of each particle (clustered points).
+        measurement: the :class:`~torchflow.flows.measurement.GaussianMeasurement` to linearise
+            at the points (default: the model's own, ``GaussianMeasurement.from_model(model, z)``);
+            a filter passes its own for state-dependent noise, mixture components or data
+            association. The flow itself only sees the whitened tensors at the points.
+        gaussian_image: also return the image ``(image_mean, image_cov)`` of each point's prior
+            Gaussian (costs a ``d x d`` covariance recursion per point).
+        noise: stochastic flows: optional ``noise(j, shape) -> (B, N, r)`` standard normals of
+            pseudo-time step ``j`` (instead of drawing them from ``generator``); a filter that
+            flows particles in blocks uses it to keep the draws those of the whole cloud.
+
+    Returns:
+        :class:`FlowOutput`; ``aux``, ``image_mean`` and ``image_cov`` are per point, without the
+        point dimension when ``prior`` was given per trial ``(B, d)``.
+    """
+    schedule = schedule or ExponentialSchedule()
+    eps_all, lam_all = schedule.steps(dtype=particles.dtype, device=particles.device)
+    strategy = resolve_points(flow, "clustered" if points is None and index is not None else points)
+    if measurement is None:
+        from .measurement import GaussianMeasurement
+
+        measurement = GaussianMeasurement.from_model(model, z)
+    prior, index, squeeze = strategy.arrange(prior, particles, index)
+    out = _integrate(flow, measurement, particles, prior, index, strategy.per_particle, eps_all, lam_all,
+                     generator, proposal, noise, gaussian_image)
+    if squeeze:
+        out.aux = out.aux.squeeze(-2)
+        if gaussian_image:
+            out.image_mean, out.image_cov = out.image_mean.squeeze(-2), out.image_cov.squeeze(-3)
+    return out
+
+
+def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all, lam_all, generator, proposal,
+               noise, gaussian_image) -> FlowOutput:
+    """The loop of :func:`integrate_flow`: ``prior`` at ``(B, L, d)`` points, ``index (B, N)`` or
+    ``None`` (points broadcast against the particles, or are the particles)."""
+    B, N, d = particles.shape
+    prior = prior.reduced(measurement.support)
+    image = _Image(prior, gaussian_image)
+    aux, eta = prior.mean, particles  # (B, L, d), (B, N, d)
+    L = aux.shape[-2]
+    k = d if measurement.support is None else len(measurement.support)
+    stochastic = flow.stochastic
+    track = stochastic and proposal is not None
+    compose = not stochastic and not per_particle and L * d * d <= N * k
+    eye = torch.eye(d, dtype=particles.dtype, device=particles.device)
+    if compose:  # each point's map eta -> M eta + c, composed on (d, d) matrices
+        M = eye.expand(B, L, d, d)
+        c = torch.zeros(B, L, d, dtype=particles.dtype, device=particles.device)
+    if track:
+        mu, Sig = _initial_law(proposal, B, N, d)
+    tracked = [mu] if track else []
+    log_det = torch.zeros(B, L, dtype=particles.dtype, device=particles.device)
+    for j in range(len(eps_all)):
+        eps, lam = eps_all[j], lam_all[j]
+        co = flow.coefficients_at(measurement.at(aux, prior.support), prior, lam, eps)
+        if stochastic and (co.A is None or not co.has_noise):
+            raise TypeError(f"{type(flow).__name__}: a stochastic flow must give an explicit A and a diffusion "
+                            "(noise_factor or noise_product)")
+        image.step(co, eps)  # at the points
+        if not stochastic:
+            log_det = log_det + co.log_det
+        if compose:
+            step = eye + eps * co.dense_A()  # (B, L, d, d)
+            M = step @ M
+            c = linalg.matvec(step, c) + eps * co.b
+            aux = linalg.matvec(step, aux) + eps * co.b
+            continue
+        if per_particle:  # the points are the particles': one stacked product for every vector
+            drifts = co.drift(eta, aux, *tracked)
+            aux = aux + eps * drifts[1]
+            at = co
+        else:  # move the points, then view their coefficients per particle
+            aux = aux + eps * co.drift(aux)[0]
+            at = co if index is None else co.gather(index)
+            drifts = at.drift(eta, *tracked)
+        eta = eta + eps * drifts[0]
+        if stochastic:
+            shape = (B, N, at.noise_rank)
+            xi = noise(j, shape) if noise is not None else linalg.standard_normal(
+                shape, dtype=eta.dtype, device=eta.device, generator=generator)
+            eta = eta + eps.sqrt() * at.diffuse(xi)
+            if track:
+                mu = mu + eps * drifts[-1]
+                Sig = _propagate_cov(Sig, at, eps, eye)
+                tracked = [mu]
+    if compose:
+        if L == 1:
+            eta = torch.baddbmm(c, particles, M[:, 0].transpose(-1, -2))
+        else:
+            eta = linalg.matvec(_gather_points(M, index), particles) + _gather_points(c, index)
+    if stochastic:
+        return _stochastic_output(eta, aux, image, *((mu, Sig) if track else ()))
+    log_det = log_det.expand(B, N) if index is None else _gather_points(log_det.unsqueeze(-1), index).squeeze(-1)
+    return image.output(FlowOutput(eta, log_det, aux))
+
+
+class _Image:
+    """The Gaussian image of the points' prior ``N(mean, P)``: the mean is the auxiliary point
+    itself; the covariance follows ``S <- (I + eps A) S (I + eps A)^T (+ eps Q)``."""
+
+    def __init__(self, prior: "FlowPrior", on: bool):
+        self.on = on
+        if on:
+            L = prior.scale_tril
+            self.cov = L @ L.transpose(-1, -2)
+            d = L.shape[-1]
+            self.eye = torch.eye(d, dtype=L.dtype, device=L.device)
+
+    def step(self, co: "FlowCoefficients", eps) -> None:
+        if not self.on:
+            return
+        if co.noise_factor is None and co.noise_cov is None and co.noise_cov_pair is None:
+            co = replace(co, noise_cov=co.b.new_zeros(()))  # deterministic: no diffusion term
+        self.cov = _propagate_cov(self.cov, co, eps, self.eye)
+
+    def output(self, out: "FlowOutput") -> "FlowOutput":
+        if self.on:
+            out.image_mean, out.image_cov = out.aux, linalg.symmetrize(self.cov)
+        return out
+
+
+
+def _flat3(x: torch.Tensor, batch) -> torch.Tensor:
+    return x.expand(*batch, *x.shape[-2:]).reshape(-1, *x.shape[-2:])
+
+
+def _propagate_cov(Sig, co: "FlowCoefficients", eps, eye):
+    """``(I + eps A) Sig (I + eps A)^T + eps Q``, ``Sig (..., d, d)``.
+
+    With a measurement support A has only k nonzero columns ``A_s (..., d, k)``:
+    ``V = (I + eps A) Sig = Sig + eps A_s Sig[s, :]`` and ``V (I + eps A)^T = V + eps V[:, s] A_s^T``,
+    two ``d x k x d`` products fused with their additions (``baddbmm``), and ``Q`` given as a pair
+    ``Q = Q1 Q2^T`` is added by a third; no separate passes over the ``d x d`` matrices."""
+    if co.support is None:
+        T = eye + eps * co.dense_A()
+        return T @ Sig @ T.transpose(-1, -2) + eps * co.diffusion_cov()
+    A, sup, e = co.A, co.support, float(eps)
+    pair = co.noise_cov_pair
+    shapes = [Sig.shape[:-2], A.shape[:-2]] + ([p.shape[:-2] for p in pair] if pair is not None else [])
+    batch = torch.broadcast_shapes(*shapes)
+    S3, A3 = _flat3(Sig, batch), _flat3(A, batch)
+    V = torch.baddbmm(S3, A3, S3.index_select(-2, sup), alpha=e)
+    out = torch.baddbmm(V, V.index_select(-1, sup), A3.transpose(-1, -2), alpha=e)
+    if pair is not None:
+        out = torch.baddbmm(out, _flat3(pair[0], batch), _flat3(pair[1], batch).transpose(-1, -2), alpha=e)
+        return out.reshape(*batch, *Sig.shape[-2:])
+    return out.reshape(*batch, *Sig.shape[-2:]) + eps * co.diffusion_cov()
+
+
+def _initial_law(proposal: FlowPrior, B: int, N: int, d: int):
+    """``(mu (B, N, d), Sig (B, N|1, d, d))`` of the law the particles were drawn from."""
+    L0 = proposal.scale_tril
+    Sig = L0 @ L0.transpose(-1, -2)
+    return proposal.mean.expand(B, N, d), (Sig.expand(B, 1, d, d) if Sig.dim() == 2 else Sig)
+
+
+def _stochastic_output(eta, aux, image, mu=None, Sig=None) -> FlowOutput:
+    """Result of a stochastic flow; with the tracked law ``N(mu, Sig)`` each particle's
+    log-density under it (the proposal density of Pal & Coates' Algorithm 1)."""
+    if mu is None:
+        return image.output(FlowOutput(eta, None, aux))
+    Sig = linalg.symmetrize(Sig)
+    log_q = linalg.mvn_log_prob(eta, mu, linalg.safe_cholesky(Sig))
+    return image.output(FlowOutput(eta, None, aux, log_proposal=log_q, proposal_mean=mu, proposal_cov=Sig))
