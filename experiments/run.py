@@ -25,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a sourc
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 from torchflow.experiment import SUMMARY_COLUMNS, format_table, run_experiment  # noqa: E402
+from torchflow import tuning  # noqa: E402
 
 
 def _write_csv(path: Path, rows, columns=None):
@@ -277,6 +278,12 @@ def _write_results(out: Path, cfg, result, model) -> None:
 
 
 def _run(cfg: DictConfig) -> int:
+    knobs = {k: v for k, v in (OmegaConf.to_container(cfg.get("tuning") or {}) or {}).items() if v is not None}
+    with tuning.tuned(**knobs):
+        return _run_tuned(cfg)
+
+
+def _run_tuned(cfg: DictConfig) -> int:
     out = Path(HydraConfig.get().runtime.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     if not cfg.get("filter"):

@@ -128,6 +128,7 @@ def test_tiny_memory_budget_warns_with_the_plan():
     ("memory_budget_gb=0", "error: memory_budget_gb: expected a positive number of GiB, got 0"),
     ("chunk_size=0", "error: chunk_size: expected a positive integer (or None: from memory_budget_gb), got 0"),
     ("flow@filter.pfpf_ledh.flow=nope", "error: flow@filter.pfpf_ledh.flow: unknown flow config 'nope'; available:"),
+    ("tuning.points_per_call=-5", "error: tuning.points_per_call: expected an integer >= 0, got -5"),
 ])
 def test_cli_one_line_errors(tmp_path, override, match):
     cmd = [sys.executable, str(ROOT / "experiments" / "run.py"), "model=linear_gaussian", "model.d=4",

@@ -100,7 +100,7 @@ def _cli(tmp_path, *args):
 
 def test_cli_run_writes_results(tmp_path):
     out = _cli(tmp_path, "model=linear_gaussian", "model.d=16", "filter=[kf,bpf]", "trials=4", "steps=3",
-               "n_particles=50", "seed=0", f"hydra.run.dir={tmp_path}/run")
+               "n_particles=50", "seed=0", f"hydra.run.dir={tmp_path}/run", "tuning.cache_bytes_per_call=4096")
     assert "| kf |" in out.stdout and "| bpf |" in out.stdout
     run = tmp_path / "run"
     with open(run / "summary.csv") as fh:
@@ -114,6 +114,8 @@ def test_cli_run_writes_results(tmp_path):
         assert len(list(csv.DictReader(fh))) == 2 * 3
     data = json.loads((run / "results.json").read_text())
     assert data["config"]["trials"] == 4 and len(data["summary"]) == 2
+    # the speed knob reached the runner: one trial per chunk (4096 bytes < one 50 x 16 state)
+    assert data["config"]["tuning"]["cache_bytes_per_call"] == 4096 and data["run"]["chunk_size"]["bpf"] == 1
 
 
 def test_cli_multirun_sweep_writes_one_folder_per_job(tmp_path):

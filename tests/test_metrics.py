@@ -8,7 +8,7 @@ import torch
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 
-from torchflow import metrics
+from torchflow import metrics, tuning
 from torchflow.metrics import ess, log_evidence_relative_error, lost_tracks, mse, omat, ospa
 
 DT = torch.float64
@@ -79,7 +79,7 @@ def test_omat_scipy_fallback_matches_brute_force(monkeypatch):
             r, c = linear_sum_assignment(d)
             assert fallback[b, s].item() == pytest.approx(d[r, c].sum() / C)
     # brute force over all 8! permutations
-    monkeypatch.setattr(metrics, "_BRUTE_FORCE_MAX", 8)
+    monkeypatch.setattr(tuning, "_current", tuning.Tuning(assignment_brute_force_max=8))
     brute = omat(est, true)
     torch.testing.assert_close(fallback, brute)
 
@@ -157,7 +157,7 @@ def test_ospa_scipy_fallback_matches_brute_force(monkeypatch):
     X = torch.rand(2, 2, 3, 2, generator=g, dtype=DT) * 10
     Y = torch.rand(2, 2, 8, 2, generator=g, dtype=DT) * 10
     fallback = ospa(X, Y, cutoff=6.0, order=2.0)
-    monkeypatch.setattr(metrics, "_BRUTE_FORCE_MAX", 8)
+    monkeypatch.setattr(tuning, "_current", tuning.Tuning(assignment_brute_force_max=8))
     torch.testing.assert_close(fallback, ospa(X, Y, cutoff=6.0, order=2.0))
 
 

@@ -13,7 +13,7 @@ from typing import Callable, Dict, List, Mapping, Optional, Union
 
 import torch
 
-from . import metrics
+from . import metrics, tuning
 from ._checks import NonFiniteError, check_count
 from .filters.base import Filter
 from .filters.kalman import KalmanFilter
@@ -293,7 +293,7 @@ def run_experiment(
     particle_chunks = {name: getattr(f, "particle_chunk", None) for name, f in filters.items()}
     config = dict(trials=trials, steps=steps, seed=seed, inits_per_track=inits_per_track, chunk_size=chunks,
                   particle_chunk=particle_chunks, memory_budget_gb=memory_budget_gb, rng_backend=rng_backend,
-                  device=str(dev), dtype=str(dt).replace("torch.", ""))
+                  device=str(dev), dtype=str(dt).replace("torch.", ""), tuning=tuning.as_dict())
     cpu_traj = Trajectory(traj.states.cpu(), traj.observations.cpu())
     return ExperimentResult(summary, per_trial, per_step, cpu_traj, config, examples=examples,
                             interrupted=interrupted, not_run=not_run)

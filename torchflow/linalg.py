@@ -63,17 +63,14 @@ def safe_cholesky(
     )
 
 
-#: batched triangular solves on CPU loop over the batch calling MKL's trsm, which with more
-#: than one thread pays a parallel-region start per tiny matrix: 2000 solves of 8 x 8 with 17
-#: right-hand sides take 2.1-4.4 ms with 2 threads and 0.6-0.9 ms with 1 on this 2-core machine
-#: (torch 2.13, MKL 2024.2). Batches of matrices up to this size are solved single-threaded.
-SERIAL_SOLVE_MAX_DIM = 64
-
-
 def solve_triangular(A: torch.Tensor, B: torch.Tensor, *, upper: bool, left: bool = True) -> torch.Tensor:
     """``torch.linalg.solve_triangular``, run with one intra-op thread for a CPU batch of small
-    matrices (see :data:`SERIAL_SOLVE_MAX_DIM`); otherwise unchanged."""
-    if A.device.type == "cpu" and A.dim() > 2 and A.shape[-1] <= SERIAL_SOLVE_MAX_DIM \
+    matrices (up to ``torchflow.tuning`` ``serial_solve_max_dim``: batched CPU solves loop over
+    the batch calling MKL's trsm, which with several threads pays a parallel-region start per tiny
+    matrix); otherwise unchanged."""
+    from . import tuning
+
+    if A.device.type == "cpu" and A.dim() > 2 and A.shape[-1] <= tuning.get().serial_solve_max_dim \
             and A.shape[:-2].numel() > 1:
         n = torch.get_num_threads()
         if n > 1:
@@ -87,7 +84,9 @@ def solve_triangular(A: torch.Tensor, B: torch.Tensor, *, upper: bool, left: boo
 
 #: CPU float64 draws of at least this many numbers come from numpy's ziggurat sampler (SFC64
 #: bit generator, ~8 ns per draw here) seeded from the caller's torch.Generator; torch's own CPU
-#: float64 normal sampler costs ~21 ns per draw, which made the bootstrap PF RNG-bound.
+#: float64 normal sampler costs ~21 ns per draw, which made the bootstrap PF RNG-bound. It decides
+#: which numbers a torch.Generator draw gets, so it is part of the draw's definition, not a speed
+#: knob (torchflow.tuning).
 FAST_NORMAL_MIN = 1 << 16
 
 

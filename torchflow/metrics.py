@@ -6,7 +6,7 @@ batched over trials and time (no Python loops over either), work for float32
 and float64 on any device, and return tensors on the input device.
 
 Assignment problems (OMAT, OSPA) are solved exactly. For up to
-``_BRUTE_FORCE_MAX`` (7) items on the larger side this is done by brute force
+``tuning.get().assignment_brute_force_max`` (7) items on the larger side this is done by brute force
 over all injective maps expressed as tensor ops: a ``(P, m)`` index tensor
 built with :func:`itertools.permutations` is used to gather the costs of every
 assignment at once. For larger problems the code falls back to
@@ -23,6 +23,7 @@ import math
 
 import torch
 
+from . import tuning
 from ._checks import check_float_tensor, check_same_device, shape_str
 
 __all__ = [
@@ -34,13 +35,8 @@ __all__ = [
     "lost_tracks",
 ]
 
-#: Largest number of items (``n``, the larger side) solved by brute force.
-_BRUTE_FORCE_MAX = 7
-
-#: Upper bound on the number of elements of the ``(rows, P, m)`` gathered cost
-#: tensor built at once by the brute-force solver (memory guard; rows of the
-#: flattened ``B * T`` batch are processed in chunks of this many elements).
-_BRUTE_FORCE_CHUNK_ELEMS = 1 << 24
+# The brute-force size limit and its memory guard are speed knobs: torchflow.tuning
+# (assignment_brute_force_max, assignment_chunk_elems).
 
 
 # ---------------------------------------------------------------------------
@@ -80,9 +76,10 @@ def _min_assignment_cost(cost: torch.Tensor) -> torch.Tensor:
         return cost.new_zeros(batch)
     flat = cost.reshape(-1, m, n)
     rows = torch.arange(m, device=cost.device)
-    if n <= _BRUTE_FORCE_MAX:
+    knobs = tuning.get()
+    if n <= knobs.assignment_brute_force_max:
         maps = _injective_maps(n, m, cost.device)  # (P, m)
-        chunk = max(1, _BRUTE_FORCE_CHUNK_ELEMS // (maps.shape[0] * m))
+        chunk = max(1, knobs.assignment_chunk_elems // (maps.shape[0] * m))
         # Chunking only bounds memory; each chunk is one batched tensor op.
         out = [
             flat[s : s + chunk][:, rows, maps].sum(-1).amin(-1)  # (chunk, P, m) -> (chunk,)

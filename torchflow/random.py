@@ -42,12 +42,13 @@ from typing import Optional, Sequence, Union
 import numpy as np
 import torch
 
+from . import tuning
+
 __all__ = ["TrialStreams", "uniform", "check_generator", "stream_key"]
 
-#: numbers per call from which the numpy back end fills trials on several threads
-PARALLEL_MIN = 1 << 19
 #: numbers per block of a trial's large draw (numpy back end): a draw of more than this many numbers
-#: per trial is filled from child streams, one per block, on several threads
+#: per trial is filled from child streams, one per block, on several threads. Part of the stream
+#: definition (it decides which numbers a draw gets), so not a speed knob of torchflow.tuning
 BLOCK = 1 << 18
 _POOLS: dict = {}
 
@@ -195,7 +196,7 @@ class TrialStreams:
             def fill(task):
                 task[0].random(out=task[1], dtype=np_dtype)
         workers = min(torch.get_num_threads(), len(tasks))
-        if workers > 1 and B * n >= PARALLEL_MIN:
+        if workers > 1 and B * n >= tuning.get().parallel_draw_min:  # speed only
             list(_pool(workers).map(fill, tasks))
         else:
             for task in tasks:

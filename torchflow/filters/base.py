@@ -10,6 +10,7 @@ from torch import nn
 from .. import linalg
 from .. import resampling as _resampling
 from .._checks import NonFiniteError, check_count, check_finite, check_psd, check_same, check_tensor
+from .. import tuning
 from ..covariances import Covariance
 from ..models.base import StateSpaceModel
 from ..random import check_generator
@@ -309,15 +310,11 @@ class ParticleFilterBase(Filter):
         d, m = self.model.state_dim, self.model.obs_dim
         return 8 * N * (6 * d + 3 * m + 8) + N * self.model.bytes_per_point()
 
-    #: bytes of one (B, N, d) state tensor per call at which whole-cloud passes (sampling,
-    #: likelihood, resampling) stay cache-resident: on this 2-core CPU the bootstrap PF at d = 64,
-    #: N = 1e4 runs at 1.04e-2 s per trial-step with 3 trials per call and 1.6e-2 with 10 or 20
-    cache_bytes_per_call = 16 * 2**20
-
     def preferred_chunk_trials(self, n_particles=None):
         N = int(n_particles or self.n_particles)
         per_trial = N * self.model.state_dim * torch.finfo(self.model.dtype).bits // 8
-        return max(1, self.cache_bytes_per_call // max(per_trial, 1))
+        # whole-cloud passes stay cache-resident up to a measured size (torchflow.tuning)
+        return max(1, tuning.get().cache_bytes_per_call // max(per_trial, 1))
 
     def plan_memory(self, budget_bytes: float, n_particles: Optional[int] = None) -> Optional[int]:
         """Set :attr:`particle_chunk` so that one trial's per-particle work fits ``budget_bytes``

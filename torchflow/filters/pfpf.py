@@ -10,7 +10,7 @@ from typing import Optional
 
 import torch
 
-from .. import linalg
+from .. import linalg, tuning
 from ..flows import (EDHFlow, FlowPrior, GeodesicFlow, GromovFlow, LEDHFlow, OptimalDiffusionFlow, ParticleFlow,
                      integrate_flow, resolve_points)
 from ..proposals import _tracker, flow_proposal
@@ -45,15 +45,11 @@ class _FlowFilterMixin:
         #: where the flow is linearised (:mod:`torchflow.flows.points`; default: the flow's own)
         self.points = resolve_points(self.flow, points)
 
-    #: per-particle (local) flows batch d x d products over trials x particles; on a 2-core CPU
-    #: their time per trial-step is flat up to ~1e4 points per call and doubles at 2e4 (acoustic,
-    #: N = 500: 0.15 s at 2-20 trials per call, 0.32 s at 40)
-    points_per_call = 10_000
-
     def preferred_chunk_trials(self, n_particles=None):
         if not self.points.per_particle:
             return None
-        return max(1, self.points_per_call // int(n_particles or self.n_particles))
+        # per-particle flows batch d x d products over trials x particles (torchflow.tuning)
+        return max(1, tuning.get().points_per_call // int(n_particles or self.n_particles))
 
     def _flow_bytes(self, N: int, cov_mats: int) -> int:
         """Rough per-trial memory: ``cov_mats`` d x d matrices per particle for local flows."""

@@ -1,0 +1,105 @@
+"""Speed settings measured on one machine, as documented knobs in one place.
+
+Every value here changes only how fast (or in how much memory) a result is computed, never the
+result: the same seed gives the same numbers whatever they are set to (up to round-off where a
+batch's size changes BLAS blocking; see README "Reproducibility"). They were measured on the
+project's 2-core CI machine (torch 2.13, MKL); on another machine, time a representative run
+with ``experiments/benchmarks`` and set them here, from Python or from the runner
+(``python experiments/run.py tuning.points_per_call=40000``).
+
+Constants that *define* numbers are not here: the block size of a trial's child random streams
+(:data:`torchflow.random.BLOCK`) and the fast sampler's thresholds
+(:data:`torchflow.linalg.FAST_NORMAL_MIN`, ``FAST_NORMAL_BLOCK``) decide which random numbers a
+draw gets, so changing them would change results; they are part of the stream definitions.
+
+Usage::
+
+    from torchflow import tuning
+    tuning.get().points_per_call          # read
+    tuning.set(points_per_call=40_000)    # set for the process (returns the previous settings)
+    with tuning.tuned(serial_solve_max_dim=0):
+        ...                               # set within a block
+"""
+from __future__ import annotations
+
+import contextlib
+from dataclasses import asdict, dataclass, fields, replace
+
+__all__ = ["Tuning", "get", "set", "tuned"]
+
+
+@dataclass(frozen=True)
+class Tuning:
+    """The speed knobs (defaults: measured on a 2-core CPU).
+
+    Attributes:
+        points_per_call: per-particle flows (LEDH-type points) batch ``d x d`` products over
+            trials x particles; the runner's default chunk is this many particles per call. On
+            2 cores the time per trial-step is flat up to ~1e4 points per call and doubles at 2e4
+            (acoustic, N = 500: 0.15 s at 2-20 trials per call, 0.32 s at 40). GPUs want more.
+        cache_bytes_per_call: bytes of one ``(B, N, d)`` state tensor per call at which the
+            whole-cloud passes of the other particle filters (sampling, likelihood, resampling)
+            stay cache-resident: the bootstrap PF at d = 64, N = 1e4 runs at 1.04e-2 s per
+            trial-step with 3 trials per call and 1.6e-2 with 10 or 20.
+        serial_solve_max_dim: CPU batches of triangular matrices up to this size are solved with
+            one intra-op thread (MKL pays a parallel-region start per tiny matrix: 2000 solves of
+            8 x 8 with 17 right-hand sides take 2.1-4.4 ms with 2 threads, 0.6-0.9 ms with 1);
+            0 turns this off.
+        parallel_draw_min: numbers per call from which the numpy random back end fills trials on
+            several threads (the numbers do not depend on the thread count).
+        assignment_brute_force_max: OMAT/OSPA assignments with at most this many items are solved
+            by enumerating permutations (batched), larger ones by the Hungarian algorithm; both
+            are exact.
+        assignment_chunk_elems: memory guard of the brute-force assignment: elements of the
+            gathered cost tensor built at once.
+    """
+
+    points_per_call: int = 10_000
+    cache_bytes_per_call: int = 16 * 2**20
+    serial_solve_max_dim: int = 64
+    parallel_draw_min: int = 1 << 19
+    assignment_brute_force_max: int = 7
+    assignment_chunk_elems: int = 1 << 24
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ValueError(f"tuning.{f.name}: expected an integer >= 0, got {v!r}")
+
+
+_current = Tuning()
+
+
+def get() -> Tuning:
+    """The settings in force."""
+    return _current
+
+
+def set(**knobs) -> Tuning:  # noqa: A001 - the module's verb
+    """Change some knobs for the process; returns the previous settings. Unknown names raise."""
+    global _current
+    known = {f.name for f in fields(Tuning)}
+    unknown = sorted(k for k in knobs if k not in known)
+    if unknown:
+        raise ValueError(f"tuning: unknown knob(s) {unknown}; expected some of {sorted(known)}")
+    previous = _current
+    _current = replace(_current, **{k: int(v) if isinstance(v, float) and v.is_integer() else v
+                                    for k, v in knobs.items()})
+    return previous
+
+
+@contextlib.contextmanager
+def tuned(**knobs):
+    """Within the block, the given knobs (restored afterwards, also on error)."""
+    global _current
+    previous = set(**knobs)
+    try:
+        yield _current
+    finally:
+        _current = previous
+
+
+def as_dict() -> dict:
+    """The settings in force as a plain dict (recorded with a run's results)."""
+    return asdict(_current)
