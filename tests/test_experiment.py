@@ -252,3 +252,27 @@ def test_row_label_names_overridden_points():
         == "pfpf_edh[flow=ledh]"
     assert run.row_label("pfpf_edh", ParticleFlowParticleFilter(model, flow="edh", points="clustered")) \
         == "pfpf_edh[points=clustered]"
+
+
+def test_trial_stats_quartiles_and_paired_ratios(tmp_path):
+    """experiments/trial_stats.py on a hand-made run: medians, the lost count and the paired ratio."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from trial_stats import main, trial_table
+
+    ref = [1.0, 2.0, 3.0, 4.0, 5.0]
+    other = [2 * v for v in ref]
+    with open(tmp_path / "per_trial.csv", "w") as fh:
+        fh.write("filter,trial,omat,lost\n")
+        for name, vals in (("pfpf_ledh", ref), ("clustered", other)):
+            for b, v in enumerate(vals):
+                fh.write(f"{name},{b},{v},{v > 4}\n")
+    with open(tmp_path / "summary.csv", "w") as fh:
+        fh.write("filter,sec_per_step\npfpf_ledh,0.2\nclustered,0.05\n")
+    rows, ratios = trial_table(tmp_path, resamples=200)
+    by = {r["filter"]: r for r in rows}
+    assert by["pfpf_ledh"]["median"] == 3.0 and by["clustered"]["median"] == 6.0
+    assert by["pfpf_ledh"]["lost"] == 1 and by["clustered"]["lost"] == 3
+    assert by["clustered"]["time_ratio"] == 0.25
+    # every paired resample doubles the median exactly
+    assert ratios[0]["ratio"] == 2.0 and ratios[0]["lo"] == 2.0 and ratios[0]["hi"] == 2.0
+    assert main([str(tmp_path / "nope")]) == 2

@@ -29,6 +29,7 @@ SHRINK_PY = [
     ("n_particles=500, covariance", "n_particles=30, covariance"),
     ("GromovFlow(), n_particles=500", "GromovFlow(), n_particles=30"),
     ("n_clusters=100, alpha=0.25, n_particles=500", "n_clusters=5, alpha=0.25, n_particles=30"),
+    ("GPFIS(model, n_particles=100)", "GPFIS(model, n_particles=10)"),
 ]
 #: command-line sizes: replaced where the command sets them, appended where it does not
 SHRINK_CLI = {"trials": "2", "steps": "2", "n_particles": "20"}

@@ -2,6 +2,7 @@
 from .base import Filter, FilterResult, GaussianState, ParticleFilterBase, ParticleState
 from .bootstrap import BootstrapParticleFilter
 from .pfpf import ClusteredParticleFlowParticleFilter, ParticleFlowFilter, ParticleFlowParticleFilter
+from .gpfis import GPFIS, GaussianParticleFlowImportanceSampler
 from .kalman import ExtendedKalmanFilter, KalmanFilter, UnscentedKalmanFilter, ekf_predict, kalman_update
 
 __all__ = [
@@ -17,6 +18,8 @@ __all__ = [
     "ParticleFlowParticleFilter",
     "ClusteredParticleFlowParticleFilter",
     "ParticleFlowFilter",
+    "GaussianParticleFlowImportanceSampler",
+    "GPFIS",
     "kalman_update",
     "ekf_predict",
 ]

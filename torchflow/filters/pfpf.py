@@ -10,7 +10,7 @@ from typing import Optional
 
 import torch
 
-from .. import linalg, tuning
+from .. import linalg
 from ..flows import (EDHFlow, FlowPrior, GeodesicFlow, GromovFlow, LEDHFlow, OptimalDiffusionFlow, ParticleFlow,
                      integrate_flow, resolve_points)
 from ..proposals import _tracker, flow_proposal
@@ -46,10 +46,7 @@ class _FlowFilterMixin:
         self.points = resolve_points(self.flow, points)
 
     def preferred_chunk_trials(self, n_particles=None):
-        if not self.points.per_particle:
-            return None
-        # per-particle flows batch d x d products over trials x particles (torchflow.tuning)
-        return max(1, tuning.get().points_per_call // int(n_particles or self.n_particles))
+        return self.points.preferred_chunk_trials(int(n_particles or self.n_particles))
 
     def _flow_bytes(self, N: int, cov_mats: int) -> int:
         """Rough per-trial memory: ``cov_mats`` d x d matrices per particle for local flows."""
@@ -138,10 +135,7 @@ class ParticleFlowParticleFilter(_FlowFilterMixin, ParticleFilterBase):
     def bytes_per_trial(self, n_particles=None):
         N = n_particles or self.n_particles
         flow = self._flow_bytes(N, cov_mats=18 if self.flow.stochastic else 12)
-        if not isinstance(self.points, ClusteredPoints):
-            return flow
-        K, d = min(self.points.n_clusters, N), self.model.state_dim
-        return flow + 8 * (4 * N * N + 6 * K * d * d + 2 * N * d * d)  # N x N distances, K maps, gathers
+        return flow + self.points.extra_bytes(N, self.model.state_dim)
 
     def init(self, mean, cov, n_particles=None, generator=None):
         N = self._resolve_n(n_particles)
@@ -221,7 +215,8 @@ class ParticleFlowFilter(_FlowFilterMixin, Filter):
         self._init_flow(model, flow, schedule, covariance, points)
 
     def bytes_per_trial(self, n_particles=None):
-        return self._flow_bytes(n_particles or self.n_particles, cov_mats=8)
+        N = n_particles or self.n_particles
+        return self._flow_bytes(N, cov_mats=8) + self.points.extra_bytes(N, self.model.state_dim)
 
     def init(self, mean, cov, n_particles=None, generator=None):
         N = self.n_particles if n_particles is None else check_count("n_particles", n_particles)
