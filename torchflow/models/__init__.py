@@ -2,6 +2,7 @@
 from .acoustic import AcousticTracking
 from .base import StateSpaceModel, Trajectory
 from .linear_gaussian import LinearGaussian, SensorNetwork, sensor_network_covariance
+from .skewed_t import SkewedTPoisson
 
 __all__ = [
     "StateSpaceModel",
@@ -10,4 +11,5 @@ __all__ = [
     "SensorNetwork",
     "sensor_network_covariance",
     "AcousticTracking",
+    "SkewedTPoisson",
 ]

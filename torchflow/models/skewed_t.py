@@ -1,0 +1,176 @@
+"""Generalised-hyperbolic skewed-t dynamics with Poisson counts (Septier & Peters 2016; Li & Coates
+2017 §V; MODELS.md §3, §10, §14e).
+
+    x_k = alpha x_{k-1} + W_k gamma + sqrt(W_k) Sigma^{1/2} xi_k,   1/W_k ~ Gamma(nu/2, rate nu/2),
+    z_k^c ~ Poisson(m1 exp(m2 x_k^c)),  one count per cell c (m = d).
+
+Sigma is the spatial sensor-network covariance (:func:`sensor_network_covariance`). The transition
+density is the multivariate GH skewed-t with location ``mu = alpha x_{k-1}``:
+
+    log p(x | x_prev) = log c + log K_{(nu+d)/2}(zeta) + (x - mu)^T Sigma^{-1} gamma
+                        + ((nu+d)/2) (log zeta - log(1 + q/nu)),
+    q = (x - mu)^T Sigma^{-1} (x - mu),  zeta = sqrt((nu + q) gamma^T Sigma^{-1} gamma),
+    log c = (1 - (nu+d)/2) log 2 - lgamma(nu/2) - (d/2) log(pi nu) - (1/2) log|Sigma|,
+
+with ``log K`` from :func:`torchflow.special.log_bessel_k` (order 75.5 at d = 144). Flows, trackers
+and Gaussian proposals use its Gaussian fit (§14e): mean ``alpha x + E[W] gamma`` and covariance
+``Q_st = E[W] Sigma + Var[W] gamma gamma^T``. The measurement noise is state dependent
+(``R = diag(m1 exp(m2 x))``, the Poisson variance at the linearisation point), declared as
+``measurement_noise = "state_dependent"``.
+
+``nu`` must be an integer > 4 (so that Var[W] exists): ``1/W`` is then drawn exactly as a
+chi-square over nu, ``sum_j eta_j^2 / nu`` with standard normals, from the caller's generator (or
+per-trial streams) without rejection sampling.
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import torch
+
+from .. import linalg
+from ..special import log_bessel_k
+from .base import StateSpaceModel, Trajectory
+from .linear_gaussian import sensor_network_covariance
+
+
+class SkewedTPoisson(StateSpaceModel):
+    """GH skewed-t dynamics on a sensor grid with Poisson count measurements (MODELS.md §3).
+
+    Args:
+        d: state dimension, a perfect square (144 default; 400 works).
+        alpha: AR coefficient (0.9).
+        gamma: skewness, a number (``gamma * 1_d``; 0.3) .
+        nu: degrees of freedom, an integer > 4 (7).
+        alpha0, alpha1, beta: Sigma's sensor-network constants (3, 0.01, 20).
+        m1, m2: Poisson rate ``m1 exp(m2 x)`` (1, 1/3).
+        mean_shift: the Gaussian fit's mean includes ``E[W] gamma`` (True, §14e) or not (False:
+            the [LC-code] noise-free propagation ``alpha x``; UNCONF).
+        steps: a default horizon for experiments (30, seed 001), not used by the model itself.
+    """
+
+    linear_dynamics = True
+    linear_measurement = False
+    measurement_noise = "state_dependent"
+
+    def __init__(self, *, d: int = 144, alpha: float = 0.9, gamma: float = 0.3, nu: int = 7,
+                 alpha0: float = 3.0, alpha1: float = 0.01, beta: float = 20.0, m1: float = 1.0,
+                 m2: float = 1.0 / 3.0, mean_shift: bool = True):
+        super().__init__()
+        g = int(round(math.sqrt(d)))
+        if isinstance(d, bool) or not isinstance(d, int) or g * g != d or d < 1:
+            raise ValueError(f"d: expected a perfect square (144, 400, ...), got {d!r}")
+        if isinstance(nu, bool) or not isinstance(nu, int) or nu <= 4:
+            raise ValueError(f"nu: expected an integer > 4 (Var[W] must exist; 1/W is drawn as chi2_nu / nu), "
+                             f"got {nu!r}")
+        if m1 <= 0:
+            raise ValueError(f"m1: expected > 0, got {m1}")
+        self.state_dim = self.obs_dim = d
+        self.nu, self.mean_shift = nu, bool(mean_shift)
+        f64 = dict(dtype=torch.float64)
+        Sigma = sensor_network_covariance(g, alpha0, alpha1, beta)
+        self.register_buffer("Sigma", Sigma)
+        self.register_buffer("Sigma_tril", linalg.safe_cholesky(Sigma))
+        self.register_buffer("gamma", torch.full((d,), float(gamma), **f64))
+        self.register_buffer("alpha", torch.tensor(float(alpha), **f64))
+        self.register_buffer("m1", torch.tensor(float(m1), **f64))
+        self.register_buffer("m2", torch.tensor(float(m2), **f64))
+        self.EW = nu / (nu - 2)
+        self.VarW = 2 * nu * nu / ((nu - 2) ** 2 * (nu - 4))
+        Q = self.EW * Sigma + self.VarW * torch.outer(self.gamma, self.gamma)
+        self.register_buffer("Q_st", Q)
+        self.register_buffer("Q_st_tril", linalg.safe_cholesky(Q))
+        # Sigma^{-1} gamma and gamma^T Sigma^{-1} gamma, once
+        Sg = torch.cholesky_solve(self.gamma.unsqueeze(-1), self.Sigma_tril).squeeze(-1)
+        self.register_buffer("Sigma_inv_gamma", Sg)
+        self.register_buffer("gSg", (self.gamma * Sg).sum())
+        k = (nu + d) / 2
+        self._log_c = ((1 - k) * math.log(2) - math.lgamma(nu / 2) - 0.5 * d * math.log(math.pi * nu)
+                       - 0.5 * float(linalg.chol_logdet(self.Sigma_tril)))
+
+    # ---- dynamics --------------------------------------------------------------------------
+    def location(self, x):
+        """``mu = alpha x``, the GH location."""
+        return self.alpha * x
+
+    def transition_mean(self, x):
+        return self.alpha * x + (self.EW * self.gamma if self.mean_shift else 0.0)
+
+    def transition_matrix(self):
+        return self.alpha * torch.eye(self.state_dim, dtype=self.Sigma.dtype, device=self.Sigma.device)
+
+    def transition_jacobian(self, x):
+        return self.transition_matrix().expand(*x.shape[:-1], self.state_dim, self.state_dim)
+
+    def transition_cov(self, x=None):
+        return self.Q_st
+
+    def transition_scale_tril(self, x=None):
+        return self.Q_st_tril
+
+    def sample_transition(self, x, generator=None):
+        """An exact GH skewed-t draw: ``W = nu / chi2_nu`` from nu squared standard normals."""
+        eta = linalg.standard_normal((*x.shape[:-1], self.nu), dtype=x.dtype, device=x.device, generator=generator)
+        W = self.nu / eta.pow(2).sum(-1, keepdim=True)
+        xi = linalg.standard_normal(x.shape, dtype=x.dtype, device=x.device, generator=generator)
+        return self.location(x) + W * self.gamma + W.sqrt() * linalg.matvec(self.Sigma_tril, xi)
+
+    def transition_log_prob(self, x_next, x):
+        """The exact GH skewed-t log-density ``(...)`` (module docstring)."""
+        r = x_next - self.location(x)
+        u = linalg.solve_triangular(self.Sigma_tril, r.unsqueeze(-1), upper=False).squeeze(-1)
+        q = u.pow(2).sum(-1)
+        k = (self.nu + self.state_dim) / 2
+        zeta = torch.sqrt((self.nu + q) * self.gSg)
+        return (self._log_c + log_bessel_k(k, zeta) + (r * self.Sigma_inv_gamma).sum(-1)
+                + k * (torch.log(zeta) - torch.log1p(q / self.nu)))
+
+    # ---- measurement -----------------------------------------------------------------------
+    def measure(self, x):
+        """Poisson rates ``m1 exp(m2 x)`` (the measurement's mean)."""
+        return self.m1 * torch.exp(self.m2 * x)
+
+    def measurement_cov(self, x=None):
+        if x is None:
+            raise ValueError("SkewedTPoisson.measurement_cov: R depends on the state (Poisson variance); pass x")
+        return torch.diag_embed(self.measure(x))
+
+    def measurement_scale_tril(self, x=None):
+        if x is None:
+            raise ValueError("SkewedTPoisson.measurement_scale_tril: R depends on the state; pass x")
+        return torch.diag_embed(self.measure(x).sqrt())
+
+    def measurement_jacobian(self, x):
+        return torch.diag_embed(self.m2 * self.measure(x))
+
+    def measurement_log_prob(self, z, x):
+        """Poisson log-likelihood ``sum_c z_c log lam_c - lam_c - log z_c!`` (the full pmf)."""
+        lam = self.measure(x)
+        return (z * torch.log(lam) - lam - torch.lgamma(z + 1)).sum(-1)
+
+    def sample_measurement(self, x, generator=None):
+        return torch.poisson(self.measure(x), generator=generator)
+
+    # ---- truth and prior -------------------------------------------------------------------
+    def initial_state(self, batch_size, generator=None):
+        return torch.zeros(batch_size, self.state_dim, dtype=self.Sigma.dtype, device=self.Sigma.device)
+
+    def initial_belief(self, states0, generator=None):
+        """``x_0 = 0`` known: mean 0 and a machine-epsilon covariance (MODELS.md §3)."""
+        B, d = states0.shape
+        eps = torch.finfo(states0.dtype).eps
+        eye = torch.eye(d, dtype=states0.dtype, device=states0.device)
+        return torch.zeros_like(states0), (eps * eye).expand(B, d, d).clone()
+
+    def simulate(self, batch_size: int, steps: int, generator: Optional[torch.Generator] = None) -> Trajectory:
+        """Trajectories through :meth:`sample_transition` and :meth:`sample_measurement`."""
+        batch_size, steps = self.check_simulate_args(batch_size, steps, generator)
+        with torch.no_grad():
+            x = self.initial_state(batch_size, generator)
+            states, obs = [x], []
+            for _ in range(steps):
+                x = self.sample_transition(x, generator)
+                states.append(x)
+                obs.append(self.sample_measurement(x, generator))
+            return Trajectory(torch.stack(states, 1), torch.stack(obs, 1))
