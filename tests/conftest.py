@@ -19,6 +19,15 @@ def random_lg(d=3, m=2, seed=0, learnable=False, prior=True):
     return LinearGaussian(F, Q, H, R, m0, P0, learnable=learnable)
 
 
+def simulate_with_belief(model, trials, steps, seed=0):
+    """``(traj, mean, cov, g)``: ``trials`` simulated trajectories of ``steps`` steps, the model's
+    prior belief around their first states, and the generator (seeded ``seed``) that drew them."""
+    g = torch.Generator().manual_seed(seed)
+    traj = model.simulate(trials, steps, g)
+    mean, cov = model.initial_belief(traj.states[:, 0])
+    return traj, mean, cov, g
+
+
 @pytest.fixture
 def small_lg():
     return random_lg()

@@ -24,6 +24,7 @@ import torch
 from torch import nn
 
 from . import linalg
+from .covariances import Covariance
 from .flows import FlowPrior, ParticleFlow, integrate_flow, resolve_points
 from .schedules import ExponentialSchedule, LambdaSchedule
 
@@ -43,7 +44,7 @@ class Proposed:
 
     particles: torch.Tensor
     log_q: Optional[torch.Tensor]
-    cov: Optional[torch.Tensor] = None
+    cov: Optional["Covariance"] = None
     fallback: Optional[torch.Tensor] = None
 
 

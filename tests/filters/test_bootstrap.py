@@ -3,15 +3,13 @@ import pytest
 import torch
 
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter
-from conftest import random_lg
+from conftest import random_lg, simulate_with_belief
 
 
 @pytest.mark.parametrize("scheme", ["systematic", "multinomial"])
 def test_bpf_posterior_mean_within_monte_carlo_error_of_kf(scheme):
     model = random_lg(2, 1, seed=11)
-    g = torch.Generator().manual_seed(0)
-    traj = model.simulate(6, 8, g)
-    mean, cov = model.initial_belief(traj.states[:, 0])
+    traj, mean, cov, g = simulate_with_belief(model, 6, 8)
     kf = KalmanFilter(model)(traj.observations, mean, cov, return_covariances=True)
     N = 20000
     pf = BootstrapParticleFilter(model, n_particles=N, resampling=scheme)(traj.observations, mean, cov, g)

@@ -177,11 +177,17 @@ class _NaNLikelihood(SensorNetwork):
         return out
 
 
-def test_non_finite_error_names_filter_step_trial():
+def nan_likelihood_run():
+    """``(model, traj, mean, cov)``: 3 trials x 5 steps of :class:`_NaNLikelihood` (its NaN counter reset)."""
     model = _NaNLikelihood(d=4)
     _NaNLikelihood.calls = 0
     traj = model.simulate(3, 5, torch.Generator().manual_seed(0))
     mean, cov = model.initial_belief(traj.states[:, 0])
+    return model, traj, mean, cov
+
+
+def test_non_finite_error_names_filter_step_trial():
+    model, traj, mean, cov = nan_likelihood_run()
     f = BootstrapParticleFilter(model, n_particles=16, name="bpf-test")
     with pytest.raises(NonFiniteError, match=r"bpf-test: non-finite particles or weights at time step 3 in trial\(s\) \[1\]") as e:
         f(traj.observations, mean, cov, torch.Generator().manual_seed(0))

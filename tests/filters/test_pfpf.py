@@ -11,8 +11,7 @@ from torchflow.filters import (BootstrapParticleFilter, KalmanFilter, ParticleFl
 from torchflow.flows import EDHFlow, LEDHFlow
 from torchflow.models import AcousticTracking
 from torchflow.schedules import ExponentialSchedule, UniformSchedule
-from torchflow import metrics
-from conftest import mild_lg, random_lg, replicated
+from conftest import mild_lg, random_lg, replicated, simulate_with_belief
 
 
 _replicated = replicated
@@ -77,9 +76,7 @@ def test_pfpf_lg_consistent_with_kf(flow):
 @pytest.mark.parametrize("flow", [EDHFlow(), LEDHFlow()], ids=["edh", "ledh"])
 def test_unweighted_flow_filter_tracks_kf_on_lg(flow):
     model = random_lg(3, 4, seed=8)
-    g = torch.Generator().manual_seed(0)
-    traj = model.simulate(4, 5, g)
-    mean, cov = model.initial_belief(traj.states[:, 0])
+    traj, mean, cov, g = simulate_with_belief(model, 4, 5)
     kf = KalmanFilter(model)(traj.observations, mean, cov, return_covariances=True)
     N = 4000
     f = ParticleFlowFilter(model, flow=flow, n_particles=N, schedule=UniformSchedule(200))
@@ -146,12 +143,9 @@ def test_pfpf_log_evidence_gradcheck(flow):
 
 
 def test_nonfinite_recover_counts_repairs():
-    from test_contract import _NaNLikelihood
+    from test_contract import nan_likelihood_run
 
-    model = _NaNLikelihood(d=4)
-    _NaNLikelihood.calls = 0
-    traj = model.simulate(3, 5, torch.Generator().manual_seed(0))
-    mean, cov = model.initial_belief(traj.states[:, 0])
+    model, traj, mean, cov = nan_likelihood_run()
     f = BootstrapParticleFilter(model, n_particles=16, nonfinite="recover")
     res = f(traj.observations, mean, cov, torch.Generator().manual_seed(0))
     assert torch.isfinite(res.estimates).all()

@@ -47,12 +47,8 @@ from .base import ParticleFilterBase, ParticleState
 ROOTS = ("cholesky", "symmetric")
 
 
-def _tri(L, b, upper=False, left=True):
-    return torch.linalg.solve_triangular(L, b, upper=upper, left=left)
-
-
-def _mv(A, x):
-    return (A @ x.unsqueeze(-1)).squeeze(-1)
+def _tri(L, b, upper=False):
+    return linalg.solve_triangular(L, b, upper=upper)
 
 
 def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPrior,
@@ -84,7 +80,7 @@ def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPri
             lin = measurement.at(xf, sup)
             A = lin.W @ C  # whitened Jacobian in prior coordinates, (..., m, k)
             G = A.transpose(-1, -2) @ A
-            r = _mv(A.transpose(-1, -2), lin.y)
+            r = linalg.matvec(A.transpose(-1, -2), lin.y)
             u = _tri(C, xs.unsqueeze(-1)).squeeze(-1)
             if root == "cholesky":
                 K0 = torch.linalg.cholesky_ex(eye + lam0 * G)[0]
@@ -97,9 +93,9 @@ def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPri
             g, U = torch.linalg.eigh(G)
             g = g.clamp_min(0)
             Ut = U.transpose(-1, -2)
-            m_lam0 = _mv(U, _mv(Ut, u0 + lam0 * r) / (1 + lam0 * g))
-            m_lam1 = _mv(U, _mv(Ut, u0 + lam1 * r) / (1 + lam1 * g))
-            return m_lam1 + _mv(U, _mv(Ut, u - m_lam0) * torch.sqrt((1 + lam0 * g) / (1 + lam1 * g)))
+            m_lam0 = linalg.matvec(U, linalg.matvec(Ut, u0 + lam0 * r) / (1 + lam0 * g))
+            m_lam1 = linalg.matvec(U, linalg.matvec(Ut, u0 + lam1 * r) / (1 + lam1 * g))
+            return m_lam1 + linalg.matvec(U, linalg.matvec(Ut, u - m_lam0) * torch.sqrt((1 + lam0 * g) / (1 + lam1 * g)))
 
         xs = x if sup is None else x.index_select(-1, sup)
         u_new, jac = vmap(lambda t: jvp(step, (xs,), (t,)), out_dims=(None, -1))(tangents)
@@ -107,7 +103,7 @@ def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPri
         # triangularly with unit diagonal)
         log_det = log_det + torch.linalg.slogdet(jac)[1] + log_det_C
         u_old = _tri(C, xs.unsqueeze(-1)).squeeze(-1)
-        x = x + _mv(cols, u_new - u_old)
+        x = x + linalg.matvec(cols, u_new - u_old)
     return x, log_det
 
 

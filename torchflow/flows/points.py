@@ -236,15 +236,13 @@ class ClusteredPoints(LinearisationPoints):
     def cluster(self, model, eta_bar: torch.Tensor, z: torch.Tensor, scale_tril: torch.Tensor):
         """``(index (B, N), medoids (B, K))`` of the predictions ``eta_bar (B, N, d)``, with the
         trial's prior factor ``scale_tril (B, d, d)`` for the lambda = 0 velocities."""
-        from .daum_huang import LEDHFlow
-
         B, N, _ = eta_bar.shape
         if self.n_clusters >= N:
             ar = torch.arange(N, device=eta_bar.device).expand(B, N)
             return ar, ar
         prior = FlowPrior(eta_bar, scale_tril.unsqueeze(-3))
         zero = torch.zeros((), dtype=eta_bar.dtype, device=eta_bar.device)
-        zeta = LEDHFlow().coefficients(model, z, eta_bar, prior, zero, zero).drift(eta_bar)[0]
+        zeta = _velocity_flow().coefficients(model, z, eta_bar, prior, zero, zero).drift(eta_bar)[0]
         dist = cluster_distance(eta_bar, zeta, self.alpha, model.measurement_support)
         return kmedoids(dist, self.n_clusters, self.sweeps)
 
@@ -268,6 +266,18 @@ class ClusteredPoints(LinearisationPoints):
 
     def extra_repr(self) -> str:
         return f"n_clusters={self.n_clusters}, alpha={self.alpha}, sweeps={self.sweeps}"
+
+
+_VELOCITY = []
+
+
+def _velocity_flow():
+    """The LEDH drift whose lambda = 0 velocities the clustered distance correlates (one instance)."""
+    if not _VELOCITY:
+        from .daum_huang import LEDHFlow
+
+        _VELOCITY.append(LEDHFlow())
+    return _VELOCITY[0]
 
 
 def _check_points(name: str, mean: torch.Tensor, particles: torch.Tensor, L: int) -> None:
