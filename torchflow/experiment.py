@@ -22,7 +22,7 @@ from .random import TrialStreams
 
 SUMMARY_COLUMNS = [
     "filter", "n_particles", "trials", "steps", "mse", "omat", "omat_kept_mean", "omat_kept_sd",
-    "ospa", "ess", "log_evidence", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step", "error",
+    "ospa", "ess", "g_eff", "log_evidence", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step", "error",
 ]
 _DTYPES = {"float64": torch.float64, "float32": torch.float32, "double": torch.float64, "float": torch.float32}
 
@@ -204,7 +204,7 @@ def run_experiment(
         if progress and tqdm is not None:
             bar = tqdm(total=trials * steps, unit="trial-step", leave=False, dynamic_ncols=True,
                        desc=f"[{i_f + 1}/{len(filters)}] {name}")
-        est, logz, ess, repaired = [], [], [], []
+        est, logz, ess, repaired, geff = [], [], [], [], []
         elapsed = 0.0
         f_chunk = chunks[name]
         try:
@@ -230,6 +230,8 @@ def run_experiment(
                         ess.append(res.ess.double())
                     if res.n_repaired is not None:
                         repaired.append(res.n_repaired)
+                    if res.g_eff is not None:
+                        geff.append(res.g_eff.double())
         except KeyboardInterrupt:  # keep what finished; the caller writes it and says so
             interrupted = True
             row["error"] = f"interrupted after {sum(e.shape[0] for e in est)} of {trials} trials"
@@ -259,6 +261,8 @@ def run_experiment(
             cols["ospa"] = metrics.ospa(est_pos, true_pos, cutoff=ospa_cutoff, order=ospa_order)
         if ess_bt is not None:
             cols["ess"] = ess_bt
+        if geff:
+            cols["g_eff"] = torch.cat(geff)
         row["sec_per_step"] = elapsed / (trials * steps)
         if f.estimates_evidence:
             row["log_evidence"] = float(logz.mean())

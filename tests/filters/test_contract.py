@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from torchflow._checks import NonFiniteError
-from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, KalmanFilter,
+from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, GaussianSumParticleFilter, KalmanFilter,
                                ParticleFlowFilter, ParticleFlowParticleFilter, UnscentedKalmanFilter)
 from torchflow.schedules import ExponentialSchedule
 from torchflow.models import AcousticTracking, SensorNetwork
@@ -27,6 +27,11 @@ for _flow in ("edh", "ledh", "geodesic", "gromov", "osd"):
                         lambda m, fl=_flow: ParticleFlowParticleFilter(m, flow=fl, n_particles=64, schedule=_SCHED)))
         CONFIGS.append((f"{_flow}-{_mname}", _make_model,
                         lambda m, fl=_flow: ParticleFlowFilter(m, flow=fl, n_particles=64, schedule=_SCHED)))
+for _flow in (None, "ledh"):  # GSPF and PFGSPF, G = 2 x 32 particles
+    for _mname, _make_model in (("lg", lambda: random_lg(3, 2)), ("acoustic", AcousticTracking)):
+        CONFIGS.append((f"{'pf' if _flow else ''}gspf-{_mname}", _make_model,
+                        lambda m, fl=_flow: GaussianSumParticleFilter(m, flow=fl, n_components=2,
+                                                                      particles_per_component=32, schedule=_SCHED)))
 IDS = [c[0] for c in CONFIGS]
 
 
@@ -51,6 +56,11 @@ def test_contract_shapes_dtype(name, make_model, make_filter, dtype):
     torch.testing.assert_close(res.log_evidence, res.log_evidence_increments.sum(1))
     if isinstance(f, ParticleFlowFilter):  # particles re-drawn each step, Gaussian belief
         assert res.ess is None and res.covariances.shape == (B, T, d, d)
+    elif isinstance(f, GaussianSumParticleFilter):  # a mixture belief: ESS of the 64 draws, G_eff of 2
+        assert res.ess.shape == (B, T) and res.ess.dtype == dtype
+        assert ((res.ess >= 1 - 1e-4) & (res.ess <= 64 + 1e-3)).all()
+        assert res.g_eff.shape == (B, T) and ((res.g_eff >= 1 - 1e-5) & (res.g_eff <= 2 + 1e-5)).all()
+        assert res.particles is None and res.covariances is None
     elif f.uses_particles:
         assert res.ess.shape == (B, T) and res.ess.dtype == dtype
         assert ((res.ess >= 1 - 1e-4) & (res.ess <= 64 + 1e-3)).all()

@@ -3,6 +3,8 @@ from .base import Filter, FilterResult, GaussianState, ParticleFilterBase, Parti
 from .bootstrap import BootstrapParticleFilter
 from .pfpf import ClusteredParticleFlowParticleFilter, ParticleFlowFilter, ParticleFlowParticleFilter
 from .gpfis import GPFIS, GaussianParticleFlowImportanceSampler
+from .gaussian_sum import (GaussianParticleFilter, GaussianSumParticleFilter, MixtureState,
+                           ParticleFlowGaussianParticleFilter, ParticleFlowGaussianSumParticleFilter)
 from .kalman import ExtendedKalmanFilter, KalmanFilter, UnscentedKalmanFilter, ekf_predict, kalman_update
 
 __all__ = [
@@ -20,6 +22,11 @@ __all__ = [
     "ParticleFlowFilter",
     "GaussianParticleFlowImportanceSampler",
     "GPFIS",
+    "GaussianParticleFilter",
+    "GaussianSumParticleFilter",
+    "ParticleFlowGaussianParticleFilter",
+    "ParticleFlowGaussianSumParticleFilter",
+    "MixtureState",
     "kalman_update",
     "ekf_predict",
 ]

@@ -93,6 +93,8 @@ class FilterResult:
         log_weights: ``(B, T, N)`` log-weights if particles were requested.
         n_repaired: ``(B,)`` steps in which non-finite particles/weights were repaired, for
             particle filters run with ``nonfinite="recover"`` (``None`` otherwise).
+        g_eff: ``(B, T)`` effective number of Gaussians ``1 / sum_j alpha_j^2`` of Gaussian-sum
+            filters (``None`` for others).
     """
 
     estimates: torch.Tensor
@@ -103,6 +105,7 @@ class FilterResult:
     particles: Optional[torch.Tensor] = None
     log_weights: Optional[torch.Tensor] = None
     n_repaired: Optional[torch.Tensor] = None
+    g_eff: Optional[torch.Tensor] = None
 
 
 class Filter(nn.Module):
@@ -216,7 +219,7 @@ class Filter(nn.Module):
         if self.uses_randomness:
             check_generator(generator, f"{self.name}: generator")
         state = self.init(mean, cov, n_particles, generator)
-        est, inc, ess, covs, parts, lws = [], [], [], [], [], []
+        est, inc, ess, covs, parts, lws, geff = [], [], [], [], [], [], []
         for t in range(observations.shape[1]):
             state = self.step(state, observations[:, t], generator)
             # one host synchronisation per time step, here, outside the step
@@ -231,6 +234,8 @@ class Filter(nn.Module):
             inc.append(state.log_evidence_increment)
             if state.ess is not None:
                 ess.append(state.ess)
+            if getattr(state, "g_eff", None) is not None:
+                geff.append(state.g_eff)
             if return_covariances and isinstance(state, GaussianState):
                 covs.append(state.cov)
             if return_particles and isinstance(state, ParticleState):
@@ -248,6 +253,7 @@ class Filter(nn.Module):
             particles=torch.stack(parts, 1) if parts else None,
             log_weights=torch.stack(lws, 1) if lws else None,
             n_repaired=getattr(state, "n_repaired", None),
+            g_eff=torch.stack(geff, 1) if geff else None,
         )
 
 
@@ -346,8 +352,9 @@ class ParticleFilterBase(Filter):
         return self.weight_and_resample(prop.particles, state.log_weights, log_inc, generator, state.step + 1,
                                         cov=prop.cov, fallback=prop.fallback, n_repaired=state.n_repaired)
 
-    def per_particle(self, fn, *tensors, pass_slice: bool = False):
-        """``fn(*tensors)`` evaluated on blocks of at most :attr:`particle_chunk` particles.
+    def per_particle(self, fn, *tensors, pass_slice: bool = False, chunk: Optional[int] = None):
+        """``fn(*tensors)`` evaluated on blocks of at most :attr:`particle_chunk` particles
+        (or ``chunk``, when given: a filter whose batch rows are groups of a trial's particles).
 
         Tensors whose dim 1 has the particle count N (taken from the first one) are sliced
         along it; others (``None``, per-trial or ``(B, 1, ...)`` shared ones) are passed whole.
@@ -356,7 +363,7 @@ class ParticleFilterBase(Filter):
         intermediates) without changing the result beyond round-off. ``pass_slice=True`` also
         passes the block's particle ``slice`` as the keyword ``particles``."""
         N = tensors[0].shape[1]
-        c = self.particle_chunk
+        c = self.particle_chunk if chunk is None else chunk
         kw = (lambda sl: {"particles": sl}) if pass_slice else (lambda sl: {})
         if not c or N <= c:
             return fn(*tensors, **kw(slice(0, N)))

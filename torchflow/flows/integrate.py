@@ -47,6 +47,7 @@ def integrate_flow(
     points: Union[None, str, LinearisationPoints] = None,
     gaussian_image: bool = False,
     measurement=None,
+    start: Optional[torch.Tensor] = None,
 ) -> FlowOutput:
     """Integrate a flow from lambda = 0 to 1 (see the module docstring).
 
@@ -81,6 +82,11 @@ def integrate_flow(
         noise: stochastic flows: optional ``noise(j, shape) -> (B, N, r)`` standard normals of
             pseudo-time step ``j`` (instead of drawing them from ``generator``); a filter that
             flows particles in blocks uses it to keep the draws those of the whole cloud.
+        start: where the points start, batched like ``prior.mean`` (default: ``prior.mean``
+            itself, as in EDH/LEDH, whose first linearisation point is the prior mean). The prior
+            mean ``eta_bar_0`` of the homotopy stays ``prior.mean``; a filter whose prior is
+            shared by a group of particles but whose points are per particle (PFGPF: the
+            component's moments, each particle linearised from its noise-free prediction) gives both.
 
     Returns:
         :class:`FlowOutput`; ``aux``, ``image_mean`` and ``image_cov`` are per point, without the
@@ -93,9 +99,18 @@ def integrate_flow(
         from .measurement import GaussianMeasurement
 
         measurement = GaussianMeasurement.from_model(model, z)
+    shape0 = prior.mean.shape
     prior, index, squeeze = strategy.arrange(prior, particles, index)
+    if start is not None:
+        if start.shape != shape0:
+            raise ValueError(f"start: expected the points' starting positions shaped like prior.mean "
+                             f"{tuple(shape0)}, got {tuple(start.shape)}")
+        if gaussian_image:
+            raise ValueError("start: the Gaussian image follows the prior mean (the points' own start); "
+                             "give either start or gaussian_image=True")
+        start = start.reshape(prior.mean.shape)
     out = _integrate(flow, measurement, particles, prior, index, strategy.per_particle, eps_all, lam_all,
-                     generator, proposal, noise, gaussian_image)
+                     generator, proposal, noise, gaussian_image, start)
     if squeeze:
         out.aux = out.aux.squeeze(-2)
         if gaussian_image:
@@ -104,13 +119,13 @@ def integrate_flow(
 
 
 def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all, lam_all, generator, proposal,
-               noise, gaussian_image) -> FlowOutput:
+               noise, gaussian_image, start=None) -> FlowOutput:
     """The loop of :func:`integrate_flow`: ``prior`` at ``(B, L, d)`` points, ``index (B, N)`` or
     ``None`` (points broadcast against the particles, or are the particles)."""
     B, N, d = particles.shape
     prior = prior.reduced(measurement.support)
     image = _Image(prior, gaussian_image)
-    aux, eta = prior.mean, particles  # (B, L, d), (B, N, d)
+    aux, eta = (prior.mean if start is None else start), particles  # (B, L, d), (B, N, d)
     L = aux.shape[-2]
     k = d if measurement.support is None else len(measurement.support)
     stochastic = flow.stochastic

@@ -1,0 +1,346 @@
+"""Gaussian and Gaussian-sum particle filters, with and without a particle flow (seed 001:
+Comandur, Li & Nannuru; Kotecha & Djuric 2003; MODELS.md §9).
+
+The belief is a mixture ``sum_j alpha^j N(mu^j, Sigma^j)`` of G components; no resampling anywhere.
+One step, for all trials and all G components in one batched call (components are rows of a
+``(B*G, N*, d)`` batch, never a Python loop):
+
+1. **Predict** (eqs 4, 5, 8): ``x_{t-1}^{ij} ~ N(mu^j, Sigma^j)`` (fresh draws), ``eta_0^{ij} =
+   g(x_{t-1}^{ij}, v^{ij})`` (the model's stochastic transition), and the component's Gaussian fit
+   ``mu_bar^j``, ``Sigma_bar^j`` (sample moments, divisor N* as printed, plus a jitter
+   ``jitter * tr(Sigma_bar^j) / d`` on the diagonal; the posterior covariances get the same
+   jitter, relative to their component's predictive, since weights on a few particles leave them
+   of low rank or zero).
+2. **Update** without flow (GPF/GSPF): ``x^{ij} = eta_0^{ij}``, ``w^{ij} = p(z | x^{ij})``. With a
+   flow (PFGPF/PFGSPF, eqs 9-14): the LEDH flow moves ``eta_0^{ij}`` with the *component's* prior
+   (``P = Sigma_bar^j``, ``eta_bar_0 = mu_bar^j``), each particle linearised at its own auxiliary
+   point, and ``log w = log N(eta_1; mu_bar, Sigma_bar) + log p(z | eta_1) + log|det| -
+   log N(eta_0; mu_bar, Sigma_bar)``.
+3. **Moments and mixture weights** (eqs 7, 15): within-component normalised weights give
+   ``mu^j``, ``Sigma^j``; ``alpha^j <- alpha^j sum_i w^{ij}`` normalised, all in log space with every
+   normalising constant kept, so components whose weights differ by 1e300 stay finite. The estimate
+   is ``sum_j alpha^j mu^j``; the effective number of Gaussians ``G_eff = 1 / sum_j (alpha^j)^2``
+   (eq 16) is reported per step.
+
+UNCONF choices of the seed are knobs (MODELS.md §9, defaults first):
+
+* ``linearize_at``: ``"auxiliary"``: each particle's point starts at its noise-free prediction
+  ``g(x_{t-1}^{ij}, 0)`` (the model's ``transition_mean``) and migrates with its own drift, so each
+  particle's map is affine in ``eta_0`` and ``log|det|`` is exact (as in PF-PF(LEDH));
+  ``"particle"``: the literal reading, linearised at the particle itself (the weight's
+  ``log|det|`` is then approximate).
+* ``redraw_eta0``: ``False`` (the seed's literal algorithm: ``eta_0`` comes from propagation but is
+  scored under the Gaussian fit); ``True`` draws ``eta_0 ~ N(mu_bar, Sigma_bar)`` afresh after the
+  fit, which makes the weight an exact importance weight for the fitted predictive.
+* ``init``: ``"prior"`` (every component is the filter prior, ``alpha_0 = 1/G``) or ``"spread"``
+  (``mu_0^j ~ N(m_0, P_0)``, ``Sigma_0^j = P_0``).
+
+``log_evidence`` is the importance-sampling estimate of ``p(z_t | z_{1:t-1})`` under the fitted
+Gaussian-sum predictive, ``log sum_j alpha^j (1/N*) sum_i w^{ij}``: an approximation (the fit is not
+the model's predictive), so it is not scored against a reference (``estimates_evidence = False``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+
+from .. import linalg
+from .._checks import check_count
+from ..flows import FlowPrior, ParticleFlow, integrate_flow
+from ..flows.points import ParticlePoints
+from ..schedules import ExponentialSchedule, LambdaSchedule
+from .base import ParticleFilterBase
+
+LINEARIZE_AT = ("auxiliary", "particle")
+INITS = ("prior", "spread")
+
+
+@dataclass
+class MixtureState:
+    """Belief of a Gaussian-sum filter after a step.
+
+    Attributes:
+        log_alpha: ``(B, G)`` normalised log mixture weights.
+        means: ``(B, G, d)`` component means.
+        covs: ``(B, G, d, d)`` component covariances.
+        estimate: ``(B, d)`` mixture mean ``sum_j alpha^j mu^j``.
+        ess: ``(B,)`` effective sample size of the step's ``G N*`` particles under their combined
+            weights ``alpha_{t-1}^j w^{ij}`` (``N*`` per component at step 0).
+        g_eff: ``(B,)`` effective number of Gaussians ``1 / sum_j (alpha^j)^2``.
+        log_evidence_increment: ``(B,)``.
+        n_repaired: ``(B,)`` steps in which non-finite particles or weights were repaired.
+        step: observations processed.
+        invalid: ``(B,)`` trials with non-finite particles or weights (``nonfinite="raise"``).
+    """
+
+    log_alpha: torch.Tensor
+    means: torch.Tensor
+    covs: torch.Tensor
+    estimate: torch.Tensor
+    ess: torch.Tensor
+    g_eff: torch.Tensor
+    log_evidence_increment: torch.Tensor
+    n_repaired: torch.Tensor
+    step: int = 0
+    invalid: Optional[torch.Tensor] = None
+
+
+def mixture_update(log_alpha: torch.Tensor, log_w: torch.Tensor):
+    """Mixture weights after a step, in log space.
+
+    Args:
+        log_alpha: ``(B, G)`` normalised log weights before the step.
+        log_w: ``(B, G, N*)`` unnormalised log importance weights on one scale across components.
+
+    Returns:
+        ``(log_alpha_new (B, G), log_evidence_increment (B,), g_eff (B,))`` with
+        ``alpha_new^j ∝ alpha^j (1/N*) sum_i w^{ij}`` and the increment ``log sum_j`` of it. A
+        component with no positive weight gets ``log_alpha = -inf``; a trial with none keeps
+        ``log_alpha`` (and its increment is ``-inf``).
+    """
+    n = log_w.shape[-1]
+    log_comp = log_alpha + torch.logsumexp(log_w, -1) - math.log(n)  # (B, G)
+    inc = torch.logsumexp(log_comp, -1)
+    dead = ~torch.isfinite(inc)
+    new = torch.where(dead.unsqueeze(-1), log_alpha, log_comp - inc.unsqueeze(-1))
+    g_eff = 1.0 / torch.exp(2 * new).sum(-1)
+    return new, inc.masked_fill(dead, float("-inf")), g_eff
+
+
+def _factor(S: torch.Tensor, jitter: float) -> torch.Tensor:
+    """Cholesky factor of ``S + jitter tr(S)/d I`` (``S (..., d, d)``)."""
+    d = S.shape[-1]
+    scale = S.diagonal(dim1=-2, dim2=-1).mean(-1)
+    eye = torch.eye(d, dtype=S.dtype, device=S.device)
+    return linalg.safe_cholesky(S + (jitter * scale)[..., None, None] * eye)
+
+
+class GaussianSumParticleFilter(ParticleFilterBase):
+    """Gaussian-sum particle filter, optionally with the LEDH flow as each component's proposal
+    (GSPF, and PFGSPF with ``flow``; G = 1 gives GPF and PFGPF). See the module docstring.
+
+    Args:
+        model: state-space model (its stochastic transition ``sample_transition`` and measurement
+            log-likelihood; with a flow, its Gaussian measurement term).
+        n_components: G >= 1.
+        particles_per_component: N* per component, at least ``d + 1`` (each component fits a
+            ``d x d`` covariance from them; fewer would leave it singular, which the jitter would
+            only mask). The total is ``n_particles = G N*``.
+        flow: ``None`` (no flow: GPF/GSPF), ``"ledh"`` or a deterministic
+            :class:`~torchflow.flows.ParticleFlow` with per-particle points (PFGPF/PFGSPF).
+        schedule: lambda schedule of the flow (default exponential, 29 steps, ratio 1.2; §1).
+        linearize_at: ``"auxiliary"`` (default) or ``"particle"``; see the module docstring.
+        redraw_eta0: redraw ``eta_0`` from the fitted predictive (default False, the seed's).
+        init: ``"prior"`` (default) or ``"spread"``.
+        jitter: relative diagonal jitter of every fitted covariance (default 1e-6, MODELS.md §9).
+        nonfinite: ``"recover"`` (default): particles with a non-finite position or weight get
+            weight zero; a component left with none keeps its predicted moments and gets
+            ``alpha = 0``; a trial left with none keeps its mixture weights. ``"raise"``: the
+            trial is reported by :class:`~torchflow._checks.NonFiniteError`.
+        particle_chunk: flow at most this many of a trial's particles per pass (memory).
+    """
+
+    random_stream = "gaussian_sum"
+    estimates_evidence = False
+
+    def __init__(self, model, *, n_components: int = 1, particles_per_component: int = 500, flow=None,
+                 schedule: Optional[LambdaSchedule] = None, linearize_at: str = "auxiliary",
+                 redraw_eta0: bool = False, init: str = "prior", jitter: float = 1e-6,
+                 nonfinite: str = "recover", particle_chunk: Optional[int] = None, validate: bool = True,
+                 name: Optional[str] = None):
+        G = check_count("n_components", n_components)
+        n = check_count("particles_per_component", particles_per_component)
+        d = model.state_dim
+        if n < d + 1:
+            raise ValueError(f"particles_per_component: expected at least d + 1 = {d + 1} to fit a {d} x {d} "
+                             f"covariance per component, got {n}")
+        super().__init__(model, n_particles=G * n, nonfinite=nonfinite, particle_chunk=particle_chunk,
+                         validate=validate, name=name)
+        if linearize_at not in LINEARIZE_AT:
+            raise ValueError(f"linearize_at: expected one of {LINEARIZE_AT}, got {linearize_at!r}")
+        if init not in INITS:
+            raise ValueError(f"init: expected one of {INITS}, got {init!r}")
+        if not isinstance(redraw_eta0, bool):
+            raise ValueError(f"redraw_eta0: expected True or False, got {redraw_eta0!r}")
+        if isinstance(jitter, bool) or not isinstance(jitter, (int, float)) or not 0 <= jitter < 1:
+            raise ValueError(f"jitter: expected a relative jitter in [0, 1), got {jitter!r}")
+        self.n_components, self.particles_per_component = G, n
+        self.flow = _gs_flow(flow)
+        self.schedule = schedule or ExponentialSchedule()
+        self.linearize_at, self.redraw_eta0, self.init_mode, self.jitter = linearize_at, redraw_eta0, init, float(jitter)
+
+    def extra_repr(self) -> str:
+        return (f"n_components={self.n_components}, particles_per_component={self.particles_per_component}, "
+                f"linearize_at={self.linearize_at!r}, redraw_eta0={self.redraw_eta0}, init={self.init_mode!r}")
+
+    def bytes_per_trial(self, n_particles=None):
+        G, n = self.n_components, self.particles_per_component
+        d, m = self.model.state_dim, self.model.obs_dim
+        per_particle = 8 * d + 3 * m + 8
+        if self.flow is not None:  # per-particle LEDH algebra: ~12 d x d and a few m x d matrices
+            per_particle += 12 * d * d + 4 * m * d
+        return 8 * G * (n * per_particle + 4 * d * d) + G * n * self.model.bytes_per_point()
+
+    def preferred_chunk_trials(self, n_particles=None):
+        if self.flow is None:
+            return super().preferred_chunk_trials(n_particles)
+        return ParticlePoints().preferred_chunk_trials(self.n_particles)
+
+    # ---- contract ------------------------------------------------------------------------------
+    def init(self, mean, cov, n_particles=None, generator=None) -> MixtureState:
+        if n_particles is not None and int(n_particles) != self.n_particles:
+            raise ValueError(f"n_particles: a Gaussian-sum filter's total is n_components x particles_per_component "
+                             f"= {self.n_particles}; set those instead (got n_particles={n_particles})")
+        B, d = mean.shape
+        G = self.n_components
+        if self.init_mode == "spread":
+            means = linalg.sample_mvn(mean, linalg.safe_cholesky(cov), (G,), generator)  # (B, G, d)
+        else:
+            means = mean.unsqueeze(1).expand(B, G, d)
+        covs = cov.unsqueeze(1).expand(B, G, d, d)
+        log_alpha = torch.full((B, G), -math.log(G), dtype=mean.dtype, device=mean.device)
+        zero = torch.zeros(B, dtype=mean.dtype, device=mean.device)
+        return MixtureState(log_alpha, means, covs, (log_alpha.exp().unsqueeze(-1) * means).sum(1),
+                            torch.full_like(zero, float(self.particles_per_component)), torch.full_like(zero, float(G)),
+                            zero, torch.zeros(B, dtype=torch.long, device=mean.device))
+
+    def step(self, state: MixtureState, z: torch.Tensor, generator=None) -> MixtureState:
+        draws = self.draw(state, generator)
+        return self.update(state, z, *draws)
+
+    def draw(self, state: MixtureState, generator):
+        """The step's random numbers turned into particles: ``x_prev (B, G, N*, d)`` drawn from the
+        components, ``eta0 (B, G, N*, d)`` propagated (or redrawn from the fit, ``redraw_eta0``),
+        and the fitted predictive ``mu_bar (B, G, d)``, ``L_bar (B, G, d, d)``."""
+        B, G, d = state.means.shape
+        n = self.particles_per_component
+        L_post = linalg.safe_cholesky(state.covs)
+        xi = linalg.standard_normal((B, G, n, d), dtype=state.means.dtype, device=state.means.device,
+                                    generator=generator)
+        x_prev = state.means.unsqueeze(2) + xi @ L_post.transpose(-1, -2)
+        eta0 = self.model.sample_transition(x_prev.reshape(B, G * n, d), generator).reshape(B, G, n, d)
+        mu_bar = eta0.mean(2)
+        dev = eta0 - mu_bar.unsqueeze(2)
+        L_bar = _factor(linalg.symmetrize(dev.transpose(-1, -2) @ dev / n), self.jitter)
+        if self.redraw_eta0:
+            xi = linalg.standard_normal((B, G, n, d), dtype=eta0.dtype, device=eta0.device, generator=generator)
+            eta0 = mu_bar.unsqueeze(2) + xi @ L_bar.transpose(-1, -2)
+        return x_prev, eta0, mu_bar, L_bar
+
+    def update(self, state: MixtureState, z: torch.Tensor, x_prev, eta0, mu_bar, L_bar) -> MixtureState:
+        """Weights, component moments and mixture weights from the drawn particles (:meth:`draw`);
+        separated from the draws so that tests can feed the bank and single components the same
+        particles."""
+        model = self.model
+        B, G, n, d = eta0.shape
+        flat = (B * G, n, d)
+        z1 = z.unsqueeze(1)
+        rows = self._row_chunk()
+
+        def loglik(xs):  # on the trial's G N* particles (the model's batch is the trials)
+            return model.measurement_log_prob(z1, xs)
+
+        if self.flow is None:
+            x = eta0
+            log_w = self.per_particle(loglik, eta0.reshape(B, G * n, d)).reshape(B, G, n)
+        else:
+            zz = z.repeat_interleave(G, 0)  # (B*G, m): each component row flows with its trial's observation
+            mb = mu_bar.reshape(B * G, 1, d)
+            Lb = L_bar.reshape(B * G, 1, d, d)
+            start = eta0 if self.linearize_at == "particle" else model.transition_mean(x_prev)
+
+            def block(e0, s0):
+                prior = FlowPrior(mb.expand(-1, e0.shape[1], -1), Lb)
+                out = integrate_flow(self.flow, model, e0, zz, prior, self.schedule, points="particle", start=s0)
+                x1 = out.particles
+                return x1, linalg.mvn_log_prob(x1, mb, Lb) + out.log_det - linalg.mvn_log_prob(e0, mb, Lb)
+
+            x, log_w = self.per_particle(block, eta0.reshape(flat), start.reshape(flat), chunk=rows)
+            x = x.reshape(B, G, n, d)
+            log_w = log_w.reshape(B, G, n) + self.per_particle(loglik, x.reshape(B, G * n, d)).reshape(B, G, n)
+        # non-finite particles or weights: weight zero (recover) or flagged (raise)
+        bad = torch.isnan(log_w) | (log_w == float("inf")) | ~torch.isfinite(x.sum(-1))
+        log_w = log_w.masked_fill(bad, float("-inf"))
+        x = torch.where(bad.unsqueeze(-1), eta0, x)
+        log_alpha, inc, g_eff = mixture_update(state.log_alpha, log_w)
+        dead_comp = ~torch.isfinite(torch.logsumexp(log_w, -1))  # (B, G)
+        wn = torch.softmax(log_w.masked_fill(dead_comp.unsqueeze(-1), 0.0), -1)  # dead: any finite weights
+        means = torch.einsum("bgn,bgnd->bgd", wn, x)
+        diff = x - means.unsqueeze(2)
+        covs = linalg.symmetrize(torch.einsum("bgn,bgni,bgnj->bgij", wn, diff, diff))
+        # the weights may sit on a few particles (covs of low rank, or zero): jitter relative to the
+        # component's predictive scale keeps every stored covariance positive definite
+        S_bar = L_bar @ L_bar.transpose(-1, -2)
+        eye = torch.eye(d, dtype=covs.dtype, device=covs.device)
+        covs = covs + (self.jitter * S_bar.diagonal(dim1=-2, dim2=-1).mean(-1))[..., None, None] * eye
+        # a component with no positive weight keeps its fitted predictive (its alpha is zero)
+        means = torch.where(dead_comp.unsqueeze(-1), mu_bar, means)
+        covs = torch.where(dead_comp[..., None, None], S_bar, covs)
+        alpha = log_alpha.exp()
+        estimate = torch.einsum("bg,bgd->bd", alpha, means)
+        lv = (state.log_alpha.unsqueeze(-1) + log_w).reshape(B, G * n)
+        ess = 1.0 / torch.softmax(lv, -1).pow(2).sum(-1)
+        bad_trial = bad.flatten(1).any(-1)
+        dead_trial = ~torch.isfinite(inc)
+        repaired = state.n_repaired
+        invalid = None
+        if self.nonfinite == "recover":
+            repaired = repaired + (bad_trial | dead_trial).long()
+        else:
+            invalid = bad_trial | dead_trial
+        return MixtureState(log_alpha, means, covs, estimate, ess, g_eff, inc, repaired, state.step + 1, invalid)
+
+    def _row_chunk(self) -> Optional[int]:
+        """Particles per component row per pass (the filter's ``particle_chunk`` is per trial)."""
+        c = self.particle_chunk
+        return None if not c else max(1, c // self.n_components)
+
+
+def _gs_flow(flow) -> Optional[ParticleFlow]:
+    if flow is None:
+        return None
+    from .pfpf import _flow
+
+    f = _flow(flow)
+    if f.stochastic:
+        raise ValueError(f"flow: the Gaussian-sum filters weigh with the flow's log|det|, so the flow must be "
+                         f"deterministic (EDH/LEDH family), got {type(f).__name__}")
+    return f
+
+
+class GaussianParticleFilter(GaussianSumParticleFilter):
+    """Gaussian particle filter (Kotecha & Djuric 2003): one Gaussian component, proposal = the
+    fitted predictive. A :class:`GaussianSumParticleFilter` with ``n_components = 1``."""
+
+    def __init__(self, model, *, n_particles: int = 500, **kwargs):
+        kwargs.setdefault("particles_per_component", n_particles)
+        super().__init__(model, n_components=1, **kwargs)
+
+
+class ParticleFlowGaussianParticleFilter(GaussianParticleFilter):
+    """PFGPF (Comandur, Li & Nannuru): the Gaussian particle filter with the LEDH flow as its
+    proposal (``flow="ledh"`` by default)."""
+
+    def __init__(self, model, *, flow="ledh", **kwargs):
+        super().__init__(model, flow=flow, **kwargs)
+
+
+class ParticleFlowGaussianSumParticleFilter(GaussianSumParticleFilter):
+    """PFGSPF (Comandur, Li & Nannuru): a bank of G PFGPFs with mixture weights
+    (``flow="ledh"`` by default)."""
+
+    def __init__(self, model, *, flow="ledh", **kwargs):
+        super().__init__(model, flow=flow, **kwargs)
+
+
+GPF = GaussianParticleFilter
+GSPF = GaussianSumParticleFilter
+PFGPF = ParticleFlowGaussianParticleFilter
+PFGSPF = ParticleFlowGaussianSumParticleFilter
+
+__all__ = ["MixtureState", "mixture_update", "GaussianSumParticleFilter", "GaussianParticleFilter",
+           "ParticleFlowGaussianParticleFilter", "ParticleFlowGaussianSumParticleFilter", "GPF", "GSPF", "PFGPF",
+           "PFGSPF"]
