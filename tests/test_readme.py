@@ -30,6 +30,7 @@ SHRINK_PY = [
     ("GromovFlow(), n_particles=500", "GromovFlow(), n_particles=30"),
     ("n_clusters=100, alpha=0.25, n_particles=500", "n_clusters=5, alpha=0.25, n_particles=30"),
     ("GPFIS(model, n_particles=100)", "GPFIS(model, n_particles=10)"),
+    ("n_components=3, particles_per_component=200", "n_components=2, particles_per_component=20"),
 ]
 #: command-line sizes: replaced where the command sets them, appended where it does not
 SHRINK_CLI = {"trials": "2", "steps": "2", "n_particles": "20"}

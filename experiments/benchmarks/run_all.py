@@ -17,7 +17,9 @@ Sections (each is also a script of its own in this folder, with its own options 
 * ``flops`` (``bench_flops.py``): PF-PF(LEDH) achieved GFLOP/s vs measured matrix-product throughput;
 * ``memory`` (``bench_memory.py``): BPF with 1e6 particles and PF-PF(LEDH) with 1e4 under a memory budget;
 * ``float32`` (``bench_float32.py``): float32 accuracy against float64 on the LG and acoustic tables;
-* ``scaling`` (``bench_scaling.py``): time per trial-step against N, d and B (plot).
+* ``scaling`` (``bench_scaling.py``): time per trial-step against N, d and B (plot);
+* ``gaussian_sum`` (``bench_gaussian_sum.py``): PFGSPF (G = 5 x 200) against PF-PF(LEDH), GSPF and BPF
+  with the same total particles on the skewed-t model, d = 144 (a few minutes).
 
 Writes ``experiments/benchmarks/results_all.md`` (``results_all_quick.md`` with ``--quick``): a
 headline table of every goal ratio, then each section's own report; each section also writes its
@@ -41,7 +43,7 @@ for p in (str(_REPO), str(_HERE)):
 
 from _common import write_results  # noqa: E402
 
-SECTIONS = ["foundation", "acoustic", "pfpf", "flops", "memory", "float32", "scaling", "streams"]
+SECTIONS = ["foundation", "acoustic", "pfpf", "flops", "memory", "float32", "scaling", "streams", "gaussian_sum"]
 
 
 def _headline(results: dict) -> list:

@@ -74,3 +74,12 @@ def test_run_all_merge_reassembles_saved_sections(tmp_path):
     assert not res["failures"] and set(res["results"]) == set(saved)
     text = out.read_text()
     assert "| Kalman filter vs filterpy |" in text and "## Foundation benchmarks" in text
+
+
+def test_gaussian_sum_bench_micro():
+    import bench_gaussian_sum
+
+    res = bench_gaussian_sum.run(["--quick"])
+    assert [r["key"] for r in res["rows"]] == ["pfgspf", "pfpf_ledh", "gspf", "bpf"]
+    assert all(r["s_per_trial_step"] > 0 and r["particles"] == 40 for r in res["rows"])
+    assert res["rows"][1]["ratio_to_pfpf_ledh"] == 1.0 and "| PFGSPF (20 x 2) | 40 |" in res["markdown"]

@@ -32,8 +32,8 @@ def _run_states(f, obs, mean, cov, gen):
 
 
 @pytest.mark.parametrize("make", [
-    lambda m: GaussianParticleFilter(m, n_particles=4000),
-    lambda m: GaussianParticleFilter(m, n_particles=4000, redraw_eta0=True),
+    lambda m: GaussianParticleFilter(m, n_particles=40000),
+    lambda m: GaussianParticleFilter(m, n_particles=40000, redraw_eta0=True),
     lambda m: ParticleFlowGaussianParticleFilter(m, particles_per_component=4000),
     lambda m: ParticleFlowGaussianParticleFilter(m, particles_per_component=4000, linearize_at="particle"),
 ], ids=["gpf", "gpf-redraw", "pfgpf", "pfgpf-particle"])

@@ -76,7 +76,7 @@ def test_poisson_likelihood_and_declared_noise():
     lam = torch.exp(x / 3)
     ref = stats.poisson.logpmf(z.numpy(), lam.numpy()).sum()
     assert abs(float(model.measurement_log_prob(z, x)) - ref) < 1e-12
-    assert model.measurement_noise == "state_dependent"
+    assert model.measurement_noise == "state_dependent_diagonal"
     torch.testing.assert_close(model.measurement_cov(x), torch.diag_embed(lam))
     with pytest.raises(ValueError, match="R depends on the state"):
         model.measurement_cov()
@@ -102,3 +102,20 @@ def test_filters_run_on_the_skewed_t_model():
         assert torch.isfinite(res.estimates).all() and torch.isfinite(res.log_evidence).all(), name
         mse[name] = float((res.estimates - traj.states[:, 1:]).pow(2).mean())
     assert mse["pfpf"] < mse["bpf"], mse
+
+
+def test_declared_diagonal_noise_whitens_like_the_general_path():
+    """``state_dependent_diagonal`` whitens by a division; it must equal the triangular solve of a
+    general state-dependent R at the same points."""
+    from torchflow.flows.measurement import GaussianMeasurement
+
+    model = SkewedTPoisson(d=9)
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(2, 5, 9, generator=g, dtype=torch.float64)
+    z = torch.poisson(torch.ones(2, 9, dtype=torch.float64) * 2, generator=g)
+    fast = GaussianMeasurement.from_model(model, z)
+    assert fast.noise == "diagonal"
+    slow = GaussianMeasurement(z, model.linearize_measurement, model.measurement_scale_tril, "dense")
+    a, b = fast.at(x), slow.at(x)
+    torch.testing.assert_close(a.W, b.W, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(a.y, b.y, rtol=1e-12, atol=1e-12)

@@ -66,7 +66,9 @@ class GaussianMeasurement:
     def from_model(cls, model, z: torch.Tensor) -> "GaussianMeasurement":
         """The model's own measurement term (its declared noise structure and support)."""
         noise = model.measurement_noise
-        if noise not in ("scalar", "diagonal", "dense"):  # state-dependent R: general whitening
+        if noise == "state_dependent_diagonal":  # evaluated per point; whitening is a division
+            noise = "diagonal"
+        elif noise not in ("scalar", "diagonal", "dense"):  # state-dependent R: general whitening
             noise = "dense"
         linear = model.linear_measurement
         return cls(z, model.linearize_measurement, model.measurement_scale_tril, noise,

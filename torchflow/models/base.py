@@ -51,7 +51,9 @@ class StateSpaceModel(nn.Module):
     linear_measurement: bool = False
     #: structure of the measurement noise R, declared by the model and never detected at run time:
     #: ``"scalar"`` (``R = sigma^2 I``, constant), ``"diagonal"`` (constant), ``"dense"`` (constant)
-    #: or ``"state_dependent"`` (``measurement_cov(x)`` varies with x). Flows whiten with it.
+    #: ``"state_dependent"`` (``measurement_cov(x)`` varies with x) or ``"state_dependent_diagonal"``
+    #: (varies with x and is diagonal: flows whiten by a division instead of a triangular solve
+    #: per point). Flows whiten with it.
     measurement_noise: str = "dense"
     #: ``c`` when the (constant) transition matrix is exactly ``c I`` (declared; ``None`` otherwise)
     transition_matrix_scale: Optional[float] = None

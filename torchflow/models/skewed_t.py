@@ -16,7 +16,7 @@ with ``log K`` from :func:`torchflow.special.log_bessel_k` (order 75.5 at d = 14
 and Gaussian proposals use its Gaussian fit (§14e): mean ``alpha x + E[W] gamma`` and covariance
 ``Q_st = E[W] Sigma + Var[W] gamma gamma^T``. The measurement noise is state dependent
 (``R = diag(m1 exp(m2 x))``, the Poisson variance at the linearisation point), declared as
-``measurement_noise = "state_dependent"``.
+``measurement_noise = "state_dependent_diagonal"``.
 
 ``nu`` must be an integer > 4 (so that Var[W] exists): ``1/W`` is then drawn exactly as a
 chi-square over nu, ``sum_j eta_j^2 / nu`` with standard normals, from the caller's generator (or
@@ -52,7 +52,7 @@ class SkewedTPoisson(StateSpaceModel):
 
     linear_dynamics = True
     linear_measurement = False
-    measurement_noise = "state_dependent"
+    measurement_noise = "state_dependent_diagonal"
 
     def __init__(self, *, d: int = 144, alpha: float = 0.9, gamma: float = 0.3, nu: int = 7,
                  alpha0: float = 3.0, alpha1: float = 0.01, beta: float = 20.0, m1: float = 1.0,
