@@ -1,10 +1,15 @@
 """Collect a Hydra sweep: one table of every job's ``summary.csv`` beside the job's overrides.
 
     python experiments/collect.py multirun/<label>/<time> [--columns omat,ospa,ess,sec_per_step]
+    python experiments/collect.py multirun/<label>/<time> --plot filter.pfgspf.n_components:g_eff
 
 Prints a markdown table (columns: the overrides that vary between jobs, then the summary columns)
 and writes ``sweep_summary.csv`` into the sweep directory. Jobs that failed
 or are still running (no ``summary.csv``) are listed, not dropped silently.
+
+``--plot X:Y[:GROUP]`` also draws Y against X (columns of that table; X numeric), one line per value
+of GROUP (default: every other varying override and the filter), with error bars of one standard
+error over the job's trials (from its ``per_trial.csv``), into ``<sweep_dir>/<Y>_vs_<X>.png``.
 """
 from __future__ import annotations
 
@@ -15,7 +20,7 @@ from pathlib import Path
 
 import yaml
 
-DEFAULT_COLUMNS = ["mse", "omat", "ospa", "ess", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step"]
+DEFAULT_COLUMNS = ["mse", "omat", "ospa", "ess", "g_eff", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step"]
 
 
 def collect(sweep_dir: Path, columns=None):
@@ -32,14 +37,74 @@ def collect(sweep_dir: Path, columns=None):
         if not summary.exists():
             missing.append(job.name)
             continue
+        se = _trial_standard_errors(job / "per_trial.csv")
         with open(summary) as fh:
             for r in csv.DictReader(fh):
-                rows.append({"job": job.name, **ov, **r})
+                rows.append({"job": job.name, **ov, **r,
+                             **{f"{k}_se": v for k, v in se.get(r.get("filter"), {}).items()}})
     # overrides shared by every job describe the sweep, not a row: keep only those that vary
     keys = [k for k in keys if len({r.get(k) for r in rows}) > 1]
     cols = ["job", *keys, "filter", "n_particles", "trials", *(columns or DEFAULT_COLUMNS)]
     cols = list(dict.fromkeys(c for c in cols if any(c in r for r in rows)))
     return rows, cols, missing
+
+
+def _trial_standard_errors(path: Path) -> dict:
+    """``{filter: {column: standard error of the mean over trials}}`` from a job's ``per_trial.csv``."""
+    if not path.exists():
+        return {}
+    per = {}
+    with open(path) as fh:
+        for r in csv.DictReader(fh):
+            for k, v in r.items():
+                try:
+                    per.setdefault(r["filter"], {}).setdefault(k, []).append(float(v))
+                except (TypeError, ValueError):
+                    pass
+    out = {}
+    for f, cols in per.items():
+        for k, xs in cols.items():
+            n = len(xs)
+            if n > 1 and k != "trial":
+                m = sum(xs) / n
+                out.setdefault(f, {})[k] = (sum((x - m) ** 2 for x in xs) / (n - 1) / n) ** 0.5
+    return out
+
+
+def plot(rows, keys, spec: str, out_dir: Path) -> Path:
+    """Draw ``Y`` against ``X`` (``spec = "X:Y[:GROUP]"``), one line per group, +-1 SE bars."""
+    parts = spec.split(":")
+    if len(parts) not in (2, 3):
+        raise ValueError(f"--plot: expected X:Y or X:Y:GROUP, got {spec!r}")
+    x, y = parts[:2]
+    for name in (x, y):
+        if not any(name in r for r in rows):
+            raise ValueError(f"--plot: no column {name!r}; columns: {sorted({k for r in rows for k in r})}")
+    group = [parts[2]] if len(parts) == 3 else [k for k in [*keys, "filter"] if k != x]
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    lines = {}
+    for r in rows:
+        if r.get(x) in (None, "") or r.get(y) in (None, ""):
+            continue
+        label = ", ".join(f"{r.get(g)}" for g in group)
+        lines.setdefault(label, []).append((float(r[x]), float(r[y]), float(r.get(f"{y}_se") or 0.0)))
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for label, pts in lines.items():
+        pts.sort()
+        ax.errorbar([p[0] for p in pts], [p[1] for p in pts], yerr=[p[2] for p in pts], marker="o", capsize=3,
+                    label=label)
+    ax.set_xlabel(x)
+    ax.set_ylabel(y + " (mean +- 1 SE over trials)")
+    ax.legend(fontsize=8, title=", ".join(group))
+    fig.tight_layout()
+    path = out_dir / f"{y}_vs_{x.split('.')[-1]}.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def _fmt(v):
@@ -54,6 +119,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sweep_dir", type=Path)
     ap.add_argument("--columns", default=None, help="comma-separated summary columns")
+    ap.add_argument("--plot", default=None, help="X:Y[:GROUP]: draw Y against X (needs matplotlib)")
     args = ap.parse_args(argv)
     if not args.sweep_dir.is_dir():
         print(f"error: sweep_dir: expected a sweep folder (multirun/<label>/<time>), got {args.sweep_dir}, "
@@ -78,6 +144,14 @@ def main(argv=None):
         w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore")
         w.writeheader()
         w.writerows(rows)
+    if args.plot:
+        varying = [c for c in cols if c not in ("job", "filter", "n_particles", "trials") and c not in
+                   (*DEFAULT_COLUMNS, *(args.columns.split(",") if args.columns else []))]
+        try:
+            print(f"wrote {plot(rows, varying, args.plot, args.sweep_dir)}")
+        except ValueError as e:
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(2)
     if missing:
         print(f"jobs without summary.csv (failed or running): {', '.join(missing)}", file=sys.stderr)
 

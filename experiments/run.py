@@ -168,6 +168,12 @@ def row_label(key: str, f) -> str:
     ``flow@filter.pfpf_ledh.flow=edh`` -> ``pfpf_ledh[flow=edh]``; with
     ``filter.pfpf_ledh.points=global`` -> ``pfpf_ledh[points=global]``)."""
     flow = getattr(f, "flow", None)
+    if hasattr(f, "n_components"):  # Gaussian-sum filters: the seed's N* x G label, and a flow the key does not say
+        tags = [f"{f.particles_per_component}x{f.n_components}"]
+        fl = None if flow is None else flow_label(flow)
+        if fl != ("ledh" if key.startswith("pf") else None):
+            tags.append(f"flow={fl}")
+        return f"{key}[{','.join(tags)}]"
     if flow is None:
         return key
     fl = flow_label(flow)

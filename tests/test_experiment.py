@@ -136,6 +136,21 @@ def test_cli_multirun_sweep_writes_one_folder_per_job(tmp_path):
     with open(tmp_path / "sweep" / "sweep_summary.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert [(r["job"], r["seed"], r["filter"]) for r in rows] == [("0", "0", "kf"), ("1", "1", "kf")]
+    # --plot: Y against X with standard-error bars from each job's per-trial file; a wrong column is refused
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from collect import collect
+
+    got, _, _ = collect(tmp_path / "sweep")
+    per = list(csv.DictReader(open(tmp_path / "sweep" / "0" / "per_trial.csv")))
+    mses = [float(r["mse"]) for r in per]
+    se = (sum((m - sum(mses) / 2) ** 2 for m in mses) / 1 / 2) ** 0.5
+    assert abs(float(got[0]["mse_se"]) - se) < 1e-12
+    cmd = [sys.executable, str(ROOT / "experiments" / "collect.py"), str(tmp_path / "sweep")]
+    out = subprocess.run(cmd + ["--plot", "seed:mse"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert (tmp_path / "sweep" / "mse_vs_seed.png").exists()
+    out = subprocess.run(cmd + ["--plot", "seed:nope"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "no column 'nope'" in out.stderr
 
 
 def _run_module():
@@ -252,6 +267,19 @@ def test_row_label_names_overridden_points():
         == "pfpf_edh[flow=ledh]"
     assert run.row_label("pfpf_edh", ParticleFlowParticleFilter(model, flow="edh", points="clustered")) \
         == "pfpf_edh[points=clustered]"
+
+
+def test_row_label_of_gaussian_sum_filters_says_n_star_x_g_and_an_unnamed_flow():
+    run = _run_module()
+    from torchflow.filters import GaussianSumParticleFilter, ParticleFlowGaussianSumParticleFilter
+
+    model = SensorNetwork(d=4)
+    gs = GaussianSumParticleFilter
+    assert run.row_label("pfgspf", ParticleFlowGaussianSumParticleFilter(model, n_components=3,
+                                                                         particles_per_component=50)) == "pfgspf[50x3]"
+    assert run.row_label("gspf", gs(model, n_components=2, particles_per_component=10)) == "gspf[10x2]"
+    assert run.row_label("gspf", gs(model, particles_per_component=10, flow="ledh")) == "gspf[10x1,flow=ledh]"
+    assert run.row_label("pfgspf", gs(model, particles_per_component=10, flow="edh")) == "pfgspf[10x1,flow=edh]"
 
 
 def test_trial_stats_quartiles_and_paired_ratios(tmp_path):
