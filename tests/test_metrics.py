@@ -229,3 +229,59 @@ def test_error_message_contains_shapes():
     with pytest.raises(ValueError) as exc:
         mse(torch.zeros(4, 10, 2), torch.zeros(4, 10, 3))
     assert str(exc.value) == "estimates: expected (B, T, d) matching states (4, 10, 3), got (4, 10, 2)"
+
+
+# ---- OSPA over sets of varying cardinality (masks) --------------------------------------------
+def _ospa_reference(x, y, c, p):
+    """Schuhmacher et al.'s OSPA of two lists of points by scipy's assignment (Stone Soup's
+    definition: the cut-off distance to the power p, mean over max(|x|, |y|), then the p-th root)."""
+    from scipy.optimize import linear_sum_assignment
+    import numpy
+
+    m, n = len(x), len(y)
+    if m == 0 and n == 0:
+        return 0.0
+    if m == 0 or n == 0:
+        return c
+    d = numpy.minimum(numpy.linalg.norm(numpy.asarray(x)[:, None] - numpy.asarray(y)[None], axis=-1), c) ** p
+    r, col = linear_sum_assignment(d)
+    return ((d[r, col].sum() + c**p * abs(m - n)) / max(m, n)) ** (1 / p)
+
+
+def test_ospa_masks_hand_computed():
+    # X = {(0,0)}, Y = {(3,4), (100,0)}: match (0,0)-(3,4) (5), the other Y is missed: (5 + 10) / 2 = 7.5
+    X = torch.tensor([[[[0.0, 0.0], [9.0, 9.0]]]], dtype=torch.float64)
+    Y = torch.tensor([[[[3.0, 4.0], [100.0, 0.0], [7.0, 7.0]]]], dtype=torch.float64)
+    xm = torch.tensor([[[True, False]]])
+    ym = torch.tensor([[[True, True, False]]])
+    assert abs(float(metrics.ospa(X, Y, cutoff=10.0, order=1.0, X_mask=xm, Y_mask=ym)) - 7.5) < 1e-12
+    # order 2: sqrt((25 + 100) / 2)
+    assert abs(float(metrics.ospa(X, Y, 10.0, 2.0, xm, ym)) - math.sqrt(62.5)) < 1e-12
+    # both empty: 0; one empty: the cut-off
+    none = torch.zeros(1, 1, 2, dtype=torch.bool)
+    assert float(metrics.ospa(X, Y, 10.0, 1.0, none, torch.zeros(1, 1, 3, dtype=torch.bool))) == 0.0
+    assert float(metrics.ospa(X, Y, 10.0, 1.0, none, ym)) == 10.0
+
+
+def test_ospa_masks_match_the_reference_and_the_unmasked_metric():
+    g = torch.Generator().manual_seed(0)
+    B, T, m, n = 6, 5, 4, 5
+    X = torch.rand(B, T, m, 3, generator=g, dtype=torch.float64) * 40
+    Y = torch.rand(B, T, n, 3, generator=g, dtype=torch.float64) * 40
+    xm = torch.rand(B, T, m, generator=g) < 0.7
+    ym = torch.rand(B, T, n, generator=g) < 0.7
+    got = metrics.ospa(X, Y, cutoff=30.0, order=1.0, X_mask=xm, Y_mask=ym)
+    for b in range(B):
+        for t in range(T):
+            ref = _ospa_reference(X[b, t][xm[b, t]].numpy(), Y[b, t][ym[b, t]].numpy(), 30.0, 1.0)
+            assert abs(float(got[b, t]) - ref) < 1e-10
+    full = metrics.ospa(X, Y, 30.0, 2.0)
+    torch.testing.assert_close(metrics.ospa(X, Y, 30.0, 2.0, torch.ones(B, T, m, dtype=torch.bool)), full)
+
+
+def test_ospa_masks_bad_input():
+    X = torch.zeros(1, 1, 2, 2, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"X_mask: expected a bool tensor \(B, T, m\) = \(1, 1, 2\), got \(1, 1, 3\)"):
+        metrics.ospa(X, X, X_mask=torch.ones(1, 1, 3, dtype=torch.bool))
+    with pytest.raises(ValueError, match="Y_mask: expected a bool tensor"):
+        metrics.ospa(X, X, Y_mask=torch.ones(1, 1, 2))

@@ -21,6 +21,8 @@ import functools
 import itertools
 import math
 
+from typing import Optional
+
 import torch
 
 from . import tuning
@@ -191,8 +193,10 @@ def ospa(
     Y: torch.Tensor,
     cutoff: float = 40.0,
     order: float = 1.0,
+    X_mask: Optional[torch.Tensor] = None,
+    Y_mask: Optional[torch.Tensor] = None,
 ) -> torch.Tensor:
-    """OSPA distance between fixed-cardinality point sets (Schuhmacher et al. 2008).
+    """OSPA distance between point sets (Schuhmacher et al. 2008), of fixed or varying cardinality.
 
     With ``m = |X| <= n = |Y|`` (the sets are swapped otherwise),
 
@@ -210,9 +214,12 @@ def ospa(
         Y: ``(B, T, n, k)`` second point set per trial and step.
         cutoff: Cut-off ``c > 0``.
         order: Order ``p >= 1``.
-
-    Returns:
-        ``(B, T)`` OSPA distance, between ``0`` and ``cutoff``.
+        X_mask, Y_mask: optional ``(B, T, m)`` / ``(B, T, n)`` bool masks of the real items: sets
+            whose cardinality varies over trials and steps (an unknown number of sources) are
+            padded to ``m``/``n`` items. Padded items are matched as "absent": a real item paired
+            with an absent one costs ``c^p``, two absent ones cost 0, so the minimal perfect
+            matching of the padded ``K x K`` problem (``K = max(m, n)``) is the OSPA numerator of
+            each problem, divided by its own ``max(|X|, |Y|)``, all in one batched call.
 
     Raises:
         ValueError: If ``X``/``Y`` are not floating-point 4-D tensors with
@@ -235,6 +242,8 @@ def ospa(
     if not (math.isfinite(order) and order >= 1):
         raise ValueError(f"order: expected a finite float >= 1, got {order}")
     X, Y = _promote(X, Y)
+    if X_mask is not None or Y_mask is not None:
+        return _ospa_masked(X, Y, cutoff, order, X_mask, Y_mask)
     if X.shape[-2] > Y.shape[-2]:
         X, Y = Y, X
     m, n = X.shape[-2], Y.shape[-2]
@@ -243,6 +252,35 @@ def ospa(
     cost = _pairwise_dist(X, Y).clamp(max=cutoff).pow(order)  # (B, T, m, n)
     total = _min_assignment_cost(cost) + cutoff**order * (n - m)
     return (total / n).pow(1.0 / order)
+
+
+def _ospa_masked(X, Y, cutoff, order, X_mask, Y_mask) -> torch.Tensor:
+    """OSPA of padded sets with masks of their real items (see :func:`ospa`)."""
+    B, T, m = X.shape[:3]
+    n = Y.shape[2]
+    for name, mask, size, what in (("X_mask", X_mask, m, "m"), ("Y_mask", Y_mask, n, "n")):
+        if mask is not None and (not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool
+                                 or tuple(mask.shape) != (B, T, size)):
+            got = shape_str(mask.shape) if isinstance(mask, torch.Tensor) else type(mask).__name__
+            raise ValueError(f"{name}: expected a bool tensor (B, T, {what}) = ({B}, {T}, {size}), got {got}"
+                             + (f" of {mask.dtype}" if isinstance(mask, torch.Tensor) else ""))
+    xm = torch.ones(B, T, m, dtype=torch.bool, device=X.device) if X_mask is None else X_mask.to(X.device)
+    ym = torch.ones(B, T, n, dtype=torch.bool, device=X.device) if Y_mask is None else Y_mask.to(X.device)
+    K = max(m, n)
+    if K == 0:
+        return X.new_zeros(B, T)
+    pad = lambda P, M, k: (torch.cat([P, P.new_zeros(B, T, K - k, P.shape[-1])], 2),  # noqa: E731
+                           torch.cat([M, M.new_zeros(B, T, K - k)], 2))
+    X, xm = pad(X, xm, m)
+    Y, ym = pad(Y, ym, n)
+    cp = cutoff**order
+    real = _pairwise_dist(X, Y).clamp(max=cutoff).pow(order)  # (B, T, K, K)
+    both = xm.unsqueeze(-1) & ym.unsqueeze(-2)
+    one = xm.unsqueeze(-1) ^ ym.unsqueeze(-2)
+    cost = torch.where(both, real, torch.where(one, torch.full_like(real, cp), torch.zeros_like(real)))
+    total = _min_assignment_cost(cost)
+    size = torch.maximum(xm.sum(-1), ym.sum(-1)).to(X.dtype)
+    return torch.where(size > 0, (total / size.clamp_min(1)).pow(1.0 / order), torch.zeros_like(total))
 
 
 def ess(log_weights: torch.Tensor) -> torch.Tensor:
