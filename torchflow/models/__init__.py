@@ -3,6 +3,7 @@ from .acoustic import AcousticTracking
 from .base import StateSpaceModel, Trajectory
 from .linear_gaussian import LinearGaussian, SensorNetwork, sensor_network_covariance
 from .skewed_t import SkewedTPoisson
+from .tdoa import TDOA3D, TDOAData
 
 __all__ = [
     "StateSpaceModel",
@@ -12,4 +13,6 @@ __all__ = [
     "sensor_network_covariance",
     "AcousticTracking",
     "SkewedTPoisson",
+    "TDOA3D",
+    "TDOAData",
 ]

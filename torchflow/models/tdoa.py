@@ -1,0 +1,200 @@
+"""3-D source localisation from time differences of arrival (seed 002: Zhang, Khojasteh, Atanasov &
+Meyer 2024; MODELS.md §12.3).
+
+Static sources ``x`` in the cube ``[-r, r]^3`` are heard by V receivers; sensor s is a receiver pair
+``(a, b)`` and measures
+
+    z = h_ab(x) + v,   h_ab(x) = (||x - p_a|| - ||x - p_b||) / c,   v ~ N(0, sigma_v^2),
+
+at most once per source (detection probability ``p_d``), plus Poisson clutter (mean ``mu_c`` per
+sensor) uniform on the feasible interval ``[-||p_a - p_b|| / c, ||p_a - p_b|| / c]``. Measurements per
+sensor vary in number, so a run's measurements are a padded ``(B, S, M)`` tensor with a mask.
+
+Defaults (§12.3): six receivers at the centres of the faces of the cube ``[-1000, 1000]^3`` m, the
+nine pairs "+ face with - face", c = 1500 m/s, sigma_v = 0.5 ms, p_d = 0.95, mu_c = 1, three sources
+uniform in the region (UNCONF: the seed's pair list and source count appear only in a figure).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import torch
+from torch import nn
+
+from ..flows.measurement import GaussianMeasurement
+
+
+def face_receivers(half_width: float = 1000.0) -> torch.Tensor:
+    """The six face centres ``(+x, -x, +y, -y, +z, -z) * half_width``, ``(6, 3)``."""
+    eye = torch.eye(3, dtype=torch.float64) * half_width
+    return torch.stack([eye[0], -eye[0], eye[1], -eye[1], eye[2], -eye[2]])
+
+
+def plus_minus_pairs() -> list:
+    """Each "+" face receiver (0, 2, 4) with each "-" face receiver (1, 3, 5): nine pairs."""
+    return [(a, b) for a in (0, 2, 4) for b in (1, 3, 5)]
+
+
+@dataclass
+class TDOAData:
+    """Simulated runs.
+
+    Attributes:
+        sources: ``(B, n, 3)`` true source positions.
+        z: ``(B, S, M)`` measurements per sensor, padded (padding is 0).
+        mask: ``(B, S, M)`` bool, the real measurements.
+        origin: ``(B, S, M)`` long, the source that produced each measurement (-1: clutter or padding).
+    """
+
+    sources: torch.Tensor
+    z: torch.Tensor
+    mask: torch.Tensor
+    origin: torch.Tensor
+
+
+class TDOA3D(nn.Module):
+    """The TDOA scenario of seed 002 (see the module docstring).
+
+    Args:
+        receivers: ``(V, 3)`` receiver positions (default :func:`face_receivers`).
+        pairs: S pairs ``(a, b)`` of receiver indices (default :func:`plus_minus_pairs`).
+        speed: propagation speed c (m/s).
+        sigma_v: measurement noise standard deviation (s).
+        p_d: detection probability in (0, 1].
+        clutter_rate: mean number of clutter measurements per sensor, >= 0.
+        n_sources: sources per run.
+        region: half width r of the region ``[-r, r]^3`` (m).
+    """
+
+    state_dim = 3
+
+    def __init__(self, receivers: Optional[torch.Tensor] = None, pairs: Optional[Sequence[Sequence[int]]] = None, *,
+                 speed: float = 1500.0, sigma_v: float = 5e-4, p_d: float = 0.95, clutter_rate: float = 1.0,
+                 n_sources: int = 3, region: float = 1000.0):
+        super().__init__()
+        rec = face_receivers(region) if receivers is None else torch.as_tensor(receivers, dtype=torch.float64)
+        if rec.dim() != 2 or rec.shape[-1] != 3 or rec.shape[0] < 2:
+            raise ValueError(f"receivers: expected (V, 3) positions with V >= 2, got {tuple(rec.shape)}")
+        gap = torch.cdist(rec, rec) + torch.eye(len(rec), dtype=rec.dtype) * 1e300
+        if bool((gap <= 0).any()):
+            i, j = [int(v) for v in torch.nonzero(gap <= 0)[0]]
+            raise ValueError(f"receivers: receivers {i} and {j} coincide at {rec[i].tolist()}; a pair needs two "
+                             "distinct positions")
+        pairs = plus_minus_pairs() if pairs is None else [tuple(int(v) for v in p) for p in pairs]
+        if not pairs:
+            raise ValueError("pairs: expected at least one receiver pair (a, b), got none")
+        for p in pairs:
+            if len(p) != 2 or p[0] == p[1] or not all(0 <= v < len(rec) for v in p):
+                raise ValueError(f"pairs: expected pairs (a, b) of distinct receiver indices in [0, {len(rec)}), "
+                                 f"got {p}")
+        for name, v in (("speed", speed), ("sigma_v", sigma_v), ("region", region)):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+                raise ValueError(f"{name}: expected a positive number, got {v!r}")
+        if isinstance(p_d, bool) or not isinstance(p_d, (int, float)) or not 0 < p_d <= 1:
+            raise ValueError(f"p_d: expected a detection probability in (0, 1], got {p_d!r}")
+        if isinstance(clutter_rate, bool) or not isinstance(clutter_rate, (int, float)) or not clutter_rate >= 0:
+            raise ValueError(f"clutter_rate: expected a mean clutter count >= 0, got {clutter_rate!r}")
+        if isinstance(n_sources, bool) or not isinstance(n_sources, int) or n_sources < 0:
+            raise ValueError(f"n_sources: expected an integer >= 0, got {n_sources!r}")
+        self.register_buffer("receivers", rec)
+        self.register_buffer("pairs", torch.tensor(pairs, dtype=torch.long))
+        self.speed, self.sigma_v, self.p_d = float(speed), float(sigma_v), float(p_d)
+        self.clutter_rate, self.n_sources, self.region = float(clutter_rate), n_sources, float(region)
+
+    @property
+    def n_sensors(self) -> int:
+        return self.pairs.shape[0]
+
+    def _ends(self, sensor):
+        s = torch.as_tensor(sensor, dtype=torch.long, device=self.pairs.device)
+        return self.receivers[self.pairs[s, 0]], self.receivers[self.pairs[s, 1]]
+
+    def measure(self, x: torch.Tensor, sensor) -> torch.Tensor:
+        """``h_s(x)`` of positions ``x (..., 3)`` for sensor index ``sensor`` (an int or a long tensor
+        broadcastable to ``x[..., 0]``) -> ``(...)``."""
+        pa, pb = self._ends(sensor)
+        pa, pb = pa.to(x.dtype), pb.to(x.dtype)
+        return (torch.linalg.vector_norm(x - pa, dim=-1) - torch.linalg.vector_norm(x - pb, dim=-1)) / self.speed
+
+    def jacobian(self, x: torch.Tensor, sensor) -> torch.Tensor:
+        """``dh_s/dx = ((x - p_a)/||x - p_a|| - (x - p_b)/||x - p_b||) / c``, ``(..., 3)``."""
+        pa, pb = self._ends(sensor)
+        da, db = x - pa.to(x.dtype), x - pb.to(x.dtype)
+        ua = da / torch.linalg.vector_norm(da, dim=-1, keepdim=True)
+        ub = db / torch.linalg.vector_norm(db, dim=-1, keepdim=True)
+        return (ua - ub) / self.speed
+
+    def feasible_half_width(self, sensor) -> torch.Tensor:
+        """``||p_a - p_b|| / c``: TDOAs of sensor s lie in ``[-w, w]``."""
+        pa, pb = self._ends(sensor)
+        return torch.linalg.vector_norm(pa - pb, dim=-1) / self.speed
+
+    def clutter_log_density(self, sensor) -> torch.Tensor:
+        """``log f_c = -log(2 w)`` of the uniform clutter density of sensor s."""
+        return -torch.log(2 * self.feasible_half_width(sensor))
+
+    def log_likelihood(self, z: torch.Tensor, x: torch.Tensor, sensor) -> torch.Tensor:
+        """``log N(z; h_s(x), sigma_v^2)`` for ``z`` broadcastable against ``x[..., 0]``."""
+        r = (z - self.measure(x, sensor)) / self.sigma_v
+        return -0.5 * r * r - torch.log(torch.as_tensor(self.sigma_v * (2 * torch.pi) ** 0.5, dtype=x.dtype))
+
+    def gaussian_measurement(self, z: torch.Tensor, sensor) -> GaussianMeasurement:
+        """The flows' measurement term of scalar TDOAs ``z (R,)`` of sensor s, one per batch row
+        (rows: runs x components x measurements flattened)."""
+        def linearise(points, support=False, scale=None):
+            h = self.measure(points, sensor).unsqueeze(-1)
+            H = self.jacobian(points, sensor).unsqueeze(-2)
+            if scale is not None:
+                h, H = h * scale, H * scale
+            return h, H
+
+        def scale_tril(points):
+            return torch.full((1, 1), self.sigma_v, dtype=points.dtype, device=points.device)
+
+        return GaussianMeasurement(z.reshape(-1, 1), linearise, scale_tril, "scalar")
+
+    def check_measurements(self, z: torch.Tensor, mask: torch.Tensor) -> None:
+        """Raise a clear error unless ``z (B, S, M)`` and ``mask`` (bool, same shape) fit this model."""
+        if not isinstance(z, torch.Tensor) or z.dim() != 3 or z.shape[1] != self.n_sensors:
+            got = tuple(z.shape) if isinstance(z, torch.Tensor) else type(z).__name__
+            raise ValueError(f"z: expected (B, S, M) measurements with S = {self.n_sensors} sensors, got {got}")
+        if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool or mask.shape != z.shape:
+            got = f"{tuple(mask.shape)} of {mask.dtype}" if isinstance(mask, torch.Tensor) else type(mask).__name__
+            raise ValueError(f"mask: expected a bool tensor shaped like z {tuple(z.shape)}, got {got}")
+
+    def simulate(self, runs: int, generator: torch.Generator) -> TDOAData:
+        """``runs`` independent scenes: sources uniform in the region, detections, clutter, noise;
+        each sensor's measurements in random order, padded to the largest count."""
+        if not isinstance(generator, torch.Generator):
+            raise TypeError(f"generator: expected a torch.Generator, got {type(generator).__name__}")
+        B, n, S = int(runs), self.n_sources, self.n_sensors
+        dt, dev = self.receivers.dtype, self.receivers.device
+        src = (torch.rand(B, n, 3, generator=generator, dtype=dt, device=dev) * 2 - 1) * self.region
+        sens = torch.arange(S, device=dev)
+        h = self.measure(src.unsqueeze(1), sens.view(1, S, 1))  # (B, S, n)
+        z_src = h + self.sigma_v * torch.randn(B, S, n, generator=generator, dtype=dt, device=dev)
+        det = torch.rand(B, S, n, generator=generator, dtype=dt, device=dev) < self.p_d
+        n_c = torch.poisson(torch.full((B, S), self.clutter_rate, dtype=dt, device=dev), generator=generator).long()
+        C = int(n_c.max()) if n_c.numel() else 0
+        w = self.feasible_half_width(sens).to(dt)  # (S,)
+        z_cl = (torch.rand(B, S, C, generator=generator, dtype=dt, device=dev) * 2 - 1) * w.view(1, S, 1)
+        cl_mask = torch.arange(C, device=dev).view(1, 1, C) < n_c.unsqueeze(-1)
+        z = torch.cat([z_src, z_cl], -1)
+        mask = torch.cat([det, cl_mask], -1)
+        origin = torch.cat([torch.arange(n, device=dev).expand(B, S, n), torch.full((B, S, C), -1, device=dev)], -1)
+        # random order within each sensor, real measurements first (padding last)
+        key = torch.rand(z.shape, generator=generator, dtype=dt, device=dev) + (~mask).to(dt) * 2
+        order = key.argsort(-1)
+        z, mask, origin = (t.gather(-1, order) for t in (z, mask, origin))
+        M = int(mask.sum(-1).max()) if mask.numel() else 0
+        z, mask, origin = z[..., :M], mask[..., :M], origin[..., :M]
+        return TDOAData(src, z.masked_fill(~mask, 0.0), mask, origin.masked_fill(~mask, -1))
+
+    def extra_repr(self) -> str:
+        return (f"receivers={len(self.receivers)}, sensors={self.n_sensors}, speed={self.speed}, "
+                f"sigma_v={self.sigma_v}, p_d={self.p_d}, clutter_rate={self.clutter_rate}, "
+                f"n_sources={self.n_sources}, region={self.region}")
+
+
+__all__ = ["TDOA3D", "TDOAData", "face_receivers", "plus_minus_pairs"]
