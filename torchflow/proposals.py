@@ -119,7 +119,12 @@ class FlowProposal(Proposal):
     def propose(self, filt, state, z, generator) -> Proposed:
         model, pts, cov = filt.model, self.points, state.cov
         x_prev = state.particles  # (B, N, d)
-        eta0 = model.sample_transition(x_prev, generator)
+        if self.flow.stochastic and not model.gaussian_transition:
+            # the tracked proposal law starts from the Gaussian fit, so eta_0 must be drawn from it
+            # (MODELS.md §14e); the weight keeps the model's exact transition density
+            eta0 = model.sample_transition_gaussian(x_prev, generator)
+        else:
+            eta0 = model.sample_transition(x_prev, generator)
         log_q0 = None if self.flow.stochastic else model.transition_log_prob(eta0, x_prev)
         at = x_prev if cov.per_particle else state.estimate
         m_pred, P_pred = self.tracker.predict(at, cov.matrix)  # (B, [N,] d), (B, [N|1,] d, d)

@@ -47,6 +47,10 @@ class StateSpaceModel(nn.Module):
     #: ``True`` when g is linear, ``g(x) = transition_matrix() @ x``: filters then skip Jacobians and
     #: share covariance recursions that cannot differ between particles.
     linear_dynamics: bool = False
+    #: ``True`` when p(x_k | x_{k-1}) is the Gaussian ``N(transition_mean, transition_cov)``; a model
+    #: with another transition (skewed-t) declares False, and its transition_mean/cov are the
+    #: Gaussian fit that flows, trackers and stochastic-flow proposals use (MODELS.md §14e).
+    gaussian_transition: bool = True
     #: ``True`` when h is linear, ``h(x) = measurement_matrix() @ x``.
     linear_measurement: bool = False
     #: structure of the measurement noise R, declared by the model and never detected at run time:
@@ -101,6 +105,13 @@ class StateSpaceModel(nn.Module):
 
     def sample_transition(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         """Draw x_k ~ p(x_k | x_{k-1} = x) for ``x (..., d)``."""
+        L = self.transition_scale_tril(x)
+        xi = linalg.standard_normal(x.shape, dtype=x.dtype, device=x.device, generator=generator)
+        return self.transition_mean(x) + linalg.matvec(L, xi)
+
+    def sample_transition_gaussian(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
+        """Draw from the Gaussian fit ``N(transition_mean(x), transition_cov(x))`` (the transition
+        itself when :attr:`gaussian_transition`)."""
         L = self.transition_scale_tril(x)
         xi = linalg.standard_normal(x.shape, dtype=x.dtype, device=x.device, generator=generator)
         return self.transition_mean(x) + linalg.matvec(L, xi)

@@ -51,6 +51,7 @@ class SkewedTPoisson(StateSpaceModel):
     """
 
     linear_dynamics = True
+    gaussian_transition = False
     linear_measurement = False
     measurement_noise = "state_dependent_diagonal"
 
