@@ -83,3 +83,14 @@ def test_bad_input():
         loopy_association(beta, torch.ones(1, 2, dtype=torch.float64), iterations=0)
     with pytest.raises(ValueError, match="object_mask"):
         loopy_association(beta, torch.ones(1, 2, dtype=torch.float64), object_mask=torch.ones(1, 3, dtype=torch.bool))
+
+
+def test_a_certain_object_with_one_measurement_stays_finite():
+    """r = 1 and p_d = 1 give beta_k(0) = 0: the leave-one-out sums are formed by exclusion, so there
+    is no total-minus-own cancellation (which gave nan) and the PO takes its measurement."""
+    beta = torch.tensor([[[0.0, 1.0679e4, 0.0], [1.0, 0.0, 0.0]]], dtype=torch.float64)
+    xi = torch.tensor([[1.08, 1.34]], dtype=torch.float64)
+    res = loopy_association(beta, xi, torch.tensor([[True, False]]), torch.tensor([[True, False]]))
+    assert torch.isfinite(res.probabilities).all() and torch.isfinite(res.nu).all()
+    torch.testing.assert_close(res.probabilities[0, 0], torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+    assert float(res.new_existence[0, 0]) == 0.0

@@ -76,14 +76,21 @@ def loopy_association(beta: torch.Tensor, xi: torch.Tensor, object_mask: Optiona
     bm = beta[..., 1:] * live  # padded pairs contribute nothing
     nu = live.to(beta.dtype)  # nu^(0) = 1
     zeta = torch.zeros_like(bm)
+    # leave-one-out sums by exclusion, never by subtraction: a certain PO (beta_k(0) = 0) with one
+    # dominant measurement makes "total - own term" cancel to round-off (and inf - inf = nan)
+    other_m = ~torch.eye(M, dtype=torch.bool, device=beta.device)  # (m, m')
+    other_k = ~torch.eye(K, dtype=torch.bool, device=beta.device)  # (k, k')
+    zero = beta.new_zeros(())
     for _ in range(iterations):
-        s = (bm * nu).sum(-1, keepdim=True)  # sum over all m' of beta_k(m') nu_{m'->k}
-        zeta = bm / (b0.unsqueeze(-1) + s - bm * nu)
-        t = zeta.sum(-2, keepdim=True)  # sum over all k'
-        nu = live / (xi.unsqueeze(-2) + t - zeta)
+        bn = (bm * nu).unsqueeze(-2)  # (B, K, 1, M'): beta_k(m') nu_{m'->k}, finite
+        loo_m = torch.where(other_m, bn, zero).sum(-1)  # (B, K, M)
+        zeta = bm / (b0.unsqueeze(-1) + loo_m)  # inf where a certain PO has no other measurement
+        zk = zeta.unsqueeze(1)  # (B, 1, K', M)
+        loo_k = torch.where(other_k.unsqueeze(-1), zk, zero).sum(2)  # (B, K, M), no inf * 0
+        nu = torch.where(live, 1 / (xi.unsqueeze(-2) + loo_k), zero)
     un = torch.cat([b0.unsqueeze(-1), bm * nu], -1) * om.unsqueeze(-1)
     prob = un / un.sum(-1, keepdim=True).clamp_min(torch.finfo(beta.dtype).tiny)
-    new = (xi - 1) / (xi + zeta.sum(-2)) * mm
+    new = torch.where(mm, (xi - 1) / (xi + torch.where(live, zeta, zero).sum(-2)), zero)
     return Association(prob, nu, zeta, new)
 
 

@@ -213,6 +213,17 @@ def test_optimal_scale_closed_form_and_seed_convention():
             assert abs(float(grid[Jg.argmin()]) - float(c[i])) < 2e-3 * (4 * float(c[i]) + 1)
     with pytest.raises(ValueError, match="alpha"):
         optimal_diffusion_scale(k_min, k_max, 0.0)
+    # the printed rule: seed 002's value as the diffusion scale itself (MODELS.md 12.1), the exact
+    # minimiser of (k_max + c)/(k_min + c) + alpha c
+    printed = optimal_diffusion_scale(k_min, k_max, 0.1, rule="printed")
+    torch.testing.assert_close(printed, (torch.sqrt((k_max - k_min) / 0.1) - k_min).clamp_min(0))
+    grid = torch.linspace(0, 40, 400001, dtype=F64)
+    J = (k_max[1] + grid) / (k_min[1] + grid) + 0.1 * grid
+    assert abs(float(grid[J.argmin()]) - float(printed[1])) < 1e-3
+    with pytest.raises(ValueError, match="rule"):
+        optimal_diffusion_scale(k_min, k_max, 0.1, rule="numeric")
+    with pytest.raises(ValueError, match="c_rule"):
+        OptimalDiffusionFlow(c_rule="numeric")
 
 
 def test_flow_argument_errors():

@@ -197,7 +197,11 @@ def diffusion_condition_number(k: torch.Tensor, c) -> torch.Tensor:
     return (k.amax(-1) + half) / (k.amin(-1) + half)
 
 
-def optimal_diffusion_scale(k_min: torch.Tensor, k_max: torch.Tensor, alpha: float) -> torch.Tensor:
+C_RULES = ("literal_shift", "printed")
+
+
+def optimal_diffusion_scale(k_min: torch.Tensor, k_max: torch.Tensor, alpha: float,
+                            rule: str = "literal_shift") -> torch.Tensor:
     """Closed-form minimiser of ``J(c) = kappa(c) + alpha c`` over ``c >= 0``.
 
     With ``Q = c M^{-1}`` and our SDE convention (diffusion enters the Fokker-Planck equation as
@@ -213,9 +217,17 @@ def optimal_diffusion_scale(k_min: torch.Tensor, k_max: torch.Tensor, alpha: flo
     so the same physical noise has ``c' = c/2``). Our objective penalises that noise as
     ``alpha c = 2 alpha c'``, so ``c*/2`` is seed 002's formula with ``alpha -> 2 alpha``; to
     reproduce seed 002's minimiser exactly, halve ``alpha``.
+
+    ``rule="printed"`` returns seed 002's printed value itself as the diffusion scale,
+    ``c = max{0, sqrt((k_max - k_min)/alpha) - k_min}`` with ``Q = c M^{-1}`` (MODELS.md §12.1's
+    reading for the flow-induced proposals); ``rule="literal_shift"`` (default) the minimiser above.
     """
     if alpha <= 0:
         raise ValueError(f"alpha: expected > 0, got {alpha}")
+    if rule not in C_RULES:
+        raise ValueError(f"rule: expected one of {C_RULES}, got {rule!r}")
+    if rule == "printed":
+        return (torch.sqrt((k_max - k_min).clamp_min(0) / alpha) - k_min).clamp_min(0)
     return 2 * (torch.sqrt((k_max - k_min).clamp_min(0) / (2 * alpha)) - k_min).clamp_min(0)
 
 
@@ -234,12 +246,13 @@ class OptimalDiffusionFlow(_HomotopyFlow):
         c: ``"optimal"`` (default) or a fixed non-negative diffusion scale (``c = 0`` is EDH/LEDH).
         points: default linearisation points, ``"particle"`` (default) or ``"global"``.
         noise_root: ``"factor"`` (``sqrt(c) L K^{-T}``) or ``"symmetric"``.
+        c_rule: ``"literal_shift"`` (default) or ``"printed"`` (:func:`optimal_diffusion_scale`).
     """
 
     stochastic = True
 
     def __init__(self, alpha: float = 0.1, c: Union[str, float] = "optimal", points: str = "particle",
-                 noise_root: str = "factor"):
+                 noise_root: str = "factor", c_rule: str = "literal_shift"):
         super().__init__(points)
         if float(alpha) <= 0:
             raise ValueError(f"alpha: expected > 0, got {alpha}")
@@ -247,7 +260,9 @@ class OptimalDiffusionFlow(_HomotopyFlow):
             raise ValueError(f"c: expected 'optimal' or a float >= 0, got {c!r}")
         if noise_root not in _NOISE_ROOTS:
             raise ValueError(f"noise_root: expected one of {_NOISE_ROOTS}, got {noise_root!r}")
-        self.alpha, self.c, self.noise_root = float(alpha), c, noise_root
+        if c_rule not in C_RULES:
+            raise ValueError(f"c_rule: expected one of {C_RULES}, got {c_rule!r}")
+        self.alpha, self.c, self.noise_root, self.c_rule = float(alpha), c, noise_root, c_rule
 
     def scale(self, S: torch.Tensor, lam, d: int = None) -> torch.Tensor:
         """Diffusion scale ``c`` per linearisation point ``(...)`` from ``S (..., k, k)``; when
@@ -259,7 +274,7 @@ class OptimalDiffusionFlow(_HomotopyFlow):
             if d is not None and d > s.shape[-1]:
                 s = torch.cat([s.new_zeros(*s.shape[:-1], 1), s], -1)
             k = s / (2 * (1 + lam * s))  # eigenvalues of -A_EDH, increasing in s
-            return optimal_diffusion_scale(k[..., 0], k[..., -1], self.alpha)
+            return optimal_diffusion_scale(k[..., 0], k[..., -1], self.alpha, self.c_rule)
 
     def coefficients_at(self, lin: Linearisation, prior: FlowPrior, lam, eps):
         prior, S, K, G, C, g = _terms(lin, prior, lam)
@@ -280,7 +295,8 @@ class OptimalDiffusionFlow(_HomotopyFlow):
         return FlowCoefficients(A, b, None, noise_factor=_noise_root(factor, self.noise_root))
 
     def extra_repr(self) -> str:
-        return f"alpha={self.alpha}, c={self.c!r}, points={self.points!r}, noise_root={self.noise_root!r}"
+        return (f"alpha={self.alpha}, c={self.c!r}, points={self.points!r}, noise_root={self.noise_root!r}, "
+                f"c_rule={self.c_rule!r}")
 
 
 __all__ = ["GeodesicFlow", "GromovFlow", "OptimalDiffusionFlow", "optimal_diffusion_scale",

@@ -1,0 +1,284 @@
+"""Multi-source localisation from TDOAs with belief propagation and flow-induced Gaussian-mixture
+importance sampling (seed 002: Zhang, Khojasteh, Atanasov & Meyer 2024; MODELS.md §12).
+
+The sensors (receiver pairs) are processed one after another (the posterior after sensor s - 1 is
+the prior of sensor s; the sources are static). The belief is a set of potential objects (POs),
+each with an existence probability ``r_k`` and a Gaussian mixture of G components. For sensor s:
+
+1. every component of every PO is flowed by every measurement (:func:`~torchflow.flows.flow_gaussian`
+   with PFI-D = EDH, PFI-S = Gromov or PFI-OS = optimised diffusion), and N_p samples are drawn from
+   each flowed component; the per-component importance ratio
+   ``N(x; mu_n, P_n) l_m(x) / N(x; mu'_nm, P'_nm)`` gives ``int f_k l_m`` (unbiased) and each
+   candidate component's weighted moments;
+2. the same for a birth mixture (a grid of Gaussians covering the region; UNCONF: the seed's birth
+   density is uniform, approximated here by that mixture);
+3. loopy BP (:func:`~torchflow.association.loopy_association`) gives the association messages;
+4. each legacy PO's candidates (its components times "missed", plus one per component and
+   measurement) are weighted by the BP messages and reduced back to G components by systematic
+   resampling of candidate indices (weights reset to equal; UNCONF §12.3); its existence is
+   ``r C / (r C + 1 - r)``; each measurement makes a new PO the same way from the birth mixture;
+5. POs with existence below ``prune`` are dropped and at most ``max_objects`` are kept (the most
+   likely; a fixed size keeps every tensor shape static, with no host synchronisation).
+
+Declared sources: POs with existence above ``declare`` (0.5), at their mixture mean. Everything is
+batched over runs x POs x components x measurements x samples (in memory-bounded chunks of
+``sample_chunk`` numbers); the loop over sensors is the sequential processing itself.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+from torch import nn
+
+from . import linalg
+from .association import loopy_association
+from .flows import EDHFlow, FlowPrior, GromovFlow, OptimalDiffusionFlow, flow_gaussian
+from .models.tdoa import TDOA3D
+from .random import check_generator, uniform
+from .schedules import GeometricSchedule, LambdaSchedule
+
+METHODS = ("pfi_d", "pfi_s", "pfi_os")
+
+
+@dataclass
+class POState:
+    """Potential objects after a sensor.
+
+    Attributes:
+        existence: ``(B, K)`` existence probabilities (0 for empty slots).
+        mask: ``(B, K)`` bool, the live POs.
+        log_weights: ``(B, K, G)`` normalised log component weights.
+        means: ``(B, K, G, 3)``; scale_trils: ``(B, K, G, 3, 3)``.
+    """
+
+    existence: torch.Tensor
+    mask: torch.Tensor
+    log_weights: torch.Tensor
+    means: torch.Tensor
+    scale_trils: torch.Tensor
+
+    @property
+    def positions(self) -> torch.Tensor:
+        """``(B, K, 3)`` mixture means."""
+        return (self.log_weights.exp().unsqueeze(-1) * self.means).sum(-2)
+
+
+@dataclass
+class Localisation:
+    """Result of :meth:`FlowMixtureLocaliser.forward`: the declared sources ``positions (B, K, 3)``
+    with ``declared (B, K)``, and the final :class:`POState`."""
+
+    positions: torch.Tensor
+    declared: torch.Tensor
+    state: POState
+
+
+def birth_mixture(region: float, per_axis: int, sd_factor: float = 0.5, dtype=torch.float64, device=None):
+    """A grid of ``per_axis^3`` equal-weight Gaussians covering ``[-region, region]^3``: cell centres,
+    isotropic standard deviation ``sd_factor`` times the cell width. Returns ``(means (Nb, 3),
+    scale_tril (3, 3))``."""
+    w = 2 * region / per_axis
+    c = -region + w * (torch.arange(per_axis, dtype=dtype, device=device) + 0.5)
+    grid = torch.stack(torch.meshgrid(c, c, c, indexing="ij"), -1).reshape(-1, 3)
+    return grid, torch.eye(3, dtype=dtype, device=device) * (sd_factor * w)
+
+
+class FlowMixtureLocaliser(nn.Module):
+    """BP localisation with flowed-mixture importance sampling (module docstring).
+
+    Args:
+        model: :class:`~torchflow.models.TDOA3D` (``clutter_rate > 0``).
+        method: ``"pfi_d"`` (EDH), ``"pfi_s"`` (Gromov) or ``"pfi_os"`` (optimised diffusion).
+        n_components: G per PO (seed: 100).
+        samples_per_component: N_p per flowed component (seed: 5000).
+        schedule: lambda grid (default :class:`~torchflow.schedules.GeometricSchedule` ``(1e-5, 1.5)``).
+        alpha, c_rule: PFI-OS: the objective weight and the reading of c*
+            (:func:`~torchflow.flows.optimal_diffusion_scale`; default ``"printed"``, MODELS.md §12.1).
+        birth_rate: mean number of new sources per measurement, mu_b (UNCONF 0.01).
+        birth_per_axis, birth_sd: the birth mixture (:func:`birth_mixture`; 5^3 = 125 components).
+        max_objects: POs kept after each sensor.
+        prune: existence below which a PO is dropped (1e-3).
+        declare: existence above which a PO is a declared source (0.5).
+        bp_iterations: message passes (20).
+        jitter: relative diagonal jitter of the refitted covariances (of the component's prior scale).
+        sample_chunk: numbers drawn per pass (memory bound; the draws do not depend on it with
+            per-trial streams).
+    """
+
+    def __init__(self, model: TDOA3D, method: str = "pfi_os", *, n_components: int = 100,
+                 samples_per_component: int = 5000, schedule: Optional[LambdaSchedule] = None, alpha: float = 0.1,
+                 c_rule: str = "printed", birth_rate: float = 0.01, birth_per_axis: int = 5, birth_sd: float = 0.5,
+                 max_objects: int = 30, prune: float = 1e-3, declare: float = 0.5, bp_iterations: int = 20,
+                 jitter: float = 1e-6, sample_chunk: int = 20_000_000):
+        super().__init__()
+        if not isinstance(model, TDOA3D):
+            raise TypeError(f"model: expected a torchflow TDOA3D, got {type(model).__name__}")
+        if model.clutter_rate <= 0:
+            raise ValueError(f"model.clutter_rate: BP divides by the clutter intensity; expected > 0, got "
+                             f"{model.clutter_rate}")
+        if method not in METHODS:
+            raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
+        for name, v in (("n_components", n_components), ("samples_per_component", samples_per_component),
+                        ("birth_per_axis", birth_per_axis), ("max_objects", max_objects),
+                        ("bp_iterations", bp_iterations), ("sample_chunk", sample_chunk)):
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name}: expected a positive integer, got {v!r}")
+        for name, v, lo, hi in (("prune", prune, 0.0, 1.0), ("declare", declare, 0.0, 1.0)):
+            if not lo <= float(v) < hi:
+                raise ValueError(f"{name}: expected a probability in [0, 1), got {v!r}")
+        if not float(birth_rate) > 0:
+            raise ValueError(f"birth_rate: expected > 0, got {birth_rate!r}")
+        self.model, self.method = model, method
+        if method == "pfi_d":
+            self.flow = EDHFlow()
+        elif method == "pfi_s":
+            self.flow = GromovFlow(points="global")
+        else:
+            self.flow = OptimalDiffusionFlow(alpha=alpha, points="global", c_rule=c_rule)
+        self.schedule = schedule or GeometricSchedule(1e-5, 1.5)
+        if len(self.schedule) < 1:
+            raise ValueError("schedule: expected at least one pseudo-time step, got an empty schedule")
+        self.G, self.n_samples = n_components, samples_per_component
+        self.birth_rate, self.birth_per_axis, self.birth_sd = float(birth_rate), birth_per_axis, float(birth_sd)
+        self.max_objects, self.prune, self.declare = max_objects, float(prune), float(declare)
+        self.bp_iterations, self.jitter, self.sample_chunk = bp_iterations, float(jitter), sample_chunk
+
+    # ---- one sensor --------------------------------------------------------------------------
+    def _flowed_terms(self, log_w, means, L, z, s, generator):
+        """For mixtures ``(B, K, G)`` and measurements ``z (B, M)``: ``log int N_n l_m`` per
+        component and measurement ``(B, K, G, M)`` and the candidates' weighted moments
+        ``(B, K, G, M, 3)``, ``(B, K, G, M, 3, 3)`` (scale trils)."""
+        model = self.model
+        B, K, G, d = means.shape
+        M = z.shape[1]
+        R = K * G * M
+        m0 = means.unsqueeze(3).expand(B, K, G, M, d).reshape(B, R, d)
+        L0 = L.unsqueeze(3).expand(B, K, G, M, d, d).reshape(B, R, d, d)
+        zr = z.reshape(B, 1, 1, M).expand(B, K, G, M).reshape(B, R)
+        mu1, P1 = flow_gaussian(self.flow, model.gaussian_measurement(zr.reshape(-1), s),
+                                FlowPrior(m0.reshape(-1, d), L0.reshape(-1, d, d)), self.schedule)
+        mu1, L1 = mu1.reshape(B, R, d), linalg.safe_cholesky(P1).reshape(B, R, d, d)
+        n = self.n_samples
+        per = max(1, self.sample_chunk // max(1, B * n * d))
+        log_I, pm, pc = [], [], []
+        scale = L0.pow(2).sum((-2, -1)) / d  # tr(P0) / d per row
+        eye = torch.eye(d, dtype=means.dtype, device=means.device)
+        for a in range(0, R, per):  # memory chunks; the draws follow the rows (per-trial streams)
+            sl = slice(a, min(R, a + per))
+            xi = linalg.standard_normal((B, sl.stop - a, n, d), dtype=means.dtype, device=means.device,
+                                        generator=generator)
+            x = mu1[:, sl].unsqueeze(2) + xi @ L1[:, sl].transpose(-1, -2)
+            lo = (linalg.mvn_log_prob(x, m0[:, sl].unsqueeze(2), L0[:, sl].unsqueeze(2))
+                  + model.log_likelihood(zr[:, sl].unsqueeze(-1), x, s)
+                  - linalg.mvn_log_prob(x, mu1[:, sl].unsqueeze(2), L1[:, sl].unsqueeze(2)))
+            log_I.append(torch.logsumexp(lo, -1) - math.log(n))
+            w = torch.softmax(lo, -1)
+            mean = torch.einsum("brn,brnd->brd", w, x)
+            diff = x - mean.unsqueeze(2)
+            cov = torch.einsum("brn,brni,brnj->brij", w, diff, diff)
+            pm.append(mean)
+            pc.append(linalg.symmetrize(cov) + (self.jitter * scale[:, sl])[..., None, None] * eye)
+        shape = (B, K, G, M)
+        return (torch.cat(log_I, 1).reshape(shape), torch.cat(pm, 1).reshape(*shape, d),
+                linalg.safe_cholesky(torch.cat(pc, 1)).reshape(*shape, d, d))
+
+    def update(self, state: POState, z: torch.Tensor, z_mask: torch.Tensor, sensor: int, generator) -> POState:
+        """Process the measurements ``z (B, M)`` (real where ``z_mask``) of sensor ``sensor``."""
+        model, G = self.model, self.G
+        B, M = z.shape
+        dt, dev = z.dtype, z.device
+        K = state.existence.shape[1]
+        pd = model.p_d
+        log_cf = math.log(model.clutter_rate) + model.clutter_log_density(sensor).to(dt)  # log(mu_c f_c)
+        neg = torch.tensor(float("-inf"), dtype=dt, device=dev)
+        # birth: the new PO of every measurement
+        bm, bL = birth_mixture(model.region, self.birth_per_axis, self.birth_sd, dt, dev)
+        Nb = bm.shape[0]
+        b_logw = torch.full((B, 1, Nb), -math.log(Nb), dtype=dt, device=dev)
+        bI, b_mean, b_L = self._flowed_terms(b_logw, bm.expand(B, 1, Nb, 3), bL.expand(B, 1, Nb, 3, 3), z, sensor,
+                                             generator)
+        log_Ib = torch.logsumexp(b_logw.unsqueeze(-1) + bI, 2)[:, 0]  # (B, M)
+        xi = 1 + self.birth_rate * torch.exp(log_Ib - log_cf)
+        if K:
+            I, p_mean, p_L = self._flowed_terms(state.log_weights, state.means, state.scale_trils, z, sensor,
+                                                generator)
+            log_Ik = torch.logsumexp(state.log_weights.unsqueeze(-1) + I, 2)  # (B, K, M)
+            r = state.existence
+            beta = torch.cat([(1 - r * pd).unsqueeze(-1), (r * pd).unsqueeze(-1) * torch.exp(log_Ik - log_cf)], -1)
+        else:
+            beta = torch.zeros(B, 0, M + 1, dtype=dt, device=dev)
+        assoc = loopy_association(beta, xi, state.mask, z_mask, self.bp_iterations)
+        # legacy POs: "missed" plus one candidate per component and measurement, reduced to G
+        if K:
+            live = state.mask.unsqueeze(-1) & z_mask.unsqueeze(-2)  # (B, K, M)
+            log_nu = torch.where(live, torch.log(assoc.nu.clamp_min(torch.finfo(dt).tiny)), neg)
+            missed = state.log_weights + (math.log(1 - pd) if pd < 1 else float("-inf"))
+            hit = (state.log_weights.unsqueeze(-1) + math.log(pd) + log_nu.unsqueeze(2) - log_cf + I)  # (B,K,G,M)
+            cand_w = torch.cat([missed, hit.reshape(B, K, G * M)], -1)
+            cand_m = torch.cat([state.means, p_mean.reshape(B, K, G * M, 3)], 2)
+            cand_L = torch.cat([state.scale_trils, p_L.reshape(B, K, G * M, 3, 3)], 2)
+            log_C = torch.logsumexp(cand_w, -1)  # log C_k
+            r = state.existence
+            r_leg = r * log_C.exp() / (r * log_C.exp() + 1 - r)
+            leg = _reduce(cand_w, cand_m, cand_L, G, generator)
+        # new POs: the birth candidates of each measurement, reduced to G
+        nb_w = (b_logw[:, 0].unsqueeze(-1) + bI[:, 0]).transpose(1, 2)  # (B, M, Nb)
+        new = _reduce(nb_w, b_mean[:, 0].transpose(1, 2), b_L[:, 0].transpose(1, 2), G, generator)
+        r_new = assoc.new_existence
+        if K:
+            r_all = torch.cat([r_leg, r_new], 1)
+            mask = torch.cat([state.mask, z_mask], 1)
+            parts = [torch.cat([a, b], 1) for a, b in zip(leg, new)]
+        else:
+            r_all, mask, parts = r_new, z_mask, list(new)
+        mask = mask & (r_all >= self.prune)
+        r_all = torch.where(mask, r_all, torch.zeros_like(r_all))
+        keep = min(self.max_objects, r_all.shape[1])
+        top = torch.where(mask, r_all, torch.full_like(r_all, -1.0)).topk(keep, dim=1).indices  # (B, keep)
+        g = lambda t: t.gather(1, top.reshape(B, keep, *([1] * (t.dim() - 2))).expand(B, keep, *t.shape[2:]))  # noqa: E731
+        return POState(g(r_all), g(mask), *(g(t) for t in parts))
+
+    # ---- whole scene -------------------------------------------------------------------------
+    def init(self, batch_size: int, dtype=torch.float64, device=None) -> POState:
+        """No PO before the first sensor."""
+        B, G = batch_size, self.G
+        z = torch.zeros(B, 0, dtype=dtype, device=device)
+        return POState(z, z.bool(), torch.zeros(B, 0, G, dtype=dtype, device=device),
+                       torch.zeros(B, 0, G, 3, dtype=dtype, device=device),
+                       torch.zeros(B, 0, G, 3, 3, dtype=dtype, device=device))
+
+    def forward(self, z: torch.Tensor, mask: torch.Tensor, generator) -> Localisation:
+        """Localise from measurements ``z (B, S, M)`` with ``mask`` (:class:`~torchflow.models.TDOAData`)."""
+        self.model.check_measurements(z, mask)
+        check_generator(generator, "generator")
+        state = self.init(z.shape[0], z.dtype, z.device)
+        for s in range(z.shape[1]):  # sequential processing of the sensors
+            state = self.update(state, z[:, s], mask[:, s], s, generator)
+        declared = state.mask & (state.existence > self.declare)
+        return Localisation(state.positions, declared, state)
+
+    def extra_repr(self) -> str:
+        return (f"method={self.method!r}, n_components={self.G}, samples_per_component={self.n_samples}, "
+                f"schedule={self.schedule!r}")
+
+
+def _reduce(log_w: torch.Tensor, means: torch.Tensor, L: torch.Tensor, n: int, generator):
+    """Keep ``n`` of the candidate components ``(B, K, C)`` by systematic resampling of their indices
+    (one uniform per PO); returns ``(log_weights (B, K, n) equal, means, scale_trils)``."""
+    B, K, C = log_w.shape
+    w = torch.softmax(log_w, -1)
+    w = torch.where(torch.isfinite(w).all(-1, keepdim=True), w, torch.full_like(w, 1.0 / C))  # all -inf: uniform
+    cdf = w.cumsum(-1)
+    cdf = cdf / cdf[..., -1:].clamp_min(torch.finfo(w.dtype).tiny)
+    u = uniform((B, K, 1), dtype=w.dtype, device=w.device, generator=generator)
+    pos = (torch.arange(n, dtype=w.dtype, device=w.device) + u) / n
+    idx = torch.searchsorted(cdf.contiguous(), pos.contiguous()).clamp(max=C - 1)  # (B, K, n)
+    gm = means.gather(2, idx.unsqueeze(-1).expand(B, K, n, means.shape[-1]))
+    gL = L.gather(2, idx[..., None, None].expand(B, K, n, *L.shape[-2:]))
+    return torch.full((B, K, n), -math.log(n), dtype=w.dtype, device=w.device), gm, gL
+
+
+__all__ = ["FlowMixtureLocaliser", "POState", "Localisation", "birth_mixture", "METHODS"]
