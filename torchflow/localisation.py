@@ -76,6 +76,54 @@ class Localisation:
     state: POState
 
 
+@dataclass
+class ParticlePOState:
+    """Potential objects as particle sets (:class:`BootstrapLocaliser`): ``existence``/``mask``
+    ``(B, K)``, ``log_weights (B, K, N)``, ``particles (B, K, N, 3)``."""
+
+    existence: torch.Tensor
+    mask: torch.Tensor
+    log_weights: torch.Tensor
+    particles: torch.Tensor
+
+    @property
+    def positions(self) -> torch.Tensor:
+        return (self.log_weights.exp().unsqueeze(-1) * self.particles).sum(-2)
+
+
+def _check_common(model, **kw):
+    if not isinstance(model, TDOA3D):
+        raise TypeError(f"model: expected a torchflow TDOA3D, got {type(model).__name__}")
+    if model.clutter_rate <= 0:
+        raise ValueError(f"model.clutter_rate: BP divides by the clutter intensity; expected > 0, got "
+                         f"{model.clutter_rate}")
+    for name in ("n_components", "samples_per_component", "n_particles", "birth_per_axis", "max_objects",
+                 "bp_iterations", "sample_chunk"):
+        v = kw.get(name, 1)
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ValueError(f"{name}: expected a positive integer, got {v!r}")
+    for name in ("prune", "declare"):
+        v = kw.get(name, 0.0)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= float(v) < 1.0:
+            raise ValueError(f"{name}: expected a probability in [0, 1), got {v!r}")
+    v = kw.get("birth_rate", 1.0)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not float(v) > 0:
+        raise ValueError(f"birth_rate: expected > 0, got {v!r}")
+
+
+def _forward(self, z: torch.Tensor, mask: torch.Tensor, generator) -> "Localisation":
+    """Localise from measurements ``z (B, S, M)`` with ``mask`` (:class:`~torchflow.models.TDOAData`),
+    processing the sensors in order; ``generator``: a ``torch.Generator`` or per-run
+    :class:`~torchflow.random.TrialStreams`."""
+    self.model.check_measurements(z, mask)
+    check_generator(generator, "generator")
+    state = self.init(z.shape[0], z.dtype, z.device)
+    for s in range(z.shape[1]):  # sequential processing of the sensors
+        state = self.update(state, z[:, s], mask[:, s], s, generator)
+    declared = state.mask & (state.existence > self.declare)
+    return Localisation(state.positions, declared, state)
+
+
 def birth_mixture(region: float, per_axis: int, sd_factor: float = 0.5, dtype=torch.float64, device=None):
     """A grid of ``per_axis^3`` equal-weight Gaussians covering ``[-region, region]^3``: cell centres,
     isotropic standard deviation ``sd_factor`` times the cell width. Returns ``(means (Nb, 3),
@@ -114,23 +162,11 @@ class FlowMixtureLocaliser(nn.Module):
                  max_objects: int = 30, prune: float = 1e-3, declare: float = 0.5, bp_iterations: int = 20,
                  jitter: float = 1e-6, sample_chunk: int = 20_000_000):
         super().__init__()
-        if not isinstance(model, TDOA3D):
-            raise TypeError(f"model: expected a torchflow TDOA3D, got {type(model).__name__}")
-        if model.clutter_rate <= 0:
-            raise ValueError(f"model.clutter_rate: BP divides by the clutter intensity; expected > 0, got "
-                             f"{model.clutter_rate}")
+        _check_common(model, n_components=n_components, samples_per_component=samples_per_component,
+                      birth_per_axis=birth_per_axis, max_objects=max_objects, bp_iterations=bp_iterations,
+                      sample_chunk=sample_chunk, prune=prune, declare=declare, birth_rate=birth_rate)
         if method not in METHODS:
             raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
-        for name, v in (("n_components", n_components), ("samples_per_component", samples_per_component),
-                        ("birth_per_axis", birth_per_axis), ("max_objects", max_objects),
-                        ("bp_iterations", bp_iterations), ("sample_chunk", sample_chunk)):
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"{name}: expected a positive integer, got {v!r}")
-        for name, v, lo, hi in (("prune", prune, 0.0, 1.0), ("declare", declare, 0.0, 1.0)):
-            if not lo <= float(v) < hi:
-                raise ValueError(f"{name}: expected a probability in [0, 1), got {v!r}")
-        if not float(birth_rate) > 0:
-            raise ValueError(f"birth_rate: expected > 0, got {birth_rate!r}")
         self.model, self.method = model, method
         if method == "pfi_d":
             self.flow = EDHFlow()
@@ -201,15 +237,13 @@ class FlowMixtureLocaliser(nn.Module):
         bI, b_mean, b_L = self._flowed_terms(b_logw, bm.expand(B, 1, Nb, 3), bL.expand(B, 1, Nb, 3, 3), z, sensor,
                                              generator)
         log_Ib = torch.logsumexp(b_logw.unsqueeze(-1) + bI, 2)[:, 0]  # (B, M)
-        xi = 1 + self.birth_rate * torch.exp(log_Ib - log_cf)
         if K:
             I, p_mean, p_L = self._flowed_terms(state.log_weights, state.means, state.scale_trils, z, sensor,
                                                 generator)
             log_Ik = torch.logsumexp(state.log_weights.unsqueeze(-1) + I, 2)  # (B, K, M)
-            r = state.existence
-            beta = torch.cat([(1 - r * pd).unsqueeze(-1), (r * pd).unsqueeze(-1) * torch.exp(log_Ik - log_cf)], -1)
         else:
-            beta = torch.zeros(B, 0, M + 1, dtype=dt, device=dev)
+            log_Ik = torch.zeros(B, 0, M, dtype=dt, device=dev)
+        beta, xi = _bp_terms(model, state.existence, log_Ik, log_Ib, log_cf, self.birth_rate)
         assoc = loopy_association(beta, xi, state.mask, z_mask, self.bp_iterations)
         # legacy POs: "missed" plus one candidate per component and measurement, reduced to G
         if K:
@@ -234,12 +268,7 @@ class FlowMixtureLocaliser(nn.Module):
             parts = [torch.cat([a, b], 1) for a, b in zip(leg, new)]
         else:
             r_all, mask, parts = r_new, z_mask, list(new)
-        mask = mask & (r_all >= self.prune)
-        r_all = torch.where(mask, r_all, torch.zeros_like(r_all))
-        keep = min(self.max_objects, r_all.shape[1])
-        top = torch.where(mask, r_all, torch.full_like(r_all, -1.0)).topk(keep, dim=1).indices  # (B, keep)
-        g = lambda t: t.gather(1, top.reshape(B, keep, *([1] * (t.dim() - 2))).expand(B, keep, *t.shape[2:]))  # noqa: E731
-        return POState(g(r_all), g(mask), *(g(t) for t in parts))
+        return POState(*_prune_and_cap(r_all, mask, parts, self.prune, self.max_objects))
 
     # ---- whole scene -------------------------------------------------------------------------
     def init(self, batch_size: int, dtype=torch.float64, device=None) -> POState:
@@ -250,35 +279,139 @@ class FlowMixtureLocaliser(nn.Module):
                        torch.zeros(B, 0, G, 3, dtype=dtype, device=device),
                        torch.zeros(B, 0, G, 3, 3, dtype=dtype, device=device))
 
-    def forward(self, z: torch.Tensor, mask: torch.Tensor, generator) -> Localisation:
-        """Localise from measurements ``z (B, S, M)`` with ``mask`` (:class:`~torchflow.models.TDOAData`)."""
-        self.model.check_measurements(z, mask)
-        check_generator(generator, "generator")
-        state = self.init(z.shape[0], z.dtype, z.device)
-        for s in range(z.shape[1]):  # sequential processing of the sensors
-            state = self.update(state, z[:, s], mask[:, s], s, generator)
-        declared = state.mask & (state.existence > self.declare)
-        return Localisation(state.positions, declared, state)
+    forward = _forward
 
     def extra_repr(self) -> str:
         return (f"method={self.method!r}, n_components={self.G}, samples_per_component={self.n_samples}, "
                 f"schedule={self.schedule!r}")
 
 
-def _reduce(log_w: torch.Tensor, means: torch.Tensor, L: torch.Tensor, n: int, generator):
-    """Keep ``n`` of the candidate components ``(B, K, C)`` by systematic resampling of their indices
-    (one uniform per PO); returns ``(log_weights (B, K, n) equal, means, scale_trils)``."""
+def _prune_and_cap(r, mask, parts, prune: float, max_objects: int):
+    """Drop POs with existence below ``prune`` and keep the ``max_objects`` most likely (a fixed
+    number of slots: no host synchronisation). Returns ``(r, mask, *parts)`` gathered."""
+    B = r.shape[0]
+    mask = mask & (r >= prune)  # a nan existence is dropped too
+    r = torch.where(mask, r, torch.zeros_like(r))
+    keep = min(max_objects, r.shape[1])
+    top = torch.where(mask, r, torch.full_like(r, -1.0)).topk(keep, dim=1).indices  # (B, keep)
+
+    def g(t):
+        return t.gather(1, top.reshape(B, keep, *([1] * (t.dim() - 2))).expand(B, keep, *t.shape[2:]))
+
+    return (g(r), g(mask), *(g(t) for t in parts))
+
+
+def _bp_terms(model, r, log_Ik, log_Ib, log_cf, birth_rate):
+    """``beta (B, K, M + 1)`` and ``xi (B, M)`` from the integrals ``log int f_k l_m`` and
+    ``log int f_b l_m``."""
+    pd = model.p_d
+    beta = torch.cat([(1 - r * pd).unsqueeze(-1), (r * pd).unsqueeze(-1) * torch.exp(log_Ik - log_cf)], -1)
+    return beta, 1 + birth_rate * torch.exp(log_Ib - log_cf)
+
+
+def _systematic_indices(log_w: torch.Tensor, n: int, generator) -> torch.Tensor:
+    """``n`` indices per row of ``log_w (B, K, C)`` by systematic resampling (one uniform per row);
+    a row with no positive weight resamples uniformly."""
     B, K, C = log_w.shape
     w = torch.softmax(log_w, -1)
-    w = torch.where(torch.isfinite(w).all(-1, keepdim=True), w, torch.full_like(w, 1.0 / C))  # all -inf: uniform
+    w = torch.where(torch.isfinite(w).all(-1, keepdim=True), w, torch.full_like(w, 1.0 / C))
     cdf = w.cumsum(-1)
     cdf = cdf / cdf[..., -1:].clamp_min(torch.finfo(w.dtype).tiny)
     u = uniform((B, K, 1), dtype=w.dtype, device=w.device, generator=generator)
     pos = (torch.arange(n, dtype=w.dtype, device=w.device) + u) / n
-    idx = torch.searchsorted(cdf.contiguous(), pos.contiguous()).clamp(max=C - 1)  # (B, K, n)
+    return torch.searchsorted(cdf.contiguous(), pos.contiguous()).clamp(max=C - 1)  # (B, K, n)
+
+
+class BootstrapLocaliser(nn.Module):
+    """The bootstrap baseline of seed 002 (``BS``): each PO is a plain set of N_p particles; for
+    each sensor the proposal is the previous posterior itself (the sources are static), the
+    weights are the BP-weighted likelihood terms, and each PO is resampled (systematic). New POs
+    start from N_p particles uniform in the region. The same BP, pruning and declaration as
+    :class:`FlowMixtureLocaliser`; likelihoods are evaluated in chunks of ``sample_chunk`` numbers.
+
+    Args:
+        model: :class:`~torchflow.models.TDOA3D` (``clutter_rate > 0``).
+        n_particles: N_p per PO (seed: 2e6 and 4e7).
+        birth_rate, max_objects, prune, declare, bp_iterations, sample_chunk: as
+            :class:`FlowMixtureLocaliser`.
+    """
+
+    method = "bs"
+
+    def __init__(self, model: TDOA3D, *, n_particles: int = 100_000, birth_rate: float = 0.01, max_objects: int = 30,
+                 prune: float = 1e-3, declare: float = 0.5, bp_iterations: int = 20, sample_chunk: int = 20_000_000):
+        super().__init__()
+        _check_common(model, n_particles=n_particles, max_objects=max_objects, bp_iterations=bp_iterations,
+                      sample_chunk=sample_chunk, prune=prune, declare=declare, birth_rate=birth_rate)
+        self.model, self.n_particles = model, n_particles
+        self.birth_rate, self.max_objects, self.prune, self.declare = float(birth_rate), max_objects, float(prune), \
+            float(declare)
+        self.bp_iterations, self.sample_chunk = bp_iterations, sample_chunk
+
+    def _loglik(self, x, z, s):
+        """``log l_m(x)`` of particles ``x (B, K, N, 3)`` for measurements ``z (B, M)`` ->
+        ``(B, K, N, M)``, in chunks of particles."""
+        B, K, N, _ = x.shape
+        M = z.shape[1]
+        per = max(1, self.sample_chunk // max(1, B * K * M * 3))
+        out = [self.model.log_likelihood(z.reshape(B, 1, 1, M), x[:, :, a:a + per].unsqueeze(-2), s)
+               for a in range(0, N, per)]
+        return torch.cat(out, 2)
+
+    def update(self, state: "ParticlePOState", z, z_mask, sensor, generator) -> "ParticlePOState":
+        model = self.model
+        B, M = z.shape
+        dt, dev = z.dtype, z.device
+        N, K = self.n_particles, state.existence.shape[1]
+        pd = model.p_d
+        log_cf = math.log(model.clutter_rate) + model.clutter_log_density(sensor).to(dt)
+        xb = (uniform((B, M, N, 3), dtype=dt, device=dev, generator=generator) * 2 - 1) * model.region
+        llb = self._loglik(xb, z, sensor).diagonal(dim1=1, dim2=-1).permute(0, 2, 1)  # (B, M, N): own measurement
+        log_Ib = torch.logsumexp(llb, -1) - math.log(N)
+        ll = self._loglik(state.particles, z, sensor) if K else torch.zeros(B, 0, N, M, dtype=dt, device=dev)
+        log_Ik = torch.logsumexp(state.log_weights.unsqueeze(-1) + ll, 2)  # (B, K, M)
+        beta, xi = _bp_terms(model, state.existence, log_Ik, log_Ib, log_cf, self.birth_rate)
+        assoc = loopy_association(beta, xi, state.mask, z_mask, self.bp_iterations)
+        live = state.mask.unsqueeze(-1) & z_mask.unsqueeze(-2)
+        tiny = torch.finfo(dt).tiny
+        log_nu = torch.where(live, torch.log(assoc.nu.clamp_min(tiny)), torch.tensor(float("-inf"), dtype=dt))
+        terms = torch.cat([torch.full((B, K, N, 1), math.log(1 - pd) if pd < 1 else float("-inf"), dtype=dt,
+                                      device=dev),
+                           math.log(pd) + log_nu.unsqueeze(2) - log_cf + ll], -1)
+        lw = state.log_weights + torch.logsumexp(terms, -1)  # (B, K, N)
+        log_C = torch.logsumexp(lw, -1)
+        r = state.existence
+        r_leg = r * log_C.exp() / (r * log_C.exp() + 1 - r)
+        idx = _systematic_indices(lw, N, generator)
+        leg = state.particles.gather(2, idx.unsqueeze(-1).expand(B, K, N, 3))
+        nidx = _systematic_indices(llb, N, generator)
+        new = xb.gather(2, nidx.unsqueeze(-1).expand(B, M, N, 3))
+        r_all = torch.cat([r_leg, assoc.new_existence], 1)
+        mask = torch.cat([state.mask, z_mask], 1)
+        flat = torch.full((B, K + M, N), -math.log(N), dtype=dt, device=dev)
+        r2, m2, lw2, x2 = _prune_and_cap(r_all, mask, [flat, torch.cat([leg, new], 1)], self.prune, self.max_objects)
+        return ParticlePOState(r2, m2, lw2, x2)
+
+    def init(self, batch_size: int, dtype=torch.float64, device=None) -> "ParticlePOState":
+        z = torch.zeros(batch_size, 0, dtype=dtype, device=device)
+        return ParticlePOState(z, z.bool(), torch.zeros(batch_size, 0, self.n_particles, dtype=dtype, device=device),
+                               torch.zeros(batch_size, 0, self.n_particles, 3, dtype=dtype, device=device))
+
+    forward = _forward
+
+    def extra_repr(self) -> str:
+        return f"n_particles={self.n_particles}"
+
+
+def _reduce(log_w: torch.Tensor, means: torch.Tensor, L: torch.Tensor, n: int, generator):
+    """Keep ``n`` of the candidate components ``(B, K, C)`` by systematic resampling of their indices
+    (one uniform per PO); returns ``(log_weights (B, K, n) equal, means, scale_trils)``."""
+    B, K, C = log_w.shape
+    idx = _systematic_indices(log_w, n, generator)
     gm = means.gather(2, idx.unsqueeze(-1).expand(B, K, n, means.shape[-1]))
     gL = L.gather(2, idx[..., None, None].expand(B, K, n, *L.shape[-2:]))
-    return torch.full((B, K, n), -math.log(n), dtype=w.dtype, device=w.device), gm, gL
+    return torch.full((B, K, n), -math.log(n), dtype=means.dtype, device=means.device), gm, gL
 
 
-__all__ = ["FlowMixtureLocaliser", "POState", "Localisation", "birth_mixture", "METHODS"]
+__all__ = ["FlowMixtureLocaliser", "BootstrapLocaliser", "POState", "ParticlePOState", "Localisation", "birth_mixture",
+           "METHODS"]
