@@ -152,6 +152,7 @@ class FlowMixtureLocaliser(nn.Module):
         declare: existence above which a PO is a declared source (0.5).
         bp_iterations: message passes (20).
         jitter: relative diagonal jitter of the refitted covariances (of the component's prior scale).
+        name: label in results (default: the class name).
         sample_chunk: numbers drawn per pass (memory bound; the draws do not depend on it with
             per-trial streams).
     """
@@ -160,8 +161,9 @@ class FlowMixtureLocaliser(nn.Module):
                  samples_per_component: int = 5000, schedule: Optional[LambdaSchedule] = None, alpha: float = 0.1,
                  c_rule: str = "printed", birth_rate: float = 0.01, birth_per_axis: int = 5, birth_sd: float = 0.5,
                  max_objects: int = 30, prune: float = 1e-3, declare: float = 0.5, bp_iterations: int = 20,
-                 jitter: float = 1e-6, sample_chunk: int = 20_000_000):
+                 jitter: float = 1e-6, sample_chunk: int = 20_000_000, name: Optional[str] = None):
         super().__init__()
+        self.name = name or type(self).__name__
         _check_common(model, n_components=n_components, samples_per_component=samples_per_component,
                       birth_per_axis=birth_per_axis, max_objects=max_objects, bp_iterations=bp_iterations,
                       sample_chunk=sample_chunk, prune=prune, declare=declare, birth_rate=birth_rate)
@@ -286,6 +288,106 @@ class FlowMixtureLocaliser(nn.Module):
                 f"schedule={self.schedule!r}")
 
 
+LOCALISATION_COLUMNS = ["filter", "n_particles", "trials", "ospa", "ospa_se", "declared", "true_sources",
+                        "sec_per_run", "error"]
+
+
+def run_localisation(model: TDOA3D, localisers, *, runs: int = 10, seed: int = 0, ospa_cutoff: float = 30.0,
+                     ospa_order: float = 1.0, device="cpu", dtype="float64", rng_backend: str = "auto",
+                     progress: bool = True, on_filter_done=None):
+    """Simulate ``runs`` scenes once and localise them with every localiser (seed 002's tables).
+
+    Each run is processed alone, trimmed to its own largest number of measurements per sensor, with
+    its own random stream (:class:`~torchflow.random.TrialStreams` keyed by seed, run and method), so
+    a run's numbers do not depend on how many runs there are or on which other runs exist beside it.
+    A localiser that raises does not stop the others: its row gets the error.
+
+    Returns:
+        ``(summary, per_run, data, examples)``: summary rows (:data:`LOCALISATION_COLUMNS`), one row
+        per localiser and run (``ospa``, ``declared``, ``sec``), the simulated :class:`TDOAData`
+        (CPU) and run 0's declared positions per localiser.
+    """
+    import time
+
+    from .experiment import resolve_device, resolve_dtype
+    from .metrics import ospa as ospa_metric
+    from .random import TrialStreams
+
+    dev, dt = resolve_device(device), resolve_dtype(dtype)
+    model.to(device=dev, dtype=dt)
+    data = model.simulate(int(runs), torch.Generator(device=dev).manual_seed(int(seed)))
+    counts = data.mask.sum(-1).amax(-1).tolist()  # per run: its own padding (one read, before any localiser)
+    summary, per_run, examples = [], [], {}
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:  # pragma: no cover
+        tqdm = None
+    for name, loc in localisers.items():
+        loc.to(device=dev, dtype=dt)
+        row = {c: None for c in LOCALISATION_COLUMNS}
+        row.update(filter=name, trials=runs, true_sources=model.n_sources,
+                   n_particles=getattr(loc, "n_particles", None) or loc.G * loc.n_samples)
+        bar = tqdm(total=runs, unit="run", leave=False, desc=name) if progress and tqdm is not None else None
+        vals, decl, secs = [], [], []
+        try:
+            with torch.no_grad():
+                for b in range(runs):
+                    M = int(counts[b])
+                    z, mask = data.z[b:b + 1, :, :M], data.mask[b:b + 1, :, :M]
+                    g = TrialStreams(seed, [b], key=f"localise_{loc.method}", backend=rng_backend)
+                    if dev.type == "cuda":
+                        torch.cuda.synchronize()
+                    t0 = time.perf_counter()
+                    res = loc(z, mask, g)
+                    if dev.type == "cuda":
+                        torch.cuda.synchronize()
+                    secs.append(time.perf_counter() - t0)
+                    o = ospa_metric(res.positions.unsqueeze(1).double(), data.sources[b:b + 1].unsqueeze(1).double(),
+                                    cutoff=ospa_cutoff, order=ospa_order, X_mask=res.declared.unsqueeze(1))
+                    vals.append(float(o))
+                    decl.append(int(res.declared.sum()))
+                    per_run.append({"filter": name, "trial": b, "ospa": vals[-1], "declared": decl[-1], "sec": secs[-1]})
+                    if b == 0:
+                        examples[name] = res.positions[0][res.declared[0]].cpu()
+                    if bar is not None:
+                        bar.update(1)
+        except Exception as e:  # one failing localiser must not lose the others' results
+            row["error"] = f"{type(e).__name__}: {e}"
+        if bar is not None:
+            bar.close()
+        if vals:
+            v = torch.tensor(vals, dtype=torch.float64)
+            row.update(ospa=float(v.mean()), ospa_se=float(v.std() / math.sqrt(len(vals))) if len(vals) > 1 else None,
+                       declared=sum(decl) / len(decl), sec_per_run=sum(secs) / len(secs))
+        summary.append(row)
+        if on_filter_done is not None:
+            on_filter_done(summary)
+    cpu = type(data)(*(t.cpu() for t in (data.sources, data.z, data.mask, data.origin)))
+    return summary, per_run, cpu, examples
+
+
+def scene_figure(plt, model: TDOA3D, sources: torch.Tensor, examples: dict, title: str):
+    """A 3-D picture of one run: receivers, true sources and every localiser's declared sources."""
+    fig = plt.figure(figsize=(6.5, 5.5))
+    ax = fig.add_subplot(projection="3d")
+    rec = model.receivers.cpu()
+    ax.scatter(*rec.T, marker="s", s=40, c="k", label="receivers")
+    ax.scatter(*sources.T, marker="*", s=160, c="gold", edgecolors="k", label="true sources")
+    marks = "o^vDs<>"
+    for i, (name, pos) in enumerate(examples.items()):
+        if len(pos):
+            ax.scatter(*pos.T, marker=marks[i % len(marks)], s=50, facecolors="none", edgecolors=f"C{i}", label=name)
+        else:
+            ax.scatter([], [], [], marker=marks[i % len(marks)], label=f"{name} (none declared)")
+    r = model.region
+    ax.set_xlim(-r, r), ax.set_ylim(-r, r), ax.set_zlim(-r, r)
+    ax.set_xlabel("x (m)"), ax.set_ylabel("y (m)"), ax.set_zlabel("z (m)")
+    ax.legend(fontsize=7, loc="upper left")
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
 def _prune_and_cap(r, mask, parts, prune: float, max_objects: int):
     """Drop POs with existence below ``prune`` and keep the ``max_objects`` most likely (a fixed
     number of slots: no host synchronisation). Returns ``(r, mask, *parts)`` gathered."""
@@ -339,8 +441,10 @@ class BootstrapLocaliser(nn.Module):
     method = "bs"
 
     def __init__(self, model: TDOA3D, *, n_particles: int = 100_000, birth_rate: float = 0.01, max_objects: int = 30,
-                 prune: float = 1e-3, declare: float = 0.5, bp_iterations: int = 20, sample_chunk: int = 20_000_000):
+                 prune: float = 1e-3, declare: float = 0.5, bp_iterations: int = 20, sample_chunk: int = 20_000_000,
+                 name: Optional[str] = None):
         super().__init__()
+        self.name = name or type(self).__name__
         _check_common(model, n_particles=n_particles, max_objects=max_objects, bp_iterations=bp_iterations,
                       sample_chunk=sample_chunk, prune=prune, declare=declare, birth_rate=birth_rate)
         self.model, self.n_particles = model, n_particles
@@ -413,5 +517,5 @@ def _reduce(log_w: torch.Tensor, means: torch.Tensor, L: torch.Tensor, n: int, g
     return torch.full((B, K, n), -math.log(n), dtype=means.dtype, device=means.device), gm, gL
 
 
-__all__ = ["FlowMixtureLocaliser", "BootstrapLocaliser", "POState", "ParticlePOState", "Localisation", "birth_mixture",
+__all__ = ["run_localisation", "scene_figure", "LOCALISATION_COLUMNS", "FlowMixtureLocaliser", "BootstrapLocaliser", "POState", "ParticlePOState", "Localisation", "birth_mixture",
            "METHODS"]
