@@ -304,3 +304,17 @@ def test_trial_stats_quartiles_and_paired_ratios(tmp_path):
     # every paired resample doubles the median exactly
     assert ratios[0]["ratio"] == 2.0 and ratios[0]["lo"] == 2.0 and ratios[0]["hi"] == 2.0
     assert main([str(tmp_path / "nope")]) == 2
+
+
+def test_cli_tdoa_runs_localisers_and_refuses_filters(tmp_path):
+    """model=tdoa runs seed 002's localisers (table, per-run CSV, OSPA within [0, cut-off]) and
+    refuses a state-space filter with a one-line error."""
+    out = _cli(tmp_path, "model=tdoa", "filter=[pfi_s,bs]", "trials=2", "filter.pfi_s.n_components=5",
+               "filter.pfi_s.samples_per_component=20", "filter.bs.n_particles=500", f"hydra.run.dir={tmp_path}/t")
+    assert "| pfi_s |" in out.stdout and "| bs |" in out.stdout
+    rows = list(csv.DictReader(open(tmp_path / "t" / "per_trial.csv")))
+    assert len(rows) == 4 and all(0 <= float(r["ospa"]) <= 40 for r in rows)
+    cmd = [sys.executable, str(ROOT / "experiments" / "run.py"), "model=tdoa", "filter=[bpf]", "progress=false",
+           f"hydra.run.dir={tmp_path}/u"]
+    bad = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert bad.returncode == 2 and "filter.bpf: model: expected a torchflow StateSpaceModel, got TDOA3D" in bad.stderr
