@@ -148,3 +148,17 @@ def test_pfpf_evidence_on_the_skewed_t_model_matches_the_bootstrap_filter():
         se = math.sqrt(float(z.var()) / 40 + float(z_ref.var()) / 20)
         assert abs(float(z.mean() - z_ref.mean())) < 4 * se, (flow, float(z.mean()), float(z_ref.mean()), se)
         assert se < 0.05  # small enough to see a wrong weight
+
+
+def test_counts_must_be_non_negative_integers():
+    from torchflow.filters import BootstrapParticleFilter
+
+    model = SkewedTPoisson(d=4)
+    f = BootstrapParticleFilter(model, n_particles=10)
+    mean, cov = model.initial_belief(torch.zeros(1, 4, dtype=torch.float64))
+    for bad, what in ((-1.0, "-1.0"), (2.5, "2.5")):
+        z = torch.ones(1, 3, 4, dtype=torch.float64)
+        z[0, 1, 2] = bad
+        with pytest.raises(ValueError, match=rf"observations: expected Poisson counts .* got {what} at trial 0, "
+                                             r"step 1, cell 2"):
+            f(z, mean, cov, torch.Generator().manual_seed(0))

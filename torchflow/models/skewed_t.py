@@ -117,6 +117,16 @@ class SkewedTPoisson(StateSpaceModel):
         xi = linalg.standard_normal(x.shape, dtype=x.dtype, device=x.device, generator=generator)
         return self.location(x) + W * self.gamma + W.sqrt() * linalg.matvec(self.Sigma_tril, xi)
 
+    def check_observations(self, observations):
+        """Counts: finite ``(B, T, d)`` non-negative integers (a clear error names the first bad one)."""
+        observations = super().check_observations(observations)
+        bad = (observations < 0) | (observations != observations.round())
+        if bool(bad.any()):
+            b, t, c = [int(v) for v in torch.nonzero(bad)[0]]
+            raise ValueError(f"observations: expected Poisson counts (non-negative integers), got "
+                             f"{float(observations[b, t, c])!r} at trial {b}, step {t}, cell {c}")
+        return observations
+
     def transition_log_prob(self, x_next, x):
         """The exact GH skewed-t log-density ``(...)`` (module docstring)."""
         r = x_next - self.location(x)
