@@ -65,3 +65,15 @@ def test_clustered_pfpf_step_reads_back_only_for_covariance_factorisations():
     model = AcousticTracking()
     n = _second_step(model, ClusteredParticleFlowParticleFilter(model, n_clusters=5, n_particles=32))
     assert n <= 4, n
+
+
+@pytest.mark.parametrize("flow", [None, "ledh"])
+def test_gaussian_sum_step_reads_back_only_for_covariance_factorisations(flow):
+    """The component factors (posterior and fitted predictive) and, on acoustic tracking, the
+    support-ordered prior factor: at most 3. (Before issue 13 the linear model's R was re-factored,
+    with a check, at every pseudo-time step: 31 reads.)"""
+    from torchflow.filters import GaussianSumParticleFilter
+
+    for model in (AcousticTracking(), SensorNetwork(d=16)):
+        n = _second_step(model, GaussianSumParticleFilter(model, flow=flow, n_components=2, particles_per_component=20))
+        assert n <= 3, (type(model).__name__, n)

@@ -78,6 +78,8 @@ class LinearGaussian(StateSpaceModel):
         self.register_buffer("P0", P0.clone())
         # a constant Q is factored once (a learnable one at every use, so that it has a gradient)
         self.register_buffer("Q_tril", None if "Q" in learn else linalg.safe_cholesky(Q))
+        # R's factor once, for the flows' whitening at every pseudo-time step (no per-call check)
+        self.register_buffer("R_tril", None if "R" in learn else linalg.safe_cholesky(R))
         # structure declared once, here (filters never test the matrices at run time); a learnable
         # matrix is general, so that every entry receives its gradient. F, H, R are fixed after
         # construction unless learnable.
@@ -124,6 +126,9 @@ class LinearGaussian(StateSpaceModel):
 
     def measurement_cov(self, x=None):
         return self.R
+
+    def measurement_scale_tril(self, x=None):
+        return self.R_tril if self.R_tril is not None else linalg.safe_cholesky(self.R)
 
     def measurement_jacobian(self, x):
         return self.H.expand(*x.shape[:-1], *self.H.shape)
