@@ -175,6 +175,8 @@ def row_label(key: str, f) -> str:
         fl = None if flow is None else flow_label(flow)
         if fl != ("ledh" if key.startswith("pf") else None):
             tags.append(f"flow={fl}")
+        if getattr(f, "estimate", "mixture_mean") != "mixture_mean":
+            tags.append(f"estimate={f.estimate}")
         return f"{key}[{','.join(tags)}]"
     if flow is None:
         return key

@@ -227,9 +227,25 @@ def test_bad_arguments():
         GaussianSumParticleFilter(model, init="random")
     with pytest.raises(ValueError, match="deterministic"):
         GaussianSumParticleFilter(model, flow="gromov")
+    with pytest.raises(ValueError, match="estimate"):
+        GaussianSumParticleFilter(model, estimate="median")
     with pytest.raises(ValueError, match="jitter"):
         GaussianSumParticleFilter(model, jitter=-1.0)
     f = GaussianSumParticleFilter(model, n_components=2, particles_per_component=10)
     traj, mean, cov, g = simulate_with_belief(model, 2, 2)
     with pytest.raises(ValueError, match="n_particles"):
         f(traj.observations, mean, cov, g, n_particles=7)
+
+
+def test_top_component_estimate_is_the_heaviest_components_mean():
+    model = AcousticTracking()
+    g = torch.Generator().manual_seed(0)
+    traj = model.simulate(2, 2, g)
+    mean, cov = model.initial_belief(traj.states[:, 0], g)
+    f = ParticleFlowGaussianSumParticleFilter(model, n_components=3, particles_per_component=20, schedule=SCHED,
+                                              estimate="top_component")
+    streams = TrialStreams(0, range(2), f.stream_name)
+    s = f.step(f.init(mean, cov, None, streams), traj.observations[:, 0], streams)
+    top = s.log_alpha.argmax(-1)
+    torch.testing.assert_close(s.estimate, s.means[torch.arange(2), top])
+    assert not torch.allclose(s.estimate, (s.log_alpha.exp().unsqueeze(-1) * s.means).sum(1))
