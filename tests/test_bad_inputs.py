@@ -122,7 +122,7 @@ def test_tiny_memory_budget_warns_with_the_plan():
 @pytest.mark.parametrize("override, match", [
     ("device=tpu", "error: device: expected 'cpu', 'cuda' or 'cuda:<index>', got 'tpu'"),
     ("trials=abc", "error: trials: expected a positive integer, got 'abc' (str)"),
-    ("filter=[nope]", "error: filter: unknown filter config 'nope'; available: bpf, edh, ekf,"),
+    ("filter=[nope]", "error: filter: unknown filter config 'nope'; available: bpf, bs, edh, ekf,"),
     ("n_particles=2.5", "error: filter.bpf: n_particles: expected a positive integer, got 2.5 (float)"),
     ("n_particles=True", "error: filter.bpf: n_particles: expected a positive integer, got True (bool)"),
     ("memory_budget_gb=0", "error: memory_budget_gb: expected a positive number of GiB, got 0"),

@@ -99,7 +99,7 @@ def integrate_flow(
         from .measurement import GaussianMeasurement
 
         measurement = GaussianMeasurement.from_model(model, z)
-    shape0 = prior.mean.shape
+    shape0 = None if start is None else prior.mean.shape
     prior, index, squeeze = strategy.arrange(prior, particles, index)
     if start is not None:
         if start.shape != shape0:
