@@ -94,3 +94,16 @@ def test_a_certain_object_with_one_measurement_stays_finite():
     assert torch.isfinite(res.probabilities).all() and torch.isfinite(res.nu).all()
     torch.testing.assert_close(res.probabilities[0, 0], torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
     assert float(res.new_existence[0, 0]) == 0.0
+
+
+def test_zero_terms_and_non_finite_padding_give_no_nan():
+    """beta_k(0) = 0 with every other term 0 (a certain PO whose measurement likelihood underflowed)
+    gives 0, not 0/0; a padded PO with nan terms changes nothing (review of issue 14)."""
+    beta = torch.tensor([[[0.0, 0.0, 0.0], [0.5, 2.0, 1.0]]], dtype=torch.float64)
+    res = loopy_association(beta, torch.ones(1, 2, dtype=torch.float64) * 1.5)
+    assert torch.isfinite(res.nu).all() and torch.isfinite(res.probabilities[0, 1]).all()
+    pad = torch.tensor([[[0.5, 2.0, 1.0], [1.0, float("nan"), float("nan")]]], dtype=torch.float64)
+    a = loopy_association(pad, torch.ones(1, 2, dtype=torch.float64) * 1.5, torch.tensor([[True, False]]))
+    b = loopy_association(pad[:, :1], torch.ones(1, 2, dtype=torch.float64) * 1.5)
+    torch.testing.assert_close(a.probabilities[:, 0], b.probabilities[:, 0])
+    assert torch.isfinite(a.new_existence).all()

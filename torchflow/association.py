@@ -73,18 +73,20 @@ def loopy_association(beta: torch.Tensor, xi: torch.Tensor, object_mask: Optiona
             raise ValueError(f"{name}: expected a bool tensor {shape}, got {tuple(mask.shape)} of {mask.dtype}")
     live = om.unsqueeze(-1) & mm.unsqueeze(-2)  # (B, K, M)
     b0 = beta[..., 0]
-    bm = beta[..., 1:] * live  # padded pairs contribute nothing
+    zero = beta.new_zeros(())
+    bm = torch.where(live, beta[..., 1:], zero)  # padded pairs contribute nothing (even nan or inf)
+    b0 = torch.where(om, b0, torch.ones_like(b0))
     nu = live.to(beta.dtype)  # nu^(0) = 1
     zeta = torch.zeros_like(bm)
     # leave-one-out sums by exclusion, never by subtraction: a certain PO (beta_k(0) = 0) with one
     # dominant measurement makes "total - own term" cancel to round-off (and inf - inf = nan)
     other_m = ~torch.eye(M, dtype=torch.bool, device=beta.device)  # (m, m')
     other_k = ~torch.eye(K, dtype=torch.bool, device=beta.device)  # (k, k')
-    zero = beta.new_zeros(())
     for _ in range(iterations):
         bn = (bm * nu).unsqueeze(-2)  # (B, K, 1, M'): beta_k(m') nu_{m'->k}, finite
         loo_m = torch.where(other_m, bn, zero).sum(-1)  # (B, K, M)
-        zeta = bm / (b0.unsqueeze(-1) + loo_m)  # inf where a certain PO has no other measurement
+        # inf where a certain PO has no other measurement; 0 (not 0/0) where beta_k(m) = 0
+        zeta = torch.where(bm > 0, bm / (b0.unsqueeze(-1) + loo_m), zero)
         zk = zeta.unsqueeze(1)  # (B, 1, K', M)
         loo_k = torch.where(other_k.unsqueeze(-1), zk, zero).sum(2)  # (B, K, M), no inf * 0
         nu = torch.where(live, 1 / (xi.unsqueeze(-2) + loo_k), zero)

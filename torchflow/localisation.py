@@ -153,8 +153,9 @@ class FlowMixtureLocaliser(nn.Module):
         bp_iterations: message passes (20).
         jitter: relative diagonal jitter of the refitted covariances (of the component's prior scale).
         name: label in results (default: the class name).
-        sample_chunk: numbers drawn per pass (memory bound; the draws do not depend on it with
-            per-trial streams).
+        sample_chunk: numbers drawn per pass (memory bound). Draws are made per pass, so with the
+            numpy back end of per-trial streams (which splits draws above 2^18 numbers) results
+            can depend on it; keep it fixed to compare runs.
     """
 
     def __init__(self, model: TDOA3D, method: str = "pfi_os", *, n_components: int = 100,
@@ -204,7 +205,7 @@ class FlowMixtureLocaliser(nn.Module):
         log_I, pm, pc = [], [], []
         scale = L0.pow(2).sum((-2, -1)) / d  # tr(P0) / d per row
         eye = torch.eye(d, dtype=means.dtype, device=means.device)
-        for a in range(0, R, per):  # memory chunks; the draws follow the rows (per-trial streams)
+        for a in range(0, R, per):  # memory chunks (see sample_chunk)
             sl = slice(a, min(R, a + per))
             xi = linalg.standard_normal((B, sl.stop - a, n, d), dtype=means.dtype, device=means.device,
                                         generator=generator)
@@ -258,7 +259,8 @@ class FlowMixtureLocaliser(nn.Module):
             cand_L = torch.cat([state.scale_trils, p_L.reshape(B, K, G * M, 3, 3)], 2)
             log_C = torch.logsumexp(cand_w, -1)  # log C_k
             r = state.existence
-            r_leg = r * log_C.exp() / (r * log_C.exp() + 1 - r)
+            rc = r * log_C.exp()
+            r_leg = torch.where(rc > 0, rc / (rc + 1 - r), torch.zeros_like(rc))  # r = 1, C = 0: 0, not 0/0
             leg = _reduce(cand_w, cand_m, cand_L, G, generator)
         # new POs: the birth candidates of each measurement, reduced to G
         nb_w = (b_logw[:, 0].unsqueeze(-1) + bI[:, 0]).transpose(1, 2)  # (B, M, Nb)
@@ -297,9 +299,11 @@ def run_localisation(model: TDOA3D, localisers, *, runs: int = 10, seed: int = 0
                      progress: bool = True, on_filter_done=None):
     """Simulate ``runs`` scenes once and localise them with every localiser (seed 002's tables).
 
-    Each run is processed alone, trimmed to its own largest number of measurements per sensor, with
-    its own random stream (:class:`~torchflow.random.TrialStreams` keyed by seed, run and method), so
-    a run's numbers do not depend on how many runs there are or on which other runs exist beside it.
+    The scenes are simulated together from ``seed`` (as the state-space runner simulates its
+    trajectories), so scene b depends on ``runs``. Each run is then localised alone, trimmed to its
+    own largest number of measurements per sensor, with its own random stream
+    (:class:`~torchflow.random.TrialStreams` keyed by seed, run and method): given the scenes, a
+    run's result does not depend on the other runs.
     A localiser that raises does not stop the others: its row gets the error.
 
     Returns:

@@ -214,7 +214,8 @@ class FlowedMixtureProposal(nn.Module):
 
     def flowed(self, means: torch.Tensor, scale_trils: torch.Tensor, measurement):
         """``(means', covs')`` of every component ``(..., G, d)``, ``(..., G, d, d)`` flowed by the
-        measurement term (whose ``z`` is batched like ``means[..., 0, :]`` flattened to its rows)."""
+        measurement term, whose ``z`` has one row per component (``prod(...) * G`` rows, in the
+        order of ``means.reshape(-1, d)``)."""
         from .flows import flow_gaussian
 
         *batch, G, d = means.shape
@@ -236,9 +237,11 @@ class FlowedMixtureProposal(nn.Module):
             generator: ``torch.Generator`` or per-trial streams (``B`` leading).
 
         Returns:
-            ``(x (B, G, n, d), log_omega (B, G, n), log_evidence (B,))``: samples, log importance
-            weights ``log f + log l - log q`` (or the per-component ratio) and the log of the
-            unbiased estimate ``sum_n w_n mean_i omega_ni`` of ``int f l dx``.
+            ``(x (B, G, n, d), log_weights (B, G, n), log_evidence (B,))``: samples, their log
+            weights ``log w_n + log omega_ni`` (``omega = f l / q`` or the per-component ratio;
+            the draws are stratified, n per component, so each sample carries its component's
+            weight) and the log of the unbiased estimate ``sum_n w_n mean_i omega_ni`` of
+            ``int f l dx`` (= the log of the mean of the weights times G).
         """
         B, G, d = means.shape
         xi = linalg.standard_normal((B, G, n_samples, d), dtype=means.dtype, device=means.device, generator=generator)
@@ -250,8 +253,9 @@ class FlowedMixtureProposal(nn.Module):
             log_f = _mixture_log_prob(x, log_w, means, scale_trils)
             log_q = _mixture_log_prob(x, log_w, flowed_means, flowed_scale_trils)
         log_omega = log_f + log_likelihood(x) - log_q
-        log_ev = torch.logsumexp(log_w.unsqueeze(-1) + log_omega, (-2, -1)) - math.log(n_samples)
-        return x, log_omega, log_ev
+        log_weights = log_w.unsqueeze(-1) + log_omega
+        log_ev = torch.logsumexp(log_weights, (-2, -1)) - math.log(n_samples)
+        return x, log_weights, log_ev
 
     def extra_repr(self) -> str:
         return f"ratio={self.ratio!r}"

@@ -74,7 +74,7 @@ class MixtureState:
         covs: ``(B, G, d, d)`` component covariances.
         estimate: ``(B, d)`` mixture mean ``sum_j alpha^j mu^j``.
         ess: ``(B,)`` effective sample size of the step's ``G N*`` particles under their combined
-            weights ``alpha_{t-1}^j w^{ij}`` (``N*`` per component at step 0).
+            weights ``alpha_{t-1}^j w^{ij}`` (``G N*`` at step 0).
         g_eff: ``(B,)`` effective number of Gaussians ``1 / sum_j (alpha^j)^2``.
         log_evidence_increment: ``(B,)``.
         n_repaired: ``(B,)`` steps in which non-finite particles or weights were repaired.
@@ -215,7 +215,7 @@ class GaussianSumParticleFilter(ParticleFilterBase):
         log_alpha = torch.full((B, G), -math.log(G), dtype=mean.dtype, device=mean.device)
         zero = torch.zeros(B, dtype=mean.dtype, device=mean.device)
         return MixtureState(log_alpha, means, covs, (log_alpha.exp().unsqueeze(-1) * means).sum(1),
-                            torch.full_like(zero, float(self.particles_per_component)), torch.full_like(zero, float(G)),
+                            torch.full_like(zero, float(self.n_particles)), torch.full_like(zero, float(G)),
                             zero, torch.zeros(B, dtype=torch.long, device=mean.device))
 
     def step(self, state: MixtureState, z: torch.Tensor, generator=None) -> MixtureState:
@@ -298,6 +298,7 @@ class GaussianSumParticleFilter(ParticleFilterBase):
             estimate = torch.einsum("bg,bgd->bd", alpha, means)
         lv = (state.log_alpha.unsqueeze(-1) + log_w).reshape(B, G * n)
         ess = 1.0 / torch.softmax(lv, -1).pow(2).sum(-1)
+        ess = torch.where(torch.isfinite(ess), ess, torch.zeros_like(ess))  # no positive weight: 0
         bad_trial = bad.flatten(1).any(-1)
         dead_trial = ~torch.isfinite(inc)
         repaired = state.n_repaired

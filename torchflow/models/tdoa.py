@@ -165,7 +165,8 @@ class TDOA3D(nn.Module):
 
     def simulate(self, runs: int, generator: torch.Generator) -> TDOAData:
         """``runs`` independent scenes: sources uniform in the region, detections, clutter, noise;
-        each sensor's measurements in random order, padded to the largest count."""
+        each sensor's measurements in random order, padded to the largest count. The runs are
+        drawn together, so a scene depends on ``runs`` (as :meth:`StateSpaceModel.simulate`)."""
         if not isinstance(generator, torch.Generator):
             raise TypeError(f"generator: expected a torch.Generator, got {type(generator).__name__}")
         B, n, S = int(runs), self.n_sources, self.n_sensors
