@@ -35,7 +35,8 @@ from torch import nn
 
 from . import linalg
 from .association import loopy_association
-from .flows import EDHFlow, FlowPrior, GromovFlow, OptimalDiffusionFlow, flow_gaussian
+from .flows import EDHFlow, GromovFlow, OptimalDiffusionFlow
+from .proposals import FlowedMixtureProposal
 from .models.tdoa import TDOA3D
 from .random import check_generator, uniform
 from .schedules import GeometricSchedule, LambdaSchedule
@@ -50,15 +51,17 @@ class POState:
     Attributes:
         existence: ``(B, K)`` existence probabilities (0 for empty slots).
         mask: ``(B, K)`` bool, the live POs.
-        log_weights: ``(B, K, G)`` normalised log component weights.
-        means: ``(B, K, G, 3)``; scale_trils: ``(B, K, G, 3, 3)``.
+        log_weights: ``(B, K, G)`` normalised log weights of the components (or particles).
+        means: ``(B, K, G, 3)`` component means (:class:`FlowMixtureLocaliser`) or particles
+            (:class:`BootstrapLocaliser`).
+        scale_trils: ``(B, K, G, 3, 3)`` component factors, ``None`` for particles.
     """
 
     existence: torch.Tensor
     mask: torch.Tensor
     log_weights: torch.Tensor
     means: torch.Tensor
-    scale_trils: torch.Tensor
+    scale_trils: Optional[torch.Tensor] = None
 
     @property
     def positions(self) -> torch.Tensor:
@@ -74,21 +77,6 @@ class Localisation:
     positions: torch.Tensor
     declared: torch.Tensor
     state: POState
-
-
-@dataclass
-class ParticlePOState:
-    """Potential objects as particle sets (:class:`BootstrapLocaliser`): ``existence``/``mask``
-    ``(B, K)``, ``log_weights (B, K, N)``, ``particles (B, K, N, 3)``."""
-
-    existence: torch.Tensor
-    mask: torch.Tensor
-    log_weights: torch.Tensor
-    particles: torch.Tensor
-
-    @property
-    def positions(self) -> torch.Tensor:
-        return (self.log_weights.exp().unsqueeze(-1) * self.particles).sum(-2)
 
 
 def _check_common(model, **kw):
@@ -180,6 +168,10 @@ class FlowMixtureLocaliser(nn.Module):
         self.schedule = schedule or GeometricSchedule(1e-5, 1.5)
         if len(self.schedule) < 1:
             raise ValueError("schedule: expected at least one pseudo-time step, got an empty schedule")
+        self.proposal = FlowedMixtureProposal(self.flow, self.schedule, ratio="component")
+        bm, bL = birth_mixture(model.region, birth_per_axis, birth_sd)
+        self.register_buffer("birth_means", bm)
+        self.register_buffer("birth_scale_tril", bL)
         self.G, self.n_samples = n_components, samples_per_component
         self.birth_rate, self.birth_per_axis, self.birth_sd = float(birth_rate), birth_per_axis, float(birth_sd)
         self.max_objects, self.prune, self.declare = max_objects, float(prune), float(declare)
@@ -197,9 +189,10 @@ class FlowMixtureLocaliser(nn.Module):
         m0 = means.unsqueeze(3).expand(B, K, G, M, d).reshape(B, R, d)
         L0 = L.unsqueeze(3).expand(B, K, G, M, d, d).reshape(B, R, d, d)
         zr = z.reshape(B, 1, 1, M).expand(B, K, G, M).reshape(B, R)
-        mu1, P1 = flow_gaussian(self.flow, model.gaussian_measurement(zr.reshape(-1), s),
-                                FlowPrior(m0.reshape(-1, d), L0.reshape(-1, d, d)), self.schedule)
-        mu1, L1 = mu1.reshape(B, R, d), linalg.safe_cholesky(P1).reshape(B, R, d, d)
+        # every (component, measurement) row is one Gaussian of the flowed-mixture proposal, with the
+        # per-component ratio (its own weight 1): omega = N(x; mu_n, P_n) l_m(x) / N(x; mu'_n, P'_n)
+        mu1, P1 = self.proposal.flowed(m0, L0, model.gaussian_measurement(zr.reshape(-1), s))
+        L1 = linalg.safe_cholesky(P1)
         n = self.n_samples
         per = max(1, self.sample_chunk // max(1, B * n * d))
         log_I, pm, pc = [], [], []
@@ -207,19 +200,14 @@ class FlowMixtureLocaliser(nn.Module):
         eye = torch.eye(d, dtype=means.dtype, device=means.device)
         for a in range(0, R, per):  # memory chunks (see sample_chunk)
             sl = slice(a, min(R, a + per))
-            xi = linalg.standard_normal((B, sl.stop - a, n, d), dtype=means.dtype, device=means.device,
-                                        generator=generator)
-            x = mu1[:, sl].unsqueeze(2) + xi @ L1[:, sl].transpose(-1, -2)
-            lo = (linalg.mvn_log_prob(x, m0[:, sl].unsqueeze(2), L0[:, sl].unsqueeze(2))
-                  + model.log_likelihood(zr[:, sl].unsqueeze(-1), x, s)
-                  - linalg.mvn_log_prob(x, mu1[:, sl].unsqueeze(2), L1[:, sl].unsqueeze(2)))
+            r = sl.stop - a
+            x, lo, _ = self.proposal.sample(means.new_zeros(B, r), m0[:, sl], L0[:, sl], mu1[:, sl], L1[:, sl],
+                                            lambda x: model.log_likelihood(zr[:, sl].unsqueeze(-1), x, s), n,
+                                            generator)
             log_I.append(torch.logsumexp(lo, -1) - math.log(n))
-            w = torch.softmax(lo, -1)
-            mean = torch.einsum("brn,brnd->brd", w, x)
-            diff = x - mean.unsqueeze(2)
-            cov = torch.einsum("brn,brni,brnj->brij", w, diff, diff)
-            pm.append(mean)
-            pc.append(linalg.symmetrize(cov) + (self.jitter * scale[:, sl])[..., None, None] * eye)
+            mean, cov = linalg.weighted_mean_cov(x.reshape(B * r, n, d), lo.reshape(B * r, n))
+            pm.append(mean.reshape(B, r, d))
+            pc.append(cov.reshape(B, r, d, d) + (self.jitter * scale[:, sl])[..., None, None] * eye)
         shape = (B, K, G, M)
         return (torch.cat(log_I, 1).reshape(shape), torch.cat(pm, 1).reshape(*shape, d),
                 linalg.safe_cholesky(torch.cat(pc, 1)).reshape(*shape, d, d))
@@ -234,7 +222,7 @@ class FlowMixtureLocaliser(nn.Module):
         log_cf = math.log(model.clutter_rate) + model.clutter_log_density(sensor).to(dt)  # log(mu_c f_c)
         neg = torch.tensor(float("-inf"), dtype=dt, device=dev)
         # birth: the new PO of every measurement
-        bm, bL = birth_mixture(model.region, self.birth_per_axis, self.birth_sd, dt, dev)
+        bm, bL = self.birth_means.to(dt), self.birth_scale_tril.to(dt)
         Nb = bm.shape[0]
         b_logw = torch.full((B, 1, Nb), -math.log(Nb), dtype=dt, device=dev)
         bI, b_mean, b_L = self._flowed_terms(b_logw, bm.expand(B, 1, Nb, 3), bL.expand(B, 1, Nb, 3, 3), z, sensor,
@@ -456,17 +444,19 @@ class BootstrapLocaliser(nn.Module):
             float(declare)
         self.bp_iterations, self.sample_chunk = bp_iterations, sample_chunk
 
-    def _loglik(self, x, z, s):
+    def _loglik(self, x, z, s, own: bool = False):
         """``log l_m(x)`` of particles ``x (B, K, N, 3)`` for measurements ``z (B, M)`` ->
-        ``(B, K, N, M)``, in chunks of particles."""
+        ``(B, K, N, M)``, or with ``own`` (K = M: one set per measurement) ``(B, M, N)``, in
+        chunks of particles."""
         B, K, N, _ = x.shape
         M = z.shape[1]
-        per = max(1, self.sample_chunk // max(1, B * K * M * 3))
-        out = [self.model.log_likelihood(z.reshape(B, 1, 1, M), x[:, :, a:a + per].unsqueeze(-2), s)
+        per = max(1, self.sample_chunk // max(1, B * K * (1 if own else M) * 3))
+        zz = z.reshape(B, M, 1) if own else z.reshape(B, 1, 1, M)
+        out = [self.model.log_likelihood(zz, x[:, :, a:a + per] if own else x[:, :, a:a + per].unsqueeze(-2), s)
                for a in range(0, N, per)]
         return torch.cat(out, 2)
 
-    def update(self, state: "ParticlePOState", z, z_mask, sensor, generator) -> "ParticlePOState":
+    def update(self, state: "POState", z, z_mask, sensor, generator) -> "POState":
         model = self.model
         B, M = z.shape
         dt, dev = z.dtype, z.device
@@ -474,9 +464,9 @@ class BootstrapLocaliser(nn.Module):
         pd = model.p_d
         log_cf = math.log(model.clutter_rate) + model.clutter_log_density(sensor).to(dt)
         xb = (uniform((B, M, N, 3), dtype=dt, device=dev, generator=generator) * 2 - 1) * model.region
-        llb = self._loglik(xb, z, sensor).diagonal(dim1=1, dim2=-1).permute(0, 2, 1)  # (B, M, N): own measurement
+        llb = self._loglik(xb, z, sensor, own=True)  # (B, M, N): each new PO against its own measurement
         log_Ib = torch.logsumexp(llb, -1) - math.log(N)
-        ll = self._loglik(state.particles, z, sensor) if K else torch.zeros(B, 0, N, M, dtype=dt, device=dev)
+        ll = self._loglik(state.means, z, sensor) if K else torch.zeros(B, 0, N, M, dtype=dt, device=dev)
         log_Ik = torch.logsumexp(state.log_weights.unsqueeze(-1) + ll, 2)  # (B, K, M)
         beta, xi = _bp_terms(model, state.existence, log_Ik, log_Ib, log_cf, self.birth_rate)
         assoc = loopy_association(beta, xi, state.mask, z_mask, self.bp_iterations)
@@ -491,19 +481,19 @@ class BootstrapLocaliser(nn.Module):
         r = state.existence
         r_leg = r * log_C.exp() / (r * log_C.exp() + 1 - r)
         idx = _systematic_indices(lw, N, generator)
-        leg = state.particles.gather(2, idx.unsqueeze(-1).expand(B, K, N, 3))
+        leg = state.means.gather(2, idx.unsqueeze(-1).expand(B, K, N, 3))
         nidx = _systematic_indices(llb, N, generator)
         new = xb.gather(2, nidx.unsqueeze(-1).expand(B, M, N, 3))
         r_all = torch.cat([r_leg, assoc.new_existence], 1)
         mask = torch.cat([state.mask, z_mask], 1)
         flat = torch.full((B, K + M, N), -math.log(N), dtype=dt, device=dev)
         r2, m2, lw2, x2 = _prune_and_cap(r_all, mask, [flat, torch.cat([leg, new], 1)], self.prune, self.max_objects)
-        return ParticlePOState(r2, m2, lw2, x2)
+        return POState(r2, m2, lw2, x2)  # particles in ``means``, no factors
 
-    def init(self, batch_size: int, dtype=torch.float64, device=None) -> "ParticlePOState":
+    def init(self, batch_size: int, dtype=torch.float64, device=None) -> "POState":
         z = torch.zeros(batch_size, 0, dtype=dtype, device=device)
-        return ParticlePOState(z, z.bool(), torch.zeros(batch_size, 0, self.n_particles, dtype=dtype, device=device),
-                               torch.zeros(batch_size, 0, self.n_particles, 3, dtype=dtype, device=device))
+        return POState(z, z.bool(), torch.zeros(batch_size, 0, self.n_particles, dtype=dtype, device=device),
+                       torch.zeros(batch_size, 0, self.n_particles, 3, dtype=dtype, device=device))
 
     forward = _forward
 
@@ -521,5 +511,5 @@ def _reduce(log_w: torch.Tensor, means: torch.Tensor, L: torch.Tensor, n: int, g
     return torch.full((B, K, n), -math.log(n), dtype=means.dtype, device=means.device), gm, gL
 
 
-__all__ = ["run_localisation", "scene_figure", "LOCALISATION_COLUMNS", "FlowMixtureLocaliser", "BootstrapLocaliser", "POState", "ParticlePOState", "Localisation", "birth_mixture",
-           "METHODS"]
+__all__ = ["run_localisation", "scene_figure", "LOCALISATION_COLUMNS", "FlowMixtureLocaliser", "BootstrapLocaliser",
+           "POState", "Localisation", "birth_mixture", "METHODS"]

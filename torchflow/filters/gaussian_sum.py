@@ -275,13 +275,12 @@ class GaussianSumParticleFilter(ParticleFilterBase):
         # non-finite particles or weights: weight zero (recover) or flagged (raise)
         bad = torch.isnan(log_w) | (log_w == float("inf")) | ~torch.isfinite(x.sum(-1))
         log_w = log_w.masked_fill(bad, float("-inf"))
-        x = torch.where(bad.unsqueeze(-1), eta0, x)
+        x = torch.where(bad.unsqueeze(-1), torch.zeros_like(x), x)  # weight zero: any finite position
         log_alpha, inc, g_eff = mixture_update(state.log_alpha, log_w)
         dead_comp = ~torch.isfinite(torch.logsumexp(log_w, -1))  # (B, G)
-        wn = torch.softmax(log_w.masked_fill(dead_comp.unsqueeze(-1), 0.0), -1)  # dead: any finite weights
-        means = torch.einsum("bgn,bgnd->bgd", wn, x)
-        diff = x - means.unsqueeze(2)
-        covs = linalg.symmetrize(torch.einsum("bgn,bgni,bgnj->bgij", wn, diff, diff))
+        lw = log_w.masked_fill(dead_comp.unsqueeze(-1), 0.0)  # dead: any finite weights (replaced below)
+        means, covs = linalg.weighted_mean_cov(x.reshape(B * G, n, d), lw.reshape(B * G, n))
+        means, covs = means.reshape(B, G, d), covs.reshape(B, G, d, d)
         # the weights may sit on a few particles (covs of low rank, or zero): jitter relative to the
         # component's predictive scale keeps every stored covariance positive definite
         S_bar = L_bar @ L_bar.transpose(-1, -2)
