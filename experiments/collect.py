@@ -4,8 +4,9 @@
     python experiments/collect.py multirun/<label>/<time> --plot filter.pfgspf.n_components:g_eff
 
 Prints a markdown table (columns: the overrides that vary between jobs, then the summary columns)
-and writes ``sweep_summary.csv`` into the sweep directory. Jobs that failed
-or are still running (no ``summary.csv``) are listed, not dropped silently.
+and writes ``sweep_summary.csv`` into the sweep directory. Jobs that failed (``error.txt``) or have
+no results yet are listed under the table with their overrides and error, not dropped silently. It
+reads the job folders of any Hydra launcher (basic, joblib, submitit, ray).
 
 ``--plot X:Y[:GROUP]`` also draws Y against X (columns of that table; X numeric), one line per value
 of GROUP (default: every other varying override and the filter), with error bars of one standard
@@ -18,35 +19,42 @@ import csv
 import sys
 from pathlib import Path
 
-import yaml
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a source checkout too
+from torchflow.sweep import describe_job, job_dirs, job_overrides, job_status, varying_overrides  # noqa: E402
 
 DEFAULT_COLUMNS = ["mse", "omat", "ospa", "ess", "g_eff", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step"]
 
 
 def collect(sweep_dir: Path, columns=None):
-    """Rows ``{overrides..., filter, columns...}`` of every job under ``sweep_dir`` and the list of
-    job directories without results."""
+    """Rows ``{overrides..., filter, columns...}`` of every finished job under ``sweep_dir``, the
+    columns, and the jobs without results: ``{"job", "state" ("failed" | "missing"), "message",
+    "overrides"}`` (overrides that vary between jobs)."""
     rows, missing, keys = [], [], []
-    jobs = sorted((p for p in sweep_dir.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))
-    for job in jobs:
-        ov_file = job / ".hydra" / "overrides.yaml"
-        overrides = yaml.safe_load(ov_file.read_text()) if ov_file.exists() else []
-        ov = dict(o.split("=", 1) for o in overrides if "=" in o and not o.startswith("experiment="))
+    for job in job_dirs(sweep_dir):
+        ov = dict(o.split("=", 1) for o in job_overrides(job) if "=" in o and not o.startswith("experiment="))
         keys += [k for k in ov if k not in keys]
+        state, message = job_status(job)
         summary = job / "summary.csv"
-        if not summary.exists():
-            missing.append(job.name)
+        if state == "failed" or not summary.exists():
+            missing.append({"job": job.name, "state": "failed" if state == "failed" else "missing", "message": message})
             continue
         se = _trial_standard_errors(job / "per_trial.csv")
         with open(summary) as fh:
             for r in csv.DictReader(fh):
                 rows.append({"job": job.name, **ov, **r,
                              **{f"{k}_se": v for k, v in se.get(r.get("filter"), {}).items()}})
+    vary = varying_overrides(job_dirs(sweep_dir))
+    for m in missing:
+        m["overrides"] = vary[m["job"]]
     # overrides shared by every job describe the sweep, not a row: keep only those that vary
     keys = [k for k in keys if len({r.get(k) for r in rows}) > 1]
     cols = ["job", *keys, "filter", "n_particles", "trials", *(columns or DEFAULT_COLUMNS)]
     cols = list(dict.fromkeys(c for c in cols if any(c in r for r in rows)))
     return rows, cols, missing
+
+
+def describe_missing(m: dict) -> str:
+    return describe_job(m["job"], m["state"], m["message"], m["overrides"])
 
 
 def _trial_standard_errors(path: Path) -> dict:
@@ -133,8 +141,9 @@ def main(argv=None):
               f"`run.py -m`){hint}", file=sys.stderr)
         sys.exit(2)
     if not rows:
-        print(f"error: sweep_dir: no job in {args.sweep_dir} has a summary.csv yet (failed or running: "
-              f"{', '.join(missing)})", file=sys.stderr)
+        print(f"error: sweep_dir: no job in {args.sweep_dir} has results yet:", file=sys.stderr)
+        for m in missing:
+            print("  " + describe_missing(m), file=sys.stderr)
         sys.exit(2)
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
@@ -152,8 +161,8 @@ def main(argv=None):
         except ValueError as e:
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)
-    if missing:
-        print(f"jobs without summary.csv (failed or running): {', '.join(missing)}", file=sys.stderr)
+    for m in missing:  # listed, not dropped silently
+        print(describe_missing(m))
 
 
 if __name__ == "__main__":

@@ -326,9 +326,56 @@ def _run(cfg: DictConfig) -> int:
         return _run_tuned(cfg)
 
 
+def _chunk_store(cfg: DictConfig, filters):
+    """The run's :class:`~torchflow.checkpoint.ChunkStore` (``None`` with ``checkpoint_dir=null``):
+    one folder per filter, named by a fingerprint of everything that changes its numbers."""
+    import torch
+    import torchflow
+    from torchflow.checkpoint import ChunkStore, fingerprint
+
+    root = cfg.get("checkpoint_dir")
+    resume = cfg.get("resume", False)
+    if not isinstance(resume, bool):
+        raise UsageError(f"resume: expected true or false, got {resume!r}")
+    if root is None:
+        if resume:
+            raise UsageError("resume=true needs checkpoint_dir (where the earlier run saved its chunks); it is null")
+        return None
+    common = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
+              for k in ("model", "trials", "steps", "seed", "inits_per_track", "device", "dtype", "rng_backend")}
+    common["versions"] = {"torchflow": torchflow.__version__, "torch": torch.__version__}
+    keys, settings = {}, {}
+    for key, fcfg in cfg.filter.items():
+        label = next((n for n, f in filters.items() if getattr(f, "config_key", None) == key), None)
+        if label is None:
+            continue
+        s = dict(common, filter=OmegaConf.to_container(fcfg, resolve=True), label=label)
+        keys[label] = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in label) + "-" + fingerprint(s)
+        settings[label] = s
+    return ChunkStore(Path(hydra.utils.to_absolute_path(str(root))), keys, resume=resume, settings=settings)
+
+
+def _resume_command() -> str:
+    """The command line of this run with ``resume=true``."""
+    overrides = [o for o in HydraConfig.get().overrides.task if not o.startswith("resume=")]
+    return " ".join(["python experiments/run.py", *(f"'{o}'" if "[" in o or "," in o else o for o in overrides),
+                     "resume=true"])
+
+
 def _run_tuned(cfg: DictConfig) -> int:
+    from torchflow.distributed import Shard
+
     out = Path(HydraConfig.get().runtime.output_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    shard = Shard.from_env(str(cfg.device))
+    try:
+        return _run_sharded(cfg, out, shard)
+    finally:
+        shard.close()
+
+
+def _run_sharded(cfg: DictConfig, out: Path, shard) -> int:
+    if shard.is_main:
+        out.mkdir(parents=True, exist_ok=True)
     if not cfg.get("filter"):
         raise UsageError("filter: select at least one filter, e.g. filter=[kf,bpf]; available: "
                          + ", ".join(_group_options("filter")))
@@ -341,11 +388,15 @@ def _run_tuned(cfg: DictConfig) -> int:
         f = instantiate(fcfg, model=model, name=key)
         label = row_label(key, f)
         f.name = label
+        f.config_key = key
         filters[label] = f
     from torchflow.models import TDOA3D
 
     if isinstance(model, TDOA3D):
+        if shard.world > 1 or cfg.get("resume"):
+            raise UsageError("resume=true and torchrun apply to filter runs, not to the TDOA localisers")
         return _run_localisation(cfg, model, filters, out)
+    store = _chunk_store(cfg, filters)
     result = run_experiment(
         model,
         filters,
@@ -355,7 +406,7 @@ def _run_tuned(cfg: DictConfig) -> int:
         inits_per_track=cfg.inits_per_track,
         chunk_size=cfg.chunk_size,
         memory_budget_gb=cfg.memory_budget_gb,
-        device=cfg.device,
+        device=shard.device(cfg.device),
         dtype=cfg.dtype,
         ospa_cutoff=float(cfg.metrics.ospa_cutoff),
         ospa_order=float(cfg.metrics.ospa_order),
@@ -363,9 +414,16 @@ def _run_tuned(cfg: DictConfig) -> int:
         progress=bool(cfg.progress),
         rng_backend=str(cfg.get("rng_backend", "auto")),
         on_filter_done=lambda rows: _write_csv(out / "summary.csv", rows, SUMMARY_COLUMNS),  # partial results
+        store=store,
+        shard=shard,
     )
+    if result is None:  # a rank other than 0 of a torchrun run: rank 0 writes the files
+        return 0
     _write_results(out, cfg, result, model)
     model_name = cfg.model._target_.split(".")[-1]
+    if store is not None and store.loaded:
+        print(f"resumed: {sum(store.loaded.values())} chunks loaded from {store.root}, "
+              f"{sum(store.computed.values())} computed")
     print(f"\n{model_name}: {cfg.trials} trials x {cfg.steps} steps, seed {cfg.seed}, {cfg.device}/{cfg.dtype}")
     print(format_table(result.summary))
     for r in result.summary:
@@ -374,26 +432,60 @@ def _run_tuned(cfg: DictConfig) -> int:
     print(f"results: {os.path.relpath(out)}")
     if result.interrupted:
         skipped = f"; not run: {', '.join(result.not_run)}" if result.not_run else ""
-        print(f"interrupted (Ctrl-C): the results of the filters that finished are written{skipped}",
+        print(f"interrupted (Ctrl-C or SIGTERM): the results of the filters that finished are written{skipped}",
               file=sys.stderr)
+        if store is not None:
+            print(f"{sum(store.computed.values())} finished chunks are saved under {store.root}; go on with\n"
+                  f"  {_resume_command()}", file=sys.stderr)
         return 130
     return 0
 
 
+def _terminate(signum, frame):  # SIGTERM (kill, a scheduler's time limit) ends a run like Ctrl-C
+    raise KeyboardInterrupt
+
+
+def _multirun() -> bool:
+    from hydra.types import RunMode
+
+    return HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+def _record_failure(message: str) -> None:
+    """A failed sweep job leaves ``error.txt`` in its folder (collect.py and the end-of-sweep
+    report name it) instead of stopping the sweep."""
+    out = Path(HydraConfig.get().runtime.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "error.txt").write_text(message.rstrip() + "\n")
+
+
 @hydra.main(config_path="../configs", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    """Run one job; a bad setting or an interruption ends it with one line, not a traceback."""
+    """Run one job; a bad setting or an interruption ends it with one line, not a traceback. In
+    a sweep (``-m``) a failing job records its error and the sweep goes on with the next job."""
+    import signal
+    import traceback
+
+    try:
+        signal.signal(signal.SIGTERM, _terminate)
+    except ValueError:  # not the main thread (some launchers): Ctrl-C handling only
+        pass
     try:
         code = _run(cfg)
     except KeyboardInterrupt:
-        print("interrupted (Ctrl-C) outside a filter run: only summary.csv (rows of the filters that "
+        print("interrupted outside a filter run: only summary.csv (rows of the filters that "
               "finished, if any) was written", file=sys.stderr)
         code = 130
     except Exception as e:  # noqa: BLE001 - configuration errors: name the setting, no traceback
         from hydra.errors import InstantiationException
         from omegaconf.errors import OmegaConfBaseException
 
-        if not isinstance(e, (ValueError, TypeError, UsageError, InstantiationException, OmegaConfBaseException)):
+        config_error = isinstance(e, (ValueError, TypeError, UsageError, InstantiationException, OmegaConfBaseException))
+        if _multirun():
+            _record_failure(f"error: {_reason(e)}" if config_error else traceback.format_exc())
+            print(f"error: {_reason(e)} (job failed; the sweep goes on)", file=sys.stderr)
+            return
+        if not config_error:
             raise
         print(f"error: {_reason(e)}", file=sys.stderr)
         code = 2
@@ -407,9 +499,22 @@ def _pid_resolver() -> str:
 
 OmegaConf.register_new_resolver("tf_pid", _pid_resolver, replace=True)
 
+def _quiet_rank_overrides(argv):
+    """Ranks other than 0 of a ``torchrun`` run write no Hydra folder or log (rank 0 does)."""
+    if int(os.environ.get("RANK", "0")) == 0:
+        return argv
+    if any(a in ("-m", "--multirun") for a in argv):
+        raise UsageError("torchrun runs one job; run a sweep (-m) on a Hydra launcher instead")
+    import tempfile
+
+    return [*argv, f"hydra.run.dir={tempfile.gettempdir()}/torchflow-rank{os.environ['RANK']}-{os.getppid()}",
+            "hydra.output_subdir=null", "hydra/job_logging=disabled", "hydra/hydra_logging=disabled"]
+
+
 if __name__ == "__main__":
     try:
         check_selections(sys.argv[1:])
+        sys.argv[1:] = _quiet_rank_overrides(sys.argv[1:])
     except UsageError as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)

@@ -132,7 +132,7 @@ def test_cli_multirun_sweep_writes_one_folder_per_job(tmp_path):
     assert out.returncode == 0, out.stderr
     lines = [ln for ln in out.stdout.splitlines() if ln.startswith("| ")]
     assert lines[0].startswith("| job | seed | filter") and len(lines) == 3
-    assert "jobs without summary.csv" in out.stderr and "2" in out.stderr
+    assert "job 2 has no results (still running, killed, or never started)" in out.stdout
     with open(tmp_path / "sweep" / "sweep_summary.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert [(r["job"], r["seed"], r["filter"]) for r in rows] == [("0", "0", "kf"), ("1", "1", "kf")]
@@ -236,7 +236,7 @@ def test_cli_ctrl_c_writes_finished_results(tmp_path):
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err[-2000:]
-    assert "Traceback" not in err and "interrupted (Ctrl-C)" in err
+    assert "Traceback" not in err and "interrupted (Ctrl-C or SIGTERM)" in err and "resume=true" in err
     for name in ("summary.csv", "per_step.csv", "per_trial.csv", "results.json"):
         assert (tmp_path / "run" / name).exists(), name
     rows = list(csv.DictReader(open(summary)))

@@ -105,11 +105,14 @@ def test_readme_commands_run(tmp_path):
         assert tokens[0] == "python", f"README command not understood: {line}"
         tokens[0] = sys.executable
         script = tokens[1]
+        if tokens[1:3] == ["-m", "torch.distributed.run"]:  # torchrun: its options, then the script
+            script = next(t for t in tokens if t.endswith(".py"))
         if script == "experiments/run.py":
-            multirun = "-m" in tokens
+            multirun = "-m" in tokens[tokens.index(script):]
             tokens = _shrink(tokens) + (SHRINK_TDOA if any("experiment=seed002_table" in t for t in tokens) else [])
             where = tmp_path / f"cmd{i}"
-            tokens += [f"hydra.sweep.dir={where}" if multirun else f"hydra.run.dir={where}", "progress=false"]
+            tokens += [f"hydra.sweep.dir={where}" if multirun else f"hydra.run.dir={where}", "progress=false",
+                       f"checkpoint_dir={tmp_path}/checkpoints"]
             if multirun:
                 last_sweep = where
         elif script == "experiments/collect.py":

@@ -18,6 +18,8 @@ from ._checks import NonFiniteError, check_count
 from .filters.base import Filter
 from .filters.kalman import KalmanFilter
 from .models.base import StateSpaceModel, Trajectory
+from .checkpoint import ChunkStore
+from .distributed import Shard
 from .random import TrialStreams
 
 SUMMARY_COLUMNS = [
@@ -92,6 +94,32 @@ def _simulate(model: StateSpaceModel, trials: int, steps: int, inits_per_track: 
     return traj, mean, cov
 
 
+def _run_chunk(f: Filter, name: str, traj, mean0, cov0, s: int, e: int, seed: int, rng_backend: str, dev,
+               bar, steps: int) -> dict:
+    """Run filter ``f`` on trials ``[s, e)``: the chunk's results as CPU float64 tensors."""
+    g = TrialStreams(seed, range(s, e), key=f.stream_name, backend=rng_backend)
+    cb = (lambda n=e - s: bar.update(n)) if bar is not None else None
+    if dev.type == "cuda":
+        torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        try:
+            res = f(traj.observations[s:e], mean0[s:e], cov0[s:e], g, progress=cb)
+        except NonFiniteError as err:  # report trial indices in the whole run
+            raise NonFiniteError(name, err.step, [s + i for i in err.trials]) from None
+    if dev.type == "cuda":
+        torch.cuda.synchronize()
+    out = {"start": s, "stop": e, "elapsed": time.perf_counter() - t0,
+           "estimates": res.estimates.double().cpu(), "log_evidence": res.log_evidence.double().cpu()}
+    if res.ess is not None:
+        out["ess"] = res.ess.double().cpu()
+    if res.n_repaired is not None:
+        out["n_repaired"] = res.n_repaired.cpu()
+    if res.g_eff is not None:
+        out["g_eff"] = res.g_eff.double().cpu()
+    return out
+
+
 def run_experiment(
     model: StateSpaceModel,
     filters: Mapping[str, Filter],
@@ -110,7 +138,9 @@ def run_experiment(
     progress: bool = True,
     rng_backend: str = "auto",
     on_filter_done: Optional[Callable[[List[dict]], None]] = None,
-) -> ExperimentResult:
+    store: Optional[ChunkStore] = None,
+    shard: Optional[Shard] = None,
+) -> Optional[ExperimentResult]:
     """Simulate ``trials`` trajectories once and run every filter on the same observations.
 
     Args:
@@ -138,6 +168,16 @@ def run_experiment(
             ``numpy`` or ``philox`` (see :mod:`torchflow.random`).
         on_filter_done: called with the summary rows so far after each filter finishes (or
             fails), so a caller can save partial results of long runs.
+        store: a :class:`~torchflow.checkpoint.ChunkStore`: every finished chunk is saved to a
+            small file at once, and with ``store.resume`` chunks saved by an earlier run of the
+            same settings are loaded instead of computed (a killed run goes on where it stopped).
+        shard: this process's :class:`~torchflow.distributed.Shard` in a ``torchrun`` run: it
+            computes chunks ``rank, rank + world, ...`` of every filter and rank 0 gathers and
+            scores them. Without ``chunk_size`` chunks are capped at ``ceil(trials / world)``
+            trials so every rank has work. Returns ``None`` on ranks other than 0.
+
+    ``sec_per_step`` is the filter's compute time (summed over chunks and ranks; a chunk loaded
+    on resume counts the time it took when it was computed) divided by trials x steps.
 
     A filter that raises (including a non-finite estimate) does not stop the run: its row gets
     the error message and the other filters still run.
@@ -174,13 +214,16 @@ def run_experiment(
         pref = f.preferred_chunk_trials()
         return min(c, pref) if pref else c
 
+    shard = shard or Shard()
     chunks = {name: filter_chunk(f) for name, f in filters.items()}
-    truth = traj.states[:, 1:].double()
+    if shard.world > 1 and not chunk_size:  # every rank gets a share
+        chunks = {name: min(c, -(-trials // shard.world)) for name, c in chunks.items()}
+    truth = traj.states[:, 1:].double().cpu()  # chunks come back as CPU float64 (from any rank)
     tracking = model.has_positions
     true_pos = model.positions(truth) if tracking else None
 
     reference_logz = None
-    if model.linear_dynamics and model.linear_measurement:  # the Kalman filter is exact: the reference
+    if shard.is_main and model.linear_dynamics and model.linear_measurement:  # the Kalman filter is exact: the reference
         with torch.no_grad():
             kf = KalmanFilter(model, validate=False)
             c = filter_chunk(kf)
@@ -198,61 +241,52 @@ def run_experiment(
         n_part = getattr(f, "n_particles", None)
         row = {c: None for c in SUMMARY_COLUMNS}
         row.update(filter=name, n_particles=n_part, trials=trials, steps=steps)
+        f_chunk = chunks[name]
+        plan = [(s, min(s + f_chunk, trials)) for s in range(0, trials, f_chunk)]
+        mine = shard.mine(plan)
         # one bar per filter: its time estimate is that filter's own, not an average over filters
         # of very different cost
         bar = None
-        if progress and tqdm is not None:
-            bar = tqdm(total=trials * steps, unit="trial-step", leave=False, dynamic_ncols=True,
-                       desc=f"[{i_f + 1}/{len(filters)}] {name}")
-        est, logz, ess, repaired, geff = [], [], [], [], []
-        elapsed = 0.0
-        f_chunk = chunks[name]
+        if progress and tqdm is not None and shard.is_main:
+            bar = tqdm(total=sum(e - s for s, e in mine) * steps, unit="trial-step", leave=False,
+                       dynamic_ncols=True, desc=f"[{i_f + 1}/{len(filters)}] {name}")
+        done, error = [], None
         try:
-            with torch.no_grad():
-                for s in range(0, trials, f_chunk):
-                    sl = slice(s, s + f_chunk)
-                    n_b = traj.observations[sl].shape[0]
-                    g = TrialStreams(seed, range(s, s + n_b), key=f.stream_name, backend=rng_backend)
-                    cb = (lambda n=n_b: bar.update(n)) if bar is not None else None
-                    if dev.type == "cuda":
-                        torch.cuda.synchronize()
-                    t0 = time.perf_counter()
-                    try:
-                        res = f(traj.observations[sl], mean0[sl], cov0[sl], g, progress=cb)
-                    except NonFiniteError as e:  # report trial indices in the whole run
-                        raise NonFiniteError(name, e.step, [s + i for i in e.trials]) from None
-                    if dev.type == "cuda":
-                        torch.cuda.synchronize()
-                    elapsed += time.perf_counter() - t0
-                    est.append(res.estimates.double())
-                    logz.append(res.log_evidence.double())
-                    if res.ess is not None:
-                        ess.append(res.ess.double())
-                    if res.n_repaired is not None:
-                        repaired.append(res.n_repaired)
-                    if res.g_eff is not None:
-                        geff.append(res.g_eff.double())
+            for s, e in mine:
+                chunk = None if store is None else store.load(name, s, e, steps)
+                if chunk is None:
+                    chunk = _run_chunk(f, name, traj, mean0, cov0, s, e, seed, rng_backend, dev, bar, steps)
+                    if store is not None:
+                        store.save(name, s, e, chunk)
+                elif bar is not None:
+                    bar.update((e - s) * steps)
+                done.append(chunk)
         except KeyboardInterrupt:  # keep what finished; the caller writes it and says so
             interrupted = True
-            row["error"] = f"interrupted after {sum(e.shape[0] for e in est)} of {trials} trials"
-            summary.append(row)
-            if bar is not None:
-                bar.close()
-            break
+            error = f"interrupted after {sum(c['estimates'].shape[0] for c in done)} of {trials} trials"
         except Exception as e:  # one failing filter must not lose the others' results
-            row["error"] = f"{type(e).__name__}: {e}"
+            error = f"{type(e).__name__}: {e}"
+        if bar is not None:
+            bar.close()
+        if shard.world > 1:  # every rank reaches this for every filter, failed or not
+            parts = shard.gather((done, error))
+            if not shard.is_main:
+                continue
+            errors = [err for _, err in parts if err]
+            error = errors[0] if errors else None
+            done = sorted((c for cs, _ in parts for c in cs), key=lambda c: c["start"])
+        if error is not None:
+            row["error"] = error
             summary.append(row)
-            if bar is not None:
-                bar.close()
+            if interrupted:
+                break
             if on_filter_done is not None:
                 on_filter_done(summary)
             continue
-        if bar is not None:
-            bar.close()
-        est = torch.cat(est)
-        examples[name] = est[0].cpu()
-        logz = torch.cat(logz)
-        ess_bt = torch.cat(ess) if ess else None
+        est = torch.cat([c["estimates"] for c in done])
+        examples[name] = est[0]
+        logz = torch.cat([c["log_evidence"] for c in done])
+        ess_bt = torch.cat([c["ess"] for c in done]) if "ess" in done[0] else None
         mse_bt = metrics.mse(est, truth)
         cols = {"mse": mse_bt}
         if tracking:
@@ -261,13 +295,13 @@ def run_experiment(
             cols["ospa"] = metrics.ospa(est_pos, true_pos, cutoff=ospa_cutoff, order=ospa_order)
         if ess_bt is not None:
             cols["ess"] = ess_bt
-        if geff:
-            cols["g_eff"] = torch.cat(geff)
-        row["sec_per_step"] = elapsed / (trials * steps)
+        if "g_eff" in done[0]:
+            cols["g_eff"] = torch.cat([c["g_eff"] for c in done])
+        row["sec_per_step"] = sum(float(c["elapsed"]) for c in done) / (trials * steps)
         if f.estimates_evidence:
             row["log_evidence"] = float(logz.mean())
-        if repaired:
-            row["repaired"] = int(torch.cat(repaired).sum())
+        if "n_repaired" in done[0]:
+            row["repaired"] = int(torch.cat([c["n_repaired"] for c in done]).sum())
         for k, v in cols.items():
             row[k] = float(v.mean())
         lost = None
@@ -293,10 +327,13 @@ def run_experiment(
             per_step.append(r)
         if on_filter_done is not None:
             on_filter_done(summary)
+    if not shard.is_main:
+        return None
     not_run = [n for n in filters if n not in {r["filter"] for r in summary}]
     particle_chunks = {name: getattr(f, "particle_chunk", None) for name, f in filters.items()}
     config = dict(trials=trials, steps=steps, seed=seed, inits_per_track=inits_per_track, chunk_size=chunks,
                   particle_chunk=particle_chunks, memory_budget_gb=memory_budget_gb, rng_backend=rng_backend,
+                  world_size=shard.world,
                   device=str(dev), dtype=str(dt).replace("torch.", ""), tuning=tuning.as_dict())
     cpu_traj = Trajectory(traj.states.cpu(), traj.observations.cpu())
     return ExperimentResult(summary, per_trial, per_step, cpu_traj, config, examples=examples,

@@ -17,10 +17,13 @@ from torch.utils.data import Dataset
 
 from .filters.base import Filter
 from .models.base import Trajectory
+from .random import TrialStreams
 
 
 class TrajectoryDataset(Dataset):
-    """Trials of observations with their filter priors, as ``(observations (T, m), mean (d,), cov (d, d))``.
+    """Trials of observations with their filter priors, as ``(observations (T, m), mean (d,),
+    cov (d, d), trial index ())``. The index keys the trial's random stream, so a trial draws the
+    same numbers whichever batch or process (DDP rank) it lands in.
 
     Args:
         trajectory: simulated or recorded data, observations ``(B, T, m)``.
@@ -37,7 +40,7 @@ class TrajectoryDataset(Dataset):
         return self.obs.shape[0]
 
     def __getitem__(self, i):
-        return self.obs[i], self.mean[i], self.cov[i]
+        return self.obs[i], self.mean[i], self.cov[i], torch.tensor(i)
 
 
 class FilterLightningModule(pl.LightningModule):
@@ -48,7 +51,13 @@ class FilterLightningModule(pl.LightningModule):
     Args:
         filter: any torchflow filter whose model has ``nn.Parameter``s (e.g. ``learnable=True``).
         lr: Adam learning rate.
-        seed: seeds the filter's ``torch.Generator`` (re-seeded per batch index for reproducibility).
+        seed: seeds the filter's randomness. With batches from :class:`TrajectoryDataset`
+            (which carry trial indices) each trial draws from its own stream
+            (:class:`~torchflow.random.TrialStreams`, keyed by the epoch), so the loss and its
+            gradient do not depend on the batch split: ``Trainer(strategy="ddp")`` on P processes,
+            each with B / P trials, gives the gradient of one process with all B (DDP averages the
+            ranks' means). Batches of three tensors (no index) get a ``torch.Generator`` seeded
+            with ``seed + batch_idx``.
     """
 
     def __init__(self, filter: Filter, *, lr: float = 1e-2, seed: int = 0):
@@ -63,8 +72,12 @@ class FilterLightningModule(pl.LightningModule):
         return self.filter(observations, mean, cov, generator)
 
     def _loss(self, batch, batch_idx):
-        obs, mean, cov = batch
-        g = torch.Generator(device=obs.device).manual_seed(self.seed + batch_idx)
+        obs, mean, cov = batch[:3]
+        if len(batch) > 3:  # trial indices: per-trial streams, independent of how trials are batched
+            g = TrialStreams(self.seed, batch[3].reshape(-1).tolist(),
+                             key=f"{self.filter.stream_name}/epoch{self.current_epoch}")
+        else:
+            g = torch.Generator(device=obs.device).manual_seed(self.seed + batch_idx)
         res = self.filter(obs, mean, cov, g)
         return -res.log_evidence.mean() / obs.shape[1]
 

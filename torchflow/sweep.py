@@ -1,0 +1,91 @@
+"""Hydra sweeps: what happened to every job.
+
+A sweep (``python experiments/run.py -m ...``, on any launcher: basic, joblib, submitit, ray)
+writes one folder per job. A job that fails leaves ``error.txt`` there and the sweep goes on;
+:class:`SweepReport` (a Hydra callback, on by default in ``configs/config.yaml``) prints at the
+end which jobs finished and which failed, with their overrides and errors, and makes the sweep's
+exit status 1 when any failed. :func:`job_status` is what ``experiments/collect.py`` uses too.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any, List
+
+try:
+    from hydra.experimental.callback import Callback
+except ImportError:  # pragma: no cover - hydra is a core dependency
+    Callback = object
+
+
+def job_dirs(sweep_dir: Path) -> List[Path]:
+    """A sweep's job folders (named by job number), in job order."""
+    sweep_dir = Path(sweep_dir)
+    if not sweep_dir.is_dir():
+        return []
+    return sorted((p for p in sweep_dir.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))
+
+
+def job_overrides(job: Path) -> List[str]:
+    """The overrides of one job (from ``.hydra/overrides.yaml``)."""
+    import yaml
+
+    f = Path(job) / ".hydra" / "overrides.yaml"
+    return list(yaml.safe_load(f.read_text()) or []) if f.exists() else []
+
+
+def job_status(job: Path) -> tuple:
+    """``("failed", first line of error.txt)``, ``("done", "")`` (``results.json`` written) or
+    ``("missing", "")`` (no results: still running, killed, or never started)."""
+    job = Path(job)
+    err = job / "error.txt"
+    if err.exists():
+        lines = [ln for ln in err.read_text().splitlines() if ln.strip()]
+        return "failed", (lines[-1] if lines else "error")
+    if (job / "results.json").exists():
+        return "done", ""
+    return "missing", ""
+
+
+def varying_overrides(jobs: List[Path]) -> dict:
+    """``{job name: {key: value}}`` of the overrides whose value differs between ``jobs``
+    (the ones that tell the jobs apart)."""
+    ov = {j.name: dict(o.split("=", 1) for o in job_overrides(j) if "=" in o and not o.startswith("experiment="))
+          for j in jobs}
+    keys = list(dict.fromkeys(k for o in ov.values() for k in o))
+    vary = [k for k in keys if len({o.get(k) for o in ov.values()}) > 1]
+    return {n: {k: o[k] for k in vary if k in o} for n, o in ov.items()}
+
+
+def describe_job(name: str, state: str, message: str, overrides: dict) -> str:
+    """``job 1 (n_particles=-1) failed: error: ...`` / ``job 3 (...) has no results (...)``."""
+    ov = " ".join(f"{k}={v}" for k, v in overrides.items())
+    head = f"job {name}" + (f" ({ov})" if ov else "")
+    if state == "failed":
+        return f"{head} failed: {message}"
+    return f"{head} has no results (still running, killed, or never started)"
+
+
+class SweepReport(Callback):
+    """Hydra callback: after a multirun, list failed and missing jobs (with their overrides and
+    error) and exit with status 1 if any job failed."""
+
+    def __init__(self, exit_on_failure: bool = True):
+        self.exit_on_failure = exit_on_failure
+
+    def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
+        sweep = Path(str(config.hydra.sweep.dir))
+        jobs = job_dirs(sweep)
+        status = {j.name: job_status(j) for j in jobs}
+        bad = {n: s for n, s in status.items() if s[0] != "done"}
+        done = len(jobs) - len(bad)
+        print(f"sweep {sweep}: {len(jobs)} jobs, {done} finished, "
+              f"{sum(s[0] == 'failed' for s in bad.values())} failed, "
+              f"{sum(s[0] == 'missing' for s in bad.values())} without results", file=sys.stderr)
+        vary = varying_overrides(jobs)
+        for n, (state, msg) in bad.items():
+            print("  " + describe_job(n, state, msg, vary[n]), file=sys.stderr)
+        if bad:
+            print(f"  merge what finished: python experiments/collect.py {sweep}", file=sys.stderr)
+        if self.exit_on_failure and any(s[0] == "failed" for s in bad.values()):
+            sys.exit(1)
