@@ -326,6 +326,10 @@ def _run(cfg: DictConfig) -> int:
         return _run_tuned(cfg)
 
 
+def _plain(v):
+    return OmegaConf.to_container(v) if OmegaConf.is_config(v) else v
+
+
 def _chunk_store(cfg: DictConfig, filters):
     """The run's :class:`~torchflow.checkpoint.ChunkStore` (``None`` with ``checkpoint_dir=null``):
     one folder per filter, named by a fingerprint of everything that changes its numbers."""
@@ -358,8 +362,9 @@ def _chunk_store(cfg: DictConfig, filters):
 def _resume_command() -> str:
     """The command line of this run with ``resume=true``."""
     overrides = [o for o in HydraConfig.get().overrides.task if not o.startswith("resume=")]
-    return " ".join(["python experiments/run.py", *(f"'{o}'" if "[" in o or "," in o else o for o in overrides),
-                     "resume=true"])
+    import shlex
+
+    return " ".join(["python experiments/run.py", *(shlex.quote(o) for o in overrides), "resume=true"])
 
 
 def _run_tuned(cfg: DictConfig) -> int:
@@ -416,6 +421,7 @@ def _run_sharded(cfg: DictConfig, out: Path, shard) -> int:
         on_filter_done=lambda rows: _write_csv(out / "summary.csv", rows, SUMMARY_COLUMNS),  # partial results
         store=store,
         shard=shard,
+        trial_range=_plain(cfg.get("trial_range")),
     )
     if result is None:  # a rank other than 0 of a torchrun run: rank 0 writes the files
         return 0
@@ -424,7 +430,9 @@ def _run_sharded(cfg: DictConfig, out: Path, shard) -> int:
     if store is not None and store.loaded:
         print(f"resumed: {sum(store.loaded.values())} chunks loaded from {store.root}, "
               f"{sum(store.computed.values())} computed")
-    print(f"\n{model_name}: {cfg.trials} trials x {cfg.steps} steps, seed {cfg.seed}, {cfg.device}/{cfg.dtype}")
+    lo, hi = result.config["trial_range"]
+    which = f"{cfg.trials} trials" if (lo, hi) == (0, cfg.trials) else f"trials {lo}..{hi - 1} of {cfg.trials}"
+    print(f"\n{model_name}: {which} x {cfg.steps} steps, seed {cfg.seed}, {cfg.device}/{cfg.dtype}")
     print(format_table(result.summary))
     for r in result.summary:
         if r.get("error"):

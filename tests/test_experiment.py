@@ -318,3 +318,18 @@ def test_cli_tdoa_runs_localisers_and_refuses_filters(tmp_path):
            f"hydra.run.dir={tmp_path}/u"]
     bad = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert bad.returncode == 2 and "filter.bpf: model: expected a torchflow StateSpaceModel, got TDOA3D" in bad.stderr
+
+
+def test_trial_range_reruns_rows_of_a_longer_run():
+    """trial_range=[2, 5] of a 6-trial run: the same data and draws as trials 2-4 of the whole run."""
+    from torchflow.models import SensorNetwork
+
+    model = SensorNetwork(d=9)
+    make = lambda: {"bpf": BootstrapParticleFilter(model, n_particles=30)}  # noqa: E731
+    full = run_experiment(model, make(), trials=6, steps=3, seed=3, progress=False)
+    part = run_experiment(model, make(), trials=6, steps=3, seed=3, progress=False, trial_range=[2, 5])
+    assert part.per_trial == full.per_trial[2:5] and part.summary[0]["trials"] == 3
+    assert part.config["trial_range"] == [2, 5] and part.trajectory.states.shape[0] == 3
+    for bad in ([3, 3], [0, 7], [-1, 2], [1.5, 3], "ab", 4):
+        with pytest.raises(ValueError, match=r"trial_range: expected \[start, stop\] with 0 <= start < stop <= trials = 6"):
+            run_experiment(model, make(), trials=6, steps=3, progress=False, trial_range=bad)

@@ -9,7 +9,7 @@ import math
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Mapping, Optional, Union
+from typing import Callable, Dict, List, Mapping, Optional, Sequence, Union
 
 import torch
 
@@ -120,6 +120,20 @@ def _run_chunk(f: Filter, name: str, traj, mean0, cov0, s: int, e: int, seed: in
     return out
 
 
+def _check_trial_range(trial_range, trials: int):
+    if trial_range is None:
+        return 0, trials
+    try:
+        lo, hi = (int(v) for v in trial_range)
+        ok = all(float(v) == int(v) for v in trial_range) and 0 <= lo < hi <= trials
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f"trial_range: expected [start, stop] with 0 <= start < stop <= trials = {trials}, "
+                         f"got {trial_range!r}")
+    return lo, hi
+
+
 def run_experiment(
     model: StateSpaceModel,
     filters: Mapping[str, Filter],
@@ -140,6 +154,7 @@ def run_experiment(
     on_filter_done: Optional[Callable[[List[dict]], None]] = None,
     store: Optional[ChunkStore] = None,
     shard: Optional[Shard] = None,
+    trial_range: Optional[Sequence[int]] = None,
 ) -> Optional[ExperimentResult]:
     """Simulate ``trials`` trajectories once and run every filter on the same observations.
 
@@ -175,6 +190,10 @@ def run_experiment(
             computes chunks ``rank, rank + world, ...`` of every filter and rank 0 gathers and
             scores them. Without ``chunk_size`` chunks are capped at ``ceil(trials / world)``
             trials so every rank has work. Returns ``None`` on ranks other than 0.
+        trial_range: ``(start, stop)``: simulate all ``trials`` but run and score only trials
+            ``start .. stop - 1`` (their data and random draws are those of the whole run, so a
+            row of a long table can be rerun alone). Rows keep the global trial index; the
+            summary's ``trials`` is ``stop - start``.
 
     ``sec_per_step`` is the filter's compute time (summed over chunks and ranks; a chunk loaded
     on resume counts the time it took when it was computed) divided by trials x steps.
@@ -191,6 +210,8 @@ def run_experiment(
     if isinstance(memory_budget_gb, bool) or not isinstance(memory_budget_gb, (int, float)) \
             or not math.isfinite(memory_budget_gb) or memory_budget_gb <= 0:
         raise ValueError(f"memory_budget_gb: expected a positive number of GiB, got {memory_budget_gb!r}")
+    lo, hi = _check_trial_range(trial_range, trials)
+    n_run = hi - lo
     dev, dt = resolve_device(device), resolve_dtype(dtype)
     model.to(device=dev, dtype=dt)
     for name, f in filters.items():
@@ -204,7 +225,7 @@ def run_experiment(
         allows, capped by the filter's preferred batch (local flows slow down past ~1e4 points)."""
         if chunk_size:
             return int(chunk_size)
-        c = choose_chunk_size({"f": f}, trials, memory_budget_gb)
+        c = choose_chunk_size({"f": f}, n_run, memory_budget_gb)
         if c == 1 and getattr(f, "particle_chunk", 0) is None:  # one trial may still exceed it: chunk particles
             pc = f.plan_memory(memory_budget_gb * 2**30)
             if pc is not None:
@@ -217,8 +238,8 @@ def run_experiment(
     shard = shard or Shard()
     chunks = {name: filter_chunk(f) for name, f in filters.items()}
     if shard.world > 1 and not chunk_size:  # every rank gets a share
-        chunks = {name: min(c, -(-trials // shard.world)) for name, c in chunks.items()}
-    truth = traj.states[:, 1:].double().cpu()  # chunks come back as CPU float64 (from any rank)
+        chunks = {name: min(c, -(-n_run // shard.world)) for name, c in chunks.items()}
+    truth = traj.states[lo:hi, 1:].double().cpu()  # chunks come back as CPU float64 (from any rank)
     tracking = model.has_positions
     true_pos = model.positions(truth) if tracking else None
 
@@ -228,7 +249,7 @@ def run_experiment(
             kf = KalmanFilter(model, validate=False)
             c = filter_chunk(kf)
             reference_logz = torch.cat([kf(traj.observations[s:s + c], mean0[s:s + c], cov0[s:s + c]).log_evidence
-                                        for s in range(0, trials, c)]).double()
+                                        for s in range(lo, hi, c)]).double()
 
     try:
         from tqdm.auto import tqdm
@@ -240,9 +261,9 @@ def run_experiment(
     for i_f, (name, f) in enumerate(filters.items()):
         n_part = getattr(f, "n_particles", None)
         row = {c: None for c in SUMMARY_COLUMNS}
-        row.update(filter=name, n_particles=n_part, trials=trials, steps=steps)
+        row.update(filter=name, n_particles=n_part, trials=n_run, steps=steps)
         f_chunk = chunks[name]
-        plan = [(s, min(s + f_chunk, trials)) for s in range(0, trials, f_chunk)]
+        plan = [(s, min(s + f_chunk, hi)) for s in range(lo, hi, f_chunk)]
         mine = shard.mine(plan)
         # one bar per filter: its time estimate is that filter's own, not an average over filters
         # of very different cost
@@ -263,7 +284,7 @@ def run_experiment(
                 done.append(chunk)
         except KeyboardInterrupt:  # keep what finished; the caller writes it and says so
             interrupted = True
-            error = f"interrupted after {sum(c['estimates'].shape[0] for c in done)} of {trials} trials"
+            error = f"interrupted after {sum(c['estimates'].shape[0] for c in done)} of {n_run} trials"
         except Exception as e:  # one failing filter must not lose the others' results
             error = f"{type(e).__name__}: {e}"
         if bar is not None:
@@ -297,7 +318,7 @@ def run_experiment(
             cols["ess"] = ess_bt
         if "g_eff" in done[0]:
             cols["g_eff"] = torch.cat([c["g_eff"] for c in done])
-        row["sec_per_step"] = sum(float(c["elapsed"]) for c in done) / (trials * steps)
+        row["sec_per_step"] = sum(float(c["elapsed"]) for c in done) / (n_run * steps)
         if f.estimates_evidence:
             row["log_evidence"] = float(logz.mean())
         if "n_repaired" in done[0]:
@@ -314,8 +335,8 @@ def run_experiment(
         if reference_logz is not None and f.estimates_evidence:
             row["log_evidence_relmse"] = float(metrics.log_evidence_relative_error(logz, reference_logz).mean())
         summary.append(row)
-        for b in range(trials):
-            r = {"filter": name, "trial": b, "log_evidence": float(logz[b])}
+        for b in range(n_run):
+            r = {"filter": name, "trial": lo + b, "log_evidence": float(logz[b])}
             r.update({k: float(v[b].mean()) for k, v in cols.items()})
             if lost is not None:
                 r["lost"] = bool(lost[b])
@@ -333,9 +354,9 @@ def run_experiment(
     particle_chunks = {name: getattr(f, "particle_chunk", None) for name, f in filters.items()}
     config = dict(trials=trials, steps=steps, seed=seed, inits_per_track=inits_per_track, chunk_size=chunks,
                   particle_chunk=particle_chunks, memory_budget_gb=memory_budget_gb, rng_backend=rng_backend,
-                  world_size=shard.world,
+                  world_size=shard.world, trial_range=[lo, hi],
                   device=str(dev), dtype=str(dt).replace("torch.", ""), tuning=tuning.as_dict())
-    cpu_traj = Trajectory(traj.states.cpu(), traj.observations.cpu())
+    cpu_traj = Trajectory(traj.states[lo:hi].cpu(), traj.observations[lo:hi].cpu())
     return ExperimentResult(summary, per_trial, per_step, cpu_traj, config, examples=examples,
                             interrupted=interrupted, not_run=not_run)
 
