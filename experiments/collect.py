@@ -27,16 +27,16 @@ DEFAULT_COLUMNS = ["mse", "omat", "ospa", "ess", "g_eff", "log_evidence_relmse",
 
 def collect(sweep_dir: Path, columns=None):
     """Rows ``{overrides..., filter, columns...}`` of every finished job under ``sweep_dir``, the
-    columns, and the jobs without results: ``{"job", "state" ("failed" | "missing"), "message",
-    "overrides"}`` (overrides that vary between jobs)."""
+    columns, and the jobs without (complete) results: ``{"job", "state" ("failed" | "interrupted" |
+    "missing"), "message", "overrides"}`` (overrides that vary between jobs)."""
     rows, missing, keys = [], [], []
     for job in job_dirs(sweep_dir):
         ov = dict(o.split("=", 1) for o in job_overrides(job) if "=" in o and not o.startswith("experiment="))
         keys += [k for k in ov if k not in keys]
         state, message = job_status(job)
         summary = job / "summary.csv"
-        if state == "failed" or not summary.exists():
-            missing.append({"job": job.name, "state": "failed" if state == "failed" else "missing", "message": message})
+        if state != "done" or not summary.exists():  # a partial summary.csv of a running job is not merged
+            missing.append({"job": job.name, "state": state if state != "done" else "missing", "message": message})
             continue
         se = _trial_standard_errors(job / "per_trial.csv")
         with open(summary) as fh:

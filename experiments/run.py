@@ -29,12 +29,16 @@ from torchflow import tuning  # noqa: E402
 
 
 def _write_csv(path: Path, rows, columns=None):
+    """Write ``rows`` to ``path`` atomically (a temporary file renamed): an interrupted write never
+    leaves a truncated table."""
     columns = columns or sorted({k for r in rows for k in r}, key=lambda k: (k not in ("filter", "step", "trial"), k))
-    with open(path, "w", newline="") as fh:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
         w.writeheader()
         for r in rows:
             w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in columns})
+    os.replace(tmp, path)
 
 
 #: one colour per filter, the same on every panel and in the track picture
@@ -360,18 +364,24 @@ def _chunk_store(cfg: DictConfig, filters):
 
 
 def _resume_command() -> str:
-    """The command line of this run with ``resume=true``."""
-    overrides = [o for o in HydraConfig.get().overrides.task if not o.startswith("resume=")]
+    """The command line of this run with ``resume=true`` (under torchrun: the same number of
+    processes, so the chunks are the same)."""
     import shlex
 
-    return " ".join(["python experiments/run.py", *(shlex.quote(o) for o in overrides), "resume=true"])
+    overrides = [o for o in HydraConfig.get().overrides.task if not o.startswith("resume=")]
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    head = (["python experiments/run.py"] if world == 1 else
+            [f"torchrun --nproc_per_node={os.environ.get('LOCAL_WORLD_SIZE', world)}"
+             + (f" --nnodes={world // int(os.environ['LOCAL_WORLD_SIZE'])}" if os.environ.get("LOCAL_WORLD_SIZE")
+                and world != int(os.environ["LOCAL_WORLD_SIZE"]) else ""), "experiments/run.py"])
+    return " ".join([*head, *(shlex.quote(o) for o in overrides), "resume=true"])
 
 
 def _run_tuned(cfg: DictConfig) -> int:
     from torchflow.distributed import Shard
 
     out = Path(HydraConfig.get().runtime.output_dir)
-    shard = Shard.from_env(str(cfg.device))
+    shard = Shard.from_env(str(cfg.device), timeout_minutes=float(cfg.get("dist_timeout_min", 720)))
     try:
         return _run_sharded(cfg, out, shard)
     finally:
@@ -443,14 +453,10 @@ def _run_sharded(cfg: DictConfig, out: Path, shard) -> int:
         print(f"interrupted (Ctrl-C or SIGTERM): the results of the filters that finished are written{skipped}",
               file=sys.stderr)
         if store is not None:
-            print(f"{sum(store.computed.values())} finished chunks are saved under {store.root}; go on with\n"
-                  f"  {_resume_command()}", file=sys.stderr)
+            print(f"the finished chunks are saved under {store.root}; go on with\n  {_resume_command()}",
+                  file=sys.stderr)
         return 130
     return 0
-
-
-def _terminate(signum, frame):  # SIGTERM (kill, a scheduler's time limit) ends a run like Ctrl-C
-    raise KeyboardInterrupt
 
 
 def _multirun() -> bool:
@@ -474,9 +480,13 @@ def main(cfg: DictConfig) -> None:
     import signal
     import traceback
 
-    try:
-        signal.signal(signal.SIGTERM, _terminate)
-    except ValueError:  # not the main thread (some launchers): Ctrl-C handling only
+    from torchflow.experiment import STOP
+
+    STOP.reset()
+    try:  # Ctrl-C and SIGTERM (kill, a scheduler's time limit) stop at once inside a chunk, else at the next one
+        signal.signal(signal.SIGINT, STOP.handler)
+        signal.signal(signal.SIGTERM, STOP.handler)
+    except ValueError:  # not the main thread (some launchers): Python's own Ctrl-C handling only
         pass
     try:
         code = _run(cfg)
@@ -505,7 +515,9 @@ def _pid_resolver() -> str:
     return str(os.getpid())
 
 
-OmegaConf.register_new_resolver("tf_pid", _pid_resolver, replace=True)
+# cached: a launcher that resolves the sweep folder again in each worker (joblib, submitit) gets
+# the main process's value, so every job lands in the one announced folder
+OmegaConf.register_new_resolver("tf_pid", _pid_resolver, replace=True, use_cache=True)
 
 def _quiet_rank_overrides(argv):
     """Ranks other than 0 of a ``torchrun`` run write no Hydra folder or log (rank 0 does)."""

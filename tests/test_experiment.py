@@ -330,6 +330,13 @@ def test_trial_range_reruns_rows_of_a_longer_run():
     part = run_experiment(model, make(), trials=6, steps=3, seed=3, progress=False, trial_range=[2, 5])
     assert part.per_trial == full.per_trial[2:5] and part.summary[0]["trials"] == 3
     assert part.config["trial_range"] == [2, 5] and part.trajectory.states.shape[0] == 3
+    # the Kalman reference of a linear model covers exactly the range, for any chunking
+    kw = dict(trials=6, steps=3, seed=3, progress=False)
+    whole = run_experiment(model, {"kf": KalmanFilter(model)}, **kw)
+    sub = run_experiment(model, {"kf": KalmanFilter(model)}, chunk_size=2, trial_range=[0, 3], **kw)
+    assert [r["trial"] for r in sub.per_trial] == [0, 1, 2] and sub.summary[0]["log_evidence_relmse"] is not None
+    for a, b in zip(sub.per_trial, whole.per_trial):
+        assert a["mse"] == pytest.approx(b["mse"], rel=1e-12) and a["log_evidence"] == pytest.approx(b["log_evidence"])
     for bad in ([3, 3], [0, 7], [-1, 2], [1.5, 3], "ab", 4):
         with pytest.raises(ValueError, match=r"trial_range: expected \[start, stop\] with 0 <= start < stop <= trials = 6"):
             run_experiment(model, make(), trials=6, steps=3, progress=False, trial_range=bad)

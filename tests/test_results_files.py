@@ -1,6 +1,7 @@
-"""Every per-trial file behind a number in experiments/RESULTS.md is reproduced by today's code.
+"""Committed per-trial files behind numbers in experiments/RESULTS.md are reproduced by today's code.
 
-Each case reruns the first trials of a committed paper-table run (``trial_range``: the whole run's
+7 cases (5 files of seeds 000, 001, 003 and 004; one filter each, its first 1-10 trials). Each
+case reruns the first trials of a committed paper-table run (``trial_range``: the whole run's
 data and per-trial random streams, only the first trials filtered) with the command's settings,
 and compares them with the committed ``per_trial.csv`` row by row. A code change that moves a
 recorded number, or a raw file that no longer matches its command, fails here. Tolerance 1e-7

@@ -91,7 +91,9 @@ def test_fingerprint_and_bad_arguments():
 
 
 class _FakeShard(Shard):
-    """Rank ``rank`` of ``world`` where gather hands rank 0 the other ranks' precomputed parts."""
+    """Rank ``rank`` of ``world`` where gather hands rank 0 the other ranks' precomputed parts
+    (ranks 1.. run first). ``broadcast`` of the stop decision: rank 0's own; a rank > 0 sees its
+    own interruption (the case the tests build)."""
 
     parts: dict = {}
 
@@ -100,6 +102,9 @@ class _FakeShard(Shard):
         if self.rank:
             return None
         return [self.parts[r][len(self.parts[0]) - 1] for r in range(self.world)]
+
+    def broadcast(self, obj):
+        return obj if self.rank == 0 else self.parts[self.rank][-1][2]
 
 
 def _sharded(model, filters, world, **kw):
@@ -144,6 +149,49 @@ def test_a_filter_failing_on_one_rank_fails_its_row_not_the_run():
     res = _sharded(model, filters, 2, trials=3, steps=2, seed=0)
     assert res.summary[0]["error"] == "RuntimeError: boom" and res.summary[1]["error"] is None
     assert [r["filter"] for r in res.per_trial] == ["kf"] * 3
+
+
+def test_an_interrupt_on_one_rank_stops_every_rank():
+    """Rank 1 is interrupted in the bootstrap PF: it stops, rank 0 stops too (no further
+    filter), and rank 0's row says how many trials finished."""
+    model = SensorNetwork(d=9)
+
+    class Stopped(BootstrapParticleFilter):
+        def forward(self, obs, *a, **kw):
+            if obs.shape[0] == 1:  # rank 1's chunk
+                raise KeyboardInterrupt
+            return super().forward(obs, *a, **kw)
+
+    filters = lambda: {"kf": KalmanFilter(model), "bpf": Stopped(model, n_particles=20),  # noqa: E731
+                       "kf2": KalmanFilter(model)}
+    res = _sharded(model, filters, 2, trials=3, steps=2, seed=0)
+    assert res.interrupted and res.not_run == ["kf2"]
+    assert res.summary[1]["error"] == "interrupted after 2 of 3 trials"
+
+
+def test_a_signal_outside_a_chunk_waits_for_the_next_chunk():
+    """STOP.handler (installed for SIGINT/SIGTERM by run.py) raises inside a chunk at once;
+    outside one (here: while the runner reports a finished filter) it stops the run at the next
+    chunk, after the finished filter is scored."""
+    from torchflow.experiment import STOP
+
+    model = SensorNetwork(d=9)
+
+    class Signalled(BootstrapParticleFilter):
+        def forward(self, *a, **kw):
+            STOP.handler(15, None)  # a SIGTERM arriving during the chunk
+            raise AssertionError("not reached")
+
+    try:
+        res = run_experiment(model, {"bpf": Signalled(model, n_particles=20)}, trials=2, steps=2, progress=False)
+        assert res.interrupted and res.summary[0]["error"] == "interrupted after 0 of 2 trials"
+        STOP.reset()
+        res = run_experiment(model, {"kf": KalmanFilter(model), "bpf": BootstrapParticleFilter(model, n_particles=20)},
+                             trials=2, steps=2, progress=False, on_filter_done=lambda rows: STOP.handler(15, None))
+        assert res.interrupted and res.summary[0]["error"] is None and len(res.per_trial) == 2
+        assert res.summary[1]["error"] == "interrupted after 0 of 2 trials"
+    finally:
+        STOP.reset()
 
 
 def _csv_rows(path, drop=("sec_per_step",)):
@@ -236,7 +284,7 @@ def test_sweep_with_a_failing_job_keeps_the_others_and_names_it(tmp_path, launch
         pytest.skip(f"{launcher} launcher not installed (pip install -e '.[cluster]')")
     out = _sweep(tmp_path, launcher)
     assert out.returncode == 1, out.stderr[-3000:]
-    assert "3 jobs, 2 finished, 1 failed" in out.stderr and "job 1 (" in out.stderr, out.stderr[-3000:]
+    assert "3 jobs, 2 finished, 1 failed, 0 interrupted" in out.stderr and "job 1 (" in out.stderr, out.stderr[-3000:]
     assert "job 1 (n_particles=-1) failed: error: filter.bpf: n_particles" in out.stderr
     sweep = tmp_path / "sweep"
     for j in ("0", "2"):
@@ -246,6 +294,20 @@ def test_sweep_with_a_failing_job_keeps_the_others_and_names_it(tmp_path, launch
     rows = [ln for ln in col.stdout.splitlines() if "| bpf |" in ln]
     assert len(rows) == 2 and "| 10 |" in rows[0] and "| 20 |" in rows[1]
     assert "job 1 (n_particles=-1) failed: error: filter.bpf: n_particles" in col.stdout + col.stderr
+
+
+def test_parallel_launchers_keep_every_job_in_the_announced_sweep_folder(tmp_path):
+    """Without hydra.sweep.dir, the joblib workers resolve the default folder (which names the
+    process) to the main process's value: one sweep folder with jobs 0, 1, 2."""
+    if importlib.util.find_spec("hydra_plugins.hydra_joblib_launcher") is None:
+        pytest.skip("joblib launcher not installed (pip install -e '.[cluster]')")
+    out = subprocess.run([sys.executable, RUN, "-m", "hydra/launcher=joblib", "model=linear_gaussian", "model.d=4",
+                          "filter=[kf]", "trials=2", "steps=2", "seed=0,1,2", "progress=false", "plots=false",
+                          "checkpoint_dir=null"], capture_output=True, text=True, env=_env(), timeout=300, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    sweeps = list((tmp_path / "multirun" / "default").iterdir())
+    assert len(sweeps) == 1 and sorted(p.name for p in sweeps[0].iterdir() if p.is_dir()) == ["0", "1", "2"]
+    assert "3 jobs, 3 finished" in out.stderr
 
 
 def test_lightning_ddp_gradients_equal_single_process(tmp_path):
@@ -264,3 +326,15 @@ def test_lightning_ddp_gradients_equal_single_process(tmp_path):
     for k, g in outs[1]["grads"].items():
         assert torch.isfinite(g).all() and g.abs().sum() > 0, k
         torch.testing.assert_close(outs[2]["grads"][k], g, rtol=1e-10, atol=1e-12)
+
+
+def test_chunk_header_must_repeat_the_run_settings(tmp_path):
+    """A caller's fixed key with another seed: the header's settings differ, the chunk is recomputed."""
+    store = ChunkStore(tmp_path, {"f": "k"}, resume=True)
+    chunk = {"estimates": torch.zeros(2, 3, 4), "log_evidence": torch.zeros(2), "elapsed": 0.1}
+    store.save("f", 0, 2, chunk, {"seed": 1})
+    assert store.load("f", 0, 2, 3, {"seed": 1})["start"] == 0
+    with pytest.warns(UserWarning, match="other settings"):
+        assert store.load("f", 0, 2, 3, {"seed": 2}) is None
+    with pytest.warns(UserWarning, match="other settings"):
+        assert store.load("f", 0, 2, 4, {"seed": 1}) is None  # other steps

@@ -14,8 +14,8 @@ Layout (``key`` is a fingerprint of everything that changes a filter's numbers, 
     <root>/<key>/<start>-<stop>.pt       trials [start, stop): estimates, log-evidence, ESS, ...
 
 Files are written to a temporary name and renamed, so a run killed while writing leaves no
-half-written chunk. A file whose header does not match (other steps, other trials, other key) is
-ignored with a warning, never silently used.
+half-written chunk. A file that cannot be read, or whose header does not match (other key, trials,
+steps, seed, random stream, ...), is recomputed with a warning, never silently used.
 """
 from __future__ import annotations
 
@@ -70,9 +70,11 @@ class ChunkStore:
     def _path(self, name: str, start: int, stop: int) -> Path:
         return self.folder(name) / f"{start:07d}-{stop:07d}.pt"
 
-    def load(self, name: str, start: int, stop: int, steps: int) -> Optional[dict]:
+    def load(self, name: str, start: int, stop: int, steps: int, meta: Optional[Mapping] = None) -> Optional[dict]:
         """The saved chunk of trials ``[start, stop)`` of filter ``name``, or ``None`` (not
-        resuming, not saved, or saved with other settings)."""
+        resuming, not saved, or saved with other settings). ``meta``: run settings the file's
+        header must repeat (the runner passes seed, trials, steps, random stream, dtype, ...), a
+        second guard beside the key for callers that choose their own keys."""
         if not self.resume:
             return None
         path = self._path(name, start, stop)
@@ -86,15 +88,16 @@ class ChunkStore:
             return None
         est = data.get("estimates")
         ok = (data.get("key") == self.keys.get(name, name) and data.get("start") == start and data.get("stop") == stop
-              and isinstance(est, torch.Tensor) and tuple(est.shape[:2]) == (stop - start, steps))
+              and isinstance(est, torch.Tensor) and tuple(est.shape[:2]) == (stop - start, steps)
+              and (data.get("meta") is None or meta is None or data["meta"] == dict(meta)))  # no meta: older file
         if not ok:
             warnings.warn(f"resume: {path} was saved with other settings; computing the chunk again", stacklevel=2)
             return None
         self.loaded[name] = self.loaded.get(name, 0) + 1
         return data
 
-    def save(self, name: str, start: int, stop: int, chunk: Mapping) -> Path:
-        """Write one finished chunk (CPU tensors and floats) atomically."""
+    def save(self, name: str, start: int, stop: int, chunk: Mapping, meta: Optional[Mapping] = None) -> Path:
+        """Write one finished chunk (CPU tensors and floats) atomically, with ``meta`` in its header."""
         folder = self.folder(name)
         folder.mkdir(parents=True, exist_ok=True)
         if name in self.settings and not (folder / "settings.json").exists():
@@ -103,7 +106,8 @@ class ChunkStore:
             os.replace(tmp, folder / "settings.json")
         path = self._path(name, start, stop)
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        torch.save({**dict(chunk), "key": self.keys.get(name, name), "start": start, "stop": stop}, tmp)
+        torch.save({**dict(chunk), "key": self.keys.get(name, name), "start": start, "stop": stop,
+                    "meta": dict(meta) if meta is not None else None}, tmp)
         os.replace(tmp, path)
         self.computed[name] = self.computed.get(name, 0) + 1
         return path

@@ -63,6 +63,16 @@ class Shard:
         dist.gather_object(obj, out, dst=0)
         return out
 
+    def broadcast(self, obj: Any) -> Any:
+        """Rank 0's ``obj`` on every rank (``obj`` itself when not distributed)."""
+        if self.world == 1:
+            return obj
+        import torch.distributed as dist
+
+        box = [obj if self.is_main else None]
+        dist.broadcast_object_list(box, src=0)
+        return box[0]
+
     def barrier(self) -> None:
         if self.world > 1:
             import torch.distributed as dist
@@ -70,10 +80,15 @@ class Shard:
             dist.barrier()
 
     @staticmethod
-    def from_env(device: str = "cpu") -> "Shard":
+    def from_env(device: str = "cpu", timeout_minutes: float = 720.0) -> "Shard":
         """The shard ``torchrun`` describes in the environment (``RANK``, ``WORLD_SIZE``,
         ``LOCAL_RANK``), with the process group initialised; ``Shard()`` when not launched by
-        ``torchrun``. ``device`` is the run's device: ``cuda`` selects NCCL and this rank's GPU."""
+        ``torchrun``. ``device`` is the run's device: ``cuda`` selects NCCL and this rank's GPU.
+        ``timeout_minutes``: how long a rank that finished its chunks waits for the slowest one
+        at a filter's gather (the collective's timeout; torch's defaults, 10-30 min, would end a
+        long uneven run)."""
+        import datetime
+
         world = int(os.environ.get("WORLD_SIZE", "1"))
         if world <= 1:
             return Shard()
@@ -85,12 +100,16 @@ class Shard:
         if not dist.is_initialized():
             if cuda:
                 torch.cuda.set_device(local)
-            dist.init_process_group(backend="nccl" if cuda else "gloo")
+            dist.init_process_group(backend="nccl" if cuda else "gloo",
+                                    timeout=datetime.timedelta(minutes=float(timeout_minutes)))
         return Shard(rank=rank, world=world, local_rank=local)
 
     def device(self, device: str) -> str:
-        """The device this rank runs on: ``cuda`` becomes ``cuda:<local_rank>`` in a distributed run."""
-        if self.world > 1 and str(device) == "cuda":
+        """The device this rank runs on: ``cuda`` becomes ``cuda:<local_rank>`` in a distributed
+        run; an explicit ``cuda:<i>`` there is refused (every rank would share GPU i)."""
+        if self.world > 1 and str(device).startswith("cuda"):
+            if str(device) != "cuda":
+                raise ValueError(f"device: expected 'cuda' under torchrun (rank r uses cuda:LOCAL_RANK), got {device!r}")
             return f"cuda:{self.local_rank}"
         return str(device)
 

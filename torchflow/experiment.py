@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Mapping, Optional, Sequence, Union
 
@@ -94,6 +95,46 @@ def _simulate(model: StateSpaceModel, trials: int, steps: int, inits_per_track: 
     return traj, mean, cov
 
 
+class StopRequest:
+    """Ctrl-C / SIGTERM handling that never tears a run apart mid-bookkeeping.
+
+    :meth:`handler` (installed for SIGINT and SIGTERM by ``experiments/run.py``; install it in
+    your own script with ``signal.signal(signal.SIGTERM, STOP.handler)``) records the request.
+    Inside a filter's chunk it raises ``KeyboardInterrupt`` at once; anywhere else (gathering
+    ranks, scoring, writing files) the run stops at the next chunk boundary, so the finished
+    chunks are always scored and written. Without the handler, Python's own Ctrl-C still
+    interrupts a chunk as before.
+    """
+
+    def __init__(self):
+        self.requested = False
+        self._depth = 0
+
+    def handler(self, signum, frame):  # noqa: ARG002 - signal handler signature
+        self.requested = True
+        if self._depth:
+            raise KeyboardInterrupt
+
+    def check(self) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+
+    def reset(self) -> None:
+        self.requested = False
+
+    @contextmanager
+    def interruptible(self):
+        self._depth += 1
+        try:
+            yield
+        finally:
+            self._depth -= 1
+
+
+#: the process's stop request (see :class:`StopRequest`)
+STOP = StopRequest()
+
+
 def _run_chunk(f: Filter, name: str, traj, mean0, cov0, s: int, e: int, seed: int, rng_backend: str, dev,
                bar, steps: int) -> dict:
     """Run filter ``f`` on trials ``[s, e)``: the chunk's results as CPU float64 tensors."""
@@ -102,7 +143,7 @@ def _run_chunk(f: Filter, name: str, traj, mean0, cov0, s: int, e: int, seed: in
     if dev.type == "cuda":
         torch.cuda.synchronize()
     t0 = time.perf_counter()
-    with torch.no_grad():
+    with torch.no_grad(), STOP.interruptible():
         try:
             res = f(traj.observations[s:e], mean0[s:e], cov0[s:e], g, progress=cb)
         except NonFiniteError as err:  # report trial indices in the whole run
@@ -248,8 +289,9 @@ def run_experiment(
         with torch.no_grad():
             kf = KalmanFilter(model, validate=False)
             c = filter_chunk(kf)
-            reference_logz = torch.cat([kf(traj.observations[s:s + c], mean0[s:s + c], cov0[s:s + c]).log_evidence
-                                        for s in range(lo, hi, c)]).double()
+            reference_logz = torch.cat([kf(traj.observations[s:min(s + c, hi)], mean0[s:min(s + c, hi)],
+                                           cov0[s:min(s + c, hi)]).log_evidence
+                                        for s in range(lo, hi, c)]).double().cpu()
 
     try:
         from tqdm.auto import tqdm
@@ -272,30 +314,38 @@ def run_experiment(
             bar = tqdm(total=sum(e - s for s, e in mine) * steps, unit="trial-step", leave=False,
                        dynamic_ncols=True, desc=f"[{i_f + 1}/{len(filters)}] {name}")
         done, error = [], None
+        meta = dict(seed=seed, trials=trials, steps=steps, inits_per_track=inits_per_track, stream=f.stream_name,
+                    rng_backend=rng_backend, dtype=str(dt), device=dev.type)
         try:
             for s, e in mine:
-                chunk = None if store is None else store.load(name, s, e, steps)
+                STOP.check()
+                chunk = None if store is None else store.load(name, s, e, steps, meta)
                 if chunk is None:
                     chunk = _run_chunk(f, name, traj, mean0, cov0, s, e, seed, rng_backend, dev, bar, steps)
                     if store is not None:
-                        store.save(name, s, e, chunk)
+                        store.save(name, s, e, chunk, meta)
                 elif bar is not None:
                     bar.update((e - s) * steps)
                 done.append(chunk)
+            STOP.check()
         except KeyboardInterrupt:  # keep what finished; the caller writes it and says so
             interrupted = True
-            error = f"interrupted after {sum(c['estimates'].shape[0] for c in done)} of {n_run} trials"
         except Exception as e:  # one failing filter must not lose the others' results
             error = f"{type(e).__name__}: {e}"
         if bar is not None:
             bar.close()
-        if shard.world > 1:  # every rank reaches this for every filter, failed or not
-            parts = shard.gather((done, error))
+        if shard.world > 1:  # every rank reaches this for every filter, failed, interrupted or not
+            parts = shard.gather((done, error, interrupted))
+            interrupted = bool(shard.broadcast(any(p[2] for p in parts) if shard.is_main else None))
             if not shard.is_main:
+                if interrupted:
+                    break
                 continue
-            errors = [err for _, err in parts if err]
+            errors = [err for _, err, _ in parts if err]
             error = errors[0] if errors else None
-            done = sorted((c for cs, _ in parts for c in cs), key=lambda c: c["start"])
+            done = sorted((c for cs, _, _ in parts for c in cs), key=lambda c: c["start"])
+        if interrupted:
+            error = f"interrupted after {sum(c['estimates'].shape[0] for c in done)} of {n_run} trials"
         if error is not None:
             row["error"] = error
             summary.append(row)

@@ -56,8 +56,10 @@ class FilterLightningModule(pl.LightningModule):
             (:class:`~torchflow.random.TrialStreams`, keyed by the epoch), so the loss and its
             gradient do not depend on the batch split: ``Trainer(strategy="ddp")`` on P processes,
             each with B / P trials, gives the gradient of one process with all B (DDP averages the
-            ranks' means). Batches of three tensors (no index) get a ``torch.Generator`` seeded
-            with ``seed + batch_idx``.
+            ranks' means; when P does not divide B, Lightning's distributed sampler pads with
+            repeated trials and the two differ). Training and validation use separate streams.
+            Batches of three tensors (no index) get a ``torch.Generator`` seeded with
+            ``seed + batch_idx``.
     """
 
     def __init__(self, filter: Filter, *, lr: float = 1e-2, seed: int = 0):
@@ -71,11 +73,11 @@ class FilterLightningModule(pl.LightningModule):
     def forward(self, observations, mean, cov, generator: Optional[torch.Generator] = None):
         return self.filter(observations, mean, cov, generator)
 
-    def _loss(self, batch, batch_idx):
+    def _loss(self, batch, batch_idx, stage: str = "train"):
         obs, mean, cov = batch[:3]
         if len(batch) > 3:  # trial indices: per-trial streams, independent of how trials are batched
             g = TrialStreams(self.seed, batch[3].reshape(-1).tolist(),
-                             key=f"{self.filter.stream_name}/epoch{self.current_epoch}")
+                             key=f"{self.filter.stream_name}/{stage}/epoch{self.current_epoch}")
         else:
             g = torch.Generator(device=obs.device).manual_seed(self.seed + batch_idx)
         res = self.filter(obs, mean, cov, g)
@@ -96,6 +98,6 @@ class ValidatedFilterLightningModule(FilterLightningModule):
     when a module defines ``validation_step`` and no validation data is given."""
 
     def validation_step(self, batch, batch_idx):
-        loss = self._loss(batch, batch_idx)
+        loss = self._loss(batch, batch_idx, "val")
         self.log("val_nll_per_step", loss, prog_bar=True, batch_size=batch[0].shape[0])
         return loss

@@ -35,15 +35,23 @@ def job_overrides(job: Path) -> List[str]:
 
 
 def job_status(job: Path) -> tuple:
-    """``("failed", first line of error.txt)``, ``("done", "")`` (``results.json`` written) or
+    """``("failed", last line of error.txt)``, ``("done", "")`` (``results.json`` written),
+    ``("interrupted", "")`` (stopped by Ctrl-C or SIGTERM; its finished filters are written) or
     ``("missing", "")`` (no results: still running, killed, or never started)."""
+    import json
+
     job = Path(job)
     err = job / "error.txt"
     if err.exists():
         lines = [ln for ln in err.read_text().splitlines() if ln.strip()]
         return "failed", (lines[-1] if lines else "error")
-    if (job / "results.json").exists():
-        return "done", ""
+    res = job / "results.json"
+    if res.exists():
+        try:
+            interrupted = bool(json.loads(res.read_text()).get("interrupted"))
+        except (ValueError, OSError):
+            return "missing", ""
+        return ("interrupted", "") if interrupted else ("done", "")
     return "missing", ""
 
 
@@ -63,6 +71,8 @@ def describe_job(name: str, state: str, message: str, overrides: dict) -> str:
     head = f"job {name}" + (f" ({ov})" if ov else "")
     if state == "failed":
         return f"{head} failed: {message}"
+    if state == "interrupted":
+        return f"{head} was interrupted (Ctrl-C or SIGTERM): rerun it with resume=true"
     return f"{head} has no results (still running, killed, or never started)"
 
 
@@ -81,6 +91,7 @@ class SweepReport(Callback):
         done = len(jobs) - len(bad)
         print(f"sweep {sweep}: {len(jobs)} jobs, {done} finished, "
               f"{sum(s[0] == 'failed' for s in bad.values())} failed, "
+              f"{sum(s[0] == 'interrupted' for s in bad.values())} interrupted, "
               f"{sum(s[0] == 'missing' for s in bad.values())} without results", file=sys.stderr)
         vary = varying_overrides(jobs)
         for n, (state, msg) in bad.items():
