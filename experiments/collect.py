@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a source checkout too
-from torchflow.sweep import describe_job, job_dirs, job_overrides, job_status, varying_overrides  # noqa: E402
+from torchflow.sweep import describe_job, job_dirs, job_override_dict, job_status, varying_overrides  # noqa: E402
 
 DEFAULT_COLUMNS = ["mse", "omat", "ospa", "ess", "g_eff", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step"]
 
@@ -31,7 +31,7 @@ def collect(sweep_dir: Path, columns=None):
     "missing"), "message", "overrides"}`` (overrides that vary between jobs)."""
     rows, missing, keys = [], [], []
     for job in job_dirs(sweep_dir):
-        ov = dict(o.split("=", 1) for o in job_overrides(job) if "=" in o and not o.startswith("experiment="))
+        ov = job_override_dict(job)
         keys += [k for k in ov if k not in keys]
         state, message = job_status(job)
         summary = job / "summary.csv"

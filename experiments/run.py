@@ -334,7 +334,7 @@ def _plain(v):
     return OmegaConf.to_container(v) if OmegaConf.is_config(v) else v
 
 
-def _chunk_store(cfg: DictConfig, filters):
+def _chunk_store(cfg: DictConfig, labels):
     """The run's :class:`~torchflow.checkpoint.ChunkStore` (``None`` with ``checkpoint_dir=null``):
     one folder per filter, named by a fingerprint of everything that changes its numbers."""
     import torch
@@ -354,8 +354,8 @@ def _chunk_store(cfg: DictConfig, filters):
     common["versions"] = {"torchflow": torchflow.__version__, "torch": torch.__version__}
     keys, settings = {}, {}
     for key, fcfg in cfg.filter.items():
-        label = next((n for n, f in filters.items() if getattr(f, "config_key", None) == key), None)
-        if label is None:
+        label = labels.get(key)
+        if label is None:  # settings for a filter that is not selected
             continue
         s = dict(common, filter=OmegaConf.to_container(fcfg, resolve=True), label=label)
         keys[label] = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in label) + "-" + fingerprint(s)
@@ -395,7 +395,7 @@ def _run_sharded(cfg: DictConfig, out: Path, shard) -> int:
         raise UsageError("filter: select at least one filter, e.g. filter=[kf,bpf]; available: "
                          + ", ".join(_group_options("filter")))
     model = instantiate(cfg.model)
-    filters = {}
+    filters, labels = {}, {}  # labels: config key -> row label
     for key, fcfg in cfg.filter.items():
         if "_target_" not in fcfg:  # e.g. an experiment's per-filter setting for a filter not selected
             print(f"(filter.{key}: settings given but the filter is not selected; skipped)", file=sys.stderr)
@@ -403,7 +403,7 @@ def _run_sharded(cfg: DictConfig, out: Path, shard) -> int:
         f = instantiate(fcfg, model=model, name=key)
         label = row_label(key, f)
         f.name = label
-        f.config_key = key
+        labels[key] = label
         filters[label] = f
     from torchflow.models import TDOA3D
 
@@ -411,7 +411,7 @@ def _run_sharded(cfg: DictConfig, out: Path, shard) -> int:
         if shard.world > 1 or cfg.get("resume"):
             raise UsageError("resume=true and torchrun apply to filter runs, not to the TDOA localisers")
         return _run_localisation(cfg, model, filters, out)
-    store = _chunk_store(cfg, filters)
+    store = _chunk_store(cfg, labels)
     result = run_experiment(
         model,
         filters,

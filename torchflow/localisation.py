@@ -247,8 +247,7 @@ class FlowMixtureLocaliser(nn.Module):
             cand_L = torch.cat([state.scale_trils, p_L.reshape(B, K, G * M, 3, 3)], 2)
             log_C = torch.logsumexp(cand_w, -1)  # log C_k
             r = state.existence
-            rc = r * log_C.exp()
-            r_leg = torch.where(rc > 0, rc / (rc + 1 - r), torch.zeros_like(rc))  # r = 1, C = 0: 0, not 0/0
+            r_leg = _legacy_existence(r, log_C)
             leg = _reduce(cand_w, cand_m, cand_L, G, generator)
         # new POs: the birth candidates of each measurement, reduced to G
         nb_w = (b_logw[:, 0].unsqueeze(-1) + bI[:, 0]).transpose(1, 2)  # (B, M, Nb)
@@ -479,7 +478,7 @@ class BootstrapLocaliser(nn.Module):
         lw = state.log_weights + torch.logsumexp(terms, -1)  # (B, K, N)
         log_C = torch.logsumexp(lw, -1)
         r = state.existence
-        r_leg = r * log_C.exp() / (r * log_C.exp() + 1 - r)
+        r_leg = _legacy_existence(r, log_C)
         idx = _systematic_indices(lw, N, generator)
         leg = state.means.gather(2, idx.unsqueeze(-1).expand(B, K, N, 3))
         nidx = _systematic_indices(llb, N, generator)
@@ -499,6 +498,13 @@ class BootstrapLocaliser(nn.Module):
 
     def extra_repr(self) -> str:
         return f"n_particles={self.n_particles}"
+
+
+def _legacy_existence(r: torch.Tensor, log_C: torch.Tensor) -> torch.Tensor:
+    """Updated existence ``r C / (r C + 1 - r)`` of legacy POs (both localisers); 0, not 0/0, when
+    ``r = 1`` and ``C = 0``."""
+    rc = r * log_C.exp()
+    return torch.where(rc > 0, rc / (rc + 1 - r), torch.zeros_like(rc))
 
 
 def _reduce(log_w: torch.Tensor, means: torch.Tensor, L: torch.Tensor, n: int, generator):

@@ -55,11 +55,15 @@ def job_status(job: Path) -> tuple:
     return "missing", ""
 
 
+def job_override_dict(job: Path) -> dict:
+    """``{key: value}`` of one job's overrides (the ``experiment=`` selection left out)."""
+    return dict(o.split("=", 1) for o in job_overrides(job) if "=" in o and not o.startswith("experiment="))
+
+
 def varying_overrides(jobs: List[Path]) -> dict:
     """``{job name: {key: value}}`` of the overrides whose value differs between ``jobs``
     (the ones that tell the jobs apart)."""
-    ov = {j.name: dict(o.split("=", 1) for o in job_overrides(j) if "=" in o and not o.startswith("experiment="))
-          for j in jobs}
+    ov = {j.name: job_override_dict(j) for j in jobs}
     keys = list(dict.fromkeys(k for o in ov.values() for k in o))
     vary = [k for k in keys if len({o.get(k) for o in ov.values()}) > 1]
     return {n: {k: o[k] for k in vary if k in o} for n, o in ov.items()}

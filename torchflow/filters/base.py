@@ -186,6 +186,16 @@ class Filter(nn.Module):
             check_psd("cov", cov)
         return mean, cov
 
+    def _raise_nonfinite(self, first_bad: torch.Tensor, first_invalid: torch.Tensor) -> None:
+        """Raise :class:`NonFiniteError` naming the earliest step at which any trial went
+        non-finite and the trials that did then (one host read); return if none did."""
+        if not bool((first_bad > 0).any()):
+            return
+        step = int(first_bad[first_bad > 0].min())
+        at = first_bad == step
+        what = "particles or weights" if bool((first_invalid & at).any()) else "estimate"
+        raise NonFiniteError(self.name, step, torch.nonzero(at).flatten().tolist(), what=what)
+
     def forward(
         self,
         observations: torch.Tensor,
@@ -220,16 +230,24 @@ class Filter(nn.Module):
             check_generator(generator, f"{self.name}: generator")
         state = self.init(mean, cov, n_particles, generator)
         est, inc, ess, covs, parts, lws, geff = [], [], [], [], [], [], []
+        # non-finite trials are recorded on the device (first bad step per trial) and reported once,
+        # after the last step: no host synchronisation per time step
+        first_bad = torch.zeros(observations.shape[0], dtype=torch.long, device=observations.device)
+        first_invalid = torch.zeros_like(first_bad, dtype=torch.bool)
         for t in range(observations.shape[1]):
-            state = self.step(state, observations[:, t], generator)
-            # one host synchronisation per time step, here, outside the step
+            try:
+                state = self.step(state, observations[:, t], generator)
+            except Exception:
+                self._raise_nonfinite(first_bad, first_invalid)  # an earlier non-finite value is the cause
+                raise
             bad = ~torch.isfinite(state.estimate).all(-1)
             invalid = getattr(state, "invalid", None)
             if invalid is not None:
                 bad = bad | invalid
-            if bool(bad.any()):
-                what = "particles or weights" if invalid is not None and bool(invalid.any()) else "estimate"
-                raise NonFiniteError(self.name, t + 1, torch.nonzero(bad).flatten().tolist(), what=what)
+            new = bad & (first_bad == 0)
+            first_bad = torch.where(new, t + 1, first_bad)
+            if invalid is not None:
+                first_invalid = first_invalid | (new & invalid)
             est.append(state.estimate)
             inc.append(state.log_evidence_increment)
             if state.ess is not None:
@@ -244,6 +262,7 @@ class Filter(nn.Module):
             if progress is not None:
                 progress()
         inc_t = torch.stack(inc, 1)
+        self._raise_nonfinite(first_bad, first_invalid)  # the one host read of the check
         return FilterResult(
             estimates=torch.stack(est, 1),
             log_evidence=inc_t.sum(1),
