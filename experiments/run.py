@@ -101,7 +101,12 @@ def per_step_figure(plt, per_step, summary, title: str):
         Ns = sorted({n_of[n] for n in names if n not in missing and n_of.get(n)})
         if key == "ess":
             ax.set_ylabel(f"ESS / N (N = {Ns[0]})" if len(Ns) == 1 else "ESS / N (each filter's N)")
-            ax.set_ylim(0, 1.05)
+            fractions = [v for line in ax.get_lines() for v in line.get_ydata() if v > 0]
+            if fractions and min(fractions) < 0.1:  # low ESS: a log axis keeps the curves apart
+                ax.set_yscale("log")
+                ax.set_ylim(min(fractions) / 1.5, 1.05)
+            else:
+                ax.set_ylim(0, 1.05)
         else:
             ax.set_ylabel(_LABELS.get(key, key))
         if key == "mse":
