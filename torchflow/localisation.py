@@ -140,6 +140,8 @@ class FlowMixtureLocaliser(nn.Module):
         declare: existence above which a PO is a declared source (0.5).
         bp_iterations: message passes (20).
         jitter: relative diagonal jitter of the refitted covariances (of the component's prior scale).
+        evaluate_at: ``"end"`` (default, ``lambda_l``) or ``"start"`` (``lambda_{l-1}``): where each
+            lambda step takes its flow coefficients (:func:`~torchflow.flows.flow_gaussian`, UNCONF).
         name: label in results (default: the class name).
         sample_chunk: numbers drawn per pass (memory bound). Draws are made per pass, so with the
             numpy back end of per-trial streams (which splits draws above 2^18 numbers) results
@@ -150,7 +152,8 @@ class FlowMixtureLocaliser(nn.Module):
                  samples_per_component: int = 5000, schedule: Optional[LambdaSchedule] = None, alpha: float = 0.1,
                  c_rule: str = "printed", birth_rate: float = 0.01, birth_per_axis: int = 5, birth_sd: float = 0.5,
                  max_objects: int = 30, prune: float = 1e-3, declare: float = 0.5, bp_iterations: int = 20,
-                 jitter: float = 1e-6, sample_chunk: int = 20_000_000, name: Optional[str] = None):
+                 jitter: float = 1e-6, sample_chunk: int = 20_000_000, evaluate_at: str = "end",
+                 name: Optional[str] = None):
         super().__init__()
         self.name = name or type(self).__name__
         _check_common(model, n_components=n_components, samples_per_component=samples_per_component,
@@ -168,7 +171,7 @@ class FlowMixtureLocaliser(nn.Module):
         self.schedule = schedule or GeometricSchedule(1e-5, 1.5)
         if len(self.schedule) < 1:
             raise ValueError("schedule: expected at least one pseudo-time step, got an empty schedule")
-        self.proposal = FlowedMixtureProposal(self.flow, self.schedule, ratio="component")
+        self.proposal = FlowedMixtureProposal(self.flow, self.schedule, ratio="component", evaluate_at=evaluate_at)
         bm, bL = birth_mixture(model.region, birth_per_axis, birth_sd)
         self.register_buffer("birth_means", bm)
         self.register_buffer("birth_scale_tril", bL)

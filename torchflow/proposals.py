@@ -202,15 +202,22 @@ class FlowedMixtureProposal(nn.Module):
         schedule: lambda schedule (default exponential, 29 steps, ratio 1.2; seed 002 uses
             :class:`~torchflow.schedules.GeometricSchedule` grids).
         ratio: ``"mixture"`` or ``"component"``.
+        evaluate_at: ``"end"`` (default) or ``"start"``: the pseudo-time of each step's flow
+            coefficients (:func:`~torchflow.flows.flow_gaussian`).
     """
 
-    def __init__(self, flow: ParticleFlow, schedule: Optional[LambdaSchedule] = None, ratio: str = "mixture"):
+    def __init__(self, flow: ParticleFlow, schedule: Optional[LambdaSchedule] = None, ratio: str = "mixture",
+                 evaluate_at: str = "end"):
         super().__init__()
         if not isinstance(flow, ParticleFlow):
             raise TypeError(f"flow: expected a torchflow ParticleFlow, got {type(flow).__name__}")
         if ratio not in RATIOS:
             raise ValueError(f"ratio: expected one of {RATIOS}, got {ratio!r}")
-        self.flow, self.schedule, self.ratio = flow, schedule or ExponentialSchedule(), ratio
+        from .flows.integrate import EVALUATE_AT
+
+        if evaluate_at not in EVALUATE_AT:
+            raise ValueError(f"evaluate_at: expected one of {EVALUATE_AT}, got {evaluate_at!r}")
+        self.flow, self.schedule, self.ratio, self.evaluate_at = flow, schedule or ExponentialSchedule(), ratio, evaluate_at
 
     def flowed(self, means: torch.Tensor, scale_trils: torch.Tensor, measurement):
         """``(means', covs')`` of every component ``(..., G, d)``, ``(..., G, d, d)`` flowed by the
@@ -221,7 +228,7 @@ class FlowedMixtureProposal(nn.Module):
         *batch, G, d = means.shape
         mu = means.reshape(-1, d)
         L = scale_trils.expand(*batch, G, d, d).reshape(-1, d, d)
-        mu1, P1 = flow_gaussian(self.flow, measurement, FlowPrior(mu, L), self.schedule)
+        mu1, P1 = flow_gaussian(self.flow, measurement, FlowPrior(mu, L), self.schedule, self.evaluate_at)
         return mu1.reshape(*batch, G, d), P1.reshape(*batch, G, d, d)
 
     def sample(self, log_w: torch.Tensor, means: torch.Tensor, scale_trils: torch.Tensor, flowed_means: torch.Tensor,
@@ -258,7 +265,7 @@ class FlowedMixtureProposal(nn.Module):
         return x, log_weights, log_ev
 
     def extra_repr(self) -> str:
-        return f"ratio={self.ratio!r}"
+        return f"ratio={self.ratio!r}, evaluate_at={self.evaluate_at!r}"
 
 
 def _mixture_log_prob(x: torch.Tensor, log_w: torch.Tensor, means: torch.Tensor, scale_trils: torch.Tensor):

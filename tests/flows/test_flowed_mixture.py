@@ -50,6 +50,29 @@ def test_edh_parameter_flow_converges_to_the_kalman_posterior_and_osd_with_c0_is
     torch.testing.assert_close(P2, P1, rtol=1e-10, atol=1e-12)
 
 
+def test_evaluate_at_takes_the_step_coefficients_at_the_end_or_the_start():
+    """One EDH step over [0, 1]: the covariance is (I + A) P (I + A)^T with the EDH
+    A(lambda) = -1/2 P H^T (lambda H P H^T + R)^{-1} H at lambda = 1 ("end") or 0 ("start"); the two
+    differ, both converge to the Kalman posterior on a fine grid, and a bad value is refused."""
+    model, mu, P, z, post = _linear_case()
+    meas = GaussianMeasurement.from_model(model, z)
+    prior = FlowPrior(mu, torch.linalg.cholesky(P))
+    H, R = model.measurement_matrix(), model.measurement_cov()
+    eye = torch.eye(3, dtype=torch.float64)
+    for where, lam in (("end", 1.0), ("start", 0.0)):
+        S = lam * H @ P @ H.T + R
+        A = -0.5 * P @ H.T @ torch.linalg.solve(S, H.expand(S.shape[0], *H.shape))
+        T = eye + A
+        _, P1 = flow_gaussian(EDHFlow(), meas, prior, UniformSchedule(1), evaluate_at=where)
+        torch.testing.assert_close(P1, T @ P @ T.transpose(-1, -2), rtol=1e-10, atol=1e-12)
+        m2, P2 = flow_gaussian(EDHFlow(), meas, prior, UniformSchedule(2000), evaluate_at=where)
+        assert float((m2 - post[0]).abs().max()) < 0.01 and float((P2 - post[1]).abs().max()) < 0.01
+    with pytest.raises(ValueError, match="evaluate_at"):
+        flow_gaussian(EDHFlow(), meas, prior, UniformSchedule(1), evaluate_at="middle")
+    with pytest.raises(ValueError, match="evaluate_at"):
+        FlowedMixtureProposal(EDHFlow(), UniformSchedule(1), evaluate_at="mid")
+
+
 @pytest.mark.parametrize("ratio", ["mixture", "component"])
 def test_flowed_mixture_evidence_is_unbiased(ratio):
     """The evidence of a linear-Gaussian measurement under a 3-component Gaussian-mixture prior,

@@ -183,7 +183,11 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
     return image.output(FlowOutput(eta, log_det, aux))
 
 
-def flow_gaussian(flow: ParticleFlow, measurement, prior: FlowPrior, schedule: Optional[LambdaSchedule] = None):
+EVALUATE_AT = ("end", "start")
+
+
+def flow_gaussian(flow: ParticleFlow, measurement, prior: FlowPrior, schedule: Optional[LambdaSchedule] = None,
+                  evaluate_at: str = "end"):
     """Flow the *parameters* of Gaussians instead of particles (seed 002's flow-induced proposal,
     MODELS.md §12.2): for each prior ``N(mu_0, P_0)``, linearise the measurement at the migrating
     mean and step
@@ -203,12 +207,22 @@ def flow_gaussian(flow: ParticleFlow, measurement, prior: FlowPrior, schedule: O
             Gaussians' leading batch dimension.
         prior: :class:`FlowPrior` with ``mean (..., d)`` and factor ``(..., d, d)``.
         schedule: lambda schedule (default exponential, 29 steps, ratio 1.2).
+        evaluate_at: pseudo-time at which step l's ``A``, ``b``, ``Q`` are taken: ``"end"``
+            (default, ``lambda_l``, as seed 002's Euler-Maruyama step and Li & Coates' flows) or
+            ``"start"`` (``lambda_{l-1}``, ``lambda_0 = 0``: the plain explicit Euler step, which is
+            unstable when ``eps_1`` times the measurement's precision in prior units is large;
+            MODELS.md §12.1, UNCONF).
 
     Returns:
         ``(mean (..., d), cov (..., d, d))`` of the flowed Gaussians.
     """
+    if evaluate_at not in EVALUATE_AT:
+        raise ValueError(f"evaluate_at: expected one of {EVALUATE_AT}, got {evaluate_at!r}")
     schedule = schedule or ExponentialSchedule()
     eps_all, lam_all = schedule.steps(dtype=prior.mean.dtype, device=prior.mean.device)
+    if evaluate_at == "start":
+        lam_all = lam_all - eps_all  # lambda_{l-1}; exactly 0 for the first step
+        lam_all[0] = 0.0
     prior = prior.reduced(measurement.support)
     image = _Image(prior, True)
     mu = prior.mean
