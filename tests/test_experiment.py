@@ -306,6 +306,40 @@ def test_trial_stats_quartiles_and_paired_ratios(tmp_path):
     assert main([str(tmp_path / "nope")]) == 2
 
 
+def test_trial_stats_groups_trials_that_share_a_trajectory(tmp_path):
+    """--group K: the mean's SE and the paired difference's SE come from the K-trial group means,
+    the bootstrap resamples whole groups, and a filter without the metric has no row."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from trial_stats import main, mean_se, trial_table
+
+    # two trajectories x 3 initialisations: trials agree within a trajectory, differ between them
+    ref = [1.0, 1.1, 0.9, 3.0, 3.1, 2.9]
+    other = [v + d for v, d in zip(ref, [0.5, 0.5, 0.5, 1.5, 1.5, 1.5])]
+    with open(tmp_path / "per_trial.csv", "w") as fh:
+        fh.write("filter,trial,ospa,ess,lost\n")
+        for name, vals in (("pfpf_ledh", ref), ("gromov", other), ("ekf", ref)):
+            for b, v in enumerate(vals):
+                fh.write(f"{name},{b},{v},{'' if name == 'ekf' else 10 + b},False\n")
+    with open(tmp_path / "summary.csv", "w") as fh:
+        fh.write("filter,sec_per_step\npfpf_ledh,0.2\ngromov,0.1\nekf,0.001\n")
+    rows, ratios = trial_table(tmp_path, metric="ospa", resamples=200, group=3)
+    by = {r["filter"]: r for r in rows}
+    # group means 1.0 and 3.0: SE = sd(1, 3) / sqrt(2) = 1.0; the per-trial SE would be 0.45
+    assert by["pfpf_ledh"]["mean_se"] == pytest.approx(1.0)
+    assert mean_se(ref, 1) == pytest.approx(0.4487, abs=1e-4)
+    (g,) = [r for r in ratios if r["filter"] == "gromov"]
+    assert g["diff"] == pytest.approx(1.0) and g["diff_se"] == pytest.approx(0.5)
+    # resampling whole groups: every bootstrap median is a median of trials 0-2 and/or 3-5
+    assert 0.0 < by["pfpf_ledh"]["median_se"] < 2.0
+    rows, _ = trial_table(tmp_path, metric="ess", resamples=50, group=3)
+    assert {r["filter"] for r in rows} == {"pfpf_ledh", "gromov"}
+    # a short last group (5 trials in groups of 2) is its own group
+    assert mean_se([1.0, 1.0, 3.0, 3.0, 5.0], 2) == pytest.approx(1.1547, abs=1e-4)
+    with pytest.raises(ValueError, match="group"):
+        trial_table(tmp_path, group=0)
+    assert main([str(tmp_path), "--metric", "ospa", "--group", "0"]) == 2
+
+
 def test_cli_tdoa_runs_localisers_and_refuses_filters(tmp_path):
     """model=tdoa runs seed 002's localisers (table, per-run CSV, OSPA within [0, cut-off]) and
     refuses a state-space filter with a one-line error."""
