@@ -57,6 +57,8 @@ def trial_table(run: Path, metric: str = "omat", reference: str = "pfpf_ledh", o
             continue
         values.setdefault(r["filter"], []).append(float(r[metric]))
         lost.setdefault(r["filter"], []).append(r.get("lost") == "True")
+    if not values:
+        raise ValueError(f"metric: no filter of {run / 'per_trial.csv'} has a value of {metric!r}")
     rng = np.random.default_rng(seed)
     n = len(next(iter(values.values())))
     n_groups = -(-n // group)
@@ -101,7 +103,11 @@ def main(argv=None) -> int:
     if args.group < 1:
         print(f"error: --group: expected a positive number of trials per trajectory, got {args.group}", file=sys.stderr)
         return 2
-    rows, ratios = trial_table(args.run, args.metric, args.reference, args.outlier, args.resamples, group=args.group)
+    try:
+        rows, ratios = trial_table(args.run, args.metric, args.reference, args.outlier, args.resamples, group=args.group)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     print(f"| filter | {args.metric} Q1 | median (bootstrap SE) | Q3 | mean (SE) | trials > {args.outlier:g} | lost "
           f"| s/trial-step | time vs {args.reference} |")
     print("|---|---|---|---|---|---|---|---|---|")

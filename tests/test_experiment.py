@@ -338,6 +338,7 @@ def test_trial_stats_groups_trials_that_share_a_trajectory(tmp_path):
     with pytest.raises(ValueError, match="group"):
         trial_table(tmp_path, group=0)
     assert main([str(tmp_path), "--metric", "ospa", "--group", "0"]) == 2
+    assert main([str(tmp_path), "--metric", "nope"]) == 2  # no filter has it: one line, exit 2
 
 
 def test_cli_tdoa_runs_localisers_and_refuses_filters(tmp_path):

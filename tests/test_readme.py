@@ -94,7 +94,7 @@ def test_readme_commands_run(tmp_path):
     """Every command, in README order, from the repository root: set-up and test commands run up to
     their last step (CI runs the set-up itself), sizes shrunk, output folders in tmp_path."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    last_sweep = None
+    last_sweep = last_run = None
     ran = []
     for i, line in enumerate(commands()):
         parts = [p.strip() for p in line.split("&&")]
@@ -118,6 +118,9 @@ def test_readme_commands_run(tmp_path):
         elif script == "experiments/collect.py":
             assert last_sweep is not None, "collect.py before any sweep in README"
             tokens = [t if "<time>" not in t else str(last_sweep) for t in tokens]
+        elif script == "experiments/trial_stats.py":
+            assert last_run is not None, "trial_stats.py before any run in README"
+            tokens = [t if "<run>" not in t else str(last_run) for t in tokens]
         elif script == "experiments/benchmarks/run_all.py":
             # the whole suite takes ~20 min and needs the [bench] peers: run its entry point on the
             # section that needs no peer library, in --quick sizes
@@ -128,4 +131,7 @@ def test_readme_commands_run(tmp_path):
         assert out.returncode == 0, f"{line}\n{out.stderr[-3000:]}"
         assert "Traceback" not in out.stderr, f"{line}\n{out.stderr[-3000:]}"
         ran.append(script)
+        if script == "experiments/run.py" and not multirun and (where / "per_trial.csv").exists():
+            last_run = where  # the folder a later trial_stats.py command reads
     assert ran.count("experiments/run.py") >= 7 and "experiments/collect.py" in ran
+    assert "experiments/trial_stats.py" in ran
