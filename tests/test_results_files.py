@@ -1,6 +1,6 @@
 """Committed per-trial files behind numbers in experiments/RESULTS.md are reproduced by today's code.
 
-7 cases (5 files of seeds 000, 001, 003 and 004; one filter each, its first 1-10 trials). Each
+10 cases (7 files of seeds 000, 001, 003 and 004; one filter each, its first 1-10 trials). Each
 case reruns the first trials of a committed paper-table run (``trial_range``: the whole run's
 data and per-trial random streams, only the first trials filtered) with the command's settings,
 and compares them with the committed ``per_trial.csv`` row by row. A code change that moves a
@@ -27,6 +27,12 @@ CASES = {
                                  "seed000_table1_bpf200_checks/per_trial_seed1.csv", "bpf", 5),
     "seed000_table2_tight_prior_gromov": (["experiment=seed000_table2", "model.prior_std=[1.0,1.0,0.005,0.005]"],
                                           "pfpf_gromov", "seed000_table2_tight_prior/per_trial.csv", "pfpf_gromov", 1),
+    "seed000_table2_pfpf_ledh": (["experiment=seed000_table2", "filter.pfpf_edh.n_particles=10000"], "pfpf_ledh",
+                                 "seed000_table2_40/sw0.1/per_trial.csv", "pfpf_ledh", 1),
+    "seed000_table2_sw0001_pfpf_gromov": (["experiment=seed000_table2", "model.sigma_w=0.001"], "pfpf_gromov",
+                                          "seed000_table2_40/sw0.001/per_trial.csv", "pfpf_gromov", 1),
+    "seed000_table2_sw0001_ekf": (["experiment=seed000_table2", "model.sigma_w=0.001"], "ekf",
+                                  "seed000_table2_40/sw0.001/per_trial.csv", "ekf", 10),
     "seed001_table1_pfgpf": (["experiment=seed001_table1", "trials=100"], "pfgpf",
                              "seed001_table1_100/per_trial.csv", "pfgpf", 1),
     "seed001_table1_pfpf_ledh": (["experiment=seed001_table1", "trials=100"], "pfpf_ledh",
