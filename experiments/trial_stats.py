@@ -59,8 +59,11 @@ def trial_table(run: Path, metric: str = "omat", reference: str = "pfpf_ledh", o
         lost.setdefault(r["filter"], []).append(r.get("lost") == "True")
     if not values:
         raise ValueError(f"metric: no filter of {run / 'per_trial.csv'} has a value of {metric!r}")
-    rng = np.random.default_rng(seed)
     n = len(next(iter(values.values())))
+    uneven = {name: len(v) for name, v in values.items() if len(v) != n}
+    if uneven:  # paired statistics need the same trials for every filter
+        raise ValueError(f"per_trial.csv: expected {n} trials for every filter, got {uneven}")
+    rng = np.random.default_rng(seed)
     n_groups = -(-n // group)
     # resample whole groups (trials sharing a trajectory move together); the last may be short
     pick = rng.integers(0, n_groups, size=(resamples, n_groups))
