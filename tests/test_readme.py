@@ -90,11 +90,19 @@ def _shrink(tokens):
     return out + [f"{k}={v}" for k, v in SHRINK_CLI.items() if k not in seen]
 
 
+def _has_metric(path, metric):
+    import csv
+
+    with open(path) as fh:
+        return any(r.get(metric, "") != "" for r in csv.DictReader(fh))
+
+
 def test_readme_commands_run(tmp_path):
     """Every command, in README order, from the repository root: set-up and test commands run up to
     their last step (CI runs the set-up itself), sizes shrunk, output folders in tmp_path."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    last_sweep = last_run = None
+    last_sweep = None
+    runs = []  # single-run folders with a per_trial.csv, in README order
     ran = []
     for i, line in enumerate(commands()):
         parts = [p.strip() for p in line.split("&&")]
@@ -119,8 +127,11 @@ def test_readme_commands_run(tmp_path):
             assert last_sweep is not None, "collect.py before any sweep in README"
             tokens = [t if "<time>" not in t else str(last_sweep) for t in tokens]
         elif script == "experiments/trial_stats.py":
-            assert last_run is not None, "trial_stats.py before any run in README"
-            tokens = [t if "<run>" not in t else str(last_run) for t in tokens]
+            # the latest run folder whose per-trial file has the metric the command asks for
+            metric = tokens[tokens.index("--metric") + 1] if "--metric" in tokens else "omat"
+            fit = [r for r in runs if _has_metric(r / "per_trial.csv", metric)]
+            assert fit, f"trial_stats.py --metric {metric} before any README run with that metric"
+            tokens = [t if "<run>" not in t else str(fit[-1]) for t in tokens]
         elif script == "experiments/benchmarks/run_all.py":
             # the whole suite takes ~20 min and needs the [bench] peers: run its entry point on the
             # section that needs no peer library, in --quick sizes
@@ -132,6 +143,6 @@ def test_readme_commands_run(tmp_path):
         assert "Traceback" not in out.stderr, f"{line}\n{out.stderr[-3000:]}"
         ran.append(script)
         if script == "experiments/run.py" and not multirun and (where / "per_trial.csv").exists():
-            last_run = where  # the folder a later trial_stats.py command reads
+            runs.append(where)  # folders a later trial_stats.py command may read
     assert ran.count("experiments/run.py") >= 7 and "experiments/collect.py" in ran
     assert "experiments/trial_stats.py" in ran
