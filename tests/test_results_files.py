@@ -10,6 +10,7 @@ trials per call), far below any change of a draw or a formula.
 """
 import csv
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -73,3 +74,30 @@ def test_committed_per_trial_file_is_reproduced(case):
             if not math.isclose(g[col], float(w[col]), rel_tol=1e-7, abs_tol=1e-9):
                 bad.append(f"trial {w['trial']} {col}: {g[col]!r} != {w[col]}")
     assert not bad, f"{path} ({label}):\n" + "\n".join(bad)
+
+
+def _expand(path):
+    """``a/{x,y}/b`` -> ``a/x/b``, ``a/y/b`` (nested braces expand left to right)."""
+    m = re.search(r"\{([^}]*)\}", path)
+    if not m:
+        return [path]
+    return [q for alt in m.group(1).split(",") for q in _expand(path[:m.start()] + alt + path[m.end():])]
+
+
+def test_every_raw_file_named_in_results_md_exists():
+    """Each path under experiments/results/ or experiments/figures/ that RESULTS.md names (brace
+    lists expanded; a ``<placeholder>`` matches any name with the text before it) is in the
+    repository, so every number there can be traced to its file."""
+    text = (ROOT / "experiments" / "RESULTS.md").read_text()
+    named = set(re.findall(r"experiments/(?:results|figures)/[A-Za-z0-9_.{},/<>=-]+", text))
+    assert len(named) >= 20
+    missing = []
+    for p in sorted(named):
+        for q in _expand(p.rstrip(".,")):
+            if "<" in q:  # a placeholder: some entry of its folder starts with the text before it
+                head = ROOT / q.split("<")[0]
+                if not any(c.name.startswith(head.name) for c in head.parent.glob("*")):
+                    missing.append(q)
+            elif not (ROOT / q).exists():
+                missing.append(q)
+    assert not missing, "RESULTS.md names files that are not in the repository:\n" + "\n".join(missing)
