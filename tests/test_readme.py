@@ -5,6 +5,7 @@ changes made before running them are listed below (SHRINK_* and the command rule
 replacement must match, so a README edit that moves a size out of reach of the shrink rules fails
 instead of silently running the full size.
 """
+import csv
 import os
 import re
 import shlex
@@ -91,8 +92,6 @@ def _shrink(tokens):
 
 
 def _has_metric(path, metric):
-    import csv
-
     with open(path) as fh:
         return any(r.get(metric, "") != "" for r in csv.DictReader(fh))
 
