@@ -133,7 +133,8 @@ class FlowProposal(Proposal):
         if pts.per_particle:
             # every particle flows with its own prior: blocks of particles are independent
             B, N = eta0.shape[:2]
-            blocked = bool(filt.particle_chunk) and N > filt.particle_chunk
+            chunk = filt.flow_chunk(N)  # particle_chunk, or cache-sized blocks in high dimension
+            blocked = bool(chunk) and N > chunk
             tape = {}
 
             def draw(sl):
@@ -150,7 +151,8 @@ class FlowProposal(Proposal):
                 kw = {"noise": draw(particles)} if blocked and self.flow.stochastic else {}
                 return self._migrate(model, eta0, x_prev, z, FlowPrior(m, L), generator, log_q0, **kw)
 
-            x, log_q = filt.per_particle(block, eta0, x_prev, prior.mean, prior.scale_tril, log_q0, pass_slice=True)
+            x, log_q = filt.per_particle(block, eta0, x_prev, prior.mean, prior.scale_tril, log_q0, pass_slice=True,
+                                         chunk=chunk)
         else:
             x, log_q = self._migrate(model, eta0, x_prev, z, prior, generator, log_q0, index=index)
         _, P_post, _ = self.tracker.update(m_pred, P_pred, z.unsqueeze(1) if cov.per_particle else z)

@@ -4,10 +4,10 @@ propagation, the single-threaded triangular solves and the model's shared linear
 import pytest
 import torch
 
-from torchflow import linalg
+from torchflow import linalg, tuning
 from torchflow.filters import ParticleFlowParticleFilter
 from torchflow.flows import (EDHFlow, FlowPrior, GeodesicFlow, GromovFlow, LEDHFlow, OptimalDiffusionFlow,
-                             integrate_flow)
+                             daum_huang_coefficients, integrate_flow)
 from torchflow.models import AcousticTracking
 from torchflow.schedules import ExponentialSchedule
 
@@ -267,3 +267,59 @@ def test_float32_daum_huang_drift_is_promoted_where_float32_cancels():
     co = flow.coefficients(m32, z.float(), aux.float(), prior32, lam.float(), eps.float())
     bad = (eps.float() * co.drift(aux.float())[0]).double() - step64
     assert float(bad.abs().max()) > 100 * float(err.abs().max())  # the failure the promotion prevents
+
+
+@pytest.mark.parametrize("case", ["full", "support", "shared_W", "float32"])
+def test_daum_huang_operator_form_equals_the_formed_matrix(case):
+    """The operator form of the EDH/LEDH A (never formed; large k) gives the explicit form's b and
+    log|det| to round-off, applies A to vectors as the matrix does, and forms the same matrix on
+    demand (for the Gaussian image and clustered particles)."""
+    g = torch.Generator().manual_seed(4)
+    B, N, d, m = 2, 3, 6, 5
+    k = 4 if case == "support" else d
+    dt = torch.float32 if case == "float32" else F64
+    W = torch.randn(m, k, dtype=F64, generator=g) if case == "shared_W" else \
+        torch.randn(B, N, m, k, dtype=F64, generator=g)
+    y = torch.randn(B, N, m, dtype=F64, generator=g)
+    X = torch.randn(B, N, d, d, dtype=F64, generator=g)
+    Lfull = linalg.safe_cholesky(X @ X.transpose(-1, -2) + torch.eye(d, dtype=F64))
+    support = torch.tensor([0, 2, 3, 5]) if case == "support" else None
+    L = Lfull if support is None else Lfull[..., :k]  # a root whose first k columns carry the support rows
+    Ls = None if support is None else L.index_select(-2, support)
+    eta = torch.randn(B, N, d, dtype=F64, generator=g)
+    lam, eps = torch.tensor(0.4, dtype=F64), torch.tensor(0.05, dtype=F64)
+    kw = dict(L_support=Ls, support=support)
+    ex = daum_huang_coefficients(W, y, L, eta, lam, eps, operator=False, **kw)
+    op = daum_huang_coefficients(W, y, L, eta, lam, eps, operator=True, **kw)
+    assert op.A is None and ex.A is not None
+    torch.testing.assert_close(op.b, ex.b, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(op.log_det, ex.log_det, rtol=1e-10, atol=1e-12)
+    x = torch.randn(B, N, d, dtype=F64, generator=g)
+    for a, b in zip(op.drift(x, eta), ex.drift(x, eta)):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(op.dense_A(), ex.dense_A(), rtol=1e-10, atol=1e-12)  # formed on demand
+    assert op.A is not None  # and kept
+    if case == "float32":  # the flow's low-precision path: operator applied in float64, run's dtype out
+        from torchflow.flows.measurement import Linearisation
+        prior = FlowPrior(eta.to(dt), L.to(dt)).reduced(None)
+        with tuning.tuned(flow_operator_min_dim=0):
+            co = EDHFlow().coefficients_at(Linearisation(W.to(dt), y.to(dt)), prior, lam.to(dt), eps.to(dt))
+        assert co.A is None and co.b.dtype == dt
+        torch.testing.assert_close(co.drift(x.to(dt))[0].double(), ex.drift(x)[0], rtol=1e-4, atol=1e-4)
+        assert co.dense_A().dtype == dt
+
+
+def test_operator_form_is_chosen_by_size_and_cannot_be_gathered_without_form():
+    g = torch.Generator().manual_seed(5)
+    for k, expect_operator in ((31, False), (32, True)):
+        W = torch.randn(1, 2, k, k, dtype=F64, generator=g)
+        L = torch.eye(k, dtype=F64).expand(1, 2, k, k)
+        co = daum_huang_coefficients(W, torch.zeros(1, 2, k, dtype=F64), L, torch.zeros(1, 2, k, dtype=F64),
+                                     torch.tensor(0.5, dtype=F64), torch.tensor(0.1, dtype=F64))
+        assert (co.A is None) == expect_operator  # tuning.flow_operator_min_dim = 32
+    from torchflow.flows import FlowCoefficients
+    bare = FlowCoefficients(None, torch.zeros(1, 2, 3), None, apply_A=lambda V: V)
+    with pytest.raises(TypeError, match="only as an operator"):
+        bare.matrix()
+    with pytest.raises(NotImplementedError, match="cannot be gathered"):
+        bare.gather(torch.zeros(1, 2, dtype=torch.long))

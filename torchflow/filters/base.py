@@ -341,6 +341,18 @@ class ParticleFilterBase(Filter):
         # whole-cloud passes stay cache-resident up to a measured size (torchflow.tuning)
         return max(1, tuning.get().cache_bytes_per_call // max(per_trial, 1))
 
+    def flow_chunk(self, n_particles: Optional[int] = None) -> Optional[int]:
+        """Particles of one trial per pass of a per-particle flow: :attr:`particle_chunk` when set,
+        else :func:`~torchflow.flows.points.flow_points_per_call` when the cloud of ``n_particles``
+        (default :attr:`n_particles`) exceeds it, else ``None`` (one pass). Changes speed, not numbers
+        (the blocks are independent; round-off aside)."""
+        if self.particle_chunk:
+            return self.particle_chunk
+        from ..flows.points import flow_points_per_call
+
+        N, c = int(n_particles or self.n_particles), flow_points_per_call(self.model)
+        return c if N > c else None
+
     def plan_memory(self, budget_bytes: float, n_particles: Optional[int] = None) -> Optional[int]:
         """Set :attr:`particle_chunk` so that one trial's per-particle work fits ``budget_bytes``
         (``None`` when a whole trial fits); returns it. Used by the experiment runner."""

@@ -55,7 +55,7 @@ import torch
 from .. import linalg
 from .._checks import check_count
 from ..flows import FlowPrior, ParticleFlow, integrate_flow
-from ..flows.points import ParticlePoints
+from ..flows.points import ParticlePoints, flow_points_per_call
 from ..schedules import ExponentialSchedule, LambdaSchedule
 from .base import ParticleFilterBase
 
@@ -198,7 +198,8 @@ class GaussianSumParticleFilter(ParticleFilterBase):
     def preferred_chunk_trials(self, n_particles=None):
         if self.flow is None:
             return super().preferred_chunk_trials(n_particles)
-        return ParticlePoints().preferred_chunk_trials(self.n_particles)
+        return max(1, min(ParticlePoints().preferred_chunk_trials(self.n_particles),
+                          flow_points_per_call(self.model) // self.n_particles))
 
     # ---- contract ------------------------------------------------------------------------------
     def init(self, mean, cov, n_particles=None, generator=None) -> MixtureState:
@@ -309,8 +310,9 @@ class GaussianSumParticleFilter(ParticleFilterBase):
         return MixtureState(log_alpha, means, covs, estimate, ess, g_eff, inc, repaired, state.step + 1, invalid)
 
     def _row_chunk(self) -> Optional[int]:
-        """Particles per component row per pass (the filter's ``particle_chunk`` is per trial)."""
-        c = self.particle_chunk
+        """Particles per component row per pass (the filter's ``particle_chunk``, or with a flow the
+        cache-sized :meth:`flow_chunk`, is per trial)."""
+        c = self.particle_chunk if self.flow is None else self.flow_chunk()
         return None if not c else max(1, c // self.n_components)
 
 

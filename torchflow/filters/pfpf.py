@@ -13,6 +13,7 @@ import torch
 from .. import linalg
 from ..flows import (EDHFlow, FlowPrior, GeodesicFlow, GromovFlow, LEDHFlow, OptimalDiffusionFlow, ParticleFlow,
                      integrate_flow, resolve_points)
+from ..flows.points import flow_points_per_call
 from ..proposals import _tracker, flow_proposal
 from ..schedules import ExponentialSchedule, LambdaSchedule
 from .._checks import check_count
@@ -46,7 +47,11 @@ class _FlowFilterMixin:
         self.points = resolve_points(self.flow, points)
 
     def preferred_chunk_trials(self, n_particles=None):
-        return self.points.preferred_chunk_trials(int(n_particles or self.n_particles))
+        N = int(n_particles or self.n_particles)
+        pref = self.points.preferred_chunk_trials(N)
+        if pref is not None and self.points.per_particle:  # high dimension: cache-sized calls
+            pref = min(pref, max(1, flow_points_per_call(self.model) // N))
+        return pref
 
     def _flow_bytes(self, N: int, cov_mats: int) -> int:
         """Rough per-trial memory: ``cov_mats`` d x d matrices per particle for local flows."""

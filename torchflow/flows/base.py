@@ -31,7 +31,9 @@ class FlowCoefficients:
 
     ``A`` is either an explicit tensor, ``(B, d, d)`` (global), ``(B, 1, d, d)`` (shared by a
     trial's particles) or ``(B, N, d, d)`` (local), or, when forming it would cost more than
-    applying it, an operator ``apply_A(V)`` acting on stacked vectors ``V (..., d, k)``.
+    applying it, an operator ``apply_A(V)`` acting on stacked vectors ``V (..., d, r)``; then
+    ``form_A()``, when given, forms the matrix for the uses that need it (:meth:`matrix`: the
+    Gaussian image, clustered particles, composed global maps), once.
 
     Attributes:
         A: explicit matrix or ``None``.
@@ -39,6 +41,7 @@ class FlowCoefficients:
         log_det: ``log|det(I + eps A)|``, ``(B,)``, ``(B, 1)`` or ``(B, N)``; ``None`` for
             stochastic flows (their map is not a bijection of eta_0).
         apply_A: operator form of A (used when ``A`` is ``None``).
+        form_A: ``() -> A``, the explicit matrix of an operator-form A, formed on first demand.
         noise_factor: stochastic flows only: ``G`` with ``G G^T = Q``, ``(..., d, r)`` batched like
             ``A`` (``r`` need not equal ``d``: a rank-deficient Q has a thin exact factor).
         noise_cov, noise_apply, noise_dim: the same diffusion in operator form (used instead of
@@ -66,6 +69,17 @@ class FlowCoefficients:
     noise_dim: Optional[int] = None
     noise_cov_pair: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
     noise_product: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
+    form_A: Optional[Callable[[], torch.Tensor]] = None
+
+    def matrix(self) -> torch.Tensor:
+        """A as a tensor (the ``(..., d, k)`` support columns when ``support`` is set): the given
+        one, or formed once from ``form_A``."""
+        if self.A is None:
+            if self.form_A is None:
+                raise TypeError("these flow coefficients give A only as an operator (apply_A) and cannot form it: "
+                                "give A or form_A")
+            self.A = self.form_A()
+        return self.A
 
     def diffusion_cov(self) -> torch.Tensor:
         """``Q = G G^T`` (given, or formed from ``noise_factor``)."""
@@ -102,15 +116,16 @@ class FlowCoefficients:
         """These coefficients, computed at L points ``(B, L|1, ...)``, for the particles of each
         point's cluster (``index (B, N)``); shared tensors (no point dimension) stay as they are.
         ``log_det`` is not gathered (it belongs to the points)."""
-        if self.noise_apply is not None or self.apply_A is not None:
+        if self.noise_apply is not None or (self.apply_A is not None and self.form_A is None):
             raise NotImplementedError("coefficients given as closures (apply_A, noise_apply) cannot be gathered "
                                       "to clustered particles: give tensors (A, noise_factor or noise_product)")
+        A = None if self.A is None and self.apply_A is None else self.matrix()
 
         def g(t):
             return None if t is None or t.dim() < 3 else _gather_points(t, index)
 
         pair = lambda p: None if p is None else (g(p[0]), p[1] if p[1].dim() < 3 else g(p[1]))  # noqa: E731
-        return FlowCoefficients(g(self.A), g(self.b), None, noise_factor=g(self.noise_factor), support=self.support,
+        return FlowCoefficients(g(A), g(self.b), None, noise_factor=g(self.noise_factor), support=self.support,
                                 noise_cov=g(self.noise_cov), noise_dim=self.noise_dim,
                                 noise_cov_pair=pair(self.noise_cov_pair), noise_product=pair(self.noise_product))
 
@@ -120,10 +135,11 @@ class FlowCoefficients:
 
     def dense_A(self) -> torch.Tensor:
         """A as a full ``(..., d, d)`` matrix (zero columns outside ``support`` filled in)."""
+        A = self.matrix()
         if self.support is None:
-            return self.A
+            return A
         d = self.b.shape[-1]
-        return self.A.new_zeros(*self.A.shape[:-1], d).index_copy(-1, self.support, self.A)
+        return A.new_zeros(*A.shape[:-1], d).index_copy(-1, self.support, A)
 
     def drift(self, *points: torch.Tensor):
         """``A x + b`` for each ``x`` of ``points`` (each batched like ``b``)."""

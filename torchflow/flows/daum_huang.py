@@ -27,7 +27,7 @@ from .measurement import Linearisation
 
 
 def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, support=None,
-                            P_cols=None) -> FlowCoefficients:
+                            P_cols=None, operator=None) -> FlowCoefficients:
     """EDH/LEDH drift from the whitened linearisation.
 
     Args:
@@ -41,26 +41,60 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
         L_support: rows ``support`` of L, ``(..., k, k)`` (default: L itself, k = d).
         support: ``(k,)`` measured coordinates or ``None``.
         P_cols: ``L L_support^T = P[..., :, support]`` if precomputed (:attr:`FlowPrior.cov_cols`).
+        operator: give A as an operator (``apply_A``, with ``form_A`` for uses that need the
+            matrix) instead of forming it; ``None`` (default): when ``k`` is at least
+            ``torchflow.tuning`` ``flow_operator_min_dim``.
 
-    A is formed explicitly (one Cholesky solve with k right-hand sides) and then applied to
-    stacked vectors: on CPU the number and size of batched small products set the cost, and with
-    a support every system is ``k x k`` (8 x 8 for acoustic tracking instead of 16 x 16).
+    Explicit A (small k): A is formed with one Cholesky solve with k right-hand sides and then
+    applied to stacked vectors; on CPU the number and size of batched small products set the cost,
+    and with a support every system is ``k x k`` (8 x 8 for acoustic tracking instead of 16 x 16).
+    Operator A (large k): a particle's flow only ever applies A to a few vectors (its own point and
+    the offset's two terms), so the ``k``-column solve and the ``d x k x k`` product that form A are
+    skipped: per point and step there remain the two ``k x m x k`` products of ``S = (W L_s)^T
+    (W L_s)`` and the two Cholesky factorisations, about a quarter of the explicit form's work
+    (d = 144: ``experiments/benchmarks/results_gaussian_sum.md``). Both give the same numbers up to
+    round-off.
     """
     Ls = L if L_support is None else L_support
     k = Ls.shape[-1]
+    if operator is None:
+        from .. import tuning
+
+        operator = k >= tuning.get().flow_operator_min_dim
     eye = torch.eye(k, dtype=L.dtype, device=L.device)
-    T, S, Wy = _gram_terms(W, y, Ls)
+    if operator:
+        WL = W @ Ls  # (..., m, k)
+        S = linalg.symmetrize(WL.transpose(-1, -2) @ WL)
+        Wy = y @ W if W.dim() == 2 else (W * y.unsqueeze(-1)).sum(-2)  # W^T y, (..., k)
+    else:
+        T, S, Wy = _gram_terms(W, y, Ls)
     K = linalg.cholesky_unit_shift(eye + lam * S)
     K2 = linalg.cholesky_unit_shift(eye + (lam - 0.5 * eps) * S)
     log_det = linalg.chol_logdet(K2) - linalg.chol_logdet(K)
-    A = -0.5 * (L @ linalg.chol_solve(K, T))  # -1/2 L (I + lam S)^{-1} L^T J, (..., d, k)
     # P H^T R^{-1} (z - e) = L L_s^T W^T y
     Pg = linalg.matvec(L, linalg.matvec(Ls.transpose(-1, -2), Wy)) if P_cols is None else linalg.matvec(P_cols, Wy)
-    co = FlowCoefficients(A, Pg, log_det, support=support)  # b is set below
+    if operator:
+        def apply_A(V):  # -1/2 L (I + lam S)^{-1} (W L_s)^T W V_s for stacked vectors V (..., d, r)
+            Vs = V if support is None else V.index_select(-2, support)
+            return -0.5 * (L @ linalg.chol_solve(K, WL.transpose(-1, -2) @ (W @ Vs)))
+
+        def form_A():  # -1/2 L (I + lam S)^{-1} L_s^T J, (..., d, k)
+            return -0.5 * (L @ linalg.chol_solve(K, WL.transpose(-1, -2) @ W))
+
+        co = FlowCoefficients(None, Pg, log_det, apply_A=apply_A, form_A=form_A, support=support)
+
+        def A_times(v):
+            return apply_A(v.unsqueeze(-1)).squeeze(-1)
+    else:
+        A = -0.5 * (L @ linalg.chol_solve(K, T))  # -1/2 L (I + lam S)^{-1} L^T J, (..., d, k)
+        co = FlowCoefficients(A, Pg, log_det, support=support)  # b is set below
+
+        def A_times(v):
+            return linalg.matvec(A, co.cols(v))
     # b = (I + 2 lam A) u,  u = (I + lam A) Pg + A eta_bar0 = Pg + A (lam Pg + eta_bar0): two
     # single-vector products (a batched d x k @ k x 2 product costs more than two d x k @ k x 1)
-    u = Pg + linalg.matvec(A, co.cols(lam * Pg + eta_bar0))
-    co.b = u + 2 * lam * linalg.matvec(A, co.cols(u))
+    u = Pg + A_times(lam * Pg + eta_bar0)
+    co.b = u + 2 * lam * A_times(u)
     return co
 
 
@@ -99,6 +133,10 @@ class EDHFlow(ParticleFlow):
             # P_cols is not reused: it was rounded independently of L in low precision
             co = daum_huang_coefficients(up(W), up(y), up(prior.cols), up(prior.mean), up(lam), up(eps),
                                          L_support=up(prior.cols_support), support=prior.support)
+            if co.A is None:  # operator form: apply (and form) in float64, hand back the run's dtype
+                return FlowCoefficients(None, co.b.to(dt), co.log_det.to(dt), support=co.support,
+                                        apply_A=lambda V: co.apply_A(V.to(torch.float64)).to(dt),
+                                        form_A=lambda: co.matrix().to(dt))
             return FlowCoefficients(co.A.to(dt), co.b.to(dt), co.log_det.to(dt), support=co.support)
         return daum_huang_coefficients(W, y, prior.cols, prior.mean, lam, eps, L_support=prior.cols_support,
                                        support=prior.support, P_cols=prior.cov_cols)

@@ -274,7 +274,7 @@ def _propagate_cov(Sig, co: "FlowCoefficients", eps, eye):
     if co.support is None:
         T = eye + eps * co.dense_A()
         return T @ Sig @ T.transpose(-1, -2) + eps * co.diffusion_cov()
-    A, sup, e = co.A, co.support, float(eps)
+    A, sup, e = co.matrix(), co.support, float(eps)
     pair = co.noise_cov_pair
     shapes = [Sig.shape[:-2], A.shape[:-2]] + ([p.shape[:-2] for p in pair] if pair is not None else [])
     batch = torch.broadcast_shapes(*shapes)

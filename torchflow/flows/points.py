@@ -104,6 +104,18 @@ def kmedoids(dist: torch.Tensor, n_clusters: int, sweeps: int = 20) -> Tuple[tor
     return index, medoids
 
 
+def flow_points_per_call(model) -> int:
+    """Points (trials x particles) per call of a per-particle flow on ``model``: ``torchflow.tuning``
+    ``points_per_call``, capped so that one batch of the points' ``k x k`` matrices (k = the
+    measured state coordinates) stays within ``flow_bytes_per_call`` (0: no cap)."""
+    sup = model.measurement_support
+    k = model.state_dim if sup is None else len(sup)
+    t = tuning.get()
+    if not t.flow_bytes_per_call:  # 0: no cap
+        return max(1, t.points_per_call)
+    return max(1, min(t.points_per_call, t.flow_bytes_per_call // (8 * k * k)))
+
+
 class LinearisationPoints:
     """Base of the linearisation-point strategies (see the module docstring).
 
