@@ -249,6 +249,8 @@ class _Image:
     def step(self, co: "FlowCoefficients", eps) -> None:
         if not self.on:
             return
+        if co.A is None and co.form_A is not None:
+            co.matrix()  # formed once on the caller's coefficients, so the particles' drift reuses it
         if co.noise_factor is None and co.noise_cov is None and co.noise_cov_pair is None:
             co = replace(co, noise_cov=co.b.new_zeros(()))  # deterministic: no diffusion term
         self.cov = _propagate_cov(self.cov, co, eps, self.eye)
