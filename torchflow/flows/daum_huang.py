@@ -51,9 +51,9 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
     Operator A (large k): a particle's flow only ever applies A to a few vectors (its own point and
     the offset's two terms), so the ``k``-column solve and the ``d x k x k`` product that form A are
     skipped: per point and step there remain the two ``k x m x k`` products of ``S = (W L_s)^T
-    (W L_s)`` and the two Cholesky factorisations, about a quarter of the explicit form's work
-    (d = 144: ``experiments/benchmarks/results_gaussian_sum.md``). Both give the same numbers up to
-    round-off.
+    (W L_s)`` and the two Cholesky factorisations, about 40 % of the explicit form's flops (d = 144:
+    half the time, ``experiments/benchmarks/results_gaussian_sum.md``). Both give the same numbers up
+    to round-off.
     """
     Ls = L if L_support is None else L_support
     k = Ls.shape[-1]
