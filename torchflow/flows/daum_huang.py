@@ -65,7 +65,7 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
     if operator:
         WL = W @ Ls  # (..., m, k)
         S = linalg.symmetrize(WL.transpose(-1, -2) @ WL)
-        Wy = y @ W if W.dim() == 2 else (W * y.unsqueeze(-1)).sum(-2)  # W^T y, (..., k)
+        Wy = _whitened_rhs(W, y)
     else:
         T, S, Wy = _gram_terms(W, y, Ls)
     K = linalg.cholesky_unit_shift(eye + lam * S)
@@ -98,12 +98,17 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
     return co
 
 
+def _whitened_rhs(W, y):
+    """``W^T y`` for ``W (..., m, k)`` (or a shared ``(m, k)``) and ``y (..., m)`` -> ``(..., k)``."""
+    return y @ W if W.dim() == 2 else (W * y.unsqueeze(-1)).sum(-2)
+
+
 def _gram_terms(W, y, Ls):
     """``T = L_s^T J``, ``S = L_s^T J L_s`` and ``W^T y`` with ``J = W^T W``: the Gram matrix is formed
     first (one ``k x m x k`` product per point, then ``k x k`` ones), fewer and smaller batched
     products than going through ``W L_s``."""
     J = W.transpose(-1, -2) @ W  # (..., k, k), or (k, k) for a shared W
-    Wy = y @ W if W.dim() == 2 else (W * y.unsqueeze(-1)).sum(-2)  # W^T y, (..., k)
+    Wy = _whitened_rhs(W, y)
     T = Ls.transpose(-1, -2) @ J
     S = linalg.symmetrize(T @ Ls)
     return T, S, Wy
