@@ -1,5 +1,6 @@
 """The Monte Carlo runner and the Hydra command line."""
 import csv
+import math
 import json
 import subprocess
 import sys
@@ -375,3 +376,33 @@ def test_trial_range_reruns_rows_of_a_longer_run():
     for bad in ([3, 3], [0, 7], [-1, 2], [1.5, 3], "ab", 4):
         with pytest.raises(ValueError, match=r"trial_range: expected \[start, stop\] with 0 <= start < stop <= trials = 6"):
             run_experiment(model, make(), trials=6, steps=3, progress=False, trial_range=bad)
+
+
+def test_seed001_table2_report_pairs_runs_with_g1(tmp_path, capsys):
+    """experiments/seed001_table2_report.py: per-G statistics, the paired difference to G = 1 on the
+    runs both have (its SE from the per-run differences), --trials, and the distance to the paper."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from seed001_table2_report import PAPER, main, read_runs, table
+
+    g1 = {0: 1.0, 1: 2.0, 2: 3.0, 3: 4.0}
+    g5 = {0: 0.9, 1: 1.7, 2: 2.9, 5: 9.0}  # run 3 missing, run 5 has no G = 1 partner
+    for g, runs in ((1, g1), (5, g5)):
+        with open(tmp_path / f"per_trial_G{g}.csv", "w") as fh:
+            fh.write("filter,trial,ess,g_eff,log_evidence,mse\n")
+            for t, v in runs.items():
+                fh.write(f"pfgspf,{t},1,{1 + 0.5 * (g > 1) * t},0,{v}\n")
+    rows = {r["G"]: r for r in table(read_runs(tmp_path))}
+    assert rows[1]["n"] == 4 and rows[1]["mse"] == pytest.approx(2.5) and rows[1]["median"] == pytest.approx(2.5)
+    assert rows[1]["se"] == pytest.approx(math.sqrt(5 / 3) / 2)
+    # paired on runs 0-2: differences -0.1, -0.3, -0.1
+    assert rows[5]["diff_n"] == 3 and rows[5]["diff"] == pytest.approx(-0.5 / 3)
+    assert rows[5]["diff_se"] == pytest.approx(math.sqrt((2 * (0.2 / 3) ** 2 + (0.4 / 3) ** 2) / 2) / math.sqrt(3))
+    assert rows[5]["g_eff"] == pytest.approx(1 + 0.5 * (0 + 1 + 2 + 5) / 4)
+    pm, psd = PAPER[5]
+    assert rows[5]["z"] == pytest.approx((rows[5]["mse"] - pm) / math.hypot(rows[5]["se"], psd / 10))
+    kept = {r["G"]: r for r in table(read_runs(tmp_path, (0, 2)))}
+    assert kept[5]["n"] == 2 and kept[5]["diff"] == pytest.approx(-0.2)
+    assert main([str(tmp_path), "--trials", "0", "3"]) == 0
+    assert "| 200 x 5 | 3 |" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="no per_trial_G"):
+        read_runs(tmp_path, (10, 20))
