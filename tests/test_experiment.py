@@ -406,3 +406,25 @@ def test_seed001_table2_report_pairs_runs_with_g1(tmp_path, capsys):
     assert "| 200 x 5 | 3 |" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="no per_trial_G"):
         read_runs(tmp_path, (10, 20))
+
+
+def test_seed001_geff_diagnostic_runs_and_pooled_fit_is_shared(capsys):
+    """experiments/seed001_geff_diagnostic.py: the spy sees the filter's log-weights (so its numbers
+    are the filter's), and the pooled control gives every component the same predictive fit."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from seed001_geff_diagnostic import PooledFit, main, run
+
+    from torchflow.models import SkewedTPoisson
+
+    own = run(d=4, G=3, n_star=20, trials=2, steps=3, seed=1)
+    assert 1.0 <= own["g_eff"] <= 3.0 and 1.0 <= own["ess_j"] <= 20.0 and own["sd_c"] > 0
+    model = SkewedTPoisson(d=4).double()
+    f = PooledFit(model, n_components=3, particles_per_component=20)
+    mean, cov = model.initial_belief(torch.zeros(2, 4, dtype=torch.float64))
+    state = f.init(mean, cov, generator=torch.Generator().manual_seed(0))
+    _, eta0, mu, L = f.draw(state, torch.Generator().manual_seed(0))
+    assert torch.equal(mu[:, 0], mu[:, 2]) and torch.equal(L[:, 0], L[:, 1])
+    assert torch.allclose(mu[:, 0], eta0.reshape(2, 60, 4).mean(1))
+    assert main(["--d", "4", "--G", "2", "--n-star", "10", "--trials", "1", "--steps", "2", "--fit", "both"]) == 0
+    out = capsys.readouterr().out
+    assert "| 10 | own |" in out and "| 10 | pooled |" in out
