@@ -23,6 +23,9 @@ import re
 import sys
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from trial_stats import mean_se  # noqa: E402
+
 #: seed 001 Table 2, N* = 200: G -> (MSE, sd) over 100 runs (MODELS.md section 9)
 PAPER = {1: (0.88, 0.32), 2: (0.77, 0.26), 3: (0.73, 0.24), 4: (0.70, 0.26), 5: (0.69, 0.25),
          7: (0.67, 0.24), 10: (0.66, 0.23)}
@@ -51,11 +54,9 @@ def read_runs(folder: Path, trials: tuple[int, int] | None = None) -> dict[int, 
 
 
 def mean_se_sd(v: list[float]) -> tuple[float, float, float]:
-    """Mean, its standard error and the sample sd (nan for fewer than 2 values)."""
-    n = len(v)
-    m = sum(v) / n
-    sd = math.sqrt(sum((x - m) ** 2 for x in v) / (n - 1)) if n > 1 else float("nan")
-    return m, sd / math.sqrt(n), sd
+    """Mean, its standard error (``trial_stats.mean_se``: runs are independent) and the sample sd."""
+    se = mean_se(v)
+    return sum(v) / len(v), se, se * math.sqrt(len(v))
 
 
 def median(v: list[float]) -> float:
