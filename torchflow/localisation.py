@@ -27,6 +27,7 @@ batched over runs x POs x components x measurements x samples (in memory-bounded
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from typing import Optional
 
@@ -55,6 +56,9 @@ class POState:
         means: ``(B, K, G, 3)`` component means (:class:`FlowMixtureLocaliser`) or particles
             (:class:`BootstrapLocaliser`).
         scale_trils: ``(B, K, G, 3, 3)`` component factors, ``None`` for particles.
+        underflow: ``(B, M)`` bool after an update: the live measurements of that sensor whose
+            BP terms all underflowed to 0, under every PO and the birth density (each such
+            measurement acts as clutter; :func:`_underflow`). ``None`` before the first sensor.
     """
 
     existence: torch.Tensor
@@ -62,6 +66,7 @@ class POState:
     log_weights: torch.Tensor
     means: torch.Tensor
     scale_trils: Optional[torch.Tensor] = None
+    underflow: Optional[torch.Tensor] = None
 
     @property
     def positions(self) -> torch.Tensor:
@@ -72,11 +77,22 @@ class POState:
 @dataclass
 class Localisation:
     """Result of :meth:`FlowMixtureLocaliser.forward`: the declared sources ``positions (B, K, 3)``
-    with ``declared (B, K)``, and the final :class:`POState`."""
+    with ``declared (B, K)``, the final :class:`POState`, and ``underflow (B, S, M)``: the
+    (run, sensor, measurement) triples at which every component's weight underflowed (the
+    measurement was then treated as clutter, not turned into NaN)."""
 
     positions: torch.Tensor
     declared: torch.Tensor
     state: POState
+    underflow: Optional[torch.Tensor] = None
+
+    def underflow_report(self, run_offset: int = 0) -> list:
+        """``"run b, sensor s, measurement m"`` strings of every underflow (reads the mask on the
+        host: call it after the run, not inside one)."""
+        if self.underflow is None:
+            return []
+        return [f"run {b + run_offset}, sensor {s}, measurement {m}"
+                for b, s, m in torch.nonzero(self.underflow).tolist()]
 
 
 def _check_common(model, **kw):
@@ -106,10 +122,21 @@ def _forward(self, z: torch.Tensor, mask: torch.Tensor, generator) -> "Localisat
     self.model.check_measurements(z, mask)
     check_generator(generator, "generator")
     state = self.init(z.shape[0], z.dtype, z.device)
+    underflow = []
     for s in range(z.shape[1]):  # sequential processing of the sensors
         state = self.update(state, z[:, s], mask[:, s], s, generator)
+        underflow.append(state.underflow)
     declared = state.mask & (state.existence > self.declare)
-    return Localisation(state.positions, declared, state)
+    return Localisation(state.positions, declared, state, torch.stack(underflow, 1) if underflow else None)
+
+
+def _underflow(log_Ib: torch.Tensor, log_Ik: torch.Tensor, log_cf, po_mask: torch.Tensor, z_mask: torch.Tensor):
+    """``(B, M)``: live measurements whose every BP term underflows to 0, i.e. the estimated integral
+    of the likelihood over clutter intensity, ``exp(log I - log(mu_c f_c))``, is 0 in floating point
+    under the birth density (``log_Ib (B, M)``) and under every live PO (``log_Ik (B, K, M)``); the
+    log-space integrals themselves stay finite."""
+    dead = (torch.exp(log_Ik - log_cf) == 0) | ~po_mask.unsqueeze(-1)
+    return z_mask & (torch.exp(log_Ib - log_cf) == 0) & dead.all(1)
 
 
 def birth_mixture(region: float, per_axis: int, sd_factor: float = 0.5, dtype=torch.float64, device=None):
@@ -262,7 +289,8 @@ class FlowMixtureLocaliser(nn.Module):
             parts = [torch.cat([a, b], 1) for a, b in zip(leg, new)]
         else:
             r_all, mask, parts = r_new, z_mask, list(new)
-        return POState(*_prune_and_cap(r_all, mask, parts, self.prune, self.max_objects))
+        return POState(*_prune_and_cap(r_all, mask, parts, self.prune, self.max_objects),
+                       underflow=_underflow(log_Ib, log_Ik, log_cf, state.mask, z_mask))
 
     # ---- whole scene -------------------------------------------------------------------------
     def init(self, batch_size: int, dtype=torch.float64, device=None) -> POState:
@@ -281,7 +309,7 @@ class FlowMixtureLocaliser(nn.Module):
 
 
 LOCALISATION_COLUMNS = ["filter", "n_particles", "trials", "ospa", "ospa_se", "declared", "true_sources",
-                        "sec_per_run", "error"]
+                        "sec_per_run", "underflows", "error"]
 
 
 def run_localisation(model: TDOA3D, localisers, *, runs: int = 10, seed: int = 0, ospa_cutoff: float = 30.0,
@@ -322,7 +350,7 @@ def run_localisation(model: TDOA3D, localisers, *, runs: int = 10, seed: int = 0
         row.update(filter=name, trials=runs, true_sources=model.n_sources,
                    n_particles=getattr(loc, "n_particles", None) or loc.G * loc.n_samples)
         bar = tqdm(total=runs, unit="run", leave=False, desc=name) if progress and tqdm is not None else None
-        vals, decl, secs = [], [], []
+        vals, decl, secs, under = [], [], [], []
         try:
             with torch.no_grad():
                 for b in range(runs):
@@ -340,7 +368,13 @@ def run_localisation(model: TDOA3D, localisers, *, runs: int = 10, seed: int = 0
                                     cutoff=ospa_cutoff, order=ospa_order, X_mask=res.declared.unsqueeze(1))
                     vals.append(float(o))
                     decl.append(int(res.declared.sum()))
-                    per_run.append({"filter": name, "trial": b, "ospa": vals[-1], "declared": decl[-1], "sec": secs[-1]})
+                    lost = res.underflow_report(run_offset=b)
+                    if lost:
+                        warnings.warn(f"{name}: every component's weight underflowed (measurement treated as "
+                                      f"clutter) at " + "; ".join(lost), RuntimeWarning, stacklevel=2)
+                    under.append(len(lost))
+                    per_run.append({"filter": name, "trial": b, "ospa": vals[-1], "declared": decl[-1], "sec": secs[-1],
+                                    "underflows": len(lost)})
                     if b == 0:
                         examples[name] = res.positions[0][res.declared[0]].cpu()
                     if bar is not None:
@@ -352,7 +386,7 @@ def run_localisation(model: TDOA3D, localisers, *, runs: int = 10, seed: int = 0
         if vals:
             v = torch.tensor(vals, dtype=torch.float64)
             row.update(ospa=float(v.mean()), ospa_se=float(v.std() / math.sqrt(len(vals))) if len(vals) > 1 else None,
-                       declared=sum(decl) / len(decl), sec_per_run=sum(secs) / len(secs))
+                       declared=sum(decl) / len(decl), sec_per_run=sum(secs) / len(secs), underflows=sum(under))
         summary.append(row)
         if on_filter_done is not None:
             on_filter_done(summary)
@@ -490,7 +524,7 @@ class BootstrapLocaliser(nn.Module):
         mask = torch.cat([state.mask, z_mask], 1)
         flat = torch.full((B, K + M, N), -math.log(N), dtype=dt, device=dev)
         r2, m2, lw2, x2 = _prune_and_cap(r_all, mask, [flat, torch.cat([leg, new], 1)], self.prune, self.max_objects)
-        return POState(r2, m2, lw2, x2)  # particles in ``means``, no factors
+        return POState(r2, m2, lw2, x2, underflow=_underflow(log_Ib, log_Ik, log_cf, state.mask, z_mask))  # particles in ``means``
 
     def init(self, batch_size: int, dtype=torch.float64, device=None) -> "POState":
         z = torch.zeros(batch_size, 0, dtype=dtype, device=device)
