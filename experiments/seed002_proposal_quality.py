@@ -6,7 +6,8 @@ variants, one TDOA measurement at a time, without belief propagation.
 Table II's cells differ only in how each prior component is flowed (method, alpha, the (beta,
 Delta_1) grid) and, on our side, in two UNCONF readings: where a lambda step takes its coefficients
 (``evaluate_at``: ``end`` = lambda_l, ``start`` = lambda_{l-1}) and which c* the optimised diffusion
-uses (``c_rule``: ``printed`` or ``literal_shift``, :func:`~torchflow.flows.optimal_diffusion_scale`).
+uses (``c_rule``: ``printed``, ``literal_shift`` or ``printed_shift``,
+:func:`~torchflow.flows.optimal_diffusion_scale`).
 A localiser fails when the flowed components are poor proposals: then each candidate's moments come
 from a handful of effective samples. This script measures that directly, per variant, on two
 kinds of prior component:
@@ -41,6 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a sourc
 
 from torchflow import linalg  # noqa: E402
 from torchflow.flows import EDHFlow, GromovFlow, OptimalDiffusionFlow, flow_gaussian  # noqa: E402
+from torchflow.flows.geodesic import C_RULES  # noqa: E402
 from torchflow.flows.base import FlowPrior  # noqa: E402
 from torchflow.localisation import birth_mixture  # noqa: E402
 from torchflow.models import TDOA3D  # noqa: E402
@@ -137,6 +139,9 @@ def main(argv=None) -> int:
     ap.add_argument("--reference", type=int, default=20000, help="prior draws per component for the shares")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--stages", nargs="+", default=["birth", "legacy"], choices=["birth", "legacy"])
+    ap.add_argument("--rules", nargs="+", default=list(C_RULES), choices=list(C_RULES),
+                    help="PFI-OS readings of c* (optimal_diffusion_scale)")
+    ap.add_argument("--os-only", action="store_true", help="only the PFI-OS rows")
     args = ap.parse_args(argv)
     torch.set_default_dtype(torch.float64)
     model = TDOA3D()
@@ -153,7 +158,9 @@ def main(argv=None) -> int:
         print(f"| method | c_rule | {head} |")
         print("|---|---|" + "---|" * (2 * len(GRIDS)))
         for method, alpha in METHODS:
-            for c_rule in (("printed", "literal_shift") if method == "pfi_os" else ("-",)):
+            if args.os_only and method != "pfi_os":
+                continue
+            for c_rule in (args.rules if method == "pfi_os" else ("-",)):
                 flow = make_flow(method, alpha, c_rule)
                 cells = []
                 for d1, beta in GRIDS:

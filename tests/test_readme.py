@@ -38,6 +38,11 @@ SHRINK_CLI = {"trials": "2", "steps": "2", "n_particles": "20"}
 #: seed 002's localisers take their sizes per method (appended to commands naming a seed002 experiment)
 SHRINK_TDOA = ["filter.bs.n_particles=2000"] + [f"filter.{k}.{p}" for k in ("pfi_d", "pfi_s", "pfi_os")
                                               for p in ("n_components=5", "samples_per_component=20")]
+#: and Table II's two extra PFI-OS rows
+SHRINK_TDOA2 = [f"filter.{k}.{p}" for k in ("pfi_os_a001", "pfi_os_a05")
+                for p in ("n_components=5", "samples_per_component=20")]
+#: experiments/seed002_proposal_quality.py
+SHRINK_QUALITY = {"--scenes": "1", "--n-samples": "20", "--reference": "50"}
 
 
 def blocks(lang):
@@ -116,7 +121,8 @@ def test_readme_commands_run(tmp_path):
             script = next(t for t in tokens if t.endswith(".py"))
         if script == "experiments/run.py":
             multirun = "-m" in tokens[tokens.index(script):]
-            tokens = _shrink(tokens) + (SHRINK_TDOA if any("experiment=seed002_table" in t for t in tokens) else [])
+            tokens = _shrink(tokens) + (SHRINK_TDOA if any("experiment=seed002_table" in t for t in tokens) else []) \
+                + (SHRINK_TDOA2 if "experiment=seed002_table2" in tokens else [])
             where = tmp_path / f"cmd{i}"
             tokens += [f"hydra.sweep.dir={where}" if multirun else f"hydra.run.dir={where}", "progress=false",
                        f"checkpoint_dir={tmp_path}/checkpoints"]
@@ -131,6 +137,12 @@ def test_readme_commands_run(tmp_path):
             fit = [r for r in runs if _has_metric(r / "per_trial.csv", metric)]
             assert fit, f"trial_stats.py --metric {metric} before any README run with that metric"
             tokens = [t if "<run>" not in t else str(fit[-1]) for t in tokens]
+        elif script == "experiments/seed002_proposal_quality.py":
+            for flag, small in SHRINK_QUALITY.items():
+                if flag in tokens:
+                    tokens[tokens.index(flag) + 1] = small
+                else:
+                    tokens += [flag, small]
         elif script == "experiments/benchmarks/run_all.py":
             # the whole suite takes ~20 min and needs the [bench] peers: run its entry point on the
             # section that needs no peer library, in --quick sizes

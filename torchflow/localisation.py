@@ -159,7 +159,8 @@ class FlowMixtureLocaliser(nn.Module):
         samples_per_component: N_p per flowed component (seed: 5000).
         schedule: lambda grid (default :class:`~torchflow.schedules.GeometricSchedule` ``(1e-5, 1.5)``).
         alpha, c_rule: PFI-OS: the objective weight and the reading of c*
-            (:func:`~torchflow.flows.optimal_diffusion_scale`; default ``"printed"``, MODELS.md §12.1).
+            (:func:`~torchflow.flows.optimal_diffusion_scale`: ``"printed"`` (default, MODELS.md §12.1),
+            ``"literal_shift"`` or ``"printed_shift"``).
         birth_rate: mean number of new sources per measurement, mu_b (UNCONF 0.01).
         birth_per_axis, birth_sd: the birth mixture (:func:`birth_mixture`; 5^3 = 125 components).
         max_objects: POs kept after each sensor.

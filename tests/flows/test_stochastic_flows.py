@@ -220,6 +220,12 @@ def test_optimal_scale_closed_form_and_seed_convention():
     grid = torch.linspace(0, 40, 400001, dtype=F64)
     J = (k_max[1] + grid) / (k_min[1] + grid) + 0.1 * grid
     assert abs(float(grid[J.argmin()]) - float(printed[1])) < 1e-3
+    # printed_shift: the printed value as the drift's shift c', so the diffusion scale is c = 2 c'
+    torch.testing.assert_close(optimal_diffusion_scale(k_min, k_max, 0.1, rule="printed_shift"), 2 * printed)
+    flow = OptimalDiffusionFlow(alpha=0.1, c_rule="printed_shift")
+    S = torch.diag(torch.tensor([0.0, 40.0], dtype=F64)).unsqueeze(0)  # k = s / (2 (1 + lam s))
+    k = 40.0 / (2 * (1 + 0.5 * 40.0))
+    torch.testing.assert_close(flow.scale(S, 0.5), torch.tensor([2 * (k / 0.1) ** 0.5], dtype=F64))
     with pytest.raises(ValueError, match="rule"):
         optimal_diffusion_scale(k_min, k_max, 0.1, rule="numeric")
     with pytest.raises(ValueError, match="c_rule"):

@@ -197,7 +197,7 @@ def diffusion_condition_number(k: torch.Tensor, c) -> torch.Tensor:
     return (k.amax(-1) + half) / (k.amin(-1) + half)
 
 
-C_RULES = ("literal_shift", "printed")
+C_RULES = ("literal_shift", "printed", "printed_shift")
 
 
 def optimal_diffusion_scale(k_min: torch.Tensor, k_max: torch.Tensor, alpha: float,
@@ -220,14 +220,19 @@ def optimal_diffusion_scale(k_min: torch.Tensor, k_max: torch.Tensor, alpha: flo
 
     ``rule="printed"`` returns seed 002's printed value itself as the diffusion scale,
     ``c = max{0, sqrt((k_max - k_min)/alpha) - k_min}`` with ``Q = c M^{-1}`` (MODELS.md §12.1's
-    reading for the flow-induced proposals); ``rule="literal_shift"`` (default) the minimiser above.
+    reading for the flow-induced proposals); ``rule="literal_shift"`` (default) the minimiser above;
+    ``rule="printed_shift"`` the printed value ``c'`` in the convention it minimises, i.e. as the
+    shift of the drift (``A_s = A - c' I``), which keeps the posterior only with ``Q = 2 c' M^{-1}``:
+    it returns ``c = 2 c'``, twice ``printed`` (a third UNCONF reading, tested against seed 002's
+    Table II in RESULTS.md).
     """
     if alpha <= 0:
         raise ValueError(f"alpha: expected > 0, got {alpha}")
     if rule not in C_RULES:
         raise ValueError(f"rule: expected one of {C_RULES}, got {rule!r}")
-    if rule == "printed":
-        return (torch.sqrt((k_max - k_min).clamp_min(0) / alpha) - k_min).clamp_min(0)
+    if rule in ("printed", "printed_shift"):
+        printed = (torch.sqrt((k_max - k_min).clamp_min(0) / alpha) - k_min).clamp_min(0)
+        return printed if rule == "printed" else 2 * printed
     return 2 * (torch.sqrt((k_max - k_min).clamp_min(0) / (2 * alpha)) - k_min).clamp_min(0)
 
 
@@ -246,7 +251,8 @@ class OptimalDiffusionFlow(_HomotopyFlow):
         c: ``"optimal"`` (default) or a fixed non-negative diffusion scale (``c = 0`` is EDH/LEDH).
         points: default linearisation points, ``"particle"`` (default) or ``"global"``.
         noise_root: ``"factor"`` (``sqrt(c) L K^{-T}``) or ``"symmetric"``.
-        c_rule: ``"literal_shift"`` (default) or ``"printed"`` (:func:`optimal_diffusion_scale`).
+        c_rule: ``"literal_shift"`` (default), ``"printed"`` or ``"printed_shift"``
+            (:func:`optimal_diffusion_scale`).
     """
 
     stochastic = True
