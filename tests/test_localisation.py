@@ -141,3 +141,35 @@ def test_runner_reports_underflows(monkeypatch):
                                             r"measurement"):
         summary, per_run, _, _ = run_localisation(model, {"pfi": loc}, runs=2, progress=False)
     assert [r["underflows"] for r in per_run] == [1, 0] and summary[0]["underflows"] == 1
+
+
+def test_an_interrupted_run_keeps_the_finished_runs():
+    """A stop request (Ctrl-C / SIGTERM through experiment.STOP) during run 1 of the first localiser
+    ends the job at once: run 0's row is kept, the summary row covers it and says so, and the
+    second localiser does not start."""
+    from torchflow.experiment import STOP
+    from torchflow.localisation import run_localisation
+
+    model = TDOA3D(n_sources=1, clutter_rate=0.05, p_d=1.0)
+    loc = FlowMixtureLocaliser(model, "pfi_d", n_components=4, samples_per_component=20,
+                               schedule=GeometricSchedule(1e-3, 2.0))
+    other = FlowMixtureLocaliser(model, "pfi_s", n_components=4, samples_per_component=20,
+                                 schedule=GeometricSchedule(1e-3, 2.0))
+    calls = []
+    real = loc.update
+
+    def update(*a, **k):
+        calls.append(1)
+        if len(calls) == 9 + 3:  # sensor 3 of run 1 (9 sensors per run): as if SIGTERM arrived there
+            STOP.handler(15, None)
+        return real(*a, **k)
+
+    loc.update = update
+    try:
+        summary, per_run, _, _ = run_localisation(model, {"a": loc, "b": other}, runs=3, progress=False)
+    finally:
+        STOP.reset()
+    assert [r["trial"] for r in per_run] == [0]
+    assert summary[0]["error"] == "interrupted after 1 of 3 runs" and summary[0]["trials"] == 1
+    assert summary[0]["ospa"] == per_run[0]["ospa"]
+    assert summary[1]["error"] == "not run: interrupted" and summary[1]["ospa"] is None

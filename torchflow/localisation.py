@@ -323,7 +323,11 @@ def run_localisation(model: TDOA3D, localisers, *, runs: int = 10, seed: int = 0
     own largest number of measurements per sensor, with its own random stream
     (:class:`~torchflow.random.TrialStreams` keyed by seed, run and method): given the scenes, a
     run's result does not depend on the other runs.
-    A localiser that raises does not stop the others: its row gets the error.
+    A localiser that raises does not stop the others: its row gets the error. Ctrl-C or SIGTERM
+    (with :data:`~torchflow.experiment.STOP`'s handler installed, as ``experiments/run.py`` does)
+    stops the run at once; the finished runs keep their rows, the interrupted localiser's summary
+    row covers them (``trials`` = runs finished) with the error "interrupted after n of N runs",
+    and later localisers get "not run: interrupted".
 
     Returns:
         ``(summary, per_run, data, examples)``: summary rows (:data:`LOCALISATION_COLUMNS`), one row
@@ -332,7 +336,7 @@ def run_localisation(model: TDOA3D, localisers, *, runs: int = 10, seed: int = 0
     """
     import time
 
-    from .experiment import resolve_device, resolve_dtype
+    from .experiment import STOP, resolve_device, resolve_dtype
     from .metrics import ospa as ospa_metric
     from .random import TrialStreams
 
@@ -345,9 +349,14 @@ def run_localisation(model: TDOA3D, localisers, *, runs: int = 10, seed: int = 0
         from tqdm.auto import tqdm
     except ImportError:  # pragma: no cover
         tqdm = None
+    interrupted = False
     for name, loc in localisers.items():
-        loc.to(device=dev, dtype=dt)
         row = {c: None for c in LOCALISATION_COLUMNS}
+        if interrupted:  # an earlier localiser was interrupted: this one does not start
+            row.update(filter=name, trials=0, true_sources=model.n_sources, error="not run: interrupted")
+            summary.append(row)
+            continue
+        loc.to(device=dev, dtype=dt)
         row.update(filter=name, trials=runs, true_sources=model.n_sources,
                    n_particles=getattr(loc, "n_particles", None) or loc.G * loc.n_samples)
         bar = tqdm(total=runs, unit="run", leave=False, desc=name) if progress and tqdm is not None else None
@@ -355,13 +364,15 @@ def run_localisation(model: TDOA3D, localisers, *, runs: int = 10, seed: int = 0
         try:
             with torch.no_grad():
                 for b in range(runs):
+                    STOP.check()  # Ctrl-C / SIGTERM between runs (experiments/run.py installs the handler)
                     M = int(counts[b])
                     z, mask = data.z[b:b + 1, :, :M], data.mask[b:b + 1, :, :M]
                     g = TrialStreams(seed, [b], key=f"localise_{loc.method}", backend=rng_backend)
                     if dev.type == "cuda":
                         torch.cuda.synchronize()
                     t0 = time.perf_counter()
-                    res = loc(z, mask, g)
+                    with STOP.interruptible():
+                        res = loc(z, mask, g)
                     if dev.type == "cuda":
                         torch.cuda.synchronize()
                     secs.append(time.perf_counter() - t0)
@@ -380,13 +391,16 @@ def run_localisation(model: TDOA3D, localisers, *, runs: int = 10, seed: int = 0
                         examples[name] = res.positions[0][res.declared[0]].cpu()
                     if bar is not None:
                         bar.update(1)
+        except KeyboardInterrupt:  # keep the finished runs; the localisers after this one do not start
+            interrupted = True
+            row["error"] = f"interrupted after {len(vals)} of {runs} runs"
         except Exception as e:  # one failing localiser must not lose the others' results
             row["error"] = f"{type(e).__name__}: {e}"
         if bar is not None:
             bar.close()
         if vals:
             v = torch.tensor(vals, dtype=torch.float64)
-            row.update(ospa=float(v.mean()), ospa_se=float(v.std() / math.sqrt(len(vals))) if len(vals) > 1 else None,
+            row.update(trials=len(vals), ospa=float(v.mean()), ospa_se=float(v.std() / math.sqrt(len(vals))) if len(vals) > 1 else None,
                        declared=sum(decl) / len(decl), sec_per_run=sum(secs) / len(secs), underflows=sum(under))
         summary.append(row)
         if on_filter_done is not None:
