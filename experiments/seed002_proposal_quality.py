@@ -143,7 +143,6 @@ def main(argv=None) -> int:
                     help="PFI-OS readings of c* (optimal_diffusion_scale)")
     ap.add_argument("--os-only", action="store_true", help="only the PFI-OS rows")
     args = ap.parse_args(argv)
-    torch.set_default_dtype(torch.float64)
     model = TDOA3D()
     gen = torch.Generator().manual_seed(args.seed)
     data = scenes(model, args.scenes, gen)
