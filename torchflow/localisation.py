@@ -400,8 +400,8 @@ def run_localisation(model: TDOA3D, localisers, *, runs: int = 10, seed: int = 0
             bar.close()
         if vals:
             v = torch.tensor(vals, dtype=torch.float64)
-            row.update(trials=len(vals), ospa=float(v.mean()), ospa_se=float(v.std() / math.sqrt(len(vals))) if len(vals) > 1 else None,
-                       declared=sum(decl) / len(decl), sec_per_run=sum(secs) / len(secs), underflows=sum(under))
+            row.update(trials=len(vals), ospa=float(v.mean()),
+                       ospa_se=float(v.std() / math.sqrt(len(vals))) if len(vals) > 1 else None, declared=sum(decl) / len(decl), sec_per_run=sum(secs) / len(secs), underflows=sum(under))
         summary.append(row)
         if on_filter_done is not None:
             on_filter_done(summary)
@@ -539,7 +539,8 @@ class BootstrapLocaliser(nn.Module):
         mask = torch.cat([state.mask, z_mask], 1)
         flat = torch.full((B, K + M, N), -math.log(N), dtype=dt, device=dev)
         r2, m2, lw2, x2 = _prune_and_cap(r_all, mask, [flat, torch.cat([leg, new], 1)], self.prune, self.max_objects)
-        return POState(r2, m2, lw2, x2, underflow=_underflow(log_Ib, log_Ik, log_cf, state.mask, z_mask))  # particles in ``means``
+        # particles in ``means``, no factors
+        return POState(r2, m2, lw2, x2, underflow=_underflow(log_Ib, log_Ik, log_cf, state.mask, z_mask))
 
     def init(self, batch_size: int, dtype=torch.float64, device=None) -> "POState":
         z = torch.zeros(batch_size, 0, dtype=dtype, device=device)

@@ -187,7 +187,7 @@ EVALUATE_AT = ("end", "start")
 
 
 def flow_gaussian(flow: ParticleFlow, measurement, prior: FlowPrior, schedule: Optional[LambdaSchedule] = None,
-                  evaluate_at: str = "end"):
+                  evaluate_at: str = "end", on_step=None):
     """Flow the *parameters* of Gaussians instead of particles (seed 002's flow-induced proposal,
     MODELS.md §12.2): for each prior ``N(mu_0, P_0)``, linearise the measurement at the migrating
     mean and step
@@ -212,6 +212,8 @@ def flow_gaussian(flow: ParticleFlow, measurement, prior: FlowPrior, schedule: O
             ``"start"`` (``lambda_{l-1}``, ``lambda_0 = 0``: the plain explicit Euler step, which is
             unstable when ``eps_1`` times the measurement's precision in prior units is large;
             MODELS.md §12.1, UNCONF).
+        on_step: optional observer ``on_step(coefficients, eps)`` called with each step's
+            :class:`FlowCoefficients` before the step is taken (diagnostics; the result is unchanged).
 
     Returns:
         ``(mean (..., d), cov (..., d, d))`` of the flowed Gaussians.
@@ -229,6 +231,8 @@ def flow_gaussian(flow: ParticleFlow, measurement, prior: FlowPrior, schedule: O
     for j in range(len(eps_all)):
         eps, lam = eps_all[j], lam_all[j]
         co = flow.coefficients_at(measurement.at(mu, prior.support), prior, lam, eps)
+        if on_step is not None:
+            on_step(co, eps)
         image.step(co, eps)
         mu = mu + eps * co.drift(mu)[0]
     return mu, linalg.symmetrize(image.cov)
