@@ -4,9 +4,20 @@
 case reruns the first trials of a committed paper-table run (``trial_range``: the whole run's
 data and per-trial random streams, only the first trials filtered) with the command's settings,
 and compares them with the committed ``per_trial.csv`` row by row. A code change that moves a
-recorded number, or a raw file that no longer matches its command, fails here. Tolerance 1e-7
-relative: room for round-off from a different batch of trials (the committed runs filtered 10-100
-trials per call), far below any change of a draw or a formula.
+recorded number, or a raw file that no longer matches its command, fails here.
+
+Tolerance ``REL_TOL`` = 5e-4 relative, derived from two measurements (1 thread, 2026-11-25):
+
+* rounding across instruction sets: the files were written on an AVX-512 CPU; under
+  ``MKL_ENABLE_INSTRUCTIONS=AVX2 ATEN_CPU_CAPABILITY=avx2`` (a CPU without AVX-512) the largest
+  relative deviation over all cases is 4.8e-5 (seed001_table1_pfgpf: the d = 64 covariance fits
+  round differently; every other case reproduces to the last digit). The tolerance is 10x that.
+* power: the same cases rerun with the filter's random stream renamed (same data, other draws) move
+  their numbers by 3.6e-3 relative at the least and 6.5e-2 to 1.2 in the median per case, so a
+  changed draw or formula moves at least one number of every randomised case 7x past the
+  tolerance (the EKF cases draw nothing; a formula change moves them).
+
+``.ci/run`` runs this file under both instruction sets.
 """
 import csv
 import math
@@ -20,6 +31,7 @@ from hydra.utils import instantiate
 from torchflow.experiment import run_experiment
 
 ROOT = Path(__file__).resolve().parents[1]
+REL_TOL = 5e-4  # see the module docstring: 10x the measured cross-instruction-set rounding
 RESULTS = ROOT / "experiments" / "results"
 
 #: (experiment overrides, filter config key, committed file, its filter label, trials rerun)
@@ -71,7 +83,7 @@ def test_committed_per_trial_file_is_reproduced(case):
         for col in ("mse", "omat", "ess", "log_evidence"):
             if w.get(col, "") == "":
                 continue
-            if not math.isclose(g[col], float(w[col]), rel_tol=1e-7, abs_tol=1e-9):
+            if not math.isclose(g[col], float(w[col]), rel_tol=REL_TOL, abs_tol=1e-9):
                 bad.append(f"trial {w['trial']} {col}: {g[col]!r} != {w[col]}")
     assert not bad, f"{path} ({label}):\n" + "\n".join(bad)
 
