@@ -36,10 +36,11 @@ import numbers
 from typing import Callable, Dict, Optional, Tuple
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from . import random as _random
 from ._checks import check_float_tensor, shape_str
+from .linalg import standard_normal
 
 __all__ = [
     "normalize_log_weights",
@@ -52,9 +53,11 @@ __all__ = [
     "get_resampler",
     "resample_if_needed",
     "gather_particles",
+    "Resampler",
+    "RESAMPLING_GRADIENTS",
 ]
 
-Resampler = Callable[..., Tensor]
+ResampleFn = Callable[..., Tensor]
 
 
 # ---------------------------------------------------------------------------
@@ -318,7 +321,7 @@ def residual(log_weights: Tensor, generator: Optional[torch.Generator] = None, *
     return torch.where(j < n_det, det_idx, rand_idx)
 
 
-RESAMPLERS: Dict[str, Resampler] = {
+RESAMPLERS: Dict[str, ResampleFn] = {
     "multinomial": multinomial,
     "systematic": systematic,
     "stratified": stratified,
@@ -327,7 +330,7 @@ RESAMPLERS: Dict[str, Resampler] = {
 """Registry of resampling schemes, name -> ``fn(log_weights, generator=None)``."""
 
 
-def _get_resampler(name: object, arg_name: str) -> Resampler:
+def _get_resampler(name: object, arg_name: str) -> ResampleFn:
     if not isinstance(name, str) or name not in RESAMPLERS:
         raise ValueError(
             f"{arg_name}: expected one of {sorted(RESAMPLERS)}, got {name!r}"
@@ -335,7 +338,7 @@ def _get_resampler(name: object, arg_name: str) -> Resampler:
     return RESAMPLERS[name]
 
 
-def get_resampler(name: str) -> Resampler:
+def get_resampler(name: str) -> ResampleFn:
     """Looks up a resampling scheme by name.
 
     Args:
@@ -458,3 +461,73 @@ def gather_particles(x: Tensor, indices: Tensor) -> Tensor:
         )
     batch = torch.arange(x.shape[0], device=x.device)[:, None]
     return x[batch, indices.to(device=x.device, dtype=torch.int64)]
+
+
+#: how gradients pass through resampling (the slot :class:`Resampler` keeps for estimators)
+RESAMPLING_GRADIENTS = ("none",)
+
+
+class Resampler(nn.Module):
+    """The resampling part of a particle filter: scheme, ESS trigger, regularisation and how
+    gradients pass through it.
+
+    Args:
+        state_dim: d (for per-coordinate regularisation variances).
+        scheme: ``multinomial``, ``systematic`` (default), ``stratified`` or ``residual``.
+        ess_threshold: resample a trial when ESS < ess_threshold * N (0 never, 1 nearly always).
+        regularization: ``None`` (off), a float variance, or a list of d per-coordinate variances
+            of Gaussian jitter added to the particles of resampled trials.
+        gradient: how gradients pass through the ancestor choice. ``"none"`` (the only estimator
+            so far): the index gather drops how the ancestors depend on the parameters, so the
+            gradient of the log-evidence is a biased estimate of the score wherever resampling
+            happens.
+        dtype: of the regularisation scale (the model's).
+    """
+
+    def __init__(self, state_dim: int, *, scheme: str = "systematic", ess_threshold: float = 0.5,
+                 regularization=None, gradient: str = "none", dtype: torch.dtype = torch.float64):
+        super().__init__()
+        _get_resampler(scheme, "resampling")
+        if (isinstance(ess_threshold, bool) or not isinstance(ess_threshold, numbers.Real)
+                or not 0.0 <= float(ess_threshold) <= 1.0):
+            raise ValueError(f"ess_threshold: expected a fraction in [0, 1], got {ess_threshold!r}")
+        if gradient not in RESAMPLING_GRADIENTS:
+            raise ValueError(f"resampling_gradient: expected one of {RESAMPLING_GRADIENTS}, got {gradient!r}")
+        self.scheme, self.ess_threshold, self.gradient = scheme, float(ess_threshold), gradient
+        d = int(state_dim)
+        if regularization is None:
+            self.register_buffer("regularization_std", None)
+        else:
+            var = torch.as_tensor(regularization, dtype=torch.float64)
+            if var.dim() == 0:
+                var = var.expand(d)
+            if var.shape != (d,) or bool((var < 0).any()):
+                raise ValueError(f"regularization: expected a non-negative variance or {d} of them, "
+                                 f"got {regularization!r}")
+            self.register_buffer("regularization_std", var.sqrt().to(dtype))
+
+    def forward(self, particles: Tensor, log_weights: Tensor, generator, *, cov=None,
+                extras: Optional[Dict[str, Tensor]] = None):
+        """Resample the low-ESS trials of ``particles (B, N, d)`` with normalised ``log_weights
+        (B, N)``; a per-particle ``cov`` (a :class:`~torchflow.covariances.Covariance`) and
+        ``extras`` (tensors with a leading ``(B, N)``) follow the particles.
+
+        Returns ``(particles, log_weights, cov, extras, resampled (B,))``. No host synchronisation:
+        every trial is gathered (identity indices where not resampled)."""
+        idx, resampled, lw_new = resample_if_needed(log_weights, generator, scheme=self.scheme,
+                                                    ess_threshold=self.ess_threshold, validate=False)
+        particles = gather_particles(particles, idx)
+        if cov is not None:  # its type says whether it follows the particles
+            cov = cov.resampled(idx)
+        if extras:
+            extras = {k: gather_particles(v, idx) for k, v in extras.items()}
+        if self.regularization_std is not None:
+            # drawn whether or not any trial resampled, so that each trial's stream advances the
+            # same way whatever the other trials in its batch do
+            noise = standard_normal(particles.shape, dtype=particles.dtype, device=particles.device,
+                                    generator=generator) * self.regularization_std
+            particles = particles + noise * resampled[:, None, None].to(particles.dtype)
+        return particles, lw_new, cov, extras or {}, resampled
+
+    def extra_repr(self) -> str:
+        return f"scheme={self.scheme!r}, ess_threshold={self.ess_threshold}, gradient={self.gradient!r}"

@@ -198,7 +198,7 @@ def nan_likelihood_run():
 
 def test_non_finite_error_names_filter_step_trial():
     model, traj, mean, cov = nan_likelihood_run()
-    f = BootstrapParticleFilter(model, n_particles=16, name="bpf-test")
+    f = BootstrapParticleFilter(model, n_particles=16, nonfinite="raise", name="bpf-test")
     with pytest.raises(NonFiniteError, match=r"bpf-test: non-finite particles or weights at time step 3 in trial\(s\) \[1\]") as e:
         f(traj.observations, mean, cov, torch.Generator().manual_seed(0))
     assert e.value.step == 3 and e.value.trials == [1]

@@ -36,7 +36,7 @@ def test_pfpf_log_evidence_unbiased_on_lg(flow, covariance):
 def test_pfpf_without_jacobian_term_would_be_biased(monkeypatch):
     """Sanity check of the test above: dropping log|det| from the weights biases Z_hat far
     beyond the tolerance, so the unbiasedness test can fail."""
-    import torchflow.proposals as proposals_mod
+    import torchflow.proposals.flow as proposals_mod
     from torchflow.flows import integrate as flow_base
 
     real = flow_base.integrate_flow

@@ -394,9 +394,9 @@ def test_pfpf_gromov_without_proposal_density_would_be_biased(monkeypatch):
     (dropping the tracked proposal density for p(eta_0)) biases Z_hat far beyond its tolerance."""
     from torchflow.proposals import StochasticFlowProposal
 
-    def wrong(self, model, eta0, x_prev, z, prior, generator, log_q0, noise=None, index=None):
-        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, generator=generator)
-        return out.particles, model.transition_log_prob(eta0, x_prev)
+    def wrong(self, eta0, x_prev, z, prior, generator, log_q0, noise=None, index=None):
+        out = integrate_flow(self.flow, self.model, eta0, z, prior, self.schedule, generator=generator)
+        return out.particles, self.model.transition_log_prob(eta0, x_prev)
 
     monkeypatch.setattr(StochasticFlowProposal, "_migrate", wrong)
     model = mild_lg()

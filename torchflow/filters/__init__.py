@@ -1,5 +1,5 @@
 """Filters: every filter is an ``nn.Module`` with the ``init`` / ``step`` / ``forward`` contract."""
-from .base import Filter, FilterResult, GaussianState, ParticleFilterBase, ParticleState
+from .base import Filter, FilterResult, GaussianState, ParticleFilter, ParticleFilterBase, ParticleState
 from .bootstrap import BootstrapParticleFilter
 from .pfpf import ClusteredParticleFlowParticleFilter, ParticleFlowFilter, ParticleFlowParticleFilter
 from .gpfis import GPFIS, GaussianParticleFlowImportanceSampler
@@ -12,6 +12,7 @@ __all__ = [
     "FilterResult",
     "GaussianState",
     "ParticleState",
+    "ParticleFilter",
     "ParticleFilterBase",
     "KalmanFilter",
     "ExtendedKalmanFilter",

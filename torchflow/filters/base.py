@@ -1,6 +1,7 @@
 """The filter contract shared by every filter: ``init`` / ``step`` / ``forward``."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Dict, Optional, Tuple
 
@@ -10,9 +11,10 @@ from torch import nn
 from .. import linalg
 from .. import resampling as _resampling
 from .._checks import NonFiniteError, check_count, check_finite, check_psd, check_same, check_tensor
-from .. import tuning
+from .._blocks import blockwise
 from ..covariances import Covariance
 from ..models.base import StateSpaceModel
+from ..proposals import BootstrapProposal, Proposal
 from ..random import check_generator
 
 
@@ -276,101 +278,118 @@ class Filter(nn.Module):
         )
 
 
-class ParticleFilterBase(Filter):
-    """Shared weighting / resampling path of all particle filters.
+NONFINITE = ("recover", "raise")
+
+
+class ParticleFilter(Filter):
+    """The particle filter: one step for every proposal.
+
+    ``propose`` (the :class:`~torchflow.proposals.Proposal`, fed tensors) -> weigh
+    ``log w_k = log w_{k-1} + log p(x_k | x_{k-1}) + log p(z_k | x_k) - log q(x_k | x_{k-1}, z_k)``
+    (a proposal that draws from the transition, ``log_q = None``, leaves the likelihood alone) ->
+    estimate (weighted mean) -> resample (:class:`~torchflow.resampling.Resampler`). The named
+    filters (:class:`~torchflow.filters.BootstrapParticleFilter`, PF-PF, GPFIS, ...) are this class
+    with their proposal.
 
     Args:
         model: the state-space model.
-        n_particles: particles per trial N.
+        proposal: a :class:`~torchflow.proposals.Proposal` of ``model``, or a callable
+            ``model -> Proposal`` (a Hydra ``_partial_`` config); ``None``: the bootstrap proposal.
+        n_particles: particles per trial N (the filter owns the count; ``forward(n_particles=...)``
+            overrides it for one call).
         resampling: ``multinomial``, ``systematic``, ``stratified`` or ``residual``.
         ess_threshold: resample a trial when ESS < ess_threshold * N (0 never, 1 nearly always).
         regularization: ``None`` (off), a float variance, or a list of d per-coordinate variances
             of Gaussian jitter added to the particles of resampled trials.
-        nonfinite: ``"raise"``: a NaN/inf weight raises :class:`NonFiniteError` naming the filter,
-            step and trials; ``"recover"``: particles with a NaN/inf position or log-weight get
-            weight zero (and a finite fallback position); a trial left with no valid particle keeps
-            its previous weights and the fallback particles. Either way the repair is counted
-            per trial in ``n_repaired``.
-        particle_chunk: evaluate per-particle work (likelihoods; local flows) in blocks of at
-            most this many particles to bound memory (``None``: all at once). The experiment
-            runner sets it from ``memory_budget_gb`` when one trial does not fit
-            (:meth:`plan_memory`).
+        resampling_gradient: how gradients pass through resampling (``"none"``; see
+            :class:`~torchflow.resampling.Resampler`).
+        nonfinite: ``"recover"`` (default, every particle filter): a particle with a NaN/inf
+            position or log-weight gets weight zero (and a finite fallback position: its pre-flow
+            draw); a trial left with no valid particle keeps its previous weights and the fallback
+            particles; each step with a repair is counted per trial in ``n_repaired`` (the runner's
+            ``repaired`` column). ``"raise"``: :class:`~torchflow._checks.NonFiniteError` names the
+            filter, step and trials. Recover is the default because a flow's far-tail particle can
+            overflow its ``log|det|`` in an otherwise healthy trial, and weight zero is the limit of
+            its weight; the count keeps every repair visible.
+        particle_chunk: evaluate per-particle work (likelihoods; local flows) in blocks of at most
+            this many particles to bound memory (``None``: all at once, or the proposal's own
+            blocks). The runner sets it from ``memory_budget_gb`` (:meth:`plan_memory`).
     """
 
     uses_particles = True
     uses_randomness = True
 
-    def __init__(self, model, *, n_particles: int = 500, resampling: str = "systematic",
-                 ess_threshold: float = 0.5, regularization=None, nonfinite: str = "raise",
-                 particle_chunk: Optional[int] = None, validate: bool = True, name: Optional[str] = None):
+    def __init__(self, model, proposal=None, *, n_particles: int = 500, resampling: str = "systematic",
+                 ess_threshold: float = 0.5, regularization=None, resampling_gradient: str = "none",
+                 nonfinite: str = "recover", particle_chunk: Optional[int] = None, validate: bool = True,
+                 name: Optional[str] = None):
         super().__init__(model, validate=validate, name=name)
+        if proposal is None:
+            proposal = BootstrapProposal(model)
+        elif not isinstance(proposal, nn.Module) and callable(proposal):
+            proposal = proposal(model)
+        if not isinstance(proposal, Proposal):
+            raise TypeError(f"proposal: expected a torchflow Proposal (or a callable model -> Proposal), "
+                            f"got {type(proposal).__name__}")
+        if proposal.model is not model:
+            raise ValueError("proposal: built for another model than the filter's (pass the same model to both)")
+        #: how particles are drawn and with what density (:mod:`torchflow.proposals`)
+        self.proposal = proposal
         self.particle_chunk = None if particle_chunk is None else check_count(
             "particle_chunk", particle_chunk, hint=" or None")
-        if nonfinite not in ("raise", "recover"):
-            raise ValueError(f"nonfinite: expected 'raise' or 'recover', got {nonfinite!r}")
+        if nonfinite not in NONFINITE:
+            raise ValueError(f"nonfinite: expected one of {NONFINITE}, got {nonfinite!r}")
         self.nonfinite = nonfinite
-        n_particles = check_count("n_particles", n_particles)
-        if resampling not in _resampling.RESAMPLERS:
-            raise ValueError(f"resampling: expected one of {sorted(_resampling.RESAMPLERS)}, "
-                             f"got {resampling!r}")
-        if not 0.0 <= float(ess_threshold) <= 1.0:
-            raise ValueError(f"ess_threshold: expected a fraction in [0, 1], got {ess_threshold}")
-        self.n_particles = int(n_particles)
-        self.resampling_scheme = resampling
-        self.ess_threshold = float(ess_threshold)
-        d = model.state_dim
-        if regularization is None:
-            self.register_buffer("regularization_std", None)
-        else:
-            var = torch.as_tensor(regularization, dtype=torch.float64)
-            if var.dim() == 0:
-                var = var.expand(d)
-            if var.shape != (d,) or bool((var < 0).any()):
-                raise ValueError(f"regularization: expected a non-negative variance or {d} of them, "
-                                 f"got {tuple(var.shape)}")
-            self.register_buffer("regularization_std", var.sqrt().to(model.dtype))
+        self.n_particles = int(check_count("n_particles", n_particles))
+        #: the resampling part: scheme, ESS trigger, regularisation, gradient estimator
+        self.resampler = _resampling.Resampler(model.state_dim, scheme=resampling, ess_threshold=ess_threshold,
+                                               regularization=regularization, gradient=resampling_gradient,
+                                               dtype=model.dtype)
+
+    resampling_scheme = property(lambda self: self.resampler.scheme)
+    ess_threshold = property(lambda self: self.resampler.ess_threshold)
+    regularization_std = property(lambda self: self.resampler.regularization_std)
+
+    @property
+    def stream_name(self) -> str:
+        """The filter family's declared stream name, else the proposal's, else the class name."""
+        return self.random_stream or getattr(self.proposal, "random_stream", None) or type(self).__name__
 
     def bytes_per_trial(self, n_particles=None):
-        N = n_particles or self.n_particles
-        d, m = self.model.state_dim, self.model.obs_dim
-        return 8 * N * (6 * d + 3 * m + 8) + N * self.model.bytes_per_point()
+        return self.proposal.bytes_per_trial(self._resolve_n(n_particles))
 
     def preferred_chunk_trials(self, n_particles=None):
-        N = int(n_particles or self.n_particles)
-        per_trial = N * self.model.state_dim * torch.finfo(self.model.dtype).bits // 8
-        # whole-cloud passes stay cache-resident up to a measured size (torchflow.tuning)
-        return max(1, tuning.get().cache_bytes_per_call // max(per_trial, 1))
-
-    def flow_chunk(self, n_particles: Optional[int] = None) -> Optional[int]:
-        """Particles of one trial per pass of a per-particle flow: :attr:`particle_chunk` when set,
-        else :func:`~torchflow.flows.points.flow_points_per_call` when the cloud of ``n_particles``
-        (default :attr:`n_particles`) exceeds it, else ``None`` (one pass). Changes speed, not numbers
-        (the blocks are independent; round-off aside)."""
-        if self.particle_chunk:
-            return self.particle_chunk
-        from ..flows.points import flow_points_per_call
-
-        N, c = int(n_particles or self.n_particles), flow_points_per_call(self.model)
-        return c if N > c else None
+        return self.proposal.preferred_chunk_trials(self._resolve_n(n_particles))
 
     def plan_memory(self, budget_bytes: float, n_particles: Optional[int] = None) -> Optional[int]:
         """Set :attr:`particle_chunk` so that one trial's per-particle work fits ``budget_bytes``
         (``None`` when a whole trial fits); returns it. Used by the experiment runner."""
-        N = int(n_particles or self.n_particles)
+        N = self._resolve_n(n_particles)
         per_trial = self.bytes_per_trial(N)
         self.particle_chunk = None if per_trial <= budget_bytes else max(1, int(N * budget_bytes // per_trial))
         return self.particle_chunk
 
-    # ``self.proposal`` (:mod:`torchflow.proposals`) is set by every subclass's ``__init__`` (a
-    # submodule: no class attribute, which would shadow it)
+    def _resolve_n(self, n_particles):
+        return self.n_particles if n_particles is None else check_count("n_particles", n_particles)
+
+    def init(self, mean, cov, n_particles=None, generator=None) -> "ParticleState":
+        """N particles per trial from the prior ``N(mean (B, d), cov (B, d, d))``, uniform weights and
+        what the proposal carries (:meth:`~torchflow.proposals.Proposal.init_carry`)."""
+        N = self._resolve_n(n_particles)
+        B = mean.shape[0]
+        particles = linalg.sample_mvn(mean, linalg.safe_cholesky(cov), (N,), generator)  # (B, N, d)
+        lw = torch.full((B, N), -math.log(N), dtype=mean.dtype, device=mean.device)
+        zero = torch.zeros(B, dtype=mean.dtype, device=mean.device)
+        return ParticleState(particles, lw, mean, torch.full_like(zero, float(N)), zero,
+                             torch.zeros(B, dtype=torch.bool, device=mean.device),
+                             n_repaired=torch.zeros(B, dtype=torch.long, device=mean.device),
+                             cov=self.proposal.init_carry(cov, N))
 
     def step(self, state: "ParticleState", z: torch.Tensor, generator: Optional[torch.Generator] = None):
-        """One step of every particle filter: propose, weigh, resample.
-
-        ``log w_k = log w_{k-1} + log p(x_k | x_{k-1}) + log p(z_k | x_k) - log q(x_k | x_{k-1}, z_k)``;
-        a proposal that draws from the transition (``log_q`` is ``None``) leaves the likelihood
-        alone. Per-particle evaluations run in blocks of :attr:`particle_chunk`."""
-        prop = self.proposal.propose(self, state, z, generator)
+        """One step: propose, weigh, estimate, resample (class docstring). Per-particle evaluations
+        run in blocks of :attr:`particle_chunk`."""
+        prop = self.proposal.propose(state.particles, state.log_weights, state.estimate, z, state.cov, generator,
+                                     chunk=self.particle_chunk)
         model = self.model
         z1 = z.unsqueeze(1)
         if prop.log_q is None:
@@ -384,31 +403,29 @@ class ParticleFilterBase(Filter):
                                         cov=prop.cov, fallback=prop.fallback, n_repaired=state.n_repaired)
 
     def per_particle(self, fn, *tensors, pass_slice: bool = False, chunk: Optional[int] = None):
-        """``fn(*tensors)`` evaluated on blocks of at most :attr:`particle_chunk` particles
-        (or ``chunk``, when given: a filter whose batch rows are groups of a trial's particles).
+        """``fn(*tensors)`` in blocks of :attr:`particle_chunk` particles (or ``chunk``, when given;
+        :func:`torchflow._blocks.blockwise`)."""
+        return blockwise(fn, *tensors, chunk=self.particle_chunk if chunk is None else chunk, pass_slice=pass_slice)
 
-        Tensors whose dim 1 has the particle count N (taken from the first one) are sliced
-        along it; others (``None``, per-trial or ``(B, 1, ...)`` shared ones) are passed whole.
-        Outputs (a tensor or a tuple of them, particles on dim 1) are concatenated. Bounds the
-        memory of per-particle model evaluations (e.g. the acoustic likelihood's ``(B, N, C, m)``
-        intermediates) without changing the result beyond round-off. ``pass_slice=True`` also
-        passes the block's particle ``slice`` as the keyword ``particles``."""
-        N = tensors[0].shape[1]
-        c = self.particle_chunk if chunk is None else chunk
-        kw = (lambda sl: {"particles": sl}) if pass_slice else (lambda sl: {})
-        if not c or N <= c:
-            return fn(*tensors, **kw(slice(0, N)))
-        blocks = []
-        for s in range(0, N, c):
-            args = [t[:, s:s + c] if isinstance(t, torch.Tensor) and t.dim() > 1 and t.shape[1] == N else t
-                    for t in tensors]
-            blocks.append(fn(*args, **kw(slice(s, s + c))))
-        if isinstance(blocks[0], tuple):
-            return tuple(torch.cat(parts, 1) for parts in zip(*blocks))
-        return torch.cat(blocks, 1)
+    def repair(self, particles: torch.Tensor, log_increment: torch.Tensor, fallback: Optional[torch.Tensor]):
+        """The non-finite path of every particle filter: particles ``(B, ..., d)`` with a non-finite
+        coordinate or a NaN/+inf ``log_increment (B, ...)`` get log-weight ``-inf`` and the
+        ``fallback`` position (zeros when ``None``). Returns ``(particles, log_increment,
+        bad_trial (B,))``. No host synchronisation."""
+        # a particle with a non-finite coordinate has a non-finite coordinate sum (inf - inf = nan):
+        # one reduction instead of an elementwise isfinite over (B, N, d)
+        bad = torch.isnan(log_increment) | (log_increment == float("inf")) | ~torch.isfinite(particles.sum(-1))
+        fb = torch.zeros_like(particles) if fallback is None else fallback
+        return (torch.where(bad.unsqueeze(-1), fb, particles), log_increment.masked_fill(bad, float("-inf")),
+                bad.flatten(1).any(-1))
 
-    def _resolve_n(self, n_particles):
-        return self.n_particles if n_particles is None else check_count("n_particles", n_particles)
+    def account(self, bad_trial: torch.Tensor, dead: torch.Tensor, n_repaired: torch.Tensor):
+        """``(n_repaired, invalid)`` after a step whose trials had repaired particles (``bad_trial``)
+        or no particle of positive weight (``dead``): counted (recover), or flagged for
+        :meth:`Filter.forward` to raise (raise)."""
+        if self.nonfinite == "recover":
+            return n_repaired + (bad_trial | dead).long(), None
+        return n_repaired, bad_trial | dead
 
     def weight_and_resample(
         self,
@@ -434,53 +451,33 @@ class ParticleFilterBase(Filter):
                 pre-flow prior samples); defaults to zeros.
             n_repaired: ``(B,)`` running repair count to extend.
         """
-        B = particles.shape[0]
         if n_repaired is None:
-            n_repaired = torch.zeros(B, dtype=torch.long, device=particles.device)
-        # No host synchronisation: every branch below is a masked update over all trials. With
-        # nonfinite="raise", the offending trials are flagged in ``state.invalid`` and
-        # :meth:`Filter.forward` raises after the step (one check per time step).
-        # A particle with a non-finite coordinate has a non-finite coordinate sum (inf - inf = nan):
-        # one reduction instead of an elementwise isfinite over (B, N, d).
-        bad_p = torch.isnan(log_increment) | (log_increment == float("inf")) | ~torch.isfinite(particles.sum(-1))
-        bad_trial = bad_p.any(-1)
-        recover = self.nonfinite == "recover"
-        if recover:
-            n_repaired = n_repaired + bad_trial.long()
-            log_increment = log_increment.masked_fill(bad_p, float("-inf"))
-            fb = torch.zeros_like(particles) if fallback is None else fallback
-            particles = torch.where(bad_p.unsqueeze(-1), fb, particles)
+            n_repaired = torch.zeros(particles.shape[0], dtype=torch.long, device=particles.device)
+        # No host synchronisation: every branch below is a masked update over all trials; with
+        # nonfinite="raise" the offending trials are flagged in ``state.invalid`` and
+        # :meth:`Filter.forward` raises after the last step
+        particles, log_increment, bad_trial = self.repair(particles, log_increment, fallback)
         lw = prev_log_weights + log_increment
         inc = torch.logsumexp(lw, dim=-1)
-        dead = ~torch.isfinite(inc)  # no particle with positive weight (all -inf), or NaN
-        if recover:
-            n_repaired = n_repaired + (dead & ~bad_trial).long()
-            lw = torch.where(dead.unsqueeze(-1), prev_log_weights, lw)
-            if fallback is not None:
-                particles = torch.where(dead[:, None, None], fallback, particles)
-            invalid = None
-        else:
-            invalid = bad_trial | dead
+        dead = ~torch.isfinite(inc)  # no particle with positive weight (all -inf)
+        n_repaired, invalid = self.account(bad_trial, dead, n_repaired)
+        lw = torch.where(dead.unsqueeze(-1), prev_log_weights, lw)
+        if fallback is not None:
+            particles = torch.where(dead[:, None, None], fallback, particles)
         # rows that were not dead see the same lw, hence the same logsumexp as ``inc``
         lw = lw - torch.logsumexp(lw, dim=-1, keepdim=True)
         inc = inc.masked_fill(dead, float("-inf"))  # the evidence estimate of a dead step is zero
         w = lw.exp()
         estimate = torch.einsum("bn,bnd->bd", w, particles)
         ess = 1.0 / w.pow(2).sum(-1)
-        idx, resampled, lw_new = _resampling.resample_if_needed(
-            lw, generator, scheme=self.resampling_scheme, ess_threshold=self.ess_threshold, validate=False)
-        # gathered in every trial (identity indices where not resampled): no test of ``resampled``
-        particles = _resampling.gather_particles(particles, idx)
-        if cov is not None:  # its type says whether it follows the particles
-            cov = cov.resampled(idx)
-        if extras:
-            extras = {k: _resampling.gather_particles(v, idx) for k, v in extras.items()}
-        if self.regularization_std is not None:
-            # drawn whether or not any trial resampled, so that each trial's stream advances the
-            # same way whatever the other trials in its batch do
-            noise = linalg.standard_normal(particles.shape, dtype=particles.dtype, device=particles.device,
-                                           generator=generator) * self.regularization_std
-            particles = particles + noise * resampled[:, None, None].to(particles.dtype)
+        particles, lw_new, cov, extras, resampled = self.resampler(particles, lw, generator, cov=cov, extras=extras)
         return ParticleState(particles=particles, log_weights=lw_new, estimate=estimate, ess=ess,
                              log_evidence_increment=inc, resampled=resampled, n_repaired=n_repaired,
-                             cov=cov, step=step, extras=extras or {}, invalid=invalid)
+                             cov=cov, step=step, extras=extras, invalid=invalid)
+
+    def extra_repr(self) -> str:
+        return f"n_particles={self.n_particles}, nonfinite={self.nonfinite!r}"
+
+
+#: the former name of :class:`ParticleFilter` (kept for users' code)
+ParticleFilterBase = ParticleFilter

@@ -57,7 +57,8 @@ from .._checks import check_count
 from ..flows import FlowPrior, ParticleFlow, integrate_flow
 from ..flows.points import ParticlePoints, flow_points_per_call
 from ..schedules import ExponentialSchedule, LambdaSchedule
-from .base import ParticleFilterBase
+from ..proposals import resolve_flow
+from .base import ParticleFilter
 
 LINEARIZE_AT = ("auxiliary", "particle")
 ESTIMATES = ("mixture_mean", "top_component")
@@ -124,7 +125,7 @@ def _factor(S: torch.Tensor, jitter: float) -> torch.Tensor:
     return linalg.safe_cholesky(S + (jitter * scale)[..., None, None] * eye)
 
 
-class GaussianSumParticleFilter(ParticleFilterBase):
+class GaussianSumParticleFilter(ParticleFilter):
     """Gaussian-sum particle filter, optionally with the LEDH flow as each component's proposal
     (GSPF, and PFGSPF with ``flow``; G = 1 gives GPF and PFGPF). See the module docstring.
 
@@ -273,10 +274,9 @@ class GaussianSumParticleFilter(ParticleFilterBase):
             x, log_w = self.per_particle(block, eta0.reshape(flat), start.reshape(flat), chunk=rows)
             x = x.reshape(B, G, n, d)
             log_w = log_w.reshape(B, G, n) + self.per_particle(loglik, x.reshape(B, G * n, d)).reshape(B, G, n)
-        # non-finite particles or weights: weight zero (recover) or flagged (raise)
-        bad = torch.isnan(log_w) | (log_w == float("inf")) | ~torch.isfinite(x.sum(-1))
-        log_w = log_w.masked_fill(bad, float("-inf"))
-        x = torch.where(bad.unsqueeze(-1), torch.zeros_like(x), x)  # weight zero: any finite position
+        # non-finite particles or weights: weight zero, counted (recover) or flagged (raise): the
+        # particle filters' one path
+        x, log_w, bad_trial = self.repair(x, log_w, None)
         log_alpha, inc, g_eff = mixture_update(state.log_alpha, log_w)
         dead_comp = ~torch.isfinite(torch.logsumexp(log_w, -1))  # (B, G)
         lw = log_w.masked_fill(dead_comp.unsqueeze(-1), 0.0)  # dead: any finite weights (replaced below)
@@ -299,29 +299,28 @@ class GaussianSumParticleFilter(ParticleFilterBase):
         lv = (state.log_alpha.unsqueeze(-1) + log_w).reshape(B, G * n)
         ess = 1.0 / torch.softmax(lv, -1).pow(2).sum(-1)
         ess = torch.where(torch.isfinite(ess), ess, torch.zeros_like(ess))  # no positive weight: 0
-        bad_trial = bad.flatten(1).any(-1)
-        dead_trial = ~torch.isfinite(inc)
-        repaired = state.n_repaired
-        invalid = None
-        if self.nonfinite == "recover":
-            repaired = repaired + (bad_trial | dead_trial).long()
-        else:
-            invalid = bad_trial | dead_trial
+        repaired, invalid = self.account(bad_trial, ~torch.isfinite(inc), state.n_repaired)
         return MixtureState(log_alpha, means, covs, estimate, ess, g_eff, inc, repaired, state.step + 1, invalid)
 
     def _row_chunk(self) -> Optional[int]:
         """Particles per component row per pass (the filter's ``particle_chunk``, or with a flow the
-        cache-sized :meth:`flow_chunk`, is per trial)."""
+        cache-sized block of :func:`~torchflow.flows.points.flow_points_per_call`, is per trial)."""
         c = self.particle_chunk if self.flow is None else self.flow_chunk()
         return None if not c else max(1, c // self.n_components)
+
+    def flow_chunk(self) -> Optional[int]:
+        """A trial's particles per flow pass: ``particle_chunk`` when set, else the cache-sized
+        :func:`~torchflow.flows.points.flow_points_per_call` when the trial's particles exceed it."""
+        if self.particle_chunk:
+            return self.particle_chunk
+        cap = flow_points_per_call(self.model)
+        return cap if self.n_particles > cap else None
 
 
 def _gs_flow(flow) -> Optional[ParticleFlow]:
     if flow is None:
         return None
-    from .pfpf import _flow
-
-    f = _flow(flow)
+    f = resolve_flow(flow)
     if f.stochastic:
         raise ValueError(f"flow: the Gaussian-sum filters weigh with the flow's log|det|, so the flow must be "
                          f"deterministic (EDH/LEDH family), got {type(f).__name__}")

@@ -6,49 +6,10 @@ from typing import Optional, Tuple
 import torch
 
 from .. import linalg
+from ..trackers import UnscentedTransform, ekf_predict, ekf_update, kalman_update
 from .base import Filter, GaussianState
 
-
-def kalman_update(
-    mean_pred: torch.Tensor,
-    cov_pred: torch.Tensor,
-    z: torch.Tensor,
-    z_pred: torch.Tensor,
-    H: torch.Tensor,
-    R: torch.Tensor,
-) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Linear(ised) Gaussian measurement update, any leading batch shape ``(...)``.
-
-    Args:
-        mean_pred: ``(..., d)`` predicted mean.
-        cov_pred: ``(..., d, d)`` predicted covariance P.
-        z: ``(..., m)`` observation (broadcastable).
-        z_pred: ``(..., m)`` predicted measurement (``H mean_pred`` for a linear model).
-        H: ``(..., m, d)`` measurement Jacobian.
-        R: ``(..., m, m)`` measurement noise covariance (broadcastable).
-
-    Returns:
-        posterior mean ``(..., d)``, covariance ``(..., d, d)`` (Joseph form, symmetrised) and
-        the log-density of ``z`` under ``N(z_pred, S)``, ``S = H P H^T + R``: ``(...)``.
-    """
-    HP = H @ cov_pred  # (..., m, d)
-    S = linalg.symmetrize(HP @ H.transpose(-1, -2) + R)
-    L = linalg.safe_cholesky(S)
-    Kt = linalg.chol_solve(L, HP)  # (..., m, d) = S^{-1} H P  (= K^T)
-    K = Kt.transpose(-1, -2)
-    innov = z - z_pred
-    mean = mean_pred + linalg.matvec(K, innov)
-    d = mean_pred.shape[-1]
-    IKH = torch.eye(d, dtype=H.dtype, device=H.device) - K @ H
-    cov = linalg.symmetrize(IKH @ cov_pred @ IKH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2))
-    loglik = linalg.mvn_log_prob(z, z_pred, L)
-    return mean, cov, loglik
-
-
-def ekf_predict(model, mean: torch.Tensor, cov: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
-    """EKF prediction ``(g(m), G P G^T + Q)`` for ``mean (..., d)``, ``cov (..., d, d)``."""
-    G = model.transition_matrix() if model.linear_dynamics else model.transition_jacobian(mean)
-    return model.transition_mean(mean), linalg.symmetrize(G @ cov @ G.transpose(-1, -2) + model.transition_cov(mean))
+__all__ = ["KalmanFilter", "ExtendedKalmanFilter", "UnscentedKalmanFilter", "kalman_update", "ekf_predict"]
 
 
 class ExtendedKalmanFilter(Filter):
@@ -68,9 +29,7 @@ class ExtendedKalmanFilter(Filter):
     def update(self, mean_pred: torch.Tensor, cov_pred: torch.Tensor, z: torch.Tensor):
         """Measurement update linearised at ``mean_pred (..., d)``; ``z`` broadcasts to ``(..., m)``.
         Returns mean ``(..., d)``, covariance ``(..., d, d)`` and log N(z; h(mean_pred), S) ``(...)``."""
-        model = self.model
-        H = model.measurement_matrix() if model.linear_measurement else model.measurement_jacobian(mean_pred)
-        return kalman_update(mean_pred, cov_pred, z, model.measure(mean_pred), H, model.measurement_cov(mean_pred))
+        return ekf_update(self.model, mean_pred, cov_pred, z)
 
     def step(self, state, z, generator=None):
         m_pred, P_pred = self.predict(state.mean, state.cov)
@@ -133,7 +92,8 @@ class KalmanFilter(ExtendedKalmanFilter):
 
 
 class UnscentedKalmanFilter(Filter):
-    """Unscented Kalman filter (scaled sigma points, Wan & van der Merwe).
+    """Unscented Kalman filter (scaled sigma points, Wan & van der Merwe; the transform is
+    :class:`~torchflow.trackers.UnscentedTransform`).
 
     ``2d + 1`` sigma points ``m``, ``m +- sqrt(d + lambda) L_i`` with ``lambda = alpha^2 (d + kappa) - d``.
     Exact on linear-Gaussian models for any admissible (alpha, beta, kappa).
@@ -148,59 +108,29 @@ class UnscentedKalmanFilter(Filter):
     def __init__(self, model, *, alpha: float = 1.0, beta: float = 2.0, kappa: Optional[float] = None,
                  validate: bool = True, name: Optional[str] = None):
         super().__init__(model, validate=validate, name=name)
-        d = model.state_dim
-        if kappa is None:
-            kappa = 3.0 - d
-        lam = alpha**2 * (d + kappa) - d
-        if d + lam <= 0:
-            raise ValueError(f"alpha, kappa: need alpha^2 (d + kappa) > 0, got alpha={alpha}, kappa={kappa}, d={d}")
-        self.alpha, self.beta, self.kappa = float(alpha), float(beta), float(kappa)
-        self._scale = (d + lam) ** 0.5
-        wm = torch.full((2 * d + 1,), 0.5 / (d + lam), dtype=torch.float64)
-        wc = wm.clone()
-        wm[0] = lam / (d + lam)
-        wc[0] = lam / (d + lam) + (1 - alpha**2 + beta)
         # on the model's device and dtype (a filter built around a CUDA model must not keep CPU weights)
-        self.register_buffer("wm", wm.to(device=model.device, dtype=model.dtype))
-        self.register_buffer("wc", wc.to(device=model.device, dtype=model.dtype))
+        self.unscented = UnscentedTransform(model.state_dim, alpha=alpha, beta=beta, kappa=kappa,
+                                            dtype=model.dtype, device=model.device)
+
+    alpha = property(lambda self: self.unscented.alpha)
+    beta = property(lambda self: self.unscented.beta)
+    kappa = property(lambda self: self.unscented.kappa)
 
     def sigma_points(self, mean, cov):
         """``(..., d)``, ``(..., d, d)`` -> sigma points ``(..., 2d + 1, d)``."""
-        L = linalg.safe_cholesky(cov) * self._scale
-        cols = L.transpose(-1, -2)  # rows = columns of L
-        m = mean.unsqueeze(-2)
-        return torch.cat([m, m + cols, m - cols], dim=-2)
-
-    def _moments(self, Y):
-        mean = torch.einsum("s,...sd->...d", self.wm.to(Y), Y)  # .to: no-op unless the model moved alone
-        D = Y - mean.unsqueeze(-2)
-        return mean, D
+        return self.unscented.sigma_points(mean, cov)
 
     def init(self, mean, cov, n_particles=None, generator=None):
         return GaussianState(mean, cov, torch.zeros_like(mean[:, 0]), 0)
 
-    def _cov(self, D1, D2):
-        return torch.einsum("s,...si,...sj->...ij", self.wc.to(D1), D1, D2)
-
     def predict(self, mean: torch.Tensor, cov: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
         """Unscented prediction for ``(..., d)``, ``(..., d, d)`` (any leading shape)."""
-        X = self.model.transition_mean(self.sigma_points(mean, cov))
-        m_pred, DX = self._moments(X)
-        return m_pred, linalg.symmetrize(self._cov(DX, DX) + self.model.transition_cov(m_pred))
+        return self.unscented.predict(self.model, mean, cov)
 
     def update(self, mean_pred: torch.Tensor, cov_pred: torch.Tensor, z: torch.Tensor):
         """Unscented update with sigma points redrawn from ``N(mean_pred, cov_pred)``; ``z``
         broadcasts to ``(..., m)``. Returns mean, covariance and log N(z; z_hat, S)."""
-        X = self.sigma_points(mean_pred, cov_pred)
-        z_pred, DZ = self._moments(self.model.measure(X))
-        DX = X - mean_pred.unsqueeze(-2)
-        S = linalg.symmetrize(self._cov(DZ, DZ) + self.model.measurement_cov(mean_pred))
-        C = self._cov(DX, DZ)  # (..., d, m)
-        L = linalg.safe_cholesky(S)
-        Kt = linalg.chol_solve(L, C.transpose(-1, -2))  # S^{-1} C^T = K^T
-        mean = mean_pred + linalg.matvec(Kt.transpose(-1, -2), z - z_pred)
-        cov = linalg.symmetrize(cov_pred - C @ Kt)  # P - K S K^T = P - C S^{-1} C^T
-        return mean, cov, linalg.mvn_log_prob(z, z_pred, L)
+        return self.unscented.update(self.model, mean_pred, cov_pred, z)
 
     def step(self, state, z, generator=None):
         m_pred, P_pred = self.predict(state.mean, state.cov)

@@ -205,6 +205,13 @@ class ParticlePoints(LinearisationPoints):
         P = cov.unsqueeze(1)
         return ParticleCovariance(P if identical else P.expand(B, n_particles, d, d), identical=identical)
 
+    def place(self, model, x_prev, mean, scale_tril, z):
+        if mean.dim() == x_prev.dim() - 1:
+            # a covariance tracked per trial (the unweighted flow filters): each particle's prior mean
+            # is its own noise-free prediction, its covariance the trial's
+            return FlowPrior(model.transition_mean(x_prev), scale_tril.unsqueeze(-3)), None
+        return FlowPrior(mean, scale_tril), None
+
     def arrange(self, prior, particles, index):
         if index is not None:
             raise ValueError("index: per-particle points take no cluster index (use points='clustered')")

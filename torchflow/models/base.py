@@ -104,10 +104,9 @@ class StateSpaceModel(nn.Module):
         raise NotImplementedError(f"{type(self).__name__} has no constant transition matrix")
 
     def sample_transition(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
-        """Draw x_k ~ p(x_k | x_{k-1} = x) for ``x (..., d)``."""
-        L = self.transition_scale_tril(x)
-        xi = linalg.standard_normal(x.shape, dtype=x.dtype, device=x.device, generator=generator)
-        return self.transition_mean(x) + linalg.matvec(L, xi)
+        """Draw x_k ~ p(x_k | x_{k-1} = x) for ``x (..., d)`` (a Gaussian transition by default; a
+        model with another noise law overrides this and keeps :meth:`sample_transition_gaussian`)."""
+        return self.sample_transition_gaussian(x, generator)
 
     def sample_transition_gaussian(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         """Draw from the Gaussian fit ``N(transition_mean(x), transition_cov(x))`` (the transition

@@ -1,0 +1,20 @@
+"""Proposals of the particle filters, one file each; a proposal is fed tensors, never the filter.
+
+* :class:`BootstrapProposal` (``bootstrap.py``): the transition.
+* :class:`InvertibleFlowProposal`, :class:`StochasticFlowProposal` (``flow.py``): particle flows.
+* :class:`GPFISProposal` (``gpfis.py``): Gaussian particle flow importance sampling.
+* :class:`UnscentedProposal` (``unscented.py``): a per-particle UKF (the unscented PF) or EKF.
+* :class:`FlowedMixtureProposal` (``mixture.py``): flow-induced Gaussian-mixture importance sampling.
+
+The contract is in ``base.py`` (:class:`Proposal`, :class:`Proposed`).
+"""
+from .base import Proposal, Proposed
+from .bootstrap import BootstrapProposal
+from .flow import FLOWS, FlowProposal, InvertibleFlowProposal, StochasticFlowProposal, flow_proposal, resolve_flow
+from .gpfis import GPFISProposal
+from .mixture import FlowedMixtureProposal
+from .unscented import UnscentedProposal
+
+__all__ = ["Proposal", "Proposed", "BootstrapProposal", "FlowProposal", "InvertibleFlowProposal",
+           "StochasticFlowProposal", "flow_proposal", "resolve_flow", "FLOWS", "GPFISProposal", "UnscentedProposal",
+           "FlowedMixtureProposal"]

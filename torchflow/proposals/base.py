@@ -1,0 +1,92 @@
+"""The proposal contract: ``q(x_k | x_{k-1}, z_k)`` as a module fed tensors, never the filter.
+
+A particle filter step (:class:`~torchflow.filters.ParticleFilter`) is ``propose`` -> weigh
+(``log p(x | x_prev) + log p(z | x) - log q``, in the filter, once) -> estimate -> resample. A
+proposal only says how particles are drawn and with what density, from explicit tensors: the
+previous particles and log-weights, the previous estimate, z, the state it carries between steps
+(a tracked covariance), a generator, and the largest block of particles to evaluate at once.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+from torch import nn
+
+from .. import tuning
+from ..covariances import Covariance
+from ..models.base import StateSpaceModel
+
+
+@dataclass
+class Proposed:
+    """What a proposal returns for one step.
+
+    Attributes:
+        particles: ``(B, N, d)`` the proposed ``x_k``.
+        log_q: ``(B, N)`` log proposal density of each particle given its parent, or ``None``
+            when ``q`` is the transition itself (the weight is then the likelihood alone).
+        cov: the state the proposal carries to the next step (a tracked
+            :class:`~torchflow.covariances.Covariance`: per trial, or per particle and resampled
+            with them), or ``None``.
+        fallback: ``(B, N, d)`` finite positions for particles repaired by ``nonfinite="recover"``.
+        log_evidence: ``(B,)`` the tracker's Gaussian log-evidence of ``z`` (proposals that track a
+            belief; the unweighted flow filters report it), else ``None``.
+    """
+
+    particles: torch.Tensor
+    log_q: Optional[torch.Tensor]
+    cov: Optional[Covariance] = None
+    fallback: Optional[torch.Tensor] = None
+    log_evidence: Optional[torch.Tensor] = None
+
+
+class Proposal(nn.Module):
+    """Base class of the proposals.
+
+    Args:
+        model: the :class:`~torchflow.models.StateSpaceModel` whose transition the proposal draws
+            from (a submodule: the filter that holds the proposal holds the same model).
+
+    Subclasses implement :meth:`propose`; those that carry a state between steps implement
+    :meth:`init_carry`; :meth:`bytes_per_trial` is the one memory formula the chunk planner reads.
+    """
+
+    def __init__(self, model: StateSpaceModel):
+        super().__init__()
+        if not isinstance(model, StateSpaceModel):
+            raise TypeError(f"model: expected a torchflow StateSpaceModel, got {type(model).__name__}")
+        self.model = model
+
+    def init_carry(self, cov: torch.Tensor, n_particles: int) -> Optional[Covariance]:
+        """The state carried into the first step, from the prior covariance ``cov (B, d, d)``."""
+        return None
+
+    def propose(self, particles: torch.Tensor, log_weights: torch.Tensor, estimate: torch.Tensor, z: torch.Tensor,
+                carry: Optional[Covariance], generator, *, chunk: Optional[int] = None) -> Proposed:
+        """Particles for observation ``z (B, m)``.
+
+        Args:
+            particles: ``(B, N, d)`` the previous particles (after resampling).
+            log_weights: ``(B, N)`` their normalised log-weights.
+            estimate: ``(B, d)`` the previous weighted-mean estimate (before resampling).
+            z: ``(B, m)``.
+            carry: what the previous step returned as :attr:`Proposed.cov` (or :meth:`init_carry`).
+            generator: ``torch.Generator`` or per-trial :class:`~torchflow.random.TrialStreams`.
+            chunk: evaluate per-particle work in blocks of at most this many particles (``None``:
+                the proposal's own choice).
+        """
+        raise NotImplementedError
+
+    def bytes_per_trial(self, n_particles: int) -> int:
+        """Rough peak memory of one trial in one step with ``n_particles`` (weighing included)."""
+        d, m = self.model.state_dim, self.model.obs_dim
+        N = int(n_particles)
+        return 8 * N * (6 * d + 3 * m + 8) + N * self.model.bytes_per_point()
+
+    def preferred_chunk_trials(self, n_particles: int) -> Optional[int]:
+        """Largest number of trials per call that runs at full speed (``None``: memory decides).
+        Whole-cloud passes stay cache-resident up to a measured size (:mod:`torchflow.tuning`)."""
+        per_trial = int(n_particles) * self.model.state_dim * torch.finfo(self.model.dtype).bits // 8
+        return max(1, tuning.get().cache_bytes_per_call // max(per_trial, 1))

@@ -1,0 +1,12 @@
+"""The bootstrap proposal (Gordon, Salmond & Smith 1993): ``q`` is the transition."""
+from __future__ import annotations
+
+from .base import Proposal, Proposed
+
+
+class BootstrapProposal(Proposal):
+    """``q = p(x_k | x_{k-1})``: draw from the transition; the weight is the likelihood."""
+
+    def propose(self, particles, log_weights, estimate, z, carry, generator, *, chunk=None) -> Proposed:
+        x = self.model.sample_transition(particles, generator)  # (B, N, d)
+        return Proposed(x, None, fallback=particles)

@@ -1,0 +1,71 @@
+"""The unscented particle filter's proposal (van der Merwe, Doucet, de Freitas & Wan 2000).
+
+Every particle carries its own Gaussian belief ``N(x_{k-1}^i, P_{k-1}^i)``. Each step a UKF (or, with
+``covariance="ekf"``, an EKF: the extended Kalman particle filter of Doucet et al.) predicts and
+updates that belief with ``z_k``, and the particle is drawn from the result:
+
+    (x_bar^i, P_hat^i) = UKF(x_{k-1}^i, P_{k-1}^i, z_k),    x_k^i ~ N(x_bar^i, P_hat^i),
+    log q(x_k^i | x_{k-1}^i, z_k) = log N(x_k^i; x_bar^i, P_hat^i),
+
+and carries ``P_hat^i`` to the next step (resampled with the particle). The particle filter weighs
+``p(x_k | x_{k-1}) p(z_k | x_k) / q``, so the evidence estimate stays unbiased whatever the
+tracker's approximation. The noise enters additively (the model's transition and measurement
+covariances), not through an augmented state.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+from .. import linalg
+from ..covariances import ParticleCovariance
+from ..trackers import tracker
+from .base import Proposal, Proposed
+
+
+class UnscentedProposal(Proposal):
+    """A per-particle UKF (or EKF) as the proposal (module docstring).
+
+    Args:
+        model: the state-space model (Gaussian noise; its Gaussian fit otherwise).
+        covariance: ``"ukf"`` (default, the UPF) or ``"ekf"`` (the extended Kalman PF).
+        alpha, beta, kappa: the UKF's sigma-point settings
+            (:class:`~torchflow.trackers.UnscentedTransform`; ``kappa=None`` is ``3 - d``).
+    """
+
+    random_stream = "upf"
+
+    def __init__(self, model, covariance: str = "ukf", alpha: float = 1.0, beta: float = 2.0,
+                 kappa: Optional[float] = None):
+        super().__init__(model)
+        sigma = dict(alpha=alpha, beta=beta, kappa=kappa) if covariance == "ukf" else {}
+        self.covariance = covariance
+        self.tracker = tracker(model, covariance, **sigma)
+
+    def init_carry(self, cov, n_particles):
+        B, d = cov.shape[0], cov.shape[-1]
+        # a linear model's tracked covariances do not depend on the particle (EKF and UKF are exact)
+        identical = self.model.linear_dynamics and self.model.linear_measurement
+        P = cov.unsqueeze(1)
+        return ParticleCovariance(P if identical else P.expand(B, int(n_particles), d, d), identical=identical)
+
+    def propose(self, particles, log_weights, estimate, z, carry, generator, *, chunk=None) -> Proposed:
+        m_pred, P_pred = self.tracker.predict(particles, carry.matrix)  # (B, N, d), (B, N|1, d, d)
+        mean, P_post, _ = self.tracker.update(m_pred, P_pred, z.unsqueeze(1))
+        if carry.identical:  # equal for every particle (the UKF's sigma points broadcast them out)
+            P_post = P_post[:, :1]
+        L = linalg.safe_cholesky(P_post)
+        xi = linalg.standard_normal(particles.shape, dtype=particles.dtype, device=particles.device,
+                                    generator=generator)
+        x = mean + linalg.matvec(L, xi)
+        return Proposed(x, linalg.mvn_log_prob(x, mean, L), cov=carry.like(P_post), fallback=m_pred)
+
+    def bytes_per_trial(self, n_particles):
+        N, d, m = int(n_particles), self.model.state_dim, self.model.obs_dim
+        s = 2 * d + 1  # sigma points per particle
+        per_particle = s * (2 * d + 2 * m) + 8 * d * d + 4 * m * m + 2 * m * d + 12 * d + 4 * m
+        return 8 * N * per_particle + N * s * self.model.bytes_per_point() + super().bytes_per_trial(N)
+
+    def extra_repr(self) -> str:
+        return f"covariance={self.covariance!r}"
