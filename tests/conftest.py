@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -42,6 +44,8 @@ def acoustic():
 def sensor_net():
     return SensorNetwork(d=16)
 
+
+ROOT = Path(__file__).resolve().parents[1]
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 
