@@ -12,6 +12,8 @@ import torch
 from torchflow.experiment import SUMMARY_COLUMNS, choose_chunk_size, format_table, run_experiment
 from torchflow.filters import BootstrapParticleFilter, ExtendedKalmanFilter, Filter, KalmanFilter, UnscentedKalmanFilter
 from torchflow.models import AcousticTracking, SensorNetwork
+from torchflow.runner import figures
+from torchflow.runner.labels import row_label
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -138,8 +140,7 @@ def test_cli_multirun_sweep_writes_one_folder_per_job(tmp_path):
         rows = list(csv.DictReader(fh))
     assert [(r["job"], r["seed"], r["filter"]) for r in rows] == [("0", "0", "kf"), ("1", "1", "kf")]
     # --plot: Y against X with standard-error bars from each job's per-trial file; a wrong column is refused
-    sys.path.insert(0, str(ROOT / "experiments"))
-    from collect import collect
+    from experiments.collect import collect
 
     got, _, _ = collect(tmp_path / "sweep")
     per = list(csv.DictReader(open(tmp_path / "sweep" / "0" / "per_trial.csv")))
@@ -154,23 +155,13 @@ def test_cli_multirun_sweep_writes_one_folder_per_job(tmp_path):
     assert out.returncode == 2 and "no column 'nope'" in out.stderr
 
 
-def _run_module():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("tf_run", ROOT / "experiments" / "run.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def test_per_step_plot_keeps_one_colour_per_filter_and_scales_ess_by_n():
     plt = pytest.importorskip("matplotlib.pyplot")
-    run = _run_module()
     model = AcousticTracking()
     filters = {"ekf": ExtendedKalmanFilter(model), "ukf": UnscentedKalmanFilter(model),
                "bpf": BootstrapParticleFilter(model, n_particles=40)}
     res = run_experiment(model, filters, trials=2, steps=3, progress=False)
-    fig = run.per_step_figure(plt, res.per_step, res.summary, "t")
+    fig = figures.per_step_figure(plt, res.per_step, res.summary, "t")
     colours = {}
     for ax in fig.axes:
         for line in ax.get_lines():
@@ -189,19 +180,18 @@ def test_per_step_plot_keeps_one_colour_per_filter_and_scales_ess_by_n():
 
 
 def test_row_label_names_the_flow_that_ran():
-    run = _run_module()
     from torchflow.filters import ParticleFlowParticleFilter, ParticleFlowFilter
 
     model = SensorNetwork(d=4)
-    assert run.row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="edh")) == "pfpf_ledh[flow=edh]"
-    assert run.row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="ledh")) == "pfpf_ledh"
-    assert run.row_label("gromov", ParticleFlowFilter(model, flow="gromov")) == "gromov"
-    assert run.row_label("bpf", BootstrapParticleFilter(model)) == "bpf"
+    assert row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="edh")) == "pfpf_ledh[flow=edh]"
+    assert row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="ledh")) == "pfpf_ledh"
+    assert row_label("gromov", ParticleFlowFilter(model, flow="gromov")) == "gromov"
+    assert row_label("bpf", BootstrapParticleFilter(model)) == "bpf"
     from torchflow.filters import ClusteredParticleFlowParticleFilter
 
-    assert run.row_label("pfpf_clustered", ClusteredParticleFlowParticleFilter(model)) == "pfpf_clustered"
-    assert run.row_label("pfpf_clustered_k30", ClusteredParticleFlowParticleFilter(model)) == "pfpf_clustered_k30"
-    assert (run.row_label("pfpf_clustered", ClusteredParticleFlowParticleFilter(model, flow="geodesic"))
+    assert row_label("pfpf_clustered", ClusteredParticleFlowParticleFilter(model)) == "pfpf_clustered"
+    assert row_label("pfpf_clustered_k30", ClusteredParticleFlowParticleFilter(model)) == "pfpf_clustered_k30"
+    assert (row_label("pfpf_clustered", ClusteredParticleFlowParticleFilter(model, flow="geodesic"))
             == "pfpf_clustered[flow=geodesic]")
 
 
@@ -247,46 +237,42 @@ def test_cli_ctrl_c_writes_finished_results(tmp_path):
 
 def test_omat_box_figure_one_box_per_filter():
     plt = pytest.importorskip("matplotlib.pyplot")
-    run = _run_module()
     model = AcousticTracking()
     filters = {"ekf": ExtendedKalmanFilter(model), "bpf": BootstrapParticleFilter(model, n_particles=40)}
     res = run_experiment(model, filters, trials=3, steps=2, progress=False)
-    fig = run.omat_box_figure(plt, res.per_trial, res.summary, "t")
+    fig = figures.omat_box_figure(plt, res.per_trial, res.summary, "t")
     ax = fig.axes[0]
     assert ax.get_xscale() == "log" and [t.get_text() for t in ax.get_legend().get_texts()] == ["ekf", "bpf"]
     plt.close(fig)
 
 
 def test_row_label_names_overridden_points():
-    run = _run_module()
     from torchflow.filters import ParticleFlowParticleFilter
 
     model = SensorNetwork(d=4)
-    assert run.row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="ledh", points="global")) \
+    assert row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="ledh", points="global")) \
         == "pfpf_ledh[points=global]"
-    assert run.row_label("pfpf_edh", ParticleFlowParticleFilter(model, flow="ledh", points="particle")) \
+    assert row_label("pfpf_edh", ParticleFlowParticleFilter(model, flow="ledh", points="particle")) \
         == "pfpf_edh[flow=ledh]"
-    assert run.row_label("pfpf_edh", ParticleFlowParticleFilter(model, flow="edh", points="clustered")) \
+    assert row_label("pfpf_edh", ParticleFlowParticleFilter(model, flow="edh", points="clustered")) \
         == "pfpf_edh[points=clustered]"
 
 
 def test_row_label_of_gaussian_sum_filters_says_n_star_x_g_and_an_unnamed_flow():
-    run = _run_module()
     from torchflow.filters import GaussianSumParticleFilter, ParticleFlowGaussianSumParticleFilter
 
     model = SensorNetwork(d=4)
     gs = GaussianSumParticleFilter
-    assert run.row_label("pfgspf", ParticleFlowGaussianSumParticleFilter(model, n_components=3,
+    assert row_label("pfgspf", ParticleFlowGaussianSumParticleFilter(model, n_components=3,
                                                                          particles_per_component=50)) == "pfgspf[50x3]"
-    assert run.row_label("gspf", gs(model, n_components=2, particles_per_component=10)) == "gspf[10x2]"
-    assert run.row_label("gspf", gs(model, particles_per_component=10, flow="ledh")) == "gspf[10x1,flow=ledh]"
-    assert run.row_label("pfgspf", gs(model, particles_per_component=10, flow="edh")) == "pfgspf[10x1,flow=edh]"
+    assert row_label("gspf", gs(model, n_components=2, particles_per_component=10)) == "gspf[10x2]"
+    assert row_label("gspf", gs(model, particles_per_component=10, flow="ledh")) == "gspf[10x1,flow=ledh]"
+    assert row_label("pfgspf", gs(model, particles_per_component=10, flow="edh")) == "pfgspf[10x1,flow=edh]"
 
 
 def test_trial_stats_quartiles_and_paired_ratios(tmp_path):
     """experiments/trial_stats.py on a hand-made run: medians, the lost count and the paired ratio."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    from trial_stats import main, trial_table
+    from experiments.trial_stats import main, trial_table
 
     ref = [1.0, 2.0, 3.0, 4.0, 5.0]
     other = [2 * v for v in ref]
@@ -310,8 +296,7 @@ def test_trial_stats_quartiles_and_paired_ratios(tmp_path):
 def test_trial_stats_groups_trials_that_share_a_trajectory(tmp_path):
     """--group K: the mean's SE and the paired difference's SE come from the K-trial group means,
     the bootstrap resamples whole groups, and a filter without the metric has no row."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    from trial_stats import main, mean_se, trial_table
+    from experiments.trial_stats import main, mean_se, trial_table
 
     # two trajectories x 3 initialisations: trials agree within a trajectory, differ between them
     ref = [1.0, 1.1, 0.9, 3.0, 3.1, 2.9]
@@ -381,8 +366,7 @@ def test_trial_range_reruns_rows_of_a_longer_run():
 def test_seed001_table2_report_pairs_runs_with_g1(tmp_path, capsys):
     """experiments/seed001_table2_report.py: per-G statistics, the paired difference to G = 1 on the
     runs both have (its SE from the per-run differences), --trials, and the distance to the paper."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    from seed001_table2_report import PAPER, main, read_runs, table
+    from experiments.seed001_table2_report import PAPER, main, read_runs, table
 
     g1 = {0: 1.0, 1: 2.0, 2: 3.0, 3: 4.0}
     g5 = {0: 0.9, 1: 1.7, 2: 2.9, 5: 9.0}  # run 3 missing, run 5 has no G = 1 partner
@@ -411,8 +395,7 @@ def test_seed001_table2_report_pairs_runs_with_g1(tmp_path, capsys):
 def test_seed001_geff_diagnostic_runs_and_pooled_fit_is_shared(capsys):
     """experiments/seed001_geff_diagnostic.py: the spy sees the filter's log-weights (so its numbers
     are the filter's), and the pooled control gives every component the same predictive fit."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    from seed001_geff_diagnostic import PooledFit, main, run
+    from experiments.seed001_geff_diagnostic import PooledFit, main, run
 
     from torchflow.models import SkewedTPoisson
 
@@ -435,8 +418,7 @@ def test_seed002_proposal_quality_measures_what_it_says(capsys):
     flow an almost exact proposal (ESS fraction near 1), the explicit Euler step (`start`) of
     EDH overshoots on the coarse (2, 1e-4) grid from the 200 m birth components while the step at
     lambda_l never amplifies, and the command prints both stages."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    from seed002_proposal_quality import amplification, evaluate, main, make_flow, scenes
+    from experiments.seed002_proposal_quality import amplification, evaluate, main, make_flow, scenes
 
     from torchflow.models import TDOA3D
     from torchflow.schedules import GeometricSchedule
