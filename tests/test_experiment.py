@@ -1,5 +1,7 @@
 """The Monte Carlo runner and the Hydra command line."""
 import csv
+import os
+import re
 import math
 import json
 import subprocess
@@ -442,3 +444,202 @@ def test_seed002_proposal_quality_measures_what_it_says(capsys):
     out = capsys.readouterr().out
     assert "## birth components (125 rows)" in out and "## legacy components (1 rows)" in out
     assert "| pfi_os a=0.01 | literal_shift |" in out
+
+
+# --- what a user meets: each fault of the issue "One runner, one registry, one harness" ---------
+
+_BROKEN = '''
+from torchflow.filters import KalmanFilter
+
+
+class Broken(KalmanFilter):
+    def forward(self, *a, **kw):
+        raise RuntimeError("deliberately broken")
+
+
+class BadInit(KalmanFilter):
+    def __init__(self, *a, **kw):
+        raise KeyError("a bug in a constructor")
+'''
+
+
+def _tf(tmp_path, *args, env=None, script=None):
+    """The command line in a subprocess (no assertion on the exit status)."""
+    env = dict(os.environ if env is None else env, PYTHONPATH=os.pathsep.join([str(ROOT), str(tmp_path)]))
+    cmd = [sys.executable, *([str(script)] if script else ["-m", "torchflow"]), *args, "progress=false"]
+    return subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=300, env=env)
+
+
+_LG = ["model=linear_gaussian", "model.d=4", "trials=2", "steps=3", "n_particles=20"]
+
+
+def test_cli_unwritable_checkpoint_dir_warns_once_and_keeps_the_results(tmp_path):
+    (tmp_path / "a_file").write_text("")
+    out = _tf(tmp_path, *_LG, "filter=[kf,bpf]", "chunk_size=1", f"checkpoint_dir={tmp_path}/a_file/ckpt",
+              "plots=false", "hydra.run.dir=run")
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stderr.count("checkpoint_dir: cannot save chunks under") == 1 and "Traceback" not in out.stderr
+    rows = list(csv.DictReader(open(tmp_path / "run" / "summary.csv")))
+    assert [r["filter"] for r in rows] == ["kf", "bpf"] and all(r["mse"] and not r["error"] for r in rows)
+    assert "cannot save chunks" in (tmp_path / "run" / "run.log").read_text()
+
+
+def test_cli_a_failed_filter_fails_the_run_the_sweep_and_shows_in_collect(tmp_path):
+    (tmp_path / "broken_filter.py").write_text(_BROKEN)
+    broken = "+filter.broken._target_=broken_filter.Broken"
+    out = _tf(tmp_path, *_LG, "filter=[kf]", broken, "plots=false", "checkpoint_dir=null", "hydra.run.dir=run")
+    assert out.returncode == 1 and "| kf |" in out.stdout
+    assert "!! broken failed in chunk 1 of 1 (trials 0..1): RuntimeError: deliberately broken" in out.stderr
+    log = (tmp_path / "run" / "run.log").read_text()
+    assert "Traceback" in log and "deliberately broken" in log and "SensorNetwork" in log
+    sweep = _tf(tmp_path, "-m", *_LG, "filter=[kf]", broken, "seed=0,1", "plots=false", "checkpoint_dir=null",
+                "hydra.sweep.dir=sweep")
+    assert sweep.returncode == 1 and "2 jobs, 0 finished, 2 failed" in sweep.stderr, sweep.stderr[-3000:]
+    assert "filter broken failed: RuntimeError: deliberately broken" in sweep.stderr
+    col = subprocess.run([sys.executable, str(ROOT / "experiments" / "collect.py"), str(tmp_path / "sweep")],
+                         capture_output=True, text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    table = [ln for ln in col.stdout.splitlines() if ln.startswith("| ")]
+    assert table[0].endswith("| error |")
+    assert sum("deliberately broken" in ln for ln in table) == 2 and sum("| kf |" in ln for ln in table) == 2
+    # a bad value in one job of a sweep fails that job at its start, the other finishes
+    bad = _tf(tmp_path, "-m", *_LG, "filter=[kf]", "rng_backend=auto,bogus", "plots=false", "checkpoint_dir=null",
+              "hydra.sweep.dir=sweep2")
+    assert bad.returncode == 1 and "2 jobs, 1 finished, 1 failed" in bad.stderr, bad.stderr[-3000:]
+    assert "rng_backend: expected one of auto, numpy, philox, got 'bogus'" in bad.stderr
+
+
+def test_cli_configuration_errors_are_one_line_and_bugs_keep_their_traceback(tmp_path):
+    (tmp_path / "broken_filter.py").write_text(_BROKEN)
+    out = _tf(tmp_path, *_LG, "filter=[kf]", "+n_particle=7", "hydra.run.dir=a")
+    assert out.returncode == 2 and "error: n_particle: unknown setting; did you mean n_particles?" in out.stderr
+    assert "Traceback" not in out.stderr
+    bug = _tf(tmp_path, *_LG, "filter=[kf]", "+filter.bad._target_=broken_filter.BadInit", "hydra.run.dir=b")
+    assert bug.returncode == 1 and "Traceback" in bug.stderr and "a bug in a constructor" in bug.stderr
+    assert "Traceback" in (tmp_path / "b" / "run.log").read_text()
+
+
+def test_check_config_refuses_values_that_mean_nothing():
+    from hydra import compose, initialize_config_dir
+
+    from torchflow.runner.config import check_config
+    from torchflow.runner.errors import ConfigError
+
+    cases = {"plots=no": "plots: expected true or false, got 'no'",
+             "metrics.lost_threshold=-1": "metrics.lost_threshold: expected a positive number of metres, got -1",
+             "metrics.ospa_cutoff=0": "metrics.ospa_cutoff: expected a positive number, got 0",
+             f"seed={2**70}": "seed: expected an integer in [0, 2**63), got 1180591620717411303424",
+             "rng_backend=bogus": "rng_backend: expected one of auto, numpy, philox, got 'bogus'",
+             "+metrics.lost_treshold=3": "metrics.lost_treshold: unknown setting; did you mean metrics.lost_threshold?",
+             "+n_particle=7": "n_particle: unknown setting; did you mean n_particles?"}
+    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
+        check_config(compose("config"), {})
+        check_config(compose("config", ["experiment=seed001_table2"]), {"experiment": "seed001_table2"})
+        for override, message in cases.items():
+            with pytest.raises(ConfigError, match=re.escape(message)):
+                check_config(compose("config", [override]), {})
+
+
+def test_cli_reused_output_folder_is_refused_or_cleared(tmp_path):
+    first = _tf(tmp_path, *_LG, "filter=[kf]", "checkpoint_dir=null", "hydra.run.dir=run")
+    assert first.returncode == 0 and (tmp_path / "run" / "per_step.png").exists(), first.stderr[-2000:]
+    again = _tf(tmp_path, *_LG, "filter=[kf]", "checkpoint_dir=null", "hydra.run.dir=run")
+    assert again.returncode == 2 and "Traceback" not in again.stderr
+    assert "error: hydra.run.dir: run already holds the results of a run (summary.csv" in again.stderr
+    assert "overwrite=true" in again.stderr
+    over = _tf(tmp_path, *_LG, "filter=[kf]", "checkpoint_dir=null", "plots=false", "overwrite=true",
+               "hydra.run.dir=run")
+    assert over.returncode == 0 and not (tmp_path / "run" / "per_step.png").exists()
+    assert (tmp_path / "run" / "summary.csv").exists()
+
+
+def test_cli_unwritable_output_folder_and_full_disk_are_one_line(tmp_path):
+    (tmp_path / "a_file").write_text("")
+    ro = _tf(tmp_path, *_LG, "filter=[kf]", "hydra.run.dir=a_file/run")
+    assert ro.returncode == 2 and "Traceback" not in ro.stderr
+    assert "error: hydra.run.dir: cannot write into" in ro.stderr and "NotADirectoryError" in ro.stderr
+    shim = tmp_path / "full_disk.py"
+    shim.write_text("import errno\nimport torchflow.runner.writers as w\n\n\ndef full(*a, **k):\n"
+                    "    raise OSError(errno.ENOSPC, 'No space left on device')\n\n\nw.write_csv = full\n"
+                    "from torchflow.cli import main\nmain()\n")
+    out = _tf(tmp_path, *_LG, "filter=[kf]", "checkpoint_dir=null", "plots=false", "hydra.run.dir=full", script=shim)
+    assert out.returncode == 1 and "| kf |" in out.stdout and "Traceback" not in out.stderr
+    errors = [ln for ln in out.stderr.splitlines() if ln.startswith("error:")]
+    assert errors == [f"error: cannot write summary.csv into {tmp_path / 'full'} (OSError: No space left on device)"]
+
+
+def test_resume_command_of_a_run_a_sweep_and_torchrun():
+    from torchflow.runner.config import resume_command
+
+    assert resume_command("torchflow", ["-m", "seed=0,1", "filter=[kf]", "resume=false"], {}) \
+        == "torchflow -m seed=0,1 'filter=[kf]' resume=true"
+    assert resume_command("python -m torchflow", ["trials=4"], {}) == "python -m torchflow trials=4 resume=true"
+    env = {"WORLD_SIZE": "4", "LOCAL_WORLD_SIZE": "2"}
+    assert resume_command("python experiments/run.py", ["trials=4"], env) \
+        == "torchrun --nproc_per_node=2 --nnodes=2 experiments/run.py trials=4 resume=true"
+    assert resume_command("torchflow", [], {"WORLD_SIZE": "2"}) == "torchrun --nproc_per_node=2 -m torchflow resume=true"
+
+
+class _Counting(BootstrapParticleFilter):
+    """A bootstrap PF that records the trials of every chunk it computes."""
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self.seen = []
+
+    def forward(self, obs, *a, **kw):
+        self.seen.append(obs.shape[0])
+        return super().forward(obs, *a, **kw)
+
+
+def _store_run(model, store, **kw):
+    f = _Counting(model, n_particles=30)
+    res = run_experiment(model, {"bpf": f}, trials=6, steps=3, seed=2, progress=False, store=store, **kw)
+    return res, f
+
+
+def test_a_damaged_chunk_file_is_recomputed_with_a_warning(tmp_path):
+    from torchflow.runner import ChunkStore
+
+    model = SensorNetwork(d=4)
+    full, _ = _store_run(model, ChunkStore(tmp_path, {"bpf": "k"}), chunk_size=3)
+    path = tmp_path / "k" / "0000000-0000003.pt"
+    saved = torch.load(path, weights_only=True)
+    raw, needle = bytearray(path.read_bytes()), saved["estimates"].numpy().tobytes()
+    at = raw.find(needle)
+    assert at > 0
+    raw[at + 5] ^= 0x10  # one flipped bit inside the estimates: the file still loads
+    path.write_bytes(bytes(raw))
+    assert not torch.equal(torch.load(path, weights_only=True)["estimates"], saved["estimates"])
+    store = ChunkStore(tmp_path, {"bpf": "k"}, resume=True)
+    with pytest.warns(UserWarning, match="damaged"):
+        res, f = _store_run(model, store, chunk_size=3)
+    assert f.seen == [3] and store.loaded == {"bpf": 1}
+    assert res.per_trial == full.per_trial
+
+
+def test_resume_with_another_chunk_size_reuses_the_saved_trials(tmp_path):
+    from torchflow.runner import ChunkStore
+
+    model = SensorNetwork(d=4)
+    full, _ = _store_run(model, ChunkStore(tmp_path, {"bpf": "k"}), chunk_size=2)
+    store = ChunkStore(tmp_path, {"bpf": "k"}, resume=True)
+    res, f = _store_run(model, store, chunk_size=3)
+    assert f.seen == [] and store.reused_trials == {"bpf": 6} and res.per_trial == full.per_trial
+    (tmp_path / "k" / "0000002-0000004.pt").unlink()  # trials 2, 3 lost: only they are computed
+    for p in (tmp_path / "k").glob("0000000-0000003.pt"):
+        p.unlink()
+    (tmp_path / "k" / "0000003-0000006.pt").unlink()
+    store = ChunkStore(tmp_path, {"bpf": "k"}, resume=True)
+    res, f = _store_run(model, store, chunk_size=3)
+    assert sorted(f.seen) == [1, 1] and store.reused_trials == {"bpf": 4} and res.per_trial == full.per_trial
+
+
+def test_a_store_that_cannot_write_warns_once_and_the_results_stay():
+    from torchflow.runner import ChunkStore
+
+    model = SensorNetwork(d=4)
+    store = ChunkStore(Path(__file__), {"bpf": "k"})  # a file: no folder can be made under it
+    with pytest.warns(UserWarning, match="cannot save chunks") as seen:
+        res, _ = _store_run(model, store, chunk_size=1)
+    assert len([w for w in seen if "cannot save" in str(w.message)]) == 1
+    assert len(res.per_trial) == 6 and res.summary[0]["error"] is None and store.computed == {}
