@@ -89,43 +89,52 @@ def run_experiment(
     s = check_settings(trials=trials, steps=steps, seed=seed, inits_per_track=inits_per_track, chunk_size=chunk_size,
                        memory_budget_gb=memory_budget_gb, device=device, dtype=dtype, rng_backend=rng_backend,
                        trial_range=trial_range)
-    metric_settings = check_metric_settings(ospa_cutoff=ospa_cutoff, ospa_order=ospa_order, lost_threshold=lost_threshold)
+    metric_settings = check_metric_settings(ospa_cutoff=ospa_cutoff, ospa_order=ospa_order,
+                                            lost_threshold=lost_threshold)
     plan = make_plan(model, filters, s, shard, simulator)
     scorer = make_scorer(model, plan, **metric_settings)
-    summary, per_trial, per_step, examples, failures = [], [], [], {}, {}
-    interrupted = False
+    result = _run_filters(filters, plan, scorer, store=store, progress=progress, on_filter_done=on_filter_done)
+    if result is None:  # a rank other than 0: rank 0 scores and returns the results
+        return None
+    result.config = dict(
+        trials=s.trials, steps=s.steps, seed=s.seed, inits_per_track=s.inits_per_track, chunk_size=plan.chunks,
+        particle_chunk={n: getattr(f, "particle_chunk", None) for n, f in filters.items()},
+        memory_budget_gb=memory_budget_gb, rng_backend=s.rng_backend, world_size=plan.shard.world,
+        trial_range=[s.lo, s.hi], device=str(s.device), dtype=str(s.dtype).replace("torch.", ""),
+        tuning=tuning.as_dict())
+    result.trajectory = Trajectory(plan.traj.states[s.lo:s.hi].cpu(), plan.traj.observations[s.lo:s.hi].cpu())
+    return result
+
+
+def _run_filters(filters: Mapping[str, Filter], plan, scorer, *, store, progress, on_filter_done
+                 ) -> Optional[ExperimentResult]:
+    """Execute and score every filter in turn (rank 0 gathers; other ranks return ``None``)."""
+    s = plan.settings
+    res = ExperimentResult([], [], [])
     for i_f, (name, f) in enumerate(filters.items()):
         out = execute(f, name, plan, store=store, progress=progress, desc=f"[{i_f + 1}/{len(filters)}] {name}")
-        interrupted = out.interrupted
+        res.interrupted = out.interrupted
         if not plan.shard.is_main:
-            if interrupted:
+            if out.interrupted:
                 break
             continue
         row = {c: None for c in SUMMARY_COLUMNS}
         row.update(filter=name, n_particles=getattr(f, "n_particles", None), trials=s.n_run, steps=s.steps)
-        summary.append(row)
-        if interrupted:
+        res.summary.append(row)
+        if out.interrupted:
             row["error"] = f"interrupted after {sum(c['estimates'].shape[0] for c in out.chunks)} of {s.n_run} trials"
             break
         if out.error is not None:
-            row["error"], failures[name] = out.error, out.where
+            row["error"], res.failures[name] = out.error, out.where
         else:
-            trial_rows, step_rows, examples[name] = score_filter(scorer, f, name, row, out.chunks, s.steps)
-            per_trial += trial_rows
-            per_step += step_rows
+            trial_rows, step_rows, res.examples[name] = score_filter(scorer, f, name, row, out.chunks, s.steps)
+            res.per_trial += trial_rows
+            res.per_step += step_rows
         if on_filter_done is not None:
-            on_filter_done(summary)
+            on_filter_done(res.summary)
     if not plan.shard.is_main:
         return None
-    config = dict(trials=s.trials, steps=s.steps, seed=s.seed, inits_per_track=s.inits_per_track,
-                  chunk_size=plan.chunks, particle_chunk={n: getattr(f, "particle_chunk", None) for n, f in filters.items()},
-                  memory_budget_gb=memory_budget_gb, rng_backend=s.rng_backend, world_size=plan.shard.world,
-                  trial_range=[s.lo, s.hi], device=str(s.device), dtype=str(s.dtype).replace("torch.", ""),
-                  tuning=tuning.as_dict())
-    cpu_traj = Trajectory(plan.traj.states[s.lo:s.hi].cpu(), plan.traj.observations[s.lo:s.hi].cpu())
-    return ExperimentResult(summary, per_trial, per_step, cpu_traj, config, examples=examples,
-                            interrupted=interrupted, not_run=[n for n in filters if n not in {r["filter"] for r in summary}],
-                            failures=failures)
-
+    res.not_run = [n for n in filters if n not in {r["filter"] for r in res.summary}]
+    return res
 
 __all__ = ["run_experiment", "STOP"]
