@@ -5,7 +5,8 @@
 
 Prints a markdown table (columns: the overrides that vary between jobs, then the summary columns)
 and writes ``sweep_summary.csv`` into the sweep directory. Jobs that failed (``error.txt``) or have
-no results yet are listed under the table with their overrides and error, not dropped silently. It
+no results yet are listed under the table with their overrides and error, not dropped silently; a
+job whose filter failed keeps its other rows and shows the failed row's ``error``. It
 reads the job folders of any Hydra launcher (basic, joblib, submitit, ray).
 
 ``--plot X:Y[:GROUP]`` also draws Y against X (columns of that table; X numeric), one line per value
@@ -19,8 +20,7 @@ import csv
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a source checkout too
-from torchflow.sweep import describe_job, job_dirs, job_override_dict, job_status, varying_overrides  # noqa: E402
+from torchflow.runner.sweep import describe_job, job_dirs, job_override_dict, job_status, varying_overrides
 
 DEFAULT_COLUMNS = ["mse", "omat", "ospa", "ess", "g_eff", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step"]
 
@@ -35,8 +35,12 @@ def collect(sweep_dir: Path, columns=None):
         keys += [k for k in ov if k not in keys]
         state, message = job_status(job)
         summary = job / "summary.csv"
-        if state != "done" or not summary.exists():  # a partial summary.csv of a running job is not merged
-            missing.append({"job": job.name, "state": state if state != "done" else "missing", "message": message})
+        finished = (job / "results.json").exists() and summary.exists()  # a running job's partial file is not merged
+        if state != "done":
+            missing.append({"job": job.name, "state": state, "message": message})
+        elif not summary.exists():
+            missing.append({"job": job.name, "state": "missing", "message": message})
+        if not finished or state not in ("done", "failed"):
             continue
         se = _trial_standard_errors(job / "per_trial.csv")
         with open(summary) as fh:
@@ -48,8 +52,8 @@ def collect(sweep_dir: Path, columns=None):
         m["overrides"] = vary[m["job"]]
     # overrides shared by every job describe the sweep, not a row: keep only those that vary
     keys = [k for k in keys if len({r.get(k) for r in rows}) > 1]
-    cols = ["job", *keys, "filter", "n_particles", "trials", *(columns or DEFAULT_COLUMNS)]
-    cols = list(dict.fromkeys(c for c in cols if any(c in r for r in rows)))
+    cols = ["job", *keys, "filter", "n_particles", "trials", *(columns or DEFAULT_COLUMNS), "error"]
+    cols = list(dict.fromkeys(c for c in cols if any(c in r for r in rows) and (c != "error" or any(r.get(c) for r in rows))))
     return rows, cols, missing
 
 

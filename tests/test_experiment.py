@@ -1,5 +1,7 @@
 """The Monte Carlo runner and the Hydra command line."""
 import csv
+import os
+import re
 import math
 import json
 import subprocess
@@ -12,6 +14,8 @@ import torch
 from torchflow.experiment import SUMMARY_COLUMNS, choose_chunk_size, format_table, run_experiment
 from torchflow.filters import BootstrapParticleFilter, ExtendedKalmanFilter, Filter, KalmanFilter, UnscentedKalmanFilter
 from torchflow.models import AcousticTracking, SensorNetwork
+from torchflow.runner import figures
+from torchflow.runner.labels import row_label
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -138,8 +142,7 @@ def test_cli_multirun_sweep_writes_one_folder_per_job(tmp_path):
         rows = list(csv.DictReader(fh))
     assert [(r["job"], r["seed"], r["filter"]) for r in rows] == [("0", "0", "kf"), ("1", "1", "kf")]
     # --plot: Y against X with standard-error bars from each job's per-trial file; a wrong column is refused
-    sys.path.insert(0, str(ROOT / "experiments"))
-    from collect import collect
+    from experiments.collect import collect
 
     got, _, _ = collect(tmp_path / "sweep")
     per = list(csv.DictReader(open(tmp_path / "sweep" / "0" / "per_trial.csv")))
@@ -154,23 +157,13 @@ def test_cli_multirun_sweep_writes_one_folder_per_job(tmp_path):
     assert out.returncode == 2 and "no column 'nope'" in out.stderr
 
 
-def _run_module():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("tf_run", ROOT / "experiments" / "run.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def test_per_step_plot_keeps_one_colour_per_filter_and_scales_ess_by_n():
     plt = pytest.importorskip("matplotlib.pyplot")
-    run = _run_module()
     model = AcousticTracking()
     filters = {"ekf": ExtendedKalmanFilter(model), "ukf": UnscentedKalmanFilter(model),
                "bpf": BootstrapParticleFilter(model, n_particles=40)}
     res = run_experiment(model, filters, trials=2, steps=3, progress=False)
-    fig = run.per_step_figure(plt, res.per_step, res.summary, "t")
+    fig = figures.per_step_figure(plt, res.per_step, res.summary, "t")
     colours = {}
     for ax in fig.axes:
         for line in ax.get_lines():
@@ -189,19 +182,18 @@ def test_per_step_plot_keeps_one_colour_per_filter_and_scales_ess_by_n():
 
 
 def test_row_label_names_the_flow_that_ran():
-    run = _run_module()
     from torchflow.filters import ParticleFlowParticleFilter, ParticleFlowFilter
 
     model = SensorNetwork(d=4)
-    assert run.row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="edh")) == "pfpf_ledh[flow=edh]"
-    assert run.row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="ledh")) == "pfpf_ledh"
-    assert run.row_label("gromov", ParticleFlowFilter(model, flow="gromov")) == "gromov"
-    assert run.row_label("bpf", BootstrapParticleFilter(model)) == "bpf"
+    assert row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="edh")) == "pfpf_ledh[flow=edh]"
+    assert row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="ledh")) == "pfpf_ledh"
+    assert row_label("gromov", ParticleFlowFilter(model, flow="gromov")) == "gromov"
+    assert row_label("bpf", BootstrapParticleFilter(model)) == "bpf"
     from torchflow.filters import ClusteredParticleFlowParticleFilter
 
-    assert run.row_label("pfpf_clustered", ClusteredParticleFlowParticleFilter(model)) == "pfpf_clustered"
-    assert run.row_label("pfpf_clustered_k30", ClusteredParticleFlowParticleFilter(model)) == "pfpf_clustered_k30"
-    assert (run.row_label("pfpf_clustered", ClusteredParticleFlowParticleFilter(model, flow="geodesic"))
+    assert row_label("pfpf_clustered", ClusteredParticleFlowParticleFilter(model)) == "pfpf_clustered"
+    assert row_label("pfpf_clustered_k30", ClusteredParticleFlowParticleFilter(model)) == "pfpf_clustered_k30"
+    assert (row_label("pfpf_clustered", ClusteredParticleFlowParticleFilter(model, flow="geodesic"))
             == "pfpf_clustered[flow=geodesic]")
 
 
@@ -247,46 +239,42 @@ def test_cli_ctrl_c_writes_finished_results(tmp_path):
 
 def test_omat_box_figure_one_box_per_filter():
     plt = pytest.importorskip("matplotlib.pyplot")
-    run = _run_module()
     model = AcousticTracking()
     filters = {"ekf": ExtendedKalmanFilter(model), "bpf": BootstrapParticleFilter(model, n_particles=40)}
     res = run_experiment(model, filters, trials=3, steps=2, progress=False)
-    fig = run.omat_box_figure(plt, res.per_trial, res.summary, "t")
+    fig = figures.omat_box_figure(plt, res.per_trial, res.summary, "t")
     ax = fig.axes[0]
     assert ax.get_xscale() == "log" and [t.get_text() for t in ax.get_legend().get_texts()] == ["ekf", "bpf"]
     plt.close(fig)
 
 
 def test_row_label_names_overridden_points():
-    run = _run_module()
     from torchflow.filters import ParticleFlowParticleFilter
 
     model = SensorNetwork(d=4)
-    assert run.row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="ledh", points="global")) \
+    assert row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="ledh", points="global")) \
         == "pfpf_ledh[points=global]"
-    assert run.row_label("pfpf_edh", ParticleFlowParticleFilter(model, flow="ledh", points="particle")) \
+    assert row_label("pfpf_edh", ParticleFlowParticleFilter(model, flow="ledh", points="particle")) \
         == "pfpf_edh[flow=ledh]"
-    assert run.row_label("pfpf_edh", ParticleFlowParticleFilter(model, flow="edh", points="clustered")) \
+    assert row_label("pfpf_edh", ParticleFlowParticleFilter(model, flow="edh", points="clustered")) \
         == "pfpf_edh[points=clustered]"
 
 
 def test_row_label_of_gaussian_sum_filters_says_n_star_x_g_and_an_unnamed_flow():
-    run = _run_module()
     from torchflow.filters import GaussianSumParticleFilter, ParticleFlowGaussianSumParticleFilter
 
     model = SensorNetwork(d=4)
     gs = GaussianSumParticleFilter
-    assert run.row_label("pfgspf", ParticleFlowGaussianSumParticleFilter(model, n_components=3,
+    assert row_label("pfgspf", ParticleFlowGaussianSumParticleFilter(model, n_components=3,
                                                                          particles_per_component=50)) == "pfgspf[50x3]"
-    assert run.row_label("gspf", gs(model, n_components=2, particles_per_component=10)) == "gspf[10x2]"
-    assert run.row_label("gspf", gs(model, particles_per_component=10, flow="ledh")) == "gspf[10x1,flow=ledh]"
-    assert run.row_label("pfgspf", gs(model, particles_per_component=10, flow="edh")) == "pfgspf[10x1,flow=edh]"
+    assert row_label("gspf", gs(model, n_components=2, particles_per_component=10)) == "gspf[10x2]"
+    assert row_label("gspf", gs(model, particles_per_component=10, flow="ledh")) == "gspf[10x1,flow=ledh]"
+    assert row_label("pfgspf", gs(model, particles_per_component=10, flow="edh")) == "pfgspf[10x1,flow=edh]"
 
 
 def test_trial_stats_quartiles_and_paired_ratios(tmp_path):
     """experiments/trial_stats.py on a hand-made run: medians, the lost count and the paired ratio."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    from trial_stats import main, trial_table
+    from experiments.trial_stats import main, trial_table
 
     ref = [1.0, 2.0, 3.0, 4.0, 5.0]
     other = [2 * v for v in ref]
@@ -310,8 +298,7 @@ def test_trial_stats_quartiles_and_paired_ratios(tmp_path):
 def test_trial_stats_groups_trials_that_share_a_trajectory(tmp_path):
     """--group K: the mean's SE and the paired difference's SE come from the K-trial group means,
     the bootstrap resamples whole groups, and a filter without the metric has no row."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    from trial_stats import main, mean_se, trial_table
+    from experiments.trial_stats import main, mean_se, trial_table
 
     # two trajectories x 3 initialisations: trials agree within a trajectory, differ between them
     ref = [1.0, 1.1, 0.9, 3.0, 3.1, 2.9]
@@ -381,8 +368,7 @@ def test_trial_range_reruns_rows_of_a_longer_run():
 def test_seed001_table2_report_pairs_runs_with_g1(tmp_path, capsys):
     """experiments/seed001_table2_report.py: per-G statistics, the paired difference to G = 1 on the
     runs both have (its SE from the per-run differences), --trials, and the distance to the paper."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    from seed001_table2_report import PAPER, main, read_runs, table
+    from experiments.seed001_table2_report import PAPER, main, read_runs, table
 
     g1 = {0: 1.0, 1: 2.0, 2: 3.0, 3: 4.0}
     g5 = {0: 0.9, 1: 1.7, 2: 2.9, 5: 9.0}  # run 3 missing, run 5 has no G = 1 partner
@@ -411,8 +397,7 @@ def test_seed001_table2_report_pairs_runs_with_g1(tmp_path, capsys):
 def test_seed001_geff_diagnostic_runs_and_pooled_fit_is_shared(capsys):
     """experiments/seed001_geff_diagnostic.py: the spy sees the filter's log-weights (so its numbers
     are the filter's), and the pooled control gives every component the same predictive fit."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    from seed001_geff_diagnostic import PooledFit, main, run
+    from experiments.seed001_geff_diagnostic import PooledFit, main, run
 
     from torchflow.models import SkewedTPoisson
 
@@ -435,8 +420,7 @@ def test_seed002_proposal_quality_measures_what_it_says(capsys):
     flow an almost exact proposal (ESS fraction near 1), the explicit Euler step (`start`) of
     EDH overshoots on the coarse (2, 1e-4) grid from the 200 m birth components while the step at
     lambda_l never amplifies, and the command prints both stages."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    from seed002_proposal_quality import amplification, evaluate, main, make_flow, scenes
+    from experiments.seed002_proposal_quality import amplification, evaluate, main, make_flow, scenes
 
     from torchflow.models import TDOA3D
     from torchflow.schedules import GeometricSchedule
@@ -460,3 +444,202 @@ def test_seed002_proposal_quality_measures_what_it_says(capsys):
     out = capsys.readouterr().out
     assert "## birth components (125 rows)" in out and "## legacy components (1 rows)" in out
     assert "| pfi_os a=0.01 | literal_shift |" in out
+
+
+# --- what a user meets: each fault of the issue "One runner, one registry, one harness" ---------
+
+_BROKEN = '''
+from torchflow.filters import KalmanFilter
+
+
+class Broken(KalmanFilter):
+    def forward(self, *a, **kw):
+        raise RuntimeError("deliberately broken")
+
+
+class BadInit(KalmanFilter):
+    def __init__(self, *a, **kw):
+        raise KeyError("a bug in a constructor")
+'''
+
+
+def _tf(tmp_path, *args, env=None, script=None):
+    """The command line in a subprocess (no assertion on the exit status)."""
+    env = dict(os.environ if env is None else env, PYTHONPATH=os.pathsep.join([str(ROOT), str(tmp_path)]))
+    cmd = [sys.executable, *([str(script)] if script else ["-m", "torchflow"]), *args, "progress=false"]
+    return subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=300, env=env)
+
+
+_LG = ["model=linear_gaussian", "model.d=4", "trials=2", "steps=3", "n_particles=20"]
+
+
+def test_cli_unwritable_checkpoint_dir_warns_once_and_keeps_the_results(tmp_path):
+    (tmp_path / "a_file").write_text("")
+    out = _tf(tmp_path, *_LG, "filter=[kf,bpf]", "chunk_size=1", f"checkpoint_dir={tmp_path}/a_file/ckpt",
+              "plots=false", "hydra.run.dir=run")
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stderr.count("checkpoint_dir: cannot save chunks under") == 1 and "Traceback" not in out.stderr
+    rows = list(csv.DictReader(open(tmp_path / "run" / "summary.csv")))
+    assert [r["filter"] for r in rows] == ["kf", "bpf"] and all(r["mse"] and not r["error"] for r in rows)
+    assert "cannot save chunks" in (tmp_path / "run" / "run.log").read_text()
+
+
+def test_cli_a_failed_filter_fails_the_run_the_sweep_and_shows_in_collect(tmp_path):
+    (tmp_path / "broken_filter.py").write_text(_BROKEN)
+    broken = "+filter.broken._target_=broken_filter.Broken"
+    out = _tf(tmp_path, *_LG, "filter=[kf]", broken, "plots=false", "checkpoint_dir=null", "hydra.run.dir=run")
+    assert out.returncode == 1 and "| kf |" in out.stdout
+    assert "!! broken failed in chunk 1 of 1 (trials 0..1): RuntimeError: deliberately broken" in out.stderr
+    log = (tmp_path / "run" / "run.log").read_text()
+    assert "Traceback" in log and "deliberately broken" in log and "SensorNetwork" in log
+    sweep = _tf(tmp_path, "-m", *_LG, "filter=[kf]", broken, "seed=0,1", "plots=false", "checkpoint_dir=null",
+                "hydra.sweep.dir=sweep")
+    assert sweep.returncode == 1 and "2 jobs, 0 finished, 2 failed" in sweep.stderr, sweep.stderr[-3000:]
+    assert "filter broken failed: RuntimeError: deliberately broken" in sweep.stderr
+    col = subprocess.run([sys.executable, str(ROOT / "experiments" / "collect.py"), str(tmp_path / "sweep")],
+                         capture_output=True, text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    table = [ln for ln in col.stdout.splitlines() if ln.startswith("| ")]
+    assert table[0].endswith("| error |")
+    assert sum("deliberately broken" in ln for ln in table) == 2 and sum("| kf |" in ln for ln in table) == 2
+    # a bad value in one job of a sweep fails that job at its start, the other finishes
+    bad = _tf(tmp_path, "-m", *_LG, "filter=[kf]", "rng_backend=auto,bogus", "plots=false", "checkpoint_dir=null",
+              "hydra.sweep.dir=sweep2")
+    assert bad.returncode == 1 and "2 jobs, 1 finished, 1 failed" in bad.stderr, bad.stderr[-3000:]
+    assert "rng_backend: expected one of auto, numpy, philox, got 'bogus'" in bad.stderr
+
+
+def test_cli_configuration_errors_are_one_line_and_bugs_keep_their_traceback(tmp_path):
+    (tmp_path / "broken_filter.py").write_text(_BROKEN)
+    out = _tf(tmp_path, *_LG, "filter=[kf]", "+n_particle=7", "hydra.run.dir=a")
+    assert out.returncode == 2 and "error: n_particle: unknown setting; did you mean n_particles?" in out.stderr
+    assert "Traceback" not in out.stderr
+    bug = _tf(tmp_path, *_LG, "filter=[kf]", "+filter.bad._target_=broken_filter.BadInit", "hydra.run.dir=b")
+    assert bug.returncode == 1 and "Traceback" in bug.stderr and "a bug in a constructor" in bug.stderr
+    assert "Traceback" in (tmp_path / "b" / "run.log").read_text()
+
+
+def test_check_config_refuses_values_that_mean_nothing():
+    from hydra import compose, initialize_config_dir
+
+    from torchflow.runner.config import check_config
+    from torchflow.runner.errors import ConfigError
+
+    cases = {"plots=no": "plots: expected true or false, got 'no'",
+             "metrics.lost_threshold=-1": "metrics.lost_threshold: expected a positive number of metres, got -1",
+             "metrics.ospa_cutoff=0": "metrics.ospa_cutoff: expected a positive number, got 0",
+             f"seed={2**70}": "seed: expected an integer in [0, 2**63), got 1180591620717411303424",
+             "rng_backend=bogus": "rng_backend: expected one of auto, numpy, philox, got 'bogus'",
+             "+metrics.lost_treshold=3": "metrics.lost_treshold: unknown setting; did you mean metrics.lost_threshold?",
+             "+n_particle=7": "n_particle: unknown setting; did you mean n_particles?"}
+    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
+        check_config(compose("config"), {})
+        check_config(compose("config", ["experiment=seed001_table2"]), {"experiment": "seed001_table2"})
+        for override, message in cases.items():
+            with pytest.raises(ConfigError, match=re.escape(message)):
+                check_config(compose("config", [override]), {})
+
+
+def test_cli_reused_output_folder_is_refused_or_cleared(tmp_path):
+    first = _tf(tmp_path, *_LG, "filter=[kf]", "checkpoint_dir=null", "hydra.run.dir=run")
+    assert first.returncode == 0 and (tmp_path / "run" / "per_step.png").exists(), first.stderr[-2000:]
+    again = _tf(tmp_path, *_LG, "filter=[kf]", "checkpoint_dir=null", "hydra.run.dir=run")
+    assert again.returncode == 2 and "Traceback" not in again.stderr
+    assert "error: hydra.run.dir: run already holds the results of a run (summary.csv" in again.stderr
+    assert "overwrite=true" in again.stderr
+    over = _tf(tmp_path, *_LG, "filter=[kf]", "checkpoint_dir=null", "plots=false", "overwrite=true",
+               "hydra.run.dir=run")
+    assert over.returncode == 0 and not (tmp_path / "run" / "per_step.png").exists()
+    assert (tmp_path / "run" / "summary.csv").exists()
+
+
+def test_cli_unwritable_output_folder_and_full_disk_are_one_line(tmp_path):
+    (tmp_path / "a_file").write_text("")
+    ro = _tf(tmp_path, *_LG, "filter=[kf]", "hydra.run.dir=a_file/run")
+    assert ro.returncode == 2 and "Traceback" not in ro.stderr
+    assert "error: hydra.run.dir: cannot write into" in ro.stderr and "NotADirectoryError" in ro.stderr
+    shim = tmp_path / "full_disk.py"
+    shim.write_text("import errno\nimport torchflow.runner.writers as w\n\n\ndef full(*a, **k):\n"
+                    "    raise OSError(errno.ENOSPC, 'No space left on device')\n\n\nw.write_csv = full\n"
+                    "from torchflow.cli import main\nmain()\n")
+    out = _tf(tmp_path, *_LG, "filter=[kf]", "checkpoint_dir=null", "plots=false", "hydra.run.dir=full", script=shim)
+    assert out.returncode == 1 and "| kf |" in out.stdout and "Traceback" not in out.stderr
+    errors = [ln for ln in out.stderr.splitlines() if ln.startswith("error:")]
+    assert errors == [f"error: cannot write summary.csv into {tmp_path / 'full'} (OSError: No space left on device)"]
+
+
+def test_resume_command_of_a_run_a_sweep_and_torchrun():
+    from torchflow.runner.config import resume_command
+
+    assert resume_command("torchflow", ["-m", "seed=0,1", "filter=[kf]", "resume=false"], {}) \
+        == "torchflow -m seed=0,1 'filter=[kf]' resume=true"
+    assert resume_command("python -m torchflow", ["trials=4"], {}) == "python -m torchflow trials=4 resume=true"
+    env = {"WORLD_SIZE": "4", "LOCAL_WORLD_SIZE": "2"}
+    assert resume_command("python experiments/run.py", ["trials=4"], env) \
+        == "torchrun --nproc_per_node=2 --nnodes=2 experiments/run.py trials=4 resume=true"
+    assert resume_command("torchflow", [], {"WORLD_SIZE": "2"}) == "torchrun --nproc_per_node=2 -m torchflow resume=true"
+
+
+class _Counting(BootstrapParticleFilter):
+    """A bootstrap PF that records the trials of every chunk it computes."""
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self.seen = []
+
+    def forward(self, obs, *a, **kw):
+        self.seen.append(obs.shape[0])
+        return super().forward(obs, *a, **kw)
+
+
+def _store_run(model, store, **kw):
+    f = _Counting(model, n_particles=30)
+    res = run_experiment(model, {"bpf": f}, trials=6, steps=3, seed=2, progress=False, store=store, **kw)
+    return res, f
+
+
+def test_a_damaged_chunk_file_is_recomputed_with_a_warning(tmp_path):
+    from torchflow.runner import ChunkStore
+
+    model = SensorNetwork(d=4)
+    full, _ = _store_run(model, ChunkStore(tmp_path, {"bpf": "k"}), chunk_size=3)
+    path = tmp_path / "k" / "0000000-0000003.pt"
+    saved = torch.load(path, weights_only=True)
+    raw, needle = bytearray(path.read_bytes()), saved["estimates"].numpy().tobytes()
+    at = raw.find(needle)
+    assert at > 0
+    raw[at + 5] ^= 0x10  # one flipped bit inside the estimates: the file still loads
+    path.write_bytes(bytes(raw))
+    assert not torch.equal(torch.load(path, weights_only=True)["estimates"], saved["estimates"])
+    store = ChunkStore(tmp_path, {"bpf": "k"}, resume=True)
+    with pytest.warns(UserWarning, match="damaged"):
+        res, f = _store_run(model, store, chunk_size=3)
+    assert f.seen == [3] and store.loaded == {"bpf": 1}
+    assert res.per_trial == full.per_trial
+
+
+def test_resume_with_another_chunk_size_reuses_the_saved_trials(tmp_path):
+    from torchflow.runner import ChunkStore
+
+    model = SensorNetwork(d=4)
+    full, _ = _store_run(model, ChunkStore(tmp_path, {"bpf": "k"}), chunk_size=2)
+    store = ChunkStore(tmp_path, {"bpf": "k"}, resume=True)
+    res, f = _store_run(model, store, chunk_size=3)
+    assert f.seen == [] and store.reused_trials == {"bpf": 6} and res.per_trial == full.per_trial
+    (tmp_path / "k" / "0000002-0000004.pt").unlink()  # trials 2, 3 lost: only they are computed
+    for p in (tmp_path / "k").glob("0000000-0000003.pt"):
+        p.unlink()
+    (tmp_path / "k" / "0000003-0000006.pt").unlink()
+    store = ChunkStore(tmp_path, {"bpf": "k"}, resume=True)
+    res, f = _store_run(model, store, chunk_size=3)
+    assert sorted(f.seen) == [1, 1] and store.reused_trials == {"bpf": 4} and res.per_trial == full.per_trial
+
+
+def test_a_store_that_cannot_write_warns_once_and_the_results_stay():
+    from torchflow.runner import ChunkStore
+
+    model = SensorNetwork(d=4)
+    store = ChunkStore(Path(__file__), {"bpf": "k"})  # a file: no folder can be made under it
+    with pytest.warns(UserWarning, match="cannot save chunks") as seen:
+        res, _ = _store_run(model, store, chunk_size=1)
+    assert len([w for w in seen if "cannot save" in str(w.message)]) == 1
+    assert len(res.per_trial) == 6 and res.summary[0]["error"] is None and store.computed == {}

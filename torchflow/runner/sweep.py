@@ -1,7 +1,8 @@
 """Hydra sweeps: what happened to every job.
 
-A sweep (``python experiments/run.py -m ...``, on any launcher: basic, joblib, submitit, ray)
-writes one folder per job. A job that fails leaves ``error.txt`` there and the sweep goes on;
+A sweep (``torchflow -m ...``, on any launcher: basic, joblib, submitit, ray) writes one folder
+per job. A job that fails leaves ``error.txt`` there (a job whose filter failed: its ``results.json``
+lists it) and the sweep goes on;
 :class:`SweepReport` (a Hydra callback, on by default in ``configs/config.yaml``) prints at the
 end which jobs finished and which failed, with their overrides and errors, and makes the sweep's
 exit status 1 when any failed. :func:`job_status` is what ``experiments/collect.py`` uses too.
@@ -35,7 +36,8 @@ def job_overrides(job: Path) -> List[str]:
 
 
 def job_status(job: Path) -> tuple:
-    """``("failed", last line of error.txt)``, ``("done", "")`` (``results.json`` written),
+    """``("failed", last line of error.txt)``, ``("failed", "filter X failed: ...")`` (the job ran,
+    a filter failed), ``("done", "")`` (``results.json`` written),
     ``("interrupted", "")`` (stopped by Ctrl-C or SIGTERM; its finished filters are written) or
     ``("missing", "")`` (no results: still running, killed, or never started)."""
     import json
@@ -48,10 +50,15 @@ def job_status(job: Path) -> tuple:
     res = job / "results.json"
     if res.exists():
         try:
-            interrupted = bool(json.loads(res.read_text()).get("interrupted"))
+            data = json.loads(res.read_text())
         except (ValueError, OSError):
             return "missing", ""
-        return ("interrupted", "") if interrupted else ("done", "")
+        if data.get("interrupted"):
+            return "interrupted", ""
+        errors = {r["filter"]: r["error"] for r in data.get("summary", []) if r.get("error")}
+        if errors:
+            return "failed", "; ".join(f"filter {n} failed: {e}" for n, e in errors.items())
+        return "done", ""
     return "missing", ""
 
 

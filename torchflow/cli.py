@@ -1,0 +1,334 @@
+"""The command line: build a model and filters from the Hydra configs, run them, write results.
+
+    torchflow                                                  # default acoustic comparison
+    torchflow model=linear_gaussian 'filter=[kf,bpf]' trials=100 steps=10 n_particles=200
+    torchflow experiment=seed000_table1                        # a paper table
+    torchflow -m 'filter=[bpf]' n_particles=100,1000           # sweep; one folder per job
+
+(``python -m torchflow`` and, in a checkout, ``python experiments/run.py`` are the same command.)
+Writes ``summary.csv``, ``per_step.csv``, ``per_trial.csv``, ``results.json``, ``run.log`` and
+(with matplotlib) ``per_step.png`` into Hydra's output folder and prints the summary table.
+
+Exit status: 0 done; 1 a filter failed, or the results could not be written; 2 a configuration
+error (one line); 130 interrupted (Ctrl-C, SIGTERM). Any other error keeps its traceback.
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+import sys
+import traceback
+from pathlib import Path
+from typing import List, Optional
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from . import tuning
+from .runner import STOP, config as rc, figures, writers
+from .runner.errors import ConfigError
+from .runner.labels import row_label
+
+log = logging.getLogger("torchflow.cli")
+
+
+def reason(e: BaseException) -> str:
+    """The message of the error that caused ``e`` (Hydra wraps constructor errors)."""
+    from hydra.errors import InstantiationException
+
+    if isinstance(e, InstantiationException):
+        cause = e.__cause__ or e.__context__
+        key = ""
+        for line in str(e).splitlines():
+            if line.startswith("full_key:"):
+                key = line.split(":", 1)[1].strip() + ": "
+        if cause is not None:
+            return key + str(cause).strip("'\"")
+    return str(e)
+
+
+def is_config_error(e: BaseException) -> bool:
+    """A bad setting: ours, OmegaConf's, or a constructor refusing a value (``ValueError`` /
+    ``TypeError`` raised while Hydra builds a model or filter). Anything else is a failure."""
+    from hydra.errors import InstantiationException
+    from omegaconf.errors import OmegaConfBaseException
+
+    if isinstance(e, InstantiationException):
+        return isinstance(e.__cause__ or e.__context__, (ValueError, TypeError))
+    return isinstance(e, (ConfigError, OmegaConfBaseException))
+
+
+def _multirun() -> bool:
+    from hydra.types import RunMode
+
+    return HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+def build(cfg: DictConfig):
+    """``(model, {label: filter}, {config key: label})`` from the config."""
+    if not cfg.get("filter"):
+        raise ConfigError("filter: select at least one filter, e.g. filter=[kf,bpf]; available: "
+                          + ", ".join(rc.group_options("filter") or []))
+    model = instantiate(cfg.model)
+    filters, labels = {}, {}
+    for key, fcfg in cfg.filter.items():
+        if "_target_" not in fcfg:  # e.g. an experiment's per-filter setting for a filter not selected
+            log.warning(f"(filter.{key}: settings given but the filter is not selected; skipped)")
+            continue
+        f = instantiate(fcfg, model=model, name=key)
+        f.name = labels[key] = row_label(key, f)
+        filters[f.name] = f
+    return model, filters, labels
+
+
+def chunk_store(cfg: DictConfig, labels):
+    """The run's :class:`~torchflow.runner.checkpoint.ChunkStore` (``None`` with
+    ``checkpoint_dir=null``): one folder per filter, named by a fingerprint of everything that
+    changes its numbers."""
+    import torch
+
+    import torchflow
+    from .runner.checkpoint import ChunkStore, fingerprint
+
+    root, resume = cfg.get("checkpoint_dir"), cfg.get("resume", False)
+    if root is None:
+        if resume:
+            raise ConfigError("resume=true needs checkpoint_dir (where the earlier run saved its chunks); it is null")
+        return None
+    common = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
+              for k in ("model", "trials", "steps", "seed", "inits_per_track", "device", "dtype", "rng_backend")}
+    common["versions"] = {"torchflow": torchflow.__version__, "torch": torch.__version__}
+    keys, settings = {}, {}
+    for key, fcfg in cfg.filter.items():
+        label = labels.get(key)
+        if label is None:  # settings for a filter that is not selected
+            continue
+        s = dict(common, filter=OmegaConf.to_container(fcfg, resolve=True), label=label)
+        keys[label] = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in label) + "-" + fingerprint(s)
+        settings[label] = s
+    return ChunkStore(Path(hydra.utils.to_absolute_path(str(root))), keys, resume=resume, settings=settings)
+
+
+class _Output:
+    """Writes into the run's folder; a failed write (read-only folder, full disk) is reported
+    once, in one line, and turns the exit status to 1; the run goes on."""
+
+    def __init__(self, out: Path):
+        self.out, self.failed = out, None
+
+    def attempt(self, what: str, write, *args) -> None:
+        if self.failed is not None:
+            return
+        try:
+            write(*args)
+        except OSError as e:
+            self.failed = f"cannot write {what} into {self.out} ({type(e).__name__}: {e.strerror or e})"
+            log.error(f"error: {self.failed}")
+
+    def partial_summary(self, rows, columns) -> None:
+        self.attempt("summary.csv", writers.write_csv, self.out / "summary.csv", rows, columns)
+
+
+def _report_failures(summary, failures) -> None:
+    for r in summary:
+        if r.get("error") and not r["error"].startswith("interrupted"):
+            where = f" in {failures[r['filter']]}" if failures.get(r["filter"]) else ""
+            log.error(f"!! {r['filter']} failed{where}: {r['error']} (traceback in run.log)")
+
+
+def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> int:
+    from .runner import SUMMARY_COLUMNS, format_table, run_experiment
+
+    store = chunk_store(cfg, labels)
+    writer = _Output(out)
+    result = run_experiment(
+        model, filters, trials=cfg.trials, steps=cfg.steps, seed=cfg.seed, inits_per_track=cfg.inits_per_track,
+        chunk_size=cfg.chunk_size, memory_budget_gb=cfg.memory_budget_gb, device=shard.device(cfg.device),
+        dtype=cfg.dtype, ospa_cutoff=cfg.metrics.ospa_cutoff, ospa_order=cfg.metrics.ospa_order,
+        lost_threshold=cfg.metrics.lost_threshold, progress=cfg.progress, rng_backend=cfg.rng_backend,
+        on_filter_done=lambda rows: writer.partial_summary(rows, SUMMARY_COLUMNS),  # partial results
+        store=store, shard=shard, trial_range=_plain(cfg.get("trial_range")))
+    if result is None:  # a rank other than 0 of a torchrun run: rank 0 writes the files
+        return 0
+    model_name = cfg.model._target_.split(".")[-1]
+    if store is not None and (store.loaded or store.reused_trials):
+        log.info(f"resumed: {sum(store.loaded.values())} chunks loaded from {store.root} "
+                 f"({sum(store.reused_trials.values())} trials of chunks with other boundaries), "
+                 f"{sum(store.computed.values())} computed")
+    lo, hi = result.config["trial_range"]
+    which = f"{cfg.trials} trials" if (lo, hi) == (0, cfg.trials) else f"trials {lo}..{hi - 1} of {cfg.trials}"
+    log.info(f"\n{model_name}: {which} x {cfg.steps} steps, seed {cfg.seed}, {cfg.device}/{cfg.dtype}")
+    log.info(format_table(result.summary))
+    _report_failures(result.summary, result.failures)
+    writer.attempt("the result files", writers.write_run, out, result, OmegaConf.to_container(cfg, resolve=True))
+    if cfg.plots:
+        writer.attempt("the figures", figures.save_run_figures, out, model, result, model_name)
+    if writer.failed is None:
+        log.info(f"results: {os.path.relpath(out)}")
+    if result.interrupted:
+        skipped = f"; not run: {', '.join(result.not_run)}" if result.not_run else ""
+        log.warning(f"interrupted (Ctrl-C or SIGTERM): the results of the filters that finished are written{skipped}")
+        if store is not None:
+            log.warning(f"the finished chunks are saved under {store.root}; go on with\n  {rc.resume_command()}")
+        return 130
+    return 1 if (result.failed or writer.failed) else 0
+
+
+def _run_localisation(cfg, model, localisers, out: Path) -> int:
+    """Seed 002's scene: runs x localisers, OSPA per run, the table, CSVs and a 3-D picture of run 0."""
+    from .localisation import LOCALISATION_COLUMNS, run_localisation, scene_figure
+    from .runner import format_table
+
+    bad = [k for k, f in localisers.items() if not hasattr(f, "method")]
+    if bad:
+        raise ConfigError(f"filter: {', '.join(bad)} cannot run on the TDOA model; select localisers "
+                          "(bs, pfi_d, pfi_s, pfi_os)")
+    writer = _Output(out)
+    summary, per_run, data, examples = run_localisation(
+        model, localisers, runs=cfg.trials, seed=cfg.seed, ospa_cutoff=float(cfg.metrics.ospa_cutoff),
+        ospa_order=float(cfg.metrics.ospa_order), device=cfg.device, dtype=cfg.dtype,
+        rng_backend=cfg.rng_backend, progress=cfg.progress,
+        on_filter_done=lambda rows: writer.partial_summary(rows, LOCALISATION_COLUMNS))
+    log.info(f"\nTDOA3D: {cfg.trials} runs, seed {cfg.seed}, {cfg.device}/{cfg.dtype}, OSPA cut-off "
+             f"{cfg.metrics.ospa_cutoff:g} m")
+    log.info(format_table(summary, LOCALISATION_COLUMNS))
+    _report_failures(summary, {})
+    writer.attempt("summary.csv", writers.write_csv, out / "summary.csv", summary, LOCALISATION_COLUMNS)
+    writer.attempt("per_trial.csv", writers.write_csv, out / "per_trial.csv", per_run)
+    writer.attempt("results.json", writers.write_json, out / "results.json",
+                   {"config": OmegaConf.to_container(cfg, resolve=True), "summary": summary})
+    plt = figures.pyplot() if cfg.plots else None
+    if plt is not None:
+        writer.attempt("scene.png", lambda: figures.save_figure(plt, scene_figure(
+            plt, model, data.sources[0], examples, "TDOA3D: run 0, true and declared sources"), out / "scene.png"))
+    if writer.failed is None:
+        log.info(f"results: {os.path.relpath(out)}")
+    failed = any(r.get("error") and not r["error"].startswith(("interrupted", "not run")) for r in summary)
+    return 1 if (failed or writer.failed) else 0
+
+
+def _plain(v):
+    return OmegaConf.to_container(v) if OmegaConf.is_config(v) else v
+
+
+def run_job(cfg: DictConfig) -> int:
+    """One job: check the config, build, run, write; the exit status."""
+    from .models import TDOA3D
+    from .runner.distributed import Shard
+
+    rc.check_config(cfg, HydraConfig.get().runtime.choices)
+    out = Path(HydraConfig.get().runtime.output_dir)
+    knobs = {k: v for k, v in (OmegaConf.to_container(cfg.get("tuning") or {}) or {}).items() if v is not None}
+    with contextlib.ExitStack() as stack:
+        try:
+            stack.enter_context(tuning.tuned(**knobs))
+        except (ValueError, TypeError) as e:
+            raise ConfigError(str(e)) from None
+        shard = Shard.from_env(str(cfg.device), timeout_minutes=float(cfg.get("dist_timeout_min", 720)))
+        stack.callback(shard.close)
+        if shard.is_main:
+            out.mkdir(parents=True, exist_ok=True)
+            writers.clear_results(out)  # a reused folder (overwrite=true / resume=true) keeps no old file
+        model, filters, labels = build(cfg)
+        if isinstance(model, TDOA3D):
+            if shard.world > 1 or cfg.resume:
+                raise ConfigError("resume=true and torchrun apply to filter runs, not to the TDOA localisers")
+            return _run_localisation(cfg, model, filters, out)
+        return _run_filters(cfg, model, filters, labels, out, shard)
+
+
+def _record_failure(message: str) -> None:
+    """A failed sweep job leaves ``error.txt`` in its folder (collect and the end-of-sweep report
+    name it) instead of stopping the sweep."""
+    out = Path(HydraConfig.get().runtime.output_dir)
+    with contextlib.suppress(OSError):
+        out.mkdir(parents=True, exist_ok=True)
+        writers.write_text(out / "error.txt", message.rstrip() + "\n")
+
+
+def _job(cfg: DictConfig) -> int:
+    """:func:`run_job` with its errors turned into messages and exit statuses."""
+    try:
+        return run_job(cfg)
+    except KeyboardInterrupt:
+        log.warning("interrupted outside a filter run: only summary.csv (rows of the filters that "
+                    "finished, if any) was written")
+        return 130
+    except Exception as e:  # noqa: BLE001 - configuration errors: one line; anything else: its traceback
+        if is_config_error(e):
+            message = f"error: {reason(e)}"
+            log.error(message + (" (job failed; the sweep goes on)" if _multirun() else ""))
+            code = 2
+        else:
+            message = traceback.format_exc()
+            log.error(f"error: {type(e).__name__}: {e}\n{message.rstrip()}")
+            code = 1
+        if _multirun():
+            _record_failure(message)
+        return code
+
+
+@hydra.main(config_path=rc.config_source(), config_name="config", version_base="1.3")
+def hydra_main(cfg: DictConfig) -> None:
+    """Run one job. A sweep (``-m``) goes on after a failing job (its folder says why); Ctrl-C
+    ends the sweep and prints the command that resumes all of it."""
+    STOP.reset()
+    try:  # Ctrl-C and SIGTERM (kill, a scheduler's time limit) stop at once inside a chunk, else at the next one
+        signal.signal(signal.SIGINT, STOP.handler)
+        signal.signal(signal.SIGTERM, STOP.handler)
+    except ValueError:  # not the main thread (some launchers): Python's own Ctrl-C handling only
+        pass
+    logging.captureWarnings(True)
+    try:
+        code = _job(cfg)
+    finally:
+        logging.captureWarnings(False)
+    if _multirun() and code != 130:
+        return  # the sweep goes on; the job's folder (error.txt, results.json) says what happened
+    if code:
+        sys.exit(code)
+
+
+def _pid_resolver() -> str:
+    return str(os.getpid())
+
+
+# cached: a launcher that resolves the sweep folder again in each worker (joblib, submitit) gets
+# the main process's value, so every job lands in the one announced folder
+OmegaConf.register_new_resolver("tf_pid", _pid_resolver, replace=True, use_cache=True)
+
+
+def _quiet_rank_overrides(argv: List[str]) -> List[str]:
+    """Ranks other than 0 of a ``torchrun`` run write no Hydra folder or log (rank 0 does)."""
+    if int(os.environ.get("RANK", "0")) == 0:
+        return argv
+    if any(a in ("-m", "--multirun") for a in argv):
+        raise ConfigError("torchrun runs one job; run a sweep (-m) on a Hydra launcher instead")
+    import tempfile
+
+    return [*argv, f"hydra.run.dir={tempfile.gettempdir()}/torchflow-rank{os.environ['RANK']}-{os.getppid()}",
+            "hydra.output_subdir=null", "hydra/job_logging=disabled", "hydra/hydra_logging=disabled"]
+
+
+def main(argv: Optional[List[str]] = None, prog: str = "torchflow") -> None:
+    """The ``torchflow`` command (``argv``: the overrides; default ``sys.argv[1:]``)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    help_only = any(a in ("-h", "--help", "--hydra-help", "--info", "-c", "--cfg", "--version") for a in argv)
+    try:
+        rc.check_selections(argv)
+        if int(os.environ.get("RANK", "0")) == 0 and not help_only:
+            rc.check_output_folder(argv, Path.cwd())
+        rc.remember_command(prog, argv)
+        argv = _quiet_rank_overrides(argv)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+    sys.argv = [sys.argv[0], *argv]
+    hydra_main()
+
+
+__all__ = ["main", "run_job", "reason", "is_config_error"]

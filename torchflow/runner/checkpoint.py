@@ -1,0 +1,212 @@
+"""Per-chunk results on disk, so a long run that is killed can be resumed.
+
+:func:`~torchflow.runner.run_experiment` runs each filter over chunks of trials. With a
+:class:`ChunkStore` it writes every finished chunk to a small file as soon as it finishes and,
+when ``resume`` is on, loads the chunks a previous run of the *same settings* saved instead of
+computing them again. Trials draw from per-trial random streams
+(:class:`~torchflow.random.TrialStreams`), so a loaded chunk holds exactly the numbers the
+uninterrupted run would have computed.
+
+Layout (``key`` is a fingerprint of everything that changes a filter's numbers, see
+:func:`fingerprint`)::
+
+    <root>/<key>/settings.json          what the key was made of (for people)
+    <root>/<key>/<start>-<stop>.pt       trials [start, stop): estimates, log-evidence, ESS, ...
+
+Files are written to a temporary name and renamed, so a run killed while writing leaves no
+half-written chunk. Every file carries a SHA-256 checksum of its tensors. A file that cannot be
+read, whose checksum does not match (a damaged disk or copy) or whose header does not match (other
+key, trials, steps, seed, random stream, ...), is recomputed with a warning, never silently used.
+
+Trials draw from per-trial streams, so a resumed run with other chunk boundaries (another
+``chunk_size`` or memory budget) reuses the trials saved before (:meth:`ChunkStore.assemble`) and
+computes only the others; their numbers equal a fresh run's to round-off (batched linear algebra
+may block differently for another batch size).
+
+A store that cannot write (read-only folder, full disk) warns once and the run goes on without
+checkpoints (:meth:`ChunkStore.save_or_warn`).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import re
+import warnings
+from pathlib import Path
+from typing import Callable, Dict, List, Mapping, Optional, Tuple, Union
+
+import torch
+
+#: tensors of one chunk, CPU float64 (``ess``, ``g_eff``, ``n_repaired`` may be absent)
+CHUNK_FIELDS = ("estimates", "log_evidence", "ess", "n_repaired", "g_eff")
+
+
+_CHUNK_NAME = re.compile(r"^(\d{7})-(\d{7})\.pt$")
+log = logging.getLogger("torchflow.runner")
+
+
+def checksum(chunk: Mapping) -> str:
+    """SHA-256 of a chunk's tensors (names, dtypes, shapes and bytes), in name order."""
+    h = hashlib.sha256()
+    for name in sorted(k for k, v in chunk.items() if isinstance(v, torch.Tensor)):
+        t = chunk[name].detach().cpu().contiguous()
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.numpy().tobytes() if t.numel() else b"")
+    return h.hexdigest()
+
+
+def fingerprint(settings: Mapping) -> str:
+    """A short, stable hash of JSON-serialisable ``settings`` (key order does not matter)."""
+    text = json.dumps(settings, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+class ChunkStore:
+    """Where a run keeps its finished chunks.
+
+    Args:
+        root: folder of the store (created on first save).
+        keys: ``{filter name: key}``; the key names the filter's folder and must change with
+            anything that changes its numbers (the runner uses :func:`fingerprint` of the model's
+            and the filter's config, trials, steps, seed, device, dtype, random back end and the
+            package versions). A filter without a key uses its name.
+        resume: load chunks saved earlier; ``False`` computes every chunk and overwrites files.
+        settings: ``{filter name: dict}`` written beside the chunks as ``settings.json``.
+
+    Attributes ``loaded`` and ``computed`` count chunks per filter in this run, ``reused_trials``
+    the trials taken from chunks saved with other boundaries; ``save_error`` says why saving
+    stopped (``None`` while saving works).
+    """
+
+    def __init__(self, root: Union[str, Path], keys: Optional[Mapping[str, str]] = None, *, resume: bool = False,
+                 settings: Optional[Mapping[str, dict]] = None):
+        if not isinstance(resume, bool):
+            raise ValueError(f"resume: expected True or False, got {resume!r}")
+        self.root = Path(root)
+        self.keys = dict(keys or {})
+        self.resume = resume
+        self.settings = dict(settings or {})
+        self.loaded: Dict[str, int] = {}
+        self.computed: Dict[str, int] = {}
+        self.reused_trials: Dict[str, int] = {}
+        self.save_error: Optional[str] = None
+
+    def folder(self, name: str) -> Path:
+        return self.root / self.keys.get(name, name)
+
+    def _path(self, name: str, start: int, stop: int) -> Path:
+        return self.folder(name) / f"{start:07d}-{stop:07d}.pt"
+
+    def load(self, name: str, start: int, stop: int, steps: int, meta: Optional[Mapping] = None) -> Optional[dict]:
+        """The saved chunk of trials ``[start, stop)`` of filter ``name``, or ``None`` (not
+        resuming, not saved, or saved with other settings). ``meta``: run settings the file's
+        header must repeat (the runner passes seed, trials, steps, random stream, dtype, ...), a
+        second guard beside the key for callers that choose their own keys."""
+        if not self.resume:
+            return None
+        path = self._path(name, start, stop)
+        if not path.exists():
+            return None
+        try:
+            data = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as e:  # noqa: BLE001 - a damaged file is recomputed, not fatal
+            warnings.warn(f"resume: cannot read {path} ({type(e).__name__}: {e}); computing the chunk again",
+                          stacklevel=2)
+            return None
+        est = data.get("estimates")
+        ok = (data.get("key") == self.keys.get(name, name) and data.get("start") == start and data.get("stop") == stop
+              and isinstance(est, torch.Tensor) and tuple(est.shape[:2]) == (stop - start, steps)
+              and (data.get("meta") is None or meta is None or data["meta"] == dict(meta)))  # no meta: older file
+        if not ok:
+            warnings.warn(f"resume: {path} was saved with other settings; computing the chunk again", stacklevel=2)
+            return None
+        if data.get("checksum") is not None and data["checksum"] != checksum(data):
+            warnings.warn(f"resume: {path} is damaged (its checksum does not match its contents); computing "
+                          "the chunk again", stacklevel=2)
+            return None
+        self.loaded[name] = self.loaded.get(name, 0) + 1
+        return data
+
+    def save(self, name: str, start: int, stop: int, chunk: Mapping, meta: Optional[Mapping] = None) -> Path:
+        """Write one finished chunk (CPU tensors and floats) atomically, with ``meta`` in its header."""
+        folder = self.folder(name)
+        folder.mkdir(parents=True, exist_ok=True)
+        if name in self.settings and not (folder / "settings.json").exists():
+            tmp = folder / f".settings.json.{os.getpid()}"
+            tmp.write_text(json.dumps(self.settings[name], indent=2, sort_keys=True, default=str))
+            os.replace(tmp, folder / "settings.json")
+        path = self._path(name, start, stop)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        torch.save({**dict(chunk), "key": self.keys.get(name, name), "start": start, "stop": stop,
+                    "meta": dict(meta) if meta is not None else None, "checksum": checksum(chunk)}, tmp)
+        os.replace(tmp, path)
+        self.computed[name] = self.computed.get(name, 0) + 1
+        return path
+
+    def save_or_warn(self, name: str, start: int, stop: int, chunk: Mapping, meta: Optional[Mapping] = None
+                     ) -> Optional[Path]:
+        """:meth:`save`, but a store that cannot write warns once (naming the folder and the
+        reason) and saves nothing more; the run's results do not depend on it."""
+        if self.save_error is not None:
+            return None
+        try:
+            return self.save(name, start, stop, chunk, meta)
+        except OSError as e:
+            self.save_error = f"{type(e).__name__}: {e.strerror or e}"
+            warnings.warn(f"checkpoint_dir: cannot save chunks under {self.root} ({self.save_error}); the run "
+                          "goes on without checkpoints (a later resume computes these chunks again)", stacklevel=2)
+            return None
+
+    def saved_ranges(self, name: str) -> List[Tuple[int, int]]:
+        """``[(start, stop), ...]`` of the chunk files saved for filter ``name``."""
+        folder = self.folder(name)
+        if not folder.is_dir():
+            return []
+        found = (_CHUNK_NAME.match(p.name) for p in folder.iterdir())
+        return sorted((int(m.group(1)), int(m.group(2))) for m in found if m)
+
+    def _pieces(self, name: str, start: int, stop: int) -> List[Tuple[int, int, Optional[Tuple[int, int]]]]:
+        """``[(a, b, saved range or None), ...]`` covering ``[start, stop)``: the trials of saved
+        files of other boundaries and the gaps between them (the file of exactly these
+        trials is :meth:`load`'s)."""
+        saved = [r for r in self.saved_ranges(name) if r[0] < stop and r[1] > start and r != (start, stop)]
+        out, p = [], start
+        while p < stop:
+            cover = [r for r in saved if r[0] <= p < r[1]]
+            if cover:
+                r = max(cover, key=lambda r: r[1])
+                out.append((p, min(r[1], stop), r))
+                p = min(r[1], stop)
+            else:
+                nxt = min([r[0] for r in saved if r[0] > p] + [stop])
+                out.append((p, nxt, None))
+                p = nxt
+        return out
+
+    def assemble(self, name: str, start: int, stop: int, steps: int, meta: Optional[Mapping],
+                 compute: Callable[[int, int], Mapping]) -> Optional[dict]:
+        """Trials ``[start, stop)`` from chunks saved with other boundaries, ``compute(a, b)``
+        filling the trials none holds; ``None`` when not resuming or no saved trial overlaps."""
+        if not self.resume:
+            return None
+        pieces = self._pieces(name, start, stop)
+        if all(r is None for _, _, r in pieces):
+            return None
+        parts, reused = [], 0
+        for a, b, r in pieces:
+            data = None if r is None else self.load(name, r[0], r[1], steps, meta)
+            if data is None:
+                parts.append(dict(compute(a, b)))
+                continue
+            part = {k: data[k][a - r[0]:b - r[0]] for k in CHUNK_FIELDS if k in data}
+            part["elapsed"] = float(data.get("elapsed", 0.0)) * (b - a) / (r[1] - r[0])
+            parts.append(part)
+            reused += b - a
+        chunk = {k: torch.cat([p[k] for p in parts]) for k in CHUNK_FIELDS if all(k in p for p in parts)}
+        chunk.update(start=start, stop=stop, elapsed=sum(float(p["elapsed"]) for p in parts))
+        self.reused_trials[name] = self.reused_trials.get(name, 0) + reused
+        log.info("resume: %s trials %d..%d: %d reused from chunks saved with other boundaries, %d computed",
+                 name, start, stop - 1, reused, stop - start - reused)
+        return chunk

@@ -1,0 +1,121 @@
+"""One experiment over several processes, GPUs or nodes with ``torch.distributed``.
+
+Launched by ``torchrun``, every process (rank) simulates the same data from the run's seed, runs
+its share of each filter's chunks of trials and sends the per-trial results to rank 0, which
+scores them and writes the usual files::
+
+    torchrun --standalone --nproc_per_node=2 experiments/run.py model=linear_gaussian filter=[bpf] trials=40
+
+Chunks are dealt round-robin (chunk ``i`` to rank ``i % world``). Trials draw from per-trial
+random streams, so each trial's numbers are those of a single-process run: identical (``==``)
+when the chunks are the same (``chunk_size`` given, or filters whose numbers do not depend on the
+chunking, such as the bootstrap PF), equal to round-off otherwise (batched linear algebra blocks
+differently for other batch sizes). Without ``chunk_size`` the runner caps each chunk at
+``ceil(trials / world)`` trials so that every rank has work.
+
+Back end: NCCL when the run is on CUDA (rank ``r`` uses ``cuda:LOCAL_RANK``), gloo on CPU.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any, List, Optional
+
+
+@dataclass
+class Shard:
+    """This process's place in a distributed run.
+
+    Attributes:
+        rank: this process's rank, 0 .. world - 1.
+        world: number of processes.
+        local_rank: rank on this node (picks the GPU).
+    """
+
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+
+    def __post_init__(self):
+        for name in ("rank", "world", "local_rank"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < (1 if name == "world" else 0):
+                raise ValueError(f"{name}: expected an int >= {1 if name == 'world' else 0}, got {v!r}")
+        if self.rank >= self.world:
+            raise ValueError(f"rank: expected < world = {self.world}, got {self.rank}")
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+    def mine(self, chunks: List) -> List:
+        """This rank's chunks of ``chunks`` (round-robin)."""
+        return chunks[self.rank::self.world]
+
+    def gather(self, obj: Any) -> Optional[List[Any]]:
+        """Every rank's ``obj`` in rank order on rank 0 (``None`` elsewhere); ``[obj]`` when
+        the run is not distributed. Objects are pickled; keep tensors on the CPU."""
+        if self.world == 1:
+            return [obj]
+        import torch.distributed as dist
+
+        out = [None] * self.world if self.is_main else None
+        dist.gather_object(obj, out, dst=0)
+        return out
+
+    def broadcast(self, obj: Any) -> Any:
+        """Rank 0's ``obj`` on every rank (``obj`` itself when not distributed)."""
+        if self.world == 1:
+            return obj
+        import torch.distributed as dist
+
+        box = [obj if self.is_main else None]
+        dist.broadcast_object_list(box, src=0)
+        return box[0]
+
+    def barrier(self) -> None:
+        if self.world > 1:
+            import torch.distributed as dist
+
+            dist.barrier()
+
+    @staticmethod
+    def from_env(device: str = "cpu", timeout_minutes: float = 720.0) -> "Shard":
+        """The shard ``torchrun`` describes in the environment (``RANK``, ``WORLD_SIZE``,
+        ``LOCAL_RANK``), with the process group initialised; ``Shard()`` when not launched by
+        ``torchrun``. ``device`` is the run's device: ``cuda`` selects NCCL and this rank's GPU.
+        ``timeout_minutes``: how long a rank that finished its chunks waits for the slowest one
+        at a filter's gather (the collective's timeout; torch's defaults, 10-30 min, would end a
+        long uneven run)."""
+        import datetime
+
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+        if world <= 1:
+            return Shard()
+        import torch
+        import torch.distributed as dist
+
+        rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+        cuda = str(device).startswith("cuda")
+        if not dist.is_initialized():
+            if cuda:
+                torch.cuda.set_device(local)
+            dist.init_process_group(backend="nccl" if cuda else "gloo",
+                                    timeout=datetime.timedelta(minutes=float(timeout_minutes)))
+        return Shard(rank=rank, world=world, local_rank=local)
+
+    def device(self, device: str) -> str:
+        """The device this rank runs on: ``cuda`` becomes ``cuda:<local_rank>`` in a distributed
+        run; an explicit ``cuda:<i>`` there is refused (every rank would share GPU i)."""
+        if self.world > 1 and str(device).startswith("cuda"):
+            if str(device) != "cuda":
+                raise ValueError(f"device: expected 'cuda' under torchrun (rank r uses cuda:LOCAL_RANK), got {device!r}")
+            return f"cuda:{self.local_rank}"
+        return str(device)
+
+    def close(self) -> None:
+        if self.world > 1:
+            import torch.distributed as dist
+
+            if dist.is_initialized():
+                dist.destroy_process_group()

@@ -1,0 +1,176 @@
+"""Execute a plan: every filter over its chunks of trials, with stop requests, checkpoints and shards.
+
+A filter that raises does not stop the run: its outcome carries the error (and where it happened),
+the traceback goes to the ``torchflow.runner`` logger, and the next filter runs.
+"""
+from __future__ import annotations
+
+import logging
+import time
+import traceback
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import List, Optional
+
+import torch
+
+from .._checks import NonFiniteError
+from ..filters.base import Filter
+from ..random import TrialStreams
+from .checkpoint import ChunkStore
+from .plan import RunPlan
+
+log = logging.getLogger("torchflow.runner")
+
+
+class StopRequest:
+    """Ctrl-C / SIGTERM handling that never tears a run apart mid-bookkeeping.
+
+    :meth:`handler` (installed for SIGINT and SIGTERM by the command line; install it in your own
+    script with ``signal.signal(signal.SIGTERM, STOP.handler)``) records the request. Inside a
+    filter's chunk it raises ``KeyboardInterrupt`` at once; anywhere else (gathering ranks,
+    scoring, writing files) the run stops at the next chunk boundary, so the finished chunks are
+    always scored and written. Without the handler, Python's own Ctrl-C still interrupts a chunk.
+    """
+
+    def __init__(self):
+        self.requested = False
+        self._depth = 0
+
+    def handler(self, signum, frame):  # noqa: ARG002 - signal handler signature
+        self.requested = True
+        if self._depth:
+            raise KeyboardInterrupt
+
+    def check(self) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+
+    def reset(self) -> None:
+        self.requested = False
+
+    @contextmanager
+    def interruptible(self):
+        self._depth += 1
+        try:
+            yield
+        finally:
+            self._depth -= 1
+
+
+#: the process's stop request (see :class:`StopRequest`)
+STOP = StopRequest()
+
+
+@dataclass
+class Outcome:
+    """What one filter's execution produced on this process (after gathering: on rank 0, all ranks').
+
+    ``error``: ``"Type: message"`` when the filter failed; ``where``: ``"chunk i of n (trials a..b)"``."""
+
+    chunks: List[dict] = field(default_factory=list)
+    error: Optional[str] = None
+    where: Optional[str] = None
+    interrupted: bool = False
+
+
+def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None) -> dict:
+    """Run filter ``f`` on trials ``[s, e)``: the chunk's results as CPU float64 tensors."""
+    st = plan.settings
+    g = TrialStreams(st.seed, range(s, e), key=f.stream_name, backend=st.rng_backend)
+    cb = (lambda n=e - s: bar.update(n)) if bar is not None else None
+    cuda = st.device.type == "cuda"
+    if cuda:
+        torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    with torch.no_grad(), STOP.interruptible():
+        try:
+            res = f(plan.traj.observations[s:e], plan.mean0[s:e], plan.cov0[s:e], g, progress=cb)
+        except NonFiniteError as err:  # report trial indices in the whole run
+            raise NonFiniteError(name, err.step, [s + i for i in err.trials]) from None
+    if cuda:
+        torch.cuda.synchronize()
+    out = {"start": s, "stop": e, "elapsed": time.perf_counter() - t0,
+           "estimates": res.estimates.double().cpu(), "log_evidence": res.log_evidence.double().cpu()}
+    for key in ("ess", "g_eff"):
+        if getattr(res, key) is not None:
+            out[key] = getattr(res, key).double().cpu()
+    if res.n_repaired is not None:
+        out["n_repaired"] = res.n_repaired.cpu()
+    return out
+
+
+def _progress_bar(enabled: bool, total: int, desc: str):
+    if not enabled:
+        return None
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:  # pragma: no cover
+        return None
+    return tqdm(total=total, unit="trial-step", leave=False, dynamic_ncols=True, desc=desc)
+
+
+def _one_chunk(f, name, plan, s, e, store, bar) -> dict:
+    steps = plan.settings.steps
+    chunk = None if store is None else store.load(name, s, e, steps, plan.meta(f))
+    if chunk is not None:
+        if bar is not None:
+            bar.update((e - s) * steps)
+        return chunk
+    if store is not None:  # trials saved by a run with other chunk boundaries are reused
+        chunk = store.assemble(name, s, e, steps, plan.meta(f),
+                               compute=lambda a, b: run_chunk(f, name, plan, a, b, bar))
+    if chunk is None:
+        chunk = run_chunk(f, name, plan, s, e, bar)
+    if store is not None:
+        store.save_or_warn(name, s, e, chunk, plan.meta(f))
+    return chunk
+
+
+def execute_filter(f: Filter, name: str, plan: RunPlan, *, store: Optional[ChunkStore] = None,
+                   bar=None) -> Outcome:
+    """Run ``f`` over this rank's chunks: the finished chunks, and the error or interruption."""
+    mine = plan.shard.mine(plan.trial_chunks(name))
+    out = Outcome()
+    i = -1
+    try:
+        for i, (s, e) in enumerate(mine):
+            STOP.check()
+            out.chunks.append(_one_chunk(f, name, plan, s, e, store, bar))
+        STOP.check()
+    except KeyboardInterrupt:  # keep what finished; the caller writes it and says so
+        out.interrupted = True
+    except Exception as err:  # noqa: BLE001 - one failing filter must not lose the others' results
+        s, e = mine[i]
+        out.error = f"{type(err).__name__}: {err}"
+        out.where = f"chunk {i + 1} of {len(mine)} (trials {s}..{e - 1})"
+        log.error("filter %s failed in %s: %s\n%s", name, out.where, out.error, traceback.format_exc().rstrip())
+    return out
+
+
+def gather_outcome(out: Outcome, plan: RunPlan) -> Outcome:
+    """Every rank's outcome merged on rank 0 (other ranks: an empty outcome that only says whether
+    the run was interrupted); every rank calls it for every filter, failed, interrupted or not."""
+    shard = plan.shard
+    if shard.world == 1:
+        return out
+    parts = shard.gather((out.chunks, out.error, out.interrupted, out.where))
+    interrupted = bool(shard.broadcast(any(p[2] for p in parts) if shard.is_main else None))
+    if not shard.is_main:
+        return Outcome(interrupted=interrupted)
+    failed = [p for p in parts if p[1]]
+    chunks = sorted((c for p in parts for c in p[0]), key=lambda c: c["start"])
+    return Outcome(chunks, failed[0][1] if failed else None, failed[0][3] if failed else None, interrupted)
+
+
+def execute(f: Filter, name: str, plan: RunPlan, *, store=None, progress=False, desc="") -> Outcome:
+    """:func:`execute_filter` with a progress bar (rank 0) and the ranks' outcomes gathered."""
+    steps = plan.settings.steps
+    mine = plan.shard.mine(plan.trial_chunks(name))
+    bar = _progress_bar(progress and plan.shard.is_main, sum(e - s for s, e in mine) * steps, desc)
+    try:
+        out = execute_filter(f, name, plan, store=store, bar=bar)
+    finally:
+        if bar is not None:
+            bar.close()
+    return gather_outcome(out, plan)

@@ -1,0 +1,172 @@
+"""Pictures of a run (matplotlib is optional: :func:`pyplot` returns ``None`` without it).
+
+Each ``*_figure`` takes ``plt`` (``matplotlib.pyplot``) and returns a figure, or ``None`` when
+the run has nothing to draw; :func:`save_run_figures` writes the ones that apply.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import List, Optional
+
+log = logging.getLogger("torchflow.runner")
+
+#: one colour per filter, the same on every panel and in the track picture
+COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
+           "#bcbd22", "#17becf"]
+_LABELS = {"omat": "OMAT (m)", "ospa": "OSPA (m)", "mse": "MSE", "ess": "ESS"}
+
+
+def pyplot():
+    """``matplotlib.pyplot`` on the Agg back end, or ``None`` (with a note) when not installed."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        log.info("(matplotlib not installed: no plots; pip install matplotlib)")
+        return None
+    return plt
+
+
+def colours(names) -> dict:
+    return {n: COLOURS[i % len(COLOURS)] for i, n in enumerate(names)}
+
+
+def _ess_axis(ax, Ns) -> None:
+    ax.set_ylabel(f"ESS / N (N = {Ns[0]})" if len(Ns) == 1 else "ESS / N (each filter's N)")
+    fractions = [v for line in ax.get_lines() for v in line.get_ydata() if v > 0]
+    if fractions and min(fractions) < 0.1:  # low ESS: a log axis keeps the curves apart
+        ax.set_yscale("log")
+        ax.set_ylim(min(fractions) / 1.5, 1.05)
+    else:
+        ax.set_ylim(0, 1.05)
+
+
+def per_step_figure(plt, per_step, summary, title: str):
+    """Per-step metric means, one panel per metric; a filter keeps its colour on every panel and
+    one legend lists them all. ESS is drawn as a fraction of each filter's N (filters of
+    different N share the axis); a panel says which filters have no value there."""
+    keys = [k for k in ("omat", "ospa", "mse", "ess") if any(k in r for r in per_step)]
+    if not keys:
+        return None
+    names = list(dict.fromkeys(r["filter"] for r in summary))
+    colour = colours(names)
+    n_of = {r["filter"]: r.get("n_particles") for r in summary}
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.6), squeeze=False)
+    handles = {}
+    for ax, key in zip(axes[0], keys):
+        missing = []
+        for name in names:
+            rows = [r for r in per_step if r["filter"] == name and key in r]
+            if not rows:
+                missing.append(name)
+                continue
+            y = [r[key] / n_of[name] if key == "ess" else r[key] for r in rows]
+            (handles[name],) = ax.plot([r["step"] for r in rows], y, color=colour[name], label=name)
+        ax.set_xlabel("time step")
+        if key == "ess":
+            _ess_axis(ax, sorted({n_of[n] for n in names if n not in missing and n_of.get(n)}))
+        else:
+            ax.set_ylabel(_LABELS.get(key, key))
+        if key == "mse":
+            ax.set_yscale("log")
+        if missing:
+            ax.set_title("not defined for: " + ", ".join(missing), fontsize=7)
+        ax.grid(alpha=0.3)
+    fig.legend([handles[n] for n in names if n in handles], [n for n in names if n in handles],
+               loc="lower center", ncol=min(len(handles), 6), fontsize=8, frameon=False)
+    fig.suptitle(title)
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    return fig
+
+
+def tracks_figure(plt, model, trajectory, examples, summary, title: str):
+    """Trial 0 of a tracking model: sensors, true tracks (start marked) and each filter's
+    estimated tracks in the filter's colour. ``None`` without estimates."""
+    if not examples:
+        return None
+    names = list(dict.fromkeys(r["filter"] for r in summary))
+    colour = colours(names)
+    true_pos = model.positions(trajectory.states[0].to(model.dtype)).cpu()  # (T+1, C, 2)
+    fig, ax = plt.subplots(figsize=(5.6, 5.6))
+    sensors = getattr(model, "sensors", None)
+    if sensors is not None:
+        s = sensors.cpu()
+        ax.scatter(s[:, 0], s[:, 1], marker="^", s=18, color="0.6", label="sensors")
+    for c in range(true_pos.shape[1]):
+        ax.plot(true_pos[:, c, 0], true_pos[:, c, 1], color="k", lw=2.2, label="truth" if c == 0 else None)
+        ax.plot(true_pos[0, c, 0], true_pos[0, c, 1], "ko", ms=5)
+    for name in (n for n in names if n in examples):
+        est = model.positions(examples[name].to(model.dtype)).cpu()  # (T, C, 2)
+        for c in range(est.shape[1]):
+            ax.plot(est[:, c, 0], est[:, c, 1], color=colour[name], lw=1.2, ls="--", label=name if c == 0 else None)
+    area = getattr(model, "area", None)
+    if area:
+        ax.set_xlim(-0.03 * area, 1.03 * area)
+        ax.set_ylim(-0.03 * area, 1.03 * area)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1))
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def omat_box_figure(plt, per_trial, summary, title: str):
+    """Per-trial time-averaged OMAT of every filter as a box at the filter's time per step (log
+    axis): accuracy against cost, as seed 004's Fig. 5. ``None`` without OMAT."""
+    names = [r["filter"] for r in summary if r.get("omat") is not None and r.get("sec_per_step")]
+    if not names:
+        return None
+    colour = colours([r["filter"] for r in summary])
+    fig, ax = plt.subplots(figsize=(8.5, 4.2))
+    for name in names:
+        vals = [r["omat"] for r in per_trial if r["filter"] == name and "omat" in r]
+        x = next(r["sec_per_step"] for r in summary if r["filter"] == name)
+        bp = ax.boxplot([vals], positions=[x], widths=[x * 0.25], patch_artist=True, manage_ticks=False)
+        for part in ("boxes", "medians", "whiskers", "caps", "fliers"):
+            for artist in bp[part]:
+                artist.set_color(colour[name])
+        bp["boxes"][0].set_facecolor("none")
+        bp["boxes"][0].set_label(name)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1))
+    ax.set_xscale("log")
+    ax.set_xlabel("seconds per trial-step (this run)")
+    ax.set_ylabel("time-averaged OMAT per trial (m)")
+    ax.grid(alpha=0.3)
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def save_figure(plt, fig, path: Path, **kw) -> Optional[Path]:
+    """Save and close ``fig`` (``None``: nothing); the path written."""
+    if fig is None:
+        return None
+    try:
+        fig.savefig(path, dpi=110, **kw)
+    finally:
+        plt.close(fig)
+    return Path(path)
+
+
+def save_run_figures(out: Path, model, result, model_name: str) -> List[Path]:
+    """``per_step.png``, and for tracking models ``tracks.png`` and ``omat_box.png``, of a run."""
+    plt = pyplot()
+    if plt is None or not result.per_step:
+        return []
+    n = result.config.get("trials", len({r["trial"] for r in result.per_trial}))
+    out = Path(out)
+    paths = [save_figure(plt, per_step_figure(plt, result.per_step, result.summary, f"{model_name}, {n} trials"),
+                         out / "per_step.png")]
+    if model.has_positions and result.trajectory is not None:
+        paths.append(save_figure(plt, tracks_figure(plt, model, result.trajectory, result.examples, result.summary,
+                                                    f"{model_name}: trial 0, true and estimated tracks"),
+                                 out / "tracks.png", bbox_inches="tight"))
+        paths.append(save_figure(plt, omat_box_figure(plt, result.per_trial, result.summary,
+                                                      f"{model_name}: per-trial OMAT against time per step, "
+                                                      f"{n} trials"), out / "omat_box.png"))
+    return [p for p in paths if p is not None]

@@ -1,0 +1,220 @@
+"""Plan a run: check its arguments, simulate the data once, choose every filter's chunks of trials.
+
+A :class:`RunPlan` holds everything the later stages need: the simulated data, the trial range,
+the device and dtype, and per filter its chunks ``[(start, stop), ...]`` of trials. Chunk sizes
+come from the filters' own memory formulas (:meth:`Filter.bytes_per_trial`,
+:meth:`Filter.preferred_chunk_trials`, :meth:`Filter.plan_memory`); trials draw from per-trial
+streams, so the plan never changes a trial's numbers (see :mod:`torchflow.random`).
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
+
+import torch
+
+from .._checks import check_count
+from ..filters.base import Filter
+from ..models.base import StateSpaceModel, Trajectory
+from .distributed import Shard
+from .errors import ConfigError
+
+_DTYPES = {"float64": torch.float64, "float32": torch.float32, "double": torch.float64, "float": torch.float32}
+#: back ends of the per-trial random streams (:class:`~torchflow.random.TrialStreams`)
+RNG_BACKENDS = ("auto", "numpy", "philox")
+#: seeds are in [0, SEED_LIMIT) (torch and numpy generators take a signed 64-bit seed)
+SEED_LIMIT = 2**63
+
+
+def resolve_dtype(dtype: Union[str, torch.dtype]) -> torch.dtype:
+    if isinstance(dtype, torch.dtype):
+        return dtype
+    if dtype not in _DTYPES:
+        raise ConfigError(f"dtype: expected one of {sorted(_DTYPES)}, got {dtype!r}")
+    return _DTYPES[dtype]
+
+
+def resolve_device(device: Union[str, torch.device]) -> torch.device:
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        dev = None
+    if dev is None or dev.type not in ("cpu", "cuda"):
+        raise ConfigError(f"device: expected 'cpu', 'cuda' or 'cuda:<index>', got {device!r}")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device: 'cuda' requested but torch.cuda.is_available() is False "
+                          "(a CPU-only torch build, or no GPU visible)")
+    return dev
+
+
+def check_seed(seed) -> int:
+    """A seed in ``[0, 2**63)``."""
+    try:
+        seed = check_count("seed", seed, minimum=0)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    if seed >= SEED_LIMIT:
+        raise ConfigError(f"seed: expected an integer in [0, 2**63), got {seed}")
+    return seed
+
+
+def check_rng_backend(rng_backend) -> str:
+    if rng_backend not in RNG_BACKENDS:
+        raise ConfigError(f"rng_backend: expected one of {', '.join(RNG_BACKENDS)}, got {rng_backend!r}")
+    return rng_backend
+
+
+def check_trial_range(trial_range, trials: int) -> Tuple[int, int]:
+    if trial_range is None:
+        return 0, trials
+    try:
+        lo, hi = (int(v) for v in trial_range)
+        ok = all(float(v) == int(v) for v in trial_range) and 0 <= lo < hi <= trials
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ConfigError(f"trial_range: expected [start, stop] with 0 <= start < stop <= trials = {trials}, "
+                          f"got {trial_range!r}")
+    return lo, hi
+
+
+def check_budget(memory_budget_gb) -> float:
+    if isinstance(memory_budget_gb, bool) or not isinstance(memory_budget_gb, (int, float)) \
+            or not math.isfinite(memory_budget_gb) or memory_budget_gb <= 0:
+        raise ConfigError(f"memory_budget_gb: expected a positive number of GiB, got {memory_budget_gb!r}")
+    return float(memory_budget_gb)
+
+
+def check_metric_settings(*, ospa_cutoff, ospa_order, lost_threshold) -> dict:
+    """OSPA cut-off (> 0), order (>= 1) and the lost-track threshold (> 0, metres of OMAT)."""
+    rules = {"ospa_cutoff": (ospa_cutoff, 0.0, "a positive number"), "ospa_order": (ospa_order, 1.0, "a number >= 1"),
+             "lost_threshold": (lost_threshold, 0.0, "a positive number of metres")}
+    out = {}
+    for name, (v, low, what) in rules.items():
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        if not ok or v < low or (name != "ospa_order" and v <= low):
+            raise ConfigError(f"metrics.{name}: expected {what}, got {v!r}")
+        out[name] = float(v)
+    return out
+
+
+def _count(name: str, value, hint: str = "") -> int:
+    try:
+        return check_count(name, value, hint=hint)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+
+
+def choose_chunk_size(filters: Mapping[str, Filter], trials: int, memory_budget_gb: float) -> int:
+    """Largest chunk of trials whose estimated per-step memory fits the budget (at least 1)."""
+    per_trial = max((f.bytes_per_trial() for f in filters.values()), default=1)
+    return max(1, min(trials, int(memory_budget_gb * 2**30 // max(per_trial, 1))))
+
+
+def filter_chunk(f: Filter, n_run: int, chunk_size: Optional[int], memory_budget_gb: float) -> int:
+    """A filter's chunk of trials: ``chunk_size`` if given, else the most its memory estimate
+    allows, capped by the filter's preferred batch (local flows slow down past ~1e4 points). When
+    one trial exceeds the budget, a particle filter without ``particle_chunk`` gets one."""
+    if chunk_size:
+        return int(chunk_size)
+    c = choose_chunk_size({"f": f}, n_run, memory_budget_gb)
+    if c == 1 and getattr(f, "particle_chunk", 0) is None:  # one trial may still exceed it: chunk particles
+        pc = f.plan_memory(memory_budget_gb * 2**30)
+        if pc is not None:
+            warnings.warn(f"memory_budget_gb={memory_budget_gb:g}: {f.name} runs one trial at a time in blocks "
+                          f"of {pc} of its {f.n_particles} particles (estimated {f.bytes_per_trial() / 2**30:.3g} "
+                          "GiB per trial); raise the budget if this machine has more memory", stacklevel=2)
+    pref = f.preferred_chunk_trials()
+    return min(c, pref) if pref else c
+
+
+def simulate(model: StateSpaceModel, trials: int, steps: int, inits_per_track: int, generator):
+    """``trials`` trajectories (groups of ``inits_per_track`` share one) and each trial's prior."""
+    n_tracks = math.ceil(trials / inits_per_track)
+    traj = model.simulate(n_tracks, steps, generator)
+    if inits_per_track > 1:
+        rep = lambda t: t.repeat_interleave(inits_per_track, 0)[:trials]  # noqa: E731
+        traj = Trajectory(rep(traj.states), rep(traj.observations))
+    mean, cov = model.initial_belief(traj.states[:, 0], generator)
+    return traj, mean, cov
+
+
+@dataclass
+class RunSettings:
+    """The checked arguments of a run (what :func:`check_settings` returns)."""
+
+    trials: int
+    steps: int
+    seed: int
+    inits_per_track: int
+    chunk_size: Optional[int]
+    memory_budget_gb: float
+    device: torch.device
+    dtype: torch.dtype
+    rng_backend: str
+    lo: int
+    hi: int
+
+    @property
+    def n_run(self) -> int:
+        return self.hi - self.lo
+
+
+def check_settings(*, trials, steps, seed, inits_per_track, chunk_size, memory_budget_gb, device, dtype,
+                   rng_backend, trial_range) -> RunSettings:
+    """Every run argument checked; a bad one raises :class:`ConfigError` naming it."""
+    trials = _count("trials", trials)
+    steps = _count("steps", steps)
+    inits_per_track = _count("inits_per_track", inits_per_track)
+    seed = check_seed(seed)
+    if chunk_size is not None:
+        chunk_size = _count("chunk_size", chunk_size, hint=" (or None: from memory_budget_gb)")
+    budget = check_budget(memory_budget_gb)
+    lo, hi = check_trial_range(trial_range, trials)
+    return RunSettings(trials, steps, seed, inits_per_track, chunk_size, budget, resolve_device(device),
+                       resolve_dtype(dtype), check_rng_backend(rng_backend), lo, hi)
+
+
+@dataclass
+class RunPlan:
+    """The data and the chunks of one run."""
+
+    settings: RunSettings
+    traj: Trajectory
+    mean0: torch.Tensor
+    cov0: torch.Tensor
+    chunks: Dict[str, int]
+    shard: Shard = field(default_factory=Shard)
+
+    def trial_chunks(self, name: str) -> List[Tuple[int, int]]:
+        """Filter ``name``'s chunks ``[(start, stop), ...]`` over the run's trial range."""
+        s, c = self.settings, self.chunks[name]
+        return [(a, min(a + c, s.hi)) for a in range(s.lo, s.hi, c)]
+
+    def meta(self, f: Filter) -> dict:
+        """What a saved chunk's header must repeat (see :class:`~torchflow.runner.checkpoint.ChunkStore`)."""
+        s = self.settings
+        return dict(seed=s.seed, trials=s.trials, steps=s.steps, inits_per_track=s.inits_per_track,
+                    stream=f.stream_name, rng_backend=s.rng_backend, dtype=str(s.dtype), device=s.device.type)
+
+
+def make_plan(model: StateSpaceModel, filters: Mapping[str, Filter], settings: RunSettings,
+              shard: Optional[Shard] = None, simulator=None) -> RunPlan:
+    """Move model and filters to the run's device/dtype, simulate, and choose the chunks.
+    ``simulator``: replaces :func:`simulate` (same signature), e.g. to filter given data."""
+    s = settings
+    model.to(device=s.device, dtype=s.dtype)
+    for name, f in filters.items():
+        if f.model is not model:
+            raise ConfigError(f"filters[{name!r}]: holds a different model instance than `model`")
+        f.to(device=s.device, dtype=s.dtype)
+    gen = torch.Generator(device=s.device).manual_seed(int(s.seed))
+    traj, mean0, cov0 = (simulator or simulate)(model, s.trials, s.steps, s.inits_per_track, gen)
+    shard = shard or Shard()
+    chunks = {name: filter_chunk(f, s.n_run, s.chunk_size, s.memory_budget_gb) for name, f in filters.items()}
+    if shard.world > 1 and not s.chunk_size:  # every rank gets a share
+        chunks = {name: min(c, -(-s.n_run // shard.world)) for name, c in chunks.items()}
+    return RunPlan(s, traj, mean0, cov0, chunks, shard)
+

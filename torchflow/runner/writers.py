@@ -1,0 +1,79 @@
+"""Result files of a run: CSV and JSON, written atomically (a temporary file renamed), so an
+interrupted write never leaves a truncated table beside complete ones."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+from pathlib import Path
+from typing import Iterable, List, Mapping, Optional
+
+from .score import SUMMARY_COLUMNS
+
+#: every file a run may write into its output folder (a reused folder is cleared of these)
+RESULT_FILES = ("summary.csv", "per_step.csv", "per_trial.csv", "results.json", "error.txt",
+                "per_step.png", "tracks.png", "omat_box.png", "scene.png")
+
+
+def _atomic(path: Path, write) -> Path:
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "w", newline="") as fh:
+            write(fh)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def default_columns(rows: Iterable[Mapping]) -> List[str]:
+    """Every key of ``rows``: ``filter``, ``step``, ``trial`` first, then the others sorted."""
+    return sorted({k for r in rows for k in r}, key=lambda k: (k not in ("filter", "step", "trial"), k))
+
+
+def write_csv(path: Path, rows: List[Mapping], columns: Optional[List[str]] = None) -> Path:
+    """Write ``rows`` (``None`` as an empty cell) to ``path`` atomically."""
+    columns = columns or default_columns(rows)
+
+    def write(fh):
+        w = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in columns})
+
+    return _atomic(path, write)
+
+
+def write_json(path: Path, data) -> Path:
+    """Write ``data`` as indented JSON to ``path`` atomically."""
+    return _atomic(path, lambda fh: json.dump(data, fh, indent=2))
+
+
+def write_text(path: Path, text: str) -> Path:
+    return _atomic(path, lambda fh: fh.write(text))
+
+
+def write_run(out: Path, result, config: Mapping) -> List[Path]:
+    """``summary.csv``, ``per_step.csv``, ``per_trial.csv`` and ``results.json`` of an
+    :class:`~torchflow.runner.score.ExperimentResult`; ``config``: the settings to record."""
+    out = Path(out)
+    return [write_csv(out / "summary.csv", result.summary, SUMMARY_COLUMNS),
+            write_csv(out / "per_step.csv", result.per_step),
+            write_csv(out / "per_trial.csv", result.per_trial),
+            write_json(out / "results.json", {
+                "config": dict(config), "run": result.config, "summary": result.summary,
+                "interrupted": result.interrupted, "not_run": result.not_run,
+                "failed": {n: result.failures.get(n) for n in result.failed}})]
+
+
+def clear_results(out: Path) -> List[str]:
+    """Remove the files a run writes (:data:`RESULT_FILES`) from ``out``; the names removed."""
+    gone = []
+    for name in RESULT_FILES:
+        p = Path(out) / name
+        if p.exists():
+            p.unlink()
+            gone.append(name)
+    return gone
