@@ -1,11 +1,11 @@
 """float32 vs float64: accuracy and speed of torchflow's filters in single precision on the
 linear-Gaussian (Table I) and acoustic tracking (Table II, sigma_w = 0.1 and the stiff 0.001) tables.
 
-    python experiments/benchmarks/bench_float32.py                         # LG 20 trials, acoustic 8 x 40
-    python experiments/benchmarks/bench_float32.py --tables lg --out /tmp/lg.md
-    python experiments/benchmarks/bench_float32.py --tables acoustic0.001 --filters ledh,gromov
-    python experiments/benchmarks/bench_float32.py --merge /tmp/lg.json /tmp/a1.json   # one report
-    python experiments/benchmarks/bench_float32.py --quick                 # smoke test (seconds)
+    python -m experiments.benchmarks.bench_float32                 # LG 20 trials, acoustic 8 x 40
+    python -m experiments.benchmarks.bench_float32 --tables lg --out /tmp/lg.md
+    python -m experiments.benchmarks.bench_float32 --tables acoustic0.001 --filters ledh,gromov
+    python -m experiments.benchmarks.bench_float32 --merge /tmp/lg.json /tmp/a1.json   # one report
+    python -m experiments.benchmarks.bench_float32 --quick                 # smoke test (seconds)
 
 How a table is run: the trajectories, observations and priors are simulated ONCE in float64 with
 ``torchflow.experiment``'s own simulator and seed; ``run_experiment`` is then called twice on that
@@ -60,24 +60,18 @@ import argparse
 import contextlib
 import json
 import math
-import os
-import platform
-import sys
 import time
 from pathlib import Path
 from typing import Dict, List, Optional
 
-_REPO = Path(__file__).resolve().parents[2]
-if str(_REPO) not in sys.path:
-    sys.path.insert(0, str(_REPO))
+import torch
 
-import torch  # noqa: E402
+import torchflow.experiment as tfx
+from torchflow.filters import KalmanFilter
+from torchflow.models import AcousticTracking, SensorNetwork
+from torchflow.models.base import Trajectory
 
-import torchflow.experiment as tfx  # noqa: E402
-from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, KalmanFilter,  # noqa: E402
-                               ParticleFlowParticleFilter, UnscentedKalmanFilter)
-from torchflow.models import AcousticTracking, SensorNetwork  # noqa: E402
-from torchflow.models.base import Trajectory  # noqa: E402
+from . import harness as h
 
 NAMES = {"kf": "KF", "ekf": "EKF", "ukf": "UKF", "bpf": "BPF", "ledh": "PF-PF(LEDH)", "edh": "PF-PF(EDH)",
          "gromov": "PF-PF(Gromov)", "geodesic": "PF-PF(Geodesic)"}
@@ -100,13 +94,6 @@ BREAK_RATIO = 10.0
 POINTWISE_TOL = 1e-3
 
 
-def _loadavg():
-    try:
-        return [round(x, 2) for x in os.getloadavg()]
-    except OSError:  # pragma: no cover
-        return None
-
-
 def _kind(table: str) -> str:
     return "lg" if table.partition(" [")[0] == "lg" else "acoustic"
 
@@ -120,18 +107,11 @@ def make_model(table: str, lg_d: int = 64):
 
 
 def make_filter(key: str, model, n: int):
-    if key == "kf":
-        return KalmanFilter(model, name=NAMES[key])
-    if key == "ekf":
-        return ExtendedKalmanFilter(model, name=NAMES[key])
-    if key == "ukf":
-        return UnscentedKalmanFilter(model, name=NAMES[key])
-    if key == "bpf":
-        # repairs are counted (as for the PF-PFs) instead of raising on the first -inf weight
-        return BootstrapParticleFilter(model, n_particles=n, nonfinite="recover", name=NAMES[key])
-    if key in ("ledh", "edh", "gromov", "geodesic"):
-        return ParticleFlowParticleFilter(model, flow=key, n_particles=n, name=NAMES[key])
-    raise ValueError(f"--filters: unknown {key!r}; expected a subset of {','.join(NAMES)}")
+    if key not in NAMES:
+        raise ValueError(f"--filters: unknown {key!r}; expected a subset of {','.join(NAMES)}")
+    # the BPF counts its repairs (as the PF-PFs do) instead of raising on the first -inf weight
+    extra = dict(nonfinite="recover") if key == "bpf" else {}
+    return h.make_filter(key, model, None if key in DETERMINISTIC else n, name=NAMES[key], **extra)
 
 
 @contextlib.contextmanager
@@ -407,9 +387,7 @@ def table_markdown(table: str, rows: List[dict]) -> List[str]:
 
 def markdown(info: dict, rows: List[dict], notes: Optional[List[str]] = None) -> str:
     lines = ["## float32 vs float64 accuracy" + (" (--quick)" if info.get("quick") else ""), "",
-             f"Machine: {info['platform']}, {info['cpus']} CPUs, torch {info['torch']}, "
-             f"{info['threads']} torch thread(s) (single-thread numbers); load at start {info['load_start']}, "
-             f"end {info['load_end']}.",
+             h.machine_line(info),
              f"Command: `{info['command']}`",
              f"Verdict: ok = no table metric worse by more than {info['se_k']} SE (or 0.1 %); degraded / breaks "
              "otherwise (see the script's docstring).", ""]
@@ -453,15 +431,8 @@ def build_parser():
     return ap
 
 
-def _info(a, argv, load0):
-    return dict(platform=platform.platform(), cpus=os.cpu_count(), torch=torch.__version__,
-                threads=torch.get_num_threads(), load_start=load0, load_end=_loadavg(), se_k=a.se_k,
-                quick=a.quick, command="python experiments/benchmarks/bench_float32.py"
-                + (" " + " ".join(argv) if argv else ""))
-
-
 def run(argv=None) -> dict:
-    argv = list(sys.argv[1:] if argv is None else argv)
+    argv = list(argv or [])
     a = build_parser().parse_args(argv)
     if a.merge:
         parts = [json.loads(Path(p).read_text()) for p in a.merge]
@@ -474,34 +445,19 @@ def run(argv=None) -> dict:
         return dict(machine=info, rows=rows, notes=notes, markdown=markdown(info, rows, notes), args=vars(a))
     if a.quick:
         a.lg_trials, a.acoustic_trials, a.steps_acoustic, a.particles_lg, a.particles_acoustic = 3, 2, 4, 50, 100
-    threads0 = torch.get_num_threads()
-    if a.threads:
-        torch.set_num_threads(a.threads)
-    load0 = _loadavg()
+    tables = [t for t in a.tables.split(",") if t]
+    for table in tables:
+        if table not in TABLES and not table.startswith("acoustic"):
+            raise SystemExit(f"--tables: unknown {table!r}; expected a subset of {','.join(TABLES)}")
     rows = []
-    try:
-        for table in [t for t in a.tables.split(",") if t]:
-            if table not in TABLES and not table.startswith("acoustic"):
-                raise SystemExit(f"--tables: unknown {table!r}; expected a subset of {','.join(TABLES)}")
+    with h.torch_threads(a.threads):  # a suite runner's later sections keep their own thread count
+        info = h.machine(se_k=a.se_k, quick=a.quick, command=h.command("bench_float32", argv))
+        for table in tables:
             rows += run_table(table, a)
-        info = _info(a, argv, load0)
-    finally:  # a suite runner's later sections keep their own thread count
-        torch.set_num_threads(threads0)
+        info["load_end"] = h.loadavg()
     notes = list(a.note)
     return dict(machine=info, rows=rows, notes=notes, markdown=markdown(info, rows, notes), args=vars(a))
 
 
-def main(argv=None):
-    res = run(argv)
-    a = argparse.Namespace(**res["args"])
-    out = Path(a.out) if a.out else _REPO / "experiments" / "benchmarks" / (
-        "results_float32_quick.md" if a.quick else "results_float32.md")
-    out.write_text(res["markdown"])
-    out.with_suffix(".json").write_text(json.dumps({k: v for k, v in res.items() if k != "markdown"}, indent=1,
-                                                   default=str))
-    print(res["markdown"])
-    print(f"wrote {out}")
-
-
 if __name__ == "__main__":
-    main()
+    h.main(run, "float32")

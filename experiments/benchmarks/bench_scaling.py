@@ -31,9 +31,9 @@ timed points: the empirical scaling exponent.
 
 Run from the repository root::
 
-    python experiments/benchmarks/bench_scaling.py                      # full (~10-15 min, 2-core CPU)
-    python experiments/benchmarks/bench_scaling.py --quick --threads 1  # smoke test, < 1 min
-    python experiments/benchmarks/bench_scaling.py --curves N --ns 100,1000,10000 --filters bpf,edh
+    python -m experiments.benchmarks.bench_scaling                      # full (~10-15 min, 2-core CPU)
+    python -m experiments.benchmarks.bench_scaling --quick --threads 1  # smoke test, < 1 min
+    python -m experiments.benchmarks.bench_scaling --curves N --ns 100,1000,10000 --filters bpf,edh
 
 Writes ``--out`` (default ``experiments/benchmarks/results_scaling.md``; ``--quick`` defaults to
 ``results_scaling_quick.md`` so a smoke test never overwrites the full results) plus ``.json`` (raw
@@ -43,28 +43,18 @@ can call :func:`run` (which writes only the plot) and use its returned markdown 
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import os
-import platform
-import sys
 import time
 from pathlib import Path
 from typing import Dict, List, Optional
 
-_REPO = Path(__file__).resolve().parents[2]
-if str(_REPO) not in sys.path:
-    sys.path.insert(0, str(_REPO))
+import torch
 
-import torch  # noqa: E402
+from torchflow.models import AcousticTracking, SensorNetwork
 
-from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, KalmanFilter,  # noqa: E402
-                               ParticleFlowParticleFilter)
-from torchflow.models import AcousticTracking, SensorNetwork  # noqa: E402
+from . import harness as h
 
-HERE = Path(__file__).resolve().parent
-LABELS = {"kf": "KF", "ekf": "EKF", "bpf": "BPF", "edh": "PF-PF(EDH)", "ledh": "PF-PF(LEDH)",
-          "gromov": "PF-PF(Gromov)"}
+LABELS = {k: h.LABELS[k] for k in ("kf", "ekf", "bpf", "edh", "ledh", "gromov")}
 CURVE_FILTERS = {"N": ("bpf", "edh", "ledh", "gromov"),
                  "d": ("kf", "bpf", "edh", "ledh", "gromov"),
                  "B": ("kf", "ekf", "bpf", "edh", "ledh", "gromov")}
@@ -143,25 +133,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     if a.steps < 1 or a.trials < 1:
         raise SystemExit("--steps and --trials must be >= 1")
     if a.out is None:
-        a.out = str(HERE / ("results_scaling_quick.md" if a.quick else "results_scaling.md"))
+        a.out = str(h.results_path("scaling", a.quick))
     return a
-
-
-# ---------------------------------------------------------------------------------------------
-# machine
-# ---------------------------------------------------------------------------------------------
-def _cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
-
-
-def _load() -> Optional[List[float]]:
-    return [round(v, 2) for v in os.getloadavg()] if hasattr(os, "getloadavg") else None
 
 
 def _available_bytes(device: torch.device) -> Optional[int]:
@@ -176,28 +149,9 @@ def _available_bytes(device: torch.device) -> Optional[int]:
     return None
 
 
-def machine_info(device: torch.device) -> dict:
-    info = {"platform": platform.platform(), "python": platform.python_version(), "cpu": _cpu_name(),
-            "cpus": os.cpu_count(), "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
-            "device": str(device), "load_start": _load()}
-    if device.type == "cuda":
-        info["gpu"] = torch.cuda.get_device_name(device)
-    return info
-
-
 # ---------------------------------------------------------------------------------------------
 # points
 # ---------------------------------------------------------------------------------------------
-def build_filter(key: str, model, N: Optional[int]):
-    if key == "kf":
-        return KalmanFilter(model)
-    if key == "ekf":
-        return ExtendedKalmanFilter(model)
-    if key == "bpf":
-        return BootstrapParticleFilter(model, n_particles=N)
-    return ParticleFlowParticleFilter(model, flow=key, n_particles=N)
-
-
 class _Data:
     """Models and simulated data, built once per (model, size) and sliced per point."""
 
@@ -228,28 +182,14 @@ class _Data:
         return tuple(t[:trials] for t in have)
 
 
-def _sync(device):
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def time_point(filt, obs, mean, cov, chunk: int, device, seed: int, time_budget: float) -> List[float]:
     """Warm-up call (1 trial x 1 step), then timed runs over all trials in calls of ``chunk``
-    trials until ``time_budget`` seconds are spent (at least one run). Returns each run's seconds."""
+    trials until ``time_budget`` seconds are spent (at least once). Returns each run's seconds."""
     g = torch.Generator(device=device).manual_seed(seed)
-    B = obs.shape[0]
-    times: List[float] = []
-    with torch.no_grad():
-        filt(obs[:1, :1], mean[:1], cov[:1], g)
-        _sync(device)
-        while True:
-            t0 = time.perf_counter()
-            for i in range(0, B, chunk):
-                filt(obs[i:i + chunk], mean[i:i + chunk], cov[i:i + chunk], g)
-            _sync(device)
-            times.append(time.perf_counter() - t0)
-            if sum(times) >= time_budget or len(times) >= MAX_REPEATS:
-                return times
+    same = lambda start, stop: g  # noqa: E731  (one generator for every call)
+    h.filter_chunks(filt, obs[:1, :1], mean[:1], cov[:1], None, same)
+    return h.time_calls(lambda: h.filter_chunks(filt, obs, mean, cov, chunk, same), budget=time_budget,
+                        max_repeats=MAX_REPEATS, device=device).times
 
 
 def _extrapolate(history: List[tuple], x: int) -> Optional[float]:
@@ -303,7 +243,7 @@ def run_curve(curve: str, args, data: _Data, device, log) -> List[dict]:
         hist = history.setdefault(key, [])
         try:
             model = data.model(mname, d)
-            filt = build_filter(key, model, N)
+            filt = h.make_filter(key, model, N)
             per_trial = filt.bytes_per_trial(N)
             fit = max(1, budget // max(per_trial, 1))
             if curve == "B":
@@ -412,15 +352,9 @@ def curve_heading(curve: str, a) -> str:
             f"the Gaussian filter on the nonlinear acoustic model, where the KF does not apply.")
 
 
-def markdown(rows: List[dict], a, info: dict, command: str) -> str:
-    load_s, load_e = info.get("load_start"), info.get("load_end")
-    fmt = lambda v: "/".join(f"{x:g}" for x in v) if v else "n/a"  # noqa: E731
-    gpu = f", GPU {info['gpu']}" if "gpu" in info else ""
-    out = ["## Scaling benchmark: seconds per trial-step", "",
-           f"Machine: {info['platform']}, {info['cpu']}, {info['cpus']} CPUs, torch {info['torch']} "
-           f"({info['torch_threads']} threads), device {info['device']}{gpu}, {a.dtype}; "
-           f"load average (1/5/15 min) {fmt(load_s)} at start, {fmt(load_e)} at end.", "",
-           f"Command: `{command}`", "",
+def markdown(rows: List[dict], a, info: dict) -> str:
+    out = ["## Scaling benchmark: seconds per trial-step", "", f"{h.machine_line(info)} {a.dtype}.", "",
+           f"Command: `{info['command']}`", "",
            "Each cell is seconds per trial-step = best timed run / (trials x steps), after one untimed "
            "warm-up call (1 trial x 1 step, same N), under `torch.no_grad()`; runs are repeated until "
            f"they add up to {a.time_budget:g} s (at least once). N and d curves: trials split into calls of "
@@ -503,46 +437,24 @@ def plot(rows: List[dict], a, path: Path) -> Optional[str]:
 def run(argv=None) -> dict:
     """Run the benchmark; returns ``{"machine", "rows", "markdown", "plot", "args"}``. Draws the PNG
     (unless ``--no-plot``) but writes no markdown/JSON: :func:`main` does."""
-    argv = list(sys.argv[1:] if argv is None else argv)
     a = parse_args(argv)
     device = torch.device(a.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("--device cuda: CUDA is not available")
-    dtype = getattr(torch, a.dtype)
-    old_threads = torch.get_num_threads()
-    if a.threads:
-        torch.set_num_threads(a.threads)
     log = (lambda s: None) if a.quiet else (lambda s: print(s, flush=True))
-    try:
-        info = machine_info(device)
-        data = _Data(a, device, dtype)
+    with h.torch_threads(a.threads):
+        info = h.machine(device, command=h.command("bench_scaling", argv))
+        data = _Data(a, device, getattr(torch, a.dtype))
         t0 = time.perf_counter()
         rows: List[dict] = []
         for curve in a.curves:
             rows += run_curve(curve, a, data, device, log)
-        info["load_end"] = _load()
+        info["load_end"] = h.loadavg()
         info["total_s"] = round(time.perf_counter() - t0, 1)
-        command = "python experiments/benchmarks/bench_scaling.py" + "".join(f" {x}" for x in argv)
-        md = markdown(rows, a, info, command)
+        md = markdown(rows, a, info)
         png = None if a.no_plot else plot(rows, a, Path(a.out).with_suffix(".png"))
-    finally:
-        torch.set_num_threads(old_threads)
-    args = {k: v for k, v in vars(a).items()}
-    return {"machine": info, "rows": rows, "markdown": md, "plot": png, "args": args}
-
-
-def main(argv=None):
-    res = run(argv)
-    out = Path(res["args"]["out"])
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(res["markdown"] + "\n")
-    out.with_suffix(".json").write_text(json.dumps(
-        {k: res[k] for k in ("machine", "args", "rows", "plot")}, indent=2, default=str) + "\n")
-    print()
-    print(res["markdown"])
-    print(f"wrote {out}, {out.with_suffix('.json')}" + (f", {res['plot']}" if res["plot"] else ""))
-    print(f"total {res['machine']['total_s']} s")
+    return {"machine": info, "rows": rows, "markdown": md, "plot": png, "args": vars(a)}
 
 
 if __name__ == "__main__":
-    main()
+    h.main(run, "scaling")
