@@ -349,39 +349,32 @@ def table_markdown(table: str, rows: List[dict]) -> List[str]:
     ctrl = any(r.get("control") for r in rows)
     if ctrl:
         head.append("control: float64 re-run's verdict")
-    out += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for r in rows:
-        cells = [r["filter"], _g(r["n_particles"], "{}")]
-        for m in mets:
-            v = r["metrics"].get(m)
-            if not v:
-                cells.append("-")
-                continue
-            se = f" ± {_g(v['se'], '{:.2g}')}" if v["se"] is not None else ""
-            z = f", z {_z(v['z'])}" if v["z"] is not None else ""
-            cells.append(f"{_g(v['f64'], '{:.4g}')}{se} / {_g(v['f32'], '{:.4g}')} ({_pct(v['rel'])}{z})")
-        if kind == "acoustic":
-            cells.append(f"{_g(r['lost64'], '{}')} / {_g(r['lost32'], '{}')}")
-        cells += [f"{_g(r['repaired64'], '{}')} / {_g(r['repaired32'], '{}')}", _g(r["sec_per_step64"], "{:.3g}"),
-                  _g(r["sec_per_step32"], "{:.3g}"), _g(r["speedup"], "{:.2f}x"),
-                  f"**{r['verdict']}**" + (f": {r['reason']}" if r["reason"] else "")]
-        if ctrl:
-            c = r.get("control")
-            cells.append("-" if not c else c["verdict"] + (f": {c['reason']}" if c["reason"] else ""))
-        out.append("| " + " | ".join(cells) + " |")
+    def cell(v):
+        if not v:
+            return "-"
+        se = f" ± {_g(v['se'], '{:.2g}')}" if v["se"] is not None else ""
+        z = f", z {_z(v['z'])}" if v["z"] is not None else ""
+        return f"{_g(v['f64'], '{:.4g}')}{se} / {_g(v['f32'], '{:.4g}')} ({_pct(v['rel'])}{z})"
+
+    def verdict(r, bold=True):
+        return (f"**{r['verdict']}**" if bold else r["verdict"]) + (f": {r['reason']}" if r["reason"] else "")
+
+    out += h.md_table(head, [
+        [r["filter"], _g(r["n_particles"], "{}")] + [cell(r["metrics"].get(m)) for m in mets]
+        + ([f"{_g(r['lost64'], '{}')} / {_g(r['lost32'], '{}')}"] if kind == "acoustic" else [])
+        + [f"{_g(r['repaired64'], '{}')} / {_g(r['repaired32'], '{}')}", _g(r["sec_per_step64"], "{:.3g}"),
+           _g(r["sec_per_step32"], "{:.3g}"), _g(r["speedup"], "{:.2f}x"), verdict(r)]
+        + ([verdict(r["control"], bold=False) if r.get("control") else "-"] if ctrl else []) for r in rows])
     det = [r for r in rows if r.get("max_est_diff_rel") is not None]
     if det:
-        out += ["", "Kalman-type filters point by point (no random numbers; float32 - float64 on the same data):", "",
-                "| filter | first step: max abs(dx) / max abs(x_true) | all steps: max abs(dx) | max abs(dx) / max abs(x_true) "
-                "| max abs(d log Z) | max abs(d log Z) / abs(log Z) |",
-                "|---|---|---|---|---|---|"]
-        for r in det:
-            out.append(f"| {r['filter']} | {_g(r.get('first_step_diff_rel'))} | {_g(r['max_est_diff'])} | "
-                       f"{_g(r['max_est_diff_rel'])} | "
-                       f"{_g(r['max_logz_diff'])} | {_g(r['max_logz_diff_rel'])} |")
-    errs = [r for r in rows if r["error64"] or r["error32"]]
-    for r in errs:
-        out.append(f"- {r['filter']}: float64 error: {r['error64'] or '-'}; float32 error: {r['error32'] or '-'}")
+        out += ["", "Kalman-type filters point by point (no random numbers; float32 - float64 on the same data):", ""]
+        out += h.md_table(["filter", "first step: max abs(dx) / max abs(x_true)", "all steps: max abs(dx)",
+                           "max abs(dx) / max abs(x_true)", "max abs(d log Z)", "max abs(d log Z) / abs(log Z)"],
+                          [[r["filter"]] + [_g(r.get(k)) for k in ("first_step_diff_rel", "max_est_diff",
+                                                                    "max_est_diff_rel", "max_logz_diff",
+                                                                    "max_logz_diff_rel")] for r in det])
+    out += [f"- {r['filter']}: float64 error: {r['error64'] or '-'}; float32 error: {r['error32'] or '-'}"
+            for r in rows if r["error64"] or r["error32"]]
     return out + [""]
 
 

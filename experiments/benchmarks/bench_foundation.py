@@ -48,29 +48,14 @@ What is measured (seconds per trial-step = wall time / (trials * steps), one run
    against the true states (averaged over trials, steps and coordinates), with the exact Kalman
    MSE on the same trials as the floor. Goal (issue): ours >= 2x faster (at each N).
 
-Threads: torchflow runs with ``--threads`` torch threads (default: torch's default). The numpy /
-scipy peers run with their BLAS limited to ``--peer-threads`` (default 1, via threadpoolctl);
-pass ``--peer-threads 0`` to leave BLAS at its default. Both settings are printed.
+Threads: torchflow runs with ``--threads`` torch threads (default: torch's default); the numpy /
+scipy peers with their BLAS limited to ``--peer-threads`` (default 1, via threadpoolctl; 0 leaves
+BLAS at its default). A failed agreement check raises ``CheckFailed`` (exit with its message).
+Each row has ``name``, ``setting``, ``per_ts_ours``, ``per_ts_peer``, ``ratio`` (peer / ours),
+``goal`` and ``met``, or ``status = "skipped: <library> not installed"`` and no numbers.
 
-Run from the repository root (a few minutes with the defaults on a 2-core machine)::
-
-    python -m experiments.benchmarks.bench_foundation
+    python -m experiments.benchmarks.bench_foundation             # a few minutes on 2 cores
     python -m experiments.benchmarks.bench_foundation --quick     # smoke test, < 30 s
-
-A peer library that is not installed (``pip install -e ".[bench]"``) turns its rows into
-``skipped: <library> not installed`` rows; the other rows still run.
-
-The markdown table is printed and written to ``--out`` (default
-``experiments/benchmarks/results_foundation.md``; ``--quick`` defaults to
-``results_foundation_quick.md`` so a smoke test never overwrites the full results), with the raw
-numbers in a JSON file of the same name next to it.
-
-From another script, ``run(argv)`` (``argv`` a list of the same options) runs the benchmarks
-without writing files and returns ``{"machine": {...}, "rows": [...], "markdown": str, "args":
-{...}}``; each row has at least ``name``, ``setting``, ``per_ts_ours``, ``per_ts_peer``, ``ratio``
-(peer / ours), ``goal`` (float or None) and ``met`` (bool or None). A failed agreement check
-raises :class:`~experiments.benchmarks.harness.CheckFailed` (the command line turns it into
-``SystemExit``).
 """
 from __future__ import annotations
 
@@ -86,10 +71,9 @@ from torchflow.models import SensorNetwork
 from . import harness as h
 from .harness import CheckFailed
 
+NAMES = {"kf": "Kalman filter vs filterpy", "ukf": "UKF vs filterpy", "bpf": "Bootstrap PF vs particles"}
 
-# ---------------------------------------------------------------------------------------------
-# helpers
-# ---------------------------------------------------------------------------------------------
+
 def mse(est: np.ndarray, truth: np.ndarray) -> float:
     return float(np.mean((est - truth) ** 2))
 
@@ -113,17 +97,48 @@ def per_n(values: list, n_count: int, option: str) -> list:
     return values
 
 
-def skipped_row(name: str, setting: str, library: str, goal=None) -> dict:
+def skipped_row(key: str, setting: str, library: str, goal=None) -> dict:
     """The row of a benchmark whose peer ``library`` is not installed."""
-    print(f"[{name}] {h.skipped(library)}")
-    return dict(name=name, setting=setting, status=h.skipped(library), per_ts_ours=None, per_ts_peer=None,
+    return dict(name=NAMES[key], setting=setting, status=h.skipped(library), per_ts_ours=None, per_ts_peer=None,
                 ratio=None, goal=goal, met=None)
 
 
-def time_ours(f, args_, repeats: int):
-    """Best of ``repeats`` calls ``f(*args_)`` under ``torch.no_grad()`` after one warm-up call."""
-    with torch.no_grad():
-        return h.time_calls(lambda: f(*args_), repeats=repeats, warmup=1)
+def timed_row(key, setting, B, P, T, t_ours, t_peer, goal, **numbers) -> dict:
+    """A row's times: total seconds, per trial-step (the trial counts may differ), ratio, goal."""
+    per_ours, per_peer = t_ours / (B * T), t_peer / (P * T)
+    return dict(name=NAMES[key], setting=setting, trials_ours=B, trials_peer=P, steps=T, s_ours=t_ours,
+                s_peer=t_peer, per_ts_ours=per_ours, per_ts_peer=per_peer, ratio=per_peer / per_ours, goal=goal,
+                met=None if goal is None else per_peer / per_ours >= goal, **numbers)
+
+
+def check_line(r) -> str:
+    """The row's agreement / accuracy line (printed, and listed under the table)."""
+    if r.get("status"):
+        return f"- {r['name']} ({r['setting']}): {r['status']}."
+    if "particles" in r:
+        o = r["mse_ours_peer_trials"]
+        return (f"- BPF N={r['particles']} MSE vs truth: ours {r['mse_ours']:.4f} over {r['trials_ours']} trials "
+                f"(exact KF {r['mse_kf']:.4f}); particles {r['mse_peer']:.4f} over {r['trials_peer']} trials "
+                f"(exact KF {r['mse_kf_peer_trials']:.4f}" + (f", ours on the same trials {o:.4f}" if o is not None else "")
+                + f"). RMS distance to the KF mean: ours {r['rmse_to_kf_ours']:.4f}, "
+                  f"particles {r['rmse_to_kf_peer']:.4f}. Ours mean ESS {r['mean_ess_ours']:.1f}.")
+    if "alpha" in r:
+        return (f"- UKF vs filterpy (MerweScaledSigmaPoints alpha={r['alpha']:g}, beta={r['beta']:g}, "
+                f"kappa={r['kappa']:g} on both): max |estimate diff| {r['max_abs_diff_estimates']:.2e} over "
+                f"{r['compared_trials']} trials (< 1e-6 required); max |diff| to the exact KF: ours "
+                f"{r['max_abs_diff_to_kf_ours']:.2e}, filterpy {r['max_abs_diff_to_kf_peer']:.2e}; "
+                f"|log-evidence diff| (trial 0) {r['log_evidence_diff_trial0']:.2e}; MSE {r['mse_ours']:.4f}.")
+    return (f"- KF vs filterpy: max |estimate diff| {r['max_abs_diff_estimates']:.2e} (< 1e-8 required), "
+            f"|log-evidence diff| (trial 0) {r['log_evidence_diff_trial0']:.2e}; MSE {r['mse_ours']:.4f}.")
+
+
+def report(r) -> dict:
+    """Print a row's times and its check line as it completes."""
+    if not r.get("status"):
+        print(f"[{r['name']}] {r['setting']}: ours {r['per_ts_ours']:.3e}, peer {r['per_ts_peer']:.3e} "
+              f"s/trial-step, ratio {r['ratio']:.1f}x")
+    print(check_line(r), flush=True)
+    return r
 
 
 def run_filterpy(f, x0, P0, Z, trials: int, args):
@@ -160,54 +175,6 @@ def run_filterpy(f, x0, P0, Z, trials: int, args):
     return t.min, t.result, ll_peer, peer_blas
 
 
-def model_matrices(model):
-    return (getattr(model, k).numpy().copy() for k in ("F", "Q", "H", "R"))
-
-
-# ---------------------------------------------------------------------------------------------
-# 1. Kalman filter vs filterpy
-# ---------------------------------------------------------------------------------------------
-def bench_kf(args):
-    B, T, d = args.kf_trials, args.steps, args.d
-    setting = f"d={d}, B={B}, T={T}"
-    filterpy = h.peer("filterpy", "kalman")
-    if filterpy is None:
-        return skipped_row("Kalman filter vs filterpy", setting, "filterpy", 50.0)
-    model = SensorNetwork(d=d)
-    traj, mean, cov = h.simulate(model, B, T, args.seed)
-    t = time_ours(h.make_filter("kf", model), (traj.observations, mean, cov), args.kf_repeats)
-    t_ours, res = t.min, t.result
-    est_ours = res.estimates.numpy()
-
-    fkf = filterpy.kalman.KalmanFilter(dim_x=d, dim_z=d)
-    fkf.F, fkf.Q, fkf.H, fkf.R = model_matrices(model)
-    t_peer, est_peer, ll_peer, peer_blas = run_filterpy(fkf, mean.numpy(), cov.numpy(), traj.observations.numpy(),
-                                                        B, args)
-
-    diff = float(np.abs(est_ours - est_peer).max())
-    ll_diff = abs(float(res.log_evidence[0]) - ll_peer)
-    truth = traj.states[:, 1:].numpy()
-    steps = B * T
-    r = dict(
-        name="Kalman filter vs filterpy", d=d, trials_ours=B, trials_peer=B, steps=T,
-        s_ours=t_ours, s_peer=t_peer,
-        per_ts_ours=t_ours / steps, per_ts_peer=t_peer / steps, ratio=t_peer / t_ours, goal=50.0,
-        max_abs_diff_estimates=diff, log_evidence_diff_trial0=ll_diff,
-        mse_ours=mse(est_ours, truth), mse_peer=mse(est_peer, truth), peer_blas=peer_blas, setting=setting,
-    )
-    r["met"] = r["ratio"] >= r["goal"]
-    print(f"[KF] d={d} B={B} T={T}: ours {t_ours:.4f}s ({r['per_ts_ours']:.3e} s/trial-step), "
-          f"filterpy {t_peer:.4f}s ({r['per_ts_peer']:.3e} s/trial-step), ratio {r['ratio']:.1f}x")
-    print(f"[KF] max |estimate diff| = {diff:.3e} (must be < 1e-8), "
-          f"|log-evidence diff| trial 0 = {ll_diff:.3e}, MSE = {r['mse_ours']:.4f}")
-    if not diff < 1e-8:
-        raise CheckFailed(f"KF estimates disagree with filterpy (max diff {diff:.3e}): comparison invalid")
-    return r
-
-
-# ---------------------------------------------------------------------------------------------
-# 2. Unscented Kalman filter vs filterpy
-# ---------------------------------------------------------------------------------------------
 def cholesky_upper_jitter(A: np.ndarray, max_tries: int = 6) -> np.ndarray:
     """filterpy's default sigma-point square root (``scipy.linalg.cholesky``, upper) with the same
     jitter fallback as ``torchflow.linalg.safe_cholesky``: needed for the known ``x_0`` (P = 0)."""
@@ -226,60 +193,56 @@ def cholesky_upper_jitter(A: np.ndarray, max_tries: int = 6) -> np.ndarray:
     raise np.linalg.LinAlgError("cholesky_upper_jitter: matrix not positive definite even with jitter")
 
 
-def bench_ukf(args):
-    B, P, T, d = args.kf_trials, args.ukf_peer_trials, args.steps, args.d
+def bench_filterpy(args, kind: str) -> dict:
+    """1. (``kind="kf"``) and 2. (``kind="ukf"``) above."""
+    B, T, d = args.kf_trials, args.steps, args.d
+    P = B if kind == "kf" else args.ukf_peer_trials
     model = SensorNetwork(d=d)
-    ukf = h.make_filter("ukf", model, alpha=args.ukf_alpha, beta=args.ukf_beta, kappa=args.ukf_kappa)
-    a, b, k = ukf.alpha, ukf.beta, ukf.kappa  # the peer takes exactly these
-    setting = f"d={d}, T={T}, ours B={B}, peer B={P}, alpha={a:g}, beta={b:g}, kappa={k:g}"
+    ukf_params = dict(alpha=args.ukf_alpha, beta=args.ukf_beta, kappa=args.ukf_kappa) if kind == "ukf" else {}
+    ours = h.make_filter(kind, model, **ukf_params)
+    if kind == "ukf":  # the peer takes exactly our alpha, beta, kappa
+        ukf_params = dict(alpha=ours.alpha, beta=ours.beta, kappa=ours.kappa)
+        setting = f"d={d}, T={T}, ours B={B}, peer B={P}, " + ", ".join(f"{k}={v:g}" for k, v in ukf_params.items())
+    else:
+        setting = f"d={d}, B={B}, T={T}"
+    goal, tol = (50.0, 1e-8) if kind == "kf" else (None, 1e-6)
     filterpy = h.peer("filterpy", "kalman")
     if filterpy is None:
-        return skipped_row("UKF vs filterpy", setting, "filterpy")
-    traj, mean_all, cov_all = h.simulate(model, max(B, P), T, args.seed)
-    t = time_ours(ukf, (traj.observations[:B], mean_all[:B], cov_all[:B]), args.kf_repeats)
-    t_ours, res = t.min, t.result
-    est_ours = res.estimates.numpy()
-    with torch.no_grad():  # exact KF on all trials (untimed): both UKFs must equal it
-        est_kf = h.make_filter("kf", model)(traj.observations, mean_all, cov_all).estimates.numpy()
-
-    F, Q, H, R = model_matrices(model)
-    points = filterpy.kalman.MerweScaledSigmaPoints(n=d, alpha=a, beta=b, kappa=k, sqrt_method=cholesky_upper_jitter)
-    fukf = filterpy.kalman.UnscentedKalmanFilter(dim_x=d, dim_z=d, dt=1.0, fx=lambda x, dt: F @ x,
-                                                 hx=lambda x: H @ x, points=points)
-    fukf.Q, fukf.R = Q, R
-    t_peer, est_peer, ll_peer, peer_blas = run_filterpy(fukf, mean_all.numpy(), cov_all.numpy(),
-                                                        traj.observations.numpy(), P, args)
-
-    n_cmp = min(B, P)
-    diff = float(np.abs(est_ours[:n_cmp] - est_peer[:n_cmp]).max())
-    diff_kf_ours = float(np.abs(est_ours - est_kf[:B]).max())
-    diff_kf_peer = float(np.abs(est_peer - est_kf[:P]).max())
-    ll_diff = abs(float(res.log_evidence[0]) - ll_peer)
+        return skipped_row(kind, setting, "filterpy", goal)
+    traj, mean, cov = h.simulate(model, max(B, P), T, args.seed)
+    with torch.no_grad():
+        t = h.time_calls(lambda: ours(traj.observations[:B], mean[:B], cov[:B]), repeats=args.kf_repeats, warmup=1)
+    est_ours = t.result.estimates.numpy()
+    F, Q, H, R = (getattr(model, k).numpy().copy() for k in ("F", "Q", "H", "R"))
+    if kind == "kf":
+        peer = filterpy.kalman.KalmanFilter(dim_x=d, dim_z=d)
+        peer.F, peer.H = F, H
+    else:
+        points = filterpy.kalman.MerweScaledSigmaPoints(n=d, sqrt_method=cholesky_upper_jitter, **ukf_params)
+        peer = filterpy.kalman.UnscentedKalmanFilter(dim_x=d, dim_z=d, dt=1.0, fx=lambda x, dt: F @ x,
+                                                     hx=lambda x: H @ x, points=points)
+    peer.Q, peer.R = Q, R
+    t_peer, est_peer, ll_peer, peer_blas = run_filterpy(peer, mean.numpy(), cov.numpy(), traj.observations.numpy(),
+                                                        P, args)
+    n = min(B, P)
     truth = traj.states[:, 1:].numpy()
-    per_ours, per_peer = t_ours / (B * T), t_peer / (P * T)
-    r = dict(
-        name="UKF vs filterpy", d=d, trials_ours=B, trials_peer=P, steps=T,
-        alpha=a, beta=b, kappa=k, s_ours=t_ours, s_peer=t_peer,
-        per_ts_ours=per_ours, per_ts_peer=per_peer, ratio=per_peer / per_ours, goal=None, met=None,
-        max_abs_diff_estimates=diff, compared_trials=n_cmp, max_abs_diff_to_kf_ours=diff_kf_ours,
-        max_abs_diff_to_kf_peer=diff_kf_peer, log_evidence_diff_trial0=ll_diff,
-        mse_ours=mse(est_ours, truth[:B]), mse_peer=mse(est_peer, truth[:P]), peer_blas=peer_blas, setting=setting,
-    )
-    print(f"[UKF] d={d} T={T} alpha={a:g} beta={b:g} kappa={k:g}: ours B={B} {t_ours:.4f}s "
-          f"({per_ours:.3e} s/trial-step), filterpy B={P} {t_peer:.4f}s ({per_peer:.3e} s/trial-step), "
-          f"ratio {r['ratio']:.1f}x")
-    print(f"[UKF] max |estimate diff| vs filterpy = {diff:.3e} over {n_cmp} trials (must be < 1e-6); "
-          f"to the exact KF: ours {diff_kf_ours:.3e}, filterpy {diff_kf_peer:.3e}; "
-          f"|log-evidence diff| trial 0 = {ll_diff:.3e}; MSE = {r['mse_ours']:.4f}")
-    if not diff < 1e-6:
-        raise CheckFailed(f"UKF estimates disagree with filterpy (max diff {diff:.3e}): comparison invalid")
+    r = timed_row(kind, setting, B, P, T, t.min, t_peer, goal, d=d,
+                  max_abs_diff_estimates=float(np.abs(est_ours[:n] - est_peer[:n]).max()),
+                  log_evidence_diff_trial0=abs(float(t.result.log_evidence[0]) - ll_peer),
+                  mse_ours=mse(est_ours, truth[:B]), mse_peer=mse(est_peer, truth[:P]), peer_blas=peer_blas)
+    if kind == "ukf":  # on this linear model both UKFs equal the exact KF (untimed)
+        with torch.no_grad():
+            est_kf = h.make_filter("kf", model)(traj.observations, mean, cov).estimates.numpy()
+        r.update(ukf_params, compared_trials=n, max_abs_diff_to_kf_ours=float(np.abs(est_ours - est_kf[:B]).max()),
+                 max_abs_diff_to_kf_peer=float(np.abs(est_peer - est_kf[:P]).max()))
+    if not r["max_abs_diff_estimates"] < tol:
+        raise CheckFailed(f"{kind.upper()} estimates disagree with filterpy (max diff "
+                          f"{r['max_abs_diff_estimates']:.3e}): comparison invalid")
     return r
 
 
-# ---------------------------------------------------------------------------------------------
-# 3. Bootstrap PF vs particles
-# ---------------------------------------------------------------------------------------------
-def bench_bpf(args, N: int, bpf_trials: int, peer_trials: int):
+def bench_bpf(args, N: int, bpf_trials: int, peer_trials: int) -> dict:
+    """3. above, at ``N`` particles."""
     T, d, P = args.steps, args.d, peer_trials
     model = SensorNetwork(d=d)
     bpf = h.make_filter("bpf", model, N, resampling="systematic", ess_threshold=0.5)
@@ -287,8 +250,8 @@ def bench_bpf(args, N: int, bpf_trials: int, peer_trials: int):
     setting = f"d={d}, N={N}, T={T}, ours B={bpf_trials} ({min(chunk, bpf_trials)} per call), peer B={P}"
     particles = h.peer("particles", "collectors", "distributions", "state_space_models")
     if particles is None:
-        return skipped_row("Bootstrap PF vs particles", setting, "particles", 2.0)
-    collectors, dists, ssms = particles.collectors, particles.distributions, particles.state_space_models
+        return skipped_row("bpf", setting, "particles", 2.0)
+    dists, ssms = particles.distributions, particles.state_space_models
     traj, mean, cov = h.simulate(model, max(bpf_trials, peer_trials), T, args.seed + 1)
     obs_ours, mean_ours, cov_ours = traj.observations[:bpf_trials], mean[:bpf_trials], cov[:bpf_trials]
 
@@ -297,13 +260,11 @@ def bench_bpf(args, N: int, bpf_trials: int, peer_trials: int):
         return torch.cat([p.estimates for p in parts]), torch.cat([p.ess for p in parts], 0)
 
     t = h.time_calls(ours, repeats=args.repeats, warmup=1)
-    t_ours, (est, ess_ours) = t.min, t.result
-    est_ours = est.numpy()
+    est_ours, ess_ours = t.result[0].numpy(), t.result[1]
     with torch.no_grad():  # exact KF on the same trials: the MSE floor
         est_kf = h.make_filter("kf", model)(traj.observations, mean, cov).estimates.numpy()
 
-    F, Q, _, R = model_matrices(model)
-    m0 = model.m0.numpy().copy()
+    F, Q, R, m0 = (getattr(model, k).numpy().copy() for k in ("F", "Q", "R", "m0"))
     alpha = float(F[0, 0])
     if not np.allclose(F, alpha * np.eye(d)):
         raise CheckFailed("the particles peer model assumes F = alpha * I")
@@ -322,7 +283,7 @@ def bench_bpf(args, N: int, bpf_trials: int, peer_trials: int):
 
     def smc(data, n):
         return particles.SMC(fk=ssms.Bootstrap(ssm=LGSensorNetwork(), data=data), N=n, resampling="systematic",
-                             ESSrmin=0.5, collect=[collectors.Moments(mom_func=lambda W, X: W @ X)])
+                             ESSrmin=0.5, collect=[particles.collectors.Moments(mom_func=lambda W, X: W @ X)])
 
     Z = traj.observations.numpy()
 
@@ -338,82 +299,27 @@ def bench_bpf(args, N: int, bpf_trials: int, peer_trials: int):
     with h.blas_limit(args.peer_threads):
         peer_blas = h.blas_threads()
         smc(Z[0, :2], min(N, 1000)).run()  # one short untimed trial: first-call import / allocation costs
-        t = h.time_calls(peer, repeats=args.peer_repeats)
-    t_peer, est_peer = t.min, t.result
-
-    truth = traj.states[:, 1:].numpy()
-    per_ours = t_ours / (bpf_trials * T)
-    per_peer = t_peer / (P * T)
-    r = dict(
-        name="Bootstrap PF vs particles", d=d, particles=N, trials_ours=bpf_trials, trials_peer=P,
-        steps=T, s_ours=t_ours, s_peer=t_peer, per_ts_ours=per_ours, per_ts_peer=per_peer,
-        ratio=per_peer / per_ours, goal=2.0,
-        mse_ours=mse(est_ours, truth[: bpf_trials]),
-        mse_ours_peer_trials=mse(est_ours[:P], truth[:P]) if P <= bpf_trials else None,
-        mse_peer=mse(est_peer, truth[:P]),
-        mse_kf=mse(est_kf[: bpf_trials], truth[: bpf_trials]),
-        mse_kf_peer_trials=mse(est_kf[:P], truth[:P]),
-        rmse_to_kf_ours=float(np.sqrt(np.mean((est_ours - est_kf[: bpf_trials]) ** 2))),
+        tp = h.time_calls(peer, repeats=args.peer_repeats)
+    est_peer, truth, B = tp.result, traj.states[:, 1:].numpy(), bpf_trials
+    return timed_row(
+        "bpf", setting, B, P, T, t.min, tp.min, 2.0, d=d, particles=N,
+        mse_ours=mse(est_ours, truth[:B]), mse_ours_peer_trials=mse(est_ours[:P], truth[:P]) if P <= B else None,
+        mse_peer=mse(est_peer, truth[:P]), mse_kf=mse(est_kf[:B], truth[:B]), mse_kf_peer_trials=mse(est_kf[:P], truth[:P]),
+        rmse_to_kf_ours=float(np.sqrt(np.mean((est_ours - est_kf[:B]) ** 2))),
         rmse_to_kf_peer=float(np.sqrt(np.mean((est_peer - est_kf[:P]) ** 2))),
-        mean_ess_ours=float(ess_ours.mean()), peer_blas=peer_blas, setting=setting,
-    )
-    r["met"] = r["ratio"] >= r["goal"]
-    print(f"[BPF] d={d} N={N} T={T}: ours B={bpf_trials} {t_ours:.3f}s ({per_ours:.3e} s/trial-step), "
-          f"particles B={P} {t_peer:.3f}s ({per_peer:.3e} s/trial-step), ratio {r['ratio']:.1f}x")
-    o = r["mse_ours_peer_trials"]
-    print(f"[BPF] MSE vs truth: ours {r['mse_ours']:.4f} (KF {r['mse_kf']:.4f}), "
-          f"particles {r['mse_peer']:.4f} (KF on its trials {r['mse_kf_peer_trials']:.4f}, "
-          f"ours on them {o if o is None else round(o, 4)})")
-    return r
-
-
-# ---------------------------------------------------------------------------------------------
-# report
-# ---------------------------------------------------------------------------------------------
-def _fmt_goal(r) -> tuple:
-    if r.get("goal") is None:
-        return "-", "-"
-    return f">= {r['goal']:g}x", h.met_cell(r["met"])
+        mean_ess_ours=float(ess_ours.mean()), peer_blas=peer_blas)
 
 
 def markdown(info, results, args) -> str:
     lines = ["## Foundation benchmarks" + (" (--quick smoke test)" if args.quick else ""), "",
              f"{h.machine_line(info)} Peer BLAS threads: {info['peer_blas_threads']}.",
              f"Command: `{info['command']}`", ""]
-    rows = []
-    for r in results:
-        goal, met = _fmt_goal(r)
-        if r.get("status"):
-            rows.append([r["name"], r["setting"], r["status"], "-", "-", goal, met])
-        else:
-            rows.append([r["name"], r["setting"], f"{r['per_ts_ours']:.3e}", f"{r['per_ts_peer']:.3e}",
-                         f"{r['ratio']:.1f}x", goal, met])
-    lines += h.md_table(["benchmark", "setting", "ours s/trial-step", "peer s/trial-step", "ratio peer/ours",
-                         "goal", "met"], rows)
-    lines += ["", "Checks / accuracy:", ""]
-    for r in results:
-        if r.get("status"):
-            lines.append(f"- {r['name']} ({r['setting']}): {r['status']}.")
-        elif "particles" in r:
-            o = r["mse_ours_peer_trials"]
-            lines.append(
-                f"- BPF N={r['particles']} MSE vs truth: ours {r['mse_ours']:.4f} over {r['trials_ours']} trials "
-                f"(exact KF {r['mse_kf']:.4f}); particles {r['mse_peer']:.4f} over {r['trials_peer']} trials "
-                f"(exact KF {r['mse_kf_peer_trials']:.4f}"
-                + (f", ours on the same trials {o:.4f}" if o is not None else "")
-                + f"). RMS distance to the KF mean: ours {r['rmse_to_kf_ours']:.4f}, "
-                  f"particles {r['rmse_to_kf_peer']:.4f}. Ours mean ESS {r['mean_ess_ours']:.1f}.")
-        elif "alpha" in r:
-            lines.append(
-                f"- UKF vs filterpy (MerweScaledSigmaPoints alpha={r['alpha']:g}, beta={r['beta']:g}, "
-                f"kappa={r['kappa']:g} on both): max |estimate diff| {r['max_abs_diff_estimates']:.2e} over "
-                f"{r['compared_trials']} trials (< 1e-6 required); max |diff| to the exact KF: ours "
-                f"{r['max_abs_diff_to_kf_ours']:.2e}, filterpy {r['max_abs_diff_to_kf_peer']:.2e}; "
-                f"|log-evidence diff| (trial 0) {r['log_evidence_diff_trial0']:.2e}; MSE {r['mse_ours']:.4f}.")
-        else:
-            lines.append(
-                f"- KF vs filterpy: max |estimate diff| {r['max_abs_diff_estimates']:.2e} (< 1e-8 required), "
-                f"|log-evidence diff| (trial 0) {r['log_evidence_diff_trial0']:.2e}; MSE {r['mse_ours']:.4f}.")
+    lines += h.md_table(
+        ["benchmark", "setting", "ours s/trial-step", "peer s/trial-step", "ratio peer/ours", "goal", "met"],
+        [[r["name"], r["setting"]] + ([r["status"], "-", "-"] if r.get("status") else
+                                      [f"{r['per_ts_ours']:.3e}", f"{r['per_ts_peer']:.3e}", f"{r['ratio']:.1f}x"])
+         + [h.fmt(r.get("goal"), ">= {:g}x"), h.met_cell(r["met"])] for r in results])
+    lines += ["", "Checks / accuracy:", ""] + [check_line(r) for r in results]
     lines += ["", "Times are best of repeats, each side after an untimed warm-up; s/trial-step = time / (trials x steps)."]
     return "\n".join(lines) + "\n"
 
@@ -466,14 +372,6 @@ def parse_args(argv=None):
 
 
 def run(argv=None) -> dict:
-    """Run the benchmarks (``argv``: the CLI options as a list).
-
-    Writes no files. Returns ``{"machine": dict, "rows": [row, ...], "markdown": str, "args": dict}``,
-    each row with ``name``, ``setting``, ``per_ts_ours``, ``per_ts_peer``, ``ratio`` (peer / ours),
-    ``goal`` (float or None), ``met`` (bool or None) and the raw numbers of its benchmark (or
-    ``status`` = ``skipped: <library> not installed`` and no numbers). Raises :class:`CheckFailed`
-    when ours and a peer disagree.
-    """
     argv = list(argv or [])
     args = parse_args(argv)
     with h.torch_threads(args.threads):
@@ -483,13 +381,12 @@ def run(argv=None) -> dict:
               f"(BLAS default now: {h.blas_threads()}).")
         t0 = time.perf_counter()
         rows = []
-        if not args.skip_kf:
-            rows.append(bench_kf(args))
-        if not args.skip_ukf:
-            rows.append(bench_ukf(args))
+        for kind in ("kf", "ukf"):
+            if not getattr(args, f"skip_{kind}"):
+                rows.append(report(bench_filterpy(args, kind)))
         if not args.skip_bpf:
             for N, b_ours, b_peer in zip(args.particles, args.bpf_trials, args.peer_trials):
-                rows.append(bench_bpf(args, N, b_ours, b_peer))
+                rows.append(report(bench_bpf(args, N, b_ours, b_peer)))
         info["total_wall_s"] = time.perf_counter() - t0
         info["load_end"] = h.loadavg()
     return dict(machine=info, rows=rows, markdown=markdown(info, rows, args), args=vars(args))

@@ -35,10 +35,8 @@ Run from the repository root::
     python -m experiments.benchmarks.bench_scaling --quick --threads 1  # smoke test, < 1 min
     python -m experiments.benchmarks.bench_scaling --curves N --ns 100,1000,10000 --filters bpf,edh
 
-Writes ``--out`` (default ``experiments/benchmarks/results_scaling.md``; ``--quick`` defaults to
-``results_scaling_quick.md`` so a smoke test never overwrites the full results) plus ``.json`` (raw
-rows) and ``.png`` (one log-log panel per curve, one line per filter) next to it. A suite runner
-can call :func:`run` (which writes only the plot) and use its returned markdown and rows.
+Beside the results files, :func:`run` draws ``results_scaling.png`` (one log-log panel per curve,
+one line per filter).
 """
 from __future__ import annotations
 
@@ -122,14 +120,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     a.trials = a.trials or (1 if a.quick else 2)
     a.b_curve_n = a.b_curve_n or (100 if a.quick else 500)
     a.time_budget = (0.1 if a.quick else 0.5) if a.time_budget is None else a.time_budget
-    a.curves = [c.strip() for c in a.curves.split(",") if c.strip()]
-    bad = [c for c in a.curves if c not in CURVE_FILTERS]
-    if bad or not a.curves:
-        raise SystemExit(f"--curves: expected a subset of N,d,B, got {bad or a.curves}")
-    a.filters = [f.strip() for f in a.filters.split(",") if f.strip()]
-    bad = [f for f in a.filters if f not in LABELS]
-    if bad or not a.filters:
-        raise SystemExit(f"--filters: unknown {bad}; expected a subset of {','.join(LABELS)}")
+    a.curves = h.keys_option(a.curves, CURVE_FILTERS, "--curves")
+    a.filters = h.keys_option(a.filters, LABELS)
     if a.steps < 1 or a.trials < 1:
         raise SystemExit("--steps and --trials must be >= 1")
     if a.out is None:
@@ -152,44 +144,32 @@ def _available_bytes(device: torch.device) -> Optional[int]:
 # ---------------------------------------------------------------------------------------------
 # points
 # ---------------------------------------------------------------------------------------------
-class _Data:
-    """Models and simulated data, built once per (model, size) and sliced per point."""
+def data_source(args, device, dtype):
+    """``get(model name, d, trials) -> (model, obs, mean, cov)`` (``trials=0``: the model alone): each
+    model built once, its data simulated once per size (on the CPU in float64, so every device /
+    dtype filters the same numbers; again when a point needs more trials), moved, sliced per point."""
+    models, data = {}, {}
 
-    def __init__(self, args, device, dtype):
-        self.args, self.device, self.dtype = args, device, dtype
-        self._models: Dict[tuple, object] = {}
-        self._data: Dict[tuple, tuple] = {}
+    def get(name: str, d: int, trials: int):
+        make = (lambda: AcousticTracking()) if name == "acoustic" else (lambda: SensorNetwork(d=d))
+        if (name, d) not in models:
+            models[name, d] = make().to(device=device, dtype=dtype)
+        if trials and ((name, d) not in data or data[name, d][0].shape[0] < trials):
+            traj, mean, cov = h.simulate(make(), trials, args.steps, args.seed)
+            data[name, d] = tuple(t.to(device=device, dtype=dtype) for t in (traj.observations, mean, cov))
+        return (models[name, d],) + tuple(t[:trials] for t in data.get((name, d), ()))
 
-    def model(self, name: str, d: int = 16):
-        key = (name, d)
-        if key not in self._models:
-            m = AcousticTracking() if name == "acoustic" else SensorNetwork(d=d)
-            self._models[key] = m.to(device=self.device, dtype=self.dtype)
-        return self._models[key]
-
-    def data(self, name: str, d: int, trials: int):
-        key = (name, d)
-        have = self._data.get(key)
-        if have is None or have[0].shape[0] < trials:
-            # simulate on the CPU in float64 (same numbers on every device/dtype), then move
-            sim = AcousticTracking() if name == "acoustic" else SensorNetwork(d=d)
-            g = torch.Generator().manual_seed(self.args.seed)
-            traj = sim.simulate(trials, self.args.steps, generator=g)
-            mean, cov = sim.initial_belief(traj.states[:, 0], generator=g)
-            to = dict(device=self.device, dtype=self.dtype)
-            have = (traj.observations.to(**to), mean.to(**to), cov.to(**to))
-            self._data[key] = have
-        return tuple(t[:trials] for t in have)
+    return get
 
 
-def time_point(filt, obs, mean, cov, chunk: int, device, seed: int, time_budget: float) -> List[float]:
+def time_point(filt, obs, mean, cov, chunk: int, device, seed: int, time_budget: float) -> h.Timing:
     """Warm-up call (1 trial x 1 step), then timed runs over all trials in calls of ``chunk``
-    trials until ``time_budget`` seconds are spent (at least once). Returns each run's seconds."""
+    trials until ``time_budget`` seconds are spent (at least once)."""
     g = torch.Generator(device=device).manual_seed(seed)
     same = lambda start, stop: g  # noqa: E731  (one generator for every call)
     h.filter_chunks(filt, obs[:1, :1], mean[:1], cov[:1], None, same)
     return h.time_calls(lambda: h.filter_chunks(filt, obs, mean, cov, chunk, same), budget=time_budget,
-                        max_repeats=MAX_REPEATS, device=device).times
+                        max_repeats=MAX_REPEATS, device=device)
 
 
 def _extrapolate(history: List[tuple], x: int) -> Optional[float]:
@@ -229,7 +209,7 @@ def curve_points(curve: str, args):
                     yield key, "acoustic", B, (None if key == "ekf" else args.b_curve_n), 16, B
 
 
-def run_curve(curve: str, args, data: _Data, device, log) -> List[dict]:
+def run_curve(curve: str, args, data, device, log) -> List[dict]:
     rows: List[dict] = []
     history: Dict[str, List[tuple]] = {}
     oom: Dict[str, bool] = {}
@@ -242,7 +222,7 @@ def run_curve(curve: str, args, data: _Data, device, log) -> List[dict]:
         rows.append(row)
         hist = history.setdefault(key, [])
         try:
-            model = data.model(mname, d)
+            model = data(mname, d, 0)[0]
             filt = h.make_filter(key, model, N)
             per_trial = filt.bytes_per_trial(N)
             fit = max(1, budget // max(per_trial, 1))
@@ -267,17 +247,16 @@ def run_curve(curve: str, args, data: _Data, device, log) -> List[dict]:
             if row["status"] != "ok":
                 log(f"[{curve}] {label:14s} x={x:<7d} {row['status']}")
                 continue
-            obs, mean, cov = data.data(mname, d, trials)
+            _, obs, mean, cov = data(mname, d, trials)
             t0 = time.perf_counter()
-            times = time_point(filt, obs, mean, cov, chunk, device, args.seed, args.time_budget)
+            t = time_point(filt, obs, mean, cov, chunk, device, args.seed, args.time_budget)
             row["point_s"] = time.perf_counter() - t0
-            best = min(times)
-            row["s_per_trial_step"] = best / (trials * args.steps)
-            row["mean_s_per_trial_step"] = sum(times) / len(times) / (trials * args.steps)
-            row["repeats"] = len(times)
-            hist.append((x, best))
+            row["s_per_trial_step"] = t.min / (trials * args.steps)
+            row["mean_s_per_trial_step"] = t.mean / (trials * args.steps)
+            row["repeats"] = len(t.times)
+            hist.append((x, t.min))
             log(f"[{curve}] {label:14s} x={x:<7d} {row['s_per_trial_step']:.3g} s/trial-step "
-                f"({len(times)} run(s), {chunk} trials/call, point {row['point_s']:.1f} s)")
+                f"({row['repeats']} run(s), {chunk} trials/call, point {row['point_s']:.1f} s)")
         except Exception as exc:  # noqa: BLE001  (record and go on)
             msg = " ".join(str(exc).split())
             row["status"] = f"error: {type(exc).__name__}: {msg[:200]}"
@@ -444,7 +423,7 @@ def run(argv=None) -> dict:
     log = (lambda s: None) if a.quiet else (lambda s: print(s, flush=True))
     with h.torch_threads(a.threads):
         info = h.machine(device, command=h.command("bench_scaling", argv))
-        data = _Data(a, device, getattr(torch, a.dtype))
+        data = data_source(a, device, getattr(torch, a.dtype))
         t0 = time.perf_counter()
         rows: List[dict] = []
         for curve in a.curves:

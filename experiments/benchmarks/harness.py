@@ -1,16 +1,12 @@
-"""The one harness every benchmark script uses: timing, machine description, peer libraries, filters
-by name and the results files.
+"""The one harness of the benchmark modules: the timing loop (:func:`time_calls`), filters by name
+(:func:`make_filter`, :func:`filter_chunks`), the machine description (:func:`machine`), optional
+peer libraries (:func:`peer`: ``None`` and a ``skipped: <library> not installed`` row when missing)
+and the results files (:func:`md_table`, :func:`write_results`).
 
-* :func:`time_calls`: the timing loop (untimed warm-up calls, then repeats or a time budget; min /
-  median; CUDA synchronised before each clock read);
-* :func:`filter_chunks`: a torchflow filter over trials in calls of ``chunk`` trials;
-* :func:`machine` / :func:`machine_line`: the machine description (with :func:`loadavg`, the 1/5/15
-  minute load average) and its one-line rendering;
-* :func:`peer`: import an optional peer library (filterpy, particles, stonesoup), ``None`` when it
-  is not installed; :func:`skipped` is the text of the row that then stands in for its numbers;
-* :func:`make_filter`: a torchflow filter by its benchmark name (``kf``, ``bpf``, ``ledh``, ...);
-* :func:`md_table`, :func:`fmt`, :func:`write_results`, :func:`main`: markdown tables and the
-  ``results_<name>.md`` / ``.json`` pair.
+Every benchmark module has ``run(argv) -> {"machine", "rows", "markdown", "args", ...}``, which
+writes no results file, and runs as ``python -m experiments.benchmarks.<module>``, which writes
+``results_<name>.md`` and the rest as ``results_<name>.json`` in this folder (``--quick``:
+``results_<name>_quick.*``, so a smoke test never overwrites the full results; ``--out``: elsewhere).
 """
 from __future__ import annotations
 
@@ -41,27 +37,16 @@ class CheckFailed(RuntimeError):
     """Ours and a peer disagree: the timing would not compare equal work (``main`` exits with it)."""
 
 
-# ---------------------------------------------------------------------------------------------
-# timing
-# ---------------------------------------------------------------------------------------------
 @dataclass
 class Timing:
-    """Seconds of each timed call and the last call's return value."""
+    """Seconds of each timed call (``min``, ``median``, ``mean`` of them) and the last call's result."""
 
     times: List[float]
     result: Any = None
 
-    @property
-    def min(self) -> float:
-        return min(self.times)
-
-    @property
-    def median(self) -> float:
-        return statistics.median(self.times)
-
-    @property
-    def mean(self) -> float:
-        return sum(self.times) / len(self.times)
+    min = property(lambda self: min(self.times))
+    median = property(lambda self: statistics.median(self.times))
+    mean = property(lambda self: sum(self.times) / len(self.times))
 
 
 def synchronize(device=None) -> None:
@@ -150,9 +135,6 @@ def blas_threads() -> str:
     return ",".join(infos) or "?"
 
 
-# ---------------------------------------------------------------------------------------------
-# machine
-# ---------------------------------------------------------------------------------------------
 def loadavg() -> Optional[list]:
     """1/5/15-minute load average (rounded), or None where the OS has none."""
     try:
@@ -204,9 +186,6 @@ def command(name: str, argv: Optional[Sequence[str]]) -> str:
     return " ".join(["python -m experiments.benchmarks." + name, *map(str, argv or [])])
 
 
-# ---------------------------------------------------------------------------------------------
-# peers
-# ---------------------------------------------------------------------------------------------
 def peer(name: str, *submodules: str):
     """The peer library ``name`` (with ``name.<submodule>`` imported too), or ``None`` when it is
     not installed. A library that is installed but fails to import raises."""
@@ -226,9 +205,6 @@ def skipped(name: str) -> str:
     return f"skipped: {name} not installed (pip install -e '.[bench]')"
 
 
-# ---------------------------------------------------------------------------------------------
-# filters by name
-# ---------------------------------------------------------------------------------------------
 FLOWS = {"ledh": "LEDH", "edh": "EDH", "gromov": "Gromov", "geodesic": "Geodesic", "osd": "OSD"}
 LABELS = {"kf": "KF", "ekf": "EKF", "ukf": "UKF", "bpf": "BPF", "pfgspf": "PFGSPF", "gspf": "GSPF",
           **{f: f"PF-PF({n})" for f, n in FLOWS.items()}, **{f"flow_{f}": f"{n} flow" for f, n in FLOWS.items()}}
@@ -265,9 +241,6 @@ def keys_option(text: str, allowed: Iterable[str], option: str = "--filters") ->
     return keys
 
 
-# ---------------------------------------------------------------------------------------------
-# reports
-# ---------------------------------------------------------------------------------------------
 def fmt(x, spec: str = "{:.3g}") -> str:
     """``spec.format(x)``, ``-`` for None or nan (an infinity prints as ``inf``)."""
     if x is None or (isinstance(x, float) and math.isnan(x)):
