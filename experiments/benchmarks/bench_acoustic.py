@@ -21,8 +21,6 @@ Without Stone Soup installed its two rows read ``skipped: stonesoup not installe
 """
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 import torch
 
@@ -83,7 +81,7 @@ def peer_row(kind, label, model, traj, mean, cov, a) -> dict:
 
 
 def run(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = h.parser(__doc__, "4 trials x 3 steps, peer 1 x 2")
     ap.add_argument("--trials", type=int, default=20, help="trials for torchflow's filters")
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--particles", type=int, default=500)
@@ -94,8 +92,6 @@ def run(argv=None) -> dict:
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     ap.add_argument("--peer-threads", type=int, default=1, help="numpy BLAS threads for Stone Soup (0: default)")
     ap.add_argument("--no-peer", action="store_true", help="skip Stone Soup")
-    ap.add_argument("--quick", action="store_true", help="4 trials x 3 steps, peer 1 x 2")
-    ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     if a.quick:
         a.trials, a.steps, a.peer_trials, a.peer_steps = 4, 3, 1, 2

@@ -392,7 +392,7 @@ def markdown(info: dict, rows: List[dict], notes: Optional[List[str]] = None) ->
 
 
 def build_parser():
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = h.parser(__doc__, "LG 3 trials, N 50; acoustic 2 trials x 4 steps, N 100")
     ap.add_argument("--tables", default=",".join(TABLES), help=f"comma-separated subset of {','.join(TABLES)}")
     ap.add_argument("--filters", default=None,
                     help=f"comma-separated subset of {','.join(NAMES)} for every table (default LG "
@@ -413,14 +413,10 @@ def build_parser():
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1: single-thread numbers)")
     ap.add_argument("--control", action="store_true",
                     help="also re-run the random filters in float64 with other seeds (verdict false-alarm check)")
-    ap.add_argument("--quick", action="store_true", help="LG 3 trials, N 50; acoustic 2 trials x 4 steps, N 100")
     ap.add_argument("--quiet", action="store_true")
     ap.add_argument("--merge", nargs="+", default=None, metavar="JSON",
                     help="combine the .json results of earlier runs into one report (runs nothing)")
     ap.add_argument("--note", action="append", default=[], help="a line added under the tables (repeatable)")
-    ap.add_argument("--out", default=None,
-                    help="markdown file (default experiments/benchmarks/results_float32.md; --quick: "
-                         "results_float32_quick.md); a .json of the rows is written beside it")
     return ap
 
 

@@ -21,8 +21,6 @@ each); transcendental functions count as one flop. Measured throughputs: a large
 """
 from __future__ import annotations
 
-import argparse
-
 import torch
 
 from torchflow.models import AcousticTracking
@@ -59,13 +57,11 @@ def throughputs() -> dict:
 
 
 def run(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = h.parser(__doc__)
     ap.add_argument("--particles", type=int, default=500)
     ap.add_argument("--trials", type=int, default=20)
     ap.add_argument("--steps", type=int, default=5)
     ap.add_argument("--threads", type=int, default=None)
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     if a.quick:
         a.trials, a.steps = 4, 2

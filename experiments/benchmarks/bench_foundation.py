@@ -59,7 +59,6 @@ Each row has ``name``, ``setting``, ``per_ts_ours``, ``per_ts_peer``, ``ratio`` 
 """
 from __future__ import annotations
 
-import argparse
 import time
 
 import numpy as np
@@ -325,10 +324,7 @@ def markdown(info, results, args) -> str:
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--quick", action="store_true", help="tiny sizes for a smoke test (< 30 s)")
-    p.add_argument("--out", default=None, help="markdown output (JSON written next to it)")
+    p = h.parser(__doc__, "tiny sizes for a smoke test (< 30 s)")
     p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
     p.add_argument("--peer-threads", type=int, default=1, help="BLAS threads for numpy peers (0: default)")
     p.add_argument("--d", type=int, default=None, help="state dimension, a perfect square (64)")

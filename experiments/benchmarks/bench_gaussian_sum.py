@@ -11,8 +11,6 @@ calls divided by trials x steps (min over ``--reps``). In d = 144 the LEDH-based
 """
 from __future__ import annotations
 
-import argparse
-
 from torchflow.models import SkewedTPoisson
 
 from . import harness as h
@@ -22,7 +20,7 @@ FILTERS = ("pfgspf", "pfpf_ledh", "gspf", "bpf")
 
 def run(argv=None) -> dict:
     """Run the benchmark (``argv``: CLI options); writes no files. Returns ``{"rows", "markdown", ...}``."""
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = h.parser(__doc__, "d = 16, G = 2 x 20, 1 step")
     ap.add_argument("--d", type=int, default=144, help="state dimension (a perfect square)")
     ap.add_argument("--components", type=int, default=5, help="G")
     ap.add_argument("--per-component", type=int, default=200, help="N*")
@@ -30,8 +28,6 @@ def run(argv=None) -> dict:
     ap.add_argument("--steps", type=int, default=2)
     ap.add_argument("--reps", type=int, default=1)
     ap.add_argument("--filters", default=",".join(FILTERS))
-    ap.add_argument("--quick", action="store_true", help="d = 16, G = 2 x 20, 1 step")
-    ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     if a.quick:
         a.d, a.components, a.per_component, a.steps = 16, 2, 20, 1

@@ -49,7 +49,7 @@ def _case(a) -> dict:
 
 
 def parse(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = h.parser(__doc__, "1e5 / 2e3 particles, 3 steps")
     ap.add_argument("--cases", default="bpf,ledh", help=f"comma list of {sorted(CASES)}")
     ap.add_argument("--case", default=None, help=argparse.SUPPRESS)  # child process
     ap.add_argument("--particles-bpf", default="1e6")
@@ -62,8 +62,6 @@ def parse(argv=None):
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--dtype", default="float64")
-    ap.add_argument("--quick", action="store_true", help="1e5 / 2e3 particles, 3 steps")
-    ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     if a.quick:
         a.particles_bpf, a.particles_flow, a.steps = "1e5", "2e3", 3

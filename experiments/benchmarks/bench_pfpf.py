@@ -12,8 +12,6 @@ trials x steps, i.e. comparable with the per-step times the papers report for a 
 """
 from __future__ import annotations
 
-import argparse
-
 import torch
 
 from torchflow import metrics
@@ -26,7 +24,7 @@ FILTERS = ("ledh", "edh", "gromov", "geodesic", "osd", "bpf")
 
 def run(argv=None) -> dict:
     """Run the benchmark (``argv``: CLI options); writes no files. Returns ``{"rows", "markdown", "args", ...}``."""
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = h.parser(__doc__, "10 trials, 3 steps")
     ap.add_argument("--trials", type=int, default=100)
     ap.add_argument("--steps", type=int, default=5)
     ap.add_argument("--particles", type=int, default=500)
@@ -34,8 +32,6 @@ def run(argv=None) -> dict:
     ap.add_argument("--sigma-w", type=float, default=0.1)
     ap.add_argument("--chunk", type=int, default=None, help="trials per filter call (default: filter's choice)")
     ap.add_argument("--filters", default=",".join(FILTERS), help=f"comma-separated subset of {','.join(FILTERS)}")
-    ap.add_argument("--quick", action="store_true", help="10 trials, 3 steps")
-    ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     if a.quick:
         a.trials, a.steps = 10, 3

@@ -76,7 +76,7 @@ def _ints(text: str, name: str) -> List[int]:
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = h.parser(__doc__, "tiny lists and sizes for a smoke test (the PNG goes beside the results files)")
     ap.add_argument("--curves", default="N,d,B", help="comma-separated subset of N,d,B (default all)")
     ap.add_argument("--ns", default=None, help=f"particle counts of the N curve (default {FULL['ns']})")
     ap.add_argument("--ds", default=None, help=f"state dimensions of the d curve, perfect squares (default {FULL['ds']})")
@@ -99,13 +99,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--device", default="cpu", help="cpu or cuda[:k] (default cpu)")
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's default)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--quick", action="store_true",
-                    help="tiny lists and sizes for a smoke test; writes results_scaling_quick.* by default")
     ap.add_argument("--no-plot", action="store_true", help="do not draw the PNG")
     ap.add_argument("--quiet", action="store_true", help="no per-point progress lines")
-    ap.add_argument("--out", default=None,
-                    help="markdown output (default experiments/benchmarks/results_scaling.md; "
-                         "--quick: results_scaling_quick.md); .json and .png go next to it")
     a = ap.parse_args(argv)
     lists = QUICK if a.quick else FULL
     a.ns = _ints(a.ns or lists["ns"], "ns")

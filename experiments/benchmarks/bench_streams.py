@@ -9,8 +9,6 @@ Reports seconds per trial-step (minimum over repeats) and the ratio streams / ge
 """
 from __future__ import annotations
 
-import argparse
-
 import torch
 
 from torchflow import linalg
@@ -34,11 +32,9 @@ def cases(quick: bool):
 
 
 def run(argv=None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = h.parser(__doc__)
     p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--quick", action="store_true")
     p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--out", default=None, help="results file (.md or .json; the other is written beside it)")
     a = p.parse_args(argv)
     rows, draws = [], []
     with h.torch_threads(a.threads):

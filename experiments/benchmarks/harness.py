@@ -10,6 +10,7 @@ writes no results file, and runs as ``python -m experiments.benchmarks.<module>`
 """
 from __future__ import annotations
 
+import argparse
 import contextlib
 import importlib
 import json
@@ -239,6 +240,15 @@ def keys_option(text: str, allowed: Iterable[str], option: str = "--filters") ->
     if bad or not keys:
         raise SystemExit(f"{option}: unknown {bad or keys!r}; expected a subset of {','.join(allowed)}")
     return keys
+
+
+def parser(doc: str, quick: str = "smoke-test sizes") -> argparse.ArgumentParser:
+    """A benchmark's argument parser (``doc`` its description), with ``--quick`` and ``--out``."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help=quick)
+    ap.add_argument("--out", default=None, help="results file (.md or .json; the other is written beside it; "
+                                                "default: results_<name>[_quick].md in experiments/benchmarks)")
+    return ap
 
 
 def fmt(x, spec: str = "{:.3g}") -> str:
