@@ -46,10 +46,8 @@ def time_ours(f, traj, mean, cov, seed):
     ``(seconds, estimates, trials per call)``."""
     B = traj.observations.shape[0]
     chunk = f.preferred_chunk_trials() or B
-    h.filter_chunks(f, traj.observations[:1, :1], mean[:1], cov[:1], None,
-                    lambda s, e: torch.Generator().manual_seed(seed))  # warm-up
-    t = h.time_calls(lambda: h.filter_chunks(f, traj.observations, mean, cov, chunk,
-                                             h.streams(seed, f.stream_name)))  # as the runner
+    t = h.time_filter(f, traj.observations, mean, cov, chunk, h.streams(seed, f.stream_name),  # as the runner
+                      warm_randomness=lambda s, e: torch.Generator().manual_seed(seed))
     return t.min, torch.cat([p.estimates for p in t.result]), min(chunk, B)
 
 
@@ -147,12 +145,11 @@ def status(r, lost_m: float = 2.0) -> str:
 
 
 def markdown(info, rows, a) -> str:
-    lines = ["## Acoustic tracking vs Stone Soup" + (" (--quick)" if a.quick else ""), "",
-             f"{h.machine_line(info)} Stone Soup with numpy BLAS threads {a.peer_threads or 'default'}.",
-             f"Acoustic model sigma_w = {a.sigma_w}, N = {a.particles}; ours {a.trials} trials x {a.steps} steps "
-             f"(float64, trials per call in the table), Stone Soup {a.peer_trials} trials x up to {a.peer_steps} "
-             "steps (its time is the mean over completed steps).",
-             f"Command: `{info['command']}`", ""]
+    lines = h.header("## Acoustic tracking vs Stone Soup", a.quick, info,
+                     f"Stone Soup with numpy BLAS threads {a.peer_threads or 'default'}. Acoustic model sigma_w = "
+                     f"{a.sigma_w}, N = {a.particles}; ours {a.trials} trials x {a.steps} steps (float64, trials per "
+                     f"call in the table), Stone Soup {a.peer_trials} trials x up to {a.peer_steps} steps (its time "
+                     "is the mean over completed steps).")
     lines += h.md_table(
         ["filter", "s / trial-step", "Stone Soup Gromov time / ours", "Stone Soup bootstrap time / ours", "goal",
          "met", "position RMSE (m)", "OMAT (m)", "status", "trials per call"],

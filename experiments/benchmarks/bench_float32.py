@@ -379,11 +379,9 @@ def table_markdown(table: str, rows: List[dict]) -> List[str]:
 
 
 def markdown(info: dict, rows: List[dict], notes: Optional[List[str]] = None) -> str:
-    lines = ["## float32 vs float64 accuracy" + (" (--quick)" if info.get("quick") else ""), "",
-             h.machine_line(info),
-             f"Command: `{info['command']}`",
-             f"Verdict: ok = no table metric worse by more than {info['se_k']} SE (or 0.1 %); degraded / breaks "
-             "otherwise (see the script's docstring).", ""]
+    lines = h.header("## float32 vs float64 accuracy", info.get("quick"), info,
+                     f"Verdict: ok = no table metric worse by more than {info['se_k']} SE (or 0.1 %); degraded / "
+                     "breaks otherwise (see the script's docstring).")
     for table in dict.fromkeys(r["table"] for r in rows):
         lines += table_markdown(table, [r for r in rows if r["table"] == table])
     for n in notes or []:

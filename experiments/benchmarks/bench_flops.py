@@ -72,8 +72,7 @@ def run(argv=None) -> dict:
         f = h.make_filter("ledh", model, a.particles)
         chunk = f.preferred_chunk_trials()
         one = lambda s, e: torch.Generator().manual_seed(1)  # noqa: E731
-        h.filter_chunks(f, traj.observations[:1, :1], mean[:1], cov[:1], None, one)  # warm-up
-        wall = best(lambda: h.filter_chunks(f, traj.observations, mean, cov, chunk, one), reps=2)
+        wall = h.time_filter(f, traj.observations, mean, cov, chunk, one, warmup=1, repeats=2).min
         per_ts = wall / (a.trials * a.steps)
         fl = ledh_flops_per_trial_step(a.particles, 16, 8, 25, 4, len(ExponentialSchedule()))
         achieved = fl / per_ts / 1e9
@@ -86,8 +85,7 @@ def run(argv=None) -> dict:
                ("batched 16x8 @ 8x8 (10^4 products; the flow's A = L (...) shape)", tp["bmm_16x8x8"]),
                ("batched Gram 8x25 @ 25x8 (10^4; J = W^T W)", tp["bmm_gram_25x8"]),
                ("batched 16x16 @ 16x16 (10^4)", tp["bmm_16x16x16"])]
-    md = ["## PF-PF(LEDH) achieved GFLOP/s" + (" (--quick)" if a.quick else ""), "",
-          h.machine_line(info) + " float64.", f"Command: `{info['command']}`", ""]
+    md = h.header("## PF-PF(LEDH) achieved GFLOP/s", a.quick, info, "float64.")
     md += h.md_table(["kernel", "GFLOP/s", "fraction of large GEMM"],
                      [[k, f"{v:.2f}", f"{v / tp['gemm_2048']:.1%}"] for k, v in kernels]
                      + [["one 2048^3 GEMM (practical peak)", f"{tp['gemm_2048']:.2f}", "100%"]])

@@ -310,9 +310,7 @@ def bench_bpf(args, N: int, bpf_trials: int, peer_trials: int) -> dict:
 
 
 def markdown(info, results, args) -> str:
-    lines = ["## Foundation benchmarks" + (" (--quick smoke test)" if args.quick else ""), "",
-             f"{h.machine_line(info)} Peer BLAS threads: {info['peer_blas_threads']}.",
-             f"Command: `{info['command']}`", ""]
+    lines = h.header("## Foundation benchmarks", args.quick, info, f"Peer BLAS threads: {info['peer_blas_threads']}.")
     lines += h.md_table(
         ["benchmark", "setting", "ours s/trial-step", "peer s/trial-step", "ratio peer/ours", "goal", "met"],
         [[r["name"], r["setting"]] + ([r["status"], "-", "-"] if r.get("status") else

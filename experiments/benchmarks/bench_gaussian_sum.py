@@ -43,8 +43,7 @@ def run(argv=None) -> dict:
         f = h.make_filter(key, model, **(mixture if "gspf" in key else dict(n_particles=total)))
         label = f"{h.LABELS[key.removeprefix('pfpf_')]} " + (f"({n} x {G})" if "gspf" in key else f"({total})")
         every = h.streams(0, f.stream_name)
-        h.filter_chunks(f, traj.observations[:, :1], mean, cov, None, every)  # warm-up
-        t = h.time_calls(lambda: h.filter_chunks(f, traj.observations, mean, cov, None, every), repeats=a.reps)
+        t = h.time_filter(f, traj.observations, mean, cov, None, every, warm=(None, 1), repeats=a.reps)
         mse = float((t.result[0].estimates - traj.states[:, 1:]).pow(2).mean())
         rows.append(dict(filter=label, key=key, particles=total, s_per_trial_step=t.min / (a.trials * a.steps),
                          mse=mse))
@@ -52,8 +51,8 @@ def run(argv=None) -> dict:
     ref = next((r["s_per_trial_step"] for r in rows if r["key"] == "pfpf_ledh"), None)
     for r in rows:
         r["ratio_to_pfpf_ledh"] = None if ref is None else r["s_per_trial_step"] / ref
-    lines = [f"# Gaussian-sum benchmark: skewed-t / Poisson, d = {a.d}, {a.trials} trial(s) x {a.steps} step(s)",
-             "", h.machine_line(info), f"Command: `{info['command']}`", ""]
+    lines = h.header(f"# Gaussian-sum benchmark: skewed-t / Poisson, d = {a.d}, {a.trials} trial(s) x {a.steps} "
+                     "step(s)", a.quick, info)
     lines += h.md_table(["filter", "particles", "s per trial-step", "ratio to PF-PF(LEDH)", "MSE (these steps)"],
                         [[r["filter"], r["particles"], f"{r['s_per_trial_step']:.4g}",
                           "" if r["ratio_to_pfpf_ledh"] is None else f"{r['ratio_to_pfpf_ledh']:.2f}", f"{r['mse']:.3f}"] for r in rows])

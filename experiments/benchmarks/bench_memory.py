@@ -86,9 +86,9 @@ def run(argv=None) -> dict:
 
 
 def markdown(rows, info, a) -> str:
-    lines = ["## Large-N runs under a memory budget" + (" (--quick)" if a.quick else ""), "", h.machine_line(info),
-             f"Acoustic tracking sigma_w = {a.sigma_w}, {a.trials} trial(s) x {a.steps} steps, {a.dtype}, "
-             f"runner memory budget {a.memory_gb} GiB.", f"Command: `{info['command']}`", ""]
+    lines = h.header("## Large-N runs under a memory budget", a.quick, info,
+                     f"Acoustic tracking sigma_w = {a.sigma_w}, {a.trials} trial(s) x {a.steps} steps, {a.dtype}, "
+                     f"runner memory budget {a.memory_gb} GiB.")
     lines += h.md_table(
         ["filter", "N", "particle chunk", "estimate GiB / trial", "peak RSS GiB", "s / step", "whole run (s)",
          "OMAT (m)", "mean ESS"],

@@ -43,10 +43,8 @@ def run(argv=None) -> dict:
     for key in keys:
         f = h.make_filter(key, model, a.particles)
         chunk = min(a.chunk or f.preferred_chunk_trials(a.particles) or a.trials, a.trials)
-        h.filter_chunks(f, traj.observations[:2, :1], mean[:2], cov[:2], None,
-                        lambda s, e: torch.Generator().manual_seed(0))  # warm-up
-        t = h.time_calls(lambda: h.filter_chunks(f, traj.observations, mean, cov, chunk,
-                                                 h.streams(0, f.stream_name)))  # per-trial streams, as the runner
+        t = h.time_filter(f, traj.observations, mean, cov, chunk, h.streams(0, f.stream_name),  # as the runner
+                          warm=(2, 1), warm_randomness=lambda s, e: torch.Generator().manual_seed(0))
         est, ess = torch.cat([r.estimates for r in t.result]), torch.cat([r.ess for r in t.result])
         om = metrics.omat(model.positions(est), model.positions(traj.states[:, 1:])).mean()
         rows.append({"filter": h.LABELS[key], "N": a.particles, "chunk": chunk,
@@ -57,9 +55,8 @@ def run(argv=None) -> dict:
     ref = next((r["sec_per_trial_step"] for r in rows if r["filter"] == "PF-PF(LEDH)"), None)
     for r in rows:
         r["vs_ledh"] = r["sec_per_trial_step"] / ref if ref else None
-    md = ["## PF-PF benchmark" + (" (--quick)" if a.quick else ""), "", h.machine_line(info),
-          f"Acoustic sigma_w={a.sigma_w}, {a.trials} trials x {a.steps} steps, {a.dtype}.",
-          f"Command: `{info['command']}`", ""]
+    md = h.header("## PF-PF benchmark", a.quick, info,
+                  f"Acoustic sigma_w={a.sigma_w}, {a.trials} trials x {a.steps} steps, {a.dtype}.")
     md += h.md_table(["filter", "N", "trials per call", "s / trial-step", "time / PF-PF(LEDH)", "whole run (s)",
                       "OMAT (m)", "mean ESS"],
                      [[r["filter"], r["N"], r["chunk"], f"{r['sec_per_trial_step']:.4g}", h.fmt(r["vs_ledh"], "{:.2f}"),

@@ -162,9 +162,8 @@ def time_point(filt, obs, mean, cov, chunk: int, device, seed: int, time_budget:
     trials until ``time_budget`` seconds are spent (at least once)."""
     g = torch.Generator(device=device).manual_seed(seed)
     same = lambda start, stop: g  # noqa: E731  (one generator for every call)
-    h.filter_chunks(filt, obs[:1, :1], mean[:1], cov[:1], None, same)
-    return h.time_calls(lambda: h.filter_chunks(filt, obs, mean, cov, chunk, same), budget=time_budget,
-                        max_repeats=MAX_REPEATS, device=device)
+    return h.time_filter(filt, obs, mean, cov, chunk, same, budget=time_budget, max_repeats=MAX_REPEATS,
+                         device=device)
 
 
 def _extrapolate(history: List[tuple], x: int) -> Optional[float]:
@@ -327,16 +326,15 @@ def curve_heading(curve: str, a) -> str:
 
 
 def markdown(rows: List[dict], a, info: dict) -> str:
-    out = ["## Scaling benchmark: seconds per trial-step", "", f"{h.machine_line(info)} {a.dtype}.", "",
-           f"Command: `{info['command']}`", "",
-           "Each cell is seconds per trial-step = best timed run / (trials x steps), after one untimed "
-           "warm-up call (1 trial x 1 step, same N), under `torch.no_grad()`; runs are repeated until "
-           f"they add up to {a.time_budget:g} s (at least once). N and d curves: trials split into calls of "
-           "the filter's preferred size (local flows ~1e4 particles per call) within "
-           f"{a.memory_gb:g} GB. A point is skipped when its time extrapolated from the smaller points "
-           f"(linear, or the last log-log slope if steeper) exceeds {a.max_point_seconds:g} s. "
-           "The last row of each table is the least-squares log-log slope over the timed points "
-           "(the scaling exponent of the time per trial-step).", ""]
+    out = h.header("## Scaling benchmark: seconds per trial-step", False, info, f"{a.dtype}.") + [
+        "Each cell is seconds per trial-step = best timed run / (trials x steps), after one untimed "
+        "warm-up call (1 trial x 1 step, same N), under `torch.no_grad()`; runs are repeated until "
+        f"they add up to {a.time_budget:g} s (at least once). N and d curves: trials split into calls of "
+        "the filter's preferred size (local flows ~1e4 particles per call) within "
+        f"{a.memory_gb:g} GB. A point is skipped when its time extrapolated from the smaller points "
+        f"(linear, or the last log-log slope if steeper) exceeds {a.max_point_seconds:g} s. "
+        "The last row of each table is the least-squares log-log slope over the timed points "
+        "(the scaling exponent of the time per trial-step).", ""]
     for curve in a.curves:
         cr = [r for r in rows if r["curve"] == curve]
         if not cr:

@@ -65,10 +65,10 @@ def run(argv=None) -> dict:
                               ratio=best["streams"] / best["generator"]))
             print(draws[-1], flush=True)
         info["load_end"] = h.loadavg()
-    md = ["# Per-trial random streams: cost", "", h.machine_line(info), "",
-          f"`{info['command']}`; {a.threads} threads, minimum over {a.repeats} interleaved repeats. Seconds per "
-          "trial-step of the same filter calls with one `torch.Generator` per call and with `TrialStreams` (one "
-          "stream per trial, as `run_experiment` uses them).", ""]
+    md = h.header("# Per-trial random streams: cost", a.quick, info,
+                  f"{a.threads} threads, minimum over {a.repeats} interleaved repeats. Seconds per trial-step of the "
+                  "same filter calls with one `torch.Generator` per call and with `TrialStreams` (one stream per "
+                  "trial, as `run_experiment` uses them).")
     md += h.md_table(["case", "trials x steps", "generator s", "streams s", "streams / generator"],
                      [[r["case"], f"{r['trials']} x {r['steps']}", f"{r['generator']:.4g}", f"{r['streams']:.4g}",
                        f"{r['ratio']:.3f}"] for r in rows])

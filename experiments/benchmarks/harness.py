@@ -97,6 +97,16 @@ def filter_chunks(f, obs, mean, cov, chunk: Optional[int], randomness: Callable[
                 for s in range(0, B, chunk)]
 
 
+def time_filter(f, obs, mean, cov, chunk: Optional[int], randomness, warm=(1, 1), warm_randomness=None,
+                **timing) -> Timing:
+    """One untimed warm-up call of ``f`` on the first ``warm = (trials, steps)`` (``None``: all),
+    then :func:`time_calls` (``timing``: its options) of ``f`` over all trials in calls of
+    ``chunk``; ``randomness`` as in :func:`filter_chunks` (``warm_randomness``: the warm-up's)."""
+    b, k = warm
+    filter_chunks(f, obs[:b, :k], mean[:b], cov[:b], None, warm_randomness or randomness)
+    return time_calls(lambda: filter_chunks(f, obs, mean, cov, chunk, randomness), **timing)
+
+
 def simulate(model, trials: int, steps: int, seed: int):
     """``(trajectory, prior mean, prior covariance)`` of ``trials`` x ``steps`` drawn with one
     generator seeded ``seed`` (the prior after the trajectories)."""
@@ -180,6 +190,12 @@ def machine_line(info: dict) -> str:
     return (f"Machine: {get('platform')}, {get('processor')}, {get('cpus')} CPUs{mem}; python {get('python')}, "
             f"torch {get('torch')} ({threads} threads), numpy {get('numpy')}; device {get('device')}{gpu}. "
             f"Load average (1/5/15 min) at start {info.get('load_start')}, at end {info.get('load_end')}.")
+
+
+def header(title: str, quick: bool, info: dict, *lines: str) -> List[str]:
+    """Opening lines of a report: the title (`` (--quick)`` on a smoke test), the machine, ``lines``
+    and the command."""
+    return [title + (" (--quick)" if quick else ""), "", machine_line(info), *lines, f"Command: `{info['command']}`", ""]
 
 
 def command(name: str, argv: Optional[Sequence[str]]) -> str:
