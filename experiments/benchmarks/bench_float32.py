@@ -107,8 +107,6 @@ def make_model(table: str, lg_d: int = 64):
 
 
 def make_filter(key: str, model, n: int):
-    if key not in NAMES:
-        raise ValueError(f"--filters: unknown {key!r}; expected a subset of {','.join(NAMES)}")
     # the BPF counts its repairs (as the PF-PFs do) instead of raising on the first -inf weight
     extra = dict(nonfinite="recover") if key == "bpf" else {}
     return h.make_filter(key, model, None if key in DETERMINISTIC else n, name=NAMES[key], **extra)
@@ -263,10 +261,7 @@ def compare(table, key, r64, r32, k_se) -> dict:
 
 
 def run_table(table: str, a) -> List[dict]:
-    keys = [k for k in a.filters.split(",") if k] if a.filters else DEFAULT_FILTERS[_kind(table)].split(",")
-    for k in keys:
-        if k not in NAMES:
-            raise SystemExit(f"--filters: unknown {k!r}; expected a subset of {','.join(NAMES)}")
+    keys = h.keys_option(a.filters or DEFAULT_FILTERS[_kind(table)], NAMES)
     if table != "lg":
         keys = [k for k in keys if k != "kf"]  # the KF needs a linear-Gaussian model
     ta = argparse.Namespace(**vars(a))

@@ -9,7 +9,7 @@ import time
 import pytest
 import torch
 
-from experiments.benchmarks import (bench_acoustic, bench_flops, bench_foundation, bench_gaussian_sum,
+from experiments.benchmarks import (bench_acoustic, bench_float32, bench_flops, bench_foundation, bench_gaussian_sum,
                                     bench_memory, bench_pfpf, bench_scaling, bench_streams, harness, run_all)
 from torchflow.models import SensorNetwork
 
@@ -191,6 +191,40 @@ def test_streams_bench_micro(monkeypatch):
     assert row["generator"] > 0 and row["streams"] > 0 and row["ratio"] == row["streams"] / row["generator"]
     assert len(res["draws"]) == 4 and all(d["generator_ns"] > 0 for d in res["draws"])
     assert "| BPF, LG d=64, N=200 | 2 x 2 |" in res["markdown"]
+
+
+def test_float32_bench_micro(tmp_path):
+    res = bench_float32.run(["--tables", "lg", "--filters", "kf,bpf", "--lg-trials", "3", "--steps-lg", "2",
+                             "--lg-d", "4", "--particles-lg", "20", "--quiet"])
+    kf, bpf = res["rows"]
+    assert kf["filter"] == "KF" and kf["verdict"] == "ok" and kf["max_est_diff_rel"] < 1e-4  # round-off only
+    assert kf["sec_per_step64"] > 0 and kf["sec_per_step32"] > 0 and bpf["sec_per_step64"] > 0
+    assert bpf["n_particles"] == 20 and set(bpf["metrics"]) == {"mse", "log_evidence_relmse", "ess"}
+    assert bpf["verdict"] in ("ok", "degraded", "breaks") and (bpf["verdict"] == "ok") == (bpf["reason"] == "")
+    assert "| KF | - | " in res["markdown"] and "Kalman-type filters point by point" in res["markdown"]
+    (tmp_path / "a.json").write_text(json.dumps({k: v for k, v in res.items() if k != "markdown"}, default=str))
+    merged = bench_float32.run(["--merge", str(tmp_path / "a.json"), str(tmp_path / "a.json")])
+    assert len(merged["rows"]) == 4 and merged["markdown"].count("| KF | - | ") == 2
+
+
+def test_flops_bench_micro(monkeypatch):
+    monkeypatch.setattr(bench_flops, "throughputs", lambda: dict(gemm_2048=100.0, bmm_16x8x8=10.0,
+                                                                 bmm_gram_25x8=5.0, bmm_16x16x16=20.0))
+    res = bench_flops.run(["--particles", "20", "--trials", "2", "--steps", "1"])
+    ledh = res["rows"][0]
+    assert ledh["gflops"] == pytest.approx(ledh["gflop_per_trial_step"] / ledh["per_ts"])
+    assert "| one 2048^3 GEMM (practical peak) | 100.00 | 100% |" in res["markdown"]
+    assert "| batched 16x8 @ 8x8 (10^4 products; the flow's A = L (...) shape) | 10.00 | 10.0% |" in res["markdown"]
+
+
+def test_run_all_runs_a_section_and_writes_both_reports(tmp_path, monkeypatch):
+    monkeypatch.setattr(harness, "HERE", tmp_path)  # the sections' results files go here
+    res = run_all.run(["--only", "gaussian_sum", "--quick"])
+    assert not res["failures"] and list(res["results"]) == ["gaussian_sum"]
+    assert (tmp_path / "results_gaussian_sum_quick.json").exists()
+    assert "| PFGSPF (20 x 2) | 40 |" in (tmp_path / "results_all_quick.md").read_text()
+    with pytest.raises(SystemExit, match="unknown section 'nope'"):
+        run_all.run(["--only", "nope"])
 
 
 def test_run_all_merge_reassembles_saved_sections(tmp_path):
