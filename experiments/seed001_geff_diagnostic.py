@@ -1,7 +1,7 @@
 """Why PFGSPF's components stay alike (low G_eff) on the skewed-t / Poisson model: a step-by-step
 look at the mixture weights.
 
-    python experiments/seed001_geff_diagnostic.py --d 36 --G 5 --n-star 50 200 --trials 2 --steps 15 --fit both
+    python -m experiments.seed001_geff_diagnostic --d 36 --G 5 --n-star 50 200 --trials 2 --steps 15 --fit both
 
 Every component starts from the same prior (``init=prior``), so the components differ only by
 Monte Carlo noise, and ``log alpha_j`` moves each step by the component's log mean weight
@@ -27,18 +27,14 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from pathlib import Path
-
 from unittest import mock
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a source checkout too
-
-from torchflow.filters import ParticleFlowGaussianSumParticleFilter, gaussian_sum  # noqa: E402
-from torchflow.filters.gaussian_sum import mixture_update  # noqa: E402
-from torchflow import linalg  # noqa: E402
-from torchflow.models import SkewedTPoisson  # noqa: E402
+from torchflow.filters import ParticleFlowGaussianSumParticleFilter, gaussian_sum
+from torchflow.filters.gaussian_sum import mixture_update
+from torchflow import linalg
+from torchflow.models import SkewedTPoisson
 
 
 class PooledFit(ParticleFlowGaussianSumParticleFilter):

@@ -2,7 +2,7 @@
 and the G_eff-against-G and MSE-against-N_p figures (the seed's Figs 2 and 1, PFGSPF only) with the
 paired fall of MSE from G = 1.
 
-    python experiments/seed001_table2_report.py experiments/results/seed001_table2_gpu \
+    python -m experiments.seed001_table2_report experiments/results/seed001_table2_gpu \
         --plot experiments/figures/seed001_table2_gpu.png
 
 Reads ``per_trial_G<G>.csv`` (columns ``trial``, ``mse``, ``g_eff``; one row per run, written by
@@ -23,8 +23,7 @@ import re
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from trial_stats import mean_se  # noqa: E402
+from experiments.trial_stats import mean_se
 
 #: seed 001 Table 2, N* = 200: G -> (MSE, sd) over 100 runs (MODELS.md section 9)
 PAPER = {1: (0.88, 0.32), 2: (0.77, 0.26), 3: (0.73, 0.24), 4: (0.70, 0.26), 5: (0.69, 0.25),

@@ -1,7 +1,7 @@
 """How good is each flowed Gaussian as an importance-sampling proposal? Seed 002's Table II
 variants, one TDOA measurement at a time, without belief propagation.
 
-    python experiments/seed002_proposal_quality.py --scenes 32 --n-samples 500
+    python -m experiments.seed002_proposal_quality --scenes 32 --n-samples 500
 
 Table II's cells differ only in how each prior component is flowed (method, alpha, the (beta,
 Delta_1) grid) and, on our side, in two UNCONF readings: where a lambda step takes its coefficients
@@ -33,20 +33,16 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a source checkout too
-
-from torchflow import linalg  # noqa: E402
-from torchflow.flows import EDHFlow, GromovFlow, OptimalDiffusionFlow, flow_gaussian  # noqa: E402
-from torchflow.flows.geodesic import C_RULES  # noqa: E402
-from torchflow.flows.base import FlowPrior  # noqa: E402
-from torchflow.localisation import birth_mixture  # noqa: E402
-from torchflow.models import TDOA3D  # noqa: E402
-from torchflow.schedules import GeometricSchedule  # noqa: E402
+from torchflow import linalg
+from torchflow.flows import EDHFlow, GromovFlow, OptimalDiffusionFlow, flow_gaussian
+from torchflow.flows.geodesic import C_RULES
+from torchflow.flows.base import FlowPrior
+from torchflow.localisation import birth_mixture
+from torchflow.models import TDOA3D
+from torchflow.schedules import GeometricSchedule
 
 GRIDS = ((1e-13, 1.3), (1e-5, 1.5), (1e-4, 2.0))  # (Delta_1, beta): Table II's columns
 METHODS = (("pfi_d", None), ("pfi_s", None), ("pfi_os", 0.01), ("pfi_os", 0.1), ("pfi_os", 0.5))

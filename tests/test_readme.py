@@ -117,6 +117,8 @@ def test_readme_commands_run(tmp_path):
         assert tokens[0] == "python", f"README command not understood: {line}"
         tokens[0] = sys.executable
         script = tokens[1]
+        if tokens[1] == "-m" and tokens[2].startswith("experiments."):  # a module of experiments/: its file
+            script = tokens[2].replace(".", "/") + ".py"
         if tokens[1:3] == ["-m", "torch.distributed.run"]:  # torchrun: its options, then the script
             script = next(t for t in tokens if t.endswith(".py"))
         if script == "experiments/run.py":

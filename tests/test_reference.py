@@ -6,17 +6,12 @@ room for BLAS round-off only (a changed random draw or formula moves the numbers
 """
 import json
 import math
-import sys
-from pathlib import Path
 
 import pytest
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE / "reference"))
+from tests.reference import cases as reference
 
-import cases as reference  # noqa: E402
-
-RECORDED = json.loads((HERE / "reference" / "per_trial.json").read_text())["cases"]
+RECORDED = json.loads((reference.HERE / "per_trial.json").read_text())["cases"]
 
 
 @pytest.mark.parametrize("name", sorted(RECORDED))

@@ -107,14 +107,6 @@ class TrialStreams:
         self._counter = 0      # philox: 128-bit blocks consumed per trial so far
         self._keys = None      # philox: (B, 2) int64 key words
 
-    # ---- construction ------------------------------------------------------------------------
-    @classmethod
-    def from_generator(cls, generator: torch.Generator, batch_size: int, key: Union[str, int] = 0,
-                       backend: str = "auto") -> "TrialStreams":
-        """Streams for trials ``0..B-1`` seeded by one 62-bit draw from ``generator``."""
-        seed = int(torch.randint(0, 2**62, (), generator=generator))
-        return cls(seed, batch_size, key, backend=backend)
-
     def __len__(self) -> int:
         return len(self.trials)
 

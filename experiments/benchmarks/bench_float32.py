@@ -1,11 +1,11 @@
 """float32 vs float64: accuracy and speed of torchflow's filters in single precision on the
 linear-Gaussian (Table I) and acoustic tracking (Table II, sigma_w = 0.1 and the stiff 0.001) tables.
 
-    python experiments/benchmarks/bench_float32.py                         # LG 20 trials, acoustic 8 x 40
-    python experiments/benchmarks/bench_float32.py --tables lg --out /tmp/lg.md
-    python experiments/benchmarks/bench_float32.py --tables acoustic0.001 --filters ledh,gromov
-    python experiments/benchmarks/bench_float32.py --merge /tmp/lg.json /tmp/a1.json   # one report
-    python experiments/benchmarks/bench_float32.py --quick                 # smoke test (seconds)
+    python -m experiments.benchmarks.bench_float32                 # LG 20 trials, acoustic 8 x 40
+    python -m experiments.benchmarks.bench_float32 --tables lg --out /tmp/lg.md
+    python -m experiments.benchmarks.bench_float32 --tables acoustic0.001 --filters ledh,gromov
+    python -m experiments.benchmarks.bench_float32 --merge /tmp/lg.json /tmp/a1.json   # one report
+    python -m experiments.benchmarks.bench_float32 --quick                 # smoke test (seconds)
 
 How a table is run: the trajectories, observations and priors are simulated ONCE in float64 with
 ``torchflow.experiment``'s own simulator and seed; ``run_experiment`` is then called twice on that
@@ -60,24 +60,18 @@ import argparse
 import contextlib
 import json
 import math
-import os
-import platform
-import sys
 import time
 from pathlib import Path
 from typing import Dict, List, Optional
 
-_REPO = Path(__file__).resolve().parents[2]
-if str(_REPO) not in sys.path:
-    sys.path.insert(0, str(_REPO))
+import torch
 
-import torch  # noqa: E402
+import torchflow.experiment as tfx
+from torchflow.filters import KalmanFilter
+from torchflow.models import AcousticTracking, SensorNetwork
+from torchflow.models.base import Trajectory
 
-import torchflow.experiment as tfx  # noqa: E402
-from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, KalmanFilter,  # noqa: E402
-                               ParticleFlowParticleFilter, UnscentedKalmanFilter)
-from torchflow.models import AcousticTracking, SensorNetwork  # noqa: E402
-from torchflow.models.base import Trajectory  # noqa: E402
+from . import harness as h
 
 NAMES = {"kf": "KF", "ekf": "EKF", "ukf": "UKF", "bpf": "BPF", "ledh": "PF-PF(LEDH)", "edh": "PF-PF(EDH)",
          "gromov": "PF-PF(Gromov)", "geodesic": "PF-PF(Geodesic)"}
@@ -100,13 +94,6 @@ BREAK_RATIO = 10.0
 POINTWISE_TOL = 1e-3
 
 
-def _loadavg():
-    try:
-        return [round(x, 2) for x in os.getloadavg()]
-    except OSError:  # pragma: no cover
-        return None
-
-
 def _kind(table: str) -> str:
     return "lg" if table.partition(" [")[0] == "lg" else "acoustic"
 
@@ -120,18 +107,9 @@ def make_model(table: str, lg_d: int = 64):
 
 
 def make_filter(key: str, model, n: int):
-    if key == "kf":
-        return KalmanFilter(model, name=NAMES[key])
-    if key == "ekf":
-        return ExtendedKalmanFilter(model, name=NAMES[key])
-    if key == "ukf":
-        return UnscentedKalmanFilter(model, name=NAMES[key])
-    if key == "bpf":
-        # repairs are counted (as for the PF-PFs) instead of raising on the first -inf weight
-        return BootstrapParticleFilter(model, n_particles=n, nonfinite="recover", name=NAMES[key])
-    if key in ("ledh", "edh", "gromov", "geodesic"):
-        return ParticleFlowParticleFilter(model, flow=key, n_particles=n, name=NAMES[key])
-    raise ValueError(f"--filters: unknown {key!r}; expected a subset of {','.join(NAMES)}")
+    # the BPF counts its repairs (as the PF-PFs do) instead of raising on the first -inf weight
+    extra = dict(nonfinite="recover") if key == "bpf" else {}
+    return h.make_filter(key, model, None if key in DETERMINISTIC else n, name=NAMES[key], **extra)
 
 
 @contextlib.contextmanager
@@ -283,10 +261,7 @@ def compare(table, key, r64, r32, k_se) -> dict:
 
 
 def run_table(table: str, a) -> List[dict]:
-    keys = [k for k in a.filters.split(",") if k] if a.filters else DEFAULT_FILTERS[_kind(table)].split(",")
-    for k in keys:
-        if k not in NAMES:
-            raise SystemExit(f"--filters: unknown {k!r}; expected a subset of {','.join(NAMES)}")
+    keys = h.keys_option(a.filters or DEFAULT_FILTERS[_kind(table)], NAMES)
     if table != "lg":
         keys = [k for k in keys if k != "kf"]  # the KF needs a linear-Gaussian model
     ta = argparse.Namespace(**vars(a))
@@ -369,50 +344,39 @@ def table_markdown(table: str, rows: List[dict]) -> List[str]:
     ctrl = any(r.get("control") for r in rows)
     if ctrl:
         head.append("control: float64 re-run's verdict")
-    out += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for r in rows:
-        cells = [r["filter"], _g(r["n_particles"], "{}")]
-        for m in mets:
-            v = r["metrics"].get(m)
-            if not v:
-                cells.append("-")
-                continue
-            se = f" ± {_g(v['se'], '{:.2g}')}" if v["se"] is not None else ""
-            z = f", z {_z(v['z'])}" if v["z"] is not None else ""
-            cells.append(f"{_g(v['f64'], '{:.4g}')}{se} / {_g(v['f32'], '{:.4g}')} ({_pct(v['rel'])}{z})")
-        if kind == "acoustic":
-            cells.append(f"{_g(r['lost64'], '{}')} / {_g(r['lost32'], '{}')}")
-        cells += [f"{_g(r['repaired64'], '{}')} / {_g(r['repaired32'], '{}')}", _g(r["sec_per_step64"], "{:.3g}"),
-                  _g(r["sec_per_step32"], "{:.3g}"), _g(r["speedup"], "{:.2f}x"),
-                  f"**{r['verdict']}**" + (f": {r['reason']}" if r["reason"] else "")]
-        if ctrl:
-            c = r.get("control")
-            cells.append("-" if not c else c["verdict"] + (f": {c['reason']}" if c["reason"] else ""))
-        out.append("| " + " | ".join(cells) + " |")
+    def cell(v):
+        if not v:
+            return "-"
+        se = f" ± {_g(v['se'], '{:.2g}')}" if v["se"] is not None else ""
+        z = f", z {_z(v['z'])}" if v["z"] is not None else ""
+        return f"{_g(v['f64'], '{:.4g}')}{se} / {_g(v['f32'], '{:.4g}')} ({_pct(v['rel'])}{z})"
+
+    def verdict(r, bold=True):
+        return (f"**{r['verdict']}**" if bold else r["verdict"]) + (f": {r['reason']}" if r["reason"] else "")
+
+    out += h.md_table(head, [
+        [r["filter"], _g(r["n_particles"], "{}")] + [cell(r["metrics"].get(m)) for m in mets]
+        + ([f"{_g(r['lost64'], '{}')} / {_g(r['lost32'], '{}')}"] if kind == "acoustic" else [])
+        + [f"{_g(r['repaired64'], '{}')} / {_g(r['repaired32'], '{}')}", _g(r["sec_per_step64"], "{:.3g}"),
+           _g(r["sec_per_step32"], "{:.3g}"), _g(r["speedup"], "{:.2f}x"), verdict(r)]
+        + ([verdict(r["control"], bold=False) if r.get("control") else "-"] if ctrl else []) for r in rows])
     det = [r for r in rows if r.get("max_est_diff_rel") is not None]
     if det:
-        out += ["", "Kalman-type filters point by point (no random numbers; float32 - float64 on the same data):", "",
-                "| filter | first step: max abs(dx) / max abs(x_true) | all steps: max abs(dx) | max abs(dx) / max abs(x_true) "
-                "| max abs(d log Z) | max abs(d log Z) / abs(log Z) |",
-                "|---|---|---|---|---|---|"]
-        for r in det:
-            out.append(f"| {r['filter']} | {_g(r.get('first_step_diff_rel'))} | {_g(r['max_est_diff'])} | "
-                       f"{_g(r['max_est_diff_rel'])} | "
-                       f"{_g(r['max_logz_diff'])} | {_g(r['max_logz_diff_rel'])} |")
-    errs = [r for r in rows if r["error64"] or r["error32"]]
-    for r in errs:
-        out.append(f"- {r['filter']}: float64 error: {r['error64'] or '-'}; float32 error: {r['error32'] or '-'}")
+        out += ["", "Kalman-type filters point by point (no random numbers; float32 - float64 on the same data):", ""]
+        out += h.md_table(["filter", "first step: max abs(dx) / max abs(x_true)", "all steps: max abs(dx)",
+                           "max abs(dx) / max abs(x_true)", "max abs(d log Z)", "max abs(d log Z) / abs(log Z)"],
+                          [[r["filter"]] + [_g(r.get(k)) for k in ("first_step_diff_rel", "max_est_diff",
+                                                                    "max_est_diff_rel", "max_logz_diff",
+                                                                    "max_logz_diff_rel")] for r in det])
+    out += [f"- {r['filter']}: float64 error: {r['error64'] or '-'}; float32 error: {r['error32'] or '-'}"
+            for r in rows if r["error64"] or r["error32"]]
     return out + [""]
 
 
 def markdown(info: dict, rows: List[dict], notes: Optional[List[str]] = None) -> str:
-    lines = ["## float32 vs float64 accuracy" + (" (--quick)" if info.get("quick") else ""), "",
-             f"Machine: {info['platform']}, {info['cpus']} CPUs, torch {info['torch']}, "
-             f"{info['threads']} torch thread(s) (single-thread numbers); load at start {info['load_start']}, "
-             f"end {info['load_end']}.",
-             f"Command: `{info['command']}`",
-             f"Verdict: ok = no table metric worse by more than {info['se_k']} SE (or 0.1 %); degraded / breaks "
-             "otherwise (see the script's docstring).", ""]
+    lines = h.header("## float32 vs float64 accuracy", info.get("quick"), info,
+                     f"Verdict: ok = no table metric worse by more than {info['se_k']} SE (or 0.1 %); degraded / "
+                     "breaks otherwise (see the script's docstring).")
     for table in dict.fromkeys(r["table"] for r in rows):
         lines += table_markdown(table, [r for r in rows if r["table"] == table])
     for n in notes or []:
@@ -421,7 +385,7 @@ def markdown(info: dict, rows: List[dict], notes: Optional[List[str]] = None) ->
 
 
 def build_parser():
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = h.parser(__doc__, "LG 3 trials, N 50; acoustic 2 trials x 4 steps, N 100")
     ap.add_argument("--tables", default=",".join(TABLES), help=f"comma-separated subset of {','.join(TABLES)}")
     ap.add_argument("--filters", default=None,
                     help=f"comma-separated subset of {','.join(NAMES)} for every table (default LG "
@@ -442,26 +406,15 @@ def build_parser():
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1: single-thread numbers)")
     ap.add_argument("--control", action="store_true",
                     help="also re-run the random filters in float64 with other seeds (verdict false-alarm check)")
-    ap.add_argument("--quick", action="store_true", help="LG 3 trials, N 50; acoustic 2 trials x 4 steps, N 100")
     ap.add_argument("--quiet", action="store_true")
     ap.add_argument("--merge", nargs="+", default=None, metavar="JSON",
                     help="combine the .json results of earlier runs into one report (runs nothing)")
     ap.add_argument("--note", action="append", default=[], help="a line added under the tables (repeatable)")
-    ap.add_argument("--out", default=None,
-                    help="markdown file (default experiments/benchmarks/results_float32.md; --quick: "
-                         "results_float32_quick.md); a .json of the rows is written beside it")
     return ap
 
 
-def _info(a, argv, load0):
-    return dict(platform=platform.platform(), cpus=os.cpu_count(), torch=torch.__version__,
-                threads=torch.get_num_threads(), load_start=load0, load_end=_loadavg(), se_k=a.se_k,
-                quick=a.quick, command="python experiments/benchmarks/bench_float32.py"
-                + (" " + " ".join(argv) if argv else ""))
-
-
 def run(argv=None) -> dict:
-    argv = list(sys.argv[1:] if argv is None else argv)
+    argv = list(argv or [])
     a = build_parser().parse_args(argv)
     if a.merge:
         parts = [json.loads(Path(p).read_text()) for p in a.merge]
@@ -474,34 +427,19 @@ def run(argv=None) -> dict:
         return dict(machine=info, rows=rows, notes=notes, markdown=markdown(info, rows, notes), args=vars(a))
     if a.quick:
         a.lg_trials, a.acoustic_trials, a.steps_acoustic, a.particles_lg, a.particles_acoustic = 3, 2, 4, 50, 100
-    threads0 = torch.get_num_threads()
-    if a.threads:
-        torch.set_num_threads(a.threads)
-    load0 = _loadavg()
+    tables = [t for t in a.tables.split(",") if t]
+    for table in tables:
+        if table not in TABLES and not table.startswith("acoustic"):
+            raise SystemExit(f"--tables: unknown {table!r}; expected a subset of {','.join(TABLES)}")
     rows = []
-    try:
-        for table in [t for t in a.tables.split(",") if t]:
-            if table not in TABLES and not table.startswith("acoustic"):
-                raise SystemExit(f"--tables: unknown {table!r}; expected a subset of {','.join(TABLES)}")
+    with h.torch_threads(a.threads):  # a suite runner's later sections keep their own thread count
+        info = h.machine(se_k=a.se_k, quick=a.quick, command=h.command("bench_float32", argv))
+        for table in tables:
             rows += run_table(table, a)
-        info = _info(a, argv, load0)
-    finally:  # a suite runner's later sections keep their own thread count
-        torch.set_num_threads(threads0)
+        info["load_end"] = h.loadavg()
     notes = list(a.note)
     return dict(machine=info, rows=rows, notes=notes, markdown=markdown(info, rows, notes), args=vars(a))
 
 
-def main(argv=None):
-    res = run(argv)
-    a = argparse.Namespace(**res["args"])
-    out = Path(a.out) if a.out else _REPO / "experiments" / "benchmarks" / (
-        "results_float32_quick.md" if a.quick else "results_float32.md")
-    out.write_text(res["markdown"])
-    out.with_suffix(".json").write_text(json.dumps({k: v for k, v in res.items() if k != "markdown"}, indent=1,
-                                                   default=str))
-    print(res["markdown"])
-    print(f"wrote {out}")
-
-
 if __name__ == "__main__":
-    main()
+    h.main(run, "float32")

@@ -1,7 +1,7 @@
 """Achieved GFLOP/s of PF-PF(LEDH) on acoustic tracking beside this machine's measured matrix-product
 throughput.
 
-    python experiments/benchmarks/bench_flops.py            # N = 500, 20 trials x 5 steps
+    python -m experiments.benchmarks.bench_flops          # N = 500, 20 trials x 5 steps
 
 The flop count is analytic, for the algorithm as implemented (``torchflow.flows.daum_huang`` with
 the measurement-support reduction: the acoustic measurement reads k = 8 of d = 16 coordinates,
@@ -21,23 +21,12 @@ each); transcendental functions count as one flop. Measured throughputs: a large
 """
 from __future__ import annotations
 
-import argparse
-import platform
-import sys
-import time
-from pathlib import Path
+import torch
 
-_REPO = Path(__file__).resolve().parents[2]
-for _p in (str(_REPO), str(Path(__file__).resolve().parent)):
-    if _p not in sys.path:
-        sys.path.insert(0, _p)
+from torchflow.models import AcousticTracking
+from torchflow.schedules import ExponentialSchedule
 
-import torch  # noqa: E402
-
-from _common import write_results  # noqa: E402
-from torchflow.filters import ParticleFlowParticleFilter  # noqa: E402
-from torchflow.models import AcousticTracking  # noqa: E402
-from torchflow.schedules import ExponentialSchedule  # noqa: E402
+from . import harness as h
 
 
 def ledh_flops_per_trial_step(N: int, d: int, k: int, m: int, C: int, n_lambda: int) -> float:
@@ -47,14 +36,9 @@ def ledh_flops_per_trial_step(N: int, d: int, k: int, m: int, C: int, n_lambda: 
     return N * (n_lambda * per_flow_step + per_time_step)
 
 
-def best(fn, reps=5):
-    fn()
-    t = []
-    for _ in range(reps):
-        s = time.perf_counter()
-        fn()
-        t.append(time.perf_counter() - s)
-    return min(t)
+def best(fn, reps=5) -> float:
+    """Best of ``reps`` timed calls after one untimed call."""
+    return h.time_calls(fn, repeats=reps, warmup=1).min
 
 
 def throughputs() -> dict:
@@ -73,64 +57,43 @@ def throughputs() -> dict:
 
 
 def run(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = h.parser(__doc__)
     ap.add_argument("--particles", type=int, default=500)
     ap.add_argument("--trials", type=int, default=20)
     ap.add_argument("--steps", type=int, default=5)
     ap.add_argument("--threads", type=int, default=None)
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     if a.quick:
         a.trials, a.steps = 4, 2
-    if a.threads:
-        torch.set_num_threads(a.threads)
-    model = AcousticTracking()
-    g = torch.Generator().manual_seed(0)
-    traj = model.simulate(a.trials, a.steps, g)
-    mean, cov = model.initial_belief(traj.states[:, 0], g)
-    f = ParticleFlowParticleFilter(model, flow="ledh", n_particles=a.particles)
-    chunk = f.preferred_chunk_trials()
-    with torch.no_grad():
-        f(traj.observations[:1, :1], mean[:1], cov[:1], torch.Generator().manual_seed(1))
-
-        def go():
-            for s in range(0, a.trials, chunk):
-                f(traj.observations[s:s + chunk], mean[s:s + chunk], cov[s:s + chunk], torch.Generator().manual_seed(1))
-
-        wall = best(go, reps=2)
-    per_ts = wall / (a.trials * a.steps)
-    n_lambda = len(ExponentialSchedule())
-    fl = ledh_flops_per_trial_step(a.particles, 16, 8, 25, 4, n_lambda)
-    achieved = fl / per_ts / 1e9
-    tp = throughputs()
-    info = dict(platform=platform.platform(), torch=torch.__version__, threads=torch.get_num_threads(),
-                command="python experiments/benchmarks/bench_flops.py" + (" " + " ".join(argv) if argv else ""))
+    with h.torch_threads(a.threads):
+        info = h.machine(command=h.command("bench_flops", argv))
+        model = AcousticTracking()
+        traj, mean, cov = h.simulate(model, a.trials, a.steps, 0)
+        f = h.make_filter("ledh", model, a.particles)
+        chunk = f.preferred_chunk_trials()
+        one = lambda s, e: torch.Generator().manual_seed(1)  # noqa: E731
+        wall = h.time_filter(f, traj.observations, mean, cov, chunk, one, warmup=1, repeats=2).min
+        per_ts = wall / (a.trials * a.steps)
+        fl = ledh_flops_per_trial_step(a.particles, 16, 8, 25, 4, len(ExponentialSchedule()))
+        achieved = fl / per_ts / 1e9
+        tp = throughputs()
+        info["load_end"] = h.loadavg()
     rows = [dict(name="PF-PF(LEDH), acoustic, N=%d" % a.particles, gflops=achieved, per_ts=per_ts,
                  gflop_per_trial_step=fl / 1e9)] + [dict(name=k, gflops=v) for k, v in tp.items()]
-    md = "\n".join([
-        "## PF-PF(LEDH) achieved GFLOP/s" + (" (--quick)" if a.quick else ""), "",
-        f"Machine: {info['platform']}, torch {info['torch']} ({info['threads']} threads), float64.",
-        f"Command: `{info['command']}`", "",
-        "| kernel | GFLOP/s | fraction of large GEMM |", "|---|---|---|",
-        f"| PF-PF(LEDH) whole filter ({fl / 1e9:.3f} GFLOP per trial-step, {per_ts:.4g} s per trial-step, "
-        f"{min(chunk, a.trials)} trials per call) | {achieved:.2f} | {achieved / tp['gemm_2048']:.1%} |",
-        f"| batched 16x8 @ 8x8 (10^4 products; the flow's A = L (...) shape) | {tp['bmm_16x8x8']:.2f} | "
-        f"{tp['bmm_16x8x8'] / tp['gemm_2048']:.1%} |",
-        f"| batched Gram 8x25 @ 25x8 (10^4; J = W^T W) | {tp['bmm_gram_25x8']:.2f} | {tp['bmm_gram_25x8'] / tp['gemm_2048']:.1%} |",
-        f"| batched 16x16 @ 16x16 (10^4) | {tp['bmm_16x16x16']:.2f} | {tp['bmm_16x16x16'] / tp['gemm_2048']:.1%} |",
-        f"| one 2048^3 GEMM (practical peak) | {tp['gemm_2048']:.2f} | 100% |", "",
-        "- The flow runs at the speed of batched small products, far below the large-GEMM peak: on CPU "
-        "each of its ~10 products per pseudo-step handles 8-25-wide matrices, where per-matrix overhead "
-        "and memory traffic, not arithmetic, set the time.",
-    ]) + "\n"
-    return dict(rows=rows, markdown=md, machine=info, args=vars(a))
-
-
-def main(argv=None):
-    res = run(sys.argv[1:] if argv is None else argv)
-    write_results(res, "flops", res["args"]["quick"], res["args"]["out"])
+    kernels = [(f"PF-PF(LEDH) whole filter ({fl / 1e9:.3f} GFLOP per trial-step, {per_ts:.4g} s per trial-step, "
+                f"{min(chunk, a.trials)} trials per call)", achieved),
+               ("batched 16x8 @ 8x8 (10^4 products; the flow's A = L (...) shape)", tp["bmm_16x8x8"]),
+               ("batched Gram 8x25 @ 25x8 (10^4; J = W^T W)", tp["bmm_gram_25x8"]),
+               ("batched 16x16 @ 16x16 (10^4)", tp["bmm_16x16x16"])]
+    md = h.header("## PF-PF(LEDH) achieved GFLOP/s", a.quick, info, "float64.")
+    md += h.md_table(["kernel", "GFLOP/s", "fraction of large GEMM"],
+                     [[k, f"{v:.2f}", f"{v / tp['gemm_2048']:.1%}"] for k, v in kernels]
+                     + [["one 2048^3 GEMM (practical peak)", f"{tp['gemm_2048']:.2f}", "100%"]])
+    md += ["", "- The flow runs at the speed of batched small products, far below the large-GEMM peak: on CPU "
+           "each of its ~10 products per pseudo-step handles 8-25-wide matrices, where per-matrix overhead "
+           "and memory traffic, not arithmetic, set the time."]
+    return dict(rows=rows, markdown="\n".join(md) + "\n", machine=info, args=vars(a))
 
 
 if __name__ == "__main__":
-    main()
+    h.main(run, "flops")

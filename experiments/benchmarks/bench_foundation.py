@@ -48,89 +48,33 @@ What is measured (seconds per trial-step = wall time / (trials * steps), one run
    against the true states (averaged over trials, steps and coordinates), with the exact Kalman
    MSE on the same trials as the floor. Goal (issue): ours >= 2x faster (at each N).
 
-Threads: torchflow runs with ``--threads`` torch threads (default: torch's default). The numpy /
-scipy peers run with their BLAS limited to ``--peer-threads`` (default 1, via threadpoolctl);
-pass ``--peer-threads 0`` to leave BLAS at its default. Both settings are printed.
+Threads: torchflow runs with ``--threads`` torch threads (default: torch's default); the numpy /
+scipy peers with their BLAS limited to ``--peer-threads`` (default 1, via threadpoolctl; 0 leaves
+BLAS at its default). A failed agreement check raises ``CheckFailed`` (exit with its message).
+Each row has ``name``, ``setting``, ``per_ts_ours``, ``per_ts_peer``, ``ratio`` (peer / ours),
+``goal`` and ``met``, or ``status = "skipped: <library> not installed"`` and no numbers.
 
-Run from the repository root (a few minutes with the defaults on a 2-core machine)::
-
-    .venv/bin/python experiments/benchmarks/bench_foundation.py
-    .venv/bin/python experiments/benchmarks/bench_foundation.py --quick     # smoke test, < 30 s
-
-The markdown table is printed and written to ``--out`` (default
-``experiments/benchmarks/results_foundation.md``; ``--quick`` defaults to
-``results_foundation_quick.md`` so a smoke test never overwrites the full results), with the raw
-numbers in a JSON file of the same name next to it.
-
-From another script, ``run(argv)`` (``argv`` a list of the same options) runs the benchmarks
-without writing files and returns ``{"machine": {...}, "rows": [...], "markdown": str, "args":
-{...}}``; each row has at least ``name``, ``setting``, ``per_ts_ours``, ``per_ts_peer``, ``ratio``
-(peer / ours), ``goal`` (float or None) and ``met`` (bool or None). A failed agreement check
-raises :class:`CheckFailed` (``main`` turns it into ``SystemExit``).
+    python -m experiments.benchmarks.bench_foundation             # a few minutes on 2 cores
+    python -m experiments.benchmarks.bench_foundation --quick     # smoke test, < 30 s
 """
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import platform
-import sys
 import time
-from contextlib import nullcontext
-from pathlib import Path
 
-_REPO = Path(__file__).resolve().parents[2]
-if str(_REPO) not in sys.path:
-    sys.path.insert(0, str(_REPO))
+import numpy as np
+import scipy.linalg  # (load scipy's BLAS before threadpoolctl limits it)
+import torch
 
-import numpy as np  # noqa: E402
-import scipy.linalg  # noqa: E402,F401  (load scipy's BLAS before threadpoolctl limits it)
-import torch  # noqa: E402
+from torchflow.models import SensorNetwork
 
-import torchflow  # noqa: E402
-from torchflow.random import TrialStreams  # noqa: E402
+from . import harness as h
+from .harness import CheckFailed
 
-
-# ---------------------------------------------------------------------------------------------
-# helpers
-# ---------------------------------------------------------------------------------------------
-def blas_limit(n_threads: int):
-    """Context manager limiting numpy/scipy BLAS threads (not torch's OpenMP pool)."""
-    if n_threads <= 0:
-        return nullcontext()
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover
-        print("  (threadpoolctl missing: peer BLAS threads left at their default)")
-        return nullcontext()
-    return threadpool_limits(limits=n_threads, user_api="blas")
-
-
-def blas_threads() -> str:
-    try:
-        from threadpoolctl import threadpool_info
-    except ImportError:  # pragma: no cover
-        return "?"
-    infos = [f"{i['internal_api']}:{i['num_threads']}" for i in threadpool_info() if i["user_api"] == "blas"]
-    return ",".join(infos) or "?"
-
-
-def best_time(fn, repeats: int):
-    """Best wall time of ``repeats`` calls; returns (seconds, last result)."""
-    best, out = float("inf"), None
-    for _ in range(max(1, repeats)):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
+NAMES = {"kf": "Kalman filter vs filterpy", "ukf": "UKF vs filterpy", "bpf": "Bootstrap PF vs particles"}
 
 
 def mse(est: np.ndarray, truth: np.ndarray) -> float:
     return float(np.mean((est - truth) ** 2))
-
-
-class CheckFailed(RuntimeError):
-    """Ours and the peer disagree: the timing would not compare equal work."""
 
 
 def int_list(text) -> list:
@@ -150,6 +94,50 @@ def per_n(values: list, n_count: int, option: str) -> list:
         raise SystemExit(f"{option}: expected 1 or {n_count} comma-separated values (one per --particles), "
                          f"got {len(values)}")
     return values
+
+
+def skipped_row(key: str, setting: str, library: str, goal=None) -> dict:
+    """The row of a benchmark whose peer ``library`` is not installed."""
+    return dict(name=NAMES[key], setting=setting, status=h.skipped(library), per_ts_ours=None, per_ts_peer=None,
+                ratio=None, goal=goal, met=None)
+
+
+def timed_row(key, setting, B, P, T, t_ours, t_peer, goal, **numbers) -> dict:
+    """A row's times: total seconds, per trial-step (the trial counts may differ), ratio, goal."""
+    per_ours, per_peer = t_ours / (B * T), t_peer / (P * T)
+    return dict(name=NAMES[key], setting=setting, trials_ours=B, trials_peer=P, steps=T, s_ours=t_ours,
+                s_peer=t_peer, per_ts_ours=per_ours, per_ts_peer=per_peer, ratio=per_peer / per_ours, goal=goal,
+                met=None if goal is None else per_peer / per_ours >= goal, **numbers)
+
+
+def check_line(r) -> str:
+    """The row's agreement / accuracy line (printed, and listed under the table)."""
+    if r.get("status"):
+        return f"- {r['name']} ({r['setting']}): {r['status']}."
+    if "particles" in r:
+        o = r["mse_ours_peer_trials"]
+        return (f"- BPF N={r['particles']} MSE vs truth: ours {r['mse_ours']:.4f} over {r['trials_ours']} trials "
+                f"(exact KF {r['mse_kf']:.4f}); particles {r['mse_peer']:.4f} over {r['trials_peer']} trials "
+                f"(exact KF {r['mse_kf_peer_trials']:.4f}" + (f", ours on the same trials {o:.4f}" if o is not None else "")
+                + f"). RMS distance to the KF mean: ours {r['rmse_to_kf_ours']:.4f}, "
+                  f"particles {r['rmse_to_kf_peer']:.4f}. Ours mean ESS {r['mean_ess_ours']:.1f}.")
+    if "alpha" in r:
+        return (f"- UKF vs filterpy (MerweScaledSigmaPoints alpha={r['alpha']:g}, beta={r['beta']:g}, "
+                f"kappa={r['kappa']:g} on both): max |estimate diff| {r['max_abs_diff_estimates']:.2e} over "
+                f"{r['compared_trials']} trials (< 1e-6 required); max |diff| to the exact KF: ours "
+                f"{r['max_abs_diff_to_kf_ours']:.2e}, filterpy {r['max_abs_diff_to_kf_peer']:.2e}; "
+                f"|log-evidence diff| (trial 0) {r['log_evidence_diff_trial0']:.2e}; MSE {r['mse_ours']:.4f}.")
+    return (f"- KF vs filterpy: max |estimate diff| {r['max_abs_diff_estimates']:.2e} (< 1e-8 required), "
+            f"|log-evidence diff| (trial 0) {r['log_evidence_diff_trial0']:.2e}; MSE {r['mse_ours']:.4f}.")
+
+
+def report(r) -> dict:
+    """Print a row's times and its check line as it completes."""
+    if not r.get("status"):
+        print(f"[{r['name']}] {r['setting']}: ours {r['per_ts_ours']:.3e}, peer {r['per_ts_peer']:.3e} "
+              f"s/trial-step, ratio {r['ratio']:.1f}x")
+    print(check_line(r), flush=True)
+    return r
 
 
 def run_filterpy(f, x0, P0, Z, trials: int, args):
@@ -178,69 +166,14 @@ def run_filterpy(f, x0, P0, Z, trials: int, args):
             one(b, out)
         return out
 
-    with blas_limit(args.peer_threads):
-        peer_blas = blas_threads()
+    with h.blas_limit(args.peer_threads):
+        peer_blas = h.blas_threads()
         one(0, np.empty((1, T, d)))  # warm-up: first-call import / allocation costs
-        t_peer, est_peer = best_time(peer, args.peer_repeats)
+        t = h.time_calls(peer, repeats=args.peer_repeats)
         ll_peer = one(0)
-    return t_peer, est_peer, ll_peer, peer_blas
+    return t.min, t.result, ll_peer, peer_blas
 
 
-# ---------------------------------------------------------------------------------------------
-# 1. Kalman filter vs filterpy
-# ---------------------------------------------------------------------------------------------
-def bench_kf(args):
-    from filterpy.kalman import KalmanFilter as FPKalmanFilter
-
-    model = torchflow.models.SensorNetwork(d=args.d)
-    gen = torch.Generator().manual_seed(args.seed)
-    traj = model.simulate(args.kf_trials, args.steps, gen)
-    mean, cov = model.initial_belief(traj.states[:, 0])
-    B, T = args.kf_trials, args.steps
-    kf = torchflow.filters.KalmanFilter(model)
-
-    def ours():
-        with torch.no_grad():
-            return kf(traj.observations, mean, cov)
-
-    ours()  # warm-up
-    t_ours, res = best_time(ours, args.kf_repeats)
-    est_ours = res.estimates.numpy()
-
-    F, Q, H, R = (getattr(model, k).numpy().copy() for k in ("F", "Q", "H", "R"))
-    Z = traj.observations.numpy()
-    x0, P0 = mean.numpy(), cov.numpy()
-    d = args.d
-    fkf = FPKalmanFilter(dim_x=d, dim_z=d)
-    fkf.F, fkf.Q, fkf.H, fkf.R = F, Q, H, R
-
-    t_peer, est_peer, ll_peer, peer_blas = run_filterpy(fkf, x0, P0, Z, B, args)
-
-    diff = float(np.abs(est_ours - est_peer).max())
-    ll_diff = abs(float(res.log_evidence[0]) - ll_peer)
-    truth = traj.states[:, 1:].numpy()
-    steps = B * T
-    r = dict(
-        name="Kalman filter vs filterpy", d=d, trials_ours=B, trials_peer=B, steps=T,
-        s_ours=t_ours, s_peer=t_peer,
-        per_ts_ours=t_ours / steps, per_ts_peer=t_peer / steps, ratio=t_peer / t_ours, goal=50.0,
-        max_abs_diff_estimates=diff, log_evidence_diff_trial0=ll_diff,
-        mse_ours=mse(est_ours, truth), mse_peer=mse(est_peer, truth), peer_blas=peer_blas,
-    )
-    r["met"] = r["ratio"] >= r["goal"]
-    r["setting"] = f"d={d}, B={B}, T={T}"
-    print(f"[KF] d={d} B={B} T={T}: ours {t_ours:.4f}s ({r['per_ts_ours']:.3e} s/trial-step), "
-          f"filterpy {t_peer:.4f}s ({r['per_ts_peer']:.3e} s/trial-step), ratio {r['ratio']:.1f}x")
-    print(f"[KF] max |estimate diff| = {diff:.3e} (must be < 1e-8), "
-          f"|log-evidence diff| trial 0 = {ll_diff:.3e}, MSE = {r['mse_ours']:.4f}")
-    if not diff < 1e-8:
-        raise CheckFailed(f"KF estimates disagree with filterpy (max diff {diff:.3e}): comparison invalid")
-    return r, model, traj
-
-
-# ---------------------------------------------------------------------------------------------
-# 2. Unscented Kalman filter vs filterpy
-# ---------------------------------------------------------------------------------------------
 def cholesky_upper_jitter(A: np.ndarray, max_tries: int = 6) -> np.ndarray:
     """filterpy's default sigma-point square root (``scipy.linalg.cholesky``, upper) with the same
     jitter fallback as ``torchflow.linalg.safe_cholesky``: needed for the known ``x_0`` (P = 0)."""
@@ -259,109 +192,81 @@ def cholesky_upper_jitter(A: np.ndarray, max_tries: int = 6) -> np.ndarray:
     raise np.linalg.LinAlgError("cholesky_upper_jitter: matrix not positive definite even with jitter")
 
 
-def bench_ukf(args):
-    from filterpy.kalman import MerweScaledSigmaPoints
-    from filterpy.kalman import UnscentedKalmanFilter as FPUnscentedKalmanFilter
-
-    model = torchflow.models.SensorNetwork(d=args.d)
-    B, P, T, d = args.kf_trials, args.ukf_peer_trials, args.steps, args.d
-    gen = torch.Generator().manual_seed(args.seed)
-    traj = model.simulate(max(B, P), args.steps, gen)
-    mean_all, cov_all = model.initial_belief(traj.states[:, 0])
-    obs, mean, cov = traj.observations[:B], mean_all[:B], cov_all[:B]
-    ukf = torchflow.filters.UnscentedKalmanFilter(
-        model, alpha=args.ukf_alpha, beta=args.ukf_beta, kappa=args.ukf_kappa)
-    a, b, k = ukf.alpha, ukf.beta, ukf.kappa  # the peer takes exactly these
-
-    def ours():
-        with torch.no_grad():
-            return ukf(obs, mean, cov)
-
-    ours()  # warm-up
-    t_ours, res = best_time(ours, args.kf_repeats)
-    est_ours = res.estimates.numpy()
-    with torch.no_grad():  # exact KF on all trials (untimed): both UKFs must equal it
-        kf_res = torchflow.filters.KalmanFilter(model)(traj.observations, mean_all, cov_all)
-    est_kf = kf_res.estimates.numpy()
-
-    F, Q, H, R = (getattr(model, n).numpy().copy() for n in ("F", "Q", "H", "R"))
-    Z = traj.observations.numpy()
-    x0, P0 = mean_all.numpy(), cov_all.numpy()
-    points = MerweScaledSigmaPoints(n=d, alpha=a, beta=b, kappa=k, sqrt_method=cholesky_upper_jitter)
-    fukf = FPUnscentedKalmanFilter(dim_x=d, dim_z=d, dt=1.0, fx=lambda x, dt: F @ x, hx=lambda x: H @ x,
-                                   points=points)
-    fukf.Q, fukf.R = Q, R
-
-    t_peer, est_peer, ll_peer, peer_blas = run_filterpy(fukf, x0, P0, Z, P, args)
-
-    n_cmp = min(B, P)
-    diff = float(np.abs(est_ours[:n_cmp] - est_peer[:n_cmp]).max())
-    diff_kf_ours = float(np.abs(est_ours - est_kf[:B]).max())
-    diff_kf_peer = float(np.abs(est_peer - est_kf[:P]).max())
-    ll_diff = abs(float(res.log_evidence[0]) - ll_peer)
+def bench_filterpy(args, kind: str) -> dict:
+    """1. (``kind="kf"``) and 2. (``kind="ukf"``) above."""
+    B, T, d = args.kf_trials, args.steps, args.d
+    P = B if kind == "kf" else args.ukf_peer_trials
+    model = SensorNetwork(d=d)
+    ukf_params = dict(alpha=args.ukf_alpha, beta=args.ukf_beta, kappa=args.ukf_kappa) if kind == "ukf" else {}
+    ours = h.make_filter(kind, model, **ukf_params)
+    if kind == "ukf":  # the peer takes exactly our alpha, beta, kappa
+        ukf_params = dict(alpha=ours.alpha, beta=ours.beta, kappa=ours.kappa)
+        setting = f"d={d}, T={T}, ours B={B}, peer B={P}, " + ", ".join(f"{k}={v:g}" for k, v in ukf_params.items())
+    else:
+        setting = f"d={d}, B={B}, T={T}"
+    goal, tol = (50.0, 1e-8) if kind == "kf" else (None, 1e-6)
+    filterpy = h.peer("filterpy", "kalman")
+    if filterpy is None:
+        return skipped_row(kind, setting, "filterpy", goal)
+    traj, mean, cov = h.simulate(model, max(B, P), T, args.seed)
+    with torch.no_grad():
+        t = h.time_calls(lambda: ours(traj.observations[:B], mean[:B], cov[:B]), repeats=args.kf_repeats, warmup=1)
+    est_ours = t.result.estimates.numpy()
+    F, Q, H, R = (getattr(model, k).numpy().copy() for k in ("F", "Q", "H", "R"))
+    if kind == "kf":
+        peer = filterpy.kalman.KalmanFilter(dim_x=d, dim_z=d)
+        peer.F, peer.H = F, H
+    else:
+        points = filterpy.kalman.MerweScaledSigmaPoints(n=d, sqrt_method=cholesky_upper_jitter, **ukf_params)
+        peer = filterpy.kalman.UnscentedKalmanFilter(dim_x=d, dim_z=d, dt=1.0, fx=lambda x, dt: F @ x,
+                                                     hx=lambda x: H @ x, points=points)
+    peer.Q, peer.R = Q, R
+    t_peer, est_peer, ll_peer, peer_blas = run_filterpy(peer, mean.numpy(), cov.numpy(), traj.observations.numpy(),
+                                                        P, args)
+    n = min(B, P)
     truth = traj.states[:, 1:].numpy()
-    per_ours, per_peer = t_ours / (B * T), t_peer / (P * T)
-    r = dict(
-        name="UKF vs filterpy", d=d, trials_ours=B, trials_peer=P, steps=T,
-        alpha=a, beta=b, kappa=k, s_ours=t_ours, s_peer=t_peer,
-        per_ts_ours=per_ours, per_ts_peer=per_peer, ratio=per_peer / per_ours, goal=None, met=None,
-        max_abs_diff_estimates=diff, compared_trials=n_cmp, max_abs_diff_to_kf_ours=diff_kf_ours,
-        max_abs_diff_to_kf_peer=diff_kf_peer, log_evidence_diff_trial0=ll_diff,
-        mse_ours=mse(est_ours, truth[:B]), mse_peer=mse(est_peer, truth[:P]), peer_blas=peer_blas,
-        setting=f"d={d}, T={T}, ours B={B}, peer B={P}, alpha={a:g}, beta={b:g}, kappa={k:g}",
-    )
-    print(f"[UKF] d={d} T={T} alpha={a:g} beta={b:g} kappa={k:g}: ours B={B} {t_ours:.4f}s "
-          f"({per_ours:.3e} s/trial-step), filterpy B={P} {t_peer:.4f}s ({per_peer:.3e} s/trial-step), "
-          f"ratio {r['ratio']:.1f}x")
-    print(f"[UKF] max |estimate diff| vs filterpy = {diff:.3e} over {n_cmp} trials (must be < 1e-6); "
-          f"to the exact KF: ours {diff_kf_ours:.3e}, filterpy {diff_kf_peer:.3e}; "
-          f"|log-evidence diff| trial 0 = {ll_diff:.3e}; MSE = {r['mse_ours']:.4f}")
-    if not diff < 1e-6:
-        raise CheckFailed(f"UKF estimates disagree with filterpy (max diff {diff:.3e}): comparison invalid")
+    r = timed_row(kind, setting, B, P, T, t.min, t_peer, goal, d=d,
+                  max_abs_diff_estimates=float(np.abs(est_ours[:n] - est_peer[:n]).max()),
+                  log_evidence_diff_trial0=abs(float(t.result.log_evidence[0]) - ll_peer),
+                  mse_ours=mse(est_ours, truth[:B]), mse_peer=mse(est_peer, truth[:P]), peer_blas=peer_blas)
+    if kind == "ukf":  # on this linear model both UKFs equal the exact KF (untimed)
+        with torch.no_grad():
+            est_kf = h.make_filter("kf", model)(traj.observations, mean, cov).estimates.numpy()
+        r.update(ukf_params, compared_trials=n, max_abs_diff_to_kf_ours=float(np.abs(est_ours - est_kf[:B]).max()),
+                 max_abs_diff_to_kf_peer=float(np.abs(est_peer - est_kf[:P]).max()))
+    if not r["max_abs_diff_estimates"] < tol:
+        raise CheckFailed(f"{kind.upper()} estimates disagree with filterpy (max diff "
+                          f"{r['max_abs_diff_estimates']:.3e}): comparison invalid")
     return r
 
 
-# ---------------------------------------------------------------------------------------------
-# 3. Bootstrap PF vs particles
-# ---------------------------------------------------------------------------------------------
-def bench_bpf(args, N: int, bpf_trials: int, peer_trials: int):
-    import particles
-    from particles import collectors
-    from particles import distributions as dists
-    from particles import state_space_models as ssms
-
-    model = torchflow.models.SensorNetwork(d=args.d)
-    gen = torch.Generator().manual_seed(args.seed + 1)
-    B = max(bpf_trials, peer_trials)
-    traj = model.simulate(B, args.steps, gen)
-    traj_ours = traj[: bpf_trials]
-    mean, cov = model.initial_belief(traj_ours.states[:, 0])
-    T, d = args.steps, args.d
-    bpf = torchflow.filters.BootstrapParticleFilter(
-        model, n_particles=N, resampling="systematic", ess_threshold=0.5)
-
+def bench_bpf(args, N: int, bpf_trials: int, peer_trials: int) -> dict:
+    """3. above, at ``N`` particles."""
+    T, d, P = args.steps, args.d, peer_trials
+    model = SensorNetwork(d=d)
+    bpf = h.make_filter("bpf", model, N, resampling="systematic", ess_threshold=0.5)
     chunk = bpf.preferred_chunk_trials()  # cache-sized calls (3 trials at N = 1e4, d = 64)
+    setting = f"d={d}, N={N}, T={T}, ours B={bpf_trials} ({min(chunk, bpf_trials)} per call), peer B={P}"
+    particles = h.peer("particles", "collectors", "distributions", "state_space_models")
+    if particles is None:
+        return skipped_row("bpf", setting, "particles", 2.0)
+    dists, ssms = particles.distributions, particles.state_space_models
+    traj, mean, cov = h.simulate(model, max(bpf_trials, peer_trials), T, args.seed + 1)
+    obs_ours, mean_ours, cov_ours = traj.observations[:bpf_trials], mean[:bpf_trials], cov[:bpf_trials]
 
-    def ours():
-        with torch.no_grad():
-            # per-trial streams, as run_experiment uses them
-            parts = [bpf(traj_ours.observations[s:s + chunk], mean[s:s + chunk], cov[s:s + chunk],
-                         TrialStreams(args.seed + 2, range(s, min(s + chunk, bpf_trials)), key="bpf"))
-                     for s in range(0, bpf_trials, chunk)]
-        return (torch.cat([p.estimates for p in parts]), torch.cat([p.ess for p in parts], 0))
+    def ours():  # per-trial streams, as run_experiment uses them
+        parts = h.filter_chunks(bpf, obs_ours, mean_ours, cov_ours, chunk, h.streams(args.seed + 2, "bpf"))
+        return torch.cat([p.estimates for p in parts]), torch.cat([p.ess for p in parts], 0)
 
-    ours()  # warm-up
-    t_ours, (est, ess_ours) = best_time(ours, args.repeats)
-    est_ours = est.numpy()
-
-    # exact KF on the same trials: the MSE floor
-    with torch.no_grad():
-        kf_all = torchflow.filters.KalmanFilter(model)(traj.observations, *model.initial_belief(traj.states[:, 0]))
-    est_kf = kf_all.estimates.numpy()
+    t = h.time_calls(ours, repeats=args.repeats, warmup=1)
+    est_ours, ess_ours = t.result[0].numpy(), t.result[1]
+    with torch.no_grad():  # exact KF on the same trials: the MSE floor
+        est_kf = h.make_filter("kf", model)(traj.observations, mean, cov).estimates.numpy()
 
     F, Q, R, m0 = (getattr(model, k).numpy().copy() for k in ("F", "Q", "R", "m0"))
     alpha = float(F[0, 0])
-    assert np.allclose(F, alpha * np.eye(d)), "peer model assumes F = alpha * I"
+    if not np.allclose(F, alpha * np.eye(d)):
+        raise CheckFailed("the particles peer model assumes F = alpha * I")
 
     class LGSensorNetwork(ssms.StateSpaceModel):
         """x_1 ~ N(F m0, Q) (x_0 = m0 known); x_t ~ N(alpha x_{t-1}, Q); y_t ~ N(x_t, R)."""
@@ -375,133 +280,49 @@ def bench_bpf(args, N: int, bpf_trials: int, peer_trials: int):
         def PY(self, t, xp, x):
             return dists.MvNormal(loc=x, cov=R)
 
-    def wmean(W, X):
-        return W @ X
+    def smc(data, n):
+        return particles.SMC(fk=ssms.Bootstrap(ssm=LGSensorNetwork(), data=data), N=n, resampling="systematic",
+                             ESSrmin=0.5, collect=[particles.collectors.Moments(mom_func=lambda W, X: W @ X)])
 
-    P = peer_trials
     Z = traj.observations.numpy()
 
     def peer():
         np.random.seed(args.seed + 3)
         out = np.empty((P, T, d))
         for b in range(P):
-            fk = ssms.Bootstrap(ssm=LGSensorNetwork(), data=Z[b])
-            pf = particles.SMC(fk=fk, N=N, resampling="systematic", ESSrmin=0.5,
-                               collect=[collectors.Moments(mom_func=wmean)])
+            pf = smc(Z[b], N)
             pf.run()
             out[b] = np.stack(pf.summaries.moments)
         return out
 
-    def peer_warmup():  # one short untimed trial: first-call import / allocation costs
-        fk = ssms.Bootstrap(ssm=LGSensorNetwork(), data=Z[0, :2])
-        particles.SMC(fk=fk, N=min(N, 1000), resampling="systematic", ESSrmin=0.5,
-                      collect=[collectors.Moments(mom_func=wmean)]).run()
-
-    with blas_limit(args.peer_threads):
-        peer_blas = blas_threads()
-        peer_warmup()
-        t_peer, est_peer = best_time(peer, args.peer_repeats)
-
-    truth = traj.states[:, 1:].numpy()
-    per_ours = t_ours / (bpf_trials * T)
-    per_peer = t_peer / (P * T)
-    r = dict(
-        name="Bootstrap PF vs particles", d=d, particles=N, trials_ours=bpf_trials, trials_peer=P,
-        steps=T, s_ours=t_ours, s_peer=t_peer, per_ts_ours=per_ours, per_ts_peer=per_peer,
-        ratio=per_peer / per_ours, goal=2.0,
-        mse_ours=mse(est_ours, truth[: bpf_trials]),
-        mse_ours_peer_trials=mse(est_ours[:P], truth[:P]) if P <= bpf_trials else None,
-        mse_peer=mse(est_peer, truth[:P]),
-        mse_kf=mse(est_kf[: bpf_trials], truth[: bpf_trials]),
-        mse_kf_peer_trials=mse(est_kf[:P], truth[:P]),
-        rmse_to_kf_ours=float(np.sqrt(np.mean((est_ours - est_kf[: bpf_trials]) ** 2))),
+    with h.blas_limit(args.peer_threads):
+        peer_blas = h.blas_threads()
+        smc(Z[0, :2], min(N, 1000)).run()  # one short untimed trial: first-call import / allocation costs
+        tp = h.time_calls(peer, repeats=args.peer_repeats)
+    est_peer, truth, B = tp.result, traj.states[:, 1:].numpy(), bpf_trials
+    return timed_row(
+        "bpf", setting, B, P, T, t.min, tp.min, 2.0, d=d, particles=N,
+        mse_ours=mse(est_ours, truth[:B]), mse_ours_peer_trials=mse(est_ours[:P], truth[:P]) if P <= B else None,
+        mse_peer=mse(est_peer, truth[:P]), mse_kf=mse(est_kf[:B], truth[:B]), mse_kf_peer_trials=mse(est_kf[:P], truth[:P]),
+        rmse_to_kf_ours=float(np.sqrt(np.mean((est_ours - est_kf[:B]) ** 2))),
         rmse_to_kf_peer=float(np.sqrt(np.mean((est_peer - est_kf[:P]) ** 2))),
-        mean_ess_ours=float(ess_ours.mean()), peer_blas=peer_blas,
-    )
-    r["met"] = r["ratio"] >= r["goal"]
-    r["setting"] = f"d={d}, N={N}, T={T}, ours B={bpf_trials} ({min(chunk, bpf_trials)} per call), peer B={P}"
-    print(f"[BPF] d={d} N={N} T={T}: ours B={bpf_trials} {t_ours:.3f}s ({per_ours:.3e} s/trial-step), "
-          f"particles B={P} {t_peer:.3f}s ({per_peer:.3e} s/trial-step), ratio {r['ratio']:.1f}x")
-    print(f"[BPF] MSE vs truth: ours {r['mse_ours']:.4f} (KF {r['mse_kf']:.4f}), "
-          f"particles {r['mse_peer']:.4f} (KF on its trials {r['mse_kf_peer_trials']:.4f}, "
-          f"ours on them {r['mse_ours_peer_trials'] if r['mse_ours_peer_trials'] is None else round(r['mse_ours_peer_trials'], 4)})")
-    return r
-
-
-# ---------------------------------------------------------------------------------------------
-# report
-# ---------------------------------------------------------------------------------------------
-def machine_info(args) -> dict:
-    return dict(
-        platform=platform.platform(), processor=platform.processor() or platform.machine(),
-        cpu_count=os.cpu_count(), python=platform.python_version(), torch=torch.__version__,
-        numpy=np.__version__, torch_threads=torch.get_num_threads(),
-        peer_blas_threads=args.peer_threads if args.peer_threads > 0 else "default",
-        loadavg_start=_loadavg(),
-    )
-
-
-def _loadavg():
-    try:
-        return [round(x, 2) for x in os.getloadavg()]
-    except OSError:  # pragma: no cover
-        return None
-
-
-def _fmt_goal(r) -> tuple:
-    if r.get("goal") is None:
-        return "-", "-"
-    return f">= {r['goal']:g}x", ("yes" if r["met"] else "NO")
+        mean_ess_ours=float(ess_ours.mean()), peer_blas=peer_blas)
 
 
 def markdown(info, results, args) -> str:
-    lines = [
-        "## Foundation benchmarks" + (" (--quick smoke test)" if args.quick else ""),
-        "",
-        f"Machine: {info['platform']}, {info['processor']}, {info['cpu_count']} CPUs; python {info['python']}, "
-        f"torch {info['torch']} ({info['torch_threads']} threads), numpy {info['numpy']} "
-        f"(peer BLAS threads: {info['peer_blas_threads']}). Load average (1/5/15 min) at start "
-        f"{info['loadavg_start']}, at end {info['loadavg_end']}: other work on the machine inflates times.",
-        f"Command: `{info['command']}`",
-        "",
-        "| benchmark | setting | ours s/trial-step | peer s/trial-step | ratio peer/ours | goal | met |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for r in results:
-        goal, met = _fmt_goal(r)
-        lines.append(f"| {r['name']} | {r['setting']} | {r['per_ts_ours']:.3e} | {r['per_ts_peer']:.3e} | "
-                     f"{r['ratio']:.1f}x | {goal} | {met} |")
-    lines += ["", "Checks / accuracy:", ""]
-    for r in results:
-        if "particles" in r:
-            o = r["mse_ours_peer_trials"]
-            lines.append(
-                f"- BPF N={r['particles']} MSE vs truth: ours {r['mse_ours']:.4f} over {r['trials_ours']} trials "
-                f"(exact KF {r['mse_kf']:.4f}); particles {r['mse_peer']:.4f} over {r['trials_peer']} trials "
-                f"(exact KF {r['mse_kf_peer_trials']:.4f}"
-                + (f", ours on the same trials {o:.4f}" if o is not None else "")
-                + f"). RMS distance to the KF mean: ours {r['rmse_to_kf_ours']:.4f}, "
-                  f"particles {r['rmse_to_kf_peer']:.4f}. Ours mean ESS {r['mean_ess_ours']:.1f}.")
-        elif "alpha" in r:
-            lines.append(
-                f"- UKF vs filterpy (MerweScaledSigmaPoints alpha={r['alpha']:g}, beta={r['beta']:g}, "
-                f"kappa={r['kappa']:g} on both): max |estimate diff| {r['max_abs_diff_estimates']:.2e} over "
-                f"{r['compared_trials']} trials (< 1e-6 required); max |diff| to the exact KF: ours "
-                f"{r['max_abs_diff_to_kf_ours']:.2e}, filterpy {r['max_abs_diff_to_kf_peer']:.2e}; "
-                f"|log-evidence diff| (trial 0) {r['log_evidence_diff_trial0']:.2e}; MSE {r['mse_ours']:.4f}.")
-        else:
-            lines.append(
-                f"- KF vs filterpy: max |estimate diff| {r['max_abs_diff_estimates']:.2e} (< 1e-8 required), "
-                f"|log-evidence diff| (trial 0) {r['log_evidence_diff_trial0']:.2e}; MSE {r['mse_ours']:.4f}.")
+    lines = h.header("## Foundation benchmarks", args.quick, info, f"Peer BLAS threads: {info['peer_blas_threads']}.")
+    lines += h.md_table(
+        ["benchmark", "setting", "ours s/trial-step", "peer s/trial-step", "ratio peer/ours", "goal", "met"],
+        [[r["name"], r["setting"]] + ([r["status"], "-", "-"] if r.get("status") else
+                                      [f"{r['per_ts_ours']:.3e}", f"{r['per_ts_peer']:.3e}", f"{r['ratio']:.1f}x"])
+         + [h.fmt(r.get("goal"), ">= {:g}x"), h.met_cell(r["met"])] for r in results])
+    lines += ["", "Checks / accuracy:", ""] + [check_line(r) for r in results]
     lines += ["", "Times are best of repeats, each side after an untimed warm-up; s/trial-step = time / (trials x steps)."]
     return "\n".join(lines) + "\n"
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--quick", action="store_true", help="tiny sizes for a smoke test (< 30 s)")
-    p.add_argument("--out", default=None, help="markdown output (JSON written next to it)")
+    p = h.parser(__doc__, "tiny sizes for a smoke test (< 30 s)")
     p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's)")
     p.add_argument("--peer-threads", type=int, default=1, help="BLAS threads for numpy peers (0: default)")
     p.add_argument("--d", type=int, default=None, help="state dimension, a perfect square (64)")
@@ -541,60 +362,29 @@ def parse_args(argv=None):
         args.peer_trials = [10 if N <= 1000 else 2 for N in args.particles]
     else:
         args.peer_trials = per_n(int_list(args.peer_trials), n, "--peer-trials")
-    if args.out is None:
-        name = "results_foundation_quick.md" if args.quick else "results_foundation.md"
-        args.out = str(_REPO / "experiments" / "benchmarks" / name)
     return args
 
 
 def run(argv=None) -> dict:
-    """Run the benchmarks (``argv``: the CLI options as a list; None reads ``sys.argv``).
-
-    Writes no files. Returns ``{"machine": dict, "rows": [row, ...], "markdown": str, "args": dict}``,
-    each row with ``name``, ``setting``, ``per_ts_ours``, ``per_ts_peer``, ``ratio`` (peer / ours),
-    ``goal`` (float or None), ``met`` (bool or None) and the raw numbers of its benchmark. Raises
-    :class:`CheckFailed` when ours and a peer disagree.
-    """
+    argv = list(argv or [])
     args = parse_args(argv)
-    if args.threads is not None:
-        torch.set_num_threads(args.threads)
-    info = machine_info(args)
-    script = os.path.relpath(Path(__file__).resolve(), _REPO) if argv is not None else sys.argv[0]
-    info["command"] = " ".join(["python", script] + list(sys.argv[1:] if argv is None else argv))
-    print(f"machine: {info['platform']} | {info['processor']} | cpus={info['cpu_count']} | "
-          f"torch {info['torch']} threads={info['torch_threads']} | numpy {info['numpy']} "
-          f"peer BLAS threads={info['peer_blas_threads']} (BLAS default now: {blas_threads()}) | "
-          f"loadavg {info['loadavg_start']}")
-    t0 = time.perf_counter()
-    rows = []
-    if not args.skip_kf:
-        rows.append(bench_kf(args)[0])
-    if not args.skip_ukf:
-        rows.append(bench_ukf(args))
-    if not args.skip_bpf:
-        for N, b_ours, b_peer in zip(args.particles, args.bpf_trials, args.peer_trials):
-            rows.append(bench_bpf(args, N, b_ours, b_peer))
-    info["total_wall_s"] = time.perf_counter() - t0
-    info["loadavg_end"] = _loadavg()
-    md = markdown(info, rows, args)
-    return dict(machine=info, rows=rows, markdown=md, args=vars(args))
-
-
-def main(argv=None):
-    try:
-        out_dict = run(argv)
-    except CheckFailed as e:
-        raise SystemExit(str(e)) from None
-    info, md = out_dict["machine"], out_dict["markdown"]
-    print()
-    print(md)
-    out = Path(out_dict["args"]["out"])
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(md)
-    out.with_suffix(".json").write_text(json.dumps(
-        dict(machine=info, args=out_dict["args"], results=out_dict["rows"]), indent=2, default=str) + "\n")
-    print(f"wrote {out} and {out.with_suffix('.json')} (total {info['total_wall_s']:.1f}s)")
+    with h.torch_threads(args.threads):
+        info = h.machine(peer_blas_threads=args.peer_threads if args.peer_threads > 0 else "default",
+                         command=h.command("bench_foundation", argv))
+        print(f"{h.machine_line(info)} Peer BLAS threads: {info['peer_blas_threads']} "
+              f"(BLAS default now: {h.blas_threads()}).")
+        t0 = time.perf_counter()
+        rows = []
+        for kind in ("kf", "ukf"):
+            if not getattr(args, f"skip_{kind}"):
+                rows.append(report(bench_filterpy(args, kind)))
+        if not args.skip_bpf:
+            for N, b_ours, b_peer in zip(args.particles, args.bpf_trials, args.peer_trials):
+                rows.append(report(bench_bpf(args, N, b_ours, b_peer)))
+        info["total_wall_s"] = time.perf_counter() - t0
+        info["load_end"] = h.loadavg()
+    return dict(machine=info, rows=rows, markdown=markdown(info, rows, args), args=vars(args))
 
 
 if __name__ == "__main__":
-    main()
+    h.main(run, "foundation")

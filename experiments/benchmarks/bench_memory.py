@@ -3,8 +3,8 @@ particles on acoustic tracking, through the experiment runner (:func:`torchflow.
 with ``memory_budget_gb``: the runner picks the chunk of trials and, when one trial does not fit,
 the filter's particle chunk (:meth:`~torchflow.filters.base.ParticleFilterBase.plan_memory`).
 
-    python experiments/benchmarks/bench_memory.py                       # both cases, 1 trial x 40 steps
-    python experiments/benchmarks/bench_memory.py --cases bpf --particles-bpf 1e5 --steps 5
+    python -m experiments.benchmarks.bench_memory                     # both cases, 1 trial x 40 steps
+    python -m experiments.benchmarks.bench_memory --cases bpf --particles-bpf 1e5 --steps 5
 
 Each case runs in its own process, so its peak resident memory (``ru_maxrss``) is its own. Reports
 the wall time per step, peak RSS, the particle chunk chosen, the library's own per-trial memory
@@ -14,44 +14,29 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import resource
 import subprocess
 import sys
-import time
-from pathlib import Path
 
-_REPO = Path(__file__).resolve().parents[2]
-for _p in (str(_REPO), str(Path(__file__).resolve().parent)):
-    if _p not in sys.path:
-        sys.path.insert(0, _p)
+from . import harness as h
 
 CASES = {"bpf": "BPF", "ledh": "PF-PF(LEDH)", "gromov": "PF-PF(Gromov)"}
 
 
 def _case(a) -> dict:
     """Run one case in this process and return its numbers."""
-    import torch
-
     from torchflow.experiment import run_experiment
-    from torchflow.filters import BootstrapParticleFilter, ParticleFlowParticleFilter
     from torchflow.models import AcousticTracking
 
-    if a.threads:
-        torch.set_num_threads(a.threads)
-    model = AcousticTracking(sigma_w=a.sigma_w)
-    if a.case == "bpf":
-        N = int(float(a.particles_bpf))
-        f = BootstrapParticleFilter(model, n_particles=N)
-    else:
-        N = int(float(a.particles_flow))
-        f = ParticleFlowParticleFilter(model, flow=a.case, n_particles=N)
-    est_gb = f.bytes_per_trial(N) / 2**30
-    t0 = time.perf_counter()
-    res = run_experiment(model, {CASES[a.case]: f}, trials=a.trials, steps=a.steps, seed=a.seed,
-                         memory_budget_gb=a.memory_gb, progress=False, device=a.device, dtype=a.dtype)
-    wall = time.perf_counter() - t0
+    with h.torch_threads(a.threads):
+        model = AcousticTracking(sigma_w=a.sigma_w)
+        N = int(float(a.particles_bpf if a.case == "bpf" else a.particles_flow))
+        f = h.make_filter(a.case, model, N)
+        est_gb = f.bytes_per_trial(N) / 2**30
+        t = h.time_calls(lambda: run_experiment(model, {CASES[a.case]: f}, trials=a.trials, steps=a.steps,
+                                                seed=a.seed, memory_budget_gb=a.memory_gb, progress=False,
+                                                device=a.device, dtype=a.dtype))
+    res, wall = t.result, t.min
     row = res.summary[0]
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB -> GiB (Linux)
     return dict(case=a.case, filter=CASES[a.case], particles=N, trials=a.trials, steps=a.steps,
@@ -64,7 +49,7 @@ def _case(a) -> dict:
 
 
 def parse(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = h.parser(__doc__, "1e5 / 2e3 particles, 3 steps")
     ap.add_argument("--cases", default="bpf,ledh", help=f"comma list of {sorted(CASES)}")
     ap.add_argument("--case", default=None, help=argparse.SUPPRESS)  # child process
     ap.add_argument("--particles-bpf", default="1e6")
@@ -77,8 +62,6 @@ def parse(argv=None):
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--dtype", default="float64")
-    ap.add_argument("--quick", action="store_true", help="1e5 / 2e3 particles, 3 steps")
-    ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     if a.quick:
         a.particles_bpf, a.particles_flow, a.steps = "1e5", "2e3", 3
@@ -88,38 +71,31 @@ def parse(argv=None):
 def run(argv=None) -> dict:
     argv = list(argv or [])
     a = parse(argv)
+    info = h.machine(a.device, command=h.command("bench_memory", argv))
     rows = []
-    for case in [c for c in a.cases.split(",") if c]:
-        if case not in CASES:
-            raise SystemExit(f"--cases: unknown case {case!r}; expected some of {sorted(CASES)}")
-        cmd = [sys.executable, str(Path(__file__).resolve()), *argv, "--case", case]
-        p = subprocess.run(cmd, capture_output=True, text=True)
+    for case in h.keys_option(a.cases, CASES, "--cases"):
+        cmd = [sys.executable, "-m", __spec__.name, *argv, "--case", case]
+        p = subprocess.run(cmd, capture_output=True, text=True, cwd=h.HERE.parents[1])
         if p.returncode != 0:
             rows.append(dict(case=case, filter=CASES[case], error=(p.stderr or p.stdout)[-600:]))
         else:
             rows.append(json.loads(p.stdout.strip().splitlines()[-1]))
         print(f"[memory] {rows[-1]}")
-    info = dict(platform=platform.platform(), cpus=os.cpu_count(),
-                mem_total_gb=round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1),
-                command="python experiments/benchmarks/bench_memory.py" + (" " + " ".join(argv) if argv else ""))
+    info["load_end"] = h.loadavg()
     return dict(rows=rows, machine=info, markdown=markdown(rows, info, a), args=vars(a))
 
 
 def markdown(rows, info, a) -> str:
-    lines = ["## Large-N runs under a memory budget" + (" (--quick)" if a.quick else ""), "",
-             f"Machine: {info['platform']}, {info['cpus']} CPUs, {info['mem_total_gb']} GiB RAM. "
-             f"Acoustic tracking sigma_w = {a.sigma_w}, {a.trials} trial(s) x {a.steps} steps, {a.dtype}, "
-             f"runner memory budget {a.memory_gb} GiB.",
-             f"Command: `{info['command']}`", "",
-             "| filter | N | particle chunk | estimate GiB / trial | peak RSS GiB | s / step | whole run (s) | OMAT (m) | mean ESS |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        if "error" in r:
-            lines.append(f"| {r['filter']} | - | - | - | - | - | failed: {r['error'][-200:]!r} | - | - |")
-            continue
-        lines.append(f"| {r['filter']} | {r['particles']:.0e} | {r['particle_chunk'] or 'all'} | "
-                     f"{r['estimate_gb_per_trial']:.2f} | {r['peak_rss_gb']:.2f} | {r['s_per_step']:.3g} | "
-                     f"{r['wall_s']:.1f} | {r['omat']:.3f} | {r['ess']:.1f} |")
+    lines = h.header("## Large-N runs under a memory budget", a.quick, info,
+                     f"Acoustic tracking sigma_w = {a.sigma_w}, {a.trials} trial(s) x {a.steps} steps, {a.dtype}, "
+                     f"runner memory budget {a.memory_gb} GiB.")
+    lines += h.md_table(
+        ["filter", "N", "particle chunk", "estimate GiB / trial", "peak RSS GiB", "s / step", "whole run (s)",
+         "OMAT (m)", "mean ESS"],
+        [[r["filter"]] + ["-"] * 5 + [f"failed: {r['error'][-200:]!r}", "-", "-"] if "error" in r else
+         [r["filter"], f"{r['particles']:.0e}", r["particle_chunk"] or "all", f"{r['estimate_gb_per_trial']:.2f}",
+          f"{r['peak_rss_gb']:.2f}", f"{r['s_per_step']:.3g}", f"{r['wall_s']:.1f}", f"{r['omat']:.3f}",
+          f"{r['ess']:.1f}"] for r in rows])
     lines += ["", "- Peak RSS is the child process's maximum resident set (Python, torch and data included)."]
     return "\n".join(lines) + "\n"
 
@@ -130,10 +106,7 @@ def main(argv=None):
     if a.case:  # child: one case, JSON on the last line of stdout
         print(json.dumps(_case(a)))
         return
-    res = run(argv)
-    from _common import write_results
-
-    write_results(res, "memory", a.quick, a.out)
+    h.main(run, "memory", argv)
 
 
 if __name__ == "__main__":

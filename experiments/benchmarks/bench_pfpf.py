@@ -1,9 +1,9 @@
 """PF-PF benchmark: seconds per trial-step of the PF-PFs (LEDH, EDH, Gromov, Geodesic, optimised
 diffusion) and the BPF on acoustic tracking.
 
-    python experiments/benchmarks/bench_pfpf.py                 # 100 trials, N=500, 5 steps, float64
-    python experiments/benchmarks/bench_pfpf.py --steps 40 --quick
-    python experiments/benchmarks/bench_pfpf.py --chunk 100     # all trials in one call
+    python -m experiments.benchmarks.bench_pfpf                 # 100 trials, N=500, 5 steps, float64
+    python -m experiments.benchmarks.bench_pfpf --steps 40 --quick
+    python -m experiments.benchmarks.bench_pfpf --chunk 100     # all trials in one call
 
 Times are for whole filter calls after an untimed warm-up, over trials in chunks of each filter's
 preferred size (``--chunk`` overrides; local flows prefer 1e4 points per call), divided by
@@ -12,97 +12,57 @@ trials x steps, i.e. comparable with the per-step times the papers report for a 
 """
 from __future__ import annotations
 
-import argparse
-import os
-import platform
-import sys
-import time
-from pathlib import Path
-
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from torchflow import metrics
+from torchflow.models import AcousticTracking
 
-from torchflow.random import TrialStreams  # noqa: E402
-from torchflow.filters import BootstrapParticleFilter, ParticleFlowParticleFilter  # noqa: E402
-from torchflow.models import AcousticTracking  # noqa: E402
-from torchflow import metrics  # noqa: E402
+from . import harness as h
+
+FILTERS = ("ledh", "edh", "gromov", "geodesic", "osd", "bpf")
 
 
 def run(argv=None) -> dict:
-    """Run the benchmark (``argv``: CLI options); writes no files. Returns ``{"rows", "markdown", "args"}``."""
-    argv = list(sys.argv[1:] if argv is None else argv)
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    """Run the benchmark (``argv``: CLI options); writes no files. Returns ``{"rows", "markdown", "args", ...}``."""
+    ap = h.parser(__doc__, "10 trials, 3 steps")
     ap.add_argument("--trials", type=int, default=100)
     ap.add_argument("--steps", type=int, default=5)
     ap.add_argument("--particles", type=int, default=500)
     ap.add_argument("--dtype", default="float64", choices=["float64", "float32"])
     ap.add_argument("--sigma-w", type=float, default=0.1)
     ap.add_argument("--chunk", type=int, default=None, help="trials per filter call (default: filter's choice)")
-    ap.add_argument("--filters", default="ledh,edh,gromov,geodesic,osd,bpf",
-                    help="comma-separated subset of ledh,edh,gromov,geodesic,osd,bpf")
-    ap.add_argument("--quick", action="store_true", help="10 trials, 3 steps")
-    ap.add_argument("--out", default=None)
+    ap.add_argument("--filters", default=",".join(FILTERS), help=f"comma-separated subset of {','.join(FILTERS)}")
     a = ap.parse_args(argv)
     if a.quick:
         a.trials, a.steps = 10, 3
-    dtype = getattr(torch, a.dtype)
-    model = AcousticTracking(sigma_w=a.sigma_w).to(dtype)
-    g = torch.Generator().manual_seed(0)
-    traj = model.simulate(a.trials, a.steps, g)
-    mean, cov = model.initial_belief(traj.states[:, 0], g)
-    names = {"ledh": "PF-PF(LEDH)", "edh": "PF-PF(EDH)", "gromov": "PF-PF(Gromov)", "geodesic": "PF-PF(Geodesic)",
-             "osd": "PF-PF(OSD)", "bpf": "BPF"}
-    filters = {}
-    for key in a.filters.split(","):
-        if key not in names:
-            sys.exit(f"--filters: unknown {key!r}; expected a subset of {','.join(names)}")
-        filters[names[key]] = (BootstrapParticleFilter(model, n_particles=a.particles) if key == "bpf"
-                               else ParticleFlowParticleFilter(model, flow=key, n_particles=a.particles))
+    keys = h.keys_option(a.filters, FILTERS)
+    model = AcousticTracking(sigma_w=a.sigma_w).to(getattr(torch, a.dtype))
+    traj, mean, cov = h.simulate(model, a.trials, a.steps, 0)
+    info = h.machine(command=h.command("bench_pfpf", argv))
     rows = []
-    with torch.no_grad():
-        for name, f in filters.items():
-            chunk = a.chunk or f.preferred_chunk_trials(a.particles) or a.trials
-            f(traj.observations[:2, :1], mean[:2], cov[:2], g)  # warm-up
-            est, ess, dt = [], [], 0.0
-            for i in range(0, a.trials, chunk):
-                sl = slice(i, i + chunk)
-                t0 = time.perf_counter()
-                streams = TrialStreams(0, range(i, min(i + chunk, a.trials)), key=f.stream_name)  # as the runner
-                res = f(traj.observations[sl], mean[sl], cov[sl], streams)
-                dt += time.perf_counter() - t0
-                est.append(res.estimates)
-                ess.append(res.ess)
-            est, ess = torch.cat(est), torch.cat(ess)
-            om = metrics.omat(model.positions(est), model.positions(traj.states[:, 1:])).mean()
-            rows.append({"filter": name, "N": a.particles, "chunk": min(chunk, a.trials),
-                         "sec_per_trial_step": dt / (a.trials * a.steps),
-                         "whole_run_s": dt, "omat": float(om), "ess": float(ess.mean())})
-            print(rows[-1], flush=True)
-    load = os.getloadavg() if hasattr(os, "getloadavg") else None
-    head = (f"Machine: {platform.platform()}, {os.cpu_count()} CPUs, torch {torch.__version__} "
-            f"({torch.get_num_threads()} threads), load {load}\n"
-            f"Acoustic sigma_w={a.sigma_w}, {a.trials} trials x {a.steps} steps, {a.dtype}.\n"
-            f"Command: `python experiments/benchmarks/bench_pfpf.py {' '.join(argv)}`\n\n")
+    for key in keys:
+        f = h.make_filter(key, model, a.particles)
+        chunk = min(a.chunk or f.preferred_chunk_trials(a.particles) or a.trials, a.trials)
+        t = h.time_filter(f, traj.observations, mean, cov, chunk, h.streams(0, f.stream_name),  # as the runner
+                          warm=(2, 1), warm_randomness=lambda s, e: torch.Generator().manual_seed(0))
+        est, ess = torch.cat([r.estimates for r in t.result]), torch.cat([r.ess for r in t.result])
+        om = metrics.omat(model.positions(est), model.positions(traj.states[:, 1:])).mean()
+        rows.append({"filter": h.LABELS[key], "N": a.particles, "chunk": chunk,
+                     "sec_per_trial_step": t.min / (a.trials * a.steps), "whole_run_s": t.min,
+                     "omat": float(om), "ess": float(ess.mean())})
+        print(rows[-1], flush=True)
+    info["load_end"] = h.loadavg()
     ref = next((r["sec_per_trial_step"] for r in rows if r["filter"] == "PF-PF(LEDH)"), None)
     for r in rows:
-        r["vs_ledh"] = r["sec_per_trial_step"] / ref if ref else float("nan")
-    table = ("| filter | N | trials per call | s / trial-step | time / PF-PF(LEDH) | whole run (s) | OMAT (m) | mean ESS |\n"
-             "|---|---|---|---|---|---|---|---|\n")
-    table += "\n".join(f"| {r['filter']} | {r['N']} | {r['chunk']} | {r['sec_per_trial_step']:.4g} | {r['vs_ledh']:.2f} | "
-                       f"{r['whole_run_s']:.1f} | "
-                       f"{r['omat']:.3f} | {r['ess']:.1f} |" for r in rows)
-    md = "## PF-PF benchmark" + (" (--quick)" if a.quick else "") + "\n\n" + head + table + "\n"
-    return {"rows": rows, "markdown": md, "args": vars(a)}
-
-
-def main(argv=None):
-    res = run(argv)
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from _common import write_results
-
-    write_results(res, "pfpf", res["args"]["quick"], res["args"]["out"])
+        r["vs_ledh"] = r["sec_per_trial_step"] / ref if ref else None
+    md = h.header("## PF-PF benchmark", a.quick, info,
+                  f"Acoustic sigma_w={a.sigma_w}, {a.trials} trials x {a.steps} steps, {a.dtype}.")
+    md += h.md_table(["filter", "N", "trials per call", "s / trial-step", "time / PF-PF(LEDH)", "whole run (s)",
+                      "OMAT (m)", "mean ESS"],
+                     [[r["filter"], r["N"], r["chunk"], f"{r['sec_per_trial_step']:.4g}", h.fmt(r["vs_ledh"], "{:.2f}"),
+                       f"{r['whole_run_s']:.1f}", f"{r['omat']:.3f}", f"{r['ess']:.1f}"] for r in rows])
+    return {"machine": info, "rows": rows, "markdown": "\n".join(md) + "\n", "args": vars(a)}
 
 
 if __name__ == "__main__":
-    main()
+    h.main(run, "pfpf")

@@ -31,40 +31,28 @@ timed points: the empirical scaling exponent.
 
 Run from the repository root::
 
-    python experiments/benchmarks/bench_scaling.py                      # full (~10-15 min, 2-core CPU)
-    python experiments/benchmarks/bench_scaling.py --quick --threads 1  # smoke test, < 1 min
-    python experiments/benchmarks/bench_scaling.py --curves N --ns 100,1000,10000 --filters bpf,edh
+    python -m experiments.benchmarks.bench_scaling                      # full (~10-15 min, 2-core CPU)
+    python -m experiments.benchmarks.bench_scaling --quick --threads 1  # smoke test, < 1 min
+    python -m experiments.benchmarks.bench_scaling --curves N --ns 100,1000,10000 --filters bpf,edh
 
-Writes ``--out`` (default ``experiments/benchmarks/results_scaling.md``; ``--quick`` defaults to
-``results_scaling_quick.md`` so a smoke test never overwrites the full results) plus ``.json`` (raw
-rows) and ``.png`` (one log-log panel per curve, one line per filter) next to it. A suite runner
-can call :func:`run` (which writes only the plot) and use its returned markdown and rows.
+Beside the results files, :func:`run` draws ``results_scaling.png`` (one log-log panel per curve,
+one line per filter).
 """
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import os
-import platform
-import sys
 import time
 from pathlib import Path
 from typing import Dict, List, Optional
 
-_REPO = Path(__file__).resolve().parents[2]
-if str(_REPO) not in sys.path:
-    sys.path.insert(0, str(_REPO))
+import torch
 
-import torch  # noqa: E402
+from torchflow.models import AcousticTracking, SensorNetwork
 
-from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, KalmanFilter,  # noqa: E402
-                               ParticleFlowParticleFilter)
-from torchflow.models import AcousticTracking, SensorNetwork  # noqa: E402
+from . import harness as h
 
-HERE = Path(__file__).resolve().parent
-LABELS = {"kf": "KF", "ekf": "EKF", "bpf": "BPF", "edh": "PF-PF(EDH)", "ledh": "PF-PF(LEDH)",
-          "gromov": "PF-PF(Gromov)"}
+LABELS = {k: h.LABELS[k] for k in ("kf", "ekf", "bpf", "edh", "ledh", "gromov")}
 CURVE_FILTERS = {"N": ("bpf", "edh", "ledh", "gromov"),
                  "d": ("kf", "bpf", "edh", "ledh", "gromov"),
                  "B": ("kf", "ekf", "bpf", "edh", "ledh", "gromov")}
@@ -88,7 +76,7 @@ def _ints(text: str, name: str) -> List[int]:
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = h.parser(__doc__, "tiny lists and sizes for a smoke test (the PNG goes beside the results files)")
     ap.add_argument("--curves", default="N,d,B", help="comma-separated subset of N,d,B (default all)")
     ap.add_argument("--ns", default=None, help=f"particle counts of the N curve (default {FULL['ns']})")
     ap.add_argument("--ds", default=None, help=f"state dimensions of the d curve, perfect squares (default {FULL['ds']})")
@@ -111,13 +99,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--device", default="cpu", help="cpu or cuda[:k] (default cpu)")
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's default)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--quick", action="store_true",
-                    help="tiny lists and sizes for a smoke test; writes results_scaling_quick.* by default")
     ap.add_argument("--no-plot", action="store_true", help="do not draw the PNG")
     ap.add_argument("--quiet", action="store_true", help="no per-point progress lines")
-    ap.add_argument("--out", default=None,
-                    help="markdown output (default experiments/benchmarks/results_scaling.md; "
-                         "--quick: results_scaling_quick.md); .json and .png go next to it")
     a = ap.parse_args(argv)
     lists = QUICK if a.quick else FULL
     a.ns = _ints(a.ns or lists["ns"], "ns")
@@ -132,36 +115,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     a.trials = a.trials or (1 if a.quick else 2)
     a.b_curve_n = a.b_curve_n or (100 if a.quick else 500)
     a.time_budget = (0.1 if a.quick else 0.5) if a.time_budget is None else a.time_budget
-    a.curves = [c.strip() for c in a.curves.split(",") if c.strip()]
-    bad = [c for c in a.curves if c not in CURVE_FILTERS]
-    if bad or not a.curves:
-        raise SystemExit(f"--curves: expected a subset of N,d,B, got {bad or a.curves}")
-    a.filters = [f.strip() for f in a.filters.split(",") if f.strip()]
-    bad = [f for f in a.filters if f not in LABELS]
-    if bad or not a.filters:
-        raise SystemExit(f"--filters: unknown {bad}; expected a subset of {','.join(LABELS)}")
+    a.curves = h.keys_option(a.curves, CURVE_FILTERS, "--curves")
+    a.filters = h.keys_option(a.filters, LABELS)
     if a.steps < 1 or a.trials < 1:
         raise SystemExit("--steps and --trials must be >= 1")
     if a.out is None:
-        a.out = str(HERE / ("results_scaling_quick.md" if a.quick else "results_scaling.md"))
+        a.out = str(h.results_path("scaling", a.quick))
     return a
-
-
-# ---------------------------------------------------------------------------------------------
-# machine
-# ---------------------------------------------------------------------------------------------
-def _cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
-
-
-def _load() -> Optional[List[float]]:
-    return [round(v, 2) for v in os.getloadavg()] if hasattr(os, "getloadavg") else None
 
 
 def _available_bytes(device: torch.device) -> Optional[int]:
@@ -176,80 +136,34 @@ def _available_bytes(device: torch.device) -> Optional[int]:
     return None
 
 
-def machine_info(device: torch.device) -> dict:
-    info = {"platform": platform.platform(), "python": platform.python_version(), "cpu": _cpu_name(),
-            "cpus": os.cpu_count(), "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
-            "device": str(device), "load_start": _load()}
-    if device.type == "cuda":
-        info["gpu"] = torch.cuda.get_device_name(device)
-    return info
-
-
 # ---------------------------------------------------------------------------------------------
 # points
 # ---------------------------------------------------------------------------------------------
-def build_filter(key: str, model, N: Optional[int]):
-    if key == "kf":
-        return KalmanFilter(model)
-    if key == "ekf":
-        return ExtendedKalmanFilter(model)
-    if key == "bpf":
-        return BootstrapParticleFilter(model, n_particles=N)
-    return ParticleFlowParticleFilter(model, flow=key, n_particles=N)
+def data_source(args, device, dtype):
+    """``get(model name, d, trials) -> (model, obs, mean, cov)`` (``trials=0``: the model alone): each
+    model built once, its data simulated once per size (on the CPU in float64, so every device /
+    dtype filters the same numbers; again when a point needs more trials), moved, sliced per point."""
+    models, data = {}, {}
+
+    def get(name: str, d: int, trials: int):
+        make = (lambda: AcousticTracking()) if name == "acoustic" else (lambda: SensorNetwork(d=d))
+        if (name, d) not in models:
+            models[name, d] = make().to(device=device, dtype=dtype)
+        if trials and ((name, d) not in data or data[name, d][0].shape[0] < trials):
+            traj, mean, cov = h.simulate(make(), trials, args.steps, args.seed)
+            data[name, d] = tuple(t.to(device=device, dtype=dtype) for t in (traj.observations, mean, cov))
+        return (models[name, d],) + tuple(t[:trials] for t in data.get((name, d), ()))
+
+    return get
 
 
-class _Data:
-    """Models and simulated data, built once per (model, size) and sliced per point."""
-
-    def __init__(self, args, device, dtype):
-        self.args, self.device, self.dtype = args, device, dtype
-        self._models: Dict[tuple, object] = {}
-        self._data: Dict[tuple, tuple] = {}
-
-    def model(self, name: str, d: int = 16):
-        key = (name, d)
-        if key not in self._models:
-            m = AcousticTracking() if name == "acoustic" else SensorNetwork(d=d)
-            self._models[key] = m.to(device=self.device, dtype=self.dtype)
-        return self._models[key]
-
-    def data(self, name: str, d: int, trials: int):
-        key = (name, d)
-        have = self._data.get(key)
-        if have is None or have[0].shape[0] < trials:
-            # simulate on the CPU in float64 (same numbers on every device/dtype), then move
-            sim = AcousticTracking() if name == "acoustic" else SensorNetwork(d=d)
-            g = torch.Generator().manual_seed(self.args.seed)
-            traj = sim.simulate(trials, self.args.steps, generator=g)
-            mean, cov = sim.initial_belief(traj.states[:, 0], generator=g)
-            to = dict(device=self.device, dtype=self.dtype)
-            have = (traj.observations.to(**to), mean.to(**to), cov.to(**to))
-            self._data[key] = have
-        return tuple(t[:trials] for t in have)
-
-
-def _sync(device):
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def time_point(filt, obs, mean, cov, chunk: int, device, seed: int, time_budget: float) -> List[float]:
+def time_point(filt, obs, mean, cov, chunk: int, device, seed: int, time_budget: float) -> h.Timing:
     """Warm-up call (1 trial x 1 step), then timed runs over all trials in calls of ``chunk``
-    trials until ``time_budget`` seconds are spent (at least one run). Returns each run's seconds."""
+    trials until ``time_budget`` seconds are spent (at least once)."""
     g = torch.Generator(device=device).manual_seed(seed)
-    B = obs.shape[0]
-    times: List[float] = []
-    with torch.no_grad():
-        filt(obs[:1, :1], mean[:1], cov[:1], g)
-        _sync(device)
-        while True:
-            t0 = time.perf_counter()
-            for i in range(0, B, chunk):
-                filt(obs[i:i + chunk], mean[i:i + chunk], cov[i:i + chunk], g)
-            _sync(device)
-            times.append(time.perf_counter() - t0)
-            if sum(times) >= time_budget or len(times) >= MAX_REPEATS:
-                return times
+    same = lambda start, stop: g  # noqa: E731  (one generator for every call)
+    return h.time_filter(filt, obs, mean, cov, chunk, same, budget=time_budget, max_repeats=MAX_REPEATS,
+                         device=device)
 
 
 def _extrapolate(history: List[tuple], x: int) -> Optional[float]:
@@ -289,7 +203,7 @@ def curve_points(curve: str, args):
                     yield key, "acoustic", B, (None if key == "ekf" else args.b_curve_n), 16, B
 
 
-def run_curve(curve: str, args, data: _Data, device, log) -> List[dict]:
+def run_curve(curve: str, args, data, device, log) -> List[dict]:
     rows: List[dict] = []
     history: Dict[str, List[tuple]] = {}
     oom: Dict[str, bool] = {}
@@ -302,8 +216,8 @@ def run_curve(curve: str, args, data: _Data, device, log) -> List[dict]:
         rows.append(row)
         hist = history.setdefault(key, [])
         try:
-            model = data.model(mname, d)
-            filt = build_filter(key, model, N)
+            model = data(mname, d, 0)[0]
+            filt = h.make_filter(key, model, N)
             per_trial = filt.bytes_per_trial(N)
             fit = max(1, budget // max(per_trial, 1))
             if curve == "B":
@@ -327,17 +241,16 @@ def run_curve(curve: str, args, data: _Data, device, log) -> List[dict]:
             if row["status"] != "ok":
                 log(f"[{curve}] {label:14s} x={x:<7d} {row['status']}")
                 continue
-            obs, mean, cov = data.data(mname, d, trials)
+            _, obs, mean, cov = data(mname, d, trials)
             t0 = time.perf_counter()
-            times = time_point(filt, obs, mean, cov, chunk, device, args.seed, args.time_budget)
+            t = time_point(filt, obs, mean, cov, chunk, device, args.seed, args.time_budget)
             row["point_s"] = time.perf_counter() - t0
-            best = min(times)
-            row["s_per_trial_step"] = best / (trials * args.steps)
-            row["mean_s_per_trial_step"] = sum(times) / len(times) / (trials * args.steps)
-            row["repeats"] = len(times)
-            hist.append((x, best))
+            row["s_per_trial_step"] = t.min / (trials * args.steps)
+            row["mean_s_per_trial_step"] = t.mean / (trials * args.steps)
+            row["repeats"] = len(t.times)
+            hist.append((x, t.min))
             log(f"[{curve}] {label:14s} x={x:<7d} {row['s_per_trial_step']:.3g} s/trial-step "
-                f"({len(times)} run(s), {chunk} trials/call, point {row['point_s']:.1f} s)")
+                f"({row['repeats']} run(s), {chunk} trials/call, point {row['point_s']:.1f} s)")
         except Exception as exc:  # noqa: BLE001  (record and go on)
             msg = " ".join(str(exc).split())
             row["status"] = f"error: {type(exc).__name__}: {msg[:200]}"
@@ -412,23 +325,16 @@ def curve_heading(curve: str, a) -> str:
             f"the Gaussian filter on the nonlinear acoustic model, where the KF does not apply.")
 
 
-def markdown(rows: List[dict], a, info: dict, command: str) -> str:
-    load_s, load_e = info.get("load_start"), info.get("load_end")
-    fmt = lambda v: "/".join(f"{x:g}" for x in v) if v else "n/a"  # noqa: E731
-    gpu = f", GPU {info['gpu']}" if "gpu" in info else ""
-    out = ["## Scaling benchmark: seconds per trial-step", "",
-           f"Machine: {info['platform']}, {info['cpu']}, {info['cpus']} CPUs, torch {info['torch']} "
-           f"({info['torch_threads']} threads), device {info['device']}{gpu}, {a.dtype}; "
-           f"load average (1/5/15 min) {fmt(load_s)} at start, {fmt(load_e)} at end.", "",
-           f"Command: `{command}`", "",
-           "Each cell is seconds per trial-step = best timed run / (trials x steps), after one untimed "
-           "warm-up call (1 trial x 1 step, same N), under `torch.no_grad()`; runs are repeated until "
-           f"they add up to {a.time_budget:g} s (at least once). N and d curves: trials split into calls of "
-           "the filter's preferred size (local flows ~1e4 particles per call) within "
-           f"{a.memory_gb:g} GB. A point is skipped when its time extrapolated from the smaller points "
-           f"(linear, or the last log-log slope if steeper) exceeds {a.max_point_seconds:g} s. "
-           "The last row of each table is the least-squares log-log slope over the timed points "
-           "(the scaling exponent of the time per trial-step).", ""]
+def markdown(rows: List[dict], a, info: dict) -> str:
+    out = h.header("## Scaling benchmark: seconds per trial-step", False, info, f"{a.dtype}.") + [
+        "Each cell is seconds per trial-step = best timed run / (trials x steps), after one untimed "
+        "warm-up call (1 trial x 1 step, same N), under `torch.no_grad()`; runs are repeated until "
+        f"they add up to {a.time_budget:g} s (at least once). N and d curves: trials split into calls of "
+        "the filter's preferred size (local flows ~1e4 particles per call) within "
+        f"{a.memory_gb:g} GB. A point is skipped when its time extrapolated from the smaller points "
+        f"(linear, or the last log-log slope if steeper) exceeds {a.max_point_seconds:g} s. "
+        "The last row of each table is the least-squares log-log slope over the timed points "
+        "(the scaling exponent of the time per trial-step).", ""]
     for curve in a.curves:
         cr = [r for r in rows if r["curve"] == curve]
         if not cr:
@@ -503,46 +409,24 @@ def plot(rows: List[dict], a, path: Path) -> Optional[str]:
 def run(argv=None) -> dict:
     """Run the benchmark; returns ``{"machine", "rows", "markdown", "plot", "args"}``. Draws the PNG
     (unless ``--no-plot``) but writes no markdown/JSON: :func:`main` does."""
-    argv = list(sys.argv[1:] if argv is None else argv)
     a = parse_args(argv)
     device = torch.device(a.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("--device cuda: CUDA is not available")
-    dtype = getattr(torch, a.dtype)
-    old_threads = torch.get_num_threads()
-    if a.threads:
-        torch.set_num_threads(a.threads)
     log = (lambda s: None) if a.quiet else (lambda s: print(s, flush=True))
-    try:
-        info = machine_info(device)
-        data = _Data(a, device, dtype)
+    with h.torch_threads(a.threads):
+        info = h.machine(device, command=h.command("bench_scaling", argv))
+        data = data_source(a, device, getattr(torch, a.dtype))
         t0 = time.perf_counter()
         rows: List[dict] = []
         for curve in a.curves:
             rows += run_curve(curve, a, data, device, log)
-        info["load_end"] = _load()
+        info["load_end"] = h.loadavg()
         info["total_s"] = round(time.perf_counter() - t0, 1)
-        command = "python experiments/benchmarks/bench_scaling.py" + "".join(f" {x}" for x in argv)
-        md = markdown(rows, a, info, command)
+        md = markdown(rows, a, info)
         png = None if a.no_plot else plot(rows, a, Path(a.out).with_suffix(".png"))
-    finally:
-        torch.set_num_threads(old_threads)
-    args = {k: v for k, v in vars(a).items()}
-    return {"machine": info, "rows": rows, "markdown": md, "plot": png, "args": args}
-
-
-def main(argv=None):
-    res = run(argv)
-    out = Path(res["args"]["out"])
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(res["markdown"] + "\n")
-    out.with_suffix(".json").write_text(json.dumps(
-        {k: res[k] for k in ("machine", "args", "rows", "plot")}, indent=2, default=str) + "\n")
-    print()
-    print(res["markdown"])
-    print(f"wrote {out}, {out.with_suffix('.json')}" + (f", {res['plot']}" if res["plot"] else ""))
-    print(f"total {res['machine']['total_s']} s")
+    return {"machine": info, "rows": rows, "markdown": md, "plot": png, "args": vars(a)}
 
 
 if __name__ == "__main__":
-    main()
+    h.main(run, "scaling")

@@ -2,120 +2,83 @@
 (the batch shares a stream) and with :class:`torchflow.random.TrialStreams` (one stream per
 trial, what ``run_experiment`` uses), interleaved in one run.
 
-    python experiments/benchmarks/bench_streams.py            # ~3 min on 2 cores
-    python experiments/benchmarks/bench_streams.py --quick
+    python -m experiments.benchmarks.bench_streams            # ~3 min on 2 cores
+    python -m experiments.benchmarks.bench_streams --quick
 
 Reports seconds per trial-step (minimum over repeats) and the ratio streams / generator.
 """
 from __future__ import annotations
 
-import argparse
-import json
-import sys
-import time
-from pathlib import Path
-
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+from torchflow import linalg
+from torchflow.models import AcousticTracking, SensorNetwork
+from torchflow.random import TrialStreams
 
-from _common import loadavg  # noqa: E402
-
-from torchflow.filters import BootstrapParticleFilter, ParticleFlowParticleFilter  # noqa: E402
-from torchflow.models import AcousticTracking, SensorNetwork  # noqa: E402
-from torchflow.random import TrialStreams  # noqa: E402
+from . import harness as h
 
 
 def cases(quick: bool):
+    """``(name, model, filter, trials, steps)`` of each case."""
     lg = SensorNetwork(d=64)
     ac = AcousticTracking(sigma_w=0.1)
     s = 0.25 if quick else 1.0
     return [
-        # name, model, filter, trials, steps
-        ("BPF, LG d=64, N=200", lg, BootstrapParticleFilter(lg, n_particles=200), int(100 * s), 10),
-        ("BPF, LG d=64, N=1e4", lg, BootstrapParticleFilter(lg, n_particles=10_000), max(3, int(12 * s)), 10),
-        ("PF-PF(LEDH), acoustic, N=500", ac, ParticleFlowParticleFilter(ac, flow="ledh", n_particles=500),
-         max(2, int(8 * s)), 5),
-        ("PF-PF(Gromov), acoustic, N=500", ac, ParticleFlowParticleFilter(ac, flow="gromov", n_particles=500),
-         max(2, int(8 * s)), 5),
+        ("BPF, LG d=64, N=200", lg, h.make_filter("bpf", lg, 200), int(100 * s), 10),
+        ("BPF, LG d=64, N=1e4", lg, h.make_filter("bpf", lg, 10_000), max(3, int(12 * s)), 10),
+        ("PF-PF(LEDH), acoustic, N=500", ac, h.make_filter("ledh", ac, 500), max(2, int(8 * s)), 5),
+        ("PF-PF(Gromov), acoustic, N=500", ac, h.make_filter("gromov", ac, 500), max(2, int(8 * s)), 5),
     ]
 
 
-def time_calls(f, traj, mean, cov, make_gen):
-    B = traj.observations.shape[0]
-    chunk = f.preferred_chunk_trials() or B
-    t0 = time.perf_counter()
-    with torch.no_grad():
-        for s in range(0, B, chunk):
-            f(traj.observations[s:s + chunk], mean[s:s + chunk], cov[s:s + chunk], make_gen(s, min(B, s + chunk)))
-    return time.perf_counter() - t0
-
-
 def run(argv=None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = h.parser(__doc__)
     p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--quick", action="store_true")
     p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--out", default=None, help="write JSON results here")
     a = p.parse_args(argv)
-    torch.set_num_threads(a.threads)
-    rows = []
-    for name, model, f, B, T in cases(a.quick):
-        g = torch.Generator().manual_seed(0)
-        traj = model.simulate(B, T, g)
-        mean, cov = model.initial_belief(traj.states[:, 0], g)
-        gens = {
-            "generator": lambda s, e: torch.Generator().manual_seed(s),
-            "streams": lambda s, e: TrialStreams(0, range(s, e), key=f.stream_name),
-        }
-        time_calls(f, traj[:1], mean[:1], cov[:1], gens["streams"])  # warm-up
-        best = {k: float("inf") for k in gens}
-        for _ in range(a.repeats):  # interleaved: drifts of machine speed hit both sides alike
-            for k, mk in gens.items():
-                best[k] = min(best[k], time_calls(f, traj, mean, cov, mk) / (B * T))
-        rows.append(dict(case=name, trials=B, steps=T, generator=best["generator"], streams=best["streams"],
-                         ratio=best["streams"] / best["generator"]))
-        print(f"{name:34s} generator {best['generator']:.3e}  streams {best['streams']:.3e}  "
-              f"ratio {rows[-1]['ratio']:.3f}", flush=True)
-    md = ["# Per-trial random streams: cost", "",
-          f"`python experiments/benchmarks/bench_streams.py{' --quick' if a.quick else ''}`; {a.threads} threads, "
-          f"minimum over {a.repeats} interleaved repeats, load {loadavg()}. Seconds per trial-step of the same filter "
-          "calls with one `torch.Generator` per call and with `TrialStreams` (one stream per trial, as "
-          "`run_experiment` uses them).", "",
-          "| case | trials x steps | generator s | streams s | streams / generator |", "|---|---|---|---|---|"]
-    md += [f"| {r['case']} | {r['trials']} x {r['steps']} | {r['generator']:.4g} | {r['streams']:.4g} | "
-           f"{r['ratio']:.3f} |" for r in rows]
-    # the draws alone: the filters' time is ~30 % normals at most (BPF, N=1e4, d=64), so the
-    # draw cost bounds the filters' cost far more tightly than whole-call timings on a noisy VM
-    from torchflow import linalg
-
-    draws = []
-    for B, n in ((25, 12_800), (100, 12_800), (3, 640_000), (8, 12_500)):
-        best = {}
-        for k, mk in (("generator", lambda: torch.Generator().manual_seed(0)),
-                      ("streams", lambda: TrialStreams(0, B, "bench"))):
-            gen, t_best = mk(), float("inf")
-            for _ in range(5 * a.repeats):
-                t0 = time.perf_counter()
-                linalg.standard_normal((B, n), dtype=torch.float64, device="cpu", generator=gen)
-                t_best = min(t_best, time.perf_counter() - t0)
-            best[k] = t_best / (B * n) * 1e9
-        draws.append(dict(B=B, n=n, generator_ns=best["generator"], streams_ns=best["streams"],
-                          ratio=best["streams"] / best["generator"]))
-        print(draws[-1], flush=True)
-    md += ["", "Normal draws alone (float64, ns per number, minimum of repeats):", "",
-           "| trials x numbers per trial | generator ns | streams ns | ratio |", "|---|---|---|---|"]
-    md += [f"| {r['B']} x {r['n']} | {r['generator_ns']:.2f} | {r['streams_ns']:.2f} | {r['ratio']:.3f} |"
-           for r in draws]
-    out = {"threads": a.threads, "repeats": a.repeats, "rows": rows, "draws": draws, "markdown": "\n".join(md) + "\n"}
-    if a.out:
-        Path(a.out).write_text(json.dumps(out, indent=2))
-    return out
+    rows, draws = [], []
+    with h.torch_threads(a.threads):
+        info = h.machine(command=h.command("bench_streams", argv))
+        for name, model, f, B, T in cases(a.quick):
+            traj, mean, cov = h.simulate(model, B, T, 0)
+            chunk = f.preferred_chunk_trials() or B
+            kinds = {"generator": lambda s, e: torch.Generator().manual_seed(s), "streams": h.streams(0, f.stream_name)}
+            h.filter_chunks(f, traj.observations[:1], mean[:1], cov[:1], chunk, kinds["streams"])  # warm-up
+            best = {k: float("inf") for k in kinds}
+            for _ in range(a.repeats):  # interleaved: drifts of machine speed hit both sides alike
+                for k, mk in kinds.items():
+                    t = h.time_calls(lambda: h.filter_chunks(f, traj.observations, mean, cov, chunk, mk))
+                    best[k] = min(best[k], t.min / (B * T))
+            rows.append(dict(case=name, trials=B, steps=T, generator=best["generator"], streams=best["streams"],
+                             ratio=best["streams"] / best["generator"]))
+            print(f"{name:34s} generator {best['generator']:.3e}  streams {best['streams']:.3e}  "
+                  f"ratio {rows[-1]['ratio']:.3f}", flush=True)
+        # the draws alone: the filters' time is ~30 % normals at most (BPF, N=1e4, d=64), so the
+        # draw cost bounds the filters' cost far more tightly than whole-call timings on a noisy VM
+        for B, n in ((25, 12_800), (100, 12_800), (3, 640_000), (8, 12_500)):
+            best = {}
+            for k, gen in (("generator", torch.Generator().manual_seed(0)), ("streams", TrialStreams(0, B, "bench"))):
+                t = h.time_calls(lambda: linalg.standard_normal((B, n), dtype=torch.float64, device="cpu",
+                                                                generator=gen), repeats=5 * a.repeats)
+                best[k] = t.min / (B * n) * 1e9
+            draws.append(dict(B=B, n=n, generator_ns=best["generator"], streams_ns=best["streams"],
+                              ratio=best["streams"] / best["generator"]))
+            print(draws[-1], flush=True)
+        info["load_end"] = h.loadavg()
+    md = h.header("# Per-trial random streams: cost", a.quick, info,
+                  f"{a.threads} threads, minimum over {a.repeats} interleaved repeats. Seconds per trial-step of the "
+                  "same filter calls with one `torch.Generator` per call and with `TrialStreams` (one stream per "
+                  "trial, as `run_experiment` uses them).")
+    md += h.md_table(["case", "trials x steps", "generator s", "streams s", "streams / generator"],
+                     [[r["case"], f"{r['trials']} x {r['steps']}", f"{r['generator']:.4g}", f"{r['streams']:.4g}",
+                       f"{r['ratio']:.3f}"] for r in rows])
+    md += ["", "Normal draws alone (float64, ns per number, minimum of repeats):", ""]
+    md += h.md_table(["trials x numbers per trial", "generator ns", "streams ns", "ratio"],
+                     [[f"{r['B']} x {r['n']}", f"{r['generator_ns']:.2f}", f"{r['streams_ns']:.2f}",
+                       f"{r['ratio']:.3f}"] for r in draws])
+    return {"threads": a.threads, "repeats": a.repeats, "rows": rows, "draws": draws, "machine": info,
+            "args": vars(a), "markdown": "\n".join(md) + "\n"}
 
 
 if __name__ == "__main__":
-    from _common import write_results
-
-    res = run()
-    write_results(res, "streams", "--quick" in sys.argv)
+    h.main(run, "streams")

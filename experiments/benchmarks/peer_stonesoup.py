@@ -2,8 +2,8 @@
 
 Runs Stone Soup (``stonesoup``, tested with 1.9.1) on the same model, data and prior as torchflow's
 :class:`~torchflow.models.AcousticTracking`, so the benchmark suite can time it beside ours.
-Stone Soup is imported lazily, so this module imports (and :func:`stonesoup_available` answers
-``False``) without it.
+Stone Soup is imported lazily, so this module imports without it (``harness.peer("stonesoup")``
+tells whether it is installed).
 
 Configuration of the peer (everything not listed is Stone Soup's default as shipped):
 
@@ -59,8 +59,8 @@ weighted particle mean (``ParticleState.mean``). Only predict + update are timed
 it. Exceptions inside a step are caught and reported (``error``, ``steps_completed``), never
 raised; numpy floating-point warnings are counted and summarised in ``notes``.
 
-    python experiments/benchmarks/peer_stonesoup.py             # smoke test: T=4, N=500, both kinds
-    python experiments/benchmarks/peer_stonesoup.py --steps 3 --particles 200 --kinds bootstrap
+    python -m experiments.benchmarks.peer_stonesoup             # smoke test: T=4, N=500, both kinds
+    python -m experiments.benchmarks.peer_stonesoup --steps 3 --particles 200 --kinds bootstrap
 """
 from __future__ import annotations
 
@@ -74,27 +74,15 @@ from typing import Dict, Optional
 
 import numpy as np
 
+from .harness import peer, simulate
+
 KINDS = ("gromov", "bootstrap")
 _POSITION_INDICES = (0, 1, 4, 5, 8, 9, 12, 13)  # [px, py] of each target in the target-major state
 _OUTLIER = 1e3  # |state component| beyond this (the field is 40 m wide) counts a particle as diverged
 
 
-def stonesoup_available() -> bool:
-    """Whether Stone Soup can be imported."""
-    try:
-        import stonesoup  # noqa: F401
-        import stonesoup.updater.particle  # noqa: F401
-    except Exception:
-        return False
-    return True
-
-
 def stonesoup_version() -> Optional[str]:
-    try:
-        import stonesoup
-        return getattr(stonesoup, "__version__", None)
-    except Exception:
-        return None
+    return getattr(peer("stonesoup"), "__version__", None)
 
 
 @functools.lru_cache(maxsize=None)
@@ -329,24 +317,19 @@ def run_on_model(kind: str, model, states, obs, prior_mean, prior_cov, **kwargs)
 
 def _main():
     import argparse
-    import sys
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--steps", type=int, default=4)
     ap.add_argument("--particles", type=int, default=500)
     ap.add_argument("--kinds", default="bootstrap,gromov")
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args()
-    if not stonesoup_available():
+    if peer("stonesoup", "updater.particle") is None:
         print("stonesoup is not installed; nothing to run")
         return
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-    import torch
     from torchflow.models import AcousticTracking
 
     m = AcousticTracking()
-    g = torch.Generator().manual_seed(a.seed)
-    traj = m.simulate(1, a.steps, generator=g)
-    mean, cov = m.initial_belief(traj.states[:, 0], generator=g)
+    traj, mean, cov = simulate(m, 1, a.steps, a.seed)
 
     # analytic Jacobian vs torchflow's and vs Stone Soup's finite differences
     from stonesoup.functions import jacobian as fd_jacobian

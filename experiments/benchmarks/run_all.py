@@ -2,12 +2,13 @@
 runs, float32 accuracy and scaling curves.
 
     pip install -e ".[bench]"                                   # filterpy, particles, stonesoup, matplotlib
-    python experiments/benchmarks/run_all.py                    # everything (~20-25 min on 2 CPU cores)
-    python experiments/benchmarks/run_all.py --quick            # smoke test of every section (~2 min)
-    python experiments/benchmarks/run_all.py --only foundation,acoustic
-    python experiments/benchmarks/run_all.py --only acoustic --merge   # rerun one section, keep the rest
+    python -m experiments.benchmarks.run_all                    # everything (~20-25 min on 2 CPU cores)
+    python -m experiments.benchmarks.run_all --quick            # smoke test of every section (~2 min)
+    python -m experiments.benchmarks.run_all --only foundation,acoustic
+    python -m experiments.benchmarks.run_all --only acoustic --merge   # rerun one section, keep the rest
 
-Sections (each is also a script of its own in this folder, with its own options and docstring):
+Sections (each is also a module of its own in this folder, ``python -m experiments.benchmarks.bench_<section>``,
+with its own options and docstring; a peer library that is not installed gives ``skipped`` rows):
 
 * ``foundation`` (``bench_foundation.py``): Kalman filter and UKF vs filterpy, bootstrap PF vs
   ``particles`` (LG sensor network d = 64, N = 200 and 1e4);
@@ -18,6 +19,7 @@ Sections (each is also a script of its own in this folder, with its own options 
 * ``memory`` (``bench_memory.py``): BPF with 1e6 particles and PF-PF(LEDH) with 1e4 under a memory budget;
 * ``float32`` (``bench_float32.py``): float32 accuracy against float64 on the LG and acoustic tables;
 * ``scaling`` (``bench_scaling.py``): time per trial-step against N, d and B (plot);
+* ``streams`` (``bench_streams.py``): the cost of per-trial random streams against one generator per call;
 * ``gaussian_sum`` (``bench_gaussian_sum.py``): PFGSPF (G = 5 x 200) against PF-PF(LEDH), GSPF and BPF
   with the same total particles on the skewed-t model, d = 144 (a few minutes).
 
@@ -30,18 +32,13 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import sys
 import time
 import traceback
 from pathlib import Path
 
-_HERE = Path(__file__).resolve().parent
-_REPO = _HERE.parents[1]
-for p in (str(_REPO), str(_HERE)):
-    if p not in sys.path:
-        sys.path.insert(0, p)
-
-from _common import write_results  # noqa: E402
+from . import harness as h
 
 SECTIONS = ["foundation", "acoustic", "pfpf", "flops", "memory", "float32", "scaling", "streams", "gaussian_sum"]
 
@@ -53,8 +50,8 @@ def _headline(results: dict) -> list:
         rows.append((r["name"], r.get("setting", ""), r["per_ts_ours"], r["per_ts_peer"], r["ratio"], r.get("goal"),
                      r.get("met")))
     ac = results.get("acoustic", {}).get("rows", [])
-    ref = next((r for r in ac if r["name"].startswith("GromovFlowParticleUpdater")), None)
-    boot = next((r for r in ac if r["name"].startswith("ParticleUpdater")), None)
+    ref = next((r for r in ac if r["name"].startswith("GromovFlowParticleUpdater") and r.get("per_ts")), None)
+    boot = next((r for r in ac if r["name"].startswith("ParticleUpdater") and r.get("per_ts")), None)
     for r in ac:
         if r["side"] == "ours" and ref is not None:
             rows.append((f"{r['name']} vs Stone Soup Gromov", "acoustic N=500",
@@ -63,10 +60,6 @@ def _headline(results: dict) -> list:
             rows.append(("BPF (torchflow) vs Stone Soup bootstrap", "acoustic N=500", r["per_ts"], boot["per_ts"],
                          r["vs_stonesoup_bootstrap"], None, None))
     return rows
-
-
-def _fmt(x, f="{:.3g}"):
-    return "-" if x is None else f.format(x)
 
 
 def run(argv=None) -> dict:
@@ -84,14 +77,14 @@ def run(argv=None) -> dict:
             raise SystemExit(f"--only/--skip: unknown section {s!r}; expected some of {SECTIONS}")
     results, failures, times = {}, {}, {}
     for s in chosen:
-        mod = importlib.import_module(f"bench_{s}")
+        mod = importlib.import_module(f".bench_{s}", __package__)
         sub = ["--quick"] if a.quick else []
         t0 = time.perf_counter()
         print(f"=== {s} ===", flush=True)
         try:
             res = mod.run(sub)
             results[s] = res
-            write_results(res, s, a.quick)
+            h.write_results(res, s, a.quick)
         except BaseException as exc:  # a failing section must not lose the others' results
             if isinstance(exc, KeyboardInterrupt):
                 raise
@@ -99,22 +92,19 @@ def run(argv=None) -> dict:
             print(f"[{s}] FAILED: {failures[s]}", flush=True)
         times[s] = time.perf_counter() - t0
     if a.merge:  # re-running one section keeps the others' last results
-        import json
-
         for s in SECTIONS:
-            md = _HERE / (f"results_{s}_quick.md" if a.quick else f"results_{s}.md")
+            md = h.results_path(s, a.quick)
             if s not in results and s not in failures and md.exists() and md.with_suffix(".json").exists():
                 saved = json.loads(md.with_suffix(".json").read_text())
                 results[s] = dict(saved, markdown=md.read_text())
         chosen = [s for s in SECTIONS if s in results or s in failures]
     lines = ["# torchflow benchmark suite" + (" (--quick smoke test: sizes reduced)" if a.quick else ""), "",
-             f"Command: `python experiments/benchmarks/run_all.py{' ' + ' '.join(argv) if argv else ''}`", "",
-             "## Goals (same machine, same run)", "",
-             "| benchmark | setting | ours s/trial-step | peer s/trial-step | ratio peer/ours | goal | met |",
-             "|---|---|---|---|---|---|---|"]
-    for name, setting, ours, peer, ratio, goal, met in _headline(results):
-        lines.append(f"| {name} | {setting} | {_fmt(ours, '{:.4g}')} | {_fmt(peer, '{:.4g}')} | {_fmt(ratio, '{:.1f}x')} "
-                     f"| {_fmt(goal, '>= {:.0f}x')} | {'-' if met is None else ('yes' if met else 'NO')} |")
+             f"Command: `{h.command('run_all', argv)}`", "", "## Goals (same machine, same run)", ""]
+    lines += h.md_table(
+        ["benchmark", "setting", "ours s/trial-step", "peer s/trial-step", "ratio peer/ours", "goal", "met"],
+        [[name, setting, h.fmt(ours, "{:.4g}"), h.fmt(peer, "{:.4g}"), h.fmt(ratio, "{:.1f}x"),
+          h.fmt(goal, ">= {:.0f}x"), h.met_cell(met)]
+         for name, setting, ours, peer, ratio, goal, met in _headline(results)])
     lines.append("")
     lines.append("Section times: " + ", ".join(f"{s} {t:.0f} s" for s, t in times.items()))
     for s, msg in failures.items():
@@ -126,7 +116,7 @@ def run(argv=None) -> dict:
         if s == "scaling" and s in results and results[s].get("plot"):
             lines += [f"![scaling curves]({Path(results[s]['plot']).name})", ""]
     md = "\n".join(lines) + "\n"
-    out = Path(a.out) if a.out else _HERE / ("results_all_quick.md" if a.quick else "results_all.md")
+    out = h.results_path("all", a.quick, a.out)
     out.write_text(md)
     print(md)
     print(f"wrote {out}")

@@ -1,19 +1,116 @@
-"""Benchmark-suite plumbing (no timing claims): headline goals, statuses, the flop model, the
-acoustic bench on a micro configuration and one memory-budget case in its own process."""
+"""Benchmark-suite plumbing (no timing claims): the harness (timing loop, writer, peer skip path,
+filters by name), headline goals, statuses, the flop model and each benchmark on a micro or
+``--quick`` configuration."""
+import json
+import math
 import sys
-from pathlib import Path
+import time
 
 import pytest
+import torch
 
-_BENCH = Path(__file__).resolve().parents[2] / "experiments" / "benchmarks"
-sys.path.insert(0, str(_BENCH))
-
-import bench_acoustic  # noqa: E402
-import bench_flops  # noqa: E402
-import bench_memory  # noqa: E402
-import run_all  # noqa: E402
+from experiments.benchmarks import (bench_acoustic, bench_float32, bench_flops, bench_foundation, bench_gaussian_sum,
+                                    bench_memory, bench_pfpf, bench_scaling, bench_streams, harness, run_all)
+from torchflow.models import SensorNetwork
 
 
+# ---- harness ---------------------------------------------------------------------------------
+def test_time_calls_counts_warmups_repeats_and_budget():
+    calls = []
+
+    def sleepy():
+        calls.append(1)
+        time.sleep(0.01)
+        return len(calls)
+
+    t = harness.time_calls(sleepy, repeats=3, warmup=2)
+    assert len(calls) == 5 and len(t.times) == 3 and t.result == 5
+    assert 0.009 < t.min <= t.median <= max(t.times) < 1.0
+    calls.clear()
+    t = harness.time_calls(sleepy, budget=0.035, max_repeats=50)
+    assert sum(t.times) >= 0.035 > sum(t.times[:-1]) and len(t.times) >= 2  # until the budget is spent
+    assert len(harness.time_calls(sleepy, budget=10.0, max_repeats=2).times) == 2
+    assert len(harness.time_calls(sleepy, budget=0.0).times) == 1  # at least once
+    for bad in (dict(repeats=0), dict(warmup=-1), dict(budget=-1.0)):
+        with pytest.raises(ValueError, match="time_calls"):
+            harness.time_calls(sleepy, **bad)
+
+
+def test_writer_writes_table_rows_and_json(tmp_path, capsys):
+    lines = harness.md_table(["a", "b"], [[1, harness.fmt(None)], ["x", harness.fmt(0.123456, "{:.2f}")]])
+    assert lines == ["| a | b |", "|---|---|", "| 1 | - |", "| x | 0.12 |"]
+    with pytest.raises(ValueError, match="row has 1 cells"):
+        harness.md_table(["a", "b"], [[1]])
+    assert harness.fmt(float("nan")) == "-" and harness.fmt(float("inf")) == "inf"
+    assert [harness.met_cell(m) for m in (True, False, None)] == ["yes", "NO", "-"]
+    res = {"markdown": "\n".join(lines) + "\n", "rows": [{"a": 1}], "args": {"quick": True}}
+    md = harness.write_results(res, "demo", out=str(tmp_path / "r.json"))  # a .json --out: markdown beside it
+    assert md == tmp_path / "r.md" and md.read_text() == res["markdown"]
+    assert json.loads((tmp_path / "r.json").read_text()) == {"rows": [{"a": 1}], "args": {"quick": True}}
+    assert harness.results_path("demo", quick=True).name == "results_demo_quick.md"
+    assert "| x | 0.12 |" in capsys.readouterr().out
+
+
+def test_machine_and_command():
+    info = harness.machine(command="x")
+    assert set(info) >= {"platform", "processor", "cpus", "python", "torch", "numpy", "torch_threads", "device",
+                         "load_start", "command"}
+    info["load_end"] = harness.loadavg()
+    line = harness.machine_line(info)
+    assert line.startswith("Machine: ") and f"{info['cpus']} CPUs" in line and "at end" in line
+    assert "numpy ?" in harness.machine_line({"platform": "p", "threads": 3})  # an older results file
+    assert harness.command("bench_pfpf", ["--quick"]) == "python -m experiments.benchmarks.bench_pfpf --quick"
+
+
+def test_peer_skip_path(monkeypatch):
+    assert harness.peer("json") is json
+    assert harness.peer("no_such_peer_library_xyz") is None
+    assert harness.skipped("filterpy").startswith("skipped: filterpy not installed")
+    monkeypatch.setitem(sys.modules, "filterpy", None)  # as if not installed
+    monkeypatch.setitem(sys.modules, "particles", None)
+    res = bench_foundation.run(["--quick"])
+    assert [r["status"] for r in res["rows"]] == [harness.skipped("filterpy")] * 2 + [harness.skipped("particles")] * 2
+    assert all(r["ratio"] is None and r["met"] is None for r in res["rows"])
+    assert res["markdown"].count("skipped: filterpy not installed") == 4  # table and checks, KF and UKF
+    assert "| Kalman filter vs filterpy | d=16, B=10, T=5 | skipped: filterpy" in res["markdown"]
+
+
+def test_foundation_quick_with_peers():
+    """Only where filterpy and particles are installed (``pip install -e ".[bench]"``)."""
+    pytest.importorskip("filterpy")
+    pytest.importorskip("particles")
+    res = bench_foundation.run(["--quick", "--particles", "200", "--bpf-trials", "2", "--peer-trials", "1"])
+    assert [r["name"] for r in res["rows"]] == ["Kalman filter vs filterpy", "UKF vs filterpy",
+                                                "Bootstrap PF vs particles"]
+    assert all(r["per_ts_ours"] > 0 and r["per_ts_peer"] > 0 and "status" not in r for r in res["rows"])
+    assert res["rows"][0]["max_abs_diff_estimates"] < 1e-8 and res["rows"][1]["max_abs_diff_estimates"] < 1e-6
+
+
+def test_make_filter_by_name():
+    model = SensorNetwork(d=4)
+    assert type(harness.make_filter("kf", model)).__name__ == "KalmanFilter"
+    f = harness.make_filter("pfpf_ledh", model, 7)
+    assert type(f).__name__ == "ParticleFlowParticleFilter" and f.n_particles == 7
+    assert type(harness.make_filter("flow_gromov", model, 5)).__name__ == "ParticleFlowFilter"
+    assert type(harness.make_filter("pfgspf", model, n_components=2, particles_per_component=6)).__name__ \
+        == "ParticleFlowGaussianSumParticleFilter"
+    with pytest.raises(ValueError, match="unknown filter 'nope'"):
+        harness.make_filter("nope", model)
+    with pytest.raises(SystemExit, match="--filters: unknown"):
+        harness.keys_option("kf,zz", ["kf"])
+
+
+def test_filter_chunks_matches_one_call():
+    model = SensorNetwork(d=4)
+    traj, mean, cov = harness.simulate(model, 5, 3, 0)
+    f = harness.make_filter("bpf", model, 20)
+    whole = harness.filter_chunks(f, traj.observations, mean, cov, None, harness.streams(1, "bpf"))
+    parts = harness.filter_chunks(f, traj.observations, mean, cov, 2, harness.streams(1, "bpf"))
+    assert len(whole) == 1 and len(parts) == 3  # per-trial streams: chunking does not change the numbers
+    assert torch.allclose(whole[0].estimates, torch.cat([p.estimates for p in parts]))
+
+
+# ---- reports and goals -----------------------------------------------------------------------
 def test_status_and_goal_flags():
     ok = dict(finite=True, position_rmse=3.0, omat=0.6)
     assert bench_acoustic.status(ok) == "tracking"
@@ -21,6 +118,7 @@ def test_status_and_goal_flags():
     assert bench_acoustic.status(dict(finite=True, position_rmse=1e70)) == "diverged"
     assert bench_acoustic.status(dict(finite=False, position_rmse=float("nan"))) == "diverged"
     assert bench_acoustic.status(dict(finite=True, position_rmse=1e70, failures=["step 2"])) == "diverged, then raised"
+    assert bench_acoustic.status(dict(status=harness.skipped("stonesoup"))).startswith("skipped")
 
 
 def test_headline_collects_every_goal():
@@ -41,6 +139,9 @@ def test_headline_collects_every_goal():
     assert "BPF (torchflow) vs Stone Soup bootstrap" in names
     ledh = rows[names.index("PF-PF(LEDH) (torchflow) vs Stone Soup Gromov")]
     assert ledh[4] == 80.0 and ledh[5] == 30.0 and ledh[6] is True
+    for r in results["acoustic"]["rows"][2:]:  # Stone Soup not installed: no peer columns to compare with
+        r["per_ts"] = None
+    assert [r[0] for r in run_all._headline(results)] == ["KF"]
 
 
 def test_flop_model_scales_with_particles_and_steps():
@@ -49,11 +150,18 @@ def test_flop_model_scales_with_particles_and_steps():
     assert 1e8 < f1 < 1e9  # ~0.2 GFLOP per trial-step at N = 500
 
 
-def test_acoustic_bench_micro_without_peer():
+# ---- each benchmark, micro sizes -------------------------------------------------------------
+def test_acoustic_bench_micro_with_and_without_peer(monkeypatch):
     res = bench_acoustic.run(["--trials", "2", "--steps", "2", "--particles", "30", "--no-peer"])
     ours = [r for r in res["rows"] if r["side"] == "ours"]
-    assert len(ours) == 4 and all(r["per_ts"] > 0 and r["finite"] for r in ours)
+    assert len(ours) == len(res["rows"]) == 4 and all(r["per_ts"] > 0 and r["finite"] for r in ours)
     assert "| PF-PF(LEDH) (torchflow) |" in res["markdown"]
+    monkeypatch.setattr(harness, "peer", lambda name, *subs: None)  # Stone Soup not installed
+    res = bench_acoustic.run(["--trials", "1", "--steps", "1", "--particles", "10"])
+    peers = [r for r in res["rows"] if r["side"] == "peer"]
+    assert len(peers) == 2 and all(r["status"] == harness.skipped("stonesoup") for r in peers)
+    assert all(r["vs_stonesoup_gromov"] is None and r["goal"] is None for r in res["rows"])
+    assert "| GromovFlowParticleUpdater (Stone Soup) | - |" in res["markdown"]
 
 
 def test_memory_case_runs_in_its_own_process():
@@ -62,11 +170,66 @@ def test_memory_case_runs_in_its_own_process():
     assert "error" not in row, row
     assert row["particles"] == 3000 and row["particle_chunk"] is not None and row["particle_chunk"] < 3000
     assert row["peak_rss_gb"] > 0 and row["s_per_step"] > 0
+    assert res["markdown"].count("\n| BPF | 3e+03 |") == 1
+
+
+def test_pfpf_bench_micro():
+    res = bench_pfpf.run(["--trials", "3", "--steps", "1", "--particles", "10", "--filters", "bpf,ledh", "--chunk", "2"])
+    assert [r["filter"] for r in res["rows"]] == ["BPF", "PF-PF(LEDH)"]
+    assert all(r["sec_per_trial_step"] > 0 and r["chunk"] == 2 and r["N"] == 10 for r in res["rows"])
+    assert res["rows"][1]["vs_ledh"] == 1.0
+    assert "| trials per call | s / trial-step | time / PF-PF(LEDH) |" in res["markdown"]
+    with pytest.raises(SystemExit, match="--filters"):
+        bench_pfpf.run(["--filters", "bpf,nope"])
+
+
+def test_streams_bench_micro(monkeypatch):
+    small = [c for c in bench_streams.cases(True) if c[0].startswith("BPF, LG d=64, N=200")]
+    monkeypatch.setattr(bench_streams, "cases", lambda quick: [(n, m, f, 2, 2) for n, m, f, _, _ in small])
+    res = bench_streams.run(["--repeats", "1", "--threads", "1"])
+    (row,) = res["rows"]
+    assert row["generator"] > 0 and row["streams"] > 0 and row["ratio"] == row["streams"] / row["generator"]
+    assert len(res["draws"]) == 4 and all(d["generator_ns"] > 0 for d in res["draws"])
+    assert "| BPF, LG d=64, N=200 | 2 x 2 |" in res["markdown"]
+
+
+def test_float32_bench_micro(tmp_path):
+    res = bench_float32.run(["--tables", "lg", "--filters", "kf,bpf", "--lg-trials", "3", "--steps-lg", "2",
+                             "--lg-d", "4", "--particles-lg", "20", "--quiet"])
+    kf, bpf = res["rows"]
+    assert kf["filter"] == "KF" and kf["verdict"] == "ok" and kf["max_est_diff_rel"] < 1e-4  # round-off only
+    assert kf["sec_per_step64"] > 0 and kf["sec_per_step32"] > 0 and bpf["sec_per_step64"] > 0
+    assert bpf["n_particles"] == 20 and set(bpf["metrics"]) == {"mse", "log_evidence_relmse", "ess"}
+    assert bpf["verdict"] in ("ok", "degraded", "breaks") and (bpf["verdict"] == "ok") == (bpf["reason"] == "")
+    assert "| KF | - | " in res["markdown"] and "Kalman-type filters point by point" in res["markdown"]
+    (tmp_path / "a.json").write_text(json.dumps({k: v for k, v in res.items() if k != "markdown"}, default=str))
+    merged = bench_float32.run(["--merge", str(tmp_path / "a.json"), str(tmp_path / "a.json")])
+    assert len(merged["rows"]) == 4 and merged["markdown"].count("| KF | - | ") == 2
+
+
+def test_flops_bench_micro(monkeypatch):
+    monkeypatch.setattr(bench_flops, "throughputs", lambda: dict(gemm_2048=100.0, bmm_16x8x8=10.0,
+                                                                 bmm_gram_25x8=5.0, bmm_16x16x16=20.0))
+    res = bench_flops.run(["--particles", "20", "--trials", "2", "--steps", "1"])
+    ledh = res["rows"][0]
+    assert ledh["gflops"] == pytest.approx(ledh["gflop_per_trial_step"] / ledh["per_ts"])
+    assert "| one 2048^3 GEMM (practical peak) | 100.00 | 100% |" in res["markdown"]
+    assert "| batched 16x8 @ 8x8 (10^4 products; the flow's A = L (...) shape) | 10.00 | 10.0% |" in res["markdown"]
+
+
+def test_run_all_runs_a_section_and_writes_both_reports(tmp_path, monkeypatch):
+    monkeypatch.setattr(harness, "HERE", tmp_path)  # the sections' results files go here
+    res = run_all.run(["--only", "gaussian_sum", "--quick"])
+    assert not res["failures"] and list(res["results"]) == ["gaussian_sum"]
+    assert (tmp_path / "results_gaussian_sum_quick.json").exists()
+    assert "| PFGSPF (20 x 2) | 40 |" in (tmp_path / "results_all_quick.md").read_text()
+    with pytest.raises(SystemExit, match="unknown section 'nope'"):
+        run_all.run(["--only", "nope"])
 
 
 def test_run_all_merge_reassembles_saved_sections(tmp_path):
     """``--merge`` with no section run rebuilds the report from the saved results files."""
-    saved = [s for s in run_all.SECTIONS if (_BENCH / f"results_{s}.json").exists()]
+    saved = [s for s in run_all.SECTIONS if harness.results_path(s).with_suffix(".json").exists()]
     if "foundation" not in saved:
         pytest.skip("no saved foundation results in this checkout")
     out = tmp_path / "all.md"
@@ -77,9 +240,28 @@ def test_run_all_merge_reassembles_saved_sections(tmp_path):
 
 
 def test_gaussian_sum_bench_micro():
-    import bench_gaussian_sum
-
     res = bench_gaussian_sum.run(["--quick"])
     assert [r["key"] for r in res["rows"]] == ["pfgspf", "pfpf_ledh", "gspf", "bpf"]
     assert all(r["s_per_trial_step"] > 0 and r["particles"] == 40 for r in res["rows"])
     assert res["rows"][1]["ratio_to_pfpf_ledh"] == 1.0 and "| PFGSPF (20 x 2) | 40 |" in res["markdown"]
+
+
+def test_bench_scaling_micro(tmp_path):
+    assert math.isclose(bench_scaling.loglog_slope([(10, 2.0), (100, 20.0), (1000, 200.0)]), 1.0)
+    res = bench_scaling.run(["--curves", "N,d,B", "--ns", "10,20", "--ds", "4,9", "--bs", "1,2", "--steps", "1",
+                             "--trials", "1", "--time-budget", "0", "--d-curve-n", "10", "--b-curve-n", "10",
+                             "--no-plot", "--quiet", "--out", str(tmp_path / "s.md")])
+    rows = res["rows"]
+    assert {r["curve"] for r in rows} == {"N", "d", "B"}
+    assert len(rows) == 4 * 2 + 5 * 2 + 6 * 2
+    assert all(r["status"] == "ok" and r["s_per_trial_step"] > 0 and r["repeats"] == 1 for r in rows), \
+        [r["status"] for r in rows if r["status"] != "ok"]
+    assert res["plot"] is None and "log-log slope" in res["markdown"] and "EKF (acoustic)" in res["markdown"]
+    assert set(res["machine"]) >= {"platform", "cpus", "torch", "torch_threads", "load_start", "load_end"}
+
+    # a point whose extrapolated time exceeds the cap is recorded as skipped, not dropped
+    res = bench_scaling.run(["--curves", "N", "--ns", "10,20", "--filters", "bpf", "--steps", "1", "--trials", "1",
+                             "--time-budget", "0", "--max-point-seconds", "0", "--no-plot", "--quiet",
+                             "--out", str(tmp_path / "t.md")])
+    assert [r["status"][:7] for r in res["rows"]] == ["ok", "skipped"]
+    assert "skipped" in res["markdown"]

@@ -1,7 +1,7 @@
 """Reference cases: per-trial numbers of every filter, recorded so that a refactoring (the flow-layer
 redesign) can be checked trial by trial against the numbers of the code before it.
 
-    python tests/reference/cases.py          # rewrite per_trial.json (only when a change is meant
+    python -m tests.reference.cases          # rewrite per_trial.json (only when a change is meant
                                              # to change the numbers; say so in the commit)
 
 The cases run through :func:`torchflow.experiment.run_experiment`, so each trial draws from its own
@@ -10,19 +10,17 @@ random stream and the numbers do not depend on chunking.
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import torch
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parents[1]))
+from torchflow.experiment import run_experiment
+from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, KalmanFilter, ParticleFlowFilter,
+                               ParticleFlowParticleFilter, UnscentedKalmanFilter)
+from torchflow.models import AcousticTracking, SensorNetwork
+from torchflow.schedules import ExponentialSchedule
 
-from torchflow.experiment import run_experiment  # noqa: E402
-from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, KalmanFilter,  # noqa: E402
-                               ParticleFlowFilter, ParticleFlowParticleFilter, UnscentedKalmanFilter)
-from torchflow.models import AcousticTracking, SensorNetwork  # noqa: E402
-from torchflow.schedules import ExponentialSchedule  # noqa: E402
+HERE = Path(__file__).resolve().parent
 
 FLOWS = ("edh", "ledh", "geodesic", "gromov", "osd")
 

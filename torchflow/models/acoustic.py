@@ -124,10 +124,6 @@ class AcousticTracking(StateSpaceModel):
     def has_positions(self) -> bool:
         return True
 
-    def _ranges(self, x):
-        diff = self.positions(x).unsqueeze(-2) - self.sensors  # (..., C, m, 2)
-        return diff, torch.linalg.vector_norm(diff, dim=-1)  # (..., C, m)
-
     def measure(self, x):
         # per-coordinate differences (..., C, m): avoids the (..., C, m, 2) tensor, which for
         # 1e5 particles x 26 trials is 4 GB

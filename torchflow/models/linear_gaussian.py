@@ -14,12 +14,6 @@ from .._checks import check_psd, check_tensor
 from .base import StateSpaceModel
 
 
-def _as_param(value, learnable: bool) -> torch.Tensor:
-    t = torch.as_tensor(value, dtype=torch.get_default_dtype() if not torch.is_tensor(value) else None)
-    t = t.clone()
-    return nn.Parameter(t, requires_grad=True) if learnable else t
-
-
 class LinearGaussian(StateSpaceModel):
     """``x_k = F x_{k-1} + v_k``, ``v ~ N(0, Q)``; ``z_k = H x_k + w_k``, ``w ~ N(0, R)``.
 

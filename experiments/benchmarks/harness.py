@@ -1,0 +1,323 @@
+"""The one harness of the benchmark modules: the timing loop (:func:`time_calls`), filters by name
+(:func:`make_filter`, :func:`filter_chunks`), the machine description (:func:`machine`), optional
+peer libraries (:func:`peer`: ``None`` and a ``skipped: <library> not installed`` row when missing)
+and the results files (:func:`md_table`, :func:`write_results`).
+
+Every benchmark module has ``run(argv) -> {"machine", "rows", "markdown", "args", ...}``, which
+writes no results file, and runs as ``python -m experiments.benchmarks.<module>``, which writes
+``results_<name>.md`` and the rest as ``results_<name>.json`` in this folder (``--quick``:
+``results_<name>_quick.*``, so a smoke test never overwrites the full results; ``--out``: elsewhere).
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib
+import json
+import math
+import os
+import platform
+import statistics
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterable, List, Optional, Sequence
+
+import torch
+
+from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, GaussianSumParticleFilter,
+                               KalmanFilter, ParticleFlowFilter, ParticleFlowGaussianSumParticleFilter,
+                               ParticleFlowParticleFilter, UnscentedKalmanFilter)
+from torchflow.random import TrialStreams
+
+HERE = Path(__file__).resolve().parent
+
+
+class CheckFailed(RuntimeError):
+    """Ours and a peer disagree: the timing would not compare equal work (``main`` exits with it)."""
+
+
+@dataclass
+class Timing:
+    """Seconds of each timed call (``min``, ``median``, ``mean`` of them) and the last call's result."""
+
+    times: List[float]
+    result: Any = None
+
+    min = property(lambda self: min(self.times))
+    median = property(lambda self: statistics.median(self.times))
+    mean = property(lambda self: sum(self.times) / len(self.times))
+
+
+def synchronize(device=None) -> None:
+    """Wait for the CUDA queue of ``device`` (nothing on a CPU device or ``None``)."""
+    if device is not None and torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def time_calls(fn: Callable[[], Any], repeats: int = 1, warmup: int = 0, budget: Optional[float] = None,
+               max_repeats: int = 100, device=None) -> Timing:
+    """Call ``fn()`` ``warmup`` times untimed, then time it with ``time.perf_counter``: ``repeats``
+    times, or, with ``budget`` (seconds), until the timed calls add up to ``budget`` (at least once,
+    at most ``max_repeats`` times). On a CUDA ``device`` the queue is synchronised before each
+    clock read, so a call's time includes its kernels."""
+    if int(repeats) < 1 or int(warmup) < 0 or int(max_repeats) < 1:
+        raise ValueError(f"time_calls: expected repeats >= 1, warmup >= 0, max_repeats >= 1, got "
+                         f"{repeats}, {warmup}, {max_repeats}")
+    if budget is not None and not budget >= 0:
+        raise ValueError(f"time_calls: budget: expected seconds >= 0, got {budget}")
+    for _ in range(int(warmup)):
+        fn()
+    synchronize(device)
+    times: List[float] = []
+    out = None
+    while True:
+        t0 = time.perf_counter()
+        out = fn()
+        synchronize(device)
+        times.append(time.perf_counter() - t0)
+        if (len(times) >= repeats if budget is None else sum(times) >= budget) or len(times) >= max_repeats:
+            return Timing(times, out)
+
+
+def streams(seed: int, key) -> Callable[[int, int], TrialStreams]:
+    """``(start, stop) -> TrialStreams(seed, range(start, stop), key)``: the runner's per-trial streams."""
+    return lambda start, stop: TrialStreams(seed, range(start, stop), key=key)
+
+
+def filter_chunks(f, obs, mean, cov, chunk: Optional[int], randomness: Callable[[int, int], Any]) -> list:
+    """``f`` over all trials in calls of ``chunk`` trials (``None``: one call), under
+    ``torch.no_grad()``; ``randomness(start, stop)`` gives each call its generator or streams.
+    Returns the calls' results."""
+    B = obs.shape[0]
+    chunk = chunk or B
+    with torch.no_grad():
+        return [f(obs[s:s + chunk], mean[s:s + chunk], cov[s:s + chunk], randomness(s, min(s + chunk, B)))
+                for s in range(0, B, chunk)]
+
+
+def time_filter(f, obs, mean, cov, chunk: Optional[int], randomness, warm=(1, 1), warm_randomness=None,
+                **timing) -> Timing:
+    """One untimed warm-up call of ``f`` on the first ``warm = (trials, steps)`` (``None``: all),
+    then :func:`time_calls` (``timing``: its options) of ``f`` over all trials in calls of
+    ``chunk``; ``randomness`` as in :func:`filter_chunks` (``warm_randomness``: the warm-up's)."""
+    b, k = warm
+    filter_chunks(f, obs[:b, :k], mean[:b], cov[:b], None, warm_randomness or randomness)
+    return time_calls(lambda: filter_chunks(f, obs, mean, cov, chunk, randomness), **timing)
+
+
+def simulate(model, trials: int, steps: int, seed: int):
+    """``(trajectory, prior mean, prior covariance)`` of ``trials`` x ``steps`` drawn with one
+    generator seeded ``seed`` (the prior after the trajectories)."""
+    g = torch.Generator().manual_seed(int(seed))
+    traj = model.simulate(trials, steps, g)
+    mean, cov = model.initial_belief(traj.states[:, 0], g)
+    return traj, mean, cov
+
+
+@contextlib.contextmanager
+def torch_threads(n: Optional[int]):
+    """Run with ``n`` torch threads (``None`` / 0: unchanged), then restore the previous count."""
+    before = torch.get_num_threads()
+    if n:
+        torch.set_num_threads(int(n))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def blas_limit(n_threads: int):
+    """Context manager limiting numpy/scipy BLAS threads (not torch's) to ``n_threads`` (0: default)."""
+    tpc = peer("threadpoolctl") if n_threads > 0 else None
+    if tpc is None:
+        if n_threads > 0:
+            print("  (threadpoolctl not installed: peer BLAS threads left at their default)")
+        return contextlib.nullcontext()
+    return tpc.threadpool_limits(limits=n_threads, user_api="blas")
+
+
+def blas_threads() -> str:
+    """``"openblas:1,..."``: numpy/scipy's BLAS libraries and their thread counts now."""
+    tpc = peer("threadpoolctl")
+    infos = [] if tpc is None else [f"{i['internal_api']}:{i['num_threads']}" for i in tpc.threadpool_info()
+                                    if i["user_api"] == "blas"]
+    return ",".join(infos) or "?"
+
+
+def loadavg() -> Optional[list]:
+    """1/5/15-minute load average (rounded), or None where the OS has none."""
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except (OSError, AttributeError):  # pragma: no cover
+        return None
+
+
+def _cpu_name() -> str:
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine() or "unknown CPU"
+
+
+def machine(device=None, **extra) -> dict:
+    """The machine a benchmark ran on, with the load average now as ``load_start`` (set
+    ``load_end`` when done); ``extra`` items are added (e.g. the command)."""
+    import numpy as np
+
+    device = torch.device(device or "cpu")
+    info = dict(platform=platform.platform(), processor=_cpu_name(), cpus=os.cpu_count(),
+                python=platform.python_version(), torch=torch.__version__, numpy=np.__version__,
+                torch_threads=torch.get_num_threads(), device=str(device), load_start=loadavg())
+    with contextlib.suppress(ValueError, OSError, AttributeError):
+        info["mem_total_gb"] = round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1)
+    if device.type == "cuda":
+        info["gpu"] = torch.cuda.get_device_name(device)
+    info.update(extra)
+    return info
+
+
+def machine_line(info: dict) -> str:
+    """``Machine: ...`` line of a report, with the load at start and end (other work on the
+    machine inflates times). Items a machine dict lacks (one read back from an older results
+    file) print as ``?``."""
+    get = lambda k: info.get(k, "?")  # noqa: E731
+    gpu = f", GPU {info['gpu']}" if info.get("gpu") else ""
+    mem = f", {info['mem_total_gb']} GiB RAM" if info.get("mem_total_gb") else ""
+    threads = info.get("torch_threads", info.get("threads", "?"))
+    return (f"Machine: {get('platform')}, {get('processor')}, {get('cpus')} CPUs{mem}; python {get('python')}, "
+            f"torch {get('torch')} ({threads} threads), numpy {get('numpy')}; device {get('device')}{gpu}. "
+            f"Load average (1/5/15 min) at start {info.get('load_start')}, at end {info.get('load_end')}.")
+
+
+def header(title: str, quick: bool, info: dict, *lines: str) -> List[str]:
+    """Opening lines of a report: the title (`` (--quick)`` on a smoke test), the machine, ``lines``
+    and the command."""
+    return [title + (" (--quick)" if quick else ""), "", machine_line(info), *lines, f"Command: `{info['command']}`", ""]
+
+
+def command(name: str, argv: Optional[Sequence[str]]) -> str:
+    """The command line that reproduces a run of ``experiments.benchmarks.<name>``."""
+    return " ".join(["python -m experiments.benchmarks." + name, *map(str, argv or [])])
+
+
+def peer(name: str, *submodules: str):
+    """The peer library ``name`` (with ``name.<submodule>`` imported too), or ``None`` when it is
+    not installed. A library that is installed but fails to import raises."""
+    try:
+        mod = importlib.import_module(name)
+        for sub in submodules:
+            importlib.import_module(f"{name}.{sub}")
+    except ModuleNotFoundError as exc:
+        if exc.name is None or exc.name.split(".")[0] != name:
+            raise  # the peer is there but one of its own dependencies is missing: say so
+        return None
+    return mod
+
+
+def skipped(name: str) -> str:
+    """Status of a row whose peer library is not installed."""
+    return f"skipped: {name} not installed (pip install -e '.[bench]')"
+
+
+FLOWS = {"ledh": "LEDH", "edh": "EDH", "gromov": "Gromov", "geodesic": "Geodesic", "osd": "OSD"}
+LABELS = {"kf": "KF", "ekf": "EKF", "ukf": "UKF", "bpf": "BPF", "pfgspf": "PFGSPF", "gspf": "GSPF",
+          **{f: f"PF-PF({n})" for f, n in FLOWS.items()}, **{f"flow_{f}": f"{n} flow" for f, n in FLOWS.items()}}
+
+
+def make_filter(key: str, model, n_particles: Optional[int] = None, **kw):
+    """The torchflow filter a benchmark calls ``key``: ``kf``, ``ekf``, ``ukf``, ``bpf``, a PF-PF
+    by its flow (``ledh``, ``edh``, ``gromov``, ``geodesic``, ``osd``; ``pfpf_<flow>`` too), a
+    particle flow filter without weights (``flow_<flow>``), ``gspf`` or ``pfgspf`` (pass
+    ``n_components`` and ``particles_per_component``). ``kw`` go to the constructor."""
+    key = str(key).removeprefix("pfpf_")
+    n = {} if n_particles is None else dict(n_particles=int(n_particles))
+    if key in ("kf", "ekf", "ukf"):
+        return {"kf": KalmanFilter, "ekf": ExtendedKalmanFilter, "ukf": UnscentedKalmanFilter}[key](model, **kw)
+    if key == "bpf":
+        return BootstrapParticleFilter(model, **n, **kw)
+    if key in FLOWS:
+        return ParticleFlowParticleFilter(model, flow=key, **n, **kw)
+    if key.startswith("flow_") and key[5:] in FLOWS:
+        return ParticleFlowFilter(model, flow=key[5:], **n, **kw)
+    if key in ("gspf", "pfgspf"):
+        cls = GaussianSumParticleFilter if key == "gspf" else ParticleFlowGaussianSumParticleFilter
+        return cls(model, **kw)
+    raise ValueError(f"make_filter: unknown filter {key!r}; expected one of {', '.join(LABELS)}")
+
+
+def keys_option(text: str, allowed: Iterable[str], option: str = "--filters") -> List[str]:
+    """Comma list of names, each one of ``allowed`` (else ``SystemExit`` naming the option)."""
+    allowed = list(allowed)
+    keys = [k.strip() for k in str(text).split(",") if k.strip()]
+    bad = [k for k in keys if k not in allowed]
+    if bad or not keys:
+        raise SystemExit(f"{option}: unknown {bad or keys!r}; expected a subset of {','.join(allowed)}")
+    return keys
+
+
+def parser(doc: str, quick: str = "smoke-test sizes") -> argparse.ArgumentParser:
+    """A benchmark's argument parser (``doc`` its description), with ``--quick`` and ``--out``."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help=quick)
+    ap.add_argument("--out", default=None, help="results file (.md or .json; the other is written beside it; "
+                                                "default: results_<name>[_quick].md in experiments/benchmarks)")
+    return ap
+
+
+def fmt(x, spec: str = "{:.3g}") -> str:
+    """``spec.format(x)``, ``-`` for None or nan (an infinity prints as ``inf``)."""
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "-"
+    if isinstance(x, float) and math.isinf(x):
+        return str(x)
+    return spec.format(x)
+
+
+def met_cell(met: Optional[bool]) -> str:
+    """A goal's ``met`` cell: ``yes``, ``NO`` or ``-`` (no goal)."""
+    return "-" if met is None else ("yes" if met else "NO")
+
+
+def md_table(head: Sequence[str], rows: Iterable[Sequence]) -> List[str]:
+    """Lines of a markdown table; every row must have one cell per column."""
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        if len(r) != len(head):
+            raise ValueError(f"md_table: row has {len(r)} cells, the header {len(head)}: {list(r)!r}")
+        out.append("| " + " | ".join(str(c) for c in r) + " |")
+    return out
+
+
+def results_path(name: str, quick: bool = False, out: Optional[str] = None) -> Path:
+    """Markdown path of a run: ``out`` or ``results_<name>[_quick].md`` in this folder."""
+    return Path(out) if out else HERE / (f"results_{name}_quick.md" if quick else f"results_{name}.md")
+
+
+def write_results(res: dict, name: str, quick: bool = False, out: Optional[str] = None) -> Path:
+    """Write ``res["markdown"]`` to ``out`` (default ``results_<name>[_quick].md`` in this folder;
+    a ``.json`` ``out`` puts the markdown beside it) and the rest of ``res`` as JSON next to it;
+    print the markdown. A ``--quick`` smoke test never overwrites the full results."""
+    path = results_path(name, quick, out)
+    md = path.with_suffix(".md") if path.suffix == ".json" else path
+    md.parent.mkdir(parents=True, exist_ok=True)
+    md.write_text(res["markdown"])
+    md.with_suffix(".json").write_text(json.dumps({k: v for k, v in res.items() if k != "markdown"},
+                                                  indent=1, default=str))
+    print(res["markdown"])
+    print(f"wrote {md} and {md.with_suffix('.json')}")
+    return md
+
+
+def main(run: Callable[[list], dict], name: str, argv: Optional[Sequence[str]] = None) -> dict:
+    """Command-line entry of a benchmark: ``run(argv)``, then its results files (``--quick`` and
+    ``--out`` read back from the returned ``args``)."""
+    try:
+        res = run(list(sys.argv[1:] if argv is None else argv))
+    except CheckFailed as exc:
+        raise SystemExit(str(exc)) from None
+    args = res.get("args", {})
+    write_results(res, name, bool(args.get("quick")), args.get("out"))
+    return res
