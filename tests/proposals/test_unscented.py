@@ -17,14 +17,15 @@ def upf(model, n=64, **kw):
     return ParticleFilter(model, UnscentedProposal(model, **kw), n_particles=n)
 
 
-def test_upf_log_evidence_unbiased_on_lg():
+@pytest.mark.parametrize("prior", ["posterior", "transition"])
+def test_upf_log_evidence_unbiased_on_lg(prior):
     """E[Z_hat / Z] = 1 within 4 standard errors over 400 runs on the same data (the weight is
     p(x | x') p(z | x) / q with q the per-particle UKF's Gaussian, so Z_hat is unbiased whatever the
-    tracker); Z from the Kalman filter."""
+    tracker and whatever it predicts from); Z from the Kalman filter."""
     model = mild_lg()
     obs, mean, cov = replicated(model, 400, 6)
     logz = KalmanFilter(model)(obs[:1], mean[:1], cov[:1]).log_evidence
-    r = torch.exp(upf(model)(obs, mean, cov, torch.Generator().manual_seed(1)).log_evidence - logz)
+    r = torch.exp(upf(model, prior=prior)(obs, mean, cov, torch.Generator().manual_seed(1)).log_evidence - logz)
     se = r.std() / math.sqrt(r.numel())
     assert abs(float(r.mean()) - 1) < 4 * float(se), (float(r.mean()), float(se))
     assert float(se) < 0.05
@@ -97,3 +98,24 @@ def test_upf_config_builds_the_filter():
 def test_upf_bad_covariance_is_named():
     with pytest.raises(ValueError, match="covariance: expected one of"):
         UnscentedProposal(mild_lg(), covariance="pf")
+
+
+def test_transition_prior_is_the_linearised_optimal_proposal():
+    """prior="transition" carries nothing and, on a linear-Gaussian model, draws from the exact
+    optimal proposal p(x_k | x_{k-1}, z_k): the KF update of N(F x, Q) with z (checked against
+    kalman_update); a bad prior name is refused naming the argument."""
+    from torchflow.trackers import kalman_update
+    model = random_lg()
+    prop = UnscentedProposal(model, prior="transition")
+    assert prop.init_carry(torch.eye(3).expand(2, 3, 3), 8) is None
+    x = torch.randn(2, 8, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    z = torch.randn(2, model.obs_dim, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    out = prop.propose(x, None, None, z, None, torch.Generator().manual_seed(2))
+    m = model.transition_mean(x)
+    mean, cov, _ = kalman_update(m, model.transition_cov(m), z.unsqueeze(1), model.measure(m),
+                                 model.measurement_matrix(), model.measurement_cov(m))
+    xi = torch.randn(x.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    L = torch.linalg.cholesky(cov)
+    torch.testing.assert_close(out.particles, mean + (L @ xi.unsqueeze(-1)).squeeze(-1), rtol=1e-7, atol=1e-9)
+    with pytest.raises(ValueError, match="prior"):
+        UnscentedProposal(model, prior="bogus")

@@ -11,6 +11,14 @@ and carries ``P_hat^i`` to the next step (resampled with the particle). The part
 ``p(x_k | x_{k-1}) p(z_k | x_k) / q``, so the evidence estimate stays unbiased whatever the
 tracker's approximation. The noise enters additively (the model's transition and measurement
 covariances), not through an augmented state.
+
+``prior="transition"`` is the other classical choice: each particle's prediction is the transition
+``N(f(x_{k-1}^i), Q)`` itself (no carried covariance), and the tracker's update of it linearises the
+optimal importance density ``p(x_k | x_{k-1}^i, z_k)`` (Doucet, Godsill & Andrieu 2000, local
+linearisation). The published UPF (``prior="posterior"``) predicts from the carried posterior
+``P_{k-1}^i``, which is wider than ``Q``: its draws move further towards ``z_k`` than the
+transition density supports, and the weights ``p(x_k | x_{k-1}) / q`` can collapse when ``Q`` is small
+(acoustic tracking: experiments/RESULTS.md).
 """
 from __future__ import annotations
 
@@ -32,18 +40,24 @@ class UnscentedProposal(Proposal):
         covariance: ``"ukf"`` (default, the UPF) or ``"ekf"`` (the extended Kalman PF).
         alpha, beta, kappa: the UKF's sigma-point settings
             (:class:`~torchflow.trackers.UnscentedTransform`; ``kappa=None`` is ``3 - d``).
+        prior: ``"posterior"`` (the published UPF: predict each particle's carried posterior) or
+            ``"transition"`` (predict ``N(f(x^i), Q)``: the linearised optimal proposal).
     """
 
     random_stream = "upf"
 
     def __init__(self, model, covariance: str = "ukf", alpha: float = 1.0, beta: float = 2.0,
-                 kappa: Optional[float] = None):
+                 kappa: Optional[float] = None, prior: str = "posterior"):
         super().__init__(model)
+        if prior not in ("posterior", "transition"):
+            raise ValueError(f"prior: expected 'posterior' or 'transition', got {prior!r}")
         sigma = dict(alpha=alpha, beta=beta, kappa=kappa) if covariance == "ukf" else {}
-        self.covariance = covariance
+        self.covariance, self.prior = covariance, prior
         self.tracker = tracker(model, covariance, **sigma)
 
     def init_carry(self, cov, n_particles):
+        if self.prior == "transition":
+            return None
         B, d = cov.shape[0], cov.shape[-1]
         # a linear model's tracked covariances do not depend on the particle (EKF and UKF are exact)
         identical = self.model.linear_dynamics and self.model.linear_measurement
@@ -51,15 +65,20 @@ class UnscentedProposal(Proposal):
         return ParticleCovariance(P if identical else P.expand(B, int(n_particles), d, d), identical=identical)
 
     def propose(self, particles, log_weights, estimate, z, carry, generator, *, chunk=None) -> Proposed:
-        m_pred, P_pred = self.tracker.predict(particles, carry.matrix)  # (B, N, d), (B, N|1, d, d)
+        if carry is None:  # prior="transition": N(f(x), Q) per particle
+            m_pred = self.model.transition_mean(particles)
+            P_pred = self.model.transition_cov(m_pred)  # broadcasts: (d, d) or (B, N, d, d)
+        else:
+            m_pred, P_pred = self.tracker.predict(particles, carry.matrix)  # (B, N, d), (B, N|1, d, d)
         mean, P_post, _ = self.tracker.update(m_pred, P_pred, z.unsqueeze(1))
-        if carry.identical:  # equal for every particle (the UKF's sigma points broadcast them out)
+        if carry is not None and carry.identical:  # equal for every particle (sigma points broadcast them)
             P_post = P_post[:, :1]
         L = linalg.safe_cholesky(P_post)
         xi = linalg.standard_normal(particles.shape, dtype=particles.dtype, device=particles.device,
                                     generator=generator)
         x = mean + linalg.matvec(L, xi)
-        return Proposed(x, linalg.mvn_log_prob(x, mean, L), cov=carry.like(P_post), fallback=m_pred)
+        return Proposed(x, linalg.mvn_log_prob(x, mean, L), cov=None if carry is None else carry.like(P_post),
+                        fallback=m_pred)
 
     def bytes_per_trial(self, n_particles):
         N, d, m = int(n_particles), self.model.state_dim, self.model.obs_dim
@@ -68,4 +87,4 @@ class UnscentedProposal(Proposal):
         return 8 * N * per_particle + N * s * self.model.bytes_per_point() + super().bytes_per_trial(N)
 
     def extra_repr(self) -> str:
-        return f"covariance={self.covariance!r}"
+        return f"covariance={self.covariance!r}, prior={self.prior!r}"
