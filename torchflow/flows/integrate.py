@@ -32,6 +32,17 @@ from .base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow, _gather
 from .points import LinearisationPoints, resolve_points
 
 
+def _check_start(start, shape, gaussian_image: bool) -> None:
+    if start is None:
+        return
+    if start.shape != shape:
+        raise ValueError(f"start: expected the points' starting positions shaped like prior.mean "
+                         f"{tuple(shape)}, got {tuple(start.shape)}")
+    if gaussian_image:
+        raise ValueError("start: the Gaussian image follows the prior mean (the points' own start); "
+                         "give either start or gaussian_image=True")
+
+
 def integrate_flow(
     flow: ParticleFlow,
     model,
@@ -99,16 +110,9 @@ def integrate_flow(
         from .measurement import GaussianMeasurement
 
         measurement = GaussianMeasurement.from_model(model, z)
-    shape0 = None if start is None else prior.mean.shape
+    _check_start(start, prior.mean.shape, gaussian_image)
     prior, index, squeeze = strategy.arrange(prior, particles, index)
-    if start is not None:
-        if start.shape != shape0:
-            raise ValueError(f"start: expected the points' starting positions shaped like prior.mean "
-                             f"{tuple(shape0)}, got {tuple(start.shape)}")
-        if gaussian_image:
-            raise ValueError("start: the Gaussian image follows the prior mean (the points' own start); "
-                             "give either start or gaussian_image=True")
-        start = start.reshape(prior.mean.shape)
+    start = None if start is None else start.reshape(prior.mean.shape)
     out = _integrate(flow, measurement, particles, prior, index, strategy.per_particle, eps_all, lam_all,
                      generator, proposal, noise, gaussian_image, start)
     if squeeze:
