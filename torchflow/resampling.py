@@ -464,7 +464,7 @@ def gather_particles(x: Tensor, indices: Tensor) -> Tensor:
 
 
 #: how gradients pass through resampling (the slot :class:`Resampler` keeps for estimators)
-RESAMPLING_GRADIENTS = ("none",)
+RESAMPLING_GRADIENTS = ("none", "stop_gradient")
 
 
 class Resampler(nn.Module):
@@ -477,10 +477,16 @@ class Resampler(nn.Module):
         ess_threshold: resample a trial when ESS < ess_threshold * N (0 never, 1 nearly always).
         regularization: ``None`` (off), a float variance, or a list of d per-coordinate variances
             of Gaussian jitter added to the particles of resampled trials.
-        gradient: how gradients pass through the ancestor choice. ``"none"`` (the only estimator
-            so far): the index gather drops how the ancestors depend on the parameters, so the
-            gradient of the log-evidence is a biased estimate of the score wherever resampling
-            happens.
+        gradient: how gradients pass through the ancestor choice.
+
+            * ``"none"``: the index gather drops how the ancestors depend on the parameters, so
+              the gradient of the log-evidence is a biased estimate of the score wherever
+              resampling happens (the bias does not vanish as N grows).
+            * ``"stop_gradient"`` (Scibior & Wood 2021): a resampled particle's log-weight
+              becomes ``-log N + log W_a - stop_gradient(log W_a)`` (``W_a`` its ancestor's
+              normalised weight). Its value is exactly ``-log N`` (the forward pass is bit for bit
+              that of ``"none"``), and its gradient adds the score-function term of the ancestor
+              draw, so the gradient of ``log Z_hat`` estimates the score consistently.
         dtype: of the regularisation scale (the model's).
     """
 
@@ -517,6 +523,12 @@ class Resampler(nn.Module):
         idx, resampled, lw_new = resample_if_needed(log_weights, generator, scheme=self.scheme,
                                                     ess_threshold=self.ess_threshold, validate=False)
         particles = gather_particles(particles, idx)
+        if self.gradient == "stop_gradient":
+            lw_anc = gather_particles(log_weights, idx)
+            # exactly 0 in value (an ancestor has a finite weight: zero-weight particles are never
+            # drawn); its gradient is that of log W_a
+            score = torch.where(torch.isfinite(lw_anc), lw_anc - lw_anc.detach(), torch.zeros_like(lw_anc))
+            lw_new = torch.where(resampled[:, None], lw_new + score, lw_new)
         if cov is not None:  # its type says whether it follows the particles
             cov = cov.resampled(idx)
         if extras:

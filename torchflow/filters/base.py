@@ -301,7 +301,7 @@ class ParticleFilter(Filter):
         ess_threshold: resample a trial when ESS < ess_threshold * N (0 never, 1 nearly always).
         regularization: ``None`` (off), a float variance, or a list of d per-coordinate variances
             of Gaussian jitter added to the particles of resampled trials.
-        resampling_gradient: how gradients pass through resampling (``"none"``; see
+        resampling_gradient: how gradients pass through resampling (``"none"`` or ``"stop_gradient"``; see
             :class:`~torchflow.resampling.Resampler`).
         nonfinite: ``"recover"`` (default, every particle filter): a particle with a NaN/inf
             position or log-weight gets weight zero (and a finite fallback position: its pre-flow
