@@ -2,66 +2,30 @@
 linear-Gaussian (Table I) and acoustic tracking (Table II, sigma_w = 0.1 and the stiff 0.001) tables.
 
     python -m experiments.benchmarks.bench_float32                 # LG 20 trials, acoustic 8 x 40
-    python -m experiments.benchmarks.bench_float32 --tables lg --out /tmp/lg.md
     python -m experiments.benchmarks.bench_float32 --tables acoustic0.001 --filters ledh,gromov
-    python -m experiments.benchmarks.bench_float32 --merge /tmp/lg.json /tmp/a1.json   # one report
-    python -m experiments.benchmarks.bench_float32 --quick                 # smoke test (seconds)
 
-How a table is run: the trajectories, observations and priors are simulated ONCE in float64 with
-``torchflow.experiment``'s own simulator and seed; ``run_experiment`` is then called twice on that
-same data, with ``dtype="float64"`` and ``dtype="float32"`` (the observations and priors are cast;
-the true states stay float64 for scoring, and every metric is computed in float64). The runner's
-simulator is swapped for the shared data during the call (``run_experiment`` itself simulates in
-the run's dtype, and torch draws a different random stream per dtype, so two plain calls would score
-the precisions on different trajectories). Everything else is the runner's: chunking, per-filter
-seeds, the ``nonfinite`` repair counts and the timing. Each filter gets an untimed 2 trials x 1 step
-warm-up in its dtype first. The filters' own random draws differ between the precisions (float64
-CPU draws come from numpy's ziggurat, float32 ones from ``torch.randn``), so for the particle
-filters float32 vs float64 is two independent Monte Carlo runs on the same data.
+The data is simulated ONCE in float64 with ``torchflow.experiment``'s simulator and seed, then
+``run_experiment`` runs on it twice, in float64 and float32 (observations and priors cast; true states
+and every metric stay float64), after an untimed 2 trials x 1 step warm-up per filter. The particle
+filters' draws differ between the precisions, so for them the two are independent Monte Carlo runs.
+Metrics as in the seed tables (LG: MSE, relative MSE of log Z against the float64 KF's; acoustic:
+OMAT, OSPA, lost tracks), and ESS; ``SE`` is the Monte Carlo standard error of the float64 metric
+across trials and ``z = (float32 - float64) / SE``, positive = worse.
 
-Metrics, as in the seed tables: LG: MSE of the estimates and the relative MSE of the log-evidence
-``((log Z - log Z_KF) / log Z_KF)^2``, both precisions scored against the float64 Kalman filter's
-exact log Z; acoustic: OMAT and OSPA (c = 40, p = 1) in metres and lost tracks (mean OMAT > 2 m);
-ESS before resampling. ``SE`` is the Monte Carlo standard error across trials of the float64
-metric (sd over trials / sqrt(trials)); ``z = (float32 - float64) / SE``, signed so that positive
-is worse.
-
-Verdict: ``ok`` when no table metric of float32 is worse than float64's by more than
-``--se-k`` (2) SE, nor by more than 0.1 % of float64's value (1e-8 for the relative MSE of log Z):
-the floors cover the deterministic filters, whose SE is zero. A band of 1 SE would flag about a
-third of float64 re-runs with another seed, since the two precisions' Monte Carlo errors are
-independent (and with few trials and heavy-tailed per-trial errors even 2 SE is optimistic: see
-``--control``). Otherwise ``degraded`` (with the
-metrics that moved), or ``breaks`` when float32 raised, went non-finite, needed non-finite
-repairs float64 did not, reported an ESS outside [1, N] (log-weights it could not normalise), or a
-table metric got 10x worse. Lost tracks are judged on counts: more than ``k sqrt(max(lost64, 1))``
-extra lost tracks is ``degraded``, at least max(3, trials / 2) extra is ``breaks``.
-
-For the Kalman-type filters (KF, EKF, UKF), which draw no random numbers, float32 is also compared
-point by point with float64 on the same data: ``max|dx|/scale`` is the largest float32 - float64
-difference of the estimates over the largest |true state| (a diverged filter's estimates are no
-scale), ``max|d log Z|`` that of the log-evidence (and relative to |log Z|); when the estimates after the FIRST update already differ
-by more than 1e-3 of the scale the filter is ``degraded`` even where its table metrics are not
-(later steps are not judged: a filter that has lost the targets amplifies any perturbation).
-
-``--control`` also re-runs the random filters in float64 with other filter seeds (same data) and
-gives the verdict that float64 re-run would get against float64: the false-alarm check of the
-verdict band.
-
-Times are seconds per trial-step of the runner's timed filter calls (single-threaded if run with
-``--threads 1``, the default here), after the warm-up; the machine's load is printed with them.
-Particle counts default to the seed tables' N for the flow filters (LG 200, acoustic 500) and, for
-a modest run, the same N for the bootstrap PF and PF-PF(EDH) (the paper uses 1e5 - 1e6 for those on
-acoustic tracking): set ``--bpf-particles`` / ``--edh-particles``.
+Verdict: ``ok`` when no table metric of float32 is worse than float64's by more than ``--se-k`` (2) SE
+nor 0.1 % (1e-8 for the relMSE of log Z); ``breaks`` when float32 raised, needed more non-finite
+repairs, gave an ESS outside [1, N], a metric 10x worse or at least max(3, trials / 2) more lost
+tracks (more than ``k sqrt(max(lost64, 1))``: ``degraded``); else ``degraded``. Kalman-type filters
+(no random draws) are also compared point by point, and are ``degraded`` when their estimates after the
+first update differ by more than 1e-3 of the true-state scale (later steps are not judged: a filter
+that lost the targets amplifies any perturbation). Times: the runner's, single-threaded by default.
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import math
 import time
-from pathlib import Path
 from typing import Dict, List, Optional
 
 import torch
@@ -83,27 +47,15 @@ METRICS = {
     "lg": {"mse": 1, "log_evidence_relmse": 1, "ess": -1},
     "acoustic": {"omat": 1, "ospa": 1, "lost_rate": 1, "ess": -1},
 }
-REL_FLOOR = 1e-3  # a float32 metric within 0.1 % of float64's is ok whatever the SE
-#: absolute tolerances where float64's value may be exactly 0 (the KF's own relMSE of log Z)
-ABS_FLOOR = {"log_evidence_relmse": 1e-8}
-BREAK_RATIO = 10.0
-#: a Kalman-type filter whose float32 estimates after the first update differ from float64's by more
-#: than this fraction of their scale is degraded even when its table metrics are not (well-conditioned:
-#: ~1e-6). Later steps are reported but not judged: a filter that has lost the targets is chaotic, so
-#: any perturbation, round-off included, grows there.
-POINTWISE_TOL = 1e-3
+REL_FLOOR, ABS_FLOOR, BREAK_RATIO, POINTWISE_TOL = 1e-3, {"log_evidence_relmse": 1e-8}, 10.0, 1e-3  # see above
 
 
 def _kind(table: str) -> str:
-    return "lg" if table.partition(" [")[0] == "lg" else "acoustic"
+    return "lg" if table == "lg" else "acoustic"
 
 
 def make_model(table: str, lg_d: int = 64):
-    if table == "lg":
-        return SensorNetwork(d=lg_d)
-    if table.startswith("acoustic"):
-        return AcousticTracking(sigma_w=float(table[len("acoustic"):]))
-    raise ValueError(f"table: expected one of {TABLES}, got {table!r}")
+    return SensorNetwork(d=lg_d) if table == "lg" else AcousticTracking(sigma_w=float(table[len("acoustic"):]))
 
 
 def make_filter(key: str, model, n: int):
@@ -135,9 +87,7 @@ def given_data(traj: Trajectory, mean: torch.Tensor, cov: torch.Tensor):
 def _se(values: List[float]) -> Optional[float]:
     t = torch.tensor(values, dtype=torch.float64)
     t = t[torch.isfinite(t)]
-    if t.numel() < 2:
-        return None
-    return float(t.std() / math.sqrt(t.numel()))
+    return float(t.std() / math.sqrt(t.numel())) if t.numel() >= 2 else None
 
 
 def run_precision(table, keys, dtype, traj, mean, cov, a, ref_logz) -> Dict[str, dict]:
@@ -164,22 +114,17 @@ def run_precision(table, keys, dtype, traj, mean, cov, a, ref_logz) -> Dict[str,
     for key, (name, f) in zip(keys, filters.items()):
         row = next(r for r in res.summary if r["filter"] == name)
         trials = [r for r in res.per_trial if r["filter"] == name]
-        per = {}
-        for col in ("mse", "omat", "ospa", "ess"):
-            if trials and col in trials[0]:
-                per[col] = [r[col] for r in trials]
+        per = {col: [r[col] for r in trials] for col in ("mse", "omat", "ospa", "ess") if trials and col in trials[0]}
         if trials and "lost" in trials[0]:
             per["lost_rate"] = [float(r["lost"]) for r in trials]
         if ref_logz is not None and f.estimates_evidence and trials:
             lz = torch.tensor([r["log_evidence"] for r in trials], dtype=torch.float64)
             per["log_evidence_relmse"] = (((lz - ref_logz) / ref_logz) ** 2).tolist()
         summ = {k: (sum(v) / len(v) if v else None) for k, v in per.items()}
-        info = dict(summary=row, per_trial=per, metrics=summ, n_particles=getattr(f, "n_particles", None),
-                    state_scale=float(traj.states[:, 1:].abs().max()),
-                    ess_range=None)
         ess_vals = per.get("ess", []) + [r["ess"] for r in res.per_step if r["filter"] == name and "ess" in r]
-        if ess_vals:  # means over steps / trials: outside [1, N] only if some step's ESS is
-            info["ess_range"] = (min(ess_vals), max(ess_vals))
+        info = dict(summary=row, per_trial=per, metrics=summ, n_particles=getattr(f, "n_particles", None),
+                    state_scale=float(traj.states[:, 1:].abs().max()),  # ESS range: outside [1, N] if a step's is
+                    ess_range=(min(ess_vals), max(ess_vals)) if ess_vals else None)
         if key in DETERMINISTIC and not row.get("error"):
             with torch.no_grad():
                 r = f(traj.observations.to(dt), mean.to(dt), cov.to(dt))
@@ -249,14 +194,9 @@ def compare(table, key, r64, r32, k_se) -> dict:
             reasons.append(f"first-step estimates differ from float64's by {row['first_step_diff_rel']:.2g} x the "
                            f"true-state scale (all steps: {row['max_est_diff_rel']:.2g}; log Z by "
                            f"{row['max_logz_diff_rel']:.2g} relative)")
-    if row["error64"]:
-        row["verdict"], row["reason"] = "n/a", f"float64 raised: {row['error64'][:160]}"
-    elif breaks:
-        row["verdict"], row["reason"] = "breaks", "; ".join(breaks + reasons)
-    elif reasons:
-        row["verdict"], row["reason"] = "degraded", "; ".join(reasons)
-    else:
-        row["verdict"], row["reason"] = "ok", ""
+    row["verdict"], row["reason"] = (("n/a", f"float64 raised: {row['error64'][:160]}") if row["error64"] else
+                                     ("breaks", "; ".join(breaks + reasons)) if breaks else
+                                     ("degraded", "; ".join(reasons)) if reasons else ("ok", ""))
     return row
 
 
@@ -269,7 +209,7 @@ def run_table(table: str, a) -> List[dict]:
     ta.steps = a.steps_lg if table == "lg" else a.steps_acoustic
     model64 = make_model(table, a.lg_d)
     gen = torch.Generator().manual_seed(int(a.seed))
-    traj, mean, cov = tfx._simulate(model64, ta.trials, ta.steps, a.inits_per_track, gen)
+    traj, mean, cov = tfx._simulate(model64, ta.trials, ta.steps, 1, gen)
     ref_logz = None
     if table == "lg":  # exact log Z: the float64 Kalman filter on the shared data
         with torch.no_grad():
@@ -281,39 +221,19 @@ def run_table(table: str, a) -> List[dict]:
         if not a.quiet:
             print(f"[{table}] {dtype}: {time.perf_counter() - t0:.1f} s", flush=True)
     rows = [compare(table, k, res["float64"][k], res["float32"][k], a.se_k) for k in keys]
-    if a.control:  # float64 again with other filter seeds: how often the verdict flags pure Monte Carlo noise
-        random_keys = [k for k in keys if k not in DETERMINISTIC]
-        ca = argparse.Namespace(**vars(ta))
-        ca.seed = ta.seed + 1000
-        t0 = time.perf_counter()
-        ctrl = run_precision(table, random_keys, "float64", traj, mean, cov, ca, ref_logz) if random_keys else {}
-        if not a.quiet:
-            print(f"[{table}] float64 control: {time.perf_counter() - t0:.1f} s", flush=True)
-        for r in rows:
-            if r["key"] in ctrl:
-                c = compare(table, r["key"], res["float64"][r["key"]], ctrl[r["key"]], a.se_k)
-                r["control"] = dict(verdict=c["verdict"], reason=c["reason"],
-                                    z={m: v["z"] for m, v in c["metrics"].items()},
-                                    f64b={m: v["f32"] for m, v in c["metrics"].items()})
     for r in rows:
-        r["inits_per_track"] = a.inits_per_track
+        r["inits_per_track"] = 1
         if not a.quiet:
             print(f"[{table}] {r['filter']}: {r['verdict']} {r['reason']}", flush=True)
     return rows
 
 
 def _g(x, fmt="{:.3g}"):
-    if x is None:
-        return "-"
-    if isinstance(x, float) and not math.isfinite(x):
-        return str(x)
-    return fmt.format(x)
+    return "-" if x is None else str(x) if isinstance(x, float) and not math.isfinite(x) else fmt.format(x)
 
 
 def _pct(x):
-    if x is None:
-        return "-"
-    return f"{100 * x:+.1f}%" if abs(x) < 10 else f"{x:+.2g}x"
+    return "-" if x is None else f"{100 * x:+.1f}%" if abs(x) < 10 else f"{x:+.2g}x"
 
 
 def _z(z):
@@ -330,9 +250,7 @@ _LABEL = {"mse": "MSE", "log_evidence_relmse": "relMSE log Z", "omat": "OMAT (m)
 def table_markdown(table: str, rows: List[dict]) -> List[str]:
     kind = _kind(table)
     r0 = rows[0]
-    base, _, tag = table.partition(" [")  # a tagged variant of a table (e.g. a patched library)
-    title = _TITLES.get(base, base).format(steps=r0["steps"]) + (f" [{tag}" if tag else "")
-    out = [f"### {title}", "",
+    out = [f"### {_TITLES.get(table, table).format(steps=r0['steps'])}", "",
            f"{r0['trials']} trials (inits per track {r0.get('inits_per_track', 1)}), float64 and float32 on the "
            "same observations. Cells: float64 ± SE / float32 (relative change, z = change / SE, positive = "
            "worse).", ""]
@@ -341,9 +259,7 @@ def table_markdown(table: str, rows: List[dict]) -> List[str]:
     if kind == "acoustic":
         head.append("lost tracks f64 / f32")
     head += ["repairs f64 / f32", "s / trial-step f64", "f32", "f32 speed-up", "verdict"]
-    ctrl = any(r.get("control") for r in rows)
-    if ctrl:
-        head.append("control: float64 re-run's verdict")
+
     def cell(v):
         if not v:
             return "-"
@@ -351,15 +267,12 @@ def table_markdown(table: str, rows: List[dict]) -> List[str]:
         z = f", z {_z(v['z'])}" if v["z"] is not None else ""
         return f"{_g(v['f64'], '{:.4g}')}{se} / {_g(v['f32'], '{:.4g}')} ({_pct(v['rel'])}{z})"
 
-    def verdict(r, bold=True):
-        return (f"**{r['verdict']}**" if bold else r["verdict"]) + (f": {r['reason']}" if r["reason"] else "")
-
     out += h.md_table(head, [
         [r["filter"], _g(r["n_particles"], "{}")] + [cell(r["metrics"].get(m)) for m in mets]
         + ([f"{_g(r['lost64'], '{}')} / {_g(r['lost32'], '{}')}"] if kind == "acoustic" else [])
         + [f"{_g(r['repaired64'], '{}')} / {_g(r['repaired32'], '{}')}", _g(r["sec_per_step64"], "{:.3g}"),
-           _g(r["sec_per_step32"], "{:.3g}"), _g(r["speedup"], "{:.2f}x"), verdict(r)]
-        + ([verdict(r["control"], bold=False) if r.get("control") else "-"] if ctrl else []) for r in rows])
+           _g(r["sec_per_step32"], "{:.3g}"), _g(r["speedup"], "{:.2f}x"),
+           f"**{r['verdict']}**" + (f": {r['reason']}" if r["reason"] else "")] for r in rows])
     det = [r for r in rows if r.get("max_est_diff_rel") is not None]
     if det:
         out += ["", "Kalman-type filters point by point (no random numbers; float32 - float64 on the same data):", ""]
@@ -373,72 +286,30 @@ def table_markdown(table: str, rows: List[dict]) -> List[str]:
     return out + [""]
 
 
-def markdown(info: dict, rows: List[dict], notes: Optional[List[str]] = None) -> str:
+def markdown(info: dict, rows: List[dict]) -> str:
     lines = h.header("## float32 vs float64 accuracy", info.get("quick"), info,
                      f"Verdict: ok = no table metric worse by more than {info['se_k']} SE (or 0.1 %); degraded / "
                      "breaks otherwise (see the script's docstring).")
     for table in dict.fromkeys(r["table"] for r in rows):
         lines += table_markdown(table, [r for r in rows if r["table"] == table])
-    for n in notes or []:
-        lines.append(f"- {n}")
     return "\n".join(lines).rstrip() + "\n"
-
-
-def build_parser():
-    ap = h.parser(__doc__, "LG 3 trials, N 50; acoustic 2 trials x 4 steps, N 100")
-    ap.add_argument("--tables", default=",".join(TABLES), help=f"comma-separated subset of {','.join(TABLES)}")
-    ap.add_argument("--filters", default=None,
-                    help=f"comma-separated subset of {','.join(NAMES)} for every table (default LG "
-                         f"{DEFAULT_FILTERS['lg']}; acoustic {DEFAULT_FILTERS['acoustic']}); kf is skipped on acoustic")
-    ap.add_argument("--lg-trials", type=int, default=20)
-    ap.add_argument("--acoustic-trials", type=int, default=8)
-    ap.add_argument("--steps-lg", type=int, default=10)
-    ap.add_argument("--steps-acoustic", type=int, default=40)
-    ap.add_argument("--lg-d", type=int, default=64)
-    ap.add_argument("--particles-lg", type=int, default=200)
-    ap.add_argument("--particles-acoustic", type=int, default=500)
-    ap.add_argument("--bpf-particles", type=int, default=None, help="BPF N (default: the table's N)")
-    ap.add_argument("--edh-particles", type=int, default=None, help="PF-PF(EDH) N (default: the table's N)")
-    ap.add_argument("--inits-per-track", type=int, default=1)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--se-k", type=float, default=2.0, help="verdict band in standard errors (2)")
-    ap.add_argument("--memory-gb", type=float, default=4.0)
-    ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1: single-thread numbers)")
-    ap.add_argument("--control", action="store_true",
-                    help="also re-run the random filters in float64 with other seeds (verdict false-alarm check)")
-    ap.add_argument("--quiet", action="store_true")
-    ap.add_argument("--merge", nargs="+", default=None, metavar="JSON",
-                    help="combine the .json results of earlier runs into one report (runs nothing)")
-    ap.add_argument("--note", action="append", default=[], help="a line added under the tables (repeatable)")
-    return ap
 
 
 def run(argv=None) -> dict:
     argv = list(argv or [])
-    a = build_parser().parse_args(argv)
-    if a.merge:
-        parts = [json.loads(Path(p).read_text()) for p in a.merge]
-        rows = [r for p in parts for r in p["rows"]]
-        info = dict(parts[0]["machine"])
-        info["command"] = "; ".join(p["machine"]["command"] for p in parts)
-        info["load_start"] = [p["machine"]["load_start"] for p in parts]
-        info["load_end"] = [p["machine"]["load_end"] for p in parts]
-        notes = [n for p in parts for n in p.get("notes", [])] + list(a.note)
-        return dict(machine=info, rows=rows, notes=notes, markdown=markdown(info, rows, notes), args=vars(a))
-    if a.quick:
-        a.lg_trials, a.acoustic_trials, a.steps_acoustic, a.particles_lg, a.particles_acoustic = 3, 2, 4, 50, 100
+    a = h.options(__doc__, argv, dict(lg_trials=3, acoustic_trials=2, steps_acoustic=4, particles_lg=50,
+                                      particles_acoustic=100), tables=",".join(TABLES), filters=None, lg_trials=20,
+                  acoustic_trials=8, steps_lg=10, steps_acoustic=40, lg_d=64, particles_lg=200, particles_acoustic=500,
+                  bpf_particles=None, edh_particles=None, seed=0, se_k=2.0, memory_gb=4.0, threads=1, quiet=False)
     tables = [t for t in a.tables.split(",") if t]
     for table in tables:
         if table not in TABLES and not table.startswith("acoustic"):
             raise SystemExit(f"--tables: unknown {table!r}; expected a subset of {','.join(TABLES)}")
     rows = []
-    with h.torch_threads(a.threads):  # a suite runner's later sections keep their own thread count
-        info = h.machine(se_k=a.se_k, quick=a.quick, command=h.command("bench_float32", argv))
+    with h.session("bench_float32", argv, a.threads, se_k=a.se_k, quick=a.quick) as info:
         for table in tables:
             rows += run_table(table, a)
-        info["load_end"] = h.loadavg()
-    notes = list(a.note)
-    return dict(machine=info, rows=rows, notes=notes, markdown=markdown(info, rows, notes), args=vars(a))
+    return dict(machine=info, rows=rows, notes=[], markdown=markdown(info, rows), args=vars(a))
 
 
 if __name__ == "__main__":

@@ -258,13 +258,60 @@ def keys_option(text: str, allowed: Iterable[str], option: str = "--filters") ->
     return keys
 
 
-def parser(doc: str, quick: str = "smoke-test sizes") -> argparse.ArgumentParser:
-    """A benchmark's argument parser (``doc`` its description), with ``--quick`` and ``--out``."""
+def _value(text: str):
+    """An option's value: an int, else a float, else the text."""
+    for cast in (int, float):
+        with contextlib.suppress(ValueError):
+            return cast(text)
+    return text
+
+
+def options(doc: str, argv: Optional[Sequence[str]], quick: Optional[dict] = None, **defaults) -> argparse.Namespace:
+    """A benchmark's options, parsed from ``argv``: ``--quick``, ``--out`` (results file, .md or .json;
+    default ``results_<name>[_quick].md`` here) and ``--<name>`` per item of ``defaults`` (``False``: a
+    flag; else an int, float or text, ``None`` when unset). With ``--quick``, ``quick``'s items
+    replace the defaults of options not given."""
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help=quick)
-    ap.add_argument("--out", default=None, help="results file (.md or .json; the other is written beside it; "
-                                                "default: results_<name>[_quick].md in experiments/benchmarks)")
-    return ap
+    ap.add_argument("--quick", action="store_true", help=f"smoke test: {quick}")
+    ap.add_argument("--out", default=None, help="results file (.md or .json; the other is written beside it)")
+    for k, v in defaults.items():
+        name = "--" + k.replace("_", "-")
+        if v is False:
+            ap.add_argument(name, action="store_true")
+        else:
+            ap.add_argument(name, type=_value, default=None, help=f"default {v}")
+    a = ap.parse_args(argv)
+    for k, v in defaults.items():
+        if getattr(a, k) is None:
+            setattr(a, k, (quick or {}).get(k, v) if a.quick else v)
+    return a
+
+
+def ints(text, option: str) -> List[int]:
+    """``"200,1e4"`` (or one number) -> ``[200, 10000]``, each >= 1 (else ``SystemExit`` naming the option)."""
+    try:
+        vals = [int(float(v)) for v in str(text).split(",") if v.strip()]
+    except ValueError:
+        raise SystemExit(f"{option}: expected comma-separated integers, got {text!r}") from None
+    if not vals or min(vals) < 1:
+        raise SystemExit(f"{option}: expected positive integers, got {text!r}")
+    return vals
+
+
+@contextlib.contextmanager
+def session(name: str, argv, threads: Optional[int] = None, device=None, **extra):
+    """Run a benchmark with ``threads`` torch threads; yields its :func:`machine` description (with
+    the command, ``extra`` items and, on exit, ``load_end``)."""
+    with torch_threads(threads):
+        info = machine(device, command=command(name, argv), **extra)
+        yield info
+        info["load_end"] = loadavg()
+
+
+def report(title: str, a, info: dict, intro: Sequence[str], head: Sequence[str], rows: Iterable[Sequence],
+           *more: str) -> str:
+    """Markdown of a run: :func:`header` (``intro`` its lines), the table, then ``more`` lines."""
+    return "\n".join(header(title, a.quick, info, *intro) + md_table(head, rows) + ([""] if more else []) + list(more)) + "\n"
 
 
 def fmt(x, spec: str = "{:.3g}") -> str:
