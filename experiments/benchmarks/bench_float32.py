@@ -4,29 +4,24 @@ linear-Gaussian (Table I) and acoustic tracking (Table II, sigma_w = 0.1 and the
     python -m experiments.benchmarks.bench_float32                 # LG 20 trials, acoustic 8 x 40
     python -m experiments.benchmarks.bench_float32 --tables acoustic0.001 --filters ledh,gromov
 
-The data is simulated ONCE in float64 with ``torchflow.experiment``'s simulator and seed, then
-``run_experiment`` runs on it twice, in float64 and float32 (observations and priors cast; true states
-and every metric stay float64), after an untimed 2 trials x 1 step warm-up per filter. The particle
-filters' draws differ between the precisions, so for them the two are independent Monte Carlo runs.
-Metrics as in the seed tables (LG: MSE, relative MSE of log Z against the float64 KF's; acoustic:
-OMAT, OSPA, lost tracks), and ESS; ``SE`` is the Monte Carlo standard error of the float64 metric
-across trials and ``z = (float32 - float64) / SE``, positive = worse.
+The data is simulated once in float64, then ``run_experiment`` filters it in float64 and in float32
+(true states and metrics stay float64) after an untimed 2 x 1 warm-up per filter; the particle filters'
+draws differ between the precisions. Metrics as in the seed tables, and ESS; ``SE``: the float64
+metric's Monte Carlo standard error, ``z = (float32 - float64) / SE`` (positive = worse).
 
-Verdict: ``ok`` when no table metric of float32 is worse than float64's by more than ``--se-k`` (2) SE
-nor 0.1 % (1e-8 for the relMSE of log Z); ``breaks`` when float32 raised, needed more non-finite
-repairs, gave an ESS outside [1, N], a metric 10x worse or at least max(3, trials / 2) more lost
-tracks (more than ``k sqrt(max(lost64, 1))``: ``degraded``); else ``degraded``. Kalman-type filters
-(no random draws) are also compared point by point, and are ``degraded`` when their estimates after the
-first update differ by more than 1e-3 of the true-state scale (later steps are not judged: a filter
-that lost the targets amplifies any perturbation). Times: the runner's, single-threaded by default.
+Verdict: ``ok`` when no table metric is worse by more than ``--se-k`` SE nor 0.1 % (1e-8 for relMSE
+log Z); ``breaks`` when float32 raised, needed more non-finite repairs, gave an ESS outside [1, N], a
+metric 10x worse or at least max(3, trials / 2) more lost tracks; else ``degraded`` (more lost tracks
+than ``k sqrt(max(lost64, 1))`` included). Kalman-type filters are also compared point by point:
+``degraded`` when the first update's estimates differ by more than 1e-3 of the true-state scale.
 """
 from __future__ import annotations
 
 import argparse
-import contextlib
 import math
 import time
 from typing import Dict, List, Optional
+from unittest import mock
 
 import torch
 
@@ -64,12 +59,9 @@ def make_filter(key: str, model, n: int):
     return h.make_filter(key, model, None if key in DETERMINISTIC else n, name=NAMES[key], **extra)
 
 
-@contextlib.contextmanager
 def given_data(traj: Trajectory, mean: torch.Tensor, cov: torch.Tensor):
     """Make ``run_experiment`` filter this float64 data (cast to the run's dtype) instead of
     simulating its own; the true states stay float64 (they are only used for scoring)."""
-    orig = tfx._simulate
-
     def simulate(model, trials, steps, inits_per_track, generator):
         if traj.observations.shape[:2] != (trials, steps):
             raise ValueError("given_data: trials/steps differ from the shared data")
@@ -77,11 +69,7 @@ def given_data(traj: Trajectory, mean: torch.Tensor, cov: torch.Tensor):
         return (Trajectory(traj.states.to(dev), traj.observations.to(device=dev, dtype=dt)),
                 mean.to(device=dev, dtype=dt), cov.to(device=dev, dtype=dt))
 
-    tfx._simulate = simulate
-    try:
-        yield
-    finally:
-        tfx._simulate = orig
+    return mock.patch.object(tfx, "_simulate", simulate)
 
 
 def _se(values: List[float]) -> Optional[float]:
@@ -136,11 +124,10 @@ def run_precision(table, keys, dtype, traj, mean, cov, a, ref_logz) -> Dict[str,
 def compare(table, key, r64, r32, k_se) -> dict:
     """One result row: both precisions' metrics, SE, z, times, repairs and the verdict."""
     s64, s32 = r64["summary"], r32["summary"]
-    row = dict(table=table, key=key, filter=NAMES[key], n_particles=r64["n_particles"],
-               trials=s64["trials"], steps=s64["steps"], error64=s64.get("error"), error32=s32.get("error"),
-               sec_per_step64=s64.get("sec_per_step"), sec_per_step32=s32.get("sec_per_step"),
-               repaired64=s64.get("repaired"), repaired32=s32.get("repaired"),
-               lost64=s64.get("lost_tracks"), lost32=s32.get("lost_tracks"), metrics={})
+    row = dict(table=table, key=key, filter=NAMES[key], n_particles=r64["n_particles"], trials=s64["trials"],
+               steps=s64["steps"], **{f"{k}{b}": s.get(col) for k, col in (("error", "error"), ("sec_per_step",) * 2,
+                                                                            ("repaired",) * 2, ("lost", "lost_tracks"))
+                                      for b, s in (("64", s64), ("32", s32))}, metrics={})
     t64, t32 = row["sec_per_step64"], row["sec_per_step32"]
     row["speedup"] = t64 / t32 if t64 and t32 else None
     reasons, breaks = [], []
@@ -159,17 +146,10 @@ def compare(table, key, r64, r32, k_se) -> dict:
             if v64 is not None:
                 breaks.append(f"{m} not finite in float32")
             continue
-        worse = sign * d
-        tol = max(k_se * (se or 0.0), REL_FLOOR * abs(v64), ABS_FLOOR.get(m, 0.0))
-        if worse > tol:
-            zs = f", z = {_z(z)}" if z is not None else ""
-            msg = f"{m} {_g(v64)} -> {_g(v32)}{zs}"
-            if m == "lost_rate":
-                continue  # judged on the counts below
-            elif (sign > 0 and v64 > 0 and v32 > BREAK_RATIO * v64) or (sign < 0 and v32 * BREAK_RATIO < v64):
-                breaks.append(msg)
-            else:
-                reasons.append(msg)
+        if m != "lost_rate" and sign * d > max(k_se * (se or 0.0), REL_FLOOR * abs(v64), ABS_FLOOR.get(m, 0.0)):
+            ten = (sign > 0 and v64 > 0 and v32 > BREAK_RATIO * v64) or (sign < 0 and v32 * BREAK_RATIO < v64)
+            zs = f", z = {_z(z)}" if z is not None else ""  # (lost tracks: judged on the counts below)
+            (breaks if ten else reasons).append(f"{m} {_g(v64)} -> {_g(v32)}{zs}")
     l64, l32 = row["lost64"] or 0, row["lost32"] or 0
     if l32 - l64 > k_se * math.sqrt(max(l64, 1)):  # more lost tracks than Monte Carlo noise explains
         (breaks if l32 - l64 >= max(3, row["trials"] / 2) else reasons).append(f"lost tracks {l64} -> {l32}")
@@ -204,9 +184,8 @@ def run_table(table: str, a) -> List[dict]:
     keys = h.keys_option(a.filters or DEFAULT_FILTERS[_kind(table)], NAMES)
     if table != "lg":
         keys = [k for k in keys if k != "kf"]  # the KF needs a linear-Gaussian model
-    ta = argparse.Namespace(**vars(a))
-    ta.trials = a.lg_trials if table == "lg" else a.acoustic_trials
-    ta.steps = a.steps_lg if table == "lg" else a.steps_acoustic
+    ta = argparse.Namespace(**vars(a), trials=a.lg_trials if table == "lg" else a.acoustic_trials,
+                            steps=a.steps_lg if table == "lg" else a.steps_acoustic)
     model64 = make_model(table, a.lg_d)
     gen = torch.Generator().manual_seed(int(a.seed))
     traj, mean, cov = tfx._simulate(model64, ta.trials, ta.steps, 1, gen)

@@ -1,22 +1,15 @@
-"""Foundation benchmarks: torchflow's batched filters against established single-trial libraries on
-the linear-Gaussian sensor network ``SensorNetwork(d=64)`` (known ``x_0``), T = 10 steps. Seconds per
-trial-step = wall time / (trials x steps), best of repeats, each side after an untimed warm-up; the
-peers loop over trials in Python with their BLAS limited to ``--peer-threads`` (threadpoolctl).
+"""Foundation benchmarks: torchflow's batched filters against single-trial peers looped in Python
+(BLAS limited to ``--peer-threads``) on the sensor network ``SensorNetwork(d=64)``, T = 10; seconds per
+trial-step, best of repeats after an untimed warm-up on each side.
 
-1. ``KalmanFilter`` on B = 100 trials at once vs ``filterpy.kalman.KalmanFilter`` (``predict()`` /
-   ``update(z)`` per step). Estimates must agree to 1e-8 (and the log-evidence of trial 0 is
-   printed). Goal (issue): >= 50x.
-2. ``UnscentedKalmanFilter`` (alpha 1, beta 2, kappa 3 - d) on 100 trials vs filterpy's
-   ``UnscentedKalmanFilter`` on 20 with ``MerweScaledSigmaPoints`` of the same alpha, beta, kappa;
-   its square root is ``scipy.linalg.cholesky`` with torchflow's ``safe_cholesky`` jitter fallback (the
-   known ``x_0`` has covariance 0). On this linear model both equal the exact KF: estimates must
-   agree to 1e-6. No goal.
-3. ``BootstrapParticleFilter`` (systematic resampling at ESS < 0.5 N) on 20 trials, in cache-sized
-   calls, vs ``particles.SMC`` with a ``Bootstrap`` Feynman-Kac model of the same SSM on 10 trials (2
-   for N > 1000), at N = 200 and 1e4. particles' time starts at the first observation, so its
-   ``PX0`` is the law of ``x_1``; its estimate is the weighted mean after reweighting (a ``Moments``
-   collector), as ours. Accuracy: MSE against the true states, the exact KF's as the floor. Goal:
-   >= 2x at each N.
+1. ``KalmanFilter`` (100 trials at once) vs filterpy's; estimates must agree to 1e-8. Goal: >= 50x.
+2. ``UnscentedKalmanFilter`` (100 trials) vs filterpy's (20) with ``MerweScaledSigmaPoints`` of the same
+   alpha, beta, kappa, its square root with torchflow's Cholesky jitter (the known ``x_0`` has covariance
+   0); on this linear model both are the exact KF: estimates must agree to 1e-6. No goal.
+3. ``BootstrapParticleFilter`` (systematic resampling at ESS < 0.5 N; 20 trials in cache-sized calls) vs
+   ``particles.SMC`` of the same model (10 trials, 2 for N > 1000; ``PX0`` is the law of ``x_1``, the
+   estimate the weighted mean after reweighting, as ours) at N = 200 and 1e4; MSE against the truth,
+   the exact KF's as the floor. Goal: >= 2x at each N.
 
 A failed agreement check raises ``CheckFailed``; a missing peer gives a ``skipped`` row.
 

@@ -1,20 +1,16 @@
-"""Scaling benchmark: seconds per trial-step of torchflow's filters against problem size, and a PNG
-(``results_scaling.png``, one log-log panel per curve).
+"""Scaling benchmark: seconds per trial-step against problem size, tables and ``results_scaling.png``.
 
-* ``N`` (``--ns``): particle count on acoustic tracking (d = 16, m = 25): BPF and PF-PF(EDH, LEDH, Gromov);
-* ``d`` (``--ds``, perfect squares): state dimension of the sensor network (m = d): KF, BPF and the
-  PF-PFs at N = ``--d-curve-n``;
-* ``B`` (``--bs``): trials per call, all in one call: BPF and PF-PFs on acoustic tracking at N =
-  ``--b-curve-n``, the KF on the sensor network with d = ``--b-curve-lg-d`` and the EKF on acoustic
-  tracking (the Gaussian filter of the nonlinear model).
+* ``N`` (``--ns``): particles, acoustic tracking (d = 16): BPF, PF-PF(EDH, LEDH, Gromov);
+* ``d`` (``--ds``, perfect squares): the sensor network's dimension: KF, BPF, PF-PFs at ``--d-curve-n``;
+* ``B`` (``--bs``): trials in one call: BPF and PF-PFs on acoustic tracking at ``--b-curve-n``, the KF
+  on the sensor network (d = ``--b-curve-lg-d``) and the EKF on acoustic tracking.
 
-A point: data simulated once (``--seed``), one untimed 1 trial x 1 step warm-up call, then its trials
-x ``--steps`` timed under ``torch.no_grad()`` until ``--time-budget`` seconds are spent (at least
-once); the cell is the best run / (trials x steps). N and d curves: trials in calls of the filter's
-preferred size within ``--memory-gb``. A point whose time, extrapolated from the smaller points of
-its filter (linear, or the last log-log slope if steeper, at most 3), exceeds ``--max-point-seconds``
-is skipped; one that raises is recorded (after running out of memory, the larger points are
-skipped). Each table ends with the least-squares log-log slope: the empirical scaling exponent.
+A point: one untimed 1 x 1 warm-up call, then trials x ``--steps`` timed until ``--time-budget``
+seconds are spent (at least once); the cell is the best run / (trials x steps). N and d curves call
+the filter's preferred chunk of trials within ``--memory-gb``. A point whose time extrapolated from
+the smaller ones (linear, or the last log-log slope if steeper, at most 3) exceeds
+``--max-point-seconds`` is skipped; one that raises is recorded (after an out-of-memory error the
+larger points are skipped). The last row of a table is the log-log slope (the scaling exponent).
 
     python -m experiments.benchmarks.bench_scaling                      # full (~10-15 min, 2-core CPU)
     python -m experiments.benchmarks.bench_scaling --curves N --ns 100,1000,10000 --filters bpf,edh
@@ -22,6 +18,7 @@ skipped). Each table ends with the least-squares log-log slope: the empirical sc
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import time
 from pathlib import Path
@@ -65,12 +62,9 @@ def parse_args(argv=None) -> argparse.Namespace:
 def _available_bytes(device: torch.device) -> Optional[int]:
     if device.type == "cuda":
         return torch.cuda.mem_get_info(device)[0]
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
+    with contextlib.suppress(OSError):
+        return next((int(line.split()[1]) * 1024 for line in Path("/proc/meminfo").read_text().splitlines()
+                     if line.startswith("MemAvailable:")), None)
     return None
 
 
@@ -97,12 +91,8 @@ def _extrapolate(history: List[tuple], x: int) -> Optional[float]:
     or the slope of the last two points when steeper (capped at 3)."""
     if not history:
         return None
-    x1, t1 = history[-1]
-    q = 1.0
-    if len(history) >= 2:
-        x0, t0 = history[-2]
-        if x1 != x0 and t0 > 0 and t1 > 0:
-            q = min(3.0, max(1.0, math.log(t1 / t0) / math.log(x1 / x0)))
+    (x0, t0), (x1, t1) = history[-2:] if len(history) >= 2 else (history[-1], history[-1])
+    q = min(3.0, max(1.0, math.log(t1 / t0) / math.log(x1 / x0))) if x1 != x0 and t0 > 0 and t1 > 0 else 1.0
     return t1 * (x / x1) ** q
 
 
@@ -127,7 +117,7 @@ def curve_points(curve: str, args):
 
 def run_curve(curve: str, args, data, device, log) -> List[dict]:
     rows: List[dict] = []
-    history: Dict[str, List[tuple]] = {}
+    history: Dict[str, List[tuple]] = {}  # filter -> its ok points (x, seconds of one timed run)
     oom: Dict[str, bool] = {}
     budget = int(args.memory_gb * 2**30)
     for key, mname, x, N, d, trials in curve_points(curve, args):
@@ -157,7 +147,6 @@ def run_curve(curve: str, args, data, device, log) -> List[dict]:
                 row["status"] = (f"skipped: estimated {per_trial / 2**30:.1f} GB per trial > "
                                  f"{avail / 2**30:.1f} GB available")
             if row["status"] != "ok":
-                log(f"[{curve}] {label:14s} x={x:<7d} {row['status']}")
                 continue
             _, obs, mean, cov = data(mname, d, trials)
             t0 = time.perf_counter()
@@ -172,12 +161,11 @@ def run_curve(curve: str, args, data, device, log) -> List[dict]:
             log(f"[{curve}] {label:14s} x={x:<7d} {row['s_per_trial_step']:.3g} s/trial-step "
                 f"({row['repeats']} run(s), {chunk} trials/call, point {row['point_s']:.1f} s)")
         except Exception as exc:  # noqa: BLE001  (record and go on)
-            msg = " ".join(str(exc).split())
-            row["status"] = f"error: {type(exc).__name__}: {msg[:200]}"
-            if _is_oom(exc):
-                oom[key] = True
-            log(f"[{curve}] {label:14s} x={x:<7d} {row['status']}")
+            row["status"] = f"error: {type(exc).__name__}: {' '.join(str(exc).split())[:200]}"
+            oom[key] = oom.get(key) or _is_oom(exc)
         finally:
+            if row["status"] != "ok":
+                log(f"[{curve}] {label:14s} x={x:<7d} {row['status']}")
             if device.type == "cuda":
                 torch.cuda.empty_cache()
     return rows
@@ -201,14 +189,18 @@ def loglog_slope(points: List[tuple]) -> Optional[float]:
     return sum((p[0] - mx) * (p[1] - my) for p in pts) / sum((p[0] - mx) ** 2 for p in pts)
 
 
-def slopes(rows: List[dict], curve: str) -> Dict[str, Optional[float]]:
+def points(rows: List[dict], curve: str) -> Dict[str, list]:
+    """Column -> its sorted ok points ``(x, s_per_trial_step)`` on ``curve``."""
     cols: Dict[str, list] = {}
     for r in rows:
         if r["curve"] == curve:
-            cols.setdefault(_column(r, curve), [])
-            if r["status"] == "ok":
-                cols[_column(r, curve)].append((r[_xkey(curve)], r["s_per_trial_step"]))
-    return {c: loglog_slope(p) for c, p in cols.items()}
+            cols.setdefault(_column(r, curve), []).extend([(r[_xkey(curve)], r["s_per_trial_step"])]
+                                                          if r["status"] == "ok" else [])
+    return {c: sorted(p) for c, p in cols.items()}
+
+
+def slopes(rows: List[dict], curve: str) -> Dict[str, Optional[float]]:
+    return {c: loglog_slope(p) for c, p in points(rows, curve).items()}
 
 
 def _cell(r: Optional[dict]) -> str:
@@ -275,19 +267,14 @@ def plot(rows: List[dict], a, path: Path) -> Optional[str]:
         return None
     fig, axes = plt.subplots(1, len(curves), figsize=(5.2 * len(curves), 4.2), squeeze=False)
     for ax, curve in zip(axes[0], curves):
-        xk = _xkey(curve)
-        sl = slopes(rows, curve)
-        cols = list(dict.fromkeys(_column(r, curve) for r in rows if r["curve"] == curve))
-        for c in cols:
-            pts = sorted((r[xk], r["s_per_trial_step"]) for r in rows
-                         if r["curve"] == curve and _column(r, curve) == c and r["status"] == "ok")
-            if not pts:
-                continue
-            lab = c + (f" (slope {sl[c]:.2f})" if sl.get(c) is not None else "")
-            color, marker = STYLE.get(c.split(" ")[0], (None, "o"))
-            ax.plot([p[0] for p in pts], [p[1] for p in pts], marker=marker, linestyle="-", color=color, label=lab)
+        for c, pts in points(rows, curve).items():
+            if pts:
+                sl = loglog_slope(pts)
+                color, marker = STYLE.get(c.split(" ")[0], (None, "o"))
+                ax.plot(*zip(*pts), marker=marker, linestyle="-", color=color,
+                        label=c + (f" (slope {sl:.2f})" if sl is not None else ""))
         ax.set(xscale="log", yscale="log", xlabel=CURVE_TITLES[curve], ylabel="seconds per trial-step")
-        xs = sorted({r[xk] for r in rows if r["curve"] == curve})
+        xs = sorted({r[_xkey(curve)] for r in rows if r["curve"] == curve})
         ax.set_xticks(xs)
         ax.set_xticklabels([f"{x:g}" if x < 1e4 else f"1e{round(math.log10(x))}" if math.log10(x).is_integer()
                             else f"{x:.0e}" for x in xs])

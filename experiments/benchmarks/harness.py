@@ -1,12 +1,11 @@
-"""The one harness of the benchmark modules: the timing loop (:func:`time_calls`), filters by name
-(:func:`make_filter`, :func:`filter_chunks`), the machine description (:func:`machine`), optional
-peer libraries (:func:`peer`: ``None`` and a ``skipped: <library> not installed`` row when missing)
-and the results files (:func:`md_table`, :func:`write_results`).
+"""The one harness of the benchmark modules: options (:func:`options`), the timing loop
+(:func:`time_calls`, :func:`time_filter`), filters by name (:func:`make_filter`), the machine
+description (:func:`machine`, :func:`session`), optional peer libraries (:func:`peer`, :func:`skipped`)
+and the results files (:func:`report`, :func:`write_results`).
 
-Every benchmark module has ``run(argv) -> {"machine", "rows", "markdown", "args", ...}``, which
-writes no results file, and runs as ``python -m experiments.benchmarks.<module>``, which writes
-``results_<name>.md`` and the rest as ``results_<name>.json`` in this folder (``--quick``:
-``results_<name>_quick.*``, so a smoke test never overwrites the full results; ``--out``: elsewhere).
+Every benchmark module has ``run(argv) -> {"machine", "rows", "markdown", "args", ...}``, which writes
+no file, and runs as ``python -m experiments.benchmarks.<module>``, which writes ``results_<name>.md``
+and the rest as ``results_<name>.json`` here (``--quick``: ``results_<name>_quick.*``; ``--out``: elsewhere).
 """
 from __future__ import annotations
 
@@ -71,7 +70,6 @@ def time_calls(fn: Callable[[], Any], repeats: int = 1, warmup: int = 0, budget:
         fn()
     synchronize(device)
     times: List[float] = []
-    out = None
     while True:
         t0 = time.perf_counter()
         out = fn()
@@ -148,17 +146,15 @@ def blas_threads() -> str:
 
 def loadavg() -> Optional[list]:
     """1/5/15-minute load average (rounded), or None where the OS has none."""
-    try:
+    with contextlib.suppress(OSError, AttributeError):
         return [round(x, 2) for x in os.getloadavg()]
-    except (OSError, AttributeError):  # pragma: no cover
-        return None
+    return None
 
 
 def _cpu_name() -> str:
-    with contextlib.suppress(OSError):
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
+    with contextlib.suppress(OSError, StopIteration):
+        return next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                    if line.startswith("model name"))
     return platform.processor() or platform.machine() or "unknown CPU"
 
 
@@ -225,33 +221,28 @@ def skipped(name: str) -> str:
 FLOWS = {"ledh": "LEDH", "edh": "EDH", "gromov": "Gromov", "geodesic": "Geodesic", "osd": "OSD"}
 LABELS = {"kf": "KF", "ekf": "EKF", "ukf": "UKF", "bpf": "BPF", "pfgspf": "PFGSPF", "gspf": "GSPF",
           **{f: f"PF-PF({n})" for f, n in FLOWS.items()}, **{f"flow_{f}": f"{n} flow" for f, n in FLOWS.items()}}
+#: key -> (class, constructor settings, whether it takes ``n_particles``)
+FILTERS = {"kf": (KalmanFilter, {}, False), "ekf": (ExtendedKalmanFilter, {}, False),
+           "ukf": (UnscentedKalmanFilter, {}, False), "bpf": (BootstrapParticleFilter, {}, True),
+           "gspf": (GaussianSumParticleFilter, {}, False), "pfgspf": (ParticleFlowGaussianSumParticleFilter, {}, False),
+           **{f: (ParticleFlowParticleFilter, dict(flow=f), True) for f in FLOWS},
+           **{f"flow_{f}": (ParticleFlowFilter, dict(flow=f), True) for f in FLOWS}}
 
 
 def make_filter(key: str, model, n_particles: Optional[int] = None, **kw):
-    """The torchflow filter a benchmark calls ``key``: ``kf``, ``ekf``, ``ukf``, ``bpf``, a PF-PF
-    by its flow (``ledh``, ``edh``, ``gromov``, ``geodesic``, ``osd``; ``pfpf_<flow>`` too), a
-    particle flow filter without weights (``flow_<flow>``), ``gspf`` or ``pfgspf`` (pass
-    ``n_components`` and ``particles_per_component``). ``kw`` go to the constructor."""
-    key = str(key).removeprefix("pfpf_")
-    n = {} if n_particles is None else dict(n_particles=int(n_particles))
-    if key in ("kf", "ekf", "ukf"):
-        return {"kf": KalmanFilter, "ekf": ExtendedKalmanFilter, "ukf": UnscentedKalmanFilter}[key](model, **kw)
-    if key == "bpf":
-        return BootstrapParticleFilter(model, **n, **kw)
-    if key in FLOWS:
-        return ParticleFlowParticleFilter(model, flow=key, **n, **kw)
-    if key.startswith("flow_") and key[5:] in FLOWS:
-        return ParticleFlowFilter(model, flow=key[5:], **n, **kw)
-    if key in ("gspf", "pfgspf"):
-        cls = GaussianSumParticleFilter if key == "gspf" else ParticleFlowGaussianSumParticleFilter
-        return cls(model, **kw)
-    raise ValueError(f"make_filter: unknown filter {key!r}; expected one of {', '.join(LABELS)}")
+    """The torchflow filter a benchmark calls ``key`` (:data:`FILTERS`; ``pfpf_<flow>`` too: the
+    PF-PF of that flow); ``gspf`` and ``pfgspf`` take ``n_components`` and ``particles_per_component``
+    in ``kw``, which go to the constructor."""
+    if str(key).removeprefix("pfpf_") not in FILTERS:
+        raise ValueError(f"make_filter: unknown filter {key!r}; expected one of {', '.join(LABELS)}")
+    cls, settings, particles = FILTERS[str(key).removeprefix("pfpf_")]
+    n = dict(n_particles=int(n_particles)) if particles and n_particles is not None else {}
+    return cls(model, **settings, **n, **kw)
 
 
 def keys_option(text: str, allowed: Iterable[str], option: str = "--filters") -> List[str]:
     """Comma list of names, each one of ``allowed`` (else ``SystemExit`` naming the option)."""
-    allowed = list(allowed)
-    keys = [k.strip() for k in str(text).split(",") if k.strip()]
+    allowed, keys = list(allowed), [k.strip() for k in str(text).split(",") if k.strip()]
     bad = [k for k in keys if k not in allowed]
     if bad or not keys:
         raise SystemExit(f"{option}: unknown {bad or keys!r}; expected a subset of {','.join(allowed)}")
@@ -311,16 +302,15 @@ def session(name: str, argv, threads: Optional[int] = None, device=None, **extra
 def report(title: str, a, info: dict, intro: Sequence[str], head: Sequence[str], rows: Iterable[Sequence],
            *more: str) -> str:
     """Markdown of a run: :func:`header` (``intro`` its lines), the table, then ``more`` lines."""
-    return "\n".join(header(title, a.quick, info, *intro) + md_table(head, rows) + ([""] if more else []) + list(more)) + "\n"
+    lines = header(title, a.quick, info, *intro) + md_table(head, rows) + ([""] if more else []) + list(more)
+    return "\n".join(lines) + "\n"
 
 
 def fmt(x, spec: str = "{:.3g}") -> str:
     """``spec.format(x)``, ``-`` for None or nan (an infinity prints as ``inf``)."""
     if x is None or (isinstance(x, float) and math.isnan(x)):
         return "-"
-    if isinstance(x, float) and math.isinf(x):
-        return str(x)
-    return spec.format(x)
+    return str(x) if isinstance(x, float) and math.isinf(x) else spec.format(x)
 
 
 def met_cell(met: Optional[bool]) -> str:
