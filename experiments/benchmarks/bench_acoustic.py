@@ -34,7 +34,6 @@ import time
 import traceback
 import warnings
 from pathlib import Path
-from typing import Dict
 
 import numpy as np
 import torch
@@ -110,12 +109,10 @@ def _classes():
     return AcousticMeasurementModel, ESSRecordingSystematicResampler, StateVector, StateVectors
 
 
-def run_stonesoup(kind: str, model, states, obs, prior_mean, prior_cov, n_particles: int = 500, seed: int = 0) -> Dict:
-    """Stone Soup's ``kind`` filter (``"gromov"`` or ``"bootstrap"``) on one trial of the torchflow
-    ``AcousticTracking`` ``model``: ``states (T+1, 16)`` (``x_0..x_T``, for the errors only), ``obs (T,
-    25)``, prior ``(16,)``, ``(16, 16)``. Returns ``step_times`` (predict + update, seconds), ``estimates
-    (steps_completed, 16)``, ``finite``, ``position_rmse`` (nan if any estimate is non-finite),
-    ``step_position_rmse``, ``ess`` (bootstrap), ``steps_completed`` and ``error`` (None or the text)."""
+def run_stonesoup(kind: str, model, obs, prior_mean, prior_cov, n_particles: int, seed: int):
+    """Stone Soup's ``kind`` filter (``"gromov"`` or ``"bootstrap"``) on one trial of ``model``: ``obs
+    (T, 25)``, prior ``(16,)``, ``(16, 16)``. Returns the seconds of each completed step's predict +
+    update, the estimates ``(steps completed, 16)`` and the error that stopped it (None or its text)."""
     from stonesoup.models.transition.linear import LinearGaussianTimeInvariantTransitionModel
     from stonesoup.predictor.particle import ParticlePredictor
     from stonesoup.types.detection import Detection
@@ -124,7 +121,7 @@ def run_stonesoup(kind: str, model, states, obs, prior_mean, prior_cov, n_partic
     from stonesoup.updater.particle import GromovFlowParticleUpdater, ParticleUpdater
 
     np64 = lambda t: t.detach().cpu().double().numpy()  # noqa: E731
-    states, obs, prior_mean, prior_cov = map(np64, (states, obs, prior_mean, prior_cov))
+    obs, prior_mean, prior_cov = map(np64, (obs, prior_mean, prior_cov))
     Measurement, Resampler, StateVector, StateVectors = _classes()
     sensors = np64(model.sensors)
     measurement = Measurement(ndim_state=16, mapping=_POSITION_INDICES, sensors=sensors, psi=float(model.psi),
@@ -139,8 +136,7 @@ def run_stonesoup(kind: str, model, states, obs, prior_mean, prior_cov, n_partic
     N, t0 = int(n_particles), datetime.datetime(2000, 1, 1)
     samples = np.random.default_rng(seed).multivariate_normal(prior_mean, prior_cov, size=N).T  # (16, N)
     state = ParticleState(StateVectors(samples), log_weight=np.full(N, -np.log(N)), timestamp=t0)
-    step_times, estimates, step_rmse, error = [], [], [], None
-    idx = list(_POSITION_INDICES)
+    step_times, estimates, error = [], [], None
     with warnings.catch_warnings(record=True), np.errstate(divide="warn", over="warn", invalid="warn"):
         warnings.simplefilter("always")
         for k in range(1, obs.shape[0] + 1):
@@ -160,14 +156,7 @@ def run_stonesoup(kind: str, model, states, obs, prior_mean, prior_cov, n_partic
                 error = f"step {k}: {type(exc).__name__}: {exc} [at {where}]"
                 break
             estimates.append(np.asarray(state.mean, np.float64).reshape(-1))
-            err = (estimates[-1][idx] - states[k, idx]).reshape(-1, 2)
-            step_rmse.append(float(np.sqrt(np.mean(np.sum(err**2, -1)))))
-    est = np.stack(estimates) if estimates else np.zeros((0, 16))
-    finite = bool(len(est) and np.all(np.isfinite(est)))
-    pos = lambda x: x[:, idx].reshape(len(x), -1, 2)  # noqa: E731  (steps, targets, 2)
-    rmse = float(np.sqrt(np.mean(np.sum((pos(est) - pos(states[1:len(est) + 1])) ** 2, -1)))) if finite else np.nan
-    return dict(step_times=step_times, estimates=est, finite=finite, step_position_rmse=step_rmse, position_rmse=rmse,
-                ess=getattr(resampler, "ess_log", None), steps_completed=len(est), error=error)
+    return step_times, np.stack(estimates) if estimates else np.zeros((0, 16)), error
 
 
 def omat(est: torch.Tensor, truth: torch.Tensor, model) -> float:
@@ -178,20 +167,23 @@ def omat(est: torch.Tensor, truth: torch.Tensor, model) -> float:
 def peer_row(kind, label, model, traj, mean, cov, a) -> dict:
     """Stone Soup's ``kind`` filter over ``--peer-trials`` trajectories, one trial at a time."""
     times, rmses, finite, completed, fails, omats, steps = [], [], [], 0, [], [], []
+    pos = lambda x: x[:, list(_POSITION_INDICES)].reshape(len(x), -1, 2)  # noqa: E731  (steps, targets, 2)
     with h.blas_limit(a.peer_threads):
         for b in range(a.peer_trials):
-            r = run_stonesoup(kind, model, traj.states[b, : a.peer_steps + 1], traj.observations[b, : a.peer_steps],
-                                mean[b], cov[b], n_particles=a.particles, seed=a.seed + b)
-            times += r["step_times"]
-            completed += r["steps_completed"]
-            rmses.append(r["position_rmse"])
-            est = torch.as_tensor(r["estimates"])
-            if est.numel():  # OMAT over the completed steps (inf where non-finite)
-                omats.append(omat(est.nan_to_num(1e300)[None], traj.states[b, 1: 1 + est.shape[0]][None], model))
-            finite.append(r["finite"])
-            if r["error"]:
-                fails.append(f"trial {b}: step {r['steps_completed'] + 1} raised {r['error'][:160]}")
-            steps.append(r["step_position_rmse"])
+            t, est, error = run_stonesoup(kind, model, traj.observations[b, : a.peer_steps], mean[b], cov[b],
+                                          a.particles, a.seed + b)
+            truth = traj.states[b, 1: 1 + len(est)].double().numpy()
+            with np.errstate(over="ignore", invalid="ignore"):  # a diverged filter's errors overflow
+                sq = np.sum((pos(est) - pos(truth)) ** 2, -1)  # (steps, targets)
+            times += t
+            completed += len(est)
+            finite.append(bool(len(est) and np.all(np.isfinite(est))))
+            rmses.append(float(np.sqrt(np.mean(sq))) if finite[-1] else float("nan"))
+            steps.append([float(v) for v in np.sqrt(np.mean(sq, -1))])
+            if len(est):  # OMAT over the completed steps (inf where non-finite)
+                omats.append(omat(torch.as_tensor(est).nan_to_num(1e300)[None], torch.as_tensor(truth)[None], model))
+            if error:
+                fails.append(f"trial {b}: step {len(est) + 1} raised {error[:160]}")
     per_ts = float(np.mean(times)) if times else float("nan")
     print(f"[peer] {label}: {per_ts:.4g} s/step over {completed} completed steps; failures: {fails}")
     return dict(name=label, side="peer", trials=a.peer_trials, steps=a.peer_steps, steps_completed=completed,
