@@ -212,8 +212,7 @@ def run(argv=None) -> dict:
                              chunk=min(chunk, a.trials), per_ts=t.min / (a.trials * a.steps), wall=t.min,
                              finite=bool(torch.isfinite(est).all()), position_rmse=float(d.pow(2).sum(-1).mean().sqrt()),
                              omat=omat(est, truth, model), error=None))
-            print(f"[ours] {rows[-1]['name']}: {rows[-1]['per_ts']:.4g} s/trial-step, "
-                  f"RMSE {rows[-1]['position_rmse']:.3f} m")
+            print(rows[-1], flush=True)
         if not a.no_peer:
             have = h.peer("stonesoup", "updater.particle") is not None
             for kind, label in PEERS:

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import time
 from typing import Dict, List, Optional
 from unittest import mock
 
@@ -193,12 +192,7 @@ def run_table(table: str, a) -> List[dict]:
     if table == "lg":  # exact log Z: the float64 Kalman filter on the shared data
         with torch.no_grad():
             ref_logz = KalmanFilter(model64, validate=False)(traj.observations, mean, cov).log_evidence.double()
-    res = {}
-    for dtype in ("float64", "float32"):
-        t0 = time.perf_counter()
-        res[dtype] = run_precision(table, keys, dtype, traj, mean, cov, ta, ref_logz)
-        if not a.quiet:
-            print(f"[{table}] {dtype}: {time.perf_counter() - t0:.1f} s", flush=True)
+    res = {dtype: run_precision(table, keys, dtype, traj, mean, cov, ta, ref_logz) for dtype in ("float64", "float32")}
     rows = [compare(table, k, res["float64"][k], res["float32"][k], a.se_k) for k in keys]
     for r in rows:
         r["inits_per_track"] = 1

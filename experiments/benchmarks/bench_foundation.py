@@ -69,15 +69,6 @@ def check_line(r) -> str:
             f"|log-evidence diff| (trial 0) {r['log_evidence_diff_trial0']:.2e}; MSE {r['mse_ours']:.4f}.")
 
 
-def report(r) -> dict:
-    """Print a row's times and its check line as it completes."""
-    if not r.get("status"):
-        print(f"[{r['name']}] {r['setting']}: ours {r['per_ts_ours']:.3e}, peer {r['per_ts_peer']:.3e} "
-              f"s/trial-step, ratio {r['ratio']:.1f}x")
-    print(check_line(r), flush=True)
-    return r
-
-
 def run_filterpy(f, x0, P0, Z, trials: int, args):
     """Time a filterpy filter ``f`` (KalmanFilter or UnscentedKalmanFilter) looped over ``trials``
     trials in Python (one untimed warm-up trial first, BLAS limited to ``--peer-threads``).
@@ -259,12 +250,10 @@ def run(argv=None) -> dict:
                      peer_threads=1)  # peer_trials: default 10 for N <= 1000, else 2; peer_threads 0: BLAS default
     with h.session("bench_foundation", argv, args.threads,
                    peer_blas_threads=args.peer_threads if args.peer_threads > 0 else "default") as info:
-        print(f"{h.machine_line(info)} Peer BLAS threads: {info['peer_blas_threads']} "
-              f"(BLAS default now: {h.blas_threads()}).")
         t0 = time.perf_counter()
-        rows = [report(bench_filterpy(args, kind)) for kind in ("kf", "ukf")]
-        for N in h.ints(args.particles, "--particles"):
-            rows.append(report(bench_bpf(args, N, args.bpf_trials, args.peer_trials or (10 if N <= 1000 else 2))))
+        rows = [bench_filterpy(args, kind) for kind in ("kf", "ukf")] + [
+            bench_bpf(args, N, args.bpf_trials, args.peer_trials or (10 if N <= 1000 else 2))
+            for N in h.ints(args.particles, "--particles")]
         info["total_wall_s"] = time.perf_counter() - t0
     return dict(machine=info, rows=rows, markdown=markdown(info, rows, args), args=vars(args))
 

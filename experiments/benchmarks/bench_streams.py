@@ -43,8 +43,7 @@ def run(argv=None) -> dict:
                     best[k] = min(best[k], t.min / (B * T))
             rows.append(dict(case=name, trials=B, steps=T, generator=best["generator"], streams=best["streams"],
                              ratio=best["streams"] / best["generator"]))
-            print(f"{name:34s} generator {best['generator']:.3e}  streams {best['streams']:.3e}  "
-                  f"ratio {rows[-1]['ratio']:.3f}", flush=True)
+            print(rows[-1], flush=True)
         # the draws alone: normals are ~30 % of a filter's time at most (BPF, N=1e4, d=64), so their cost
         # bounds the filters' far more tightly than whole-call timings on a noisy VM
         for B, n in ((25, 12_800), (100, 12_800), (3, 640_000), (8, 12_500)):

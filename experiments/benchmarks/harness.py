@@ -57,10 +57,9 @@ def synchronize(device=None) -> None:
 
 def time_calls(fn: Callable[[], Any], repeats: int = 1, warmup: int = 0, budget: Optional[float] = None,
                max_repeats: int = 100, device=None) -> Timing:
-    """Call ``fn()`` ``warmup`` times untimed, then time it with ``time.perf_counter``: ``repeats``
-    times, or, with ``budget`` (seconds), until the timed calls add up to ``budget`` (at least once,
-    at most ``max_repeats`` times). On a CUDA ``device`` the queue is synchronised before each
-    clock read, so a call's time includes its kernels."""
+    """Call ``fn()`` ``warmup`` times, then time it ``repeats`` times or, with ``budget``, until the timed
+    calls add up to ``budget`` seconds (at least once, at most ``max_repeats`` times); the CUDA queue
+    of ``device`` is synchronised before each clock read."""
     if int(repeats) < 1 or int(warmup) < 0 or int(max_repeats) < 1:
         raise ValueError(f"time_calls: expected repeats >= 1, warmup >= 0, max_repeats >= 1, got "
                          f"{repeats}, {warmup}, {max_repeats}")
@@ -85,9 +84,8 @@ def streams(seed: int, key) -> Callable[[int, int], TrialStreams]:
 
 
 def filter_chunks(f, obs, mean, cov, chunk: Optional[int], randomness: Callable[[int, int], Any]) -> list:
-    """``f`` over all trials in calls of ``chunk`` trials (``None``: one call), under
-    ``torch.no_grad()``; ``randomness(start, stop)`` gives each call its generator or streams.
-    Returns the calls' results."""
+    """The results of ``f`` over all trials in calls of ``chunk`` trials (``None``: one call), under
+    ``torch.no_grad()``; ``randomness(start, stop)`` gives each call its generator or streams."""
     B = obs.shape[0]
     chunk = chunk or B
     with torch.no_grad():
@@ -97,17 +95,15 @@ def filter_chunks(f, obs, mean, cov, chunk: Optional[int], randomness: Callable[
 
 def time_filter(f, obs, mean, cov, chunk: Optional[int], randomness, warm=(1, 1), warm_randomness=None,
                 **timing) -> Timing:
-    """One untimed warm-up call of ``f`` on the first ``warm = (trials, steps)`` (``None``: all),
-    then :func:`time_calls` (``timing``: its options) of ``f`` over all trials in calls of
-    ``chunk``; ``randomness`` as in :func:`filter_chunks` (``warm_randomness``: the warm-up's)."""
+    """An untimed call on the first ``warm = (trials, steps)``, then :func:`time_calls` (``timing``) of
+    :func:`filter_chunks` (``warm_randomness``: the warm-up's randomness)."""
     b, k = warm
     filter_chunks(f, obs[:b, :k], mean[:b], cov[:b], None, warm_randomness or randomness)
     return time_calls(lambda: filter_chunks(f, obs, mean, cov, chunk, randomness), **timing)
 
 
 def simulate(model, trials: int, steps: int, seed: int):
-    """``(trajectory, prior mean, prior covariance)`` of ``trials`` x ``steps`` drawn with one
-    generator seeded ``seed`` (the prior after the trajectories)."""
+    """``(trajectory, prior mean, prior covariance)`` drawn with one generator seeded ``seed``."""
     g = torch.Generator().manual_seed(int(seed))
     traj = model.simulate(trials, steps, g)
     mean, cov = model.initial_belief(traj.states[:, 0], g)
@@ -159,8 +155,7 @@ def _cpu_name() -> str:
 
 
 def machine(device=None, **extra) -> dict:
-    """The machine a benchmark ran on, with the load average now as ``load_start`` (set
-    ``load_end`` when done); ``extra`` items are added (e.g. the command)."""
+    """The machine a benchmark runs on, the load average now (``load_start``) and the ``extra`` items."""
     import numpy as np
 
     device = torch.device(device or "cpu")
@@ -176,9 +171,7 @@ def machine(device=None, **extra) -> dict:
 
 
 def machine_line(info: dict) -> str:
-    """``Machine: ...`` line of a report, with the load at start and end (other work on the
-    machine inflates times). Items a machine dict lacks (one read back from an older results
-    file) print as ``?``."""
+    """``Machine: ...`` line of a report, with the load at start and end (items missing: ``?``)."""
     get = lambda k: info.get(k, "?")  # noqa: E731
     gpu = f", GPU {info['gpu']}" if info.get("gpu") else ""
     mem = f", {info['mem_total_gb']} GiB RAM" if info.get("mem_total_gb") else ""
@@ -189,8 +182,7 @@ def machine_line(info: dict) -> str:
 
 
 def header(title: str, quick: bool, info: dict, *lines: str) -> List[str]:
-    """Opening lines of a report: the title (`` (--quick)`` on a smoke test), the machine, ``lines``
-    and the command."""
+    """Opening lines of a report: the title, the machine, ``lines`` and the command."""
     return [title + (" (--quick)" if quick else ""), "", machine_line(info), *lines, f"Command: `{info['command']}`", ""]
 
 
@@ -200,8 +192,7 @@ def command(name: str, argv: Optional[Sequence[str]]) -> str:
 
 
 def peer(name: str, *submodules: str):
-    """The peer library ``name`` (with ``name.<submodule>`` imported too), or ``None`` when it is
-    not installed. A library that is installed but fails to import raises."""
+    """The peer library ``name`` (``submodules`` imported too), ``None`` when it is not installed."""
     try:
         mod = importlib.import_module(name)
         for sub in submodules:
@@ -258,9 +249,8 @@ def _value(text: str):
 
 
 def options(doc: str, argv: Optional[Sequence[str]], quick: Optional[dict] = None, **defaults) -> argparse.Namespace:
-    """A benchmark's options, parsed from ``argv``: ``--quick``, ``--out`` (results file, .md or .json;
-    default ``results_<name>[_quick].md`` here) and ``--<name>`` per item of ``defaults`` (``False``: a
-    flag; else an int, float or text, ``None`` when unset). With ``--quick``, ``quick``'s items
+    """A benchmark's options from ``argv``: ``--quick``, ``--out`` and ``--<name>`` per item of
+    ``defaults`` (``False``: a flag; else an int, float or text); with ``--quick``, ``quick``'s items
     replace the defaults of options not given."""
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help=f"smoke test: {quick}")
@@ -291,8 +281,7 @@ def ints(text, option: str) -> List[int]:
 
 @contextlib.contextmanager
 def session(name: str, argv, threads: Optional[int] = None, device=None, **extra):
-    """Run a benchmark with ``threads`` torch threads; yields its :func:`machine` description (with
-    the command, ``extra`` items and, on exit, ``load_end``)."""
+    """Run with ``threads`` torch threads; yields the :func:`machine` (``load_end`` set on exit)."""
     with torch_threads(threads):
         info = machine(device, command=command(name, argv), **extra)
         yield info
@@ -334,9 +323,8 @@ def results_path(name: str, quick: bool = False, out: Optional[str] = None) -> P
 
 
 def write_results(res: dict, name: str, quick: bool = False, out: Optional[str] = None) -> Path:
-    """Write ``res["markdown"]`` to ``out`` (default ``results_<name>[_quick].md`` in this folder;
-    a ``.json`` ``out`` puts the markdown beside it) and the rest of ``res`` as JSON next to it;
-    print the markdown. A ``--quick`` smoke test never overwrites the full results."""
+    """Write and print ``res["markdown"]`` (:func:`results_path`; a ``.json`` ``out``: beside it) and
+    the rest of ``res`` as JSON next to it."""
     path = results_path(name, quick, out)
     md = path.with_suffix(".md") if path.suffix == ".json" else path
     md.parent.mkdir(parents=True, exist_ok=True)
@@ -349,8 +337,7 @@ def write_results(res: dict, name: str, quick: bool = False, out: Optional[str] 
 
 
 def main(run: Callable[[list], dict], name: str, argv: Optional[Sequence[str]] = None) -> dict:
-    """Command-line entry of a benchmark: ``run(argv)``, then its results files (``--quick`` and
-    ``--out`` read back from the returned ``args``)."""
+    """Command-line entry of a benchmark: ``run(argv)``, then its results files."""
     try:
         res = run(list(sys.argv[1:] if argv is None else argv))
     except CheckFailed as exc:

@@ -26,10 +26,8 @@ SECTIONS = ["foundation", "acoustic", "pfpf", "flops", "memory", "float32", "sca
 
 def _headline(results: dict) -> list:
     """Rows (benchmark, ours, peer, ratio, goal, met) of every goal the issue states."""
-    rows = []
-    for r in results.get("foundation", {}).get("rows", []):
-        rows.append((r["name"], r.get("setting", ""), r["per_ts_ours"], r["per_ts_peer"], r["ratio"], r.get("goal"),
-                     r.get("met")))
+    rows = [(r["name"], r.get("setting", ""), r["per_ts_ours"], r["per_ts_peer"], r["ratio"], r.get("goal"),
+             r.get("met")) for r in results.get("foundation", {}).get("rows", [])]
     ac = results.get("acoustic", {}).get("rows", [])
     ref = next((r for r in ac if r["name"].startswith("GromovFlowParticleUpdater") and r.get("per_ts")), None)
     boot = next((r for r in ac if r["name"].startswith("ParticleUpdater") and r.get("per_ts")), None)
@@ -51,17 +49,12 @@ def run(argv=None) -> dict:
             raise SystemExit(f"--only/--skip: unknown section {s!r}; expected some of {SECTIONS}")
     results, failures, times = {}, {}, {}
     for s in chosen:
-        mod = importlib.import_module(f".bench_{s}", __package__)
-        sub = ["--quick"] if a.quick else []
         t0 = time.perf_counter()
         print(f"=== {s} ===", flush=True)
         try:
-            res = mod.run(sub)
-            results[s] = res
-            h.write_results(res, s, a.quick)
-        except BaseException as exc:  # a failing section must not lose the others' results
-            if isinstance(exc, KeyboardInterrupt):
-                raise
+            results[s] = importlib.import_module(f".bench_{s}", __package__).run(["--quick"] if a.quick else [])
+            h.write_results(results[s], s, a.quick)
+        except (Exception, SystemExit) as exc:  # a failing section must not lose the others' results
             failures[s] = "".join(traceback.format_exception_only(type(exc), exc)).strip()
             print(f"[{s}] FAILED: {failures[s]}", flush=True)
         times[s] = time.perf_counter() - t0
@@ -79,15 +72,11 @@ def run(argv=None) -> dict:
         [[name, setting, h.fmt(ours, "{:.4g}"), h.fmt(peer, "{:.4g}"), h.fmt(ratio, "{:.1f}x"),
           h.fmt(goal, ">= {:.0f}x"), h.met_cell(met)]
          for name, setting, ours, peer, ratio, goal, met in _headline(results)])
-    lines.append("")
-    lines.append("Section times: " + ", ".join(f"{s} {t:.0f} s" for s, t in times.items()))
-    for s, msg in failures.items():
-        lines.append(f"- section **{s} FAILED**: `{msg[-400:]}`")
-    lines.append("")
-    for s in chosen:
-        if s in results:
-            lines += [results[s]["markdown"].replace("\n## ", "\n### ").replace("## ", "## ", 1), ""]
-        if s == "scaling" and s in results and results[s].get("plot"):
+    lines += ["", "Section times: " + ", ".join(f"{s} {t:.0f} s" for s, t in times.items())]
+    lines += [f"- section **{s} FAILED**: `{msg[-400:]}`" for s, msg in failures.items()] + [""]
+    for s in (s for s in chosen if s in results):
+        lines += [results[s]["markdown"].replace("\n## ", "\n### "), ""]
+        if results[s].get("plot"):  # the scaling curves
             lines += [f"![scaling curves]({Path(results[s]['plot']).name})", ""]
     md = "\n".join(lines) + "\n"
     out = h.results_path("all", a.quick, a.out)
