@@ -235,9 +235,7 @@ def status(r, lost_m: float = 2.0) -> str:
         return r["status"]
     if not r["finite"] or not r["position_rmse"] < 1e3:
         return "diverged, then raised" if r.get("failures") else "diverged"
-    if r.get("failures"):
-        return "raised"
-    return "finite, tracks lost" if r.get("omat") is not None and r["omat"] > lost_m else "tracking"
+    return "raised" if r.get("failures") else "finite, tracks lost" if (r.get("omat") or 0) > lost_m else "tracking"
 
 
 def markdown(info, rows, a) -> str:

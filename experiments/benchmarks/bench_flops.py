@@ -1,17 +1,12 @@
 """Achieved GFLOP/s of PF-PF(LEDH) on acoustic tracking beside this machine's measured matrix-product
-throughput.
+throughput (a 2048^3 float64 GEMM, the practical peak, and 10^4 batched products of the flow's own
+small shapes, each the best of 5).
 
     python -m experiments.benchmarks.bench_flops          # N = 500, 20 trials x 5 steps
 
-The flop count is analytic, for the algorithm as implemented (``torchflow.flows.daum_huang`` with
-the measurement-support reduction: k = 8 of d = 16 coordinates read, m = 25 sensors, C = 4 targets),
-per particle and pseudo-time step: linearisation ~20 m C; ``W x_s``, ``W^T y`` 2 m k each;
-``J = W^T W`` 2 m k^2; ``T = L_s^T J``, ``S = T L_s`` 4 k^3; two k x k Cholesky factors 2 k^3 / 3;
-``(I + lam S)^{-1} T`` 2 k^3; ``A = -1/2 L (...)`` 2 d k^2; ``P H^T R^{-1}(z - e)`` 2 d k; A on 5
-vectors 10 d k; vector updates ~10 d. Once per particle and time step: the EKF covariance prediction
-and update ~4 d^3 + 4 m d^2 and the prior's factor d^3 / 3 + 2 d^3. Multiply-adds count 2 flops,
-transcendental functions 1. Throughputs: a 2048^3 float64 GEMM (the practical peak) and 10,000
-batched float64 products of the flow's own small shapes, each the best of 5.
+The flop count is analytic, for the algorithm as implemented (``torchflow.flows.daum_huang`` with the
+measurement-support reduction: k = 8 of d = 16 coordinates read, m = 25 sensors, C = 4 targets):
+:func:`ledh_flops_per_trial_step`. A multiply-add counts 2 flops, a transcendental function 1.
 """
 from __future__ import annotations
 
@@ -24,6 +19,10 @@ from . import harness as h
 
 
 def ledh_flops_per_trial_step(N: int, d: int, k: int, m: int, C: int, n_lambda: int) -> float:
+    """Per particle and pseudo-time step: linearisation 20 m C; ``W x_s``, ``W^T y`` 2 m k each; ``J = W^T
+    W`` 2 m k^2; ``T = L_s^T J``, ``S = T L_s`` 4 k^3; two Cholesky factors 2 k^3 / 3; ``(I + lam S)^-1 T``
+    2 k^3; ``A`` 2 d k^2; ``P H^T R^-1 (z - e)`` 2 d k; A on 5 vectors 10 d k; updates 10 d. Per particle
+    and time step: the EKF covariance 4 d^3 + 4 m d^2 and the prior's factor d^3 / 3 + 2 d^3."""
     per_flow_step = (20 * m * C + 2 * m * k + 2 * m * k * k + 2 * m * k + 4 * k**3 + 2 * k**3 / 3 + 2 * k**3
                      + 2 * d * k * k + 2 * d * k + 10 * d * k + 10 * d)
     per_time_step = 4 * d**3 + 4 * m * d * d + d**3 / 3 + 2 * d**3

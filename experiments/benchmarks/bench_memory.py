@@ -33,8 +33,7 @@ def _case(a) -> dict:
         t = h.time_calls(lambda: run_experiment(model, {CASES[a.case]: f}, trials=a.trials, steps=a.steps,
                                                 seed=a.seed, memory_budget_gb=a.memory_gb, progress=False,
                                                 device=a.device, dtype=a.dtype))
-    res, wall = t.result, t.min
-    row = res.summary[0]
+    res, wall, row = t.result, t.min, t.result.summary[0]
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB -> GiB (Linux)
     return dict(case=a.case, filter=CASES[a.case], particles=N, trials=a.trials, steps=a.steps,
                 memory_budget_gb=a.memory_gb, estimate_gb_per_trial=est_gb,
@@ -75,14 +74,8 @@ def run(argv=None) -> dict:
     return dict(rows=rows, machine=info, markdown=md, args=vars(a))
 
 
-def main(argv=None):
-    argv = sys.argv[1:] if argv is None else argv
-    a = parse(argv)
-    if a.case:  # child: one case, JSON on the last line of stdout
-        print(json.dumps(_case(a)))
-        return
-    h.main(run, "memory", argv)
-
-
 if __name__ == "__main__":
-    main()
+    if parse(sys.argv[1:]).case:  # a child: one case, JSON on the last line of stdout
+        print(json.dumps(_case(parse(sys.argv[1:]))))
+    else:
+        h.main(run, "memory")

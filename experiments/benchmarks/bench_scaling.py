@@ -48,13 +48,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                   trials=2, d_curve_n=200, b_curve_n=500, b_curve_lg_d=64, time_budget=0.5, max_point_seconds=60.0,
                   memory_gb=4.0, dtype="float64", device="cpu", threads=None, seed=0, no_plot=False, quiet=False)
     a.ns, a.ds, a.bs = (sorted(set(h.ints(getattr(a, k), "--" + k))) for k in ("ns", "ds", "bs"))
-    for d in a.ds + [a.b_curve_lg_d]:
-        if math.isqrt(d) ** 2 != d:
-            raise SystemExit(f"--ds / --b-curve-lg-d: SensorNetwork needs perfect squares (grid side^2), got {d}")
     a.curves = h.keys_option(a.curves, CURVE_FILTERS, "--curves")
     a.filters = h.keys_option(a.filters, LABELS)
-    if a.steps < 1 or a.trials < 1:
-        raise SystemExit("--steps and --trials must be >= 1")
     a.out = a.out or str(h.results_path("scaling", a.quick))
     return a
 
@@ -94,11 +89,6 @@ def _extrapolate(history: List[tuple], x: int) -> Optional[float]:
     (x0, t0), (x1, t1) = history[-2:] if len(history) >= 2 else (history[-1], history[-1])
     q = min(3.0, max(1.0, math.log(t1 / t0) / math.log(x1 / x0))) if x1 != x0 and t0 > 0 and t1 > 0 else 1.0
     return t1 * (x / x1) ** q
-
-
-def _is_oom(exc: BaseException) -> bool:
-    return isinstance(exc, MemoryError) or "out of memory" in str(exc).lower() or \
-        type(exc).__name__ == "OutOfMemoryError"
 
 
 def curve_points(curve: str, args):
@@ -162,7 +152,8 @@ def run_curve(curve: str, args, data, device, log) -> List[dict]:
                 f"({row['repeats']} run(s), {chunk} trials/call, point {row['point_s']:.1f} s)")
         except Exception as exc:  # noqa: BLE001  (record and go on)
             row["status"] = f"error: {type(exc).__name__}: {' '.join(str(exc).split())[:200]}"
-            oom[key] = oom.get(key) or _is_oom(exc)
+            oom[key] = oom.get(key) or isinstance(exc, MemoryError) or "out of memory" in str(exc).lower() \
+                or type(exc).__name__ == "OutOfMemoryError"
         finally:
             if row["status"] != "ok":
                 log(f"[{curve}] {label:14s} x={x:<7d} {row['status']}")
@@ -204,15 +195,10 @@ def slopes(rows: List[dict], curve: str) -> Dict[str, Optional[float]]:
 
 
 def _cell(r: Optional[dict]) -> str:
-    if r is None:
-        return "-"
-    if r["status"] == "ok":
-        return f"{r['s_per_trial_step']:.3g}"
-    if r["status"].startswith("skipped"):
-        est = r.get("est_point_s")
-        return f"skipped (est. {est:.0f} s)" if est and "estimated" in r["status"] and "GB" not in r["status"] \
-            else "skipped"
-    return "error"
+    if r is None or r["status"] == "ok":
+        return "-" if r is None else f"{r['s_per_trial_step']:.3g}"
+    est = r.get("est_point_s") if "estimated" in r["status"] and "GB" not in r["status"] else None
+    return ("skipped" + (f" (est. {est:.0f} s)" if est else "")) if r["status"].startswith("skipped") else "error"
 
 
 HEADINGS = {
@@ -254,14 +240,13 @@ def markdown(rows: List[dict], a, info: dict) -> str:
 
 
 def plot(rows: List[dict], a, path: Path) -> Optional[str]:
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-        import matplotlib.ticker  # noqa: F401
-    except ImportError:
+    if h.peer("matplotlib") is None:
         print("(matplotlib not installed: no plot)")
         return None
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker  # noqa: F401
     curves = [c for c in a.curves if any(r["curve"] == c for r in rows)]
     if not curves:
         return None

@@ -125,11 +125,9 @@ def torch_threads(n: Optional[int]):
 def blas_limit(n_threads: int):
     """Context manager limiting numpy/scipy BLAS threads (not torch's) to ``n_threads`` (0: default)."""
     tpc = peer("threadpoolctl") if n_threads > 0 else None
-    if tpc is None:
-        if n_threads > 0:
-            print("  (threadpoolctl not installed: peer BLAS threads left at their default)")
-        return contextlib.nullcontext()
-    return tpc.threadpool_limits(limits=n_threads, user_api="blas")
+    if tpc is None and n_threads > 0:
+        print("  (threadpoolctl not installed: peer BLAS threads left at their default)")
+    return contextlib.nullcontext() if tpc is None else tpc.threadpool_limits(limits=n_threads, user_api="blas")
 
 
 def blas_threads() -> str:
