@@ -37,10 +37,8 @@ DETERMINISTIC = ("kf", "ekf", "ukf")
 TABLES = ("lg", "acoustic0.1", "acoustic0.001")
 DEFAULT_FILTERS = {"lg": "kf,ukf,bpf,ledh,edh,gromov", "acoustic": "ekf,bpf,ledh,gromov,edh"}
 #: per table: the metrics the verdict reads, with +1 where larger is worse and -1 where smaller is
-METRICS = {
-    "lg": {"mse": 1, "log_evidence_relmse": 1, "ess": -1},
-    "acoustic": {"omat": 1, "ospa": 1, "lost_rate": 1, "ess": -1},
-}
+METRICS = {"lg": {"mse": 1, "log_evidence_relmse": 1, "ess": -1},
+           "acoustic": {"omat": 1, "ospa": 1, "lost_rate": 1, "ess": -1}}
 REL_FLOOR, ABS_FLOOR, BREAK_RATIO, POINTWISE_TOL = 1e-3, {"log_evidence_relmse": 1e-8}, 10.0, 1e-3  # see above
 
 
@@ -50,12 +48,6 @@ def _kind(table: str) -> str:
 
 def make_model(table: str, lg_d: int = 64):
     return SensorNetwork(d=lg_d) if table == "lg" else AcousticTracking(sigma_w=float(table[len("acoustic"):]))
-
-
-def make_filter(key: str, model, n: int):
-    # the BPF counts its repairs (as the PF-PFs do) instead of raising on the first -inf weight
-    extra = dict(nonfinite="recover") if key == "bpf" else {}
-    return h.make_filter(key, model, None if key in DETERMINISTIC else n, name=NAMES[key], **extra)
 
 
 def given_data(traj: Trajectory, mean: torch.Tensor, cov: torch.Tensor):
@@ -83,7 +75,8 @@ def run_precision(table, keys, dtype, traj, mean, cov, a, ref_logz) -> Dict[str,
     model = make_model(table, a.lg_d)
     n = a.particles_lg if table == "lg" else a.particles_acoustic
     counts = {"bpf": a.bpf_particles or n, "edh": a.edh_particles or n}
-    filters = {NAMES[k]: make_filter(k, model, counts.get(k, n)) for k in keys}
+    filters = {NAMES[k]: h.make_filter(k, model, counts.get(k, n), name=NAMES[k],  # the BPF counts its repairs
+                                       **(dict(nonfinite="recover") if k == "bpf" else {})) for k in keys}
     dt = tfx.resolve_dtype(dtype)
     model.to(dtype=dt)
     for name, f in filters.items():  # untimed warm-up: 2 trials x 1 step in this dtype

@@ -190,10 +190,6 @@ def points(rows: List[dict], curve: str) -> Dict[str, list]:
     return {c: sorted(p) for c, p in cols.items()}
 
 
-def slopes(rows: List[dict], curve: str) -> Dict[str, Optional[float]]:
-    return {c: loglog_slope(p) for c, p in points(rows, curve).items()}
-
-
 def _cell(r: Optional[dict]) -> str:
     if r is None or r["status"] == "ok":
         return "-" if r is None else f"{r['s_per_trial_step']:.3g}"
@@ -229,7 +225,7 @@ def markdown(rows: List[dict], a, info: dict) -> str:
         cols = list(dict.fromkeys(_column(r, curve) for r in cr))
         xs = sorted({r[xk] for r in cr})
         cell = {(r[xk], _column(r, curve)): r for r in cr}
-        sl = slopes(rows, curve)
+        sl = {c: loglog_slope(p) for c, p in points(rows, curve).items()}
         out += ["### Seconds per trial-step vs " + HEADINGS[curve].format(a=a), ""] + h.md_table(
             [curve] + cols, [[x] + [_cell(cell.get((x, c))) for c in cols] for x in xs]
             + [["**log-log slope**"] + [f"**{sl[c]:.2f}**" if sl.get(c) is not None else "n/a" for c in cols]])
