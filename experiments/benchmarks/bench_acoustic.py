@@ -1,30 +1,21 @@
-"""Acoustic tracking benchmark against Stone Soup: torchflow's Gromov flow filter, PF-PF(Gromov),
-PF-PF(LEDH) and bootstrap PF beside Stone Soup's ``GromovFlowParticleUpdater`` and bootstrap
-``ParticleUpdater``, N = 500, same trajectories.
+"""Acoustic tracking against Stone Soup: torchflow's Gromov flow filter, PF-PF(Gromov), PF-PF(LEDH) and
+BPF beside Stone Soup's ``GromovFlowParticleUpdater`` and bootstrap ``ParticleUpdater``, N = 500, same
+trajectories. Ours: wall time of the filter calls (preferred chunks, after a 1-trial warm-up) / (trials
+x steps); Stone Soup: the mean predict + update time of the completed steps. Accuracy: OMAT and the
+position RMSE without assignment. Goal (issue 5): PF-PF(LEDH) and PF-PF(Gromov) >= 30x faster than
+Stone Soup's Gromov updater while tracking (finite, mean OMAT <= 2 m).
 
     python -m experiments.benchmarks.bench_acoustic            # 20 trials x 10 steps (ours), peer 3 x 5
 
-Time per trial-step: ours = wall time of the filter calls (each filter in its preferred chunk of
-trials, after an untimed 1-trial warm-up) / (trials x steps); Stone Soup = mean over the completed
-steps of predict + update. Accuracy: OMAT (metres, mean over trials and steps) and the position RMSE
-without assignment. Goals (issue 5): PF-PF(LEDH) and PF-PF(Gromov) >= 30x faster per trial-step than
-Stone Soup's Gromov updater, met only while tracking (finite, mean OMAT <= 2 m).
-
-The peer (Stone Soup 1.9.1, imported lazily; without it its rows are ``skipped``), as shipped apart
-from the measurement model:
-
-* ``ParticlePredictor`` of ``LinearGaussianTimeInvariantTransitionModel(F, V)`` (the filter's noise);
-* ``AcousticMeasurementModel``: a ``NonLinearGaussianMeasurement`` of the summed amplitudes of the
-  targets at the 25 sensors, vectorised over particles, with the analytic Jacobian in place of finite
-  differences (it has no ``matrix()``, so the Gromov updater falls back to it, as written to);
-* ``bootstrap``: ``ParticleUpdater(resampler=SystematicResampler())``, resampling at every step (the
-  subclass only records the ESS it is handed);
-* ``gromov``: ``GromovFlowParticleUpdater``: a hard-coded 20-step Euler-Maruyama integration of the
-  Gromov flow (ratio 2), ``P`` the particles' sample covariance, one particle at a time, weights
-  unchanged. On this model it diverges and a later update raises; we do not tune or fix it.
-
-The prior particles come from ``numpy.random.default_rng(seed)``, and numpy's global RNG (process
-noise, flow diffusion, resampler offset) is seeded with ``seed``. A step's exception is reported.
+The peer (Stone Soup 1.9.1, imported lazily; without it, ``skipped`` rows), as shipped apart from the
+measurement model: a ``ParticlePredictor`` of ``LinearGaussianTimeInvariantTransitionModel(F, V)``;
+``AcousticMeasurementModel``, vectorised over particles, with the analytic Jacobian (it has no
+``matrix()``, so the Gromov updater falls back to it, as written to); ``bootstrap``: ``ParticleUpdater``
+with a ``SystematicResampler`` (every step; the subclass only records the ESS); ``gromov``:
+``GromovFlowParticleUpdater`` (a hard-coded 20-step Euler-Maruyama integration, ratio 2, ``P`` the
+particles' sample covariance, one particle at a time, weights unchanged), which diverges on this model
+and then raises: we do not tune or fix it. The prior particles come from ``default_rng(seed)``; numpy's
+global RNG (process noise, flow diffusion, resampler offset) is seeded with ``seed``.
 """
 from __future__ import annotations
 

@@ -2,18 +2,14 @@
 linear-Gaussian (Table I) and acoustic tracking (Table II, sigma_w = 0.1 and the stiff 0.001) tables.
 
     python -m experiments.benchmarks.bench_float32                 # LG 20 trials, acoustic 8 x 40
-    python -m experiments.benchmarks.bench_float32 --tables acoustic0.001 --filters ledh,gromov
 
-The data is simulated once in float64, then ``run_experiment`` filters it in float64 and in float32
-(true states and metrics stay float64) after an untimed 2 x 1 warm-up per filter; the particle filters'
-draws differ between the precisions. Metrics as in the seed tables, and ESS; ``SE``: the float64
-metric's Monte Carlo standard error, ``z = (float32 - float64) / SE`` (positive = worse).
-
-Verdict: ``ok`` when no table metric is worse by more than ``--se-k`` SE nor 0.1 % (1e-8 for relMSE
-log Z); ``breaks`` when float32 raised, needed more non-finite repairs, gave an ESS outside [1, N], a
-metric 10x worse or at least max(3, trials / 2) more lost tracks; else ``degraded`` (more lost tracks
-than ``k sqrt(max(lost64, 1))`` included). Kalman-type filters are also compared point by point:
-``degraded`` when the first update's estimates differ by more than 1e-3 of the true-state scale.
+The data is simulated once in float64; ``run_experiment`` filters it in both precisions (scored in
+float64) after an untimed 2 x 1 warm-up. ``SE``: the float64 metric's Monte Carlo standard error; ``z
+= (float32 - float64) / SE``, positive = worse. Verdict: ``ok`` when no table metric is worse by more
+than ``--se-k`` SE nor 0.1 % (1e-8 for relMSE log Z); ``breaks`` when float32 raised, needed more
+non-finite repairs, gave an ESS outside [1, N], a metric 10x worse or at least max(3, trials / 2) more
+lost tracks; else ``degraded`` (more than ``k sqrt(max(lost64, 1))`` more lost tracks too, or a
+Kalman-type filter's first update off by more than 1e-3 of the true-state scale).
 """
 from __future__ import annotations
 

@@ -1,17 +1,13 @@
-"""Foundation benchmarks: torchflow's batched filters against single-trial peers looped in Python
-(BLAS limited to ``--peer-threads``) on the sensor network ``SensorNetwork(d=64)``, T = 10; seconds per
-trial-step, best of repeats after an untimed warm-up on each side.
+"""Foundation benchmarks on ``SensorNetwork(d=64)``, T = 10: torchflow's batched filters against peers
+looped over trials in Python (BLAS limited to ``--peer-threads``); best of repeats after a warm-up.
 
 1. ``KalmanFilter`` (100 trials at once) vs filterpy's; estimates must agree to 1e-8. Goal: >= 50x.
 2. ``UnscentedKalmanFilter`` (100 trials) vs filterpy's (20) with ``MerweScaledSigmaPoints`` of the same
-   alpha, beta, kappa, its square root with torchflow's Cholesky jitter (the known ``x_0`` has covariance
-   0); on this linear model both are the exact KF: estimates must agree to 1e-6. No goal.
-3. ``BootstrapParticleFilter`` (systematic resampling at ESS < 0.5 N; 20 trials in cache-sized calls) vs
-   ``particles.SMC`` of the same model (10 trials, 2 for N > 1000; ``PX0`` is the law of ``x_1``, the
-   estimate the weighted mean after reweighting, as ours) at N = 200 and 1e4; MSE against the truth,
-   the exact KF's as the floor. Goal: >= 2x at each N.
-
-A failed agreement check raises ``CheckFailed``; a missing peer gives a ``skipped`` row.
+   alpha, beta, kappa (square root with torchflow's Cholesky jitter: the known ``x_0`` has covariance
+   0); both are the exact KF here: estimates must agree to 1e-6. No goal.
+3. ``BootstrapParticleFilter`` (systematic, ESS < 0.5 N; 20 trials in cache-sized calls) vs
+   ``particles.SMC`` (10 trials, 2 for N > 1000; ``PX0`` is the law of ``x_1``, the estimate the mean
+   after reweighting) at N = 200 and 1e4; MSE against the truth (exact KF: the floor). Goal: >= 2x.
 
     python -m experiments.benchmarks.bench_foundation             # a few minutes on 2 cores
 """
@@ -37,8 +33,7 @@ def mse(est: np.ndarray, truth: np.ndarray) -> float:
 
 
 def row(key, setting, goal, library=None, B=1, P=1, T=1, t_ours=None, t_peer=None, **numbers) -> dict:
-    """A row: ``skipped`` when the peer ``library`` is not installed; else total seconds, per trial-step
-    (the trial counts may differ), ratio and goal."""
+    """A row: ``skipped`` without the peer ``library``; else seconds, per trial-step, ratio and goal."""
     if library is not None:
         return dict(name=NAMES[key], setting=setting, status=h.skipped(library), per_ts_ours=None,
                     per_ts_peer=None, ratio=None, goal=goal, met=None)
@@ -70,11 +65,8 @@ def check_line(r) -> str:
 
 
 def run_filterpy(f, x0, P0, Z, trials: int, args):
-    """Time a filterpy filter ``f`` (KalmanFilter or UnscentedKalmanFilter) looped over ``trials``
-    trials in Python (one untimed warm-up trial first, BLAS limited to ``--peer-threads``).
-
-    Returns ``(best time, estimates (trials, T, d), log-evidence of trial 0, BLAS info)``; the
-    log-evidence is summed from filterpy's per-step ``log_likelihood`` in an untimed extra run."""
+    """``(best time, estimates (trials, T, d), trial 0's log-evidence (untimed), BLAS info)`` of the
+    filterpy filter ``f`` looped over ``trials`` trials after an untimed one."""
     T, d = Z.shape[1], x0.shape[-1]
 
     def one(b, out=None):
@@ -104,8 +96,7 @@ def run_filterpy(f, x0, P0, Z, trials: int, args):
 
 
 def cholesky_upper_jitter(A: np.ndarray, max_tries: int = 6) -> np.ndarray:
-    """filterpy's default sigma-point square root (``scipy.linalg.cholesky``, upper) with the same
-    jitter fallback as ``torchflow.linalg.safe_cholesky``: needed for the known ``x_0`` (P = 0)."""
+    """filterpy's ``scipy.linalg.cholesky`` with ``torchflow.linalg.safe_cholesky``'s jitter fallback."""
     try:
         return scipy.linalg.cholesky(A)
     except np.linalg.LinAlgError:

@@ -1,11 +1,8 @@
-"""Gaussian-sum benchmark: seconds per trial-step of the PFGSPF (G components x N* particles) against
-PF-PF(LEDH), the GSPF without flow and the BPF, each with the same total particle count G N*, on the
-skewed-t / Poisson model (d = 144; issue 13's benchmark row) in one run.
+"""Gaussian-sum benchmark (issue 13): seconds per trial-step of the PFGSPF (G components x N* particles)
+against PF-PF(LEDH), the GSPF and the BPF with the same total G N* particles on the skewed-t / Poisson
+model, d = 144, the same data, after an untimed one-step warm-up (min over ``--reps``).
 
     python -m experiments.benchmarks.bench_gaussian_sum                  # G = 5 x 200, 1 trial, 2 steps
-
-Every filter runs the same simulated data after an untimed one-step warm-up; times are whole filter
-calls divided by trials x steps (min over ``--reps``).
 """
 from __future__ import annotations
 

@@ -1,12 +1,8 @@
-"""Large-N runs under a memory budget: the bootstrap PF with 1e6 particles and PF-PF(LEDH) with 1e4
-particles on acoustic tracking, through :func:`torchflow.experiment.run_experiment` with
-``memory_budget_gb``: the runner picks the chunk of trials and, when one trial does not fit, the
-filter's particle chunk.
+"""Large-N runs under a memory budget: the BPF with 1e6 particles and PF-PF(LEDH) with 1e4 on acoustic
+tracking through ``run_experiment(memory_budget_gb=...)``, which picks the chunk of trials and, when one
+trial does not fit, the particle chunk. Each case runs in its own process (its own peak RSS).
 
     python -m experiments.benchmarks.bench_memory                     # both cases, 1 trial x 40 steps
-    python -m experiments.benchmarks.bench_memory --cases bpf --particles-bpf 1e5 --steps 5
-
-Each case runs in its own process, so its peak resident memory (``ru_maxrss``) is its own.
 """
 from __future__ import annotations
 

@@ -1,12 +1,9 @@
 """PF-PF benchmark: seconds per trial-step of the PF-PFs (LEDH, EDH, Gromov, Geodesic, optimised
-diffusion) and the BPF on acoustic tracking.
+diffusion) and the BPF on acoustic tracking: whole calls after an untimed warm-up, in each filter's
+preferred chunk of trials (``--chunk`` overrides), over trials x steps, comparable with the papers'
+per-step times of one run (MATLAB: 0.9-3.5 s for PF-PF(LEDH) N=500, 1.3 s for PF-PF(Gromov)).
 
     python -m experiments.benchmarks.bench_pfpf                 # 100 trials, N=500, 5 steps, float64
-    python -m experiments.benchmarks.bench_pfpf --chunk 100     # all trials in one call
-
-Whole filter calls after an untimed warm-up, over trials in chunks of each filter's preferred size
-(``--chunk`` overrides), divided by trials x steps: comparable with the per-step times the papers
-report for one run (MATLAB, 0.9-3.5 s per step for PF-PF(LEDH) N=500, 1.3 s for PF-PF(Gromov)).
 """
 from __future__ import annotations
 

@@ -1,19 +1,13 @@
-"""Scaling benchmark: seconds per trial-step against problem size, tables and ``results_scaling.png``.
-
-* ``N`` (``--ns``): particles, acoustic tracking (d = 16): BPF, PF-PF(EDH, LEDH, Gromov);
-* ``d`` (``--ds``, perfect squares): the sensor network's dimension: KF, BPF, PF-PFs at ``--d-curve-n``;
-* ``B`` (``--bs``): trials in one call: BPF and PF-PFs on acoustic tracking at ``--b-curve-n``, the KF
-  on the sensor network (d = ``--b-curve-lg-d``) and the EKF on acoustic tracking.
-
-A point: one untimed 1 x 1 warm-up call, then trials x ``--steps`` timed until ``--time-budget``
-seconds are spent (at least once); the cell is the best run / (trials x steps). N and d curves call
-the filter's preferred chunk of trials within ``--memory-gb``. A point whose time extrapolated from
+"""Scaling benchmark: seconds per trial-step against N (``--ns``: particles, acoustic tracking), d
+(``--ds``: the sensor network's dimension) and B (``--bs``: trials in one call), tables and
+``results_scaling.png``. A point: an untimed 1 x 1 warm-up call, then trials x ``--steps`` timed until
+``--time-budget`` seconds are spent (at least once), the best run / (trials x steps); N and d curves
+call the filter's preferred chunk of trials within ``--memory-gb``. A point whose time extrapolated from
 the smaller ones (linear, or the last log-log slope if steeper, at most 3) exceeds
 ``--max-point-seconds`` is skipped; one that raises is recorded (after an out-of-memory error the
 larger points are skipped). The last row of a table is the log-log slope (the scaling exponent).
 
     python -m experiments.benchmarks.bench_scaling                      # full (~10-15 min, 2-core CPU)
-    python -m experiments.benchmarks.bench_scaling --curves N --ns 100,1000,10000 --filters bpf,edh
 """
 from __future__ import annotations
 
@@ -34,7 +28,6 @@ LABELS = {k: h.LABELS[k] for k in ("kf", "ekf", "bpf", "edh", "ledh", "gromov")}
 CURVE_FILTERS = {"N": ("bpf", "edh", "ledh", "gromov"),
                  "d": ("kf", "bpf", "edh", "ledh", "gromov"),
                  "B": ("kf", "ekf", "bpf", "edh", "ledh", "gromov")}
-CURVE_TITLES = {"N": "particle count N", "d": "state dimension d", "B": "trials per call B"}
 MAX_REPEATS = 100
 #: one colour and marker per filter, the same in every panel
 STYLE = {"KF": ("tab:blue", "s"), "EKF": ("tab:cyan", "D"), "BPF": ("tab:orange", "o"),
@@ -64,9 +57,8 @@ def _available_bytes(device: torch.device) -> Optional[int]:
 
 
 def data_source(args, device, dtype):
-    """``get(model name, d, trials) -> (model, obs, mean, cov)`` (``trials=0``: the model alone): each
-    model built once, its data simulated once per size (on the CPU in float64, so every device /
-    dtype filters the same numbers; again when a point needs more trials), moved, sliced per point."""
+    """``get(model name, d, trials) -> (model, obs, mean, cov)`` (``trials=0``: the model alone); the data
+    is simulated on the CPU in float64 (the same numbers on every device and dtype), once per size."""
     models, data = {}, {}
 
     def get(name: str, d: int, trials: int):
@@ -254,7 +246,7 @@ def plot(rows: List[dict], a, path: Path) -> Optional[str]:
                 color, marker = STYLE.get(c.split(" ")[0], (None, "o"))
                 ax.plot(*zip(*pts), marker=marker, linestyle="-", color=color,
                         label=c + (f" (slope {sl:.2f})" if sl is not None else ""))
-        ax.set(xscale="log", yscale="log", xlabel=CURVE_TITLES[curve], ylabel="seconds per trial-step")
+        ax.set(xscale="log", yscale="log", xlabel=HEADINGS[curve].partition("\n")[0], ylabel="seconds per trial-step")
         xs = sorted({r[_xkey(curve)] for r in rows if r["curve"] == curve})
         ax.set_xticks(xs)
         ax.set_xticklabels([f"{x:g}" if x < 1e4 else f"1e{round(math.log10(x))}" if math.log10(x).is_integer()

@@ -1,6 +1,5 @@
-"""Cost of per-trial random streams: the same filter calls with one ``torch.Generator`` per call
-(the batch shares a stream) and with :class:`torchflow.random.TrialStreams` (one stream per
-trial, what ``run_experiment`` uses), interleaved in one run; then the normal draws alone.
+"""Cost of per-trial random streams: the same filter calls with one ``torch.Generator`` per call and
+with ``TrialStreams`` (one stream per trial, as ``run_experiment``), interleaved; then the draws alone.
 
     python -m experiments.benchmarks.bench_streams            # ~3 min on 2 cores
 """

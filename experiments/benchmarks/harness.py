@@ -1,11 +1,7 @@
-"""The one harness of the benchmark modules: options (:func:`options`), the timing loop
-(:func:`time_calls`, :func:`time_filter`), filters by name (:func:`make_filter`), the machine
-description (:func:`machine`, :func:`session`), optional peer libraries (:func:`peer`, :func:`skipped`)
-and the results files (:func:`report`, :func:`write_results`).
-
-Every benchmark module has ``run(argv) -> {"machine", "rows", "markdown", "args", ...}``, which writes
-no file, and runs as ``python -m experiments.benchmarks.<module>``, which writes ``results_<name>.md``
-and the rest as ``results_<name>.json`` here (``--quick``: ``results_<name>_quick.*``; ``--out``: elsewhere).
+"""The one harness of the benchmarks: options, the timing loop, filters by name, the machine, peer
+libraries and the results files. A benchmark module's ``run(argv)`` returns ``{"machine", "rows",
+"markdown", "args", ...}``; ``python -m experiments.benchmarks.<module>`` also writes ``results_<name>.md``
+and ``.json`` here (``--quick``: ``results_<name>_quick.*``; ``--out``: elsewhere).
 """
 from __future__ import annotations
 

@@ -1,14 +1,12 @@
-"""The whole benchmark suite in one command: each section is a module of this folder,
-``python -m experiments.benchmarks.bench_<section>``, with its own options and docstring.
+"""The whole benchmark suite in one command; each section is a module of this folder,
+``python -m experiments.benchmarks.bench_<section>``, with its own options.
 
     pip install -e ".[bench]"                                   # filterpy, particles, stonesoup, matplotlib
     python -m experiments.benchmarks.run_all                    # everything (~20-25 min on 2 CPU cores)
-    python -m experiments.benchmarks.run_all --quick            # smoke test of every section (~2 min)
     python -m experiments.benchmarks.run_all --only acoustic --merge   # rerun one section, keep the rest
 
-Writes ``results_all.md`` (``results_all_quick.md`` with ``--quick``): a headline table of every goal
-ratio, then each section's report; each section also writes its own ``results_<section>.md``/``.json``.
-A section that fails is reported as failed (with the error) and the others still run.
+Writes ``results_all[_quick].md``: a table of every goal, then each section's report (each section also
+writes its own results files); a section that fails is reported and the others still run.
 """
 from __future__ import annotations
 
