@@ -201,8 +201,8 @@ def run(argv=None) -> dict:
             d = model.positions(est.double()) - model.positions(truth.double())
             rows.append(dict(name=f"{h.LABELS[key]} (torchflow)", side="ours", trials=a.trials, steps=a.steps,
                              chunk=min(chunk, a.trials), per_ts=t.min / (a.trials * a.steps), wall=t.min,
-                             finite=bool(torch.isfinite(est).all()), position_rmse=float(d.pow(2).sum(-1).mean().sqrt()),
-                             omat=omat(est, truth, model), error=None))
+                             finite=bool(torch.isfinite(est).all()), omat=omat(est, truth, model), error=None,
+                             position_rmse=float(d.pow(2).sum(-1).mean().sqrt())))
             print(rows[-1], flush=True)
         if not a.no_peer:
             have = h.peer("stonesoup", "updater.particle") is not None
@@ -219,9 +219,8 @@ def run(argv=None) -> dict:
 
 
 def status(r, lost_m: float = 2.0) -> str:
-    """``skipped: ...`` (no peer library), ``diverged`` (non-finite or position errors over 1 km;
-    ``, then raised`` when a later step raised), ``tracking`` (mean OMAT <= ``lost_m``, the tables'
-    lost-track threshold) or ``finite, tracks lost``."""
+    """``skipped: ...``, ``diverged`` (non-finite or errors over 1 km; ``, then raised``), ``raised``,
+    ``tracking`` (mean OMAT <= ``lost_m``, the tables' lost-track threshold) or ``finite, tracks lost``."""
     if r.get("status"):
         return r["status"]
     if not r["finite"] or not r["position_rmse"] < 1e3:

@@ -38,8 +38,7 @@ METRICS = {"lg": {"mse": 1, "log_evidence_relmse": 1, "ess": -1},
 REL_FLOOR, ABS_FLOOR, BREAK_RATIO, POINTWISE_TOL = 1e-3, {"log_evidence_relmse": 1e-8}, 10.0, 1e-3  # see above
 
 
-def _kind(table: str) -> str:
-    return "lg" if table == "lg" else "acoustic"
+_kind = lambda table: "lg" if table == "lg" else "acoustic"  # noqa: E731
 
 
 def make_model(table: str, lg_d: int = 64):
@@ -47,8 +46,7 @@ def make_model(table: str, lg_d: int = 64):
 
 
 def given_data(traj: Trajectory, mean: torch.Tensor, cov: torch.Tensor):
-    """Make ``run_experiment`` filter this float64 data (cast to the run's dtype) instead of
-    simulating its own; the true states stay float64 (they are only used for scoring)."""
+    """``run_experiment`` filters this data (cast to its dtype; true states: float64) instead of its own."""
     def simulate(model, trials, steps, inits_per_track, generator):
         if traj.observations.shape[:2] != (trials, steps):
             raise ValueError("given_data: trials/steps differ from the shared data")
@@ -190,16 +188,11 @@ def run_table(table: str, a) -> List[dict]:
     return rows
 
 
-def _g(x, fmt="{:.3g}"):
-    return "-" if x is None else str(x) if isinstance(x, float) and not math.isfinite(x) else fmt.format(x)
-
-
-def _pct(x):
-    return "-" if x is None else f"{100 * x:+.1f}%" if abs(x) < 10 else f"{x:+.2g}x"
-
-
-def _z(z):
-    return f"{z:+.1f}" if abs(z) < 1e3 else f"{z:+.1e}"
+# cells: a number (non-finite as text), a relative change, a z score
+_g = lambda x, f="{:.3g}": ("-" if x is None else str(x) if isinstance(x, float) and not math.isfinite(x)  # noqa: E731
+                            else f.format(x))
+_pct = lambda x: "-" if x is None else f"{100 * x:+.1f}%" if abs(x) < 10 else f"{x:+.2g}x"  # noqa: E731
+_z = lambda z: f"{z:+.1f}" if abs(z) < 1e3 else f"{z:+.1e}"  # noqa: E731
 
 
 _TITLES = {"lg": "Linear-Gaussian sensor network (Table I setting: d = 64, T = {steps})",
@@ -217,10 +210,8 @@ def table_markdown(table: str, rows: List[dict]) -> List[str]:
            "same observations. Cells: float64 ± SE / float32 (relative change, z = change / SE, positive = "
            "worse).", ""]
     mets = [m for m in METRICS[kind] if m != "lost_rate"]
-    head = ["filter", "N"] + [_LABEL[m] for m in mets]
-    if kind == "acoustic":
-        head.append("lost tracks f64 / f32")
-    head += ["repairs f64 / f32", "s / trial-step f64", "f32", "f32 speed-up", "verdict"]
+    head = (["filter", "N"] + [_LABEL[m] for m in mets] + ["lost tracks f64 / f32"] * (kind == "acoustic")
+            + ["repairs f64 / f32", "s / trial-step f64", "f32", "f32 speed-up", "verdict"])
 
     def cell(v):
         if not v:
@@ -263,14 +254,8 @@ def run(argv=None) -> dict:
                                       particles_acoustic=100), tables=",".join(TABLES), filters=None, lg_trials=20,
                   acoustic_trials=8, steps_lg=10, steps_acoustic=40, lg_d=64, particles_lg=200, particles_acoustic=500,
                   bpf_particles=None, edh_particles=None, seed=0, se_k=2.0, memory_gb=4.0, threads=1, quiet=False)
-    tables = [t for t in a.tables.split(",") if t]
-    for table in tables:
-        if table not in TABLES and not table.startswith("acoustic"):
-            raise SystemExit(f"--tables: unknown {table!r}; expected a subset of {','.join(TABLES)}")
-    rows = []
     with h.session("bench_float32", argv, a.threads, se_k=a.se_k, quick=a.quick) as info:
-        for table in tables:
-            rows += run_table(table, a)
+        rows = [r for table in a.tables.split(",") if table for r in run_table(table, a)]  # lg, acoustic<sigma_w>
     return dict(machine=info, rows=rows, notes=[], markdown=markdown(info, rows), args=vars(a))
 
 

@@ -47,8 +47,8 @@ def run(argv=None) -> dict:
         traj, mean, cov = h.simulate(model, a.trials, a.steps, 0)
         f = h.make_filter("ledh", model, a.particles)
         chunk = f.preferred_chunk_trials()
-        one = lambda s, e: torch.Generator().manual_seed(1)  # noqa: E731
-        wall = h.time_filter(f, traj.observations, mean, cov, chunk, one, warmup=1, repeats=2).min
+        wall = h.time_filter(f, traj.observations, mean, cov, chunk, lambda s, e: torch.Generator().manual_seed(1),
+                             warmup=1, repeats=2).min
         per_ts = wall / (a.trials * a.steps)
         fl = ledh_flops_per_trial_step(a.particles, 16, 8, 25, 4, len(ExponentialSchedule()))
         achieved = fl / per_ts / 1e9

@@ -17,16 +17,15 @@ def run(argv=None) -> dict:
     """Run the benchmark (``argv``: CLI options); writes no files. Returns ``{"rows", "markdown", ...}``."""
     a = h.options(__doc__, argv, dict(d=16, components=2, per_component=20, steps=1), d=144, components=5,
                   per_component=200, trials=1, steps=2, reps=1, filters=",".join(FILTERS))
-    G, n = a.components, a.per_component
-    total = G * n
+    G, n, total = a.components, a.per_component, a.components * a.per_component
     keys = h.keys_option(a.filters, FILTERS)
     model = SkewedTPoisson(d=a.d)
     traj, mean, cov = h.simulate(model, a.trials, a.steps, 0)
-    mixture = dict(n_components=G, particles_per_component=n)
     rows = []
     with h.session("bench_gaussian_sum", argv) as info:
         for key in keys:
-            f = h.make_filter(key, model, **(mixture if "gspf" in key else dict(n_particles=total)))
+            f = h.make_filter(key, model, **(dict(n_components=G, particles_per_component=n) if "gspf" in key
+                                             else dict(n_particles=total)))
             label = f"{h.LABELS[key.removeprefix('pfpf_')]} " + (f"({n} x {G})" if "gspf" in key else f"({total})")
             t = h.time_filter(f, traj.observations, mean, cov, None, h.streams(0, f.stream_name), warm=(None, 1),
                               repeats=a.reps)

@@ -63,9 +63,9 @@ def run(argv=None) -> dict:
                   ["filter", "N", "particle chunk", "estimate GiB / trial", "peak RSS GiB", "s / step", "whole run (s)",
                    "OMAT (m)", "mean ESS"],
                   [[r["filter"]] + ["-"] * 5 + [f"failed: {r['error'][-200:]!r}", "-", "-"] if "error" in r else
-                   [r["filter"], f"{r['particles']:.0e}", r["particle_chunk"] or "all", f"{r['estimate_gb_per_trial']:.2f}",
-                    f"{r['peak_rss_gb']:.2f}", f"{r['s_per_step']:.3g}", f"{r['wall_s']:.1f}", f"{r['omat']:.3f}",
-                    f"{r['ess']:.1f}"] for r in rows],
+                   [r["filter"], f"{r['particles']:.0e}", r["particle_chunk"] or "all",
+                    f"{r['estimate_gb_per_trial']:.2f}", f"{r['peak_rss_gb']:.2f}", f"{r['s_per_step']:.3g}",
+                    f"{r['wall_s']:.1f}", f"{r['omat']:.3f}", f"{r['ess']:.1f}"] for r in rows],
                   "- Peak RSS is the child process's maximum resident set (Python, torch and data included).")
     return dict(rows=rows, machine=info, markdown=md, args=vars(a))
 

@@ -57,8 +57,7 @@ def _available_bytes(device: torch.device) -> Optional[int]:
 
 
 def data_source(args, device, dtype):
-    """``get(model name, d, trials) -> (model, obs, mean, cov)`` (``trials=0``: the model alone); the data
-    is simulated on the CPU in float64 (the same numbers on every device and dtype), once per size."""
+    """``get(model, d, trials) -> (model, obs, mean, cov)``; data simulated once per size in float64 on CPU."""
     models, data = {}, {}
 
     def get(name: str, d: int, trials: int):
@@ -74,8 +73,7 @@ def data_source(args, device, dtype):
 
 
 def _extrapolate(history: List[tuple], x: int) -> Optional[float]:
-    """Seconds of one timed run at ``x`` from the ok points ``[(x, run_seconds), ...]``: linear in x,
-    or the slope of the last two points when steeper (capped at 3)."""
+    """Seconds of one timed run at ``x`` from the ok points ``[(x, run_seconds), ...]`` (see above)."""
     if not history:
         return None
     (x0, t0), (x1, t1) = history[-2:] if len(history) >= 2 else (history[-1], history[-1])
@@ -154,8 +152,7 @@ def run_curve(curve: str, args, data, device, log) -> List[dict]:
     return rows
 
 
-def _xkey(curve: str) -> str:
-    return {"N": "N", "d": "d", "B": "trials"}[curve]
+_xkey = {"N": "N", "d": "d", "B": "trials"}.get  # the row item a curve's x is
 
 
 def _column(row: dict, curve: str) -> str:
@@ -266,12 +263,9 @@ def plot(rows: List[dict], a, path: Path) -> Optional[str]:
 
 
 def run(argv=None) -> dict:
-    """Run the benchmark; returns ``{"machine", "rows", "markdown", "plot", "args"}``. Draws the PNG
-    (unless ``--no-plot``) but writes no markdown/JSON: :func:`main` does."""
+    """``{"machine", "rows", "markdown", "plot", "args"}``; draws the PNG unless ``--no-plot``."""
     a = parse_args(argv)
     device = torch.device(a.device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise SystemExit("--device cuda: CUDA is not available")
     log = (lambda s: None) if a.quiet else (lambda s: print(s, flush=True))
     with h.session("bench_scaling", argv, a.threads, device) as info:
         data = data_source(a, device, getattr(torch, a.dtype))

@@ -12,7 +12,6 @@ import json
 import math
 import os
 import platform
-import statistics
 import sys
 import time
 from dataclasses import dataclass
@@ -35,20 +34,13 @@ class CheckFailed(RuntimeError):
 
 @dataclass
 class Timing:
-    """Seconds of each timed call (``min``, ``median``, ``mean`` of them) and the last call's result."""
+    """Seconds of each timed call (``min``, ``mean`` of them) and the last call's result."""
 
     times: List[float]
     result: Any = None
 
     min = property(lambda self: min(self.times))
-    median = property(lambda self: statistics.median(self.times))
     mean = property(lambda self: sum(self.times) / len(self.times))
-
-
-def synchronize(device=None) -> None:
-    """Wait for the CUDA queue of ``device`` (nothing on a CPU device or ``None``)."""
-    if device is not None and torch.device(device).type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def time_calls(fn: Callable[[], Any], repeats: int = 1, warmup: int = 0, budget: Optional[float] = None,
@@ -61,14 +53,16 @@ def time_calls(fn: Callable[[], Any], repeats: int = 1, warmup: int = 0, budget:
                          f"{repeats}, {warmup}, {max_repeats}")
     if budget is not None and not budget >= 0:
         raise ValueError(f"time_calls: budget: expected seconds >= 0, got {budget}")
+    cuda = device is not None and torch.device(device).type == "cuda"
+    synchronize = (lambda: torch.cuda.synchronize(device)) if cuda else (lambda: None)
     for _ in range(int(warmup)):
         fn()
-    synchronize(device)
+    synchronize()
     times: List[float] = []
     while True:
         t0 = time.perf_counter()
         out = fn()
-        synchronize(device)
+        synchronize()
         times.append(time.perf_counter() - t0)
         if (len(times) >= repeats if budget is None else sum(times) >= budget) or len(times) >= max_repeats:
             return Timing(times, out)
@@ -180,9 +174,7 @@ def header(title: str, quick: bool, info: dict, *lines: str) -> List[str]:
     return [title + (" (--quick)" if quick else ""), "", machine_line(info), *lines, f"Command: `{info['command']}`", ""]
 
 
-def command(name: str, argv: Optional[Sequence[str]]) -> str:
-    """The command line that reproduces a run of ``experiments.benchmarks.<name>``."""
-    return " ".join(["python -m experiments.benchmarks." + name, *map(str, argv or [])])
+command = lambda name, argv: " ".join(["python -m experiments.benchmarks." + name, *map(str, argv or [])])  # noqa
 
 
 def peer(name: str, *submodules: str):
@@ -215,9 +207,7 @@ FILTERS = {"kf": (KalmanFilter, {}, False), "ekf": (ExtendedKalmanFilter, {}, Fa
 
 
 def make_filter(key: str, model, n_particles: Optional[int] = None, **kw):
-    """The torchflow filter a benchmark calls ``key`` (:data:`FILTERS`; ``pfpf_<flow>`` too: the
-    PF-PF of that flow); ``gspf`` and ``pfgspf`` take ``n_components`` and ``particles_per_component``
-    in ``kw``, which go to the constructor."""
+    """The filter :data:`FILTERS` calls ``key`` (``pfpf_<flow>``: ``<flow>``); ``kw`` go to its constructor."""
     if str(key).removeprefix("pfpf_") not in FILTERS:
         raise ValueError(f"make_filter: unknown filter {key!r}; expected one of {', '.join(LABELS)}")
     cls, settings, particles = FILTERS[str(key).removeprefix("pfpf_")]
@@ -317,8 +307,7 @@ def results_path(name: str, quick: bool = False, out: Optional[str] = None) -> P
 
 
 def write_results(res: dict, name: str, quick: bool = False, out: Optional[str] = None) -> Path:
-    """Write and print ``res["markdown"]`` (:func:`results_path`; a ``.json`` ``out``: beside it) and
-    the rest of ``res`` as JSON next to it."""
+    """Write and print ``res["markdown"]`` (:func:`results_path`) and the rest of ``res`` as JSON beside it."""
     path = results_path(name, quick, out)
     md = path.with_suffix(".md") if path.suffix == ".json" else path
     md.parent.mkdir(parents=True, exist_ok=True)

@@ -27,8 +27,8 @@ def _headline(results: dict) -> list:
     rows = [(r["name"], r.get("setting", ""), r["per_ts_ours"], r["per_ts_peer"], r["ratio"], r.get("goal"),
              r.get("met")) for r in results.get("foundation", {}).get("rows", [])]
     ac = results.get("acoustic", {}).get("rows", [])
-    ref = next((r for r in ac if r["name"].startswith("GromovFlowParticleUpdater") and r.get("per_ts")), None)
-    boot = next((r for r in ac if r["name"].startswith("ParticleUpdater") and r.get("per_ts")), None)
+    ref, boot = (next((r for r in ac if r["name"].startswith(p) and r.get("per_ts")), None)
+                 for p in ("GromovFlowParticleUpdater", "ParticleUpdater"))
     for r in ac:
         if r["side"] == "ours" and ref is not None:
             rows.append((f"{r['name']} vs Stone Soup Gromov", "acoustic N=500",
