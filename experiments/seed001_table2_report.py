@@ -20,6 +20,7 @@ import argparse
 import csv
 import math
 import re
+import statistics
 import sys
 from pathlib import Path
 
@@ -58,11 +59,6 @@ def mean_se_sd(v: list[float]) -> tuple[float, float, float]:
     return sum(v) / len(v), se, se * math.sqrt(len(v))
 
 
-def median(v: list[float]) -> float:
-    s, n = sorted(v), len(v)
-    return s[n // 2] if n % 2 else 0.5 * (s[n // 2 - 1] + s[n // 2])
-
-
 def table(runs: dict[int, dict[int, tuple[float, float]]]) -> list[dict]:
     """One row per G (ascending): statistics of MSE and G_eff and the paired difference to G = 1."""
     base = runs.get(1)
@@ -72,7 +68,7 @@ def table(runs: dict[int, dict[int, tuple[float, float]]]) -> list[dict]:
         mse = [v[0] for v in r.values()]
         m, se, sd = mean_se_sd(mse)
         geff = mean_se_sd([v[1] for v in r.values()])
-        row = dict(G=g, n=len(r), mse=m, se=se, sd=sd, median=median(mse),
+        row = dict(G=g, n=len(r), mse=m, se=se, sd=sd, median=statistics.median(mse),
                    g_eff=geff[0], g_eff_se=geff[1], diff=None, diff_se=None, diff_n=0)
         if base is not None and g != 1:
             common = sorted(set(r) & set(base))

@@ -1,46 +1,18 @@
-"""Scaling benchmark: seconds per trial-step of torchflow's filters against problem size.
-
-Three curves (pick with ``--curves``):
-
-* ``N``: particle count N (``--ns``, default 1e2,1e3,1e4,1e5) on acoustic tracking
-  (``AcousticTracking()``, d = 16, m = 25) for BPF, PF-PF(EDH), PF-PF(LEDH), PF-PF(Gromov);
-* ``d``: state dimension d (``--ds``, default 16,36,64,144,256,400; perfect squares, one sensor per
-  grid cell) on the linear-Gaussian sensor network (``SensorNetwork(d=d)``, m = d) for KF, BPF and
-  the three PF-PFs at N = ``--d-curve-n`` (200);
-* ``B``: trials per filter call (``--bs``, default 1,4,16,64,256), all B trials in one call:
-  BPF and the PF-PFs on acoustic tracking at N = ``--b-curve-n`` (500), the Kalman filter on the
-  sensor network with d = ``--b-curve-lg-d`` (64), and the EKF on acoustic tracking as the
-  Gaussian-filter entry of the acoustic model (the KF needs a linear-Gaussian model).
-
-How a point is timed: the trajectories are simulated once (seed ``--seed``), the filter is built,
-one untimed warm-up call filters 1 trial x 1 step with the same N, then the point's trials
-(``--trials``, default 2, for the N and d curves; B for the B curve) x ``--steps`` (3) are filtered
-under ``torch.no_grad()`` and timed with ``time.perf_counter`` (CUDA synchronised), repeated until
-the timed calls add up to ``--time-budget`` seconds (0.5) or at least once; the reported
-seconds per trial-step is the best repeat / (trials x steps). For the N and d curves the trials are
-split into calls of the filter's preferred size (local flows: about 1e4 particles per call) that
-fit ``--memory-gb``; the B curve passes all B trials in one call unless that does not fit.
-
-A point is SKIPPED (and listed as such, with the reason) when its time, extrapolated from the
-previous points of the same filter on the same curve, exceeds ``--max-point-seconds`` (60): the
-call time is assumed to grow linearly in the x value, or as the log-log slope of the last two points
-when that is steeper (capped at 3). A point that raises (e.g. out of memory) is recorded as an error
-and the run goes on; after an out-of-memory error the larger points of that filter are skipped.
-Each table ends with the least-squares log-log slope of seconds per trial-step against x over the
-timed points: the empirical scaling exponent.
-
-Run from the repository root::
+"""Scaling benchmark: seconds per trial-step against N (``--ns``: particles, acoustic tracking), d
+(``--ds``: the sensor network's dimension) and B (``--bs``: trials in one call), tables and
+``results_scaling.png``. A point: an untimed 1 x 1 warm-up call, then trials x ``--steps`` timed until
+``--time-budget`` seconds are spent (at least once), the best run / (trials x steps); N and d curves
+call the filter's preferred chunk of trials within ``--memory-gb``. A point whose time extrapolated from
+the smaller ones (linear, or the last log-log slope if steeper, at most 3) exceeds
+``--max-point-seconds`` is skipped; one that raises is recorded (after an out-of-memory error the
+larger points are skipped). The last row of a table is the log-log slope (the scaling exponent).
 
     python -m experiments.benchmarks.bench_scaling                      # full (~10-15 min, 2-core CPU)
-    python -m experiments.benchmarks.bench_scaling --quick --threads 1  # smoke test, < 1 min
-    python -m experiments.benchmarks.bench_scaling --curves N --ns 100,1000,10000 --filters bpf,edh
-
-Beside the results files, :func:`run` draws ``results_scaling.png`` (one log-log panel per curve,
-one line per filter).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import time
 from pathlib import Path
@@ -56,93 +28,36 @@ LABELS = {k: h.LABELS[k] for k in ("kf", "ekf", "bpf", "edh", "ledh", "gromov")}
 CURVE_FILTERS = {"N": ("bpf", "edh", "ledh", "gromov"),
                  "d": ("kf", "bpf", "edh", "ledh", "gromov"),
                  "B": ("kf", "ekf", "bpf", "edh", "ledh", "gromov")}
-CURVE_TITLES = {"N": "particle count N", "d": "state dimension d", "B": "trials per call B"}
-FULL = {"ns": "100,1000,10000,100000", "ds": "16,36,64,144,256,400", "bs": "1,4,16,64,256"}
-QUICK = {"ns": "100,300,1000", "ds": "16,36,64", "bs": "1,4,16"}
 MAX_REPEATS = 100
 #: one colour and marker per filter, the same in every panel
 STYLE = {"KF": ("tab:blue", "s"), "EKF": ("tab:cyan", "D"), "BPF": ("tab:orange", "o"),
          "PF-PF(EDH)": ("tab:green", "^"), "PF-PF(LEDH)": ("tab:red", "v"), "PF-PF(Gromov)": ("tab:purple", "P")}
 
 
-def _ints(text: str, name: str) -> List[int]:
-    try:
-        vals = [int(float(v)) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise SystemExit(f"--{name}: expected comma-separated integers, got {text!r}")
-    if not vals or min(vals) < 1:
-        raise SystemExit(f"--{name}: expected positive integers, got {text!r}")
-    return sorted(set(vals))
-
-
 def parse_args(argv=None) -> argparse.Namespace:
-    ap = h.parser(__doc__, "tiny lists and sizes for a smoke test (the PNG goes beside the results files)")
-    ap.add_argument("--curves", default="N,d,B", help="comma-separated subset of N,d,B (default all)")
-    ap.add_argument("--ns", default=None, help=f"particle counts of the N curve (default {FULL['ns']})")
-    ap.add_argument("--ds", default=None, help=f"state dimensions of the d curve, perfect squares (default {FULL['ds']})")
-    ap.add_argument("--bs", default=None, help=f"trials per call of the B curve (default {FULL['bs']})")
-    ap.add_argument("--filters", default="kf,ekf,bpf,edh,ledh,gromov",
-                    help="subset of kf,ekf,bpf,edh,ledh,gromov (each curve runs the ones that apply)")
-    ap.add_argument("--steps", type=int, default=None, help="time steps per trial (default 3; --quick 2)")
-    ap.add_argument("--trials", type=int, default=None,
-                    help="trials per point on the N and d curves (default 2; --quick 1); the B curve uses B")
-    ap.add_argument("--d-curve-n", type=int, default=200, help="particles on the d curve (200)")
-    ap.add_argument("--b-curve-n", type=int, default=None, help="particles on the B curve (500; --quick 100)")
-    ap.add_argument("--b-curve-lg-d", type=int, default=64, help="sensor-network d of the KF on the B curve (64)")
-    ap.add_argument("--time-budget", type=float, default=None,
-                    help="repeat the timed run of a point until this many seconds (0.5; --quick 0.1), at least once")
-    ap.add_argument("--max-point-seconds", type=float, default=60.0,
-                    help="skip a point whose extrapolated time exceeds this (60)")
-    ap.add_argument("--memory-gb", type=float, default=4.0,
-                    help="size calls of trials so the filter's memory estimate fits this (4)")
-    ap.add_argument("--dtype", default="float64", choices=["float64", "float32"])
-    ap.add_argument("--device", default="cpu", help="cpu or cuda[:k] (default cpu)")
-    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's default)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--no-plot", action="store_true", help="do not draw the PNG")
-    ap.add_argument("--quiet", action="store_true", help="no per-point progress lines")
-    a = ap.parse_args(argv)
-    lists = QUICK if a.quick else FULL
-    a.ns = _ints(a.ns or lists["ns"], "ns")
-    a.ds = _ints(a.ds or lists["ds"], "ds")
-    a.bs = _ints(a.bs or lists["bs"], "bs")
-    for d in a.ds:
-        if math.isqrt(d) ** 2 != d:
-            raise SystemExit(f"--ds: SensorNetwork needs perfect squares (grid side^2), got {d}")
-    if math.isqrt(a.b_curve_lg_d) ** 2 != a.b_curve_lg_d:
-        raise SystemExit(f"--b-curve-lg-d: expected a perfect square, got {a.b_curve_lg_d}")
-    a.steps = a.steps or (2 if a.quick else 3)
-    a.trials = a.trials or (1 if a.quick else 2)
-    a.b_curve_n = a.b_curve_n or (100 if a.quick else 500)
-    a.time_budget = (0.1 if a.quick else 0.5) if a.time_budget is None else a.time_budget
+    a = h.options(__doc__, argv, dict(ns="100,300,1000", ds="16,36,64", bs="1,4,16", steps=2, trials=1, b_curve_n=100,
+                                      time_budget=0.1), curves="N,d,B", ns="100,1000,10000,100000",
+                  ds="16,36,64,144,256,400", bs="1,4,16,64,256", filters="kf,ekf,bpf,edh,ledh,gromov", steps=3,
+                  trials=2, d_curve_n=200, b_curve_n=500, b_curve_lg_d=64, time_budget=0.5, max_point_seconds=60.0,
+                  memory_gb=4.0, dtype="float64", device="cpu", threads=None, seed=0, no_plot=False, quiet=False)
+    a.ns, a.ds, a.bs = (sorted(set(h.ints(getattr(a, k), "--" + k))) for k in ("ns", "ds", "bs"))
     a.curves = h.keys_option(a.curves, CURVE_FILTERS, "--curves")
     a.filters = h.keys_option(a.filters, LABELS)
-    if a.steps < 1 or a.trials < 1:
-        raise SystemExit("--steps and --trials must be >= 1")
-    if a.out is None:
-        a.out = str(h.results_path("scaling", a.quick))
+    a.out = a.out or str(h.results_path("scaling", a.quick))
     return a
 
 
 def _available_bytes(device: torch.device) -> Optional[int]:
     if device.type == "cuda":
         return torch.cuda.mem_get_info(device)[0]
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
+    with contextlib.suppress(OSError):
+        return next((int(line.split()[1]) * 1024 for line in Path("/proc/meminfo").read_text().splitlines()
+                     if line.startswith("MemAvailable:")), None)
     return None
 
 
-# ---------------------------------------------------------------------------------------------
-# points
-# ---------------------------------------------------------------------------------------------
 def data_source(args, device, dtype):
-    """``get(model name, d, trials) -> (model, obs, mean, cov)`` (``trials=0``: the model alone): each
-    model built once, its data simulated once per size (on the CPU in float64, so every device /
-    dtype filters the same numbers; again when a point needs more trials), moved, sliced per point."""
+    """``get(model, d, trials) -> (model, obs, mean, cov)``; data simulated once per size in float64 on CPU."""
     models, data = {}, {}
 
     def get(name: str, d: int, trials: int):
@@ -157,55 +72,32 @@ def data_source(args, device, dtype):
     return get
 
 
-def time_point(filt, obs, mean, cov, chunk: int, device, seed: int, time_budget: float) -> h.Timing:
-    """Warm-up call (1 trial x 1 step), then timed runs over all trials in calls of ``chunk``
-    trials until ``time_budget`` seconds are spent (at least once)."""
-    g = torch.Generator(device=device).manual_seed(seed)
-    same = lambda start, stop: g  # noqa: E731  (one generator for every call)
-    return h.time_filter(filt, obs, mean, cov, chunk, same, budget=time_budget, max_repeats=MAX_REPEATS,
-                         device=device)
-
-
 def _extrapolate(history: List[tuple], x: int) -> Optional[float]:
-    """Seconds of one timed run at ``x`` from the ok points ``[(x, run_seconds), ...]``: linear in x,
-    or the slope of the last two points when steeper (capped at 3)."""
+    """Seconds of one timed run at ``x`` from the ok points ``[(x, run_seconds), ...]`` (see above)."""
     if not history:
         return None
-    x1, t1 = history[-1]
-    q = 1.0
-    if len(history) >= 2:
-        x0, t0 = history[-2]
-        if x1 != x0 and t0 > 0 and t1 > 0:
-            q = min(3.0, max(1.0, math.log(t1 / t0) / math.log(x1 / x0)))
+    (x0, t0), (x1, t1) = history[-2:] if len(history) >= 2 else (history[-1], history[-1])
+    q = min(3.0, max(1.0, math.log(t1 / t0) / math.log(x1 / x0))) if x1 != x0 and t0 > 0 and t1 > 0 else 1.0
     return t1 * (x / x1) ** q
-
-
-def _is_oom(exc: BaseException) -> bool:
-    return isinstance(exc, MemoryError) or "out of memory" in str(exc).lower() or \
-        type(exc).__name__ == "OutOfMemoryError"
 
 
 def curve_points(curve: str, args):
     """``(filter key, model name, x, N, d, trials)`` of one curve, filter-major."""
-    keys = [k for k in CURVE_FILTERS[curve] if k in args.filters]
-    for key in keys:
-        if curve == "N":
-            for N in args.ns:
-                yield key, "acoustic", N, N, 16, args.trials
-        elif curve == "d":
-            for d in args.ds:
-                yield key, "lg", d, (None if key == "kf" else args.d_curve_n), d, args.trials
-        else:
-            for B in args.bs:
-                if key == "kf":
-                    yield key, "lg", B, None, args.b_curve_lg_d, B
-                else:
-                    yield key, "acoustic", B, (None if key == "ekf" else args.b_curve_n), 16, B
+    for key in (k for k in CURVE_FILTERS[curve] if k in args.filters):
+        for x in {"N": args.ns, "d": args.ds, "B": args.bs}[curve]:
+            if curve == "N":
+                yield key, "acoustic", x, x, 16, args.trials
+            elif curve == "d":
+                yield key, "lg", x, (None if key == "kf" else args.d_curve_n), x, args.trials
+            elif key == "kf":
+                yield key, "lg", x, None, args.b_curve_lg_d, x
+            else:
+                yield key, "acoustic", x, (None if key == "ekf" else args.b_curve_n), 16, x
 
 
 def run_curve(curve: str, args, data, device, log) -> List[dict]:
     rows: List[dict] = []
-    history: Dict[str, List[tuple]] = {}
+    history: Dict[str, List[tuple]] = {}  # filter -> its ok points (x, seconds of one timed run)
     oom: Dict[str, bool] = {}
     budget = int(args.memory_gb * 2**30)
     for key, mname, x, N, d, trials in curve_points(curve, args):
@@ -220,14 +112,10 @@ def run_curve(curve: str, args, data, device, log) -> List[dict]:
             filt = h.make_filter(key, model, N)
             per_trial = filt.bytes_per_trial(N)
             fit = max(1, budget // max(per_trial, 1))
-            if curve == "B":
-                chunk = min(trials, fit)
-            else:
-                chunk = min(trials, fit, filt.preferred_chunk_trials(N) or trials)
+            chunk = min(trials, fit) if curve == "B" else min(trials, fit, filt.preferred_chunk_trials(N) or trials)
             row["B"] = chunk  # trials per call
             run_est = _extrapolate(hist, x)
-            if run_est is not None:
-                # the warm-up call filters 1 trial x 1 step
+            if run_est is not None:  # the warm-up call filters 1 trial x 1 step
                 row["est_point_s"] = run_est * (1 + 1 / (trials * args.steps))
             avail = _available_bytes(device)
             if oom.get(key):
@@ -239,11 +127,12 @@ def run_curve(curve: str, args, data, device, log) -> List[dict]:
                 row["status"] = (f"skipped: estimated {per_trial / 2**30:.1f} GB per trial > "
                                  f"{avail / 2**30:.1f} GB available")
             if row["status"] != "ok":
-                log(f"[{curve}] {label:14s} x={x:<7d} {row['status']}")
                 continue
             _, obs, mean, cov = data(mname, d, trials)
             t0 = time.perf_counter()
-            t = time_point(filt, obs, mean, cov, chunk, device, args.seed, args.time_budget)
+            g = torch.Generator(device=device).manual_seed(args.seed)  # one generator for every call
+            t = h.time_filter(filt, obs, mean, cov, chunk, lambda start, stop: g, budget=args.time_budget,
+                              max_repeats=MAX_REPEATS, device=device)
             row["point_s"] = time.perf_counter() - t0
             row["s_per_trial_step"] = t.min / (trials * args.steps)
             row["mean_s_per_trial_step"] = t.mean / (trials * args.steps)
@@ -252,30 +141,23 @@ def run_curve(curve: str, args, data, device, log) -> List[dict]:
             log(f"[{curve}] {label:14s} x={x:<7d} {row['s_per_trial_step']:.3g} s/trial-step "
                 f"({row['repeats']} run(s), {chunk} trials/call, point {row['point_s']:.1f} s)")
         except Exception as exc:  # noqa: BLE001  (record and go on)
-            msg = " ".join(str(exc).split())
-            row["status"] = f"error: {type(exc).__name__}: {msg[:200]}"
-            if _is_oom(exc):
-                oom[key] = True
-            log(f"[{curve}] {label:14s} x={x:<7d} {row['status']}")
+            row["status"] = f"error: {type(exc).__name__}: {' '.join(str(exc).split())[:200]}"
+            oom[key] = oom.get(key) or isinstance(exc, MemoryError) or "out of memory" in str(exc).lower() \
+                or type(exc).__name__ == "OutOfMemoryError"
         finally:
+            if row["status"] != "ok":
+                log(f"[{curve}] {label:14s} x={x:<7d} {row['status']}")
             if device.type == "cuda":
                 torch.cuda.empty_cache()
     return rows
 
 
-# ---------------------------------------------------------------------------------------------
-# report
-# ---------------------------------------------------------------------------------------------
-def _xkey(curve: str) -> str:
-    return {"N": "N", "d": "d", "B": "trials"}[curve]
+_xkey = {"N": "N", "d": "d", "B": "trials"}.get  # the row item a curve's x is
 
 
 def _column(row: dict, curve: str) -> str:
-    if curve == "B" and row["filter"] == "KF":
-        return "KF (sensor net)"
-    if curve == "B" and row["filter"] == "EKF":
-        return "EKF (acoustic)"
-    return row["filter"]
+    return {"KF": "KF (sensor net)", "EKF": "EKF (acoustic)"}.get(row["filter"], row["filter"]) if curve == "B" \
+        else row["filter"]
 
 
 def loglog_slope(points: List[tuple]) -> Optional[float]:
@@ -283,46 +165,35 @@ def loglog_slope(points: List[tuple]) -> Optional[float]:
     pts = [(math.log(x), math.log(y)) for x, y in points if x > 0 and y and y > 0]
     if len({p[0] for p in pts}) < 2:
         return None
-    mx = sum(p[0] for p in pts) / len(pts)
-    my = sum(p[1] for p in pts) / len(pts)
-    sxx = sum((p[0] - mx) ** 2 for p in pts)
-    return sum((p[0] - mx) * (p[1] - my) for p in pts) / sxx
+    mx, my = (sum(p[i] for p in pts) / len(pts) for i in (0, 1))
+    return sum((p[0] - mx) * (p[1] - my) for p in pts) / sum((p[0] - mx) ** 2 for p in pts)
 
 
-def slopes(rows: List[dict], curve: str) -> Dict[str, Optional[float]]:
+def points(rows: List[dict], curve: str) -> Dict[str, list]:
+    """Column -> its sorted ok points ``(x, s_per_trial_step)`` on ``curve``."""
     cols: Dict[str, list] = {}
     for r in rows:
         if r["curve"] == curve:
-            cols.setdefault(_column(r, curve), [])
-            if r["status"] == "ok":
-                cols[_column(r, curve)].append((r[_xkey(curve)], r["s_per_trial_step"]))
-    return {c: loglog_slope(p) for c, p in cols.items()}
+            cols.setdefault(_column(r, curve), []).extend([(r[_xkey(curve)], r["s_per_trial_step"])]
+                                                          if r["status"] == "ok" else [])
+    return {c: sorted(p) for c, p in cols.items()}
 
 
 def _cell(r: Optional[dict]) -> str:
-    if r is None:
-        return "-"
-    if r["status"] == "ok":
-        return f"{r['s_per_trial_step']:.3g}"
-    if r["status"].startswith("skipped"):
-        est = r.get("est_point_s")
-        return f"skipped (est. {est:.0f} s)" if est and "estimated" in r["status"] and "GB" not in r["status"] \
-            else "skipped"
-    return "error"
+    if r is None or r["status"] == "ok":
+        return "-" if r is None else f"{r['s_per_trial_step']:.3g}"
+    est = r.get("est_point_s") if "estimated" in r["status"] and "GB" not in r["status"] else None
+    return ("skipped" + (f" (est. {est:.0f} s)" if est else "")) if r["status"].startswith("skipped") else "error"
 
 
-def curve_heading(curve: str, a) -> str:
-    if curve == "N":
-        return (f"### Seconds per trial-step vs particle count N\n\nAcoustic tracking (d = 16, m = 25), "
-                f"{a.trials} trial(s) x {a.steps} steps per point.")
-    if curve == "d":
-        return (f"### Seconds per trial-step vs state dimension d\n\nLinear-Gaussian sensor network "
-                f"`SensorNetwork(d=d)` (m = d), particle filters at N = {a.d_curve_n}, "
-                f"{a.trials} trial(s) x {a.steps} steps per point.")
-    return (f"### Seconds per trial-step vs trials per call B\n\nAll B trials in one call, {a.steps} steps. "
-            f"BPF and PF-PFs: acoustic tracking, N = {a.b_curve_n}. KF (sensor net): the exact Kalman filter "
-            f"on `SensorNetwork(d={a.b_curve_lg_d})`. EKF (acoustic): the extended Kalman filter stands in as "
-            f"the Gaussian filter on the nonlinear acoustic model, where the KF does not apply.")
+HEADINGS = {
+    "N": "particle count N\n\nAcoustic tracking (d = 16, m = 25), {a.trials} trial(s) x {a.steps} steps per point.",
+    "d": "state dimension d\n\nLinear-Gaussian sensor network `SensorNetwork(d=d)` (m = d), particle filters at "
+         "N = {a.d_curve_n}, {a.trials} trial(s) x {a.steps} steps per point.",
+    "B": "trials per call B\n\nAll B trials in one call, {a.steps} steps. BPF and PF-PFs: acoustic tracking, N = "
+         "{a.b_curve_n}. KF (sensor net): the exact Kalman filter on `SensorNetwork(d={a.b_curve_lg_d})`. EKF "
+         "(acoustic): the extended Kalman filter stands in as the Gaussian filter on the nonlinear acoustic model, "
+         "where the KF does not apply."}
 
 
 def markdown(rows: List[dict], a, info: dict) -> str:
@@ -343,59 +214,47 @@ def markdown(rows: List[dict], a, info: dict) -> str:
         cols = list(dict.fromkeys(_column(r, curve) for r in cr))
         xs = sorted({r[xk] for r in cr})
         cell = {(r[xk], _column(r, curve)): r for r in cr}
-        name = {"N": "N", "d": "d", "B": "B"}[curve]
-        out += [curve_heading(curve, a), "",
-                f"| {name} | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
-        for x in xs:
-            out.append(f"| {x} | " + " | ".join(_cell(cell.get((x, c))) for c in cols) + " |")
-        sl = slopes(rows, curve)
-        out.append("| **log-log slope** | " + " | ".join(
-            f"**{sl[c]:.2f}**" if sl.get(c) is not None else "n/a" for c in cols) + " |")
-        notes = [f"- {c} at {name} = {x}: {cell[(x, c)]['status']}" for x in xs for c in cols
+        sl = {c: loglog_slope(p) for c, p in points(rows, curve).items()}
+        out += ["### Seconds per trial-step vs " + HEADINGS[curve].format(a=a), ""] + h.md_table(
+            [curve] + cols, [[x] + [_cell(cell.get((x, c))) for c in cols] for x in xs]
+            + [["**log-log slope**"] + [f"**{sl[c]:.2f}**" if sl.get(c) is not None else "n/a" for c in cols]])
+        notes = [f"- {c} at {curve} = {x}: {cell[(x, c)]['status']}" for x in xs for c in cols
                  if (x, c) in cell and cell[(x, c)]["status"] != "ok"]
         out += ([""] + notes if notes else []) + [""]
     return "\n".join(out)
 
 
 def plot(rows: List[dict], a, path: Path) -> Optional[str]:
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-        import matplotlib.ticker  # noqa: F401
-    except ImportError:
+    if h.peer("matplotlib") is None:
         print("(matplotlib not installed: no plot)")
         return None
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker  # noqa: F401
     curves = [c for c in a.curves if any(r["curve"] == c for r in rows)]
     if not curves:
         return None
     fig, axes = plt.subplots(1, len(curves), figsize=(5.2 * len(curves), 4.2), squeeze=False)
     for ax, curve in zip(axes[0], curves):
-        xk = _xkey(curve)
-        sl = slopes(rows, curve)
-        cols = list(dict.fromkeys(_column(r, curve) for r in rows if r["curve"] == curve))
-        for c in cols:
-            pts = sorted((r[xk], r["s_per_trial_step"]) for r in rows
-                         if r["curve"] == curve and _column(r, curve) == c and r["status"] == "ok")
-            if not pts:
-                continue
-            lab = c + (f" (slope {sl[c]:.2f})" if sl.get(c) is not None else "")
-            color, marker = STYLE.get(c.split(" ")[0], (None, "o"))
-            ax.plot([p[0] for p in pts], [p[1] for p in pts], marker=marker, linestyle="-", color=color, label=lab)
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        xs = sorted({r[xk] for r in rows if r["curve"] == curve})
+        for c, pts in points(rows, curve).items():
+            if pts:
+                sl = loglog_slope(pts)
+                color, marker = STYLE.get(c.split(" ")[0], (None, "o"))
+                ax.plot(*zip(*pts), marker=marker, linestyle="-", color=color,
+                        label=c + (f" (slope {sl:.2f})" if sl is not None else ""))
+        ax.set(xscale="log", yscale="log", xlabel=HEADINGS[curve].partition("\n")[0], ylabel="seconds per trial-step")
+        xs = sorted({r[_xkey(curve)] for r in rows if r["curve"] == curve})
         ax.set_xticks(xs)
         ax.set_xticklabels([f"{x:g}" if x < 1e4 else f"1e{round(math.log10(x))}" if math.log10(x).is_integer()
                             else f"{x:.0e}" for x in xs])
         ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
-        ax.set_xlabel(CURVE_TITLES[curve])
-        ax.set_ylabel("seconds per trial-step")
         ax.set_title({"N": "acoustic tracking", "d": f"sensor network, N = {a.d_curve_n}",
                       "B": f"acoustic N = {a.b_curve_n} / sensor net d = {a.b_curve_lg_d}"}[curve], fontsize=10)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle(f"torchflow scaling ({a.device}, {a.dtype}, {torch.get_num_threads()} threads)", fontsize=11)
+    fig.suptitle(f"torchflow scaling ({a.device}, {a.dtype}, {a.threads or torch.get_num_threads()} threads)",
+                 fontsize=11)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
@@ -403,28 +262,18 @@ def plot(rows: List[dict], a, path: Path) -> Optional[str]:
     return str(path)
 
 
-# ---------------------------------------------------------------------------------------------
-# entry points
-# ---------------------------------------------------------------------------------------------
 def run(argv=None) -> dict:
-    """Run the benchmark; returns ``{"machine", "rows", "markdown", "plot", "args"}``. Draws the PNG
-    (unless ``--no-plot``) but writes no markdown/JSON: :func:`main` does."""
+    """``{"machine", "rows", "markdown", "plot", "args"}``; draws the PNG unless ``--no-plot``."""
     a = parse_args(argv)
     device = torch.device(a.device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise SystemExit("--device cuda: CUDA is not available")
     log = (lambda s: None) if a.quiet else (lambda s: print(s, flush=True))
-    with h.torch_threads(a.threads):
-        info = h.machine(device, command=h.command("bench_scaling", argv))
+    with h.session("bench_scaling", argv, a.threads, device) as info:
         data = data_source(a, device, getattr(torch, a.dtype))
         t0 = time.perf_counter()
-        rows: List[dict] = []
-        for curve in a.curves:
-            rows += run_curve(curve, a, data, device, log)
-        info["load_end"] = h.loadavg()
+        rows = [r for curve in a.curves for r in run_curve(curve, a, data, device, log)]
         info["total_s"] = round(time.perf_counter() - t0, 1)
-        md = markdown(rows, a, info)
-        png = None if a.no_plot else plot(rows, a, Path(a.out).with_suffix(".png"))
+    md = markdown(rows, a, info)
+    png = None if a.no_plot else plot(rows, a, Path(a.out).with_suffix(".png"))
     return {"machine": info, "rows": rows, "markdown": md, "plot": png, "args": vars(a)}
 
 

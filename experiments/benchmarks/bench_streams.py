@@ -1,11 +1,7 @@
-"""Cost of per-trial random streams: the same filter calls with one ``torch.Generator`` per call
-(the batch shares a stream) and with :class:`torchflow.random.TrialStreams` (one stream per
-trial, what ``run_experiment`` uses), interleaved in one run.
+"""Cost of per-trial random streams: the same filter calls with one ``torch.Generator`` per call and
+with ``TrialStreams`` (one stream per trial, as ``run_experiment``), interleaved; then the draws alone.
 
     python -m experiments.benchmarks.bench_streams            # ~3 min on 2 cores
-    python -m experiments.benchmarks.bench_streams --quick
-
-Reports seconds per trial-step (minimum over repeats) and the ratio streams / generator.
 """
 from __future__ import annotations
 
@@ -20,8 +16,7 @@ from . import harness as h
 
 def cases(quick: bool):
     """``(name, model, filter, trials, steps)`` of each case."""
-    lg = SensorNetwork(d=64)
-    ac = AcousticTracking(sigma_w=0.1)
+    lg, ac = SensorNetwork(d=64), AcousticTracking(sigma_w=0.1)
     s = 0.25 if quick else 1.0
     return [
         ("BPF, LG d=64, N=200", lg, h.make_filter("bpf", lg, 200), int(100 * s), 10),
@@ -32,13 +27,9 @@ def cases(quick: bool):
 
 
 def run(argv=None) -> dict:
-    p = h.parser(__doc__)
-    p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--threads", type=int, default=2)
-    a = p.parse_args(argv)
+    a = h.options(__doc__, argv, None, repeats=5, threads=2)
     rows, draws = [], []
-    with h.torch_threads(a.threads):
-        info = h.machine(command=h.command("bench_streams", argv))
+    with h.session("bench_streams", argv, a.threads) as info:
         for name, model, f, B, T in cases(a.quick):
             traj, mean, cov = h.simulate(model, B, T, 0)
             chunk = f.preferred_chunk_trials() or B
@@ -51,10 +42,9 @@ def run(argv=None) -> dict:
                     best[k] = min(best[k], t.min / (B * T))
             rows.append(dict(case=name, trials=B, steps=T, generator=best["generator"], streams=best["streams"],
                              ratio=best["streams"] / best["generator"]))
-            print(f"{name:34s} generator {best['generator']:.3e}  streams {best['streams']:.3e}  "
-                  f"ratio {rows[-1]['ratio']:.3f}", flush=True)
-        # the draws alone: the filters' time is ~30 % normals at most (BPF, N=1e4, d=64), so the
-        # draw cost bounds the filters' cost far more tightly than whole-call timings on a noisy VM
+            print(rows[-1], flush=True)
+        # the draws alone: normals are ~30 % of a filter's time at most (BPF, N=1e4, d=64), so their cost
+        # bounds the filters' far more tightly than whole-call timings on a noisy VM
         for B, n in ((25, 12_800), (100, 12_800), (3, 640_000), (8, 12_500)):
             best = {}
             for k, gen in (("generator", torch.Generator().manual_seed(0)), ("streams", TrialStreams(0, B, "bench"))):
@@ -64,20 +54,19 @@ def run(argv=None) -> dict:
             draws.append(dict(B=B, n=n, generator_ns=best["generator"], streams_ns=best["streams"],
                               ratio=best["streams"] / best["generator"]))
             print(draws[-1], flush=True)
-        info["load_end"] = h.loadavg()
-    md = h.header("# Per-trial random streams: cost", a.quick, info,
-                  f"{a.threads} threads, minimum over {a.repeats} interleaved repeats. Seconds per trial-step of the "
-                  "same filter calls with one `torch.Generator` per call and with `TrialStreams` (one stream per "
-                  "trial, as `run_experiment` uses them).")
-    md += h.md_table(["case", "trials x steps", "generator s", "streams s", "streams / generator"],
-                     [[r["case"], f"{r['trials']} x {r['steps']}", f"{r['generator']:.4g}", f"{r['streams']:.4g}",
-                       f"{r['ratio']:.3f}"] for r in rows])
-    md += ["", "Normal draws alone (float64, ns per number, minimum of repeats):", ""]
-    md += h.md_table(["trials x numbers per trial", "generator ns", "streams ns", "ratio"],
-                     [[f"{r['B']} x {r['n']}", f"{r['generator_ns']:.2f}", f"{r['streams_ns']:.2f}",
-                       f"{r['ratio']:.3f}"] for r in draws])
+    md = h.report("# Per-trial random streams: cost", a, info,
+                  [f"{a.threads} threads, minimum over {a.repeats} interleaved repeats. Seconds per trial-step of the "
+                   "same filter calls with one `torch.Generator` per call and with `TrialStreams` (one stream per "
+                   "trial, as `run_experiment` uses them)."],
+                  ["case", "trials x steps", "generator s", "streams s", "streams / generator"],
+                  [[r["case"], f"{r['trials']} x {r['steps']}", f"{r['generator']:.4g}", f"{r['streams']:.4g}",
+                    f"{r['ratio']:.3f}"] for r in rows],
+                  "Normal draws alone (float64, ns per number, minimum of repeats):", "",
+                  *h.md_table(["trials x numbers per trial", "generator ns", "streams ns", "ratio"],
+                              [[f"{r['B']} x {r['n']}", f"{r['generator_ns']:.2f}", f"{r['streams_ns']:.2f}",
+                                f"{r['ratio']:.3f}"] for r in draws]))
     return {"threads": a.threads, "repeats": a.repeats, "rows": rows, "draws": draws, "machine": info,
-            "args": vars(a), "markdown": "\n".join(md) + "\n"}
+            "args": vars(a), "markdown": md}
 
 
 if __name__ == "__main__":

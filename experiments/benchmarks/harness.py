@@ -1,12 +1,7 @@
-"""The one harness of the benchmark modules: the timing loop (:func:`time_calls`), filters by name
-(:func:`make_filter`, :func:`filter_chunks`), the machine description (:func:`machine`), optional
-peer libraries (:func:`peer`: ``None`` and a ``skipped: <library> not installed`` row when missing)
-and the results files (:func:`md_table`, :func:`write_results`).
-
-Every benchmark module has ``run(argv) -> {"machine", "rows", "markdown", "args", ...}``, which
-writes no results file, and runs as ``python -m experiments.benchmarks.<module>``, which writes
-``results_<name>.md`` and the rest as ``results_<name>.json`` in this folder (``--quick``:
-``results_<name>_quick.*``, so a smoke test never overwrites the full results; ``--out``: elsewhere).
+"""The one harness of the benchmarks: options, the timing loop, filters by name, the machine, peer
+libraries and the results files. A benchmark module's ``run(argv)`` returns ``{"machine", "rows",
+"markdown", "args", ...}``; ``python -m experiments.benchmarks.<module>`` also writes ``results_<name>.md``
+and ``.json`` here (``--quick``: ``results_<name>_quick.*``; ``--out``: elsewhere).
 """
 from __future__ import annotations
 
@@ -17,7 +12,6 @@ import json
 import math
 import os
 import platform
-import statistics
 import sys
 import time
 from dataclasses import dataclass
@@ -40,42 +34,35 @@ class CheckFailed(RuntimeError):
 
 @dataclass
 class Timing:
-    """Seconds of each timed call (``min``, ``median``, ``mean`` of them) and the last call's result."""
+    """Seconds of each timed call (``min``, ``mean`` of them) and the last call's result."""
 
     times: List[float]
     result: Any = None
 
     min = property(lambda self: min(self.times))
-    median = property(lambda self: statistics.median(self.times))
     mean = property(lambda self: sum(self.times) / len(self.times))
-
-
-def synchronize(device=None) -> None:
-    """Wait for the CUDA queue of ``device`` (nothing on a CPU device or ``None``)."""
-    if device is not None and torch.device(device).type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def time_calls(fn: Callable[[], Any], repeats: int = 1, warmup: int = 0, budget: Optional[float] = None,
                max_repeats: int = 100, device=None) -> Timing:
-    """Call ``fn()`` ``warmup`` times untimed, then time it with ``time.perf_counter``: ``repeats``
-    times, or, with ``budget`` (seconds), until the timed calls add up to ``budget`` (at least once,
-    at most ``max_repeats`` times). On a CUDA ``device`` the queue is synchronised before each
-    clock read, so a call's time includes its kernels."""
+    """Call ``fn()`` ``warmup`` times, then time it ``repeats`` times or, with ``budget``, until the timed
+    calls add up to ``budget`` seconds (at least once, at most ``max_repeats`` times); the CUDA queue
+    of ``device`` is synchronised before each clock read."""
     if int(repeats) < 1 or int(warmup) < 0 or int(max_repeats) < 1:
         raise ValueError(f"time_calls: expected repeats >= 1, warmup >= 0, max_repeats >= 1, got "
                          f"{repeats}, {warmup}, {max_repeats}")
     if budget is not None and not budget >= 0:
         raise ValueError(f"time_calls: budget: expected seconds >= 0, got {budget}")
+    cuda = device is not None and torch.device(device).type == "cuda"
+    synchronize = (lambda: torch.cuda.synchronize(device)) if cuda else (lambda: None)
     for _ in range(int(warmup)):
         fn()
-    synchronize(device)
+    synchronize()
     times: List[float] = []
-    out = None
     while True:
         t0 = time.perf_counter()
         out = fn()
-        synchronize(device)
+        synchronize()
         times.append(time.perf_counter() - t0)
         if (len(times) >= repeats if budget is None else sum(times) >= budget) or len(times) >= max_repeats:
             return Timing(times, out)
@@ -87,9 +74,8 @@ def streams(seed: int, key) -> Callable[[int, int], TrialStreams]:
 
 
 def filter_chunks(f, obs, mean, cov, chunk: Optional[int], randomness: Callable[[int, int], Any]) -> list:
-    """``f`` over all trials in calls of ``chunk`` trials (``None``: one call), under
-    ``torch.no_grad()``; ``randomness(start, stop)`` gives each call its generator or streams.
-    Returns the calls' results."""
+    """The results of ``f`` over all trials in calls of ``chunk`` trials (``None``: one call), under
+    ``torch.no_grad()``; ``randomness(start, stop)`` gives each call its generator or streams."""
     B = obs.shape[0]
     chunk = chunk or B
     with torch.no_grad():
@@ -99,17 +85,15 @@ def filter_chunks(f, obs, mean, cov, chunk: Optional[int], randomness: Callable[
 
 def time_filter(f, obs, mean, cov, chunk: Optional[int], randomness, warm=(1, 1), warm_randomness=None,
                 **timing) -> Timing:
-    """One untimed warm-up call of ``f`` on the first ``warm = (trials, steps)`` (``None``: all),
-    then :func:`time_calls` (``timing``: its options) of ``f`` over all trials in calls of
-    ``chunk``; ``randomness`` as in :func:`filter_chunks` (``warm_randomness``: the warm-up's)."""
+    """An untimed call on the first ``warm = (trials, steps)``, then :func:`time_calls` (``timing``) of
+    :func:`filter_chunks` (``warm_randomness``: the warm-up's randomness)."""
     b, k = warm
     filter_chunks(f, obs[:b, :k], mean[:b], cov[:b], None, warm_randomness or randomness)
     return time_calls(lambda: filter_chunks(f, obs, mean, cov, chunk, randomness), **timing)
 
 
 def simulate(model, trials: int, steps: int, seed: int):
-    """``(trajectory, prior mean, prior covariance)`` of ``trials`` x ``steps`` drawn with one
-    generator seeded ``seed`` (the prior after the trajectories)."""
+    """``(trajectory, prior mean, prior covariance)`` drawn with one generator seeded ``seed``."""
     g = torch.Generator().manual_seed(int(seed))
     traj = model.simulate(trials, steps, g)
     mean, cov = model.initial_belief(traj.states[:, 0], g)
@@ -131,11 +115,9 @@ def torch_threads(n: Optional[int]):
 def blas_limit(n_threads: int):
     """Context manager limiting numpy/scipy BLAS threads (not torch's) to ``n_threads`` (0: default)."""
     tpc = peer("threadpoolctl") if n_threads > 0 else None
-    if tpc is None:
-        if n_threads > 0:
-            print("  (threadpoolctl not installed: peer BLAS threads left at their default)")
-        return contextlib.nullcontext()
-    return tpc.threadpool_limits(limits=n_threads, user_api="blas")
+    if tpc is None and n_threads > 0:
+        print("  (threadpoolctl not installed: peer BLAS threads left at their default)")
+    return contextlib.nullcontext() if tpc is None else tpc.threadpool_limits(limits=n_threads, user_api="blas")
 
 
 def blas_threads() -> str:
@@ -148,23 +130,20 @@ def blas_threads() -> str:
 
 def loadavg() -> Optional[list]:
     """1/5/15-minute load average (rounded), or None where the OS has none."""
-    try:
+    with contextlib.suppress(OSError, AttributeError):
         return [round(x, 2) for x in os.getloadavg()]
-    except (OSError, AttributeError):  # pragma: no cover
-        return None
+    return None
 
 
 def _cpu_name() -> str:
-    with contextlib.suppress(OSError):
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
+    with contextlib.suppress(OSError, StopIteration):
+        return next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                    if line.startswith("model name"))
     return platform.processor() or platform.machine() or "unknown CPU"
 
 
 def machine(device=None, **extra) -> dict:
-    """The machine a benchmark ran on, with the load average now as ``load_start`` (set
-    ``load_end`` when done); ``extra`` items are added (e.g. the command)."""
+    """The machine a benchmark runs on, the load average now (``load_start``) and the ``extra`` items."""
     import numpy as np
 
     device = torch.device(device or "cpu")
@@ -180,9 +159,7 @@ def machine(device=None, **extra) -> dict:
 
 
 def machine_line(info: dict) -> str:
-    """``Machine: ...`` line of a report, with the load at start and end (other work on the
-    machine inflates times). Items a machine dict lacks (one read back from an older results
-    file) print as ``?``."""
+    """``Machine: ...`` line of a report, with the load at start and end (items missing: ``?``)."""
     get = lambda k: info.get(k, "?")  # noqa: E731
     gpu = f", GPU {info['gpu']}" if info.get("gpu") else ""
     mem = f", {info['mem_total_gb']} GiB RAM" if info.get("mem_total_gb") else ""
@@ -193,19 +170,15 @@ def machine_line(info: dict) -> str:
 
 
 def header(title: str, quick: bool, info: dict, *lines: str) -> List[str]:
-    """Opening lines of a report: the title (`` (--quick)`` on a smoke test), the machine, ``lines``
-    and the command."""
+    """Opening lines of a report: the title, the machine, ``lines`` and the command."""
     return [title + (" (--quick)" if quick else ""), "", machine_line(info), *lines, f"Command: `{info['command']}`", ""]
 
 
-def command(name: str, argv: Optional[Sequence[str]]) -> str:
-    """The command line that reproduces a run of ``experiments.benchmarks.<name>``."""
-    return " ".join(["python -m experiments.benchmarks." + name, *map(str, argv or [])])
+command = lambda name, argv: " ".join(["python -m experiments.benchmarks." + name, *map(str, argv or [])])  # noqa
 
 
 def peer(name: str, *submodules: str):
-    """The peer library ``name`` (with ``name.<submodule>`` imported too), or ``None`` when it is
-    not installed. A library that is installed but fails to import raises."""
+    """The peer library ``name`` (``submodules`` imported too), ``None`` when it is not installed."""
     try:
         mod = importlib.import_module(name)
         for sub in submodules:
@@ -225,55 +198,92 @@ def skipped(name: str) -> str:
 FLOWS = {"ledh": "LEDH", "edh": "EDH", "gromov": "Gromov", "geodesic": "Geodesic", "osd": "OSD"}
 LABELS = {"kf": "KF", "ekf": "EKF", "ukf": "UKF", "bpf": "BPF", "pfgspf": "PFGSPF", "gspf": "GSPF",
           **{f: f"PF-PF({n})" for f, n in FLOWS.items()}, **{f"flow_{f}": f"{n} flow" for f, n in FLOWS.items()}}
+#: key -> (class, constructor settings, whether it takes ``n_particles``)
+FILTERS = {"kf": (KalmanFilter, {}, False), "ekf": (ExtendedKalmanFilter, {}, False),
+           "ukf": (UnscentedKalmanFilter, {}, False), "bpf": (BootstrapParticleFilter, {}, True),
+           "gspf": (GaussianSumParticleFilter, {}, False), "pfgspf": (ParticleFlowGaussianSumParticleFilter, {}, False),
+           **{f: (ParticleFlowParticleFilter, dict(flow=f), True) for f in FLOWS},
+           **{f"flow_{f}": (ParticleFlowFilter, dict(flow=f), True) for f in FLOWS}}
 
 
 def make_filter(key: str, model, n_particles: Optional[int] = None, **kw):
-    """The torchflow filter a benchmark calls ``key``: ``kf``, ``ekf``, ``ukf``, ``bpf``, a PF-PF
-    by its flow (``ledh``, ``edh``, ``gromov``, ``geodesic``, ``osd``; ``pfpf_<flow>`` too), a
-    particle flow filter without weights (``flow_<flow>``), ``gspf`` or ``pfgspf`` (pass
-    ``n_components`` and ``particles_per_component``). ``kw`` go to the constructor."""
-    key = str(key).removeprefix("pfpf_")
-    n = {} if n_particles is None else dict(n_particles=int(n_particles))
-    if key in ("kf", "ekf", "ukf"):
-        return {"kf": KalmanFilter, "ekf": ExtendedKalmanFilter, "ukf": UnscentedKalmanFilter}[key](model, **kw)
-    if key == "bpf":
-        return BootstrapParticleFilter(model, **n, **kw)
-    if key in FLOWS:
-        return ParticleFlowParticleFilter(model, flow=key, **n, **kw)
-    if key.startswith("flow_") and key[5:] in FLOWS:
-        return ParticleFlowFilter(model, flow=key[5:], **n, **kw)
-    if key in ("gspf", "pfgspf"):
-        cls = GaussianSumParticleFilter if key == "gspf" else ParticleFlowGaussianSumParticleFilter
-        return cls(model, **kw)
-    raise ValueError(f"make_filter: unknown filter {key!r}; expected one of {', '.join(LABELS)}")
+    """The filter :data:`FILTERS` calls ``key`` (``pfpf_<flow>``: ``<flow>``); ``kw`` go to its constructor."""
+    if str(key).removeprefix("pfpf_") not in FILTERS:
+        raise ValueError(f"make_filter: unknown filter {key!r}; expected one of {', '.join(LABELS)}")
+    cls, settings, particles = FILTERS[str(key).removeprefix("pfpf_")]
+    n = dict(n_particles=int(n_particles)) if particles and n_particles is not None else {}
+    return cls(model, **settings, **n, **kw)
 
 
 def keys_option(text: str, allowed: Iterable[str], option: str = "--filters") -> List[str]:
     """Comma list of names, each one of ``allowed`` (else ``SystemExit`` naming the option)."""
-    allowed = list(allowed)
-    keys = [k.strip() for k in str(text).split(",") if k.strip()]
+    allowed, keys = list(allowed), [k.strip() for k in str(text).split(",") if k.strip()]
     bad = [k for k in keys if k not in allowed]
     if bad or not keys:
         raise SystemExit(f"{option}: unknown {bad or keys!r}; expected a subset of {','.join(allowed)}")
     return keys
 
 
-def parser(doc: str, quick: str = "smoke-test sizes") -> argparse.ArgumentParser:
-    """A benchmark's argument parser (``doc`` its description), with ``--quick`` and ``--out``."""
+def _value(text: str):
+    """An option's value: an int, else a float, else the text."""
+    for cast in (int, float):
+        with contextlib.suppress(ValueError):
+            return cast(text)
+    return text
+
+
+def options(doc: str, argv: Optional[Sequence[str]], quick: Optional[dict] = None, **defaults) -> argparse.Namespace:
+    """A benchmark's options from ``argv``: ``--quick``, ``--out`` and ``--<name>`` per item of
+    ``defaults`` (``False``: a flag; else an int, float or text); with ``--quick``, ``quick``'s items
+    replace the defaults of options not given."""
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help=quick)
-    ap.add_argument("--out", default=None, help="results file (.md or .json; the other is written beside it; "
-                                                "default: results_<name>[_quick].md in experiments/benchmarks)")
-    return ap
+    ap.add_argument("--quick", action="store_true", help=f"smoke test: {quick}")
+    ap.add_argument("--out", default=None, help="results file (.md or .json; the other is written beside it)")
+    for k, v in defaults.items():
+        name = "--" + k.replace("_", "-")
+        if v is False:
+            ap.add_argument(name, action="store_true")
+        else:
+            ap.add_argument(name, type=_value, default=None, help=f"default {v}")
+    a = ap.parse_args(argv)
+    for k, v in defaults.items():
+        if getattr(a, k) is None:
+            setattr(a, k, (quick or {}).get(k, v) if a.quick else v)
+    return a
+
+
+def ints(text, option: str) -> List[int]:
+    """``"200,1e4"`` (or one number) -> ``[200, 10000]``, each >= 1 (else ``SystemExit`` naming the option)."""
+    try:
+        vals = [int(float(v)) for v in str(text).split(",") if v.strip()]
+    except ValueError:
+        raise SystemExit(f"{option}: expected comma-separated integers, got {text!r}") from None
+    if not vals or min(vals) < 1:
+        raise SystemExit(f"{option}: expected positive integers, got {text!r}")
+    return vals
+
+
+@contextlib.contextmanager
+def session(name: str, argv, threads: Optional[int] = None, device=None, **extra):
+    """Run with ``threads`` torch threads; yields the :func:`machine` (``load_end`` set on exit)."""
+    with torch_threads(threads):
+        info = machine(device, command=command(name, argv), **extra)
+        yield info
+        info["load_end"] = loadavg()
+
+
+def report(title: str, a, info: dict, intro: Sequence[str], head: Sequence[str], rows: Iterable[Sequence],
+           *more: str) -> str:
+    """Markdown of a run: :func:`header` (``intro`` its lines), the table, then ``more`` lines."""
+    lines = header(title, a.quick, info, *intro) + md_table(head, rows) + ([""] if more else []) + list(more)
+    return "\n".join(lines) + "\n"
 
 
 def fmt(x, spec: str = "{:.3g}") -> str:
     """``spec.format(x)``, ``-`` for None or nan (an infinity prints as ``inf``)."""
     if x is None or (isinstance(x, float) and math.isnan(x)):
         return "-"
-    if isinstance(x, float) and math.isinf(x):
-        return str(x)
-    return spec.format(x)
+    return str(x) if isinstance(x, float) and math.isinf(x) else spec.format(x)
 
 
 def met_cell(met: Optional[bool]) -> str:
@@ -297,9 +307,7 @@ def results_path(name: str, quick: bool = False, out: Optional[str] = None) -> P
 
 
 def write_results(res: dict, name: str, quick: bool = False, out: Optional[str] = None) -> Path:
-    """Write ``res["markdown"]`` to ``out`` (default ``results_<name>[_quick].md`` in this folder;
-    a ``.json`` ``out`` puts the markdown beside it) and the rest of ``res`` as JSON next to it;
-    print the markdown. A ``--quick`` smoke test never overwrites the full results."""
+    """Write and print ``res["markdown"]`` (:func:`results_path`) and the rest of ``res`` as JSON beside it."""
     path = results_path(name, quick, out)
     md = path.with_suffix(".md") if path.suffix == ".json" else path
     md.parent.mkdir(parents=True, exist_ok=True)
@@ -312,8 +320,7 @@ def write_results(res: dict, name: str, quick: bool = False, out: Optional[str] 
 
 
 def main(run: Callable[[list], dict], name: str, argv: Optional[Sequence[str]] = None) -> dict:
-    """Command-line entry of a benchmark: ``run(argv)``, then its results files (``--quick`` and
-    ``--out`` read back from the returned ``args``)."""
+    """Command-line entry of a benchmark: ``run(argv)``, then its results files."""
     try:
         res = run(list(sys.argv[1:] if argv is None else argv))
     except CheckFailed as exc:

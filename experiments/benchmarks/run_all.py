@@ -1,36 +1,15 @@
-"""The whole benchmark suite in one command: peers side by side, PF-PF family, GFLOP/s, large-N memory
-runs, float32 accuracy and scaling curves.
+"""The whole benchmark suite in one command; each section is a module of this folder,
+``python -m experiments.benchmarks.bench_<section>``, with its own options.
 
     pip install -e ".[bench]"                                   # filterpy, particles, stonesoup, matplotlib
     python -m experiments.benchmarks.run_all                    # everything (~20-25 min on 2 CPU cores)
-    python -m experiments.benchmarks.run_all --quick            # smoke test of every section (~2 min)
-    python -m experiments.benchmarks.run_all --only foundation,acoustic
     python -m experiments.benchmarks.run_all --only acoustic --merge   # rerun one section, keep the rest
 
-Sections (each is also a module of its own in this folder, ``python -m experiments.benchmarks.bench_<section>``,
-with its own options and docstring; a peer library that is not installed gives ``skipped`` rows):
-
-* ``foundation`` (``bench_foundation.py``): Kalman filter and UKF vs filterpy, bootstrap PF vs
-  ``particles`` (LG sensor network d = 64, N = 200 and 1e4);
-* ``acoustic`` (``bench_acoustic.py``): Gromov flow filter, PF-PF(Gromov), PF-PF(LEDH) and BPF vs
-  Stone Soup's GromovFlowParticleUpdater and bootstrap ParticleUpdater (acoustic, N = 500);
-* ``pfpf`` (``bench_pfpf.py``): the PF-PF family side by side (acoustic, N = 500);
-* ``flops`` (``bench_flops.py``): PF-PF(LEDH) achieved GFLOP/s vs measured matrix-product throughput;
-* ``memory`` (``bench_memory.py``): BPF with 1e6 particles and PF-PF(LEDH) with 1e4 under a memory budget;
-* ``float32`` (``bench_float32.py``): float32 accuracy against float64 on the LG and acoustic tables;
-* ``scaling`` (``bench_scaling.py``): time per trial-step against N, d and B (plot);
-* ``streams`` (``bench_streams.py``): the cost of per-trial random streams against one generator per call;
-* ``gaussian_sum`` (``bench_gaussian_sum.py``): PFGSPF (G = 5 x 200) against PF-PF(LEDH), GSPF and BPF
-  with the same total particles on the skewed-t model, d = 144 (a few minutes).
-
-Writes ``experiments/benchmarks/results_all.md`` (``results_all_quick.md`` with ``--quick``): a
-headline table of every goal ratio, then each section's own report; each section also writes its
-own ``results_<section>.md``/``.json`` (and the scaling PNG). A section that fails is reported as
-failed (with the error) and the others still run: nothing is lost.
+Writes ``results_all[_quick].md``: a table of every goal, then each section's report (each section also
+writes its own results files); a section that fails is reported and the others still run.
 """
 from __future__ import annotations
 
-import argparse
 import importlib
 import json
 import sys
@@ -45,13 +24,11 @@ SECTIONS = ["foundation", "acoustic", "pfpf", "flops", "memory", "float32", "sca
 
 def _headline(results: dict) -> list:
     """Rows (benchmark, ours, peer, ratio, goal, met) of every goal the issue states."""
-    rows = []
-    for r in results.get("foundation", {}).get("rows", []):
-        rows.append((r["name"], r.get("setting", ""), r["per_ts_ours"], r["per_ts_peer"], r["ratio"], r.get("goal"),
-                     r.get("met")))
+    rows = [(r["name"], r.get("setting", ""), r["per_ts_ours"], r["per_ts_peer"], r["ratio"], r.get("goal"),
+             r.get("met")) for r in results.get("foundation", {}).get("rows", [])]
     ac = results.get("acoustic", {}).get("rows", [])
-    ref = next((r for r in ac if r["name"].startswith("GromovFlowParticleUpdater") and r.get("per_ts")), None)
-    boot = next((r for r in ac if r["name"].startswith("ParticleUpdater") and r.get("per_ts")), None)
+    ref, boot = (next((r for r in ac if r["name"].startswith(p) and r.get("per_ts")), None)
+                 for p in ("GromovFlowParticleUpdater", "ParticleUpdater"))
     for r in ac:
         if r["side"] == "ours" and ref is not None:
             rows.append((f"{r['name']} vs Stone Soup Gromov", "acoustic N=500",
@@ -63,31 +40,19 @@ def _headline(results: dict) -> list:
 
 
 def run(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--only", default=",".join(SECTIONS), help="comma list of sections")
-    ap.add_argument("--skip", default="", help="comma list of sections to leave out")
-    ap.add_argument("--quick", action="store_true", help="pass --quick to every section")
-    ap.add_argument("--merge", action="store_true",
-                    help="include the saved results_<section>.md/.json of the sections not run now")
-    ap.add_argument("--out", default=None)
-    a = ap.parse_args(argv)
+    a = h.options(__doc__, argv, None, only=",".join(SECTIONS), skip="", merge=False)  # merge: saved sections too
     chosen = [s for s in a.only.split(",") if s and s not in a.skip.split(",")]
     for s in chosen:
         if s not in SECTIONS:
             raise SystemExit(f"--only/--skip: unknown section {s!r}; expected some of {SECTIONS}")
     results, failures, times = {}, {}, {}
     for s in chosen:
-        mod = importlib.import_module(f".bench_{s}", __package__)
-        sub = ["--quick"] if a.quick else []
         t0 = time.perf_counter()
         print(f"=== {s} ===", flush=True)
         try:
-            res = mod.run(sub)
-            results[s] = res
-            h.write_results(res, s, a.quick)
-        except BaseException as exc:  # a failing section must not lose the others' results
-            if isinstance(exc, KeyboardInterrupt):
-                raise
+            results[s] = importlib.import_module(f".bench_{s}", __package__).run(["--quick"] if a.quick else [])
+            h.write_results(results[s], s, a.quick)
+        except (Exception, SystemExit) as exc:  # a failing section must not lose the others' results
             failures[s] = "".join(traceback.format_exception_only(type(exc), exc)).strip()
             print(f"[{s}] FAILED: {failures[s]}", flush=True)
         times[s] = time.perf_counter() - t0
@@ -105,15 +70,11 @@ def run(argv=None) -> dict:
         [[name, setting, h.fmt(ours, "{:.4g}"), h.fmt(peer, "{:.4g}"), h.fmt(ratio, "{:.1f}x"),
           h.fmt(goal, ">= {:.0f}x"), h.met_cell(met)]
          for name, setting, ours, peer, ratio, goal, met in _headline(results)])
-    lines.append("")
-    lines.append("Section times: " + ", ".join(f"{s} {t:.0f} s" for s, t in times.items()))
-    for s, msg in failures.items():
-        lines.append(f"- section **{s} FAILED**: `{msg[-400:]}`")
-    lines.append("")
-    for s in chosen:
-        if s in results:
-            lines += [results[s]["markdown"].replace("\n## ", "\n### ").replace("## ", "## ", 1), ""]
-        if s == "scaling" and s in results and results[s].get("plot"):
+    lines += ["", "Section times: " + ", ".join(f"{s} {t:.0f} s" for s, t in times.items())]
+    lines += [f"- section **{s} FAILED**: `{msg[-400:]}`" for s, msg in failures.items()] + [""]
+    for s in (s for s in chosen if s in results):
+        lines += [results[s]["markdown"].replace("\n## ", "\n### "), ""]
+        if results[s].get("plot"):  # the scaling curves
             lines += [f"![scaling curves]({Path(results[s]['plot']).name})", ""]
     md = "\n".join(lines) + "\n"
     out = h.results_path("all", a.quick, a.out)

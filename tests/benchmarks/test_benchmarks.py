@@ -25,7 +25,7 @@ def test_time_calls_counts_warmups_repeats_and_budget():
 
     t = harness.time_calls(sleepy, repeats=3, warmup=2)
     assert len(calls) == 5 and len(t.times) == 3 and t.result == 5
-    assert 0.009 < t.min <= t.median <= max(t.times) < 1.0
+    assert 0.009 < t.min <= t.mean <= max(t.times) < 1.0
     calls.clear()
     t = harness.time_calls(sleepy, budget=0.035, max_repeats=50)
     assert sum(t.times) >= 0.035 > sum(t.times[:-1]) and len(t.times) >= 2  # until the budget is spent
@@ -193,7 +193,7 @@ def test_streams_bench_micro(monkeypatch):
     assert "| BPF, LG d=64, N=200 | 2 x 2 |" in res["markdown"]
 
 
-def test_float32_bench_micro(tmp_path):
+def test_float32_bench_micro():
     res = bench_float32.run(["--tables", "lg", "--filters", "kf,bpf", "--lg-trials", "3", "--steps-lg", "2",
                              "--lg-d", "4", "--particles-lg", "20", "--quiet"])
     kf, bpf = res["rows"]
@@ -202,9 +202,6 @@ def test_float32_bench_micro(tmp_path):
     assert bpf["n_particles"] == 20 and set(bpf["metrics"]) == {"mse", "log_evidence_relmse", "ess"}
     assert bpf["verdict"] in ("ok", "degraded", "breaks") and (bpf["verdict"] == "ok") == (bpf["reason"] == "")
     assert "| KF | - | " in res["markdown"] and "Kalman-type filters point by point" in res["markdown"]
-    (tmp_path / "a.json").write_text(json.dumps({k: v for k, v in res.items() if k != "markdown"}, default=str))
-    merged = bench_float32.run(["--merge", str(tmp_path / "a.json"), str(tmp_path / "a.json")])
-    assert len(merged["rows"]) == 4 and merged["markdown"].count("| KF | - | ") == 2
 
 
 def test_flops_bench_micro(monkeypatch):
