@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from typing import Callable, Dict, Mapping, Optional, Tuple
+from typing import Callable, Dict, Optional, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -321,7 +321,7 @@ def residual(log_weights: Tensor, generator: Optional[torch.Generator] = None, *
     return torch.where(j < n_det, det_idx, rand_idx)
 
 
-RESAMPLERS: Mapping[str, ResampleFn] = registry.table("resampling")
+RESAMPLERS: Dict[str, ResampleFn] = registry.table("resampling")
 """The resampling schemes of :data:`torchflow.registry.REGISTRY`, name -> ``fn(log_weights, generator=None)``."""
 
 
