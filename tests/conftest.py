@@ -4,6 +4,9 @@ import pytest
 import torch
 
 from torchflow.models import AcousticTracking, LinearGaussian, SensorNetwork
+from torchflow.registry import register_configs
+
+register_configs()  # the signature nodes configs/ extend (tests compose the configs without the command line)
 
 
 def random_lg(d=3, m=2, seed=0, learnable=False, prior=True):

@@ -29,6 +29,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from . import tuning
+from .registry import register_configs
 from .runner import STOP, config as rc, figures, writers
 from .runner.errors import ConfigError
 from .runner.labels import row_label
@@ -270,6 +271,9 @@ def _job(cfg: DictConfig) -> int:
         if _multirun():
             _record_failure(message)
         return code
+
+
+register_configs()  # the signature nodes the component configs extend (at import: sweep workers compose too)
 
 
 @hydra.main(config_path=rc.config_source(), config_name="config", version_base="1.3")

@@ -38,7 +38,7 @@ from typing import Callable, Dict, Optional, Tuple
 import torch
 from torch import Tensor, nn
 
-from . import random as _random
+from . import random as _random, registry
 from ._checks import check_float_tensor, shape_str
 from .linalg import standard_normal
 
@@ -321,21 +321,12 @@ def residual(log_weights: Tensor, generator: Optional[torch.Generator] = None, *
     return torch.where(j < n_det, det_idx, rand_idx)
 
 
-RESAMPLERS: Dict[str, ResampleFn] = {
-    "multinomial": multinomial,
-    "systematic": systematic,
-    "stratified": stratified,
-    "residual": residual,
-}
-"""Registry of resampling schemes, name -> ``fn(log_weights, generator=None)``."""
+RESAMPLERS: Dict[str, ResampleFn] = registry.table("resampling")
+"""The resampling schemes of :data:`torchflow.registry.REGISTRY`, name -> ``fn(log_weights, generator=None)``."""
 
 
 def _get_resampler(name: object, arg_name: str) -> ResampleFn:
-    if not isinstance(name, str) or name not in RESAMPLERS:
-        raise ValueError(
-            f"{arg_name}: expected one of {sorted(RESAMPLERS)}, got {name!r}"
-        )
-    return RESAMPLERS[name]
+    return registry.lookup("resampling", name, arg_name)
 
 
 def get_resampler(name: str) -> ResampleFn:

@@ -15,18 +15,16 @@ from typing import Optional
 
 import torch
 
-from .. import linalg
-from ..flows import (EDHFlow, FlowPrior, GeodesicFlow, GromovFlow, LEDHFlow, OptimalDiffusionFlow, ParticleFlow,
-                     integrate_flow, resolve_points)
+from .. import linalg, registry
+from ..flows import FlowPrior, LEDHFlow, ParticleFlow, integrate_flow, resolve_points
 from ..flows.points import ClusteredPoints, flow_points_per_call
 from ..schedules import ExponentialSchedule, LambdaSchedule
 from ..trackers import tracker
 from .._blocks import blockwise
 from .base import Proposal, Proposed
 
-#: flows by config name
-FLOWS = {"edh": EDHFlow, "ledh": LEDHFlow, "geodesic": GeodesicFlow, "gromov": GromovFlow,
-         "osd": OptimalDiffusionFlow}
+#: flows by config name (:data:`torchflow.registry.REGISTRY`)
+FLOWS = registry.table("flow")
 
 
 def resolve_flow(flow, default=LEDHFlow) -> ParticleFlow:
