@@ -161,7 +161,7 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
                  f"{sum(store.computed.values())} computed")
     lo, hi = result.config["trial_range"]
     which = f"{cfg.trials} trials" if (lo, hi) == (0, cfg.trials) else f"trials {lo}..{hi - 1} of {cfg.trials}"
-    log.info(f"\n{model_name}: {which} x {cfg.steps} steps, seed {cfg.seed}, {cfg.device}/{cfg.dtype}")
+    log.info(f"\n{model_name}: {which} x {result.config['steps']} steps, seed {cfg.seed}, {cfg.device}/{cfg.dtype}")
     log.info(format_table(result.summary))
     _report_failures(result.summary, result.failures)
     writer.attempt("the result files", writers.write_run, out, result, OmegaConf.to_container(cfg, resolve=True))
@@ -178,46 +178,12 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
     return 1 if (result.failed or writer.failed) else 0
 
 
-def _run_localisation(cfg, model, localisers, out: Path) -> int:
-    """Seed 002's scene: runs x localisers, OSPA per run, the table, CSVs and a 3-D picture of run 0."""
-    from .localisation import LOCALISATION_COLUMNS, run_localisation, scene_figure
-    from .runner import format_table
-
-    bad = [k for k, f in localisers.items() if not hasattr(f, "method")]
-    if bad:
-        raise ConfigError(f"filter: {', '.join(bad)} cannot run on the TDOA model; select localisers "
-                          "(bs, pfi_d, pfi_s, pfi_os)")
-    writer = _Output(out)
-    summary, per_run, data, examples = run_localisation(
-        model, localisers, runs=cfg.trials, seed=cfg.seed, ospa_cutoff=float(cfg.metrics.ospa_cutoff),
-        ospa_order=float(cfg.metrics.ospa_order), device=cfg.device, dtype=cfg.dtype,
-        rng_backend=cfg.rng_backend, progress=cfg.progress,
-        on_filter_done=lambda rows: writer.partial_summary(rows, LOCALISATION_COLUMNS))
-    log.info(f"\nTDOA3D: {cfg.trials} runs, seed {cfg.seed}, {cfg.device}/{cfg.dtype}, OSPA cut-off "
-             f"{cfg.metrics.ospa_cutoff:g} m")
-    log.info(format_table(summary, LOCALISATION_COLUMNS))
-    _report_failures(summary, {})
-    writer.attempt("summary.csv", writers.write_csv, out / "summary.csv", summary, LOCALISATION_COLUMNS)
-    writer.attempt("per_trial.csv", writers.write_csv, out / "per_trial.csv", per_run)
-    writer.attempt("results.json", writers.write_json, out / "results.json",
-                   {"config": OmegaConf.to_container(cfg, resolve=True), "summary": summary})
-    plt = figures.pyplot() if cfg.plots else None
-    if plt is not None:
-        writer.attempt("scene.png", lambda: figures.save_figure(plt, scene_figure(
-            plt, model, data.sources[0], examples, "TDOA3D: run 0, true and declared sources"), out / "scene.png"))
-    if writer.failed is None:
-        log.info(f"results: {os.path.relpath(out)}")
-    failed = any(r.get("error") and not r["error"].startswith(("interrupted", "not run")) for r in summary)
-    return 1 if (failed or writer.failed) else 0
-
-
 def _plain(v):
     return OmegaConf.to_container(v) if OmegaConf.is_config(v) else v
 
 
 def run_job(cfg: DictConfig) -> int:
     """One job: check the config, build, run, write; the exit status."""
-    from .models import TDOA3D
     from .runner.distributed import Shard
 
     rc.check_config(cfg, HydraConfig.get().runtime.choices)
@@ -234,10 +200,6 @@ def run_job(cfg: DictConfig) -> int:
             out.mkdir(parents=True, exist_ok=True)
             writers.clear_results(out)  # a reused folder (overwrite=true / resume=true) keeps no old file
         model, filters, labels = build(cfg)
-        if isinstance(model, TDOA3D):
-            if shard.world > 1 or cfg.resume:
-                raise ConfigError("resume=true and torchrun apply to filter runs, not to the TDOA localisers")
-            return _run_localisation(cfg, model, filters, out)
         return _run_filters(cfg, model, filters, labels, out, shard)
 
 

@@ -27,11 +27,11 @@ batched over runs x POs x components x measurements x samples (in memory-bounded
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 from typing import Optional
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from . import linalg
@@ -40,6 +40,7 @@ from .flows import EDHFlow, GromovFlow, OptimalDiffusionFlow
 from .proposals import FlowedMixtureProposal
 from .models.tdoa import TDOA3D
 from .random import check_generator, uniform
+from .resampling import systematic
 from .schedules import GeometricSchedule, LambdaSchedule
 
 METHODS = ("pfi_d", "pfi_s", "pfi_os")
@@ -76,58 +77,111 @@ class POState:
 
 @dataclass
 class Localisation:
-    """Result of :meth:`FlowMixtureLocaliser.forward`: the declared sources ``positions (B, K, 3)``
-    with ``declared (B, K)``, the final :class:`POState`, and ``underflow (B, S, M)``: the
-    (run, sensor, measurement) triples at which every component's weight underflowed (the
-    measurement was then treated as clutter, not turned into NaN)."""
+    """Result of a localiser's ``forward``: after each sensor, the POs' positions ``estimates (B, S,
+    K, 3)`` (K = ``max_objects`` slots, empty ones 0) and which are declared sources,
+    ``estimate_mask (B, S, K)``; the final :class:`POState`; ``underflow (B, S, M)``: the (run,
+    sensor, measurement) triples at which every component's weight underflowed (the measurement was
+    then treated as clutter, not turned into NaN). :attr:`positions` and :attr:`declared` are the
+    final ``(B, K, 3)`` and ``(B, K)``."""
 
-    positions: torch.Tensor
-    declared: torch.Tensor
+    estimates: torch.Tensor
+    estimate_mask: torch.Tensor
+    underflow: torch.Tensor
     state: POState
-    underflow: Optional[torch.Tensor] = None
 
-    def underflow_report(self, run_offset: int = 0) -> list:
-        """``"run b, sensor s, measurement m"`` strings of every underflow (reads the mask on the
-        host: call it after the run, not inside one)."""
-        if self.underflow is None:
-            return []
-        return [f"run {b + run_offset}, sensor {s}, measurement {m}"
-                for b, s, m in torch.nonzero(self.underflow).tolist()]
+    @property
+    def positions(self) -> torch.Tensor:
+        return self.estimates[:, -1]
 
-
-def _check_common(model, **kw):
-    if not isinstance(model, TDOA3D):
-        raise TypeError(f"model: expected a torchflow TDOA3D, got {type(model).__name__}")
-    if model.clutter_rate <= 0:
-        raise ValueError(f"model.clutter_rate: BP divides by the clutter intensity; expected > 0, got "
-                         f"{model.clutter_rate}")
-    for name in ("n_components", "samples_per_component", "n_particles", "birth_per_axis", "max_objects",
-                 "bp_iterations", "sample_chunk"):
-        v = kw.get(name, 1)
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-            raise ValueError(f"{name}: expected a positive integer, got {v!r}")
-    for name in ("prune", "declare"):
-        v = kw.get(name, 0.0)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= float(v) < 1.0:
-            raise ValueError(f"{name}: expected a probability in [0, 1), got {v!r}")
-    v = kw.get("birth_rate", 1.0)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not float(v) > 0:
-        raise ValueError(f"birth_rate: expected > 0, got {v!r}")
+    @property
+    def declared(self) -> torch.Tensor:
+        return self.estimate_mask[:, -1]
 
 
-def _forward(self, z: torch.Tensor, mask: torch.Tensor, generator) -> "Localisation":
-    """Localise from measurements ``z (B, S, M)`` with ``mask`` (:class:`~torchflow.models.TDOAData`),
-    processing the sensors in order; ``generator``: a ``torch.Generator`` or per-run
-    :class:`~torchflow.random.TrialStreams`."""
-    self.model.check_measurements(z, mask)
-    check_generator(generator, "generator")
-    state = self.init(z.shape[0], z.dtype, z.device)
-    underflow = []
-    for s in range(z.shape[1]):  # sequential processing of the sensors
-        state = self.update(state, z[:, s], mask[:, s], s, generator)
-        underflow.append(state.underflow)
-    declared = state.mask & (state.existence > self.declare)
-    return Localisation(state.positions, declared, state, torch.stack(underflow, 1) if underflow else None)
+def _count(name, v):
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        raise ValueError(f"{name}: expected a positive integer, got {v!r}")
+    return v
+
+
+def _probability(name, v):
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= float(v) < 1.0:
+        raise ValueError(f"{name}: expected a probability in [0, 1), got {v!r}")
+    return float(v)
+
+
+class _Localiser(nn.Module):
+    """What both localisers share: the settings of BP, pruning and declaration, the run over the
+    sensors (:meth:`forward`) and what the runner (:mod:`torchflow.runner`) reads.
+
+    A localiser's draws depend on the padded number of measurements of its batch (it flows and
+    samples every (PO, component, measurement) row, and keeps ``min(max_objects, K + M)`` PO slots),
+    so a run localised in a batch of several would draw other numbers than alone. Per-run draws
+    that do not depend on the padding would need streams of different lengths per run, which
+    :class:`~torchflow.random.TrialStreams` does not have. So a localiser declares
+    ``trials_per_call = 1``: the runner gives it one run per chunk (whatever ``chunk_size``), and
+    :meth:`forward` trims its batch to its last real measurement column (with the simulator's
+    padding last: the run's largest number of measurements per sensor). A run's numbers then
+    depend only on the scene, the seed and its index, never on the chunking.
+    """
+
+    #: measurement sets padded with a mask (:class:`~torchflow.models.TDOA3D`)
+    padded_measurements = True
+    #: runs per call (see the class docstring)
+    trials_per_call = 1
+    method: str
+
+    def __init__(self, model: TDOA3D, *, birth_rate, max_objects, prune, declare, bp_iterations, sample_chunk,
+                 name):
+        super().__init__()
+        if not isinstance(model, TDOA3D):
+            raise TypeError(f"model: expected a torchflow TDOA3D, got {type(model).__name__}")
+        if model.clutter_rate <= 0:
+            raise ValueError(f"model.clutter_rate: BP divides by the clutter intensity; expected > 0, got "
+                             f"{model.clutter_rate}")
+        if isinstance(birth_rate, bool) or not isinstance(birth_rate, (int, float)) or not float(birth_rate) > 0:
+            raise ValueError(f"birth_rate: expected > 0, got {birth_rate!r}")
+        self.model, self.name = model, name or type(self).__name__
+        self.birth_rate, self.prune, self.declare = float(birth_rate), _probability("prune", prune), \
+            _probability("declare", declare)
+        self.max_objects, self.bp_iterations = _count("max_objects", max_objects), _count("bp_iterations", bp_iterations)
+        self.sample_chunk = _count("sample_chunk", sample_chunk)
+
+    @property
+    def stream_name(self) -> str:
+        """Key of the per-run random streams: ``localise_<method>``."""
+        return f"localise_{self.method}"
+
+    def bytes_per_trial(self) -> int:
+        """Rough peak memory of one run: a pass of ``sample_chunk`` numbers and its intermediates."""
+        return 8 * 8 * self.sample_chunk
+
+    def preferred_chunk_trials(self) -> int:
+        return self.trials_per_call
+
+    def forward(self, observations: torch.Tensor, mean=None, cov=None, generator=None, *, mask: torch.Tensor,
+                progress=None) -> Localisation:
+        """Localise from measurements ``observations (B, S, M)`` with ``mask`` (bool, same shape;
+        :class:`~torchflow.models.TDOAData`), processing the sensors in order. ``generator``: a
+        ``torch.Generator`` or per-run :class:`~torchflow.random.TrialStreams`. ``mean``, ``cov``
+        (the runner's prior per run) are not used: a localiser starts from no PO and its new
+        sources come from its birth density. ``progress``: called after each sensor."""
+        self.model.check_measurements(observations, mask)
+        check_generator(generator, "generator")
+        W = mask.shape[-1]  # trimmed to the batch's last real column: one read, before the sensors
+        M = int((mask.flatten(0, 1).any(0) * torch.arange(1, W + 1, device=mask.device)).max()) if mask.numel() else 0
+        z, zm = observations[..., :M], mask[..., :M]
+        state = self.init(z.shape[0], z.dtype, z.device)
+        est, declared, underflow = [], [], []
+        for s in range(z.shape[1]):  # sequential processing of the sensors
+            state = self.update(state, z[:, s], zm[:, s], s, generator)
+            pad = (0, self.max_objects - state.mask.shape[1])  # a fixed number of slots in the results
+            est.append(F.pad(state.positions, (0, 0, *pad)))
+            declared.append(F.pad(state.mask & (state.existence > self.declare), pad))
+            underflow.append(F.pad(state.underflow, (0, observations.shape[-1] - M)))
+            if progress is not None:
+                progress()
+        return Localisation(torch.stack(est, 1), torch.stack(declared, 1), torch.stack(underflow, 1), state)
 
 
 def _underflow(log_Ib: torch.Tensor, log_Ik: torch.Tensor, log_cf, po_mask: torch.Tensor, z_mask: torch.Tensor):
@@ -149,7 +203,7 @@ def birth_mixture(region: float, per_axis: int, sd_factor: float = 0.5, dtype=to
     return grid, torch.eye(3, dtype=dtype, device=device) * (sd_factor * w)
 
 
-class FlowMixtureLocaliser(nn.Module):
+class FlowMixtureLocaliser(_Localiser):
     """BP localisation with flowed-mixture importance sampling (module docstring).
 
     Args:
@@ -182,14 +236,11 @@ class FlowMixtureLocaliser(nn.Module):
                  max_objects: int = 30, prune: float = 1e-3, declare: float = 0.5, bp_iterations: int = 20,
                  jitter: float = 1e-6, sample_chunk: int = 20_000_000, evaluate_at: str = "end",
                  name: Optional[str] = None):
-        super().__init__()
-        self.name = name or type(self).__name__
-        _check_common(model, n_components=n_components, samples_per_component=samples_per_component,
-                      birth_per_axis=birth_per_axis, max_objects=max_objects, bp_iterations=bp_iterations,
-                      sample_chunk=sample_chunk, prune=prune, declare=declare, birth_rate=birth_rate)
+        super().__init__(model, birth_rate=birth_rate, max_objects=max_objects, prune=prune, declare=declare,
+                         bp_iterations=bp_iterations, sample_chunk=sample_chunk, name=name)
         if method not in METHODS:
             raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
-        self.model, self.method = model, method
+        self.method = method
         if method == "pfi_d":
             self.flow = EDHFlow()
         elif method == "pfi_s":
@@ -200,13 +251,17 @@ class FlowMixtureLocaliser(nn.Module):
         if len(self.schedule) < 1:
             raise ValueError("schedule: expected at least one pseudo-time step, got an empty schedule")
         self.proposal = FlowedMixtureProposal(self.flow, self.schedule, ratio="component", evaluate_at=evaluate_at)
-        bm, bL = birth_mixture(model.region, birth_per_axis, birth_sd)
+        self.G = _count("n_components", n_components)
+        self.n_samples = _count("samples_per_component", samples_per_component)
+        bm, bL = birth_mixture(model.region, _count("birth_per_axis", birth_per_axis), birth_sd)
         self.register_buffer("birth_means", bm)
         self.register_buffer("birth_scale_tril", bL)
-        self.G, self.n_samples = n_components, samples_per_component
-        self.birth_rate, self.birth_per_axis, self.birth_sd = float(birth_rate), birth_per_axis, float(birth_sd)
-        self.max_objects, self.prune, self.declare = max_objects, float(prune), float(declare)
-        self.bp_iterations, self.jitter, self.sample_chunk = bp_iterations, float(jitter), sample_chunk
+        self.jitter = float(jitter)
+
+    @property
+    def n_particles(self) -> int:
+        """Samples per PO: components x samples per component."""
+        return self.G * self.n_samples
 
     # ---- one sensor --------------------------------------------------------------------------
     def _flowed_terms(self, log_w, means, L, z, s, generator):
@@ -302,133 +357,9 @@ class FlowMixtureLocaliser(nn.Module):
                        torch.zeros(B, 0, G, 3, dtype=dtype, device=device),
                        torch.zeros(B, 0, G, 3, 3, dtype=dtype, device=device))
 
-    forward = _forward
-
     def extra_repr(self) -> str:
         return (f"method={self.method!r}, n_components={self.G}, samples_per_component={self.n_samples}, "
                 f"schedule={self.schedule!r}")
-
-
-LOCALISATION_COLUMNS = ["filter", "n_particles", "trials", "ospa", "ospa_se", "declared", "true_sources",
-                        "sec_per_run", "underflows", "error"]
-
-
-def run_localisation(model: TDOA3D, localisers, *, runs: int = 10, seed: int = 0, ospa_cutoff: float = 30.0,
-                     ospa_order: float = 1.0, device="cpu", dtype="float64", rng_backend: str = "auto",
-                     progress: bool = True, on_filter_done=None):
-    """Simulate ``runs`` scenes once and localise them with every localiser (seed 002's tables).
-
-    The scenes are simulated together from ``seed`` (as the state-space runner simulates its
-    trajectories), so scene b depends on ``runs``. Each run is then localised alone, trimmed to its
-    own largest number of measurements per sensor, with its own random stream
-    (:class:`~torchflow.random.TrialStreams` keyed by seed, run and method): given the scenes, a
-    run's result does not depend on the other runs.
-    A localiser that raises does not stop the others: its row gets the error. Ctrl-C or SIGTERM
-    (with :data:`~torchflow.experiment.STOP`'s handler installed, as ``experiments/run.py`` does)
-    stops the run at once; the finished runs keep their rows, the interrupted localiser's summary
-    row covers them (``trials`` = runs finished) with the error "interrupted after n of N runs",
-    and later localisers get "not run: interrupted".
-
-    Returns:
-        ``(summary, per_run, data, examples)``: summary rows (:data:`LOCALISATION_COLUMNS`), one row
-        per localiser and run (``ospa``, ``declared``, ``sec``), the simulated :class:`TDOAData`
-        (CPU) and run 0's declared positions per localiser.
-    """
-    import time
-
-    from .experiment import STOP, resolve_device, resolve_dtype
-    from .metrics import ospa as ospa_metric
-    from .random import TrialStreams
-
-    dev, dt = resolve_device(device), resolve_dtype(dtype)
-    model.to(device=dev, dtype=dt)
-    data = model.simulate(int(runs), torch.Generator(device=dev).manual_seed(int(seed)))
-    counts = data.mask.sum(-1).amax(-1).tolist()  # per run: its own padding (one read, before any localiser)
-    summary, per_run, examples = [], [], {}
-    try:
-        from tqdm.auto import tqdm
-    except ImportError:  # pragma: no cover
-        tqdm = None
-    interrupted = False
-    for name, loc in localisers.items():
-        row = {c: None for c in LOCALISATION_COLUMNS}
-        if interrupted:  # an earlier localiser was interrupted: this one does not start
-            row.update(filter=name, trials=0, true_sources=model.n_sources, error="not run: interrupted")
-            summary.append(row)
-            continue
-        loc.to(device=dev, dtype=dt)
-        row.update(filter=name, trials=runs, true_sources=model.n_sources,
-                   n_particles=getattr(loc, "n_particles", None) or loc.G * loc.n_samples)
-        bar = tqdm(total=runs, unit="run", leave=False, desc=name) if progress and tqdm is not None else None
-        vals, decl, secs, under = [], [], [], []
-        try:
-            with torch.no_grad():
-                for b in range(runs):
-                    STOP.check()  # Ctrl-C / SIGTERM between runs (experiments/run.py installs the handler)
-                    M = int(counts[b])
-                    z, mask = data.z[b:b + 1, :, :M], data.mask[b:b + 1, :, :M]
-                    g = TrialStreams(seed, [b], key=f"localise_{loc.method}", backend=rng_backend)
-                    if dev.type == "cuda":
-                        torch.cuda.synchronize()
-                    t0 = time.perf_counter()
-                    with STOP.interruptible():
-                        res = loc(z, mask, g)
-                    if dev.type == "cuda":
-                        torch.cuda.synchronize()
-                    secs.append(time.perf_counter() - t0)
-                    o = ospa_metric(res.positions.unsqueeze(1).double(), data.sources[b:b + 1].unsqueeze(1).double(),
-                                    cutoff=ospa_cutoff, order=ospa_order, X_mask=res.declared.unsqueeze(1))
-                    vals.append(float(o))
-                    decl.append(int(res.declared.sum()))
-                    lost = res.underflow_report(run_offset=b)
-                    if lost:
-                        warnings.warn(f"{name}: every component's weight underflowed (measurement treated as "
-                                      f"clutter) at " + "; ".join(lost), RuntimeWarning, stacklevel=2)
-                    under.append(len(lost))
-                    per_run.append({"filter": name, "trial": b, "ospa": vals[-1], "declared": decl[-1], "sec": secs[-1],
-                                    "underflows": len(lost)})
-                    if b == 0:
-                        examples[name] = res.positions[0][res.declared[0]].cpu()
-                    if bar is not None:
-                        bar.update(1)
-        except KeyboardInterrupt:  # keep the finished runs; the localisers after this one do not start
-            interrupted = True
-            row["error"] = f"interrupted after {len(vals)} of {runs} runs"
-        except Exception as e:  # one failing localiser must not lose the others' results
-            row["error"] = f"{type(e).__name__}: {e}"
-        if bar is not None:
-            bar.close()
-        if vals:
-            v = torch.tensor(vals, dtype=torch.float64)
-            row.update(trials=len(vals), ospa=float(v.mean()),
-                       ospa_se=float(v.std() / math.sqrt(len(vals))) if len(vals) > 1 else None, declared=sum(decl) / len(decl), sec_per_run=sum(secs) / len(secs), underflows=sum(under))
-        summary.append(row)
-        if on_filter_done is not None:
-            on_filter_done(summary)
-    cpu = type(data)(*(t.cpu() for t in (data.sources, data.z, data.mask, data.origin)))
-    return summary, per_run, cpu, examples
-
-
-def scene_figure(plt, model: TDOA3D, sources: torch.Tensor, examples: dict, title: str):
-    """A 3-D picture of one run: receivers, true sources and every localiser's declared sources."""
-    fig = plt.figure(figsize=(6.5, 5.5))
-    ax = fig.add_subplot(projection="3d")
-    rec = model.receivers.cpu()
-    ax.scatter(*rec.T, marker="s", s=40, c="k", label="receivers")
-    ax.scatter(*sources.T, marker="*", s=160, c="gold", edgecolors="k", label="true sources")
-    marks = "o^vDs<>"
-    for i, (name, pos) in enumerate(examples.items()):
-        if len(pos):
-            ax.scatter(*pos.T, marker=marks[i % len(marks)], s=50, facecolors="none", edgecolors=f"C{i}", label=name)
-        else:
-            ax.scatter([], [], [], marker=marks[i % len(marks)], label=f"{name} (none declared)")
-    r = model.region
-    ax.set_xlim(-r, r), ax.set_ylim(-r, r), ax.set_zlim(-r, r)
-    ax.set_xlabel("x (m)"), ax.set_ylabel("y (m)"), ax.set_zlabel("z (m)")
-    ax.legend(fontsize=7, loc="upper left")
-    ax.set_title(title, fontsize=9)
-    fig.tight_layout()
-    return fig
 
 
 def _prune_and_cap(r, mask, parts, prune: float, max_objects: int):
@@ -454,20 +385,7 @@ def _bp_terms(model, r, log_Ik, log_Ib, log_cf, birth_rate):
     return beta, 1 + birth_rate * torch.exp(log_Ib - log_cf)
 
 
-def _systematic_indices(log_w: torch.Tensor, n: int, generator) -> torch.Tensor:
-    """``n`` indices per row of ``log_w (B, K, C)`` by systematic resampling (one uniform per row);
-    a row with no positive weight resamples uniformly."""
-    B, K, C = log_w.shape
-    w = torch.softmax(log_w, -1)
-    w = torch.where(torch.isfinite(w).all(-1, keepdim=True), w, torch.full_like(w, 1.0 / C))
-    cdf = w.cumsum(-1)
-    cdf = cdf / cdf[..., -1:].clamp_min(torch.finfo(w.dtype).tiny)
-    u = uniform((B, K, 1), dtype=w.dtype, device=w.device, generator=generator)
-    pos = (torch.arange(n, dtype=w.dtype, device=w.device) + u) / n
-    return torch.searchsorted(cdf.contiguous(), pos.contiguous()).clamp(max=C - 1)  # (B, K, n)
-
-
-class BootstrapLocaliser(nn.Module):
+class BootstrapLocaliser(_Localiser):
     """The bootstrap baseline of seed 002 (``BS``): each PO is a plain set of N_p particles; for
     each sensor the proposal is the previous posterior itself (the sources are static), the
     weights are the BP-weighted likelihood terms, and each PO is resampled (systematic). New POs
@@ -486,14 +404,9 @@ class BootstrapLocaliser(nn.Module):
     def __init__(self, model: TDOA3D, *, n_particles: int = 100_000, birth_rate: float = 0.01, max_objects: int = 30,
                  prune: float = 1e-3, declare: float = 0.5, bp_iterations: int = 20, sample_chunk: int = 20_000_000,
                  name: Optional[str] = None):
-        super().__init__()
-        self.name = name or type(self).__name__
-        _check_common(model, n_particles=n_particles, max_objects=max_objects, bp_iterations=bp_iterations,
-                      sample_chunk=sample_chunk, prune=prune, declare=declare, birth_rate=birth_rate)
-        self.model, self.n_particles = model, n_particles
-        self.birth_rate, self.max_objects, self.prune, self.declare = float(birth_rate), max_objects, float(prune), \
-            float(declare)
-        self.bp_iterations, self.sample_chunk = bp_iterations, sample_chunk
+        super().__init__(model, birth_rate=birth_rate, max_objects=max_objects, prune=prune, declare=declare,
+                         bp_iterations=bp_iterations, sample_chunk=sample_chunk, name=name)
+        self.n_particles = _count("n_particles", n_particles)
 
     def _loglik(self, x, z, s, own: bool = False):
         """``log l_m(x)`` of particles ``x (B, K, N, 3)`` for measurements ``z (B, M)`` ->
@@ -531,9 +444,9 @@ class BootstrapLocaliser(nn.Module):
         log_C = torch.logsumexp(lw, -1)
         r = state.existence
         r_leg = _legacy_existence(r, log_C)
-        idx = _systematic_indices(lw, N, generator)
+        idx = _resample(lw, generator)
         leg = state.means.gather(2, idx.unsqueeze(-1).expand(B, K, N, 3))
-        nidx = _systematic_indices(llb, N, generator)
+        nidx = _resample(llb, generator)
         new = xb.gather(2, nidx.unsqueeze(-1).expand(B, M, N, 3))
         r_all = torch.cat([r_leg, assoc.new_existence], 1)
         mask = torch.cat([state.mask, z_mask], 1)
@@ -547,10 +460,18 @@ class BootstrapLocaliser(nn.Module):
         return POState(z, z.bool(), torch.zeros(batch_size, 0, self.n_particles, dtype=dtype, device=device),
                        torch.zeros(batch_size, 0, self.n_particles, 3, dtype=dtype, device=device))
 
-    forward = _forward
-
     def extra_repr(self) -> str:
         return f"n_particles={self.n_particles}"
+
+
+def _resample(log_w: torch.Tensor, generator) -> torch.Tensor:
+    """Systematic resampling (:func:`torchflow.resampling.systematic`, one uniform per PO) of the
+    particles of every PO, ``log_w (B, K, N)`` -> ``(B, K, N)`` indices; a PO with no positive
+    (or a NaN) weight resamples uniformly."""
+    B, K, N = log_w.shape
+    lw = log_w.reshape(B * K, N)
+    ok = torch.isfinite(lw).any(-1, keepdim=True) & ~(torch.isnan(lw) | torch.isposinf(lw)).any(-1, keepdim=True)
+    return systematic(torch.where(ok, lw, torch.zeros_like(lw)), generator, validate=False).reshape(B, K, N)
 
 
 def _legacy_existence(r: torch.Tensor, log_C: torch.Tensor) -> torch.Tensor:
@@ -562,13 +483,19 @@ def _legacy_existence(r: torch.Tensor, log_C: torch.Tensor) -> torch.Tensor:
 
 def _reduce(log_w: torch.Tensor, means: torch.Tensor, L: torch.Tensor, n: int, generator):
     """Keep ``n`` of the candidate components ``(B, K, C)`` by systematic resampling of their indices
-    (one uniform per PO); returns ``(log_weights (B, K, n) equal, means, scale_trils)``."""
+    (one uniform per PO; a PO with no positive weight draws uniformly); returns ``(log_weights
+    (B, K, n) equal, means, scale_trils)``. (:func:`torchflow.resampling.systematic` draws as many
+    indices as there are weights, here C = G (1 + M) or 125 candidates for n = G.)"""
     B, K, C = log_w.shape
-    idx = _systematic_indices(log_w, n, generator)
+    w = torch.softmax(log_w, -1)
+    cdf = torch.where(torch.isfinite(w).all(-1, keepdim=True), w, torch.full_like(w, 1.0 / C)).cumsum(-1)
+    cdf = cdf / cdf[..., -1:].clamp_min(torch.finfo(w.dtype).tiny)
+    u = uniform((B, K, 1), dtype=w.dtype, device=w.device, generator=generator)
+    pos = (torch.arange(n, dtype=w.dtype, device=w.device) + u) / n
+    idx = torch.searchsorted(cdf.contiguous(), pos.contiguous()).clamp(max=C - 1)  # (B, K, n)
     gm = means.gather(2, idx.unsqueeze(-1).expand(B, K, n, means.shape[-1]))
     gL = L.gather(2, idx[..., None, None].expand(B, K, n, *L.shape[-2:]))
     return torch.full((B, K, n), -math.log(n), dtype=means.dtype, device=means.device), gm, gL
 
 
-__all__ = ["run_localisation", "scene_figure", "LOCALISATION_COLUMNS", "FlowMixtureLocaliser", "BootstrapLocaliser",
-           "POState", "Localisation", "birth_mixture", "METHODS"]
+__all__ = ["FlowMixtureLocaliser", "BootstrapLocaliser", "POState", "Localisation", "birth_mixture", "METHODS"]

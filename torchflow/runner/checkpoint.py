@@ -39,8 +39,9 @@ from typing import Callable, Dict, List, Mapping, Optional, Tuple, Union
 
 import torch
 
-#: tensors of one chunk, CPU float64 (``ess``, ``g_eff``, ``n_repaired`` may be absent)
-CHUNK_FIELDS = ("estimates", "log_evidence", "ess", "n_repaired", "g_eff")
+#: tensors of one chunk, CPU (floats as float64), those the filter's result has: ``estimates (B, T, ...)``
+#: always; ``estimate_mask`` (sets of estimates) and ``underflow`` from the localisers
+CHUNK_FIELDS = ("estimates", "log_evidence", "ess", "n_repaired", "g_eff", "estimate_mask", "underflow")
 
 
 _CHUNK_NAME = re.compile(r"^(\d{7})-(\d{7})\.pt$")

@@ -17,7 +17,7 @@ import torch
 from .._checks import NonFiniteError
 from ..filters.base import Filter
 from ..random import TrialStreams
-from .checkpoint import ChunkStore
+from .checkpoint import CHUNK_FIELDS, ChunkStore
 from .plan import RunPlan
 
 log = logging.getLogger("torchflow.runner")
@@ -76,27 +76,26 @@ class Outcome:
 
 def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None) -> dict:
     """Run filter ``f`` on trials ``[s, e)``: the chunk's results as CPU float64 tensors."""
-    st = plan.settings
+    st, traj = plan.settings, plan.traj
     g = TrialStreams(st.seed, range(s, e), key=f.stream_name, backend=st.rng_backend)
     cb = (lambda n=e - s: bar.update(n)) if bar is not None else None
+    mask = {"mask": traj.mask[s:e]} if getattr(traj, "mask", None) is not None else {}  # padded measurement sets
     cuda = st.device.type == "cuda"
     if cuda:
         torch.cuda.synchronize()
     t0 = time.perf_counter()
     with torch.no_grad(), STOP.interruptible():
         try:
-            res = f(plan.traj.observations[s:e], plan.mean0[s:e], plan.cov0[s:e], g, progress=cb)
+            res = f(traj.observations[s:e], plan.mean0[s:e], plan.cov0[s:e], g, progress=cb, **mask)
         except NonFiniteError as err:  # report trial indices in the whole run
             raise NonFiniteError(name, err.step, [s + i for i in err.trials]) from None
     if cuda:
         torch.cuda.synchronize()
-    out = {"start": s, "stop": e, "elapsed": time.perf_counter() - t0,
-           "estimates": res.estimates.double().cpu(), "log_evidence": res.log_evidence.double().cpu()}
-    for key in ("ess", "g_eff"):
-        if getattr(res, key) is not None:
-            out[key] = getattr(res, key).double().cpu()
-    if res.n_repaired is not None:
-        out["n_repaired"] = res.n_repaired.cpu()
+    out = {"start": s, "stop": e, "elapsed": time.perf_counter() - t0}
+    for key in CHUNK_FIELDS:  # CPU, floats as float64
+        v = getattr(res, key, None)
+        if v is not None:
+            out[key] = (v.double() if v.is_floating_point() else v).cpu()
     return out
 
 

@@ -86,7 +86,7 @@ def run_experiment(
     argument raises :class:`~torchflow.runner.errors.ConfigError` (a ``ValueError``) before
     anything runs.
     """
-    s = check_settings(trials=trials, steps=steps, seed=seed, inits_per_track=inits_per_track, chunk_size=chunk_size,
+    s = check_settings(trials=trials, steps=getattr(model, "n_steps", steps), seed=seed, inits_per_track=inits_per_track, chunk_size=chunk_size,
                        memory_budget_gb=memory_budget_gb, device=device, dtype=dtype, rng_backend=rng_backend,
                        trial_range=trial_range)
     metric_settings = check_metric_settings(ospa_cutoff=ospa_cutoff, ospa_order=ospa_order,

@@ -142,6 +142,30 @@ def omat_box_figure(plt, per_trial, summary, title: str):
     return fig
 
 
+def scene_figure(plt, model, trajectory, examples, summary, title: str):
+    """Run 0 of a 3-D localisation (:class:`~torchflow.models.TDOA3D`): receivers, true sources and
+    each localiser's declared sources ``examples[name] (k, 3)`` in the filter's colour."""
+    colour = colours(list(dict.fromkeys(r["filter"] for r in summary)))
+    fig = plt.figure(figsize=(6.5, 5.5))
+    ax = fig.add_subplot(projection="3d")
+    ax.scatter(*model.receivers.cpu().T, marker="s", s=40, c="k", label="receivers")
+    ax.scatter(*model.positions(trajectory.states[0, 0]).cpu().T, marker="*", s=160, c="gold", edgecolors="k",
+               label="true sources")
+    for i, (name, pos) in enumerate(examples.items()):
+        mark = "o^vDs<>"[i % 7]
+        if len(pos):
+            ax.scatter(*pos.T, marker=mark, s=50, facecolors="none", edgecolors=colour[name], label=name)
+        else:
+            ax.scatter([], [], [], marker=mark, c=colour[name], label=f"{name} (none declared)")
+    r = model.region
+    ax.set_xlim(-r, r), ax.set_ylim(-r, r), ax.set_zlim(-r, r)
+    ax.set_xlabel("x (m)"), ax.set_ylabel("y (m)"), ax.set_zlabel("z (m)")
+    ax.legend(fontsize=7, loc="upper left")
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
 def save_figure(plt, fig, path: Path, **kw) -> Optional[Path]:
     """Save and close ``fig`` (``None``: nothing); the path written."""
     if fig is None:
@@ -154,7 +178,8 @@ def save_figure(plt, fig, path: Path, **kw) -> Optional[Path]:
 
 
 def save_run_figures(out: Path, model, result, model_name: str) -> List[Path]:
-    """``per_step.png``, and for tracking models ``tracks.png`` and ``omat_box.png``, of a run."""
+    """``per_step.png``, and for tracking models ``tracks.png`` and ``omat_box.png``, for 3-D
+    localisation (a model with receivers) ``scene.png``, of a run."""
     plt = pyplot()
     if plt is None or not result.per_step:
         return []
@@ -162,7 +187,11 @@ def save_run_figures(out: Path, model, result, model_name: str) -> List[Path]:
     out = Path(out)
     paths = [save_figure(plt, per_step_figure(plt, result.per_step, result.summary, f"{model_name}, {n} trials"),
                          out / "per_step.png")]
-    if model.has_positions and result.trajectory is not None:
+    if hasattr(model, "receivers") and result.trajectory is not None:
+        paths.append(save_figure(plt, scene_figure(plt, model, result.trajectory, result.examples, result.summary,
+                                                   f"{model_name}: run 0, true and declared sources"),
+                                 out / "scene.png"))
+    elif model.has_positions and result.trajectory is not None:
         paths.append(save_figure(plt, tracks_figure(plt, model, result.trajectory, result.examples, result.summary,
                                                     f"{model_name}: trial 0, true and estimated tracks"),
                                  out / "tracks.png", bbox_inches="tight"))

@@ -116,9 +116,12 @@ def choose_chunk_size(filters: Mapping[str, Filter], trials: int, memory_budget_
 def filter_chunk(f: Filter, n_run: int, chunk_size: Optional[int], memory_budget_gb: float) -> int:
     """A filter's chunk of trials: ``chunk_size`` if given, else the most its memory estimate
     allows, capped by the filter's preferred batch (local flows slow down past ~1e4 points). When
-    one trial exceeds the budget, a particle filter without ``particle_chunk`` gets one."""
+    one trial exceeds the budget, a particle filter without ``particle_chunk`` gets one. A filter
+    whose numbers depend on its batch declares ``trials_per_call`` (the localisers: 1), a cap in
+    every case."""
+    cap = getattr(f, "trials_per_call", None) or n_run
     if chunk_size:
-        return int(chunk_size)
+        return min(int(chunk_size), cap)
     c = choose_chunk_size({"f": f}, n_run, memory_budget_gb)
     if c == 1 and getattr(f, "particle_chunk", 0) is None:  # one trial may still exceed it: chunk particles
         pc = f.plan_memory(memory_budget_gb * 2**30)
@@ -126,8 +129,7 @@ def filter_chunk(f: Filter, n_run: int, chunk_size: Optional[int], memory_budget
             warnings.warn(f"memory_budget_gb={memory_budget_gb:g}: {f.name} runs one trial at a time in blocks "
                           f"of {pc} of its {f.n_particles} particles (estimated {f.bytes_per_trial() / 2**30:.3g} "
                           "GiB per trial); raise the budget if this machine has more memory", stacklevel=2)
-    pref = f.preferred_chunk_trials()
-    return min(c, pref) if pref else c
+    return min(c, f.preferred_chunk_trials() or c, cap)
 
 
 def simulate(model: StateSpaceModel, trials: int, steps: int, inits_per_track: int, generator):
@@ -135,8 +137,7 @@ def simulate(model: StateSpaceModel, trials: int, steps: int, inits_per_track: i
     n_tracks = math.ceil(trials / inits_per_track)
     traj = model.simulate(n_tracks, steps, generator)
     if inits_per_track > 1:
-        rep = lambda t: t.repeat_interleave(inits_per_track, 0)[:trials]  # noqa: E731
-        traj = Trajectory(rep(traj.states), rep(traj.observations))
+        traj = traj[torch.arange(trials, device=traj.states.device) // inits_per_track]
     mean, cov = model.initial_belief(traj.states[:, 0], generator)
     return traj, mean, cov
 
@@ -209,6 +210,9 @@ def make_plan(model: StateSpaceModel, filters: Mapping[str, Filter], settings: R
     for name, f in filters.items():
         if f.model is not model:
             raise ConfigError(f"filters[{name!r}]: holds a different model instance than `model`")
+        if getattr(model, "padded_measurements", False) and not getattr(f, "padded_measurements", False):
+            raise ConfigError(f"filter.{name}: {type(f).__name__} cannot run on {type(model).__name__}, whose "
+                              "measurements are padded sets with a mask; select a localiser (bs, pfi_d, pfi_s, pfi_os)")
         f.to(device=s.device, dtype=s.dtype)
     gen = torch.Generator(device=s.device).manual_seed(int(s.seed))
     traj, mean0, cov0 = (simulator or simulate)(model, s.trials, s.steps, s.inits_per_track, gen)

@@ -1,6 +1,7 @@
 """Score a filter's chunks: the summary row, per-trial and per-step metrics; the result container."""
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
@@ -14,7 +15,8 @@ from .plan import RunPlan, filter_chunk
 
 SUMMARY_COLUMNS = [
     "filter", "n_particles", "trials", "steps", "mse", "omat", "omat_kept_mean", "omat_kept_sd",
-    "ospa", "ess", "g_eff", "log_evidence", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step", "error",
+    "ospa", "declared", "underflows", "ess", "g_eff", "log_evidence", "log_evidence_relmse", "lost_tracks", "repaired",
+    "sec_per_step", "error",
 ]
 
 
@@ -127,8 +129,33 @@ def summary_row(sc: Scorer, f: Filter, row: dict, chunks: List[dict], cols: Dict
     return lost
 
 
+def score_sets(sc: Scorer, name: str, row: dict, chunks: List[dict], steps: int):
+    """:func:`score_filter` of a filter whose estimates are sets (the localisers): ``estimates (B, T,
+    K, 3)`` with ``estimate_mask``, scored by OSPA against the model's positions and the declared
+    count after each step; a trial's value is the last step's (the answer of a localisation). The
+    measurements whose every weight underflowed (``underflow``) are counted and named in a warning."""
+    est, mask, under = _cat(chunks, "estimates"), _cat(chunks, "estimate_mask"), _cat(chunks, "underflow")
+    truth = sc.model.positions(sc.truth)
+    cols = {"ospa": metrics.ospa(est, truth, cutoff=sc.ospa_cutoff, order=sc.ospa_order, X_mask=mask),
+            "declared": mask.sum(-1).double()}
+    lost = [f"run {b + sc.lo}, sensor {s}, measurement {m}" for b, s, m in torch.nonzero(under).tolist()]
+    if lost:
+        warnings.warn(f"{name}: every component's weight underflowed (measurement treated as clutter) at "
+                      + "; ".join(lost), RuntimeWarning, stacklevel=2)
+    counts = under.flatten(1).sum(1)
+    per_trial = [{"filter": name, "trial": sc.lo + b, "ospa": float(cols["ospa"][b, -1]),
+                  "declared": int(cols["declared"][b, -1]), "underflows": int(counts[b])} for b in range(est.shape[0])]
+    row.update({k: float(v[:, -1].mean()) for k, v in cols.items()}, underflows=int(counts.sum()),
+               sec_per_step=sum(float(c["elapsed"]) for c in chunks) / (est.shape[0] * steps))
+    per_step = [{"filter": name, "step": t + 1, **{k: float(v[:, t].mean()) for k, v in cols.items()}}
+                for t in range(steps)]
+    return per_trial, per_step, est[0, -1][mask[0, -1]]
+
+
 def score_filter(sc: Scorer, f: Filter, name: str, row: dict, chunks: List[dict], steps: int):
     """``(per-trial rows, per-step rows, trial 0's estimates)`` of one filter; fills ``row``."""
+    if "estimate_mask" in chunks[0]:
+        return score_sets(sc, name, row, chunks, steps)
     cols = metric_columns(sc, chunks)
     lost = summary_row(sc, f, row, chunks, cols, steps)
     logz = _cat(chunks, "log_evidence")
