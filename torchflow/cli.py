@@ -102,14 +102,10 @@ def chunk_store(cfg: DictConfig, labels):
     common = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
               for k in ("model", "trials", "steps", "seed", "inits_per_track", "device", "dtype", "rng_backend")}
     common["versions"] = {"torchflow": torchflow.__version__, "torch": torch.__version__}
-    keys, settings = {}, {}
-    for key, fcfg in cfg.filter.items():
-        label = labels.get(key)
-        if label is None:  # settings for a filter that is not selected
-            continue
-        s = dict(common, filter=OmegaConf.to_container(fcfg, resolve=True), label=label)
-        keys[label] = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in label) + "-" + fingerprint(s)
-        settings[label] = s
+    settings = {labels[k]: dict(common, filter=OmegaConf.to_container(fcfg, resolve=True), label=labels[k])
+                for k, fcfg in cfg.filter.items() if k in labels}  # not the settings of unselected filters
+    keys = {label: "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in label) + "-" + fingerprint(s)
+            for label, s in settings.items()}
     return ChunkStore(Path(hydra.utils.to_absolute_path(str(root))), keys, resume=resume, settings=settings)
 
 
@@ -129,29 +125,21 @@ class _Output:
             self.failed = f"cannot write {what} into {self.out} ({type(e).__name__}: {e.strerror or e})"
             log.error(f"error: {self.failed}")
 
-    def partial_summary(self, rows, columns) -> None:
-        self.attempt("summary.csv", writers.write_csv, self.out / "summary.csv", rows, columns)
-
-
-def _report_failures(summary, failures) -> None:
-    for r in summary:
-        if r.get("error") and not r["error"].startswith("interrupted"):
-            where = f" in {failures[r['filter']]}" if failures.get(r["filter"]) else ""
-            log.error(f"!! {r['filter']} failed{where}: {r['error']} (traceback in run.log)")
-
 
 def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> int:
     from .runner import SUMMARY_COLUMNS, format_table, run_experiment
 
-    store = chunk_store(cfg, labels)
-    writer = _Output(out)
+    store, writer = chunk_store(cfg, labels), _Output(out)
+    trial_range = cfg.get("trial_range")
     result = run_experiment(
         model, filters, trials=cfg.trials, steps=cfg.steps, seed=cfg.seed, inits_per_track=cfg.inits_per_track,
         chunk_size=cfg.chunk_size, memory_budget_gb=cfg.memory_budget_gb, device=shard.device(cfg.device),
         dtype=cfg.dtype, ospa_cutoff=cfg.metrics.ospa_cutoff, ospa_order=cfg.metrics.ospa_order,
         lost_threshold=cfg.metrics.lost_threshold, progress=cfg.progress, rng_backend=cfg.rng_backend,
-        on_filter_done=lambda rows: writer.partial_summary(rows, SUMMARY_COLUMNS),  # partial results
-        store=store, shard=shard, trial_range=_plain(cfg.get("trial_range")))
+        on_filter_done=lambda rows: writer.attempt("summary.csv", writers.write_csv, out / "summary.csv", rows,
+                                                   SUMMARY_COLUMNS),  # partial results
+        store=store, shard=shard,
+        trial_range=OmegaConf.to_container(trial_range) if OmegaConf.is_config(trial_range) else trial_range)
     if result is None:  # a rank other than 0 of a torchrun run: rank 0 writes the files
         return 0
     model_name = cfg.model._target_.split(".")[-1]
@@ -163,7 +151,10 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
     which = f"{cfg.trials} trials" if (lo, hi) == (0, cfg.trials) else f"trials {lo}..{hi - 1} of {cfg.trials}"
     log.info(f"\n{model_name}: {which} x {result.config['steps']} steps, seed {cfg.seed}, {cfg.device}/{cfg.dtype}")
     log.info(format_table(result.summary))
-    _report_failures(result.summary, result.failures)
+    for name in result.failed:
+        where = f" in {result.failures[name]}" if result.failures.get(name) else ""
+        error = next(r["error"] for r in result.summary if r["filter"] == name)
+        log.error(f"!! {name} failed{where}: {error} (traceback in run.log)")
     writer.attempt("the result files", writers.write_run, out, result, OmegaConf.to_container(cfg, resolve=True))
     if cfg.plots:
         writer.attempt("the figures", figures.save_run_figures, out, model, result, model_name)
@@ -176,10 +167,6 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
             log.warning(f"the finished chunks are saved under {store.root}; go on with\n  {rc.resume_command()}")
         return 130
     return 1 if (result.failed or writer.failed) else 0
-
-
-def _plain(v):
-    return OmegaConf.to_container(v) if OmegaConf.is_config(v) else v
 
 
 def run_job(cfg: DictConfig) -> int:
@@ -203,15 +190,6 @@ def run_job(cfg: DictConfig) -> int:
         return _run_filters(cfg, model, filters, labels, out, shard)
 
 
-def _record_failure(message: str) -> None:
-    """A failed sweep job leaves ``error.txt`` in its folder (collect and the end-of-sweep report
-    name it) instead of stopping the sweep."""
-    out = Path(HydraConfig.get().runtime.output_dir)
-    with contextlib.suppress(OSError):
-        out.mkdir(parents=True, exist_ok=True)
-        writers.write_text(out / "error.txt", message.rstrip() + "\n")
-
-
 def _job(cfg: DictConfig) -> int:
     """:func:`run_job` with its errors turned into messages and exit statuses."""
     try:
@@ -229,8 +207,11 @@ def _job(cfg: DictConfig) -> int:
             message = traceback.format_exc()
             log.error(f"error: {type(e).__name__}: {e}\n{message.rstrip()}")
             code = 1
-        if _multirun():
-            _record_failure(message)
+        if _multirun():  # the job's error.txt (collect and the end-of-sweep report name it); the sweep goes on
+            out = Path(HydraConfig.get().runtime.output_dir)
+            with contextlib.suppress(OSError):
+                out.mkdir(parents=True, exist_ok=True)
+                writers.write_text(out / "error.txt", message.rstrip() + "\n")
         return code
 
 
@@ -255,13 +236,9 @@ def hydra_main(cfg: DictConfig) -> None:
         sys.exit(code)
 
 
-def _pid_resolver() -> str:
-    return str(os.getpid())
-
-
 # cached: a launcher that resolves the sweep folder again in each worker (joblib, submitit) gets
 # the main process's value, so every job lands in the one announced folder
-OmegaConf.register_new_resolver("tf_pid", _pid_resolver, replace=True, use_cache=True)
+OmegaConf.register_new_resolver("tf_pid", lambda: str(os.getpid()), replace=True, use_cache=True)
 
 
 def _quiet_rank_overrides(argv: List[str]) -> List[str]:

@@ -183,6 +183,27 @@ class _Localiser(nn.Module):
                 progress()
         return Localisation(torch.stack(est, 1), torch.stack(declared, 1), torch.stack(underflow, 1), state)
 
+    def init(self, batch_size: int, dtype=torch.float64, device=None) -> POState:
+        """No PO before the first sensor."""
+        e = torch.zeros(batch_size, 0, dtype=dtype, device=device)
+        n = self.G if self.mixture else self.n_particles
+        return POState(e, e.bool(), e.new_zeros(batch_size, 0, n), e.new_zeros(batch_size, 0, n, 3),
+                       e.new_zeros(batch_size, 0, n, 3, 3) if self.mixture else None)
+
+    def _bp(self, state: POState, log_Ik, log_Ib, z_mask, sensor):
+        """Loopy BP from the integrals ``log int f_k l_m (B, K, M)`` of the legacy POs and ``log int
+        f_b l_m (B, M)`` of the birth density; returns the association, ``log nu (B, K, M)`` (-inf
+        off the live pairs), ``log(mu_c f_c)`` and the measurements that underflowed
+        (:func:`_underflow`)."""
+        model, r, pd, dt = self.model, state.existence, self.model.p_d, log_Ib.dtype
+        log_cf = math.log(model.clutter_rate) + model.clutter_log_density(sensor).to(dt)  # log(mu_c f_c)
+        beta = torch.cat([(1 - r * pd).unsqueeze(-1), (r * pd).unsqueeze(-1) * torch.exp(log_Ik - log_cf)], -1)
+        xi = 1 + self.birth_rate * torch.exp(log_Ib - log_cf)
+        assoc = loopy_association(beta, xi, state.mask, z_mask, self.bp_iterations)
+        live = state.mask.unsqueeze(-1) & z_mask.unsqueeze(-2)  # (B, K, M)
+        log_nu = torch.where(live, torch.log(assoc.nu.clamp_min(torch.finfo(dt).tiny)), log_Ib.new_tensor(-math.inf))
+        return assoc, log_nu, log_cf, _underflow(log_Ib, log_Ik, log_cf, state.mask, z_mask)
+
 
 def _underflow(log_Ib: torch.Tensor, log_Ik: torch.Tensor, log_cf, po_mask: torch.Tensor, z_mask: torch.Tensor):
     """``(B, M)``: live measurements whose every BP term underflows to 0, i.e. the estimated integral
@@ -229,6 +250,8 @@ class FlowMixtureLocaliser(_Localiser):
             numpy back end of per-trial streams (which splits draws above 2^18 numbers) results
             can depend on it; keep it fixed to compare runs.
     """
+
+    mixture = True  # POs are Gaussian mixtures (with factors)
 
     def __init__(self, model: TDOA3D, method: str = "pfi_os", *, n_components: int = 100,
                  samples_per_component: int = 5000, schedule: Optional[LambdaSchedule] = None, alpha: float = 0.1,
@@ -300,13 +323,10 @@ class FlowMixtureLocaliser(_Localiser):
 
     def update(self, state: POState, z: torch.Tensor, z_mask: torch.Tensor, sensor: int, generator) -> POState:
         """Process the measurements ``z (B, M)`` (real where ``z_mask``) of sensor ``sensor``."""
-        model, G = self.model, self.G
+        G, pd = self.G, self.model.p_d
         B, M = z.shape
         dt, dev = z.dtype, z.device
         K = state.existence.shape[1]
-        pd = model.p_d
-        log_cf = math.log(model.clutter_rate) + model.clutter_log_density(sensor).to(dt)  # log(mu_c f_c)
-        neg = torch.tensor(float("-inf"), dtype=dt, device=dev)
         # birth: the new PO of every measurement
         bm, bL = self.birth_means.to(dt), self.birth_scale_tril.to(dt)
         Nb = bm.shape[0]
@@ -314,48 +334,27 @@ class FlowMixtureLocaliser(_Localiser):
         bI, b_mean, b_L = self._flowed_terms(b_logw, bm.expand(B, 1, Nb, 3), bL.expand(B, 1, Nb, 3, 3), z, sensor,
                                              generator)
         log_Ib = torch.logsumexp(b_logw.unsqueeze(-1) + bI, 2)[:, 0]  # (B, M)
+        log_Ik = torch.zeros(B, 0, M, dtype=dt, device=dev)
         if K:
             I, p_mean, p_L = self._flowed_terms(state.log_weights, state.means, state.scale_trils, z, sensor,
                                                 generator)
             log_Ik = torch.logsumexp(state.log_weights.unsqueeze(-1) + I, 2)  # (B, K, M)
-        else:
-            log_Ik = torch.zeros(B, 0, M, dtype=dt, device=dev)
-        beta, xi = _bp_terms(model, state.existence, log_Ik, log_Ib, log_cf, self.birth_rate)
-        assoc = loopy_association(beta, xi, state.mask, z_mask, self.bp_iterations)
-        # legacy POs: "missed" plus one candidate per component and measurement, reduced to G
-        if K:
-            live = state.mask.unsqueeze(-1) & z_mask.unsqueeze(-2)  # (B, K, M)
-            log_nu = torch.where(live, torch.log(assoc.nu.clamp_min(torch.finfo(dt).tiny)), neg)
+        assoc, log_nu, log_cf, underflow = self._bp(state, log_Ik, log_Ib, z_mask, sensor)
+        r_all, mask, parts = assoc.new_existence, z_mask, []
+        if K:  # legacy POs: "missed" plus one candidate per component and measurement, reduced to G
             missed = state.log_weights + (math.log(1 - pd) if pd < 1 else float("-inf"))
             hit = (state.log_weights.unsqueeze(-1) + math.log(pd) + log_nu.unsqueeze(2) - log_cf + I)  # (B,K,G,M)
             cand_w = torch.cat([missed, hit.reshape(B, K, G * M)], -1)
             cand_m = torch.cat([state.means, p_mean.reshape(B, K, G * M, 3)], 2)
             cand_L = torch.cat([state.scale_trils, p_L.reshape(B, K, G * M, 3, 3)], 2)
-            log_C = torch.logsumexp(cand_w, -1)  # log C_k
-            r = state.existence
-            r_leg = _legacy_existence(r, log_C)
-            leg = _reduce(cand_w, cand_m, cand_L, G, generator)
+            r_all = torch.cat([_legacy_existence(state.existence, torch.logsumexp(cand_w, -1)), r_all], 1)
+            mask = torch.cat([state.mask, z_mask], 1)
+            parts = _reduce(cand_w, cand_m, cand_L, G, generator)
         # new POs: the birth candidates of each measurement, reduced to G
         nb_w = (b_logw[:, 0].unsqueeze(-1) + bI[:, 0]).transpose(1, 2)  # (B, M, Nb)
         new = _reduce(nb_w, b_mean[:, 0].transpose(1, 2), b_L[:, 0].transpose(1, 2), G, generator)
-        r_new = assoc.new_existence
-        if K:
-            r_all = torch.cat([r_leg, r_new], 1)
-            mask = torch.cat([state.mask, z_mask], 1)
-            parts = [torch.cat([a, b], 1) for a, b in zip(leg, new)]
-        else:
-            r_all, mask, parts = r_new, z_mask, list(new)
-        return POState(*_prune_and_cap(r_all, mask, parts, self.prune, self.max_objects),
-                       underflow=_underflow(log_Ib, log_Ik, log_cf, state.mask, z_mask))
-
-    # ---- whole scene -------------------------------------------------------------------------
-    def init(self, batch_size: int, dtype=torch.float64, device=None) -> POState:
-        """No PO before the first sensor."""
-        B, G = batch_size, self.G
-        z = torch.zeros(B, 0, dtype=dtype, device=device)
-        return POState(z, z.bool(), torch.zeros(B, 0, G, dtype=dtype, device=device),
-                       torch.zeros(B, 0, G, 3, dtype=dtype, device=device),
-                       torch.zeros(B, 0, G, 3, 3, dtype=dtype, device=device))
+        parts = [torch.cat([a, b], 1) for a, b in zip(parts, new)] if K else list(new)
+        return POState(*_prune_and_cap(r_all, mask, parts, self.prune, self.max_objects), underflow=underflow)
 
     def extra_repr(self) -> str:
         return (f"method={self.method!r}, n_components={self.G}, samples_per_component={self.n_samples}, "
@@ -377,14 +376,6 @@ def _prune_and_cap(r, mask, parts, prune: float, max_objects: int):
     return (g(r), g(mask), *(g(t) for t in parts))
 
 
-def _bp_terms(model, r, log_Ik, log_Ib, log_cf, birth_rate):
-    """``beta (B, K, M + 1)`` and ``xi (B, M)`` from the integrals ``log int f_k l_m`` and
-    ``log int f_b l_m``."""
-    pd = model.p_d
-    beta = torch.cat([(1 - r * pd).unsqueeze(-1), (r * pd).unsqueeze(-1) * torch.exp(log_Ik - log_cf)], -1)
-    return beta, 1 + birth_rate * torch.exp(log_Ib - log_cf)
-
-
 class BootstrapLocaliser(_Localiser):
     """The bootstrap baseline of seed 002 (``BS``): each PO is a plain set of N_p particles; for
     each sensor the proposal is the previous posterior itself (the sources are static), the
@@ -399,7 +390,7 @@ class BootstrapLocaliser(_Localiser):
             :class:`FlowMixtureLocaliser`.
     """
 
-    method = "bs"
+    method, mixture = "bs", False  # POs are particle sets
 
     def __init__(self, model: TDOA3D, *, n_particles: int = 100_000, birth_rate: float = 0.01, max_objects: int = 30,
                  prune: float = 1e-3, declare: float = 0.5, bp_iterations: int = 20, sample_chunk: int = 20_000_000,
@@ -420,45 +411,28 @@ class BootstrapLocaliser(_Localiser):
                for a in range(0, N, per)]
         return torch.cat(out, 2)
 
-    def update(self, state: "POState", z, z_mask, sensor, generator) -> "POState":
-        model = self.model
+    def update(self, state: POState, z, z_mask, sensor, generator) -> POState:
+        """Process the measurements ``z (B, M)`` (real where ``z_mask``) of sensor ``sensor``."""
         B, M = z.shape
         dt, dev = z.dtype, z.device
-        N, K = self.n_particles, state.existence.shape[1]
-        pd = model.p_d
-        log_cf = math.log(model.clutter_rate) + model.clutter_log_density(sensor).to(dt)
-        xb = (uniform((B, M, N, 3), dtype=dt, device=dev, generator=generator) * 2 - 1) * model.region
+        N, K, pd = self.n_particles, state.existence.shape[1], self.model.p_d
+        xb = (uniform((B, M, N, 3), dtype=dt, device=dev, generator=generator) * 2 - 1) * self.model.region
         llb = self._loglik(xb, z, sensor, own=True)  # (B, M, N): each new PO against its own measurement
         log_Ib = torch.logsumexp(llb, -1) - math.log(N)
         ll = self._loglik(state.means, z, sensor) if K else torch.zeros(B, 0, N, M, dtype=dt, device=dev)
         log_Ik = torch.logsumexp(state.log_weights.unsqueeze(-1) + ll, 2)  # (B, K, M)
-        beta, xi = _bp_terms(model, state.existence, log_Ik, log_Ib, log_cf, self.birth_rate)
-        assoc = loopy_association(beta, xi, state.mask, z_mask, self.bp_iterations)
-        live = state.mask.unsqueeze(-1) & z_mask.unsqueeze(-2)
-        tiny = torch.finfo(dt).tiny
-        log_nu = torch.where(live, torch.log(assoc.nu.clamp_min(tiny)), torch.tensor(float("-inf"), dtype=dt))
+        assoc, log_nu, log_cf, underflow = self._bp(state, log_Ik, log_Ib, z_mask, sensor)
         terms = torch.cat([torch.full((B, K, N, 1), math.log(1 - pd) if pd < 1 else float("-inf"), dtype=dt,
                                       device=dev),
                            math.log(pd) + log_nu.unsqueeze(2) - log_cf + ll], -1)
         lw = state.log_weights + torch.logsumexp(terms, -1)  # (B, K, N)
-        log_C = torch.logsumexp(lw, -1)
-        r = state.existence
-        r_leg = _legacy_existence(r, log_C)
-        idx = _resample(lw, generator)
-        leg = state.means.gather(2, idx.unsqueeze(-1).expand(B, K, N, 3))
-        nidx = _resample(llb, generator)
-        new = xb.gather(2, nidx.unsqueeze(-1).expand(B, M, N, 3))
-        r_all = torch.cat([r_leg, assoc.new_existence], 1)
-        mask = torch.cat([state.mask, z_mask], 1)
+        r_all = torch.cat([_legacy_existence(state.existence, torch.logsumexp(lw, -1)), assoc.new_existence], 1)
+        leg = state.means.gather(2, _resample(lw, generator).unsqueeze(-1).expand(B, K, N, 3))
+        new = xb.gather(2, _resample(llb, generator).unsqueeze(-1).expand(B, M, N, 3))
         flat = torch.full((B, K + M, N), -math.log(N), dtype=dt, device=dev)
-        r2, m2, lw2, x2 = _prune_and_cap(r_all, mask, [flat, torch.cat([leg, new], 1)], self.prune, self.max_objects)
-        # particles in ``means``, no factors
-        return POState(r2, m2, lw2, x2, underflow=_underflow(log_Ib, log_Ik, log_cf, state.mask, z_mask))
-
-    def init(self, batch_size: int, dtype=torch.float64, device=None) -> "POState":
-        z = torch.zeros(batch_size, 0, dtype=dtype, device=device)
-        return POState(z, z.bool(), torch.zeros(batch_size, 0, self.n_particles, dtype=dtype, device=device),
-                       torch.zeros(batch_size, 0, self.n_particles, 3, dtype=dtype, device=device))
+        r2, m2, lw2, x2 = _prune_and_cap(r_all, torch.cat([state.mask, z_mask], 1), [flat, torch.cat([leg, new], 1)],
+                                         self.prune, self.max_objects)
+        return POState(r2, m2, lw2, x2, underflow=underflow)  # particles in ``means``, no factors
 
     def extra_repr(self) -> str:
         return f"n_particles={self.n_particles}"

@@ -1,19 +1,11 @@
 """One experiment over several processes, GPUs or nodes with ``torch.distributed``.
 
-Launched by ``torchrun``, every process (rank) simulates the same data from the run's seed, runs
-its share of each filter's chunks of trials and sends the per-trial results to rank 0, which
-scores them and writes the usual files::
-
-    torchrun --standalone --nproc_per_node=2 experiments/run.py model=linear_gaussian filter=[bpf] trials=40
-
-Chunks are dealt round-robin (chunk ``i`` to rank ``i % world``). Trials draw from per-trial
-random streams, so each trial's numbers are those of a single-process run: identical (``==``)
-when the chunks are the same (``chunk_size`` given, or filters whose numbers do not depend on the
-chunking, such as the bootstrap PF), equal to round-off otherwise (batched linear algebra blocks
-differently for other batch sizes). Without ``chunk_size`` the runner caps each chunk at
-``ceil(trials / world)`` trials so that every rank has work.
-
-Back end: NCCL when the run is on CUDA (rank ``r`` uses ``cuda:LOCAL_RANK``), gloo on CPU.
+Launched by ``torchrun``, every rank simulates the same data from the seed, runs chunks ``rank,
+rank + world, ...`` of each filter and sends the per-trial results to rank 0, which scores and
+writes them (``torchrun --standalone --nproc_per_node=2 experiments/run.py filter=[bpf] trials=40``).
+Trials draw from per-trial streams, so each trial's numbers are a single-process run's: identical
+with the same chunks, equal to round-off otherwise (without ``chunk_size`` chunks are capped at
+``ceil(trials / world)`` so every rank has work). NCCL on CUDA (rank r on ``cuda:LOCAL_RANK``), gloo on CPU.
 """
 from __future__ import annotations
 
@@ -24,13 +16,8 @@ from typing import Any, List, Optional
 
 @dataclass
 class Shard:
-    """This process's place in a distributed run.
-
-    Attributes:
-        rank: this process's rank, 0 .. world - 1.
-        world: number of processes.
-        local_rank: rank on this node (picks the GPU).
-    """
+    """This process's ``rank`` (0 .. ``world`` - 1) of ``world`` processes; ``local_rank`` on its node
+    (picks the GPU)."""
 
     rank: int = 0
     world: int = 1
@@ -81,12 +68,10 @@ class Shard:
 
     @staticmethod
     def from_env(device: str = "cpu", timeout_minutes: float = 720.0) -> "Shard":
-        """The shard ``torchrun`` describes in the environment (``RANK``, ``WORLD_SIZE``,
-        ``LOCAL_RANK``), with the process group initialised; ``Shard()`` when not launched by
-        ``torchrun``. ``device`` is the run's device: ``cuda`` selects NCCL and this rank's GPU.
-        ``timeout_minutes``: how long a rank that finished its chunks waits for the slowest one
-        at a filter's gather (the collective's timeout; torch's defaults, 10-30 min, would end a
-        long uneven run)."""
+        """The shard ``torchrun`` describes (``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``), its process
+        group initialised (``Shard()`` outside ``torchrun``); ``device``: the run's (``cuda``: NCCL
+        and this rank's GPU). ``timeout_minutes``: how long a rank waits for the slowest at a
+        filter's gather (torch's 10-30 min defaults would end a long uneven run)."""
         import datetime
 
         world = int(os.environ.get("WORLD_SIZE", "1"))
