@@ -22,7 +22,8 @@ each with an existence probability ``r_k`` and a Gaussian mixture of G component
 
 Declared sources: POs with existence above ``declare`` (0.5), at their mixture mean. Everything is
 batched over runs x POs x components x measurements x samples (in memory-bounded chunks of
-``sample_chunk`` numbers); the loop over sensors is the sequential processing itself.
+``sample_chunk`` numbers); the loop over sensors is the sequential processing itself. The localisers
+run through :func:`torchflow.runner.run_experiment` (one run per call: :class:`_Localiser`).
 """
 from __future__ import annotations
 
@@ -123,6 +124,17 @@ class _Localiser(nn.Module):
     :meth:`forward` trims its batch to its last real measurement column (with the simulator's
     padding last: the run's largest number of measurements per sensor). A run's numbers then
     depend only on the scene, the seed and its index, never on the chunking.
+
+    Args (both localisers):
+        model: :class:`~torchflow.models.TDOA3D` (``clutter_rate > 0``).
+        birth_rate: mean number of new sources per measurement, mu_b (UNCONF 0.01).
+        max_objects: POs kept after each sensor (30); prune: existence below which a PO is dropped
+            (1e-3); declare: existence above which a PO is a declared source (0.5).
+        bp_iterations: message passes (20).
+        sample_chunk: numbers drawn per pass (memory bound). Draws are made per pass, so with the
+            numpy back end of per-trial streams (which splits draws above 2^18 numbers) results
+            can depend on it; keep it fixed to compare runs.
+        name: label in results (default: the class name).
     """
 
     #: measurement sets padded with a mask (:class:`~torchflow.models.TDOA3D`)
@@ -228,7 +240,6 @@ class FlowMixtureLocaliser(_Localiser):
     """BP localisation with flowed-mixture importance sampling (module docstring).
 
     Args:
-        model: :class:`~torchflow.models.TDOA3D` (``clutter_rate > 0``).
         method: ``"pfi_d"`` (EDH), ``"pfi_s"`` (Gromov) or ``"pfi_os"`` (optimised diffusion).
         n_components: G per PO (seed: 100).
         samples_per_component: N_p per flowed component (seed: 5000).
@@ -236,19 +247,12 @@ class FlowMixtureLocaliser(_Localiser):
         alpha, c_rule: PFI-OS: the objective weight and the reading of c*
             (:func:`~torchflow.flows.optimal_diffusion_scale`: ``"printed"`` (default, MODELS.md §12.1),
             ``"literal_shift"`` or ``"printed_shift"``).
-        birth_rate: mean number of new sources per measurement, mu_b (UNCONF 0.01).
         birth_per_axis, birth_sd: the birth mixture (:func:`birth_mixture`; 5^3 = 125 components).
-        max_objects: POs kept after each sensor.
-        prune: existence below which a PO is dropped (1e-3).
-        declare: existence above which a PO is a declared source (0.5).
-        bp_iterations: message passes (20).
         jitter: relative diagonal jitter of the refitted covariances (of the component's prior scale).
         evaluate_at: ``"end"`` (default, ``lambda_l``) or ``"start"`` (``lambda_{l-1}``): where each
             lambda step takes its flow coefficients (:func:`~torchflow.flows.flow_gaussian`, UNCONF).
-        name: label in results (default: the class name).
-        sample_chunk: numbers drawn per pass (memory bound). Draws are made per pass, so with the
-            numpy back end of per-trial streams (which splits draws above 2^18 numbers) results
-            can depend on it; keep it fixed to compare runs.
+        birth_rate, max_objects, prune, declare, bp_iterations, sample_chunk, name: see
+            :class:`_Localiser`.
     """
 
     mixture = True  # POs are Gaussian mixtures (with factors)
@@ -383,11 +387,7 @@ class BootstrapLocaliser(_Localiser):
     start from N_p particles uniform in the region. The same BP, pruning and declaration as
     :class:`FlowMixtureLocaliser`; likelihoods are evaluated in chunks of ``sample_chunk`` numbers.
 
-    Args:
-        model: :class:`~torchflow.models.TDOA3D` (``clutter_rate > 0``).
-        n_particles: N_p per PO (seed: 2e6 and 4e7).
-        birth_rate, max_objects, prune, declare, bp_iterations, sample_chunk: as
-            :class:`FlowMixtureLocaliser`.
+    ``n_particles``: N_p per PO (seed: 2e6 and 4e7); the other arguments: :class:`_Localiser`.
     """
 
     method, mixture = "bs", False  # POs are particle sets

@@ -81,7 +81,6 @@ class TDOA3D(StateSpaceModel):
         region: half width r of the region ``[-r, r]^3`` (m).
     """
 
-    linear_dynamics = True  # static sources: x_k = x_{k-1}
     #: measurements are padded sets with a mask; only filters declaring the same take them
     padded_measurements = True
     obs_dim = None  # a sensor's measurements vary in number (padded to M)
@@ -105,15 +104,14 @@ class TDOA3D(StateSpaceModel):
             if len(p) != 2 or p[0] == p[1] or not all(0 <= v < len(rec) for v in p):
                 raise ValueError(f"pairs: expected pairs (a, b) of distinct receiver indices in [0, {len(rec)}), "
                                  f"got {p}")
-        for name, v in (("speed", speed), ("sigma_v", sigma_v), ("region", region)):
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
-                raise ValueError(f"{name}: expected a positive number, got {v!r}")
-        if isinstance(p_d, bool) or not isinstance(p_d, (int, float)) or not 0 < p_d <= 1:
-            raise ValueError(f"p_d: expected a detection probability in (0, 1], got {p_d!r}")
-        if isinstance(clutter_rate, bool) or not isinstance(clutter_rate, (int, float)) or not clutter_rate >= 0:
-            raise ValueError(f"clutter_rate: expected a mean clutter count >= 0, got {clutter_rate!r}")
-        if isinstance(n_sources, bool) or not isinstance(n_sources, int) or n_sources < 0:
-            raise ValueError(f"n_sources: expected an integer >= 0, got {n_sources!r}")
+        rules = [(k, v, lambda v: v > 0, "a positive number") for k, v in
+                 (("speed", speed), ("sigma_v", sigma_v), ("region", region))]
+        rules += [("p_d", p_d, lambda v: 0 < v <= 1, "a detection probability in (0, 1]"),
+                  ("clutter_rate", clutter_rate, lambda v: v >= 0, "a mean clutter count >= 0"),
+                  ("n_sources", n_sources, lambda v: isinstance(v, int) and v >= 0, "an integer >= 0")]
+        for name, v, ok, what in rules:
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not ok(v):
+                raise ValueError(f"{name}: expected {what}, got {v!r}")
         self.register_buffer("receivers", rec)
         self.register_buffer("pairs", torch.tensor(pairs, dtype=torch.long))
         self.speed, self.sigma_v, self.p_d = float(speed), float(sigma_v), float(p_d)
@@ -135,9 +133,6 @@ class TDOA3D(StateSpaceModel):
 
     def transition_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
         return self.receivers.new_zeros(self.state_dim, self.state_dim)
-
-    def transition_matrix(self) -> torch.Tensor:
-        return torch.eye(self.state_dim, dtype=self.receivers.dtype, device=self.receivers.device)
 
     @property
     def has_positions(self) -> bool:
