@@ -40,15 +40,11 @@ def reason(e: BaseException) -> str:
     """The message of the error that caused ``e`` (Hydra wraps constructor errors)."""
     from hydra.errors import InstantiationException
 
-    if isinstance(e, InstantiationException):
-        cause = e.__cause__ or e.__context__
-        key = ""
-        for line in str(e).splitlines():
-            if line.startswith("full_key:"):
-                key = line.split(":", 1)[1].strip() + ": "
-        if cause is not None:
-            return key + str(cause).strip("'\"")
-    return str(e)
+    cause = (e.__cause__ or e.__context__) if isinstance(e, InstantiationException) else None
+    if cause is None:
+        return str(e)
+    key = [ln.split(":", 1)[1].strip() + ": " for ln in str(e).splitlines() if ln.startswith("full_key:")]
+    return (key[-1] if key else "") + str(cause).strip("'\"")
 
 
 def is_config_error(e: BaseException) -> bool:

@@ -36,6 +36,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from . import linalg
+from ._checks import check_count as _count
 from .association import loopy_association
 from .flows import EDHFlow, GromovFlow, OptimalDiffusionFlow
 from .proposals import FlowedMixtureProposal
@@ -97,12 +98,6 @@ class Localisation:
     @property
     def declared(self) -> torch.Tensor:
         return self.estimate_mask[:, -1]
-
-
-def _count(name, v):
-    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-        raise ValueError(f"{name}: expected a positive integer, got {v!r}")
-    return v
 
 
 def _probability(name, v):

@@ -29,12 +29,10 @@ def config_source() -> str:
 
 def config_dir() -> Path:
     """The folder holding ``config.yaml`` and the config groups."""
-    src = config_source()
-    if not src.startswith("pkg://"):
-        return Path(src)
     from importlib.resources import files
 
-    return Path(str(files("torchflow.configs")))
+    src = config_source()
+    return Path(str(files("torchflow.configs"))) if src.startswith("pkg://") else Path(src)
 
 
 def group_options(group: str) -> Optional[List[str]]:

@@ -9,9 +9,13 @@ with the same chunks, equal to round-off otherwise (without ``chunk_size`` chunk
 """
 from __future__ import annotations
 
+import datetime
 import os
 from dataclasses import dataclass
 from typing import Any, List, Optional
+
+import torch
+import torch.distributed as dist
 
 
 @dataclass
@@ -44,8 +48,6 @@ class Shard:
         the run is not distributed. Objects are pickled; keep tensors on the CPU."""
         if self.world == 1:
             return [obj]
-        import torch.distributed as dist
-
         out = [None] * self.world if self.is_main else None
         dist.gather_object(obj, out, dst=0)
         return out
@@ -54,17 +56,9 @@ class Shard:
         """Rank 0's ``obj`` on every rank (``obj`` itself when not distributed)."""
         if self.world == 1:
             return obj
-        import torch.distributed as dist
-
         box = [obj if self.is_main else None]
         dist.broadcast_object_list(box, src=0)
         return box[0]
-
-    def barrier(self) -> None:
-        if self.world > 1:
-            import torch.distributed as dist
-
-            dist.barrier()
 
     @staticmethod
     def from_env(device: str = "cpu", timeout_minutes: float = 720.0) -> "Shard":
@@ -72,14 +66,9 @@ class Shard:
         group initialised (``Shard()`` outside ``torchrun``); ``device``: the run's (``cuda``: NCCL
         and this rank's GPU). ``timeout_minutes``: how long a rank waits for the slowest at a
         filter's gather (torch's 10-30 min defaults would end a long uneven run)."""
-        import datetime
-
         world = int(os.environ.get("WORLD_SIZE", "1"))
         if world <= 1:
             return Shard()
-        import torch
-        import torch.distributed as dist
-
         rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
         cuda = str(device).startswith("cuda")
         if not dist.is_initialized():
@@ -99,8 +88,5 @@ class Shard:
         return str(device)
 
     def close(self) -> None:
-        if self.world > 1:
-            import torch.distributed as dist
-
-            if dist.is_initialized():
-                dist.destroy_process_group()
+        if self.world > 1 and dist.is_initialized():
+            dist.destroy_process_group()

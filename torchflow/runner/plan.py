@@ -1,10 +1,7 @@
-"""Plan a run: check its arguments, simulate the data once, choose every filter's chunks of trials.
-
-A :class:`RunPlan` holds everything the later stages need: the simulated data, the trial range,
-the device and dtype, and per filter its chunks ``[(start, stop), ...]`` of trials. Chunk sizes
-come from the filters' own memory formulas (:meth:`Filter.bytes_per_trial`,
-:meth:`Filter.preferred_chunk_trials`, :meth:`Filter.plan_memory`); trials draw from per-trial
-streams, so the plan never changes a trial's numbers (see :mod:`torchflow.random`).
+"""Plan a run: check its arguments, simulate the data once, choose every filter's chunks of trials
+(from the filters' memory formulas: :meth:`Filter.bytes_per_trial`, :meth:`Filter.preferred_chunk_trials`,
+:meth:`Filter.plan_memory`). Trials draw from per-trial streams (:mod:`torchflow.random`), so the
+plan never changes a trial's numbers.
 """
 from __future__ import annotations
 
