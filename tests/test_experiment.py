@@ -337,10 +337,11 @@ def test_cli_tdoa_runs_localisers_and_refuses_filters(tmp_path):
     assert "| pfi_s |" in out.stdout and "| bs |" in out.stdout
     rows = list(csv.DictReader(open(tmp_path / "t" / "per_trial.csv")))
     assert len(rows) == 4 and all(0 <= float(r["ospa"]) <= 40 for r in rows)
+    assert (tmp_path / "t" / "summary.csv").exists() and (tmp_path / "t" / "per_step.csv").exists()
     cmd = [sys.executable, str(ROOT / "experiments" / "run.py"), "model=tdoa", "filter=[bpf]", "progress=false",
            f"hydra.run.dir={tmp_path}/u"]
     bad = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=300)
-    assert bad.returncode == 2 and "filter.bpf: model: expected a torchflow StateSpaceModel, got TDOA3D" in bad.stderr
+    assert bad.returncode == 2 and "filter.bpf: BootstrapParticleFilter cannot run on TDOA3D" in bad.stderr
 
 
 def test_trial_range_reruns_rows_of_a_longer_run():

@@ -41,15 +41,11 @@ def reason(e: BaseException) -> str:
     """The message of the error that caused ``e`` (Hydra wraps constructor errors)."""
     from hydra.errors import InstantiationException
 
-    if isinstance(e, InstantiationException):
-        cause = e.__cause__ or e.__context__
-        key = ""
-        for line in str(e).splitlines():
-            if line.startswith("full_key:"):
-                key = line.split(":", 1)[1].strip() + ": "
-        if cause is not None:
-            return key + str(cause).strip("'\"")
-    return str(e)
+    cause = (e.__cause__ or e.__context__) if isinstance(e, InstantiationException) else None
+    if cause is None:
+        return str(e)
+    key = [ln.split(":", 1)[1].strip() + ": " for ln in str(e).splitlines() if ln.startswith("full_key:")]
+    return (key[-1] if key else "") + str(cause).strip("'\"")
 
 
 def is_config_error(e: BaseException) -> bool:
@@ -103,14 +99,10 @@ def chunk_store(cfg: DictConfig, labels):
     common = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
               for k in ("model", "trials", "steps", "seed", "inits_per_track", "device", "dtype", "rng_backend")}
     common["versions"] = {"torchflow": torchflow.__version__, "torch": torch.__version__}
-    keys, settings = {}, {}
-    for key, fcfg in cfg.filter.items():
-        label = labels.get(key)
-        if label is None:  # settings for a filter that is not selected
-            continue
-        s = dict(common, filter=OmegaConf.to_container(fcfg, resolve=True), label=label)
-        keys[label] = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in label) + "-" + fingerprint(s)
-        settings[label] = s
+    settings = {labels[k]: dict(common, filter=OmegaConf.to_container(fcfg, resolve=True), label=labels[k])
+                for k, fcfg in cfg.filter.items() if k in labels}  # not the settings of unselected filters
+    keys = {label: "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in label) + "-" + fingerprint(s)
+            for label, s in settings.items()}
     return ChunkStore(Path(hydra.utils.to_absolute_path(str(root))), keys, resume=resume, settings=settings)
 
 
@@ -130,29 +122,21 @@ class _Output:
             self.failed = f"cannot write {what} into {self.out} ({type(e).__name__}: {e.strerror or e})"
             log.error(f"error: {self.failed}")
 
-    def partial_summary(self, rows, columns) -> None:
-        self.attempt("summary.csv", writers.write_csv, self.out / "summary.csv", rows, columns)
-
-
-def _report_failures(summary, failures) -> None:
-    for r in summary:
-        if r.get("error") and not r["error"].startswith("interrupted"):
-            where = f" in {failures[r['filter']]}" if failures.get(r["filter"]) else ""
-            log.error(f"!! {r['filter']} failed{where}: {r['error']} (traceback in run.log)")
-
 
 def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> int:
     from .runner import SUMMARY_COLUMNS, format_table, run_experiment
 
-    store = chunk_store(cfg, labels)
-    writer = _Output(out)
+    store, writer = chunk_store(cfg, labels), _Output(out)
+    trial_range = cfg.get("trial_range")
     result = run_experiment(
         model, filters, trials=cfg.trials, steps=cfg.steps, seed=cfg.seed, inits_per_track=cfg.inits_per_track,
         chunk_size=cfg.chunk_size, memory_budget_gb=cfg.memory_budget_gb, device=shard.device(cfg.device),
         dtype=cfg.dtype, ospa_cutoff=cfg.metrics.ospa_cutoff, ospa_order=cfg.metrics.ospa_order,
         lost_threshold=cfg.metrics.lost_threshold, progress=cfg.progress, rng_backend=cfg.rng_backend,
-        on_filter_done=lambda rows: writer.partial_summary(rows, SUMMARY_COLUMNS),  # partial results
-        store=store, shard=shard, trial_range=_plain(cfg.get("trial_range")))
+        on_filter_done=lambda rows: writer.attempt("summary.csv", writers.write_csv, out / "summary.csv", rows,
+                                                   SUMMARY_COLUMNS),  # partial results
+        store=store, shard=shard,
+        trial_range=OmegaConf.to_container(trial_range) if OmegaConf.is_config(trial_range) else trial_range)
     if result is None:  # a rank other than 0 of a torchrun run: rank 0 writes the files
         return 0
     model_name = cfg.model._target_.split(".")[-1]
@@ -162,9 +146,12 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
                  f"{sum(store.computed.values())} computed")
     lo, hi = result.config["trial_range"]
     which = f"{cfg.trials} trials" if (lo, hi) == (0, cfg.trials) else f"trials {lo}..{hi - 1} of {cfg.trials}"
-    log.info(f"\n{model_name}: {which} x {cfg.steps} steps, seed {cfg.seed}, {cfg.device}/{cfg.dtype}")
+    log.info(f"\n{model_name}: {which} x {result.config['steps']} steps, seed {cfg.seed}, {cfg.device}/{cfg.dtype}")
     log.info(format_table(result.summary))
-    _report_failures(result.summary, result.failures)
+    for name in result.failed:
+        where = f" in {result.failures[name]}" if result.failures.get(name) else ""
+        error = next(r["error"] for r in result.summary if r["filter"] == name)
+        log.error(f"!! {name} failed{where}: {error} (traceback in run.log)")
     writer.attempt("the result files", writers.write_run, out, result, OmegaConf.to_container(cfg, resolve=True))
     if cfg.plots:
         writer.attempt("the figures", figures.save_run_figures, out, model, result, model_name)
@@ -179,46 +166,8 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
     return 1 if (result.failed or writer.failed) else 0
 
 
-def _run_localisation(cfg, model, localisers, out: Path) -> int:
-    """Seed 002's scene: runs x localisers, OSPA per run, the table, CSVs and a 3-D picture of run 0."""
-    from .localisation import LOCALISATION_COLUMNS, run_localisation, scene_figure
-    from .runner import format_table
-
-    bad = [k for k, f in localisers.items() if not hasattr(f, "method")]
-    if bad:
-        raise ConfigError(f"filter: {', '.join(bad)} cannot run on the TDOA model; select localisers "
-                          "(bs, pfi_d, pfi_s, pfi_os)")
-    writer = _Output(out)
-    summary, per_run, data, examples = run_localisation(
-        model, localisers, runs=cfg.trials, seed=cfg.seed, ospa_cutoff=float(cfg.metrics.ospa_cutoff),
-        ospa_order=float(cfg.metrics.ospa_order), device=cfg.device, dtype=cfg.dtype,
-        rng_backend=cfg.rng_backend, progress=cfg.progress,
-        on_filter_done=lambda rows: writer.partial_summary(rows, LOCALISATION_COLUMNS))
-    log.info(f"\nTDOA3D: {cfg.trials} runs, seed {cfg.seed}, {cfg.device}/{cfg.dtype}, OSPA cut-off "
-             f"{cfg.metrics.ospa_cutoff:g} m")
-    log.info(format_table(summary, LOCALISATION_COLUMNS))
-    _report_failures(summary, {})
-    writer.attempt("summary.csv", writers.write_csv, out / "summary.csv", summary, LOCALISATION_COLUMNS)
-    writer.attempt("per_trial.csv", writers.write_csv, out / "per_trial.csv", per_run)
-    writer.attempt("results.json", writers.write_json, out / "results.json",
-                   {"config": OmegaConf.to_container(cfg, resolve=True), "summary": summary})
-    plt = figures.pyplot() if cfg.plots else None
-    if plt is not None:
-        writer.attempt("scene.png", lambda: figures.save_figure(plt, scene_figure(
-            plt, model, data.sources[0], examples, "TDOA3D: run 0, true and declared sources"), out / "scene.png"))
-    if writer.failed is None:
-        log.info(f"results: {os.path.relpath(out)}")
-    failed = any(r.get("error") and not r["error"].startswith(("interrupted", "not run")) for r in summary)
-    return 1 if (failed or writer.failed) else 0
-
-
-def _plain(v):
-    return OmegaConf.to_container(v) if OmegaConf.is_config(v) else v
-
-
 def run_job(cfg: DictConfig) -> int:
     """One job: check the config, build, run, write; the exit status."""
-    from .models import TDOA3D
     from .runner.distributed import Shard
 
     rc.check_config(cfg, HydraConfig.get().runtime.choices)
@@ -235,20 +184,7 @@ def run_job(cfg: DictConfig) -> int:
             out.mkdir(parents=True, exist_ok=True)
             writers.clear_results(out)  # a reused folder (overwrite=true / resume=true) keeps no old file
         model, filters, labels = build(cfg)
-        if isinstance(model, TDOA3D):
-            if shard.world > 1 or cfg.resume:
-                raise ConfigError("resume=true and torchrun apply to filter runs, not to the TDOA localisers")
-            return _run_localisation(cfg, model, filters, out)
         return _run_filters(cfg, model, filters, labels, out, shard)
-
-
-def _record_failure(message: str) -> None:
-    """A failed sweep job leaves ``error.txt`` in its folder (collect and the end-of-sweep report
-    name it) instead of stopping the sweep."""
-    out = Path(HydraConfig.get().runtime.output_dir)
-    with contextlib.suppress(OSError):
-        out.mkdir(parents=True, exist_ok=True)
-        writers.write_text(out / "error.txt", message.rstrip() + "\n")
 
 
 def _job(cfg: DictConfig) -> int:
@@ -268,8 +204,11 @@ def _job(cfg: DictConfig) -> int:
             message = traceback.format_exc()
             log.error(f"error: {type(e).__name__}: {e}\n{message.rstrip()}")
             code = 1
-        if _multirun():
-            _record_failure(message)
+        if _multirun():  # the job's error.txt (collect and the end-of-sweep report name it); the sweep goes on
+            out = Path(HydraConfig.get().runtime.output_dir)
+            with contextlib.suppress(OSError):
+                out.mkdir(parents=True, exist_ok=True)
+                writers.write_text(out / "error.txt", message.rstrip() + "\n")
         return code
 
 
@@ -297,13 +236,9 @@ def hydra_main(cfg: DictConfig) -> None:
         sys.exit(code)
 
 
-def _pid_resolver() -> str:
-    return str(os.getpid())
-
-
 # cached: a launcher that resolves the sweep folder again in each worker (joblib, submitit) gets
 # the main process's value, so every job lands in the one announced folder
-OmegaConf.register_new_resolver("tf_pid", _pid_resolver, replace=True, use_cache=True)
+OmegaConf.register_new_resolver("tf_pid", lambda: str(os.getpid()), replace=True, use_cache=True)
 
 
 def _quiet_rank_overrides(argv: List[str]) -> List[str]:

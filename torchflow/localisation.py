@@ -22,24 +22,27 @@ each with an existence probability ``r_k`` and a Gaussian mixture of G component
 
 Declared sources: POs with existence above ``declare`` (0.5), at their mixture mean. Everything is
 batched over runs x POs x components x measurements x samples (in memory-bounded chunks of
-``sample_chunk`` numbers); the loop over sensors is the sequential processing itself.
+``sample_chunk`` numbers); the loop over sensors is the sequential processing itself. The localisers
+run through :func:`torchflow.runner.run_experiment` (one run per call: :class:`_Localiser`).
 """
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 from typing import Optional
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from . import linalg
+from ._checks import check_count as _count
 from .association import loopy_association
 from .flows import EDHFlow, GromovFlow, OptimalDiffusionFlow
 from .proposals import FlowedMixtureProposal
 from .models.tdoa import TDOA3D
 from .random import check_generator, uniform
+from .resampling import systematic
 from .schedules import GeometricSchedule, LambdaSchedule
 
 METHODS = ("pfi_d", "pfi_s", "pfi_os")
@@ -76,58 +79,137 @@ class POState:
 
 @dataclass
 class Localisation:
-    """Result of :meth:`FlowMixtureLocaliser.forward`: the declared sources ``positions (B, K, 3)``
-    with ``declared (B, K)``, the final :class:`POState`, and ``underflow (B, S, M)``: the
-    (run, sensor, measurement) triples at which every component's weight underflowed (the
-    measurement was then treated as clutter, not turned into NaN)."""
+    """Result of a localiser's ``forward``: after each sensor, the POs' positions ``estimates (B, S,
+    K, 3)`` (K = ``max_objects`` slots, empty ones 0) and which are declared sources,
+    ``estimate_mask (B, S, K)``; the final :class:`POState`; ``underflow (B, S, M)``: the (run,
+    sensor, measurement) triples at which every component's weight underflowed (the measurement was
+    then treated as clutter, not turned into NaN). :attr:`positions` and :attr:`declared` are the
+    final ``(B, K, 3)`` and ``(B, K)``."""
 
-    positions: torch.Tensor
-    declared: torch.Tensor
+    estimates: torch.Tensor
+    estimate_mask: torch.Tensor
+    underflow: torch.Tensor
     state: POState
-    underflow: Optional[torch.Tensor] = None
 
-    def underflow_report(self, run_offset: int = 0) -> list:
-        """``"run b, sensor s, measurement m"`` strings of every underflow (reads the mask on the
-        host: call it after the run, not inside one)."""
-        if self.underflow is None:
-            return []
-        return [f"run {b + run_offset}, sensor {s}, measurement {m}"
-                for b, s, m in torch.nonzero(self.underflow).tolist()]
+    @property
+    def positions(self) -> torch.Tensor:
+        return self.estimates[:, -1]
 
-
-def _check_common(model, **kw):
-    if not isinstance(model, TDOA3D):
-        raise TypeError(f"model: expected a torchflow TDOA3D, got {type(model).__name__}")
-    if model.clutter_rate <= 0:
-        raise ValueError(f"model.clutter_rate: BP divides by the clutter intensity; expected > 0, got "
-                         f"{model.clutter_rate}")
-    for name in ("n_components", "samples_per_component", "n_particles", "birth_per_axis", "max_objects",
-                 "bp_iterations", "sample_chunk"):
-        v = kw.get(name, 1)
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-            raise ValueError(f"{name}: expected a positive integer, got {v!r}")
-    for name in ("prune", "declare"):
-        v = kw.get(name, 0.0)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= float(v) < 1.0:
-            raise ValueError(f"{name}: expected a probability in [0, 1), got {v!r}")
-    v = kw.get("birth_rate", 1.0)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not float(v) > 0:
-        raise ValueError(f"birth_rate: expected > 0, got {v!r}")
+    @property
+    def declared(self) -> torch.Tensor:
+        return self.estimate_mask[:, -1]
 
 
-def _forward(self, z: torch.Tensor, mask: torch.Tensor, generator) -> "Localisation":
-    """Localise from measurements ``z (B, S, M)`` with ``mask`` (:class:`~torchflow.models.TDOAData`),
-    processing the sensors in order; ``generator``: a ``torch.Generator`` or per-run
-    :class:`~torchflow.random.TrialStreams`."""
-    self.model.check_measurements(z, mask)
-    check_generator(generator, "generator")
-    state = self.init(z.shape[0], z.dtype, z.device)
-    underflow = []
-    for s in range(z.shape[1]):  # sequential processing of the sensors
-        state = self.update(state, z[:, s], mask[:, s], s, generator)
-        underflow.append(state.underflow)
-    declared = state.mask & (state.existence > self.declare)
-    return Localisation(state.positions, declared, state, torch.stack(underflow, 1) if underflow else None)
+def _probability(name, v):
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= float(v) < 1.0:
+        raise ValueError(f"{name}: expected a probability in [0, 1), got {v!r}")
+    return float(v)
+
+
+class _Localiser(nn.Module):
+    """What both localisers share: the settings of BP, pruning and declaration, the run over the
+    sensors (:meth:`forward`) and what the runner (:mod:`torchflow.runner`) reads.
+
+    A localiser's draws depend on the padded number of measurements of its batch (it flows and
+    samples every (PO, component, measurement) row, and keeps ``min(max_objects, K + M)`` PO slots),
+    so a run localised in a batch of several would draw other numbers than alone. Per-run draws
+    that do not depend on the padding would need streams of different lengths per run, which
+    :class:`~torchflow.random.TrialStreams` does not have. So a localiser declares
+    ``trials_per_call = 1``: the runner gives it one run per chunk (whatever ``chunk_size``), and
+    :meth:`forward` trims its batch to its last real measurement column (with the simulator's
+    padding last: the run's largest number of measurements per sensor). A run's numbers then
+    depend only on the scene, the seed and its index, never on the chunking.
+
+    Args (both localisers):
+        model: :class:`~torchflow.models.TDOA3D` (``clutter_rate > 0``).
+        birth_rate: mean number of new sources per measurement, mu_b (UNCONF 0.01).
+        max_objects: POs kept after each sensor (30); prune: existence below which a PO is dropped
+            (1e-3); declare: existence above which a PO is a declared source (0.5).
+        bp_iterations: message passes (20).
+        sample_chunk: numbers drawn per pass (memory bound). Draws are made per pass, so with the
+            numpy back end of per-trial streams (which splits draws above 2^18 numbers) results
+            can depend on it; keep it fixed to compare runs.
+        name: label in results (default: the class name).
+    """
+
+    #: measurement sets padded with a mask (:class:`~torchflow.models.TDOA3D`)
+    padded_measurements = True
+    #: runs per call (see the class docstring)
+    trials_per_call = 1
+    method: str
+
+    def __init__(self, model: TDOA3D, *, birth_rate, max_objects, prune, declare, bp_iterations, sample_chunk,
+                 name):
+        super().__init__()
+        if not isinstance(model, TDOA3D):
+            raise TypeError(f"model: expected a torchflow TDOA3D, got {type(model).__name__}")
+        if model.clutter_rate <= 0:
+            raise ValueError(f"model.clutter_rate: BP divides by the clutter intensity; expected > 0, got "
+                             f"{model.clutter_rate}")
+        if isinstance(birth_rate, bool) or not isinstance(birth_rate, (int, float)) or not float(birth_rate) > 0:
+            raise ValueError(f"birth_rate: expected > 0, got {birth_rate!r}")
+        self.model, self.name = model, name or type(self).__name__
+        self.birth_rate, self.prune, self.declare = float(birth_rate), _probability("prune", prune), \
+            _probability("declare", declare)
+        self.max_objects, self.bp_iterations = _count("max_objects", max_objects), _count("bp_iterations", bp_iterations)
+        self.sample_chunk = _count("sample_chunk", sample_chunk)
+
+    @property
+    def stream_name(self) -> str:
+        """Key of the per-run random streams: ``localise_<method>``."""
+        return f"localise_{self.method}"
+
+    def bytes_per_trial(self) -> int:
+        """Rough peak memory of one run: a pass of ``sample_chunk`` numbers and its intermediates."""
+        return 8 * 8 * self.sample_chunk
+
+    def preferred_chunk_trials(self) -> int:
+        return self.trials_per_call
+
+    def forward(self, observations: torch.Tensor, mean=None, cov=None, generator=None, *, mask: torch.Tensor,
+                progress=None) -> Localisation:
+        """Localise from measurements ``observations (B, S, M)`` with ``mask`` (bool, same shape;
+        :class:`~torchflow.models.TDOAData`), processing the sensors in order. ``generator``: a
+        ``torch.Generator`` or per-run :class:`~torchflow.random.TrialStreams`. ``mean``, ``cov``
+        (the runner's prior per run) are not used: a localiser starts from no PO and its new
+        sources come from its birth density. ``progress``: called after each sensor."""
+        self.model.check_measurements(observations, mask)
+        check_generator(generator, "generator")
+        W = mask.shape[-1]  # trimmed to the batch's last real column: one read, before the sensors
+        M = int((mask.flatten(0, 1).any(0) * torch.arange(1, W + 1, device=mask.device)).max()) if mask.numel() else 0
+        z, zm = observations[..., :M], mask[..., :M]
+        state = self.init(z.shape[0], z.dtype, z.device)
+        est, declared, underflow = [], [], []
+        for s in range(z.shape[1]):  # sequential processing of the sensors
+            state = self.update(state, z[:, s], zm[:, s], s, generator)
+            pad = (0, self.max_objects - state.mask.shape[1])  # a fixed number of slots in the results
+            est.append(F.pad(state.positions, (0, 0, *pad)))
+            declared.append(F.pad(state.mask & (state.existence > self.declare), pad))
+            underflow.append(F.pad(state.underflow, (0, observations.shape[-1] - M)))
+            if progress is not None:
+                progress()
+        return Localisation(torch.stack(est, 1), torch.stack(declared, 1), torch.stack(underflow, 1), state)
+
+    def init(self, batch_size: int, dtype=torch.float64, device=None) -> POState:
+        """No PO before the first sensor."""
+        e = torch.zeros(batch_size, 0, dtype=dtype, device=device)
+        n = self.G if self.mixture else self.n_particles
+        return POState(e, e.bool(), e.new_zeros(batch_size, 0, n), e.new_zeros(batch_size, 0, n, 3),
+                       e.new_zeros(batch_size, 0, n, 3, 3) if self.mixture else None)
+
+    def _bp(self, state: POState, log_Ik, log_Ib, z_mask, sensor):
+        """Loopy BP from the integrals ``log int f_k l_m (B, K, M)`` of the legacy POs and ``log int
+        f_b l_m (B, M)`` of the birth density; returns the association, ``log nu (B, K, M)`` (-inf
+        off the live pairs), ``log(mu_c f_c)`` and the measurements that underflowed
+        (:func:`_underflow`)."""
+        model, r, pd, dt = self.model, state.existence, self.model.p_d, log_Ib.dtype
+        log_cf = math.log(model.clutter_rate) + model.clutter_log_density(sensor).to(dt)  # log(mu_c f_c)
+        beta = torch.cat([(1 - r * pd).unsqueeze(-1), (r * pd).unsqueeze(-1) * torch.exp(log_Ik - log_cf)], -1)
+        xi = 1 + self.birth_rate * torch.exp(log_Ib - log_cf)
+        assoc = loopy_association(beta, xi, state.mask, z_mask, self.bp_iterations)
+        live = state.mask.unsqueeze(-1) & z_mask.unsqueeze(-2)  # (B, K, M)
+        log_nu = torch.where(live, torch.log(assoc.nu.clamp_min(torch.finfo(dt).tiny)), log_Ib.new_tensor(-math.inf))
+        return assoc, log_nu, log_cf, _underflow(log_Ib, log_Ik, log_cf, state.mask, z_mask)
 
 
 def _underflow(log_Ib: torch.Tensor, log_Ik: torch.Tensor, log_cf, po_mask: torch.Tensor, z_mask: torch.Tensor):
@@ -149,11 +231,10 @@ def birth_mixture(region: float, per_axis: int, sd_factor: float = 0.5, dtype=to
     return grid, torch.eye(3, dtype=dtype, device=device) * (sd_factor * w)
 
 
-class FlowMixtureLocaliser(nn.Module):
+class FlowMixtureLocaliser(_Localiser):
     """BP localisation with flowed-mixture importance sampling (module docstring).
 
     Args:
-        model: :class:`~torchflow.models.TDOA3D` (``clutter_rate > 0``).
         method: ``"pfi_d"`` (EDH), ``"pfi_s"`` (Gromov) or ``"pfi_os"`` (optimised diffusion).
         n_components: G per PO (seed: 100).
         samples_per_component: N_p per flowed component (seed: 5000).
@@ -161,20 +242,15 @@ class FlowMixtureLocaliser(nn.Module):
         alpha, c_rule: PFI-OS: the objective weight and the reading of c*
             (:func:`~torchflow.flows.optimal_diffusion_scale`: ``"printed"`` (default, MODELS.md §12.1),
             ``"literal_shift"`` or ``"printed_shift"``).
-        birth_rate: mean number of new sources per measurement, mu_b (UNCONF 0.01).
         birth_per_axis, birth_sd: the birth mixture (:func:`birth_mixture`; 5^3 = 125 components).
-        max_objects: POs kept after each sensor.
-        prune: existence below which a PO is dropped (1e-3).
-        declare: existence above which a PO is a declared source (0.5).
-        bp_iterations: message passes (20).
         jitter: relative diagonal jitter of the refitted covariances (of the component's prior scale).
         evaluate_at: ``"end"`` (default, ``lambda_l``) or ``"start"`` (``lambda_{l-1}``): where each
             lambda step takes its flow coefficients (:func:`~torchflow.flows.flow_gaussian`, UNCONF).
-        name: label in results (default: the class name).
-        sample_chunk: numbers drawn per pass (memory bound). Draws are made per pass, so with the
-            numpy back end of per-trial streams (which splits draws above 2^18 numbers) results
-            can depend on it; keep it fixed to compare runs.
+        birth_rate, max_objects, prune, declare, bp_iterations, sample_chunk, name: see
+            :class:`_Localiser`.
     """
+
+    mixture = True  # POs are Gaussian mixtures (with factors)
 
     def __init__(self, model: TDOA3D, method: str = "pfi_os", *, n_components: int = 100,
                  samples_per_component: int = 5000, schedule: Optional[LambdaSchedule] = None, alpha: float = 0.1,
@@ -182,14 +258,11 @@ class FlowMixtureLocaliser(nn.Module):
                  max_objects: int = 30, prune: float = 1e-3, declare: float = 0.5, bp_iterations: int = 20,
                  jitter: float = 1e-6, sample_chunk: int = 20_000_000, evaluate_at: str = "end",
                  name: Optional[str] = None):
-        super().__init__()
-        self.name = name or type(self).__name__
-        _check_common(model, n_components=n_components, samples_per_component=samples_per_component,
-                      birth_per_axis=birth_per_axis, max_objects=max_objects, bp_iterations=bp_iterations,
-                      sample_chunk=sample_chunk, prune=prune, declare=declare, birth_rate=birth_rate)
+        super().__init__(model, birth_rate=birth_rate, max_objects=max_objects, prune=prune, declare=declare,
+                         bp_iterations=bp_iterations, sample_chunk=sample_chunk, name=name)
         if method not in METHODS:
             raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
-        self.model, self.method = model, method
+        self.method = method
         if method == "pfi_d":
             self.flow = EDHFlow()
         elif method == "pfi_s":
@@ -200,13 +273,17 @@ class FlowMixtureLocaliser(nn.Module):
         if len(self.schedule) < 1:
             raise ValueError("schedule: expected at least one pseudo-time step, got an empty schedule")
         self.proposal = FlowedMixtureProposal(self.flow, self.schedule, ratio="component", evaluate_at=evaluate_at)
-        bm, bL = birth_mixture(model.region, birth_per_axis, birth_sd)
+        self.G = _count("n_components", n_components)
+        self.n_samples = _count("samples_per_component", samples_per_component)
+        bm, bL = birth_mixture(model.region, _count("birth_per_axis", birth_per_axis), birth_sd)
         self.register_buffer("birth_means", bm)
         self.register_buffer("birth_scale_tril", bL)
-        self.G, self.n_samples = n_components, samples_per_component
-        self.birth_rate, self.birth_per_axis, self.birth_sd = float(birth_rate), birth_per_axis, float(birth_sd)
-        self.max_objects, self.prune, self.declare = max_objects, float(prune), float(declare)
-        self.bp_iterations, self.jitter, self.sample_chunk = bp_iterations, float(jitter), sample_chunk
+        self.jitter = float(jitter)
+
+    @property
+    def n_particles(self) -> int:
+        """Samples per PO: components x samples per component."""
+        return self.G * self.n_samples
 
     # ---- one sensor --------------------------------------------------------------------------
     def _flowed_terms(self, log_w, means, L, z, s, generator):
@@ -245,13 +322,10 @@ class FlowMixtureLocaliser(nn.Module):
 
     def update(self, state: POState, z: torch.Tensor, z_mask: torch.Tensor, sensor: int, generator) -> POState:
         """Process the measurements ``z (B, M)`` (real where ``z_mask``) of sensor ``sensor``."""
-        model, G = self.model, self.G
+        G, pd = self.G, self.model.p_d
         B, M = z.shape
         dt, dev = z.dtype, z.device
         K = state.existence.shape[1]
-        pd = model.p_d
-        log_cf = math.log(model.clutter_rate) + model.clutter_log_density(sensor).to(dt)  # log(mu_c f_c)
-        neg = torch.tensor(float("-inf"), dtype=dt, device=dev)
         # birth: the new PO of every measurement
         bm, bL = self.birth_means.to(dt), self.birth_scale_tril.to(dt)
         Nb = bm.shape[0]
@@ -259,176 +333,31 @@ class FlowMixtureLocaliser(nn.Module):
         bI, b_mean, b_L = self._flowed_terms(b_logw, bm.expand(B, 1, Nb, 3), bL.expand(B, 1, Nb, 3, 3), z, sensor,
                                              generator)
         log_Ib = torch.logsumexp(b_logw.unsqueeze(-1) + bI, 2)[:, 0]  # (B, M)
+        log_Ik = torch.zeros(B, 0, M, dtype=dt, device=dev)
         if K:
             I, p_mean, p_L = self._flowed_terms(state.log_weights, state.means, state.scale_trils, z, sensor,
                                                 generator)
             log_Ik = torch.logsumexp(state.log_weights.unsqueeze(-1) + I, 2)  # (B, K, M)
-        else:
-            log_Ik = torch.zeros(B, 0, M, dtype=dt, device=dev)
-        beta, xi = _bp_terms(model, state.existence, log_Ik, log_Ib, log_cf, self.birth_rate)
-        assoc = loopy_association(beta, xi, state.mask, z_mask, self.bp_iterations)
-        # legacy POs: "missed" plus one candidate per component and measurement, reduced to G
-        if K:
-            live = state.mask.unsqueeze(-1) & z_mask.unsqueeze(-2)  # (B, K, M)
-            log_nu = torch.where(live, torch.log(assoc.nu.clamp_min(torch.finfo(dt).tiny)), neg)
+        assoc, log_nu, log_cf, underflow = self._bp(state, log_Ik, log_Ib, z_mask, sensor)
+        r_all, mask, parts = assoc.new_existence, z_mask, []
+        if K:  # legacy POs: "missed" plus one candidate per component and measurement, reduced to G
             missed = state.log_weights + (math.log(1 - pd) if pd < 1 else float("-inf"))
             hit = (state.log_weights.unsqueeze(-1) + math.log(pd) + log_nu.unsqueeze(2) - log_cf + I)  # (B,K,G,M)
             cand_w = torch.cat([missed, hit.reshape(B, K, G * M)], -1)
             cand_m = torch.cat([state.means, p_mean.reshape(B, K, G * M, 3)], 2)
             cand_L = torch.cat([state.scale_trils, p_L.reshape(B, K, G * M, 3, 3)], 2)
-            log_C = torch.logsumexp(cand_w, -1)  # log C_k
-            r = state.existence
-            r_leg = _legacy_existence(r, log_C)
-            leg = _reduce(cand_w, cand_m, cand_L, G, generator)
+            r_all = torch.cat([_legacy_existence(state.existence, torch.logsumexp(cand_w, -1)), r_all], 1)
+            mask = torch.cat([state.mask, z_mask], 1)
+            parts = _reduce(cand_w, cand_m, cand_L, G, generator)
         # new POs: the birth candidates of each measurement, reduced to G
         nb_w = (b_logw[:, 0].unsqueeze(-1) + bI[:, 0]).transpose(1, 2)  # (B, M, Nb)
         new = _reduce(nb_w, b_mean[:, 0].transpose(1, 2), b_L[:, 0].transpose(1, 2), G, generator)
-        r_new = assoc.new_existence
-        if K:
-            r_all = torch.cat([r_leg, r_new], 1)
-            mask = torch.cat([state.mask, z_mask], 1)
-            parts = [torch.cat([a, b], 1) for a, b in zip(leg, new)]
-        else:
-            r_all, mask, parts = r_new, z_mask, list(new)
-        return POState(*_prune_and_cap(r_all, mask, parts, self.prune, self.max_objects),
-                       underflow=_underflow(log_Ib, log_Ik, log_cf, state.mask, z_mask))
-
-    # ---- whole scene -------------------------------------------------------------------------
-    def init(self, batch_size: int, dtype=torch.float64, device=None) -> POState:
-        """No PO before the first sensor."""
-        B, G = batch_size, self.G
-        z = torch.zeros(B, 0, dtype=dtype, device=device)
-        return POState(z, z.bool(), torch.zeros(B, 0, G, dtype=dtype, device=device),
-                       torch.zeros(B, 0, G, 3, dtype=dtype, device=device),
-                       torch.zeros(B, 0, G, 3, 3, dtype=dtype, device=device))
-
-    forward = _forward
+        parts = [torch.cat([a, b], 1) for a, b in zip(parts, new)] if K else list(new)
+        return POState(*_prune_and_cap(r_all, mask, parts, self.prune, self.max_objects), underflow=underflow)
 
     def extra_repr(self) -> str:
         return (f"method={self.method!r}, n_components={self.G}, samples_per_component={self.n_samples}, "
                 f"schedule={self.schedule!r}")
-
-
-LOCALISATION_COLUMNS = ["filter", "n_particles", "trials", "ospa", "ospa_se", "declared", "true_sources",
-                        "sec_per_run", "underflows", "error"]
-
-
-def run_localisation(model: TDOA3D, localisers, *, runs: int = 10, seed: int = 0, ospa_cutoff: float = 30.0,
-                     ospa_order: float = 1.0, device="cpu", dtype="float64", rng_backend: str = "auto",
-                     progress: bool = True, on_filter_done=None):
-    """Simulate ``runs`` scenes once and localise them with every localiser (seed 002's tables).
-
-    The scenes are simulated together from ``seed`` (as the state-space runner simulates its
-    trajectories), so scene b depends on ``runs``. Each run is then localised alone, trimmed to its
-    own largest number of measurements per sensor, with its own random stream
-    (:class:`~torchflow.random.TrialStreams` keyed by seed, run and method): given the scenes, a
-    run's result does not depend on the other runs.
-    A localiser that raises does not stop the others: its row gets the error. Ctrl-C or SIGTERM
-    (with :data:`~torchflow.experiment.STOP`'s handler installed, as ``experiments/run.py`` does)
-    stops the run at once; the finished runs keep their rows, the interrupted localiser's summary
-    row covers them (``trials`` = runs finished) with the error "interrupted after n of N runs",
-    and later localisers get "not run: interrupted".
-
-    Returns:
-        ``(summary, per_run, data, examples)``: summary rows (:data:`LOCALISATION_COLUMNS`), one row
-        per localiser and run (``ospa``, ``declared``, ``sec``), the simulated :class:`TDOAData`
-        (CPU) and run 0's declared positions per localiser.
-    """
-    import time
-
-    from .experiment import STOP, resolve_device, resolve_dtype
-    from .metrics import ospa as ospa_metric
-    from .random import TrialStreams
-
-    dev, dt = resolve_device(device), resolve_dtype(dtype)
-    model.to(device=dev, dtype=dt)
-    data = model.simulate(int(runs), torch.Generator(device=dev).manual_seed(int(seed)))
-    counts = data.mask.sum(-1).amax(-1).tolist()  # per run: its own padding (one read, before any localiser)
-    summary, per_run, examples = [], [], {}
-    try:
-        from tqdm.auto import tqdm
-    except ImportError:  # pragma: no cover
-        tqdm = None
-    interrupted = False
-    for name, loc in localisers.items():
-        row = {c: None for c in LOCALISATION_COLUMNS}
-        if interrupted:  # an earlier localiser was interrupted: this one does not start
-            row.update(filter=name, trials=0, true_sources=model.n_sources, error="not run: interrupted")
-            summary.append(row)
-            continue
-        loc.to(device=dev, dtype=dt)
-        row.update(filter=name, trials=runs, true_sources=model.n_sources,
-                   n_particles=getattr(loc, "n_particles", None) or loc.G * loc.n_samples)
-        bar = tqdm(total=runs, unit="run", leave=False, desc=name) if progress and tqdm is not None else None
-        vals, decl, secs, under = [], [], [], []
-        try:
-            with torch.no_grad():
-                for b in range(runs):
-                    STOP.check()  # Ctrl-C / SIGTERM between runs (experiments/run.py installs the handler)
-                    M = int(counts[b])
-                    z, mask = data.z[b:b + 1, :, :M], data.mask[b:b + 1, :, :M]
-                    g = TrialStreams(seed, [b], key=f"localise_{loc.method}", backend=rng_backend)
-                    if dev.type == "cuda":
-                        torch.cuda.synchronize()
-                    t0 = time.perf_counter()
-                    with STOP.interruptible():
-                        res = loc(z, mask, g)
-                    if dev.type == "cuda":
-                        torch.cuda.synchronize()
-                    secs.append(time.perf_counter() - t0)
-                    o = ospa_metric(res.positions.unsqueeze(1).double(), data.sources[b:b + 1].unsqueeze(1).double(),
-                                    cutoff=ospa_cutoff, order=ospa_order, X_mask=res.declared.unsqueeze(1))
-                    vals.append(float(o))
-                    decl.append(int(res.declared.sum()))
-                    lost = res.underflow_report(run_offset=b)
-                    if lost:
-                        warnings.warn(f"{name}: every component's weight underflowed (measurement treated as "
-                                      f"clutter) at " + "; ".join(lost), RuntimeWarning, stacklevel=2)
-                    under.append(len(lost))
-                    per_run.append({"filter": name, "trial": b, "ospa": vals[-1], "declared": decl[-1], "sec": secs[-1],
-                                    "underflows": len(lost)})
-                    if b == 0:
-                        examples[name] = res.positions[0][res.declared[0]].cpu()
-                    if bar is not None:
-                        bar.update(1)
-        except KeyboardInterrupt:  # keep the finished runs; the localisers after this one do not start
-            interrupted = True
-            row["error"] = f"interrupted after {len(vals)} of {runs} runs"
-        except Exception as e:  # one failing localiser must not lose the others' results
-            row["error"] = f"{type(e).__name__}: {e}"
-        if bar is not None:
-            bar.close()
-        if vals:
-            v = torch.tensor(vals, dtype=torch.float64)
-            row.update(trials=len(vals), ospa=float(v.mean()),
-                       ospa_se=float(v.std() / math.sqrt(len(vals))) if len(vals) > 1 else None, declared=sum(decl) / len(decl), sec_per_run=sum(secs) / len(secs), underflows=sum(under))
-        summary.append(row)
-        if on_filter_done is not None:
-            on_filter_done(summary)
-    cpu = type(data)(*(t.cpu() for t in (data.sources, data.z, data.mask, data.origin)))
-    return summary, per_run, cpu, examples
-
-
-def scene_figure(plt, model: TDOA3D, sources: torch.Tensor, examples: dict, title: str):
-    """A 3-D picture of one run: receivers, true sources and every localiser's declared sources."""
-    fig = plt.figure(figsize=(6.5, 5.5))
-    ax = fig.add_subplot(projection="3d")
-    rec = model.receivers.cpu()
-    ax.scatter(*rec.T, marker="s", s=40, c="k", label="receivers")
-    ax.scatter(*sources.T, marker="*", s=160, c="gold", edgecolors="k", label="true sources")
-    marks = "o^vDs<>"
-    for i, (name, pos) in enumerate(examples.items()):
-        if len(pos):
-            ax.scatter(*pos.T, marker=marks[i % len(marks)], s=50, facecolors="none", edgecolors=f"C{i}", label=name)
-        else:
-            ax.scatter([], [], [], marker=marks[i % len(marks)], label=f"{name} (none declared)")
-    r = model.region
-    ax.set_xlim(-r, r), ax.set_ylim(-r, r), ax.set_zlim(-r, r)
-    ax.set_xlabel("x (m)"), ax.set_ylabel("y (m)"), ax.set_zlabel("z (m)")
-    ax.legend(fontsize=7, loc="upper left")
-    ax.set_title(title, fontsize=9)
-    fig.tight_layout()
-    return fig
 
 
 def _prune_and_cap(r, mask, parts, prune: float, max_objects: int):
@@ -446,54 +375,24 @@ def _prune_and_cap(r, mask, parts, prune: float, max_objects: int):
     return (g(r), g(mask), *(g(t) for t in parts))
 
 
-def _bp_terms(model, r, log_Ik, log_Ib, log_cf, birth_rate):
-    """``beta (B, K, M + 1)`` and ``xi (B, M)`` from the integrals ``log int f_k l_m`` and
-    ``log int f_b l_m``."""
-    pd = model.p_d
-    beta = torch.cat([(1 - r * pd).unsqueeze(-1), (r * pd).unsqueeze(-1) * torch.exp(log_Ik - log_cf)], -1)
-    return beta, 1 + birth_rate * torch.exp(log_Ib - log_cf)
-
-
-def _systematic_indices(log_w: torch.Tensor, n: int, generator) -> torch.Tensor:
-    """``n`` indices per row of ``log_w (B, K, C)`` by systematic resampling (one uniform per row);
-    a row with no positive weight resamples uniformly."""
-    B, K, C = log_w.shape
-    w = torch.softmax(log_w, -1)
-    w = torch.where(torch.isfinite(w).all(-1, keepdim=True), w, torch.full_like(w, 1.0 / C))
-    cdf = w.cumsum(-1)
-    cdf = cdf / cdf[..., -1:].clamp_min(torch.finfo(w.dtype).tiny)
-    u = uniform((B, K, 1), dtype=w.dtype, device=w.device, generator=generator)
-    pos = (torch.arange(n, dtype=w.dtype, device=w.device) + u) / n
-    return torch.searchsorted(cdf.contiguous(), pos.contiguous()).clamp(max=C - 1)  # (B, K, n)
-
-
-class BootstrapLocaliser(nn.Module):
+class BootstrapLocaliser(_Localiser):
     """The bootstrap baseline of seed 002 (``BS``): each PO is a plain set of N_p particles; for
     each sensor the proposal is the previous posterior itself (the sources are static), the
     weights are the BP-weighted likelihood terms, and each PO is resampled (systematic). New POs
     start from N_p particles uniform in the region. The same BP, pruning and declaration as
     :class:`FlowMixtureLocaliser`; likelihoods are evaluated in chunks of ``sample_chunk`` numbers.
 
-    Args:
-        model: :class:`~torchflow.models.TDOA3D` (``clutter_rate > 0``).
-        n_particles: N_p per PO (seed: 2e6 and 4e7).
-        birth_rate, max_objects, prune, declare, bp_iterations, sample_chunk: as
-            :class:`FlowMixtureLocaliser`.
+    ``n_particles``: N_p per PO (seed: 2e6 and 4e7); the other arguments: :class:`_Localiser`.
     """
 
-    method = "bs"
+    method, mixture = "bs", False  # POs are particle sets
 
     def __init__(self, model: TDOA3D, *, n_particles: int = 100_000, birth_rate: float = 0.01, max_objects: int = 30,
                  prune: float = 1e-3, declare: float = 0.5, bp_iterations: int = 20, sample_chunk: int = 20_000_000,
                  name: Optional[str] = None):
-        super().__init__()
-        self.name = name or type(self).__name__
-        _check_common(model, n_particles=n_particles, max_objects=max_objects, bp_iterations=bp_iterations,
-                      sample_chunk=sample_chunk, prune=prune, declare=declare, birth_rate=birth_rate)
-        self.model, self.n_particles = model, n_particles
-        self.birth_rate, self.max_objects, self.prune, self.declare = float(birth_rate), max_objects, float(prune), \
-            float(declare)
-        self.bp_iterations, self.sample_chunk = bp_iterations, sample_chunk
+        super().__init__(model, birth_rate=birth_rate, max_objects=max_objects, prune=prune, declare=declare,
+                         bp_iterations=bp_iterations, sample_chunk=sample_chunk, name=name)
+        self.n_particles = _count("n_particles", n_particles)
 
     def _loglik(self, x, z, s, own: bool = False):
         """``log l_m(x)`` of particles ``x (B, K, N, 3)`` for measurements ``z (B, M)`` ->
@@ -507,50 +406,41 @@ class BootstrapLocaliser(nn.Module):
                for a in range(0, N, per)]
         return torch.cat(out, 2)
 
-    def update(self, state: "POState", z, z_mask, sensor, generator) -> "POState":
-        model = self.model
+    def update(self, state: POState, z, z_mask, sensor, generator) -> POState:
+        """Process the measurements ``z (B, M)`` (real where ``z_mask``) of sensor ``sensor``."""
         B, M = z.shape
         dt, dev = z.dtype, z.device
-        N, K = self.n_particles, state.existence.shape[1]
-        pd = model.p_d
-        log_cf = math.log(model.clutter_rate) + model.clutter_log_density(sensor).to(dt)
-        xb = (uniform((B, M, N, 3), dtype=dt, device=dev, generator=generator) * 2 - 1) * model.region
+        N, K, pd = self.n_particles, state.existence.shape[1], self.model.p_d
+        xb = (uniform((B, M, N, 3), dtype=dt, device=dev, generator=generator) * 2 - 1) * self.model.region
         llb = self._loglik(xb, z, sensor, own=True)  # (B, M, N): each new PO against its own measurement
         log_Ib = torch.logsumexp(llb, -1) - math.log(N)
         ll = self._loglik(state.means, z, sensor) if K else torch.zeros(B, 0, N, M, dtype=dt, device=dev)
         log_Ik = torch.logsumexp(state.log_weights.unsqueeze(-1) + ll, 2)  # (B, K, M)
-        beta, xi = _bp_terms(model, state.existence, log_Ik, log_Ib, log_cf, self.birth_rate)
-        assoc = loopy_association(beta, xi, state.mask, z_mask, self.bp_iterations)
-        live = state.mask.unsqueeze(-1) & z_mask.unsqueeze(-2)
-        tiny = torch.finfo(dt).tiny
-        log_nu = torch.where(live, torch.log(assoc.nu.clamp_min(tiny)), torch.tensor(float("-inf"), dtype=dt))
+        assoc, log_nu, log_cf, underflow = self._bp(state, log_Ik, log_Ib, z_mask, sensor)
         terms = torch.cat([torch.full((B, K, N, 1), math.log(1 - pd) if pd < 1 else float("-inf"), dtype=dt,
                                       device=dev),
                            math.log(pd) + log_nu.unsqueeze(2) - log_cf + ll], -1)
         lw = state.log_weights + torch.logsumexp(terms, -1)  # (B, K, N)
-        log_C = torch.logsumexp(lw, -1)
-        r = state.existence
-        r_leg = _legacy_existence(r, log_C)
-        idx = _systematic_indices(lw, N, generator)
-        leg = state.means.gather(2, idx.unsqueeze(-1).expand(B, K, N, 3))
-        nidx = _systematic_indices(llb, N, generator)
-        new = xb.gather(2, nidx.unsqueeze(-1).expand(B, M, N, 3))
-        r_all = torch.cat([r_leg, assoc.new_existence], 1)
-        mask = torch.cat([state.mask, z_mask], 1)
+        r_all = torch.cat([_legacy_existence(state.existence, torch.logsumexp(lw, -1)), assoc.new_existence], 1)
+        leg = state.means.gather(2, _resample(lw, generator).unsqueeze(-1).expand(B, K, N, 3))
+        new = xb.gather(2, _resample(llb, generator).unsqueeze(-1).expand(B, M, N, 3))
         flat = torch.full((B, K + M, N), -math.log(N), dtype=dt, device=dev)
-        r2, m2, lw2, x2 = _prune_and_cap(r_all, mask, [flat, torch.cat([leg, new], 1)], self.prune, self.max_objects)
-        # particles in ``means``, no factors
-        return POState(r2, m2, lw2, x2, underflow=_underflow(log_Ib, log_Ik, log_cf, state.mask, z_mask))
-
-    def init(self, batch_size: int, dtype=torch.float64, device=None) -> "POState":
-        z = torch.zeros(batch_size, 0, dtype=dtype, device=device)
-        return POState(z, z.bool(), torch.zeros(batch_size, 0, self.n_particles, dtype=dtype, device=device),
-                       torch.zeros(batch_size, 0, self.n_particles, 3, dtype=dtype, device=device))
-
-    forward = _forward
+        r2, m2, lw2, x2 = _prune_and_cap(r_all, torch.cat([state.mask, z_mask], 1), [flat, torch.cat([leg, new], 1)],
+                                         self.prune, self.max_objects)
+        return POState(r2, m2, lw2, x2, underflow=underflow)  # particles in ``means``, no factors
 
     def extra_repr(self) -> str:
         return f"n_particles={self.n_particles}"
+
+
+def _resample(log_w: torch.Tensor, generator) -> torch.Tensor:
+    """Systematic resampling (:func:`torchflow.resampling.systematic`, one uniform per PO) of the
+    particles of every PO, ``log_w (B, K, N)`` -> ``(B, K, N)`` indices; a PO with no positive
+    (or a NaN) weight resamples uniformly."""
+    B, K, N = log_w.shape
+    lw = log_w.reshape(B * K, N)
+    ok = torch.isfinite(lw).any(-1, keepdim=True) & ~(torch.isnan(lw) | torch.isposinf(lw)).any(-1, keepdim=True)
+    return systematic(torch.where(ok, lw, torch.zeros_like(lw)), generator, validate=False).reshape(B, K, N)
 
 
 def _legacy_existence(r: torch.Tensor, log_C: torch.Tensor) -> torch.Tensor:
@@ -562,13 +452,19 @@ def _legacy_existence(r: torch.Tensor, log_C: torch.Tensor) -> torch.Tensor:
 
 def _reduce(log_w: torch.Tensor, means: torch.Tensor, L: torch.Tensor, n: int, generator):
     """Keep ``n`` of the candidate components ``(B, K, C)`` by systematic resampling of their indices
-    (one uniform per PO); returns ``(log_weights (B, K, n) equal, means, scale_trils)``."""
+    (one uniform per PO; a PO with no positive weight draws uniformly); returns ``(log_weights
+    (B, K, n) equal, means, scale_trils)``. (:func:`torchflow.resampling.systematic` draws as many
+    indices as there are weights, here C = G (1 + M) or 125 candidates for n = G.)"""
     B, K, C = log_w.shape
-    idx = _systematic_indices(log_w, n, generator)
+    w = torch.softmax(log_w, -1)
+    cdf = torch.where(torch.isfinite(w).all(-1, keepdim=True), w, torch.full_like(w, 1.0 / C)).cumsum(-1)
+    cdf = cdf / cdf[..., -1:].clamp_min(torch.finfo(w.dtype).tiny)
+    u = uniform((B, K, 1), dtype=w.dtype, device=w.device, generator=generator)
+    pos = (torch.arange(n, dtype=w.dtype, device=w.device) + u) / n
+    idx = torch.searchsorted(cdf.contiguous(), pos.contiguous()).clamp(max=C - 1)  # (B, K, n)
     gm = means.gather(2, idx.unsqueeze(-1).expand(B, K, n, means.shape[-1]))
     gL = L.gather(2, idx[..., None, None].expand(B, K, n, *L.shape[-2:]))
     return torch.full((B, K, n), -math.log(n), dtype=means.dtype, device=means.device), gm, gL
 
 
-__all__ = ["run_localisation", "scene_figure", "LOCALISATION_COLUMNS", "FlowMixtureLocaliser", "BootstrapLocaliser",
-           "POState", "Localisation", "birth_mixture", "METHODS"]
+__all__ = ["FlowMixtureLocaliser", "BootstrapLocaliser", "POState", "Localisation", "birth_mixture", "METHODS"]

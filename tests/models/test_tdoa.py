@@ -38,7 +38,7 @@ def test_simulation_statistics():
     """Detections ~ p_d, clutter ~ Poisson(mu_c) on the feasible interval, noise sd sigma_v."""
     m = TDOA3D(clutter_rate=2.0, p_d=0.8)
     B = 2000
-    d = m.simulate(B, torch.Generator().manual_seed(1))
+    d = m.simulate(B, generator=torch.Generator().manual_seed(1))
     m.check_measurements(d.z, d.mask)
     assert d.sources.shape == (B, 3, 3) and (d.sources.abs() <= 1000).all()
     det = ((d.origin >= 0) & d.mask).sum((-1,)).double() / 3  # per run and sensor
@@ -92,3 +92,20 @@ def test_bad_input():
         m.check_measurements(z, torch.ones(2, 9, 3, dtype=torch.bool))
     with pytest.raises(ValueError, match="z: expected"):
         m.check_measurements(torch.zeros(2, 8, 4), torch.ones(2, 8, 4, dtype=torch.bool))
+    with pytest.raises(ValueError, match=r"steps: TDOA3D has one step per sensor; expected None or 9, got 40"):
+        m.simulate(2, 40, torch.Generator())
+    with pytest.raises(TypeError, match="generator: expected a torch.Generator"):
+        m.simulate(2)
+
+
+def test_a_state_space_model_with_padded_measurements():
+    """The sensors are the steps, the static sources the state; indexing keeps the mask."""
+    m = TDOA3D(n_sources=2)
+    d = m.simulate(3, generator=torch.Generator().manual_seed(0))
+    assert d.states.shape == (3, 10, 6) and (d.states == d.states[:, :1]).all()
+    assert torch.equal(m.positions(d.states[:, 0]), d.sources) and d.sources.shape == (3, 2, 3)
+    sub = d[torch.tensor([2, 2, 0])]
+    assert torch.equal(sub.mask, d.mask[[2, 2, 0]]) and torch.equal(sub.origin, d.origin[[2, 2, 0]])
+    mean, cov = m.initial_belief(d.states[:, 0])
+    torch.testing.assert_close(cov[0], torch.eye(6, dtype=torch.float64) * 1000.0**2 / 3)
+    assert mean.abs().max() == 0 and m.n_steps == 9 and m.state_dim == 6

@@ -7,8 +7,13 @@ Static sources ``x`` in the cube ``[-r, r]^3`` are heard by V receivers; sensor 
     z = h_ab(x) + v,   h_ab(x) = (||x - p_a|| - ||x - p_b||) / c,   v ~ N(0, sigma_v^2),
 
 at most once per source (detection probability ``p_d``), plus Poisson clutter (mean ``mu_c`` per
-sensor) uniform on the feasible interval ``[-||p_a - p_b|| / c, ||p_a - p_b|| / c]``. Measurements per
-sensor vary in number, so a run's measurements are a padded ``(B, S, M)`` tensor with a mask.
+sensor) uniform on the feasible interval ``[-||p_a - p_b|| / c, ||p_a - p_b|| / c]``.
+
+As a :class:`~torchflow.models.StateSpaceModel`, the sensors are the time steps (T = S, processed in
+turn; :attr:`TDOA3D.n_steps`), the state is the static sources ``(3 n,)`` and the measurements of a
+step vary in number: ``observations (B, S, M)`` are padded (with 0) and come with a ``mask``
+(:class:`TDOAData`). Only filters that take such measurement sets (the localisers of
+:mod:`torchflow.localisation`, ``padded_measurements = True``) run on it.
 
 Defaults (§12.3): six receivers at the centres of the faces of the cube ``[-1000, 1000]^3`` m, the
 nine pairs "+ face with - face", c = 1500 m/s, sigma_v = 0.5 ms, p_d = 0.95, mu_c = 1, three sources
@@ -20,9 +25,9 @@ from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import torch
-from torch import nn
 
 from ..flows.measurement import GaussianMeasurement
+from .base import StateSpaceModel, Trajectory
 
 
 def face_receivers(half_width: float = 1000.0) -> torch.Tensor:
@@ -37,23 +42,32 @@ def plus_minus_pairs() -> list:
 
 
 @dataclass
-class TDOAData:
-    """Simulated runs.
+class TDOAData(Trajectory):
+    """Simulated runs: a :class:`~torchflow.models.Trajectory` whose measurements are padded sets.
 
     Attributes:
-        sources: ``(B, n, 3)`` true source positions.
-        z: ``(B, S, M)`` measurements per sensor, padded (padding is 0).
+        states: ``(B, S + 1, 3 n)`` the sources (static), flattened; :attr:`sources` ``(B, n, 3)``.
+        observations: ``(B, S, M)`` measurements per sensor, padded with 0 (also :attr:`z`).
         mask: ``(B, S, M)`` bool, the real measurements.
         origin: ``(B, S, M)`` long, the source that produced each measurement (-1: clutter or padding).
     """
 
-    sources: torch.Tensor
-    z: torch.Tensor
     mask: torch.Tensor
     origin: torch.Tensor
 
+    @property
+    def sources(self) -> torch.Tensor:
+        return self.states[:, 0].reshape(self.states.shape[0], -1, 3)
 
-class TDOA3D(nn.Module):
+    @property
+    def z(self) -> torch.Tensor:
+        return self.observations
+
+    def __getitem__(self, idx) -> "TDOAData":
+        return TDOAData(self.states[idx], self.observations[idx], self.mask[idx], self.origin[idx])
+
+
+class TDOA3D(StateSpaceModel):
     """The TDOA scenario of seed 002 (see the module docstring).
 
     Args:
@@ -67,7 +81,9 @@ class TDOA3D(nn.Module):
         region: half width r of the region ``[-r, r]^3`` (m).
     """
 
-    state_dim = 3
+    #: measurements are padded sets with a mask; only filters declaring the same take them
+    padded_measurements = True
+    obs_dim = None  # a sensor's measurements vary in number (padded to M)
 
     def __init__(self, receivers: Optional[torch.Tensor] = None, pairs: Optional[Sequence[Sequence[int]]] = None, *,
                  speed: float = 1500.0, sigma_v: float = 5e-4, p_d: float = 0.95, clutter_rate: float = 1.0,
@@ -88,23 +104,50 @@ class TDOA3D(nn.Module):
             if len(p) != 2 or p[0] == p[1] or not all(0 <= v < len(rec) for v in p):
                 raise ValueError(f"pairs: expected pairs (a, b) of distinct receiver indices in [0, {len(rec)}), "
                                  f"got {p}")
-        for name, v in (("speed", speed), ("sigma_v", sigma_v), ("region", region)):
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
-                raise ValueError(f"{name}: expected a positive number, got {v!r}")
-        if isinstance(p_d, bool) or not isinstance(p_d, (int, float)) or not 0 < p_d <= 1:
-            raise ValueError(f"p_d: expected a detection probability in (0, 1], got {p_d!r}")
-        if isinstance(clutter_rate, bool) or not isinstance(clutter_rate, (int, float)) or not clutter_rate >= 0:
-            raise ValueError(f"clutter_rate: expected a mean clutter count >= 0, got {clutter_rate!r}")
-        if isinstance(n_sources, bool) or not isinstance(n_sources, int) or n_sources < 0:
-            raise ValueError(f"n_sources: expected an integer >= 0, got {n_sources!r}")
+        rules = [(k, v, lambda v: v > 0, "a positive number") for k, v in
+                 (("speed", speed), ("sigma_v", sigma_v), ("region", region))]
+        rules += [("p_d", p_d, lambda v: 0 < v <= 1, "a detection probability in (0, 1]"),
+                  ("clutter_rate", clutter_rate, lambda v: v >= 0, "a mean clutter count >= 0"),
+                  ("n_sources", n_sources, lambda v: isinstance(v, int) and v >= 0, "an integer >= 0")]
+        for name, v, ok, what in rules:
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not ok(v):
+                raise ValueError(f"{name}: expected {what}, got {v!r}")
         self.register_buffer("receivers", rec)
         self.register_buffer("pairs", torch.tensor(pairs, dtype=torch.long))
         self.speed, self.sigma_v, self.p_d = float(speed), float(sigma_v), float(p_d)
         self.clutter_rate, self.n_sources, self.region = float(clutter_rate), n_sources, float(region)
+        self.state_dim = 3 * n_sources
 
     @property
     def n_sensors(self) -> int:
         return self.pairs.shape[0]
+
+    @property
+    def n_steps(self) -> int:
+        """Time steps of a run: one per sensor (the runner takes the step count from here)."""
+        return self.n_sensors
+
+    # ---- the static sources as a state-space model -------------------------------------------
+    def transition_mean(self, x: torch.Tensor) -> torch.Tensor:
+        return x
+
+    def transition_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
+        return self.receivers.new_zeros(self.state_dim, self.state_dim)
+
+    @property
+    def has_positions(self) -> bool:
+        return True
+
+    def positions(self, x: torch.Tensor) -> torch.Tensor:
+        """Source positions ``(..., n, 3)`` of states ``(..., 3 n)``."""
+        return x.reshape(*x.shape[:-1], -1, 3)
+
+    def initial_belief(self, states0: torch.Tensor, generator=None):
+        """Moments of the uniform prior on the region, ``(B, 3 n)`` and ``(B, 3 n, 3 n)`` (no draw):
+        the localisers start from no potential object, and new sources come from their birth density."""
+        B, d = states0.shape
+        cov = torch.eye(d, dtype=states0.dtype, device=states0.device) * (self.region ** 2 / 3)
+        return states0.new_zeros(B, d), cov.expand(B, d, d)
 
     def _ends(self, sensor):
         s = torch.as_tensor(sensor, dtype=torch.long, device=self.pairs.device)
@@ -163,13 +206,15 @@ class TDOA3D(nn.Module):
             got = f"{tuple(mask.shape)} of {mask.dtype}" if isinstance(mask, torch.Tensor) else type(mask).__name__
             raise ValueError(f"mask: expected a bool tensor shaped like z {tuple(z.shape)}, got {got}")
 
-    def simulate(self, runs: int, generator: torch.Generator) -> TDOAData:
-        """``runs`` independent scenes: sources uniform in the region, detections, clutter, noise;
-        each sensor's measurements in random order, padded to the largest count. The runs are
-        drawn together, so a scene depends on ``runs`` (as :meth:`StateSpaceModel.simulate`)."""
-        if not isinstance(generator, torch.Generator):
-            raise TypeError(f"generator: expected a torch.Generator, got {type(generator).__name__}")
-        B, n, S = int(runs), self.n_sources, self.n_sensors
+    def simulate(self, batch_size: int, steps: Optional[int] = None, generator: Optional[torch.Generator] = None
+                 ) -> TDOAData:
+        """``batch_size`` independent scenes: sources uniform in the region, detections, clutter,
+        noise; each sensor's measurements in random order, padded to the largest count. The runs are
+        drawn together, so a scene depends on ``batch_size``. ``steps``: ``None`` or :attr:`n_steps`."""
+        if steps is not None and steps != self.n_steps:
+            raise ValueError(f"steps: TDOA3D has one step per sensor; expected None or {self.n_steps}, got {steps!r}")
+        B, _ = self.check_simulate_args(batch_size, self.n_steps, generator)
+        n, S = self.n_sources, self.n_sensors
         dt, dev = self.receivers.dtype, self.receivers.device
         src = (torch.rand(B, n, 3, generator=generator, dtype=dt, device=dev) * 2 - 1) * self.region
         sens = torch.arange(S, device=dev)
@@ -190,7 +235,8 @@ class TDOA3D(nn.Module):
         z, mask, origin = (t.gather(-1, order) for t in (z, mask, origin))
         M = int(mask.sum(-1).max()) if mask.numel() else 0
         z, mask, origin = z[..., :M], mask[..., :M], origin[..., :M]
-        return TDOAData(src, z.masked_fill(~mask, 0.0), mask, origin.masked_fill(~mask, -1))
+        states = src.reshape(B, 1, 3 * n).expand(B, S + 1, 3 * n)
+        return TDOAData(states, z.masked_fill(~mask, 0.0), mask, origin.masked_fill(~mask, -1))
 
     def extra_repr(self) -> str:
         return (f"receivers={len(self.receivers)}, sensors={self.n_sensors}, speed={self.speed}, "

@@ -1,30 +1,20 @@
 """Per-chunk results on disk, so a long run that is killed can be resumed.
 
-:func:`~torchflow.runner.run_experiment` runs each filter over chunks of trials. With a
-:class:`ChunkStore` it writes every finished chunk to a small file as soon as it finishes and,
-when ``resume`` is on, loads the chunks a previous run of the *same settings* saved instead of
-computing them again. Trials draw from per-trial random streams
-(:class:`~torchflow.random.TrialStreams`), so a loaded chunk holds exactly the numbers the
-uninterrupted run would have computed.
-
-Layout (``key`` is a fingerprint of everything that changes a filter's numbers, see
-:func:`fingerprint`)::
+With a :class:`ChunkStore`, :func:`~torchflow.runner.run_experiment` writes every finished chunk of
+trials to a small file at once and, with ``resume``, loads the chunks a run of the *same settings*
+saved instead of computing them again. Layout (``key``: a :func:`fingerprint` of everything that
+changes a filter's numbers)::
 
     <root>/<key>/settings.json          what the key was made of (for people)
     <root>/<key>/<start>-<stop>.pt       trials [start, stop): estimates, log-evidence, ESS, ...
 
-Files are written to a temporary name and renamed, so a run killed while writing leaves no
-half-written chunk. Every file carries a SHA-256 checksum of its tensors. A file that cannot be
-read, whose checksum does not match (a damaged disk or copy) or whose header does not match (other
-key, trials, steps, seed, random stream, ...), is recomputed with a warning, never silently used.
-
-Trials draw from per-trial streams, so a resumed run with other chunk boundaries (another
-``chunk_size`` or memory budget) reuses the trials saved before (:meth:`ChunkStore.assemble`) and
-computes only the others; their numbers equal a fresh run's to round-off (batched linear algebra
-may block differently for another batch size).
-
-A store that cannot write (read-only folder, full disk) warns once and the run goes on without
-checkpoints (:meth:`ChunkStore.save_or_warn`).
+Files are written to a temporary name and renamed (a run killed while writing leaves no half
+chunk) and carry a SHA-256 checksum of their tensors. A file that cannot be read, is damaged or
+whose header does not match (other key, trials, steps, seed, stream, ...) is recomputed with a
+warning. Trials draw from per-trial streams, so a loaded chunk holds the numbers the uninterrupted
+run would have computed, and a resumed run with other chunk boundaries reuses the saved trials
+(:meth:`ChunkStore.assemble`; equal to round-off: batched linear algebra may block differently).
+A store that cannot write warns once and the run goes on without (:meth:`ChunkStore.save_or_warn`).
 """
 from __future__ import annotations
 
@@ -39,12 +29,17 @@ from typing import Callable, Dict, List, Mapping, Optional, Tuple, Union
 
 import torch
 
-#: tensors of one chunk, CPU float64 (``ess``, ``g_eff``, ``n_repaired`` may be absent)
-CHUNK_FIELDS = ("estimates", "log_evidence", "ess", "n_repaired", "g_eff")
+#: tensors of one chunk, CPU (floats as float64), those the filter's result has: ``estimates (B, T, ...)``
+#: always; ``estimate_mask`` (sets of estimates) and ``underflow`` from the localisers
+CHUNK_FIELDS = ("estimates", "log_evidence", "ess", "n_repaired", "g_eff", "estimate_mask", "underflow")
 
 
 _CHUNK_NAME = re.compile(r"^(\d{7})-(\d{7})\.pt$")
 log = logging.getLogger("torchflow.runner")
+
+
+def _again(why: str) -> None:
+    warnings.warn(f"{why}; computing the chunk again", stacklevel=3)
 
 
 def checksum(chunk: Mapping) -> str:
@@ -68,26 +63,21 @@ class ChunkStore:
 
     Args:
         root: folder of the store (created on first save).
-        keys: ``{filter name: key}``; the key names the filter's folder and must change with
-            anything that changes its numbers (the runner uses :func:`fingerprint` of the model's
-            and the filter's config, trials, steps, seed, device, dtype, random back end and the
-            package versions). A filter without a key uses its name.
+        keys: ``{filter name: key}`` naming each filter's folder; the key must change with anything
+            that changes its numbers (the command line fingerprints the model's and the filter's
+            config, trials, steps, seed, device, dtype, random back end and versions). Default: the name.
         resume: load chunks saved earlier; ``False`` computes every chunk and overwrites files.
         settings: ``{filter name: dict}`` written beside the chunks as ``settings.json``.
 
-    Attributes ``loaded`` and ``computed`` count chunks per filter in this run, ``reused_trials``
-    the trials taken from chunks saved with other boundaries; ``save_error`` says why saving
-    stopped (``None`` while saving works).
+    ``loaded`` and ``computed`` count chunks per filter in this run, ``reused_trials`` the trials
+    taken from chunks of other boundaries; ``save_error`` says why saving stopped (else ``None``).
     """
 
     def __init__(self, root: Union[str, Path], keys: Optional[Mapping[str, str]] = None, *, resume: bool = False,
                  settings: Optional[Mapping[str, dict]] = None):
         if not isinstance(resume, bool):
             raise ValueError(f"resume: expected True or False, got {resume!r}")
-        self.root = Path(root)
-        self.keys = dict(keys or {})
-        self.resume = resume
-        self.settings = dict(settings or {})
+        self.root, self.keys, self.resume, self.settings = Path(root), dict(keys or {}), resume, dict(settings or {})
         self.loaded: Dict[str, int] = {}
         self.computed: Dict[str, int] = {}
         self.reused_trials: Dict[str, int] = {}
@@ -102,30 +92,22 @@ class ChunkStore:
     def load(self, name: str, start: int, stop: int, steps: int, meta: Optional[Mapping] = None) -> Optional[dict]:
         """The saved chunk of trials ``[start, stop)`` of filter ``name``, or ``None`` (not
         resuming, not saved, or saved with other settings). ``meta``: run settings the file's
-        header must repeat (the runner passes seed, trials, steps, random stream, dtype, ...), a
-        second guard beside the key for callers that choose their own keys."""
-        if not self.resume:
-            return None
+        header must repeat (seed, trials, steps, random stream, dtype, ...), a second guard beside the key."""
         path = self._path(name, start, stop)
-        if not path.exists():
+        if not self.resume or not path.exists():
             return None
         try:
             data = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as e:  # noqa: BLE001 - a damaged file is recomputed, not fatal
-            warnings.warn(f"resume: cannot read {path} ({type(e).__name__}: {e}); computing the chunk again",
-                          stacklevel=2)
-            return None
+            return _again(f"resume: cannot read {path} ({type(e).__name__}: {e})")
         est = data.get("estimates")
         ok = (data.get("key") == self.keys.get(name, name) and data.get("start") == start and data.get("stop") == stop
               and isinstance(est, torch.Tensor) and tuple(est.shape[:2]) == (stop - start, steps)
               and (data.get("meta") is None or meta is None or data["meta"] == dict(meta)))  # no meta: older file
         if not ok:
-            warnings.warn(f"resume: {path} was saved with other settings; computing the chunk again", stacklevel=2)
-            return None
+            return _again(f"resume: {path} was saved with other settings")
         if data.get("checksum") is not None and data["checksum"] != checksum(data):
-            warnings.warn(f"resume: {path} is damaged (its checksum does not match its contents); computing "
-                          "the chunk again", stacklevel=2)
-            return None
+            return _again(f"resume: {path} is damaged (its checksum does not match its contents)")
         self.loaded[name] = self.loaded.get(name, 0) + 1
         return data
 
@@ -169,20 +151,14 @@ class ChunkStore:
 
     def _pieces(self, name: str, start: int, stop: int) -> List[Tuple[int, int, Optional[Tuple[int, int]]]]:
         """``[(a, b, saved range or None), ...]`` covering ``[start, stop)``: the trials of saved
-        files of other boundaries and the gaps between them (the file of exactly these
-        trials is :meth:`load`'s)."""
+        files of other boundaries and the gaps between them."""
         saved = [r for r in self.saved_ranges(name) if r[0] < stop and r[1] > start and r != (start, stop)]
         out, p = [], start
         while p < stop:
-            cover = [r for r in saved if r[0] <= p < r[1]]
-            if cover:
-                r = max(cover, key=lambda r: r[1])
-                out.append((p, min(r[1], stop), r))
-                p = min(r[1], stop)
-            else:
-                nxt = min([r[0] for r in saved if r[0] > p] + [stop])
-                out.append((p, nxt, None))
-                p = nxt
+            cover = max((r for r in saved if r[0] <= p < r[1]), key=lambda r: r[1], default=None)
+            b = min(cover[1], stop) if cover else min([r[0] for r in saved if r[0] > p] + [stop])
+            out.append((p, b, cover))
+            p = b
         return out
 
     def assemble(self, name: str, start: int, stop: int, steps: int, meta: Optional[Mapping],

@@ -29,12 +29,10 @@ def config_source() -> str:
 
 def config_dir() -> Path:
     """The folder holding ``config.yaml`` and the config groups."""
-    src = config_source()
-    if not src.startswith("pkg://"):
-        return Path(src)
     from importlib.resources import files
 
-    return Path(str(files("torchflow.configs")))
+    src = config_source()
+    return Path(str(files("torchflow.configs"))) if src.startswith("pkg://") else Path(src)
 
 
 def group_options(group: str) -> Optional[List[str]]:
@@ -78,13 +76,6 @@ def _holds_results(folder: Path, sweep: bool) -> List[str]:
     return [n for n in RESULT_FILES if (folder / n).exists()]
 
 
-def _writable(folder: Path) -> None:
-    folder.mkdir(parents=True, exist_ok=True)
-    probe = folder / f".torchflow-write-test.{os.getpid()}"
-    probe.write_text("")
-    probe.unlink()
-
-
 def check_output_folder(argv: Sequence[str], cwd: Path) -> None:
     """Before Hydra creates it: the run's (sweep's) folder must be writable, and a folder given
     with ``hydra.run.dir`` / ``hydra.sweep.dir`` that holds an earlier run's results is refused
@@ -101,7 +92,10 @@ def check_output_folder(argv: Sequence[str], cwd: Path) -> None:
             raise ConfigError(f"{key}: {given} already holds the results of a run ({', '.join(found[:4])}); choose "
                               f"a new folder ({key}=<new folder>) or add overwrite=true to replace them")
     try:
-        _writable(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / f".torchflow-write-test.{os.getpid()}"
+        probe.write_text("")
+        probe.unlink()
     except OSError as e:
         raise ConfigError(f"{key}: cannot write into {folder} ({type(e).__name__}: {e.strerror or e}); choose a "
                           f"writable folder with {key}=<folder>") from None
@@ -134,12 +128,6 @@ def unknown_keys(cfg: Mapping, known: Mapping, prefix: str = "") -> List[str]:
     return out
 
 
-def _bool(cfg: Mapping, key: str) -> None:
-    v = cfg.get(key)
-    if not isinstance(v, bool):
-        raise ConfigError(f"{key}: expected true or false, got {v!r}")
-
-
 def check_config(cfg: Mapping, choices: Mapping[str, Optional[str]]) -> None:
     """What a composed config must satisfy before anything is built: no unknown settings,
     booleans that are booleans, a seed in range, a known random back end, metric settings."""
@@ -147,7 +135,8 @@ def check_config(cfg: Mapping, choices: Mapping[str, Optional[str]]) -> None:
     if bad:
         raise ConfigError("; ".join(bad))
     for key in ("plots", "progress", "resume", "overwrite"):
-        _bool(cfg, key)
+        if not isinstance(cfg.get(key), bool):
+            raise ConfigError(f"{key}: expected true or false, got {cfg.get(key)!r}")
     check_seed(cfg.get("seed"))
     check_rng_backend(cfg.get("rng_backend"))
     m = cfg.get("metrics") or {}

@@ -1,36 +1,27 @@
 """One experiment over several processes, GPUs or nodes with ``torch.distributed``.
 
-Launched by ``torchrun``, every process (rank) simulates the same data from the run's seed, runs
-its share of each filter's chunks of trials and sends the per-trial results to rank 0, which
-scores them and writes the usual files::
-
-    torchrun --standalone --nproc_per_node=2 experiments/run.py model=linear_gaussian filter=[bpf] trials=40
-
-Chunks are dealt round-robin (chunk ``i`` to rank ``i % world``). Trials draw from per-trial
-random streams, so each trial's numbers are those of a single-process run: identical (``==``)
-when the chunks are the same (``chunk_size`` given, or filters whose numbers do not depend on the
-chunking, such as the bootstrap PF), equal to round-off otherwise (batched linear algebra blocks
-differently for other batch sizes). Without ``chunk_size`` the runner caps each chunk at
-``ceil(trials / world)`` trials so that every rank has work.
-
-Back end: NCCL when the run is on CUDA (rank ``r`` uses ``cuda:LOCAL_RANK``), gloo on CPU.
+Launched by ``torchrun``, every rank simulates the same data from the seed, runs chunks ``rank,
+rank + world, ...`` of each filter and sends the per-trial results to rank 0, which scores and
+writes them (``torchrun --standalone --nproc_per_node=2 experiments/run.py filter=[bpf] trials=40``).
+Trials draw from per-trial streams, so each trial's numbers are a single-process run's: identical
+with the same chunks, equal to round-off otherwise (without ``chunk_size`` chunks are capped at
+``ceil(trials / world)`` so every rank has work). NCCL on CUDA (rank r on ``cuda:LOCAL_RANK``), gloo on CPU.
 """
 from __future__ import annotations
 
+import datetime
 import os
 from dataclasses import dataclass
 from typing import Any, List, Optional
 
+import torch
+import torch.distributed as dist
+
 
 @dataclass
 class Shard:
-    """This process's place in a distributed run.
-
-    Attributes:
-        rank: this process's rank, 0 .. world - 1.
-        world: number of processes.
-        local_rank: rank on this node (picks the GPU).
-    """
+    """This process's ``rank`` (0 .. ``world`` - 1) of ``world`` processes; ``local_rank`` on its node
+    (picks the GPU)."""
 
     rank: int = 0
     world: int = 1
@@ -57,8 +48,6 @@ class Shard:
         the run is not distributed. Objects are pickled; keep tensors on the CPU."""
         if self.world == 1:
             return [obj]
-        import torch.distributed as dist
-
         out = [None] * self.world if self.is_main else None
         dist.gather_object(obj, out, dst=0)
         return out
@@ -67,34 +56,19 @@ class Shard:
         """Rank 0's ``obj`` on every rank (``obj`` itself when not distributed)."""
         if self.world == 1:
             return obj
-        import torch.distributed as dist
-
         box = [obj if self.is_main else None]
         dist.broadcast_object_list(box, src=0)
         return box[0]
 
-    def barrier(self) -> None:
-        if self.world > 1:
-            import torch.distributed as dist
-
-            dist.barrier()
-
     @staticmethod
     def from_env(device: str = "cpu", timeout_minutes: float = 720.0) -> "Shard":
-        """The shard ``torchrun`` describes in the environment (``RANK``, ``WORLD_SIZE``,
-        ``LOCAL_RANK``), with the process group initialised; ``Shard()`` when not launched by
-        ``torchrun``. ``device`` is the run's device: ``cuda`` selects NCCL and this rank's GPU.
-        ``timeout_minutes``: how long a rank that finished its chunks waits for the slowest one
-        at a filter's gather (the collective's timeout; torch's defaults, 10-30 min, would end a
-        long uneven run)."""
-        import datetime
-
+        """The shard ``torchrun`` describes (``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``), its process
+        group initialised (``Shard()`` outside ``torchrun``); ``device``: the run's (``cuda``: NCCL
+        and this rank's GPU). ``timeout_minutes``: how long a rank waits for the slowest at a
+        filter's gather (torch's 10-30 min defaults would end a long uneven run)."""
         world = int(os.environ.get("WORLD_SIZE", "1"))
         if world <= 1:
             return Shard()
-        import torch
-        import torch.distributed as dist
-
         rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
         cuda = str(device).startswith("cuda")
         if not dist.is_initialized():
@@ -114,8 +88,5 @@ class Shard:
         return str(device)
 
     def close(self) -> None:
-        if self.world > 1:
-            import torch.distributed as dist
-
-            if dist.is_initialized():
-                dist.destroy_process_group()
+        if self.world > 1 and dist.is_initialized():
+            dist.destroy_process_group()

@@ -6,6 +6,3 @@ class ConfigError(ValueError):
     """A bad run setting (a value, a name, a combination): the command line prints it as one line
     and exits with status 2. Any other exception is a failure and keeps its traceback."""
 
-
-class RunFailed(RuntimeError):
-    """A run finished but some filters failed (their rows hold the errors)."""

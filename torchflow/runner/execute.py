@@ -17,7 +17,7 @@ import torch
 from .._checks import NonFiniteError
 from ..filters.base import Filter
 from ..random import TrialStreams
-from .checkpoint import ChunkStore
+from .checkpoint import CHUNK_FIELDS, ChunkStore
 from .plan import RunPlan
 
 log = logging.getLogger("torchflow.runner")
@@ -26,16 +26,14 @@ log = logging.getLogger("torchflow.runner")
 class StopRequest:
     """Ctrl-C / SIGTERM handling that never tears a run apart mid-bookkeeping.
 
-    :meth:`handler` (installed for SIGINT and SIGTERM by the command line; install it in your own
-    script with ``signal.signal(signal.SIGTERM, STOP.handler)``) records the request. Inside a
-    filter's chunk it raises ``KeyboardInterrupt`` at once; anywhere else (gathering ranks,
-    scoring, writing files) the run stops at the next chunk boundary, so the finished chunks are
-    always scored and written. Without the handler, Python's own Ctrl-C still interrupts a chunk.
+    :meth:`handler` (installed for SIGINT and SIGTERM by the command line; in your own script:
+    ``signal.signal(signal.SIGTERM, STOP.handler)``) records the request. Inside a filter's chunk it
+    raises ``KeyboardInterrupt`` at once; anywhere else (gathering ranks, scoring, writing files)
+    the run stops at the next chunk boundary, so the finished chunks are always scored and written.
     """
 
     def __init__(self):
-        self.requested = False
-        self._depth = 0
+        self.requested, self._depth = False, 0
 
     def handler(self, signum, frame):  # noqa: ARG002 - signal handler signature
         self.requested = True
@@ -65,7 +63,6 @@ STOP = StopRequest()
 @dataclass
 class Outcome:
     """What one filter's execution produced on this process (after gathering: on rank 0, all ranks').
-
     ``error``: ``"Type: message"`` when the filter failed; ``where``: ``"chunk i of n (trials a..b)"``."""
 
     chunks: List[dict] = field(default_factory=list)
@@ -75,64 +72,63 @@ class Outcome:
 
 
 def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None) -> dict:
-    """Run filter ``f`` on trials ``[s, e)``: the chunk's results as CPU float64 tensors."""
-    st = plan.settings
+    """Run filter ``f`` on trials ``[s, e)``: the chunk's :data:`CHUNK_FIELDS` as CPU tensors
+    (floats as float64). Padded measurement sets (a trajectory with a ``mask``) pass their mask."""
+    st, traj = plan.settings, plan.traj
     g = TrialStreams(st.seed, range(s, e), key=f.stream_name, backend=st.rng_backend)
     cb = (lambda n=e - s: bar.update(n)) if bar is not None else None
+    mask = {"mask": traj.mask[s:e]} if getattr(traj, "mask", None) is not None else {}
     cuda = st.device.type == "cuda"
     if cuda:
         torch.cuda.synchronize()
     t0 = time.perf_counter()
     with torch.no_grad(), STOP.interruptible():
         try:
-            res = f(plan.traj.observations[s:e], plan.mean0[s:e], plan.cov0[s:e], g, progress=cb)
+            res = f(traj.observations[s:e], plan.mean0[s:e], plan.cov0[s:e], g, progress=cb, **mask)
         except NonFiniteError as err:  # report trial indices in the whole run
             raise NonFiniteError(name, err.step, [s + i for i in err.trials]) from None
     if cuda:
         torch.cuda.synchronize()
-    out = {"start": s, "stop": e, "elapsed": time.perf_counter() - t0,
-           "estimates": res.estimates.double().cpu(), "log_evidence": res.log_evidence.double().cpu()}
-    for key in ("ess", "g_eff"):
-        if getattr(res, key) is not None:
-            out[key] = getattr(res, key).double().cpu()
-    if res.n_repaired is not None:
-        out["n_repaired"] = res.n_repaired.cpu()
+    out = {"start": s, "stop": e, "elapsed": time.perf_counter() - t0}
+    for key in CHUNK_FIELDS:
+        v = getattr(res, key, None)
+        if v is not None:
+            out[key] = (v.double() if v.is_floating_point() else v).cpu()
     return out
 
 
-def _progress_bar(enabled: bool, total: int, desc: str):
-    if not enabled:
-        return None
-    try:
-        from tqdm.auto import tqdm
-    except ImportError:  # pragma: no cover
-        return None
-    return tqdm(total=total, unit="trial-step", leave=False, dynamic_ncols=True, desc=desc)
-
-
 def _one_chunk(f, name, plan, s, e, store, bar) -> dict:
-    steps = plan.settings.steps
-    chunk = None if store is None else store.load(name, s, e, steps, plan.meta(f))
+    """A chunk from the store (saved with these or, resuming, other boundaries) or computed and saved."""
+    steps, meta = plan.settings.steps, plan.meta(f)
+    chunk = None if store is None else store.load(name, s, e, steps, meta)
     if chunk is not None:
         if bar is not None:
             bar.update((e - s) * steps)
         return chunk
     if store is not None:  # trials saved by a run with other chunk boundaries are reused
-        chunk = store.assemble(name, s, e, steps, plan.meta(f),
-                               compute=lambda a, b: run_chunk(f, name, plan, a, b, bar))
+        chunk = store.assemble(name, s, e, steps, meta, compute=lambda a, b: run_chunk(f, name, plan, a, b, bar))
     if chunk is None:
         chunk = run_chunk(f, name, plan, s, e, bar)
     if store is not None:
-        store.save_or_warn(name, s, e, chunk, plan.meta(f))
+        store.save_or_warn(name, s, e, chunk, meta)
     return chunk
 
 
-def execute_filter(f: Filter, name: str, plan: RunPlan, *, store: Optional[ChunkStore] = None,
-                   bar=None) -> Outcome:
-    """Run ``f`` over this rank's chunks: the finished chunks, and the error or interruption."""
+def execute(f: Filter, name: str, plan: RunPlan, *, store: Optional[ChunkStore] = None, progress=False,
+            desc="") -> Outcome:
+    """Run ``f`` over this rank's chunks (a tqdm bar on rank 0 with ``progress``) and gather the
+    ranks' outcomes: the finished chunks, and the error or interruption."""
     mine = plan.shard.mine(plan.trial_chunks(name))
-    out = Outcome()
-    i = -1
+    bar = None
+    if progress and plan.shard.is_main:
+        try:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=sum(e - s for s, e in mine) * plan.settings.steps, unit="trial-step", leave=False,
+                       dynamic_ncols=True, desc=desc)
+        except ImportError:  # pragma: no cover
+            pass
+    out, i = Outcome(), -1
     try:
         for i, (s, e) in enumerate(mine):
             STOP.check()
@@ -145,7 +141,10 @@ def execute_filter(f: Filter, name: str, plan: RunPlan, *, store: Optional[Chunk
         out.error = f"{type(err).__name__}: {err}"
         out.where = f"chunk {i + 1} of {len(mine)} (trials {s}..{e - 1})"
         log.error("filter %s failed in %s: %s\n%s", name, out.where, out.error, traceback.format_exc().rstrip())
-    return out
+    finally:
+        if bar is not None:
+            bar.close()
+    return gather_outcome(out, plan)
 
 
 def gather_outcome(out: Outcome, plan: RunPlan) -> Outcome:
@@ -161,16 +160,3 @@ def gather_outcome(out: Outcome, plan: RunPlan) -> Outcome:
     failed = [p for p in parts if p[1]]
     chunks = sorted((c for p in parts for c in p[0]), key=lambda c: c["start"])
     return Outcome(chunks, failed[0][1] if failed else None, failed[0][3] if failed else None, interrupted)
-
-
-def execute(f: Filter, name: str, plan: RunPlan, *, store=None, progress=False, desc="") -> Outcome:
-    """:func:`execute_filter` with a progress bar (rank 0) and the ranks' outcomes gathered."""
-    steps = plan.settings.steps
-    mine = plan.shard.mine(plan.trial_chunks(name))
-    bar = _progress_bar(progress and plan.shard.is_main, sum(e - s for s, e in mine) * steps, desc)
-    try:
-        out = execute_filter(f, name, plan, store=store, bar=bar)
-    finally:
-        if bar is not None:
-            bar.close()
-    return gather_outcome(out, plan)

@@ -1,7 +1,8 @@
 """Pictures of a run (matplotlib is optional: :func:`pyplot` returns ``None`` without it).
 
 Each ``*_figure`` takes ``plt`` (``matplotlib.pyplot``) and returns a figure, or ``None`` when
-the run has nothing to draw; :func:`save_run_figures` writes the ones that apply.
+the run has nothing to draw; :func:`save_run_figures` writes the ones that apply. A filter keeps
+one colour on every panel and picture (:func:`colours`).
 """
 from __future__ import annotations
 
@@ -11,7 +12,6 @@ from typing import List, Optional
 
 log = logging.getLogger("torchflow.runner")
 
-#: one colour per filter, the same on every panel and in the track picture
 COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
            "#bcbd22", "#17becf"]
 _LABELS = {"omat": "OMAT (m)", "ospa": "OSPA (m)", "mse": "MSE", "ess": "ESS"}
@@ -30,53 +30,52 @@ def pyplot():
     return plt
 
 
-def colours(names) -> dict:
+def colours(summary) -> dict:
+    """``{filter: colour}`` in the order of the summary rows."""
+    names = list(dict.fromkeys(r["filter"] for r in summary))
     return {n: COLOURS[i % len(COLOURS)] for i, n in enumerate(names)}
 
 
-def _ess_axis(ax, Ns) -> None:
-    ax.set_ylabel(f"ESS / N (N = {Ns[0]})" if len(Ns) == 1 else "ESS / N (each filter's N)")
-    fractions = [v for line in ax.get_lines() for v in line.get_ydata() if v > 0]
-    if fractions and min(fractions) < 0.1:  # low ESS: a log axis keeps the curves apart
-        ax.set_yscale("log")
-        ax.set_ylim(min(fractions) / 1.5, 1.05)
-    else:
-        ax.set_ylim(0, 1.05)
+def _finish(fig, ax, title: str, **legend):
+    ax.legend(fontsize=7, **(legend or {"loc": "upper left", "bbox_to_anchor": (1.01, 1)}))
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    return fig
 
 
 def per_step_figure(plt, per_step, summary, title: str):
-    """Per-step metric means, one panel per metric; a filter keeps its colour on every panel and
-    one legend lists them all. ESS is drawn as a fraction of each filter's N (filters of
-    different N share the axis); a panel says which filters have no value there."""
+    """Per-step metric means, one panel per metric and one legend for all. ESS is drawn as a
+    fraction of each filter's N (filters of different N share the axis; a log axis below 0.1); a
+    panel says which filters have no value there."""
     keys = [k for k in ("omat", "ospa", "mse", "ess") if any(k in r for r in per_step)]
     if not keys:
         return None
-    names = list(dict.fromkeys(r["filter"] for r in summary))
-    colour = colours(names)
-    n_of = {r["filter"]: r.get("n_particles") for r in summary}
+    colour, n_of = colours(summary), {r["filter"]: r.get("n_particles") for r in summary}
     fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.6), squeeze=False)
     handles = {}
     for ax, key in zip(axes[0], keys):
-        missing = []
-        for name in names:
+        missing = [n for n in colour if not any(r["filter"] == n and key in r for r in per_step)]
+        for name in (n for n in colour if n not in missing):
             rows = [r for r in per_step if r["filter"] == name and key in r]
-            if not rows:
-                missing.append(name)
-                continue
             y = [r[key] / n_of[name] if key == "ess" else r[key] for r in rows]
             (handles[name],) = ax.plot([r["step"] for r in rows], y, color=colour[name], label=name)
         ax.set_xlabel("time step")
+        ax.set_ylabel(_LABELS.get(key, key))
         if key == "ess":
-            _ess_axis(ax, sorted({n_of[n] for n in names if n not in missing and n_of.get(n)}))
-        else:
-            ax.set_ylabel(_LABELS.get(key, key))
+            Ns = sorted({n_of[n] for n in colour if n not in missing and n_of.get(n)})
+            ax.set_ylabel(f"ESS / N (N = {Ns[0]})" if len(Ns) == 1 else "ESS / N (each filter's N)")
+            fractions = [v for line in ax.get_lines() for v in line.get_ydata() if v > 0]
+            low = bool(fractions) and min(fractions) < 0.1  # low ESS: a log axis keeps the curves apart
+            ax.set_yscale("log" if low else "linear")
+            ax.set_ylim(min(fractions) / 1.5 if low else 0, 1.05)
         if key == "mse":
             ax.set_yscale("log")
         if missing:
             ax.set_title("not defined for: " + ", ".join(missing), fontsize=7)
         ax.grid(alpha=0.3)
-    fig.legend([handles[n] for n in names if n in handles], [n for n in names if n in handles],
-               loc="lower center", ncol=min(len(handles), 6), fontsize=8, frameon=False)
+    named = [n for n in colour if n in handles]
+    fig.legend([handles[n] for n in named], named, loc="lower center", ncol=min(len(named), 6), fontsize=8,
+               frameon=False)
     fig.suptitle(title)
     fig.tight_layout(rect=(0, 0.1, 1, 1))
     return fig
@@ -87,59 +86,70 @@ def tracks_figure(plt, model, trajectory, examples, summary, title: str):
     estimated tracks in the filter's colour. ``None`` without estimates."""
     if not examples:
         return None
-    names = list(dict.fromkeys(r["filter"] for r in summary))
-    colour = colours(names)
+    colour = colours(summary)
     true_pos = model.positions(trajectory.states[0].to(model.dtype)).cpu()  # (T+1, C, 2)
     fig, ax = plt.subplots(figsize=(5.6, 5.6))
-    sensors = getattr(model, "sensors", None)
-    if sensors is not None:
-        s = sensors.cpu()
-        ax.scatter(s[:, 0], s[:, 1], marker="^", s=18, color="0.6", label="sensors")
+    if getattr(model, "sensors", None) is not None:
+        ax.scatter(*model.sensors.cpu()[:, :2].T, marker="^", s=18, color="0.6", label="sensors")
     for c in range(true_pos.shape[1]):
         ax.plot(true_pos[:, c, 0], true_pos[:, c, 1], color="k", lw=2.2, label="truth" if c == 0 else None)
         ax.plot(true_pos[0, c, 0], true_pos[0, c, 1], "ko", ms=5)
-    for name in (n for n in names if n in examples):
+    for name in (n for n in colour if n in examples):
         est = model.positions(examples[name].to(model.dtype)).cpu()  # (T, C, 2)
         for c in range(est.shape[1]):
             ax.plot(est[:, c, 0], est[:, c, 1], color=colour[name], lw=1.2, ls="--", label=name if c == 0 else None)
-    area = getattr(model, "area", None)
-    if area:
-        ax.set_xlim(-0.03 * area, 1.03 * area)
-        ax.set_ylim(-0.03 * area, 1.03 * area)
+    if getattr(model, "area", None):
+        ax.set_xlim(-0.03 * model.area, 1.03 * model.area)
+        ax.set_ylim(-0.03 * model.area, 1.03 * model.area)
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1))
-    ax.set_title(title, fontsize=9)
-    fig.tight_layout()
-    return fig
+    return _finish(fig, ax, title)
 
 
 def omat_box_figure(plt, per_trial, summary, title: str):
     """Per-trial time-averaged OMAT of every filter as a box at the filter's time per step (log
     axis): accuracy against cost, as seed 004's Fig. 5. ``None`` without OMAT."""
-    names = [r["filter"] for r in summary if r.get("omat") is not None and r.get("sec_per_step")]
-    if not names:
+    rows = [r for r in summary if r.get("omat") is not None and r.get("sec_per_step")]
+    if not rows:
         return None
-    colour = colours([r["filter"] for r in summary])
+    colour = colours(summary)
     fig, ax = plt.subplots(figsize=(8.5, 4.2))
-    for name in names:
+    for row in rows:
+        name, x = row["filter"], row["sec_per_step"]
         vals = [r["omat"] for r in per_trial if r["filter"] == name and "omat" in r]
-        x = next(r["sec_per_step"] for r in summary if r["filter"] == name)
         bp = ax.boxplot([vals], positions=[x], widths=[x * 0.25], patch_artist=True, manage_ticks=False)
         for part in ("boxes", "medians", "whiskers", "caps", "fliers"):
             for artist in bp[part]:
                 artist.set_color(colour[name])
         bp["boxes"][0].set_facecolor("none")
         bp["boxes"][0].set_label(name)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1))
     ax.set_xscale("log")
     ax.set_xlabel("seconds per trial-step (this run)")
     ax.set_ylabel("time-averaged OMAT per trial (m)")
     ax.grid(alpha=0.3)
-    ax.set_title(title, fontsize=9)
-    fig.tight_layout()
-    return fig
+    return _finish(fig, ax, title)
+
+
+def scene_figure(plt, model, trajectory, examples, summary, title: str):
+    """Run 0 of a 3-D localisation (:class:`~torchflow.models.TDOA3D`): receivers, true sources and
+    each localiser's declared sources ``examples[name] (k, 3)`` in the filter's colour."""
+    colour = colours(summary)
+    fig = plt.figure(figsize=(6.5, 5.5))
+    ax = fig.add_subplot(projection="3d")
+    ax.scatter(*model.receivers.cpu().T, marker="s", s=40, c="k", label="receivers")
+    ax.scatter(*model.positions(trajectory.states[0, 0]).cpu().T, marker="*", s=160, c="gold", edgecolors="k",
+               label="true sources")
+    for i, (name, pos) in enumerate(examples.items()):
+        mark = "o^vDs<>"[i % 7]
+        if len(pos):
+            ax.scatter(*pos.T, marker=mark, s=50, facecolors="none", edgecolors=colour[name], label=name)
+        else:
+            ax.scatter([], [], [], marker=mark, c=colour[name], label=f"{name} (none declared)")
+    r = model.region
+    ax.set_xlim(-r, r), ax.set_ylim(-r, r), ax.set_zlim(-r, r)
+    ax.set_xlabel("x (m)"), ax.set_ylabel("y (m)"), ax.set_zlabel("z (m)")
+    return _finish(fig, ax, title, loc="upper left")
 
 
 def save_figure(plt, fig, path: Path, **kw) -> Optional[Path]:
@@ -154,19 +164,22 @@ def save_figure(plt, fig, path: Path, **kw) -> Optional[Path]:
 
 
 def save_run_figures(out: Path, model, result, model_name: str) -> List[Path]:
-    """``per_step.png``, and for tracking models ``tracks.png`` and ``omat_box.png``, of a run."""
+    """``per_step.png``, and for tracking models ``tracks.png`` and ``omat_box.png``, for 3-D
+    localisation (a model with receivers) ``scene.png``, of a run."""
     plt = pyplot()
     if plt is None or not result.per_step:
         return []
-    n = result.config.get("trials", len({r["trial"] for r in result.per_trial}))
-    out = Path(out)
-    paths = [save_figure(plt, per_step_figure(plt, result.per_step, result.summary, f"{model_name}, {n} trials"),
+    n, out, res = result.config.get("trials", len({r["trial"] for r in result.per_trial})), Path(out), result
+    paths = [save_figure(plt, per_step_figure(plt, res.per_step, res.summary, f"{model_name}, {n} trials"),
                          out / "per_step.png")]
-    if model.has_positions and result.trajectory is not None:
-        paths.append(save_figure(plt, tracks_figure(plt, model, result.trajectory, result.examples, result.summary,
+    if hasattr(model, "receivers") and res.trajectory is not None:
+        paths.append(save_figure(plt, scene_figure(plt, model, res.trajectory, res.examples, res.summary,
+                                                   f"{model_name}: run 0, true and declared sources"),
+                                 out / "scene.png"))
+    elif model.has_positions and res.trajectory is not None:
+        paths.append(save_figure(plt, tracks_figure(plt, model, res.trajectory, res.examples, res.summary,
                                                     f"{model_name}: trial 0, true and estimated tracks"),
                                  out / "tracks.png", bbox_inches="tight"))
-        paths.append(save_figure(plt, omat_box_figure(plt, result.per_trial, result.summary,
-                                                      f"{model_name}: per-trial OMAT against time per step, "
-                                                      f"{n} trials"), out / "omat_box.png"))
+        paths.append(save_figure(plt, omat_box_figure(plt, res.per_trial, res.summary, f"{model_name}: per-trial "
+                                                      f"OMAT against time per step, {n} trials"), out / "omat_box.png"))
     return [p for p in paths if p is not None]

@@ -1,17 +1,14 @@
-"""Plan a run: check its arguments, simulate the data once, choose every filter's chunks of trials.
-
-A :class:`RunPlan` holds everything the later stages need: the simulated data, the trial range,
-the device and dtype, and per filter its chunks ``[(start, stop), ...]`` of trials. Chunk sizes
-come from the filters' own memory formulas (:meth:`Filter.bytes_per_trial`,
-:meth:`Filter.preferred_chunk_trials`, :meth:`Filter.plan_memory`); trials draw from per-trial
-streams, so the plan never changes a trial's numbers (see :mod:`torchflow.random`).
+"""Plan a run: check its arguments, simulate the data once, choose every filter's chunks of trials
+(from the filters' memory formulas: :meth:`Filter.bytes_per_trial`, :meth:`Filter.preferred_chunk_trials`,
+:meth:`Filter.plan_memory`). Trials draw from per-trial streams (:mod:`torchflow.random`), so the
+plan never changes a trial's numbers.
 """
 from __future__ import annotations
 
 import math
 import warnings
 from dataclasses import dataclass, field
-from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
+from typing import Dict, List, Mapping, Optional, Tuple, Union
 
 import torch
 
@@ -29,11 +26,9 @@ SEED_LIMIT = 2**63
 
 
 def resolve_dtype(dtype: Union[str, torch.dtype]) -> torch.dtype:
-    if isinstance(dtype, torch.dtype):
-        return dtype
-    if dtype not in _DTYPES:
+    if not isinstance(dtype, torch.dtype) and dtype not in _DTYPES:
         raise ConfigError(f"dtype: expected one of {sorted(_DTYPES)}, got {dtype!r}")
-    return _DTYPES[dtype]
+    return dtype if isinstance(dtype, torch.dtype) else _DTYPES[dtype]
 
 
 def resolve_device(device: Union[str, torch.device]) -> torch.device:
@@ -49,12 +44,16 @@ def resolve_device(device: Union[str, torch.device]) -> torch.device:
     return dev
 
 
-def check_seed(seed) -> int:
-    """A seed in ``[0, 2**63)``."""
+def _count(name: str, value, hint: str = "", minimum: int = 1) -> int:
     try:
-        seed = check_count("seed", seed, minimum=0)
+        return check_count(name, value, hint=hint, minimum=minimum)
     except ValueError as e:
         raise ConfigError(str(e)) from None
+
+
+def check_seed(seed) -> int:
+    """A seed in ``[0, 2**63)``."""
+    seed = _count("seed", seed, minimum=0)
     if seed >= SEED_LIMIT:
         raise ConfigError(f"seed: expected an integer in [0, 2**63), got {seed}")
     return seed
@@ -80,31 +79,18 @@ def check_trial_range(trial_range, trials: int) -> Tuple[int, int]:
     return lo, hi
 
 
-def check_budget(memory_budget_gb) -> float:
-    if isinstance(memory_budget_gb, bool) or not isinstance(memory_budget_gb, (int, float)) \
-            or not math.isfinite(memory_budget_gb) or memory_budget_gb <= 0:
-        raise ConfigError(f"memory_budget_gb: expected a positive number of GiB, got {memory_budget_gb!r}")
-    return float(memory_budget_gb)
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def check_metric_settings(*, ospa_cutoff, ospa_order, lost_threshold) -> dict:
     """OSPA cut-off (> 0), order (>= 1) and the lost-track threshold (> 0, metres of OMAT)."""
     rules = {"ospa_cutoff": (ospa_cutoff, 0.0, "a positive number"), "ospa_order": (ospa_order, 1.0, "a number >= 1"),
              "lost_threshold": (lost_threshold, 0.0, "a positive number of metres")}
-    out = {}
     for name, (v, low, what) in rules.items():
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-        if not ok or v < low or (name != "ospa_order" and v <= low):
+        if not _number(v) or v < low or (name != "ospa_order" and v <= low):
             raise ConfigError(f"metrics.{name}: expected {what}, got {v!r}")
-        out[name] = float(v)
-    return out
-
-
-def _count(name: str, value, hint: str = "") -> int:
-    try:
-        return check_count(name, value, hint=hint)
-    except ValueError as e:
-        raise ConfigError(str(e)) from None
+    return {name: float(v) for name, (v, _, _) in rules.items()}
 
 
 def choose_chunk_size(filters: Mapping[str, Filter], trials: int, memory_budget_gb: float) -> int:
@@ -116,9 +102,12 @@ def choose_chunk_size(filters: Mapping[str, Filter], trials: int, memory_budget_
 def filter_chunk(f: Filter, n_run: int, chunk_size: Optional[int], memory_budget_gb: float) -> int:
     """A filter's chunk of trials: ``chunk_size`` if given, else the most its memory estimate
     allows, capped by the filter's preferred batch (local flows slow down past ~1e4 points). When
-    one trial exceeds the budget, a particle filter without ``particle_chunk`` gets one."""
+    one trial exceeds the budget, a particle filter without ``particle_chunk`` gets one. A filter
+    whose numbers depend on its batch declares ``trials_per_call`` (the localisers: 1), a cap in
+    every case."""
+    cap = getattr(f, "trials_per_call", None)
     if chunk_size:
-        return int(chunk_size)
+        return min(int(chunk_size), cap or int(chunk_size))
     c = choose_chunk_size({"f": f}, n_run, memory_budget_gb)
     if c == 1 and getattr(f, "particle_chunk", 0) is None:  # one trial may still exceed it: chunk particles
         pc = f.plan_memory(memory_budget_gb * 2**30)
@@ -126,8 +115,7 @@ def filter_chunk(f: Filter, n_run: int, chunk_size: Optional[int], memory_budget
             warnings.warn(f"memory_budget_gb={memory_budget_gb:g}: {f.name} runs one trial at a time in blocks "
                           f"of {pc} of its {f.n_particles} particles (estimated {f.bytes_per_trial() / 2**30:.3g} "
                           "GiB per trial); raise the budget if this machine has more memory", stacklevel=2)
-    pref = f.preferred_chunk_trials()
-    return min(c, pref) if pref else c
+    return min(c, f.preferred_chunk_trials() or c, cap or c)
 
 
 def simulate(model: StateSpaceModel, trials: int, steps: int, inits_per_track: int, generator):
@@ -135,8 +123,7 @@ def simulate(model: StateSpaceModel, trials: int, steps: int, inits_per_track: i
     n_tracks = math.ceil(trials / inits_per_track)
     traj = model.simulate(n_tracks, steps, generator)
     if inits_per_track > 1:
-        rep = lambda t: t.repeat_interleave(inits_per_track, 0)[:trials]  # noqa: E731
-        traj = Trajectory(rep(traj.states), rep(traj.observations))
+        traj = traj[torch.arange(trials, device=traj.states.device) // inits_per_track]
     mean, cov = model.initial_belief(traj.states[:, 0], generator)
     return traj, mean, cov
 
@@ -166,15 +153,13 @@ def check_settings(*, trials, steps, seed, inits_per_track, chunk_size, memory_b
                    rng_backend, trial_range) -> RunSettings:
     """Every run argument checked; a bad one raises :class:`ConfigError` naming it."""
     trials = _count("trials", trials)
-    steps = _count("steps", steps)
-    inits_per_track = _count("inits_per_track", inits_per_track)
-    seed = check_seed(seed)
     if chunk_size is not None:
         chunk_size = _count("chunk_size", chunk_size, hint=" (or None: from memory_budget_gb)")
-    budget = check_budget(memory_budget_gb)
-    lo, hi = check_trial_range(trial_range, trials)
-    return RunSettings(trials, steps, seed, inits_per_track, chunk_size, budget, resolve_device(device),
-                       resolve_dtype(dtype), check_rng_backend(rng_backend), lo, hi)
+    if not _number(memory_budget_gb) or memory_budget_gb <= 0:
+        raise ConfigError(f"memory_budget_gb: expected a positive number of GiB, got {memory_budget_gb!r}")
+    return RunSettings(trials, _count("steps", steps), check_seed(seed), _count("inits_per_track", inits_per_track),
+                       chunk_size, float(memory_budget_gb), resolve_device(device), resolve_dtype(dtype),
+                       check_rng_backend(rng_backend), *check_trial_range(trial_range, trials))
 
 
 @dataclass
@@ -209,6 +194,9 @@ def make_plan(model: StateSpaceModel, filters: Mapping[str, Filter], settings: R
     for name, f in filters.items():
         if f.model is not model:
             raise ConfigError(f"filters[{name!r}]: holds a different model instance than `model`")
+        if getattr(model, "padded_measurements", False) and not getattr(f, "padded_measurements", False):
+            raise ConfigError(f"filter.{name}: {type(f).__name__} cannot run on {type(model).__name__}, whose "
+                              "measurements are padded sets with a mask; select a localiser (bs, pfi_d, pfi_s, pfi_os)")
         f.to(device=s.device, dtype=s.dtype)
     gen = torch.Generator(device=s.device).manual_seed(int(s.seed))
     traj, mean0, cov0 = (simulator or simulate)(model, s.trials, s.steps, s.inits_per_track, gen)

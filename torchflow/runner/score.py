@@ -1,6 +1,7 @@
 """Score a filter's chunks: the summary row, per-trial and per-step metrics; the result container."""
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
@@ -14,7 +15,8 @@ from .plan import RunPlan, filter_chunk
 
 SUMMARY_COLUMNS = [
     "filter", "n_particles", "trials", "steps", "mse", "omat", "omat_kept_mean", "omat_kept_sd",
-    "ospa", "ess", "g_eff", "log_evidence", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step", "error",
+    "ospa", "declared", "underflows", "ess", "g_eff", "log_evidence", "log_evidence_relmse", "lost_tracks", "repaired",
+    "sec_per_step", "error",
 ]
 
 
@@ -24,11 +26,13 @@ class ExperimentResult:
 
     Attributes:
         summary: one dict per filter with :data:`SUMMARY_COLUMNS` (``None`` where undefined).
-        per_trial: one dict per filter x trial (mse, omat, ospa, ess, log_evidence, lost).
+        per_trial: one dict per filter x trial (mse, omat, ospa, ess, log_evidence, lost; localisers:
+            ospa, declared, underflows).
         per_step: one dict per filter x step with metric means over trials.
         trajectory: the simulated data (CPU tensors).
         config: the run's settings (chunk sizes, particle chunks, seed, device, ...).
-        examples: ``{filter: (T, d)}`` estimates of trial 0 (for the track picture).
+        examples: ``{filter: (T, d)}`` estimates of trial 0 (for the track picture; localisers: the
+            declared sources ``(k, 3)``).
         interrupted: the run was stopped (Ctrl-C); the rows hold what finished, the interrupted
             filter's row says so in ``error``.
         not_run: filters that did not start because of the interruption.
@@ -54,19 +58,16 @@ class ExperimentResult:
 
 @dataclass
 class Scorer:
-    """The truth of a run's trial range and the metric settings."""
+    """The truth ``(n_run, T, d)`` (CPU float64) of a run's trial range from ``lo``, and the metric
+    settings; ``reference_logz``: the Kalman filter's exact log-evidence (linear-Gaussian models)."""
 
     model: StateSpaceModel
-    truth: torch.Tensor  # (n_run, T, d) CPU float64
+    truth: torch.Tensor
     lo: int
     ospa_cutoff: float = 40.0
     ospa_order: float = 1.0
     lost_threshold: float = 2.0
     reference_logz: Optional[torch.Tensor] = None
-
-    @property
-    def tracking(self) -> bool:
-        return self.model.has_positions
 
 
 def make_scorer(model: StateSpaceModel, plan: RunPlan, **settings) -> Scorer:
@@ -89,73 +90,71 @@ def _cat(chunks: List[dict], key: str) -> Optional[torch.Tensor]:
     return torch.cat([c[key] for c in chunks]) if key in chunks[0] else None
 
 
-def metric_columns(sc: Scorer, chunks: List[dict]) -> Dict[str, torch.Tensor]:
-    """``{metric: (B, T)}`` of one filter's estimates."""
-    est = _cat(chunks, "estimates")
-    cols = {"mse": metrics.mse(est, sc.truth)}
-    if sc.tracking:
-        est_pos, true_pos = sc.model.positions(est), sc.model.positions(sc.truth)
-        cols["omat"] = metrics.omat(est_pos, true_pos)
-        cols["ospa"] = metrics.ospa(est_pos, true_pos, cutoff=sc.ospa_cutoff, order=sc.ospa_order)
-    for key in ("ess", "g_eff"):
-        if key in chunks[0]:
-            cols[key] = _cat(chunks, key)
-    return cols
+def _per_step(name: str, cols: Dict[str, torch.Tensor], steps: int) -> List[dict]:
+    means = {k: v.mean(0) for k, v in cols.items()}
+    return [{"filter": name, "step": t + 1, **{k: float(v[t]) for k, v in means.items()}} for t in range(steps)]
 
 
-def summary_row(sc: Scorer, f: Filter, row: dict, chunks: List[dict], cols: Dict[str, torch.Tensor],
-                steps: int) -> Optional[torch.Tensor]:
-    """Fill ``row`` from one filter's chunks; returns the lost-track flags (tracking models)."""
-    n_run = sc.truth.shape[0]
-    logz = _cat(chunks, "log_evidence")
-    row["sec_per_step"] = sum(float(c["elapsed"]) for c in chunks) / (n_run * steps)
-    if f.estimates_evidence:
-        row["log_evidence"] = float(logz.mean())
-    if "n_repaired" in chunks[0]:
-        row["repaired"] = int(_cat(chunks, "n_repaired").sum())
-    for k, v in cols.items():
-        row[k] = float(v.mean())
-    lost = None
-    if sc.tracking:
-        lost = metrics.lost_tracks(cols["omat"], threshold=sc.lost_threshold)
-        row["lost_tracks"] = int(lost.sum())
-        kept = cols["omat"].mean(1)[~lost]
-        row["omat_kept_mean"] = float(kept.mean()) if kept.numel() else None
-        row["omat_kept_sd"] = float(kept.std()) if kept.numel() > 1 else None
-    if sc.reference_logz is not None and f.estimates_evidence:
-        row["log_evidence_relmse"] = float(metrics.log_evidence_relative_error(logz, sc.reference_logz).mean())
-    return lost
+def score_sets(sc: Scorer, name: str, row: dict, chunks: List[dict], steps: int):
+    """:func:`score_filter` of a filter whose estimates are sets (the localisers): ``estimates (B, T,
+    K, 3)`` with ``estimate_mask``, scored by OSPA against the model's positions and the declared
+    count after each step; a trial's value is the last step's (the answer of a localisation). The
+    measurements whose every weight underflowed (``underflow``) are counted and named in a warning."""
+    est, mask, under = _cat(chunks, "estimates"), _cat(chunks, "estimate_mask"), _cat(chunks, "underflow")
+    cols = {"ospa": metrics.ospa(est, sc.model.positions(sc.truth), cutoff=sc.ospa_cutoff, order=sc.ospa_order,
+                                 X_mask=mask), "declared": mask.sum(-1).double()}
+    lost = [f"run {b + sc.lo}, sensor {s}, measurement {m}" for b, s, m in torch.nonzero(under).tolist()]
+    if lost:
+        warnings.warn(f"{name}: every component's weight underflowed (measurement treated as clutter) at "
+                      + "; ".join(lost), RuntimeWarning, stacklevel=2)
+    counts = under.flatten(1).sum(1)
+    per_trial = [{"filter": name, "trial": sc.lo + b, "ospa": float(cols["ospa"][b, -1]),
+                  "declared": int(cols["declared"][b, -1]), "underflows": int(counts[b])} for b in range(est.shape[0])]
+    row.update({k: float(v[:, -1].mean()) for k, v in cols.items()}, underflows=int(counts.sum()),
+               sec_per_step=sum(float(c["elapsed"]) for c in chunks) / (est.shape[0] * steps))
+    return per_trial, _per_step(name, cols, steps), est[0, -1][mask[0, -1]]
 
 
 def score_filter(sc: Scorer, f: Filter, name: str, row: dict, chunks: List[dict], steps: int):
-    """``(per-trial rows, per-step rows, trial 0's estimates)`` of one filter; fills ``row``."""
-    cols = metric_columns(sc, chunks)
-    lost = summary_row(sc, f, row, chunks, cols, steps)
-    logz = _cat(chunks, "log_evidence")
+    """``(per-trial rows, per-step rows, trial 0's estimates)`` of one filter; fills ``row``: metric
+    means over trials and steps (MSE; OMAT, OSPA and lost tracks of tracking models; ESS, G_eff),
+    the log-evidence and its error against the Kalman filter's, repairs, seconds per trial-step."""
+    if "estimate_mask" in chunks[0]:
+        return score_sets(sc, name, row, chunks, steps)
+    est, logz, n_run = _cat(chunks, "estimates"), _cat(chunks, "log_evidence"), sc.truth.shape[0]
+    cols = {"mse": metrics.mse(est, sc.truth)}
+    if sc.model.has_positions:
+        est_pos, true_pos = sc.model.positions(est), sc.model.positions(sc.truth)
+        cols["omat"] = metrics.omat(est_pos, true_pos)
+        cols["ospa"] = metrics.ospa(est_pos, true_pos, cutoff=sc.ospa_cutoff, order=sc.ospa_order)
+    cols.update({k: _cat(chunks, k) for k in ("ess", "g_eff") if k in chunks[0]})
+    row["sec_per_step"] = sum(float(c["elapsed"]) for c in chunks) / (n_run * steps)
+    if f.estimates_evidence:
+        row["log_evidence"] = float(logz.mean())
+        if sc.reference_logz is not None:
+            row["log_evidence_relmse"] = float(metrics.log_evidence_relative_error(logz, sc.reference_logz).mean())
+    if "n_repaired" in chunks[0]:
+        row["repaired"] = int(_cat(chunks, "n_repaired").sum())
+    row.update({k: float(v.mean()) for k, v in cols.items()})
+    lost = None
+    if sc.model.has_positions:
+        lost = metrics.lost_tracks(cols["omat"], threshold=sc.lost_threshold)
+        kept = cols["omat"].mean(1)[~lost]
+        row.update(lost_tracks=int(lost.sum()), omat_kept_mean=float(kept.mean()) if kept.numel() else None,
+                   omat_kept_sd=float(kept.std()) if kept.numel() > 1 else None)
     per_trial = []
-    for b in range(sc.truth.shape[0]):
-        r = {"filter": name, "trial": sc.lo + b, "log_evidence": float(logz[b])}
-        r.update({k: float(v[b].mean()) for k, v in cols.items()})
+    for b in range(n_run):
+        r = {"filter": name, "trial": sc.lo + b, "log_evidence": float(logz[b]),
+             **{k: float(v[b].mean()) for k, v in cols.items()}}
         if lost is not None:
             r["lost"] = bool(lost[b])
         per_trial.append(r)
-    means = {k: v.mean(0) for k, v in cols.items()}
-    per_step = [{"filter": name, "step": t + 1, **{k: float(v[t]) for k, v in means.items()}} for t in range(steps)]
-    return per_trial, per_step, chunks[0]["estimates"][0]
+    return per_trial, _per_step(name, cols, steps), chunks[0]["estimates"][0]
 
 
 def format_table(summary: List[dict], columns: Optional[List[str]] = None) -> str:
     """Markdown table of the summary rows, dropping columns that are empty in every row."""
-    columns = columns or SUMMARY_COLUMNS
-    cols = [c for c in columns if any(r.get(c) is not None for r in summary)]
-
-    def fmt(v):
-        if v is None:
-            return ""
-        if isinstance(v, float):
-            return f"{v:.4g}"
-        return str(v)
-
+    cols = [c for c in columns or SUMMARY_COLUMNS if any(r.get(c) is not None for r in summary)]
+    fmt = lambda v: "" if v is None else f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    lines += ["| " + " | ".join(fmt(r.get(c)) for c in cols) + " |" for r in summary]
-    return "\n".join(lines)
+    return "\n".join(lines + ["| " + " | ".join(fmt(r.get(c)) for c in cols) + " |" for r in summary])

@@ -27,44 +27,34 @@ def job_dirs(sweep_dir: Path) -> List[Path]:
     return sorted((p for p in sweep_dir.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))
 
 
-def job_overrides(job: Path) -> List[str]:
-    """The overrides of one job (from ``.hydra/overrides.yaml``)."""
-    import yaml
-
-    f = Path(job) / ".hydra" / "overrides.yaml"
-    return list(yaml.safe_load(f.read_text()) or []) if f.exists() else []
-
-
 def job_status(job: Path) -> tuple:
     """``("failed", last line of error.txt)``, ``("failed", "filter X failed: ...")`` (the job ran,
-    a filter failed), ``("done", "")`` (``results.json`` written),
-    ``("interrupted", "")`` (stopped by Ctrl-C or SIGTERM; its finished filters are written) or
-    ``("missing", "")`` (no results: still running, killed, or never started)."""
+    a filter failed), ``("done", "")`` (``results.json`` written), ``("interrupted", "")`` (stopped
+    by Ctrl-C or SIGTERM; its finished filters are written) or ``("missing", "")`` (no results:
+    still running, killed, or never started)."""
     import json
 
-    job = Path(job)
-    err = job / "error.txt"
+    err, res = Path(job) / "error.txt", Path(job) / "results.json"
     if err.exists():
         lines = [ln for ln in err.read_text().splitlines() if ln.strip()]
         return "failed", (lines[-1] if lines else "error")
-    res = job / "results.json"
-    if res.exists():
-        try:
-            data = json.loads(res.read_text())
-        except (ValueError, OSError):
-            return "missing", ""
-        if data.get("interrupted"):
-            return "interrupted", ""
-        errors = {r["filter"]: r["error"] for r in data.get("summary", []) if r.get("error")}
-        if errors:
-            return "failed", "; ".join(f"filter {n} failed: {e}" for n, e in errors.items())
-        return "done", ""
-    return "missing", ""
+    try:
+        data = json.loads(res.read_text())
+    except (ValueError, OSError):  # not written (yet), or half written
+        return "missing", ""
+    errors = {r["filter"]: r["error"] for r in data.get("summary", []) if r.get("error")}
+    if data.get("interrupted"):
+        return "interrupted", ""
+    return ("failed", "; ".join(f"filter {n} failed: {e}" for n, e in errors.items())) if errors else ("done", "")
 
 
 def job_override_dict(job: Path) -> dict:
-    """``{key: value}`` of one job's overrides (the ``experiment=`` selection left out)."""
-    return dict(o.split("=", 1) for o in job_overrides(job) if "=" in o and not o.startswith("experiment="))
+    """``{key: value}`` of one job's overrides (``.hydra/overrides.yaml``; ``experiment=`` left out)."""
+    import yaml
+
+    f = Path(job) / ".hydra" / "overrides.yaml"
+    overrides = list(yaml.safe_load(f.read_text()) or []) if f.exists() else []
+    return dict(o.split("=", 1) for o in overrides if "=" in o and not o.startswith("experiment="))
 
 
 def varying_overrides(jobs: List[Path]) -> dict:
@@ -97,17 +87,14 @@ class SweepReport(Callback):
     def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
         sweep = Path(str(config.hydra.sweep.dir))
         jobs = job_dirs(sweep)
-        status = {j.name: job_status(j) for j in jobs}
-        bad = {n: s for n, s in status.items() if s[0] != "done"}
-        done = len(jobs) - len(bad)
-        print(f"sweep {sweep}: {len(jobs)} jobs, {done} finished, "
-              f"{sum(s[0] == 'failed' for s in bad.values())} failed, "
-              f"{sum(s[0] == 'interrupted' for s in bad.values())} interrupted, "
-              f"{sum(s[0] == 'missing' for s in bad.values())} without results", file=sys.stderr)
+        bad = {j.name: s for j, s in ((j, job_status(j)) for j in jobs) if s[0] != "done"}
+        count = {k: sum(s[0] == k for s in bad.values()) for k in ("failed", "interrupted", "missing")}
+        print(f"sweep {sweep}: {len(jobs)} jobs, {len(jobs) - len(bad)} finished, {count['failed']} failed, "
+              f"{count['interrupted']} interrupted, {count['missing']} without results", file=sys.stderr)
         vary = varying_overrides(jobs)
         for n, (state, msg) in bad.items():
             print("  " + describe_job(n, state, msg, vary[n]), file=sys.stderr)
         if bad:
             print(f"  merge what finished: python experiments/collect.py {sweep}", file=sys.stderr)
-        if self.exit_on_failure and any(s[0] == "failed" for s in bad.values()):
+        if self.exit_on_failure and count["failed"]:
             sys.exit(1)

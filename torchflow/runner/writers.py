@@ -6,7 +6,7 @@ import csv
 import json
 import os
 from pathlib import Path
-from typing import Iterable, List, Mapping, Optional
+from typing import List, Mapping, Optional
 
 from .score import SUMMARY_COLUMNS
 
@@ -28,20 +28,15 @@ def _atomic(path: Path, write) -> Path:
     return path
 
 
-def default_columns(rows: Iterable[Mapping]) -> List[str]:
-    """Every key of ``rows``: ``filter``, ``step``, ``trial`` first, then the others sorted."""
-    return sorted({k for r in rows for k in r}, key=lambda k: (k not in ("filter", "step", "trial"), k))
-
-
 def write_csv(path: Path, rows: List[Mapping], columns: Optional[List[str]] = None) -> Path:
-    """Write ``rows`` (``None`` as an empty cell) to ``path`` atomically."""
-    columns = columns or default_columns(rows)
+    """Write ``rows`` (``None`` as an empty cell) to ``path`` atomically; default columns: every key,
+    ``filter``, ``step``, ``trial`` first, then the others sorted."""
+    columns = columns or sorted({k for r in rows for k in r}, key=lambda k: (k not in ("filter", "step", "trial"), k))
 
     def write(fh):
         w = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
         w.writeheader()
-        for r in rows:
-            w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in columns})
+        w.writerows({k: ("" if r.get(k) is None else r.get(k)) for k in columns} for r in rows)
 
     return _atomic(path, write)
 
@@ -70,10 +65,7 @@ def write_run(out: Path, result, config: Mapping) -> List[Path]:
 
 def clear_results(out: Path) -> List[str]:
     """Remove the files a run writes (:data:`RESULT_FILES`) from ``out``; the names removed."""
-    gone = []
-    for name in RESULT_FILES:
-        p = Path(out) / name
-        if p.exists():
-            p.unlink()
-            gone.append(name)
+    gone = [name for name in RESULT_FILES if (Path(out) / name).exists()]
+    for name in gone:
+        (Path(out) / name).unlink()
     return gone
