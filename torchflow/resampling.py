@@ -455,7 +455,7 @@ def gather_particles(x: Tensor, indices: Tensor) -> Tensor:
 
 
 #: how gradients pass through resampling (the slot :class:`Resampler` keeps for estimators)
-RESAMPLING_GRADIENTS = ("none", "stop_gradient")
+RESAMPLING_GRADIENTS = ("none", "stop_gradient", "soft")
 
 
 class Resampler(nn.Module):
@@ -478,11 +478,19 @@ class Resampler(nn.Module):
               normalised weight). Its value is exactly ``-log N`` (the forward pass is bit for bit
               that of ``"none"``), and its gradient adds the score-function term of the ancestor
               draw, so the gradient of ``log Z_hat`` estimates the score consistently.
+            * ``"soft"`` (Karkus, Hsu & Lee 2018): ancestors are drawn from
+              ``q = soft_alpha W + (1 - soft_alpha) / N`` and weighted ``W_a / q_a`` (normalised),
+              so the evidence estimate stays unbiased and gradients flow through the new weights;
+              the ancestor draw itself has no gradient term (biased, less so as ``soft_alpha``
+              falls, at the cost of a lower ESS after resampling). The forward pass differs from
+              ``"none"`` unless ``soft_alpha = 1``.
+        soft_alpha: the mixture weight of ``"soft"``, in (0, 1].
         dtype: of the regularisation scale (the model's).
     """
 
     def __init__(self, state_dim: int, *, scheme: str = "systematic", ess_threshold: float = 0.5,
-                 regularization=None, gradient: str = "none", dtype: torch.dtype = torch.float64):
+                 regularization=None, gradient: str = "none", soft_alpha: float = 0.5,
+                 dtype: torch.dtype = torch.float64):
         super().__init__()
         _get_resampler(scheme, "resampling")
         if (isinstance(ess_threshold, bool) or not isinstance(ess_threshold, numbers.Real)
@@ -490,7 +498,10 @@ class Resampler(nn.Module):
             raise ValueError(f"ess_threshold: expected a fraction in [0, 1], got {ess_threshold!r}")
         if gradient not in RESAMPLING_GRADIENTS:
             raise ValueError(f"resampling_gradient: expected one of {RESAMPLING_GRADIENTS}, got {gradient!r}")
+        if isinstance(soft_alpha, bool) or not isinstance(soft_alpha, numbers.Real) or not 0 < soft_alpha <= 1:
+            raise ValueError(f"soft_alpha: expected a mixture weight in (0, 1], got {soft_alpha!r}")
         self.scheme, self.ess_threshold, self.gradient = scheme, float(ess_threshold), gradient
+        self.soft_alpha = float(soft_alpha)
         d = int(state_dim)
         if regularization is None:
             self.register_buffer("regularization_std", None)
@@ -511,8 +522,11 @@ class Resampler(nn.Module):
 
         Returns ``(particles, log_weights, cov, extras, resampled (B,))``. No host synchronisation:
         every trial is gathered (identity indices where not resampled)."""
-        idx, resampled, lw_new = resample_if_needed(log_weights, generator, scheme=self.scheme,
-                                                    ess_threshold=self.ess_threshold, validate=False)
+        if self.gradient == "soft":
+            idx, resampled, lw_new = self._soft(log_weights, generator)
+        else:
+            idx, resampled, lw_new = resample_if_needed(log_weights, generator, scheme=self.scheme,
+                                                        ess_threshold=self.ess_threshold, validate=False)
         particles = gather_particles(particles, idx)
         if self.gradient == "stop_gradient":
             lw_anc = gather_particles(log_weights, idx)
@@ -532,5 +546,24 @@ class Resampler(nn.Module):
             particles = particles + noise * resampled[:, None, None].to(particles.dtype)
         return particles, lw_new, cov, extras or {}, resampled
 
+    def _soft(self, log_weights: Tensor, generator):
+        """Soft resampling: trigger on the ESS of ``W``, draw from ``q`` (no gradient through the
+        draw), weigh ``W_a / q_a``."""
+        B, n = log_weights.shape
+        identity = torch.arange(n, device=log_weights.device).expand(B, n)
+        ess = torch.exp(-torch.logsumexp(2.0 * log_weights, dim=-1))
+        resampled = ess < self.ess_threshold * n
+        if self.ess_threshold == 0.0:
+            return identity, resampled, log_weights
+        a = self.soft_alpha
+        log_q = log_weights if a == 1.0 else torch.logaddexp(
+            log_weights + math.log(a), torch.full_like(log_weights, math.log1p(-a) - math.log(n)))
+        drawn = _get_resampler(self.scheme, "resampling")(log_q.detach(), generator, validate=False)
+        idx = torch.where(resampled[:, None], drawn, identity)
+        lw = gather_particles(log_weights, idx) - gather_particles(log_q, idx)
+        lw = lw - torch.logsumexp(lw, dim=-1, keepdim=True)
+        return idx, resampled, torch.where(resampled[:, None], lw, log_weights)
+
     def extra_repr(self) -> str:
-        return f"scheme={self.scheme!r}, ess_threshold={self.ess_threshold}, gradient={self.gradient!r}"
+        soft = f", soft_alpha={self.soft_alpha}" if self.gradient == "soft" else ""
+        return f"scheme={self.scheme!r}, ess_threshold={self.ess_threshold}, gradient={self.gradient!r}{soft}"

@@ -301,8 +301,9 @@ class ParticleFilter(Filter):
         ess_threshold: resample a trial when ESS < ess_threshold * N (0 never, 1 nearly always).
         regularization: ``None`` (off), a float variance, or a list of d per-coordinate variances
             of Gaussian jitter added to the particles of resampled trials.
-        resampling_gradient: how gradients pass through resampling (``"none"`` or ``"stop_gradient"``; see
-            :class:`~torchflow.resampling.Resampler`).
+        resampling_gradient: how gradients pass through resampling (``"none"``, ``"stop_gradient"``
+            or ``"soft"``; see :class:`~torchflow.resampling.Resampler`).
+        soft_alpha: the mixture weight of ``resampling_gradient="soft"``, in (0, 1].
         nonfinite: ``"recover"`` (default, every particle filter): a particle with a NaN/inf
             position or log-weight gets weight zero (and a finite fallback position: its pre-flow
             draw); a trial left with no valid particle keeps its previous weights and the fallback
@@ -321,7 +322,7 @@ class ParticleFilter(Filter):
 
     def __init__(self, model, proposal=None, *, n_particles: int = 500, resampling: str = "systematic",
                  ess_threshold: float = 0.5, regularization=None, resampling_gradient: str = "none",
-                 nonfinite: str = "recover", particle_chunk: Optional[int] = None, validate: bool = True,
+                 soft_alpha: float = 0.5, nonfinite: str = "recover", particle_chunk: Optional[int] = None, validate: bool = True,
                  name: Optional[str] = None):
         super().__init__(model, validate=validate, name=name)
         if proposal is None:
@@ -344,7 +345,7 @@ class ParticleFilter(Filter):
         #: the resampling part: scheme, ESS trigger, regularisation, gradient estimator
         self.resampler = _resampling.Resampler(model.state_dim, scheme=resampling, ess_threshold=ess_threshold,
                                                regularization=regularization, gradient=resampling_gradient,
-                                               dtype=model.dtype)
+                                               soft_alpha=soft_alpha, dtype=model.dtype)
 
     resampling_scheme = property(lambda self: self.resampler.scheme)
     ess_threshold = property(lambda self: self.resampler.ess_threshold)
