@@ -10,7 +10,7 @@ from typing import Optional, Tuple
 
 import torch
 
-from .random import TrialStreams
+from .random import TrialStreams, fill_numpy
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -88,16 +88,17 @@ def solve_triangular(A: torch.Tensor, B: torch.Tensor, *, upper: bool, left: boo
 #: which numbers a torch.Generator draw gets, so it is part of the draw's definition, not a speed
 #: knob (torchflow.tuning).
 FAST_NORMAL_MIN = 1 << 16
+#: numbers per independent stream of the fast sampler (large draws are filled block-parallel)
+FAST_NORMAL_BLOCK = 1 << 19
 
 
-def standard_normal(shape, *, dtype: torch.dtype, device, generator: Optional[torch.Generator] = None,
-                    fast: bool = True) -> torch.Tensor:
+def standard_normal(shape, *, dtype: torch.dtype, device, generator: Optional[torch.Generator] = None) -> torch.Tensor:
     """``N(0, 1)`` draws of ``shape``, all randomness from ``generator`` (torch's default if None).
 
     A :class:`~torchflow.random.TrialStreams` generator draws each trial's share (``shape[0]`` is
     trials, or a trial-major multiple of them) from that trial's own stream.
 
-    Large float64 CPU draws (``>= FAST_NORMAL_MIN`` numbers, ``fast=True``) take one 62-bit seed
+    Large float64 CPU draws (``>= FAST_NORMAL_MIN`` numbers) take one 62-bit seed
     from ``generator`` and fill the tensor with numpy's ziggurat normals (``np.random.SFC64``):
     exact float64 normals, 2.5x faster than ``torch.randn`` on CPU per thread, and the same seed
     gives the same numbers. Draws of more than ``FAST_NORMAL_BLOCK`` numbers use one stream per
@@ -109,45 +110,18 @@ def standard_normal(shape, *, dtype: torch.dtype, device, generator: Optional[to
     if isinstance(generator, TrialStreams):  # per-trial streams (leading dim: trials)
         return generator.normal(shape, dtype=dtype, device=device)
     n = math.prod(shape)
-    if fast and device.type == "cpu" and dtype == torch.float64 and n >= FAST_NORMAL_MIN:
+    if device.type == "cpu" and dtype == torch.float64 and n >= FAST_NORMAL_MIN:
         import numpy as np
 
         seed = int(torch.randint(0, 2**62, (), generator=generator))
         out = torch.empty(shape, dtype=dtype)
         flat = out.numpy().reshape(-1)
-        if n <= FAST_NORMAL_BLOCK:
-            np.random.Generator(np.random.SFC64(seed)).standard_normal(out=flat)
-            return out
-        # one independent stream per block of FAST_NORMAL_BLOCK numbers (SeedSequence children), so
-        # the numbers do not depend on the thread count; blocks fill in parallel (numpy releases
-        # the GIL while filling)
-        seqs = np.random.SeedSequence(seed).spawn(-(-n // FAST_NORMAL_BLOCK))
-
-        def fill(i):
-            block = flat[i * FAST_NORMAL_BLOCK:(i + 1) * FAST_NORMAL_BLOCK]
-            np.random.Generator(np.random.SFC64(seqs[i])).standard_normal(out=block)
-
-        workers = min(torch.get_num_threads(), len(seqs))
-        if workers > 1:
-            list(_normal_pool(workers).map(fill, range(len(seqs))))
-        else:
-            for i in range(len(seqs)):
-                fill(i)
+        blk = FAST_NORMAL_BLOCK
+        seeds = [seed] if n <= blk else np.random.SeedSequence(seed).spawn(-(-n // blk))
+        fill_numpy("normal", [(np.random.Generator(np.random.SFC64(s)), flat[i * blk:(i + 1) * blk])
+                              for i, s in enumerate(seeds)], np.float64)
         return out
     return torch.randn(shape, dtype=dtype, device=device, generator=generator)
-
-
-#: numbers per independent stream of the fast sampler (large draws are filled block-parallel)
-FAST_NORMAL_BLOCK = 1 << 19
-_POOLS: dict = {}
-
-
-def _normal_pool(workers: int):
-    from concurrent.futures import ThreadPoolExecutor
-
-    if workers not in _POOLS:
-        _POOLS[workers] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="torchflow-normal")
-    return _POOLS[workers]
 
 
 def chol_solve(L: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
