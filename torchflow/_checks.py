@@ -127,6 +127,13 @@ def check_count(name: str, value, *, minimum: int = 1, hint: str = "") -> int:
     return int(value)
 
 
+def check_choice(name: str, value, choices):
+    """``value`` if it is one of ``choices``, else a ValueError naming them."""
+    if value not in choices:
+        raise ValueError(f"{name}: expected one of {tuple(choices)}, got {value!r}")
+    return value
+
+
 def shape_str(shape) -> str:
     """``(2, 3)``; a 1-d shape as ``(5,)``."""
     return "(" + ", ".join(str(int(s)) for s in shape) + ")" if len(shape) != 1 else f"({int(shape[0])},)"

@@ -44,9 +44,7 @@ class FlowCoefficients:
         form_A: ``() -> A``, the explicit matrix of an operator-form A, formed on first demand.
         noise_factor: stochastic flows only: ``G`` with ``G G^T = Q``, ``(..., d, r)`` batched like
             ``A`` (``r`` need not equal ``d``: a rank-deficient Q has a thin exact factor).
-        noise_cov, noise_apply, noise_dim: the same diffusion in operator form (used instead of
-            ``noise_factor`` when given): ``Q (..., d, d)``, ``xi (..., r) -> G xi`` and ``r``;
-            cheaper when G is a product of small factors.
+        noise_cov: ``Q (..., d, d)`` itself, when given (used instead of ``noise_factor`` for Q).
         noise_product: ``(U, V)`` with ``G = U V^T`` (``U (..., d, k)``, ``V (..., r, k)`` or a shared
             ``(r, k)``): ``G xi = U (V^T xi)`` without forming the ``d x r`` factor (Gromov's
             ``M^{-1}[:, s] W_s^T``); plain tensors, so it can be gathered to clustered particles.
@@ -65,8 +63,6 @@ class FlowCoefficients:
     noise_factor: Optional[torch.Tensor] = None
     support: Optional[torch.Tensor] = None
     noise_cov: Optional[torch.Tensor] = None
-    noise_apply: Optional[Callable[[torch.Tensor], torch.Tensor]] = None
-    noise_dim: Optional[int] = None
     noise_cov_pair: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
     noise_product: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
     form_A: Optional[Callable[[], torch.Tensor]] = None
@@ -95,29 +91,25 @@ class FlowCoefficients:
             U, V = self.noise_product
             Vxi = xi @ V if V.dim() == 2 else (V * xi.unsqueeze(-1)).sum(-2)  # V^T xi, (..., k)
             return linalg.matvec(U, Vxi)
-        if self.noise_apply is not None:
-            return self.noise_apply(xi)
         return linalg.matvec(self.noise_factor, xi)
 
     @property
     def noise_rank(self) -> int:
         """r, the number of standard normal draws per point the diffusion uses."""
-        if self.noise_dim is not None:
-            return self.noise_dim
         if self.noise_product is not None:
             return self.noise_product[1].shape[-2]
         return self.noise_factor.shape[-1]
 
     @property
     def has_noise(self) -> bool:
-        return self.noise_factor is not None or self.noise_apply is not None or self.noise_product is not None
+        return self.noise_factor is not None or self.noise_product is not None
 
     def gather(self, index: torch.Tensor) -> "FlowCoefficients":
         """These coefficients, computed at L points ``(B, L|1, ...)``, for the particles of each
         point's cluster (``index (B, N)``); shared tensors (no point dimension) stay as they are.
         ``log_det`` is not gathered (it belongs to the points)."""
-        if self.noise_apply is not None or (self.apply_A is not None and self.form_A is None):
-            raise NotImplementedError("coefficients given as closures (apply_A, noise_apply) cannot be gathered "
+        if self.apply_A is not None and self.form_A is None:
+            raise NotImplementedError("coefficients given as a closure (apply_A without form_A) cannot be gathered "
                                       "to clustered particles: give tensors (A, noise_factor or noise_product)")
         A = None if self.A is None and self.apply_A is None else self.matrix()
 
@@ -126,7 +118,7 @@ class FlowCoefficients:
 
         pair = lambda p: None if p is None else (g(p[0]), p[1] if p[1].dim() < 3 else g(p[1]))  # noqa: E731
         return FlowCoefficients(g(A), g(self.b), None, noise_factor=g(self.noise_factor), support=self.support,
-                                noise_cov=g(self.noise_cov), noise_dim=self.noise_dim,
+                                noise_cov=g(self.noise_cov),
                                 noise_cov_pair=pair(self.noise_cov_pair), noise_product=pair(self.noise_product))
 
     def cols(self, x: torch.Tensor) -> torch.Tensor:

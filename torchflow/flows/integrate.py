@@ -32,17 +32,6 @@ from .base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow, _gather
 from .points import LinearisationPoints, resolve_points
 
 
-def _check_start(start, shape, gaussian_image: bool) -> None:
-    if start is None:
-        return
-    if start.shape != shape:
-        raise ValueError(f"start: expected the points' starting positions shaped like prior.mean "
-                         f"{tuple(shape)}, got {tuple(start.shape)}")
-    if gaussian_image:
-        raise ValueError("start: the Gaussian image follows the prior mean (the points' own start); "
-                         "give either start or gaussian_image=True")
-
-
 def integrate_flow(
     flow: ParticleFlow,
     model,
@@ -110,7 +99,13 @@ def integrate_flow(
         from .measurement import GaussianMeasurement
 
         measurement = GaussianMeasurement.from_model(model, z)
-    _check_start(start, prior.mean.shape, gaussian_image)
+    if start is not None:
+        if start.shape != prior.mean.shape:
+            raise ValueError(f"start: expected the points' starting positions shaped like prior.mean "
+                             f"{tuple(prior.mean.shape)}, got {tuple(start.shape)}")
+        if gaussian_image:
+            raise ValueError("start: the Gaussian image follows the prior mean (the points' own start); "
+                             "give either start or gaussian_image=True")
     prior, index, squeeze = strategy.arrange(prior, particles, index)
     start = None if start is None else start.reshape(prior.mean.shape)
     out = _integrate(flow, measurement, particles, prior, index, strategy.per_particle, eps_all, lam_all,
@@ -139,8 +134,9 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
     if compose:  # each point's map eta -> M eta + c, composed on (d, d) matrices
         M = eye.expand(B, L, d, d)
         c = torch.zeros(B, L, d, dtype=particles.dtype, device=particles.device)
-    if track:
-        mu, Sig = _initial_law(proposal, B, N, d)
+    if track:  # the law N(mu (B, N, d), Sig (B, N|1, d, d)) the particles were drawn from
+        mu, Sig = proposal.mean.expand(B, N, d), proposal.scale_tril @ proposal.scale_tril.transpose(-1, -2)
+        Sig = Sig.expand(B, 1, d, d) if Sig.dim() == 2 else Sig
     tracked = [mu] if track else []
     log_det = torch.zeros(B, L, dtype=particles.dtype, device=particles.device)
     for j in range(len(eps_all)):
@@ -181,8 +177,12 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
             eta = torch.baddbmm(c, particles, M[:, 0].transpose(-1, -2))
         else:
             eta = linalg.matvec(_gather_points(M, index), particles) + _gather_points(c, index)
+    if track:  # each particle's log-density under its law (the proposal density of Pal & Coates' Algorithm 1)
+        Sig = linalg.symmetrize(Sig)
+        log_q = linalg.mvn_log_prob(eta, mu, linalg.safe_cholesky(Sig))
+        return image.output(FlowOutput(eta, None, aux, log_proposal=log_q, proposal_mean=mu, proposal_cov=Sig))
     if stochastic:
-        return _stochastic_output(eta, aux, image, *((mu, Sig) if track else ()))
+        return image.output(FlowOutput(eta, None, aux))
     log_det = log_det.expand(B, N) if index is None else _gather_points(log_det.unsqueeze(-1), index).squeeze(-1)
     return image.output(FlowOutput(eta, log_det, aux))
 
@@ -251,8 +251,7 @@ class _Image:
         if on:
             L = prior.scale_tril
             self.cov = L @ L.transpose(-1, -2)
-            d = L.shape[-1]
-            self.eye = torch.eye(d, dtype=L.dtype, device=L.device)
+            self.eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
 
     def step(self, co: "FlowCoefficients", eps) -> None:
         if not self.on:
@@ -267,7 +266,6 @@ class _Image:
         if self.on:
             out.image_mean, out.image_cov = out.aux, linalg.symmetrize(self.cov)
         return out
-
 
 
 def _flat3(x: torch.Tensor, batch) -> torch.Tensor:
@@ -295,20 +293,3 @@ def _propagate_cov(Sig, co: "FlowCoefficients", eps, eye):
         out = torch.baddbmm(out, _flat3(pair[0], batch), _flat3(pair[1], batch).transpose(-1, -2), alpha=e)
         return out.reshape(*batch, *Sig.shape[-2:])
     return out.reshape(*batch, *Sig.shape[-2:]) + eps * co.diffusion_cov()
-
-
-def _initial_law(proposal: FlowPrior, B: int, N: int, d: int):
-    """``(mu (B, N, d), Sig (B, N|1, d, d))`` of the law the particles were drawn from."""
-    L0 = proposal.scale_tril
-    Sig = L0 @ L0.transpose(-1, -2)
-    return proposal.mean.expand(B, N, d), (Sig.expand(B, 1, d, d) if Sig.dim() == 2 else Sig)
-
-
-def _stochastic_output(eta, aux, image, mu=None, Sig=None) -> FlowOutput:
-    """Result of a stochastic flow; with the tracked law ``N(mu, Sig)`` each particle's
-    log-density under it (the proposal density of Pal & Coates' Algorithm 1)."""
-    if mu is None:
-        return image.output(FlowOutput(eta, None, aux))
-    Sig = linalg.symmetrize(Sig)
-    log_q = linalg.mvn_log_prob(eta, mu, linalg.safe_cholesky(Sig))
-    return image.output(FlowOutput(eta, None, aux, log_proposal=log_q, proposal_mean=mu, proposal_cov=Sig))
