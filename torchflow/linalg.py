@@ -20,13 +20,6 @@ def symmetrize(A: torch.Tensor) -> torch.Tensor:
     return 0.5 * (A + A.transpose(-1, -2))
 
 
-def cholesky_unit_shift(A: torch.Tensor) -> torch.Tensor:
-    """Lower Cholesky factor of ``A = I + c S (..., k, k)`` with S symmetric PSD and ``c >= 0``, so
-    every eigenvalue is >= 1 and the factorisation cannot fail: no jitter retry and no test of the
-    result (no host synchronisation; the flows factor such matrices at every pseudo-time step)."""
-    return torch.linalg.cholesky_ex(A)[0]
-
-
 def safe_cholesky(
     A: torch.Tensor, *, max_tries: int = 6, jitter: Optional[float] = None
 ) -> torch.Tensor:

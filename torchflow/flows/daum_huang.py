@@ -68,8 +68,9 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
         Wy = _whitened_rhs(W, y)
     else:
         T, S, Wy = _gram_terms(W, y, Ls)
-    K = linalg.cholesky_unit_shift(eye + lam * S)
-    K2 = linalg.cholesky_unit_shift(eye + (lam - 0.5 * eps) * S)
+    # I + c S with c >= 0 has eigenvalues >= 1: its Cholesky cannot fail (no jitter retry, no host sync)
+    K = torch.linalg.cholesky_ex(eye + lam * S)[0]
+    K2 = torch.linalg.cholesky_ex(eye + (lam - 0.5 * eps) * S)[0]
     log_det = linalg.chol_logdet(K2) - linalg.chol_logdet(K)
     # P H^T R^{-1} (z - e) = L L_s^T W^T y
     Pg = linalg.matvec(L, linalg.matvec(Ls.transpose(-1, -2), Wy)) if P_cols is None else linalg.matvec(P_cols, Wy)

@@ -74,7 +74,7 @@ def _homotopy_terms(W, y, L, lam, need_factor: bool = False, L_support=None, ext
     r = 0 if extra is None else extra.shape[-1]
     eye = torch.eye(k, dtype=L.dtype, device=L.device)
     T, S, Wy = _gram_terms(W, y, Lk)  # L_s^T J, L_s^T J L_s, W^T y
-    K = linalg.cholesky_unit_shift(eye + lam * S)
+    K = torch.linalg.cholesky_ex(eye + lam * S)[0]
     if need_factor:
         G = L @ linalg.chol_solve(K, (W @ Lk).transpose(-1, -2))
         return S, K, G, G @ W, linalg.matvec(G, y), None
@@ -148,7 +148,7 @@ class GeodesicFlow(_HomotopyFlow):
     def coefficients_at(self, lin: Linearisation, prior: FlowPrior, lam, eps):
         prior, S, K, G, C, g = _terms(lin, prior, lam)
         eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
-        K2 = linalg.cholesky_unit_shift(eye + (lam - eps) * S)
+        K2 = torch.linalg.cholesky_ex(eye + (lam - eps) * S)[0]
         return FlowCoefficients(-C, g, linalg.chol_logdet(K2) - linalg.chol_logdet(K), support=prior.support)
 
 

@@ -26,6 +26,7 @@ synchronisation (a converged assignment is a fixed point of the sweep).
 """
 from __future__ import annotations
 
+import functools
 from typing import Optional, Sequence, Tuple, Union
 
 import torch
@@ -265,11 +266,10 @@ class ClusteredPoints(LinearisationPoints):
         dist = cluster_distance(eta_bar, zeta, self.alpha, model.measurement_support)
         return kmedoids(dist, self.n_clusters, self.sweeps)
 
-    def preferred_chunk_trials(self, n_particles):
-        # the (B, N, N) distance sweeps of K-medoids fall out of cache like per-particle flows:
-        # acoustic N = 500, K = 200 at 100 trials per call took 0.086 s per trial-step, more than
-        # PF-PF(LEDH) at 20 per call (0.070); K = 100 0.057 against 0.028 at 20 per call
-        return max(1, tuning.get().points_per_call // int(n_particles))
+    # the (B, N, N) distance sweeps of K-medoids fall out of cache like per-particle flows:
+    # acoustic N = 500, K = 200 at 100 trials per call took 0.086 s per trial-step, more than
+    # PF-PF(LEDH) at 20 per call (0.070); K = 100 0.057 against 0.028 at 20 per call
+    preferred_chunk_trials = ParticlePoints.preferred_chunk_trials
 
     def extra_bytes(self, n_particles, state_dim):
         N, K, d = n_particles, min(self.n_clusters, n_particles), state_dim
@@ -287,16 +287,12 @@ class ClusteredPoints(LinearisationPoints):
         return f"n_clusters={self.n_clusters}, alpha={self.alpha}, sweeps={self.sweeps}"
 
 
-_VELOCITY = []
-
-
+@functools.lru_cache(maxsize=None)
 def _velocity_flow():
     """The LEDH drift whose lambda = 0 velocities the clustered distance correlates (one instance)."""
-    if not _VELOCITY:
-        from .daum_huang import LEDHFlow
+    from .daum_huang import LEDHFlow
 
-        _VELOCITY.append(LEDHFlow())
-    return _VELOCITY[0]
+    return LEDHFlow()
 
 
 def _check_points(name: str, mean: torch.Tensor, particles: torch.Tensor, L: int) -> None:

@@ -97,14 +97,8 @@ class AcousticTracking(StateSpaceModel):
         self.area, self.margin, self.max_redraws = float(area), float(margin), int(max_redraws)
 
     # ---- dynamics --------------------------------------------------------------------------
-    def transition_mean(self, x):
-        return x @ self.F.transpose(-1, -2)
-
     def transition_matrix(self):
         return self.F
-
-    def transition_jacobian(self, x):
-        return self.F.expand(*x.shape[:-1], *self.F.shape)
 
     def transition_cov(self, x=None):
         return self.V_filter

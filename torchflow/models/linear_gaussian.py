@@ -2,15 +2,14 @@
 from __future__ import annotations
 
 import math
-
-from ..linalg import _LOG_2PI
 from typing import Optional, Tuple
 
 import torch
 from torch import nn
 
 from .. import linalg
-from .._checks import check_psd, check_tensor
+from ..linalg import _LOG_2PI
+from .._checks import check_choice, check_psd, check_tensor
 from .base import StateSpaceModel
 
 
@@ -80,18 +79,15 @@ class LinearGaussian(StateSpaceModel):
         self.transition_matrix_scale = None if "F" in learn else _identity_scale(F)
         self.measurement_matrix_scale = None if "H" in learn else _identity_scale(H)
         self.measurement_noise_scale = None if "R" in learn else _identity_scale(R)
+        diagonal = bool((R == torch.diag_embed(R.diagonal())).all())
         if measurement_noise is None:
-            off = R - torch.diag_embed(R.diagonal())
-            measurement_noise = ("dense" if "R" in learn or bool((off != 0).any()) else
+            measurement_noise = ("dense" if "R" in learn or not diagonal else
                                  "scalar" if self.measurement_noise_scale is not None else "diagonal")
-        if measurement_noise not in ("scalar", "diagonal", "dense"):
-            raise ValueError(f"measurement_noise: expected 'scalar', 'diagonal', 'dense' or None, got "
-                             f"{measurement_noise!r}")
+        self.measurement_noise = check_choice("measurement_noise", measurement_noise, ("scalar", "diagonal", "dense"))
         if measurement_noise == "scalar" and self.measurement_noise_scale is None:
             raise ValueError("measurement_noise: declared 'scalar' but R is not a constant multiple of I")
-        if measurement_noise == "diagonal" and bool((R != torch.diag_embed(R.diagonal())).any()):
+        if measurement_noise == "diagonal" and not diagonal:
             raise ValueError("measurement_noise: declared 'diagonal' but R has off-diagonal entries")
-        self.measurement_noise = measurement_noise
 
     linear_dynamics = True
     linear_measurement = True
@@ -103,29 +99,17 @@ class LinearGaussian(StateSpaceModel):
     def measurement_matrix(self) -> torch.Tensor:
         return self.H
 
-    def transition_mean(self, x):
-        return x @ self.F.transpose(-1, -2)
-
     def transition_cov(self, x=None):
         return self.Q
 
     def transition_scale_tril(self, x=None):
         return self.Q_tril if self.Q_tril is not None else linalg.safe_cholesky(self.Q)
 
-    def transition_jacobian(self, x):
-        return self.F.expand(*x.shape[:-1], *self.F.shape)
-
-    def measure(self, x):
-        return x @ self.H.transpose(-1, -2)
-
     def measurement_cov(self, x=None):
         return self.R
 
     def measurement_scale_tril(self, x=None):
         return self.R_tril if self.R_tril is not None else linalg.safe_cholesky(self.R)
-
-    def measurement_jacobian(self, x):
-        return self.H.expand(*x.shape[:-1], *self.H.shape)
 
     def sample_transition(self, x, generator=None):
         """``x F^T + xi L_Q^T`` as two fused matrix products over all leading dims (a scaled
@@ -163,12 +147,10 @@ class LinearGaussian(StateSpaceModel):
         return -0.5 * (quad + m * _LOG_2PI) - torch.log(L.diagonal()).sum()
 
     def initial_state(self, batch_size, generator=None):
-        from ..linalg import safe_cholesky
-
         xi = torch.randn(batch_size, self.state_dim, dtype=self.dtype, device=self.device, generator=generator)
         if bool((self.P0 == 0).all()):
             return self.m0.expand(batch_size, -1).clone()
-        return self.m0 + xi @ safe_cholesky(self.P0).transpose(-1, -2)
+        return self.m0 + xi @ linalg.safe_cholesky(self.P0).transpose(-1, -2)
 
     def initial_belief(self, states0, generator=None) -> Tuple[torch.Tensor, torch.Tensor]:
         B = states0.shape[0]
