@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from . import tuning
+from ._checks import check_choice
 
 __all__ = ["TrialStreams", "uniform", "check_generator", "stream_key"]
 
@@ -103,8 +104,7 @@ class TrialStreams:
                  *, backend: str = "auto"):
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or int(seed) < 0:
             raise ValueError(f"seed: expected a non-negative int, got {seed!r}")
-        if backend not in ("auto", "numpy", "philox"):
-            raise ValueError(f"backend: expected 'auto', 'numpy' or 'philox', got {backend!r}")
+        check_choice("backend", backend, ("auto", "numpy", "philox"))
         if isinstance(trials, (int, np.integer)) and not isinstance(trials, bool):
             if int(trials) < 1:
                 raise ValueError(f"trials: expected a positive number of trials, got {trials}")

@@ -27,6 +27,7 @@ from typing import Optional, Union
 import torch
 
 from .. import linalg
+from .._checks import check_choice
 from ..schedules import ExponentialSchedule, LambdaSchedule
 from .base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow, _gather_points
 from .points import LinearisationPoints, resolve_points
@@ -222,8 +223,7 @@ def flow_gaussian(flow: ParticleFlow, measurement, prior: FlowPrior, schedule: O
     Returns:
         ``(mean (..., d), cov (..., d, d))`` of the flowed Gaussians.
     """
-    if evaluate_at not in EVALUATE_AT:
-        raise ValueError(f"evaluate_at: expected one of {EVALUATE_AT}, got {evaluate_at!r}")
+    check_choice("evaluate_at", evaluate_at, EVALUATE_AT)
     schedule = schedule or ExponentialSchedule()
     eps_all, lam_all = schedule.steps(dtype=prior.mean.dtype, device=prior.mean.device)
     if evaluate_at == "start":

@@ -11,6 +11,7 @@ from typing import Optional, Sequence, Tuple
 import torch
 
 from .. import linalg
+from .._checks import check_choice
 from .base import StateSpaceModel
 
 _X0 = [12, 6, 0.001, 0.001, 32, 32, -0.001, -0.005, 20, 13, -0.1, 0.01, 15, 35, 0.002, 0.002]
@@ -64,8 +65,7 @@ class AcousticTracking(StateSpaceModel):
             raise ValueError(f"sigma_w: expected > 0, got {sigma_w}")
         if filter_noise is True or filter_noise == "true":
             filter_noise = "truth"
-        if filter_noise not in ("inflated", "truth"):
-            raise ValueError(f"filter_noise: expected 'inflated' or 'truth', got {filter_noise!r}")
+        check_choice("filter_noise", filter_noise, ("inflated", "truth"))
         C = self.n_targets
         self.state_dim, self.obs_dim = 4 * C, sensor_grid * sensor_grid
         f64 = dict(dtype=torch.float64)
