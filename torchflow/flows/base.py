@@ -44,12 +44,11 @@ class FlowCoefficients:
         form_A: ``() -> A``, the explicit matrix of an operator-form A, formed on first demand.
         noise_factor: stochastic flows only: ``G`` with ``G G^T = Q``, ``(..., d, r)`` batched like
             ``A`` (``r`` need not equal ``d``: a rank-deficient Q has a thin exact factor).
-        noise_cov: ``Q (..., d, d)`` itself, when given (used instead of ``noise_factor`` for Q).
         noise_product: ``(U, V)`` with ``G = U V^T`` (``U (..., d, k)``, ``V (..., r, k)`` or a shared
             ``(r, k)``): ``G xi = U (V^T xi)`` without forming the ``d x r`` factor (Gromov's
             ``M^{-1}[:, s] W_s^T``); plain tensors, so it can be gathered to clustered particles.
         noise_cov_pair: ``(Q1, Q2)`` with ``Q = Q1 Q2^T`` (``(..., d, k)`` each), instead of
-            ``noise_cov``: lets the integrator fuse the addition into a product.
+            forming Q: lets the integrator fuse the addition into a product.
         support: when the measurement reads only ``k`` of the ``d`` state coordinates
             (:attr:`~torchflow.models.StateSpaceModel.measurement_support`), A's other columns are
             zero and ``A`` holds only the ``(..., d, k)`` nonzero ones: ``A x = A x[..., support]``.
@@ -62,7 +61,6 @@ class FlowCoefficients:
     apply_A: Optional[Callable[[torch.Tensor], torch.Tensor]] = None
     noise_factor: Optional[torch.Tensor] = None
     support: Optional[torch.Tensor] = None
-    noise_cov: Optional[torch.Tensor] = None
     noise_cov_pair: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
     noise_product: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
     form_A: Optional[Callable[[], torch.Tensor]] = None
@@ -78,11 +76,11 @@ class FlowCoefficients:
         return self.A
 
     def diffusion_cov(self) -> torch.Tensor:
-        """``Q = G G^T`` (given, or formed from ``noise_factor``)."""
-        if self.noise_cov is not None:
-            return self.noise_cov
+        """``Q = G G^T`` (from ``noise_cov_pair`` or ``noise_factor``; 0 for a deterministic flow)."""
         if self.noise_cov_pair is not None:
             return self.noise_cov_pair[0] @ self.noise_cov_pair[1].transpose(-1, -2)
+        if self.noise_factor is None:
+            return self.b.new_zeros(())
         return self.noise_factor @ self.noise_factor.transpose(-1, -2)
 
     def diffuse(self, xi: torch.Tensor) -> torch.Tensor:
@@ -118,7 +116,6 @@ class FlowCoefficients:
 
         pair = lambda p: None if p is None else (g(p[0]), p[1] if p[1].dim() < 3 else g(p[1]))  # noqa: E731
         return FlowCoefficients(g(A), g(self.b), None, noise_factor=g(self.noise_factor), support=self.support,
-                                noise_cov=g(self.noise_cov),
                                 noise_cov_pair=pair(self.noise_cov_pair), noise_product=pair(self.noise_product))
 
     def cols(self, x: torch.Tensor) -> torch.Tensor:

@@ -21,7 +21,6 @@ and, on request, the Gaussian image ``(mu_1, Sigma_1)`` of each point's prior.
 """
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import Optional, Union
 
 import torch
@@ -258,8 +257,6 @@ class _Image:
             return
         if co.A is None and co.form_A is not None:
             co.matrix()  # formed once on the caller's coefficients, so the particles' drift reuses it
-        if co.noise_factor is None and co.noise_cov is None and co.noise_cov_pair is None:
-            co = replace(co, noise_cov=co.b.new_zeros(()))  # deterministic: no diffusion term
         self.cov = _propagate_cov(self.cov, co, eps, self.eye)
 
     def output(self, out: "FlowOutput") -> "FlowOutput":
