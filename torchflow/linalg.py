@@ -20,14 +20,12 @@ def symmetrize(A: torch.Tensor) -> torch.Tensor:
     return 0.5 * (A + A.transpose(-1, -2))
 
 
-def safe_cholesky(
-    A: torch.Tensor, *, max_tries: int = 6, jitter: Optional[float] = None
-) -> torch.Tensor:
+def safe_cholesky(A: torch.Tensor, *, max_tries: int = 6) -> torch.Tensor:
     """Lower Cholesky factor of ``A (..., d, d)``, adding diagonal jitter where it fails.
 
     Matrices that factor cleanly are untouched. For those that do not, jitter
     ``eps * 10^k * mean(diag)`` (k = 0, 1, ...) is added to those matrices only, where ``eps`` is the
-    dtype's machine epsilon times 10 unless ``jitter`` is given.
+    dtype's machine epsilon times 10.
 
     Raises:
         torch.linalg.LinAlgError: if a matrix still fails after ``max_tries`` increases; the
@@ -36,9 +34,8 @@ def safe_cholesky(
     L, info = torch.linalg.cholesky_ex(A)
     if not bool((info > 0).any()):
         return L
-    d = A.shape[-1]
-    eye = torch.eye(d, dtype=A.dtype, device=A.device)
-    base = jitter if jitter is not None else 10.0 * torch.finfo(A.dtype).eps
+    eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
+    base = 10.0 * torch.finfo(A.dtype).eps
     scale = A.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(A.dtype).tiny)
     failed = info > 0
     for k in range(max_tries):
@@ -186,9 +183,8 @@ def matvec(A: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return (A @ x.unsqueeze(-1)).squeeze(-1)
 
 
-def sample_mvn(
-    mean: torch.Tensor, scale_tril: torch.Tensor, sample_shape: Tuple[int, ...], generator=None
-) -> torch.Tensor:
+def sample_mvn(mean: torch.Tensor, scale_tril: torch.Tensor, sample_shape: Tuple[int, ...], generator=None
+               ) -> torch.Tensor:
     """Draw ``mean + L xi`` with ``xi ~ N(0, I)``.
 
     Args:
@@ -210,9 +206,7 @@ def sample_mvn(
     return m + matvec(L, xi)
 
 
-def weighted_mean_cov(
-    x: torch.Tensor, log_weights: torch.Tensor
-) -> Tuple[torch.Tensor, torch.Tensor]:
+def weighted_mean_cov(x: torch.Tensor, log_weights: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
     """Weighted mean ``(B, d)`` and covariance ``(B, d, d)`` of particles ``x (B, N, d)``.
 
     ``log_weights (B, N)`` need not be normalised.

@@ -45,15 +45,9 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
             matrix) instead of forming it; ``None`` (default): when ``k`` is at least
             ``torchflow.tuning`` ``flow_operator_min_dim``.
 
-    Explicit A (small k): A is formed with one Cholesky solve with k right-hand sides and then
-    applied to stacked vectors; on CPU the number and size of batched small products set the cost,
-    and with a support every system is ``k x k`` (8 x 8 for acoustic tracking instead of 16 x 16).
-    Operator A (large k): a particle's flow only ever applies A to a few vectors (its own point and
-    the offset's two terms), so the ``k``-column solve and the ``d x k x k`` product that form A are
-    skipped: per point and step there remain the two ``k x m x k`` products of ``S = (W L_s)^T
-    (W L_s)`` and the two Cholesky factorisations, about 40 % of the explicit form's flops (d = 144:
-    half the time, ``experiments/benchmarks/results_gaussian_sum.md``). Both give the same numbers up
-    to round-off.
+    A particle's flow applies A to only a few vectors, so for large k the operator form skips the
+    ``k``-column solve and ``d x k x k`` product that form A (d = 144: half the time,
+    ``experiments/benchmarks/results_gaussian_sum.md``); both give the same numbers up to round-off.
     """
     Ls = L if L_support is None else L_support
     k = Ls.shape[-1]
@@ -135,7 +129,7 @@ class EDHFlow(ParticleFlow):
         W, y = lin.W, lin.y
         dt = prior.cols.dtype
         if self.promote_low_precision and dt in (torch.float32, torch.float16, torch.bfloat16):
-            up = (lambda t: None if t is None else t.to(torch.float64))  # noqa: E731
+            up = (lambda t: t.to(torch.float64))  # noqa: E731
             # P_cols is not reused: it was rounded independently of L in low precision
             co = daum_huang_coefficients(up(W), up(y), up(prior.cols), up(prior.mean), up(lam), up(eps),
                                          L_support=up(prior.cols_support), support=prior.support)

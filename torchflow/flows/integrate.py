@@ -32,23 +32,11 @@ from .base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow, _gather
 from .points import LinearisationPoints, resolve_points
 
 
-def integrate_flow(
-    flow: ParticleFlow,
-    model,
-    particles: torch.Tensor,
-    z: torch.Tensor,
-    prior: FlowPrior,
-    schedule: Optional[LambdaSchedule] = None,
-    *,
-    generator: Optional[torch.Generator] = None,
-    proposal: Optional[FlowPrior] = None,
-    noise=None,
-    index: Optional[torch.Tensor] = None,
-    points: Union[None, str, LinearisationPoints] = None,
-    gaussian_image: bool = False,
-    measurement=None,
-    start: Optional[torch.Tensor] = None,
-) -> FlowOutput:
+def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.Tensor, prior: FlowPrior,
+                   schedule: Optional[LambdaSchedule] = None, *, generator: Optional[torch.Generator] = None,
+                   proposal: Optional[FlowPrior] = None, noise=None, index: Optional[torch.Tensor] = None,
+                   points: Union[None, str, LinearisationPoints] = None, gaussian_image: bool = False,
+                   measurement=None, start: Optional[torch.Tensor] = None) -> FlowOutput:
     """Integrate a flow from lambda = 0 to 1 (see the module docstring).
 
     Deterministic flows take Euler steps and accumulate ``log|det(I + eps_j A_j)|``, the

@@ -188,9 +188,8 @@ class StateSpaceModel(nn.Module):
         """True initial states x_0 -> ``(B, d)``."""
         raise NotImplementedError
 
-    def initial_belief(
-        self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
-    ) -> Tuple[torch.Tensor, torch.Tensor]:
+    def initial_belief(self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
+                       ) -> Tuple[torch.Tensor, torch.Tensor]:
         """The filters' prior for each trial given the true ``states0 (B, d)``.
 
         Returns:
@@ -198,9 +197,7 @@ class StateSpaceModel(nn.Module):
         """
         raise NotImplementedError
 
-    def simulate(
-        self, batch_size: int, steps: int, generator: Optional[torch.Generator] = None
-    ) -> Trajectory:
+    def simulate(self, batch_size: int, steps: int, generator: Optional[torch.Generator] = None) -> Trajectory:
         """Simulate ``batch_size`` independent trajectories of ``steps`` steps.
 
         Returns:

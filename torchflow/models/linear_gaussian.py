@@ -168,9 +168,8 @@ def _identity_scale(M: torch.Tensor) -> Optional[float]:
 
 
 
-def sensor_network_covariance(
-    grid_size: int, alpha0: float = 3.0, alpha1: float = 0.01, beta: float = 20.0
-) -> torch.Tensor:
+def sensor_network_covariance(grid_size: int, alpha0: float = 3.0, alpha1: float = 0.01,
+                              beta: float = 20.0) -> torch.Tensor:
     """Process noise of the spatial sensor network: ``Sigma_ij = alpha0 exp(-|R_i - R_j|^2 / beta)
     + alpha1 delta_ij`` over a ``grid_size x grid_size`` grid with unit spacing (``d = grid_size^2``).
 
@@ -199,30 +198,14 @@ class SensorNetwork(LinearGaussian):
         learnable: make F, Q, H, R ``nn.Parameter``s.
     """
 
-    def __init__(
-        self,
-        *,
-        d: int = 64,
-        alpha: float = 0.9,
-        alpha0: float = 3.0,
-        alpha1: float = 0.01,
-        beta: float = 20.0,
-        sigma_z: float = 0.5,
-        prior_var: float = 0.0,
-        learnable: bool = False,
-    ):
+    def __init__(self, *, d: int = 64, alpha: float = 0.9, alpha0: float = 3.0, alpha1: float = 0.01,
+                 beta: float = 20.0, sigma_z: float = 0.5, prior_var: float = 0.0, learnable: bool = False):
         g = int(round(math.sqrt(d)))
         if g * g != d:
             raise ValueError(f"d: expected a perfect square (grid side^2), got {d}")
         if sigma_z <= 0:
             raise ValueError(f"sigma_z: expected > 0, got {sigma_z}")
         eye = torch.eye(d, dtype=torch.float64)
-        super().__init__(
-            F=alpha * eye,
-            Q=sensor_network_covariance(g, alpha0, alpha1, beta),
-            H=eye,
-            R=sigma_z**2 * eye,
-            m0=torch.zeros(d, dtype=torch.float64),
-            P0=prior_var * eye,
-            learnable=learnable,
-        )
+        super().__init__(F=alpha * eye, Q=sensor_network_covariance(g, alpha0, alpha1, beta), H=eye,
+                         R=sigma_z**2 * eye, m0=torch.zeros(d, dtype=torch.float64), P0=prior_var * eye,
+                         learnable=learnable)
