@@ -239,13 +239,8 @@ def philox4x32(counter, key, rounds: int = 10):
     c0, c1, c2, c3 = counter
     k0, k1 = key
     for r in range(rounds):
-        p0 = c0 * _M0  # < 2**64: int64 wraps, and the bit pattern is exact mod 2**64
-        p1 = c2 * _M1
-        hi0 = (p0 >> 32) & _MASK
-        lo0 = p0 & _MASK
-        hi1 = (p1 >> 32) & _MASK
-        lo1 = p1 & _MASK
-        c0, c1, c2, c3 = hi1 ^ c1 ^ k0, lo1, hi0 ^ c3 ^ k1, lo0
+        p0, p1 = c0 * _M0, c2 * _M1  # < 2**64: int64 wraps, and the bit pattern is exact mod 2**64
+        c0, c1, c2, c3 = ((p1 >> 32) & _MASK) ^ c1 ^ k0, p1 & _MASK, ((p0 >> 32) & _MASK) ^ c3 ^ k1, p0 & _MASK
         if r < rounds - 1:
             k0 = (k0 + _W0) & _MASK
             k1 = (k1 + _W1) & _MASK

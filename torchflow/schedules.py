@@ -33,7 +33,7 @@ class LambdaSchedule:
         return self.n_steps
 
     def __repr__(self) -> str:
-        args = ", ".join(f"{k}={v}" for k, v in vars(self).items())
+        args = ", ".join(f"{k}={v}" for k, v in vars(self).items() if not k.startswith("_"))
         return f"{type(self).__name__}({args})"
 
 
@@ -91,6 +91,3 @@ class GeometricSchedule(LambdaSchedule):
 
     def step_sizes(self):
         return torch.tensor(self._eps, dtype=torch.float64)
-
-    def __repr__(self) -> str:
-        return f"GeometricSchedule(first_step={self.first_step}, ratio={self.ratio}, n_steps={self.n_steps})"

@@ -253,10 +253,6 @@ class _Image:
         return out
 
 
-def _flat3(x: torch.Tensor, batch) -> torch.Tensor:
-    return x.expand(*batch, *x.shape[-2:]).reshape(-1, *x.shape[-2:])
-
-
 def _propagate_cov(Sig, co: "FlowCoefficients", eps, eye):
     """``(I + eps A) Sig (I + eps A)^T + eps Q``, ``Sig (..., d, d)``.
 
@@ -271,10 +267,11 @@ def _propagate_cov(Sig, co: "FlowCoefficients", eps, eye):
     pair = co.noise_cov_pair
     shapes = [Sig.shape[:-2], A.shape[:-2]] + ([p.shape[:-2] for p in pair] if pair is not None else [])
     batch = torch.broadcast_shapes(*shapes)
-    S3, A3 = _flat3(Sig, batch), _flat3(A, batch)
+    _flat3 = lambda x: x.expand(*batch, *x.shape[-2:]).reshape(-1, *x.shape[-2:])  # noqa: E731
+    S3, A3 = _flat3(Sig), _flat3(A)
     V = torch.baddbmm(S3, A3, S3.index_select(-2, sup), alpha=e)
     out = torch.baddbmm(V, V.index_select(-1, sup), A3.transpose(-1, -2), alpha=e)
     if pair is not None:
-        out = torch.baddbmm(out, _flat3(pair[0], batch), _flat3(pair[1], batch).transpose(-1, -2), alpha=e)
+        out = torch.baddbmm(out, _flat3(pair[0]), _flat3(pair[1]).transpose(-1, -2), alpha=e)
         return out.reshape(*batch, *Sig.shape[-2:])
     return out.reshape(*batch, *Sig.shape[-2:]) + eps * co.diffusion_cov()

@@ -83,9 +83,8 @@ class AcousticTracking(StateSpaceModel):
         ticks = torch.linspace(0.0, area, sensor_grid, **f64)
         sy, sx = torch.meshgrid(ticks, ticks, indexing="ij")
         self.register_buffer("sensors", torch.stack([sx.reshape(-1), sy.reshape(-1)], -1))  # (m, 2), x fastest
-        self.register_buffer("psi", torch.tensor(float(psi), **f64))
-        self.register_buffer("d0", torch.tensor(float(d0), **f64))
-        self.register_buffer("sigma_w", torch.tensor(float(sigma_w), **f64))
+        for name, value in (("psi", psi), ("d0", d0), ("sigma_w", sigma_w)):
+            self.register_buffer(name, torch.tensor(float(value), **f64))
         x0 = torch.tensor(_X0 if initial_state is None else list(initial_state), **f64)
         if x0.shape != (self.state_dim,):
             raise ValueError(f"initial_state: expected {self.state_dim} numbers, got {tuple(x0.shape)}")

@@ -73,9 +73,8 @@ class SkewedTPoisson(StateSpaceModel):
         self.register_buffer("Sigma", Sigma)
         self.register_buffer("Sigma_tril", linalg.safe_cholesky(Sigma))
         self.register_buffer("gamma", torch.full((d,), float(gamma), **f64))
-        self.register_buffer("alpha", torch.tensor(float(alpha), **f64))
-        self.register_buffer("m1", torch.tensor(float(m1), **f64))
-        self.register_buffer("m2", torch.tensor(float(m2), **f64))
+        for name, value in (("alpha", alpha), ("m1", m1), ("m2", m2)):
+            self.register_buffer(name, torch.tensor(float(value), **f64))
         self.EW = nu / (nu - 2)
         self.VarW = 2 * nu * nu / ((nu - 2) ** 2 * (nu - 4))
         Q = self.EW * Sigma + self.VarW * torch.outer(self.gamma, self.gamma)
