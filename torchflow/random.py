@@ -113,10 +113,7 @@ class TrialStreams:
             idx = [int(t) for t in (trials.tolist() if isinstance(trials, torch.Tensor) else trials)]
             if not idx or min(idx) < 0:
                 raise ValueError(f"trials: expected non-empty non-negative trial indices, got {idx[:10]}")
-        self.seed = int(seed)
-        self.key = stream_key(key)
-        self.trials = idx
-        self.backend = backend
+        self.seed, self.key, self.trials, self.backend = int(seed), stream_key(key), idx, backend
         self._np = None        # list of numpy Generators (numpy back end), created lazily
         self._counter = 0      # philox: 128-bit blocks consumed per trial so far
         self._keys = None      # philox: (B, 2) int64 key words

@@ -112,9 +112,8 @@ def flow_points_per_call(model) -> int:
     sup = model.measurement_support
     k = model.state_dim if sup is None else len(sup)
     t = tuning.get()
-    if not t.flow_bytes_per_call:  # 0: no cap
-        return max(1, t.points_per_call)
-    return max(1, min(t.points_per_call, t.flow_bytes_per_call // (8 * k * k)))
+    cap = t.flow_bytes_per_call // (8 * k * k) if t.flow_bytes_per_call else t.points_per_call  # 0: no cap
+    return max(1, min(t.points_per_call, cap))
 
 
 class LinearisationPoints:

@@ -1,6 +1,7 @@
 """The single model interface every filter consumes."""
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import Optional, Tuple
 
@@ -77,9 +78,7 @@ class StateSpaceModel(nn.Module):
         return self._reference_tensor().device
 
     def _reference_tensor(self) -> torch.Tensor:
-        for t in self.parameters():
-            return t
-        for t in self.buffers():
+        for t in itertools.chain(self.parameters(), self.buffers()):
             return t
         raise RuntimeError(f"{type(self).__name__} has no parameters or buffers")
 

@@ -56,12 +56,9 @@ class LinearGaussian(StateSpaceModel):
         check_psd("P0", P0)
         self.state_dim, self.obs_dim = d, m
         names = ("F", "Q", "H", "R")
-        if isinstance(learnable, bool):
-            learn = set(names) if learnable else set()
-        else:
-            learn = set(learnable)
-            if not learn <= set(names):
-                raise ValueError(f"learnable: expected a bool or a subset of {list(names)}, got {sorted(learn)}")
+        learn = (set(names) if learnable else set()) if isinstance(learnable, bool) else set(learnable)
+        if not learn <= set(names):
+            raise ValueError(f"learnable: expected a bool or a subset of {list(names)}, got {sorted(learn)}")
         for name, val in zip(names, (F, Q, H, R)):
             if name in learn:
                 setattr(self, name, nn.Parameter(val.clone()))
