@@ -8,8 +8,10 @@ from __future__ import annotations
 import math
 from typing import Optional, Tuple
 
+import numpy as np
 import torch
 
+from . import tuning
 from .random import TrialStreams, fill_numpy
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -58,8 +60,6 @@ def solve_triangular(A: torch.Tensor, B: torch.Tensor, *, upper: bool, left: boo
     matrices (up to ``torchflow.tuning`` ``serial_solve_max_dim``: batched CPU solves loop over
     the batch calling MKL's trsm, which with several threads pays a parallel-region start per tiny
     matrix); otherwise unchanged."""
-    from . import tuning
-
     if A.device.type == "cpu" and A.dim() > 2 and A.shape[-1] <= tuning.get().serial_solve_max_dim \
             and A.shape[:-2].numel() > 1:
         n = torch.get_num_threads()
@@ -101,8 +101,6 @@ def standard_normal(shape, *, dtype: torch.dtype, device, generator: Optional[to
         return generator.normal(shape, dtype=dtype, device=device)
     n = math.prod(shape)
     if device.type == "cpu" and dtype == torch.float64 and n >= FAST_NORMAL_MIN:
-        import numpy as np
-
         seed = int(torch.randint(0, 2**62, (), generator=generator))
         out = torch.empty(shape, dtype=dtype)
         flat = out.numpy().reshape(-1)

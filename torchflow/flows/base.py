@@ -23,6 +23,7 @@ import torch
 from torch import nn
 
 from .. import linalg
+from .measurement import GaussianMeasurement
 
 
 @dataclass
@@ -249,8 +250,6 @@ class ParticleFlow(nn.Module):
                      lam: torch.Tensor, eps: torch.Tensor) -> FlowCoefficients:
         """Convenience: :meth:`coefficients_at` with the model's own measurement term linearised at
         ``aux`` (``(B, d)`` or ``(B, L, d)``); ``z (B, m)``."""
-        from .measurement import GaussianMeasurement
-
         meas = GaussianMeasurement.from_model(model, z)
         prior = prior.reduced(meas.support)
         return self.coefficients_at(meas.at(aux, prior.support), prior, lam, eps)

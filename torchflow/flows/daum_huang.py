@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import torch
 
-from .. import linalg
+from .. import linalg, tuning
 from .base import FlowCoefficients, FlowPrior, ParticleFlow
 from .measurement import Linearisation
 
@@ -52,8 +52,6 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
     Ls = L if L_support is None else L_support
     k = Ls.shape[-1]
     if operator is None:
-        from .. import tuning
-
         operator = k >= tuning.get().flow_operator_min_dim
     eye = torch.eye(k, dtype=L.dtype, device=L.device)
     if operator:

@@ -49,6 +49,7 @@ from .._checks import check_choice
 from .base import FlowCoefficients, FlowPrior, ParticleFlow
 from .daum_huang import _gram_terms
 from .measurement import Linearisation
+from .points import POINTS
 
 
 def _homotopy_terms(W, y, L, lam, need_factor: bool = False, L_support=None, extra=None):
@@ -125,8 +126,6 @@ class _HomotopyFlow(ParticleFlow):
 
     def __init__(self, points: str = "particle", noise_root: Optional[str] = None):
         super().__init__()
-        from .points import POINTS
-
         self.points = check_choice("points", points, tuple(POINTS))
         if noise_root is not None:
             self.noise_root = check_choice("noise_root", noise_root, ("factor", "symmetric"))

@@ -29,6 +29,7 @@ from .. import linalg
 from .._checks import check_choice
 from ..schedules import ExponentialSchedule, LambdaSchedule
 from .base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow, _gather_points
+from .measurement import GaussianMeasurement
 from .points import LinearisationPoints, resolve_points
 
 
@@ -84,8 +85,6 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
     eps_all, lam_all = schedule.steps(dtype=particles.dtype, device=particles.device)
     strategy = resolve_points(flow, "clustered" if points is None and index is not None else points)
     if measurement is None:
-        from .measurement import GaussianMeasurement
-
         measurement = GaussianMeasurement.from_model(model, z)
     if start is not None:
         if start.shape != prior.mean.shape:

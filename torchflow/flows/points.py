@@ -26,14 +26,15 @@ synchronisation (a converged assignment is a fixed point of the sweep).
 """
 from __future__ import annotations
 
-import functools
 from typing import Optional, Sequence, Tuple, Union
 
 import torch
 
-from .. import tuning
+from .. import resampling, tuning
+from .._checks import check_count
 from ..covariances import Covariance, ParticleCovariance, TrialCovariance
 from .base import FlowPrior
+from .daum_huang import LEDHFlow
 
 
 def cluster_distance(eta_bar: torch.Tensor, zeta: torch.Tensor, alpha: float = 0.25,
@@ -237,8 +238,6 @@ class ClusteredPoints(LinearisationPoints):
     name = "clustered"
 
     def __init__(self, n_clusters: int = 100, alpha: float = 0.25, sweeps: int = 10):
-        from .._checks import check_count
-
         self.n_clusters = check_count("n_clusters", n_clusters)
         self.sweeps = check_count("sweeps", sweeps)
         if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0.0 <= float(alpha) <= 1.0:
@@ -246,8 +245,6 @@ class ClusteredPoints(LinearisationPoints):
         self.alpha = float(alpha)
 
     def place(self, model, x_prev, mean, scale_tril, z):
-        from .. import resampling
-
         eta_bar = model.transition_mean(x_prev)  # (B, N, d)
         index, medoids = self.cluster(model, eta_bar, z, scale_tril)
         return FlowPrior(resampling.gather_particles(eta_bar, medoids), scale_tril.unsqueeze(-3)), index
@@ -261,7 +258,7 @@ class ClusteredPoints(LinearisationPoints):
             return ar, ar
         prior = FlowPrior(eta_bar, scale_tril.unsqueeze(-3))
         zero = torch.zeros((), dtype=eta_bar.dtype, device=eta_bar.device)
-        zeta = _velocity_flow().coefficients(model, z, eta_bar, prior, zero, zero).drift(eta_bar)[0]
+        zeta = _VELOCITY.coefficients(model, z, eta_bar, prior, zero, zero).drift(eta_bar)[0]
         dist = cluster_distance(eta_bar, zeta, self.alpha, model.measurement_support)
         return kmedoids(dist, self.n_clusters, self.sweeps)
 
@@ -286,12 +283,8 @@ class ClusteredPoints(LinearisationPoints):
         return f"n_clusters={self.n_clusters}, alpha={self.alpha}, sweeps={self.sweeps}"
 
 
-@functools.lru_cache(maxsize=None)
-def _velocity_flow():
-    """The LEDH drift whose lambda = 0 velocities the clustered distance correlates (one instance)."""
-    from .daum_huang import LEDHFlow
-
-    return LEDHFlow()
+#: the LEDH drift whose lambda = 0 velocities the clustered distance correlates
+_VELOCITY = LEDHFlow()
 
 
 def _check_points(name: str, mean: torch.Tensor, particles: torch.Tensor, L: int) -> None:

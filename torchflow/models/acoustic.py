@@ -12,7 +12,7 @@ import torch
 
 from .. import linalg
 from .._checks import check_choice
-from .base import StateSpaceModel
+from .base import StateSpaceModel, Trajectory
 
 _X0 = [12, 6, 0.001, 0.001, 32, 32, -0.001, -0.005, 20, 13, -0.1, 0.01, 15, 35, 0.002, 0.002]
 
@@ -198,8 +198,6 @@ class AcousticTracking(StateSpaceModel):
         (a single target stays inside only a few per cent of the time). Rejection is batched over
         the tracks still invalid.
         """
-        from .base import Trajectory
-
         batch_size, steps = self.check_simulate_args(batch_size, steps, generator)
         C = self.n_targets
         with torch.no_grad():
