@@ -254,13 +254,16 @@ def check_generator(generator, who: str = "generator") -> Generatorish:
     be reproducible from its arguments."""
     if isinstance(generator, (torch.Generator, TrialStreams)):
         return generator
-    hint = ""
-    if isinstance(generator, (int, np.integer)) and not isinstance(generator, bool):
-        hint = f" (for a seed, pass torch.Generator().manual_seed({int(generator)}))"
-    elif generator is None:
-        hint = " (randomness comes only from a passed generator: pass torch.Generator().manual_seed(seed))"
     raise TypeError(f"{who}: expected a torch.Generator or torchflow.random.TrialStreams, "
-                    f"got {type(generator).__name__}{hint}")
+                    f"got {type(generator).__name__}{generator_hint(generator)}")
+
+
+def generator_hint(generator) -> str:
+    """How to pass randomness instead of ``generator`` (an int seed or ``None``), for error messages."""
+    if isinstance(generator, (int, np.integer)) and not isinstance(generator, bool):
+        return f" (for a seed, pass torch.Generator().manual_seed({int(generator)}))"
+    return " (randomness comes only from a passed generator: pass torch.Generator().manual_seed(seed))" \
+        if generator is None else ""
 
 
 def uniform(shape, *, dtype, device, generator: Optional[Generatorish]) -> torch.Tensor:

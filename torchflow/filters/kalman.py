@@ -120,10 +120,6 @@ class UnscentedKalmanFilter(_GaussianFilter):
     beta = property(lambda self: self.unscented.beta)
     kappa = property(lambda self: self.unscented.kappa)
 
-    def sigma_points(self, mean, cov):
-        """``(..., d)``, ``(..., d, d)`` -> sigma points ``(..., 2d + 1, d)``."""
-        return self.unscented.sigma_points(mean, cov)
-
     def predict(self, mean: torch.Tensor, cov: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
         """Unscented prediction for ``(..., d)``, ``(..., d, d)`` (any leading shape)."""
         return self.unscented.predict(self.model, mean, cov)

@@ -42,6 +42,7 @@ class AcousticTracking(StateSpaceModel):
     """
 
     n_targets = 4
+    has_positions = True
     linear_dynamics = True
     measurement_noise = "scalar"  # R = sigma_w^2 I
 
@@ -112,10 +113,6 @@ class AcousticTracking(StateSpaceModel):
     def positions(self, x):
         """``(..., 16) -> (..., 4, 2)`` target positions."""
         return x.reshape(*x.shape[:-1], self.n_targets, 4)[..., :2]
-
-    @property
-    def has_positions(self) -> bool:
-        return True
 
     def measure(self, x):
         # per-coordinate differences (..., C, m): avoids the (..., C, m, 2) tensor, which for

@@ -11,6 +11,7 @@ from torch import nn
 from .. import linalg
 from .._checks import check_count, check_finite, check_tensor
 from ..linearize import jacobian
+from ..random import generator_hint
 
 
 @dataclass
@@ -223,9 +224,8 @@ class StateSpaceModel(nn.Module):
         return 8 * 4 * (self.state_dim + self.obs_dim)
 
     # ---- tracking ------------------------------------------------------------------------------
-    @property
-    def has_positions(self) -> bool:
-        return False
+    #: the state holds target positions (:meth:`positions`)
+    has_positions: bool = False
 
     def positions(self, x: torch.Tensor) -> torch.Tensor:
         """Target positions ``(..., C, 2 or 3)`` of states ``(..., d)`` (tracking models only)."""
@@ -244,12 +244,8 @@ class StateSpaceModel(nn.Module):
         batch_size = check_count(f"{who}: batch_size", batch_size)
         steps = check_count(f"{who}: steps", steps)
         if not isinstance(generator, torch.Generator):
-            hint = ""
-            if isinstance(generator, int) and not isinstance(generator, bool):
-                hint = f" (for a seed, pass torch.Generator().manual_seed({generator}))"
-            elif generator is None:
-                hint = " (randomness comes only from a passed generator)"
-            raise TypeError(f"{who}: generator: expected a torch.Generator, got {type(generator).__name__}{hint}")
+            raise TypeError(f"{who}: generator: expected a torch.Generator, got {type(generator).__name__}"
+                            f"{generator_hint(generator)}")
         self.check_dtype(who)
         return batch_size, steps
 
