@@ -46,21 +46,10 @@ class AcousticTracking(StateSpaceModel):
     linear_dynamics = True
     measurement_noise = "scalar"  # R = sigma_w^2 I
 
-    def __init__(
-        self,
-        *,
-        sigma_w: float = 0.1,
-        psi: float = 10.0,
-        d0: float = 0.1,
-        true_noise_scale: float = 0.05,
-        filter_noise: str = "inflated",
-        area: float = 40.0,
-        sensor_grid: int = 5,
-        prior_std: Sequence[float] = (10.0, 10.0, 1.0, 1.0),
-        initial_state: Optional[Sequence[float]] = None,
-        margin: float = 0.05,
-        max_redraws: int = 10000,
-    ):
+    def __init__(self, *, sigma_w: float = 0.1, psi: float = 10.0, d0: float = 0.1, true_noise_scale: float = 0.05,
+                 filter_noise: str = "inflated", area: float = 40.0, sensor_grid: int = 5,
+                 prior_std: Sequence[float] = (10.0, 10.0, 1.0, 1.0), initial_state: Optional[Sequence[float]] = None,
+                 margin: float = 0.05, max_redraws: int = 10000):
         super().__init__()
         if sigma_w <= 0:
             raise ValueError(f"sigma_w: expected > 0, got {sigma_w}")
