@@ -118,13 +118,19 @@ def check_same(name: str, x: torch.Tensor, ref: torch.Tensor, ref_name: str = "t
 
 def check_count(name: str, value, *, minimum: int = 1, hint: str = "") -> int:
     """An integer ``>= minimum`` (a bool, a fractional float or a string is refused, not truncated)."""
-    ok = isinstance(value, numbers.Integral) and not isinstance(value, bool)
-    if not ok and isinstance(value, float) and value.is_integer():
-        ok = True
+    ok = (isinstance(value, numbers.Integral) and not isinstance(value, bool)) or (
+        isinstance(value, float) and value.is_integer())
     if not ok or int(value) < minimum:
         what = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
         raise ValueError(f"{name}: expected {what}{hint}, got {value!r} ({type(value).__name__})")
     return int(value)
+
+
+def check_choice(name: str, value, choices):
+    """``value`` if it is one of ``choices``, else a ValueError naming them."""
+    if value not in choices:
+        raise ValueError(f"{name}: expected one of {tuple(choices)}, got {value!r}")
+    return value
 
 
 def shape_str(shape) -> str:

@@ -24,6 +24,8 @@ from typing import Optional
 
 import torch
 
+from ._checks import check_count
+
 
 @dataclass
 class Association:
@@ -64,8 +66,7 @@ def loopy_association(beta: torch.Tensor, xi: torch.Tensor, object_mask: Optiona
     M = M1 - 1
     if xi.shape != (B, M):
         raise ValueError(f"xi: expected (B, M) = ({B}, {M}) to match beta {tuple(beta.shape)}, got {tuple(xi.shape)}")
-    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
-        raise ValueError(f"iterations: expected a positive integer, got {iterations!r}")
+    iterations = check_count("iterations", iterations)
     om = torch.ones(B, K, dtype=torch.bool, device=beta.device) if object_mask is None else object_mask
     mm = torch.ones(B, M, dtype=torch.bool, device=beta.device) if measurement_mask is None else measurement_mask
     for name, mask, shape in (("object_mask", om, (B, K)), ("measurement_mask", mm, (B, M))):

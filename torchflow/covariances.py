@@ -1,9 +1,8 @@
 """Covariances carried by a particle filter's state, typed by what they belong to.
 
 A PF-PF tracks the flow's prior covariance with an EKF/UKF, either once per trial (global and
-clustered linearisation points) or once per particle (per-particle points, LEDH). Before this
-module the state held a bare tensor whose meaning followed from its shape, and resampling guessed
-by shape whether to gather it. Now the type says it:
+clustered linearisation points) or once per particle (per-particle points, LEDH); the type says
+which, and so how resampling treats it:
 
 * :class:`TrialCovariance` ``(B, d, d)``: one per trial; resampling leaves it alone.
 * :class:`ParticleCovariance` ``(B, N, d, d)``: one per particle; resampled with the particles.

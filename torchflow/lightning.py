@@ -80,13 +80,12 @@ class FilterLightningModule(pl.LightningModule):
                              key=f"{self.filter.stream_name}/{stage}/epoch{self.current_epoch}")
         else:
             g = torch.Generator(device=obs.device).manual_seed(self.seed + batch_idx)
-        res = self.filter(obs, mean, cov, g)
-        return -res.log_evidence.mean() / obs.shape[1]
+        loss = -self.filter(obs, mean, cov, g).log_evidence.mean() / obs.shape[1]
+        self.log(f"{stage}_nll_per_step", loss, prog_bar=True, batch_size=obs.shape[0])
+        return loss
 
     def training_step(self, batch, batch_idx):
-        loss = self._loss(batch, batch_idx)
-        self.log("train_nll_per_step", loss, prog_bar=True, batch_size=batch[0].shape[0])
-        return loss
+        return self._loss(batch, batch_idx)
 
     def configure_optimizers(self):
         return torch.optim.Adam([p for p in self.filter.parameters() if p.requires_grad], lr=self.lr)
@@ -98,6 +97,4 @@ class ValidatedFilterLightningModule(FilterLightningModule):
     when a module defines ``validation_step`` and no validation data is given."""
 
     def validation_step(self, batch, batch_idx):
-        loss = self._loss(batch, batch_idx, "val")
-        self.log("val_nll_per_step", loss, prog_bar=True, batch_size=batch[0].shape[0])
-        return loss
+        return self._loss(batch, batch_idx, "val")

@@ -8,9 +8,11 @@ from __future__ import annotations
 import math
 from typing import Optional, Tuple
 
+import numpy as np
 import torch
 
-from .random import TrialStreams
+from . import tuning
+from .random import TrialStreams, fill_numpy
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -20,21 +22,12 @@ def symmetrize(A: torch.Tensor) -> torch.Tensor:
     return 0.5 * (A + A.transpose(-1, -2))
 
 
-def cholesky_unit_shift(A: torch.Tensor) -> torch.Tensor:
-    """Lower Cholesky factor of ``A = I + c S (..., k, k)`` with S symmetric PSD and ``c >= 0``, so
-    every eigenvalue is >= 1 and the factorisation cannot fail: no jitter retry and no test of the
-    result (no host synchronisation; the flows factor such matrices at every pseudo-time step)."""
-    return torch.linalg.cholesky_ex(A)[0]
-
-
-def safe_cholesky(
-    A: torch.Tensor, *, max_tries: int = 6, jitter: Optional[float] = None
-) -> torch.Tensor:
+def safe_cholesky(A: torch.Tensor, *, max_tries: int = 6) -> torch.Tensor:
     """Lower Cholesky factor of ``A (..., d, d)``, adding diagonal jitter where it fails.
 
     Matrices that factor cleanly are untouched. For those that do not, jitter
     ``eps * 10^k * mean(diag)`` (k = 0, 1, ...) is added to those matrices only, where ``eps`` is the
-    dtype's machine epsilon times 10 unless ``jitter`` is given.
+    dtype's machine epsilon times 10.
 
     Raises:
         torch.linalg.LinAlgError: if a matrix still fails after ``max_tries`` increases; the
@@ -43,9 +36,8 @@ def safe_cholesky(
     L, info = torch.linalg.cholesky_ex(A)
     if not bool((info > 0).any()):
         return L
-    d = A.shape[-1]
-    eye = torch.eye(d, dtype=A.dtype, device=A.device)
-    base = jitter if jitter is not None else 10.0 * torch.finfo(A.dtype).eps
+    eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
+    base = 10.0 * torch.finfo(A.dtype).eps
     scale = A.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(A.dtype).tiny)
     failed = info > 0
     for k in range(max_tries):
@@ -68,8 +60,6 @@ def solve_triangular(A: torch.Tensor, B: torch.Tensor, *, upper: bool, left: boo
     matrices (up to ``torchflow.tuning`` ``serial_solve_max_dim``: batched CPU solves loop over
     the batch calling MKL's trsm, which with several threads pays a parallel-region start per tiny
     matrix); otherwise unchanged."""
-    from . import tuning
-
     if A.device.type == "cpu" and A.dim() > 2 and A.shape[-1] <= tuning.get().serial_solve_max_dim \
             and A.shape[:-2].numel() > 1:
         n = torch.get_num_threads()
@@ -88,16 +78,17 @@ def solve_triangular(A: torch.Tensor, B: torch.Tensor, *, upper: bool, left: boo
 #: which numbers a torch.Generator draw gets, so it is part of the draw's definition, not a speed
 #: knob (torchflow.tuning).
 FAST_NORMAL_MIN = 1 << 16
+#: numbers per independent stream of the fast sampler (large draws are filled block-parallel)
+FAST_NORMAL_BLOCK = 1 << 19
 
 
-def standard_normal(shape, *, dtype: torch.dtype, device, generator: Optional[torch.Generator] = None,
-                    fast: bool = True) -> torch.Tensor:
+def standard_normal(shape, *, dtype: torch.dtype, device, generator: Optional[torch.Generator] = None) -> torch.Tensor:
     """``N(0, 1)`` draws of ``shape``, all randomness from ``generator`` (torch's default if None).
 
     A :class:`~torchflow.random.TrialStreams` generator draws each trial's share (``shape[0]`` is
     trials, or a trial-major multiple of them) from that trial's own stream.
 
-    Large float64 CPU draws (``>= FAST_NORMAL_MIN`` numbers, ``fast=True``) take one 62-bit seed
+    Large float64 CPU draws (``>= FAST_NORMAL_MIN`` numbers) take one 62-bit seed
     from ``generator`` and fill the tensor with numpy's ziggurat normals (``np.random.SFC64``):
     exact float64 normals, 2.5x faster than ``torch.randn`` on CPU per thread, and the same seed
     gives the same numbers. Draws of more than ``FAST_NORMAL_BLOCK`` numbers use one stream per
@@ -109,45 +100,16 @@ def standard_normal(shape, *, dtype: torch.dtype, device, generator: Optional[to
     if isinstance(generator, TrialStreams):  # per-trial streams (leading dim: trials)
         return generator.normal(shape, dtype=dtype, device=device)
     n = math.prod(shape)
-    if fast and device.type == "cpu" and dtype == torch.float64 and n >= FAST_NORMAL_MIN:
-        import numpy as np
-
+    if device.type == "cpu" and dtype == torch.float64 and n >= FAST_NORMAL_MIN:
         seed = int(torch.randint(0, 2**62, (), generator=generator))
         out = torch.empty(shape, dtype=dtype)
         flat = out.numpy().reshape(-1)
-        if n <= FAST_NORMAL_BLOCK:
-            np.random.Generator(np.random.SFC64(seed)).standard_normal(out=flat)
-            return out
-        # one independent stream per block of FAST_NORMAL_BLOCK numbers (SeedSequence children), so
-        # the numbers do not depend on the thread count; blocks fill in parallel (numpy releases
-        # the GIL while filling)
-        seqs = np.random.SeedSequence(seed).spawn(-(-n // FAST_NORMAL_BLOCK))
-
-        def fill(i):
-            block = flat[i * FAST_NORMAL_BLOCK:(i + 1) * FAST_NORMAL_BLOCK]
-            np.random.Generator(np.random.SFC64(seqs[i])).standard_normal(out=block)
-
-        workers = min(torch.get_num_threads(), len(seqs))
-        if workers > 1:
-            list(_normal_pool(workers).map(fill, range(len(seqs))))
-        else:
-            for i in range(len(seqs)):
-                fill(i)
+        blk = FAST_NORMAL_BLOCK
+        seeds = [seed] if n <= blk else np.random.SeedSequence(seed).spawn(-(-n // blk))
+        fill_numpy("normal", [(np.random.Generator(np.random.SFC64(s)), flat[i * blk:(i + 1) * blk])
+                              for i, s in enumerate(seeds)], np.float64)
         return out
     return torch.randn(shape, dtype=dtype, device=device, generator=generator)
-
-
-#: numbers per independent stream of the fast sampler (large draws are filled block-parallel)
-FAST_NORMAL_BLOCK = 1 << 19
-_POOLS: dict = {}
-
-
-def _normal_pool(workers: int):
-    from concurrent.futures import ThreadPoolExecutor
-
-    if workers not in _POOLS:
-        _POOLS[workers] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="torchflow-normal")
-    return _POOLS[workers]
 
 
 def chol_solve(L: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
@@ -219,9 +181,8 @@ def matvec(A: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return (A @ x.unsqueeze(-1)).squeeze(-1)
 
 
-def sample_mvn(
-    mean: torch.Tensor, scale_tril: torch.Tensor, sample_shape: Tuple[int, ...], generator=None
-) -> torch.Tensor:
+def sample_mvn(mean: torch.Tensor, scale_tril: torch.Tensor, sample_shape: Tuple[int, ...], generator=None
+               ) -> torch.Tensor:
     """Draw ``mean + L xi`` with ``xi ~ N(0, I)``.
 
     Args:
@@ -243,9 +204,7 @@ def sample_mvn(
     return m + matvec(L, xi)
 
 
-def weighted_mean_cov(
-    x: torch.Tensor, log_weights: torch.Tensor
-) -> Tuple[torch.Tensor, torch.Tensor]:
+def weighted_mean_cov(x: torch.Tensor, log_weights: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
     """Weighted mean ``(B, d)`` and covariance ``(B, d, d)`` of particles ``x (B, N, d)``.
 
     ``log_weights (B, N)`` need not be normalised.

@@ -20,7 +20,6 @@ from __future__ import annotations
 import functools
 import itertools
 import math
-
 from typing import Optional
 
 import torch
@@ -28,32 +27,22 @@ import torch
 from . import tuning
 from ._checks import check_float_tensor, check_same_device, shape_str
 
-__all__ = [
-    "mse",
-    "omat",
-    "ospa",
-    "ess",
-    "log_evidence_relative_error",
-    "lost_tracks",
-]
-
-# The brute-force size limit and its memory guard are speed knobs: torchflow.tuning
-# (assignment_brute_force_max, assignment_chunk_elems).
+__all__ = ["mse", "omat", "ospa", "ess", "log_evidence_relative_error", "lost_tracks"]
 
 
-# ---------------------------------------------------------------------------
-# Input validation helpers
-# ---------------------------------------------------------------------------
+def _check_pair(x, ref, name: str, ref_name: str, letters: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """Raise unless ``x`` is a floating-point tensor shaped like ``ref`` on its device; both in their common dtype."""
+    expected = f"{letters} matching {ref_name} {shape_str(ref.shape)}"
+    check_float_tensor(x, name, expected)
+    if x.shape != ref.shape:
+        raise ValueError(f"{name}: expected {expected}, got {shape_str(x.shape)}")
+    check_same_device(x, ref, name, ref_name)
+    return _promote(x, ref)
 
 
 def _promote(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     dtype = torch.promote_types(a.dtype, b.dtype)
     return a.to(dtype), b.to(dtype)
-
-
-# ---------------------------------------------------------------------------
-# Assignment solver
-# ---------------------------------------------------------------------------
 
 
 @functools.lru_cache(maxsize=64)
@@ -93,9 +82,7 @@ def _min_assignment_cost(cost: torch.Tensor) -> torch.Tensor:
     # Fallback: Python loop over the B*T problems with scipy (CPU).
     from scipy.optimize import linear_sum_assignment
 
-    cost_np = torch.nan_to_num(
-        flat.detach().to("cpu", torch.float64), nan=1e300, posinf=1e300, neginf=-1e300
-    ).numpy()
+    cost_np = torch.nan_to_num(flat.detach().to("cpu", torch.float64), nan=1e300, posinf=1e300, neginf=-1e300).numpy()
     cols = torch.empty(flat.shape[0], m, dtype=torch.long)
     for i in range(flat.shape[0]):
         r, c = linear_sum_assignment(cost_np[i])
@@ -110,11 +97,6 @@ def _pairwise_dist(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.linalg.vector_norm(a.unsqueeze(-2) - b.unsqueeze(-3), dim=-1)
 
 
-# ---------------------------------------------------------------------------
-# Public metrics
-# ---------------------------------------------------------------------------
-
-
 def mse(estimates: torch.Tensor, states: torch.Tensor) -> torch.Tensor:
     """Squared estimation error averaged over the state dimension.
 
@@ -124,22 +106,11 @@ def mse(estimates: torch.Tensor, states: torch.Tensor) -> torch.Tensor:
 
     Returns:
         ``(B, T)`` tensor ``mean_j (estimates[..., j] - states[..., j])**2``.
-
-    Raises:
-        ValueError: If the inputs are not floating-point tensors of matching
-            shape ``(B, T, d)`` on the same device.
     """
     check_float_tensor(states, "states", "(B, T, d)", ndim=3)
-    check_float_tensor(estimates, "estimates", f"(B, T, d) matching states {shape_str(states.shape)}")
-    if estimates.shape != states.shape:
-        raise ValueError(
-            f"estimates: expected (B, T, d) matching states {shape_str(states.shape)}, "
-            f"got {shape_str(estimates.shape)}"
-        )
-    check_same_device(estimates, states, "estimates", "states")
+    estimates, states = _check_pair(estimates, states, "estimates", "states", "(B, T, d)")
     if states.shape[-1] == 0:
         raise ValueError("states: expected (B, T, d) with d >= 1, got d = 0")
-    estimates, states = _promote(estimates, states)
     return (estimates - states).square().mean(dim=-1)
 
 
@@ -148,14 +119,7 @@ def omat(est_positions: torch.Tensor, true_positions: torch.Tensor) -> torch.Ten
 
     For each trial and step computes
     ``min_pi (1/C) sum_c ||true[c] - est[pi(c)]||_2`` over permutations ``pi``
-    of the ``C`` targets.
-
-    For ``C <= 7`` the minimum is found by brute force over all ``C!``
-    permutations as batched tensor ops (gather with a ``(C!, C)`` index
-    tensor). For ``C > 7`` it falls back to
-    :func:`scipy.optimize.linear_sum_assignment`, which **loops in Python**
-    over the ``B * T`` assignment problems (on CPU); the optimal assignment is
-    then gathered from the torch distances so gradients still flow.
+    of the ``C`` targets (solved as in the module docstring; gradients flow).
 
     Args:
         est_positions: ``(B, T, C, k)`` estimated target positions, ``k`` in
@@ -164,11 +128,6 @@ def omat(est_positions: torch.Tensor, true_positions: torch.Tensor) -> torch.Ten
 
     Returns:
         ``(B, T)`` OMAT error (same units as the positions).
-
-    Raises:
-        ValueError: If the inputs are not floating-point ``(B, T, C, k)``
-            tensors of matching shape with ``k`` in ``{2, 3}`` and ``C >= 1``,
-            or are on different devices.
     """
     check_float_tensor(true_positions, "true_positions", "(B, T, C, k)", ndim=4)
     ref = shape_str(true_positions.shape)
@@ -176,26 +135,14 @@ def omat(est_positions: torch.Tensor, true_positions: torch.Tensor) -> torch.Ten
         raise ValueError(f"true_positions: expected (B, T, C, k) with k in {{2, 3}}, got {ref}")
     if true_positions.shape[-2] == 0:
         raise ValueError(f"true_positions: expected (B, T, C, k) with C >= 1, got {ref}")
-    check_float_tensor(est_positions, "est_positions", f"(B, T, C, k) matching true_positions {ref}")
-    if est_positions.shape != true_positions.shape:
-        raise ValueError(
-            f"est_positions: expected (B, T, C, k) matching true_positions {ref}, "
-            f"got {shape_str(est_positions.shape)}"
-        )
-    check_same_device(est_positions, true_positions, "est_positions", "true_positions")
-    est_positions, true_positions = _promote(est_positions, true_positions)
+    est_positions, true_positions = _check_pair(est_positions, true_positions, "est_positions", "true_positions",
+                                                "(B, T, C, k)")
     dist = _pairwise_dist(true_positions, est_positions)  # (B, T, C, C)
     return _min_assignment_cost(dist) / true_positions.shape[-2]
 
 
-def ospa(
-    X: torch.Tensor,
-    Y: torch.Tensor,
-    cutoff: float = 40.0,
-    order: float = 1.0,
-    X_mask: Optional[torch.Tensor] = None,
-    Y_mask: Optional[torch.Tensor] = None,
-) -> torch.Tensor:
+def ospa(X: torch.Tensor, Y: torch.Tensor, cutoff: float = 40.0, order: float = 1.0,
+         X_mask: Optional[torch.Tensor] = None, Y_mask: Optional[torch.Tensor] = None) -> torch.Tensor:
     """OSPA distance between point sets (Schuhmacher et al. 2008), of fixed or varying cardinality.
 
     With ``m = |X| <= n = |Y|`` (the sets are swapped otherwise),
@@ -203,11 +150,7 @@ def ospa(
     ``d = ((1/n) * (min_pi sum_{i<m} min(c, ||x_i - y_pi(i)||)**p + c**p * (n - m)))**(1/p)``
 
     where ``pi`` ranges over injective maps of the ``m`` items into the ``n``
-    items. ``d = 0`` when ``m = n = 0``. The assignment is brute-forced over
-    all ``n! / (n - m)!`` injective maps as batched tensor ops for
-    ``max(m, n) <= 7``; larger problems fall back to
-    :func:`scipy.optimize.linear_sum_assignment`, which **loops in Python**
-    over the ``B * T`` problems (on CPU).
+    items (solved as in the module docstring). ``d = 0`` when ``m = n = 0``.
 
     Args:
         X: ``(B, T, m, k)`` first point set per trial and step.
@@ -220,23 +163,16 @@ def ospa(
             with an absent one costs ``c^p``, two absent ones cost 0, so the minimal perfect
             matching of the padded ``K x K`` problem (``K = max(m, n)``) is the OSPA numerator of
             each problem, divided by its own ``max(|X|, |Y|)``, all in one batched call.
-
-    Raises:
-        ValueError: If ``X``/``Y`` are not floating-point 4-D tensors with
-            matching ``B``, ``T`` and ``k`` on the same device, or if
-            ``cutoff``/``order`` are out of range.
     """
     check_float_tensor(X, "X", "(B, T, m, k)", ndim=4)
     check_float_tensor(Y, "Y", f"(B, T, n, k) matching X {shape_str(X.shape)} in B, T, k", ndim=4)
     if Y.shape[:2] != X.shape[:2] or Y.shape[-1] != X.shape[-1]:
-        raise ValueError(
-            f"Y: expected (B, T, n, k) matching X {shape_str(X.shape)} in B, T, k, got {shape_str(Y.shape)}"
-        )
+        raise ValueError(f"Y: expected (B, T, n, k) matching X {shape_str(X.shape)} in B, T, k, "
+                         f"got {shape_str(Y.shape)}")
     if X.shape[-1] == 0:
         raise ValueError(f"X: expected (B, T, m, k) with k >= 1, got {shape_str(X.shape)}")
     check_same_device(Y, X, "Y", "X")
-    cutoff = float(cutoff)
-    order = float(order)
+    cutoff, order = float(cutoff), float(order)
     if not (math.isfinite(cutoff) and cutoff > 0):
         raise ValueError(f"cutoff: expected a finite float > 0, got {cutoff}")
     if not (math.isfinite(order) and order >= 1):
@@ -296,10 +232,6 @@ def ess(log_weights: torch.Tensor) -> torch.Tensor:
 
     Returns:
         ``(...)`` effective sample size in ``[1, N]``.
-
-    Raises:
-        ValueError: If ``log_weights`` is not a floating-point tensor with at
-            least one dimension and ``N >= 1``.
     """
     check_float_tensor(log_weights, "log_weights", "(..., N)")
     if log_weights.dim() == 0 or log_weights.shape[-1] == 0:
@@ -321,20 +253,9 @@ def log_evidence_relative_error(log_evidence: torch.Tensor, reference: torch.Ten
 
     Returns:
         ``(B,)`` relative squared error.
-
-    Raises:
-        ValueError: If the inputs are not floating-point ``(B,)`` tensors of
-            matching shape on the same device.
     """
     check_float_tensor(reference, "reference", "(B,)", ndim=1)
-    ref = shape_str(reference.shape)
-    check_float_tensor(log_evidence, "log_evidence", f"(B,) matching reference {ref}")
-    if log_evidence.shape != reference.shape:
-        raise ValueError(
-            f"log_evidence: expected (B,) matching reference {ref}, got {shape_str(log_evidence.shape)}"
-        )
-    check_same_device(log_evidence, reference, "log_evidence", "reference")
-    log_evidence, reference = _promote(log_evidence, reference)
+    log_evidence, reference = _check_pair(log_evidence, reference, "log_evidence", "reference", "(B,)")
     return ((log_evidence - reference) / reference).square()
 
 
@@ -349,10 +270,6 @@ def lost_tracks(omat_per_step: torch.Tensor, threshold: float = 2.0) -> torch.Te
 
     Returns:
         ``(B,)`` boolean tensor, ``True`` for lost trials.
-
-    Raises:
-        ValueError: If ``omat_per_step`` is not a floating-point ``(B, T)``
-            tensor with ``T >= 1``, or ``threshold`` is not finite.
     """
     check_float_tensor(omat_per_step, "omat_per_step", "(B, T)", ndim=2)
     if omat_per_step.shape[1] == 0:

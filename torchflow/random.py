@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from . import tuning
+from ._checks import check_choice
 
 __all__ = ["TrialStreams", "uniform", "check_generator", "stream_key"]
 
@@ -62,10 +63,24 @@ def stream_key(name: Union[str, int]) -> int:
     raise TypeError(f"key: expected a str or int stream name, got {type(name).__name__}")
 
 
-def _pool(n: int) -> ThreadPoolExecutor:
-    if n not in _POOLS:
-        _POOLS[n] = ThreadPoolExecutor(max_workers=n)
-    return _POOLS[n]
+def fill_numpy(kind: str, tasks, np_dtype, parallel: bool = True) -> None:
+    """Fill each ``(numpy Generator, out array)`` task with standard normals (``kind="normal"``) or
+    uniforms, on up to ``torch.get_num_threads()`` threads when ``parallel`` (numpy releases the GIL;
+    the numbers do not depend on the thread count)."""
+    def fill(task):
+        if kind == "normal":
+            task[0].standard_normal(out=task[1], dtype=np_dtype)
+        else:
+            task[0].random(out=task[1], dtype=np_dtype)
+
+    workers = min(torch.get_num_threads(), len(tasks))
+    if parallel and workers > 1:
+        if workers not in _POOLS:
+            _POOLS[workers] = ThreadPoolExecutor(max_workers=workers)
+        list(_POOLS[workers].map(fill, tasks))
+    else:
+        for task in tasks:
+            fill(task)
 
 
 class TrialStreams:
@@ -89,8 +104,7 @@ class TrialStreams:
                  *, backend: str = "auto"):
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or int(seed) < 0:
             raise ValueError(f"seed: expected a non-negative int, got {seed!r}")
-        if backend not in ("auto", "numpy", "philox"):
-            raise ValueError(f"backend: expected 'auto', 'numpy' or 'philox', got {backend!r}")
+        check_choice("backend", backend, ("auto", "numpy", "philox"))
         if isinstance(trials, (int, np.integer)) and not isinstance(trials, bool):
             if int(trials) < 1:
                 raise ValueError(f"trials: expected a positive number of trials, got {trials}")
@@ -99,10 +113,7 @@ class TrialStreams:
             idx = [int(t) for t in (trials.tolist() if isinstance(trials, torch.Tensor) else trials)]
             if not idx or min(idx) < 0:
                 raise ValueError(f"trials: expected non-empty non-negative trial indices, got {idx[:10]}")
-        self.seed = int(seed)
-        self.key = stream_key(key)
-        self.trials = idx
-        self.backend = backend
+        self.seed, self.key, self.trials, self.backend = int(seed), stream_key(key), idx, backend
         self._np = None        # list of numpy Generators (numpy back end), created lazily
         self._counter = 0      # philox: 128-bit blocks consumed per trial so far
         self._keys = None      # philox: (B, 2) int64 key words
@@ -117,11 +128,6 @@ class TrialStreams:
     def _seed_sequence(self, trial: int) -> np.random.SeedSequence:
         return np.random.SeedSequence([self.seed, self.key, trial])
 
-    def _resolve_backend(self, device: torch.device) -> str:
-        if self.backend == "auto":
-            self.backend = "numpy" if device.type == "cpu" else "philox"
-        return self.backend
-
     def select(self, index: Union[slice, Sequence[int]]) -> "TrialStreams":
         """Streams of a subset of this batch's trials (positions ``index``), continuing their
         current states; the subset draws what those trials would have drawn in the full batch."""
@@ -133,15 +139,6 @@ class TrialStreams:
         out._np = None if self._np is None else [self._np[i] for i in pos]
         out._keys = None if self._keys is None else self._keys[pos]
         return out
-
-    # ---- draws -------------------------------------------------------------------------------
-    def _per_trial(self, shape) -> int:
-        shape = tuple(int(s) for s in shape)
-        B = len(self.trials)
-        if not shape or shape[0] % B:
-            raise ValueError(f"shape: draws from TrialStreams need a leading trial dimension that is a "
-                             f"multiple of B = {B} (trial-major), got {shape}")
-        return math.prod(shape) // B
 
     def normal(self, shape, *, dtype: torch.dtype = torch.float64, device=None) -> torch.Tensor:
         """Standard normal draws of ``shape`` (leading dim a multiple of B, trial-major)."""
@@ -155,11 +152,15 @@ class TrialStreams:
         device = torch.device("cpu") if device is None else torch.device(device)
         if dtype not in (torch.float64, torch.float32):
             raise TypeError(f"dtype: TrialStreams draws float64 or float32, got {dtype}")
-        n = self._per_trial(shape)
-        backend = self._resolve_backend(device)
-        if backend == "numpy":
-            out = self._numpy_draw(kind, n, dtype)
-            return out.reshape(shape).to(device)
+        shape, B = tuple(int(s) for s in shape), len(self.trials)
+        if not shape or shape[0] % B:
+            raise ValueError(f"shape: draws from TrialStreams need a leading trial dimension that is a "
+                             f"multiple of B = {B} (trial-major), got {shape}")
+        n = math.prod(shape) // B
+        if self.backend == "auto":
+            self.backend = "numpy" if device.type == "cpu" else "philox"
+        if self.backend == "numpy":
+            return self._numpy_draw(kind, n, dtype).reshape(shape).to(device)
         return self._philox_draw(kind, n, dtype, device).reshape(shape)
 
     def _numpy_draw(self, kind, n, dtype) -> torch.Tensor:
@@ -181,26 +182,8 @@ class TrialStreams:
             else:
                 kids = gen.spawn(-(-n // BLOCK))
                 tasks += [(kid, arr[b, i * BLOCK:(i + 1) * BLOCK]) for i, kid in enumerate(kids)]
-        if kind == "normal":
-            def fill(task):
-                task[0].standard_normal(out=task[1], dtype=np_dtype)
-        else:
-            def fill(task):
-                task[0].random(out=task[1], dtype=np_dtype)
-        workers = min(torch.get_num_threads(), len(tasks))
-        if workers > 1 and B * n >= tuning.get().parallel_draw_min:  # speed only
-            list(_pool(workers).map(fill, tasks))
-        else:
-            for task in tasks:
-                fill(task)
+        fill_numpy(kind, tasks, np_dtype, parallel=B * n >= tuning.get().parallel_draw_min)  # speed only
         return out
-
-    # ---- philox back end ---------------------------------------------------------------------
-    def _philox_keys(self, device) -> torch.Tensor:
-        if self._keys is None:
-            words = [self._seed_sequence(t).generate_state(2, np.uint32) for t in self.trials]
-            self._keys = torch.tensor(np.stack(words).astype(np.int64))
-        return self._keys.to(device)
 
     def _philox_draw(self, kind, n, dtype, device) -> torch.Tensor:
         B = len(self.trials)
@@ -210,14 +193,15 @@ class TrialStreams:
         n_even = n + (n % 2) if kind == "normal" else n
         words = n_even * per
         blocks = -(-words // 4)
-        keys = self._philox_keys(device)                                             # (B, 2)
+        if self._keys is None:  # (B, 2) int64 key words
+            kw = [self._seed_sequence(t).generate_state(2, np.uint32) for t in self.trials]
+            self._keys = torch.tensor(np.stack(kw).astype(np.int64))
+        keys = self._keys.to(device)
         ctr = self._counter + torch.arange(blocks, device=device, dtype=torch.int64)  # (blocks,)
-        c = [(ctr & 0xFFFFFFFF).expand(B, blocks), (ctr >> 32).expand(B, blocks),
-             torch.zeros(B, blocks, dtype=torch.int64, device=device),
-             torch.zeros(B, blocks, dtype=torch.int64, device=device)]
-        k0 = keys[:, :1].expand(B, blocks)
-        k1 = keys[:, 1:].expand(B, blocks)
-        bits = philox4x32(c, (k0, k1)).reshape(B, -1)[:, :words]                       # (B, words)
+        zero = torch.zeros(B, blocks, dtype=torch.int64, device=device)
+        c = [(ctr & 0xFFFFFFFF).expand(B, blocks), (ctr >> 32).expand(B, blocks), zero, zero]
+        key = (keys[:, :1].expand(B, blocks), keys[:, 1:].expand(B, blocks))
+        bits = philox4x32(c, key).reshape(B, -1)[:, :words]                            # (B, words)
         self._counter += blocks
         if per == 2:
             k = (bits[:, 0::2] >> 5) * 67108864 + (bits[:, 1::2] >> 6)  # 27 + 26 = 53 bits
@@ -252,13 +236,8 @@ def philox4x32(counter, key, rounds: int = 10):
     c0, c1, c2, c3 = counter
     k0, k1 = key
     for r in range(rounds):
-        p0 = c0 * _M0  # < 2**64: int64 wraps, and the bit pattern is exact mod 2**64
-        p1 = c2 * _M1
-        hi0 = (p0 >> 32) & _MASK
-        lo0 = p0 & _MASK
-        hi1 = (p1 >> 32) & _MASK
-        lo1 = p1 & _MASK
-        c0, c1, c2, c3 = hi1 ^ c1 ^ k0, lo1, hi0 ^ c3 ^ k1, lo0
+        p0, p1 = c0 * _M0, c2 * _M1  # < 2**64: int64 wraps, and the bit pattern is exact mod 2**64
+        c0, c1, c2, c3 = ((p1 >> 32) & _MASK) ^ c1 ^ k0, p1 & _MASK, ((p0 >> 32) & _MASK) ^ c3 ^ k1, p0 & _MASK
         if r < rounds - 1:
             k0 = (k0 + _W0) & _MASK
             k1 = (k1 + _W1) & _MASK
@@ -275,13 +254,16 @@ def check_generator(generator, who: str = "generator") -> Generatorish:
     be reproducible from its arguments."""
     if isinstance(generator, (torch.Generator, TrialStreams)):
         return generator
-    hint = ""
-    if isinstance(generator, (int, np.integer)) and not isinstance(generator, bool):
-        hint = f" (for a seed, pass torch.Generator().manual_seed({int(generator)}))"
-    elif generator is None:
-        hint = " (randomness comes only from a passed generator: pass torch.Generator().manual_seed(seed))"
     raise TypeError(f"{who}: expected a torch.Generator or torchflow.random.TrialStreams, "
-                    f"got {type(generator).__name__}{hint}")
+                    f"got {type(generator).__name__}{generator_hint(generator)}")
+
+
+def generator_hint(generator) -> str:
+    """How to pass randomness instead of ``generator`` (an int seed or ``None``), for error messages."""
+    if isinstance(generator, (int, np.integer)) and not isinstance(generator, bool):
+        return f" (for a seed, pass torch.Generator().manual_seed({int(generator)}))"
+    return " (randomness comes only from a passed generator: pass torch.Generator().manual_seed(seed))" \
+        if generator is None else ""
 
 
 def uniform(shape, *, dtype, device, generator: Optional[Generatorish]) -> torch.Tensor:

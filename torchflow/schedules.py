@@ -10,6 +10,8 @@ from typing import Tuple
 
 import torch
 
+from ._checks import check_count
+
 
 class LambdaSchedule:
     """Base class: subclasses implement :meth:`step_sizes`."""
@@ -31,7 +33,7 @@ class LambdaSchedule:
         return self.n_steps
 
     def __repr__(self) -> str:
-        args = ", ".join(f"{k}={v}" for k, v in vars(self).items())
+        args = ", ".join(f"{k}={v}" for k, v in vars(self).items() if not k.startswith("_"))
         return f"{type(self).__name__}({args})"
 
 
@@ -40,11 +42,9 @@ class ExponentialSchedule(LambdaSchedule):
     (Li & Coates: n = 29, q = 1.2, so eps_1 = 1.0162e-3 and eps_29 = 0.16751)."""
 
     def __init__(self, n_steps: int = 29, ratio: float = 1.2):
-        if int(n_steps) < 1:
-            raise ValueError(f"n_steps: expected >= 1, got {n_steps}")
         if ratio <= 0:
             raise ValueError(f"ratio: expected > 0, got {ratio}")
-        self.n_steps, self.ratio = int(n_steps), float(ratio)
+        self.n_steps, self.ratio = check_count("n_steps", n_steps), float(ratio)
 
     def step_sizes(self):
         q, n = self.ratio, self.n_steps
@@ -58,9 +58,7 @@ class UniformSchedule(LambdaSchedule):
     """``n_steps`` equal steps of ``1 / n_steps``."""
 
     def __init__(self, n_steps: int = 29):
-        if int(n_steps) < 1:
-            raise ValueError(f"n_steps: expected >= 1, got {n_steps}")
-        self.n_steps = int(n_steps)
+        self.n_steps = check_count("n_steps", n_steps)
 
     def step_sizes(self):
         return torch.full((self.n_steps,), 1.0 / self.n_steps, dtype=torch.float64)
@@ -93,6 +91,3 @@ class GeometricSchedule(LambdaSchedule):
 
     def step_sizes(self):
         return torch.tensor(self._eps, dtype=torch.float64)
-
-    def __repr__(self) -> str:
-        return f"GeometricSchedule(first_step={self.first_step}, ratio={self.ratio}, n_steps={self.n_steps})"

@@ -53,8 +53,8 @@ from typing import Optional
 import torch
 
 from .. import linalg
-from .._checks import check_count
-from ..flows import FlowPrior, ParticleFlow, integrate_flow
+from .._checks import check_choice, check_count
+from ..flows import FlowPrior, integrate_flow
 from ..flows.points import ParticlePoints, flow_points_per_call
 from ..schedules import ExponentialSchedule, LambdaSchedule
 from ..proposals import resolve_flow
@@ -167,21 +167,20 @@ class GaussianSumParticleFilter(ParticleFilter):
                              f"covariance per component, got {n}")
         super().__init__(model, n_particles=G * n, nonfinite=nonfinite, particle_chunk=particle_chunk,
                          validate=validate, name=name)
-        if linearize_at not in LINEARIZE_AT:
-            raise ValueError(f"linearize_at: expected one of {LINEARIZE_AT}, got {linearize_at!r}")
-        if estimate not in ESTIMATES:
-            raise ValueError(f"estimate: expected one of {ESTIMATES}, got {estimate!r}")
-        self.estimate = estimate
-        if init not in INITS:
-            raise ValueError(f"init: expected one of {INITS}, got {init!r}")
+        self.linearize_at = check_choice("linearize_at", linearize_at, LINEARIZE_AT)
+        self.estimate = check_choice("estimate", estimate, ESTIMATES)
+        self.init_mode = check_choice("init", init, INITS)
         if not isinstance(redraw_eta0, bool):
             raise ValueError(f"redraw_eta0: expected True or False, got {redraw_eta0!r}")
         if isinstance(jitter, bool) or not isinstance(jitter, (int, float)) or not 0 <= jitter < 1:
             raise ValueError(f"jitter: expected a relative jitter in [0, 1), got {jitter!r}")
+        self.flow = None if flow is None else resolve_flow(flow)
+        if self.flow is not None and self.flow.stochastic:
+            raise ValueError(f"flow: the Gaussian-sum filters weigh with the flow's log|det|, so the flow must be "
+                             f"deterministic (EDH/LEDH family), got {type(self.flow).__name__}")
         self.n_components, self.particles_per_component = G, n
-        self.flow = _gs_flow(flow)
         self.schedule = schedule or ExponentialSchedule()
-        self.linearize_at, self.redraw_eta0, self.init_mode, self.jitter = linearize_at, redraw_eta0, init, float(jitter)
+        self.redraw_eta0, self.jitter = redraw_eta0, float(jitter)
 
     def extra_repr(self) -> str:
         return (f"n_components={self.n_components}, particles_per_component={self.particles_per_component}, "
@@ -315,16 +314,6 @@ class GaussianSumParticleFilter(ParticleFilter):
             return self.particle_chunk
         cap = flow_points_per_call(self.model)
         return cap if self.n_particles > cap else None
-
-
-def _gs_flow(flow) -> Optional[ParticleFlow]:
-    if flow is None:
-        return None
-    f = resolve_flow(flow)
-    if f.stochastic:
-        raise ValueError(f"flow: the Gaussian-sum filters weigh with the flow's log|det|, so the flow must be "
-                         f"deterministic (EDH/LEDH family), got {type(f).__name__}")
-    return f
 
 
 class GaussianParticleFilter(GaussianSumParticleFilter):

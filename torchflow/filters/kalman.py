@@ -12,15 +12,24 @@ from .base import Filter, GaussianState
 __all__ = ["KalmanFilter", "ExtendedKalmanFilter", "UnscentedKalmanFilter", "kalman_update", "ekf_predict"]
 
 
-class ExtendedKalmanFilter(Filter):
+class _GaussianFilter(Filter):
+    """A Gaussian belief, moved by the subclass's :meth:`predict` and :meth:`update` each step."""
+
+    def init(self, mean, cov, n_particles=None, generator=None):
+        return GaussianState(mean, cov, torch.zeros_like(mean[:, 0]), 0)
+
+    def step(self, state, z, generator=None):
+        m_pred, P_pred = self.predict(state.mean, state.cov)
+        mean, cov, ll = self.update(m_pred, P_pred, z)
+        return GaussianState(mean, cov, ll, state.step + 1)
+
+
+class ExtendedKalmanFilter(_GaussianFilter):
     """Extended Kalman filter: linearise g at the posterior mean and h at the predicted mean.
 
     Jacobians come from the model (``torch.func`` by default, analytic where the model provides
     them). On a linear-Gaussian model it is the Kalman filter.
     """
-
-    def init(self, mean, cov, n_particles=None, generator=None):
-        return GaussianState(mean, cov, torch.zeros_like(mean[:, 0]), 0)
 
     def predict(self, mean: torch.Tensor, cov: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
         """``(..., d)``, ``(..., d, d)`` -> predicted mean and covariance (any leading shape)."""
@@ -30,11 +39,6 @@ class ExtendedKalmanFilter(Filter):
         """Measurement update linearised at ``mean_pred (..., d)``; ``z`` broadcasts to ``(..., m)``.
         Returns mean ``(..., d)``, covariance ``(..., d, d)`` and log N(z; h(mean_pred), S) ``(...)``."""
         return ekf_update(self.model, mean_pred, cov_pred, z)
-
-    def step(self, state, z, generator=None):
-        m_pred, P_pred = self.predict(state.mean, state.cov)
-        mean, cov, ll = self.update(m_pred, P_pred, z)
-        return GaussianState(mean, cov, ll, state.step + 1)
 
 
 class KalmanFilter(ExtendedKalmanFilter):
@@ -59,7 +63,7 @@ class KalmanFilter(ExtendedKalmanFilter):
         # covariance, run it once and share it (a stride-0 expanded view keeps the (B, d, d) shape).
         if cov.shape[0] > 1 and bool((cov == cov[:1]).all()):
             cov = cov[:1].expand_as(cov)
-        return GaussianState(mean, cov, torch.zeros_like(mean[:, 0]), 0)
+        return super().init(mean, cov)
 
     def step(self, state, z, generator=None):
         B = state.mean.shape[0]
@@ -91,7 +95,7 @@ class KalmanFilter(ExtendedKalmanFilter):
         return GaussianState(mean, cov.expand(state.mean.shape[0], -1, -1), ll, state.step + 1)
 
 
-class UnscentedKalmanFilter(Filter):
+class UnscentedKalmanFilter(_GaussianFilter):
     """Unscented Kalman filter (scaled sigma points, Wan & van der Merwe; the transform is
     :class:`~torchflow.trackers.UnscentedTransform`).
 
@@ -116,13 +120,6 @@ class UnscentedKalmanFilter(Filter):
     beta = property(lambda self: self.unscented.beta)
     kappa = property(lambda self: self.unscented.kappa)
 
-    def sigma_points(self, mean, cov):
-        """``(..., d)``, ``(..., d, d)`` -> sigma points ``(..., 2d + 1, d)``."""
-        return self.unscented.sigma_points(mean, cov)
-
-    def init(self, mean, cov, n_particles=None, generator=None):
-        return GaussianState(mean, cov, torch.zeros_like(mean[:, 0]), 0)
-
     def predict(self, mean: torch.Tensor, cov: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
         """Unscented prediction for ``(..., d)``, ``(..., d, d)`` (any leading shape)."""
         return self.unscented.predict(self.model, mean, cov)
@@ -131,8 +128,3 @@ class UnscentedKalmanFilter(Filter):
         """Unscented update with sigma points redrawn from ``N(mean_pred, cov_pred)``; ``z``
         broadcasts to ``(..., m)``. Returns mean, covariance and log N(z; z_hat, S)."""
         return self.unscented.update(self.model, mean_pred, cov_pred, z)
-
-    def step(self, state, z, generator=None):
-        m_pred, P_pred = self.predict(state.mean, state.cov)
-        mean, cov, ll = self.update(m_pred, P_pred, z)
-        return GaussianState(mean, cov, ll, state.step + 1)

@@ -23,6 +23,7 @@ import torch
 from torch import nn
 
 from .. import linalg
+from .measurement import GaussianMeasurement
 
 
 @dataclass
@@ -44,14 +45,11 @@ class FlowCoefficients:
         form_A: ``() -> A``, the explicit matrix of an operator-form A, formed on first demand.
         noise_factor: stochastic flows only: ``G`` with ``G G^T = Q``, ``(..., d, r)`` batched like
             ``A`` (``r`` need not equal ``d``: a rank-deficient Q has a thin exact factor).
-        noise_cov, noise_apply, noise_dim: the same diffusion in operator form (used instead of
-            ``noise_factor`` when given): ``Q (..., d, d)``, ``xi (..., r) -> G xi`` and ``r``;
-            cheaper when G is a product of small factors.
         noise_product: ``(U, V)`` with ``G = U V^T`` (``U (..., d, k)``, ``V (..., r, k)`` or a shared
             ``(r, k)``): ``G xi = U (V^T xi)`` without forming the ``d x r`` factor (Gromov's
             ``M^{-1}[:, s] W_s^T``); plain tensors, so it can be gathered to clustered particles.
         noise_cov_pair: ``(Q1, Q2)`` with ``Q = Q1 Q2^T`` (``(..., d, k)`` each), instead of
-            ``noise_cov``: lets the integrator fuse the addition into a product.
+            forming Q: lets the integrator fuse the addition into a product.
         support: when the measurement reads only ``k`` of the ``d`` state coordinates
             (:attr:`~torchflow.models.StateSpaceModel.measurement_support`), A's other columns are
             zero and ``A`` holds only the ``(..., d, k)`` nonzero ones: ``A x = A x[..., support]``.
@@ -64,9 +62,6 @@ class FlowCoefficients:
     apply_A: Optional[Callable[[torch.Tensor], torch.Tensor]] = None
     noise_factor: Optional[torch.Tensor] = None
     support: Optional[torch.Tensor] = None
-    noise_cov: Optional[torch.Tensor] = None
-    noise_apply: Optional[Callable[[torch.Tensor], torch.Tensor]] = None
-    noise_dim: Optional[int] = None
     noise_cov_pair: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
     noise_product: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
     form_A: Optional[Callable[[], torch.Tensor]] = None
@@ -82,11 +77,11 @@ class FlowCoefficients:
         return self.A
 
     def diffusion_cov(self) -> torch.Tensor:
-        """``Q = G G^T`` (given, or formed from ``noise_factor``)."""
-        if self.noise_cov is not None:
-            return self.noise_cov
+        """``Q = G G^T`` (from ``noise_cov_pair`` or ``noise_factor``; 0 for a deterministic flow)."""
         if self.noise_cov_pair is not None:
             return self.noise_cov_pair[0] @ self.noise_cov_pair[1].transpose(-1, -2)
+        if self.noise_factor is None:
+            return self.b.new_zeros(())
         return self.noise_factor @ self.noise_factor.transpose(-1, -2)
 
     def diffuse(self, xi: torch.Tensor) -> torch.Tensor:
@@ -95,29 +90,25 @@ class FlowCoefficients:
             U, V = self.noise_product
             Vxi = xi @ V if V.dim() == 2 else (V * xi.unsqueeze(-1)).sum(-2)  # V^T xi, (..., k)
             return linalg.matvec(U, Vxi)
-        if self.noise_apply is not None:
-            return self.noise_apply(xi)
         return linalg.matvec(self.noise_factor, xi)
 
     @property
     def noise_rank(self) -> int:
         """r, the number of standard normal draws per point the diffusion uses."""
-        if self.noise_dim is not None:
-            return self.noise_dim
         if self.noise_product is not None:
             return self.noise_product[1].shape[-2]
         return self.noise_factor.shape[-1]
 
     @property
     def has_noise(self) -> bool:
-        return self.noise_factor is not None or self.noise_apply is not None or self.noise_product is not None
+        return self.noise_factor is not None or self.noise_product is not None
 
     def gather(self, index: torch.Tensor) -> "FlowCoefficients":
         """These coefficients, computed at L points ``(B, L|1, ...)``, for the particles of each
         point's cluster (``index (B, N)``); shared tensors (no point dimension) stay as they are.
         ``log_det`` is not gathered (it belongs to the points)."""
-        if self.noise_apply is not None or (self.apply_A is not None and self.form_A is None):
-            raise NotImplementedError("coefficients given as closures (apply_A, noise_apply) cannot be gathered "
+        if self.apply_A is not None and self.form_A is None:
+            raise NotImplementedError("coefficients given as a closure (apply_A without form_A) cannot be gathered "
                                       "to clustered particles: give tensors (A, noise_factor or noise_product)")
         A = None if self.A is None and self.apply_A is None else self.matrix()
 
@@ -126,7 +117,6 @@ class FlowCoefficients:
 
         pair = lambda p: None if p is None else (g(p[0]), p[1] if p[1].dim() < 3 else g(p[1]))  # noqa: E731
         return FlowCoefficients(g(A), g(self.b), None, noise_factor=g(self.noise_factor), support=self.support,
-                                noise_cov=g(self.noise_cov), noise_dim=self.noise_dim,
                                 noise_cov_pair=pair(self.noise_cov_pair), noise_product=pair(self.noise_product))
 
     def cols(self, x: torch.Tensor) -> torch.Tensor:
@@ -260,8 +250,6 @@ class ParticleFlow(nn.Module):
                      lam: torch.Tensor, eps: torch.Tensor) -> FlowCoefficients:
         """Convenience: :meth:`coefficients_at` with the model's own measurement term linearised at
         ``aux`` (``(B, d)`` or ``(B, L, d)``); ``z (B, m)``."""
-        from .measurement import GaussianMeasurement
-
         meas = GaussianMeasurement.from_model(model, z)
         prior = prior.reduced(meas.support)
         return self.coefficients_at(meas.at(aux, prior.support), prior, lam, eps)

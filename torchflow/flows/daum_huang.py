@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import torch
 
-from .. import linalg
+from .. import linalg, tuning
 from .base import FlowCoefficients, FlowPrior, ParticleFlow
 from .measurement import Linearisation
 
@@ -45,21 +45,13 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
             matrix) instead of forming it; ``None`` (default): when ``k`` is at least
             ``torchflow.tuning`` ``flow_operator_min_dim``.
 
-    Explicit A (small k): A is formed with one Cholesky solve with k right-hand sides and then
-    applied to stacked vectors; on CPU the number and size of batched small products set the cost,
-    and with a support every system is ``k x k`` (8 x 8 for acoustic tracking instead of 16 x 16).
-    Operator A (large k): a particle's flow only ever applies A to a few vectors (its own point and
-    the offset's two terms), so the ``k``-column solve and the ``d x k x k`` product that form A are
-    skipped: per point and step there remain the two ``k x m x k`` products of ``S = (W L_s)^T
-    (W L_s)`` and the two Cholesky factorisations, about 40 % of the explicit form's flops (d = 144:
-    half the time, ``experiments/benchmarks/results_gaussian_sum.md``). Both give the same numbers up
-    to round-off.
+    A particle's flow applies A to only a few vectors, so for large k the operator form skips the
+    ``k``-column solve and ``d x k x k`` product that form A (d = 144: half the time,
+    ``experiments/benchmarks/results_gaussian_sum.md``); both give the same numbers up to round-off.
     """
     Ls = L if L_support is None else L_support
     k = Ls.shape[-1]
     if operator is None:
-        from .. import tuning
-
         operator = k >= tuning.get().flow_operator_min_dim
     eye = torch.eye(k, dtype=L.dtype, device=L.device)
     if operator:
@@ -68,8 +60,9 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
         Wy = _whitened_rhs(W, y)
     else:
         T, S, Wy = _gram_terms(W, y, Ls)
-    K = linalg.cholesky_unit_shift(eye + lam * S)
-    K2 = linalg.cholesky_unit_shift(eye + (lam - 0.5 * eps) * S)
+    # I + c S with c >= 0 has eigenvalues >= 1: its Cholesky cannot fail (no jitter retry, no host sync)
+    K = torch.linalg.cholesky_ex(eye + lam * S)[0]
+    K2 = torch.linalg.cholesky_ex(eye + (lam - 0.5 * eps) * S)[0]
     log_det = linalg.chol_logdet(K2) - linalg.chol_logdet(K)
     # P H^T R^{-1} (z - e) = L L_s^T W^T y
     Pg = linalg.matvec(L, linalg.matvec(Ls.transpose(-1, -2), Wy)) if P_cols is None else linalg.matvec(P_cols, Wy)
@@ -134,7 +127,7 @@ class EDHFlow(ParticleFlow):
         W, y = lin.W, lin.y
         dt = prior.cols.dtype
         if self.promote_low_precision and dt in (torch.float32, torch.float16, torch.bfloat16):
-            up = (lambda t: None if t is None else t.to(torch.float64))  # noqa: E731
+            up = (lambda t: t.to(torch.float64))  # noqa: E731
             # P_cols is not reused: it was rounded independently of L in low precision
             co = daum_huang_coefficients(up(W), up(y), up(prior.cols), up(prior.mean), up(lam), up(eps),
                                          L_support=up(prior.cols_support), support=prior.support)

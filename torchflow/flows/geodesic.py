@@ -40,14 +40,16 @@ the same Euler-Maruyama law; the symmetric PSD root ``Q^{1/2}`` is available wit
 """
 from __future__ import annotations
 
-from typing import Union
+from typing import Optional, Union
 
 import torch
 
 from .. import linalg
+from .._checks import check_choice
 from .base import FlowCoefficients, FlowPrior, ParticleFlow
 from .daum_huang import _gram_terms
 from .measurement import Linearisation
+from .points import POINTS
 
 
 def _homotopy_terms(W, y, L, lam, need_factor: bool = False, L_support=None, extra=None):
@@ -73,7 +75,7 @@ def _homotopy_terms(W, y, L, lam, need_factor: bool = False, L_support=None, ext
     r = 0 if extra is None else extra.shape[-1]
     eye = torch.eye(k, dtype=L.dtype, device=L.device)
     T, S, Wy = _gram_terms(W, y, Lk)  # L_s^T J, L_s^T J L_s, W^T y
-    K = linalg.cholesky_unit_shift(eye + lam * S)
+    K = torch.linalg.cholesky_ex(eye + lam * S)[0]
     if need_factor:
         G = L @ linalg.chol_solve(K, (W @ Lk).transpose(-1, -2))
         return S, K, G, G @ W, linalg.matvec(G, y), None
@@ -113,27 +115,23 @@ def symmetric_sqrt(Q: torch.Tensor) -> torch.Tensor:
 
 
 def _noise_root(G: torch.Tensor, mode: str) -> torch.Tensor:
-    if mode == "factor":
-        return G
-    return symmetric_sqrt(G @ G.transpose(-1, -2))
-
-
-_NOISE_ROOTS = ("factor", "symmetric")
+    return G if mode == "factor" else symmetric_sqrt(G @ G.transpose(-1, -2))
 
 
 class _HomotopyFlow(ParticleFlow):
-    """Common constructor: the default linearisation points (per particle unless told)."""
+    """Common constructor: the default linearisation points (per particle unless told) and, for the
+    stochastic flows, the root of the diffusion (``noise_root``)."""
 
-    def __init__(self, points: str = "particle"):
+    _shown = ("points",)
+
+    def __init__(self, points: str = "particle", noise_root: Optional[str] = None):
         super().__init__()
-        from .points import POINTS
-
-        if points not in POINTS:
-            raise ValueError(f"points: expected one of {tuple(POINTS)}, got {points!r}")
-        self.points = points
+        self.points = check_choice("points", points, tuple(POINTS))
+        if noise_root is not None:
+            self.noise_root = check_choice("noise_root", noise_root, ("factor", "symmetric"))
 
     def extra_repr(self) -> str:
-        return f"points={self.points!r}"
+        return ", ".join(f"{k}={getattr(self, k)!r}" for k in self._shown)
 
 
 class GeodesicFlow(_HomotopyFlow):
@@ -149,7 +147,7 @@ class GeodesicFlow(_HomotopyFlow):
     def coefficients_at(self, lin: Linearisation, prior: FlowPrior, lam, eps):
         prior, S, K, G, C, g = _terms(lin, prior, lam)
         eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
-        K2 = linalg.cholesky_unit_shift(eye + (lam - eps) * S)
+        K2 = torch.linalg.cholesky_ex(eye + (lam - eps) * S)[0]
         return FlowCoefficients(-C, g, linalg.chol_logdet(K2) - linalg.chol_logdet(K), support=prior.support)
 
 
@@ -165,12 +163,10 @@ class GromovFlow(_HomotopyFlow):
     """
 
     stochastic = True
+    _shown = ("points", "noise_root")
 
     def __init__(self, points: str = "particle", noise_root: str = "factor"):
-        super().__init__(points)
-        if noise_root not in _NOISE_ROOTS:
-            raise ValueError(f"noise_root: expected one of {_NOISE_ROOTS}, got {noise_root!r}")
-        self.noise_root = noise_root
+        super().__init__(points, noise_root)
 
     def coefficients_at(self, lin: Linearisation, prior: FlowPrior, lam, eps):
         if prior.mean.dim() > 2 and self.noise_root == "factor":  # points (B, L, d)
@@ -185,9 +181,6 @@ class GromovFlow(_HomotopyFlow):
                                     noise_product=(Nc, W))
         prior, S, K, G, C, g = _terms(lin, prior, lam, need_factor=True)
         return FlowCoefficients(-C, g, None, noise_factor=_noise_root(G, self.noise_root), support=prior.support)
-
-    def extra_repr(self) -> str:
-        return f"points={self.points!r}, noise_root={self.noise_root!r}"
 
 
 def diffusion_condition_number(k: torch.Tensor, c) -> torch.Tensor:
@@ -228,9 +221,7 @@ def optimal_diffusion_scale(k_min: torch.Tensor, k_max: torch.Tensor, alpha: flo
     """
     if alpha <= 0:
         raise ValueError(f"alpha: expected > 0, got {alpha}")
-    if rule not in C_RULES:
-        raise ValueError(f"rule: expected one of {C_RULES}, got {rule!r}")
-    if rule in ("printed", "printed_shift"):
+    if check_choice("rule", rule, C_RULES) in ("printed", "printed_shift"):
         printed = (torch.sqrt((k_max - k_min).clamp_min(0) / alpha) - k_min).clamp_min(0)
         return printed if rule == "printed" else 2 * printed
     return 2 * (torch.sqrt((k_max - k_min).clamp_min(0) / (2 * alpha)) - k_min).clamp_min(0)
@@ -256,19 +247,16 @@ class OptimalDiffusionFlow(_HomotopyFlow):
     """
 
     stochastic = True
+    _shown = ("alpha", "c", "points", "noise_root", "c_rule")
 
     def __init__(self, alpha: float = 0.1, c: Union[str, float] = "optimal", points: str = "particle",
                  noise_root: str = "factor", c_rule: str = "literal_shift"):
-        super().__init__(points)
+        super().__init__(points, noise_root)
         if float(alpha) <= 0:
             raise ValueError(f"alpha: expected > 0, got {alpha}")
         if not (c == "optimal" or (isinstance(c, (int, float)) and not isinstance(c, bool) and c >= 0)):
             raise ValueError(f"c: expected 'optimal' or a float >= 0, got {c!r}")
-        if noise_root not in _NOISE_ROOTS:
-            raise ValueError(f"noise_root: expected one of {_NOISE_ROOTS}, got {noise_root!r}")
-        if c_rule not in C_RULES:
-            raise ValueError(f"c_rule: expected one of {C_RULES}, got {c_rule!r}")
-        self.alpha, self.c, self.noise_root, self.c_rule = float(alpha), c, noise_root, c_rule
+        self.alpha, self.c, self.c_rule = float(alpha), c, check_choice("c_rule", c_rule, C_RULES)
 
     def scale(self, S: torch.Tensor, lam, d: int = None) -> torch.Tensor:
         """Diffusion scale ``c`` per linearisation point ``(...)`` from ``S (..., k, k)``; when
@@ -299,10 +287,6 @@ class OptimalDiffusionFlow(_HomotopyFlow):
             LKt = torch.cat([LKt, prior.root[..., k:].expand(*LKt.shape[:-1], d - k)], -1)
         factor = half_c.mul(2).sqrt().unsqueeze(-1) * LKt
         return FlowCoefficients(A, b, None, noise_factor=_noise_root(factor, self.noise_root))
-
-    def extra_repr(self) -> str:
-        return (f"alpha={self.alpha}, c={self.c!r}, points={self.points!r}, noise_root={self.noise_root!r}, "
-                f"c_rule={self.c_rule!r}")
 
 
 __all__ = ["GeodesicFlow", "GromovFlow", "OptimalDiffusionFlow", "optimal_diffusion_scale",

@@ -38,6 +38,7 @@ import torch
 from torch.func import jvp, vmap
 
 from .. import linalg
+from .._checks import check_choice
 from ..schedules import ExponentialSchedule, LambdaSchedule
 from .base import FlowPrior
 from .measurement import GaussianMeasurement
@@ -53,8 +54,7 @@ def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPri
                schedule: Optional[LambdaSchedule] = None, root: str = "cholesky"):
     """Move ``x (B, N, d)`` with the GPFIS transport from ``prior`` (``m_0 (B, N, d)``, factor
     broadcastable to ``(B, N, d, d)``); returns ``(x_1 (B, N, d), log|det dx_1/dx_0| (B, N))``."""
-    if root not in ROOTS:
-        raise ValueError(f"root: expected one of {ROOTS}, got {root!r}")
+    check_choice("root", root, ROOTS)
     schedule = schedule or ExponentialSchedule()
     eps_all, lam_all = schedule.steps(dtype=x.dtype, device=x.device)
     prior = prior.reduced(measurement.support)

@@ -21,45 +21,23 @@ and, on request, the Gaussian image ``(mu_1, Sigma_1)`` of each point's prior.
 """
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import Optional, Union
 
 import torch
 
 from .. import linalg
+from .._checks import check_choice
 from ..schedules import ExponentialSchedule, LambdaSchedule
 from .base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow, _gather_points
+from .measurement import GaussianMeasurement
 from .points import LinearisationPoints, resolve_points
 
 
-def _check_start(start, shape, gaussian_image: bool) -> None:
-    if start is None:
-        return
-    if start.shape != shape:
-        raise ValueError(f"start: expected the points' starting positions shaped like prior.mean "
-                         f"{tuple(shape)}, got {tuple(start.shape)}")
-    if gaussian_image:
-        raise ValueError("start: the Gaussian image follows the prior mean (the points' own start); "
-                         "give either start or gaussian_image=True")
-
-
-def integrate_flow(
-    flow: ParticleFlow,
-    model,
-    particles: torch.Tensor,
-    z: torch.Tensor,
-    prior: FlowPrior,
-    schedule: Optional[LambdaSchedule] = None,
-    *,
-    generator: Optional[torch.Generator] = None,
-    proposal: Optional[FlowPrior] = None,
-    noise=None,
-    index: Optional[torch.Tensor] = None,
-    points: Union[None, str, LinearisationPoints] = None,
-    gaussian_image: bool = False,
-    measurement=None,
-    start: Optional[torch.Tensor] = None,
-) -> FlowOutput:
+def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.Tensor, prior: FlowPrior,
+                   schedule: Optional[LambdaSchedule] = None, *, generator: Optional[torch.Generator] = None,
+                   proposal: Optional[FlowPrior] = None, noise=None, index: Optional[torch.Tensor] = None,
+                   points: Union[None, str, LinearisationPoints] = None, gaussian_image: bool = False,
+                   measurement=None, start: Optional[torch.Tensor] = None) -> FlowOutput:
     """Integrate a flow from lambda = 0 to 1 (see the module docstring).
 
     Deterministic flows take Euler steps and accumulate ``log|det(I + eps_j A_j)|``, the
@@ -107,10 +85,14 @@ def integrate_flow(
     eps_all, lam_all = schedule.steps(dtype=particles.dtype, device=particles.device)
     strategy = resolve_points(flow, "clustered" if points is None and index is not None else points)
     if measurement is None:
-        from .measurement import GaussianMeasurement
-
         measurement = GaussianMeasurement.from_model(model, z)
-    _check_start(start, prior.mean.shape, gaussian_image)
+    if start is not None:
+        if start.shape != prior.mean.shape:
+            raise ValueError(f"start: expected the points' starting positions shaped like prior.mean "
+                             f"{tuple(prior.mean.shape)}, got {tuple(start.shape)}")
+        if gaussian_image:
+            raise ValueError("start: the Gaussian image follows the prior mean (the points' own start); "
+                             "give either start or gaussian_image=True")
     prior, index, squeeze = strategy.arrange(prior, particles, index)
     start = None if start is None else start.reshape(prior.mean.shape)
     out = _integrate(flow, measurement, particles, prior, index, strategy.per_particle, eps_all, lam_all,
@@ -139,8 +121,9 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
     if compose:  # each point's map eta -> M eta + c, composed on (d, d) matrices
         M = eye.expand(B, L, d, d)
         c = torch.zeros(B, L, d, dtype=particles.dtype, device=particles.device)
-    if track:
-        mu, Sig = _initial_law(proposal, B, N, d)
+    if track:  # the law N(mu (B, N, d), Sig (B, N|1, d, d)) the particles were drawn from
+        mu, Sig = proposal.mean.expand(B, N, d), proposal.scale_tril @ proposal.scale_tril.transpose(-1, -2)
+        Sig = Sig.expand(B, 1, d, d) if Sig.dim() == 2 else Sig
     tracked = [mu] if track else []
     log_det = torch.zeros(B, L, dtype=particles.dtype, device=particles.device)
     for j in range(len(eps_all)):
@@ -181,8 +164,12 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
             eta = torch.baddbmm(c, particles, M[:, 0].transpose(-1, -2))
         else:
             eta = linalg.matvec(_gather_points(M, index), particles) + _gather_points(c, index)
+    if track:  # each particle's log-density under its law (the proposal density of Pal & Coates' Algorithm 1)
+        Sig = linalg.symmetrize(Sig)
+        log_q = linalg.mvn_log_prob(eta, mu, linalg.safe_cholesky(Sig))
+        return image.output(FlowOutput(eta, None, aux, log_proposal=log_q, proposal_mean=mu, proposal_cov=Sig))
     if stochastic:
-        return _stochastic_output(eta, aux, image, *((mu, Sig) if track else ()))
+        return image.output(FlowOutput(eta, None, aux))
     log_det = log_det.expand(B, N) if index is None else _gather_points(log_det.unsqueeze(-1), index).squeeze(-1)
     return image.output(FlowOutput(eta, log_det, aux))
 
@@ -222,8 +209,7 @@ def flow_gaussian(flow: ParticleFlow, measurement, prior: FlowPrior, schedule: O
     Returns:
         ``(mean (..., d), cov (..., d, d))`` of the flowed Gaussians.
     """
-    if evaluate_at not in EVALUATE_AT:
-        raise ValueError(f"evaluate_at: expected one of {EVALUATE_AT}, got {evaluate_at!r}")
+    check_choice("evaluate_at", evaluate_at, EVALUATE_AT)
     schedule = schedule or ExponentialSchedule()
     eps_all, lam_all = schedule.steps(dtype=prior.mean.dtype, device=prior.mean.device)
     if evaluate_at == "start":
@@ -251,27 +237,19 @@ class _Image:
         if on:
             L = prior.scale_tril
             self.cov = L @ L.transpose(-1, -2)
-            d = L.shape[-1]
-            self.eye = torch.eye(d, dtype=L.dtype, device=L.device)
+            self.eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
 
     def step(self, co: "FlowCoefficients", eps) -> None:
         if not self.on:
             return
         if co.A is None and co.form_A is not None:
             co.matrix()  # formed once on the caller's coefficients, so the particles' drift reuses it
-        if co.noise_factor is None and co.noise_cov is None and co.noise_cov_pair is None:
-            co = replace(co, noise_cov=co.b.new_zeros(()))  # deterministic: no diffusion term
         self.cov = _propagate_cov(self.cov, co, eps, self.eye)
 
     def output(self, out: "FlowOutput") -> "FlowOutput":
         if self.on:
             out.image_mean, out.image_cov = out.aux, linalg.symmetrize(self.cov)
         return out
-
-
-
-def _flat3(x: torch.Tensor, batch) -> torch.Tensor:
-    return x.expand(*batch, *x.shape[-2:]).reshape(-1, *x.shape[-2:])
 
 
 def _propagate_cov(Sig, co: "FlowCoefficients", eps, eye):
@@ -288,27 +266,11 @@ def _propagate_cov(Sig, co: "FlowCoefficients", eps, eye):
     pair = co.noise_cov_pair
     shapes = [Sig.shape[:-2], A.shape[:-2]] + ([p.shape[:-2] for p in pair] if pair is not None else [])
     batch = torch.broadcast_shapes(*shapes)
-    S3, A3 = _flat3(Sig, batch), _flat3(A, batch)
+    _flat3 = lambda x: x.expand(*batch, *x.shape[-2:]).reshape(-1, *x.shape[-2:])  # noqa: E731
+    S3, A3 = _flat3(Sig), _flat3(A)
     V = torch.baddbmm(S3, A3, S3.index_select(-2, sup), alpha=e)
     out = torch.baddbmm(V, V.index_select(-1, sup), A3.transpose(-1, -2), alpha=e)
     if pair is not None:
-        out = torch.baddbmm(out, _flat3(pair[0], batch), _flat3(pair[1], batch).transpose(-1, -2), alpha=e)
+        out = torch.baddbmm(out, _flat3(pair[0]), _flat3(pair[1]).transpose(-1, -2), alpha=e)
         return out.reshape(*batch, *Sig.shape[-2:])
     return out.reshape(*batch, *Sig.shape[-2:]) + eps * co.diffusion_cov()
-
-
-def _initial_law(proposal: FlowPrior, B: int, N: int, d: int):
-    """``(mu (B, N, d), Sig (B, N|1, d, d))`` of the law the particles were drawn from."""
-    L0 = proposal.scale_tril
-    Sig = L0 @ L0.transpose(-1, -2)
-    return proposal.mean.expand(B, N, d), (Sig.expand(B, 1, d, d) if Sig.dim() == 2 else Sig)
-
-
-def _stochastic_output(eta, aux, image, mu=None, Sig=None) -> FlowOutput:
-    """Result of a stochastic flow; with the tracked law ``N(mu, Sig)`` each particle's
-    log-density under it (the proposal density of Pal & Coates' Algorithm 1)."""
-    if mu is None:
-        return image.output(FlowOutput(eta, None, aux))
-    Sig = linalg.symmetrize(Sig)
-    log_q = linalg.mvn_log_prob(eta, mu, linalg.safe_cholesky(Sig))
-    return image.output(FlowOutput(eta, None, aux, log_proposal=log_q, proposal_mean=mu, proposal_cov=Sig))

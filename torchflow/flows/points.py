@@ -30,9 +30,11 @@ from typing import Optional, Sequence, Tuple, Union
 
 import torch
 
-from .. import tuning
+from .. import resampling, tuning
+from .._checks import check_count
 from ..covariances import Covariance, ParticleCovariance, TrialCovariance
 from .base import FlowPrior
+from .daum_huang import LEDHFlow
 
 
 def cluster_distance(eta_bar: torch.Tensor, zeta: torch.Tensor, alpha: float = 0.25,
@@ -111,9 +113,8 @@ def flow_points_per_call(model) -> int:
     sup = model.measurement_support
     k = model.state_dim if sup is None else len(sup)
     t = tuning.get()
-    if not t.flow_bytes_per_call:  # 0: no cap
-        return max(1, t.points_per_call)
-    return max(1, min(t.points_per_call, t.flow_bytes_per_call // (8 * k * k)))
+    cap = t.flow_bytes_per_call // (8 * k * k) if t.flow_bytes_per_call else t.points_per_call  # 0: no cap
+    return max(1, min(t.points_per_call, cap))
 
 
 class LinearisationPoints:
@@ -237,8 +238,6 @@ class ClusteredPoints(LinearisationPoints):
     name = "clustered"
 
     def __init__(self, n_clusters: int = 100, alpha: float = 0.25, sweeps: int = 10):
-        from .._checks import check_count
-
         self.n_clusters = check_count("n_clusters", n_clusters)
         self.sweeps = check_count("sweeps", sweeps)
         if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0.0 <= float(alpha) <= 1.0:
@@ -246,8 +245,6 @@ class ClusteredPoints(LinearisationPoints):
         self.alpha = float(alpha)
 
     def place(self, model, x_prev, mean, scale_tril, z):
-        from .. import resampling
-
         eta_bar = model.transition_mean(x_prev)  # (B, N, d)
         index, medoids = self.cluster(model, eta_bar, z, scale_tril)
         return FlowPrior(resampling.gather_particles(eta_bar, medoids), scale_tril.unsqueeze(-3)), index
@@ -261,15 +258,14 @@ class ClusteredPoints(LinearisationPoints):
             return ar, ar
         prior = FlowPrior(eta_bar, scale_tril.unsqueeze(-3))
         zero = torch.zeros((), dtype=eta_bar.dtype, device=eta_bar.device)
-        zeta = _velocity_flow().coefficients(model, z, eta_bar, prior, zero, zero).drift(eta_bar)[0]
+        zeta = _VELOCITY.coefficients(model, z, eta_bar, prior, zero, zero).drift(eta_bar)[0]
         dist = cluster_distance(eta_bar, zeta, self.alpha, model.measurement_support)
         return kmedoids(dist, self.n_clusters, self.sweeps)
 
-    def preferred_chunk_trials(self, n_particles):
-        # the (B, N, N) distance sweeps of K-medoids fall out of cache like per-particle flows:
-        # acoustic N = 500, K = 200 at 100 trials per call took 0.086 s per trial-step, more than
-        # PF-PF(LEDH) at 20 per call (0.070); K = 100 0.057 against 0.028 at 20 per call
-        return max(1, tuning.get().points_per_call // int(n_particles))
+    # the (B, N, N) distance sweeps of K-medoids fall out of cache like per-particle flows:
+    # acoustic N = 500, K = 200 at 100 trials per call took 0.086 s per trial-step, more than
+    # PF-PF(LEDH) at 20 per call (0.070); K = 100 0.057 against 0.028 at 20 per call
+    preferred_chunk_trials = ParticlePoints.preferred_chunk_trials
 
     def extra_bytes(self, n_particles, state_dim):
         N, K, d = n_particles, min(self.n_clusters, n_particles), state_dim
@@ -287,16 +283,8 @@ class ClusteredPoints(LinearisationPoints):
         return f"n_clusters={self.n_clusters}, alpha={self.alpha}, sweeps={self.sweeps}"
 
 
-_VELOCITY = []
-
-
-def _velocity_flow():
-    """The LEDH drift whose lambda = 0 velocities the clustered distance correlates (one instance)."""
-    if not _VELOCITY:
-        from .daum_huang import LEDHFlow
-
-        _VELOCITY.append(LEDHFlow())
-    return _VELOCITY[0]
+#: the LEDH drift whose lambda = 0 velocities the clustered distance correlates
+_VELOCITY = LEDHFlow()
 
 
 def _check_points(name: str, mean: torch.Tensor, particles: torch.Tensor, L: int) -> None:

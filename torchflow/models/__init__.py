@@ -5,14 +5,5 @@ from .linear_gaussian import LinearGaussian, SensorNetwork, sensor_network_covar
 from .skewed_t import SkewedTPoisson
 from .tdoa import TDOA3D, TDOAData
 
-__all__ = [
-    "StateSpaceModel",
-    "Trajectory",
-    "LinearGaussian",
-    "SensorNetwork",
-    "sensor_network_covariance",
-    "AcousticTracking",
-    "SkewedTPoisson",
-    "TDOA3D",
-    "TDOAData",
-]
+__all__ = ["StateSpaceModel", "Trajectory", "LinearGaussian", "SensorNetwork", "sensor_network_covariance",
+           "AcousticTracking", "SkewedTPoisson", "TDOA3D", "TDOAData"]

@@ -11,7 +11,8 @@ from typing import Optional, Sequence, Tuple
 import torch
 
 from .. import linalg
-from .base import StateSpaceModel
+from .._checks import check_choice
+from .base import StateSpaceModel, Trajectory
 
 _X0 = [12, 6, 0.001, 0.001, 32, 32, -0.001, -0.005, 20, 13, -0.1, 0.01, 15, 35, 0.002, 0.002]
 
@@ -41,31 +42,20 @@ class AcousticTracking(StateSpaceModel):
     """
 
     n_targets = 4
+    has_positions = True
     linear_dynamics = True
     measurement_noise = "scalar"  # R = sigma_w^2 I
 
-    def __init__(
-        self,
-        *,
-        sigma_w: float = 0.1,
-        psi: float = 10.0,
-        d0: float = 0.1,
-        true_noise_scale: float = 0.05,
-        filter_noise: str = "inflated",
-        area: float = 40.0,
-        sensor_grid: int = 5,
-        prior_std: Sequence[float] = (10.0, 10.0, 1.0, 1.0),
-        initial_state: Optional[Sequence[float]] = None,
-        margin: float = 0.05,
-        max_redraws: int = 10000,
-    ):
+    def __init__(self, *, sigma_w: float = 0.1, psi: float = 10.0, d0: float = 0.1, true_noise_scale: float = 0.05,
+                 filter_noise: str = "inflated", area: float = 40.0, sensor_grid: int = 5,
+                 prior_std: Sequence[float] = (10.0, 10.0, 1.0, 1.0), initial_state: Optional[Sequence[float]] = None,
+                 margin: float = 0.05, max_redraws: int = 10000):
         super().__init__()
         if sigma_w <= 0:
             raise ValueError(f"sigma_w: expected > 0, got {sigma_w}")
         if filter_noise is True or filter_noise == "true":
             filter_noise = "truth"
-        if filter_noise not in ("inflated", "truth"):
-            raise ValueError(f"filter_noise: expected 'inflated' or 'truth', got {filter_noise!r}")
+        check_choice("filter_noise", filter_noise, ("inflated", "truth"))
         C = self.n_targets
         self.state_dim, self.obs_dim = 4 * C, sensor_grid * sensor_grid
         f64 = dict(dtype=torch.float64)
@@ -83,9 +73,8 @@ class AcousticTracking(StateSpaceModel):
         ticks = torch.linspace(0.0, area, sensor_grid, **f64)
         sy, sx = torch.meshgrid(ticks, ticks, indexing="ij")
         self.register_buffer("sensors", torch.stack([sx.reshape(-1), sy.reshape(-1)], -1))  # (m, 2), x fastest
-        self.register_buffer("psi", torch.tensor(float(psi), **f64))
-        self.register_buffer("d0", torch.tensor(float(d0), **f64))
-        self.register_buffer("sigma_w", torch.tensor(float(sigma_w), **f64))
+        for name, value in (("psi", psi), ("d0", d0), ("sigma_w", sigma_w)):
+            self.register_buffer(name, torch.tensor(float(value), **f64))
         x0 = torch.tensor(_X0 if initial_state is None else list(initial_state), **f64)
         if x0.shape != (self.state_dim,):
             raise ValueError(f"initial_state: expected {self.state_dim} numbers, got {tuple(x0.shape)}")
@@ -97,14 +86,8 @@ class AcousticTracking(StateSpaceModel):
         self.area, self.margin, self.max_redraws = float(area), float(margin), int(max_redraws)
 
     # ---- dynamics --------------------------------------------------------------------------
-    def transition_mean(self, x):
-        return x @ self.F.transpose(-1, -2)
-
     def transition_matrix(self):
         return self.F
-
-    def transition_jacobian(self, x):
-        return self.F.expand(*x.shape[:-1], *self.F.shape)
 
     def transition_cov(self, x=None):
         return self.V_filter
@@ -119,10 +102,6 @@ class AcousticTracking(StateSpaceModel):
     def positions(self, x):
         """``(..., 16) -> (..., 4, 2)`` target positions."""
         return x.reshape(*x.shape[:-1], self.n_targets, 4)[..., :2]
-
-    @property
-    def has_positions(self) -> bool:
-        return True
 
     def measure(self, x):
         # per-coordinate differences (..., C, m): avoids the (..., C, m, 2) tensor, which for
@@ -205,8 +184,6 @@ class AcousticTracking(StateSpaceModel):
         (a single target stays inside only a few per cent of the time). Rejection is batched over
         the tracks still invalid.
         """
-        from .base import Trajectory
-
         batch_size, steps = self.check_simulate_args(batch_size, steps, generator)
         C = self.n_targets
         with torch.no_grad():

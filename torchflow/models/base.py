@@ -1,6 +1,7 @@
 """The single model interface every filter consumes."""
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import Optional, Tuple
 
@@ -10,6 +11,7 @@ from torch import nn
 from .. import linalg
 from .._checks import check_count, check_finite, check_tensor
 from ..linearize import jacobian
+from ..random import generator_hint
 
 
 @dataclass
@@ -38,8 +40,9 @@ class StateSpaceModel(nn.Module):
     ``(..., d)`` and broadcast. Parameters are buffers or ``nn.Parameter``s so they can be learned.
 
     Subclasses implement :meth:`transition_mean`, :meth:`transition_cov`, :meth:`measure`,
-    :meth:`measurement_cov`, :meth:`initial_state` and :meth:`initial_belief`; they may override
-    :meth:`measurement_jacobian` with an analytic Jacobian.
+    :meth:`measurement_cov`, :meth:`initial_state` and :meth:`initial_belief` (a linear model may
+    give :meth:`transition_matrix` / :meth:`measurement_matrix` instead of the mean and Jacobian);
+    they may override :meth:`measurement_jacobian` with an analytic Jacobian.
     """
 
     state_dim: int
@@ -76,16 +79,14 @@ class StateSpaceModel(nn.Module):
         return self._reference_tensor().device
 
     def _reference_tensor(self) -> torch.Tensor:
-        for t in self.parameters():
-            return t
-        for t in self.buffers():
+        for t in itertools.chain(self.parameters(), self.buffers()):
             return t
         raise RuntimeError(f"{type(self).__name__} has no parameters or buffers")
 
     # ---- dynamics ----------------------------------------------------------------------------
     def transition_mean(self, x: torch.Tensor) -> torch.Tensor:
-        """Noise-free dynamics g(x, E[v]): ``(..., d) -> (..., d)``."""
-        raise NotImplementedError
+        """Noise-free dynamics g(x, E[v]): ``(..., d) -> (..., d)`` (default: ``x F^T``, linear models)."""
+        return x @ self.transition_matrix().transpose(-1, -2)
 
     def transition_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Cov[x_k | x_{k-1}] used by filters: broadcastable ``(d, d)`` or ``(..., d, d)``."""
@@ -96,7 +97,10 @@ class StateSpaceModel(nn.Module):
         return linalg.safe_cholesky(self.transition_cov(x))
 
     def transition_jacobian(self, x: torch.Tensor) -> torch.Tensor:
-        """d g / d x at ``x (..., d)`` -> ``(..., d, d)`` (torch.func by default)."""
+        """d g / d x at ``x (..., d)`` -> ``(..., d, d)`` (the matrix of linear dynamics, else torch.func)."""
+        if self.linear_dynamics:
+            F = self.transition_matrix()
+            return F.expand(*x.shape[:-1], *F.shape)
         return jacobian(self.transition_mean, x)
 
     def transition_matrix(self) -> torch.Tensor:
@@ -121,8 +125,8 @@ class StateSpaceModel(nn.Module):
 
     # ---- measurement -------------------------------------------------------------------------
     def measure(self, x: torch.Tensor) -> torch.Tensor:
-        """Noise-free measurement h(x, 0): ``(..., d) -> (..., m)``."""
-        raise NotImplementedError
+        """Noise-free measurement h(x, 0): ``(..., d) -> (..., m)`` (default: ``x H^T``, linear models)."""
+        return x @ self.measurement_matrix().transpose(-1, -2)
 
     def measurement_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
         """R: broadcastable ``(m, m)`` or ``(..., m, m)``."""
@@ -132,7 +136,11 @@ class StateSpaceModel(nn.Module):
         return linalg.safe_cholesky(self.measurement_cov(x))
 
     def measurement_jacobian(self, x: torch.Tensor) -> torch.Tensor:
-        """dh/dx at ``x (..., d)`` -> ``(..., m, d)``; torch.func (vmapped jacrev) by default."""
+        """dh/dx at ``x (..., d)`` -> ``(..., m, d)``; the matrix of a linear measurement, else torch.func
+        (vmapped jacrev)."""
+        if self.linear_measurement:
+            H = self.measurement_matrix()
+            return H.expand(*x.shape[:-1], *H.shape)
         return jacobian(self.measure, x)
 
     #: state coordinates the measurement depends on (``None``: all). A model whose h reads only
@@ -180,9 +188,8 @@ class StateSpaceModel(nn.Module):
         """True initial states x_0 -> ``(B, d)``."""
         raise NotImplementedError
 
-    def initial_belief(
-        self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
-    ) -> Tuple[torch.Tensor, torch.Tensor]:
+    def initial_belief(self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
+                       ) -> Tuple[torch.Tensor, torch.Tensor]:
         """The filters' prior for each trial given the true ``states0 (B, d)``.
 
         Returns:
@@ -190,9 +197,7 @@ class StateSpaceModel(nn.Module):
         """
         raise NotImplementedError
 
-    def simulate(
-        self, batch_size: int, steps: int, generator: Optional[torch.Generator] = None
-    ) -> Trajectory:
+    def simulate(self, batch_size: int, steps: int, generator: Optional[torch.Generator] = None) -> Trajectory:
         """Simulate ``batch_size`` independent trajectories of ``steps`` steps.
 
         Returns:
@@ -201,15 +206,17 @@ class StateSpaceModel(nn.Module):
         batch_size, steps = self.check_simulate_args(batch_size, steps, generator)
         with torch.no_grad():
             x = self.initial_state(batch_size, generator)
-            L = self.true_transition_scale_tril()
-            states = [x]
-            obs = []
+            states, obs = [x], []
             for _ in range(steps):
-                xi = torch.randn(x.shape, dtype=x.dtype, device=x.device, generator=generator)
-                x = self.transition_mean(x) + linalg.matvec(L, xi)
+                x = self.sample_true_transition(x, generator)
                 states.append(x)
                 obs.append(self.sample_measurement(x, generator))
             return Trajectory(torch.stack(states, 1), torch.stack(obs, 1))
+
+    def sample_true_transition(self, x: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """One step of :meth:`simulate`'s process: Gaussian with :meth:`true_transition_scale_tril` by default."""
+        xi = torch.randn(x.shape, dtype=x.dtype, device=x.device, generator=generator)
+        return self.transition_mean(x) + linalg.matvec(self.true_transition_scale_tril(), xi)
 
     def bytes_per_point(self) -> int:
         """Rough memory of evaluating the model at one point (intermediates of ``measure``,
@@ -217,9 +224,8 @@ class StateSpaceModel(nn.Module):
         return 8 * 4 * (self.state_dim + self.obs_dim)
 
     # ---- tracking ------------------------------------------------------------------------------
-    @property
-    def has_positions(self) -> bool:
-        return False
+    #: the state holds target positions (:meth:`positions`)
+    has_positions: bool = False
 
     def positions(self, x: torch.Tensor) -> torch.Tensor:
         """Target positions ``(..., C, 2 or 3)`` of states ``(..., d)`` (tracking models only)."""
@@ -238,12 +244,8 @@ class StateSpaceModel(nn.Module):
         batch_size = check_count(f"{who}: batch_size", batch_size)
         steps = check_count(f"{who}: steps", steps)
         if not isinstance(generator, torch.Generator):
-            hint = ""
-            if isinstance(generator, int) and not isinstance(generator, bool):
-                hint = f" (for a seed, pass torch.Generator().manual_seed({generator}))"
-            elif generator is None:
-                hint = " (randomness comes only from a passed generator)"
-            raise TypeError(f"{who}: generator: expected a torch.Generator, got {type(generator).__name__}{hint}")
+            raise TypeError(f"{who}: generator: expected a torch.Generator, got {type(generator).__name__}"
+                            f"{generator_hint(generator)}")
         self.check_dtype(who)
         return batch_size, steps
 

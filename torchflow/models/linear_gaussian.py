@@ -2,15 +2,14 @@
 from __future__ import annotations
 
 import math
-
-from ..linalg import _LOG_2PI
 from typing import Optional, Tuple
 
 import torch
 from torch import nn
 
 from .. import linalg
-from .._checks import check_psd, check_tensor
+from ..linalg import _LOG_2PI
+from .._checks import check_choice, check_psd, check_tensor
 from .base import StateSpaceModel
 
 
@@ -57,12 +56,9 @@ class LinearGaussian(StateSpaceModel):
         check_psd("P0", P0)
         self.state_dim, self.obs_dim = d, m
         names = ("F", "Q", "H", "R")
-        if isinstance(learnable, bool):
-            learn = set(names) if learnable else set()
-        else:
-            learn = set(learnable)
-            if not learn <= set(names):
-                raise ValueError(f"learnable: expected a bool or a subset of {list(names)}, got {sorted(learn)}")
+        learn = (set(names) if learnable else set()) if isinstance(learnable, bool) else set(learnable)
+        if not learn <= set(names):
+            raise ValueError(f"learnable: expected a bool or a subset of {list(names)}, got {sorted(learn)}")
         for name, val in zip(names, (F, Q, H, R)):
             if name in learn:
                 setattr(self, name, nn.Parameter(val.clone()))
@@ -80,18 +76,15 @@ class LinearGaussian(StateSpaceModel):
         self.transition_matrix_scale = None if "F" in learn else _identity_scale(F)
         self.measurement_matrix_scale = None if "H" in learn else _identity_scale(H)
         self.measurement_noise_scale = None if "R" in learn else _identity_scale(R)
+        diagonal = bool((R == torch.diag_embed(R.diagonal())).all())
         if measurement_noise is None:
-            off = R - torch.diag_embed(R.diagonal())
-            measurement_noise = ("dense" if "R" in learn or bool((off != 0).any()) else
+            measurement_noise = ("dense" if "R" in learn or not diagonal else
                                  "scalar" if self.measurement_noise_scale is not None else "diagonal")
-        if measurement_noise not in ("scalar", "diagonal", "dense"):
-            raise ValueError(f"measurement_noise: expected 'scalar', 'diagonal', 'dense' or None, got "
-                             f"{measurement_noise!r}")
+        self.measurement_noise = check_choice("measurement_noise", measurement_noise, ("scalar", "diagonal", "dense"))
         if measurement_noise == "scalar" and self.measurement_noise_scale is None:
             raise ValueError("measurement_noise: declared 'scalar' but R is not a constant multiple of I")
-        if measurement_noise == "diagonal" and bool((R != torch.diag_embed(R.diagonal())).any()):
+        if measurement_noise == "diagonal" and not diagonal:
             raise ValueError("measurement_noise: declared 'diagonal' but R has off-diagonal entries")
-        self.measurement_noise = measurement_noise
 
     linear_dynamics = True
     linear_measurement = True
@@ -103,29 +96,17 @@ class LinearGaussian(StateSpaceModel):
     def measurement_matrix(self) -> torch.Tensor:
         return self.H
 
-    def transition_mean(self, x):
-        return x @ self.F.transpose(-1, -2)
-
     def transition_cov(self, x=None):
         return self.Q
 
     def transition_scale_tril(self, x=None):
         return self.Q_tril if self.Q_tril is not None else linalg.safe_cholesky(self.Q)
 
-    def transition_jacobian(self, x):
-        return self.F.expand(*x.shape[:-1], *self.F.shape)
-
-    def measure(self, x):
-        return x @ self.H.transpose(-1, -2)
-
     def measurement_cov(self, x=None):
         return self.R
 
     def measurement_scale_tril(self, x=None):
         return self.R_tril if self.R_tril is not None else linalg.safe_cholesky(self.R)
-
-    def measurement_jacobian(self, x):
-        return self.H.expand(*x.shape[:-1], *self.H.shape)
 
     def sample_transition(self, x, generator=None):
         """``x F^T + xi L_Q^T`` as two fused matrix products over all leading dims (a scaled
@@ -163,12 +144,10 @@ class LinearGaussian(StateSpaceModel):
         return -0.5 * (quad + m * _LOG_2PI) - torch.log(L.diagonal()).sum()
 
     def initial_state(self, batch_size, generator=None):
-        from ..linalg import safe_cholesky
-
         xi = torch.randn(batch_size, self.state_dim, dtype=self.dtype, device=self.device, generator=generator)
         if bool((self.P0 == 0).all()):
             return self.m0.expand(batch_size, -1).clone()
-        return self.m0 + xi @ safe_cholesky(self.P0).transpose(-1, -2)
+        return self.m0 + xi @ linalg.safe_cholesky(self.P0).transpose(-1, -2)
 
     def initial_belief(self, states0, generator=None) -> Tuple[torch.Tensor, torch.Tensor]:
         B = states0.shape[0]
@@ -186,9 +165,8 @@ def _identity_scale(M: torch.Tensor) -> Optional[float]:
 
 
 
-def sensor_network_covariance(
-    grid_size: int, alpha0: float = 3.0, alpha1: float = 0.01, beta: float = 20.0
-) -> torch.Tensor:
+def sensor_network_covariance(grid_size: int, alpha0: float = 3.0, alpha1: float = 0.01,
+                              beta: float = 20.0) -> torch.Tensor:
     """Process noise of the spatial sensor network: ``Sigma_ij = alpha0 exp(-|R_i - R_j|^2 / beta)
     + alpha1 delta_ij`` over a ``grid_size x grid_size`` grid with unit spacing (``d = grid_size^2``).
 
@@ -217,30 +195,14 @@ class SensorNetwork(LinearGaussian):
         learnable: make F, Q, H, R ``nn.Parameter``s.
     """
 
-    def __init__(
-        self,
-        *,
-        d: int = 64,
-        alpha: float = 0.9,
-        alpha0: float = 3.0,
-        alpha1: float = 0.01,
-        beta: float = 20.0,
-        sigma_z: float = 0.5,
-        prior_var: float = 0.0,
-        learnable: bool = False,
-    ):
+    def __init__(self, *, d: int = 64, alpha: float = 0.9, alpha0: float = 3.0, alpha1: float = 0.01,
+                 beta: float = 20.0, sigma_z: float = 0.5, prior_var: float = 0.0, learnable: bool = False):
         g = int(round(math.sqrt(d)))
         if g * g != d:
             raise ValueError(f"d: expected a perfect square (grid side^2), got {d}")
         if sigma_z <= 0:
             raise ValueError(f"sigma_z: expected > 0, got {sigma_z}")
         eye = torch.eye(d, dtype=torch.float64)
-        super().__init__(
-            F=alpha * eye,
-            Q=sensor_network_covariance(g, alpha0, alpha1, beta),
-            H=eye,
-            R=sigma_z**2 * eye,
-            m0=torch.zeros(d, dtype=torch.float64),
-            P0=prior_var * eye,
-            learnable=learnable,
-        )
+        super().__init__(F=alpha * eye, Q=sensor_network_covariance(g, alpha0, alpha1, beta), H=eye,
+                         R=sigma_z**2 * eye, m0=torch.zeros(d, dtype=torch.float64), P0=prior_var * eye,
+                         learnable=learnable)

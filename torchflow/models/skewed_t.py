@@ -25,13 +25,12 @@ per-trial streams) without rejection sampling.
 from __future__ import annotations
 
 import math
-from typing import Optional
 
 import torch
 
 from .. import linalg
 from ..special import log_bessel_k
-from .base import StateSpaceModel, Trajectory
+from .base import StateSpaceModel
 from .linear_gaussian import sensor_network_covariance
 
 
@@ -74,9 +73,8 @@ class SkewedTPoisson(StateSpaceModel):
         self.register_buffer("Sigma", Sigma)
         self.register_buffer("Sigma_tril", linalg.safe_cholesky(Sigma))
         self.register_buffer("gamma", torch.full((d,), float(gamma), **f64))
-        self.register_buffer("alpha", torch.tensor(float(alpha), **f64))
-        self.register_buffer("m1", torch.tensor(float(m1), **f64))
-        self.register_buffer("m2", torch.tensor(float(m2), **f64))
+        for name, value in (("alpha", alpha), ("m1", m1), ("m2", m2)):
+            self.register_buffer(name, torch.tensor(float(value), **f64))
         self.EW = nu / (nu - 2)
         self.VarW = 2 * nu * nu / ((nu - 2) ** 2 * (nu - 4))
         Q = self.EW * Sigma + self.VarW * torch.outer(self.gamma, self.gamma)
@@ -100,9 +98,6 @@ class SkewedTPoisson(StateSpaceModel):
 
     def transition_matrix(self):
         return self.alpha * torch.eye(self.state_dim, dtype=self.Sigma.dtype, device=self.Sigma.device)
-
-    def transition_jacobian(self, x):
-        return self.transition_matrix().expand(*x.shape[:-1], self.state_dim, self.state_dim)
 
     def transition_cov(self, x=None):
         return self.Q_st
@@ -174,14 +169,6 @@ class SkewedTPoisson(StateSpaceModel):
         eye = torch.eye(d, dtype=states0.dtype, device=states0.device)
         return torch.zeros_like(states0), (eps * eye).expand(B, d, d).clone()
 
-    def simulate(self, batch_size: int, steps: int, generator: Optional[torch.Generator] = None) -> Trajectory:
-        """Trajectories through :meth:`sample_transition` and :meth:`sample_measurement`."""
-        batch_size, steps = self.check_simulate_args(batch_size, steps, generator)
-        with torch.no_grad():
-            x = self.initial_state(batch_size, generator)
-            states, obs = [x], []
-            for _ in range(steps):
-                x = self.sample_transition(x, generator)
-                states.append(x)
-                obs.append(self.sample_measurement(x, generator))
-            return Trajectory(torch.stack(states, 1), torch.stack(obs, 1))
+    def sample_true_transition(self, x, generator):
+        """:meth:`simulate` draws from the exact GH skewed-t transition."""
+        return self.sample_transition(x, generator)
