@@ -1,29 +1,22 @@
 """Multi-source localisation from TDOAs with belief propagation and flow-induced Gaussian-mixture
-importance sampling (seed 002: Zhang, Khojasteh, Atanasov & Meyer 2024; MODELS.md §12).
+importance sampling (seed 002: Zhang, Khojasteh, Atanasov & Meyer 2024; MODELS.md §12; README).
 
-The sensors (receiver pairs) are processed one after another (the posterior after sensor s - 1 is
-the prior of sensor s; the sources are static). The belief is a set of potential objects (POs),
-each with an existence probability ``r_k`` and a Gaussian mixture of G components. For sensor s:
+The sensors (receiver pairs) are processed in turn: the posterior after sensor s - 1 is the prior
+of sensor s. The belief is a set of potential objects (POs), each with an existence probability
+``r_k`` and a Gaussian mixture of G components. For sensor s:
 
-1. every component of every PO is flowed by every measurement (:func:`~torchflow.flows.flow_gaussian`
-   with PFI-D = EDH, PFI-S = Gromov or PFI-OS = optimised diffusion), and N_p samples are drawn from
-   each flowed component; the per-component importance ratio
-   ``N(x; mu_n, P_n) l_m(x) / N(x; mu'_nm, P'_nm)`` gives ``int f_k l_m`` (unbiased) and each
-   candidate component's weighted moments;
-2. the same for a birth mixture (a grid of Gaussians covering the region; UNCONF: the seed's birth
-   density is uniform, approximated here by that mixture);
-3. loopy BP (:func:`~torchflow.association.loopy_association`) gives the association messages;
-4. each legacy PO's candidates (its components times "missed", plus one per component and
-   measurement) are weighted by the BP messages and reduced back to G components by systematic
-   resampling of candidate indices (weights reset to equal; UNCONF §12.3); its existence is
-   ``r C / (r C + 1 - r)``; each measurement makes a new PO the same way from the birth mixture;
-5. POs with existence below ``prune`` are dropped and at most ``max_objects`` are kept (the most
-   likely; a fixed size keeps every tensor shape static, with no host synchronisation).
+1. every component of every PO (and of the birth mixture, a grid covering the region; UNCONF: the
+   seed's birth density is uniform) is flowed by every measurement (:func:`~torchflow.flows.flow_gaussian`:
+   PFI-D = EDH, PFI-S = Gromov, PFI-OS = optimised diffusion) and N_p samples are drawn from it; the
+   ratio ``N(x; mu_n, P_n) l_m(x) / N(x; mu'_nm, P'_nm)`` gives ``int f_k l_m`` and the moments;
+2. loopy BP (:func:`~torchflow.association.loopy_association`) gives the association messages;
+3. each legacy PO's candidates ("missed" plus one per component and measurement) are weighted by
+   the messages and reduced back to G components by systematic resampling (UNCONF §12.3), with
+   existence ``r C / (r C + 1 - r)``; each measurement makes a new PO from the birth mixture;
+4. POs with existence below ``prune`` are dropped and at most ``max_objects`` kept (fixed shapes).
 
-Declared sources: POs with existence above ``declare`` (0.5), at their mixture mean. Everything is
-batched over runs x POs x components x measurements x samples (in memory-bounded chunks of
-``sample_chunk`` numbers); the loop over sensors is the sequential processing itself. The localisers
-run through :func:`torchflow.runner.run_experiment` (one run per call: :class:`_Localiser`).
+Declared sources: POs with existence above ``declare``, at their mixture mean. Everything is
+batched over runs x POs x components x measurements x samples (in chunks of ``sample_chunk``).
 """
 from __future__ import annotations
 
@@ -40,7 +33,7 @@ from ._checks import check_count as _count
 from .association import loopy_association
 from .flows import EDHFlow, GromovFlow, OptimalDiffusionFlow
 from .proposals import FlowedMixtureProposal
-from .models.tdoa import TDOA3D
+from .models.tdoa import TDOA3D, check_number
 from .random import check_generator, uniform
 from .resampling import systematic
 from .schedules import GeometricSchedule, LambdaSchedule
@@ -50,19 +43,11 @@ METHODS = ("pfi_d", "pfi_s", "pfi_os")
 
 @dataclass
 class POState:
-    """Potential objects after a sensor.
-
-    Attributes:
-        existence: ``(B, K)`` existence probabilities (0 for empty slots).
-        mask: ``(B, K)`` bool, the live POs.
-        log_weights: ``(B, K, G)`` normalised log weights of the components (or particles).
-        means: ``(B, K, G, 3)`` component means (:class:`FlowMixtureLocaliser`) or particles
-            (:class:`BootstrapLocaliser`).
-        scale_trils: ``(B, K, G, 3, 3)`` component factors, ``None`` for particles.
-        underflow: ``(B, M)`` bool after an update: the live measurements of that sensor whose
-            BP terms all underflowed to 0, under every PO and the birth density (each such
-            measurement acts as clutter; :func:`_underflow`). ``None`` before the first sensor.
-    """
+    """Potential objects after a sensor: ``existence (B, K)`` (0 for empty slots), ``mask (B, K)``
+    (the live POs), ``log_weights (B, K, G)`` (normalised), ``means (B, K, G, 3)`` (component means,
+    or particles of :class:`BootstrapLocaliser`), ``scale_trils (B, K, G, 3, 3)`` (``None`` for
+    particles), ``underflow (B, M)``: the sensor's measurements treated as clutter (:func:`_underflow`;
+    ``None`` before the first sensor)."""
 
     existence: torch.Tensor
     mask: torch.Tensor
@@ -100,25 +85,12 @@ class Localisation:
         return self.estimate_mask[:, -1]
 
 
-def _probability(name, v):
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= float(v) < 1.0:
-        raise ValueError(f"{name}: expected a probability in [0, 1), got {v!r}")
-    return float(v)
-
-
 class _Localiser(nn.Module):
-    """What both localisers share: the settings of BP, pruning and declaration, the run over the
-    sensors (:meth:`forward`) and what the runner (:mod:`torchflow.runner`) reads.
-
-    A localiser's draws depend on the padded number of measurements of its batch (it flows and
-    samples every (PO, component, measurement) row, and keeps ``min(max_objects, K + M)`` PO slots),
-    so a run localised in a batch of several would draw other numbers than alone. Per-run draws
-    that do not depend on the padding would need streams of different lengths per run, which
-    :class:`~torchflow.random.TrialStreams` does not have. So a localiser declares
-    ``trials_per_call = 1``: the runner gives it one run per chunk (whatever ``chunk_size``), and
-    :meth:`forward` trims its batch to its last real measurement column (with the simulator's
-    padding last: the run's largest number of measurements per sensor). A run's numbers then
-    depend only on the scene, the seed and its index, never on the chunking.
+    """What both localisers share: BP, pruning, declaration, the run over the sensors (:meth:`forward`)
+    and what the runner reads. A localiser's draws depend on the padded number of measurements of
+    its batch, so it declares ``trials_per_call = 1`` (the runner gives it one run per chunk) and
+    :meth:`forward` trims the batch to its last real measurement column: a run's numbers depend
+    only on the scene, the seed and its index.
 
     Args (both localisers):
         model: :class:`~torchflow.models.TDOA3D` (``clutter_rate > 0``).
@@ -132,10 +104,7 @@ class _Localiser(nn.Module):
         name: label in results (default: the class name).
     """
 
-    #: measurement sets padded with a mask (:class:`~torchflow.models.TDOA3D`)
-    padded_measurements = True
-    #: runs per call (see the class docstring)
-    trials_per_call = 1
+    padded_measurements, trials_per_call = True, 1  # masked measurement sets; one run per call
     method: str
 
     def __init__(self, model: TDOA3D, *, birth_rate, max_objects, prune, declare, bp_iterations, sample_chunk,
@@ -146,11 +115,10 @@ class _Localiser(nn.Module):
         if model.clutter_rate <= 0:
             raise ValueError(f"model.clutter_rate: BP divides by the clutter intensity; expected > 0, got "
                              f"{model.clutter_rate}")
-        if isinstance(birth_rate, bool) or not isinstance(birth_rate, (int, float)) or not float(birth_rate) > 0:
-            raise ValueError(f"birth_rate: expected > 0, got {birth_rate!r}")
         self.model, self.name = model, name or type(self).__name__
-        self.birth_rate, self.prune, self.declare = float(birth_rate), _probability("prune", prune), \
-            _probability("declare", declare)
+        self.birth_rate = check_number("birth_rate", birth_rate, lambda v: v > 0, "> 0")
+        self.prune, self.declare = (check_number(k, v, lambda v: 0 <= v < 1, "a probability in [0, 1)")
+                                    for k, v in (("prune", prune), ("declare", declare)))
         self.max_objects, self.bp_iterations = _count("max_objects", max_objects), _count("bp_iterations", bp_iterations)
         self.sample_chunk = _count("sample_chunk", sample_chunk)
 
@@ -263,12 +231,8 @@ class FlowMixtureLocaliser(_Localiser):
         if method not in METHODS:
             raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
         self.method = method
-        if method == "pfi_d":
-            self.flow = EDHFlow()
-        elif method == "pfi_s":
-            self.flow = GromovFlow(points="global")
-        else:
-            self.flow = OptimalDiffusionFlow(alpha=alpha, points="global", c_rule=c_rule)
+        self.flow = (EDHFlow() if method == "pfi_d" else GromovFlow(points="global") if method == "pfi_s"
+                     else OptimalDiffusionFlow(alpha=alpha, points="global", c_rule=c_rule))
         self.schedule = schedule or GeometricSchedule(1e-5, 1.5)
         if len(self.schedule) < 1:
             raise ValueError("schedule: expected at least one pseudo-time step, got an empty schedule")
