@@ -46,7 +46,7 @@ class POState:
     """Potential objects after a sensor: ``existence (B, K)`` (0 for empty slots), ``mask (B, K)``
     (the live POs), ``log_weights (B, K, G)`` (normalised), ``means (B, K, G, 3)`` (component means,
     or particles of :class:`BootstrapLocaliser`), ``scale_trils (B, K, G, 3, 3)`` (``None`` for
-    particles), ``underflow (B, M)``: the sensor's measurements treated as clutter (:func:`_underflow`;
+    particles), ``underflow (B, M)``: the sensor's measurements treated as clutter (:meth:`_Localiser._bp`;
     ``None`` before the first sensor)."""
 
     existence: torch.Tensor
@@ -64,12 +64,10 @@ class POState:
 
 @dataclass
 class Localisation:
-    """Result of a localiser's ``forward``: after each sensor, the POs' positions ``estimates (B, S,
-    K, 3)`` (K = ``max_objects`` slots, empty ones 0) and which are declared sources,
-    ``estimate_mask (B, S, K)``; the final :class:`POState`; ``underflow (B, S, M)``: the (run,
-    sensor, measurement) triples at which every component's weight underflowed (the measurement was
-    then treated as clutter, not turned into NaN). :attr:`positions` and :attr:`declared` are the
-    final ``(B, K, 3)`` and ``(B, K)``."""
+    """A localiser's result after each sensor: positions ``estimates (B, S, K, 3)`` (K = ``max_objects``
+    slots, empty ones 0), declared sources ``estimate_mask (B, S, K)``, ``underflow (B, S, M)`` (the
+    measurements treated as clutter: see :meth:`_Localiser._bp`), the final :class:`POState`;
+    :attr:`positions` and :attr:`declared` are the final ``(B, K, 3)`` and ``(B, K)``."""
 
     estimates: torch.Tensor
     estimate_mask: torch.Tensor
@@ -168,25 +166,18 @@ class _Localiser(nn.Module):
     def _bp(self, state: POState, log_Ik, log_Ib, z_mask, sensor):
         """Loopy BP from the integrals ``log int f_k l_m (B, K, M)`` of the legacy POs and ``log int
         f_b l_m (B, M)`` of the birth density; returns the association, ``log nu (B, K, M)`` (-inf
-        off the live pairs), ``log(mu_c f_c)`` and the measurements that underflowed
-        (:func:`_underflow`)."""
+        off the live pairs), ``log(mu_c f_c)`` and the underflow ``(B, M)``: the live measurements
+        whose every BP term ``exp(log I - log(mu_c f_c))`` is 0 in floating point, under the birth
+        density and every live PO (the log-space integrals themselves stay finite)."""
         model, r, pd, dt = self.model, state.existence, self.model.p_d, log_Ib.dtype
         log_cf = math.log(model.clutter_rate) + model.clutter_log_density(sensor).to(dt)  # log(mu_c f_c)
-        beta = torch.cat([(1 - r * pd).unsqueeze(-1), (r * pd).unsqueeze(-1) * torch.exp(log_Ik - log_cf)], -1)
-        xi = 1 + self.birth_rate * torch.exp(log_Ib - log_cf)
-        assoc = loopy_association(beta, xi, state.mask, z_mask, self.bp_iterations)
+        ratio_k, ratio_b = torch.exp(log_Ik - log_cf), torch.exp(log_Ib - log_cf)
+        beta = torch.cat([(1 - r * pd).unsqueeze(-1), (r * pd).unsqueeze(-1) * ratio_k], -1)
+        assoc = loopy_association(beta, 1 + self.birth_rate * ratio_b, state.mask, z_mask, self.bp_iterations)
         live = state.mask.unsqueeze(-1) & z_mask.unsqueeze(-2)  # (B, K, M)
         log_nu = torch.where(live, torch.log(assoc.nu.clamp_min(torch.finfo(dt).tiny)), log_Ib.new_tensor(-math.inf))
-        return assoc, log_nu, log_cf, _underflow(log_Ib, log_Ik, log_cf, state.mask, z_mask)
-
-
-def _underflow(log_Ib: torch.Tensor, log_Ik: torch.Tensor, log_cf, po_mask: torch.Tensor, z_mask: torch.Tensor):
-    """``(B, M)``: live measurements whose every BP term underflows to 0, i.e. the estimated integral
-    of the likelihood over clutter intensity, ``exp(log I - log(mu_c f_c))``, is 0 in floating point
-    under the birth density (``log_Ib (B, M)``) and under every live PO (``log_Ik (B, K, M)``); the
-    log-space integrals themselves stay finite."""
-    dead = (torch.exp(log_Ik - log_cf) == 0) | ~po_mask.unsqueeze(-1)
-    return z_mask & (torch.exp(log_Ib - log_cf) == 0) & dead.all(1)
+        underflow = z_mask & (ratio_b == 0) & ((ratio_k == 0) | ~state.mask.unsqueeze(-1)).all(1)
+        return assoc, log_nu, log_cf, underflow
 
 
 def birth_mixture(region: float, per_axis: int, sd_factor: float = 0.5, dtype=torch.float64, device=None):
