@@ -8,8 +8,7 @@ import shlex
 from pathlib import Path
 from typing import List, Mapping, Optional, Sequence
 
-from .errors import ConfigError
-from .plan import check_metric_settings, check_rng_backend, check_seed
+from .plan import ConfigError, check_metric_settings, check_rng_backend, check_seed
 from .writers import RESULT_FILES
 
 _CHECKOUT = Path(__file__).resolve().parents[2]

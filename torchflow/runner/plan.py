@@ -16,7 +16,12 @@ from .._checks import check_count
 from ..filters.base import Filter
 from ..models.base import StateSpaceModel, Trajectory
 from .distributed import Shard
-from .errors import ConfigError
+
+
+class ConfigError(ValueError):
+    """A bad run setting (a value, a name, a combination): the command line prints it as one line
+    and exits with status 2. Any other exception is a failure and keeps its traceback."""
+
 
 _DTYPES = {"float64": torch.float64, "float32": torch.float32, "double": torch.float64, "float": torch.float32}
 #: back ends of the per-trial random streams (:class:`~torchflow.random.TrialStreams`)
