@@ -16,11 +16,13 @@ error over the job's trials (from its ``per_trial.csv``), into ``<sweep_dir>/<Y>
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import sys
 from pathlib import Path
 
 from torchflow.runner.sweep import describe_job, job_dirs, job_override_dict, job_status, varying_overrides
+from torchflow.runner.writers import write_csv
 
 DEFAULT_COLUMNS = ["mse", "omat", "ospa", "ess", "g_eff", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step"]
 
@@ -30,26 +32,21 @@ def collect(sweep_dir: Path, columns=None):
     columns, and the jobs without (complete) results: ``{"job", "state" ("failed" | "interrupted" |
     "missing"), "message", "overrides"}`` (overrides that vary between jobs)."""
     rows, missing, keys = [], [], []
+    vary = varying_overrides(job_dirs(sweep_dir))
     for job in job_dirs(sweep_dir):
         ov = job_override_dict(job)
         keys += [k for k in ov if k not in keys]
         state, message = job_status(job)
         summary = job / "summary.csv"
-        finished = (job / "results.json").exists() and summary.exists()  # a running job's partial file is not merged
-        if state != "done":
-            missing.append({"job": job.name, "state": state, "message": message})
-        elif not summary.exists():
-            missing.append({"job": job.name, "state": "missing", "message": message})
-        if not finished or state not in ("done", "failed"):
-            continue
+        if state != "done" or not summary.exists():
+            missing.append({"job": job.name, "state": "missing" if state == "done" else state, "message": message,
+                            "overrides": vary[job.name]})
+        if state not in ("done", "failed") or not summary.exists() or not (job / "results.json").exists():
+            continue  # a running job's partial summary.csv is not merged
         se = _trial_standard_errors(job / "per_trial.csv")
         with open(summary) as fh:
-            for r in csv.DictReader(fh):
-                rows.append({"job": job.name, **ov, **r,
-                             **{f"{k}_se": v for k, v in se.get(r.get("filter"), {}).items()}})
-    vary = varying_overrides(job_dirs(sweep_dir))
-    for m in missing:
-        m["overrides"] = vary[m["job"]]
+            rows += [{"job": job.name, **ov, **r, **{f"{k}_se": v for k, v in se.get(r.get("filter"), {}).items()}}
+                     for r in csv.DictReader(fh)]
     # overrides shared by every job describe the sweep, not a row: keep only those that vary
     keys = [k for k in keys if len({r.get(k) for r in rows}) > 1]
     cols = ["job", *keys, "filter", "n_particles", "trials", *(columns or DEFAULT_COLUMNS), "error"]
@@ -61,26 +58,20 @@ def describe_missing(m: dict) -> str:
     return describe_job(m["job"], m["state"], m["message"], m["overrides"])
 
 
+def _se(xs) -> float:
+    m = sum(xs) / len(xs)
+    return (sum((x - m) ** 2 for x in xs) / (len(xs) - 1) / len(xs)) ** 0.5
+
+
 def _trial_standard_errors(path: Path) -> dict:
     """``{filter: {column: standard error of the mean over trials}}`` from a job's ``per_trial.csv``."""
-    if not path.exists():
-        return {}
     per = {}
-    with open(path) as fh:
+    with open(path) if path.exists() else contextlib.nullcontext([]) as fh:
         for r in csv.DictReader(fh):
             for k, v in r.items():
-                try:
+                with contextlib.suppress(TypeError, ValueError):
                     per.setdefault(r["filter"], {}).setdefault(k, []).append(float(v))
-                except (TypeError, ValueError):
-                    pass
-    out = {}
-    for f, cols in per.items():
-        for k, xs in cols.items():
-            n = len(xs)
-            if n > 1 and k != "trial":
-                m = sum(xs) / n
-                out.setdefault(f, {})[k] = (sum((x - m) ** 2 for x in xs) / (n - 1) / n) ** 0.5
-    return out
+    return {f: {k: _se(xs) for k, xs in cols.items() if len(xs) > 1 and k != "trial"} for f, cols in per.items()}
 
 
 def plot(rows, keys, spec: str, out_dir: Path) -> Path:
@@ -153,10 +144,7 @@ def main(argv=None):
     print("|" + "---|" * len(cols))
     for r in rows:
         print("| " + " | ".join(_fmt(r.get(c)) for c in cols) + " |")
-    with open(args.sweep_dir / "sweep_summary.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore")
-        w.writeheader()
-        w.writerows(rows)
+    write_csv(args.sweep_dir / "sweep_summary.csv", rows, cols)
     if args.plot:
         varying = [c for c in cols if c not in ("job", "filter", "n_particles", "trials") and c not in
                    (*DEFAULT_COLUMNS, *(args.columns.split(",") if args.columns else []))]

@@ -36,26 +36,20 @@ from .runner.plan import ConfigError
 log = logging.getLogger("torchflow.cli")
 
 
-def reason(e: BaseException) -> str:
-    """The message of the error that caused ``e`` (Hydra wraps constructor errors)."""
-    from hydra.errors import InstantiationException
-
-    cause = (e.__cause__ or e.__context__) if isinstance(e, InstantiationException) else None
-    if cause is None:
-        return str(e)
-    key = [ln.split(":", 1)[1].strip() + ": " for ln in str(e).splitlines() if ln.startswith("full_key:")]
-    return (key[-1] if key else "") + str(cause).strip("'\"")
-
-
-def is_config_error(e: BaseException) -> bool:
-    """A bad setting: ours, OmegaConf's, or a constructor refusing a value (``ValueError`` /
-    ``TypeError`` raised while Hydra builds a model or filter). Anything else is a failure."""
+def config_error(e: BaseException) -> Optional[str]:
+    """The one-line message of a bad setting: ours, OmegaConf's, or a constructor refusing a value
+    (``ValueError`` / ``TypeError`` raised while Hydra builds a model or filter, named by its key);
+    ``None`` for anything else (a failure)."""
     from hydra.errors import InstantiationException
     from omegaconf.errors import OmegaConfBaseException
 
-    if isinstance(e, InstantiationException):
-        return isinstance(e.__cause__ or e.__context__, (ValueError, TypeError))
-    return isinstance(e, (ConfigError, OmegaConfBaseException))
+    if not isinstance(e, InstantiationException):
+        return str(e) if isinstance(e, (ConfigError, OmegaConfBaseException)) else None
+    cause = e.__cause__ or e.__context__
+    if not isinstance(cause, (ValueError, TypeError)):
+        return None
+    key = [ln.split(":", 1)[1].strip() + ": " for ln in str(e).splitlines() if ln.startswith("full_key:")]
+    return (key[-1] if key else "") + str(cause).strip("'\"")
 
 
 def _multirun() -> bool:
@@ -241,14 +235,13 @@ def _job(cfg: DictConfig) -> int:
                     "finished, if any) was written")
         return 130
     except Exception as e:  # noqa: BLE001 - configuration errors: one line; anything else: its traceback
-        if is_config_error(e):
-            message = f"error: {reason(e)}"
+        bad = config_error(e)
+        if bad is not None:
+            message, code = f"error: {bad}", 2
             log.error(message + (" (job failed; the sweep goes on)" if _multirun() else ""))
-            code = 2
         else:
-            message = traceback.format_exc()
+            message, code = traceback.format_exc(), 1
             log.error(f"error: {type(e).__name__}: {e}\n{message.rstrip()}")
-            code = 1
         if _multirun():  # the job's error.txt (collect and the end-of-sweep report name it); the sweep goes on
             out = Path(HydraConfig.get().runtime.output_dir)
             with contextlib.suppress(OSError):
@@ -315,4 +308,4 @@ def main(argv: Optional[List[str]] = None, prog: str = "torchflow") -> None:
     hydra_main()
 
 
-__all__ = ["main", "run_job", "reason", "is_config_error"]
+__all__ = ["main", "run_job", "config_error"]

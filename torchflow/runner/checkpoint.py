@@ -1,20 +1,10 @@
-"""Per-chunk results on disk, so a long run that is killed can be resumed.
+"""Per-chunk results on disk, so a killed run can be resumed (README, "Resumable runs"). Layout::
 
-With a :class:`ChunkStore`, :func:`~torchflow.runner.run_experiment` writes every finished chunk of
-trials to a small file at once and, with ``resume``, loads the chunks a run of the *same settings*
-saved instead of computing them again. Layout (``key``: a :func:`fingerprint` of everything that
-changes a filter's numbers)::
-
-    <root>/<key>/settings.json          what the key was made of (for people)
+    <root>/<key>/settings.json          what the key (a :func:`fingerprint`) was made of (for people)
     <root>/<key>/<start>-<stop>.pt       trials [start, stop): estimates, log-evidence, ESS, ...
 
-Files are written to a temporary name and renamed (a run killed while writing leaves no half
-chunk) and carry a SHA-256 checksum of their tensors. A file that cannot be read, is damaged or
-whose header does not match (other key, trials, steps, seed, stream, ...) is recomputed with a
-warning. Trials draw from per-trial streams, so a loaded chunk holds the numbers the uninterrupted
-run would have computed, and a resumed run with other chunk boundaries reuses the saved trials
-(:meth:`ChunkStore.assemble`; equal to round-off: batched linear algebra may block differently).
-A store that cannot write warns once and the run goes on without (:meth:`ChunkStore.save_or_warn`).
+Files are written to a temporary name and renamed, and carry a SHA-256 checksum of their tensors;
+a file that cannot be read, is damaged or whose header does not match is recomputed with a warning.
 """
 from __future__ import annotations
 
@@ -24,16 +14,15 @@ import logging
 import os
 import re
 import warnings
+from collections import Counter
 from pathlib import Path
-from typing import Callable, Dict, List, Mapping, Optional, Tuple, Union
+from typing import Callable, List, Mapping, Optional, Tuple, Union
 
 import torch
 
 #: tensors of one chunk, CPU (floats as float64), those the filter's result has: ``estimates (B, T, ...)``
 #: always; ``estimate_mask`` (sets of estimates) and ``underflow`` from the localisers
 CHUNK_FIELDS = ("estimates", "log_evidence", "ess", "n_repaired", "g_eff", "estimate_mask", "underflow")
-
-
 _CHUNK_NAME = re.compile(r"^(\d{7})-(\d{7})\.pt$")
 log = logging.getLogger("torchflow.runner")
 
@@ -78,9 +67,7 @@ class ChunkStore:
         if not isinstance(resume, bool):
             raise ValueError(f"resume: expected True or False, got {resume!r}")
         self.root, self.keys, self.resume, self.settings = Path(root), dict(keys or {}), resume, dict(settings or {})
-        self.loaded: Dict[str, int] = {}
-        self.computed: Dict[str, int] = {}
-        self.reused_trials: Dict[str, int] = {}
+        self.loaded, self.computed, self.reused_trials = Counter(), Counter(), Counter()  # per filter
         self.save_error: Optional[str] = None
 
     def folder(self, name: str) -> Path:
@@ -108,7 +95,7 @@ class ChunkStore:
             return _again(f"resume: {path} was saved with other settings")
         if data.get("checksum") is not None and data["checksum"] != checksum(data):
             return _again(f"resume: {path} is damaged (its checksum does not match its contents)")
-        self.loaded[name] = self.loaded.get(name, 0) + 1
+        self.loaded[name] += 1
         return data
 
     def save(self, name: str, start: int, stop: int, chunk: Mapping, meta: Optional[Mapping] = None) -> Path:
@@ -124,7 +111,7 @@ class ChunkStore:
         torch.save({**dict(chunk), "key": self.keys.get(name, name), "start": start, "stop": stop,
                     "meta": dict(meta) if meta is not None else None, "checksum": checksum(chunk)}, tmp)
         os.replace(tmp, path)
-        self.computed[name] = self.computed.get(name, 0) + 1
+        self.computed[name] += 1
         return path
 
     def save_or_warn(self, name: str, start: int, stop: int, chunk: Mapping, meta: Optional[Mapping] = None
@@ -182,7 +169,7 @@ class ChunkStore:
             reused += b - a
         chunk = {k: torch.cat([p[k] for p in parts]) for k in CHUNK_FIELDS if all(k in p for p in parts)}
         chunk.update(start=start, stop=stop, elapsed=sum(float(p["elapsed"]) for p in parts))
-        self.reused_trials[name] = self.reused_trials.get(name, 0) + reused
+        self.reused_trials[name] += reused
         log.info("resume: %s trials %d..%d: %d reused from chunks saved with other boundaries, %d computed",
                  name, start, stop - 1, reused, stop - start - reused)
         return chunk

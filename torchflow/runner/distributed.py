@@ -1,11 +1,5 @@
-"""One experiment over several processes, GPUs or nodes with ``torch.distributed``.
-
-Launched by ``torchrun``, every rank simulates the same data from the seed, runs chunks ``rank,
-rank + world, ...`` of each filter and sends the per-trial results to rank 0, which scores and
-writes them (``torchrun --standalone --nproc_per_node=2 experiments/run.py filter=[bpf] trials=40``).
-Trials draw from per-trial streams, so each trial's numbers are a single-process run's: identical
-with the same chunks, equal to round-off otherwise (without ``chunk_size`` chunks are capped at
-``ceil(trials / world)`` so every rank has work). NCCL on CUDA (rank r on ``cuda:LOCAL_RANK``), gloo on CPU.
+"""One experiment over ``torchrun`` processes (README, "Scaling out"): every rank simulates the same
+data, runs chunks ``rank, rank + world, ...`` of each filter and sends its per-trial results to rank 0.
 """
 from __future__ import annotations
 

@@ -104,17 +104,17 @@ def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None) -> 
 def _one_chunk(f, name, plan, s, e, store, bar) -> dict:
     """A chunk from the store (saved with these or, resuming, other boundaries) or computed and saved."""
     steps, meta = plan.settings.steps, plan.meta(f)
-    chunk = None if store is None else store.load(name, s, e, steps, meta)
+    if store is None:
+        return run_chunk(f, name, plan, s, e, bar)
+    chunk = store.load(name, s, e, steps, meta)
     if chunk is not None:
         if bar is not None:
             bar.update((e - s) * steps)
         return chunk
-    if store is not None:  # trials saved by a run with other chunk boundaries are reused
-        chunk = store.assemble(name, s, e, steps, meta, compute=lambda a, b: run_chunk(f, name, plan, a, b, bar))
-    if chunk is None:
-        chunk = run_chunk(f, name, plan, s, e, bar)
-    if store is not None:
-        store.save_or_warn(name, s, e, chunk, meta)
+    # trials saved by a run with other chunk boundaries are reused
+    chunk = store.assemble(name, s, e, steps, meta, compute=lambda a, b: run_chunk(f, name, plan, a, b, bar))
+    chunk = chunk if chunk is not None else run_chunk(f, name, plan, s, e, bar)
+    store.save_or_warn(name, s, e, chunk, meta)
     return chunk
 
 

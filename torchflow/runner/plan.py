@@ -1,7 +1,5 @@
 """Plan a run: check its arguments, simulate the data once, choose every filter's chunks of trials
-(from the filters' memory formulas: :meth:`Filter.bytes_per_trial`, :meth:`Filter.preferred_chunk_trials`,
-:meth:`Filter.plan_memory`). Trials draw from per-trial streams (:mod:`torchflow.random`), so the
-plan never changes a trial's numbers.
+from its memory formulas (trials draw from per-trial streams: the plan never changes their numbers).
 """
 from __future__ import annotations
 

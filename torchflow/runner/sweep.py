@@ -1,11 +1,5 @@
-"""Hydra sweeps: what happened to every job.
-
-A sweep (``torchflow -m ...``, on any launcher: basic, joblib, submitit, ray) writes one folder
-per job. A job that fails leaves ``error.txt`` there (a job whose filter failed: its ``results.json``
-lists it) and the sweep goes on;
-:class:`SweepReport` (a Hydra callback, on by default in ``configs/config.yaml``) prints at the
-end which jobs finished and which failed, with their overrides and errors, and makes the sweep's
-exit status 1 when any failed. :func:`job_status` is what ``experiments/collect.py`` uses too.
+"""Hydra sweeps (any launcher): what happened to every job, from its folder (``error.txt``,
+``results.json``); :class:`SweepReport` says it at the end, ``experiments/collect.py`` too.
 """
 from __future__ import annotations
 
