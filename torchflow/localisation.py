@@ -241,10 +241,9 @@ class FlowMixtureLocaliser(_Localiser):
         return self.G * self.n_samples
 
     # ---- one sensor --------------------------------------------------------------------------
-    def _flowed_terms(self, log_w, means, L, z, s, generator):
-        """For mixtures ``(B, K, G)`` and measurements ``z (B, M)``: ``log int N_n l_m`` per
-        component and measurement ``(B, K, G, M)`` and the candidates' weighted moments
-        ``(B, K, G, M, 3)``, ``(B, K, G, M, 3, 3)`` (scale trils)."""
+    def _flowed_terms(self, means, L, z, s, generator):
+        """For components ``means (B, K, G, 3)``, ``L (B, K, G, 3, 3)`` and measurements ``z (B, M)``:
+        ``log int N_n l_m (B, K, G, M)`` and the candidates' moments (means and scale trils)."""
         model = self.model
         B, K, G, d = means.shape
         M = z.shape[1]
@@ -285,13 +284,11 @@ class FlowMixtureLocaliser(_Localiser):
         bm, bL = self.birth_means.to(dt), self.birth_scale_tril.to(dt)
         Nb = bm.shape[0]
         b_logw = torch.full((B, 1, Nb), -math.log(Nb), dtype=dt, device=dev)
-        bI, b_mean, b_L = self._flowed_terms(b_logw, bm.expand(B, 1, Nb, 3), bL.expand(B, 1, Nb, 3, 3), z, sensor,
-                                             generator)
+        bI, b_mean, b_L = self._flowed_terms(bm.expand(B, 1, Nb, 3), bL.expand(B, 1, Nb, 3, 3), z, sensor, generator)
         log_Ib = torch.logsumexp(b_logw.unsqueeze(-1) + bI, 2)[:, 0]  # (B, M)
         log_Ik = torch.zeros(B, 0, M, dtype=dt, device=dev)
         if K:
-            I, p_mean, p_L = self._flowed_terms(state.log_weights, state.means, state.scale_trils, z, sensor,
-                                                generator)
+            I, p_mean, p_L = self._flowed_terms(state.means, state.scale_trils, z, sensor, generator)
             log_Ik = torch.logsumexp(state.log_weights.unsqueeze(-1) + I, 2)  # (B, K, M)
         assoc, log_nu, log_cf, underflow = self._bp(state, log_Ik, log_Ib, z_mask, sensor)
         r_all, mask, parts = assoc.new_existence, z_mask, []

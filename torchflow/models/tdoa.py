@@ -103,8 +103,8 @@ class TDOA3D(StateSpaceModel):
             if len(p) != 2 or p[0] == p[1] or not all(0 <= v < len(rec) for v in p):
                 raise ValueError(f"pairs: expected pairs (a, b) of distinct receiver indices in [0, {len(rec)}), "
                                  f"got {p}")
-        self.speed, self.sigma_v, self.region = (check_number(k, v, lambda v: v > 0, "a positive number")
-                                                 for k, v in (("speed", speed), ("sigma_v", sigma_v), ("region", region)))
+        self.speed, self.sigma_v, self.region = (check_number(k, v, lambda v: v > 0, "a positive number") for k, v
+                                                 in (("speed", speed), ("sigma_v", sigma_v), ("region", region)))
         self.p_d = check_number("p_d", p_d, lambda v: 0 < v <= 1, "a detection probability in (0, 1]")
         self.clutter_rate = check_number("clutter_rate", clutter_rate, lambda v: v >= 0, "a mean clutter count >= 0")
         check_number("n_sources", n_sources, lambda v: isinstance(v, int) and v >= 0, "an integer >= 0")

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import Callable, List, Mapping, Optional, Sequence, Union
 
 import torch
+from tqdm.auto import tqdm
 
 from .. import tuning
 from .._checks import NonFiniteError
@@ -28,13 +29,10 @@ log = logging.getLogger("torchflow.runner")
 
 
 class StopRequest:
-    """Ctrl-C / SIGTERM handling that never tears a run apart mid-bookkeeping.
-
-    :meth:`handler` (installed for SIGINT and SIGTERM by the command line; in your own script:
-    ``signal.signal(signal.SIGTERM, STOP.handler)``) records the request. Inside a filter's chunk it
-    raises ``KeyboardInterrupt`` at once; anywhere else (gathering ranks, scoring, writing files)
-    the run stops at the next chunk boundary, so the finished chunks are always scored and written.
-    """
+    """Ctrl-C / SIGTERM handling that never tears a run apart mid-bookkeeping: :meth:`handler`
+    (the command line's for SIGINT and SIGTERM; in a script: ``signal.signal(signal.SIGTERM,
+    STOP.handler)``) raises ``KeyboardInterrupt`` at once inside a filter's chunk, else the run
+    stops at the next chunk boundary (the finished chunks are always scored and written)."""
 
     def __init__(self):
         self.requested, self._depth = False, 0
@@ -123,15 +121,8 @@ def execute(f: Filter, name: str, plan: RunPlan, *, store: Optional[ChunkStore] 
     """Run ``f`` over this rank's chunks (a tqdm bar on rank 0 with ``progress``) and gather the
     ranks' outcomes: the finished chunks, and the error or interruption."""
     mine = plan.shard.mine(plan.trial_chunks(name))
-    bar = None
-    if progress and plan.shard.is_main:
-        try:
-            from tqdm.auto import tqdm
-
-            bar = tqdm(total=sum(e - s for s, e in mine) * plan.settings.steps, unit="trial-step", leave=False,
-                       dynamic_ncols=True, desc=desc)
-        except ImportError:  # pragma: no cover
-            pass
+    bar = tqdm(total=sum(e - s for s, e in mine) * plan.settings.steps, unit="trial-step", leave=False,
+               dynamic_ncols=True, desc=desc) if progress and plan.shard.is_main else None
     out, i = Outcome(), -1
     try:
         for i, (s, e) in enumerate(mine):
@@ -161,9 +152,9 @@ def gather_outcome(out: Outcome, plan: RunPlan) -> Outcome:
     interrupted = bool(shard.broadcast(any(p[2] for p in parts) if shard.is_main else None))
     if not shard.is_main:
         return Outcome(interrupted=interrupted)
-    failed = [p for p in parts if p[1]]
+    failed = next((p for p in parts if p[1]), (None,) * 4)
     chunks = sorted((c for p in parts for c in p[0]), key=lambda c: c["start"])
-    return Outcome(chunks, failed[0][1] if failed else None, failed[0][3] if failed else None, interrupted)
+    return Outcome(chunks, failed[1], failed[3], interrupted)
 
 
 def run_experiment(
@@ -174,27 +165,23 @@ def run_experiment(
     on_filter_done: Optional[Callable[[List[dict]], None]] = None, store: Optional[ChunkStore] = None,
     shard: Optional[Shard] = None, trial_range: Optional[Sequence[int]] = None, simulator: Optional[Callable] = None,
 ) -> Optional[ExperimentResult]:
-    """Simulate ``trials`` trajectories of ``steps`` steps once (a model with a fixed number of
-    steps, such as :class:`~torchflow.models.TDOA3D`'s sensors, sets it: ``model.n_steps``) and run
-    every filter of ``filters`` (``{name: filter holding model}``) on the same observations.
+    """Simulate ``trials`` trajectories of ``steps`` steps once (``model.n_steps``, where the model
+    has one, sets it) and run every filter of ``filters`` (``{name: filter holding model}``) on the
+    same observations. Each trial of a filter draws from its own stream keyed by (``seed`` in
+    ``[0, 2**63)``, trial, the filter's ``stream_name``; ``rng_backend``: ``auto`` = numpy on CPU,
+    philox on GPU), so its numbers do not depend on the chunks, the filters' order or ``shard``.
 
-    Each trial of a filter draws from its own stream, :class:`~torchflow.random.TrialStreams` keyed
-    by (``seed`` in ``[0, 2**63)``, trial, the filter's ``stream_name``), so its numbers do not
-    depend on ``chunk_size``, ``memory_budget_gb``, the order or names of the filters, or ``shard``
-    (same device and ``rng_backend``: ``auto`` = numpy on CPU, philox on GPU). ``inits_per_track``:
-    trials share a trajectory in groups of this size, each with its own prior draw. ``chunk_size``:
-    trials per chunk (``None``: from ``memory_budget_gb`` and the filters' memory formulas; a
-    particle filter whose one trial exceeds it runs in blocks of particles). ``ospa_cutoff``,
-    ``ospa_order``, ``lost_threshold``: metric settings. ``on_filter_done(summary rows)`` runs after
-    each filter. ``store``: a :class:`~torchflow.runner.checkpoint.ChunkStore` saving every
-    finished chunk (and, resuming, loading saved trials). ``shard``: this process's
-    :class:`~torchflow.runner.distributed.Shard` under ``torchrun`` (ranks other than 0 return
-    ``None``). ``trial_range``: ``(start, stop)``: simulate every trial, run and score only these.
+    ``inits_per_track``: trials share a trajectory in groups of this size, each with its own prior
+    draw. ``chunk_size``: trials per chunk (``None``: from ``memory_budget_gb`` and the filters'
+    memory formulas). ``ospa_cutoff``, ``ospa_order``, ``lost_threshold``: metric settings.
+    ``on_filter_done(summary rows)`` runs after each filter. ``store``: a
+    :class:`~torchflow.runner.checkpoint.ChunkStore`. ``shard``: this process's
+    :class:`~torchflow.runner.distributed.Shard` (ranks other than 0 return ``None``).
+    ``trial_range``: ``(start, stop)``: simulate every trial, run and score only these.
     ``simulator``: replaces :func:`~torchflow.runner.plan.simulate`.
 
-    A filter that raises does not stop the run: its row gets the error and ``result.failures``
-    where; Ctrl-C (:data:`STOP`) keeps the finished filters. ``sec_per_step`` is compute time
-    (a loaded chunk counts its original time) per trial-step. A bad argument raises
+    A filter that raises does not stop the run (its row gets the error, ``result.failures`` where);
+    Ctrl-C (:data:`STOP`) keeps the finished filters. A bad argument raises
     :class:`~torchflow.runner.plan.ConfigError` before anything runs.
     """
     s = check_settings(trials=trials, steps=getattr(model, "n_steps", steps), seed=seed, chunk_size=chunk_size,
@@ -216,7 +203,8 @@ def run_experiment(
                 row["error"] = f"interrupted after {sum(c['stop'] - c['start'] for c in out.chunks)} of {s.n_run} trials"
             elif out.error is not None:
                 row["error"], res.failures[name] = out.error, out.where
-            else:
+            else:  # sec_per_step: compute time (a loaded chunk: its original time) per trial-step
+                row["sec_per_step"] = sum(float(c["elapsed"]) for c in out.chunks) / (s.n_run * s.steps)
                 trial_rows, step_rows, res.examples[name] = score_filter(scorer, f, name, row, out.chunks, s.steps)
                 res.per_trial += trial_rows
                 res.per_step += step_rows

@@ -7,10 +7,7 @@ import sys
 from pathlib import Path
 from typing import Any, List
 
-try:
-    from hydra.experimental.callback import Callback
-except ImportError:  # pragma: no cover - hydra is a core dependency
-    Callback = object
+from hydra.experimental.callback import Callback
 
 
 def job_dirs(sweep_dir: Path) -> List[Path]:
