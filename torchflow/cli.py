@@ -5,12 +5,10 @@
     torchflow experiment=seed000_table1                        # a paper table
     torchflow -m 'filter=[bpf]' n_particles=100,1000           # sweep; one folder per job
 
-(``python -m torchflow`` and, in a checkout, ``python experiments/run.py`` are the same command.)
-Writes ``summary.csv``, ``per_step.csv``, ``per_trial.csv``, ``results.json``, ``run.log`` and
-(with matplotlib) ``per_step.png`` into Hydra's output folder and prints the summary table.
-
-Exit status: 0 done; 1 a filter failed, or the results could not be written; 2 a configuration
-error (one line); 130 interrupted (Ctrl-C, SIGTERM). Any other error keeps its traceback.
+(``python -m torchflow`` and ``python experiments/run.py`` are the same command.) Writes the result
+files (:mod:`torchflow.runner.writers`), ``run.log`` and figures into Hydra's output folder. Exit
+status: 0 done; 1 a filter failed, or the results could not be written; 2 a configuration error
+(one line); 130 interrupted (Ctrl-C, SIGTERM). Any other error keeps its traceback.
 """
 from __future__ import annotations
 
@@ -146,17 +144,16 @@ def chunk_store(cfg: DictConfig, labels):
 
 
 class _Output:
-    """Writes into the run's folder; a failed write (read-only folder, full disk) is reported
-    once, in one line, and turns the exit status to 1; the run goes on."""
+    """Writes into the run's folder: the first failed write (read-only folder, full disk) is reported
+    in one line and turns the exit status to 1; nothing more is written, the run goes on."""
 
     def __init__(self, out: Path):
         self.out, self.failed = out, None
 
     def attempt(self, what: str, write, *args) -> None:
-        if self.failed is not None:
-            return
         try:
-            write(*args)
+            if self.failed is None:
+                write(*args)
         except OSError as e:
             self.failed = f"cannot write {what} into {self.out} ({type(e).__name__}: {e.strerror or e})"
             log.error(f"error: {self.failed}")

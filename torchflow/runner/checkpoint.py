@@ -20,6 +20,8 @@ from typing import Callable, List, Mapping, Optional, Tuple, Union
 
 import torch
 
+from .writers import write_text
+
 #: tensors of one chunk, CPU (floats as float64), those the filter's result has: ``estimates (B, T, ...)``
 #: always; ``estimate_mask`` (sets of estimates) and ``underflow`` from the localisers
 CHUNK_FIELDS = ("estimates", "log_evidence", "ess", "n_repaired", "g_eff", "estimate_mask", "underflow")
@@ -103,9 +105,7 @@ class ChunkStore:
         folder = self.folder(name)
         folder.mkdir(parents=True, exist_ok=True)
         if name in self.settings and not (folder / "settings.json").exists():
-            tmp = folder / f".settings.json.{os.getpid()}"
-            tmp.write_text(json.dumps(self.settings[name], indent=2, sort_keys=True, default=str))
-            os.replace(tmp, folder / "settings.json")
+            write_text(folder / "settings.json", json.dumps(self.settings[name], indent=2, sort_keys=True, default=str))
         path = self._path(name, start, stop)
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         torch.save({**dict(chunk), "key": self.keys.get(name, name), "start": start, "stop": stop,
@@ -136,27 +136,20 @@ class ChunkStore:
         found = (_CHUNK_NAME.match(p.name) for p in folder.iterdir())
         return sorted((int(m.group(1)), int(m.group(2))) for m in found if m)
 
-    def _pieces(self, name: str, start: int, stop: int) -> List[Tuple[int, int, Optional[Tuple[int, int]]]]:
-        """``[(a, b, saved range or None), ...]`` covering ``[start, stop)``: the trials of saved
-        files of other boundaries and the gaps between them."""
-        saved = [r for r in self.saved_ranges(name) if r[0] < stop and r[1] > start and r != (start, stop)]
-        out, p = [], start
-        while p < stop:
-            cover = max((r for r in saved if r[0] <= p < r[1]), key=lambda r: r[1], default=None)
-            b = min(cover[1], stop) if cover else min([r[0] for r in saved if r[0] > p] + [stop])
-            out.append((p, b, cover))
-            p = b
-        return out
-
     def assemble(self, name: str, start: int, stop: int, steps: int, meta: Optional[Mapping],
                  compute: Callable[[int, int], Mapping]) -> Optional[dict]:
         """Trials ``[start, stop)`` from chunks saved with other boundaries, ``compute(a, b)``
         filling the trials none holds; ``None`` when not resuming or no saved trial overlaps."""
-        if not self.resume:
+        saved = [r for r in (self.saved_ranges(name) if self.resume else []) if r[0] < stop and r[1] > start
+                 and r != (start, stop)]
+        if not saved:
             return None
-        pieces = self._pieces(name, start, stop)
-        if all(r is None for _, _, r in pieces):
-            return None
+        pieces, p = [], start  # (a, b, the saved range holding trials [a, b) or None): saved trials and the gaps
+        while p < stop:
+            cover = max((r for r in saved if r[0] <= p < r[1]), key=lambda r: r[1], default=None)
+            b = min(cover[1], stop) if cover else min([r[0] for r in saved if r[0] > p] + [stop])
+            pieces.append((p, b, cover))
+            p = b
         parts, reused = [], 0
         for a, b, r in pieces:
             data = None if r is None else self.load(name, r[0], r[1], steps, meta)

@@ -28,14 +28,14 @@ RNG_BACKENDS = ("auto", "numpy", "philox")
 SEED_LIMIT = 2**63
 
 
-def _require(ok: bool, name: str, what: str, got) -> None:
+def require(ok: bool, name: str, what: str, got) -> None:
     """The runner's checks: a :class:`ConfigError` ``name: expected what, got got`` unless ``ok``."""
     if not ok:
         raise ConfigError(f"{name}: expected {what}, got {got!r}")
 
 
 def resolve_dtype(dtype: Union[str, torch.dtype]) -> torch.dtype:
-    _require(isinstance(dtype, torch.dtype) or dtype in _DTYPES, "dtype", f"one of {sorted(_DTYPES)}", dtype)
+    require(isinstance(dtype, torch.dtype) or dtype in _DTYPES, "dtype", f"one of {sorted(_DTYPES)}", dtype)
     return _DTYPES.get(dtype, dtype)
 
 
@@ -44,7 +44,7 @@ def resolve_device(device: Union[str, torch.device]) -> torch.device:
         dev = torch.device(device)
     except (RuntimeError, TypeError):
         dev = None
-    _require(dev is not None and dev.type in ("cpu", "cuda"), "device", "'cpu', 'cuda' or 'cuda:<index>'", device)
+    require(dev is not None and dev.type in ("cpu", "cuda"), "device", "'cpu', 'cuda' or 'cuda:<index>'", device)
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device: 'cuda' requested but torch.cuda.is_available() is False "
                           "(a CPU-only torch build, or no GPU visible)")
@@ -61,12 +61,12 @@ def _count(name: str, value, hint: str = "", minimum: int = 1) -> int:
 def check_seed(seed) -> int:
     """A seed in ``[0, 2**63)``."""
     seed = _count("seed", seed, minimum=0)
-    _require(seed < SEED_LIMIT, "seed", "an integer in [0, 2**63)", seed)
+    require(seed < SEED_LIMIT, "seed", "an integer in [0, 2**63)", seed)
     return seed
 
 
 def check_rng_backend(rng_backend) -> str:
-    _require(rng_backend in RNG_BACKENDS, "rng_backend", f"one of {', '.join(RNG_BACKENDS)}", rng_backend)
+    require(rng_backend in RNG_BACKENDS, "rng_backend", f"one of {', '.join(RNG_BACKENDS)}", rng_backend)
     return rng_backend
 
 
@@ -78,7 +78,7 @@ def check_trial_range(trial_range, trials: int) -> Tuple[int, int]:
         ok = all(float(v) == int(v) for v in trial_range) and 0 <= lo < hi <= trials
     except (TypeError, ValueError):
         ok = False
-    _require(ok, "trial_range", f"[start, stop] with 0 <= start < stop <= trials = {trials}", trial_range)
+    require(ok, "trial_range", f"[start, stop] with 0 <= start < stop <= trials = {trials}", trial_range)
     return lo, hi
 
 
@@ -91,7 +91,7 @@ def check_metric_settings(*, ospa_cutoff, ospa_order, lost_threshold) -> dict:
     rules = {"ospa_cutoff": (ospa_cutoff, 0.0, "a positive number"), "ospa_order": (ospa_order, 1.0, "a number >= 1"),
              "lost_threshold": (lost_threshold, 0.0, "a positive number of metres")}
     for name, (v, low, what) in rules.items():
-        _require(_number(v) and v >= low and (name == "ospa_order" or v > low), f"metrics.{name}", what, v)
+        require(_number(v) and v >= low and (name == "ospa_order" or v > low), f"metrics.{name}", what, v)
     return {name: float(v) for name, (v, _, _) in rules.items()}
 
 
@@ -157,7 +157,7 @@ def check_settings(*, trials, steps, seed, inits_per_track, chunk_size, memory_b
     trials = _count("trials", trials)
     if chunk_size is not None:
         chunk_size = _count("chunk_size", chunk_size, hint=" (or None: from memory_budget_gb)")
-    _require(_number(memory_budget_gb) and memory_budget_gb > 0, "memory_budget_gb", "a positive number of GiB",
+    require(_number(memory_budget_gb) and memory_budget_gb > 0, "memory_budget_gb", "a positive number of GiB",
              memory_budget_gb)
     return RunSettings(trials, _count("steps", steps), check_seed(seed), _count("inits_per_track", inits_per_track),
                        chunk_size, float(memory_budget_gb), resolve_device(device), resolve_dtype(dtype),
