@@ -117,12 +117,11 @@ class _Localiser(nn.Module):
         self.birth_rate = check_number("birth_rate", birth_rate, lambda v: v > 0, "> 0")
         self.prune, self.declare = (check_number(k, v, lambda v: 0 <= v < 1, "a probability in [0, 1)")
                                     for k, v in (("prune", prune), ("declare", declare)))
-        self.max_objects, self.bp_iterations = _count("max_objects", max_objects), _count("bp_iterations", bp_iterations)
-        self.sample_chunk = _count("sample_chunk", sample_chunk)
+        self.max_objects, self.bp_iterations, self.sample_chunk = (_count(k, v) for k, v in (
+            ("max_objects", max_objects), ("bp_iterations", bp_iterations), ("sample_chunk", sample_chunk)))
 
     @property
-    def stream_name(self) -> str:
-        """Key of the per-run random streams: ``localise_<method>``."""
+    def stream_name(self) -> str:  # key of the per-run random streams
         return f"localise_{self.method}"
 
     def bytes_per_trial(self) -> int:
@@ -156,8 +155,7 @@ class _Localiser(nn.Module):
                 progress()
         return Localisation(torch.stack(est, 1), torch.stack(declared, 1), torch.stack(underflow, 1), state)
 
-    def init(self, batch_size: int, dtype=torch.float64, device=None) -> POState:
-        """No PO before the first sensor."""
+    def init(self, batch_size: int, dtype=torch.float64, device=None) -> POState:  # no PO before the first sensor
         e = torch.zeros(batch_size, 0, dtype=dtype, device=device)
         n = self.G if self.mixture else self.n_particles
         return POState(e, e.bool(), e.new_zeros(batch_size, 0, n), e.new_zeros(batch_size, 0, n, 3),
@@ -236,8 +234,7 @@ class FlowMixtureLocaliser(_Localiser):
         self.jitter = float(jitter)
 
     @property
-    def n_particles(self) -> int:
-        """Samples per PO: components x samples per component."""
+    def n_particles(self) -> int:  # samples per PO
         return self.G * self.n_samples
 
     # ---- one sensor --------------------------------------------------------------------------
@@ -313,8 +310,7 @@ class FlowMixtureLocaliser(_Localiser):
 
 
 def _prune_and_cap(r, mask, parts, prune: float, max_objects: int):
-    """Drop POs with existence below ``prune`` and keep the ``max_objects`` most likely (a fixed
-    number of slots: no host synchronisation). Returns ``(r, mask, *parts)`` gathered."""
+    """``(r, mask, *parts)`` of the ``max_objects`` most likely POs with existence >= ``prune``."""
     B = r.shape[0]
     mask = mask & (r >= prune)  # a nan existence is dropped too
     r = torch.where(mask, r, torch.zeros_like(r))
@@ -328,14 +324,10 @@ def _prune_and_cap(r, mask, parts, prune: float, max_objects: int):
 
 
 class BootstrapLocaliser(_Localiser):
-    """The bootstrap baseline of seed 002 (``BS``): each PO is a plain set of N_p particles; for
-    each sensor the proposal is the previous posterior itself (the sources are static), the
-    weights are the BP-weighted likelihood terms, and each PO is resampled (systematic). New POs
-    start from N_p particles uniform in the region. The same BP, pruning and declaration as
-    :class:`FlowMixtureLocaliser`; likelihoods are evaluated in chunks of ``sample_chunk`` numbers.
-
-    ``n_particles``: N_p per PO (seed: 2e6 and 4e7); the other arguments: :class:`_Localiser`.
-    """
+    """The bootstrap baseline of seed 002 (``BS``): each PO is a set of ``n_particles`` N_p (seed: 2e6
+    and 4e7); the proposal is the previous posterior (static sources), the weights the BP-weighted
+    likelihood terms, and each PO is resampled (systematic). New POs start uniform in the region.
+    The other arguments: :class:`_Localiser`."""
 
     method, mixture = "bs", False  # POs are particle sets
 
@@ -347,9 +339,8 @@ class BootstrapLocaliser(_Localiser):
         self.n_particles = _count("n_particles", n_particles)
 
     def _loglik(self, x, z, s, own: bool = False):
-        """``log l_m(x)`` of particles ``x (B, K, N, 3)`` for measurements ``z (B, M)`` ->
-        ``(B, K, N, M)``, or with ``own`` (K = M: one set per measurement) ``(B, M, N)``, in
-        chunks of particles."""
+        """``log l_m(x) (B, K, N, M)`` of particles ``x (B, K, N, 3)``, measurements ``z (B, M)``, in chunks;
+        with ``own`` (K = M: one set per measurement) ``(B, M, N)``."""
         B, K, N, _ = x.shape
         M = z.shape[1]
         per = max(1, self.sample_chunk // max(1, B * K * (1 if own else M) * 3))
@@ -386,9 +377,8 @@ class BootstrapLocaliser(_Localiser):
 
 
 def _resample(log_w: torch.Tensor, generator) -> torch.Tensor:
-    """Systematic resampling (:func:`torchflow.resampling.systematic`, one uniform per PO) of the
-    particles of every PO, ``log_w (B, K, N)`` -> ``(B, K, N)`` indices; a PO with no positive
-    (or a NaN) weight resamples uniformly."""
+    """Systematic resampling indices ``(B, K, N)`` of every PO's particles, ``log_w (B, K, N)``; a PO
+    with no positive (or a NaN) weight resamples uniformly."""
     B, K, N = log_w.shape
     lw = log_w.reshape(B * K, N)
     ok = torch.isfinite(lw).any(-1, keepdim=True) & ~(torch.isnan(lw) | torch.isposinf(lw)).any(-1, keepdim=True)
@@ -396,17 +386,15 @@ def _resample(log_w: torch.Tensor, generator) -> torch.Tensor:
 
 
 def _legacy_existence(r: torch.Tensor, log_C: torch.Tensor) -> torch.Tensor:
-    """Updated existence ``r C / (r C + 1 - r)`` of legacy POs (both localisers); 0, not 0/0, when
-    ``r = 1`` and ``C = 0``."""
+    """Updated existence ``r C / (r C + 1 - r)`` of legacy POs; 0, not 0/0, when ``r = 1`` and ``C = 0``."""
     rc = r * log_C.exp()
     return torch.where(rc > 0, rc / (rc + 1 - r), torch.zeros_like(rc))
 
 
 def _reduce(log_w: torch.Tensor, means: torch.Tensor, L: torch.Tensor, n: int, generator):
     """Keep ``n`` of the candidate components ``(B, K, C)`` by systematic resampling of their indices
-    (one uniform per PO; a PO with no positive weight draws uniformly); returns ``(log_weights
-    (B, K, n) equal, means, scale_trils)``. (:func:`torchflow.resampling.systematic` draws as many
-    indices as there are weights, here C = G (1 + M) or 125 candidates for n = G.)"""
+    (one uniform per PO; no positive weight: uniform; C = G (1 + M) or 125 candidates, so not
+    :func:`torchflow.resampling.systematic`); returns ``(log_weights (B, K, n) equal, means, scale_trils)``."""
     B, K, C = log_w.shape
     w = torch.softmax(log_w, -1)
     cdf = torch.where(torch.isfinite(w).all(-1, keepdim=True), w, torch.full_like(w, 1.0 / C)).cumsum(-1)

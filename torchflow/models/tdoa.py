@@ -12,10 +12,7 @@ sensor) uniform on the feasible interval ``[-||p_a - p_b|| / c, ||p_a - p_b|| / 
 As a :class:`~torchflow.models.StateSpaceModel`, the sensors are the time steps (:attr:`TDOA3D.n_steps`),
 the state is the static sources ``(3 n,)`` and ``observations (B, S, M)`` are padded with 0 and come
 with a ``mask`` (:class:`TDOAData`): only the localisers of :mod:`torchflow.localisation` run on it.
-
-Defaults (§12.3): six receivers at the centres of the faces of the cube ``[-1000, 1000]^3`` m, the
-nine pairs "+ face with - face", c = 1500 m/s, sigma_v = 0.5 ms, p_d = 0.95, mu_c = 1, three sources
-uniform in the region (UNCONF: the seed's pair list and source count appear only in a figure).
+Defaults: §12.3 (UNCONF: the seed's pair list and source count appear only in a figure).
 """
 from __future__ import annotations
 
@@ -83,6 +80,7 @@ class TDOA3D(StateSpaceModel):
     """
 
     padded_measurements, obs_dim = True, None  # masked measurement sets; only filters declaring the same take them
+    has_positions = True
 
     def __init__(self, receivers: Optional[torch.Tensor] = None, pairs: Optional[Sequence[Sequence[int]]] = None, *,
                  speed: float = 1500.0, sigma_v: float = 5e-4, p_d: float = 0.95, clutter_rate: float = 1.0,
@@ -118,8 +116,7 @@ class TDOA3D(StateSpaceModel):
         return self.pairs.shape[0]
 
     @property
-    def n_steps(self) -> int:
-        """Time steps of a run: one per sensor (the runner takes the step count from here)."""
+    def n_steps(self) -> int:  # one step per sensor (the runner takes the step count from here)
         return self.n_sensors
 
     # ---- the static sources as a state-space model -------------------------------------------
@@ -128,10 +125,6 @@ class TDOA3D(StateSpaceModel):
 
     def transition_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
         return self.receivers.new_zeros(self.state_dim, self.state_dim)
-
-    @property
-    def has_positions(self) -> bool:
-        return True
 
     def positions(self, x: torch.Tensor) -> torch.Tensor:
         """Source positions ``(..., n, 3)`` of states ``(..., 3 n)``."""
