@@ -21,6 +21,7 @@ import csv
 import sys
 from pathlib import Path
 
+from torchflow.runner.figures import pyplot
 from torchflow.runner.sweep import describe_job, job_dirs, job_override_dict, job_status, varying_overrides
 from torchflow.runner.writers import write_csv
 
@@ -29,7 +30,7 @@ DEFAULT_COLUMNS = ["mse", "omat", "ospa", "ess", "g_eff", "log_evidence_relmse",
 
 def collect(sweep_dir: Path, columns=None):
     """Rows ``{overrides..., filter, columns...}`` of every finished job under ``sweep_dir``, the
-    columns, and the jobs without (complete) results: ``{"job", "state" ("failed" | "interrupted" |
+    columns, and the jobs without (complete) results: ``{"name", "state" ("failed" | "interrupted" |
     "missing"), "message", "overrides"}`` (overrides that vary between jobs)."""
     rows, missing, keys = [], [], []
     vary = varying_overrides(job_dirs(sweep_dir))
@@ -39,7 +40,7 @@ def collect(sweep_dir: Path, columns=None):
         state, message = job_status(job)
         summary = job / "summary.csv"
         if state != "done" or not summary.exists():
-            missing.append({"job": job.name, "state": "missing" if state == "done" else state, "message": message,
+            missing.append({"name": job.name, "state": "missing" if state == "done" else state, "message": message,
                             "overrides": vary[job.name]})
         if state not in ("done", "failed") or not summary.exists() or not (job / "results.json").exists():
             continue  # a running job's partial summary.csv is not merged
@@ -52,10 +53,6 @@ def collect(sweep_dir: Path, columns=None):
     cols = ["job", *keys, "filter", "n_particles", "trials", *(columns or DEFAULT_COLUMNS), "error"]
     cols = list(dict.fromkeys(c for c in cols if any(c in r for r in rows) and (c != "error" or any(r.get(c) for r in rows))))
     return rows, cols, missing
-
-
-def describe_missing(m: dict) -> str:
-    return describe_job(m["job"], m["state"], m["message"], m["overrides"])
 
 
 def _se(xs) -> float:
@@ -84,11 +81,9 @@ def plot(rows, keys, spec: str, out_dir: Path) -> Path:
         if not any(name in r for r in rows):
             raise ValueError(f"--plot: no column {name!r}; columns: {sorted({k for r in rows for k in r})}")
     group = [parts[2]] if len(parts) == 3 else [k for k in [*keys, "filter"] if k != x]
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
+    if plt is None:
+        raise ValueError("--plot: needs matplotlib (pip install matplotlib)")
     lines = {}
     for r in rows:
         if r.get(x) in (None, "") or r.get(y) in (None, ""):
@@ -138,7 +133,7 @@ def main(argv=None):
     if not rows:
         print(f"error: sweep_dir: no job in {args.sweep_dir} has results yet:", file=sys.stderr)
         for m in missing:
-            print("  " + describe_missing(m), file=sys.stderr)
+            print("  " + describe_job(**m), file=sys.stderr)
         sys.exit(2)
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
@@ -154,7 +149,7 @@ def main(argv=None):
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)
     for m in missing:  # listed, not dropped silently
-        print(describe_missing(m))
+        print(describe_job(**m))
 
 
 if __name__ == "__main__":

@@ -80,17 +80,15 @@ def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None) -> 
     g = TrialStreams(st.seed, range(s, e), key=f.stream_name, backend=st.rng_backend)
     cb = (lambda n=e - s: bar.update(n)) if bar is not None else None
     mask = {"mask": traj.mask[s:e]} if getattr(traj, "mask", None) is not None else {}
-    cuda = st.device.type == "cuda"
-    if cuda:
-        torch.cuda.synchronize()
+    sync = torch.cuda.synchronize if st.device.type == "cuda" else (lambda: None)
+    sync()
     t0 = time.perf_counter()
     with torch.no_grad(), STOP.interruptible():
         try:
             res = f(traj.observations[s:e], plan.mean0[s:e], plan.cov0[s:e], g, progress=cb, **mask)
         except NonFiniteError as err:  # report trial indices in the whole run
             raise NonFiniteError(name, err.step, [s + i for i in err.trials]) from None
-    if cuda:
-        torch.cuda.synchronize()
+    sync()
     out = {"start": s, "stop": e, "elapsed": time.perf_counter() - t0}
     for key in CHUNK_FIELDS:
         v = getattr(res, key, None)
