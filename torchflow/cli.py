@@ -22,13 +22,19 @@ from pathlib import Path
 from typing import List, Optional
 
 import hydra
+import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import InstantiationException
+from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
-from . import tuning
+from . import __version__, tuning
 from .registry import register_configs
-from .runner import STOP, config as rc, figures, writers
+from .runner import (
+    STOP, SUMMARY_COLUMNS, ChunkStore, Shard, config as rc, figures, fingerprint, format_table, run_experiment, writers,
+)
 from .runner.plan import ConfigError
 
 log = logging.getLogger("torchflow.cli")
@@ -38,9 +44,6 @@ def config_error(e: BaseException) -> Optional[str]:
     """The one-line message of a bad setting: ours, OmegaConf's, or a constructor refusing a value
     (``ValueError`` / ``TypeError`` raised while Hydra builds a model or filter, named by its key);
     ``None`` for anything else (a failure)."""
-    from hydra.errors import InstantiationException
-    from omegaconf.errors import OmegaConfBaseException
-
     if not isinstance(e, InstantiationException):
         return str(e) if isinstance(e, (ConfigError, OmegaConfBaseException)) else None
     cause = e.__cause__ or e.__context__
@@ -51,8 +54,6 @@ def config_error(e: BaseException) -> Optional[str]:
 
 
 def _multirun() -> bool:
-    from hydra.types import RunMode
-
     return HydraConfig.get().mode == RunMode.MULTIRUN
 
 
@@ -115,11 +116,6 @@ def chunk_store(cfg: DictConfig, labels):
     """The run's :class:`~torchflow.runner.checkpoint.ChunkStore` (``None`` with
     ``checkpoint_dir=null``): one folder per filter, named by a fingerprint of everything that
     changes its numbers."""
-    import torch
-
-    import torchflow
-    from .runner.checkpoint import ChunkStore, fingerprint
-
     root, resume = cfg.get("checkpoint_dir"), cfg.get("resume", False)
     if root is None:
         if resume:
@@ -127,7 +123,7 @@ def chunk_store(cfg: DictConfig, labels):
         return None
     common = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
               for k in ("model", "trials", "steps", "seed", "inits_per_track", "device", "dtype", "rng_backend")}
-    common["versions"] = {"torchflow": torchflow.__version__, "torch": torch.__version__}
+    common["versions"] = {"torchflow": __version__, "torch": torch.__version__}
     settings = {labels[k]: dict(common, filter=OmegaConf.to_container(fcfg, resolve=True), label=labels[k])
                 for k, fcfg in cfg.filter.items() if k in labels}  # not the settings of unselected filters
     keys = {label: "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in label) + "-" + fingerprint(s)
@@ -152,8 +148,6 @@ class _Output:
 
 
 def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> int:
-    from .runner import SUMMARY_COLUMNS, format_table, run_experiment
-
     store, writer = chunk_store(cfg, labels), _Output(out)
     trial_range = cfg.get("trial_range")
     result = run_experiment(
@@ -196,8 +190,6 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
 
 def run_job(cfg: DictConfig) -> int:
     """One job: check the config, build, run, write; the exit status."""
-    from .runner.distributed import Shard
-
     rc.check_config(cfg, HydraConfig.get().runtime.choices)
     out = Path(HydraConfig.get().runtime.output_dir)
     knobs = {k: v for k, v in (OmegaConf.to_container(cfg.get("tuning") or {}) or {}).items() if v is not None}

@@ -3,10 +3,13 @@ and of the command line that Hydra itself does not make (one clear line each, no
 from __future__ import annotations
 
 import difflib
+import json
 import os
 import shlex
 from pathlib import Path
 from typing import List, Mapping, Optional, Sequence
+
+from omegaconf import OmegaConf
 
 from .plan import ConfigError, require, check_metric_settings, check_rng_backend, check_seed
 from .writers import RESULT_FILES
@@ -109,8 +112,6 @@ def unknown_keys(cfg: Mapping, known: Mapping, prefix: str = "") -> List[str]:
 def check_config(cfg: Mapping, choices: Mapping[str, Optional[str]]) -> None:
     """What a composed config must satisfy before anything is built: no unknown settings,
     booleans that are booleans, a seed in range, a known random back end, metric settings."""
-    from omegaconf import OmegaConf
-
     known = OmegaConf.load(config_dir() / "config.yaml")
     if choices.get("experiment"):
         known = OmegaConf.merge(known, OmegaConf.load(config_dir() / "experiment" / f"{choices['experiment']}.yaml"))
@@ -129,8 +130,6 @@ def check_config(cfg: Mapping, choices: Mapping[str, Optional[str]]) -> None:
 def remember_command(prog: str, argv: Sequence[str]) -> None:
     """Record how this process was started (the resume hint repeats it; sweep workers of parallel
     launchers inherit the environment)."""
-    import json
-
     os.environ.setdefault(PROG_ENV, prog)
     os.environ.setdefault(ARGV_ENV, json.dumps(list(argv)))
 
@@ -139,8 +138,6 @@ def resume_command(prog: Optional[str] = None, argv: Optional[Sequence[str]] = N
                    env: Optional[Mapping[str, str]] = None) -> str:
     """The command line of this run (all of a sweep's jobs: ``-m`` and every override) with
     ``resume=true``; under torchrun the same number of processes, so the chunks are the same."""
-    import json
-
     env = os.environ if env is None else env
     prog = prog or env.get(PROG_ENV, "torchflow")
     argv = list(argv if argv is not None else json.loads(env.get(ARGV_ENV, "[]")))

@@ -3,10 +3,12 @@
 """
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 from typing import Any, List
 
+import yaml
 from hydra.experimental.callback import Callback
 
 
@@ -23,8 +25,6 @@ def job_status(job: Path) -> tuple:
     a filter failed), ``("done", "")`` (``results.json`` written), ``("interrupted", "")`` (stopped
     by Ctrl-C or SIGTERM; its finished filters are written) or ``("missing", "")`` (no results:
     still running, killed, or never started)."""
-    import json
-
     err, res = Path(job) / "error.txt", Path(job) / "results.json"
     if err.exists():
         lines = [ln for ln in err.read_text().splitlines() if ln.strip()]
@@ -41,8 +41,6 @@ def job_status(job: Path) -> tuple:
 
 def job_override_dict(job: Path) -> dict:
     """``{key: value}`` of one job's overrides (``.hydra/overrides.yaml``; ``experiment=`` left out)."""
-    import yaml
-
     f = Path(job) / ".hydra" / "overrides.yaml"
     overrides = list(yaml.safe_load(f.read_text()) or []) if f.exists() else []
     return dict(o.split("=", 1) for o in overrides if "=" in o and not o.startswith("experiment="))
