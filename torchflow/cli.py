@@ -17,6 +17,7 @@ import logging
 import os
 import signal
 import sys
+import tempfile
 import traceback
 from pathlib import Path
 from typing import List, Optional
@@ -260,31 +261,24 @@ def hydra_main(cfg: DictConfig) -> None:
 OmegaConf.register_new_resolver("tf_pid", lambda: str(os.getpid()), replace=True, use_cache=True)
 
 
-def _quiet_rank_overrides(argv: List[str]) -> List[str]:
-    """Ranks other than 0 of a ``torchrun`` run write no Hydra folder or log (rank 0 does)."""
-    if int(os.environ.get("RANK", "0")) == 0:
-        return argv
-    if any(a in ("-m", "--multirun") for a in argv):
-        raise ConfigError("torchrun runs one job; run a sweep (-m) on a Hydra launcher instead")
-    import tempfile
-
-    return [*argv, f"hydra.run.dir={tempfile.gettempdir()}/torchflow-rank{os.environ['RANK']}-{os.getppid()}",
-            "hydra.output_subdir=null", "hydra/job_logging=disabled", "hydra/hydra_logging=disabled"]
-
-
 def main(argv: Optional[List[str]] = None, prog: str = "torchflow") -> None:
     """The ``torchflow`` command (``argv``: the overrides; default ``sys.argv[1:]``)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     help_only = any(a in ("-h", "--help", "--hydra-help", "--info", "-c", "--cfg", "--version") for a in argv)
+    rank = os.environ.get("RANK", "0")
     try:
         rc.check_selections(argv)
-        if int(os.environ.get("RANK", "0")) == 0 and not help_only:
+        if int(rank) == 0 and not help_only:
             rc.check_output_folder(argv, Path.cwd())
         rc.remember_command(prog, argv)
-        argv = _quiet_rank_overrides(argv)
+        if int(rank) and any(a in ("-m", "--multirun") for a in argv):
+            raise ConfigError("torchrun runs one job; run a sweep (-m) on a Hydra launcher instead")
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
+    if int(rank):  # ranks other than 0 of a torchrun run write no Hydra folder or log (rank 0 does)
+        argv += [f"hydra.run.dir={tempfile.gettempdir()}/torchflow-rank{rank}-{os.getppid()}",
+                 "hydra.output_subdir=null", "hydra/job_logging=disabled", "hydra/hydra_logging=disabled"]
     sys.argv = [sys.argv[0], *argv]
     hydra_main()
 

@@ -54,14 +54,13 @@ class ChunkStore:
 
     Args:
         root: folder of the store (created on first save).
-        keys: ``{filter name: key}`` naming each filter's folder; the key must change with anything
-            that changes its numbers (the command line fingerprints the model's and the filter's
-            config, trials, steps, seed, device, dtype, random back end and versions). Default: the name.
+        keys: ``{filter name: key}`` naming each filter's folder (default: the name); the key must
+            change with anything that changes its numbers (the command line's :func:`fingerprint`).
         resume: load chunks saved earlier; ``False`` computes every chunk and overwrites files.
         settings: ``{filter name: dict}`` written beside the chunks as ``settings.json``.
 
-    ``loaded`` and ``computed`` count chunks per filter in this run, ``reused_trials`` the trials
-    taken from chunks of other boundaries; ``save_error`` says why saving stopped (else ``None``).
+    ``loaded`` and ``computed`` count chunks per filter, ``reused_trials`` the trials taken from
+    chunks of other boundaries; ``save_error`` says why saving stopped (else ``None``).
     """
 
     def __init__(self, root: Union[str, Path], keys: Optional[Mapping[str, str]] = None, *, resume: bool = False,
@@ -79,9 +78,8 @@ class ChunkStore:
         return self.folder(name) / f"{start:07d}-{stop:07d}.pt"
 
     def load(self, name: str, start: int, stop: int, steps: int, meta: Optional[Mapping] = None) -> Optional[dict]:
-        """The saved chunk of trials ``[start, stop)`` of filter ``name``, or ``None`` (not
-        resuming, not saved, or saved with other settings). ``meta``: run settings the file's
-        header must repeat (seed, trials, steps, random stream, dtype, ...), a second guard beside the key."""
+        """The saved chunk of trials ``[start, stop)`` of filter ``name``, or ``None`` (not resuming, not
+        saved, or saved with other settings); ``meta``: run settings the file's header must repeat."""
         path = self._path(name, start, stop)
         if not self.resume or not path.exists():
             return None
@@ -116,8 +114,7 @@ class ChunkStore:
 
     def save_or_warn(self, name: str, start: int, stop: int, chunk: Mapping, meta: Optional[Mapping] = None
                      ) -> Optional[Path]:
-        """:meth:`save`, but a store that cannot write warns once (naming the folder and the
-        reason) and saves nothing more; the run's results do not depend on it."""
+        """:meth:`save`, but a store that cannot write warns once and saves nothing more."""
         if self.save_error is not None:
             return None
         try:

@@ -6,6 +6,7 @@ import difflib
 import json
 import os
 import shlex
+from importlib.resources import files
 from pathlib import Path
 from typing import List, Mapping, Optional, Sequence
 
@@ -31,8 +32,6 @@ def config_source() -> str:
 
 def config_dir() -> Path:
     """The folder holding ``config.yaml`` and the config groups."""
-    from importlib.resources import files
-
     src = config_source()
     return Path(str(files("torchflow.configs"))) if src.startswith("pkg://") else Path(src)
 

@@ -56,10 +56,9 @@ class Shard:
 
     @staticmethod
     def from_env(device: str = "cpu", timeout_minutes: float = 720.0) -> "Shard":
-        """The shard ``torchrun`` describes (``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``), its process
-        group initialised (``Shard()`` outside ``torchrun``); ``device``: the run's (``cuda``: NCCL
-        and this rank's GPU). ``timeout_minutes``: how long a rank waits for the slowest at a
-        filter's gather (torch's 10-30 min defaults would end a long uneven run)."""
+        """The shard ``torchrun`` describes, its process group initialised (``Shard()`` outside
+        ``torchrun``; ``device`` ``cuda``: NCCL and this rank's GPU); ``timeout_minutes``: how long a
+        rank waits for the slowest at a gather (torch's 10-30 min defaults would end long runs)."""
         world = int(os.environ.get("WORLD_SIZE", "1"))
         if world <= 1:
             return Shard()

@@ -118,7 +118,7 @@ def execute(f: Filter, name: str, plan: RunPlan, *, store: Optional[ChunkStore] 
             desc="") -> Outcome:
     """Run ``f`` over this rank's chunks (a tqdm bar on rank 0 with ``progress``) and gather the
     ranks' outcomes: the finished chunks, and the error or interruption."""
-    mine = plan.shard.mine(plan.trial_chunks(name))
+    mine = plan.shard.mine(plan.trial_chunks(plan.chunks[name]))
     bar = tqdm(total=sum(e - s for s, e in mine) * plan.settings.steps, unit="trial-step", leave=False,
                dynamic_ncols=True, desc=desc) if progress and plan.shard.is_main else None
     out, i = Outcome(), -1

@@ -102,11 +102,9 @@ def choose_chunk_size(filters: Mapping[str, Filter], trials: int, memory_budget_
 
 
 def filter_chunk(f: Filter, n_run: int, chunk_size: Optional[int], memory_budget_gb: float) -> int:
-    """A filter's chunk of trials: ``chunk_size`` if given, else the most its memory estimate
-    allows, capped by the filter's preferred batch (local flows slow down past ~1e4 points). When
-    one trial exceeds the budget, a particle filter without ``particle_chunk`` gets one. A filter
-    whose numbers depend on its batch declares ``trials_per_call`` (the localisers: 1), a cap in
-    every case."""
+    """A filter's chunk of trials: ``chunk_size`` if given, else the most its memory estimate allows,
+    capped by its preferred batch (a particle filter whose one trial exceeds the budget gets a
+    ``particle_chunk``); its ``trials_per_call`` (the localisers: 1) caps both."""
     cap = getattr(f, "trials_per_call", None)
     if chunk_size:
         return min(int(chunk_size), cap or int(chunk_size))
@@ -132,7 +130,7 @@ def simulate(model: StateSpaceModel, trials: int, steps: int, inits_per_track: i
 
 @dataclass
 class RunSettings:
-    """The checked arguments of a run (what :func:`check_settings` returns)."""
+    """The checked arguments of a run (:func:`check_settings`); trials ``[lo, hi)`` are run."""
 
     trials: int
     steps: int
@@ -175,10 +173,9 @@ class RunPlan:
     chunks: Dict[str, int]
     shard: Shard = field(default_factory=Shard)
 
-    def trial_chunks(self, name: str) -> List[Tuple[int, int]]:
-        """Filter ``name``'s chunks ``[(start, stop), ...]`` over the run's trial range."""
-        s, c = self.settings, self.chunks[name]
-        return [(a, min(a + c, s.hi)) for a in range(s.lo, s.hi, c)]
+    def trial_chunks(self, size: int) -> List[Tuple[int, int]]:
+        """Chunks ``[(start, stop), ...]`` of ``size`` trials over the run's trial range."""
+        return [(a, min(a + size, self.settings.hi)) for a in range(self.settings.lo, self.settings.hi, size)]
 
     def meta(self, f: Filter) -> dict:
         """What a saved chunk's header must repeat (see :class:`~torchflow.runner.checkpoint.ChunkStore`)."""

@@ -80,9 +80,8 @@ def make_scorer(model: StateSpaceModel, plan: RunPlan, **settings) -> Scorer:
         with torch.no_grad():
             kf = KalmanFilter(model, validate=False)
             c = filter_chunk(kf, s.n_run, s.chunk_size, s.memory_budget_gb)
-            ref = torch.cat([kf(plan.traj.observations[a:min(a + c, s.hi)], plan.mean0[a:min(a + c, s.hi)],
-                                plan.cov0[a:min(a + c, s.hi)]).log_evidence
-                             for a in range(s.lo, s.hi, c)]).double().cpu()
+            ref = torch.cat([kf(plan.traj.observations[a:b], plan.mean0[a:b], plan.cov0[a:b]).log_evidence
+                             for a, b in plan.trial_chunks(c)]).double().cpu()
     return Scorer(model, truth, s.lo, reference_logz=ref, **settings)
 
 

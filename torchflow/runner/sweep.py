@@ -21,10 +21,8 @@ def job_dirs(sweep_dir: Path) -> List[Path]:
 
 
 def job_status(job: Path) -> tuple:
-    """``("failed", last line of error.txt)``, ``("failed", "filter X failed: ...")`` (the job ran,
-    a filter failed), ``("done", "")`` (``results.json`` written), ``("interrupted", "")`` (stopped
-    by Ctrl-C or SIGTERM; its finished filters are written) or ``("missing", "")`` (no results:
-    still running, killed, or never started)."""
+    """``(state, message)``: ``failed`` (the last line of error.txt, or ``filter X failed: ...``),
+    ``done``, ``interrupted`` (Ctrl-C or SIGTERM) or ``missing`` (running, killed, never started)."""
     err, res = Path(job) / "error.txt", Path(job) / "results.json"
     if err.exists():
         lines = [ln for ln in err.read_text().splitlines() if ln.strip()]
@@ -47,8 +45,7 @@ def job_override_dict(job: Path) -> dict:
 
 
 def varying_overrides(jobs: List[Path]) -> dict:
-    """``{job name: {key: value}}`` of the overrides whose value differs between ``jobs``
-    (the ones that tell the jobs apart)."""
+    """``{job name: {key: value}}`` of the overrides whose value differs between ``jobs``."""
     ov = {j.name: job_override_dict(j) for j in jobs}
     keys = list(dict.fromkeys(k for o in ov.values() for k in o))
     vary = [k for k in keys if len({o.get(k) for o in ov.values()}) > 1]
