@@ -3,15 +3,11 @@
     python experiments/collect.py multirun/<label>/<time> [--columns omat,ospa,ess,sec_per_step]
     python experiments/collect.py multirun/<label>/<time> --plot filter.pfgspf.n_components:g_eff
 
-Prints a markdown table (columns: the overrides that vary between jobs, then the summary columns)
-and writes ``sweep_summary.csv`` into the sweep directory. Jobs that failed (``error.txt``) or have
-no results yet are listed under the table with their overrides and error, not dropped silently; a
-job whose filter failed keeps its other rows and shows the failed row's ``error``. It
-reads the job folders of any Hydra launcher (basic, joblib, submitit, ray).
-
-``--plot X:Y[:GROUP]`` also draws Y against X (columns of that table; X numeric), one line per value
-of GROUP (default: every other varying override and the filter), with error bars of one standard
-error over the job's trials (from its ``per_trial.csv``), into ``<sweep_dir>/<Y>_vs_<X>.png``.
+Prints a markdown table (the overrides that vary between jobs, then the summary columns), writes
+``sweep_summary.csv`` into the sweep directory and lists the jobs that failed or have no results
+(any Hydra launcher). ``--plot X:Y[:GROUP]`` also draws Y against X, one line per value of GROUP
+(default: the other varying overrides and the filter), +-1 standard error over the job's trials,
+into ``<sweep_dir>/<Y>_vs_<X>.png``.
 """
 from __future__ import annotations
 

@@ -42,9 +42,8 @@ log = logging.getLogger("torchflow.cli")
 
 
 def config_error(e: BaseException) -> Optional[str]:
-    """The one-line message of a bad setting: ours, OmegaConf's, or a constructor refusing a value
-    (``ValueError`` / ``TypeError`` raised while Hydra builds a model or filter, named by its key);
-    ``None`` for anything else (a failure)."""
+    """The one-line message of a bad setting: ours, OmegaConf's, or a ``ValueError`` / ``TypeError`` of
+    a constructor Hydra calls (named by its key); ``None`` for anything else (a failure)."""
     if not isinstance(e, InstantiationException):
         return str(e) if isinstance(e, (ConfigError, OmegaConfBaseException)) else None
     cause = e.__cause__ or e.__context__
@@ -114,9 +113,8 @@ def build(cfg: DictConfig):
 
 
 def chunk_store(cfg: DictConfig, labels):
-    """The run's :class:`~torchflow.runner.checkpoint.ChunkStore` (``None`` with
-    ``checkpoint_dir=null``): one folder per filter, named by a fingerprint of everything that
-    changes its numbers."""
+    """The run's :class:`~torchflow.runner.ChunkStore` (``None`` with ``checkpoint_dir=null``): one
+    folder per filter, named by a fingerprint of everything that changes its numbers."""
     root, resume = cfg.get("checkpoint_dir"), cfg.get("resume", False)
     if root is None:
         if resume:
@@ -237,8 +235,7 @@ register_configs()  # the signature nodes the component configs extend (at impor
 
 @hydra.main(config_path=rc.config_source(), config_name="config", version_base="1.3")
 def hydra_main(cfg: DictConfig) -> None:
-    """Run one job. A sweep (``-m``) goes on after a failing job (its folder says why); Ctrl-C
-    ends the sweep and prints the command that resumes all of it."""
+    """Run one job; a sweep (``-m``) goes on after a failing job, Ctrl-C ends it (and says how to resume)."""
     STOP.reset()
     try:  # Ctrl-C and SIGTERM (kill, a scheduler's time limit) stop at once inside a chunk, else at the next one
         signal.signal(signal.SIGINT, STOP.handler)

@@ -124,8 +124,7 @@ class _Localiser(nn.Module):
     def stream_name(self) -> str:  # key of the per-run random streams
         return f"localise_{self.method}"
 
-    def bytes_per_trial(self) -> int:
-        """Rough peak memory of one run: a pass of ``sample_chunk`` numbers and its intermediates."""
+    def bytes_per_trial(self) -> int:  # rough peak memory of one run: a pass of sample_chunk numbers
         return 8 * 8 * self.sample_chunk
 
     def preferred_chunk_trials(self) -> int:
@@ -134,10 +133,9 @@ class _Localiser(nn.Module):
     def forward(self, observations: torch.Tensor, mean=None, cov=None, generator=None, *, mask: torch.Tensor,
                 progress=None) -> Localisation:
         """Localise from measurements ``observations (B, S, M)`` with ``mask`` (bool, same shape;
-        :class:`~torchflow.models.TDOAData`), processing the sensors in order. ``generator``: a
-        ``torch.Generator`` or per-run :class:`~torchflow.random.TrialStreams`. ``mean``, ``cov``
-        (the runner's prior per run) are not used: a localiser starts from no PO and its new
-        sources come from its birth density. ``progress``: called after each sensor."""
+        :class:`~torchflow.models.TDOAData`), sensor after sensor. ``generator``: a ``torch.Generator``
+        or per-run :class:`~torchflow.random.TrialStreams`. ``mean``, ``cov`` (the runner's prior) are
+        not used (new sources come from the birth density). ``progress``: called after each sensor."""
         self.model.check_measurements(observations, mask)
         check_generator(generator, "generator")
         W = mask.shape[-1]  # trimmed to the batch's last real column: one read, before the sensors
@@ -203,8 +201,7 @@ class FlowMixtureLocaliser(_Localiser):
         jitter: relative diagonal jitter of the refitted covariances (of the component's prior scale).
         evaluate_at: ``"end"`` (default, ``lambda_l``) or ``"start"`` (``lambda_{l-1}``): where each
             lambda step takes its flow coefficients (:func:`~torchflow.flows.flow_gaussian`, UNCONF).
-        birth_rate, max_objects, prune, declare, bp_iterations, sample_chunk, name: see
-            :class:`_Localiser`.
+        birth_rate, max_objects, prune, declare, bp_iterations, sample_chunk, name: :class:`_Localiser`.
     """
 
     mixture = True  # POs are Gaussian mixtures (with factors)

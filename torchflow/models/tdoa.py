@@ -131,8 +131,7 @@ class TDOA3D(StateSpaceModel):
         return x.reshape(*x.shape[:-1], -1, 3)
 
     def initial_belief(self, states0: torch.Tensor, generator=None):
-        """Moments of the uniform prior on the region, ``(B, 3 n)`` and ``(B, 3 n, 3 n)`` (no draw):
-        the localisers start from no potential object, and new sources come from their birth density."""
+        """Moments of the uniform prior on the region, ``(B, 3 n)`` and ``(B, 3 n, 3 n)`` (no draw)."""
         B, d = states0.shape
         cov = torch.eye(d, dtype=states0.dtype, device=states0.device) * (self.region ** 2 / 3)
         return states0.new_zeros(B, d), cov.expand(B, d, d)
@@ -168,8 +167,7 @@ class TDOA3D(StateSpaceModel):
         return -0.5 * r * r - torch.log(torch.as_tensor(self.sigma_v * (2 * torch.pi) ** 0.5, dtype=x.dtype))
 
     def gaussian_measurement(self, z: torch.Tensor, sensor) -> GaussianMeasurement:
-        """The flows' measurement term of scalar TDOAs ``z (R,)`` of sensor s, one per batch row
-        (rows: runs x components x measurements flattened)."""
+        """The flows' measurement term of scalar TDOAs ``z (R,)`` of sensor s, one per batch row."""
         def linearise(points, support=False, scale=None):
             h, H = self.measure(points, sensor).unsqueeze(-1), self.jacobian(points, sensor).unsqueeze(-2)
             return (h, H) if scale is None else (h * scale, H * scale)
@@ -188,9 +186,8 @@ class TDOA3D(StateSpaceModel):
 
     def simulate(self, batch_size: int, steps: Optional[int] = None, generator: Optional[torch.Generator] = None
                  ) -> TDOAData:
-        """``batch_size`` independent scenes: sources uniform in the region, detections, clutter,
-        noise; each sensor's measurements in random order, padded to the largest count. The runs are
-        drawn together, so a scene depends on ``batch_size``. ``steps``: ``None`` or :attr:`n_steps`."""
+        """``batch_size`` scenes drawn together (a scene depends on ``batch_size``), each sensor's
+        measurements in random order, padded to the largest count. ``steps``: ``None`` or :attr:`n_steps`."""
         if steps is not None and steps != self.n_steps:
             raise ValueError(f"steps: TDOA3D has one step per sensor; expected None or {self.n_steps}, got {steps!r}")
         B, _ = self.check_simulate_args(batch_size, self.n_steps, generator)

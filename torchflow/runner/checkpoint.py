@@ -1,4 +1,4 @@
-"""Per-chunk results on disk, so a killed run can be resumed (README, "Resumable runs"). Layout::
+"""Per-chunk results on disk, so a killed run can be resumed (README, "Resumable runs")::
 
     <root>/<key>/settings.json          what the key (a :func:`fingerprint`) was made of (for people)
     <root>/<key>/<start>-<stop>.pt       trials [start, stop): estimates, log-evidence, ESS, ...

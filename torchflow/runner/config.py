@@ -43,9 +43,8 @@ def group_options(group: str) -> Optional[List[str]]:
 
 
 def check_selections(argv: Sequence[str]) -> None:
-    """Refuse unknown config names in group selections (``filter=[a,b]``, ``model=x``,
-    ``flow@filter.pfpf_ledh.flow=edh``, sweeps ``filter=a,b``) with the list of valid names,
-    before Hydra composes anything."""
+    """Refuse unknown config names in group selections (``filter=[a,b]``, ``model=x``, ``flow@...=edh``,
+    sweeps ``filter=a,b``) with the list of valid names, before Hydra composes anything."""
     for arg in argv:
         if "=" not in arg or arg.startswith(("hydra.", "-")):
             continue
@@ -127,8 +126,7 @@ def check_config(cfg: Mapping, choices: Mapping[str, Optional[str]]) -> None:
 
 
 def remember_command(prog: str, argv: Sequence[str]) -> None:
-    """Record how this process was started (the resume hint repeats it; sweep workers of parallel
-    launchers inherit the environment)."""
+    """Record how this process was started, for the resume hint (sweep workers inherit it)."""
     os.environ.setdefault(PROG_ENV, prog)
     os.environ.setdefault(ARGV_ENV, json.dumps(list(argv)))
 

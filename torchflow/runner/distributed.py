@@ -14,8 +14,7 @@ import torch.distributed as dist
 
 @dataclass
 class Shard:
-    """This process's ``rank`` (0 .. ``world`` - 1) of ``world`` processes; ``local_rank`` on its node
-    (picks the GPU)."""
+    """This process's ``rank`` (0 .. ``world`` - 1) of ``world``; ``local_rank`` on its node (its GPU)."""
 
     rank: int = 0
     world: int = 1

@@ -1,7 +1,5 @@
-"""``run_experiment``: plan -> execute -> score. Executing a plan runs every filter over its chunks of
-trials, with stop requests, checkpoints and shards; a filter that raises does not stop the run: its
-outcome carries the error (and where it happened), the traceback goes to the ``torchflow.runner``
-logger, and the next filter runs.
+"""``run_experiment``: plan -> execute (every filter over its chunks of trials, with stop requests,
+checkpoints and shards; a failing filter's traceback goes to the ``torchflow.runner`` log) -> score.
 """
 from __future__ import annotations
 
@@ -116,8 +114,7 @@ def _one_chunk(f, name, plan, s, e, store, bar) -> dict:
 
 def execute(f: Filter, name: str, plan: RunPlan, *, store: Optional[ChunkStore] = None, progress=False,
             desc="") -> Outcome:
-    """Run ``f`` over this rank's chunks (a tqdm bar on rank 0 with ``progress``) and gather the
-    ranks' outcomes: the finished chunks, and the error or interruption."""
+    """Run ``f`` over this rank's chunks (a tqdm bar on rank 0 with ``progress``); the ranks' outcome."""
     mine = plan.shard.mine(plan.trial_chunks(plan.chunks[name]))
     bar = tqdm(total=sum(e - s for s, e in mine) * plan.settings.steps, unit="trial-step", leave=False,
                dynamic_ncols=True, desc=desc) if progress and plan.shard.is_main else None
@@ -194,8 +191,8 @@ def run_experiment(
         out = execute(f, name, plan, store=store, progress=progress, desc=f"[{i + 1}/{len(filters)}] {name}")
         res.interrupted = out.interrupted
         if plan.shard.is_main:
-            row = {c: None for c in SUMMARY_COLUMNS}
-            row.update(filter=name, n_particles=getattr(f, "n_particles", None), trials=s.n_run, steps=s.steps)
+            row = {**dict.fromkeys(SUMMARY_COLUMNS), "filter": name, "n_particles": getattr(f, "n_particles", None),
+                   "trials": s.n_run, "steps": s.steps}
             res.summary.append(row)
             if out.interrupted:
                 row["error"] = f"interrupted after {sum(c['stop'] - c['start'] for c in out.chunks)} of {s.n_run} trials"

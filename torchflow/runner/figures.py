@@ -1,8 +1,5 @@
-"""Pictures of a run (matplotlib is optional: :func:`pyplot` returns ``None`` without it).
-
-Each ``*_figure`` takes ``plt`` (``matplotlib.pyplot``) and returns a figure, or ``None`` when
-the run has nothing to draw; :func:`save_run_figures` writes the ones that apply. A filter keeps
-one colour on every panel and picture (:func:`colours`).
+"""Pictures of a run (matplotlib is optional: :func:`pyplot`). Each ``*_figure`` takes ``plt`` and
+returns a figure (``None``: nothing to draw); a filter keeps one colour everywhere (:func:`colours`).
 """
 from __future__ import annotations
 
@@ -44,9 +41,8 @@ def _finish(fig, ax, title: str, **legend):
 
 
 def per_step_figure(plt, per_step, summary, title: str):
-    """Per-step metric means, one panel per metric and one legend for all. ESS is drawn as a
-    fraction of each filter's N (filters of different N share the axis; a log axis below 0.1); a
-    panel says which filters have no value there."""
+    """Per-step metric means, one panel per metric, one legend; ESS as a fraction of each filter's N
+    (a log axis below 0.1); a panel names the filters that have no value there."""
     keys = [k for k in ("omat", "ospa", "mse", "ess") if any(k in r for r in per_step)]
     if not keys:
         return None
@@ -82,8 +78,7 @@ def per_step_figure(plt, per_step, summary, title: str):
 
 
 def tracks_figure(plt, model, trajectory, examples, summary, title: str):
-    """Trial 0 of a tracking model: sensors, true tracks (start marked) and each filter's
-    estimated tracks in the filter's colour. ``None`` without estimates."""
+    """Trial 0 of a tracking model: sensors, true tracks (start marked) and each filter's estimates."""
     if not examples:
         return None
     colour = colours(summary)

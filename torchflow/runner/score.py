@@ -33,9 +33,8 @@ class ExperimentResult:
         config: the run's settings (chunk sizes, particle chunks, seed, device, ...).
         examples: ``{filter: (T, d)}`` estimates of trial 0 (for the track picture; localisers: the
             declared sources ``(k, 3)``).
-        interrupted: the run was stopped (Ctrl-C); the rows hold what finished, the interrupted
-            filter's row says so in ``error``.
-        not_run: filters that did not start because of the interruption.
+        interrupted: the run was stopped (Ctrl-C): the interrupted filter's row says so in ``error``;
+            ``not_run``: the filters that did not start.
         failures: ``{filter: "chunk i of n (trials a..b)"}``: where each failed filter failed
             (its row's ``error`` says what; the traceback is in the ``torchflow.runner`` log).
     """
@@ -95,10 +94,9 @@ def _per_step(name: str, cols: Dict[str, torch.Tensor], steps: int) -> List[dict
 
 
 def score_sets(sc: Scorer, name: str, row: dict, chunks: List[dict], steps: int):
-    """:func:`score_filter` of a filter whose estimates are sets (the localisers): ``estimates (B, T,
-    K, 3)`` with ``estimate_mask``, scored by OSPA against the model's positions and the declared
-    count after each step; a trial's value is the last step's (the answer of a localisation). The
-    measurements whose every weight underflowed (``underflow``) are counted and named in a warning."""
+    """:func:`score_filter` of the localisers (sets ``estimates (B, T, K, 3)`` with ``estimate_mask``):
+    OSPA and the declared count after each step, a trial's value the last step's; the measurements
+    whose every weight underflowed (``underflow``) are counted and named in a warning."""
     est, mask, under = _cat(chunks, "estimates"), _cat(chunks, "estimate_mask"), _cat(chunks, "underflow")
     cols = {"ospa": metrics.ospa(est, sc.model.positions(sc.truth), cutoff=sc.ospa_cutoff, order=sc.ospa_order,
                                  X_mask=mask), "declared": mask.sum(-1).double()}

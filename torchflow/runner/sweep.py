@@ -13,11 +13,8 @@ from hydra.experimental.callback import Callback
 
 
 def job_dirs(sweep_dir: Path) -> List[Path]:
-    """A sweep's job folders (named by job number), in job order."""
-    sweep_dir = Path(sweep_dir)
-    if not sweep_dir.is_dir():
-        return []
-    return sorted((p for p in sweep_dir.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))
+    """A sweep's job folders (named by job number), in job order (none if ``sweep_dir`` is not a folder)."""
+    return sorted((p for p in Path(sweep_dir).glob("*") if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))
 
 
 def job_status(job: Path) -> tuple:
@@ -64,11 +61,7 @@ def describe_job(name: str, state: str, message: str, overrides: dict) -> str:
 
 
 class SweepReport(Callback):
-    """Hydra callback: after a multirun, list failed and missing jobs (with their overrides and
-    error) and exit with status 1 if any job failed."""
-
-    def __init__(self, exit_on_failure: bool = True):
-        self.exit_on_failure = exit_on_failure
+    """Hydra callback: after a multirun, list the failed and missing jobs; exit status 1 if any failed."""
 
     def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
         sweep = Path(str(config.hydra.sweep.dir))
@@ -82,5 +75,5 @@ class SweepReport(Callback):
             print("  " + describe_job(n, state, msg, vary[n]), file=sys.stderr)
         if bad:
             print(f"  merge what finished: python experiments/collect.py {sweep}", file=sys.stderr)
-        if self.exit_on_failure and count["failed"]:
+        if count["failed"]:
             sys.exit(1)

@@ -58,9 +58,7 @@ def write_run(out: Path, result, config: Mapping) -> List[Path]:
                 "failed": {n: result.failures.get(n) for n in result.failed}}, indent=2))]
 
 
-def clear_results(out: Path) -> List[str]:
-    """Remove the files a run writes (:data:`RESULT_FILES`) from ``out``; the names removed."""
-    gone = [name for name in RESULT_FILES if (Path(out) / name).exists()]
-    for name in gone:
-        (Path(out) / name).unlink()
-    return gone
+def clear_results(out: Path) -> None:
+    """Remove the files a run writes (:data:`RESULT_FILES`) from ``out``."""
+    for name in RESULT_FILES:
+        (Path(out) / name).unlink(missing_ok=True)
