@@ -3,53 +3,47 @@
     python experiments/collect.py multirun/<label>/<time> [--columns omat,ospa,ess,sec_per_step]
     python experiments/collect.py multirun/<label>/<time> --plot filter.pfgspf.n_components:g_eff
 
-Prints a markdown table (columns: the overrides that vary between jobs, then the summary columns)
-and writes ``sweep_summary.csv`` into the sweep directory. Jobs that failed (``error.txt``) or have
-no results yet are listed under the table with their overrides and error, not dropped silently; a
-job whose filter failed keeps its other rows and shows the failed row's ``error``. It
-reads the job folders of any Hydra launcher (basic, joblib, submitit, ray).
-
-``--plot X:Y[:GROUP]`` also draws Y against X (columns of that table; X numeric), one line per value
-of GROUP (default: every other varying override and the filter), with error bars of one standard
-error over the job's trials (from its ``per_trial.csv``), into ``<sweep_dir>/<Y>_vs_<X>.png``.
+Prints a markdown table (the overrides that vary between jobs, then the summary columns), writes
+``sweep_summary.csv`` into the sweep directory and lists the jobs that failed or have no results
+(any Hydra launcher). ``--plot X:Y[:GROUP]`` also draws Y against X, one line per value of GROUP
+(default: the other varying overrides and the filter), +-1 standard error over the job's trials,
+into ``<sweep_dir>/<Y>_vs_<X>.png``.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import sys
 from pathlib import Path
 
+from torchflow.runner.figures import pyplot
 from torchflow.runner.sweep import describe_job, job_dirs, job_override_dict, job_status, varying_overrides
+from torchflow.runner.writers import write_csv
 
 DEFAULT_COLUMNS = ["mse", "omat", "ospa", "ess", "g_eff", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step"]
 
 
 def collect(sweep_dir: Path, columns=None):
     """Rows ``{overrides..., filter, columns...}`` of every finished job under ``sweep_dir``, the
-    columns, and the jobs without (complete) results: ``{"job", "state" ("failed" | "interrupted" |
+    columns, and the jobs without (complete) results: ``{"name", "state" ("failed" | "interrupted" |
     "missing"), "message", "overrides"}`` (overrides that vary between jobs)."""
     rows, missing, keys = [], [], []
+    vary = varying_overrides(job_dirs(sweep_dir))
     for job in job_dirs(sweep_dir):
         ov = job_override_dict(job)
         keys += [k for k in ov if k not in keys]
         state, message = job_status(job)
         summary = job / "summary.csv"
-        finished = (job / "results.json").exists() and summary.exists()  # a running job's partial file is not merged
-        if state != "done":
-            missing.append({"job": job.name, "state": state, "message": message})
-        elif not summary.exists():
-            missing.append({"job": job.name, "state": "missing", "message": message})
-        if not finished or state not in ("done", "failed"):
-            continue
+        if state != "done" or not summary.exists():
+            missing.append({"name": job.name, "state": "missing" if state == "done" else state, "message": message,
+                            "overrides": vary[job.name]})
+        if state not in ("done", "failed") or not summary.exists() or not (job / "results.json").exists():
+            continue  # a running job's partial summary.csv is not merged
         se = _trial_standard_errors(job / "per_trial.csv")
         with open(summary) as fh:
-            for r in csv.DictReader(fh):
-                rows.append({"job": job.name, **ov, **r,
-                             **{f"{k}_se": v for k, v in se.get(r.get("filter"), {}).items()}})
-    vary = varying_overrides(job_dirs(sweep_dir))
-    for m in missing:
-        m["overrides"] = vary[m["job"]]
+            rows += [{"job": job.name, **ov, **r, **{f"{k}_se": v for k, v in se.get(r.get("filter"), {}).items()}}
+                     for r in csv.DictReader(fh)]
     # overrides shared by every job describe the sweep, not a row: keep only those that vary
     keys = [k for k in keys if len({r.get(k) for r in rows}) > 1]
     cols = ["job", *keys, "filter", "n_particles", "trials", *(columns or DEFAULT_COLUMNS), "error"]
@@ -57,30 +51,20 @@ def collect(sweep_dir: Path, columns=None):
     return rows, cols, missing
 
 
-def describe_missing(m: dict) -> str:
-    return describe_job(m["job"], m["state"], m["message"], m["overrides"])
+def _se(xs) -> float:
+    m = sum(xs) / len(xs)
+    return (sum((x - m) ** 2 for x in xs) / (len(xs) - 1) / len(xs)) ** 0.5
 
 
 def _trial_standard_errors(path: Path) -> dict:
     """``{filter: {column: standard error of the mean over trials}}`` from a job's ``per_trial.csv``."""
-    if not path.exists():
-        return {}
     per = {}
-    with open(path) as fh:
+    with open(path) if path.exists() else contextlib.nullcontext([]) as fh:
         for r in csv.DictReader(fh):
             for k, v in r.items():
-                try:
+                with contextlib.suppress(TypeError, ValueError):
                     per.setdefault(r["filter"], {}).setdefault(k, []).append(float(v))
-                except (TypeError, ValueError):
-                    pass
-    out = {}
-    for f, cols in per.items():
-        for k, xs in cols.items():
-            n = len(xs)
-            if n > 1 and k != "trial":
-                m = sum(xs) / n
-                out.setdefault(f, {})[k] = (sum((x - m) ** 2 for x in xs) / (n - 1) / n) ** 0.5
-    return out
+    return {f: {k: _se(xs) for k, xs in cols.items() if len(xs) > 1 and k != "trial"} for f, cols in per.items()}
 
 
 def plot(rows, keys, spec: str, out_dir: Path) -> Path:
@@ -93,11 +77,9 @@ def plot(rows, keys, spec: str, out_dir: Path) -> Path:
         if not any(name in r for r in rows):
             raise ValueError(f"--plot: no column {name!r}; columns: {sorted({k for r in rows for k in r})}")
     group = [parts[2]] if len(parts) == 3 else [k for k in [*keys, "filter"] if k != x]
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
+    if plt is None:
+        raise ValueError("--plot: needs matplotlib (pip install matplotlib)")
     lines = {}
     for r in rows:
         if r.get(x) in (None, "") or r.get(y) in (None, ""):
@@ -147,16 +129,13 @@ def main(argv=None):
     if not rows:
         print(f"error: sweep_dir: no job in {args.sweep_dir} has results yet:", file=sys.stderr)
         for m in missing:
-            print("  " + describe_missing(m), file=sys.stderr)
+            print("  " + describe_job(**m), file=sys.stderr)
         sys.exit(2)
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
     for r in rows:
         print("| " + " | ".join(_fmt(r.get(c)) for c in cols) + " |")
-    with open(args.sweep_dir / "sweep_summary.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore")
-        w.writeheader()
-        w.writerows(rows)
+    write_csv(args.sweep_dir / "sweep_summary.csv", rows, cols)
     if args.plot:
         varying = [c for c in cols if c not in ("job", "filter", "n_particles", "trials") and c not in
                    (*DEFAULT_COLUMNS, *(args.columns.split(",") if args.columns else []))]
@@ -166,7 +145,7 @@ def main(argv=None):
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)
     for m in missing:  # listed, not dropped silently
-        print(describe_missing(m))
+        print(describe_job(**m))
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ from torchflow.experiment import SUMMARY_COLUMNS, choose_chunk_size, format_tabl
 from torchflow.filters import BootstrapParticleFilter, ExtendedKalmanFilter, Filter, KalmanFilter, UnscentedKalmanFilter
 from torchflow.models import AcousticTracking, SensorNetwork
 from torchflow.runner import figures
-from torchflow.runner.labels import row_label
+from torchflow.cli import row_label
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -523,7 +523,7 @@ def test_check_config_refuses_values_that_mean_nothing():
     from hydra import compose, initialize_config_dir
 
     from torchflow.runner.config import check_config
-    from torchflow.runner.errors import ConfigError
+    from torchflow.runner import ConfigError
 
     cases = {"plots=no": "plots: expected true or false, got 'no'",
              "metrics.lost_threshold=-1": "metrics.lost_threshold: expected a positive number of metres, got -1",

@@ -5,12 +5,10 @@
     torchflow experiment=seed000_table1                        # a paper table
     torchflow -m 'filter=[bpf]' n_particles=100,1000           # sweep; one folder per job
 
-(``python -m torchflow`` and, in a checkout, ``python experiments/run.py`` are the same command.)
-Writes ``summary.csv``, ``per_step.csv``, ``per_trial.csv``, ``results.json``, ``run.log`` and
-(with matplotlib) ``per_step.png`` into Hydra's output folder and prints the summary table.
-
-Exit status: 0 done; 1 a filter failed, or the results could not be written; 2 a configuration
-error (one line); 130 interrupted (Ctrl-C, SIGTERM). Any other error keeps its traceback.
+(``python -m torchflow`` and ``python experiments/run.py`` are the same command.) Writes the result
+files (:mod:`torchflow.runner.writers`), ``run.log`` and figures into Hydra's output folder. Exit
+status: 0 done; 1 a filter failed, or the results could not be written; 2 a configuration error
+(one line); 130 interrupted (Ctrl-C, SIGTERM). Any other error keeps its traceback.
 """
 from __future__ import annotations
 
@@ -19,50 +17,82 @@ import logging
 import os
 import signal
 import sys
+import tempfile
 import traceback
 from pathlib import Path
 from typing import List, Optional
 
 import hydra
+import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import InstantiationException
+from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
-from . import tuning
+from . import __version__, tuning
 from .registry import register_configs
-from .runner import STOP, config as rc, figures, writers
-from .runner.errors import ConfigError
-from .runner.labels import row_label
+from .runner import (
+    STOP, SUMMARY_COLUMNS, ChunkStore, Shard, config as rc, figures, fingerprint, format_table, run_experiment, writers,
+)
+from .runner.plan import ConfigError
 
 log = logging.getLogger("torchflow.cli")
 
 
-def reason(e: BaseException) -> str:
-    """The message of the error that caused ``e`` (Hydra wraps constructor errors)."""
-    from hydra.errors import InstantiationException
-
-    cause = (e.__cause__ or e.__context__) if isinstance(e, InstantiationException) else None
-    if cause is None:
-        return str(e)
+def config_error(e: BaseException) -> Optional[str]:
+    """The one-line message of a bad setting: ours, OmegaConf's, or a ``ValueError`` / ``TypeError`` of
+    a constructor Hydra calls (named by its key); ``None`` for anything else (a failure)."""
+    if not isinstance(e, InstantiationException):
+        return str(e) if isinstance(e, (ConfigError, OmegaConfBaseException)) else None
+    cause = e.__cause__ or e.__context__
+    if not isinstance(cause, (ValueError, TypeError)):
+        return None
     key = [ln.split(":", 1)[1].strip() + ": " for ln in str(e).splitlines() if ln.startswith("full_key:")]
     return (key[-1] if key else "") + str(cause).strip("'\"")
 
 
-def is_config_error(e: BaseException) -> bool:
-    """A bad setting: ours, OmegaConf's, or a constructor refusing a value (``ValueError`` /
-    ``TypeError`` raised while Hydra builds a model or filter). Anything else is a failure."""
-    from hydra.errors import InstantiationException
-    from omegaconf.errors import OmegaConfBaseException
-
-    if isinstance(e, InstantiationException):
-        return isinstance(e.__cause__ or e.__context__, (ValueError, TypeError))
-    return isinstance(e, (ConfigError, OmegaConfBaseException))
-
-
 def _multirun() -> bool:
-    from hydra.types import RunMode
-
     return HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+_FLOW_NAMES = {"EDHFlow": "edh", "LEDHFlow": "ledh", "GeodesicFlow": "geodesic", "GromovFlow": "gromov",
+               "OptimalDiffusionFlow": "osd"}
+
+
+def flow_label(flow) -> str:
+    """Config-style name of a flow: ``ledh``, ``gromov``; ``_global`` for a per-trial linearisation
+    of a flow that is per particle by default."""
+    name = _FLOW_NAMES.get(type(flow).__name__, type(flow).__name__)
+    if name not in ("edh", "ledh") and getattr(flow, "points", "particle") != "particle":
+        name += "_global"
+    return name
+
+
+def row_label(key: str, f) -> str:
+    """A result row's label: the config key, plus the flow and linearisation points it really ran
+    when an override made the key's name wrong (``pfpf_ledh`` run with
+    ``flow@filter.pfpf_ledh.flow=edh`` -> ``pfpf_ledh[flow=edh]``; with
+    ``filter.pfpf_ledh.points=global`` -> ``pfpf_ledh[points=global]``); Gaussian-sum filters: the
+    seed's N* x G label too (``gspf[10x2]``)."""
+    flow, gs, words = getattr(f, "flow", None), hasattr(f, "n_components"), key.split("_")
+    if hasattr(f, "method") or (flow is None and not gs):  # TDOA localisers: the key names the method
+        return key
+    fl = None if flow is None else flow_label(flow)
+    named = [n for n in sorted(set(_FLOW_NAMES.values()), key=len, reverse=True) if n in words]
+    if gs:  # the "pf" Gaussian-sum filters run LEDH, the others no flow
+        expected = "ledh" if key.startswith("pf") else None
+    else:  # the flow the key names; a key naming none (pfpf_clustered) runs LEDH by default
+        expected = named[0] if named else "ledh"
+    tags = [f"{f.particles_per_component}x{f.n_components}"] if gs else []
+    tags += [] if fl == expected else [f"flow={fl}"]
+    if gs and getattr(f, "estimate", "mixture_mean") != "mixture_mean":
+        tags.append(f"estimate={f.estimate}")
+    points = None if gs else getattr(getattr(f, "points", None), "name", None)
+    if points is not None and points != ("clustered" if "clustered" in words else flow.points):
+        tags.append(f"points={points}")
+    return f"{key}[{','.join(tags)}]" if tags else key
 
 
 def build(cfg: DictConfig):
@@ -83,14 +113,8 @@ def build(cfg: DictConfig):
 
 
 def chunk_store(cfg: DictConfig, labels):
-    """The run's :class:`~torchflow.runner.checkpoint.ChunkStore` (``None`` with
-    ``checkpoint_dir=null``): one folder per filter, named by a fingerprint of everything that
-    changes its numbers."""
-    import torch
-
-    import torchflow
-    from .runner.checkpoint import ChunkStore, fingerprint
-
+    """The run's :class:`~torchflow.runner.ChunkStore` (``None`` with ``checkpoint_dir=null``): one
+    folder per filter, named by a fingerprint of everything that changes its numbers."""
     root, resume = cfg.get("checkpoint_dir"), cfg.get("resume", False)
     if root is None:
         if resume:
@@ -98,7 +122,7 @@ def chunk_store(cfg: DictConfig, labels):
         return None
     common = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
               for k in ("model", "trials", "steps", "seed", "inits_per_track", "device", "dtype", "rng_backend")}
-    common["versions"] = {"torchflow": torchflow.__version__, "torch": torch.__version__}
+    common["versions"] = {"torchflow": __version__, "torch": torch.__version__}
     settings = {labels[k]: dict(common, filter=OmegaConf.to_container(fcfg, resolve=True), label=labels[k])
                 for k, fcfg in cfg.filter.items() if k in labels}  # not the settings of unselected filters
     keys = {label: "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in label) + "-" + fingerprint(s)
@@ -107,25 +131,22 @@ def chunk_store(cfg: DictConfig, labels):
 
 
 class _Output:
-    """Writes into the run's folder; a failed write (read-only folder, full disk) is reported
-    once, in one line, and turns the exit status to 1; the run goes on."""
+    """Writes into the run's folder: the first failed write (read-only folder, full disk) is reported
+    in one line and turns the exit status to 1; nothing more is written, the run goes on."""
 
     def __init__(self, out: Path):
         self.out, self.failed = out, None
 
     def attempt(self, what: str, write, *args) -> None:
-        if self.failed is not None:
-            return
         try:
-            write(*args)
+            if self.failed is None:
+                write(*args)
         except OSError as e:
             self.failed = f"cannot write {what} into {self.out} ({type(e).__name__}: {e.strerror or e})"
             log.error(f"error: {self.failed}")
 
 
 def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> int:
-    from .runner import SUMMARY_COLUMNS, format_table, run_experiment
-
     store, writer = chunk_store(cfg, labels), _Output(out)
     trial_range = cfg.get("trial_range")
     result = run_experiment(
@@ -168,8 +189,6 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
 
 def run_job(cfg: DictConfig) -> int:
     """One job: check the config, build, run, write; the exit status."""
-    from .runner.distributed import Shard
-
     rc.check_config(cfg, HydraConfig.get().runtime.choices)
     out = Path(HydraConfig.get().runtime.output_dir)
     knobs = {k: v for k, v in (OmegaConf.to_container(cfg.get("tuning") or {}) or {}).items() if v is not None}
@@ -196,14 +215,13 @@ def _job(cfg: DictConfig) -> int:
                     "finished, if any) was written")
         return 130
     except Exception as e:  # noqa: BLE001 - configuration errors: one line; anything else: its traceback
-        if is_config_error(e):
-            message = f"error: {reason(e)}"
+        bad = config_error(e)
+        if bad is not None:
+            message, code = f"error: {bad}", 2
             log.error(message + (" (job failed; the sweep goes on)" if _multirun() else ""))
-            code = 2
         else:
-            message = traceback.format_exc()
+            message, code = traceback.format_exc(), 1
             log.error(f"error: {type(e).__name__}: {e}\n{message.rstrip()}")
-            code = 1
         if _multirun():  # the job's error.txt (collect and the end-of-sweep report name it); the sweep goes on
             out = Path(HydraConfig.get().runtime.output_dir)
             with contextlib.suppress(OSError):
@@ -217,8 +235,7 @@ register_configs()  # the signature nodes the component configs extend (at impor
 
 @hydra.main(config_path=rc.config_source(), config_name="config", version_base="1.3")
 def hydra_main(cfg: DictConfig) -> None:
-    """Run one job. A sweep (``-m``) goes on after a failing job (its folder says why); Ctrl-C
-    ends the sweep and prints the command that resumes all of it."""
+    """Run one job; a sweep (``-m``) goes on after a failing job, Ctrl-C ends it (and says how to resume)."""
     STOP.reset()
     try:  # Ctrl-C and SIGTERM (kill, a scheduler's time limit) stop at once inside a chunk, else at the next one
         signal.signal(signal.SIGINT, STOP.handler)
@@ -241,33 +258,26 @@ def hydra_main(cfg: DictConfig) -> None:
 OmegaConf.register_new_resolver("tf_pid", lambda: str(os.getpid()), replace=True, use_cache=True)
 
 
-def _quiet_rank_overrides(argv: List[str]) -> List[str]:
-    """Ranks other than 0 of a ``torchrun`` run write no Hydra folder or log (rank 0 does)."""
-    if int(os.environ.get("RANK", "0")) == 0:
-        return argv
-    if any(a in ("-m", "--multirun") for a in argv):
-        raise ConfigError("torchrun runs one job; run a sweep (-m) on a Hydra launcher instead")
-    import tempfile
-
-    return [*argv, f"hydra.run.dir={tempfile.gettempdir()}/torchflow-rank{os.environ['RANK']}-{os.getppid()}",
-            "hydra.output_subdir=null", "hydra/job_logging=disabled", "hydra/hydra_logging=disabled"]
-
-
 def main(argv: Optional[List[str]] = None, prog: str = "torchflow") -> None:
     """The ``torchflow`` command (``argv``: the overrides; default ``sys.argv[1:]``)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     help_only = any(a in ("-h", "--help", "--hydra-help", "--info", "-c", "--cfg", "--version") for a in argv)
+    rank = os.environ.get("RANK", "0")
     try:
         rc.check_selections(argv)
-        if int(os.environ.get("RANK", "0")) == 0 and not help_only:
+        if int(rank) == 0 and not help_only:
             rc.check_output_folder(argv, Path.cwd())
         rc.remember_command(prog, argv)
-        argv = _quiet_rank_overrides(argv)
+        if int(rank) and any(a in ("-m", "--multirun") for a in argv):
+            raise ConfigError("torchrun runs one job; run a sweep (-m) on a Hydra launcher instead")
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
+    if int(rank):  # ranks other than 0 of a torchrun run write no Hydra folder or log (rank 0 does)
+        argv += [f"hydra.run.dir={tempfile.gettempdir()}/torchflow-rank{rank}-{os.getppid()}",
+                 "hydra.output_subdir=null", "hydra/job_logging=disabled", "hydra/hydra_logging=disabled"]
     sys.argv = [sys.argv[0], *argv]
     hydra_main()
 
 
-__all__ = ["main", "run_job", "reason", "is_config_error"]
+__all__ = ["main", "run_job", "config_error"]

@@ -3,16 +3,15 @@ from __future__ import annotations
 
 from .runner import (  # noqa: F401
     STOP, SUMMARY_COLUMNS, ExperimentResult, StopRequest, choose_chunk_size, format_table, resolve_device,
-    resolve_dtype,
+    resolve_dtype, run_experiment as _run,
 )
-from .runner import experiment as _runner
 from .runner.plan import simulate as _simulate  # noqa: F401 - replaceable here (benchmarks give their own data)
 
 
 def run_experiment(model, filters, **kwargs):
     """:func:`torchflow.runner.run_experiment`; simulates with this module's ``_simulate``."""
     kwargs.setdefault("simulator", _simulate)
-    return _runner.run_experiment(model, filters, **kwargs)
+    return _run(model, filters, **kwargs)
 
 
-run_experiment.__doc__ = _runner.run_experiment.__doc__
+run_experiment.__doc__ = _run.__doc__

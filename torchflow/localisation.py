@@ -1,29 +1,22 @@
 """Multi-source localisation from TDOAs with belief propagation and flow-induced Gaussian-mixture
-importance sampling (seed 002: Zhang, Khojasteh, Atanasov & Meyer 2024; MODELS.md §12).
+importance sampling (seed 002: Zhang, Khojasteh, Atanasov & Meyer 2024; MODELS.md §12; README).
 
-The sensors (receiver pairs) are processed one after another (the posterior after sensor s - 1 is
-the prior of sensor s; the sources are static). The belief is a set of potential objects (POs),
-each with an existence probability ``r_k`` and a Gaussian mixture of G components. For sensor s:
+The sensors (receiver pairs) are processed in turn: the posterior after sensor s - 1 is the prior
+of sensor s. The belief is a set of potential objects (POs), each with an existence probability
+``r_k`` and a Gaussian mixture of G components. For sensor s:
 
-1. every component of every PO is flowed by every measurement (:func:`~torchflow.flows.flow_gaussian`
-   with PFI-D = EDH, PFI-S = Gromov or PFI-OS = optimised diffusion), and N_p samples are drawn from
-   each flowed component; the per-component importance ratio
-   ``N(x; mu_n, P_n) l_m(x) / N(x; mu'_nm, P'_nm)`` gives ``int f_k l_m`` (unbiased) and each
-   candidate component's weighted moments;
-2. the same for a birth mixture (a grid of Gaussians covering the region; UNCONF: the seed's birth
-   density is uniform, approximated here by that mixture);
-3. loopy BP (:func:`~torchflow.association.loopy_association`) gives the association messages;
-4. each legacy PO's candidates (its components times "missed", plus one per component and
-   measurement) are weighted by the BP messages and reduced back to G components by systematic
-   resampling of candidate indices (weights reset to equal; UNCONF §12.3); its existence is
-   ``r C / (r C + 1 - r)``; each measurement makes a new PO the same way from the birth mixture;
-5. POs with existence below ``prune`` are dropped and at most ``max_objects`` are kept (the most
-   likely; a fixed size keeps every tensor shape static, with no host synchronisation).
+1. every component of every PO (and of the birth mixture, a grid covering the region; UNCONF: the
+   seed's birth density is uniform) is flowed by every measurement (:func:`~torchflow.flows.flow_gaussian`:
+   PFI-D = EDH, PFI-S = Gromov, PFI-OS = optimised diffusion) and N_p samples are drawn from it; the
+   ratio ``N(x; mu_n, P_n) l_m(x) / N(x; mu'_nm, P'_nm)`` gives ``int f_k l_m`` and the moments;
+2. loopy BP (:func:`~torchflow.association.loopy_association`) gives the association messages;
+3. each legacy PO's candidates ("missed" plus one per component and measurement) are weighted by
+   the messages and reduced back to G components by systematic resampling (UNCONF §12.3), with
+   existence ``r C / (r C + 1 - r)``; each measurement makes a new PO from the birth mixture;
+4. POs with existence below ``prune`` are dropped and at most ``max_objects`` kept (fixed shapes).
 
-Declared sources: POs with existence above ``declare`` (0.5), at their mixture mean. Everything is
-batched over runs x POs x components x measurements x samples (in memory-bounded chunks of
-``sample_chunk`` numbers); the loop over sensors is the sequential processing itself. The localisers
-run through :func:`torchflow.runner.run_experiment` (one run per call: :class:`_Localiser`).
+Declared sources: POs with existence above ``declare``, at their mixture mean. Everything is
+batched over runs x POs x components x measurements x samples (in chunks of ``sample_chunk``).
 """
 from __future__ import annotations
 
@@ -40,7 +33,7 @@ from ._checks import check_count as _count
 from .association import loopy_association
 from .flows import EDHFlow, GromovFlow, OptimalDiffusionFlow
 from .proposals import FlowedMixtureProposal
-from .models.tdoa import TDOA3D
+from .models.tdoa import TDOA3D, check_number
 from .random import check_generator, uniform
 from .resampling import systematic
 from .schedules import GeometricSchedule, LambdaSchedule
@@ -50,19 +43,11 @@ METHODS = ("pfi_d", "pfi_s", "pfi_os")
 
 @dataclass
 class POState:
-    """Potential objects after a sensor.
-
-    Attributes:
-        existence: ``(B, K)`` existence probabilities (0 for empty slots).
-        mask: ``(B, K)`` bool, the live POs.
-        log_weights: ``(B, K, G)`` normalised log weights of the components (or particles).
-        means: ``(B, K, G, 3)`` component means (:class:`FlowMixtureLocaliser`) or particles
-            (:class:`BootstrapLocaliser`).
-        scale_trils: ``(B, K, G, 3, 3)`` component factors, ``None`` for particles.
-        underflow: ``(B, M)`` bool after an update: the live measurements of that sensor whose
-            BP terms all underflowed to 0, under every PO and the birth density (each such
-            measurement acts as clutter; :func:`_underflow`). ``None`` before the first sensor.
-    """
+    """Potential objects after a sensor: ``existence (B, K)`` (0 for empty slots), ``mask (B, K)``
+    (the live POs), ``log_weights (B, K, G)`` (normalised), ``means (B, K, G, 3)`` (component means,
+    or particles of :class:`BootstrapLocaliser`), ``scale_trils (B, K, G, 3, 3)`` (``None`` for
+    particles), ``underflow (B, M)``: the sensor's measurements treated as clutter (:meth:`_Localiser._bp`;
+    ``None`` before the first sensor)."""
 
     existence: torch.Tensor
     mask: torch.Tensor
@@ -79,12 +64,10 @@ class POState:
 
 @dataclass
 class Localisation:
-    """Result of a localiser's ``forward``: after each sensor, the POs' positions ``estimates (B, S,
-    K, 3)`` (K = ``max_objects`` slots, empty ones 0) and which are declared sources,
-    ``estimate_mask (B, S, K)``; the final :class:`POState`; ``underflow (B, S, M)``: the (run,
-    sensor, measurement) triples at which every component's weight underflowed (the measurement was
-    then treated as clutter, not turned into NaN). :attr:`positions` and :attr:`declared` are the
-    final ``(B, K, 3)`` and ``(B, K)``."""
+    """A localiser's result after each sensor: positions ``estimates (B, S, K, 3)`` (K = ``max_objects``
+    slots, empty ones 0), declared sources ``estimate_mask (B, S, K)``, ``underflow (B, S, M)`` (the
+    measurements treated as clutter: see :meth:`_Localiser._bp`), the final :class:`POState`;
+    :attr:`positions` and :attr:`declared` are the final ``(B, K, 3)`` and ``(B, K)``."""
 
     estimates: torch.Tensor
     estimate_mask: torch.Tensor
@@ -100,25 +83,12 @@ class Localisation:
         return self.estimate_mask[:, -1]
 
 
-def _probability(name, v):
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= float(v) < 1.0:
-        raise ValueError(f"{name}: expected a probability in [0, 1), got {v!r}")
-    return float(v)
-
-
 class _Localiser(nn.Module):
-    """What both localisers share: the settings of BP, pruning and declaration, the run over the
-    sensors (:meth:`forward`) and what the runner (:mod:`torchflow.runner`) reads.
-
-    A localiser's draws depend on the padded number of measurements of its batch (it flows and
-    samples every (PO, component, measurement) row, and keeps ``min(max_objects, K + M)`` PO slots),
-    so a run localised in a batch of several would draw other numbers than alone. Per-run draws
-    that do not depend on the padding would need streams of different lengths per run, which
-    :class:`~torchflow.random.TrialStreams` does not have. So a localiser declares
-    ``trials_per_call = 1``: the runner gives it one run per chunk (whatever ``chunk_size``), and
-    :meth:`forward` trims its batch to its last real measurement column (with the simulator's
-    padding last: the run's largest number of measurements per sensor). A run's numbers then
-    depend only on the scene, the seed and its index, never on the chunking.
+    """What both localisers share: BP, pruning, declaration, the run over the sensors (:meth:`forward`)
+    and what the runner reads. A localiser's draws depend on the padded number of measurements of
+    its batch, so it declares ``trials_per_call = 1`` (the runner gives it one run per chunk) and
+    :meth:`forward` trims the batch to its last real measurement column: a run's numbers depend
+    only on the scene, the seed and its index.
 
     Args (both localisers):
         model: :class:`~torchflow.models.TDOA3D` (``clutter_rate > 0``).
@@ -132,10 +102,7 @@ class _Localiser(nn.Module):
         name: label in results (default: the class name).
     """
 
-    #: measurement sets padded with a mask (:class:`~torchflow.models.TDOA3D`)
-    padded_measurements = True
-    #: runs per call (see the class docstring)
-    trials_per_call = 1
+    padded_measurements, trials_per_call = True, 1  # masked measurement sets; one run per call
     method: str
 
     def __init__(self, model: TDOA3D, *, birth_rate, max_objects, prune, declare, bp_iterations, sample_chunk,
@@ -146,21 +113,18 @@ class _Localiser(nn.Module):
         if model.clutter_rate <= 0:
             raise ValueError(f"model.clutter_rate: BP divides by the clutter intensity; expected > 0, got "
                              f"{model.clutter_rate}")
-        if isinstance(birth_rate, bool) or not isinstance(birth_rate, (int, float)) or not float(birth_rate) > 0:
-            raise ValueError(f"birth_rate: expected > 0, got {birth_rate!r}")
         self.model, self.name = model, name or type(self).__name__
-        self.birth_rate, self.prune, self.declare = float(birth_rate), _probability("prune", prune), \
-            _probability("declare", declare)
-        self.max_objects, self.bp_iterations = _count("max_objects", max_objects), _count("bp_iterations", bp_iterations)
-        self.sample_chunk = _count("sample_chunk", sample_chunk)
+        self.birth_rate = check_number("birth_rate", birth_rate, lambda v: v > 0, "> 0")
+        self.prune, self.declare = (check_number(k, v, lambda v: 0 <= v < 1, "a probability in [0, 1)")
+                                    for k, v in (("prune", prune), ("declare", declare)))
+        self.max_objects, self.bp_iterations, self.sample_chunk = (_count(k, v) for k, v in (
+            ("max_objects", max_objects), ("bp_iterations", bp_iterations), ("sample_chunk", sample_chunk)))
 
     @property
-    def stream_name(self) -> str:
-        """Key of the per-run random streams: ``localise_<method>``."""
+    def stream_name(self) -> str:  # key of the per-run random streams
         return f"localise_{self.method}"
 
-    def bytes_per_trial(self) -> int:
-        """Rough peak memory of one run: a pass of ``sample_chunk`` numbers and its intermediates."""
+    def bytes_per_trial(self) -> int:  # rough peak memory of one run: a pass of sample_chunk numbers
         return 8 * 8 * self.sample_chunk
 
     def preferred_chunk_trials(self) -> int:
@@ -169,10 +133,9 @@ class _Localiser(nn.Module):
     def forward(self, observations: torch.Tensor, mean=None, cov=None, generator=None, *, mask: torch.Tensor,
                 progress=None) -> Localisation:
         """Localise from measurements ``observations (B, S, M)`` with ``mask`` (bool, same shape;
-        :class:`~torchflow.models.TDOAData`), processing the sensors in order. ``generator``: a
-        ``torch.Generator`` or per-run :class:`~torchflow.random.TrialStreams`. ``mean``, ``cov``
-        (the runner's prior per run) are not used: a localiser starts from no PO and its new
-        sources come from its birth density. ``progress``: called after each sensor."""
+        :class:`~torchflow.models.TDOAData`), sensor after sensor. ``generator``: a ``torch.Generator``
+        or per-run :class:`~torchflow.random.TrialStreams`. ``mean``, ``cov`` (the runner's prior) are
+        not used (new sources come from the birth density). ``progress``: called after each sensor."""
         self.model.check_measurements(observations, mask)
         check_generator(generator, "generator")
         W = mask.shape[-1]  # trimmed to the batch's last real column: one read, before the sensors
@@ -190,8 +153,7 @@ class _Localiser(nn.Module):
                 progress()
         return Localisation(torch.stack(est, 1), torch.stack(declared, 1), torch.stack(underflow, 1), state)
 
-    def init(self, batch_size: int, dtype=torch.float64, device=None) -> POState:
-        """No PO before the first sensor."""
+    def init(self, batch_size: int, dtype=torch.float64, device=None) -> POState:  # no PO before the first sensor
         e = torch.zeros(batch_size, 0, dtype=dtype, device=device)
         n = self.G if self.mixture else self.n_particles
         return POState(e, e.bool(), e.new_zeros(batch_size, 0, n), e.new_zeros(batch_size, 0, n, 3),
@@ -200,25 +162,18 @@ class _Localiser(nn.Module):
     def _bp(self, state: POState, log_Ik, log_Ib, z_mask, sensor):
         """Loopy BP from the integrals ``log int f_k l_m (B, K, M)`` of the legacy POs and ``log int
         f_b l_m (B, M)`` of the birth density; returns the association, ``log nu (B, K, M)`` (-inf
-        off the live pairs), ``log(mu_c f_c)`` and the measurements that underflowed
-        (:func:`_underflow`)."""
+        off the live pairs), ``log(mu_c f_c)`` and the underflow ``(B, M)``: the live measurements
+        whose every BP term ``exp(log I - log(mu_c f_c))`` is 0 in floating point, under the birth
+        density and every live PO (the log-space integrals themselves stay finite)."""
         model, r, pd, dt = self.model, state.existence, self.model.p_d, log_Ib.dtype
         log_cf = math.log(model.clutter_rate) + model.clutter_log_density(sensor).to(dt)  # log(mu_c f_c)
-        beta = torch.cat([(1 - r * pd).unsqueeze(-1), (r * pd).unsqueeze(-1) * torch.exp(log_Ik - log_cf)], -1)
-        xi = 1 + self.birth_rate * torch.exp(log_Ib - log_cf)
-        assoc = loopy_association(beta, xi, state.mask, z_mask, self.bp_iterations)
+        ratio_k, ratio_b = torch.exp(log_Ik - log_cf), torch.exp(log_Ib - log_cf)
+        beta = torch.cat([(1 - r * pd).unsqueeze(-1), (r * pd).unsqueeze(-1) * ratio_k], -1)
+        assoc = loopy_association(beta, 1 + self.birth_rate * ratio_b, state.mask, z_mask, self.bp_iterations)
         live = state.mask.unsqueeze(-1) & z_mask.unsqueeze(-2)  # (B, K, M)
         log_nu = torch.where(live, torch.log(assoc.nu.clamp_min(torch.finfo(dt).tiny)), log_Ib.new_tensor(-math.inf))
-        return assoc, log_nu, log_cf, _underflow(log_Ib, log_Ik, log_cf, state.mask, z_mask)
-
-
-def _underflow(log_Ib: torch.Tensor, log_Ik: torch.Tensor, log_cf, po_mask: torch.Tensor, z_mask: torch.Tensor):
-    """``(B, M)``: live measurements whose every BP term underflows to 0, i.e. the estimated integral
-    of the likelihood over clutter intensity, ``exp(log I - log(mu_c f_c))``, is 0 in floating point
-    under the birth density (``log_Ib (B, M)``) and under every live PO (``log_Ik (B, K, M)``); the
-    log-space integrals themselves stay finite."""
-    dead = (torch.exp(log_Ik - log_cf) == 0) | ~po_mask.unsqueeze(-1)
-    return z_mask & (torch.exp(log_Ib - log_cf) == 0) & dead.all(1)
+        underflow = z_mask & (ratio_b == 0) & ((ratio_k == 0) | ~state.mask.unsqueeze(-1)).all(1)
+        return assoc, log_nu, log_cf, underflow
 
 
 def birth_mixture(region: float, per_axis: int, sd_factor: float = 0.5, dtype=torch.float64, device=None):
@@ -246,8 +201,7 @@ class FlowMixtureLocaliser(_Localiser):
         jitter: relative diagonal jitter of the refitted covariances (of the component's prior scale).
         evaluate_at: ``"end"`` (default, ``lambda_l``) or ``"start"`` (``lambda_{l-1}``): where each
             lambda step takes its flow coefficients (:func:`~torchflow.flows.flow_gaussian`, UNCONF).
-        birth_rate, max_objects, prune, declare, bp_iterations, sample_chunk, name: see
-            :class:`_Localiser`.
+        birth_rate, max_objects, prune, declare, bp_iterations, sample_chunk, name: :class:`_Localiser`.
     """
 
     mixture = True  # POs are Gaussian mixtures (with factors)
@@ -263,12 +217,8 @@ class FlowMixtureLocaliser(_Localiser):
         if method not in METHODS:
             raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
         self.method = method
-        if method == "pfi_d":
-            self.flow = EDHFlow()
-        elif method == "pfi_s":
-            self.flow = GromovFlow(points="global")
-        else:
-            self.flow = OptimalDiffusionFlow(alpha=alpha, points="global", c_rule=c_rule)
+        self.flow = (EDHFlow() if method == "pfi_d" else GromovFlow(points="global") if method == "pfi_s"
+                     else OptimalDiffusionFlow(alpha=alpha, points="global", c_rule=c_rule))
         self.schedule = schedule or GeometricSchedule(1e-5, 1.5)
         if len(self.schedule) < 1:
             raise ValueError("schedule: expected at least one pseudo-time step, got an empty schedule")
@@ -281,15 +231,13 @@ class FlowMixtureLocaliser(_Localiser):
         self.jitter = float(jitter)
 
     @property
-    def n_particles(self) -> int:
-        """Samples per PO: components x samples per component."""
+    def n_particles(self) -> int:  # samples per PO
         return self.G * self.n_samples
 
     # ---- one sensor --------------------------------------------------------------------------
-    def _flowed_terms(self, log_w, means, L, z, s, generator):
-        """For mixtures ``(B, K, G)`` and measurements ``z (B, M)``: ``log int N_n l_m`` per
-        component and measurement ``(B, K, G, M)`` and the candidates' weighted moments
-        ``(B, K, G, M, 3)``, ``(B, K, G, M, 3, 3)`` (scale trils)."""
+    def _flowed_terms(self, means, L, z, s, generator):
+        """For components ``means (B, K, G, 3)``, ``L (B, K, G, 3, 3)`` and measurements ``z (B, M)``:
+        ``log int N_n l_m (B, K, G, M)`` and the candidates' moments (means and scale trils)."""
         model = self.model
         B, K, G, d = means.shape
         M = z.shape[1]
@@ -330,13 +278,11 @@ class FlowMixtureLocaliser(_Localiser):
         bm, bL = self.birth_means.to(dt), self.birth_scale_tril.to(dt)
         Nb = bm.shape[0]
         b_logw = torch.full((B, 1, Nb), -math.log(Nb), dtype=dt, device=dev)
-        bI, b_mean, b_L = self._flowed_terms(b_logw, bm.expand(B, 1, Nb, 3), bL.expand(B, 1, Nb, 3, 3), z, sensor,
-                                             generator)
+        bI, b_mean, b_L = self._flowed_terms(bm.expand(B, 1, Nb, 3), bL.expand(B, 1, Nb, 3, 3), z, sensor, generator)
         log_Ib = torch.logsumexp(b_logw.unsqueeze(-1) + bI, 2)[:, 0]  # (B, M)
         log_Ik = torch.zeros(B, 0, M, dtype=dt, device=dev)
         if K:
-            I, p_mean, p_L = self._flowed_terms(state.log_weights, state.means, state.scale_trils, z, sensor,
-                                                generator)
+            I, p_mean, p_L = self._flowed_terms(state.means, state.scale_trils, z, sensor, generator)
             log_Ik = torch.logsumexp(state.log_weights.unsqueeze(-1) + I, 2)  # (B, K, M)
         assoc, log_nu, log_cf, underflow = self._bp(state, log_Ik, log_Ib, z_mask, sensor)
         r_all, mask, parts = assoc.new_existence, z_mask, []
@@ -361,8 +307,7 @@ class FlowMixtureLocaliser(_Localiser):
 
 
 def _prune_and_cap(r, mask, parts, prune: float, max_objects: int):
-    """Drop POs with existence below ``prune`` and keep the ``max_objects`` most likely (a fixed
-    number of slots: no host synchronisation). Returns ``(r, mask, *parts)`` gathered."""
+    """``(r, mask, *parts)`` of the ``max_objects`` most likely POs with existence >= ``prune``."""
     B = r.shape[0]
     mask = mask & (r >= prune)  # a nan existence is dropped too
     r = torch.where(mask, r, torch.zeros_like(r))
@@ -376,14 +321,10 @@ def _prune_and_cap(r, mask, parts, prune: float, max_objects: int):
 
 
 class BootstrapLocaliser(_Localiser):
-    """The bootstrap baseline of seed 002 (``BS``): each PO is a plain set of N_p particles; for
-    each sensor the proposal is the previous posterior itself (the sources are static), the
-    weights are the BP-weighted likelihood terms, and each PO is resampled (systematic). New POs
-    start from N_p particles uniform in the region. The same BP, pruning and declaration as
-    :class:`FlowMixtureLocaliser`; likelihoods are evaluated in chunks of ``sample_chunk`` numbers.
-
-    ``n_particles``: N_p per PO (seed: 2e6 and 4e7); the other arguments: :class:`_Localiser`.
-    """
+    """The bootstrap baseline of seed 002 (``BS``): each PO is a set of ``n_particles`` N_p (seed: 2e6
+    and 4e7); the proposal is the previous posterior (static sources), the weights the BP-weighted
+    likelihood terms, and each PO is resampled (systematic). New POs start uniform in the region.
+    The other arguments: :class:`_Localiser`."""
 
     method, mixture = "bs", False  # POs are particle sets
 
@@ -395,9 +336,8 @@ class BootstrapLocaliser(_Localiser):
         self.n_particles = _count("n_particles", n_particles)
 
     def _loglik(self, x, z, s, own: bool = False):
-        """``log l_m(x)`` of particles ``x (B, K, N, 3)`` for measurements ``z (B, M)`` ->
-        ``(B, K, N, M)``, or with ``own`` (K = M: one set per measurement) ``(B, M, N)``, in
-        chunks of particles."""
+        """``log l_m(x) (B, K, N, M)`` of particles ``x (B, K, N, 3)``, measurements ``z (B, M)``, in chunks;
+        with ``own`` (K = M: one set per measurement) ``(B, M, N)``."""
         B, K, N, _ = x.shape
         M = z.shape[1]
         per = max(1, self.sample_chunk // max(1, B * K * (1 if own else M) * 3))
@@ -434,9 +374,8 @@ class BootstrapLocaliser(_Localiser):
 
 
 def _resample(log_w: torch.Tensor, generator) -> torch.Tensor:
-    """Systematic resampling (:func:`torchflow.resampling.systematic`, one uniform per PO) of the
-    particles of every PO, ``log_w (B, K, N)`` -> ``(B, K, N)`` indices; a PO with no positive
-    (or a NaN) weight resamples uniformly."""
+    """Systematic resampling indices ``(B, K, N)`` of every PO's particles, ``log_w (B, K, N)``; a PO
+    with no positive (or a NaN) weight resamples uniformly."""
     B, K, N = log_w.shape
     lw = log_w.reshape(B * K, N)
     ok = torch.isfinite(lw).any(-1, keepdim=True) & ~(torch.isnan(lw) | torch.isposinf(lw)).any(-1, keepdim=True)
@@ -444,17 +383,15 @@ def _resample(log_w: torch.Tensor, generator) -> torch.Tensor:
 
 
 def _legacy_existence(r: torch.Tensor, log_C: torch.Tensor) -> torch.Tensor:
-    """Updated existence ``r C / (r C + 1 - r)`` of legacy POs (both localisers); 0, not 0/0, when
-    ``r = 1`` and ``C = 0``."""
+    """Updated existence ``r C / (r C + 1 - r)`` of legacy POs; 0, not 0/0, when ``r = 1`` and ``C = 0``."""
     rc = r * log_C.exp()
     return torch.where(rc > 0, rc / (rc + 1 - r), torch.zeros_like(rc))
 
 
 def _reduce(log_w: torch.Tensor, means: torch.Tensor, L: torch.Tensor, n: int, generator):
     """Keep ``n`` of the candidate components ``(B, K, C)`` by systematic resampling of their indices
-    (one uniform per PO; a PO with no positive weight draws uniformly); returns ``(log_weights
-    (B, K, n) equal, means, scale_trils)``. (:func:`torchflow.resampling.systematic` draws as many
-    indices as there are weights, here C = G (1 + M) or 125 candidates for n = G.)"""
+    (one uniform per PO; no positive weight: uniform; C = G (1 + M) or 125 candidates, so not
+    :func:`torchflow.resampling.systematic`); returns ``(log_weights (B, K, n) equal, means, scale_trils)``."""
     B, K, C = log_w.shape
     w = torch.softmax(log_w, -1)
     cdf = torch.where(torch.isfinite(w).all(-1, keepdim=True), w, torch.full_like(w, 1.0 / C)).cumsum(-1)

@@ -9,15 +9,10 @@ Static sources ``x`` in the cube ``[-r, r]^3`` are heard by V receivers; sensor 
 at most once per source (detection probability ``p_d``), plus Poisson clutter (mean ``mu_c`` per
 sensor) uniform on the feasible interval ``[-||p_a - p_b|| / c, ||p_a - p_b|| / c]``.
 
-As a :class:`~torchflow.models.StateSpaceModel`, the sensors are the time steps (T = S, processed in
-turn; :attr:`TDOA3D.n_steps`), the state is the static sources ``(3 n,)`` and the measurements of a
-step vary in number: ``observations (B, S, M)`` are padded (with 0) and come with a ``mask``
-(:class:`TDOAData`). Only filters that take such measurement sets (the localisers of
-:mod:`torchflow.localisation`, ``padded_measurements = True``) run on it.
-
-Defaults (§12.3): six receivers at the centres of the faces of the cube ``[-1000, 1000]^3`` m, the
-nine pairs "+ face with - face", c = 1500 m/s, sigma_v = 0.5 ms, p_d = 0.95, mu_c = 1, three sources
-uniform in the region (UNCONF: the seed's pair list and source count appear only in a figure).
+As a :class:`~torchflow.models.StateSpaceModel`, the sensors are the time steps (:attr:`TDOA3D.n_steps`),
+the state is the static sources ``(3 n,)`` and ``observations (B, S, M)`` are padded with 0 and come
+with a ``mask`` (:class:`TDOAData`): only the localisers of :mod:`torchflow.localisation` run on it.
+Defaults: §12.3 (UNCONF: the seed's pair list and source count appear only in a figure).
 """
 from __future__ import annotations
 
@@ -28,6 +23,13 @@ import torch
 
 from ..flows.measurement import GaussianMeasurement
 from .base import StateSpaceModel, Trajectory
+
+
+def check_number(name: str, v, ok, what: str) -> float:
+    """``float(v)`` if ``v`` is a real number (not a bool) with ``ok(v)``, else a ``ValueError``."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not ok(v):
+        raise ValueError(f"{name}: expected {what}, got {v!r}")
+    return float(v)
 
 
 def face_receivers(half_width: float = 1000.0) -> torch.Tensor:
@@ -43,14 +45,10 @@ def plus_minus_pairs() -> list:
 
 @dataclass
 class TDOAData(Trajectory):
-    """Simulated runs: a :class:`~torchflow.models.Trajectory` whose measurements are padded sets.
-
-    Attributes:
-        states: ``(B, S + 1, 3 n)`` the sources (static), flattened; :attr:`sources` ``(B, n, 3)``.
-        observations: ``(B, S, M)`` measurements per sensor, padded with 0 (also :attr:`z`).
-        mask: ``(B, S, M)`` bool, the real measurements.
-        origin: ``(B, S, M)`` long, the source that produced each measurement (-1: clutter or padding).
-    """
+    """Simulated runs with padded measurement sets: ``states (B, S + 1, 3 n)`` (the static sources;
+    :attr:`sources` ``(B, n, 3)``), ``observations (B, S, M)`` (padded with 0; also :attr:`z`),
+    ``mask (B, S, M)`` (the real measurements), ``origin (B, S, M)`` (each measurement's source;
+    -1: clutter or padding)."""
 
     mask: torch.Tensor
     origin: torch.Tensor
@@ -81,9 +79,8 @@ class TDOA3D(StateSpaceModel):
         region: half width r of the region ``[-r, r]^3`` (m).
     """
 
-    #: measurements are padded sets with a mask; only filters declaring the same take them
-    padded_measurements = True
-    obs_dim = None  # a sensor's measurements vary in number (padded to M)
+    padded_measurements, obs_dim = True, None  # masked measurement sets; only filters declaring the same take them
+    has_positions = True
 
     def __init__(self, receivers: Optional[torch.Tensor] = None, pairs: Optional[Sequence[Sequence[int]]] = None, *,
                  speed: float = 1500.0, sigma_v: float = 5e-4, p_d: float = 0.95, clutter_rate: float = 1.0,
@@ -104,18 +101,14 @@ class TDOA3D(StateSpaceModel):
             if len(p) != 2 or p[0] == p[1] or not all(0 <= v < len(rec) for v in p):
                 raise ValueError(f"pairs: expected pairs (a, b) of distinct receiver indices in [0, {len(rec)}), "
                                  f"got {p}")
-        rules = [(k, v, lambda v: v > 0, "a positive number") for k, v in
-                 (("speed", speed), ("sigma_v", sigma_v), ("region", region))]
-        rules += [("p_d", p_d, lambda v: 0 < v <= 1, "a detection probability in (0, 1]"),
-                  ("clutter_rate", clutter_rate, lambda v: v >= 0, "a mean clutter count >= 0"),
-                  ("n_sources", n_sources, lambda v: isinstance(v, int) and v >= 0, "an integer >= 0")]
-        for name, v, ok, what in rules:
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not ok(v):
-                raise ValueError(f"{name}: expected {what}, got {v!r}")
+        self.speed, self.sigma_v, self.region = (check_number(k, v, lambda v: v > 0, "a positive number") for k, v
+                                                 in (("speed", speed), ("sigma_v", sigma_v), ("region", region)))
+        self.p_d = check_number("p_d", p_d, lambda v: 0 < v <= 1, "a detection probability in (0, 1]")
+        self.clutter_rate = check_number("clutter_rate", clutter_rate, lambda v: v >= 0, "a mean clutter count >= 0")
+        check_number("n_sources", n_sources, lambda v: isinstance(v, int) and v >= 0, "an integer >= 0")
+        self.n_sources = n_sources
         self.register_buffer("receivers", rec)
         self.register_buffer("pairs", torch.tensor(pairs, dtype=torch.long))
-        self.speed, self.sigma_v, self.p_d = float(speed), float(sigma_v), float(p_d)
-        self.clutter_rate, self.n_sources, self.region = float(clutter_rate), n_sources, float(region)
         self.state_dim = 3 * n_sources
 
     @property
@@ -123,8 +116,7 @@ class TDOA3D(StateSpaceModel):
         return self.pairs.shape[0]
 
     @property
-    def n_steps(self) -> int:
-        """Time steps of a run: one per sensor (the runner takes the step count from here)."""
+    def n_steps(self) -> int:  # one step per sensor (the runner takes the step count from here)
         return self.n_sensors
 
     # ---- the static sources as a state-space model -------------------------------------------
@@ -134,17 +126,12 @@ class TDOA3D(StateSpaceModel):
     def transition_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
         return self.receivers.new_zeros(self.state_dim, self.state_dim)
 
-    @property
-    def has_positions(self) -> bool:
-        return True
-
     def positions(self, x: torch.Tensor) -> torch.Tensor:
         """Source positions ``(..., n, 3)`` of states ``(..., 3 n)``."""
         return x.reshape(*x.shape[:-1], -1, 3)
 
     def initial_belief(self, states0: torch.Tensor, generator=None):
-        """Moments of the uniform prior on the region, ``(B, 3 n)`` and ``(B, 3 n, 3 n)`` (no draw):
-        the localisers start from no potential object, and new sources come from their birth density."""
+        """Moments of the uniform prior on the region, ``(B, 3 n)`` and ``(B, 3 n, 3 n)`` (no draw)."""
         B, d = states0.shape
         cov = torch.eye(d, dtype=states0.dtype, device=states0.device) * (self.region ** 2 / 3)
         return states0.new_zeros(B, d), cov.expand(B, d, d)
@@ -156,17 +143,14 @@ class TDOA3D(StateSpaceModel):
     def measure(self, x: torch.Tensor, sensor) -> torch.Tensor:
         """``h_s(x)`` of positions ``x (..., 3)`` for sensor index ``sensor`` (an int or a long tensor
         broadcastable to ``x[..., 0]``) -> ``(...)``."""
-        pa, pb = self._ends(sensor)
-        pa, pb = pa.to(x.dtype), pb.to(x.dtype)
+        pa, pb = (p.to(x.dtype) for p in self._ends(sensor))
         return (torch.linalg.vector_norm(x - pa, dim=-1) - torch.linalg.vector_norm(x - pb, dim=-1)) / self.speed
 
     def jacobian(self, x: torch.Tensor, sensor) -> torch.Tensor:
         """``dh_s/dx = ((x - p_a)/||x - p_a|| - (x - p_b)/||x - p_b||) / c``, ``(..., 3)``."""
-        pa, pb = self._ends(sensor)
-        da, db = x - pa.to(x.dtype), x - pb.to(x.dtype)
-        ua = da / torch.linalg.vector_norm(da, dim=-1, keepdim=True)
-        ub = db / torch.linalg.vector_norm(db, dim=-1, keepdim=True)
-        return (ua - ub) / self.speed
+        da, db = (x - p.to(x.dtype) for p in self._ends(sensor))
+        return (da / torch.linalg.vector_norm(da, dim=-1, keepdim=True)
+                - db / torch.linalg.vector_norm(db, dim=-1, keepdim=True)) / self.speed
 
     def feasible_half_width(self, sensor) -> torch.Tensor:
         """``||p_a - p_b|| / c``: TDOAs of sensor s lie in ``[-w, w]``."""
@@ -183,19 +167,13 @@ class TDOA3D(StateSpaceModel):
         return -0.5 * r * r - torch.log(torch.as_tensor(self.sigma_v * (2 * torch.pi) ** 0.5, dtype=x.dtype))
 
     def gaussian_measurement(self, z: torch.Tensor, sensor) -> GaussianMeasurement:
-        """The flows' measurement term of scalar TDOAs ``z (R,)`` of sensor s, one per batch row
-        (rows: runs x components x measurements flattened)."""
+        """The flows' measurement term of scalar TDOAs ``z (R,)`` of sensor s, one per batch row."""
         def linearise(points, support=False, scale=None):
-            h = self.measure(points, sensor).unsqueeze(-1)
-            H = self.jacobian(points, sensor).unsqueeze(-2)
-            if scale is not None:
-                h, H = h * scale, H * scale
-            return h, H
+            h, H = self.measure(points, sensor).unsqueeze(-1), self.jacobian(points, sensor).unsqueeze(-2)
+            return (h, H) if scale is None else (h * scale, H * scale)
 
-        def scale_tril(points):
-            return torch.full((1, 1), self.sigma_v, dtype=points.dtype, device=points.device)
-
-        return GaussianMeasurement(z.reshape(-1, 1), linearise, scale_tril, "scalar")
+        return GaussianMeasurement(z.reshape(-1, 1), linearise, lambda points: torch.full(
+            (1, 1), self.sigma_v, dtype=points.dtype, device=points.device), "scalar")
 
     def check_measurements(self, z: torch.Tensor, mask: torch.Tensor) -> None:
         """Raise a clear error unless ``z (B, S, M)`` and ``mask`` (bool, same shape) fit this model."""
@@ -208,9 +186,8 @@ class TDOA3D(StateSpaceModel):
 
     def simulate(self, batch_size: int, steps: Optional[int] = None, generator: Optional[torch.Generator] = None
                  ) -> TDOAData:
-        """``batch_size`` independent scenes: sources uniform in the region, detections, clutter,
-        noise; each sensor's measurements in random order, padded to the largest count. The runs are
-        drawn together, so a scene depends on ``batch_size``. ``steps``: ``None`` or :attr:`n_steps`."""
+        """``batch_size`` scenes drawn together (a scene depends on ``batch_size``), each sensor's
+        measurements in random order, padded to the largest count. ``steps``: ``None`` or :attr:`n_steps`."""
         if steps is not None and steps != self.n_steps:
             raise ValueError(f"steps: TDOA3D has one step per sensor; expected None or {self.n_steps}, got {steps!r}")
         B, _ = self.check_simulate_args(batch_size, self.n_steps, generator)

@@ -1,20 +1,10 @@
-"""Per-chunk results on disk, so a long run that is killed can be resumed.
+"""Per-chunk results on disk, so a killed run can be resumed (README, "Resumable runs")::
 
-With a :class:`ChunkStore`, :func:`~torchflow.runner.run_experiment` writes every finished chunk of
-trials to a small file at once and, with ``resume``, loads the chunks a run of the *same settings*
-saved instead of computing them again. Layout (``key``: a :func:`fingerprint` of everything that
-changes a filter's numbers)::
-
-    <root>/<key>/settings.json          what the key was made of (for people)
+    <root>/<key>/settings.json          what the key (a :func:`fingerprint`) was made of (for people)
     <root>/<key>/<start>-<stop>.pt       trials [start, stop): estimates, log-evidence, ESS, ...
 
-Files are written to a temporary name and renamed (a run killed while writing leaves no half
-chunk) and carry a SHA-256 checksum of their tensors. A file that cannot be read, is damaged or
-whose header does not match (other key, trials, steps, seed, stream, ...) is recomputed with a
-warning. Trials draw from per-trial streams, so a loaded chunk holds the numbers the uninterrupted
-run would have computed, and a resumed run with other chunk boundaries reuses the saved trials
-(:meth:`ChunkStore.assemble`; equal to round-off: batched linear algebra may block differently).
-A store that cannot write warns once and the run goes on without (:meth:`ChunkStore.save_or_warn`).
+Files are written to a temporary name and renamed, and carry a SHA-256 checksum of their tensors;
+a file that cannot be read, is damaged or whose header does not match is recomputed with a warning.
 """
 from __future__ import annotations
 
@@ -24,16 +14,17 @@ import logging
 import os
 import re
 import warnings
+from collections import Counter
 from pathlib import Path
-from typing import Callable, Dict, List, Mapping, Optional, Tuple, Union
+from typing import Callable, List, Mapping, Optional, Tuple, Union
 
 import torch
+
+from .writers import write_text
 
 #: tensors of one chunk, CPU (floats as float64), those the filter's result has: ``estimates (B, T, ...)``
 #: always; ``estimate_mask`` (sets of estimates) and ``underflow`` from the localisers
 CHUNK_FIELDS = ("estimates", "log_evidence", "ess", "n_repaired", "g_eff", "estimate_mask", "underflow")
-
-
 _CHUNK_NAME = re.compile(r"^(\d{7})-(\d{7})\.pt$")
 log = logging.getLogger("torchflow.runner")
 
@@ -63,14 +54,13 @@ class ChunkStore:
 
     Args:
         root: folder of the store (created on first save).
-        keys: ``{filter name: key}`` naming each filter's folder; the key must change with anything
-            that changes its numbers (the command line fingerprints the model's and the filter's
-            config, trials, steps, seed, device, dtype, random back end and versions). Default: the name.
+        keys: ``{filter name: key}`` naming each filter's folder (default: the name); the key must
+            change with anything that changes its numbers (the command line's :func:`fingerprint`).
         resume: load chunks saved earlier; ``False`` computes every chunk and overwrites files.
         settings: ``{filter name: dict}`` written beside the chunks as ``settings.json``.
 
-    ``loaded`` and ``computed`` count chunks per filter in this run, ``reused_trials`` the trials
-    taken from chunks of other boundaries; ``save_error`` says why saving stopped (else ``None``).
+    ``loaded`` and ``computed`` count chunks per filter, ``reused_trials`` the trials taken from
+    chunks of other boundaries; ``save_error`` says why saving stopped (else ``None``).
     """
 
     def __init__(self, root: Union[str, Path], keys: Optional[Mapping[str, str]] = None, *, resume: bool = False,
@@ -78,9 +68,7 @@ class ChunkStore:
         if not isinstance(resume, bool):
             raise ValueError(f"resume: expected True or False, got {resume!r}")
         self.root, self.keys, self.resume, self.settings = Path(root), dict(keys or {}), resume, dict(settings or {})
-        self.loaded: Dict[str, int] = {}
-        self.computed: Dict[str, int] = {}
-        self.reused_trials: Dict[str, int] = {}
+        self.loaded, self.computed, self.reused_trials = Counter(), Counter(), Counter()  # per filter
         self.save_error: Optional[str] = None
 
     def folder(self, name: str) -> Path:
@@ -90,9 +78,8 @@ class ChunkStore:
         return self.folder(name) / f"{start:07d}-{stop:07d}.pt"
 
     def load(self, name: str, start: int, stop: int, steps: int, meta: Optional[Mapping] = None) -> Optional[dict]:
-        """The saved chunk of trials ``[start, stop)`` of filter ``name``, or ``None`` (not
-        resuming, not saved, or saved with other settings). ``meta``: run settings the file's
-        header must repeat (seed, trials, steps, random stream, dtype, ...), a second guard beside the key."""
+        """The saved chunk of trials ``[start, stop)`` of filter ``name``, or ``None`` (not resuming, not
+        saved, or saved with other settings); ``meta``: run settings the file's header must repeat."""
         path = self._path(name, start, stop)
         if not self.resume or not path.exists():
             return None
@@ -108,7 +95,7 @@ class ChunkStore:
             return _again(f"resume: {path} was saved with other settings")
         if data.get("checksum") is not None and data["checksum"] != checksum(data):
             return _again(f"resume: {path} is damaged (its checksum does not match its contents)")
-        self.loaded[name] = self.loaded.get(name, 0) + 1
+        self.loaded[name] += 1
         return data
 
     def save(self, name: str, start: int, stop: int, chunk: Mapping, meta: Optional[Mapping] = None) -> Path:
@@ -116,21 +103,18 @@ class ChunkStore:
         folder = self.folder(name)
         folder.mkdir(parents=True, exist_ok=True)
         if name in self.settings and not (folder / "settings.json").exists():
-            tmp = folder / f".settings.json.{os.getpid()}"
-            tmp.write_text(json.dumps(self.settings[name], indent=2, sort_keys=True, default=str))
-            os.replace(tmp, folder / "settings.json")
+            write_text(folder / "settings.json", json.dumps(self.settings[name], indent=2, sort_keys=True, default=str))
         path = self._path(name, start, stop)
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         torch.save({**dict(chunk), "key": self.keys.get(name, name), "start": start, "stop": stop,
                     "meta": dict(meta) if meta is not None else None, "checksum": checksum(chunk)}, tmp)
         os.replace(tmp, path)
-        self.computed[name] = self.computed.get(name, 0) + 1
+        self.computed[name] += 1
         return path
 
     def save_or_warn(self, name: str, start: int, stop: int, chunk: Mapping, meta: Optional[Mapping] = None
                      ) -> Optional[Path]:
-        """:meth:`save`, but a store that cannot write warns once (naming the folder and the
-        reason) and saves nothing more; the run's results do not depend on it."""
+        """:meth:`save`, but a store that cannot write warns once and saves nothing more."""
         if self.save_error is not None:
             return None
         try:
@@ -149,27 +133,20 @@ class ChunkStore:
         found = (_CHUNK_NAME.match(p.name) for p in folder.iterdir())
         return sorted((int(m.group(1)), int(m.group(2))) for m in found if m)
 
-    def _pieces(self, name: str, start: int, stop: int) -> List[Tuple[int, int, Optional[Tuple[int, int]]]]:
-        """``[(a, b, saved range or None), ...]`` covering ``[start, stop)``: the trials of saved
-        files of other boundaries and the gaps between them."""
-        saved = [r for r in self.saved_ranges(name) if r[0] < stop and r[1] > start and r != (start, stop)]
-        out, p = [], start
-        while p < stop:
-            cover = max((r for r in saved if r[0] <= p < r[1]), key=lambda r: r[1], default=None)
-            b = min(cover[1], stop) if cover else min([r[0] for r in saved if r[0] > p] + [stop])
-            out.append((p, b, cover))
-            p = b
-        return out
-
     def assemble(self, name: str, start: int, stop: int, steps: int, meta: Optional[Mapping],
                  compute: Callable[[int, int], Mapping]) -> Optional[dict]:
         """Trials ``[start, stop)`` from chunks saved with other boundaries, ``compute(a, b)``
         filling the trials none holds; ``None`` when not resuming or no saved trial overlaps."""
-        if not self.resume:
+        saved = [r for r in (self.saved_ranges(name) if self.resume else []) if r[0] < stop and r[1] > start
+                 and r != (start, stop)]
+        if not saved:
             return None
-        pieces = self._pieces(name, start, stop)
-        if all(r is None for _, _, r in pieces):
-            return None
+        pieces, p = [], start  # (a, b, the saved range holding trials [a, b) or None): saved trials and the gaps
+        while p < stop:
+            cover = max((r for r in saved if r[0] <= p < r[1]), key=lambda r: r[1], default=None)
+            b = min(cover[1], stop) if cover else min([r[0] for r in saved if r[0] > p] + [stop])
+            pieces.append((p, b, cover))
+            p = b
         parts, reused = [], 0
         for a, b, r in pieces:
             data = None if r is None else self.load(name, r[0], r[1], steps, meta)
@@ -182,7 +159,7 @@ class ChunkStore:
             reused += b - a
         chunk = {k: torch.cat([p[k] for p in parts]) for k in CHUNK_FIELDS if all(k in p for p in parts)}
         chunk.update(start=start, stop=stop, elapsed=sum(float(p["elapsed"]) for p in parts))
-        self.reused_trials[name] = self.reused_trials.get(name, 0) + reused
+        self.reused_trials[name] += reused
         log.info("resume: %s trials %d..%d: %d reused from chunks saved with other boundaries, %d computed",
                  name, start, stop - 1, reused, stop - start - reused)
         return chunk

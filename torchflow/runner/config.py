@@ -3,13 +3,16 @@ and of the command line that Hydra itself does not make (one clear line each, no
 from __future__ import annotations
 
 import difflib
+import json
 import os
 import shlex
+from importlib.resources import files
 from pathlib import Path
 from typing import List, Mapping, Optional, Sequence
 
-from .errors import ConfigError
-from .plan import check_metric_settings, check_rng_backend, check_seed
+from omegaconf import OmegaConf
+
+from .plan import ConfigError, require, check_metric_settings, check_rng_backend, check_seed
 from .writers import RESULT_FILES
 
 _CHECKOUT = Path(__file__).resolve().parents[2]
@@ -29,8 +32,6 @@ def config_source() -> str:
 
 def config_dir() -> Path:
     """The folder holding ``config.yaml`` and the config groups."""
-    from importlib.resources import files
-
     src = config_source()
     return Path(str(files("torchflow.configs"))) if src.startswith("pkg://") else Path(src)
 
@@ -42,20 +43,15 @@ def group_options(group: str) -> Optional[List[str]]:
 
 
 def check_selections(argv: Sequence[str]) -> None:
-    """Refuse unknown config names in group selections (``filter=[a,b]``, ``model=x``,
-    ``flow@filter.pfpf_ledh.flow=edh``, sweeps ``filter=a,b``) with the list of valid names,
-    before Hydra composes anything."""
+    """Refuse unknown config names in group selections (``filter=[a,b]``, ``model=x``, ``flow@...=edh``,
+    sweeps ``filter=a,b``) with the list of valid names, before Hydra composes anything."""
     for arg in argv:
         if "=" not in arg or arg.startswith(("hydra.", "-")):
             continue
         lhs, rhs = arg.split("=", 1)
         group = lhs.lstrip("+~").split("@", 1)[0]
-        if "." in group or "/" in group:
-            continue
-        options = group_options(group)
-        if options is None:
-            continue
-        if rhs.strip().startswith(("range(", "choice(", "glob(", "interval(")) or rhs.strip() in ("null", ""):
+        options, value = None if "." in group or "/" in group else group_options(group), rhs.strip()
+        if options is None or value.startswith(("range(", "choice(", "glob(", "interval(")) or value in ("null", ""):
             continue
         unknown = [v for v in (v.strip() for v in rhs.strip("[]").split(",")) if v and v not in options]
         if unknown:
@@ -68,14 +64,6 @@ def _override(argv: Sequence[str], key: str) -> Optional[str]:
     return vals[-1] if vals else None
 
 
-def _holds_results(folder: Path, sweep: bool) -> List[str]:
-    if not folder.is_dir():
-        return []
-    if sweep:
-        return sorted(str(p.relative_to(folder)) for p in folder.glob("[0-9]*/results.json"))
-    return [n for n in RESULT_FILES if (folder / n).exists()]
-
-
 def check_output_folder(argv: Sequence[str], cwd: Path) -> None:
     """Before Hydra creates it: the run's (sweep's) folder must be writable, and a folder given
     with ``hydra.run.dir`` / ``hydra.sweep.dir`` that holds an earlier run's results is refused
@@ -85,8 +73,9 @@ def check_output_folder(argv: Sequence[str], cwd: Path) -> None:
     given = _override(argv, key)
     folder = Path(given) if given else Path("multirun" if sweep else "outputs")
     folder = folder if folder.is_absolute() else cwd / folder
-    if given:
-        found = _holds_results(folder, sweep)
+    if given and folder.is_dir():
+        found = (sorted(str(p.relative_to(folder)) for p in folder.glob("[0-9]*/results.json")) if sweep
+                 else [n for n in RESULT_FILES if (folder / n).exists()])
         replace = any(_override(argv, k) in ("true", "True") for k in ("overwrite", "resume"))
         if found and not replace:
             raise ConfigError(f"{key}: {given} already holds the results of a run ({', '.join(found[:4])}); choose "
@@ -99,16 +88,6 @@ def check_output_folder(argv: Sequence[str], cwd: Path) -> None:
     except OSError as e:
         raise ConfigError(f"{key}: cannot write into {folder} ({type(e).__name__}: {e.strerror or e}); choose a "
                           f"writable folder with {key}=<folder>") from None
-
-
-def _known_keys(choices: Mapping[str, Optional[str]]):
-    from omegaconf import OmegaConf
-
-    known = OmegaConf.load(config_dir() / "config.yaml")
-    exp = choices.get("experiment")
-    if exp:
-        known = OmegaConf.merge(known, OmegaConf.load(config_dir() / "experiment" / f"{exp}.yaml"))
-    return OmegaConf.to_container(known, resolve=False)
 
 
 def unknown_keys(cfg: Mapping, known: Mapping, prefix: str = "") -> List[str]:
@@ -131,12 +110,14 @@ def unknown_keys(cfg: Mapping, known: Mapping, prefix: str = "") -> List[str]:
 def check_config(cfg: Mapping, choices: Mapping[str, Optional[str]]) -> None:
     """What a composed config must satisfy before anything is built: no unknown settings,
     booleans that are booleans, a seed in range, a known random back end, metric settings."""
-    bad = unknown_keys(cfg, _known_keys(choices))
+    known = OmegaConf.load(config_dir() / "config.yaml")
+    if choices.get("experiment"):
+        known = OmegaConf.merge(known, OmegaConf.load(config_dir() / "experiment" / f"{choices['experiment']}.yaml"))
+    bad = unknown_keys(cfg, OmegaConf.to_container(known, resolve=False))
     if bad:
         raise ConfigError("; ".join(bad))
     for key in ("plots", "progress", "resume", "overwrite"):
-        if not isinstance(cfg.get(key), bool):
-            raise ConfigError(f"{key}: expected true or false, got {cfg.get(key)!r}")
+        require(isinstance(cfg.get(key), bool), key, "true or false", cfg.get(key))
     check_seed(cfg.get("seed"))
     check_rng_backend(cfg.get("rng_backend"))
     m = cfg.get("metrics") or {}
@@ -145,10 +126,7 @@ def check_config(cfg: Mapping, choices: Mapping[str, Optional[str]]) -> None:
 
 
 def remember_command(prog: str, argv: Sequence[str]) -> None:
-    """Record how this process was started (the resume hint repeats it; sweep workers of parallel
-    launchers inherit the environment)."""
-    import json
-
+    """Record how this process was started, for the resume hint (sweep workers inherit it)."""
     os.environ.setdefault(PROG_ENV, prog)
     os.environ.setdefault(ARGV_ENV, json.dumps(list(argv)))
 
@@ -157,8 +135,6 @@ def resume_command(prog: Optional[str] = None, argv: Optional[Sequence[str]] = N
                    env: Optional[Mapping[str, str]] = None) -> str:
     """The command line of this run (all of a sweep's jobs: ``-m`` and every override) with
     ``resume=true``; under torchrun the same number of processes, so the chunks are the same."""
-    import json
-
     env = os.environ if env is None else env
     prog = prog or env.get(PROG_ENV, "torchflow")
     argv = list(argv if argv is not None else json.loads(env.get(ARGV_ENV, "[]")))

@@ -1,11 +1,5 @@
-"""One experiment over several processes, GPUs or nodes with ``torch.distributed``.
-
-Launched by ``torchrun``, every rank simulates the same data from the seed, runs chunks ``rank,
-rank + world, ...`` of each filter and sends the per-trial results to rank 0, which scores and
-writes them (``torchrun --standalone --nproc_per_node=2 experiments/run.py filter=[bpf] trials=40``).
-Trials draw from per-trial streams, so each trial's numbers are a single-process run's: identical
-with the same chunks, equal to round-off otherwise (without ``chunk_size`` chunks are capped at
-``ceil(trials / world)`` so every rank has work). NCCL on CUDA (rank r on ``cuda:LOCAL_RANK``), gloo on CPU.
+"""One experiment over ``torchrun`` processes (README, "Scaling out"): every rank simulates the same
+data, runs chunks ``rank, rank + world, ...`` of each filter and sends its per-trial results to rank 0.
 """
 from __future__ import annotations
 
@@ -20,8 +14,7 @@ import torch.distributed as dist
 
 @dataclass
 class Shard:
-    """This process's ``rank`` (0 .. ``world`` - 1) of ``world`` processes; ``local_rank`` on its node
-    (picks the GPU)."""
+    """This process's ``rank`` (0 .. ``world`` - 1) of ``world``; ``local_rank`` on its node (its GPU)."""
 
     rank: int = 0
     world: int = 1
@@ -62,10 +55,9 @@ class Shard:
 
     @staticmethod
     def from_env(device: str = "cpu", timeout_minutes: float = 720.0) -> "Shard":
-        """The shard ``torchrun`` describes (``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``), its process
-        group initialised (``Shard()`` outside ``torchrun``); ``device``: the run's (``cuda``: NCCL
-        and this rank's GPU). ``timeout_minutes``: how long a rank waits for the slowest at a
-        filter's gather (torch's 10-30 min defaults would end a long uneven run)."""
+        """The shard ``torchrun`` describes, its process group initialised (``Shard()`` outside
+        ``torchrun``; ``device`` ``cuda``: NCCL and this rank's GPU); ``timeout_minutes``: how long a
+        rank waits for the slowest at a gather (torch's 10-30 min defaults would end long runs)."""
         world = int(os.environ.get("WORLD_SIZE", "1"))
         if world <= 1:
             return Shard()

@@ -1,7 +1,5 @@
-"""Execute a plan: every filter over its chunks of trials, with stop requests, checkpoints and shards.
-
-A filter that raises does not stop the run: its outcome carries the error (and where it happened),
-the traceback goes to the ``torchflow.runner`` logger, and the next filter runs.
+"""``run_experiment``: plan -> execute (every filter over its chunks of trials, with stop requests,
+checkpoints and shards; a failing filter's traceback goes to the ``torchflow.runner`` log) -> score.
 """
 from __future__ import annotations
 
@@ -10,27 +8,29 @@ import time
 import traceback
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import List, Optional
+from typing import Callable, List, Mapping, Optional, Sequence, Union
 
 import torch
+from tqdm.auto import tqdm
 
+from .. import tuning
 from .._checks import NonFiniteError
 from ..filters.base import Filter
+from ..models.base import StateSpaceModel, Trajectory
 from ..random import TrialStreams
 from .checkpoint import CHUNK_FIELDS, ChunkStore
-from .plan import RunPlan
+from .distributed import Shard
+from .plan import RunPlan, check_metric_settings, check_settings, make_plan
+from .score import SUMMARY_COLUMNS, ExperimentResult, make_scorer, score_filter
 
 log = logging.getLogger("torchflow.runner")
 
 
 class StopRequest:
-    """Ctrl-C / SIGTERM handling that never tears a run apart mid-bookkeeping.
-
-    :meth:`handler` (installed for SIGINT and SIGTERM by the command line; in your own script:
-    ``signal.signal(signal.SIGTERM, STOP.handler)``) records the request. Inside a filter's chunk it
-    raises ``KeyboardInterrupt`` at once; anywhere else (gathering ranks, scoring, writing files)
-    the run stops at the next chunk boundary, so the finished chunks are always scored and written.
-    """
+    """Ctrl-C / SIGTERM handling that never tears a run apart mid-bookkeeping: :meth:`handler`
+    (the command line's for SIGINT and SIGTERM; in a script: ``signal.signal(signal.SIGTERM,
+    STOP.handler)``) raises ``KeyboardInterrupt`` at once inside a filter's chunk, else the run
+    stops at the next chunk boundary (the finished chunks are always scored and written)."""
 
     def __init__(self):
         self.requested, self._depth = False, 0
@@ -78,17 +78,15 @@ def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None) -> 
     g = TrialStreams(st.seed, range(s, e), key=f.stream_name, backend=st.rng_backend)
     cb = (lambda n=e - s: bar.update(n)) if bar is not None else None
     mask = {"mask": traj.mask[s:e]} if getattr(traj, "mask", None) is not None else {}
-    cuda = st.device.type == "cuda"
-    if cuda:
-        torch.cuda.synchronize()
+    sync = torch.cuda.synchronize if st.device.type == "cuda" else (lambda: None)
+    sync()
     t0 = time.perf_counter()
     with torch.no_grad(), STOP.interruptible():
         try:
             res = f(traj.observations[s:e], plan.mean0[s:e], plan.cov0[s:e], g, progress=cb, **mask)
         except NonFiniteError as err:  # report trial indices in the whole run
             raise NonFiniteError(name, err.step, [s + i for i in err.trials]) from None
-    if cuda:
-        torch.cuda.synchronize()
+    sync()
     out = {"start": s, "stop": e, "elapsed": time.perf_counter() - t0}
     for key in CHUNK_FIELDS:
         v = getattr(res, key, None)
@@ -100,34 +98,26 @@ def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None) -> 
 def _one_chunk(f, name, plan, s, e, store, bar) -> dict:
     """A chunk from the store (saved with these or, resuming, other boundaries) or computed and saved."""
     steps, meta = plan.settings.steps, plan.meta(f)
-    chunk = None if store is None else store.load(name, s, e, steps, meta)
+    if store is None:
+        return run_chunk(f, name, plan, s, e, bar)
+    chunk = store.load(name, s, e, steps, meta)
     if chunk is not None:
         if bar is not None:
             bar.update((e - s) * steps)
         return chunk
-    if store is not None:  # trials saved by a run with other chunk boundaries are reused
-        chunk = store.assemble(name, s, e, steps, meta, compute=lambda a, b: run_chunk(f, name, plan, a, b, bar))
-    if chunk is None:
-        chunk = run_chunk(f, name, plan, s, e, bar)
-    if store is not None:
-        store.save_or_warn(name, s, e, chunk, meta)
+    # trials saved by a run with other chunk boundaries are reused
+    chunk = store.assemble(name, s, e, steps, meta, compute=lambda a, b: run_chunk(f, name, plan, a, b, bar))
+    chunk = chunk if chunk is not None else run_chunk(f, name, plan, s, e, bar)
+    store.save_or_warn(name, s, e, chunk, meta)
     return chunk
 
 
 def execute(f: Filter, name: str, plan: RunPlan, *, store: Optional[ChunkStore] = None, progress=False,
             desc="") -> Outcome:
-    """Run ``f`` over this rank's chunks (a tqdm bar on rank 0 with ``progress``) and gather the
-    ranks' outcomes: the finished chunks, and the error or interruption."""
-    mine = plan.shard.mine(plan.trial_chunks(name))
-    bar = None
-    if progress and plan.shard.is_main:
-        try:
-            from tqdm.auto import tqdm
-
-            bar = tqdm(total=sum(e - s for s, e in mine) * plan.settings.steps, unit="trial-step", leave=False,
-                       dynamic_ncols=True, desc=desc)
-        except ImportError:  # pragma: no cover
-            pass
+    """Run ``f`` over this rank's chunks (a tqdm bar on rank 0 with ``progress``); the ranks' outcome."""
+    mine = plan.shard.mine(plan.trial_chunks(plan.chunks[name]))
+    bar = tqdm(total=sum(e - s for s, e in mine) * plan.settings.steps, unit="trial-step", leave=False,
+               dynamic_ncols=True, desc=desc) if progress and plan.shard.is_main else None
     out, i = Outcome(), -1
     try:
         for i, (s, e) in enumerate(mine):
@@ -157,6 +147,74 @@ def gather_outcome(out: Outcome, plan: RunPlan) -> Outcome:
     interrupted = bool(shard.broadcast(any(p[2] for p in parts) if shard.is_main else None))
     if not shard.is_main:
         return Outcome(interrupted=interrupted)
-    failed = [p for p in parts if p[1]]
+    failed = next((p for p in parts if p[1]), (None,) * 4)
     chunks = sorted((c for p in parts for c in p[0]), key=lambda c: c["start"])
-    return Outcome(chunks, failed[0][1] if failed else None, failed[0][3] if failed else None, interrupted)
+    return Outcome(chunks, failed[1], failed[3], interrupted)
+
+
+def run_experiment(
+    model: StateSpaceModel, filters: Mapping[str, Filter], *, trials: int = 10, steps: int = 10, seed: int = 0,
+    inits_per_track: int = 1, chunk_size: Optional[int] = None, memory_budget_gb: float = 4.0,
+    device: Union[str, torch.device] = "cpu", dtype: Union[str, torch.dtype] = "float64", ospa_cutoff: float = 40.0,
+    ospa_order: float = 1.0, lost_threshold: float = 2.0, progress: bool = True, rng_backend: str = "auto",
+    on_filter_done: Optional[Callable[[List[dict]], None]] = None, store: Optional[ChunkStore] = None,
+    shard: Optional[Shard] = None, trial_range: Optional[Sequence[int]] = None, simulator: Optional[Callable] = None,
+) -> Optional[ExperimentResult]:
+    """Simulate ``trials`` trajectories of ``steps`` steps once (``model.n_steps``, where the model
+    has one, sets it) and run every filter of ``filters`` (``{name: filter holding model}``) on the
+    same observations. Each trial of a filter draws from its own stream keyed by (``seed`` in
+    ``[0, 2**63)``, trial, the filter's ``stream_name``; ``rng_backend``: ``auto`` = numpy on CPU,
+    philox on GPU), so its numbers do not depend on the chunks, the filters' order or ``shard``.
+
+    ``inits_per_track``: trials share a trajectory in groups of this size, each with its own prior
+    draw. ``chunk_size``: trials per chunk (``None``: from ``memory_budget_gb`` and the filters'
+    memory formulas). ``ospa_cutoff``, ``ospa_order``, ``lost_threshold``: metric settings.
+    ``on_filter_done(summary rows)`` runs after each filter. ``store``: a
+    :class:`~torchflow.runner.checkpoint.ChunkStore`. ``shard``: this process's
+    :class:`~torchflow.runner.distributed.Shard` (ranks other than 0 return ``None``).
+    ``trial_range``: ``(start, stop)``: simulate every trial, run and score only these.
+    ``simulator``: replaces :func:`~torchflow.runner.plan.simulate`.
+
+    A filter that raises does not stop the run (its row gets the error, ``result.failures`` where);
+    Ctrl-C (:data:`STOP`) keeps the finished filters. A bad argument raises
+    :class:`~torchflow.runner.plan.ConfigError` before anything runs.
+    """
+    s = check_settings(trials=trials, steps=getattr(model, "n_steps", steps), seed=seed, chunk_size=chunk_size,
+                       inits_per_track=inits_per_track, memory_budget_gb=memory_budget_gb, device=device, dtype=dtype,
+                       rng_backend=rng_backend, trial_range=trial_range)
+    metric_settings = check_metric_settings(ospa_cutoff=ospa_cutoff, ospa_order=ospa_order,
+                                            lost_threshold=lost_threshold)
+    plan = make_plan(model, filters, s, shard, simulator)
+    scorer = make_scorer(model, plan, **metric_settings)
+    res = ExperimentResult([], [], [])
+    for i, (name, f) in enumerate(filters.items()):
+        out = execute(f, name, plan, store=store, progress=progress, desc=f"[{i + 1}/{len(filters)}] {name}")
+        res.interrupted = out.interrupted
+        if plan.shard.is_main:
+            row = {**dict.fromkeys(SUMMARY_COLUMNS), "filter": name, "n_particles": getattr(f, "n_particles", None),
+                   "trials": s.n_run, "steps": s.steps}
+            res.summary.append(row)
+            if out.interrupted:
+                row["error"] = f"interrupted after {sum(c['stop'] - c['start'] for c in out.chunks)} of {s.n_run} trials"
+            elif out.error is not None:
+                row["error"], res.failures[name] = out.error, out.where
+            else:  # sec_per_step: compute time (a loaded chunk: its original time) per trial-step
+                row["sec_per_step"] = sum(float(c["elapsed"]) for c in out.chunks) / (s.n_run * s.steps)
+                trial_rows, step_rows, res.examples[name] = score_filter(scorer, f, name, row, out.chunks, s.steps)
+                res.per_trial += trial_rows
+                res.per_step += step_rows
+            if on_filter_done is not None and not out.interrupted:
+                on_filter_done(res.summary)
+        if out.interrupted:
+            break
+    if not plan.shard.is_main:  # rank 0 scores and returns the results
+        return None
+    res.not_run = [n for n in filters if n not in {r["filter"] for r in res.summary}]
+    res.config = dict(
+        trials=s.trials, steps=s.steps, seed=s.seed, inits_per_track=s.inits_per_track, chunk_size=plan.chunks,
+        particle_chunk={n: getattr(f, "particle_chunk", None) for n, f in filters.items()},
+        memory_budget_gb=memory_budget_gb, rng_backend=s.rng_backend, world_size=plan.shard.world,
+        trial_range=[s.lo, s.hi], device=str(s.device), dtype=str(s.dtype).replace("torch.", ""),
+        tuning=tuning.as_dict())
+    res.trajectory = Trajectory(plan.traj.states[s.lo:s.hi].cpu(), plan.traj.observations[s.lo:s.hi].cpu())
+    return res

@@ -1,14 +1,11 @@
-"""Pictures of a run (matplotlib is optional: :func:`pyplot` returns ``None`` without it).
-
-Each ``*_figure`` takes ``plt`` (``matplotlib.pyplot``) and returns a figure, or ``None`` when
-the run has nothing to draw; :func:`save_run_figures` writes the ones that apply. A filter keeps
-one colour on every panel and picture (:func:`colours`).
+"""Pictures of a run (matplotlib is optional: :func:`pyplot`). Each ``*_figure`` takes ``plt`` and
+returns a figure (``None``: nothing to draw); a filter keeps one colour everywhere (:func:`colours`).
 """
 from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import List, Optional
+from typing import List
 
 log = logging.getLogger("torchflow.runner")
 
@@ -44,9 +41,8 @@ def _finish(fig, ax, title: str, **legend):
 
 
 def per_step_figure(plt, per_step, summary, title: str):
-    """Per-step metric means, one panel per metric and one legend for all. ESS is drawn as a
-    fraction of each filter's N (filters of different N share the axis; a log axis below 0.1); a
-    panel says which filters have no value there."""
+    """Per-step metric means, one panel per metric, one legend; ESS as a fraction of each filter's N
+    (a log axis below 0.1); a panel names the filters that have no value there."""
     keys = [k for k in ("omat", "ospa", "mse", "ess") if any(k in r for r in per_step)]
     if not keys:
         return None
@@ -82,8 +78,7 @@ def per_step_figure(plt, per_step, summary, title: str):
 
 
 def tracks_figure(plt, model, trajectory, examples, summary, title: str):
-    """Trial 0 of a tracking model: sensors, true tracks (start marked) and each filter's
-    estimated tracks in the filter's colour. ``None`` without estimates."""
+    """Trial 0 of a tracking model: sensors, true tracks (start marked) and each filter's estimates."""
     if not examples:
         return None
     colour = colours(summary)
@@ -152,34 +147,28 @@ def scene_figure(plt, model, trajectory, examples, summary, title: str):
     return _finish(fig, ax, title, loc="upper left")
 
 
-def save_figure(plt, fig, path: Path, **kw) -> Optional[Path]:
-    """Save and close ``fig`` (``None``: nothing); the path written."""
-    if fig is None:
-        return None
-    try:
-        fig.savefig(path, dpi=110, **kw)
-    finally:
-        plt.close(fig)
-    return Path(path)
-
-
 def save_run_figures(out: Path, model, result, model_name: str) -> List[Path]:
     """``per_step.png``, and for tracking models ``tracks.png`` and ``omat_box.png``, for 3-D
-    localisation (a model with receivers) ``scene.png``, of a run."""
+    localisation (a model with receivers) ``scene.png``, of a run; the paths written."""
     plt = pyplot()
     if plt is None or not result.per_step:
         return []
-    n, out, res = result.config.get("trials", len({r["trial"] for r in result.per_trial})), Path(out), result
-    paths = [save_figure(plt, per_step_figure(plt, res.per_step, res.summary, f"{model_name}, {n} trials"),
-                         out / "per_step.png")]
+    n, res, paths = result.config.get("trials", len({r["trial"] for r in result.per_trial})), result, []
+    figs = {"per_step.png": lambda: per_step_figure(plt, res.per_step, res.summary, f"{model_name}, {n} trials")}
     if hasattr(model, "receivers") and res.trajectory is not None:
-        paths.append(save_figure(plt, scene_figure(plt, model, res.trajectory, res.examples, res.summary,
-                                                   f"{model_name}: run 0, true and declared sources"),
-                                 out / "scene.png"))
+        figs["scene.png"] = lambda: scene_figure(plt, model, res.trajectory, res.examples, res.summary,
+                                                 f"{model_name}: run 0, true and declared sources")
     elif model.has_positions and res.trajectory is not None:
-        paths.append(save_figure(plt, tracks_figure(plt, model, res.trajectory, res.examples, res.summary,
-                                                    f"{model_name}: trial 0, true and estimated tracks"),
-                                 out / "tracks.png", bbox_inches="tight"))
-        paths.append(save_figure(plt, omat_box_figure(plt, res.per_trial, res.summary, f"{model_name}: per-trial "
-                                                      f"OMAT against time per step, {n} trials"), out / "omat_box.png"))
-    return [p for p in paths if p is not None]
+        figs["tracks.png"] = lambda: tracks_figure(plt, model, res.trajectory, res.examples, res.summary,
+                                                   f"{model_name}: trial 0, true and estimated tracks")
+        figs["omat_box.png"] = lambda: omat_box_figure(
+            plt, res.per_trial, res.summary, f"{model_name}: per-trial OMAT against time per step, {n} trials")
+    for name, draw in figs.items():
+        fig = draw()
+        if fig is not None:
+            try:
+                fig.savefig(Path(out) / name, dpi=110, bbox_inches="tight" if name == "tracks.png" else None)
+            finally:
+                plt.close(fig)
+            paths.append(Path(out) / name)
+    return paths

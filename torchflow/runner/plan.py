@@ -1,7 +1,5 @@
 """Plan a run: check its arguments, simulate the data once, choose every filter's chunks of trials
-(from the filters' memory formulas: :meth:`Filter.bytes_per_trial`, :meth:`Filter.preferred_chunk_trials`,
-:meth:`Filter.plan_memory`). Trials draw from per-trial streams (:mod:`torchflow.random`), so the
-plan never changes a trial's numbers.
+from its memory formulas (trials draw from per-trial streams: the plan never changes their numbers).
 """
 from __future__ import annotations
 
@@ -16,7 +14,12 @@ from .._checks import check_count
 from ..filters.base import Filter
 from ..models.base import StateSpaceModel, Trajectory
 from .distributed import Shard
-from .errors import ConfigError
+
+
+class ConfigError(ValueError):
+    """A bad run setting (a value, a name, a combination): the command line prints it as one line
+    and exits with status 2. Any other exception is a failure and keeps its traceback."""
+
 
 _DTYPES = {"float64": torch.float64, "float32": torch.float32, "double": torch.float64, "float": torch.float32}
 #: back ends of the per-trial random streams (:class:`~torchflow.random.TrialStreams`)
@@ -25,10 +28,15 @@ RNG_BACKENDS = ("auto", "numpy", "philox")
 SEED_LIMIT = 2**63
 
 
+def require(ok: bool, name: str, what: str, got) -> None:
+    """The runner's checks: a :class:`ConfigError` ``name: expected what, got got`` unless ``ok``."""
+    if not ok:
+        raise ConfigError(f"{name}: expected {what}, got {got!r}")
+
+
 def resolve_dtype(dtype: Union[str, torch.dtype]) -> torch.dtype:
-    if not isinstance(dtype, torch.dtype) and dtype not in _DTYPES:
-        raise ConfigError(f"dtype: expected one of {sorted(_DTYPES)}, got {dtype!r}")
-    return dtype if isinstance(dtype, torch.dtype) else _DTYPES[dtype]
+    require(isinstance(dtype, torch.dtype) or dtype in _DTYPES, "dtype", f"one of {sorted(_DTYPES)}", dtype)
+    return _DTYPES.get(dtype, dtype)
 
 
 def resolve_device(device: Union[str, torch.device]) -> torch.device:
@@ -36,8 +44,7 @@ def resolve_device(device: Union[str, torch.device]) -> torch.device:
         dev = torch.device(device)
     except (RuntimeError, TypeError):
         dev = None
-    if dev is None or dev.type not in ("cpu", "cuda"):
-        raise ConfigError(f"device: expected 'cpu', 'cuda' or 'cuda:<index>', got {device!r}")
+    require(dev is not None and dev.type in ("cpu", "cuda"), "device", "'cpu', 'cuda' or 'cuda:<index>'", device)
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device: 'cuda' requested but torch.cuda.is_available() is False "
                           "(a CPU-only torch build, or no GPU visible)")
@@ -54,14 +61,12 @@ def _count(name: str, value, hint: str = "", minimum: int = 1) -> int:
 def check_seed(seed) -> int:
     """A seed in ``[0, 2**63)``."""
     seed = _count("seed", seed, minimum=0)
-    if seed >= SEED_LIMIT:
-        raise ConfigError(f"seed: expected an integer in [0, 2**63), got {seed}")
+    require(seed < SEED_LIMIT, "seed", "an integer in [0, 2**63)", seed)
     return seed
 
 
 def check_rng_backend(rng_backend) -> str:
-    if rng_backend not in RNG_BACKENDS:
-        raise ConfigError(f"rng_backend: expected one of {', '.join(RNG_BACKENDS)}, got {rng_backend!r}")
+    require(rng_backend in RNG_BACKENDS, "rng_backend", f"one of {', '.join(RNG_BACKENDS)}", rng_backend)
     return rng_backend
 
 
@@ -73,9 +78,7 @@ def check_trial_range(trial_range, trials: int) -> Tuple[int, int]:
         ok = all(float(v) == int(v) for v in trial_range) and 0 <= lo < hi <= trials
     except (TypeError, ValueError):
         ok = False
-    if not ok:
-        raise ConfigError(f"trial_range: expected [start, stop] with 0 <= start < stop <= trials = {trials}, "
-                          f"got {trial_range!r}")
+    require(ok, "trial_range", f"[start, stop] with 0 <= start < stop <= trials = {trials}", trial_range)
     return lo, hi
 
 
@@ -88,8 +91,7 @@ def check_metric_settings(*, ospa_cutoff, ospa_order, lost_threshold) -> dict:
     rules = {"ospa_cutoff": (ospa_cutoff, 0.0, "a positive number"), "ospa_order": (ospa_order, 1.0, "a number >= 1"),
              "lost_threshold": (lost_threshold, 0.0, "a positive number of metres")}
     for name, (v, low, what) in rules.items():
-        if not _number(v) or v < low or (name != "ospa_order" and v <= low):
-            raise ConfigError(f"metrics.{name}: expected {what}, got {v!r}")
+        require(_number(v) and v >= low and (name == "ospa_order" or v > low), f"metrics.{name}", what, v)
     return {name: float(v) for name, (v, _, _) in rules.items()}
 
 
@@ -100,11 +102,9 @@ def choose_chunk_size(filters: Mapping[str, Filter], trials: int, memory_budget_
 
 
 def filter_chunk(f: Filter, n_run: int, chunk_size: Optional[int], memory_budget_gb: float) -> int:
-    """A filter's chunk of trials: ``chunk_size`` if given, else the most its memory estimate
-    allows, capped by the filter's preferred batch (local flows slow down past ~1e4 points). When
-    one trial exceeds the budget, a particle filter without ``particle_chunk`` gets one. A filter
-    whose numbers depend on its batch declares ``trials_per_call`` (the localisers: 1), a cap in
-    every case."""
+    """A filter's chunk of trials: ``chunk_size`` if given, else the most its memory estimate allows,
+    capped by its preferred batch (a particle filter whose one trial exceeds the budget gets a
+    ``particle_chunk``); its ``trials_per_call`` (the localisers: 1) caps both."""
     cap = getattr(f, "trials_per_call", None)
     if chunk_size:
         return min(int(chunk_size), cap or int(chunk_size))
@@ -130,7 +130,7 @@ def simulate(model: StateSpaceModel, trials: int, steps: int, inits_per_track: i
 
 @dataclass
 class RunSettings:
-    """The checked arguments of a run (what :func:`check_settings` returns)."""
+    """The checked arguments of a run (:func:`check_settings`); trials ``[lo, hi)`` are run."""
 
     trials: int
     steps: int
@@ -155,8 +155,8 @@ def check_settings(*, trials, steps, seed, inits_per_track, chunk_size, memory_b
     trials = _count("trials", trials)
     if chunk_size is not None:
         chunk_size = _count("chunk_size", chunk_size, hint=" (or None: from memory_budget_gb)")
-    if not _number(memory_budget_gb) or memory_budget_gb <= 0:
-        raise ConfigError(f"memory_budget_gb: expected a positive number of GiB, got {memory_budget_gb!r}")
+    require(_number(memory_budget_gb) and memory_budget_gb > 0, "memory_budget_gb", "a positive number of GiB",
+             memory_budget_gb)
     return RunSettings(trials, _count("steps", steps), check_seed(seed), _count("inits_per_track", inits_per_track),
                        chunk_size, float(memory_budget_gb), resolve_device(device), resolve_dtype(dtype),
                        check_rng_backend(rng_backend), *check_trial_range(trial_range, trials))
@@ -173,10 +173,9 @@ class RunPlan:
     chunks: Dict[str, int]
     shard: Shard = field(default_factory=Shard)
 
-    def trial_chunks(self, name: str) -> List[Tuple[int, int]]:
-        """Filter ``name``'s chunks ``[(start, stop), ...]`` over the run's trial range."""
-        s, c = self.settings, self.chunks[name]
-        return [(a, min(a + c, s.hi)) for a in range(s.lo, s.hi, c)]
+    def trial_chunks(self, size: int) -> List[Tuple[int, int]]:
+        """Chunks ``[(start, stop), ...]`` of ``size`` trials over the run's trial range."""
+        return [(a, min(a + size, self.settings.hi)) for a in range(self.settings.lo, self.settings.hi, size)]
 
     def meta(self, f: Filter) -> dict:
         """What a saved chunk's header must repeat (see :class:`~torchflow.runner.checkpoint.ChunkStore`)."""

@@ -33,9 +33,8 @@ class ExperimentResult:
         config: the run's settings (chunk sizes, particle chunks, seed, device, ...).
         examples: ``{filter: (T, d)}`` estimates of trial 0 (for the track picture; localisers: the
             declared sources ``(k, 3)``).
-        interrupted: the run was stopped (Ctrl-C); the rows hold what finished, the interrupted
-            filter's row says so in ``error``.
-        not_run: filters that did not start because of the interruption.
+        interrupted: the run was stopped (Ctrl-C): the interrupted filter's row says so in ``error``;
+            ``not_run``: the filters that did not start.
         failures: ``{filter: "chunk i of n (trials a..b)"}``: where each failed filter failed
             (its row's ``error`` says what; the traceback is in the ``torchflow.runner`` log).
     """
@@ -80,9 +79,8 @@ def make_scorer(model: StateSpaceModel, plan: RunPlan, **settings) -> Scorer:
         with torch.no_grad():
             kf = KalmanFilter(model, validate=False)
             c = filter_chunk(kf, s.n_run, s.chunk_size, s.memory_budget_gb)
-            ref = torch.cat([kf(plan.traj.observations[a:min(a + c, s.hi)], plan.mean0[a:min(a + c, s.hi)],
-                                plan.cov0[a:min(a + c, s.hi)]).log_evidence
-                             for a in range(s.lo, s.hi, c)]).double().cpu()
+            ref = torch.cat([kf(plan.traj.observations[a:b], plan.mean0[a:b], plan.cov0[a:b]).log_evidence
+                             for a, b in plan.trial_chunks(c)]).double().cpu()
     return Scorer(model, truth, s.lo, reference_logz=ref, **settings)
 
 
@@ -96,10 +94,9 @@ def _per_step(name: str, cols: Dict[str, torch.Tensor], steps: int) -> List[dict
 
 
 def score_sets(sc: Scorer, name: str, row: dict, chunks: List[dict], steps: int):
-    """:func:`score_filter` of a filter whose estimates are sets (the localisers): ``estimates (B, T,
-    K, 3)`` with ``estimate_mask``, scored by OSPA against the model's positions and the declared
-    count after each step; a trial's value is the last step's (the answer of a localisation). The
-    measurements whose every weight underflowed (``underflow``) are counted and named in a warning."""
+    """:func:`score_filter` of the localisers (sets ``estimates (B, T, K, 3)`` with ``estimate_mask``):
+    OSPA and the declared count after each step, a trial's value the last step's; the measurements
+    whose every weight underflowed (``underflow``) are counted and named in a warning."""
     est, mask, under = _cat(chunks, "estimates"), _cat(chunks, "estimate_mask"), _cat(chunks, "underflow")
     cols = {"ospa": metrics.ospa(est, sc.model.positions(sc.truth), cutoff=sc.ospa_cutoff, order=sc.ospa_order,
                                  X_mask=mask), "declared": mask.sum(-1).double()}
@@ -110,15 +107,14 @@ def score_sets(sc: Scorer, name: str, row: dict, chunks: List[dict], steps: int)
     counts = under.flatten(1).sum(1)
     per_trial = [{"filter": name, "trial": sc.lo + b, "ospa": float(cols["ospa"][b, -1]),
                   "declared": int(cols["declared"][b, -1]), "underflows": int(counts[b])} for b in range(est.shape[0])]
-    row.update({k: float(v[:, -1].mean()) for k, v in cols.items()}, underflows=int(counts.sum()),
-               sec_per_step=sum(float(c["elapsed"]) for c in chunks) / (est.shape[0] * steps))
+    row.update({k: float(v[:, -1].mean()) for k, v in cols.items()}, underflows=int(counts.sum()))
     return per_trial, _per_step(name, cols, steps), est[0, -1][mask[0, -1]]
 
 
 def score_filter(sc: Scorer, f: Filter, name: str, row: dict, chunks: List[dict], steps: int):
     """``(per-trial rows, per-step rows, trial 0's estimates)`` of one filter; fills ``row``: metric
     means over trials and steps (MSE; OMAT, OSPA and lost tracks of tracking models; ESS, G_eff),
-    the log-evidence and its error against the Kalman filter's, repairs, seconds per trial-step."""
+    the log-evidence and its error against the Kalman filter's, repairs."""
     if "estimate_mask" in chunks[0]:
         return score_sets(sc, name, row, chunks, steps)
     est, logz, n_run = _cat(chunks, "estimates"), _cat(chunks, "log_evidence"), sc.truth.shape[0]
@@ -128,7 +124,6 @@ def score_filter(sc: Scorer, f: Filter, name: str, row: dict, chunks: List[dict]
         cols["omat"] = metrics.omat(est_pos, true_pos)
         cols["ospa"] = metrics.ospa(est_pos, true_pos, cutoff=sc.ospa_cutoff, order=sc.ospa_order)
     cols.update({k: _cat(chunks, k) for k in ("ess", "g_eff") if k in chunks[0]})
-    row["sec_per_step"] = sum(float(c["elapsed"]) for c in chunks) / (n_run * steps)
     if f.estimates_evidence:
         row["log_evidence"] = float(logz.mean())
         if sc.reference_logz is not None:
@@ -142,13 +137,9 @@ def score_filter(sc: Scorer, f: Filter, name: str, row: dict, chunks: List[dict]
         kept = cols["omat"].mean(1)[~lost]
         row.update(lost_tracks=int(lost.sum()), omat_kept_mean=float(kept.mean()) if kept.numel() else None,
                    omat_kept_sd=float(kept.std()) if kept.numel() > 1 else None)
-    per_trial = []
-    for b in range(n_run):
-        r = {"filter": name, "trial": sc.lo + b, "log_evidence": float(logz[b]),
-             **{k: float(v[b].mean()) for k, v in cols.items()}}
-        if lost is not None:
-            r["lost"] = bool(lost[b])
-        per_trial.append(r)
+    per_trial = [{"filter": name, "trial": sc.lo + b, "log_evidence": float(logz[b]),
+                  **{k: float(v[b].mean()) for k, v in cols.items()},
+                  **({} if lost is None else {"lost": bool(lost[b])})} for b in range(n_run)]
     return per_trial, _per_step(name, cols, steps), chunks[0]["estimates"][0]
 
 

@@ -1,39 +1,25 @@
-"""Hydra sweeps: what happened to every job.
-
-A sweep (``torchflow -m ...``, on any launcher: basic, joblib, submitit, ray) writes one folder
-per job. A job that fails leaves ``error.txt`` there (a job whose filter failed: its ``results.json``
-lists it) and the sweep goes on;
-:class:`SweepReport` (a Hydra callback, on by default in ``configs/config.yaml``) prints at the
-end which jobs finished and which failed, with their overrides and errors, and makes the sweep's
-exit status 1 when any failed. :func:`job_status` is what ``experiments/collect.py`` uses too.
+"""Hydra sweeps (any launcher): what happened to every job, from its folder (``error.txt``,
+``results.json``); :class:`SweepReport` says it at the end, ``experiments/collect.py`` too.
 """
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 from typing import Any, List
 
-try:
-    from hydra.experimental.callback import Callback
-except ImportError:  # pragma: no cover - hydra is a core dependency
-    Callback = object
+import yaml
+from hydra.experimental.callback import Callback
 
 
 def job_dirs(sweep_dir: Path) -> List[Path]:
-    """A sweep's job folders (named by job number), in job order."""
-    sweep_dir = Path(sweep_dir)
-    if not sweep_dir.is_dir():
-        return []
-    return sorted((p for p in sweep_dir.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))
+    """A sweep's job folders (named by job number), in job order (none if ``sweep_dir`` is not a folder)."""
+    return sorted((p for p in Path(sweep_dir).glob("*") if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))
 
 
 def job_status(job: Path) -> tuple:
-    """``("failed", last line of error.txt)``, ``("failed", "filter X failed: ...")`` (the job ran,
-    a filter failed), ``("done", "")`` (``results.json`` written), ``("interrupted", "")`` (stopped
-    by Ctrl-C or SIGTERM; its finished filters are written) or ``("missing", "")`` (no results:
-    still running, killed, or never started)."""
-    import json
-
+    """``(state, message)``: ``failed`` (the last line of error.txt, or ``filter X failed: ...``),
+    ``done``, ``interrupted`` (Ctrl-C or SIGTERM) or ``missing`` (running, killed, never started)."""
     err, res = Path(job) / "error.txt", Path(job) / "results.json"
     if err.exists():
         lines = [ln for ln in err.read_text().splitlines() if ln.strip()]
@@ -50,16 +36,13 @@ def job_status(job: Path) -> tuple:
 
 def job_override_dict(job: Path) -> dict:
     """``{key: value}`` of one job's overrides (``.hydra/overrides.yaml``; ``experiment=`` left out)."""
-    import yaml
-
     f = Path(job) / ".hydra" / "overrides.yaml"
     overrides = list(yaml.safe_load(f.read_text()) or []) if f.exists() else []
     return dict(o.split("=", 1) for o in overrides if "=" in o and not o.startswith("experiment="))
 
 
 def varying_overrides(jobs: List[Path]) -> dict:
-    """``{job name: {key: value}}`` of the overrides whose value differs between ``jobs``
-    (the ones that tell the jobs apart)."""
+    """``{job name: {key: value}}`` of the overrides whose value differs between ``jobs``."""
     ov = {j.name: job_override_dict(j) for j in jobs}
     keys = list(dict.fromkeys(k for o in ov.values() for k in o))
     vary = [k for k in keys if len({o.get(k) for o in ov.values()}) > 1]
@@ -78,11 +61,7 @@ def describe_job(name: str, state: str, message: str, overrides: dict) -> str:
 
 
 class SweepReport(Callback):
-    """Hydra callback: after a multirun, list failed and missing jobs (with their overrides and
-    error) and exit with status 1 if any job failed."""
-
-    def __init__(self, exit_on_failure: bool = True):
-        self.exit_on_failure = exit_on_failure
+    """Hydra callback: after a multirun, list the failed and missing jobs; exit status 1 if any failed."""
 
     def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
         sweep = Path(str(config.hydra.sweep.dir))
@@ -96,5 +75,5 @@ class SweepReport(Callback):
             print("  " + describe_job(n, state, msg, vary[n]), file=sys.stderr)
         if bad:
             print(f"  merge what finished: python experiments/collect.py {sweep}", file=sys.stderr)
-        if self.exit_on_failure and count["failed"]:
+        if count["failed"]:
             sys.exit(1)

@@ -41,11 +41,6 @@ def write_csv(path: Path, rows: List[Mapping], columns: Optional[List[str]] = No
     return _atomic(path, write)
 
 
-def write_json(path: Path, data) -> Path:
-    """Write ``data`` as indented JSON to ``path`` atomically."""
-    return _atomic(path, lambda fh: json.dump(data, fh, indent=2))
-
-
 def write_text(path: Path, text: str) -> Path:
     return _atomic(path, lambda fh: fh.write(text))
 
@@ -57,15 +52,13 @@ def write_run(out: Path, result, config: Mapping) -> List[Path]:
     return [write_csv(out / "summary.csv", result.summary, SUMMARY_COLUMNS),
             write_csv(out / "per_step.csv", result.per_step),
             write_csv(out / "per_trial.csv", result.per_trial),
-            write_json(out / "results.json", {
+            write_text(out / "results.json", json.dumps({
                 "config": dict(config), "run": result.config, "summary": result.summary,
                 "interrupted": result.interrupted, "not_run": result.not_run,
-                "failed": {n: result.failures.get(n) for n in result.failed}})]
+                "failed": {n: result.failures.get(n) for n in result.failed}}, indent=2))]
 
 
-def clear_results(out: Path) -> List[str]:
-    """Remove the files a run writes (:data:`RESULT_FILES`) from ``out``; the names removed."""
-    gone = [name for name in RESULT_FILES if (Path(out) / name).exists()]
-    for name in gone:
-        (Path(out) / name).unlink()
-    return gone
+def clear_results(out: Path) -> None:
+    """Remove the files a run writes (:data:`RESULT_FILES`) from ``out``."""
+    for name in RESULT_FILES:
+        (Path(out) / name).unlink(missing_ok=True)
