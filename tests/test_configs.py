@@ -16,7 +16,7 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 EXPERIMENTS = sorted(p.stem for p in (CONFIGS / "experiment").glob("*.yaml"))
 COMPONENTS = sorted(f"{p.parent.name}/{p.stem}" for g in ("filter", "flow", "model", "schedule")
                     for p in (CONFIGS / g).glob("*.yaml"))
-TDOA = {"filter/bs", "filter/pfi_d", "filter/pfi_s", "filter/pfi_os", "model/tdoa"}  # written out in full (for now)
+TDOA = {"filter/bs", "filter/pfi_d", "filter/pfi_s", "filter/pfi_os", "model/tdoa"}  # localisers: model=tdoa
 SMALL = ["model.d=4", "n_particles=8"]
 
 
@@ -84,13 +84,14 @@ def test_signature_node_holds_the_constructors_defaults_and_builds(path):
         assert p.name in node or p.default is p.empty or p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD) \
             or registry.yaml_value(p.default) is registry._NO_YAML, p.name
     if "model" in inspect.signature(cls).parameters:
-        lg = instantiate(_compose("model=linear_gaussian", *SMALL).model)
-        assert isinstance(instantiate(node, model=lg, **({"n_particles": 8} if "n_particles" in node else {})), cls)
-    elif not path.endswith("TDOA3D"):
+        local = path.startswith("torchflow.localisation")  # the localisers run on the TDOA model only
+        model = instantiate(_compose("model=tdoa").model if local else _compose("model=linear_gaussian", *SMALL).model)
+        assert isinstance(instantiate(node, model=model, **({"n_particles": 8} if "n_particles" in node else {})), cls)
+    else:
         assert isinstance(instantiate(node), cls)
 
 
-@pytest.mark.parametrize("name", sorted(set(COMPONENTS) - TDOA))
+@pytest.mark.parametrize("name", COMPONENTS)
 def test_component_config_holds_only_what_differs(name):
     """Lean stays lean: the config extends a signature node (or another config of its group) and none
     of its own keys restates the value it would have anyway."""

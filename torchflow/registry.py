@@ -25,6 +25,7 @@ REGISTRY: Dict[str, Dict[str, str]] = {
                     pfpf_clustered="ClusteredParticleFlowParticleFilter", flow_filter="ParticleFlowFilter",
                     gpfis="GaussianParticleFlowImportanceSampler", gspf="GaussianSumParticleFilter",
                     pfgspf="ParticleFlowGaussianSumParticleFilter"),
+    "localiser": _kind("torchflow.localisation", bs="BootstrapLocaliser", pfi="FlowMixtureLocaliser"),
     "flow": _kind("torchflow.flows", edh="EDHFlow", ledh="LEDHFlow", geodesic="GeodesicFlow", gromov="GromovFlow",
                   osd="OptimalDiffusionFlow"),
     "proposal": _kind("torchflow.proposals", bootstrap="BootstrapProposal", flow="flow_proposal",
