@@ -33,6 +33,11 @@ class Covariance:
         """This covariance after the particles were resampled with ``index (B, N)``."""
         return self
 
+    def transported(self, plan: torch.Tensor) -> "Covariance":
+        """This covariance after transport resampling: new particle ``j`` is ``sum_i plan[b, i, j]
+        x_i`` (``plan (B, N, N)``, columns summing to one)."""
+        return self
+
     def like(self, matrix: torch.Tensor) -> "Covariance":
         """The same type with a new ``matrix`` (the step's updated covariance)."""
         return replace(self, matrix=matrix)
@@ -57,6 +62,13 @@ class ParticleCovariance(Covariance):
         from .resampling import gather_particles
 
         return self.like(gather_particles(self.matrix, index))
+
+    def transported(self, plan: torch.Tensor) -> "Covariance":
+        """Each new particle carries the same convex combination of the covariances (still
+        positive definite)."""
+        if self.identical:
+            return self
+        return self.like(torch.einsum("bij,bi...->bj...", plan.to(self.matrix.dtype), self.matrix))
 
 
 __all__ = ["Covariance", "TrialCovariance", "ParticleCovariance"]

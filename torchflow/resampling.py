@@ -39,7 +39,7 @@ import torch
 from torch import Tensor, nn
 
 from . import random as _random, registry
-from ._checks import check_float_tensor, shape_str
+from ._checks import check_count, check_float_tensor, shape_str
 from .linalg import standard_normal
 
 __all__ = [
@@ -55,6 +55,7 @@ __all__ = [
     "gather_particles",
     "Resampler",
     "RESAMPLING_GRADIENTS",
+    "sinkhorn_transport",
 ]
 
 ResampleFn = Callable[..., Tensor]
@@ -455,7 +456,68 @@ def gather_particles(x: Tensor, indices: Tensor) -> Tensor:
 
 
 #: how gradients pass through resampling (the slot :class:`Resampler` keeps for estimators)
-RESAMPLING_GRADIENTS = ("none", "stop_gradient", "soft")
+RESAMPLING_GRADIENTS = ("none", "stop_gradient", "soft", "ot")
+
+
+def sinkhorn_transport(particles: Tensor, log_weights: Tensor, *, epsilon: float = 0.1,
+                       iterations: int = 100) -> Tensor:
+    """Entropy-regularised optimal transport from the weighted particles to uniform weights
+    (Corenflos, Thornton, Deligiannidis & Doucet 2021), batched over trials, in log space.
+
+    Solves ``min_P <P, C> - epsilon H(P)`` with row sums ``W`` (the normalised weights) and column
+    sums ``1/N``, ``C_ij = |x_i - x_j|^2 / s^2`` on positions scaled by ``s``, the trial's largest
+    weighted standard deviation (so ``epsilon`` is relative to the cloud's spread; ``s`` is held
+    constant for the gradient). The Sinkhorn potentials are iterated ``iterations`` times without
+    autograd, then once more with it: the gradient is that of the last iteration at the converged
+    potentials (the implicit-function approximation used by geomloss), so the backward pass keeps
+    one ``(B, N, N)`` plan, not ``iterations`` of them. The regularisation is annealed from 10 to
+    ``epsilon`` over the first half of the iterations (epsilon-scaling, which converges in far fewer
+    iterations than a fixed small epsilon). A fixed number of iterations: no
+    convergence test, hence no host synchronisation.
+
+    Args:
+        particles: ``(B, N, d)``.
+        log_weights: ``(B, N)`` normalised log-weights (``-inf`` allowed).
+        epsilon: entropic regularisation (> 0; smaller is closer to exact transport and needs more
+            iterations).
+        iterations: Sinkhorn iterations (>= 1).
+
+    Returns:
+        ``T (B, N, N)`` with ``T[b, i, j] = N P_ij``: each column sums to one, and the transported
+        particles are ``x_new[b, j] = sum_i T[b, i, j] x[b, i]`` (every new particle is a convex
+        combination of the old ones, with weight ``1/N``). Memory: a few ``(B, N, N)`` tensors.
+    """
+    B, N, d = particles.shape
+    w = log_weights.exp()
+    with torch.no_grad():
+        mean = torch.einsum("bn,bnd->bd", w, particles)
+        var = torch.einsum("bn,bnd->bd", w, (particles - mean[:, None]).pow(2))
+        scale = var.amax(-1).sqrt().clamp_min(torch.finfo(particles.dtype).tiny)
+    xs = particles / scale[:, None, None]
+    sq = xs.pow(2).sum(-1)
+    C = (sq[:, :, None] + sq[:, None, :] - 2 * xs @ xs.transpose(-1, -2)).clamp_min(0.0)
+    log_a, log_b = log_weights, -math.log(N)
+    eps = float(epsilon)
+
+    def f_of(g, C, eps=eps):  # row potentials given the column potentials
+        return -eps * torch.logsumexp((g[:, None, :] - C) / eps + log_b, dim=2)
+
+    def g_of(f, C, eps=eps):
+        return -eps * torch.logsumexp((f[:, :, None] - C) / eps + log_a[:, :, None], dim=1)
+
+    # epsilon-scaling: the regularisation falls geometrically from 10 (a blur wider than the cloud,
+    # whose scaled spread is 1) to epsilon over the first half of the iterations, then stays
+    n_iter = int(iterations)
+    anneal = max(1, n_iter // 2)
+    g = torch.zeros_like(log_a)
+    with torch.no_grad():
+        Cd = C.detach()
+        for k in range(n_iter - 1):
+            e = max(eps, 10.0 * (eps / 10.0) ** (k / anneal)) if eps < 10.0 else eps
+            g = g_of(f_of(g, Cd, e), Cd, e)
+    f = f_of(g, C)  # the last iteration with autograd; g's update makes every column sum exact
+    g = g_of(f, C)
+    return torch.exp(log_a[:, :, None] + (f[:, :, None] + g[:, None, :] - C) / eps + (log_b + math.log(N)))
 
 
 class Resampler(nn.Module):
@@ -484,13 +546,20 @@ class Resampler(nn.Module):
               the ancestor draw itself has no gradient term (biased, less so as ``soft_alpha``
               falls, at the cost of a lower ESS after resampling). The forward pass differs from
               ``"none"`` unless ``soft_alpha = 1``.
+            * ``"ot"`` (Corenflos et al. 2021): the particles of a resampled trial are moved by
+              entropy-regularised optimal transport to equally weighted ones
+              (:func:`sinkhorn_transport`); a differentiable map, so gradients flow through the
+              new positions. Biased (the transported cloud matches the weighted one only in the
+              mean; its spread shrinks as ``ot_epsilon`` grows) and O(N^2) in time and memory; no
+              random numbers are drawn.
         soft_alpha: the mixture weight of ``"soft"``, in (0, 1].
+        ot_epsilon, ot_iterations: the regularisation and the Sinkhorn iterations of ``"ot"``.
         dtype: of the regularisation scale (the model's).
     """
 
     def __init__(self, state_dim: int, *, scheme: str = "systematic", ess_threshold: float = 0.5,
                  regularization=None, gradient: str = "none", soft_alpha: float = 0.5,
-                 dtype: torch.dtype = torch.float64):
+                 ot_epsilon: float = 0.1, ot_iterations: int = 100, dtype: torch.dtype = torch.float64):
         super().__init__()
         _get_resampler(scheme, "resampling")
         if (isinstance(ess_threshold, bool) or not isinstance(ess_threshold, numbers.Real)
@@ -502,6 +571,10 @@ class Resampler(nn.Module):
             raise ValueError(f"soft_alpha: expected a mixture weight in (0, 1], got {soft_alpha!r}")
         self.scheme, self.ess_threshold, self.gradient = scheme, float(ess_threshold), gradient
         self.soft_alpha = float(soft_alpha)
+        if isinstance(ot_epsilon, bool) or not isinstance(ot_epsilon, numbers.Real) or not ot_epsilon > 0:
+            raise ValueError(f"ot_epsilon: expected a regularisation > 0, got {ot_epsilon!r}")
+        self.ot_epsilon = float(ot_epsilon)
+        self.ot_iterations = check_count("ot_iterations", ot_iterations)
         d = int(state_dim)
         if regularization is None:
             self.register_buffer("regularization_std", None)
@@ -522,6 +595,8 @@ class Resampler(nn.Module):
 
         Returns ``(particles, log_weights, cov, extras, resampled (B,))``. No host synchronisation:
         every trial is gathered (identity indices where not resampled)."""
+        if self.gradient == "ot":
+            return self._ot(particles, log_weights, generator, cov, extras)
         if self.gradient == "soft":
             idx, resampled, lw_new = self._soft(log_weights, generator)
         else:
@@ -538,13 +613,37 @@ class Resampler(nn.Module):
             cov = cov.resampled(idx)
         if extras:
             extras = {k: gather_particles(v, idx) for k, v in extras.items()}
-        if self.regularization_std is not None:
-            # drawn whether or not any trial resampled, so that each trial's stream advances the
-            # same way whatever the other trials in its batch do
-            noise = standard_normal(particles.shape, dtype=particles.dtype, device=particles.device,
-                                    generator=generator) * self.regularization_std
-            particles = particles + noise * resampled[:, None, None].to(particles.dtype)
-        return particles, lw_new, cov, extras or {}, resampled
+        return self._regularise(particles, resampled, generator), lw_new, cov, extras or {}, resampled
+
+    def _regularise(self, particles: Tensor, resampled: Tensor, generator) -> Tensor:
+        if self.regularization_std is None:
+            return particles
+        # drawn whether or not any trial resampled, so that each trial's stream advances the
+        # same way whatever the other trials in its batch do
+        noise = standard_normal(particles.shape, dtype=particles.dtype, device=particles.device,
+                                generator=generator) * self.regularization_std
+        return particles + noise * resampled[:, None, None].to(particles.dtype)
+
+    def _ot(self, particles, log_weights, generator, cov, extras):
+        """Transport resampling: every trial's plan is computed (no host synchronisation), the
+        identity kept where the ESS did not trigger; per-particle covariances and extras are moved
+        by the same convex combinations."""
+        B, n = log_weights.shape
+        ess = torch.exp(-torch.logsumexp(2.0 * log_weights, dim=-1))
+        resampled = ess < self.ess_threshold * n
+        if self.ess_threshold == 0.0:
+            return particles, log_weights, cov, extras or {}, resampled
+        T = sinkhorn_transport(particles, log_weights, epsilon=self.ot_epsilon, iterations=self.ot_iterations)
+        eye = torch.eye(n, dtype=T.dtype, device=T.device)
+        T = torch.where(resampled[:, None, None], T, eye)
+        particles = torch.einsum("bij,bi...->bj...", T, particles)
+        if cov is not None:
+            cov = cov.transported(T)
+        if extras:
+            extras = {k: torch.einsum("bij,bi...->bj...", T.to(v.dtype), v) if v.is_floating_point()
+                      else gather_particles(v, T.argmax(1)) for k, v in extras.items()}
+        lw = torch.where(resampled[:, None], torch.full_like(log_weights, -math.log(n)), log_weights)
+        return self._regularise(particles, resampled, generator), lw, cov, extras or {}, resampled
 
     def _soft(self, log_weights: Tensor, generator):
         """Soft resampling: trigger on the ESS of ``W``, draw from ``q`` (no gradient through the
@@ -565,5 +664,6 @@ class Resampler(nn.Module):
         return idx, resampled, torch.where(resampled[:, None], lw, log_weights)
 
     def extra_repr(self) -> str:
-        soft = f", soft_alpha={self.soft_alpha}" if self.gradient == "soft" else ""
-        return f"scheme={self.scheme!r}, ess_threshold={self.ess_threshold}, gradient={self.gradient!r}{soft}"
+        extra = (f", soft_alpha={self.soft_alpha}" if self.gradient == "soft" else
+                 f", ot_epsilon={self.ot_epsilon}, ot_iterations={self.ot_iterations}" if self.gradient == "ot" else "")
+        return f"scheme={self.scheme!r}, ess_threshold={self.ess_threshold}, gradient={self.gradient!r}{extra}"

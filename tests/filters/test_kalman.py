@@ -91,15 +91,14 @@ def test_kf_log_evidence_gradcheck():
     model = random_lg(2, 2, seed=5, learnable=True)
     traj, mean, cov = _data(model, B=2, T=3)
     kf = KalmanFilter(model)
-    names = ["F", "Q", "H"]
+    names = ["F", "parametrizations.Q.original", "H"]  # Q through its Cholesky parametrisation
 
     def f(Fm, Qm, Hm):
-        Qs = 0.5 * (Qm + Qm.T)
-        out = functional_call(kf, {"model.F": Fm, "model.Q": Qs, "model.H": Hm},
+        out = functional_call(kf, {"model." + n: v for n, v in zip(names, (Fm, Qm, Hm))},
                               (traj.observations, mean, cov))
         return out.log_evidence
 
-    inputs = tuple(getattr(model, n).detach().clone().requires_grad_(True) for n in names)
+    inputs = tuple(model.get_parameter(n).detach().clone().requires_grad_(True) for n in names)
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5)
 
 
@@ -107,7 +106,7 @@ def test_kf_log_evidence_backward_to_parameters():
     model = random_lg(3, 2, seed=6, learnable=True)
     traj, mean, cov = _data(model)
     KalmanFilter(model)(traj.observations, mean, cov).log_evidence.sum().backward()
-    for p in (model.F, model.Q, model.H, model.R):
+    for p in model.parameters():
         assert p.grad is not None and torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0
 
 

@@ -301,9 +301,11 @@ class ParticleFilter(Filter):
         ess_threshold: resample a trial when ESS < ess_threshold * N (0 never, 1 nearly always).
         regularization: ``None`` (off), a float variance, or a list of d per-coordinate variances
             of Gaussian jitter added to the particles of resampled trials.
-        resampling_gradient: how gradients pass through resampling (``"none"``, ``"stop_gradient"``
-            or ``"soft"``; see :class:`~torchflow.resampling.Resampler`).
+        resampling_gradient: how gradients pass through resampling (``"none"``, ``"stop_gradient"``,
+            ``"soft"`` or ``"ot"``; see :class:`~torchflow.resampling.Resampler`).
         soft_alpha: the mixture weight of ``resampling_gradient="soft"``, in (0, 1].
+        ot_epsilon, ot_iterations: regularisation (relative to the cloud's spread) and Sinkhorn
+            iterations of ``resampling_gradient="ot"``.
         nonfinite: ``"recover"`` (default, every particle filter): a particle with a NaN/inf
             position or log-weight gets weight zero (and a finite fallback position: its pre-flow
             draw); a trial left with no valid particle keeps its previous weights and the fallback
@@ -322,8 +324,8 @@ class ParticleFilter(Filter):
 
     def __init__(self, model, proposal=None, *, n_particles: int = 500, resampling: str = "systematic",
                  ess_threshold: float = 0.5, regularization=None, resampling_gradient: str = "none",
-                 soft_alpha: float = 0.5, nonfinite: str = "recover", particle_chunk: Optional[int] = None, validate: bool = True,
-                 name: Optional[str] = None):
+                 soft_alpha: float = 0.5, ot_epsilon: float = 0.1, ot_iterations: int = 100, nonfinite: str = "recover",
+                 particle_chunk: Optional[int] = None, validate: bool = True, name: Optional[str] = None):
         super().__init__(model, validate=validate, name=name)
         if proposal is None:
             proposal = BootstrapProposal(model)
@@ -345,7 +347,8 @@ class ParticleFilter(Filter):
         #: the resampling part: scheme, ESS trigger, regularisation, gradient estimator
         self.resampler = _resampling.Resampler(model.state_dim, scheme=resampling, ess_threshold=ess_threshold,
                                                regularization=regularization, gradient=resampling_gradient,
-                                               soft_alpha=soft_alpha, dtype=model.dtype)
+                                               soft_alpha=soft_alpha, ot_epsilon=ot_epsilon,
+                                               ot_iterations=ot_iterations, dtype=model.dtype)
 
     resampling_scheme = property(lambda self: self.resampler.scheme)
     ess_threshold = property(lambda self: self.resampler.ess_threshold)
@@ -357,7 +360,9 @@ class ParticleFilter(Filter):
         return self.random_stream or getattr(self.proposal, "random_stream", None) or type(self).__name__
 
     def bytes_per_trial(self, n_particles=None):
-        return self.proposal.bytes_per_trial(self._resolve_n(n_particles))
+        N = self._resolve_n(n_particles)
+        ot = 4 * 8 * N * N if self.resampler.gradient == "ot" else 0  # the Sinkhorn cost and plan
+        return self.proposal.bytes_per_trial(N) + ot
 
     def preferred_chunk_trials(self, n_particles=None):
         return self.proposal.preferred_chunk_trials(self._resolve_n(n_particles))

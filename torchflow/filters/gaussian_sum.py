@@ -149,6 +149,10 @@ class GaussianSumParticleFilter(ParticleFilter):
             ``alpha = 0``; a trial left with none keeps its mixture weights. ``"raise"``: the
             trial is reported by :class:`~torchflow._checks.NonFiniteError`.
         particle_chunk: flow at most this many of a trial's particles per pass (memory).
+        resampling_gradient: accepted for every particle filter's sake (validated like theirs);
+            these filters never resample: each step draws afresh from the fitted Gaussians by
+            reparameterisation (``mu + L xi``), so the gradient of the log-evidence is pathwise
+            whatever this says, and no estimator changes it.
     """
 
     random_stream = "gaussian_sum"
@@ -157,8 +161,8 @@ class GaussianSumParticleFilter(ParticleFilter):
     def __init__(self, model, *, n_components: int = 1, particles_per_component: int = 500, flow=None,
                  schedule: Optional[LambdaSchedule] = None, linearize_at: str = "auxiliary",
                  redraw_eta0: bool = False, init: str = "prior", jitter: float = 1e-6, estimate: str = "mixture_mean",
-                 nonfinite: str = "recover", particle_chunk: Optional[int] = None, validate: bool = True,
-                 name: Optional[str] = None):
+                 nonfinite: str = "recover", particle_chunk: Optional[int] = None, resampling_gradient: str = "none",
+                 validate: bool = True, name: Optional[str] = None):
         G = check_count("n_components", n_components)
         n = check_count("particles_per_component", particles_per_component)
         d = model.state_dim
@@ -166,7 +170,7 @@ class GaussianSumParticleFilter(ParticleFilter):
             raise ValueError(f"particles_per_component: expected at least d + 1 = {d + 1} to fit a {d} x {d} "
                              f"covariance per component, got {n}")
         super().__init__(model, n_particles=G * n, nonfinite=nonfinite, particle_chunk=particle_chunk,
-                         validate=validate, name=name)
+                         resampling_gradient=resampling_gradient, validate=validate, name=name)
         self.linearize_at = check_choice("linearize_at", linearize_at, LINEARIZE_AT)
         self.estimate = check_choice("estimate", estimate, ESTIMATES)
         self.init_mode = check_choice("init", init, INITS)

@@ -10,7 +10,7 @@ from typing import Optional, Sequence, Tuple
 
 import torch
 
-from .. import linalg
+from .. import constraints, linalg
 from .._checks import check_choice
 from .base import StateSpaceModel, Trajectory
 
@@ -39,6 +39,10 @@ class AcousticTracking(StateSpaceModel):
         margin: trajectories are redrawn until every position stays in
             ``[margin, 1 - margin] * area`` (0.05).
         max_redraws: cap on rejection rounds before an error is raised.
+        learnable: parameters to learn, a subset of ``["psi", "sigma_w"]`` (``True``: both). Each
+            is positive by construction, stored as its logarithm (:class:`~torchflow.constraints.
+            Positive`): ``model.psi`` is always the positive value, and the optimiser moves
+            ``model.parametrizations.psi.original``.
     """
 
     n_targets = 4
@@ -49,7 +53,7 @@ class AcousticTracking(StateSpaceModel):
     def __init__(self, *, sigma_w: float = 0.1, psi: float = 10.0, d0: float = 0.1, true_noise_scale: float = 0.05,
                  filter_noise: str = "inflated", area: float = 40.0, sensor_grid: int = 5,
                  prior_std: Sequence[float] = (10.0, 10.0, 1.0, 1.0), initial_state: Optional[Sequence[float]] = None,
-                 margin: float = 0.05, max_redraws: int = 10000):
+                 margin: float = 0.05, max_redraws: int = 10000, learnable=False):
         super().__init__()
         if sigma_w <= 0:
             raise ValueError(f"sigma_w: expected > 0, got {sigma_w}")
@@ -75,6 +79,12 @@ class AcousticTracking(StateSpaceModel):
         self.register_buffer("sensors", torch.stack([sx.reshape(-1), sy.reshape(-1)], -1))  # (m, 2), x fastest
         for name, value in (("psi", psi), ("d0", d0), ("sigma_w", sigma_w)):
             self.register_buffer(name, torch.tensor(float(value), **f64))
+        names = ("psi", "sigma_w")
+        learn = (set(names) if learnable else set()) if isinstance(learnable, bool) else set(learnable)
+        if not learn <= set(names):
+            raise ValueError(f"learnable: expected a bool or a subset of {list(names)}, got {sorted(learnable)}")
+        for name in sorted(learn):
+            constraints.constrain(self, name, "positive")
         x0 = torch.tensor(_X0 if initial_state is None else list(initial_state), **f64)
         if x0.shape != (self.state_dim,):
             raise ValueError(f"initial_state: expected {self.state_dim} numbers, got {tuple(x0.shape)}")

@@ -7,7 +7,7 @@ from typing import Optional, Tuple
 import torch
 from torch import nn
 
-from .. import linalg
+from .. import constraints, linalg
 from ..linalg import _LOG_2PI
 from .._checks import check_choice, check_psd, check_tensor
 from .base import StateSpaceModel
@@ -27,9 +27,12 @@ class LinearGaussian(StateSpaceModel):
         R: ``(m, m)`` measurement noise covariance (positive definite).
         m0: ``(d,)`` initial mean (default zeros).
         P0: ``(d, d)`` initial covariance (default zeros: x_0 = m0 known).
-        learnable: ``True`` registers F, Q, H, R as ``nn.Parameter`` (else buffers); a list such as
-            ``["F", "H"]`` makes only those learnable. Q and R are used as given: keep them
-            positive definite (or learn only F and H) when optimising.
+        learnable: ``True`` makes F, Q, H, R learnable (else buffers); a list such as ``["F", "H"]``
+            makes only those learnable. F and H are plain ``nn.Parameter``s; a learnable Q or R
+            stays positive definite by construction (:mod:`torchflow.constraints`): ``model.Q``
+            is ``L L^T`` with ``L`` lower triangular with a positive diagonal (a diagonal R,
+            ``measurement_noise="diagonal"``, is ``diag(exp(log-variances))``); the optimiser
+            moves ``model.parametrizations.Q.original`` and ``model.Q`` is always the valid value.
         measurement_noise: the declared structure of R (``"scalar"``, ``"diagonal"``, ``"dense"``);
             ``None`` reads it from R once, here (``"dense"`` for a learnable R).
 
@@ -59,14 +62,25 @@ class LinearGaussian(StateSpaceModel):
         learn = (set(names) if learnable else set()) if isinstance(learnable, bool) else set(learnable)
         if not learn <= set(names):
             raise ValueError(f"learnable: expected a bool or a subset of {list(names)}, got {sorted(learn)}")
+        diagonal = bool((R == torch.diag_embed(R.diagonal())).all())
+        if measurement_noise is None:
+            measurement_noise = ("dense" if "R" in learn or not diagonal else
+                                 "scalar" if _identity_scale(R) is not None else "diagonal")
         for name, val in zip(names, (F, Q, H, R)):
-            if name in learn:
+            if name in ("Q", "R") and name in learn:  # valid by construction (torchflow.constraints)
+                if bool((torch.linalg.cholesky_ex(val)[1] > 0).any()):
+                    raise ValueError(f"{name}: a learnable covariance is parametrised by its Cholesky factor, "
+                                     f"so it must be positive definite; got a singular matrix")
+                self.register_buffer(name, val.clone())
+                kind = "diagonal" if name == "R" and measurement_noise == "diagonal" else "cholesky"
+                constraints.constrain(self, name, kind)
+            elif name in learn:
                 setattr(self, name, nn.Parameter(val.clone()))
             else:
                 self.register_buffer(name, val.clone())
         self.register_buffer("m0", m0.clone())
         self.register_buffer("P0", P0.clone())
-        # a constant Q is factored once (a learnable one at every use, so that it has a gradient)
+        # a constant Q is factored once (a learnable one is its parametrisation's factor, no Cholesky)
         self.register_buffer("Q_tril", None if "Q" in learn else linalg.safe_cholesky(Q))
         # R's factor once, for the flows' whitening at every pseudo-time step (no per-call check)
         self.register_buffer("R_tril", None if "R" in learn else linalg.safe_cholesky(R))
@@ -76,10 +90,6 @@ class LinearGaussian(StateSpaceModel):
         self.transition_matrix_scale = None if "F" in learn else _identity_scale(F)
         self.measurement_matrix_scale = None if "H" in learn else _identity_scale(H)
         self.measurement_noise_scale = None if "R" in learn else _identity_scale(R)
-        diagonal = bool((R == torch.diag_embed(R.diagonal())).all())
-        if measurement_noise is None:
-            measurement_noise = ("dense" if "R" in learn or not diagonal else
-                                 "scalar" if self.measurement_noise_scale is not None else "diagonal")
         self.measurement_noise = check_choice("measurement_noise", measurement_noise, ("scalar", "diagonal", "dense"))
         if measurement_noise == "scalar" and self.measurement_noise_scale is None:
             raise ValueError("measurement_noise: declared 'scalar' but R is not a constant multiple of I")
@@ -100,13 +110,13 @@ class LinearGaussian(StateSpaceModel):
         return self.Q
 
     def transition_scale_tril(self, x=None):
-        return self.Q_tril if self.Q_tril is not None else linalg.safe_cholesky(self.Q)
+        return self.Q_tril if self.Q_tril is not None else constraints.scale_tril(self, "Q")
 
     def measurement_cov(self, x=None):
         return self.R
 
     def measurement_scale_tril(self, x=None):
-        return self.R_tril if self.R_tril is not None else linalg.safe_cholesky(self.R)
+        return self.R_tril if self.R_tril is not None else constraints.scale_tril(self, "R")
 
     def sample_transition(self, x, generator=None):
         """``x F^T + xi L_Q^T`` as two fused matrix products over all leading dims (a scaled

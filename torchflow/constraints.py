@@ -1,0 +1,115 @@
+"""Learnable parameters that stay valid: constrained values through ``torch.nn.utils.parametrize``.
+
+A model declares, per learnable parameter, which constraint it lives under; the optimiser moves an
+unconstrained tensor (``module.parametrizations.<name>.original``) and the attribute the filters
+(and users) read, ``module.<name>``, is always the constrained value:
+
+* :class:`Positive`: a positive scalar or vector (noise scales, the acoustic amplitude Psi), stored
+  as its logarithm (``value = exp(raw)``, so an optimiser step is a relative change);
+* :class:`CholeskyCovariance`: a dense covariance ``L L^T``, ``L`` lower triangular with a positive
+  diagonal (``L_ii = exp(raw_ii)``), positive definite for every raw value;
+* :class:`DiagonalCovariance`: ``diag(exp(raw))``, a log-variance per coordinate (``raw (d,)``).
+
+The covariance constraints also give the factor ``L`` without a Cholesky factorisation
+(:func:`scale_tril`), which the filters use for sampling, whitening and log-densities.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+from torch import nn
+from torch.nn.utils import parametrize
+
+from ._checks import check_psd
+
+__all__ = ["Positive", "CholeskyCovariance", "DiagonalCovariance", "CONSTRAINTS", "constrain", "scale_tril",
+           "unconstrained"]
+
+
+class Positive(nn.Module):
+    """``value = exp(raw)``; the raw tensor is ``log(value)``."""
+
+    def forward(self, raw: torch.Tensor) -> torch.Tensor:
+        return raw.exp()
+
+    def right_inverse(self, value: torch.Tensor) -> torch.Tensor:
+        if not bool((value > 0).all()):
+            raise ValueError(f"a positive parameter: expected every value > 0, got {value.detach().tolist()}")
+        return value.log()
+
+
+class CholeskyCovariance(nn.Module):
+    """``cov = L L^T``, ``L = tril(raw, -1) + diag(exp(diag(raw)))``; raw ``(d, d)``."""
+
+    @staticmethod
+    def tril(raw: torch.Tensor) -> torch.Tensor:
+        """The factor ``L (d, d)`` of the covariance (lower triangular, positive diagonal)."""
+        return torch.tril(raw, -1) + torch.diag_embed(raw.diagonal(dim1=-2, dim2=-1).exp())
+
+    def forward(self, raw: torch.Tensor) -> torch.Tensor:
+        L = self.tril(raw)
+        return L @ L.transpose(-1, -2)
+
+    def right_inverse(self, cov: torch.Tensor) -> torch.Tensor:
+        L = torch.linalg.cholesky(cov)
+        return torch.tril(L, -1) + torch.diag_embed(L.diagonal(dim1=-2, dim2=-1).log())
+
+
+class DiagonalCovariance(nn.Module):
+    """``cov = diag(exp(raw))``; raw ``(d,)`` holds the log-variances."""
+
+    @staticmethod
+    def tril(raw: torch.Tensor) -> torch.Tensor:
+        return torch.diag_embed((0.5 * raw).exp())
+
+    def forward(self, raw: torch.Tensor) -> torch.Tensor:
+        return torch.diag_embed(raw.exp())
+
+    def right_inverse(self, cov: torch.Tensor) -> torch.Tensor:
+        diag = cov.diagonal(dim1=-2, dim2=-1)
+        if not torch.equal(cov, torch.diag_embed(diag)):
+            raise ValueError("a diagonal covariance: expected a diagonal matrix, got off-diagonal entries")
+        return diag.log()
+
+
+#: constraint name -> parametrization (the ``constraint`` strings models accept)
+CONSTRAINTS = {"positive": Positive, "cholesky": CholeskyCovariance, "diagonal": DiagonalCovariance}
+
+
+def constrain(module: nn.Module, name: str, constraint: str, value: Optional[torch.Tensor] = None) -> None:
+    """Make ``module.<name>`` a learnable parameter under ``constraint`` (a key of
+    :data:`CONSTRAINTS`), initialised at ``value`` (default: the attribute's current value).
+
+    Raises:
+        ValueError: unknown constraint, or a value outside it (named after ``name``).
+    """
+    if constraint not in CONSTRAINTS:
+        raise ValueError(f"{name}: expected a constraint in {sorted(CONSTRAINTS)}, got {constraint!r}")
+    value = getattr(module, name) if value is None else value
+    value = torch.as_tensor(value).detach().clone()
+    if constraint != "positive":
+        check_psd(name, value)
+    elif not bool((value > 0).all()):
+        raise ValueError(f"{name}: expected a positive value to learn under a log parametrisation, got "
+                         f"{value.tolist()}")
+    if name in module._buffers:
+        del module._buffers[name]
+    elif name in module._parameters:
+        del module._parameters[name]
+    setattr(module, name, nn.Parameter(value))
+    parametrize.register_parametrization(module, name, CONSTRAINTS[constraint]())
+
+
+def unconstrained(module: nn.Module, name: str) -> torch.Tensor:
+    """The raw tensor the optimiser moves for a constrained ``module.<name>``."""
+    return module.parametrizations[name].original
+
+
+def scale_tril(module: nn.Module, name: str) -> Optional[torch.Tensor]:
+    """The factor ``L`` of a covariance learnt under ``"cholesky"`` or ``"diagonal"`` (no
+    factorisation; differentiable in the raw tensor), else ``None``."""
+    if not parametrize.is_parametrized(module, name):
+        return None
+    p = module.parametrizations[name]
+    return p[0].tril(p.original) if hasattr(p[0], "tril") else None
