@@ -57,12 +57,16 @@ def _grads(filt, model, obs, mean, cov):
     return exact[keep], G.mean(0)[keep], G.std(0)[keep] / math.sqrt(REPS)
 
 
-@pytest.mark.parametrize("kind", ["bpf", "pfpf_edh", "pfpf_ledh"])
+@pytest.mark.parametrize("kind", ["bpf", "pfpf_edh", "pfpf_ledh", "bpf_score", "pfpf_ledh_score"])
 def test_stop_gradient_matches_the_kalman_gradient(kind):
+    """Also with ``proposal_gradient="score"`` (the proposal held constant): unbiased too."""
     model, obs, mean, cov = _setup()
-    filt = (BootstrapParticleFilter(model, n_particles=1000, resampling_gradient="stop_gradient") if kind == "bpf"
-            else ParticleFlowParticleFilter(model, flow=kind[5:], n_particles=200, resampling_gradient="stop_gradient",
-                                            schedule=ExponentialSchedule(10, 1.2)))  # valid with any schedule
+    pg = "score" if kind.endswith("_score") else "pathwise"
+    flow = kind.split("_")[1] if kind.startswith("pfpf") else None
+    filt = (BootstrapParticleFilter(model, n_particles=1000, resampling_gradient="stop_gradient", proposal_gradient=pg)
+            if flow is None else
+            ParticleFlowParticleFilter(model, flow=flow, n_particles=200, resampling_gradient="stop_gradient",
+                                       proposal_gradient=pg, schedule=ExponentialSchedule(10, 1.2)))  # any schedule
     exact, est, se = _grads(filt, model, obs, mean, cov)
     t = (est - exact) / se
     assert float(t.abs().max()) < 4, (exact, est, se)
@@ -81,13 +85,15 @@ def test_none_misses_the_kalman_gradient():
 def test_stop_gradient_forward_is_bit_identical(kind):
     model, obs, mean, cov = _setup()
     outs = []
-    for est in ("none", "stop_gradient"):
-        f = (BootstrapParticleFilter(model, n_particles=64, resampling_gradient=est) if kind == "bpf"
-             else ParticleFlowParticleFilter(model, n_particles=64, resampling_gradient=est))
+    for est, pg in (("none", "pathwise"), ("stop_gradient", "pathwise"), ("stop_gradient", "score")):
+        f = (BootstrapParticleFilter(model, n_particles=64, resampling_gradient=est, proposal_gradient=pg)
+             if kind == "bpf" else
+             ParticleFlowParticleFilter(model, n_particles=64, resampling_gradient=est, proposal_gradient=pg))
         outs.append(f(obs[:4], mean[:4], cov[:4], torch.Generator().manual_seed(5)))
-    assert torch.equal(outs[0].estimates, outs[1].estimates)
-    assert torch.equal(outs[0].log_evidence, outs[1].log_evidence)
-    assert torch.equal(outs[0].ess, outs[1].ess)
+    for other in outs[1:]:
+        assert torch.equal(outs[0].estimates, other.estimates)
+        assert torch.equal(outs[0].log_evidence, other.log_evidence)
+        assert torch.equal(outs[0].ess, other.ess)
 
 
 def test_unknown_estimator_is_refused():

@@ -131,6 +131,8 @@ def test_readme_commands_run(tmp_path):
                        f"checkpoint_dir={tmp_path}/checkpoints"]
             if multirun:
                 last_sweep = where
+        elif script == "experiments/learn.py":
+            tokens += ["epochs=2", "steps=3", "trials=2", "n_particles=20", "plots=false", f"hydra.run.dir={tmp_path}/learn"]
         elif script == "experiments/collect.py":
             assert last_sweep is not None, "collect.py before any sweep in README"
             tokens = [t if "<time>" not in t else str(last_sweep) for t in tokens]

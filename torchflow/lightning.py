@@ -17,7 +17,30 @@ from torch.utils.data import Dataset
 
 from .filters.base import Filter
 from .models.base import Trajectory
+from . import random as _random
 from .random import TrialStreams
+
+
+def backward_bytes_per_step(filter: Filter, observations: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor,
+                            generator=None) -> int:
+    """Bytes of the tensors autograd keeps for the backward pass of one time step of ``filter``
+    (the prior draw and the first step on ``observations (B, T, m)``, counted by a
+    ``saved_tensors_hooks``; views of one tensor are counted each time, so an upper estimate). The
+    generator is left as it was."""
+    snap = _random.get_state(generator)
+    total = [0]
+
+    def pack(t):
+        total[0] += t.numel() * t.element_size()
+        return t
+
+    try:
+        with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+            state = filter.init(mean, cov, None, generator)
+            filter.step(state, observations[:, 0], generator)
+    finally:
+        _random.set_state(generator, snap)
+    return total[0]
 
 
 class TrajectoryDataset(Dataset):
@@ -60,15 +83,37 @@ class FilterLightningModule(pl.LightningModule):
             repeated trials and the two differ). Training and validation use separate streams.
             Batches of three tensors (no index) get a ``torch.Generator`` seeded with
             ``seed + batch_idx``.
+        checkpoint_steps: recompute each time step in the backward pass (``Filter.forward``'s
+            ``checkpoint_steps``; same values and gradients, one step's intermediates in memory):
+            ``True``, ``False`` or ``"auto"`` (default): on when the tensors the backward pass
+            would keep, measured on the first batch's first step (:func:`backward_bytes_per_step`)
+            times T, exceed ``memory_budget_gb``.
+        memory_budget_gb: the budget of ``"auto"``.
+        lr_decay: the learning rate is multiplied by this after every epoch (1: constant).
+        common_random_numbers: draw the same random numbers in every epoch (each trial's stream
+            keyed without the epoch), so the loss is one fixed Monte Carlo approximation of the
+            likelihood that the optimiser minimises (sample-average approximation: less noisy
+            steps, at the price of that one approximation's error); default False: fresh draws.
     """
 
-    def __init__(self, filter: Filter, *, lr: float = 1e-2, seed: int = 0):
+    def __init__(self, filter: Filter, *, lr: float = 1e-2, seed: int = 0, checkpoint_steps="auto",
+                 memory_budget_gb: float = 4.0, lr_decay: float = 1.0, common_random_numbers: bool = False):
         super().__init__()
         if not any(p.requires_grad for p in filter.parameters()):
             raise ValueError("filter: its model has no learnable parameters (construct it with learnable=True)")
+        if checkpoint_steps not in (True, False, "auto"):
+            raise ValueError(f"checkpoint_steps: expected True, False or 'auto', got {checkpoint_steps!r}")
+        if isinstance(memory_budget_gb, bool) or not isinstance(memory_budget_gb, (int, float)) or memory_budget_gb <= 0:
+            raise ValueError(f"memory_budget_gb: expected a positive number of GB, got {memory_budget_gb!r}")
         self.filter = filter
         self.lr = float(lr)
         self.seed = int(seed)
+        self.checkpoint_steps, self.memory_budget_gb = checkpoint_steps, float(memory_budget_gb)
+        if isinstance(lr_decay, bool) or not isinstance(lr_decay, (int, float)) or not 0 < lr_decay <= 1:
+            raise ValueError(f"lr_decay: expected a factor in (0, 1], got {lr_decay!r}")
+        if not isinstance(common_random_numbers, bool):
+            raise ValueError(f"common_random_numbers: expected True or False, got {common_random_numbers!r}")
+        self.lr_decay, self.common_random_numbers = float(lr_decay), common_random_numbers
 
     def forward(self, observations, mean, cov, generator: Optional[torch.Generator] = None):
         return self.filter(observations, mean, cov, generator)
@@ -77,10 +122,15 @@ class FilterLightningModule(pl.LightningModule):
         obs, mean, cov = batch[:3]
         if len(batch) > 3:  # trial indices: per-trial streams, independent of how trials are batched
             g = TrialStreams(self.seed, batch[3].reshape(-1).tolist(),
-                             key=f"{self.filter.stream_name}/{stage}/epoch{self.current_epoch}")
+                             key=f"{self.filter.stream_name}/{stage}" + (
+                                 "" if self.common_random_numbers else f"/epoch{self.current_epoch}"))
         else:
             g = torch.Generator(device=obs.device).manual_seed(self.seed + batch_idx)
-        loss = -self.filter(obs, mean, cov, g).log_evidence.mean() / obs.shape[1]
+        if self.checkpoint_steps == "auto" and torch.is_grad_enabled():
+            need = backward_bytes_per_step(self.filter, obs, mean, cov, g) * obs.shape[1]
+            self.checkpoint_steps = need > self.memory_budget_gb * 1e9
+        ckpt = self.checkpoint_steps is True
+        loss = -self.filter(obs, mean, cov, g, checkpoint_steps=ckpt).log_evidence.mean() / obs.shape[1]
         self.log(f"{stage}_nll_per_step", loss, prog_bar=True, batch_size=obs.shape[0])
         return loss
 
@@ -88,7 +138,10 @@ class FilterLightningModule(pl.LightningModule):
         return self._loss(batch, batch_idx)
 
     def configure_optimizers(self):
-        return torch.optim.Adam([p for p in self.filter.parameters() if p.requires_grad], lr=self.lr)
+        opt = torch.optim.Adam([p for p in self.filter.parameters() if p.requires_grad], lr=self.lr)
+        if self.lr_decay == 1.0:
+            return opt
+        return {"optimizer": opt, "lr_scheduler": torch.optim.lr_scheduler.ExponentialLR(opt, self.lr_decay)}
 
 
 class ValidatedFilterLightningModule(FilterLightningModule):

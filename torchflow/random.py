@@ -34,6 +34,7 @@ the CUDA run's integer stream.
 """
 from __future__ import annotations
 
+import copy
 import math
 import zlib
 from concurrent.futures import ThreadPoolExecutor
@@ -45,7 +46,7 @@ import torch
 from . import tuning
 from ._checks import check_choice
 
-__all__ = ["TrialStreams", "uniform", "check_generator", "stream_key"]
+__all__ = ["TrialStreams", "uniform", "check_generator", "stream_key", "get_state", "set_state"]
 
 #: numbers per block of a trial's large draw (numpy back end): a draw of more than this many numbers
 #: per trial is filled from child streams, one per block, on several threads. Part of the stream
@@ -217,6 +218,27 @@ class TrialStreams:
         theta = (2.0 * math.pi) * u2
         z = torch.stack((r * torch.cos(theta), r * torch.sin(theta)), -1).reshape(B, -1)[:, :n]
         return z.to(dtype)
+
+
+def get_state(generator: Optional[Generatorish]):
+    """A snapshot of ``generator`` (a ``torch.Generator``, :class:`TrialStreams` or ``None``: torch's
+    default CPU generator) that :func:`set_state` restores, so that a computation can draw the same
+    numbers twice (gradient checkpointing recomputes a filter step in the backward pass)."""
+    if generator is None:
+        return torch.get_rng_state()
+    if isinstance(generator, TrialStreams):
+        return copy.deepcopy((generator._np, generator._counter, generator.backend, generator._keys))
+    return generator.get_state()
+
+
+def set_state(generator: Optional[Generatorish], state) -> None:
+    """Restore a snapshot of :func:`get_state` (the snapshot stays reusable)."""
+    if generator is None:
+        torch.set_rng_state(state)
+    elif isinstance(generator, TrialStreams):
+        generator._np, generator._counter, generator.backend, generator._keys = copy.deepcopy(state)
+    else:
+        generator.set_state(state)
 
 
 _M0, _M1 = 0xD2511F53, 0xCD9E8D57

@@ -6,9 +6,11 @@ from dataclasses import dataclass, field
 from typing import Dict, Optional, Tuple
 
 import torch
+import torch.utils.checkpoint
 from torch import nn
 
 from .. import linalg
+from .. import random as _random
 from .. import resampling as _resampling
 from .._checks import NonFiniteError, check_count, check_finite, check_psd, check_same, check_tensor
 from .._blocks import blockwise
@@ -135,6 +137,8 @@ class Filter(nn.Module):
     #: whether ``log_evidence`` is an estimate of p(z_{1:T}) worth scoring (False for filters that
     #: only carry a Gaussian approximation of it, such as the unweighted flow filters)
     estimates_evidence = True
+    #: default of ``forward(checkpoint_steps=...)``: recompute each time step in the backward pass
+    checkpoint_steps = False
 
     def __init__(self, model: StateSpaceModel, *, validate: bool = True, name: Optional[str] = None):
         super().__init__()
@@ -188,6 +192,24 @@ class Filter(nn.Module):
             check_psd("cov", cov)
         return mean, cov
 
+    def _checkpointed_step(self, state, z, generator):
+        """:meth:`step` under ``torch.utils.checkpoint``: the recomputation in the backward pass
+        starts from the generator's state before the step and leaves the generator as it was."""
+        snap = _random.get_state(generator)
+        calls = []
+
+        def run(state, z):
+            after = _random.get_state(generator) if calls else None  # a recomputation
+            _random.set_state(generator, snap)
+            try:  # a recomputation may stop early (by an exception) once it has what backward needs
+                return self.step(state, z, generator)
+            finally:
+                if calls:
+                    _random.set_state(generator, after)
+                calls.append(1)
+
+        return torch.utils.checkpoint.checkpoint(run, state, z, use_reentrant=False)
+
     def _raise_nonfinite(self, first_bad: torch.Tensor, first_invalid: torch.Tensor) -> None:
         """Raise :class:`NonFiniteError` naming the earliest step at which any trial went
         non-finite and the trials that did then (one host read); return if none did."""
@@ -209,6 +231,7 @@ class Filter(nn.Module):
         return_covariances: bool = False,
         return_particles: bool = False,
         progress=None,
+        checkpoint_steps: Optional[bool] = None,
     ) -> FilterResult:
         """Filter ``observations (B, T, m)`` from the prior ``N(mean (B, d), cov (B, d, d))``.
 
@@ -223,6 +246,12 @@ class Filter(nn.Module):
             return_covariances: also return per-step covariances (Gaussian filters).
             return_particles: also return per-step particles and log-weights (large).
             progress: optional callable invoked after each step (e.g. a progress bar update).
+            checkpoint_steps: when gradients are recorded, keep only each time step's inputs and
+                recompute the step in the backward pass (``torch.utils.checkpoint``, with the
+                generator's state restored so that the step redraws the same numbers): the
+                backward pass then holds one step's intermediates (a per-particle flow's
+                pseudo-time matrices) instead of all T steps', for about one extra forward pass.
+                Values and gradients are unchanged. ``None``: :attr:`checkpoint_steps` (False).
         """
         self.model.check_dtype(self.name)
         if self.validate:
@@ -236,9 +265,14 @@ class Filter(nn.Module):
         # after the last step: no host synchronisation per time step
         first_bad = torch.zeros(observations.shape[0], dtype=torch.long, device=observations.device)
         first_invalid = torch.zeros_like(first_bad, dtype=torch.bool)
+        if checkpoint_steps is None:
+            checkpoint_steps = self.checkpoint_steps
+        step = self.step
+        if checkpoint_steps and torch.is_grad_enabled():
+            step = self._checkpointed_step
         for t in range(observations.shape[1]):
             try:
-                state = self.step(state, observations[:, t], generator)
+                state = step(state, observations[:, t], generator)
             except Exception:
                 self._raise_nonfinite(first_bad, first_invalid)  # an earlier non-finite value is the cause
                 raise
@@ -279,6 +313,7 @@ class Filter(nn.Module):
 
 
 NONFINITE = ("recover", "raise")
+PROPOSAL_GRADIENTS = ("pathwise", "score")
 
 
 class ParticleFilter(Filter):
@@ -306,6 +341,16 @@ class ParticleFilter(Filter):
         soft_alpha: the mixture weight of ``resampling_gradient="soft"``, in (0, 1].
         ot_epsilon, ot_iterations: regularisation (relative to the cloud's spread) and Sinkhorn
             iterations of ``resampling_gradient="ot"``.
+        proposal_gradient: how the gradient treats the proposal. ``"pathwise"`` (default):
+            through the particles' positions, the proposal density and the carried covariance
+            (reparameterised draws, flows' maps and ``log|det|``). ``"score"``: the proposal is
+            held constant (its particles, density and carry detached) and the gradient comes from
+            the weight's model densities alone: by the Fisher identity, ``E_q[grad(p_theta / q)]
+            = grad Z`` for any proposal that does not move with theta, so with
+            ``resampling_gradient="stop_gradient"`` the estimate of ``grad Z`` stays unbiased
+            while avoiding derivatives of particle paths, which are heavy-tailed where the
+            measurement is steep (the acoustic model near a sensor). The forward pass is the same
+            bit for bit.
         nonfinite: ``"recover"`` (default, every particle filter): a particle with a NaN/inf
             position or log-weight gets weight zero (and a finite fallback position: its pre-flow
             draw); a trial left with no valid particle keeps its previous weights and the fallback
@@ -325,7 +370,8 @@ class ParticleFilter(Filter):
     def __init__(self, model, proposal=None, *, n_particles: int = 500, resampling: str = "systematic",
                  ess_threshold: float = 0.5, regularization=None, resampling_gradient: str = "none",
                  soft_alpha: float = 0.5, ot_epsilon: float = 0.1, ot_iterations: int = 100, nonfinite: str = "recover",
-                 particle_chunk: Optional[int] = None, validate: bool = True, name: Optional[str] = None):
+                 particle_chunk: Optional[int] = None, proposal_gradient: str = "pathwise", validate: bool = True,
+                 name: Optional[str] = None):
         super().__init__(model, validate=validate, name=name)
         if proposal is None:
             proposal = BootstrapProposal(model)
@@ -343,6 +389,9 @@ class ParticleFilter(Filter):
         if nonfinite not in NONFINITE:
             raise ValueError(f"nonfinite: expected one of {NONFINITE}, got {nonfinite!r}")
         self.nonfinite = nonfinite
+        if proposal_gradient not in PROPOSAL_GRADIENTS:
+            raise ValueError(f"proposal_gradient: expected one of {PROPOSAL_GRADIENTS}, got {proposal_gradient!r}")
+        self.proposal_gradient = proposal_gradient
         self.n_particles = int(check_count("n_particles", n_particles))
         #: the resampling part: scheme, ESS trigger, regularisation, gradient estimator
         self.resampler = _resampling.Resampler(model.state_dim, scheme=resampling, ess_threshold=ess_threshold,
@@ -398,6 +447,8 @@ class ParticleFilter(Filter):
                                      chunk=self.particle_chunk)
         model = self.model
         z1 = z.unsqueeze(1)
+        if self.proposal_gradient == "score":
+            return self._score_step(state, prop, z1, generator)
         if prop.log_q is None:
             log_inc = self.per_particle(lambda xs: model.measurement_log_prob(z1, xs), prop.particles)
         else:
@@ -407,6 +458,26 @@ class ParticleFilter(Filter):
             log_inc = self.per_particle(weigh, prop.particles, state.particles, prop.log_q)
         return self.weight_and_resample(prop.particles, state.log_weights, log_inc, generator, state.step + 1,
                                         cov=prop.cov, fallback=prop.fallback, n_repaired=state.n_repaired)
+
+    def _score_step(self, state: "ParticleState", prop, z1: torch.Tensor, generator):
+        """``proposal_gradient="score"``: the proposal's particles, density and carry are held
+        constant for the gradient; the weight's densities keep theirs (a transition proposal's
+        ``log p(x | x') - stop_gradient(log p(x | x'))`` term, exactly 0 in value, carries its score)."""
+        model = self.model
+        x = prop.particles.detach()
+        cov = None if prop.cov is None else prop.cov.like(prop.cov.matrix.detach())
+
+        def weigh(x, x_prev, *log_q):
+            lt = model.transition_log_prob(x, x_prev)
+            if log_q:
+                return lt + model.measurement_log_prob(z1, x) - log_q[0]
+            score = torch.where(torch.isfinite(lt), lt - lt.detach(), torch.zeros_like(lt))
+            return model.measurement_log_prob(z1, x) + score
+
+        extra = () if prop.log_q is None else (prop.log_q.detach(),)
+        log_inc = self.per_particle(weigh, x, state.particles, *extra)
+        return self.weight_and_resample(x, state.log_weights, log_inc, generator, state.step + 1, cov=cov,
+                                        fallback=prop.fallback, n_repaired=state.n_repaired)
 
     def per_particle(self, fn, *tensors, pass_slice: bool = False, chunk: Optional[int] = None):
         """``fn(*tensors)`` in blocks of :attr:`particle_chunk` particles (or ``chunk``, when given;
