@@ -179,6 +179,11 @@ def run(cfg: DictConfig, out: Path) -> List[Dict]:
         raise ConfigError(f"learn: the model has no learnable parameters with learn={cfg.learn!r}")
     start = {n: _value(probe, n) for n in names}
     true_values = {n: _value(truth, n) for n in names}
+    given = OmegaConf.to_container(cfg.start, resolve=True) if cfg.get("start") else {}
+    fixed = {k: v for k, v in given.items() if k not in names}
+    # start is a mapping: an override such as start={psi: 5} merges into the default (its sigma_w stays)
+    log.info(f"model to fit: learned {', '.join(f'{n} from {_fmt(start[n])}' for n in names)}"
+             + (f"; held at start values: {fixed}" if fixed else ""))
     reference = cfg.get("reference")
     fcfgs = {k: v for k, v in cfg.filter.items() if "_target_" in v}
     if reference and reference not in fcfgs:
