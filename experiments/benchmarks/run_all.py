@@ -19,7 +19,8 @@ from pathlib import Path
 
 from . import harness as h
 
-SECTIONS = ["foundation", "acoustic", "pfpf", "flops", "memory", "float32", "scaling", "streams", "gaussian_sum"]
+SECTIONS = ["foundation", "acoustic", "pfpf", "flops", "memory", "float32", "scaling", "streams", "gaussian_sum",
+            "gradients"]
 
 
 def _headline(results: dict) -> list:

@@ -262,3 +262,18 @@ def test_bench_scaling_micro(tmp_path):
                              "--out", str(tmp_path / "t.md")])
     assert [r["status"][:7] for r in res["rows"]] == ["ok", "skipped"]
     assert "skipped" in res["markdown"]
+
+
+def test_bench_gradients_micro(tmp_path):
+    """Rows for each estimator, the exact gradient's scale, positive costs; --estimators is checked."""
+    from experiments.benchmarks import bench_gradients
+
+    res = bench_gradients.run(["--n", "30", "--trials", "2", "--reps", "3", "--steps", "3", "--filters", "bpf",
+                               "--estimators", "none,stop_gradient,ot"])
+    assert [r["estimator"] for r in res["rows"]] == ["none", "stop_gradient", "ot"]
+    for r in res["rows"]:
+        assert r["exact_norm"] > 0 and r["fwd"] > 0 and r["fwd_bwd"] > 0 and r["saved_mb"] > 0
+        assert math.isfinite(r["bias"]) and math.isfinite(r["sd_run"])
+    assert "| BPF | stop_gradient | 30 |" in res["markdown"]
+    with pytest.raises(SystemExit, match="--estimators"):
+        bench_gradients.run(["--estimators", "bogus"])
