@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Dict, Optional, Tuple
 
 import torch
@@ -447,10 +447,21 @@ class ParticleFilter(Filter):
                                      chunk=self.particle_chunk)
         model = self.model
         z1 = z.unsqueeze(1)
-        if self.proposal_gradient == "score":
-            return self._score_step(state, prop, z1, generator)
+        score = self.proposal_gradient == "score"
+        if score:  # the proposal held constant: only the weight's model densities carry gradients
+            prop = replace(prop, particles=prop.particles.detach(),
+                           log_q=None if prop.log_q is None else prop.log_q.detach(),
+                           cov=None if prop.cov is None else prop.cov.like(prop.cov.matrix.detach()))
         if prop.log_q is None:
-            log_inc = self.per_particle(lambda xs: model.measurement_log_prob(z1, xs), prop.particles)
+            def weigh(x, x_prev):
+                ll = model.measurement_log_prob(z1, x)
+                if not score:
+                    return ll
+                # a transition proposal's score: log p(x | x') - stop_gradient(same), exactly 0 in value
+                lt = model.transition_log_prob(x, x_prev)
+                return ll + torch.where(torch.isfinite(lt), lt - lt.detach(), torch.zeros_like(lt))
+
+            log_inc = self.per_particle(weigh, prop.particles, state.particles)
         else:
             def weigh(x, x_prev, log_q):
                 return model.transition_log_prob(x, x_prev) + model.measurement_log_prob(z1, x) - log_q
@@ -458,26 +469,6 @@ class ParticleFilter(Filter):
             log_inc = self.per_particle(weigh, prop.particles, state.particles, prop.log_q)
         return self.weight_and_resample(prop.particles, state.log_weights, log_inc, generator, state.step + 1,
                                         cov=prop.cov, fallback=prop.fallback, n_repaired=state.n_repaired)
-
-    def _score_step(self, state: "ParticleState", prop, z1: torch.Tensor, generator):
-        """``proposal_gradient="score"``: the proposal's particles, density and carry are held
-        constant for the gradient; the weight's densities keep theirs (a transition proposal's
-        ``log p(x | x') - stop_gradient(log p(x | x'))`` term, exactly 0 in value, carries its score)."""
-        model = self.model
-        x = prop.particles.detach()
-        cov = None if prop.cov is None else prop.cov.like(prop.cov.matrix.detach())
-
-        def weigh(x, x_prev, *log_q):
-            lt = model.transition_log_prob(x, x_prev)
-            if log_q:
-                return lt + model.measurement_log_prob(z1, x) - log_q[0]
-            score = torch.where(torch.isfinite(lt), lt - lt.detach(), torch.zeros_like(lt))
-            return model.measurement_log_prob(z1, x) + score
-
-        extra = () if prop.log_q is None else (prop.log_q.detach(),)
-        log_inc = self.per_particle(weigh, x, state.particles, *extra)
-        return self.weight_and_resample(x, state.log_weights, log_inc, generator, state.step + 1, cov=cov,
-                                        fallback=prop.fallback, n_repaired=state.n_repaired)
 
     def per_particle(self, fn, *tensors, pass_slice: bool = False, chunk: Optional[int] = None):
         """``fn(*tensors)`` in blocks of :attr:`particle_chunk` particles (or ``chunk``, when given;
