@@ -65,3 +65,24 @@ def test_lightning_no_validation_warning_and_validated_variant(tmp_path, recwarn
     trainer = pl.Trainer(max_epochs=1, default_root_dir=tmp_path, enable_progress_bar=False, accelerator="cpu")
     trainer.fit(module, data, val_dataloaders=data)
     assert "val_nll_per_step" in trainer.callback_metrics
+
+
+@pytest.mark.parametrize("bad", [{"betas": (0.9,)}, {"betas": (0.9, 1.0)}, {"betas": "adam"}, {"lr_decay": 0.0},
+                                 {"lr_decay": True}, {"checkpoint_steps": "yes"}, {"memory_budget_gb": -1},
+                                 {"common_random_numbers": 1}])
+def test_lightning_options_are_checked(bad):
+    eye = torch.eye(2, dtype=torch.float64)
+    f = KalmanFilter(LinearGaussian(eye, eye, eye, eye, learnable=["F"]))
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        FilterLightningModule(f, **bad)
+
+
+def test_lightning_betas_and_decay_reach_the_optimiser():
+    eye = torch.eye(2, dtype=torch.float64)
+    f = KalmanFilter(LinearGaussian(eye, eye, eye, eye, learnable=["F"]))
+    cfg = FilterLightningModule(f, lr=0.1, betas=[0.0, 0.9], lr_decay=0.5).configure_optimizers()
+    opt = cfg["optimizer"]
+    assert opt.param_groups[0]["betas"] == (0.0, 0.9) and opt.param_groups[0]["lr"] == 0.1
+    cfg["lr_scheduler"].step()
+    assert opt.param_groups[0]["lr"] == pytest.approx(0.05)
+    assert isinstance(FilterLightningModule(f).configure_optimizers(), torch.optim.Adam)  # no decay: no scheduler

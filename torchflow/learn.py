@@ -87,7 +87,8 @@ def _fit(cfg: DictConfig, key: str, fcfg, data, names: List[str], out: Path) -> 
     filt = hydra.utils.instantiate(fcfg, **kw)
     module = FilterLightningModule(filt, lr=cfg.lr, seed=cfg.seed, checkpoint_steps=cfg.checkpoint_steps,
                                    memory_budget_gb=cfg.memory_budget_gb, lr_decay=cfg.lr_decay,
-                                   common_random_numbers=cfg.common_random_numbers)
+                                   common_random_numbers=cfg.common_random_numbers,
+                                   betas=tuple(cfg.betas))
     history = {"epoch": [], "nll_per_step": [], "seconds": [], **{n: [] for n in names}}
 
     class Record(pl.Callback):

@@ -94,10 +94,17 @@ class FilterLightningModule(pl.LightningModule):
             keyed without the epoch), so the loss is one fixed Monte Carlo approximation of the
             likelihood that the optimiser minimises (sample-average approximation: less noisy
             steps, at the price of that one approximation's error); default False: fresh draws.
+        betas: Adam's decay rates of the gradient's first and second moments (torch's default
+            ``(0.9, 0.999)``). From a start far from the optimum a particle filter's early
+            gradients are orders of magnitude larger than those near it: the momentum, filled with
+            them, carries the parameter well past the optimum, and a second moment that remembers
+            ~1000 steps keeps the way back slow. ``(0.5, 0.9)`` (memories of ~2 and ~10 steps;
+            what ``torchflow-learn`` uses) turns at the optimum (measured in RESULTS.md, "Learning").
     """
 
     def __init__(self, filter: Filter, *, lr: float = 1e-2, seed: int = 0, checkpoint_steps="auto",
-                 memory_budget_gb: float = 4.0, lr_decay: float = 1.0, common_random_numbers: bool = False):
+                 memory_budget_gb: float = 4.0, lr_decay: float = 1.0, common_random_numbers: bool = False,
+                 betas=(0.9, 0.999)):
         super().__init__()
         if not any(p.requires_grad for p in filter.parameters()):
             raise ValueError("filter: its model has no learnable parameters (construct it with learnable=True)")
@@ -114,6 +121,11 @@ class FilterLightningModule(pl.LightningModule):
         if not isinstance(common_random_numbers, bool):
             raise ValueError(f"common_random_numbers: expected True or False, got {common_random_numbers!r}")
         self.lr_decay, self.common_random_numbers = float(lr_decay), common_random_numbers
+        betas = tuple(betas) if isinstance(betas, (list, tuple)) else betas
+        if not (isinstance(betas, tuple) and len(betas) == 2 and all(
+                isinstance(b, (int, float)) and not isinstance(b, bool) and 0 <= b < 1 for b in betas)):
+            raise ValueError(f"betas: expected two Adam decay rates in [0, 1), got {betas!r}")
+        self.betas = (float(betas[0]), float(betas[1]))
 
     def forward(self, observations, mean, cov, generator: Optional[torch.Generator] = None):
         return self.filter(observations, mean, cov, generator)
@@ -138,7 +150,8 @@ class FilterLightningModule(pl.LightningModule):
         return self._loss(batch, batch_idx)
 
     def configure_optimizers(self):
-        opt = torch.optim.Adam([p for p in self.filter.parameters() if p.requires_grad], lr=self.lr)
+        opt = torch.optim.Adam([p for p in self.filter.parameters() if p.requires_grad], lr=self.lr,
+                               betas=self.betas)
         if self.lr_decay == 1.0:
             return opt
         return {"optimizer": opt, "lr_scheduler": torch.optim.lr_scheduler.ExponentialLR(opt, self.lr_decay)}

@@ -2,11 +2,12 @@
 the log-evidence against the Kalman filter's exact gradient, per resampling-gradient estimator, filter
 and particle count, and what the backward pass costs.
 
-    python -m experiments.benchmarks.bench_gradients             # ~10 min on 2 cores
+    python -m experiments.benchmarks.bench_gradients --estimators none,stop_gradient,soft   # ~15 min, 2 cores
+    python -m experiments.benchmarks.bench_gradients --d 8 --n 100,1000 --memory-n 0       # where it breaks
     python -m experiments.benchmarks.bench_gradients --quick
 
-Model: linear-Gaussian, d = 2, T = 20, F, Q and R learnable (Q and R through their Cholesky
-parametrisation): 14 gradient entries, 12 of them non-zero. One simulated trajectory; every run
+Model: linear-Gaussian (``--d``, default 2), T = 20, F, Q and R learnable (Q and R through their
+Cholesky parametrisation): at d = 2, 12 gradient entries, 10 of them non-zero (the raw upper triangles of Q and R have none). One simulated trajectory; every run
 filters it afresh. Per cell, ``reps`` repetitions of the mean over ``trials`` runs of
 ``grad log Z_hat`` (what an optimiser follows). ``bias``: the Euclidean norm of (mean - exact);
 ``max |t|``: the largest entry of (mean - exact) / SE, SE from the repetitions (|t| > 4 is a
@@ -15,11 +16,20 @@ bias beyond Monte Carlo error); ``sd/run``: the Euclidean norm of the per-run st
 ``fwd`` and ``fwd+bwd``: seconds per trial-step of one call (forward under no_grad; forward with
 autograd plus backward), ``saved MB/trial``: bytes autograd keeps for the backward pass, per trial,
 counted by a ``saved_tensors_hooks`` (an upper estimate: views counted each time). ``ot`` at N = 10^4
-would need 0.8 GB per trial for its plan: skipped.
+would need 0.8 GB per trial for its plan: skipped (``--ot-max-n``).
+
+Memory (``--memory-n``, default 10^4; 0: none): the peak resident memory that one forward + backward
+pass of ``--memory-trials`` trials adds, with and without ``checkpoint_steps`` (each time step
+recomputed in the backward pass), measured as the growth of ``ru_maxrss`` in a fresh process per
+cell, with its seconds.
 """
 from __future__ import annotations
 
+import json
 import math
+import resource
+import subprocess
+import sys
 import time
 
 import torch
@@ -34,8 +44,9 @@ ESTIMATORS = ("none", "stop_gradient", "soft", "ot")
 FILTERS = {"bpf": "BPF", "ledh": "PF-PF(LEDH)"}
 
 
-def _problem(T: int):
-    d = 2
+def problem(T: int, d: int = 2):
+    """A stable linear-Gaussian model with learnable F, Q, R and one simulated trajectory of T steps:
+    ``(model, observations (1, T, d), mean (1, d), cov (1, d, d))``; the same for the tests."""
     eye = torch.eye(d, dtype=torch.float64)
     g = torch.Generator().manual_seed(0)
     F = 0.9 * eye + 0.05 * torch.randn(d, d, generator=g, dtype=torch.float64)
@@ -58,7 +69,7 @@ def _filter(kind: str, model, n: int, est: str):
     return ParticleFlowParticleFilter(model, flow="ledh", schedule=ExponentialSchedule(10, 1.2), **kw)
 
 
-def _cell(kind, est, n, model, obs, mean, cov, exact, trials, reps):
+def _cell(kind, est, n, model, obs, mean, cov, exact, trials, reps, d):
     params = list(model.parameters())
     f = _filter(kind, model, n, est)
     o, m, c = (t.expand(trials, *t.shape[1:]).contiguous() for t in (obs, mean, cov))
@@ -85,43 +96,82 @@ def _cell(kind, est, n, model, obs, mean, cov, exact, trials, reps):
 
     with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
         f(o[:1], m[:1], c[:1], torch.Generator().manual_seed(8))
-    return dict(filter=FILTERS[kind], estimator=est, N=n, trials=trials, reps=reps,
+    return dict(filter=FILTERS[kind], estimator=est, d=d, N=n, trials=trials, reps=reps,
                 bias=float((mu - exact[keep]).norm()),
                 max_t=float(((mu - exact[keep]) / (sd / math.sqrt(reps))).abs().max()),
                 sd_run=float((sd * math.sqrt(trials)).norm()), exact_norm=float(exact.norm()),
                 fwd=fwd, fwd_bwd=sorted(fb)[len(fb) // 2], saved_mb=saved[0] / 1e6)
 
 
+def peak_child(kind: str, n: int, trials: int, steps: int, d: int, ckpt: bool) -> dict:
+    """In this process: the growth of the peak resident memory (MB) over one forward + backward
+    pass, and its seconds (run by :func:`_peak` in a fresh process per cell)."""
+    model, obs, mean, cov = problem(steps, d)
+    f = _filter(kind, model, n, "stop_gradient")
+    o, m, c = (t.expand(trials, *t.shape[1:]).contiguous() for t in (obs, mean, cov))
+    le = f(o[:1, :2], m[:1], c[:1], torch.Generator().manual_seed(0)).log_evidence  # warm the code paths
+    torch.autograd.grad(le.sum(), list(model.parameters()))
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    t0 = time.perf_counter()
+    le = f(o, m, c, torch.Generator().manual_seed(1), checkpoint_steps=ckpt).log_evidence
+    torch.autograd.grad(le.mean(), list(model.parameters()))
+    sec = time.perf_counter() - t0
+    return dict(peak_mb=(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024, seconds=sec)
+
+
+def _peak(kind, n, trials, steps, d, ckpt, threads) -> dict:
+    code = ("import json, torch; torch.set_num_threads(%d); from experiments.benchmarks.bench_gradients import "
+            "peak_child; print(json.dumps(peak_child(%r, %d, %d, %d, %d, %r)))" % (threads, kind, n, trials, steps, d, ckpt))
+    out = subprocess.run([sys.executable, "-c", code], cwd=h.HERE.parent.parent, capture_output=True, text=True)
+    if out.returncode != 0:
+        raise RuntimeError(f"bench_gradients: the memory cell {kind} N={n} failed:\n{out.stderr[-2000:]}")
+    return dict(filter=FILTERS[kind], N=n, trials=trials, d=d, checkpoint_steps=ckpt,
+                **json.loads(out.stdout.strip().splitlines()[-1]))
+
+
 def run(argv=None) -> dict:
-    a = h.options(__doc__, argv, dict(n="100,1000", trials=8, reps=4, steps=10), n="100,1000,10000", trials=20,
-                  reps=10, steps=20, threads=2, filters="bpf,ledh", estimators=",".join(ESTIMATORS))
+    a = h.options(__doc__, argv, dict(n="100,1000", trials=8, reps=4, steps=10, memory_n=2000), n="100,1000,10000",
+                  trials=20, reps=10, steps=20, threads=2, filters="bpf,ledh", estimators=",".join(ESTIMATORS), d=2,
+                  ot_max_n=2000, memory_n=10000, memory_trials=8)
     ns = h.ints(a.n, "--n")
     kinds = h.keys_option(a.filters, FILTERS, "--filters")
     ests = h.keys_option(a.estimators, ESTIMATORS, "--estimators")
-    rows = []
+    d = h.ints(a.d, "--d")[0]
+    rows, memory = [], []
     with h.session("bench_gradients", argv, a.threads) as info:
-        model, obs, mean, cov = _problem(a.steps)
+        model, obs, mean, cov = problem(a.steps, d)
         log_z = KalmanFilter(model)(obs, mean, cov).log_evidence.sum()
         exact = _flat(torch.autograd.grad(log_z, list(model.parameters())))
         for kind in kinds:
             for n in ns:
                 for est in ests:
-                    if est == "ot" and n > 2000:
+                    if est == "ot" and n > a.ot_max_n:
                         continue  # the (N, N) plan: 0.8 GB per trial at N = 1e4
                     big = n >= 10_000
                     trials, reps = (max(2, a.trials // 4), max(3, a.reps // 2)) if big else (a.trials, a.reps)
-                    rows.append(_cell(kind, est, n, model, obs, mean, cov, exact, trials, reps))
+                    rows.append(_cell(kind, est, n, model, obs, mean, cov, exact, trials, reps, d))
                     print(rows[-1], flush=True)
-    head = ["filter", "estimator", "N", "runs", "bias", "max abs t", "sd/run", "abs exact", "fwd s/ts",
+        for kind in kinds if a.memory_n else ():
+            for ckpt in (False, True):
+                memory.append(_peak(kind, int(a.memory_n), int(a.memory_trials), a.steps, d, ckpt, a.threads))
+                print(memory[-1], flush=True)
+    head = ["filter", "estimator", "d", "N", "runs", "bias", "max abs t", "sd/run", "abs exact", "fwd s/ts",
             "fwd+bwd s/ts", "bwd/fwd", "saved MB/trial"]
-    table = [(r["filter"], r["estimator"], r["N"], r["trials"] * r["reps"], h.fmt(r["bias"]), h.fmt(r["max_t"], "{:.1f}"),
+    table = [(r["filter"], r["estimator"], r["d"], r["N"], r["trials"] * r["reps"], h.fmt(r["bias"]), h.fmt(r["max_t"], "{:.1f}"),
               h.fmt(r["sd_run"]), h.fmt(r["exact_norm"]), h.fmt(r["fwd"]), h.fmt(r["fwd_bwd"]),
               h.fmt(r["fwd_bwd"] / r["fwd"], "{:.1f}"), h.fmt(r["saved_mb"])) for r in rows]
+    more = []
+    if memory:
+        more = [f"Peak memory of one forward + backward pass ({a.memory_trials} trials, T = {a.steps}, d = {d}, "
+                "stop_gradient), growth of the peak resident set in a fresh process:", ""] + h.md_table(
+            ["filter", "N", "checkpoint_steps", "peak MB", "seconds"],
+            [(r["filter"], r["N"], r["checkpoint_steps"], h.fmt(r["peak_mb"], "{:.0f}"), h.fmt(r["seconds"]))
+             for r in memory])
     md = h.report("# Gradients through particle filters: bias, spread, cost", a, info,
-                  [f"Linear-Gaussian d = 2, T = {a.steps}; exact gradient: the Kalman filter's (autograd). "
+                  [f"Linear-Gaussian d = {d}, T = {a.steps}; exact gradient: the Kalman filter's (autograd). "
                    "See the module docstring for the columns. N = 10^4 cells use a quarter of the trials and half "
-                   "the repetitions."], head, table)
-    return dict(markdown=md, rows=rows, machine=info, args=vars(a))
+                   "the repetitions."], head, table, *more)
+    return dict(markdown=md, rows=rows, memory=memory, machine=info, args=vars(a))
 
 
 if __name__ == "__main__":

@@ -269,11 +269,13 @@ def test_bench_gradients_micro(tmp_path):
     from experiments.benchmarks import bench_gradients
 
     res = bench_gradients.run(["--n", "30", "--trials", "2", "--reps", "3", "--steps", "3", "--filters", "bpf",
-                               "--estimators", "none,stop_gradient,ot"])
+                               "--estimators", "none,stop_gradient,ot", "--memory-n", "50", "--memory-trials", "2"])
     assert [r["estimator"] for r in res["rows"]] == ["none", "stop_gradient", "ot"]
     for r in res["rows"]:
         assert r["exact_norm"] > 0 and r["fwd"] > 0 and r["fwd_bwd"] > 0 and r["saved_mb"] > 0
         assert math.isfinite(r["bias"]) and math.isfinite(r["sd_run"])
-    assert "| BPF | stop_gradient | 30 |" in res["markdown"]
+    assert "| BPF | stop_gradient | 2 | 30 |" in res["markdown"]
+    assert [m["checkpoint_steps"] for m in res["memory"]] == [False, True]
+    assert all(m["peak_mb"] >= 0 and m["seconds"] > 0 for m in res["memory"])
     with pytest.raises(SystemExit, match="--estimators"):
         bench_gradients.run(["--estimators", "bogus"])

@@ -1,6 +1,7 @@
 """The filter contract shared by every filter: ``init`` / ``step`` / ``forward``."""
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass, field, replace
 from typing import Dict, Optional, Tuple
@@ -443,12 +444,15 @@ class ParticleFilter(Filter):
     def step(self, state: "ParticleState", z: torch.Tensor, generator: Optional[torch.Generator] = None):
         """One step: propose, weigh, estimate, resample (class docstring). Per-particle evaluations
         run in blocks of :attr:`particle_chunk`."""
-        prop = self.proposal.propose(state.particles, state.log_weights, state.estimate, z, state.cov, generator,
-                                     chunk=self.particle_chunk)
+        score = self.proposal_gradient == "score"
+        # the proposal held constant: built without a graph (no tensors kept for a backward pass that
+        # would not use them), its outputs detached; only the weight's model densities carry gradients
+        with torch.no_grad() if score else contextlib.nullcontext():
+            prop = self.proposal.propose(state.particles, state.log_weights, state.estimate, z, state.cov, generator,
+                                         chunk=self.particle_chunk)
         model = self.model
         z1 = z.unsqueeze(1)
-        score = self.proposal_gradient == "score"
-        if score:  # the proposal held constant: only the weight's model densities carry gradients
+        if score:
             prop = replace(prop, particles=prop.particles.detach(),
                            log_q=None if prop.log_q is None else prop.log_q.detach(),
                            cov=None if prop.cov is None else prop.cov.like(prop.cov.matrix.detach()))
