@@ -111,6 +111,7 @@ def test_learn_command_writes_the_table_and_curves(tmp_path):
 
 
 @pytest.mark.parametrize("bad, message", [("epochs=0", "epochs: expected a positive integer"),
+                                          ("betas=[0.9]", "betas: expected two Adam decay rates"),
                                           ("reference=pf", "reference: expected one of"),
                                           ("learn=[d0]", "learnable: expected a bool or a subset")])
 def test_learn_command_refuses_bad_settings_in_one_line(tmp_path, bad, message):

@@ -85,10 +85,14 @@ def _fit(cfg: DictConfig, key: str, fcfg, data, names: List[str], out: Path) -> 
         if key_ in accepted:
             kw[key_] = cfg[key_]
     filt = hydra.utils.instantiate(fcfg, **kw)
-    module = FilterLightningModule(filt, lr=cfg.lr, seed=cfg.seed, checkpoint_steps=cfg.checkpoint_steps,
-                                   memory_budget_gb=cfg.memory_budget_gb, lr_decay=cfg.lr_decay,
-                                   common_random_numbers=cfg.common_random_numbers,
-                                   betas=tuple(cfg.betas))
+    try:  # its options' errors (lr_decay, betas, checkpoint_steps, ...) are settings: one line
+        module = FilterLightningModule(filt, lr=cfg.lr, seed=cfg.seed, checkpoint_steps=cfg.checkpoint_steps,
+                                       memory_budget_gb=cfg.memory_budget_gb, lr_decay=cfg.lr_decay,
+                                       common_random_numbers=cfg.common_random_numbers,
+                                       betas=OmegaConf.to_container(cfg.betas) if OmegaConf.is_config(cfg.betas)
+                                       else cfg.betas)
+    except ValueError as e:
+        raise ConfigError(str(e)) from e
     history = {"epoch": [], "nll_per_step": [], "seconds": [], **{n: [] for n in names}}
 
     class Record(pl.Callback):

@@ -5,6 +5,12 @@ and particle count, and what the backward pass costs.
     python -m experiments.benchmarks.bench_gradients --estimators none,stop_gradient,soft   # ~15 min, 2 cores
     python -m experiments.benchmarks.bench_gradients --d 8 --n 100,1000 --memory-n 0       # where it breaks
     python -m experiments.benchmarks.bench_gradients --quick
+    python -m experiments.benchmarks.bench_gradients --write-problem experiments/benchmarks/gradients_problem.pt
+
+``--params F``: the gradient with respect to F alone (as the PyDPF peer script measures it).
+``--write-problem PATH`` only saves the d = ``--d``, T = ``--steps`` problem (F, Q, R, H, observations,
+prior, the Kalman log-evidence and its gradient with respect to F) for the peer script
+``peer_pydpf_gradients.py``, which runs where PyDPF installs (Python >= 3.12) and needs no torchflow.
 
 Model: linear-Gaussian (``--d``, default 2), T = 20, F, Q and R learnable (Q and R through their
 Cholesky parametrisation): at d = 2, 12 gradient entries, 10 of them non-zero (the raw upper triangles of Q and R have none). One simulated trajectory; every run
@@ -20,8 +26,8 @@ would need 0.8 GB per trial for its plan: skipped (``--ot-max-n``).
 
 Memory (``--memory-n``, default 10^4; 0: none): the peak resident memory that one forward + backward
 pass of ``--memory-trials`` trials adds, with and without ``checkpoint_steps`` (each time step
-recomputed in the backward pass), measured as the growth of ``ru_maxrss`` in a fresh process per
-cell, with its seconds.
+recomputed in the backward pass), measured as the growth of the peak resident set (``VmHWM``) in a
+fresh process per cell, with its seconds.
 """
 from __future__ import annotations
 
@@ -69,8 +75,13 @@ def _filter(kind: str, model, n: int, est: str):
     return ParticleFlowParticleFilter(model, flow="ledh", schedule=ExponentialSchedule(10, 1.2), **kw)
 
 
-def _cell(kind, est, n, model, obs, mean, cov, exact, trials, reps, d):
-    params = list(model.parameters())
+def _params(model, which: str):
+    """What the gradient is taken with respect to: ``"all"`` (F and the raw Q, R) or ``"F"``."""
+    return [model.F] if which == "F" else list(model.parameters())
+
+
+def _cell(kind, est, n, model, obs, mean, cov, exact, trials, reps, d, which="all"):
+    params = _params(model, which)
     f = _filter(kind, model, n, est)
     o, m, c = (t.expand(trials, *t.shape[1:]).contiguous() for t in (obs, mean, cov))
     T = obs.shape[1]
@@ -103,6 +114,18 @@ def _cell(kind, est, n, model, obs, mean, cov, exact, trials, reps, d):
                 fwd=fwd, fwd_bwd=sorted(fb)[len(fb) // 2], saved_mb=saved[0] / 1e6)
 
 
+def write_problem(path: str, steps: int, d: int) -> dict:
+    """Save :func:`problem` with its exact log-evidence and gradient with respect to F (for peers)."""
+    model, obs, mean, cov = problem(steps, d)
+    log_z = KalmanFilter(model)(obs, mean, cov).log_evidence.sum()
+    grad_f, = torch.autograd.grad(log_z, [model.F])
+    data = {k: v.detach().clone() for k, v in dict(F=model.F, Q=model.Q, R=model.R, H=model.H).items()}
+    data.update(obs=obs, mean=mean, cov=cov, log_z=log_z.detach(), grad_F=grad_f)
+    torch.save(data, path)
+    print(f"wrote {path}: d = {d}, T = {steps}, log Z = {float(log_z):.6f}")
+    return dict(markdown="", rows=[], path=path)
+
+
 def peak_child(kind: str, n: int, trials: int, steps: int, d: int, ckpt: bool) -> dict:
     """In this process: the growth of the peak resident memory (MB) over one forward + backward
     pass, and its seconds (run by :func:`_peak` in a fresh process per cell)."""
@@ -111,12 +134,25 @@ def peak_child(kind: str, n: int, trials: int, steps: int, d: int, ckpt: bool) -
     o, m, c = (t.expand(trials, *t.shape[1:]).contiguous() for t in (obs, mean, cov))
     le = f(o[:1, :2], m[:1], c[:1], torch.Generator().manual_seed(0)).log_evidence  # warm the code paths
     torch.autograd.grad(le.sum(), list(model.parameters()))
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    before = _hwm_kb()
     t0 = time.perf_counter()
     le = f(o, m, c, torch.Generator().manual_seed(1), checkpoint_steps=ckpt).log_evidence
     torch.autograd.grad(le.mean(), list(model.parameters()))
     sec = time.perf_counter() - t0
-    return dict(peak_mb=(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024, seconds=sec)
+    return dict(peak_mb=(_hwm_kb() - before) / 1024, seconds=sec)
+
+
+def _hwm_kb() -> int:
+    """This process's peak resident set in kB: ``VmHWM`` of /proc/self/status where it exists (not
+    ``ru_maxrss``, which a process started by ``fork`` + ``exec`` inherits from its parent)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 
 
 def _peak(kind, n, trials, steps, d, ckpt, threads) -> dict:
@@ -132,16 +168,21 @@ def _peak(kind, n, trials, steps, d, ckpt, threads) -> dict:
 def run(argv=None) -> dict:
     a = h.options(__doc__, argv, dict(n="100,1000", trials=8, reps=4, steps=10, memory_n=2000), n="100,1000,10000",
                   trials=20, reps=10, steps=20, threads=2, filters="bpf,ledh", estimators=",".join(ESTIMATORS), d=2,
-                  ot_max_n=2000, memory_n=10000, memory_trials=8)
+                  ot_max_n=2000, memory_n=10000, memory_trials=8, write_problem="",
+                  params="all")
+    if a.params not in ("all", "F"):
+        raise SystemExit(f"--params: expected all or F, got {a.params!r}")
     ns = h.ints(a.n, "--n")
     kinds = h.keys_option(a.filters, FILTERS, "--filters")
     ests = h.keys_option(a.estimators, ESTIMATORS, "--estimators")
     d = h.ints(a.d, "--d")[0]
+    if a.write_problem:
+        return write_problem(a.write_problem, a.steps, d)
     rows, memory = [], []
     with h.session("bench_gradients", argv, a.threads) as info:
         model, obs, mean, cov = problem(a.steps, d)
         log_z = KalmanFilter(model)(obs, mean, cov).log_evidence.sum()
-        exact = _flat(torch.autograd.grad(log_z, list(model.parameters())))
+        exact = _flat(torch.autograd.grad(log_z, _params(model, a.params)))
         for kind in kinds:
             for n in ns:
                 for est in ests:
@@ -149,7 +190,7 @@ def run(argv=None) -> dict:
                         continue  # the (N, N) plan: 0.8 GB per trial at N = 1e4
                     big = n >= 10_000
                     trials, reps = (max(2, a.trials // 4), max(3, a.reps // 2)) if big else (a.trials, a.reps)
-                    rows.append(_cell(kind, est, n, model, obs, mean, cov, exact, trials, reps, d))
+                    rows.append(_cell(kind, est, n, model, obs, mean, cov, exact, trials, reps, d, a.params))
                     print(rows[-1], flush=True)
         for kind in kinds if a.memory_n else ():
             for ckpt in (False, True):
@@ -168,11 +209,16 @@ def run(argv=None) -> dict:
             [(r["filter"], r["N"], r["checkpoint_steps"], h.fmt(r["peak_mb"], "{:.0f}"), h.fmt(r["seconds"]))
              for r in memory])
     md = h.report("# Gradients through particle filters: bias, spread, cost", a, info,
-                  [f"Linear-Gaussian d = {d}, T = {a.steps}; exact gradient: the Kalman filter's (autograd). "
+                  [f"Linear-Gaussian d = {d}, T = {a.steps}; gradient with respect to "
+                   f"{'F alone' if a.params == 'F' else 'F and the raw Cholesky parameters of Q and R'}; "
+                   "exact gradient: the Kalman filter's (autograd). "
                    "See the module docstring for the columns. N = 10^4 cells use a quarter of the trials and half "
                    "the repetitions."], head, table, *more)
     return dict(markdown=md, rows=rows, memory=memory, machine=info, args=vars(a))
 
 
 if __name__ == "__main__":
-    h.main(run, "gradients")
+    if any(a.startswith("--write-problem") for a in sys.argv[1:]):
+        run(sys.argv[1:])  # the problem file only: no results files
+    else:
+        h.main(run, "gradients")

@@ -279,3 +279,14 @@ def test_bench_gradients_micro(tmp_path):
     assert all(m["peak_mb"] >= 0 and m["seconds"] > 0 for m in res["memory"])
     with pytest.raises(SystemExit, match="--estimators"):
         bench_gradients.run(["--estimators", "bogus"])
+
+
+def test_bench_gradients_writes_the_peer_problem(tmp_path):
+    """--write-problem: the model, data and the Kalman log-evidence and F-gradient for the PyDPF peer script."""
+    from experiments.benchmarks import bench_gradients
+
+    path = tmp_path / "p.pt"
+    bench_gradients.run(["--write-problem", str(path), "--steps", "5", "--d", "3"])
+    p = torch.load(path)
+    assert p["F"].shape == (3, 3) and p["obs"].shape == (1, 5, 3) and p["grad_F"].shape == (3, 3)
+    assert math.isfinite(float(p["log_z"])) and float(p["grad_F"].abs().sum()) > 0

@@ -261,57 +261,64 @@ class Filter(nn.Module):
         if self.uses_randomness:
             check_generator(generator, f"{self.name}: generator")
         state = self.init(mean, cov, n_particles, generator)
-        est, inc, ess, covs, parts, lws, geff = [], [], [], [], [], [], []
-        # non-finite trials are recorded on the device (first bad step per trial) and reported once,
-        # after the last step: no host synchronisation per time step
-        first_bad = torch.zeros(observations.shape[0], dtype=torch.long, device=observations.device)
-        first_invalid = torch.zeros_like(first_bad, dtype=torch.bool)
+        trace = _Trace(observations.shape[0], observations.device, return_covariances, return_particles)
         if checkpoint_steps is None:
             checkpoint_steps = self.checkpoint_steps
-        step = self.step
-        if checkpoint_steps and torch.is_grad_enabled():
-            step = self._checkpointed_step
+        step = self._checkpointed_step if checkpoint_steps and torch.is_grad_enabled() else self.step
         for t in range(observations.shape[1]):
             try:
                 state = step(state, observations[:, t], generator)
             except Exception:
-                self._raise_nonfinite(first_bad, first_invalid)  # an earlier non-finite value is the cause
+                self._raise_nonfinite(trace.first_bad, trace.first_invalid)  # an earlier non-finite value is the cause
                 raise
-            bad = ~torch.isfinite(state.estimate).all(-1)
-            invalid = getattr(state, "invalid", None)
-            if invalid is not None:
-                bad = bad | invalid
-            new = bad & (first_bad == 0)
-            first_bad = torch.where(new, t + 1, first_bad)
-            if invalid is not None:
-                first_invalid = first_invalid | (new & invalid)
-            est.append(state.estimate)
-            inc.append(state.log_evidence_increment)
-            if state.ess is not None:
-                ess.append(state.ess)
-            if getattr(state, "g_eff", None) is not None:
-                geff.append(state.g_eff)
-            if return_covariances and isinstance(state, GaussianState):
-                covs.append(state.cov)
-            if return_particles and isinstance(state, ParticleState):
-                parts.append(state.particles)
-                lws.append(state.log_weights)
+            trace.add(state, t)
             if progress is not None:
                 progress()
-        inc_t = torch.stack(inc, 1)
-        self._raise_nonfinite(first_bad, first_invalid)  # the one host read of the check
-        return FilterResult(
-            estimates=torch.stack(est, 1),
-            log_evidence=inc_t.sum(1),
-            log_evidence_increments=inc_t,
-            ess=torch.stack(ess, 1) if ess else None,
-            covariances=torch.stack(covs, 1) if covs else None,
-            particles=torch.stack(parts, 1) if parts else None,
-            log_weights=torch.stack(lws, 1) if lws else None,
-            n_repaired=getattr(state, "n_repaired", None),
-            g_eff=torch.stack(geff, 1) if geff else None,
-        )
+        self._raise_nonfinite(trace.first_bad, trace.first_invalid)  # the one host read of the check
+        return trace.result(state)
 
+
+class _Trace:
+    """What :meth:`Filter.forward` keeps of each step: the per-step outputs, and the first
+    non-finite step per trial, recorded on the device (reported once, after the last step: no host
+    synchronisation per time step)."""
+
+    def __init__(self, B: int, device, covariances: bool, particles: bool):
+        self.first_bad = torch.zeros(B, dtype=torch.long, device=device)
+        self.first_invalid = torch.zeros_like(self.first_bad, dtype=torch.bool)
+        self.covariances, self.particles = covariances, particles
+        self.est, self.inc, self.ess, self.covs, self.parts, self.lws, self.geff = [], [], [], [], [], [], []
+
+    def add(self, state, t: int) -> None:
+        bad = ~torch.isfinite(state.estimate).all(-1)
+        invalid = getattr(state, "invalid", None)
+        if invalid is not None:
+            bad = bad | invalid
+        new = bad & (self.first_bad == 0)
+        self.first_bad = torch.where(new, t + 1, self.first_bad)
+        if invalid is not None:
+            self.first_invalid = self.first_invalid | (new & invalid)
+        self.est.append(state.estimate)
+        self.inc.append(state.log_evidence_increment)
+        if state.ess is not None:
+            self.ess.append(state.ess)
+        if getattr(state, "g_eff", None) is not None:
+            self.geff.append(state.g_eff)
+        if self.covariances and isinstance(state, GaussianState):
+            self.covs.append(state.cov)
+        if self.particles and isinstance(state, ParticleState):
+            self.parts.append(state.particles)
+            self.lws.append(state.log_weights)
+
+    def result(self, state) -> FilterResult:
+        def stack(xs):
+            return torch.stack(xs, 1) if xs else None
+
+        inc_t = torch.stack(self.inc, 1)
+        return FilterResult(estimates=stack(self.est), log_evidence=inc_t.sum(1), log_evidence_increments=inc_t,
+                            ess=stack(self.ess), covariances=stack(self.covs), particles=stack(self.parts),
+                            log_weights=stack(self.lws), n_repaired=getattr(state, "n_repaired", None),
+                            g_eff=stack(self.geff))
 
 NONFINITE = ("recover", "raise")
 PROPOSAL_GRADIENTS = ("pathwise", "score")
