@@ -105,7 +105,8 @@ def _cli(tmp_path, *args):
 
 def test_cli_run_writes_results(tmp_path):
     out = _cli(tmp_path, "model=linear_gaussian", "model.d=16", "filter=[kf,bpf]", "trials=4", "steps=3",
-               "n_particles=50", "seed=0", f"hydra.run.dir={tmp_path}/run", "tuning.cache_bytes_per_call=4096")
+               "n_particles=50", "seed=0", f"hydra.run.dir={tmp_path}/run", "tuning.cache_bytes_per_call=4096",
+               "threads=1")
     assert "| kf |" in out.stdout and "| bpf |" in out.stdout
     run = tmp_path / "run"
     with open(run / "summary.csv") as fh:
@@ -121,6 +122,26 @@ def test_cli_run_writes_results(tmp_path):
     assert data["config"]["trials"] == 4 and len(data["summary"]) == 2
     # the speed knob reached the runner: one trial per chunk (4096 bytes < one 50 x 16 state)
     assert data["config"]["tuning"]["cache_bytes_per_call"] == 4096 and data["run"]["chunk_size"]["bpf"] == 1
+    assert data["run"]["threads"] == 1  # the threads knob reached torch
+
+
+def test_job_threads(monkeypatch):
+    """threads: given; else OMP_NUM_THREADS's (torch follows it: None); else the usable cores (outside a
+    sweep, one job); a bad value is one line."""
+    import os
+
+    from torchflow.cli import job_threads
+    from torchflow.runner import ConfigError
+
+    assert job_threads(3) == 3
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert job_threads(None) is None
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    assert job_threads(None) == cores
+    for bad in (0, -2, 1.5, True, "4"):
+        with pytest.raises(ConfigError, match="threads: expected a positive number of threads or null"):
+            job_threads(bad)
 
 
 def test_cli_multirun_sweep_writes_one_folder_per_job(tmp_path):

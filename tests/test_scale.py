@@ -3,6 +3,7 @@ Lightning DDP. The subprocess tests run the real command lines on 2 CPU processe
 from __future__ import annotations
 
 import csv
+import json
 import importlib.util
 import os
 import signal
@@ -301,13 +302,18 @@ def test_parallel_launchers_keep_every_job_in_the_announced_sweep_folder(tmp_pat
     process) to the main process's value: one sweep folder with jobs 0, 1, 2."""
     if importlib.util.find_spec("hydra_plugins.hydra_joblib_launcher") is None:
         pytest.skip("joblib launcher not installed (pip install -e '.[cluster]')")
-    out = subprocess.run([sys.executable, RUN, "-m", "hydra/launcher=joblib", "model=linear_gaussian", "model.d=4",
+    env = {k: v for k, v in _env().items() if k != "OMP_NUM_THREADS"}  # threads=null divides the cores
+    out = subprocess.run([sys.executable, RUN, "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
+                          "model=linear_gaussian", "model.d=4",
                           "filter=[kf]", "trials=2", "steps=2", "seed=0,1,2", "progress=false", "plots=false",
-                          "checkpoint_dir=null"], capture_output=True, text=True, env=_env(), timeout=300, cwd=tmp_path)
+                          "checkpoint_dir=null"], capture_output=True, text=True, env=env, timeout=300, cwd=tmp_path)
     assert out.returncode == 0, out.stderr[-3000:]
     sweeps = list((tmp_path / "multirun" / "default").iterdir())
     assert len(sweeps) == 1 and sorted(p.name for p in sweeps[0].iterdir() if p.is_dir()) == ["0", "1", "2"]
     assert "3 jobs, 3 finished" in out.stderr
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    for j in ("0", "1", "2"):  # two jobs at once share the cores: threads=null gives each half
+        assert json.loads((sweeps[0] / j / "results.json").read_text())["run"]["threads"] == max(1, cores // 2)
 
 
 def test_lightning_ddp_gradients_equal_single_process(tmp_path):

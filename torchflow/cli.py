@@ -187,6 +187,41 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
     return 1 if (result.failed or writer.failed) else 0
 
 
+def job_threads(threads=None) -> Optional[int]:
+    """Torch threads of one job (numpy's random fills use as many): ``threads`` when given (a
+    positive int); else, when ``OMP_NUM_THREADS`` is set, ``None`` (torch already follows it); else
+    the cores this process may use divided among the jobs a Hydra launcher runs at once (the joblib
+    launcher's ``n_jobs``; 1 for the sequential one), at least 1. Side by side with default threads,
+    two torch processes each take every core and slow each other down many times over."""
+    if threads is not None:
+        if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+            raise ConfigError(f"threads: expected a positive number of threads or null, got {threads!r}")
+        return threads
+    if os.environ.get("OMP_NUM_THREADS"):
+        return None
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    jobs = 1
+    if HydraConfig.initialized() and _multirun():
+        n_jobs = OmegaConf.select(HydraConfig.get(), "launcher.n_jobs", default=None)
+        if isinstance(n_jobs, int) and n_jobs != 1:
+            jobs = cores if n_jobs < 1 else n_jobs  # joblib: -1 means one job per core
+    return max(1, cores // jobs)
+
+
+@contextlib.contextmanager
+def _torch_threads(n: Optional[int]):
+    """``torch.set_num_threads(n)`` for the job (``None``: unchanged), restored after it."""
+    before = torch.get_num_threads()
+    if n is not None and n != before:
+        torch.set_num_threads(n)
+        log.debug(f"torch threads: {n}")
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != before:
+            torch.set_num_threads(before)
+
+
 def run_job(cfg: DictConfig) -> int:
     """One job: check the config, build, run, write; the exit status."""
     rc.check_config(cfg, HydraConfig.get().runtime.choices)
@@ -197,6 +232,7 @@ def run_job(cfg: DictConfig) -> int:
             stack.enter_context(tuning.tuned(**knobs))
         except (ValueError, TypeError) as e:
             raise ConfigError(str(e)) from None
+        stack.enter_context(_torch_threads(job_threads(cfg.get("threads"))))
         shard = Shard.from_env(str(cfg.device), timeout_minutes=float(cfg.get("dist_timeout_min", 720)))
         stack.callback(shard.close)
         if shard.is_main:

@@ -25,34 +25,33 @@ def symmetrize(A: torch.Tensor) -> torch.Tensor:
 def safe_cholesky(A: torch.Tensor, *, max_tries: int = 6) -> torch.Tensor:
     """Lower Cholesky factor of ``A (..., d, d)``, adding diagonal jitter where it fails.
 
-    Matrices that factor cleanly are untouched. For those that do not, jitter
-    ``eps * 10^k * mean(diag)`` (k = 0, 1, ...) is added to those matrices only, where ``eps`` is the
-    dtype's machine epsilon times 10.
+    Matrices that factor cleanly are untouched. A matrix that does not gets the smallest jitter
+    ``eps * 10^k * mean(diag)`` (k = 0 .. ``max_tries`` - 1, ``eps`` the dtype's machine epsilon
+    times 10) under which it factors; the ladder is factored in one batched call
+    ``(max_tries, ..., d, d)``, where the failed matrices get the jitter and the others none. On
+    a CUDA tensor that call is always made, so that no host read asks whether anything failed
+    (a read would stall the queue); on the CPU the failure flags are read first and the ladder
+    runs only when one failed (``torchflow.tuning`` ``batched_jitter_cpu=1``: always, as on CUDA).
+    The factor is the same either way.
 
-    Raises:
-        torch.linalg.LinAlgError: if a matrix still fails after ``max_tries`` increases; the
-            message names the first failing batch index.
+    A matrix that fails every jitter gets a NaN factor: a filter's non-finite path then names the
+    filter, step and trial (outside a filter, check the result with ``torch.isfinite``).
     """
     L, info = torch.linalg.cholesky_ex(A)
-    if not bool((info > 0).any()):
-        return L
+    failed = info > 0
+    if A.device.type != "cuda" and not tuning.get().batched_jitter_cpu and not bool(failed.any()):
+        return L  # the CPU: a host read costs nothing, the ladder max_tries factorisations
     eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
     base = 10.0 * torch.finfo(A.dtype).eps
     scale = A.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(A.dtype).tiny)
-    failed = info > 0
-    for k in range(max_tries):
-        add = (base * 10.0**k) * scale
-        A_j = A + torch.where(failed, add, torch.zeros_like(add))[..., None, None] * eye
-        L_j, info = torch.linalg.cholesky_ex(A_j)
-        L = torch.where(failed[..., None, None], L_j, L)
-        failed = failed & (info > 0)
-        if not bool(failed.any()):
-            return L
-    idx = int(torch.nonzero(failed.reshape(-1))[0])
-    raise torch.linalg.LinAlgError(
-        f"safe_cholesky: matrix at batch index {idx} is not positive definite even with jitter "
-        f"{base * 10.0 ** (max_tries - 1):.1e} x mean diagonal"
-    )
+    ladder = base * torch.logspace(0, max_tries - 1, max_tries, dtype=A.dtype, device=A.device)
+    add = ladder.reshape(-1, *([1] * failed.dim())) * torch.where(failed, scale, torch.zeros_like(scale))
+    L_j, info_j = torch.linalg.cholesky_ex(A.unsqueeze(0) + add[..., None, None] * eye)
+    ok = info_j == 0  # (max_tries, ...)
+    first = torch.argmax(ok.to(torch.uint8), dim=0)  # the first jitter that factors (0 when none does)
+    L_first = torch.take_along_dim(L_j, first[None, ..., None, None], dim=0)[0]
+    L_first = torch.where(ok.any(0)[..., None, None], L_first, torch.full_like(L_first, float("nan")))
+    return torch.where(failed[..., None, None], L_first, L)
 
 
 def solve_triangular(A: torch.Tensor, B: torch.Tensor, *, upper: bool, left: bool = True) -> torch.Tensor:

@@ -83,6 +83,7 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
     """
     schedule = schedule or ExponentialSchedule()
     eps_all, lam_all = schedule.steps(dtype=particles.dtype, device=particles.device)
+    eps_host = _host_steps(schedule, particles.dtype)
     strategy = resolve_points(flow, "clustered" if points is None and index is not None else points)
     if measurement is None:
         measurement = GaussianMeasurement.from_model(model, z)
@@ -95,7 +96,7 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
                              "give either start or gaussian_image=True")
     prior, index, squeeze = strategy.arrange(prior, particles, index)
     start = None if start is None else start.reshape(prior.mean.shape)
-    out = _integrate(flow, measurement, particles, prior, index, strategy.per_particle, eps_all, lam_all,
+    out = _integrate(flow, measurement, particles, prior, index, strategy.per_particle, (eps_all, eps_host), lam_all,
                      generator, proposal, noise, gaussian_image, start)
     if squeeze:
         out.aux = out.aux.squeeze(-2)
@@ -109,6 +110,7 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
     """The loop of :func:`integrate_flow`: ``prior`` at ``(B, L, d)`` points, ``index (B, N)`` or
     ``None`` (points broadcast against the particles, or are the particles)."""
     B, N, d = particles.shape
+    eps_all, eps_host = eps_all  # the step sizes on the device, and as Python floats
     prior = prior.reduced(measurement.support)
     image = _Image(prior, gaussian_image)
     aux, eta = (prior.mean if start is None else start), particles  # (B, L, d), (B, N, d)
@@ -132,7 +134,7 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
         if stochastic and (co.A is None or not co.has_noise):
             raise TypeError(f"{type(flow).__name__}: a stochastic flow must give an explicit A and a diffusion "
                             "(noise_factor or noise_product)")
-        image.step(co, eps)  # at the points
+        image.step(co, eps_host[j])  # at the points
         if not stochastic:
             log_det = log_det + co.log_det
         if compose:
@@ -157,7 +159,7 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
             eta = eta + eps.sqrt() * at.diffuse(xi)
             if track:
                 mu = mu + eps * drifts[-1]
-                Sig = _propagate_cov(Sig, at, eps, eye)
+                Sig = _propagate_cov(Sig, at, eps_host[j], eye)
                 tracked = [mu]
     if compose:
         if L == 1:
@@ -212,6 +214,7 @@ def flow_gaussian(flow: ParticleFlow, measurement, prior: FlowPrior, schedule: O
     check_choice("evaluate_at", evaluate_at, EVALUATE_AT)
     schedule = schedule or ExponentialSchedule()
     eps_all, lam_all = schedule.steps(dtype=prior.mean.dtype, device=prior.mean.device)
+    eps_host = _host_steps(schedule, prior.mean.dtype)
     if evaluate_at == "start":
         lam_all = lam_all - eps_all  # lambda_{l-1}; exactly 0 for the first step
         lam_all[0] = 0.0
@@ -223,7 +226,7 @@ def flow_gaussian(flow: ParticleFlow, measurement, prior: FlowPrior, schedule: O
         co = flow.coefficients_at(measurement.at(mu, prior.support), prior, lam, eps)
         if on_step is not None:
             on_step(co, eps)
-        image.step(co, eps)
+        image.step(co, eps_host[j])
         mu = mu + eps * co.drift(mu)[0]
     return mu, linalg.symmetrize(image.cov)
 
@@ -239,7 +242,7 @@ class _Image:
             self.cov = L @ L.transpose(-1, -2)
             self.eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
 
-    def step(self, co: "FlowCoefficients", eps) -> None:
+    def step(self, co: "FlowCoefficients", eps: float) -> None:
         if not self.on:
             return
         if co.A is None and co.form_A is not None:
@@ -252,8 +255,14 @@ class _Image:
         return out
 
 
-def _propagate_cov(Sig, co: "FlowCoefficients", eps, eye):
-    """``(I + eps A) Sig (I + eps A)^T + eps Q``, ``Sig (..., d, d)``.
+def _host_steps(schedule, dtype) -> list:
+    """The schedule's step sizes as Python floats, rounded to ``dtype`` like ``schedule.steps``: the
+    host-side constants of the pseudo-steps (reading them from a device tensor would synchronise)."""
+    return schedule.step_sizes().to(dtype).tolist()
+
+
+def _propagate_cov(Sig, co: "FlowCoefficients", eps: float, eye):
+    """``(I + eps A) Sig (I + eps A)^T + eps Q``, ``Sig (..., d, d)``; ``eps`` a Python float.
 
     With a measurement support A has only k nonzero columns ``A_s (..., d, k)``:
     ``V = (I + eps A) Sig = Sig + eps A_s Sig[s, :]`` and ``V (I + eps A)^T = V + eps V[:, s] A_s^T``,
@@ -262,7 +271,7 @@ def _propagate_cov(Sig, co: "FlowCoefficients", eps, eye):
     if co.support is None:
         T = eye + eps * co.dense_A()
         return T @ Sig @ T.transpose(-1, -2) + eps * co.diffusion_cov()
-    A, sup, e = co.matrix(), co.support, float(eps)
+    A, sup, e = co.matrix(), co.support, eps
     pair = co.noise_cov_pair
     shapes = [Sig.shape[:-2], A.shape[:-2]] + ([p.shape[:-2] for p in pair] if pair is not None else [])
     batch = torch.broadcast_shapes(*shapes)

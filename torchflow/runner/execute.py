@@ -215,6 +215,6 @@ def run_experiment(
         particle_chunk={n: getattr(f, "particle_chunk", None) for n, f in filters.items()},
         memory_budget_gb=memory_budget_gb, rng_backend=s.rng_backend, world_size=plan.shard.world,
         trial_range=[s.lo, s.hi], device=str(s.device), dtype=str(s.dtype).replace("torch.", ""),
-        tuning=tuning.as_dict())
+        tuning=tuning.as_dict(), threads=torch.get_num_threads())
     res.trajectory = Trajectory(plan.traj.states[s.lo:s.hi].cpu(), plan.traj.observations[s.lo:s.hi].cpu())
     return res
