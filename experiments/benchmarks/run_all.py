@@ -20,7 +20,7 @@ from pathlib import Path
 from . import harness as h
 
 SECTIONS = ["foundation", "acoustic", "pfpf", "flops", "memory", "float32", "scaling", "streams", "gaussian_sum",
-            "gradients"]
+            "gradients", "ops"]
 
 
 def _headline(results: dict) -> list:

@@ -290,3 +290,16 @@ def test_bench_gradients_writes_the_peer_problem(tmp_path):
     p = torch.load(path)
     assert p["F"].shape == (3, 3) and p["obs"].shape == (1, 5, 3) and p["grad_F"].shape == (3, 3)
     assert math.isfinite(float(p["log_z"])) and float(p["grad_F"].abs().sum()) > 0
+
+
+def test_bench_ops_micro(tmp_path):
+    """Every filter family gets a row; none synchronises on the CUDA path; the issue's targets are judged."""
+    from experiments.benchmarks import bench_ops
+
+    res = bench_ops.run(["--particles", "20", "--trials", "2", "--out", str(tmp_path / "ops.md")])
+    names = [r["name"] for r in res["rows"]]
+    assert {"BPF", "PF-PF(LEDH)", "PF-PF(Gromov)", "GPFIS", "UPF", "EKF"} <= set(names) and len(names) == 15
+    assert all(r["syncs_cuda"] == 0 and 0 < r["compute_ops"] <= r["ops"] for r in res["rows"])
+    ledh = next(r for r in res["rows"] if r["name"] == "PF-PF(LEDH)")
+    assert ledh["target"] == 1000 and ledh["met"] == (ledh["ops"] <= 1000)
+    assert "| PF-PF(LEDH) |" in res["markdown"]

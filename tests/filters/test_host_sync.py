@@ -8,7 +8,6 @@ reads its failure flags on the CPU by default (a read is free there, its batched
 not); the step is counted as it runs on CUDA, with ``tuning`` ``batched_jitter_cpu=1``."""
 import pytest
 import torch
-from torch.utils._python_dispatch import TorchDispatchMode
 
 from torchflow import linalg, tuning
 from torchflow.filters import (GPFIS, BootstrapParticleFilter, ClusteredParticleFlowParticleFilter,
@@ -17,25 +16,11 @@ from torchflow.filters import (GPFIS, BootstrapParticleFilter, ClusteredParticle
                                ParticleFlowGaussianSumParticleFilter, ParticleFlowParticleFilter,
                                UnscentedKalmanFilter)
 from torchflow.models import AcousticTracking, LinearGaussian, SensorNetwork
+from torchflow.profiling import OpCounter
 from torchflow.proposals import UnscentedProposal
 from torchflow.random import TrialStreams
 
-SYNC_OPS = {"aten._local_scalar_dense.default", "aten.is_nonzero.default", "aten.item.default",
-            "aten.nonzero.default"}
-
-
-class CountSyncs(TorchDispatchMode):
-    """Counts the ops of ``SYNC_OPS`` (and all ops) dispatched inside the ``with`` block."""
-
-    def __init__(self):
-        super().__init__()
-        self.syncs, self.ops = [], 0
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        self.ops += 1
-        if str(func) in SYNC_OPS:
-            self.syncs.append(str(func))
-        return func(*args, **(kwargs or {}))
+CountSyncs = OpCounter
 
 
 FILTERS = {
