@@ -16,7 +16,6 @@ epoch) and ``curves.png`` (loss and parameters per epoch) into Hydra's output fo
 """
 from __future__ import annotations
 
-import inspect
 import json
 import logging
 import math
@@ -33,6 +32,7 @@ from omegaconf import DictConfig, OmegaConf
 from . import cli  # noqa: F401 - registers the signature config nodes and the tf_pid resolver
 from .runner import config as rc
 from .runner import format_table, writers
+from .registry import signature_defaults
 from .runner.plan import ConfigError
 
 log = logging.getLogger("torchflow.learn")
@@ -52,17 +52,6 @@ def _rel_error(a: List[float], b: List[float]) -> float:
     return 100.0 * num / den if den > 0 else float("nan")
 
 
-def _accepted_keys(cls) -> set:
-    """Keyword arguments ``cls`` accepts, following ``**kwargs`` into its base classes."""
-    keys = set()
-    for c in cls.__mro__:
-        params = inspect.signature(c.__init__).parameters if "__init__" in vars(c) else {}
-        keys |= {n for n, p in params.items() if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)}
-        if params and not any(p.kind == p.VAR_KEYWORD for p in params.values()):
-            break
-    return keys
-
-
 def _learner(cfg: DictConfig):
     """The model to fit: the model config with ``learnable=<learn>`` and the ``start`` overrides."""
     learn = OmegaConf.to_container(cfg.learn, resolve=True) if OmegaConf.is_config(cfg.learn) else cfg.learn
@@ -80,7 +69,7 @@ def _fit(cfg: DictConfig, key: str, fcfg, data, names: List[str], out: Path) -> 
     model = _learner(cfg)
     target = hydra.utils.get_class(fcfg._target_) if "_target_" in fcfg else None
     kw = {"model": model, "name": key}
-    accepted = _accepted_keys(target) if target is not None else set()
+    accepted = signature_defaults(target) if target is not None else {}  # the keyword arguments it takes
     for key_ in ("resampling_gradient", "proposal_gradient"):
         if key_ in accepted:
             kw[key_] = cfg[key_]

@@ -44,7 +44,7 @@ def safe_cholesky(A: torch.Tensor, *, max_tries: int = 6) -> torch.Tensor:
     eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
     base = 10.0 * torch.finfo(A.dtype).eps
     scale = A.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(A.dtype).tiny)
-    ladder = base * torch.logspace(0, max_tries - 1, max_tries, dtype=A.dtype, device=A.device)
+    ladder = torch.tensor([base * 10.0**k for k in range(max_tries)], dtype=A.dtype, device=A.device)  # host values
     add = ladder.reshape(-1, *([1] * failed.dim())) * torch.where(failed, scale, torch.zeros_like(scale))
     L_j, info_j = torch.linalg.cholesky_ex(A.unsqueeze(0) + add[..., None, None] * eye)
     ok = info_j == 0  # (max_tries, ...)

@@ -119,6 +119,14 @@ class TrialStreams:
         self._counter = 0      # philox: 128-bit blocks consumed per trial so far
         self._keys = None      # philox: (B, 2) int64 key words
 
+    def get_state(self):
+        """A snapshot of every trial's stream position (restored by :meth:`set_state`)."""
+        return copy.deepcopy((self._np, self._counter, self.backend, self._keys))
+
+    def set_state(self, state) -> None:
+        """Restore a snapshot of :meth:`get_state` (the snapshot stays reusable)."""
+        self._np, self._counter, self.backend, self._keys = copy.deepcopy(state)
+
     def __len__(self) -> int:
         return len(self.trials)
 
@@ -224,19 +232,13 @@ def get_state(generator: Optional[Generatorish]):
     """A snapshot of ``generator`` (a ``torch.Generator``, :class:`TrialStreams` or ``None``: torch's
     default CPU generator) that :func:`set_state` restores, so that a computation can draw the same
     numbers twice (gradient checkpointing recomputes a filter step in the backward pass)."""
-    if generator is None:
-        return torch.get_rng_state()
-    if isinstance(generator, TrialStreams):
-        return copy.deepcopy((generator._np, generator._counter, generator.backend, generator._keys))
-    return generator.get_state()
+    return torch.get_rng_state() if generator is None else generator.get_state()
 
 
 def set_state(generator: Optional[Generatorish], state) -> None:
     """Restore a snapshot of :func:`get_state` (the snapshot stays reusable)."""
     if generator is None:
         torch.set_rng_state(state)
-    elif isinstance(generator, TrialStreams):
-        generator._np, generator._counter, generator.backend, generator._keys = copy.deepcopy(state)
     else:
         generator.set_state(state)
 

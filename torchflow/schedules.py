@@ -19,15 +19,36 @@ class LambdaSchedule:
     n_steps: int
 
     def step_sizes(self) -> torch.Tensor:
-        """``(n,)`` float64 step sizes summing to 1."""
+        """``(n,)`` float64 step sizes summing to 1, on the CPU."""
         raise NotImplementedError
 
     def steps(self, dtype=torch.float64, device=None) -> Tuple[torch.Tensor, torch.Tensor]:
-        """Step sizes ``eps (n,)`` and pseudo-times after each step ``lambda (n,)``, ``lambda[-1] = 1``."""
-        eps = self.step_sizes()
-        lam = torch.cumsum(eps, 0)
-        lam[-1] = 1.0
-        return eps.to(dtype=dtype, device=device), lam.to(dtype=dtype, device=device)
+        """Step sizes ``eps (n,)`` and pseudo-times after each step ``lambda (n,)``, ``lambda[-1] = 1``.
+
+        Built once per dtype and device and then reused (a flow calls this every time step: no
+        host-to-device copy each time); the tensors are shared, so treat them as read-only."""
+        key = ("steps", dtype, str(torch.device(device) if device is not None else torch.device("cpu")), self._state())
+        cache = self.__dict__.setdefault("_cache", {})
+        if key not in cache:
+            eps = self.step_sizes()
+            lam = torch.cumsum(eps, 0)
+            lam[-1] = 1.0
+            cache[key] = (eps.to(dtype=dtype, device=device), lam.to(dtype=dtype, device=device))
+        return cache[key]
+
+    def host_steps(self, dtype=torch.float64) -> Tuple[float, ...]:
+        """The step sizes as Python floats, rounded to ``dtype`` like :meth:`steps`: the pseudo-steps'
+        host-side constants (``alpha`` of fused products), never read back from a device tensor.
+        Built once per dtype."""
+        key = ("host", dtype, self._state())
+        cache = self.__dict__.setdefault("_cache", {})
+        if key not in cache:
+            cache[key] = tuple(self.step_sizes().to(dtype).tolist())  # a CPU float64 tensor: no device read
+        return cache[key]
+
+    def _state(self) -> str:
+        """The public settings: a cache key that follows any change to them."""
+        return repr(sorted((k, v) for k, v in vars(self).items() if not k.startswith("_")))
 
     def __len__(self) -> int:
         return self.n_steps

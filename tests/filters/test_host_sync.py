@@ -9,53 +9,36 @@ not); the step is counted as it runs on CUDA, with ``tuning`` ``batched_jitter_c
 import pytest
 import torch
 
+from experiments.benchmarks.bench_ops import count, filters
 from torchflow import linalg, tuning
-from torchflow.filters import (GPFIS, BootstrapParticleFilter, ClusteredParticleFlowParticleFilter,
-                               ExtendedKalmanFilter, GaussianParticleFilter, GaussianSumParticleFilter,
-                               KalmanFilter, ParticleFilter, ParticleFlowFilter,
-                               ParticleFlowGaussianSumParticleFilter, ParticleFlowParticleFilter,
-                               UnscentedKalmanFilter)
+from torchflow.filters import BootstrapParticleFilter, KalmanFilter
 from torchflow.models import AcousticTracking, LinearGaussian, SensorNetwork
 from torchflow.profiling import OpCounter
-from torchflow.proposals import UnscentedProposal
-from torchflow.random import TrialStreams
 
 CountSyncs = OpCounter
+N = 40
 
 
-FILTERS = {
-    "bpf": lambda m: BootstrapParticleFilter(m, n_particles=32),
-    "bpf_raise": lambda m: BootstrapParticleFilter(m, n_particles=32, nonfinite="raise"),
-    **{f"pfpf_{fl}": (lambda fl: lambda m: ParticleFlowParticleFilter(m, flow=fl, n_particles=32))(fl)
-       for fl in ("edh", "ledh", "geodesic", "gromov", "osd")},
-    "pfpf_clustered": lambda m: ClusteredParticleFlowParticleFilter(m, n_clusters=5, n_particles=32),
-    "gpfis": lambda m: GPFIS(m, n_particles=32),
-    "upf": lambda m: ParticleFilter(m, UnscentedProposal(m), n_particles=32),
-    "gpf": lambda m: GaussianParticleFilter(m, n_particles=32),
-    "gspf": lambda m: GaussianSumParticleFilter(m, n_components=2, particles_per_component=20),
-    "pfgspf": lambda m: ParticleFlowGaussianSumParticleFilter(m, n_components=2, particles_per_component=20),
-    "flow_filter": lambda m: ParticleFlowFilter(m, flow="ledh", n_particles=32),
-    "ekf": ExtendedKalmanFilter,
-    "ukf": UnscentedKalmanFilter,
-}
+def _every_filter(model):
+    """The op benchmark's filters (every family), and the bootstrap PF with ``nonfinite="raise"``."""
+    return {**filters(model, N), "BPF (raise)": BootstrapParticleFilter(model, n_particles=N, nonfinite="raise")}
+
+
+FILTERS = sorted(_every_filter(AcousticTracking()))
 
 
 def _second_step(model, f):
+    """One time step (the second) as it runs on CUDA (``batched_jitter_cpu=1``)."""
     g = torch.Generator().manual_seed(0)
     traj = model.simulate(2, 2, g)
     mean, cov = model.initial_belief(traj.states[:, 0], g)
-    streams = TrialStreams(0, 2, f.stream_name) if f.uses_randomness else None
-    with torch.no_grad():
-        state = f.step(f.init(mean, cov, None, streams), traj.observations[:, 0], streams)
-        with tuning.tuned(batched_jitter_cpu=1), CountSyncs() as counts:
-            f.step(state, traj.observations[:, 1], streams)
-    return counts
+    return count(f, traj.observations, mean, cov, batched=True)
 
 
-@pytest.mark.parametrize("key", sorted(FILTERS))
+@pytest.mark.parametrize("key", FILTERS)
 def test_no_filter_step_synchronises(key):
     for model in (AcousticTracking(), SensorNetwork(d=16)):
-        counts = _second_step(model, FILTERS[key](model))
+        counts = _second_step(model, _every_filter(model)[key])
         assert counts.ops > 0 and counts.syncs == [], (key, type(model).__name__, counts.syncs)
 
 

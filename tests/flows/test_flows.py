@@ -30,6 +30,18 @@ def test_uniform_schedule_and_errors():
         ExponentialSchedule(ratio=-1.0)
 
 
+def test_schedule_steps_are_built_once_and_follow_their_settings():
+    """steps() and host_steps() are cached per dtype (and device); a changed setting rebuilds them;
+    the host floats are the device steps' values, rounded alike."""
+    s = ExponentialSchedule(5, 1.3)
+    a, b = s.steps(dtype=torch.float32), s.steps(dtype=torch.float32)
+    assert a[0] is b[0] and a[1] is b[1] and s.steps()[0].dtype == torch.float64
+    assert s.host_steps(torch.float32) == tuple(a[0].tolist()) and s.host_steps() == tuple(s.steps()[0].tolist())
+    s.n_steps = 7
+    assert len(s.steps()[0]) == 7 and len(s.host_steps()) == 7
+    assert "_cache" not in repr(s)
+
+
 def _lg_problem(d, m, seed=2):
     model = random_lg(d, m, seed=seed)
     g = torch.Generator().manual_seed(seed)

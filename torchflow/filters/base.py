@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Dict, Optional, Tuple
 
 import torch
@@ -459,10 +459,6 @@ class ParticleFilter(Filter):
                                          chunk=self.particle_chunk)
         model = self.model
         z1 = z.unsqueeze(1)
-        if score:
-            prop = replace(prop, particles=prop.particles.detach(),
-                           log_q=None if prop.log_q is None else prop.log_q.detach(),
-                           cov=None if prop.cov is None else prop.cov.like(prop.cov.matrix.detach()))
         if prop.log_q is None:
             def weigh(x, x_prev):
                 ll = model.measurement_log_prob(z1, x)

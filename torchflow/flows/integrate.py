@@ -83,7 +83,7 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
     """
     schedule = schedule or ExponentialSchedule()
     eps_all, lam_all = schedule.steps(dtype=particles.dtype, device=particles.device)
-    eps_host = _host_steps(schedule, particles.dtype)
+    eps_host = schedule.host_steps(particles.dtype)
     strategy = resolve_points(flow, "clustered" if points is None and index is not None else points)
     if measurement is None:
         measurement = GaussianMeasurement.from_model(model, z)
@@ -214,7 +214,7 @@ def flow_gaussian(flow: ParticleFlow, measurement, prior: FlowPrior, schedule: O
     check_choice("evaluate_at", evaluate_at, EVALUATE_AT)
     schedule = schedule or ExponentialSchedule()
     eps_all, lam_all = schedule.steps(dtype=prior.mean.dtype, device=prior.mean.device)
-    eps_host = _host_steps(schedule, prior.mean.dtype)
+    eps_host = schedule.host_steps(prior.mean.dtype)
     if evaluate_at == "start":
         lam_all = lam_all - eps_all  # lambda_{l-1}; exactly 0 for the first step
         lam_all[0] = 0.0
@@ -253,12 +253,6 @@ class _Image:
         if self.on:
             out.image_mean, out.image_cov = out.aux, linalg.symmetrize(self.cov)
         return out
-
-
-def _host_steps(schedule, dtype) -> list:
-    """The schedule's step sizes as Python floats, rounded to ``dtype`` like ``schedule.steps``: the
-    host-side constants of the pseudo-steps (reading them from a device tensor would synchronise)."""
-    return schedule.step_sizes().to(dtype).tolist()
 
 
 def _propagate_cov(Sig, co: "FlowCoefficients", eps: float, eye):
