@@ -44,7 +44,7 @@ def safe_cholesky(A: torch.Tensor, *, max_tries: int = 6) -> torch.Tensor:
     eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
     base = 10.0 * torch.finfo(A.dtype).eps
     scale = A.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(A.dtype).tiny)
-    ladder = torch.tensor([base * 10.0**k for k in range(max_tries)], dtype=A.dtype, device=A.device)  # host values
+    ladder = _jitter_ladder(base, max_tries, A.dtype, A.device)
     add = ladder.reshape(-1, *([1] * failed.dim())) * torch.where(failed, scale, torch.zeros_like(scale))
     L_j, info_j = torch.linalg.cholesky_ex(A.unsqueeze(0) + add[..., None, None] * eye)
     ok = info_j == 0  # (max_tries, ...)
@@ -52,6 +52,18 @@ def safe_cholesky(A: torch.Tensor, *, max_tries: int = 6) -> torch.Tensor:
     L_first = torch.take_along_dim(L_j, first[None, ..., None, None], dim=0)[0]
     L_first = torch.where(ok.any(0)[..., None, None], L_first, torch.full_like(L_first, float("nan")))
     return torch.where(failed[..., None, None], L_first, L)
+
+
+_LADDERS = {}
+
+
+def _jitter_ladder(base: float, max_tries: int, dtype, device) -> torch.Tensor:
+    """``base * 10^k``, k < ``max_tries``, from host values, made once per dtype and device (no copy
+    to the device in a filter step: a CUDA graph cannot capture one)."""
+    key = (base, max_tries, dtype, str(device))
+    if key not in _LADDERS:
+        _LADDERS[key] = torch.tensor([base * 10.0**k for k in range(max_tries)], dtype=dtype, device=device)
+    return _LADDERS[key]
 
 
 def solve_triangular(A: torch.Tensor, B: torch.Tensor, *, upper: bool, left: bool = True) -> torch.Tensor:

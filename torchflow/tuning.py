@@ -65,6 +65,10 @@ class Tuning:
             with 0 (default) the CPU reads the failure flags and tries the ladder only when one
             failed; 1 batches it there too (acoustic, 4 trials x 10 steps, N = 500, 2 threads:
             PF-PF(LEDH) 1.5x, PF-PF(Gromov) 1.4x and the UPF 2.0x slower). The same factor either way.
+        cuda_graphs: on CUDA, a deterministic flow's pseudo-time loop (EDH, LEDH, geodesic,
+            clustered; no gradient recorded) is captured once per shape as a CUDA graph and
+            replayed (:mod:`torchflow.cudagraphs`): one launch instead of thousands of small ones.
+            The same kernels, so the same numbers. 0 runs it eagerly. No effect on the CPU.
     """
 
     points_per_call: int = 10_000
@@ -76,6 +80,7 @@ class Tuning:
     assignment_brute_force_max: int = 7
     assignment_chunk_elems: int = 1 << 24
     batched_jitter_cpu: int = 0
+    cuda_graphs: int = 1
 
     def __post_init__(self):
         for f in fields(self):

@@ -76,8 +76,10 @@ def test_contract_shapes_dtype(name, make_model, make_filter, dtype):
 def test_contract_cuda(name, make_model, make_filter):
     f, model, res = _run(make_model, make_filter, torch.float64, device="cuda")
     assert res.estimates.device.type == "cuda" and res.log_evidence.device.type == "cuda"
-    # per-trial streams (counter-based Philox on the GPU), as the experiment runner uses them
-    f, model, res = _run(make_model, make_filter, torch.float32, device="cuda", streams=True)
+    # per-trial streams (counter-based Philox on the GPU) without a gradient, as the experiment
+    # runner uses them: the deterministic flows' loop is then replayed from a CUDA graph
+    with torch.no_grad():
+        f, model, res = _run(make_model, make_filter, torch.float32, device="cuda", streams=True)
     assert res.estimates.device.type == "cuda" and torch.isfinite(res.estimates).all()
 
 

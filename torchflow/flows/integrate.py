@@ -25,7 +25,7 @@ from typing import Optional, Union
 
 import torch
 
-from .. import linalg
+from .. import cudagraphs, linalg, tuning
 from .._checks import check_choice
 from ..schedules import ExponentialSchedule, LambdaSchedule
 from .base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow, _gather_points
@@ -85,6 +85,8 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
     eps_all, lam_all = schedule.steps(dtype=particles.dtype, device=particles.device)
     eps_host = schedule.host_steps(particles.dtype)
     strategy = resolve_points(flow, "clustered" if points is None and index is not None else points)
+    graphable = (measurement is None and proposal is None and noise is None and start is None and not gaussian_image
+                 and _graph_eligible(flow, particles))
     if measurement is None:
         measurement = GaussianMeasurement.from_model(model, z)
     if start is not None:
@@ -96,8 +98,11 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
                              "give either start or gaussian_image=True")
     prior, index, squeeze = strategy.arrange(prior, particles, index)
     start = None if start is None else start.reshape(prior.mean.shape)
-    out = _integrate(flow, measurement, particles, prior, index, strategy.per_particle, (eps_all, eps_host), lam_all,
-                     generator, proposal, noise, gaussian_image, start)
+    if graphable:
+        out = _integrate_graphed(flow, model, schedule, strategy, particles, z, prior, index, (eps_all, eps_host), lam_all)
+    else:
+        out = _integrate(flow, measurement, particles, prior, index, strategy.per_particle, (eps_all, eps_host), lam_all,
+                         generator, proposal, noise, gaussian_image, start)
     if squeeze:
         out.aux = out.aux.squeeze(-2)
         if gaussian_image:
@@ -174,6 +179,33 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
         return image.output(FlowOutput(eta, None, aux))
     log_det = log_det.expand(B, N) if index is None else _gather_points(log_det.unsqueeze(-1), index).squeeze(-1)
     return image.output(FlowOutput(eta, log_det, aux))
+
+
+def _graph_eligible(flow, particles) -> bool:
+    """The pseudo-time loop is captured as a CUDA graph (:mod:`torchflow.cudagraphs`) for a
+    deterministic flow on CUDA with no gradient to record (``tuning.cuda_graphs``, default 1)."""
+    return (particles.is_cuda and bool(tuning.get().cuda_graphs) and not flow.stochastic
+            and not torch.is_grad_enabled() and not torch.cuda.is_current_stream_capturing())
+
+
+def _integrate_graphed(flow, model, schedule, strategy, particles, z, prior, index, eps_all, lam_all) -> FlowOutput:
+    """:func:`_integrate` for the model's own measurement, replayed from a CUDA graph captured once
+    per flow, model state, schedule, points, shapes and tuning. The prior's factors are reduced to
+    the measured coordinates here, outside the graph (they are built from host values)."""
+    prior = prior.reduced(model.measurement_support)
+    fields = (prior.mean, prior.scale_tril, prior.support, prior.root, prior.cols, prior.cols_support, prior.cov_cols)
+    per_particle = strategy.per_particle
+
+    def fn(particles, z, index, *prior_fields):
+        measurement = GaussianMeasurement.from_model(model, z)
+        out = _integrate(flow, measurement, particles, FlowPrior(*prior_fields), index, per_particle, eps_all, lam_all,
+                         None, None, None, False)
+        return out.particles, out.log_det, out.aux
+
+    key = ("integrate_flow", cudagraphs.state_key(flow, model, schedule, strategy), tuning.get())
+    eta, log_det, aux = cudagraphs.graphed(key, fn, (particles, z, index) + fields,
+                                           name=f"integrate_flow({type(flow).__name__})")
+    return FlowOutput(eta, log_det, aux)
 
 
 EVALUATE_AT = ("end", "start")
