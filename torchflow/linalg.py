@@ -54,6 +54,35 @@ def safe_cholesky(A: torch.Tensor, *, max_tries: int = 6) -> torch.Tensor:
     return torch.where(failed[..., None, None], L_first, L)
 
 
+def small_cholesky(A: torch.Tensor) -> torch.Tensor:
+    """Lower Cholesky factor of symmetric positive definite ``A (..., k, k)`` by the column formulas
+    in plain tensor ops (k columns, a few elementwise ops and one batched product each), for tiny k
+    on a GPU, where batched LAPACK-style kernels can be slow (``micro_small_linalg``). Reads the lower
+    triangle. No test of definiteness: a matrix that is not positive definite gives NaN."""
+    k = A.shape[-1]
+    L = torch.zeros_like(A)
+    for j in range(k):
+        v = A[..., j:, j]  # (..., k - j): the column on and below the diagonal
+        if j:
+            v = v - (L[..., j:, :j] @ L[..., j, :j].unsqueeze(-1)).squeeze(-1)
+        diag = v[..., :1].sqrt()
+        L[..., j:, j] = v / diag
+    return L
+
+
+def small_solve_lower(L: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
+    """``L^{-1} B`` for lower triangular ``L (..., k, k)`` and ``B (..., k, r)`` by forward
+    substitution in plain tensor ops (k rows); the GPU counterpart of :func:`small_cholesky`."""
+    k = L.shape[-1]
+    X = torch.zeros(torch.broadcast_shapes(L.shape[:-2], B.shape[:-2]) + B.shape[-2:], dtype=B.dtype, device=B.device)
+    for i in range(k):
+        r = B[..., i, :]
+        if i:
+            r = r - (L[..., i:i + 1, :i] @ X[..., :i, :]).squeeze(-2)
+        X[..., i, :] = r / L[..., i, i:i + 1]
+    return X
+
+
 _LADDERS = {}
 
 

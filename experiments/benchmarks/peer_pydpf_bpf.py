@@ -76,6 +76,8 @@ def main(argv=None):
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     device, dtype = torch.device(a.device), getattr(torch, a.dtype)
+    if device.type == "cuda" and device.index is None:  # PyDPF compares devices with their index
+        device = torch.device("cuda", torch.cuda.current_device())
     torch.set_default_dtype(dtype)  # PyDPF's constants and draws use the default dtype
     _stub_missing("polars", "numpydoc")
     with warnings.catch_warnings():
@@ -136,10 +138,9 @@ def main(argv=None):
              "", "| N | torchflow | torchflow, resample always | PyDPF | ratio (default) | ratio (resample always) |",
              "|---|---|---|---|---|---|"]
     for r in rows:
-        p = r["PyDPF"]
-        lines.append(f"| {r['N']} | {r['torchflow']:.3g} | {r['torchflow, resample always']:.3g} | "
-                     f"{'error' if p is None else f'{p:.3g}'} | {'-' if p is None else f'{p / r['torchflow']:.2f}'} | "
-                     f"{'-' if p is None else f'{p / r['torchflow, resample always']:.2f}'} |")
+        p, t, t1 = r["PyDPF"], r["torchflow"], r["torchflow, resample always"]
+        peer, ratio, ratio1 = ("error", "-", "-") if p is None else (f"{p:.3g}", f"{p / t:.2f}", f"{p / t1:.2f}")
+        lines.append(f"| {r['N']} | {t:.3g} | {t1:.3g} | {peer} | {ratio} | {ratio1} |")
     md = "\n".join(lines) + "\n"
     print(md)
     if a.out:

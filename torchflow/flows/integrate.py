@@ -28,7 +28,9 @@ import torch
 from .. import cudagraphs, linalg, tuning
 from .._checks import check_choice
 from ..schedules import ExponentialSchedule, LambdaSchedule
+from . import fused
 from .base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow, _gather_points
+from .daum_huang import EDHFlow, LEDHFlow
 from .measurement import GaussianMeasurement
 from .points import LinearisationPoints, resolve_points
 
@@ -133,8 +135,17 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
         Sig = Sig.expand(B, 1, d, d) if Sig.dim() == 2 else Sig
     tracked = [mu] if track else []
     log_det = torch.zeros(B, L, dtype=particles.dtype, device=particles.device)
+    fuse = per_particle and not track and not gaussian_image and _fusable(flow, measurement, particles, k)
+    if fuse:  # one kernel per pseudo-step (torchflow.flows.fused); the linearisation stays in torch
+        lams64, epss64 = lam_all.to(torch.float64), eps_all.to(torch.float64)
+        eta, aux = eta.contiguous(), aux.contiguous()
     for j in range(len(eps_all)):
         eps, lam = eps_all[j], lam_all[j]
+        if fuse:
+            lin = measurement.at(aux, prior.support)
+            eta, aux = fused.dh_particle_step(lin.W, lin.y, prior.cols, prior.cols_support, prior.cov_cols, prior.mean,
+                                              prior.support, eta, aux, log_det, lams64, epss64, j)
+            continue
         co = flow.coefficients_at(measurement.at(aux, prior.support), prior, lam, eps)
         if stochastic and (co.A is None or not co.has_noise):
             raise TypeError(f"{type(flow).__name__}: a stochastic flow must give an explicit A and a diffusion "
@@ -179,6 +190,19 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
         return image.output(FlowOutput(eta, None, aux))
     log_det = log_det.expand(B, N) if index is None else _gather_points(log_det.unsqueeze(-1), index).squeeze(-1)
     return image.output(FlowOutput(eta, log_det, aux))
+
+
+def _fusable(flow, measurement, particles, k) -> bool:
+    """The fused Triton pseudo-step applies (:mod:`torchflow.flows.fused`): EDH/LEDH themselves
+    (not a subclass that changes the coefficients) at per-particle points, on CUDA (or Triton's CPU
+    interpreter), no gradient, ``tuning.fused_flows``, and small enough tiles for registers."""
+    if not tuning.get().fused_flows or type(flow) not in (EDHFlow, LEDHFlow) or torch.is_grad_enabled():
+        return False
+    if not (particles.is_cuda or (fused.interpreted() and particles.device.type == "cpu")) or not fused.available():
+        return False
+    m, d = measurement.z.shape[-1], particles.shape[-1]
+    bm, bk, bd = (max(2, 1 << (int(x) - 1).bit_length()) for x in (m, k, d))
+    return bm * bk * bk <= 16384 and bd * bk <= 4096 and particles.dtype in (torch.float32, torch.float64)
 
 
 def _graph_eligible(flow, particles) -> bool:

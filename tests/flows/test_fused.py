@@ -1,0 +1,92 @@
+"""The fused Triton pseudo-step of EDH/LEDH at per-particle points (torchflow.flows.fused) against
+the torch path: on the CPU through Triton's interpreter (a subprocess with TRITON_INTERPRET=1;
+skipped where Triton is not installed), on CUDA with the compiled kernel."""
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+import torch
+
+from conftest import ROOT, cuda
+
+CHECK = textwrap.dedent('''
+    import json, sys
+    import torch
+    from torchflow import tuning
+    from torchflow.flows import integrate_flow, FlowPrior, LEDHFlow, EDHFlow
+    from torchflow.models import AcousticTracking, LinearGaussian
+    from torchflow.schedules import ExponentialSchedule
+    from torchflow.flows import integrate as I
+
+    device = sys.argv[1]
+    def case(model, B, N, dtype, shared_cov, flow):
+        g = torch.Generator().manual_seed(0)
+        model = model.to(dtype=dtype)
+        d = model.state_dim
+        traj = model.simulate(B, 2, g)
+        x = traj.states[:, 1].unsqueeze(1) + 0.3 * torch.randn(B, N, d, dtype=dtype, generator=g)
+        A = 0.1 * torch.randn(B, 1 if shared_cov else N, d, d, dtype=dtype, generator=g)
+        P = A @ A.transpose(-1, -2) + torch.eye(d, dtype=dtype)
+        prior = FlowPrior((x + 0.1).to(device), torch.linalg.cholesky(P).to(device))
+        model, x, z = model.to(device), x.to(device), traj.observations[:, 1].to(device)
+        with torch.no_grad():
+            fusable = I._fusable(flow, I.GaussianMeasurement.from_model(model, z), x,
+                                 d if model.measurement_support is None else len(model.measurement_support))
+            with tuning.tuned(fused_flows=0):
+                ref = integrate_flow(flow, model, x, z, prior, ExponentialSchedule(3, 1.2), points="particle")
+            out = integrate_flow(flow, model, x, z, prior, ExponentialSchedule(3, 1.2), points="particle")
+        err = {k: ((getattr(out, k) - getattr(ref, k)).abs().max() / getattr(ref, k).abs().max().clamp_min(1)).item()
+               for k in ("particles", "log_det", "aux")}
+        return dict(fusable=fusable, **err)
+    torch.manual_seed(0)
+    H = torch.randn(2, 3, dtype=torch.float64)
+    lg = lambda: LinearGaussian(0.9 * torch.eye(3, dtype=torch.float64), 0.5 * torch.eye(3, dtype=torch.float64), H,
+                                0.2 * torch.eye(2, dtype=torch.float64))
+    res = {
+        "acoustic": case(AcousticTracking(), 2, 3, torch.float64, False, LEDHFlow()),
+        "acoustic shared P": case(AcousticTracking(), 2, 3, torch.float64, True, LEDHFlow()),
+        "acoustic float32": case(AcousticTracking(), 2, 3, torch.float32, False, LEDHFlow()),
+        "linear, shared W, EDH at particles": case(lg(), 2, 3, torch.float64, False, EDHFlow()),
+    }
+    print("RESULT" + json.dumps(res))
+''')
+
+
+def _check(device, env=None):
+    out = subprocess.run([sys.executable, "-c", CHECK, device], capture_output=True, text=True, cwd=ROOT,
+                         env={**os.environ, **(env or {})}, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(out.stdout.split("RESULT")[-1])
+
+
+def _assert_close(res, tol64, tol32):
+    for name, r in res.items():
+        assert r["fusable"], f"{name}: the fused path was not taken"
+        tol = tol32 if "float32" in name else tol64
+        for k in ("particles", "log_det", "aux"):
+            assert r[k] < tol, f"{name}: {k} differs from the torch path by {r[k]:.2e} (relative)"
+
+
+def test_fused_step_matches_torch_in_triton_interpreter():
+    pytest.importorskip("triton")
+    _assert_close(_check("cpu", {"TRITON_INTERPRET": "1"}), 1e-11, 1e-4)
+
+
+def test_not_fused_without_the_interpreter_on_cpu():
+    """On the CPU (no interpreter) the torch path runs: the fused kernel is a GPU path."""
+    from torchflow.flows import integrate as I
+    from torchflow.flows import LEDHFlow
+    from torchflow.models import AcousticTracking
+    m = AcousticTracking()
+    meas = I.GaussianMeasurement.from_model(m, torch.zeros(1, 25, dtype=torch.float64))
+    with torch.no_grad():
+        assert not I._fusable(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8)
+
+
+@cuda
+def test_fused_step_matches_torch_on_cuda():
+    pytest.importorskip("triton")
+    _assert_close(_check("cuda"), 1e-11, 1e-4)
