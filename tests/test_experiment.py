@@ -6,6 +6,7 @@ import math
 import json
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
@@ -665,3 +666,17 @@ def test_a_store_that_cannot_write_warns_once_and_the_results_stay():
         res, _ = _store_run(model, store, chunk_size=1)
     assert len([w for w in seen if "cannot save" in str(w.message)]) == 1
     assert len(res.per_trial) == 6 and res.summary[0]["error"] is None and store.computed == {}
+
+
+def test_explicit_chunk_over_the_memory_budget_warns():
+    """An explicit chunk_size is used as given, but one whose estimate exceeds memory_budget_gb says so
+    (a GPU run with chunk_size=100 and 1e6 particles asked for 80 GB in one tensor)."""
+    from torchflow.filters import BootstrapParticleFilter
+    from torchflow.models import AcousticTracking
+    from torchflow.runner.plan import filter_chunk
+    f = BootstrapParticleFilter(AcousticTracking(), n_particles=1_000_000)
+    with pytest.warns(UserWarning, match=r"chunk_size=100: .* GiB per chunk of 100 trials, over memory_budget_gb=100"):
+        assert filter_chunk(f, 500, 100, 100.0) == 100
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert filter_chunk(f, 500, 2, 100.0) == 2

@@ -36,7 +36,7 @@ from .proposals import FlowedMixtureProposal
 from .models.tdoa import TDOA3D, check_number
 from .random import check_generator, uniform
 from .resampling import systematic
-from .schedules import GeometricSchedule, LambdaSchedule
+from .schedules import GeometricSchedule, LambdaSchedule, resolve_schedule
 
 METHODS = ("pfi_d", "pfi_s", "pfi_os")
 
@@ -219,7 +219,7 @@ class FlowMixtureLocaliser(_Localiser):
         self.method = method
         self.flow = (EDHFlow() if method == "pfi_d" else GromovFlow(points="global") if method == "pfi_s"
                      else OptimalDiffusionFlow(alpha=alpha, points="global", c_rule=c_rule))
-        self.schedule = schedule or GeometricSchedule(1e-5, 1.5)
+        self.schedule = resolve_schedule(schedule, GeometricSchedule(1e-5, 1.5))
         if len(self.schedule) < 1:
             raise ValueError("schedule: expected at least one pseudo-time step, got an empty schedule")
         self.proposal = FlowedMixtureProposal(self.flow, self.schedule, ratio="component", evaluate_at=evaluate_at)

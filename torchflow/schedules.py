@@ -6,7 +6,7 @@ value after the increment), as in Li & Coates' code.
 """
 from __future__ import annotations
 
-from typing import Tuple
+from typing import Optional, Tuple
 
 import torch
 
@@ -30,7 +30,7 @@ class LambdaSchedule:
         key = ("steps", dtype, str(torch.device(device) if device is not None else torch.device("cpu")), self._state())
         cache = self.__dict__.setdefault("_cache", {})
         if key not in cache:
-            eps = self.step_sizes()
+            eps = self.check()
             lam = torch.cumsum(eps, 0)
             lam[-1] = 1.0
             cache[key] = (eps.to(dtype=dtype, device=device), lam.to(dtype=dtype, device=device))
@@ -43,8 +43,31 @@ class LambdaSchedule:
         key = ("host", dtype, self._state())
         cache = self.__dict__.setdefault("_cache", {})
         if key not in cache:
-            cache[key] = tuple(self.step_sizes().to(dtype).tolist())  # a CPU float64 tensor: no device read
+            cache[key] = tuple(self.check().to(dtype).tolist())  # a CPU float64 tensor: no device read
         return cache[key]
+
+    def check(self) -> torch.Tensor:
+        """The step sizes, checked: a 1-D tensor of finite, positive steps summing to 1 (to 1e-9);
+        a ValueError naming the schedule otherwise (a custom :meth:`step_sizes` is not trusted).
+        Checked once per setting of the schedule's public attributes, then cached (no host reads
+        per filter step)."""
+        key = ("checked", self._state())
+        cache = self.__dict__.setdefault("_cache", {})
+        if key in cache:
+            return cache[key]
+        eps = self.step_sizes()
+        name = type(self).__name__
+        if not isinstance(eps, torch.Tensor) or eps.dim() != 1 or eps.numel() == 0 or not eps.is_floating_point():
+            got = f"shape {tuple(eps.shape)} {eps.dtype}" if isinstance(eps, torch.Tensor) else type(eps).__name__
+            raise ValueError(f"{name}.step_sizes(): expected a non-empty 1-D float tensor, got {got}")
+        eps = eps.detach().to(torch.float64, copy=False).cpu()
+        if not bool(torch.isfinite(eps).all()) or bool((eps <= 0).any()):
+            raise ValueError(f"{name}.step_sizes(): expected finite steps > 0, got smallest {eps.min().item():.4g}")
+        if abs(eps.sum().item() - 1.0) > 1e-9:
+            raise ValueError(f"{name}.step_sizes(): expected steps summing to 1 (lambda from 0 to 1), "
+                             f"got a sum of {eps.sum().item():.6g}")
+        cache[key] = eps
+        return eps
 
     def _state(self) -> str:
         """The public settings: a cache key that follows any change to them."""
@@ -112,3 +135,24 @@ class GeometricSchedule(LambdaSchedule):
 
     def step_sizes(self):
         return torch.tensor(self._eps, dtype=torch.float64)
+
+
+#: schedules by name, built with their defaults (``schedule="uniform"``)
+SCHEDULES = {"exponential": ExponentialSchedule, "uniform": UniformSchedule, "geometric": GeometricSchedule}
+
+
+def resolve_schedule(schedule, default: Optional[LambdaSchedule] = None, *, name: str = "schedule") -> LambdaSchedule:
+    """``schedule`` as a checked :class:`LambdaSchedule`: ``None`` gives ``default`` (else the
+    exponential schedule, 29 steps, ratio 1.2), a name of :data:`SCHEDULES` that schedule with its
+    defaults; anything else is an error naming ``name``."""
+    if schedule is None:
+        return default if default is not None else ExponentialSchedule()
+    if isinstance(schedule, str):
+        if schedule not in SCHEDULES:
+            raise ValueError(f"{name}: expected a LambdaSchedule or one of {tuple(SCHEDULES)}, got {schedule!r}")
+        return SCHEDULES[schedule]()
+    if not isinstance(schedule, LambdaSchedule):
+        raise TypeError(f"{name}: expected a LambdaSchedule (torchflow.schedules) or one of {tuple(SCHEDULES)}, "
+                        f"got {type(schedule).__name__}")
+    schedule.check()
+    return schedule

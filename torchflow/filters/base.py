@@ -175,6 +175,10 @@ class Filter(nn.Module):
         return None
 
     # ---- helpers -------------------------------------------------------------------------------
+    def check_model(self) -> None:
+        """What this filter needs of its model's current parameters, checked once per call before
+        the first step (with ``validate``; host reads are fine here, not in a step). Default: nothing."""
+
     def check_prior(self, mean: torch.Tensor, cov: torch.Tensor, batch_size: Optional[int] = None
                     ) -> Tuple[torch.Tensor, torch.Tensor]:
         """Validate (and broadcast ``(d,)``/``(d, d)`` to) ``mean (B, d)``, ``cov (B, d, d)``."""
@@ -257,6 +261,7 @@ class Filter(nn.Module):
         self.model.check_dtype(self.name)
         if self.validate:
             self.model.check_observations(observations)
+            self.check_model()
         mean, cov = self.check_prior(mean, cov, observations.shape[0])
         if self.uses_randomness:
             check_generator(generator, f"{self.name}: generator")
@@ -435,6 +440,28 @@ class ParticleFilter(Filter):
     def _resolve_n(self, n_particles):
         return self.n_particles if n_particles is None else check_count("n_particles", n_particles)
 
+    def check_model(self) -> None:
+        """A proposal weighed by the transition density ``p(x_k | x_{k-1})`` (every proposal but
+        the bootstrap's and the unweighted flows') needs a positive definite transition covariance:
+        with a singular one that density does not exist and every weight would be invalid. Checked
+        on the model's constant covariance (``transition_cov()``); a state-dependent one is left to
+        the steps' non-finite handling."""
+        if not getattr(self.proposal, "uses_transition_density", True) or not self.model.gaussian_transition:
+            return
+        try:
+            Q = self.model.transition_cov()
+        except (NotImplementedError, TypeError, RuntimeError):
+            return  # no constant covariance to check
+        if Q.dim() != 2:
+            return
+        if bool((torch.linalg.cholesky_ex(Q.detach())[1] > 0).any()):
+            ev = torch.linalg.eigvalsh(linalg.symmetrize(Q.detach())).min().item()
+            raise ValueError(
+                f"{self.name}: the model's transition covariance is not positive definite (smallest eigenvalue "
+                f"{ev:.3g}); this filter weighs particles by the transition density p(x_k | x_(k-1)), which a "
+                "singular covariance does not have. Give the model a positive definite transition noise, or use a "
+                "filter that does not need the density: the bootstrap PF, the unweighted flow filter or a Kalman filter")
+
     def init(self, mean, cov, n_particles=None, generator=None) -> "ParticleState":
         """N particles per trial from the prior ``N(mean (B, d), cov (B, d, d))``, uniform weights and
         what the proposal carries (:meth:`~torchflow.proposals.Proposal.init_carry`)."""
@@ -544,7 +571,8 @@ class ParticleFilter(Filter):
         inc = inc.masked_fill(dead, float("-inf"))  # the evidence estimate of a dead step is zero
         w = lw.exp()
         estimate = torch.einsum("bn,bnd->bd", w, particles)
-        ess = 1.0 / w.pow(2).sum(-1)
+        # a dead step keeps the previous weights to go on, but no particle had positive weight: ESS 0
+        ess = (1.0 / w.pow(2).sum(-1)).masked_fill(dead, 0.0)
         particles, lw_new, cov, extras, resampled = self.resampler(particles, lw, generator, cov=cov, extras=extras)
         return ParticleState(particles=particles, log_weights=lw_new, estimate=estimate, ess=ess,
                              log_evidence_increment=inc, resampled=resampled, n_repaired=n_repaired,

@@ -56,7 +56,7 @@ from .. import linalg
 from .._checks import check_choice, check_count
 from ..flows import FlowPrior, integrate_flow
 from ..flows.points import ParticlePoints, flow_points_per_call
-from ..schedules import ExponentialSchedule, LambdaSchedule
+from ..schedules import LambdaSchedule, resolve_schedule
 from ..proposals import resolve_flow
 from .base import ParticleFilter
 
@@ -183,7 +183,7 @@ class GaussianSumParticleFilter(ParticleFilter):
             raise ValueError(f"flow: the Gaussian-sum filters weigh with the flow's log|det|, so the flow must be "
                              f"deterministic (EDH/LEDH family), got {type(self.flow).__name__}")
         self.n_components, self.particles_per_component = G, n
-        self.schedule = schedule or ExponentialSchedule()
+        self.schedule = resolve_schedule(schedule)
         self.redraw_eta0, self.jitter = redraw_eta0, float(jitter)
 
     def extra_repr(self) -> str:

@@ -41,8 +41,7 @@ def available() -> bool:
     global _triton
     if _triton is None:
         try:
-            import triton  # noqa: F401
-            del triton
+            import triton  # noqa: F401  (pyflakes: unused on purpose, an availability test)
             _triton = True
         except Exception:  # noqa: BLE001 - any import failure means: not available
             _triton = False

@@ -39,7 +39,7 @@ from torch.func import jvp, vmap
 
 from .. import linalg
 from .._checks import check_choice
-from ..schedules import ExponentialSchedule, LambdaSchedule
+from ..schedules import LambdaSchedule, resolve_schedule
 from .base import FlowPrior
 from .measurement import GaussianMeasurement
 
@@ -55,7 +55,7 @@ def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPri
     """Move ``x (B, N, d)`` with the GPFIS transport from ``prior`` (``m_0 (B, N, d)``, factor
     broadcastable to ``(B, N, d, d)``); returns ``(x_1 (B, N, d), log|det dx_1/dx_0| (B, N))``."""
     check_choice("root", root, ROOTS)
-    schedule = schedule or ExponentialSchedule()
+    schedule = resolve_schedule(schedule)
     eps_all, lam_all = schedule.steps(dtype=x.dtype, device=x.device)
     prior = prior.reduced(measurement.support)
     sup = prior.support  # (k,) or None

@@ -27,7 +27,7 @@ import torch
 
 from .. import cudagraphs, linalg, tuning
 from .._checks import check_choice
-from ..schedules import ExponentialSchedule, LambdaSchedule
+from ..schedules import LambdaSchedule, resolve_schedule
 from . import fused
 from .base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow, _gather_points
 from .daum_huang import EDHFlow, LEDHFlow
@@ -83,7 +83,7 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
         :class:`FlowOutput`; ``aux``, ``image_mean`` and ``image_cov`` are per point, without the
         point dimension when ``prior`` was given per trial ``(B, d)``.
     """
-    schedule = schedule or ExponentialSchedule()
+    schedule = resolve_schedule(schedule)
     eps_all, lam_all = schedule.steps(dtype=particles.dtype, device=particles.device)
     eps_host = schedule.host_steps(particles.dtype)
     strategy = resolve_points(flow, "clustered" if points is None and index is not None else points)
@@ -268,7 +268,7 @@ def flow_gaussian(flow: ParticleFlow, measurement, prior: FlowPrior, schedule: O
         ``(mean (..., d), cov (..., d, d))`` of the flowed Gaussians.
     """
     check_choice("evaluate_at", evaluate_at, EVALUATE_AT)
-    schedule = schedule or ExponentialSchedule()
+    schedule = resolve_schedule(schedule)
     eps_all, lam_all = schedule.steps(dtype=prior.mean.dtype, device=prior.mean.device)
     eps_host = schedule.host_steps(prior.mean.dtype)
     if evaluate_at == "start":

@@ -51,7 +51,15 @@ class Proposal(nn.Module):
 
     Subclasses implement :meth:`propose`; those that carry a state between steps implement
     :meth:`init_carry`; :meth:`bytes_per_trial` is the one memory formula the chunk planner reads.
+
+    Attributes:
+        uses_transition_density: the filter weighs this proposal's particles by
+            ``p(x_k | x_{k-1})`` (True but for the bootstrap proposal and the unweighted flows),
+            so the model needs a positive definite transition covariance
+            (:meth:`~torchflow.filters.ParticleFilter.check_model`).
     """
+
+    uses_transition_density: bool = True
 
     def __init__(self, model: StateSpaceModel):
         super().__init__()

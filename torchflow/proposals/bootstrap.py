@@ -7,6 +7,8 @@ from .base import Proposal, Proposed
 class BootstrapProposal(Proposal):
     """``q = p(x_k | x_{k-1})``: draw from the transition; the weight is the likelihood."""
 
+    uses_transition_density = False
+
     def propose(self, particles, log_weights, estimate, z, carry, generator, *, chunk=None) -> Proposed:
         x = self.model.sample_transition(particles, generator)  # (B, N, d)
         return Proposed(x, None, fallback=particles)

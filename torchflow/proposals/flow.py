@@ -18,7 +18,7 @@ import torch
 from .. import linalg, registry
 from ..flows import FlowPrior, LEDHFlow, ParticleFlow, integrate_flow, resolve_points
 from ..flows.points import ClusteredPoints, flow_points_per_call
-from ..schedules import ExponentialSchedule, LambdaSchedule
+from ..schedules import LambdaSchedule, resolve_schedule
 from ..trackers import tracker
 from .._blocks import blockwise
 from .base import Proposal, Proposed
@@ -70,7 +70,7 @@ class FlowProposal(Proposal):
                  jacobian_in_weight: bool = True, weighted: bool = True):
         super().__init__(model)
         self.flow = resolve_flow(flow)
-        self.schedule = schedule or ExponentialSchedule()
+        self.schedule = resolve_schedule(schedule)
         self.covariance = covariance
         self.tracker = tracker(model, covariance)
         ClusteredPoints(n_clusters, alpha, sweeps)  # the knobs are checked whatever the points
@@ -80,6 +80,7 @@ class FlowProposal(Proposal):
         self.points = resolve_points(self.flow, points, n_clusters=n_clusters, alpha=alpha, sweeps=sweeps)
         self.jacobian_in_weight = jacobian_in_weight
         self.weighted = bool(weighted)
+        self.uses_transition_density = self.weighted
 
     @property
     def identical_covariances(self) -> bool:

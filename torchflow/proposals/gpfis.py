@@ -7,7 +7,7 @@ from typing import Optional
 
 from ..flows import FlowPrior, GaussianMeasurement
 from ..flows.gpfis import ROOTS, gpfis_flow
-from ..schedules import ExponentialSchedule, LambdaSchedule
+from ..schedules import LambdaSchedule, resolve_schedule
 from .._blocks import blockwise
 from .base import Proposal, Proposed
 
@@ -25,7 +25,7 @@ class GPFISProposal(Proposal):
         super().__init__(model)
         if root not in ROOTS:
             raise ValueError(f"root: expected one of {ROOTS}, got {root!r}")
-        self.schedule = schedule or ExponentialSchedule()
+        self.schedule = resolve_schedule(schedule)
         self.root = root
 
     def propose(self, particles, log_weights, estimate, z, carry, generator, *, chunk=None) -> Proposed:

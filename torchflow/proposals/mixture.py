@@ -11,7 +11,7 @@ from torch import nn
 from .. import linalg
 from ..flows import FlowPrior, ParticleFlow, flow_gaussian
 from ..flows.integrate import EVALUATE_AT
-from ..schedules import ExponentialSchedule, LambdaSchedule
+from ..schedules import LambdaSchedule, resolve_schedule
 
 
 RATIOS = ("mixture", "component")
@@ -52,7 +52,7 @@ class FlowedMixtureProposal(nn.Module):
             raise ValueError(f"ratio: expected one of {RATIOS}, got {ratio!r}")
         if evaluate_at not in EVALUATE_AT:
             raise ValueError(f"evaluate_at: expected one of {EVALUATE_AT}, got {evaluate_at!r}")
-        self.flow, self.schedule, self.ratio, self.evaluate_at = flow, schedule or ExponentialSchedule(), ratio, evaluate_at
+        self.flow, self.schedule, self.ratio, self.evaluate_at = flow, resolve_schedule(schedule), ratio, evaluate_at
 
     def flowed(self, means: torch.Tensor, scale_trils: torch.Tensor, measurement):
         """``(means', covs')`` of every component ``(..., G, d)``, ``(..., G, d, d)`` flowed by the

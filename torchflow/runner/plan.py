@@ -107,7 +107,13 @@ def filter_chunk(f: Filter, n_run: int, chunk_size: Optional[int], memory_budget
     ``particle_chunk``); its ``trials_per_call`` (the localisers: 1) caps both."""
     cap = getattr(f, "trials_per_call", None)
     if chunk_size:
-        return min(int(chunk_size), cap or int(chunk_size))
+        c = min(int(chunk_size), cap or int(chunk_size))
+        need = c * f.bytes_per_trial()
+        if need > memory_budget_gb * 2**30:
+            warnings.warn(f"chunk_size={chunk_size}: {f.name} is estimated at {need / 2**30:.3g} GiB per chunk of {c} "
+                          f"trials, over memory_budget_gb={memory_budget_gb:g}; it may run out of memory (leave "
+                          "chunk_size unset to size chunks from the budget)", stacklevel=2)
+        return c
     c = choose_chunk_size({"f": f}, n_run, memory_budget_gb)
     if c == 1 and getattr(f, "particle_chunk", 0) is None:  # one trial may still exceed it: chunk particles
         pc = f.plan_memory(memory_budget_gb * 2**30)

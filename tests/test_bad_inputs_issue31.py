@@ -1,0 +1,99 @@
+"""Issue 31, part B: bad input and faults that ran silently wrong or gave unclear errors; one test per
+case, named after it (the closing note lists every case with its outcome)."""
+import pytest
+import torch
+
+from torchflow.experiment import run_experiment
+from torchflow.filters import BootstrapParticleFilter, KalmanFilter, ParticleFlowFilter, ParticleFlowParticleFilter
+from torchflow.flows import LEDHFlow, integrate_flow
+from torchflow.models import SensorNetwork
+from torchflow.schedules import ExponentialSchedule, LambdaSchedule, UniformSchedule, resolve_schedule
+
+
+def _singular_q_model():
+    """The issue's command: ``model=linear_gaussian model.d=4 model.alpha0=0 model.alpha1=0
+    model.prior_var=1``: Q = 0."""
+    return SensorNetwork(d=4, alpha0=0.0, alpha1=0.0, prior_var=1.0)
+
+
+def test_pfpf_singular_transition_covariance_is_a_clear_error():
+    model = _singular_q_model()
+    g = torch.Generator().manual_seed(0)
+    traj = model.simulate(2, 3, g)
+    mean, cov = model.initial_belief(traj.states[:, 0], g)
+    f = ParticleFlowParticleFilter(model, flow="ledh", n_particles=20)
+    with pytest.raises(ValueError, match=r"ParticleFlowParticleFilter: the model's transition covariance is not positive definite "
+                                         r"\(smallest eigenvalue 0\); this filter weighs particles by the transition density"):
+        f(traj.observations, mean, cov, g)
+    # the filters that do not weigh by the transition density still run
+    for ok in (BootstrapParticleFilter(model, n_particles=20), ParticleFlowFilter(model, n_particles=20),
+               KalmanFilter(model)):
+        res = ok(traj.observations, mean, cov, g)
+        assert torch.isfinite(res.estimates).all()
+
+
+def test_pfpf_singular_transition_covariance_in_the_runner_keeps_the_kf_row():
+    """Through the runner the PF-PF's row carries the error, the KF's row its numbers."""
+    model = _singular_q_model()
+    res = run_experiment(model, {"kf": KalmanFilter(model), "pfpf_ledh": ParticleFlowParticleFilter(model, n_particles=20)},
+                         trials=2, steps=3, progress=False)
+    rows = {r["filter"]: r for r in res.summary}
+    assert rows["kf"].get("error") in (None, "") and rows["kf"]["mse"] is not None
+    assert "transition covariance is not positive definite" in rows["pfpf_ledh"]["error"]
+
+
+def test_all_invalid_weights_report_zero_ess_not_a_full_one():
+    """A step where no particle has positive weight keeps the previous weights to go on, but its
+    ESS is 0 (it was reported as N: 50 of 50 in the issue)."""
+    model = SensorNetwork(d=4)
+    f = BootstrapParticleFilter(model, n_particles=8)
+    B, N, d = 2, 8, 4
+    x = torch.randn(B, N, d, dtype=torch.float64)
+    prev = torch.full((B, N), -torch.log(torch.tensor(float(N))), dtype=torch.float64)
+    inc = torch.zeros(B, N, dtype=torch.float64)
+    inc[0] = float("-inf")  # trial 0: every weight invalid
+    st = f.weight_and_resample(x, prev, inc, torch.Generator().manual_seed(0), 0)
+    assert st.ess[0].item() == 0.0 and st.ess[1].item() == pytest.approx(N)
+    assert st.log_evidence_increment[0].item() == float("-inf") and st.n_repaired[0].item() == 1
+
+
+class _Custom(LambdaSchedule):
+    def __init__(self, eps):
+        self.eps, self.n_steps = list(eps), len(eps)
+
+    def step_sizes(self):
+        return torch.tensor(self.eps, dtype=torch.float64)
+
+
+@pytest.mark.parametrize("eps, match", [
+    ([0.5, -0.1, 0.6], r"_Custom.step_sizes\(\): expected finite steps > 0, got smallest -0.1"),
+    ([0.1, 0.1], r"_Custom.step_sizes\(\): expected steps summing to 1 \(lambda from 0 to 1\), got a sum of 0.2"),
+    ([0.5, float("nan"), 0.5], r"expected finite steps > 0"),
+])
+def test_custom_schedule_with_bad_steps_is_refused(eps, match):
+    model = SensorNetwork(d=4)
+    with pytest.raises(ValueError, match=match):
+        ParticleFlowParticleFilter(model, n_particles=10, schedule=_Custom(eps))
+    x = torch.zeros(1, 3, 4, dtype=torch.float64)
+    from torchflow.flows import FlowPrior
+    with pytest.raises(ValueError, match=match):
+        integrate_flow(LEDHFlow(), model, x, torch.zeros(1, 4, dtype=torch.float64),
+                       FlowPrior(x, torch.eye(4, dtype=torch.float64).expand(1, 3, 4, 4)), _Custom(eps))
+
+
+def test_exponential_schedule_with_fractional_steps_is_refused():
+    with pytest.raises(ValueError, match=r"n_steps: expected a positive integer, got 2.7 \(float\)"):
+        ExponentialSchedule(2.7)
+
+
+def test_schedule_given_by_name():
+    """``schedule="uniform"`` (a string) used to be accepted and fail at the first call with
+    ``'str' object has no attribute 'steps'``: names now select a schedule, other values are refused."""
+    model = SensorNetwork(d=4)
+    f = ParticleFlowParticleFilter(model, n_particles=10, schedule="uniform")
+    assert isinstance(f.proposal.schedule, UniformSchedule) and f.proposal.schedule.n_steps == 29
+    with pytest.raises(ValueError, match=r"schedule: expected a LambdaSchedule or one of \('exponential', 'uniform', "
+                                         r"'geometric'\), got 'unifrom'"):
+        ParticleFlowParticleFilter(model, n_particles=10, schedule="unifrom")
+    with pytest.raises(TypeError, match=r"schedule: expected a LambdaSchedule .* got list"):
+        resolve_schedule([0.5, 0.5])
