@@ -97,3 +97,107 @@ def test_schedule_given_by_name():
         ParticleFlowParticleFilter(model, n_particles=10, schedule="unifrom")
     with pytest.raises(TypeError, match=r"schedule: expected a LambdaSchedule .* got list"):
         resolve_schedule([0.5, 0.5])
+
+
+def _lg_data(B=3, d=4):
+    model = SensorNetwork(d=d)
+    g = torch.Generator().manual_seed(0)
+    traj = model.simulate(B, 3, g)
+    mean, cov = model.initial_belief(traj.states[:, 0], g)
+    return model, traj, mean, cov, g
+
+
+def test_covariance_passed_as_trial_variances_names_the_shape_given():
+    model, traj, mean, cov, g = _lg_data(B=3)
+    with pytest.raises(ValueError, match=r"cov: expected \(d, d\) = \(4, 4\) shared by every trial or \(B, d, d\), "
+                                         r"got \(3, 4\) \(per-trial variances \(B, d\) are torch.diag_embed"):
+        KalmanFilter(model)(traj.observations, mean, torch.ones(3, 4, dtype=torch.float64), g)
+
+
+def test_covariance_passed_as_trial_variances_when_b_equals_d_says_so():
+    """With B = d a (B, d) array of variances has the shape of a shared (d, d) matrix: its asymmetry
+    is reported with the likely cause."""
+    model, traj, mean, cov, g = _lg_data(B=4)
+    variances = torch.arange(1.0, 5.0, dtype=torch.float64).expand(4, 4)  # each trial's variances, by row
+    with pytest.raises(ValueError, match=r"cov: covariance at batch index 0 \(trial\) is not symmetric \(a \(d, d\) "
+                                         r"matrix shared by every trial was given; if these are per-trial variances"):
+        KalmanFilter(model)(traj.observations, mean, variances, g)
+
+
+def test_too_many_particles_says_bytes_and_knobs():
+    model, traj, mean, cov, g = _lg_data()
+    with pytest.raises(MemoryError, match=r"BootstrapParticleFilter: out of memory running 3 trials x 100000000000 "
+                                          r"particles \(one allocation of [\d.e+]+ GiB\); estimated [\d.e+]+ GiB per time "
+                                          r"step\. .*particle_chunk=.*memory_budget_gb"):
+        BootstrapParticleFilter(model, n_particles=int(1e11))(traj.observations, mean, cov, g)
+
+
+class _RawQ(SensorNetwork):
+    """A user's model with a raw (unconstrained) learnable transition covariance."""
+
+    def __init__(self, Q):
+        super().__init__(d=4)
+        self.Qraw = torch.nn.Parameter(Q)
+
+    def transition_cov(self, x=None):
+        return self.Qraw
+
+
+class _RawR(SensorNetwork):
+    def __init__(self, R):
+        super().__init__(d=4)
+        self.Rraw = torch.nn.Parameter(R)
+
+    def measurement_cov(self, x=None):
+        return self.Rraw
+
+
+def test_learned_covariance_that_left_the_cone_names_the_parameter():
+    """An optimiser step can make a raw learnable Q or R indefinite: the error names the filter, the
+    model, the covariance and the parameter (torchflow's own models keep theirs valid by construction)."""
+    model, traj, mean, cov, g = _lg_data()
+    eye = torch.eye(4, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"BootstrapParticleFilter: _RawQ's transition covariance \(parameter 'Qraw'\): "
+                                         r"covariance is not positive semi-definite \(smallest eigenvalue -1\)"):
+        BootstrapParticleFilter(_RawQ(-eye), n_particles=10)(traj.observations, mean, cov, g)
+    with pytest.raises(ValueError, match=r"KalmanFilter: _RawR's measurement covariance \(parameter 'Rraw'\): "
+                                         r"covariance is not positive semi-definite"):
+        KalmanFilter(_RawR(eye - 2 * torch.ones(4, 4, dtype=torch.float64)))(traj.observations, mean, cov, g)
+
+
+def test_learned_asymmetric_covariance_is_refused():
+    model, traj, mean, cov, g = _lg_data()
+    Q = torch.eye(4, dtype=torch.float64) + 0.3 * torch.triu(torch.ones(4, 4, dtype=torch.float64), 1)
+    with pytest.raises(ValueError, match=r"KalmanFilter: _RawQ's transition covariance \(parameter 'Qraw'\): "
+                                         r"covariance is not symmetric"):
+        KalmanFilter(_RawQ(Q))(traj.observations, mean, cov, g)
+
+
+def test_torchflow_learnable_covariances_stay_valid():
+    """SensorNetwork(learnable=True) parametrises Q and R (valid by construction): the check passes."""
+    model = SensorNetwork(d=4, learnable=True)
+    model.check_covariances("KalmanFilter")
+
+
+def test_negative_regularization_names_what_is_expected():
+    model = SensorNetwork(d=4)
+    with pytest.raises(ValueError, match=r"regularization: expected a non-negative variance or 4 of them, got -1"):
+        BootstrapParticleFilter(model, n_particles=10, regularization=-1)
+
+
+def test_trial_streams_for_other_trial_count():
+    from torchflow.random import TrialStreams
+    model, traj, mean, cov, g = _lg_data(B=2)
+    with pytest.raises(ValueError, match=r"BootstrapParticleFilter: generator: TrialStreams made for 5 trials, but the "
+                                         r"observations have B = 2 trials"):
+        BootstrapParticleFilter(model, n_particles=10)(traj.observations, mean, cov, TrialStreams(0, 5, "bpf"))
+
+
+def test_run_experiment_with_a_list_of_filters():
+    from torchflow.runner.plan import ConfigError
+    model = SensorNetwork(d=4)
+    with pytest.raises(ConfigError, match=r"filters: expected a mapping of names to filters, e.g. \{'kf': "
+                                          r"KalmanFilter\(model\)\}, got list"):
+        run_experiment(model, [KalmanFilter(model)], trials=2, steps=2, progress=False)
+    with pytest.raises(ConfigError, match=r"got a mapping with str"):
+        run_experiment(model, {"kf": "kf"}, trials=2, steps=2, progress=False)

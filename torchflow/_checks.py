@@ -104,6 +104,8 @@ def check_psd(name: str, cov: torch.Tensor, *, tol: float = 1e-10) -> torch.Tens
         why = "not symmetric" if bool(bad_sym.reshape(-1)[idx]) else (
             f"not positive semi-definite (smallest eigenvalue {float(eig_min.reshape(-1)[idx]):.3g})"
         )
+        if cov.dim() == 2:
+            raise ValueError(f"{name}: covariance is {why}")
         raise ValueError(f"{name}: covariance at batch index {idx} (trial) is {why}")
     return cov
 

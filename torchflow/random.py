@@ -271,11 +271,16 @@ def philox4x32(counter, key, rounds: int = 10):
 Generatorish = Union[torch.Generator, TrialStreams]
 
 
-def check_generator(generator, who: str = "generator") -> Generatorish:
-    """Raise unless ``generator`` is a ``torch.Generator`` or :class:`TrialStreams`.
+def check_generator(generator, who: str = "generator", trials: Optional[int] = None) -> Generatorish:
+    """Raise unless ``generator`` is a ``torch.Generator`` or :class:`TrialStreams` (made for
+    ``trials`` trials, when given).
 
     ``None`` is refused: a filter that silently fell back on torch's global random state would not
     be reproducible from its arguments."""
+    if isinstance(generator, TrialStreams) and trials is not None and len(generator) != int(trials):
+        raise ValueError(f"{who}: TrialStreams made for {len(generator)} trials, but the observations have "
+                         f"B = {int(trials)} trials (make it with TrialStreams(seed, {int(trials)}, ...), or "
+                         f"select trials with streams[a:b])")
     if isinstance(generator, (torch.Generator, TrialStreams)):
         return generator
     raise TypeError(f"{who}: expected a torch.Generator or torchflow.random.TrialStreams, "

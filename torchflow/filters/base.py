@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import re
 from dataclasses import dataclass, field
 from typing import Dict, Optional, Tuple
 
@@ -177,7 +178,11 @@ class Filter(nn.Module):
     # ---- helpers -------------------------------------------------------------------------------
     def check_model(self) -> None:
         """What this filter needs of its model's current parameters, checked once per call before
-        the first step (with ``validate``; host reads are fine here, not in a step). Default: nothing."""
+        the first step (with ``validate``; host reads are fine here, not in a step): the model's
+        constant transition and measurement covariances are symmetric positive semi-definite
+        (:meth:`~torchflow.models.StateSpaceModel.check_covariances`; a learnable one may have left
+        the cone after an optimiser step)."""
+        self.model.check_covariances(self.name)
 
     def check_prior(self, mean: torch.Tensor, cov: torch.Tensor, batch_size: Optional[int] = None
                     ) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -186,7 +191,11 @@ class Filter(nn.Module):
         ref = self.model._reference_tensor()
         if isinstance(mean, torch.Tensor) and mean.dim() == 1 and batch_size is not None:
             mean = mean.expand(batch_size, -1)
-        if isinstance(cov, torch.Tensor) and cov.dim() == 2 and batch_size is not None:
+        shared = isinstance(cov, torch.Tensor) and cov.dim() == 2
+        if shared and tuple(cov.shape) != (d, d):
+            raise ValueError(f"cov: expected (d, d) = ({d}, {d}) shared by every trial or (B, d, d), got "
+                             f"{tuple(cov.shape)} (per-trial variances (B, d) are torch.diag_embed(variances))")
+        if shared and batch_size is not None:
             cov = cov.expand(batch_size, -1, -1)
         check_tensor("mean", mean, (batch_size, d), "(B, d)")
         check_tensor("cov", cov, (mean.shape[0], d, d), "(B, d, d)")
@@ -194,7 +203,13 @@ class Filter(nn.Module):
         check_same("cov", cov, ref)
         if self.validate:
             check_finite("mean", mean)
-            check_psd("cov", cov)
+            try:
+                check_psd("cov", cov)
+            except ValueError as err:
+                if shared and d == mean.shape[0]:  # a (B, d) array of variances looks like (d, d) when B = d
+                    raise ValueError(f"{err} (a (d, d) matrix shared by every trial was given; if these are "
+                                     "per-trial variances (B, d), pass torch.diag_embed(variances))") from None
+                raise
         return mean, cov
 
     def _checkpointed_step(self, state, z, generator):
@@ -214,6 +229,27 @@ class Filter(nn.Module):
                 calls.append(1)
 
         return torch.utils.checkpoint.checkpoint(run, state, z, use_reentrant=False)
+
+    def _raise_out_of_memory(self, err: BaseException, trials: int, n_particles: Optional[int]) -> None:
+        """Re-raise an allocator's out-of-memory error as a :class:`MemoryError` that says what was
+        asked for and which knobs bound it; return for any other error."""
+        text = str(err)
+        if not (isinstance(err, (torch.OutOfMemoryError, MemoryError)) or "can't allocate memory" in text
+                or "out of memory" in text.lower()):
+            return
+        asked = re.search(r"allocate (\d+) bytes|allocate ([\d.]+ [KMGT]iB)", text)
+        size = "" if asked is None else (f" (one allocation of {int(asked.group(1)) / 2**30:.3g} GiB" if asked.group(1)
+                                         else f" (one allocation of {asked.group(2)}") + ")"
+        n = getattr(self, "n_particles", None) if n_particles is None else n_particles
+        try:
+            est = f"; estimated {self.bytes_per_trial(n) * trials / 2**30:.3g} GiB per time step"
+        except Exception:  # noqa: BLE001 - the estimate is a courtesy
+            est = ""
+        what = f"{trials} trials" + (f" x {int(n)} particles" if n is not None else "")
+        raise MemoryError(f"{self.name}: out of memory running {what}{size}{est}. Use fewer particles, or fewer "
+                          "trials per call; particle filters can also work on blocks of particles "
+                          "(particle_chunk=...); the runner sizes its calls from memory_budget_gb (and chunk_size)"
+                          ) from err
 
     def _raise_nonfinite(self, first_bad: torch.Tensor, first_invalid: torch.Tensor) -> None:
         """Raise :class:`NonFiniteError` naming the earliest step at which any trial went
@@ -264,8 +300,12 @@ class Filter(nn.Module):
             self.check_model()
         mean, cov = self.check_prior(mean, cov, observations.shape[0])
         if self.uses_randomness:
-            check_generator(generator, f"{self.name}: generator")
-        state = self.init(mean, cov, n_particles, generator)
+            check_generator(generator, f"{self.name}: generator", observations.shape[0])
+        try:
+            state = self.init(mean, cov, n_particles, generator)
+        except (torch.OutOfMemoryError, MemoryError, RuntimeError) as err:
+            self._raise_out_of_memory(err, observations.shape[0], n_particles)
+            raise
         trace = _Trace(observations.shape[0], observations.device, return_covariances, return_particles)
         if checkpoint_steps is None:
             checkpoint_steps = self.checkpoint_steps
@@ -273,8 +313,9 @@ class Filter(nn.Module):
         for t in range(observations.shape[1]):
             try:
                 state = step(state, observations[:, t], generator)
-            except Exception:
+            except Exception as err:
                 self._raise_nonfinite(trace.first_bad, trace.first_invalid)  # an earlier non-finite value is the cause
+                self._raise_out_of_memory(err, observations.shape[0], n_particles)
                 raise
             trace.add(state, t)
             if progress is not None:
@@ -446,6 +487,7 @@ class ParticleFilter(Filter):
         with a singular one that density does not exist and every weight would be invalid. Checked
         on the model's constant covariance (``transition_cov()``); a state-dependent one is left to
         the steps' non-finite handling."""
+        super().check_model()
         if not getattr(self.proposal, "uses_transition_density", True) or not self.model.gaussian_transition:
             return
         try:

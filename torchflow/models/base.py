@@ -9,7 +9,7 @@ import torch
 from torch import nn
 
 from .. import linalg
-from .._checks import check_count, check_finite, check_tensor
+from .._checks import check_count, check_finite, check_psd, check_tensor
 from ..linearize import jacobian
 from ..random import generator_hint
 
@@ -91,6 +91,26 @@ class StateSpaceModel(nn.Module):
     def transition_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Cov[x_k | x_{k-1}] used by filters: broadcastable ``(d, d)`` or ``(..., d, d)``."""
         raise NotImplementedError
+
+    def check_covariances(self, who: str = "") -> None:
+        """Raise unless the constant transition and measurement covariances (``transition_cov()``,
+        ``measurement_cov()``; state-dependent ones are skipped) are symmetric positive
+        semi-definite, naming the model, the covariance and, for a parameter of the model, its name.
+        Filters call it once per call (a learnable covariance may leave the cone after an optimiser
+        step; :mod:`torchflow.constraints` keeps one valid by construction)."""
+        params = {id(p): n for n, p in self.named_parameters()}
+        for what, fn in (("transition covariance", self.transition_cov), ("measurement covariance", self.measurement_cov)):
+            try:
+                C = fn()
+            except (NotImplementedError, TypeError, RuntimeError, ValueError):
+                continue  # state-dependent: no constant matrix to check
+            if not isinstance(C, torch.Tensor) or C.dim() != 2:
+                continue
+            name = params.get(id(C))
+            label = f"{type(self).__name__}'s {what}" + (f" (parameter {name!r})" if name else "")
+            if C.requires_grad and not name:
+                label += " (built from learnable parameters)"
+            check_psd(f"{who + ': ' if who else ''}{label}", C.detach())
 
     def transition_scale_tril(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Lower Cholesky factor of :meth:`transition_cov`."""

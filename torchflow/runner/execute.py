@@ -20,7 +20,7 @@ from ..models.base import StateSpaceModel, Trajectory
 from ..random import TrialStreams
 from .checkpoint import CHUNK_FIELDS, ChunkStore
 from .distributed import Shard
-from .plan import RunPlan, check_metric_settings, check_settings, make_plan
+from .plan import ConfigError, RunPlan, check_metric_settings, check_settings, make_plan
 from .score import SUMMARY_COLUMNS, ExperimentResult, make_scorer, score_filter
 
 log = logging.getLogger("torchflow.runner")
@@ -179,6 +179,10 @@ def run_experiment(
     Ctrl-C (:data:`STOP`) keeps the finished filters. A bad argument raises
     :class:`~torchflow.runner.plan.ConfigError` before anything runs.
     """
+    if not isinstance(filters, Mapping) or not all(isinstance(f, torch.nn.Module) for f in filters.values()):
+        got = type(filters).__name__ if not isinstance(filters, Mapping) else "a mapping with " + ", ".join(
+            sorted({type(f).__name__ for f in filters.values() if not isinstance(f, torch.nn.Module)}))
+        raise ConfigError(f"filters: expected a mapping of names to filters, e.g. {{'kf': KalmanFilter(model)}}, got {got}")
     s = check_settings(trials=trials, steps=getattr(model, "n_steps", steps), seed=seed, chunk_size=chunk_size,
                        inits_per_track=inits_per_track, memory_budget_gb=memory_budget_gb, device=device, dtype=dtype,
                        rng_backend=rng_backend, trial_range=trial_range)
