@@ -201,3 +201,13 @@ def test_run_experiment_with_a_list_of_filters():
         run_experiment(model, [KalmanFilter(model)], trials=2, steps=2, progress=False)
     with pytest.raises(ConfigError, match=r"got a mapping with str"):
         run_experiment(model, {"kf": "kf"}, trials=2, steps=2, progress=False)
+
+
+def test_integrate_flow_with_two_dimensional_particles():
+    """Own case: ``(B, d)`` particles gave 'not enough values to unpack'."""
+    from torchflow.flows import FlowPrior
+    model = SensorNetwork(d=4)
+    eye = torch.eye(4, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"particles: expected \(B, N, d\) \(trials, particles, state\), got \(3, 4\)"):
+        integrate_flow(LEDHFlow(), model, torch.zeros(3, 4, dtype=torch.float64), torch.zeros(3, 4, dtype=torch.float64),
+                       FlowPrior(torch.zeros(3, 4, dtype=torch.float64), eye.expand(3, 4, 4)))

@@ -83,6 +83,9 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
         :class:`FlowOutput`; ``aux``, ``image_mean`` and ``image_cov`` are per point, without the
         point dimension when ``prior`` was given per trial ``(B, d)``.
     """
+    if not isinstance(particles, torch.Tensor) or particles.dim() != 3:
+        got = tuple(particles.shape) if isinstance(particles, torch.Tensor) else type(particles).__name__
+        raise ValueError(f"particles: expected (B, N, d) (trials, particles, state), got {got}")
     schedule = resolve_schedule(schedule)
     eps_all, lam_all = schedule.steps(dtype=particles.dtype, device=particles.device)
     eps_host = schedule.host_steps(particles.dtype)
