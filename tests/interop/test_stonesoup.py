@@ -146,7 +146,8 @@ def test_bearing_range_example_tracks():
     """Stone Soup's particle-filter tutorial scenario (CV target, bearing-range sensor at (50, 0)),
     12 steps, N = 300, PF-PF(LEDH) through Stone Soup's predictor and resampler: the position RMSE is
     below that of the detections themselves, sqrt(mean(sigma_r^2 + (r sigma_b)^2)) at the true ranges
-    (a filter that tracks must beat inverting each detection alone)."""
+    (a filter that tracks must beat inverting each detection alone), and its mean ESS exceeds Stone
+    Soup's bootstrap ParticleUpdater's on the same detections."""
     from stonesoup.measures import Euclidean
     from stonesoup.resampler.particle import ESSResampler
     from stonesoup.types.groundtruth import GroundTruthState
@@ -163,15 +164,24 @@ def test_bearing_range_example_tracks():
     dets = [Detection(mm.function(s, noise=True), timestamp=s.timestamp, measurement_model=mm) for s in truth[1:]]
     x0 = np.random.default_rng(0).multivariate_normal([0, 1, 0, 1], np.diag([1.5, 0.5, 1.5, 0.5]), 300).T
     state = ParticleState(StateVectors(x0), log_weight=np.full(300, -np.log(300)), timestamp=t0)
-    updater, predictor, resampler = FlowParticleUpdater(mm, flow="ledh"), ParticlePredictor(tm), ESSResampler()
-    err, bound = [], []
-    for det, gt in zip(dets, truth[1:]):
-        post = updater.update(SingleHypothesis(predictor.predict(state, timestamp=det.timestamp), det))
-        err.append(Euclidean(mapping=(0, 2))(post, gt) ** 2)
-        r = np.hypot(gt.state_vector[0, 0] - 50, gt.state_vector[2, 0])
-        bound.append(sr2 + r ** 2 * sb2)
-        state = resampler.resample(post)
-    assert np.sqrt(np.mean(err)) < np.sqrt(np.mean(bound)), (np.sqrt(np.mean(err)), np.sqrt(np.mean(bound)))
+    from stonesoup.updater.particle import ParticleUpdater
+    ess = {}
+    for name, updater in (("flow", FlowParticleUpdater(mm, flow="ledh")), ("bootstrap", ParticleUpdater(mm))):
+        np.random.seed(6)
+        predictor, resampler = ParticlePredictor(tm), ESSResampler()
+        state = ParticleState(StateVectors(x0), log_weight=np.full(300, -np.log(300)), timestamp=t0)
+        err, bound, ess[name] = [], [], []
+        for det, gt in zip(dets, truth[1:]):
+            post = updater.update(SingleHypothesis(predictor.predict(state, timestamp=det.timestamp), det))
+            err.append(Euclidean(mapping=(0, 2))(post, gt) ** 2)
+            r = np.hypot(gt.state_vector[0, 0] - 50, gt.state_vector[2, 0])
+            bound.append(sr2 + r ** 2 * sb2)
+            ess[name].append(1 / (np.exp(np.asarray(post.log_weight, float)) ** 2).sum())
+            state = resampler.resample(post)
+        if name == "flow":
+            assert np.sqrt(np.mean(err)) < np.sqrt(np.mean(bound)), (np.sqrt(np.mean(err)), np.sqrt(np.mean(bound)))
+    # the issue's goal on this scenario: at least the bootstrap updater's ESS (measured: ~1.7x over 20 runs)
+    assert np.mean(ess["flow"]) > np.mean(ess["bootstrap"]), {k: np.mean(v) for k, v in ess.items()}
 
 
 def test_example_script_prints_the_table(tmp_path):

@@ -22,11 +22,16 @@ stochastic flow's exact Gaussian law (Gromov, optimised diffusion). Otherwise th
 the prediction's weights and the flow alone moves them to the posterior (the unweighted flow
 filter of Ding & Coates); a one-time warning says so.
 
-**Flow prior.** The flows start from a Gaussian ``N(eta_bar_0, P)``: with a parent and a
-linear-Gaussian transition ``P = F P_prev F^T + Q`` (``P_prev`` the parent's weighted sample
-covariance) and ``eta_bar_0 = F x_prev`` per particle (per-particle points) or its weighted mean
-(EDH: one point); otherwise ``P`` is the prediction's weighted sample covariance, and
-``eta_bar_0`` the particle itself (per-particle points) or the weighted mean.
+**Flow prior.** The flows start from a Gaussian ``N(eta_bar_0, P)``. With a parent and a
+linear-Gaussian transition, ``eta_bar_0 = F x_prev`` per particle (per-particle points) or its
+weighted mean (EDH: one point), and ``flow_prior`` chooses ``P``: ``"transition"`` (default) ``P = Q``,
+each particle's own law ``N(F x_prev, Q)``, so the flow carries exactly the distribution its particle
+was drawn from; ``"predicted"``: ``P = F P_prev F^T + Q`` (``P_prev`` the parent's weighted sample
+covariance), the spread of the whole cloud, like Li & Coates' EKF covariance. Both give exact
+weights; on Stone Soup's tutorial scenario ``"transition"`` doubles the ESS of the bootstrap
+``ParticleUpdater`` where ``"predicted"`` falls to a third of it (RESULTS.md, "Stone Soup"): a prior
+wider than the particles' own law over-contracts them. Without a parent ``P`` is the prediction's
+weighted sample covariance and ``eta_bar_0`` the particle itself (or the weighted mean).
 
 **Models** are used as they are: Stone Soup's ``LinearGaussian`` measurement (its matrix),
 ``CartesianToBearingRange`` and ``CartesianToElevationBearingRange`` (rewritten in torch with their
@@ -202,11 +207,16 @@ class FlowParticleUpdater(Updater):
     dtype: str = Property(default="float64", doc="'float64' (default) or 'float32'")
     device: str = Property(default="cpu", doc="torch device of the flow ('cpu', 'cuda')")
     seed: int = Property(default=0, doc="seed of the stochastic flows' diffusion noise (a torch.Generator)")
+    flow_prior: str = Property(default="transition", doc="the flow's prior with PF-PF weights: 'transition' "
+                                                          "(default: each particle's own N(F x_prev, Q)) or 'predicted' "
+                                                          "(N(F x_prev, F P_prev F^T + Q), Li & Coates' EKF-style prior)")
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self._flow = resolve_flow(self.flow)
         self._schedule = resolve_schedule(self.schedule)
+        if self.flow_prior not in ("transition", "predicted"):
+            raise ValueError(f"flow_prior: expected 'transition' or 'predicted', got {self.flow_prior!r}")
         if self.dtype not in ("float64", "float32"):
             raise ValueError(f"dtype: expected 'float64' or 'float32', got {self.dtype!r}")
         self._dtype = getattr(torch, self.dtype)
@@ -266,7 +276,7 @@ class FlowParticleUpdater(Updater):
             wp = torch.as_tensor(np.exp(lwp - logsumexp(lwp)), **kw)
             mean_p = wp @ Xp
             Pp = ((Xp - mean_p).T * wp) @ (Xp - mean_p)
-            P = F @ Pp @ F.T + Q
+            P = F @ Pp @ F.T + Q if self.flow_prior == "predicted" else Q
             m_pred = (Xp @ F.T).unsqueeze(0)  # (1, N, d): each particle's noise-free prediction
             LQ = linalg.safe_cholesky(Q)
         else:
