@@ -132,24 +132,19 @@ def test_too_many_particles_says_bytes_and_knobs():
         BootstrapParticleFilter(model, n_particles=int(1e11))(traj.observations, mean, cov, g)
 
 
-class _RawQ(SensorNetwork):
-    """A user's model with a raw (unconstrained) learnable transition covariance."""
+class _Raw(SensorNetwork):
+    """A user's model with one raw (unconstrained) learnable covariance: ``which`` is "Q" or "R"."""
 
-    def __init__(self, Q):
+    def __init__(self, which, C):
         super().__init__(d=4)
-        self.Qraw = torch.nn.Parameter(Q)
+        self.which = which
+        setattr(self, f"{which}raw", torch.nn.Parameter(C))
 
     def transition_cov(self, x=None):
-        return self.Qraw
-
-
-class _RawR(SensorNetwork):
-    def __init__(self, R):
-        super().__init__(d=4)
-        self.Rraw = torch.nn.Parameter(R)
+        return self.Qraw if self.which == "Q" else super().transition_cov(x)
 
     def measurement_cov(self, x=None):
-        return self.Rraw
+        return self.Rraw if self.which == "R" else super().measurement_cov(x)
 
 
 def test_learned_covariance_that_left_the_cone_names_the_parameter():
@@ -157,20 +152,20 @@ def test_learned_covariance_that_left_the_cone_names_the_parameter():
     model, the covariance and the parameter (torchflow's own models keep theirs valid by construction)."""
     model, traj, mean, cov, g = _lg_data()
     eye = torch.eye(4, dtype=torch.float64)
-    with pytest.raises(ValueError, match=r"BootstrapParticleFilter: _RawQ's transition covariance \(parameter 'Qraw'\): "
+    with pytest.raises(ValueError, match=r"BootstrapParticleFilter: _Raw's transition covariance \(parameter 'Qraw'\): "
                                          r"covariance is not positive semi-definite \(smallest eigenvalue -1\)"):
-        BootstrapParticleFilter(_RawQ(-eye), n_particles=10)(traj.observations, mean, cov, g)
-    with pytest.raises(ValueError, match=r"KalmanFilter: _RawR's measurement covariance \(parameter 'Rraw'\): "
+        BootstrapParticleFilter(_Raw("Q", -eye), n_particles=10)(traj.observations, mean, cov, g)
+    with pytest.raises(ValueError, match=r"KalmanFilter: _Raw's measurement covariance \(parameter 'Rraw'\): "
                                          r"covariance is not positive semi-definite"):
-        KalmanFilter(_RawR(eye - 2 * torch.ones(4, 4, dtype=torch.float64)))(traj.observations, mean, cov, g)
+        KalmanFilter(_Raw("R", eye - 2 * torch.ones(4, 4, dtype=torch.float64)))(traj.observations, mean, cov, g)
 
 
 def test_learned_asymmetric_covariance_is_refused():
     model, traj, mean, cov, g = _lg_data()
     Q = torch.eye(4, dtype=torch.float64) + 0.3 * torch.triu(torch.ones(4, 4, dtype=torch.float64), 1)
-    with pytest.raises(ValueError, match=r"KalmanFilter: _RawQ's transition covariance \(parameter 'Qraw'\): "
+    with pytest.raises(ValueError, match=r"KalmanFilter: _Raw's transition covariance \(parameter 'Qraw'\): "
                                          r"covariance is not symmetric"):
-        KalmanFilter(_RawQ(Q))(traj.observations, mean, cov, g)
+        KalmanFilter(_Raw("Q", Q))(traj.observations, mean, cov, g)
 
 
 def test_torchflow_learnable_covariances_stay_valid():

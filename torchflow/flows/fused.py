@@ -70,7 +70,8 @@ def _bn_strides(t: torch.Tensor, B: int, N: int, tail: int):
     return t, t.stride()
 
 
-def _pow2(x: int) -> int:
+def tile(x: int) -> int:
+    """The kernel's tile size for a dimension of ``x``: the next power of two (at least 2)."""
     return max(2, 1 << (int(x) - 1).bit_length())
 
 
@@ -106,7 +107,7 @@ def dh_particle_step(W: torch.Tensor, y: torch.Tensor, L: torch.Tensor, Ls: torc
     eta, aux = eta.contiguous(), aux.contiguous()
     sE = eta.stride()
     eta_out, aux_out = torch.empty_like(eta), torch.empty_like(aux)
-    BK, BM, BD = _pow2(k), _pow2(m), _pow2(d)
+    BK, BM, BD = tile(k), tile(m), tile(d)
     _kernel[(B * N,)](W, *sW, y, *sY, L, *sL, Ls, *sS, Pc, *sP, mean, *sM, support, eta, aux, *sE, eta_out, aux_out,
                       log_det, lams, epss, j, N, m, d, k, BM=BM, BK=BK, BD=BD,
                       num_warps=1 if BK * BK * BM <= 4096 else 4)

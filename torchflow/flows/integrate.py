@@ -204,7 +204,7 @@ def _fusable(flow, measurement, particles, k) -> bool:
     if not (particles.is_cuda or (fused.interpreted() and particles.device.type == "cpu")) or not fused.available():
         return False
     m, d = measurement.z.shape[-1], particles.shape[-1]
-    bm, bk, bd = (max(2, 1 << (int(x) - 1).bit_length()) for x in (m, k, d))
+    bm, bk, bd = (fused.tile(x) for x in (m, k, d))
     return bm * bk * bk <= 16384 and bd * bk <= 4096 and particles.dtype in (torch.float32, torch.float64)
 
 

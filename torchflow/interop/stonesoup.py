@@ -191,10 +191,6 @@ class StoneSoupMeasurement(StateSpaceModel):
         return self.measurement_jacobian(x)
 
 
-def _gaussian_logpdf(x: torch.Tensor, mean: torch.Tensor, L: torch.Tensor) -> torch.Tensor:
-    return linalg.mvn_log_prob(x, mean, L)
-
-
 class FlowParticleUpdater(Updater):
     """A Stone Soup ``Updater`` that moves the particles with a torchflow particle flow (see the
     module docstring for the weights, the flow prior and the supported models)."""
@@ -304,8 +300,8 @@ class FlowParticleUpdater(Updater):
             x1 = out.particles
             if trans is not None:
                 log_q = (out.log_proposal if self._flow.stochastic
-                         else _gaussian_logpdf(X, m_pred, LQ) - out.log_det)
-                log_w = (torch.as_tensor(lw_prev, **kw) + _gaussian_logpdf(x1, m_pred, LQ)
+                         else linalg.mvn_log_prob(X, m_pred, LQ) - out.log_det)
+                log_w = (torch.as_tensor(lw_prev, **kw) + linalg.mvn_log_prob(x1, m_pred, LQ)
                          + model.measurement_log_prob(z.unsqueeze(1), x1) - log_q)[0]
                 log_w = log_w.double().cpu().numpy()
             else:
