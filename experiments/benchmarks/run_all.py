@@ -28,12 +28,17 @@ def _headline(results: dict) -> list:
     rows = [(r["name"], r.get("setting", ""), r["per_ts_ours"], r["per_ts_peer"], r["ratio"], r.get("goal"),
              r.get("met")) for r in results.get("foundation", {}).get("rows", [])]
     ac = results.get("acoustic", {}).get("rows", [])
-    ref, boot = (next((r for r in ac if r["name"].startswith(p) and r.get("per_ts")), None)
-                 for p in ("GromovFlowParticleUpdater", "ParticleUpdater"))
+    peer = lambda test: next((r for r in ac if r["side"] == "peer" and test(r["name"]) and r.get("per_ts")), None)  # noqa: E731
+    ref = peer(lambda n: n.startswith("GromovFlowParticleUpdater") and "repaired" in n)
+    shipped = peer(lambda n: n.startswith("GromovFlowParticleUpdater") and "repaired" not in n)
+    boot = peer(lambda n: n.startswith("ParticleUpdater"))
     for r in ac:
         if r["side"] == "ours" and ref is not None:
-            rows.append((f"{r['name']} vs Stone Soup Gromov", "acoustic N=500",
+            rows.append((f"{r['name']} vs Stone Soup Gromov (repaired)", "acoustic N=500",
                          r["per_ts"], ref["per_ts"], r["vs_stonesoup_gromov"], r.get("goal"), r.get("met")))
+        if r["side"] == "ours" and shipped is not None:
+            rows.append((f"{r['name']} vs Stone Soup Gromov (shipped)", "acoustic N=500",
+                         r["per_ts"], shipped["per_ts"], r.get("vs_stonesoup_gromov_shipped"), None, None))
         if r["name"].startswith("BPF") and boot is not None:
             rows.append(("BPF (torchflow) vs Stone Soup bootstrap", "acoustic N=500", r["per_ts"], boot["per_ts"],
                          r["vs_stonesoup_bootstrap"], None, None))

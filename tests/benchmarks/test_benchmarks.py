@@ -6,6 +6,7 @@ import math
 import sys
 import time
 
+import numpy as np
 import pytest
 import torch
 
@@ -126,19 +127,22 @@ def test_headline_collects_every_goal():
         "foundation": {"rows": [dict(name="KF", setting="d=64", per_ts_ours=1e-6, per_ts_peer=1e-4, ratio=100.0,
                                      goal=50.0, met=True)]},
         "acoustic": {"rows": [
-            dict(name="PF-PF(LEDH) (torchflow)", side="ours", per_ts=0.05, vs_stonesoup_gromov=80.0, goal=30.0,
-                 met=True, vs_stonesoup_bootstrap=None),
-            dict(name="BPF (torchflow)", side="ours", per_ts=0.001, vs_stonesoup_gromov=4000.0, goal=None,
-                 met=None, vs_stonesoup_bootstrap=2.0),
+            dict(name="PF-PF(LEDH) (torchflow)", side="ours", per_ts=0.05, vs_stonesoup_gromov=40.0,
+                 vs_stonesoup_gromov_shipped=80.0, goal=30.0, met=True, vs_stonesoup_bootstrap=None),
+            dict(name="BPF (torchflow)", side="ours", per_ts=0.001, vs_stonesoup_gromov=2000.0,
+                 vs_stonesoup_gromov_shipped=4000.0, goal=None, met=None, vs_stonesoup_bootstrap=2.0),
             dict(name="GromovFlowParticleUpdater (Stone Soup)", side="peer", per_ts=4.0),
+            dict(name="GromovFlowParticleUpdater (Stone Soup), square root repaired", side="peer", per_ts=2.0),
             dict(name="ParticleUpdater bootstrap (Stone Soup)", side="peer", per_ts=0.002)]},
     }
     rows = run_all._headline(results)
     names = [r[0] for r in rows]
-    assert names[0] == "KF" and "PF-PF(LEDH) (torchflow) vs Stone Soup Gromov" in names
+    assert names[0] == "KF" and "PF-PF(LEDH) (torchflow) vs Stone Soup Gromov (repaired)" in names
     assert "BPF (torchflow) vs Stone Soup bootstrap" in names
-    ledh = rows[names.index("PF-PF(LEDH) (torchflow) vs Stone Soup Gromov")]
-    assert ledh[4] == 80.0 and ledh[5] == 30.0 and ledh[6] is True
+    ledh = rows[names.index("PF-PF(LEDH) (torchflow) vs Stone Soup Gromov (repaired)")]
+    assert ledh[3] == 2.0 and ledh[4] == 40.0 and ledh[5] == 30.0 and ledh[6] is True
+    shipped = rows[names.index("PF-PF(LEDH) (torchflow) vs Stone Soup Gromov (shipped)")]
+    assert shipped[3] == 4.0 and shipped[4] == 80.0 and shipped[5] is None  # the goal is against the repaired one
     for r in results["acoustic"]["rows"][2:]:  # Stone Soup not installed: no peer columns to compare with
         r["per_ts"] = None
     assert [r[0] for r in run_all._headline(results)] == ["KF"]
@@ -159,7 +163,7 @@ def test_acoustic_bench_micro_with_and_without_peer(monkeypatch):
     monkeypatch.setattr(harness, "peer", lambda name, *subs: None)  # Stone Soup not installed
     res = bench_acoustic.run(["--trials", "1", "--steps", "1", "--particles", "10"])
     peers = [r for r in res["rows"] if r["side"] == "peer"]
-    assert len(peers) == 2 and all(r["status"] == harness.skipped("stonesoup") for r in peers)
+    assert len(peers) == 3 and all(r["status"] == harness.skipped("stonesoup") for r in peers)
     assert all(r["vs_stonesoup_gromov"] is None and r["goal"] is None for r in res["rows"])
     assert "| GromovFlowParticleUpdater (Stone Soup) | - |" in res["markdown"]
 
@@ -303,3 +307,20 @@ def test_bench_ops_micro(tmp_path):
     ledh = next(r for r in res["rows"] if r["name"] == "PF-PF(LEDH)")
     assert ledh["target"] == 1000 and ledh["met"] == (ledh["ops"] <= 1000)
     assert "| PF-PF(LEDH) |" in res["markdown"]
+
+
+def test_repaired_gromov_square_root():
+    """The repaired Stone Soup peer's root satisfies ``B B^T = Q`` for the rank-deficient ``Q`` of the
+    acoustic model (8 measured coordinates of 16), where the shipped ``cholesky_eps`` does not."""
+    rng = np.random.default_rng(0)
+    X = rng.standard_normal((16, 8))
+    Q = X @ X.T  # rank 8
+    B = bench_acoustic.psd_root(Q)
+    assert np.allclose(B @ B.T, Q, atol=1e-10)
+    ssp = pytest.importorskip("stonesoup.updater.particle")
+    from stonesoup.functions import cholesky_eps
+    U = cholesky_eps(Q)
+    assert not np.allclose(U @ U.T, Q, atol=1e-3)  # the shipped root: the upper factor, pivots floored
+    Repaired = bench_acoustic._classes()[-1]
+    assert issubclass(Repaired, ssp.GromovFlowParticleUpdater)
+    assert ssp.cholesky_eps is cholesky_eps  # patched only inside an update
