@@ -20,7 +20,7 @@ from typing import Any, Callable, Iterable, List, Optional, Sequence
 
 import torch
 
-from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, GaussianSumParticleFilter,
+from torchflow.filters import (GPFIS, BootstrapParticleFilter, ExtendedKalmanFilter, GaussianSumParticleFilter,
                                KalmanFilter, ParticleFlowFilter, ParticleFlowGaussianSumParticleFilter,
                                ParticleFlowParticleFilter, UnscentedKalmanFilter)
 from torchflow.random import TrialStreams
@@ -196,11 +196,12 @@ def skipped(name: str) -> str:
 
 
 FLOWS = {"ledh": "LEDH", "edh": "EDH", "gromov": "Gromov", "geodesic": "Geodesic", "osd": "OSD"}
-LABELS = {"kf": "KF", "ekf": "EKF", "ukf": "UKF", "bpf": "BPF", "pfgspf": "PFGSPF", "gspf": "GSPF",
+LABELS = {"kf": "KF", "ekf": "EKF", "ukf": "UKF", "bpf": "BPF", "pfgspf": "PFGSPF", "gspf": "GSPF", "gpfis": "GPFIS",
           **{f: f"PF-PF({n})" for f, n in FLOWS.items()}, **{f"flow_{f}": f"{n} flow" for f, n in FLOWS.items()}}
 #: key -> (class, constructor settings, whether it takes ``n_particles``)
 FILTERS = {"kf": (KalmanFilter, {}, False), "ekf": (ExtendedKalmanFilter, {}, False),
            "ukf": (UnscentedKalmanFilter, {}, False), "bpf": (BootstrapParticleFilter, {}, True),
+           "gpfis": (GPFIS, {}, True),
            "gspf": (GaussianSumParticleFilter, {}, False), "pfgspf": (ParticleFlowGaussianSumParticleFilter, {}, False),
            **{f: (ParticleFlowParticleFilter, dict(flow=f), True) for f in FLOWS},
            **{f"flow_{f}": (ParticleFlowFilter, dict(flow=f), True) for f in FLOWS}}

@@ -68,7 +68,7 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
     Pg = linalg.matvec(L, linalg.matvec(Ls.transpose(-1, -2), Wy)) if P_cols is None else linalg.matvec(P_cols, Wy)
     if operator:
         def apply_A(V):  # -1/2 L (I + lam S)^{-1} (W L_s)^T W V_s for stacked vectors V (..., d, r)
-            Vs = V if support is None else V.index_select(-2, support)
+            Vs = V if support is None else V[..., support, :]
             return -0.5 * (L @ linalg.chol_solve(K, WL.transpose(-1, -2) @ (W @ Vs)))
 
         def form_A():  # -1/2 L (I + lam S)^{-1} L_s^T J, (..., d, k)

@@ -62,7 +62,7 @@ def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPri
     C, cols = prior.cols_support, prior.cols  # (..., k, k) lower, (..., d, k)
     k = C.shape[-1]
     eye = torch.eye(k, dtype=x.dtype, device=x.device)
-    m0s = prior.mean if sup is None else prior.mean.index_select(-1, sup)
+    m0s = prior.mean if sup is None else prior.mean[..., sup]
     u0 = _tri(C, m0s.unsqueeze(-1)).squeeze(-1)  # whitened prior mean, (B, N, k)
     log_det_C = torch.log(C.diagonal(dim1=-2, dim2=-1).abs()).sum(-1)
     tangents = eye.reshape(k, *([1] * (x.dim() - 1)), k).expand(k, *x.shape[:-1], k)
@@ -95,7 +95,7 @@ def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPri
             m_lam1 = linalg.matvec(U, linalg.matvec(Ut, u0 + lam1 * r) / (1 + lam1 * g))
             return m_lam1 + linalg.matvec(U, linalg.matvec(Ut, u - m_lam0) * torch.sqrt((1 + lam0 * g) / (1 + lam1 * g)))
 
-        xs = x if sup is None else x.index_select(-1, sup)
+        xs = x if sup is None else x[..., sup]
         u_new, jac = vmap(lambda t: jvp(step, (xs,), (t,)), out_dims=(None, -1))(tangents)
         # x'_s = C u'(x_s): det(dx'/dx) = det(C) det(du'/dx_s) (the other coordinates follow
         # triangularly with unit diagonal)
