@@ -79,7 +79,7 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
         def A_times(v):
             return apply_A(v.unsqueeze(-1)).squeeze(-1)
     else:
-        A = -0.5 * (L @ linalg.chol_solve(K, T))  # -1/2 L (I + lam S)^{-1} L^T J, (..., d, k)
+        A = -0.5 * linalg.matmul(L, linalg.chol_solve(K, T))  # -1/2 L (I + lam S)^{-1} L^T J, (..., d, k)
         co = FlowCoefficients(A, Pg, log_det, support=support)  # b is set below
 
         def A_times(v):
@@ -100,10 +100,10 @@ def _gram_terms(W, y, Ls):
     """``T = L_s^T J``, ``S = L_s^T J L_s`` and ``W^T y`` with ``J = W^T W``: the Gram matrix is formed
     first (one ``k x m x k`` product per point, then ``k x k`` ones), fewer and smaller batched
     products than going through ``W L_s``."""
-    J = W.transpose(-1, -2) @ W  # (..., k, k), or (k, k) for a shared W
+    J = linalg.matmul(W.transpose(-1, -2), W)  # (..., k, k), or (k, k) for a shared W
     Wy = _whitened_rhs(W, y)
-    T = Ls.transpose(-1, -2) @ J
-    S = linalg.symmetrize(T @ Ls)
+    T = linalg.matmul(Ls.transpose(-1, -2), J)
+    S = linalg.symmetrize(linalg.matmul(T, Ls))
     return T, S, Wy
 
 

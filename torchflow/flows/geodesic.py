@@ -93,7 +93,7 @@ def _homotopy_terms(W, y, L, lam, need_factor: bool = False, L_support=None, ext
         return S, K, None, X[..., :k].unsqueeze(-3), X[..., k + r:].transpose(-1, -2), E
     shape = torch.broadcast_shapes(T.shape[:-2], WLty.shape[:-1], *([extra.shape[:-2]] if r else []))
     rhs = torch.cat([M.expand(*shape, k, M.shape[-1]) for M in mats] + [WLty.expand(*shape, k).unsqueeze(-1)], -1)
-    X = L @ linalg.chol_solve(K, rhs)  # [M^-1 J | L (I + lam S)^-1 V | M^-1 H^T R^-1 (z - e)]
+    X = linalg.matmul(L, linalg.chol_solve(K, rhs))  # [M^-1 J | L (I + lam S)^-1 V | M^-1 H^T R^-1 (z - e)]
     return S, K, None, X[..., :k], X[..., k + r], (X[..., k:k + r] if r else None)
 
 

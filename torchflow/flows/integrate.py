@@ -122,6 +122,7 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
     B, N, d = particles.shape
     eps_all, eps_host = eps_all  # the step sizes on the device, and as Python floats
     prior = prior.reduced(measurement.support)
+    measurement.prepare(particles)
     image = _Image(prior, gaussian_image)
     aux, eta = (prior.mean if start is None else start), particles  # (B, L, d), (B, N, d)
     L = aux.shape[-2]
@@ -142,8 +143,9 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
     if fuse:  # one kernel per pseudo-step (torchflow.flows.fused); the linearisation stays in torch
         lams64, epss64 = lam_all.to(torch.float64), eps_all.to(torch.float64)
         eta, aux = eta.contiguous(), aux.contiguous()
+    eps_steps, lam_steps = eps_all.unbind(0), lam_all.unbind(0)  # one op for all the steps' 0-d views
     for j in range(len(eps_all)):
-        eps, lam = eps_all[j], lam_all[j]
+        eps, lam = eps_steps[j], lam_steps[j]
         if fuse:
             lin = measurement.at(aux, prior.support)
             eta, aux = fused.dh_particle_step(lin.W, lin.y, prior.cols, prior.cols_support, prior.cov_cols, prior.mean,
@@ -328,7 +330,7 @@ def _propagate_cov(Sig, co: "FlowCoefficients", eps: float, eye):
     pair = co.noise_cov_pair
     shapes = [Sig.shape[:-2], A.shape[:-2]] + ([p.shape[:-2] for p in pair] if pair is not None else [])
     batch = torch.broadcast_shapes(*shapes)
-    _flat3 = lambda x: x.expand(*batch, *x.shape[-2:]).reshape(-1, *x.shape[-2:])  # noqa: E731
+    _flat3 = lambda x: (x if x.shape[:-2] == batch else x.expand(*batch, *x.shape[-2:])).reshape(-1, *x.shape[-2:])  # noqa: E731
     S3, A3 = _flat3(Sig), _flat3(A)
     V = torch.baddbmm(S3, A3, S3[:, sup], alpha=e)  # rows: 4x faster than index_select on the CPU
     out = torch.baddbmm(V, V.index_select(-1, sup), A3.transpose(-1, -2), alpha=e)
