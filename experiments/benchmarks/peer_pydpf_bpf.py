@@ -64,21 +64,36 @@ def _time(fn, reps, device):
     return best
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    ap.add_argument("--ns", default="200,1000,10000,100000")
-    ap.add_argument("--trials", type=int, default=100)
-    ap.add_argument("--steps", type=int, default=10)
-    ap.add_argument("--d", type=int, default=64)
-    ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
-    ap.add_argument("--reps", type=int, default=3)
-    ap.add_argument("--out", default=None)
-    a = ap.parse_args(argv)
-    device, dtype = torch.device(a.device), getattr(torch, a.dtype)
+def pydpf_available() -> bool:
+    """PyDPF is importable here (it needs Python >= 3.12)."""
+    if sys.version_info < (3, 12) or importlib.util.find_spec("pydpf") is None:
+        return False
+    _stub_missing("polars", "numpydoc")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            importlib.import_module("pydpf")
+    except Exception:  # a broken install is as good as none
+        return False
+    return True
+
+
+def compare(device, ns, trials: int = 100, steps: int = 10, d: int = 64, dtype=torch.float32, reps: int = 3,
+            log=print) -> list:
+    """One row per N: seconds per trial-step of ``torchflow`` (defaults), ``torchflow, resample always``
+    and ``PyDPF`` (``None`` with ``PyDPF error`` when it fails, e.g. out of memory), on ``device``."""
+    device = torch.device(device)
     if device.type == "cuda" and device.index is None:  # PyDPF compares devices with their index
         device = torch.device("cuda", torch.cuda.current_device())
+    before = torch.get_default_dtype()
     torch.set_default_dtype(dtype)  # PyDPF's constants and draws use the default dtype
+    try:
+        return _compare(device, ns, trials, steps, d, dtype, reps, log)
+    finally:
+        torch.set_default_dtype(before)
+
+
+def _compare(device, ns, trials, steps, d, dtype, reps, log):
     _stub_missing("polars", "numpydoc")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -86,19 +101,19 @@ def main(argv=None):
     from torchflow.filters import BootstrapParticleFilter
     from torchflow.models import SensorNetwork
 
-    model = SensorNetwork(d=a.d).to(device=device, dtype=dtype)
+    model = SensorNetwork(d=d).to(device=device, dtype=dtype)
     g = torch.Generator(device=device).manual_seed(0)
-    traj = model.simulate(a.trials, a.steps, g)
+    traj = model.simulate(trials, steps, g)
     mean, cov = model.initial_belief(traj.states[:, 0], g)
     obs = traj.observations  # (B, T, m)
     F, Q, H, R = model.F, model.Q, model.H, model.R
-    zero = torch.zeros(a.d, dtype=dtype, device=device)
+    zero = torch.zeros(d, dtype=dtype, device=device)
     LQ, LR = torch.linalg.cholesky(Q), torch.linalg.cholesky(R)
     pg = torch.Generator(device=device).manual_seed(1)
 
     class Prior(pydpf.Module):  # x_1 ~ N(0, Q): the first state given x_0 = 0
         def sample(self, batch_size, n_particles, **data):
-            v = torch.randn((batch_size, n_particles, a.d), generator=pg, dtype=dtype, device=device)
+            v = torch.randn((batch_size, n_particles, d), generator=pg, dtype=dtype, device=device)
             return v @ LQ.T
 
         def log_density(self, state, **data):
@@ -111,26 +126,44 @@ def main(argv=None):
     peer = pydpf.ParticleFilter(pydpf.MultinomialResampler(generator=pg), ssm)
     obs_tb = obs.transpose(0, 1).contiguous()  # PyDPF is time-major (T, B, m)
     rows = []
-    for n in [int(float(v)) for v in a.ns.split(",")]:
-        row = {"N": n}
+    for n in ns:
+        row = {"N": int(n)}
         for name, kw in (("torchflow", {}), ("torchflow, resample always", dict(resampling="multinomial", ess_threshold=1.0))):
-            f = BootstrapParticleFilter(model, n_particles=n, **kw)
+            f = BootstrapParticleFilter(model, n_particles=int(n), **kw)
             tg = torch.Generator(device=device).manual_seed(2)
 
             def ours(f=f, tg=tg):
                 with torch.no_grad():
                     f(obs, mean, cov, tg)
-            row[name] = _time(ours, a.reps, device) / (a.trials * a.steps)
+            row[name] = _time(ours, reps, device) / (trials * steps)
 
-        def theirs(n=n):
+        def theirs(n=int(n)):
             with torch.no_grad():
-                peer(n_particles=n, time_extent=a.steps - 1, aggregation_function=pydpf.FilteringMean(), observation=obs_tb)
+                peer(n_particles=n, time_extent=steps - 1, aggregation_function=pydpf.FilteringMean(), observation=obs_tb)
         try:
-            row["PyDPF"] = _time(theirs, a.reps, device) / (a.trials * a.steps)
+            row["PyDPF"] = _time(theirs, reps, device) / (trials * steps)
         except RuntimeError as err:  # out of memory at the largest N, say
             row["PyDPF"], row["PyDPF error"] = None, str(err).splitlines()[0]
         rows.append(row)
-        print(json.dumps(row), flush=True)
+        log(json.dumps(row))
+    return rows
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--ns", default="200,1000,10000,100000")
+    ap.add_argument("--trials", type=int, default=100)
+    ap.add_argument("--steps", type=int, default=10)
+    ap.add_argument("--d", type=int, default=64)
+    ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
+    device = torch.device(a.device)
+    rows = compare(device, [int(float(v)) for v in a.ns.split(",")], a.trials, a.steps, a.d, getattr(torch, a.dtype),
+                   a.reps, log=lambda line: print(line, flush=True))
+    import pydpf
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
     lines = [f"# Bootstrap PF: torchflow against PyDPF {getattr(pydpf, '__version__', '1.2.3')}",
              "", f"{name}, torch {torch.__version__}, {a.dtype}, SensorNetwork d = {a.d}, {a.trials} trials x {a.steps} steps "

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from experiments.benchmarks import (bench_acoustic, bench_float32, bench_flops, bench_foundation, bench_gaussian_sum,
-                                    bench_memory, bench_pfpf, bench_scaling, bench_streams, harness, run_all)
+                                    bench_gpu, bench_memory, bench_pfpf, bench_scaling, bench_streams, harness, run_all)
 from torchflow.models import SensorNetwork
 
 
@@ -172,6 +172,22 @@ def test_pfpf_bench_runs_gpfis_on_its_trial_subset():
     rows = {r["filter"]: r for r in res["rows"]}
     assert rows["GPFIS"]["trials"] == 1 and rows["PF-PF(LEDH)"]["trials"] == 2
     assert rows["GPFIS"]["goal"] == 5.0 and rows["GPFIS"]["met"] == (rows["GPFIS"]["vs_ledh"] <= 5)
+
+
+def test_gpu_section_plumbing_on_the_cpu(tmp_path):
+    """``run_all --device`` runs the GPU section (here on the CPU, quick sizes): its rows carry the
+    issue's goals, and the headline collects them."""
+    res = run_all.run(["--device", "cpu", "--only", "gpu", "--quick", "--out", str(tmp_path / "all.md")])
+    assert not res["failures"], res["failures"]
+    rows = res["results"]["gpu"]["rows"]
+    ledh = [r for r in rows if "wall" in r]
+    assert [r["trials"] for r in ledh] == [2, 4] and all(r["wall"] > 0 and r["goal"] is None for r in ledh)
+    flat = next(r for r in rows if "cost per trial-step" in r["name"])
+    assert flat["ratio"] == pytest.approx(ledh[1]["per_ts"] / ledh[0]["per_ts"]) and flat["met"] == (flat["ratio"] <= 1.05)
+    if sys.version_info < (3, 12):  # PyDPF needs Python >= 3.12
+        assert any(r["name"] == "BPF vs PyDPF" and r["status"].startswith("skipped") for r in rows)
+    assert "| PF-PF(LEDH) cost per trial-step, 4 / 2 trials |" in (tmp_path / "all.md").read_text()
+    assert bench_gpu.LEDH_GOALS[100] == 0.5 and "gpu" in run_all.CUDA_SECTIONS
 
 
 def test_flop_model_scales_with_particles_and_steps():

@@ -50,3 +50,22 @@ def test_the_filter_chooses_the_measurement(flow):
 def test_measurement_noise_structure_is_checked():
     with pytest.raises(ValueError, match=r"noise: expected 'scalar', 'diagonal' or 'dense', got 'full'"):
         GaussianMeasurement(torch.zeros(1, 2), None, None, "full")
+
+
+def test_prepare_precomputes_what_at_would_compute():
+    """``prepare`` (called once per flow by the integrator) caches 1/sigma of a scalar R: the same
+    bits as ``at`` alone; and it follows the model's sigma at the next prepare (a learned sigma)."""
+    g = torch.Generator().manual_seed(0)
+    model = AcousticTracking()
+    aux = 40 * torch.rand(2, 3, 16, generator=g, dtype=torch.float64)
+    z = torch.randn(2, model.obs_dim, generator=g, dtype=torch.float64)
+    support = torch.as_tensor(model.measurement_support)
+    plain = GaussianMeasurement.from_model(model, z).at(aux, support)
+    meas = GaussianMeasurement.from_model(model, z).prepare(aux)
+    ready = meas.at(aux, support)
+    assert torch.equal(plain.W, ready.W) and torch.equal(plain.y, ready.y)
+    with torch.no_grad():
+        model.sigma_w.mul_(2.0)
+    assert torch.equal(meas.at(aux, support).W, ready.W)  # cached until the next prepare
+    halved = meas.prepare(aux).at(aux, support)
+    torch.testing.assert_close(halved.W, ready.W / 2, rtol=1e-14, atol=0)
