@@ -206,11 +206,14 @@ class TrialStreams:
             kw = [self._seed_sequence(t).generate_state(2, np.uint32) for t in self.trials]
             self._keys = torch.tensor(np.stack(kw).astype(np.int64))
         keys = self._keys.to(device)
-        ctr = self._counter + torch.arange(blocks, device=device, dtype=torch.int64)  # (blocks,)
-        zero = torch.zeros(B, blocks, dtype=torch.int64, device=device)
-        c = [(ctr & 0xFFFFFFFF).expand(B, blocks), (ctr >> 32).expand(B, blocks), zero, zero]
-        key = (keys[:, :1].expand(B, blocks), keys[:, 1:].expand(B, blocks))
-        bits = philox4x32(c, key).reshape(B, -1)[:, :words]                            # (B, words)
+        if _philox_fusable(device):  # one kernel for the rounds, the same bits
+            bits = philox4x32_fused(keys, self._counter, blocks).reshape(B, -1)[:, :words]
+        else:
+            ctr = self._counter + torch.arange(blocks, device=device, dtype=torch.int64)  # (blocks,)
+            zero = torch.zeros(B, blocks, dtype=torch.int64, device=device)
+            c = [(ctr & 0xFFFFFFFF).expand(B, blocks), (ctr >> 32).expand(B, blocks), zero, zero]
+            key = (keys[:, :1].expand(B, blocks), keys[:, 1:].expand(B, blocks))
+            bits = philox4x32(c, key).reshape(B, -1)[:, :words]                        # (B, words)
         self._counter += blocks
         if per == 2:
             k = (bits[:, 0::2] >> 5) * 67108864 + (bits[:, 1::2] >> 6)  # 27 + 26 = 53 bits
@@ -266,6 +269,38 @@ def philox4x32(counter, key, rounds: int = 10):
             k0 = (k0 + _W0) & _MASK
             k1 = (k1 + _W1) & _MASK
     return torch.stack((c0, c1, c2, c3), -1)
+
+
+_philox_kernel = None
+_PHILOX_BLOCK = 256
+
+
+def _philox_fusable(device) -> bool:
+    """The Triton Philox kernel applies: ``tuning.fused_philox``, Triton importable, and the device
+    is CUDA (or the CPU under Triton's interpreter, ``TRITON_INTERPRET=1``: tests)."""
+    if not tuning.get().fused_philox:
+        return False
+    from .flows import fused  # Triton's availability and interpreter tests, shared with the fused flows
+    device = torch.device(device)
+    return fused.available() and (device.type == "cuda" or (device.type == "cpu" and fused.interpreted()))
+
+
+def philox4x32_fused(keys: torch.Tensor, counter: int, blocks: int, rounds: int = 10) -> torch.Tensor:
+    """:func:`philox4x32` of the counters ``counter + j`` (``j < blocks``; words ``(lo, hi, 0, 0)``)
+    under each trial's key, as one Triton kernel: ``keys (B, 2)`` int64 32-bit words ->
+    ``(B, blocks, 4)`` int64 words, the same bits as the torch ops. Needs Triton."""
+    global _philox_kernel
+    if _philox_kernel is None:
+        from ._philox_kernel import philox_kernel
+        _philox_kernel = philox_kernel
+    B = keys.shape[0]
+    keys = keys.contiguous()
+    out = torch.empty(B, blocks, 4, dtype=torch.int64, device=keys.device)
+    total = B * blocks
+    if total:
+        grid = (-(-total // _PHILOX_BLOCK),)
+        _philox_kernel[grid](keys, out, int(counter), blocks, total, ROUNDS=rounds, BLOCK=_PHILOX_BLOCK)
+    return out
 
 
 Generatorish = Union[torch.Generator, TrialStreams]

@@ -72,6 +72,10 @@ class Tuning:
         fused_flows: on CUDA with Triton installed, EDH/LEDH at per-particle points take each
             pseudo-step as one fused kernel (:mod:`torchflow.flows.fused`) instead of ~85 batched
             small-matrix ops; the numbers agree to round-off. 0: the torch path. No effect on the CPU.
+        fused_philox: on CUDA with Triton installed, the Philox4x32 rounds of per-trial random
+            streams (:class:`torchflow.random.TrialStreams` off the CPU) run as one kernel
+            (:func:`torchflow.random.philox4x32_fused`) instead of ~165 integer ops per draw; the
+            same bits. 0: the torch ops. No effect on the CPU.
     """
 
     points_per_call: int = 10_000
@@ -85,6 +89,7 @@ class Tuning:
     batched_jitter_cpu: int = 0
     cuda_graphs: int = 1
     fused_flows: int = 1
+    fused_philox: int = 1
 
     def __post_init__(self):
         for f in fields(self):

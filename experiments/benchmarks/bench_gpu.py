@@ -32,7 +32,7 @@ from . import peer_pydpf_bpf as peer
 LEDH_GOALS = {100: 0.5, 500: 2.0}
 FLAT = 1.05
 CUDA_TESTS = ["tests/flows/test_fused.py", "tests/test_cudagraphs.py", "tests/filters/test_contract.py",
-              "tests/test_random.py", "tests/test_bad_inputs.py"]
+              "tests/test_random.py", "tests/test_bad_inputs.py", "tests/test_philox_fused.py"]
 
 
 def _sync(device):

@@ -13,7 +13,7 @@ OUT=${OUT:-/tmp/gpu_check}
 mkdir -p "$OUT"
 python3 -c "import torch, triton; print(torch.__version__, triton.__version__, torch.cuda.get_device_name())"
 timeout 240 python3 -m pytest -q -p no:cacheprovider tests/flows/test_fused.py tests/test_cudagraphs.py \
-  tests/filters/test_contract.py tests/test_random.py tests/test_bad_inputs.py -k "cuda or fused" 2>&1 | tail -8
+  tests/filters/test_contract.py tests/test_random.py tests/test_bad_inputs.py tests/test_philox_fused.py -k "cuda or fused" 2>&1 | tail -8
 prof() { timeout 120 python3 -m experiments.benchmarks.profile_step --device cuda "$@" 2>&1 | grep -v -E "USDT|_warn_once|Profiler clears"; }
 prof --top 20 | tee "$OUT/profile_ledh_fused.txt" | head -30
 prof --top 0 --graphs 0
