@@ -1,8 +1,10 @@
 """Aten ops per time step of the flow filters (issue 30, item 2), counted on the CPU with a
 ``TorchDispatchMode`` (:class:`torchflow.profiling.OpCounter`) over one time step (the second) on
-acoustic tracking: on a GPU each op is a dispatch and most are a kernel launch. The counts do not
-depend on the trials or particles (the same at 2 x 20 as at 4 x 100), only on the code and the
-29 pseudo-steps of the default schedule.
+acoustic tracking: on a GPU each op is a dispatch and most are a kernel launch. At per-particle
+points the counts do not depend on the trials or particles (PF-PF(LEDH): the same at 2 x 20 as at
+4 x 100), only on the code and the 29 pseudo-steps of the default schedule; a global flow (EDH)
+composes its maps on d x d matrices when that is cheaper, so its count depends on N (4,051 here,
+4,114 at 4 x 100).
 
 Two kinds of test:
 
