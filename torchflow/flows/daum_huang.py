@@ -27,7 +27,7 @@ from .measurement import Linearisation
 
 
 def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, support=None,
-                            P_cols=None, operator=None) -> FlowCoefficients:
+                            P_cols=None, operator=None, W_diag=None) -> FlowCoefficients:
     """EDH/LEDH drift from the whitened linearisation.
 
     Args:
@@ -44,6 +44,9 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
         operator: give A as an operator (``apply_A``, with ``form_A`` for uses that need the
             matrix) instead of forming it; ``None`` (default): when ``k`` is at least
             ``torchflow.tuning`` ``flow_operator_min_dim``.
+        W_diag: ``(..., m)`` the diagonal of W when W is diagonal (:attr:`Linearisation.diag`); the
+            operator form then scales rows instead of multiplying by W (``d x d x d`` -> ``d x d``
+            per point; the same numbers: the products' other terms are exact zeros).
 
     A particle's flow applies A to only a few vectors, so for large k the operator form skips the
     ``k``-column solve and ``d x k x k`` product that form A (d = 144: half the time,
@@ -54,10 +57,13 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
     if operator is None:
         operator = k >= tuning.get().flow_operator_min_dim
     eye = torch.eye(k, dtype=L.dtype, device=L.device)
+    diag = operator and W_diag is not None
     if operator:
-        WL = W @ Ls  # (..., m, k)
+        # the scaled copies are made contiguous like a product's result, so the products that use them
+        # run the same kernels on the same layout as without the declaration (the same numbers)
+        WL = (W_diag.unsqueeze(-1) * Ls).contiguous() if diag else W @ Ls  # (..., m, k)
         S = linalg.symmetrize(WL.transpose(-1, -2) @ WL)
-        Wy = _whitened_rhs(W, y)
+        Wy = (W_diag * y).contiguous() if diag else _whitened_rhs(W, y)
     else:
         T, S, Wy = _gram_terms(W, y, Ls)
     # I + c S with c >= 0 has eigenvalues >= 1: its Cholesky cannot fail (no jitter retry, no host sync)
@@ -69,10 +75,12 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
     if operator:
         def apply_A(V):  # -1/2 L (I + lam S)^{-1} (W L_s)^T W V_s for stacked vectors V (..., d, r)
             Vs = V if support is None else V[..., support, :]
-            return -0.5 * (L @ linalg.chol_solve(K, WL.transpose(-1, -2) @ (W @ Vs)))
+            WV = (W_diag.unsqueeze(-1) * Vs).contiguous() if diag else W @ Vs
+            return -0.5 * (L @ linalg.chol_solve(K, WL.transpose(-1, -2) @ WV))
 
         def form_A():  # -1/2 L (I + lam S)^{-1} L_s^T J, (..., d, k)
-            return -0.5 * (L @ linalg.chol_solve(K, WL.transpose(-1, -2) @ W))
+            WLW = (WL.transpose(-1, -2) * W_diag.unsqueeze(-2)).contiguous() if diag else WL.transpose(-1, -2) @ W
+            return -0.5 * (L @ linalg.chol_solve(K, WLW))
 
         co = FlowCoefficients(None, Pg, log_det, apply_A=apply_A, form_A=form_A, support=support)
 
@@ -130,14 +138,15 @@ class EDHFlow(ParticleFlow):
             up = (lambda t: t.to(torch.float64))  # noqa: E731
             # P_cols is not reused: it was rounded independently of L in low precision
             co = daum_huang_coefficients(up(W), up(y), up(prior.cols), up(prior.mean), up(lam), up(eps),
-                                         L_support=up(prior.cols_support), support=prior.support)
+                                         L_support=up(prior.cols_support), support=prior.support,
+                                         W_diag=None if lin.diag is None else up(lin.diag))
             if co.A is None:  # operator form: apply (and form) in float64, hand back the run's dtype
                 return FlowCoefficients(None, co.b.to(dt), co.log_det.to(dt), support=co.support,
                                         apply_A=lambda V: co.apply_A(V.to(torch.float64)).to(dt),
                                         form_A=lambda: co.matrix().to(dt))
             return FlowCoefficients(co.A.to(dt), co.b.to(dt), co.log_det.to(dt), support=co.support)
         return daum_huang_coefficients(W, y, prior.cols, prior.mean, lam, eps, L_support=prior.cols_support,
-                                       support=prior.support, P_cols=prior.cov_cols)
+                                       support=prior.support, P_cols=prior.cov_cols, W_diag=lin.diag)
 
 
 class LEDHFlow(EDHFlow):

@@ -26,10 +26,13 @@ from .. import linalg
 @dataclass
 class Linearisation:
     """Whitened measurement at the linearisation points: ``W (..., m, k)`` (or ``(m, k)``, shared by
-    every point of a linear measurement) and ``y (..., m)``."""
+    every point of a linear measurement) and ``y (..., m)``; ``diag (..., m)``: W's diagonal when W is
+    diagonal by declaration (:attr:`GaussianMeasurement.diagonal`), for flows that can use it, else
+    ``None``."""
 
     W: torch.Tensor
     y: torch.Tensor
+    diag: Optional[torch.Tensor] = None
 
 
 def _bcast_obs(z: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -51,16 +54,20 @@ class GaussianMeasurement:
             ``None``.
         measure: ``points -> h(points)`` (used with ``matrix``).
         support: the state coordinates h reads (``None``: all).
+        diagonal: the Jacobian is diagonal (``m == d``, no support; the model's declared
+            :attr:`~torchflow.models.StateSpaceModel.measurement_jacobian_diagonal`): with a
+            diagonal R, :meth:`at` also returns W's diagonal.
     """
 
     def __init__(self, z: torch.Tensor, linearise: Callable, scale_tril: Callable, noise: str,
                  matrix: Optional[torch.Tensor] = None, measure: Optional[Callable] = None,
-                 support: Optional[Sequence[int]] = None):
+                 support: Optional[Sequence[int]] = None, diagonal: bool = False):
         if noise not in ("scalar", "diagonal", "dense"):
             raise ValueError(f"noise: expected 'scalar', 'diagonal' or 'dense', got {noise!r}")
         self.z, self.linearise, self.scale_tril, self.noise = z, linearise, scale_tril, noise
         self.matrix, self.measure = matrix, measure
         self.support = None if support is None else tuple(support)
+        self.diagonal = bool(diagonal) and self.support is None
         self._inv_sigma = None  # 1 / sigma of a "scalar" R (declared constant), set by prepare()
 
     @classmethod
@@ -74,7 +81,8 @@ class GaussianMeasurement:
         linear = model.linear_measurement
         return cls(z, model.linearize_measurement, model.measurement_scale_tril, noise,
                    matrix=model.measurement_matrix() if linear else None, measure=model.measure if linear else None,
-                   support=model.measurement_support)
+                   support=model.measurement_support,
+                   diagonal=getattr(model, "measurement_jacobian_diagonal", False) and not linear)
 
     def _scalar_inv_sigma(self, points):
         return 1 / self.scale_tril(points).diagonal(dim1=-2, dim2=-1)[..., 0]  # 0-d: "scalar" R is constant
@@ -110,7 +118,8 @@ class GaussianMeasurement:
             return Linearisation(H / sigma, resid / sigma)  # a 0-d scale: much faster than a broadcast
         if self.noise == "diagonal":
             dr = LR.diagonal(dim1=-2, dim2=-1)
-            return Linearisation(H / dr.unsqueeze(-1), resid / dr)
+            W = H / dr.unsqueeze(-1)
+            return Linearisation(W, resid / dr, W.diagonal(dim1=-2, dim2=-1) if self.diagonal else None)
         W = linalg.solve_triangular(LR, H, upper=False)
         y = linalg.solve_triangular(LR, resid.unsqueeze(-1), upper=False).squeeze(-1)
         return Linearisation(W, y)

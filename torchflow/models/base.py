@@ -62,6 +62,10 @@ class StateSpaceModel(nn.Module):
     #: (varies with x and is diagonal: flows whiten by a division instead of a triangular solve
     #: per point). Flows whiten with it.
     measurement_noise: str = "dense"
+    #: ``True`` when each measurement reads only its own state coordinate (``m == d`` and
+    #: ``dh_i/dx_j = 0`` for ``i != j``; declared, never detected): the flows then scale by the
+    #: Jacobian's diagonal instead of multiplying by the ``d x d`` matrix (the same numbers).
+    measurement_jacobian_diagonal: bool = False
     #: ``c`` when the (constant) transition matrix is exactly ``c I`` (declared; ``None`` otherwise)
     transition_matrix_scale: Optional[float] = None
     #: ``c`` when the (constant) measurement matrix is exactly ``c I`` (declared; ``None`` otherwise)

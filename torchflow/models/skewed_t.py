@@ -53,6 +53,7 @@ class SkewedTPoisson(StateSpaceModel):
     gaussian_transition = False
     linear_measurement = False
     measurement_noise = "state_dependent_diagonal"
+    measurement_jacobian_diagonal = True  # z_c counts cell c only: lambda_c = m1 exp(m2 x_c)
 
     def __init__(self, *, d: int = 144, alpha: float = 0.9, gamma: float = 0.3, nu: int = 7,
                  alpha0: float = 3.0, alpha1: float = 0.01, beta: float = 20.0, m1: float = 1.0,
