@@ -77,6 +77,30 @@ def test_not_fused_on_the_cpu_without_the_interpreter():
     assert R.uniform((2, 5), dtype=torch.float64, device="cpu", generator=s).shape == (2, 5)
 
 
+def test_a_failing_kernel_falls_back_to_the_torch_ops_once(monkeypatch):
+    """Where Triton cannot build the kernel, the draw warns once and uses the torch ops: the same
+    numbers as without the kernel."""
+    calls = []
+
+    def broken(*a, **k):
+        calls.append(1)
+        raise RuntimeError("no compiler")
+    monkeypatch.setattr(R, "_philox_broken", [])
+    monkeypatch.setattr(R, "philox4x32_fused", broken)
+    monkeypatch.setattr(R, "_philox_kernel", None)
+    real = R._philox_fusable
+    monkeypatch.setattr(R, "_philox_fusable", lambda device: not R._philox_broken)
+    s1, s2 = R.TrialStreams(1, 3, backend="philox"), R.TrialStreams(1, 3, backend="philox")
+    with pytest.warns(RuntimeWarning, match="fused Philox kernel failed"):
+        a = R.uniform((3, 7), dtype=torch.float64, device="cpu", generator=s1)
+    b = R.uniform((3, 7), dtype=torch.float64, device="cpu", generator=s1)  # no second warning, no second try
+    monkeypatch.setattr(R, "_philox_fusable", real)
+    from torchflow import tuning
+    with tuning.tuned(fused_philox=0):
+        want = [R.uniform((3, 7), dtype=torch.float64, device="cpu", generator=s2) for _ in range(2)]
+    assert len(calls) == 1 and torch.equal(a, want[0]) and torch.equal(b, want[1])
+
+
 @cuda
 def test_fused_philox_gives_the_same_bits_on_cuda():
     pytest.importorskip("triton")

@@ -206,9 +206,13 @@ class TrialStreams:
             kw = [self._seed_sequence(t).generate_state(2, np.uint32) for t in self.trials]
             self._keys = torch.tensor(np.stack(kw).astype(np.int64))
         keys = self._keys.to(device)
+        bits = None
         if _philox_fusable(device):  # one kernel for the rounds, the same bits
-            bits = philox4x32_fused(keys, self._counter, blocks).reshape(B, -1)[:, :words]
-        else:
+            try:
+                bits = philox4x32_fused(keys, self._counter, blocks).reshape(B, -1)[:, :words]
+            except Exception as exc:  # noqa: BLE001 - a Triton that cannot build the kernel here
+                _philox_failed(exc)
+        if bits is None:
             ctr = self._counter + torch.arange(blocks, device=device, dtype=torch.int64)  # (blocks,)
             zero = torch.zeros(B, blocks, dtype=torch.int64, device=device)
             c = [(ctr & 0xFFFFFFFF).expand(B, blocks), (ctr >> 32).expand(B, blocks), zero, zero]
@@ -273,12 +277,23 @@ def philox4x32(counter, key, rounds: int = 10):
 
 _philox_kernel = None
 _PHILOX_BLOCK = 256
+_philox_broken = []  # the error of a kernel that failed to build or run here: then the torch ops
+
+
+def _philox_failed(exc: Exception) -> None:
+    """Fall back to the torch ops for the rest of the process, with one warning (the same bits)."""
+    import warnings
+    _philox_broken.append(exc)
+    warnings.warn(f"torchflow.random: the fused Philox kernel failed ({type(exc).__name__}: {exc}); "
+                  "drawing with torch ops instead (the same numbers, more kernel launches)", RuntimeWarning,
+                  stacklevel=3)
 
 
 def _philox_fusable(device) -> bool:
-    """The Triton Philox kernel applies: ``tuning.fused_philox``, Triton importable, and the device
-    is CUDA (or the CPU under Triton's interpreter, ``TRITON_INTERPRET=1``: tests)."""
-    if not tuning.get().fused_philox:
+    """The Triton Philox kernel applies: ``tuning.fused_philox``, Triton importable, it has not
+    failed in this process, and the device is CUDA (or the CPU under Triton's interpreter,
+    ``TRITON_INTERPRET=1``: tests)."""
+    if not tuning.get().fused_philox or _philox_broken:
         return False
     from .flows import fused  # Triton's availability and interpreter tests, shared with the fused flows
     device = torch.device(device)
