@@ -69,6 +69,7 @@ class GaussianMeasurement:
         self.support = None if support is None else tuple(support)
         self.diagonal = bool(diagonal) and self.support is None
         self._inv_sigma = None  # 1 / sigma of a "scalar" R (declared constant), set by prepare()
+        self._z_scaled = None  # z / sigma (B, m), set by prepare()
 
     @classmethod
     def from_model(cls, model, z: torch.Tensor) -> "GaussianMeasurement":
@@ -93,6 +94,7 @@ class GaussianMeasurement:
         :meth:`at` alone. Call it outside any ``torch.func`` transform. Returns ``self``."""
         if self.noise == "scalar" and self.matrix is None:
             self._inv_sigma = self._scalar_inv_sigma(points)
+            self._z_scaled = self.z * self._inv_sigma
         return self
 
     def at(self, points: torch.Tensor, support: Optional[torch.Tensor] = None) -> Linearisation:
@@ -103,9 +105,13 @@ class GaussianMeasurement:
         if self.noise == "scalar" and self.matrix is None:
             # R = sigma^2 I: whiten inside the linearisation (scale 1 / sigma), so W = H / sigma
             # and y = (z - h) / sigma + W x_s need no pass over the Jacobian
-            inv_sigma = self._inv_sigma if self._inv_sigma is not None else self._scalar_inv_sigma(points)
+            if self._inv_sigma is not None:  # prepared: z / sigma too (the same product, made once)
+                inv_sigma, zs = self._inv_sigma, _bcast_obs(self._z_scaled, points)
+            else:
+                inv_sigma = self._scalar_inv_sigma(points)
+                zs = _bcast_obs(self.z, points) * inv_sigma
             hx, W = self.linearise(points, support=support is not None, scale=inv_sigma)
-            return Linearisation(W, _bcast_obs(self.z, points) * inv_sigma - hx + linalg.matvec(W, xs))
+            return Linearisation(W, zs - hx + linalg.matvec(W, xs))
         if self.matrix is not None:  # a linear measurement has one H for every point: keep (m, d)
             H = self.matrix if support is None else self.matrix.index_select(-1, support)
             hx = self.measure(points)
