@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import copy
 import math
+import warnings
 import zlib
 from concurrent.futures import ThreadPoolExecutor
 from typing import Optional, Sequence, Union
@@ -43,7 +44,7 @@ from typing import Optional, Sequence, Union
 import numpy as np
 import torch
 
-from . import tuning
+from . import _triton, tuning
 from ._checks import check_choice
 
 __all__ = ["TrialStreams", "uniform", "check_generator", "stream_key", "get_state", "set_state"]
@@ -205,7 +206,7 @@ class TrialStreams:
         if self._keys is None:  # (B, 2) int64 key words
             kw = [self._seed_sequence(t).generate_state(2, np.uint32) for t in self.trials]
             self._keys = torch.tensor(np.stack(kw).astype(np.int64))
-        keys = self._keys.to(device)
+        self._keys = keys = self._keys.to(device)  # kept there: no copy to the device per draw
         bits = None
         if _philox_fusable(device):  # one kernel for the rounds, the same bits
             try:
@@ -282,7 +283,6 @@ _philox_broken = []  # the error of a kernel that failed to build or run here: t
 
 def _philox_failed(exc: Exception) -> None:
     """Fall back to the torch ops for the rest of the process, with one warning (the same bits)."""
-    import warnings
     _philox_broken.append(exc)
     warnings.warn(f"torchflow.random: the fused Philox kernel failed ({type(exc).__name__}: {exc}); "
                   "drawing with torch ops instead (the same numbers, more kernel launches)", RuntimeWarning,
@@ -295,9 +295,7 @@ def _philox_fusable(device) -> bool:
     ``TRITON_INTERPRET=1``: tests)."""
     if not tuning.get().fused_philox or _philox_broken:
         return False
-    from .flows import fused  # Triton's availability and interpreter tests, shared with the fused flows
-    device = torch.device(device)
-    return fused.available() and (device.type == "cuda" or (device.type == "cpu" and fused.interpreted()))
+    return _triton.runs_on(device)
 
 
 def philox4x32_fused(keys: torch.Tensor, counter: int, blocks: int, rounds: int = 10) -> torch.Tensor:

@@ -42,8 +42,9 @@ def _sync(device):
 
 def ledh_rows(device, trials_list, particles, steps, dtype, reps, seed=0) -> list:
     """PF-PF(LEDH) wall time per call of ``B`` trials (one chunk), each ``B`` of ``trials_list``."""
-    model = AcousticTracking(sigma_w=0.1).to(device=device, dtype=dtype)
-    traj, mean, cov = h.simulate(model, max(trials_list), steps, seed)
+    model = AcousticTracking(sigma_w=0.1).to(dtype=dtype)
+    traj, mean, cov = h.simulate(model, max(trials_list), steps, seed)  # on the CPU (its generator), then moved
+    model = model.to(device=device)
     traj_obs, mean, cov = traj.observations.to(device), mean.to(device), cov.to(device)
     f = h.make_filter("ledh", model, particles)
     rows = []

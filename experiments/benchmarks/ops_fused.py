@@ -19,13 +19,18 @@ from torch.utils._python_dispatch import _disable_current_modes
 from torchflow.flows import fused
 from experiments.benchmarks.bench_ops import filters, count, VIEW_OPS
 from torchflow.models import AcousticTracking
-real = fused.dh_particle_step
+def counted(real, calls):
+    """``real`` with each call counted in ``calls[0]`` as one launch, its inside (the interpreter's
+    own torch calls) not counted as aten ops."""
+    def run(*a, **k):
+        calls[0] += 1
+        with _disable_current_modes():
+            return real(*a, **k)
+    return run
+
+
 launches = [0]
-def stub(*a, **k):
-    launches[0] += 1
-    with _disable_current_modes():
-        return real(*a, **k)
-fused.dh_particle_step = stub
+fused.dh_particle_step = counted(fused.dh_particle_step, launches)
 model = AcousticTracking(); g = torch.Generator().manual_seed(0)
 traj = model.simulate(2, 2, g); mean, cov = model.initial_belief(traj.states[:, 0], g)
 for name in ("PF-PF(LEDH)", "flow filter (LEDH)") if sys.argv[1:] != ["bpf"] else ():
@@ -43,13 +48,8 @@ from torchflow import random as R, tuning
 from torchflow.filters import BootstrapParticleFilter
 from torchflow.models import SensorNetwork
 from torchflow.profiling import OpCounter
-real_philox = R.philox4x32_fused
 philox_calls = [0]
-def philox_stub(*a, **k):
-    philox_calls[0] += 1
-    with _disable_current_modes():
-        return real_philox(*a, **k)
-R.philox4x32_fused = philox_stub
+R.philox4x32_fused = counted(R.philox4x32_fused, philox_calls)
 sn = SensorNetwork(d=64).to(dtype=torch.float32); g = torch.Generator().manual_seed(0)
 traj = sn.simulate(4, 3, g); mean, cov = sn.initial_belief(traj.states[:, 0], g)
 bpf = BootstrapParticleFilter(sn, n_particles=200)

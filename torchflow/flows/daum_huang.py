@@ -59,9 +59,8 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
     eye = torch.eye(k, dtype=L.dtype, device=L.device)
     diag = operator and W_diag is not None
     if operator:
-        # the scaled copies are made contiguous like a product's result, so the products that use them
-        # run the same kernels on the same layout as without the declaration (the same numbers)
-        WL = (W_diag.unsqueeze(-1) * Ls).contiguous() if diag else W @ Ls  # (..., m, k)
+        W_times = _row_scaling(W_diag) if diag else (lambda M: W @ M)  # noqa: E731  W M for stacked M
+        WL = W_times(Ls)  # (..., m, k)
         S = linalg.symmetrize(WL.transpose(-1, -2) @ WL)
         Wy = (W_diag * y).contiguous() if diag else _whitened_rhs(W, y)
     else:
@@ -75,8 +74,7 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
     if operator:
         def apply_A(V):  # -1/2 L (I + lam S)^{-1} (W L_s)^T W V_s for stacked vectors V (..., d, r)
             Vs = V if support is None else V[..., support, :]
-            WV = (W_diag.unsqueeze(-1) * Vs).contiguous() if diag else W @ Vs
-            return -0.5 * (L @ linalg.chol_solve(K, WL.transpose(-1, -2) @ WV))
+            return -0.5 * (L @ linalg.chol_solve(K, WL.transpose(-1, -2) @ W_times(Vs)))
 
         def form_A():  # -1/2 L (I + lam S)^{-1} L_s^T J, (..., d, k)
             WLW = (WL.transpose(-1, -2) * W_diag.unsqueeze(-2)).contiguous() if diag else WL.transpose(-1, -2) @ W
@@ -97,6 +95,13 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
     u = Pg + A_times(lam * Pg + eta_bar0)
     co.b = u + 2 * lam * A_times(u)
     return co
+
+
+def _row_scaling(w):
+    """``M -> diag(w) M`` for a diagonal W given by ``w (..., m)``: the rows scaled, made contiguous like
+    a product's result, so that the products that use it run the same kernels on the same layout as
+    with the dense W (whose other terms are exact zeros): the same numbers."""
+    return lambda M: (w.unsqueeze(-1) * M).contiguous()
 
 
 def _whitened_rhs(W, y):

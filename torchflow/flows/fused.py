@@ -26,31 +26,15 @@ Set ``TRITON_INTERPRET=1`` before the first import of Triton to run it on the CP
 """
 from __future__ import annotations
 
-import os
 from typing import Optional
 
 import torch
 
+from .. import _triton
+
 __all__ = ["available", "dh_particle_step"]
 
-_triton = None
-
-
-def available() -> bool:
-    """Triton can be imported (cached)."""
-    global _triton
-    if _triton is None:
-        try:
-            import triton  # noqa: F401  (pyflakes: unused on purpose, an availability test)
-            _triton = True
-        except Exception:  # noqa: BLE001 - any import failure means: not available
-            _triton = False
-    return _triton
-
-
-def interpreted() -> bool:
-    """Triton runs its interpreter on the CPU (``TRITON_INTERPRET=1``)."""
-    return os.environ.get("TRITON_INTERPRET", "0") not in ("", "0")
+available, interpreted = _triton.available, _triton.interpreted  # shared with torchflow.random's fused draws
 
 
 _kernel = None

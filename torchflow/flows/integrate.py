@@ -25,7 +25,7 @@ from typing import Optional, Union
 
 import torch
 
-from .. import cudagraphs, linalg, tuning
+from .. import _triton, cudagraphs, linalg, tuning
 from .._checks import check_choice
 from ..schedules import LambdaSchedule, resolve_schedule
 from . import fused
@@ -203,7 +203,7 @@ def _fusable(flow, measurement, particles, k) -> bool:
     interpreter), no gradient, ``tuning.fused_flows``, and small enough tiles for registers."""
     if not tuning.get().fused_flows or type(flow) not in (EDHFlow, LEDHFlow) or torch.is_grad_enabled():
         return False
-    if not (particles.is_cuda or (fused.interpreted() and particles.device.type == "cpu")) or not fused.available():
+    if not _triton.runs_on(particles.device):
         return False
     m, d = measurement.z.shape[-1], particles.shape[-1]
     bm, bk, bd = (fused.tile(x) for x in (m, k, d))
