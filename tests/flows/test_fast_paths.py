@@ -347,3 +347,20 @@ def test_integrated_flow_and_gaussian_image_equal_with_operator_form(points):
     for a, b in ((op.particles, ex.particles), (op.log_det, ex.log_det), (op.image_mean, ex.image_mean)):
         torch.testing.assert_close(a, b, rtol=1e-7, atol=1e-7 * float(b.abs().max()))
     torch.testing.assert_close(op.image_cov, ex.image_cov, rtol=1e-6, atol=1e-6 * float(ex.image_cov.abs().max()))
+
+
+def test_flattened_batch_products_give_torch_matmul_bits():
+    """``linalg.matmul`` / ``matvec`` take one ``bmm`` over the flattened batch when the operands'
+    batches agree: the same bits as ``torch.matmul``, for contiguous and transposed operands, and the
+    broadcasting cases fall back to it."""
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(3, 5, 16, 8, generator=g, dtype=torch.float64)
+    B = torch.randn(3, 5, 8, 7, generator=g, dtype=torch.float64)
+    x = torch.randn(3, 5, 8, generator=g, dtype=torch.float64)
+    Bt = torch.randn(3, 5, 7, 8, generator=g, dtype=torch.float64).transpose(-1, -2)  # a transposed view
+    for a, b in ((A, B), (A, Bt), (A.transpose(-1, -2).contiguous().transpose(-1, -2), B)):
+        assert torch.equal(linalg.matmul(a, b), a @ b)
+    assert torch.equal(linalg.matvec(A, x), (A @ x.unsqueeze(-1)).squeeze(-1))
+    shared = A[:, :1]  # (3, 1, 16, 8) against (3, 5, 8, 7): broadcast, the plain matmul
+    assert torch.equal(linalg.matmul(shared, B), shared @ B)
+    assert linalg.matmul(A, B).shape == (3, 5, 16, 7) and linalg.matvec(A, x).shape == (3, 5, 16)
