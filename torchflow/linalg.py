@@ -269,3 +269,11 @@ def weighted_mean_cov(x: torch.Tensor, log_weights: torch.Tensor) -> Tuple[torch
     diff = x - mean.unsqueeze(1)
     cov = torch.einsum("bn,bni,bnj->bij", w, diff, diff)
     return mean, symmetrize(cov)
+
+
+def block_diagonal(blocks: torch.Tensor) -> torch.Tensor:
+    """``(..., n_b, b, b)`` diagonal blocks -> the ``(..., n_b b, n_b b)`` block-diagonal matrix."""
+    nb, b = blocks.shape[-3], blocks.shape[-1]
+    out = blocks.new_zeros(*blocks.shape[:-3], nb, b, nb, b)
+    out.diagonal(dim1=-4, dim2=-2).copy_(blocks.movedim(-3, -1))  # (..., b, b, n_b)
+    return out.view(*blocks.shape[:-3], nb * b, nb * b)

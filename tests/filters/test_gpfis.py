@@ -53,9 +53,11 @@ def test_linear_model_transport_is_the_exact_posterior(root):
         torch.testing.assert_close(a.norm(dim=-1), b.norm(dim=-1), rtol=1e-10, atol=0)
 
 
-def test_autodiff_jacobian_includes_the_moving_linearisation():
-    """On acoustic tracking (h nonlinear, linearised at the moving particle) log|det| equals a
-    finite-difference Jacobian of the whole map; dropping dH/dx would miss it by O(1)."""
+@pytest.mark.parametrize("jacobian", ["analytic", "autodiff"])
+def test_autodiff_jacobian_includes_the_moving_linearisation(jacobian):
+    """On acoustic tracking (h nonlinear, linearised at the moving particle) log|det| equals the
+    autograd Jacobian of the whole map, both with the step's derivative written out (the model's
+    analytic second derivatives) and traced by forward mode; dropping dH/dx would miss it by O(1)."""
     model = AcousticTracking(sigma_w=0.1)
     g = torch.Generator().manual_seed(3)
     x_prev = model.x0.expand(1, 2, -1) + 0.5 * torch.randn(1, 2, 16, generator=g, dtype=torch.float64)
@@ -64,7 +66,7 @@ def test_autodiff_jacobian_includes_the_moving_linearisation():
     x0 = model.sample_transition(x_prev, g)
     meas = GaussianMeasurement.from_model(model, z)
     sched = ExponentialSchedule(5, 1.5)
-    _, log_det = gpfis_flow(meas, x0, prior, sched)
+    _, log_det = gpfis_flow(meas, x0, prior, sched, jacobian=jacobian)
 
     def one(v):  # particle 0 alone, other particle fixed
         x = torch.cat([v.reshape(1, 1, 16), x0[:, 1:]], 1)
@@ -72,6 +74,71 @@ def test_autodiff_jacobian_includes_the_moving_linearisation():
 
     J = torch.autograd.functional.jacobian(one, x0[0, 0].clone())
     torch.testing.assert_close(log_det[0, 0], torch.linalg.slogdet(J)[1], rtol=1e-8, atol=1e-8)
+
+
+def _acoustic_flow_setting(B=2, N=6, seed=5):
+    model = AcousticTracking(sigma_w=0.1)
+    g = torch.Generator().manual_seed(seed)
+    x_prev = model.x0.expand(B, N, -1) + 0.5 * torch.randn(B, N, 16, generator=g, dtype=torch.float64)
+    z = model.sample_measurement(model.x0.expand(B, -1), g)
+    prior = FlowPrior(model.transition_mean(x_prev), model.transition_scale_tril(x_prev))
+    return model, z, prior, model.sample_transition(x_prev, g)
+
+
+def _same_flow(meas, x0, prior, sched=None):
+    """The analytic and autodiff Jacobians move the particles identically (same ops on the primal)
+    and agree on log|det| to round-off."""
+    xa, la = gpfis_flow(meas, x0, prior, sched, jacobian="analytic")
+    xr, lr = gpfis_flow(meas, x0, prior, sched, jacobian="autodiff")
+    assert torch.equal(xa, xr)
+    torch.testing.assert_close(la, lr, rtol=1e-9, atol=1e-9)
+    return la
+
+
+@pytest.mark.parametrize("noise", ["scalar", "diagonal", "dense"])
+def test_analytic_jacobian_matches_autodiff_for_every_constant_noise(noise):
+    """The model's second derivatives are whitened by R's declared structure (scalar: folded into
+    the Hessian's scale; diagonal: a division; dense: a triangular solve)."""
+    model, z, prior, x0 = _acoustic_flow_setting()
+    m = model.obs_dim
+    g = torch.Generator().manual_seed(9)
+    LR = {"scalar": 0.1 * torch.eye(m, dtype=torch.float64),
+          "diagonal": torch.diag(0.05 + 0.1 * torch.rand(m, generator=g, dtype=torch.float64)),
+          "dense": torch.linalg.cholesky(0.01 * torch.eye(m, dtype=torch.float64)
+                                         + 0.002 * (lambda a: a @ a.T)(torch.randn(m, m, generator=g, dtype=torch.float64)))}[noise]
+    meas = GaussianMeasurement(z, model.linearize_measurement, lambda x: LR, noise, support=model.measurement_support,
+                               hessian=model.measurement_hessian_blocks)
+    _same_flow(meas, x0, prior, ExponentialSchedule(8, 1.4))
+
+
+def test_analytic_jacobian_without_a_hessian_and_with_a_state_dependent_noise():
+    """Without the model's second derivatives (a state-dependent R: the skewed-t / Poisson model),
+    the analytic step still takes W's and y's derivatives from forward mode through the whitened
+    linearisation, and matches forward mode through the whole step."""
+    from torchflow.models import SkewedTPoisson
+
+    model = SkewedTPoisson(d=9)
+    g = torch.Generator().manual_seed(2)
+    x_prev = torch.randn(2, 5, 9, generator=g, dtype=torch.float64)
+    z = model.sample_measurement(x_prev[:, 0], g)
+    prior = FlowPrior(model.transition_mean(x_prev), model.transition_scale_tril(x_prev))
+    meas = GaussianMeasurement.from_model(model, z)
+    assert meas.derivative(x_prev) is None
+    _same_flow(meas, model.sample_transition(x_prev, g), prior, ExponentialSchedule(6, 1.3))
+
+
+def test_acoustic_hessian_matches_autodiff():
+    """The acoustic model's analytic second derivatives (one 2 x 2 block per sensor and target)
+    equal forward-mode autodiff of its Jacobian (the base class's default)."""
+    from torchflow.models.base import StateSpaceModel
+
+    model, _, _, x = _acoustic_flow_setting(B=3, N=4)
+    for support in (True, False):
+        exact = StateSpaceModel.measurement_hessian(model, x, support, scale=0.5)
+        torch.testing.assert_close(model.measurement_hessian(x, support, scale=0.5), exact, rtol=1e-12, atol=1e-12)
+        blocks = model.measurement_hessian_blocks(x, support)
+        assert blocks.shape == (3, 4, 25, 4, 2 if support else 4, 2 if support else 4)
+        torch.testing.assert_close(linalg.block_diagonal(blocks), 2 * exact, rtol=1e-12, atol=1e-12)
 
 
 def test_gpfis_log_evidence_unbiased_on_lg():
@@ -119,3 +186,5 @@ def test_gpfis_argument_errors():
         GPFIS(model, gamma=0.5)
     with pytest.raises(ValueError, match=r"root: expected one of \('cholesky', 'symmetric'\), got 'sqrtm'"):
         GPFIS(model, root="sqrtm")
+    with pytest.raises(ValueError, match=r"jacobian: expected one of \('analytic', 'autodiff'\), got 'numeric'"):
+        GPFIS(model, jacobian="numeric")

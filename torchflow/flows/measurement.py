@@ -57,17 +57,23 @@ class GaussianMeasurement:
         diagonal: the Jacobian is diagonal (``m == d``, no support; the model's declared
             :attr:`~torchflow.models.StateSpaceModel.measurement_jacobian_diagonal`): with a
             diagonal R, :meth:`at` also returns W's diagonal.
+        hessian: ``(points (..., d), support: bool, scale) -> (..., m, n_b, b, b)``, h's second
+            derivatives as diagonal blocks
+            (:meth:`~torchflow.models.StateSpaceModel.measurement_hessian_blocks`), for
+            :meth:`derivative`; only for a constant R (``None``: not available).
     """
 
     def __init__(self, z: torch.Tensor, linearise: Callable, scale_tril: Callable, noise: str,
                  matrix: Optional[torch.Tensor] = None, measure: Optional[Callable] = None,
-                 support: Optional[Sequence[int]] = None, diagonal: bool = False):
+                 support: Optional[Sequence[int]] = None, diagonal: bool = False,
+                 hessian: Optional[Callable] = None):
         if noise not in ("scalar", "diagonal", "dense"):
             raise ValueError(f"noise: expected 'scalar', 'diagonal' or 'dense', got {noise!r}")
         self.z, self.linearise, self.scale_tril, self.noise = z, linearise, scale_tril, noise
         self.matrix, self.measure = matrix, measure
         self.support = None if support is None else tuple(support)
         self.diagonal = bool(diagonal) and self.support is None
+        self.hessian = hessian
         self._inv_sigma = None  # 1 / sigma of a "scalar" R (declared constant), set by prepare()
         self._z_scaled = None  # z / sigma (B, m), set by prepare()
 
@@ -80,10 +86,12 @@ class GaussianMeasurement:
         elif noise not in ("scalar", "diagonal", "dense"):  # state-dependent R: general whitening
             noise = "dense"
         linear = model.linear_measurement
+        constant_r = model.measurement_noise in ("scalar", "diagonal", "dense")
         return cls(z, model.linearize_measurement, model.measurement_scale_tril, noise,
                    matrix=model.measurement_matrix() if linear else None, measure=model.measure if linear else None,
                    support=model.measurement_support,
-                   diagonal=getattr(model, "measurement_jacobian_diagonal", False) and not linear)
+                   diagonal=getattr(model, "measurement_jacobian_diagonal", False) and not linear,
+                   hessian=model.measurement_hessian_blocks if constant_r and not linear else None)
 
     def _scalar_inv_sigma(self, points):
         return 1 / self.scale_tril(points).diagonal(dim1=-2, dim2=-1)[..., 0]  # 0-d: "scalar" R is constant
@@ -130,6 +138,27 @@ class GaussianMeasurement:
         y = linalg.solve_triangular(LR, resid.unsqueeze(-1), upper=False).squeeze(-1)
         return Linearisation(W, y)
 
+    def derivative(self, points: torch.Tensor, support: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
+        """The derivative of :meth:`at`'s ``W`` along each of the k (support) coordinates at
+        ``points (..., d)``, as the declared :attr:`hessian`'s diagonal blocks ``(..., m, n_b, b, b)``:
+        for ``t = (c, i)`` (coordinate i of group c), ``dW[a, (c', j)] / dx_t = [c = c'] D[a, c, i, j]``.
+        ``dW = L_R^{-1} d^2h`` for a constant R; then ``y``'s derivative is ``dW x_s`` (the Jacobian
+        terms of ``y = L_R^{-1} (z - h(x) + H x_s)`` cancel); zero for a linear measurement (``k``
+        blocks of ``1 x 1``, broadcast over the points). ``None`` when no Hessian is given (a
+        state-dependent R): differentiate :meth:`at` itself."""
+        if self.matrix is not None:
+            k = self.matrix.shape[-1] if support is None else support.shape[-1]
+            return points.new_zeros(self.z.shape[-1], k, 1, 1)
+        if self.hessian is None:
+            return None
+        if self.noise == "scalar":
+            inv_sigma = self._inv_sigma if self._inv_sigma is not None else self._scalar_inv_sigma(points)
+            return self.hessian(points, support is not None, inv_sigma)
+        dH = self.hessian(points, support is not None)  # (..., m, n_b, b, b)
+        LR = self.scale_tril(points)
+        if self.noise == "diagonal":
+            return dH / LR.diagonal(dim1=-2, dim2=-1)[..., None, None, None]
+        return linalg.solve_triangular(LR, dH.flatten(-3), upper=False).unflatten(-1, dH.shape[-3:])
 
 def whiten(model, points: torch.Tensor, z: torch.Tensor, support=None) -> Tuple[torch.Tensor, torch.Tensor]:
     """``(W, y)`` of the model's measurement at ``points`` (a convenience for tests and users)."""

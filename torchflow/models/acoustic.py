@@ -11,6 +11,7 @@ from typing import Optional, Sequence, Tuple
 import torch
 
 from .. import constraints, linalg
+from ..linalg import block_diagonal
 from .._checks import check_choice
 from .base import StateSpaceModel, Trajectory
 
@@ -168,6 +169,28 @@ class AcousticTracking(StateSpaceModel):
         inv = 1 / (r + self.d0)
         psi = self.psi if scale is None else self.psi * scale  # fold the scale into Psi: free
         return psi * inv.sum(-1), self._support_jacobian(dx, dy, r, inv, psi)
+
+    def measurement_hessian_blocks(self, x, support=False, scale=None):
+        """Analytic second derivatives as one block per target, ``(..., m, C, b, b)`` (``b = 2``
+        positions with ``support``, else ``b = 4`` with zero velocity rows): per sensor and target
+        ``Psi [2 u u^T / (r + d0)^3 - (I - u u^T) / (r (r + d0)^2)]`` with ``u = (p - s) / r``; zero
+        between targets (each measurement is a sum over targets)."""
+        dx, dy, r = self._sensor_offsets(x)  # (..., m, C)
+        inv = 1 / (r + self.d0)
+        psi = self.psi if scale is None else self.psi * scale
+        ir = 1 / r.clamp_min(torch.finfo(r.dtype).tiny)
+        b = psi * inv * inv * ir  # (I - u u^T) coefficient
+        c = (2 * psi * inv * inv * inv + b) * ir * ir  # u u^T = (p - s)(p - s)^T / r^2
+        hxy = c * dx * dy
+        block = torch.stack([c * dx * dx - b, hxy, hxy, c * dy * dy - b], -1).unflatten(-1, (2, 2))  # (..., m, C, 2, 2)
+        if support:
+            return block
+        return torch.nn.functional.pad(block, (0, 2, 0, 2))  # velocities: zero rows and columns
+
+    def measurement_hessian(self, x, support=False, scale=None):
+        """Analytic second derivatives ``(..., m, k, k)`` (k = 8 positions with ``support``, else
+        16): :meth:`measurement_hessian_blocks` placed on the diagonal."""
+        return block_diagonal(self.measurement_hessian_blocks(x, support, scale))
 
     def measurement_jacobian(self, x):
         """Analytic Jacobian ``(..., 25, 16)``; zero for velocities."""

@@ -188,6 +188,37 @@ class StateSpaceModel(nn.Module):
         h = self.measure(x)
         return (h, H) if scale is None else (h * scale, H * scale)
 
+    def measurement_hessian(self, x: torch.Tensor, support: bool = False, scale=None) -> torch.Tensor:
+        """Second derivatives of h at ``x (..., d)``: ``(..., m, k, k)`` with entry ``[..., a, t, j]``
+        ``= d^2 h_a / dx_t dx_j`` over the :attr:`measurement_support` coordinates (``support``; all
+        d coordinates otherwise, k = d), multiplied by the scalar ``scale`` when given: the
+        derivative of :meth:`linearize_measurement`'s Jacobian along each coordinate, which GPFIS's
+        step Jacobian needs (:mod:`torchflow.flows.gpfis`). Default: forward-mode autodiff of that
+        Jacobian (``torch.func.jvp``, the k directions batched with ``vmap``); a model with analytic
+        second derivatives overrides it."""
+        from torch.func import jvp, vmap
+
+        idx = list(self.measurement_support) if support and self.measurement_support is not None else None
+        index = None if idx is None else torch.tensor(idx, device=x.device)
+        xs = x if index is None else x[..., index]
+        k = xs.shape[-1]
+
+        def jacobian(v):
+            return self.linearize_measurement(v if index is None else x.index_copy(-1, index, v), support=support)[1]
+
+        eye = torch.eye(k, dtype=x.dtype, device=x.device)
+        tangents = eye.reshape(k, *([1] * (x.dim() - 1)), k).expand(k, *x.shape[:-1], k)
+        dH = vmap(lambda t: jvp(jacobian, (xs,), (t,))[1], out_dims=-2)(tangents)
+        return dH if scale is None else dH * scale
+
+    def measurement_hessian_blocks(self, x: torch.Tensor, support: bool = False, scale=None) -> torch.Tensor:
+        """:meth:`measurement_hessian` as its diagonal blocks, ``(..., m, n_b, b, b)``: the k coordinates
+        fall in ``n_b`` consecutive groups of ``b`` (``k = n_b b``) and second derivatives across
+        groups are zero (e.g. one group per target when each measurement is a sum over targets).
+        Default: the dense Hessian as one block (``n_b = 1``); a model with that structure
+        overrides it (GPFIS's step Jacobian then reads ``n_b`` times fewer numbers)."""
+        return self.measurement_hessian(x, support, scale).unsqueeze(-3)
+
     def measurement_matrix(self) -> torch.Tensor:
         """``(m, d)`` matrix of a linear measurement (only when :attr:`linear_measurement`)."""
         raise NotImplementedError(f"{type(self).__name__} has no constant measurement matrix")

@@ -6,7 +6,8 @@ from __future__ import annotations
 from typing import Optional
 
 from ..flows import FlowPrior, GaussianMeasurement
-from ..flows.gpfis import ROOTS, gpfis_flow
+from .._checks import check_choice
+from ..flows.gpfis import JACOBIANS, ROOTS, gpfis_flow
 from ..schedules import LambdaSchedule, resolve_schedule
 from .._blocks import blockwise
 from .base import Proposal, Proposed
@@ -19,14 +20,17 @@ class GPFISProposal(Proposal):
         schedule: lambda grid (default: the exponential 29-step grid of the flows; the papers give
             no step-size control for GPFIS, MODELS.md §13).
         root: ``"cholesky"`` (default) or ``"symmetric"`` (:mod:`torchflow.flows.gpfis`).
+        jacobian: each step's Jacobian ``"analytic"`` (default: written out, with the model's
+            second derivatives) or ``"autodiff"`` (forward mode through the whole step); see
+            :func:`~torchflow.flows.gpfis.gpfis_flow`.
     """
 
-    def __init__(self, model, schedule: Optional[LambdaSchedule] = None, root: str = "cholesky"):
+    def __init__(self, model, schedule: Optional[LambdaSchedule] = None, root: str = "cholesky",
+                 jacobian: str = "analytic"):
         super().__init__(model)
-        if root not in ROOTS:
-            raise ValueError(f"root: expected one of {ROOTS}, got {root!r}")
+        self.root = check_choice("root", root, ROOTS)
+        self.jacobian = check_choice("jacobian", jacobian, JACOBIANS)
         self.schedule = resolve_schedule(schedule)
-        self.root = root
 
     def propose(self, particles, log_weights, estimate, z, carry, generator, *, chunk=None) -> Proposed:
         model = self.model
@@ -37,14 +41,14 @@ class GPFISProposal(Proposal):
         def block(x0, x_prev):
             log_q0 = model.transition_log_prob(x0, x_prev)
             prior = FlowPrior(model.transition_mean(x_prev), model.transition_scale_tril(x_prev))
-            x, log_det = gpfis_flow(meas, x0, prior, self.schedule, self.root)
+            x, log_det = gpfis_flow(meas, x0, prior, self.schedule, self.root, self.jacobian)
             return x, log_q0 - log_det
 
         x, log_q = blockwise(block, x0, x_prev, chunk=chunk)
         return Proposed(x, log_q, fallback=x0)
 
     def extra_repr(self) -> str:
-        return f"root={self.root!r}"
+        return f"root={self.root!r}, jacobian={self.jacobian!r}"
 
     def bytes_per_trial(self, n_particles):
         N = int(n_particles)
