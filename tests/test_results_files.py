@@ -1,6 +1,6 @@
 """Committed per-trial files behind numbers in experiments/RESULTS.md are reproduced by today's code.
 
-10 cases (7 files of seeds 000, 001, 003 and 004; one filter each, its first 1-10 trials). Each
+11 cases (8 files of seeds 000, 001, 003 and 004; one filter each, its first 1-10 trials). Each
 case reruns the first trials of a committed paper-table run (``trial_range``: the whole run's
 data and per-trial random streams, only the first trials filtered) with the command's settings,
 and compares them with the committed ``per_trial.csv`` row by row. A code change that moves a
@@ -53,6 +53,8 @@ CASES = {
     "seed003_table1_ekf": (["experiment=seed003_table1"], "ekf", "seed003_table1_10/per_trial.csv", "ekf", 10),
     "seed003_table1_pfpf_ledh": (["experiment=seed003_table1"], "pfpf_ledh", "seed003_table1_10/per_trial.csv",
                                  "pfpf_ledh", 1),
+    "seed003_table1_gpfis": (["experiment=seed003_table1", "trials=20"], "gpfis",
+                             "seed003_table1_20_gpfis_analytic/per_trial.csv", "gpfis", 1),
     # seed 004's clustered rows are not checked: their k-medoids choice is a discrete decision that
     # BLAS round-off flips, so they reproduce only at the same thread count (trial 0 matches with 1
     # thread, not with 2); the file's PF-PF(LEDH) row is checked instead
