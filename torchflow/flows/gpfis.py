@@ -61,10 +61,11 @@ def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPri
     broadcastable to ``(B, N, d, d)``); returns ``(x_1 (B, N, d), log|det dx_1/dx_0| (B, N))``.
 
     ``jacobian``: how each step's Jacobian is formed. ``"analytic"`` (default; the Cholesky root):
-    forward mode through the measurement's linearisation only (its ``dW/dx`` and ``dy/dx``), then the
-    step's derivative in closed form, every tangent a column of a few batched solves and products
-    (:func:`_cholesky_step_and_jacobian`); ``"autodiff"``: forward mode through the whole step (the
-    reference; the symmetric root always uses it). Both are exact; they differ by round-off.
+    the step's derivative in closed form, the measurement's ``dW/dx`` from the declared second
+    derivatives (:meth:`GaussianMeasurement.derivative`; forward mode through the whitened
+    linearisation alone when there are none), every tangent a column of a few batched products and
+    solves (:func:`_cholesky_step_and_jacobian`); ``"autodiff"``: forward mode through the whole step
+    (the reference; the symmetric root always uses it). Both are exact; they differ by round-off.
     """
     check_choice("root", root, ROOTS)
     check_choice("jacobian", jacobian, JACOBIANS)
@@ -139,7 +140,9 @@ def _cholesky_step_and_jacobian(measurement, x_now, xs, sup, C, C_inv, u0, lam0,
     * ``dK_i = K_i Psi_i`` with ``Psi_i`` the lower triangle of ``X_i = K_i^{-1} dM_i K_i^{-T}
       = lam_i N_i F_t N_i^T`` (``N_i = K_i^{-1} C^T``) with half its diagonal, so
       ``dT v = K_1^{-T} (Psi_0 - Psi_1)^T w`` with ``w = K_0^T (u - m_0)``; ``(Psi^T w)_a`` is row a
-      of X times w's entries on and after a (halved at a).
+      of X times w's entries on and after a (halved at a), i.e. ``lam_i sum_p N_i[a, p] (F_t V_i^T)[p, a]``
+      with ``V_i = U_w N_i`` (``U_w``: w on and above the diagonal, halved on it), so no ``k x k``
+      matrix per tangent is solved for.
 
     Then ``J = dm_1 + K_1^{-T} (K_0^T (C^{-1} - dm_0) + phi_0 - phi_1)``, ``phi_i = Psi_i^T w``, every
     tangent a column. The measurement's second derivatives enter once, through one product
