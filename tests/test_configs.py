@@ -16,7 +16,8 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 EXPERIMENTS = sorted(p.stem for p in (CONFIGS / "experiment").glob("*.yaml"))
 COMPONENTS = sorted(f"{p.parent.name}/{p.stem}" for g in ("filter", "flow", "model", "schedule")
                     for p in (CONFIGS / g).glob("*.yaml"))
-TDOA = {"filter/bs", "filter/pfi_d", "filter/pfi_s", "filter/pfi_os", "model/tdoa"}  # localisers: model=tdoa
+TDOA = {"filter/bs", "filter/pfi_d", "filter/pfi_s", "filter/pfi_os", "filter/pfi_os_coarse", "filter/pfi_os_a001",
+        "filter/pfi_os_a05", "model/tdoa"}  # localisers: model=tdoa
 SMALL = ["model.d=4", "n_particles=8"]
 
 
@@ -37,6 +38,21 @@ def test_experiment_config_builds_its_model_and_filters(name):
     model = instantiate(cfg.model)
     for key, fcfg in cfg.filter.items():
         assert instantiate(fcfg, model=model) is not None, (name, key)
+
+
+@pytest.mark.parametrize("name", [e for e in EXPERIMENTS if e != "seed002_stiffness_geometric"])
+def test_filter_override_selects_exactly_the_named_filters(name):
+    """``filter=[...]`` replaces an experiment's selection: every filter an experiment runs is in
+    the filter group (its other rows are group configs such as ``pfpf_clustered_k30``), so no row is
+    built that the command line did not name; the experiment's settings for the others stay as
+    settings only (no ``_target_``; the runner skips them with a message). Not
+    ``seed002_stiffness_geometric``: it sets its four filters' schedule group in its defaults list,
+    so Hydra refuses a selection without them ("Could not override ... No match")."""
+    local = name.startswith("seed002_table")
+    pick = "pfi_d" if local else "ekf"
+    cfg = _compose(f"experiment={name}", f"filter=[{pick}]")
+    built = sorted(k for k, v in cfg.filter.items() if "_target_" in v)
+    assert built == [pick], (name, built)
 
 
 @pytest.mark.parametrize("name", COMPONENTS)
