@@ -9,6 +9,9 @@ are stated for an H100/H200):
 * the bootstrap PF against PyDPF (``peer_pydpf_bpf.compare``: SensorNetwork d = 64, float32, 100
   trials x 10 steps) at every ``--bpf-ns``; goal: PyDPF's time / ours >= 1 at each N. PyDPF needs
   Python >= 3.12: without it the rows say ``skipped``;
+* GPFIS against PF-PF(LEDH) at ``--gpfis-trials`` trials (the same setting, ``--gpfis-steps``
+  steps): time per trial-step of each in one process; goal: GPFIS <= 5x PF-PF(LEDH) (issue 30's CPU
+  goal, recorded here for the GPU);
 * the CUDA contract tests (``pytest -k "cuda or fused"`` over the contract, graph and fused-kernel
   tests, in a subprocess): goal: all pass (on a machine without CUDA they skip: no verdict).
 
@@ -30,6 +33,7 @@ from . import harness as h
 from . import peer_pydpf_bpf as peer
 
 LEDH_GOALS = {100: 0.5, 500: 2.0}
+GPFIS_GOAL = 5.0
 FLAT = 1.05
 CUDA_TESTS = ["tests/flows/test_fused.py", "tests/test_cudagraphs.py", "tests/filters/test_contract.py",
               "tests/test_random.py", "tests/test_bad_inputs.py", "tests/test_philox_fused.py"]
@@ -40,13 +44,13 @@ def _sync(device):
         torch.cuda.synchronize(device)
 
 
-def ledh_rows(device, trials_list, particles, steps, dtype, reps, seed=0) -> list:
-    """PF-PF(LEDH) wall time per call of ``B`` trials (one chunk), each ``B`` of ``trials_list``."""
+def ledh_rows(device, trials_list, particles, steps, dtype, reps, seed=0, key="ledh", label="PF-PF(LEDH)") -> list:
+    """PF-PF(LEDH)'s (or ``key``'s) wall time per call of ``B`` trials (one chunk), each ``B`` of ``trials_list``."""
     model = AcousticTracking(sigma_w=0.1).to(dtype=dtype)
     traj, mean, cov = h.simulate(model, max(trials_list), steps, seed)  # on the CPU (its generator), then moved
     model = model.to(device=device)
     traj_obs, mean, cov = traj.observations.to(device), mean.to(device), cov.to(device)
-    f = h.make_filter("ledh", model, particles)
+    f = h.make_filter(key, model, particles)
     rows = []
     for B in trials_list:
         obs, m, c = traj_obs[:B], mean[:B], cov[:B]
@@ -61,8 +65,8 @@ def ledh_rows(device, trials_list, particles, steps, dtype, reps, seed=0) -> lis
             t0 = time.perf_counter()
             call()
             best = min(best, time.perf_counter() - t0)
-        goal = LEDH_GOALS.get(B)
-        rows.append(dict(name=f"PF-PF(LEDH) {B} x {particles} x {steps}", trials=B, wall=best,
+        goal = LEDH_GOALS.get(B) if key == "ledh" else None
+        rows.append(dict(name=f"{label} {B} x {particles} x {steps}", trials=B, wall=best,
                          per_ts=best / (B * steps), goal=goal, met=None if goal is None else best < goal))
         print(rows[-1], flush=True)
     return rows
@@ -79,16 +83,21 @@ def contract_tests(extra=()) -> dict:
 
 def run(argv=None) -> dict:
     a = h.options(__doc__, argv, dict(trials="2,4", particles=30, steps=3, bpf_ns="50,200", bpf_trials=4, bpf_steps=3,
-                                      reps=1, tests=False),
+                                      reps=1, tests=False, gpfis_trials=2, gpfis_steps=2),
                   device="cuda" if torch.cuda.is_available() else "cpu", trials="100,500", particles=500, steps=40,
                   dtype="float64", reps=2, bpf_ns="200,1000,10000,100000", bpf_trials=100, bpf_steps=10, bpf_d=64,
-                  tests=True)
+                  tests=True, gpfis_trials=100, gpfis_steps=5)
     device = torch.device(a.device)
     with h.session("bench_gpu", argv, device=device) as info:
         rows = ledh_rows(device, h.ints(a.trials, "--trials"), a.particles, a.steps, getattr(torch, a.dtype), a.reps)
         flat = rows[-1]["per_ts"] / rows[0]["per_ts"]
         rows.append(dict(name=f"PF-PF(LEDH) cost per trial-step, {rows[-1]['trials']} / {rows[0]['trials']} trials",
                          ratio=flat, goal=f"<= {FLAT}", met=flat <= FLAT if len(rows) > 1 else None))
+        pair = [ledh_rows(device, [a.gpfis_trials], a.particles, a.gpfis_steps, getattr(torch, a.dtype), a.reps,
+                          key=key, label=label)[0] for key, label in (("ledh", "PF-PF(LEDH)"), ("gpfis", "GPFIS"))]
+        vs = pair[1]["per_ts"] / pair[0]["per_ts"]
+        rows += [pair[1], dict(name=f"GPFIS / PF-PF(LEDH) per trial-step, {a.gpfis_trials} trials x {a.gpfis_steps} steps",
+                               ratio=vs, goal=f"<= {GPFIS_GOAL}x", met=vs <= GPFIS_GOAL)]
         bpf = []
         if peer.pydpf_available():
             for r in peer.compare(device, h.ints(a.bpf_ns, "--bpf-ns"), a.bpf_trials, a.bpf_steps, a.bpf_d, torch.float32,

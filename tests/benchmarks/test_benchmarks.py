@@ -180,8 +180,10 @@ def test_gpu_section_plumbing_on_the_cpu(tmp_path):
     res = run_all.run(["--device", "cpu", "--only", "gpu", "--quick", "--out", str(tmp_path / "all.md")])
     assert not res["failures"], res["failures"]
     rows = res["results"]["gpu"]["rows"]
-    ledh = [r for r in rows if "wall" in r]
+    ledh = [r for r in rows if "wall" in r and r["name"].startswith("PF-PF(LEDH)")]
     assert [r["trials"] for r in ledh] == [2, 4] and all(r["wall"] > 0 and r["goal"] is None for r in ledh)
+    gpfis = next(r for r in rows if r["name"].startswith("GPFIS / PF-PF(LEDH)"))
+    assert gpfis["ratio"] > 0 and gpfis["met"] == (gpfis["ratio"] <= bench_gpu.GPFIS_GOAL)
     flat = next(r for r in rows if "cost per trial-step" in r["name"])
     assert flat["ratio"] == pytest.approx(ledh[1]["per_ts"] / ledh[0]["per_ts"]) and flat["met"] == (flat["ratio"] <= 1.05)
     if sys.version_info < (3, 12):  # PyDPF needs Python >= 3.12
