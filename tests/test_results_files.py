@@ -1,6 +1,6 @@
 """Committed per-trial files behind numbers in experiments/RESULTS.md are reproduced by today's code.
 
-11 cases (8 files of seeds 000, 001, 003 and 004; one filter each, its first 1-10 trials). Each
+12 cases (9 files of seeds 000, 001, 003 and 004; one filter each, its first 1-10 trials). Each
 case reruns the first trials of a committed paper-table run (``trial_range``: the whole run's
 data and per-trial random streams, only the first trials filtered) with the command's settings,
 and compares them with the committed ``per_trial.csv`` row by row. A code change that moves a
@@ -44,6 +44,8 @@ CASES = {
                                  "seed000_table2_40/sw0.1/per_trial.csv", "pfpf_ledh", 1),
     "seed000_table2_sw0001_pfpf_gromov": (["experiment=seed000_table2", "model.sigma_w=0.001"], "pfpf_gromov",
                                           "seed000_table2_40/sw0.001/per_trial.csv", "pfpf_gromov", 1),
+    "seed000_table2_gpfis": (["experiment=seed000_table2", "trials=8", "inits_per_track=1"], "gpfis",
+                             "seed000_table2_40/gpfis_sw0.1/per_trial.csv", "gpfis", 1),
     "seed000_table2_sw0001_ekf": (["experiment=seed000_table2", "model.sigma_w=0.001"], "ekf",
                                   "seed000_table2_40/sw0.001/per_trial.csv", "ekf", 10),
     "seed001_table1_pfgpf": (["experiment=seed001_table1", "trials=100"], "pfgpf",
