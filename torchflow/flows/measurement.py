@@ -160,6 +160,7 @@ class GaussianMeasurement:
             return dH / LR.diagonal(dim1=-2, dim2=-1)[..., None, None, None]
         return linalg.solve_triangular(LR, dH.flatten(-3), upper=False).unflatten(-1, dH.shape[-3:])
 
+
 def whiten(model, points: torch.Tensor, z: torch.Tensor, support=None) -> Tuple[torch.Tensor, torch.Tensor]:
     """``(W, y)`` of the model's measurement at ``points`` (a convenience for tests and users)."""
     lin = GaussianMeasurement.from_model(model, z).at(points, support)
