@@ -77,6 +77,24 @@ def test_runner_float32_and_filter_seeds_independent_of_other_filters():
     assert a.summary[0]["mse"] == b.summary[1]["mse"]
 
 
+def test_runner_warmup_is_untimed_and_moves_no_number():
+    """``warmup=True`` (on a GPU: ``"auto"``) makes one untimed call per filter on its first trial
+    and reports its seconds as ``warmup_sec``; every trial's numbers stay those of a run without it
+    (each trial draws from its own stream). Off by default on the CPU; a bad value is refused."""
+    from torchflow.filters import ParticleFlowParticleFilter
+    model = AcousticTracking()
+    filters = lambda: {"bpf": BootstrapParticleFilter(model, n_particles=40),  # noqa: E731
+                       "ledh": ParticleFlowParticleFilter(model, flow="ledh", n_particles=20)}
+    plain = run_experiment(model, filters(), trials=3, steps=3, progress=False)
+    warm = run_experiment(model, filters(), trials=3, steps=3, progress=False, warmup=True)
+    assert all(r["warmup_sec"] is None for r in plain.summary)
+    assert all(r["warmup_sec"] > 0 for r in warm.summary)
+    drop = lambda rows: [{k: v for k, v in r.items() if k not in ("sec_per_step", "warmup_sec")} for r in rows]  # noqa: E731
+    assert drop(warm.per_trial) == drop(plain.per_trial) and drop(warm.summary) == drop(plain.summary)
+    with pytest.raises(ValueError, match="warmup"):
+        run_experiment(model, filters(), trials=1, steps=2, progress=False, warmup="yes")
+
+
 def test_runner_errors():
     model = SensorNetwork(d=16)
     with pytest.raises(ValueError, match="dtype"):

@@ -156,7 +156,7 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
         lost_threshold=cfg.metrics.lost_threshold, progress=cfg.progress, rng_backend=cfg.rng_backend,
         on_filter_done=lambda rows: writer.attempt("summary.csv", writers.write_csv, out / "summary.csv", rows,
                                                    SUMMARY_COLUMNS),  # partial results
-        store=store, shard=shard,
+        store=store, shard=shard, warmup=cfg.get("warmup", "auto"),
         trial_range=OmegaConf.to_container(trial_range) if OmegaConf.is_config(trial_range) else trial_range)
     if result is None:  # a rank other than 0 of a torchrun run: rank 0 writes the files
         return 0

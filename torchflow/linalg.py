@@ -22,36 +22,77 @@ def symmetrize(A: torch.Tensor) -> torch.Tensor:
     return 0.5 * (A + A.transpose(-1, -2))
 
 
+#: the batched jitter ladder's slots are at least this many (every matrix of a smaller batch has one)
+LADDER_MIN_SLOTS = 4096
+
+
 def safe_cholesky(A: torch.Tensor, *, max_tries: int = 6) -> torch.Tensor:
     """Lower Cholesky factor of ``A (..., d, d)``, adding diagonal jitter where it fails.
 
     Matrices that factor cleanly are untouched. A matrix that does not gets the smallest jitter
     ``eps * 10^k * mean(diag)`` (k = 0 .. ``max_tries`` - 1, ``eps`` the dtype's machine epsilon
     times 10) under which it factors; the ladder is factored in one batched call
-    ``(max_tries, ..., d, d)``, where the failed matrices get the jitter and the others none. On
-    a CUDA tensor that call is always made, so that no host read asks whether anything failed
-    (a read would stall the queue); on the CPU the failure flags are read first and the ladder
-    runs only when one failed (``torchflow.tuning`` ``batched_jitter_cpu=1``: always, as on CUDA).
-    The factor is the same either way.
+    ``(max_tries, c, d, d)`` for the failed matrices gathered into ``c`` slots.
+
+    On a CUDA tensor that call is always made, so that no host read asks whether anything failed
+    (a read would stall the queue). A batch of ``n`` matrices then has
+    ``c = max(min(n, LADDER_MIN_SLOTS), ceil(n / divisor))`` slots (``torchflow.tuning``
+    ``jitter_ladder_divisor``, default 16; 1: a slot per matrix), so a large batch pays
+    ``max_tries / divisor`` factorisations for the ladder instead of ``max_tries``. Failed matrices
+    beyond the slots (more than ``c`` in one call: a structurally singular covariance, say) take the
+    ladder's largest jitter in one more factorisation of the batch, which a large batch always makes.
+    On the CPU the failure flags are read first and the ladder runs only when one failed, with a
+    slot per failed matrix (``batched_jitter_cpu=1``: as on CUDA). The factor is the same either
+    way, but for the failed matrices beyond the slots.
 
     A matrix that fails every jitter gets a NaN factor: a filter's non-finite path then names the
     filter, step and trial (outside a filter, check the result with ``torch.isfinite``).
     """
     L, info = torch.linalg.cholesky_ex(A)
     failed = info > 0
-    if A.device.type != "cuda" and not tuning.get().batched_jitter_cpu and not bool(failed.any()):
-        return L  # the CPU: a host read costs nothing, the ladder max_tries factorisations
-    eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
+    d = A.shape[-1]
+    n = failed.numel()
+    if A.device.type != "cuda" and not tuning.get().batched_jitter_cpu:
+        n_failed = int(failed.sum())  # the CPU: a host read costs nothing, the ladder max_tries factorisations
+        if not n_failed:
+            return L
+        slots = n_failed
+    else:
+        slots = max(min(n, LADDER_MIN_SLOTS), -(-n // max(1, tuning.get().jitter_ladder_divisor)))
+    flat = failed.reshape(-1)
+    eye = torch.eye(d, dtype=A.dtype, device=A.device)
     base = 10.0 * torch.finfo(A.dtype).eps
-    scale = A.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(A.dtype).tiny)
     ladder = _jitter_ladder(base, max_tries, A.dtype, A.device)
-    add = ladder.reshape(-1, *([1] * failed.dim())) * torch.where(failed, scale, torch.zeros_like(scale))
-    L_j, info_j = torch.linalg.cholesky_ex(A.unsqueeze(0) + add[..., None, None] * eye)
-    ok = info_j == 0  # (max_tries, ...)
+    if slots < n:  # gather the failed matrices (in batch order) into the slots; empty slots point at n
+        pos = torch.cumsum(flat, 0) - 1
+        target = torch.where(flat & (pos < slots), pos, slots)
+        idx = torch.full((slots + 1,), n, dtype=torch.long, device=A.device)
+        idx.scatter_(0, target, torch.arange(n, device=A.device))
+        idx = idx[:slots]
+        used = idx < n
+        A_s = A.reshape(n, d, d).index_select(0, idx.clamp_max(n - 1))
+    else:
+        idx, used, A_s = None, flat, A.reshape(n, d, d)
+    scale = A_s.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(A.dtype).tiny)
+    add = ladder[:, None] * torch.where(used, scale, torch.zeros_like(scale))
+    L_j, info_j = torch.linalg.cholesky_ex(A_s.unsqueeze(0) + add[..., None, None] * eye)
+    ok = info_j == 0  # (max_tries, slots)
     first = torch.argmax(ok.to(torch.uint8), dim=0)  # the first jitter that factors (0 when none does)
-    L_first = torch.take_along_dim(L_j, first[None, ..., None, None], dim=0)[0]
-    L_first = torch.where(ok.any(0)[..., None, None], L_first, torch.full_like(L_first, float("nan")))
-    return torch.where(failed[..., None, None], L_first, L)
+    L_first = torch.take_along_dim(L_j, first[None, :, None, None], dim=0)[0]
+    L_first = torch.where(ok.any(0)[:, None, None], L_first, torch.full_like(L_first, float("nan")))
+    if idx is None:
+        return torch.where(failed[..., None, None], L_first.reshape(L.shape), L)
+    # beyond the slots: the largest jitter (the others get none: their factor is discarded)
+    over = flat & (pos >= slots)
+    A_f = A.reshape(n, d, d)
+    top = ladder[-1] * torch.where(over, A_f.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(A.dtype).tiny),
+                                   torch.zeros((), dtype=A.dtype, device=A.device))
+    L_top, info_top = torch.linalg.cholesky_ex(A_f + top[:, None, None] * eye)
+    nan = torch.full((), float("nan"), dtype=L.dtype, device=L.device)
+    out = torch.where(over[:, None, None], torch.where((info_top > 0)[:, None, None], nan, L_top), L.reshape(n, d, d))
+    out = torch.cat([out, L.new_zeros(1, d, d)])
+    out.index_copy_(0, torch.where(used, idx, n), L_first)  # empty slots write the spare last row
+    return out[:n].reshape(L.shape)
 
 
 def small_cholesky(A: torch.Tensor) -> torch.Tensor:

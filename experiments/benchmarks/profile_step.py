@@ -6,7 +6,10 @@ ops (and, on a GPU, the kernels) that take it, for one filter on acoustic tracki
 
 Timed: ``--steps`` time steps after a warm-up call of 2 steps, best of ``--reps`` calls; then one
 profiled call (``--profile-steps``), its ops sorted by device time on CUDA (self CPU time on the CPU),
-the top ``--top`` rows (0: timing only). ``--graphs 0`` runs the flows' loop eagerly (``tuning.cuda_graphs``).
+the top ``--top`` rows (0: timing only). ``--graphs 0`` runs the flows' loop eagerly (``tuning.cuda_graphs``); ``--fused`` picks the fused
+pseudo-step (``tuning.fused_flows``: 0 torch, 1 the fused kernel, with ``--rows-warps`` warps of 32
+particles per program; ``--fused-measurement`` 0/1: the acoustic measurement linearised by torch or
+inside the kernel).
 """
 from __future__ import annotations
 
@@ -24,7 +27,8 @@ from . import harness as h
 def run(argv=None) -> dict:
     a = h.options(__doc__, argv, dict(trials=2, particles=50, steps=3, profile_steps=2, top=10, reps=1),
                   filter="ledh", device="cpu", trials=100, particles=500, steps=10, profile_steps=3, reps=2,
-                  top=25, graphs=1, dtype="float64", threads=2)
+                  top=25, graphs=1, dtype="float64", threads=2, fused=-1, rows_warps=0,
+                  fused_measurement=-1)
     torch.set_num_threads(a.threads)
     device, dtype = torch.device(a.device), getattr(torch, a.dtype)
     model = AcousticTracking().to(device=device, dtype=dtype)
@@ -38,7 +42,15 @@ def run(argv=None) -> dict:
         with torch.no_grad():
             f(traj.observations[:, :steps], mean, cov, torch.Generator(device=device).manual_seed(1))
         sync()
-    with tuning.tuned(cuda_graphs=int(a.graphs)):
+    knobs = dict(cuda_graphs=int(a.graphs))
+    if a.fused >= 0:
+        knobs["fused_flows"] = int(a.fused)
+    if a.fused_measurement >= 0:
+        knobs["fused_measurement"] = int(a.fused_measurement)
+    if a.rows_warps:
+        from torchflow.flows import fused
+        fused.ROWS_WARPS = int(a.rows_warps)
+    with tuning.tuned(**knobs):
         call(2)
         best = float("inf")
         for _ in range(a.reps):
@@ -51,7 +63,9 @@ def run(argv=None) -> dict:
                 call(a.profile_steps)
     per = best / (a.trials * a.steps)
     print(f"{a.filter}: {a.trials} trials x {a.particles} particles on {device} ({a.dtype}, cuda_graphs={a.graphs}, "
-          f"fused_flows={tuning.get().fused_flows}): {per:.3g} s per trial-step, {best / a.steps:.3g} s per time step")
+          f"fused_flows={knobs.get('fused_flows', tuning.get().fused_flows)}, "
+          f"fused_measurement={knobs.get('fused_measurement', tuning.get().fused_measurement)}, "
+          f"rows_warps={a.rows_warps or 'default'}): {per:.3g} s per trial-step, {best / a.steps:.3g} s per time step")
     if not a.top:
         return dict(sec_per_trial_step=per)
     key = "self_device_time_total" if device.type == "cuda" else "self_cpu_time_total"

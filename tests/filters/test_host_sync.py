@@ -84,3 +84,44 @@ def test_safe_cholesky_jitter_ladder(batched):
     with tuning.tuned(batched_jitter_cpu=batched), CountSyncs() as counts:
         assert torch.equal(linalg.safe_cholesky(clean), torch.linalg.cholesky(clean))
     assert len(counts.syncs) == (0 if batched else 1)
+
+
+def test_safe_cholesky_ladder_slots(monkeypatch):
+    """The batched ladder (as on CUDA) gathers the failed matrices into
+    ``max(min(n, LADDER_MIN_SLOTS), ceil(n / divisor))`` slots: under the slots, the factor of the
+    whole-batch ladder (divisor 1) bit for bit and no host read; failed matrices beyond the slots
+    (in batch order) take the ladder's largest jitter, and NaN where even that fails."""
+    monkeypatch.setattr(linalg, "LADDER_MIN_SLOTS", 64)
+    torch.manual_seed(1)
+    n, d = 300, 4
+    X = torch.randn(n, d, d, dtype=torch.float64)
+    A = X @ X.transpose(-1, -2) + torch.eye(d, dtype=torch.float64)
+    eye = torch.eye(d, dtype=torch.float64)
+    v = torch.ones(d, dtype=torch.float64)
+    bad = torch.outer(v, v) - 1e-13 * eye  # repaired by a jitter of the ladder (not the first)
+    some = [3, 77, 150, 299]
+    A_some = A.clone()
+    A_some[some] = bad
+    with tuning.tuned(batched_jitter_cpu=1, jitter_ladder_divisor=1):
+        whole = linalg.safe_cholesky(A_some)
+    with tuning.tuned(batched_jitter_cpu=1), CountSyncs() as counts:  # 64 slots for 300 matrices
+        slotted = linalg.safe_cholesky(A_some)
+    assert len(counts.syncs) == 0 and torch.equal(slotted, whole) and bool(torch.isfinite(slotted).all())
+    assert torch.equal(slotted, linalg.safe_cholesky(A_some))  # the CPU default: a slot per failed matrix
+    many = A.clone()
+    many[:70] = bad  # 70 failures, 64 slots
+    many[69] = -eye  # beyond the slots and beyond repair
+    with tuning.tuned(batched_jitter_cpu=1):
+        L = linalg.safe_cholesky(many)
+    assert torch.equal(L[:64], whole[3:4].expand(64, d, d))  # the smallest jitter that works
+    top = 10.0 * torch.finfo(torch.float64).eps * 10.0 ** 5 * bad.diagonal().abs().mean()
+    assert torch.equal(L[64:69], torch.linalg.cholesky(bad + top * eye).expand(5, d, d))  # the largest
+    assert not torch.equal(L[64], L[0])
+    assert bool(torch.isnan(L[69]).all()) and torch.equal(L[70:], torch.linalg.cholesky(A[70:]))
+    with tuning.tuned(batched_jitter_cpu=1, jitter_ladder_divisor=4):  # 75 slots: all repaired alike
+        L = linalg.safe_cholesky(many)
+    assert torch.equal(L[:69], whole[3:4].expand(69, d, d)) and bool(torch.isnan(L[69]).all())
+    monkeypatch.setattr(linalg, "LADDER_MIN_SLOTS", 4096)  # the default: a batch of 300 has a slot each
+    with tuning.tuned(batched_jitter_cpu=1):
+        L = linalg.safe_cholesky(many)
+    assert torch.equal(L[:69], whole[3:4].expand(69, d, d))

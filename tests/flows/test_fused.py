@@ -20,8 +20,10 @@ CHECK = textwrap.dedent('''
     from torchflow.models import AcousticTracking, LinearGaussian
     from torchflow.schedules import ExponentialSchedule
     from torchflow.flows import integrate as I
+    from torchflow.flows import fused
 
     device = sys.argv[1]
+    fused.ROWS_WARPS = 1  # 32 particles per program
     def case(model, B, N, dtype, shared_cov, flow):
         g = torch.Generator().manual_seed(0)
         model = model.to(dtype=dtype)
@@ -33,11 +35,18 @@ CHECK = textwrap.dedent('''
         prior = FlowPrior((x + 0.1).to(device), torch.linalg.cholesky(P).to(device))
         model, x, z = model.to(device), x.to(device), traj.observations[:, 1].to(device)
         with torch.no_grad():
-            fusable = I._fusable(flow, I.GaussianMeasurement.from_model(model, z), x,
-                                 d if model.measurement_support is None else len(model.measurement_support))
+            meas = I.GaussianMeasurement.from_model(model, z)
+            k = d if model.measurement_support is None else len(model.measurement_support)
+            fusable = I._fusable(flow, meas, x, k)
+            inside = int(sys.argv[2])  # 1: the kernel linearises the model itself (acoustic)
+            if inside:
+                meas.prepare(x)
+                fusable = fusable and I._measured_inside(meas, torch.arange(k), k) is not None
             with tuning.tuned(fused_flows=0):
                 ref = integrate_flow(flow, model, x, z, prior, ExponentialSchedule(3, 1.2), points="particle")
-            out = integrate_flow(flow, model, x, z, prior, ExponentialSchedule(3, 1.2), points="particle")
+            with tuning.tuned(fused_measurement=inside):
+                out = integrate_flow(flow, model, x, z, prior, ExponentialSchedule(3, 1.2),
+                                     points="particle")
         err = {k: ((getattr(out, k) - getattr(ref, k)).abs().max() / getattr(ref, k).abs().max().clamp_min(1)).item()
                for k in ("particles", "log_det", "aux")}
         return dict(fusable=fusable, **err)
@@ -45,18 +54,21 @@ CHECK = textwrap.dedent('''
     H = torch.randn(2, 3, dtype=torch.float64)
     lg = lambda: LinearGaussian(0.9 * torch.eye(3, dtype=torch.float64), 0.5 * torch.eye(3, dtype=torch.float64), H,
                                 0.2 * torch.eye(2, dtype=torch.float64))
+    only_acoustic = int(sys.argv[2]) == 1
     res = {
         "acoustic": case(AcousticTracking(), 2, 3, torch.float64, False, LEDHFlow()),
         "acoustic shared P": case(AcousticTracking(), 2, 3, torch.float64, True, LEDHFlow()),
         "acoustic float32": case(AcousticTracking(), 2, 3, torch.float32, False, LEDHFlow()),
-        "linear, shared W, EDH at particles": case(lg(), 2, 3, torch.float64, False, EDHFlow()),
+        **({} if only_acoustic else {"linear, shared W, EDH at particles": case(lg(), 2, 3, torch.float64, False,
+                                                                                  EDHFlow())}),
+        "acoustic, 40 particles (two programs of 32)": case(AcousticTracking(), 2, 20, torch.float64, False, LEDHFlow()),
     }
     print("RESULT" + json.dumps(res))
 ''')
 
 
-def _check(device, env=None):
-    out = subprocess.run([sys.executable, "-c", CHECK, device], capture_output=True, text=True, cwd=ROOT,
+def _check(device, inside, env=None):
+    out = subprocess.run([sys.executable, "-c", CHECK, device, str(inside)], capture_output=True, text=True, cwd=ROOT,
                          env={**os.environ, **(env or {})}, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
     return json.loads(out.stdout.split("RESULT")[-1])
@@ -70,9 +82,14 @@ def _assert_close(res, tol64, tol32):
             assert r[k] < tol, f"{name}: {k} differs from the torch path by {r[k]:.2e} (relative)"
 
 
-def test_fused_step_matches_torch_in_triton_interpreter():
+#: ``tuning.fused_measurement``: 0 the model's linearisation in torch, 1 inside the kernel (acoustic)
+KERNELS = pytest.mark.parametrize("inside", [0, 1], ids=["measurement in torch", "measurement inside"])
+
+
+@KERNELS
+def test_fused_step_matches_torch_in_triton_interpreter(inside):
     pytest.importorskip("triton")
-    _assert_close(_check("cpu", {"TRITON_INTERPRET": "1"}), 1e-11, 1e-4)
+    _assert_close(_check("cpu", inside, {"TRITON_INTERPRET": "1"}), 1e-11, 1e-4)
 
 
 def test_not_fused_without_the_interpreter_on_cpu():
@@ -87,6 +104,7 @@ def test_not_fused_without_the_interpreter_on_cpu():
 
 
 @cuda
-def test_fused_step_matches_torch_on_cuda():
+@KERNELS
+def test_fused_step_matches_torch_on_cuda(inside):
     pytest.importorskip("triton")
-    _assert_close(_check("cuda"), 1e-11, 1e-4)
+    _assert_close(_check("cuda", inside), 1e-11, 1e-4)

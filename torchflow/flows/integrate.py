@@ -140,12 +140,18 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
     tracked = [mu] if track else []
     log_det = torch.zeros(B, L, dtype=particles.dtype, device=particles.device)
     fuse = per_particle and not track and not gaussian_image and _fusable(flow, measurement, particles, k)
-    if fuse:  # one kernel per pseudo-step (torchflow.flows.fused); the linearisation stays in torch
+    if fuse:  # one kernel per pseudo-step (torchflow.flows.fused); the linearisation in torch, or in it
         lams64, epss64 = lam_all.to(torch.float64), eps_all.to(torch.float64)
         eta, aux = eta.contiguous(), aux.contiguous()
+        inside = _measured_inside(measurement, prior.support, k)
     eps_steps, lam_steps = eps_all.unbind(0), lam_all.unbind(0)  # one op for all the steps' 0-d views
     for j in range(len(eps_all)):
         eps, lam = eps_steps[j], lam_steps[j]
+        if fuse and inside is not None:
+            eta, aux = fused.dh_particle_step(None, measurement._z_scaled, prior.cols, prior.cols_support, prior.cov_cols,
+                                              prior.mean, prior.support, eta, aux, log_det, lams64, epss64, j,
+                                              measure=inside, inv_sigma=measurement._inv_sigma)
+            continue
         if fuse:
             lin = measurement.at(aux, prior.support)
             eta, aux = fused.dh_particle_step(lin.W, lin.y, prior.cols, prior.cols_support, prior.cov_cols, prior.mean,
@@ -208,6 +214,17 @@ def _fusable(flow, measurement, particles, k) -> bool:
     m, d = measurement.z.shape[-1], particles.shape[-1]
     bm, bk, bd = (fused.tile(x) for x in (m, k, d))
     return bm * bk * bk <= 16384 and bd * bk <= 4096 and particles.dtype in (torch.float32, torch.float64)
+
+
+def _measured_inside(measurement, support, k):
+    """The :class:`~torchflow.flows.fused.FusedMeasurement` the fused kernel linearises itself
+    (``tuning`` ``fused_measurement=1``, a model that declares one, a prepared scalar R, its pairs
+    of position coordinates as the support), else ``None``."""
+    fm = measurement.fused
+    if (fm is None or not tuning.get().fused_measurement or measurement._inv_sigma is None
+            or support is None or k % 2 or measurement.z.shape[-1] != fm.sensors.shape[0]):
+        return None
+    return fm
 
 
 def _graph_eligible(flow, particles) -> bool:

@@ -61,12 +61,15 @@ class GaussianMeasurement:
             derivatives as diagonal blocks
             (:meth:`~torchflow.models.StateSpaceModel.measurement_hessian_blocks`), for
             :meth:`derivative`; only for a constant R (``None``: not available).
+        fused: the model's :class:`~torchflow.flows.fused.FusedMeasurement` (its measurement in
+            the terms of the fused GPU pseudo-step, :meth:`~torchflow.models.StateSpaceModel.fused_measurement`),
+            or ``None``.
     """
 
     def __init__(self, z: torch.Tensor, linearise: Callable, scale_tril: Callable, noise: str,
                  matrix: Optional[torch.Tensor] = None, measure: Optional[Callable] = None,
                  support: Optional[Sequence[int]] = None, diagonal: bool = False,
-                 hessian: Optional[Callable] = None):
+                 hessian: Optional[Callable] = None, fused=None):
         if noise not in ("scalar", "diagonal", "dense"):
             raise ValueError(f"noise: expected 'scalar', 'diagonal' or 'dense', got {noise!r}")
         self.z, self.linearise, self.scale_tril, self.noise = z, linearise, scale_tril, noise
@@ -74,6 +77,7 @@ class GaussianMeasurement:
         self.support = None if support is None else tuple(support)
         self.diagonal = bool(diagonal) and self.support is None
         self.hessian = hessian
+        self.fused = fused
         self._inv_sigma = None  # 1 / sigma of a "scalar" R (declared constant), set by prepare()
         self._z_scaled = None  # z / sigma (B, m), set by prepare()
 
@@ -91,7 +95,8 @@ class GaussianMeasurement:
                    matrix=model.measurement_matrix() if linear else None, measure=model.measure if linear else None,
                    support=model.measurement_support,
                    diagonal=getattr(model, "measurement_jacobian_diagonal", False) and not linear,
-                   hessian=model.measurement_hessian_blocks if constant_r and not linear else None)
+                   hessian=model.measurement_hessian_blocks if constant_r and not linear else None,
+                   fused=model.fused_measurement() if noise == "scalar" and not linear else None)
 
     def _scalar_inv_sigma(self, points):
         return 1 / self.scale_tril(points).diagonal(dim1=-2, dim2=-1)[..., 0]  # 0-d: "scalar" R is constant

@@ -170,6 +170,12 @@ class AcousticTracking(StateSpaceModel):
         psi = self.psi if scale is None else self.psi * scale  # fold the scale into Psi: free
         return psi * inv.sum(-1), self._support_jacobian(dx, dy, r, inv, psi)
 
+    def fused_measurement(self):
+        """``z_i = Psi sum_c 1 / (|p_c - s_i| + d0)``: the fused GPU pseudo-step's kind 1, so
+        PF-PF(LEDH)'s particle-per-thread kernel linearises it in registers."""
+        from ..flows.fused import FusedMeasurement
+        return FusedMeasurement(1, self.sensors, self.psi, self.d0)
+
     def measurement_hessian_blocks(self, x, support=False, scale=None):
         """Analytic second derivatives as one block per target, ``(..., m, C, b, b)`` (``b = 2``
         positions with ``support``, else ``b = 4`` with zero velocity rows): per sensor and target

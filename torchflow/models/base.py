@@ -219,6 +219,14 @@ class StateSpaceModel(nn.Module):
         overrides it (GPFIS's step Jacobian then reads ``n_b`` times fewer numbers)."""
         return self.measurement_hessian(x, support, scale).unsqueeze(-3)
 
+    def fused_measurement(self):
+        """The measurement in the terms of the fused GPU pseudo-step of EDH/LEDH
+        (:class:`torchflow.flows.fused.FusedMeasurement`), which then linearises it inside the
+        kernel instead of reading a ``(B, N, m, k)`` Jacobian per pseudo-step; ``None`` (default):
+        the model's :meth:`linearize_measurement`. A model that overrides it must give the same
+        measurement (``tests/flows/test_fused.py`` checks the acoustic model's)."""
+        return None
+
     def measurement_matrix(self) -> torch.Tensor:
         """``(m, d)`` matrix of a linear measurement (only when :attr:`linear_measurement`)."""
         raise NotImplementedError(f"{type(self).__name__} has no constant measurement matrix")

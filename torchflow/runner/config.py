@@ -12,7 +12,7 @@ from typing import List, Mapping, Optional, Sequence
 
 from omegaconf import OmegaConf
 
-from .plan import ConfigError, require, check_metric_settings, check_rng_backend, check_seed
+from .plan import ConfigError, require, check_metric_settings, check_rng_backend, check_seed, check_warmup
 from .writers import RESULT_FILES
 
 _CHECKOUT = Path(__file__).resolve().parents[2]
@@ -120,6 +120,7 @@ def check_config(cfg: Mapping, choices: Mapping[str, Optional[str]]) -> None:
         require(isinstance(cfg.get(key), bool), key, "true or false", cfg.get(key))
     check_seed(cfg.get("seed"))
     check_rng_backend(cfg.get("rng_backend"))
+    check_warmup(cfg.get("warmup", "auto"))
     m = cfg.get("metrics") or {}
     check_metric_settings(ospa_cutoff=m.get("ospa_cutoff"), ospa_order=m.get("ospa_order"),
                           lost_threshold=m.get("lost_threshold"))

@@ -20,7 +20,7 @@ from ..models.base import StateSpaceModel, Trajectory
 from ..random import TrialStreams
 from .checkpoint import CHUNK_FIELDS, ChunkStore
 from .distributed import Shard
-from .plan import ConfigError, RunPlan, check_metric_settings, check_settings, make_plan
+from .plan import ConfigError, RunPlan, check_metric_settings, check_settings, check_warmup, make_plan
 from .score import SUMMARY_COLUMNS, ExperimentResult, make_scorer, score_filter
 
 log = logging.getLogger("torchflow.runner")
@@ -63,12 +63,14 @@ STOP = StopRequest()
 @dataclass
 class Outcome:
     """What one filter's execution produced on this process (after gathering: on rank 0, all ranks').
-    ``error``: ``"Type: message"`` when the filter failed; ``where``: ``"chunk i of n (trials a..b)"``."""
+    ``error``: ``"Type: message"`` when the filter failed; ``where``: ``"chunk i of n (trials a..b)"``;
+    ``warmup``: seconds of the untimed warm-up call (``None``: none made)."""
 
     chunks: List[dict] = field(default_factory=list)
     error: Optional[str] = None
     where: Optional[str] = None
     interrupted: bool = False
+    warmup: Optional[float] = None
 
 
 def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None) -> dict:
@@ -95,6 +97,23 @@ def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None) -> 
     return out
 
 
+def warm_up(f: Filter, plan: RunPlan, s: int) -> float:
+    """One untimed call of ``f`` on trial ``s``'s first two steps (its own stream, discarded), so
+    that the timed chunks do not pay the process's one-time costs (a GPU's kernel compilation and
+    loading, library handles, CUDA graph capture); its wall seconds."""
+    st, traj = plan.settings, plan.traj
+    steps = min(2, traj.observations.shape[1])
+    mask = {"mask": traj.mask[s:s + 1, :steps]} if getattr(traj, "mask", None) is not None else {}
+    sync = torch.cuda.synchronize if st.device.type == "cuda" else (lambda: None)
+    sync()
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        f(traj.observations[s:s + 1, :steps], plan.mean0[s:s + 1], plan.cov0[s:s + 1],
+          TrialStreams(st.seed, range(s, s + 1), key=f.stream_name, backend=st.rng_backend), **mask)
+    sync()
+    return time.perf_counter() - t0
+
+
 def _one_chunk(f, name, plan, s, e, store, bar) -> dict:
     """A chunk from the store (saved with these or, resuming, other boundaries) or computed and saved."""
     steps, meta = plan.settings.steps, plan.meta(f)
@@ -113,13 +132,21 @@ def _one_chunk(f, name, plan, s, e, store, bar) -> dict:
 
 
 def execute(f: Filter, name: str, plan: RunPlan, *, store: Optional[ChunkStore] = None, progress=False,
-            desc="") -> Outcome:
-    """Run ``f`` over this rank's chunks (a tqdm bar on rank 0 with ``progress``); the ranks' outcome."""
+            desc="", warmup: bool = False) -> Outcome:
+    """Run ``f`` over this rank's chunks (a tqdm bar on rank 0 with ``progress``); the ranks' outcome.
+    ``warmup``: first an untimed call on one trial (:func:`warm_up`)."""
     mine = plan.shard.mine(plan.trial_chunks(plan.chunks[name]))
     bar = tqdm(total=sum(e - s for s, e in mine) * plan.settings.steps, unit="trial-step", leave=False,
                dynamic_ncols=True, desc=desc) if progress and plan.shard.is_main else None
     out, i = Outcome(), -1
     try:
+        if warmup and mine:
+            try:
+                out.warmup = warm_up(f, plan, mine[0][0])
+            except Exception as err:  # noqa: BLE001 - reported as the filter's failure, where it happened
+                out.error, out.where = f"{type(err).__name__}: {err}", f"the warm-up call (trial {mine[0][0]})"
+                log.error("filter %s failed in %s: %s\n%s", name, out.where, out.error, traceback.format_exc().rstrip())
+                mine = []
         for i, (s, e) in enumerate(mine):
             STOP.check()
             out.chunks.append(_one_chunk(f, name, plan, s, e, store, bar))
@@ -149,7 +176,7 @@ def gather_outcome(out: Outcome, plan: RunPlan) -> Outcome:
         return Outcome(interrupted=interrupted)
     failed = next((p for p in parts if p[1]), (None,) * 4)
     chunks = sorted((c for p in parts for c in p[0]), key=lambda c: c["start"])
-    return Outcome(chunks, failed[1], failed[3], interrupted)
+    return Outcome(chunks, failed[1], failed[3], interrupted, out.warmup)
 
 
 def run_experiment(
@@ -159,6 +186,7 @@ def run_experiment(
     ospa_order: float = 1.0, lost_threshold: float = 2.0, progress: bool = True, rng_backend: str = "auto",
     on_filter_done: Optional[Callable[[List[dict]], None]] = None, store: Optional[ChunkStore] = None,
     shard: Optional[Shard] = None, trial_range: Optional[Sequence[int]] = None, simulator: Optional[Callable] = None,
+    warmup: Union[str, bool] = "auto",
 ) -> Optional[ExperimentResult]:
     """Simulate ``trials`` trajectories of ``steps`` steps once (``model.n_steps``, where the model
     has one, sets it) and run every filter of ``filters`` (``{name: filter holding model}``) on the
@@ -173,7 +201,11 @@ def run_experiment(
     :class:`~torchflow.runner.checkpoint.ChunkStore`. ``shard``: this process's
     :class:`~torchflow.runner.distributed.Shard` (ranks other than 0 return ``None``).
     ``trial_range``: ``(start, stop)``: simulate every trial, run and score only these.
-    ``simulator``: replaces :func:`~torchflow.runner.plan.simulate`.
+    ``simulator``: replaces :func:`~torchflow.runner.plan.simulate`. ``warmup``: before each
+    filter's timed chunks, one untimed call on its first trial's first two steps (its numbers
+    discarded; every trial's stream is its own, so no result moves), so that ``sec_per_step`` is
+    the steady-state compute time and the one-time costs (on a GPU, compiling and loading kernels:
+    seconds) are reported apart as ``warmup_sec``; ``"auto"``: on a GPU only.
 
     A filter that raises does not stop the run (its row gets the error, ``result.failures`` where);
     Ctrl-C (:data:`STOP`) keeps the finished filters. A bad argument raises
@@ -186,13 +218,15 @@ def run_experiment(
     s = check_settings(trials=trials, steps=getattr(model, "n_steps", steps), seed=seed, chunk_size=chunk_size,
                        inits_per_track=inits_per_track, memory_budget_gb=memory_budget_gb, device=device, dtype=dtype,
                        rng_backend=rng_backend, trial_range=trial_range)
+    check_warmup(warmup)
     metric_settings = check_metric_settings(ospa_cutoff=ospa_cutoff, ospa_order=ospa_order,
                                             lost_threshold=lost_threshold)
     plan = make_plan(model, filters, s, shard, simulator)
     scorer = make_scorer(model, plan, **metric_settings)
     res = ExperimentResult([], [], [])
     for i, (name, f) in enumerate(filters.items()):
-        out = execute(f, name, plan, store=store, progress=progress, desc=f"[{i + 1}/{len(filters)}] {name}")
+        out = execute(f, name, plan, store=store, progress=progress, desc=f"[{i + 1}/{len(filters)}] {name}",
+                      warmup=s.device.type == "cuda" if warmup == "auto" else warmup)
         res.interrupted = out.interrupted
         if plan.shard.is_main:
             row = {**dict.fromkeys(SUMMARY_COLUMNS), "filter": name, "n_particles": getattr(f, "n_particles", None),
@@ -204,6 +238,7 @@ def run_experiment(
                 row["error"], res.failures[name] = out.error, out.where
             else:  # sec_per_step: compute time (a loaded chunk: its original time) per trial-step
                 row["sec_per_step"] = sum(float(c["elapsed"]) for c in out.chunks) / (s.n_run * s.steps)
+                row["warmup_sec"] = out.warmup
                 trial_rows, step_rows, res.examples[name] = score_filter(scorer, f, name, row, out.chunks, s.steps)
                 res.per_trial += trial_rows
                 res.per_step += step_rows

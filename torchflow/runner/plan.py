@@ -65,6 +65,11 @@ def check_seed(seed) -> int:
     return seed
 
 
+def check_warmup(warmup) -> None:
+    """``warmup``: ``"auto"``, ``True`` or ``False`` (see :func:`~torchflow.runner.run_experiment`)."""
+    require(warmup == "auto" or isinstance(warmup, bool), "warmup", "auto, true or false", warmup)
+
+
 def check_rng_backend(rng_backend) -> str:
     require(rng_backend in RNG_BACKENDS, "rng_backend", f"one of {', '.join(RNG_BACKENDS)}", rng_backend)
     return rng_backend

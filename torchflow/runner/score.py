@@ -16,7 +16,7 @@ from .plan import RunPlan, filter_chunk
 SUMMARY_COLUMNS = [
     "filter", "n_particles", "trials", "steps", "mse", "omat", "omat_kept_mean", "omat_kept_sd",
     "ospa", "declared", "underflows", "ess", "g_eff", "log_evidence", "log_evidence_relmse", "lost_tracks", "repaired",
-    "sec_per_step", "error",
+    "sec_per_step", "warmup_sec", "error",
 ]
 
 
