@@ -122,3 +122,30 @@ def test_fused_kernel_keeps_each_particle_in_one_thread_on_sm90(inside):
     r = measure(lin=inside, warps=1, arch=90)
     assert r["shuffles"] == 0, r
     assert r["spill_stores"] < 4096 and r["registers"] <= 255, r
+
+
+def test_which_measurements_the_kernel_linearises_itself():
+    """Only a model that declares its measurement in the kernel's terms (acoustic tracking, not a
+    subclass that changes it), with its scalar R prepared and ``tuning.fused_measurement`` on."""
+    from torchflow import tuning
+    from torchflow.flows import integrate as I
+    from torchflow.models import AcousticTracking, LinearGaussian
+
+    class Moved(AcousticTracking):  # another measurement: the kernel must not compute the parent's
+        def measure(self, x):
+            return super().measure(x) + 1.0
+
+    z = torch.zeros(2, 25, dtype=torch.float64)
+    x = torch.zeros(2, 3, 16, dtype=torch.float64)
+    sup = torch.tensor(AcousticTracking().measurement_support)
+    meas = I.GaussianMeasurement.from_model(AcousticTracking(), z)
+    assert I._measured_inside(meas, sup, 8) is None  # not prepared: no 1 / sigma yet
+    meas.prepare(x)
+    assert I._measured_inside(meas, sup, 8).kind == 1
+    with tuning.tuned(fused_measurement=0):
+        assert I._measured_inside(meas, sup, 8) is None
+    assert I._measured_inside(meas, None, 8) is None  # no declared support
+    assert Moved().fused_measurement() is None
+    lg = LinearGaussian(torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64),
+                        torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64))
+    assert I.GaussianMeasurement.from_model(lg, torch.zeros(1, 2, dtype=torch.float64)).fused is None

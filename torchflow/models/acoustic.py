@@ -172,7 +172,12 @@ class AcousticTracking(StateSpaceModel):
 
     def fused_measurement(self):
         """``z_i = Psi sum_c 1 / (|p_c - s_i| + d0)``: the fused GPU pseudo-step's kind 1, so
-        PF-PF(LEDH)'s particle-per-thread kernel linearises it in registers."""
+        PF-PF(LEDH)'s kernel linearises it in registers. ``None`` for a subclass that changes the
+        measurement or its support (the kernel would compute this model's, not the subclass's)."""
+        cls = type(self)
+        if any(getattr(cls, name) is not getattr(AcousticTracking, name)
+               for name in ("measure", "linearize_measurement", "measurement_support", "measurement_scale_tril")):
+            return None
         from ..flows.fused import FusedMeasurement
         return FusedMeasurement(1, self.sensors, self.psi, self.d0)
 
