@@ -3,6 +3,7 @@ and the fused Philox draws (:mod:`torchflow.random`). Triton is an optional depe
 of PyTorch bring it)."""
 from __future__ import annotations
 
+import importlib
 import os
 
 _available = None
@@ -13,11 +14,33 @@ def available() -> bool:
     global _available
     if _available is None:
         try:
-            import triton  # noqa: F401  (pyflakes: unused on purpose, an availability test)
+            importlib.import_module("triton")  # an availability test
             _available = True
         except Exception:  # noqa: BLE001 - any import failure means: not available
             _available = False
+        if _available and interpreted():
+            _interpreter_loop_bounds()
     return _available
+
+
+def _interpreter_loop_bounds() -> None:
+    """Triton 3.6's CPU interpreter turns a kernel's integer argument used as a loop bound
+    (``for i in range(m)``) into a Python int with ``int()`` of a one-element 1-D array, which
+    NumPy 2.x refuses ("only 0-dimensional arrays can be converted to Python scalars"); NumPy 1.x
+    only warned. Read the element instead. Interpreter only: compiled kernels are untouched."""
+    try:
+        from triton.runtime import interpreter
+    except Exception:  # noqa: BLE001 - another Triton: leave it alone
+        return
+    patch = getattr(interpreter, "_patch_lang_tensor", None)
+    if patch is None or getattr(patch, "_torchflow", False):
+        return
+
+    def patched(tensor, scope):
+        patch(tensor, scope)
+        scope.set_attr(tensor, "__index__", lambda self: int(self.handle.data.reshape(-1)[0]))
+    patched._torchflow = True
+    interpreter._patch_lang_tensor = patched
 
 
 def interpreted() -> bool:
