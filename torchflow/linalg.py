@@ -59,7 +59,8 @@ def safe_cholesky(A: torch.Tensor, *, max_tries: int = 6) -> torch.Tensor:
         slots = n_failed
     else:
         slots = max(min(n, LADDER_MIN_SLOTS), -(-n // max(1, tuning.get().jitter_ladder_divisor)))
-    flat = failed.reshape(-1)
+    flat, A_f = failed.reshape(-1), A.reshape(n, d, d)
+    scale = A_f.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(A.dtype).tiny)  # (n,)
     eye = torch.eye(d, dtype=A.dtype, device=A.device)
     base = 10.0 * torch.finfo(A.dtype).eps
     ladder = _jitter_ladder(base, max_tries, A.dtype, A.device)
@@ -69,12 +70,11 @@ def safe_cholesky(A: torch.Tensor, *, max_tries: int = 6) -> torch.Tensor:
         idx = torch.full((slots + 1,), n, dtype=torch.long, device=A.device)
         idx.scatter_(0, target, torch.arange(n, device=A.device))
         idx = idx[:slots]
-        used = idx < n
-        A_s = A.reshape(n, d, d).index_select(0, idx.clamp_max(n - 1))
+        used, at = idx < n, idx.clamp_max(n - 1)
+        A_s, scale_s = A_f.index_select(0, at), scale.index_select(0, at)
     else:
-        idx, used, A_s = None, flat, A.reshape(n, d, d)
-    scale = A_s.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(A.dtype).tiny)
-    add = ladder[:, None] * torch.where(used, scale, torch.zeros_like(scale))
+        idx, used, A_s, scale_s = None, flat, A_f, scale
+    add = ladder[:, None] * torch.where(used, scale_s, torch.zeros_like(scale_s))
     L_j, info_j = torch.linalg.cholesky_ex(A_s.unsqueeze(0) + add[..., None, None] * eye)
     ok = info_j == 0  # (max_tries, slots)
     first = torch.argmax(ok.to(torch.uint8), dim=0)  # the first jitter that factors (0 when none does)
@@ -84,9 +84,7 @@ def safe_cholesky(A: torch.Tensor, *, max_tries: int = 6) -> torch.Tensor:
         return torch.where(failed[..., None, None], L_first.reshape(L.shape), L)
     # beyond the slots: the largest jitter (the others get none: their factor is discarded)
     over = flat & (pos >= slots)
-    A_f = A.reshape(n, d, d)
-    top = ladder[-1] * torch.where(over, A_f.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(A.dtype).tiny),
-                                   torch.zeros((), dtype=A.dtype, device=A.device))
+    top = ladder[-1] * torch.where(over, scale, torch.zeros_like(scale))
     L_top, info_top = torch.linalg.cholesky_ex(A_f + top[:, None, None] * eye)
     nan = torch.full((), float("nan"), dtype=L.dtype, device=L.device)
     out = torch.where(over[:, None, None], torch.where((info_top > 0)[:, None, None], nan, L_top), L.reshape(n, d, d))

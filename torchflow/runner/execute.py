@@ -73,23 +73,32 @@ class Outcome:
     warmup: Optional[float] = None
 
 
-def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None) -> dict:
-    """Run filter ``f`` on trials ``[s, e)``: the chunk's :data:`CHUNK_FIELDS` as CPU tensors
-    (floats as float64). Padded measurement sets (a trajectory with a ``mask``) pass their mask."""
+def _timed_call(f: Filter, name: str, plan: RunPlan, s: int, e: int, steps: Optional[int] = None, progress=None):
+    """``f`` on trials ``[s, e)`` (their first ``steps`` time steps; ``None``: all) with the run's
+    per-trial streams and the trajectory's mask, if any; ``(result, wall seconds)``, synchronised on
+    a GPU. A :class:`NonFiniteError` names the trials by their index in the whole run."""
     st, traj = plan.settings, plan.traj
+    T = traj.observations.shape[1] if steps is None else min(steps, traj.observations.shape[1])
     g = TrialStreams(st.seed, range(s, e), key=f.stream_name, backend=st.rng_backend)
-    cb = (lambda n=e - s: bar.update(n)) if bar is not None else None
-    mask = {"mask": traj.mask[s:e]} if getattr(traj, "mask", None) is not None else {}
+    mask = {"mask": traj.mask[s:e, :T]} if getattr(traj, "mask", None) is not None else {}
     sync = torch.cuda.synchronize if st.device.type == "cuda" else (lambda: None)
     sync()
     t0 = time.perf_counter()
     with torch.no_grad(), STOP.interruptible():
         try:
-            res = f(traj.observations[s:e], plan.mean0[s:e], plan.cov0[s:e], g, progress=cb, **mask)
+            res = f(traj.observations[s:e, :T], plan.mean0[s:e], plan.cov0[s:e], g, progress=progress, **mask)
         except NonFiniteError as err:  # report trial indices in the whole run
             raise NonFiniteError(name, err.step, [s + i for i in err.trials]) from None
     sync()
-    out = {"start": s, "stop": e, "elapsed": time.perf_counter() - t0}
+    return res, time.perf_counter() - t0
+
+
+def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None) -> dict:
+    """Run filter ``f`` on trials ``[s, e)``: the chunk's :data:`CHUNK_FIELDS` as CPU tensors
+    (floats as float64). Padded measurement sets (a trajectory with a ``mask``) pass their mask."""
+    cb = (lambda n=e - s: bar.update(n)) if bar is not None else None
+    res, elapsed = _timed_call(f, name, plan, s, e, progress=cb)
+    out = {"start": s, "stop": e, "elapsed": elapsed}
     for key in CHUNK_FIELDS:
         v = getattr(res, key, None)
         if v is not None:
@@ -97,21 +106,11 @@ def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None) -> 
     return out
 
 
-def warm_up(f: Filter, plan: RunPlan, s: int) -> float:
-    """One untimed call of ``f`` on trial ``s``'s first two steps (its own stream, discarded), so
-    that the timed chunks do not pay the process's one-time costs (a GPU's kernel compilation and
-    loading, library handles, CUDA graph capture); its wall seconds."""
-    st, traj = plan.settings, plan.traj
-    steps = min(2, traj.observations.shape[1])
-    mask = {"mask": traj.mask[s:s + 1, :steps]} if getattr(traj, "mask", None) is not None else {}
-    sync = torch.cuda.synchronize if st.device.type == "cuda" else (lambda: None)
-    sync()
-    t0 = time.perf_counter()
-    with torch.no_grad():
-        f(traj.observations[s:s + 1, :steps], plan.mean0[s:s + 1], plan.cov0[s:s + 1],
-          TrialStreams(st.seed, range(s, s + 1), key=f.stream_name, backend=st.rng_backend), **mask)
-    sync()
-    return time.perf_counter() - t0
+def warm_up(f: Filter, name: str, plan: RunPlan, s: int) -> float:
+    """One untimed call of ``f`` on trial ``s``'s first two steps (its own stream; the result is
+    discarded), so that the timed chunks do not pay the process's one-time costs (a GPU's kernel
+    compilation and loading, library handles, CUDA graph capture); its wall seconds."""
+    return _timed_call(f, name, plan, s, s + 1, steps=2)[1]
 
 
 def _one_chunk(f, name, plan, s, e, store, bar) -> dict:
@@ -138,25 +137,20 @@ def execute(f: Filter, name: str, plan: RunPlan, *, store: Optional[ChunkStore] 
     mine = plan.shard.mine(plan.trial_chunks(plan.chunks[name]))
     bar = tqdm(total=sum(e - s for s, e in mine) * plan.settings.steps, unit="trial-step", leave=False,
                dynamic_ncols=True, desc=desc) if progress and plan.shard.is_main else None
-    out, i = Outcome(), -1
+    out, where = Outcome(), None
     try:
         if warmup and mine:
-            try:
-                out.warmup = warm_up(f, plan, mine[0][0])
-            except Exception as err:  # noqa: BLE001 - reported as the filter's failure, where it happened
-                out.error, out.where = f"{type(err).__name__}: {err}", f"the warm-up call (trial {mine[0][0]})"
-                log.error("filter %s failed in %s: %s\n%s", name, out.where, out.error, traceback.format_exc().rstrip())
-                mine = []
+            where = f"the warm-up call (trial {mine[0][0]})"
+            out.warmup = warm_up(f, name, plan, mine[0][0])
         for i, (s, e) in enumerate(mine):
             STOP.check()
+            where = f"chunk {i + 1} of {len(mine)} (trials {s}..{e - 1})"
             out.chunks.append(_one_chunk(f, name, plan, s, e, store, bar))
         STOP.check()
     except KeyboardInterrupt:  # keep what finished; the caller writes it and says so
         out.interrupted = True
     except Exception as err:  # noqa: BLE001 - one failing filter must not lose the others' results
-        s, e = mine[i]
-        out.error = f"{type(err).__name__}: {err}"
-        out.where = f"chunk {i + 1} of {len(mine)} (trials {s}..{e - 1})"
+        out.error, out.where = f"{type(err).__name__}: {err}", where
         log.error("filter %s failed in %s: %s\n%s", name, out.where, out.error, traceback.format_exc().rstrip())
     finally:
         if bar is not None:
