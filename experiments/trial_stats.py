@@ -9,6 +9,10 @@ seconds per trial-step and the time ratio to the reference; then each filter's m
 reference with a 95 % paired-bootstrap interval (the same trials resampled for both filters), and
 the paired mean difference to the reference with its standard error.
 
+``--against OTHER_RUN``: instead, each filter against the same filter of another run of the same
+trials (e.g. one command under two arithmetic settings, ``tuning.fused_flows=0``): per metric the
+paired mean difference with its SE and how many trials differ at all.
+
 ``--group K``: trials come in groups of K that share data (the runner's ``inits_per_track``: K
 consecutive trials filter one trajectory from K initialisations). They are not independent, so
 with K > 1 every standard error is taken over the group means (n / K of them) and the bootstrap
@@ -89,6 +93,31 @@ def trial_table(run: Path, metric: str = "omat", reference: str = "pfpf_ledh", o
     return rows, ratios
 
 
+def paired_runs(run: Path, other: Path, metrics=("omat", "mse", "log_evidence", "ess"), group: int = 1):
+    """Each filter of ``run`` against the same filter in ``other`` (the same trials, e.g. the same
+    command under two arithmetic settings): per metric the mean of ``run`` minus ``other`` over the
+    paired trials and its SE (over group means), and the trials whose value differs at all.
+    Returns rows ``dict(filter, metric, n, mean, other_mean, diff, diff_se, changed)``."""
+    if group < 1:
+        raise ValueError(f"group: expected a positive number of trials per trajectory, got {group}")
+    a, b = _read(run / "per_trial.csv"), _read(other / "per_trial.csv")
+    key = lambda r: (r["filter"], int(r["trial"]))  # noqa: E731
+    bmap = {key(r): r for r in b}
+    rows = []
+    for name in dict.fromkeys(r["filter"] for r in a):
+        pairs = [(r, bmap[key(r)]) for r in a if r["filter"] == name and key(r) in bmap]
+        if not pairs:
+            raise ValueError(f"against: {other} has no trials of filter {name!r}")
+        for m in metrics:
+            if any(r.get(m, "") == "" or q.get(m, "") == "" for r, q in pairs):
+                continue
+            x = np.asarray([float(r[m]) for r, _ in pairs])
+            y = np.asarray([float(q[m]) for _, q in pairs])
+            rows.append(dict(filter=name, metric=m, n=len(x), mean=x.mean(), other_mean=y.mean(),
+                             diff=float((x - y).mean()), diff_se=mean_se(x - y, group), changed=int((x != y).sum())))
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path, help="a run folder with per_trial.csv and summary.csv")
@@ -98,7 +127,22 @@ def main(argv=None) -> int:
     ap.add_argument("--resamples", type=int, default=5000)
     ap.add_argument("--group", type=int, default=1,
                     help="trials per shared trajectory (the run's inits_per_track): SEs over group means")
+    ap.add_argument("--against", type=Path, default=None,
+                    help="another run folder of the same trials: paired differences filter by filter")
     args = ap.parse_args(argv)
+    if args.against is not None:
+        try:
+            rows = paired_runs(args.run, args.against, group=args.group)
+        except (ValueError, FileNotFoundError) as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        print(f"| filter | metric | trials | mean | mean in {args.against.name} | paired difference (SE) "
+              "| trials that differ |")
+        print("|---|---|---|---|---|---|---|")
+        for r in rows:
+            print(f"| {r['filter']} | {r['metric']} | {r['n']} | {r['mean']:.4g} | {r['other_mean']:.4g} | "
+                  f"{r['diff']:+.3g} ({r['diff_se']:.3g}) | {r['changed']} |")
+        return 0
     for f in ("per_trial.csv", "summary.csv"):
         if not (args.run / f).is_file():
             print(f"error: run: {args.run} has no {f} (expected a run folder of experiments/run.py)", file=sys.stderr)

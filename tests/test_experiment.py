@@ -369,6 +369,28 @@ def test_trial_stats_groups_trials_that_share_a_trajectory(tmp_path):
     assert main([str(tmp_path), "--metric", "nope"]) == 2  # no filter has it: one line, exit 2
 
 
+def test_trial_stats_pairs_a_filter_across_two_runs(tmp_path):
+    """--against: each filter against itself in another run of the same trials (two arithmetic
+    settings): paired mean difference, its SE over group means, and the count of trials that differ."""
+    from experiments.trial_stats import main, paired_runs
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    for run, shift in ((a, [0.0, 0.0, 0.2, 0.4]), (b, [0.0] * 4)):
+        run.mkdir()
+        with open(run / "per_trial.csv", "w") as fh:
+            fh.write("filter,trial,omat,ess\n")
+            for t, s in enumerate(shift):
+                fh.write(f"pfpf_ledh,{t},{1.0 + t + s},{'' if run is b and t == 0 else 5.0}\n")
+        (run / "summary.csv").write_text("filter,sec_per_step\npfpf_ledh,0.1\n")
+    rows = paired_runs(a, b, group=2)
+    (om,) = [r for r in rows if r["metric"] == "omat"]
+    assert om["diff"] == pytest.approx(0.15) and om["changed"] == 2 and om["n"] == 4
+    assert om["diff_se"] == pytest.approx(0.15)  # group means of the differences 0 and 0.3: sd 0.212 / sqrt 2
+    assert not [r for r in rows if r["metric"] == "ess"]  # a missing value in one run: no row
+    assert main([str(a), "--against", str(b)]) == 0
+    assert main([str(a), "--against", str(tmp_path / "nope")]) == 2
+
+
 def test_cli_tdoa_runs_localisers_and_refuses_filters(tmp_path):
     """model=tdoa runs seed 002's localisers (table, per-run CSV, OSPA within [0, cut-off]) and
     refuses a state-space filter with a one-line error."""

@@ -81,13 +81,19 @@ def test_none_misses_the_kalman_gradient():
 
 @pytest.mark.parametrize("kind", ["bpf", "pfpf_ledh"])
 def test_stop_gradient_forward_is_bit_identical(kind):
+    """The estimators change gradients, not forward values. On one arithmetic: the fused flow
+    kernels (``tuning.fused_flows``) run only where no gradient is recorded (the score estimator's
+    proposal) and agree with the torch path to round-off, not bit for bit, so the torch path is
+    pinned here."""
+    from torchflow import tuning
     model, obs, mean, cov = _setup()
     outs = []
     for est, pg in (("none", "pathwise"), ("stop_gradient", "pathwise"), ("stop_gradient", "score")):
         f = (BootstrapParticleFilter(model, n_particles=64, resampling_gradient=est, proposal_gradient=pg)
              if kind == "bpf" else
              ParticleFlowParticleFilter(model, n_particles=64, resampling_gradient=est, proposal_gradient=pg))
-        outs.append(f(obs[:4], mean[:4], cov[:4], torch.Generator().manual_seed(5)))
+        with tuning.tuned(fused_flows=0):
+            outs.append(f(obs[:4], mean[:4], cov[:4], torch.Generator().manual_seed(5)))
     for other in outs[1:]:
         assert torch.equal(outs[0].estimates, other.estimates)
         assert torch.equal(outs[0].log_evidence, other.log_evidence)

@@ -18,6 +18,14 @@ Tolerance ``REL_TOL`` = 5e-4 relative, derived from two measurements (1 thread, 
   tolerance (the EKF cases draw nothing; a formula change moves them).
 
 ``.ci/run`` runs this file under both instruction sets.
+
+The files were written by the flows' torch path and the ``m x m`` Joseph-form EKF update; the
+fused CPU kernel and the ``k x k`` update (``torchflow.tuning`` ``fused_flows``,
+``structured_update``, defaults since 2026-11-26) compute the same formulas in another order, and
+their round-off moves chaotic trials (a diverging EKF at sigma_w = 0.001, resampling decisions)
+far past the tolerance, so the files are rerun with :data:`ARITHMETIC`, the arithmetic that wrote
+them. That the new defaults have the same statistics is measured on the tables' settings
+(RESULTS.md, "CPU kernels (issue 30)").
 """
 import csv
 import math
@@ -28,11 +36,14 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
+from torchflow import tuning
 from torchflow.experiment import run_experiment
 
 ROOT = Path(__file__).resolve().parents[1]
 REL_TOL = 5e-4  # see the module docstring: 10x the measured cross-instruction-set rounding
 RESULTS = ROOT / "experiments" / "results"
+#: the arithmetic that wrote the committed files (see the module docstring)
+ARITHMETIC = dict(fused_flows=0, structured_update=0)
 
 #: (experiment overrides, filter config key, committed file, its filter label, trials rerun)
 CASES = {
@@ -81,7 +92,8 @@ def test_committed_per_trial_file_is_reproduced(case):
     with open(RESULTS / path) as fh:
         want = [r for r in csv.DictReader(fh) if r["filter"] == label][:n]
     assert len(want) == n and [int(r["trial"]) for r in want] == list(range(n))
-    got = _rerun(overrides, key, n).per_trial
+    with tuning.tuned(**ARITHMETIC):
+        got = _rerun(overrides, key, n).per_trial
     bad = []
     for g, w in zip(got, want):
         for col in ("mse", "omat", "ess", "log_evidence"):

@@ -20,7 +20,7 @@ from typing import Optional, Tuple
 import torch
 from torch import nn
 
-from . import linalg
+from . import linalg, tuning
 
 TRACKERS = ("ekf", "ukf")
 
@@ -69,9 +69,67 @@ def ekf_predict(model, mean: torch.Tensor, cov: torch.Tensor) -> Tuple[torch.Ten
 
 def ekf_update(model, mean_pred: torch.Tensor, cov_pred: torch.Tensor, z: torch.Tensor):
     """EKF measurement update linearised at ``mean_pred (..., d)``; ``z`` broadcasts to ``(..., m)``.
-    Returns mean ``(..., d)``, covariance ``(..., d, d)`` and log N(z; h(mean_pred), S) ``(...)``."""
+    Returns mean ``(..., d)``, covariance ``(..., d, d)`` and log N(z; h(mean_pred), S) ``(...)``.
+
+    A nonlinear model that declares a scalar R (``measurement_noise = "scalar"``) and a measurement
+    support of ``k <= m`` coordinates is updated in ``k x k`` algebra
+    (:func:`kalman_update_scalar_support`; ``torchflow.tuning`` ``structured_update``, default 1);
+    otherwise :func:`kalman_update`."""
+    support = model.measurement_support
+    if (tuning.get().structured_update and not model.linear_measurement and model.measurement_noise == "scalar"
+            and support is not None and len(support) <= model.obs_dim):
+        h, Hs = model.linearize_measurement(mean_pred, support=True)
+        sigma2 = model.measurement_cov(mean_pred)[..., 0, 0]
+        return kalman_update_scalar_support(mean_pred, cov_pred, z, h, Hs, sigma2, support)
     H = model.measurement_matrix() if model.linear_measurement else model.measurement_jacobian(mean_pred)
     return kalman_update(mean_pred, cov_pred, z, model.measure(mean_pred), H, model.measurement_cov(mean_pred))
+
+
+def kalman_update_scalar_support(mean_pred: torch.Tensor, cov_pred: torch.Tensor, z: torch.Tensor,
+                                 z_pred: torch.Tensor, H_s: torch.Tensor, sigma2: torch.Tensor, support):
+    """:func:`kalman_update` for ``R = sigma2 I`` and a Jacobian whose nonzero columns are
+    ``support`` (k of d), in ``k x k`` algebra (Woodbury), for ``m >= k`` measurements.
+
+    With ``P_ss = L L^T`` (the support block), ``C = P[:, s] L^{-T}`` ``(d, k)``, ``U = H_s L``
+    ``(m, k)`` and ``G = U^T U + sigma2 I = K_G K_G^T`` (``k x k``):
+    ``S = H P H^T + R = U U^T + sigma2 I``, so ``U^T S^{-1} = G^{-1} U^T`` and
+
+    * mean: ``m + C G^{-1} U^T r`` (``r = z - z_pred``);
+    * covariance: ``P - C C^T + sigma2 (C K_G^{-T})(C K_G^{-T})^T`` (symmetrised);
+    * ``log det S = (m - k) log sigma2 + log det G``,
+      ``r^T S^{-1} r = (r^T r - (U^T r)^T G^{-1} U^T r) / sigma2``.
+
+    The same posterior as the Joseph form of :func:`kalman_update` up to round-off; per matrix
+    ~1e4 flops instead of ~1e5 for acoustic tracking (d = 16, m = 25, k = 8), and one ``k x k``
+    factorisation instead of an ``m x m`` one.
+
+    Args:
+        mean_pred ``(..., d)``, cov_pred ``(..., d, d)``, z ``(..., m)`` (broadcastable),
+        z_pred ``(..., m)``, H_s ``(..., m, k)`` (the support columns of the Jacobian),
+        sigma2: the noise variance (a 0-d tensor or a float), support: k coordinate indices.
+
+    Returns:
+        as :func:`kalman_update`.
+    """
+    sup = list(support)
+    m, k = H_s.shape[-2], len(sup)
+    P_cs = cov_pred[..., :, sup]  # (..., d, k)
+    L = linalg.safe_cholesky(P_cs[..., sup, :])  # (..., k, k)
+    C = linalg.solve_triangular(L, P_cs.transpose(-1, -2), upper=False).transpose(-1, -2)  # (..., d, k)
+    U = linalg.matmul(H_s, L)  # (..., m, k)
+    Ut = U.transpose(-1, -2)
+    eye = torch.eye(k, dtype=U.dtype, device=U.device)
+    KG = linalg.safe_cholesky(linalg.matmul(Ut, U) + sigma2 * eye)
+    r = z - z_pred
+    Ur = linalg.matvec(Ut, r.expand(U.shape[:-1]))  # (..., k)
+    a = linalg.chol_solve(KG, Ur.unsqueeze(-1)).squeeze(-1)  # G^{-1} U^T r
+    mean = mean_pred + linalg.matvec(C, a)
+    Chat = linalg.solve_triangular(KG, C.transpose(-1, -2), upper=False).transpose(-1, -2)  # C K_G^{-T}
+    cov = cov_pred - linalg.matmul(C, C.transpose(-1, -2)) + sigma2 * linalg.matmul(Chat, Chat.transpose(-1, -2))
+    quad = ((r * r).sum(-1) - (Ur * a).sum(-1)) / sigma2
+    logdet = (m - k) * torch.log(torch.as_tensor(sigma2, dtype=U.dtype, device=U.device)) + linalg.chol_logdet(KG)
+    loglik = -0.5 * (quad + logdet + m * linalg._LOG_2PI)
+    return mean, linalg.symmetrize(cov), loglik
 
 
 class UnscentedTransform(nn.Module):
@@ -180,4 +238,4 @@ def tracker(model, kind: str = "ekf", **unscented) -> Tracker:
     return Tracker(model, kind, **unscented)
 
 
-__all__ = ["kalman_update", "ekf_predict", "ekf_update", "UnscentedTransform", "Tracker", "tracker", "TRACKERS"]
+__all__ = ["kalman_update", "kalman_update_scalar_support", "ekf_predict", "ekf_update", "UnscentedTransform", "Tracker", "tracker", "TRACKERS"]

@@ -2,7 +2,10 @@
 
 Every value here changes only how fast (or in how much memory) a result is computed, never the
 result: the same seed gives the same numbers whatever they are set to (up to round-off where a
-batch's size changes BLAS blocking; see README "Reproducibility"). They were measured on the
+batch's size changes BLAS blocking; see README "Reproducibility"). The exceptions compute the same
+formulas in another order: ``fused_flows``, ``fused_measurement`` and ``structured_update`` agree
+with their torch/Joseph counterparts to round-off per call, which a chaotic trial (a resampling
+decision, a diverging EKF) can amplify; their statistics are the same (RESULTS.md, "CPU kernels"). They were measured on the
 project's 2-core CI machine (torch 2.13, MKL); on another machine, time a representative run
 with ``experiments/benchmarks`` and set them here, from Python or from the runner
 (``python experiments/run.py tuning.points_per_call=40000``).
@@ -75,15 +78,25 @@ class Tuning:
             clustered; no gradient recorded) is captured once per shape as a CUDA graph and
             replayed (:mod:`torchflow.cudagraphs`): one launch instead of thousands of small ones.
             The same kernels, so the same numbers. 0 runs it eagerly. No effect on the CPU.
-        fused_flows: on CUDA with Triton installed, EDH/LEDH at per-particle points take each
-            pseudo-step as one fused kernel, a particle per thread (:mod:`torchflow.flows.fused`),
-            instead of ~85 batched small-matrix ops; the numbers agree to round-off. 0: the torch
-            path. No effect on the CPU. PF-PF(LEDH), acoustic, 100 trials x 500 particles, H100:
-            0.095 s per time step with 0, 0.053 with 1 (0.031 with ``fused_measurement``).
+        fused_flows: EDH/LEDH at per-particle points take each pseudo-step as one fused kernel
+            (:mod:`torchflow.flows.fused`) instead of ~85 batched small-matrix ops: on CUDA with
+            Triton installed a particle per GPU thread, on the CPU with Numba installed 64
+            particles side by side in SIMD lanes. The numbers agree with the torch path to
+            round-off (1e-12 relative per flow in float64), not bit for bit. 0: the torch path.
+            PF-PF(LEDH), acoustic, 100 trials x 500 particles, H100: 0.095 s per time step with
+            0, 0.053 with 1 (0.031 with ``fused_measurement``); 20 trials, this 2-core CPU: 1.47
+            s with 0, 0.59 s with 1.
         fused_measurement: the fused kernel linearises a model that declares its measurement in
             the kernel's terms (:meth:`~torchflow.models.StateSpaceModel.fused_measurement`:
             acoustic tracking) itself, at the points, instead of torch ops writing a
             ``(B, N, m, k)`` Jacobian each pseudo-step. 0: the model's linearisation.
+        structured_update: the EKF update of a nonlinear model that declares a scalar R and a
+            measurement support of ``k <= m`` coordinates (acoustic tracking: k = 8, m = 25) is
+            done in ``k x k`` algebra (:func:`torchflow.trackers.kalman_update_scalar_support`,
+            Woodbury) instead of the ``m x m`` Joseph form: the same posterior to round-off
+            (1e-14 relative), ~10x fewer flops; it is the per-particle EKF of PF-PF. PF-PF(LEDH),
+            acoustic, 20 trials x 500 particles, this 2-core CPU: 0.24 -> 0.04 s per time step
+            for that update. 0: the Joseph form.
         fused_philox: on CUDA with Triton installed, the Philox4x32 rounds of per-trial random
             streams (:class:`torchflow.random.TrialStreams` off the CPU) run as one kernel
             (:func:`torchflow.random.philox4x32_fused`) instead of ~165 integer ops per draw; the
@@ -104,6 +117,7 @@ class Tuning:
     fused_flows: int = 1
     fused_measurement: int = 1
     fused_philox: int = 1
+    structured_update: int = 1
 
     def __post_init__(self):
         for f in fields(self):

@@ -1,6 +1,7 @@
-"""The fused Triton pseudo-step of EDH/LEDH at per-particle points (torchflow.flows.fused) against
-the torch path: on the CPU through Triton's interpreter (a subprocess with TRITON_INTERPRET=1;
-skipped where Triton is not installed), on CUDA with the compiled kernel."""
+"""The fused pseudo-step of EDH/LEDH at per-particle points (torchflow.flows.fused) against the torch
+path: Triton's kernel on the CPU through its interpreter (a subprocess with TRITON_INTERPRET=1;
+skipped where Triton is not installed) and on CUDA compiled; Numba's CPU kernel (skipped where
+Numba is not installed)."""
 import json
 import os
 import subprocess
@@ -92,15 +93,65 @@ def test_fused_step_matches_torch_in_triton_interpreter(inside):
     _assert_close(_check("cpu", inside, {"TRITON_INTERPRET": "1"}), 1e-11, 1e-4)
 
 
-def test_not_fused_without_the_interpreter_on_cpu():
-    """On the CPU (no interpreter) the torch path runs: the fused kernel is a GPU path."""
+@KERNELS
+def test_fused_step_matches_torch_with_numba_on_cpu(inside):
+    """The CPU kernel (torchflow.flows._fused_cpu, Numba): blocks of 64 particle lanes, here 6 and
+    40 particles (one partly filled group of lanes)."""
+    pytest.importorskip("numba")
+    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
+    out = subprocess.run([sys.executable, "-c", CHECK, "cpu", str(inside)], capture_output=True, text=True, cwd=ROOT,
+                         env=env, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    _assert_close(json.loads(out.stdout.split("RESULT")[-1]), 1e-11, 1e-4)
+
+
+def test_cpu_kernel_gives_the_same_bits_on_any_thread_count_and_split():
+    """Particles do not interact in the CPU kernel: 1 or 2 threads, and 130 particles flowed at once
+    or as 64 + 66 (other lanes and blocks), give the same bits."""
+    pytest.importorskip("numba")
+    from torchflow.flows import FlowPrior, LEDHFlow, integrate_flow
+    from torchflow.models import AcousticTracking
+    from torchflow.schedules import ExponentialSchedule
+    model = AcousticTracking()
+    g = torch.Generator().manual_seed(3)
+    traj = model.simulate(2, 2, g)
+    x = traj.states[:, 1].unsqueeze(1) + 0.3 * torch.randn(2, 65, 16, dtype=torch.float64, generator=g)
+    A = 0.1 * torch.randn(2, 65, 16, 16, dtype=torch.float64, generator=g)
+    L = torch.linalg.cholesky(A @ A.transpose(-1, -2) + torch.eye(16, dtype=torch.float64))
+    z = traj.observations[:, 1]
+
+    def flow(sl, threads):
+        n = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        try:
+            with torch.no_grad():
+                out = integrate_flow(LEDHFlow(), model, x[:, sl], z, FlowPrior(x[:, sl] + 0.1, L[:, sl]),
+                                     ExponentialSchedule(4, 1.2), points="particle")
+        finally:
+            torch.set_num_threads(n)
+        return out.particles, out.log_det
+
+    whole = flow(slice(None), 2)
+    for got in (flow(slice(None), 1), tuple(torch.cat(p, 1) for p in zip(flow(slice(0, 32), 2),
+                                                                        flow(slice(32, None), 1)))):
+        assert all(torch.equal(a, b) for a, b in zip(got, whole))
+
+
+def test_not_fused_without_a_kernel_on_cpu(monkeypatch):
+    """On the CPU without Numba (and without Triton's interpreter) the torch path runs."""
+    from torchflow.flows import fused
     from torchflow.flows import integrate as I
     from torchflow.flows import LEDHFlow
     from torchflow.models import AcousticTracking
+    monkeypatch.setattr(fused, "_numba", False)
     m = AcousticTracking()
     meas = I.GaussianMeasurement.from_model(m, torch.zeros(1, 25, dtype=torch.float64))
     with torch.no_grad():
         assert not I._fusable(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8)
+    monkeypatch.setattr(fused, "_numba", True)
+    with torch.no_grad():
+        assert I._fusable(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8)
+    assert not I._fusable(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8)  # a gradient is recorded
 
 
 @cuda

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import torch
 
+from torchflow import tuning
 from torchflow.experiment import run_experiment
 from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, KalmanFilter, ParticleFlowFilter,
                                ParticleFlowParticleFilter, UnscentedKalmanFilter)
@@ -47,8 +48,15 @@ def cases():
     }
 
 
+#: the flows' torch path (the same everywhere): the fused CPU kernel, taken by default where Numba is
+#: installed, agrees with it to round-off per flow (tests/flows/test_fused.py), which a chaotic
+#: trial amplifies past this test's tolerance
+ARITHMETIC = dict(fused_flows=0)
+
+
 def run_case(model, filters, kw):
-    res = run_experiment(model, filters, progress=False, **kw)
+    with tuning.tuned(**ARITHMETIC):
+        res = run_experiment(model, filters, progress=False, **kw)
     errors = {r["filter"]: r["error"] for r in res.summary if r.get("error")}
     if errors:
         raise RuntimeError(f"reference filters failed: {errors}")

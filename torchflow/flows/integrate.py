@@ -25,7 +25,7 @@ from typing import Optional, Union
 
 import torch
 
-from .. import _triton, cudagraphs, linalg, tuning
+from .. import cudagraphs, linalg, tuning
 from .._checks import check_choice
 from ..schedules import LambdaSchedule, resolve_schedule
 from . import fused
@@ -141,21 +141,20 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
     log_det = torch.zeros(B, L, dtype=particles.dtype, device=particles.device)
     fuse = per_particle and not track and not gaussian_image and _fusable(flow, measurement, particles, k)
     if fuse:  # one kernel per pseudo-step (torchflow.flows.fused); the linearisation in torch, or in it
-        lams64, epss64 = lam_all.to(torch.float64), eps_all.to(torch.float64)
         eta, aux = eta.contiguous(), aux.contiguous()
         inside = _measured_inside(measurement, prior.support, k)
+        fused_step = fused.ParticleSteps(prior.cols, prior.cols_support, prior.cov_cols, prior.mean, prior.support,
+                                         lam_all.to(torch.float64), eps_all.to(torch.float64), inside,
+                                         measurement._inv_sigma, measurement._z_scaled if inside is not None else None)
     eps_steps, lam_steps = eps_all.unbind(0), lam_all.unbind(0)  # one op for all the steps' 0-d views
     for j in range(len(eps_all)):
         eps, lam = eps_steps[j], lam_steps[j]
         if fuse and inside is not None:
-            eta, aux = fused.dh_particle_step(None, measurement._z_scaled, prior.cols, prior.cols_support, prior.cov_cols,
-                                              prior.mean, prior.support, eta, aux, log_det, lams64, epss64, j,
-                                              measure=inside, inv_sigma=measurement._inv_sigma)
+            eta, aux = fused_step(j, eta, aux, log_det)
             continue
         if fuse:
             lin = measurement.at(aux, prior.support)
-            eta, aux = fused.dh_particle_step(lin.W, lin.y, prior.cols, prior.cols_support, prior.cov_cols, prior.mean,
-                                              prior.support, eta, aux, log_det, lams64, epss64, j)
+            eta, aux = fused_step(j, eta, aux, log_det, lin.W, lin.y)
             continue
         co = flow.coefficients_at(measurement.at(aux, prior.support), prior, lam, eps)
         if stochastic and (co.A is None or not co.has_noise):
@@ -209,7 +208,7 @@ def _fusable(flow, measurement, particles, k) -> bool:
     interpreter), no gradient, ``tuning.fused_flows``, and small enough tiles for registers."""
     if not tuning.get().fused_flows or type(flow) not in (EDHFlow, LEDHFlow) or torch.is_grad_enabled():
         return False
-    if not _triton.runs_on(particles.device):
+    if not fused.runs_on(particles.device):
         return False
     m, d = measurement.z.shape[-1], particles.shape[-1]
     bm, bk, bd = (fused.tile(x) for x in (m, k, d))
