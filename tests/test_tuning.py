@@ -83,3 +83,14 @@ def test_bad_knobs_are_named():
     with pytest.raises(ValueError, match="tuning.points_per_call: expected an integer >= 0, got -1"):
         tuning.set(points_per_call=-1)
     assert tuning.get() == tuning.Tuning()
+
+
+def test_the_runner_config_names_every_knob():
+    """configs/config.yaml's ``tuning`` block lists exactly torchflow.tuning's knobs, so each can be
+    set from the command line without ``+`` (a knob missing there made ``tuning.<knob>=0`` an error)."""
+    from dataclasses import fields
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+    cfg = OmegaConf.load(Path(__file__).resolve().parents[1] / "configs" / "config.yaml")
+    assert set(cfg.tuning) == {f.name for f in fields(tuning.Tuning)}

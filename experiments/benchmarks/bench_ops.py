@@ -23,6 +23,7 @@ from torchflow.filters import (GPFIS, BootstrapParticleFilter, ClusteredParticle
                                ExtendedKalmanFilter, GaussianParticleFilter, GaussianSumParticleFilter,
                                ParticleFilter, ParticleFlowFilter, ParticleFlowGaussianSumParticleFilter,
                                ParticleFlowParticleFilter, UnscentedKalmanFilter)
+from torchflow.flows import fused
 from torchflow.models import AcousticTracking
 from torchflow.profiling import OpCounter
 from torchflow.proposals import UnscentedProposal
@@ -75,19 +76,23 @@ def run(argv=None) -> dict:
         mean, cov = model.initial_belief(traj.states[:, 0], g)
         for name, f in filters(model, a.particles).items():
             cpu, cuda = count(f, traj.observations, mean, cov, False), count(f, traj.observations, mean, cov, True)
+            with tuning.tuned(fused_flows=0):  # the torch path (where the default takes a fused CPU kernel)
+                eager = count(f, traj.observations, mean, cov, False).ops
             target = TARGETS.get(name)
             views = sum(n for op, n in cpu.by_op.items() if op in VIEW_OPS)
-            rows.append(dict(name=name, ops=cpu.ops, compute_ops=cpu.ops - views, syncs=len(cpu.syncs), syncs_cuda=len(cuda.syncs),
-                             target=target, met=None if target is None else cpu.ops <= target,
+            rows.append(dict(name=name, ops=cpu.ops, eager_ops=eager, compute_ops=cpu.ops - views, syncs=len(cpu.syncs),
+                             syncs_cuda=len(cuda.syncs), target=target, met=None if target is None else cpu.ops <= target,
                              top=", ".join(f"{op.replace('aten.', '').replace('.default', '')} {n}"
                                            for op, n in cpu.by_op.most_common(3))))
     md = h.report("# Operations and host synchronisations per filter step", a, info,
                   [f"Acoustic tracking, B = {a.trials} trials, N = {a.particles}, one time step (the second), "
-                   "29 pseudo-steps for the flows."],
-                  ["filter", "aten ops", "of which not views", "syncs (CPU default)", "syncs (as on CUDA)", "target ops", "met",
-                   "most frequent ops"],
-                  [(r["name"], r["ops"], r["compute_ops"], r["syncs"], r["syncs_cuda"], h.fmt(r["target"], "{}"), h.met_cell(r["met"]),
-                    r["top"]) for r in rows])
+                   "29 pseudo-steps for the flows. CPU default: the fused EDH/LEDH pseudo-step where Numba is "
+                   f"installed ({'here' if fused.runs_on('cpu') else 'not here'}); torch path: "
+                   "`tuning.fused_flows=0`."],
+                  ["filter", "aten ops (CPU default)", "of which not views", "aten ops (torch path)", "syncs (CPU default)",
+                   "syncs (as on CUDA)", "target ops", "met (CPU default)", "most frequent ops"],
+                  [(r["name"], r["ops"], r["compute_ops"], r["eager_ops"], r["syncs"], r["syncs_cuda"], h.fmt(r["target"], "{}"),
+                    h.met_cell(r["met"]), r["top"]) for r in rows])
     return dict(rows=rows, markdown=md, machine=info, args=vars(a))
 
 
