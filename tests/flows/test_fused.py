@@ -137,17 +137,53 @@ def test_cpu_kernel_gives_the_same_bits_on_any_thread_count_and_split():
         assert all(torch.equal(a, b) for a, b in zip(got, whole))
 
 
+@pytest.mark.parametrize("inside", [0, 1], ids=["measurement in torch", "measurement inside"])
+@pytest.mark.parametrize("tracked", [True, False], ids=["tracked law", "no law"])
+def test_fused_gromov_step_matches_torch_on_cpu(inside, tracked):
+    """The Gromov flow's CPU kernel (torchflow.flows._fused_cpu.gromov_step): the same draws, the
+    particles, points and tracked Gaussian law (mean, covariance, log-density) of the torch path to
+    round-off, for 2 x 70 particles (a partly filled group of 64 lanes) with per-particle priors."""
+    pytest.importorskip("numba")
+    from torchflow import tuning
+    from torchflow.flows import FlowPrior, GromovFlow, integrate_flow
+    from torchflow.flows import integrate as I
+    from torchflow.models import AcousticTracking
+    m = AcousticTracking()
+    g = torch.Generator().manual_seed(0)
+    B, N, d = 2, 70, 16
+    traj = m.simulate(B, 2, g)
+    x = traj.states[:, 1].unsqueeze(1) + 0.3 * torch.randn(B, N, d, dtype=torch.float64, generator=g)
+    A = 0.3 * torch.randn(B, N, d, d, dtype=torch.float64, generator=g)
+    L = torch.linalg.cholesky(A @ A.transpose(-1, -2) + 0.5 * torch.eye(d, dtype=torch.float64))
+    law = FlowPrior(x - 0.05, torch.linalg.cholesky(0.1 * torch.eye(d, dtype=torch.float64))) if tracked else None
+    outs = []
+    for fz in (0, 1):
+        with tuning.tuned(fused_flows=fz, fused_measurement=inside), torch.no_grad():
+            meas = I.GaussianMeasurement.from_model(m, traj.observations[:, 1])
+            assert I._gromov_fusable(GromovFlow(), meas, x, 8) == bool(fz)
+            outs.append(integrate_flow(GromovFlow(), m, x, traj.observations[:, 1], FlowPrior(x + 0.1, L), None,
+                                       points="particle", proposal=law, generator=torch.Generator().manual_seed(4)))
+    keys = ("particles", "aux") + (("log_proposal", "proposal_mean", "proposal_cov") if tracked else ())
+    for k in keys:
+        a, b = getattr(outs[0], k), getattr(outs[1], k)
+        assert not torch.equal(a, b) or k == "aux"  # another computation
+        assert ((a - b).abs().max() / a.abs().max()).item() < 1e-11, k
+
+
 def test_not_fused_without_a_kernel_on_cpu(monkeypatch):
     """On the CPU without Numba (and without Triton's interpreter) the torch path runs."""
     from torchflow.flows import fused
     from torchflow.flows import integrate as I
     from torchflow.flows import LEDHFlow
     from torchflow.models import AcousticTracking
+    from torchflow.flows import GromovFlow
     monkeypatch.setattr(fused, "_numba", False)
     m = AcousticTracking()
     meas = I.GaussianMeasurement.from_model(m, torch.zeros(1, 25, dtype=torch.float64))
     with torch.no_grad():
         assert not I._fusable(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8)
+        assert not I._gromov_fusable(GromovFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8)
+        assert not I._gromov_fusable(GromovFlow(noise_root="symmetric"), meas, torch.zeros(1, 4, 16), 8)
     monkeypatch.setattr(fused, "_numba", True)
     with torch.no_grad():
         assert I._fusable(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8)

@@ -17,6 +17,9 @@ m = 25, one pseudo-step on this 2-core CPU: 8 lanes 20 ms, 64 lanes 8.4 ms (2 th
 One pass over the rows of W accumulates ``W^T y``, ``S = V^T V`` (lower triangle) and
 ``M = V^T W`` (``V_i = L_s^T W_i``); the four products ``t(u) = sum_i V_i (W_i . u)`` of the
 Triton kernel are then ``M u``, so no row is computed or stored twice.
+
+:func:`gromov_step` is the same treatment of the Gromov flow's Euler-Maruyama step at per-particle
+points, with PF-PF(Gromov)'s tracked Gaussian law (a ``d x d`` covariance per particle).
 """
 import math
 
@@ -29,6 +32,92 @@ LANES = 64
 BLOCK = 256
 
 
+@numba.njit(cache=True, inline="always")
+def _row(i, lin, Wr, yr, aux_s, sens, psi, d0, w, s1, k, P):
+    """Row ``i`` of W into ``w (k, P)`` and entry ``i`` of y into ``s1 (P,)`` for each lane: read
+    (``lin`` 0) or computed at the points ``aux_s`` (``lin`` 1, the acoustic form)."""
+    if lin == 1:
+        sx, sy = sens[i, 0], sens[i, 1]
+        for q in range(P):
+            s1[q] = yr[i, q]
+        for c in range(k // 2):
+            for q in range(P):
+                dx = aux_s[2 * c, q] - sx
+                dy = aux_s[2 * c + 1, q] - sy
+                r = math.sqrt(dx * dx + dy * dy)
+                inv = 1.0 / (r + d0)
+                g = -psi * inv * inv / max(r, 2.2250738585072014e-308)
+                w[2 * c, q] = g * dx
+                w[2 * c + 1, q] = g * dy
+                s1[q] += g * dx * aux_s[2 * c, q] + g * dy * aux_s[2 * c + 1, q] - psi * inv
+    else:
+        for a in range(k):
+            for q in range(P):
+                w[a, q] = Wr[i, a, q]
+        for q in range(P):
+            s1[q] = yr[i, q]
+
+
+@numba.njit(cache=True, inline="always")
+def _accumulate(w, s1, LsP, Wy, v, S, M, k, P):
+    """``Wy += w s1``, ``v = L_s^T w``, ``S += v v^T`` (lower triangle), ``M += v w^T``, per lane."""
+    for a in range(k):
+        for q in range(P):
+            Wy[a, q] += w[a, q] * s1[q]
+        for q in range(P):
+            v[a, q] = 0.0
+        for e in range(a, k):
+            for q in range(P):
+                v[a, q] += LsP[e, a, q] * w[e, q]
+    for a in range(k):
+        for c in range(a + 1):
+            for q in range(P):
+                S[a, c, q] += v[a, q] * v[c, q]
+        for c in range(k):
+            for q in range(P):
+                M[a, c, q] += v[a, q] * w[c, q]
+
+
+@numba.njit(cache=True, inline="always")
+def _grid(eta, sup, sens, y, lin, lams, epss, const, j):
+    """Sizes, the step's constants and the blocks of lanes of a kernel call (see :func:`dh_step`)."""
+    B, N, d = eta.shape
+    k = sup.shape[0]
+    m = sens.shape[0] if lin == 1 else y.shape[2]
+    P = LANES
+    total = B * N
+    groups = (total + P - 1) // P
+    per = BLOCK // P
+    return B, N, d, k, m, lams[j], epss[j], const[0], const[1], P, total, per, groups, (groups + per - 1) // per
+
+
+@numba.njit(cache=True, inline="always")
+def _gather_rows(q, b, n, lin, W, y, Wr, yr, m, k):
+    """Lane ``q`` of ``yr (m, P)`` and (``lin`` 0) ``Wr (m, k, P)`` from particle ``(b, n)``."""
+    by, ny = (b if y.shape[0] > 1 else 0), (n if y.shape[1] > 1 else 0)
+    for i in range(m):
+        yr[i, q] = y[by, ny, i]
+    if lin == 0:  # the rows of W, read
+        bw, nw = (b if W.shape[0] > 1 else 0), (n if W.shape[1] > 1 else 0)
+        for i in range(m):
+            for a in range(k):
+                Wr[i, a, q] = W[bw, nw, i, a]
+
+
+@numba.njit(cache=True, inline="always")
+def _zero(Wy, S, M, k, P):
+    """The accumulators of the pass over the rows set to 0 (S's lower triangle)."""
+    for a in range(k):
+        for q in range(P):
+            Wy[a, q] = 0.0
+        for c in range(k):
+            for q in range(P):
+                M[a, c, q] = 0.0
+        for c in range(a + 1):
+            for q in range(P):
+                S[a, c, q] = 0.0
+
+
 @numba.njit(cache=True, parallel=True, error_model="numpy")
 def dh_step(W, y, L, Ls, Pc, mean, sup, eta, aux, eta_out, aux_out, log_det, lams, epss, j, lin, sens, const):
     """One Euler pseudo-step of EDH/LEDH at per-particle points for every particle of ``eta
@@ -39,15 +128,7 @@ def dh_step(W, y, L, Ls, Pc, mean, sup, eta, aux, eta_out, aux_out, log_det, lam
     acoustic form of :class:`~torchflow.flows.fused.FusedMeasurement` (``y`` holds ``z / sigma``
     ``(B, 1, m)``, ``const = [Psi / sigma, d0]``, ``sens (m, 2)``; ``W`` not read). The algebra of
     :func:`torchflow.flows._fused_kernel.kernel_rows`: three solves with ``Q = I + lam S``."""
-    B, N, d = eta.shape
-    k = sup.shape[0]
-    m = sens.shape[0] if lin == 1 else y.shape[2]
-    lam, eps, psi, d0 = lams[j], epss[j], const[0], const[1]
-    P = LANES
-    total = B * N
-    groups = (total + P - 1) // P
-    per = BLOCK // P
-    nblocks = (groups + per - 1) // per
+    B, N, d, k, m, lam, eps, psi, d0, P, total, per, groups, nblocks = _grid(eta, sup, sens, y, lin, lams, epss, const, j)
     for blk in numba.prange(nblocks):
         bb = np.empty(P, np.int64)
         nn = np.empty(P, np.int64)
@@ -87,60 +168,12 @@ def dh_step(W, y, L, Ls, Pc, mean, sup, eta, aux, eta_out, aux_out, log_det, lam
                     for c in range(k):
                         PcP[r, c, q] = Pc[bp, np_, r, c]
                         LP[r, c, q] = L[bl, nl, r, c]
-                by, ny = (b if y.shape[0] > 1 else 0), (n if y.shape[1] > 1 else 0)
-                for i in range(m):
-                    yr[i, q] = y[by, ny, i]
-                if lin == 0:  # the rows of W, read
-                    bw, nw = (b if W.shape[0] > 1 else 0), (n if W.shape[1] > 1 else 0)
-                    for i in range(m):
-                        for a in range(k):
-                            Wr[i, a, q] = W[bw, nw, i, a]
-            for a in range(k):
-                for q in range(P):
-                    Wy[a, q] = 0.0
-                for c in range(k):
-                    for q in range(P):
-                        M[a, c, q] = 0.0
-                for c in range(a + 1):
-                    for q in range(P):
-                        S[a, c, q] = 0.0
+                _gather_rows(q, b, n, lin, W, y, Wr, yr, m, k)
+            _zero(Wy, S, M, k, P)
             # one pass over the rows i of W: W^T y, S = V^T V (lower triangle) and M = V^T W, V_i = L_s^T W_i
             for i in range(m):
-                if lin == 1:  # row i at the points: the acoustic form
-                    sx, sy = sens[i, 0], sens[i, 1]
-                    for q in range(P):
-                        s1[q] = yr[i, q]
-                    for c in range(k // 2):
-                        for q in range(P):
-                            dx = aux_s[2 * c, q] - sx
-                            dy = aux_s[2 * c + 1, q] - sy
-                            r = math.sqrt(dx * dx + dy * dy)
-                            inv = 1.0 / (r + d0)
-                            g = -psi * inv * inv / max(r, 2.2250738585072014e-308)
-                            w[2 * c, q] = g * dx
-                            w[2 * c + 1, q] = g * dy
-                            s1[q] += g * dx * aux_s[2 * c, q] + g * dy * aux_s[2 * c + 1, q] - psi * inv
-                else:
-                    for a in range(k):
-                        for q in range(P):
-                            w[a, q] = Wr[i, a, q]
-                    for q in range(P):
-                        s1[q] = yr[i, q]
-                for a in range(k):
-                    for q in range(P):
-                        Wy[a, q] += w[a, q] * s1[q]
-                    for q in range(P):
-                        v[a, q] = 0.0
-                    for e in range(a, k):
-                        for q in range(P):
-                            v[a, q] += LsP[e, a, q] * w[e, q]
-                for a in range(k):
-                    for c in range(a + 1):
-                        for q in range(P):
-                            S[a, c, q] += v[a, q] * v[c, q]
-                    for c in range(k):
-                        for q in range(P):
-                            M[a, c, q] += v[a, q] * w[c, q]
+                _row(i, lin, Wr, yr, aux_s, sens, psi, d0, w, s1, k, P)
+                _accumulate(w, s1, LsP, Wy, v, S, M, k, P)
             # Pg = P_cols W^T y and lam Pg + mean at the measured coordinates; t(u) = M u
             for a in range(k):
                 for q in range(P):
@@ -246,3 +279,146 @@ def _solve_lanes(K, t, x, k, P):
                 x[i, q] -= K[r, i, q] * x[r, q]
         for q in range(P):
             x[i, q] /= K[i, i, q]
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def gromov_step(W, y, L, Ls, sup, eta, aux, mu, Sig, xi, eta_out, aux_out, mu_out, Sig_out, lams, epss, j, lin, sens,
+                const, track):
+    """One Euler-Maruyama pseudo-step of the Gromov flow at per-particle points (the operator form
+    of :class:`~torchflow.flows.GromovFlow`, ``noise_root="factor"``) for every particle of ``eta
+    (B, N, d)``, with ``LANES`` particles side by side as :func:`dh_step`.
+
+    With ``Q = I + lam S``, ``S = V^T V``, ``M = V^T W`` (``V_i = L_s^T W_i``): ``C = L Q^{-1} M``,
+    ``N = L Q^{-1} L_s^T``, ``g = L Q^{-1} L_s^T W^T y``; the drift of ``x`` is ``-C x_s + g`` and
+    the diffusion ``N (W^T xi)`` with ``xi (B, N, m)`` the step's standard normals. The particle, its
+    point and (``track`` 1) the mean ``mu`` of its Gaussian law move; the law's covariance
+    ``Sig (B|1, N|1, d, d)`` becomes ``(I - eps C_s) Sig (I - eps C_s)^T + eps C N^T`` in
+    ``Sig_out (B, N, d, d)`` (``C_s``: C in the support columns). Inputs as :func:`dh_step`."""
+    B, N, d, k, m, lam, eps, psi, d0, P, total, per, groups, nblocks = _grid(eta, sup, sens, y, lin, lams, epss, const, j)
+    root = math.sqrt(eps)
+    for blk in numba.prange(nblocks):
+        bb = np.empty(P, np.int64)
+        nn = np.empty(P, np.int64)
+        Wr = np.empty((m if lin == 0 else 0, k, P))
+        yr = np.empty((m, P))
+        xr = np.empty((m, P))
+        M = np.empty((k, k, P))
+        w = np.empty((k, P))
+        LsP = np.empty((k, k, P))
+        LP = np.empty((d, k, P))
+        S = np.empty((k, k, P))
+        K1 = np.empty((k, k, P))
+        Z = np.empty((2 * k + 1, k, P))  # Q^{-1} [M | L_s^T | L_s^T W^T y], a column per row
+        Cm = np.empty((d, k, P))
+        Nm = np.empty((d, k, P))
+        SigP = np.empty((d, d, P))
+        V = np.empty((d, d, P))
+        vec = np.zeros((6, k, P))
+        dvec = np.empty((5, d, P))
+        sc = np.empty((1, P))
+        for grp in range(blk * per, min(groups, (blk + 1) * per)):
+            for q in range(P):
+                p = min(grp * P + q, total - 1)
+                bb[q], nn[q] = p // N, p % N
+            aux_s, eta_s, mu_s, Wy, Wx, v = vec[0], vec[1], vec[2], vec[3], vec[4], vec[5]
+            g, de, da, dm, dn = dvec[0], dvec[1], dvec[2], dvec[3], dvec[4]
+            s1 = sc[0]
+            for q in range(P):  # gather the lanes' inputs
+                b, n = bb[q], nn[q]
+                bl, nl = (b if L.shape[0] > 1 else 0), (n if L.shape[1] > 1 else 0)
+                bs, ns = (b if Ls.shape[0] > 1 else 0), (n if Ls.shape[1] > 1 else 0)
+                for a in range(k):
+                    aux_s[a, q] = aux[b, n, sup[a]]
+                    eta_s[a, q] = eta[b, n, sup[a]]
+                    for c in range(k):
+                        LsP[a, c, q] = Ls[bs, ns, a, c]
+                for r in range(d):
+                    for c in range(k):
+                        LP[r, c, q] = L[bl, nl, r, c]
+                if track == 1:
+                    bg, ng = (b if Sig.shape[0] > 1 else 0), (n if Sig.shape[1] > 1 else 0)
+                    for a in range(k):
+                        mu_s[a, q] = mu[b, n, sup[a]]
+                    for r in range(d):
+                        for c in range(d):
+                            SigP[r, c, q] = Sig[bg, ng, r, c]
+                _gather_rows(q, b, n, lin, W, y, Wr, yr, m, k)
+                for i in range(m):
+                    xr[i, q] = xi[b, n, i]
+            _zero(Wy, S, M, k, P)
+            for a in range(k):
+                for q in range(P):
+                    Wx[a, q] = 0.0
+            for i in range(m):  # one pass over the rows: W^T y, W^T xi, S (lower) and M
+                _row(i, lin, Wr, yr, aux_s, sens, psi, d0, w, s1, k, P)
+                for a in range(k):
+                    for q in range(P):
+                        Wx[a, q] += w[a, q] * xr[i, q]
+                _accumulate(w, s1, LsP, Wy, v, S, M, k, P)
+            _chol_lanes(S, lam, K1, k, P)
+            for c in range(k):  # right-hand sides: the columns of M and of L_s^T, and L_s^T W^T y
+                for a in range(k):
+                    for q in range(P):
+                        Z[c, a, q] = M[a, c, q]
+                        Z[k + c, a, q] = LsP[c, a, q]
+            for a in range(k):
+                for q in range(P):
+                    Z[2 * k, a, q] = 0.0
+                for e in range(a, k):
+                    for q in range(P):
+                        Z[2 * k, a, q] += LsP[e, a, q] * Wy[e, q]
+            for c in range(2 * k + 1):
+                _solve_lanes(K1, Z[c], Z[c], k, P)
+            for r in range(d):  # C = L Z_M, N = L Z_L, g = L z_y
+                for c in range(k):
+                    for q in range(P):
+                        Cm[r, c, q] = 0.0
+                        Nm[r, c, q] = 0.0
+                for q in range(P):
+                    g[r, q] = 0.0
+                for a in range(k):
+                    for q in range(P):
+                        g[r, q] += LP[r, a, q] * Z[2 * k, a, q]
+                    for c in range(k):
+                        for q in range(P):
+                            Cm[r, c, q] += LP[r, a, q] * Z[c, a, q]
+                            Nm[r, c, q] += LP[r, a, q] * Z[k + c, a, q]
+            for r in range(d):  # drifts -C x_s + g, the diffusion N (W^T xi)
+                for q in range(P):
+                    de[r, q] = g[r, q]
+                    da[r, q] = g[r, q]
+                    dm[r, q] = g[r, q]
+                    dn[r, q] = 0.0
+                for c in range(k):
+                    for q in range(P):
+                        cc = Cm[r, c, q]
+                        de[r, q] -= cc * eta_s[c, q]
+                        da[r, q] -= cc * aux_s[c, q]
+                        dm[r, q] -= cc * mu_s[c, q]
+                        dn[r, q] += Nm[r, c, q] * Wx[c, q]
+            if track == 1:  # V = Sig - eps C Sig[s, :]; Sig' = V - eps V[:, s] C^T + eps C N^T
+                for r in range(d):
+                    for c in range(d):
+                        for q in range(P):
+                            V[r, c, q] = SigP[r, c, q]
+                        for a in range(k):
+                            for q in range(P):
+                                V[r, c, q] -= eps * (Cm[r, a, q] * SigP[sup[a], c, q])
+                for r in range(d):
+                    for c in range(d):
+                        for q in range(P):
+                            SigP[r, c, q] = V[r, c, q]
+                        for a in range(k):
+                            for q in range(P):
+                                SigP[r, c, q] += eps * (Cm[r, a, q] * Nm[c, a, q] - V[r, sup[a], q] * Cm[c, a, q])
+            for q in range(P):
+                if grp * P + q < total:
+                    b, n = bb[q], nn[q]
+                    for r in range(d):
+                        eta_out[b, n, r] = eta[b, n, r] + eps * de[r, q] + root * dn[r, q]
+                        aux_out[b, n, r] = aux[b, n, r] + eps * da[r, q]
+                    if track == 1:
+                        for r in range(d):
+                            mu_out[b, n, r] = mu[b, n, r] + eps * dm[r, q]
+                            for c in range(d):
+                                Sig_out[b, n, r, c] = SigP[r, c, q]

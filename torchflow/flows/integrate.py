@@ -25,12 +25,13 @@ from typing import Optional, Union
 
 import torch
 
-from .. import cudagraphs, linalg, tuning
+from .. import _triton, cudagraphs, linalg, tuning
 from .._checks import check_choice
 from ..schedules import LambdaSchedule, resolve_schedule
 from . import fused
 from .base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow, _gather_points
 from .daum_huang import EDHFlow, LEDHFlow
+from .geodesic import GromovFlow
 from .measurement import GaussianMeasurement
 from .points import LinearisationPoints, resolve_points
 
@@ -140,6 +141,14 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
     tracked = [mu] if track else []
     log_det = torch.zeros(B, L, dtype=particles.dtype, device=particles.device)
     fuse = per_particle and not track and not gaussian_image and _fusable(flow, measurement, particles, k)
+    gromov = per_particle and not gaussian_image and _gromov_fusable(flow, measurement, particles, k)
+    if gromov:  # the Gromov flow's pseudo-steps and its tracked law in one CPU kernel (torchflow.flows.fused)
+        eta, aux = eta.contiguous(), aux.contiguous()
+        inside = _measured_inside(measurement, prior.support, k)
+        gromov_step = fused.GromovSteps(prior.cols, prior.cols_support, prior.support, lam_all.to(torch.float64),
+                                        eps_all.to(torch.float64), inside, measurement._inv_sigma,
+                                        measurement._z_scaled if inside is not None else None)
+        m_rows = measurement.z.shape[-1]
     if fuse:  # one kernel per pseudo-step (torchflow.flows.fused); the linearisation in torch, or in it
         eta, aux = eta.contiguous(), aux.contiguous()
         inside = _measured_inside(measurement, prior.support, k)
@@ -149,6 +158,16 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
     eps_steps, lam_steps = eps_all.unbind(0), lam_all.unbind(0)  # one op for all the steps' 0-d views
     for j in range(len(eps_all)):
         eps, lam = eps_steps[j], lam_steps[j]
+        if gromov:
+            lin = None if inside is not None else measurement.at(aux, prior.support)
+            shape = (B, N, m_rows)  # the diffusion N (W^T xi) draws one normal per measurement row
+            xi = noise(j, shape) if noise is not None else linalg.standard_normal(
+                shape, dtype=eta.dtype, device=eta.device, generator=generator)
+            eta, aux, mu_j, Sig_j = gromov_step(j, eta, aux, mu if track else None, Sig if track else None, xi,
+                                                *(() if lin is None else (lin.W, lin.y)))
+            if track:
+                mu, Sig = mu_j, Sig_j
+            continue
         if fuse and inside is not None:
             eta, aux = fused_step(j, eta, aux, log_det)
             continue
@@ -203,16 +222,32 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
 
 
 def _fusable(flow, measurement, particles, k) -> bool:
-    """The fused Triton pseudo-step applies (:mod:`torchflow.flows.fused`): EDH/LEDH themselves
-    (not a subclass that changes the coefficients) at per-particle points, on CUDA (or Triton's CPU
-    interpreter), no gradient, ``tuning.fused_flows``, and small enough tiles for registers."""
+    """The fused pseudo-step applies (:mod:`torchflow.flows.fused`): EDH/LEDH themselves (not a
+    subclass that changes the coefficients) at per-particle points, on CUDA with Triton (or Triton's
+    CPU interpreter) or on the CPU with Numba, no gradient, ``tuning.fused_flows``, and small enough
+    tiles."""
     if not tuning.get().fused_flows or type(flow) not in (EDHFlow, LEDHFlow) or torch.is_grad_enabled():
         return False
-    if not fused.runs_on(particles.device):
-        return False
+    return fused.runs_on(particles.device) and _tiles_fit(measurement, particles, k)
+
+
+def _tiles_fit(measurement, particles, k) -> bool:
+    """The fused kernels' per-particle tiles are small enough (registers on a GPU, cache on the CPU)."""
     m, d = measurement.z.shape[-1], particles.shape[-1]
     bm, bk, bd = (fused.tile(x) for x in (m, k, d))
     return bm * bk * bk <= 16384 and bd * bk <= 4096 and particles.dtype in (torch.float32, torch.float64)
+
+
+def _gromov_fusable(flow, measurement, particles, k) -> bool:
+    """The fused CPU pseudo-step of the Gromov flow applies (:class:`~torchflow.flows.fused.GromovSteps`):
+    :class:`~torchflow.flows.GromovFlow` itself with its exact factor (``noise_root="factor"``) at
+    per-particle points, on the CPU with Numba (not Triton's interpreter), no gradient,
+    ``tuning.fused_flows``, tiles as :func:`_fusable`."""
+    if type(flow) is not GromovFlow or flow.noise_root != "factor" or particles.device.type != "cpu":
+        return False
+    if not tuning.get().fused_flows or torch.is_grad_enabled() or _triton.runs_on(particles.device):
+        return False
+    return fused.numba_available() and _tiles_fit(measurement, particles, k)
 
 
 def _measured_inside(measurement, support, k):
