@@ -252,11 +252,13 @@ _numba = None
 
 
 def numba_available() -> bool:
-    """Numba can be imported (cached): the CPU kernel (:mod:`torchflow.flows._fused_cpu`)."""
+    """The CPU kernels (:mod:`torchflow.flows._fused_cpu`) can be imported (cached): Numba is
+    installed, and the module's ``cache=True`` kernels import (Numba caches next to the module or
+    in its user cache directory; any failure to import means the torch path runs)."""
     global _numba
     if _numba is None:
         try:
-            importlib.import_module("numba")  # an availability test
+            importlib.import_module("torchflow.flows._fused_cpu")  # an availability test
             _numba = True
         except Exception:  # noqa: BLE001 - any import failure means: not available
             _numba = False
