@@ -171,12 +171,7 @@ class ParticleSteps:
             d = mean.shape[-1]
             sup = torch.arange(d, device=mean.device) if support is None else support
             self.args = (_f64(L, 4), _f64(Ls, 4), _f64(Pc, 4), _f64(mean, 3), _np(sup.to(torch.int64)))
-            self.sched = (_f64(lams, 1), _f64(epss, 1))
-            if measure is not None:
-                self.lin = (np.zeros((1, 1, 1, 1)), _f64(z_scaled.unsqueeze(-2), 3), 1, _f64(measure.sensors, 2),
-                            _f64(torch.stack([measure.psi * inv_sigma, measure.d0]), 1))
-            else:
-                self.lin = None
+            self.sched, self.lin = _cpu_constants(lams, epss, measure, inv_sigma, z_scaled)
 
     def __call__(self, j: int, eta, aux, log_det, W=None, y=None):
         if not self.cpu:
@@ -184,11 +179,7 @@ class ParticleSteps:
                 W, y = None, self.z_scaled
             return dh_particle_step(W, y, *self.prior, eta, aux, log_det, self.lams, self.epss, j,
                                     measure=self.measure, inv_sigma=self.inv_sigma)
-        if self.lin is not None:
-            Wn, yn, lin, sens, const = self.lin
-        else:
-            Wn = _f64(W if W.dim() > 2 else W.expand(1, 1, *W.shape), 4)
-            yn, lin, sens, const = _f64(y, 3), 0, np.zeros((1, 2)), np.zeros(2)
+        Wn, yn, lin, sens, const = _cpu_rows(self.lin, W, y)
         e64, a64 = _f64(eta, 3), _f64(aux, 3)
         eta_out, aux_out = np.empty_like(e64), np.empty_like(a64)
         ld = log_det if log_det.dtype == torch.float64 and log_det.is_contiguous() else log_det.to(torch.float64).contiguous()
@@ -196,9 +187,7 @@ class ParticleSteps:
         _cpu_kernel()(Wn, yn, *self.args, e64, a64, eta_out, aux_out, _np(ld), *self.sched, j, lin, sens, const)
         if ld is not log_det:
             log_det.copy_(ld)
-        if eta.dtype == torch.float64:
-            return torch.from_numpy(eta_out), torch.from_numpy(aux_out)
-        return torch.from_numpy(eta_out).to(eta.dtype), torch.from_numpy(aux_out).to(eta.dtype)
+        return tuple(_cpu_back((eta_out, aux_out), eta.dtype))
 
 
 class GromovSteps:
@@ -212,18 +201,10 @@ class GromovSteps:
         d = L.shape[-2]
         sup = torch.arange(d, device=L.device) if support is None else support
         self.args = (_f64(L, 4), _f64(Ls, 4), _np(sup.to(torch.int64)))
-        self.sched = (_f64(lams, 1), _f64(epss, 1))
-        self.lin = None
-        if measure is not None:
-            self.lin = (np.zeros((1, 1, 1, 1)), _f64(z_scaled.unsqueeze(-2), 3), 1, _f64(measure.sensors, 2),
-                        _f64(torch.stack([measure.psi * inv_sigma, measure.d0]), 1))
+        self.sched, self.lin = _cpu_constants(lams, epss, measure, inv_sigma, z_scaled)
 
     def __call__(self, j: int, eta, aux, mu, Sig, xi, W=None, y=None):
-        if self.lin is not None:
-            Wn, yn, lin, sens, const = self.lin
-        else:
-            Wn = _f64(W if W.dim() > 2 else W.expand(1, 1, *W.shape), 4)
-            yn, lin, sens, const = _f64(y, 3), 0, np.zeros((1, 2)), np.zeros(2)
+        Wn, yn, lin, sens, const = _cpu_rows(self.lin, W, y)
         track = mu is not None
         e64, a64 = _f64(eta, 3), _f64(aux, 3)
         B, N, d = e64.shape
@@ -237,10 +218,33 @@ class GromovSteps:
         _set_threads()
         _gromov_kernel()(Wn, yn, *self.args, e64, a64, m64, S64, _f64(xi, 3), *outs, *self.sched, j, lin, sens, const,
                          int(track))
-        res = [torch.from_numpy(o) for o in (outs if track else outs[:2])]
-        if eta.dtype != torch.float64:
-            res = [r.to(eta.dtype) for r in res]
+        res = _cpu_back(outs if track else outs[:2], eta.dtype)
         return tuple(res) if track else (res[0], res[1], None, None)
+
+
+def _cpu_constants(lams, epss, measure, inv_sigma, z_scaled):
+    """The CPU kernels' schedule ``(lams, epss)`` and, for a measurement the kernel linearises
+    itself, its arguments ``(W placeholder, z / sigma (B, 1, m), 1, sensors, [Psi / sigma, d0])``
+    (``None`` otherwise), as float64 NumPy arrays, once per integration."""
+    sched = (_f64(lams, 1), _f64(epss, 1))
+    if measure is None:
+        return sched, None
+    return sched, (np.zeros((1, 1, 1, 1)), _f64(z_scaled.unsqueeze(-2), 3), 1, _f64(measure.sensors, 2),
+                   _f64(torch.stack([measure.psi * inv_sigma, measure.d0]), 1))
+
+
+def _cpu_rows(lin, W, y):
+    """The kernels' measurement arguments of one pseudo-step: the prepared ones, or W and y at the
+    points (``W (B|1, N|1, m, k)`` or a shared ``(m, k)``)."""
+    if lin is not None:
+        return lin
+    return _f64(W if W.dim() > 2 else W.expand(1, 1, *W.shape), 4), _f64(y, 3), 0, np.zeros((1, 2)), np.zeros(2)
+
+
+def _cpu_back(arrays, dtype):
+    """The kernels' float64 outputs as tensors of the run's dtype (no copy for float64)."""
+    out = [torch.from_numpy(a) for a in arrays]
+    return out if dtype == torch.float64 else [t.to(dtype) for t in out]
 
 
 def _gromov_kernel():
