@@ -83,7 +83,8 @@ class Tuning:
             Triton installed a particle per GPU thread, on the CPU with Numba installed 64
             particles side by side in SIMD lanes. The numbers agree with the torch path to
             round-off (1e-12 relative per flow in float64), not bit for bit. 0: the torch path.
-            On the CPU the Gromov flow at per-particle points (PF-PF(Gromov)) has one too.
+            On the CPU the Gromov flow at per-particle points (PF-PF(Gromov)) and GPFIS's transport
+            (its analytic Jacobian) have one too.
             PF-PF(LEDH), acoustic, 100 trials x 500 particles, H100: 0.095 s per time step with
             0, 0.053 with 1 (0.031 with ``fused_measurement``); 20 trials, this 2-core CPU: 1.47
             s with 0, 0.59 s with 1.

@@ -170,6 +170,122 @@ def test_fused_gromov_step_matches_torch_on_cpu(inside, tracked):
         assert ((a - b).abs().max() / a.abs().max()).item() < 1e-11, k
 
 
+def _gpfis_case(model, B, N, per_particle_cov, dtype=torch.float64, seed=0):
+    """GPFIS's inputs: particles drawn from the transition of jittered states, its prior (per-particle
+    means; the model's shared factor, or per-particle factors), the observation."""
+    from torchflow.flows import FlowPrior
+    g = torch.Generator().manual_seed(seed)
+    model = model.to(dtype=dtype)
+    d = model.state_dim
+    traj = model.simulate(B, 2, g)
+    xp = traj.states[:, 1].unsqueeze(1) + 0.3 * torch.randn(B, N, d, dtype=dtype, generator=g)
+    x0 = model.sample_transition(xp, g)
+    L = model.transition_scale_tril(xp)
+    if per_particle_cov:
+        A = 0.3 * torch.randn(B, N, d, d, dtype=dtype, generator=g)
+        L = torch.linalg.cholesky(A @ A.transpose(-1, -2) + L @ L.transpose(-1, -2))
+    return model, x0, FlowPrior(model.transition_mean(xp), L), traj.observations[:, 1]
+
+
+def _gpfis(model, x0, prior, z, steps=5, **tuned):
+    from torchflow import tuning
+    from torchflow.flows import GaussianMeasurement
+    from torchflow.flows.gpfis import gpfis_flow
+    from torchflow.schedules import ExponentialSchedule
+    with tuning.tuned(**tuned), torch.no_grad():
+        return gpfis_flow(GaussianMeasurement.from_model(model, z), x0, prior, ExponentialSchedule(steps, 1.2))
+
+
+@pytest.mark.parametrize("inside", [0, 1], ids=["measurement in torch", "measurement inside"])
+@pytest.mark.parametrize("case", ["shared factor", "per-particle factors", "float32", "linear"])
+def test_fused_gpfis_matches_torch_on_cpu(inside, case):
+    """GPFIS's CPU kernel (torchflow.flows._fused_cpu.gpfis_step): the moved particles and the
+    accumulated log|det| of the torch path's analytic Jacobian to round-off, for 2 x 70 particles
+    (a partly filled group of 64 lanes): acoustic with the model's shared transition factor or
+    per-particle factors, in float32, and a linear-Gaussian model (second derivatives zero)."""
+    pytest.importorskip("numba")
+    from torchflow.flows import FlowPrior, GaussianMeasurement
+    from torchflow.flows import gpfis as GP
+    from torchflow.models import AcousticTracking, LinearGaussian
+    if case == "linear":
+        if inside:
+            pytest.skip("the kernel linearises only the acoustic measurement itself")
+        gen = torch.Generator().manual_seed(1)
+        e = torch.eye(3, dtype=torch.float64)
+        model = LinearGaussian(0.9 * e, 0.5 * e, torch.randn(2, 3, dtype=torch.float64, generator=gen), 0.2 * e[:2, :2])
+    else:
+        model = AcousticTracking()
+    dtype = torch.float32 if case == "float32" else torch.float64
+    model, x0, prior, z = _gpfis_case(model, 2, 70, case == "per-particle factors", dtype)
+    with torch.no_grad():
+        k = 8 if case != "linear" else 3
+        assert GP._fusable(GaussianMeasurement.from_model(model, z), x0, k)
+    out = _gpfis(model, x0, prior, z, fused_flows=1, fused_measurement=inside)
+    if dtype == torch.float32:  # the kernel computes in float64: against the torch path in float64
+        # (the torch path in float32 is 3e-3 off in the particles and 7e-2 in log|det| here; the
+        # kernel 3e-5 when torch linearises in float32, 3e-6 when it linearises itself)
+        ref = _gpfis(model.to(dtype=torch.float64), x0.double(),
+                     FlowPrior(prior.mean.double(), prior.scale_tril.double()), z.double(), fused_flows=0)
+        tol = 1e-4
+    else:
+        ref = _gpfis(model, x0, prior, z, fused_flows=0)
+        # a particle of the per-particle case has an ill-conditioned step: there the torch path's own
+        # analytic and autodiff Jacobians differ by 4e-10 relative in log|det| (the kernel by 3e-10)
+        tol = 1e-9
+    for a, b, name in zip(ref, out, ("particles", "log_det")):
+        assert b.dtype == dtype and a.shape == b.shape
+        if case != "linear":
+            assert not torch.equal(a.to(dtype), b), name  # another computation
+        assert ((a - b.to(a.dtype)).abs().max() / a.abs().max()).item() < tol, name
+
+
+def test_fused_gpfis_gives_the_same_bits_on_any_thread_count_and_split():
+    """GPFIS's CPU kernel: 1 or 2 threads, 130 particles at once or as 32 + 98, the same bits."""
+    pytest.importorskip("numba")
+    from torchflow.flows import FlowPrior
+    from torchflow.models import AcousticTracking
+    model, x0, prior, z = _gpfis_case(AcousticTracking(), 2, 130, False, seed=3)
+
+    def run(sl, threads):
+        n = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        try:
+            return _gpfis(model, x0[:, sl], FlowPrior(prior.mean[:, sl], prior.scale_tril), z, steps=4)
+        finally:
+            torch.set_num_threads(n)
+
+    whole = run(slice(None), 2)
+    for got in (run(slice(None), 1), tuple(torch.cat(p, 1) for p in zip(run(slice(0, 32), 2), run(slice(32, None), 1)))):
+        assert all(torch.equal(a, b) for a, b in zip(got, whole))
+
+
+def test_fused_gpfis_only_where_it_applies(monkeypatch):
+    """The torch path runs with a gradient recorded, ``fused_flows=0``, without Numba, or without
+    declared second derivatives (a state-dependent R); the autodiff Jacobian and the symmetric root
+    never reach the kernel."""
+    from torchflow import tuning
+    from torchflow.flows import GaussianMeasurement, fused
+    from torchflow.flows import gpfis as GP
+    from torchflow.models import AcousticTracking
+    model, x0, prior, z = _gpfis_case(AcousticTracking(), 1, 4, False)
+    meas = GaussianMeasurement.from_model(model, z)
+    monkeypatch.setattr(fused, "_numba", True)
+    assert not GP._fusable(meas, x0, 8)  # a gradient is recorded
+    with torch.no_grad():
+        assert GP._fusable(meas, x0, 8)
+        with tuning.tuned(fused_flows=0):
+            assert not GP._fusable(meas, x0, 8)
+        meas.hessian = None
+        assert not GP._fusable(meas, x0, 8)
+        monkeypatch.setattr(fused, "_numba", False)
+        assert not GP._fusable(GaussianMeasurement.from_model(model, z), x0, 8)
+    monkeypatch.setattr(GP, "_fused_flow", lambda *a: (_ for _ in ()).throw(AssertionError("fused")))
+    monkeypatch.setattr(fused, "_numba", True)
+    for root, jac in (("symmetric", "analytic"), ("cholesky", "autodiff")):
+        with torch.no_grad():
+            GP.gpfis_flow(GaussianMeasurement.from_model(model, z), x0, prior, None, root, jac)
+
+
 def test_not_fused_without_a_kernel_on_cpu(monkeypatch):
     """On the CPU without Numba (and without Triton's interpreter) the torch path runs."""
     from torchflow.flows import fused

@@ -263,8 +263,8 @@ def _chol_lanes(S, h, K, k, P):
 
 
 @numba.njit(cache=True, inline="always")
-def _solve_lanes(K, t, x, k, P):
-    """``x = (K K^T)^{-1} t`` for each lane (``K`` lower); ``x`` may be ``t``."""
+def _forward_lanes(K, t, x, k, P):
+    """``x = K^{-1} t`` for each lane (``K`` lower); ``x`` may be ``t``."""
     for i in range(k):
         for q in range(P):
             x[i, q] = t[i, q]
@@ -273,13 +273,26 @@ def _solve_lanes(K, t, x, k, P):
                 x[i, q] -= K[i, c, q] * x[c, q]
         for q in range(P):
             x[i, q] /= K[i, i, q]
+
+
+@numba.njit(cache=True, inline="always")
+def _backward_lanes(K, t, x, k, P):
+    """``x = K^{-T} t`` for each lane (``K`` lower); ``x`` may be ``t``."""
     for i in range(k - 1, -1, -1):
+        for q in range(P):
+            x[i, q] = t[i, q]
         for r in range(i + 1, k):
             for q in range(P):
                 x[i, q] -= K[r, i, q] * x[r, q]
         for q in range(P):
             x[i, q] /= K[i, i, q]
 
+
+@numba.njit(cache=True, inline="always")
+def _solve_lanes(K, t, x, k, P):
+    """``x = (K K^T)^{-1} t`` for each lane (``K`` lower); ``x`` may be ``t``."""
+    _forward_lanes(K, t, x, k, P)
+    _backward_lanes(K, x, x, k, P)
 
 @numba.njit(cache=True, parallel=True, error_model="numpy")
 def gromov_step(W, y, L, Ls, sup, eta, aux, mu, Sig, xi, eta_out, aux_out, mu_out, Sig_out, lams, epss, j, lin, sens,
@@ -422,3 +435,374 @@ def gromov_step(W, y, L, Ls, sup, eta, aux, mu, Sig, xi, eta_out, aux_out, mu_ou
                             mu_out[b, n, r] = mu[b, n, r] + eps * dm[r, q]
                             for c in range(d):
                                 Sig_out[b, n, r, c] = SigP[r, c, q]
+
+
+@numba.njit(cache=True, inline="always")
+def _row_hessian(i, lin, Wr, yr, Dg, xs, sens, psi, d0, w, s1, Dr, k, nb, bs, P):
+    """:func:`_row` at the points ``xs`` and the row's second-derivative blocks ``Dr (nb, bs, bs, P)``
+    (``dW_t[i, (c, j)] = Dr[c, t_i, j]`` for ``t = (c, t_i)``): read (``lin`` 0) or computed in the
+    acoustic form (``lin`` 1; the blocks of
+    :meth:`~torchflow.models.AcousticTracking.measurement_hessian_blocks`)."""
+    _row(i, lin, Wr, yr, xs, sens, psi, d0, w, s1, k, P)
+    if lin == 1:
+        sx, sy = sens[i, 0], sens[i, 1]
+        for c in range(nb):
+            for q in range(P):
+                dx = xs[2 * c, q] - sx
+                dy = xs[2 * c + 1, q] - sy
+                r = math.sqrt(dx * dx + dy * dy)
+                inv = 1.0 / (r + d0)
+                ir = 1.0 / max(r, 2.2250738585072014e-308)
+                bb = psi * inv * inv * ir
+                cc = (2.0 * psi * inv * inv * inv + bb) * ir * ir
+                Dr[c, 0, 0, q] = cc * dx * dx - bb
+                Dr[c, 0, 1, q] = cc * dx * dy
+                Dr[c, 1, 0, q] = cc * dx * dy
+                Dr[c, 1, 1, q] = cc * dy * dy - bb
+    else:
+        for c in range(nb):
+            for e in range(bs):
+                for f in range(bs):
+                    for q in range(P):
+                        Dr[c, e, f, q] = Dg[i, c, e, f, q]
+
+@numba.njit(cache=True, inline="always")
+def _upper_times(K, t, x, k, P):
+    """``x = K^T t`` for each lane (``K`` lower); ``x`` is not ``t``."""
+    for a in range(k):
+        for q in range(P):
+            x[a, q] = 0.0
+        for p in range(a, k):
+            for q in range(P):
+                x[a, q] += K[p, a, q] * t[p, q]
+
+
+@numba.njit(cache=True)
+def _tangent_side(K, Nm, Cm, lam, Cl, et, drx, v, c, bs, k, P, qv, rhs, dm, ph, At, Bt, sb):
+    """GPFIS's tangent ``t = (c, .)`` at pseudo-time ``lam`` (factor ``K``, ``N = K^{-1} C^T``,
+    ``C m``): ``dm = lam M^{-1} C^T (drx - F_t C m)`` and ``phi = Psi^T v`` into ``dm``, ``ph``
+    (``(k, P)``) -- see :func:`gpfis_step`. Not inlined: it keeps the kernel's compilation short."""
+    for a in range(k):
+        for q in range(P):
+            qv[a, q] = drx[a, q]
+        for f in range(bs):
+            for q in range(P):
+                qv[a, q] -= et[a, f, q] * Cm[c * bs + f, q]
+    for f in range(bs):
+        for a in range(k):
+            for q in range(P):
+                qv[c * bs + f, q] -= et[a, f, q] * Cm[a, q]
+    _upper_times(Cl, qv, rhs, k, P)
+    _solve_lanes(K, rhs, dm, k, P)
+    for a in range(k):
+        for q in range(P):
+            dm[a, q] *= lam
+    # a = N e_t, b = N's block-c columns; phi = Psi^T v by suffix sums over the rows
+    for a in range(k):
+        for f in range(bs):
+            for q in range(P):
+                At[a, f, q] = 0.0
+                Bt[a, f, q] = Nm[a, c * bs + f, q]
+            for p in range(k):
+                for q in range(P):
+                    At[a, f, q] += Nm[a, p, q] * et[p, f, q]
+    for f in range(bs):
+        for q in range(P):
+            sb[0, f, q] = 0.0
+            sb[1, f, q] = 0.0
+    for a in range(k - 1, -1, -1):
+        for q in range(P):
+            ph[a, q] = 0.0
+        for f in range(bs):
+            for q in range(P):
+                ph[a, q] += Bt[a, f, q] * sb[0, f, q] + At[a, f, q] * sb[1, f, q] + At[a, f, q] * Bt[a, f, q] * v[a, q]
+        for f in range(bs):
+            for q in range(P):
+                sb[0, f, q] += At[a, f, q] * v[a, q]
+                sb[1, f, q] += Bt[a, f, q] * v[a, q]
+        for q in range(P):
+            ph[a, q] *= lam
+
+
+@numba.njit(cache=True)
+def _gpfis_rows(lin, Wr, yr, Dg, xs, sens, psi, d0, w, s1, Dr, Wy, Sw, Zb, k, m, nb, bs, P):
+    """:func:`gpfis_step`'s pass over the rows of W at the points ``xs``: ``Wy = W^T y``,
+    ``Sw = W^T W`` (lower triangle) and ``Zb = [W y]^T D`` (its second-derivative blocks)."""
+    for a in range(k):
+        for q in range(P):
+            Wy[a, q] = 0.0
+        for c in range(a + 1):
+            for q in range(P):
+                Sw[a, c, q] = 0.0
+    for a in range(k + 1):
+        for c in range(nb):
+            for e in range(bs):
+                for f in range(bs):
+                    for q in range(P):
+                        Zb[a, c, e, f, q] = 0.0
+    for i in range(m):
+        _row_hessian(i, lin, Wr, yr, Dg, xs, sens, psi, d0, w, s1, Dr, k, nb, bs, P)
+        for a in range(k):
+            for q in range(P):
+                Wy[a, q] += w[a, q] * s1[q]
+            for c in range(a + 1):
+                for q in range(P):
+                    Sw[a, c, q] += w[a, q] * w[c, q]
+            for c in range(nb):
+                for e in range(bs):
+                    for f in range(bs):
+                        for q in range(P):
+                            Zb[a, c, e, f, q] += w[a, q] * Dr[c, e, f, q]
+        for c in range(nb):
+            for e in range(bs):
+                for f in range(bs):
+                    for q in range(P):
+                        Zb[k, c, e, f, q] += s1[q] * Dr[c, e, f, q]
+
+
+@numba.njit(cache=True)
+def _qr_logdet(J, ldc, ld, s1, k, P):
+    """``ld = ldc + log|det J|`` for each lane's ``J (k, k)`` by modified Gram-Schmidt (the product of
+    R's diagonal); J is overwritten."""
+    for q in range(P):
+        ld[q] = ldc[q]
+    for t in range(k):
+        for s in range(t):
+            for q in range(P):
+                s1[q] = 0.0
+            for a in range(k):
+                for q in range(P):
+                    s1[q] += J[a, s, q] * J[a, t, q]
+            for a in range(k):
+                for q in range(P):
+                    J[a, t, q] -= s1[q] * J[a, s, q]
+        for q in range(P):
+            s1[q] = 0.0
+        for a in range(k):
+            for q in range(P):
+                s1[q] += J[a, t, q] * J[a, t, q]
+        for q in range(P):
+            s1[q] = math.sqrt(s1[q])
+            ld[q] += math.log(s1[q])
+        for a in range(k):
+            for q in range(P):
+                J[a, t, q] /= s1[q]
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def gpfis_step(W, y, D, C, cols, mean, sup, x, x_out, log_det, lams, epss, j0, j1, lin, sens, const, nb, bs):
+    """Pseudo-steps ``j0 .. j1 - 1`` of the GPFIS transport (Cholesky root) and the log-determinant
+    of each step's map (:func:`torchflow.flows.gpfis._cholesky_step_and_jacobian`'s formulas) for
+    every particle of ``x (B, N, d)``, ``LANES`` particles side by side as :func:`dh_step`. Writes
+    ``x_out`` and adds to ``log_det (B, N)``.
+
+    ``C (B|1, N|1, k, k)``: the prior's lower factor at the support, ``cols (B|1, N|1, d, k)``
+    its columns, ``mean (B|1, N|1, d)`` the prior mean; ``lin`` 0: ``W (B|1, N|1, m, k)``,
+    ``y (B|1, N|1, m)`` and the second-derivative blocks ``D (B|1, N|1, m, nb, bs, bs)`` at ``x``
+    are read (one step: ``j1 = j0 + 1``); ``lin`` 1: computed at the particles in the acoustic
+    form (``y`` holds ``z / sigma``, ``const = [Psi / sigma, d0]``, ``bs`` 2), every step in one call.
+
+    Per step, in whitened coordinates ``u = C^{-1} x_s`` with ``G = C^T (W^T W) C``, ``r = C^T W^T y``,
+    ``M_i = I + lam_i G = K_i K_i^T``, ``m_i = M_i^{-1} (u_0 + lam_i r)``, ``v = K_0^T (u - m_0)``:
+    ``u' = K_1^{-T} (K_1^{-1} (u_0 + lam_1 r) + v)``. Along tangent ``t = (c, t_i)`` of ``x_s`` only
+    ``dW_t`` (block c of the row blocks) moves, so ``F_t = W^T dW_t + dW_t^T W = e_t P_c^T + P_c e_t^T``
+    with ``e_t = W^T D[:, c, t_i, :] (k, bs)`` is of rank ``2 bs``: ``K_i^{-1} C^T F_t C K_i^{-T}
+    = a b^T + b a^T`` (``a = N_i e_t``, ``b = N_i[:, block c]``, ``N_i = K_i^{-1} C^T``) and the
+    Cholesky factor's derivative applied to ``v`` is a suffix sum over rows, ``O(k bs)`` per tangent.
+    ``log|det du'/dx_s|`` from a modified Gram-Schmidt QR of the ``k x k`` Jacobian, plus
+    ``log|det C|`` (the map of the other coordinates is triangular with unit diagonal)."""
+    B, N, d = x.shape
+    k = sup.shape[0]
+    m = sens.shape[0] if lin == 1 else y.shape[2]
+    psi, d0 = const[0], const[1]
+    P = LANES
+    total = B * N
+    groups = (total + P - 1) // P
+    per = BLOCK // P
+    nblocks = (groups + per - 1) // per
+    for blk in numba.prange(nblocks):
+        _gpfis_block(blk, per, groups, total, W, y, D, C, cols, mean, sup, x, x_out, log_det, lams, epss, j0, j1, lin,
+                     sens, const, nb, bs, B, N, d, k, m, psi, d0, P)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _gpfis_block(blk, per, groups, total, W, y, D, C, cols, mean, sup, x, x_out, log_det, lams, epss, j0, j1, lin, sens,
+                 const, nb, bs, B, N, d, k, m, psi, d0, P):
+    """Block ``blk`` of :func:`gpfis_step`'s parallel loop (a function of its own: Numba compiles
+    a parallel loop's body slowly)."""
+    bbi = np.empty(P, np.int64)
+    nni = np.empty(P, np.int64)
+    Wr = np.empty((m if lin == 0 else 0, k, P))
+    yr = np.empty((m, P))
+    Dg = np.empty((m if lin == 0 else 0, nb, bs, bs, P))
+    Dr = np.empty((nb, bs, bs, P))
+    Zb = np.empty((k + 1, nb, bs, bs, P))
+    X = np.empty((d, P))
+    Co = np.empty((d, k, P))
+    mat = np.empty((10, k, k, P))
+    vec = np.empty((24, k, P))
+    tb = np.empty((6, k, bs, P))
+    sb = np.empty((2, bs, P))
+    sc = np.empty((3, P))
+    for grp in range(blk * per, min(groups, (blk + 1) * per)):
+        for q in range(P):
+            p = min(grp * P + q, total - 1)
+            bbi[q], nni[q] = p // N, p % N
+        Cl, Ci, Sw, T, G, K0, K1, N0, N1, J = (mat[0], mat[1], mat[2], mat[3], mat[4], mat[5], mat[6], mat[7],
+                                               mat[8], mat[9])
+        xs, u0, w, Wy, r, u, b0, m0, v, b1 = (vec[0], vec[1], vec[2], vec[3], vec[4], vec[5], vec[6], vec[7],
+                                              vec[8], vec[9])
+        un, m1, Cm0, Cm1, drx, qv, rhs, dm0, dm1, col = (vec[10], vec[11], vec[12], vec[13], vec[14], vec[15],
+                                                         vec[16], vec[17], vec[18], vec[19])
+        ph0, ph1, tmp, ms = vec[20], vec[21], vec[22], vec[23]
+        et, A0, B0, A1, B1 = tb[0], tb[1], tb[2], tb[3], tb[4]
+        s1, ldc, ld = sc[0], sc[1], sc[2]
+        for q in range(P):  # gather the lanes' inputs
+            b, n = bbi[q], nni[q]
+            bc, nc = (b if C.shape[0] > 1 else 0), (n if C.shape[1] > 1 else 0)
+            bo, no = (b if cols.shape[0] > 1 else 0), (n if cols.shape[1] > 1 else 0)
+            bm, nm = (b if mean.shape[0] > 1 else 0), (n if mean.shape[1] > 1 else 0)
+            for r_ in range(d):
+                X[r_, q] = x[b, n, r_]
+                for c in range(k):
+                    Co[r_, c, q] = cols[bo, no, r_, c]
+            for a in range(k):
+                ms[a, q] = mean[bm, nm, sup[a]]
+                for c in range(k):
+                    Cl[a, c, q] = C[bc, nc, a, c]
+            if lin == 0:
+                _gather_rows(q, b, n, lin, W, y, Wr, yr, m, k)
+                bd, nd = (b if D.shape[0] > 1 else 0), (n if D.shape[1] > 1 else 0)
+                for i in range(m):
+                    for c in range(nb):
+                        for e in range(bs):
+                            for f in range(bs):
+                                Dg[i, c, e, f, q] = D[bd, nd, i, c, e, f]
+            else:
+                _gather_rows(q, b, n, 1, W, y, Wr, yr, m, k)
+        # constants of the integration: C^{-1} (its columns are the tangents' du), log|det C|, u_0
+        for c in range(k):
+            for a in range(k):
+                for q in range(P):
+                    tmp[a, q] = 1.0 if a == c else 0.0
+            _forward_lanes(Cl, tmp, tmp, k, P)
+            for a in range(k):
+                for q in range(P):
+                    Ci[a, c, q] = tmp[a, q]
+        for q in range(P):
+            ldc[q] = 0.0
+        for a in range(k):
+            for q in range(P):
+                ldc[q] += math.log(abs(Cl[a, a, q]))
+        _forward_lanes(Cl, ms, u0, k, P)
+        for j in range(j0, j1):
+            lam1 = lams[j]
+            lam0 = lam1 - epss[j]
+            for a in range(k):
+                for q in range(P):
+                    xs[a, q] = X[sup[a], q]
+            _gpfis_rows(lin, Wr, yr, Dg, xs, sens, psi, d0, w, s1, Dr, Wy, Sw, Zb, k, m, nb, bs, P)
+            # G = C^T S_w C (T = S_w C), r = C^T W^T y, u = C^{-1} x_s
+            for a in range(k):
+                for c in range(k):
+                    for q in range(P):
+                        T[a, c, q] = 0.0
+                    for p in range(c, k):
+                        if p <= a:
+                            for q in range(P):
+                                T[a, c, q] += Sw[a, p, q] * Cl[p, c, q]
+                        else:
+                            for q in range(P):
+                                T[a, c, q] += Sw[p, a, q] * Cl[p, c, q]
+            for a in range(k):
+                for c in range(a + 1):
+                    for q in range(P):
+                        G[a, c, q] = 0.0
+                    for p in range(a, k):
+                        for q in range(P):
+                            G[a, c, q] += Cl[p, a, q] * T[p, c, q]
+            _upper_times(Cl, Wy, r, k, P)
+            _forward_lanes(Cl, xs, u, k, P)
+            _chol_lanes(G, lam0, K0, k, P)
+            _chol_lanes(G, lam1, K1, k, P)
+            for a in range(k):
+                for q in range(P):
+                    b0[a, q] = u0[a, q] + lam0 * r[a, q]
+                    b1[a, q] = u0[a, q] + lam1 * r[a, q]
+            _solve_lanes(K0, b0, m0, k, P)
+            for a in range(k):
+                for q in range(P):
+                    tmp[a, q] = u[a, q] - m0[a, q]
+            _upper_times(K0, tmp, v, k, P)
+            _forward_lanes(K1, b1, b1, k, P)
+            for a in range(k):
+                for q in range(P):
+                    tmp[a, q] = b1[a, q] + v[a, q]
+            _backward_lanes(K1, tmp, un, k, P)
+            _backward_lanes(K1, b1, m1, k, P)
+            # N_i = K_i^{-1} C^T, column by column; C m_i
+            for c in range(k):
+                for a in range(k):
+                    for q in range(P):
+                        tmp[a, q] = Cl[c, a, q]
+                _forward_lanes(K0, tmp, rhs, k, P)
+                _forward_lanes(K1, tmp, qv, k, P)
+                for a in range(k):
+                    for q in range(P):
+                        N0[a, c, q] = rhs[a, q]
+                        N1[a, c, q] = qv[a, q]
+            for a in range(k):
+                for q in range(P):
+                    Cm0[a, q] = 0.0
+                    Cm1[a, q] = 0.0
+                for p in range(a + 1):
+                    for q in range(P):
+                        Cm0[a, q] += Cl[a, p, q] * m0[p, q]
+                        Cm1[a, q] += Cl[a, p, q] * m1[p, q]
+            # the Jacobian, a column per tangent t = (c, ti)
+            for c in range(nb):
+                for ti in range(bs):
+                    t = c * bs + ti
+                    for a in range(k):  # e_t = W^T dW_t's block, W^T dy_t = e_t x_c, dW_t^T y
+                        for f in range(bs):
+                            for q in range(P):
+                                et[a, f, q] = Zb[a, c, ti, f, q]
+                        for q in range(P):
+                            drx[a, q] = 0.0
+                        for f in range(bs):
+                            for q in range(P):
+                                drx[a, q] += et[a, f, q] * xs[c * bs + f, q]
+                    for f in range(bs):
+                        for q in range(P):
+                            drx[c * bs + f, q] += Zb[k, c, ti, f, q]
+                    _tangent_side(K0, N0, Cm0, lam0, Cl, et, drx, v, c, bs, k, P, qv, rhs, dm0, ph0, A0, B0, sb)
+                    _tangent_side(K1, N1, Cm1, lam1, Cl, et, drx, v, c, bs, k, P, qv, rhs, dm1, ph1, A1, B1, sb)
+                    # J[:, t] = dm_1 + K_1^{-T} (K_0^T (C^{-1} e_t - dm_0) + phi_0 - phi_1)
+                    for a in range(k):
+                        for q in range(P):
+                            tmp[a, q] = Ci[a, t, q] - dm0[a, q]
+                    _upper_times(K0, tmp, col, k, P)
+                    for a in range(k):
+                        for q in range(P):
+                            col[a, q] += ph0[a, q] - ph1[a, q]
+                    _backward_lanes(K1, col, col, k, P)
+                    for a in range(k):
+                        for q in range(P):
+                            J[a, t, q] = dm1[a, q] + col[a, q]
+            _qr_logdet(J, ldc, ld, s1, k, P)
+            # x += cols (u' - u)
+            for a in range(k):
+                for q in range(P):
+                    tmp[a, q] = un[a, q] - u[a, q]
+            for r_ in range(d):
+                for c in range(k):
+                    for q in range(P):
+                        X[r_, q] += Co[r_, c, q] * tmp[c, q]
+            for q in range(P):
+                if grp * P + q < total:
+                    log_det[bbi[q], nni[q]] += ld[q]
+        for q in range(P):
+            if grp * P + q < total:
+                b, n = bbi[q], nni[q]
+                for r_ in range(d):
+                    x_out[b, n, r_] = X[r_, q]

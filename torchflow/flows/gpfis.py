@@ -33,6 +33,12 @@ triangular algebra whose derivative exists everywhere. ``root="symmetric"`` is t
 square root ``(P_lam1 P_lam0^{-1})^{1/2}`` of Bunch & Godsill through an eigendecomposition of G,
 whose derivative is undefined when G has repeated eigenvalues (e.g. isotropic P_0 and H).
 The stochastic variant (gamma > 0) is not implemented.
+
+On the CPU with Numba, with no gradient recorded (``tuning.fused_flows``), the analytic path runs as
+one compiled kernel (:class:`~torchflow.flows.fused.GPFISSteps`): the same formulas, 64 particles in
+SIMD lanes, each tangent's ``dG`` applied as a rank-``2b`` update instead of a ``k x k`` matrix, the
+``log|det|`` from a QR of the step Jacobian instead of an LU; it agrees with this module's torch path
+to round-off.
 """
 from __future__ import annotations
 
@@ -41,9 +47,10 @@ from typing import Optional
 import torch
 from torch.func import jvp, vmap
 
-from .. import linalg
+from .. import _triton, linalg, tuning
 from .._checks import check_choice
 from ..schedules import LambdaSchedule, resolve_schedule
+from . import fused
 from .base import FlowPrior
 from .measurement import GaussianMeasurement
 
@@ -81,6 +88,8 @@ def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPri
     m0s = prior.mean if sup is None else prior.mean[..., sup]
     u0 = _tri(C, m0s.unsqueeze(-1)).squeeze(-1)  # whitened prior mean, (B, N, k)
     log_det_C = torch.log(C.diagonal(dim1=-2, dim2=-1).abs()).sum(-1)
+    if analytic and _fusable(measurement, x, k):
+        return _fused_flow(measurement, x, prior, sup, k, eps_all, lam_all)
     tangents = eye.reshape(k, *([1] * (x.dim() - 1)), k).expand(k, *x.shape[:-1], k)
     log_det = torch.zeros(x.shape[:-1], dtype=x.dtype, device=x.device)
     C_inv = _tri(C, eye.expand_as(C)) if analytic else None  # dx_s -> du: (..., k, k)
@@ -124,6 +133,40 @@ def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPri
         u_old = _tri(C, xs.unsqueeze(-1)).squeeze(-1)
         x = x + linalg.matvec(cols, u_new - u_old)
     return x, log_det
+
+
+def _fusable(measurement, x, k) -> bool:
+    """The fused CPU pseudo-steps apply (:class:`~torchflow.flows.fused.GPFISSteps`): ``(B, N, d)``
+    particles on the CPU with Numba (not Triton's interpreter), no gradient recorded,
+    ``tuning.fused_flows``, the measurement's second derivatives declared (or linear), small tiles."""
+    from .integrate import _tiles_fit
+
+    if not tuning.get().fused_flows or torch.is_grad_enabled() or x.dim() != 3 or x.device.type != "cpu":
+        return False
+    if _triton.runs_on(x.device) or (measurement.hessian is None and measurement.matrix is None):
+        return False
+    return fused.numba_available() and _tiles_fit(measurement, x, k)
+
+
+def _fused_flow(measurement, x, prior, sup, k, eps_all, lam_all):
+    """:func:`gpfis_flow` by the fused CPU kernel: every step in one call when the kernel linearises
+    the model itself (acoustic), else one call per step with the whitened linearisation and the
+    second-derivative blocks from torch."""
+    from .integrate import _measured_inside
+
+    inside = _measured_inside(measurement, sup, k)
+    steps = fused.GPFISSteps(prior.cols_support, prior.cols, prior.mean, sup, lam_all.to(torch.float64),
+                             eps_all.to(torch.float64), inside, measurement._inv_sigma,
+                             measurement._z_scaled if inside is not None else None)
+    log_det = torch.zeros(x.shape[:-1], dtype=torch.float64)
+    x = x.contiguous()
+    if inside is not None:
+        x = steps(0, len(eps_all), x, log_det)
+    else:
+        for j in range(len(eps_all)):
+            lin = measurement.at(x, sup)
+            x = steps(j, j + 1, x, log_det, lin.W, lin.y, measurement.derivative(x, sup))
+    return x, log_det.to(x.dtype)
 
 
 def _cholesky_step_and_jacobian(measurement, x_now, xs, sup, C, C_inv, u0, lam0, lam1, eye, tangents):
