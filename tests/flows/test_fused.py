@@ -286,6 +286,93 @@ def test_fused_gpfis_only_where_it_applies(monkeypatch):
             GP.gpfis_flow(GaussianMeasurement.from_model(model, z), x0, prior, None, root, jac)
 
 
+def _diag_case(d, B, N, shared, dtype=torch.float64, seed=0):
+    """A diagonal measurement (skewed-t / Poisson, d = 64: too large for the lane kernel's tiles),
+    per-particle points near the truth, a prior shared by the particles of a trial (as a
+    Gaussian-sum component's) or one per particle (as PF-PF(LEDH)'s)."""
+    from torchflow.flows import FlowPrior
+    from torchflow.models import SkewedTPoisson
+    g = torch.Generator().manual_seed(seed)
+    model = SkewedTPoisson(d=d).to(dtype=dtype)
+    traj = model.simulate(B, 2, g)
+    x = traj.states[:, 1].unsqueeze(1) + 0.3 * torch.randn(B, N, d, dtype=dtype, generator=g)
+    A = 0.1 * torch.randn(B, 1 if shared else N, d, d, dtype=dtype, generator=g)
+    P = A @ A.transpose(-1, -2) + 0.5 * torch.eye(d, dtype=dtype)
+    prior = FlowPrior(x.mean(1, keepdim=True).expand(B, N, d) + 0.1, torch.linalg.cholesky(P))
+    return model, x, prior, traj.observations[:, 1]
+
+
+def _flow(model, x, prior, z, flow=None, **tuned):
+    from torchflow import tuning
+    from torchflow.flows import LEDHFlow, integrate_flow
+    with tuning.tuned(**tuned), torch.no_grad():
+        return integrate_flow(flow or LEDHFlow(), model, x, z, prior, None, points="particle")
+
+
+@pytest.mark.parametrize("case", ["shared prior", "per-particle priors", "float32", "EDH at the particles"])
+def test_fused_diagonal_step_matches_torch_on_cpu(case):
+    """The information-form CPU kernel for a diagonal W (torchflow.flows._fused_cpu.dh_diag_step):
+    the particles, points and log|det| of the torch path (covariance form) to round-off, for 2 x 30
+    particles of the skewed-t / Poisson model at d = 64."""
+    pytest.importorskip("numba")
+    from torchflow.flows import EDHFlow, GaussianMeasurement, LEDHFlow
+    from torchflow.flows import integrate as I
+    dtype = torch.float32 if case == "float32" else torch.float64
+    model, x, prior, z = _diag_case(64, 2, 30, case != "per-particle priors", dtype)
+    flow = EDHFlow() if case.startswith("EDH") else LEDHFlow()
+    with torch.no_grad():
+        meas = GaussianMeasurement.from_model(model, z)
+        assert I._diag_fusable(flow, meas, x) and not I._fusable(flow, meas, x, 64)
+    ref = _flow(model, x, prior, z, flow, fused_flows=0)
+    out = _flow(model, x, prior, z, flow, fused_flows=1)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    for k in ("particles", "log_det", "aux"):
+        a, b = getattr(ref, k), getattr(out, k)
+        assert b.dtype == dtype and a.shape == b.shape
+        if dtype == torch.float64:
+            assert not torch.equal(a, b), k  # another computation
+        assert ((a - b).abs().max() / a.abs().max()).item() < tol, k
+
+
+def test_fused_diagonal_step_gives_the_same_bits_on_any_thread_count_and_split():
+    pytest.importorskip("numba")
+    from torchflow.flows import FlowPrior
+    model, x, prior, z = _diag_case(64, 1, 40, False, seed=2)
+
+    def run(sl, threads):
+        n = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        try:
+            out = _flow(model, x[:, sl], FlowPrior(prior.mean[:, sl], prior.scale_tril[:, sl]), z)
+        finally:
+            torch.set_num_threads(n)
+        return out.particles, out.log_det
+
+    whole = run(slice(None), 2)
+    for got in (run(slice(None), 1), tuple(torch.cat(p, 1) for p in zip(run(slice(0, 7), 2), run(slice(7, None), 1)))):
+        assert all(torch.equal(a, b) for a, b in zip(got, whole))
+
+
+def test_diagonal_rows_are_the_linearisation_diagonal():
+    """``GaussianMeasurement.at_diagonal`` (the model's elementwise forms) gives W's diagonal and y of
+    ``at`` bit for bit; the base model's default (diagonals of the dense forms) too; measurements
+    that are not diagonal give ``None``."""
+    from torchflow.flows import GaussianMeasurement
+    from torchflow.models import AcousticTracking, SkewedTPoisson
+    from torchflow.models.base import StateSpaceModel
+    model, x, _, z = _diag_case(16, 2, 5, True)
+    meas = GaussianMeasurement.from_model(model, z)
+    lin = meas.at(x)
+    for rows in (meas.at_diagonal(x), GaussianMeasurement(
+            z, model.linearize_measurement, model.measurement_scale_tril, "diagonal", diagonal=True,
+            diagonal_rows=lambda p: StateSpaceModel.linearize_measurement_diagonal(model, p)).at_diagonal(x)):
+        assert torch.equal(rows[0], lin.diag) and torch.equal(rows[1], lin.y)
+    assert isinstance(model, SkewedTPoisson)
+    acoustic = AcousticTracking()
+    assert GaussianMeasurement.from_model(acoustic, torch.zeros(1, 25, dtype=torch.float64)).at_diagonal(
+        torch.zeros(1, 3, 16, dtype=torch.float64)) is None
+
+
 def test_not_fused_without_a_kernel_on_cpu(monkeypatch):
     """On the CPU without Numba (and without Triton's interpreter) the torch path runs."""
     from torchflow.flows import fused
@@ -300,7 +387,15 @@ def test_not_fused_without_a_kernel_on_cpu(monkeypatch):
         assert not I._fusable(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8)
         assert not I._gromov_fusable(GromovFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8)
         assert not I._gromov_fusable(GromovFlow(noise_root="symmetric"), meas, torch.zeros(1, 4, 16), 8)
+        from torchflow.models import SkewedTPoisson
+        poisson = I.GaussianMeasurement.from_model(SkewedTPoisson(d=64), torch.zeros(1, 64, dtype=torch.float64))
+        assert not I._diag_fusable(LEDHFlow(), poisson, torch.zeros(1, 4, 64, dtype=torch.float64))
     monkeypatch.setattr(fused, "_numba", True)
+    with torch.no_grad():
+        assert I._diag_fusable(LEDHFlow(), poisson, torch.zeros(1, 4, 64, dtype=torch.float64))
+        assert not I._diag_fusable(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64))  # W not diagonal
+        assert not I._diag_fusable(GromovFlow(), poisson, torch.zeros(1, 4, 64, dtype=torch.float64))
+    assert not I._diag_fusable(LEDHFlow(), poisson, torch.zeros(1, 4, 64, dtype=torch.float64))  # a gradient
     with torch.no_grad():
         assert I._fusable(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8)
     assert not I._fusable(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8)  # a gradient is recorded

@@ -30,6 +30,8 @@ import numpy as np
 LANES = 64
 #: particles per block of the parallel loop (a multiple of LANES; each block allocates its scratch once)
 BLOCK = 256
+#: particles per block of :func:`dh_diag_step`'s parallel loop (one particle at a time; scratch once per block)
+DIAG_BLOCK = 16
 
 
 @numba.njit(cache=True, inline="always")
@@ -806,3 +808,154 @@ def _gpfis_block(blk, per, groups, total, W, y, D, C, cols, mean, sup, x, x_out,
                 b, n = bbi[q], nni[q]
                 for r_ in range(d):
                     x_out[b, n, r_] = X[r_, q]
+
+
+@numba.njit(cache=True, fastmath={"reassoc", "contract"})
+def _chol_into(Pinv, dgn, h, K, d):
+    """Lower Cholesky factor ``K`` of ``Pinv + h diag(dgn)`` (dot-product form: each entry one
+    contiguous dot product of two rows, vectorised by reassociating it; two rows at a time, so each
+    load of row j serves both: 14.6 against 10.9 GFLOP/s for one, d = 144, one core). ``Pinv`` is
+    read in full (symmetric)."""
+    for j in range(d):
+        s = Pinv[j, j] + h * dgn[j]
+        for c in range(j):
+            s -= K[j, c] * K[j, c]
+        s = math.sqrt(s)
+        K[j, j] = s
+        inv = 1.0 / s
+        r = j + 1
+        while r + 1 < d:
+            a0 = Pinv[r, j]
+            a1 = Pinv[r + 1, j]
+            for c in range(j):
+                kc = K[j, c]
+                a0 -= K[r, c] * kc
+                a1 -= K[r + 1, c] * kc
+            K[r, j] = a0 * inv
+            K[r + 1, j] = a1 * inv
+            r += 2
+        if r < d:
+            a = Pinv[r, j]
+            for c in range(j):
+                a -= K[r, c] * K[j, c]
+            K[r, j] = a * inv
+
+@numba.njit(cache=True, fastmath={"reassoc", "contract"})
+def _chol_solve_into(K, X, n, d):
+    """``X[:n] <- (K K^T)^{-1} X[:n]`` for ``n`` right-hand sides as rows of ``X (r, d)``: forward
+    by contiguous dot products, backward by contiguous row updates."""
+    for v in range(n):
+        x = X[v]
+        for i in range(d):
+            s = x[i]
+            for c in range(i):
+                s -= K[i, c] * x[c]
+            x[i] = s / K[i, i]
+        for i in range(d - 1, -1, -1):
+            x[i] /= K[i, i]
+            xi = x[i]
+            for r in range(i):
+                x[r] -= K[i, r] * xi
+
+
+@numba.njit(cache=True, parallel=True, fastmath={"reassoc", "contract"})
+def dh_diag_step(Wd, y, Pinv, Pc, mean, eta, aux, eta_out, aux_out, log_det, lams, epss, j):
+    """One Euler pseudo-step of EDH/LEDH at per-particle points for a diagonal whitened Jacobian
+    (``W = diag(Wd)``, ``Wd, y (B|1, N|1, d)``), in information form, one particle per iteration of
+    the parallel loop: with ``D = diag(Wd^2)`` and ``M_l = P^{-1} + l D = K_l K_l^T``
+    (``Pinv (B|1, N|1, d, d)``), ``A = -1/2 M_lam^{-1} D``, ``P H^T R^{-1} (z - e) = P (Wd y)``
+    (``Pc``: P), ``log|det(I + eps A)| = log det K_{lam - eps/2} - log det K_lam``; the same maps as
+    :func:`~torchflow.flows.daum_huang.daum_huang_coefficients` (``L (I + lam L^T D L)^{-1} L^T =
+    M_lam^{-1}``), two ``d x d`` Cholesky factorisations per particle and no ``d x d x d`` product."""
+    B, N, d = eta.shape
+    lam = lams[j]
+    eps = epss[j]
+    total = B * N
+    per = DIAG_BLOCK
+    for blk in numba.prange((total + per - 1) // per):
+        K = np.empty((d, d))  # scratch once per block: a d x d array per particle costs a page fault each
+        X = np.empty((3, d))
+        dg = np.empty(d)
+        wy = np.empty(d)
+        pg = np.empty(d)
+        for p in range(blk * per, min(total, (blk + 1) * per)):
+            _diag_particle(p, N, d, Wd, y, Pinv, Pc, mean, eta, aux, eta_out, aux_out, log_det, lam, eps, K, X, dg, wy,
+                           pg)
+
+
+@numba.njit(cache=True, fastmath={"reassoc", "contract"})
+def _diag_particle(p, N, d, Wd, y, Pinv, Pc, mean, eta, aux, eta_out, aux_out, log_det, lam, eps, K, X, dg, wy, pg):
+    """Particle ``p`` of :func:`dh_diag_step` (scratch ``K (d, d)``, ``X (3, d)``, ``dg``, ``wy``, ``pg``)."""
+    b, n = p // N, p % N
+    bw, nw = (b if Wd.shape[0] > 1 else 0), (n if Wd.shape[1] > 1 else 0)
+    by, ny = (b if y.shape[0] > 1 else 0), (n if y.shape[1] > 1 else 0)
+    bi, ni = (b if Pinv.shape[0] > 1 else 0), (n if Pinv.shape[1] > 1 else 0)
+    bp, np_ = (b if Pc.shape[0] > 1 else 0), (n if Pc.shape[1] > 1 else 0)
+    bm, nm = (b if mean.shape[0] > 1 else 0), (n if mean.shape[1] > 1 else 0)
+    Pi = Pinv[bi, ni]
+    for i in range(d):
+        w = Wd[bw, nw, i]
+        dg[i] = w * w
+        wy[i] = w * y[by, ny, i]
+    P = Pc[bp, np_]
+    for i in range(d):
+        s = 0.0
+        for c in range(d):
+            s += P[i, c] * wy[c]
+        pg[i] = s
+    _chol_into(Pi, dg, lam - 0.5 * eps, K, d)
+    ld = 0.0
+    for i in range(d):
+        ld += math.log(K[i, i])
+    _chol_into(Pi, dg, lam, K, d)
+    for i in range(d):
+        ld -= math.log(K[i, i])
+    # A v = -1/2 M^{-1} (D v) for v = lam Pg + mean, eta, aux; then u = Pg + A(lam Pg + mean), b = u + 2 lam A u
+    for i in range(d):
+        X[0, i] = dg[i] * (lam * pg[i] + mean[bm, nm, i])
+        X[1, i] = dg[i] * eta[b, n, i]
+        X[2, i] = dg[i] * aux[b, n, i]
+    _chol_solve_into(K, X, 3, d)
+    for i in range(d):
+        X[0, i] = pg[i] - 0.5 * X[0, i]  # u
+    for i in range(d):
+        wy[i] = dg[i] * X[0, i]  # D u, solved in place below
+    U = wy.reshape((1, d))
+    _chol_solve_into(K, U, 1, d)
+    for i in range(d):
+        bb = X[0, i] - lam * U[0, i]  # b = u + 2 lam (-1/2 M^{-1} D u)
+        eta_out[b, n, i] = eta[b, n, i] + eps * (bb - 0.5 * X[1, i])
+        aux_out[b, n, i] = aux[b, n, i] + eps * (bb - 0.5 * X[2, i])
+    log_det[b, n] += 2.0 * ld
+
+
+@numba.njit(cache=True, parallel=True, fastmath={"reassoc", "contract"})
+def precision_from_factor(L, out):
+    """``out[b, n] = (L L^T)^{-1}`` for lower factors ``L (B, N, d, d)``: ``X = L^{-1}`` by forward
+    substitution, then ``X^T X``, both as updates of contiguous rows. One matrix per iteration of
+    the parallel loop, so the bits do not depend on the thread count (torch's batched
+    ``cholesky_inverse`` does)."""
+    B, N, d = L.shape[0], L.shape[1], L.shape[2]
+    for p in numba.prange(B * N):
+        b, n = p // N, p % N
+        Lm = L[b, n]
+        X = np.zeros((d, d))  # L^{-1}, lower: row i = -(L[i, :i] X[:i, :]) / L[i, i], and 1 / L[i, i]
+        for i in range(d):
+            for k in range(i):
+                f = Lm[i, k]
+                for c in range(k + 1):
+                    X[i, c] -= f * X[k, c]
+            inv = 1.0 / Lm[i, i]
+            for c in range(i):
+                X[i, c] *= inv
+            X[i, i] = inv
+        O = out[b, n]
+        O[:, :] = 0.0
+        for k in range(d):  # X^T X = sum_k (row k of X)^T (row k of X): the lower triangle
+            for r in range(k + 1):
+                f = X[k, r]
+                for c in range(r + 1):
+                    O[r, c] += f * X[k, c]
+        for r in range(d):
+            for c in range(r):
+                O[c, r] = O[r, c]

@@ -66,7 +66,7 @@ import torch
 
 from .. import _triton
 
-__all__ = ["available", "dh_particle_step", "FusedMeasurement", "ParticleSteps", "GromovSteps", "GPFISSteps"]
+__all__ = ["available", "dh_particle_step", "FusedMeasurement", "ParticleSteps", "GromovSteps", "GPFISSteps", "DiagonalSteps"]
 
 available, interpreted = _triton.available, _triton.interpreted  # shared with torchflow.random's fused draws
 
@@ -229,6 +229,32 @@ class GromovSteps:
         return tuple(res) if track else (res[0], res[1], None, None)
 
 
+class DiagonalSteps:
+    """EDH/LEDH pseudo-steps at per-particle points for a measurement whose whitened Jacobian is
+    diagonal by declaration (:attr:`~torchflow.flows.GaussianMeasurement.diagonal`: ``m = d``, no
+    support), on the CPU, fused in information form (:func:`torchflow.flows._fused_cpu.dh_diag_step`,
+    Numba; one particle per iteration, two ``d x d`` Cholesky factorisations per pseudo-step and no
+    ``d x d x d`` product). For the large d the lane kernel's tiles do not fit (the skewed-t /
+    Poisson model, d = 64 and 144). ``steps(j, eta, aux, log_det, Wd, y)``: ``Wd``, ``y (B, N, d)``
+    the whitened diagonal Jacobian and pseudo-measurement at the points; ``log_det (B, N)`` float64,
+    updated in place. The prior precision ``P^{-1}`` is formed once per integration."""
+
+    def __init__(self, scale_tril, cov, mean, lams, epss):
+        L = _f64(scale_tril, 4)
+        Pinv = np.empty_like(L)
+        _set_threads()
+        _precision_kernel()(L, Pinv)
+        self.args = (Pinv, _f64(cov, 4), _f64(mean, 3))
+        self.sched = (_f64(lams, 1), _f64(epss, 1))
+
+    def __call__(self, j: int, eta, aux, log_det, Wd, y):
+        e64, a64 = _f64(eta, 3), _f64(aux, 3)
+        eta_out, aux_out = np.empty_like(e64), np.empty_like(a64)
+        _set_threads()
+        _diag_kernel()(_f64(Wd, 3), _f64(y, 3), *self.args, e64, a64, eta_out, aux_out, _np(log_det), *self.sched, j)
+        return tuple(_cpu_back((eta_out, aux_out), eta.dtype))
+
+
 class GPFISSteps:
     """The GPFIS transport's pseudo-steps (Cholesky root) and each step's ``log|det|`` on the CPU,
     fused (:func:`torchflow.flows._fused_cpu.gpfis_step`, Numba), set up once per integration like
@@ -302,6 +328,16 @@ def numba_available() -> bool:
         except Exception:  # noqa: BLE001 - any import failure means: not available
             _numba = False
     return _numba
+
+
+def _precision_kernel():
+    from ._fused_cpu import precision_from_factor
+    return precision_from_factor
+
+
+def _diag_kernel():
+    from ._fused_cpu import dh_diag_step
+    return dh_diag_step
 
 
 def _gpfis_kernel():

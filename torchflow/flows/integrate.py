@@ -141,6 +141,12 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
     tracked = [mu] if track else []
     log_det = torch.zeros(B, L, dtype=particles.dtype, device=particles.device)
     fuse = per_particle and not track and not gaussian_image and _fusable(flow, measurement, particles, k)
+    diag = per_particle and not track and not gaussian_image and not fuse and _diag_fusable(flow, measurement, particles)
+    if diag:  # a diagonal W in information form, a particle per iteration (torchflow.flows.fused.DiagonalSteps)
+        eta, aux = eta.contiguous(), aux.contiguous()
+        diag_step = fused.DiagonalSteps(prior.scale_tril, prior.cov_cols, prior.mean, lam_all.to(torch.float64),
+                                        eps_all.to(torch.float64))
+        log_det = log_det.to(torch.float64)
     gromov = per_particle and not gaussian_image and _gromov_fusable(flow, measurement, particles, k)
     if gromov:  # the Gromov flow's pseudo-steps and its tracked law in one CPU kernel (torchflow.flows.fused)
         eta, aux = eta.contiguous(), aux.contiguous()
@@ -167,6 +173,13 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
                                                 *(() if lin is None else (lin.W, lin.y)))
             if track:
                 mu, Sig = mu_j, Sig_j
+            continue
+        if diag:
+            rows = measurement.at_diagonal(aux)  # W's diagonal and y without d x d matrices, where the model gives them
+            if rows is None:
+                lin = measurement.at(aux)
+                rows = (lin.diag if lin.diag is not None else lin.W.diagonal(dim1=-2, dim2=-1), lin.y)  # W diagonal: declared
+            eta, aux = diag_step(j, eta, aux, log_det, *rows)
             continue
         if fuse and inside is not None:
             eta, aux = fused_step(j, eta, aux, log_det)
@@ -217,6 +230,8 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
         return image.output(FlowOutput(eta, None, aux, log_proposal=log_q, proposal_mean=mu, proposal_cov=Sig))
     if stochastic:
         return image.output(FlowOutput(eta, None, aux))
+    if diag:
+        log_det = log_det.to(particles.dtype)
     log_det = log_det.expand(B, N) if index is None else _gather_points(log_det.unsqueeze(-1), index).squeeze(-1)
     return image.output(FlowOutput(eta, log_det, aux))
 
@@ -229,6 +244,18 @@ def _fusable(flow, measurement, particles, k) -> bool:
     if not tuning.get().fused_flows or type(flow) not in (EDHFlow, LEDHFlow) or torch.is_grad_enabled():
         return False
     return fused.runs_on(particles.device) and _tiles_fit(measurement, particles, k)
+
+
+def _diag_fusable(flow, measurement, particles) -> bool:
+    """The fused CPU pseudo-step for a diagonal W applies (:class:`~torchflow.flows.fused.DiagonalSteps`):
+    EDH/LEDH themselves at per-particle points, W diagonal by declaration, the lane kernel's tiles
+    too large (:func:`_tiles_fit`), on the CPU with Numba (not Triton's interpreter), no gradient,
+    ``tuning.fused_flows``."""
+    if not measurement.diagonal or type(flow) not in (EDHFlow, LEDHFlow) or particles.device.type != "cpu":
+        return False
+    if not tuning.get().fused_flows or torch.is_grad_enabled() or _triton.runs_on(particles.device):
+        return False
+    return particles.dtype in (torch.float32, torch.float64) and fused.numba_available()
 
 
 def _tiles_fit(measurement, particles, k) -> bool:

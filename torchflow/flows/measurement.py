@@ -64,12 +64,16 @@ class GaussianMeasurement:
         fused: the model's :class:`~torchflow.flows.fused.FusedMeasurement` (its measurement in
             the terms of the fused GPU pseudo-step, :meth:`~torchflow.models.StateSpaceModel.fused_measurement`),
             or ``None``.
+        diagonal_rows: ``points -> (h, dh/dx's diagonal, L_R's diagonal)`` for a ``diagonal``
+            measurement with a diagonal R
+            (:meth:`~torchflow.models.StateSpaceModel.linearize_measurement_diagonal`), for
+            :meth:`at_diagonal`; ``None``: not available.
     """
 
     def __init__(self, z: torch.Tensor, linearise: Callable, scale_tril: Callable, noise: str,
                  matrix: Optional[torch.Tensor] = None, measure: Optional[Callable] = None,
                  support: Optional[Sequence[int]] = None, diagonal: bool = False,
-                 hessian: Optional[Callable] = None, fused=None):
+                 hessian: Optional[Callable] = None, fused=None, diagonal_rows: Optional[Callable] = None):
         if noise not in ("scalar", "diagonal", "dense"):
             raise ValueError(f"noise: expected 'scalar', 'diagonal' or 'dense', got {noise!r}")
         self.z, self.linearise, self.scale_tril, self.noise = z, linearise, scale_tril, noise
@@ -78,6 +82,7 @@ class GaussianMeasurement:
         self.diagonal = bool(diagonal) and self.support is None
         self.hessian = hessian
         self.fused = fused
+        self.diagonal_rows = diagonal_rows if self.diagonal and noise == "diagonal" else None
         self._inv_sigma = None  # 1 / sigma of a "scalar" R (declared constant), set by prepare()
         self._z_scaled = None  # z / sigma (B, m), set by prepare()
 
@@ -96,7 +101,8 @@ class GaussianMeasurement:
                    support=model.measurement_support,
                    diagonal=getattr(model, "measurement_jacobian_diagonal", False) and not linear,
                    hessian=model.measurement_hessian_blocks if constant_r and not linear else None,
-                   fused=model.fused_measurement() if noise == "scalar" and not linear else None)
+                   fused=model.fused_measurement() if noise == "scalar" and not linear else None,
+                   diagonal_rows=model.linearize_measurement_diagonal)
 
     def _scalar_inv_sigma(self, points):
         return 1 / self.scale_tril(points).diagonal(dim1=-2, dim2=-1)[..., 0]  # 0-d: "scalar" R is constant
@@ -142,6 +148,17 @@ class GaussianMeasurement:
         W = linalg.solve_triangular(LR, H, upper=False)
         y = linalg.solve_triangular(LR, resid.unsqueeze(-1), upper=False).squeeze(-1)
         return Linearisation(W, y)
+
+    def at_diagonal(self, points: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """``(W's diagonal (..., m), y (..., m))`` of :meth:`at` for a measurement that is
+        :attr:`diagonal` with a diagonal R, from the model's
+        :meth:`~torchflow.models.StateSpaceModel.linearize_measurement_diagonal` (no ``m x m`` matrix
+        per point; the same numbers as :meth:`at`); ``None`` for other measurements."""
+        if self.diagonal_rows is None:
+            return None
+        hx, Hd, sd = self.diagonal_rows(points)
+        resid = _bcast_obs(self.z, points) - (hx - Hd * points)
+        return Hd / sd, resid / sd
 
     def derivative(self, points: torch.Tensor, support: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
         """The derivative of :meth:`at`'s ``W`` along each of the k (support) coordinates at

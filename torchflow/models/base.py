@@ -188,6 +188,16 @@ class StateSpaceModel(nn.Module):
         h = self.measure(x)
         return (h, H) if scale is None else (h * scale, H * scale)
 
+    def linearize_measurement_diagonal(self, x: torch.Tensor):
+        """``(h(x) (..., m), the Jacobian's diagonal (..., m), R's factor's diagonal (..., m))`` at
+        ``x (..., d)`` for a model whose Jacobian and R are diagonal by declaration
+        (:attr:`measurement_jacobian_diagonal`, a diagonal R): what the flows' diagonal paths read,
+        without ``d x d`` matrices per point. Default: the diagonals of :meth:`linearize_measurement`
+        and :meth:`measurement_scale_tril`; a model overrides it with the elementwise forms (the same
+        numbers)."""
+        h, H = self.linearize_measurement(x)
+        return h, H.diagonal(dim1=-2, dim2=-1), self.measurement_scale_tril(x).diagonal(dim1=-2, dim2=-1)
+
     def measurement_hessian(self, x: torch.Tensor, support: bool = False, scale=None) -> torch.Tensor:
         """Second derivatives of h at ``x (..., d)``: ``(..., m, k, k)`` with entry ``[..., a, t, j]``
         ``= d^2 h_a / dx_t dx_j`` over the :attr:`measurement_support` coordinates (``support``; all

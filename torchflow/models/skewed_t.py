@@ -151,6 +151,12 @@ class SkewedTPoisson(StateSpaceModel):
     def measurement_jacobian(self, x):
         return torch.diag_embed(self.m2 * self.measure(x))
 
+    def linearize_measurement_diagonal(self, x):
+        """``(lambda, m2 lambda, sqrt(lambda))`` with ``lambda = m1 exp(m2 x)``: the diagonals of
+        :meth:`linearize_measurement` and :meth:`measurement_scale_tril`, elementwise."""
+        lam = self.measure(x)
+        return lam, self.m2 * lam, lam.sqrt()
+
     def measurement_log_prob(self, z, x):
         """Poisson log-likelihood ``sum_c z_c log lam_c - lam_c - log z_c!`` (the full pmf)."""
         lam = self.measure(x)
