@@ -84,7 +84,8 @@ class Tuning:
             particles side by side in SIMD lanes. The numbers agree with the torch path to
             round-off (1e-12 relative per flow in float64), not bit for bit. 0: the torch path.
             On the CPU the Gromov flow at per-particle points (PF-PF(Gromov)) and GPFIS's transport
-            (its analytic Jacobian) have one too.
+            (its analytic Jacobian) have one too, and EDH/LEDH with a diagonal W too large for the
+            lane kernel run in information form (PFGSPF, d = 144: 25.4 -> 1.6-2.0 s per trial-step).
             PF-PF(LEDH), acoustic, 100 trials x 500 particles, H100: 0.095 s per time step with
             0, 0.053 with 1 (0.031 with ``fused_measurement``); 20 trials, this 2-core CPU: 1.47
             s with 0, 0.59 s with 1.

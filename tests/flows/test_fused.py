@@ -353,6 +353,46 @@ def test_fused_diagonal_step_gives_the_same_bits_on_any_thread_count_and_split()
         assert all(torch.equal(a, b) for a, b in zip(got, whole))
 
 
+def test_gaussian_sum_flows_all_particles_at_once_with_the_diagonal_kernel():
+    """With the diagonal CPU kernel no ``d x d`` matrix per particle is built, so the Gaussian-sum
+    filter does not cut its particles into cache-sized blocks; on the torch path it does."""
+    pytest.importorskip("numba")
+    from torchflow import tuning
+    from torchflow.filters import ParticleFlowGaussianSumParticleFilter
+    from torchflow.flows import LEDHFlow
+    from torchflow.flows.integrate import diagonal_kernel_applies
+    from torchflow.models import AcousticTracking, SkewedTPoisson
+    model = SkewedTPoisson(d=144)
+    f = ParticleFlowGaussianSumParticleFilter(model, n_components=5, particles_per_component=200)
+    assert diagonal_kernel_applies(f.flow, model, "cpu") and f.flow_chunk("cpu") is None
+    assert not diagonal_kernel_applies(f.flow, model, "meta")
+    assert not diagonal_kernel_applies(LEDHFlow(), AcousticTracking(), "cpu")  # W not diagonal
+    assert not diagonal_kernel_applies(LEDHFlow(), SkewedTPoisson(d=16), "cpu")  # the lane kernel's size
+    with tuning.tuned(fused_flows=0):
+        assert not diagonal_kernel_applies(f.flow, model, "cpu") and f.flow_chunk("cpu") == 50
+
+
+def test_cpu_precision_from_factor():
+    """The diagonal kernel's ``P^{-1}`` from ``L``: torch's ``cholesky_inverse`` to round-off, the same
+    bits on 1 or 2 threads (torch's batched one differs between them)."""
+    pytest.importorskip("numba")
+    import numba
+    import numpy as np
+    from torchflow.flows._fused_cpu import precision_from_factor
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(2, 5, 33, 33, dtype=torch.float64, generator=g)
+    L = torch.linalg.cholesky(A @ A.transpose(-1, -2) / 33 + torch.eye(33, dtype=torch.float64))
+    outs = []
+    for threads in (1, 2):
+        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+        out = np.empty((2, 5, 33, 33))
+        precision_from_factor(L.numpy(), out)
+        outs.append(torch.from_numpy(out))
+    ref = torch.cholesky_inverse(L)
+    assert ((outs[0] - ref).abs().max() / ref.abs().max()).item() < 1e-13
+    assert torch.equal(outs[0], outs[1]) and torch.equal(outs[0], outs[0].transpose(-1, -2))
+
+
 def test_diagonal_rows_are_the_linearisation_diagonal():
     """``GaussianMeasurement.at_diagonal`` (the model's elementwise forms) gives W's diagonal and y of
     ``at`` bit for bit; the base model's default (diagonals of the dense forms) too; measurements

@@ -55,6 +55,7 @@ import torch
 from .. import linalg
 from .._checks import check_choice, check_count
 from ..flows import FlowPrior, integrate_flow
+from ..flows.integrate import diagonal_kernel_applies
 from ..flows.points import ParticlePoints, flow_points_per_call
 from ..schedules import LambdaSchedule, resolve_schedule
 from ..proposals import resolve_flow
@@ -254,7 +255,7 @@ class GaussianSumParticleFilter(ParticleFilter):
         B, G, n, d = eta0.shape
         flat = (B * G, n, d)
         z1 = z.unsqueeze(1)
-        rows = self._row_chunk()
+        rows = self._row_chunk(z.device)
 
         def loglik(xs):  # on the trial's G N* particles (the model's batch is the trials)
             return model.measurement_log_prob(z1, xs)
@@ -305,17 +306,22 @@ class GaussianSumParticleFilter(ParticleFilter):
         repaired, invalid = self.account(bad_trial, ~torch.isfinite(inc), state.n_repaired)
         return MixtureState(log_alpha, means, covs, estimate, ess, g_eff, inc, repaired, state.step + 1, invalid)
 
-    def _row_chunk(self) -> Optional[int]:
+    def _row_chunk(self, device=None) -> Optional[int]:
         """Particles per component row per pass (the filter's ``particle_chunk``, or with a flow the
         cache-sized block of :func:`~torchflow.flows.points.flow_points_per_call`, is per trial)."""
-        c = self.particle_chunk if self.flow is None else self.flow_chunk()
+        c = self.particle_chunk if self.flow is None else self.flow_chunk(device)
         return None if not c else max(1, c // self.n_components)
 
-    def flow_chunk(self) -> Optional[int]:
+    def flow_chunk(self, device=None) -> Optional[int]:
         """A trial's particles per flow pass: ``particle_chunk`` when set, else the cache-sized
-        :func:`~torchflow.flows.points.flow_points_per_call` when the trial's particles exceed it."""
+        :func:`~torchflow.flows.points.flow_points_per_call` when the trial's particles exceed it;
+        no blocks when the flow runs as the diagonal CPU kernel on ``device``
+        (:func:`~torchflow.flows.integrate.diagonal_kernel_applies`: no ``d x d`` matrix per particle
+        is built, and blocks only add calls; the numbers are the same either way)."""
         if self.particle_chunk:
             return self.particle_chunk
+        if device is not None and diagonal_kernel_applies(self.flow, self.model, device):
+            return None
         cap = flow_points_per_call(self.model)
         return cap if self.n_particles > cap else None
 

@@ -258,6 +258,23 @@ def _diag_fusable(flow, measurement, particles) -> bool:
     return particles.dtype in (torch.float32, torch.float64) and fused.numba_available()
 
 
+def diagonal_kernel_applies(flow, model, device) -> bool:
+    """A no-gradient :func:`integrate_flow` of ``flow`` at per-particle points on ``model`` takes the
+    diagonal CPU kernel (:func:`_diag_fusable`) on ``device``: for a filter choosing its blocks of
+    particles before it builds the measurement. A nonlinear measurement that is diagonal with a
+    diagonal R by declaration, too large for the lane kernel's tiles."""
+    d = model.state_dim
+    noise_ok = model.measurement_noise in ("diagonal", "state_dependent_diagonal")
+    if not (getattr(model, "measurement_jacobian_diagonal", False) and noise_ok) or model.linear_measurement:
+        return False
+    if not tuning.get().fused_flows or type(flow) not in (EDHFlow, LEDHFlow) or torch.device(device).type != "cpu":
+        return False
+    if _triton.runs_on(torch.device(device)):
+        return False
+    bm, bd = fused.tile(model.obs_dim), fused.tile(d)
+    return not (bm * bd * bd <= 16384 and bd * bd <= 4096) and fused.numba_available()
+
+
 def _tiles_fit(measurement, particles, k) -> bool:
     """The fused kernels' per-particle tiles are small enough (registers on a GPU, cache on the CPU)."""
     m, d = measurement.z.shape[-1], particles.shape[-1]
