@@ -275,6 +275,7 @@ def test_fused_gpfis_only_where_it_applies(monkeypatch):
         assert GP._fusable(meas, x0, 8)
         with tuning.tuned(fused_flows=0):
             assert not GP._fusable(meas, x0, 8)
+        assert not GP._fusable(meas, x0, 17)  # k > 16: the kernel's per-lane second derivatives grow as k^3
         meas.hessian = None
         assert not GP._fusable(meas, x0, 8)
         monkeypatch.setattr(fused, "_numba", False)

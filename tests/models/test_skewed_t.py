@@ -168,9 +168,10 @@ def test_declared_diagonal_jacobian_gives_the_same_numbers():
     """``measurement_jacobian_diagonal`` (declared by the skewed-t / Poisson model) lets the LEDH
     flow's operator form scale rows instead of multiplying by the d x d whitened Jacobian; the
     skipped terms are exact zeros, so PF-PF(LEDH) and the PFGSPF give the same bits as without the
-    declaration (d = 36: the operator form, k >= 32)."""
+    declaration (d = 36: the operator form, k >= 32), on the torch path."""
     import torch
 
+    from torchflow import tuning
     from torchflow.filters import ParticleFlowGaussianSumParticleFilter, ParticleFlowParticleFilter
     from torchflow.flows.measurement import GaussianMeasurement
     from torchflow.models import SkewedTPoisson
@@ -193,7 +194,9 @@ def test_declared_diagonal_jacobian_gives_the_same_numbers():
         out = []
         for model in (diag, dense):
             f = make(model)
-            with torch.no_grad():
+            # the torch path: with Numba the declared model takes the diagonal CPU kernel (information
+            # form, other arithmetic; tests/flows/test_fused.py compares it with this path)
+            with torch.no_grad(), tuning.tuned(fused_flows=0):
                 out.append(f(traj.observations, mean, cov, TrialStreams(0, 2, f.stream_name)))
         assert torch.equal(out[0].estimates, out[1].estimates), type(f).__name__
         assert torch.equal(out[0].ess, out[1].ess), type(f).__name__

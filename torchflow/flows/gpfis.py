@@ -138,12 +138,14 @@ def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPri
 def _fusable(measurement, x, k) -> bool:
     """The fused CPU pseudo-steps apply (:class:`~torchflow.flows.fused.GPFISSteps`): ``(B, N, d)``
     particles on the CPU with Numba (not Triton's interpreter), no gradient recorded,
-    ``tuning.fused_flows``, the measurement's second derivatives declared (or linear), small tiles."""
+    ``tuning.fused_flows``, the measurement's second derivatives declared (or linear), small tiles
+    and ``k <= 16`` (the kernel keeps ``[W y]^T D``, up to ``(k + 1) k^2`` numbers, per lane: 2 MB
+    per block of lanes at k = 16 with a dense Hessian)."""
     from .integrate import _tiles_fit
 
     if not tuning.get().fused_flows or torch.is_grad_enabled() or x.dim() != 3 or x.device.type != "cpu":
         return False
-    if _triton.runs_on(x.device) or (measurement.hessian is None and measurement.matrix is None):
+    if _triton.runs_on(x.device) or (measurement.hessian is None and measurement.matrix is None) or k > 16:
         return False
     return fused.numba_available() and _tiles_fit(measurement, x, k)
 
