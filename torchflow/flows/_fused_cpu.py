@@ -611,15 +611,7 @@ def gpfis_step(W, y, D, C, cols, mean, sup, x, x_out, log_det, lams, epss, j0, j
     Cholesky factor's derivative applied to ``v`` is a suffix sum over rows, ``O(k bs)`` per tangent.
     ``log|det du'/dx_s|`` from a modified Gram-Schmidt QR of the ``k x k`` Jacobian, plus
     ``log|det C|`` (the map of the other coordinates is triangular with unit diagonal)."""
-    B, N, d = x.shape
-    k = sup.shape[0]
-    m = sens.shape[0] if lin == 1 else y.shape[2]
-    psi, d0 = const[0], const[1]
-    P = LANES
-    total = B * N
-    groups = (total + P - 1) // P
-    per = BLOCK // P
-    nblocks = (groups + per - 1) // per
+    B, N, d, k, m, _, _, psi, d0, P, total, per, groups, nblocks = _grid(x, sup, sens, y, lin, lams, epss, const, j0)
     for blk in numba.prange(nblocks):
         _gpfis_block(blk, per, groups, total, W, y, D, C, cols, mean, sup, x, x_out, log_det, lams, epss, j0, j1, lin,
                      sens, const, nb, bs, B, N, d, k, m, psi, d0, P)

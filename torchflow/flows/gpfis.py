@@ -47,7 +47,7 @@ from typing import Optional
 import torch
 from torch.func import jvp, vmap
 
-from .. import _triton, linalg, tuning
+from .. import linalg
 from .._checks import check_choice
 from ..schedules import LambdaSchedule, resolve_schedule
 from . import fused
@@ -84,12 +84,12 @@ def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPri
     sup = prior.support  # (k,) or None
     C, cols = prior.cols_support, prior.cols  # (..., k, k) lower, (..., d, k)
     k = C.shape[-1]
+    if analytic and _fusable(measurement, x, k):
+        return _fused_flow(measurement, x, prior, sup, k, eps_all, lam_all)
     eye = torch.eye(k, dtype=x.dtype, device=x.device)
     m0s = prior.mean if sup is None else prior.mean[..., sup]
     u0 = _tri(C, m0s.unsqueeze(-1)).squeeze(-1)  # whitened prior mean, (B, N, k)
     log_det_C = torch.log(C.diagonal(dim1=-2, dim2=-1).abs()).sum(-1)
-    if analytic and _fusable(measurement, x, k):
-        return _fused_flow(measurement, x, prior, sup, k, eps_all, lam_all)
     tangents = eye.reshape(k, *([1] * (x.dim() - 1)), k).expand(k, *x.shape[:-1], k)
     log_det = torch.zeros(x.shape[:-1], dtype=x.dtype, device=x.device)
     C_inv = _tri(C, eye.expand_as(C)) if analytic else None  # dx_s -> du: (..., k, k)
@@ -141,13 +141,11 @@ def _fusable(measurement, x, k) -> bool:
     ``tuning.fused_flows``, the measurement's second derivatives declared (or linear), small tiles
     and ``k <= 16`` (the kernel keeps ``[W y]^T D``, up to ``(k + 1) k^2`` numbers, per lane: 2 MB
     per block of lanes at k = 16 with a dense Hessian)."""
-    from .integrate import _tiles_fit
+    from .integrate import _tiles_fit, cpu_kernels_on
 
-    if not tuning.get().fused_flows or torch.is_grad_enabled() or x.dim() != 3 or x.device.type != "cpu":
+    if torch.is_grad_enabled() or x.dim() != 3 or k > 16 or (measurement.hessian is None and measurement.matrix is None):
         return False
-    if _triton.runs_on(x.device) or (measurement.hessian is None and measurement.matrix is None) or k > 16:
-        return False
-    return fused.numba_available() and _tiles_fit(measurement, x, k)
+    return cpu_kernels_on(x.device) and _tiles_fit(measurement, x, k)
 
 
 def _fused_flow(measurement, x, prior, sup, k, eps_all, lam_all):

@@ -246,16 +246,23 @@ def _fusable(flow, measurement, particles, k) -> bool:
     return fused.runs_on(particles.device) and _tiles_fit(measurement, particles, k)
 
 
+def cpu_kernels_on(device) -> bool:
+    """The Numba CPU kernels may run on ``device`` (no gradient being recorded aside): the CPU, not
+    under Triton's interpreter, ``tuning.fused_flows`` and Numba importable. The one gate of the
+    Gromov, GPFIS and diagonal kernels (EDH/LEDH's lane kernel also runs on CUDA: :func:`_fusable`)."""
+    device = torch.device(device)
+    return (bool(tuning.get().fused_flows) and device.type == "cpu" and not _triton.runs_on(device)
+            and fused.numba_available())
+
+
 def _diag_fusable(flow, measurement, particles) -> bool:
     """The fused CPU pseudo-step for a diagonal W applies (:class:`~torchflow.flows.fused.DiagonalSteps`):
-    EDH/LEDH themselves at per-particle points, W diagonal by declaration, the lane kernel's tiles
-    too large (:func:`_tiles_fit`), on the CPU with Numba (not Triton's interpreter), no gradient,
-    ``tuning.fused_flows``."""
-    if not measurement.diagonal or type(flow) not in (EDHFlow, LEDHFlow) or particles.device.type != "cpu":
+    EDH/LEDH themselves at per-particle points, W diagonal by declaration (taken where the lane
+    kernel's tiles do not fit: :func:`_integrate` tries that one first), no gradient,
+    :func:`cpu_kernels_on`."""
+    if not measurement.diagonal or type(flow) not in (EDHFlow, LEDHFlow) or torch.is_grad_enabled():
         return False
-    if not tuning.get().fused_flows or torch.is_grad_enabled() or _triton.runs_on(particles.device):
-        return False
-    return particles.dtype in (torch.float32, torch.float64) and fused.numba_available()
+    return particles.dtype in (torch.float32, torch.float64) and cpu_kernels_on(particles.device)
 
 
 def diagonal_kernel_applies(flow, model, device) -> bool:
@@ -263,35 +270,34 @@ def diagonal_kernel_applies(flow, model, device) -> bool:
     diagonal CPU kernel (:func:`_diag_fusable`) on ``device``: for a filter choosing its blocks of
     particles before it builds the measurement. A nonlinear measurement that is diagonal with a
     diagonal R by declaration, too large for the lane kernel's tiles."""
-    d = model.state_dim
     noise_ok = model.measurement_noise in ("diagonal", "state_dependent_diagonal")
     if not (getattr(model, "measurement_jacobian_diagonal", False) and noise_ok) or model.linear_measurement:
         return False
-    if not tuning.get().fused_flows or type(flow) not in (EDHFlow, LEDHFlow) or torch.device(device).type != "cpu":
-        return False
-    if _triton.runs_on(torch.device(device)):
-        return False
-    bm, bd = fused.tile(model.obs_dim), fused.tile(d)
-    return not (bm * bd * bd <= 16384 and bd * bd <= 4096) and fused.numba_available()
+    d = model.state_dim
+    return (type(flow) in (EDHFlow, LEDHFlow) and not tiles_fit(model.obs_dim, d, d)
+            and cpu_kernels_on(device))
+
+
+def tiles_fit(m: int, k: int, d: int) -> bool:
+    """The fused kernels' per-particle tiles for ``m`` measurements, ``k`` measured and ``d`` state
+    coordinates are small enough (registers on a GPU, cache on the CPU)."""
+    bm, bk, bd = (fused.tile(x) for x in (m, k, d))
+    return bm * bk * bk <= 16384 and bd * bk <= 4096
 
 
 def _tiles_fit(measurement, particles, k) -> bool:
-    """The fused kernels' per-particle tiles are small enough (registers on a GPU, cache on the CPU)."""
-    m, d = measurement.z.shape[-1], particles.shape[-1]
-    bm, bk, bd = (fused.tile(x) for x in (m, k, d))
-    return bm * bk * bk <= 16384 and bd * bk <= 4096 and particles.dtype in (torch.float32, torch.float64)
+    """:func:`tiles_fit` for a measurement and ``(B, N, d)`` particles of a supported dtype."""
+    return (tiles_fit(measurement.z.shape[-1], k, particles.shape[-1])
+            and particles.dtype in (torch.float32, torch.float64))
 
 
 def _gromov_fusable(flow, measurement, particles, k) -> bool:
     """The fused CPU pseudo-step of the Gromov flow applies (:class:`~torchflow.flows.fused.GromovSteps`):
     :class:`~torchflow.flows.GromovFlow` itself with its exact factor (``noise_root="factor"``) at
-    per-particle points, on the CPU with Numba (not Triton's interpreter), no gradient,
-    ``tuning.fused_flows``, tiles as :func:`_fusable`."""
-    if type(flow) is not GromovFlow or flow.noise_root != "factor" or particles.device.type != "cpu":
+    per-particle points, no gradient, :func:`cpu_kernels_on`, tiles as :func:`_fusable`."""
+    if type(flow) is not GromovFlow or flow.noise_root != "factor" or torch.is_grad_enabled():
         return False
-    if not tuning.get().fused_flows or torch.is_grad_enabled() or _triton.runs_on(particles.device):
-        return False
-    return fused.numba_available() and _tiles_fit(measurement, particles, k)
+    return cpu_kernels_on(particles.device) and _tiles_fit(measurement, particles, k)
 
 
 def _measured_inside(measurement, support, k):
