@@ -196,6 +196,12 @@ class TrialStreams:
         return out
 
     def _philox_draw(self, kind, n, dtype, device) -> torch.Tensor:
+        return self._philox_numbers(kind, self._philox_bits(kind, n, dtype, device), n, dtype)
+
+    def _philox_bits(self, kind, n, dtype, device) -> torch.Tensor:
+        """The raw 32-bit words (int64 ``(B, words)``) of a draw of ``n`` numbers per trial; advances
+        the counter. :meth:`_philox_numbers` turns them into the draw (split so that a CUDA graph can
+        replay the second half: :mod:`torchflow.filters.graph_step`)."""
         B = len(self.trials)
         # words per number: float64 uniforms use two 32-bit words (53 bits), float32 one (24 bits);
         # Box-Muller turns two uniforms into two normals
@@ -220,7 +226,13 @@ class TrialStreams:
             key = (keys[:, :1].expand(B, blocks), keys[:, 1:].expand(B, blocks))
             bits = philox4x32(c, key).reshape(B, -1)[:, :words]                        # (B, words)
         self._counter += blocks
-        if per == 2:
+        return bits
+
+    @staticmethod
+    def _philox_numbers(kind, bits, n, dtype) -> torch.Tensor:
+        """Uniforms or normals ``(B, n)`` of ``dtype`` from the words of :meth:`_philox_bits`."""
+        B = bits.shape[0]
+        if dtype == torch.float64:
             k = (bits[:, 0::2] >> 5) * 67108864 + (bits[:, 1::2] >> 6)  # 27 + 26 = 53 bits
             scale, wdt = 1.0 / 9007199254740992.0, torch.float64
         else:

@@ -100,6 +100,12 @@ class Tuning:
             (1e-14 relative), ~10x fewer flops; it is the per-particle EKF of PF-PF. PF-PF(LEDH),
             acoustic, 20 trials x 500 particles, this 2-core CPU: 0.24 -> 0.04 s per time step
             for that update. 0: the Joseph form.
+        graph_step_max_elems: on CUDA, a particle filter step declared graph-safe (the bootstrap
+            PF's; :mod:`torchflow.filters.graph_step`) with at most this many state elements
+            ``B x N x d`` is replayed from a CUDA graph (under ``cuda_graphs``): one launch instead
+            of ~130, with its random words drawn outside the graph; the same numbers. Larger steps
+            are bound by the GPU's arithmetic (a graph saves nothing there and keeps a memory pool
+            as large as the step's intermediates). 0: never.
         fused_philox: on CUDA with Triton installed, the Philox4x32 rounds of per-trial random
             streams (:class:`torchflow.random.TrialStreams` off the CPU) run as one kernel
             (:func:`torchflow.random.philox4x32_fused`) instead of ~165 integer ops per draw; the
@@ -120,6 +126,7 @@ class Tuning:
     fused_flows: int = 1
     fused_measurement: int = 1
     fused_philox: int = 1
+    graph_step_max_elems: int = 1 << 23
     structured_update: int = 1
 
     def __post_init__(self):

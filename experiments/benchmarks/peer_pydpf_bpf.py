@@ -11,9 +11,14 @@ trials in one batched call, forward only (``torch.no_grad``).
 Rows, each timed as the best of ``--reps`` calls after one warm-up call (``torch.cuda.synchronize``
 around each):
 
-* ``torchflow``: ``BootstrapParticleFilter`` with its defaults (systematic resampling when ESS < N/2);
+* ``torchflow``: ``BootstrapParticleFilter`` with its defaults (systematic resampling when ESS < N/2),
+  drawing from per-trial streams (``TrialStreams``, as the experiment runner does; on CUDA its step is
+  then replayed from a CUDA graph up to ``tuning.graph_step_max_elems`` state elements:
+  :mod:`torchflow.filters.graph_step`);
+* ``torchflow, torch.Generator``: the same filter drawing from one ``torch.Generator`` for the batch
+  (as PyDPF does): every step launched op by op;
 * ``torchflow, resample always``: multinomial resampling at every step (``ess_threshold=1.0``), as
-  PyDPF's ``ParticleFilter`` does;
+  PyDPF's ``ParticleFilter`` does (per-trial streams);
 * ``PyDPF``: ``ParticleFilter(MultinomialResampler, FilteringModel(LinearGaussian, LinearGaussian))``
   with the filtering mean as its output (PyDPF 1.2.3). Its prior draws ``x_1 ~ N(0, Q)`` (the law of
   the first state given the known ``x_0 = 0``), so both filters process the same T observations.
@@ -100,6 +105,7 @@ def _compare(device, ns, trials, steps, d, dtype, reps, log):
         import pydpf
     from torchflow.filters import BootstrapParticleFilter
     from torchflow.models import SensorNetwork
+    from torchflow.random import TrialStreams
 
     model = SensorNetwork(d=d).to(device=device, dtype=dtype)
     g = torch.Generator(device=device).manual_seed(0)
@@ -128,9 +134,11 @@ def _compare(device, ns, trials, steps, d, dtype, reps, log):
     rows = []
     for n in ns:
         row = {"N": int(n)}
-        for name, kw in (("torchflow", {}), ("torchflow, resample always", dict(resampling="multinomial", ess_threshold=1.0))):
+        for name, kw, gen in (("torchflow", {}, "streams"), ("torchflow, torch.Generator", {}, "torch"),
+                              ("torchflow, resample always", dict(resampling="multinomial", ess_threshold=1.0), "streams")):
             f = BootstrapParticleFilter(model, n_particles=int(n), **kw)
-            tg = torch.Generator(device=device).manual_seed(2)
+            tg = (torch.Generator(device=device).manual_seed(2) if gen == "torch"
+                  else TrialStreams(2, trials, f.stream_name))  # made once: calls continue the streams
 
             def ours(f=f, tg=tg):
                 with torch.no_grad():
@@ -168,12 +176,14 @@ def main(argv=None):
     lines = [f"# Bootstrap PF: torchflow against PyDPF {getattr(pydpf, '__version__', '1.2.3')}",
              "", f"{name}, torch {torch.__version__}, {a.dtype}, SensorNetwork d = {a.d}, {a.trials} trials x {a.steps} steps "
              f"per call, best of {a.reps} after a warm-up; seconds per trial-step. ratio = PyDPF / torchflow (> 1: torchflow faster).",
-             "", "| N | torchflow | torchflow, resample always | PyDPF | ratio (default) | ratio (resample always) |",
-             "|---|---|---|---|---|---|"]
+             "", "| N | torchflow | torchflow, torch.Generator | torchflow, resample always | PyDPF | ratio (default) "
+             "| ratio (torch.Generator) | ratio (resample always) |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        p, t, t1 = r["PyDPF"], r["torchflow"], r["torchflow, resample always"]
-        peer, ratio, ratio1 = ("error", "-", "-") if p is None else (f"{p:.3g}", f"{p / t:.2f}", f"{p / t1:.2f}")
-        lines.append(f"| {r['N']} | {t:.3g} | {t1:.3g} | {peer} | {ratio} | {ratio1} |")
+        p, t, tg, t1 = r["PyDPF"], r["torchflow"], r["torchflow, torch.Generator"], r["torchflow, resample always"]
+        peer, ratio, ratio_g, ratio1 = (("error", "-", "-", "-") if p is None else
+                                        (f"{p:.3g}", f"{p / t:.2f}", f"{p / tg:.2f}", f"{p / t1:.2f}"))
+        lines.append(f"| {r['N']} | {t:.3g} | {tg:.3g} | {t1:.3g} | {peer} | {ratio} | {ratio_g} | {ratio1} |")
     md = "\n".join(lines) + "\n"
     print(md)
     if a.out:

@@ -6,7 +6,7 @@ from torchflow._checks import NonFiniteError
 from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, GaussianSumParticleFilter, KalmanFilter,
                                ParticleFlowFilter, ParticleFlowParticleFilter, UnscentedKalmanFilter)
 from torchflow.schedules import ExponentialSchedule
-from torchflow.models import AcousticTracking, SensorNetwork
+from torchflow.models import AcousticTracking, SensorNetwork, SkewedTPoisson
 from conftest import cuda, random_lg
 from torchflow.random import TrialStreams
 
@@ -32,6 +32,12 @@ for _flow in (None, "ledh"):  # GSPF and PFGSPF, G = 2 x 32 particles
         CONFIGS.append((f"{'pf' if _flow else ''}gspf-{_mname}", _make_model,
                         lambda m, fl=_flow: GaussianSumParticleFilter(m, flow=fl, n_components=2,
                                                                       particles_per_component=32, schedule=_SCHED)))
+# the declared diagonal measurement Jacobian (skewed-t dynamics, Poisson counts; d = 16 here)
+CONFIGS.append(("pfpf_ledh-skewed", lambda: SkewedTPoisson(d=16),
+                lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=64, schedule=_SCHED)))
+CONFIGS.append(("pfgspf-skewed", lambda: SkewedTPoisson(d=16),
+                lambda m: GaussianSumParticleFilter(m, flow="ledh", n_components=2, particles_per_component=32,
+                                                    schedule=_SCHED)))
 IDS = [c[0] for c in CONFIGS]
 
 

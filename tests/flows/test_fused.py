@@ -488,3 +488,13 @@ def test_which_measurements_the_kernel_linearises_itself():
     lg = LinearGaussian(torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64),
                         torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64))
     assert I.GaussianMeasurement.from_model(lg, torch.zeros(1, 2, dtype=torch.float64)).fused is None
+
+
+def test_gpu_tiles_bounded_by_the_register_budget():
+    """On a GPU the lane kernel holds a particle's k x k matrices in registers: acoustic tracking's
+    tiles (k = 8, m = 25, d = 16) fit, k = 16 (the skewed-t model at d = 16) takes the torch path;
+    the CPU's cache-sized bound is larger."""
+    from torchflow.flows.integrate import tiles_fit
+    assert tiles_fit(25, 8, 16, "cuda") and tiles_fit(2, 3, 3, "cuda")
+    assert not tiles_fit(16, 16, 16, "cuda") and tiles_fit(16, 16, 16, "cpu")
+    assert not tiles_fit(144, 144, 144, "cpu")

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import re
 from dataclasses import dataclass, field
@@ -20,6 +21,7 @@ from ..covariances import Covariance
 from ..models.base import StateSpaceModel
 from ..proposals import BootstrapProposal, Proposal
 from ..random import check_generator
+from . import graph_step
 
 
 @dataclass
@@ -310,6 +312,8 @@ class Filter(nn.Module):
         if checkpoint_steps is None:
             checkpoint_steps = self.checkpoint_steps
         step = self._checkpointed_step if checkpoint_steps and torch.is_grad_enabled() else self.step
+        if step == self.step and graph_step.eligible(self, state, generator):  # one launch per step (CUDA)
+            step = functools.partial(graph_step.run_step, self, memo={})
         for t in range(observations.shape[1]):
             try:
                 state = step(state, observations[:, t], generator)
@@ -452,6 +456,12 @@ class ParticleFilter(Filter):
                                                regularization=regularization, gradient=resampling_gradient,
                                                soft_alpha=soft_alpha, ot_epsilon=ot_epsilon,
                                                ot_iterations=ot_iterations, dtype=model.dtype)
+
+    @property
+    def graph_step(self) -> bool:
+        """Whether the whole step may be replayed from a CUDA graph (:mod:`torchflow.filters.graph_step`):
+        the generic step (not overridden) with a proposal that declares itself ``graph_safe``."""
+        return type(self).step is ParticleFilter.step and bool(self.proposal.graph_safe)
 
     resampling_scheme = property(lambda self: self.resampler.scheme)
     ess_threshold = property(lambda self: self.resampler.ess_threshold)

@@ -278,16 +278,22 @@ def diagonal_kernel_applies(flow, model, device) -> bool:
             and cpu_kernels_on(device))
 
 
-def tiles_fit(m: int, k: int, d: int) -> bool:
+def tiles_fit(m: int, k: int, d: int, device="cpu") -> bool:
     """The fused kernels' per-particle tiles for ``m`` measurements, ``k`` measured and ``d`` state
-    coordinates are small enough (registers on a GPU, cache on the CPU)."""
+    coordinates are small enough: in cache on the CPU; on a GPU, where a thread holds its particle's
+    ``k x k`` matrices in registers, no larger than acoustic tracking's (``k = 8``, ``m = 25``,
+    ``d = 16``: 255 registers and ~1.5 KB of spills per thread on sm_90). At ``k = 16`` the kernel
+    compiles in ~1 min to 16.5 KB of spill stores and 5.4 KB of stack per thread
+    (``experiments/benchmarks/kernel_registers.py``), so such flows take the torch path there."""
     bm, bk, bd = (fused.tile(x) for x in (m, k, d))
+    if torch.device(device).type == "cuda":
+        return bk <= 8 and bm * bk * bk <= 2048 and bd * bk <= 128
     return bm * bk * bk <= 16384 and bd * bk <= 4096
 
 
 def _tiles_fit(measurement, particles, k) -> bool:
     """:func:`tiles_fit` for a measurement and ``(B, N, d)`` particles of a supported dtype."""
-    return (tiles_fit(measurement.z.shape[-1], k, particles.shape[-1])
+    return (tiles_fit(measurement.z.shape[-1], k, particles.shape[-1], particles.device)
             and particles.dtype in (torch.float32, torch.float64))
 
 

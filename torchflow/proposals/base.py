@@ -57,9 +57,14 @@ class Proposal(nn.Module):
             ``p(x_k | x_{k-1})`` (True but for the bootstrap proposal and the unweighted flows),
             so the model needs a positive definite transition covariance
             (:meth:`~torchflow.filters.ParticleFilter.check_model`).
+        graph_safe: :meth:`propose` makes the same kernels and the same draws (kinds, shapes) at
+            every step of one layout, with no host read, so the filter's whole step may be replayed
+            from a CUDA graph (:mod:`torchflow.filters.graph_step`). Declared, not detected;
+            False unless a proposal says so (the bootstrap proposal does).
     """
 
     uses_transition_density: bool = True
+    graph_safe: bool = False
 
     def __init__(self, model: StateSpaceModel):
         super().__init__()

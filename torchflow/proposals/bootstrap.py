@@ -8,6 +8,7 @@ class BootstrapProposal(Proposal):
     """``q = p(x_k | x_{k-1})``: draw from the transition; the weight is the likelihood."""
 
     uses_transition_density = False
+    graph_safe = True
 
     def propose(self, particles, log_weights, estimate, z, carry, generator, *, chunk=None) -> Proposed:
         x = self.model.sample_transition(particles, generator)  # (B, N, d)

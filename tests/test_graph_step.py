@@ -1,0 +1,146 @@
+"""A particle filter's whole step replayed from a CUDA graph (torchflow.filters.graph_step).
+
+On the CPU the capture is emulated as in test_cudagraphs (the "graph" re-runs the function on its
+static buffers), with the Philox back end the GPU uses: that checks the plumbing (the draws split
+into words made outside and numbers made inside, the state flattened and rebuilt, the recorded
+draws checked). On CUDA the real capture is compared with the eager run, bit for bit."""
+import warnings
+
+import pytest
+import torch
+
+from conftest import cuda, random_lg
+from test_cudagraphs import _Emulated
+from torchflow import cudagraphs, tuning
+from torchflow.filters import BootstrapParticleFilter, ParticleFilter
+from torchflow.filters import graph_step
+from torchflow.models import AcousticTracking, SensorNetwork
+from torchflow.proposals import BootstrapProposal
+from torchflow.random import TrialStreams
+
+
+@pytest.fixture
+def emulated(monkeypatch):
+    backend = _Emulated()
+    monkeypatch.setattr(cudagraphs, "_backend", backend)
+    monkeypatch.setattr(graph_step, "eligible", lambda filt, state, gen: graph_step._conditions(filt, state.particles, gen))
+    cudagraphs.clear()
+    yield backend
+    cudagraphs.clear()
+
+
+def _run(f, model, device="cpu", B=3, T=6, seed=0, nonfinite=None):
+    model = model.to(device=device)
+    g = torch.Generator(device=device).manual_seed(seed)
+    traj = model.simulate(B, T, g)
+    mean, cov = model.initial_belief(traj.states[:, 0], g)
+    with torch.no_grad():
+        return f(traj.observations, mean, cov, TrialStreams(seed + 1, B, f.stream_name, backend="philox"),
+                 return_particles=True)
+
+
+def _same(a, b):
+    for name in ("estimates", "log_evidence", "ess", "particles", "log_weights"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+
+
+MODELS = {"lg": lambda: random_lg(3, 2), "acoustic": AcousticTracking, "sensors": lambda: SensorNetwork(d=16)}
+
+
+@pytest.mark.parametrize("model_name", list(MODELS))
+@pytest.mark.parametrize("nonfinite", ["recover", "raise"])
+def test_replayed_step_gives_the_eager_numbers(emulated, model_name, nonfinite):
+    model = MODELS[model_name]()
+    f = BootstrapParticleFilter(model, n_particles=32, nonfinite=nonfinite)
+    with tuning.tuned(cuda_graphs=0):
+        eager = _run(f, model)
+    before = cudagraphs.stats()
+    graphed = _run(f, model)
+    again = _run(f, model)  # a second call: every step replayed (the draws were recorded once)
+    after = cudagraphs.stats()
+    _same(eager, graphed)
+    _same(eager, again)
+    # one eager step records the draws; the first state's layout (and, with nonfinite="raise", the
+    # later one's: invalid is None at first) is captured once and replayed after
+    assert after["captures"] - before["captures"] in (1, 2)
+    assert after["replays"] - before["replays"] >= 2 * 6 - 4
+    assert emulated.calls >= 2 * 6 - 4
+
+
+def test_only_declared_steps_go_through_a_graph(emulated):
+    model = random_lg(3, 2)
+    f = BootstrapParticleFilter(model, n_particles=16)
+    assert f.graph_step
+    before = cudagraphs.stats()["captures"]
+    g = torch.Generator().manual_seed(0)
+    traj = model.simulate(2, 4, g)
+    mean, cov = model.initial_belief(traj.states[:, 0], g)
+    with torch.no_grad():
+        f(traj.observations, mean, cov, torch.Generator().manual_seed(1))  # a torch.Generator: eager
+        f(traj.observations, mean, cov, TrialStreams(0, 2, backend="numpy"))  # numpy streams: eager
+        with tuning.tuned(graph_step_max_elems=0):
+            f(traj.observations, mean, cov, TrialStreams(0, 2, backend="philox"))
+    f(traj.observations, mean, cov, TrialStreams(0, 2, backend="philox"))  # a gradient is recorded: eager
+    assert cudagraphs.stats()["captures"] == before
+
+    class Undeclared(BootstrapProposal):
+        graph_safe = False
+    assert not ParticleFilter(model, Undeclared(model), n_particles=16).graph_step
+
+    class OwnStep(BootstrapParticleFilter):
+        def step(self, state, z, generator=None):
+            return super().step(state, z, generator)
+    assert not OwnStep(model, n_particles=16).graph_step
+
+
+def test_draws_that_change_fall_back_to_eager_with_the_same_numbers(emulated):
+    """A proposal that declares itself graph-safe but draws otherwise inside the graph than when it
+    was recorded: the step runs eagerly, from the stream positions the graph's words took (given
+    back), with a warning; the numbers are the eager run's."""
+    model = random_lg(3, 2)
+
+    class Varying(BootstrapProposal):
+        graph_safe = True
+
+        def propose(self, particles, log_weights, estimate, z, carry, generator, *, chunk=None):
+            if isinstance(generator, graph_step._Tape):  # an extra draw where the graph would replay
+                generator.uniform((particles.shape[0], 1), dtype=particles.dtype, device=particles.device)
+            return super().propose(particles, log_weights, estimate, z, carry, generator, chunk=chunk)
+
+    f = ParticleFilter(model, Varying(model), n_particles=16)
+    with tuning.tuned(cuda_graphs=0):
+        eager = _run(f, model)
+    graph_step._warned.clear()
+    before = cudagraphs.stats()["captures"]
+    with pytest.warns(RuntimeWarning, match="not replayed from a CUDA graph"):
+        graphed = _run(f, model)
+    _same(eager, graphed)
+    assert cudagraphs.stats()["captures"] == before
+
+
+def test_philox_split_gives_the_same_draws():
+    """Words outside, numbers inside: the draw of TrialStreams bit for bit."""
+    for dtype in (torch.float64, torch.float32):
+        for kind, n in (("normal", 7), ("uniform", 5), ("normal", 8)):
+            a, b = TrialStreams(3, 4, "x", backend="philox"), TrialStreams(3, 4, "x", backend="philox")
+            whole = a._draw(kind, (4, n), dtype, "cpu")
+            split = TrialStreams._philox_numbers(kind, b._philox_bits(kind, n, dtype, "cpu"), n, dtype)
+            assert torch.equal(whole, split) and a._counter == b._counter
+
+
+@cuda
+@pytest.mark.parametrize("model_name", list(MODELS))
+def test_graphed_step_matches_eager_on_cuda(model_name):
+    model = MODELS[model_name]()
+    f = BootstrapParticleFilter(model, n_particles=64)
+    with tuning.tuned(cuda_graphs=0):
+        eager = _run(f, model, "cuda", B=4, T=8)
+    before = cudagraphs.stats()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a failed capture warns: fail the test instead
+        graphed = _run(f, model, "cuda", B=4, T=8)
+        again = _run(f, model, "cuda", B=4, T=8)
+    after = cudagraphs.stats()
+    assert after["captures"] > before["captures"] and after["replays"] - before["replays"] >= 8
+    _same(eager, graphed)
+    _same(eager, again)
