@@ -334,21 +334,15 @@ class _Trace:
     synchronisation per time step)."""
 
     def __init__(self, B: int, device, covariances: bool, particles: bool):
-        self.first_bad = torch.zeros(B, dtype=torch.long, device=device)
-        self.first_invalid = torch.zeros_like(self.first_bad, dtype=torch.bool)
+        self.B, self.device = B, device
         self.covariances, self.particles = covariances, particles
         self.est, self.inc, self.ess, self.covs, self.parts, self.lws, self.geff = [], [], [], [], [], [], []
+        self.invalid = []  # per step: (B,) bool or None
+        self._stacked = None  # (number of steps, stacked estimates (B, T, d))
 
     def add(self, state, t: int) -> None:
-        bad = ~torch.isfinite(state.estimate).all(-1)
-        invalid = getattr(state, "invalid", None)
-        if invalid is not None:
-            bad = bad | invalid
-        new = bad & (self.first_bad == 0)
-        self.first_bad = torch.where(new, t + 1, self.first_bad)
-        if invalid is not None:
-            self.first_invalid = self.first_invalid | (new & invalid)
         self.est.append(state.estimate)
+        self.invalid.append(getattr(state, "invalid", None))
         self.inc.append(state.log_evidence_increment)
         if state.ess is not None:
             self.ess.append(state.ess)
@@ -360,12 +354,52 @@ class _Trace:
             self.parts.append(state.particles)
             self.lws.append(state.log_weights)
 
+    def estimates(self) -> Optional[torch.Tensor]:
+        """The estimates so far, ``(B, T, d)`` (stacked once per length)."""
+        if not self.est:
+            return None
+        if self._stacked is None or self._stacked[0] != len(self.est):
+            self._stacked = (len(self.est), torch.stack(self.est, 1))
+        return self._stacked[1]
+
+    @property
+    def first_bad(self) -> torch.Tensor:
+        """``(B,)``: the first step (1-based) whose estimate is non-finite or whose particles or
+        weights were flagged invalid, 0 where none was; computed from the steps so far in a few
+        ops (not per step)."""
+        return self._first()[0]
+
+    @property
+    def first_invalid(self) -> torch.Tensor:
+        """``(B,)`` bool: that first step was flagged invalid (particles or weights), not only the estimate."""
+        return self._first()[1]
+
+    def _first(self):
+        est = self.estimates()
+        if est is None:
+            zero = torch.zeros(self.B, dtype=torch.long, device=self.device)
+            return zero, zero.bool()
+        bad = ~torch.isfinite(est).all(-1)  # (B, T)
+        flagged = [i for i in self.invalid if i is not None]
+        inv = None
+        if flagged:
+            inv = torch.stack([torch.zeros_like(flagged[0]) if i is None else i for i in self.invalid], 1)
+            bad = bad | inv
+        T = bad.shape[1]
+        steps = torch.arange(1, T + 1, device=bad.device)
+        first = torch.where(bad, steps, T + 1).amin(1)  # (B,)
+        first_bad = first.masked_fill(first > T, 0)
+        if inv is None:
+            return first_bad, torch.zeros_like(first_bad, dtype=torch.bool)
+        at = inv.gather(1, (first - 1).clamp(max=T - 1).unsqueeze(1)).squeeze(1)
+        return first_bad, at & (first_bad > 0)
+
     def result(self, state) -> FilterResult:
         def stack(xs):
             return torch.stack(xs, 1) if xs else None
 
         inc_t = torch.stack(self.inc, 1)
-        return FilterResult(estimates=stack(self.est), log_evidence=inc_t.sum(1), log_evidence_increments=inc_t,
+        return FilterResult(estimates=self.estimates(), log_evidence=inc_t.sum(1), log_evidence_increments=inc_t,
                             ess=stack(self.ess), covariances=stack(self.covs), particles=stack(self.parts),
                             log_weights=stack(self.lws), n_repaired=getattr(state, "n_repaired", None),
                             g_eff=stack(self.geff))

@@ -83,13 +83,14 @@ class KalmanFilter(ExtendedKalmanFilter):
         P = state.cov[0]
         # scalings and sums of symmetric matrices are exactly symmetric: symmetrize only products
         P_pred = (f * f) * P + Q if f is not None else linalg.symmetrize(F @ P @ F.T + Q)
-        HP = h * P_pred if h is not None else H @ P_pred
-        S = h * HP + R if h is not None else linalg.symmetrize(HP @ H.T + R)
+        one = h == 1.0  # H = I (the sensor network): a product by 1 is the identity, bit for bit
+        HP = P_pred if one else h * P_pred if h is not None else H @ P_pred
+        S = HP + R if one else h * HP + R if h is not None else linalg.symmetrize(HP @ H.T + R)
         L = linalg.safe_cholesky(S)
         Kt = linalg.chol_solve(L, HP)  # (m, d) = K^T
         cov = linalg.symmetrize(P_pred - Kt.T @ HP)  # P - K S K^T; one shared, well-conditioned matrix
         m_pred = f * state.mean if f is not None else state.mean @ F.T  # (B, d)
-        innov = z - (h * m_pred if h is not None else m_pred @ H.T)  # (B, m)
+        innov = z - (m_pred if one else h * m_pred if h is not None else m_pred @ H.T)  # (B, m)
         mean = torch.addmm(m_pred, innov, Kt)
         ll = linalg.mvn_log_prob(innov, torch.zeros_like(innov[:1]), L)
         return GaussianState(mean, cov.expand(state.mean.shape[0], -1, -1), ll, state.step + 1)
