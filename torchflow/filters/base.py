@@ -600,12 +600,17 @@ class ParticleFilter(Filter):
         coordinate or a NaN/+inf ``log_increment (B, ...)`` get log-weight ``-inf`` and the
         ``fallback`` position (zeros when ``None``). Returns ``(particles, log_increment,
         bad_trial (B,))``. No host synchronisation."""
-        # a particle with a non-finite coordinate has a non-finite coordinate sum (inf - inf = nan):
-        # one reduction instead of an elementwise isfinite over (B, N, d)
-        bad = torch.isnan(log_increment) | (log_increment == float("inf")) | ~torch.isfinite(particles.sum(-1))
+        bad = self._nonfinite(particles, log_increment)
         fb = torch.zeros_like(particles) if fallback is None else fallback
         return (torch.where(bad.unsqueeze(-1), fb, particles), log_increment.masked_fill(bad, float("-inf")),
                 bad.flatten(1).any(-1))
+
+    @staticmethod
+    def _nonfinite(particles: torch.Tensor, log_increment: torch.Tensor) -> torch.Tensor:
+        """``(B, ...)`` bool: particles with a non-finite coordinate or a NaN/+inf log-increment."""
+        # a particle with a non-finite coordinate has a non-finite coordinate sum (inf - inf = nan):
+        # one reduction instead of an elementwise isfinite over (B, N, d)
+        return torch.isnan(log_increment) | (log_increment == float("inf")) | ~torch.isfinite(particles.sum(-1))
 
     def account(self, bad_trial: torch.Tensor, dead: torch.Tensor, n_repaired: torch.Tensor):
         """``(n_repaired, invalid)`` after a step whose trials had repaired particles (``bad_trial``)
@@ -644,14 +649,17 @@ class ParticleFilter(Filter):
         # No host synchronisation: every branch below is a masked update over all trials; with
         # nonfinite="raise" the offending trials are flagged in ``state.invalid`` and
         # :meth:`Filter.forward` raises after the last step
-        particles, log_increment, bad_trial = self.repair(particles, log_increment, fallback)
+        bad = self._nonfinite(particles, log_increment)
+        log_increment = log_increment.masked_fill(bad, float("-inf"))
         lw = prev_log_weights + log_increment
         inc = torch.logsumexp(lw, dim=-1)
         dead = ~torch.isfinite(inc)  # no particle with positive weight (all -inf)
-        n_repaired, invalid = self.account(bad_trial, dead, n_repaired)
+        n_repaired, invalid = self.account(bad.flatten(1).any(-1), dead, n_repaired)
         lw = torch.where(dead.unsqueeze(-1), prev_log_weights, lw)
-        if fallback is not None:
-            particles = torch.where(dead[:, None, None], fallback, particles)
+        # repaired particles, and every particle of a dead trial, take the fallback position: one
+        # pass over (B, N, d) (:meth:`repair`'s values)
+        particles = (particles.masked_fill(bad.unsqueeze(-1), 0.0) if fallback is None
+                     else torch.where((bad | dead.unsqueeze(-1)).unsqueeze(-1), fallback, particles))
         # rows that were not dead see the same lw, hence the same logsumexp as ``inc``
         lw = lw - torch.logsumexp(lw, dim=-1, keepdim=True)
         inc = inc.masked_fill(dead, float("-inf"))  # the evidence estimate of a dead step is zero
