@@ -87,6 +87,11 @@ def test_only_declared_steps_go_through_a_graph(emulated):
         graph_safe = False
     assert not ParticleFilter(model, Undeclared(model), n_particles=16).graph_step
 
+    class MyModel(type(model)):
+        pass
+    assert not BootstrapParticleFilter(MyModel(model.F, model.Q, model.H, model.R, model.m0, model.P0),
+                                       n_particles=16).graph_step
+
     class OwnStep(BootstrapParticleFilter):
         def step(self, state, z, generator=None):
             return super().step(state, z, generator)
@@ -116,6 +121,74 @@ def test_draws_that_change_fall_back_to_eager_with_the_same_numbers(emulated):
         graphed = _run(f, model)
     _same(eager, graphed)
     assert cudagraphs.stats()["captures"] == before
+
+
+def test_settings_changed_between_calls_give_the_eager_numbers(emulated):
+    """The draws are recorded per settings: a resampler that stops drawing (ESS threshold 0) or a
+    filter switched between nonfinite modes (another output layout) replays its own graph."""
+    model = random_lg(3, 2)
+    f = BootstrapParticleFilter(model, n_particles=16)
+
+    def both():
+        with tuning.tuned(cuda_graphs=0):
+            eager = _run(f, model)
+        _same(eager, _run(f, model))
+        _same(eager, _run(f, model))
+    both()
+    f.resampler.ess_threshold = 0.0  # no resampling draw any more
+    both()
+    f.resampler.ess_threshold = 0.5
+    f.nonfinite = "raise"  # the state carries an `invalid` tensor from now on
+    both()
+    f.nonfinite = "recover"
+    both()
+    entries = [e for e in graph_step._specs[f].values() if e is not None]
+    assert len({len(e["specs"]) for e in entries}) == 2  # with and without the resampling draw
+    assert len({e["out"] for e in entries}) == 2  # invalid: None or a tensor
+
+
+def test_a_step_making_fewer_draws_than_recorded_runs_eagerly(emulated):
+    """A step that skips a recorded draw inside the graph would leave the streams' counters ahead of
+    the eager run's: it is caught and the step runs eagerly from the words' positions."""
+    model = random_lg(3, 2)
+
+    class Skipping(BootstrapProposal):
+        graph_safe = True
+
+        def propose(self, particles, log_weights, estimate, z, carry, generator, *, chunk=None):
+            out = super().propose(particles, log_weights, estimate, z, carry, generator, chunk=chunk)
+            if not isinstance(generator, graph_step._Tape):  # a last draw, except inside the graph
+                generator.uniform((particles.shape[0], 1), dtype=particles.dtype, device=particles.device)
+            return out
+
+    f = ParticleFilter(model, Skipping(model), n_particles=16, ess_threshold=0.0)  # no resampling draw
+    with tuning.tuned(cuda_graphs=0):
+        eager = _run(f, model)
+    with pytest.warns(RuntimeWarning, match="made 1 of the 2 recorded draws"):
+        graphed = _run(f, model)
+    _same(eager, graphed)
+
+
+def test_subclasses_must_declare_themselves(emulated):
+    """A proposal subclass inherits no graph-safety (it may draw otherwise), nor does a model
+    subclass; a TrialStreams subclass is not replayed (its draws may be its own)."""
+    model = random_lg(3, 2)
+
+    class Sub(BootstrapProposal):
+        pass
+    assert not ParticleFilter(model, Sub(model), n_particles=8).graph_step
+
+    class SubSafe(BootstrapProposal):
+        graph_safe = True
+    assert ParticleFilter(model, SubSafe(model), n_particles=8).graph_step
+
+    class MyStreams(TrialStreams):
+        pass
+    f = BootstrapParticleFilter(model, n_particles=8)
+    x = torch.zeros(2, 8, 3, dtype=torch.float64)
+    with torch.no_grad():
+        assert graph_step._conditions(f, x, TrialStreams(0, 2, backend="philox"))
+        assert not graph_step._conditions(f, x, MyStreams(0, 2, backend="philox"))
 
 
 def test_philox_split_gives_the_same_draws():

@@ -20,12 +20,16 @@ replays it afterwards:
 * A capture that fails (an op that cannot be captured, a host read) is not retried for that key:
   the call returns the eager result and a one-time warning names the error.
 
-Used by :func:`torchflow.flows.integrate_flow` for deterministic flows on CUDA without a gradient
-(``torchflow.tuning`` ``cuda_graphs``; 0 turns it off). Each cached graph keeps its memory pool:
+Used by :func:`torchflow.flows.integrate_flow` for deterministic flows on CUDA without a gradient,
+and by :mod:`torchflow.filters.graph_step` for a graph-safe particle filter's whole time step
+(``torchflow.tuning`` ``cuda_graphs``; 0 turns both off). Keys also hold the process-wide switches
+that choose kernels (TF32, float32 matmul precision, deterministic algorithms, autocast), and a
+capture and its replays run on the inputs' GPU. Each cached graph keeps its memory pool:
 the cache holds the ``max_graphs`` most recent keys (:func:`clear` frees them all).
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import warnings
 from collections import OrderedDict
@@ -66,10 +70,11 @@ class _CudaBackend:
     def warmup(fn, inputs):
         stream = torch.cuda.Stream()
         stream.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(stream):  # capture wants its warm-up off the default stream
-            out = tuple(fn(*inputs))
-        torch.cuda.current_stream().wait_stream(stream)
-        return out
+        try:
+            with torch.cuda.stream(stream):  # capture wants its warm-up off the default stream
+                return tuple(fn(*inputs))
+        finally:  # also when fn raises: the caller's stream waits for what was launched
+            torch.cuda.current_stream().wait_stream(stream)
 
     @staticmethod
     def capture(fn, views):
@@ -89,6 +94,21 @@ def _compact(x: torch.Tensor) -> torch.Tensor:
         if x.stride(dim) == 0 and x.shape[dim] > 1:
             x = x.narrow(dim, 0, 1)
     return x
+
+
+def _static_copy(x: torch.Tensor) -> torch.Tensor:
+    """A static buffer holding ``x`` with ``x``'s strides (after :func:`_compact`), so the captured
+    kernels see the layout the eager ones saw (a strided slice stays strided: BLAS kernels may
+    choose by layout)."""
+    c = _compact(x)
+    return torch.empty_strided(c.shape, c.stride(), dtype=c.dtype, device=c.device).copy_(c)
+
+
+def _settings() -> tuple:
+    """Process-wide settings that change which kernels run (part of every key)."""
+    return (torch.get_float32_matmul_precision(), torch.backends.cuda.matmul.allow_tf32,
+            torch.backends.cudnn.allow_tf32, torch.are_deterministic_algorithms_enabled(),
+            torch.is_autocast_enabled("cuda"))
 
 
 def _signature(inputs) -> tuple:
@@ -135,7 +155,13 @@ def graphed(key: Hashable, fn: Callable[..., Sequence[Optional[torch.Tensor]]],
     Returns:
         ``fn``'s outputs (fresh tensors the caller owns).
     """
-    key = (key, _signature(inputs), torch.is_inference_mode_enabled())
+    key = (key, _signature(inputs), torch.is_inference_mode_enabled(), _settings())
+    device = next((x.device for x in inputs if x is not None and x.is_cuda), None)
+    with torch.cuda.device(device) if device is not None else contextlib.nullcontext():  # the inputs' GPU
+        return _graphed(key, fn, inputs, name)
+
+
+def _graphed(key, fn, inputs, name):
     if key in _cache:
         _cache.move_to_end(key)
         g = _cache[key]
@@ -144,13 +170,14 @@ def graphed(key: Hashable, fn: Callable[..., Sequence[Optional[torch.Tensor]]],
         _stats["replays"] += 1
         return g(inputs)
     out = _backend.warmup(fn, inputs)  # eager; its result is this call's answer
-    static_in = [None if x is None else _compact(x).clone() for x in inputs]
+    static_in = [None if x is None else _static_copy(x) for x in inputs]
     views = [None if s is None else s.expand(x.shape) for s, x in zip(static_in, inputs)]
     try:
         replay, static_out = _backend.capture(fn, views)
     except Exception as err:  # noqa: BLE001 - any capture failure falls back to eager
         _stats["failures"] += 1
         _cache[key] = None
+        _trim()
         if name not in _warned:
             _warned.add(name)
             warnings.warn(f"{name}: CUDA graph capture failed ({type(err).__name__}: {err}); running it eagerly "
@@ -158,9 +185,14 @@ def graphed(key: Hashable, fn: Callable[..., Sequence[Optional[torch.Tensor]]],
         return out
     _stats["captures"] += 1
     _cache[key] = _Graph(replay, static_in, static_out, fn)
+    _trim()
+    return out
+
+
+def _trim() -> None:
+    """Keep the ``max_graphs`` most recent keys (failed captures count too)."""
     while len(_cache) > max_graphs:
         _cache.popitem(last=False)
-    return out
 
 
 def clear() -> None:

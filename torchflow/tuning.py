@@ -77,7 +77,8 @@ class Tuning:
         cuda_graphs: on CUDA, a deterministic flow's pseudo-time loop (EDH, LEDH, geodesic,
             clustered; no gradient recorded) is captured once per shape as a CUDA graph and
             replayed (:mod:`torchflow.cudagraphs`): one launch instead of thousands of small ones.
-            The same kernels, so the same numbers. 0 runs it eagerly. No effect on the CPU.
+            The same kernels, so the same numbers. Also a graph-safe particle filter's whole step
+            (the bootstrap PF's; ``graph_step_max_elems``). 0 runs both eagerly. No effect on the CPU.
         fused_flows: EDH/LEDH at per-particle points take each pseudo-step as one fused kernel
             (:mod:`torchflow.flows.fused`) instead of ~85 batched small-matrix ops: on CUDA with
             Triton installed a particle per GPU thread, on the CPU with Numba installed 64

@@ -494,8 +494,10 @@ class ParticleFilter(Filter):
     @property
     def graph_step(self) -> bool:
         """Whether the whole step may be replayed from a CUDA graph (:mod:`torchflow.filters.graph_step`):
-        the generic step (not overridden) with a proposal that declares itself ``graph_safe``."""
-        return type(self).step is ParticleFilter.step and bool(self.proposal.graph_safe)
+        the generic step (not overridden), a proposal class and a model class that each declare
+        themselves ``graph_safe`` (on the class itself: a subclass may draw otherwise)."""
+        return (type(self).step is ParticleFilter.step and bool(vars(type(self.proposal)).get("graph_safe"))
+                and bool(vars(type(self.model)).get("graph_safe")))
 
     resampling_scheme = property(lambda self: self.resampler.scheme)
     ess_threshold = property(lambda self: self.resampler.ess_threshold)

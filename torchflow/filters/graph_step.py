@@ -9,16 +9,22 @@ So the draws are split in two (:class:`~torchflow.random.TrialStreams` with the 
 the default on CUDA): the Philox words of each draw are made eagerly, outside the graph (one
 kernel per draw, advancing the streams' counters on the host as always), and the graph takes them
 as inputs and turns them into uniforms and normals with the eager kernels. The draws a step makes
-(kind, shape, dtype) are recorded once per state layout by running the step eagerly with a
-recording stream; later steps replay. Same kernels on the same numbers: the eager run's numbers,
-bit for bit (``tests/test_graph_step.py``, emulated on the CPU; compared on CUDA there too).
+(kind, shape, dtype, device) are recorded by running the step eagerly once with a recording
+stream, per state layout, input shapes and settings (the filter's, model's, proposal's and
+resampler's attributes and tensors, and ``torchflow.tuning``); later steps replay. Same kernels on
+the same numbers: the eager run's numbers, bit for bit (``tests/test_graph_step.py``, emulated on
+the CPU; compared on CUDA there too). A step that asks for other draws than recorded, or fewer,
+runs eagerly from the stream positions the graph's words took (one warning per filter).
 
-Used by :meth:`torchflow.filters.Filter.forward` when the filter declares its step graph-safe
-(:attr:`ParticleFilter.graph_step`: the generic step with a proposal that says so, e.g. the
-bootstrap PF), on CUDA, without a gradient, with per-trial Philox streams, ``tuning.cuda_graphs``
-on and at most ``tuning.graph_step_max_elems`` state elements (larger steps are bound by the GPU's
-arithmetic, where a graph saves nothing and would keep a large memory pool). Anything else runs
-the step eagerly, as does a step whose recorded draws do not match (a one-time warning).
+Used by :meth:`torchflow.filters.Filter.forward` when the filter's step is graph-safe by
+declaration (:attr:`ParticleFilter.graph_step`: the generic step, with a proposal class and a model
+class that each declare ``graph_safe``: the bootstrap proposal; the linear-Gaussian models and
+acoustic tracking), on CUDA, without a gradient, with per-trial Philox streams (a plain
+:class:`~torchflow.random.TrialStreams`), ``tuning.cuda_graphs`` on and at most
+``tuning.graph_step_max_elems`` state elements (larger steps are bound by the GPU's arithmetic,
+where a graph saves nothing and would keep a large memory pool). Anything else runs eagerly.
+Known limits: process-wide switches outside :func:`torchflow.cudagraphs._settings` (which holds
+the TF32, precision, determinism and autocast flags) are not seen by a cached graph.
 """
 from __future__ import annotations
 
@@ -33,10 +39,13 @@ from ..random import TrialStreams
 
 __all__ = ["run_step", "eligible"]
 
-#: recorded draws per filter and state layout: ``{filter: {layout: specs or None}}`` (None: the
-#: step cannot be replayed, e.g. it selected sub-streams or drew off the GPU)
+#: recorded draws per filter: ``{filter: {(state layout, input signature, settings key, tuning):
+#: {"specs": draws, "out": output layout} or None}}`` (None: the step cannot be replayed, e.g. it
+#: selected sub-streams, drew off the GPU or drew otherwise than recorded)
 _specs: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
-_warned = set()
+_warned: "weakref.WeakSet" = weakref.WeakSet()  # filters warned about a fallback
+#: recorded layouts kept per filter (the oldest is forgotten first)
+MAX_RECORDED = 16
 
 
 class _Mismatch(RuntimeError):
@@ -68,19 +77,30 @@ class _Recording(TrialStreams):
         self.replayable = False
         return self.real.get_state()
 
+    def set_state(self, state):
+        self.replayable = False
+        self.real.set_state(state)
+
 
 class _Tape(TrialStreams):
     """Hands out the recorded draws, made from given Philox words, in order."""
 
-    def __init__(self, real: TrialStreams, specs, words):  # noqa: D107
-        self.__dict__.update(real.__dict__)
+    def __init__(self, template: dict, specs, words):  # noqa: D107
+        self.__dict__.update(template)
         self.specs, self.words, self.i = specs, words, 0
+
+    @staticmethod
+    def template(real: TrialStreams) -> dict:
+        """What a tape keeps of the real streams: their identity (seed, key, trials, back end)."""
+        return dict(seed=real.seed, key=real.key, trials=real.trials, backend="philox", _np=None, _counter=0,
+                    _keys=None)
 
     def _draw(self, kind, shape, dtype, device):
         if self.i >= len(self.specs):
             raise _Mismatch(f"draw {self.i} ({kind}, {tuple(shape)}) beyond the {len(self.specs)} recorded")
-        k, sh, n, dt, _ = self.specs[self.i]
-        if (k, sh, dt) != (kind, tuple(int(s) for s in shape), dtype):
+        k, sh, n, dt, dv = self.specs[self.i]
+        dev = torch.device("cpu") if device is None else torch.device(device)
+        if (k, sh, dt, dv) != (kind, tuple(int(s) for s in shape), dtype, dev):
             raise _Mismatch(f"draw {self.i}: asked ({kind}, {tuple(shape)}, {dtype}), recorded ({k}, {sh}, {dt})")
         out = TrialStreams._philox_numbers(kind, self.words[self.i], n, dtype).reshape(sh)
         self.i += 1
@@ -88,6 +108,12 @@ class _Tape(TrialStreams):
 
     def select(self, index):
         raise _Mismatch("select() inside a replayed step")
+
+    def get_state(self):
+        raise _Mismatch("get_state() inside a replayed step")
+
+    def set_state(self, state):
+        raise _Mismatch("set_state() inside a replayed step")
 
 
 def eligible(filt, state, generator) -> bool:
@@ -100,7 +126,7 @@ def eligible(filt, state, generator) -> bool:
 def _conditions(filt, x, generator) -> bool:
     t = tuning.get()
     return (bool(getattr(filt, "graph_step", False)) and bool(t.cuda_graphs) and not torch.is_grad_enabled()
-            and isinstance(generator, TrialStreams) and generator.backend in ("auto", "philox")
+            and type(generator) is TrialStreams and generator.backend in ("auto", "philox")
             and x.numel() <= t.graph_step_max_elems)
 
 
@@ -143,45 +169,60 @@ def _unflatten(layout, tensors, step: int):
 def run_step(filt, state, z: torch.Tensor, generator: TrialStreams, *, memo: Optional[dict] = None):
     """``filt.step(state, z, generator)``, replayed from a CUDA graph where it can be (module
     docstring); the same numbers as the eager step. ``memo``: a dict kept for one ``forward`` call
-    (the filter's state key is computed once per call: parameters do not change within one)."""
+    (the filter's state key is computed once per call: its settings and parameters do not change
+    within one)."""
     tensors, layout = _flatten(state)
     if layout is None:
         return filt.step(state, z, generator)
-    sig = (layout, cudagraphs._signature(tuple(tensors) + (z,)))
+    memo = {} if memo is None else memo
+    if "state" not in memo:  # the filter's, model's, proposal's and resampler's settings and tensors
+        memo["state"] = cudagraphs.state_key(filt, *filt.modules())
+    # the draws are recorded per input layout *and* settings (a changed resampler draws otherwise)
+    sig = (layout, cudagraphs._signature(tuple(tensors) + (z,)), memo["state"], tuning.get())
     per_filter = _specs.setdefault(filt, {})
     if sig not in per_filter:  # record this layout's draws with one eager step
         rec = _Recording(generator, state.particles.device)
         new = filt.step(state, z, rec)
-        per_filter[sig] = [tuple(rec.specs), None] if rec.replayable else None
+        per_filter[sig] = {"specs": tuple(rec.specs), "out": None} if rec.replayable else None
+        while len(per_filter) > MAX_RECORDED:
+            per_filter.pop(next(iter(per_filter)))
         return new
     entry = per_filter[sig]
     if entry is None:
         return filt.step(state, z, generator)
-    specs = entry[0]
+    specs = entry["specs"]
     counter = generator._counter
     words = tuple(generator._philox_bits(k, n, dt, dev) for k, _, n, dt, dev in specs)
-
-    def fn(*args):
-        st = _unflatten(layout, args[:len(tensors)], state.step)
-        new = filt.step(st, args[len(tensors)], _Tape(generator, specs, args[len(tensors) + 1:]))
-        flat, out_layout = _flatten(new)
-        if out_layout is None:
-            raise _Mismatch(f"{type(new).__name__} has fields a graph cannot return")
-        entry[1] = out_layout
-        return tuple(flat)
-
-    memo = {} if memo is None else memo
-    if "state" not in memo:
-        memo["state"] = cudagraphs.state_key(filt, *filt.modules())
-    key = ("filter_step", memo["state"], tuning.get(), layout, specs)
+    fn = _step_function(filt, generator, layout, len(tensors), state.step, specs, entry)
+    key = ("filter_step", sig)
     try:
         out = cudagraphs.graphed(key, fn, tuple(tensors) + (z,) + words, name=f"{filt.name}.step")
-    except _Mismatch as err:  # the step's draws differ from the recorded ones: this layout runs eagerly
+    except _Mismatch as err:  # the step's draws differ from the recorded ones: it runs eagerly
         per_filter[sig] = None
-        if filt.name not in _warned:
-            _warned.add(filt.name)
+        if filt not in _warned:
+            _warned.add(filt)
             warnings.warn(f"{filt.name}: its step is not replayed from a CUDA graph ({err}); running it eagerly",
                           RuntimeWarning, stacklevel=3)
         generator._counter = counter  # the words drawn for the graph are given back: the eager step draws them
         return filt.step(state, z, generator)
-    return _unflatten(entry[1], out, state.step + 1)
+    return _unflatten(entry["out"], out, state.step + 1)
+
+
+def _step_function(filt, generator, layout, n_in: int, step: int, specs, entry):
+    """The pure function of tensors that is captured: ``(state tensors, z, words) -> new state
+    tensors``. It keeps no input tensor alive (the graph's closure holds it as long as the graph),
+    checks that the step used exactly the recorded draws, and stores the output layout in ``entry``
+    (one per recorded layout and settings, so one per graph: a replay runs no Python)."""
+    streams = _Tape.template(generator)
+
+    def fn(*args):
+        tape = _Tape(streams, specs, args[n_in + 1:])
+        new = filt.step(_unflatten(layout, args[:n_in], step), args[n_in], tape)
+        if tape.i != len(specs):
+            raise _Mismatch(f"the step made {tape.i} of the {len(specs)} recorded draws")
+        flat, out_layout = _flatten(new)
+        if out_layout is None:
+            raise _Mismatch(f"{type(new).__name__} has fields a graph cannot return")
+        entry["out"] = out_layout
+        return tuple(flat)
+    return fn

@@ -50,6 +50,7 @@ class AcousticTracking(StateSpaceModel):
     has_positions = True
     linear_dynamics = True
     measurement_noise = "scalar"  # R = sigma_w^2 I
+    graph_safe = True  # torchflow.filters.graph_step (declared per class)
 
     def __init__(self, *, sigma_w: float = 0.1, psi: float = 10.0, d0: float = 0.1, true_noise_scale: float = 0.05,
                  filter_noise: str = "inflated", area: float = 40.0, sensor_grid: int = 5,

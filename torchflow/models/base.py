@@ -62,6 +62,14 @@ class StateSpaceModel(nn.Module):
     #: (varies with x and is diagonal: flows whiten by a division instead of a triangular solve
     #: per point). Flows whiten with it.
     measurement_noise: str = "dense"
+    #: ``True`` when the model's sampling and densities (:meth:`sample_transition`,
+    #: :meth:`transition_log_prob`, :meth:`measurement_log_prob`) are pure functions of their
+    #: tensors that draw only through the passed generator's ``normal``/``uniform``, with no host
+    #: read and no Python-side state: a particle filter's whole step may then be replayed from a
+    #: CUDA graph (:mod:`torchflow.filters.graph_step`). Declared by each class itself, not
+    #: inherited (a subclass may change those methods); checked on a GPU for the linear-Gaussian
+    #: models and acoustic tracking (``tests/test_graph_step.py``).
+    graph_safe: bool = False
     #: ``True`` when each measurement reads only its own state coordinate (``m == d`` and
     #: ``dh_i/dx_j = 0`` for ``i != j``; declared, never detected): the flows then scale by the
     #: Jacobian's diagonal instead of multiplying by the ``d x d`` matrix (the same numbers).
