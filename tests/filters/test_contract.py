@@ -210,3 +210,20 @@ def test_non_finite_error_names_filter_step_trial():
     with pytest.raises(NonFiniteError, match=r"bpf-test: non-finite particles or weights at time step 3 in trial\(s\) \[1\]") as e:
         f(traj.observations, mean, cov, torch.Generator().manual_seed(0))
     assert e.value.step == 3 and e.value.trials == [1]
+
+
+def test_trace_finds_the_first_bad_step_per_trial():
+    """The first non-finite step is found once from the stacked estimates and invalid flags: per
+    trial the earliest bad step (1-based), 0 where none, and whether that step was flagged invalid."""
+    from types import SimpleNamespace
+    from torchflow.filters.base import _Trace
+    tr = _Trace(3, "cpu", False, False)
+    nan = float("nan")
+    ests = [torch.tensor([[0.0], [0.0], [0.0]]), torch.tensor([[0.0], [nan], [0.0]]), torch.tensor([[0.0], [nan], [0.0]])]
+    invs = [None, torch.tensor([False, False, False]), torch.tensor([True, True, False])]
+    for t, (e, i) in enumerate(zip(ests, invs)):
+        tr.add(SimpleNamespace(estimate=e, invalid=i, log_evidence_increment=torch.zeros(3), ess=None), t)
+    first_bad, first_invalid = tr.first()
+    assert first_bad.tolist() == [3, 2, 0] and first_invalid.tolist() == [True, False, False]
+    with pytest.raises(NonFiniteError, match=r"non-finite estimate at time step 2 in trial\(s\) \[1\]"):
+        KalmanFilter(random_lg(1, 1))._raise_nonfinite(*tr.first())

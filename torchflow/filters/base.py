@@ -318,13 +318,13 @@ class Filter(nn.Module):
             try:
                 state = step(state, observations[:, t], generator)
             except Exception as err:
-                self._raise_nonfinite(trace.first_bad, trace.first_invalid)  # an earlier non-finite value is the cause
+                self._raise_nonfinite(*trace.first())  # an earlier non-finite value is the cause
                 self._raise_out_of_memory(err, observations.shape[0], n_particles)
                 raise
             trace.add(state, t)
             if progress is not None:
                 progress()
-        self._raise_nonfinite(trace.first_bad, trace.first_invalid)  # the one host read of the check
+        self._raise_nonfinite(*trace.first())  # the one host read of the check
         return trace.result(state)
 
 
@@ -362,19 +362,10 @@ class _Trace:
             self._stacked = (len(self.est), torch.stack(self.est, 1))
         return self._stacked[1]
 
-    @property
-    def first_bad(self) -> torch.Tensor:
-        """``(B,)``: the first step (1-based) whose estimate is non-finite or whose particles or
-        weights were flagged invalid, 0 where none was; computed from the steps so far in a few
-        ops (not per step)."""
-        return self._first()[0]
-
-    @property
-    def first_invalid(self) -> torch.Tensor:
-        """``(B,)`` bool: that first step was flagged invalid (particles or weights), not only the estimate."""
-        return self._first()[1]
-
-    def _first(self):
+    def first(self):
+        """``(first_bad (B,), first_invalid (B,))``: the first step (1-based) whose estimate is
+        non-finite or whose particles or weights were flagged invalid (0 where none was), and
+        whether that step was flagged invalid; from the steps so far, in a few ops (not per step)."""
         est = self.estimates()
         if est is None:
             zero = torch.zeros(self.B, dtype=torch.long, device=self.device)
