@@ -3,7 +3,7 @@
 Every value here changes only how fast (or in how much memory) a result is computed, never the
 result: the same seed gives the same numbers whatever they are set to (up to round-off where a
 batch's size changes BLAS blocking; see README "Reproducibility"). The exceptions compute the same
-formulas in another order: ``fused_flows``, ``fused_measurement`` and ``structured_update`` agree
+formulas in another order: ``fused_flows``, ``fused_info``, ``fused_measurement`` and ``structured_update`` agree
 with their torch/Joseph counterparts to round-off per call, which a chaotic trial (a resampling
 decision, a diverging EKF) can amplify; their statistics are the same (RESULTS.md, "CPU kernels"). They were measured on the
 project's 2-core CI machine (torch 2.13, MKL); on another machine, time a representative run
@@ -90,6 +90,12 @@ class Tuning:
             PF-PF(LEDH), acoustic, 100 trials x 500 particles, H100: 0.095 s per time step with
             0, 0.053 with 1 (0.031 with ``fused_measurement``); 20 trials, this 2-core CPU: 1.47
             s with 0, 0.59 s with 1.
+        fused_info: the GPU kernel of ``fused_flows`` in information form (1,
+            :func:`~torchflow.flows._fused_kernel.kernel_info`: ``G = W^T W`` and the prior precision,
+            one pass over W's rows, no ``L_s`` read per row) or the row form (0,
+            :func:`~torchflow.flows._fused_kernel.kernel_rows`: ``S = (W L_s)^T (W L_s)``, two
+            passes). The same formulas rearranged (round-off). H200, PF-PF(LEDH) 100 x 500,
+            float64: 0.0221 s per time step with 1, 0.0237 with 0 (one run). No effect on the CPU.
         fused_measurement: the fused kernel linearises a model that declares its measurement in
             the kernel's terms (:meth:`~torchflow.models.StateSpaceModel.fused_measurement`:
             acoustic tracking) itself, at the points, instead of torch ops writing a
@@ -125,6 +131,7 @@ class Tuning:
     jitter_ladder_divisor: int = 16
     cuda_graphs: int = 1
     fused_flows: int = 1
+    fused_info: int = 1
     fused_measurement: int = 1
     fused_philox: int = 1
     graph_step_max_elems: int = 1 << 23

@@ -22,21 +22,26 @@ import tempfile
 
 #: pointer arguments of ``kernel_rows`` that hold the state's dtype (the rest: float64 or int64)
 _STATE_PTRS = ("W", "Y", "Lp", "LS", "PC", "MEAN", "ETA", "AUX", "ETA_OUT", "AUX_OUT", "LOGDET", "SENS")
+#: pointer arguments of ``kernel_info`` that are float64 whatever the state's dtype (formed once per integration)
+_F64_PTRS = ("C", "PI", "LAMS", "EPSS", "CONST")
 
 
-def measure(lin: int = 0, warps: int = 1, arch: int = 90, dtype: str = "float64", bk: int = 8, bd: int = 16) -> dict:
-    """Compile ``kernel_rows`` for ``sm_<arch>`` and read its resources: ``registers``,
-    ``spill_stores``, ``spill_loads``, ``stack`` (bytes per thread), ``shuffles``, ``ptx_lines``."""
+def measure(lin: int = 0, warps: int = 1, arch: int = 90, dtype: str = "float64", bk: int = 8, bd: int = 16,
+            layout: str = "rows") -> dict:
+    """Compile ``kernel_<layout>`` (``rows`` or ``info``) for ``sm_<arch>`` and read its resources:
+    ``registers``, ``spill_stores``, ``spill_loads``, ``stack`` (bytes per thread), ``shuffles``,
+    ``ptx_lines``."""
     import triton
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
 
-    from torchflow.flows._fused_kernel import kernel_rows
+    from torchflow.flows import _fused_kernel
+    kernel_rows = getattr(_fused_kernel, "kernel_" + layout)
     names = list(inspect.signature(kernel_rows.fn).parameters)
     const = {"BK": bk, "BD": bd, "BP": 32 * warps, "LIN": lin}
     ptr = "*fp64" if dtype == "float64" else "*fp32"
     sig = {n: "constexpr" if n in const else "*i64" if n == "SUP" else ptr if n in _STATE_PTRS
-           else "*fp64" if n in ("LAMS", "EPSS", "CONST") else "i32" for n in names}
+           else "*fp64" if n in _F64_PTRS else "i32" for n in names}
     src = ASTSource(fn=kernel_rows, signature=sig, constexprs={(names.index(k),): v for k, v in const.items()})
     compiled = triton.compile(src, target=GPUTarget("cuda", arch, 32), options={"num_warps": warps})
     ptx = compiled.asm["ptx"]
@@ -59,10 +64,13 @@ def main(argv=None):
     ap.add_argument("--arch", type=int, default=90)
     ap.add_argument("--warps", type=int, default=1)
     ap.add_argument("--dtype", default="float64", choices=("float64", "float32"))
+    ap.add_argument("--layout", default="info,rows", help="the kernels' forms, comma-separated (info, rows)")
     a = ap.parse_args(argv)
-    for lin in (0, 1):
-        r = measure(lin, a.warps, a.arch, a.dtype)
-        print(f"sm_{a.arch}, {a.dtype}, {a.warps} warp(s), LIN={lin}: " + ", ".join(f"{k} {v}" for k, v in r.items()))
+    for layout in a.layout.split(","):
+        for lin in (0, 1):
+            r = measure(lin, a.warps, a.arch, a.dtype, layout=layout)
+            print(f"kernel_{layout}, sm_{a.arch}, {a.dtype}, {a.warps} warp(s), LIN={lin}: "
+                  + ", ".join(f"{k} {v}" for k, v in r.items()))
 
 
 if __name__ == "__main__":

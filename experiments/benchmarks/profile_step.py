@@ -9,7 +9,8 @@ profiled call (``--profile-steps``), its ops sorted by device time on CUDA (self
 the top ``--top`` rows (0: timing only). ``--graphs 0`` runs the flows' loop eagerly (``tuning.cuda_graphs``); ``--fused`` picks the fused
 pseudo-step (``tuning.fused_flows``: 0 torch, 1 the fused kernel, with ``--rows-warps`` warps of 32
 particles per program; ``--fused-measurement`` 0/1: the acoustic measurement linearised by torch or
-inside the kernel; ``--structured-update`` 0/1: the per-particle EKF update in the ``m x m`` Joseph form
+inside the kernel; ``--fused-info`` 0/1: the GPU kernel in row or information form,
+``tuning.fused_info``; ``--structured-update`` 0/1: the per-particle EKF update in the ``m x m`` Joseph form
 or in ``k x k`` algebra, ``tuning.structured_update``).
 """
 from __future__ import annotations
@@ -29,7 +30,7 @@ def run(argv=None) -> dict:
     a = h.options(__doc__, argv, dict(trials=2, particles=50, steps=3, profile_steps=2, top=10, reps=1),
                   filter="ledh", device="cpu", trials=100, particles=500, steps=10, profile_steps=3, reps=2,
                   top=25, graphs=1, dtype="float64", threads=2, fused=-1, rows_warps=0,
-                  fused_measurement=-1, structured_update=-1)
+                  fused_measurement=-1, structured_update=-1, fused_info=-1)
     torch.set_num_threads(a.threads)
     device, dtype = torch.device(a.device), getattr(torch, a.dtype)
     model = AcousticTracking().to(device=device, dtype=dtype)
@@ -50,6 +51,8 @@ def run(argv=None) -> dict:
         knobs["fused_measurement"] = int(a.fused_measurement)
     if a.structured_update >= 0:
         knobs["structured_update"] = int(a.structured_update)
+    if a.fused_info >= 0:
+        knobs["fused_info"] = int(a.fused_info)
     if a.rows_warps:
         from torchflow.flows import fused
         fused.ROWS_WARPS = int(a.rows_warps)
@@ -68,6 +71,7 @@ def run(argv=None) -> dict:
     print(f"{a.filter}: {a.trials} trials x {a.particles} particles on {device} ({a.dtype}, cuda_graphs={a.graphs}, "
           f"fused_flows={knobs.get('fused_flows', tuning.get().fused_flows)}, "
           f"fused_measurement={knobs.get('fused_measurement', tuning.get().fused_measurement)}, "
+          f"fused_info={knobs.get('fused_info', tuning.get().fused_info)}, "
           f"structured_update={knobs.get('structured_update', tuning.get().structured_update)}, "
           f"rows_warps={a.rows_warps or 'default'}): {per:.3g} s per trial-step, {best / a.steps:.3g} s per time step")
     if not a.top:

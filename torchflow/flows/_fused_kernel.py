@@ -115,6 +115,35 @@ def _w_row(wrow, yrow, SENS, i, sWm, sYm, m2, pm, rk, aux_s, psi, d0, LIN: tl.co
     return w, yi
 
 
+@triton.jit
+def _setup(W, sWb, sWn, sWk, Y, sYb, sYn, SUP, AUX, sEb, sEn, sEd, LAMS, EPSS, j, CONST, BN, N, d, k,
+           BK: tl.constexpr, BD: tl.constexpr, BP: tl.constexpr):
+    """What both kernels' pseudo-steps start from: the program's particles ``p [BP]`` (trial ``b``,
+    particle ``n``, mask ``pm``), the ranges and masks of the k- and d-axes, the step's ``lam`` and
+    ``eps``, the support, the lower-triangle mask, the particles' points at the support ``aux_s
+    [BK, BP]`` (and their offsets ``es``), the rows' base pointers of W and y and the measurement's
+    constants."""
+    p = tl.program_id(0) * BP + tl.arange(0, BP)
+    pm = p < BN
+    b = p // N
+    n = p % N
+    rk, rd = tl.arange(0, BK), tl.arange(0, BD)
+    mk, md = rk < k, rd < d
+    lam = tl.load(LAMS + j).to(tl.float64)
+    eps = tl.load(EPSS + j).to(tl.float64)
+    m2 = mk[:, None] & pm[None, :]
+    md2 = md[:, None] & pm[None, :]
+    sup = tl.load(SUP + rk, mask=mk, other=0)
+    tri = (rk[:, None] >= rk[None, :])[:, :, None]  # lower triangles
+    es = b[None, :] * sEb + n[None, :] * sEn + sup[:, None] * sEd
+    aux_s = _ld(AUX + es, m2, BK, BP)
+    wrow = W + b[None, :] * sWb + n[None, :] * sWn + rk[:, None] * sWk
+    yrow = Y + b * sYb + n * sYn
+    psi = tl.load(CONST).to(tl.float64)
+    d0 = tl.load(CONST + 1).to(tl.float64)
+    return p, pm, b, n, rk, rd, lam, eps, m2, md2, sup, tri, es, aux_s, wrow, yrow, psi, d0
+
+
 @triton.jit(do_not_specialize=["j"])
 def kernel_rows(W, sWb, sWn, sWm, sWk, Y, sYb, sYn, sYm, Lp, sLb, sLn, sLd, sLk, LS, sSb, sSn, sSi, sSj,
                 PC, sPb, sPn, sPd, sPk, MEAN, sMb, sMn, sMd, SUP, ETA, AUX, sEb, sEn, sEd, ETA_OUT, AUX_OUT,
@@ -134,24 +163,8 @@ def kernel_rows(W, sWb, sWn, sWm, sWk, Y, sYb, sYn, sYm, Lp, sLb, sLn, sLd, sLk,
     ``p_c`` (support coordinates ``2c, 2c + 1``) and sensors ``s_i`` (``SENS (m, 2)``), whitened
     by a scalar ``1 / sigma``: ``CONST = [Psi / sigma, d0]`` and ``Y`` holds ``z / sigma``
     (acoustic tracking; :func:`torchflow.flows.fused.dh_particle_step`)."""
-    p = tl.program_id(0) * BP + tl.arange(0, BP)
-    pm = p < BN
-    b = p // N
-    n = p % N
-    rk, rd = tl.arange(0, BK), tl.arange(0, BD)
-    mk, md = rk < k, rd < d
-    lam = tl.load(LAMS + j).to(tl.float64)
-    eps = tl.load(EPSS + j).to(tl.float64)
-    m2 = mk[:, None] & pm[None, :]
-    md2 = md[:, None] & pm[None, :]
-    sup = tl.load(SUP + rk, mask=mk, other=0)
-    tri = (rk[:, None] >= rk[None, :])[:, :, None]  # lower triangles
-    es = b[None, :] * sEb + n[None, :] * sEn + sup[:, None] * sEd
-    aux_s = _ld(AUX + es, m2, BK, BP)
-    wrow = W + b[None, :] * sWb + n[None, :] * sWn + rk[:, None] * sWk
-    yrow = Y + b * sYb + n * sYn
-    psi = tl.load(CONST).to(tl.float64)
-    d0 = tl.load(CONST + 1).to(tl.float64)
+    p, pm, b, n, rk, rd, lam, eps, m2, md2, sup, tri, es, aux_s, wrow, yrow, psi, d0 = _setup(
+        W, sWb, sWn, sWk, Y, sYb, sYn, SUP, AUX, sEb, sEn, sEd, LAMS, EPSS, j, CONST, BN, N, d, k, BK, BD, BP)
     # pass 1: W^T y, then Pg at the measured coordinates
     Wy = tl.zeros((BK, BP), dtype=tl.float64)
     for i in range(m):
@@ -213,5 +226,77 @@ def kernel_rows(W, sWb, sWn, sWm, sWk, Y, sYb, sYn, sYm, Lp, sLb, sLn, sLd, sLk,
     out = p[None, :] * d + rd[:, None]
     _st(ETA_OUT + out, eta + eps * (Pg - Le), md2, BD, BP)
     _st(AUX_OUT + out, aux + eps * (Pg - La), md2, BD, BP)
+    old = tl.load(LOGDET + p, mask=pm, other=0.0)
+    tl.store(LOGDET + p, (old.to(tl.float64) + 2.0 * logdet).to(LOGDET.dtype.element_ty), mask=pm)
+
+
+@triton.jit
+def _sym_tile(base, sI, sJ, m2, k, rk, tri, BK: tl.constexpr, BP: tl.constexpr):
+    """The lower triangle of each particle's symmetric ``k x k`` matrix at ``base [1, BP]``
+    (row stride ``sI``, column stride ``sJ``), as ``[BK, BK, BP]``; zero elsewhere."""
+    M = tl.zeros((BK, BK, BP), dtype=tl.float64)
+    for c in tl.static_range(BK):
+        col = _ld(base + rk[:, None] * sI + c * sJ, m2 & (c < k), BK, BP)
+        M = tl.where((rk[None, :, None] == c) & tri, col[:, None, :], M)
+    return M
+
+
+@triton.jit(do_not_specialize=["j"])
+def kernel_info(W, sWb, sWn, sWm, sWk, Y, sYb, sYn, sYm, C, sCb, sCn, sCd, sCk, PI, sIb, sIn, sIi, sIj,
+                PC, sPb, sPn, sPd, sPk, MEAN, sMb, sMn, sMd, SUP, ETA, AUX, sEb, sEn, sEd, ETA_OUT, AUX_OUT,
+                LOGDET, LAMS, EPSS, j, SENS, CONST, BN, N, m, d, k, BK: tl.constexpr, BD: tl.constexpr,
+                BP: tl.constexpr, LIN: tl.constexpr):
+    """The pseudo-step of :func:`kernel_rows` in information form, one pass over the rows of W.
+    With ``G = W^T W`` (the point's whitened information, accumulated row by row: no ``L_s`` read
+    per row), ``P_s = L_s L_s^T``, the prior precision ``Pi = P_s^{-1}`` and ``C = L L_s^{-1}``
+    (``C``, ``Pi`` formed once per integration, :func:`torchflow.flows.fused.info_factors`):
+    ``L (I + lam S)^{-1} L_s^T = C M^{-1}`` with ``M = Pi + lam G`` (push-through), so
+    ``A v = -1/2 C M^{-1} G v_s`` and, with ``g = P_s W^T y`` (so ``P H^T R^{-1} (z - e) = C g``),
+    ``x <- x + eps C (g - s_x)``, ``s_x = M^{-1} (G x_s / 2 + a)``, ``a = r_1 / 2 + lam (G g -
+    G q_1 / 2)``, ``q_1 = M^{-1} r_1``, ``r_1 = G (lam g + mean_s)``: three solves with M's factor.
+    ``log det (I + eps A) = log det (Pi + (lam - eps/2) G) - log det M`` (the ``log det P_s`` of
+    each cancels). Registers hold G, not S and four k-vectors of sums, and ``L_s`` is not read."""
+    p, pm, b, n, rk, rd, lam, eps, m2, md2, sup, tri, es, aux_s, wrow, yrow, psi, d0 = _setup(
+        W, sWb, sWn, sWk, Y, sYb, sYn, SUP, AUX, sEb, sEn, sEd, LAMS, EPSS, j, CONST, BN, N, d, k, BK, BD, BP)
+    G = tl.zeros((BK, BK, BP), dtype=tl.float64)
+    Wy = tl.zeros((BK, BP), dtype=tl.float64)
+    for i in range(m):
+        w, yi = _w_row(wrow, yrow, SENS, i, sWm, sYm, m2, pm, rk, aux_s, psi, d0, LIN, BK, BP)
+        Wy += w * yi[None, :]
+        G += tl.where(tri, w[:, None, :] * w[None, :, :], 0.0)
+    pbase = PC + b[None, :] * sPb + n[None, :] * sPn
+    g = tl.zeros((BK, BP), dtype=tl.float64)  # P_s W^T y
+    for c in tl.static_range(BK):
+        g += _ld(pbase + sup[:, None] * sPd + c * sPk, m2 & (c < k), BK, BP) * _pick(Wy, rk, c)[None, :]
+    Pi = _sym_tile(PI + b[None, :] * sIb + n[None, :] * sIn, sIi, sIj, m2, k, rk, tri, BK, BP)
+    pad = tl.where((rk[:, None, None] == rk[None, :, None]) & (rk[:, None, None] >= k), 1.0, 0.0).to(tl.float64)
+    K = _chol_t(Pi + (lam - 0.5 * eps) * G + pad, rk, BK)
+    logdet = tl.zeros((BP,), dtype=tl.float64)
+    for c in tl.static_range(BK):
+        logdet += tl.log(_pick(_row(K, rk, c), rk, c))  # padded diagonal entries are 1
+    K = _chol_t(Pi + lam * G + pad, rk, BK)
+    for c in tl.static_range(BK):
+        logdet -= tl.log(_pick(_row(K, rk, c), rk, c))
+    mean_s = _ld(MEAN + b[None, :] * sMb + n[None, :] * sMn + sup[:, None] * sMd, m2, BK, BP)
+    Gg = _mv_sym(G, g, rk)
+    r1 = lam * Gg + _mv_sym(G, mean_s, rk)
+    q1 = _solve_t(K, r1, rk, BK)
+    a = 0.5 * r1 + lam * (Gg - 0.5 * _mv_sym(G, q1, rk))
+    eta_s = _ld(ETA + es, m2, BK, BP)
+    ue = g - _solve_t(K, 0.5 * _mv_sym(G, eta_s, rk) + a, rk, BK)
+    ua = g - _solve_t(K, 0.5 * _mv_sym(G, aux_s, rk) + a, rk, BK)
+    ccol = C + b[None, :] * sCb + n[None, :] * sCn + rd[:, None] * sCd
+    Ce = tl.zeros((BD, BP), dtype=tl.float64)
+    Ca = tl.zeros((BD, BP), dtype=tl.float64)
+    for c in tl.static_range(BK):
+        cc = _ld(ccol + c * sCk, md2 & (c < k), BD, BP)
+        Ce += cc * _pick(ue, rk, c)[None, :]
+        Ca += cc * _pick(ua, rk, c)[None, :]
+    ed = b[None, :] * sEb + n[None, :] * sEn + rd[:, None] * sEd
+    eta = _ld(ETA + ed, md2, BD, BP)
+    aux = _ld(AUX + ed, md2, BD, BP)
+    out = p[None, :] * d + rd[:, None]
+    _st(ETA_OUT + out, eta + eps * Ce, md2, BD, BP)
+    _st(AUX_OUT + out, aux + eps * Ca, md2, BD, BP)
     old = tl.load(LOGDET + p, mask=pm, other=0.0)
     tl.store(LOGDET + p, (old.to(tl.float64) + 2.0 * logdet).to(LOGDET.dtype.element_ty), mask=pm)

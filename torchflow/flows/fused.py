@@ -19,6 +19,16 @@ PF-PF(LEDH), acoustic, 100 trials x 500 particles, float64, H100, seconds per ti
 (``experiments/benchmarks/ab_fused.py``, one run): the torch path 0.095, the first fused kernel
 (one program per particle, retired) 0.071, this one 0.053, with the measurement inside 0.031.
 
+Two forms of the kernel (``tuning.fused_info``): the row form (:func:`~torchflow.flows._fused_kernel.kernel_rows`)
+accumulates ``S = V^T V`` over the rows of ``V = W L_s``, reading each particle's ``L_s`` once per
+row of W (25 times per pseudo-step for acoustic tracking) in two passes; the information form
+(:func:`~torchflow.flows._fused_kernel.kernel_info`, the default) accumulates ``G = W^T W`` in one
+pass and works with the prior precision ``P_s^{-1}`` and ``C = L L_s^{-1}``, formed once per
+integration (:func:`info_factors`). H200, 100 x 500, float64, one run (``ab_fused --short``):
+0.0237 s per time step in row form, 0.0221 in information form (the torch path 0.0821); the
+kernel itself 218 us per pseudo-step on the H200 (``results_profile_ledh_gpu_s8.txt``), where the
+row form took 420 us on an H100 (seventh session: another card, not a paired comparison).
+
 Arithmetic: float64 inside (float32 runs load and store their own dtype; the ``k x k`` algebra is
 float64 as :attr:`~torchflow.flows.daum_huang.EDHFlow.promote_low_precision` asks). The same
 formulas as the unfused path, reassociated, so the numbers agree to round-off
@@ -80,16 +90,40 @@ __all__ = ["available", "dh_particle_step", "FusedMeasurement", "ParticleSteps",
 available, interpreted = _triton.available, _triton.interpreted  # shared with torchflow.random's fused draws
 
 
-_kernel = None
+_kernels = {}
 
 
 #: warps per program (32 particles each); 1, 2 and 4 ran alike on an H100 (``ab_fused``)
 ROWS_WARPS = 1
 
 
-def _build():
-    from ._fused_kernel import kernel_rows
-    return kernel_rows
+
+def kernel_form() -> str:
+    """The GPU kernel's form (``tuning.fused_info``): ``"info"``
+    (:func:`~torchflow.flows._fused_kernel.kernel_info`: ``G = W^T W`` and the prior precision, one
+    pass over the rows of W) or ``"rows"`` (:func:`~torchflow.flows._fused_kernel.kernel_rows`:
+    ``S = (W L_s)^T (W L_s)``, two passes)."""
+    from .. import tuning
+    return "info" if tuning.get().fused_info else "rows"
+
+
+def _build(form: str):
+    if form not in _kernels:
+        from . import _fused_kernel
+        _kernels[form] = getattr(_fused_kernel, "kernel_" + form)
+    return _kernels[form]
+
+
+def info_factors(L: torch.Tensor, Ls: torch.Tensor):
+    """The prior's factors of the information-form kernel, once per integration: ``C = L L_s^{-1}``
+    ``(..., d, k)`` and the precision ``P_s^{-1} = L_s^{-T} L_s^{-1}`` ``(..., k, k)`` of the
+    measured coordinates (float64, triangular solves), from the root columns ``L (..., d, k)`` and
+    their rows at the support ``L_s (..., k, k)`` (lower triangular)."""
+    L, Ls = L.to(torch.float64), Ls.to(torch.float64)
+    C = torch.linalg.solve_triangular(Ls, L, upper=False, left=False)
+    eye = torch.eye(Ls.shape[-1], dtype=torch.float64, device=Ls.device)
+    inv = torch.linalg.solve_triangular(Ls, eye.expand(Ls.shape), upper=False)
+    return C, inv.transpose(-1, -2) @ inv
 
 
 def _bn_strides(t: torch.Tensor, B: int, N: int, tail: int):
@@ -122,7 +156,8 @@ class FusedMeasurement:
 def dh_particle_step(W: Optional[torch.Tensor], y: torch.Tensor, L: torch.Tensor, Ls: torch.Tensor, Pc: torch.Tensor,
                      mean: torch.Tensor, support: Optional[torch.Tensor], eta: torch.Tensor, aux: torch.Tensor,
                      log_det: torch.Tensor, lams: torch.Tensor, epss: torch.Tensor, j: int,
-                     measure: Optional[FusedMeasurement] = None, inv_sigma: Optional[torch.Tensor] = None):
+                     measure: Optional[FusedMeasurement] = None, inv_sigma: Optional[torch.Tensor] = None,
+                     info=None, form: Optional[str] = None):
     """One Euler step of EDH/LEDH at per-particle points, fused (see the module docstring).
 
     Args:
@@ -135,13 +170,14 @@ def dh_particle_step(W: Optional[torch.Tensor], y: torch.Tensor, L: torch.Tensor
         log_det: ``(B, N)`` contiguous accumulator, updated in place.
         lams, epss: the schedule's pseudo-times and step sizes (device tensors); j: the step.
         measure, inv_sigma: a :class:`FusedMeasurement` and the 0-d ``1 / sigma`` of its scalar R.
+        info: :func:`info_factors` ``(L, Ls)`` if computed already; form: the kernel's form,
+            ``"info"`` or ``"rows"`` (default :func:`kernel_form`).
 
     Returns:
         ``(eta, aux)`` after the step (new tensors).
     """
-    global _kernel
-    if _kernel is None:
-        _kernel = _build()
+    form = kernel_form() if form is None else form
+    kernel = _build(form)
     B, N, d = eta.shape
     if support is None:
         support = torch.arange(d, device=eta.device)
@@ -157,6 +193,8 @@ def dh_particle_step(W: Optional[torch.Tensor], y: torch.Tensor, L: torch.Tensor
         W, sW = _bn_strides(W, B, N, 2)
         y, sY = _bn_strides(y, B, N, 1)
         sens = const = lams  # not read
+    if form == "info":  # the kernel reads C = L L_s^{-1} and P_s^{-1} in place of L and L_s
+        L, Ls = info_factors(L, Ls) if info is None else info
     L, sL = _bn_strides(L, B, N, 2)
     Ls, sS = _bn_strides(Ls, B, N, 2)
     Pc, sP = _bn_strides(Pc, B, N, 2)
@@ -166,7 +204,7 @@ def dh_particle_step(W: Optional[torch.Tensor], y: torch.Tensor, L: torch.Tensor
     eta_out, aux_out = torch.empty_like(eta), torch.empty_like(aux)
     BK, BD = tile(k), tile(d)
     bp = 32 * ROWS_WARPS
-    _kernel[(-(-B * N // bp),)](W, *sW, y, *sY, L, *sL, Ls, *sS, Pc, *sP, mean, *sM, support, eta, aux, *sE, eta_out,
+    kernel[(-(-B * N // bp),)](W, *sW, y, *sY, L, *sL, Ls, *sS, Pc, *sP, mean, *sM, support, eta, aux, *sE, eta_out,
                                 aux_out, log_det, lams, epss, j, sens, const, B * N, N, m, d, k, BK=BK, BD=BD, BP=bp,
                                 LIN=0 if measure is None else measure.kind, num_warps=ROWS_WARPS)
     return eta_out, aux_out
@@ -183,6 +221,8 @@ class ParticleSteps:
         self.prior = (L, Ls, Pc, mean, support)
         self.lams, self.epss, self.measure, self.inv_sigma, self.z_scaled = lams, epss, measure, inv_sigma, z_scaled
         self.cpu = mean.device.type == "cpu" and not _triton.runs_on(mean.device)
+        self.form = kernel_form()
+        self.info = info_factors(L, Ls) if not self.cpu and self.form == "info" else None
         if self.cpu:
             d = mean.shape[-1]
             sup = torch.arange(d, device=mean.device) if support is None else support
@@ -194,7 +234,8 @@ class ParticleSteps:
             if self.measure is not None:
                 W, y = None, self.z_scaled
             return dh_particle_step(W, y, *self.prior, eta, aux, log_det, self.lams, self.epss, j,
-                                    measure=self.measure, inv_sigma=self.inv_sigma)
+                                    measure=self.measure, inv_sigma=self.inv_sigma, info=self.info,
+                                    form=self.form)
         Wn, yn, lin, sens, const = _cpu_rows(self.lin, W, y)
         e64, a64 = _f64(eta, 3), _f64(aux, 3)
         eta_out, aux_out = np.empty_like(e64), np.empty_like(a64)
