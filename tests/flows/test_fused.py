@@ -508,3 +508,32 @@ def test_gpu_tiles_bounded_by_the_register_budget():
     assert tiles_fit(25, 8, 16, "cuda") and tiles_fit(2, 3, 3, "cuda")
     assert not tiles_fit(16, 16, 16, "cuda") and tiles_fit(16, 16, 16, "cpu")
     assert not tiles_fit(144, 144, 144, "cpu")
+
+
+def test_info_factors_are_the_prior_precision_and_c():
+    """The information-form kernel's factors (``fused.info_factors``): ``C = L L_s^{-1}`` (so
+    ``C L_s = L``, and C's rows at the support are the identity when ``L``'s are ``L_s``) and
+    ``P_s^{-1}`` (``P_s^{-1} L_s L_s^T = I``), float64 from float32 inputs, broadcasting a shared
+    covariance's ``(B, 1, ...)`` against per-particle ones."""
+    from torchflow.flows import fused
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(2, 3, 6, 6, dtype=torch.float64, generator=g)
+    root = torch.linalg.cholesky(A @ A.transpose(-1, -2) + torch.eye(6, dtype=torch.float64))
+    L, Ls = root[..., :4], root[..., :4, :4]  # support = the first 4 coordinates
+    C, Pi = fused.info_factors(L.to(torch.float32), Ls.to(torch.float32))
+    assert C.dtype == Pi.dtype == torch.float64 and C.shape == (2, 3, 6, 4) and Pi.shape == (2, 3, 4, 4)
+    assert torch.allclose(C @ Ls, L, atol=1e-5)
+    assert torch.allclose(C[..., :4, :], torch.eye(4, dtype=torch.float64).expand(2, 3, 4, 4), atol=1e-5)
+    assert torch.allclose(Pi @ (Ls @ Ls.transpose(-1, -2)), torch.eye(4, dtype=torch.float64).expand(2, 3, 4, 4),
+                          atol=1e-4)
+    C1, Pi1 = fused.info_factors(L[:, :1], Ls)  # one L for all particles, per-particle L_s
+    assert C1.shape == (2, 3, 6, 4) and torch.allclose(C1 @ Ls, L[:, :1].expand(2, 3, 6, 4), atol=1e-12)
+
+
+def test_kernel_form_follows_tuning():
+    """``tuning.fused_info`` picks the GPU kernel's form (information form by default)."""
+    from torchflow import tuning
+    from torchflow.flows import fused
+    assert fused.kernel_form() == "info"
+    with tuning.tuned(fused_info=0):
+        assert fused.kernel_form() == "rows"
