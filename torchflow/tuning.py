@@ -95,7 +95,8 @@ class Tuning:
             one pass over W's rows, no ``L_s`` read per row) or the row form (0,
             :func:`~torchflow.flows._fused_kernel.kernel_rows`: ``S = (W L_s)^T (W L_s)``, two
             passes). The same formulas rearranged (round-off). H200, PF-PF(LEDH) 100 x 500,
-            float64: 0.0221 s per time step with 1, 0.0237 with 0 (one run). No effect on the CPU.
+            float64: 0.0221 s per time step with 1, 0.0237 with 0 (one run). No effect on the Numba CPU
+            kernel (it does select the form Triton's interpreter runs on the CPU, in tests).
         fused_measurement: the fused kernel linearises a model that declares its measurement in
             the kernel's terms (:meth:`~torchflow.models.StateSpaceModel.fused_measurement`:
             acoustic tracking) itself, at the points, instead of torch ops writing a

@@ -5,7 +5,7 @@ measurement linearised by torch, ``fused_measurement=0``, or inside the kernel, 
 ``fused_info=0``, or information form, 1), each after its
 own warm-up (``profile_step`` timing only). On an H100 (2026-11-26; a retired kernel with one program
 per particle then took 0.071 s per time step): torch 0.095, fused 0.053, with the measurement inside
-0.031, alike for 1, 2 and 4 warps. Prints one line per variant and, last,
+0.031, alike for 1, 2 and 4 warps (4 is no longer a variant here). Prints one line per variant and, last,
 ``BEST <variant>``; a variant that fails prints its error and is skipped. ``--short``: the two
 forms with the measurement inside and the torch path only.
 

@@ -27,7 +27,7 @@ CHECK = textwrap.dedent('''
     fused.ROWS_WARPS = 1  # 32 particles per program
     if len(sys.argv) > 3:
         tuning.set(fused_info=int(sys.argv[3] == "info"))  # the GPU kernel's form: info or rows
-    def case(model, B, N, dtype, shared_cov, flow):
+    def case(model, B, N, dtype, shared_cov, flow, spread=0.0):
         g = torch.Generator().manual_seed(0)
         model = model.to(dtype=dtype)
         d = model.state_dim
@@ -35,6 +35,8 @@ CHECK = textwrap.dedent('''
         x = traj.states[:, 1].unsqueeze(1) + 0.3 * torch.randn(B, N, d, dtype=dtype, generator=g)
         A = 0.1 * torch.randn(B, 1 if shared_cov else N, d, d, dtype=dtype, generator=g)
         P = A @ A.transpose(-1, -2) + torch.eye(d, dtype=dtype)
+        D = torch.logspace(0, -spread, d, dtype=dtype)  # spread: P's condition number ~ 10^(2 spread)
+        P = D[:, None] * P * D[None, :]
         prior = FlowPrior((x + 0.1).to(device), torch.linalg.cholesky(P).to(device))
         model, x, z = model.to(device), x.to(device), traj.observations[:, 1].to(device)
         with torch.no_grad():
@@ -62,6 +64,7 @@ CHECK = textwrap.dedent('''
         "acoustic": case(AcousticTracking(), 2, 3, torch.float64, False, LEDHFlow()),
         "acoustic shared P": case(AcousticTracking(), 2, 3, torch.float64, True, LEDHFlow()),
         "acoustic float32": case(AcousticTracking(), 2, 3, torch.float32, False, LEDHFlow()),
+        "acoustic, P's condition ~1e6": case(AcousticTracking(), 2, 3, torch.float64, False, LEDHFlow(), spread=3.0),
         **({} if only_acoustic else {"linear, shared W, EDH at particles": case(lg(), 2, 3, torch.float64, False,
                                                                                   EDHFlow())}),
         "acoustic, 40 particles (two programs of 32)": case(AcousticTracking(), 2, 20, torch.float64, False, LEDHFlow()),
@@ -463,14 +466,16 @@ def test_fused_kernel_keeps_each_particle_in_one_thread_on_sm90(inside, layout):
     """Compiled for an H100 without one (Triton's compiler and ptxas): no warp shuffles (every
     reduction over a particle's k x k matrices stays in its thread) and spills under 4 KB per thread.
     The kernel's first version, with its ``[k, particles]`` tiles spread over threads by Triton's
-    coalescing, made 1,728 shuffles and spilled 17.7 KB; the row form now ~1.7 KB, the information
-    form ~2.6 KB (2026-11-26)."""
+    coalescing, made 1,728 shuffles and spilled 17.7 KB; the row form now 1.6-1.8 KB, the
+    information form 2.6-2.7 KB (2026-11-26, ``results_kernel_registers.txt``): a bound a little
+    above each catches a regression."""
     pytest.importorskip("triton")
     sys.path.insert(0, str(ROOT))
     from experiments.benchmarks.kernel_registers import measure
     r = measure(lin=inside, warps=1, arch=90, layout=layout)
     assert r["shuffles"] == 0, r
-    assert r["spill_stores"] < 4096 and r["registers"] <= 255, r
+    bound = {"rows": 2200, "info": 3000}[layout]  # bytes; measured 1.6-1.8 KB and 2.6-2.7 KB with Triton 3.6
+    assert r["spill_stores"] < bound and r["registers"] <= 255, r
 
 
 def test_which_measurements_the_kernel_linearises_itself():
