@@ -25,7 +25,7 @@ fused CPU kernel and the ``k x k`` update (``torchflow.tuning`` ``fused_flows``,
 their round-off moves chaotic trials (a diverging EKF at sigma_w = 0.001, resampling decisions)
 far past the tolerance, so the files are rerun with :data:`ARITHMETIC`, the arithmetic that wrote
 them. That the new defaults have the same statistics is measured on the tables' settings
-(RESULTS.md, "CPU kernels (issue 30)").
+(RESULTS.md, "CPU kernels").
 """
 import csv
 import math

@@ -1,4 +1,4 @@
-"""The fused pseudo-step's variants side by side in one process (issue 30, GPU): PF-PF(LEDH) on
+"""The fused pseudo-step's variants side by side in one process (GPU): PF-PF(LEDH) on
 acoustic tracking, seconds per trial-step for ``tuning.fused_flows`` 0 (torch) and 1 (the fused
 kernel, a particle per thread, with 1 and 2 warps of 32 particles per program; with the acoustic
 measurement linearised by torch, ``fused_measurement=0``, or inside the kernel, 1; in row form,

@@ -2,7 +2,7 @@
 BPF beside Stone Soup's ``GromovFlowParticleUpdater`` and bootstrap ``ParticleUpdater``, N = 500, same
 trajectories. Ours: wall time of the filter calls (preferred chunks, after a 1-trial warm-up) / (trials
 x steps); Stone Soup: the mean predict + update time of the completed steps. Accuracy: OMAT and the
-position RMSE without assignment. Goal (issues 5 and 30): PF-PF(LEDH) and PF-PF(Gromov) >= 30x faster than
+position RMSE without assignment. Goal (the peer-speed goal): PF-PF(LEDH) and PF-PF(Gromov) >= 30x faster than
 Stone Soup's Gromov updater with its square root repaired (:func:`_repaired_gromov`) while tracking (finite,
 mean OMAT <= 2 m); the updater as shipped is timed beside it.
 

@@ -33,7 +33,7 @@ def ledh_flops_per_trial_step(N: int, d: int, k: int, m: int, C: int, n_lambda: 
 
 
 def fused_ledh_flops_per_trial_step(N: int, d: int, k: int, m: int, C: int, n_lambda: int) -> float:
-    """The same count for the path taken by default since issue 30 (the fused pseudo-step,
+    """The same count for the path taken by default since the fused kernels (the fused pseudo-step,
     :mod:`torchflow.flows.fused`, with the acoustic measurement inside, and the ``k x k`` EKF update,
     ``tuning.structured_update``). Per particle and pseudo-time step: the rows of W and y 20 m C;
     ``W^T y`` 2 m k; ``V_i = L_s^T W_i``, ``S += V_i V_i^T`` (lower triangles) 2 m k (k + 1);

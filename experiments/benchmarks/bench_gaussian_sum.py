@@ -1,4 +1,4 @@
-"""Gaussian-sum benchmark (issue 13): seconds per trial-step of the PFGSPF (G components x N* particles)
+"""Gaussian-sum benchmark: seconds per trial-step of the PFGSPF (G components x N* particles)
 against PF-PF(LEDH), the GSPF and the BPF with the same total G N* particles on the skewed-t / Poisson
 model, d = 144, the same data, after an untimed one-step warm-up (min over ``--reps``).
 

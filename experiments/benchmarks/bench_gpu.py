@@ -1,4 +1,4 @@
-"""Issue 30's GPU goals in one table (``run_all --device cuda`` runs it; any device works, the goals
+"""The GPU goals in one table (``run_all --device cuda`` runs it; any device works, the goals
 are stated for an H100/H200):
 
 * PF-PF(LEDH) on seed 000 Table II's setting (acoustic, sigma_w = 0.1, N = 500, 40 steps, float64)
@@ -10,7 +10,7 @@ are stated for an H100/H200):
   trials x 10 steps) at every ``--bpf-ns``; goal: PyDPF's time / ours >= 1 at each N. PyDPF needs
   Python >= 3.12: without it the rows say ``skipped``;
 * GPFIS against PF-PF(LEDH) at ``--gpfis-trials`` trials (the same setting, ``--gpfis-steps``
-  steps): time per trial-step of each in one process; goal: GPFIS <= 5x PF-PF(LEDH) (issue 30's CPU
+  steps): time per trial-step of each in one process; goal: GPFIS <= 5x PF-PF(LEDH) (the CPU
   goal, recorded here for the GPU; ``--gpfis-trials 0``: none);
 * the CUDA contract tests (``pytest -k cuda`` over the contract, graph and fused-kernel
   tests, in a subprocess): goal: all pass (on a machine without CUDA they skip: no verdict).
@@ -135,7 +135,7 @@ def run(argv=None) -> dict:
                       h.fmt(r.get("ratio"), "{:.2f}"),
                       h.fmt(r.get("goal"), "< {} s" if isinstance(r.get("goal"), float) else "{}"), h.met_cell(r.get("met")),
                       r.get("status") or r.get("error") or ""])
-    md = h.report("## GPU goals (issue 30)", a, info,
+    md = h.report("## GPU goals", a, info,
                   [f"Device {device}; PF-PF(LEDH): acoustic sigma_w = 0.1, N = {a.particles}, {a.steps} steps, {a.dtype}, "
                    f"one call per trial count (best of {a.reps} after a warm-up); BPF: SensorNetwork d = {a.bpf_d}, "
                    f"float32, {a.bpf_trials} trials x {a.bpf_steps} steps. tuning.fused_flows = "

@@ -1,4 +1,4 @@
-"""Gradient quality and cost through particle filters (issue 29): bias and spread of the gradient of
+"""Gradient quality and cost through particle filters: bias and spread of the gradient of
 the log-evidence against the Kalman filter's exact gradient, per resampling-gradient estimator, filter
 and particle count, and what the backward pass costs.
 

@@ -1,4 +1,4 @@
-"""Operations and host synchronisations per filter step (issue 30): what each filter asks of a GPU.
+"""Operations and host synchronisations per filter step: what each filter asks of a GPU.
 Every aten op is a kernel launch on a GPU and every read of a value back to the host stalls its
 queue; both are counted on the CPU with :class:`torchflow.profiling.OpCounter` over one time step
 (the second: the first includes set-up) of every filter on acoustic tracking (d = 16, m = 25).
@@ -8,7 +8,7 @@ queue; both are counted on the CPU with :class:`torchflow.profiling.OpCounter` o
 
 Columns: ``ops`` and ``syncs`` with the CPU's default (``safe_cholesky`` reads its failure flags, a
 free read on the CPU) and ``syncs (as on CUDA)`` with ``tuning.batched_jitter_cpu=1`` (the path a
-CUDA tensor takes); ``target`` and ``met``: the issue's op-count goals (PF-PF(LEDH) <= 1,000, PF-PF(Gromov)
+CUDA tensor takes); ``target`` and ``met``: the op-count goals (PF-PF(LEDH) <= 1,000, PF-PF(Gromov)
 <= 1,500, GPFIS <= 3,000 ops per time step). Counts do not depend on the machine; they grow with
 the schedule's pseudo-steps (29 here), not with B or N. ``of which not views``: the ops left after
 those that only make a view (``view``, ``expand``, ``unsqueeze``, ``permute``, ...; no kernel on a

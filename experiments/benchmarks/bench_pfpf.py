@@ -7,7 +7,7 @@ per-step times of one run (MATLAB: 0.9-3.5 s for PF-PF(LEDH) N=500, 1.3 s for PF
 
 GPFIS (its autodiff Jacobian makes it an order of magnitude dearer) runs on the first ``--gpfis-trials``
 trials only (default 10); its s / trial-step is comparable with the others', its OMAT and ESS are over
-those trials. Goal (issue 30): GPFIS <= 5x PF-PF(LEDH) per trial-step.
+those trials. Goal (the CPU speed goal): GPFIS <= 5x PF-PF(LEDH) per trial-step.
 """
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Bootstrap particle filter speed against the peer library PyDPF, in one process, on the same
-device (issue 30's GPU goal: torchflow's BPF at least as fast as PyDPF's at every N from 200 to 1e5).
+device (the GPU goal: torchflow's BPF at least as fast as PyDPF's at every N from 200 to 1e5).
 
     python experiments/benchmarks/peer_pydpf_bpf.py --device cuda [--ns 200,1000,10000,100000]
         [--trials 100] [--steps 10] [--d 64] [--dtype float32] [--reps 3] [--out results_peer_pydpf_bpf.md]

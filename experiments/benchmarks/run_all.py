@@ -32,7 +32,7 @@ def _x(ratio, spec="{:.1f}x"):
 
 
 def _headline(results: dict) -> list:
-    """Rows ``(benchmark, setting, ours, reference, ratio, goal, met)`` of every goal the issues state:
+    """Rows ``(benchmark, setting, ours, reference, ratio, goal, met)`` of every stated goal:
     ``ours``/``reference`` are seconds per trial-step unless the benchmark's name says otherwise,
     ``ratio`` and ``goal`` are text in the goal's own terms (peer/ours speed-up, share of a rate, ...)."""
     rows = [(r["name"], r.get("setting", ""), r["per_ts_ours"], r["per_ts_peer"], _x(r["ratio"]),

@@ -1,5 +1,5 @@
-"""Speed per trial-step of five filters, one script for two checkouts (issue 28's before/after check;
-RESULTS.md, "Speed before and after the redesign"):
+"""Speed per trial-step of five filters, one script for two checkouts (the before/after check of the
+redesign; RESULTS.md, "Speed before and after the redesign"):
 
     git worktree add /tmp/before 5d2894d && git worktree add /tmp/after 3a0f806
     PYTHONPATH=/tmp/before python experiments/results/speed_before_after.py before [name filters...]
