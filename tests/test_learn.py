@@ -1,8 +1,12 @@
-"""Learning through particle filters (issue 29): step checkpointing, its automatic switch, and the
-``torchflow-learn`` command."""
+"""Learning through particle filters: step checkpointing, its automatic switch, and the
+``torchflow-learn`` command (its shell contracts shared with ``torchflow``: tests/test_shell.py)."""
 import csv
+import json
+import os
+import signal
 import subprocess
 import sys
+import time
 
 import pytest
 import torch
@@ -118,3 +122,83 @@ def test_learn_command_refuses_bad_settings_in_one_line(tmp_path, bad, message):
     r = _learn(tmp_path, "filter=[bpf]", "steps=2", "trials=2", "n_particles=10", "epochs=1", bad)  # bad last: it wins
     assert r.returncode == 2 and message in r.stderr, (r.returncode, r.stderr[-1500:])
     assert "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("sig, code, name", [(signal.SIGTERM, 143, "SIGTERM"), (signal.SIGINT, 130, "Ctrl-C")])
+def test_a_stop_signal_during_learning_writes_the_finished_epochs_and_exits_128_plus_the_signal(tmp_path, sig, code,
+                                                                                                name):
+    """SIGTERM (a scheduler's time limit) or Ctrl-C after the first epoch's log line: the fit ends after
+    the current step, learn.csv / learn.json hold the finished epochs (the reference not started is
+    named), the lock file is gone, and the exit status is 143 / 130."""
+    out = tmp_path / "out"
+    cmd = [sys.executable, str(ROOT / "experiments" / "learn.py"), "filter=[bpf]", "trials=2", "steps=3",
+           "n_particles=20", "epochs=100000", "plots=false", "reference=ekf", f"hydra.run.dir={out}"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
+    with open(tmp_path / "stdout.txt", "w") as so, open(tmp_path / "stderr.txt", "w") as se:
+        proc = subprocess.Popen(cmd, stdout=so, stderr=se, cwd=tmp_path, env=env)
+        log, deadline = out / "learn.log", time.time() + 60
+        while proc.poll() is None and time.time() < deadline and not (
+                log.exists() and "bpf epoch 1:" in log.read_text()):
+            time.sleep(0.05)
+        assert proc.poll() is None, (tmp_path / "stderr.txt").read_text()[-2000:]
+        assert (out / ".torchflow.lock").exists()
+        proc.send_signal(sig)
+        proc.wait(timeout=60)
+    err = (tmp_path / "stderr.txt").read_text()
+    assert proc.returncode == code, err[-2000:]
+    assert f"interrupted by {name}: learn.csv and learn.json hold the epochs that finished (bpf: " in err
+    assert "not run: ekf" in err and "Traceback" not in err
+    rows = list(csv.DictReader(open(out / "learn.csv")))
+    assert [(r["filter"], r["parameter"]) for r in rows] == [("bpf", "psi"), ("bpf", "sigma_w")]
+    assert 1 <= int(rows[0]["epochs"]) < 100000
+    data = json.loads((out / "learn.json").read_text())
+    assert data["interrupted"] is True and data["stopped_by"] == name and data["not_run"] == ["ekf"]
+    assert len(data["history"]["bpf"]["epoch"]) == int(rows[0]["epochs"])
+    assert not (out / ".torchflow.lock").exists()
+
+
+def test_learning_simulates_through_the_runner_with_the_job_environment(tmp_path, monkeypatch):
+    """The training data come from the runner's simulation (the run command's: inits_per_track
+    trials share a trajectory), on the job's dtype; threads and speed knobs reach the job."""
+    from hydra import compose, initialize_config_dir
+
+    import torchflow.runner.plan as plan
+    from torchflow import learn
+
+    calls, simulate = [], plan.simulate
+
+    def spy(model, trials, steps, inits_per_track, generator):
+        calls.append((trials, steps, inits_per_track))
+        calls.append(simulate(model, trials, steps, inits_per_track, generator))
+        return calls[-1]
+
+    monkeypatch.setattr(plan, "simulate", spy)
+    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
+        cfg = compose("learn", ["filter=[bpf]", "trials=4", "steps=3", "n_particles=10", "epochs=1", "reference=null",
+                                "plots=false", "inits_per_track=2", "dtype=float32", "threads=1",
+                                "tuning.points_per_call=1234"])
+    rows = learn.run(cfg, tmp_path)
+    assert [r["parameter"] for r in rows] == ["psi", "sigma_w"]
+    assert calls[0] == (4, 3, 2)
+    traj = calls[1][0]
+    assert torch.equal(traj.states[0], traj.states[1]) and not torch.equal(traj.states[1], traj.states[2])
+    assert traj.states.dtype == torch.float32
+    run = json.loads((tmp_path / "learn.json").read_text())["run"]
+    assert run["inits_per_track"] == 2 and run["dtype"] == "float32" and run["threads"] == 1
+    assert run["tuning"]["points_per_call"] == 1234
+
+
+def test_learn_config_accepts_free_form_start_values_and_refuses_unknown_keys():
+    from hydra import compose, initialize_config_dir
+
+    from torchflow.runner import ConfigError
+    from torchflow.runner.config import check_config
+    from torchflow.learn import LEARN
+
+    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
+        check_config(compose("learn", ["start={psi: 4.0, sigma_w: 0.2}"]), {}, "learn", LEARN.free_form)
+        with pytest.raises(ConfigError, match="learning_rate: unknown setting; did you mean lr\\?"):
+            check_config(compose("learn", ["+learning_rate=0.5"]), {}, "learn", LEARN.free_form)
+        with pytest.raises(ConfigError, match="tuning.point_per_call: unknown setting; did you mean "
+                                              "tuning.points_per_call"):
+            check_config(compose("learn", ["+tuning.point_per_call=5"]), {}, "learn", LEARN.free_form)

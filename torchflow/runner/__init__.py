@@ -1,14 +1,16 @@
 """The Monte Carlo runner: :mod:`.plan` (check, simulate once, chunks) -> :mod:`.execute` (filters x
 chunks, :data:`STOP`, shards of :mod:`.distributed`) -> :mod:`.score`; :mod:`.checkpoint` (resume),
 :mod:`.writers` and :mod:`.figures` (result files), :mod:`.sweep` (Hydra sweeps), :mod:`.config`
-(the command line's checks). ``run_experiment`` is plain Python; :mod:`torchflow.cli` is the command line.
+(the command line's checks), :mod:`.shell` (the command shell of ``torchflow`` and ``torchflow-learn``:
+settings, output folder and lock file, signals and exit statuses, job environment). ``run_experiment``
+is plain Python; :mod:`torchflow.cli` and :mod:`torchflow.learn` are the commands.
 """
 from .checkpoint import ChunkStore, fingerprint
 from .distributed import Shard
-from .execute import STOP, StopRequest, run_experiment
+from .execute import STOP, StopRequest, plan_run, run_experiment
 from .plan import ConfigError, choose_chunk_size, resolve_device, resolve_dtype
 from .score import SUMMARY_COLUMNS, ExperimentResult, format_table
 
-__all__ = ["run_experiment", "ExperimentResult", "SUMMARY_COLUMNS", "format_table", "STOP", "StopRequest",
+__all__ = ["run_experiment", "plan_run", "ExperimentResult", "SUMMARY_COLUMNS", "format_table", "STOP", "StopRequest",
            "ChunkStore", "fingerprint", "Shard", "ConfigError", "choose_chunk_size", "resolve_device",
            "resolve_dtype"]

@@ -13,7 +13,6 @@ from typing import List, Mapping, Optional, Sequence
 from omegaconf import OmegaConf
 
 from .plan import ConfigError, require, check_metric_settings, check_rng_backend, check_seed, check_warmup
-from .writers import RESULT_FILES
 
 _CHECKOUT = Path(__file__).resolve().parents[2]
 #: subtrees of the config whose keys are constructor arguments (checked by the constructors)
@@ -59,71 +58,57 @@ def check_selections(argv: Sequence[str]) -> None:
                               f"available: {', '.join(options)}")
 
 
-def _override(argv: Sequence[str], key: str) -> Optional[str]:
-    vals = [a.split("=", 1)[1] for a in argv if a.lstrip("+").startswith(key + "=")]
-    return vals[-1] if vals else None
+def close_keys(key: str, known: Sequence[str]) -> List[str]:
+    """The known keys a mistyped ``key`` most likely meant: difflib's close matches, and the keys
+    whose word initials spell it or that it abbreviates (``learning_rate`` -> ``lr``)."""
+    initials = lambda k: "".join(w[0] for w in k.split("_") if w)  # noqa: E731
+    close = difflib.get_close_matches(key, known, n=3, cutoff=0.6)
+    close += [c for c in known if c not in close and "_" in key + c and (initials(key) == c or initials(c) == key)]
+    return close[:3]
 
 
-def check_output_folder(argv: Sequence[str], cwd: Path) -> None:
-    """Before Hydra creates it: the run's (sweep's) folder must be writable, and a folder given
-    with ``hydra.run.dir`` / ``hydra.sweep.dir`` that holds an earlier run's results is refused
-    unless ``overwrite=true`` (or ``resume=true``) says to replace them."""
-    sweep = any(a in ("-m", "--multirun") for a in argv)
-    key = "hydra.sweep.dir" if sweep else "hydra.run.dir"
-    given = _override(argv, key)
-    folder = Path(given) if given else Path("multirun" if sweep else "outputs")
-    folder = folder if folder.is_absolute() else cwd / folder
-    if given and folder.is_dir():
-        found = (sorted(str(p.relative_to(folder)) for p in folder.glob("[0-9]*/results.json")) if sweep
-                 else [n for n in RESULT_FILES if (folder / n).exists()])
-        replace = any(_override(argv, k) in ("true", "True") for k in ("overwrite", "resume"))
-        if found and not replace:
-            raise ConfigError(f"{key}: {given} already holds the results of a run ({', '.join(found[:4])}); choose "
-                              f"a new folder ({key}=<new folder>) or add overwrite=true to replace them")
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        probe = folder / f".torchflow-write-test.{os.getpid()}"
-        probe.write_text("")
-        probe.unlink()
-    except OSError as e:
-        raise ConfigError(f"{key}: cannot write into {folder} ({type(e).__name__}: {e.strerror or e}); choose a "
-                          f"writable folder with {key}=<folder>") from None
-
-
-def unknown_keys(cfg: Mapping, known: Mapping, prefix: str = "") -> List[str]:
-    """Messages for keys of ``cfg`` that ``known`` does not have (outside :data:`FREE_FORM`),
-    each naming the key and the closest known ones."""
+def unknown_keys(cfg: Mapping, known: Mapping, prefix: str = "", free_form: Sequence[str] = FREE_FORM) -> List[str]:
+    """Messages for keys of ``cfg`` that ``known`` does not have (outside ``free_form``, the
+    top-level subtrees whose keys are constructor arguments), each naming the closest known ones."""
     out = []
     for k, v in cfg.items():
         path = prefix + str(k)
-        if not prefix and k in FREE_FORM:
+        if not prefix and k in free_form:
             continue
         if k not in known:
-            close = difflib.get_close_matches(str(k), [str(c) for c in known if c != "defaults"], n=3, cutoff=0.6)
+            close = close_keys(str(k), [str(c) for c in known if c != "defaults"])
             hint = f"; did you mean {' or '.join(prefix + c for c in close)}?" if close else ""
             out.append(f"{path}: unknown setting{hint}")
         elif isinstance(v, Mapping) and isinstance(known[k], Mapping):
-            out += unknown_keys(v, known[k], path + ".")
+            out += unknown_keys(v, known[k], path + ".", free_form)
     return out
 
 
-def check_config(cfg: Mapping, choices: Mapping[str, Optional[str]]) -> None:
-    """What a composed config must satisfy before anything is built: no unknown settings,
-    booleans that are booleans, a seed in range, a known random back end, metric settings."""
-    known = OmegaConf.load(config_dir() / "config.yaml")
+def check_config(cfg: Mapping, choices: Mapping[str, Optional[str]], config_name: str = "config",
+                 free_form: Sequence[str] = FREE_FORM) -> None:
+    """What a composed config of the command whose primary config is ``config_name`` (``config``:
+    ``torchflow``; ``learn``: ``torchflow-learn``) must satisfy before anything is built: no
+    unknown settings (outside ``free_form``), booleans that are booleans, a seed in range, and
+    where the command has them a known random back end, warm-up and metric settings."""
+    known = OmegaConf.load(config_dir() / f"{config_name}.yaml")
     if choices.get("experiment"):
         known = OmegaConf.merge(known, OmegaConf.load(config_dir() / "experiment" / f"{choices['experiment']}.yaml"))
-    bad = unknown_keys(cfg, OmegaConf.to_container(known, resolve=False))
+    known = OmegaConf.to_container(known, resolve=False)
+    bad = unknown_keys(cfg, known, free_form=free_form)
     if bad:
         raise ConfigError("; ".join(bad))
     for key in ("plots", "progress", "resume", "overwrite"):
-        require(isinstance(cfg.get(key), bool), key, "true or false", cfg.get(key))
+        if key in known:
+            require(isinstance(cfg.get(key), bool), key, "true or false", cfg.get(key))
     check_seed(cfg.get("seed"))
-    check_rng_backend(cfg.get("rng_backend"))
-    check_warmup(cfg.get("warmup", "auto"))
-    m = cfg.get("metrics") or {}
-    check_metric_settings(ospa_cutoff=m.get("ospa_cutoff"), ospa_order=m.get("ospa_order"),
-                          lost_threshold=m.get("lost_threshold"))
+    if "rng_backend" in known:
+        check_rng_backend(cfg.get("rng_backend"))
+    if "warmup" in known:
+        check_warmup(cfg.get("warmup", "auto"))
+    if "metrics" in known:
+        m = cfg.get("metrics") or {}
+        check_metric_settings(ospa_cutoff=m.get("ospa_cutoff"), ospa_order=m.get("ospa_order"),
+                              lost_threshold=m.get("lost_threshold"))
 
 
 def remember_command(prog: str, argv: Sequence[str]) -> None:

@@ -28,24 +28,46 @@ log = logging.getLogger("torchflow.runner")
 
 class StopRequest:
     """Ctrl-C / SIGTERM handling that never tears a run apart mid-bookkeeping: :meth:`handler`
-    (the command line's for SIGINT and SIGTERM; in a script: ``signal.signal(signal.SIGTERM,
+    (the command shell's for SIGINT and SIGTERM; in a script: ``signal.signal(signal.SIGTERM,
     STOP.handler)``) raises ``KeyboardInterrupt`` at once inside a filter's chunk, else the run
-    stops at the next chunk boundary (the finished chunks are always scored and written)."""
+    stops at the next chunk boundary (the finished chunks are always scored and written). Outside
+    a chunk it only records the request: other loops (learning's epochs) poll :attr:`requested`.
+    ``signum``: the first signal received; :attr:`exit_code`: ``128 + signum`` (130 for SIGINT,
+    143 for SIGTERM; 130 when the request came without a signal number)."""
 
     def __init__(self):
-        self.requested, self._depth = False, 0
+        self.requested, self.signum, self._depth = False, None, 0
 
     def handler(self, signum, frame):  # noqa: ARG002 - signal handler signature
         self.requested = True
+        if self.signum is None and isinstance(signum, int):
+            self.signum = int(signum)
         if self._depth:
             raise KeyboardInterrupt
+
+    @property
+    def exit_code(self) -> int:
+        """The exit status of a process this request stopped: ``128 + signum`` (130: Ctrl-C)."""
+        return 128 + (self.signum or 2)
+
+    @property
+    def name(self) -> str:
+        """``Ctrl-C`` (SIGINT), ``SIGTERM``, or the signal's name."""
+        if self.signum in (None, 2):
+            return "Ctrl-C"
+        try:
+            import signal
+
+            return signal.Signals(self.signum).name
+        except ValueError:
+            return f"signal {self.signum}"
 
     def check(self) -> None:
         if self.requested:
             raise KeyboardInterrupt
 
     def reset(self) -> None:
-        self.requested = False
+        self.requested, self.signum = False, None
 
     @contextmanager
     def interruptible(self):
@@ -173,6 +195,22 @@ def gather_outcome(out: Outcome, plan: RunPlan) -> Outcome:
     return Outcome(chunks, failed[1], failed[3], interrupted, out.warmup)
 
 
+def plan_run(model: StateSpaceModel, filters: Mapping[str, Filter], *, trials: int, steps: int, seed: int,
+             inits_per_track: int = 1, chunk_size: Optional[int] = None, memory_budget_gb: float = 4.0,
+             device: Union[str, torch.device] = "cpu", dtype: Union[str, torch.dtype] = "float64",
+             rng_backend: str = "auto", trial_range: Optional[Sequence[int]] = None, shard: Optional[Shard] = None,
+             simulator: Optional[Callable] = None) -> RunPlan:
+    """The arguments checked (:func:`~torchflow.runner.plan.check_settings`; a model with
+    ``n_steps`` sets the steps), the model (and ``filters``, which may be empty) moved to the
+    device and dtype, the data simulated once (``simulator`` or
+    :func:`~torchflow.runner.plan.simulate`: ``inits_per_track`` trials share a trajectory) and
+    the chunks chosen: the data every command works on (:func:`run_experiment`, ``torchflow-learn``)."""
+    s = check_settings(trials=trials, steps=getattr(model, "n_steps", steps), seed=seed, chunk_size=chunk_size,
+                       inits_per_track=inits_per_track, memory_budget_gb=memory_budget_gb, device=device, dtype=dtype,
+                       rng_backend=rng_backend, trial_range=trial_range)
+    return make_plan(model, filters, s, shard, simulator)
+
+
 def run_experiment(
     model: StateSpaceModel, filters: Mapping[str, Filter], *, trials: int = 10, steps: int = 10, seed: int = 0,
     inits_per_track: int = 1, chunk_size: Optional[int] = None, memory_budget_gb: float = 4.0,
@@ -209,13 +247,13 @@ def run_experiment(
         got = type(filters).__name__ if not isinstance(filters, Mapping) else "a mapping with " + ", ".join(
             sorted({type(f).__name__ for f in filters.values() if not isinstance(f, torch.nn.Module)}))
         raise ConfigError(f"filters: expected a mapping of names to filters, e.g. {{'kf': KalmanFilter(model)}}, got {got}")
-    s = check_settings(trials=trials, steps=getattr(model, "n_steps", steps), seed=seed, chunk_size=chunk_size,
-                       inits_per_track=inits_per_track, memory_budget_gb=memory_budget_gb, device=device, dtype=dtype,
-                       rng_backend=rng_backend, trial_range=trial_range)
     check_warmup(warmup)
     metric_settings = check_metric_settings(ospa_cutoff=ospa_cutoff, ospa_order=ospa_order,
                                             lost_threshold=lost_threshold)
-    plan = make_plan(model, filters, s, shard, simulator)
+    plan = plan_run(model, filters, trials=trials, steps=steps, seed=seed, inits_per_track=inits_per_track,
+                    chunk_size=chunk_size, memory_budget_gb=memory_budget_gb, device=device, dtype=dtype,
+                    rng_backend=rng_backend, trial_range=trial_range, shard=shard, simulator=simulator)
+    s = plan.settings
     scorer = make_scorer(model, plan, **metric_settings)
     res = ExperimentResult([], [], [])
     for i, (name, f) in enumerate(filters.items()):

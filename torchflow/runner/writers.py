@@ -13,6 +13,10 @@ from .score import SUMMARY_COLUMNS
 #: every file a run may write into its output folder (a reused folder is cleared of these)
 RESULT_FILES = ("summary.csv", "per_step.csv", "per_trial.csv", "results.json", "error.txt",
                 "per_step.png", "tracks.png", "omat_box.png", "scene.png")
+#: the files ``torchflow-learn`` writes into its output folder
+LEARN_FILES = ("learn.csv", "learn.json", "curves.png")
+#: every command's result files: a folder holding any of them holds an earlier run's results
+ALL_RESULT_FILES = RESULT_FILES + LEARN_FILES
 
 
 def _atomic(path: Path, write) -> Path:
@@ -58,7 +62,7 @@ def write_run(out: Path, result, config: Mapping) -> List[Path]:
                 "failed": {n: result.failures.get(n) for n in result.failed}}, indent=2))]
 
 
-def clear_results(out: Path) -> None:
-    """Remove the files a run writes (:data:`RESULT_FILES`) from ``out``."""
-    for name in RESULT_FILES:
+def clear_results(out: Path, names=ALL_RESULT_FILES) -> None:
+    """Remove the result files ``names`` (default: every command's, :data:`ALL_RESULT_FILES`) from ``out``."""
+    for name in names:
         (Path(out) / name).unlink(missing_ok=True)
