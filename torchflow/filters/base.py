@@ -21,7 +21,7 @@ from ..covariances import Covariance
 from ..models.base import StateSpaceModel
 from ..proposals import BootstrapProposal, Proposal
 from ..random import check_generator
-from . import graph_step
+from ..flows.kernels import graph_step
 
 
 @dataclass
@@ -484,7 +484,7 @@ class ParticleFilter(Filter):
 
     @property
     def graph_step(self) -> bool:
-        """Whether the whole step may be replayed from a CUDA graph (:mod:`torchflow.filters.graph_step`):
+        """Whether the whole step may be replayed from a CUDA graph (:mod:`torchflow.flows.kernels.graph_step`):
         the generic step (not overridden), a proposal class and a model class that each declare
         themselves ``graph_safe`` (on the class itself: a subclass may draw otherwise)."""
         return (type(self).step is ParticleFilter.step and bool(vars(type(self.proposal)).get("graph_safe"))

@@ -54,8 +54,7 @@ import torch
 
 from .. import linalg
 from .._checks import check_choice, check_count
-from ..flows import FlowPrior, integrate_flow
-from ..flows.integrate import diagonal_kernel_applies
+from ..flows import FlowPrior, integrate_flow, which_kernel
 from ..flows.points import ParticlePoints, flow_points_per_call
 from ..schedules import LambdaSchedule, resolve_schedule
 from ..proposals import resolve_flow
@@ -316,11 +315,11 @@ class GaussianSumParticleFilter(ParticleFilter):
         """A trial's particles per flow pass: ``particle_chunk`` when set, else the cache-sized
         :func:`~torchflow.flows.points.flow_points_per_call` when the trial's particles exceed it;
         no blocks when the flow runs as the diagonal CPU kernel on ``device``
-        (:func:`~torchflow.flows.integrate.diagonal_kernel_applies`: no ``d x d`` matrix per particle
+        (:func:`~torchflow.flows.which_kernel` is ``"diagonal"``: no ``d x d`` matrix per particle
         is built, and blocks only add calls; the numbers are the same either way)."""
         if self.particle_chunk:
             return self.particle_chunk
-        if device is not None and diagonal_kernel_applies(self.flow, self.model, device):
+        if device is not None and which_kernel(self.flow, self.model, device) == "diagonal":
             return None
         cap = flow_points_per_call(self.model)
         return cap if self.n_particles > cap else None

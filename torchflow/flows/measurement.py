@@ -61,9 +61,9 @@ class GaussianMeasurement:
             derivatives as diagonal blocks
             (:meth:`~torchflow.models.StateSpaceModel.measurement_hessian_blocks`), for
             :meth:`derivative`; only for a constant R (``None``: not available).
-        fused: the model's :class:`~torchflow.flows.fused.FusedMeasurement` (its measurement in
-            the terms of the fused GPU pseudo-step, :meth:`~torchflow.models.StateSpaceModel.fused_measurement`),
-            or ``None``.
+        form: the measurement in a named form that a kernel may linearise itself, ``(name,
+            tensors)`` (the model's declared :attr:`~torchflow.models.StateSpaceModel.measurement_form`
+            with its parameters; :data:`torchflow.flows.kernels.select.FORMS`), or ``None``.
         diagonal_rows: ``points -> (h, dh/dx's diagonal, L_R's diagonal)`` for a ``diagonal``
             measurement with a diagonal R
             (:meth:`~torchflow.models.StateSpaceModel.linearize_measurement_diagonal`), for
@@ -73,7 +73,7 @@ class GaussianMeasurement:
     def __init__(self, z: torch.Tensor, linearise: Callable, scale_tril: Callable, noise: str,
                  matrix: Optional[torch.Tensor] = None, measure: Optional[Callable] = None,
                  support: Optional[Sequence[int]] = None, diagonal: bool = False,
-                 hessian: Optional[Callable] = None, fused=None, diagonal_rows: Optional[Callable] = None):
+                 hessian: Optional[Callable] = None, form=None, diagonal_rows: Optional[Callable] = None):
         if noise not in ("scalar", "diagonal", "dense"):
             raise ValueError(f"noise: expected 'scalar', 'diagonal' or 'dense', got {noise!r}")
         self.z, self.linearise, self.scale_tril, self.noise = z, linearise, scale_tril, noise
@@ -81,10 +81,12 @@ class GaussianMeasurement:
         self.support = None if support is None else tuple(support)
         self.diagonal = bool(diagonal) and self.support is None
         self.hessian = hessian
-        self.fused = fused
+        self.form = form
         self.diagonal_rows = diagonal_rows if self.diagonal and noise == "diagonal" else None
-        self._inv_sigma = None  # 1 / sigma of a "scalar" R (declared constant), set by prepare()
-        self._z_scaled = None  # z / sigma (B, m), set by prepare()
+        #: ``1 / sigma`` (0-d) of a declared ``"scalar"`` R, once :meth:`prepare` has run (else ``None``)
+        self.inv_sigma = None
+        #: ``z / sigma`` ``(B, m)``, once :meth:`prepare` has run (else ``None``)
+        self.z_scaled = None
 
     @classmethod
     def from_model(cls, model, z: torch.Tensor) -> "GaussianMeasurement":
@@ -101,7 +103,7 @@ class GaussianMeasurement:
                    support=model.measurement_support,
                    diagonal=getattr(model, "measurement_jacobian_diagonal", False) and not linear,
                    hessian=model.measurement_hessian_blocks if constant_r and not linear else None,
-                   fused=model.fused_measurement() if noise == "scalar" and not linear else None,
+                   form=measurement_form(model) if noise == "scalar" and not linear else None,
                    diagonal_rows=model.linearize_measurement_diagonal)
 
     def _scalar_inv_sigma(self, points):
@@ -112,8 +114,8 @@ class GaussianMeasurement:
         ``"scalar"`` R), for a loop that calls :meth:`at` many times; the numbers are those of
         :meth:`at` alone. Call it outside any ``torch.func`` transform. Returns ``self``."""
         if self.noise == "scalar" and self.matrix is None:
-            self._inv_sigma = self._scalar_inv_sigma(points)
-            self._z_scaled = self.z * self._inv_sigma
+            self.inv_sigma = self._scalar_inv_sigma(points)
+            self.z_scaled = self.z * self.inv_sigma
         return self
 
     def at(self, points: torch.Tensor, support: Optional[torch.Tensor] = None) -> Linearisation:
@@ -124,8 +126,8 @@ class GaussianMeasurement:
         if self.noise == "scalar" and self.matrix is None:
             # R = sigma^2 I: whiten inside the linearisation (scale 1 / sigma), so W = H / sigma
             # and y = (z - h) / sigma + W x_s need no pass over the Jacobian
-            if self._inv_sigma is not None:  # prepared: z / sigma too (the same product, made once)
-                inv_sigma, zs = self._inv_sigma, _bcast_obs(self._z_scaled, points)
+            if self.inv_sigma is not None:  # prepared: z / sigma too (the same product, made once)
+                inv_sigma, zs = self.inv_sigma, _bcast_obs(self.z_scaled, points)
             else:
                 inv_sigma = self._scalar_inv_sigma(points)
                 zs = _bcast_obs(self.z, points) * inv_sigma
@@ -174,7 +176,7 @@ class GaussianMeasurement:
         if self.hessian is None:
             return None
         if self.noise == "scalar":
-            inv_sigma = self._inv_sigma if self._inv_sigma is not None else self._scalar_inv_sigma(points)
+            inv_sigma = self.inv_sigma if self.inv_sigma is not None else self._scalar_inv_sigma(points)
             return self.hessian(points, support is not None, inv_sigma)
         dH = self.hessian(points, support is not None)  # (..., m, n_b, b, b)
         LR = self.scale_tril(points)
@@ -183,10 +185,22 @@ class GaussianMeasurement:
         return linalg.solve_triangular(LR, dH.flatten(-3), upper=False).unflatten(-1, dH.shape[-3:])
 
 
+def measurement_form(model):
+    """``(name, tensors)`` of the measurement form the model's own class declares
+    (:attr:`~torchflow.models.StateSpaceModel.measurement_form`: a name and the names of the model's
+    tensors it reads), or ``None``. Read from the model's class itself, not inherited: a subclass
+    may change the measurement."""
+    declared = vars(type(model)).get("measurement_form")
+    if declared is None:
+        return None
+    name, params = declared
+    return name, tuple(getattr(model, p) for p in params)
+
+
 def whiten(model, points: torch.Tensor, z: torch.Tensor, support=None) -> Tuple[torch.Tensor, torch.Tensor]:
     """``(W, y)`` of the model's measurement at ``points`` (a convenience for tests and users)."""
     lin = GaussianMeasurement.from_model(model, z).at(points, support)
     return lin.W, lin.y
 
 
-__all__ = ["GaussianMeasurement", "Linearisation", "whiten"]
+__all__ = ["GaussianMeasurement", "Linearisation", "measurement_form", "whiten"]

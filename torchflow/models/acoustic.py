@@ -50,7 +50,11 @@ class AcousticTracking(StateSpaceModel):
     has_positions = True
     linear_dynamics = True
     measurement_noise = "scalar"  # R = sigma_w^2 I
-    graph_safe = True  # torchflow.filters.graph_step (declared per class)
+    graph_safe = True  # torchflow.flows.kernels.graph_step (declared per class)
+    #: ``z_i = Psi sum_c 1 / (|p_c - s_i| + d0)`` over the sensors ``s_i`` and the targets' positions
+    #: ``p_c``: a form the flow kernels linearise themselves (declared per class: a subclass that
+    #: changes the measurement does not inherit it)
+    measurement_form = ("inverse_distance_sum", ("sensors", "psi", "d0"))
 
     def __init__(self, *, sigma_w: float = 0.1, psi: float = 10.0, d0: float = 0.1, true_noise_scale: float = 0.05,
                  filter_noise: str = "inflated", area: float = 40.0, sensor_grid: int = 5,
@@ -170,17 +174,6 @@ class AcousticTracking(StateSpaceModel):
         inv = 1 / (r + self.d0)
         psi = self.psi if scale is None else self.psi * scale  # fold the scale into Psi: free
         return psi * inv.sum(-1), self._support_jacobian(dx, dy, r, inv, psi)
-
-    def fused_measurement(self):
-        """``z_i = Psi sum_c 1 / (|p_c - s_i| + d0)``: the fused GPU pseudo-step's kind 1, so
-        PF-PF(LEDH)'s kernel linearises it in registers. ``None`` for a subclass that changes the
-        measurement or its support (the kernel would compute this model's, not the subclass's)."""
-        cls = type(self)
-        if any(getattr(cls, name) is not getattr(AcousticTracking, name)
-               for name in ("measure", "linearize_measurement", "measurement_support", "measurement_scale_tril")):
-            return None
-        from ..flows.fused import FusedMeasurement
-        return FusedMeasurement(1, self.sensors, self.psi, self.d0)
 
     def measurement_hessian_blocks(self, x, support=False, scale=None):
         """Analytic second derivatives as one block per target, ``(..., m, C, b, b)`` (``b = 2``

@@ -66,7 +66,7 @@ class StateSpaceModel(nn.Module):
     #: :meth:`transition_log_prob`, :meth:`measurement_log_prob`) are pure functions of their
     #: tensors that draw only through the passed generator's ``normal``/``uniform``, with no host
     #: read and no Python-side state: a particle filter's whole step may then be replayed from a
-    #: CUDA graph (:mod:`torchflow.filters.graph_step`). Declared by each class itself, not
+    #: CUDA graph (:mod:`torchflow.flows.kernels.graph_step`). Declared by each class itself, not
     #: inherited (a subclass may change those methods); checked on a GPU for the linear-Gaussian
     #: models and acoustic tracking (``tests/test_graph_step.py``).
     graph_safe: bool = False
@@ -80,6 +80,12 @@ class StateSpaceModel(nn.Module):
     measurement_matrix_scale: Optional[float] = None
     #: ``r`` when the (constant) measurement noise is exactly ``r I`` (declared; ``None`` otherwise)
     measurement_noise_scale: Optional[float] = None
+    #: a named form of h that a flow kernel may linearise itself, ``(name, names of the model's
+    #: tensors it reads)``: ``("inverse_distance_sum", ("sensors", "psi", "d0"))`` declares
+    #: ``h_i(x) = psi sum_c 1 / (|p_c - s_i| + d0)`` over 2-D positions ``p_c`` (the support's
+    #: coordinate pairs) and sensors ``s_i`` ``(m, 2)``, with a scalar R. Declared by each class
+    #: itself, not inherited (a subclass may change the measurement); ``None``: no such form.
+    measurement_form: Optional[tuple] = None
 
     # ---- dtype / device --------------------------------------------------------------------
     @property
@@ -236,14 +242,6 @@ class StateSpaceModel(nn.Module):
         Default: the dense Hessian as one block (``n_b = 1``); a model with that structure
         overrides it (GPFIS's step Jacobian then reads ``n_b`` times fewer numbers)."""
         return self.measurement_hessian(x, support, scale).unsqueeze(-3)
-
-    def fused_measurement(self):
-        """The measurement in the terms of the fused GPU pseudo-step of EDH/LEDH
-        (:class:`torchflow.flows.fused.FusedMeasurement`), which then linearises it inside the
-        kernel instead of reading a ``(B, N, m, k)`` Jacobian per pseudo-step; ``None`` (default):
-        the model's :meth:`linearize_measurement`. A model that overrides it must give the same
-        measurement (``tests/flows/test_fused.py`` checks the acoustic model's)."""
-        return None
 
     def measurement_matrix(self) -> torch.Tensor:
         """``(m, d)`` matrix of a linear measurement (only when :attr:`linear_measurement`)."""

@@ -98,7 +98,7 @@ class LinearGaussian(StateSpaceModel):
 
     linear_dynamics = True
     linear_measurement = True
-    graph_safe = True  # torchflow.filters.graph_step (declared per class)
+    graph_safe = True  # torchflow.flows.kernels.graph_step (declared per class)
 
     # analytic, constant matrices
     def transition_matrix(self) -> torch.Tensor:
@@ -206,7 +206,7 @@ class SensorNetwork(LinearGaussian):
         learnable: make F, Q, H, R ``nn.Parameter``s.
     """
 
-    graph_safe = True  # torchflow.filters.graph_step (declared per class)
+    graph_safe = True  # torchflow.flows.kernels.graph_step (declared per class)
 
     def __init__(self, *, d: int = 64, alpha: float = 0.9, alpha0: float = 3.0, alpha1: float = 0.01,
                  beta: float = 20.0, sigma_z: float = 0.5, prior_var: float = 0.0, learnable: bool = False):

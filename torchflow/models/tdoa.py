@@ -21,7 +21,6 @@ from typing import Optional, Sequence
 
 import torch
 
-from ..flows.measurement import GaussianMeasurement
 from .base import StateSpaceModel, Trajectory
 
 
@@ -165,15 +164,6 @@ class TDOA3D(StateSpaceModel):
         """``log N(z; h_s(x), sigma_v^2)`` for ``z`` broadcastable against ``x[..., 0]``."""
         r = (z - self.measure(x, sensor)) / self.sigma_v
         return -0.5 * r * r - torch.log(torch.as_tensor(self.sigma_v * (2 * torch.pi) ** 0.5, dtype=x.dtype))
-
-    def gaussian_measurement(self, z: torch.Tensor, sensor) -> GaussianMeasurement:
-        """The flows' measurement term of scalar TDOAs ``z (R,)`` of sensor s, one per batch row."""
-        def linearise(points, support=False, scale=None):
-            h, H = self.measure(points, sensor).unsqueeze(-1), self.jacobian(points, sensor).unsqueeze(-2)
-            return (h, H) if scale is None else (h * scale, H * scale)
-
-        return GaussianMeasurement(z.reshape(-1, 1), linearise, lambda points: torch.full(
-            (1, 1), self.sigma_v, dtype=points.dtype, device=points.device), "scalar")
 
     def check_measurements(self, z: torch.Tensor, mask: torch.Tensor) -> None:
         """Raise a clear error unless ``z (B, S, M)`` and ``mask`` (bool, same shape) fit this model."""

@@ -59,7 +59,7 @@ class Proposal(nn.Module):
             (:meth:`~torchflow.filters.ParticleFilter.check_model`).
         graph_safe: :meth:`propose` makes the same kernels and the same draws (kinds, shapes) at
             every step of one layout, with no host read, so the filter's whole step may be replayed
-            from a CUDA graph (:mod:`torchflow.filters.graph_step`), when the model declares the
+            from a CUDA graph (:mod:`torchflow.flows.kernels.graph_step`), when the model declares the
             same. Declared by each class itself, not inherited (a subclass may draw otherwise);
             only the bootstrap proposal says so.
     """
