@@ -98,7 +98,7 @@ class Tuning:
             float64: 0.0221 s per time step with 1, 0.0237 with 0 (one run). No effect on the Numba CPU
             kernel (it does select the form Triton's interpreter runs on the CPU, in tests).
         fused_measurement: the fused kernel linearises a model that declares its measurement in
-            the kernel's terms (:meth:`~torchflow.models.StateSpaceModel.fused_measurement`:
+            the kernel's terms (:attr:`~torchflow.models.Structure.measurement_form`:
             acoustic tracking) itself, at the points, instead of torch ops writing a
             ``(B, N, m, k)`` Jacobian each pseudo-step. 0: the model's linearisation.
         structured_update: the EKF update of a nonlinear model that declares a scalar R and a

@@ -50,7 +50,7 @@ CHECK = textwrap.dedent('''
         model, x, z = model.to(device), x.to(device), traj.observations[:, 1].to(device)
         with torch.no_grad():
             meas = I.GaussianMeasurement.from_model(model, z)
-            k = d if model.measurement_support is None else len(model.measurement_support)
+            k = d if model.structure.measurement_support is None else len(model.structure.measurement_support)
             fusable = S.flow_kernel(flow, meas, x, k, per_particle=True, track=False, gaussian_image=False) == "lanes"
             inside = int(sys.argv[2])  # 1: the kernel linearises the model itself (acoustic)
             if inside:
@@ -420,13 +420,13 @@ def test_diagonal_rows_are_the_linearisation_diagonal():
     that are not diagonal give ``None``."""
     from torchflow.flows import GaussianMeasurement
     from torchflow.models import AcousticTracking, SkewedTPoisson
-    from torchflow.models.base import StateSpaceModel
+    from torchflow.models.base import GaussianStateSpaceModel
     model, x, _, z = _diag_case(16, 2, 5, True)
     meas = GaussianMeasurement.from_model(model, z)
     lin = meas.at(x)
     for rows in (meas.at_diagonal(x), GaussianMeasurement(
             z, model.linearize_measurement, model.measurement_scale_tril, "diagonal", diagonal=True,
-            diagonal_rows=lambda p: StateSpaceModel.linearize_measurement_diagonal(model, p)).at_diagonal(x)):
+            diagonal_rows=lambda p: GaussianStateSpaceModel.linearize_measurement_diagonal(model, p)).at_diagonal(x)):
         assert torch.equal(rows[0], lin.diag) and torch.equal(rows[1], lin.y)
     assert isinstance(model, SkewedTPoisson)
     acoustic = AcousticTracking()
@@ -501,7 +501,7 @@ def test_which_measurements_the_kernel_linearises_itself():
 
     z = torch.zeros(2, 25, dtype=torch.float64)
     x = torch.zeros(2, 3, 16, dtype=torch.float64)
-    sup = torch.tensor(AcousticTracking().measurement_support)
+    sup = torch.tensor(AcousticTracking().structure.measurement_support)
     meas = I.GaussianMeasurement.from_model(AcousticTracking(), z)
     assert S.measured_inside(meas, sup, 8) is None  # not prepared: no 1 / sigma yet
     meas.prepare(x)

@@ -58,6 +58,7 @@ from ..flows import FlowPrior, integrate_flow, which_kernel
 from ..flows.points import ParticlePoints, flow_points_per_call
 from ..schedules import LambdaSchedule, resolve_schedule
 from ..proposals import resolve_flow
+from ..models.structure import bytes_per_point
 from .base import ParticleFilter
 
 LINEARIZE_AT = ("auxiliary", "particle")
@@ -197,7 +198,7 @@ class GaussianSumParticleFilter(ParticleFilter):
         per_particle = 8 * d + 3 * m + 8
         if self.flow is not None:  # per-particle LEDH algebra: ~12 d x d and a few m x d matrices
             per_particle += 12 * d * d + 4 * m * d
-        return 8 * G * (n * per_particle + 4 * d * d) + G * n * self.model.bytes_per_point()
+        return 8 * G * (n * per_particle + 4 * d * d) + G * n * bytes_per_point(self.model)
 
     def preferred_chunk_trials(self, n_particles=None):
         if self.flow is None:

@@ -51,7 +51,7 @@ class FlowCoefficients:
         noise_cov_pair: ``(Q1, Q2)`` with ``Q = Q1 Q2^T`` (``(..., d, k)`` each), instead of
             forming Q: lets the integrator fuse the addition into a product.
         support: when the measurement reads only ``k`` of the ``d`` state coordinates
-            (:attr:`~torchflow.models.StateSpaceModel.measurement_support`), A's other columns are
+            (:attr:`~torchflow.models.Structure.measurement_support`), A's other columns are
             zero and ``A`` holds only the ``(..., d, k)`` nonzero ones: ``A x = A x[..., support]``.
             ``None``: ``A`` is the full ``(..., d, d)``.
     """

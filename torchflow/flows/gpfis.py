@@ -14,7 +14,7 @@ and the particle takes its transport step (deterministic, gamma = 0)
 Because the linearisation moves with the particle, the map's Jacobian involves dH/dx (h's second
 derivatives): by default (``jacobian="analytic"``) the step's derivative is written out
 (:func:`_cholesky_step_and_jacobian`): the tangents enter only through ``dG`` and ``dr``, taken from
-the model's :meth:`~torchflow.models.StateSpaceModel.measurement_hessian_blocks` in one product, and
+the model's :meth:`~torchflow.models.GaussianStateSpaceModel.measurement_hessian_blocks` in one product, and
 the rest is ``k x k`` algebra per tangent; ``jacobian="autodiff"`` traces the whole step by forward
 mode (``torch.func.jvp`` batched over the tangent directions with ``torch.func.vmap``). No loop
 over trials or particles either way; ``log|det|`` is accumulated. The

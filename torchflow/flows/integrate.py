@@ -215,7 +215,7 @@ def _integrate_graphed(flow, model, schedule, strategy, particles, z, prior, ind
     """:func:`_integrate` for the model's own measurement, replayed from a CUDA graph captured once
     per flow, model state, schedule, points, shapes and tuning. The prior's factors are reduced to
     the measured coordinates here, outside the graph (they are built from host values)."""
-    prior = prior.reduced(model.measurement_support)
+    prior = prior.reduced(model.structure.measurement_support)
     fields = (prior.mean, prior.scale_tril, prior.support, prior.root, prior.cols, prior.cols_support, prior.cov_cols)
     per_particle = strategy.per_particle
 

@@ -21,6 +21,7 @@ from typing import Callable, Optional, Sequence, Tuple
 import torch
 
 from .. import linalg
+from ..models.structure import kernel_structure
 
 
 @dataclass
@@ -55,18 +56,18 @@ class GaussianMeasurement:
         measure: ``points -> h(points)`` (used with ``matrix``).
         support: the state coordinates h reads (``None``: all).
         diagonal: the Jacobian is diagonal (``m == d``, no support; the model's declared
-            :attr:`~torchflow.models.StateSpaceModel.measurement_jacobian_diagonal`): with a
+            :attr:`~torchflow.models.Structure.measurement_jacobian_diagonal`): with a
             diagonal R, :meth:`at` also returns W's diagonal.
         hessian: ``(points (..., d), support: bool, scale) -> (..., m, n_b, b, b)``, h's second
             derivatives as diagonal blocks
-            (:meth:`~torchflow.models.StateSpaceModel.measurement_hessian_blocks`), for
+            (:meth:`~torchflow.models.GaussianStateSpaceModel.measurement_hessian_blocks`), for
             :meth:`derivative`; only for a constant R (``None``: not available).
         form: the measurement in a named form that a kernel may linearise itself, ``(name,
-            tensors)`` (the model's declared :attr:`~torchflow.models.StateSpaceModel.measurement_form`
+            tensors)`` (the model's declared :attr:`~torchflow.models.Structure.measurement_form`
             with its parameters; :data:`torchflow.flows.kernels.select.FORMS`), or ``None``.
         diagonal_rows: ``points -> (h, dh/dx's diagonal, L_R's diagonal)`` for a ``diagonal``
             measurement with a diagonal R
-            (:meth:`~torchflow.models.StateSpaceModel.linearize_measurement_diagonal`), for
+            (:meth:`~torchflow.models.GaussianStateSpaceModel.linearize_measurement_diagonal`), for
             :meth:`at_diagonal`; ``None``: not available.
     """
 
@@ -91,17 +92,17 @@ class GaussianMeasurement:
     @classmethod
     def from_model(cls, model, z: torch.Tensor) -> "GaussianMeasurement":
         """The model's own measurement term (its declared noise structure and support)."""
-        noise = model.measurement_noise
+        noise = model.structure.measurement_noise
         if noise == "state_dependent_diagonal":  # evaluated per point; whitening is a division
             noise = "diagonal"
         elif noise not in ("scalar", "diagonal", "dense"):  # state-dependent R: general whitening
             noise = "dense"
-        linear = model.linear_measurement
-        constant_r = model.measurement_noise in ("scalar", "diagonal", "dense")
+        linear = model.structure.linear_measurement
+        constant_r = model.structure.measurement_noise in ("scalar", "diagonal", "dense")
         return cls(z, model.linearize_measurement, model.measurement_scale_tril, noise,
                    matrix=model.measurement_matrix() if linear else None, measure=model.measure if linear else None,
-                   support=model.measurement_support,
-                   diagonal=getattr(model, "measurement_jacobian_diagonal", False) and not linear,
+                   support=model.structure.measurement_support,
+                   diagonal=model.structure.measurement_jacobian_diagonal and not linear,
                    hessian=model.measurement_hessian_blocks if constant_r and not linear else None,
                    form=measurement_form(model) if noise == "scalar" and not linear else None,
                    diagonal_rows=model.linearize_measurement_diagonal)
@@ -154,7 +155,7 @@ class GaussianMeasurement:
     def at_diagonal(self, points: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
         """``(W's diagonal (..., m), y (..., m))`` of :meth:`at` for a measurement that is
         :attr:`diagonal` with a diagonal R, from the model's
-        :meth:`~torchflow.models.StateSpaceModel.linearize_measurement_diagonal` (no ``m x m`` matrix
+        :meth:`~torchflow.models.GaussianStateSpaceModel.linearize_measurement_diagonal` (no ``m x m`` matrix
         per point; the same numbers as :meth:`at`); ``None`` for other measurements."""
         if self.diagonal_rows is None:
             return None
@@ -186,11 +187,11 @@ class GaussianMeasurement:
 
 
 def measurement_form(model):
-    """``(name, tensors)`` of the measurement form the model's own class declares
-    (:attr:`~torchflow.models.StateSpaceModel.measurement_form`: a name and the names of the model's
-    tensors it reads), or ``None``. Read from the model's class itself, not inherited: a subclass
-    may change the measurement."""
-    declared = vars(type(model)).get("measurement_form")
+    """``(name, tensors)`` of the measurement form the model declares
+    (:attr:`~torchflow.models.Structure.measurement_form`: a name and the names of the model's
+    tensors it reads), or ``None``. Only where the model's own class declares its structure
+    (:func:`~torchflow.models.structure.kernel_structure`): a subclass may change the measurement."""
+    declared = kernel_structure(model).measurement_form
     if declared is None:
         return None
     name, params = declared

@@ -117,8 +117,8 @@ def per_particle_kernel(flow, model, device) -> Optional[str]:
     nonlinear measurement diagonal by declaration with a diagonal R, too large for the lane tiles:
     no ``d x d`` matrix per particle is built) or ``None``. A filter uses it to choose its blocks
     of particles."""
-    noise_ok = model.measurement_noise in ("diagonal", "state_dependent_diagonal")
-    if not (model.measurement_jacobian_diagonal and noise_ok) or model.linear_measurement:
+    noise_ok = model.structure.measurement_noise in ("diagonal", "state_dependent_diagonal")
+    if not (model.structure.measurement_jacobian_diagonal and noise_ok) or model.structure.linear_measurement:
         return None
     d = model.state_dim
     if (declared(flow, "kernel") == "daum_huang" and not tiles_fit(model.obs_dim, d, d)

@@ -109,7 +109,7 @@ class FusedMeasurement:
     """A measurement the fused kernel linearises itself (``tuning`` ``fused_measurement=1``), so that no ``(B, N, m, k)`` Jacobian is written and read per
     pseudo-step. ``kind`` 1: ``h_i(x) = psi sum_c 1 / (|p_c - s_i| + d0)`` over the 2-D positions
     ``p_c`` (support coordinates ``2c, 2c + 1``) and sensors ``s_i`` (``sensors (m, 2)``), with a
-    scalar R (acoustic tracking: :attr:`~torchflow.models.StateSpaceModel.measurement_form`)."""
+    scalar R (acoustic tracking: :attr:`~torchflow.models.Structure.measurement_form`)."""
 
     kind: int
     sensors: torch.Tensor
