@@ -40,7 +40,7 @@ from torchflow import linalg
 from torchflow.flows import EDHFlow, GromovFlow, OptimalDiffusionFlow, flow_gaussian
 from torchflow.flows.geodesic import C_RULES
 from torchflow.flows.base import FlowPrior
-from torchflow.localisation import birth_mixture
+from torchflow.localisation import birth_mixture, sensor_measurement
 from torchflow.models import TDOA3D
 from torchflow.schedules import GeometricSchedule
 
@@ -107,13 +107,13 @@ def amplification(flow, model, st, schedule, evaluate_at: str) -> torch.Tensor:
     """``max_l |1 - eps_l k_l|`` per row (the flow run alone, for tests; :func:`evaluate` observes
     the same flow it samples from)."""
     on_step, get = amplification_observer()
-    flow_gaussian(flow, model.gaussian_measurement(st["z"], st["sensor"]), FlowPrior(st["mean"], st["L"]),
+    flow_gaussian(flow, sensor_measurement(model, st["z"], st["sensor"]), FlowPrior(st["mean"], st["L"]),
                   schedule, evaluate_at, on_step=on_step)
     return get()
 
 
 def evaluate(model, st, flow, schedule, evaluate_at, n, log_ref, generator) -> dict:
-    meas = model.gaussian_measurement(st["z"], st["sensor"])
+    meas = sensor_measurement(model, st["z"], st["sensor"])
     on_step, get_amp = amplification_observer()
     mu1, P1 = flow_gaussian(flow, meas, FlowPrior(st["mean"], st["L"]), schedule, evaluate_at, on_step=on_step)
     L1 = linalg.safe_cholesky(P1)

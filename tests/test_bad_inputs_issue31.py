@@ -7,6 +7,7 @@ from torchflow.experiment import run_experiment
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter, ParticleFlowFilter, ParticleFlowParticleFilter
 from torchflow.flows import LEDHFlow, integrate_flow
 from torchflow.models import SensorNetwork
+from torchflow.models.contract import check_covariances
 from torchflow.schedules import ExponentialSchedule, LambdaSchedule, UniformSchedule, resolve_schedule
 
 
@@ -171,7 +172,7 @@ def test_learned_asymmetric_covariance_is_refused():
 def test_torchflow_learnable_covariances_stay_valid():
     """SensorNetwork(learnable=True) parametrises Q and R (valid by construction): the check passes."""
     model = SensorNetwork(d=4, learnable=True)
-    model.check_covariances("KalmanFilter")
+    check_covariances(model, "KalmanFilter")
 
 
 def test_negative_regularization_names_what_is_expected():

@@ -12,7 +12,7 @@ import torch
 from conftest import cuda
 from torchflow import cudagraphs, tuning
 from torchflow.filters import ClusteredParticleFlowParticleFilter, ParticleFlowParticleFilter
-from torchflow.flows import integrate as integrate_mod
+from torchflow.flows.kernels import select
 from torchflow.models import AcousticTracking
 from torchflow.schedules import ExponentialSchedule
 
@@ -43,7 +43,7 @@ class _Emulated:
 def emulated(monkeypatch):
     backend = _Emulated()
     monkeypatch.setattr(cudagraphs, "_backend", backend)
-    monkeypatch.setattr(integrate_mod, "_graph_eligible", lambda flow, particles: not flow.stochastic
+    monkeypatch.setattr(select, "flow_graph", lambda flow, particles: not flow.stochastic
                         and not torch.is_grad_enabled() and bool(tuning.get().cuda_graphs))
     cudagraphs.clear()
     yield backend

@@ -1,4 +1,4 @@
-"""A particle filter's whole step replayed from a CUDA graph (torchflow.filters.graph_step).
+"""A particle filter's whole step replayed from a CUDA graph (torchflow.flows.kernels.graph_step).
 
 On the CPU the capture is emulated as in test_cudagraphs (the "graph" re-runs the function on its
 static buffers), with the Philox back end the GPU uses: that checks the plumbing (the draws split
@@ -13,7 +13,8 @@ from conftest import cuda, random_lg
 from test_cudagraphs import _Emulated
 from torchflow import cudagraphs, tuning
 from torchflow.filters import BootstrapParticleFilter, ParticleFilter
-from torchflow.filters import graph_step
+from torchflow.flows.kernels import graph_step
+from torchflow.flows.kernels import select
 from torchflow.models import AcousticTracking, SensorNetwork
 from torchflow.proposals import BootstrapProposal
 from torchflow.random import TrialStreams
@@ -23,7 +24,7 @@ from torchflow.random import TrialStreams
 def emulated(monkeypatch):
     backend = _Emulated()
     monkeypatch.setattr(cudagraphs, "_backend", backend)
-    monkeypatch.setattr(graph_step, "eligible", lambda filt, state, gen: graph_step._conditions(filt, state.particles, gen))
+    monkeypatch.setattr(graph_step, "eligible", lambda filt, state, gen: select.graph_step(filt, state.particles, gen, emulated=True))
     cudagraphs.clear()
     yield backend
     cudagraphs.clear()
@@ -187,8 +188,8 @@ def test_subclasses_must_declare_themselves(emulated):
     f = BootstrapParticleFilter(model, n_particles=8)
     x = torch.zeros(2, 8, 3, dtype=torch.float64)
     with torch.no_grad():
-        assert graph_step._conditions(f, x, TrialStreams(0, 2, backend="philox"))
-        assert not graph_step._conditions(f, x, MyStreams(0, 2, backend="philox"))
+        assert select.graph_step(f, x, TrialStreams(0, 2, backend="philox"), emulated=True)
+        assert not select.graph_step(f, x, MyStreams(0, 2, backend="philox"), emulated=True)
 
 
 def test_philox_split_gives_the_same_draws():

@@ -1,4 +1,4 @@
-"""Whether Triton's kernels can run here: shared by the fused flow step (:mod:`torchflow.flows.fused`)
+"""Whether Triton's kernels can run here: shared by the fused flow step (:mod:`torchflow.flows.kernels.steps`)
 and the fused Philox draws (:mod:`torchflow.random`). Triton is an optional dependency (CUDA builds
 of PyTorch bring it)."""
 from __future__ import annotations

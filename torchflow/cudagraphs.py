@@ -21,7 +21,7 @@ replays it afterwards:
   the call returns the eager result and a one-time warning names the error.
 
 Used by :func:`torchflow.flows.integrate_flow` for deterministic flows on CUDA without a gradient,
-and by :mod:`torchflow.filters.graph_step` for a graph-safe particle filter's whole time step
+and by :mod:`torchflow.flows.kernels.graph_step` for a graph-safe particle filter's whole time step
 (``torchflow.tuning`` ``cuda_graphs``; 0 turns both off). Keys also hold the process-wide switches
 that choose kernels (TF32, float32 matmul precision, deterministic algorithms, autocast), and a
 capture and its replays run on the inputs' GPU. Each cached graph keeps its memory pool:

@@ -31,7 +31,7 @@ from torch import nn
 from . import linalg
 from ._checks import check_count as _count
 from .association import loopy_association
-from .flows import EDHFlow, GromovFlow, OptimalDiffusionFlow
+from .flows import EDHFlow, GaussianMeasurement, GromovFlow, OptimalDiffusionFlow
 from .proposals import FlowedMixtureProposal
 from .models.tdoa import TDOA3D, check_number
 from .random import check_generator, uniform
@@ -176,6 +176,17 @@ class _Localiser(nn.Module):
         return assoc, log_nu, log_cf, underflow
 
 
+def sensor_measurement(model: TDOA3D, z: torch.Tensor, sensor) -> GaussianMeasurement:
+    """The flows' measurement term of sensor ``sensor``'s scalar TDOAs ``z (R,)``, one per batch
+    row: ``h`` the model's TDOA of that sensor pair, its gradient, and ``R = sigma_v^2``."""
+    def linearise(points, support=False, scale=None):
+        h, H = model.measure(points, sensor).unsqueeze(-1), model.jacobian(points, sensor).unsqueeze(-2)
+        return (h, H) if scale is None else (h * scale, H * scale)
+
+    return GaussianMeasurement(z.reshape(-1, 1), linearise, lambda points: torch.full(
+        (1, 1), model.sigma_v, dtype=points.dtype, device=points.device), "scalar")
+
+
 def birth_mixture(region: float, per_axis: int, sd_factor: float = 0.5, dtype=torch.float64, device=None):
     """A grid of ``per_axis^3`` equal-weight Gaussians covering ``[-region, region]^3``: cell centres,
     isotropic standard deviation ``sd_factor`` times the cell width. Returns ``(means (Nb, 3),
@@ -247,7 +258,7 @@ class FlowMixtureLocaliser(_Localiser):
         zr = z.reshape(B, 1, 1, M).expand(B, K, G, M).reshape(B, R)
         # every (component, measurement) row is one Gaussian of the flowed-mixture proposal, with the
         # per-component ratio (its own weight 1): omega = N(x; mu_n, P_n) l_m(x) / N(x; mu'_n, P'_n)
-        mu1, P1 = self.proposal.flowed(m0, L0, model.gaussian_measurement(zr.reshape(-1), s))
+        mu1, P1 = self.proposal.flowed(m0, L0, sensor_measurement(model, zr.reshape(-1), s))
         L1 = linalg.safe_cholesky(P1)
         n = self.n_samples
         per = max(1, self.sample_chunk // max(1, B * n * d))

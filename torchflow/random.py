@@ -201,7 +201,7 @@ class TrialStreams:
     def _philox_bits(self, kind, n, dtype, device) -> torch.Tensor:
         """The raw 32-bit words (int64 ``(B, words)``) of a draw of ``n`` numbers per trial; advances
         the counter. :meth:`_philox_numbers` turns them into the draw (split so that a CUDA graph can
-        replay the second half: :mod:`torchflow.filters.graph_step`)."""
+        replay the second half: :mod:`torchflow.flows.kernels.graph_step`)."""
         B = len(self.trials)
         # words per number: float64 uniforms use two 32-bit words (53 bits), float32 one (24 bits);
         # Box-Muller turns two uniforms into two normals

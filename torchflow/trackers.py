@@ -63,7 +63,7 @@ def kalman_update(
 
 def ekf_predict(model, mean: torch.Tensor, cov: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
     """EKF prediction ``(g(m), G P G^T + Q)`` for ``mean (..., d)``, ``cov (..., d, d)``."""
-    G = model.transition_matrix() if model.linear_dynamics else model.transition_jacobian(mean)
+    G = model.transition_matrix() if model.structure.linear_dynamics else model.transition_jacobian(mean)
     return model.transition_mean(mean), linalg.symmetrize(G @ cov @ G.transpose(-1, -2) + model.transition_cov(mean))
 
 
@@ -75,13 +75,13 @@ def ekf_update(model, mean_pred: torch.Tensor, cov_pred: torch.Tensor, z: torch.
     support of ``k <= m`` coordinates is updated in ``k x k`` algebra
     (:func:`kalman_update_scalar_support`; ``torchflow.tuning`` ``structured_update``, default 1);
     otherwise :func:`kalman_update`."""
-    support = model.measurement_support
-    if (tuning.get().structured_update and not model.linear_measurement and model.measurement_noise == "scalar"
+    support = model.structure.measurement_support
+    if (tuning.get().structured_update and not model.structure.linear_measurement and model.structure.measurement_noise == "scalar"
             and support is not None and len(support) <= model.obs_dim):
         h, Hs = model.linearize_measurement(mean_pred, support=True)
         sigma2 = model.measurement_cov(mean_pred)[..., 0, 0]
         return kalman_update_scalar_support(mean_pred, cov_pred, z, h, Hs, sigma2, support)
-    H = model.measurement_matrix() if model.linear_measurement else model.measurement_jacobian(mean_pred)
+    H = model.measurement_matrix() if model.structure.linear_measurement else model.measurement_jacobian(mean_pred)
     return kalman_update(mean_pred, cov_pred, z, model.measure(mean_pred), H, model.measurement_cov(mean_pred))
 
 

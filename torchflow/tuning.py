@@ -80,7 +80,7 @@ class Tuning:
             The same kernels, so the same numbers. Also a graph-safe particle filter's whole step
             (the bootstrap PF's; ``graph_step_max_elems``). 0 runs both eagerly. No effect on the CPU.
         fused_flows: EDH/LEDH at per-particle points take each pseudo-step as one fused kernel
-            (:mod:`torchflow.flows.fused`) instead of ~85 batched small-matrix ops: on CUDA with
+            (:mod:`torchflow.flows.kernels.steps`) instead of ~85 batched small-matrix ops: on CUDA with
             Triton installed a particle per GPU thread, on the CPU with Numba installed 64
             particles side by side in SIMD lanes. The numbers agree with the torch path to
             round-off (1e-12 relative per flow in float64), not bit for bit. 0: the torch path.
@@ -91,14 +91,14 @@ class Tuning:
             0, 0.053 with 1 (0.031 with ``fused_measurement``); 20 trials, this 2-core CPU: 1.47
             s with 0, 0.59 s with 1.
         fused_info: the GPU kernel of ``fused_flows`` in information form (1,
-            :func:`~torchflow.flows._fused_kernel.kernel_info`: ``G = W^T W`` and the prior precision,
+            :func:`~torchflow.flows.kernels.gpu.kernel_info`: ``G = W^T W`` and the prior precision,
             one pass over W's rows, no ``L_s`` read per row) or the row form (0,
-            :func:`~torchflow.flows._fused_kernel.kernel_rows`: ``S = (W L_s)^T (W L_s)``, two
+            :func:`~torchflow.flows.kernels.gpu.kernel_rows`: ``S = (W L_s)^T (W L_s)``, two
             passes). The same formulas rearranged (round-off). H200, PF-PF(LEDH) 100 x 500,
             float64: 0.0221 s per time step with 1, 0.0237 with 0 (one run). No effect on the Numba CPU
             kernel (it does select the form Triton's interpreter runs on the CPU, in tests).
         fused_measurement: the fused kernel linearises a model that declares its measurement in
-            the kernel's terms (:meth:`~torchflow.models.StateSpaceModel.fused_measurement`:
+            the kernel's terms (:attr:`~torchflow.models.Structure.measurement_form`:
             acoustic tracking) itself, at the points, instead of torch ops writing a
             ``(B, N, m, k)`` Jacobian each pseudo-step. 0: the model's linearisation.
         structured_update: the EKF update of a nonlinear model that declares a scalar R and a
@@ -109,7 +109,7 @@ class Tuning:
             acoustic, 20 trials x 500 particles, this 2-core CPU: 0.24 -> 0.04 s per time step
             for that update. 0: the Joseph form.
         graph_step_max_elems: on CUDA, a particle filter step declared graph-safe (the bootstrap
-            PF's; :mod:`torchflow.filters.graph_step`) with at most this many state elements
+            PF's; :mod:`torchflow.flows.kernels.graph_step`) with at most this many state elements
             ``B x N x d`` is replayed from a CUDA graph (under ``cuda_graphs``): one launch instead
             of ~130, with its random words drawn outside the graph; the same numbers. Larger steps
             are bound by the GPU's arithmetic (a graph saves nothing there and keeps a memory pool

@@ -34,7 +34,7 @@ def ledh_flops_per_trial_step(N: int, d: int, k: int, m: int, C: int, n_lambda: 
 
 def fused_ledh_flops_per_trial_step(N: int, d: int, k: int, m: int, C: int, n_lambda: int) -> float:
     """The same count for the path taken by default since the fused kernels (the fused pseudo-step,
-    :mod:`torchflow.flows.fused`, with the acoustic measurement inside, and the ``k x k`` EKF update,
+    :mod:`torchflow.flows.kernels.steps`, with the acoustic measurement inside, and the ``k x k`` EKF update,
     ``tuning.structured_update``). Per particle and pseudo-time step: the rows of W and y 20 m C;
     ``W^T y`` 2 m k; ``V_i = L_s^T W_i``, ``S += V_i V_i^T`` (lower triangles) 2 m k (k + 1);
     ``M += V_i W_i^T`` 2 m k^2; ``Pg_s``, ``t(u) = M u`` for 4 vectors, ``S q1`` 12 k^2; two
@@ -61,7 +61,7 @@ def throughputs() -> dict:
 def fused_path(model, n_particles: int) -> bool:
     """PF-PF(LEDH) takes the fused pseudo-step here (Numba on the CPU, ``tuning.fused_flows``)."""
     from torchflow import tuning
-    from torchflow.flows import fused
+    from torchflow.flows.kernels import steps as fused
     return bool(tuning.get().fused_flows) and fused.runs_on("cpu")
 
 
@@ -97,7 +97,7 @@ def run(argv=None) -> dict:
                   [[k, f"{v:.2f}", f"{v / tp['gemm_2048']:.1%}"] for k, v in kernels]
                   + [["one 2048^3 GEMM (practical peak)", f"{tp['gemm_2048']:.2f}", "100%"]],
                   ("- The fused path: each pseudo-step of the flow is one Numba kernel with 64 particles in SIMD "
-                   "lanes (torchflow.flows._fused_cpu), and the per-particle EKF update is k x k algebra; the rest of "
+                   "lanes (torchflow.flows.kernels.cpu), and the per-particle EKF update is k x k algebra; the rest of "
                    "the step is batched torch ops. The batched-product rates below are the torch path's building "
                    "blocks (tuning.fused_flows=0)." if fused else
                    "- The flow runs at the speed of batched small products, far below the large-GEMM peak: on CPU "

@@ -23,7 +23,7 @@ from torchflow.filters import (GPFIS, BootstrapParticleFilter, ClusteredParticle
                                ExtendedKalmanFilter, GaussianParticleFilter, GaussianSumParticleFilter,
                                ParticleFilter, ParticleFlowFilter, ParticleFlowGaussianSumParticleFilter,
                                ParticleFlowParticleFilter, UnscentedKalmanFilter)
-from torchflow.flows import fused
+from torchflow.flows.kernels import steps as fused
 from torchflow.models import AcousticTracking
 from torchflow.profiling import OpCounter
 from torchflow.proposals import UnscentedProposal

@@ -1,4 +1,4 @@
-"""Registers, spills and warp shuffles of the fused pseudo-step kernel (``torchflow.flows._fused_kernel``)
+"""Registers, spills and warp shuffles of the fused pseudo-step kernel (``torchflow.flows.kernels.gpu``)
 compiled for an NVIDIA GPU, without one: Triton compiles for ``GPUTarget("cuda", arch, 32)`` on any
 machine and its bundled ``ptxas -v`` reports what the kernel would use.
 
@@ -35,7 +35,7 @@ def measure(lin: int = 0, warps: int = 1, arch: int = 90, dtype: str = "float64"
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
 
-    from torchflow.flows import _fused_kernel
+    from torchflow.flows.kernels import gpu as _fused_kernel
     kernel_rows = getattr(_fused_kernel, "kernel_" + layout)
     names = list(inspect.signature(kernel_rows.fn).parameters)
     const = {"BK": bk, "BD": bd, "BP": 32 * warps, "LIN": lin}

@@ -16,7 +16,7 @@ import os; os.environ["TRITON_INTERPRET"]="1"
 import sys
 import torch
 from torch.utils._python_dispatch import _disable_current_modes
-from torchflow.flows import fused
+from torchflow.flows.kernels import steps as fused
 from experiments.benchmarks.bench_ops import filters, count, VIEW_OPS
 from torchflow.models import AcousticTracking
 def counted(real, calls):

@@ -14,7 +14,7 @@ around each):
 * ``torchflow``: ``BootstrapParticleFilter`` with its defaults (systematic resampling when ESS < N/2),
   drawing from per-trial streams (``TrialStreams``, as the experiment runner does; on CUDA its step is
   then replayed from a CUDA graph up to ``tuning.graph_step_max_elems`` state elements:
-  :mod:`torchflow.filters.graph_step`);
+  :mod:`torchflow.flows.kernels.graph_step`);
 * ``torchflow, torch.Generator``: the same filter drawing from one ``torch.Generator`` for the batch
   (as PyDPF does): every step launched op by op;
 * ``torchflow, resample always``: multinomial resampling at every step (``ess_threshold=1.0``), as

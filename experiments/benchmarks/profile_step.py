@@ -54,7 +54,7 @@ def run(argv=None) -> dict:
     if a.fused_info >= 0:
         knobs["fused_info"] = int(a.fused_info)
     if a.rows_warps:
-        from torchflow.flows import fused
+        from torchflow.flows.kernels import steps as fused
         fused.ROWS_WARPS = int(a.rows_warps)
     with tuning.tuned(**knobs):
         call(2)

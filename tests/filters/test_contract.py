@@ -197,10 +197,13 @@ class _NaNLikelihood(SensorNetwork):
 
 def nan_likelihood_run():
     """``(model, traj, mean, cov)``: 3 trials x 5 steps of :class:`_NaNLikelihood` (its NaN counter reset)."""
+    from torchflow.models.contract import check_shapes
+
     model = _NaNLikelihood(d=4)
-    _NaNLikelihood.calls = 0
     traj = model.simulate(3, 5, torch.Generator().manual_seed(0))
     mean, cov = model.initial_belief(traj.states[:, 0])
+    check_shapes(model, mean, "test")  # the filters' first-call check, done here: it calls the counted density
+    _NaNLikelihood.calls = 0
     return model, traj, mean, cov
 
 

@@ -106,7 +106,7 @@ def test_analytic_jacobian_matches_autodiff_for_every_constant_noise(noise):
           "diagonal": torch.diag(0.05 + 0.1 * torch.rand(m, generator=g, dtype=torch.float64)),
           "dense": torch.linalg.cholesky(0.01 * torch.eye(m, dtype=torch.float64)
                                          + 0.002 * (lambda a: a @ a.T)(torch.randn(m, m, generator=g, dtype=torch.float64)))}[noise]
-    meas = GaussianMeasurement(z, model.linearize_measurement, lambda x: LR, noise, support=model.measurement_support,
+    meas = GaussianMeasurement(z, model.linearize_measurement, lambda x: LR, noise, support=model.structure.measurement_support,
                                hessian=model.measurement_hessian_blocks)
     _same_flow(meas, x0, prior, ExponentialSchedule(8, 1.4))
 
@@ -130,11 +130,11 @@ def test_analytic_jacobian_without_a_hessian_and_with_a_state_dependent_noise():
 def test_acoustic_hessian_matches_autodiff():
     """The acoustic model's analytic second derivatives (one 2 x 2 block per sensor and target)
     equal forward-mode autodiff of its Jacobian (the base class's default)."""
-    from torchflow.models.base import StateSpaceModel
+    from torchflow.models.base import GaussianStateSpaceModel
 
     model, _, _, x = _acoustic_flow_setting(B=3, N=4)
     for support in (True, False):
-        exact = StateSpaceModel.measurement_hessian(model, x, support, scale=0.5)
+        exact = GaussianStateSpaceModel.measurement_hessian(model, x, support, scale=0.5)
         torch.testing.assert_close(model.measurement_hessian(x, support, scale=0.5), exact, rtol=1e-12, atol=1e-12)
         blocks = model.measurement_hessian_blocks(x, support)
         assert blocks.shape == (3, 4, 25, 4, 2 if support else 4, 2 if support else 4)

@@ -133,7 +133,7 @@ def test_scalar_support_update_equals_the_joseph_form():
     z = traj.observations[:, 1].unsqueeze(1)
     ref = kalman_update(mean, P, z, m.measure(mean), m.measurement_jacobian(mean), m.measurement_cov())
     h, Hs = m.linearize_measurement(mean, support=True)
-    got = kalman_update_scalar_support(mean, P, z, h, Hs, m.measurement_cov()[0, 0], m.measurement_support)
+    got = kalman_update_scalar_support(mean, P, z, h, Hs, m.measurement_cov()[0, 0], m.structure.measurement_support)
     for a, b in zip(got, ref):
         assert a.shape == b.shape
         assert ((a - b).abs().max() / b.abs().max()).item() < 1e-12

@@ -14,7 +14,7 @@ Two kinds of test:
   either remove them or raise the budget with a reason.
 * the issue's targets (PF-PF(LEDH) <= 1,000, PF-PF(Gromov) <= 1,500, GPFIS <= 3,000): all three
   meet theirs on the CPU's default path where Numba is installed (the fused pseudo-steps,
-  :mod:`torchflow.flows.fused`: 506, 717 and 229 ops; GPFIS's whole flow is one kernel call); the
+  :mod:`torchflow.flows.kernels.steps`: 506, 717 and 229 ops; GPFIS's whole flow is one kernel call); the
   eager path's do not: strict ``xfail``, so meeting one fails the test until it is made a plain
   assertion.
 

@@ -1,4 +1,4 @@
-"""The fused pseudo-step of EDH/LEDH at per-particle points (torchflow.flows.fused) against the torch
+"""The fused pseudo-step of EDH/LEDH at per-particle points (torchflow.flows.kernels.steps) against the torch
 path: Triton's kernel on the CPU through its interpreter (a subprocess with TRITON_INTERPRET=1;
 skipped where Triton is not installed) and on CUDA compiled; Numba's CPU kernel (skipped where
 Numba is not installed)."""
@@ -13,6 +13,14 @@ import torch
 
 from conftest import ROOT, cuda
 
+from torchflow.flows.kernels import select as S
+from torchflow.flows.measurement import measurement_form
+
+
+def _kernel(flow, meas, x, k):
+    """The flow kernel the selection picks at per-particle points (no tracked law, no image)."""
+    return S.flow_kernel(flow, meas, x, k, per_particle=True, track=False, gaussian_image=False)
+
 CHECK = textwrap.dedent('''
     import json, sys
     import torch
@@ -21,7 +29,8 @@ CHECK = textwrap.dedent('''
     from torchflow.models import AcousticTracking, LinearGaussian
     from torchflow.schedules import ExponentialSchedule
     from torchflow.flows import integrate as I
-    from torchflow.flows import fused
+    from torchflow.flows.kernels import steps as fused
+    from torchflow.flows.kernels import select as S
 
     device = sys.argv[1]
     fused.ROWS_WARPS = 1  # 32 particles per program
@@ -41,12 +50,12 @@ CHECK = textwrap.dedent('''
         model, x, z = model.to(device), x.to(device), traj.observations[:, 1].to(device)
         with torch.no_grad():
             meas = I.GaussianMeasurement.from_model(model, z)
-            k = d if model.measurement_support is None else len(model.measurement_support)
-            fusable = I._fusable(flow, meas, x, k)
+            k = d if model.structure.measurement_support is None else len(model.structure.measurement_support)
+            fusable = S.flow_kernel(flow, meas, x, k, per_particle=True, track=False, gaussian_image=False) == "lanes"
             inside = int(sys.argv[2])  # 1: the kernel linearises the model itself (acoustic)
             if inside:
                 meas.prepare(x)
-                fusable = fusable and I._measured_inside(meas, torch.arange(k), k) is not None
+                fusable = fusable and S.measured_inside(meas, torch.arange(k), k) is not None
             with tuning.tuned(fused_flows=0):
                 ref = integrate_flow(flow, model, x, z, prior, ExponentialSchedule(3, 1.2), points="particle")
             with tuning.tuned(fused_measurement=inside):
@@ -105,7 +114,7 @@ def test_fused_step_matches_torch_in_triton_interpreter(inside, layout):
 
 @KERNELS
 def test_fused_step_matches_torch_with_numba_on_cpu(inside):
-    """The CPU kernel (torchflow.flows._fused_cpu, Numba): blocks of 64 particle lanes, here 6 and
+    """The CPU kernel (torchflow.flows.kernels.cpu, Numba): blocks of 64 particle lanes, here 6 and
     40 particles (one partly filled group of lanes)."""
     pytest.importorskip("numba")
     env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
@@ -150,7 +159,7 @@ def test_cpu_kernel_gives_the_same_bits_on_any_thread_count_and_split():
 @pytest.mark.parametrize("inside", [0, 1], ids=["measurement in torch", "measurement inside"])
 @pytest.mark.parametrize("tracked", [True, False], ids=["tracked law", "no law"])
 def test_fused_gromov_step_matches_torch_on_cpu(inside, tracked):
-    """The Gromov flow's CPU kernel (torchflow.flows._fused_cpu.gromov_step): the same draws, the
+    """The Gromov flow's CPU kernel (torchflow.flows.kernels.cpu.gromov_step): the same draws, the
     particles, points and tracked Gaussian law (mean, covariance, log-density) of the torch path to
     round-off, for 2 x 70 particles (a partly filled group of 64 lanes) with per-particle priors."""
     pytest.importorskip("numba")
@@ -170,7 +179,7 @@ def test_fused_gromov_step_matches_torch_on_cpu(inside, tracked):
     for fz in (0, 1):
         with tuning.tuned(fused_flows=fz, fused_measurement=inside), torch.no_grad():
             meas = I.GaussianMeasurement.from_model(m, traj.observations[:, 1])
-            assert I._gromov_fusable(GromovFlow(), meas, x, 8) == bool(fz)
+            assert (_kernel(GromovFlow(), meas, x, 8) == "gromov") == bool(fz)
             outs.append(integrate_flow(GromovFlow(), m, x, traj.observations[:, 1], FlowPrior(x + 0.1, L), None,
                                        points="particle", proposal=law, generator=torch.Generator().manual_seed(4)))
     keys = ("particles", "aux") + (("log_proposal", "proposal_mean", "proposal_cov") if tracked else ())
@@ -209,7 +218,7 @@ def _gpfis(model, x0, prior, z, steps=5, **tuned):
 @pytest.mark.parametrize("inside", [0, 1], ids=["measurement in torch", "measurement inside"])
 @pytest.mark.parametrize("case", ["shared factor", "per-particle factors", "float32", "linear"])
 def test_fused_gpfis_matches_torch_on_cpu(inside, case):
-    """GPFIS's CPU kernel (torchflow.flows._fused_cpu.gpfis_step): the moved particles and the
+    """GPFIS's CPU kernel (torchflow.flows.kernels.cpu.gpfis_step): the moved particles and the
     accumulated log|det| of the torch path's analytic Jacobian to round-off, for 2 x 70 particles
     (a partly filled group of 64 lanes): acoustic with the model's shared transition factor or
     per-particle factors, in float32, and a linear-Gaussian model (second derivatives zero)."""
@@ -229,7 +238,7 @@ def test_fused_gpfis_matches_torch_on_cpu(inside, case):
     model, x0, prior, z = _gpfis_case(model, 2, 70, case == "per-particle factors", dtype)
     with torch.no_grad():
         k = 8 if case != "linear" else 3
-        assert GP._fusable(GaussianMeasurement.from_model(model, z), x0, k)
+        assert S.gpfis_kernel(GaussianMeasurement.from_model(model, z), x0, k)
     out = _gpfis(model, x0, prior, z, fused_flows=1, fused_measurement=inside)
     if dtype == torch.float32:  # the kernel computes in float64: against the torch path in float64
         # (the torch path in float32 is 3e-3 off in the particles and 7e-2 in log|det| here; the
@@ -274,22 +283,23 @@ def test_fused_gpfis_only_where_it_applies(monkeypatch):
     declared second derivatives (a state-dependent R); the autodiff Jacobian and the symmetric root
     never reach the kernel."""
     from torchflow import tuning
-    from torchflow.flows import GaussianMeasurement, fused
+    from torchflow.flows import GaussianMeasurement
+    from torchflow.flows.kernels import steps as fused
     from torchflow.flows import gpfis as GP
     from torchflow.models import AcousticTracking
     model, x0, prior, z = _gpfis_case(AcousticTracking(), 1, 4, False)
     meas = GaussianMeasurement.from_model(model, z)
     monkeypatch.setattr(fused, "_numba", True)
-    assert not GP._fusable(meas, x0, 8)  # a gradient is recorded
+    assert not S.gpfis_kernel(meas, x0, 8)  # a gradient is recorded
     with torch.no_grad():
-        assert GP._fusable(meas, x0, 8)
+        assert S.gpfis_kernel(meas, x0, 8)
         with tuning.tuned(fused_flows=0):
-            assert not GP._fusable(meas, x0, 8)
-        assert not GP._fusable(meas, x0, 17)  # k > 16: the kernel's per-lane second derivatives grow as k^3
+            assert not S.gpfis_kernel(meas, x0, 8)
+        assert not S.gpfis_kernel(meas, x0, 17)  # k > 16: the kernel's per-lane second derivatives grow as k^3
         meas.hessian = None
-        assert not GP._fusable(meas, x0, 8)
+        assert not S.gpfis_kernel(meas, x0, 8)
         monkeypatch.setattr(fused, "_numba", False)
-        assert not GP._fusable(GaussianMeasurement.from_model(model, z), x0, 8)
+        assert not S.gpfis_kernel(GaussianMeasurement.from_model(model, z), x0, 8)
     monkeypatch.setattr(GP, "_fused_flow", lambda *a: (_ for _ in ()).throw(AssertionError("fused")))
     monkeypatch.setattr(fused, "_numba", True)
     for root, jac in (("symmetric", "analytic"), ("cholesky", "autodiff")):
@@ -322,7 +332,7 @@ def _flow(model, x, prior, z, flow=None, **tuned):
 
 @pytest.mark.parametrize("case", ["shared prior", "per-particle priors", "float32", "EDH at the particles"])
 def test_fused_diagonal_step_matches_torch_on_cpu(case):
-    """The information-form CPU kernel for a diagonal W (torchflow.flows._fused_cpu.dh_diag_step):
+    """The information-form CPU kernel for a diagonal W (torchflow.flows.kernels.cpu.dh_diag_step):
     the particles, points and log|det| of the torch path (covariance form) to round-off, for 2 x 30
     particles of the skewed-t / Poisson model at d = 64."""
     pytest.importorskip("numba")
@@ -333,7 +343,7 @@ def test_fused_diagonal_step_matches_torch_on_cpu(case):
     flow = EDHFlow() if case.startswith("EDH") else LEDHFlow()
     with torch.no_grad():
         meas = GaussianMeasurement.from_model(model, z)
-        assert I._diag_fusable(flow, meas, x) and not I._fusable(flow, meas, x, 64)
+        assert _kernel(flow, meas, x, 64) == "diagonal"
     ref = _flow(model, x, prior, z, flow, fused_flows=0)
     out = _flow(model, x, prior, z, flow, fused_flows=1)
     tol = 1e-5 if dtype == torch.float32 else 1e-12
@@ -371,16 +381,16 @@ def test_gaussian_sum_flows_all_particles_at_once_with_the_diagonal_kernel():
     from torchflow import tuning
     from torchflow.filters import ParticleFlowGaussianSumParticleFilter
     from torchflow.flows import LEDHFlow
-    from torchflow.flows.integrate import diagonal_kernel_applies
+    from torchflow.flows import which_kernel
     from torchflow.models import AcousticTracking, SkewedTPoisson
     model = SkewedTPoisson(d=144)
     f = ParticleFlowGaussianSumParticleFilter(model, n_components=5, particles_per_component=200)
-    assert diagonal_kernel_applies(f.flow, model, "cpu") and f.flow_chunk("cpu") is None
-    assert not diagonal_kernel_applies(f.flow, model, "meta")
-    assert not diagonal_kernel_applies(LEDHFlow(), AcousticTracking(), "cpu")  # W not diagonal
-    assert not diagonal_kernel_applies(LEDHFlow(), SkewedTPoisson(d=16), "cpu")  # the lane kernel's size
+    assert (which_kernel(f.flow, model, "cpu") == "diagonal") and f.flow_chunk("cpu") is None
+    assert not (which_kernel(f.flow, model, "meta") == "diagonal")
+    assert not (which_kernel(LEDHFlow(), AcousticTracking(), "cpu") == "diagonal")  # W not diagonal
+    assert not (which_kernel(LEDHFlow(), SkewedTPoisson(d=16), "cpu") == "diagonal")  # the lane kernel's size
     with tuning.tuned(fused_flows=0):
-        assert not diagonal_kernel_applies(f.flow, model, "cpu") and f.flow_chunk("cpu") == 50
+        assert not (which_kernel(f.flow, model, "cpu") == "diagonal") and f.flow_chunk("cpu") == 50
 
 
 def test_cpu_precision_from_factor():
@@ -389,7 +399,7 @@ def test_cpu_precision_from_factor():
     pytest.importorskip("numba")
     import numba
     import numpy as np
-    from torchflow.flows._fused_cpu import precision_from_factor
+    from torchflow.flows.kernels.cpu import precision_from_factor
     g = torch.Generator().manual_seed(0)
     A = torch.randn(2, 5, 33, 33, dtype=torch.float64, generator=g)
     L = torch.linalg.cholesky(A @ A.transpose(-1, -2) / 33 + torch.eye(33, dtype=torch.float64))
@@ -410,13 +420,13 @@ def test_diagonal_rows_are_the_linearisation_diagonal():
     that are not diagonal give ``None``."""
     from torchflow.flows import GaussianMeasurement
     from torchflow.models import AcousticTracking, SkewedTPoisson
-    from torchflow.models.base import StateSpaceModel
+    from torchflow.models.base import GaussianStateSpaceModel
     model, x, _, z = _diag_case(16, 2, 5, True)
     meas = GaussianMeasurement.from_model(model, z)
     lin = meas.at(x)
     for rows in (meas.at_diagonal(x), GaussianMeasurement(
             z, model.linearize_measurement, model.measurement_scale_tril, "diagonal", diagonal=True,
-            diagonal_rows=lambda p: StateSpaceModel.linearize_measurement_diagonal(model, p)).at_diagonal(x)):
+            diagonal_rows=lambda p: GaussianStateSpaceModel.linearize_measurement_diagonal(model, p)).at_diagonal(x)):
         assert torch.equal(rows[0], lin.diag) and torch.equal(rows[1], lin.y)
     assert isinstance(model, SkewedTPoisson)
     acoustic = AcousticTracking()
@@ -426,7 +436,7 @@ def test_diagonal_rows_are_the_linearisation_diagonal():
 
 def test_not_fused_without_a_kernel_on_cpu(monkeypatch):
     """On the CPU without Numba (and without Triton's interpreter) the torch path runs."""
-    from torchflow.flows import fused
+    from torchflow.flows.kernels import steps as fused
     from torchflow.flows import integrate as I
     from torchflow.flows import LEDHFlow
     from torchflow.models import AcousticTracking
@@ -435,21 +445,21 @@ def test_not_fused_without_a_kernel_on_cpu(monkeypatch):
     m = AcousticTracking()
     meas = I.GaussianMeasurement.from_model(m, torch.zeros(1, 25, dtype=torch.float64))
     with torch.no_grad():
-        assert not I._fusable(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8)
-        assert not I._gromov_fusable(GromovFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8)
-        assert not I._gromov_fusable(GromovFlow(noise_root="symmetric"), meas, torch.zeros(1, 4, 16), 8)
+        assert not _kernel(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8) == "lanes"
+        assert not _kernel(GromovFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8) == "gromov"
+        assert not _kernel(GromovFlow(noise_root="symmetric"), meas, torch.zeros(1, 4, 16), 8) == "gromov"
         from torchflow.models import SkewedTPoisson
         poisson = I.GaussianMeasurement.from_model(SkewedTPoisson(d=64), torch.zeros(1, 64, dtype=torch.float64))
-        assert not I._diag_fusable(LEDHFlow(), poisson, torch.zeros(1, 4, 64, dtype=torch.float64))
+        assert not _kernel(LEDHFlow(), poisson, torch.zeros(1, 4, 64, dtype=torch.float64), 64) == "diagonal"
     monkeypatch.setattr(fused, "_numba", True)
     with torch.no_grad():
-        assert I._diag_fusable(LEDHFlow(), poisson, torch.zeros(1, 4, 64, dtype=torch.float64))
-        assert not I._diag_fusable(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64))  # W not diagonal
-        assert not I._diag_fusable(GromovFlow(), poisson, torch.zeros(1, 4, 64, dtype=torch.float64))
-    assert not I._diag_fusable(LEDHFlow(), poisson, torch.zeros(1, 4, 64, dtype=torch.float64))  # a gradient
+        assert _kernel(LEDHFlow(), poisson, torch.zeros(1, 4, 64, dtype=torch.float64), 64) == "diagonal"
+        assert not _kernel(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 64) == "diagonal"  # W not diagonal
+        assert not _kernel(GromovFlow(), poisson, torch.zeros(1, 4, 64, dtype=torch.float64), 64) == "diagonal"
+    assert not _kernel(LEDHFlow(), poisson, torch.zeros(1, 4, 64, dtype=torch.float64), 64) == "diagonal"  # a gradient
     with torch.no_grad():
-        assert I._fusable(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8)
-    assert not I._fusable(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8)  # a gradient is recorded
+        assert _kernel(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8) == "lanes"
+    assert not _kernel(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8) == "lanes"  # a gradient is recorded
 
 
 @cuda
@@ -491,25 +501,25 @@ def test_which_measurements_the_kernel_linearises_itself():
 
     z = torch.zeros(2, 25, dtype=torch.float64)
     x = torch.zeros(2, 3, 16, dtype=torch.float64)
-    sup = torch.tensor(AcousticTracking().measurement_support)
+    sup = torch.tensor(AcousticTracking().structure.measurement_support)
     meas = I.GaussianMeasurement.from_model(AcousticTracking(), z)
-    assert I._measured_inside(meas, sup, 8) is None  # not prepared: no 1 / sigma yet
+    assert S.measured_inside(meas, sup, 8) is None  # not prepared: no 1 / sigma yet
     meas.prepare(x)
-    assert I._measured_inside(meas, sup, 8).kind == 1
+    assert S.measured_inside(meas, sup, 8).kind == 1
     with tuning.tuned(fused_measurement=0):
-        assert I._measured_inside(meas, sup, 8) is None
-    assert I._measured_inside(meas, None, 8) is None  # no declared support
-    assert Moved().fused_measurement() is None
+        assert S.measured_inside(meas, sup, 8) is None
+    assert S.measured_inside(meas, None, 8) is None  # no declared support
+    assert measurement_form(Moved()) is None and measurement_form(AcousticTracking())[0] == "inverse_distance_sum"
     lg = LinearGaussian(torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64),
                         torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64))
-    assert I.GaussianMeasurement.from_model(lg, torch.zeros(1, 2, dtype=torch.float64)).fused is None
+    assert I.GaussianMeasurement.from_model(lg, torch.zeros(1, 2, dtype=torch.float64)).form is None
 
 
 def test_gpu_tiles_bounded_by_the_register_budget():
     """On a GPU the lane kernel holds a particle's k x k matrices in registers: acoustic tracking's
     tiles (k = 8, m = 25, d = 16) fit, k = 16 (the skewed-t model at d = 16) takes the torch path;
     the CPU's cache-sized bound is larger."""
-    from torchflow.flows.integrate import tiles_fit
+    from torchflow.flows.kernels.select import tiles_fit
     assert tiles_fit(25, 8, 16, "cuda") and tiles_fit(2, 3, 3, "cuda")
     assert not tiles_fit(16, 16, 16, "cuda") and tiles_fit(16, 16, 16, "cpu")
     assert not tiles_fit(144, 144, 144, "cpu")
@@ -520,7 +530,7 @@ def test_info_factors_are_the_prior_precision_and_c():
     ``C L_s = L``, and C's rows at the support are the identity when ``L``'s are ``L_s``) and
     ``P_s^{-1}`` (``P_s^{-1} L_s L_s^T = I``), float64 from float32 inputs, broadcasting a shared
     covariance's ``(B, 1, ...)`` against per-particle ones."""
-    from torchflow.flows import fused
+    from torchflow.flows.kernels import steps as fused
     g = torch.Generator().manual_seed(0)
     A = torch.randn(2, 3, 6, 6, dtype=torch.float64, generator=g)
     root = torch.linalg.cholesky(A @ A.transpose(-1, -2) + torch.eye(6, dtype=torch.float64))
@@ -538,7 +548,7 @@ def test_info_factors_are_the_prior_precision_and_c():
 def test_kernel_form_follows_tuning():
     """``tuning.fused_info`` picks the GPU kernel's form (information form by default)."""
     from torchflow import tuning
-    from torchflow.flows import fused
+    from torchflow.flows.kernels import steps as fused
     assert fused.kernel_form() == "info"
     with tuning.tuned(fused_info=0):
         assert fused.kernel_form() == "rows"

@@ -59,7 +59,7 @@ def test_prepare_precomputes_what_at_would_compute():
     model = AcousticTracking()
     aux = 40 * torch.rand(2, 3, 16, generator=g, dtype=torch.float64)
     z = torch.randn(2, model.obs_dim, generator=g, dtype=torch.float64)
-    support = torch.as_tensor(model.measurement_support)
+    support = torch.as_tensor(model.structure.measurement_support)
     plain = GaussianMeasurement.from_model(model, z).at(aux, support)
     meas = GaussianMeasurement.from_model(model, z).prepare(aux)
     ready = meas.at(aux, support)

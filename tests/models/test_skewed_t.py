@@ -76,7 +76,7 @@ def test_poisson_likelihood_and_declared_noise():
     lam = torch.exp(x / 3)
     ref = stats.poisson.logpmf(z.numpy(), lam.numpy()).sum()
     assert abs(float(model.measurement_log_prob(z, x)) - ref) < 1e-12
-    assert model.measurement_noise == "state_dependent_diagonal"
+    assert model.structure.measurement_noise == "state_dependent_diagonal"
     torch.testing.assert_close(model.measurement_cov(x), torch.diag_embed(lam))
     with pytest.raises(ValueError, match="R depends on the state"):
         model.measurement_cov()
@@ -178,7 +178,7 @@ def test_declared_diagonal_jacobian_gives_the_same_numbers():
     from torchflow.random import TrialStreams
 
     class Dense(SkewedTPoisson):
-        measurement_jacobian_diagonal = False
+        structure = SkewedTPoisson.structure.replace(measurement_jacobian_diagonal=False)
 
     d = 36
     diag, dense = SkewedTPoisson(d=d), Dense(d=d)

@@ -19,9 +19,11 @@ from .._checks import NonFiniteError, check_count, check_finite, check_psd, chec
 from .._blocks import blockwise
 from ..covariances import Covariance
 from ..models.base import StateSpaceModel
+from ..models.contract import check_covariances, check_dtype, check_shapes, require_gaussian
+from ..models.structure import kernel_structure
 from ..proposals import BootstrapProposal, Proposal
 from ..random import check_generator
-from . import graph_step
+from ..flows.kernels import graph_step
 
 
 @dataclass
@@ -143,14 +145,19 @@ class Filter(nn.Module):
     estimates_evidence = True
     #: default of ``forward(checkpoint_steps=...)``: recompute each time step in the backward pass
     checkpoint_steps = False
+    #: the filter reads the model's Gaussian form (:class:`~torchflow.models.GaussianStateSpaceModel`);
+    #: a particle filter leaves this to its proposal
+    gaussian_form = True
 
     def __init__(self, model: StateSpaceModel, *, validate: bool = True, name: Optional[str] = None):
         super().__init__()
+        self.name = name or type(self).__name__
         if not isinstance(model, StateSpaceModel):
-            raise TypeError(f"model: expected a torchflow StateSpaceModel, got {type(model).__name__}")
+            raise TypeError(f"{self.name}: model: expected a torchflow StateSpaceModel, got {type(model).__name__}")
+        if self.gaussian_form:
+            require_gaussian(model, self.name)
         self.model = model
         self.validate = validate
-        self.name = name or type(self).__name__
 
     # ---- contract ------------------------------------------------------------------------------
     def init(self, mean: torch.Tensor, cov: torch.Tensor, n_particles: Optional[int] = None,
@@ -182,9 +189,9 @@ class Filter(nn.Module):
         """What this filter needs of its model's current parameters, checked once per call before
         the first step (with ``validate``; host reads are fine here, not in a step): the model's
         constant transition and measurement covariances are symmetric positive semi-definite
-        (:meth:`~torchflow.models.StateSpaceModel.check_covariances`; a learnable one may have left
+        (:func:`~torchflow.models.contract.check_covariances`; a learnable one may have left
         the cone after an optimiser step)."""
-        self.model.check_covariances(self.name)
+        check_covariances(self.model, self.name)
 
     def check_prior(self, mean: torch.Tensor, cov: torch.Tensor, batch_size: Optional[int] = None
                     ) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -296,11 +303,13 @@ class Filter(nn.Module):
                 pseudo-time matrices) instead of all T steps', for about one extra forward pass.
                 Values and gradients are unchanged. ``None``: :attr:`checkpoint_steps` (False).
         """
-        self.model.check_dtype(self.name)
+        check_dtype(self.model, self.name)
         if self.validate:
             self.model.check_observations(observations)
             self.check_model()
         mean, cov = self.check_prior(mean, cov, observations.shape[0])
+        if self.validate:  # once per model and batch layout: each method's output shape, naming the method
+            check_shapes(self.model, mean.detach(), self.name, gaussian=self.gaussian_form or None)
         if self.uses_randomness:
             check_generator(generator, f"{self.name}: generator", observations.shape[0])
         try:
@@ -450,6 +459,8 @@ class ParticleFilter(Filter):
     uses_particles = True
     uses_randomness = True
 
+    gaussian_form = False  # the proposal states what it needs of the model
+
     def __init__(self, model, proposal=None, *, n_particles: int = 500, resampling: str = "systematic",
                  ess_threshold: float = 0.5, regularization=None, resampling_gradient: str = "none",
                  soft_alpha: float = 0.5, ot_epsilon: float = 0.1, ot_iterations: int = 100, nonfinite: str = "recover",
@@ -484,11 +495,11 @@ class ParticleFilter(Filter):
 
     @property
     def graph_step(self) -> bool:
-        """Whether the whole step may be replayed from a CUDA graph (:mod:`torchflow.filters.graph_step`):
+        """Whether the whole step may be replayed from a CUDA graph (:mod:`torchflow.flows.kernels.graph_step`):
         the generic step (not overridden), a proposal class and a model class that each declare
         themselves ``graph_safe`` (on the class itself: a subclass may draw otherwise)."""
         return (type(self).step is ParticleFilter.step and bool(vars(type(self.proposal)).get("graph_safe"))
-                and bool(vars(type(self.model)).get("graph_safe")))
+                and kernel_structure(self.model).graph_safe)
 
     resampling_scheme = property(lambda self: self.resampler.scheme)
     ess_threshold = property(lambda self: self.resampler.ess_threshold)
@@ -525,7 +536,7 @@ class ParticleFilter(Filter):
         on the model's constant covariance (``transition_cov()``); a state-dependent one is left to
         the steps' non-finite handling."""
         super().check_model()
-        if not getattr(self.proposal, "uses_transition_density", True) or not self.model.gaussian_transition:
+        if not getattr(self.proposal, "uses_transition_density", True) or not self.model.structure.gaussian_transition:
             return
         try:
             Q = self.model.transition_cov()

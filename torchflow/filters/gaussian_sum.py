@@ -54,11 +54,11 @@ import torch
 
 from .. import linalg
 from .._checks import check_choice, check_count
-from ..flows import FlowPrior, integrate_flow
-from ..flows.integrate import diagonal_kernel_applies
+from ..flows import FlowPrior, integrate_flow, which_kernel
 from ..flows.points import ParticlePoints, flow_points_per_call
 from ..schedules import LambdaSchedule, resolve_schedule
 from ..proposals import resolve_flow
+from ..models.structure import bytes_per_point
 from .base import ParticleFilter
 
 LINEARIZE_AT = ("auxiliary", "particle")
@@ -198,7 +198,7 @@ class GaussianSumParticleFilter(ParticleFilter):
         per_particle = 8 * d + 3 * m + 8
         if self.flow is not None:  # per-particle LEDH algebra: ~12 d x d and a few m x d matrices
             per_particle += 12 * d * d + 4 * m * d
-        return 8 * G * (n * per_particle + 4 * d * d) + G * n * self.model.bytes_per_point()
+        return 8 * G * (n * per_particle + 4 * d * d) + G * n * bytes_per_point(self.model)
 
     def preferred_chunk_trials(self, n_particles=None):
         if self.flow is None:
@@ -316,11 +316,11 @@ class GaussianSumParticleFilter(ParticleFilter):
         """A trial's particles per flow pass: ``particle_chunk`` when set, else the cache-sized
         :func:`~torchflow.flows.points.flow_points_per_call` when the trial's particles exceed it;
         no blocks when the flow runs as the diagonal CPU kernel on ``device``
-        (:func:`~torchflow.flows.integrate.diagonal_kernel_applies`: no ``d x d`` matrix per particle
+        (:func:`~torchflow.flows.which_kernel` is ``"diagonal"``: no ``d x d`` matrix per particle
         is built, and blocks only add calls; the numbers are the same either way)."""
         if self.particle_chunk:
             return self.particle_chunk
-        if device is not None and diagonal_kernel_applies(self.flow, self.model, device):
+        if device is not None and which_kernel(self.flow, self.model, device) == "diagonal":
             return None
         cap = flow_points_per_call(self.model)
         return cap if self.n_particles > cap else None

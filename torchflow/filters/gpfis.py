@@ -25,7 +25,7 @@ class GaussianParticleFlowImportanceSampler(ParticleFilter):
         schedule: lambda grid (default exponential, 29 steps, ratio 1.2).
         root: transport root, ``"cholesky"`` (default) or ``"symmetric"`` (:mod:`torchflow.flows.gpfis`).
         jacobian: each step's Jacobian, ``"analytic"`` (default: the derivative written out, with
-            the model's :meth:`~torchflow.models.StateSpaceModel.measurement_hessian_blocks`) or
+            the model's :meth:`~torchflow.models.GaussianStateSpaceModel.measurement_hessian_blocks`) or
             ``"autodiff"`` (forward mode through the whole step); the symmetric root always uses
             autodiff.
         gamma: diffusion rate; only 0 (deterministic, Bunch & Godsill's suggestion followed by

@@ -43,7 +43,7 @@ class ExtendedKalmanFilter(_GaussianFilter):
 
 class KalmanFilter(ExtendedKalmanFilter):
     """Exact Kalman filter for linear-Gaussian models: any model that declares
-    :attr:`~torchflow.models.StateSpaceModel.linear_dynamics` and ``linear_measurement`` (with
+    :attr:`~torchflow.models.Structure.linear_dynamics` and ``linear_measurement`` (with
     additive Gaussian noise), e.g. :class:`~torchflow.models.LinearGaussian`.
 
     Log-evidence ``sum_k log N(z_k; H m_k^-, H P_k^- H^T + R)`` is exact and differentiable in the
@@ -52,10 +52,10 @@ class KalmanFilter(ExtendedKalmanFilter):
 
     def __init__(self, model, *, validate: bool = True, name: Optional[str] = None):
         super().__init__(model, validate=validate, name=name)
-        if not (model.linear_dynamics and model.linear_measurement):
+        if not (model.structure.linear_dynamics and model.structure.linear_measurement):
             raise TypeError(f"model: KalmanFilter needs a linear-Gaussian model (a LinearGaussian, or any model "
                             f"declaring linear_dynamics and linear_measurement), got {type(model).__name__} "
-                            f"(linear_dynamics={model.linear_dynamics}, linear_measurement={model.linear_measurement}; "
+                            f"(linear_dynamics={model.structure.linear_dynamics}, linear_measurement={model.structure.linear_measurement}; "
                             "use ExtendedKalmanFilter or UnscentedKalmanFilter for nonlinear models)")
 
     def init(self, mean, cov, n_particles=None, generator=None):
@@ -79,7 +79,7 @@ class KalmanFilter(ExtendedKalmanFilter):
         H, R = model.measurement_matrix(), model.measurement_cov()
         # a scaled identity F or H (the sensor network: 0.9 I, I; declared by the model) is a
         # scaling, not a product
-        f, h = model.transition_matrix_scale, model.measurement_matrix_scale
+        f, h = model.structure.transition_matrix_scale, model.structure.measurement_matrix_scale
         P = state.cov[0]
         # scalings and sums of symmetric matrices are exactly symmetric: symmetrize only products
         P_pred = (f * f) * P + Q if f is not None else linalg.symmetrize(F @ P @ F.T + Q)

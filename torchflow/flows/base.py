@@ -51,7 +51,7 @@ class FlowCoefficients:
         noise_cov_pair: ``(Q1, Q2)`` with ``Q = Q1 Q2^T`` (``(..., d, k)`` each), instead of
             forming Q: lets the integrator fuse the addition into a product.
         support: when the measurement reads only ``k`` of the ``d`` state coordinates
-            (:attr:`~torchflow.models.StateSpaceModel.measurement_support`), A's other columns are
+            (:attr:`~torchflow.models.Structure.measurement_support`), A's other columns are
             zero and ``A`` holds only the ``(..., d, k)`` nonzero ones: ``A x = A x[..., support]``.
             ``None``: ``A`` is the full ``(..., d, d)``.
     """
@@ -228,10 +228,16 @@ class ParticleFlow(nn.Module):
             Filters and :func:`~torchflow.flows.integrate_flow` take ``points`` (a name or a
             :class:`~torchflow.flows.points.LinearisationPoints`) to pair any flow with any points.
         stochastic: the flow has a diffusion term (``noise_factor``) and no log-det.
+        kernel: the fused kernel the flow's coefficients admit, declared by the flow's own class
+            (not inherited: a subclass that changes the coefficients declares it again, or runs the
+            reference loop): ``"daum_huang"`` (the exact Daum-Huang coefficients), ``"gromov"`` (the
+            Gromov flow with its exact diffusion factor) or ``None``. The kernel layer
+            (:mod:`torchflow.flows.kernels.select`) reads it.
     """
 
     points: str = "global"
     stochastic: bool = False
+    kernel: Optional[str] = None
 
     def coefficients_at(self, lin, prior: FlowPrior, lam: torch.Tensor, eps: torch.Tensor) -> FlowCoefficients:
         """Drift (and diffusion) at pseudo-time ``lam`` (after the step of size ``eps``), from

@@ -135,6 +135,7 @@ class EDHFlow(ParticleFlow):
 
     points = "global"
     promote_low_precision = True
+    kernel = "daum_huang"  # declared per class (torchflow.flows.kernels.select)
 
     def coefficients_at(self, lin: Linearisation, prior: FlowPrior, lam, eps):
         W, y = lin.W, lin.y
@@ -159,3 +160,4 @@ class LEDHFlow(EDHFlow):
     (Ding & Coates 2012; the PF-PF(LEDH) proposal of Li & Coates 2017)."""
 
     points = "particle"
+    kernel = "daum_huang"

@@ -168,6 +168,11 @@ class GromovFlow(_HomotopyFlow):
     def __init__(self, points: str = "particle", noise_root: str = "factor"):
         super().__init__(points, noise_root)
 
+    @property
+    def kernel(self):
+        """``"gromov"`` with the exact diffusion factor (``noise_root="factor"``), else ``None``."""
+        return "gromov" if self.noise_root == "factor" else None
+
     def coefficients_at(self, lin: Linearisation, prior: FlowPrior, lam, eps):
         if prior.mean.dim() > 2 and self.noise_root == "factor":  # points (B, L, d)
             # operator form: with N = M^{-1}[:, s] = L (I + lam S)^{-1} L_s^T (the columns of M^{-1}

@@ -14,7 +14,7 @@ and the particle takes its transport step (deterministic, gamma = 0)
 Because the linearisation moves with the particle, the map's Jacobian involves dH/dx (h's second
 derivatives): by default (``jacobian="analytic"``) the step's derivative is written out
 (:func:`_cholesky_step_and_jacobian`): the tangents enter only through ``dG`` and ``dr``, taken from
-the model's :meth:`~torchflow.models.StateSpaceModel.measurement_hessian_blocks` in one product, and
+the model's :meth:`~torchflow.models.GaussianStateSpaceModel.measurement_hessian_blocks` in one product, and
 the rest is ``k x k`` algebra per tangent; ``jacobian="autodiff"`` traces the whole step by forward
 mode (``torch.func.jvp`` batched over the tangent directions with ``torch.func.vmap``). No loop
 over trials or particles either way; ``log|det|`` is accumulated. The
@@ -35,7 +35,7 @@ whose derivative is undefined when G has repeated eigenvalues (e.g. isotropic P_
 The stochastic variant (gamma > 0) is not implemented.
 
 On the CPU with Numba, with no gradient recorded (``tuning.fused_flows``), the analytic path runs as
-one compiled kernel (:class:`~torchflow.flows.fused.GPFISSteps`): the same formulas, 64 particles in
+one compiled kernel (:class:`~torchflow.flows.kernels.steps.GPFISSteps`): the same formulas, 64 particles in
 SIMD lanes, each tangent's ``dG`` applied as a rank-``2b`` update instead of a ``k x k`` matrix, the
 ``log|det|`` from a QR of the step Jacobian instead of an LU; it agrees with this module's torch path
 to round-off.
@@ -50,7 +50,8 @@ from torch.func import jvp, vmap
 from .. import linalg
 from .._checks import check_choice
 from ..schedules import LambdaSchedule, resolve_schedule
-from . import fused
+from .kernels import select
+from .kernels import steps as kernel_steps
 from .base import FlowPrior
 from .measurement import GaussianMeasurement
 
@@ -84,7 +85,7 @@ def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPri
     sup = prior.support  # (k,) or None
     C, cols = prior.cols_support, prior.cols  # (..., k, k) lower, (..., d, k)
     k = C.shape[-1]
-    if analytic and _fusable(measurement, x, k):
+    if analytic and select.gpfis_kernel(measurement, x, k):
         return _fused_flow(measurement, x, prior, sup, k, eps_all, lam_all)
     eye = torch.eye(k, dtype=x.dtype, device=x.device)
     m0s = prior.mean if sup is None else prior.mean[..., sup]
@@ -135,29 +136,14 @@ def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPri
     return x, log_det
 
 
-def _fusable(measurement, x, k) -> bool:
-    """The fused CPU pseudo-steps apply (:class:`~torchflow.flows.fused.GPFISSteps`): ``(B, N, d)``
-    particles on the CPU with Numba (not Triton's interpreter), no gradient recorded,
-    ``tuning.fused_flows``, the measurement's second derivatives declared (or linear), small tiles
-    and ``k <= 16`` (the kernel keeps ``[W y]^T D``, up to ``(k + 1) k^2`` numbers, per lane: 2 MB
-    per block of lanes at k = 16 with a dense Hessian)."""
-    from .integrate import _tiles_fit, cpu_kernels_on
-
-    if torch.is_grad_enabled() or x.dim() != 3 or k > 16 or (measurement.hessian is None and measurement.matrix is None):
-        return False
-    return cpu_kernels_on(x.device) and _tiles_fit(measurement, x, k)
-
-
 def _fused_flow(measurement, x, prior, sup, k, eps_all, lam_all):
     """:func:`gpfis_flow` by the fused CPU kernel: every step in one call when the kernel linearises
     the model itself (acoustic), else one call per step with the whitened linearisation and the
     second-derivative blocks from torch."""
-    from .integrate import _measured_inside
-
-    inside = _measured_inside(measurement, sup, k)
-    steps = fused.GPFISSteps(prior.cols_support, prior.cols, prior.mean, sup, lam_all.to(torch.float64),
-                             eps_all.to(torch.float64), inside, measurement._inv_sigma,
-                             measurement._z_scaled if inside is not None else None)
+    inside = select.measured_inside(measurement, sup, k)
+    steps = kernel_steps.GPFISSteps(prior.cols_support, prior.cols, prior.mean, sup, lam_all.to(torch.float64),
+                                    eps_all.to(torch.float64), inside, measurement.inv_sigma,
+                                    measurement.z_scaled if inside is not None else None)
     log_det = torch.zeros(x.shape[:-1], dtype=torch.float64)
     x = x.contiguous()
     if inside is not None:

@@ -25,13 +25,11 @@ from typing import Optional, Union
 
 import torch
 
-from .. import _triton, cudagraphs, linalg, tuning
+from .. import cudagraphs, linalg, tuning
 from .._checks import check_choice
 from ..schedules import LambdaSchedule, resolve_schedule
-from . import fused
 from .base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow, _gather_points
-from .daum_huang import EDHFlow, LEDHFlow
-from .geodesic import GromovFlow
+from .kernels import loops, select
 from .measurement import GaussianMeasurement
 from .points import LinearisationPoints, resolve_points
 
@@ -92,7 +90,7 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
     eps_host = schedule.host_steps(particles.dtype)
     strategy = resolve_points(flow, "clustered" if points is None and index is not None else points)
     graphable = (measurement is None and proposal is None and noise is None and start is None and not gaussian_image
-                 and _graph_eligible(flow, particles))
+                 and select.flow_graph(flow, particles))
     if measurement is None:
         measurement = GaussianMeasurement.from_model(model, z)
     if start is not None:
@@ -119,7 +117,24 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
 def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all, lam_all, generator, proposal,
                noise, gaussian_image, start=None) -> FlowOutput:
     """The loop of :func:`integrate_flow`: ``prior`` at ``(B, L, d)`` points, ``index (B, N)`` or
-    ``None`` (points broadcast against the particles, or are the particles)."""
+    ``None`` (points broadcast against the particles, or are the particles). A fused kernel takes
+    the integration where :func:`torchflow.flows.kernels.select.flow_kernel` chooses one; the loop
+    below is the reference."""
+    d = particles.shape[-1]
+    k = d if measurement.support is None else len(measurement.support)
+    track = flow.stochastic and proposal is not None
+    kernel = select.flow_kernel(flow, measurement, particles, k, per_particle=per_particle, track=track,
+                                gaussian_image=gaussian_image)
+    if kernel is not None:
+        return loops.run_flow(kernel, flow, measurement, particles, prior, index, eps_all, lam_all, generator,
+                              proposal, noise, start)
+    return _reference(flow, measurement, particles, prior, index, per_particle, eps_all, lam_all, generator,
+                      proposal, noise, gaussian_image, start)
+
+
+def _reference(flow, measurement, particles, prior, index, per_particle, eps_all, lam_all, generator, proposal,
+               noise, gaussian_image, start=None) -> FlowOutput:
+    """The reference pseudo-time loop (module docstring), for every flow and kind of points."""
     B, N, d = particles.shape
     eps_all, eps_host = eps_all  # the step sizes on the device, and as Python floats
     prior = prior.reduced(measurement.support)
@@ -140,54 +155,9 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
         Sig = Sig.expand(B, 1, d, d) if Sig.dim() == 2 else Sig
     tracked = [mu] if track else []
     log_det = torch.zeros(B, L, dtype=particles.dtype, device=particles.device)
-    fuse = per_particle and not track and not gaussian_image and _fusable(flow, measurement, particles, k)
-    diag = per_particle and not track and not gaussian_image and not fuse and _diag_fusable(flow, measurement, particles)
-    if diag:  # a diagonal W in information form, a particle per iteration (torchflow.flows.fused.DiagonalSteps)
-        eta, aux = eta.contiguous(), aux.contiguous()
-        diag_step = fused.DiagonalSteps(prior.scale_tril, prior.cov_cols, prior.mean, lam_all.to(torch.float64),
-                                        eps_all.to(torch.float64))
-        log_det = log_det.to(torch.float64)
-    gromov = per_particle and not gaussian_image and _gromov_fusable(flow, measurement, particles, k)
-    if gromov:  # the Gromov flow's pseudo-steps and its tracked law in one CPU kernel (torchflow.flows.fused)
-        eta, aux = eta.contiguous(), aux.contiguous()
-        inside = _measured_inside(measurement, prior.support, k)
-        gromov_step = fused.GromovSteps(prior.cols, prior.cols_support, prior.support, lam_all.to(torch.float64),
-                                        eps_all.to(torch.float64), inside, measurement._inv_sigma,
-                                        measurement._z_scaled if inside is not None else None)
-        m_rows = measurement.z.shape[-1]
-    if fuse:  # one kernel per pseudo-step (torchflow.flows.fused); the linearisation in torch, or in it
-        eta, aux = eta.contiguous(), aux.contiguous()
-        inside = _measured_inside(measurement, prior.support, k)
-        fused_step = fused.ParticleSteps(prior.cols, prior.cols_support, prior.cov_cols, prior.mean, prior.support,
-                                         lam_all.to(torch.float64), eps_all.to(torch.float64), inside,
-                                         measurement._inv_sigma, measurement._z_scaled if inside is not None else None)
     eps_steps, lam_steps = eps_all.unbind(0), lam_all.unbind(0)  # one op for all the steps' 0-d views
     for j in range(len(eps_all)):
         eps, lam = eps_steps[j], lam_steps[j]
-        if gromov:
-            lin = None if inside is not None else measurement.at(aux, prior.support)
-            shape = (B, N, m_rows)  # the diffusion N (W^T xi) draws one normal per measurement row
-            xi = noise(j, shape) if noise is not None else linalg.standard_normal(
-                shape, dtype=eta.dtype, device=eta.device, generator=generator)
-            eta, aux, mu_j, Sig_j = gromov_step(j, eta, aux, mu if track else None, Sig if track else None, xi,
-                                                *(() if lin is None else (lin.W, lin.y)))
-            if track:
-                mu, Sig = mu_j, Sig_j
-            continue
-        if diag:
-            rows = measurement.at_diagonal(aux)  # W's diagonal and y without d x d matrices, where the model gives them
-            if rows is None:
-                lin = measurement.at(aux)
-                rows = (lin.diag if lin.diag is not None else lin.W.diagonal(dim1=-2, dim2=-1), lin.y)  # W diagonal: declared
-            eta, aux = diag_step(j, eta, aux, log_det, *rows)
-            continue
-        if fuse and inside is not None:
-            eta, aux = fused_step(j, eta, aux, log_det)
-            continue
-        if fuse:
-            lin = measurement.at(aux, prior.support)
-            eta, aux = fused_step(j, eta, aux, log_det, lin.W, lin.y)
-            continue
         co = flow.coefficients_at(measurement.at(aux, prior.support), prior, lam, eps)
         if stochastic and (co.A is None or not co.has_noise):
             raise TypeError(f"{type(flow).__name__}: a stochastic flow must give an explicit A and a diffusion "
@@ -230,105 +200,22 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
         return image.output(FlowOutput(eta, None, aux, log_proposal=log_q, proposal_mean=mu, proposal_cov=Sig))
     if stochastic:
         return image.output(FlowOutput(eta, None, aux))
-    if diag:
-        log_det = log_det.to(particles.dtype)
     log_det = log_det.expand(B, N) if index is None else _gather_points(log_det.unsqueeze(-1), index).squeeze(-1)
     return image.output(FlowOutput(eta, log_det, aux))
 
 
-def _fusable(flow, measurement, particles, k) -> bool:
-    """The fused pseudo-step applies (:mod:`torchflow.flows.fused`): EDH/LEDH themselves (not a
-    subclass that changes the coefficients) at per-particle points, on CUDA with Triton (or Triton's
-    CPU interpreter) or on the CPU with Numba, no gradient, ``tuning.fused_flows``, and small enough
-    tiles."""
-    if not tuning.get().fused_flows or type(flow) not in (EDHFlow, LEDHFlow) or torch.is_grad_enabled():
-        return False
-    return fused.runs_on(particles.device) and _tiles_fit(measurement, particles, k)
-
-
-def cpu_kernels_on(device) -> bool:
-    """The Numba CPU kernels may run on ``device`` (no gradient being recorded aside): the CPU, not
-    under Triton's interpreter, ``tuning.fused_flows`` and Numba importable. The one gate of the
-    Gromov, GPFIS and diagonal kernels (EDH/LEDH's lane kernel also runs on CUDA: :func:`_fusable`)."""
-    device = torch.device(device)
-    return (bool(tuning.get().fused_flows) and device.type == "cpu" and not _triton.runs_on(device)
-            and fused.numba_available())
-
-
-def _diag_fusable(flow, measurement, particles) -> bool:
-    """The fused CPU pseudo-step for a diagonal W applies (:class:`~torchflow.flows.fused.DiagonalSteps`):
-    EDH/LEDH themselves at per-particle points, W diagonal by declaration (taken where the lane
-    kernel's tiles do not fit: :func:`_integrate` tries that one first), no gradient,
-    :func:`cpu_kernels_on`."""
-    if not measurement.diagonal or type(flow) not in (EDHFlow, LEDHFlow) or torch.is_grad_enabled():
-        return False
-    return particles.dtype in (torch.float32, torch.float64) and cpu_kernels_on(particles.device)
-
-
-def diagonal_kernel_applies(flow, model, device) -> bool:
-    """A no-gradient :func:`integrate_flow` of ``flow`` at per-particle points on ``model`` takes the
-    diagonal CPU kernel (:func:`_diag_fusable`) on ``device``: for a filter choosing its blocks of
-    particles before it builds the measurement. A nonlinear measurement that is diagonal with a
-    diagonal R by declaration, too large for the lane kernel's tiles."""
-    noise_ok = model.measurement_noise in ("diagonal", "state_dependent_diagonal")
-    if not (getattr(model, "measurement_jacobian_diagonal", False) and noise_ok) or model.linear_measurement:
-        return False
-    d = model.state_dim
-    return (type(flow) in (EDHFlow, LEDHFlow) and not tiles_fit(model.obs_dim, d, d)
-            and cpu_kernels_on(device))
-
-
-def tiles_fit(m: int, k: int, d: int, device="cpu") -> bool:
-    """The fused kernels' per-particle tiles for ``m`` measurements, ``k`` measured and ``d`` state
-    coordinates are small enough: in cache on the CPU; on a GPU, where a thread holds its particle's
-    ``k x k`` matrices in registers, no larger than acoustic tracking's (``k = 8``, ``m = 25``,
-    ``d = 16``: 255 registers and ~1.5 KB of spills per thread on sm_90). At ``k = 16`` the kernel
-    compiles in ~1 min to 16.5 KB of spill stores and 5.4 KB of stack per thread
-    (``experiments/benchmarks/kernel_registers.py``), so such flows take the torch path there."""
-    bm, bk, bd = (fused.tile(x) for x in (m, k, d))
-    if torch.device(device).type == "cuda":
-        return bk <= 8 and bm * bk * bk <= 2048 and bd * bk <= 128
-    return bm * bk * bk <= 16384 and bd * bk <= 4096
-
-
-def _tiles_fit(measurement, particles, k) -> bool:
-    """:func:`tiles_fit` for a measurement and ``(B, N, d)`` particles of a supported dtype."""
-    return (tiles_fit(measurement.z.shape[-1], k, particles.shape[-1], particles.device)
-            and particles.dtype in (torch.float32, torch.float64))
-
-
-def _gromov_fusable(flow, measurement, particles, k) -> bool:
-    """The fused CPU pseudo-step of the Gromov flow applies (:class:`~torchflow.flows.fused.GromovSteps`):
-    :class:`~torchflow.flows.GromovFlow` itself with its exact factor (``noise_root="factor"``) at
-    per-particle points, no gradient, :func:`cpu_kernels_on`, tiles as :func:`_fusable`."""
-    if type(flow) is not GromovFlow or flow.noise_root != "factor" or torch.is_grad_enabled():
-        return False
-    return cpu_kernels_on(particles.device) and _tiles_fit(measurement, particles, k)
-
-
-def _measured_inside(measurement, support, k):
-    """The :class:`~torchflow.flows.fused.FusedMeasurement` the fused kernel linearises itself
-    (``tuning`` ``fused_measurement=1``, a model that declares one, a prepared scalar R, its pairs
-    of position coordinates as the support), else ``None``."""
-    fm = measurement.fused
-    if (fm is None or not tuning.get().fused_measurement or measurement._inv_sigma is None
-            or support is None or k % 2 or measurement.z.shape[-1] != fm.sensors.shape[0]):
-        return None
-    return fm
-
-
-def _graph_eligible(flow, particles) -> bool:
-    """The pseudo-time loop is captured as a CUDA graph (:mod:`torchflow.cudagraphs`) for a
-    deterministic flow on CUDA with no gradient to record (``tuning.cuda_graphs``, default 1)."""
-    return (particles.is_cuda and bool(tuning.get().cuda_graphs) and not flow.stochastic
-            and not torch.is_grad_enabled() and not torch.cuda.is_current_stream_capturing())
+def which_kernel(flow: ParticleFlow, model, device) -> Optional[str]:
+    """The fused kernel a no-gradient :func:`integrate_flow` of ``flow`` at per-particle points on
+    ``model`` takes on ``device``, as far as it is known before the measurement is built
+    (:func:`torchflow.flows.kernels.select.per_particle_kernel`): ``"diagonal"`` or ``None``."""
+    return select.per_particle_kernel(flow, model, device)
 
 
 def _integrate_graphed(flow, model, schedule, strategy, particles, z, prior, index, eps_all, lam_all) -> FlowOutput:
     """:func:`_integrate` for the model's own measurement, replayed from a CUDA graph captured once
     per flow, model state, schedule, points, shapes and tuning. The prior's factors are reduced to
     the measured coordinates here, outside the graph (they are built from host values)."""
-    prior = prior.reduced(model.measurement_support)
+    prior = prior.reduced(model.structure.measurement_support)
     fields = (prior.mean, prior.scale_tril, prior.support, prior.root, prior.cols, prior.cols_support, prior.cov_cols)
     per_particle = strategy.per_particle
 

@@ -21,6 +21,7 @@ from typing import Callable, Optional, Sequence, Tuple
 import torch
 
 from .. import linalg
+from ..models.structure import kernel_structure
 
 
 @dataclass
@@ -55,25 +56,25 @@ class GaussianMeasurement:
         measure: ``points -> h(points)`` (used with ``matrix``).
         support: the state coordinates h reads (``None``: all).
         diagonal: the Jacobian is diagonal (``m == d``, no support; the model's declared
-            :attr:`~torchflow.models.StateSpaceModel.measurement_jacobian_diagonal`): with a
+            :attr:`~torchflow.models.Structure.measurement_jacobian_diagonal`): with a
             diagonal R, :meth:`at` also returns W's diagonal.
         hessian: ``(points (..., d), support: bool, scale) -> (..., m, n_b, b, b)``, h's second
             derivatives as diagonal blocks
-            (:meth:`~torchflow.models.StateSpaceModel.measurement_hessian_blocks`), for
+            (:meth:`~torchflow.models.GaussianStateSpaceModel.measurement_hessian_blocks`), for
             :meth:`derivative`; only for a constant R (``None``: not available).
-        fused: the model's :class:`~torchflow.flows.fused.FusedMeasurement` (its measurement in
-            the terms of the fused GPU pseudo-step, :meth:`~torchflow.models.StateSpaceModel.fused_measurement`),
-            or ``None``.
+        form: the measurement in a named form that a kernel may linearise itself, ``(name,
+            tensors)`` (the model's declared :attr:`~torchflow.models.Structure.measurement_form`
+            with its parameters; :data:`torchflow.flows.kernels.select.FORMS`), or ``None``.
         diagonal_rows: ``points -> (h, dh/dx's diagonal, L_R's diagonal)`` for a ``diagonal``
             measurement with a diagonal R
-            (:meth:`~torchflow.models.StateSpaceModel.linearize_measurement_diagonal`), for
+            (:meth:`~torchflow.models.GaussianStateSpaceModel.linearize_measurement_diagonal`), for
             :meth:`at_diagonal`; ``None``: not available.
     """
 
     def __init__(self, z: torch.Tensor, linearise: Callable, scale_tril: Callable, noise: str,
                  matrix: Optional[torch.Tensor] = None, measure: Optional[Callable] = None,
                  support: Optional[Sequence[int]] = None, diagonal: bool = False,
-                 hessian: Optional[Callable] = None, fused=None, diagonal_rows: Optional[Callable] = None):
+                 hessian: Optional[Callable] = None, form=None, diagonal_rows: Optional[Callable] = None):
         if noise not in ("scalar", "diagonal", "dense"):
             raise ValueError(f"noise: expected 'scalar', 'diagonal' or 'dense', got {noise!r}")
         self.z, self.linearise, self.scale_tril, self.noise = z, linearise, scale_tril, noise
@@ -81,27 +82,29 @@ class GaussianMeasurement:
         self.support = None if support is None else tuple(support)
         self.diagonal = bool(diagonal) and self.support is None
         self.hessian = hessian
-        self.fused = fused
+        self.form = form
         self.diagonal_rows = diagonal_rows if self.diagonal and noise == "diagonal" else None
-        self._inv_sigma = None  # 1 / sigma of a "scalar" R (declared constant), set by prepare()
-        self._z_scaled = None  # z / sigma (B, m), set by prepare()
+        #: ``1 / sigma`` (0-d) of a declared ``"scalar"`` R, once :meth:`prepare` has run (else ``None``)
+        self.inv_sigma = None
+        #: ``z / sigma`` ``(B, m)``, once :meth:`prepare` has run (else ``None``)
+        self.z_scaled = None
 
     @classmethod
     def from_model(cls, model, z: torch.Tensor) -> "GaussianMeasurement":
         """The model's own measurement term (its declared noise structure and support)."""
-        noise = model.measurement_noise
+        noise = model.structure.measurement_noise
         if noise == "state_dependent_diagonal":  # evaluated per point; whitening is a division
             noise = "diagonal"
         elif noise not in ("scalar", "diagonal", "dense"):  # state-dependent R: general whitening
             noise = "dense"
-        linear = model.linear_measurement
-        constant_r = model.measurement_noise in ("scalar", "diagonal", "dense")
+        linear = model.structure.linear_measurement
+        constant_r = model.structure.measurement_noise in ("scalar", "diagonal", "dense")
         return cls(z, model.linearize_measurement, model.measurement_scale_tril, noise,
                    matrix=model.measurement_matrix() if linear else None, measure=model.measure if linear else None,
-                   support=model.measurement_support,
-                   diagonal=getattr(model, "measurement_jacobian_diagonal", False) and not linear,
+                   support=model.structure.measurement_support,
+                   diagonal=model.structure.measurement_jacobian_diagonal and not linear,
                    hessian=model.measurement_hessian_blocks if constant_r and not linear else None,
-                   fused=model.fused_measurement() if noise == "scalar" and not linear else None,
+                   form=measurement_form(model) if noise == "scalar" and not linear else None,
                    diagonal_rows=model.linearize_measurement_diagonal)
 
     def _scalar_inv_sigma(self, points):
@@ -112,8 +115,8 @@ class GaussianMeasurement:
         ``"scalar"`` R), for a loop that calls :meth:`at` many times; the numbers are those of
         :meth:`at` alone. Call it outside any ``torch.func`` transform. Returns ``self``."""
         if self.noise == "scalar" and self.matrix is None:
-            self._inv_sigma = self._scalar_inv_sigma(points)
-            self._z_scaled = self.z * self._inv_sigma
+            self.inv_sigma = self._scalar_inv_sigma(points)
+            self.z_scaled = self.z * self.inv_sigma
         return self
 
     def at(self, points: torch.Tensor, support: Optional[torch.Tensor] = None) -> Linearisation:
@@ -124,8 +127,8 @@ class GaussianMeasurement:
         if self.noise == "scalar" and self.matrix is None:
             # R = sigma^2 I: whiten inside the linearisation (scale 1 / sigma), so W = H / sigma
             # and y = (z - h) / sigma + W x_s need no pass over the Jacobian
-            if self._inv_sigma is not None:  # prepared: z / sigma too (the same product, made once)
-                inv_sigma, zs = self._inv_sigma, _bcast_obs(self._z_scaled, points)
+            if self.inv_sigma is not None:  # prepared: z / sigma too (the same product, made once)
+                inv_sigma, zs = self.inv_sigma, _bcast_obs(self.z_scaled, points)
             else:
                 inv_sigma = self._scalar_inv_sigma(points)
                 zs = _bcast_obs(self.z, points) * inv_sigma
@@ -152,7 +155,7 @@ class GaussianMeasurement:
     def at_diagonal(self, points: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
         """``(W's diagonal (..., m), y (..., m))`` of :meth:`at` for a measurement that is
         :attr:`diagonal` with a diagonal R, from the model's
-        :meth:`~torchflow.models.StateSpaceModel.linearize_measurement_diagonal` (no ``m x m`` matrix
+        :meth:`~torchflow.models.GaussianStateSpaceModel.linearize_measurement_diagonal` (no ``m x m`` matrix
         per point; the same numbers as :meth:`at`); ``None`` for other measurements."""
         if self.diagonal_rows is None:
             return None
@@ -174,7 +177,7 @@ class GaussianMeasurement:
         if self.hessian is None:
             return None
         if self.noise == "scalar":
-            inv_sigma = self._inv_sigma if self._inv_sigma is not None else self._scalar_inv_sigma(points)
+            inv_sigma = self.inv_sigma if self.inv_sigma is not None else self._scalar_inv_sigma(points)
             return self.hessian(points, support is not None, inv_sigma)
         dH = self.hessian(points, support is not None)  # (..., m, n_b, b, b)
         LR = self.scale_tril(points)
@@ -183,10 +186,22 @@ class GaussianMeasurement:
         return linalg.solve_triangular(LR, dH.flatten(-3), upper=False).unflatten(-1, dH.shape[-3:])
 
 
+def measurement_form(model):
+    """``(name, tensors)`` of the measurement form the model declares
+    (:attr:`~torchflow.models.Structure.measurement_form`: a name and the names of the model's
+    tensors it reads), or ``None``. Only where the model's own class declares its structure
+    (:func:`~torchflow.models.structure.kernel_structure`): a subclass may change the measurement."""
+    declared = kernel_structure(model).measurement_form
+    if declared is None:
+        return None
+    name, params = declared
+    return name, tuple(getattr(model, p) for p in params)
+
+
 def whiten(model, points: torch.Tensor, z: torch.Tensor, support=None) -> Tuple[torch.Tensor, torch.Tensor]:
     """``(W, y)`` of the model's measurement at ``points`` (a convenience for tests and users)."""
     lin = GaussianMeasurement.from_model(model, z).at(points, support)
     return lin.W, lin.y
 
 
-__all__ = ["GaussianMeasurement", "Linearisation", "whiten"]
+__all__ = ["GaussianMeasurement", "Linearisation", "measurement_form", "whiten"]

@@ -110,7 +110,7 @@ def flow_points_per_call(model) -> int:
     """Points (trials x particles) per call of a per-particle flow on ``model``: ``torchflow.tuning``
     ``points_per_call``, capped so that one batch of the points' ``k x k`` matrices (k = the
     measured state coordinates) stays within ``flow_bytes_per_call`` (0: no cap)."""
-    sup = model.measurement_support
+    sup = model.structure.measurement_support
     k = model.state_dim if sup is None else len(sup)
     t = tuning.get()
     cap = t.flow_bytes_per_call // (8 * k * k) if t.flow_bytes_per_call else t.points_per_call  # 0: no cap
@@ -259,7 +259,7 @@ class ClusteredPoints(LinearisationPoints):
         prior = FlowPrior(eta_bar, scale_tril.unsqueeze(-3))
         zero = torch.zeros((), dtype=eta_bar.dtype, device=eta_bar.device)
         zeta = _VELOCITY.coefficients(model, z, eta_bar, prior, zero, zero).drift(eta_bar)[0]
-        dist = cluster_distance(eta_bar, zeta, self.alpha, model.measurement_support)
+        dist = cluster_distance(eta_bar, zeta, self.alpha, model.structure.measurement_support)
         return kmedoids(dist, self.n_clusters, self.sweeps)
 
     # the (B, N, N) distance sweeps of K-medoids fall out of cache like per-particle flows:

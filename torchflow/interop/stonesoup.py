@@ -67,7 +67,8 @@ from stonesoup.updater.particle import ParticleUpdater
 
 from .. import linalg
 from ..flows import FlowPrior, integrate_flow, resolve_points
-from ..models.base import StateSpaceModel
+from ..models.base import GaussianStateSpaceModel
+from ..models.structure import Structure
 from ..proposals.flow import FLOWS, resolve_flow
 from ..schedules import LambdaSchedule, resolve_schedule
 
@@ -83,7 +84,7 @@ def _wrap(a: torch.Tensor) -> torch.Tensor:
     return torch.remainder(a + math.pi, 2 * math.pi) - math.pi
 
 
-class StoneSoupMeasurement(StateSpaceModel):
+class StoneSoupMeasurement(GaussianStateSpaceModel):
     """A Stone Soup measurement model (and the detection it is evaluated against) as the torchflow
     measurement term the flows linearise. Angle components of ``h`` are returned within pi of the
     detection's, so every residual ``z - h(x)`` is the wrapped one.
@@ -94,7 +95,7 @@ class StoneSoupMeasurement(StateSpaceModel):
         dtype, device: of the torch tensors.
     """
 
-    measurement_noise = "dense"
+    structure = Structure(measurement_noise="dense")
 
     def __init__(self, model: MeasurementModel, z: np.ndarray, dtype=torch.float64, device=None):
         super().__init__()
@@ -114,7 +115,8 @@ class StoneSoupMeasurement(StateSpaceModel):
         self.angle_rows = tuple(i for i, v in enumerate(typed) if isinstance(v, Angle))
         self.kind = "generic"
         if isinstance(model, _SSLinearGaussian):
-            self.kind, self.linear_measurement = "linear", True
+            self.kind = "linear"
+            self.structure = self.structure.replace(linear_measurement=True)
             self.register_buffer("H", torch.as_tensor(np.asarray(model.matrix(), dtype=float), **kw))
         elif isinstance(model, (CartesianToBearingRange, CartesianToElevationBearingRange)):
             self.kind = "polar" if isinstance(model, CartesianToBearingRange) else "spherical"

@@ -1,9 +1,12 @@
-"""State-space models: the interface every filter consumes, and the models of the seed papers."""
+"""State-space models: the core contract every filter consumes (:class:`StateSpaceModel`), the
+Gaussian form (:class:`GaussianStateSpaceModel`), the declared :class:`Structure`, and the models
+of the seed papers."""
 from .acoustic import AcousticTracking
-from .base import StateSpaceModel, Trajectory
+from .base import GaussianStateSpaceModel, StateSpaceModel, Trajectory
+from .structure import Structure
 from .linear_gaussian import LinearGaussian, SensorNetwork, sensor_network_covariance
 from .skewed_t import SkewedTPoisson
 from .tdoa import TDOA3D, TDOAData
 
-__all__ = ["StateSpaceModel", "Trajectory", "LinearGaussian", "SensorNetwork", "sensor_network_covariance",
+__all__ = ["StateSpaceModel", "GaussianStateSpaceModel", "Structure", "Trajectory", "LinearGaussian", "SensorNetwork", "sensor_network_covariance",
            "AcousticTracking", "SkewedTPoisson", "TDOA3D", "TDOAData"]

@@ -13,7 +13,9 @@ import torch
 from .. import constraints, linalg
 from ..linalg import block_diagonal
 from .._checks import check_choice
-from .base import StateSpaceModel, Trajectory
+from .base import GaussianStateSpaceModel, Trajectory
+from .contract import check_simulate_args
+from .structure import Structure
 
 _X0 = [12, 6, 0.001, 0.001, 32, 32, -0.001, -0.005, 20, 13, -0.1, 0.01, 15, 35, 0.002, 0.002]
 
@@ -22,7 +24,7 @@ def _blockdiag(block: torch.Tensor, n: int) -> torch.Tensor:
     return torch.block_diag(*([block] * n))
 
 
-class AcousticTracking(StateSpaceModel):
+class AcousticTracking(GaussianStateSpaceModel):
     """Multi-target acoustic tracking model.
 
     Args:
@@ -47,10 +49,11 @@ class AcousticTracking(StateSpaceModel):
     """
 
     n_targets = 4
-    has_positions = True
-    linear_dynamics = True
-    measurement_noise = "scalar"  # R = sigma_w^2 I
-    graph_safe = True  # torchflow.filters.graph_step (declared per class)
+    #: linear dynamics, R = sigma_w^2 I, h reads the positions only (``(0, 1, 4, 5, ...)``, k = 2C
+    #: of d = 4C), ``z_i = Psi sum_c 1 / (|p_c - s_i| + d0)`` in the flow kernels' named form
+    structure = Structure(linear_dynamics=True, measurement_noise="scalar", has_positions=True, graph_safe=True,
+                          measurement_support=tuple(4 * c + i for c in range(4) for i in (0, 1)),
+                          measurement_form=("inverse_distance_sum", ("sensors", "psi", "d0")))
 
     def __init__(self, *, sigma_w: float = 0.1, psi: float = 10.0, d0: float = 0.1, true_noise_scale: float = 0.05,
                  filter_noise: str = "inflated", area: float = 40.0, sensor_grid: int = 5,
@@ -64,6 +67,7 @@ class AcousticTracking(StateSpaceModel):
         check_choice("filter_noise", filter_noise, ("inflated", "truth"))
         C = self.n_targets
         self.state_dim, self.obs_dim = 4 * C, sensor_grid * sensor_grid
+        self.structure = type(self).structure.replace(bytes_per_point=8 * 6 * C * self.obs_dim)
         f64 = dict(dtype=torch.float64)
         F1 = torch.tensor([[1, 0, 1, 0], [0, 1, 0, 1], [0, 0, 1, 0], [0, 0, 0, 1]], **f64)
         G = torch.tensor([[1 / 3, 0, 1 / 2, 0], [0, 1 / 3, 0, 1 / 2], [1 / 2, 0, 1, 0], [0, 1 / 2, 0, 1]], **f64)
@@ -124,9 +128,6 @@ class AcousticTracking(StateSpaceModel):
         r = torch.sqrt(dx * dx + dy * dy)
         return (self.psi / (r + self.d0)).sum(-2)
 
-    def bytes_per_point(self) -> int:
-        return 8 * 6 * self.n_targets * self.obs_dim
-
     def measurement_cov(self, x=None):
         return self.sigma_w**2 * torch.eye(self.obs_dim, dtype=self.sigma_w.dtype, device=self.sigma_w.device)
 
@@ -138,11 +139,6 @@ class AcousticTracking(StateSpaceModel):
         resid = (z - self.measure(x)) / self.sigma_w
         m = self.obs_dim
         return -0.5 * resid.pow(2).sum(-1) - m * torch.log(self.sigma_w) - 0.5 * m * linalg._LOG_2PI
-
-    @property
-    def measurement_support(self):
-        """The measurement reads positions only: ``(0, 1, 4, 5, ...)``, k = 2C = 8 of d = 16."""
-        return tuple(4 * c + i for c in range(self.n_targets) for i in (0, 1))
 
     def _sensor_offsets(self, x):
         """Per-sensor offsets and ranges ``(..., m, C)`` (sensor-major, so the Jacobian needs no
@@ -170,17 +166,6 @@ class AcousticTracking(StateSpaceModel):
         inv = 1 / (r + self.d0)
         psi = self.psi if scale is None else self.psi * scale  # fold the scale into Psi: free
         return psi * inv.sum(-1), self._support_jacobian(dx, dy, r, inv, psi)
-
-    def fused_measurement(self):
-        """``z_i = Psi sum_c 1 / (|p_c - s_i| + d0)``: the fused GPU pseudo-step's kind 1, so
-        PF-PF(LEDH)'s kernel linearises it in registers. ``None`` for a subclass that changes the
-        measurement or its support (the kernel would compute this model's, not the subclass's)."""
-        cls = type(self)
-        if any(getattr(cls, name) is not getattr(AcousticTracking, name)
-               for name in ("measure", "linearize_measurement", "measurement_support", "measurement_scale_tril")):
-            return None
-        from ..flows.fused import FusedMeasurement
-        return FusedMeasurement(1, self.sensors, self.psi, self.d0)
 
     def measurement_hessian_blocks(self, x, support=False, scale=None):
         """Analytic second derivatives as one block per target, ``(..., m, C, b, b)`` (``b = 2``
@@ -229,7 +214,7 @@ class AcousticTracking(StateSpaceModel):
         (a single target stays inside only a few per cent of the time). Rejection is batched over
         the tracks still invalid.
         """
-        batch_size, steps = self.check_simulate_args(batch_size, steps, generator)
+        batch_size, steps = check_simulate_args(self, batch_size, steps, generator)
         C = self.n_targets
         with torch.no_grad():
             x0 = self.initial_state(batch_size).reshape(batch_size * C, 4)

@@ -1,4 +1,19 @@
-"""The single model interface every filter consumes."""
+"""The model contract: a core that says what a state-space model is, and an optional Gaussian form.
+
+* :class:`StateSpaceModel` (the core): the initial law, the transition and the measurement, each
+  as a sampler and a log-density on ``(..., d)`` tensors. A model that gives only the core runs
+  with the bootstrap particle filter (and the runner).
+* :class:`GaussianStateSpaceModel` (the Gaussian form): ``x_k = g(x_{k-1}) + v_k``,
+  ``v_k ~ N(0, Q(x_{k-1}))`` and ``z_k = h(x_k) + w_k``, ``w_k ~ N(0, R(x_k))``, given by the
+  transition mean and covariance, h and R; the core follows from them. The Kalman family, the
+  particle flows and the Gaussian proposals need it; Jacobians come from :mod:`torch.func` unless
+  the model gives them.
+
+What a model declares about itself (linearity, the structure of R, which coordinates h reads,
+what a kernel may exploit) is one record, :class:`~torchflow.models.structure.Structure`. The
+outputs of a model's methods are shape-checked once per model, on a filter's first call
+(:func:`torchflow.models.contract.check_shapes`), with an error naming the method.
+"""
 from __future__ import annotations
 
 import itertools
@@ -9,9 +24,9 @@ import torch
 from torch import nn
 
 from .. import linalg
-from .._checks import check_count, check_finite, check_psd, check_tensor
+from .._checks import check_finite, check_tensor
 from ..linearize import jacobian
-from ..random import generator_hint
+from .structure import Structure
 
 
 @dataclass
@@ -31,69 +46,157 @@ class Trajectory:
         return Trajectory(self.states[idx], self.observations[idx])
 
 
+def _missing(model, method: str, what: str):
+    return NotImplementedError(f"{type(model).__name__}.{method}: not given; a model gives {what} "
+                               "(torchflow.models.StateSpaceModel's core)")
+
+
 class StateSpaceModel(nn.Module):
-    """Base class of state-space models ``x_k = g(x_{k-1}) + v_k``, ``z_k = h(x_k) + w_k``.
+    r"""A state-space model: the core every filter reads.
 
-    The filter-side distributions (``transition_*``, ``measurement_*``) are what the filters use;
-    :meth:`simulate` may use a different, "true" process (e.g. the acoustic model's filter noise
-    is inflated relative to its true noise). Model functions take any leading batch shape
-    ``(..., d)`` and broadcast. Parameters are buffers or ``nn.Parameter``s so they can be learned.
+    A model gives six methods, all on any leading batch shape:
 
-    Subclasses implement :meth:`transition_mean`, :meth:`transition_cov`, :meth:`measure`,
-    :meth:`measurement_cov`, :meth:`initial_state` and :meth:`initial_belief` (a linear model may
-    give :meth:`transition_matrix` / :meth:`measurement_matrix` instead of the mean and Jacobian);
-    they may override :meth:`measurement_jacobian` with an analytic Jacobian.
+    * the initial law: :meth:`initial_state` (true states ``x_0``) and :meth:`initial_belief` (the
+      Gaussian prior ``(mean, cov)`` a filter starts from);
+    * the transition: :meth:`sample_transition` and :meth:`transition_log_prob`;
+    * the measurement: :meth:`sample_measurement` and :meth:`measurement_log_prob`;
+
+    and states ``state_dim`` (d), ``obs_dim`` (m) and its :attr:`structure`. :meth:`simulate`
+    follows from the core. Parameters are buffers or ``nn.Parameter``\ s (learnable).
+    Randomness comes only through the ``generator`` passed in: draw with
+    :func:`torchflow.linalg.standard_normal` (it also serves the runner's per-trial streams).
+
+    Example (stochastic volatility, ``x_k = phi x_{k-1} + sigma v_k``, ``z_k | x_k ~ N(0, exp(x_k))``)::
+
+        class StochasticVolatility(StateSpaceModel):
+            state_dim = obs_dim = 1
+            def __init__(self, phi=0.9, sigma=0.5):
+                super().__init__()
+                self.register_buffer("phi", torch.tensor(phi, dtype=torch.float64))
+                self.register_buffer("sigma", torch.tensor(sigma, dtype=torch.float64))
+            def stationary_var(self):
+                return self.sigma ** 2 / (1 - self.phi ** 2)
+            def initial_state(self, batch_size, generator=None):
+                xi = standard_normal((batch_size, 1), dtype=self.dtype, device=self.device, generator=generator)
+                return self.stationary_var().sqrt() * xi
+            def initial_belief(self, states0, generator=None):
+                B = states0.shape[0]
+                return states0.new_zeros(B, 1), self.stationary_var().expand(B, 1, 1).clone()
+            def sample_transition(self, x, generator=None):
+                return self.phi * x + self.sigma * standard_normal(x.shape, dtype=x.dtype, device=x.device,
+                                                                   generator=generator)
+            def transition_log_prob(self, x_next, x):
+                r, var = (x_next - self.phi * x).squeeze(-1), self.sigma ** 2
+                return -0.5 * (torch.log(2 * torch.pi * var) + r * r / var)
+            def sample_measurement(self, x, generator=None):
+                return (x / 2).exp() * standard_normal(x.shape, dtype=x.dtype, device=x.device, generator=generator)
+            def measurement_log_prob(self, z, x):
+                z, x = z.squeeze(-1), x.squeeze(-1)  # variance exp(x)
+                return -0.5 * (torch.log(torch.tensor(2 * torch.pi, dtype=x.dtype)) + x + z * z * (-x).exp())
     """
 
     state_dim: int
     obs_dim: int
-    #: ``True`` when g is linear, ``g(x) = transition_matrix() @ x``: filters then skip Jacobians and
-    #: share covariance recursions that cannot differ between particles.
-    linear_dynamics: bool = False
-    #: ``True`` when p(x_k | x_{k-1}) is the Gaussian ``N(transition_mean, transition_cov)``; a model
-    #: with another transition (skewed-t) declares False, and its transition_mean/cov are the
-    #: Gaussian fit that flows, trackers and stochastic-flow proposals use (MODELS.md §14e).
-    gaussian_transition: bool = True
-    #: ``True`` when h is linear, ``h(x) = measurement_matrix() @ x``.
-    linear_measurement: bool = False
-    #: structure of the measurement noise R, declared by the model and never detected at run time:
-    #: ``"scalar"`` (``R = sigma^2 I``, constant), ``"diagonal"`` (constant), ``"dense"`` (constant)
-    #: ``"state_dependent"`` (``measurement_cov(x)`` varies with x) or ``"state_dependent_diagonal"``
-    #: (varies with x and is diagonal: flows whiten by a division instead of a triangular solve
-    #: per point). Flows whiten with it.
-    measurement_noise: str = "dense"
-    #: ``True`` when the model's sampling and densities (:meth:`sample_transition`,
-    #: :meth:`transition_log_prob`, :meth:`measurement_log_prob`) are pure functions of their
-    #: tensors that draw only through the passed generator's ``normal``/``uniform``, with no host
-    #: read and no Python-side state: a particle filter's whole step may then be replayed from a
-    #: CUDA graph (:mod:`torchflow.filters.graph_step`). Declared by each class itself, not
-    #: inherited (a subclass may change those methods); checked on a GPU for the linear-Gaussian
-    #: models and acoustic tracking (``tests/test_graph_step.py``).
-    graph_safe: bool = False
-    #: ``True`` when each measurement reads only its own state coordinate (``m == d`` and
-    #: ``dh_i/dx_j = 0`` for ``i != j``; declared, never detected): the flows then scale by the
-    #: Jacobian's diagonal instead of multiplying by the ``d x d`` matrix (the same numbers).
-    measurement_jacobian_diagonal: bool = False
-    #: ``c`` when the (constant) transition matrix is exactly ``c I`` (declared; ``None`` otherwise)
-    transition_matrix_scale: Optional[float] = None
-    #: ``c`` when the (constant) measurement matrix is exactly ``c I`` (declared; ``None`` otherwise)
-    measurement_matrix_scale: Optional[float] = None
-    #: ``r`` when the (constant) measurement noise is exactly ``r I`` (declared; ``None`` otherwise)
-    measurement_noise_scale: Optional[float] = None
+    #: the model's declared structure (:class:`~torchflow.models.structure.Structure`)
+    structure: Structure = Structure()
 
     # ---- dtype / device --------------------------------------------------------------------
     @property
     def dtype(self) -> torch.dtype:
+        """The dtype of the model's first parameter or buffer."""
         return self._reference_tensor().dtype
 
     @property
     def device(self) -> torch.device:
+        """The device of the model's first parameter or buffer."""
         return self._reference_tensor().device
 
     def _reference_tensor(self) -> torch.Tensor:
         for t in itertools.chain(self.parameters(), self.buffers()):
             return t
-        raise RuntimeError(f"{type(self).__name__} has no parameters or buffers")
+        raise RuntimeError(f"{type(self).__name__} has no parameters or buffers (register the model's numbers "
+                           "as buffers or nn.Parameters: they give its dtype and device)")
+
+    # ---- the core ----------------------------------------------------------------------------
+    def initial_state(self, batch_size: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
+        """True initial states ``x_0 (B, d)``."""
+        raise _missing(self, "initial_state", "initial_state(batch_size, generator) -> (B, d)")
+
+    def initial_belief(self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
+                       ) -> Tuple[torch.Tensor, torch.Tensor]:
+        """The filters' prior for each trial given the true ``states0 (B, d)``: mean ``(B, d)`` and
+        covariance ``(B, d, d)``."""
+        raise _missing(self, "initial_belief", "initial_belief(states0, generator) -> ((B, d), (B, d, d))")
+
+    def sample_transition(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
+        """Draw ``x_k ~ p(x_k | x_{k-1} = x)`` for ``x (..., d)`` -> ``(..., d)``."""
+        raise _missing(self, "sample_transition", "sample_transition(x (..., d), generator) -> (..., d)")
+
+    def transition_log_prob(self, x_next: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """``log p(x_next | x)`` for ``x_next``, ``x`` broadcastable ``(..., d)`` -> ``(...)``."""
+        raise _missing(self, "transition_log_prob", "transition_log_prob(x_next, x) -> (...)")
+
+    def sample_measurement(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
+        """Draw ``z ~ p(z | x)`` for ``x (..., d)`` -> ``(..., m)``."""
+        raise _missing(self, "sample_measurement", "sample_measurement(x (..., d), generator) -> (..., m)")
+
+    def measurement_log_prob(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """``log p(z | x)`` for ``z`` broadcastable to ``(..., m)`` and ``x (..., d)`` -> ``(...)``."""
+        raise _missing(self, "measurement_log_prob", "measurement_log_prob(z, x) -> (...)")
+
+    # ---- what follows from the core ---------------------------------------------------------
+    def simulate(self, batch_size: int, steps: int, generator: Optional[torch.Generator] = None) -> Trajectory:
+        """Simulate ``batch_size`` independent trajectories of ``steps`` steps.
+
+        Returns:
+            :class:`Trajectory` with states ``(B, T+1, d)`` and observations ``(B, T, m)``.
+        """
+        from .contract import check_simulate_args
+
+        batch_size, steps = check_simulate_args(self, batch_size, steps, generator)
+        with torch.no_grad():
+            x = self.initial_state(batch_size, generator)
+            states, obs = [x], []
+            for _ in range(steps):
+                x = self._simulation_transition(x, generator)
+                states.append(x)
+                obs.append(self.sample_measurement(x, generator))
+            return Trajectory(torch.stack(states, 1), torch.stack(obs, 1))
+
+    def _simulation_transition(self, x: torch.Tensor, generator) -> torch.Tensor:
+        """One step of :meth:`simulate`'s process (the filters' transition, unless a model's
+        simulated truth differs from what its filters assume)."""
+        return self.sample_transition(x, generator)
+
+    def check_observations(self, observations: torch.Tensor) -> torch.Tensor:
+        """Raise a clear error unless ``observations`` is a finite ``(B, T, m)`` tensor on the
+        model's dtype and device."""
+        check_tensor("observations", observations, (None, None, self.obs_dim), "(B, T, m)",
+                     dtype=self.dtype, device=self.device)
+        if observations.shape[0] == 0 or observations.shape[1] == 0:
+            raise ValueError(f"observations: expected (B, T, m) with at least one trial and one time step, "
+                             f"got {tuple(observations.shape)}")
+        check_finite("observations", observations)
+        return observations
+
+
+class GaussianStateSpaceModel(StateSpaceModel):
+    """The Gaussian form of a state-space model: ``x_k = g(x_{k-1}) + v_k``, ``v_k ~ N(0, Q)`` and
+    ``z_k = h(x_k) + w_k``, ``w_k ~ N(0, R)`` (Q and R may depend on the state).
+
+    A model gives :meth:`transition_mean` (g), :meth:`transition_cov` (Q), :meth:`measure` (h),
+    :meth:`measurement_cov` (R) and the initial law; a linear model may give
+    :meth:`transition_matrix` / :meth:`measurement_matrix` (declaring ``structure.linear_dynamics``
+    / ``linear_measurement``) instead of g and h. Jacobians come from :mod:`torch.func` unless the
+    model overrides :meth:`measurement_jacobian` (or :meth:`linearize_measurement`) with analytic
+    ones. The core's samplers and densities follow from the Gaussian form; a model with another
+    law (skewed-t dynamics, Poisson counts) overrides them and declares
+    ``structure.gaussian_transition = False``: its Gaussian form is then the approximation that
+    moves particles (flows, trackers), while the core weighs them exactly.
+
+    :meth:`simulate` draws the truth with :meth:`sample_true_transition`, whose noise factor
+    :meth:`true_transition_scale_tril` may differ from the filters' (acoustic tracking).
+    """
 
     # ---- dynamics ----------------------------------------------------------------------------
     def transition_mean(self, x: torch.Tensor) -> torch.Tensor:
@@ -102,27 +205,7 @@ class StateSpaceModel(nn.Module):
 
     def transition_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Cov[x_k | x_{k-1}] used by filters: broadcastable ``(d, d)`` or ``(..., d, d)``."""
-        raise NotImplementedError
-
-    def check_covariances(self, who: str = "") -> None:
-        """Raise unless the constant transition and measurement covariances (``transition_cov()``,
-        ``measurement_cov()``; state-dependent ones are skipped) are symmetric positive
-        semi-definite, naming the model, the covariance and, for a parameter of the model, its name.
-        Filters call it once per call (a learnable covariance may leave the cone after an optimiser
-        step; :mod:`torchflow.constraints` keeps one valid by construction)."""
-        params = {id(p): n for n, p in self.named_parameters()}
-        for what, fn in (("transition covariance", self.transition_cov), ("measurement covariance", self.measurement_cov)):
-            try:
-                C = fn()
-            except (NotImplementedError, TypeError, RuntimeError, ValueError):
-                continue  # state-dependent: no constant matrix to check
-            if not isinstance(C, torch.Tensor) or C.dim() != 2:
-                continue
-            name = params.get(id(C))
-            label = f"{type(self).__name__}'s {what}" + (f" (parameter {name!r})" if name else "")
-            if C.requires_grad and not name:
-                label += " (built from learnable parameters)"
-            check_psd(f"{who + ': ' if who else ''}{label}", C.detach())
+        raise NotImplementedError(f"{type(self).__name__}.transition_cov: not given (the Gaussian form needs Q)")
 
     def transition_scale_tril(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Lower Cholesky factor of :meth:`transition_cov`."""
@@ -130,13 +213,13 @@ class StateSpaceModel(nn.Module):
 
     def transition_jacobian(self, x: torch.Tensor) -> torch.Tensor:
         """d g / d x at ``x (..., d)`` -> ``(..., d, d)`` (the matrix of linear dynamics, else torch.func)."""
-        if self.linear_dynamics:
+        if self.structure.linear_dynamics:
             F = self.transition_matrix()
             return F.expand(*x.shape[:-1], *F.shape)
         return jacobian(self.transition_mean, x)
 
     def transition_matrix(self) -> torch.Tensor:
-        """``(d, d)`` matrix of a linear transition (only when :attr:`linear_dynamics`)."""
+        """``(d, d)`` matrix of a linear transition (only when ``structure.linear_dynamics``)."""
         raise NotImplementedError(f"{type(self).__name__} has no constant transition matrix")
 
     def sample_transition(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
@@ -146,7 +229,7 @@ class StateSpaceModel(nn.Module):
 
     def sample_transition_gaussian(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         """Draw from the Gaussian fit ``N(transition_mean(x), transition_cov(x))`` (the transition
-        itself when :attr:`gaussian_transition`)."""
+        itself when ``structure.gaussian_transition``)."""
         L = self.transition_scale_tril(x)
         xi = linalg.standard_normal(x.shape, dtype=x.dtype, device=x.device, generator=generator)
         return self.transition_mean(x) + linalg.matvec(L, xi)
@@ -162,7 +245,7 @@ class StateSpaceModel(nn.Module):
 
     def measurement_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
         """R: broadcastable ``(m, m)`` or ``(..., m, m)``."""
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__}.measurement_cov: not given (the Gaussian form needs R)")
 
     def measurement_scale_tril(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
         return linalg.safe_cholesky(self.measurement_cov(x))
@@ -170,21 +253,16 @@ class StateSpaceModel(nn.Module):
     def measurement_jacobian(self, x: torch.Tensor) -> torch.Tensor:
         """dh/dx at ``x (..., d)`` -> ``(..., m, d)``; the matrix of a linear measurement, else torch.func
         (vmapped jacrev)."""
-        if self.linear_measurement:
+        if self.structure.linear_measurement:
             H = self.measurement_matrix()
             return H.expand(*x.shape[:-1], *H.shape)
         return jacobian(self.measure, x)
 
-    #: state coordinates the measurement depends on (``None``: all). A model whose h reads only
-    #: some coordinates (positions, not velocities) declares them here; the flows then linearise
-    #: in that k-dimensional subspace (``k x k`` systems instead of ``d x d``), exactly.
-    measurement_support: Optional[Tuple[int, ...]] = None
-
     def measurement_jacobian_support(self, x: torch.Tensor) -> torch.Tensor:
-        """dh/dx restricted to :attr:`measurement_support`: ``(..., m, k)`` (the other columns of
+        """dh/dx restricted to :attr:`Structure.measurement_support`: ``(..., m, k)`` (the other columns of
         the Jacobian are zero). Default: columns of :meth:`measurement_jacobian`."""
         J = self.measurement_jacobian(x)
-        return J if self.measurement_support is None else J[..., list(self.measurement_support)]
+        return J if self.structure.measurement_support is None else J[..., list(self.structure.measurement_support)]
 
     def linearize_measurement(self, x: torch.Tensor, support: bool = False, scale=None):
         """``(h(x) (..., m), dh/dx (..., m, d))`` at ``x (..., d)``; with ``support`` the Jacobian
@@ -199,7 +277,7 @@ class StateSpaceModel(nn.Module):
     def linearize_measurement_diagonal(self, x: torch.Tensor):
         """``(h(x) (..., m), the Jacobian's diagonal (..., m), R's factor's diagonal (..., m))`` at
         ``x (..., d)`` for a model whose Jacobian and R are diagonal by declaration
-        (:attr:`measurement_jacobian_diagonal`, a diagonal R): what the flows' diagonal paths read,
+        (``structure.measurement_jacobian_diagonal``, a diagonal R): what the flows' diagonal paths read,
         without ``d x d`` matrices per point. Default: the diagonals of :meth:`linearize_measurement`
         and :meth:`measurement_scale_tril`; a model overrides it with the elementwise forms (the same
         numbers)."""
@@ -208,7 +286,7 @@ class StateSpaceModel(nn.Module):
 
     def measurement_hessian(self, x: torch.Tensor, support: bool = False, scale=None) -> torch.Tensor:
         """Second derivatives of h at ``x (..., d)``: ``(..., m, k, k)`` with entry ``[..., a, t, j]``
-        ``= d^2 h_a / dx_t dx_j`` over the :attr:`measurement_support` coordinates (``support``; all
+        ``= d^2 h_a / dx_t dx_j`` over the :attr:`Structure.measurement_support` coordinates (``support``; all
         d coordinates otherwise, k = d), multiplied by the scalar ``scale`` when given: the
         derivative of :meth:`linearize_measurement`'s Jacobian along each coordinate, which GPFIS's
         step Jacobian needs (:mod:`torchflow.flows.gpfis`). Default: forward-mode autodiff of that
@@ -216,7 +294,7 @@ class StateSpaceModel(nn.Module):
         second derivatives overrides it."""
         from torch.func import jvp, vmap
 
-        idx = list(self.measurement_support) if support and self.measurement_support is not None else None
+        idx = list(self.structure.measurement_support) if support and self.structure.measurement_support is not None else None
         index = None if idx is None else torch.tensor(idx, device=x.device)
         xs = x if index is None else x[..., index]
         k = xs.shape[-1]
@@ -237,16 +315,8 @@ class StateSpaceModel(nn.Module):
         overrides it (GPFIS's step Jacobian then reads ``n_b`` times fewer numbers)."""
         return self.measurement_hessian(x, support, scale).unsqueeze(-3)
 
-    def fused_measurement(self):
-        """The measurement in the terms of the fused GPU pseudo-step of EDH/LEDH
-        (:class:`torchflow.flows.fused.FusedMeasurement`), which then linearises it inside the
-        kernel instead of reading a ``(B, N, m, k)`` Jacobian per pseudo-step; ``None`` (default):
-        the model's :meth:`linearize_measurement`. A model that overrides it must give the same
-        measurement (``tests/flows/test_fused.py`` checks the acoustic model's)."""
-        return None
-
     def measurement_matrix(self) -> torch.Tensor:
-        """``(m, d)`` matrix of a linear measurement (only when :attr:`linear_measurement`)."""
+        """``(m, d)`` matrix of a linear measurement (only when ``structure.linear_measurement``)."""
         raise NotImplementedError(f"{type(self).__name__} has no constant measurement matrix")
 
     def measurement_log_prob(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -260,83 +330,15 @@ class StateSpaceModel(nn.Module):
         xi = torch.randn(mean.shape, dtype=x.dtype, device=x.device, generator=generator)
         return mean + linalg.matvec(L, xi)
 
-    # ---- truth and priors --------------------------------------------------------------------
+    # ---- the simulated truth -------------------------------------------------------------------
     def true_transition_scale_tril(self) -> torch.Tensor:
         """Cholesky factor of the noise used by :meth:`simulate` (defaults to the filter's)."""
         return self.transition_scale_tril()
-
-    def initial_state(self, batch_size: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
-        """True initial states x_0 -> ``(B, d)``."""
-        raise NotImplementedError
-
-    def initial_belief(self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
-                       ) -> Tuple[torch.Tensor, torch.Tensor]:
-        """The filters' prior for each trial given the true ``states0 (B, d)``.
-
-        Returns:
-            mean ``(B, d)`` and covariance ``(B, d, d)``.
-        """
-        raise NotImplementedError
-
-    def simulate(self, batch_size: int, steps: int, generator: Optional[torch.Generator] = None) -> Trajectory:
-        """Simulate ``batch_size`` independent trajectories of ``steps`` steps.
-
-        Returns:
-            :class:`Trajectory` with states ``(B, T+1, d)`` and observations ``(B, T, m)``.
-        """
-        batch_size, steps = self.check_simulate_args(batch_size, steps, generator)
-        with torch.no_grad():
-            x = self.initial_state(batch_size, generator)
-            states, obs = [x], []
-            for _ in range(steps):
-                x = self.sample_true_transition(x, generator)
-                states.append(x)
-                obs.append(self.sample_measurement(x, generator))
-            return Trajectory(torch.stack(states, 1), torch.stack(obs, 1))
 
     def sample_true_transition(self, x: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """One step of :meth:`simulate`'s process: Gaussian with :meth:`true_transition_scale_tril` by default."""
         xi = torch.randn(x.shape, dtype=x.dtype, device=x.device, generator=generator)
         return self.transition_mean(x) + linalg.matvec(self.true_transition_scale_tril(), xi)
 
-    def bytes_per_point(self) -> int:
-        """Rough memory of evaluating the model at one point (intermediates of ``measure``,
-        log-densities); filters multiply it by their particle count to size chunks of trials."""
-        return 8 * 4 * (self.state_dim + self.obs_dim)
-
-    # ---- tracking ------------------------------------------------------------------------------
-    #: the state holds target positions (:meth:`positions`)
-    has_positions: bool = False
-
-    def positions(self, x: torch.Tensor) -> torch.Tensor:
-        """Target positions ``(..., C, 2 or 3)`` of states ``(..., d)`` (tracking models only)."""
-        raise NotImplementedError(f"{type(self).__name__} has no target positions")
-
-    # ---- validation ----------------------------------------------------------------------------
-    def check_dtype(self, who: str) -> None:
-        """Raise unless the model is in float32 or float64 (the precisions filters support)."""
-        if self.dtype not in (torch.float32, torch.float64):
-            raise TypeError(f"{who}: the model is in {self.dtype}; filters and simulation run in float32 or "
-                            "float64 (convert with model.double() or model.float())")
-
-    def check_simulate_args(self, batch_size, steps, generator) -> Tuple[int, int]:
-        """Validate :meth:`simulate`'s arguments; returns ``(batch_size, steps)`` as ints."""
-        who = f"{type(self).__name__}.simulate"
-        batch_size = check_count(f"{who}: batch_size", batch_size)
-        steps = check_count(f"{who}: steps", steps)
-        if not isinstance(generator, torch.Generator):
-            raise TypeError(f"{who}: generator: expected a torch.Generator, got {type(generator).__name__}"
-                            f"{generator_hint(generator)}")
-        self.check_dtype(who)
-        return batch_size, steps
-
-    def check_observations(self, observations: torch.Tensor) -> torch.Tensor:
-        """Raise a clear error unless ``observations`` is a finite ``(B, T, m)`` tensor on the
-        model's dtype and device."""
-        check_tensor("observations", observations, (None, None, self.obs_dim), "(B, T, m)",
-                     dtype=self.dtype, device=self.device)
-        if observations.shape[0] == 0 or observations.shape[1] == 0:
-            raise ValueError(f"observations: expected (B, T, m) with at least one trial and one time step, "
-                             f"got {tuple(observations.shape)}")
-        check_finite("observations", observations)
-        return observations
+    def _simulation_transition(self, x: torch.Tensor, generator) -> torch.Tensor:
+        return self.sample_true_transition(x, generator)

@@ -10,10 +10,11 @@ from torch import nn
 from .. import constraints, linalg
 from ..linalg import _LOG_2PI
 from .._checks import check_choice, check_psd, check_tensor
-from .base import StateSpaceModel
+from .base import GaussianStateSpaceModel
+from .structure import Structure
 
 
-class LinearGaussian(StateSpaceModel):
+class LinearGaussian(GaussianStateSpaceModel):
     """``x_k = F x_{k-1} + v_k``, ``v ~ N(0, Q)``; ``z_k = H x_k + w_k``, ``w ~ N(0, R)``.
 
     The true initial state is drawn from ``N(m0, P0)`` and the filters' prior is the same
@@ -87,18 +88,19 @@ class LinearGaussian(StateSpaceModel):
         # structure declared once, here (filters never test the matrices at run time); a learnable
         # matrix is general, so that every entry receives its gradient. F, H, R are fixed after
         # construction unless learnable.
-        self.transition_matrix_scale = None if "F" in learn else _identity_scale(F)
-        self.measurement_matrix_scale = None if "H" in learn else _identity_scale(H)
-        self.measurement_noise_scale = None if "R" in learn else _identity_scale(R)
-        self.measurement_noise = check_choice("measurement_noise", measurement_noise, ("scalar", "diagonal", "dense"))
-        if measurement_noise == "scalar" and self.measurement_noise_scale is None:
+        check_choice("measurement_noise", measurement_noise, ("scalar", "diagonal", "dense"))
+        self.structure = type(self).structure.replace(
+            transition_matrix_scale=None if "F" in learn else _identity_scale(F),
+            measurement_matrix_scale=None if "H" in learn else _identity_scale(H),
+            measurement_noise_scale=None if "R" in learn else _identity_scale(R),
+            measurement_noise=measurement_noise)
+        if measurement_noise == "scalar" and self.structure.measurement_noise_scale is None:
             raise ValueError("measurement_noise: declared 'scalar' but R is not a constant multiple of I")
         if measurement_noise == "diagonal" and not diagonal:
             raise ValueError("measurement_noise: declared 'diagonal' but R has off-diagonal entries")
 
-    linear_dynamics = True
-    linear_measurement = True
-    graph_safe = True  # torchflow.filters.graph_step (declared per class)
+    #: linear dynamics and measurement; R's structure and the identity scales per instance
+    structure = Structure(linear_dynamics=True, linear_measurement=True, graph_safe=True)
 
     # analytic, constant matrices
     def transition_matrix(self) -> torch.Tensor:
@@ -126,7 +128,7 @@ class LinearGaussian(StateSpaceModel):
         flat = x.reshape(-1, d)
         xi = linalg.standard_normal(flat.shape, dtype=x.dtype, device=x.device, generator=generator)
         out = xi @ self.transition_scale_tril().T
-        alpha = self.transition_matrix_scale
+        alpha = self.structure.transition_matrix_scale
         if alpha is not None:
             out.add_(flat, alpha=alpha)
         else:
@@ -137,7 +139,7 @@ class LinearGaussian(StateSpaceModel):
         """Whitened residual ``L_R^{-1} z - (L_R^{-1} H) x``: the triangular solve is applied to
         ``H`` and ``z`` once, not to every particle's residual. ``z (..., m)`` broadcasts with
         ``x (..., d)``."""
-        h, r = self.measurement_matrix_scale, self.measurement_noise_scale
+        h, r = self.structure.measurement_matrix_scale, self.structure.measurement_noise_scale
         if h is not None and r is not None and r > 0:  # z = h x + w, R = r I: elementwise residuals
             m = self.obs_dim
             quad = torch.linalg.vector_norm(x * h - z if h != 1.0 else x - z, dim=-1).square() / r
@@ -206,7 +208,7 @@ class SensorNetwork(LinearGaussian):
         learnable: make F, Q, H, R ``nn.Parameter``s.
     """
 
-    graph_safe = True  # torchflow.filters.graph_step (declared per class)
+    structure = LinearGaussian.structure  # declared again: graph-safe and kernel-ready as its parent
 
     def __init__(self, *, d: int = 64, alpha: float = 0.9, alpha0: float = 3.0, alpha1: float = 0.01,
                  beta: float = 20.0, sigma_z: float = 0.5, prior_var: float = 0.0, learnable: bool = False):

@@ -30,11 +30,12 @@ import torch
 
 from .. import linalg
 from ..special import log_bessel_k
-from .base import StateSpaceModel
+from .base import GaussianStateSpaceModel
+from .structure import Structure
 from .linear_gaussian import sensor_network_covariance
 
 
-class SkewedTPoisson(StateSpaceModel):
+class SkewedTPoisson(GaussianStateSpaceModel):
     """GH skewed-t dynamics on a sensor grid with Poisson count measurements (MODELS.md §3).
 
     Args:
@@ -49,11 +50,10 @@ class SkewedTPoisson(StateSpaceModel):
         steps: a default horizon for experiments (30, seed 001), not used by the model itself.
     """
 
-    linear_dynamics = True
-    gaussian_transition = False
-    linear_measurement = False
-    measurement_noise = "state_dependent_diagonal"
-    measurement_jacobian_diagonal = True  # z_c counts cell c only: lambda_c = m1 exp(m2 x_c)
+    #: linear location, a skewed-t transition (its Gaussian form is the moment fit), R = diag(lambda(x)),
+    #: and z_c counts cell c only (lambda_c = m1 exp(m2 x_c)): a diagonal measurement Jacobian
+    structure = Structure(linear_dynamics=True, gaussian_transition=False, measurement_noise="state_dependent_diagonal",
+                          measurement_jacobian_diagonal=True)
 
     def __init__(self, *, d: int = 144, alpha: float = 0.9, gamma: float = 0.3, nu: int = 7,
                  alpha0: float = 3.0, alpha1: float = 0.01, beta: float = 20.0, m1: float = 1.0,

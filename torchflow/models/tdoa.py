@@ -21,8 +21,9 @@ from typing import Optional, Sequence
 
 import torch
 
-from ..flows.measurement import GaussianMeasurement
-from .base import StateSpaceModel, Trajectory
+from .base import GaussianStateSpaceModel, Trajectory
+from .contract import check_simulate_args
+from .structure import Structure
 
 
 def check_number(name: str, v, ok, what: str) -> float:
@@ -65,7 +66,7 @@ class TDOAData(Trajectory):
         return TDOAData(self.states[idx], self.observations[idx], self.mask[idx], self.origin[idx])
 
 
-class TDOA3D(StateSpaceModel):
+class TDOA3D(GaussianStateSpaceModel):
     """The TDOA scenario of seed 002 (see the module docstring).
 
     Args:
@@ -80,7 +81,7 @@ class TDOA3D(StateSpaceModel):
     """
 
     padded_measurements, obs_dim = True, None  # masked measurement sets; only filters declaring the same take them
-    has_positions = True
+    structure = Structure(has_positions=True)
 
     def __init__(self, receivers: Optional[torch.Tensor] = None, pairs: Optional[Sequence[Sequence[int]]] = None, *,
                  speed: float = 1500.0, sigma_v: float = 5e-4, p_d: float = 0.95, clutter_rate: float = 1.0,
@@ -166,15 +167,6 @@ class TDOA3D(StateSpaceModel):
         r = (z - self.measure(x, sensor)) / self.sigma_v
         return -0.5 * r * r - torch.log(torch.as_tensor(self.sigma_v * (2 * torch.pi) ** 0.5, dtype=x.dtype))
 
-    def gaussian_measurement(self, z: torch.Tensor, sensor) -> GaussianMeasurement:
-        """The flows' measurement term of scalar TDOAs ``z (R,)`` of sensor s, one per batch row."""
-        def linearise(points, support=False, scale=None):
-            h, H = self.measure(points, sensor).unsqueeze(-1), self.jacobian(points, sensor).unsqueeze(-2)
-            return (h, H) if scale is None else (h * scale, H * scale)
-
-        return GaussianMeasurement(z.reshape(-1, 1), linearise, lambda points: torch.full(
-            (1, 1), self.sigma_v, dtype=points.dtype, device=points.device), "scalar")
-
     def check_measurements(self, z: torch.Tensor, mask: torch.Tensor) -> None:
         """Raise a clear error unless ``z (B, S, M)`` and ``mask`` (bool, same shape) fit this model."""
         if not isinstance(z, torch.Tensor) or z.dim() != 3 or z.shape[1] != self.n_sensors:
@@ -190,7 +182,7 @@ class TDOA3D(StateSpaceModel):
         measurements in random order, padded to the largest count. ``steps``: ``None`` or :attr:`n_steps`."""
         if steps is not None and steps != self.n_steps:
             raise ValueError(f"steps: TDOA3D has one step per sensor; expected None or {self.n_steps}, got {steps!r}")
-        B, _ = self.check_simulate_args(batch_size, self.n_steps, generator)
+        B, _ = check_simulate_args(self, batch_size, self.n_steps, generator)
         n, S = self.n_sources, self.n_sensors
         dt, dev = self.receivers.dtype, self.receivers.device
         src = (torch.rand(B, n, 3, generator=generator, dtype=dt, device=dev) * 2 - 1) * self.region

@@ -17,6 +17,8 @@ from torch import nn
 from .. import tuning
 from ..covariances import Covariance
 from ..models.base import StateSpaceModel
+from ..models.contract import require_gaussian
+from ..models.structure import bytes_per_point
 
 
 @dataclass
@@ -57,20 +59,26 @@ class Proposal(nn.Module):
             ``p(x_k | x_{k-1})`` (True but for the bootstrap proposal and the unweighted flows),
             so the model needs a positive definite transition covariance
             (:meth:`~torchflow.filters.ParticleFilter.check_model`).
+        gaussian_form: the proposal reads the model's Gaussian form (a
+            :class:`~torchflow.models.GaussianStateSpaceModel`; checked at construction).
         graph_safe: :meth:`propose` makes the same kernels and the same draws (kinds, shapes) at
             every step of one layout, with no host read, so the filter's whole step may be replayed
-            from a CUDA graph (:mod:`torchflow.filters.graph_step`), when the model declares the
+            from a CUDA graph (:mod:`torchflow.flows.kernels.graph_step`), when the model declares the
             same. Declared by each class itself, not inherited (a subclass may draw otherwise);
             only the bootstrap proposal says so.
     """
 
     uses_transition_density: bool = True
     graph_safe: bool = False
+    #: the proposal reads the model's Gaussian form (all but the bootstrap proposal)
+    gaussian_form: bool = True
 
     def __init__(self, model: StateSpaceModel):
         super().__init__()
         if not isinstance(model, StateSpaceModel):
             raise TypeError(f"model: expected a torchflow StateSpaceModel, got {type(model).__name__}")
+        if self.gaussian_form:
+            require_gaussian(model, type(self).__name__)
         self.model = model
 
     def init_carry(self, cov: torch.Tensor, n_particles: int) -> Optional[Covariance]:
@@ -97,7 +105,7 @@ class Proposal(nn.Module):
         """Rough peak memory of one trial in one step with ``n_particles`` (weighing included)."""
         d, m = self.model.state_dim, self.model.obs_dim
         N = int(n_particles)
-        return 8 * N * (6 * d + 3 * m + 8) + N * self.model.bytes_per_point()
+        return 8 * N * (6 * d + 3 * m + 8) + N * bytes_per_point(self.model)
 
     def preferred_chunk_trials(self, n_particles: int) -> Optional[int]:
         """Largest number of trials per call that runs at full speed (``None``: memory decides).

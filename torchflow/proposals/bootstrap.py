@@ -9,6 +9,7 @@ class BootstrapProposal(Proposal):
 
     uses_transition_density = False
     graph_safe = True
+    gaussian_form = False  # the core's transition sampler and measurement density suffice
 
     def propose(self, particles, log_weights, estimate, z, carry, generator, *, chunk=None) -> Proposed:
         x = self.model.sample_transition(particles, generator)  # (B, N, d)

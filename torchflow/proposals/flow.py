@@ -21,6 +21,7 @@ from ..flows.points import ClusteredPoints, flow_points_per_call
 from ..schedules import LambdaSchedule, resolve_schedule
 from ..trackers import tracker
 from .._blocks import blockwise
+from ..models.structure import bytes_per_point
 from .base import Proposal, Proposed
 
 #: flows by config name (:data:`torchflow.registry.REGISTRY`)
@@ -86,7 +87,7 @@ class FlowProposal(Proposal):
     def identical_covariances(self) -> bool:
         """EKF covariances of a linear model evolve identically for every particle (declared by the
         model), so per-particle points keep one per trial."""
-        return self.covariance == "ekf" and self.model.linear_dynamics and self.model.linear_measurement
+        return self.covariance == "ekf" and self.model.structure.linear_dynamics and self.model.structure.linear_measurement
 
     def init_carry(self, cov, n_particles):
         return self.points.covariance(cov, n_particles, identical=self.identical_covariances)
@@ -112,7 +113,7 @@ class FlowProposal(Proposal):
             flow = cov_mats * d * d + N * (8 * d + 3 * m)
         else:
             flow = N * per_point if self.points.per_particle else N * (8 * d + 3 * m) + 4 * per_point
-        return 8 * flow + N * self.model.bytes_per_point() + self.points.extra_bytes(N, d)
+        return 8 * flow + N * bytes_per_point(self.model) + self.points.extra_bytes(N, d)
 
     def preferred_chunk_trials(self, n_particles):
         N = int(n_particles)
@@ -127,7 +128,7 @@ class FlowProposal(Proposal):
         raise NotImplementedError
 
     def _draw_eta0(self, x_prev, generator):
-        if self.flow.stochastic and not self.model.gaussian_transition:
+        if self.flow.stochastic and not self.model.structure.gaussian_transition:
             # the tracked proposal law starts from the Gaussian fit, so eta_0 must be drawn from it
             # (MODELS.md §14e); the weight keeps the model's exact transition density
             return self.model.sample_transition_gaussian(x_prev, generator)

@@ -10,6 +10,7 @@ from .._checks import check_choice
 from ..flows.gpfis import JACOBIANS, ROOTS, gpfis_flow
 from ..schedules import LambdaSchedule, resolve_schedule
 from .._blocks import blockwise
+from ..models.structure import bytes_per_point
 from .base import Proposal, Proposed
 
 
@@ -53,7 +54,7 @@ class GPFISProposal(Proposal):
     def bytes_per_trial(self, n_particles):
         N = int(n_particles)
         d, m = self.model.state_dim, self.model.obs_dim
-        k = d if self.model.measurement_support is None else len(self.model.measurement_support)
+        k = d if self.model.structure.measurement_support is None else len(self.model.structure.measurement_support)
         # k tangent copies of the step's per-particle tensors (m x k Jacobians, k x k factors)
         per_point = (k + 1) * (3 * m * k + 6 * k * k + 4 * m + 8 * d) + 4 * d * d
-        return 8 * N * per_point + N * self.model.bytes_per_point() * (k + 1)
+        return 8 * N * per_point + N * bytes_per_point(self.model) * (k + 1)

@@ -29,6 +29,7 @@ import torch
 from .. import linalg
 from ..covariances import ParticleCovariance
 from ..trackers import tracker
+from ..models.structure import bytes_per_point
 from .base import Proposal, Proposed
 
 
@@ -60,7 +61,7 @@ class UnscentedProposal(Proposal):
             return None
         B, d = cov.shape[0], cov.shape[-1]
         # a linear model's tracked covariances do not depend on the particle (EKF and UKF are exact)
-        identical = self.model.linear_dynamics and self.model.linear_measurement
+        identical = self.model.structure.linear_dynamics and self.model.structure.linear_measurement
         P = cov.unsqueeze(1)
         return ParticleCovariance(P if identical else P.expand(B, int(n_particles), d, d), identical=identical)
 
@@ -84,7 +85,7 @@ class UnscentedProposal(Proposal):
         N, d, m = int(n_particles), self.model.state_dim, self.model.obs_dim
         s = 2 * d + 1  # sigma points per particle
         per_particle = s * (2 * d + 2 * m) + 8 * d * d + 4 * m * m + 2 * m * d + 12 * d + 4 * m
-        return 8 * N * per_particle + N * s * self.model.bytes_per_point() + super().bytes_per_trial(N)
+        return 8 * N * per_particle + N * s * bytes_per_point(self.model) + super().bytes_per_trial(N)
 
     def extra_repr(self) -> str:
         return f"covariance={self.covariance!r}, prior={self.prior!r}"

@@ -158,7 +158,7 @@ def save_run_figures(out: Path, model, result, model_name: str) -> List[Path]:
     if hasattr(model, "receivers") and res.trajectory is not None:
         figs["scene.png"] = lambda: scene_figure(plt, model, res.trajectory, res.examples, res.summary,
                                                  f"{model_name}: run 0, true and declared sources")
-    elif model.has_positions and res.trajectory is not None:
+    elif model.structure.has_positions and res.trajectory is not None:
         figs["tracks.png"] = lambda: tracks_figure(plt, model, res.trajectory, res.examples, res.summary,
                                                    f"{model_name}: trial 0, true and estimated tracks")
         figs["omat_box.png"] = lambda: omat_box_figure(

@@ -75,7 +75,7 @@ def make_scorer(model: StateSpaceModel, plan: RunPlan, **settings) -> Scorer:
     s = plan.settings
     truth = plan.traj.states[s.lo:s.hi, 1:].double().cpu()  # chunks come back as CPU float64 (any rank)
     ref = None
-    if plan.shard.is_main and model.linear_dynamics and model.linear_measurement:
+    if plan.shard.is_main and model.structure.linear_dynamics and model.structure.linear_measurement:
         with torch.no_grad():
             kf = KalmanFilter(model, validate=False)
             c = filter_chunk(kf, s.n_run, s.chunk_size, s.memory_budget_gb)
@@ -119,7 +119,7 @@ def score_filter(sc: Scorer, f: Filter, name: str, row: dict, chunks: List[dict]
         return score_sets(sc, name, row, chunks, steps)
     est, logz, n_run = _cat(chunks, "estimates"), _cat(chunks, "log_evidence"), sc.truth.shape[0]
     cols = {"mse": metrics.mse(est, sc.truth)}
-    if sc.model.has_positions:
+    if sc.model.structure.has_positions:
         est_pos, true_pos = sc.model.positions(est), sc.model.positions(sc.truth)
         cols["omat"] = metrics.omat(est_pos, true_pos)
         cols["ospa"] = metrics.ospa(est_pos, true_pos, cutoff=sc.ospa_cutoff, order=sc.ospa_order)
@@ -132,7 +132,7 @@ def score_filter(sc: Scorer, f: Filter, name: str, row: dict, chunks: List[dict]
         row["repaired"] = int(_cat(chunks, "n_repaired").sum())
     row.update({k: float(v.mean()) for k, v in cols.items()})
     lost = None
-    if sc.model.has_positions:
+    if sc.model.structure.has_positions:
         lost = metrics.lost_tracks(cols["omat"], threshold=sc.lost_threshold)
         kept = cols["omat"].mean(1)[~lost]
         row.update(lost_tracks=int(lost.sum()), omat_kept_mean=float(kept.mean()) if kept.numel() else None,

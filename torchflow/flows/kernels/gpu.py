@@ -1,4 +1,4 @@
-"""The Triton kernel of :mod:`torchflow.flows.fused` (imported only when it is used: Triton is an
+"""The Triton kernel of :mod:`torchflow.flows.kernels.steps` (imported only when it is used: Triton is an
 optional dependency)."""
 import triton
 import triton.language as tl
@@ -165,7 +165,7 @@ def kernel_rows(W, sWb, sWn, sWm, sWk, Y, sYb, sYn, sYm, Lp, sLb, sLn, sLd, sLk,
     the points, for a measurement ``h_i = Psi sum_c 1 / (|p_c - s_i| + d0)`` over 2-D positions
     ``p_c`` (support coordinates ``2c, 2c + 1``) and sensors ``s_i`` (``SENS (m, 2)``), whitened
     by a scalar ``1 / sigma``: ``CONST = [Psi / sigma, d0]`` and ``Y`` holds ``z / sigma``
-    (acoustic tracking; :func:`torchflow.flows.fused.dh_particle_step`)."""
+    (acoustic tracking; :func:`torchflow.flows.kernels.steps.dh_particle_step`)."""
     p, pm, b, n, rk, rd, lam, eps, m2, md2, sup, tri, es, aux_s, wrow, yrow, psi, d0 = _setup(
         W, sWb, sWn, sWk, Y, sYb, sYn, SUP, AUX, sEb, sEn, sEd, LAMS, EPSS, j, CONST, BN, N, d, k, BK, BD, BP)
     # pass 1: W^T y, then Pg at the measured coordinates
@@ -252,7 +252,7 @@ def kernel_info(W, sWb, sWn, sWm, sWk, Y, sYb, sYn, sYm, C, sCb, sCn, sCd, sCk, 
     """The pseudo-step of :func:`kernel_rows` in information form, one pass over the rows of W.
     With ``G = W^T W`` (the point's whitened information, accumulated row by row: no ``L_s`` read
     per row), ``P_s = L_s L_s^T``, the prior precision ``Pi = P_s^{-1}`` and ``C = L L_s^{-1}``
-    (``C``, ``Pi`` formed once per integration, :func:`torchflow.flows.fused.info_factors`):
+    (``C``, ``Pi`` formed once per integration, :func:`torchflow.flows.kernels.steps.info_factors`):
     ``L (I + lam S)^{-1} L_s^T = C M^{-1}`` with ``M = Pi + lam G`` (push-through), so
     ``A v = -1/2 C M^{-1} G v_s`` and, with ``g = P_s W^T y`` (so ``P H^T R^{-1} (z - e) = C g``),
     ``x <- x + eps C (g - s_x)``, ``s_x = M^{-1} (G x_s / 2 + a)``, ``a = r_1 / 2 + lam (G g -

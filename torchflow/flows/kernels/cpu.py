@@ -1,7 +1,7 @@
-"""The CPU kernel of :mod:`torchflow.flows.fused`, compiled by Numba (imported only when it is used:
+"""The CPU kernel of :mod:`torchflow.flows.kernels.steps`, compiled by Numba (imported only when it is used:
 Numba is an optional dependency, the ``kernels`` extra).
 
-The same pseudo-step as the Triton kernel (:func:`torchflow.flows._fused_kernel.kernel_rows`):
+The same pseudo-step as the Triton kernel (:func:`torchflow.flows.kernels.gpu.kernel_rows`):
 ``LANES`` particles side by side, the particle the last axis of every scratch array, so that each
 line of the per-particle ``k x k`` algebra is a loop over lanes that LLVM vectorises (8 float64 per
 AVX-512 instruction); blocks of ``BLOCK`` particles run in parallel (``prange``), each allocating its
@@ -125,9 +125,9 @@ def dh_step(W, y, L, Ls, Pc, mean, sup, eta, aux, eta_out, aux_out, log_det, lam
     ``mean (B|1, N|1, d)``, ``W (B|1, N|1, m, k)`` and ``y (B|1, N|1, m)``). Writes ``eta_out``,
     ``aux_out`` and adds ``log|det|`` of the step's map to ``log_det (B, N)``; ``lams``, ``epss``:
     the schedule, ``j`` the step; ``lin`` 1: the rows of W and y are computed at the points in the
-    acoustic form of :class:`~torchflow.flows.fused.FusedMeasurement` (``y`` holds ``z / sigma``
+    acoustic form of :class:`~torchflow.flows.kernels.steps.FusedMeasurement` (``y`` holds ``z / sigma``
     ``(B, 1, m)``, ``const = [Psi / sigma, d0]``, ``sens (m, 2)``; ``W`` not read). The algebra of
-    :func:`torchflow.flows._fused_kernel.kernel_rows`: three solves with ``Q = I + lam S``."""
+    :func:`torchflow.flows.kernels.gpu.kernel_rows`: three solves with ``Q = I + lam S``."""
     B, N, d, k, m, lam, eps, psi, d0, P, total, per, groups, nblocks = _grid(eta, sup, sens, y, lin, lams, epss, const, j)
     for blk in numba.prange(nblocks):
         bb = np.empty(P, np.int64)

@@ -34,8 +34,9 @@ import weakref
 from typing import Optional
 import torch
 
-from .. import cudagraphs, tuning
-from ..random import TrialStreams
+from ... import cudagraphs, tuning
+from . import select
+from ...random import TrialStreams
 
 __all__ = ["run_step", "eligible"]
 
@@ -117,17 +118,10 @@ class _Tape(TrialStreams):
 
 
 def eligible(filt, state, generator) -> bool:
-    """Whether ``filt``'s step on ``state`` goes through a CUDA graph (module docstring)."""
+    """Whether ``filt``'s step on ``state`` goes through a CUDA graph
+    (:func:`torchflow.flows.kernels.select.graph_step` decides)."""
     x = getattr(state, "particles", None)
-    return (x is not None and x.is_cuda and not torch.cuda.is_current_stream_capturing()
-            and _conditions(filt, x, generator))
-
-
-def _conditions(filt, x, generator) -> bool:
-    t = tuning.get()
-    return (bool(getattr(filt, "graph_step", False)) and bool(t.cuda_graphs) and not torch.is_grad_enabled()
-            and type(generator) is TrialStreams and generator.backend in ("auto", "philox")
-            and x.numel() <= t.graph_step_max_elems)
+    return x is not None and select.graph_step(filt, x, generator)
 
 
 def _flatten(state):

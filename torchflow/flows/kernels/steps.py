@@ -1,78 +1,45 @@
-"""A fused GPU kernel for one pseudo-time step of the exact Daum-Huang flows at per-particle points
-(PF-PF(LEDH)): the coefficients of :func:`~torchflow.flows.daum_huang.daum_huang_coefficients` and
-the Euler step of the particle and its point, one particle per GPU thread, every ``k x k`` matrix
-in that thread's registers.
+"""Fused pseudo-steps of the particle flows at per-particle points, and their set-up.
 
-Why: on a GPU the unfused pseudo-step is ~85 kernels over ``(B, N, k, k)`` tensors, and the
-batched library kernels for tiny matrices are slow (H200, float64, 50,000 matrices of 8 x 8: a
-batched product 189 us, a Cholesky 216 us, where an elementwise pass takes ~25 us;
-``experiments/benchmarks/micro_small_linalg.py``). Here a point's ``S = (W L_s)^T (W L_s)``, the
-two Cholesky factors of ``I + lambda S`` and ``I + (lambda - eps/2) S``, the log-determinant, the
-four applications of ``A = -1/2 L (I + lambda S)^{-1} L_s^T W^T W`` (three solves: see
-:func:`~torchflow.flows._fused_kernel.kernel_rows`) and the moves of the particle and its point are
-one kernel. The measurement's linearisation stays in torch (any model), unless the model declares
-it in the kernel's terms (:meth:`~torchflow.models.StateSpaceModel.fused_measurement`, acoustic
-tracking; ``tuning.fused_measurement``): then the kernel computes each row of W and y at the
-points itself and no ``(B, N, m, k)`` Jacobian is written or read.
+The wrappers here turn a flow integration's tensors into the kernels' arguments once per
+integration and call one kernel per pseudo-step; :mod:`torchflow.flows.kernels.select` decides
+whether they run, :mod:`torchflow.flows.kernels.loops` drives them.
 
-PF-PF(LEDH), acoustic, 100 trials x 500 particles, float64, H100, seconds per time step
-(``experiments/benchmarks/ab_fused.py``, one run): the torch path 0.095, the first fused kernel
-(one program per particle, retired) 0.071, this one 0.053, with the measurement inside 0.031.
+**EDH/LEDH** (:func:`dh_particle_step`, :class:`ParticleSteps`): the exact Daum-Huang coefficients
+(Daum & Huang 2010; Ding & Coates 2012) at each particle's point,
 
-Two forms of the kernel (``tuning.fused_info``): the row form (:func:`~torchflow.flows._fused_kernel.kernel_rows`)
-accumulates ``S = V^T V`` over the rows of ``V = W L_s``, reading each particle's ``L_s`` once per
-row of W (25 times per pseudo-step for acoustic tracking) in two passes; the information form
-(:func:`~torchflow.flows._fused_kernel.kernel_info`, the default) accumulates ``G = W^T W`` in one
-pass and works with the prior precision ``P_s^{-1}`` and ``C = L L_s^{-1}``, formed once per
-integration (:func:`info_factors`). H200, 100 x 500, float64, one run (``ab_fused --short``):
-0.0237 s per time step in row form, 0.0221 in information form (the torch path 0.0821); the
-kernel itself 218 us per pseudo-step on the H200 (``results_profile_ledh_gpu_s8.txt``), where the
-row form took 420 us on an H100 (seventh session: another card, not a paired comparison).
+    A = -1/2 P H^T (lam H P H^T + R)^{-1} H,
+    b = (I + 2 lam A) [(I + lam A) P H^T R^{-1} (z - h(x) + H x) + A eta_bar_0],
 
-Arithmetic: float64 inside (float32 runs load and store their own dtype; the ``k x k`` algebra is
-float64 as :attr:`~torchflow.flows.daum_huang.EDHFlow.promote_low_precision` asks). The same
-formulas as the unfused path, reassociated, so the numbers agree to round-off
-(``tests/flows/test_fused.py``: 1e-12 relative in float64), not bit for bit.
+and the Euler moves of the particle and its point, with ``log|det(I + eps A)|`` accumulated for
+the PF-PF weight (Li & Coates 2017). With ``W = L_R^{-1} H`` restricted to the k measured
+coordinates and ``L_s`` the prior factor's rows there, ``A`` is applied by three triangular solves
+with ``Q = I + lam S``, ``S = (W L_s)^T (W L_s)`` (the *row form*, two passes over W's rows), or in
+*information form* with ``G = W^T W``, ``C = L L_s^{-1}`` and the prior precision ``P_s^{-1}``,
+``L (I + lam L_s^T G L_s)^{-1} L_s^T = C (P_s^{-1} + lam G)^{-1}`` (one pass; :func:`info_factors`
+once per integration). On CUDA (or Triton's interpreter) one particle per thread with every
+``k x k`` matrix in its registers (:mod:`~torchflow.flows.kernels.gpu`); on the CPU 64 particles in
+SIMD lanes (:mod:`~torchflow.flows.kernels.cpu`, Numba). A measurement in a named form
+(:class:`FusedMeasurement`) is linearised inside the kernel: no ``(B, N, m, k)`` Jacobian per
+pseudo-step.
 
-**On the CPU** the same pseudo-step is a Numba kernel (:mod:`torchflow.flows._fused_cpu`, Numba an
-optional dependency, the ``kernels`` extra): 64 particles side by side in SIMD lanes, blocks of
-particles on the threads (``torch.get_num_threads()`` of them). PF-PF(LEDH), acoustic, 20 trials x
-500 particles, float64, this project's 2-core CPU: 1.47 s per time step on the torch path, 0.59 s
-with the kernel (0.21 s of it the kernel, 7 ms per pseudo-step), aten ops per time step 3,820 ->
-527. Its first call in a process compiles it (~20 s; then cached on disk by Numba next to this
-module, or in Numba's user cache directory where that is not writable).
+**Gromov** (:class:`GromovSteps`): the Gromov flow's Euler-Maruyama step with its exact diffusion
+factor (Dai & Daum), and PF-PF(Gromov)'s tracked Gaussian law ``mu_j = (I + eps A) mu_{j-1} + eps b``,
+``S_j = (I + eps A) S_{j-1} (I + eps A)^T + eps Q``, on the CPU; the normals are torch's draws.
 
-The Gromov flow (:class:`~torchflow.flows.GromovFlow`, ``noise_root="factor"``) at per-particle
-points has a CPU kernel too (:class:`GromovSteps`, :func:`torchflow.flows._fused_cpu.gromov_step`):
-its coefficients, the Euler-Maruyama move of each particle and its point, and the tracked Gaussian
-law (mean and ``d x d`` covariance) of PF-PF(Gromov)'s proposal in one kernel per pseudo-step, the
-step's normals drawn by torch as before (the same draws). PF-PF(Gromov), acoustic, 8 trials x 500,
-1 thread: 0.37 s per trial-step on the torch path, 0.14 s fused; aten ops per time step 4,157 ->
-717. No GPU kernel for it yet.
+**Diagonal** (:class:`DiagonalSteps`): EDH/LEDH when ``D = W^T W`` is diagonal by declaration, in
+information form, ``L (I + lam L^T D L)^{-1} L^T = (P^{-1} + lam D)^{-1}``: two ``d x d`` Cholesky
+factorisations of ``P^{-1} + h D`` per particle and pseudo-step, no ``d x d x d`` product, ``P^{-1}``
+once per integration.
 
-GPFIS's transport (:func:`~torchflow.flows.gpfis.gpfis_flow`, Cholesky root, analytic Jacobian)
-has a CPU kernel too (:class:`GPFISSteps`, :func:`torchflow.flows._fused_cpu.gpfis_step`): each
-step's move and the ``log|det|`` of its ``k x k`` Jacobian, with the step's tangents as rank-``2b``
-updates (``b``: the measurement's second-derivative block size), every step in one call when the
-kernel linearises the acoustic measurement itself. GPFIS, acoustic, N = 500, this 2-core CPU: 0.181
--> 0.028 s per trial-step; aten ops per time step 7,696 -> 229. No GPU kernel for it yet.
+**GPFIS** (:class:`GPFISSteps`): the Gaussian-particle-flow importance sampler's transport with its
+Cholesky root (:func:`~torchflow.flows.gpfis.gpfis_flow`) and the ``log|det|`` of each step's
+``k x k`` Jacobian, the step's tangents as rank-``2b`` updates.
 
-EDH/LEDH at per-particle points whose whitened Jacobian is diagonal by declaration and too large for
-the lane kernel's tiles (the skewed-t / Poisson model, d = 64 and 144) have a CPU kernel in
-information form (:class:`DiagonalSteps`, :func:`torchflow.flows._fused_cpu.dh_diag_step`): with
-``D = W^T W`` diagonal, ``L (I + lam L^T D L)^{-1} L^T = (P^{-1} + lam D)^{-1}``, so a pseudo-step is
-two ``d x d`` Cholesky factorisations of ``P^{-1} + h D`` per particle (its own, at 15 GFLOP/s per
-core, where torch's batched one runs at 5) and a few solves, with no ``d x d x d`` product; ``P^{-1}``
-once per integration. PFGSPF (G = 5 x 200), d = 144, this 2-core CPU: 25.4 -> 1.6-2.0 s per
-trial-step; PF-PF(LEDH) with 1000 particles 24.6 -> 5.4 s.
-
-Used by :func:`~torchflow.flows.integrate_flow` when no gradient is recorded, the flow is
-:class:`~torchflow.flows.EDHFlow` or :class:`~torchflow.flows.LEDHFlow` itself at per-particle
-points, the tiles are small enough (``k`` measured coordinates: ``tile(m) tile(k)^2 <= 16384``,
-``tile(d) tile(k) <= 4096``) and ``torchflow.tuning`` ``fused_flows`` is 1 (the default), on CUDA
-with Triton importable or on the CPU with Numba importable; otherwise the torch path. Set
-``TRITON_INTERPRET=1`` before the first import of Triton to run Triton's kernel on the CPU instead
-(tests).
+Arithmetic: float64 inside the kernels (float32 runs load and store their own dtype). The same
+formulas as the reference loop, reassociated: the numbers agree to round-off
+(``tests/flows/test_fused.py``), not bit for bit. On the CPU the results do not depend on the
+thread count (particles do not interact). Numba compiles a kernel on its first call in a process
+and caches it on disk; timings are in ``experiments/RESULTS.md`` (benchmarks).
 """
 from __future__ import annotations
 
@@ -83,7 +50,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .. import _triton
+from ... import _triton
 
 __all__ = ["available", "dh_particle_step", "FusedMeasurement", "ParticleSteps", "GromovSteps", "GPFISSteps", "DiagonalSteps"]
 
@@ -99,18 +66,15 @@ ROWS_WARPS = 1
 
 
 def kernel_form() -> str:
-    """The GPU kernel's form (``tuning.fused_info``): ``"info"``
-    (:func:`~torchflow.flows._fused_kernel.kernel_info`: ``G = W^T W`` and the prior precision, one
-    pass over the rows of W) or ``"rows"`` (:func:`~torchflow.flows._fused_kernel.kernel_rows`:
-    ``S = (W L_s)^T (W L_s)``, two passes)."""
-    from .. import tuning
-    return "info" if tuning.get().fused_info else "rows"
+    """The GPU lane kernel's form, as :func:`torchflow.flows.kernels.select.gpu_form` chooses it."""
+    from .select import gpu_form
+    return gpu_form()
 
 
 def _build(form: str):
     if form not in _kernels:
-        from . import _fused_kernel
-        _kernels[form] = getattr(_fused_kernel, "kernel_" + form)
+        from . import gpu
+        _kernels[form] = getattr(gpu, "kernel_" + form)
     return _kernels[form]
 
 
@@ -145,7 +109,7 @@ class FusedMeasurement:
     """A measurement the fused kernel linearises itself (``tuning`` ``fused_measurement=1``), so that no ``(B, N, m, k)`` Jacobian is written and read per
     pseudo-step. ``kind`` 1: ``h_i(x) = psi sum_c 1 / (|p_c - s_i| + d0)`` over the 2-D positions
     ``p_c`` (support coordinates ``2c, 2c + 1``) and sensors ``s_i`` (``sensors (m, 2)``), with a
-    scalar R (acoustic tracking, :meth:`~torchflow.models.AcousticTracking.fused_measurement`)."""
+    scalar R (acoustic tracking: :attr:`~torchflow.models.Structure.measurement_form`)."""
 
     kind: int
     sensors: torch.Tensor
@@ -215,7 +179,7 @@ class ParticleSteps:
     schedule and the measurement do not change between steps. ``steps(j, eta, aux, log_det[, W, y])``
     is :func:`dh_particle_step` for step ``j`` (``W``, ``y`` at the points unless ``measure``).
     On CUDA (or Triton's interpreter) Triton's kernel; on the CPU Numba's
-    (:mod:`torchflow.flows._fused_cpu`), whose inputs are converted to NumPy here once."""
+    (:mod:`torchflow.flows.kernels.cpu`), whose inputs are converted to NumPy here once."""
 
     def __init__(self, L, Ls, Pc, mean, support, lams, epss, measure=None, inv_sigma=None, z_scaled=None):
         self.prior = (L, Ls, Pc, mean, support)
@@ -249,7 +213,7 @@ class ParticleSteps:
 
 class GromovSteps:
     """The Gromov flow's Euler-Maruyama pseudo-steps at per-particle points on the CPU, fused
-    (:func:`torchflow.flows._fused_cpu.gromov_step`, Numba): set up once per integration like
+    (:func:`torchflow.flows.kernels.cpu.gromov_step`, Numba): set up once per integration like
     :class:`ParticleSteps`. ``steps(j, eta, aux, mu, Sig, xi[, W, y])`` returns the moved particle,
     point and (when ``mu``, ``Sig`` are given: the tracked Gaussian law) ``mu`` and ``Sig
     (B, N, d, d)``; ``xi (B, N, m)`` are the step's standard normals."""
@@ -282,7 +246,7 @@ class GromovSteps:
 class DiagonalSteps:
     """EDH/LEDH pseudo-steps at per-particle points for a measurement whose whitened Jacobian is
     diagonal by declaration (:attr:`~torchflow.flows.GaussianMeasurement.diagonal`: ``m = d``, no
-    support), on the CPU, fused in information form (:func:`torchflow.flows._fused_cpu.dh_diag_step`,
+    support), on the CPU, fused in information form (:func:`torchflow.flows.kernels.cpu.dh_diag_step`,
     Numba; one particle per iteration, two ``d x d`` Cholesky factorisations per pseudo-step and no
     ``d x d x d`` product). For the large d the lane kernel's tiles do not fit (the skewed-t /
     Poisson model, d = 64 and 144). ``steps(j, eta, aux, log_det, Wd, y)``: ``Wd``, ``y (B, N, d)``
@@ -308,7 +272,7 @@ class DiagonalSteps:
 
 class GPFISSteps:
     """The GPFIS transport's pseudo-steps (Cholesky root) and each step's ``log|det|`` on the CPU,
-    fused (:func:`torchflow.flows._fused_cpu.gpfis_step`, Numba), set up once per integration like
+    fused (:func:`torchflow.flows.kernels.cpu.gpfis_step`, Numba), set up once per integration like
     :class:`ParticleSteps`: ``steps(j0, j1, x, log_det[, W, y, D])`` moves ``x (B, N, d)`` over steps
     ``j0 .. j1 - 1`` and adds to ``log_det (B, N)`` (float64, contiguous) in place. With a
     measurement the kernel linearises itself, every step is one call; otherwise one step per call
@@ -360,7 +324,7 @@ def _cpu_back(arrays, dtype):
 
 
 def _gromov_kernel():
-    from ._fused_cpu import gromov_step
+    from .cpu import gromov_step
     return gromov_step
 
 
@@ -368,13 +332,13 @@ _numba = None
 
 
 def numba_available() -> bool:
-    """The CPU kernels (:mod:`torchflow.flows._fused_cpu`) can be imported (cached): Numba is
+    """The CPU kernels (:mod:`torchflow.flows.kernels.cpu`) can be imported (cached): Numba is
     installed, and the module's ``cache=True`` kernels import (Numba caches next to the module or
     in its user cache directory; any failure to import means the torch path runs)."""
     global _numba
     if _numba is None:
         try:
-            importlib.import_module("torchflow.flows._fused_cpu")  # an availability test
+            importlib.import_module("torchflow.flows.kernels.cpu")  # an availability test
             _numba = True
         except Exception:  # noqa: BLE001 - any import failure means: not available
             _numba = False
@@ -382,22 +346,22 @@ def numba_available() -> bool:
 
 
 def _precision_kernel():
-    from ._fused_cpu import precision_from_factor
+    from .cpu import precision_from_factor
     return precision_from_factor
 
 
 def _diag_kernel():
-    from ._fused_cpu import dh_diag_step
+    from .cpu import dh_diag_step
     return dh_diag_step
 
 
 def _gpfis_kernel():
-    from ._fused_cpu import gpfis_step
+    from .cpu import gpfis_step
     return gpfis_step
 
 
 def _cpu_kernel():
-    from ._fused_cpu import dh_step
+    from .cpu import dh_step
     return dh_step
 
 

@@ -1,0 +1,183 @@
+"""Which kernel runs a computation: the one place that decides.
+
+Every fast path of the library is chosen here and nowhere else. The flow integrator
+(:func:`~torchflow.flows.integrate_flow`), GPFIS's transport, the Gaussian-sum filters' blocks of
+particles and the filters' CUDA-graph step each ask one question of this module; the rest of the
+library runs the reference code. This module alone reads the kernels' tuning knobs
+(:data:`KNOBS`) and the eligibility rules live in its functions.
+
+What a kernel may exploit is *declared*, never detected from classes or private fields:
+
+* a flow offers a kernel through its class attribute ``kernel`` (:attr:`~torchflow.flows.ParticleFlow.kernel`):
+  ``"daum_huang"`` (the exact EDH/LEDH coefficients), ``"gromov"`` (the Gromov flow's exact
+  factor). The declaration is read from the flow's own class, not inherited
+  (:func:`declared`): a subclass that changes the coefficients runs the reference loop unless it
+  declares the kernel again;
+* a measurement (:class:`~torchflow.flows.GaussianMeasurement`) states its noise structure, its
+  support, whether its Jacobian is diagonal, its second derivatives, the prepared ``1 / sigma`` of
+  a scalar R (:attr:`~torchflow.flows.GaussianMeasurement.inv_sigma`) and, where the model declares
+  one, a named measurement form that a kernel linearises itself
+  (:attr:`~torchflow.flows.GaussianMeasurement.form`);
+* a model's and a proposal's ``graph_safe`` (the whole particle-filter step may be replayed from
+  a CUDA graph), read from their own classes.
+
+Kernels (:mod:`torchflow.flows.kernels.steps` wraps them):
+
+* ``"lanes"``: the EDH/LEDH pseudo-step at per-particle points, one particle per GPU thread
+  (Triton, :mod:`~torchflow.flows.kernels.gpu`) or 64 particles in SIMD lanes on the CPU (Numba,
+  :mod:`~torchflow.flows.kernels.cpu`);
+* ``"diagonal"``: EDH/LEDH at per-particle points for a diagonal whitened Jacobian too large for
+  the lane tiles, in information form on the CPU;
+* ``"gromov"``: the Gromov flow's Euler-Maruyama pseudo-step and PF-PF(Gromov)'s tracked law on the CPU;
+* GPFIS's transport on the CPU (:func:`gpfis_kernel`);
+* the CUDA graph of a deterministic flow's pseudo-time loop (:func:`flow_graph`) and of a whole
+  particle-filter step (:func:`graph_step`).
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+from ... import _triton, tuning
+from . import steps
+
+#: the tuning knobs (:mod:`torchflow.tuning`) read by the kernel selection, and by nothing else
+KNOBS = ("fused_flows", "fused_info", "fused_measurement", "cuda_graphs", "graph_step_max_elems")
+
+#: named measurement forms a kernel linearises itself, and the kernels' code for each
+FORMS = {"inverse_distance_sum": 1}
+
+#: the flow kernels :func:`flow_kernel` may return
+FLOW_KERNELS = ("lanes", "diagonal", "gromov")
+
+
+def declared(obj, name: str, default=None):
+    """``obj``'s declaration ``name`` as its own class states it (a class attribute, or a property
+    evaluated on ``obj``), not inherited from a parent class; ``default`` when the class is silent."""
+    value = vars(type(obj)).get(name, default)
+    return value.fget(obj) if isinstance(value, property) else value
+
+
+def cpu_kernels_on(device) -> bool:
+    """The Numba CPU kernels may run on ``device``: the CPU (not under Triton's interpreter),
+    ``tuning.fused_flows`` on and the kernels' module importable."""
+    device = torch.device(device)
+    return (bool(tuning.get().fused_flows) and device.type == "cpu" and not _triton.runs_on(device)
+            and steps.numba_available())
+
+
+def tiles_fit(m: int, k: int, d: int, device="cpu") -> bool:
+    """The per-particle tiles for ``m`` measurements, ``k`` measured and ``d`` state coordinates
+    are small enough: in cache on the CPU; on a GPU, where a thread holds its particle's ``k x k``
+    matrices in registers, no larger than acoustic tracking's (``k = 8``, ``m = 25``, ``d = 16``;
+    larger tiles spill to local memory: ``experiments/benchmarks/kernel_registers.py``)."""
+    bm, bk, bd = (steps.tile(x) for x in (m, k, d))
+    if torch.device(device).type == "cuda":
+        return bk <= 8 and bm * bk * bk <= 2048 and bd * bk <= 128
+    return bm * bk * bk <= 16384 and bd * bk <= 4096
+
+
+def _tiles_fit(measurement, particles, k) -> bool:
+    return (tiles_fit(measurement.z.shape[-1], k, particles.shape[-1], particles.device)
+            and particles.dtype in (torch.float32, torch.float64))
+
+
+def flow_kernel(flow, measurement, particles: torch.Tensor, k: int, *, per_particle: bool, track: bool,
+                gaussian_image: bool) -> Optional[str]:
+    """The kernel that integrates ``flow`` (one of :data:`FLOW_KERNELS`), or ``None``: the reference loop.
+
+    Kernels run at per-particle points, with no gradient recorded and no Gaussian image asked for:
+
+    * ``"lanes"``: a flow offering ``"daum_huang"``, no tracked proposal law, ``tuning.fused_flows``,
+      on CUDA with Triton (or its CPU interpreter) or on the CPU with Numba, tiles that fit;
+    * ``"diagonal"``: otherwise, a ``"daum_huang"`` flow whose measurement is diagonal by
+      declaration, on the CPU kernels;
+    * ``"gromov"``: a flow offering ``"gromov"``, on the CPU kernels, tiles that fit.
+    """
+    if not per_particle or gaussian_image or torch.is_grad_enabled():
+        return None
+    offer = declared(flow, "kernel")
+    if offer == "daum_huang" and not track:
+        if (tuning.get().fused_flows and steps.runs_on(particles.device)
+                and _tiles_fit(measurement, particles, k)):
+            return "lanes"
+        if (measurement.diagonal and particles.dtype in (torch.float32, torch.float64)
+                and cpu_kernels_on(particles.device)):
+            return "diagonal"
+        return None
+    if offer == "gromov" and cpu_kernels_on(particles.device) and _tiles_fit(measurement, particles, k):
+        return "gromov"
+    return None
+
+
+def per_particle_kernel(flow, model, device) -> Optional[str]:
+    """The kernel a no-gradient integration of ``flow`` at per-particle points on ``model`` takes
+    on ``device``, as far as it can be told before the measurement is built: ``"diagonal"`` (a
+    nonlinear measurement diagonal by declaration with a diagonal R, too large for the lane tiles:
+    no ``d x d`` matrix per particle is built) or ``None``. A filter uses it to choose its blocks
+    of particles."""
+    noise_ok = model.structure.measurement_noise in ("diagonal", "state_dependent_diagonal")
+    if not (model.structure.measurement_jacobian_diagonal and noise_ok) or model.structure.linear_measurement:
+        return None
+    d = model.state_dim
+    if (declared(flow, "kernel") == "daum_huang" and not tiles_fit(model.obs_dim, d, d)
+            and cpu_kernels_on(device)):
+        return "diagonal"
+    return None
+
+
+def measured_inside(measurement, support, k) -> Optional["steps.FusedMeasurement"]:
+    """The measurement a kernel linearises itself (no ``(B, N, m, k)`` Jacobian written and read per
+    pseudo-step), or ``None``: ``tuning.fused_measurement``, a named form (:data:`FORMS`) declared
+    by the model, a prepared scalar R, pairs of position coordinates as the support."""
+    form = measurement.form
+    if (form is None or not tuning.get().fused_measurement or measurement.inv_sigma is None
+            or support is None or k % 2):
+        return None
+    name, (sensors, psi, d0) = form
+    if name not in FORMS or measurement.z.shape[-1] != sensors.shape[0]:
+        return None
+    return steps.FusedMeasurement(FORMS[name], sensors, psi, d0)
+
+
+def gpfis_kernel(measurement, x: torch.Tensor, k: int) -> bool:
+    """GPFIS's transport runs as the CPU kernel (:class:`~torchflow.flows.kernels.steps.GPFISSteps`):
+    ``(B, N, d)`` particles on the CPU kernels, no gradient recorded, the measurement's second
+    derivatives declared (or a linear measurement), tiles that fit and ``k <= 16`` (the kernel keeps
+    ``[W y]^T D``, up to ``(k + 1) k^2`` numbers, per lane)."""
+    if (torch.is_grad_enabled() or x.dim() != 3 or k > 16
+            or (measurement.hessian is None and measurement.matrix is None)):
+        return False
+    return cpu_kernels_on(x.device) and _tiles_fit(measurement, x, k)
+
+
+def gpu_form() -> str:
+    """The GPU lane kernel's form (``tuning.fused_info``): ``"info"`` (``G = W^T W`` and the prior
+    precision, one pass over the rows of W) or ``"rows"`` (``S = (W L_s)^T (W L_s)``, two passes)."""
+    return "info" if tuning.get().fused_info else "rows"
+
+
+def flow_graph(flow, particles: torch.Tensor) -> bool:
+    """A deterministic flow's pseudo-time loop is replayed from a CUDA graph
+    (:mod:`torchflow.cudagraphs`): CUDA, ``tuning.cuda_graphs``, no gradient recorded, not inside
+    another capture."""
+    return (particles.is_cuda and bool(tuning.get().cuda_graphs) and not flow.stochastic
+            and not torch.is_grad_enabled() and not torch.cuda.is_current_stream_capturing())
+
+
+def graph_step(filt, x: torch.Tensor, generator, *, emulated: bool = False) -> bool:
+    """A particle filter's whole step on particles ``x`` is replayed from a CUDA graph
+    (:mod:`torchflow.flows.kernels.graph_step`): the filter declares its step graph-safe
+    (:attr:`~torchflow.filters.ParticleFilter.graph_step`), ``tuning.cuda_graphs``, no gradient
+    recorded, per-trial Philox streams (a plain :class:`~torchflow.random.TrialStreams`: its draws
+    can be split into words made outside the graph), at most ``tuning.graph_step_max_elems`` state
+    elements, and CUDA outside another capture (``emulated``: the capture is emulated on any
+    device, for tests)."""
+    from ...random import TrialStreams
+
+    t = tuning.get()
+    return ((emulated or (x.is_cuda and not torch.cuda.is_current_stream_capturing()))
+            and bool(getattr(filt, "graph_step", False)) and bool(t.cuda_graphs) and not torch.is_grad_enabled()
+            and type(generator) is TrialStreams and generator.backend in ("auto", "philox")
+            and x.numel() <= t.graph_step_max_elems)

@@ -1,0 +1,141 @@
+"""Checks of the model contract (:mod:`torchflow.models.base`), outside the models themselves.
+
+* :func:`check_shapes`: every method a filter will call is evaluated once on a small batch, and an
+  output of the wrong shape is an error naming the method, the expected and the received shape
+  (a user model whose ``measure()`` returns ``(..., 1)`` where m = 2 would otherwise broadcast
+  into plausible, wrong numbers). Once per model and dtype/device/batch layout; no host
+  synchronisation (shapes are Python integers).
+* :func:`require_gaussian`: a filter that needs the Gaussian form says so at construction.
+* :func:`check_dtype`, :func:`check_simulate_args`, :func:`check_covariances`: argument and
+  parameter checks with clear errors.
+"""
+from __future__ import annotations
+
+import weakref
+from typing import Optional, Tuple
+
+import torch
+
+from .._checks import check_count, check_psd
+from ..random import generator_hint
+
+#: the Gaussian form's methods a filter reads (beyond the core)
+GAUSSIAN_FORM = ("transition_mean", "transition_cov", "measure", "measurement_cov")
+
+_checked: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()  # model -> set of checked keys
+
+
+def require_gaussian(model, who: str) -> None:
+    """Raise unless ``model`` has the Gaussian form (a
+    :class:`~torchflow.models.GaussianStateSpaceModel`), naming the filter ``who``."""
+    from .base import GaussianStateSpaceModel, StateSpaceModel
+
+    if not isinstance(model, StateSpaceModel):
+        raise TypeError(f"{who}: model: expected a torchflow.models.StateSpaceModel, got {type(model).__name__}")
+    if not isinstance(model, GaussianStateSpaceModel):
+        raise TypeError(f"{who}: model: {type(model).__name__} gives only the core (samplers and densities); "
+                        f"{who} needs the Gaussian form ({', '.join(GAUSSIAN_FORM)}): subclass "
+                        "torchflow.models.GaussianStateSpaceModel, or use BootstrapParticleFilter")
+
+
+def check_dtype(model, who: str) -> None:
+    """Raise unless the model is in float32 or float64 (the precisions filters support)."""
+    if model.dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"{who}: the model is in {model.dtype}; filters and simulation run in float32 or "
+                        "float64 (convert with model.double() or model.float())")
+
+
+def check_simulate_args(model, batch_size, steps, generator) -> Tuple[int, int]:
+    """Validate :meth:`~torchflow.models.StateSpaceModel.simulate`'s arguments; returns
+    ``(batch_size, steps)`` as ints."""
+    who = f"{type(model).__name__}.simulate"
+    batch_size = check_count(f"{who}: batch_size", batch_size)
+    steps = check_count(f"{who}: steps", steps)
+    if not isinstance(generator, torch.Generator):
+        raise TypeError(f"{who}: generator: expected a torch.Generator, got {type(generator).__name__}"
+                        f"{generator_hint(generator)}")
+    check_dtype(model, who)
+    return batch_size, steps
+
+
+def check_covariances(model, who: str = "") -> None:
+    """Raise unless the constant transition and measurement covariances of a Gaussian-form model
+    (``transition_cov()``, ``measurement_cov()``; state-dependent ones are skipped) are symmetric
+    positive semi-definite, naming the model, the covariance and, for a parameter of the model,
+    its name. Filters call it once per call (a learnable covariance may leave the cone after an
+    optimiser step; :mod:`torchflow.constraints` keeps one valid by construction)."""
+    params = {id(p): n for n, p in model.named_parameters()}
+    for what, name in (("transition covariance", "transition_cov"), ("measurement covariance", "measurement_cov")):
+        fn = getattr(model, name, None)
+        if fn is None:
+            continue
+        try:
+            C = fn()
+        except (NotImplementedError, TypeError, RuntimeError, ValueError):
+            continue  # state-dependent: no constant matrix to check
+        if not isinstance(C, torch.Tensor) or C.dim() != 2:
+            continue
+        pname = params.get(id(C))
+        label = f"{type(model).__name__}'s {what}" + (f" (parameter {pname!r})" if pname else "")
+        if C.requires_grad and not pname:
+            label += " (built from learnable parameters)"
+        check_psd(f"{who + ': ' if who else ''}{label}", C.detach())
+
+
+def _expect(who: str, method: str, out, shape: Tuple[int, ...], expected: str, broadcast_ok: bool = False) -> None:
+    """Raise unless ``out`` is a tensor of ``shape`` (or, with ``broadcast_ok``, broadcastable to it
+    with the same trailing dimensions)."""
+    if not isinstance(out, torch.Tensor):
+        raise TypeError(f"{who}: {method} returned {type(out).__name__}; expected a tensor {expected} "
+                        f"= {tuple(shape)}")
+    got = tuple(out.shape)
+    if got == tuple(shape):
+        return
+    if broadcast_ok:
+        n = len(shape) - 2
+        tail_ok = got[-2:] == tuple(shape[-2:]) if len(got) >= 2 else False
+        try:
+            lead_ok = tail_ok and torch.broadcast_shapes(got[:-2], tuple(shape[:n])) == tuple(shape[:n])
+        except RuntimeError:
+            lead_ok = False
+        if lead_ok:
+            return
+    raise ValueError(f"{who}: {method} returned shape {got}; expected {expected} = {tuple(shape)}")
+
+
+def check_shapes(model, x: torch.Tensor, who: str, *, gaussian: Optional[bool] = None) -> None:
+    """Evaluate the model's methods once at the states ``x (B, d)`` and raise if an output has the
+    wrong shape, naming the method, the expected and the received shape.
+
+    Checked: the core's samplers and densities (``sample_transition -> (B, d)``,
+    ``transition_log_prob -> (B,)``, ``sample_measurement -> (B, m)``, ``measurement_log_prob ->
+    (B,)``) and, for a Gaussian-form model (or ``gaussian=True``), ``transition_mean -> (B, d)``,
+    ``measure -> (B, m)``, ``transition_cov`` and ``measurement_cov`` (``(d, d)``/``(m, m)`` or
+    batched). Draws use a generator of their own (the caller's streams are not advanced); no
+    gradient is recorded. Done once per model, dtype, device and batch size."""
+    from .base import GaussianStateSpaceModel
+
+    if gaussian is None:
+        gaussian = isinstance(model, GaussianStateSpaceModel)
+    key = (x.dtype, x.device, x.shape[0], gaussian)
+    done = _checked.setdefault(model, set())
+    if key in done:
+        return
+    B, d, m = x.shape[0], model.state_dim, model.obs_dim
+    name = type(model).__name__
+    g = torch.Generator(device=x.device).manual_seed(0)
+    with torch.no_grad():
+        if gaussian:  # first: the core's defaults are built from these
+            _expect(who, f"{name}.transition_mean", model.transition_mean(x), (B, d), "(B, d)")
+            _expect(who, f"{name}.transition_cov", model.transition_cov(x), (B, d, d), "(d, d) or (B, d, d)",
+                    broadcast_ok=True)
+            _expect(who, f"{name}.measure", model.measure(x), (B, m), "(B, m)")
+            _expect(who, f"{name}.measurement_cov", model.measurement_cov(x), (B, m, m), "(m, m) or (B, m, m)",
+                    broadcast_ok=True)
+        x1 = model.sample_transition(x, g)
+        _expect(who, f"{name}.sample_transition", x1, (B, d), "(B, d)")
+        _expect(who, f"{name}.transition_log_prob", model.transition_log_prob(x1, x), (B,), "(B,)")
+        z = model.sample_measurement(x1, g)
+        _expect(who, f"{name}.sample_measurement", z, (B, m), "(B, m)")
+        _expect(who, f"{name}.measurement_log_prob", model.measurement_log_prob(z, x1), (B,), "(B,)")
+    done.add(key)
