@@ -1,37 +1,74 @@
 #!/usr/bin/env bash
-# Issue 30's GPU checks in one device call (~6 minutes on an H100/H200), each step under its own
-# timeout and teed to $OUT so that a slow one keeps the others: the CUDA tests (contract, graph,
-# fused-kernel, fused-Philox, random and bad-input tests, -k cuda), the GPU goals table (bench_gpu:
-# PF-PF(LEDH) at 100 and 500 trials, GPFIS against it, the bootstrap PF against PyDPF), seed 000
-# Table II's LEDH row through the runner (with its warm-up), the per-particle EKF update in k x k
-# algebra against the Joseph form (tuning.structured_update), and where the time goes
-# (profile_step: PF-PF(LEDH) at 100 x 500, the bootstrap PF at 100 x 200). The device image has
-# torch and Triton but no Hydra: carry .whl with hydra-core, omegaconf, antlr4-python3-runtime and
-# pydpf wheels (RESULTS.md "GPU").
+# The GPU checks in one device call (under 9 minutes on an H100/H200). Each step runs under its own
+# cap (its own limit or what is left of BUDGET seconds), so a slow step keeps the others; a table
+# of the rows goes to $OUT/gpu_check.md, the test lines to $OUT/cuda_tests.txt.
+#
+#   1. the CUDA contract tests (every filter on CUDA, the fused kernels in both forms, the graphed
+#      flow loop and particle-filter step, the random streams and bad inputs), first;
+#   2. the run command as a user runs it: acoustic tracking, PF-PF(LEDH) and the bootstrap PF,
+#      100 trials x 500 particles x 40 steps, float64, on a fresh machine (cold: the kernels compile)
+#      then again (warm), then one chunk of 100 trials, then float32; wall time of each command and
+#      the filters' own seconds per trial-step and warm-up from its summary.csv;
+#   3. bench_gpu's PF-PF(LEDH) rows (one call of 100 and of 500 trials: the kernels' time).
+#
+# The device image has torch and Triton but no Hydra: carry .whl with the hydra-core, omegaconf and
+# antlr4-python3-runtime wheels (docs/guide/gpu.md), e.g. run(command="bash experiments/benchmarks/gpu_check.sh",
+# carry=[".whl"]).
 set -u
 export PYTHONUNBUFFERED=1
+END=$((SECONDS + ${BUDGET:-500}))
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD
 OUT=${OUT:-/tmp/gpu_check}
 mkdir -p "$OUT"
-F() { grep -v -E "USDT|_warn_once|Profiler clears"; }
-P="python3 -m experiments.benchmarks"
-python3 -c "import torch, triton; print(torch.__version__, triton.__version__, torch.cuda.get_device_name())"
-echo "== CUDA tests"; date
-timeout 240 python3 -m pytest -q -p no:cacheprovider -rfE tests/flows/test_fused.py tests/test_cudagraphs.py \
-  tests/filters/test_contract.py tests/test_random.py tests/test_bad_inputs.py tests/test_philox_fused.py \
-  -k cuda 2>&1 | tail -40 > "$OUT/cuda_tests.txt"; tail -8 "$OUT/cuda_tests.txt"
-echo "== bench_gpu"; date
-timeout 200 $P.bench_gpu --device cuda --reps 2 --tests 0 2>&1 | F | tail -16
-cp experiments/benchmarks/results_gpu.md experiments/benchmarks/results_gpu.json "$OUT/" 2>/dev/null
-echo "== runner"; date
-timeout 90 python3 experiments/run.py experiment=seed000_table2 'filter=[pfpf_ledh]' device=cuda memory_budget_gb=60 \
-  hydra.run.dir=/tmp/runs/ledh_100 trials=100 chunk_size=100 plots=false 2>&1 | grep -E "^\| pfpf|rror|warm"
-cp /tmp/runs/ledh_100/summary.csv "$OUT/ledh_100_summary.csv" 2>/dev/null
-echo "== structured_update A/B"; date
-for su in 0 1; do timeout 50 $P.profile_step --device cuda --trials 100 --steps 10 --top 0 --structured-update $su 2>&1 | F | tail -1; done
-echo "== profiles"; date
-timeout 50 $P.profile_step --device cuda --top 30 2>&1 | F > "$OUT/profile_ledh.txt"; cut -c1-60,150-200 "$OUT/profile_ledh.txt" | head -26
-timeout 40 $P.profile_step --filter bpf --device cuda --trials 100 --particles 200 --dtype float32 --top 20 2>&1 | F > "$OUT/profile_bpf.txt"
-cut -c1-60,150-200 "$OUT/profile_bpf.txt" | head -8
+MD="$OUT/gpu_check.md"
+left() { echo $((END - SECONDS)); }
+cap() { local l; l=$(left); [ "$1" -lt "$l" ] && echo "$1" || echo "$l"; }
+now() { date +%s.%N; }
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$MD"
+python3 -c "import torch, triton; print('torch', torch.__version__, 'triton', triton.__version__)" | tee -a "$MD"
+
+echo "== CUDA contract tests ($(left) s left)"; date
+timeout "$(cap 300)" python3 -m pytest -q -p no:cacheprovider -rfE tests/filters/test_contract.py tests/flows/test_fused.py \
+  tests/test_cudagraphs.py tests/test_graph_step.py tests/test_random.py tests/test_bad_inputs.py tests/test_philox_fused.py \
+  tests/models/test_model_contract.py -k "cuda or model_contract" 2>&1 | tail -25 > "$OUT/cuda_tests.txt"
+tail -4 "$OUT/cuda_tests.txt"; { echo; echo "## CUDA tests"; tail -1 "$OUT/cuda_tests.txt"; } >> "$MD"
+
+run_cmd() {  # label, cap, extra settings...
+  local label=$1 limit=$2; shift 2
+  local dir=/tmp/runs/$label t0 t1
+  t0=$(now)
+  timeout "$(cap "$limit")" python3 -m torchflow model=acoustic 'filter=[pfpf_ledh,bpf]' trials=100 device=cuda plots=false \
+    progress=false hydra.run.dir=$dir "$@" > "$OUT/run_$label.log" 2>&1
+  local rc=$?
+  t1=$(now)
+  printf '| %s | %s | %s |' "$label" "$rc" "$(python3 -c "print(f'{$t1 - $t0:.1f}')")" >> "$MD"
+  python3 - "$dir/summary.csv" >> "$MD" <<'EOF'
+import csv, sys
+try:
+    rows = list(csv.DictReader(open(sys.argv[1])))
+except OSError:
+    rows = []
+print(" " + " ; ".join(f"{r.get('filter')}: {float(r.get('sec_per_step') or 'nan'):.3g} s per trial-step, "
+                        f"warm-up {float(r.get('warmup_sec') or 'nan'):.2f} s, OMAT {float(r.get('omat') or 'nan'):.3f}"
+                        + (f", error {r['error']}" if r.get('error') else "") for r in rows) + " |")
+EOF
+  grep -iE "compil|error|warn" "$OUT/run_$label.log" | head -3
+}
+{ echo; echo "## The run command (acoustic, [pfpf_ledh, bpf], 100 x 500 x 40)"; echo;
+  echo "| run | exit | wall s | filters |"; echo "|---|---|---|---|"; } >> "$MD"
+echo "== run command: cold ($(left) s left)"; date
+run_cmd cold 150
+echo "== run command: warm ($(left) s left)"; date
+run_cmd warm 70
+echo "== run command: one chunk of 100 ($(left) s left)"; date
+run_cmd chunk100 60 chunk_size=100
+echo "== run command: float32 ($(left) s left)"; date
+run_cmd float32 60 dtype=float32
+tail -5 "$MD"
+
+echo "== bench_gpu PF-PF(LEDH) ($(left) s left)"; date
+timeout "$(cap 120)" python3 -m experiments.benchmarks.bench_gpu --device cuda --reps 2 --tests 0 --gpfis-trials 0 \
+  --bpf-ns 200 2>&1 | grep -E "^\| " | tail -10 | tee -a "$MD"
+cp experiments/benchmarks/results_gpu.json "$OUT/" 2>/dev/null
 date
