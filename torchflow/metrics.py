@@ -1,4 +1,4 @@
-"""Evaluation metrics for batched Bayesian filters.
+"""Evaluation metrics for batched Bayesian filters, and the registry of the metrics the runner reports.
 
 Conventions: ``B`` trials, ``T`` time steps, ``d`` state dimension, ``C``
 targets, ``k`` position dimension (2 or 3), ``N`` particles. All functions are
@@ -13,21 +13,65 @@ assignment at once. For larger problems the code falls back to
 :func:`scipy.optimize.linear_sum_assignment`, which loops in Python over the
 ``B * T`` problems (on CPU); the resulting assignment is then gathered from the
 torch cost tensor, so the returned value keeps autograd information.
+
+The metric registry
+-------------------
+:data:`REGISTRY` (``name -> Metric``, in registration order) lists the per-step metrics that
+:func:`torchflow.runner.run_experiment` computes for every filter they apply to. A :class:`Metric`
+is a function ``compute(ctx) -> (B, T)`` of a :class:`MetricContext` (the filter's estimates, the
+truth, the model, the metric settings, the filter's other outputs such as ``ess``), a test
+``applies(ctx) -> bool`` and how a trial's value is taken from its ``T`` values. Each registered
+metric that applies gives
+
+* the summary column ``name``: the mean over trials and steps (``reduce_trial="mean"``) or over
+  trials of the last step's value (``"last"``);
+* the per-trial column ``name``: the trial's mean over steps, or its last step's value;
+* the per-step column ``name``: the mean over trials at each step, and a panel of ``per_step.png``
+  (``plot=True``) with the y label ``label``.
+
+The summary table's columns are ``filter, n_particles, trials, steps``, the registered metrics in
+registration order, and the runner's own columns
+(:data:`torchflow.runner.score.RUN_COLUMNS`). Built in: ``mse``, ``omat``, ``ospa``,
+``declared``, ``ess``, ``g_eff``. A new metric is one function and one :func:`register` call
+(:func:`unregister` removes it; :func:`registered` registers for a ``with`` block)::
+
+    >>> from torchflow import metrics
+    >>> from torchflow.experiment import run_experiment
+    >>> from torchflow.filters import KalmanFilter
+    >>> from torchflow.models import SensorNetwork
+    >>> def max_abs_error(ctx):
+    ...     "``(B, T)``: ``max_j |xhat[b, t, j] - x[b, t, j]|`` of point estimates ``(B, T, d)``."
+    ...     return (ctx.estimates - ctx.truth).abs().amax(-1)
+    >>> _ = metrics.register(metrics.Metric("max_abs", "max |error|", max_abs_error))
+    >>> model = SensorNetwork(d=4)
+    >>> res = run_experiment(model, {"kf": KalmanFilter(model)}, trials=3, steps=4, progress=False)
+    >>> res.summary[0]["max_abs"] > 0, "max_abs" in res.per_trial[0], "max_abs" in res.per_step[0]
+    (True, True, True)
+    >>> _ = metrics.unregister("max_abs")
+
+Scoring reads the filters' saved chunks, so a metric registered after a run with a checkpoint
+store (``resume=true``) is computed from the stored estimates without filtering again; the
+filter outputs a chunk keeps are :data:`torchflow.runner.checkpoint.CHUNK_FIELDS`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import itertools
 import math
-from typing import Optional
+import re
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any, Callable, Dict, Iterator, List, Mapping, Optional
 
 import torch
 
 from . import tuning
 from ._checks import check_float_tensor, check_same_device, shape_str
 
-__all__ = ["mse", "omat", "ospa", "ess", "log_evidence_relative_error", "lost_tracks"]
+__all__ = ["mse", "omat", "ospa", "ess", "log_evidence_relative_error", "lost_tracks", "Metric", "MetricContext",
+           "REGISTRY", "RESERVED_NAMES", "register", "unregister", "registered", "applicable"]
 
 
 def _check_pair(x, ref, name: str, ref_name: str, letters: str) -> tuple[torch.Tensor, torch.Tensor]:
@@ -278,3 +322,263 @@ def lost_tracks(omat_per_step: torch.Tensor, threshold: float = 2.0) -> torch.Te
     if not math.isfinite(threshold):
         raise ValueError(f"threshold: expected a finite float, got {threshold}")
     return omat_per_step.mean(dim=1) > threshold
+
+
+# --------------------------------------------------------------------------- the metric registry
+
+@dataclass(frozen=True, eq=False)
+class MetricContext:
+    """What a metric sees of one filter's scored trials (``B`` trials, ``T`` steps, CPU float64).
+
+    Attributes:
+        model: the model (``model.structure.has_positions``; ``model.positions(x)`` maps states
+            ``(..., d)`` to target positions ``(..., C, k)``).
+        filter: the filter scored (``n_particles``, ``estimates_evidence``, ...).
+        estimates: point estimates ``(B, T, d)``, or for set estimators (the localisers) padded
+            sets of positions ``(B, T, K, k)`` whose real items ``mask`` marks.
+        truth: ``(B, T, d)`` true states.
+        mask: ``None`` for point estimates; ``(B, T, K)`` bool for sets.
+        outputs: the filter's other outputs over the ``B`` trials, those it produces of
+            ``ess (B, T)``, ``g_eff (B, T)``, ``log_evidence (B,)``, ``n_repaired (B,)``,
+            ``underflow (B, S, M)``.
+        settings: the run's metric settings ``ospa_cutoff``, ``ospa_order``, ``lost_threshold``.
+    """
+
+    model: Any
+    filter: Any
+    estimates: torch.Tensor
+    truth: torch.Tensor
+    mask: Optional[torch.Tensor] = None
+    outputs: Mapping[str, torch.Tensor] = field(default_factory=dict)
+    settings: Mapping[str, float] = field(default_factory=dict)
+
+    @property
+    def kind(self) -> str:
+        """``"sets"`` (padded sets with a ``mask``) or ``"point"`` (one estimate per trial and step)."""
+        return "point" if self.mask is None else "sets"
+
+    @property
+    def shape(self) -> tuple:
+        """``(B, T)``: the shape every metric returns."""
+        return tuple(self.estimates.shape[:2])
+
+    @functools.cached_property
+    def est_positions(self) -> torch.Tensor:
+        """``(B, T, C, k)`` estimated positions (sets: the estimates ``(B, T, K, k)`` themselves)."""
+        return self.estimates if self.mask is not None else self.model.positions(self.estimates)
+
+    @functools.cached_property
+    def true_positions(self) -> torch.Tensor:
+        """``(B, T, C, k)`` true positions."""
+        return self.model.positions(self.truth)
+
+
+def point_estimates(ctx: MetricContext) -> bool:
+    """``applies`` of a metric of point estimates ``(B, T, d)`` (the default)."""
+    return ctx.kind == "point"
+
+
+def tracking(ctx: MetricContext) -> bool:
+    """``applies`` of a metric of target positions: point estimates of a model with positions."""
+    return ctx.kind == "point" and bool(ctx.model.structure.has_positions)
+
+
+def sets(ctx: MetricContext) -> bool:
+    """``applies`` of a metric of the localisers' sets ``(B, T, K, k)``."""
+    return ctx.kind == "sets"
+
+
+_REDUCTIONS = (None, "mean", "last")
+_YSCALES = ("linear", "log", "per_particle")
+_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+#: column names the runner writes itself (summary, per-trial and per-step files): no metric may take one
+RESERVED_NAMES = frozenset({
+    "filter", "n_particles", "trials", "steps", "trial", "step", "lost", "omat_kept_mean", "omat_kept_sd",
+    "underflows", "log_evidence", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step",
+    "warmup_sec", "error"})
+
+
+def _expect(ok: bool, arg: str, what: str, got) -> None:
+    if not ok:
+        raise TypeError(f"{arg}: expected {what}, got {got!r} ({type(got).__name__})")
+
+
+@dataclass(frozen=True)
+class Metric:
+    """One per-step metric of the runner's tables (see the module docstring).
+
+    Attributes:
+        name: the column name (letters, digits, ``_``; not one of :data:`RESERVED_NAMES`).
+        label: the per-step figure's y label (units included, e.g. ``"OMAT (m)"``).
+        compute: ``compute(ctx: MetricContext) -> (B, T)`` tensor, the value per trial and step.
+        applies: ``applies(ctx) -> bool``: whether the metric is defined for this filter and model
+            (default :func:`point_estimates`); where it is not, its columns are empty.
+        reduce_trial: a trial's value: ``"mean"`` over its steps, ``"last"`` step's, or ``None``:
+            ``"mean"`` for point estimates, ``"last"`` for sets (a localiser's value is that of
+            the sets it declares after the last measurement). The summary value is the mean of
+            the ``B x T`` values (``"mean"``) or of the ``B`` last-step values (``"last"``); an
+            integer or bool ``compute`` gives integer per-trial values with ``"last"``.
+        higher_is_better: ``True`` for scores (ESS), ``False`` for errors; for readers of the table.
+        plot: whether ``per_step.png`` has a panel of it.
+        yscale: that panel's axis: ``"linear"``, ``"log"``, or ``"per_particle"``: the values
+            divided by each filter's ``n_particles`` (a log axis when a fraction is below 0.1).
+    """
+
+    name: str
+    label: str
+    compute: Callable[[MetricContext], torch.Tensor]
+    applies: Callable[[MetricContext], bool] = point_estimates
+    reduce_trial: Optional[str] = None
+    higher_is_better: bool = False
+    plot: bool = True
+    yscale: str = "linear"
+
+    def __post_init__(self):
+        _expect(isinstance(self.name, str) and bool(_NAME.match(self.name)), "name",
+                "a column name (letters, digits, _; not starting with a digit)", self.name)
+        if self.name in RESERVED_NAMES:
+            raise ValueError(f"name: {self.name!r} is a column the runner writes itself; reserved: "
+                             f"{', '.join(sorted(RESERVED_NAMES))}")
+        _expect(isinstance(self.label, str), "label", "a string (the figure's y label)", self.label)
+        _expect(callable(self.compute), "compute", "a callable compute(ctx) -> (B, T) tensor", self.compute)
+        _expect(callable(self.applies), "applies", "a callable applies(ctx) -> bool", self.applies)
+        if self.reduce_trial not in _REDUCTIONS:
+            raise ValueError(f"reduce_trial: expected one of {list(_REDUCTIONS)}, got {self.reduce_trial!r}")
+        for arg in ("higher_is_better", "plot"):
+            _expect(isinstance(getattr(self, arg), bool), arg, "a bool", getattr(self, arg))
+        if self.yscale not in _YSCALES:
+            raise ValueError(f"yscale: expected one of {list(_YSCALES)}, got {self.yscale!r}")
+
+    @property
+    def doc(self) -> str:
+        """The docstring of ``compute`` (its formula and shapes)."""
+        return (self.compute.__doc__ or "").strip()
+
+    def trial_reduction(self, ctx: MetricContext) -> str:
+        """``"mean"`` or ``"last"`` for ``ctx`` (see ``reduce_trial``)."""
+        return self.reduce_trial or ("last" if ctx.kind == "sets" else "mean")
+
+    def evaluate(self, ctx: MetricContext) -> torch.Tensor:
+        """``compute(ctx)``, checked to be a ``(B, T)`` tensor; an error names the metric."""
+        try:
+            value = self.compute(ctx)
+        except Exception as err:
+            raise RuntimeError(f"metric {self.name!r}: compute failed: {type(err).__name__}: {err}") from err
+        if not isinstance(value, torch.Tensor) or tuple(value.shape) != ctx.shape:
+            got = shape_str(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+            raise ValueError(f"metric {self.name!r}: compute returned {got}, expected (B, T) = "
+                             f"{shape_str(ctx.shape)}")
+        return value.detach()
+
+
+_REGISTRY: Dict[str, Metric] = {}
+#: ``name -> Metric`` in registration order (a read-only view; change it with :func:`register`)
+REGISTRY: Mapping[str, Metric] = MappingProxyType(_REGISTRY)
+
+
+def register(metric: Metric, *, replace: bool = False) -> Metric:
+    """Add ``metric`` to :data:`REGISTRY` (last; ``replace=True``: replace the metric of that
+    name in its place) and return it."""
+    _expect(isinstance(metric, Metric), "metric", "a torchflow.metrics.Metric", metric)
+    _expect(isinstance(replace, bool), "replace", "a bool", replace)
+    if metric.name in _REGISTRY and not replace:
+        raise ValueError(f"metric: a metric named {metric.name!r} is already registered "
+                         f"(unregister({metric.name!r}) first, or register(..., replace=True))")
+    _REGISTRY[metric.name] = metric
+    return metric
+
+
+def unregister(name: str) -> Metric:
+    """Remove the metric ``name`` from :data:`REGISTRY` and return it."""
+    if name not in _REGISTRY:
+        raise KeyError(f"name: no metric {name!r} is registered; registered: {', '.join(_REGISTRY)}")
+    return _REGISTRY.pop(name)
+
+
+@contextlib.contextmanager
+def registered(*metrics: Metric) -> Iterator[None]:
+    """Register ``metrics`` for a ``with`` block, then unregister them."""
+    added = []
+    try:
+        for m in metrics:
+            added.append(register(m).name)
+        yield
+    finally:
+        for name in added:
+            _REGISTRY.pop(name, None)
+
+
+def applicable(ctx: MetricContext) -> List[Metric]:
+    """The registered metrics that apply to ``ctx``, in registration order."""
+    out = []
+    for m in _REGISTRY.values():
+        try:
+            if m.applies(ctx):
+                out.append(m)
+        except Exception as err:
+            raise RuntimeError(f"metric {m.name!r}: applies failed: {type(err).__name__}: {err}") from err
+    return out
+
+
+def _mse(ctx: MetricContext) -> torch.Tensor:
+    """``(B, T)``: ``mse[b, t] = (1/d) sum_j (xhat[b, t, j] - x[b, t, j])**2`` of the point
+    estimates ``xhat (B, T, d)`` against the true states ``x (B, T, d)`` (:func:`mse`)."""
+    return mse(ctx.estimates, ctx.truth)
+
+
+def _omat(ctx: MetricContext) -> torch.Tensor:
+    """``(B, T)``: ``omat[b, t] = min_pi (1/C) sum_c ||p[b, t, c] - phat[b, t, pi(c)]||_2`` over
+    permutations ``pi`` of the ``C`` targets, of the estimated and true positions
+    ``phat, p (B, T, C, k)`` (:func:`omat`)."""
+    return omat(ctx.est_positions, ctx.true_positions)
+
+
+def _ospa(ctx: MetricContext) -> torch.Tensor:
+    """``(B, T)``: the OSPA distance (cut-off ``c = ospa_cutoff``, order ``p = ospa_order``)
+    between the estimated positions ``(B, T, C, k)`` (sets: the declared items of
+    ``(B, T, K, k)``) and the true positions ``(B, T, C, k)``:
+    ``((1/n) (min_pi sum_{i<m} min(c, ||x_i - y_pi(i)||)**p + c**p (n - m)))**(1/p)`` with
+    ``m <= n`` the two sets' sizes (:func:`ospa`)."""
+    return ospa(ctx.est_positions, ctx.true_positions, cutoff=ctx.settings.get("ospa_cutoff", 40.0),
+                order=ctx.settings.get("ospa_order", 1.0), X_mask=ctx.mask)
+
+
+def _declared(ctx: MetricContext) -> torch.Tensor:
+    """``(B, T)`` integer: ``declared[b, t] = sum_K mask[b, t, K]``, the number of sources a
+    localiser declares after step ``t``."""
+    return ctx.mask.sum(-1)
+
+
+def _ess(ctx: MetricContext) -> torch.Tensor:
+    """``(B, T)``: the filter's effective sample size before resampling,
+    ``ess[b, t] = 1 / sum_i w[b, t, i]**2`` of its normalised weights ``w (B, T, N)`` (:func:`ess`)."""
+    return ctx.outputs["ess"]
+
+
+def _g_eff(ctx: MetricContext) -> torch.Tensor:
+    """``(B, T)``: a Gaussian-sum filter's effective number of Gaussians,
+    ``g_eff[b, t] = 1 / sum_g alpha[b, t, g]**2`` of its mixture weights ``alpha (B, T, G)``."""
+    return ctx.outputs["g_eff"]
+
+
+def _tracking_or_sets(ctx: MetricContext) -> bool:
+    """Point estimates of a model with positions, or the localisers' sets."""
+    return tracking(ctx) or sets(ctx)
+
+
+def _has_ess(ctx: MetricContext) -> bool:
+    return "ess" in ctx.outputs
+
+
+def _has_g_eff(ctx: MetricContext) -> bool:
+    return "g_eff" in ctx.outputs
+
+
+for _m in (Metric("mse", "MSE", _mse, yscale="log"),
+           Metric("omat", "OMAT (m)", _omat, tracking),
+           Metric("ospa", "OSPA (m)", _ospa, _tracking_or_sets),
+           Metric("declared", "declared sources", _declared, sets, plot=False),
+           Metric("ess", "ESS", _ess, _has_ess, higher_is_better=True, yscale="per_particle"),
+           Metric("g_eff", "G_eff", _g_eff, _has_g_eff, higher_is_better=True, plot=False)):
+    register(_m)
+del _m

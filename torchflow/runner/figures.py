@@ -1,5 +1,6 @@
 """Pictures of a run (matplotlib is optional: :func:`pyplot`). Each ``*_figure`` takes ``plt`` and
 returns a figure (``None``: nothing to draw); a filter keeps one colour everywhere (:func:`colours`).
+The per-step figure's panels, labels and axes follow :data:`torchflow.metrics.REGISTRY`.
 """
 from __future__ import annotations
 
@@ -7,11 +8,12 @@ import logging
 from pathlib import Path
 from typing import List
 
+from .. import metrics
+
 log = logging.getLogger("torchflow.runner")
 
 COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
            "#bcbd22", "#17becf"]
-_LABELS = {"omat": "OMAT (m)", "ospa": "OSPA (m)", "mse": "MSE", "ess": "ESS"}
 
 
 def pyplot():
@@ -40,31 +42,40 @@ def _finish(fig, ax, title: str, **legend):
     return fig
 
 
+def per_step_keys(per_step) -> List[str]:
+    """The per-step figure's panels: the registered metrics with ``plot=True`` that some per-step
+    row holds, in registration order."""
+    return [m.name for m in metrics.REGISTRY.values() if m.plot and any(m.name in r for r in per_step)]
+
+
 def per_step_figure(plt, per_step, summary, title: str):
-    """Per-step metric means, one panel per metric, one legend; ESS as a fraction of each filter's N
-    (a log axis below 0.1); a panel names the filters that have no value there."""
-    keys = [k for k in ("omat", "ospa", "mse", "ess") if any(k in r for r in per_step)]
+    """Per-step metric means, one panel per metric of :func:`per_step_keys` (y label: the metric's
+    ``label``), one legend; a ``yscale="per_particle"`` metric (ESS) as a fraction of each filter's
+    N (a log axis below 0.1); a panel names the filters that have no value there."""
+    keys = per_step_keys(per_step)
     if not keys:
         return None
     colour, n_of = colours(summary), {r["filter"]: r.get("n_particles") for r in summary}
     fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.6), squeeze=False)
     handles = {}
     for ax, key in zip(axes[0], keys):
+        metric = metrics.REGISTRY[key]
+        per_n = metric.yscale == "per_particle"
         missing = [n for n in colour if not any(r["filter"] == n and key in r for r in per_step)]
         for name in (n for n in colour if n not in missing):
             rows = [r for r in per_step if r["filter"] == name and key in r]
-            y = [r[key] / n_of[name] if key == "ess" else r[key] for r in rows]
+            y = [r[key] / n_of[name] if per_n else r[key] for r in rows]
             (handles[name],) = ax.plot([r["step"] for r in rows], y, color=colour[name], label=name)
         ax.set_xlabel("time step")
-        ax.set_ylabel(_LABELS.get(key, key))
-        if key == "ess":
+        ax.set_ylabel(metric.label)
+        if per_n:
             Ns = sorted({n_of[n] for n in colour if n not in missing and n_of.get(n)})
-            ax.set_ylabel(f"ESS / N (N = {Ns[0]})" if len(Ns) == 1 else "ESS / N (each filter's N)")
+            ax.set_ylabel(f"{metric.label} / N " + (f"(N = {Ns[0]})" if len(Ns) == 1 else "(each filter's N)"))
             fractions = [v for line in ax.get_lines() for v in line.get_ydata() if v > 0]
             low = bool(fractions) and min(fractions) < 0.1  # low ESS: a log axis keeps the curves apart
             ax.set_yscale("log" if low else "linear")
             ax.set_ylim(min(fractions) / 1.5 if low else 0, 1.05)
-        if key == "mse":
+        if metric.yscale == "log":
             ax.set_yscale("log")
         if missing:
             ax.set_title("not defined for: " + ", ".join(missing), fontsize=7)

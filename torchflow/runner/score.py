@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
@@ -13,11 +14,59 @@ from ..filters.kalman import KalmanFilter
 from ..models.base import StateSpaceModel, Trajectory
 from .plan import RunPlan, filter_chunk
 
-SUMMARY_COLUMNS = [
-    "filter", "n_particles", "trials", "steps", "mse", "omat", "omat_kept_mean", "omat_kept_sd",
-    "ospa", "declared", "underflows", "ess", "g_eff", "log_evidence", "log_evidence_relmse", "lost_tracks", "repaired",
-    "sec_per_step", "warmup_sec", "error",
-]
+#: the first columns of the summary table
+FIXED_COLUMNS = ("filter", "n_particles", "trials", "steps")
+#: the runner's own summary columns (not per-step metrics), each group after the registered metric
+#: it names (``None``: after every metric; a group whose metric is not registered comes before it)
+RUN_COLUMNS = (("omat", ("omat_kept_mean", "omat_kept_sd")), ("declared", ("underflows",)),
+               (None, ("log_evidence", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step",
+                       "warmup_sec", "error")))
+
+
+def summary_columns() -> List[str]:
+    """The summary table's columns now: :data:`FIXED_COLUMNS`, each metric of
+    :data:`torchflow.metrics.REGISTRY` in registration order, and :data:`RUN_COLUMNS`."""
+    after = {anchor: list(cols) for anchor, cols in RUN_COLUMNS}
+    tail = after.pop(None, [])
+    cols = list(FIXED_COLUMNS)
+    for name in metrics.REGISTRY:
+        cols += [name, *after.pop(name, [])]
+    return cols + [c for group in after.values() for c in group] + tail
+
+
+class _SummaryColumns(Sequence):
+    """A live view of :func:`summary_columns` (a sequence of column names that follows the registry)."""
+
+    def __len__(self):
+        return len(summary_columns())
+
+    def __getitem__(self, i):
+        return summary_columns()[i]
+
+    def __iter__(self):
+        return iter(summary_columns())
+
+    def __contains__(self, name):
+        return name in summary_columns()
+
+    def __eq__(self, other):
+        return isinstance(other, (list, tuple, Sequence)) and list(other) == summary_columns()
+
+    __hash__ = None
+
+    def __add__(self, other):
+        return summary_columns() + list(other)
+
+    def __radd__(self, other):
+        return list(other) + summary_columns()
+
+    def __repr__(self):
+        return repr(summary_columns())
+
+
+#: the summary table's columns (:func:`summary_columns`, read on each use, so a metric
+#: registered with :func:`torchflow.metrics.register` is a column of every table made after)
+SUMMARY_COLUMNS: Sequence[str] = _SummaryColumns()
 
 
 @dataclass
@@ -26,9 +75,10 @@ class ExperimentResult:
 
     Attributes:
         summary: one dict per filter with :data:`SUMMARY_COLUMNS` (``None`` where undefined).
-        per_trial: one dict per filter x trial (mse, omat, ospa, ess, log_evidence, lost; localisers:
-            ospa, declared, underflows).
-        per_step: one dict per filter x step with metric means over trials.
+        per_trial: one dict per filter x trial: each registered metric that applies (built in: mse,
+            omat, ospa, ess, g_eff; localisers: ospa, declared), log_evidence, lost (tracking
+            models); localisers: underflows.
+        per_step: one dict per filter x step with the registered metrics' means over trials.
         trajectory: the simulated data (CPU tensors).
         config: the run's settings (chunk sizes, particle chunks, seed, device, ...).
         examples: ``{filter: (T, d)}`` estimates of trial 0 (for the track picture; localisers: the
@@ -68,6 +118,11 @@ class Scorer:
     lost_threshold: float = 2.0
     reference_logz: Optional[torch.Tensor] = None
 
+    @property
+    def settings(self) -> Dict[str, float]:
+        """The metric settings a :class:`~torchflow.metrics.MetricContext` carries."""
+        return {"ospa_cutoff": self.ospa_cutoff, "ospa_order": self.ospa_order, "lost_threshold": self.lost_threshold}
+
 
 def make_scorer(model: StateSpaceModel, plan: RunPlan, **settings) -> Scorer:
     """A :class:`Scorer` for ``plan``; on a linear-Gaussian model (rank 0) the Kalman filter's
@@ -88,64 +143,104 @@ def _cat(chunks: List[dict], key: str) -> Optional[torch.Tensor]:
     return torch.cat([c[key] for c in chunks]) if key in chunks[0] else None
 
 
-def _per_step(name: str, cols: Dict[str, torch.Tensor], steps: int) -> List[dict]:
-    means = {k: v.mean(0) for k, v in cols.items()}
+#: chunk entries that are not filter outputs of a :class:`~torchflow.metrics.MetricContext`
+_NOT_OUTPUTS = ("start", "stop", "elapsed", "estimates", "estimate_mask")
+
+
+def context(sc: Scorer, f: Filter, chunks: List[dict]) -> metrics.MetricContext:
+    """The :class:`~torchflow.metrics.MetricContext` of one filter's chunks (concatenated over trials)."""
+    outputs = {k: _cat(chunks, k) for k, v in chunks[0].items()
+               if k not in _NOT_OUTPUTS and isinstance(v, torch.Tensor) and all(k in c for c in chunks)}
+    return metrics.MetricContext(model=sc.model, filter=f, estimates=_cat(chunks, "estimates"), truth=sc.truth,
+                                 mask=_cat(chunks, "estimate_mask"), outputs=outputs, settings=sc.settings)
+
+
+def _values(ctx: metrics.MetricContext, name: str) -> Dict[str, tuple]:
+    """``{metric: (values (B, T) float64, trial reduction, integer per-trial values)}`` of every
+    registered metric that applies; an error names the filter."""
+    try:
+        out = {}
+        for m in metrics.applicable(ctx):
+            v = m.evaluate(ctx)
+            how = m.trial_reduction(ctx)
+            out[m.name] = (v.double(), how, how == "last" and not v.is_floating_point())
+        return out
+    except (RuntimeError, ValueError) as err:  # the metrics' own errors: add the filter's name
+        if type(err) not in (RuntimeError, ValueError):
+            raise
+        raise type(err)(f"filter {name}: {err}") from err
+
+
+def _per_step(name: str, cols: Dict[str, tuple], steps: int) -> List[dict]:
+    means = {k: v.mean(0) for k, (v, _, _) in cols.items()}
     return [{"filter": name, "step": t + 1, **{k: float(v[t]) for k, v in means.items()}} for t in range(steps)]
 
 
-def score_sets(sc: Scorer, name: str, row: dict, chunks: List[dict], steps: int):
+def _summary(cols: Dict[str, tuple]) -> Dict[str, float]:
+    """Summary values: the mean over trials and steps, or over trials of the last step's."""
+    return {k: float(v[:, -1].mean() if how == "last" else v.mean()) for k, (v, how, _) in cols.items()}
+
+
+def _trial(cols: Dict[str, tuple], b: int) -> dict:
+    """Trial ``b``'s values: the mean over its steps, or its last step's (an int for counts)."""
+    return {k: (int(v[b, -1]) if integer else float(v[b, -1])) if how == "last" else float(v[b].mean())
+            for k, (v, how, integer) in cols.items()}
+
+
+def score_sets(sc: Scorer, ctx: metrics.MetricContext, name: str, row: dict, cols: Dict[str, tuple], steps: int):
     """:func:`score_filter` of the localisers (sets ``estimates (B, T, K, 3)`` with ``estimate_mask``):
-    OSPA and the declared count after each step, a trial's value the last step's; the measurements
-    whose every weight underflowed (``underflow``) are counted and named in a warning."""
-    est, mask, under = _cat(chunks, "estimates"), _cat(chunks, "estimate_mask"), _cat(chunks, "underflow")
-    cols = {"ospa": metrics.ospa(est, sc.model.positions(sc.truth), cutoff=sc.ospa_cutoff, order=sc.ospa_order,
-                                 X_mask=mask), "declared": mask.sum(-1).double()}
-    lost = [f"run {b + sc.lo}, sensor {s}, measurement {m}" for b, s, m in torch.nonzero(under).tolist()]
-    if lost:
-        warnings.warn(f"{name}: every component's weight underflowed (measurement treated as clutter) at "
-                      + "; ".join(lost), RuntimeWarning, stacklevel=2)
-    counts = under.flatten(1).sum(1)
-    per_trial = [{"filter": name, "trial": sc.lo + b, "ospa": float(cols["ospa"][b, -1]),
-                  "declared": int(cols["declared"][b, -1]), "underflows": int(counts[b])} for b in range(est.shape[0])]
-    row.update({k: float(v[:, -1].mean()) for k, v in cols.items()}, underflows=int(counts.sum()))
+    the registered metrics of sets (OSPA and the declared count after each step, a trial's value the
+    last step's); the measurements whose every weight underflowed (``underflow``) are counted and
+    named in a warning."""
+    est, mask, under = ctx.estimates, ctx.mask, ctx.outputs.get("underflow")
+    counts = None
+    if under is not None:
+        lost = [f"run {b + sc.lo}, sensor {s}, measurement {m}" for b, s, m in torch.nonzero(under).tolist()]
+        if lost:
+            warnings.warn(f"{name}: every component's weight underflowed (measurement treated as clutter) at "
+                          + "; ".join(lost), RuntimeWarning, stacklevel=2)
+        counts = under.flatten(1).sum(1)
+    per_trial = [{"filter": name, "trial": sc.lo + b, **_trial(cols, b),
+                  **({} if counts is None else {"underflows": int(counts[b])})} for b in range(est.shape[0])]
+    row.update(_summary(cols))
+    if counts is not None:
+        row["underflows"] = int(counts.sum())
     return per_trial, _per_step(name, cols, steps), est[0, -1][mask[0, -1]]
 
 
 def score_filter(sc: Scorer, f: Filter, name: str, row: dict, chunks: List[dict], steps: int):
-    """``(per-trial rows, per-step rows, trial 0's estimates)`` of one filter; fills ``row``: metric
-    means over trials and steps (MSE; OMAT, OSPA and lost tracks of tracking models; ESS, G_eff),
-    the log-evidence and its error against the Kalman filter's, repairs."""
-    if "estimate_mask" in chunks[0]:
-        return score_sets(sc, name, row, chunks, steps)
-    est, logz, n_run = _cat(chunks, "estimates"), _cat(chunks, "log_evidence"), sc.truth.shape[0]
-    cols = {"mse": metrics.mse(est, sc.truth)}
-    if sc.model.structure.has_positions:
-        est_pos, true_pos = sc.model.positions(est), sc.model.positions(sc.truth)
-        cols["omat"] = metrics.omat(est_pos, true_pos)
-        cols["ospa"] = metrics.ospa(est_pos, true_pos, cutoff=sc.ospa_cutoff, order=sc.ospa_order)
-    cols.update({k: _cat(chunks, k) for k in ("ess", "g_eff") if k in chunks[0]})
+    """``(per-trial rows, per-step rows, trial 0's estimates)`` of one filter; fills ``row``: every
+    registered metric that applies (:mod:`torchflow.metrics`; built in: MSE; OMAT and OSPA of
+    tracking models; ESS, G_eff), the log-evidence and its error against the Kalman filter's, the
+    lost tracks and the OMAT of the kept ones (tracking models), repairs."""
+    ctx = context(sc, f, chunks)
+    cols = _values(ctx, name)
+    if ctx.kind == "sets":
+        return score_sets(sc, ctx, name, row, cols, steps)
+    logz, n_run = ctx.outputs.get("log_evidence"), sc.truth.shape[0]
     if f.estimates_evidence:
         row["log_evidence"] = float(logz.mean())
         if sc.reference_logz is not None:
             row["log_evidence_relmse"] = float(metrics.log_evidence_relative_error(logz, sc.reference_logz).mean())
-    if "n_repaired" in chunks[0]:
-        row["repaired"] = int(_cat(chunks, "n_repaired").sum())
-    row.update({k: float(v.mean()) for k, v in cols.items()})
+    if "n_repaired" in ctx.outputs:
+        row["repaired"] = int(ctx.outputs["n_repaired"].sum())
+    row.update(_summary(cols))
     lost = None
-    if sc.model.structure.has_positions:
-        lost = metrics.lost_tracks(cols["omat"], threshold=sc.lost_threshold)
-        kept = cols["omat"].mean(1)[~lost]
+    if sc.model.structure.has_positions:  # lost tracks: OMAT's, registered or not
+        om = cols["omat"][0] if "omat" in cols else metrics.omat(ctx.est_positions, ctx.true_positions)
+        lost = metrics.lost_tracks(om, threshold=sc.lost_threshold)
+        kept = om.mean(1)[~lost]
         row.update(lost_tracks=int(lost.sum()), omat_kept_mean=float(kept.mean()) if kept.numel() else None,
                    omat_kept_sd=float(kept.std()) if kept.numel() > 1 else None)
-    per_trial = [{"filter": name, "trial": sc.lo + b, "log_evidence": float(logz[b]),
-                  **{k: float(v[b].mean()) for k, v in cols.items()},
-                  **({} if lost is None else {"lost": bool(lost[b])})} for b in range(n_run)]
+    per_trial = [{"filter": name, "trial": sc.lo + b, **({} if logz is None else {"log_evidence": float(logz[b])}),
+                  **_trial(cols, b), **({} if lost is None else {"lost": bool(lost[b])})} for b in range(n_run)]
     return per_trial, _per_step(name, cols, steps), chunks[0]["estimates"][0]
 
 
 def format_table(summary: List[dict], columns: Optional[List[str]] = None) -> str:
-    """Markdown table of the summary rows, dropping columns that are empty in every row."""
-    cols = [c for c in columns or SUMMARY_COLUMNS if any(r.get(c) is not None for r in summary)]
+    """Markdown table of the summary rows (default columns: :func:`summary_columns`), dropping
+    columns that are empty in every row."""
+    cols = [c for c in columns or summary_columns() if any(r.get(c) is not None for r in summary)]
     fmt = lambda v: "" if v is None else f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     return "\n".join(lines + ["| " + " | ".join(fmt(r.get(c)) for c in cols) + " |" for r in summary])

@@ -8,7 +8,7 @@ import os
 from pathlib import Path
 from typing import List, Mapping, Optional
 
-from .score import SUMMARY_COLUMNS
+from .score import summary_columns
 
 #: every file a run may write into its output folder (a reused folder is cleared of these)
 RESULT_FILES = ("summary.csv", "per_step.csv", "per_trial.csv", "results.json", "error.txt",
@@ -34,8 +34,10 @@ def _atomic(path: Path, write) -> Path:
 
 def write_csv(path: Path, rows: List[Mapping], columns: Optional[List[str]] = None) -> Path:
     """Write ``rows`` (``None`` as an empty cell) to ``path`` atomically; default columns: every key,
-    ``filter``, ``step``, ``trial`` first, then the others sorted."""
-    columns = columns or sorted({k for r in rows for k in r}, key=lambda k: (k not in ("filter", "step", "trial"), k))
+    ``filter``, ``step``, ``trial`` first, then the others sorted (so the per-step and per-trial
+    files hold every registered metric that applied)."""
+    columns = list(columns or sorted({k for r in rows for k in r},
+                                     key=lambda k: (k not in ("filter", "step", "trial"), k)))
 
     def write(fh):
         w = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
@@ -50,10 +52,11 @@ def write_text(path: Path, text: str) -> Path:
 
 
 def write_run(out: Path, result, config: Mapping) -> List[Path]:
-    """``summary.csv``, ``per_step.csv``, ``per_trial.csv`` and ``results.json`` of an
-    :class:`~torchflow.runner.score.ExperimentResult`; ``config``: the settings to record."""
+    """``summary.csv`` (columns: :func:`~torchflow.runner.score.summary_columns`, which follow
+    :data:`torchflow.metrics.REGISTRY`), ``per_step.csv``, ``per_trial.csv`` and ``results.json``
+    of an :class:`~torchflow.runner.score.ExperimentResult`; ``config``: the settings to record."""
     out = Path(out)
-    return [write_csv(out / "summary.csv", result.summary, SUMMARY_COLUMNS),
+    return [write_csv(out / "summary.csv", result.summary, summary_columns()),
             write_csv(out / "per_step.csv", result.per_step),
             write_csv(out / "per_trial.csv", result.per_trial),
             write_text(out / "results.json", json.dumps({
