@@ -1,5 +1,5 @@
 """Probabilistic data association by loopy belief propagation (Williams & Lau 2014; Meyer et al.
-2017/2018; seed 002's framework, MODELS.md §12.4), batched over runs with padded objects and
+2017/2018; the framework of Zhang, Khojasteh, Atanasov & Meyer 2024), batched over runs with padded objects and
 measurements.
 
 For K legacy potential objects (POs) and M measurements of one sensor, the association variable

@@ -1,8 +1,8 @@
 """CUDA graph capture of pure tensor functions: the deterministic flows' pseudo-time loop on a GPU.
 
-A particle flow's integration is thousands of small kernels per filter step (``bench_ops``: about
-5,000 aten ops for PF-PF(LEDH) on acoustic tracking, 29 pseudo-steps). Launched one by one from
-Python each costs tens of microseconds of host time, far more than its arithmetic; replayed from a
+A particle flow's integration is thousands of small kernels per filter step (op counts:
+``experiments/RESULTS.md``, "Operations and host synchronisations per step"). Launched one by one
+from Python each costs more host time than its arithmetic takes on the GPU; replayed from a
 captured CUDA graph the whole loop is one launch. :func:`graphed` captures a function of tensors
 once per *key* (the shapes, dtypes and everything else the function's kernels depend on) and
 replays it afterwards:

@@ -152,8 +152,8 @@ def solve_triangular(A: torch.Tensor, B: torch.Tensor, *, upper: bool, left: boo
 
 
 #: CPU float64 draws of at least this many numbers come from numpy's ziggurat sampler (SFC64
-#: bit generator, ~8 ns per draw here) seeded from the caller's torch.Generator; torch's own CPU
-#: float64 normal sampler costs ~21 ns per draw, which made the bootstrap PF RNG-bound. It decides
+#: bit generator) seeded from the caller's torch.Generator; torch's own CPU float64 normal
+#: sampler costs several times more per draw, which made the bootstrap PF RNG-bound. It decides
 #: which numbers a torch.Generator draw gets, so it is part of the draw's definition, not a speed
 #: knob (torchflow.tuning).
 FAST_NORMAL_MIN = 1 << 16
@@ -169,7 +169,7 @@ def standard_normal(shape, *, dtype: torch.dtype, device, generator: Optional[to
 
     Large float64 CPU draws (``>= FAST_NORMAL_MIN`` numbers) take one 62-bit seed
     from ``generator`` and fill the tensor with numpy's ziggurat normals (``np.random.SFC64``):
-    exact float64 normals, 2.5x faster than ``torch.randn`` on CPU per thread, and the same seed
+    exact float64 normals, cheaper per thread than ``torch.randn`` on the CPU, and the same seed
     gives the same numbers. Draws of more than ``FAST_NORMAL_BLOCK`` numbers use one stream per
     block (children of the seed's ``SeedSequence``), filled on up to ``torch.get_num_threads()``
     threads; the numbers do not depend on the thread count. Everything else (GPU, float32, small
@@ -194,12 +194,12 @@ def standard_normal(shape, *, dtype: torch.dtype, device, generator: Optional[to
 def chol_solve(L: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
     """Solve ``(L L^T) X = B`` for ``X`` given lower ``L (..., d, d)`` and ``B (..., d, k)``.
 
-    Two batched triangular solves: on CPU this is ~1.7x faster than ``torch.cholesky_solve`` for
-    large batches of small matrices (5000 x 16 x 16: 9.9 ms vs 16.7 ms). They are posed on the
-    transposed system (``X^T (L L^T) = B^T``, right-hand solves) for a batch of matrices, whose
-    result comes back in row-major layout: batched products with it are then ~1.5x faster than
-    with the column-major result of left-hand solves."""
-    if L.dim() == 2:  # one matrix: left-hand solves are faster (64 x 64: 19 vs 34 us)
+    Two batched triangular solves, which on the CPU cost less than ``torch.cholesky_solve`` for
+    large batches of small matrices. They are posed on the transposed system
+    (``X^T (L L^T) = B^T``, right-hand solves) for a batch of matrices, whose result comes back in
+    row-major layout, the layout later batched products read without a copy (left-hand solves
+    return it column-major)."""
+    if L.dim() == 2:  # one matrix: left-hand solves, the faster of the two here
         Y = torch.linalg.solve_triangular(L, B, upper=False)
         return torch.linalg.solve_triangular(L.transpose(-1, -2), Y, upper=True)
     Zt = solve_triangular(L.transpose(-1, -2), B.transpose(-1, -2), upper=True, left=False)

@@ -1,5 +1,5 @@
 """Multi-source localisation from TDOAs with belief propagation and flow-induced Gaussian-mixture
-importance sampling (seed 002: Zhang, Khojasteh, Atanasov & Meyer 2024; MODELS.md §12; README).
+importance sampling (seed 002: Zhang, Khojasteh, Atanasov & Meyer 2024; README).
 
 The sensors (receiver pairs) are processed in turn: the posterior after sensor s - 1 is the prior
 of sensor s. The belief is a set of potential objects (POs), each with an existence probability
@@ -206,7 +206,7 @@ class FlowMixtureLocaliser(_Localiser):
         samples_per_component: N_p per flowed component (seed: 5000).
         schedule: lambda grid (default :class:`~torchflow.schedules.GeometricSchedule` ``(1e-5, 1.5)``).
         alpha, c_rule: PFI-OS: the objective weight and the reading of c*
-            (:func:`~torchflow.flows.optimal_diffusion_scale`: ``"printed"`` (default, MODELS.md §12.1),
+            (:func:`~torchflow.flows.optimal_diffusion_scale`: ``"printed"`` (default, the paper's typeset formula),
             ``"literal_shift"`` or ``"printed_shift"``).
         birth_per_axis, birth_sd: the birth mixture (:func:`birth_mixture`; 5^3 = 125 components).
         jitter: relative diagonal jitter of the refitted covariances (of the component's prior scale).

@@ -17,7 +17,7 @@ Back ends (``backend=``):
 
 * ``"numpy"`` (default on CPU): one ``numpy.random.Generator(SFC64)`` per trial, seeded by a
   ``SeedSequence([seed, key, trial])``; normals by numpy's ziggurat (exact float64 / float32
-  normals, ~5-8 ns per draw). Large draws are filled on parallel threads (numpy releases the
+  normals; their cost: ``experiments/RESULTS.md``, "Per-trial random streams"). Large draws are filled on parallel threads (numpy releases the
   GIL), one task per trial or, for more than :data:`BLOCK` numbers per trial, per block of the
   trial's draw from child streams the trial spawns; the numbers do not depend on the thread count.
 * ``"philox"`` (default on CUDA, available on every device): counter-based Philox4x32-10

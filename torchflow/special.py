@@ -1,5 +1,5 @@
 """Special functions torch lacks, in log space: ``log K_nu(x)``, the modified Bessel function of the
-second kind, for the generalised-hyperbolic skewed-t density (MODELS.md §3; orders
+second kind, for the generalised-hyperbolic skewed-t density (Septier & Peters 2016; orders
 ``(nu + d) / 2`` reach ~75.5 at d = 144 and ~200 at d = 400, where ``K`` itself overflows).
 
 Method: the integral ``K_nu(x) = 1/2 int_R exp(-x cosh t + nu t) dt`` (nu real, x > 0). Its log-

@@ -1,14 +1,15 @@
-"""Speed settings measured on one machine, as documented knobs in one place.
+"""Speed settings, as documented knobs in one place.
 
 Every value here changes only how fast (or in how much memory) a result is computed, never the
 result: the same seed gives the same numbers whatever they are set to (up to round-off where a
 batch's size changes BLAS blocking; see README "Reproducibility"). The exceptions compute the same
 formulas in another order: ``fused_flows``, ``fused_info``, ``fused_measurement`` and ``structured_update`` agree
 with their torch/Joseph counterparts to round-off per call, which a chaotic trial (a resampling
-decision, a diverging EKF) can amplify; their statistics are the same (RESULTS.md, "CPU kernels"). They were measured on the
-project's 2-core CI machine (torch 2.13, MKL); on another machine, time a representative run
-with ``experiments/benchmarks`` and set them here, from Python or from the runner
-(``python experiments/run.py tuning.points_per_call=40000``).
+decision, a diverging EKF) can amplify; their statistics are the same (``experiments/RESULTS.md``,
+"CPU kernels"). The defaults were chosen by timing representative runs on a small CPU machine
+(``experiments/RESULTS.md``, "Performance benchmarks"); on another machine, time a
+representative run with ``experiments/benchmarks`` and set them here, from Python or from the
+runner (``python experiments/run.py tuning.points_per_call=40000``).
 
 Constants that *define* numbers are not here: the block size of a trial's child random streams
 (:data:`torchflow.random.BLOCK`) and the fast sampler's thresholds
@@ -33,27 +34,28 @@ __all__ = ["Tuning", "get", "set", "tuned"]
 
 @dataclass(frozen=True)
 class Tuning:
-    """The speed knobs (defaults: measured on a 2-core CPU).
+    """The speed knobs (defaults chosen for a small CPU machine; ``experiments/RESULTS.md``).
 
     Attributes:
         points_per_call: per-particle flows (LEDH-type points) batch ``d x d`` products over
-            trials x particles; the runner's default chunk is this many particles per call. On
-            2 cores the time per trial-step is flat up to ~1e4 points per call and doubles at 2e4
-            (acoustic, N = 500: 0.15 s at 2-20 trials per call, 0.32 s at 40). GPUs want more.
+            trials x particles; the runner's default chunk is this many particles per call. The
+            per-point cost is flat while a call's per-particle matrices stay in the CPU's cache
+            and rises once they spill (``experiments/RESULTS.md``, "Scaling curves", against B).
+            GPUs want more.
         cache_bytes_per_call: bytes of one ``(B, N, d)`` state tensor per call at which the
             whole-cloud passes of the other particle filters (sampling, likelihood, resampling)
-            stay cache-resident: the bootstrap PF at d = 64, N = 1e4 runs at 1.04e-2 s per
-            trial-step with 3 trials per call and 1.6e-2 with 10 or 20.
+            stay cache-resident (larger calls are memory-bound: each pass streams the whole cloud
+            from main memory).
         serial_solve_max_dim: CPU batches of triangular matrices up to this size are solved with
-            one intra-op thread (MKL pays a parallel-region start per tiny matrix: 2000 solves of
-            8 x 8 with 17 right-hand sides take 2.1-4.4 ms with 2 threads, 0.6-0.9 ms with 1);
-            0 turns this off.
+            one intra-op thread (with several threads MKL pays a parallel-region start per tiny
+            matrix, which costs more than the solve itself); 0 turns this off.
         flow_operator_min_dim: EDH/LEDH coefficients with at least this many measured state
             coordinates k give A as an operator on vectors instead of forming the ``d x k`` matrix
             (:func:`torchflow.flows.daum_huang_coefficients`); below it, forming A and applying
-            it by batched products is faster. PFGSPF on d = 144 (k = 144), 200 particles, 2 threads:
-            9.8 s per trial-step formed, 4.9 s as an operator (the same MSE to 1e-13). 0: always
-            an operator.
+            it by batched products is faster. A particle's flow applies A to only a few vectors,
+            so for large k the ``k``-column solve and ``d x k x k`` product that form A dominate
+            (PFGSPF at d = 144; ``experiments/RESULTS.md``, "Gaussian sum at d = 144"); both give
+            the same numbers to round-off. 0: always an operator.
         parallel_draw_min: numbers per call from which the numpy random back end fills trials on
             several threads (the numbers do not depend on the thread count).
         assignment_brute_force_max: OMAT/OSPA assignments with at most this many items are solved
@@ -66,14 +68,14 @@ class Tuning:
             whether a factorisation failed (a read stalls the GPU's queue). On the CPU a host read
             costs nothing and the ladder costs ``max_tries`` extra factorisations of every batch:
             with 0 (default) the CPU reads the failure flags and tries the ladder only when one
-            failed; 1 batches it there too (acoustic, 4 trials x 10 steps, N = 500, 2 threads:
-            PF-PF(LEDH) 1.5x, PF-PF(Gromov) 1.4x and the UPF 2.0x slower). The same factor either way.
+            failed; 1 batches it there too (slower on the CPU: ``experiments/RESULTS.md``,
+            "Operations and host synchronisations per step"). The same factor either way.
         jitter_ladder_divisor: the batched jitter ladder of :func:`torchflow.linalg.safe_cholesky`
             (CUDA, or ``batched_jitter_cpu=1``) gathers the failed matrices of a batch of n into
             ``max(min(n, 4096), ceil(n / divisor))`` slots and factors the ladder for those only;
             failed matrices beyond the slots take the ladder's largest jitter. 1: a slot per
-            matrix. PF-PF(LEDH), acoustic, 100 trials x 500 particles, H100: the per-particle
-            covariances' factorisations 56 -> 11 ms of GPU time over 3 time steps.
+            matrix. Failures are rare, so factoring the ladder for every matrix mostly repeats
+            work (``experiments/RESULTS.md``, "GPU").
         cuda_graphs: on CUDA, a deterministic flow's pseudo-time loop (EDH, LEDH, geodesic,
             clustered; no gradient recorded) is captured once per shape as a CUDA graph and
             replayed (:mod:`torchflow.cudagraphs`): one launch instead of thousands of small ones.
@@ -86,17 +88,16 @@ class Tuning:
             round-off (1e-12 relative per flow in float64), not bit for bit. 0: the torch path.
             On the CPU the Gromov flow at per-particle points (PF-PF(Gromov)) and GPFIS's transport
             (its analytic Jacobian) have one too, and EDH/LEDH with a diagonal W too large for the
-            lane kernel run in information form (PFGSPF, d = 144: 25.4 -> 1.6-2.0 s per trial-step).
-            PF-PF(LEDH), acoustic, 100 trials x 500 particles, H100: 0.095 s per time step with
-            0, 0.053 with 1 (0.031 with ``fused_measurement``); 20 trials, this 2-core CPU: 1.47
-            s with 0, 0.59 s with 1.
+            lane kernel run in information form (PFGSPF, d = 144). One kernel keeps each
+            particle's small matrices in registers or cache and replaces many small launches and
+            passes over memory; timings in ``experiments/RESULTS.md`` ("CPU kernels", "GPU").
         fused_info: the GPU kernel of ``fused_flows`` in information form (1,
             :func:`~torchflow.flows.kernels.gpu.kernel_info`: ``G = W^T W`` and the prior precision,
             one pass over W's rows, no ``L_s`` read per row) or the row form (0,
             :func:`~torchflow.flows.kernels.gpu.kernel_rows`: ``S = (W L_s)^T (W L_s)``, two
-            passes). The same formulas rearranged (round-off). H200, PF-PF(LEDH) 100 x 500,
-            float64: 0.0221 s per time step with 1, 0.0237 with 0 (one run). No effect on the Numba CPU
-            kernel (it does select the form Triton's interpreter runs on the CPU, in tests).
+            passes). The same formulas rearranged (round-off); the information form reads W once
+            and never re-reads ``L_s`` per row (``experiments/RESULTS.md``, "GPU"). No effect on the
+            Numba CPU kernel (it does select the form Triton's interpreter runs on the CPU, in tests).
         fused_measurement: the fused kernel linearises a model that declares its measurement in
             the kernel's terms (:attr:`~torchflow.models.Structure.measurement_form`:
             acoustic tracking) itself, at the points, instead of torch ops writing a
@@ -105,9 +106,9 @@ class Tuning:
             measurement support of ``k <= m`` coordinates (acoustic tracking: k = 8, m = 25) is
             done in ``k x k`` algebra (:func:`torchflow.trackers.kalman_update_scalar_support`,
             Woodbury) instead of the ``m x m`` Joseph form: the same posterior to round-off
-            (1e-14 relative), ~10x fewer flops; it is the per-particle EKF of PF-PF. PF-PF(LEDH),
-            acoustic, 20 trials x 500 particles, this 2-core CPU: 0.24 -> 0.04 s per time step
-            for that update. 0: the Joseph form.
+            (1e-14 relative), with ``k x k`` instead of ``m x m`` factorisations and about ten
+            times fewer flops per particle; it is the per-particle EKF of PF-PF
+            (``experiments/RESULTS.md``, "CPU kernels"). 0: the Joseph form.
         graph_step_max_elems: on CUDA, a particle filter step declared graph-safe (the bootstrap
             PF's; :mod:`torchflow.flows.kernels.graph_step`) with at most this many state elements
             ``B x N x d`` is replayed from a CUDA graph (under ``cuda_graphs``): one launch instead

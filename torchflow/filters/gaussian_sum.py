@@ -1,5 +1,5 @@
 """Gaussian and Gaussian-sum particle filters, with and without a particle flow (seed 001:
-Comandur, Li & Nannuru; Kotecha & Djuric 2003; MODELS.md §9).
+Comandur, Li & Nannuru 2022, eqs 4-16; Kotecha & Djuric 2003).
 
 The belief is a mixture ``sum_j alpha^j N(mu^j, Sigma^j)`` of G components; no resampling anywhere.
 One step, for all trials and all G components in one batched call (components are rows of a
@@ -22,7 +22,7 @@ One step, for all trials and all G components in one batched call (components ar
    is ``sum_j alpha^j mu^j``; the effective number of Gaussians ``G_eff = 1 / sum_j (alpha^j)^2``
    (eq 16) is reported per step.
 
-UNCONF choices of the seed are knobs (MODELS.md §9, defaults first):
+Choices the paper leaves open are knobs (defaults first):
 
 * ``linearize_at``: ``"auxiliary"``: each particle's point starts at its noise-free prediction
   ``g(x_{t-1}^{ij}, 0)`` (the model's ``transition_mean``) and migrates with its own drift, so each
@@ -144,7 +144,8 @@ class GaussianSumParticleFilter(ParticleFilter):
         redraw_eta0: redraw ``eta_0`` from the fitted predictive (default False, the seed's).
         init: ``"prior"`` (default) or ``"spread"``.
         estimate: ``"mixture_mean"`` (default, the seed's) or ``"top_component"``.
-        jitter: relative diagonal jitter of every fitted covariance (default 1e-6, MODELS.md §9).
+        jitter: relative diagonal jitter of every fitted covariance (default 1e-6; not in the
+            paper: with N* = 200 particles in d = 144 the sample covariance is near-singular).
         nonfinite: ``"recover"`` (default): particles with a non-finite position or weight get
             weight zero; a component left with none keeps its predicted moments and gets
             ``alpha = 0``; a trial left with none keeps its mixture weights. ``"raise"``: the

@@ -1,4 +1,4 @@
-"""Gaussian particle flow importance sampling (GPFIS; Bunch & Godsill 2016; MODELS.md §6, §13): the
+"""Gaussian particle flow importance sampling (GPFIS; Bunch & Godsill 2016): the
 particle filter with the GPFIS proposal (:class:`~torchflow.proposals.GPFISProposal`; the transport
 is :func:`~torchflow.flows.gpfis.gpfis_flow`)."""
 from __future__ import annotations

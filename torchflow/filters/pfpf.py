@@ -83,7 +83,7 @@ class ParticleFlowParticleFilter(_FlowSettings, ParticleFilter):
 
 
 class ClusteredParticleFlowParticleFilter(ParticleFlowParticleFilter):
-    """Clustered PF-PF(LEDH) (seed 004, Li & Coates; MODELS.md §11): the flow is linearised at K
+    """Clustered PF-PF(LEDH) (seed 004: Li & Coates' clustered PF-PF, Algorithms 1-2): the flow is linearised at K
     cluster medoids instead of at every particle, and every particle moves with its cluster's
     affine map, so the flow costs O(N_lambda K + N) instead of O(N_lambda N).
 
@@ -102,7 +102,7 @@ class ClusteredParticleFlowParticleFilter(ParticleFlowParticleFilter):
             with a shared P, which on linear models is PF-PF(LEDH) exactly).
         alpha: weight of the Euclidean part of the distance (default 0.25; seed 004: results
             similar for alpha in {0, .25, .5, .75, 1}).
-        sweeps: K-medoids assign/update sweeps (default 10; MODELS.md allows up to 20).
+        sweeps: K-medoids assign/update sweeps (default 10; the paper does not fix a number).
         jacobian_in_weight: include ``theta^(k)`` in the weight (default True: the proposal density
             needs it, since it differs between clusters); False reproduces the seed's printed
             algorithm, which omits it.

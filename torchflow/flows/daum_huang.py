@@ -49,8 +49,8 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
             per point; the same numbers: the products' other terms are exact zeros).
 
     A particle's flow applies A to only a few vectors, so for large k the operator form skips the
-    ``k``-column solve and ``d x k x k`` product that form A (d = 144: half the time,
-    ``experiments/benchmarks/results_gaussian_sum.md``); both give the same numbers up to round-off.
+    ``k``-column solve and ``d x k x k`` product that form A (timings: ``experiments/RESULTS.md``,
+    "Gaussian sum at d = 144"); both give the same numbers up to round-off.
     """
     Ls = L if L_support is None else L_support
     k = Ls.shape[-1]

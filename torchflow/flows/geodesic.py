@@ -217,8 +217,8 @@ def optimal_diffusion_scale(k_min: torch.Tensor, k_max: torch.Tensor, alpha: flo
     reproduce seed 002's minimiser exactly, halve ``alpha``.
 
     ``rule="printed"`` returns seed 002's printed value itself as the diffusion scale,
-    ``c = max{0, sqrt((k_max - k_min)/alpha) - k_min}`` with ``Q = c M^{-1}`` (MODELS.md §12.1's
-    reading for the flow-induced proposals); ``rule="literal_shift"`` (default) the minimiser above;
+    ``c = max{0, sqrt((k_max - k_min)/alpha) - k_min}`` with ``Q = c M^{-1}`` (our reading of the
+    typeset formula of Zhang, Khojasteh, Atanasov & Meyer 2024, for the flow-induced proposals); ``rule="literal_shift"`` (default) the minimiser above;
     ``rule="printed_shift"`` the printed value ``c'`` in the convention it minimises, i.e. as the
     shift of the drift (``A_s = A - c' I``), which keeps the posterior only with ``Q = 2 c' M^{-1}``:
     it returns ``c = 2 c'``, twice ``printed`` (a third UNCONF reading, tested against seed 002's

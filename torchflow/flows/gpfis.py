@@ -1,4 +1,4 @@
-"""Gaussian particle flow importance sampling (GPFIS; Bunch & Godsill 2016; MODELS.md §6, §13).
+"""Gaussian particle flow importance sampling (GPFIS; Bunch & Godsill 2016).
 
 Each particle starts from the Gaussian transition, ``x_0 ~ N(m_0, P_0)`` with ``m_0 = f(x_{k-1})``
 and ``P_0 = V`` (the transition covariance), and moves over the pseudo-time grid. On a step

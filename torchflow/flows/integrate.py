@@ -237,7 +237,7 @@ EVALUATE_AT = ("end", "start")
 def flow_gaussian(flow: ParticleFlow, measurement, prior: FlowPrior, schedule: Optional[LambdaSchedule] = None,
                   evaluate_at: str = "end", on_step=None):
     """Flow the *parameters* of Gaussians instead of particles (seed 002's flow-induced proposal,
-    MODELS.md §12.2): for each prior ``N(mu_0, P_0)``, linearise the measurement at the migrating
+    Zhang, Khojasteh, Atanasov & Meyer 2024, eqs 6-7): for each prior ``N(mu_0, P_0)``, linearise the measurement at the migrating
     mean and step
 
         mu_l = mu_{l-1} + eps_l (A_l mu_{l-1} + b_l),
@@ -256,10 +256,10 @@ def flow_gaussian(flow: ParticleFlow, measurement, prior: FlowPrior, schedule: O
         prior: :class:`FlowPrior` with ``mean (..., d)`` and factor ``(..., d, d)``.
         schedule: lambda schedule (default exponential, 29 steps, ratio 1.2).
         evaluate_at: pseudo-time at which step l's ``A``, ``b``, ``Q`` are taken: ``"end"``
-            (default, ``lambda_l``, as seed 002's Euler-Maruyama step and Li & Coates' flows) or
-            ``"start"`` (``lambda_{l-1}``, ``lambda_0 = 0``: the plain explicit Euler step, which is
-            unstable when ``eps_1`` times the measurement's precision in prior units is large;
-            MODELS.md §12.1, UNCONF).
+            (default, ``lambda_l``, as the Euler-Maruyama step of Zhang et al. 2024, eqs 1-11, and
+            Li & Coates' flows) or ``"start"`` (``lambda_{l-1}``, ``lambda_0 = 0``: the plain
+            explicit Euler step, which is unstable when ``eps_1`` times the measurement's precision
+            in prior units is large).
         on_step: optional observer ``on_step(coefficients, eps)`` called with each step's
             :class:`FlowCoefficients` before the step is taken (diagnostics; the result is unchanged).
 
@@ -326,7 +326,7 @@ def _propagate_cov(Sig, co: "FlowCoefficients", eps: float, eye):
     batch = torch.broadcast_shapes(*shapes)
     _flat3 = lambda x: (x if x.shape[:-2] == batch else x.expand(*batch, *x.shape[-2:])).reshape(-1, *x.shape[-2:])  # noqa: E731
     S3, A3 = _flat3(Sig), _flat3(A)
-    V = torch.baddbmm(S3, A3, S3[:, sup], alpha=e)  # rows: 4x faster than index_select on the CPU
+    V = torch.baddbmm(S3, A3, S3[:, sup], alpha=e)  # rows by basic indexing: a contiguous copy, cheaper than index_select on the CPU
     out = torch.baddbmm(V, V.index_select(-1, sup), A3.transpose(-1, -2), alpha=e)
     if pair is not None:
         out = torch.baddbmm(out, _flat3(pair[0]), _flat3(pair[1]).transpose(-1, -2), alpha=e)

@@ -123,7 +123,7 @@ class GaussianMeasurement:
         """Whitened linearisation at ``points (..., d)``; ``support`` is the ``(k,)`` index of the
         measured coordinates (:attr:`FlowPrior.support`) or ``None``. No test of R's values: its
         structure is declared (no host synchronisation)."""
-        xs = points if support is None else points[..., support]  # 3x faster than index_select (CPU)
+        xs = points if support is None else points[..., support]  # cheaper than index_select on the CPU
         if self.noise == "scalar" and self.matrix is None:
             # R = sigma^2 I: whiten inside the linearisation (scale 1 / sigma), so W = H / sigma
             # and y = (z - h) / sigma + W x_s need no pass over the Jacobian

@@ -6,7 +6,7 @@ with the coefficients of its point (:func:`~torchflow.flows.integrate_flow`):
 * :class:`GlobalPoints`: L = 1, the trial's migrating mean (EDH, PF-PF(EDH));
 * :class:`ParticlePoints`: L = N, each particle's own auxiliary point (LEDH, PF-PF(LEDH));
 * :class:`ClusteredPoints`: L = K medoids of a batched K-medoids on the mixed particle distance,
-  with a ``(B, N) -> K`` index (seed 004, Li & Coates; MODELS.md §11).
+  with a ``(B, N) -> K`` index (seed 004: Li & Coates' clustered PF-PF, Algorithms 1-2).
 
 A strategy says three things, and nothing else in the flow layer or the particle filters depends
 on which strategy it is:
@@ -75,8 +75,9 @@ def kmedoids(dist: torch.Tensor, n_clusters: int, sweeps: int = 20) -> Tuple[tor
     distance to the trial's most central point (smallest row sum) and take K evenly spaced ranks.
     Then ``sweeps`` times: assign every point to its nearest medoid, and make each cluster's
     medoid the member with the smallest total distance to the other members (an empty cluster
-    keeps its medoid). MODELS.md §11 allows this alternating variant in place of PAM
-    (UNCONF: variant and iterations).
+    keeps its medoid). This alternating variant stands in for the PAM algorithm (Kaufman &
+    Rousseeuw 1990) that Li & Coates' clustered PF-PF names; the paper gives neither the variant
+    nor the number of iterations.
 
     Returns:
         ``index (B, N)`` cluster of each point and ``medoids (B, K)`` the medoids' point indices.
@@ -221,7 +222,7 @@ class ParticlePoints(LinearisationPoints):
 
 
 class ClusteredPoints(LinearisationPoints):
-    """K medoids (seed 004, Li & Coates; MODELS.md §11): the particles' noise-free predictions
+    """K medoids (seed 004: Li & Coates' clustered PF-PF, Algorithms 1-2): the particles' noise-free predictions
     ``eta_bar^i = g(x_{k-1}^i)`` are clustered by :func:`kmedoids` on :func:`cluster_distance`
     (Euclidean on the measured coordinates and the correlation of the lambda = 0 LEDH velocities);
     cluster k's flow starts at its medoid's ``eta_bar`` with the trial's covariance.
@@ -262,9 +263,9 @@ class ClusteredPoints(LinearisationPoints):
         dist = cluster_distance(eta_bar, zeta, self.alpha, model.structure.measurement_support)
         return kmedoids(dist, self.n_clusters, self.sweeps)
 
-    # the (B, N, N) distance sweeps of K-medoids fall out of cache like per-particle flows:
-    # acoustic N = 500, K = 200 at 100 trials per call took 0.086 s per trial-step, more than
-    # PF-PF(LEDH) at 20 per call (0.070); K = 100 0.057 against 0.028 at 20 per call
+    # the (B, N, N) distance sweeps of K-medoids fall out of cache like per-particle flows, so
+    # clustered points take as many trials per call as per-particle points (experiments/RESULTS.md,
+    # the clustered PF-PF section)
     preferred_chunk_trials = ParticlePoints.preferred_chunk_trials
 
     def extra_bytes(self, n_particles, state_dim):

@@ -1,4 +1,4 @@
-"""Multi-target acoustic tracking (Li & Coates 2017 §V-A; MODELS.md §1).
+"""Multi-target acoustic tracking (Li & Coates 2017 §V-A).
 
 C = 4 targets move with nearly constant velocity in a 40 m x 40 m field; 25 acoustic sensors on a
 5 x 5 grid measure the summed amplitude ``z_s = sum_c Psi / (|p_c - s_s| + d0) + w_s``.

@@ -194,7 +194,7 @@ def sensor_network_covariance(grid_size: int, alpha0: float = 3.0, alpha1: float
 
 
 class SensorNetwork(LinearGaussian):
-    """Linear-Gaussian spatial sensor network (Li & Coates 2017 §V; MODELS.md §2).
+    """Linear-Gaussian spatial sensor network (Li & Coates 2017 §V).
 
     ``x_k = alpha x_{k-1} + v_k`` with ``v ~ N(0, Sigma)`` (:func:`sensor_network_covariance`),
     ``z_k = x_k + w_k`` with ``w ~ N(0, sigma_z^2 I)``, one sensor per grid cell, ``x_0 = 0`` known

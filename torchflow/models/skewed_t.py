@@ -1,5 +1,5 @@
 """Generalised-hyperbolic skewed-t dynamics with Poisson counts (Septier & Peters 2016; Li & Coates
-2017 §V; MODELS.md §3, §10, §14e).
+2017 §V; as used by Comandur, Li & Nannuru 2022 and, for the Gaussian fit, Pal & Coates 2019).
 
     x_k = alpha x_{k-1} + W_k gamma + sqrt(W_k) Sigma^{1/2} xi_k,   1/W_k ~ Gamma(nu/2, rate nu/2),
     z_k^c ~ Poisson(m1 exp(m2 x_k^c)),  one count per cell c (m = d).
@@ -36,7 +36,8 @@ from .linear_gaussian import sensor_network_covariance
 
 
 class SkewedTPoisson(GaussianStateSpaceModel):
-    """GH skewed-t dynamics on a sensor grid with Poisson count measurements (MODELS.md §3).
+    """GH skewed-t dynamics on a sensor grid with Poisson count measurements (Septier & Peters 2016;
+    Li & Coates 2017 §V).
 
     Args:
         d: state dimension, a perfect square (144 default; 400 works).
@@ -170,7 +171,7 @@ class SkewedTPoisson(GaussianStateSpaceModel):
         return torch.zeros(batch_size, self.state_dim, dtype=self.Sigma.dtype, device=self.Sigma.device)
 
     def initial_belief(self, states0, generator=None):
-        """``x_0 = 0`` known: mean 0 and a machine-epsilon covariance (MODELS.md §3)."""
+        """``x_0 = 0`` known: mean 0 and a machine-epsilon covariance (Li & Coates 2017 §V)."""
         B, d = states0.shape
         eps = torch.finfo(states0.dtype).eps
         eye = torch.eye(d, dtype=states0.dtype, device=states0.device)

@@ -1,5 +1,5 @@
 """3-D source localisation from time differences of arrival (seed 002: Zhang, Khojasteh, Atanasov &
-Meyer 2024; MODELS.md §12.3).
+Meyer 2024, the TDOA scenario).
 
 Static sources ``x`` in the cube ``[-r, r]^3`` are heard by V receivers; sensor s is a receiver pair
 ``(a, b)`` and measures

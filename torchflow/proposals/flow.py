@@ -130,7 +130,7 @@ class FlowProposal(Proposal):
     def _draw_eta0(self, x_prev, generator):
         if self.flow.stochastic and not self.model.structure.gaussian_transition:
             # the tracked proposal law starts from the Gaussian fit, so eta_0 must be drawn from it
-            # (MODELS.md §14e); the weight keeps the model's exact transition density
+            # (Pal & Coates 2019, non-Gaussian transitions); the weight keeps the model's exact transition density
             return self.model.sample_transition_gaussian(x_prev, generator)
         return self.model.sample_transition(x_prev, generator)
 

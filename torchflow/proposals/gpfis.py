@@ -19,7 +19,7 @@ class GPFISProposal(Proposal):
 
     Args:
         schedule: lambda grid (default: the exponential 29-step grid of the flows; the papers give
-            no step-size control for GPFIS, MODELS.md §13).
+            no step-size control for GPFIS, Bunch & Godsill 2016).
         root: ``"cholesky"`` (default) or ``"symmetric"`` (:mod:`torchflow.flows.gpfis`).
         jacobian: each step's Jacobian ``"analytic"`` (default: written out, with the model's
             second derivatives) or ``"autodiff"`` (forward mode through the whole step); see

@@ -1,4 +1,4 @@
-"""Flow-induced Gaussian-mixture importance sampling (seed 002; MODELS.md §12.2): the flow moves the
+"""Flow-induced Gaussian-mixture importance sampling (seed 002: Zhang et al. 2024, eqs 6-7): the flow moves the
 parameters of every prior component, and the flowed mixture is the proposal."""
 from __future__ import annotations
 
@@ -18,7 +18,8 @@ RATIOS = ("mixture", "component")
 
 
 class FlowedMixtureProposal(nn.Module):
-    """Flow-induced Gaussian-mixture importance sampling (seed 002; MODELS.md §12.2).
+    """Flow-induced Gaussian-mixture importance sampling (seed 002: Zhang, Khojasteh, Atanasov &
+    Meyer 2024, eqs 6-7).
 
     Instead of moving particles, the flow moves the *parameters* of every prior component
     (:func:`~torchflow.flows.flow_gaussian`): component n of the prior ``f = sum_n w_n N(mu_n, P_n)``

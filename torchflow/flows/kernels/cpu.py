@@ -11,8 +11,8 @@ blocks, and none are reassociated across lanes: a run gives the same bits with 1
 Why lanes of 64 and not 8 (one register): with 8 the lane loops are unrolled before the loop
 vectoriser sees them and Numba's pipeline does not SLP-vectorise them, so the code stayed scalar
 (2,800 scalar against 16 vector arithmetic instructions in its assembly); at 64 the loop vectoriser
-runs (with run-time alias checks between the scratch arrays). 10,000 particles, acoustic k = 8,
-m = 25, one pseudo-step on this 2-core CPU: 8 lanes 20 ms, 64 lanes 8.4 ms (2 threads).
+runs (with run-time alias checks between the scratch arrays). Timings: ``experiments/RESULTS.md``,
+"CPU kernels".
 
 One pass over the rows of W accumulates ``W^T y``, ``S = V^T V`` (lower triangle) and
 ``M = V^T W`` (``V_i = L_s^T W_i``); the four products ``t(u) = sum_i V_i (W_i . u)`` of the
@@ -804,8 +804,9 @@ def _gpfis_block(blk, per, groups, total, W, y, D, C, cols, mean, sup, x, x_out,
 def _chol_into(Pinv, dgn, h, K, d):
     """Lower Cholesky factor ``K`` of ``Pinv + h diag(dgn)`` (``Pinv`` read in full, symmetric), row
     by row (Cholesky-Banachiewicz), four rows at a time: each entry is a contiguous dot product of two
-    rows, vectorised by reassociating it, and each load of an earlier row serves four. d = 144, one
-    core: 15.3 GFLOP/s (one row at a time 10.9, two 14.6; torch's batched ``cholesky_ex`` 5)."""
+    rows, vectorised by reassociating it, and each load of an earlier row serves four (fewer loads
+    per flop than one or two rows at a time; the rate against torch's batched ``cholesky_ex`` is in
+    ``experiments/RESULTS.md``, "CPU kernels")."""
     r0 = 0
     while r0 < d:
         nr = min(4, d - r0)

@@ -10,11 +10,11 @@ import triton.language as tl
 # below are sums over axes held in one thread's registers: no shuffles between threads, no shared
 # memory. Loads and stores go through flat views (:func:`_ld`) to keep that layout, and selections
 # by a constant index fold away in the compiled code (in-thread, each register's index is known).
-# Compiled for sm_90 (H100) with Triton 3.6 (``experiments/benchmarks/kernel_registers.py``,
-# ``results_kernel_registers.txt``): 255 registers and no shuffles in both kernels; spill stores
-# 1.6-1.8 KB per thread in ``kernel_rows``, 2.6-2.7 KB in ``kernel_info`` (which is faster all the
-# same: it reads no ``L_s`` per row of W). The first version (tiles loaded as ``[BK, BP]``, J and
-# J L_s kept) spilled 9 KB and shuffled 1,700 times.
+# Compiled for sm_90 with Triton 3.6, both kernels use no shuffles between threads and spill some
+# registers to local memory, ``kernel_info`` more than ``kernel_rows``; ``kernel_info`` is the
+# default all the same, since it reads no ``L_s`` per row of W (register and spill counts:
+# ``experiments/benchmarks/kernel_registers.py``; timings: ``experiments/RESULTS.md``, "GPU"). Tiles
+# loaded as ``[BK, BP]`` with J and J L_s kept spilled far more and shuffled between threads.
 
 @triton.jit
 def _pick(v, rk, i):

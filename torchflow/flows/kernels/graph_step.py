@@ -1,8 +1,9 @@
 """A particle filter's whole time step replayed from a CUDA graph (small, launch-bound batches).
 
-A bootstrap PF step of 100 trials x 200 particles is ~130 small kernels whose arithmetic takes a
-few microseconds each: launched one by one from Python, the step costs ~1.8 ms of host time on an
-H100 while the GPU works ~0.4 ms of it. Replayed from a CUDA graph the step is one launch.
+A bootstrap PF step of 100 trials x 200 particles is ~130 small kernels, each with little
+arithmetic: launched one by one from Python, the step's host time (launch overhead) exceeds the
+GPU's work several times over. Replayed from a CUDA graph the step is one launch (timings:
+``experiments/RESULTS.md``, "GPU").
 
 The step draws random numbers, which a graph cannot: a replay would repeat the captured counters.
 So the draws are split in two (:class:`~torchflow.random.TrialStreams` with the Philox back end,

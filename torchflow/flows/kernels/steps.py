@@ -60,7 +60,7 @@ available, interpreted = _triton.available, _triton.interpreted  # shared with t
 _kernels = {}
 
 
-#: warps per program (32 particles each); 1, 2 and 4 ran alike on an H100 (``ab_fused``)
+#: warps per program (32 particles each); 1, 2 and 4 ran alike (``experiments/benchmarks/ab_fused.py``)
 ROWS_WARPS = 1
 
 
