@@ -1,30 +1,33 @@
 """Your own model: stochastic volatility
 
-A model of your own is a subclass of `torchflow.models.StateSpaceModel`. For the bootstrap
-particle filter it needs its dimensions, the true initial state and the filters' prior, a way
-to draw and to score the transition, and a way to draw and to score the measurement: six
-methods. Here, the stochastic-volatility model
+A model of your own is a subclass of `torchflow.models.StateSpaceModel`, the core of the model
+contract: its dimensions, the true initial state and the filters' prior, a way to draw and to
+score the transition, and a way to draw and to score the measurement, six methods. That is all
+the bootstrap particle filter needs, and `simulate()` follows from it. Here, the
+stochastic-volatility model
 
     x_t = phi x_{t-1} + sigma v_t,     v_t ~ N(0, 1)
     y_t | x_t ~ N(0, exp(x_t))
 
-whose measurement is not a function of the state plus Gaussian noise, so the Kalman-type filters
-and the flows, which linearise h(x), do not apply; the bootstrap particle filter does. The model
-holds its parameters as buffers, so `model.double()`, `model.to("cuda")` and learning
+whose measurement is not a function of the state plus Gaussian noise, so it has no Gaussian form
+(`torchflow.models.GaussianStateSpaceModel`): the Kalman-type filters and the flows, which
+linearise h(x), refuse it when they are built, and the bootstrap particle filter runs it. The
+model holds its parameters as buffers, so `model.double()`, `model.to("cuda")` and learning
 (`nn.Parameter`s instead of buffers) work as for the built-in models. Its random draws go through
 `torchflow.linalg.standard_normal`, which takes a `torch.Generator` or torchflow's per-trial
 random streams (`torchflow.random.TrialStreams`, what the command-line runner passes).
 
-The script simulates a few trials with the model's own sampling methods, runs
-`torchflow.filters.BootstrapParticleFilter` on them, and draws the first trial's log-volatility,
-its filtered estimate and the observations.
+The script simulates a few trials with the model's own `simulate()`, runs
+`torchflow.filters.BootstrapParticleFilter` on them, shows the refusal of a filter that needs the
+Gaussian form, and draws the first trial's log-volatility, its filtered estimate and the
+observations. [Define your own model](../guide/custom-models.md) has the whole contract.
 """
 import math
 
 import matplotlib.pyplot as plt
 import torch
 
-from torchflow.filters import BootstrapParticleFilter
+from torchflow.filters import BootstrapParticleFilter, ExtendedKalmanFilter
 from torchflow.linalg import standard_normal
 from torchflow.models import StateSpaceModel
 from torchflow.random import TrialStreams
@@ -79,16 +82,10 @@ class StochasticVolatility(StateSpaceModel):
 model = StochasticVolatility(phi=0.95, sigma=0.25)
 g = torch.Generator().manual_seed(0)
 
-# simulate B trials of T steps with the model's own sampling methods
+# simulate B trials of T steps: simulate() follows from initial_state, sample_transition and sample_measurement
 B, T = 8, 200
-x = model.initial_state(B, g)
-states, observations = [x], []
-for _ in range(T):
-    x = model.sample_transition(x, g)
-    states.append(x)
-    observations.append(model.sample_measurement(x, g))
-states = torch.stack(states, 1)                 # (B, T+1, 1)
-observations = torch.stack(observations, 1)     # (B, T, 1)
+data = model.simulate(B, T, g)
+states, observations = data.states, data.observations      # (B, T+1, 1), (B, T, 1)
 
 mean, cov = model.initial_belief(states[:, 0])
 bpf = BootstrapParticleFilter(model, n_particles=1000)
@@ -104,6 +101,12 @@ print(f"mean ESS: {res.ess.mean():.0f} of {bpf.n_particles} particles")
 per_trial = bpf(observations, mean, cov, TrialStreams(seed=1, trials=B, key="bpf"))
 rmse_streams = ((per_trial.estimates - states[:, 1:]) ** 2).mean().sqrt()
 print(f"with per-trial random streams: RMSE {rmse_streams:.3f}")
+
+# a filter that needs the Gaussian form (transition_mean, transition_cov, measure, measurement_cov) refuses the model
+try:
+    ExtendedKalmanFilter(model)
+except TypeError as err:
+    print(err)
 
 t = torch.arange(1, T + 1)
 fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(10, 5), sharex=True)
