@@ -31,6 +31,7 @@ from .runner import (
     STOP, SUMMARY_COLUMNS, ChunkStore, Shard, config as rc, figures, fingerprint, format_table, run_experiment, shell,
     writers,
 )
+from .filters.gaussian_sum import GaussianSumParticleFilter
 from .runner.plan import ConfigError
 from .runner.shell import JobEnv, config_error, job_threads
 
@@ -56,8 +57,8 @@ def row_label(key: str, f) -> str:
     ``flow@filter.pfpf_ledh.flow=edh`` -> ``pfpf_ledh[flow=edh]``; with
     ``filter.pfpf_ledh.points=global`` -> ``pfpf_ledh[points=global]``); Gaussian-sum filters: the
     seed's N* x G label too (``gspf[10x2]``)."""
-    flow, gs, words = getattr(f, "flow", None), hasattr(f, "n_components"), key.split("_")
-    if hasattr(f, "method") or (flow is None and not gs):  # TDOA localisers: the key names the method
+    flow, gs, words = getattr(f, "flow", None), isinstance(f, GaussianSumParticleFilter), key.split("_")
+    if f.output == "sets" or (flow is None and not gs):  # TDOA localisers: the key names the method
         return key
     fl = None if flow is None else flow_label(flow)
     named = [n for n in sorted(set(_FLOW_NAMES.values()), key=len, reverse=True) if n in words]
@@ -67,7 +68,7 @@ def row_label(key: str, f) -> str:
         expected = named[0] if named else "ledh"
     tags = [f"{f.particles_per_component}x{f.n_components}"] if gs else []
     tags += [] if fl == expected else [f"flow={fl}"]
-    if gs and getattr(f, "estimate", "mixture_mean") != "mixture_mean":
+    if gs and f.estimate != "mixture_mean":
         tags.append(f"estimate={f.estimate}")
     points = None if gs else getattr(getattr(f, "points", None), "name", None)
     if points is not None and points != ("clustered" if "clustered" in words else flow.points):

@@ -102,8 +102,13 @@ class _Localiser(nn.Module):
         name: label in results (default: the class name).
     """
 
-    padded_measurements, trials_per_call = True, 1  # masked measurement sets; one run per call
+    #: the runner's declarations (:class:`~torchflow.filters.Filter` declares the same names): sets
+    #: of declared sources, masked measurement sets, one run per call, no per-particle blocks
+    output, padded_measurements, trials_per_call, particle_chunk = "sets", True, 1, None
     method: str
+
+    def plan_memory(self, budget_bytes: float, n_particles=None):  # noqa: D102 - no per-particle blocks
+        return None
 
     def __init__(self, model: TDOA3D, *, birth_rate, max_objects, prune, declare, bp_iterations, sample_chunk,
                  name):

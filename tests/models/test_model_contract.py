@@ -10,6 +10,7 @@ from torch import nn
 
 from torchflow.experiment import run_experiment
 from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, KalmanFilter,
+                               ParticleFlowGaussianParticleFilter, ParticleFlowGaussianSumParticleFilter,
                                ParticleFlowParticleFilter)
 from torchflow.linalg import standard_normal
 from torchflow.models import GaussianStateSpaceModel, LinearGaussian, StateSpaceModel, Structure
@@ -91,7 +92,8 @@ def test_a_core_only_model_runs_the_bootstrap_filter_and_the_runner():
 
 def test_filters_that_need_the_gaussian_form_refuse_a_core_only_model_by_name():
     model = StochasticVolatility()
-    for cls in (KalmanFilter, ExtendedKalmanFilter, ParticleFlowParticleFilter):
+    for cls in (KalmanFilter, ExtendedKalmanFilter, ParticleFlowParticleFilter, ParticleFlowGaussianParticleFilter,
+                ParticleFlowGaussianSumParticleFilter):
         with pytest.raises(TypeError, match="gives only the core.*Gaussian form"):
             cls(model)
 

@@ -148,6 +148,19 @@ class Filter(nn.Module):
     #: the filter reads the model's Gaussian form (:class:`~torchflow.models.GaussianStateSpaceModel`);
     #: a particle filter leaves this to its proposal
     gaussian_form = True
+    # ---- what the runner reads, declared by every estimator it runs: the filters here, and the
+    # TDOA localisers (torchflow.localisation), a second kind whose output is sets, not states ----
+    #: ``"states"``: ``forward`` returns a :class:`FilterResult` of point estimates ``(B, T, d)``;
+    #: the localisers declare ``"sets"`` (declared sources with a mask, scored as sets)
+    output = "states"
+    #: particles per trial (particle filters), else ``None``
+    n_particles: Optional[int] = None
+    #: per-particle work in blocks of this many particles (particle filters; ``None``: all at once)
+    particle_chunk: Optional[int] = None
+    #: the most trials one call takes (``None``: any number)
+    trials_per_call: Optional[int] = None
+    #: ``forward`` takes measurement sets padded with a ``mask`` (the localisers)
+    padded_measurements = False
 
     def __init__(self, model: StateSpaceModel, *, validate: bool = True, name: Optional[str] = None):
         super().__init__()
@@ -182,6 +195,11 @@ class Filter(nn.Module):
     def preferred_chunk_trials(self, n_particles: Optional[int] = None) -> Optional[int]:
         """Largest number of trials per call that runs at full speed (``None``: no limit beyond
         memory). Used by the experiment runner when no ``chunk_size`` is given."""
+        return None
+
+    def plan_memory(self, budget_bytes: float, n_particles: Optional[int] = None) -> Optional[int]:
+        """Blocks of particles that keep one trial within ``budget_bytes`` (particle filters set
+        :attr:`particle_chunk`); ``None``: the filter has no per-particle blocks."""
         return None
 
     # ---- helpers -------------------------------------------------------------------------------

@@ -58,6 +58,7 @@ from ..flows import FlowPrior, integrate_flow, which_kernel
 from ..flows.points import ParticlePoints, flow_points_per_call
 from ..schedules import LambdaSchedule, resolve_schedule
 from ..proposals import resolve_flow
+from ..models.contract import require_gaussian
 from ..models.structure import bytes_per_point
 from .base import ParticleFilter
 
@@ -181,6 +182,8 @@ class GaussianSumParticleFilter(ParticleFilter):
         if isinstance(jitter, bool) or not isinstance(jitter, (int, float)) or not 0 <= jitter < 1:
             raise ValueError(f"jitter: expected a relative jitter in [0, 1), got {jitter!r}")
         self.flow = None if flow is None else resolve_flow(flow)
+        if self.flow is not None:  # the flows linearise h and start from the transition mean
+            require_gaussian(model, self.name)
         if self.flow is not None and self.flow.stochastic:
             raise ValueError(f"flow: the Gaussian-sum filters weigh with the flow's log|det|, so the flow must be "
                              f"deterministic (EDH/LEDH family), got {type(self.flow).__name__}")

@@ -54,6 +54,8 @@ class Structure:
             Python-side state: a particle filter's whole step may be replayed from a CUDA graph.
         has_positions: the state holds target positions (the model gives ``positions(x)
             -> (..., C, 2 or 3)``; position metrics such as OMAT apply).
+        padded_measurements: the observations are measurement sets of varying size, padded, with a
+            ``mask`` (TDOA localisation); only estimators declaring the same take them.
         bytes_per_point: rough memory of evaluating the model at one point (intermediates of
             ``measure``, log-densities), for the chunk planner; ``None``: ``32 (d + m)``.
     """
@@ -70,6 +72,7 @@ class Structure:
     measurement_form: Optional[tuple] = None
     graph_safe: bool = False
     has_positions: bool = False
+    padded_measurements: bool = False
     bytes_per_point: Optional[int] = None
 
     def __post_init__(self):

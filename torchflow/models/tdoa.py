@@ -80,8 +80,8 @@ class TDOA3D(GaussianStateSpaceModel):
         region: half width r of the region ``[-r, r]^3`` (m).
     """
 
-    padded_measurements, obs_dim = True, None  # masked measurement sets; only filters declaring the same take them
-    structure = Structure(has_positions=True)
+    obs_dim = None  # masked measurement sets of varying size (structure.padded_measurements)
+    structure = Structure(has_positions=True, padded_measurements=True)
 
     def __init__(self, receivers: Optional[torch.Tensor] = None, pairs: Optional[Sequence[Sequence[int]]] = None, *,
                  speed: float = 1500.0, sigma_v: float = 5e-4, p_d: float = 0.95, clutter_rate: float = 1.0,

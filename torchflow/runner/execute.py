@@ -102,7 +102,7 @@ def _timed_call(f: Filter, name: str, plan: RunPlan, s: int, e: int, steps: Opti
     st, traj = plan.settings, plan.traj
     T = traj.observations.shape[1] if steps is None else min(steps, traj.observations.shape[1])
     g = TrialStreams(st.seed, range(s, e), key=f.stream_name, backend=st.rng_backend)
-    mask = {"mask": traj.mask[s:e, :T]} if getattr(traj, "mask", None) is not None else {}
+    mask = {"mask": traj.mask[s:e, :T]} if f.padded_measurements else {}  # masked measurement sets
     sync = torch.cuda.synchronize if st.device.type == "cuda" else (lambda: None)
     sync()
     t0 = time.perf_counter()
@@ -261,7 +261,7 @@ def run_experiment(
                       warmup=s.device.type == "cuda" if warmup == "auto" else warmup)
         res.interrupted = out.interrupted
         if plan.shard.is_main:
-            row = {**dict.fromkeys(SUMMARY_COLUMNS), "filter": name, "n_particles": getattr(f, "n_particles", None),
+            row = {**dict.fromkeys(SUMMARY_COLUMNS), "filter": name, "n_particles": f.n_particles,
                    "trials": s.n_run, "steps": s.steps}
             res.summary.append(row)
             if out.interrupted:
@@ -283,7 +283,7 @@ def run_experiment(
     res.not_run = [n for n in filters if n not in {r["filter"] for r in res.summary}]
     res.config = dict(
         trials=s.trials, steps=s.steps, seed=s.seed, inits_per_track=s.inits_per_track, chunk_size=plan.chunks,
-        particle_chunk={n: getattr(f, "particle_chunk", None) for n, f in filters.items()},
+        particle_chunk={n: f.particle_chunk for n, f in filters.items()},
         memory_budget_gb=memory_budget_gb, rng_backend=s.rng_backend, world_size=plan.shard.world,
         trial_range=[s.lo, s.hi], device=str(s.device), dtype=str(s.dtype).replace("torch.", ""),
         tuning=tuning.as_dict(), threads=torch.get_num_threads())

@@ -110,7 +110,7 @@ def filter_chunk(f: Filter, n_run: int, chunk_size: Optional[int], memory_budget
     """A filter's chunk of trials: ``chunk_size`` if given, else the most its memory estimate allows,
     capped by its preferred batch (a particle filter whose one trial exceeds the budget gets a
     ``particle_chunk``); its ``trials_per_call`` (the localisers: 1) caps both."""
-    cap = getattr(f, "trials_per_call", None)
+    cap = f.trials_per_call
     if chunk_size:
         c = min(int(chunk_size), cap or int(chunk_size))
         need = c * f.bytes_per_trial()
@@ -120,7 +120,7 @@ def filter_chunk(f: Filter, n_run: int, chunk_size: Optional[int], memory_budget
                           "chunk_size unset to size chunks from the budget)", stacklevel=2)
         return c
     c = choose_chunk_size({"f": f}, n_run, memory_budget_gb)
-    if c == 1 and getattr(f, "particle_chunk", 0) is None:  # one trial may still exceed it: chunk particles
+    if c == 1 and f.particle_chunk is None:  # one trial may still exceed it: chunk particles
         pc = f.plan_memory(memory_budget_gb * 2**30)
         if pc is not None:
             warnings.warn(f"memory_budget_gb={memory_budget_gb:g}: {f.name} runs one trial at a time in blocks "
@@ -204,7 +204,7 @@ def make_plan(model: StateSpaceModel, filters: Mapping[str, Filter], settings: R
     for name, f in filters.items():
         if f.model is not model:
             raise ConfigError(f"filters[{name!r}]: holds a different model instance than `model`")
-        if getattr(model, "padded_measurements", False) and not getattr(f, "padded_measurements", False):
+        if model.structure.padded_measurements and not f.padded_measurements:
             raise ConfigError(f"filter.{name}: {type(f).__name__} cannot run on {type(model).__name__}, whose "
                               "measurements are padded sets with a mask; select a localiser (bs, pfi_d, pfi_s, pfi_os)")
         f.to(device=s.device, dtype=s.dtype)
