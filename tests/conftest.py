@@ -1,12 +1,28 @@
+import os
 from pathlib import Path
 
-import pytest
-import torch
+# The suite runs processes side by side (pytest-xdist's workers, the commands tests start). OpenMP
+# threads that spin-wait between parallel regions (libgomp's default; Numba's "omp" layer keeps a
+# pool of NUMBA_NUM_THREADS threads that spins even when one thread is asked for) then take the
+# cores from the other processes: measured 5-20x slower tests with two workers. Passive waiting
+# changes scheduling, not results. Set before torch loads its OpenMP runtime; subprocesses inherit it.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from torchflow.models import AcousticTracking, LinearGaussian, SensorNetwork
-from torchflow.registry import register_configs
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+from torchflow.models import AcousticTracking, LinearGaussian, SensorNetwork  # noqa: E402
+from torchflow.registry import register_configs  # noqa: E402
 
 register_configs()  # the signature nodes configs/ extend (tests compose the configs without the command line)
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # pytest-xdist (addopts: -n auto) runs one worker per core: each worker computes on one torch
+    # thread (Numba's kernels follow torch's count), and so do the commands it starts (torchflow's
+    # job threads follow OMP_NUM_THREADS). Tests that compare numbers across thread counts set the
+    # counts they compare themselves.
+    os.environ["OMP_NUM_THREADS"] = "1"
+    torch.set_num_threads(1)
 
 
 def random_lg(d=3, m=2, seed=0, learnable=False, prior=True):

@@ -98,7 +98,7 @@ def test_a_certain_object_with_one_measurement_stays_finite():
 
 def test_zero_terms_and_non_finite_padding_give_no_nan():
     """beta_k(0) = 0 with every other term 0 (a certain PO whose measurement likelihood underflowed)
-    gives 0, not 0/0; a padded PO with nan terms changes nothing (review of issue 14)."""
+    gives 0, not 0/0; a padded PO with nan terms changes nothing."""
     beta = torch.tensor([[[0.0, 0.0, 0.0], [0.5, 2.0, 1.0]]], dtype=torch.float64)
     res = loopy_association(beta, torch.ones(1, 2, dtype=torch.float64) * 1.5)
     assert torch.isfinite(res.nu).all() and torch.isfinite(res.probabilities[0, 1]).all()

@@ -1,6 +1,6 @@
 """Bad input gets a clear error naming the argument, what it expects and what it received.
 
-One case per row of the bad-input table of issue 10 (unclear and silent cases), through the Python
+One case per kind of bad input that gave an unclear error or ran silently, through the Python
 API and through the command line (one line on stderr, exit status 2, no traceback).
 """
 import subprocess

@@ -1,4 +1,4 @@
-"""Learnable parameters that stay valid (issue 29): covariances through their Cholesky factor or
+"""Learnable parameters that stay valid: covariances through their Cholesky factor or
 log-variances, positive scalars through their logarithm; the value users read is the constrained one."""
 import pytest
 import torch

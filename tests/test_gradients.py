@@ -1,4 +1,4 @@
-"""Gradients through resampling (issue 29): the Kalman filter's autograd gradient is the truth.
+"""Gradients through resampling: the Kalman filter's autograd gradient is the truth.
 
 The estimator checked is the gradient of ``Z_hat / Z`` (``Z`` the Kalman evidence of the same data,
 a constant): with ``resampling_gradient="stop_gradient"`` the particle filter's ``Z_hat`` is unbiased

@@ -50,15 +50,16 @@ def test_large_draws_in_blocks_do_not_depend_on_batch_or_threads():
     from torchflow.random import BLOCK
 
     n = 2 * BLOCK + 5  # three blocks per trial, filled on parallel threads
-    full = TrialStreams(9, 3, "big").normal((3, n))
-    alone = TrialStreams(9, [2], "big").normal((1, n))
-    assert torch.equal(full[2], alone[0])
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)
     try:
+        torch.set_num_threads(3)  # parallel whatever this process's count (one thread per xdist worker)
+        full = TrialStreams(9, 3, "big").normal((3, n))
+        alone = TrialStreams(9, [2], "big").normal((1, n))
+        torch.set_num_threads(1)
         serial = TrialStreams(9, 3, "big").normal((3, n))
     finally:
         torch.set_num_threads(threads)
+    assert torch.equal(full[2], alone[0])
     assert torch.equal(serial, full)
     assert abs(float(full.mean())) < 5 / math.sqrt(full.numel())
 
@@ -137,8 +138,8 @@ def _per_trial(res, name):
 
 @pytest.mark.filterwarnings("ignore:memory_budget_gb")
 def test_runner_numbers_do_not_depend_on_chunks_budget_or_names():
-    """The issue's check, scaled down: BPF per-trial numbers are identical (==) for every chunk
-    size and memory budget; renaming the filter or adding others changes nothing."""
+    """The runner's reproducibility check, scaled down: BPF per-trial numbers are identical (==) for
+    every chunk size and memory budget; renaming the filter or adding others changes nothing."""
     model = SensorNetwork(d=16)
     runs = []
     for kw in (dict(chunk_size=1), dict(chunk_size=3), dict(chunk_size=8), dict(memory_budget_gb=1e-4),

@@ -193,10 +193,11 @@ def test_job_environment_sets_threads_and_knobs_and_refuses_bad_ones():
     from torchflow import tuning
 
     before = torch.get_num_threads(), tuning.as_dict()
-    cfg = OmegaConf.create({"device": "cpu", "dtype": "float32", "threads": 1, "tuning": {"points_per_call": 123}})
+    n = 2 if before[0] == 1 else 1  # a count other than this process's, so that setting it shows
+    cfg = OmegaConf.create({"device": "cpu", "dtype": "float32", "threads": n, "tuning": {"points_per_call": 123}})
     with shell.job_environment(cfg) as env:
-        assert (env.device.type, env.dtype, env.threads) == ("cpu", torch.float32, 1)
-        assert tuning.get().points_per_call == 123 and torch.get_num_threads() == 1
+        assert (env.device.type, env.dtype, env.threads) == ("cpu", torch.float32, n)
+        assert tuning.get().points_per_call == 123 and torch.get_num_threads() == n
     assert (torch.get_num_threads(), tuning.as_dict()) == before
     for bad, message in [({"dtype": "float16"}, "dtype: expected one of"), ({"threads": 0}, "threads: expected"),
                          ({"tuning": {"points_per_cal": 1}}, "unknown knob"), ({"device": "tpu"}, "device: expected")]:

@@ -148,7 +148,7 @@ def test_headline_collects_every_goal():
     assert [r[0] for r in run_all._headline(results)] == ["KF"]
 
 
-def test_headline_has_the_cpu_goals_of_issue_30():
+def test_headline_has_the_cpu_goals():
     results = {
         "pfpf": {"rows": [dict(filter="PF-PF(LEDH)", N=500, sec_per_trial_step=0.07, vs_ledh=1.0),
                           dict(filter="GPFIS", N=500, sec_per_trial_step=0.7, vs_ledh=10.0)]},
@@ -176,7 +176,7 @@ def test_pfpf_bench_runs_gpfis_on_its_trial_subset():
 
 def test_gpu_section_plumbing_on_the_cpu(tmp_path):
     """``run_all --device`` runs the GPU section (here on the CPU, quick sizes): its rows carry the
-    issue's goals, and the headline collects them."""
+    speed goals, and the headline collects them."""
     res = run_all.run(["--device", "cpu", "--only", "gpu", "--quick", "--out", str(tmp_path / "all.md")])
     assert not res["failures"], res["failures"]
     rows = res["results"]["gpu"]["rows"]
@@ -369,7 +369,7 @@ def test_bench_gradients_writes_the_peer_problem(tmp_path):
 
 
 def test_bench_ops_micro(tmp_path):
-    """Every filter family gets a row; none synchronises on the CUDA path; the issue's targets are judged."""
+    """Every filter family gets a row; none synchronises on the CUDA path; the op targets are judged."""
     from experiments.benchmarks import bench_ops
 
     res = bench_ops.run(["--particles", "20", "--trials", "2", "--out", str(tmp_path / "ops.md")])

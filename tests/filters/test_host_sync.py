@@ -1,8 +1,8 @@
-"""No host synchronisation inside any filter's step (issue 30): one step of every filter, counted
+"""No host synchronisation inside any filter's step: one step of every filter, counted
 on CPU with a ``TorchDispatchMode`` over the aten ops that read a value back to the host
 (``_local_scalar_dense``: ``bool(t)``, ``.item()``, ``float(t)``; ``is_nonzero``; ``item``;
 ``nonzero``: a data-dependent shape). On a GPU each of them stalls the queue; the count must be 0.
-(Before issue 30: PF-PF(LEDH) 3, PF-PF(Gromov) 33, the UPF 4 -- the jitter test of
+(Before they were removed: PF-PF(LEDH) 3, PF-PF(Gromov) 33, the UPF 4 -- the jitter test of
 ``safe_cholesky`` and the Gromov covariance's step size read from a tensor.) ``safe_cholesky``
 reads its failure flags on the CPU by default (a read is free there, its batched jitter ladder is
 not); the step is counted as it runs on CUDA, with ``tuning`` ``batched_jitter_cpu=1``."""

@@ -1,4 +1,4 @@
-"""Aten ops per time step of the flow filters (issue 30, item 2), counted on the CPU with a
+"""Aten ops per time step of the flow filters, counted on the CPU with a
 ``TorchDispatchMode`` (:class:`torchflow.profiling.OpCounter`) over one time step (the second) on
 acoustic tracking: on a GPU each op is a dispatch and most are a kernel launch. At per-particle
 points the counts do not depend on the trials or particles (PF-PF(LEDH): the same at 2 x 20 as at
@@ -9,10 +9,10 @@ composes its maps on d x d matrices when that is cheaper, so its count depends o
 Two kinds of test:
 
 * budgets: the counts may not grow past what they are now (2 % slack for small, deliberate
-  changes). Before issue 30 item 2 (same set-up): PF-PF(LEDH) 5,103, PF-PF(EDH) 5,279,
+  changes). Before the pseudo-steps were cut down (same set-up): PF-PF(LEDH) 5,103, PF-PF(EDH) 5,279,
   PF-PF(Gromov) 5,576, GPFIS 17,901 (17,054 before its step Jacobian was written out). A change that adds ops to the pseudo-step fails here and must
   either remove them or raise the budget with a reason.
-* the issue's targets (PF-PF(LEDH) <= 1,000, PF-PF(Gromov) <= 1,500, GPFIS <= 3,000): all three
+* the op targets (PF-PF(LEDH) <= 1,000, PF-PF(Gromov) <= 1,500, GPFIS <= 3,000): all three
   meet theirs on the CPU's default path where Numba is installed (the fused pseudo-steps,
   :mod:`torchflow.flows.kernels.steps`: 506, 717 and 229 ops; GPFIS's whole flow is one kernel call); the
   eager path's do not: strict ``xfail``, so meeting one fails the test until it is made a plain
@@ -79,15 +79,15 @@ def test_counts_do_not_depend_on_trials_or_particles(setting):
 
 
 @pytest.mark.parametrize("name", sorted(TARGET))
-@pytest.mark.xfail(strict=True, reason="issue 30 item 2: the op targets are not met on the eager path")
-def test_issue_op_targets_eager(setting, name):
+@pytest.mark.xfail(strict=True, reason="the op targets are not met on the eager path")
+def test_op_targets_eager(setting, name):
     model, obs, mean, cov, fs = setting
     with tuning.tuned(**EAGER):
         assert count(fs[name], obs, mean, cov, False).ops <= TARGET[name]
 
 
 @pytest.mark.parametrize("name", ["PF-PF(LEDH)", "PF-PF(Gromov)", "GPFIS"])
-def test_issue_op_targets_on_the_fused_cpu_path(setting, name):
+def test_op_targets_on_the_fused_cpu_path(setting, name):
     """PF-PF(LEDH) <= 1,000, PF-PF(Gromov) <= 1,500 and GPFIS <= 3,000 aten ops per time step on the
     CPU with Numba (the default there: their pseudo-steps are one kernel each; GPFIS's whole flow
     one call)."""

@@ -1,4 +1,4 @@
-"""The performance paths of issue 5 compute exactly what the plain formulas compute: the
+"""The performance paths compute exactly what the plain formulas compute: the
 measurement-support reduction, the Gromov diffusion in operator form, the fused covariance
 propagation, the single-threaded triangular solves and the model's shared linearisation."""
 import pytest

@@ -180,7 +180,7 @@ def test_bearing_range_example_tracks():
             state = resampler.resample(post)
         if name == "flow":
             assert np.sqrt(np.mean(err)) < np.sqrt(np.mean(bound)), (np.sqrt(np.mean(err)), np.sqrt(np.mean(bound)))
-    # the goal on this scenario: at least the bootstrap updater's ESS (measured: ~1.7x over 20 runs)
+    # the goal on this scenario: at least the bootstrap updater's ESS (measured: ~1.7x over 20 runs)
     assert np.mean(ess["flow"]) > np.mean(ess["bootstrap"]), {k: np.mean(v) for k, v in ess.items()}
 
 

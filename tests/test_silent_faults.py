@@ -1,5 +1,6 @@
-"""Issue 31, part B: bad input and faults that ran silently wrong or gave unclear errors; one test per
-case, named after it (the closing note lists every case with its outcome)."""
+"""Bad input and faults that ran silently wrong or gave unclear errors (singular or mis-shaped
+covariances, all-invalid weights, bad schedules, learned covariances that left the cone, memory
+limits, a stop signal during a long flow step): one test per case, named after it."""
 import pytest
 import torch
 
@@ -12,7 +13,7 @@ from torchflow.schedules import ExponentialSchedule, LambdaSchedule, UniformSche
 
 
 def _singular_q_model():
-    """The issue's command: ``model=linear_gaussian model.d=4 model.alpha0=0 model.alpha1=0
+    """The command ``model=linear_gaussian model.d=4 model.alpha0=0 model.alpha1=0
     model.prior_var=1``: Q = 0."""
     return SensorNetwork(d=4, alpha0=0.0, alpha1=0.0, prior_var=1.0)
 
@@ -45,7 +46,7 @@ def test_pfpf_singular_transition_covariance_in_the_runner_keeps_the_kf_row():
 
 def test_all_invalid_weights_report_zero_ess_not_a_full_one():
     """A step where no particle has positive weight keeps the previous weights to go on, but its
-    ESS is 0 (it was reported as N: 50 of 50 in the issue)."""
+    ESS is 0 (it used to be reported as N: 50 of 50)."""
     model = SensorNetwork(d=4)
     f = BootstrapParticleFilter(model, n_particles=8)
     B, N, d = 2, 8, 4
@@ -210,7 +211,7 @@ def test_integrate_flow_with_two_dimensional_particles():
 
 
 def test_sigterm_during_a_gpfis_step_stops_at_once(monkeypatch):
-    """The issue: after SIGTERM, GPFIS at d = 144 took 82 s to stop. The runner's handler raises
+    """After SIGTERM, GPFIS at d = 144 used to take 82 s to stop. The runner's handler raises
     inside a chunk at once, so a signal arriving during a GPFIS pseudo-time flow ends the run there,
     not at the end of the chunk (measured through the command line on SkewedTPoisson, d = 144,
     N = 20: SIGTERM 40 s into a 378 s step, stopped 1.5 s later)."""
