@@ -1,5 +1,6 @@
 """torchflow: batched Bayesian filters and particle-flow particle filters in PyTorch."""
-from . import filters, linalg, linearize, metrics, models, registry, resampling
+from . import errors, filters, linalg, linearize, metrics, models, registry, resampling
+from .errors import ArgumentError, ArgumentTypeError, NonFiniteError, TorchflowError
 
 __version__ = "0.1.0"
-__all__ = ["filters", "linalg", "linearize", "metrics", "models", "registry", "resampling"]
+__all__ = ["errors", "ArgumentError", "ArgumentTypeError", "NonFiniteError", "TorchflowError", "filters", "linalg", "linearize", "metrics", "models", "registry", "resampling"]

@@ -11,27 +11,9 @@ from typing import Optional, Sequence, Union
 
 import torch
 
+from .errors import ArgumentError, ArgumentTypeError, NonFiniteError  # noqa: F401 (re-exported)
+
 Dim = Union[int, None]
-
-
-class NonFiniteError(FloatingPointError):
-    """A filter produced a NaN or infinite value.
-
-    Attributes:
-        filter_name: name of the filter that produced it.
-        step: 1-based time step.
-        trials: indices of the offending trials (within the batch that was being filtered).
-    """
-
-    def __init__(self, filter_name: str, step: int, trials: Sequence[int], what: str = "estimate"):
-        self.filter_name = filter_name
-        self.step = step
-        self.trials = list(trials)
-        shown = self.trials[:10]
-        more = "" if len(self.trials) <= 10 else f" (and {len(self.trials) - 10} more)"
-        super().__init__(
-            f"{filter_name}: non-finite {what} at time step {step} in trial(s) {shown}{more}"
-        )
 
 
 def check_tensor(
@@ -56,14 +38,14 @@ def check_tensor(
         ``x`` unchanged.
     """
     if not isinstance(x, torch.Tensor):
-        raise TypeError(f"{name}: expected a torch.Tensor {letters}, got {type(x).__name__}")
+        raise ArgumentTypeError(f"{name}: expected a torch.Tensor {letters}, got {type(x).__name__}")
     expected = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
     if x.dim() != len(shape) or any(s is not None and s != xs for s, xs in zip(shape, x.shape)):
-        raise ValueError(f"{name}: expected {letters} = {expected}, got {tuple(x.shape)}")
+        raise ArgumentError(f"{name}: expected {letters} = {expected}, got {tuple(x.shape)}")
     if dtype is not None and x.dtype != dtype:
-        raise TypeError(f"{name}: expected dtype {dtype} (the model's), got {x.dtype}")
+        raise ArgumentTypeError(f"{name}: expected dtype {dtype} (the model's), got {x.dtype}")
     if device is not None and x.device.type != torch.device(device).type:
-        raise ValueError(f"{name}: expected device {device} (the model's), got {x.device}")
+        raise ArgumentError(f"{name}: expected device {device} (the model's), got {x.device}")
     return x
 
 
@@ -73,7 +55,7 @@ def check_finite(name: str, x: torch.Tensor) -> torch.Tensor:
     if bool(bad.any()):
         n_bad = int(bad.sum())
         trials = torch.nonzero(bad.reshape(x.shape[0], -1).any(-1)).flatten().tolist() if x.dim() else []
-        raise ValueError(f"{name}: {n_bad} non-finite value(s) (NaN/inf), in trial(s) {trials[:10]}")
+        raise ArgumentError(f"{name}: {n_bad} non-finite value(s) (NaN/inf), in trial(s) {trials[:10]}")
     return x
 
 
@@ -83,7 +65,7 @@ def check_psd(name: str, cov: torch.Tensor, *, tol: float = 1e-10) -> torch.Tens
     The error names the first offending batch index (the trial, for ``(B, d, d)`` inputs).
     """
     if cov.dim() < 2 or cov.shape[-1] != cov.shape[-2]:
-        raise ValueError(f"{name}: expected square matrices (..., d, d), got {tuple(cov.shape)}")
+        raise ArgumentError(f"{name}: expected square matrices (..., d, d), got {tuple(cov.shape)}")
     if cov.dim() == 3 and cov.shape[0] > 1 and (cov.stride(0) == 0 or bool((cov == cov[:1]).all())):
         check_psd(name, cov[:1], tol=tol)  # one prior shared by every trial: check it once
         return cov
@@ -105,17 +87,17 @@ def check_psd(name: str, cov: torch.Tensor, *, tol: float = 1e-10) -> torch.Tens
             f"not positive semi-definite (smallest eigenvalue {float(eig_min.reshape(-1)[idx]):.3g})"
         )
         if cov.dim() == 2:
-            raise ValueError(f"{name}: covariance is {why}")
-        raise ValueError(f"{name}: covariance at batch index {idx} (trial) is {why}")
+            raise ArgumentError(f"{name}: covariance is {why}")
+        raise ArgumentError(f"{name}: covariance at batch index {idx} (trial) is {why}")
     return cov
 
 
 def check_same(name: str, x: torch.Tensor, ref: torch.Tensor, ref_name: str = "the model") -> None:
     """Raise if ``x`` and ``ref`` differ in dtype or device (names both sides)."""
     if x.dtype != ref.dtype:
-        raise TypeError(f"{name}: dtype {x.dtype} does not match {ref_name}'s dtype {ref.dtype}")
+        raise ArgumentTypeError(f"{name}: dtype {x.dtype} does not match {ref_name}'s dtype {ref.dtype}")
     if x.device != ref.device:
-        raise ValueError(f"{name}: device {x.device} does not match {ref_name}'s device {ref.device}")
+        raise ArgumentError(f"{name}: device {x.device} does not match {ref_name}'s device {ref.device}")
 
 
 def check_count(name: str, value, *, minimum: int = 1, hint: str = "") -> int:
@@ -124,14 +106,14 @@ def check_count(name: str, value, *, minimum: int = 1, hint: str = "") -> int:
         isinstance(value, float) and value.is_integer())
     if not ok or int(value) < minimum:
         what = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
-        raise ValueError(f"{name}: expected {what}{hint}, got {value!r} ({type(value).__name__})")
+        raise ArgumentError(f"{name}: expected {what}{hint}, got {value!r} ({type(value).__name__})")
     return int(value)
 
 
 def check_choice(name: str, value, choices):
     """``value`` if it is one of ``choices``, else a ValueError naming them."""
     if value not in choices:
-        raise ValueError(f"{name}: expected one of {tuple(choices)}, got {value!r}")
+        raise ArgumentError(f"{name}: expected one of {tuple(choices)}, got {value!r}")
     return value
 
 
@@ -144,15 +126,15 @@ def check_float_tensor(x, name: str, expected: str, ndim: Optional[int] = None) 
     """Raise unless ``x`` is a floating-point tensor (with ``ndim`` dimensions if given);
     ``expected`` is the shape in letters, e.g. ``"(B, N)"``."""
     if not isinstance(x, torch.Tensor):
-        raise ValueError(f"{name}: expected a torch.Tensor of shape {expected}, got {type(x).__name__}")
+        raise ArgumentError(f"{name}: expected a torch.Tensor of shape {expected}, got {type(x).__name__}")
     if ndim is not None and x.dim() != ndim:
-        raise ValueError(f"{name}: expected shape {expected}, got {shape_str(x.shape)}")
+        raise ArgumentError(f"{name}: expected shape {expected}, got {shape_str(x.shape)}")
     if not torch.is_floating_point(x):
-        raise ValueError(f"{name}: expected a floating-point tensor of shape {expected}, got dtype {x.dtype}")
+        raise ArgumentError(f"{name}: expected a floating-point tensor of shape {expected}, got dtype {x.dtype}")
     return x
 
 
 def check_same_device(a: torch.Tensor, b: torch.Tensor, name_a: str, name_b: str) -> None:
     """Raise unless ``a`` is on ``b``'s device."""
     if a.device != b.device:
-        raise ValueError(f"{name_a}: expected a tensor on the same device as {name_b} ({b.device}), got {a.device}")
+        raise ArgumentError(f"{name_a}: expected a tensor on the same device as {name_b} ({b.device}), got {a.device}")

@@ -25,6 +25,7 @@ from typing import Optional
 import torch
 
 from ._checks import check_count
+from .errors import ArgumentError
 
 
 @dataclass
@@ -61,17 +62,17 @@ def loopy_association(beta: torch.Tensor, xi: torch.Tensor, object_mask: Optiona
         :class:`Association`.
     """
     if beta.dim() != 3:
-        raise ValueError(f"beta: expected (B, K, M + 1), got {tuple(beta.shape)}")
+        raise ArgumentError(f"beta: expected (B, K, M + 1), got {tuple(beta.shape)}")
     B, K, M1 = beta.shape
     M = M1 - 1
     if xi.shape != (B, M):
-        raise ValueError(f"xi: expected (B, M) = ({B}, {M}) to match beta {tuple(beta.shape)}, got {tuple(xi.shape)}")
+        raise ArgumentError(f"xi: expected (B, M) = ({B}, {M}) to match beta {tuple(beta.shape)}, got {tuple(xi.shape)}")
     iterations = check_count("iterations", iterations)
     om = torch.ones(B, K, dtype=torch.bool, device=beta.device) if object_mask is None else object_mask
     mm = torch.ones(B, M, dtype=torch.bool, device=beta.device) if measurement_mask is None else measurement_mask
     for name, mask, shape in (("object_mask", om, (B, K)), ("measurement_mask", mm, (B, M))):
         if mask.dtype != torch.bool or tuple(mask.shape) != shape:
-            raise ValueError(f"{name}: expected a bool tensor {shape}, got {tuple(mask.shape)} of {mask.dtype}")
+            raise ArgumentError(f"{name}: expected a bool tensor {shape}, got {tuple(mask.shape)} of {mask.dtype}")
     live = om.unsqueeze(-1) & mm.unsqueeze(-2)  # (B, K, M)
     b0 = beta[..., 0]
     zero = beta.new_zeros(())

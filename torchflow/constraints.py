@@ -22,6 +22,7 @@ from torch import nn
 from torch.nn.utils import parametrize
 
 from ._checks import check_psd
+from .errors import ArgumentError
 
 __all__ = ["Positive", "CholeskyCovariance", "DiagonalCovariance", "CONSTRAINTS", "constrain", "scale_tril",
            "unconstrained"]
@@ -35,7 +36,7 @@ class Positive(nn.Module):
 
     def right_inverse(self, value: torch.Tensor) -> torch.Tensor:
         if not bool((value > 0).all()):
-            raise ValueError(f"a positive parameter: expected every value > 0, got {value.detach().tolist()}")
+            raise ArgumentError(f"a positive parameter: expected every value > 0, got {value.detach().tolist()}")
         return value.log()
 
 
@@ -69,7 +70,7 @@ class DiagonalCovariance(nn.Module):
     def right_inverse(self, cov: torch.Tensor) -> torch.Tensor:
         diag = cov.diagonal(dim1=-2, dim2=-1)
         if not torch.equal(cov, torch.diag_embed(diag)):
-            raise ValueError("a diagonal covariance: expected a diagonal matrix, got off-diagonal entries")
+            raise ArgumentError("a diagonal covariance: expected a diagonal matrix, got off-diagonal entries")
         return diag.log()
 
 
@@ -85,13 +86,13 @@ def constrain(module: nn.Module, name: str, constraint: str, value: Optional[tor
         ValueError: unknown constraint, or a value outside it (named after ``name``).
     """
     if constraint not in CONSTRAINTS:
-        raise ValueError(f"{name}: expected a constraint in {sorted(CONSTRAINTS)}, got {constraint!r}")
+        raise ArgumentError(f"{name}: expected a constraint in {sorted(CONSTRAINTS)}, got {constraint!r}")
     value = getattr(module, name) if value is None else value
     value = torch.as_tensor(value).detach().clone()
     if constraint != "positive":
         check_psd(name, value)
     elif not bool((value > 0).all()):
-        raise ValueError(f"{name}: expected a positive value to learn under a log parametrisation, got "
+        raise ArgumentError(f"{name}: expected a positive value to learn under a log parametrisation, got "
                          f"{value.tolist()}")
     if name in module._buffers:
         del module._buffers[name]

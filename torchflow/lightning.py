@@ -19,6 +19,7 @@ from .filters.base import Filter
 from .models.base import Trajectory
 from . import random as _random
 from .random import TrialStreams
+from .errors import ArgumentError
 
 
 def backward_bytes_per_step(filter: Filter, observations: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor,
@@ -56,7 +57,7 @@ class TrajectoryDataset(Dataset):
     def __init__(self, trajectory: Trajectory, mean: torch.Tensor, cov: torch.Tensor):
         B = trajectory.observations.shape[0]
         if mean.shape[0] != B or cov.shape[0] != B:
-            raise ValueError(f"mean, cov: expected {B} trials like the observations, got {mean.shape[0]}, {cov.shape[0]}")
+            raise ArgumentError(f"mean, cov: expected {B} trials like the observations, got {mean.shape[0]}, {cov.shape[0]}")
         self.obs, self.mean, self.cov = trajectory.observations, mean, cov
 
     def __len__(self) -> int:
@@ -107,24 +108,24 @@ class FilterLightningModule(pl.LightningModule):
                  betas=(0.9, 0.999)):
         super().__init__()
         if not any(p.requires_grad for p in filter.parameters()):
-            raise ValueError("filter: its model has no learnable parameters (construct it with learnable=True)")
+            raise ArgumentError("filter: its model has no learnable parameters (construct it with learnable=True)")
         if checkpoint_steps not in (True, False, "auto"):
-            raise ValueError(f"checkpoint_steps: expected True, False or 'auto', got {checkpoint_steps!r}")
+            raise ArgumentError(f"checkpoint_steps: expected True, False or 'auto', got {checkpoint_steps!r}")
         if isinstance(memory_budget_gb, bool) or not isinstance(memory_budget_gb, (int, float)) or memory_budget_gb <= 0:
-            raise ValueError(f"memory_budget_gb: expected a positive number of GB, got {memory_budget_gb!r}")
+            raise ArgumentError(f"memory_budget_gb: expected a positive number of GB, got {memory_budget_gb!r}")
         self.filter = filter
         self.lr = float(lr)
         self.seed = int(seed)
         self.checkpoint_steps, self.memory_budget_gb = checkpoint_steps, float(memory_budget_gb)
         if isinstance(lr_decay, bool) or not isinstance(lr_decay, (int, float)) or not 0 < lr_decay <= 1:
-            raise ValueError(f"lr_decay: expected a factor in (0, 1], got {lr_decay!r}")
+            raise ArgumentError(f"lr_decay: expected a factor in (0, 1], got {lr_decay!r}")
         if not isinstance(common_random_numbers, bool):
-            raise ValueError(f"common_random_numbers: expected True or False, got {common_random_numbers!r}")
+            raise ArgumentError(f"common_random_numbers: expected True or False, got {common_random_numbers!r}")
         self.lr_decay, self.common_random_numbers = float(lr_decay), common_random_numbers
         betas = tuple(betas) if isinstance(betas, (list, tuple)) else betas
         if not (isinstance(betas, tuple) and len(betas) == 2 and all(
                 isinstance(b, (int, float)) and not isinstance(b, bool) and 0 <= b < 1 for b in betas)):
-            raise ValueError(f"betas: expected two Adam decay rates in [0, 1), got {betas!r}")
+            raise ArgumentError(f"betas: expected two Adam decay rates in [0, 1), got {betas!r}")
         self.betas = (float(betas[0]), float(betas[1]))
 
     def forward(self, observations, mean, cov, generator: Optional[torch.Generator] = None):

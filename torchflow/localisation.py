@@ -37,6 +37,7 @@ from .models.tdoa import TDOA3D, check_number
 from .random import check_generator, uniform
 from .resampling import systematic
 from .schedules import GeometricSchedule, LambdaSchedule, resolve_schedule
+from .errors import ArgumentError, ArgumentTypeError
 
 METHODS = ("pfi_d", "pfi_s", "pfi_os")
 
@@ -114,9 +115,9 @@ class _Localiser(nn.Module):
                  name):
         super().__init__()
         if not isinstance(model, TDOA3D):
-            raise TypeError(f"model: expected a torchflow TDOA3D, got {type(model).__name__}")
+            raise ArgumentTypeError(f"model: expected a torchflow TDOA3D, got {type(model).__name__}")
         if model.clutter_rate <= 0:
-            raise ValueError(f"model.clutter_rate: BP divides by the clutter intensity; expected > 0, got "
+            raise ArgumentError(f"model.clutter_rate: BP divides by the clutter intensity; expected > 0, got "
                              f"{model.clutter_rate}")
         self.model, self.name = model, name or type(self).__name__
         self.birth_rate = check_number("birth_rate", birth_rate, lambda v: v > 0, "> 0")
@@ -231,13 +232,13 @@ class FlowMixtureLocaliser(_Localiser):
         super().__init__(model, birth_rate=birth_rate, max_objects=max_objects, prune=prune, declare=declare,
                          bp_iterations=bp_iterations, sample_chunk=sample_chunk, name=name)
         if method not in METHODS:
-            raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
+            raise ArgumentError(f"method: expected one of {METHODS}, got {method!r}")
         self.method = method
         self.flow = (EDHFlow() if method == "pfi_d" else GromovFlow(points="global") if method == "pfi_s"
                      else OptimalDiffusionFlow(alpha=alpha, points="global", c_rule=c_rule))
         self.schedule = resolve_schedule(schedule, GeometricSchedule(1e-5, 1.5))
         if len(self.schedule) < 1:
-            raise ValueError("schedule: expected at least one pseudo-time step, got an empty schedule")
+            raise ArgumentError("schedule: expected at least one pseudo-time step, got an empty schedule")
         self.proposal = FlowedMixtureProposal(self.flow, self.schedule, ratio="component", evaluate_at=evaluate_at)
         self.G = _count("n_components", n_components)
         self.n_samples = _count("samples_per_component", samples_per_component)

@@ -69,6 +69,7 @@ import torch
 
 from . import tuning
 from ._checks import check_float_tensor, check_same_device, shape_str
+from .errors import ArgumentError, ArgumentTypeError
 
 __all__ = ["mse", "omat", "ospa", "ess", "log_evidence_relative_error", "lost_tracks", "Metric", "MetricContext",
            "REGISTRY", "RESERVED_NAMES", "register", "unregister", "registered", "applicable"]
@@ -79,7 +80,7 @@ def _check_pair(x, ref, name: str, ref_name: str, letters: str) -> tuple[torch.T
     expected = f"{letters} matching {ref_name} {shape_str(ref.shape)}"
     check_float_tensor(x, name, expected)
     if x.shape != ref.shape:
-        raise ValueError(f"{name}: expected {expected}, got {shape_str(x.shape)}")
+        raise ArgumentError(f"{name}: expected {expected}, got {shape_str(x.shape)}")
     check_same_device(x, ref, name, ref_name)
     return _promote(x, ref)
 
@@ -154,7 +155,7 @@ def mse(estimates: torch.Tensor, states: torch.Tensor) -> torch.Tensor:
     check_float_tensor(states, "states", "(B, T, d)", ndim=3)
     estimates, states = _check_pair(estimates, states, "estimates", "states", "(B, T, d)")
     if states.shape[-1] == 0:
-        raise ValueError("states: expected (B, T, d) with d >= 1, got d = 0")
+        raise ArgumentError("states: expected (B, T, d) with d >= 1, got d = 0")
     return (estimates - states).square().mean(dim=-1)
 
 
@@ -176,9 +177,9 @@ def omat(est_positions: torch.Tensor, true_positions: torch.Tensor) -> torch.Ten
     check_float_tensor(true_positions, "true_positions", "(B, T, C, k)", ndim=4)
     ref = shape_str(true_positions.shape)
     if true_positions.shape[-1] not in (2, 3):
-        raise ValueError(f"true_positions: expected (B, T, C, k) with k in {{2, 3}}, got {ref}")
+        raise ArgumentError(f"true_positions: expected (B, T, C, k) with k in {{2, 3}}, got {ref}")
     if true_positions.shape[-2] == 0:
-        raise ValueError(f"true_positions: expected (B, T, C, k) with C >= 1, got {ref}")
+        raise ArgumentError(f"true_positions: expected (B, T, C, k) with C >= 1, got {ref}")
     est_positions, true_positions = _check_pair(est_positions, true_positions, "est_positions", "true_positions",
                                                 "(B, T, C, k)")
     dist = _pairwise_dist(true_positions, est_positions)  # (B, T, C, C)
@@ -211,16 +212,16 @@ def ospa(X: torch.Tensor, Y: torch.Tensor, cutoff: float = 40.0, order: float = 
     check_float_tensor(X, "X", "(B, T, m, k)", ndim=4)
     check_float_tensor(Y, "Y", f"(B, T, n, k) matching X {shape_str(X.shape)} in B, T, k", ndim=4)
     if Y.shape[:2] != X.shape[:2] or Y.shape[-1] != X.shape[-1]:
-        raise ValueError(f"Y: expected (B, T, n, k) matching X {shape_str(X.shape)} in B, T, k, "
+        raise ArgumentError(f"Y: expected (B, T, n, k) matching X {shape_str(X.shape)} in B, T, k, "
                          f"got {shape_str(Y.shape)}")
     if X.shape[-1] == 0:
-        raise ValueError(f"X: expected (B, T, m, k) with k >= 1, got {shape_str(X.shape)}")
+        raise ArgumentError(f"X: expected (B, T, m, k) with k >= 1, got {shape_str(X.shape)}")
     check_same_device(Y, X, "Y", "X")
     cutoff, order = float(cutoff), float(order)
     if not (math.isfinite(cutoff) and cutoff > 0):
-        raise ValueError(f"cutoff: expected a finite float > 0, got {cutoff}")
+        raise ArgumentError(f"cutoff: expected a finite float > 0, got {cutoff}")
     if not (math.isfinite(order) and order >= 1):
-        raise ValueError(f"order: expected a finite float >= 1, got {order}")
+        raise ArgumentError(f"order: expected a finite float >= 1, got {order}")
     X, Y = _promote(X, Y)
     if X_mask is not None or Y_mask is not None:
         return _ospa_masked(X, Y, cutoff, order, X_mask, Y_mask)
@@ -242,7 +243,7 @@ def _ospa_masked(X, Y, cutoff, order, X_mask, Y_mask) -> torch.Tensor:
         if mask is not None and (not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool
                                  or tuple(mask.shape) != (B, T, size)):
             got = shape_str(mask.shape) if isinstance(mask, torch.Tensor) else type(mask).__name__
-            raise ValueError(f"{name}: expected a bool tensor (B, T, {what}) = ({B}, {T}, {size}), got {got}"
+            raise ArgumentError(f"{name}: expected a bool tensor (B, T, {what}) = ({B}, {T}, {size}), got {got}"
                              + (f" of {mask.dtype}" if isinstance(mask, torch.Tensor) else ""))
     xm = torch.ones(B, T, m, dtype=torch.bool, device=X.device) if X_mask is None else X_mask.to(X.device)
     ym = torch.ones(B, T, n, dtype=torch.bool, device=X.device) if Y_mask is None else Y_mask.to(X.device)
@@ -279,7 +280,7 @@ def ess(log_weights: torch.Tensor) -> torch.Tensor:
     """
     check_float_tensor(log_weights, "log_weights", "(..., N)")
     if log_weights.dim() == 0 or log_weights.shape[-1] == 0:
-        raise ValueError(f"log_weights: expected (..., N) with N >= 1, got {shape_str(log_weights.shape)}")
+        raise ArgumentError(f"log_weights: expected (..., N) with N >= 1, got {shape_str(log_weights.shape)}")
     lse = torch.logsumexp(log_weights, dim=-1)
     lse2 = torch.logsumexp(2.0 * log_weights, dim=-1)
     return torch.exp(2.0 * lse - lse2)
@@ -317,10 +318,10 @@ def lost_tracks(omat_per_step: torch.Tensor, threshold: float = 2.0) -> torch.Te
     """
     check_float_tensor(omat_per_step, "omat_per_step", "(B, T)", ndim=2)
     if omat_per_step.shape[1] == 0:
-        raise ValueError(f"omat_per_step: expected (B, T) with T >= 1, got {shape_str(omat_per_step.shape)}")
+        raise ArgumentError(f"omat_per_step: expected (B, T) with T >= 1, got {shape_str(omat_per_step.shape)}")
     threshold = float(threshold)
     if not math.isfinite(threshold):
-        raise ValueError(f"threshold: expected a finite float, got {threshold}")
+        raise ArgumentError(f"threshold: expected a finite float, got {threshold}")
     return omat_per_step.mean(dim=1) > threshold
 
 
@@ -400,7 +401,7 @@ RESERVED_NAMES = frozenset({
 
 def _expect(ok: bool, arg: str, what: str, got) -> None:
     if not ok:
-        raise TypeError(f"{arg}: expected {what}, got {got!r} ({type(got).__name__})")
+        raise ArgumentTypeError(f"{arg}: expected {what}, got {got!r} ({type(got).__name__})")
 
 
 @dataclass(frozen=True)
@@ -437,17 +438,17 @@ class Metric:
         _expect(isinstance(self.name, str) and bool(_NAME.match(self.name)), "name",
                 "a column name (letters, digits, _; not starting with a digit)", self.name)
         if self.name in RESERVED_NAMES:
-            raise ValueError(f"name: {self.name!r} is a column the runner writes itself; reserved: "
+            raise ArgumentError(f"name: {self.name!r} is a column the runner writes itself; reserved: "
                              f"{', '.join(sorted(RESERVED_NAMES))}")
         _expect(isinstance(self.label, str), "label", "a string (the figure's y label)", self.label)
         _expect(callable(self.compute), "compute", "a callable compute(ctx) -> (B, T) tensor", self.compute)
         _expect(callable(self.applies), "applies", "a callable applies(ctx) -> bool", self.applies)
         if self.reduce_trial not in _REDUCTIONS:
-            raise ValueError(f"reduce_trial: expected one of {list(_REDUCTIONS)}, got {self.reduce_trial!r}")
+            raise ArgumentError(f"reduce_trial: expected one of {list(_REDUCTIONS)}, got {self.reduce_trial!r}")
         for arg in ("higher_is_better", "plot"):
             _expect(isinstance(getattr(self, arg), bool), arg, "a bool", getattr(self, arg))
         if self.yscale not in _YSCALES:
-            raise ValueError(f"yscale: expected one of {list(_YSCALES)}, got {self.yscale!r}")
+            raise ArgumentError(f"yscale: expected one of {list(_YSCALES)}, got {self.yscale!r}")
 
     @property
     def doc(self) -> str:
@@ -466,7 +467,7 @@ class Metric:
             raise RuntimeError(f"metric {self.name!r}: compute failed: {type(err).__name__}: {err}") from err
         if not isinstance(value, torch.Tensor) or tuple(value.shape) != ctx.shape:
             got = shape_str(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
-            raise ValueError(f"metric {self.name!r}: compute returned {got}, expected (B, T) = "
+            raise ArgumentError(f"metric {self.name!r}: compute returned {got}, expected (B, T) = "
                              f"{shape_str(ctx.shape)}")
         return value.detach()
 
@@ -482,7 +483,7 @@ def register(metric: Metric, *, replace: bool = False) -> Metric:
     _expect(isinstance(metric, Metric), "metric", "a torchflow.metrics.Metric", metric)
     _expect(isinstance(replace, bool), "replace", "a bool", replace)
     if metric.name in _REGISTRY and not replace:
-        raise ValueError(f"metric: a metric named {metric.name!r} is already registered "
+        raise ArgumentError(f"metric: a metric named {metric.name!r} is already registered "
                          f"(unregister({metric.name!r}) first, or register(..., replace=True))")
     _REGISTRY[metric.name] = metric
     return metric

@@ -46,6 +46,7 @@ import torch
 
 from . import _triton, tuning
 from ._checks import check_choice
+from .errors import ArgumentError, ArgumentTypeError
 
 __all__ = ["TrialStreams", "uniform", "check_generator", "stream_key", "get_state", "set_state"]
 
@@ -62,7 +63,7 @@ def stream_key(name: Union[str, int]) -> int:
         return int(name) % 2**32
     if isinstance(name, str):
         return zlib.crc32(name.encode())
-    raise TypeError(f"key: expected a str or int stream name, got {type(name).__name__}")
+    raise ArgumentTypeError(f"key: expected a str or int stream name, got {type(name).__name__}")
 
 
 def fill_numpy(kind: str, tasks, np_dtype, parallel: bool = True) -> None:
@@ -105,16 +106,16 @@ class TrialStreams:
     def __init__(self, seed: int, trials: Union[int, Sequence[int], torch.Tensor], key: Union[str, int] = 0,
                  *, backend: str = "auto"):
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or int(seed) < 0:
-            raise ValueError(f"seed: expected a non-negative int, got {seed!r}")
+            raise ArgumentError(f"seed: expected a non-negative int, got {seed!r}")
         check_choice("backend", backend, ("auto", "numpy", "philox"))
         if isinstance(trials, (int, np.integer)) and not isinstance(trials, bool):
             if int(trials) < 1:
-                raise ValueError(f"trials: expected a positive number of trials, got {trials}")
+                raise ArgumentError(f"trials: expected a positive number of trials, got {trials}")
             idx = list(range(int(trials)))
         else:
             idx = [int(t) for t in (trials.tolist() if isinstance(trials, torch.Tensor) else trials)]
             if not idx or min(idx) < 0:
-                raise ValueError(f"trials: expected non-empty non-negative trial indices, got {idx[:10]}")
+                raise ArgumentError(f"trials: expected non-empty non-negative trial indices, got {idx[:10]}")
         self.seed, self.key, self.trials, self.backend = int(seed), stream_key(key), idx, backend
         self._np = None        # list of numpy Generators (numpy back end), created lazily
         self._counter = 0      # philox: 128-bit blocks consumed per trial so far
@@ -161,10 +162,10 @@ class TrialStreams:
     def _draw(self, kind, shape, dtype, device) -> torch.Tensor:
         device = torch.device("cpu") if device is None else torch.device(device)
         if dtype not in (torch.float64, torch.float32):
-            raise TypeError(f"dtype: TrialStreams draws float64 or float32, got {dtype}")
+            raise ArgumentTypeError(f"dtype: TrialStreams draws float64 or float32, got {dtype}")
         shape, B = tuple(int(s) for s in shape), len(self.trials)
         if not shape or shape[0] % B:
-            raise ValueError(f"shape: draws from TrialStreams need a leading trial dimension that is a "
+            raise ArgumentError(f"shape: draws from TrialStreams need a leading trial dimension that is a "
                              f"multiple of B = {B} (trial-major), got {shape}")
         n = math.prod(shape) // B
         if self.backend == "auto":
@@ -338,12 +339,12 @@ def check_generator(generator, who: str = "generator", trials: Optional[int] = N
     ``None`` is refused: a filter that silently fell back on torch's global random state would not
     be reproducible from its arguments."""
     if isinstance(generator, TrialStreams) and trials is not None and len(generator) != int(trials):
-        raise ValueError(f"{who}: TrialStreams made for {len(generator)} trials, but the observations have "
+        raise ArgumentError(f"{who}: TrialStreams made for {len(generator)} trials, but the observations have "
                          f"B = {int(trials)} trials (make it with TrialStreams(seed, {int(trials)}, ...), or "
                          f"select trials with streams[a:b])")
     if isinstance(generator, (torch.Generator, TrialStreams)):
         return generator
-    raise TypeError(f"{who}: expected a torch.Generator or torchflow.random.TrialStreams, "
+    raise ArgumentTypeError(f"{who}: expected a torch.Generator or torchflow.random.TrialStreams, "
                     f"got {type(generator).__name__}{generator_hint(generator)}")
 
 

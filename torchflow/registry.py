@@ -12,6 +12,7 @@ from __future__ import annotations
 import importlib
 import inspect
 from typing import Any, Callable, Dict
+from .errors import ArgumentError
 
 
 def _kind(module: str, **names: str) -> Dict[str, str]:
@@ -50,7 +51,7 @@ def resolve(path: str) -> Any:
 def lookup(kind: str, name: object, arg_name: str = "") -> Any:
     """The object registered as ``name``; a ``ValueError`` naming the choices if there is none."""
     if not isinstance(name, str) or name not in REGISTRY[kind]:
-        raise ValueError(f"{arg_name or kind}: expected one of {sorted(REGISTRY[kind])}, got {name!r}")
+        raise ArgumentError(f"{arg_name or kind}: expected one of {sorted(REGISTRY[kind])}, got {name!r}")
     return resolve(REGISTRY[kind][name])
 
 

@@ -41,6 +41,7 @@ from torch import Tensor, nn
 from . import random as _random, registry
 from ._checks import check_count, check_float_tensor, shape_str
 from .linalg import standard_normal
+from .errors import ArgumentError
 
 __all__ = [
     "normalize_log_weights",
@@ -85,14 +86,14 @@ def _check_log_weights(log_weights: object, name: str = "log_weights", values: b
     """
     check_float_tensor(log_weights, name, "(B, N)", ndim=2)
     if log_weights.shape[1] < 1:
-        raise ValueError(f"{name}: expected (B, N) with N >= 1 particles, got {shape_str(log_weights.shape)}")
+        raise ArgumentError(f"{name}: expected (B, N) with N >= 1 particles, got {shape_str(log_weights.shape)}")
     if values and log_weights.numel() > 0:  # value checks synchronise with the device
         has_nan_or_posinf = torch.isnan(log_weights).any() | torch.isposinf(log_weights).any()
         row_ok = torch.isfinite(log_weights).any(dim=1).all()
         if bool(has_nan_or_posinf):
-            raise ValueError(f"{name}: expected no NaN or +inf values, got some")
+            raise ArgumentError(f"{name}: expected no NaN or +inf values, got some")
         if not bool(row_ok):
-            raise ValueError(f"{name}: expected at least one finite log weight in every trial (row), got a row "
+            raise ArgumentError(f"{name}: expected at least one finite log weight in every trial (row), got a row "
                              "that is entirely -inf")
     return log_weights
 
@@ -399,7 +400,7 @@ def resample_if_needed(
         or not isinstance(ess_threshold, numbers.Real)
         or not (0.0 <= float(ess_threshold) <= 1.0)
     ):
-        raise ValueError(
+        raise ArgumentError(
             f"ess_threshold: expected a real number in [0, 1], got {ess_threshold!r}"
         )
     threshold = float(ess_threshold)
@@ -440,14 +441,14 @@ def gather_particles(x: Tensor, indices: Tensor) -> Tensor:
     """
     if not isinstance(x, Tensor) or x.dim() < 2:
         shape = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
-        raise ValueError(f"x: expected a tensor of shape (B, N, *rest), got {shape}")
+        raise ArgumentError(f"x: expected a tensor of shape (B, N, *rest), got {shape}")
     if not isinstance(indices, Tensor) or indices.dim() != 2:
         shape = tuple(indices.shape) if isinstance(indices, Tensor) else type(indices).__name__
-        raise ValueError(f"indices: expected a tensor of shape (B, N), got {shape}")
+        raise ArgumentError(f"indices: expected a tensor of shape (B, N), got {shape}")
     if indices.dtype.is_floating_point or indices.dtype.is_complex or indices.dtype == torch.bool:
-        raise ValueError(f"indices: expected an integer dtype, got {indices.dtype}")
+        raise ArgumentError(f"indices: expected an integer dtype, got {indices.dtype}")
     if indices.shape[0] != x.shape[0]:
-        raise ValueError(
+        raise ArgumentError(
             f"indices: expected shape (B, N) with B = x.shape[0] = {x.shape[0]}, "
             f"got shape {tuple(indices.shape)}"
         )
@@ -564,15 +565,15 @@ class Resampler(nn.Module):
         _get_resampler(scheme, "resampling")
         if (isinstance(ess_threshold, bool) or not isinstance(ess_threshold, numbers.Real)
                 or not 0.0 <= float(ess_threshold) <= 1.0):
-            raise ValueError(f"ess_threshold: expected a fraction in [0, 1], got {ess_threshold!r}")
+            raise ArgumentError(f"ess_threshold: expected a fraction in [0, 1], got {ess_threshold!r}")
         if gradient not in RESAMPLING_GRADIENTS:
-            raise ValueError(f"resampling_gradient: expected one of {RESAMPLING_GRADIENTS}, got {gradient!r}")
+            raise ArgumentError(f"resampling_gradient: expected one of {RESAMPLING_GRADIENTS}, got {gradient!r}")
         if isinstance(soft_alpha, bool) or not isinstance(soft_alpha, numbers.Real) or not 0 < soft_alpha <= 1:
-            raise ValueError(f"soft_alpha: expected a mixture weight in (0, 1], got {soft_alpha!r}")
+            raise ArgumentError(f"soft_alpha: expected a mixture weight in (0, 1], got {soft_alpha!r}")
         self.scheme, self.ess_threshold, self.gradient = scheme, float(ess_threshold), gradient
         self.soft_alpha = float(soft_alpha)
         if isinstance(ot_epsilon, bool) or not isinstance(ot_epsilon, numbers.Real) or not ot_epsilon > 0:
-            raise ValueError(f"ot_epsilon: expected a regularisation > 0, got {ot_epsilon!r}")
+            raise ArgumentError(f"ot_epsilon: expected a regularisation > 0, got {ot_epsilon!r}")
         self.ot_epsilon = float(ot_epsilon)
         self.ot_iterations = check_count("ot_iterations", ot_iterations)
         d = int(state_dim)
@@ -583,7 +584,7 @@ class Resampler(nn.Module):
             if var.dim() == 0:
                 var = var.expand(d)
             if var.shape != (d,) or bool((var < 0).any()):
-                raise ValueError(f"regularization: expected a non-negative variance or {d} of them, "
+                raise ArgumentError(f"regularization: expected a non-negative variance or {d} of them, "
                                  f"got {regularization!r}")
             self.register_buffer("regularization_std", var.sqrt().to(dtype))
 

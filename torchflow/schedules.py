@@ -11,6 +11,7 @@ from typing import Optional, Tuple
 import torch
 
 from ._checks import check_count
+from .errors import ArgumentError, ArgumentTypeError
 
 
 class LambdaSchedule:
@@ -59,12 +60,12 @@ class LambdaSchedule:
         name = type(self).__name__
         if not isinstance(eps, torch.Tensor) or eps.dim() != 1 or eps.numel() == 0 or not eps.is_floating_point():
             got = f"shape {tuple(eps.shape)} {eps.dtype}" if isinstance(eps, torch.Tensor) else type(eps).__name__
-            raise ValueError(f"{name}.step_sizes(): expected a non-empty 1-D float tensor, got {got}")
+            raise ArgumentError(f"{name}.step_sizes(): expected a non-empty 1-D float tensor, got {got}")
         eps = eps.detach().to(torch.float64, copy=False).cpu()
         if not bool(torch.isfinite(eps).all()) or bool((eps <= 0).any()):
-            raise ValueError(f"{name}.step_sizes(): expected finite steps > 0, got smallest {eps.min().item():.4g}")
+            raise ArgumentError(f"{name}.step_sizes(): expected finite steps > 0, got smallest {eps.min().item():.4g}")
         if abs(eps.sum().item() - 1.0) > 1e-9:
-            raise ValueError(f"{name}.step_sizes(): expected steps summing to 1 (lambda from 0 to 1), "
+            raise ArgumentError(f"{name}.step_sizes(): expected steps summing to 1 (lambda from 0 to 1), "
                              f"got a sum of {eps.sum().item():.6g}")
         cache[key] = eps
         return eps
@@ -87,7 +88,7 @@ class ExponentialSchedule(LambdaSchedule):
 
     def __init__(self, n_steps: int = 29, ratio: float = 1.2):
         if ratio <= 0:
-            raise ValueError(f"ratio: expected > 0, got {ratio}")
+            raise ArgumentError(f"ratio: expected > 0, got {ratio}")
         self.n_steps, self.ratio = check_count("n_steps", n_steps), float(ratio)
 
     def step_sizes(self):
@@ -119,16 +120,16 @@ class GeometricSchedule(LambdaSchedule):
 
     def __init__(self, first_step: float = 1e-4, ratio: float = 2.0):
         if not 0 < first_step <= 1:
-            raise ValueError(f"first_step: expected in (0, 1], got {first_step}")
+            raise ArgumentError(f"first_step: expected in (0, 1], got {first_step}")
         if ratio < 1:
-            raise ValueError(f"ratio: expected >= 1, got {ratio}")
+            raise ArgumentError(f"ratio: expected >= 1, got {ratio}")
         self.first_step, self.ratio = float(first_step), float(ratio)
         eps, total = [], 0.0
         while total + self.first_step * self.ratio ** len(eps) < 1.0 - 1e-12:
             eps.append(self.first_step * self.ratio ** len(eps))
             total += eps[-1]
             if len(eps) > 100_000:
-                raise ValueError(f"first_step={first_step}, ratio={ratio}: more than 1e5 steps")
+                raise ArgumentError(f"first_step={first_step}, ratio={ratio}: more than 1e5 steps")
         eps.append(1.0 - total)
         self._eps = eps
         self.n_steps = len(eps)
@@ -149,10 +150,10 @@ def resolve_schedule(schedule, default: Optional[LambdaSchedule] = None, *, name
         return default if default is not None else ExponentialSchedule()
     if isinstance(schedule, str):
         if schedule not in SCHEDULES:
-            raise ValueError(f"{name}: expected a LambdaSchedule or one of {tuple(SCHEDULES)}, got {schedule!r}")
+            raise ArgumentError(f"{name}: expected a LambdaSchedule or one of {tuple(SCHEDULES)}, got {schedule!r}")
         return SCHEDULES[schedule]()
     if not isinstance(schedule, LambdaSchedule):
-        raise TypeError(f"{name}: expected a LambdaSchedule (torchflow.schedules) or one of {tuple(SCHEDULES)}, "
+        raise ArgumentTypeError(f"{name}: expected a LambdaSchedule (torchflow.schedules) or one of {tuple(SCHEDULES)}, "
                         f"got {type(schedule).__name__}")
     schedule.check()
     return schedule

@@ -21,6 +21,7 @@ import torch
 from torch import nn
 
 from . import linalg, tuning
+from .errors import ArgumentError
 
 TRACKERS = ("ekf", "ukf")
 
@@ -152,7 +153,7 @@ class UnscentedTransform(nn.Module):
             kappa = 3.0 - d
         lam = alpha**2 * (d + kappa) - d
         if d + lam <= 0:
-            raise ValueError(f"alpha, kappa: need alpha^2 (d + kappa) > 0, got alpha={alpha}, kappa={kappa}, d={d}")
+            raise ArgumentError(f"alpha, kappa: need alpha^2 (d + kappa) > 0, got alpha={alpha}, kappa={kappa}, d={d}")
         self.alpha, self.beta, self.kappa = float(alpha), float(beta), float(kappa)
         self.scale = (d + lam) ** 0.5
         wm = torch.full((2 * d + 1,), 0.5 / (d + lam), dtype=torch.float64)
@@ -210,9 +211,9 @@ class Tracker(nn.Module):
     def __init__(self, model, kind: str = "ekf", **unscented):
         super().__init__()
         if kind not in TRACKERS:
-            raise ValueError(f"covariance: expected one of {TRACKERS}, got {kind!r}")
+            raise ArgumentError(f"covariance: expected one of {TRACKERS}, got {kind!r}")
         if unscented and kind != "ukf":
-            raise ValueError(f"{sorted(unscented)}: sigma-point settings need kind='ukf', got {kind!r}")
+            raise ArgumentError(f"{sorted(unscented)}: sigma-point settings need kind='ukf', got {kind!r}")
         self.model, self.kind = model, kind
         self.unscented = (UnscentedTransform(model.state_dim, dtype=model.dtype, device=model.device, **unscented)
                           if kind == "ukf" else None)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import contextlib
 from dataclasses import asdict, dataclass, fields, replace
+from .errors import ArgumentError
 
 __all__ = ["Tuning", "get", "set", "tuned"]
 
@@ -143,7 +144,7 @@ class Tuning:
         for f in fields(self):
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-                raise ValueError(f"tuning.{f.name}: expected an integer >= 0, got {v!r}")
+                raise ArgumentError(f"tuning.{f.name}: expected an integer >= 0, got {v!r}")
 
 
 _current = Tuning()
@@ -160,7 +161,7 @@ def set(**knobs) -> Tuning:  # noqa: A001 - the module's verb
     known = {f.name for f in fields(Tuning)}
     unknown = sorted(k for k in knobs if k not in known)
     if unknown:
-        raise ValueError(f"tuning: unknown knob(s) {unknown}; expected some of {sorted(known)}")
+        raise ArgumentError(f"tuning: unknown knob(s) {unknown}; expected some of {sorted(known)}")
     previous = _current
     _current = replace(_current, **{k: int(v) if isinstance(v, float) and v.is_integer() else v
                                     for k, v in knobs.items()})

@@ -24,6 +24,7 @@ from ..models.structure import kernel_structure
 from ..proposals import BootstrapProposal, Proposal
 from ..random import check_generator
 from ..flows.kernels import graph_step
+from ..errors import ArgumentError, ArgumentTypeError
 
 
 @dataclass
@@ -166,7 +167,7 @@ class Filter(nn.Module):
         super().__init__()
         self.name = name or type(self).__name__
         if not isinstance(model, StateSpaceModel):
-            raise TypeError(f"{self.name}: model: expected a torchflow StateSpaceModel, got {type(model).__name__}")
+            raise ArgumentTypeError(f"{self.name}: model: expected a torchflow StateSpaceModel, got {type(model).__name__}")
         if self.gaussian_form:
             require_gaussian(model, self.name)
         self.model = model
@@ -220,7 +221,7 @@ class Filter(nn.Module):
             mean = mean.expand(batch_size, -1)
         shared = isinstance(cov, torch.Tensor) and cov.dim() == 2
         if shared and tuple(cov.shape) != (d, d):
-            raise ValueError(f"cov: expected (d, d) = ({d}, {d}) shared by every trial or (B, d, d), got "
+            raise ArgumentError(f"cov: expected (d, d) = ({d}, {d}) shared by every trial or (B, d, d), got "
                              f"{tuple(cov.shape)} (per-trial variances (B, d) are torch.diag_embed(variances))")
         if shared and batch_size is not None:
             cov = cov.expand(batch_size, -1, -1)
@@ -234,7 +235,7 @@ class Filter(nn.Module):
                 check_psd("cov", cov)
             except ValueError as err:
                 if shared and d == mean.shape[0]:  # a (B, d) array of variances looks like (d, d) when B = d
-                    raise ValueError(f"{err} (a (d, d) matrix shared by every trial was given; if these are "
+                    raise ArgumentError(f"{err} (a (d, d) matrix shared by every trial was given; if these are "
                                      "per-trial variances (B, d), pass torch.diag_embed(variances))") from None
                 raise
         return mean, cov
@@ -490,19 +491,19 @@ class ParticleFilter(Filter):
         elif not isinstance(proposal, nn.Module) and callable(proposal):
             proposal = proposal(model)
         if not isinstance(proposal, Proposal):
-            raise TypeError(f"proposal: expected a torchflow Proposal (or a callable model -> Proposal), "
+            raise ArgumentTypeError(f"proposal: expected a torchflow Proposal (or a callable model -> Proposal), "
                             f"got {type(proposal).__name__}")
         if proposal.model is not model:
-            raise ValueError("proposal: built for another model than the filter's (pass the same model to both)")
+            raise ArgumentError("proposal: built for another model than the filter's (pass the same model to both)")
         #: how particles are drawn and with what density (:mod:`torchflow.proposals`)
         self.proposal = proposal
         self.particle_chunk = None if particle_chunk is None else check_count(
             "particle_chunk", particle_chunk, hint=" or None")
         if nonfinite not in NONFINITE:
-            raise ValueError(f"nonfinite: expected one of {NONFINITE}, got {nonfinite!r}")
+            raise ArgumentError(f"nonfinite: expected one of {NONFINITE}, got {nonfinite!r}")
         self.nonfinite = nonfinite
         if proposal_gradient not in PROPOSAL_GRADIENTS:
-            raise ValueError(f"proposal_gradient: expected one of {PROPOSAL_GRADIENTS}, got {proposal_gradient!r}")
+            raise ArgumentError(f"proposal_gradient: expected one of {PROPOSAL_GRADIENTS}, got {proposal_gradient!r}")
         self.proposal_gradient = proposal_gradient
         self.n_particles = int(check_count("n_particles", n_particles))
         #: the resampling part: scheme, ESS trigger, regularisation, gradient estimator
@@ -564,7 +565,7 @@ class ParticleFilter(Filter):
             return
         if bool((torch.linalg.cholesky_ex(Q.detach())[1] > 0).any()):
             ev = torch.linalg.eigvalsh(linalg.symmetrize(Q.detach())).min().item()
-            raise ValueError(
+            raise ArgumentError(
                 f"{self.name}: the model's transition covariance is not positive definite (smallest eigenvalue "
                 f"{ev:.3g}); this filter weighs particles by the transition density p(x_k | x_(k-1)), which a "
                 "singular covariance does not have. Give the model a positive definite transition noise, or use a "

@@ -61,6 +61,7 @@ from ..proposals import resolve_flow
 from ..models.contract import require_gaussian
 from ..models.structure import bytes_per_point
 from .base import ParticleFilter
+from ..errors import ArgumentError
 
 LINEARIZE_AT = ("auxiliary", "particle")
 ESTIMATES = ("mixture_mean", "top_component")
@@ -170,7 +171,7 @@ class GaussianSumParticleFilter(ParticleFilter):
         n = check_count("particles_per_component", particles_per_component)
         d = model.state_dim
         if n < d + 1:
-            raise ValueError(f"particles_per_component: expected at least d + 1 = {d + 1} to fit a {d} x {d} "
+            raise ArgumentError(f"particles_per_component: expected at least d + 1 = {d + 1} to fit a {d} x {d} "
                              f"covariance per component, got {n}")
         super().__init__(model, n_particles=G * n, nonfinite=nonfinite, particle_chunk=particle_chunk,
                          resampling_gradient=resampling_gradient, validate=validate, name=name)
@@ -178,14 +179,14 @@ class GaussianSumParticleFilter(ParticleFilter):
         self.estimate = check_choice("estimate", estimate, ESTIMATES)
         self.init_mode = check_choice("init", init, INITS)
         if not isinstance(redraw_eta0, bool):
-            raise ValueError(f"redraw_eta0: expected True or False, got {redraw_eta0!r}")
+            raise ArgumentError(f"redraw_eta0: expected True or False, got {redraw_eta0!r}")
         if isinstance(jitter, bool) or not isinstance(jitter, (int, float)) or not 0 <= jitter < 1:
-            raise ValueError(f"jitter: expected a relative jitter in [0, 1), got {jitter!r}")
+            raise ArgumentError(f"jitter: expected a relative jitter in [0, 1), got {jitter!r}")
         self.flow = None if flow is None else resolve_flow(flow)
         if self.flow is not None:  # the flows linearise h and start from the transition mean
             require_gaussian(model, self.name)
         if self.flow is not None and self.flow.stochastic:
-            raise ValueError(f"flow: the Gaussian-sum filters weigh with the flow's log|det|, so the flow must be "
+            raise ArgumentError(f"flow: the Gaussian-sum filters weigh with the flow's log|det|, so the flow must be "
                              f"deterministic (EDH/LEDH family), got {type(self.flow).__name__}")
         self.n_components, self.particles_per_component = G, n
         self.schedule = resolve_schedule(schedule)
@@ -213,7 +214,7 @@ class GaussianSumParticleFilter(ParticleFilter):
     # ---- contract ------------------------------------------------------------------------------
     def init(self, mean, cov, n_particles=None, generator=None) -> MixtureState:
         if n_particles is not None and int(n_particles) != self.n_particles:
-            raise ValueError(f"n_particles: a Gaussian-sum filter's total is n_components x particles_per_component "
+            raise ArgumentError(f"n_particles: a Gaussian-sum filter's total is n_components x particles_per_component "
                              f"= {self.n_particles}; set those instead (got n_particles={n_particles})")
         B, d = mean.shape
         G = self.n_components

@@ -9,6 +9,7 @@ from ..flows.gpfis import gpfis_flow
 from ..proposals import GPFISProposal
 from ..schedules import LambdaSchedule
 from .base import ParticleFilter
+from ..errors import ArgumentError
 
 
 class GaussianParticleFlowImportanceSampler(ParticleFilter):
@@ -38,7 +39,7 @@ class GaussianParticleFlowImportanceSampler(ParticleFilter):
     def __init__(self, model, *, schedule: Optional[LambdaSchedule] = None, root: str = "cholesky",
                  jacobian: str = "analytic", gamma: float = 0.0, **kwargs):
         if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or gamma != 0:
-            raise ValueError(f"gamma: only the deterministic GPFIS (gamma = 0) is implemented, got {gamma!r}")
+            raise ArgumentError(f"gamma: only the deterministic GPFIS (gamma = 0) is implemented, got {gamma!r}")
         super().__init__(model, GPFISProposal(model, schedule, root, jacobian), **kwargs)
 
 

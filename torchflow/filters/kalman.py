@@ -8,6 +8,7 @@ import torch
 from .. import linalg
 from ..trackers import UnscentedTransform, ekf_predict, ekf_update, kalman_update
 from .base import Filter, GaussianState
+from ..errors import ArgumentTypeError
 
 __all__ = ["KalmanFilter", "ExtendedKalmanFilter", "UnscentedKalmanFilter", "kalman_update", "ekf_predict"]
 
@@ -53,7 +54,7 @@ class KalmanFilter(ExtendedKalmanFilter):
     def __init__(self, model, *, validate: bool = True, name: Optional[str] = None):
         super().__init__(model, validate=validate, name=name)
         if not (model.structure.linear_dynamics and model.structure.linear_measurement):
-            raise TypeError(f"model: KalmanFilter needs a linear-Gaussian model (a LinearGaussian, or any model "
+            raise ArgumentTypeError(f"model: KalmanFilter needs a linear-Gaussian model (a LinearGaussian, or any model "
                             f"declaring linear_dynamics and linear_measurement), got {type(model).__name__} "
                             f"(linear_dynamics={model.structure.linear_dynamics}, linear_measurement={model.structure.linear_measurement}; "
                             "use ExtendedKalmanFilter or UnscentedKalmanFilter for nonlinear models)")

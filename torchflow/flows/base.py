@@ -24,6 +24,7 @@ from torch import nn
 
 from .. import linalg
 from .measurement import GaussianMeasurement
+from ..errors import ArgumentTypeError
 
 
 @dataclass
@@ -71,7 +72,7 @@ class FlowCoefficients:
         one, or formed once from ``form_A``."""
         if self.A is None:
             if self.form_A is None:
-                raise TypeError("these flow coefficients give A only as an operator (apply_A) and cannot form it: "
+                raise ArgumentTypeError("these flow coefficients give A only as an operator (apply_A) and cannot form it: "
                                 "give A or form_A")
             self.A = self.form_A()
         return self.A

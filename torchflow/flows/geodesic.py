@@ -42,6 +42,7 @@ from __future__ import annotations
 
 from typing import Optional, Union
 
+from ..errors import ArgumentError
 import torch
 
 from .. import linalg
@@ -225,7 +226,7 @@ def optimal_diffusion_scale(k_min: torch.Tensor, k_max: torch.Tensor, alpha: flo
     Table II in RESULTS.md).
     """
     if alpha <= 0:
-        raise ValueError(f"alpha: expected > 0, got {alpha}")
+        raise ArgumentError(f"alpha: expected > 0, got {alpha}")
     if check_choice("rule", rule, C_RULES) in ("printed", "printed_shift"):
         printed = (torch.sqrt((k_max - k_min).clamp_min(0) / alpha) - k_min).clamp_min(0)
         return printed if rule == "printed" else 2 * printed
@@ -258,9 +259,9 @@ class OptimalDiffusionFlow(_HomotopyFlow):
                  noise_root: str = "factor", c_rule: str = "literal_shift"):
         super().__init__(points, noise_root)
         if float(alpha) <= 0:
-            raise ValueError(f"alpha: expected > 0, got {alpha}")
+            raise ArgumentError(f"alpha: expected > 0, got {alpha}")
         if not (c == "optimal" or (isinstance(c, (int, float)) and not isinstance(c, bool) and c >= 0)):
-            raise ValueError(f"c: expected 'optimal' or a float >= 0, got {c!r}")
+            raise ArgumentError(f"c: expected 'optimal' or a float >= 0, got {c!r}")
         self.alpha, self.c, self.c_rule = float(alpha), c, check_choice("c_rule", c_rule, C_RULES)
 
     def scale(self, S: torch.Tensor, lam, d: int = None) -> torch.Tensor:

@@ -32,6 +32,7 @@ from .base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow, _gather
 from .kernels import loops, select
 from .measurement import GaussianMeasurement
 from .points import LinearisationPoints, resolve_points
+from ..errors import ArgumentError, ArgumentTypeError
 
 
 def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.Tensor, prior: FlowPrior,
@@ -84,7 +85,7 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
     """
     if not isinstance(particles, torch.Tensor) or particles.dim() != 3:
         got = tuple(particles.shape) if isinstance(particles, torch.Tensor) else type(particles).__name__
-        raise ValueError(f"particles: expected (B, N, d) (trials, particles, state), got {got}")
+        raise ArgumentError(f"particles: expected (B, N, d) (trials, particles, state), got {got}")
     schedule = resolve_schedule(schedule)
     eps_all, lam_all = schedule.steps(dtype=particles.dtype, device=particles.device)
     eps_host = schedule.host_steps(particles.dtype)
@@ -95,10 +96,10 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
         measurement = GaussianMeasurement.from_model(model, z)
     if start is not None:
         if start.shape != prior.mean.shape:
-            raise ValueError(f"start: expected the points' starting positions shaped like prior.mean "
+            raise ArgumentError(f"start: expected the points' starting positions shaped like prior.mean "
                              f"{tuple(prior.mean.shape)}, got {tuple(start.shape)}")
         if gaussian_image:
-            raise ValueError("start: the Gaussian image follows the prior mean (the points' own start); "
+            raise ArgumentError("start: the Gaussian image follows the prior mean (the points' own start); "
                              "give either start or gaussian_image=True")
     prior, index, squeeze = strategy.arrange(prior, particles, index)
     start = None if start is None else start.reshape(prior.mean.shape)
@@ -160,7 +161,7 @@ def _reference(flow, measurement, particles, prior, index, per_particle, eps_all
         eps, lam = eps_steps[j], lam_steps[j]
         co = flow.coefficients_at(measurement.at(aux, prior.support), prior, lam, eps)
         if stochastic and (co.A is None or not co.has_noise):
-            raise TypeError(f"{type(flow).__name__}: a stochastic flow must give an explicit A and a diffusion "
+            raise ArgumentTypeError(f"{type(flow).__name__}: a stochastic flow must give an explicit A and a diffusion "
                             "(noise_factor or noise_product)")
         image.step(co, eps_host[j])  # at the points
         if not stochastic:

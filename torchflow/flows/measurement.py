@@ -22,6 +22,7 @@ import torch
 
 from .. import linalg
 from ..models.structure import kernel_structure
+from ..errors import ArgumentError
 
 
 @dataclass
@@ -76,7 +77,7 @@ class GaussianMeasurement:
                  support: Optional[Sequence[int]] = None, diagonal: bool = False,
                  hessian: Optional[Callable] = None, form=None, diagonal_rows: Optional[Callable] = None):
         if noise not in ("scalar", "diagonal", "dense"):
-            raise ValueError(f"noise: expected 'scalar', 'diagonal' or 'dense', got {noise!r}")
+            raise ArgumentError(f"noise: expected 'scalar', 'diagonal' or 'dense', got {noise!r}")
         self.z, self.linearise, self.scale_tril, self.noise = z, linearise, scale_tril, noise
         self.matrix, self.measure = matrix, measure
         self.support = None if support is None else tuple(support)

@@ -35,6 +35,7 @@ from .._checks import check_count
 from ..covariances import Covariance, ParticleCovariance, TrialCovariance
 from .base import FlowPrior
 from .daum_huang import LEDHFlow
+from ..errors import ArgumentError
 
 
 def cluster_distance(eta_bar: torch.Tensor, zeta: torch.Tensor, alpha: float = 0.25,
@@ -55,7 +56,7 @@ def cluster_distance(eta_bar: torch.Tensor, zeta: torch.Tensor, alpha: float = 0
         own component mean; UNCONF in the seed: all d components are used), also in [0, 2].
     """
     if not 0.0 <= float(alpha) <= 1.0:
-        raise ValueError(f"alpha: expected a weight in [0, 1], got {alpha}")
+        raise ArgumentError(f"alpha: expected a weight in [0, 1], got {alpha}")
     x = eta_bar if support is None else eta_bar[..., list(support)]
     lo, hi = x.amin(1, keepdim=True), x.amax(1, keepdim=True)
     tiny = torch.finfo(x.dtype).tiny
@@ -85,7 +86,7 @@ def kmedoids(dist: torch.Tensor, n_clusters: int, sweeps: int = 20) -> Tuple[tor
     B, N, _ = dist.shape
     K = int(n_clusters)
     if K < 1:
-        raise ValueError(f"n_clusters: expected a positive integer, got {n_clusters}")
+        raise ArgumentError(f"n_clusters: expected a positive integer, got {n_clusters}")
     if K >= N:  # every point its own medoid
         ar = torch.arange(N, device=dist.device).expand(B, N)
         return ar.clone(), ar.clone()
@@ -183,7 +184,7 @@ class GlobalPoints(LinearisationPoints):
 
     def arrange(self, prior, particles, index):
         if index is not None:
-            raise ValueError("index: global points take no cluster index (use points='clustered')")
+            raise ArgumentError("index: global points take no cluster index (use points='clustered')")
         if prior.mean.dim() == 3:
             _check_points("prior.mean", prior.mean, particles, 1)
             return prior, None, False
@@ -216,7 +217,7 @@ class ParticlePoints(LinearisationPoints):
 
     def arrange(self, prior, particles, index):
         if index is not None:
-            raise ValueError("index: per-particle points take no cluster index (use points='clustered')")
+            raise ArgumentError("index: per-particle points take no cluster index (use points='clustered')")
         _check_points("prior.mean", prior.mean, particles, particles.shape[1])
         return prior, None, False
 
@@ -242,7 +243,7 @@ class ClusteredPoints(LinearisationPoints):
         self.n_clusters = check_count("n_clusters", n_clusters)
         self.sweeps = check_count("sweeps", sweeps)
         if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0.0 <= float(alpha) <= 1.0:
-            raise ValueError(f"alpha: expected a weight in [0, 1], got {alpha!r}")
+            raise ArgumentError(f"alpha: expected a weight in [0, 1], got {alpha!r}")
         self.alpha = float(alpha)
 
     def place(self, model, x_prev, mean, scale_tril, z):
@@ -275,9 +276,9 @@ class ClusteredPoints(LinearisationPoints):
     def arrange(self, prior, particles, index):
         B, N = particles.shape[:2]
         if index is None:
-            raise ValueError("index: clustered linearisation points need the (B, N) cluster index")
+            raise ArgumentError("index: clustered linearisation points need the (B, N) cluster index")
         if index.shape != (B, N):
-            raise ValueError(f"index: expected (B, N) = ({B}, {N}) cluster indices, got {tuple(index.shape)}")
+            raise ArgumentError(f"index: expected (B, N) = ({B}, {N}) cluster indices, got {tuple(index.shape)}")
         return prior, index, False
 
     def extra_repr(self) -> str:
@@ -291,7 +292,7 @@ _VELOCITY = LEDHFlow()
 def _check_points(name: str, mean: torch.Tensor, particles: torch.Tensor, L: int) -> None:
     B, _, d = particles.shape
     if mean.shape != (B, L, d):
-        raise ValueError(f"{name}: expected ({B}, {L}, {d}) for these points, got {tuple(mean.shape)}")
+        raise ArgumentError(f"{name}: expected ({B}, {L}, {d}) for these points, got {tuple(mean.shape)}")
 
 
 #: the strategies by config name
@@ -307,7 +308,7 @@ def resolve_points(flow, points: Union[None, str, LinearisationPoints] = None, *
     if points is None:
         points = flow.points
     if points not in POINTS:
-        raise ValueError(f"points: expected one of {tuple(POINTS)}, a LinearisationPoints or None "
+        raise ArgumentError(f"points: expected one of {tuple(POINTS)}, a LinearisationPoints or None "
                          f"(the flow's default), got {points!r}")
     cls = POINTS[points]
     return cls(**knobs) if cls is ClusteredPoints else cls()

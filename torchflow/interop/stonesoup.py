@@ -71,6 +71,7 @@ from ..models.base import GaussianStateSpaceModel
 from ..models.structure import Structure
 from ..proposals.flow import FLOWS, resolve_flow
 from ..schedules import LambdaSchedule, resolve_schedule
+from ..errors import ArgumentError, ArgumentTypeError
 
 __all__ = ["FlowParticleUpdater", "StoneSoupMeasurement", "SUPPORTED_MEASUREMENT_MODELS"]
 
@@ -100,14 +101,14 @@ class StoneSoupMeasurement(GaussianStateSpaceModel):
     def __init__(self, model: MeasurementModel, z: np.ndarray, dtype=torch.float64, device=None):
         super().__init__()
         if not isinstance(model, MeasurementModel):
-            raise TypeError(f"measurement_model: expected a Stone Soup MeasurementModel, got {type(model).__name__}")
+            raise ArgumentTypeError(f"measurement_model: expected a Stone Soup MeasurementModel, got {type(model).__name__}")
         self.ss = model
         self.state_dim, self.obs_dim = int(model.ndim_state), int(model.ndim_meas)
         kw = dict(dtype=dtype, device=device)
         try:
             R = np.asarray(model.covar(), dtype=float)
         except TypeError as err:
-            raise TypeError(f"measurement_model: {type(model).__name__}.covar() needs arguments ({err}); supported: "
+            raise ArgumentTypeError(f"measurement_model: {type(model).__name__}.covar() needs arguments ({err}); supported: "
                             "models with a constant noise covariance") from None
         self.register_buffer("R", torch.as_tensor(R, **kw))
         self.register_buffer("z", torch.as_tensor(np.asarray(z, dtype=float).ravel(), **kw))
@@ -214,14 +215,14 @@ class FlowParticleUpdater(Updater):
         self._flow = resolve_flow(self.flow)
         self._schedule = resolve_schedule(self.schedule)
         if self.flow_prior not in ("transition", "predicted"):
-            raise ValueError(f"flow_prior: expected 'transition' or 'predicted', got {self.flow_prior!r}")
+            raise ArgumentError(f"flow_prior: expected 'transition' or 'predicted', got {self.flow_prior!r}")
         if self.dtype not in ("float64", "float32"):
-            raise ValueError(f"dtype: expected 'float64' or 'float32', got {self.dtype!r}")
+            raise ArgumentError(f"dtype: expected 'float64' or 'float32', got {self.dtype!r}")
         self._dtype = getattr(torch, self.dtype)
         try:
             self._generator = torch.Generator(device=self.device).manual_seed(int(self.seed))
         except RuntimeError as err:
-            raise ValueError(f"device: expected a torch device such as 'cpu' or 'cuda', got {self.device!r} "
+            raise ArgumentError(f"device: expected a torch device such as 'cpu' or 'cuda', got {self.device!r} "
                              f"({str(err).splitlines()[0][:80]})") from None
 
     predict_measurement = ParticleUpdater.predict_measurement
@@ -229,7 +230,7 @@ class FlowParticleUpdater(Updater):
     def _measurement_model(self, hypothesis):
         mm = hypothesis.measurement.measurement_model or self.measurement_model
         if mm is None:
-            raise ValueError("FlowParticleUpdater: no measurement model: give measurement_model= or detections that "
+            raise ArgumentError("FlowParticleUpdater: no measurement model: give measurement_model= or detections that "
                              "carry one")
         return mm
 
@@ -250,20 +251,20 @@ class FlowParticleUpdater(Updater):
         ``hypothesis.measurement``; a ``ParticleStateUpdate`` (resampled if a resampler is set)."""
         pred = hypothesis.prediction
         if not hasattr(pred, "log_weight") or np.ndim(pred.state_vector) != 2:
-            raise TypeError(f"FlowParticleUpdater: expected a particle prediction (ParticleStatePrediction), got "
+            raise ArgumentTypeError(f"FlowParticleUpdater: expected a particle prediction (ParticleStatePrediction), got "
                             f"{type(pred).__name__}")
         mm = self._measurement_model(hypothesis)
         kw = dict(dtype=self._dtype, device=self.device)
         zv = np.asarray(hypothesis.measurement.state_vector, dtype=float).ravel()
         if zv.size != int(mm.ndim_meas):
-            raise ValueError(f"FlowParticleUpdater: the detection has {zv.size} values, {type(mm).__name__} measures "
+            raise ArgumentError(f"FlowParticleUpdater: the detection has {zv.size} values, {type(mm).__name__} measures "
                              f"ndim_meas = {int(mm.ndim_meas)}")
         model = StoneSoupMeasurement(mm, zv, **kw)
         X = torch.as_tensor(np.asarray(pred.state_vector, dtype=float).T, **kw).unsqueeze(0)  # (1, N, d)
         lw_prev = np.asarray(pred.log_weight, dtype=float)
         N, d = X.shape[1], X.shape[2]
         if model.state_dim != d:
-            raise ValueError(f"FlowParticleUpdater: the measurement model has ndim_state {model.state_dim}, the "
+            raise ArgumentError(f"FlowParticleUpdater: the measurement model has ndim_state {model.state_dim}, the "
                              f"particles {d} dimensions")
         trans = self._transition(pred)
         w = torch.as_tensor(np.exp(lw_prev - logsumexp(lw_prev)), **kw)

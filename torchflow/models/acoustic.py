@@ -16,6 +16,7 @@ from .._checks import check_choice
 from .base import GaussianStateSpaceModel, Trajectory
 from .contract import check_simulate_args
 from .structure import Structure
+from ..errors import ArgumentError, ArgumentTypeError
 
 _X0 = [12, 6, 0.001, 0.001, 32, 32, -0.001, -0.005, 20, 13, -0.1, 0.01, 15, 35, 0.002, 0.002]
 
@@ -61,7 +62,7 @@ class AcousticTracking(GaussianStateSpaceModel):
                  margin: float = 0.05, max_redraws: int = 10000, learnable=False):
         super().__init__()
         if sigma_w <= 0:
-            raise ValueError(f"sigma_w: expected > 0, got {sigma_w}")
+            raise ArgumentError(f"sigma_w: expected > 0, got {sigma_w}")
         if filter_noise is True or filter_noise == "true":
             filter_noise = "truth"
         check_choice("filter_noise", filter_noise, ("inflated", "truth"))
@@ -88,16 +89,16 @@ class AcousticTracking(GaussianStateSpaceModel):
         names = ("psi", "sigma_w")
         learn = (set(names) if learnable else set()) if isinstance(learnable, bool) else set(learnable)
         if not learn <= set(names):
-            raise ValueError(f"learnable: expected a bool or a subset of {list(names)}, got {sorted(learnable)}")
+            raise ArgumentError(f"learnable: expected a bool or a subset of {list(names)}, got {sorted(learnable)}")
         for name in sorted(learn):
             constraints.constrain(self, name, "positive")
         x0 = torch.tensor(_X0 if initial_state is None else list(initial_state), **f64)
         if x0.shape != (self.state_dim,):
-            raise ValueError(f"initial_state: expected {self.state_dim} numbers, got {tuple(x0.shape)}")
+            raise ArgumentError(f"initial_state: expected {self.state_dim} numbers, got {tuple(x0.shape)}")
         self.register_buffer("x0", x0)
         ps = torch.tensor(list(prior_std), **f64)
         if ps.shape != (4,):
-            raise ValueError(f"prior_std: expected 4 numbers [px, py, vx, vy], got {tuple(ps.shape)}")
+            raise ArgumentError(f"prior_std: expected 4 numbers [px, py, vx, vy], got {tuple(ps.shape)}")
         self.register_buffer("prior_std", ps.repeat(C))
         self.area, self.margin, self.max_redraws = float(area), float(margin), int(max_redraws)
 
@@ -249,7 +250,7 @@ class AcousticTracking(GaussianStateSpaceModel):
         """Prior mean ``m_0 = x_0 + sigma_0 * xi``, redrawn until all four positions lie in the
         field; covariance ``diag(sigma_0^2)``. Returns ``(B, 16)``, ``(B, 16, 16)``."""
         if not isinstance(generator, torch.Generator):
-            raise TypeError(f"AcousticTracking.initial_belief: generator: expected a torch.Generator (the prior "
+            raise ArgumentTypeError(f"AcousticTracking.initial_belief: generator: expected a torch.Generator (the prior "
                             f"mean is drawn), got {type(generator).__name__}")
         B = states0.shape[0]
         mean = torch.empty_like(states0)

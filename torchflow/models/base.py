@@ -27,6 +27,7 @@ from .. import linalg
 from .._checks import check_finite, check_tensor
 from ..linearize import jacobian
 from .structure import Structure
+from ..errors import ArgumentError
 
 
 @dataclass
@@ -174,7 +175,7 @@ class StateSpaceModel(nn.Module):
         check_tensor("observations", observations, (None, None, self.obs_dim), "(B, T, m)",
                      dtype=self.dtype, device=self.device)
         if observations.shape[0] == 0 or observations.shape[1] == 0:
-            raise ValueError(f"observations: expected (B, T, m) with at least one trial and one time step, "
+            raise ArgumentError(f"observations: expected (B, T, m) with at least one trial and one time step, "
                              f"got {tuple(observations.shape)}")
         check_finite("observations", observations)
         return observations

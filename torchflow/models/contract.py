@@ -18,6 +18,7 @@ import torch
 
 from .._checks import check_count, check_psd
 from ..random import generator_hint
+from ..errors import ArgumentError, ArgumentTypeError
 
 #: the Gaussian form's methods a filter reads (beyond the core)
 GAUSSIAN_FORM = ("transition_mean", "transition_cov", "measure", "measurement_cov")
@@ -31,9 +32,9 @@ def require_gaussian(model, who: str) -> None:
     from .base import GaussianStateSpaceModel, StateSpaceModel
 
     if not isinstance(model, StateSpaceModel):
-        raise TypeError(f"{who}: model: expected a torchflow.models.StateSpaceModel, got {type(model).__name__}")
+        raise ArgumentTypeError(f"{who}: model: expected a torchflow.models.StateSpaceModel, got {type(model).__name__}")
     if not isinstance(model, GaussianStateSpaceModel):
-        raise TypeError(f"{who}: model: {type(model).__name__} gives only the core (samplers and densities); "
+        raise ArgumentTypeError(f"{who}: model: {type(model).__name__} gives only the core (samplers and densities); "
                         f"{who} needs the Gaussian form ({', '.join(GAUSSIAN_FORM)}): subclass "
                         "torchflow.models.GaussianStateSpaceModel, or use BootstrapParticleFilter")
 
@@ -41,7 +42,7 @@ def require_gaussian(model, who: str) -> None:
 def check_dtype(model, who: str) -> None:
     """Raise unless the model is in float32 or float64 (the precisions filters support)."""
     if model.dtype not in (torch.float32, torch.float64):
-        raise TypeError(f"{who}: the model is in {model.dtype}; filters and simulation run in float32 or "
+        raise ArgumentTypeError(f"{who}: the model is in {model.dtype}; filters and simulation run in float32 or "
                         "float64 (convert with model.double() or model.float())")
 
 
@@ -52,7 +53,7 @@ def check_simulate_args(model, batch_size, steps, generator) -> Tuple[int, int]:
     batch_size = check_count(f"{who}: batch_size", batch_size)
     steps = check_count(f"{who}: steps", steps)
     if not isinstance(generator, torch.Generator):
-        raise TypeError(f"{who}: generator: expected a torch.Generator, got {type(generator).__name__}"
+        raise ArgumentTypeError(f"{who}: generator: expected a torch.Generator, got {type(generator).__name__}"
                         f"{generator_hint(generator)}")
     check_dtype(model, who)
     return batch_size, steps
@@ -86,7 +87,7 @@ def _expect(who: str, method: str, out, shape: Tuple[int, ...], expected: str, b
     """Raise unless ``out`` is a tensor of ``shape`` (or, with ``broadcast_ok``, broadcastable to it
     with the same trailing dimensions)."""
     if not isinstance(out, torch.Tensor):
-        raise TypeError(f"{who}: {method} returned {type(out).__name__}; expected a tensor {expected} "
+        raise ArgumentTypeError(f"{who}: {method} returned {type(out).__name__}; expected a tensor {expected} "
                         f"= {tuple(shape)}")
     got = tuple(out.shape)
     if got == tuple(shape):
@@ -95,7 +96,7 @@ def _expect(who: str, method: str, out, shape: Tuple[int, ...], expected: str, b
         lead, want = got[:-2], tuple(shape[:-2])  # leading dims broadcast to the batch (plain ints: no torch call)
         if len(lead) <= len(want) and all(g in (1, w) for g, w in zip(reversed(lead), reversed(want))):
             return
-    raise ValueError(f"{who}: {method} returned shape {got}; expected {expected} = {tuple(shape)}")
+    raise ArgumentError(f"{who}: {method} returned shape {got}; expected {expected} = {tuple(shape)}")
 
 
 def check_shapes(model, x: torch.Tensor, who: str, *, gaussian: Optional[bool] = None) -> None:

@@ -12,6 +12,7 @@ from ..linalg import _LOG_2PI
 from .._checks import check_choice, check_psd, check_tensor
 from .base import GaussianStateSpaceModel
 from .structure import Structure
+from ..errors import ArgumentError
 
 
 class LinearGaussian(GaussianStateSpaceModel):
@@ -62,7 +63,7 @@ class LinearGaussian(GaussianStateSpaceModel):
         names = ("F", "Q", "H", "R")
         learn = (set(names) if learnable else set()) if isinstance(learnable, bool) else set(learnable)
         if not learn <= set(names):
-            raise ValueError(f"learnable: expected a bool or a subset of {list(names)}, got {sorted(learn)}")
+            raise ArgumentError(f"learnable: expected a bool or a subset of {list(names)}, got {sorted(learn)}")
         diagonal = bool((R == torch.diag_embed(R.diagonal())).all())
         if measurement_noise is None:
             measurement_noise = ("dense" if "R" in learn or not diagonal else
@@ -70,7 +71,7 @@ class LinearGaussian(GaussianStateSpaceModel):
         for name, val in zip(names, (F, Q, H, R)):
             if name in ("Q", "R") and name in learn:  # valid by construction (torchflow.constraints)
                 if bool((torch.linalg.cholesky_ex(val)[1] > 0).any()):
-                    raise ValueError(f"{name}: a learnable covariance is parametrised by its Cholesky factor, "
+                    raise ArgumentError(f"{name}: a learnable covariance is parametrised by its Cholesky factor, "
                                      f"so it must be positive definite; got a singular matrix")
                 self.register_buffer(name, val.clone())
                 kind = "diagonal" if name == "R" and measurement_noise == "diagonal" else "cholesky"
@@ -95,9 +96,9 @@ class LinearGaussian(GaussianStateSpaceModel):
             measurement_noise_scale=None if "R" in learn else _identity_scale(R),
             measurement_noise=measurement_noise)
         if measurement_noise == "scalar" and self.structure.measurement_noise_scale is None:
-            raise ValueError("measurement_noise: declared 'scalar' but R is not a constant multiple of I")
+            raise ArgumentError("measurement_noise: declared 'scalar' but R is not a constant multiple of I")
         if measurement_noise == "diagonal" and not diagonal:
-            raise ValueError("measurement_noise: declared 'diagonal' but R has off-diagonal entries")
+            raise ArgumentError("measurement_noise: declared 'diagonal' but R has off-diagonal entries")
 
     #: linear dynamics and measurement; R's structure and the identity scales per instance
     structure = Structure(linear_dynamics=True, linear_measurement=True, graph_safe=True)
@@ -214,9 +215,9 @@ class SensorNetwork(LinearGaussian):
                  beta: float = 20.0, sigma_z: float = 0.5, prior_var: float = 0.0, learnable: bool = False):
         g = int(round(math.sqrt(d)))
         if g * g != d:
-            raise ValueError(f"d: expected a perfect square (grid side^2), got {d}")
+            raise ArgumentError(f"d: expected a perfect square (grid side^2), got {d}")
         if sigma_z <= 0:
-            raise ValueError(f"sigma_z: expected > 0, got {sigma_z}")
+            raise ArgumentError(f"sigma_z: expected > 0, got {sigma_z}")
         eye = torch.eye(d, dtype=torch.float64)
         super().__init__(F=alpha * eye, Q=sensor_network_covariance(g, alpha0, alpha1, beta), H=eye,
                          R=sigma_z**2 * eye, m0=torch.zeros(d, dtype=torch.float64), P0=prior_var * eye,

@@ -33,6 +33,7 @@ from ..special import log_bessel_k
 from .base import GaussianStateSpaceModel
 from .structure import Structure
 from .linear_gaussian import sensor_network_covariance
+from ..errors import ArgumentError
 
 
 class SkewedTPoisson(GaussianStateSpaceModel):
@@ -62,12 +63,12 @@ class SkewedTPoisson(GaussianStateSpaceModel):
         super().__init__()
         g = int(round(math.sqrt(d)))
         if isinstance(d, bool) or not isinstance(d, int) or g * g != d or d < 1:
-            raise ValueError(f"d: expected a perfect square (144, 400, ...), got {d!r}")
+            raise ArgumentError(f"d: expected a perfect square (144, 400, ...), got {d!r}")
         if isinstance(nu, bool) or not isinstance(nu, int) or nu <= 4:
-            raise ValueError(f"nu: expected an integer > 4 (Var[W] must exist; 1/W is drawn as chi2_nu / nu), "
+            raise ArgumentError(f"nu: expected an integer > 4 (Var[W] must exist; 1/W is drawn as chi2_nu / nu), "
                              f"got {nu!r}")
         if m1 <= 0:
-            raise ValueError(f"m1: expected > 0, got {m1}")
+            raise ArgumentError(f"m1: expected > 0, got {m1}")
         self.state_dim = self.obs_dim = d
         self.nu, self.mean_shift = nu, bool(mean_shift)
         f64 = dict(dtype=torch.float64)
@@ -120,7 +121,7 @@ class SkewedTPoisson(GaussianStateSpaceModel):
         bad = (observations < 0) | (observations != observations.round())
         if bool(bad.any()):
             b, t, c = [int(v) for v in torch.nonzero(bad)[0]]
-            raise ValueError(f"observations: expected Poisson counts (non-negative integers), got "
+            raise ArgumentError(f"observations: expected Poisson counts (non-negative integers), got "
                              f"{float(observations[b, t, c])!r} at trial {b}, step {t}, cell {c}")
         return observations
 
@@ -141,12 +142,12 @@ class SkewedTPoisson(GaussianStateSpaceModel):
 
     def measurement_cov(self, x=None):
         if x is None:
-            raise ValueError("SkewedTPoisson.measurement_cov: R depends on the state (Poisson variance); pass x")
+            raise ArgumentError("SkewedTPoisson.measurement_cov: R depends on the state (Poisson variance); pass x")
         return torch.diag_embed(self.measure(x))
 
     def measurement_scale_tril(self, x=None):
         if x is None:
-            raise ValueError("SkewedTPoisson.measurement_scale_tril: R depends on the state; pass x")
+            raise ArgumentError("SkewedTPoisson.measurement_scale_tril: R depends on the state; pass x")
         return torch.diag_embed(self.measure(x).sqrt())
 
     def measurement_jacobian(self, x):

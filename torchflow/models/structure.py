@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from typing import Optional, Tuple
+from ..errors import ArgumentError
 
 #: the declared structures of the measurement noise R
 NOISE = ("scalar", "diagonal", "dense", "state_dependent", "state_dependent_diagonal")
@@ -77,7 +78,7 @@ class Structure:
 
     def __post_init__(self):
         if self.measurement_noise not in NOISE:
-            raise ValueError(f"Structure: measurement_noise: expected one of {NOISE}, got {self.measurement_noise!r}")
+            raise ArgumentError(f"Structure: measurement_noise: expected one of {NOISE}, got {self.measurement_noise!r}")
         if self.measurement_support is not None:
             object.__setattr__(self, "measurement_support", tuple(int(i) for i in self.measurement_support))
 

@@ -24,12 +24,13 @@ import torch
 from .base import GaussianStateSpaceModel, Trajectory
 from .contract import check_simulate_args
 from .structure import Structure
+from ..errors import ArgumentError
 
 
 def check_number(name: str, v, ok, what: str) -> float:
     """``float(v)`` if ``v`` is a real number (not a bool) with ``ok(v)``, else a ``ValueError``."""
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not ok(v):
-        raise ValueError(f"{name}: expected {what}, got {v!r}")
+        raise ArgumentError(f"{name}: expected {what}, got {v!r}")
     return float(v)
 
 
@@ -89,18 +90,18 @@ class TDOA3D(GaussianStateSpaceModel):
         super().__init__()
         rec = face_receivers(region) if receivers is None else torch.as_tensor(receivers, dtype=torch.float64)
         if rec.dim() != 2 or rec.shape[-1] != 3 or rec.shape[0] < 2:
-            raise ValueError(f"receivers: expected (V, 3) positions with V >= 2, got {tuple(rec.shape)}")
+            raise ArgumentError(f"receivers: expected (V, 3) positions with V >= 2, got {tuple(rec.shape)}")
         gap = torch.cdist(rec, rec) + torch.eye(len(rec), dtype=rec.dtype) * 1e300
         if bool((gap <= 0).any()):
             i, j = [int(v) for v in torch.nonzero(gap <= 0)[0]]
-            raise ValueError(f"receivers: receivers {i} and {j} coincide at {rec[i].tolist()}; a pair needs two "
+            raise ArgumentError(f"receivers: receivers {i} and {j} coincide at {rec[i].tolist()}; a pair needs two "
                              "distinct positions")
         pairs = plus_minus_pairs() if pairs is None else [tuple(int(v) for v in p) for p in pairs]
         if not pairs:
-            raise ValueError("pairs: expected at least one receiver pair (a, b), got none")
+            raise ArgumentError("pairs: expected at least one receiver pair (a, b), got none")
         for p in pairs:
             if len(p) != 2 or p[0] == p[1] or not all(0 <= v < len(rec) for v in p):
-                raise ValueError(f"pairs: expected pairs (a, b) of distinct receiver indices in [0, {len(rec)}), "
+                raise ArgumentError(f"pairs: expected pairs (a, b) of distinct receiver indices in [0, {len(rec)}), "
                                  f"got {p}")
         self.speed, self.sigma_v, self.region = (check_number(k, v, lambda v: v > 0, "a positive number") for k, v
                                                  in (("speed", speed), ("sigma_v", sigma_v), ("region", region)))
@@ -171,17 +172,17 @@ class TDOA3D(GaussianStateSpaceModel):
         """Raise a clear error unless ``z (B, S, M)`` and ``mask`` (bool, same shape) fit this model."""
         if not isinstance(z, torch.Tensor) or z.dim() != 3 or z.shape[1] != self.n_sensors:
             got = tuple(z.shape) if isinstance(z, torch.Tensor) else type(z).__name__
-            raise ValueError(f"z: expected (B, S, M) measurements with S = {self.n_sensors} sensors, got {got}")
+            raise ArgumentError(f"z: expected (B, S, M) measurements with S = {self.n_sensors} sensors, got {got}")
         if not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool or mask.shape != z.shape:
             got = f"{tuple(mask.shape)} of {mask.dtype}" if isinstance(mask, torch.Tensor) else type(mask).__name__
-            raise ValueError(f"mask: expected a bool tensor shaped like z {tuple(z.shape)}, got {got}")
+            raise ArgumentError(f"mask: expected a bool tensor shaped like z {tuple(z.shape)}, got {got}")
 
     def simulate(self, batch_size: int, steps: Optional[int] = None, generator: Optional[torch.Generator] = None
                  ) -> TDOAData:
         """``batch_size`` scenes drawn together (a scene depends on ``batch_size``), each sensor's
         measurements in random order, padded to the largest count. ``steps``: ``None`` or :attr:`n_steps`."""
         if steps is not None and steps != self.n_steps:
-            raise ValueError(f"steps: TDOA3D has one step per sensor; expected None or {self.n_steps}, got {steps!r}")
+            raise ArgumentError(f"steps: TDOA3D has one step per sensor; expected None or {self.n_steps}, got {steps!r}")
         B, _ = check_simulate_args(self, batch_size, self.n_steps, generator)
         n, S = self.n_sources, self.n_sensors
         dt, dev = self.receivers.dtype, self.receivers.device

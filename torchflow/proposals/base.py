@@ -19,6 +19,7 @@ from ..covariances import Covariance
 from ..models.base import StateSpaceModel
 from ..models.contract import require_gaussian
 from ..models.structure import bytes_per_point
+from ..errors import ArgumentTypeError
 
 
 @dataclass
@@ -76,7 +77,7 @@ class Proposal(nn.Module):
     def __init__(self, model: StateSpaceModel):
         super().__init__()
         if not isinstance(model, StateSpaceModel):
-            raise TypeError(f"model: expected a torchflow StateSpaceModel, got {type(model).__name__}")
+            raise ArgumentTypeError(f"model: expected a torchflow StateSpaceModel, got {type(model).__name__}")
         if self.gaussian_form:
             require_gaussian(model, type(self).__name__)
         self.model = model

@@ -23,6 +23,7 @@ from ..trackers import tracker
 from .._blocks import blockwise
 from ..models.structure import bytes_per_point
 from .base import Proposal, Proposed
+from ..errors import ArgumentError, ArgumentTypeError
 
 #: flows by config name (:data:`torchflow.registry.REGISTRY`)
 FLOWS = registry.table("flow")
@@ -35,10 +36,10 @@ def resolve_flow(flow, default=LEDHFlow) -> ParticleFlow:
         return default()
     if isinstance(flow, str):
         if flow not in FLOWS:
-            raise ValueError(f"flow: expected a ParticleFlow or one of {sorted(FLOWS)}, got {flow!r}")
+            raise ArgumentError(f"flow: expected a ParticleFlow or one of {sorted(FLOWS)}, got {flow!r}")
         return FLOWS[flow]()
     if not isinstance(flow, ParticleFlow):
-        raise TypeError(f"flow: expected a torchflow ParticleFlow, got {type(flow).__name__}")
+        raise ArgumentTypeError(f"flow: expected a torchflow ParticleFlow, got {type(flow).__name__}")
     return flow
 
 
@@ -76,7 +77,7 @@ class FlowProposal(Proposal):
         self.tracker = tracker(model, covariance)
         ClusteredPoints(n_clusters, alpha, sweeps)  # the knobs are checked whatever the points
         if not isinstance(jacobian_in_weight, bool):
-            raise TypeError(f"jacobian_in_weight: expected a bool, got {type(jacobian_in_weight).__name__}")
+            raise ArgumentTypeError(f"jacobian_in_weight: expected a bool, got {type(jacobian_in_weight).__name__}")
         #: the linearisation-point strategy (:mod:`torchflow.flows.points`)
         self.points = resolve_points(self.flow, points, n_clusters=n_clusters, alpha=alpha, sweeps=sweeps)
         self.jacobian_in_weight = jacobian_in_weight

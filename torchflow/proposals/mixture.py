@@ -12,6 +12,7 @@ from .. import linalg
 from ..flows import FlowPrior, ParticleFlow, flow_gaussian
 from ..flows.integrate import EVALUATE_AT
 from ..schedules import LambdaSchedule, resolve_schedule
+from ..errors import ArgumentError, ArgumentTypeError
 
 
 RATIOS = ("mixture", "component")
@@ -48,11 +49,11 @@ class FlowedMixtureProposal(nn.Module):
                  evaluate_at: str = "end"):
         super().__init__()
         if not isinstance(flow, ParticleFlow):
-            raise TypeError(f"flow: expected a torchflow ParticleFlow, got {type(flow).__name__}")
+            raise ArgumentTypeError(f"flow: expected a torchflow ParticleFlow, got {type(flow).__name__}")
         if ratio not in RATIOS:
-            raise ValueError(f"ratio: expected one of {RATIOS}, got {ratio!r}")
+            raise ArgumentError(f"ratio: expected one of {RATIOS}, got {ratio!r}")
         if evaluate_at not in EVALUATE_AT:
-            raise ValueError(f"evaluate_at: expected one of {EVALUATE_AT}, got {evaluate_at!r}")
+            raise ArgumentError(f"evaluate_at: expected one of {EVALUATE_AT}, got {evaluate_at!r}")
         self.flow, self.schedule, self.ratio, self.evaluate_at = flow, resolve_schedule(schedule), ratio, evaluate_at
 
     def flowed(self, means: torch.Tensor, scale_trils: torch.Tensor, measurement):

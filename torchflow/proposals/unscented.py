@@ -31,6 +31,7 @@ from ..covariances import ParticleCovariance
 from ..trackers import tracker
 from ..models.structure import bytes_per_point
 from .base import Proposal, Proposed
+from ..errors import ArgumentError
 
 
 class UnscentedProposal(Proposal):
@@ -51,7 +52,7 @@ class UnscentedProposal(Proposal):
                  kappa: Optional[float] = None, prior: str = "posterior"):
         super().__init__(model)
         if prior not in ("posterior", "transition"):
-            raise ValueError(f"prior: expected 'posterior' or 'transition', got {prior!r}")
+            raise ArgumentError(f"prior: expected 'posterior' or 'transition', got {prior!r}")
         sigma = dict(alpha=alpha, beta=beta, kappa=kappa) if covariance == "ukf" else {}
         self.covariance, self.prior = covariance, prior
         self.tracker = tracker(model, covariance, **sigma)

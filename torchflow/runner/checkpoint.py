@@ -21,6 +21,7 @@ from typing import Callable, List, Mapping, Optional, Tuple, Union
 import torch
 
 from .writers import write_text
+from ..errors import ArgumentError
 
 #: tensors of one chunk, CPU (floats as float64), those the filter's result has: ``estimates (B, T, ...)``
 #: always; ``estimate_mask`` (sets of estimates) and ``underflow`` from the localisers
@@ -66,7 +67,7 @@ class ChunkStore:
     def __init__(self, root: Union[str, Path], keys: Optional[Mapping[str, str]] = None, *, resume: bool = False,
                  settings: Optional[Mapping[str, dict]] = None):
         if not isinstance(resume, bool):
-            raise ValueError(f"resume: expected True or False, got {resume!r}")
+            raise ArgumentError(f"resume: expected True or False, got {resume!r}")
         self.root, self.keys, self.resume, self.settings = Path(root), dict(keys or {}), resume, dict(settings or {})
         self.loaded, self.computed, self.reused_trials = Counter(), Counter(), Counter()  # per filter
         self.save_error: Optional[str] = None

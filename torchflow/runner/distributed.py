@@ -10,6 +10,7 @@ from typing import Any, List, Optional
 
 import torch
 import torch.distributed as dist
+from ..errors import ArgumentError
 
 
 @dataclass
@@ -24,9 +25,9 @@ class Shard:
         for name in ("rank", "world", "local_rank"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < (1 if name == "world" else 0):
-                raise ValueError(f"{name}: expected an int >= {1 if name == 'world' else 0}, got {v!r}")
+                raise ArgumentError(f"{name}: expected an int >= {1 if name == 'world' else 0}, got {v!r}")
         if self.rank >= self.world:
-            raise ValueError(f"rank: expected < world = {self.world}, got {self.rank}")
+            raise ArgumentError(f"rank: expected < world = {self.world}, got {self.rank}")
 
     @property
     def is_main(self) -> bool:
@@ -75,7 +76,7 @@ class Shard:
         run; an explicit ``cuda:<i>`` there is refused (every rank would share GPU i)."""
         if self.world > 1 and str(device).startswith("cuda"):
             if str(device) != "cuda":
-                raise ValueError(f"device: expected 'cuda' under torchrun (rank r uses cuda:LOCAL_RANK), got {device!r}")
+                raise ArgumentError(f"device: expected 'cuda' under torchrun (rank r uses cuda:LOCAL_RANK), got {device!r}")
             return f"cuda:{self.local_rank}"
         return str(device)
 

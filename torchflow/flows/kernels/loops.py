@@ -11,6 +11,7 @@ import torch
 from ... import linalg
 from ..base import FlowOutput, _gather_points
 from . import select, steps
+from ...errors import ArgumentError
 
 
 def run_flow(kernel: str, flow, measurement, particles: torch.Tensor, prior, index, eps_all, lam_all, generator,
@@ -53,7 +54,7 @@ def run_flow(kernel: str, flow, measurement, particles: torch.Tensor, prior, ind
                 lin = measurement.at(aux, prior.support)
                 eta, aux = step(j, eta, aux, log_det, lin.W, lin.y)
     else:
-        raise ValueError(f"kernel: expected one of {select.FLOW_KERNELS}, got {kernel!r}")
+        raise ArgumentError(f"kernel: expected one of {select.FLOW_KERNELS}, got {kernel!r}")
     log_det = log_det.expand(B, N) if index is None else _gather_points(log_det.unsqueeze(-1), index).squeeze(-1)
     return FlowOutput(eta, log_det, aux)
 
