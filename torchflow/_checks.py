@@ -6,6 +6,7 @@ with a message naming the argument, what was expected and what arrived, in the s
 """
 from __future__ import annotations
 
+import math
 import numbers
 from typing import Optional, Sequence, Union
 
@@ -115,6 +116,30 @@ def check_choice(name: str, value, choices):
     if value not in choices:
         raise ArgumentError(f"{name}: expected one of {tuple(choices)}, got {value!r}")
     return value
+
+
+def check_number(name: str, v, ok=None, what: str = "a finite number", *, integer: bool = False) -> float:
+    """``float(v)`` (``int(v)`` if ``integer``) if ``v`` is a finite real number (not a bool) with
+    ``ok(v)``; else an :class:`ArgumentError` naming ``name``, ``what`` was expected and ``v``.
+
+    NaN and infinities are refused whatever ``ok`` says (``nan <= 0`` is False, so a bare
+    comparison lets NaN through)."""
+    real = isinstance(v, numbers.Real) and not isinstance(v, bool)
+    if integer:
+        real = real and float(v) == int(v)
+    if not real or not math.isfinite(float(v)) or (ok is not None and not ok(v)):
+        raise ArgumentError(f"{name}: expected {what}, got {v!r}")
+    return int(v) if integer else float(v)
+
+
+def check_positive(name: str, v) -> float:
+    """A finite number > 0 (see :func:`check_number`)."""
+    return check_number(name, v, lambda x: x > 0, "a finite number > 0")
+
+
+def check_nonnegative(name: str, v) -> float:
+    """A finite number >= 0 (see :func:`check_number`)."""
+    return check_number(name, v, lambda x: x >= 0, "a finite number >= 0")
 
 
 def shape_str(shape) -> str:

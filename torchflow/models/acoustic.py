@@ -12,7 +12,7 @@ import torch
 
 from .. import constraints, linalg
 from ..linalg import block_diagonal
-from .._checks import check_choice
+from .._checks import check_choice, check_number, check_positive
 from .base import GaussianStateSpaceModel, Trajectory
 from .contract import check_simulate_args
 from .structure import Structure
@@ -61,8 +61,14 @@ class AcousticTracking(GaussianStateSpaceModel):
                  prior_std: Sequence[float] = (10.0, 10.0, 1.0, 1.0), initial_state: Optional[Sequence[float]] = None,
                  margin: float = 0.05, max_redraws: int = 10000, learnable=False):
         super().__init__()
-        if sigma_w <= 0:
-            raise ArgumentError(f"sigma_w: expected > 0, got {sigma_w}")
+        for name, value in (("sigma_w", sigma_w), ("psi", psi), ("d0", d0), ("true_noise_scale", true_noise_scale),
+                            ("area", area)):
+            check_positive(name, value)
+        sensor_grid = check_number("sensor_grid", sensor_grid, lambda v: v >= 1, "an integer >= 1", integer=True)
+        check_number("margin", margin, lambda v: 0 <= v < 0.5, "a fraction of the area in [0, 0.5)")
+        check_number("max_redraws", max_redraws, lambda v: v >= 1, "an integer >= 1", integer=True)
+        for i, s in enumerate(prior_std):
+            check_positive(f"prior_std[{i}]", s)
         if filter_noise is True or filter_noise == "true":
             filter_noise = "truth"
         check_choice("filter_noise", filter_noise, ("inflated", "truth"))

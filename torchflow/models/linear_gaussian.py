@@ -9,7 +9,7 @@ from torch import nn
 
 from .. import constraints, linalg
 from ..linalg import _LOG_2PI
-from .._checks import check_choice, check_psd, check_tensor
+from .._checks import check_choice, check_nonnegative, check_number, check_positive, check_psd, check_tensor
 from .base import GaussianStateSpaceModel
 from .structure import Structure
 from ..errors import ArgumentError
@@ -213,11 +213,14 @@ class SensorNetwork(LinearGaussian):
 
     def __init__(self, *, d: int = 64, alpha: float = 0.9, alpha0: float = 3.0, alpha1: float = 0.01,
                  beta: float = 20.0, sigma_z: float = 0.5, prior_var: float = 0.0, learnable: bool = False):
+        d = check_number("d", d, lambda v: v >= 1 and round(math.sqrt(v)) ** 2 == v,
+                         "a perfect square >= 1 (grid side^2: 1, 4, 9, ..., 64)", integer=True)
         g = int(round(math.sqrt(d)))
-        if g * g != d:
-            raise ArgumentError(f"d: expected a perfect square (grid side^2), got {d}")
-        if sigma_z <= 0:
-            raise ArgumentError(f"sigma_z: expected > 0, got {sigma_z}")
+        check_number("alpha", alpha)
+        check_nonnegative("alpha0", alpha0)
+        for name, value in (("alpha1", alpha1), ("beta", beta), ("sigma_z", sigma_z)):
+            check_positive(name, value)
+        check_nonnegative("prior_var", prior_var)
         eye = torch.eye(d, dtype=torch.float64)
         super().__init__(F=alpha * eye, Q=sensor_network_covariance(g, alpha0, alpha1, beta), H=eye,
                          R=sigma_z**2 * eye, m0=torch.zeros(d, dtype=torch.float64), P0=prior_var * eye,

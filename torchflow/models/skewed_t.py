@@ -29,6 +29,7 @@ import math
 import torch
 
 from .. import linalg
+from .._checks import check_nonnegative, check_number, check_positive
 from ..special import log_bessel_k
 from .base import GaussianStateSpaceModel
 from .structure import Structure
@@ -67,8 +68,11 @@ class SkewedTPoisson(GaussianStateSpaceModel):
         if isinstance(nu, bool) or not isinstance(nu, int) or nu <= 4:
             raise ArgumentError(f"nu: expected an integer > 4 (Var[W] must exist; 1/W is drawn as chi2_nu / nu), "
                              f"got {nu!r}")
-        if m1 <= 0:
-            raise ArgumentError(f"m1: expected > 0, got {m1}")
+        for name, value in (("alpha", alpha), ("gamma", gamma), ("m2", m2)):
+            check_number(name, value)
+        check_nonnegative("alpha0", alpha0)
+        for name, value in (("alpha1", alpha1), ("beta", beta), ("m1", m1)):
+            check_positive(name, value)
         self.state_dim = self.obs_dim = d
         self.nu, self.mean_shift = nu, bool(mean_shift)
         f64 = dict(dtype=torch.float64)

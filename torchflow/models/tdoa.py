@@ -24,14 +24,8 @@ import torch
 from .base import GaussianStateSpaceModel, Trajectory
 from .contract import check_simulate_args
 from .structure import Structure
+from .._checks import check_number
 from ..errors import ArgumentError
-
-
-def check_number(name: str, v, ok, what: str) -> float:
-    """``float(v)`` if ``v`` is a real number (not a bool) with ``ok(v)``, else a ``ValueError``."""
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not ok(v):
-        raise ArgumentError(f"{name}: expected {what}, got {v!r}")
-    return float(v)
 
 
 def face_receivers(half_width: float = 1000.0) -> torch.Tensor:
