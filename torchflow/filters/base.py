@@ -15,16 +15,17 @@ from torch import nn
 from .. import linalg
 from .. import random as _random
 from .. import resampling as _resampling
-from .._checks import NonFiniteError, check_count, check_finite, check_psd, check_same, check_tensor
+from .._checks import check_count, check_finite, check_psd, check_same, check_tensor
 from .._blocks import blockwise
 from ..covariances import Covariance
 from ..models.base import StateSpaceModel
-from ..models.contract import check_covariances, check_dtype, check_shapes, require_gaussian
+from ..models.contract import check_covariances, check_parameters, check_dtype, check_shapes, require_gaussian
 from ..models.structure import kernel_structure
 from ..proposals import BootstrapProposal, Proposal
 from ..random import check_generator
 from ..flows.kernels import graph_step
 from ..errors import ArgumentError, ArgumentTypeError
+from . import guards
 
 
 @dataclass
@@ -146,6 +147,10 @@ class Filter(nn.Module):
     estimates_evidence = True
     #: default of ``forward(checkpoint_steps=...)``: recompute each time step in the backward pass
     checkpoint_steps = False
+    #: under autograd, check the gradient flowing back into every step and the model parameters'
+    #: gradients, raising :class:`~torchflow.errors.NonFiniteError` naming the step, trials or
+    #: parameter (:mod:`torchflow.filters.guards`; one host read per step of the backward pass)
+    check_gradients = True
     #: the filter reads the model's Gaussian form (:class:`~torchflow.models.GaussianStateSpaceModel`);
     #: a particle filter leaves this to its proposal
     gaussian_form = True
@@ -210,6 +215,7 @@ class Filter(nn.Module):
         constant transition and measurement covariances are symmetric positive semi-definite
         (:func:`~torchflow.models.contract.check_covariances`; a learnable one may have left
         the cone after an optimiser step)."""
+        check_parameters(self.model, self.name)
         check_covariances(self.model, self.name)
 
     def check_prior(self, mean: torch.Tensor, cov: torch.Tensor, batch_size: Optional[int] = None
@@ -279,15 +285,19 @@ class Filter(nn.Module):
                           "(particle_chunk=...); the runner sizes its calls from memory_budget_gb (and chunk_size)"
                           ) from err
 
-    def _raise_nonfinite(self, first_bad: torch.Tensor, first_invalid: torch.Tensor) -> None:
-        """Raise :class:`NonFiniteError` naming the earliest step at which any trial went
-        non-finite and the trials that did then (one host read); return if none did."""
-        if not bool((first_bad > 0).any()):
+    def _check_trace(self, trace: "_Trace", *, warn: bool) -> None:
+        """The non-finite contract after the steps so far (:mod:`.guards`): raise
+        :class:`NonFiniteError` for the earliest non-finite estimate, flagged particles/weights or
+        log-evidence increment; with ``warn``, warn of steps that carried no measurement. One host
+        read."""
+        if not trace.est:
             return
-        step = int(first_bad[first_bad > 0].min())
-        at = first_bad == step
-        what = "particles or weights" if bool((first_invalid & at).any()) else "estimate"
-        raise NonFiniteError(self.name, step, torch.nonzero(at).flatten().tolist(), what=what)
+        table = guards.table_to_host(guards.first_steps(trace.estimates(), trace.invalid_steps(), trace.increments(),
+                                                        getattr(self, "nonfinite", None) == "recover"))
+        guards.raise_first(self.name, table)
+        if warn:
+            guards.raise_never_measured(self.name, table, len(trace.est))
+            guards.warn_dead_steps(self.name, table)
 
     def forward(
         self,
@@ -342,17 +352,22 @@ class Filter(nn.Module):
         step = self._checkpointed_step if checkpoint_steps and torch.is_grad_enabled() else self.step
         if step == self.step and graph_step.eligible(self, state, generator):  # one launch per step (CUDA)
             step = functools.partial(graph_step.run_step, self, memo={})
+        grad_check = self.check_gradients and torch.is_grad_enabled()
+        if grad_check:  # a parameter's non-finite gradient is named (hooks of the last call removed)
+            guards.replace_parameter_hooks(self, self.model)
         for t in range(observations.shape[1]):
+            if grad_check:  # the gradient reaching step t + 1 is checked in the backward pass
+                state = guards.guard_state(state, self.name, t + 1)
             try:
                 state = step(state, observations[:, t], generator)
             except Exception as err:
-                self._raise_nonfinite(*trace.first())  # an earlier non-finite value is the cause
+                self._check_trace(trace, warn=False)  # an earlier non-finite value is the cause
                 self._raise_out_of_memory(err, observations.shape[0], n_particles)
                 raise
             trace.add(state, t)
             if progress is not None:
                 progress()
-        self._raise_nonfinite(*trace.first())  # the one host read of the check
+        self._check_trace(trace, warn=True)  # the one host read of the check
         return trace.result(state)
 
 
@@ -390,28 +405,16 @@ class _Trace:
             self._stacked = (len(self.est), torch.stack(self.est, 1))
         return self._stacked[1]
 
-    def first(self):
-        """``(first_bad (B,), first_invalid (B,))``: the first step (1-based) whose estimate is
-        non-finite or whose particles or weights were flagged invalid (0 where none was), and
-        whether that step was flagged invalid; from the steps so far, in a few ops (not per step)."""
-        est = self.estimates()
-        if est is None:
-            zero = torch.zeros(self.B, dtype=torch.long, device=self.device)
-            return zero, zero.bool()
-        bad = ~torch.isfinite(est).all(-1)  # (B, T)
+    def invalid_steps(self) -> Optional[torch.Tensor]:
+        """``(B, T)`` steps flagged invalid (``nonfinite="raise"``), ``None`` if no step flags."""
         flagged = [i for i in self.invalid if i is not None]
-        inv = None
-        if flagged:
-            inv = torch.stack([torch.zeros_like(flagged[0]) if i is None else i for i in self.invalid], 1)
-            bad = bad | inv
-        T = bad.shape[1]
-        steps = torch.arange(1, T + 1, device=bad.device)
-        first = torch.where(bad, steps, T + 1).amin(1)  # (B,)
-        first_bad = first.masked_fill(first > T, 0)
-        if inv is None:
-            return first_bad, torch.zeros_like(first_bad, dtype=torch.bool)
-        at = inv.gather(1, (first - 1).clamp(max=T - 1).unsqueeze(1)).squeeze(1)
-        return first_bad, at & (first_bad > 0)
+        if not flagged:
+            return None
+        return torch.stack([torch.zeros_like(flagged[0]) if i is None else i for i in self.invalid], 1)
+
+    def increments(self) -> torch.Tensor:
+        """``(B, T)`` log-evidence increments so far."""
+        return torch.stack(self.inc, 1)
 
     def result(self, state) -> FilterResult:
         def stack(xs):
@@ -555,6 +558,7 @@ class ParticleFilter(Filter):
         on the model's constant covariance (``transition_cov()``); a state-dependent one is left to
         the steps' non-finite handling."""
         super().check_model()
+        self._check_measurement_density()
         if not getattr(self.proposal, "uses_transition_density", True) or not self.model.structure.gaussian_transition:
             return
         try:
@@ -570,6 +574,32 @@ class ParticleFilter(Filter):
                 f"{ev:.3g}); this filter weighs particles by the transition density p(x_k | x_(k-1)), which a "
                 "singular covariance does not have. Give the model a positive definite transition noise, or use a "
                 "filter that does not need the density: the bootstrap PF, the unweighted flow filter or a Kalman filter")
+
+    def _check_measurement_density(self) -> None:
+        """Every particle filter weighs by the measurement density ``p(z | x)``: a Gaussian-form
+        model's constant measurement covariance must be positive definite (with a singular one every
+        weight is zero or invalid at every step). A model that declares a state-dependent covariance
+        is left to the steps' non-finite handling."""
+        from ..models.base import GaussianStateSpaceModel
+
+        model = self.model
+        if not isinstance(model, GaussianStateSpaceModel) or model.structure.measurement_noise not in (
+                "scalar", "diagonal", "dense"):  # declared constant
+            return
+        try:
+            R = model.measurement_cov()
+        except (NotImplementedError, TypeError, RuntimeError, ValueError):
+            return
+        if not isinstance(R, torch.Tensor) or R.dim() != 2:
+            return
+        if bool((torch.linalg.cholesky_ex(R.detach())[1] > 0).any()):
+            ev = torch.linalg.eigvalsh(linalg.symmetrize(R.detach())).min().item()
+            raise ArgumentError(
+                f"{self.name}: the model's measurement covariance is not positive definite (smallest eigenvalue "
+                f"{ev:.3g}); particle filters weigh particles by the measurement density p(z | x), which a singular "
+                "covariance does not have, so no weight would carry the measurement. Give the model a positive "
+                "definite measurement noise, or use a Kalman filter (which handles a singular R when H P H^T is "
+                "positive definite)")
 
     def init(self, mean, cov, n_particles=None, generator=None) -> "ParticleState":
         """N particles per trial from the prior ``N(mean (B, d), cov (B, d, d))``, uniform weights and

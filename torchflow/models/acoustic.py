@@ -64,6 +64,10 @@ class AcousticTracking(GaussianStateSpaceModel):
         for name, value in (("sigma_w", sigma_w), ("psi", psi), ("d0", d0), ("true_noise_scale", true_noise_scale),
                             ("area", area)):
             check_positive(name, value)
+        if float(sigma_w) ** 2 < torch.finfo(torch.float64).tiny:
+            raise ArgumentError(f"sigma_w: expected a noise scale whose square is a normal float64 (> "
+                                f"{torch.finfo(torch.float64).tiny ** 0.5:.3g}), got {sigma_w!r} (the measurement "
+                                "covariance sigma_w^2 I would underflow to a singular matrix)")
         sensor_grid = check_number("sensor_grid", sensor_grid, lambda v: v >= 1, "an integer >= 1", integer=True)
         check_number("margin", margin, lambda v: 0 <= v < 0.5, "a fraction of the area in [0, 0.5)")
         check_number("max_redraws", max_redraws, lambda v: v >= 1, "an integer >= 1", integer=True)

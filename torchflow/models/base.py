@@ -152,17 +152,25 @@ class StateSpaceModel(nn.Module):
         Returns:
             :class:`Trajectory` with states ``(B, T+1, d)`` and observations ``(B, T, m)``.
         """
-        from .contract import check_simulate_args
+        from .contract import check_shapes, check_simulate_args, check_simulated
 
         batch_size, steps = check_simulate_args(self, batch_size, steps, generator)
         with torch.no_grad():
             x = self.initial_state(batch_size, generator)
+            who = f"{type(self).__name__}.simulate"
+            if not isinstance(x, torch.Tensor) or tuple(x.shape) != (batch_size, self.state_dim):
+                got = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
+                raise ArgumentError(f"{who}: initial_state returned {got}; expected (B, d) = "
+                                    f"({batch_size}, {self.state_dim})")
+            check_shapes(self, x, who)  # every method's output shape, once per model and layout
             states, obs = [x], []
             for _ in range(steps):
                 x = self._simulation_transition(x, generator)
                 states.append(x)
                 obs.append(self.sample_measurement(x, generator))
-            return Trajectory(torch.stack(states, 1), torch.stack(obs, 1))
+            traj = Trajectory(torch.stack(states, 1), torch.stack(obs, 1))
+        check_simulated(who, traj)
+        return traj
 
     def _simulation_transition(self, x: torch.Tensor, generator) -> torch.Tensor:
         """One step of :meth:`simulate`'s process (the filters' transition, unless a model's

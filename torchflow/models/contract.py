@@ -18,7 +18,7 @@ import torch
 
 from .._checks import check_count, check_psd
 from ..random import generator_hint
-from ..errors import ArgumentError, ArgumentTypeError
+from ..errors import ArgumentError, ArgumentTypeError, NonFiniteError
 
 #: the Gaussian form's methods a filter reads (beyond the core)
 GAUSSIAN_FORM = ("transition_mean", "transition_cov", "measure", "measurement_cov")
@@ -57,6 +57,49 @@ def check_simulate_args(model, batch_size, steps, generator) -> Tuple[int, int]:
                         f"{generator_hint(generator)}")
     check_dtype(model, who)
     return batch_size, steps
+
+
+def check_simulated(who: str, traj) -> None:
+    """Raise unless a simulated trajectory's states and observations are finite, naming the first
+    (trial, step) and the count (one host read per simulation): non-finite simulated data come from
+    the model (a parameter or a method returning NaN/inf), not from the observations' user."""
+    for what, x in (("states", traj.states), ("observations", traj.observations)):
+        bad = ~torch.isfinite(x).all(-1)  # (B, T)
+        n = int(bad.sum())
+        if n:
+            b, t = (int(v) for v in torch.nonzero(bad)[0])
+            step = t if what == "states" else t + 1
+            raise NonFiniteError(who, step, sorted(set(torch.nonzero(bad)[:, 0].tolist())), what=(
+                f"simulated {what} ({n} (trial, step) pair(s), first trial {b}; the model's parameters or "
+                "methods give NaN/inf there)"))
+
+
+def check_parameters(model, who: str = "") -> None:
+    """Raise unless every learnable parameter of ``model`` is finite as the model uses it (a
+    constrained one, e.g. ``psi = exp(original)``, after its constraint), naming the parameter
+    and its value. One host read; filters call it once per call (an optimiser step may have
+    pushed a parameter to NaN or overflowed its constraint)."""
+    values = {}
+    parametrized = getattr(model, "parametrizations", None)
+    for name, p in model.named_parameters():
+        if not p.requires_grad:
+            continue
+        if name.startswith("parametrizations."):
+            label = name.split(".")[1]
+            if parametrized is not None and label in parametrized and "." not in label:
+                values[label] = getattr(model, label)
+            continue
+        values[name] = p
+    if not values:
+        return
+    with torch.no_grad():
+        flags = torch.stack([~torch.isfinite(v).all() for v in values.values()]).tolist()
+    for (name, v), bad in zip(values.items(), flags):
+        if bad:
+            shown = v.detach().flatten()[:4].tolist()
+            raise ArgumentError(f"{who + ': ' if who else ''}{type(model).__name__}'s learnable parameter {name!r} is "
+                                f"not finite (values {shown}{' ...' if v.numel() > 4 else ''}); an optimiser step "
+                                "diverged (lower the learning rate) or it was set so")
 
 
 def check_covariances(model, who: str = "") -> None:

@@ -12,6 +12,7 @@ from .. import metrics
 from ..filters.base import Filter
 from ..filters.kalman import KalmanFilter
 from ..models.base import StateSpaceModel, Trajectory
+from ..errors import ArgumentError
 from .plan import RunPlan, filter_chunk
 
 #: the first columns of the summary table
@@ -166,7 +167,7 @@ def _values(ctx: metrics.MetricContext, name: str) -> Dict[str, tuple]:
             out[m.name] = (v.double(), how, how == "last" and not v.is_floating_point())
         return out
     except (RuntimeError, ValueError) as err:  # the metrics' own errors: add the filter's name
-        if type(err) not in (RuntimeError, ValueError):
+        if type(err) not in (RuntimeError, ValueError, ArgumentError):
             raise
         raise type(err)(f"filter {name}: {err}") from err
 
