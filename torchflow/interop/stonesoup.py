@@ -42,6 +42,16 @@ Any other measurement model goes through its vectorised ``function`` with a fini
 Jacobian (one batched call for all particles and directions; slower, and not on a GPU); any other
 transition model gives the unweighted update. Weights are in log space both ways; states,
 timestamps and the hypothesis are kept; float64 by default.
+
+**Missed detections, timestamps, bad input** (docs/guide/stonesoup.md): a missed detection returns
+the prediction carried forward (particles and weights unchanged, as a ``ParticleStateUpdate`` with
+the hypothesis, not resampled). The posterior carries the prediction's timestamp; a detection at
+another time is refused (predict to its time first), one without a timestamp is taken at the
+prediction's. Bad input (no particles, non-finite particles or detection, NaN/+inf or all -inf
+log-weights, a parent of another size, a prediction before its parent, a noise covariance that is
+not symmetric positive definite) raises :class:`~torchflow.errors.ArgumentError` naming it, before
+the flow runs; a non-finite result of the flow raises :class:`~torchflow.errors.NonFiniteError`.
+Whatever ``update`` returns is finite.
 """
 from __future__ import annotations
 
