@@ -109,6 +109,10 @@ def test_a_missed_detection_carries_the_prediction_forward(monkeypatch):
     assert isinstance(post, ParticleStateUpdate) and post.hypothesis is hyp and post.timestamp == pred.timestamp
     np.testing.assert_array_equal(np.asarray(post.state_vector), np.asarray(pred.state_vector))
     np.testing.assert_array_equal(post.log_weight, pred.log_weight)
+    # Stone Soup's other form of the null hypothesis: no detection at all
+    post = FlowParticleUpdater(RADAR).update(SingleHypothesis(pred, None))
+    assert post.timestamp == pred.timestamp
+    np.testing.assert_array_equal(np.asarray(post.state_vector), np.asarray(pred.state_vector))
 
 
 def test_a_detection_later_than_the_prediction_is_refused():
@@ -153,6 +157,8 @@ def test_a_non_finite_detection_is_refused_before_the_flow(monkeypatch):
     with pytest.raises(ArgumentError, match=r"detection.state_vector: expected finite values, got \[nan, 46.0\] \(NaN "
                                             r"or infinite at entries \[0\]\)"):
         _update(_prediction(), _det([[np.nan], [46.0]]))
+    with pytest.raises(ArgumentError, match=r"detection.state_vector: expected 2 values, got None"):
+        _update(_prediction(), Detection(None, timestamp=T0 + DT, measurement_model=RADAR))
 
 
 def test_a_detection_model_other_than_the_updaters_is_the_one_used():

@@ -314,7 +314,7 @@ class FlowParticleUpdater(Updater):
     def _timestamp(pred, det):
         """The posterior's timestamp: the prediction's (as Stone Soup's ``ParticleUpdater``), or the
         detection's where the prediction has none. A detection at another time is refused."""
-        tp, td = pred.timestamp, det.timestamp
+        tp, td = pred.timestamp, getattr(det, "timestamp", None)  # det None: a missed detection
         if tp is None or td is None or td == tp:
             return td if tp is None else tp
         parent = getattr(pred, "parent", None)
@@ -390,6 +390,8 @@ class FlowParticleUpdater(Updater):
             return Update.from_state(pred, hypothesis=hypothesis, timestamp=timestamp, target_type=ParticleStateUpdate)
         mm, mm_name = self._measurement_model(hypothesis)
         kw = dict(dtype=self._dtype, device=self.device)
+        if hypothesis.measurement.state_vector is None:
+            raise ArgumentError(f"detection.state_vector: expected {int(mm.ndim_meas)} values, got None")
         zv = np.asarray(hypothesis.measurement.state_vector, dtype=float).ravel()
         if zv.size != int(mm.ndim_meas):
             raise ArgumentError(f"FlowParticleUpdater: the detection has {zv.size} values, {type(mm).__name__} measures "
