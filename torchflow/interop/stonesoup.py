@@ -42,9 +42,20 @@ Any other measurement model goes through its vectorised ``function`` with a fini
 Jacobian (one batched call for all particles and directions; slower, and not on a GPU); any other
 transition model gives the unweighted update. Weights are in log space both ways; states,
 timestamps and the hypothesis are kept; float64 by default.
+
+**Missed detections, timestamps, bad input** (docs/guide/stonesoup.md): a missed detection returns
+the prediction carried forward (particles and weights unchanged, as a ``ParticleStateUpdate`` with
+the hypothesis, not resampled). The posterior carries the prediction's timestamp; a detection at
+another time is refused (predict to its time first), one without a timestamp is taken at the
+prediction's. Bad input (no particles, non-finite particles or detection, NaN/+inf or all -inf
+log-weights, a parent of another size, a prediction before its parent, a noise covariance that is
+not symmetric positive definite) raises :class:`~torchflow.errors.ArgumentError` naming it, before
+the flow runs; a non-finite result of the flow raises :class:`~torchflow.errors.NonFiniteError`.
+Whatever ``update`` returns is finite.
 """
 from __future__ import annotations
 
+import datetime
 import math
 import warnings
 
@@ -71,7 +82,7 @@ from ..models.base import GaussianStateSpaceModel
 from ..models.structure import Structure
 from ..proposals.flow import FLOWS, resolve_flow
 from ..schedules import LambdaSchedule, resolve_schedule
-from ..errors import ArgumentError, ArgumentTypeError
+from ..errors import ArgumentError, ArgumentTypeError, NonFiniteError
 
 __all__ = ["FlowParticleUpdater", "StoneSoupMeasurement", "SUPPORTED_MEASUREMENT_MODELS"]
 
@@ -85,31 +96,92 @@ def _wrap(a: torch.Tensor) -> torch.Tensor:
     return torch.remainder(a + math.pi, 2 * math.pi) - math.pi
 
 
+def _shown(idx) -> str:
+    """Up to ten indices, ``[3, 7]`` or ``[0, 1, ..., 9] (and 5 more)``."""
+    idx = [int(i) for i in idx]
+    return f"{idx[:10]}" + (f" (and {len(idx) - 10} more)" if len(idx) > 10 else "")
+
+
+def _noise_covariance(model, name: str) -> np.ndarray:
+    """The ``(m, m)`` noise covariance of a Stone Soup measurement model, refused unless it is
+    finite, symmetric and positive definite (the flows and the likelihood need ``R^-1``)."""
+    if not isinstance(model, MeasurementModel):
+        raise ArgumentTypeError(f"{name}: expected a Stone Soup MeasurementModel, got {type(model).__name__}")
+    try:
+        R = np.asarray(model.covar(), dtype=float)
+    except TypeError as err:
+        raise ArgumentTypeError(f"{name}: {type(model).__name__}.covar() needs arguments ({err}); supported: "
+                                "models with a constant noise covariance") from None
+    what = f"{name}.noise_covar" if hasattr(model, "noise_covar") else f"{name}.covar()"
+    m = int(model.ndim_meas)
+    if R.shape != (m, m):
+        raise ArgumentError(f"{what}: expected a {m} x {m} matrix (ndim_meas = {m}), got shape {R.shape}")
+    if not np.isfinite(R).all():
+        raise ArgumentError(f"{what}: expected a finite symmetric positive definite matrix, got "
+                            f"{int((~np.isfinite(R)).sum())} NaN or infinite entries")
+    asym = float(np.abs(R - R.T).max())
+    if asym > 1e-9 * max(float(np.abs(R).max()), np.finfo(float).tiny):
+        raise ArgumentError(f"{what}: expected a symmetric positive definite matrix, got an asymmetric one "
+                            f"(largest |R - R^T| = {asym:.3g})")
+    low = float(np.linalg.eigvalsh(R).min())
+    if not low > 0:
+        raise ArgumentError(f"{what}: expected a symmetric positive definite matrix, got smallest eigenvalue {low:.3g}")
+    return R
+
+
+def _particles(state, name: str, n=None):
+    """``(X (d, N), log_weight (N,))`` of a Stone Soup particle state, refused unless there is at
+    least one particle (``n`` of them where given), every particle is finite and the log-weights are
+    real or -inf (a zero weight) with at least one not -inf. Weights need not sum to one."""
+    X = np.asarray(state.state_vector, dtype=float)
+    N = X.shape[1]
+    if N == 0:
+        raise ArgumentError(f"{name}.state_vector: expected at least one particle, got none (shape {X.shape})")
+    if n is not None and N != n:
+        raise ArgumentError(f"{name}.state_vector: expected {n} particles (one per particle of the prediction), "
+                            f"got {N}")
+    bad = np.flatnonzero(~np.isfinite(X).all(0))
+    if bad.size:
+        raise ArgumentError(f"{name}.state_vector: expected finite particles, got {bad.size} of {N} with NaN or "
+                            f"infinite entries (particles {_shown(bad)})")
+    lw = getattr(state, "log_weight", None)
+    if lw is None:
+        raise ArgumentError(f"{name}.log_weight: expected {N} log-weights, got None")
+    lw = np.asarray(lw, dtype=float)
+    if lw.shape != (N,):
+        raise ArgumentError(f"{name}.log_weight: expected {N} log-weights (one per particle), got shape {lw.shape}")
+    for count, kind in ((np.isnan(lw).sum(), "NaN"), (np.isposinf(lw).sum(), "+inf")):
+        if count:
+            raise ArgumentError(f"{name}.log_weight: expected real log-weights (-inf for a zero weight), got {count} "
+                                f"{kind} of {N}")
+    if np.isneginf(lw).all():
+        raise ArgumentError(f"{name}.log_weight: expected at least one positive weight, got all {N} weights zero "
+                            "(every log-weight -inf)")
+    return X, lw
+
+
 class StoneSoupMeasurement(GaussianStateSpaceModel):
     """A Stone Soup measurement model (and the detection it is evaluated against) as the torchflow
     measurement term the flows linearise. Angle components of ``h`` are returned within pi of the
     detection's, so every residual ``z - h(x)`` is the wrapped one.
 
     Args:
-        model: a Stone Soup ``MeasurementModel`` (``ndim_state``, ``ndim_meas``, ``covar()``).
+        model: a Stone Soup ``MeasurementModel`` (``ndim_state``, ``ndim_meas``, ``covar()``, a
+            symmetric positive definite noise covariance).
         z: the detection's ``(m,)`` state vector.
         dtype, device: of the torch tensors.
+        name: the model's name in error messages.
     """
 
     structure = Structure(measurement_noise="dense")
 
-    def __init__(self, model: MeasurementModel, z: np.ndarray, dtype=torch.float64, device=None):
+    def __init__(self, model: MeasurementModel, z: np.ndarray, dtype=torch.float64, device=None,
+                 name: str = "measurement_model"):
         super().__init__()
-        if not isinstance(model, MeasurementModel):
-            raise ArgumentTypeError(f"measurement_model: expected a Stone Soup MeasurementModel, got {type(model).__name__}")
+        R = _noise_covariance(model, name)
         self.ss = model
         self.state_dim, self.obs_dim = int(model.ndim_state), int(model.ndim_meas)
         kw = dict(dtype=dtype, device=device)
-        try:
-            R = np.asarray(model.covar(), dtype=float)
-        except TypeError as err:
-            raise ArgumentTypeError(f"measurement_model: {type(model).__name__}.covar() needs arguments ({err}); supported: "
-                            "models with a constant noise covariance") from None
         self.register_buffer("R", torch.as_tensor(R, **kw))
         self.register_buffer("z", torch.as_tensor(np.asarray(z, dtype=float).ravel(), **kw))
         typed = model._typed_vector().ravel() if hasattr(model, "_typed_vector") else ()
@@ -212,6 +284,8 @@ class FlowParticleUpdater(Updater):
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
+        if self.measurement_model is not None:  # None: every detection carries its own
+            _noise_covariance(self.measurement_model, "measurement_model")
         self._flow = resolve_flow(self.flow)
         self._schedule = resolve_schedule(self.schedule)
         if self.flow_prior not in ("transition", "predicted"):
@@ -228,51 +302,115 @@ class FlowParticleUpdater(Updater):
     predict_measurement = ParticleUpdater.predict_measurement
 
     def _measurement_model(self, hypothesis):
-        mm = hypothesis.measurement.measurement_model or self.measurement_model
-        if mm is None:
+        """``(model, name)``: the detection's model if it carries one (Stone Soup's rule), else the updater's."""
+        if hypothesis.measurement.measurement_model is not None:
+            return hypothesis.measurement.measurement_model, "detection.measurement_model"
+        if self.measurement_model is None:
             raise ArgumentError("FlowParticleUpdater: no measurement model: give measurement_model= or detections that "
                              "carry one")
-        return mm
+        return self.measurement_model, "measurement_model"
 
     @staticmethod
-    def _transition(pred):
-        """``(F, Q, parent)`` of a linear-Gaussian prediction with its parent, else ``None``."""
+    def _timestamp(pred, det):
+        """The posterior's timestamp: the prediction's (as Stone Soup's ``ParticleUpdater``), or the
+        detection's where the prediction has none. A detection at another time is refused."""
+        tp, td = pred.timestamp, getattr(det, "timestamp", None)  # det None: a missed detection
+        if tp is None or td is None or td == tp:
+            return td if tp is None else tp
+        parent = getattr(pred, "parent", None)
+        tq = getattr(parent, "timestamp", None)
+        before = f", before the prediction's parent at {tq}" if tq is not None and td < tq else ""
+        raise ArgumentError(f"detection.timestamp: expected the prediction's timestamp {tp}, got {td} "
+                            f"({'after' if td > tp else 'before'} it by {abs(td - tp)}{before}); predict to the "
+                            "detection's time first: predictor.predict(prior, timestamp=detection.timestamp)")
+
+    @staticmethod
+    def _transition(pred, N):
+        """``(F, Q, X_parent, log_weight_parent)`` of a linear-Gaussian prediction with its parent,
+        else ``None``; a parent that does not fit the prediction is refused."""
         parent, tm = getattr(pred, "parent", None), getattr(pred, "transition_model", None)
         if parent is None or tm is None or not (isinstance(tm, LinearModel) and isinstance(tm, GaussianModel)):
             return None
-        try:
+        Xp, lwp = _particles(parent, "prediction.parent", n=N)
+        dt = None
+        if pred.timestamp is not None and parent.timestamp is not None:
             dt = pred.timestamp - parent.timestamp
-        except TypeError:
-            dt = None
-        return np.asarray(tm.matrix(time_interval=dt), float), np.asarray(tm.covar(time_interval=dt), float), parent
+            if dt < datetime.timedelta(0):
+                raise ArgumentError(f"prediction.timestamp: expected a time at or after its parent's {parent.timestamp}, "
+                                    f"got {pred.timestamp} (a negative interval: detections out of order? the "
+                                    "transition model cannot predict backwards)")
+        try:
+            F, Q = np.asarray(tm.matrix(time_interval=dt), float), np.asarray(tm.covar(time_interval=dt), float)
+        except (AttributeError, TypeError) as err:
+            raise ArgumentError(f"prediction.timestamp: {type(tm).__name__} needs the interval between the prediction "
+                                f"and its parent, got timestamps {pred.timestamp} and {parent.timestamp} ({err})") from None
+        scale = max(float(np.abs(Q).max(initial=0.0)), np.finfo(float).tiny)
+        if not (np.isfinite(F).all() and np.isfinite(Q).all()) or np.linalg.eigvalsh(Q).min() < -1e-9 * scale:
+            raise ArgumentError(f"prediction.transition_model: expected a finite matrix and a positive semi-definite "
+                                f"covariance over the interval {dt}, got covar() with smallest eigenvalue "
+                                f"{np.linalg.eigvalsh(np.nan_to_num(Q)).min():.3g}")
+        return F, Q, Xp, lwp
+
+    @staticmethod
+    def _singular_hint(model, X):
+        """Where a bearing-range model's singular point (the sensor: range 0) is near the particles or
+        the detection, a sentence that says so (else empty)."""
+        if model.kind not in ("polar", "spherical"):
+            return ""
+        idx, r = list(model.mapping), model.obs_dim - 1
+        off = model.offset[: len(idx)]
+        sd = float(model.R[r, r].sqrt())
+        near = int((torch.linalg.vector_norm(X[..., idx] - off, dim=-1) <= sd).sum())
+        if not near and float(model.z[r]) > sd:
+            return ""
+        return (f"; {type(model.ss).__name__} is singular at its sensor position {off.tolist()} (range 0: bearing and "
+                f"Jacobian undefined): the detection's range is {float(model.z[r]):.3g} and {near} of {X.shape[-2]} "
+                f"particles lie within one range-noise standard deviation ({sd:.3g}) of it")
 
     def update(self, hypothesis, **kwargs):
         """The particles of ``hypothesis.prediction`` moved by the flow towards
-        ``hypothesis.measurement``; a ``ParticleStateUpdate`` (resampled if a resampler is set)."""
+        ``hypothesis.measurement``; a ``ParticleStateUpdate`` (resampled if a resampler is set).
+
+        A missed detection (``MissedDetection``, a hypothesis that is false) returns the prediction
+        carried forward: its particles and weights as a ``ParticleStateUpdate`` with the hypothesis,
+        neither flowed nor resampled. Bad input (a detection at another time than the prediction,
+        non-finite values, no particles, invalid weights, a noise covariance that is not positive
+        definite) raises an ``ArgumentError`` that names it; a non-finite result of the flow raises
+        a ``NonFiniteError``. Whatever is returned is finite."""
+        if not (hasattr(hypothesis, "prediction") and hasattr(hypothesis, "measurement")):
+            raise ArgumentTypeError(f"hypothesis: expected a Stone Soup SingleHypothesis (a prediction and a detection), "
+                                    f"got {type(hypothesis).__name__}")
         pred = hypothesis.prediction
         if not hasattr(pred, "log_weight") or np.ndim(pred.state_vector) != 2:
             raise ArgumentTypeError(f"FlowParticleUpdater: expected a particle prediction (ParticleStatePrediction), got "
                             f"{type(pred).__name__}")
-        mm = self._measurement_model(hypothesis)
+        Xn, lw_prev = _particles(pred, "prediction")
+        timestamp = self._timestamp(pred, hypothesis.measurement)
+        if not hypothesis:  # a missed detection: the prediction carried forward
+            return Update.from_state(pred, hypothesis=hypothesis, timestamp=timestamp, target_type=ParticleStateUpdate)
+        mm, mm_name = self._measurement_model(hypothesis)
         kw = dict(dtype=self._dtype, device=self.device)
+        if hypothesis.measurement.state_vector is None:
+            raise ArgumentError(f"detection.state_vector: expected {int(mm.ndim_meas)} values, got None")
         zv = np.asarray(hypothesis.measurement.state_vector, dtype=float).ravel()
         if zv.size != int(mm.ndim_meas):
             raise ArgumentError(f"FlowParticleUpdater: the detection has {zv.size} values, {type(mm).__name__} measures "
                              f"ndim_meas = {int(mm.ndim_meas)}")
-        model = StoneSoupMeasurement(mm, zv, **kw)
-        X = torch.as_tensor(np.asarray(pred.state_vector, dtype=float).T, **kw).unsqueeze(0)  # (1, N, d)
-        lw_prev = np.asarray(pred.log_weight, dtype=float)
+        if not np.isfinite(zv).all():
+            raise ArgumentError(f"detection.state_vector: expected finite values, got {zv.tolist()} (NaN or infinite "
+                                f"at entries {_shown(np.flatnonzero(~np.isfinite(zv)))})")
+        model = StoneSoupMeasurement(mm, zv, name=mm_name, **kw)
+        X = torch.as_tensor(Xn.T, **kw).unsqueeze(0)  # (1, N, d)
         N, d = X.shape[1], X.shape[2]
         if model.state_dim != d:
             raise ArgumentError(f"FlowParticleUpdater: the measurement model has ndim_state {model.state_dim}, the "
                              f"particles {d} dimensions")
-        trans = self._transition(pred)
+        trans = self._transition(pred, N)
         w = torch.as_tensor(np.exp(lw_prev - logsumexp(lw_prev)), **kw)
         if trans is not None:
-            F, Q, parent = torch.as_tensor(trans[0], **kw), torch.as_tensor(trans[1], **kw), trans[2]
-            Xp = torch.as_tensor(np.asarray(parent.state_vector, dtype=float).T, **kw)  # (N, d)
-            lwp = np.asarray(parent.log_weight, dtype=float)
-            wp = torch.as_tensor(np.exp(lwp - logsumexp(lwp)), **kw)
+            F, Q = torch.as_tensor(trans[0], **kw), torch.as_tensor(trans[1], **kw)
+            Xp = torch.as_tensor(trans[2].T, **kw)  # (N, d)
+            wp = torch.as_tensor(np.exp(trans[3] - logsumexp(trans[3])), **kw)
             mean_p = wp @ Xp
             Pp = ((Xp - mean_p).T * wp) @ (Xp - mean_p)
             P = F @ Pp @ F.T + Q if self.flow_prior == "predicted" else Q
@@ -297,10 +435,19 @@ class FlowParticleUpdater(Updater):
             prior = FlowPrior((w @ m_pred[0]).unsqueeze(0), L.unsqueeze(0))
         z = model.z.unsqueeze(0)
         proposal = FlowPrior(m_pred, LQ.expand(1, N, d, d)) if (trans is not None and self._flow.stochastic) else None
+        where = f"the {type(self._flow).__name__} update at {timestamp}"
         with torch.no_grad():
-            out = integrate_flow(self._flow, model, X, z, prior, self._schedule, points=pts,
-                                 generator=self._generator if self._flow.stochastic else None, proposal=proposal)
+            try:
+                out = integrate_flow(self._flow, model, X, z, prior, self._schedule, points=pts,
+                                     generator=self._generator if self._flow.stochastic else None, proposal=proposal)
+            except torch.linalg.LinAlgError as err:
+                raise NonFiniteError("FlowParticleUpdater", 0, [0], what=f"values in {where} (torch linear algebra "
+                                     f"failed: {str(err).splitlines()[0][:120]}){self._singular_hint(model, X)}") from None
             x1 = out.particles
+            bad = int((~torch.isfinite(x1).all(-1)).sum())
+            if bad:
+                raise NonFiniteError("FlowParticleUpdater", 0, [0], what=f"particle states after {where} ({bad} of {N} "
+                                     f"particles){self._singular_hint(model, X)}")
             if trans is not None:
                 log_q = (out.log_proposal if self._flow.stochastic
                          else linalg.mvn_log_prob(X, m_pred, LQ) - out.log_det)
@@ -309,14 +456,13 @@ class FlowParticleUpdater(Updater):
                 log_w = log_w.double().cpu().numpy()
             else:
                 log_w = lw_prev.copy()
-        if not np.isfinite(log_w).any():
-            raise FloatingPointError(f"FlowParticleUpdater: every particle's weight is invalid after the {type(self._flow).__name__} "
-                                     f"update at {hypothesis.measurement.timestamp}")
-        log_w = np.where(np.isfinite(log_w), log_w, -np.inf)
+        bad = int((np.isnan(log_w) | np.isposinf(log_w)).sum())
+        if bad or np.isneginf(log_w).all():
+            raise NonFiniteError("FlowParticleUpdater", 0, [0], what=f"log-weights after {where} "
+                                 f"({bad or N} of {N} particles NaN, +inf or all -inf){self._singular_hint(model, X)}")
         log_w = log_w - logsumexp(log_w)
         update = Update.from_state(pred, state_vector=StateVectors(x1[0].double().cpu().numpy().T), log_weight=log_w,
-                                   hypothesis=hypothesis, timestamp=hypothesis.measurement.timestamp,
-                                   target_type=ParticleStateUpdate)
+                                   hypothesis=hypothesis, timestamp=timestamp, target_type=ParticleStateUpdate)
         if self.resampler is not None:
             update = self.resampler.resample(update)
         return update
