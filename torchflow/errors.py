@@ -47,7 +47,8 @@ class NonFiniteError(TorchflowError, FloatingPointError):
         shown = self.trials[:10]
         more = "" if len(self.trials) <= 10 else f" (and {len(self.trials) - 10} more)"
         where = f" at time step {step}" if step else ""
-        super().__init__(f"{filter_name}: non-finite {what}{where} in trial(s) {shown}{more}")
+        which = f" in trial(s) {shown}{more}" if self.trials else ""
+        super().__init__(f"{filter_name}: non-finite {what}{where}{which}")
 
     def __reduce__(self):  # picklable across processes (joblib sweeps, DDP)
         return (type(self), (self.filter_name, self.step, self.trials, self.what))
