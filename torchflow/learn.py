@@ -2,7 +2,7 @@
 
     torchflow-learn                                                # acoustic: Psi and sigma_w, PF-PF(LEDH)
     torchflow-learn 'filter=[pfpf_ledh,bpf]' epochs=60
-    torchflow-learn model=linear_gaussian model.d=4 learn=true 'start={alpha: 0.5}' 'filter=[bpf]'
+    torchflow-learn model=linear_gaussian model.d=4 learn=true '~start' '+start={alpha: 0.5}' 'filter=[bpf]'
 
 (``python experiments/learn.py`` is the same command.) Simulates ``trials`` tracks of ``steps``
 steps from the model config (the truth) through the runner's simulation, the one the
@@ -14,8 +14,19 @@ constructor overrides ``start`` (the wrong starting values), and fits it with ea
 The ``reference`` filter (EKF, or the Kalman filter on a linear model) is fitted the same way: its
 estimate is the Kalman/EKF maximum-likelihood value the table compares against. Writes
 ``learn.csv`` / ``learn.json`` (per filter and parameter: start, final, truth, errors, seconds per
-epoch; the per-epoch history) and ``curves.png`` (loss and parameters per epoch) into Hydra's
-output folder.
+epoch, a note; the per-epoch history) and ``curves.png`` (loss and parameters per epoch) into
+Hydra's output folder.
+
+Refused before anything runs (one line, exit 2): a ``start`` key that is no argument of the model
+(naming its learnable parameters and the closest arguments); a filter whose log-evidence is only a
+Gaussian approximation (``estimates_evidence = False``: the unweighted flow filters, the
+Gaussian-sum particle filters) unless ``allow_approximate_evidence=true``, which fits it and labels
+its results. A fit that meets the divergence rule (:data:`DIVERGENCE_GROWTH`,
+:data:`DIVERGENCE_RISES`) is warned of and recorded (``learn.json``: ``diverged``). A non-finite
+log-evidence, gradient or learned parameter, or a model the filter refuses once the optimiser has
+moved its parameters, ends that filter's fit: one line naming the filter, the quantity and the
+epoch; the epochs before it are written (``learn.json``: ``failed``), the other filters go on, and
+the exit status is 1.
 
 It runs in the command shell (:mod:`torchflow.runner.shell`), whose contracts it shares with
 ``torchflow``: an unknown setting (``+learning_rate=0.5``) is refused in one line with the
@@ -23,8 +34,8 @@ closest known keys; the output folder is guarded (earlier results unless ``overw
 live run's lock file); ``device``, ``dtype``, ``threads`` and ``tuning.*`` are set up the same
 way; SIGINT / SIGTERM stop after the current optimiser step, and the finished epochs are written
 (``learn.json`` says ``"interrupted": true``; a filter not started is listed under ``not_run``).
-Exit status: 0 done; 1 a failure (the results could not be written; any other error keeps its
-traceback); 2 a configuration error or a refused output folder (one line); 130 stopped by Ctrl-C
+Exit status: 0 done; 1 a failure (a fit that failed, the results could not be written; any other
+error keeps its traceback); 2 a configuration error or a refused output folder (one line); 130 stopped by Ctrl-C
 (SIGINT); 143 stopped by SIGTERM.
 """
 from __future__ import annotations
