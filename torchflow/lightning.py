@@ -9,17 +9,45 @@ folder unless given): pass ``default_root_dir=...`` or ``logger=False, enable_ch
 """
 from __future__ import annotations
 
-from typing import Optional
+import math
+import numbers
+import re
+from functools import reduce
+from typing import Dict, List, Optional
 
 import pytorch_lightning as pl
 import torch
+from torch import nn
 from torch.utils.data import Dataset
 
+from ._checks import check_count
 from .filters.base import Filter
-from .models.base import Trajectory
+from .models.base import StateSpaceModel, Trajectory
 from . import random as _random
 from .random import TrialStreams
-from .errors import ArgumentError
+from .errors import ArgumentError, ArgumentTypeError, NonFiniteError
+
+
+def _learnable(module: nn.Module) -> Dict[str, List[nn.Parameter]]:
+    """``name -> its nn.Parameters`` of the learnable (``requires_grad``) parameters of ``module``,
+    a parametrised one (``parametrizations.psi.original``) under its own name (``psi``); sorted."""
+    out: Dict[str, List[nn.Parameter]] = {}
+    for name, p in module.named_parameters():
+        if p.requires_grad:
+            out.setdefault(re.sub(r"\.original\d*$", "", name.replace("parametrizations.", "")), []).append(p)
+    return dict(sorted(out.items()))
+
+
+def _describe(v: torch.Tensor) -> str:
+    v = v.detach()
+    return f"{float(v):.4g}" if v.numel() == 1 else f"{tuple(v.shape)}, largest |entry| {float(v.abs().max()):.4g}"
+
+
+def learned_parameters(module: nn.Module) -> Dict[str, torch.Tensor]:
+    """The learnable parameters of ``module`` (a model, or a filter: ``model.psi``) by name, each
+    as the module uses it: a parametrised one (stored as ``parametrizations.psi.original``, e.g.
+    a logarithm) as ``psi`` with its constrained value. Sorted by name."""
+    return {n: reduce(getattr, n.split("."), module) for n in _learnable(module)}
 
 
 def backward_bytes_per_step(filter: Filter, observations: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor,
@@ -95,18 +123,42 @@ class FilterLightningModule(pl.LightningModule):
             keyed without the epoch), so the loss is one fixed Monte Carlo approximation of the
             likelihood that the optimiser minimises (sample-average approximation: less noisy
             steps, at the price of that one approximation's error); default False: fresh draws.
+        allow_approximate_evidence: learn through a filter whose ``log_evidence`` is only a
+            Gaussian approximation, not an estimate of the evidence (``Filter.estimates_evidence``
+            is False: the unweighted particle flow filter, the Gaussian-sum particle filters); by
+            default such a filter is refused, since the gradient it gives is not the likelihood's.
         betas: Adam's decay rates of the gradient's first and second moments (torch's default
             ``(0.9, 0.999)``). From a start far from the optimum a particle filter's early
             gradients are orders of magnitude larger than those near it: the momentum, filled with
             them, carries the parameter well past the optimum, and a second moment that remembers
             ~1000 steps keeps the way back slow. ``(0.5, 0.9)`` (memories of ~2 and ~10 steps;
             what ``torchflow-learn`` uses) turns at the optimum (measured in RESULTS.md, "Learning").
+
+    Non-finite values stop the fit with :class:`~torchflow.errors.NonFiniteError` naming the
+    filter, the quantity and the epoch: a non-finite log-evidence (or one the filter raises), a
+    non-finite gradient of a learned parameter, a learned parameter (its constrained value, e.g.
+    ``psi``) non-finite after an optimiser step (a learning rate too large).
     """
 
     def __init__(self, filter: Filter, *, lr: float = 1e-2, seed: int = 0, checkpoint_steps="auto",
                  memory_budget_gb: float = 4.0, lr_decay: float = 1.0, common_random_numbers: bool = False,
-                 betas=(0.9, 0.999)):
+                 betas=(0.9, 0.999), allow_approximate_evidence: bool = False):
         super().__init__()
+        if not isinstance(filter, Filter):
+            hint = (" (wrap the model in a filter, e.g. BootstrapParticleFilter(model, n_particles=500) or "
+                    "KalmanFilter(model))") if isinstance(filter, StateSpaceModel) else ""
+            raise ArgumentTypeError(f"filter: expected a torchflow Filter, got {type(filter).__name__}{hint}")
+        if isinstance(lr, bool) or not isinstance(lr, numbers.Real) or not (math.isfinite(lr) and lr > 0):
+            raise ArgumentError(f"lr: expected a positive finite learning rate, got {lr!r}")
+        check_count("seed", seed, minimum=0)
+        if not isinstance(allow_approximate_evidence, bool):
+            raise ArgumentError(f"allow_approximate_evidence: expected True or False, got {allow_approximate_evidence!r}")
+        if not filter.estimates_evidence and not allow_approximate_evidence:
+            raise ArgumentError(
+                f"filter: expected a filter that estimates the log-evidence, got {type(filter).__name__}, whose "
+                "log_evidence is a Gaussian approximation (estimates_evidence = False), so its gradient is not the "
+                "likelihood's; learn through a Kalman filter, a bootstrap PF, a PF-PF, a GPFIS or another particle "
+                "filter, or pass allow_approximate_evidence=True")
         if not any(p.requires_grad for p in filter.parameters()):
             raise ArgumentError("filter: its model has no learnable parameters (construct it with learnable=True)")
         if checkpoint_steps not in (True, False, "auto"):
@@ -127,6 +179,14 @@ class FilterLightningModule(pl.LightningModule):
                 isinstance(b, (int, float)) and not isinstance(b, bool) and 0 <= b < 1 for b in betas)):
             raise ArgumentError(f"betas: expected two Adam decay rates in [0, 1), got {betas!r}")
         self.betas = (float(betas[0]), float(betas[1]))
+        self.allow_approximate_evidence = allow_approximate_evidence
+
+    def _in_epoch(self, what: str) -> str:
+        return f"{what} in epoch {self.current_epoch + 1}"
+
+    def _with_epoch(self, err: NonFiniteError) -> NonFiniteError:
+        """``err`` (raised by the filter) with the epoch in its quantity."""
+        return NonFiniteError(err.filter_name, err.step, err.trials, self._in_epoch(err.what))
 
     def forward(self, observations, mean, cov, generator: Optional[torch.Generator] = None):
         return self.filter(observations, mean, cov, generator)
@@ -143,12 +203,46 @@ class FilterLightningModule(pl.LightningModule):
             need = backward_bytes_per_step(self.filter, obs, mean, cov, g) * obs.shape[1]
             self.checkpoint_steps = need > self.memory_budget_gb * 1e9
         ckpt = self.checkpoint_steps is True
-        loss = -self.filter(obs, mean, cov, g, checkpoint_steps=ckpt).log_evidence.mean() / obs.shape[1]
+        try:
+            log_evidence = self.filter(obs, mean, cov, g, checkpoint_steps=ckpt).log_evidence
+        except NonFiniteError as err:
+            raise self._with_epoch(err) from err
+        except ArgumentError as err:  # the filter refuses the model the optimiser's steps have made
+            if self.global_step == 0:
+                raise
+            values = ", ".join(f"{n.removeprefix('model.')} {_describe(v)}"
+                               for n, v in learned_parameters(self.filter).items())
+            raise ArgumentError(f"{self.filter.name}: in epoch {self.current_epoch + 1} the learned parameters ({values}) "
+                                f"give a model the filter refuses ({err})") from err
+        bad = ~torch.isfinite(log_evidence.detach())
+        if bool(bad.any()):
+            raise NonFiniteError(self.filter.name, 0, torch.nonzero(bad).flatten().tolist(),
+                                 self._in_epoch("log-evidence"))
+        loss = -log_evidence.mean() / obs.shape[1]
         self.log(f"{stage}_nll_per_step", loss, prog_bar=True, batch_size=obs.shape[0])
         return loss
 
     def training_step(self, batch, batch_idx):
         return self._loss(batch, batch_idx)
+
+    def backward(self, loss, *args, **kwargs):
+        try:
+            super().backward(loss, *args, **kwargs)
+        except NonFiniteError as err:  # the filter's own gradient checks
+            raise self._with_epoch(err) from err
+
+    def on_after_backward(self):
+        bad = [n.removeprefix("model.") for n, ps in _learnable(self.filter).items()
+               if any(p.grad is not None and not bool(torch.isfinite(p.grad).all()) for p in ps)]
+        if bad:
+            raise NonFiniteError(self.filter.name, 0, [], self._in_epoch(f"gradient of {', '.join(bad)}"))
+
+    def on_train_batch_end(self, outputs, batch, batch_idx):
+        bad = [n.removeprefix("model.") for n, v in learned_parameters(self.filter).items()
+               if not bool(torch.isfinite(v).all())]
+        if bad:
+            raise NonFiniteError(self.filter.name, 0, [],
+                                 f"{', '.join(bad)} after the optimiser step of epoch {self.current_epoch + 1}")
 
     def configure_optimizers(self):
         opt = torch.optim.Adam([p for p in self.filter.parameters() if p.requires_grad], lr=self.lr,
