@@ -226,7 +226,8 @@ def test_acoustic_model_parameters_out_of_range_are_named(kw, match):
     (dict(d=0), r"d: expected a perfect square >= 1"),
     (dict(d=5), r"d: expected a perfect square >= 1"),
     (dict(sigma_z=float("inf")), "sigma_z: expected a finite number > 0, got inf"),
-    (dict(alpha1=0.0), "alpha1: expected a finite number > 0"),
+    (dict(alpha1=-1.0), "alpha1: expected a finite number >= 0"),
+    (dict(beta=0.0), "beta: expected a finite number > 0"),
 ])
 def test_sensor_network_parameters_out_of_range_are_named(kw, match):
     with pytest.raises(ArgumentError, match=match):

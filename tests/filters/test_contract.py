@@ -210,23 +210,31 @@ def nan_likelihood_run():
 def test_non_finite_error_names_filter_step_trial():
     model, traj, mean, cov = nan_likelihood_run()
     f = BootstrapParticleFilter(model, n_particles=16, nonfinite="raise", name="bpf-test")
-    with pytest.raises(NonFiniteError, match=r"bpf-test: non-finite particles or weights at time step 3 in trial\(s\) \[1\]") as e:
+    with pytest.raises(NonFiniteError, match=r"bpf-test: non-finite particles or weights (and log-evidence increment )?at time step 3 "
+                                             r"in trial\(s\) \[1\]") as e:
         f(traj.observations, mean, cov, torch.Generator().manual_seed(0))
     assert e.value.step == 3 and e.value.trials == [1]
 
 
 def test_trace_finds_the_first_bad_step_per_trial():
-    """The first non-finite step is found once from the stacked estimates and invalid flags: per
-    trial the earliest bad step (1-based), 0 where none, and whether that step was flagged invalid."""
+    """The first non-finite step is found once from the stacked estimates, invalid flags and
+    log-evidence increments: per trial the earliest bad step (1-based), 0 where none, and which
+    quantities were bad then; a -inf increment of a recovering particle filter is a step without
+    the measurement (counted), not an error."""
     from types import SimpleNamespace
+    from torchflow.filters import guards
     from torchflow.filters.base import _Trace
     tr = _Trace(3, "cpu", False, False)
-    nan = float("nan")
+    nan, inf = float("nan"), float("inf")
     ests = [torch.tensor([[0.0], [0.0], [0.0]]), torch.tensor([[0.0], [nan], [0.0]]), torch.tensor([[0.0], [nan], [0.0]])]
     invs = [None, torch.tensor([False, False, False]), torch.tensor([True, True, False])]
-    for t, (e, i) in enumerate(zip(ests, invs)):
-        tr.add(SimpleNamespace(estimate=e, invalid=i, log_evidence_increment=torch.zeros(3), ess=None), t)
-    first_bad, first_invalid = tr.first()
-    assert first_bad.tolist() == [3, 2, 0] and first_invalid.tolist() == [True, False, False]
+    incs = [torch.zeros(3), torch.zeros(3), torch.tensor([0.0, 0.0, -inf])]
+    for t, (e, i, c) in enumerate(zip(ests, invs, incs)):
+        tr.add(SimpleNamespace(estimate=e, invalid=i, log_evidence_increment=c, ess=None), t)
+    table = guards.first_steps(tr.estimates(), tr.invalid_steps(), tr.increments(), recover=True).tolist()
+    # [first bad step, estimate bad, invalid, increment bad, first dead step, dead steps]
+    assert table == [[3, 0, 1, 0, 0, 0], [2, 1, 0, 0, 0, 0], [0, 0, 0, 0, 3, 1]]
     with pytest.raises(NonFiniteError, match=r"non-finite estimate at time step 2 in trial\(s\) \[1\]"):
-        KalmanFilter(random_lg(1, 1))._raise_nonfinite(*tr.first())
+        guards.raise_first("KalmanFilter", table)
+    strict = guards.first_steps(tr.estimates(), tr.invalid_steps(), tr.increments(), recover=False).tolist()
+    assert strict[2][:4] == [3, 0, 0, 1]  # without recovery, the -inf increment is the error

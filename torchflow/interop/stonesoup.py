@@ -441,12 +441,12 @@ class FlowParticleUpdater(Updater):
                 out = integrate_flow(self._flow, model, X, z, prior, self._schedule, points=pts,
                                      generator=self._generator if self._flow.stochastic else None, proposal=proposal)
             except torch.linalg.LinAlgError as err:
-                raise NonFiniteError("FlowParticleUpdater", 0, [0], what=f"values in {where} (torch linear algebra "
+                raise NonFiniteError("FlowParticleUpdater", 0, [], what=f"values in {where} (torch linear algebra "
                                      f"failed: {str(err).splitlines()[0][:120]}){self._singular_hint(model, X)}") from None
             x1 = out.particles
             bad = int((~torch.isfinite(x1).all(-1)).sum())
             if bad:
-                raise NonFiniteError("FlowParticleUpdater", 0, [0], what=f"particle states after {where} ({bad} of {N} "
+                raise NonFiniteError("FlowParticleUpdater", 0, [], what=f"particle states after {where} ({bad} of {N} "
                                      f"particles){self._singular_hint(model, X)}")
             if trans is not None:
                 log_q = (out.log_proposal if self._flow.stochastic
@@ -458,7 +458,7 @@ class FlowParticleUpdater(Updater):
                 log_w = lw_prev.copy()
         bad = int((np.isnan(log_w) | np.isposinf(log_w)).sum())
         if bad or np.isneginf(log_w).all():
-            raise NonFiniteError("FlowParticleUpdater", 0, [0], what=f"log-weights after {where} "
+            raise NonFiniteError("FlowParticleUpdater", 0, [], what=f"log-weights after {where} "
                                  f"({bad or N} of {N} particles NaN, +inf or all -inf){self._singular_hint(model, X)}")
         log_w = log_w - logsumexp(log_w)
         update = Update.from_state(pred, state_vector=StateVectors(x1[0].double().cpu().numpy().T), log_weight=log_w,

@@ -218,7 +218,8 @@ class SensorNetwork(LinearGaussian):
         g = int(round(math.sqrt(d)))
         check_number("alpha", alpha)
         check_nonnegative("alpha0", alpha0)
-        for name, value in (("alpha1", alpha1), ("beta", beta), ("sigma_z", sigma_z)):
+        check_nonnegative("alpha1", alpha1)  # alpha0 = alpha1 = 0: Q = 0 (singular, for filters that allow it)
+        for name, value in (("beta", beta), ("sigma_z", sigma_z)):
             check_positive(name, value)
         check_nonnegative("prior_var", prior_var)
         eye = torch.eye(d, dtype=torch.float64)
