@@ -1,0 +1,66 @@
+"""Bad input and faults around the run command: keys Hydra refuses, values its grammar cannot read,
+selections, output folders (quoted, full), resuming, sweeps (overwrite, a stop on joblib) and
+``collect.py``. Each fault gets one line that names what is wrong (exit status 2 for a setting) or a
+warning, and nothing half done on disk. Subprocess runs are tiny (a few seconds each)."""
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from torchflow.runner import ConfigError, shell
+
+ROOT = Path(__file__).resolve().parents[1]
+RUN = ROOT / "experiments" / "run.py"
+TINY = ["model=linear_gaussian", "model.d=4", "trials=2", "steps=3", "n_particles=20", "progress=false", "plots=false"]
+
+
+def _env():
+    return dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+
+
+def _run(cwd, *args, script=RUN):
+    return subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True, cwd=cwd, timeout=180,
+                          env=_env())
+
+
+def _lines(text):
+    return [ln for ln in text.splitlines() if ln.strip()]
+
+
+# ----------------------------------------------------------------------------------------------
+# settings Hydra refuses or cannot read
+
+
+@pytest.mark.parametrize("trials, inits_per_track, warning, groups", [
+    (4, 3, "inits_per_track=3 does not divide trials=4: the last trajectory is shared by 1 trial, the others by 3 "
+           "(trials=6 keeps the groups equal)", [3, 1]),
+    (4, 10, "inits_per_track=10 is more than trials=4: all 4 trials share one trajectory", [4]),
+    (6, 3, None, [3, 3]),
+])
+def test_inits_per_track_that_leaves_unequal_groups_of_trials_warns(trials, inits_per_track, warning, groups):
+    import warnings
+
+    import torch
+
+    from torchflow.models import SensorNetwork
+    from torchflow.runner.execute import plan_run
+
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        plan = plan_run(SensorNetwork(d=4), {}, trials=trials, steps=2, seed=0, inits_per_track=inits_per_track)
+    said = [str(w.message) for w in seen if "inits_per_track" in str(w.message)]
+    assert said == [] if warning is None else (len(said) == 1 and said[0].startswith(warning)), said
+    states = plan.traj.states  # the groups the warning describes are the trials that share a trajectory
+    sizes, start = [], 0
+    while start < trials:
+        same = [torch.equal(states[start], states[i]) for i in range(start, trials)]
+        sizes.append(same.index(False) if False in same else len(same))
+        start += sizes[-1]
+    assert sizes == groups
