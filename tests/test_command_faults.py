@@ -64,3 +64,35 @@ def test_inits_per_track_that_leaves_unequal_groups_of_trials_warns(trials, init
         sizes.append(same.index(False) if False in same else len(same))
         start += sizes[-1]
     assert sizes == groups
+
+
+# ----------------------------------------------------------------------------------------------
+# output folders and checkpoints
+
+
+def test_resume_with_nothing_saved_says_so_and_computes_every_chunk(tmp_path, caplog):
+    import torch
+    from hydra import compose, initialize_config_dir
+
+    from torchflow.cli import chunk_store
+
+    with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
+        cfg = compose("config", ["model=linear_gaussian", "filter=[kf,bpf]", "resume=true",
+                                 f"checkpoint_dir={tmp_path / 'ck'}"])
+    labels = {"kf": "kf", "bpf": "bpf"}
+    with caplog.at_level(logging.WARNING, logger="torchflow.cli"):
+        store = chunk_store(cfg, labels)
+    assert [r.getMessage() for r in caplog.records] == [
+        f"resume=true: nothing is saved under {tmp_path / 'ck'} with these settings (a new folder, or settings other "
+        "than the saved run's, which save under another key): every chunk is computed"]
+    store.save("kf", 0, 2, {"estimates": torch.zeros(2, 3, 4)})
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="torchflow.cli"):
+        chunk_store(cfg, labels)
+    assert [r.getMessage() for r in caplog.records] == [
+        f"resume=true: nothing is saved under {tmp_path / 'ck'} for bpf with these settings: their chunks are computed"]
+    caplog.clear()
+    cfg.resume = False
+    with caplog.at_level(logging.WARNING, logger="torchflow.cli"):
+        chunk_store(cfg, labels)
+    assert caplog.records == []  # not resuming: nothing to say

@@ -108,7 +108,14 @@ def chunk_store(cfg: DictConfig, labels):
                 for k, fcfg in cfg.filter.items() if k in labels}  # not the settings of unselected filters
     keys = {label: "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in label) + "-" + fingerprint(s)
             for label, s in settings.items()}
-    return ChunkStore(Path(hydra.utils.to_absolute_path(str(root))), keys, resume=resume, settings=settings)
+    store = ChunkStore(Path(hydra.utils.to_absolute_path(str(root))), keys, resume=resume, settings=settings)
+    unsaved = [label for label in keys if not store.saved_ranges(label)] if resume else []
+    if unsaved:  # a new checkpoint_dir, or settings other than the saved run's (saved under another key)
+        every = len(unsaved) == len(keys)
+        why = " (a new folder, or settings other than the saved run's, which save under another key)" if every else ""
+        log.warning(f"resume=true: nothing is saved under {store.root}{'' if every else ' for ' + ', '.join(unsaved)} "
+                    f"with these settings{why}: {'every chunk is' if every else 'their chunks are'} computed")
+    return store
 
 
 _Output = shell.Output  # the first failed write turns the exit status to 1
