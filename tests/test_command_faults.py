@@ -15,6 +15,7 @@ import pytest
 import yaml
 
 from torchflow.runner import ConfigError, shell
+from torchflow.runner.config import check_selections
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = ROOT / "experiments" / "run.py"
@@ -36,6 +37,25 @@ def _lines(text):
 
 # ----------------------------------------------------------------------------------------------
 # settings Hydra refuses or cannot read
+
+
+def test_a_filter_selected_twice_is_refused_in_one_line_with_exit_2(capsys):
+    from torchflow.cli import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["model=linear_gaussian", "filter=[bpf,kf,bpf]", "trials=4"])
+    assert stop.value.code == 2
+    assert _lines(capsys.readouterr().err) == [
+        "error: filter: expected each filter config once, got bpf 2 times in [bpf,kf,bpf] (one row per config); "
+        "select it once, and to compare settings of one filter, sweep them: -m filter.bpf.<key>=a,b"]
+
+
+def test_a_sweep_over_lists_of_filters_is_not_refused():
+    check_selections(["-m", "filter=[kf],[bpf,ekf]"])
+    with pytest.raises(ConfigError, match=r"filter: unknown filter config 'bfp'"):
+        check_selections(["-m", "filter=[kf],[bfp]"])
+    with pytest.raises(ConfigError, match=r"got kf 2 times in \[kf,kf\]"):
+        check_selections(["-m", "filter=[bpf],[kf,kf]"])
 
 
 @pytest.mark.parametrize("trials, inits_per_track, warning, groups", [

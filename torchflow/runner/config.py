@@ -2,9 +2,11 @@
 and of the command line that Hydra itself does not make (one clear line each, no traceback)."""
 from __future__ import annotations
 
+import contextlib
 import difflib
 import json
 import os
+import re
 import shlex
 from importlib.resources import files
 from pathlib import Path
@@ -43,7 +45,8 @@ def group_options(group: str) -> Optional[List[str]]:
 
 def check_selections(argv: Sequence[str]) -> None:
     """Refuse unknown config names in group selections (``filter=[a,b]``, ``model=x``, ``flow@...=edh``,
-    sweeps ``filter=a,b``) with the list of valid names, before Hydra composes anything."""
+    sweeps ``filter=a,b`` and ``filter=[a,b],[c]``) with the list of valid names, and a config selected
+    twice in one list (``filter=[bpf,bpf]``: the two would be one row), before Hydra composes anything."""
     for arg in argv:
         if "=" not in arg or arg.startswith(("hydra.", "-")):
             continue
@@ -52,10 +55,17 @@ def check_selections(argv: Sequence[str]) -> None:
         options, value = None if "." in group or "/" in group else group_options(group), rhs.strip()
         if options is None or value.startswith(("range(", "choice(", "glob(", "interval(")) or value in ("null", ""):
             continue
-        unknown = [v for v in (v.strip() for v in rhs.strip("[]").split(",")) if v and v not in options]
+        unknown = [v for v in dict.fromkeys(re.findall(r"[^\[\],\s]+", value)) if v not in options]
         if unknown:
             raise ConfigError(f"{lhs}: unknown {group} config {', '.join(repr(u) for u in unknown)}; "
                               f"available: {', '.join(options)}")
+        for selection in re.findall(r"\[([^\]]*)\]", value):
+            names = [v.strip() for v in selection.split(",") if v.strip()]
+            twice = next((v for v in names if names.count(v) > 1), None)
+            if twice:
+                raise ConfigError(f"{lhs}: expected each {group} config once, got {twice} {names.count(twice)} times "
+                                  f"in [{selection}] (one row per config); select it once, and to compare settings "
+                                  f"of one {group}, sweep them: -m {group}.{twice}.<key>=a,b")
 
 
 def close_keys(key: str, known: Sequence[str]) -> List[str]:
