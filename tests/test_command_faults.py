@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from torchflow.runner import ConfigError, shell
-from torchflow.runner.config import check_selections
+from torchflow.runner.config import check_selections, unknown_key_message
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = ROOT / "experiments" / "run.py"
@@ -37,6 +37,59 @@ def _lines(text):
 
 # ----------------------------------------------------------------------------------------------
 # settings Hydra refuses or cannot read
+
+
+@pytest.mark.parametrize("override, message", [
+    ("n_particle=7", "error: n_particle: unknown setting; did you mean n_particles?"),
+    ("filter.bpf.typo=1", "error: filter.bpf.typo: unknown setting; the settings of filter.bpf are n_particles, "),
+    ("filter.bfp.n_particles=10", "error: filter.bfp.n_particles: expected one of the selected filters kf, bpf, got "
+                                  "bfp; did you mean filter.bpf.n_particles?"),
+], ids=["misspelt-key", "unknown-filter-setting", "misspelt-filter"])
+def test_a_key_the_config_lacks_given_without_plus_gets_did_you_mean_and_exit_2(tmp_path, override, message):
+    r = _run(tmp_path, *TINY, "filter=[kf,bpf]", override, "hydra.run.dir=out")
+    assert r.returncode == 2, r.stderr[-2000:]
+    lines = _lines(r.stderr)
+    assert len(lines) == 1 and lines[0].startswith(message), lines
+    assert "+" not in lines[0] and "Traceback" not in r.stderr  # no hint to append the misspelt key
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_setting_of_a_filter_that_is_not_selected_says_to_select_it():
+    tree = {"trials": 2, "filter": {"kf": {"_target_": "x"}, "bpf": {"_target_": "y", "n_particles": 5}}}
+    assert unknown_key_message(tree, "filter.ukf.alpha") == (
+        "filter.ukf.alpha: expected one of the selected filters kf, bpf, got ukf (not selected; to set it, select it "
+        "too: filter=[kf,bpf,ukf])")
+    assert unknown_key_message(tree, "trails") == "trails: unknown setting; did you mean trials?"
+    assert unknown_key_message(None, "trails") == "trails: unknown setting"
+
+
+@pytest.mark.parametrize("override, hint", [
+    ("hydra.run.dir=ünï码", "\"hydra.run.dir='ünï码'\""),
+    ("label=ünï码 ☃/sub dir", "\"label='ünï码 ☃/sub dir'\""),
+], ids=["folder", "label"])
+def test_an_unquoted_non_ascii_value_gets_a_quoting_hint_and_exit_2(tmp_path, override, hint):
+    r = _run(tmp_path, *TINY, "filter=[kf]", override)
+    assert r.returncode == 2, r.stderr[-2000:]
+    lines = _lines(r.stderr)
+    key, value = override.split("=", 1)
+    assert len(lines) == 1 and lines[0].startswith(f"error: {key}: expected a value Hydra can read unquoted"), lines
+    assert f"got {value!r}" in lines[0] and lines[0].endswith(f"quote it for Hydra inside the shell's quotes: {hint}")
+    assert list(tmp_path.iterdir()) == []  # no folder made before the refusal
+
+
+def test_a_hydra_quoted_folder_with_spaces_and_non_ascii_is_written_as_named_and_guarded(tmp_path):
+    folder = tmp_path / "dir with spaces" / "uni ünï码"
+    quoted = "hydra.run.dir='dir with spaces/uni ünï码'"
+    first = _run(tmp_path, *TINY, "filter=[kf]", "checkpoint_dir=null", quoted)
+    assert first.returncode == 0, first.stderr[-2000:]
+    assert (folder / "summary.csv").exists() and sorted(p.name for p in tmp_path.iterdir()) == ["dir with spaces"]
+    before = (folder / "results.json").read_text()
+    again = _run(tmp_path, *TINY, "filter=[kf]", "checkpoint_dir=null", "seed=1", quoted)
+    assert again.returncode == 2 and _lines(again.stderr) == [
+        "error: hydra.run.dir: dir with spaces/uni ünï码 already holds the results of a run (summary.csv, "
+        "per_step.csv, per_trial.csv, results.json); choose a new folder (hydra.run.dir=<new folder>) or add "
+        "overwrite=true to replace them"]
+    assert (folder / "results.json").read_text() == before
 
 
 def test_a_filter_selected_twice_is_refused_in_one_line_with_exit_2(capsys):
@@ -88,6 +141,29 @@ def test_inits_per_track_that_leaves_unequal_groups_of_trials_warns(trials, init
 
 # ----------------------------------------------------------------------------------------------
 # output folders and checkpoints
+
+
+_FULL_DISK = """import errno
+import hydra.core.utils
+
+
+def full(cfg, filename, output_dir):
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
+hydra.core.utils._save_config = full  # where Hydra writes .hydra/config.yaml
+from torchflow.cli import main
+main()
+"""
+
+
+def test_a_full_disk_while_hydra_writes_its_config_is_one_line_naming_the_folder(tmp_path):
+    (tmp_path / "full_disk.py").write_text(_FULL_DISK)
+    r = _run(tmp_path, *TINY, "filter=[kf]", "checkpoint_dir=null", "hydra.run.dir=out", script="full_disk.py")
+    assert r.returncode == 1, r.stderr[-2000:]
+    assert _lines(r.stderr) == [f"error: cannot write into {tmp_path / 'out'} (OSError: No space left on device); "
+                                "free space there or choose another folder (hydra.run.dir=<folder>)"]
+    assert not (tmp_path / "out" / shell.LOCK_NAME).exists()
 
 
 def test_resume_with_nothing_saved_says_so_and_computes_every_chunk(tmp_path, caplog):

@@ -94,6 +94,109 @@ def unknown_keys(cfg: Mapping, known: Mapping, prefix: str = "", free_form: Sequ
     return out
 
 
+def compose_config(config_name: str, overrides: Sequence[str]):
+    """The config (with its ``hydra`` node) that Hydra composes from ``overrides``, outside a run."""
+    from hydra import compose, initialize_config_dir, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    src = config_source()
+    GlobalHydra.instance().clear()
+    init = (initialize_config_module(src[len("pkg://"):], version_base="1.3") if src.startswith("pkg://")
+            else initialize_config_dir(src, version_base="1.3"))
+    with init:
+        return compose(config_name, list(overrides), return_hydra_config=True)
+
+
+#: how Hydra refuses an override of a key its config does not have (``n_particle=7``, no ``+``)
+_NO_SUCH_KEY = re.compile(r"Could not override '([^']+)'\.")
+
+
+def missing_override_key(message: str) -> Optional[str]:
+    """The key of Hydra's refusal ``Could not override 'KEY'.`` (``None``: another refusal)."""
+    m = _NO_SUCH_KEY.search(message)
+    return m.group(1) if m else None
+
+
+def unknown_override_messages(config_name: str, argv: Sequence[str], key: str) -> List[str]:
+    """One message per override of a key the config does not have (Hydra refused the first, ``key``):
+    the config is composed again without it (a sweep's first values) to find the others and the
+    closest known keys (:func:`unknown_key_message`)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    parser, parsed = OverridesParser.create(), []
+    for arg in argv:
+        with contextlib.suppress(HydraException):
+            parsed.append(parser.parse_override(arg))
+    bad, tree = [key], None
+    for _ in range(len(parsed) + 1):
+        args = [f"{o.get_key_element()}={next(o.sweep_string_iterator())}" if o.is_sweep_override() else o.input_line
+                for o in parsed if o.key_or_group not in bad]  # a sweep: its first value
+        try:
+            tree = OmegaConf.to_container(compose_config(config_name, args), resolve=False)
+            break
+        except HydraException as e:
+            again = missing_override_key(str(e))
+            if again is None or again in bad:
+                break
+            bad.append(again)
+    return [unknown_key_message(tree, k) for k in bad]
+
+
+def _has(node, parts: Sequence[str]) -> bool:
+    for part in parts:
+        if not isinstance(node, Mapping) or part not in node:
+            return False
+        node = node[part]
+    return True
+
+
+def unknown_key_message(tree: Optional[Mapping], key: str) -> str:
+    """``n_particle: unknown setting; did you mean n_particles?``: ``key`` (dotted) is not in ``tree``
+    (the composed config; ``None``: not known); a filter that is not selected says so."""
+    parts, node, i = key.split("."), tree, 0
+    while isinstance(node, Mapping) and i < len(parts) and parts[i] in node:
+        node, i = node[parts[i]], i + 1
+    if not isinstance(node, Mapping) or i == len(parts):
+        return f"{key}: unknown setting"
+    where, missing, tail = ".".join(parts[:i]), parts[i], "".join("." + p for p in parts[i + 1:])
+    known = [str(k) for k in node if not str(k).startswith("_") and k != "defaults"]
+    close = [f"{where + '.' if where else ''}{c}{tail if _has(node[c], parts[i + 1:]) else ''}"
+             for c in close_keys(missing, known)]
+    did_you_mean = f"; did you mean {' or '.join(close)}?" if close else ""
+    if where == "filter":
+        text = f"{key}: expected one of the selected filters {', '.join(known)}, got {missing}"
+        if missing in (group_options("filter") or []):
+            return f"{text} (not selected; to set it, select it too: filter=[{','.join([*known, missing])}])"
+        return text + did_you_mean
+    if not close and where:
+        return f"{key}: unknown setting; the settings of {where} are {', '.join(known)}"
+    return f"{key}: unknown setting{did_you_mean}"
+
+
+def unreadable_override_message(argv: Sequence[str]) -> Optional[str]:
+    """The message of the first override Hydra's grammar cannot read (``None``: all read): unquoted, a
+    value may hold only ASCII letters, digits and a few symbols, so ``label=ünï码`` or a folder with
+    spaces needs Hydra's quotes, inside the shell's: ``"hydra.run.dir='dir with spaces/ünï码'"``."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    parser = OverridesParser.create()
+    for arg in argv:
+        if arg.startswith("-"):
+            continue
+        try:
+            parser.parse_override(arg)
+        except HydraException as e:
+            lhs, _, rhs = arg.partition("=")
+            if not rhs or rhs[:1] in "'\"":
+                return f"{arg}: Hydra cannot read this override ({e}); see Hydra's override grammar"
+            quoted = f"\"{lhs}='{rhs}'\"" if "'" not in rhs + lhs else shlex.quote(f'{lhs}="{rhs}"')
+            return (f"{lhs}: expected a value Hydra can read unquoted (ASCII letters, digits, _-./:), got {rhs!r} "
+                    f"({e}); quote it for Hydra inside the shell's quotes: {quoted}")
+    return None
+
+
 def check_config(cfg: Mapping, choices: Mapping[str, Optional[str]], config_name: str = "config",
                  free_form: Sequence[str] = FREE_FORM) -> None:
     """What a composed config of the command whose primary config is ``config_name`` (``config``:

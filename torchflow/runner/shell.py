@@ -4,9 +4,12 @@ runs) and ``torchflow-learn`` (:mod:`torchflow.learn`, maximum-likelihood fits) 
 one set of contracts:
 
 Settings
-    A group selection naming no config (``filter=[nope]``), a key the command's config does not
-    have (``+learning_rate=0.5``) or a bad value is refused before anything runs: one line on
+    A group selection naming no config (``filter=[nope]``) or one config twice (``filter=[bpf,bpf]``),
+    a key the command's config does not have (``+learning_rate=0.5``, or ``n_particle=7`` without
+    ``+``, which Hydra refuses), an override Hydra's grammar cannot read (``label=ünï码`` unquoted:
+    the line shows the quoted form) or a bad value is refused before anything runs: one line on
     stderr (an unknown key names the closest known ones: ``did you mean lr?``), exit status 2.
+    Hydra's own errors reach :func:`main` (:func:`hydra_error`) instead of being printed by Hydra.
 
 Output folder (Hydra's resolved ``hydra.run.dir`` / ``hydra.sweep.dir``, however it was quoted)
     :class:`OutputGuard`, a Hydra callback of both configs, checks it before Hydra writes anything
@@ -17,7 +20,8 @@ Output folder (Hydra's resolved ``hydra.run.dir`` / ``hydra.sweep.dir``, however
     says to replace them, which clears them first. The lock file holds the process id; it is
     created atomically (``O_CREAT | O_EXCL``) and removed when the process exits, so two runs
     into one folder never both go on; a lock left by a process that is gone is taken over with a
-    warning. Nothing is created before the checks but the folder Hydra creates anyway.
+    warning. Nothing is created before the checks but the folder Hydra creates anyway. A full disk
+    when Hydra then writes ``.hydra/`` is one line naming the folder (exit status 1).
 
 Signals
     SIGINT (Ctrl-C) and SIGTERM (``kill``, a scheduler's time limit) are stop requests
@@ -40,6 +44,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import errno
 import logging
 import os
 import signal
@@ -340,6 +345,9 @@ class OutputLock:
 
 #: the locks this process holds (released at exit)
 _HELD: Dict[Path, OutputLock] = {}
+#: the output folders :class:`OutputGuard` checked in this process: ``hydra.run.dir`` /
+#: ``hydra.sweep.dir`` -> the folder (for the messages of :func:`main`)
+GUARDED: Dict[str, Path] = {}
 
 
 @contextlib.contextmanager
@@ -418,6 +426,7 @@ class OutputGuard(Callback):
             folder = Path(given) if Path(given).is_absolute() else Path.cwd() / given
             lock = guard_output_folder(folder, key=key, shown=given, replace=replace, sweep=sweep,
                                        command=os.environ.get(rc.PROG_ENV, "torchflow"))
+            GUARDED[key] = folder
             if lock.took_over is not None:
                 print(f"warning: {lock.takeover_message()}", file=sys.stderr)
         except (ConfigError, OmegaConfBaseException) as e:
@@ -521,11 +530,63 @@ def hydra_entry(command: Command) -> Callable[[], None]:
 HELP_FLAGS = ("-h", "--help", "--hydra-help", "--info", "-c", "--cfg", "--version", "--shell-completion", "-sc")
 
 
+def _one_line(text: str) -> str:
+    return " ".join(ln.strip() for ln in str(text).splitlines() if ln.strip())
+
+
+def _causes(e: BaseException):
+    while e is not None:
+        yield e
+        e = e.__cause__ or e.__context__
+
+
+#: a full disk or a folder that cannot be written, where Hydra writes (``.hydra/``, the log)
+_WRITE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM}
+
+
+def hydra_error(e: Exception, command: Command, argv: Sequence[str]) -> tuple:
+    """``(one-line message, exit status)`` of an error Hydra raised itself, or ``(None, 1)``: an override it
+    cannot read (2: :func:`~torchflow.runner.config.unreadable_override_message`), of a key the config
+    does not have (2: :func:`~torchflow.runner.config.unknown_override_messages`), any other composition
+    error (2), a write into the output folder that failed (1: a full disk)."""
+    from hydra.errors import ConfigCompositionException, OverrideParseException
+
+    if isinstance(e, OverrideParseException):
+        return rc.unreadable_override_message(argv) or _one_line(e), EXIT_CONFIG
+    if isinstance(e, ConfigCompositionException):
+        key = rc.missing_override_key(str(e))
+        return "; ".join(rc.unknown_override_messages(command.config_name, argv, key)) if key else _one_line(e), \
+            EXIT_CONFIG
+    bad = next((x for x in _causes(e) if isinstance(x, OSError) and x.errno in _WRITE_ERRNOS), None)
+    if bad is not None:
+        key = "hydra.sweep.dir" if "hydra.sweep.dir" in GUARDED else "hydra.run.dir"
+        where = bad.filename or GUARDED.get(key) or "the output folder"
+        return (f"cannot write into {where} ({type(bad).__name__}: {bad.strerror or bad}); free space there or "
+                f"choose another folder ({key}=<folder>)"), EXIT_FAILED
+    return None, EXIT_FAILED
+
+
+@contextlib.contextmanager
+def _hydra_errors_raised():
+    """Hydra raises its own errors (``HYDRA_FULL_ERROR=1``) instead of printing them, so that
+    :func:`main` says them in one line; yields whether the user asked for full errors anyway."""
+    before = os.environ.get("HYDRA_FULL_ERROR")
+    os.environ["HYDRA_FULL_ERROR"] = "1"
+    try:
+        yield before not in (None, "", "0")
+    finally:
+        if before is None:
+            os.environ.pop("HYDRA_FULL_ERROR", None)
+        else:
+            os.environ["HYDRA_FULL_ERROR"] = before
+
+
 def main(command: Command, argv: Optional[List[str]] = None, prog: Optional[str] = None,
          entry: Optional[Callable[[], None]] = None) -> None:
     """Start ``command`` with ``argv`` (default ``sys.argv[1:]``; Hydra overrides): refuse unknown
     config names in group selections (one line, exit 2), set the stop handlers, run Hydra (``entry``:
-    the command's :func:`hydra_entry`), release the output folder's lock; exits with the job's status."""
+    the command's :func:`hydra_entry`), say Hydra's own errors in one line (:func:`hydra_error`), release
+    the output folder's lock; exits with the job's status."""
     argv = list(sys.argv[1:] if argv is None else argv)
     prog = prog or command.prog
     rank = os.environ.get("RANK", "0") if command.distributed else "0"
@@ -542,9 +603,17 @@ def main(command: Command, argv: Optional[List[str]] = None, prog: Optional[str]
                  "hydra.output_subdir=null", "hydra/job_logging=disabled", "hydra/hydra_logging=disabled"]
     STOP.reset()
     install_stop_handlers()
+    GUARDED.clear()
     sys.argv = [sys.argv[0], *argv]
     try:
-        (entry or hydra_entry(command))()
+        with _hydra_errors_raised() as full_errors:
+            (entry or hydra_entry(command))()
+    except Exception as e:  # noqa: BLE001 - Hydra's own errors: one line where they are a setting's
+        message, code = hydra_error(e, command, argv)
+        if message is None and full_errors:
+            raise
+        print(f"error: {message}" if message else traceback.format_exc().rstrip(), file=sys.stderr)
+        sys.exit(code)
     finally:
         release_locks()
 
@@ -554,6 +623,6 @@ register_configs()  # the signature nodes the component configs extend (at impor
 # the main process's value, so every job lands in the one announced folder
 OmegaConf.register_new_resolver("tf_pid", lambda: str(os.getpid()), replace=True, use_cache=True)
 
-__all__ = ["Command", "JobEnv", "LOCK_NAME", "Output", "OutputGuard", "OutputLock", "config_error",
-           "earlier_results", "guard_output_folder", "hydra_entry", "install_stop_handlers", "job_environment",
-           "job_threads", "main", "release_locks", "run_job", "torch_threads"]
+__all__ = ["Command", "GUARDED", "JobEnv", "LOCK_NAME", "Output", "OutputGuard", "OutputLock", "config_error",
+           "earlier_results", "guard_output_folder", "hydra_entry", "hydra_error", "install_stop_handlers",
+           "job_environment", "job_threads", "main", "release_locks", "run_job", "torch_threads"]
