@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from torchflow.runner import ConfigError, shell
-from torchflow.runner.config import check_selections, unknown_key_message
+from torchflow.runner.config import check_selections, invoked_as, unknown_key_message
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = ROOT / "experiments" / "run.py"
@@ -192,3 +192,30 @@ def test_resume_with_nothing_saved_says_so_and_computes_every_chunk(tmp_path, ca
     with caplog.at_level(logging.WARNING, logger="torchflow.cli"):
         chunk_store(cfg, labels)
     assert caplog.records == []  # not resuming: nothing to say
+
+
+def test_the_resume_hint_repeats_the_script_as_invoked_from_another_folder(tmp_path):
+    work = tmp_path / "w"
+    work.mkdir()
+    script = os.path.relpath(RUN, work)  # python ../../<...>/experiments/run.py
+    cmd = [sys.executable, script, "model=linear_gaussian", "filter=[bpf]", "trials=40", "steps=50",
+           "n_particles=20000", "chunk_size=1", "progress=false", "plots=false", "checkpoint_dir=ck",
+           "hydra.run.dir=run"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=work, env=_env())
+    deadline = time.time() + 120
+    while not list((work / "ck").glob("*/*.pt")) and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    err = proc.communicate(timeout=120)[1]
+    assert proc.returncode == 130, err[-2000:]
+    lines = _lines(err)
+    hint = lines[lines.index(next(ln for ln in lines if ln.endswith("go on with"))) + 1].strip()
+    assert hint.startswith(f"python {script} model=linear_gaussian") and hint.endswith("hydra.run.dir=run resume=true")
+    assert (work / script).exists()  # the hint works from that folder
+
+
+def test_invoked_as_repeats_a_script_and_names_an_entry_point():
+    assert invoked_as("../experiments/run.py", "torchflow") == "python ../experiments/run.py"
+    assert invoked_as("/my repo/experiments/run.py", "torchflow") == "python '/my repo/experiments/run.py'"
+    assert invoked_as("/venv/bin/torchflow", "torchflow") == "torchflow"
+    assert invoked_as("/x/torchflow/__main__.py", "torchflow") == "torchflow"

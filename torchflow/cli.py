@@ -182,8 +182,9 @@ def run_job(cfg: DictConfig) -> int:
     return shell.run_job(RUN, cfg)
 
 
-def main(argv: Optional[List[str]] = None, prog: str = "torchflow") -> None:
-    """The ``torchflow`` command (``argv``: the overrides; default ``sys.argv[1:]``)."""
+def main(argv: Optional[List[str]] = None, prog: Optional[str] = None) -> None:
+    """The ``torchflow`` command (``argv``: the overrides; default ``sys.argv[1:]``; ``prog``: its name in
+    messages, default: as invoked, ``torchflow`` or ``python <script>``)."""
     shell.main(RUN, argv, prog, entry=hydra_main)
 
 

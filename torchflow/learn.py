@@ -319,7 +319,7 @@ LEARN = shell.Command(prog="torchflow-learn", config_name="learn", job=_job,
 hydra_main = shell.hydra_entry(LEARN)
 
 
-def main(argv: Optional[List[str]] = None, prog: str = "torchflow-learn") -> None:
+def main(argv: Optional[List[str]] = None, prog: Optional[str] = None) -> None:
     """The ``torchflow-learn`` command (``argv``: the overrides; default ``sys.argv[1:]``)."""
     shell.main(LEARN, argv, prog, entry=hydra_main)
 

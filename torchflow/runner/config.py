@@ -224,6 +224,15 @@ def check_config(cfg: Mapping, choices: Mapping[str, Optional[str]], config_name
                               lost_threshold=m.get("lost_threshold"))
 
 
+def invoked_as(argv0: str, default: str) -> str:
+    """How this process was started, for the resume hint: ``python <the script as given>`` (so that
+    ``python ../experiments/run.py`` is repeated as such from that folder), else ``default`` (an
+    entry point: ``torchflow``)."""
+    if argv0.endswith(".py") and Path(argv0).name != "__main__.py":
+        return "python " + shlex.quote(argv0)
+    return default
+
+
 def remember_command(prog: str, argv: Sequence[str]) -> None:
     """Record how this process was started, for the resume hint (sweep workers inherit it)."""
     os.environ.setdefault(PROG_ENV, prog)

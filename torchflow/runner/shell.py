@@ -586,9 +586,10 @@ def main(command: Command, argv: Optional[List[str]] = None, prog: Optional[str]
     """Start ``command`` with ``argv`` (default ``sys.argv[1:]``; Hydra overrides): refuse unknown
     config names in group selections (one line, exit 2), set the stop handlers, run Hydra (``entry``:
     the command's :func:`hydra_entry`), say Hydra's own errors in one line (:func:`hydra_error`), release
-    the output folder's lock; exits with the job's status."""
+    the output folder's lock; exits with the job's status. ``prog``: the command in messages (default:
+    the script as invoked, :func:`~torchflow.runner.config.invoked_as`)."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    prog = prog or command.prog
+    prog = prog or rc.invoked_as(sys.argv[0], command.prog)
     rank = os.environ.get("RANK", "0") if command.distributed else "0"
     try:
         rc.check_selections(argv)
