@@ -219,3 +219,51 @@ def test_invoked_as_repeats_a_script_and_names_an_entry_point():
     assert invoked_as("/my repo/experiments/run.py", "torchflow") == "python '/my repo/experiments/run.py'"
     assert invoked_as("/venv/bin/torchflow", "torchflow") == "torchflow"
     assert invoked_as("/x/torchflow/__main__.py", "torchflow") == "torchflow"
+
+
+# ----------------------------------------------------------------------------------------------
+# sweeps and collect
+
+
+def _job(sweep, name, seed, results=True, text=None):
+    job = sweep / name
+    (job / ".hydra").mkdir(parents=True)
+    (job / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump([f"seed={seed}"]))
+    (job / "summary.csv").write_text("filter,trials,mse,error\nkf,2,0.5,\n")
+    (job / "per_trial.csv").write_text("filter,trial,mse\nkf,0,0.4\nkf,1,0.6\n")
+    if results:
+        (job / "results.json").write_text(text or json.dumps({"summary": [{"filter": "kf", "error": None}]}))
+    return job
+
+
+def test_a_sweep_folder_holding_an_earlier_sweeps_jobs_is_refused_or_replaced(tmp_path):
+    failed = tmp_path / "0"
+    (failed / ".hydra").mkdir(parents=True)
+    (failed / "error.txt").write_text("error: bad\n")
+    (tmp_path / "1" / ".hydra").mkdir(parents=True)  # killed before it wrote anything
+    (tmp_path / "7").mkdir()  # not a job's folder
+    assert shell.earlier_results(tmp_path, sweep=True) == ["0/error.txt", "1/"]
+    with pytest.raises(ConfigError, match=r"hydra.sweep.dir: .* already holds the jobs of an earlier sweep "
+                                          r"\(0/error.txt, 1/\); choose a new folder"):
+        shell.guard_output_folder(tmp_path, key="hydra.sweep.dir", sweep=True)
+    shell.guard_output_folder(tmp_path, sweep=True, replace=True).release()  # resume=true: the same jobs again
+    assert failed.exists()
+    (tmp_path / "sweep_summary.csv").write_text("job\n")
+    overwrite = shell.guard_output_folder(tmp_path, sweep=True, replace=True, clear_jobs=True)  # overwrite=true
+    overwrite.release()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["7"]
+
+
+def test_overwrite_true_on_a_sweep_folder_reports_and_collects_only_the_new_jobs(tmp_path):
+    from experiments.collect import collect
+
+    sweep = tmp_path / "sw2"
+    for n in range(3):
+        _job(sweep, str(n), seed=n)
+    r = _run(tmp_path, "-m", *TINY, "filter=[kf]", "checkpoint_dir=null", "seed=5,6", "overwrite=true",
+             "hydra.sweep.dir=sw2")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "sweep sw2: 2 jobs, 2 finished, 0 failed" in r.stderr
+    assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1"]
+    rows, _, missing = collect(sweep)
+    assert [(r["job"], r["seed"]) for r in rows] == [("0", "5"), ("1", "6")] and missing == []

@@ -16,8 +16,8 @@ Output folder (Hydra's resolved ``hydra.run.dir`` / ``hydra.sweep.dir``, however
     into it, and refuses in one line (exit 2): a folder that cannot be written; a folder a live
     run holds (its lock file :data:`LOCK_NAME` names the process); a folder holding an earlier
     run's results (any command's :data:`~torchflow.runner.writers.ALL_RESULT_FILES`; a sweep's
-    ``<job>/results.json`` or ``<job>/learn.csv``) unless ``overwrite=true`` (or ``resume=true``)
-    says to replace them, which clears them first. The lock file holds the process id; it is
+    job folders: :func:`earlier_jobs`) unless ``overwrite=true`` (or ``resume=true``) says to replace
+    them, which clears them first (a sweep's earlier job folders are removed with ``overwrite=true``). The lock file holds the process id; it is
     created atomically (``O_CREAT | O_EXCL``) and removed when the process exits, so two runs
     into one folder never both go on; a lock left by a process that is gone is taken over with a
     warning. Nothing is created before the checks but the folder Hydra creates anyway. A full disk
@@ -47,6 +47,7 @@ import contextlib
 import errno
 import logging
 import os
+import shutil
 import signal
 import socket
 import sys
@@ -374,23 +375,39 @@ def release_locks() -> None:
 atexit.register(release_locks)
 
 
+def earlier_jobs(folder: Path) -> List[Path]:
+    """The job folders an earlier sweep left in the sweep folder ``folder``: numbered folders holding
+    Hydra's ``.hydra`` or a result file (a finished, failed, stopped or killed job)."""
+    from .sweep import job_dirs
+
+    return [j for j in job_dirs(folder) if (j / ".hydra").is_dir() or any((j / n).exists() for n in ALL_RESULT_FILES)]
+
+
 def earlier_results(folder: Path, sweep: bool = False) -> List[str]:
-    """The result files an earlier run left in ``folder`` (a sweep folder: its jobs' ``results.json``
-    and ``learn.csv``), relative to it."""
+    """The result files an earlier run left in ``folder``, relative to it (a sweep folder: its jobs'
+    ``results.json``, ``learn.csv`` and ``error.txt``, and ``<job>/`` for a job folder holding none:
+    a job killed or stopped before it wrote any)."""
     folder = Path(folder)
     if not folder.is_dir():
         return []
     if sweep:
-        return sorted(str(p.relative_to(folder)) for name in ("results.json", "learn.csv")
-                      for p in folder.glob(f"[0-9]*/{name}"))
+        found = []
+        for job in earlier_jobs(folder):
+            files = [f"{job.name}/{n}" for n in ("results.json", "learn.csv", "error.txt") if (job / n).exists()]
+            found += files or [f"{job.name}/"]
+        return found
     return [n for n in ALL_RESULT_FILES if (folder / n).exists()]
 
 
 def guard_output_folder(folder: Path, *, key: str = "hydra.run.dir", shown: Optional[str] = None,
-                        replace: bool = False, sweep: bool = False, command: str = "torchflow") -> OutputLock:
+                        replace: bool = False, sweep: bool = False, clear_jobs: bool = False,
+                        command: str = "torchflow") -> OutputLock:
     """Make ``folder`` ready for a run, or raise a one-line :class:`ConfigError`: it must be
     writable (created if missing), no live run may hold it, and it must hold no earlier results
-    unless ``replace`` (``overwrite=true`` / ``resume=true``). Returns its held :class:`OutputLock`.
+    unless ``replace`` (``overwrite=true`` / ``resume=true``). A sweep folder (``sweep``) with
+    ``clear_jobs`` (``overwrite=true``) is cleared of the earlier sweep's job folders and
+    ``sweep_summary.csv``, so that the end report and ``collect.py`` see this sweep's jobs alone
+    (``resume=true`` reruns the same jobs into their folders). Returns its held :class:`OutputLock`.
     ``shown``: the folder as the user gave it (for messages; default ``folder``)."""
     folder, shown = Path(folder), shown or str(folder)
     try:
@@ -405,8 +422,14 @@ def guard_output_folder(folder: Path, *, key: str = "hydra.run.dir", shown: Opti
     found = earlier_results(folder, sweep)
     if found and not replace:
         lock.release()
-        raise ConfigError(f"{key}: {shown} already holds the results of a run ({', '.join(found[:4])}); choose "
-                          f"a new folder ({key}=<new folder>) or add overwrite=true to replace them")
+        what = "the jobs of an earlier sweep" if sweep else "the results of a run"
+        raise ConfigError(f"{key}: {shown} already holds {what} ({', '.join(found[:4])}"
+                          f"{', ...' if len(found) > 4 else ''}); choose a new folder ({key}=<new folder>) or add "
+                          "overwrite=true to replace them")
+    if sweep and clear_jobs:
+        for job in earlier_jobs(folder):
+            shutil.rmtree(job, ignore_errors=True)
+        (folder / "sweep_summary.csv").unlink(missing_ok=True)
     return lock
 
 
@@ -422,10 +445,10 @@ class OutputGuard(Callback):
         try:
             HydraConfig.instance().set_config(config)  # ${hydra:...} in the folder's name
             given = str(OmegaConf.select(config, key))
-            replace = any(OmegaConf.select(config, k, default=False) is True for k in ("overwrite", "resume"))
+            overwrite, resume = (OmegaConf.select(config, k, default=False) is True for k in ("overwrite", "resume"))
             folder = Path(given) if Path(given).is_absolute() else Path.cwd() / given
-            lock = guard_output_folder(folder, key=key, shown=given, replace=replace, sweep=sweep,
-                                       command=os.environ.get(rc.PROG_ENV, "torchflow"))
+            lock = guard_output_folder(folder, key=key, shown=given, replace=overwrite or resume, sweep=sweep,
+                                       clear_jobs=overwrite, command=os.environ.get(rc.PROG_ENV, "torchflow"))
             GUARDED[key] = folder
             if lock.took_over is not None:
                 print(f"warning: {lock.takeover_message()}", file=sys.stderr)
@@ -625,5 +648,5 @@ register_configs()  # the signature nodes the component configs extend (at impor
 OmegaConf.register_new_resolver("tf_pid", lambda: str(os.getpid()), replace=True, use_cache=True)
 
 __all__ = ["Command", "GUARDED", "JobEnv", "LOCK_NAME", "Output", "OutputGuard", "OutputLock", "config_error",
-           "earlier_results", "guard_output_folder", "hydra_entry", "hydra_error", "install_stop_handlers",
+           "earlier_jobs", "earlier_results", "guard_output_folder", "hydra_entry", "hydra_error", "install_stop_handlers",
            "job_environment", "job_threads", "main", "release_locks", "run_job", "torch_threads"]
