@@ -267,3 +267,23 @@ def test_overwrite_true_on_a_sweep_folder_reports_and_collects_only_the_new_jobs
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1"]
     rows, _, missing = collect(sweep)
     assert [(r["job"], r["seed"]) for r in rows] == [("0", "5"), ("1", "6")] and missing == []
+
+
+def test_collect_names_a_damaged_results_json_and_merges_its_intact_csvs(tmp_path, capsys):
+    from experiments.collect import collect, main
+    from torchflow.runner.sweep import report_sweep
+
+    sweep = tmp_path / "sw"
+    damaged = _job(sweep, "0", seed=0, text=json.dumps({"summary": [{"filter": "kf", "error": None}]})[:20])
+    _job(sweep, "1", seed=1)
+    rows, _, missing = collect(sweep)
+    assert [(r["job"], r["seed"], r["mse"]) for r in rows] == [("0", "0", "0.5"), ("1", "1", "0.5")]
+    assert [m["state"] for m in missing] == ["damaged"]
+    main([str(sweep)])
+    out = capsys.readouterr().out
+    note = next(ln for ln in out.splitlines() if ln.startswith("job 0"))
+    assert note.startswith(f"job 0 (seed=0): {damaged / 'results.json'} is damaged (JSONDecodeError: ")
+    assert "its summary.csv and per_trial.csv, written before it, are merged" in note
+    assert "to write it again, rerun the job into its folder" in note
+    assert report_sweep(sweep)["damaged"] == 1
+    assert f"{damaged / 'results.json'} is damaged" in capsys.readouterr().err
