@@ -287,3 +287,28 @@ def test_collect_names_a_damaged_results_json_and_merges_its_intact_csvs(tmp_pat
     assert "to write it again, rerun the job into its folder" in note
     assert report_sweep(sweep)["damaged"] == 1
     assert f"{damaged / 'results.json'} is damaged" in capsys.readouterr().err
+
+
+def test_ctrl_c_to_a_joblib_sweep_ends_with_the_report_the_resume_command_and_exit_130(tmp_path):
+    pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
+    cmd = [sys.executable, str(RUN), "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "model=linear_gaussian",
+           "filter=[bpf]", "trials=40", "steps=50", "n_particles=20000", "chunk_size=1", "progress=false",
+           "plots=false", "seed=0,1,2", "checkpoint_dir=ck", "hydra.sweep.dir=sw"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                            env=_env(), start_new_session=True)  # its own process group, as a terminal's
+    deadline = time.time() + 180
+    while len(list((tmp_path / "ck").glob("*/*.pt"))) < 2 and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C: every process of the group
+    err = proc.communicate(timeout=180)[1]
+    assert proc.returncode == 130, err[-3000:]
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err and "leaked" not in err, err[-3000:]
+    lines = _lines(err)
+    assert any(ln.startswith(f"sweep {tmp_path / 'sw'} (stopped by Ctrl-C): 3 jobs, 0 finished, 0 failed, 2 "
+                             "interrupted") for ln in lines), lines
+    assert lines[-2] == "stopped by Ctrl-C; the finished chunks are saved: go on with"
+    assert lines[-1].strip().startswith(f"python {RUN} -m hydra/launcher=joblib")
+    assert lines[-1].endswith(" resume=true")
+    for job in ("0", "1"):  # no worker was killed while it wrote its files
+        assert json.loads((tmp_path / "sw" / job / "results.json").read_text())["interrupted"] is True
+        assert (tmp_path / "sw" / job / "per_trial.csv").exists()

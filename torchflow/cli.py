@@ -156,7 +156,7 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
     if result.interrupted:
         skipped = f"; not run: {', '.join(result.not_run)}" if result.not_run else ""
         log.warning(f"interrupted by {STOP.name}: the results of the filters that finished are written{skipped}")
-        if store is not None:
+        if store is not None and not shell.multirun():  # a sweep's end says it once for every job
             log.warning(f"the finished chunks are saved under {store.root}; go on with\n  {rc.resume_command()}")
         return STOP.exit_code
     return 1 if (result.failed or writer.failed) else 0
@@ -173,7 +173,7 @@ def _run(cfg: DictConfig, out: Path, env: JobEnv) -> int:
 
 
 #: the ``torchflow`` command of the shell
-RUN = shell.Command(prog="torchflow", config_name="config", job=_run, distributed=True)
+RUN = shell.Command(prog="torchflow", config_name="config", job=_run, distributed=True, resumable=True)
 hydra_main = shell.hydra_entry(RUN)
 
 

@@ -233,6 +233,16 @@ def invoked_as(argv0: str, default: str) -> str:
     return default
 
 
+def collect_command(sweep_dir, env: Optional[Mapping[str, str]] = None) -> str:
+    """The command that merges a sweep's jobs: ``experiments/collect.py`` beside the ``run.py`` this
+    process was started as (``python ../experiments/run.py``: ``python ../experiments/collect.py``)."""
+    prog = (os.environ if env is None else env).get(PROG_ENV, "")
+    script = prog[len("python "):] if prog.startswith("python ") else ""
+    script = shlex.split(script)[0] if script else ""
+    collect = str(Path(script).with_name("collect.py")) if Path(script).name == "run.py" else "experiments/collect.py"
+    return f"python {shlex.quote(collect)} {shlex.quote(str(sweep_dir))}"
+
+
 def remember_command(prog: str, argv: Sequence[str]) -> None:
     """Record how this process was started, for the resume hint (sweep workers inherit it)."""
     os.environ.setdefault(PROG_ENV, prog)

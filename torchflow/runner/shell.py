@@ -17,11 +17,12 @@ Output folder (Hydra's resolved ``hydra.run.dir`` / ``hydra.sweep.dir``, however
     run holds (its lock file :data:`LOCK_NAME` names the process); a folder holding an earlier
     run's results (any command's :data:`~torchflow.runner.writers.ALL_RESULT_FILES`; a sweep's
     job folders: :func:`earlier_jobs`) unless ``overwrite=true`` (or ``resume=true``) says to replace
-    them, which clears them first (a sweep's earlier job folders are removed with ``overwrite=true``). The lock file holds the process id; it is
-    created atomically (``O_CREAT | O_EXCL``) and removed when the process exits, so two runs
-    into one folder never both go on; a lock left by a process that is gone is taken over with a
-    warning. Nothing is created before the checks but the folder Hydra creates anyway. A full disk
-    when Hydra then writes ``.hydra/`` is one line naming the folder (exit status 1).
+    them, which clears them first (a sweep's earlier job folders are removed with ``overwrite=true``).
+    The lock file holds the process id; it is created atomically (``O_CREAT | O_EXCL``) and removed
+    when the process exits, so two runs into one folder never both go on; a lock left by a process
+    that is gone is taken over with a warning. Nothing is created before the checks but the folder
+    Hydra creates anyway. A full disk when Hydra then writes ``.hydra/`` is one line naming the
+    folder (exit status 1).
 
 Signals
     SIGINT (Ctrl-C) and SIGTERM (``kill``, a scheduler's time limit) are stop requests
@@ -29,7 +30,8 @@ Signals
     a chunk of trials, keeping the finished chunks; learning: after the current optimiser step),
     writes the results of what finished, and exits with ``128 + the signal``: 130 (SIGINT), 143
     (SIGTERM). A further signal changes nothing (SIGKILL ends a process without results). In a
-    sweep, a stop request ends the sweep.
+    sweep, a stop request ends the sweep (a launcher's worker lets its job return, and starts no
+    other), which ends with its report and the command that goes on (exit status 130 / 143).
 
 Job environment
     :func:`job_environment`: the device and dtype checked, the torch threads (``threads``;
@@ -96,6 +98,8 @@ class Command:
             checked against the YAML).
         distributed: whether ``torchrun`` may start it (ranks other than 0 write into a
             temporary folder; rank 0 alone is guarded).
+        resumable: whether ``resume=true`` goes on from saved chunks (a stopped sweep's end then
+            prints the command that goes on).
     """
 
     prog: str
@@ -103,6 +107,7 @@ class Command:
     job: Callable[[DictConfig, Path, "JobEnv"], int]
     free_form: Sequence[str] = rc.FREE_FORM
     distributed: bool = False
+    resumable: bool = False
 
 
 def config_error(e: BaseException) -> Optional[str]:
@@ -346,9 +351,9 @@ class OutputLock:
 
 #: the locks this process holds (released at exit)
 _HELD: Dict[Path, OutputLock] = {}
-#: the output folders :class:`OutputGuard` checked in this process: ``hydra.run.dir`` /
-#: ``hydra.sweep.dir`` -> the folder (for the messages of :func:`main`)
-GUARDED: Dict[str, Path] = {}
+#: what :class:`OutputGuard` checked in this process: ``hydra.run.dir`` / ``hydra.sweep.dir`` -> the
+#: folder, and a sweep's ``checkpoint_dir`` (for the messages of :func:`main`)
+GUARDED: Dict[str, object] = {}
 
 
 @contextlib.contextmanager
@@ -450,6 +455,8 @@ class OutputGuard(Callback):
             lock = guard_output_folder(folder, key=key, shown=given, replace=overwrite or resume, sweep=sweep,
                                        clear_jobs=overwrite, command=os.environ.get(rc.PROG_ENV, "torchflow"))
             GUARDED[key] = folder
+            if sweep:  # a stopped sweep's end tells how to go on only where chunks were saved
+                GUARDED["checkpoint_dir"] = OmegaConf.select(config, "checkpoint_dir", default=None)
             if lock.took_over is not None:
                 print(f"warning: {lock.takeover_message()}", file=sys.stderr)
         except (ConfigError, OmegaConfBaseException) as e:
@@ -532,7 +539,10 @@ def _job(command: Command, cfg: DictConfig) -> int:
 
 def hydra_entry(command: Command) -> Callable[[], None]:
     """The Hydra-decorated entry of ``command``: runs one job (every job of a sweep); a sweep (``-m``)
-    goes on after a failing job, a stop request ends it."""
+    goes on after a failing job, a stop request ends it: in the process of :func:`main` (Hydra's
+    sequential launcher) at once; in a launcher's worker (joblib) the job returns, so that the launcher
+    collects every job and no worker is killed while it writes, and the worker starts no further job
+    (:func:`run_job`)."""
 
     def task(cfg: DictConfig) -> None:
         install_stop_handlers()  # again in a launcher's worker process (idempotent)
@@ -541,8 +551,8 @@ def hydra_entry(command: Command) -> Callable[[], None]:
             code = _job(command, cfg)
         finally:
             logging.captureWarnings(False)
-        if multirun() and code < 128:
-            return  # the sweep goes on; the job's folder (error.txt, results) says what happened
+        if multirun() and (code < 128 or os.getpid() != _MAIN_PID[0]):
+            return  # the sweep goes on (or its workers wind down); the job's folder says what happened
         if code:
             sys.exit(code)
 
@@ -551,6 +561,8 @@ def hydra_entry(command: Command) -> Callable[[], None]:
 
 
 HELP_FLAGS = ("-h", "--help", "--hydra-help", "--info", "-c", "--cfg", "--version", "--shell-completion", "-sc")
+#: the process id of :func:`main` (a launcher's worker process has another)
+_MAIN_PID: List[Optional[int]] = [None]
 
 
 def _one_line(text: str) -> str:
@@ -604,13 +616,26 @@ def _hydra_errors_raised():
             os.environ["HYDRA_FULL_ERROR"] = before
 
 
+def _end_of_stopped_sweep(command: Command) -> None:
+    """After a sweep a stop request ended (any launcher): the report of its jobs and, where chunks were
+    saved, the command that goes on."""
+    from .sweep import report_sweep
+
+    report_sweep(Path(GUARDED["hydra.sweep.dir"]), stopped_by=STOP.name)
+    if command.resumable and GUARDED.get("checkpoint_dir") is not None:
+        print(f"stopped by {STOP.name}; the finished chunks are saved: go on with\n  {rc.resume_command()}",
+              file=sys.stderr)
+    else:
+        print(f"stopped by {STOP.name}", file=sys.stderr)
+
+
 def main(command: Command, argv: Optional[List[str]] = None, prog: Optional[str] = None,
          entry: Optional[Callable[[], None]] = None) -> None:
     """Start ``command`` with ``argv`` (default ``sys.argv[1:]``; Hydra overrides): refuse unknown
     config names in group selections (one line, exit 2), set the stop handlers, run Hydra (``entry``:
-    the command's :func:`hydra_entry`), say Hydra's own errors in one line (:func:`hydra_error`), release
-    the output folder's lock; exits with the job's status. ``prog``: the command in messages (default:
-    the script as invoked, :func:`~torchflow.runner.config.invoked_as`)."""
+    the command's :func:`hydra_entry`), say Hydra's own errors in one line (:func:`hydra_error`), end a
+    stopped sweep with its report, release the output folder's lock; exits with the job's status.
+    ``prog``: the command in messages (default: the script as invoked, :func:`~torchflow.runner.config.invoked_as`)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     prog = prog or rc.invoked_as(sys.argv[0], command.prog)
     rank = os.environ.get("RANK", "0") if command.distributed else "0"
@@ -628,18 +653,26 @@ def main(command: Command, argv: Optional[List[str]] = None, prog: Optional[str]
     STOP.reset()
     install_stop_handlers()
     GUARDED.clear()
+    _MAIN_PID[0] = os.getpid()
     sys.argv = [sys.argv[0], *argv]
+    code = EXIT_OK
     try:
         with _hydra_errors_raised() as full_errors:
             (entry or hydra_entry(command))()
+    except SystemExit as e:
+        code = e.code if isinstance(e.code, int) else (EXIT_OK if e.code is None else EXIT_FAILED)
     except Exception as e:  # noqa: BLE001 - Hydra's own errors: one line where they are a setting's
         message, code = hydra_error(e, command, argv)
         if message is None and full_errors:
             raise
         print(f"error: {message}" if message else traceback.format_exc().rstrip(), file=sys.stderr)
-        sys.exit(code)
     finally:
         release_locks()
+    if STOP.requested and "hydra.sweep.dir" in GUARDED:
+        _end_of_stopped_sweep(command)
+        code = STOP.exit_code
+    if code:
+        sys.exit(code)
 
 
 register_configs()  # the signature nodes the component configs extend (at import: sweep workers compose too)
@@ -648,5 +681,6 @@ register_configs()  # the signature nodes the component configs extend (at impor
 OmegaConf.register_new_resolver("tf_pid", lambda: str(os.getpid()), replace=True, use_cache=True)
 
 __all__ = ["Command", "GUARDED", "JobEnv", "LOCK_NAME", "Output", "OutputGuard", "OutputLock", "config_error",
-           "earlier_jobs", "earlier_results", "guard_output_folder", "hydra_entry", "hydra_error", "install_stop_handlers",
-           "job_environment", "job_threads", "main", "release_locks", "run_job", "torch_threads"]
+           "earlier_jobs", "earlier_results", "guard_output_folder", "hydra_entry", "hydra_error",
+           "install_stop_handlers", "job_environment", "job_threads", "main", "release_locks", "run_job",
+           "torch_threads"]
