@@ -194,6 +194,22 @@ def test_resume_with_nothing_saved_says_so_and_computes_every_chunk(tmp_path, ca
     assert caplog.records == []  # not resuming: nothing to say
 
 
+def test_two_live_runs_sharing_a_checkpoint_dir_keep_their_chunks_apart(tmp_path):
+    """Runs of other settings (here seeds) save under other keys; the same settings save the same chunks
+    (written atomically), so a shared checkpoint_dir needs no lock (trial_range runs share one)."""
+    def cmd(seed):
+        return [sys.executable, str(RUN), *TINY, "filter=[kf]", f"seed={seed}", "checkpoint_dir=ck",
+                f"hydra.run.dir=run{seed}"]
+
+    procs = [subprocess.Popen(cmd(seed), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                              env=_env()) for seed in (0, 1)]
+    errs = [p.communicate(timeout=180)[1] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], errs
+    saved = sorted(json.loads(f.read_text())["seed"] for f in (tmp_path / "ck").glob("kf-*/settings.json"))
+    assert saved == [0, 1]
+    assert all(len(list(d.glob("*.pt"))) == 1 for d in (tmp_path / "ck").glob("kf-*"))
+
+
 def test_the_resume_hint_repeats_the_script_as_invoked_from_another_folder(tmp_path):
     work = tmp_path / "w"
     work.mkdir()
