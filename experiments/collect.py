@@ -25,9 +25,10 @@ DEFAULT_COLUMNS = ["mse", "omat", "ospa", "ess", "g_eff", "log_evidence_relmse",
 
 
 def collect(sweep_dir: Path, columns=None):
-    """Rows ``{overrides..., filter, columns...}`` of every finished job under ``sweep_dir``, the
-    columns, and the jobs without (complete) results: ``{"name", "state" ("failed" | "interrupted" |
-    "missing"), "message", "overrides"}`` (overrides that vary between jobs)."""
+    """Rows ``{overrides..., filter, columns...}`` of every finished job under ``sweep_dir`` (a job whose
+    ``results.json`` is damaged: its CSV files, written before it), the columns, and the jobs without
+    (complete) results: ``{"name", "state" ("failed" | "interrupted" | "missing" | "damaged"), "message",
+    "overrides"}`` (overrides that vary between jobs)."""
     rows, missing, keys = [], [], []
     vary = varying_overrides(job_dirs(sweep_dir))
     for job in job_dirs(sweep_dir):
@@ -35,10 +36,15 @@ def collect(sweep_dir: Path, columns=None):
         keys += [k for k in ov if k not in keys]
         state, message = job_status(job)
         summary = job / "summary.csv"
+        # a damaged results.json was written last, after the complete CSV files: they are merged
+        merged = state in ("done", "failed", "damaged") and summary.exists() and (job / "results.json").exists()
+        if state == "damaged":
+            message += ("; its summary.csv and per_trial.csv, written before it, are merged" if merged
+                        else "; it has no summary.csv to merge")
         if state != "done" or not summary.exists():
             missing.append({"name": job.name, "state": "missing" if state == "done" else state, "message": message,
                             "overrides": vary[job.name]})
-        if state not in ("done", "failed") or not summary.exists() or not (job / "results.json").exists():
+        if not merged:
             continue  # a running job's partial summary.csv is not merged
         se = _trial_standard_errors(job / "per_trial.csv")
         with open(summary) as fh:

@@ -3,4 +3,4 @@ docstring has examples) from a source checkout, with the same configs (``configs
 from torchflow.cli import main
 
 if __name__ == "__main__":
-    main(prog="python experiments/run.py")
+    main()  # the resume hint repeats the script as invoked (python ../experiments/run.py from another folder)

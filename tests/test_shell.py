@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+import yaml
 
 from torchflow.runner import ConfigError
 from torchflow.runner import shell
@@ -121,16 +122,26 @@ def test_a_stale_lock_is_taken_over_with_a_warning_and_removed_at_exit(tmp_path,
     assert (out / RESULT[command]).exists() and not (out / shell.LOCK_NAME).exists()
 
 
-def test_two_runs_started_at_once_into_one_folder_do_not_both_succeed(tmp_path):
-    procs = [subprocess.Popen(_argv("learn", *TINY["learn"], "hydra.run.dir=out"), stdout=subprocess.DEVNULL,
-                              stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=_env()) for _ in range(2)]
+@pytest.mark.parametrize("command", ["run", "learn"])
+def test_two_runs_started_at_once_into_one_folder_do_not_both_succeed(tmp_path, command):
+    """Two seeds into one folder (the run command: and one checkpoint_dir): one goes on, the other is
+    refused in one line, and the folder's .hydra/config.yaml is the results' run."""
+    shared = ["checkpoint_dir=ck"] if command == "run" else []
+    procs = [subprocess.Popen(_argv(command, *TINY[command], *shared, f"seed={seed}", "hydra.run.dir=out"),
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=_env())
+             for seed in (0, 1)]
     errs = [p.communicate(timeout=120)[1] for p in procs]
     codes = [p.returncode for p in procs]
     assert sorted(codes) == [0, 2], (codes, errs)
     refused = _lines(errs[codes.index(2)])
     assert len(refused) == 1 and ("is in use by a running torchflow command" in refused[0]
                                   or "already holds the results of a run" in refused[0]), refused
-    assert (tmp_path / "out" / "learn.csv").exists() and not (tmp_path / "out" / shell.LOCK_NAME).exists()
+    out = tmp_path / "out"
+    assert (out / RESULT[command]).exists() and not (out / shell.LOCK_NAME).exists()
+    assert yaml.safe_load((out / ".hydra" / "config.yaml").read_text())["seed"] == codes.index(0)
+    if command == "run":
+        assert json.loads((out / "results.json").read_text())["config"]["seed"] == codes.index(0)
+        assert len(list((tmp_path / "ck").glob("kf-*"))) == 1  # the refused run saved nothing
 
 
 def _foreign_lock(folder, pid, mtime=None):
@@ -222,8 +233,6 @@ def test_stop_request_exit_codes_follow_the_signal():
 
 
 def test_both_configs_carry_every_speed_knob_and_the_output_guard():
-    import yaml
-
     from torchflow import tuning
 
     for name in ("config", "learn"):

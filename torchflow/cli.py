@@ -108,7 +108,14 @@ def chunk_store(cfg: DictConfig, labels):
                 for k, fcfg in cfg.filter.items() if k in labels}  # not the settings of unselected filters
     keys = {label: "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in label) + "-" + fingerprint(s)
             for label, s in settings.items()}
-    return ChunkStore(Path(hydra.utils.to_absolute_path(str(root))), keys, resume=resume, settings=settings)
+    store = ChunkStore(Path(hydra.utils.to_absolute_path(str(root))), keys, resume=resume, settings=settings)
+    unsaved = [label for label in keys if not store.saved_ranges(label)] if resume else []
+    if unsaved:  # a new checkpoint_dir, or settings other than the saved run's (saved under another key)
+        every = len(unsaved) == len(keys)
+        why = " (a new folder, or settings other than the saved run's, which save under another key)" if every else ""
+        log.warning(f"resume=true: nothing is saved under {store.root}{'' if every else ' for ' + ', '.join(unsaved)} "
+                    f"with these settings{why}: {'every chunk is' if every else 'their chunks are'} computed")
+    return store
 
 
 _Output = shell.Output  # the first failed write turns the exit status to 1
@@ -149,7 +156,7 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
     if result.interrupted:
         skipped = f"; not run: {', '.join(result.not_run)}" if result.not_run else ""
         log.warning(f"interrupted by {STOP.name}: the results of the filters that finished are written{skipped}")
-        if store is not None:
+        if store is not None and not shell.multirun():  # a sweep's end says it once for every job
             log.warning(f"the finished chunks are saved under {store.root}; go on with\n  {rc.resume_command()}")
         return STOP.exit_code
     return 1 if (result.failed or writer.failed) else 0
@@ -166,7 +173,7 @@ def _run(cfg: DictConfig, out: Path, env: JobEnv) -> int:
 
 
 #: the ``torchflow`` command of the shell
-RUN = shell.Command(prog="torchflow", config_name="config", job=_run, distributed=True)
+RUN = shell.Command(prog="torchflow", config_name="config", job=_run, distributed=True, resumable=True)
 hydra_main = shell.hydra_entry(RUN)
 
 
@@ -175,8 +182,9 @@ def run_job(cfg: DictConfig) -> int:
     return shell.run_job(RUN, cfg)
 
 
-def main(argv: Optional[List[str]] = None, prog: str = "torchflow") -> None:
-    """The ``torchflow`` command (``argv``: the overrides; default ``sys.argv[1:]``)."""
+def main(argv: Optional[List[str]] = None, prog: Optional[str] = None) -> None:
+    """The ``torchflow`` command (``argv``: the overrides; default ``sys.argv[1:]``; ``prog``: its name in
+    messages, default: as invoked, ``torchflow`` or ``python <script>``)."""
     shell.main(RUN, argv, prog, entry=hydra_main)
 
 

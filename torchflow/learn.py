@@ -470,7 +470,7 @@ def _open_start(argv: List[str]) -> List[str]:
     return [f"++{a}" if a.startswith(("start=", "start.")) else a for a in argv]
 
 
-def main(argv: Optional[List[str]] = None, prog: str = "torchflow-learn") -> None:
+def main(argv: Optional[List[str]] = None, prog: Optional[str] = None) -> None:
     """The ``torchflow-learn`` command (``argv``: the overrides; default ``sys.argv[1:]``)."""
     shell.main(LEARN, _open_start(list(sys.argv[1:] if argv is None else argv)), prog, entry=hydra_main)
 

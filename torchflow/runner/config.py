@@ -2,9 +2,11 @@
 and of the command line that Hydra itself does not make (one clear line each, no traceback)."""
 from __future__ import annotations
 
+import contextlib
 import difflib
 import json
 import os
+import re
 import shlex
 from importlib.resources import files
 from pathlib import Path
@@ -43,7 +45,8 @@ def group_options(group: str) -> Optional[List[str]]:
 
 def check_selections(argv: Sequence[str]) -> None:
     """Refuse unknown config names in group selections (``filter=[a,b]``, ``model=x``, ``flow@...=edh``,
-    sweeps ``filter=a,b``) with the list of valid names, before Hydra composes anything."""
+    sweeps ``filter=a,b`` and ``filter=[a,b],[c]``) with the list of valid names, and a config selected
+    twice in one list (``filter=[bpf,bpf]``: the two would be one row), before Hydra composes anything."""
     for arg in argv:
         if "=" not in arg or arg.startswith(("hydra.", "-")):
             continue
@@ -52,10 +55,17 @@ def check_selections(argv: Sequence[str]) -> None:
         options, value = None if "." in group or "/" in group else group_options(group), rhs.strip()
         if options is None or value.startswith(("range(", "choice(", "glob(", "interval(")) or value in ("null", ""):
             continue
-        unknown = [v for v in (v.strip() for v in rhs.strip("[]").split(",")) if v and v not in options]
+        unknown = [v for v in dict.fromkeys(re.findall(r"[^\[\],\s]+", value)) if v not in options]
         if unknown:
             raise ConfigError(f"{lhs}: unknown {group} config {', '.join(repr(u) for u in unknown)}; "
                               f"available: {', '.join(options)}")
+        for selection in re.findall(r"\[([^\]]*)\]", value):
+            names = [v.strip() for v in selection.split(",") if v.strip()]
+            twice = next((v for v in names if names.count(v) > 1), None)
+            if twice:
+                raise ConfigError(f"{lhs}: expected each {group} config once, got {twice} {names.count(twice)} times "
+                                  f"in [{selection}] (one row per config); select it once, and to compare settings "
+                                  f"of one {group}, sweep them: -m {group}.{twice}.<key>=a,b")
 
 
 def close_keys(key: str, known: Sequence[str]) -> List[str]:
@@ -84,6 +94,109 @@ def unknown_keys(cfg: Mapping, known: Mapping, prefix: str = "", free_form: Sequ
     return out
 
 
+def compose_config(config_name: str, overrides: Sequence[str]):
+    """The config (with its ``hydra`` node) that Hydra composes from ``overrides``, outside a run."""
+    from hydra import compose, initialize_config_dir, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    src = config_source()
+    GlobalHydra.instance().clear()
+    init = (initialize_config_module(src[len("pkg://"):], version_base="1.3") if src.startswith("pkg://")
+            else initialize_config_dir(src, version_base="1.3"))
+    with init:
+        return compose(config_name, list(overrides), return_hydra_config=True)
+
+
+#: how Hydra refuses an override of a key its config does not have (``n_particle=7``, no ``+``)
+_NO_SUCH_KEY = re.compile(r"Could not override '([^']+)'\.")
+
+
+def missing_override_key(message: str) -> Optional[str]:
+    """The key of Hydra's refusal ``Could not override 'KEY'.`` (``None``: another refusal)."""
+    m = _NO_SUCH_KEY.search(message)
+    return m.group(1) if m else None
+
+
+def unknown_override_messages(config_name: str, argv: Sequence[str], key: str) -> List[str]:
+    """One message per override of a key the config does not have (Hydra refused the first, ``key``):
+    the config is composed again without it (a sweep's first values) to find the others and the
+    closest known keys (:func:`unknown_key_message`)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    parser, parsed = OverridesParser.create(), []
+    for arg in argv:
+        with contextlib.suppress(HydraException):
+            parsed.append(parser.parse_override(arg))
+    bad, tree = [key], None
+    for _ in range(len(parsed) + 1):
+        args = [f"{o.get_key_element()}={next(o.sweep_string_iterator())}" if o.is_sweep_override() else o.input_line
+                for o in parsed if o.key_or_group not in bad]  # a sweep: its first value
+        try:
+            tree = OmegaConf.to_container(compose_config(config_name, args), resolve=False)
+            break
+        except HydraException as e:
+            again = missing_override_key(str(e))
+            if again is None or again in bad:
+                break
+            bad.append(again)
+    return [unknown_key_message(tree, k) for k in bad]
+
+
+def _has(node, parts: Sequence[str]) -> bool:
+    for part in parts:
+        if not isinstance(node, Mapping) or part not in node:
+            return False
+        node = node[part]
+    return True
+
+
+def unknown_key_message(tree: Optional[Mapping], key: str) -> str:
+    """``n_particle: unknown setting; did you mean n_particles?``: ``key`` (dotted) is not in ``tree``
+    (the composed config; ``None``: not known); a filter that is not selected says so."""
+    parts, node, i = key.split("."), tree, 0
+    while isinstance(node, Mapping) and i < len(parts) and parts[i] in node:
+        node, i = node[parts[i]], i + 1
+    if not isinstance(node, Mapping) or i == len(parts):
+        return f"{key}: unknown setting"
+    where, missing, tail = ".".join(parts[:i]), parts[i], "".join("." + p for p in parts[i + 1:])
+    known = [str(k) for k in node if not str(k).startswith("_") and k != "defaults"]
+    close = [f"{where + '.' if where else ''}{c}{tail if _has(node[c], parts[i + 1:]) else ''}"
+             for c in close_keys(missing, known)]
+    did_you_mean = f"; did you mean {' or '.join(close)}?" if close else ""
+    if where == "filter":
+        text = f"{key}: expected one of the selected filters {', '.join(known)}, got {missing}"
+        if missing in (group_options("filter") or []):
+            return f"{text} (not selected; to set it, select it too: filter=[{','.join([*known, missing])}])"
+        return text + did_you_mean
+    if not close and where:
+        return f"{key}: unknown setting; the settings of {where} are {', '.join(known)}"
+    return f"{key}: unknown setting{did_you_mean}"
+
+
+def unreadable_override_message(argv: Sequence[str]) -> Optional[str]:
+    """The message of the first override Hydra's grammar cannot read (``None``: all read): unquoted, a
+    value may hold only ASCII letters, digits and a few symbols, so ``label=ünï码`` or a folder with
+    spaces needs Hydra's quotes, inside the shell's: ``"hydra.run.dir='dir with spaces/ünï码'"``."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    parser = OverridesParser.create()
+    for arg in argv:
+        if arg.startswith("-"):
+            continue
+        try:
+            parser.parse_override(arg)
+        except HydraException as e:
+            lhs, _, rhs = arg.partition("=")
+            if not rhs or rhs[:1] in "'\"":
+                return f"{arg}: Hydra cannot read this override ({e}); see Hydra's override grammar"
+            quoted = f"\"{lhs}='{rhs}'\"" if "'" not in rhs + lhs else shlex.quote(f'{lhs}="{rhs}"')
+            return (f"{lhs}: expected a value Hydra can read unquoted (ASCII letters, digits, _-./:), got {rhs!r} "
+                    f"({e}); quote it for Hydra inside the shell's quotes: {quoted}")
+    return None
+
+
 def check_config(cfg: Mapping, choices: Mapping[str, Optional[str]], config_name: str = "config",
                  free_form: Sequence[str] = FREE_FORM) -> None:
     """What a composed config of the command whose primary config is ``config_name`` (``config``:
@@ -109,6 +222,25 @@ def check_config(cfg: Mapping, choices: Mapping[str, Optional[str]], config_name
         m = cfg.get("metrics") or {}
         check_metric_settings(ospa_cutoff=m.get("ospa_cutoff"), ospa_order=m.get("ospa_order"),
                               lost_threshold=m.get("lost_threshold"))
+
+
+def invoked_as(argv0: str, default: str) -> str:
+    """How this process was started, for the resume hint: ``python <the script as given>`` (so that
+    ``python ../experiments/run.py`` is repeated as such from that folder), else ``default`` (an
+    entry point: ``torchflow``)."""
+    if argv0.endswith(".py") and Path(argv0).name != "__main__.py":
+        return "python " + shlex.quote(argv0)
+    return default
+
+
+def collect_command(sweep_dir, env: Optional[Mapping[str, str]] = None) -> str:
+    """The command that merges a sweep's jobs: ``experiments/collect.py`` beside the ``run.py`` this
+    process was started as (``python ../experiments/run.py``: ``python ../experiments/collect.py``)."""
+    prog = (os.environ if env is None else env).get(PROG_ENV, "")
+    script = prog[len("python "):] if prog.startswith("python ") else ""
+    script = shlex.split(script)[0] if script else ""
+    collect = str(Path(script).with_name("collect.py")) if Path(script).name == "run.py" else "experiments/collect.py"
+    return f"python {shlex.quote(collect)} {shlex.quote(str(sweep_dir))}"
 
 
 def remember_command(prog: str, argv: Sequence[str]) -> None:

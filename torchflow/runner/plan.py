@@ -168,9 +168,26 @@ def check_settings(*, trials, steps, seed, inits_per_track, chunk_size, memory_b
         chunk_size = _count("chunk_size", chunk_size, hint=" (or None: from memory_budget_gb)")
     require(_number(memory_budget_gb) and memory_budget_gb > 0, "memory_budget_gb", "a positive number of GiB",
              memory_budget_gb)
-    return RunSettings(trials, _count("steps", steps), check_seed(seed), _count("inits_per_track", inits_per_track),
+    inits_per_track = _count("inits_per_track", inits_per_track)
+    warn_uneven_tracks(trials, inits_per_track)
+    return RunSettings(trials, _count("steps", steps), check_seed(seed), inits_per_track,
                        chunk_size, float(memory_budget_gb), resolve_device(device), resolve_dtype(dtype),
                        check_rng_backend(rng_backend), *check_trial_range(trial_range, trials))
+
+
+def warn_uneven_tracks(trials: int, inits_per_track: int) -> None:
+    """Trials share a trajectory in groups of ``inits_per_track`` (:func:`simulate`); a warning when
+    the groups are not all that size: ``inits_per_track`` above ``trials`` (every trial shares one
+    trajectory) or not dividing it (the last trajectory has fewer trials)."""
+    if inits_per_track > trials:
+        warnings.warn(f"inits_per_track={inits_per_track} is more than trials={trials}: all {trials} trials share "
+                      f"one trajectory (inits_per_track={trials} says so)", stacklevel=3)
+    elif trials % inits_per_track:
+        last = trials % inits_per_track
+        warnings.warn(f"inits_per_track={inits_per_track} does not divide trials={trials}: the last trajectory is "
+                      f"shared by {last} trial{'s' if last > 1 else ''}, the others by {inits_per_track} (trials="
+                      f"{-(-trials // inits_per_track) * inits_per_track} keeps the groups equal)",
+                      stacklevel=3)
 
 
 @dataclass

@@ -4,20 +4,25 @@ runs) and ``torchflow-learn`` (:mod:`torchflow.learn`, maximum-likelihood fits) 
 one set of contracts:
 
 Settings
-    A group selection naming no config (``filter=[nope]``), a key the command's config does not
-    have (``+learning_rate=0.5``) or a bad value is refused before anything runs: one line on
+    A group selection naming no config (``filter=[nope]``) or one config twice (``filter=[bpf,bpf]``),
+    a key the command's config does not have (``+learning_rate=0.5``, or ``n_particle=7`` without
+    ``+``, which Hydra refuses), an override Hydra's grammar cannot read (``label=ünï码`` unquoted:
+    the line shows the quoted form) or a bad value is refused before anything runs: one line on
     stderr (an unknown key names the closest known ones: ``did you mean lr?``), exit status 2.
+    Hydra's own errors reach :func:`main` (:func:`hydra_error`) instead of being printed by Hydra.
 
 Output folder (Hydra's resolved ``hydra.run.dir`` / ``hydra.sweep.dir``, however it was quoted)
     :class:`OutputGuard`, a Hydra callback of both configs, checks it before Hydra writes anything
     into it, and refuses in one line (exit 2): a folder that cannot be written; a folder a live
     run holds (its lock file :data:`LOCK_NAME` names the process); a folder holding an earlier
     run's results (any command's :data:`~torchflow.runner.writers.ALL_RESULT_FILES`; a sweep's
-    ``<job>/results.json`` or ``<job>/learn.csv``) unless ``overwrite=true`` (or ``resume=true``)
-    says to replace them, which clears them first. The lock file holds the process id; it is
-    created atomically (``O_CREAT | O_EXCL``) and removed when the process exits, so two runs
-    into one folder never both go on; a lock left by a process that is gone is taken over with a
-    warning. Nothing is created before the checks but the folder Hydra creates anyway.
+    job folders: :func:`earlier_jobs`) unless ``overwrite=true`` (or ``resume=true``) says to replace
+    them, which clears them first (a sweep's earlier job folders are removed with ``overwrite=true``).
+    The lock file holds the process id; it is created atomically (``O_CREAT | O_EXCL``) and removed
+    when the process exits, so two runs into one folder never both go on; a lock left by a process
+    that is gone is taken over with a warning. Nothing is created before the checks but the folder
+    Hydra creates anyway. A full disk when Hydra then writes ``.hydra/`` is one line naming the
+    folder (exit status 1).
 
 Signals
     SIGINT (Ctrl-C) and SIGTERM (``kill``, a scheduler's time limit) are stop requests
@@ -25,7 +30,8 @@ Signals
     a chunk of trials, keeping the finished chunks; learning: after the current optimiser step),
     writes the results of what finished, and exits with ``128 + the signal``: 130 (SIGINT), 143
     (SIGTERM). A further signal changes nothing (SIGKILL ends a process without results). In a
-    sweep, a stop request ends the sweep.
+    sweep, a stop request ends the sweep (a launcher's worker lets its job return, and starts no
+    other), which ends with its report and the command that goes on (exit status 130 / 143).
 
 Job environment
     :func:`job_environment`: the device and dtype checked, the torch threads (``threads``;
@@ -40,8 +46,10 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import errno
 import logging
 import os
+import shutil
 import signal
 import socket
 import sys
@@ -90,6 +98,8 @@ class Command:
             checked against the YAML).
         distributed: whether ``torchrun`` may start it (ranks other than 0 write into a
             temporary folder; rank 0 alone is guarded).
+        resumable: whether ``resume=true`` goes on from saved chunks (a stopped sweep's end then
+            prints the command that goes on).
     """
 
     prog: str
@@ -97,6 +107,7 @@ class Command:
     job: Callable[[DictConfig, Path, "JobEnv"], int]
     free_form: Sequence[str] = rc.FREE_FORM
     distributed: bool = False
+    resumable: bool = False
 
 
 def config_error(e: BaseException) -> Optional[str]:
@@ -340,6 +351,9 @@ class OutputLock:
 
 #: the locks this process holds (released at exit)
 _HELD: Dict[Path, OutputLock] = {}
+#: what :class:`OutputGuard` checked in this process: ``hydra.run.dir`` / ``hydra.sweep.dir`` -> the
+#: folder, and a sweep's ``checkpoint_dir`` (for the messages of :func:`main`)
+GUARDED: Dict[str, object] = {}
 
 
 @contextlib.contextmanager
@@ -366,23 +380,39 @@ def release_locks() -> None:
 atexit.register(release_locks)
 
 
+def earlier_jobs(folder: Path) -> List[Path]:
+    """The job folders an earlier sweep left in the sweep folder ``folder``: numbered folders holding
+    Hydra's ``.hydra`` or a result file (a finished, failed, stopped or killed job)."""
+    from .sweep import job_dirs
+
+    return [j for j in job_dirs(folder) if (j / ".hydra").is_dir() or any((j / n).exists() for n in ALL_RESULT_FILES)]
+
+
 def earlier_results(folder: Path, sweep: bool = False) -> List[str]:
-    """The result files an earlier run left in ``folder`` (a sweep folder: its jobs' ``results.json``
-    and ``learn.csv``), relative to it."""
+    """The result files an earlier run left in ``folder``, relative to it (a sweep folder: its jobs'
+    ``results.json``, ``learn.csv`` and ``error.txt``, and ``<job>/`` for a job folder holding none:
+    a job killed or stopped before it wrote any)."""
     folder = Path(folder)
     if not folder.is_dir():
         return []
     if sweep:
-        return sorted(str(p.relative_to(folder)) for name in ("results.json", "learn.csv")
-                      for p in folder.glob(f"[0-9]*/{name}"))
+        found = []
+        for job in earlier_jobs(folder):
+            files = [f"{job.name}/{n}" for n in ("results.json", "learn.csv", "error.txt") if (job / n).exists()]
+            found += files or [f"{job.name}/"]
+        return found
     return [n for n in ALL_RESULT_FILES if (folder / n).exists()]
 
 
 def guard_output_folder(folder: Path, *, key: str = "hydra.run.dir", shown: Optional[str] = None,
-                        replace: bool = False, sweep: bool = False, command: str = "torchflow") -> OutputLock:
+                        replace: bool = False, sweep: bool = False, clear_jobs: bool = False,
+                        command: str = "torchflow") -> OutputLock:
     """Make ``folder`` ready for a run, or raise a one-line :class:`ConfigError`: it must be
     writable (created if missing), no live run may hold it, and it must hold no earlier results
-    unless ``replace`` (``overwrite=true`` / ``resume=true``). Returns its held :class:`OutputLock`.
+    unless ``replace`` (``overwrite=true`` / ``resume=true``). A sweep folder (``sweep``) with
+    ``clear_jobs`` (``overwrite=true``) is cleared of the earlier sweep's job folders and
+    ``sweep_summary.csv``, so that the end report and ``collect.py`` see this sweep's jobs alone
+    (``resume=true`` reruns the same jobs into their folders). Returns its held :class:`OutputLock`.
     ``shown``: the folder as the user gave it (for messages; default ``folder``)."""
     folder, shown = Path(folder), shown or str(folder)
     try:
@@ -397,8 +427,14 @@ def guard_output_folder(folder: Path, *, key: str = "hydra.run.dir", shown: Opti
     found = earlier_results(folder, sweep)
     if found and not replace:
         lock.release()
-        raise ConfigError(f"{key}: {shown} already holds the results of a run ({', '.join(found[:4])}); choose "
-                          f"a new folder ({key}=<new folder>) or add overwrite=true to replace them")
+        what = "the jobs of an earlier sweep" if sweep else "the results of a run"
+        raise ConfigError(f"{key}: {shown} already holds {what} ({', '.join(found[:4])}"
+                          f"{', ...' if len(found) > 4 else ''}); choose a new folder ({key}=<new folder>) or add "
+                          "overwrite=true to replace them")
+    if sweep and clear_jobs:
+        for job in earlier_jobs(folder):
+            shutil.rmtree(job, ignore_errors=True)
+        (folder / "sweep_summary.csv").unlink(missing_ok=True)
     return lock
 
 
@@ -414,10 +450,13 @@ class OutputGuard(Callback):
         try:
             HydraConfig.instance().set_config(config)  # ${hydra:...} in the folder's name
             given = str(OmegaConf.select(config, key))
-            replace = any(OmegaConf.select(config, k, default=False) is True for k in ("overwrite", "resume"))
+            overwrite, resume = (OmegaConf.select(config, k, default=False) is True for k in ("overwrite", "resume"))
             folder = Path(given) if Path(given).is_absolute() else Path.cwd() / given
-            lock = guard_output_folder(folder, key=key, shown=given, replace=replace, sweep=sweep,
-                                       command=os.environ.get(rc.PROG_ENV, "torchflow"))
+            lock = guard_output_folder(folder, key=key, shown=given, replace=overwrite or resume, sweep=sweep,
+                                       clear_jobs=overwrite, command=os.environ.get(rc.PROG_ENV, "torchflow"))
+            GUARDED[key] = folder
+            if sweep:  # a stopped sweep's end tells how to go on only where chunks were saved
+                GUARDED["checkpoint_dir"] = OmegaConf.select(config, "checkpoint_dir", default=None)
             if lock.took_over is not None:
                 print(f"warning: {lock.takeover_message()}", file=sys.stderr)
         except (ConfigError, OmegaConfBaseException) as e:
@@ -500,7 +539,10 @@ def _job(command: Command, cfg: DictConfig) -> int:
 
 def hydra_entry(command: Command) -> Callable[[], None]:
     """The Hydra-decorated entry of ``command``: runs one job (every job of a sweep); a sweep (``-m``)
-    goes on after a failing job, a stop request ends it."""
+    goes on after a failing job, a stop request ends it: in the process of :func:`main` (Hydra's
+    sequential launcher) at once; in a launcher's worker (joblib) the job returns, so that the launcher
+    collects every job and no worker is killed while it writes, and the worker starts no further job
+    (:func:`run_job`)."""
 
     def task(cfg: DictConfig) -> None:
         install_stop_handlers()  # again in a launcher's worker process (idempotent)
@@ -509,8 +551,8 @@ def hydra_entry(command: Command) -> Callable[[], None]:
             code = _job(command, cfg)
         finally:
             logging.captureWarnings(False)
-        if multirun() and code < 128:
-            return  # the sweep goes on; the job's folder (error.txt, results) says what happened
+        if multirun() and (code < 128 or os.getpid() != _MAIN_PID[0]):
+            return  # the sweep goes on (or its workers wind down); the job's folder says what happened
         if code:
             sys.exit(code)
 
@@ -519,15 +561,83 @@ def hydra_entry(command: Command) -> Callable[[], None]:
 
 
 HELP_FLAGS = ("-h", "--help", "--hydra-help", "--info", "-c", "--cfg", "--version", "--shell-completion", "-sc")
+#: the process id of :func:`main` (a launcher's worker process has another)
+_MAIN_PID: List[Optional[int]] = [None]
+
+
+def _one_line(text: str) -> str:
+    return " ".join(ln.strip() for ln in str(text).splitlines() if ln.strip())
+
+
+def _causes(e: BaseException):
+    while e is not None:
+        yield e
+        e = e.__cause__ or e.__context__
+
+
+#: a full disk or a folder that cannot be written, where Hydra writes (``.hydra/``, the log)
+_WRITE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM}
+
+
+def hydra_error(e: Exception, command: Command, argv: Sequence[str]) -> tuple:
+    """``(one-line message, exit status)`` of an error Hydra raised itself, or ``(None, 1)``: an override it
+    cannot read (2: :func:`~torchflow.runner.config.unreadable_override_message`), of a key the config
+    does not have (2: :func:`~torchflow.runner.config.unknown_override_messages`), any other composition
+    error (2), a write into the output folder that failed (1: a full disk)."""
+    from hydra.errors import ConfigCompositionException, OverrideParseException
+
+    if isinstance(e, OverrideParseException):
+        return rc.unreadable_override_message(argv) or _one_line(e), EXIT_CONFIG
+    if isinstance(e, ConfigCompositionException):
+        key = rc.missing_override_key(str(e))
+        return "; ".join(rc.unknown_override_messages(command.config_name, argv, key)) if key else _one_line(e), \
+            EXIT_CONFIG
+    bad = next((x for x in _causes(e) if isinstance(x, OSError) and x.errno in _WRITE_ERRNOS), None)
+    if bad is not None:
+        key = "hydra.sweep.dir" if "hydra.sweep.dir" in GUARDED else "hydra.run.dir"
+        where = bad.filename or GUARDED.get(key) or "the output folder"
+        return (f"cannot write into {where} ({type(bad).__name__}: {bad.strerror or bad}); free space there or "
+                f"choose another folder ({key}=<folder>)"), EXIT_FAILED
+    return None, EXIT_FAILED
+
+
+@contextlib.contextmanager
+def _hydra_errors_raised():
+    """Hydra raises its own errors (``HYDRA_FULL_ERROR=1``) instead of printing them, so that
+    :func:`main` says them in one line; yields whether the user asked for full errors anyway."""
+    before = os.environ.get("HYDRA_FULL_ERROR")
+    os.environ["HYDRA_FULL_ERROR"] = "1"
+    try:
+        yield before not in (None, "", "0")
+    finally:
+        if before is None:
+            os.environ.pop("HYDRA_FULL_ERROR", None)
+        else:
+            os.environ["HYDRA_FULL_ERROR"] = before
+
+
+def _end_of_stopped_sweep(command: Command) -> None:
+    """After a sweep a stop request ended (any launcher): the report of its jobs and, where chunks were
+    saved, the command that goes on."""
+    from .sweep import report_sweep
+
+    report_sweep(Path(GUARDED["hydra.sweep.dir"]), stopped_by=STOP.name)
+    if command.resumable and GUARDED.get("checkpoint_dir") is not None:
+        print(f"stopped by {STOP.name}; the finished chunks are saved: go on with\n  {rc.resume_command()}",
+              file=sys.stderr)
+    else:
+        print(f"stopped by {STOP.name}", file=sys.stderr)
 
 
 def main(command: Command, argv: Optional[List[str]] = None, prog: Optional[str] = None,
          entry: Optional[Callable[[], None]] = None) -> None:
     """Start ``command`` with ``argv`` (default ``sys.argv[1:]``; Hydra overrides): refuse unknown
     config names in group selections (one line, exit 2), set the stop handlers, run Hydra (``entry``:
-    the command's :func:`hydra_entry`), release the output folder's lock; exits with the job's status."""
+    the command's :func:`hydra_entry`), say Hydra's own errors in one line (:func:`hydra_error`), end a
+    stopped sweep with its report, release the output folder's lock; exits with the job's status.
+    ``prog``: the command in messages (default: the script as invoked, :func:`~torchflow.runner.config.invoked_as`)."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    prog = prog or command.prog
+    prog = prog or rc.invoked_as(sys.argv[0], command.prog)
     rank = os.environ.get("RANK", "0") if command.distributed else "0"
     try:
         rc.check_selections(argv)
@@ -542,11 +652,27 @@ def main(command: Command, argv: Optional[List[str]] = None, prog: Optional[str]
                  "hydra.output_subdir=null", "hydra/job_logging=disabled", "hydra/hydra_logging=disabled"]
     STOP.reset()
     install_stop_handlers()
+    GUARDED.clear()
+    _MAIN_PID[0] = os.getpid()
     sys.argv = [sys.argv[0], *argv]
+    code = EXIT_OK
     try:
-        (entry or hydra_entry(command))()
+        with _hydra_errors_raised() as full_errors:
+            (entry or hydra_entry(command))()
+    except SystemExit as e:
+        code = e.code if isinstance(e.code, int) else (EXIT_OK if e.code is None else EXIT_FAILED)
+    except Exception as e:  # noqa: BLE001 - Hydra's own errors: one line where they are a setting's
+        message, code = hydra_error(e, command, argv)
+        if message is None and full_errors:
+            raise
+        print(f"error: {message}" if message else traceback.format_exc().rstrip(), file=sys.stderr)
     finally:
         release_locks()
+    if STOP.requested and "hydra.sweep.dir" in GUARDED:
+        _end_of_stopped_sweep(command)
+        code = STOP.exit_code
+    if code:
+        sys.exit(code)
 
 
 register_configs()  # the signature nodes the component configs extend (at import: sweep workers compose too)
@@ -554,6 +680,7 @@ register_configs()  # the signature nodes the component configs extend (at impor
 # the main process's value, so every job lands in the one announced folder
 OmegaConf.register_new_resolver("tf_pid", lambda: str(os.getpid()), replace=True, use_cache=True)
 
-__all__ = ["Command", "JobEnv", "LOCK_NAME", "Output", "OutputGuard", "OutputLock", "config_error",
-           "earlier_results", "guard_output_folder", "hydra_entry", "install_stop_handlers", "job_environment",
-           "job_threads", "main", "release_locks", "run_job", "torch_threads"]
+__all__ = ["Command", "GUARDED", "JobEnv", "LOCK_NAME", "Output", "OutputGuard", "OutputLock", "config_error",
+           "earlier_jobs", "earlier_results", "guard_output_folder", "hydra_entry", "hydra_error",
+           "install_stop_handlers", "job_environment", "job_threads", "main", "release_locks", "run_job",
+           "torch_threads"]

@@ -6,10 +6,12 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Any, List
+from typing import Any, List, Optional
 
 import yaml
 from hydra.experimental.callback import Callback
+
+from .config import collect_command
 
 
 def job_dirs(sweep_dir: Path) -> List[Path]:
@@ -19,15 +21,21 @@ def job_dirs(sweep_dir: Path) -> List[Path]:
 
 def job_status(job: Path) -> tuple:
     """``(state, message)``: ``failed`` (the last line of error.txt, or ``filter X failed: ...``),
-    ``done``, ``interrupted`` (Ctrl-C or SIGTERM) or ``missing`` (running, killed, never started)."""
+    ``done``, ``interrupted`` (Ctrl-C or SIGTERM), ``missing`` (running, killed, never started) or
+    ``damaged`` (a ``results.json`` that cannot be read: the message names it and why; it is written
+    last and atomically, so the job's CSV files beside it are complete)."""
     err, res = Path(job) / "error.txt", Path(job) / "results.json"
     if err.exists():
         lines = [ln for ln in err.read_text().splitlines() if ln.strip()]
         return "failed", (lines[-1] if lines else "error")
     try:
         data = json.loads(res.read_text())
-    except (ValueError, OSError):  # not written (yet), or half written
+        if not isinstance(data, dict):
+            raise ValueError(f"expected a JSON object, got {type(data).__name__}")
+    except FileNotFoundError:  # not written (yet)
         return "missing", ""
+    except (ValueError, OSError) as e:
+        return "damaged", f"{res} is damaged ({type(e).__name__}: {e})"
     errors = {r["filter"]: r["error"] for r in data.get("summary", []) if r.get("error")}
     if data.get("interrupted"):
         return "interrupted", ""
@@ -57,23 +65,39 @@ def describe_job(name: str, state: str, message: str, overrides: dict) -> str:
         return f"{head} failed: {message}"
     if state == "interrupted":
         return f"{head} was interrupted (Ctrl-C or SIGTERM): rerun it with resume=true"
+    if state == "damaged":
+        return (f"{head}: {message}; to write it again, rerun the job into its folder (its overrides are in "
+                ".hydra/overrides.yaml there) with hydra.run.dir=<that folder> overwrite=true")
     return f"{head} has no results (still running, killed, or never started)"
 
 
+def report_sweep(sweep: Path, stopped_by: Optional[str] = None) -> dict:
+    """Print (stderr) what happened to every job of ``sweep``: the counts, then each job that did not
+    finish with its varying overrides, and how to merge what finished; the counts per state.
+    ``stopped_by``: the stop request that ended the sweep (``Ctrl-C``, ``SIGTERM``)."""
+    jobs = job_dirs(sweep)
+    bad = {j.name: s for j, s in ((j, job_status(j)) for j in jobs) if s[0] != "done"}
+    count = {k: sum(s[0] == k for s in bad.values()) for k in ("failed", "interrupted", "missing", "damaged")}
+    damaged = f", {count['damaged']} with a damaged results.json" if count["damaged"] else ""
+    stopped = f" (stopped by {stopped_by})" if stopped_by else ""
+    print(f"sweep {sweep}{stopped}: {len(jobs)} jobs, {len(jobs) - len(bad)} finished, {count['failed']} failed, "
+          f"{count['interrupted']} interrupted, {count['missing']} without results{damaged}", file=sys.stderr)
+    vary = varying_overrides(jobs)
+    for n, (state, msg) in bad.items():
+        print("  " + describe_job(n, state, msg, vary[n]), file=sys.stderr)
+    if bad:
+        print(f"  merge what finished: {collect_command(sweep)}", file=sys.stderr)
+    return count
+
+
 class SweepReport(Callback):
-    """Hydra callback: after a multirun, list the failed and missing jobs; exit status 1 if any failed."""
+    """Hydra callback: after a multirun, :func:`report_sweep`; exit status 1 if a job failed. A sweep
+    a stop request ended is reported by the command shell (with the command that goes on)."""
 
     def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
-        sweep = Path(str(config.hydra.sweep.dir))
-        jobs = job_dirs(sweep)
-        bad = {j.name: s for j, s in ((j, job_status(j)) for j in jobs) if s[0] != "done"}
-        count = {k: sum(s[0] == k for s in bad.values()) for k in ("failed", "interrupted", "missing")}
-        print(f"sweep {sweep}: {len(jobs)} jobs, {len(jobs) - len(bad)} finished, {count['failed']} failed, "
-              f"{count['interrupted']} interrupted, {count['missing']} without results", file=sys.stderr)
-        vary = varying_overrides(jobs)
-        for n, (state, msg) in bad.items():
-            print("  " + describe_job(n, state, msg, vary[n]), file=sys.stderr)
-        if bad:
-            print(f"  merge what finished: python experiments/collect.py {sweep}", file=sys.stderr)
-        if count["failed"]:
+        from .execute import STOP
+
+        if STOP.requested:
+            return
+        if report_sweep(Path(str(config.hydra.sweep.dir)))["failed"]:
             sys.exit(1)
