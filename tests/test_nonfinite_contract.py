@@ -167,8 +167,9 @@ def test_a_learnable_noise_scale_that_underflowed_is_named():
         model.parametrizations.sigma_w.original.fill_(-800.0)  # sigma_w = exp(-800) = 0
     with pytest.raises(NonFiniteError, match="ExtendedKalmanFilter: non-finite log-evidence increment at time step 1"):
         F.ExtendedKalmanFilter(model)(z, m0, P0)
-    with pytest.raises(ArgumentError, match="measurement covariance is not positive definite"):
-        F.BootstrapParticleFilter(model, n_particles=50)(z, m0, P0, torch.Generator().manual_seed(1))
+    for make in (F.BootstrapParticleFilter, F.ParticleFlowParticleFilter):
+        with pytest.raises(ArgumentError, match="measurement covariance is not positive definite"):
+            make(model, n_particles=50)(z, m0, P0, torch.Generator().manual_seed(1))
 
 
 def test_a_non_finite_gradient_names_the_step_and_trials_in_the_backward_pass():
