@@ -1,8 +1,14 @@
-"""Run sizes: the size check refuses a run that cannot fit in memory before anything is simulated;
-allocation failures of the simulation name trials and steps."""
+"""Run sizes and the phase before the filters: the size check refuses a run that cannot fit in
+memory before anything is simulated; allocation failures of the simulation name trials and steps;
+a long simulation logs its progress; a stop request (SIGINT, SIGTERM, or set in Python) ends the
+simulation within a time step."""
+import datetime
 import os
+import signal
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -12,8 +18,9 @@ from torchflow import _progress
 from torchflow.experiment import run_experiment
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter
 from torchflow.models import AcousticTracking, SensorNetwork, SkewedTPoisson
-from torchflow.runner import ConfigError, plan_run
+from torchflow.runner import STOP, ConfigError, RunStopped, plan_run
 from torchflow.runner import plan as plan_module
+from torchflow.runner.shell import LOCK_NAME
 
 ROOT = Path(__file__).resolve().parents[1]
 GIB = 2**30
@@ -98,6 +105,36 @@ def test_every_simulation_loop_over_time_reports_each_step():
         assert seen[:steps] == [(k, steps) for k in range(1, steps + 1)], type(model).__name__
 
 
+def test_a_stop_request_ends_the_simulation_at_its_next_step():
+    model = SensorNetwork(d=1)
+    timer = threading.Timer(0.3, lambda: setattr(STOP, "requested", True))  # a request without a signal
+    try:
+        timer.start()
+        t0 = time.perf_counter()
+        with pytest.raises(RunStopped, match=r"^stopped by Ctrl-C during the simulation; nothing was computed$"):
+            run_experiment(model, {"kf": KalmanFilter(model)}, trials=1, steps=10**6, progress=False)
+        assert time.perf_counter() - t0 < 1.3
+    finally:
+        timer.cancel()
+        STOP.reset()
+
+
+def test_a_signal_during_the_simulation_raises_at_once_in_process():
+    model = SensorNetwork(d=1)
+    before = signal.signal(signal.SIGINT, STOP.handler)
+    timer = threading.Timer(0.3, lambda: os.kill(os.getpid(), signal.SIGINT))
+    try:
+        timer.start()
+        t0 = time.perf_counter()
+        with pytest.raises(RunStopped, match="^stopped by Ctrl-C during the simulation"):
+            plan_run(model, {}, trials=1, steps=10**6, seed=0)
+        assert time.perf_counter() - t0 < 1.3 and STOP.exit_code == 130
+    finally:
+        timer.cancel()
+        signal.signal(signal.SIGINT, before)
+        STOP.reset()
+
+
 # ---- the command line ----------------------------------------------------------------------------
 
 
@@ -113,3 +150,52 @@ def test_the_command_refuses_a_run_that_cannot_fit_in_one_line_with_exit_2(tmp_p
     lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: trials=1000000000, steps=5: the run needs about "), lines
     assert "more than the" in lines[0] and "lower trials or steps" in lines[0]
+
+
+def _stamp(line: str) -> float:
+    return datetime.datetime.strptime(line[1:24], "%Y-%m-%d %H:%M:%S,%f").timestamp()
+
+
+def test_sigint_during_the_simulation_stops_within_a_second_with_exit_130(tmp_path):
+    _stop_the_command_during_the_simulation(tmp_path, signal.SIGINT, 130, "Ctrl-C")
+
+
+def test_sigterm_during_the_simulation_stops_within_a_second_with_exit_143(tmp_path):
+    _stop_the_command_during_the_simulation(tmp_path, signal.SIGTERM, 143, "SIGTERM")
+
+
+def _stop_the_command_during_the_simulation(tmp_path, signum, code, name):
+    """Once the simulation has logged its progress, the signal: the stop is logged within a second
+    (the process then exits after Python's own teardown) with the signal's exit status; nothing is
+    written."""
+    run = tmp_path / "run"
+    cmd = [sys.executable, str(ROOT / "experiments" / "run.py"), "model=linear_gaussian", "model.d=1",
+           "filter=[kf]", "trials=1", "steps=500000", "progress=false", "plots=false", "checkpoint_dir=null",
+           f"hydra.run.dir={run}"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=_env())
+    try:
+        deadline = time.time() + 60
+        while proc.poll() is None and time.time() < deadline and "simulating: " not in _text(run / "run.log"):
+            time.sleep(0.05)
+        assert proc.poll() is None, proc.communicate()[1][-2000:]
+        sent = time.time()
+        proc.send_signal(signum)
+        out, err = proc.communicate(timeout=30)
+        exited = time.time() - sent
+    finally:
+        proc.kill()
+    assert proc.returncode == code, err[-2000:]
+    message = f"stopped by {name} during the simulation; nothing was computed"
+    assert [ln for ln in err.splitlines() if ln.strip()] == [message]
+    logged = [ln for ln in _text(run / "run.log").splitlines() if message in ln]
+    assert logged and _stamp(logged[0]) - sent < 1.0, (logged, sent)
+    assert exited < 3.0, exited
+    assert not (run / "summary.csv").exists() and not (run / LOCK_NAME).exists()
+    assert "simulating: " in _text(run / "run.log") and "of 500,000 steps" in _text(run / "run.log")
+
+
+def _text(path: Path) -> str:
+    try:
+        return path.read_text()
+    except OSError:
+        return ""
