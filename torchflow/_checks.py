@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import re
 from typing import Optional, Sequence, Union
 
 import torch
@@ -109,6 +110,20 @@ def check_count(name: str, value, *, minimum: int = 1, hint: str = "") -> int:
         what = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
         raise ArgumentError(f"{name}: expected {what}{hint}, got {value!r} ({type(value).__name__})")
     return int(value)
+
+
+def allocation_failure(err: BaseException) -> Optional[str]:
+    """``None`` unless ``err`` is an allocator's out-of-memory error (torch's CPU or CUDA allocator,
+    Python's ``MemoryError``); then what it asked for, e.g. ``" (one allocation of 477 GiB)"``, or ``""``."""
+    text = str(err)
+    if not (isinstance(err, (torch.OutOfMemoryError, MemoryError)) or "can't allocate memory" in text
+            or "out of memory" in text.lower()):
+        return None
+    asked = re.search(r"allocate (\d+) bytes|allocate ([\d.]+ [KMGT]iB)", text)
+    if asked is None:
+        return ""
+    return f" (one allocation of {int(asked.group(1)) / 2**30:.3g} GiB)" if asked.group(1) else \
+        f" (one allocation of {asked.group(2)})"
 
 
 def check_choice(name: str, value, choices):

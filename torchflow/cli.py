@@ -10,7 +10,8 @@ files (:mod:`torchflow.runner.writers`), ``run.log`` and figures into Hydra's ou
 in the command shell (:mod:`torchflow.runner.shell`), whose contracts it shares with
 ``torchflow-learn``: unknown settings refused in one line, the output folder guarded (earlier
 results, a live run's lock file), SIGINT / SIGTERM stop at the next chunk with the finished
-filters' results written. Exit status: 0 done; 1 a filter failed, or the results could not be
+filters' results written (during the simulation: at once, nothing written). Sizes that cannot fit
+in memory are refused before anything is simulated. Exit status: 0 done; 1 a filter failed, or the results could not be
 written (any other error keeps its traceback); 2 a configuration error or a refused output folder
 (one line); 130 stopped by Ctrl-C (SIGINT); 143 stopped by SIGTERM.
 """
@@ -28,7 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from . import __version__
 from .runner import (
-    STOP, SUMMARY_COLUMNS, ChunkStore, Shard, config as rc, figures, fingerprint, format_table, run_experiment, shell,
+    STOP, SUMMARY_COLUMNS, ChunkStore, RunStopped, Shard, config as rc, figures, fingerprint, format_table, run_experiment, shell,
     writers,
 )
 from .filters.gaussian_sum import GaussianSumParticleFilter
@@ -168,6 +169,9 @@ def _run(cfg: DictConfig, out: Path, env: JobEnv) -> int:
     try:
         model, filters, labels = build(cfg)
         return _run_filters(cfg, model, filters, labels, out, shard)
+    except RunStopped as stopped:  # during the simulation: nothing was computed, nothing is written
+        log.warning(str(stopped))
+        return STOP.exit_code
     finally:
         shard.close()
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
-import re
 from dataclasses import dataclass, field
 from typing import Dict, Optional, Tuple
 
@@ -15,7 +14,7 @@ from torch import nn
 from .. import linalg
 from .. import random as _random
 from .. import resampling as _resampling
-from .._checks import check_count, check_finite, check_psd, check_same, check_tensor
+from .._checks import allocation_failure, check_count, check_finite, check_psd, check_same, check_tensor
 from .._blocks import blockwise
 from ..covariances import Covariance
 from ..models.base import StateSpaceModel
@@ -267,13 +266,9 @@ class Filter(nn.Module):
     def _raise_out_of_memory(self, err: BaseException, trials: int, n_particles: Optional[int]) -> None:
         """Re-raise an allocator's out-of-memory error as a :class:`MemoryError` that says what was
         asked for and which knobs bound it; return for any other error."""
-        text = str(err)
-        if not (isinstance(err, (torch.OutOfMemoryError, MemoryError)) or "can't allocate memory" in text
-                or "out of memory" in text.lower()):
+        size = allocation_failure(err)
+        if size is None:
             return
-        asked = re.search(r"allocate (\d+) bytes|allocate ([\d.]+ [KMGT]iB)", text)
-        size = "" if asked is None else (f" (one allocation of {int(asked.group(1)) / 2**30:.3g} GiB" if asked.group(1)
-                                         else f" (one allocation of {asked.group(2)}") + ")"
         n = getattr(self, "n_particles", None) if n_particles is None else n_particles
         try:
             est = f"; estimated {self.bytes_per_trial(n) * trials / 2**30:.3g} GiB per time step"

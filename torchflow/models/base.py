@@ -24,6 +24,7 @@ import torch
 from torch import nn
 
 from .. import linalg
+from .._progress import report
 from .._checks import check_finite, check_tensor
 from ..linearize import jacobian
 from .structure import Structure
@@ -163,14 +164,27 @@ class StateSpaceModel(nn.Module):
                 raise ArgumentError(f"{who}: initial_state returned {got}; expected (B, d) = "
                                     f"({batch_size}, {self.state_dim})")
             check_shapes(self, x, who)  # every method's output shape, once per model and layout
-            states, obs = [x], []
-            for _ in range(steps):
+            # written into the outputs step by step (a list of 2 T small tensors would cost more than the data)
+            states, obs = x.new_empty((x.shape[0], steps + 1, *x.shape[1:])), None
+            states[:, 0] = x
+            for k in range(steps):
                 x = self._simulation_transition(x, generator)
-                states.append(x)
-                obs.append(self.sample_measurement(x, generator))
-            traj = Trajectory(torch.stack(states, 1), torch.stack(obs, 1))
+                z = self.sample_measurement(x, generator)
+                if obs is None:
+                    obs = z.new_empty((z.shape[0], steps, *z.shape[1:]))
+                states[:, k + 1], obs[:, k] = x, z
+                report(k + 1, steps)  # the runner's watcher: progress, stop requests
+            traj = Trajectory(states, obs)
         check_simulated(who, traj)
         return traj
+
+    def simulation_bytes(self, batch_size: int, steps: int) -> int:
+        """Estimated peak memory of :meth:`simulate` (bytes on the model's device): by default its
+        output, states ``(B, T+1, d)`` and observations ``(B, T, m)`` in the model's dtype. The
+        runner refuses a run whose data cannot fit before simulating it; a model whose
+        :meth:`simulate` needs more at its peak (temporaries of a whole trajectory) says so here."""
+        size = torch.empty((), dtype=self.dtype).element_size()
+        return size * batch_size * ((steps + 1) * self.state_dim + steps * (self.obs_dim or 0))
 
     def _simulation_transition(self, x: torch.Tensor, generator) -> torch.Tensor:
         """One step of :meth:`simulate`'s process (the filters' transition, unless a model's

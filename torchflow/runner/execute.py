@@ -13,7 +13,7 @@ from typing import Callable, List, Mapping, Optional, Sequence, Union
 import torch
 from tqdm.auto import tqdm
 
-from .. import tuning
+from .. import _progress, tuning
 from .._checks import NonFiniteError
 from ..filters.base import Filter
 from ..models.base import StateSpaceModel, Trajectory
@@ -29,8 +29,9 @@ log = logging.getLogger("torchflow.runner")
 class StopRequest:
     """Ctrl-C / SIGTERM handling that never tears a run apart mid-bookkeeping: :meth:`handler`
     (the command shell's for SIGINT and SIGTERM; in a script: ``signal.signal(signal.SIGTERM,
-    STOP.handler)``) raises ``KeyboardInterrupt`` at once inside a filter's chunk, else the run
-    stops at the next chunk boundary (the finished chunks are always scored and written). Outside
+    STOP.handler)``) raises ``KeyboardInterrupt`` at once inside a filter's chunk and during the
+    simulation (:class:`RunStopped`), else the run stops at the next chunk boundary (the finished
+    chunks are always scored and written). Outside
     a chunk it only records the request: other loops (learning's epochs) poll :attr:`requested`.
     ``signum``: the first signal received; :attr:`exit_code`: ``128 + signum`` (130 for SIGINT,
     143 for SIGTERM; 130 when the request came without a signal number)."""
@@ -80,6 +81,46 @@ class StopRequest:
 
 #: the process's stop request (see :class:`StopRequest`)
 STOP = StopRequest()
+
+
+class RunStopped(KeyboardInterrupt):
+    """A stop request (:data:`STOP`) ended a run before its first filter started (during the
+    simulation): nothing was computed. The message says so and names the signal."""
+
+
+class _SimulationWatch:
+    """The watcher of the loops before the filters (a model's simulation reports each time step
+    through :mod:`torchflow._progress`): a stop request ends the loop at once; after
+    ``first`` seconds and then every ``every`` seconds a log line says how far it got."""
+
+    def __init__(self, what: str, first: float = 2.0, every: float = 10.0):
+        self.what, self.every = what, every
+        self.t0 = time.monotonic()
+        self.due = self.t0 + first
+
+    def __call__(self, done: int, total: int) -> None:
+        if STOP.requested:
+            raise KeyboardInterrupt
+        now = time.monotonic()
+        if now >= self.due:
+            self.due = now + self.every
+            log.info(f"{self.what}: {done:,} of {total:,} steps ({100 * done / total:.0f}%), {now - self.t0:.0f} s")
+
+
+@contextmanager
+def before_the_filters(phase: str, what: str = "simulating"):
+    """A phase of a run before its filters (``phase``: "the simulation"): a signal (:data:`STOP`'s
+    handler) ends it at once, a stop request at the model's next reported step; either raises
+    :class:`RunStopped` ("stopped by SIGTERM during the simulation; nothing was computed"). Long
+    loops log their progress (:class:`_SimulationWatch`, prefix ``what``)."""
+    try:
+        with STOP.interruptible(), _progress.watching(_SimulationWatch(what)):
+            STOP.check()
+            yield
+    except RunStopped:
+        raise
+    except KeyboardInterrupt:
+        raise RunStopped(f"stopped by {STOP.name} during {phase}; nothing was computed") from None
 
 
 @dataclass
@@ -202,13 +243,17 @@ def plan_run(model: StateSpaceModel, filters: Mapping[str, Filter], *, trials: i
              simulator: Optional[Callable] = None) -> RunPlan:
     """The arguments checked (:func:`~torchflow.runner.plan.check_settings`; a model with
     ``n_steps`` sets the steps), the model (and ``filters``, which may be empty) moved to the
-    device and dtype, the data simulated once (``simulator`` or
-    :func:`~torchflow.runner.plan.simulate`: ``inits_per_track`` trials share a trajectory) and
-    the chunks chosen: the data every command works on (:func:`run_experiment`, ``torchflow-learn``)."""
+    device and dtype, the chunks chosen, the run's memory checked (a run that cannot fit is refused
+    with a :class:`~torchflow.runner.plan.ConfigError` before anything is simulated:
+    :func:`~torchflow.runner.plan.check_memory`) and the data simulated once (``simulator`` or
+    :func:`~torchflow.runner.plan.simulate`: ``inits_per_track`` trials share a trajectory): the
+    data every command works on (:func:`run_experiment`, ``torchflow-learn``). A stop request
+    (:data:`STOP`) during the simulation raises :class:`RunStopped` within a time step."""
     s = check_settings(trials=trials, steps=getattr(model, "n_steps", steps), seed=seed, chunk_size=chunk_size,
                        inits_per_track=inits_per_track, memory_budget_gb=memory_budget_gb, device=device, dtype=dtype,
                        rng_backend=rng_backend, trial_range=trial_range)
-    return make_plan(model, filters, s, shard, simulator)
+    with before_the_filters("the simulation"):
+        return make_plan(model, filters, s, shard, simulator)
 
 
 def run_experiment(
@@ -240,7 +285,9 @@ def run_experiment(
     seconds) are reported apart as ``warmup_sec``; ``"auto"``: on a GPU only.
 
     A filter that raises does not stop the run (its row gets the error, ``result.failures`` where);
-    Ctrl-C (:data:`STOP`) keeps the finished filters. A bad argument raises
+    Ctrl-C (:data:`STOP`) keeps the finished filters; before the first filter (the simulation) it
+    raises :class:`RunStopped`. A bad argument, or sizes whose memory cannot fit
+    (:func:`~torchflow.runner.plan.check_memory`), raises
     :class:`~torchflow.runner.plan.ConfigError` before anything runs.
     """
     if not isinstance(filters, Mapping) or not all(isinstance(f, torch.nn.Module) for f in filters.values()):
@@ -254,7 +301,8 @@ def run_experiment(
                     chunk_size=chunk_size, memory_budget_gb=memory_budget_gb, device=device, dtype=dtype,
                     rng_backend=rng_backend, trial_range=trial_range, shard=shard, simulator=simulator)
     s = plan.settings
-    scorer = make_scorer(model, plan, **metric_settings)
+    with before_the_filters("the Kalman filter's reference log-evidence"):
+        scorer = make_scorer(model, plan, **metric_settings)
     res = ExperimentResult([], [], [])
     for i, (name, f) in enumerate(filters.items()):
         out = execute(f, name, plan, store=store, progress=progress, desc=f"[{i + 1}/{len(filters)}] {name}",

@@ -4,13 +4,15 @@ from its memory formulas (trials draw from per-trial streams: the plan never cha
 from __future__ import annotations
 
 import math
+import os
 import warnings
+from pathlib import Path
 from dataclasses import dataclass, field
 from typing import Dict, List, Mapping, Optional, Tuple, Union
 
 import torch
 
-from .._checks import check_count
+from .._checks import allocation_failure, check_count
 from ..filters.base import Filter
 from ..models.base import StateSpaceModel, Trajectory
 from .distributed import Shard
@@ -129,6 +131,146 @@ def filter_chunk(f: Filter, n_run: int, chunk_size: Optional[int], memory_budget
     return min(c, f.preferred_chunk_trials() or c, cap or c)
 
 
+#: the size check refuses a run whose estimated memory exceeds what is available, and warns above
+#: this share of it (other processes need memory too; the estimate is rough)
+MEMORY_WARN_SHARE = 0.5
+#: host bytes of one small tensor a filter keeps per time step (object, storage, allocation; measured)
+TENSOR_BYTES = 600
+#: the tensors a filter keeps per time step (estimate, log-evidence increment, ESS, non-finite flag)
+TENSORS_PER_STEP = 4
+#: host bytes of one result row (a dict of a filter's numbers for one time step or one trial; measured 300-500)
+ROW_BYTES = 512
+#: float64 (trials, steps) series of one filter while it is scored, besides its estimates and the
+#: truth (log-evidence increments, ESS, the metrics' values)
+SCORED_SERIES = 6
+
+
+def _gib(n: float) -> str:
+    """``n`` bytes in MiB or GiB (three digits; whole GiB from 1000)."""
+    return f"{n / 2**20:.3g} MiB" if n < 2**28 else f"{n / 2**30:.3g} GiB" if n < 1000 * 2**30 else \
+        f"{n / 2**30:,.0f} GiB"
+
+
+@dataclass
+class MemoryEstimate:
+    """A run's memory (bytes), estimated before anything is simulated (:func:`estimate_memory`):
+    ``data`` (the simulation's peak and the priors: the run's device), ``filters`` (the largest
+    filter chunk: its per-step working memory as its memory formula gives it, which
+    ``memory_budget_gb`` bounds, and the outputs it keeps for every time step), ``results`` (what
+    the run keeps to score and write: per-trial and per-step rows, the scored series; the host)."""
+
+    data: int
+    filters: int
+    results: int
+    #: bytes on the host of a run on a GPU (its results, the per-step tensors' bookkeeping, the copies of the data)
+    host: int = 0
+
+    @property
+    def total(self) -> int:
+        return self.data + self.filters + self.results
+
+    def parts(self) -> str:
+        return f"simulated data {_gib(self.data)}, filter chunks {_gib(self.filters)}, results {_gib(self.results)}"
+
+
+def estimate_memory(model: StateSpaceModel, filters: Mapping[str, Filter], s: "RunSettings", chunks: Mapping[str, int],
+                    simulated: bool = True) -> MemoryEstimate:
+    """The memory of a run (:class:`MemoryEstimate`), from its sizes: ``trials`` B, ``steps`` T, the
+    run's trials n (``trial_range``), the state and measurement dimensions d and m, the dtype's
+    bytes b, each filter's chunk c and memory formula (``bytes_per_trial``), F filters:
+
+    * data = the model's :meth:`~torchflow.models.StateSpaceModel.simulation_bytes` (at least
+      b B ((T+1) d + T m)) + b B (d + d^2) (the priors), and the copy of ``inits_per_track`` > 1;
+      ``simulated=False`` (given data): 0;
+    * filters = max over filters of c bytes_per_trial + T (4 x 600 + 2 c b (d + 3));
+    * results = F (T + n) 512 (the result rows) + 8 n T (2 d + 6) (the scored float64 series).
+    """
+    b = torch.empty((), dtype=s.dtype).element_size()
+    B, T, n, d, m = s.trials, s.steps, s.n_run, model.state_dim, model.obs_dim or 0
+    traj = b * B * ((T + 1) * d + T * m)
+    data = 0
+    if simulated:
+        data = max(model.simulation_bytes(math.ceil(B / s.inits_per_track), T), 0) + b * B * (d + d * d)
+        data += traj if s.inits_per_track > 1 else 0
+    bookkeeping = T * TENSORS_PER_STEP * TENSOR_BYTES
+    work = max((chunks[k] * f.bytes_per_trial() + 2 * T * chunks[k] * b * (d + 3) for k, f in filters.items()),
+               default=0)
+    results = len(filters) * (T + n) * ROW_BYTES + 8 * n * T * (2 * d + SCORED_SERIES) if filters else 0
+    if s.device.type == "cpu":
+        return MemoryEstimate(data, work + (bookkeeping if filters else 0), results)
+    host = results + (bookkeeping if filters else 0) + traj * n // B
+    return MemoryEstimate(data, work, results, host=host)
+
+
+def available_memory(device: torch.device) -> Tuple[int, str]:
+    """``(bytes, what)``: the memory this process can still use on ``device``: a GPU's free memory;
+    on the host the least of the available RAM (``MemAvailable``), the room left under this
+    process's address-space limit (``ulimit -v``) and under its cgroup's memory limit (a container)."""
+    if device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        return int(free), f"free on {device}"
+    found = []
+    try:
+        found.append((_kib(Path("/proc/meminfo").read_text(), "MemAvailable:"), "available RAM"))
+    except (OSError, IndexError, ValueError):
+        try:
+            found.append((os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"), "free RAM"))
+        except (OSError, ValueError, AttributeError):
+            pass
+    try:
+        import resource
+
+        limit = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if limit != resource.RLIM_INFINITY:
+            used = _kib(Path("/proc/self/status").read_text(), "VmSize:")
+            found.append((max(limit - used, 0), "left under the address-space limit (ulimit -v)"))
+    except (ImportError, OSError, IndexError, ValueError):
+        pass
+    try:
+        cap = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if cap != "max":
+            used = int(Path("/sys/fs/cgroup/memory.current").read_text())
+            found.append((max(int(cap) - used, 0), "left under this container's memory limit"))
+    except (OSError, ValueError):
+        pass
+    return min(found) if found else (2**62, "unknown")
+
+
+def _kib(text: str, key: str) -> int:
+    """The ``key: <n> kB`` entry of a ``/proc`` file, in bytes."""
+    return int(text.split(key, 1)[1].split()[0]) * 1024
+
+
+def check_memory(model: StateSpaceModel, filters: Mapping[str, Filter], s: "RunSettings", chunks: Mapping[str, int],
+                 simulated: bool = True) -> MemoryEstimate:
+    """The size check before anything is simulated: a :class:`ConfigError` naming trials and steps,
+    the estimate (:func:`estimate_memory`) and the memory available (:func:`available_memory`) when
+    the run cannot fit; a warning when it needs more than :data:`MEMORY_WARN_SHARE` of it. A run on a
+    GPU is checked there (data, filter chunks) and on the host (results)."""
+    est = estimate_memory(model, filters, s, chunks, simulated)
+    checks = [(est.total, est.data, s.device)]
+    if s.device.type == "cuda":
+        checks = [(est.data + est.filters, est.data, s.device), (est.host, 0, torch.device("cpu"))]
+    sizes = f"trials={s.trials}, steps={s.steps}"
+    for need, data, dev in checks:
+        if need <= 0:
+            continue
+        avail, what = available_memory(dev)
+        where = f"{_gib(avail)} {what}" + ("" if dev.type == "cpu" else f" ({dev})")
+        if need > avail:
+            split = (f"lower trials or steps (the simulated data alone needs {_gib(data)}; trial_range runs a part "
+                     "of the trials but simulates them all)" if data > avail else
+                     "lower trials or steps, or run the trials in parts with trial_range=[start, stop] (each part "
+                     "keeps only its trials' results)")
+            raise ConfigError(f"{sizes}: the run needs about {_gib(need)} of memory ({est.parts()}), more than the "
+                              f"{where}; {split}")
+        if need > MEMORY_WARN_SHARE * avail:
+            warnings.warn(f"{sizes}: the run needs about {_gib(need)} of memory ({est.parts()}), "
+                          f"{100 * need / avail:.0f}% of the {where}; it may run out of memory if other processes "
+                          "need some", stacklevel=3)
+    return est
+
+
 def simulate(model: StateSpaceModel, trials: int, steps: int, inits_per_track: int, generator):
     """``trials`` trajectories (groups of ``inits_per_track`` share one) and each trial's prior."""
     n_tracks = math.ceil(trials / inits_per_track)
@@ -225,11 +367,19 @@ def make_plan(model: StateSpaceModel, filters: Mapping[str, Filter], settings: R
             raise ConfigError(f"filter.{name}: {type(f).__name__} cannot run on {type(model).__name__}, whose "
                               "measurements are padded sets with a mask; select a localiser (bs, pfi_d, pfi_s, pfi_os)")
         f.to(device=s.device, dtype=s.dtype)
-    gen = torch.Generator(device=s.device).manual_seed(int(s.seed))
-    traj, mean0, cov0 = (simulator or simulate)(model, s.trials, s.steps, s.inits_per_track, gen)
     shard = shard or Shard()
     chunks = {name: filter_chunk(f, s.n_run, s.chunk_size, s.memory_budget_gb) for name, f in filters.items()}
     if shard.world > 1 and not s.chunk_size:  # every rank gets a share
         chunks = {name: min(c, -(-s.n_run // shard.world)) for name, c in chunks.items()}
+    check_memory(model, filters, s, chunks, simulated=simulator in (None, simulate))  # given data: held already
+    gen = torch.Generator(device=s.device).manual_seed(int(s.seed))
+    try:
+        traj, mean0, cov0 = (simulator or simulate)(model, s.trials, s.steps, s.inits_per_track, gen)
+    except (MemoryError, RuntimeError) as err:  # the allocator's refusal, where the size check let it through
+        asked = allocation_failure(err)
+        if asked is None:
+            raise
+        raise ConfigError(f"trials={s.trials}, steps={s.steps}: the simulation ran out of memory{asked}; lower "
+                          "trials or steps") from None
     return RunPlan(s, traj, mean0, cov0, chunks, shard)
 
