@@ -92,6 +92,15 @@ def test_a_hydra_quoted_folder_with_spaces_and_non_ascii_is_written_as_named_and
     assert (folder / "results.json").read_text() == before
 
 
+
+def test_the_results_line_names_the_folder_from_where_the_command_started_also_with_chdir(tmp_path):
+    """Hydra's ``hydra.job.chdir=true`` moves the job into its output folder: the results line still
+    names that folder as seen from where the command was started (it used to print ``.``)."""
+    done = _run(tmp_path, *TINY, "filter=[kf]", "checkpoint_dir=null", "hydra.job.chdir=true", "hydra.run.dir=out/a")
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "results: " + os.path.join("out", "a") in done.stdout + done.stderr
+    assert (tmp_path / "out" / "a" / "summary.csv").exists()
+
 def test_a_filter_selected_twice_is_refused_in_one_line_with_exit_2(capsys):
     from torchflow.cli import main
 

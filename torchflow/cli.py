@@ -18,7 +18,6 @@ written (any other error keeps its traceback); 2 a configuration error or a refu
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
 from typing import List, Optional
 
@@ -153,7 +152,7 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
     if cfg.plots:
         writer.attempt("the figures", figures.save_run_figures, out, model, result, model_name)
     if writer.failed is None:
-        log.info(f"results: {os.path.relpath(out)}")
+        log.info(f"results: {shell.shown_path(out)}")
     if result.interrupted:
         skipped = f"; not run: {', '.join(result.not_run)}" if result.not_run else ""
         log.warning(f"interrupted by {STOP.name}: the results of the filters that finished are written{skipped}")

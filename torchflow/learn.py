@@ -444,7 +444,7 @@ def _job(cfg: DictConfig, out: Path, env: JobEnv) -> int:
     if res.rows:
         log.info("\n" + format_table(res.rows, COLUMNS))
     if res.write_failed is None:
-        log.info(f"results: {out}")
+        log.info(f"results: {shell.shown_path(out)}")
     done = ", ".join(f"{k}: {len(res.fits[k]['history']['epoch']) if k in res.fits else 0} of {cfg.epochs} epochs"
                      for k in [*res.fits, *(k for k in res.failed if k not in res.fits)])
     for key, failure in res.failed.items():

@@ -537,6 +537,20 @@ def _job(command: Command, cfg: DictConfig) -> int:
         return code
 
 
+def shown_path(path) -> str:
+    """``path`` as the user should read it: relative to the folder the command was started in
+    (Hydra's ``hydra.job.chdir=true`` moves the job into its output folder, where a plain relative
+    path would print as ``.``), absolute when it lies outside that folder."""
+    try:
+        from hydra.utils import get_original_cwd
+
+        start = get_original_cwd()
+    except (ImportError, ValueError):  # not inside a Hydra job
+        start = os.getcwd()
+    rel = os.path.relpath(os.path.abspath(path), start)
+    return os.path.abspath(path) if rel.startswith("..") else rel
+
+
 def hydra_entry(command: Command) -> Callable[[], None]:
     """The Hydra-decorated entry of ``command``: runs one job (every job of a sweep); a sweep (``-m``)
     goes on after a failing job, a stop request ends it: in the process of :func:`main` (Hydra's
