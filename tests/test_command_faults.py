@@ -337,3 +337,30 @@ def test_ctrl_c_to_a_joblib_sweep_ends_with_the_report_the_resume_command_and_ex
     for job in ("0", "1"):  # no worker was killed while it wrote its files
         assert json.loads((tmp_path / "sw" / job / "results.json").read_text())["interrupted"] is True
         assert (tmp_path / "sw" / job / "per_trial.csv").exists()
+
+
+def test_a_log_file_that_cannot_be_written_does_not_print_a_traceback_per_message(capsys):
+    """run.log on a full disk: the handler's failure is skipped quietly inside a command's job
+    (the results writer names the full disk in one line), and warnings print as one line each."""
+
+    class FullDisk(logging.Handler):
+        def emit(self, record):
+            try:
+                raise OSError(28, "No space left on device")
+            except OSError:
+                self.handleError(record)
+
+    logger = logging.getLogger("torchflow.test_full_disk")
+    handler = FullDisk()
+    logger.addHandler(handler)
+    try:
+        with shell.command_warnings_and_logs():
+            logger.error("a message while the disk is full")
+            import warnings
+            assert warnings.formatwarning("groups are unequal", UserWarning, "x.py", 1) == "warning: groups are unequal"
+        assert "Logging error" not in capsys.readouterr().err
+        assert logging.raiseExceptions  # restored after the job
+        logger.error("outside a job, Python's default applies")
+        assert "Logging error" in capsys.readouterr().err
+    finally:
+        logger.removeHandler(handler)

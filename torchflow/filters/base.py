@@ -217,6 +217,28 @@ class Filter(nn.Module):
         check_parameters(self.model, self.name)
         check_covariances(self.model, self.name)
 
+    def check_measurement_density(self, why: str) -> None:
+        """Raise unless a Gaussian-form model's constant measurement covariance is positive
+        definite (``why``: what this filter needs it for, and what to do). A model that declares a
+        state-dependent covariance is left to the steps' non-finite handling."""
+        from ..models.base import GaussianStateSpaceModel
+
+        model = self.model
+        if not isinstance(model, GaussianStateSpaceModel) or model.structure.measurement_noise not in (
+                "scalar", "diagonal", "dense"):  # declared constant
+            return
+        try:
+            R = model.measurement_cov()
+        except (NotImplementedError, TypeError, RuntimeError, ValueError):
+            return
+        if not isinstance(R, torch.Tensor) or R.dim() != 2:
+            return
+        if bool((torch.linalg.cholesky_ex(R.detach())[1] > 0).any()):
+            ev = torch.linalg.eigvalsh(linalg.symmetrize(R.detach())).min().item()
+            learnable = " (built from learnable parameters)" if R.requires_grad else ""
+            raise ArgumentError(f"{self.name}: the model's measurement covariance{learnable} is not positive definite "
+                                f"(smallest eigenvalue {ev:.3g}); {why}")
+
     def check_prior(self, mean: torch.Tensor, cov: torch.Tensor, batch_size: Optional[int] = None
                     ) -> Tuple[torch.Tensor, torch.Tensor]:
         """Validate (and broadcast ``(d,)``/``(d, d)`` to) ``mean (B, d)``, ``cov (B, d, d)``."""
@@ -553,7 +575,10 @@ class ParticleFilter(Filter):
         on the model's constant covariance (``transition_cov()``); a state-dependent one is left to
         the steps' non-finite handling."""
         super().check_model()
-        self._check_measurement_density()
+        self.check_measurement_density(
+            "particle filters weigh particles by the measurement density p(z | x), which a singular covariance "
+            "does not have, so no weight would carry the measurement. Give the model a positive definite "
+            "measurement noise, or use a Kalman filter (which handles a singular R when H P H^T is positive definite)")
         if not getattr(self.proposal, "uses_transition_density", True) or not self.model.structure.gaussian_transition:
             return
         try:
@@ -569,32 +594,6 @@ class ParticleFilter(Filter):
                 f"{ev:.3g}); this filter weighs particles by the transition density p(x_k | x_(k-1)), which a "
                 "singular covariance does not have. Give the model a positive definite transition noise, or use a "
                 "filter that does not need the density: the bootstrap PF, the unweighted flow filter or a Kalman filter")
-
-    def _check_measurement_density(self) -> None:
-        """Every particle filter weighs by the measurement density ``p(z | x)``: a Gaussian-form
-        model's constant measurement covariance must be positive definite (with a singular one every
-        weight is zero or invalid at every step). A model that declares a state-dependent covariance
-        is left to the steps' non-finite handling."""
-        from ..models.base import GaussianStateSpaceModel
-
-        model = self.model
-        if not isinstance(model, GaussianStateSpaceModel) or model.structure.measurement_noise not in (
-                "scalar", "diagonal", "dense"):  # declared constant
-            return
-        try:
-            R = model.measurement_cov()
-        except (NotImplementedError, TypeError, RuntimeError, ValueError):
-            return
-        if not isinstance(R, torch.Tensor) or R.dim() != 2:
-            return
-        if bool((torch.linalg.cholesky_ex(R.detach())[1] > 0).any()):
-            ev = torch.linalg.eigvalsh(linalg.symmetrize(R.detach())).min().item()
-            raise ArgumentError(
-                f"{self.name}: the model's measurement covariance is not positive definite (smallest eigenvalue "
-                f"{ev:.3g}); particle filters weigh particles by the measurement density p(z | x), which a singular "
-                "covariance does not have, so no weight would carry the measurement. Give the model a positive "
-                "definite measurement noise, or use a Kalman filter (which handles a singular R when H P H^T is "
-                "positive definite)")
 
     def init(self, mean, cov, n_particles=None, generator=None) -> "ParticleState":
         """N particles per trial from the prior ``N(mean (B, d), cov (B, d, d))``, uniform weights and

@@ -71,7 +71,11 @@ def raise_first(name: str, table: List[List[int]]) -> None:
     step = min(s for s, _ in bad)
     trials = [i for s, i in bad if s == step]
     what = [q for k, q in enumerate(QUANTITIES) if any(table[i][1 + k] for i in trials)]
-    raise NonFiniteError(name, step, trials, what=" and ".join(what) or "estimate")
+    err = NonFiniteError(name, step, trials, what=" and ".join(what) or "estimate")
+    if what == [QUANTITIES[2]]:  # finite estimates: the density of the observation itself under/overflowed
+        err.args = (err.args[0] + " (an observation so far from its prediction, or a predicted spread so small, "
+                    "that its density under- or overflows: look at that step's observations and the noise scales)",)
+    raise err
 
 
 def raise_never_measured(name: str, table: List[List[int]], steps: int) -> None:

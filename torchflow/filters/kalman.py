@@ -16,6 +16,17 @@ __all__ = ["KalmanFilter", "ExtendedKalmanFilter", "UnscentedKalmanFilter", "kal
 class _GaussianFilter(Filter):
     """A Gaussian belief, moved by the subclass's :meth:`predict` and :meth:`update` each step."""
 
+    def check_model(self) -> None:
+        """With more measurements than states (``m > d``) the predicted measurement's covariance
+        ``H P H^T + R`` is singular when R is: the measurement density, hence the log-evidence,
+        does not exist, so a singular constant R is refused (``m <= d`` runs it)."""
+        super().check_model()
+        m, d = self.model.obs_dim, self.model.state_dim
+        if m > d:
+            self.check_measurement_density(
+                f"with m = {m} measurements of d = {d} states, H P H^T + R is then singular and the measurement "
+                "density (the log-evidence) does not exist. Give the model a positive definite measurement noise")
+
     def init(self, mean, cov, n_particles=None, generator=None):
         return GaussianState(mean, cov, torch.zeros_like(mean[:, 0]), 0)
 

@@ -56,6 +56,7 @@ import sys
 import tempfile
 import time
 import traceback
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence
@@ -551,6 +552,28 @@ def shown_path(path) -> str:
     return os.path.abspath(path) if rel.startswith("..") else rel
 
 
+def _one_line_warning(message, category, filename, lineno, line=None) -> str:  # noqa: ARG001
+    """A warning as the commands print it: ``warning: <message>`` (the category unless it is the
+    generic ``UserWarning``), without Python's file, line and echoed source."""
+    kind = "" if category in (UserWarning, RuntimeWarning) else f" ({category.__name__})"
+    return f"warning: {message}{kind}"
+
+
+@contextlib.contextmanager
+def command_warnings_and_logs():
+    """For one job: warnings go to the log (terminal and run.log) as one line each; a log handler
+    that cannot write (run.log on a full disk) is skipped quietly instead of printing a traceback
+    per message (the results writer names the full disk itself)."""
+    saved = warnings.formatwarning, logging.raiseExceptions
+    warnings.formatwarning, logging.raiseExceptions = _one_line_warning, False
+    logging.captureWarnings(True)
+    try:
+        yield
+    finally:
+        logging.captureWarnings(False)
+        warnings.formatwarning, logging.raiseExceptions = saved
+
+
 def hydra_entry(command: Command) -> Callable[[], None]:
     """The Hydra-decorated entry of ``command``: runs one job (every job of a sweep); a sweep (``-m``)
     goes on after a failing job, a stop request ends it: in the process of :func:`main` (Hydra's
@@ -560,11 +583,8 @@ def hydra_entry(command: Command) -> Callable[[], None]:
 
     def task(cfg: DictConfig) -> None:
         install_stop_handlers()  # again in a launcher's worker process (idempotent)
-        logging.captureWarnings(True)
-        try:
+        with command_warnings_and_logs():
             code = _job(command, cfg)
-        finally:
-            logging.captureWarnings(False)
         if multirun() and (code < 128 or os.getpid() != _MAIN_PID[0]):
             return  # the sweep goes on (or its workers wind down); the job's folder says what happened
         if code:
