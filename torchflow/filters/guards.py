@@ -12,7 +12,7 @@ Everything a filter returns is finite, or the call says where it was not:
   (an increment of ``-inf``, which is what the estimator gives). That is the documented treatment,
   counted per trial in ``n_repaired``; :func:`dead_step_warning` says which trials and steps were
   left without the measurement. ``nonfinite="raise"`` makes it an error.
-- **Gradients** (under autograd, :attr:`Filter.check_gradients`): an identity node on each step's
+- **Gradients** (under autograd, :attr:`Filter.check_gradients`): a tensor hook on each step's
   input state checks the gradient flowing back into it, so the first step in the backward pass
   whose gradient is NaN or infinite raises naming the filter, that step and the trials; a
   parameter of the model whose gradient is non-finite although every step's was finite is named
@@ -21,6 +21,7 @@ Everything a filter returns is finite, or the call says where it was not:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import warnings
 import weakref
 from typing import List, Optional, Tuple
@@ -113,39 +114,32 @@ def warn_dead_steps(name: str, table: List[List[int]]) -> None:
         warnings.warn(text, RuntimeWarning, stacklevel=3)
 
 
-class _StepGradientCheck(torch.autograd.Function):
-    """Identity on a step's input tensors; its backward raises if the gradient reaching the step's
-    input is non-finite (the step, or a later one not yet reported, produced it)."""
+def _check_step_gradient(name: str, step: int, grad: torch.Tensor) -> None:
+    """A tensor hook: raise if the gradient reaching a step's input is non-finite (the step, or a
+    later one not yet reported, produced it); one host read."""
+    bad = ~torch.isfinite(grad.reshape(grad.shape[0], -1)).all(1)
+    if bool(bad.any()):
+        raise NonFiniteError(name, step, torch.nonzero(bad).flatten().tolist(),
+                             what="gradient (backward pass) of the step's computation")
 
-    @staticmethod
-    def forward(ctx, name: str, step: int, *xs):
-        ctx.name, ctx.step = name, step
-        return tuple(x.view_as(x) for x in xs)
 
-    @staticmethod
-    def backward(ctx, *grads):
-        bad = None
-        for g in grads:
-            if g is None:
-                continue
-            b = ~torch.isfinite(g.reshape(g.shape[0], -1)).all(1) if g.dim() else ~torch.isfinite(g).reshape(1)
-            bad = b if bad is None else bad | b
-        if bad is not None and bool(bad.any()):  # the one host read of this step's backward
-            raise NonFiniteError(ctx.name, ctx.step, torch.nonzero(bad).flatten().tolist(),
-                                 what="gradient (backward pass) of the step's computation")
-        return (None, None, *grads)
+#: state fields a step returns but the next step does not read (their gradients come from the trace)
+_OUTPUTS_ONLY = frozenset(("estimate", "ess", "log_evidence_increment", "g_eff", "invalid", "n_repaired"))
+_INPUT_FIELDS: dict = {}
 
 
 def guard_state(state, name: str, step: int):
-    """``state`` (a filter state dataclass) with its tensors that require grad passed through
-    :class:`_StepGradientCheck` for ``step`` (1-based: the step this state is the input of)."""
-    keys = [f.name for f in dataclasses.fields(state)
-            if isinstance(getattr(state, f.name), torch.Tensor) and getattr(state, f.name).requires_grad
-            and getattr(state, f.name).dim() >= 1]
-    if not keys:
-        return state
-    out = _StepGradientCheck.apply(name, step, *[getattr(state, k) for k in keys])
-    return dataclasses.replace(state, **dict(zip(keys, out)))
+    """Hook the gradient check onto ``state``'s tensors that the next step reads and that require
+    grad, for ``step`` (1-based: the step this state is the input of); returns ``state``."""
+    keys = _INPUT_FIELDS.get(type(state))
+    if keys is None:
+        keys = _INPUT_FIELDS[type(state)] = tuple(f.name for f in dataclasses.fields(state)
+                                                  if f.name not in _OUTPUTS_ONLY)
+    for k in keys:
+        t = getattr(state, k)
+        if isinstance(t, torch.Tensor) and t.requires_grad and t.dim() >= 1:
+            t.register_hook(functools.partial(_check_step_gradient, name, step))
+    return state
 
 
 _HOOKS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
@@ -184,4 +178,4 @@ def table_to_host(t: torch.Tensor) -> List[List[int]]:
 
 
 __all__: Tuple[str, ...] = ("first_steps", "raise_first", "raise_never_measured", "dead_step_warning", "warn_dead_steps", "guard_state",
-                            "parameter_hooks", "QUANTITIES")
+                            "parameter_hooks", "replace_parameter_hooks", "QUANTITIES")
