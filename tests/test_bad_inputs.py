@@ -148,3 +148,69 @@ def test_collect_on_a_single_run_folder(tmp_path):
     out = subprocess.run([sys.executable, str(ROOT / "experiments" / "collect.py"), str(tmp_path / "nope")],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "not a directory" in out.stderr
+
+
+# ---- found by the validation fuzz (tests/test_fuzz_validation.py) ----------------------------------
+
+def _lg(dtype=torch.float64, d=2):
+    from torchflow.models import LinearGaussian
+
+    eye = torch.eye(d, dtype=torch.float64)
+    return LinearGaussian(0.9 * eye, 0.2 * eye, eye, 0.1 * eye, torch.zeros(d, dtype=torch.float64), eye).to(dtype)
+
+
+@pytest.mark.parametrize("n", [2**62, 10**30])
+@pytest.mark.parametrize("streams", [False, True])
+def test_a_particle_count_past_what_torch_can_count_is_an_out_of_memory_error_naming_the_filter(n, streams):
+    from torchflow.random import TrialStreams
+
+    f = BootstrapParticleFilter(_lg(), n_particles=8)
+    gen = TrialStreams(0, 2) if streams else torch.Generator().manual_seed(0)
+    with pytest.raises(MemoryError, match=rf"BootstrapParticleFilter: out of memory running 2 trials x {n} particles"):
+        f(torch.zeros(2, 3, 2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64),
+          torch.eye(2, dtype=torch.float64), gen, n_particles=n)
+
+
+@pytest.mark.parametrize("make", [
+    lambda m: BootstrapParticleFilter(m, n_particles=8),
+    lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=8),
+    lambda m: ParticleFlowFilter(m, flow="edh", n_particles=8),
+])
+def test_a_known_initial_state_runs_in_float32(make):
+    """A zero prior covariance (a known x_0) is valid: its factor is (nearly) zero, not NaN, in float32
+    too (a subnormal jitter does not factor)."""
+    model = _lg(torch.float32)
+    z = torch.randn(2, 3, 2, generator=torch.Generator().manual_seed(0))
+    out = make(model)(z, torch.zeros(2), torch.zeros(2, 2), torch.Generator().manual_seed(0))
+    assert torch.isfinite(out.estimates).all() and torch.isfinite(out.log_evidence).all()
+
+
+def test_a_negative_variance_is_refused_at_any_scale():
+    """-1e-13 is not round-off in a matrix whose other entries are zero: refused by name, where it was
+    accepted and then gave a NaN factor (a NonFiniteError naming the filter, not the argument)."""
+    cov = torch.zeros(2, 2, dtype=torch.float64)
+    cov[0, 0] = -1e-13
+    with pytest.raises(ValueError, match=r"cov: covariance at batch index 0 \(trial\) is not positive semi-definite"):
+        BootstrapParticleFilter(_lg(), n_particles=8)(torch.zeros(1, 2, 2, dtype=torch.float64),
+                                                      torch.zeros(2, dtype=torch.float64), cov,
+                                                      torch.Generator().manual_seed(0))
+
+
+def test_a_singular_float32_covariance_with_round_off_is_accepted():
+    """A rank-one float32 prior whose computed eigenvalues are -1e-7 (float32 round-off) is a valid
+    covariance; the filters factor it."""
+    model = _lg(torch.float32, d=3)
+    z = torch.randn(3, 2, 3, generator=torch.Generator().manual_seed(0))
+    for f in (KalmanFilter(model), BootstrapParticleFilter(model, n_particles=8)):
+        out = f(z, torch.zeros(3), torch.ones(3, 3), torch.Generator().manual_seed(0))
+        assert torch.isfinite(out.estimates).all()
+
+
+@pytest.mark.parametrize("n", ["8", True, 2.5, float("nan"), [8]])
+def test_a_gaussian_sum_filter_refuses_a_particle_count_that_is_not_a_count(n):
+    from torchflow.filters import GaussianParticleFilter
+
+    f = GaussianParticleFilter(_lg(), n_particles=8)
+    with pytest.raises(ValueError, match=r"n_particles: expected a positive integer"):
+        f(torch.zeros(1, 2, 2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64),
+          torch.eye(2, dtype=torch.float64), torch.Generator().manual_seed(0), n_particles=n)

@@ -63,7 +63,10 @@ def check_finite(name: str, x: torch.Tensor) -> torch.Tensor:
 def check_psd(name: str, cov: torch.Tensor, *, tol: float = 1e-10) -> torch.Tensor:
     """Raise if the batch of matrices ``cov (..., d, d)`` is not symmetric positive semi-definite.
 
-    The error names the first offending batch index (the trial, for ``(B, d, d)`` inputs).
+    The tolerance is relative to each matrix's largest diagonal entry, and at least ``d`` machine
+    epsilons of its dtype (float32 round-off): a matrix that passes factors under
+    :func:`~torchflow.linalg.safe_cholesky`'s jitter. The error names the first offending batch
+    index (the trial, for ``(B, d, d)`` inputs).
     """
     if cov.dim() < 2 or cov.shape[-1] != cov.shape[-2]:
         raise ArgumentError(f"{name}: expected square matrices (..., d, d), got {tuple(cov.shape)}")
@@ -71,7 +74,8 @@ def check_psd(name: str, cov: torch.Tensor, *, tol: float = 1e-10) -> torch.Tens
         check_psd(name, cov[:1], tol=tol)  # one prior shared by every trial: check it once
         return cov
     check_finite(name, cov.reshape(-1, *cov.shape[-2:]) if cov.dim() > 2 else cov.unsqueeze(0))
-    scale = cov.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp_min(1.0)
+    tol = max(tol, cov.shape[-1] * torch.finfo(cov.dtype).eps) if cov.is_floating_point() else tol
+    scale = cov.diagonal(dim1=-2, dim2=-1).abs().amax(-1)
     asym = (cov - cov.transpose(-1, -2)).abs().amax((-1, -2))
     bad_sym = asym > 1e-8 * scale
     # fast path: Cholesky of cov + tol * scale * I succeeds for every PSD matrix

@@ -266,10 +266,12 @@ class Filter(nn.Module):
 
     def _raise_out_of_memory(self, err: BaseException, trials: int, n_particles: Optional[int]) -> None:
         """Re-raise an allocator's out-of-memory error as a :class:`MemoryError` that says what was
-        asked for and which knobs bound it; return for any other error."""
+        asked for and which knobs bound it (also a size past what torch can count: ``n_particles=2**62``);
+        return for any other error."""
         text = str(err)
         if not (isinstance(err, (torch.OutOfMemoryError, MemoryError)) or "can't allocate memory" in text
-                or "out of memory" in text.lower()):
+                or "out of memory" in text.lower() or "Storage size calculation overflowed" in text
+                or "Overflow when unpacking long" in text):
             return
         asked = re.search(r"allocate (\d+) bytes|allocate ([\d.]+ [KMGT]iB)", text)
         size = "" if asked is None else (f" (one allocation of {int(asked.group(1)) / 2**30:.3g} GiB" if asked.group(1)
@@ -343,7 +345,7 @@ class Filter(nn.Module):
             check_generator(generator, f"{self.name}: generator", observations.shape[0])
         try:
             state = self.init(mean, cov, n_particles, generator)
-        except (torch.OutOfMemoryError, MemoryError, RuntimeError) as err:
+        except Exception as err:
             self._raise_out_of_memory(err, observations.shape[0], n_particles)
             raise
         trace = _Trace(observations.shape[0], observations.device, return_covariances, return_particles)
