@@ -1,0 +1,261 @@
+"""Property-based fuzz of input validation: every call either returns finite results of the inputs'
+shapes or raises torchflow's own error naming what was wrong (:mod:`torchflow.errors`), never a raw
+torch error and never a silent broadcast.
+
+* every filter's ``forward`` on a small linear-Gaussian model, with bad observations, priors,
+  generators and particle counts planted one or two at a time;
+* the models' constructors with bad matrices and keyword values;
+* user models whose methods return outputs of the wrong shape (compared with the same model
+  without the mistake: a result that differs is a silent broadcast);
+* the runner's settings (``run_experiment``).
+
+Examples are drawn by ``hypothesis`` with ``derandomize=True`` and no example database, so every run
+(and CI) draws the same examples. ``TORCHFLOW_FUZZ_EXAMPLES=3000`` fuzzes deeper with fresh examples.
+"""
+from __future__ import annotations
+
+import functools
+import math
+import os
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, event, given, settings, strategies as st
+
+import torchflow.filters as F
+from torchflow.errors import NonFiniteError, TorchflowError
+from torchflow.experiment import run_experiment
+from torchflow.models import (AcousticTracking, GaussianStateSpaceModel, LinearGaussian, SensorNetwork,
+                              SkewedTPoisson, TDOA3D)
+from torchflow.random import TrialStreams
+from torchflow.runner import ConfigError
+from torchflow.schedules import ExponentialSchedule
+
+#: fresh random examples, this many per test (0: the fixed examples CI runs)
+DEEP = int(os.environ.get("TORCHFLOW_FUZZ_EXAMPLES", "0"))
+FUZZ = settings(deadline=None, derandomize=not DEEP, database=None, print_blob=True,
+                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.filter_too_much])
+
+
+def fuzz(examples: int):
+    """The settings of one fuzz test: ``examples`` fixed examples (``DEEP`` random ones if set)."""
+    return settings(FUZZ, max_examples=DEEP or examples)
+
+
+DEAD_STEP = "no particle's weight carried the measurement"
+NONFINITE = [math.nan, math.inf, -math.inf]
+
+
+@functools.lru_cache(maxsize=None)
+def lg(d: int, m: int, dtype: torch.dtype = torch.float64) -> LinearGaussian:
+    """A small linear-Gaussian model (shared between examples: never modified)."""
+    eye = torch.eye(d, dtype=torch.float64)
+    model = LinearGaussian(0.9 * eye, 0.2 * eye, torch.eye(m, d, dtype=torch.float64) + 0.1,
+                           0.1 * torch.eye(m, dtype=torch.float64), torch.zeros(d, dtype=torch.float64), eye)
+    return model.to(dtype)
+
+
+def short():
+    return ExponentialSchedule(n_steps=3)
+
+
+#: every filter family on a small model: few particles, short flows
+FILTERS = {
+    "kf": lambda m: F.KalmanFilter(m),
+    "ekf": lambda m: F.ExtendedKalmanFilter(m),
+    "ukf": lambda m: F.UnscentedKalmanFilter(m),
+    "bpf": lambda m: F.BootstrapParticleFilter(m, n_particles=8),
+    "pfpf_edh": lambda m: F.ParticleFlowParticleFilter(m, flow="edh", n_particles=8, schedule=short()),
+    "pfpf_ledh": lambda m: F.ParticleFlowParticleFilter(m, flow="ledh", n_particles=8, schedule=short()),
+    "flow_filter": lambda m: F.ParticleFlowFilter(m, flow="edh", n_particles=8, schedule=short()),
+    "gpfis": lambda m: F.GPFIS(m, n_particles=8, schedule=short()),
+    "gpf": lambda m: F.GaussianParticleFilter(m, n_particles=8),
+    "gspf": lambda m: F.GaussianSumParticleFilter(m, n_components=2, particles_per_component=6),
+}
+DTYPES = [torch.float64, torch.float32, torch.int64, torch.float16, torch.bool, torch.complex128, torch.bfloat16]
+
+
+# ---- the property ---------------------------------------------------------------------------------
+
+def check_outcome(call, blame, shape, *, extreme=False, particles=False, memory=False):
+    """``call()`` returns finite results of ``shape = (B, T, d)`` or raises a :class:`TorchflowError`
+    naming one of ``blame`` (the planted faults; none: the call must run). With ``extreme`` (finite
+    inputs far in the tails) a :class:`NonFiniteError` naming the filter will do; with ``memory`` (a
+    request no machine holds) a ``MemoryError`` saying what was asked. A particle filter may warn that
+    a step carried no measurement: that trial's increment is then ``-inf`` (``guards.py``,
+    nonfinite='recover') and nothing else is non-finite."""
+    B, T, d = shape
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            out = call()
+        except MemoryError as err:
+            assert memory and "out of memory running" in str(err), repr(err)
+            return err
+        except NonFiniteError as err:
+            assert extreme or any(b in str(err) for b in blame), f"{err!r} (planted: {sorted(blame)})"
+            return err
+        except TorchflowError as err:
+            assert blame, f"valid inputs refused: {err!r}"
+            assert any(b in str(err) for b in blame), f"{err!r} names none of {sorted(blame)}"
+            return err
+    assert not blame, f"accepted {sorted(blame)}"
+    assert tuple(out.estimates.shape) == (B, T, d)
+    assert tuple(out.log_evidence.shape) == (B,)
+    assert tuple(out.log_evidence_increments.shape) == (B, T)
+    assert torch.isfinite(out.estimates).all()
+    dead = [w for w in caught if issubclass(w.category, RuntimeWarning) and DEAD_STEP in str(w.message)]
+    inc = out.log_evidence_increments
+    if dead:
+        assert particles, "only particle filters have steps that carry no measurement"
+        assert (inc[~torch.isfinite(inc)] == -math.inf).all()
+    else:
+        assert torch.isfinite(inc).all()
+    if out.ess is not None:
+        assert tuple(out.ess.shape) == (B, T) and torch.isfinite(out.ess).all()
+    if out.covariances is not None:
+        assert tuple(out.covariances.shape) == (B, T, d, d) and torch.isfinite(out.covariances).all()
+    if out.particles is not None:
+        assert out.particles.shape[:2] == (B, T) and out.particles.shape[-1] == d
+        assert tuple(out.log_weights.shape) == tuple(out.particles.shape[:-1])
+    return out
+
+
+# ---- strategies: (value, tag) with tag None (valid), "extreme" (valid, far in the tails) or the
+# ---- argument's name (a planted fault) ----------------------------------------------------------------
+
+def nonfinite_at(draw, x):
+    """A copy of ``x`` with NaN or +-inf at a drawn position."""
+    x = x.clone()
+    x.view(-1)[draw(st.integers(0, x.numel() - 1))] = draw(st.sampled_from(NONFINITE))
+    return x
+
+
+def far(dtype):
+    """Finite values far in the tails of ``dtype`` (and one far below 1)."""
+    big = torch.finfo(dtype).max
+    return st.sampled_from([big / 10, -big ** 0.5, big ** 0.8, torch.finfo(dtype).tiny * 10])
+
+
+def other_dtype(draw, dtype):
+    return draw(st.sampled_from([t for t in DTYPES if t != dtype]))
+
+
+@st.composite
+def observations(draw, B, T, m, dtype, bad):
+    z = torch.randn(B, T, m, generator=torch.Generator().manual_seed(draw(st.integers(0, 9)))).to(dtype)
+    if not bad:
+        kind = draw(st.sampled_from(["ok", "ok", "ok", "noncontiguous", "extreme"]))
+        if kind == "noncontiguous":
+            return z.transpose(0, 1).contiguous().transpose(0, 1), None
+        if kind == "extreme":
+            z.view(-1)[draw(st.integers(0, z.numel() - 1))] = draw(far(dtype))
+            return z, "extreme"
+        return z, None
+    kind = draw(st.sampled_from(["ndim2", "ndim4", "m", "B0", "T0", "dtype", "nonfinite", "meta", "list", "none",
+                                 "numpy"]))
+    z = {"ndim2": lambda: z[:, 0], "ndim4": lambda: z.unsqueeze(draw(st.integers(0, 3))),
+         "m": lambda: torch.randn(B, T, m + draw(st.sampled_from([-m, 1, 2]))).to(dtype),
+         "B0": lambda: z[:0], "T0": lambda: z[:, :0], "dtype": lambda: z.to(other_dtype(draw, dtype)),
+         "nonfinite": lambda: nonfinite_at(draw, z), "meta": lambda: z.to("meta"), "list": z.tolist,
+         "none": lambda: None, "numpy": lambda: z.numpy()}[kind]()
+    return z, "observations"
+
+
+@st.composite
+def means(draw, B, d, dtype, bad):
+    base = torch.zeros(B, d, dtype=dtype)
+    if not bad:
+        kind = draw(st.sampled_from(["B", "B", "shared", "extreme"] + (["one"] if B == 1 else [])))
+        if kind == "extreme":
+            return torch.full((B, d), draw(far(dtype)), dtype=dtype), "extreme"
+        return (base[0] if kind == "shared" else base), None
+    kind = draw(st.sampled_from(["d", "wrongB", "wrongd", "col", "dtype", "nonfinite", "meta", "scalar", "list"]
+                                + (["one"] if B > 1 else [])))
+    mean = {"one": lambda: base[:1],  # (1, d) is not broadcast over B trials
+            "d": lambda: torch.zeros(d + 1, dtype=dtype),
+            "wrongB": lambda: torch.zeros(B + draw(st.sampled_from([1, 2])), d, dtype=dtype),
+            "wrongd": lambda: torch.zeros(B, d + 1, dtype=dtype), "col": lambda: base.unsqueeze(-1),
+            "dtype": lambda: base.to(other_dtype(draw, dtype)), "nonfinite": lambda: nonfinite_at(draw, base),
+            "meta": lambda: base.to("meta"), "scalar": lambda: torch.tensor(0.0, dtype=dtype),
+            "list": base.tolist}[kind]()
+    return mean, "mean"
+
+
+@st.composite
+def covs(draw, B, d, dtype, bad):
+    eye = torch.eye(d, dtype=dtype)
+    base = eye.repeat(B, 1, 1)
+    if not bad:
+        kind = draw(st.sampled_from(["B", "B", "shared", "expanded", "singular", "near_psd", "extreme"]
+                                    + (["one"] if B == 1 else []) + (["variances"] if B == d else [])))
+        if kind == "near_psd":  # singular, with a round-off negative eigenvalue: within check_psd's tolerance
+            return torch.ones(B, d, d, dtype=dtype) - (1e-13 if dtype == torch.float64 else 1e-8) * eye, None
+        if kind == "extreme":
+            return base * abs(draw(far(dtype))), "extreme"
+        cov = {"B": base, "shared": eye, "expanded": eye.expand(B, d, d), "singular": torch.zeros_like(base),
+               "one": base, "variances": torch.ones(B, d, dtype=dtype)}[kind]
+        return cov, None
+    kind = draw(st.sampled_from(["wrongB", "wrongd", "dtype", "nonfinite", "nonpsd", "meta", "list", "vector"]
+                                + (["asym"] if d > 1 else []) + (["one"] if B > 1 else [])
+                                + (["variances"] if B != d else [])))
+    if kind == "nonpsd":  # a negative variance; -1e-13 is not round-off in a matrix of zeros
+        cov = base.clone() if draw(st.booleans()) else torch.zeros_like(base)
+        cov[draw(st.integers(0, B - 1)), 0, 0] = -draw(st.sampled_from([1e-13, 1e-3, 1.0, 1e6]))
+    elif kind == "asym":
+        cov = base.clone()
+        cov[draw(st.integers(0, B - 1)), 0, 1] = 0.5
+    else:
+        cov = {"one": lambda: base[:1], "variances": lambda: torch.ones(B, d, dtype=dtype),
+               "wrongB": lambda: eye.repeat(B + 1, 1, 1), "wrongd": lambda: torch.eye(d + 1, dtype=dtype).repeat(B, 1, 1),
+               "dtype": lambda: base.to(other_dtype(draw, dtype)), "nonfinite": lambda: nonfinite_at(draw, base),
+               "meta": lambda: base.to("meta"), "list": base.tolist, "vector": lambda: eye[0]}[kind]()
+    return cov, "cov"
+
+
+@st.composite
+def generators(draw, B, bad):
+    if not bad:
+        if draw(st.booleans()):
+            return torch.Generator().manual_seed(draw(st.integers(0, 3))), None
+        return TrialStreams(draw(st.integers(0, 3)), B, backend=draw(st.sampled_from(["numpy", "philox"]))), None
+    kind = draw(st.sampled_from(["none", "int", "str", "streams", "numpy", "state"]))
+    gen = {"none": None, "int": 3, "str": "seed", "numpy": np.random.default_rng(0),
+           "streams": TrialStreams(0, B + draw(st.sampled_from([1, 3]))),  # made for other trials
+           "state": torch.Generator().get_state()}[kind]
+    return gen, "generator"
+
+
+HUGE = 2**62
+GOOD_N = st.sampled_from([None, None, 1, 2, 3.0, np.int64(4)])
+BAD_N = st.sampled_from([0, -1, 1.5, True, "8", HUGE, math.nan, [4]])
+
+ARGS = ("observations", "mean", "cov", "generator", "n_particles")
+
+
+@given(data=st.data(), name=st.sampled_from(sorted(FILTERS)), d=st.integers(1, 3), m=st.integers(1, 3),
+       B=st.integers(1, 3), T=st.integers(1, 3), dtype=st.sampled_from([torch.float64, torch.float32]),
+       faults=st.sets(st.sampled_from(ARGS), max_size=2), returns=st.sampled_from([(False, False), (True, False),
+                                                                                  (False, True)]))
+@fuzz(200)
+def test_every_filter_either_runs_finite_or_names_the_bad_argument(data, name, d, m, B, T, dtype, faults, returns):
+    f = FILTERS[name](lg(d, m, dtype))
+    drawn = {"observations": data.draw(observations(B, T, m, dtype, "observations" in faults), "observations"),
+             "mean": data.draw(means(B, d, dtype, "mean" in faults), "mean"),
+             "cov": data.draw(covs(B, d, dtype, "cov" in faults), "cov"),
+             "generator": data.draw(generators(B, "generator" in faults), "generator")}
+    n = data.draw(BAD_N if "n_particles" in faults else GOOD_N, "n_particles")
+    tags = {k: tag for k, (_, tag) in drawn.items() if f.uses_randomness or k != "generator"}
+    if "n_particles" in faults and f.n_particles is not None:
+        tags["n_particles"] = "n_particles"
+    if name in ("gpf", "gspf") and n is not None and n != f.n_particles:
+        tags["n_particles"] = "n_particles"  # a Gaussian-sum filter's total comes from its components
+    blame = {t for t in tags.values() if t not in (None, "extreme")}
+    z, mean, cov, gen = (drawn[k][0] for k in ("observations", "mean", "cov", "generator"))
+    out = check_outcome(lambda: f(z, mean, cov, gen, n_particles=n, return_covariances=returns[0],
+                                  return_particles=returns[1]),
+                        blame, (B, T, d), extreme="extreme" in tags.values(), particles=f.uses_particles,
+                        memory=isinstance(n, int) and n == HUGE and "n_particles" in blame)
+    event(type(out).__name__)
