@@ -266,12 +266,10 @@ class Filter(nn.Module):
 
     def _raise_out_of_memory(self, err: BaseException, trials: int, n_particles: Optional[int]) -> None:
         """Re-raise an allocator's out-of-memory error as a :class:`MemoryError` that says what was
-        asked for and which knobs bound it (also a size past what torch can count: ``n_particles=2**62``);
-        return for any other error."""
+        asked for and which knobs bound it; return for any other error."""
         text = str(err)
         if not (isinstance(err, (torch.OutOfMemoryError, MemoryError)) or "can't allocate memory" in text
-                or "out of memory" in text.lower() or "Storage size calculation overflowed" in text
-                or "Overflow when unpacking long" in text):
+                or "out of memory" in text.lower()):
             return
         asked = re.search(r"allocate (\d+) bytes|allocate ([\d.]+ [KMGT]iB)", text)
         size = "" if asked is None else (f" (one allocation of {int(asked.group(1)) / 2**30:.3g} GiB" if asked.group(1)
@@ -346,7 +344,7 @@ class Filter(nn.Module):
         try:
             state = self.init(mean, cov, n_particles, generator)
         except Exception as err:
-            self._raise_out_of_memory(err, observations.shape[0], n_particles)
+            self._raise_out_of_memory(_uncountable(err), observations.shape[0], n_particles)
             raise
         trace = _Trace(observations.shape[0], observations.device, return_covariances, return_particles)
         if checkpoint_steps is None:
@@ -364,13 +362,24 @@ class Filter(nn.Module):
                 state = step(state, observations[:, t], generator)
             except Exception as err:
                 self._check_trace(trace, warn=False)  # an earlier non-finite value is the cause
-                self._raise_out_of_memory(err, observations.shape[0], n_particles)
+                self._raise_out_of_memory(_uncountable(err), observations.shape[0], n_particles)
                 raise
             trace.add(state, t)
             if progress is not None:
                 progress()
         self._check_trace(trace, warn=True)  # the one host read of the check
         return trace.result(state)
+
+
+def _uncountable(err: BaseException) -> BaseException:
+    """A size past what torch can count (``n_particles=2**62``) as the ``MemoryError`` it is on any
+    machine (caused by ``err``); any other error unchanged."""
+    text = str(err)
+    if "Storage size calculation overflowed" not in text and "Overflow when unpacking long" not in text:
+        return err
+    out = MemoryError(text.splitlines()[0])
+    out.__cause__ = err
+    return out
 
 
 class _Trace:
