@@ -214,3 +214,95 @@ def test_a_gaussian_sum_filter_refuses_a_particle_count_that_is_not_a_count(n):
     with pytest.raises(ValueError, match=r"n_particles: expected a positive integer"):
         f(torch.zeros(1, 2, 2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64),
           torch.eye(2, dtype=torch.float64), torch.Generator().manual_seed(0), n_particles=n)
+
+
+_I2 = [[1.0, 0.0], [0.0, 1.0]]
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda: _lg_args(F="abc"), r"F: expected a tensor, array or sequence of real numbers, got str"),
+    (lambda: _lg_args(Q=None), r"Q: expected a tensor, array or sequence of real numbers, got NoneType"),
+    (lambda: _lg_args(H=torch.eye(2, dtype=torch.complex128)), r"H: expected .* real numbers, got a torch.complex128"),
+    (lambda: _lg_args(F=[[float("nan"), 0.0], [0.0, 1.0]]), r"F: expected finite numbers, got 1 NaN/inf value\(s\)"),
+    (lambda: _lg_args(m0=[float("inf"), 0.0]), r"m0: expected finite numbers"),
+    (lambda: _lg_args(F=torch.tensor(1.0)), r"F: expected a square matrix \(d, d\) with d >= 1, got \(\)"),
+    (lambda: _lg_args(F=torch.zeros(0, 0)), r"F: expected a square matrix \(d, d\) with d >= 1, got \(0, 0\)"),
+    (lambda: _lg_args(F=torch.eye(3)), r"H: expected \(m, d\) = \(\*, 3\) with m >= 1 and F's d, got \(2, 2\)"),
+    (lambda: _lg_args(learnable=5), r"learnable: expected a bool or a subset of \['F', 'Q', 'H', 'R'\], got 5"),
+    (lambda: _lg_args(learnable=None), r"learnable: expected a bool or a subset of .*, got None"),
+    (lambda: AcousticTracking(learnable=5), r"learnable: expected a bool or a subset of \['psi', 'sigma_w'\], got 5"),
+    (lambda: AcousticTracking(prior_std=5.0), r"prior_std: expected 4 numbers \[px, py, vx, vy\], got \(\)"),
+    (lambda: AcousticTracking(prior_std=None), r"prior_std: expected a tensor, array or sequence of real numbers"),
+    (lambda: AcousticTracking(initial_state="abc"), r"initial_state: expected a tensor, array or sequence of real"),
+    (lambda: AcousticTracking(initial_state=[float("nan")] * 16), r"initial_state: expected finite numbers"),
+    (lambda: AcousticTracking(sensor_grid=float("nan")), r"sensor_grid: expected an integer >= 1, got nan"),
+    (lambda: AcousticTracking(sigma_w=1e200), r"sigma_w: expected a noise scale whose square is a normal float64"),
+    (lambda: SensorNetwork(d=4, sigma_z=1e200), r"sigma_z: expected a noise scale whose square is a finite float64"),
+])
+def test_model_arguments_of_the_wrong_kind_are_named(make, match):
+    """Strings, None, complex numbers, NaN, overflowing scales and non-collections are refused naming
+    the argument (they raised a raw TypeError/ValueError/OverflowError, or were silently cast)."""
+    from torchflow.errors import TorchflowError
+
+    with pytest.raises(TorchflowError, match=match):
+        make()
+
+
+def _lg_args(**kw):
+    from torchflow.models import LinearGaussian
+
+    args = dict(F=_I2, Q=_I2, H=_I2, R=_I2)
+    args.update(kw)
+    return LinearGaussian(args.pop("F"), args.pop("Q"), args.pop("H"), args.pop("R"), **args)
+
+
+def test_linear_gaussian_takes_lists_of_python_floats_in_float64_and_one_learnable_name():
+    """A nested list keeps its float64 values (a rank-one P0 stays positive semi-definite), and
+    ``learnable="F"`` is the one name, not its letters."""
+    v = torch.tensor([[1.1], [-0.3], [2.7]], dtype=torch.float64)
+    P0 = (v @ v.T).tolist()
+    eye = torch.eye(3, dtype=torch.float64).tolist()
+    from torchflow.models import LinearGaussian
+
+    model = LinearGaussian(eye, eye, eye, eye, None, P0, learnable="F")
+    assert torch.equal(model.P0, torch.tensor(P0, dtype=torch.float64)) and isinstance(model.F, torch.nn.Parameter)
+
+
+def test_acoustic_targets_that_start_outside_the_field_are_refused_when_built():
+    """With margin 0.49 the default targets start outside the field: the simulation could never keep
+    them inside (it raised a RuntimeError after max_redraws rounds)."""
+    with pytest.raises(ValueError, match=r"initial_state: expected target positions inside the field \[margin, "
+                                         r"1 - margin\] \* area = \[19.6, 20.4\]\^2"):
+        AcousticTracking(margin=0.49)
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(d=-4), r"d: expected a perfect square \(144, 400, ...\), got -4"),
+    (dict(d="4"), r"d: expected a perfect square \(144, 400, ...\), got '4'"),
+    (dict(d=4, gamma=1e200), r"gamma: the skewness 1e\+200 overflows the transition covariance"),
+])
+def test_skewed_t_dimension_and_an_overflowing_skewness_are_named(kw, match):
+    from torchflow.models import SkewedTPoisson
+
+    with pytest.raises(ValueError, match=match):
+        SkewedTPoisson(**kw)
+
+
+_TWO = [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(receivers=_TWO, pairs=[(0.5, 1)]), r"pairs: expected pairs \(a, b\) of receiver indices, got \[\(0.5, 1\)\]"),
+    (dict(receivers=_TWO, pairs=[("a", 1)]), r"pairs: expected pairs \(a, b\) of receiver indices"),
+    (dict(receivers=_TWO, pairs=5), r"pairs: expected pairs \(a, b\) of receiver indices, got 5"),
+    (dict(receivers=[[0.0, 0.0, 0.0], [float("nan"), 1.0, 1.0]], pairs=[(0, 1)]), r"receivers: expected finite numbers"),
+    (dict(receivers="abc"), r"receivers: expected a tensor, array or sequence of real numbers, got str"),
+    (dict(region="x"), r"region: expected a positive number, got 'x'"),
+    (dict(region=0), r"region: expected a positive number, got 0"),
+])
+def test_tdoa_receivers_pairs_and_region_are_named(kw, match):
+    from torchflow.errors import TorchflowError
+    from torchflow.models import TDOA3D
+
+    with pytest.raises(TorchflowError, match=match):
+        TDOA3D(**kw)

@@ -10,6 +10,7 @@ import math
 import numbers
 from typing import Optional, Sequence, Union
 
+import numpy as np
 import torch
 
 from .errors import ArgumentError, ArgumentTypeError, NonFiniteError  # noqa: F401 (re-exported)
@@ -97,6 +98,40 @@ def check_psd(name: str, cov: torch.Tensor, *, tol: float = 1e-10) -> torch.Tens
     return cov
 
 
+def as_real_tensor(name: str, x, *, finite: bool = True, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """``x`` (a tensor, array or nested sequence of real numbers) as a ``dtype`` tensor: an
+    :class:`ArgumentTypeError` naming ``name`` for anything else (a string, ``None``, complex numbers,
+    whose imaginary part a cast would drop), and with ``finite`` an :class:`ArgumentError` for NaN/inf."""
+    t = x if isinstance(x, torch.Tensor) else None
+    if t is None:  # through numpy: Python floats stay float64 (torch.as_tensor would round them to float32)
+        try:
+            a = np.asarray(x)
+            t = torch.as_tensor(a) if a.dtype.kind in "biuf" else None  # bool, int, float: not str, object, complex
+        except (TypeError, ValueError, RuntimeError):
+            pass
+    if t is None or t.is_complex() or t.device.type == "meta":
+        what = type(x).__name__ if t is None else f"a {t.dtype} tensor on {t.device}"
+        raise ArgumentTypeError(f"{name}: expected a tensor, array or sequence of real numbers, got {what}")
+    t = t.to(dtype)
+    if finite and not bool(torch.isfinite(t).all()):
+        raise ArgumentError(f"{name}: expected finite numbers, got {int((~torch.isfinite(t)).sum())} NaN/inf value(s)")
+    return t
+
+
+def check_learnable(learnable, names: Sequence[str]) -> set:
+    """The set of parameter names to learn: ``True`` (all of ``names``), ``False`` (none), one name or
+    a collection of names; an :class:`ArgumentError` for anything else."""
+    if isinstance(learnable, bool):
+        return set(names) if learnable else set()
+    try:
+        learn = {learnable} if isinstance(learnable, str) else set(learnable)
+    except TypeError:
+        learn = None
+    if learn is None or not learn <= set(names):
+        raise ArgumentError(f"learnable: expected a bool or a subset of {list(names)}, got {learnable!r}")
+    return learn
+
+
 def check_same(name: str, x: torch.Tensor, ref: torch.Tensor, ref_name: str = "the model") -> None:
     """Raise if ``x`` and ``ref`` differ in dtype or device (names both sides)."""
     if x.dtype != ref.dtype:
@@ -130,7 +165,7 @@ def check_number(name: str, v, ok=None, what: str = "a finite number", *, intege
     comparison lets NaN through)."""
     real = isinstance(v, numbers.Real) and not isinstance(v, bool)
     if integer:
-        real = real and float(v) == int(v)
+        real = real and math.isfinite(float(v)) and float(v) == int(v)
     if not real or not math.isfinite(float(v)) or (ok is not None and not ok(v)):
         raise ArgumentError(f"{name}: expected {what}, got {v!r}")
     return int(v) if integer else float(v)
