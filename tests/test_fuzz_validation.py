@@ -259,3 +259,154 @@ def test_every_filter_either_runs_finite_or_names_the_bad_argument(data, name, d
                         blame, (B, T, d), extreme="extreme" in tags.values(), particles=f.uses_particles,
                         memory=isinstance(n, int) and n == HUGE and "n_particles" in blame)
     event(type(out).__name__)
+
+
+# ---- the models' constructors -----------------------------------------------------------------------
+
+def check_construction(make, blame):
+    """``make()`` raises a :class:`TorchflowError` naming one of ``blame``, or (nothing planted)
+    builds a model whose buffers are finite and whose simulation is finite or a NonFiniteError
+    naming the model (a valid but extreme parameter)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a cast that drops something (complex -> real) warns: it must refuse
+        try:
+            model = make()
+        except TorchflowError as err:
+            assert blame, f"valid arguments refused: {err!r}"
+            assert any(b in str(err) for b in blame), f"{err!r} names none of {sorted(blame)}"
+            return err
+    assert not blame, f"accepted {sorted(blame)}"
+    for name, buf in model.named_buffers():
+        assert buf is None or not buf.is_floating_point() or torch.isfinite(buf).all(), name
+    if not isinstance(model, TDOA3D):  # a localisation model: its data are measurement sets
+        try:
+            traj = model.simulate(1, 2, torch.Generator().manual_seed(0))
+        except NonFiniteError as err:
+            assert type(model).__name__ in str(err)
+            return err
+        assert torch.isfinite(traj.states).all() and torch.isfinite(traj.observations).all()
+    return model
+
+
+def psd(d, seed, rank=None):
+    A = torch.randn(d, rank or d, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
+    return A @ A.T + (0.0 if rank else 0.1) * torch.eye(d, dtype=torch.float64)
+
+
+@st.composite
+def matrix_arg(draw, name, shape, kind_of_matrix, bad):
+    """A valid matrix (a tensor, array or nested list, in any real dtype) or a planted fault."""
+    seed = draw(st.integers(0, 5))
+    rank = draw(st.sampled_from([None, None, 1])) if name == "P0" else None  # P0 may be singular
+    if kind_of_matrix == "cov":
+        good = psd(shape[0], seed, rank=rank)
+    else:
+        good = torch.randn(*shape, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
+    if not bad:  # float32 rounding leaves a singular matrix a little indefinite in float64: not for those
+        form = draw(st.sampled_from(["tensor", "numpy", "list"] + ([] if rank else ["float32"])))
+        return {"tensor": good, "float32": good.float(), "numpy": good.numpy(), "list": good.tolist()}[form]
+    kinds = ["transposed_or_bigger", "vector", "scalar", "extra_dim", "nonfinite", "str", "complex", "meta", "empty"]
+    kinds += [] if name in ("m0", "P0") else ["none"]  # None: m0 = 0, P0 = 0 (a known x_0)
+    if kind_of_matrix == "cov":
+        kinds += ["nonpsd", "asym"] if shape[0] > 1 else ["nonpsd"]
+    kind = draw(st.sampled_from(kinds))
+    if kind == "transposed_or_bigger":
+        return good.T if len(shape) == 2 and shape[0] != shape[1] else torch.zeros(*[s + 1 for s in shape])
+    if kind == "nonpsd":
+        bad_cov = good.clone()
+        bad_cov[0, 0] = -1.0
+        return bad_cov
+    if kind == "asym":
+        bad_cov = good.clone()
+        bad_cov[0, -1] += 1.0
+        return bad_cov
+    return {"vector": lambda: good.reshape(-1) if len(shape) == 2 else good[:1].reshape(1, 1),
+            "scalar": lambda: torch.tensor(1.0), "extra_dim": lambda: good.unsqueeze(0),
+            "nonfinite": lambda: nonfinite_at(draw, good), "str": lambda: "abc", "none": lambda: None,
+            "complex": lambda: good.to(torch.complex128) * (1 + 1j), "meta": lambda: good.to("meta"),
+            "empty": lambda: torch.zeros(*[0 for _ in shape])}[kind]()
+
+
+LG_ARGS = ("F", "Q", "H", "R", "m0", "P0", "learnable", "measurement_noise")
+
+
+@given(data=st.data(), d=st.integers(1, 3), m=st.integers(1, 3),
+       faults=st.sets(st.sampled_from(LG_ARGS), max_size=2))
+@fuzz(120)
+def test_linear_gaussian_either_builds_a_finite_model_or_names_the_bad_matrix(data, d, m, faults):
+    shapes = {"F": ((d, d), "matrix"), "Q": ((d, d), "cov"), "H": ((m, d), "matrix"), "R": ((m, m), "cov"),
+              "m0": ((d,), "vector"), "P0": ((d, d), "cov")}
+    args = {k: data.draw(matrix_arg(k, *shapes[k], k in faults), k) for k in shapes}
+    learnable = data.draw(st.sampled_from([5, None, ["X"], "FX", 1.5]) if "learnable" in faults
+                          else st.sampled_from([False, True, ["F"], "H", ("Q", "R")]), "learnable")
+    noise = data.draw(st.sampled_from(["full", 3, "scalar" if m > 1 else "nope"]) if "measurement_noise" in faults
+                      else st.sampled_from([None, "dense"]), "measurement_noise")
+    check_construction(lambda: LinearGaussian(args["F"], args["Q"], args["H"], args["R"], args["m0"], args["P0"],
+                                              learnable=learnable, measurement_noise=noise), set(faults))
+
+
+#: keyword -> (valid values, bad values) of each model's constructor
+MODEL_KWARGS = {
+    AcousticTracking: {
+        "sigma_w": ([0.1, 1.0, 1e-3], [0, -1, math.nan, math.inf, "0.1", True, None, 1e-300, 1e200]),
+        "psi": ([10.0, 1, 1e3], [0, -5, math.nan, math.inf, "x", True]),
+        "d0": ([0.1, 1.0], [0, -1, math.nan, math.inf, "x", False]),
+        "true_noise_scale": ([0.05, 1.0], [0, -1, math.nan, math.inf, "x"]),
+        "filter_noise": (["inflated", "truth", True], ["none", 3, None, False]),
+        "area": ([40.0, 50], [0, -1, math.nan, math.inf, "40", 10]),  # 10: the targets start outside
+        "sensor_grid": ([1, 2, 3.0], [0, -1, 2.5, "5", True, math.nan]),
+        "prior_std": ([(10, 10, 1, 1), [1.0, 1, 1, 1], np.ones(4)],
+                      [(1, 1, -1, 1), (1, 1, 1), 5.0, "abcd", (math.nan, 1, 1, 1), None, (1j, 1, 1, 1)]),
+        "initial_state": ([None, [12.0, 6, 0.001, 0.001, 32, 32, -0.001, -0.005, 20, 13, -0.1, 0.01, 15, 35,
+                                 0.002, 0.002]], [[1.0] * 15, [math.nan] * 16, "abc", 5.0]),
+        "margin": ([0.05, 0, 0.1], [0.5, -0.1, math.nan, "x", 0.49]),
+        "max_redraws": ([10000, 1], [0, 1.5, -1, "x"]),
+        "learnable": ([False, True, ["psi"], "sigma_w"], [["d0"], 5, None, "x"]),
+    },
+    SensorNetwork: {
+        "d": ([1, 4, 9, 4.0], [0, -4, 5, 2.5, "4", True, math.nan]),
+        "alpha": ([0.9, 0, -0.5, 1.5], [math.nan, math.inf, "x", True, None]),
+        "alpha0": ([3, 0, 1e300], [-1, math.nan, math.inf, "x"]),
+        "alpha1": ([0.01, 1], [0, -1, math.nan, math.inf]),
+        "beta": ([20, 0.5, 1e-300], [0, -1, math.nan, math.inf, "x"]),
+        "sigma_z": ([0.5, 1e-3], [0, -1, math.nan, math.inf, 1e200]),
+        "prior_var": ([0, 1], [-1, math.nan, math.inf, "x"]),
+        "learnable": ([False, True], ["yes", 5, None]),
+    },
+    SkewedTPoisson: {
+        "d": ([1, 4], [0, 5, 4.0, "4", True, -4]),
+        "alpha": ([0.9, 0], [math.nan, math.inf, "x", True]),
+        "gamma": ([0.3, 0, -1], [math.nan, math.inf, "x", 1e200]),
+        "nu": ([7, 5, 100], [4, 3, 7.0, "7", True, math.nan]),
+        "alpha0": ([3.0, 0], [-1, math.nan, math.inf]),
+        "alpha1": ([0.01, 1], [0, -1, math.nan]),
+        "beta": ([20.0, 1], [0, -1, math.inf]),
+        "m1": ([1.0, 2], [0, -1, math.nan]),
+        "m2": ([1 / 3, 0, -1], [math.nan, math.inf, "x"]),
+    },
+    TDOA3D: {
+        "speed": ([1500.0, 1], [0, -1, math.nan, math.inf, "x", True]),
+        "sigma_v": ([5e-4, 1], [0, -1, math.nan, math.inf]),
+        "p_d": ([0.95, 1, 0.01], [0, 1.5, -0.1, math.nan]),
+        "clutter_rate": ([1.0, 0, 10], [-1, math.nan, math.inf, "x"]),
+        "n_sources": ([3, 0, 1], [-1, 1.5, "3", True, 3.0]),
+        "region": ([1000.0, 1, 1e300], [0, -1, math.nan, math.inf, "x"]),
+        "receivers": ([None], [torch.zeros(3, 2), torch.zeros(1, 3), torch.zeros(2, 3), "abc",
+                               torch.tensor([[0.0, 0, 0], [math.nan, 1, 1]]), torch.ones(2, 3, dtype=torch.complex64)]),
+        "pairs": ([None], [[], [(0, 0)], [(0, 99)], [(0,)], [(0.5, 1)], [("a", 1)], 5]),
+    },
+}
+
+
+@given(data=st.data(), model=st.sampled_from(list(MODEL_KWARGS)))
+@fuzz(150)
+def test_every_model_either_builds_or_names_the_bad_keyword(data, model):
+    table = MODEL_KWARGS[model]
+    faults = data.draw(st.sets(st.sampled_from(sorted(table)), max_size=2), "faults")
+    kwargs = {k: data.draw(st.sampled_from(table[k][1] if k in faults else table[k][0]), k)
+              for k in data.draw(st.sets(st.sampled_from(sorted(table))), "set") | faults}
+    if model is SkewedTPoisson:
+        kwargs.setdefault("d", 4)  # small (the default 144 costs time, not coverage)
+    if model is SensorNetwork:
+        kwargs.setdefault("d", 4)
+    check_construction(lambda: model(**kwargs), set(faults))
