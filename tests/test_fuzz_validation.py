@@ -17,6 +17,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import re
 import warnings
 
 import numpy as np
@@ -410,3 +411,158 @@ def test_every_model_either_builds_or_names_the_bad_keyword(data, model):
     if model is SensorNetwork:
         kwargs.setdefault("d", 4)
     check_construction(lambda: model(**kwargs), set(faults))
+
+
+# ---- user models whose methods return the wrong shape ------------------------------------------------
+
+def wrong_shape(out, how):
+    """``out`` reshaped the way a user's method might get it wrong (several still broadcast)."""
+    if how == "drop":  # (..., 1): broadcasts
+        return out[..., :1]
+    if how == "extra":
+        return out.unsqueeze(-1)
+    if how == "sum":
+        return out.sum(-1)
+    if how == "lead":  # (1, ...): broadcasts
+        return out.unsqueeze(0)
+    if how == "pad":
+        return torch.cat([out, out[..., :1]], -1)
+    if how == "flatten":  # (B N, k) from (B, N, k): right on (B, d) inputs only
+        return out.reshape(-1, out.shape[-1]) if out.dim() else out
+    if how == "first":  # the first trial's output for all: broadcasts
+        return out[:1] if out.dim() else out
+    if how == "scalar":
+        return out.sum()
+    return out.transpose(-1, -2) if out.dim() >= 2 else out  # "transpose"
+
+
+METHODS = ("transition_mean", "measure", "transition_cov", "measurement_cov", "sample_transition",
+           "sample_measurement", "transition_log_prob", "measurement_log_prob", "initial_state")
+WRONG = ("drop", "extra", "sum", "lead", "pad", "flatten", "first", "scalar", "transpose")
+
+
+class UserModel(GaussianStateSpaceModel):
+    """A linear-Gaussian model written by hand, as a user would; ``bug = (method, how)`` gets one
+    method's output shape wrong."""
+
+    def __init__(self, d, m, bug=None):
+        super().__init__()
+        self.state_dim, self.obs_dim, self.bug = d, m, bug
+        self.register_buffer("A", 0.9 * torch.eye(d, dtype=torch.float64))
+        self.register_buffer("H", torch.eye(m, d, dtype=torch.float64) + 0.1)
+        self.register_buffer("Q", 0.2 * torch.eye(d, dtype=torch.float64))
+        self.register_buffer("R", 0.1 * torch.eye(m, dtype=torch.float64))
+
+    def _out(self, method, out):
+        return wrong_shape(out, self.bug[1]) if self.bug is not None and self.bug[0] == method else out
+
+    def transition_mean(self, x):
+        return self._out("transition_mean", x @ self.A.T)
+
+    def transition_cov(self, x=None):
+        return self._out("transition_cov", self.Q)
+
+    def measure(self, x):
+        return self._out("measure", x @ self.H.T)
+
+    def measurement_cov(self, x=None):
+        return self._out("measurement_cov", self.R)
+
+    def sample_transition(self, x, generator=None):
+        return self._out("sample_transition", super().sample_transition(x, generator))
+
+    def sample_measurement(self, x, generator=None):
+        return self._out("sample_measurement", super().sample_measurement(x, generator))
+
+    def transition_log_prob(self, x_next, x):
+        return self._out("transition_log_prob", super().transition_log_prob(x_next, x))
+
+    def measurement_log_prob(self, z, x):
+        return self._out("measurement_log_prob", super().measurement_log_prob(z, x))
+
+    def initial_state(self, batch_size, generator=None):
+        return self._out("initial_state", torch.zeros(batch_size, self.state_dim, dtype=torch.float64))
+
+
+def same_or_named(run, clean, method):
+    """``run()`` (the model with the mistake) raises a :class:`TorchflowError` naming ``method``, or
+    returns what ``clean()`` (the same model without it) returns: a different result is a silent
+    broadcast."""
+    expected = clean()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a broadcast that kills every weight warns; the comparison judges it
+        try:
+            got = run()
+        except TorchflowError as err:
+            assert re.search(rf"\b{method}\b", str(err)), f"{err!r} does not name {method}"
+            return err
+    for key in ("estimates", "log_evidence_increments", "states", "observations"):
+        a, b = getattr(got, key, None), getattr(expected, key, None)
+        if b is not None:
+            assert a.shape == b.shape and torch.allclose(a, b, rtol=1e-9, atol=1e-12), \
+                f"a silent broadcast: {key} differs from the model's without the mistake"
+    return got
+
+
+USER_FILTERS = [k for k in FILTERS if k not in ("kf", "gspf")]  # the Kalman filter needs a declared linear model
+
+
+@given(d=st.integers(1, 3), m=st.integers(1, 3), B=st.integers(1, 3), T=st.integers(1, 2),
+       method=st.sampled_from(METHODS), how=st.sampled_from(WRONG), target=st.sampled_from(USER_FILTERS + ["simulate"]))
+@fuzz(150)
+def test_a_user_method_of_the_wrong_shape_is_named_never_broadcast(d, m, B, T, method, how, target):
+    z = torch.randn(B, T, m, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    mean, cov = torch.zeros(B, d, dtype=torch.float64), torch.eye(d, dtype=torch.float64)
+
+    def call(bug):
+        model = UserModel(d, m, bug)
+        if target == "simulate":
+            return model.simulate(B, T, torch.Generator().manual_seed(1))
+        f = FILTERS[target](model)
+        return f(z, mean, cov, torch.Generator().manual_seed(1))
+
+    same_or_named(lambda: call((method, how)), lambda: call(None), method)
+
+
+def test_a_user_method_right_on_the_batch_but_wrong_on_particles_is_named():
+    """``measure`` that flattens its leading dims is right on ``(B, d)`` and wrong on the particles
+    ``(B, N, d)``, where it raised a raw broadcasting error (or broadcast silently)."""
+    z = torch.randn(3, 2, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    f = F.BootstrapParticleFilter(UserModel(2, 2, ("measure", "flatten")), n_particles=8)
+    with pytest.raises(TorchflowError, match=r"UserModel\.measure returned shape \(6, 2\) on the particles' layout; "
+                                             r"expected \(B, N, m\) = \(2, 3, 2\)"):
+        f(z, torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64), torch.Generator().manual_seed(1))
+
+
+def test_a_user_method_that_transposes_is_named_where_the_batch_hides_it():
+    """With B = m a transposed ``measure`` has the right shape on ``(B, d)``; the unscented filter's
+    sigma points broadcast it silently into other numbers."""
+    z = torch.randn(2, 2, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    f = F.UnscentedKalmanFilter(UserModel(1, 2, ("measure", "transpose")))
+    with pytest.raises(TorchflowError, match=r"UserModel\.measure returned shape \(2, 2, 3\) on the particles' layout"):
+        f(z, torch.zeros(1, dtype=torch.float64), torch.eye(1, dtype=torch.float64))
+
+
+def test_a_constant_covariance_of_the_wrong_shape_is_named_by_its_method():
+    z = torch.randn(1, 2, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    f = F.ExtendedKalmanFilter(UserModel(2, 1, ("transition_cov", "drop")))
+    with pytest.raises(TorchflowError, match=r"UserModel\.transition_cov returned shape \(2, 1\); expected \(d, d\)"):
+        f(z, torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64))
+
+
+def test_gpfis_runs_on_a_hand_written_model_with_the_default_hessian():
+    """The default ``measurement_hessian`` (jvp over the vmapped Jacobian) crashed the process with a
+    segmentation fault on torch 2.13 (a negative ``out_dims``); it runs, and is exact on a quadratic h."""
+    z = torch.randn(2, 2, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    out = F.GPFIS(UserModel(2, 2), n_particles=8, schedule=short())(
+        z, torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64), torch.Generator().manual_seed(1))
+    assert torch.isfinite(out.estimates).all()
+
+    class Quadratic(UserModel):
+        def measure(self, x):  # h_a = x^T A_a x
+            return torch.einsum("...i,aij,...j->...a", x, self.A.expand(2, 2, 2), x)
+
+    model = Quadratic(2, 2)
+    x = torch.randn(3, 4, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    A = model.A.expand(2, 2, 2)
+    assert torch.allclose(model.measurement_hessian(x), (A + A.transpose(-1, -2)).expand(3, 4, 2, 2, 2))
