@@ -306,3 +306,47 @@ def test_tdoa_receivers_pairs_and_region_are_named(kw, match):
 
     with pytest.raises(TorchflowError, match=match):
         TDOA3D(**kw)
+
+
+def test_a_progress_that_is_not_callable_is_refused_before_the_first_step():
+    with pytest.raises(TypeError, match=r"progress: expected a callable invoked after each step \(or None\), got bool"):
+        KalmanFilter(_lg())(torch.zeros(1, 2, 2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64),
+                            torch.eye(2, dtype=torch.float64), progress=True)
+
+
+def test_a_particle_count_is_checked_by_a_filter_without_particles():
+    """A Kalman filter has no particles and ignores a valid count; a value that is no count is refused
+    as by the particle filters (it was silently ignored)."""
+    f, args = KalmanFilter(_lg()), (torch.zeros(1, 2, 2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64),
+                                    torch.eye(2, dtype=torch.float64))
+    assert torch.equal(f(*args, n_particles=10).estimates, f(*args).estimates)
+    with pytest.raises(ValueError, match=r"n_particles: expected a positive integer, got 'abc' \(str\)"):
+        f(*args, n_particles="abc")
+
+
+def test_a_model_on_the_meta_device_is_named():
+    """Meta tensors have no values: a filter or a simulation named it as a raw RuntimeError from the
+    first host read."""
+    model = _lg().to("meta")
+    with pytest.raises(ValueError, match=r"KalmanFilter: the model is on the meta device"):
+        KalmanFilter(model)(torch.zeros(1, 2, 2, device="meta", dtype=torch.float64),
+                            torch.zeros(2, device="meta", dtype=torch.float64),
+                            torch.eye(2, device="meta", dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"LinearGaussian.simulate: the model is on the meta device"):
+        model.simulate(1, 2, torch.Generator().manual_seed(0))
+
+
+def test_stacking_returned_particles_out_of_memory_names_the_filter(monkeypatch):
+    """``return_particles=True`` stacks ``(B, T, N, d)`` after the last step, outside the steps' own
+    out-of-memory report: an allocator's failure there is the same MemoryError naming the filter."""
+    from torchflow.filters import base
+
+    def fail(self, state):
+        raise RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried to allocate 8000000000000 bytes.")
+
+    monkeypatch.setattr(base._Trace, "result", fail)
+    f = BootstrapParticleFilter(_lg(), n_particles=8)
+    with pytest.raises(MemoryError, match=r"BootstrapParticleFilter: out of memory running 1 trials x 8 particles "
+                                          r"\(one allocation of 7.45e\+03 GiB\)"):
+        f(torch.zeros(1, 2, 2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64),
+          torch.eye(2, dtype=torch.float64), torch.Generator().manual_seed(0), return_particles=True)

@@ -253,8 +253,8 @@ def test_every_filter_either_runs_finite_or_names_the_bad_argument(data, name, d
              "generator": data.draw(generators(B, "generator" in faults), "generator")}
     n = data.draw(BAD_N if "n_particles" in faults else GOOD_N, "n_particles")
     tags = {k: tag for k, (_, tag) in drawn.items() if f.uses_randomness or k != "generator"}
-    if "n_particles" in faults and f.n_particles is not None:
-        tags["n_particles"] = "n_particles"
+    if "n_particles" in faults and (f.n_particles is not None or not (isinstance(n, int) and n == HUGE)):
+        tags["n_particles"] = "n_particles"  # checked as a count by every filter (one without particles ignores it)
     if name in ("gpf", "gspf") and n is not None and n != f.n_particles:
         tags["n_particles"] = "n_particles"  # a Gaussian-sum filter's total comes from its components
     blame = {t for t in tags.values() if t not in (None, "extreme")}

@@ -333,6 +333,11 @@ class Filter(nn.Module):
                 Values and gradients are unchanged. ``None``: :attr:`checkpoint_steps` (False).
         """
         check_dtype(self.model, self.name)
+        if progress is not None and not callable(progress):
+            raise ArgumentTypeError(f"progress: expected a callable invoked after each step (or None), got "
+                                    f"{type(progress).__name__}")
+        if n_particles is not None:  # a count even where the filter has no particles (it is then unused)
+            check_count("n_particles", n_particles)
         if self.validate:
             self.model.check_observations(observations)
             self.check_model()
@@ -368,7 +373,11 @@ class Filter(nn.Module):
             if progress is not None:
                 progress()
         self._check_trace(trace, warn=True)  # the one host read of the check
-        return trace.result(state)
+        try:  # the per-step outputs stacked: with return_particles, (B, T, N, d) more
+            return trace.result(state)
+        except Exception as err:
+            self._raise_out_of_memory(_uncountable(err), observations.shape[0], n_particles)
+            raise
 
 
 def _uncountable(err: BaseException) -> BaseException:

@@ -40,10 +40,14 @@ def require_gaussian(model, who: str) -> None:
 
 
 def check_dtype(model, who: str) -> None:
-    """Raise unless the model is in float32 or float64 (the precisions filters support)."""
+    """Raise unless the model is in float32 or float64 (the precisions filters support), with values
+    (not on the meta device)."""
     if model.dtype not in (torch.float32, torch.float64):
         raise ArgumentTypeError(f"{who}: the model is in {model.dtype}; filters and simulation run in float32 or "
                         "float64 (convert with model.double() or model.float())")
+    if model.device.type == "meta":
+        raise ArgumentError(f"{who}: the model is on the meta device, which holds shapes but no values; filters and "
+                            "simulation need its numbers (model.to_empty(device=...) and load them, or build it on cpu)")
 
 
 def check_simulate_args(model, batch_size, steps, generator) -> Tuple[int, int]:
