@@ -205,7 +205,8 @@ def covs(draw, B, d, dtype, kind, extreme_ok):
     eye = torch.eye(d, dtype=dtype)
     base = eye.repeat(B, 1, 1)
     if kind is None:
-        kind = draw(st.sampled_from(["B"] * 4 + ["shared", "expanded", "singular", "near_psd"] + ["extreme"] * extreme_ok
+        kind = draw(st.sampled_from(["B"] * 4 + ["shared", "expanded", "singular", "near_psd"]
+                                    + ["extreme"] * extreme_ok
                                     + (["one"] if B == 1 else []) + (["variances"] if B == d else [])))
         if kind == "near_psd":  # singular, with a round-off negative eigenvalue: within check_psd's tolerance
             return torch.ones(B, d, d, dtype=dtype) - (1e-13 if dtype == torch.float64 else 1e-8) * eye, None
@@ -226,7 +227,8 @@ def covs(draw, B, d, dtype, kind, extreme_ok):
         cov[draw(st.integers(0, B - 1)), 0, 1] = 0.5
     else:
         cov = {"one": lambda: base[:1], "variances": lambda: torch.ones(B, d, dtype=dtype),
-               "wrongB": lambda: eye.repeat(B + 1, 1, 1), "wrongd": lambda: torch.eye(d + 1, dtype=dtype).repeat(B, 1, 1),
+               "wrongB": lambda: eye.repeat(B + 1, 1, 1),
+               "wrongd": lambda: torch.eye(d + 1, dtype=dtype).repeat(B, 1, 1),
                "dtype": lambda: base.to(other_dtype(draw, dtype)), "nonfinite": lambda: nonfinite_at(draw, base),
                "meta": lambda: base.to("meta"), "list": base.tolist, "vector": lambda: eye[0]}[kind]()
     return cov, "cov"
@@ -666,7 +668,7 @@ def runner_case(data, plants):
         warnings.simplefilter("ignore")  # a tiny memory budget warns with the plan it made
         try:
             res = run_experiment(model, filters, progress=False, **kwargs)
-        except (TorchflowError, ConfigError) as err:  # ConfigError: the runner's (a ValueError, not yet a TorchflowError)
+        except (TorchflowError, ConfigError) as err:  # ConfigError: a ValueError, not yet a TorchflowError
             assert faults, f"valid settings refused: {err!r}"
             assert any(k in str(err) for k in faults), f"{err!r} names none of {sorted(faults)}"
             return
@@ -693,10 +695,12 @@ def test_the_runner_names_each_bad_setting(plant, data, second):
 
 def _run(**kwargs):
     model = new_lg(1, 1)
-    return run_experiment(model, {"kf": F.KalmanFilter(model)}, **{"trials": 2, "steps": 2, "progress": False, **kwargs})
+    settings = {"trials": 2, "steps": 2, "progress": False, **kwargs}
+    return run_experiment(model, {"kf": F.KalmanFilter(model)}, **settings)
 
 
-@pytest.mark.xfail(strict=True, raises=ConfigError, reason="runner.plan.ConfigError is a ValueError, not a TorchflowError")
+@pytest.mark.xfail(strict=True, raises=ConfigError,
+                   reason="runner.plan.ConfigError is a ValueError, not a TorchflowError")
 def test_a_bad_run_setting_is_a_torchflow_error():
     with pytest.raises(TorchflowError, match="trials"):
         _run(trials=0)

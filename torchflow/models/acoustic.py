@@ -65,11 +65,11 @@ class AcousticTracking(GaussianStateSpaceModel):
         for name, value in (("sigma_w", sigma_w), ("psi", psi), ("d0", d0), ("true_noise_scale", true_noise_scale),
                             ("area", area)):
             check_positive(name, value)
-        if not torch.finfo(torch.float64).tiny <= float(sigma_w) * float(sigma_w) < math.inf:
+        f64_range = torch.finfo(torch.float64)
+        if not f64_range.tiny <= float(sigma_w) * float(sigma_w) < math.inf:
             raise ArgumentError(f"sigma_w: expected a noise scale whose square is a normal float64 (in "
-                                f"[{torch.finfo(torch.float64).tiny ** 0.5:.3g}, {torch.finfo(torch.float64).max ** 0.5:.3g}"
-                                f"]), got {sigma_w!r} (the measurement covariance sigma_w^2 I would underflow to a "
-                                "singular matrix or overflow)")
+                                f"[{f64_range.tiny ** 0.5:.3g}, {f64_range.max ** 0.5:.3g}]), got {sigma_w!r} (the "
+                                "measurement covariance sigma_w^2 I would underflow to a singular matrix or overflow)")
         sensor_grid = check_number("sensor_grid", sensor_grid, lambda v: v >= 1, "an integer >= 1", integer=True)
         check_number("margin", margin, lambda v: 0 <= v < 0.5, "a fraction of the area in [0, 0.5)")
         check_number("max_redraws", max_redraws, lambda v: v >= 1, "an integer >= 1", integer=True)
@@ -111,8 +111,8 @@ class AcousticTracking(GaussianStateSpaceModel):
         self.register_buffer("x0", x0)
         lo, hi = margin * area, (1 - margin) * area
         if not self._inside(x0.reshape(1, C, 4)[..., :2], lo, hi):  # simulate keeps every track inside
-            raise ArgumentError(f"initial_state: expected target positions inside the field [margin, 1 - margin] * area "
-                                f"= [{lo:g}, {hi:g}]^2, got {x0.reshape(C, 4)[:, :2].tolist()}")
+            raise ArgumentError(f"initial_state: expected target positions inside the field [margin, 1 - margin] * "
+                                f"area = [{lo:g}, {hi:g}]^2, got {x0.reshape(C, 4)[:, :2].tolist()}")
         self.register_buffer("prior_std", ps.repeat(C))
         self.area, self.margin, self.max_redraws = float(area), float(margin), int(max_redraws)
 
