@@ -11,6 +11,7 @@ import numbers
 import re
 from typing import Optional, Sequence, Union
 
+import numpy as np
 import torch
 
 from .errors import ArgumentError, ArgumentTypeError, NonFiniteError  # noqa: F401 (re-exported)
@@ -64,7 +65,10 @@ def check_finite(name: str, x: torch.Tensor) -> torch.Tensor:
 def check_psd(name: str, cov: torch.Tensor, *, tol: float = 1e-10) -> torch.Tensor:
     """Raise if the batch of matrices ``cov (..., d, d)`` is not symmetric positive semi-definite.
 
-    The error names the first offending batch index (the trial, for ``(B, d, d)`` inputs).
+    The tolerance is relative to each matrix's largest diagonal entry, and at least ``d`` machine
+    epsilons of its dtype (float32 round-off): a matrix that passes factors under
+    :func:`~torchflow.linalg.safe_cholesky`'s jitter. The error names the first offending batch
+    index (the trial, for ``(B, d, d)`` inputs).
     """
     if cov.dim() < 2 or cov.shape[-1] != cov.shape[-2]:
         raise ArgumentError(f"{name}: expected square matrices (..., d, d), got {tuple(cov.shape)}")
@@ -72,7 +76,8 @@ def check_psd(name: str, cov: torch.Tensor, *, tol: float = 1e-10) -> torch.Tens
         check_psd(name, cov[:1], tol=tol)  # one prior shared by every trial: check it once
         return cov
     check_finite(name, cov.reshape(-1, *cov.shape[-2:]) if cov.dim() > 2 else cov.unsqueeze(0))
-    scale = cov.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp_min(1.0)
+    tol = max(tol, cov.shape[-1] * torch.finfo(cov.dtype).eps) if cov.is_floating_point() else tol
+    scale = cov.diagonal(dim1=-2, dim2=-1).abs().amax(-1)
     asym = (cov - cov.transpose(-1, -2)).abs().amax((-1, -2))
     bad_sym = asym > 1e-8 * scale
     # fast path: Cholesky of cov + tol * scale * I succeeds for every PSD matrix
@@ -92,6 +97,40 @@ def check_psd(name: str, cov: torch.Tensor, *, tol: float = 1e-10) -> torch.Tens
             raise ArgumentError(f"{name}: covariance is {why}")
         raise ArgumentError(f"{name}: covariance at batch index {idx} (trial) is {why}")
     return cov
+
+
+def as_real_tensor(name: str, x, *, finite: bool = True, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """``x`` (a tensor, array or nested sequence of real numbers) as a ``dtype`` tensor: an
+    :class:`ArgumentTypeError` naming ``name`` for anything else (a string, ``None``, complex numbers,
+    whose imaginary part a cast would drop), and with ``finite`` an :class:`ArgumentError` for NaN/inf."""
+    t = x if isinstance(x, torch.Tensor) else None
+    if t is None:  # through numpy: Python floats stay float64 (torch.as_tensor would round them to float32)
+        try:
+            a = np.asarray(x)
+            t = torch.as_tensor(a) if a.dtype.kind in "biuf" else None  # bool, int, float: not str, object, complex
+        except (TypeError, ValueError, RuntimeError):
+            pass
+    if t is None or t.is_complex() or t.device.type == "meta":
+        what = type(x).__name__ if t is None else f"a {t.dtype} tensor on {t.device}"
+        raise ArgumentTypeError(f"{name}: expected a tensor, array or sequence of real numbers, got {what}")
+    t = t.to(dtype)
+    if finite and not bool(torch.isfinite(t).all()):
+        raise ArgumentError(f"{name}: expected finite numbers, got {int((~torch.isfinite(t)).sum())} NaN/inf value(s)")
+    return t
+
+
+def check_learnable(learnable, names: Sequence[str]) -> set:
+    """The set of parameter names to learn: ``True`` (all of ``names``), ``False`` (none), one name or
+    a collection of names; an :class:`ArgumentError` for anything else."""
+    if isinstance(learnable, bool):
+        return set(names) if learnable else set()
+    try:
+        learn = {learnable} if isinstance(learnable, str) else set(learnable)
+    except TypeError:
+        learn = None
+    if learn is None or not learn <= set(names):
+        raise ArgumentError(f"learnable: expected a bool or a subset of {list(names)}, got {learnable!r}")
+    return learn
 
 
 def check_same(name: str, x: torch.Tensor, ref: torch.Tensor, ref_name: str = "the model") -> None:
@@ -141,7 +180,7 @@ def check_number(name: str, v, ok=None, what: str = "a finite number", *, intege
     comparison lets NaN through)."""
     real = isinstance(v, numbers.Real) and not isinstance(v, bool)
     if integer:
-        real = real and float(v) == int(v)
+        real = real and math.isfinite(float(v)) and float(v) == int(v)
     if not real or not math.isfinite(float(v)) or (ok is not None and not ok(v)):
         raise ArgumentError(f"{name}: expected {what}, got {v!r}")
     return int(v) if integer else float(v)

@@ -60,9 +60,11 @@ def safe_cholesky(A: torch.Tensor, *, max_tries: int = 6) -> torch.Tensor:
     else:
         slots = max(min(n, LADDER_MIN_SLOTS), -(-n // max(1, tuning.get().jitter_ladder_divisor)))
     flat, A_f = failed.reshape(-1), A.reshape(n, d, d)
-    scale = A_f.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(A.dtype).tiny)  # (n,)
-    eye = torch.eye(d, dtype=A.dtype, device=A.device)
     base = 10.0 * torch.finfo(A.dtype).eps
+    # a zero matrix (a known state) gets jitters from the smallest normal number up: a subnormal
+    # jitter does not factor (float32: NaN factor of a valid zero prior)
+    scale = A_f.diagonal(dim1=-2, dim2=-1).abs().mean(-1).clamp_min(torch.finfo(A.dtype).tiny / base)  # (n,)
+    eye = torch.eye(d, dtype=A.dtype, device=A.device)
     ladder = _jitter_ladder(base, max_tries, A.dtype, A.device)
     if slots < n:  # gather the failed matrices (in batch order) into the slots; empty slots point at n
         pos = torch.cumsum(flat, 0) - 1

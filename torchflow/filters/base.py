@@ -350,6 +350,11 @@ class Filter(nn.Module):
                 Values and gradients are unchanged. ``None``: :attr:`checkpoint_steps` (False).
         """
         check_dtype(self.model, self.name)
+        if progress is not None and not callable(progress):
+            raise ArgumentTypeError(f"progress: expected a callable invoked after each step (or None), got "
+                                    f"{type(progress).__name__}")
+        if n_particles is not None:  # a count even where the filter has no particles (it is then unused)
+            check_count("n_particles", n_particles)
         if self.validate:
             self.model.check_observations(observations)
             self.check_model()
@@ -360,8 +365,8 @@ class Filter(nn.Module):
             check_generator(generator, f"{self.name}: generator", observations.shape[0])
         try:
             state = self.init(mean, cov, n_particles, generator)
-        except (torch.OutOfMemoryError, MemoryError, RuntimeError) as err:
-            self._raise_out_of_memory(err, observations.shape[0], n_particles)
+        except Exception as err:
+            self._raise_out_of_memory(_uncountable(err), observations.shape[0], n_particles)
             raise
         trace = _Trace(observations.shape[0], observations.device, return_covariances, return_particles)
         if checkpoint_steps is None:
@@ -379,13 +384,28 @@ class Filter(nn.Module):
                 state = step(state, observations[:, t], generator)
             except Exception as err:
                 self._check_trace(trace, warn=False)  # an earlier non-finite value is the cause
-                self._raise_out_of_memory(err, observations.shape[0], n_particles)
+                self._raise_out_of_memory(_uncountable(err), observations.shape[0], n_particles)
                 raise
             trace.add(state, t)
             if progress is not None:
                 progress()
         self._check_trace(trace, warn=True)  # the one host read of the check
-        return trace.result(state)
+        try:  # the per-step outputs stacked: with return_particles, (B, T, N, d) more
+            return trace.result(state)
+        except Exception as err:
+            self._raise_out_of_memory(_uncountable(err), observations.shape[0], n_particles)
+            raise
+
+
+def _uncountable(err: BaseException) -> BaseException:
+    """A size past what torch can count (``n_particles=2**62``) as the ``MemoryError`` it is on any
+    machine (caused by ``err``); any other error unchanged."""
+    text = str(err)
+    if "Storage size calculation overflowed" not in text and "Overflow when unpacking long" not in text:
+        return err
+    out = MemoryError(text.splitlines()[0])
+    out.__cause__ = err
+    return out
 
 
 class _Trace:

@@ -213,7 +213,7 @@ class GaussianSumParticleFilter(ParticleFilter):
 
     # ---- contract ------------------------------------------------------------------------------
     def init(self, mean, cov, n_particles=None, generator=None) -> MixtureState:
-        if n_particles is not None and int(n_particles) != self.n_particles:
+        if n_particles is not None and self._resolve_n(n_particles) != self.n_particles:
             raise ArgumentError(f"n_particles: a Gaussian-sum filter's total is n_components x particles_per_component "
                              f"= {self.n_particles}; set those instead (got n_particles={n_particles})")
         B, d = mean.shape

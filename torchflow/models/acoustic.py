@@ -6,13 +6,14 @@ State layout is target-major: ``x = [px1, py1, vx1, vy1, px2, ...]`` (d = 16, m 
 """
 from __future__ import annotations
 
+import math
 from typing import Optional, Sequence, Tuple
 
 import torch
 
 from .. import constraints, linalg
 from ..linalg import block_diagonal
-from .._checks import check_choice, check_number, check_positive
+from .._checks import as_real_tensor, check_choice, check_learnable, check_number, check_positive
 from .._progress import report
 from .base import GaussianStateSpaceModel, Trajectory
 from .contract import check_simulate_args
@@ -65,14 +66,18 @@ class AcousticTracking(GaussianStateSpaceModel):
         for name, value in (("sigma_w", sigma_w), ("psi", psi), ("d0", d0), ("true_noise_scale", true_noise_scale),
                             ("area", area)):
             check_positive(name, value)
-        if float(sigma_w) ** 2 < torch.finfo(torch.float64).tiny:
-            raise ArgumentError(f"sigma_w: expected a noise scale whose square is a normal float64 (> "
-                                f"{torch.finfo(torch.float64).tiny ** 0.5:.3g}), got {sigma_w!r} (the measurement "
-                                "covariance sigma_w^2 I would underflow to a singular matrix)")
+        f64_range = torch.finfo(torch.float64)
+        if not f64_range.tiny <= float(sigma_w) * float(sigma_w) < math.inf:
+            raise ArgumentError(f"sigma_w: expected a noise scale whose square is a normal float64 (in "
+                                f"[{f64_range.tiny ** 0.5:.3g}, {f64_range.max ** 0.5:.3g}]), got {sigma_w!r} (the "
+                                "measurement covariance sigma_w^2 I would underflow to a singular matrix or overflow)")
         sensor_grid = check_number("sensor_grid", sensor_grid, lambda v: v >= 1, "an integer >= 1", integer=True)
         check_number("margin", margin, lambda v: 0 <= v < 0.5, "a fraction of the area in [0, 0.5)")
         check_number("max_redraws", max_redraws, lambda v: v >= 1, "an integer >= 1", integer=True)
-        for i, s in enumerate(prior_std):
+        ps = as_real_tensor("prior_std", prior_std, finite=False)
+        if ps.shape != (4,):
+            raise ArgumentError(f"prior_std: expected 4 numbers [px, py, vx, vy], got {tuple(ps.shape)}")
+        for i, s in enumerate(ps.tolist()):
             check_positive(f"prior_std[{i}]", s)
         if filter_noise is True or filter_noise == "true":
             filter_noise = "truth"
@@ -98,18 +103,17 @@ class AcousticTracking(GaussianStateSpaceModel):
         for name, value in (("psi", psi), ("d0", d0), ("sigma_w", sigma_w)):
             self.register_buffer(name, torch.tensor(float(value), **f64))
         names = ("psi", "sigma_w")
-        learn = (set(names) if learnable else set()) if isinstance(learnable, bool) else set(learnable)
-        if not learn <= set(names):
-            raise ArgumentError(f"learnable: expected a bool or a subset of {list(names)}, got {sorted(learnable)}")
+        learn = check_learnable(learnable, names)
         for name in sorted(learn):
             constraints.constrain(self, name, "positive")
-        x0 = torch.tensor(_X0 if initial_state is None else list(initial_state), **f64)
+        x0 = torch.tensor(_X0, **f64) if initial_state is None else as_real_tensor("initial_state", initial_state)
         if x0.shape != (self.state_dim,):
             raise ArgumentError(f"initial_state: expected {self.state_dim} numbers, got {tuple(x0.shape)}")
         self.register_buffer("x0", x0)
-        ps = torch.tensor(list(prior_std), **f64)
-        if ps.shape != (4,):
-            raise ArgumentError(f"prior_std: expected 4 numbers [px, py, vx, vy], got {tuple(ps.shape)}")
+        lo, hi = margin * area, (1 - margin) * area
+        if not self._inside(x0.reshape(1, C, 4)[..., :2], lo, hi):  # simulate keeps every track inside
+            raise ArgumentError(f"initial_state: expected target positions inside the field [margin, 1 - margin] * "
+                                f"area = [{lo:g}, {hi:g}]^2, got {x0.reshape(C, 4)[:, :2].tolist()}")
         self.register_buffer("prior_std", ps.repeat(C))
         self.area, self.margin, self.max_redraws = float(area), float(margin), int(max_redraws)
 
@@ -251,8 +255,9 @@ class AcousticTracking(GaussianStateSpaceModel):
                 if todo.numel() == 0:
                     break
             else:
-                raise RuntimeError(f"AcousticTracking.simulate: {todo.numel()} target tracks still leave the "
-                                   f"field after {self.max_redraws} redraws")
+                raise ArgumentError(f"AcousticTracking.simulate: {todo.numel()} target tracks still leave the field "
+                                    f"[{lo:g}, {hi:g}]^2 after max_redraws={self.max_redraws} redraws (fewer steps, a "
+                                    "larger area or a smaller margin keep them inside)")
             # (B*C, T+1, 4) -> (B, T+1, C*4), target-major
             states = tracks.reshape(batch_size, C, steps + 1, 4).transpose(1, 2).reshape(batch_size, steps + 1, 4 * C)
             obs = self.sample_measurement(states[:, 1:], generator)

@@ -327,7 +327,9 @@ class GaussianStateSpaceModel(StateSpaceModel):
 
         eye = torch.eye(k, dtype=x.dtype, device=x.device)
         tangents = eye.reshape(k, *([1] * (x.dim() - 1)), k).expand(k, *x.shape[:-1], k)
-        dH = vmap(lambda t: jvp(jacobian, (xs,), (t,))[1], out_dims=-2)(tangents)
+        # out_dims=0 and a move, not out_dims=-2: torch 2.13 crashes (segmentation fault) on a negative
+        # out_dims over jvp of the default Jacobian's vmap(jacrev)
+        dH = vmap(lambda t: jvp(jacobian, (xs,), (t,))[1])(tangents).movedim(0, -2)
         return dH if scale is None else dH * scale
 
     def measurement_hessian_blocks(self, x: torch.Tensor, support: bool = False, scale=None) -> torch.Tensor:

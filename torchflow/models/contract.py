@@ -40,10 +40,14 @@ def require_gaussian(model, who: str) -> None:
 
 
 def check_dtype(model, who: str) -> None:
-    """Raise unless the model is in float32 or float64 (the precisions filters support)."""
+    """Raise unless the model is in float32 or float64 (the precisions filters support), with values
+    (not on the meta device)."""
     if model.dtype not in (torch.float32, torch.float64):
         raise ArgumentTypeError(f"{who}: the model is in {model.dtype}; filters and simulation run in float32 or "
                         "float64 (convert with model.double() or model.float())")
+    if model.device.type == "meta":
+        raise ArgumentError(f"{who}: the model is on the meta device, which holds shapes but no values; filters and "
+                            "simulation need its numbers (model.to_empty(device=...) and load them, or build it on cpu)")
 
 
 def check_simulate_args(model, batch_size, steps, generator) -> Tuple[int, int]:
@@ -119,6 +123,9 @@ def check_covariances(model, who: str = "") -> None:
             continue  # state-dependent: no constant matrix to check
         if not isinstance(C, torch.Tensor) or C.dim() != 2:
             continue
+        k, letters = (model.state_dim, "(d, d)") if name == "transition_cov" else (model.obs_dim, "(m, m)")
+        if tuple(C.shape) != (k, k):  # the method's mistake, named as check_shapes names it
+            _expect(who or type(model).__name__, f"{type(model).__name__}.{name}", C, (k, k), letters)
         pname = params.get(id(C))
         label = f"{type(model).__name__}'s {what}" + (f" (parameter {pname!r})" if pname else "")
         if C.requires_grad and not pname:
@@ -126,11 +133,12 @@ def check_covariances(model, who: str = "") -> None:
         check_psd(f"{who + ': ' if who else ''}{label}", C.detach())
 
 
-def _expect(who: str, method: str, out, shape: Tuple[int, ...], expected: str, broadcast_ok: bool = False) -> None:
+def _expect(who: str, method: str, out, shape: Tuple[int, ...], expected: str, broadcast_ok: bool = False,
+            where: str = "") -> None:
     """Raise unless ``out`` is a tensor of ``shape`` (or, with ``broadcast_ok``, broadcastable to it
-    with the same trailing dimensions)."""
+    with the same trailing dimensions); ``where`` says on which inputs."""
     if not isinstance(out, torch.Tensor):
-        raise ArgumentTypeError(f"{who}: {method} returned {type(out).__name__}; expected a tensor {expected} "
+        raise ArgumentTypeError(f"{who}: {method} returned {type(out).__name__}{where}; expected a tensor {expected} "
                         f"= {tuple(shape)}")
     got = tuple(out.shape)
     if got == tuple(shape):
@@ -139,7 +147,7 @@ def _expect(who: str, method: str, out, shape: Tuple[int, ...], expected: str, b
         lead, want = got[:-2], tuple(shape[:-2])  # leading dims broadcast to the batch (plain ints: no torch call)
         if len(lead) <= len(want) and all(g in (1, w) for g, w in zip(reversed(lead), reversed(want))):
             return
-    raise ArgumentError(f"{who}: {method} returned shape {got}; expected {expected} = {tuple(shape)}")
+    raise ArgumentError(f"{who}: {method} returned shape {got}{where}; expected {expected} = {tuple(shape)}")
 
 
 def check_shapes(model, x: torch.Tensor, who: str, *, gaussian: Optional[bool] = None) -> None:
@@ -150,8 +158,12 @@ def check_shapes(model, x: torch.Tensor, who: str, *, gaussian: Optional[bool] =
     ``transition_log_prob -> (B,)``, ``sample_measurement -> (B, m)``, ``measurement_log_prob ->
     (B,)``) and, for a Gaussian-form model (or ``gaussian=True``), ``transition_mean -> (B, d)``,
     ``measure -> (B, m)``, ``transition_cov`` and ``measurement_cov`` (``(d, d)``/``(m, m)`` or
-    batched). Draws use a generator of their own (the caller's streams are not advanced); no
-    gradient is recorded. Done once per model, dtype, device and batch size."""
+    batched). The same again on the particles' layout ``(b, N, d)`` (the first trials, with ``N``
+    unlike ``B``, ``d`` and ``m``, so that a method that flattens, transposes or keeps the first row
+    is caught where it would broadcast), and ``transition_mean``/``measure`` on one point ``(d,)``
+    (what their Jacobians differentiate, under ``vmap``). Draws use a generator of their own (the
+    caller's streams are not advanced); no gradient is recorded. Done once per model, dtype, device
+    and batch size."""
     from .base import GaussianStateSpaceModel
 
     if gaussian is None:
@@ -161,20 +173,38 @@ def check_shapes(model, x: torch.Tensor, who: str, *, gaussian: Optional[bool] =
     if key in done:
         return
     B, d, m = x.shape[0], model.state_dim, model.obs_dim
-    name = type(model).__name__
     g = torch.Generator(device=x.device).manual_seed(0)
+    b = min(B, 2)
+    particles = x[:b].unsqueeze(1).expand(b, max(b, d, m) + 1, d)
     with torch.no_grad():
-        if gaussian:  # first: the core's defaults are built from these
-            _expect(who, f"{name}.transition_mean", model.transition_mean(x), (B, d), "(B, d)")
-            _expect(who, f"{name}.transition_cov", model.transition_cov(x), (B, d, d), "(d, d) or (B, d, d)",
-                    broadcast_ok=True)
-            _expect(who, f"{name}.measure", model.measure(x), (B, m), "(B, m)")
-            _expect(who, f"{name}.measurement_cov", model.measurement_cov(x), (B, m, m), "(m, m) or (B, m, m)",
-                    broadcast_ok=True)
-        x1 = model.sample_transition(x, g)
-        _expect(who, f"{name}.sample_transition", x1, (B, d), "(B, d)")
-        _expect(who, f"{name}.transition_log_prob", model.transition_log_prob(x1, x), (B,), "(B,)")
-        z = model.sample_measurement(x1, g)
-        _expect(who, f"{name}.sample_measurement", z, (B, m), "(B, m)")
-        _expect(who, f"{name}.measurement_log_prob", model.measurement_log_prob(z, x1), (B,), "(B,)")
+        _check_layout(model, who, x, "B", gaussian, g)
+        _check_layout(model, who, particles, "B, N", gaussian, g, " on the particles' layout")
+        if gaussian:  # one point: what jacobian() differentiates
+            name = type(model).__name__
+            _expect(who, f"{name}.transition_mean", model.transition_mean(x[0]), (d,), "(d,)", where=" on one point")
+            _expect(who, f"{name}.measure", model.measure(x[0]), (m,), "(m,)", where=" on one point")
     done.add(key)
+
+
+def _check_layout(model, who: str, x: torch.Tensor, lead: str, gaussian: bool, g, where: str = "") -> None:
+    """:func:`check_shapes` at states ``x (*L, d)`` whose leading dims ``L`` are named ``lead``."""
+    L, d, m = tuple(x.shape[:-1]), model.state_dim, model.obs_dim
+    name = type(model).__name__
+
+    def expect(method, out, tail, letters, broadcast_ok=False):
+        shape = "(" + ", ".join([lead, *letters]) + (",)" if not letters and "," not in lead else ")")
+        if broadcast_ok:
+            shape = f"({', '.join(letters)}) or {shape}"
+        _expect(who, f"{name}.{method}", out, (*L, *tail), shape, broadcast_ok, where)
+
+    if gaussian:  # first: the core's defaults are built from these
+        expect("transition_mean", model.transition_mean(x), (d,), ["d"])
+        expect("transition_cov", model.transition_cov(x), (d, d), ["d", "d"], broadcast_ok=True)
+        expect("measure", model.measure(x), (m,), ["m"])
+        expect("measurement_cov", model.measurement_cov(x), (m, m), ["m", "m"], broadcast_ok=True)
+    x1 = model.sample_transition(x, g)
+    expect("sample_transition", x1, (d,), ["d"])
+    expect("transition_log_prob", model.transition_log_prob(x1, x), (), [])
+    z = model.sample_measurement(x1, g)
+    expect("sample_measurement", z, (m,), ["m"])
+    expect("measurement_log_prob", model.measurement_log_prob(z, x1), (), [])

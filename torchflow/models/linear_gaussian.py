@@ -9,7 +9,8 @@ from torch import nn
 
 from .. import constraints, linalg
 from ..linalg import _LOG_2PI
-from .._checks import check_choice, check_nonnegative, check_number, check_positive, check_psd, check_tensor
+from .._checks import (as_real_tensor, check_choice, check_learnable, check_nonnegative, check_number, check_positive,
+                       check_psd, check_tensor)
 from .base import GaussianStateSpaceModel
 from .structure import Structure
 from ..errors import ArgumentError
@@ -44,26 +45,25 @@ class LinearGaussian(GaussianStateSpaceModel):
 
     def __init__(self, F, Q, H, R, m0=None, P0=None, *, learnable=False, measurement_noise: Optional[str] = None):
         super().__init__()
-        F = torch.as_tensor(F, dtype=torch.float64)
-        d = F.shape[-1]
-        H = torch.as_tensor(H, dtype=torch.float64)
+        F, H, Q, R = (as_real_tensor(k, v) for k, v in (("F", F), ("H", H), ("Q", Q), ("R", R)))
+        if F.dim() != 2 or F.shape[0] != F.shape[1] or not F.numel():
+            raise ArgumentError(f"F: expected a square matrix (d, d) with d >= 1, got {tuple(F.shape)}")
+        d = F.shape[0]
+        if H.dim() != 2 or H.shape[1] != d or not H.numel():
+            raise ArgumentError(f"H: expected (m, d) = (*, {d}) with m >= 1 and F's d, got {tuple(H.shape)}")
         m = H.shape[0]
-        check_tensor("F", F, (d, d), "(d, d)")
-        check_tensor("H", H, (m, d), "(m, d)")
-        Q = check_tensor("Q", torch.as_tensor(Q, dtype=torch.float64), (d, d), "(d, d)")
-        R = check_tensor("R", torch.as_tensor(R, dtype=torch.float64), (m, m), "(m, m)")
+        Q = check_tensor("Q", Q, (d, d), "(d, d) with F's d")
+        R = check_tensor("R", R, (m, m), "(m, m) with H's m")
         check_psd("Q", Q)
         check_psd("R", R)
-        m0 = torch.zeros(d, dtype=torch.float64) if m0 is None else torch.as_tensor(m0, dtype=torch.float64)
-        P0 = torch.zeros(d, d, dtype=torch.float64) if P0 is None else torch.as_tensor(P0, dtype=torch.float64)
-        check_tensor("m0", m0, (d,), "(d,)")
-        check_tensor("P0", P0, (d, d), "(d, d)")
+        m0 = torch.zeros(d, dtype=torch.float64) if m0 is None else as_real_tensor("m0", m0)
+        P0 = torch.zeros(d, d, dtype=torch.float64) if P0 is None else as_real_tensor("P0", P0)
+        check_tensor("m0", m0, (d,), "(d,) with F's d")
+        check_tensor("P0", P0, (d, d), "(d, d) with F's d")
         check_psd("P0", P0)
         self.state_dim, self.obs_dim = d, m
         names = ("F", "Q", "H", "R")
-        learn = (set(names) if learnable else set()) if isinstance(learnable, bool) else set(learnable)
-        if not learn <= set(names):
-            raise ArgumentError(f"learnable: expected a bool or a subset of {list(names)}, got {sorted(learn)}")
+        learn = check_learnable(learnable, names)
         diagonal = bool((R == torch.diag_embed(R.diagonal())).all())
         if measurement_noise is None:
             measurement_noise = ("dense" if "R" in learn or not diagonal else
@@ -221,6 +221,8 @@ class SensorNetwork(LinearGaussian):
         check_nonnegative("alpha1", alpha1)  # alpha0 = alpha1 = 0: Q = 0 (singular, for filters that allow it)
         for name, value in (("beta", beta), ("sigma_z", sigma_z)):
             check_positive(name, value)
+        check_number("sigma_z", sigma_z, lambda v: float(v) * float(v) < math.inf,
+                     "a noise scale whose square is a finite float64 (the measurement covariance sigma_z^2 I)")
         check_nonnegative("prior_var", prior_var)
         eye = torch.eye(d, dtype=torch.float64)
         super().__init__(F=alpha * eye, Q=sensor_network_covariance(g, alpha0, alpha1, beta), H=eye,

@@ -62,8 +62,7 @@ class SkewedTPoisson(GaussianStateSpaceModel):
                  alpha0: float = 3.0, alpha1: float = 0.01, beta: float = 20.0, m1: float = 1.0,
                  m2: float = 1.0 / 3.0, mean_shift: bool = True):
         super().__init__()
-        g = int(round(math.sqrt(d)))
-        if isinstance(d, bool) or not isinstance(d, int) or g * g != d or d < 1:
+        if isinstance(d, bool) or not isinstance(d, int) or d < 1 or round(math.sqrt(d)) ** 2 != d:
             raise ArgumentError(f"d: expected a perfect square (144, 400, ...), got {d!r}")
         if isinstance(nu, bool) or not isinstance(nu, int) or nu <= 4:
             raise ArgumentError(f"nu: expected an integer > 4 (Var[W] must exist; 1/W is drawn as chi2_nu / nu), "
@@ -73,6 +72,7 @@ class SkewedTPoisson(GaussianStateSpaceModel):
         check_nonnegative("alpha0", alpha0)
         for name, value in (("alpha1", alpha1), ("beta", beta), ("m1", m1)):
             check_positive(name, value)
+        g = round(math.sqrt(d))
         self.state_dim = self.obs_dim = d
         self.nu, self.mean_shift = nu, bool(mean_shift)
         f64 = dict(dtype=torch.float64)
@@ -91,6 +91,10 @@ class SkewedTPoisson(GaussianStateSpaceModel):
         Sg = torch.cholesky_solve(self.gamma.unsqueeze(-1), self.Sigma_tril).squeeze(-1)
         self.register_buffer("Sigma_inv_gamma", Sg)
         self.register_buffer("gSg", (self.gamma * Sg).sum())
+        if not bool(torch.isfinite(Q).all() and torch.isfinite(self.gSg)):
+            raise ArgumentError(f"gamma: the skewness {gamma!r} overflows the transition covariance E[W] Sigma + Var[W] "
+                                "gamma gamma^T or gamma^T Sigma^-1 gamma (with alpha0, alpha1, beta given); expected a "
+                                "smaller skewness or noise floor alpha1")
         k = (nu + d) / 2
         self._log_c = ((1 - k) * math.log(2) - math.lgamma(nu / 2) - 0.5 * d * math.log(math.pi * nu)
                        - 0.5 * float(linalg.chol_logdet(self.Sigma_tril)))

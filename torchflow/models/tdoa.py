@@ -16,6 +16,7 @@ Defaults: §12.3 (UNCONF: the seed's pair list and source count appear only in a
 """
 from __future__ import annotations
 
+import operator
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
@@ -24,7 +25,7 @@ import torch
 from .base import GaussianStateSpaceModel, Trajectory
 from .contract import check_simulate_args
 from .structure import Structure
-from .._checks import check_number
+from .._checks import as_real_tensor, check_number
 from ..errors import ArgumentError
 
 
@@ -82,7 +83,9 @@ class TDOA3D(GaussianStateSpaceModel):
                  speed: float = 1500.0, sigma_v: float = 5e-4, p_d: float = 0.95, clutter_rate: float = 1.0,
                  n_sources: int = 3, region: float = 1000.0):
         super().__init__()
-        rec = face_receivers(region) if receivers is None else torch.as_tensor(receivers, dtype=torch.float64)
+        self.speed, self.sigma_v, self.region = (check_number(k, v, lambda v: v > 0, "a positive number") for k, v
+                                                 in (("speed", speed), ("sigma_v", sigma_v), ("region", region)))
+        rec = face_receivers(self.region) if receivers is None else as_real_tensor("receivers", receivers)
         if rec.dim() != 2 or rec.shape[-1] != 3 or rec.shape[0] < 2:
             raise ArgumentError(f"receivers: expected (V, 3) positions with V >= 2, got {tuple(rec.shape)}")
         gap = torch.cdist(rec, rec) + torch.eye(len(rec), dtype=rec.dtype) * 1e300
@@ -90,15 +93,16 @@ class TDOA3D(GaussianStateSpaceModel):
             i, j = [int(v) for v in torch.nonzero(gap <= 0)[0]]
             raise ArgumentError(f"receivers: receivers {i} and {j} coincide at {rec[i].tolist()}; a pair needs two "
                              "distinct positions")
-        pairs = plus_minus_pairs() if pairs is None else [tuple(int(v) for v in p) for p in pairs]
+        try:  # integer indices: operator.index refuses 0.5 and "a" (int() would truncate or parse them)
+            pairs = plus_minus_pairs() if pairs is None else [tuple(operator.index(v) for v in p) for p in pairs]
+        except TypeError:
+            raise ArgumentError(f"pairs: expected pairs (a, b) of receiver indices, got {pairs!r}") from None
         if not pairs:
             raise ArgumentError("pairs: expected at least one receiver pair (a, b), got none")
         for p in pairs:
             if len(p) != 2 or p[0] == p[1] or not all(0 <= v < len(rec) for v in p):
                 raise ArgumentError(f"pairs: expected pairs (a, b) of distinct receiver indices in [0, {len(rec)}), "
                                  f"got {p}")
-        self.speed, self.sigma_v, self.region = (check_number(k, v, lambda v: v > 0, "a positive number") for k, v
-                                                 in (("speed", speed), ("sigma_v", sigma_v), ("region", region)))
         self.p_d = check_number("p_d", p_d, lambda v: 0 < v <= 1, "a detection probability in (0, 1]")
         self.clutter_rate = check_number("clutter_rate", clutter_rate, lambda v: v >= 0, "a mean clutter count >= 0")
         check_number("n_sources", n_sources, lambda v: isinstance(v, int) and v >= 0, "an integer >= 0")
