@@ -414,7 +414,7 @@ MODEL_KWARGS = {
         "d": ([1, 4, 9, 4.0], [0, -4, 5, 2.5, "4", True, math.nan]),
         "alpha": ([0.9, 0, -0.5, 1.5], [math.nan, math.inf, "x", True, None]),
         "alpha0": ([3, 0, 1e300], [-1, math.nan, math.inf, "x"]),
-        "alpha1": ([0.01, 1], [0, -1, math.nan, math.inf]),
+        "alpha1": ([0.01, 1, 0], [-1, math.nan, math.inf]),  # alpha0 = alpha1 = 0 is Q = 0 (filters that need Q > 0 refuse it)
         "beta": ([20, 0.5, 1e-300], [0, -1, math.nan, math.inf, "x"]),
         "sigma_z": ([0.5, 1e-3], [0, -1, math.nan, math.inf, 1e200]),
         "prior_var": ([0, 1], [-1, math.nan, math.inf, "x"]),
@@ -699,23 +699,16 @@ def _run(**kwargs):
     return run_experiment(model, {"kf": F.KalmanFilter(model)}, **settings)
 
 
-@pytest.mark.xfail(strict=True, raises=ConfigError,
-                   reason="runner.plan.ConfigError is a ValueError, not a TorchflowError")
 def test_a_bad_run_setting_is_a_torchflow_error():
     with pytest.raises(TorchflowError, match="trials"):
         _run(trials=0)
 
 
-@pytest.mark.xfail(strict=True, raises=(AssertionError, TypeError),
-                   reason="runner.plan.resolve_dtype takes any torch.dtype: float16 is refused naming "
-                                       "the model, int64 and complex64 raise torch's TypeError from Module.to")
 @pytest.mark.parametrize("dtype", [torch.float16, torch.int64, torch.complex64])
 def test_a_run_dtype_filters_cannot_use_is_named(dtype):
     with pytest.raises(TorchflowError, match="dtype"):
         _run(dtype=dtype)
 
 
-@pytest.mark.xfail(strict=True, raises=ValueError,
-                   reason="runner.plan.choose_chunk_size: int(inf // n) raises a raw ValueError")
 def test_a_huge_memory_budget_runs():
     assert not _run(memory_budget_gb=1e300).failures

@@ -13,12 +13,13 @@ from typing import Dict, List, Mapping, Optional, Tuple, Union
 import torch
 
 from .._checks import allocation_failure, check_count
+from ..errors import ArgumentError
 from ..filters.base import Filter
 from ..models.base import StateSpaceModel, Trajectory
 from .distributed import Shard
 
 
-class ConfigError(ValueError):
+class ConfigError(ArgumentError):
     """A bad run setting (a value, a name, a combination): the command line prints it as one line
     and exits with status 2. Any other exception is a failure and keeps its traceback."""
 
@@ -37,7 +38,8 @@ def require(ok: bool, name: str, what: str, got) -> None:
 
 
 def resolve_dtype(dtype: Union[str, torch.dtype]) -> torch.dtype:
-    require(isinstance(dtype, torch.dtype) or dtype in _DTYPES, "dtype", f"one of {sorted(_DTYPES)}", dtype)
+    ok = dtype in (torch.float32, torch.float64) if isinstance(dtype, torch.dtype) else dtype in _DTYPES
+    require(ok, "dtype", f"one of {sorted(_DTYPES)} (or torch.float32 / torch.float64)", dtype)
     return _DTYPES.get(dtype, dtype)
 
 
@@ -105,7 +107,8 @@ def check_metric_settings(*, ospa_cutoff, ospa_order, lost_threshold) -> dict:
 def choose_chunk_size(filters: Mapping[str, Filter], trials: int, memory_budget_gb: float) -> int:
     """Largest chunk of trials whose estimated per-step memory fits the budget (at least 1)."""
     per_trial = max((f.bytes_per_trial() for f in filters.values()), default=1)
-    return max(1, min(trials, int(memory_budget_gb * 2**30 // max(per_trial, 1))))
+    fit = memory_budget_gb * 2**30 / max(per_trial, 1)  # a float: a huge budget is inf, not an error
+    return max(1, min(trials, int(fit) if fit < trials else trials))
 
 
 def filter_chunk(f: Filter, n_run: int, chunk_size: Optional[int], memory_budget_gb: float) -> int:
