@@ -117,6 +117,8 @@ def warn_dead_steps(name: str, table: List[List[int]]) -> None:
 def _check_step_gradient(name: str, step: int, grad: torch.Tensor) -> None:
     """A tensor hook: raise if the gradient reaching a step's input is non-finite (the step, or a
     later one not yet reported, produced it); one host read."""
+    if grad is None:  # an undefined gradient (no path from the loss)
+        return
     bad = ~torch.isfinite(grad.reshape(grad.shape[0], -1)).all(1)
     if bool(bad.any()):
         raise NonFiniteError(name, step, torch.nonzero(bad).flatten().tolist(),
@@ -163,7 +165,7 @@ def parameter_hooks(model: torch.nn.Module, name: str) -> list:
         label = pname.replace("parametrizations.", "").replace(".original", "")
 
         def hook(g, label=label):
-            if not bool(torch.isfinite(g).all()):
+            if g is not None and not bool(torch.isfinite(g).all()):
                 raise NonFiniteError(name, 0, [], what=f"gradient of the model parameter {label!r} (every step's "
                                      "gradient was finite: the parameter's own terms overflowed)")
             return g
