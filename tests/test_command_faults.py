@@ -289,6 +289,7 @@ def test_overwrite_true_on_a_sweep_folder_reports_and_collects_only_the_new_jobs
              "hydra.sweep.dir=sw2")
     assert r.returncode == 0, r.stderr[-2000:]
     assert "sweep sw2: 2 jobs, 2 finished, 0 failed" in r.stderr
+    assert "warning: overwrite=true: removed 3 job folder(s) of an earlier sweep from sw2 (0, 1, 2)" in r.stderr
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1"]
     rows, _, missing = collect(sweep)
     assert [(r["job"], r["seed"]) for r in rows] == [("0", "5"), ("1", "6")] and missing == []

@@ -199,3 +199,21 @@ def _text(path: Path) -> str:
         return path.read_text()
     except OSError:
         return ""
+
+
+def test_a_stop_during_the_learning_commands_simulation_says_nothing_was_fitted(monkeypatch, caplog):
+    """The learning command ends a stop before its first fit as the run command does: the stop's own
+    line and 128 + the signal, not the shell's generic 'outside the job's safe points'."""
+    import torchflow.learn as learn_module
+
+    def stopped(*args, **kwargs):
+        STOP.handler(signal.SIGTERM, None)
+        raise RunStopped("stopped by SIGTERM during the simulation; nothing was computed")
+
+    monkeypatch.setattr(learn_module, "learn", stopped)
+    try:
+        with caplog.at_level("WARNING", logger="torchflow"):
+            assert learn_module._job(None, None, None) == 143
+        assert "stopped by SIGTERM during the simulation; nothing was computed" in caplog.text
+    finally:
+        STOP.reset()

@@ -56,7 +56,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from .errors import TorchflowError
 from .registry import resolve, signature_defaults
-from .runner import STOP, format_table, plan_run, shell, writers
+from .runner import STOP, RunStopped, format_table, plan_run, shell, writers
 from .runner.config import close_keys, config_dir, group_options
 from .runner.plan import ConfigError
 from .runner.shell import JobEnv
@@ -440,7 +440,11 @@ def _job(cfg: DictConfig, out: Path, env: JobEnv) -> int:
     """The learn command's job (in the shell's job environment); the exit status."""
     for name in ("pytorch_lightning", "lightning.pytorch", "lightning_fabric"):  # its banners, not our log
         logging.getLogger(name).setLevel(logging.WARNING)
-    res = learn(cfg, out, env)
+    try:
+        res = learn(cfg, out, env)
+    except RunStopped as stopped:  # during the simulation: nothing was fitted, nothing is written
+        log.warning(str(stopped))
+        return STOP.exit_code
     if res.rows:
         log.info("\n" + format_table(res.rows, COLUMNS))
     if res.write_failed is None:

@@ -433,9 +433,13 @@ def guard_output_folder(folder: Path, *, key: str = "hydra.run.dir", shown: Opti
                           f"{', ...' if len(found) > 4 else ''}); choose a new folder ({key}=<new folder>) or add "
                           "overwrite=true to replace them")
     if sweep and clear_jobs:
-        for job in earlier_jobs(folder):
+        jobs = earlier_jobs(folder)
+        for job in jobs:
             shutil.rmtree(job, ignore_errors=True)
         (folder / "sweep_summary.csv").unlink(missing_ok=True)
+        if jobs:  # said, not silent: overwrite=true removed another sweep's finished work
+            print(f"warning: overwrite=true: removed {len(jobs)} job folder(s) of an earlier sweep from {shown} "
+                  f"({', '.join(Path(j).name for j in jobs[:6])}{', ...' if len(jobs) > 6 else ''})", file=sys.stderr)
     return lock
 
 
