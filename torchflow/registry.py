@@ -32,7 +32,7 @@ REGISTRY: Dict[str, Dict[str, str]] = {
     "proposal": _kind("torchflow.proposals", bootstrap="BootstrapProposal", flow="flow_proposal",
                       gpfis="GPFISProposal", unscented="UnscentedProposal"),
     "model": _kind("torchflow.models", acoustic="AcousticTracking", linear_gaussian="SensorNetwork",
-                   skewed_t_poisson="SkewedTPoisson", tdoa="TDOA3D"),
+                   skewed_t_poisson="SkewedTPoisson", tdoa="TDOA3D", lorenz96="Lorenz96"),
     "schedule": _kind("torchflow.schedules", exponential="ExponentialSchedule", uniform="UniformSchedule",
                       geometric="GeometricSchedule"),
     "resampling": _kind("torchflow.resampling", multinomial="multinomial", systematic="systematic",

@@ -5,8 +5,9 @@ from .acoustic import AcousticTracking
 from .base import GaussianStateSpaceModel, StateSpaceModel, Trajectory
 from .structure import Structure
 from .linear_gaussian import LinearGaussian, SensorNetwork, sensor_network_covariance
+from .lorenz96 import Lorenz96
 from .skewed_t import SkewedTPoisson
 from .tdoa import TDOA3D, TDOAData
 
 __all__ = ["StateSpaceModel", "GaussianStateSpaceModel", "Structure", "Trajectory", "LinearGaussian", "SensorNetwork", "sensor_network_covariance",
-           "AcousticTracking", "SkewedTPoisson", "TDOA3D", "TDOAData"]
+           "AcousticTracking", "SkewedTPoisson", "TDOA3D", "TDOAData", "Lorenz96"]

@@ -1,0 +1,123 @@
+"""Lorenz-96: the data-assimilation benchmark (Lorenz 1996; Lorenz & Emanuel 1998).
+
+``dx_i/dt = (x_{i+1} - x_{i-2}) x_{i-1} - x_i + F`` on a ring of ``d`` coordinates (indices mod d),
+integrated by fourth-order Runge-Kutta over the time ``dt`` between observations in ``substeps``
+equal steps; optional additive model noise ``N(0, model_noise^2 I)`` per observation interval. Every
+``obs_every``-th coordinate is observed with noise ``N(0, obs_std^2 I)``. With ``F = 8`` the system is
+chaotic for ``d >= 4``; the standard set-up of Sakov & Oke (2008), as DAPPER's
+``mods/Lorenz96/sakov2008.py`` gives it, is ``d = 40``, ``dt = 0.05``, every coordinate observed,
+``R = I``, no model noise.
+"""
+from __future__ import annotations
+
+from typing import Optional, Tuple
+
+import torch
+
+from .. import linalg
+from .._checks import check_nonnegative, check_number, check_positive
+from .base import GaussianStateSpaceModel
+from .structure import Structure
+
+
+def lorenz96_tendency(x: torch.Tensor, forcing) -> torch.Tensor:
+    """``dx/dt`` of Lorenz-96 for ``x (..., d)`` (periodic in the last dimension)."""
+    return (torch.roll(x, -1, -1) - torch.roll(x, 2, -1)) * torch.roll(x, 1, -1) - x + forcing
+
+
+def rk4(x: torch.Tensor, forcing, dt: float, substeps: int) -> torch.Tensor:
+    """``x (..., d)`` moved by ``substeps`` classical Runge-Kutta steps of ``dt / substeps``."""
+    h = dt / substeps
+    for _ in range(substeps):  # a loop over sub-steps in time, not over trials or particles
+        k1 = lorenz96_tendency(x, forcing)
+        k2 = lorenz96_tendency(x + 0.5 * h * k1, forcing)
+        k3 = lorenz96_tendency(x + 0.5 * h * k2, forcing)
+        k4 = lorenz96_tendency(x + h * k3, forcing)
+        x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    return x
+
+
+class Lorenz96(GaussianStateSpaceModel):
+    """Lorenz-96 with observations of every ``obs_every``-th coordinate (module docstring).
+
+    Args:
+        d: number of coordinates (>= 4).
+        forcing: F (8: chaotic).
+        dt: model time between observations.
+        substeps: Runge-Kutta steps per observation interval.
+        obs_every: observe coordinates ``0, k, 2k, ...`` (``m = ceil(d / k)``).
+        obs_std: observation noise standard deviation (R = obs_std^2 I).
+        model_noise: standard deviation of the additive model noise per interval (0: none; the
+            filters that weigh by the transition density then refuse the model, by name).
+        prior_std: the filters' prior: ``N(x_0 + prior_std xi, prior_std^2 I)``, one draw per trial.
+        spin_up: intervals integrated from ``F + N(0, 1)`` before ``x_0`` (onto the attractor).
+
+    Shapes: states ``(..., d)``, observations ``(..., m)``.
+    """
+
+    structure = Structure(linear_measurement=True, measurement_noise="scalar")
+
+    def __init__(self, *, d: int = 40, forcing: float = 8.0, dt: float = 0.05, substeps: int = 1, obs_every: int = 1,
+                 obs_std: float = 1.0, model_noise: float = 0.0, prior_std: float = 1.0, spin_up: int = 100):
+        super().__init__()
+        self.state_dim = check_number("d", d, lambda v: v >= 4, "an integer >= 4 (the ring needs i-2 .. i+1)",
+                                      integer=True)
+        self.forcing = check_number("forcing", forcing)
+        self.dt = check_positive("dt", dt)
+        self.substeps = check_number("substeps", substeps, lambda v: v >= 1, "an integer >= 1", integer=True)
+        self.obs_every = check_number("obs_every", obs_every, lambda v: 1 <= v <= self.state_dim,
+                                      f"an integer in [1, d = {self.state_dim}]", integer=True)
+        self.spin_up = check_number("spin_up", spin_up, lambda v: v >= 0, "an integer >= 0", integer=True)
+        obs_std, model_noise = check_positive("obs_std", obs_std), check_nonnegative("model_noise", model_noise)
+        check_positive("prior_std", prior_std)
+        f64 = dict(dtype=torch.float64)
+        observed = torch.arange(0, self.state_dim, self.obs_every)
+        self.obs_dim = int(observed.numel())
+        H = torch.zeros(self.obs_dim, self.state_dim, **f64)
+        H[torch.arange(self.obs_dim), observed] = 1.0
+        self.register_buffer("H", H)  # first: the model's dtype is its first buffer's
+        self.register_buffer("observed", observed)
+        self.register_buffer("obs_std", torch.tensor(obs_std, **f64))
+        self.register_buffer("model_noise", torch.tensor(model_noise, **f64))
+        self.register_buffer("prior_std", torch.tensor(float(prior_std), **f64))
+        self.structure = type(self).structure.replace(
+            measurement_noise_scale=obs_std ** 2, measurement_matrix_scale=1.0 if self.obs_every == 1 else None)
+
+    # ---- dynamics ----------------------------------------------------------------------------
+    def transition_mean(self, x: torch.Tensor) -> torch.Tensor:
+        return rk4(x, self.forcing, self.dt, self.substeps)
+
+    def transition_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
+        return self.model_noise ** 2 * torch.eye(self.state_dim, dtype=self.H.dtype, device=self.H.device)
+
+    def transition_scale_tril(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
+        return self.model_noise * torch.eye(self.state_dim, dtype=self.H.dtype, device=self.H.device)
+
+    # ---- measurement -------------------------------------------------------------------------
+    def measurement_matrix(self) -> torch.Tensor:
+        return self.H
+
+    def measure(self, x: torch.Tensor) -> torch.Tensor:
+        return x[..., self.observed]
+
+    def measurement_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
+        return self.obs_std ** 2 * torch.eye(self.obs_dim, dtype=self.H.dtype, device=self.H.device)
+
+    # ---- initial law -------------------------------------------------------------------------
+    def initial_state(self, batch_size: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
+        """``F + N(0, 1)`` per coordinate, then :attr:`spin_up` intervals of the dynamics."""
+        x = self.forcing + linalg.standard_normal((batch_size, self.state_dim), dtype=self.H.dtype,
+                                                  device=self.H.device, generator=generator)
+        with torch.no_grad():
+            for _ in range(self.spin_up):
+                x = self.sample_transition(x, generator)
+        return x
+
+    def initial_belief(self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
+                       ) -> Tuple[torch.Tensor, torch.Tensor]:
+        xi = linalg.standard_normal(states0.shape, dtype=states0.dtype, device=states0.device, generator=generator)
+        cov = self.prior_std ** 2 * torch.eye(self.state_dim, dtype=states0.dtype, device=states0.device)
+        return states0 + self.prior_std * xi, cov.expand(states0.shape[0], -1, -1).clone()
+
+
+__all__ = ["Lorenz96", "lorenz96_tendency", "rk4"]
