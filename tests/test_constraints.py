@@ -77,3 +77,32 @@ def test_constrain_names_the_argument():
         constraints.constrain(m, "scale", "positive")
     with pytest.raises(ValueError, match="scale: expected a constraint in"):
         constraints.constrain(m, "scale", "bogus")
+
+
+def test_an_interval_parameter_stays_inside_under_any_optimiser_step():
+    """``constraint=(low, high)``: the value starts where it was set, stays in the open interval
+    whatever the raw value (an autoregressive coefficient in (-1, 1)), and gets its gradient."""
+    m = torch.nn.Module()
+    m.register_buffer("rho", torch.tensor(0.9, dtype=torch.float64))
+    constraints.constrain(m, "rho", (-1.0, 1.0))
+    assert torch.allclose(m.rho, torch.tensor(0.9, dtype=torch.float64))
+    raw = constraints.unconstrained(m, "rho")
+    (m.rho ** 2).backward()
+    assert raw.grad is not None and float(raw.grad) > 0
+    for value in (-30.0, -3.0, 0.0, 3.0, 30.0):  # past |raw| ~ 37 float64 rounds to the bound itself
+        with torch.no_grad():
+            raw.fill_(value)
+        assert -1.0 < float(m.rho) < 1.0
+
+
+@pytest.mark.parametrize("constraint, value, match", [
+    ((-1.0, 1.0), 1.5, r"rho: expected a value inside \(-1, 1\)"),
+    ((1.0, -1.0), 0.0, r"rho: expected a constraint in .* or an interval \(low, high\) of finite numbers with low < high"),
+    ((0.0, float("inf")), 1.0, "finite numbers"),
+    ((0.0,), 1.0, "an interval"),
+])
+def test_an_interval_constraint_names_what_is_wrong(constraint, value, match):
+    m = torch.nn.Module()
+    m.register_buffer("rho", torch.tensor(value, dtype=torch.float64))
+    with pytest.raises(ValueError, match=match):
+        constraints.constrain(m, "rho", constraint)
