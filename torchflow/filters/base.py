@@ -217,26 +217,28 @@ class Filter(nn.Module):
         check_parameters(self.model, self.name)
         check_covariances(self.model, self.name)
 
-    def check_measurement_density(self, why: str) -> None:
-        """Raise unless a Gaussian-form model's constant measurement covariance is positive
-        definite (``why``: what this filter needs it for, and what to do). A model that declares a
-        state-dependent covariance is left to the steps' non-finite handling."""
+    def require_definite(self, which: str, why: str) -> None:
+        """Raise unless the model's constant ``which`` covariance (``"transition"``: Q,
+        ``"measurement"``: R of a Gaussian-form model declaring it constant) is positive definite;
+        ``why``: what this filter needs it for, and what to do. One factorisation and host read per
+        call (before the first step); a state-dependent covariance is left to the steps' non-finite
+        handling."""
         from ..models.base import GaussianStateSpaceModel
 
         model = self.model
-        if not isinstance(model, GaussianStateSpaceModel) or model.structure.measurement_noise not in (
-                "scalar", "diagonal", "dense"):  # declared constant
+        if not isinstance(model, GaussianStateSpaceModel) or (
+                which == "measurement" and model.structure.measurement_noise not in ("scalar", "diagonal", "dense")):
             return
         try:
-            R = model.measurement_cov()
+            C = model.transition_cov() if which == "transition" else model.measurement_cov()
         except (NotImplementedError, TypeError, RuntimeError, ValueError):
+            return  # no constant covariance to check
+        if not isinstance(C, torch.Tensor) or C.dim() != 2:
             return
-        if not isinstance(R, torch.Tensor) or R.dim() != 2:
-            return
-        if bool((torch.linalg.cholesky_ex(R.detach())[1] > 0).any()):
-            ev = torch.linalg.eigvalsh(linalg.symmetrize(R.detach())).min().item()
-            learnable = " (built from learnable parameters)" if R.requires_grad else ""
-            raise ArgumentError(f"{self.name}: the model's measurement covariance{learnable} is not positive definite "
+        if bool((torch.linalg.cholesky_ex(C.detach())[1] > 0).any()):  # the error path reads the eigenvalue
+            ev = torch.linalg.eigvalsh(linalg.symmetrize(C.detach())).min().item()
+            learnable = " (built from learnable parameters)" if C.requires_grad else ""
+            raise ArgumentError(f"{self.name}: the model's {which} covariance{learnable} is not positive definite "
                                 f"(smallest eigenvalue {ev:.3g}); {why}")
 
     def check_prior(self, mean: torch.Tensor, cov: torch.Tensor, batch_size: Optional[int] = None
@@ -595,25 +597,15 @@ class ParticleFilter(Filter):
         on the model's constant covariance (``transition_cov()``); a state-dependent one is left to
         the steps' non-finite handling."""
         super().check_model()
-        self.check_measurement_density(
+        self.require_definite("measurement",
             "particle filters weigh particles by the measurement density p(z | x), which a singular covariance "
             "does not have, so no weight would carry the measurement. Give the model a positive definite "
             "measurement noise, or use a Kalman filter (which handles a singular R when H P H^T is positive definite)")
-        if not getattr(self.proposal, "uses_transition_density", True) or not self.model.structure.gaussian_transition:
-            return
-        try:
-            Q = self.model.transition_cov()
-        except (NotImplementedError, TypeError, RuntimeError):
-            return  # no constant covariance to check
-        if Q.dim() != 2:
-            return
-        if bool((torch.linalg.cholesky_ex(Q.detach())[1] > 0).any()):
-            ev = torch.linalg.eigvalsh(linalg.symmetrize(Q.detach())).min().item()
-            raise ArgumentError(
-                f"{self.name}: the model's transition covariance is not positive definite (smallest eigenvalue "
-                f"{ev:.3g}); this filter weighs particles by the transition density p(x_k | x_(k-1)), which a "
-                "singular covariance does not have. Give the model a positive definite transition noise, or use a "
-                "filter that does not need the density: the bootstrap PF, the unweighted flow filter or a Kalman filter")
+        if getattr(self.proposal, "uses_transition_density", True) and self.model.structure.gaussian_transition:
+            self.require_definite("transition",
+                "this filter weighs particles by the transition density p(x_k | x_(k-1)), which a singular "
+                "covariance does not have. Give the model a positive definite transition noise, or use a filter "
+                "that does not need the density: the bootstrap PF, the unweighted flow filter or a Kalman filter")
 
     def init(self, mean, cov, n_particles=None, generator=None) -> "ParticleState":
         """N particles per trial from the prior ``N(mean (B, d), cov (B, d, d))``, uniform weights and

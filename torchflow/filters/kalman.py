@@ -23,7 +23,7 @@ class _GaussianFilter(Filter):
         super().check_model()
         m, d = self.model.obs_dim, self.model.state_dim
         if m > d:
-            self.check_measurement_density(
+            self.require_definite("measurement",
                 f"with m = {m} measurements of d = {d} states, H P H^T + R is then singular and the measurement "
                 "density (the log-evidence) does not exist. Give the model a positive definite measurement noise")
 
