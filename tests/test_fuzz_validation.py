@@ -130,10 +130,10 @@ def check_outcome(call, blame, shape, *, extreme=False, particles=False, memory=
 # ---- strategies: (value, tag) with tag None (valid), "extreme" (valid, far in the tails) or the
 # ---- argument's name (a planted fault) ----------------------------------------------------------------
 
-def nonfinite_at(draw, x):
-    """A copy of ``x`` with NaN or +-inf at a drawn position."""
+def nonfinite_at(draw, x, values=NONFINITE):
+    """A copy of ``x`` with NaN or +-inf (one of ``values``) at a drawn position."""
     x = x.clone()
-    x.view(-1)[draw(st.integers(0, x.numel() - 1))] = draw(st.sampled_from(NONFINITE))
+    x.view(-1)[draw(st.integers(0, x.numel() - 1))] = draw(st.sampled_from(values))
     return x
 
 
@@ -173,7 +173,9 @@ def observations(draw, B, T, m, dtype, kind, extreme_ok):
     z = {"ndim2": lambda: z[:, 0], "ndim4": lambda: z.unsqueeze(draw(st.integers(0, 3))),
          "m": lambda: torch.randn(B, T, m + draw(st.sampled_from([-m, 1, 2]))).to(dtype),
          "B0": lambda: z[:0], "T0": lambda: z[:, :0], "dtype": lambda: z.to(other_dtype(draw, dtype)),
-         "nonfinite": lambda: nonfinite_at(draw, z), "meta": lambda: z.to("meta"), "list": z.tolist,
+         # NaN in the observations means "not observed": only an infinity is a fault there
+         "nonfinite": lambda: nonfinite_at(draw, z, [v for v in NONFINITE if v == v]),
+         "meta": lambda: z.to("meta"), "list": z.tolist,
          "none": lambda: None, "numpy": lambda: z.numpy()}[kind]()
     return z, "observations"
 

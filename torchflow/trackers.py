@@ -20,7 +20,7 @@ from typing import Optional, Tuple
 import torch
 from torch import nn
 
-from . import linalg, tuning
+from . import linalg, missing, tuning
 from .errors import ArgumentError
 
 TRACKERS = ("ekf", "ukf")
@@ -39,7 +39,8 @@ def kalman_update(
     Args:
         mean_pred: ``(..., d)`` predicted mean.
         cov_pred: ``(..., d, d)`` predicted covariance P.
-        z: ``(..., m)`` observation (broadcastable).
+        z: ``(..., m)`` observation (broadcastable); inside :func:`torchflow.missing.observations_missing`
+            a NaN coordinate is not observed and the update uses the observed rows only.
         z_pred: ``(..., m)`` predicted measurement (``H mean_pred`` for a linear model).
         H: ``(..., m, d)`` measurement Jacobian.
         R: ``(..., m, m)`` measurement noise covariance (broadcastable).
@@ -48,6 +49,9 @@ def kalman_update(
         posterior mean ``(..., d)``, covariance ``(..., d, d)`` (Joseph form, symmetrised) and
         the log-density of ``z`` under ``N(z_pred, S)``, ``S = H P H^T + R``: ``(...)``.
     """
+    correction = None
+    if missing.active():  # NaN rows of z not observed: the update on the observed rows (torchflow.missing)
+        z, z_pred, H, R, correction = missing.gaussian_rows(z, z_pred, H, R)
     HP = H @ cov_pred  # (..., m, d)
     S = linalg.symmetrize(HP @ H.transpose(-1, -2) + R)
     L = linalg.safe_cholesky(S)
@@ -59,7 +63,7 @@ def kalman_update(
     IKH = torch.eye(d, dtype=H.dtype, device=H.device) - K @ H
     cov = linalg.symmetrize(IKH @ cov_pred @ IKH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2))
     loglik = linalg.mvn_log_prob(z, z_pred, L)
-    return mean, cov, loglik
+    return mean, cov, loglik if correction is None else loglik + correction
 
 
 def ekf_predict(model, mean: torch.Tensor, cov: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -120,8 +124,17 @@ def kalman_update_scalar_support(mean_pred: torch.Tensor, cov_pred: torch.Tensor
     U = linalg.matmul(H_s, L)  # (..., m, k)
     Ut = U.transpose(-1, -2)
     eye = torch.eye(k, dtype=U.dtype, device=U.device)
-    KG = linalg.safe_cholesky(linalg.matmul(Ut, U) + sigma2 * eye)
     r = z - z_pred
+    correction = None
+    if missing.active():  # unobserved rows: zero residual and Jacobian rows; S keeps sigma2 there
+        mask, _ = missing.observed(z)
+        mask = mask.expand(r.shape)
+        r = torch.where(mask, r, torch.zeros_like(r))
+        U = U * mask.unsqueeze(-1).to(U.dtype)
+        Ut = U.transpose(-1, -2)
+        log_s2 = torch.log(torch.as_tensor(sigma2, dtype=U.dtype, device=U.device)).expand(r.shape)
+        correction = missing.unobserved_correction(mask, log_s2)
+    KG = linalg.safe_cholesky(linalg.matmul(Ut, U) + sigma2 * eye)
     Ur = linalg.matvec(Ut, r.expand(U.shape[:-1]))  # (..., k)
     a = linalg.chol_solve(KG, Ur.unsqueeze(-1)).squeeze(-1)  # G^{-1} U^T r
     mean = mean_pred + linalg.matvec(C, a)
@@ -130,7 +143,7 @@ def kalman_update_scalar_support(mean_pred: torch.Tensor, cov_pred: torch.Tensor
     quad = ((r * r).sum(-1) - (Ur * a).sum(-1)) / sigma2
     logdet = (m - k) * torch.log(torch.as_tensor(sigma2, dtype=U.dtype, device=U.device)) + linalg.chol_logdet(KG)
     loglik = -0.5 * (quad + logdet + m * linalg._LOG_2PI)
-    return mean, linalg.symmetrize(cov), loglik
+    return mean, linalg.symmetrize(cov), loglik if correction is None else loglik + correction
 
 
 class UnscentedTransform(nn.Module):
@@ -191,13 +204,20 @@ class UnscentedTransform(nn.Module):
         X = self.sigma_points(mean_pred, cov_pred)
         z_pred, DZ = self.moments(model.measure(X))
         DX = X - mean_pred.unsqueeze(-2)
-        S = linalg.symmetrize(self.cross(DZ, DZ) + model.measurement_cov(mean_pred))
+        R = model.measurement_cov(mean_pred)
+        correction = None
+        if missing.active():  # unobserved coordinates: zero deviations and residual, identity noise rows
+            mask = ~torch.isnan(z)
+            z, z_pred, _, R, correction = missing.gaussian_rows(z, z_pred, None, R)
+            DZ = DZ * mask.unsqueeze(-2).to(DZ.dtype)
+        S = linalg.symmetrize(self.cross(DZ, DZ) + R)
         C = self.cross(DX, DZ)  # (..., d, m)
         L = linalg.safe_cholesky(S)
         Kt = linalg.chol_solve(L, C.transpose(-1, -2))  # S^{-1} C^T = K^T
         mean = mean_pred + linalg.matvec(Kt.transpose(-1, -2), z - z_pred)
         cov = linalg.symmetrize(cov_pred - C @ Kt)  # P - K S K^T = P - C S^{-1} C^T
-        return mean, cov, linalg.mvn_log_prob(z, z_pred, L)
+        loglik = linalg.mvn_log_prob(z, z_pred, L)
+        return mean, cov, loglik if correction is None else loglik + correction
 
     def extra_repr(self) -> str:
         return f"alpha={self.alpha}, beta={self.beta}, kappa={self.kappa}"

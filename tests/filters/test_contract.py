@@ -135,11 +135,13 @@ def test_wrong_observation_shape(lg_setup, make):
         make(model)(obs[0], mean, cov)
 
 
-def test_nan_observations(lg_setup):
+def test_infinite_observations(lg_setup):
+    """NaN means "not observed" (tests/filters/test_missing.py); an infinity is an error."""
     model, obs, mean, cov = lg_setup
     obs = obs.clone()
-    obs[2, 3, 1] = float("nan")
-    with pytest.raises(ValueError, match=r"observations: 1 non-finite .* trial\(s\) \[2\]"):
+    obs[2, 3, 1] = float("inf")
+    obs[1, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match=r"observations: 1 infinite value\(s\), in trial\(s\) \[2\] \(NaN marks"):
         KalmanFilter(model)(obs, mean, cov)
 
 

@@ -11,7 +11,7 @@ import torch
 import torch.utils.checkpoint
 from torch import nn
 
-from .. import linalg
+from .. import linalg, missing as _missing
 from .. import random as _random
 from .. import resampling as _resampling
 from .._checks import allocation_failure, check_count, check_finite, check_psd, check_same, check_tensor
@@ -360,6 +360,7 @@ class Filter(nn.Module):
         if self.validate:
             self.model.check_observations(observations)
             self.check_model()
+        gaps = self.check_missing(observations)
         mean, cov = self.check_prior(mean, cov, observations.shape[0])
         if self.validate:  # once per model and batch layout: each method's output shape, naming the method
             check_shapes(self.model, mean.detach(), self.name, gaussian=self.gaussian_form or None)
@@ -374,8 +375,38 @@ class Filter(nn.Module):
         if checkpoint_steps is None:
             checkpoint_steps = self.checkpoint_steps
         step = self._checkpointed_step if checkpoint_steps and torch.is_grad_enabled() else self.step
-        if step == self.step and graph_step.eligible(self, state, generator):  # one launch per step (CUDA)
+        if step == self.step and not gaps and graph_step.eligible(self, state, generator):  # one launch per step (CUDA)
             step = functools.partial(graph_step.run_step, self, memo={})
+        with _missing.observations_missing(gaps):  # NaN: not observed (torchflow.missing)
+            state = self._run_steps(state, step, observations, generator, trace, n_particles, progress)
+        self._check_trace(trace, warn=True)  # the one host read of the check
+        try:  # the per-step outputs stacked: with return_particles, (B, T, N, d) more
+            return trace.result(state)
+        except Exception as err:
+            self._raise_out_of_memory(_uncountable(err), observations.shape[0], n_particles)
+            raise
+
+    def check_missing(self, observations: torch.Tensor) -> bool:
+        """Whether ``observations (B, T, m)`` hold NaN (values not observed, :mod:`torchflow.missing`):
+        one host read per call, before the first step. Raises when a step is partly observed and
+        this filter weighs particles with a model whose measurement density cannot leave out single
+        coordinates (:meth:`~torchflow.models.StateSpaceModel.partial_observations`)."""
+        nan = torch.isnan(observations) if observations.is_floating_point() else None
+        if nan is None or not bool(nan.any()):
+            return False
+        if self.uses_particles and not self.model.partial_observations():
+            partial = nan.any(-1) & ~nan.all(-1)  # (B, T)
+            if bool(partial.any()):
+                b, t = (int(i) for i in torch.nonzero(partial)[0])
+                raise ArgumentError(
+                    f"{self.name}: observations: step {t + 1} of trial {b} is partly observed (NaN in some of its "
+                    f"{observations.shape[-1]} coordinates), but {type(self.model).__name__} gives no density of "
+                    "the observed coordinates alone: a whole step may be missing (all NaN), or the model overrides "
+                    "measurement_log_prob_observed(z, x, observed) (or declares a Gaussian measurement)")
+        return True
+
+    def _run_steps(self, state, step, observations, generator, trace, n_particles, progress):
+        """The loop of :meth:`forward` over the time steps."""
         grad_check = self.check_gradients and torch.is_grad_enabled()
         if grad_check:  # a parameter's non-finite gradient is named (hooks of the last call removed)
             guards.replace_parameter_hooks(self, self.model)
@@ -391,12 +422,8 @@ class Filter(nn.Module):
             trace.add(state, t)
             if progress is not None:
                 progress()
-        self._check_trace(trace, warn=True)  # the one host read of the check
-        try:  # the per-step outputs stacked: with return_particles, (B, T, N, d) more
-            return trace.result(state)
-        except Exception as err:
-            self._raise_out_of_memory(_uncountable(err), observations.shape[0], n_particles)
-            raise
+        return state
+
 
 
 def _uncountable(err: BaseException) -> BaseException:
@@ -631,9 +658,13 @@ class ParticleFilter(Filter):
                                          chunk=self.particle_chunk)
         model = self.model
         z1 = z.unsqueeze(1)
+
+        def measurement_log_prob(z, x):  # of the observed coordinates where z has NaN (torchflow.missing)
+            return _missing.measurement_log_prob(model, z, x)
+
         if prop.log_q is None:
             def weigh(x, x_prev):
-                ll = model.measurement_log_prob(z1, x)
+                ll = measurement_log_prob(z1, x)
                 if not score:
                     return ll
                 # a transition proposal's score: log p(x | x') - stop_gradient(same), exactly 0 in value
@@ -643,7 +674,7 @@ class ParticleFilter(Filter):
             log_inc = self.per_particle(weigh, prop.particles, state.particles)
         else:
             def weigh(x, x_prev, log_q):
-                return model.transition_log_prob(x, x_prev) + model.measurement_log_prob(z1, x) - log_q
+                return model.transition_log_prob(x, x_prev) + measurement_log_prob(z1, x) - log_q
 
             log_inc = self.per_particle(weigh, prop.particles, state.particles, prop.log_q)
         return self.weight_and_resample(prop.particles, state.log_weights, log_inc, generator, state.step + 1,

@@ -52,7 +52,7 @@ from typing import Optional
 
 import torch
 
-from .. import linalg
+from .. import linalg, missing
 from .._checks import check_choice, check_count
 from ..flows import FlowPrior, integrate_flow, which_kernel
 from ..flows.points import ParticlePoints, flow_points_per_call
@@ -263,7 +263,7 @@ class GaussianSumParticleFilter(ParticleFilter):
         rows = self._row_chunk(z.device)
 
         def loglik(xs):  # on the trial's G N* particles (the model's batch is the trials)
-            return model.measurement_log_prob(z1, xs)
+            return missing.measurement_log_prob(model, z1, xs)  # observed coordinates only (torchflow.missing)
 
         if self.flow is None:
             x = eta0

@@ -5,7 +5,7 @@ from typing import Optional, Tuple
 
 import torch
 
-from .. import linalg
+from .. import linalg, missing
 from ..trackers import UnscentedTransform, ekf_predict, ekf_update, kalman_update
 from .base import Filter, GaussianState
 from ..errors import ArgumentTypeError
@@ -79,7 +79,7 @@ class KalmanFilter(ExtendedKalmanFilter):
 
     def step(self, state, z, generator=None):
         B = state.mean.shape[0]
-        if B > 1 and state.cov.stride(0) == 0:
+        if B > 1 and state.cov.stride(0) == 0 and not missing.active():  # masks differ between trials
             return self._shared_step(state, z)
         return super().step(state, z, generator)
 

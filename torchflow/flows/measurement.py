@@ -20,7 +20,7 @@ from typing import Callable, Optional, Sequence, Tuple
 
 import torch
 
-from .. import linalg
+from .. import linalg, missing
 from ..models.structure import kernel_structure
 from ..errors import ArgumentError
 
@@ -70,14 +70,26 @@ class GaussianMeasurement:
             measurement with a diagonal R
             (:meth:`~torchflow.models.GaussianStateSpaceModel.linearize_measurement_diagonal`), for
             :meth:`at_diagonal`; ``None``: not available.
+        observed: ``(B, m)`` bool, the coordinates of ``z`` that were observed (missing
+            observations, :mod:`torchflow.missing`; ``z`` then holds a finite filler elsewhere), or
+            ``None``: all. The whitened rows of the unobserved coordinates are zero (for a dense
+            R, whitened by the factor of R with those rows and columns replaced by the
+            identity's), so the flow sees the observed rows alone; no kernel takes a mask.
     """
 
     def __init__(self, z: torch.Tensor, linearise: Callable, scale_tril: Callable, noise: str,
                  matrix: Optional[torch.Tensor] = None, measure: Optional[Callable] = None,
                  support: Optional[Sequence[int]] = None, diagonal: bool = False,
-                 hessian: Optional[Callable] = None, form=None, diagonal_rows: Optional[Callable] = None):
+                 hessian: Optional[Callable] = None, form=None, diagonal_rows: Optional[Callable] = None,
+                 observed: Optional[torch.Tensor] = None):
         if noise not in ("scalar", "diagonal", "dense"):
             raise ArgumentError(f"noise: expected 'scalar', 'diagonal' or 'dense', got {noise!r}")
+        self.observed = observed
+        if observed is not None:
+            z = torch.where(observed, z, torch.zeros_like(z))
+            if noise == "dense":  # whiten the observed block by its own factor (torchflow.missing)
+                scale_tril = _masked_factor(scale_tril, observed)
+            form = None  # a kernel's own linearisation takes no mask
         self.z, self.linearise, self.scale_tril, self.noise = z, linearise, scale_tril, noise
         self.matrix, self.measure = matrix, measure
         self.support = None if support is None else tuple(support)
@@ -100,7 +112,8 @@ class GaussianMeasurement:
             noise = "dense"
         linear = model.structure.linear_measurement
         constant_r = model.structure.measurement_noise in ("scalar", "diagonal", "dense")
-        return cls(z, model.linearize_measurement, model.measurement_scale_tril, noise,
+        observed = ~torch.isnan(z) if missing.active() else None  # NaN: not observed
+        return cls(z, model.linearize_measurement, model.measurement_scale_tril, noise, observed=observed,
                    matrix=model.measurement_matrix() if linear else None, measure=model.measure if linear else None,
                    support=model.structure.measurement_support,
                    diagonal=model.structure.measurement_jacobian_diagonal and not linear,
@@ -123,7 +136,14 @@ class GaussianMeasurement:
     def at(self, points: torch.Tensor, support: Optional[torch.Tensor] = None) -> Linearisation:
         """Whitened linearisation at ``points (..., d)``; ``support`` is the ``(k,)`` index of the
         measured coordinates (:attr:`FlowPrior.support`) or ``None``. No test of R's values: its
-        structure is declared (no host synchronisation)."""
+        structure is declared (no host synchronisation). Unobserved rows (:attr:`observed`) are zero."""
+        lin = self._at(points, support)
+        if self.observed is None:
+            return lin
+        rows = _bcast_obs(self.observed, points).to(lin.y.dtype)
+        return Linearisation(lin.W * rows.unsqueeze(-1), lin.y * rows, None if lin.diag is None else lin.diag * rows)
+
+    def _at(self, points: torch.Tensor, support: Optional[torch.Tensor] = None) -> Linearisation:
         xs = points if support is None else points[..., support]  # cheaper than index_select on the CPU
         if self.noise == "scalar" and self.matrix is None:
             # R = sigma^2 I: whiten inside the linearisation (scale 1 / sigma), so W = H / sigma
@@ -162,6 +182,9 @@ class GaussianMeasurement:
             return None
         hx, Hd, sd = self.diagonal_rows(points)
         resid = _bcast_obs(self.z, points) - (hx - Hd * points)
+        if self.observed is not None:
+            rows = _bcast_obs(self.observed, points).to(resid.dtype)
+            return Hd / sd * rows, resid / sd * rows
         return Hd / sd, resid / sd
 
     def derivative(self, points: torch.Tensor, support: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
@@ -177,6 +200,13 @@ class GaussianMeasurement:
             return points.new_zeros(self.z.shape[-1], k, 1, 1)
         if self.hessian is None:
             return None
+        dW = self._derivative(points, support)
+        if self.observed is None:
+            return dW
+        rows = _bcast_obs(self.observed, points).to(dW.dtype)
+        return dW * rows[..., None, None, None]
+
+    def _derivative(self, points: torch.Tensor, support: Optional[torch.Tensor] = None) -> torch.Tensor:
         if self.noise == "scalar":
             inv_sigma = self.inv_sigma if self.inv_sigma is not None else self._scalar_inv_sigma(points)
             return self.hessian(points, support is not None, inv_sigma)
@@ -185,6 +215,18 @@ class GaussianMeasurement:
         if self.noise == "diagonal":
             return dH / LR.diagonal(dim1=-2, dim2=-1)[..., None, None, None]
         return linalg.solve_triangular(LR, dH.flatten(-3), upper=False).unflatten(-1, dH.shape[-3:])
+
+
+def _masked_factor(scale_tril: Callable, observed: torch.Tensor) -> Callable:
+    """``points -> the factor of R`` with the unobserved rows and columns of R replaced by the
+    identity's (:func:`torchflow.missing.masked_noise`), per trial ``(B, 1.., m, m)`` (per point for
+    a state-dependent R)."""
+    def factor(points):
+        L = scale_tril(points)
+        R = L @ L.transpose(-1, -2)
+        return linalg.safe_cholesky(missing.masked_noise(R, _bcast_obs(observed, points)))
+
+    return factor
 
 
 def measurement_form(model):

@@ -25,7 +25,7 @@ from torch import nn
 
 from .. import linalg
 from .._progress import report
-from .._checks import check_finite, check_tensor
+from .._checks import check_tensor
 from ..linearize import jacobian
 from .structure import Structure
 from ..errors import ArgumentError
@@ -146,6 +146,37 @@ class StateSpaceModel(nn.Module):
         """``log p(z | x)`` for ``z`` broadcastable to ``(..., m)`` and ``x (..., d)`` -> ``(...)``."""
         raise _missing(self, "measurement_log_prob", "measurement_log_prob(z, x) -> (...)")
 
+    def measurement_log_prob_observed(self, z: torch.Tensor, x: torch.Tensor, observed: torch.Tensor) -> torch.Tensor:
+        """``log p(z_o | x)``, the density of the observed coordinates of ``z`` alone (missing
+        observations, :mod:`torchflow.missing`).
+
+        Args:
+            z: broadcastable to ``(..., m)``, finite (its unobserved coordinates hold a filler).
+            x: ``(..., d)``.
+            observed: ``(..., m)`` bool, broadcastable like ``z``: True where observed.
+
+        Returns:
+            ``(...)``. The default takes whole-step gaps only: :meth:`measurement_log_prob` where any
+            coordinate is observed, 0 where none is. A model whose measurement coordinates can be
+            missing one at a time overrides it (the Gaussian form does, exactly; a model with
+            conditionally independent coordinates sums their densities over the observed ones);
+            filters refuse a partly observed step for a model that does not
+            (:meth:`partial_observations`).
+        """
+        ll = self.measurement_log_prob(z, x)
+        return torch.where(observed.any(-1), ll, torch.zeros_like(ll))
+
+    def partial_observations(self) -> bool:
+        """Whether :meth:`measurement_log_prob_observed` takes a measurement with some of its
+        coordinates missing (declared by the class that gives it: a model overriding it, or the
+        Gaussian form of a model declaring ``structure.gaussian_measurement``)."""
+        own = type(self).measurement_log_prob_observed
+        if own is StateSpaceModel.measurement_log_prob_observed:
+            return self.obs_dim == 1  # one coordinate: a gap is a whole step
+        if own is GaussianStateSpaceModel.measurement_log_prob_observed:
+            return self.obs_dim == 1 or self.structure.gaussian_measurement
+        return True
+
     # ---- what follows from the core ---------------------------------------------------------
     def simulate(self, batch_size: int, steps: int, generator: Optional[torch.Generator] = None) -> Trajectory:
         """Simulate ``batch_size`` independent trajectories of ``steps`` steps.
@@ -192,14 +223,19 @@ class StateSpaceModel(nn.Module):
         return self.sample_transition(x, generator)
 
     def check_observations(self, observations: torch.Tensor) -> torch.Tensor:
-        """Raise a clear error unless ``observations`` is a finite ``(B, T, m)`` tensor on the
-        model's dtype and device."""
+        """Raise a clear error unless ``observations`` is a ``(B, T, m)`` tensor on the model's
+        dtype and device whose values are finite or NaN (NaN: not observed, :mod:`torchflow.missing`;
+        ``inf`` is an error)."""
         check_tensor("observations", observations, (None, None, self.obs_dim), "(B, T, m)",
                      dtype=self.dtype, device=self.device)
         if observations.shape[0] == 0 or observations.shape[1] == 0:
             raise ArgumentError(f"observations: expected (B, T, m) with at least one trial and one time step, "
                              f"got {tuple(observations.shape)}")
-        check_finite("observations", observations)
+        inf = torch.isinf(observations)
+        if bool(inf.any()):  # NaN marks a missing value; an infinity is an error
+            trials = torch.nonzero(inf.flatten(1).any(-1)).flatten().tolist()
+            raise ArgumentError(f"observations: {int(inf.sum())} infinite value(s), in trial(s) {trials[:10]} "
+                                "(NaN marks a value not observed; inf is not a measurement)")
         return observations
 
 
@@ -347,6 +383,29 @@ class GaussianStateSpaceModel(StateSpaceModel):
     def measurement_log_prob(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """log p(z | x) for ``z`` broadcastable to ``(..., m)`` -> ``(...)``."""
         return linalg.mvn_log_prob(z, self.measure(x), self.measurement_scale_tril(x))
+
+    def measurement_log_prob_observed(self, z: torch.Tensor, x: torch.Tensor, observed: torch.Tensor) -> torch.Tensor:
+        """The density of the observed coordinates (:meth:`StateSpaceModel.measurement_log_prob_observed`):
+        for a Gaussian measurement (``structure.gaussian_measurement``), exactly
+        ``log N(z_o; h_o(x), R_oo)``: elementwise for a declared diagonal R, else through R with its
+        unobserved rows and columns replaced by the identity's (:func:`torchflow.missing.masked_noise`).
+        Other measurement laws take whole-step gaps only, unless the model overrides this."""
+        if not self.structure.gaussian_measurement:
+            return super().measurement_log_prob_observed(z, x, observed)
+        from .. import missing
+
+        h = self.measure(x)
+        shape = torch.broadcast_shapes(h.shape, z.shape, observed.shape)
+        full = observed.expand(shape)
+        resid = torch.where(full, z - h, torch.zeros_like(h))
+        if self.structure.measurement_noise in ("scalar", "diagonal", "state_dependent_diagonal"):
+            var = self.measurement_cov(x).diagonal(dim1=-2, dim2=-1).expand(shape)
+            terms = resid * resid / var + torch.log(var) + linalg._LOG_2PI
+            return -0.5 * torch.where(full, terms, torch.zeros_like(terms)).sum(-1)
+        # per trial (the mask's own batch shape), not per particle, where R is constant
+        R = missing.masked_noise(self.measurement_cov(x), observed)
+        return (linalg.mvn_log_prob(resid, torch.zeros_like(resid), linalg.safe_cholesky(R))
+                + missing.unobserved_correction(full, dtype=h.dtype))
 
     def sample_measurement(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         """Draw z ~ p(z | x) for ``x (..., d)`` -> ``(..., m)``."""

@@ -55,8 +55,8 @@ class SkewedTPoisson(GaussianStateSpaceModel):
 
     #: linear location, a skewed-t transition (its Gaussian form is the moment fit), R = diag(lambda(x)),
     #: and z_c counts cell c only (lambda_c = m1 exp(m2 x_c)): a diagonal measurement Jacobian
-    structure = Structure(linear_dynamics=True, gaussian_transition=False, measurement_noise="state_dependent_diagonal",
-                          measurement_jacobian_diagonal=True)
+    structure = Structure(linear_dynamics=True, gaussian_transition=False, gaussian_measurement=False,
+                          measurement_noise="state_dependent_diagonal", measurement_jacobian_diagonal=True)
 
     def __init__(self, *, d: int = 144, alpha: float = 0.9, gamma: float = 0.3, nu: int = 7,
                  alpha0: float = 3.0, alpha1: float = 0.01, beta: float = 20.0, m1: float = 1.0,
@@ -124,9 +124,10 @@ class SkewedTPoisson(GaussianStateSpaceModel):
         return self.location(x) + W * self.gamma + W.sqrt() * linalg.matvec(self.Sigma_tril, xi)
 
     def check_observations(self, observations):
-        """Counts: finite ``(B, T, d)`` non-negative integers (a clear error names the first bad one)."""
+        """Counts: ``(B, T, d)`` non-negative integers, or NaN where not observed (a clear error names
+        the first bad one)."""
         observations = super().check_observations(observations)
-        bad = (observations < 0) | (observations != observations.round())
+        bad = ((observations < 0) | (observations != observations.round())) & ~torch.isnan(observations)
         if bool(bad.any()):
             b, t, c = [int(v) for v in torch.nonzero(bad)[0]]
             raise ArgumentError(f"observations: expected Poisson counts (non-negative integers), got "
@@ -169,8 +170,17 @@ class SkewedTPoisson(GaussianStateSpaceModel):
 
     def measurement_log_prob(self, z, x):
         """Poisson log-likelihood ``sum_c z_c log lam_c - lam_c - log z_c!`` (the full pmf)."""
+        return self._count_terms(z, x).sum(-1)
+
+    def measurement_log_prob_observed(self, z, x, observed):
+        """The counts are independent given x: the sum of :meth:`measurement_log_prob`'s terms over
+        the observed cells (``observed (..., m)``)."""
+        terms = self._count_terms(z, x)
+        return torch.where(observed, terms, torch.zeros_like(terms)).sum(-1)
+
+    def _count_terms(self, z, x):
         lam = self.measure(x)
-        return (z * torch.log(lam) - lam - torch.lgamma(z + 1)).sum(-1)
+        return z * torch.log(lam) - lam - torch.lgamma(z + 1)
 
     def sample_measurement(self, x, generator=None):
         return torch.poisson(self.measure(x), generator=generator)

@@ -37,6 +37,11 @@ class Structure:
             with another transition law (skewed-t) declares ``False`` and its Gaussian form is the fit
             that flows, trackers and stochastic-flow proposals use (the weights stay exact).
         linear_measurement: ``h(x) = x H^T`` with ``H = measurement_matrix()``.
+        gaussian_measurement: ``p(z_k | x_k)`` is ``N(measure(x), measurement_cov(x))``; a model with
+            another measurement law (Poisson counts) declares ``False``: its Gaussian form is then the
+            fit that flows and trackers use, and the density of a partly observed measurement
+            (NaN coordinates) is the model's own
+            (:meth:`~torchflow.models.StateSpaceModel.measurement_log_prob_observed`).
         measurement_noise: the structure of R, one of :data:`NOISE`: ``"scalar"`` (``sigma^2 I``,
             constant), ``"diagonal"``, ``"dense"`` (constant), ``"state_dependent"`` (varies with x)
             or ``"state_dependent_diagonal"`` (varies with x, diagonal: whitening is a division).
@@ -64,6 +69,7 @@ class Structure:
     linear_dynamics: bool = False
     gaussian_transition: bool = True
     linear_measurement: bool = False
+    gaussian_measurement: bool = True
     measurement_noise: str = "dense"
     measurement_support: Optional[Tuple[int, ...]] = None
     measurement_jacobian_diagonal: bool = False

@@ -39,7 +39,7 @@ from typing import Optional
 
 import torch
 
-from ... import _triton, tuning
+from ... import _triton, missing, tuning
 from . import steps
 
 #: the tuning knobs (:mod:`torchflow.tuning`) read by the kernel selection, and by nothing else
@@ -95,8 +95,8 @@ def flow_kernel(flow, measurement, particles: torch.Tensor, k: int, *, per_parti
       declaration, on the CPU kernels;
     * ``"gromov"``: a flow offering ``"gromov"``, on the CPU kernels, tiles that fit.
     """
-    if not per_particle or gaussian_image or torch.is_grad_enabled():
-        return None
+    if not per_particle or gaussian_image or torch.is_grad_enabled() or measurement.observed is not None:
+        return None  # (a kernel takes no mask of unobserved coordinates)
     offer = declared(flow, "kernel")
     if offer == "daum_huang" and not track:
         if (tuning.get().fused_flows and steps.runs_on(particles.device)
@@ -146,7 +146,7 @@ def gpfis_kernel(measurement, x: torch.Tensor, k: int) -> bool:
     ``(B, N, d)`` particles on the CPU kernels, no gradient recorded, the measurement's second
     derivatives declared (or a linear measurement), tiles that fit and ``k <= 16`` (the kernel keeps
     ``[W y]^T D``, up to ``(k + 1) k^2`` numbers, per lane)."""
-    if (torch.is_grad_enabled() or x.dim() != 3 or k > 16
+    if (torch.is_grad_enabled() or x.dim() != 3 or k > 16 or measurement.observed is not None
             or (measurement.hessian is None and measurement.matrix is None)):
         return False
     return cpu_kernels_on(x.device) and _tiles_fit(measurement, x, k)
@@ -162,7 +162,7 @@ def flow_graph(flow, particles: torch.Tensor) -> bool:
     """A deterministic flow's pseudo-time loop is replayed from a CUDA graph
     (:mod:`torchflow.cudagraphs`): CUDA, ``tuning.cuda_graphs``, no gradient recorded, not inside
     another capture."""
-    return (particles.is_cuda and bool(tuning.get().cuda_graphs) and not flow.stochastic
+    return (particles.is_cuda and bool(tuning.get().cuda_graphs) and not flow.stochastic and not missing.active()
             and not torch.is_grad_enabled() and not torch.cuda.is_current_stream_capturing())
 
 
@@ -177,7 +177,7 @@ def graph_step(filt, x: torch.Tensor, generator, *, emulated: bool = False) -> b
     from ...random import TrialStreams
 
     t = tuning.get()
-    return ((emulated or (x.is_cuda and not torch.cuda.is_current_stream_capturing()))
+    return ((emulated or (x.is_cuda and not torch.cuda.is_current_stream_capturing())) and not missing.active()
             and bool(getattr(filt, "graph_step", False)) and bool(t.cuda_graphs) and not torch.is_grad_enabled()
             and type(generator) is TrialStreams and generator.backend in ("auto", "philox")
             and x.numel() <= t.graph_step_max_elems)
