@@ -426,6 +426,21 @@ class Filter(nn.Module):
 
 
 
+#: the key of :attr:`ParticleState.extras` under which a particle filter keeps each step's ancestor
+#: indices (:func:`ancestor_extras`; the particle smoothers, :mod:`torchflow.smoothing`)
+ANCESTOR = "ancestor"
+
+
+def ancestor_extras(state, particles: torch.Tensor) -> Optional[Dict[str, torch.Tensor]]:
+    """``{ANCESTOR: arange(N)}`` per trial when ``state`` asks for ancestors (its ``extras`` hold
+    the key), else ``None``: gathered by the resampler, it becomes the ancestor index ``(B, N)`` of
+    each particle after resampling (the step's weighted particles ``particles (B, N, d)``)."""
+    if ANCESTOR not in state.extras:
+        return None
+    B, N = particles.shape[:2]
+    return {ANCESTOR: torch.arange(N, device=particles.device).expand(B, N)}
+
+
 def _uncountable(err: BaseException) -> BaseException:
     """A size past what torch can count (``n_particles=2**62``) as the ``MemoryError`` it is on any
     machine (caused by ``err``); any other error unchanged."""
@@ -678,7 +693,8 @@ class ParticleFilter(Filter):
 
             log_inc = self.per_particle(weigh, prop.particles, state.particles, prop.log_q)
         return self.weight_and_resample(prop.particles, state.log_weights, log_inc, generator, state.step + 1,
-                                        cov=prop.cov, fallback=prop.fallback, n_repaired=state.n_repaired)
+                                        cov=prop.cov, fallback=prop.fallback, n_repaired=state.n_repaired,
+                                        extras=ancestor_extras(state, prop.particles))
 
     def per_particle(self, fn, *tensors, pass_slice: bool = False, chunk: Optional[int] = None):
         """``fn(*tensors)`` in blocks of :attr:`particle_chunk` particles (or ``chunk``, when given;
