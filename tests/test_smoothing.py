@@ -10,7 +10,7 @@ from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, Ga
 from torchflow.models import AcousticTracking
 from torchflow.random import TrialStreams
 from torchflow.smoothing import smooth
-from conftest import mild_lg, random_lg
+from conftest import cuda, mild_lg, random_lg
 
 F64 = torch.float64
 
@@ -145,3 +145,15 @@ def test_acoustic_ffbsi_runs():
     res = smooth(ParticleFlowParticleFilter(model, flow="edh", n_particles=64), traj.observations, mean, cov,
                  torch.Generator().manual_seed(2), n_paths=16)
     assert res.paths.shape == (2, 16, 7, 16) and torch.isfinite(res.paths).all()
+
+
+@cuda
+@pytest.mark.parametrize("method", ["rts", "ffbsi", "genealogy"])
+def test_smoothing_cuda(method):
+    model = random_lg(3, 2).to("cuda")
+    traj = model.simulate(2, 4, torch.Generator(device="cuda").manual_seed(0))
+    mean, cov = model.initial_belief(traj.states[:, 0])
+    filt = KalmanFilter(model) if method == "rts" else ParticleFlowParticleFilter(model, flow="ledh", n_particles=32)
+    res = smooth(filt, traj.observations, mean, cov + torch.eye(3, dtype=F64, device="cuda"),
+                 TrialStreams(0, 2, "s"), method=method, n_paths=8)
+    assert res.means.device.type == "cuda" and torch.isfinite(res.means).all()
