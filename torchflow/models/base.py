@@ -101,6 +101,10 @@ class StateSpaceModel(nn.Module):
     obs_dim: int
     #: the model's declared structure (:class:`~torchflow.models.structure.Structure`)
     structure: Structure = Structure()
+    #: names of the parameters that may carry a leading trial dimension ``(B, ...)``: one value per
+    #: trial (or MCMC chain, :func:`torchflow.inference.pmmh`), broadcast by the model's methods over
+    #: any leading shape ``(B, ...)`` of their inputs
+    per_trial_parameters: tuple = ()
 
     # ---- dtype / device --------------------------------------------------------------------
     @property

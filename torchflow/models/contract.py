@@ -163,7 +163,8 @@ def check_shapes(model, x: torch.Tensor, who: str, *, gaussian: Optional[bool] =
     is caught where it would broadcast), and ``transition_mean``/``measure`` on one point ``(d,)``
     (what their Jacobians differentiate, under ``vmap``). Draws use a generator of their own (the
     caller's streams are not advanced); no gradient is recorded. Done once per model, dtype, device
-    and batch size."""
+    and batch size. A model declaring :attr:`~torchflow.models.StateSpaceModel.per_trial_parameters`
+    is checked on every trial's particles (its values may be per trial) and not on a lone point."""
     from .base import GaussianStateSpaceModel
 
     if gaussian is None:
@@ -174,12 +175,13 @@ def check_shapes(model, x: torch.Tensor, who: str, *, gaussian: Optional[bool] =
         return
     B, d, m = x.shape[0], model.state_dim, model.obs_dim
     g = torch.Generator(device=x.device).manual_seed(0)
-    b = min(B, 2)
-    particles = x[:b].unsqueeze(1).expand(b, max(b, d, m) + 1, d)
+    per_trial = bool(getattr(model, "per_trial_parameters", ()))  # values per trial: every trial, no lone point
+    b = B if per_trial else min(B, 2)
+    particles = x[:b].unsqueeze(1).expand(b, max(min(b, 2), d, m) + 1, d)
     with torch.no_grad():
         _check_layout(model, who, x, "B", gaussian, g)
         _check_layout(model, who, particles, "B, N", gaussian, g, " on the particles' layout")
-        if gaussian:  # one point: what jacobian() differentiates
+        if gaussian and not per_trial:  # one point: what jacobian() differentiates
             name = type(model).__name__
             _expect(who, f"{name}.transition_mean", model.transition_mean(x[0]), (d,), "(d,)", where=" on one point")
             _expect(who, f"{name}.measure", model.measure(x[0]), (m,), "(m,)", where=" on one point")

@@ -1,0 +1,15 @@
+"""Parameter posteriors by particle MCMC, with chains batched in the trial dimension.
+
+* :func:`pmmh`: particle marginal Metropolis-Hastings (Andrieu, Doucet & Holenstein 2010): C chains
+  run as the C trials of one filter call per iteration, each trial with its own parameter values
+  (the model declares which parameters may carry a leading trial dimension,
+  :attr:`~torchflow.models.StateSpaceModel.per_trial_parameters`); any particle filter is the
+  likelihood estimator; priors are ``torch.distributions`` over the constrained values; random-walk
+  proposals in the unconstrained space, with a per-chain scale adapted towards a target acceptance
+  rate during the first iterations and fixed afterwards.
+* :func:`rhat` and :func:`effective_sample_size`: convergence diagnostics of the chains.
+"""
+from .diagnostics import effective_sample_size, rhat
+from .pmmh import PMMHResult, pmmh
+
+__all__ = ["pmmh", "PMMHResult", "rhat", "effective_sample_size"]
