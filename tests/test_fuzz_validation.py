@@ -29,7 +29,7 @@ import torchflow.filters as F
 from torchflow.errors import NonFiniteError, TorchflowError
 from torchflow.experiment import run_experiment
 from torchflow.models import (AcousticTracking, GaussianStateSpaceModel, LinearGaussian, SensorNetwork,
-                              SkewedTPoisson, TDOA3D)
+                              SkewedTPoisson, StochasticVolatility, TDOA3D)
 from torchflow.random import TrialStreams
 from torchflow.schedules import ExponentialSchedule
 
@@ -431,6 +431,14 @@ MODEL_KWARGS = {
         "beta": ([20.0, 1], [0, -1, math.inf]),
         "m1": ([1.0, 2], [0, -1, math.nan]),
         "m2": ([1 / 3, 0, -1], [math.nan, math.inf, "x"]),
+    },
+    StochasticVolatility: {
+        "mu": ([-1.02, 0, 3.5], [math.nan, math.inf, "x", True, None]),
+        "rho": ([0.9702, 0, -0.5, 0.999], [1, -1, 1.5, math.nan, "0.9", True]),
+        "sigma": ([0.178, 1, 1e-3], [0, -0.1, math.nan, math.inf, "x"]),
+        "gaussian_form": (["returns", "log_squared"], ["log", 3, None, True]),
+        "offset": ([0.0, 1e-4, 1], [-1, math.nan, math.inf, "x"]),
+        "learnable": ([False, True, ["rho"], "sigma"], [["phi"], 5, None, "x"]),
     },
     TDOA3D: {
         "speed": ([1500.0, 1], [0, -1, math.nan, math.inf, "x", True]),

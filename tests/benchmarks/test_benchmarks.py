@@ -11,7 +11,8 @@ import pytest
 import torch
 
 from experiments.benchmarks import (bench_acoustic, bench_float32, bench_flops, bench_foundation, bench_gaussian_sum,
-                                    bench_gpu, bench_memory, bench_pfpf, bench_scaling, bench_streams, harness, run_all)
+                                    bench_gpu, bench_memory, bench_pfpf, bench_scaling, bench_streams, bench_sv, harness,
+                                    run_all)
 from torchflow.models import SensorNetwork
 
 
@@ -396,3 +397,21 @@ def test_repaired_gromov_square_root():
     Repaired = bench_acoustic._classes()[-1]
     assert issubclass(Repaired, ssp.GromovFlowParticleUpdater)
     assert ssp.cholesky_eps is cholesky_eps  # patched only inside an update
+
+
+def test_sv_quick(tmp_path):
+    """The stochastic-volatility benchmark on a 20-step prefix: the exact row, ours (batched and one
+    run per call), the flow rows, and the comparison with particles where it is installed; the
+    shipped CSV is particles' series (checked inside when particles is there)."""
+    res = bench_sv.run(["--quick", "--steps", "20", "--ns", "100", "--single-runs", "1", "--flows", "ledh:20:2",
+                        "--flow-single", "0", "--out", str(tmp_path / "sv.md")])
+    names = [(r["name"], r["mode"]) for r in res["rows"]]
+    assert names[0][0].startswith("exact") and res["T"] == 20
+    assert ("ours BPF", "B = 4, one call") in names and ("ours BPF", "B = 1 per call") in names
+    assert ("ours PF-PF(LEDH), log-squared form", "B = 2, one call") in names
+    for r in res["rows"]:
+        assert math.isfinite(r["mean"]) and r["sec_per_run"] > 0
+    if harness.peer("particles") is not None:
+        assert ("particles BPF", "1 run per call") in names and len(res["pairs"]) == 1
+    y = np.loadtxt(bench_sv.CSV, delimiter=",", skiprows=1)
+    assert y.shape == (750,) and abs(y[0] + 0.23976372819901615) < 1e-15

@@ -90,6 +90,25 @@ def test_a_core_only_model_runs_the_bootstrap_filter_and_the_runner():
     assert res is not None and not res.failures
 
 
+def test_the_builtin_stochastic_volatility_has_this_core():
+    """The built-in model (mu = 0) draws and scores as the core-only class above: same simulated
+    data from the same seed, same densities, and the bootstrap PF's same numbers."""
+    from torchflow.models import StochasticVolatility as Builtin
+
+    mine, builtin = StochasticVolatility(phi=0.9, sigma=0.5), Builtin(mu=0.0, rho=0.9, sigma=0.5)
+    a, b = mine.simulate(3, 20, torch.Generator().manual_seed(0)), builtin.simulate(3, 20, torch.Generator().manual_seed(0))
+    assert torch.allclose(a.states, b.states) and torch.allclose(a.observations, b.observations)
+    x, xn = a.states[:, :-1], a.states[:, 1:]
+    assert torch.allclose(mine.transition_log_prob(xn, x), builtin.transition_log_prob(xn, x))
+    assert torch.allclose(mine.measurement_log_prob(a.observations, xn), builtin.measurement_log_prob(a.observations, xn))
+    for m0, c0 in zip(mine.initial_belief(a.states[:, 0]), builtin.initial_belief(a.states[:, 0])):
+        assert torch.allclose(m0, c0)
+    mean, cov = mine.initial_belief(a.states[:, 0])
+    r = [BootstrapParticleFilter(m, n_particles=50)(a.observations, mean, cov, torch.Generator().manual_seed(1))
+         for m in (mine, builtin)]
+    assert torch.allclose(r[0].log_evidence, r[1].log_evidence)
+
+
 def test_filters_that_need_the_gaussian_form_refuse_a_core_only_model_by_name():
     model = StochasticVolatility()
     for cls in (KalmanFilter, ExtendedKalmanFilter, ParticleFlowParticleFilter, ParticleFlowGaussianParticleFilter,

@@ -7,7 +7,9 @@ from .structure import Structure
 from .linear_gaussian import LinearGaussian, SensorNetwork, sensor_network_covariance
 from .lorenz96 import Lorenz96
 from .skewed_t import SkewedTPoisson
+from .stochastic_volatility import StochasticVolatility
 from .tdoa import TDOA3D, TDOAData
 
 __all__ = ["StateSpaceModel", "GaussianStateSpaceModel", "Structure", "Trajectory", "LinearGaussian", "SensorNetwork", "sensor_network_covariance",
-           "AcousticTracking", "SkewedTPoisson", "TDOA3D", "TDOAData", "Lorenz96"]
+           "AcousticTracking", "SkewedTPoisson", "TDOA3D", "TDOAData", "Lorenz96",
+           "StochasticVolatility"]

@@ -11,6 +11,7 @@ tracked covariance is the state they carry between steps.
 """
 from __future__ import annotations
 
+import warnings
 from typing import Optional
 
 import torch
@@ -83,6 +84,7 @@ class FlowProposal(Proposal):
         self.jacobian_in_weight = jacobian_in_weight
         self.weighted = bool(weighted)
         self.uses_transition_density = self.weighted
+        self._informative_checked = False  # check_informative: warned (or found informative) already
 
     @property
     def identical_covariances(self) -> bool:
@@ -198,6 +200,27 @@ class StochasticFlowProposal(FlowProposal):
         out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, generator=generator, proposal=start,
                              noise=noise, points=self.points, index=index)
         return out.particles, out.log_proposal
+
+
+def check_informative(proposal, mean: torch.Tensor, who: str) -> None:
+    """Warn, once per proposal, when a flow proposal's model has a Gaussian measurement form whose
+    Jacobian ``dh/dx`` is zero at every trial's prior ``mean (B, d)``: the flow's drift is then zero,
+    it does not move the particles, and the filter is the bootstrap PF at a flow's cost (a model
+    whose information sits in a state-dependent R, as stochastic volatility's ``h(x) = 0``,
+    ``R(x) = exp(x)``). ``who`` names the filter. Anything but a :class:`FlowProposal` (or
+    ``None``) is left alone. One linearisation and one host read: call it before the first step."""
+    if not isinstance(proposal, FlowProposal) or proposal._informative_checked:
+        return
+    proposal._informative_checked = True
+    with torch.no_grad():
+        _, H = proposal.model.linearize_measurement(mean.detach())  # (B, m, d)
+        flat = not bool(H.ne(0).any())
+    if flat:
+        warnings.warn(f"{who}: the Gaussian measurement form of {type(proposal.model).__name__} has a zero Jacobian "
+                      "dh/dx at the prior mean, so it carries no information about the state: the flow will not move "
+                      "the particles (the filter is the bootstrap PF at a flow's cost). Use the bootstrap particle "
+                      "filter, or a Gaussian form whose measurement depends on the state (stochastic volatility: "
+                      "gaussian_form='log_squared')", UserWarning, stacklevel=2)
 
 
 def flow_proposal(model, flow=None, **kwargs) -> FlowProposal:
