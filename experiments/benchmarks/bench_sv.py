@@ -7,8 +7,7 @@ the log-squared Gaussian form beside them.
 
 Data: ``particles.datasets.GBP_vs_USD_9798`` (751 daily rates, 1997-1999), preprocessed as
 ``particles`` does for its SV examples: 100 x the log-returns, 750 points
-(``experiments/data/gbpusd_returns.csv`` holds the same numbers; it is read when ``particles`` is
-absent). Model: ``StochasticVolatility()`` with ``particles.StochVol``'s default parameters
+(``python -m experiments.data.gbpusd out.csv`` writes the same numbers as a CSV). Model: ``StochasticVolatility()`` with ``particles.StochVol``'s default parameters
 (mu = -1.02, rho = 0.9702, sigma = 0.178).
 
 Rows, each ``runs`` independent runs on the one series (log-likelihood mean, standard deviation, the
@@ -43,22 +42,14 @@ from torchflow.models import StochasticVolatility
 from ..grid_filter import grid_filter
 from . import harness as h
 
-CSV = Path(__file__).resolve().parents[1] / "data" / "gbpusd_returns.csv"
 QUICK = dict(steps=50, runs=4, ns="200,1000", single_runs="2,1", flows="ledh:100:4,edh:100:4", flow_single=1)
 
 
 def returns_series(particles=None) -> np.ndarray:
-    """The 750 GBP/USD percentage log-returns: from ``particles``' dataset when installed (checked
-    against the shipped CSV), else from the CSV."""
-    shipped = np.loadtxt(CSV, delimiter=",", skiprows=1) if CSV.exists() else None
-    if particles is None:
-        if shipped is None:
-            raise SystemExit(f"bench_sv: neither particles nor {CSV} is available")
-        return shipped
-    y = particles.datasets.GBP_vs_USD_9798().data
-    if shipped is not None and not np.allclose(shipped, y, rtol=0, atol=1e-12):
-        raise h.CheckFailed(f"bench_sv: {CSV} differs from particles' GBP_vs_USD_9798 returns")
-    return y
+    """The 750 GBP/USD percentage log-returns of ``particles``' dataset (``experiments.data.gbpusd``)."""
+    from ..data.gbpusd import returns
+
+    return returns()
 
 
 def stats(name: str, ll: np.ndarray, exact: float, seconds_per_run: float, **extra) -> dict:

@@ -211,6 +211,21 @@ def test_flow_filters_warn_once_of_a_zero_slope_measurement(make):
         check_informative(None, mean, "KalmanFilter")
 
 
+def test_forward_warns_once_of_a_zero_slope_measurement():
+    """Through ``forward``: the PF-PF says it once over two calls; the bootstrap PF is silent."""
+    m = StochasticVolatility()
+    traj = m.simulate(2, 3, torch.Generator().manual_seed(0))
+    mean, cov = m.initial_belief(traj.states[:, 0])
+    f = F.ParticleFlowParticleFilter(m, flow="ledh", n_particles=8)
+    with pytest.warns(UserWarning, match="zero Jacobian") as caught:
+        for seed in (1, 2):
+            f(traj.observations, mean, cov, torch.Generator().manual_seed(seed))
+    assert sum("zero Jacobian" in str(w.message) for w in caught) == 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        F.BootstrapParticleFilter(m, n_particles=8)(traj.observations, mean, cov, torch.Generator().manual_seed(1))
+
+
 # ---- log-likelihoods against the exact grid filter -------------------------------------------
 
 def test_the_grid_filter_has_converged():

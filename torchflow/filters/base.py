@@ -21,6 +21,7 @@ from ..models.base import StateSpaceModel
 from ..models.contract import check_covariances, check_parameters, check_dtype, check_shapes, require_gaussian
 from ..models.structure import kernel_structure
 from ..proposals import BootstrapProposal, Proposal
+from ..proposals.flow import check_informative
 from ..random import check_generator
 from ..flows.kernels import graph_step
 from ..errors import ArgumentError, ArgumentTypeError
@@ -364,6 +365,8 @@ class Filter(nn.Module):
         mean, cov = self.check_prior(mean, cov, observations.shape[0])
         if self.validate:  # once per model and batch layout: each method's output shape, naming the method
             check_shapes(self.model, mean.detach(), self.name, gaussian=self.gaussian_form or None)
+            # a flow whose model's measurement Jacobian is zero cannot move the particles: said once
+            check_informative(getattr(self, "proposal", None), mean, self.name)
         if self.uses_randomness:
             check_generator(generator, f"{self.name}: generator", observations.shape[0])
         try:
