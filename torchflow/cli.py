@@ -4,6 +4,7 @@
     torchflow model=linear_gaussian 'filter=[kf,bpf]' trials=100 steps=10 n_particles=200
     torchflow experiment=seed000_table1                        # a paper table
     torchflow -m 'filter=[bpf]' n_particles=100,1000           # sweep; one folder per job
+    torchflow model=linear_gaussian model.d=4 'filter=[kf,bpf]' data=series.csv   # recorded observations
 
 (``python -m torchflow`` and ``python experiments/run.py`` are the same command.) Writes the result
 files (:mod:`torchflow.runner.writers`), ``run.log`` and figures into Hydra's output folder. It runs

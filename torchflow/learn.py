@@ -15,7 +15,9 @@ The ``reference`` filter (EKF, or the Kalman filter on a linear model) is fitted
 estimate is the Kalman/EKF maximum-likelihood value the table compares against. Writes
 ``learn.csv`` / ``learn.json`` (per filter and parameter: start, final, truth, errors, seconds per
 epoch, a note; the per-epoch history) and ``curves.png`` (loss and parameters per epoch) into
-Hydra's output folder.
+Hydra's output folder. ``data=<file>`` fits recorded observations instead (no truth:
+:func:`torchflow.runner.config.recorded_data`; each fit's filter starts from its model's declared
+prior, recomputed at every optimiser step; ``truth`` is left empty).
 
 Refused before anything runs (one line, exit 2): a ``start`` key that is no argument of the model
 (naming its learnable parameters and the closest arguments); a filter whose log-evidence is only a
