@@ -310,12 +310,15 @@ def recorded(observations: torch.Tensor, prior=None):
         obs = observations.to(dtype=model.dtype, device=model.device)
         obs = obs.expand(trials, -1, -1).clone() if obs.dim() == 2 else obs  # one copy per trial: contiguous
         d = model.state_dim
-        try:
-            mean, cov = declared_prior(model, trials) if prior is None else prior
-        except ArgumentError as e:
-            raise ConfigError(str(e)) from None
-        except (TypeError, ValueError):  # not a pair
-            raise ConfigError(f"prior: expected a pair (mean, cov), got {type(prior).__name__}") from None
+        if prior is None:
+            try:
+                mean, cov = declared_prior(model, trials)
+            except ArgumentError as e:
+                raise ConfigError(str(e)) from None
+        else:
+            require(isinstance(prior, (tuple, list)) and len(prior) == 2, "prior", "a pair (mean, cov)",
+                    type(prior).__name__)
+            mean, cov = prior
         ok = (isinstance(mean, torch.Tensor) and isinstance(cov, torch.Tensor) and tuple(mean.shape) in ((d,), (trials, d))
               and tuple(cov.shape) in ((d, d), (trials, d, d)))
         got = [tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__ for t in (mean, cov)]
@@ -325,7 +328,6 @@ def recorded(observations: torch.Tensor, prior=None):
         cov = cov.detach().to(dtype=model.dtype, device=model.device).expand(trials, d, d)
         return Trajectory(None, obs), mean, cov
 
-    simulator.recorded = True
     return simulator
 
 
