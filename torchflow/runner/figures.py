@@ -179,7 +179,10 @@ def estimates_figure(plt, estimate_summary, summary, title: str):
         ax.set_xlabel("time step")
         ax.set_ylabel(f"state coordinate {j}")
         ax.grid(alpha=0.3)
-    return _finish(fig, axes[0][-1], title)
+    axes[0][-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1))
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    return fig
 
 
 def save_run_figures(out: Path, model, result, model_name: str) -> List[Path]:
