@@ -194,12 +194,12 @@ def test_every_particle_filter_takes_the_estimator():
         GaussianSumParticleFilter(model, resampling_gradient="bogus")
 
 
-def _every_particle_filter(model):
+def _every_particle_filter(model, **kw):
+    """Every particle filter (named, with its flows), built with the constructor arguments ``kw``."""
     from torchflow.filters import (GPFIS, ClusteredParticleFlowParticleFilter, GaussianParticleFilter,
                                    GaussianSumParticleFilter, ParticleFilter, ParticleFlowGaussianSumParticleFilter)
     from torchflow.proposals import UnscentedProposal
 
-    kw = dict(resampling_gradient="stop_gradient")
     yield "bpf", BootstrapParticleFilter(model, n_particles=30, **kw)
     for flow in ("edh", "ledh", "geodesic", "gromov", "osd"):
         yield f"pfpf_{flow}", ParticleFlowParticleFilter(model, flow=flow, n_particles=30,
@@ -222,7 +222,7 @@ def test_every_particle_filter_passes_a_gradient_to_every_parameter():
     params = dict(model.named_parameters())
     assert len(params) == 3  # F and the raw Q and R
     seen = []
-    for name, f in _every_particle_filter(model):
+    for name, f in _every_particle_filter(model, resampling_gradient="stop_gradient"):
         seen.append(name)
         le = f(o, m, c, torch.Generator().manual_seed(0)).log_evidence.sum()
         grads = torch.autograd.grad(le, list(params.values()), allow_unused=True)
@@ -230,3 +230,26 @@ def test_every_particle_filter_passes_a_gradient_to_every_parameter():
             assert g is not None and bool(torch.isfinite(g).all()), (name, pname, g)
             assert float(g.abs().sum()) > 0, (name, pname)
     assert len(seen) == 12
+
+
+def test_stop_gradient_is_every_particle_filter_s_default_and_its_forward_pass_is_that_of_none():
+    """The default estimator is ``stop_gradient``; with autograd on (so that its score term is
+    built) the estimates, ESS and log-evidence are bit for bit those of an explicit ``"none"``, for
+    every particle filter; in each filter that resamples, some trial resampled (else the
+    comparison would not reach the estimator); the bootstrap PF's gradients differ."""
+    model, obs, mean, cov = _setup()
+    o, m, c = obs[:3, :4], mean[:3], cov[:3]
+    for (name, default), (_, none) in zip(_every_particle_filter(model),
+                                          _every_particle_filter(model, resampling_gradient="none")):
+        assert default.resampler.gradient == "stop_gradient" and none.resampler.gradient == "none", name
+        a = default(o, m, c, torch.Generator().manual_seed(3))
+        b = none(o, m, c, torch.Generator().manual_seed(3))
+        assert a.log_evidence.requires_grad, name  # autograd on: the score term was built
+        for key in ("estimates", "log_evidence", "log_evidence_increments", "ess"):
+            x, y = getattr(a, key), getattr(b, key)
+            assert (x is None and y is None) or torch.equal(x, y), (name, key)
+        if name not in ("gpf", "gspf", "pfgspf"):  # the Gaussian(-sum) PFs redraw, never resample
+            assert bool((a.ess < 0.5 * default.n_particles).any()), name
+        if name == "bpf":  # only the gradient changes: the ancestors' score terms
+            ga, gb = (torch.autograd.grad(r.log_evidence.sum(), model.F)[0] for r in (a, b))
+            assert not torch.equal(ga, gb)

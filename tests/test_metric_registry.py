@@ -16,7 +16,7 @@ from torchflow.runner.score import FIXED_COLUMNS, RUN_COLUMNS
 #: the summary columns of the built-in metrics (the committed results files have this header)
 BUILT_IN_COLUMNS = [
     "filter", "n_particles", "trials", "steps", "mse", "omat", "omat_kept_mean", "omat_kept_sd",
-    "ospa", "declared", "underflows", "ess", "g_eff", "log_evidence", "log_evidence_relmse", "lost_tracks", "repaired",
+    "ospa", "declared", "underflows", "ess", "g_eff", "log_evidence", "log_evidence_se", "log_evidence_relmse", "lost_tracks", "repaired",
     "sec_per_step", "warmup_sec", "error",
 ]
 

@@ -230,6 +230,31 @@ def _shrink(tokens):
     return out + [f"{k}={v}" for k, v in SHRINK_CLI.items() if k not in seen]
 
 
+def _recorded(tokens, tmp_path):
+    """A command's ``data=<file>`` (recorded observations) pointed at a file written into tmp_path:
+    a 5-step series (``.csv``) or 2 series (``.npy``) simulated from the command's model
+    (its ``model=`` and ``model.*`` overrides); ``steps`` then comes from the file, not the shrink."""
+    import numpy as np
+    import torch
+    from hydra.utils import instantiate
+
+    from torchflow.runner.config import compose_config
+
+    given = [t for t in tokens if t.startswith("data=")]
+    if not given:
+        return tokens
+    name = given[0].split("=", 1)[1]
+    cfg = compose_config("config", [t for t in tokens if t.startswith(("model=", "model."))])
+    model = instantiate(cfg.model)
+    z = model.simulate(2, 5, torch.Generator().manual_seed(0)).observations.numpy()
+    path = tmp_path / Path(name).name
+    if path.suffix == ".npy":
+        np.save(path, z)
+    else:
+        np.savetxt(path, z[0], delimiter=",")
+    return [f"data={path}" if t in given else t for t in tokens if not t.startswith("steps=")]
+
+
 def _metric(tokens):
     """The per-trial metric a trial_stats.py command reads."""
     return tokens[tokens.index("--metric") + 1] if "--metric" in tokens else "omat"
@@ -259,7 +284,7 @@ def _run(i, line, tmp_path, ran):
     if script == "experiments/run.py":
         multirun = _multirun(tokens)
         table2 = "experiment=seed002_table2" in tokens  # Table II has no BS row
-        tokens = _shrink(tokens) + (SHRINK_TDOA[table2:] if any("experiment=seed002_table" in t for t in tokens)
+        tokens = _recorded(_shrink(tokens), tmp_path) + (SHRINK_TDOA[table2:] if any("experiment=seed002_table" in t for t in tokens)
                                     else []) + (SHRINK_TDOA2 if table2 else [])
         where = tmp_path / f"cmd{i}"
         tokens += [f"hydra.sweep.dir={where}" if multirun else f"hydra.run.dir={where}", "progress=false",
@@ -268,8 +293,8 @@ def _run(i, line, tmp_path, ran):
             ran.last_sweep = where
     elif script == "experiments/learn.py":
         # a folder per command: learn refuses a folder that holds an earlier fit's results
-        tokens += ["epochs=2", "steps=3", "trials=2", "n_particles=20", "plots=false",
-                   f"hydra.run.dir={tmp_path}/learn{i}"]
+        tokens = _recorded(tokens + ["epochs=2", "steps=3", "trials=2", "n_particles=20", "plots=false",
+                                     f"hydra.run.dir={tmp_path}/learn{i}"], tmp_path)
     elif script == "experiments/collect.py":
         assert ran.last_sweep is not None, "collect.py before any sweep in the documentation"
         tokens = [t if "<time>" not in t else str(ran.last_sweep) for t in tokens]

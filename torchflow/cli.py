@@ -4,6 +4,7 @@
     torchflow model=linear_gaussian 'filter=[kf,bpf]' trials=100 steps=10 n_particles=200
     torchflow experiment=seed000_table1                        # a paper table
     torchflow -m 'filter=[bpf]' n_particles=100,1000           # sweep; one folder per job
+    torchflow model=linear_gaussian model.d=4 'filter=[kf,bpf]' data=series.csv   # recorded observations
 
 (``python -m torchflow`` and ``python experiments/run.py`` are the same command.) Writes the result
 files (:mod:`torchflow.runner.writers`), ``run.log`` and figures into Hydra's output folder. It runs
@@ -93,9 +94,10 @@ def build(cfg: DictConfig):
     return model, filters, labels
 
 
-def chunk_store(cfg: DictConfig, labels):
+def chunk_store(cfg: DictConfig, labels, data_sha256: Optional[str] = None):
     """The run's :class:`~torchflow.runner.ChunkStore` (``None`` with ``checkpoint_dir=null``): one
-    folder per filter, named by a fingerprint of everything that changes its numbers."""
+    folder per filter, named by a fingerprint of everything that changes its numbers (recorded
+    data: the file's ``data_sha256`` too)."""
     root, resume = cfg.get("checkpoint_dir"), cfg.get("resume", False)
     if root is None:
         if resume:
@@ -104,6 +106,8 @@ def chunk_store(cfg: DictConfig, labels):
     common = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
               for k in ("model", "trials", "steps", "seed", "inits_per_track", "device", "dtype", "rng_backend")}
     common["versions"] = {"torchflow": __version__, "torch": torch.__version__}
+    if data_sha256 is not None:
+        common["data_sha256"] = data_sha256
     settings = {labels[k]: dict(common, filter=OmegaConf.to_container(fcfg, resolve=True), label=labels[k])
                 for k, fcfg in cfg.filter.items() if k in labels}  # not the settings of unselected filters
     keys = {label: "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in label) + "-" + fingerprint(s)
@@ -122,10 +126,13 @@ _Output = shell.Output  # the first failed write turns the exit status to 1
 
 
 def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> int:
-    store, writer = chunk_store(cfg, labels), _Output(out)
+    data = rc.recorded_data(cfg, model)
+    obs, trials, steps, sha = data if data is not None else (None, cfg.trials, cfg.steps, None)
+    store, writer = chunk_store(cfg, labels, sha), _Output(out)
     trial_range = cfg.get("trial_range")
     result = run_experiment(
-        model, filters, trials=cfg.trials, steps=cfg.steps, seed=cfg.seed, inits_per_track=cfg.inits_per_track,
+        model, filters, trials=trials, steps=steps, seed=cfg.seed, inits_per_track=cfg.inits_per_track,
+        observations=obs,
         chunk_size=cfg.chunk_size, memory_budget_gb=cfg.memory_budget_gb, device=shard.device(cfg.device),
         dtype=cfg.dtype, ospa_cutoff=cfg.metrics.ospa_cutoff, ospa_order=cfg.metrics.ospa_order,
         lost_threshold=cfg.metrics.lost_threshold, progress=cfg.progress, rng_backend=cfg.rng_backend,
@@ -141,8 +148,10 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
                  f"({sum(store.reused_trials.values())} trials of chunks with other boundaries), "
                  f"{sum(store.computed.values())} computed")
     lo, hi = result.config["trial_range"]
-    which = f"{cfg.trials} trials" if (lo, hi) == (0, cfg.trials) else f"trials {lo}..{hi - 1} of {cfg.trials}"
-    log.info(f"\n{model_name}: {which} x {result.config['steps']} steps, seed {cfg.seed}, {cfg.device}/{cfg.dtype}")
+    which = f"{trials} trials" if (lo, hi) == (0, trials) else f"trials {lo}..{hi - 1} of {trials}"
+    source = f" of data={cfg.data}" if data is not None else ""
+    log.info(f"\n{model_name}: {which} x {result.config['steps']} steps{source}, seed {cfg.seed}, "
+             f"{cfg.device}/{cfg.dtype}")
     log.info(format_table(result.summary))
     for name in result.failed:
         where = f" in {result.failures[name]}" if result.failures.get(name) else ""

@@ -9,8 +9,10 @@ from .runner.plan import simulate as _simulate  # noqa: F401 - replaceable here 
 
 
 def run_experiment(model, filters, **kwargs):
-    """:func:`torchflow.runner.run_experiment`; simulates with this module's ``_simulate``."""
-    kwargs.setdefault("simulator", _simulate)
+    """:func:`torchflow.runner.run_experiment`; simulates with this module's ``_simulate`` (recorded
+    ``observations=`` replace the simulation)."""
+    if kwargs.get("observations") is None:
+        kwargs.setdefault("simulator", _simulate)
     return _run(model, filters, **kwargs)
 
 

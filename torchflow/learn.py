@@ -15,7 +15,9 @@ The ``reference`` filter (EKF, or the Kalman filter on a linear model) is fitted
 estimate is the Kalman/EKF maximum-likelihood value the table compares against. Writes
 ``learn.csv`` / ``learn.json`` (per filter and parameter: start, final, truth, errors, seconds per
 epoch, a note; the per-epoch history) and ``curves.png`` (loss and parameters per epoch) into
-Hydra's output folder.
+Hydra's output folder. ``data=<file>`` fits recorded observations instead (no truth:
+:func:`torchflow.runner.config.recorded_data`; each fit's filter starts from its model's declared
+prior, recomputed at every optimiser step; ``truth`` is left empty).
 
 Refused before anything runs (one line, exit 2): a ``start`` key that is no argument of the model
 (naming its learnable parameters and the closest arguments); a filter whose log-evidence is only a
@@ -57,7 +59,7 @@ from omegaconf import DictConfig, OmegaConf
 from .errors import TorchflowError
 from .registry import resolve, signature_defaults
 from .runner import STOP, RunStopped, format_table, plan_run, shell, writers
-from .runner.config import close_keys, config_dir, group_options
+from .runner.config import close_keys, config_dir, group_options, recorded_data
 from .runner.plan import ConfigError
 from .runner.shell import JobEnv
 
@@ -282,7 +284,8 @@ def _fmt(v: List[float]) -> str:
     return f"{v[0]:.4g}" if len(v) == 1 else "[" + ", ".join(f"{x:.3g}" for x in v) + "]"
 
 
-def _rows(fits: Dict, truth: Dict, start: Dict, names: List[str], reference: str) -> List[Dict]:
+def _rows(fits: Dict, truth: Optional[Dict], start: Dict, names: List[str], reference: str) -> List[Dict]:
+    """The table: per filter and parameter (``truth`` ``None``: recorded data, no true values)."""
     rows = []
     for key, fit in fits.items():
         h = fit["history"]
@@ -290,7 +293,8 @@ def _rows(fits: Dict, truth: Dict, start: Dict, names: List[str], reference: str
             final = h[n][-1]
             ref = fits[reference]["history"][n][-1] if reference in fits and key != reference else None
             rows.append({"filter": key, "parameter": n, "start": _fmt(start[n]), "final": _fmt(final),
-                         "truth": _fmt(truth[n]), "error_vs_truth_pct": round(_rel_error(final, truth[n]), 3),
+                         "truth": "" if truth is None else _fmt(truth[n]),
+                         "error_vs_truth_pct": "" if truth is None else round(_rel_error(final, truth[n]), 3),
                          "reference": "" if ref is None else _fmt(ref),
                          "error_vs_reference_pct": "" if ref is None else round(_rel_error(final, ref), 3),
                          "epochs": len(h["epoch"]),
@@ -309,7 +313,7 @@ def _note(fit: Dict) -> str:
     return "; ".join(notes)
 
 
-def _plot(fits: Dict, truth: Dict, names: List[str], path: Path) -> None:
+def _plot(fits: Dict, truth: Optional[Dict], names: List[str], path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -320,13 +324,14 @@ def _plot(fits: Dict, truth: Dict, names: List[str], path: Path) -> None:
         h = fit["history"]
         axes[0].plot(h["epoch"], h["nll_per_step"], label=key)
         for ax, n in zip(axes[1:], names):
-            ax.plot(h["epoch"], [v[0] if len(v) == 1 else _rel_error(v, truth[n]) for v in h[n]], label=key)
+            ax.plot(h["epoch"], [v[0] if len(v) == 1 else _norm(v) if truth is None else _rel_error(v, truth[n])
+                                 for v in h[n]], label=key)
     axes[0].set(xlabel="epoch", ylabel="negative log-evidence per step")
     for ax, n in zip(axes[1:], names):
-        scalar = len(truth[n]) == 1
-        if scalar:
+        scalar = len(next(iter(fits.values()))["history"][n][-1]) == 1
+        if scalar and truth is not None:
             ax.axhline(truth[n][0], color="k", ls="--", lw=1, label="truth")
-        ax.set(xlabel="epoch", ylabel=n if scalar else f"{n}: % error vs truth")
+        ax.set(xlabel="epoch", ylabel=n if scalar else f"{n}: norm" if truth is None else f"{n}: % error vs truth")
     axes[-1].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -366,17 +371,25 @@ def learn(cfg: DictConfig, out: Path, env: JobEnv) -> LearnOutcome:
     if reference and reference not in fcfgs:
         fcfgs[reference] = OmegaConf.create({"_target_": _reference_class(reference)})
     approximate = _check_evidence(cfg, fcfgs)
-    truth = hydra.utils.instantiate(cfg.model)
-    plan = plan_run(truth, {}, trials=cfg.trials, steps=cfg.steps, seed=cfg.seed,
-                    inits_per_track=cfg.get("inits_per_track", 1), memory_budget_gb=cfg.memory_budget_gb,
-                    device=env.device or "cpu", dtype=env.dtype or "float64")
-    data = TrajectoryDataset(plan.traj, plan.mean0, plan.cov0)
     probe = _learner(cfg, env)
     names = list(learned_parameters(probe))
     if not names:
         raise ConfigError(f"learn: the model has no learnable parameters with learn={cfg.learn!r}")
+    recorded = recorded_data(cfg, probe)
+    if recorded is None:  # simulate the training set from the model config (the truth)
+        truth = hydra.utils.instantiate(cfg.model)
+        plan = plan_run(truth, {}, trials=cfg.trials, steps=cfg.steps, seed=cfg.seed,
+                        inits_per_track=cfg.get("inits_per_track", 1), memory_budget_gb=cfg.memory_budget_gb,
+                        device=env.device or "cpu", dtype=env.dtype or "float64")
+        data = TrajectoryDataset(plan.traj, plan.mean0, plan.cov0)
+        true_values = {n: _value(truth, n) for n in names}
+        sizes = {"trials": cfg.trials, "steps": plan.settings.steps, "inits_per_track": plan.settings.inits_per_track}
+    else:  # recorded: no truth; each fit starts its filter from its model's declared prior at every step
+        obs, trials, steps, sha = recorded
+        data = TrajectoryDataset(obs.expand(trials, -1, -1) if obs.dim() == 2 else obs)
+        true_values = None
+        sizes = {"trials": trials, "steps": steps, "data": cfg.data, "data_sha256": sha}
     start = {n: _value(probe, n) for n in names}
-    true_values = {n: _value(truth, n) for n in names}
     given = OmegaConf.to_container(cfg.start, resolve=True) if cfg.get("start") else {}
     fixed = {k: v for k, v in given.items() if k not in names}
     # start is a mapping: an override such as start={psi: 5} merges into the default (its sigma_w stays)
@@ -388,7 +401,8 @@ def learn(cfg: DictConfig, out: Path, env: JobEnv) -> LearnOutcome:
             res.interrupted = True
             res.not_run.append(key)
             continue
-        log.info(f"fitting {', '.join(names)} with {key} ({cfg.epochs} epochs, {cfg.trials} trials x {cfg.steps} steps)")
+        log.info(f"fitting {', '.join(names)} with {key} ({cfg.epochs} epochs, {len(data)} trials x "
+                 f"{data.obs.shape[1]} steps{'' if recorded is None else ' of data=' + str(cfg.data)})")
         fit = _fit(cfg, key, fcfg, data, names, out, env)
         fit["approximate_evidence"] = key in approximate
         res.interrupted |= fit["stopped"]
@@ -410,9 +424,8 @@ def learn(cfg: DictConfig, out: Path, env: JobEnv) -> LearnOutcome:
         "diverged": {k: f["diverged"] for k, f in res.fits.items() if f["diverged"]},
         "approximate_evidence": [k for k in fcfgs if k in approximate],
         "divergence_rule": {"growth": DIVERGENCE_GROWTH, "rises": DIVERGENCE_RISES},
-        "run": {"trials": cfg.trials, "steps": plan.settings.steps, "seed": plan.settings.seed,
-                "inits_per_track": plan.settings.inits_per_track, "device": str(plan.settings.device),
-                "dtype": str(plan.settings.dtype).replace("torch.", ""), "threads": env.threads,
+        "run": {**sizes, "seed": cfg.seed, "device": str(data.obs.device),
+                "dtype": str(data.obs.dtype).replace("torch.", ""), "threads": env.threads,
                 "tuning": env.tuning}}, indent=1))
     if cfg.plots and res.fits:
         writer.attempt("curves.png", _plot, res.fits, true_values, names, out / "curves.png")

@@ -21,6 +21,7 @@ from torch import nn
 from torch.utils.data import Dataset
 
 from ._checks import check_count
+from .data import check_observations, declared_prior
 from .filters.base import Filter
 from .models.base import StateSpaceModel, Trajectory
 from . import random as _random
@@ -73,25 +74,39 @@ def backward_bytes_per_step(filter: Filter, observations: torch.Tensor, mean: to
 
 
 class TrajectoryDataset(Dataset):
-    """Trials of observations with their filter priors, as ``(observations (T, m), mean (d,),
-    cov (d, d), trial index ())``. The index keys the trial's random stream, so a trial draws the
-    same numbers whichever batch or process (DDP rank) it lands in.
+    """Trials of observations, as ``(observations (T, m), mean (d,), cov (d, d), trial index ())``
+    with their filter priors, or ``(observations (T, m), trial index ())`` without: then
+    :class:`FilterLightningModule` starts the filter from the model's declared prior
+    (:func:`torchflow.data.declared_prior`), recomputed from the parameters at every optimiser
+    step. The index keys the trial's random stream, so a trial draws the same numbers whichever
+    batch or process (DDP rank) it lands in.
 
     Args:
-        trajectory: simulated or recorded data, observations ``(B, T, m)``.
-        mean, cov: per-trial priors ``(B, d)``, ``(B, d, d)``.
+        trajectory: a :class:`~torchflow.models.Trajectory` (its observations; the states are not
+            read), or recorded observations ``(B, T, m)`` (``(T, m)``: one trial), NaN where not
+            observed.
+        mean, cov: per-trial priors ``(B, d)``, ``(B, d, d)``; both ``None`` (default): the
+            model's declared prior.
     """
 
-    def __init__(self, trajectory: Trajectory, mean: torch.Tensor, cov: torch.Tensor):
-        B = trajectory.observations.shape[0]
-        if mean.shape[0] != B or cov.shape[0] != B:
+    def __init__(self, trajectory, mean: Optional[torch.Tensor] = None, cov: Optional[torch.Tensor] = None):
+        obs = trajectory.observations if isinstance(trajectory, Trajectory) else check_observations(
+            trajectory, name="trajectory")
+        obs = obs.unsqueeze(0) if obs.dim() == 2 else obs
+        B = obs.shape[0]
+        if (mean is None) != (cov is None):
+            raise ArgumentError("mean, cov: expected both (the trials' priors) or neither (the model's declared prior), "
+                                f"got {'mean' if cov is None else 'cov'} alone")
+        if mean is not None and (mean.shape[0] != B or cov.shape[0] != B):
             raise ArgumentError(f"mean, cov: expected {B} trials like the observations, got {mean.shape[0]}, {cov.shape[0]}")
-        self.obs, self.mean, self.cov = trajectory.observations, mean, cov
+        self.obs, self.mean, self.cov = obs, mean, cov
 
     def __len__(self) -> int:
         return self.obs.shape[0]
 
     def __getitem__(self, i):
+        if self.mean is None:
+            return self.obs[i], torch.tensor(i)
         return self.obs[i], self.mean[i], self.cov[i], torch.tensor(i)
 
 
@@ -99,6 +114,12 @@ class FilterLightningModule(pl.LightningModule):
     """Maximum-likelihood learning through a filter: the loss is the negative log-evidence per
     time step, averaged over the trials of a batch (exact for the Kalman filter; for particle
     filters the gradient of the particle log-evidence estimate, with resampling treated as fixed).
+
+    Batches: ``(observations (B, T, m), mean (B, d), cov (B, d, d)[, trial indices (B,)])``, or
+    without a prior ``(observations[, trial indices])`` (recorded data: a :class:`TrajectoryDataset`
+    without ``mean``/``cov``, a ``TensorDataset`` of observations): the filter then starts from the
+    model's declared prior (:func:`torchflow.data.declared_prior`), recomputed at every step from
+    the current parameters, so a prior that depends on them (a stationary law) is learned through.
 
     Args:
         filter: any torchflow filter whose model has ``nn.Parameter``s (e.g. ``learnable=True``).
@@ -192,9 +213,15 @@ class FilterLightningModule(pl.LightningModule):
         return self.filter(observations, mean, cov, generator)
 
     def _loss(self, batch, batch_idx, stage: str = "train"):
-        obs, mean, cov = batch[:3]
-        if len(batch) > 3:  # trial indices: per-trial streams, independent of how trials are batched
-            g = TrialStreams(self.seed, batch[3].reshape(-1).tolist(),
+        batch = [batch] if isinstance(batch, torch.Tensor) else list(batch)
+        obs = batch[0]
+        if len(batch) >= 3:
+            mean, cov, index = batch[1], batch[2], batch[3] if len(batch) > 3 else None
+        else:  # no prior given: the model's declared prior at the current parameters (differentiable)
+            mean, cov = declared_prior(self.filter.model, obs.shape[0])
+            index = batch[1] if len(batch) > 1 else None
+        if index is not None:  # trial indices: per-trial streams, independent of how trials are batched
+            g = TrialStreams(self.seed, index.reshape(-1).tolist(),
                              key=f"{self.filter.stream_name}/{stage}" + (
                                  "" if self.common_random_numbers else f"/epoch{self.current_epoch}"))
         else:

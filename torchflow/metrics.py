@@ -337,7 +337,8 @@ class MetricContext:
         filter: the filter scored (``n_particles``, ``estimates_evidence``, ...).
         estimates: point estimates ``(B, T, d)``, or for set estimators (the localisers) padded
             sets of positions ``(B, T, K, k)`` whose real items ``mask`` marks.
-        truth: ``(B, T, d)`` true states.
+        truth: ``(B, T, d)`` true states; ``None`` on recorded data (the metrics that need them,
+            ``needs_truth``, are left out).
         mask: ``None`` for point estimates; ``(B, T, K)`` bool for sets.
         outputs: the filter's other outputs over the ``B`` trials, those it produces of
             ``ess (B, T)``, ``g_eff (B, T)``, ``log_evidence (B,)``, ``n_repaired (B,)``,
@@ -348,7 +349,7 @@ class MetricContext:
     model: Any
     filter: Any
     estimates: torch.Tensor
-    truth: torch.Tensor
+    truth: Optional[torch.Tensor]
     mask: Optional[torch.Tensor] = None
     outputs: Mapping[str, torch.Tensor] = field(default_factory=dict)
     settings: Mapping[str, float] = field(default_factory=dict)
@@ -395,7 +396,7 @@ _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 #: column names the runner writes itself (summary, per-trial and per-step files): no metric may take one
 RESERVED_NAMES = frozenset({
     "filter", "n_particles", "trials", "steps", "trial", "step", "lost", "omat_kept_mean", "omat_kept_sd",
-    "underflows", "log_evidence", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step",
+    "underflows", "log_evidence", "log_evidence_se", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step",
     "warmup_sec", "error"})
 
 
@@ -423,6 +424,8 @@ class Metric:
         plot: whether ``per_step.png`` has a panel of it.
         yscale: that panel's axis: ``"linear"``, ``"log"``, or ``"per_particle"``: the values
             divided by each filter's ``n_particles`` (a log axis when a fraction is below 0.1).
+        needs_truth: whether ``compute`` reads the true states (``ctx.truth``, ``true_positions``);
+            such a metric is left out on recorded data, which have none.
     """
 
     name: str
@@ -433,6 +436,7 @@ class Metric:
     higher_is_better: bool = False
     plot: bool = True
     yscale: str = "linear"
+    needs_truth: bool = True
 
     def __post_init__(self):
         _expect(isinstance(self.name, str) and bool(_NAME.match(self.name)), "name",
@@ -445,7 +449,7 @@ class Metric:
         _expect(callable(self.applies), "applies", "a callable applies(ctx) -> bool", self.applies)
         if self.reduce_trial not in _REDUCTIONS:
             raise ArgumentError(f"reduce_trial: expected one of {list(_REDUCTIONS)}, got {self.reduce_trial!r}")
-        for arg in ("higher_is_better", "plot"):
+        for arg in ("higher_is_better", "plot", "needs_truth"):
             _expect(isinstance(getattr(self, arg), bool), arg, "a bool", getattr(self, arg))
         if self.yscale not in _YSCALES:
             raise ArgumentError(f"yscale: expected one of {list(_YSCALES)}, got {self.yscale!r}")
@@ -510,9 +514,12 @@ def registered(*metrics: Metric) -> Iterator[None]:
 
 
 def applicable(ctx: MetricContext) -> List[Metric]:
-    """The registered metrics that apply to ``ctx``, in registration order."""
+    """The registered metrics that apply to ``ctx``, in registration order (without true states,
+    ``ctx.truth is None``: those that do not need them)."""
     out = []
     for m in _REGISTRY.values():
+        if ctx.truth is None and m.needs_truth:
+            continue
         try:
             if m.applies(ctx):
                 out.append(m)
@@ -578,8 +585,8 @@ def _has_g_eff(ctx: MetricContext) -> bool:
 for _m in (Metric("mse", "MSE", _mse, yscale="log"),
            Metric("omat", "OMAT (m)", _omat, tracking),
            Metric("ospa", "OSPA (m)", _ospa, _tracking_or_sets),
-           Metric("declared", "declared sources", _declared, sets, plot=False),
-           Metric("ess", "ESS", _ess, _has_ess, higher_is_better=True, yscale="per_particle"),
-           Metric("g_eff", "G_eff", _g_eff, _has_g_eff, higher_is_better=True, plot=False)):
+           Metric("declared", "declared sources", _declared, sets, plot=False, needs_truth=False),
+           Metric("ess", "ESS", _ess, _has_ess, higher_is_better=True, yscale="per_particle", needs_truth=False),
+           Metric("g_eff", "G_eff", _g_eff, _has_g_eff, higher_is_better=True, plot=False, needs_truth=False)):
     register(_m)
 del _m

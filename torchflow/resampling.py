@@ -604,7 +604,7 @@ class Resampler(nn.Module):
             idx, resampled, lw_new = resample_if_needed(log_weights, generator, scheme=self.scheme,
                                                         ess_threshold=self.ess_threshold, validate=False)
         particles = gather_particles(particles, idx)
-        if self.gradient == "stop_gradient":
+        if self.gradient == "stop_gradient" and torch.is_grad_enabled():  # adds exactly 0: skipped without autograd
             lw_anc = gather_particles(log_weights, idx)
             # exactly 0 in value (an ancestor has a finite weight: zero-weight particles are never
             # drawn); its gradient is that of log W_a

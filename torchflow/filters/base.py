@@ -568,7 +568,7 @@ class ParticleFilter(Filter):
     gaussian_form = False  # the proposal states what it needs of the model
 
     def __init__(self, model, proposal=None, *, n_particles: int = 500, resampling: str = "systematic",
-                 ess_threshold: float = 0.5, regularization=None, resampling_gradient: str = "none",
+                 ess_threshold: float = 0.5, regularization=None, resampling_gradient: str = "stop_gradient",
                  soft_alpha: float = 0.5, ot_epsilon: float = 0.1, ot_iterations: int = 100, nonfinite: str = "recover",
                  particle_chunk: Optional[int] = None, proposal_gradient: str = "pathwise", validate: bool = True,
                  name: Optional[str] = None):

@@ -165,8 +165,8 @@ class GaussianSumParticleFilter(ParticleFilter):
     def __init__(self, model, *, n_components: int = 1, particles_per_component: int = 500, flow=None,
                  schedule: Optional[LambdaSchedule] = None, linearize_at: str = "auxiliary",
                  redraw_eta0: bool = False, init: str = "prior", jitter: float = 1e-6, estimate: str = "mixture_mean",
-                 nonfinite: str = "recover", particle_chunk: Optional[int] = None, resampling_gradient: str = "none",
-                 validate: bool = True, name: Optional[str] = None):
+                 nonfinite: str = "recover", particle_chunk: Optional[int] = None,
+                 resampling_gradient: str = "stop_gradient", validate: bool = True, name: Optional[str] = None):
         G = check_count("n_components", n_components)
         n = check_count("particles_per_component", particles_per_component)
         d = model.state_dim

@@ -291,3 +291,10 @@ class AcousticTracking(GaussianStateSpaceModel):
                 break
         cov = torch.diag_embed(self.prior_std**2).expand(B, -1, -1).clone()
         return mean, cov
+
+    def declared_prior(self, batch_size: int) -> Tuple[torch.Tensor, torch.Tensor]:
+        """The prior without true states (recorded data): ``N(x0, diag(prior_std^2))``, the law
+        :meth:`initial_belief` draws its means from, centred on the declared initial state;
+        ``(B, 16)``, ``(B, 16, 16)``."""
+        cov = torch.diag_embed(self.prior_std**2).expand(batch_size, -1, -1).clone()
+        return self.x0.expand(batch_size, -1).clone(), cov

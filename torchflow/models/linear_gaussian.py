@@ -164,8 +164,11 @@ class LinearGaussian(GaussianStateSpaceModel):
         return self.m0 + xi @ linalg.safe_cholesky(self.P0).transpose(-1, -2)
 
     def initial_belief(self, states0, generator=None) -> Tuple[torch.Tensor, torch.Tensor]:
-        B = states0.shape[0]
-        return self.m0.expand(B, -1).clone(), self.P0.expand(B, -1, -1).clone()
+        return self.declared_prior(states0.shape[0])
+
+    def declared_prior(self, batch_size: int) -> Tuple[torch.Tensor, torch.Tensor]:
+        """``N(m0, P0)`` for every trial, ``(B, d)`` and ``(B, d, d)`` (no true state needed)."""
+        return self.m0.expand(batch_size, -1).clone(), self.P0.expand(batch_size, -1, -1).clone()
 
 
 def _identity_scale(M: torch.Tensor) -> Optional[float]:

@@ -196,6 +196,10 @@ class SkewedTPoisson(GaussianStateSpaceModel):
         eye = torch.eye(d, dtype=states0.dtype, device=states0.device)
         return torch.zeros_like(states0), (eps * eye).expand(B, d, d).clone()
 
+    def declared_prior(self, batch_size: int):
+        """:meth:`initial_belief` without true states (the prior does not depend on them)."""
+        return self.initial_belief(self.Sigma.new_zeros(batch_size, self.state_dim))
+
     def sample_true_transition(self, x, generator):
         """:meth:`simulate` draws from the exact GH skewed-t transition."""
         return self.sample_transition(x, generator)

@@ -264,3 +264,51 @@ def resume_command(prog: Optional[str] = None, argv: Optional[Sequence[str]] = N
         script = prog.split(" ", 1)[1] if prog.startswith("python ") else f"-m {prog}"
         prog = f"torchrun --nproc_per_node={local or world}{nodes} {script}"
     return " ".join([prog, *(shlex.quote(a) for a in args), "resume=true"])
+
+
+def explicit_overrides() -> List[str]:
+    """The keys the command line set (``trials=5`` -> ``trials``) in this Hydra job; ``[]`` outside one."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        task = HydraConfig.get().overrides.task
+    except (ImportError, ValueError):
+        return []
+    return [str(o).split("=", 1)[0].lstrip("+~") for o in task]
+
+
+def recorded_data(cfg: Mapping, model):
+    """The run's recorded data (``data=<file>``; ``None``: simulate): ``(observations, trials,
+    steps, sha256)``. ``observations``: the file's series on the model's dtype and device
+    (:func:`torchflow.data.load_observations`); ``trials``: a ``(T, m)`` series is filtered by
+    ``cfg.trials`` independent runs, a ``(B, T, m)`` file by one run per series (``trials`` set on the
+    command line must then be B); ``steps``: the file's T (``steps`` set on the command line must be
+    T); ``sha256``: of the file's bytes (the checkpoints' key). Any problem: a one-line
+    :class:`ConfigError` naming ``data``."""
+    import hashlib
+
+    from hydra.utils import to_absolute_path
+
+    from ..data import load_observations
+    from ..errors import ArgumentError
+
+    path = cfg.get("data")
+    if path is None:
+        return None
+    require(isinstance(path, str) and path != "", "data", "the path of a .csv or .npy file of recorded observations, "
+            "or null", path)
+    full = Path(to_absolute_path(path))
+    try:
+        obs = load_observations(full, model, name="data")
+    except ArgumentError as e:
+        raise ConfigError(str(e)) from None
+    given, T = explicit_overrides(), obs.shape[-2]
+    trials = cfg.trials
+    if obs.dim() == 3:
+        B = obs.shape[0]
+        require("trials" not in given or trials == B, "trials", f"the {B} series of data={path} (one trial per "
+                "series; leave trials unset)", trials)
+        trials = B
+    require("steps" not in given or cfg.steps == T, "steps", f"the {T} rows of data={path} (leave steps unset)",
+            cfg.steps)
+    return obs, trials, T, hashlib.sha256(full.read_bytes()).hexdigest()

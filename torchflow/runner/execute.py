@@ -20,8 +20,12 @@ from ..models.base import StateSpaceModel, Trajectory
 from ..random import TrialStreams
 from .checkpoint import CHUNK_FIELDS, ChunkStore
 from .distributed import Shard
-from .plan import ConfigError, RunPlan, check_metric_settings, check_settings, check_warmup, make_plan
-from .score import SUMMARY_COLUMNS, ExperimentResult, make_scorer, score_filter
+from .. import metrics
+from ..data import check_observations
+from ..errors import ArgumentError
+from .plan import (ConfigError, RunPlan, check_metric_settings, check_settings, check_warmup, data_sizes, make_plan,
+                   recorded)
+from .score import SUMMARY_COLUMNS, ExperimentResult, estimate_spread, make_scorer, score_filter
 
 log = logging.getLogger("torchflow.runner")
 
@@ -236,11 +240,12 @@ def gather_outcome(out: Outcome, plan: RunPlan) -> Outcome:
     return Outcome(chunks, failed[1], failed[3], interrupted, out.warmup)
 
 
-def plan_run(model: StateSpaceModel, filters: Mapping[str, Filter], *, trials: int, steps: int, seed: int,
-             inits_per_track: int = 1, chunk_size: Optional[int] = None, memory_budget_gb: float = 4.0,
+def plan_run(model: StateSpaceModel, filters: Mapping[str, Filter], *, trials: Optional[int], steps: Optional[int],
+             seed: int, inits_per_track: int = 1, chunk_size: Optional[int] = None, memory_budget_gb: float = 4.0,
              device: Union[str, torch.device] = "cpu", dtype: Union[str, torch.dtype] = "float64",
              rng_backend: str = "auto", trial_range: Optional[Sequence[int]] = None, shard: Optional[Shard] = None,
-             simulator: Optional[Callable] = None) -> RunPlan:
+             simulator: Optional[Callable] = None, observations: Optional[torch.Tensor] = None,
+             prior=None) -> RunPlan:
     """The arguments checked (:func:`~torchflow.runner.plan.check_settings`; a model with
     ``n_steps`` sets the steps), the model (and ``filters``, which may be empty) moved to the
     device and dtype, the chunks chosen, the run's memory checked (a run that cannot fit is refused
@@ -248,7 +253,30 @@ def plan_run(model: StateSpaceModel, filters: Mapping[str, Filter], *, trials: i
     :func:`~torchflow.runner.plan.check_memory`) and the data simulated once (``simulator`` or
     :func:`~torchflow.runner.plan.simulate`: ``inits_per_track`` trials share a trajectory): the
     data every command works on (:func:`run_experiment`, ``torchflow-learn``). A stop request
-    (:data:`STOP`) during the simulation raises :class:`RunStopped` within a time step."""
+    (:data:`STOP`) during the simulation raises :class:`RunStopped` within a time step.
+
+    ``observations``: recorded data instead of a simulation (:func:`~torchflow.runner.plan.recorded`:
+    ``(T, m)`` filtered by every trial, ``(B, T, m)`` one series per trial; sizes by
+    :func:`~torchflow.runner.plan.data_sizes`), from ``prior`` or the model's declared prior.
+    ``trials`` / ``steps`` ``None``: 10 (the data's B) and 10 (the data's T)."""
+    if observations is not None:
+        if simulator is not None:
+            raise ConfigError("observations: recorded data replace the simulation; give observations or simulator, "
+                              "not both")
+        try:
+            observations = check_observations(observations, model)
+        except ArgumentError as e:
+            raise ConfigError(str(e)) from None
+        if inits_per_track != 1:
+            raise ConfigError(f"inits_per_track: expected 1 with recorded data (every trial filters the recorded "
+                              f"series), got {inits_per_track!r}")
+        trials, steps = data_sizes(observations, trials, steps)
+        simulator = recorded(observations, prior)
+    elif prior is not None:
+        raise ConfigError("prior: a prior is given with recorded observations only (a simulation draws each trial's "
+                          "prior around its true initial state)")
+    trials = 10 if trials is None else trials
+    steps = 10 if steps is None else steps
     s = check_settings(trials=trials, steps=getattr(model, "n_steps", steps), seed=seed, chunk_size=chunk_size,
                        inits_per_track=inits_per_track, memory_budget_gb=memory_budget_gb, device=device, dtype=dtype,
                        rng_backend=rng_backend, trial_range=trial_range)
@@ -257,13 +285,14 @@ def plan_run(model: StateSpaceModel, filters: Mapping[str, Filter], *, trials: i
 
 
 def run_experiment(
-    model: StateSpaceModel, filters: Mapping[str, Filter], *, trials: int = 10, steps: int = 10, seed: int = 0,
+    model: StateSpaceModel, filters: Mapping[str, Filter], *, trials: Optional[int] = None,
+    steps: Optional[int] = None, seed: int = 0,
     inits_per_track: int = 1, chunk_size: Optional[int] = None, memory_budget_gb: float = 4.0,
     device: Union[str, torch.device] = "cpu", dtype: Union[str, torch.dtype] = "float64", ospa_cutoff: float = 40.0,
     ospa_order: float = 1.0, lost_threshold: float = 2.0, progress: bool = True, rng_backend: str = "auto",
     on_filter_done: Optional[Callable[[List[dict]], None]] = None, store: Optional[ChunkStore] = None,
     shard: Optional[Shard] = None, trial_range: Optional[Sequence[int]] = None, simulator: Optional[Callable] = None,
-    warmup: Union[str, bool] = "auto",
+    warmup: Union[str, bool] = "auto", observations: Optional[torch.Tensor] = None, prior=None,
 ) -> Optional[ExperimentResult]:
     """Simulate ``trials`` trajectories of ``steps`` steps once (``model.n_steps``, where the model
     has one, sets it) and run every filter of ``filters`` (``{name: filter holding model}``) on the
@@ -282,7 +311,18 @@ def run_experiment(
     filter's timed chunks, one untimed call on its first trial's first two steps (its numbers
     discarded; every trial's stream is its own, so no result moves), so that ``sec_per_step`` is
     the steady-state compute time and the one-time costs (on a GPU, compiling and loading kernels:
-    seconds) are reported apart as ``warmup_sec``; ``"auto"``: on a GPU only.
+    seconds) are reported apart as ``warmup_sec``; ``"auto"``: on a GPU only. ``trials`` and
+    ``steps`` default to 10.
+
+    ``observations``: recorded data, filtered instead of a simulation (no true states): ``(T, m)``
+    is one series that each of ``trials`` independent runs filters (its own random stream);
+    ``(B, T, m)`` holds one series per trial (``trials``: B or unset); ``steps`` is T (or unset);
+    NaN marks a coordinate not observed. The filters start from ``prior = (mean, cov)``
+    (``(d,)``/``(B, d)``, ``(d, d)``/``(B, d, d)``) or, without it, from the model's declared prior
+    (:func:`torchflow.data.declared_prior`). The metrics that need the truth
+    (:attr:`~torchflow.metrics.Metric.needs_truth`: MSE, OMAT, OSPA) are left out (logged once); the
+    log-evidence (with its standard error over trials), the ESS and the per-step mean and spread of
+    the estimates (``result.estimate_summary``) are reported.
 
     A filter that raises does not stop the run (its row gets the error, ``result.failures`` where);
     Ctrl-C (:data:`STOP`) keeps the finished filters; before the first filter (the simulation) it
@@ -299,8 +339,14 @@ def run_experiment(
                                             lost_threshold=lost_threshold)
     plan = plan_run(model, filters, trials=trials, steps=steps, seed=seed, inits_per_track=inits_per_track,
                     chunk_size=chunk_size, memory_budget_gb=memory_budget_gb, device=device, dtype=dtype,
-                    rng_backend=rng_backend, trial_range=trial_range, shard=shard, simulator=simulator)
+                    rng_backend=rng_backend, trial_range=trial_range, shard=shard, simulator=simulator,
+                    observations=observations, prior=prior)
     s = plan.settings
+    truthless = plan.traj.states is None
+    if truthless and plan.shard.is_main:
+        left = [name for name, m in metrics.REGISTRY.items() if m.needs_truth]
+        log.info(f"recorded data (no true states): {', '.join(left) or 'no metric'} left out; reported: the "
+                 "log-evidence, the ESS and the estimates' per-step mean and spread")
     with before_the_filters("the Kalman filter's reference log-evidence"):
         scorer = make_scorer(model, plan, **metric_settings)
     res = ExperimentResult([], [], [])
@@ -320,6 +366,9 @@ def run_experiment(
                 row["sec_per_step"] = sum(float(c["elapsed"]) for c in out.chunks) / (s.n_run * s.steps)
                 row["warmup_sec"] = out.warmup
                 trial_rows, step_rows, res.examples[name] = score_filter(scorer, f, name, row, out.chunks, s.steps)
+                spread = estimate_spread(out.chunks)
+                if spread is not None:
+                    res.estimate_summary[name] = spread
                 res.per_trial += trial_rows
                 res.per_step += step_rows
             if on_filter_done is not None and not out.interrupted:
@@ -335,5 +384,7 @@ def run_experiment(
         memory_budget_gb=memory_budget_gb, rng_backend=s.rng_backend, world_size=plan.shard.world,
         trial_range=[s.lo, s.hi], device=str(s.device), dtype=str(s.dtype).replace("torch.", ""),
         tuning=tuning.as_dict(), threads=torch.get_num_threads())
-    res.trajectory = Trajectory(plan.traj.states[s.lo:s.hi].cpu(), plan.traj.observations[s.lo:s.hi].cpu())
+    res.recorded = truthless
+    res.trajectory = Trajectory(None if truthless else plan.traj.states[s.lo:s.hi].cpu(),
+                                plan.traj.observations[s.lo:s.hi].cpu())
     return res

@@ -158,18 +158,50 @@ def scene_figure(plt, model, trajectory, examples, summary, title: str):
     return _finish(fig, ax, title, loc="upper left")
 
 
+#: state coordinates drawn by :func:`estimates_figure`
+ESTIMATE_PANELS = 4
+
+
+def estimates_figure(plt, estimate_summary, summary, title: str):
+    """The first :data:`ESTIMATE_PANELS` state coordinates over time: each filter's mean over trials
+    of its estimates, with a band of one standard deviation over trials (recorded data: no truth to
+    draw). ``None`` without point estimates."""
+    if not estimate_summary:
+        return None
+    colour = colours(summary)
+    d = min(next(iter(estimate_summary.values()))[0].shape[-1], ESTIMATE_PANELS)
+    fig, axes = plt.subplots(1, d, figsize=(4.2 * d, 3.4), squeeze=False)
+    for j, ax in enumerate(axes[0]):
+        for name, (mean, sd) in estimate_summary.items():
+            steps = range(1, mean.shape[0] + 1)
+            ax.plot(steps, mean[:, j], color=colour.get(name), label=name)
+            ax.fill_between(steps, mean[:, j] - sd[:, j], mean[:, j] + sd[:, j], color=colour.get(name), alpha=0.2)
+        ax.set_xlabel("time step")
+        ax.set_ylabel(f"state coordinate {j}")
+        ax.grid(alpha=0.3)
+    axes[0][-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1))
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
 def save_run_figures(out: Path, model, result, model_name: str) -> List[Path]:
     """``per_step.png``, and for tracking models ``tracks.png`` and ``omat_box.png``, for 3-D
-    localisation (a model with receivers) ``scene.png``, of a run; the paths written."""
+    localisation (a model with receivers) ``scene.png``, of a run; on recorded data (no truth)
+    ``per_step.png`` (the ESS) and ``estimates.png`` (:func:`estimates_figure`); the paths written."""
     plt = pyplot()
     if plt is None or not result.per_step:
         return []
     n, res, paths = result.config.get("trials", len({r["trial"] for r in result.per_trial})), result, []
     figs = {"per_step.png": lambda: per_step_figure(plt, res.per_step, res.summary, f"{model_name}, {n} trials")}
-    if hasattr(model, "receivers") and res.trajectory is not None:
+    truth = res.trajectory is not None and res.trajectory.states is not None
+    if res.recorded:
+        figs["estimates.png"] = lambda: estimates_figure(plt, res.estimate_summary, res.summary,
+                                                         f"{model_name}: recorded data, mean and spread over {n} trials")
+    if hasattr(model, "receivers") and truth:
         figs["scene.png"] = lambda: scene_figure(plt, model, res.trajectory, res.examples, res.summary,
                                                  f"{model_name}: run 0, true and declared sources")
-    elif model.structure.has_positions and res.trajectory is not None:
+    elif model.structure.has_positions and truth:
         figs["tracks.png"] = lambda: tracks_figure(plt, model, res.trajectory, res.examples, res.summary,
                                                    f"{model_name}: trial 0, true and estimated tracks")
         figs["omat_box.png"] = lambda: omat_box_figure(

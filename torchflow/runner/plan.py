@@ -13,6 +13,7 @@ from typing import Dict, List, Mapping, Optional, Tuple, Union
 import torch
 
 from .._checks import allocation_failure, check_count
+from ..data import check_observations, declared_prior
 from ..errors import ArgumentError
 from ..filters.base import Filter
 from ..models.base import StateSpaceModel, Trajectory
@@ -282,6 +283,52 @@ def simulate(model: StateSpaceModel, trials: int, steps: int, inits_per_track: i
         traj = traj[torch.arange(trials, device=traj.states.device) // inits_per_track]
     mean, cov = model.initial_belief(traj.states[:, 0], generator)
     return traj, mean, cov
+
+
+def data_sizes(observations: torch.Tensor, trials: Optional[int], steps: Optional[int]) -> Tuple[int, int]:
+    """``(trials, steps)`` of a run on recorded ``observations``: ``(T, m)`` is one series that
+    every trial filters (``trials``: how many independent runs; ``None``: 10); ``(B, T, m)`` holds B
+    series, one per trial (``trials`` must be B or ``None``). ``steps`` must be T or ``None``."""
+    T = observations.shape[-2]
+    if observations.dim() == 3:
+        B = observations.shape[0]
+        require(trials is None or trials == B, "trials", f"the number of recorded series B = {B} (data (B, T, m): one "
+                f"trial per series; leave trials unset or give {B})", trials)
+        trials = B
+    require(steps is None or steps == T, "steps", f"the recorded series' length T = {T} (leave steps unset)", steps)
+    return (10 if trials is None else trials), T
+
+
+def recorded(observations: torch.Tensor, prior=None):
+    """A ``simulator`` (:func:`make_plan`) that simulates nothing: the recorded ``observations``
+    (``(T, m)``: every trial filters the one series; ``(B, T, m)``: one series per trial), no true
+    states (the trajectory's ``states`` is ``None``), and the prior ``prior = (mean, cov)``
+    (``(d,)``/``(B, d)``, ``(d, d)``/``(B, d, d)``) or, if ``None``, the model's declared prior
+    (:func:`torchflow.data.declared_prior`)."""
+
+    def simulator(model: StateSpaceModel, trials: int, steps: int, inits_per_track: int, generator):
+        obs = observations.to(dtype=model.dtype, device=model.device)
+        obs = obs.expand(trials, -1, -1).clone() if obs.dim() == 2 else obs  # one copy per trial: contiguous
+        d = model.state_dim
+        if prior is None:
+            try:
+                mean, cov = declared_prior(model, trials)
+            except ArgumentError as e:
+                raise ConfigError(str(e)) from None
+        else:
+            require(isinstance(prior, (tuple, list)) and len(prior) == 2, "prior", "a pair (mean, cov)",
+                    type(prior).__name__)
+            mean, cov = prior
+        ok = (isinstance(mean, torch.Tensor) and isinstance(cov, torch.Tensor) and tuple(mean.shape) in ((d,), (trials, d))
+              and tuple(cov.shape) in ((d, d), (trials, d, d)))
+        got = [tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__ for t in (mean, cov)]
+        require(ok, "prior", f"(mean, cov) of shapes (d,) or (B, d) and (d, d) or (B, d, d) with d = {d}, B = {trials}",
+                got)
+        mean = mean.detach().to(dtype=model.dtype, device=model.device).expand(trials, d)
+        cov = cov.detach().to(dtype=model.dtype, device=model.device).expand(trials, d, d)
+        return Trajectory(None, obs), mean, cov
+
+    return simulator
 
 
 @dataclass

@@ -4,7 +4,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import torch
 
@@ -20,7 +20,7 @@ FIXED_COLUMNS = ("filter", "n_particles", "trials", "steps")
 #: the runner's own summary columns (not per-step metrics), each group after the registered metric
 #: it names (``None``: after every metric; a group whose metric is not registered comes before it)
 RUN_COLUMNS = (("omat", ("omat_kept_mean", "omat_kept_sd")), ("declared", ("underflows",)),
-               (None, ("log_evidence", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step",
+               (None, ("log_evidence", "log_evidence_se", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step",
                        "warmup_sec", "error")))
 
 
@@ -80,7 +80,7 @@ class ExperimentResult:
             omat, ospa, ess, g_eff; localisers: ospa, declared), log_evidence, lost (tracking
             models); localisers: underflows.
         per_step: one dict per filter x step with the registered metrics' means over trials.
-        trajectory: the simulated data (CPU tensors).
+        trajectory: the simulated data (CPU tensors); recorded data: ``states`` is ``None``.
         config: the run's settings (chunk sizes, particle chunks, seed, device, ...).
         examples: ``{filter: (T, d)}`` estimates of trial 0 (for the track picture; localisers: the
             declared sources ``(k, 3)``).
@@ -88,6 +88,10 @@ class ExperimentResult:
             ``not_run``: the filters that did not start.
         failures: ``{filter: "chunk i of n (trials a..b)"}``: where each failed filter failed
             (its row's ``error`` says what; the traceback is in the ``torchflow.runner`` log).
+        estimate_summary: ``{filter: (mean (T, d), sd (T, d))}``: at each step the mean over trials
+            of the filter's estimates and their standard deviation over trials (the spread of the
+            independent runs; 0 with one trial); filters of point estimates.
+        recorded: the data were recorded (no true states: no metric that needs them).
     """
 
     summary: List[dict]
@@ -99,6 +103,8 @@ class ExperimentResult:
     interrupted: bool = False
     not_run: List[str] = field(default_factory=list)
     failures: Dict[str, str] = field(default_factory=dict)
+    estimate_summary: Dict[str, Tuple[torch.Tensor, torch.Tensor]] = field(default_factory=dict)
+    recorded: bool = False
 
     @property
     def failed(self) -> List[str]:
@@ -108,11 +114,12 @@ class ExperimentResult:
 
 @dataclass
 class Scorer:
-    """The truth ``(n_run, T, d)`` (CPU float64) of a run's trial range from ``lo``, and the metric
-    settings; ``reference_logz``: the Kalman filter's exact log-evidence (linear-Gaussian models)."""
+    """The truth ``(n_run, T, d)`` (CPU float64; ``None``: recorded data) of a run's trial range
+    from ``lo``, and the metric settings; ``reference_logz``: the Kalman filter's exact
+    log-evidence (linear-Gaussian models)."""
 
     model: StateSpaceModel
-    truth: torch.Tensor
+    truth: Optional[torch.Tensor]
     lo: int
     ospa_cutoff: float = 40.0
     ospa_order: float = 1.0
@@ -129,7 +136,8 @@ def make_scorer(model: StateSpaceModel, plan: RunPlan, **settings) -> Scorer:
     """A :class:`Scorer` for ``plan``; on a linear-Gaussian model (rank 0) the Kalman filter's
     exact log-evidence is the reference of ``log_evidence_relmse``."""
     s = plan.settings
-    truth = plan.traj.states[s.lo:s.hi, 1:].double().cpu()  # chunks come back as CPU float64 (any rank)
+    states = plan.traj.states  # None: recorded data
+    truth = None if states is None else states[s.lo:s.hi, 1:].double().cpu()  # chunks come back as CPU float64
     ref = None
     if plan.shard.is_main and model.structure.linear_dynamics and model.structure.linear_measurement:
         with torch.no_grad():
@@ -218,16 +226,18 @@ def score_filter(sc: Scorer, f: Filter, name: str, row: dict, chunks: List[dict]
     cols = _values(ctx, name)
     if ctx.kind == "sets":
         return score_sets(sc, ctx, name, row, cols, steps)
-    logz, n_run = ctx.outputs.get("log_evidence"), sc.truth.shape[0]
+    logz, n_run = ctx.outputs.get("log_evidence"), ctx.estimates.shape[0]
     if f.estimates_evidence:
         row["log_evidence"] = float(logz.mean())
+        if n_run > 1:  # the standard error of the mean over trials
+            row["log_evidence_se"] = float(logz.std() / n_run ** 0.5)
         if sc.reference_logz is not None:
             row["log_evidence_relmse"] = float(metrics.log_evidence_relative_error(logz, sc.reference_logz).mean())
     if "n_repaired" in ctx.outputs:
         row["repaired"] = int(ctx.outputs["n_repaired"].sum())
     row.update(_summary(cols))
     lost = None
-    if sc.model.structure.has_positions:  # lost tracks: OMAT's, registered or not
+    if sc.model.structure.has_positions and sc.truth is not None:  # lost tracks: OMAT's, registered or not
         om = cols["omat"][0] if "omat" in cols else metrics.omat(ctx.est_positions, ctx.true_positions)
         lost = metrics.lost_tracks(om, threshold=sc.lost_threshold)
         kept = om.mean(1)[~lost]
@@ -236,6 +246,17 @@ def score_filter(sc: Scorer, f: Filter, name: str, row: dict, chunks: List[dict]
     per_trial = [{"filter": name, "trial": sc.lo + b, **({} if logz is None else {"log_evidence": float(logz[b])}),
                   **_trial(cols, b), **({} if lost is None else {"lost": bool(lost[b])})} for b in range(n_run)]
     return per_trial, _per_step(name, cols, steps), chunks[0]["estimates"][0]
+
+
+def estimate_spread(chunks: List[dict]) -> Optional[Tuple[torch.Tensor, torch.Tensor]]:
+    """``(mean (T, d), sd (T, d))`` over the trials of a filter's point estimates (its chunks,
+    concatenated): their mean at each step and their standard deviation (0 with one trial);
+    ``None`` for sets (the localisers)."""
+    if "estimate_mask" in chunks[0]:
+        return None
+    est = _cat(chunks, "estimates")  # (B, T, d) float64
+    sd = est.std(0) if est.shape[0] > 1 else torch.zeros_like(est[0])
+    return est.mean(0), sd
 
 
 def format_table(summary: List[dict], columns: Optional[List[str]] = None) -> str:

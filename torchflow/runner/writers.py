@@ -11,8 +11,8 @@ from typing import List, Mapping, Optional
 from .score import summary_columns
 
 #: every file a run may write into its output folder (a reused folder is cleared of these)
-RESULT_FILES = ("summary.csv", "per_step.csv", "per_trial.csv", "results.json", "error.txt",
-                "per_step.png", "tracks.png", "omat_box.png", "scene.png")
+RESULT_FILES = ("summary.csv", "per_step.csv", "per_trial.csv", "results.json", "error.txt", "estimates.csv",
+                "per_step.png", "tracks.png", "omat_box.png", "scene.png", "estimates.png")
 #: the files ``torchflow-learn`` writes into its output folder
 LEARN_FILES = ("learn.csv", "learn.json", "curves.png")
 #: every command's result files: a folder holding any of them holds an earlier run's results
@@ -51,12 +51,35 @@ def write_text(path: Path, text: str) -> Path:
     return _atomic(path, lambda fh: fh.write(text))
 
 
+def estimate_rows(estimate_summary: Mapping) -> List[dict]:
+    """The rows of ``estimates.csv``: per filter and step (1..T: the data's rows), ``mean_j`` (the
+    mean over trials of the estimates of state coordinate j = 0..d-1) and ``sd_j`` (their standard
+    deviation over trials), from :attr:`~torchflow.runner.score.ExperimentResult.estimate_summary`."""
+    rows = []
+    for name, (mean, sd) in estimate_summary.items():
+        d = mean.shape[-1]
+        for t in range(mean.shape[0]):
+            rows.append({"filter": name, "step": t + 1, **{f"mean_{j}": float(mean[t, j]) for j in range(d)},
+                         **{f"sd_{j}": float(sd[t, j]) for j in range(d)}})
+    return rows
+
+
+def write_estimates(path: Path, estimate_summary: Mapping) -> Path:
+    """``estimates.csv`` (:func:`estimate_rows`; columns ``filter, step, mean_0..mean_{d-1},
+    sd_0..sd_{d-1}``)."""
+    d = max((m.shape[-1] for m, _ in estimate_summary.values()), default=0)
+    cols = ["filter", "step", *(f"mean_{j}" for j in range(d)), *(f"sd_{j}" for j in range(d))]
+    return write_csv(path, estimate_rows(estimate_summary), cols)
+
+
 def write_run(out: Path, result, config: Mapping) -> List[Path]:
     """``summary.csv`` (columns: :func:`~torchflow.runner.score.summary_columns`, which follow
     :data:`torchflow.metrics.REGISTRY`), ``per_step.csv``, ``per_trial.csv`` and ``results.json``
-    of an :class:`~torchflow.runner.score.ExperimentResult`; ``config``: the settings to record."""
+    of an :class:`~torchflow.runner.score.ExperimentResult`; ``config``: the settings to record.
+    A run on recorded data also writes ``estimates.csv`` (:func:`write_estimates`)."""
     out = Path(out)
-    return [write_csv(out / "summary.csv", result.summary, summary_columns()),
+    extra = [write_estimates(out / "estimates.csv", result.estimate_summary)] if result.recorded else []
+    return extra + [write_csv(out / "summary.csv", result.summary, summary_columns()),
             write_csv(out / "per_step.csv", result.per_step),
             write_csv(out / "per_trial.csv", result.per_trial),
             write_text(out / "results.json", json.dumps({
