@@ -200,8 +200,10 @@ def declared_prior(model, batch_size: int) -> Tuple[torch.Tensor, torch.Tensor]:
     ``(mean (B, d), cov (B, d, d))``. Call it where the parameters may have changed (each optimiser
     step): it is computed from them, and differentiable where they are. A model without one raises
     an error saying how to give it (or to pass a prior explicitly)."""
+    from .models.base import StateSpaceModel
+
     fn = getattr(model, "declared_prior", None)
-    if fn is None:
+    if fn is None or getattr(type(model), "declared_prior", None) is StateSpaceModel.declared_prior:
         raise ArgumentError(
             f"model: {type(model).__name__} declares no prior without true states (its initial_belief needs them); "
             "recorded data need one: give the model a method declared_prior(batch_size) -> (mean (B, d), cov (B, d, d)), "

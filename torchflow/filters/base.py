@@ -107,6 +107,8 @@ class FilterResult:
             particle filters run with ``nonfinite="recover"`` (``None`` otherwise).
         g_eff: ``(B, T)`` effective number of Gaussians ``1 / sum_j alpha_j^2`` of Gaussian-sum
             filters (``None`` for others).
+        std: ``(B, T, d)`` the filtering law's standard deviation of each coordinate, if requested
+            (``forward(return_std=True)``; :func:`belief_std`).
     """
 
     estimates: torch.Tensor
@@ -118,6 +120,22 @@ class FilterResult:
     log_weights: Optional[torch.Tensor] = None
     n_repaired: Optional[torch.Tensor] = None
     g_eff: Optional[torch.Tensor] = None
+    std: Optional[torch.Tensor] = None
+
+
+def belief_std(state) -> torch.Tensor:
+    """``(B, d)`` standard deviation of each state coordinate under a filter's belief after a step:
+    the covariance's diagonal (Gaussian beliefs), the weighted particles' spread (particle beliefs),
+    the mixture's (Gaussian-sum beliefs: within- plus between-component variance)."""
+    if isinstance(state, ParticleState):
+        w = torch.softmax(state.log_weights, -1).unsqueeze(-1)
+        dev = state.particles - (w * state.particles).sum(1, keepdim=True)
+        return (w * dev * dev).sum(1).clamp_min(0).sqrt()
+    if isinstance(state, GaussianState):
+        return state.cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
+    alpha = torch.softmax(state.log_alpha, -1).unsqueeze(-1)  # a mixture: (B, G, 1)
+    spread = state.covs.diagonal(dim1=-2, dim2=-1) + (state.means - state.estimate.unsqueeze(1)).pow(2)
+    return (alpha * spread).sum(1).clamp_min(0).sqrt()
 
 
 class Filter(nn.Module):
@@ -331,6 +349,7 @@ class Filter(nn.Module):
         return_particles: bool = False,
         progress=None,
         checkpoint_steps: Optional[bool] = None,
+        return_std: bool = False,
     ) -> FilterResult:
         """Filter ``observations (B, T, m)`` from the prior ``N(mean (B, d), cov (B, d, d))``.
 
@@ -344,6 +363,8 @@ class Filter(nn.Module):
             n_particles: override the filter's particle count (particle filters).
             return_covariances: also return per-step covariances (Gaussian filters).
             return_particles: also return per-step particles and log-weights (large).
+            return_std: also return each step's standard deviation per coordinate ``(B, T, d)``
+                (:func:`belief_std`).
             progress: optional callable invoked after each step (e.g. a progress bar update).
             checkpoint_steps: when gradients are recorded, keep only each time step's inputs and
                 recompute the step in the backward pass (``torch.utils.checkpoint``, with the
@@ -374,7 +395,7 @@ class Filter(nn.Module):
         except Exception as err:
             self._raise_out_of_memory(_uncountable(err), observations.shape[0], n_particles)
             raise
-        trace = _Trace(observations.shape[0], observations.device, return_covariances, return_particles)
+        trace = _Trace(observations.shape[0], observations.device, return_covariances, return_particles, return_std)
         if checkpoint_steps is None:
             checkpoint_steps = self.checkpoint_steps
         step = self._checkpointed_step if checkpoint_steps and torch.is_grad_enabled() else self.step
@@ -460,10 +481,11 @@ class _Trace:
     non-finite step per trial, recorded on the device (reported once, after the last step: no host
     synchronisation per time step)."""
 
-    def __init__(self, B: int, device, covariances: bool, particles: bool):
+    def __init__(self, B: int, device, covariances: bool, particles: bool, std: bool = False):
         self.B, self.device = B, device
-        self.covariances, self.particles = covariances, particles
+        self.covariances, self.particles, self.std = covariances, particles, std
         self.est, self.inc, self.ess, self.covs, self.parts, self.lws, self.geff = [], [], [], [], [], [], []
+        self.stds = []
         self.invalid = []  # per step: (B,) bool or None
         self._stacked = None  # (number of steps, stacked estimates (B, T, d))
 
@@ -480,6 +502,8 @@ class _Trace:
         if self.particles and isinstance(state, ParticleState):
             self.parts.append(state.particles)
             self.lws.append(state.log_weights)
+        if self.std:
+            self.stds.append(belief_std(state))
 
     def estimates(self) -> Optional[torch.Tensor]:
         """The estimates so far, ``(B, T, d)`` (stacked once per length)."""
@@ -508,7 +532,7 @@ class _Trace:
         return FilterResult(estimates=self.estimates(), log_evidence=inc_t.sum(1), log_evidence_increments=inc_t,
                             ess=stack(self.ess), covariances=stack(self.covs), particles=stack(self.parts),
                             log_weights=stack(self.lws), n_repaired=getattr(state, "n_repaired", None),
-                            g_eff=stack(self.geff))
+                            g_eff=stack(self.geff), std=stack(self.stds))
 
 NONFINITE = ("recover", "raise")
 PROPOSAL_GRADIENTS = ("pathwise", "score")

@@ -134,6 +134,14 @@ class StateSpaceModel(nn.Module):
         covariance ``(B, d, d)``."""
         raise _missing(self, "initial_belief", "initial_belief(states0, generator) -> ((B, d), (B, d, d))")
 
+    def declared_prior(self, batch_size: int) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Optional: the filters' prior without true states (recorded data, learning on data): mean
+        ``(B, d)`` and covariance ``(B, d, d)``, computed from the current parameters (differentiably,
+        where they are learnable). The default raises: a model whose prior needs the truth (its
+        :meth:`initial_belief` draws around it) runs recorded data only with a prior given
+        explicitly (:func:`torchflow.data.declared_prior`)."""
+        raise _missing(self, "declared_prior", "declared_prior(batch_size) -> ((B, d), (B, d, d))")
+
     def sample_transition(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         """Draw ``x_k ~ p(x_k | x_{k-1} = x)`` for ``x (..., d)`` -> ``(..., d)``."""
         raise _missing(self, "sample_transition", "sample_transition(x (..., d), generator) -> (..., d)")

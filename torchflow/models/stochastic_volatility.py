@@ -127,7 +127,12 @@ class StochasticVolatility(GaussianStateSpaceModel):
     def initial_belief(self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
                        ) -> Tuple[torch.Tensor, torch.Tensor]:
         """The stationary law for every trial, whatever the truth: mean ``(B, 1)``, covariance ``(B, 1, 1)``."""
-        ones = states0.new_ones(states0.shape[0], 1)
+        return self.declared_prior(states0.shape[0])
+
+    def declared_prior(self, batch_size: int) -> Tuple[torch.Tensor, torch.Tensor]:
+        """The stationary law ``N(mu, sigma^2 / (1 - rho^2))`` (no true state needed; differentiable in
+        the parameters): ``(B, 1)``, ``(B, 1, 1)``."""
+        ones = torch.ones(batch_size, 1, dtype=self.dtype, device=self.device)
         return self.mu * ones, self.stationary_var() * ones.unsqueeze(-1)
 
     # ---- dynamics ----------------------------------------------------------------------------

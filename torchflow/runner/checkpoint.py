@@ -25,7 +25,7 @@ from ..errors import ArgumentError
 
 #: tensors of one chunk, CPU (floats as float64), those the filter's result has: ``estimates (B, T, ...)``
 #: always; ``estimate_mask`` (sets of estimates) and ``underflow`` from the localisers
-CHUNK_FIELDS = ("estimates", "log_evidence", "ess", "n_repaired", "g_eff", "estimate_mask", "underflow")
+CHUNK_FIELDS = ("estimates", "log_evidence", "ess", "n_repaired", "g_eff", "estimate_mask", "underflow", "std")
 _CHUNK_NAME = re.compile(r"^(\d{7})-(\d{7})\.pt$")
 log = logging.getLogger("torchflow.runner")
 

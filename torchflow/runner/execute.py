@@ -148,6 +148,8 @@ def _timed_call(f: Filter, name: str, plan: RunPlan, s: int, e: int, steps: Opti
     T = traj.observations.shape[1] if steps is None else min(steps, traj.observations.shape[1])
     g = TrialStreams(st.seed, range(s, e), key=f.stream_name, backend=st.rng_backend)
     mask = {"mask": traj.mask[s:e, :T]} if f.padded_measurements else {}  # masked measurement sets
+    if traj.states is None and f.output == "states":  # recorded data: each step's spread is reported
+        mask["return_std"] = True
     sync = torch.cuda.synchronize if st.device.type == "cuda" else (lambda: None)
     sync()
     t0 = time.perf_counter()

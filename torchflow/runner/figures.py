@@ -163,16 +163,18 @@ ESTIMATE_PANELS = 4
 
 
 def estimates_figure(plt, estimate_summary, summary, title: str):
-    """The first :data:`ESTIMATE_PANELS` state coordinates over time: each filter's mean over trials
-    of its estimates, with a band of one standard deviation over trials (recorded data: no truth to
-    draw). ``None`` without point estimates."""
+    """The first :data:`ESTIMATE_PANELS` state coordinates over time: each filter's filtered mean
+    (averaged over trials) with a band of one filtering standard deviation (or, where a filter gives
+    none, of the spread over trials); recorded data: no truth to draw. ``None`` without point
+    estimates."""
     if not estimate_summary:
         return None
     colour = colours(summary)
     d = min(next(iter(estimate_summary.values()))[0].shape[-1], ESTIMATE_PANELS)
     fig, axes = plt.subplots(1, d, figsize=(4.2 * d, 3.4), squeeze=False)
     for j, ax in enumerate(axes[0]):
-        for name, (mean, sd) in estimate_summary.items():
+        for name, (mean, sd, spread) in estimate_summary.items():
+            sd = spread if sd is None else sd
             steps = range(1, mean.shape[0] + 1)
             ax.plot(steps, mean[:, j], color=colour.get(name), label=name)
             ax.fill_between(steps, mean[:, j] - sd[:, j], mean[:, j] + sd[:, j], color=colour.get(name), alpha=0.2)

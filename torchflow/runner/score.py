@@ -153,7 +153,7 @@ def _cat(chunks: List[dict], key: str) -> Optional[torch.Tensor]:
 
 
 #: chunk entries that are not filter outputs of a :class:`~torchflow.metrics.MetricContext`
-_NOT_OUTPUTS = ("start", "stop", "elapsed", "estimates", "estimate_mask")
+_NOT_OUTPUTS = ("start", "stop", "elapsed", "estimates", "estimate_mask", "std")
 
 
 def context(sc: Scorer, f: Filter, chunks: List[dict]) -> metrics.MetricContext:
@@ -248,15 +248,18 @@ def score_filter(sc: Scorer, f: Filter, name: str, row: dict, chunks: List[dict]
     return per_trial, _per_step(name, cols, steps), chunks[0]["estimates"][0]
 
 
-def estimate_spread(chunks: List[dict]) -> Optional[Tuple[torch.Tensor, torch.Tensor]]:
-    """``(mean (T, d), sd (T, d))`` over the trials of a filter's point estimates (its chunks,
-    concatenated): their mean at each step and their standard deviation (0 with one trial);
-    ``None`` for sets (the localisers)."""
+def estimate_spread(chunks: List[dict]) -> Optional[Tuple[torch.Tensor, Optional[torch.Tensor], torch.Tensor]]:
+    """``(mean (T, d), sd (T, d), spread (T, d))`` of a filter's estimates over its trials (its
+    chunks, concatenated): at each step the mean over trials of the filtered means, the mean over
+    trials of the filtering law's standard deviation (``None`` where the chunks carry no ``std``)
+    and the standard deviation over trials of the filtered means (the Monte Carlo spread between
+    independent runs; 0 with one trial). ``None`` for sets (the localisers)."""
     if "estimate_mask" in chunks[0]:
         return None
     est = _cat(chunks, "estimates")  # (B, T, d) float64
-    sd = est.std(0) if est.shape[0] > 1 else torch.zeros_like(est[0])
-    return est.mean(0), sd
+    spread = est.std(0) if est.shape[0] > 1 else torch.zeros_like(est[0])
+    sd = _cat(chunks, "std").mean(0) if all("std" in c for c in chunks) else None
+    return est.mean(0), sd, spread
 
 
 def format_table(summary: List[dict], columns: Optional[List[str]] = None) -> str:

@@ -52,23 +52,26 @@ def write_text(path: Path, text: str) -> Path:
 
 
 def estimate_rows(estimate_summary: Mapping) -> List[dict]:
-    """The rows of ``estimates.csv``: per filter and step (1..T: the data's rows), ``mean_j`` (the
-    mean over trials of the estimates of state coordinate j = 0..d-1) and ``sd_j`` (their standard
-    deviation over trials), from :attr:`~torchflow.runner.score.ExperimentResult.estimate_summary`."""
+    """The rows of ``estimates.csv``: per filter and step (1..T: the data's rows), for each state
+    coordinate j = 0..d-1 ``mean_j`` (the filtered mean, averaged over trials), ``sd_j`` (the
+    filtering law's standard deviation, averaged over trials) and ``spread_j`` (the standard
+    deviation over trials of the filtered mean: the Monte Carlo spread of independent runs), from
+    :attr:`~torchflow.runner.score.ExperimentResult.estimate_summary`."""
     rows = []
-    for name, (mean, sd) in estimate_summary.items():
+    for name, (mean, sd, spread) in estimate_summary.items():
         d = mean.shape[-1]
         for t in range(mean.shape[0]):
             rows.append({"filter": name, "step": t + 1, **{f"mean_{j}": float(mean[t, j]) for j in range(d)},
-                         **{f"sd_{j}": float(sd[t, j]) for j in range(d)}})
+                         **{f"sd_{j}": None if sd is None else float(sd[t, j]) for j in range(d)},
+                         **{f"spread_{j}": float(spread[t, j]) for j in range(d)}})
     return rows
 
 
 def write_estimates(path: Path, estimate_summary: Mapping) -> Path:
     """``estimates.csv`` (:func:`estimate_rows`; columns ``filter, step, mean_0..mean_{d-1},
-    sd_0..sd_{d-1}``)."""
-    d = max((m.shape[-1] for m, _ in estimate_summary.values()), default=0)
-    cols = ["filter", "step", *(f"mean_{j}" for j in range(d)), *(f"sd_{j}" for j in range(d))]
+    sd_0..sd_{d-1}, spread_0..spread_{d-1}``)."""
+    d = max((v[0].shape[-1] for v in estimate_summary.values()), default=0)
+    cols = ["filter", "step", *(f"{k}_{j}" for k in ("mean", "sd", "spread") for j in range(d))]
     return write_csv(path, estimate_rows(estimate_summary), cols)
 
 
