@@ -7,7 +7,7 @@ from torch.distributions import Normal, Uniform
 
 from torchflow.filters import BootstrapParticleFilter, ExtendedKalmanFilter
 from torchflow.inference import effective_sample_size, pmmh, rhat
-from torchflow.inference.pmmh import per_trial_values
+from torchflow.inference.params import per_trial_values
 from torchflow.linalg import standard_normal
 from torchflow.models import GaussianStateSpaceModel, Structure
 
@@ -137,3 +137,48 @@ def test_pmmh_same_seed_same_chains():
     other = pmmh(f, obs, prior0, {"a": Uniform(torch.tensor(-1.0, dtype=F64), torch.tensor(1.0, dtype=F64))}, 8,
                  n_chains=3, n_iterations=8, n_adapt=4)
     assert not torch.equal(runs[0].samples["a"], other.samples["a"])
+
+
+def test_conditional_smc_leaves_the_smoothing_law_invariant():
+    """16 chains of 150 conditional-SMC sweeps (N = 20) on a linear-Gaussian series: the average
+    path (after 30 sweeps) is within 4 standard errors of the RTS smoothed means at every step and
+    coordinate (the standard error from the spread of the 16 chains' averages)."""
+    from conftest import random_lg
+    from torchflow.filters import KalmanFilter
+    from torchflow.inference import conditional_smc
+    from torchflow.random import TrialStreams
+    from torchflow.smoothing import smooth
+
+    model = random_lg(2, 2, seed=3)
+    C, T = 16, 8
+    traj = model.simulate(1, T, torch.Generator().manual_seed(0))
+    obs = traj.observations.expand(C, -1, -1)
+    mean, cov = model.initial_belief(traj.states[:, 0].expand(C, -1))
+    cov = cov + torch.eye(2, dtype=F64)
+    exact = smooth(KalmanFilter(model), obs[:1], mean[:1], cov[:1]).means[0]
+    path = torch.zeros(C, T + 1, 2, dtype=F64)
+    total = torch.zeros_like(path)
+    for it in range(150):
+        path = conditional_smc(model, obs, mean, cov, path, 20, TrialStreams(it, C, "csmc"))
+        if it >= 30:
+            total += path
+    avg = total / 120
+    z = ((avg.mean(0) - exact) / (avg.std(0) / math.sqrt(C))).abs()
+    assert float(z.max()) < 4, float(z.max())
+    assert float((avg.std(0) / math.sqrt(C)).max()) < 0.15
+
+
+def test_particle_gibbs_matches_the_exact_posterior():
+    from torchflow.inference import particle_gibbs
+
+    model, obs = _data()
+    prior = Uniform(torch.tensor(-1.0, dtype=F64), torch.tensor(1.0, dtype=F64))
+    m_exact, s_exact = _exact_posterior(model, obs, prior)
+    res = particle_gibbs(model, obs, (torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64)), {"a": prior}, 0,
+                         n_particles=30, n_chains=8, n_iterations=300, n_adapt=100)
+    a = res.samples["a"]
+    ess = float(res.ess["a"])
+    se = float(a.std()) / math.sqrt(ess)
+    assert abs(float(a.mean()) - m_exact) < 4 * se, (float(a.mean()), m_exact, se, ess)
+    assert abs(float(a.std()) / s_exact - 1) < 0.2, (float(a.std()), s_exact)
+    assert ess > 50 and float(res.rhat["a"]) < 1.1

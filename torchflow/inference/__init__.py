@@ -7,9 +7,15 @@
   likelihood estimator; priors are ``torch.distributions`` over the constrained values; random-walk
   proposals in the unconstrained space, with a per-chain scale adapted towards a target acceptance
   rate during the first iterations and fixed afterwards.
+* :func:`particle_gibbs`: conditional SMC with ancestor sampling (:func:`conditional_smc`) for the
+  states and a Metropolis-within-Gibbs step for the parameters (the bootstrap proposal; the same
+  per-trial parameters).
 * :func:`rhat` and :func:`effective_sample_size`: convergence diagnostics of the chains.
 """
 from .diagnostics import effective_sample_size, rhat
+from .gibbs import conditional_smc, joint_log_density, particle_gibbs
+from .params import per_trial_values
 from .pmmh import PMMHResult, pmmh
 
-__all__ = ["pmmh", "PMMHResult", "rhat", "effective_sample_size"]
+__all__ = ["pmmh", "particle_gibbs", "conditional_smc", "joint_log_density", "PMMHResult", "per_trial_values", "rhat",
+           "effective_sample_size"]

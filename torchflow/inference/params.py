@@ -1,0 +1,168 @@
+"""What the particle MCMC samplers share: the parameters' unconstrained space and priors, per-trial
+parameter values, and the adaptive random walk."""
+from __future__ import annotations
+
+import contextlib
+import math
+from typing import Dict, Optional
+
+import torch
+from torch.distributions import Distribution, transform_to
+
+from .._checks import check_count
+from ..errors import ArgumentError, ArgumentTypeError
+from ..random import check_generator
+
+
+@contextlib.contextmanager
+def per_trial_values(model, values: Dict[str, torch.Tensor]):
+    """Within the block, ``model``'s parameters or buffers named in ``values`` hold those tensors
+    (one value per trial, ``(B, ...)``); the model's own are put back afterwards, also on error. A
+    constrained (parametrised) parameter is refused: sample a model built with it as a buffer."""
+    from torch.nn.utils import parametrize
+
+    saved = {}
+    try:
+        for name, value in values.items():
+            if parametrize.is_parametrized(model, name):
+                raise ArgumentError(f"{name}: a constrained learnable parameter of {type(model).__name__}; sample "
+                                    "the posterior of a model built with it as a buffer (learnable=False)")
+            table = model._parameters if name in model._parameters else model._buffers
+            if name not in table:
+                raise ArgumentError(f"{name}: {type(model).__name__} has no parameter or buffer of that name")
+            saved[name] = (table, table[name])
+            table[name] = value
+        yield model
+    finally:
+        for name, (table, value) in saved.items():
+            table[name] = value
+
+
+class ParameterSpace:
+    """The parameters named in ``priors`` (name -> ``torch.distributions.Distribution`` of the
+    constrained value) as one unconstrained vector per chain, ``u (C, p)``: each block maps to its
+    parameter by ``transform_to(prior.support)``, and the prior density in ``u`` carries the
+    transform's log-Jacobian."""
+
+    def __init__(self, model, priors: Dict[str, Distribution], n_chains: int):
+        if not isinstance(priors, dict) or not priors:
+            raise ArgumentError("priors: expected a dict name -> torch.distributions.Distribution (at least one)")
+        declared = tuple(getattr(model, "per_trial_parameters", ()) or ())
+        for name, dist in priors.items():
+            if not isinstance(dist, Distribution):
+                raise ArgumentTypeError(f"priors[{name!r}]: expected a torch.distributions.Distribution, "
+                                        f"got {type(dist).__name__}")
+            if name not in declared:
+                raise ArgumentError(f"priors: {type(model).__name__} does not declare {name!r} as a per-trial "
+                                    f"parameter (it declares {list(declared)}): a chain's value must reach its own trial")
+        self.model, self.priors, self.C = model, priors, check_count("n_chains", n_chains)
+        self.names = list(priors)
+        self.transforms = {n: transform_to(priors[n].support) for n in self.names}
+        self.shapes = {n: tuple(priors[n].batch_shape + priors[n].event_shape) for n in self.names}
+        self.sizes = {n: int(math.prod(self.shapes[n])) for n in self.names}
+
+    @property
+    def dim(self) -> int:
+        return sum(self.sizes.values())
+
+    def _blocks(self, u: torch.Tensor):
+        i = 0
+        for n in self.names:
+            uu = u[..., i:i + self.sizes[n]].reshape(*u.shape[:-1], *self.shapes[n])
+            yield n, uu
+            i += self.sizes[n]
+
+    def constrained(self, u: torch.Tensor) -> Dict[str, torch.Tensor]:
+        """name -> constrained values ``(..., *shape)`` of ``u (..., p)``."""
+        return {n: self.transforms[n](uu) for n, uu in self._blocks(u)}
+
+    def on_model(self, u: torch.Tensor) -> Dict[str, torch.Tensor]:
+        """:meth:`constrained` on the model's dtype and device (what :func:`per_trial_values` takes)."""
+        return {n: v.to(dtype=self.model.dtype, device=self.model.device) for n, v in self.constrained(u).items()}
+
+    def log_prior(self, u: torch.Tensor) -> torch.Tensor:
+        """``(C,)`` log prior density of ``u (C, p)`` (in u: with the transforms' log-Jacobians)."""
+        total = torch.zeros(u.shape[0], dtype=torch.float64)
+        for n, uu in self._blocks(u):
+            theta = self.transforms[n](uu)
+            lp = self.priors[n].log_prob(theta) + self.transforms[n].log_abs_det_jacobian(uu, theta)
+            total = total + lp.reshape(u.shape[0], -1).sum(-1)
+        return total
+
+    def initial(self, init: Optional[Dict[str, torch.Tensor]], generator: torch.Generator) -> torch.Tensor:
+        """``u (C, p)`` from ``init`` (name -> constrained value, shared or per chain) or, without
+        it, a draw from each prior per chain (torch.distributions draw from torch's global
+        generator: here seeded from ``generator``, and restored afterwards)."""
+        C = self.C
+        if init is None:
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(int(torch.randint(0, 2**40, (1,), generator=generator)))
+                start = {n: self.priors[n].sample((C,)) for n in self.names}
+        else:
+            absent = [n for n in self.names if n not in init]
+            if absent:
+                raise ArgumentError(f"init: expected a starting value for every parameter in priors, missing {absent}")
+            start = {n: torch.as_tensor(init[n], dtype=torch.float64).expand(C, *self.shapes[n]) for n in self.names}
+        return torch.cat([self.transforms[n].inv(start[n].double()).reshape(C, -1) for n in self.names], 1)
+
+
+class RandomWalk:
+    """Gaussian random-walk proposals on ``u`` with one scale per chain, adapted by Robbins-Monro on
+    its logarithm towards ``target`` acceptance during the first ``n_adapt`` iterations, then fixed."""
+
+    def __init__(self, C: int, dim: int, scale: float, n_adapt: int, target: Optional[float], generator):
+        if not (isinstance(scale, (int, float)) and not isinstance(scale, bool) and scale > 0):
+            raise ArgumentError(f"scale: expected a number > 0, got {scale!r}")
+        if int(n_adapt) != n_adapt or n_adapt < 0:
+            raise ArgumentError(f"n_adapt: expected an integer >= 0, got {n_adapt!r}")
+        self.log_scale = torch.full((C,), math.log(scale), dtype=torch.float64)
+        self.n_adapt, self.generator = int(n_adapt), generator
+        self.target = target if target is not None else (0.44 if dim == 1 else 0.234)
+
+    def propose(self, u: torch.Tensor) -> torch.Tensor:
+        step = torch.randn(u.shape, generator=self.generator, dtype=torch.float64)
+        return u + step * self.log_scale.exp().unsqueeze(-1)
+
+    def accept(self, log_alpha: torch.Tensor, it: int) -> torch.Tensor:
+        """``(C,)`` bool accept draws for ``log_alpha (C,)`` (NaN: reject); adapts the scale at
+        iteration ``it`` (1-based) while ``it <= n_adapt``."""
+        log_alpha = torch.nan_to_num(log_alpha, nan=-math.inf)
+        ok = torch.log(torch.rand(log_alpha.shape, generator=self.generator, dtype=torch.float64)) < log_alpha
+        if it <= self.n_adapt:
+            self.log_scale = self.log_scale + (ok.double() - self.target) / it ** 0.6
+        return ok
+
+
+def cpu_generator(generator) -> torch.Generator:
+    """The samplers' own generator (a seed, or a CPU ``torch.Generator``)."""
+    if isinstance(generator, int) and not isinstance(generator, bool):
+        return torch.Generator().manual_seed(generator)
+    check_generator(generator, "generator")
+    if not isinstance(generator, torch.Generator) or generator.device.type != "cpu":
+        raise ArgumentError("generator: expected a seed or a CPU torch.Generator (the chains' own draws; the "
+                            "filters' streams are made on the model's device)")
+    return generator
+
+
+def one_series(observations: torch.Tensor, C: int) -> torch.Tensor:
+    """``(T, m)`` or ``(1, T, m)`` expanded to ``(C, T, m)``."""
+    if not isinstance(observations, torch.Tensor):
+        raise ArgumentTypeError(f"observations: expected a tensor (T, m), got {type(observations).__name__}")
+    obs = observations if observations.dim() == 3 else observations.unsqueeze(0)
+    if obs.dim() != 3 or obs.shape[0] != 1:
+        raise ArgumentError(f"observations: expected one series (T, m) or (1, T, m), got {tuple(observations.shape)}")
+    return obs.expand(C, -1, -1)
+
+
+def prior_of(prior, params: Dict[str, torch.Tensor], C: Optional[int] = None):
+    """The filters' prior of the initial state: ``prior`` as ``(mean, cov)``, or ``prior(params)``;
+    with ``C``, a shared ``(d,)``, ``(d, d)`` expanded to ``(C, d)``, ``(C, d, d)``."""
+    mean, cov = prior(params) if callable(prior) else prior
+    if C is not None and mean.dim() == 1:
+        mean = mean.expand(C, -1)
+    if C is not None and cov.dim() == 2:
+        cov = cov.expand(C, -1, -1)
+    return mean, cov
+
+
+__all__ = ["per_trial_values", "ParameterSpace", "RandomWalk"]
