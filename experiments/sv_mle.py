@@ -47,10 +47,11 @@ def exact_mle(y: torch.Tensor, start=(-1.02, 0.9702, 0.178), n_grid: int = 600):
 
 
 def learnt(path: str):
-    """The first and last epoch's ``(mu, rho, sigma)`` of a ``torchflow-learn`` run's ``learn.csv``."""
-    rows = [r for r in csv.DictReader(open(path)) if r.get("mu")]
-    pick = lambda r: tuple(float(r[k]) for k in ("mu", "rho", "sigma"))  # noqa: E731
-    return pick(rows[0]), pick(rows[-1]), len(rows)
+    """The start and final ``(mu, rho, sigma)`` and the epochs of a ``torchflow-learn`` run's
+    ``learn.csv`` (one row per parameter: ``parameter, start, final, epochs``)."""
+    rows = {r["parameter"]: r for r in csv.DictReader(open(path))}
+    pick = lambda key: tuple(float(rows[k][key]) for k in ("mu", "rho", "sigma"))  # noqa: E731
+    return pick("start"), pick("final"), int(rows["mu"]["epochs"])
 
 
 def main(argv):
@@ -60,7 +61,7 @@ def main(argv):
     print(f"exact MLE: mu {mu:.4f}, rho {rho:.4f}, sigma {sigma:.4f}; log-likelihood {ll:.4f}")
     if argv:
         first, last, epochs = learnt(argv[0])
-        for label, p in (("learn, first epoch", first), (f"learn, epoch {epochs}", last)):
+        for label, p in (("learn, start", first), (f"learn, after {epochs} epochs", last)):
             print(f"{label}: mu {p[0]:.4f}, rho {p[1]:.4f}, sigma {p[2]:.4f}; exact log-likelihood "
                   f"{exact_log_lik(y, *p):.4f}")
 

@@ -3,8 +3,9 @@
 # cap (its own limit or what is left of BUDGET seconds), so a slow step keeps the others; a table
 # of the rows goes to $OUT/gpu_check.md, the test lines to $OUT/cuda_tests.txt.
 #
-#   1. the CUDA contract tests (every filter on CUDA, the fused kernels in both forms, the graphed
-#      flow loop and particle-filter step, the random streams and bad inputs), first;
+#   1. the CUDA contract tests (every filter on CUDA, with and without missing observations, the
+#      smoothers, the fused kernels in both forms, the graphed flow loop and particle-filter step,
+#      the random streams and bad inputs), first;
 #   2. the run command as a user runs it: acoustic tracking, PF-PF(LEDH) and the bootstrap PF,
 #      100 trials x 500 particles x 40 steps, float64, on a fresh machine (cold: the kernels compile)
 #      then again (warm), then one chunk of 100 trials, then float32; wall time of each command and
@@ -31,7 +32,8 @@ python3 -c "import torch, triton; print('torch', torch.__version__, 'triton', tr
 echo "== CUDA contract tests ($(left) s left)"; date
 timeout "$(cap 300)" python3 -m pytest -q -p no:cacheprovider -rfE tests/filters/test_contract.py tests/flows/test_fused.py \
   tests/test_cudagraphs.py tests/test_graph_step.py tests/test_random.py tests/test_bad_inputs.py tests/test_philox_fused.py \
-  tests/models/test_model_contract.py -k "cuda or model_contract" 2>&1 | tail -25 > "$OUT/cuda_tests.txt"
+  tests/models/test_model_contract.py tests/filters/test_missing.py tests/test_smoothing.py \
+  $(ls tests/filters/test_ensemble.py 2>/dev/null) -k "cuda or model_contract" 2>&1 | tail -25 > "$OUT/cuda_tests.txt"
 tail -4 "$OUT/cuda_tests.txt"; { echo; echo "## CUDA tests"; tail -1 "$OUT/cuda_tests.txt"; } >> "$MD"
 
 run_cmd() {  # label, cap, extra settings...
