@@ -355,7 +355,7 @@ class LocalEnsembleTransformKalmanFilter(_EnsembleFilter):
     Shapes: ensemble ``(B, N, d)``, observations ``z (B, m)`` (NaN: not observed).
     """
 
-    def __init__(self, model, *, n_particles: int = 20, inflation: float = 1.0, radius: float = 10.0,
+    def __init__(self, model, *, n_particles: int = 20, inflation: float = 1.0, radius: float = 15.0,
                  distances: Optional[torch.Tensor] = None, validate: bool = True, name: Optional[str] = None):
         super().__init__(model, n_particles=n_particles, inflation=inflation, validate=validate, name=name)
         ok = isinstance(radius, (int, float)) and not isinstance(radius, bool) and radius > 0 and not math.isnan(radius)
