@@ -8,9 +8,11 @@ An ensemble of ``N`` members per trial, ``X (B, N, d)``, stands for the belief. 
 2. **analysis**: each member is measured with the model's (possibly nonlinear) ``h``
    (``model.measure``; no Jacobian), ``Y = h(X_f) - ybar`` are the measurement anomalies and
    ``delta = z - ybar`` the innovation. Everything is whitened by the model's noise ``R = L L^T``
-   (``Y_w = Y L^{-T}``, ``delta_w = L^{-1} delta``) and the update is solved in the ``N``-dimensional
-   ensemble space with the matrix ``M = (N - 1) I_N + Y_w Y_w^T`` (``(B, N, N)``; never an ``m x m``
-   inverse). With ``P_f = A^T A / (N - 1)`` this is the Kalman update with the ensemble's
+   (``Y_w = Y L^{-T}``, ``delta_w = L^{-1} delta``) and the update is written in the
+   ``N``-dimensional ensemble space with the matrix ``M = (N - 1) I_N + Y_w Y_w^T`` (``(B, N, N)``).
+   It is solved there when ``N <= m``, else through the ``m x m`` matrix
+   ``Y_w^T Y_w + (N - 1) I_m`` (the same numbers up to round-off, at the cost of the smaller one: a
+   large ensemble of a few observations never forms ``N x N`` matrices). With ``P_f = A^T A / (N - 1)`` this is the Kalman update with the ensemble's
    covariance: ``K = P_f H^T (H P_f H^T + R)^{-1} = A^T M^{-1} Y_w L^{-1}`` (push-through identity,
    ``H A^T`` replaced by ``Y^T``).
 
