@@ -130,12 +130,13 @@ def compare(args):
     rows = []
     for label, dname, dkw, ours, okw in PAIRS:
         est, sec = run_ours(ours, okw, model, traj, mean, cov)
-        row = dict(setting=label, ours=mean_se(rmse_after(est, truth, args.burn_in)), ours_sec_per_step=sec,
+        per_trial = rmse_after(est, truth, args.burn_in)
+        row = dict(setting=label, ours=mean_se(per_trial), ours_trials=per_trial.tolist(), ours_sec_per_step=sec,
                    published=PUBLISHED.get(label))
         if dapper is not None:
             means, dsec = dapper[label]
-            row.update(dapper=mean_se(rmse_after(torch.as_tensor(means), truth, args.burn_in)),
-                       dapper_sec_per_step=dsec)
+            per_trial = rmse_after(torch.as_tensor(means), truth, args.burn_in)
+            row.update(dapper=mean_se(per_trial), dapper_trials=per_trial.tolist(), dapper_sec_per_step=dsec)
         rows.append(row)
         print(row, flush=True)
     return rows
@@ -182,6 +183,10 @@ def write(args, cmp_rows, scale_rows):
         dsec = f"{r['dapper_sec_per_step']:.2e}" if "dapper_sec_per_step" in r else "not run"
         lines.append(f"| {r['setting']} | {fmt(r['ours'])} | {fmt(r.get('dapper')) or 'not run'} | {pub} | "
                      f"{r['ours_sec_per_step']:.2e} | {dsec} |")
+    lines += ["", "Per-trial RMSE (torchflow; DAPPER):", ""]
+    for r in cmp_rows:
+        trials = lambda key: ", ".join(f"{v:.3f}" for v in r.get(key, [])) or "not run"  # noqa: E731
+        lines.append(f"- {r['setting']}: {trials('ours_trials')}; {trials('dapper_trials')}")
     lines += ["", "Differences of method (not of data): DAPPER inflates the analysis ensemble and applies a random "
               "rotation (`rot=True`) to the square-root filters' anomalies, ours inflates the forecast anomalies and "
               "uses the symmetric square root; DAPPER's taper radius is where its Gaspari-Cohn taper is exp(-1/2) "

@@ -55,7 +55,14 @@ def _prior_ensemble(model, B, N, seed=0):
     return 2.0 * torch.randn(B, N, model.state_dim, generator=g, dtype=torch.float64)
 
 
-@pytest.mark.parametrize("make_model", [lambda: random_lg(5, 3), lambda: SensorNetwork(d=9)], ids=["dense_R", "scalar_R"])
+def _diagonal_r_model():
+    F, Q, H, _ = _lg_mats(5, 3)
+    return LinearGaussian(F, Q, torch.randn(3, 5, generator=torch.Generator().manual_seed(4), dtype=torch.float64),
+                          torch.diag(torch.tensor([0.5, 1.0, 2.0], dtype=torch.float64)), measurement_noise="diagonal")
+
+
+@pytest.mark.parametrize("make_model", [lambda: random_lg(5, 3), _diagonal_r_model, lambda: SensorNetwork(d=9)],
+                         ids=["dense_R", "diagonal_R", "scalar_R"])
 @pytest.mark.parametrize("inflation", [1.0, 1.3])
 @pytest.mark.parametrize("missing", [False, True])
 def test_etkf_analysis_is_the_kalman_update_of_the_forecast_ensemble(make_model, inflation, missing):

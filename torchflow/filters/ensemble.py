@@ -186,20 +186,28 @@ class _EnsembleFilter(Filter):
         keep = observed.to(Yf.dtype)
         Y = (Yf - ybar.unsqueeze(1)) * keep.unsqueeze(1)
         delta = torch.where(observed, z - ybar, torch.zeros_like(ybar))
-        noise = model.structure.measurement_noise
-        R = model.measurement_cov(xbar) if noise.startswith("state_dependent") else model.measurement_cov()
+        noise, scale = model.structure.measurement_noise, model.structure.measurement_noise_scale
         if noise in _DIAGONAL_NOISE:
-            r = torch.where(observed, R.diagonal(dim1=-2, dim2=-1).expand_as(z), torch.ones_like(z))  # (B, m)
+            if noise == "scalar" and scale is not None:  # R = r I declared: no (m, m) matrix formed
+                r = torch.full_like(z, scale)
+            else:
+                r = self._measurement_cov(xbar).diagonal(dim1=-2, dim2=-1).expand_as(z)
+            r = torch.where(observed, r, torch.ones_like(r))  # (B, m)
             s = r.sqrt()
             Y, delta, logdet = Y / s.unsqueeze(1), delta / s, r.log().sum(-1)
         else:  # dense: unobserved rows and columns replaced by the identity's
             both = observed.unsqueeze(-1) & observed.unsqueeze(-2)
             eye = torch.eye(z.shape[-1], dtype=z.dtype, device=z.device)
-            L = linalg.safe_cholesky(torch.where(both, R, eye))  # (B, m, m)
+            L = linalg.safe_cholesky(torch.where(both, self._measurement_cov(xbar), eye))  # (B, m, m)
             Y = linalg.solve_triangular(L.transpose(-1, -2), Y, upper=True, left=False)  # Y L^{-T}
             delta = torch.linalg.solve_triangular(L, delta.unsqueeze(-1), upper=False).squeeze(-1)
             logdet = linalg.chol_logdet(L)
         return _Whitened(Y, delta, logdet, keep.sum(-1), observed)
+
+    def _measurement_cov(self, xbar: torch.Tensor) -> torch.Tensor:
+        """R, at the forecast mean ``xbar (B, d)`` where it depends on the state."""
+        noise = self.model.structure.measurement_noise
+        return self.model.measurement_cov(xbar) if noise.startswith("state_dependent") else self.model.measurement_cov()
 
     @staticmethod
     def log_evidence(w: _Whitened, quad: torch.Tensor, logdet_M: torch.Tensor) -> torch.Tensor:
