@@ -15,8 +15,9 @@ from torchflow.runner.score import FIXED_COLUMNS, RUN_COLUMNS
 
 #: the summary columns of the built-in metrics (the committed results files have this header)
 BUILT_IN_COLUMNS = [
-    "filter", "n_particles", "trials", "steps", "mse", "omat", "omat_kept_mean", "omat_kept_sd",
-    "ospa", "declared", "underflows", "ess", "g_eff", "log_evidence", "log_evidence_se", "log_evidence_relmse", "lost_tracks", "repaired",
+    "filter", "n_particles", "trials", "steps", "mse", "rmse", "rmse_se", "omat", "omat_kept_mean", "omat_kept_sd",
+    "ospa", "declared", "underflows", "ess", "g_eff", "log_evidence", "log_evidence_se", "log_evidence_relmse",
+    "lost_tracks", "repaired",
     "sec_per_step", "warmup_sec", "error",
 ]
 
@@ -61,7 +62,7 @@ def _read(path):
 def test_built_in_summary_columns_are_the_committed_files_header():
     assert summary_columns() == BUILT_IN_COLUMNS and list(SUMMARY_COLUMNS) == BUILT_IN_COLUMNS
     assert SUMMARY_COLUMNS == BUILT_IN_COLUMNS
-    assert list(metrics.REGISTRY) == ["mse", "omat", "ospa", "declared", "ess", "g_eff"]
+    assert list(metrics.REGISTRY) == ["mse", "rmse", "omat", "ospa", "declared", "ess", "g_eff"]
     own = set(FIXED_COLUMNS) | {c for _, cols in RUN_COLUMNS for c in cols} | {"trial", "step", "lost"}
     assert own <= metrics.RESERVED_NAMES  # no metric can take a column the runner writes itself
     for m in metrics.REGISTRY.values():  # each built-in metric states its formula and shapes
@@ -70,7 +71,7 @@ def test_built_in_summary_columns_are_the_committed_files_header():
 
 def test_a_registered_metric_is_in_every_row_file_and_figure(clean_registry, tmp_path):
     metrics.register(MAX_ABS)
-    assert summary_columns() == BUILT_IN_COLUMNS[:13] + ["max_abs"] + BUILT_IN_COLUMNS[13:]
+    assert summary_columns() == BUILT_IN_COLUMNS[:15] + ["max_abs"] + BUILT_IN_COLUMNS[15:]
     assert "max_abs" in SUMMARY_COLUMNS  # the command line's partial summary.csv reads this
     res = _run()
     assert all(r["max_abs"] > 0 for r in res.summary) and all(set(r) == set(SUMMARY_COLUMNS) for r in res.summary)
@@ -91,10 +92,10 @@ def test_a_registered_metric_is_in_every_row_file_and_figure(clean_registry, tmp
         header, rows = _read(tmp_path / name)
         assert "max_abs" in header and all(float(r["max_abs"]) > 0 for r in rows), name
 
-    assert figures.per_step_keys(res.per_step) == ["mse", "ess", "max_abs"]
+    assert figures.per_step_keys(res.per_step) == ["mse", "rmse", "ess", "max_abs"]
     plt = pytest.importorskip("matplotlib.pyplot")
     fig = figures.per_step_figure(plt, res.per_step, res.summary, "t")
-    assert [ax.get_ylabel() for ax in fig.axes] == ["MSE", "ESS / N (N = 50)", "max |error|"]
+    assert [ax.get_ylabel() for ax in fig.axes] == ["MSE", "RMSE", "ESS / N (N = 50)", "max |error|"]
     plt.close(fig)
 
 
@@ -164,9 +165,13 @@ def test_bad_registrations_name_the_argument(clean_registry):
         metrics.Metric("toy", "toy", max_abs_error, reduce_trial="max")
     with pytest.raises(ValueError, match=r"^yscale: expected one of"):
         metrics.Metric("toy", "toy", max_abs_error, yscale="symlog")
+    with pytest.raises(ValueError, match=r"^metric: 'rmse_se' would write the column 'rmse_se', another metric's"):
+        metrics.register(metrics.Metric("rmse_se", "toy", max_abs_error))
+    with pytest.raises(TypeError, match=r"^burn_in: expected a bool"):
+        metrics.Metric("toy", "toy", max_abs_error, burn_in=3)
     with pytest.raises(KeyError, match=r"name: no metric 'nope' is registered"):
         metrics.unregister("nope")
-    assert list(metrics.REGISTRY) == ["mse", "omat", "ospa", "declared", "ess", "g_eff"]
+    assert list(metrics.REGISTRY) == ["mse", "rmse", "omat", "ospa", "declared", "ess", "g_eff"]
     with pytest.raises(TypeError):
         metrics.REGISTRY["toy"] = MAX_ABS  # a read-only view: register() checks
 
@@ -185,3 +190,29 @@ def test_registered_is_temporary_and_the_module_example_runs(clean_registry):
     result = doctest.testmod(metrics, optionflags=doctest.ELLIPSIS)
     assert result.attempted >= 5 and result.failed == 0
     assert "max_abs" not in metrics.REGISTRY
+
+
+def test_rmse_after_burn_in_with_standard_errors(tmp_path):
+    """``rmse``: per trial, sqrt(mean over coordinates of the squared error) per step, averaged over
+    the steps after ``burn_in``; the summary is the mean over trials with its standard error; the
+    per-step rows keep every step; ``burn_in`` must leave a step."""
+    model = SensorNetwork(d=4)
+    kw = dict(trials=4, steps=6, seed=5, progress=False)
+    res = run_experiment(model, {"kf": KalmanFilter(model)}, burn_in=2, **kw)
+    est = res.examples["kf"].unsqueeze(0)  # trial 0
+    truth = res.trajectory.states[:, 1:].double()
+    step_rmse = (est[0] - truth[0]).square().mean(-1).sqrt()  # (T,)
+    assert res.per_trial[0]["rmse"] == pytest.approx(float(step_rmse[2:].mean()), rel=1e-12)
+    assert res.per_trial[0]["mse"] == pytest.approx(float(step_rmse.square().mean()), rel=1e-12)  # no burn-in
+    trials = torch.tensor([r["rmse"] for r in res.per_trial], dtype=torch.float64)
+    assert res.summary[0]["rmse"] == pytest.approx(float(trials.mean()), rel=1e-12)
+    assert res.summary[0]["rmse_se"] == pytest.approx(float(trials.std() / 2), rel=1e-12)
+    assert len([r for r in res.per_step if "rmse" in r]) == 6
+    assert "rmse_se" in format_table(res.summary).splitlines()[0]
+    whole = run_experiment(model, {"kf": KalmanFilter(model)}, **kw)
+    assert whole.per_trial[0]["rmse"] == pytest.approx(float(step_rmse.mean()), rel=1e-12)
+    one = run_experiment(model, {"kf": KalmanFilter(model)}, **{**kw, "trials": 1})
+    assert one.summary[0]["rmse_se"] is None
+    for bad in (6, -1, 1.5, True):
+        with pytest.raises(ValueError, match=r"metrics.burn_in: expected an integer in \[0, steps = 6\)"):
+            run_experiment(model, {"kf": KalmanFilter(model)}, burn_in=bad, **kw)

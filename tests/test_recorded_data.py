@@ -215,7 +215,7 @@ def test_the_run_command_filters_a_csv(tmp_path):
     r = _command("run.py", tmp_path, "model=linear_gaussian", "model.d=4", "filter=[kf,bpf]", "n_particles=30",
                  "trials=3", "data=z.csv", "progress=false", "checkpoint_dir=null")
     assert r.returncode == 0, r.stderr[-3000:]
-    assert "recorded data (no true states): mse, omat, ospa left out" in r.stdout
+    assert "recorded data (no true states): mse, rmse, omat, ospa left out" in r.stdout
     out = tmp_path / "out"
     rows = list(csv.DictReader(open(out / "summary.csv")))
     assert [x["filter"] for x in rows] == ["kf", "bpf"] and all(x["mse"] == "" and x["trials"] == "3" for x in rows)

@@ -135,7 +135,7 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
         observations=obs,
         chunk_size=cfg.chunk_size, memory_budget_gb=cfg.memory_budget_gb, device=shard.device(cfg.device),
         dtype=cfg.dtype, ospa_cutoff=cfg.metrics.ospa_cutoff, ospa_order=cfg.metrics.ospa_order,
-        lost_threshold=cfg.metrics.lost_threshold, progress=cfg.progress, rng_backend=cfg.rng_backend,
+        lost_threshold=cfg.metrics.lost_threshold, burn_in=cfg.metrics.get("burn_in", 0), progress=cfg.progress, rng_backend=cfg.rng_backend,
         on_filter_done=lambda rows: writer.attempt("summary.csv", writers.write_csv, out / "summary.csv", rows,
                                                    SUMMARY_COLUMNS),  # partial results
         store=store, shard=shard, warmup=cfg.get("warmup", "auto"),

@@ -24,15 +24,18 @@ truth, the model, the metric settings, the filter's other outputs such as ``ess`
 metric that applies gives
 
 * the summary column ``name``: the mean over trials and steps (``reduce_trial="mean"``) or over
-  trials of the last step's value (``"last"``);
-* the per-trial column ``name``: the trial's mean over steps, or its last step's value;
+  trials of the last step's value (``"last"``); with ``standard_error=True`` also ``name_se``, the
+  standard error of that mean over trials (the trials' values' sd / sqrt(B));
+* the per-trial column ``name``: the trial's mean over steps, or its last step's value; a metric
+  with ``burn_in=True`` averages only the steps after the run's ``burn_in`` setting (the first
+  ``burn_in`` steps dropped: the data-assimilation convention, a filter's spin-up not scored);
 * the per-step column ``name``: the mean over trials at each step, and a panel of ``per_step.png``
   (``plot=True``) with the y label ``label``.
 
 The summary table's columns are ``filter, n_particles, trials, steps``, the registered metrics in
 registration order, and the runner's own columns
-(:data:`torchflow.runner.score.RUN_COLUMNS`). Built in: ``mse``, ``omat``, ``ospa``,
-``declared``, ``ess``, ``g_eff``. A new metric is one function and one :func:`register` call
+(:data:`torchflow.runner.score.RUN_COLUMNS`). Built in: ``mse``, ``rmse`` (after burn-in, with
+its standard error ``rmse_se``), ``omat``, ``ospa``, ``declared``, ``ess``, ``g_eff``. A new metric is one function and one :func:`register` call
 (:func:`unregister` removes it; :func:`registered` registers for a ``with`` block)::
 
     >>> from torchflow import metrics
@@ -71,7 +74,7 @@ from . import tuning
 from ._checks import check_float_tensor, check_same_device, shape_str
 from .errors import ArgumentError, ArgumentTypeError
 
-__all__ = ["mse", "omat", "ospa", "ess", "log_evidence_relative_error", "lost_tracks", "Metric", "MetricContext",
+__all__ = ["mse", "rmse", "omat", "ospa", "ess", "log_evidence_relative_error", "lost_tracks", "Metric", "MetricContext",
            "REGISTRY", "RESERVED_NAMES", "register", "unregister", "registered", "applicable"]
 
 
@@ -157,6 +160,20 @@ def mse(estimates: torch.Tensor, states: torch.Tensor) -> torch.Tensor:
     if states.shape[-1] == 0:
         raise ArgumentError("states: expected (B, T, d) with d >= 1, got d = 0")
     return (estimates - states).square().mean(dim=-1)
+
+
+def rmse(estimates: torch.Tensor, states: torch.Tensor) -> torch.Tensor:
+    """Root-mean-square error over the state coordinates, per trial and step (the data-assimilation
+    RMSE; its average over the steps after a burn-in is the usual score).
+
+    Args:
+        estimates: ``(B, T, d)`` state estimates.
+        states: ``(B, T, d)`` true states.
+
+    Returns:
+        ``(B, T)`` tensor ``sqrt(mean_j (estimates[..., j] - states[..., j])**2)``.
+    """
+    return mse(estimates, states).sqrt()
 
 
 def omat(est_positions: torch.Tensor, true_positions: torch.Tensor) -> torch.Tensor:
@@ -343,7 +360,8 @@ class MetricContext:
         outputs: the filter's other outputs over the ``B`` trials, those it produces of
             ``ess (B, T)``, ``g_eff (B, T)``, ``log_evidence (B,)``, ``n_repaired (B,)``,
             ``underflow (B, S, M)``.
-        settings: the run's metric settings ``ospa_cutoff``, ``ospa_order``, ``lost_threshold``.
+        settings: the run's metric settings ``ospa_cutoff``, ``ospa_order``, ``lost_threshold``,
+            ``burn_in``.
     """
 
     model: Any
@@ -426,6 +444,10 @@ class Metric:
             divided by each filter's ``n_particles`` (a log axis when a fraction is below 0.1).
         needs_truth: whether ``compute`` reads the true states (``ctx.truth``, ``true_positions``);
             such a metric is left out on recorded data, which have none.
+        burn_in: a trial's value (``reduce_trial="mean"``), hence the summary's, averages only the
+            steps after the run's ``burn_in`` setting; the per-step values keep every step.
+        standard_error: the summary also has the column ``name + "_se"``: the standard error of
+            the summary value over trials (sd of the trials' values / sqrt(B); empty for B = 1).
     """
 
     name: str
@@ -437,6 +459,8 @@ class Metric:
     plot: bool = True
     yscale: str = "linear"
     needs_truth: bool = True
+    burn_in: bool = False
+    standard_error: bool = False
 
     def __post_init__(self):
         _expect(isinstance(self.name, str) and bool(_NAME.match(self.name)), "name",
@@ -449,10 +473,19 @@ class Metric:
         _expect(callable(self.applies), "applies", "a callable applies(ctx) -> bool", self.applies)
         if self.reduce_trial not in _REDUCTIONS:
             raise ArgumentError(f"reduce_trial: expected one of {list(_REDUCTIONS)}, got {self.reduce_trial!r}")
-        for arg in ("higher_is_better", "plot", "needs_truth"):
+        for arg in ("higher_is_better", "plot", "needs_truth", "burn_in", "standard_error"):
             _expect(isinstance(getattr(self, arg), bool), arg, "a bool", getattr(self, arg))
         if self.yscale not in _YSCALES:
             raise ArgumentError(f"yscale: expected one of {list(_YSCALES)}, got {self.yscale!r}")
+
+    @property
+    def columns(self) -> tuple:
+        """The metric's summary columns: ``name``, and ``name_se`` with ``standard_error``."""
+        return (self.name, f"{self.name}_se") if self.standard_error else (self.name,)
+
+    def first_step(self, ctx: MetricContext) -> int:
+        """The first step a trial's mean counts: the run's ``burn_in`` for a ``burn_in`` metric, else 0."""
+        return int(ctx.settings.get("burn_in", 0)) if self.burn_in else 0
 
     @property
     def doc(self) -> str:
@@ -489,6 +522,10 @@ def register(metric: Metric, *, replace: bool = False) -> Metric:
     if metric.name in _REGISTRY and not replace:
         raise ArgumentError(f"metric: a metric named {metric.name!r} is already registered "
                          f"(unregister({metric.name!r}) first, or register(..., replace=True))")
+    taken = {c for m in _REGISTRY.values() if m.name != metric.name for c in m.columns}
+    clash = sorted(taken & set(metric.columns))
+    if clash:
+        raise ArgumentError(f"metric: {metric.name!r} would write the column {clash[0]!r}, another metric's")
     _REGISTRY[metric.name] = metric
     return metric
 
@@ -532,6 +569,13 @@ def _mse(ctx: MetricContext) -> torch.Tensor:
     """``(B, T)``: ``mse[b, t] = (1/d) sum_j (xhat[b, t, j] - x[b, t, j])**2`` of the point
     estimates ``xhat (B, T, d)`` against the true states ``x (B, T, d)`` (:func:`mse`)."""
     return mse(ctx.estimates, ctx.truth)
+
+
+def _rmse(ctx: MetricContext) -> torch.Tensor:
+    """``(B, T)``: ``rmse[b, t] = sqrt((1/d) sum_j (xhat[b, t, j] - x[b, t, j])**2)`` of the point
+    estimates ``xhat (B, T, d)`` against the true states ``x (B, T, d)`` (:func:`rmse`); a trial's
+    value is its mean over the steps after ``burn_in``."""
+    return rmse(ctx.estimates, ctx.truth)
 
 
 def _omat(ctx: MetricContext) -> torch.Tensor:
@@ -583,6 +627,7 @@ def _has_g_eff(ctx: MetricContext) -> bool:
 
 
 for _m in (Metric("mse", "MSE", _mse, yscale="log"),
+           Metric("rmse", "RMSE", _rmse, yscale="log", burn_in=True, standard_error=True),
            Metric("omat", "OMAT (m)", _omat, tracking),
            Metric("ospa", "OSPA (m)", _ospa, _tracking_or_sets),
            Metric("declared", "declared sources", _declared, sets, plot=False, needs_truth=False),

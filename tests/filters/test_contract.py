@@ -3,10 +3,12 @@ import pytest
 import torch
 
 from torchflow._checks import NonFiniteError
-from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, GaussianSumParticleFilter, KalmanFilter,
-                               ParticleFlowFilter, ParticleFlowParticleFilter, UnscentedKalmanFilter)
+from torchflow.filters import (BootstrapParticleFilter, EnsembleKalmanFilter, EnsembleTransformKalmanFilter,
+                               ExtendedKalmanFilter, GaussianSumParticleFilter, KalmanFilter,
+                               LocalEnsembleTransformKalmanFilter, ParticleFlowFilter, ParticleFlowParticleFilter,
+                               UnscentedKalmanFilter)
 from torchflow.schedules import ExponentialSchedule
-from torchflow.models import AcousticTracking, SensorNetwork, SkewedTPoisson
+from torchflow.models import AcousticTracking, Lorenz96, SensorNetwork, SkewedTPoisson
 from conftest import cuda, random_lg
 from torchflow.random import TrialStreams
 
@@ -19,6 +21,10 @@ CONFIGS = [
     ("ekf-acoustic", AcousticTracking, lambda m: ExtendedKalmanFilter(m)),
     ("ukf-acoustic", AcousticTracking, lambda m: UnscentedKalmanFilter(m)),
     ("bpf-acoustic", AcousticTracking, lambda m: BootstrapParticleFilter(m, n_particles=64)),
+    ("enkf-lg", lambda: random_lg(3, 2), lambda m: EnsembleKalmanFilter(m, n_particles=64)),
+    ("etkf-lg", lambda: random_lg(3, 2), lambda m: EnsembleTransformKalmanFilter(m, n_particles=64, inflation=1.1)),
+    ("etkf-acoustic", AcousticTracking, lambda m: EnsembleTransformKalmanFilter(m, n_particles=64)),
+    ("letkf-l96", lambda: Lorenz96(d=8), lambda m: LocalEnsembleTransformKalmanFilter(m, n_particles=64, radius=4.0)),
 ]
 _SCHED = ExponentialSchedule(8, 1.3)
 for _flow in ("edh", "ledh", "geodesic", "gromov", "osd"):

@@ -5,6 +5,8 @@ from .pfpf import ClusteredParticleFlowParticleFilter, ParticleFlowFilter, Parti
 from .gpfis import GPFIS, GaussianParticleFlowImportanceSampler
 from .gaussian_sum import (GaussianParticleFilter, GaussianSumParticleFilter, MixtureState,
                            ParticleFlowGaussianParticleFilter, ParticleFlowGaussianSumParticleFilter)
+from .ensemble import (EnsembleKalmanFilter, EnsembleTransformKalmanFilter,
+                       LocalEnsembleTransformKalmanFilter)
 from .kalman import ExtendedKalmanFilter, KalmanFilter, UnscentedKalmanFilter, ekf_predict, kalman_update
 
 __all__ = [
@@ -17,6 +19,9 @@ __all__ = [
     "KalmanFilter",
     "ExtendedKalmanFilter",
     "UnscentedKalmanFilter",
+    "EnsembleKalmanFilter",
+    "EnsembleTransformKalmanFilter",
+    "LocalEnsembleTransformKalmanFilter",
     "BootstrapParticleFilter",
     "ParticleFlowParticleFilter",
     "ClusteredParticleFlowParticleFilter",

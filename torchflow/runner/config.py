@@ -220,8 +220,10 @@ def check_config(cfg: Mapping, choices: Mapping[str, Optional[str]], config_name
         check_warmup(cfg.get("warmup", "auto"))
     if "metrics" in known:
         m = cfg.get("metrics") or {}
+        steps = cfg.get("steps")
         check_metric_settings(ospa_cutoff=m.get("ospa_cutoff"), ospa_order=m.get("ospa_order"),
-                              lost_threshold=m.get("lost_threshold"))
+                              lost_threshold=m.get("lost_threshold"), burn_in=m.get("burn_in", 0),
+                              steps=steps if isinstance(steps, int) and not isinstance(steps, bool) and steps > 0 else None)
 
 
 def invoked_as(argv0: str, default: str) -> str:

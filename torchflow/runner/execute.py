@@ -291,8 +291,8 @@ def run_experiment(
     steps: Optional[int] = None, seed: int = 0,
     inits_per_track: int = 1, chunk_size: Optional[int] = None, memory_budget_gb: float = 4.0,
     device: Union[str, torch.device] = "cpu", dtype: Union[str, torch.dtype] = "float64", ospa_cutoff: float = 40.0,
-    ospa_order: float = 1.0, lost_threshold: float = 2.0, progress: bool = True, rng_backend: str = "auto",
-    on_filter_done: Optional[Callable[[List[dict]], None]] = None, store: Optional[ChunkStore] = None,
+    ospa_order: float = 1.0, lost_threshold: float = 2.0, burn_in: int = 0, progress: bool = True,
+    rng_backend: str = "auto", on_filter_done: Optional[Callable[[List[dict]], None]] = None, store: Optional[ChunkStore] = None,
     shard: Optional[Shard] = None, trial_range: Optional[Sequence[int]] = None, simulator: Optional[Callable] = None,
     warmup: Union[str, bool] = "auto", observations: Optional[torch.Tensor] = None, prior=None,
 ) -> Optional[ExperimentResult]:
@@ -304,7 +304,9 @@ def run_experiment(
 
     ``inits_per_track``: trials share a trajectory in groups of this size, each with its own prior
     draw. ``chunk_size``: trials per chunk (``None``: from ``memory_budget_gb`` and the filters'
-    memory formulas). ``ospa_cutoff``, ``ospa_order``, ``lost_threshold``: metric settings.
+    memory formulas). ``ospa_cutoff``, ``ospa_order``, ``lost_threshold``: metric settings;
+    ``burn_in``: steps dropped from the start of the burn-in metrics' trial and summary values
+    (``rmse``; fewer than the steps).
     ``on_filter_done(summary rows)`` runs after each filter. ``store``: a
     :class:`~torchflow.runner.checkpoint.ChunkStore`. ``shard``: this process's
     :class:`~torchflow.runner.distributed.Shard` (ranks other than 0 return ``None``).
@@ -322,7 +324,7 @@ def run_experiment(
     NaN marks a coordinate not observed. The filters start from ``prior = (mean, cov)``
     (``(d,)``/``(B, d)``, ``(d, d)``/``(B, d, d)``) or, without it, from the model's declared prior
     (:func:`torchflow.data.declared_prior`). The metrics that need the truth
-    (:attr:`~torchflow.metrics.Metric.needs_truth`: MSE, OMAT, OSPA) are left out (logged once); the
+    (:attr:`~torchflow.metrics.Metric.needs_truth`: MSE, RMSE, OMAT, OSPA) are left out (logged once); the
     log-evidence (with its standard error over trials), the ESS and the per-step mean and spread of
     the estimates (``result.estimate_summary``) are reported.
 
@@ -337,8 +339,10 @@ def run_experiment(
             sorted({type(f).__name__ for f in filters.values() if not isinstance(f, torch.nn.Module)}))
         raise ConfigError(f"filters: expected a mapping of names to filters, e.g. {{'kf': KalmanFilter(model)}}, got {got}")
     check_warmup(warmup)
+    n_steps = getattr(model, "n_steps", steps)
     metric_settings = check_metric_settings(ospa_cutoff=ospa_cutoff, ospa_order=ospa_order,
-                                            lost_threshold=lost_threshold)
+                                            lost_threshold=lost_threshold, burn_in=burn_in,
+                                            steps=n_steps if isinstance(n_steps, int) and n_steps > 0 else None)
     plan = plan_run(model, filters, trials=trials, steps=steps, seed=seed, inits_per_track=inits_per_track,
                     chunk_size=chunk_size, memory_budget_gb=memory_budget_gb, device=device, dtype=dtype,
                     rng_backend=rng_backend, trial_range=trial_range, shard=shard, simulator=simulator,

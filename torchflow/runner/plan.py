@@ -96,13 +96,20 @@ def _number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
-def check_metric_settings(*, ospa_cutoff, ospa_order, lost_threshold) -> dict:
-    """OSPA cut-off (> 0), order (>= 1) and the lost-track threshold (> 0, metres of OMAT)."""
+def check_metric_settings(*, ospa_cutoff, ospa_order, lost_threshold, burn_in=0, steps: Optional[int] = None) -> dict:
+    """OSPA cut-off (> 0), order (>= 1), the lost-track threshold (> 0, metres of OMAT) and the
+    burn-in (an integer >= 0 of steps, fewer than ``steps`` when given)."""
     rules = {"ospa_cutoff": (ospa_cutoff, 0.0, "a positive number"), "ospa_order": (ospa_order, 1.0, "a number >= 1"),
              "lost_threshold": (lost_threshold, 0.0, "a positive number of metres")}
     for name, (v, low, what) in rules.items():
         require(_number(v) and v >= low and (name == "ospa_order" or v > low), f"metrics.{name}", what, v)
-    return {name: float(v) for name, (v, _, _) in rules.items()}
+    whole = isinstance(burn_in, int) and not isinstance(burn_in, bool)
+    if steps is None:
+        require(whole and burn_in >= 0, "metrics.burn_in", "an integer >= 0 (steps dropped from the start)", burn_in)
+    else:
+        require(whole and 0 <= burn_in < steps, "metrics.burn_in",
+                f"an integer in [0, steps = {steps}) (steps dropped from the start of the scores)", burn_in)
+    return {**{name: float(v) for name, (v, _, _) in rules.items()}, "burn_in": int(burn_in)}
 
 
 def choose_chunk_size(filters: Mapping[str, Filter], trials: int, memory_budget_gb: float) -> int:

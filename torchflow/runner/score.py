@@ -30,8 +30,8 @@ def summary_columns() -> List[str]:
     after = {anchor: list(cols) for anchor, cols in RUN_COLUMNS}
     tail = after.pop(None, [])
     cols = list(FIXED_COLUMNS)
-    for name in metrics.REGISTRY:
-        cols += [name, *after.pop(name, [])]
+    for name, metric in metrics.REGISTRY.items():
+        cols += [*metric.columns, *after.pop(name, [])]
     return cols + [c for group in after.values() for c in group] + tail
 
 
@@ -124,12 +124,14 @@ class Scorer:
     ospa_cutoff: float = 40.0
     ospa_order: float = 1.0
     lost_threshold: float = 2.0
+    burn_in: int = 0
     reference_logz: Optional[torch.Tensor] = None
 
     @property
     def settings(self) -> Dict[str, float]:
         """The metric settings a :class:`~torchflow.metrics.MetricContext` carries."""
-        return {"ospa_cutoff": self.ospa_cutoff, "ospa_order": self.ospa_order, "lost_threshold": self.lost_threshold}
+        return {"ospa_cutoff": self.ospa_cutoff, "ospa_order": self.ospa_order, "lost_threshold": self.lost_threshold,
+                "burn_in": self.burn_in}
 
 
 def make_scorer(model: StateSpaceModel, plan: RunPlan, **settings) -> Scorer:
@@ -165,14 +167,16 @@ def context(sc: Scorer, f: Filter, chunks: List[dict]) -> metrics.MetricContext:
 
 
 def _values(ctx: metrics.MetricContext, name: str) -> Dict[str, tuple]:
-    """``{metric: (values (B, T) float64, trial reduction, integer per-trial values)}`` of every
-    registered metric that applies; an error names the filter."""
+    """``{metric: (values (B, T) float64, trial reduction, integer per-trial values, first step a
+    trial's mean counts (burn-in), standard error column)}`` of every registered metric that
+    applies; an error names the filter."""
     try:
         out = {}
         for m in metrics.applicable(ctx):
             v = m.evaluate(ctx)
             how = m.trial_reduction(ctx)
-            out[m.name] = (v.double(), how, how == "last" and not v.is_floating_point())
+            out[m.name] = (v.double(), how, how == "last" and not v.is_floating_point(), m.first_step(ctx),
+                           m.standard_error)
         return out
     except (RuntimeError, ValueError) as err:  # the metrics' own errors: add the filter's name
         if type(err) not in (RuntimeError, ValueError, ArgumentError):
@@ -181,19 +185,32 @@ def _values(ctx: metrics.MetricContext, name: str) -> Dict[str, tuple]:
 
 
 def _per_step(name: str, cols: Dict[str, tuple], steps: int) -> List[dict]:
-    means = {k: v.mean(0) for k, (v, _, _) in cols.items()}
+    means = {k: c[0].mean(0) for k, c in cols.items()}
     return [{"filter": name, "step": t + 1, **{k: float(v[t]) for k, v in means.items()}} for t in range(steps)]
 
 
+def _trial_values(v: torch.Tensor, how: str, start: int) -> torch.Tensor:
+    """``(B,)``: each trial's last value, or its mean over the steps from ``start``."""
+    return v[:, -1] if how == "last" else v[:, start:].mean(1)
+
+
 def _summary(cols: Dict[str, tuple]) -> Dict[str, float]:
-    """Summary values: the mean over trials and steps, or over trials of the last step's."""
-    return {k: float(v[:, -1].mean() if how == "last" else v.mean()) for k, (v, how, _) in cols.items()}
+    """Summary values: the mean over trials (and steps from the burn-in on), or over trials of the
+    last step's; ``name_se``: its standard error over trials where the metric asks for it."""
+    out = {}
+    for k, (v, how, _, start, se) in cols.items():
+        per_trial = _trial_values(v, how, start)
+        out[k] = float(per_trial.mean())
+        if se:
+            out[f"{k}_se"] = float(per_trial.std() / per_trial.numel() ** 0.5) if per_trial.numel() > 1 else None
+    return out
 
 
 def _trial(cols: Dict[str, tuple], b: int) -> dict:
-    """Trial ``b``'s values: the mean over its steps, or its last step's (an int for counts)."""
-    return {k: (int(v[b, -1]) if integer else float(v[b, -1])) if how == "last" else float(v[b].mean())
-            for k, (v, how, integer) in cols.items()}
+    """Trial ``b``'s values: the mean over its steps (from the burn-in on), or its last step's (an
+    int for counts)."""
+    return {k: (int(v[b, -1]) if integer else float(v[b, -1])) if how == "last" else float(v[b, start:].mean())
+            for k, (v, how, integer, start, _) in cols.items()}
 
 
 def score_sets(sc: Scorer, ctx: metrics.MetricContext, name: str, row: dict, cols: Dict[str, tuple], steps: int):
