@@ -84,6 +84,29 @@ def periodic_distances(d: int, positions: torch.Tensor) -> torch.Tensor:
     return torch.minimum(diff, d - diff)
 
 
+def periodic_neighbours(d: int, positions: torch.Tensor, radius: float) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The observations within ``radius`` of each site of a ring of ``d`` sites, for ``radius <= d / 2``,
+    without the ``(d, m)`` distance matrix: ``(taper (d, K), index (d, K))``, the Gaspari-Cohn taper
+    and the observation index of each (K: the most observations one site reaches; unused slots have
+    taper 0 and index 0). The same neighbours and tapers as :func:`periodic_distances` then
+    :func:`gaspari_cohn`, in ``O(d K)`` memory (d = 10^5 and more)."""
+    pos = positions.to(torch.float64)
+    order = torch.argsort(pos)
+    ps, m = pos[order], pos.shape[0]
+    ext = torch.cat([ps - d, ps, ps + d])  # the ring unrolled three times: a window never wraps
+    ext_index = torch.cat([order, order, order])
+    site = torch.arange(d, dtype=torch.float64)
+    lo = torch.searchsorted(ext, site - radius, right=True)  # the first at distance < radius
+    hi = torch.searchsorted(ext, site + radius, right=False)
+    count = hi - lo
+    K = max(1, int(count.max()))
+    slot = lo.unsqueeze(1) + torch.arange(K)
+    valid = torch.arange(K) < count.unsqueeze(1)
+    slot = slot.clamp(max=3 * m - 1)
+    taper = torch.where(valid, gaspari_cohn((ext[slot] - site.unsqueeze(1)).abs(), radius), torch.zeros(()))
+    return taper, torch.where(valid, ext_index[slot], torch.zeros((), dtype=torch.long))
+
+
 @dataclass
 class _Whitened:
     """The forecast ensemble seen through the measurement, whitened by R (module docstring).
@@ -389,6 +412,10 @@ class LocalEnsembleTransformKalmanFilter(_EnsembleFilter):
                 raise ArgumentError(
                     f"distances: the model ({type(model).__name__}, d = {d}, m = {m}) does not say which state "
                     "coordinate each observation reads (an `observed` tensor (m,)); pass distances (d, m)")
+            if self.radius <= d / 2:  # the ring's neighbours directly: no (d, m) matrix
+                taper, index = periodic_neighbours(d, positions.cpu(), self.radius)
+                self._set_neighbours(taper, index)
+                return
             distances = periodic_distances(d, positions.cpu())
         elif not isinstance(distances, torch.Tensor):
             raise ArgumentTypeError(f"distances: expected a tensor (d, m) = ({d}, {m}) or None, "
@@ -400,8 +427,11 @@ class LocalEnsembleTransformKalmanFilter(_EnsembleFilter):
             raise ArgumentError("distances: expected finite distances >= 0")
         rho = gaspari_cohn(dist, self.radius)  # (d, m)
         K = max(1, int((rho > 0).sum(-1).max()))  # observations that reach the best-reached coordinate
-        taper, index = rho.topk(K, dim=-1)  # (d, K)
-        #: ``(d, K)`` the observations within reach of each coordinate, and their tapers
+        self._set_neighbours(*rho.topk(K, dim=-1))  # (d, K)
+
+    def _set_neighbours(self, taper: torch.Tensor, index: torch.Tensor) -> None:
+        """``(d, K)`` the observations within reach of each coordinate, and their tapers."""
+        model = self.model
         self.register_buffer("local_index", index.to(model.device), persistent=False)
         self.register_buffer("local_taper", taper.sqrt().to(model.dtype).to(model.device), persistent=False)
 
