@@ -10,7 +10,8 @@
 #      100 trials x 500 particles x 40 steps, float64, on a fresh machine (cold: the kernels compile)
 #      then again (warm), then one chunk of 100 trials, then float32; wall time of each command and
 #      the filters' own seconds per trial-step and warm-up from its summary.csv;
-#   3. bench_gpu's PF-PF(LEDH) rows (one call of 100 and of 500 trials: the kernels' time).
+#   3. bench_gpu's PF-PF(LEDH) rows (one call of 100 and of 500 trials: the kernels' time);
+#   4. Lorenz-96 at d = 4000, 10^5 and 10^6 with the ETKF and LETKF (RMSE and seconds per step).
 #
 # The device image has torch and Triton but no Hydra: carry .whl with the hydra-core, omegaconf and
 # antlr4-python3-runtime wheels (docs/guide/gpu.md), e.g. run(command="bash experiments/benchmarks/gpu_check.sh",
@@ -73,4 +74,10 @@ echo "== bench_gpu PF-PF(LEDH) ($(left) s left)"; date
 timeout "$(cap 120)" python3 -m experiments.benchmarks.bench_gpu --device cuda --reps 2 --tests 0 --gpfis-trials 0 \
   --bpf-ns 200 2>&1 | grep -E "^\| " | tail -10 | tee -a "$MD"
 cp experiments/benchmarks/results_gpu.json "$OUT/" 2>/dev/null
+
+echo "== Lorenz-96 d-scaling on the GPU: ETKF, LETKF ($(left) s left)"; date
+{ echo; echo "## Lorenz-96 on the GPU (ETKF N = 28, LETKF N = 20, 100 steps, RMSE after 25)"; echo;
+  echo "| d | filter | trials | RMSE | s/step | device |"; echo "|---|---|---|---|---|---|"; } >> "$MD"
+timeout "$(cap 150)" python3 -m experiments.benchmarks.bench_lorenz96 --scaling-only --device cuda \
+  --dims 4000 100000 1000000 --scaling-steps 100 --out "$OUT/lorenz96_gpu" 2>&1 | grep -E "^\| " | tee -a "$MD"
 date
