@@ -414,11 +414,11 @@ class Filter(nn.Module):
         """Whether ``observations (B, T, m)`` hold NaN (values not observed, :mod:`torchflow.missing`):
         one host read per call, before the first step. Raises when a step is partly observed and
         this filter weighs particles with a model whose measurement density cannot leave out single
-        coordinates (:meth:`~torchflow.models.StateSpaceModel.partial_observations`)."""
+        coordinates (:func:`torchflow.missing.partial_observations`)."""
         nan = torch.isnan(observations) if observations.is_floating_point() else None
         if nan is None or not bool(nan.any()):
             return False
-        if self.uses_particles and not self.model.partial_observations():
+        if self.uses_particles and not _missing.partial_observations(self.model):
             partial = nan.any(-1) & ~nan.all(-1)  # (B, T)
             if bool(partial.any()):
                 b, t = (int(i) for i in torch.nonzero(partial)[0])

@@ -173,21 +173,10 @@ class StateSpaceModel(nn.Module):
             missing one at a time overrides it (the Gaussian form does, exactly; a model with
             conditionally independent coordinates sums their densities over the observed ones);
             filters refuse a partly observed step for a model that does not
-            (:meth:`partial_observations`).
+            (:func:`torchflow.missing.partial_observations`).
         """
         ll = self.measurement_log_prob(z, x)
         return torch.where(observed.any(-1), ll, torch.zeros_like(ll))
-
-    def partial_observations(self) -> bool:
-        """Whether :meth:`measurement_log_prob_observed` takes a measurement with some of its
-        coordinates missing (declared by the class that gives it: a model overriding it, or the
-        Gaussian form of a model declaring ``structure.gaussian_measurement``)."""
-        own = type(self).measurement_log_prob_observed
-        if own is StateSpaceModel.measurement_log_prob_observed:
-            return self.obs_dim == 1  # one coordinate: a gap is a whole step
-        if own is GaussianStateSpaceModel.measurement_log_prob_observed:
-            return self.obs_dim == 1 or self.structure.gaussian_measurement
-        return True
 
     # ---- what follows from the core ---------------------------------------------------------
     def simulate(self, batch_size: int, steps: int, generator: Optional[torch.Generator] = None) -> Trajectory:
