@@ -275,3 +275,51 @@ def test_the_log_squared_likelihood_relation():
     log_pz, _ = grid_filter(logsq, z, measurement_log_prob=logsq.log_squared_log_prob)
     assert abs(log_pz - (log_py + float(torch.log(y.abs()).sum()))) < 1e-8
     assert abs(log_pz - (log_py + float(torch.log(y.abs() / 2).sum()))) > 80 * math.log(2) - 1e-6
+
+
+def test_per_trial_parameters_give_the_numbers_of_separate_calls():
+    """mu, rho, sigma as one value per trial (MCMC chains): the bootstrap PF's per-trial results
+    equal separate calls with each trial's scalar values and its own stream, bit for bit up to
+    round-off; the EKF too (the Gaussian form's transition reads them)."""
+    from torchflow.inference import per_trial_values
+    from torchflow.random import TrialStreams
+
+    values = {"mu": torch.tensor([-1.0, -0.5, 0.2], **f64), "rho": torch.tensor([0.9, 0.5, -0.3], **f64),
+              "sigma": torch.tensor([0.2, 0.4, 0.8], **f64)}
+    m = StochasticVolatility()
+    y = StochasticVolatility().simulate(1, 12, torch.Generator().manual_seed(0)).observations.expand(3, -1, -1)
+    f = F.BootstrapParticleFilter(m, n_particles=64)
+    with per_trial_values(m, values):
+        mean, cov = m.declared_prior(3)
+        together = f(y, mean, cov, TrialStreams(5, 3, "sv"))
+        ekf_together = F.ExtendedKalmanFilter(m)(y, mean, cov).log_evidence
+    for b in range(3):
+        mb = StochasticVolatility(**{k: float(v[b]) for k, v in values.items()})
+        mean_b, cov_b = mb.declared_prior(1)
+        alone = F.BootstrapParticleFilter(mb, n_particles=64)(y[b:b + 1], mean_b, cov_b, TrialStreams(5, 3, "sv").select([b]))
+        torch.testing.assert_close(alone.log_evidence[0], together.log_evidence[b], rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(alone.estimates[0], together.estimates[b], rtol=1e-12, atol=1e-12)
+        ekf_alone = F.ExtendedKalmanFilter(mb)(y[b:b + 1], mean_b, cov_b).log_evidence[0]
+        torch.testing.assert_close(ekf_alone, ekf_together[b], rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("flow", ["ledh", "edh"])
+def test_per_trial_parameters_in_the_flows(flow):
+    """PF-PF on the log-squared form with per-trial mu, rho, sigma: the numbers of separate calls."""
+    from torchflow.inference import per_trial_values
+    from torchflow.random import TrialStreams
+
+    values = {"mu": torch.tensor([-1.0, 0.3], **f64), "rho": torch.tensor([0.9, 0.4], **f64),
+              "sigma": torch.tensor([0.2, 0.6], **f64)}
+    m = StochasticVolatility(gaussian_form="log_squared")
+    z = m.simulate(1, 8, torch.Generator().manual_seed(0)).observations.expand(2, -1, -1)
+    f = F.ParticleFlowParticleFilter(m, flow=flow, n_particles=16)
+    with per_trial_values(m, values):
+        mean, cov = m.declared_prior(2)
+        together = f(z, mean, cov, TrialStreams(5, 2, "sv"))
+    for b in range(2):
+        mb = StochasticVolatility(gaussian_form="log_squared", **{k: float(v[b]) for k, v in values.items()})
+        mean_b, cov_b = mb.declared_prior(1)
+        alone = F.ParticleFlowParticleFilter(mb, flow=flow, n_particles=16)(z[b:b + 1], mean_b, cov_b,
+                                                                           TrialStreams(5, 2, "sv").select([b]))
+        torch.testing.assert_close(alone.log_evidence[0], together.log_evidence[b], rtol=1e-10, atol=1e-10)

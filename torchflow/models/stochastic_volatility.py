@@ -88,6 +88,8 @@ class StochasticVolatility(GaussianStateSpaceModel):
 
     state_dim = 1
     obs_dim = 1
+    #: mu, rho and sigma may hold one value per trial, ``(B,)`` (MCMC chains: :mod:`torchflow.inference`)
+    per_trial_parameters = ("mu", "rho", "sigma")
     structure = Structure(measurement_noise="state_dependent_diagonal", measurement_jacobian_diagonal=True)
 
     def __init__(self, *, mu: float = -1.02, rho: float = 0.9702, sigma: float = 0.178,
@@ -114,6 +116,13 @@ class StochasticVolatility(GaussianStateSpaceModel):
             self.structure = type(self).structure.replace(measurement_noise="scalar",
                                                           measurement_noise_scale=LOG_CHI2_VAR)
 
+    def _view(self, p: torch.Tensor, x: torch.Tensor, core: int = 1) -> torch.Tensor:
+        """A parameter (a scalar, or one value per trial ``(B,)``) viewed against ``x (B, ..., 1)``,
+        with ``core`` trailing singleton dimensions."""
+        if p.dim() == 0:
+            return p
+        return p.reshape(p.shape[0], *([1] * (x.dim() - 1 - 1 + core)))
+
     # ---- the stationary law ------------------------------------------------------------------
     def stationary_var(self) -> torch.Tensor:
         """``sigma^2 / (1 - rho^2)``, the variance of x_t under the stationary law (a scalar)."""
@@ -122,7 +131,7 @@ class StochasticVolatility(GaussianStateSpaceModel):
     def initial_state(self, batch_size: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         """``x_0 (B, 1)`` from the stationary law ``N(mu, sigma^2 / (1 - rho^2))``."""
         xi = linalg.standard_normal((batch_size, 1), dtype=self.dtype, device=self.device, generator=generator)
-        return self.mu + self.stationary_var().sqrt() * xi
+        return self._view(self.mu, xi) + self._view(self.stationary_var(), xi).sqrt() * xi
 
     def initial_belief(self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
                        ) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -133,31 +142,39 @@ class StochasticVolatility(GaussianStateSpaceModel):
         """The stationary law ``N(mu, sigma^2 / (1 - rho^2))`` (no true state needed; differentiable in
         the parameters): ``(B, 1)``, ``(B, 1, 1)``."""
         ones = torch.ones(batch_size, 1, dtype=self.dtype, device=self.device)
-        return self.mu * ones, self.stationary_var() * ones.unsqueeze(-1)
+        return self._view(self.mu, ones) * ones, self._view(self.stationary_var(), ones, 2) * ones.unsqueeze(-1)
 
     # ---- dynamics ----------------------------------------------------------------------------
     def transition_mean(self, x: torch.Tensor) -> torch.Tensor:
         """``mu + rho (x - mu)``: ``(..., 1) -> (..., 1)``."""
-        return self.mu + self.rho * (x - self.mu)
+        mu = self._view(self.mu, x)
+        return mu + self._view(self.rho, x) * (x - mu)
 
     def transition_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
-        return (self.sigma ** 2).reshape(1, 1)
+        """``sigma^2`` as ``(1, 1)`` (per-trial values: ``(B, ..., 1, 1)`` against ``x``)."""
+        return self.transition_scale_tril(x) ** 2
 
     def transition_scale_tril(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
-        return self.sigma.reshape(1, 1)
+        if self.sigma.dim() == 0:
+            return self.sigma.reshape(1, 1)
+        if x is None:
+            return self.sigma.reshape(-1, 1, 1)
+        return self._view(self.sigma, x, 2)
 
     def transition_jacobian(self, x: torch.Tensor) -> torch.Tensor:
         """``rho``, as ``(..., 1, 1)``."""
-        return self.rho.expand(*x.shape[:-1], 1, 1)
+        return (self._view(self.rho, x) * torch.ones_like(x)).unsqueeze(-1)
 
     def sample_transition(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         xi = linalg.standard_normal(x.shape, dtype=x.dtype, device=x.device, generator=generator)
-        return self.transition_mean(x) + self.sigma * xi
+        return self.transition_mean(x) + self._view(self.sigma, x) * xi
 
     def transition_log_prob(self, x_next: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """``log N(x_next; mu + rho (x - mu), sigma^2)`` -> ``(...)``."""
-        r = ((x_next - self.transition_mean(x)) / self.sigma).squeeze(-1)
-        return -0.5 * (LOG_2PI + r * r) - torch.log(self.sigma)
+        mean = self.transition_mean(x)
+        sigma = self._view(self.sigma, mean if mean.dim() >= x_next.dim() else x_next)
+        r = ((x_next - mean) / sigma).squeeze(-1)
+        return -0.5 * (LOG_2PI + r * r) - torch.log(sigma).squeeze(-1)
 
     # ---- measurement: the Gaussian form ------------------------------------------------------
     def measure(self, x: torch.Tensor) -> torch.Tensor:
