@@ -651,8 +651,8 @@ def test_gpfis_runs_on_a_hand_written_model_with_the_default_hessian():
 
 #: setting -> (valid values, bad values); sizes stay tiny (a huge valid size would be run)
 RUN_SETTINGS = {
-    "trials": ([1, 2, 3, 2.0], [0, -1, 1.5, "abc", True, None, math.nan]),
-    "steps": ([1, 2], [0, -2, 2.5, "3", None]),
+    "trials": ([1, 2, 3, 2.0], [0, -1, 1.5, "abc", True, math.nan]),  # None: the default (10, or the data's)
+    "steps": ([1, 2], [0, -2, 2.5, "3"]),
     "seed": ([0, 7, 2**63 - 1], [-1, 2**63, 1.5, "0", None]),
     "inits_per_track": ([1, 2, 5], [0, -1, 1.5, "2"]),
     "chunk_size": ([None, 1, 2, 100], [0, -3, 2.5, "1", True]),

@@ -68,8 +68,9 @@ def test_an_empty_cell_or_nan_is_not_observed_and_kept(tmp_path):
     z = _series(SensorNetwork(d=4), 5).numpy()
     z[1, 2] = np.nan
     path = _write_csv(tmp_path / "z.csv", z)  # an empty cell
-    text = path.read_text().replace("\n" + ",".join(repr(v) for v in z[3]), "\n" + ",".join(["nan"] + [
-        repr(v) for v in z[3, 1:]]))
+    row = z[3].tolist()  # Python floats: their repr is what _write_csv wrote (numpy 2's repr is np.float64(...))
+    text = path.read_text().replace("\n" + ",".join(repr(v) for v in row), "\n" + ",".join(["nan"] + [
+        repr(v) for v in row[1:]]))
     path.write_text(text)
     got = load_observations(path, SensorNetwork(d=4))
     assert torch.isnan(got[1, 2]) and torch.isnan(got[3, 0]) and int(torch.isnan(got).sum()) == 2
