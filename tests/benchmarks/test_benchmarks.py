@@ -417,3 +417,15 @@ def test_sv_quick(tmp_path):
 
     y = np.loadtxt(gbpusd.write(tmp_path / "gbpusd.csv"), delimiter=",", skiprows=1)
     assert y.shape == (750,) and abs(y[0] + 0.23976372819901615) < 1e-15
+
+
+def test_sv_pmmh_quick(tmp_path):
+    """The PMMH benchmark at toy size: both samplers' rows, finite posterior summaries."""
+    pytest.importorskip("particles")
+    from experiments.benchmarks import bench_sv_pmmh
+
+    bench_sv_pmmh.main(["--steps", "20", "--iterations", "6", "--adapt", "3", "--chains", "2", "--particles", "30",
+                        "--out", str(tmp_path / "pmmh")])
+    rows = json.loads((tmp_path / "pmmh.json").read_text())["rows"]
+    assert [r["sampler"].split()[0] for r in rows] == ["torchflow", "particles"]
+    assert all(math.isfinite(r[k]["mean"]) and r[k]["ess"] > 0 for r in rows for k in ("mu", "rho", "sigma"))
