@@ -151,6 +151,7 @@ def particle_gibbs(model: StateSpaceModel, observations: torch.Tensor, prior: Un
             lj_new = joint(torch.where(ok.unsqueeze(-1), u_new, u), path)
             accept = walk.accept(torch.where(ok, (lp_new + lj_new) - (lp + lj), torch.full_like(lp, -math.inf)), it)
             u = torch.where(accept.unsqueeze(-1), u_new, u)
+            walk.visit(u, it)
             path = sweep(u, path, it)
             lj = joint(u, path)
             if it > walk.n_adapt:

@@ -107,8 +107,15 @@ class ParameterSpace:
 
 
 class RandomWalk:
-    """Gaussian random-walk proposals on ``u`` with one scale per chain, adapted by Robbins-Monro on
-    its logarithm towards ``target`` acceptance during the first ``n_adapt`` iterations, then fixed."""
+    """Gaussian random-walk proposals on ``u (C, p)``: ``u + s_c L xi``, adapted during the first
+    ``n_adapt`` iterations and fixed afterwards (so the kept chain is a plain Metropolis chain).
+
+    * the shape ``L``: the identity at first, then, from ``2 p + 2`` adaptation iterations on, the
+      Cholesky factor of ``2.38^2 / p`` times the covariance of the states visited so far, pooled
+      over the chains (Haario, Saksman & Tamminen 2001; Roberts & Rosenthal's scaling), which
+      follows correlated parameters (stochastic volatility's rho and sigma);
+    * the scale ``s_c`` of each chain: Robbins-Monro on its logarithm towards ``target`` acceptance.
+    """
 
     def __init__(self, C: int, dim: int, scale: float, n_adapt: int, target: Optional[float], generator):
         if not (isinstance(scale, (int, float)) and not isinstance(scale, bool) and scale > 0):
@@ -116,11 +123,15 @@ class RandomWalk:
         if int(n_adapt) != n_adapt or n_adapt < 0:
             raise ArgumentError(f"n_adapt: expected an integer >= 0, got {n_adapt!r}")
         self.log_scale = torch.full((C,), math.log(scale), dtype=torch.float64)
-        self.n_adapt, self.generator = int(n_adapt), generator
+        self.n_adapt, self.generator, self.dim = int(n_adapt), generator, int(dim)
         self.target = target if target is not None else (0.44 if dim == 1 else 0.234)
+        self.shape = torch.eye(self.dim, dtype=torch.float64)  # L
+        self._n, self._sum = 0, torch.zeros(self.dim, dtype=torch.float64)
+        self._outer = torch.zeros(self.dim, self.dim, dtype=torch.float64)
+        self._relative = False  # the scale is relative to the visited covariance once it is used
 
     def propose(self, u: torch.Tensor) -> torch.Tensor:
-        step = torch.randn(u.shape, generator=self.generator, dtype=torch.float64)
+        step = torch.randn(u.shape, generator=self.generator, dtype=torch.float64) @ self.shape.T
         return u + step * self.log_scale.exp().unsqueeze(-1)
 
     def accept(self, log_alpha: torch.Tensor, it: int) -> torch.Tensor:
@@ -131,6 +142,26 @@ class RandomWalk:
         if it <= self.n_adapt:
             self.log_scale = self.log_scale + (ok.double() - self.target) / it ** 0.6
         return ok
+
+    def visit(self, u: torch.Tensor, it: int) -> None:
+        """Record the chains' states ``u (C, p)`` after iteration ``it``; during adaptation, refresh
+        the proposal's shape from the covariance of the states visited so far."""
+        if it > self.n_adapt:
+            return
+        self._n += u.shape[0]
+        self._sum += u.sum(0)
+        self._outer += u.T @ u
+        if it < 2 * self.dim + 2:
+            return
+        mean = self._sum / self._n
+        cov = self._outer / self._n - torch.outer(mean, mean)
+        cov = 0.5 * (cov + cov.T) + 1e-10 * torch.eye(self.dim, dtype=torch.float64)
+        L, info = torch.linalg.cholesky_ex(cov * (2.38 ** 2 / self.dim))
+        if int(info) == 0:
+            if not self._relative:  # from here on the scale multiplies the visited covariance's shape
+                self.log_scale = torch.zeros_like(self.log_scale)
+                self._relative = True
+            self.shape = L
 
 
 def cpu_generator(generator) -> torch.Generator:

@@ -127,6 +127,7 @@ def pmmh(filt: Filter, observations: torch.Tensor, prior: Union[Callable, tuple]
         ll_new = log_likelihood(torch.where(ok.unsqueeze(-1), u_new, u), it)
         accept = walk.accept(torch.where(ok, (lp_new + ll_new) - (lp + ll), torch.full_like(lp, -math.inf)), it)
         u = torch.where(accept.unsqueeze(-1), u_new, u)
+        walk.visit(u, it)
         lp, ll = torch.where(accept, lp_new, lp), torch.where(accept, ll_new, ll)
         if it > walk.n_adapt:
             accepted += accept.double()
