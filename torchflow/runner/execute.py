@@ -162,6 +162,23 @@ def _timed_call(f: Filter, name: str, plan: RunPlan, s: int, e: int, steps: Opti
     return res, time.perf_counter() - t0
 
 
+def say_slow_path(filters: Mapping, device) -> Optional[str]:
+    """On the CPU without the Numba kernels, say once (a warning in the log) which filters' flows
+    will run on the slower torch path, and how to get the fused one; the message, or ``None``."""
+    from ..flows.kernels import select, steps
+
+    if torch.device(device).type != "cpu" or steps.numba_available():
+        return None
+    slow = [name for name, f in filters.items()
+            if select.declared(getattr(getattr(f, "proposal", None), "flow", None), "kernel") is not None]
+    if not slow:
+        return None
+    text = (f"the CPU kernels (Numba) are not installed: the flows of {', '.join(slow)} run on the slower torch path; "
+            "pip install 'torchflow[kernels]' (or numba) for the fused kernels")
+    log.warning(text)
+    return text
+
+
 def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None) -> dict:
     """Run filter ``f`` on trials ``[s, e)``: the chunk's :data:`CHUNK_FIELDS` as CPU tensors
     (floats as float64). Padded measurement sets (a trajectory with a ``mask``) pass their mask."""
@@ -353,6 +370,8 @@ def run_experiment(
         left = [name for name, m in metrics.REGISTRY.items() if m.needs_truth]
         log.info(f"recorded data (no true states): {', '.join(left) or 'no metric'} left out; reported: the "
                  "log-evidence, the ESS and the estimates' per-step mean and spread")
+    if plan.shard.is_main:
+        say_slow_path(filters, s.device)
     with before_the_filters("the Kalman filter's reference log-evidence"):
         scorer = make_scorer(model, plan, **metric_settings)
     res = ExperimentResult([], [], [])
