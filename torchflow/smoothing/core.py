@@ -12,6 +12,7 @@ from ..errors import ArgumentError, ArgumentTypeError
 from ..filters.base import ANCESTOR, Filter, FilterResult, GaussianState, ParticleFilter, _Trace
 from ..filters.kalman import _GaussianFilter
 from ..random import check_generator, uniform
+from .. import resampling as _resampling
 from ..resampling import gather_particles
 
 #: the methods of :func:`smooth`
@@ -172,12 +173,13 @@ def _rts(filt, obs, mean, cov) -> SmoothingResult:
 # ---- particle smoothers --------------------------------------------------------------------------
 
 def _categorical(log_w: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-    """One index per row of ``log_w (..., N)`` by inverting the cumulative weights at ``u (...)``."""
-    w = torch.softmax(log_w, -1)
-    cdf = torch.cumsum(w, -1)
-    cdf = cdf / cdf[..., -1:]
-    idx = torch.searchsorted(cdf.contiguous(), u.unsqueeze(-1).contiguous(), right=True).squeeze(-1)
-    return idx.clamp_(max=log_w.shape[-1] - 1)
+    """One index per row of ``log_w (..., N)`` at the uniform ``u (...)``: the resamplers' inverse
+    CDF (:mod:`torchflow.resampling`: a zero weight is never drawn), one position per row."""
+    N = log_w.shape[-1]
+    rows = log_w.reshape(-1, N)
+    cdf = _resampling._scaled_cdf(_resampling._unnormalized_weights(rows))
+    pos = _resampling._below(u.reshape(-1, 1).to(cdf.dtype) * N, cdf.new_tensor(float(N)))
+    return _resampling._invert_cdf(cdf, pos).reshape(u.shape)
 
 
 def _particles(filt, obs, mean, cov, generator, method, M, n_particles, path_chunk) -> SmoothingResult:
