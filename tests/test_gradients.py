@@ -253,3 +253,26 @@ def test_stop_gradient_is_every_particle_filter_s_default_and_its_forward_pass_i
         if name == "bpf":  # only the gradient changes: the ancestors' score terms
             ga, gb = (torch.autograd.grad(r.log_evidence.sum(), model.F)[0] for r in (a, b))
             assert not torch.equal(ga, gb)
+
+
+@pytest.mark.slow
+def test_marginal_score_gradient_matches_the_kalman_gradient_at_n_1000():
+    """The marginal weights' score estimator (``weights="marginal"``, ``proposal_gradient="score"``,
+    ``stop_gradient``: Poyiadjis, Doucet & Singh's O(N^2) recursion) of ``grad_F log Z`` at
+    N = 1000 on the d = 2, T = 20 model: 12 repetitions of an 8-run mean, each entry within the
+    Bonferroni bound t_11(1 - 0.005 / 4) = 3.9 of the Kalman gradient. Its per-run spread is
+    about 0.1 (measured), some 60-100 times below ``stop_gradient``'s on the same model, so
+    96 runs resolve an O(1/N) bias of about 0.03; the bias measured was about 0.02 on the
+    largest entry (0.5 % of it)."""
+    model, obs, mean, cov = problem(T, 2)
+    B8, reps = 8, 12
+    obs8, mean8, cov8 = obs.expand(B8, -1, -1).contiguous(), mean.expand(B8, -1), cov.expand(B8, -1, -1)
+    log_z = KalmanFilter(model)(obs, mean, cov).log_evidence.sum()
+    exact = torch.autograd.grad(log_z, [model.F])[0].flatten()
+    filt = BootstrapParticleFilter(model, n_particles=1000, weights="marginal", proposal_gradient="score")
+    G = torch.stack([torch.autograd.grad(filt(obs8, mean8, cov8, torch.Generator().manual_seed(100 + r))
+                                         .log_evidence.mean(), [model.F])[0].flatten() for r in range(reps)])
+    est, se = G.mean(0), G.std(0) / math.sqrt(reps)
+    t = (est - exact) / se
+    assert float(t.abs().max()) < 3.9, (exact, est, se)
+    assert float((G.std(0) * math.sqrt(B8)).max()) < 0.5  # the per-run spread stays that small

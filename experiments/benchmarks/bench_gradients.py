@@ -22,7 +22,9 @@ bias beyond Monte Carlo error); ``sd/run``: the Euclidean norm of the per-run st
 ``fwd`` and ``fwd+bwd``: seconds per trial-step of one call (forward under no_grad; forward with
 autograd plus backward), ``saved MB/trial``: bytes autograd keeps for the backward pass, per trial,
 counted by a ``saved_tensors_hooks`` (an upper estimate: views counted each time). ``ot`` at N = 10^4
-would need 0.8 GB per trial for its plan: skipped (``--ot-max-n``).
+would need 0.8 GB per trial for its plan: skipped (``--ot-max-n``, which also bounds ``marginal``).
+``marginal``: marginal weights (``weights="marginal"``) with ``proposal_gradient="score"`` and
+``stop_gradient`` resampling, the O(N^2) score estimator of :mod:`torchflow.filters.marginal`.
 
 Memory (``--memory-n``, default 10^4; 0: none): the peak resident memory that one forward + backward
 pass of ``--memory-trials`` trials adds, with and without ``checkpoint_steps`` (each time step
@@ -46,7 +48,7 @@ from torchflow.schedules import ExponentialSchedule
 
 from . import harness as h
 
-ESTIMATORS = ("none", "stop_gradient", "soft", "ot")
+ESTIMATORS = ("none", "stop_gradient", "soft", "ot", "marginal")
 FILTERS = {"bpf": "BPF", "ledh": "PF-PF(LEDH)"}
 
 
@@ -69,7 +71,10 @@ def _flat(grads):
 
 
 def _filter(kind: str, model, n: int, est: str):
-    kw = dict(n_particles=n, resampling_gradient=est, ot_iterations=50)
+    # "marginal": marginal weights with the proposal held constant and stop_gradient resampling,
+    # the O(N^2) score estimator (torchflow.filters.marginal)
+    kw = (dict(n_particles=n, weights="marginal", proposal_gradient="score") if est == "marginal" else
+          dict(n_particles=n, resampling_gradient=est, ot_iterations=50))
     if kind == "bpf":
         return BootstrapParticleFilter(model, **kw)
     return ParticleFlowParticleFilter(model, flow="ledh", schedule=ExponentialSchedule(10, 1.2), **kw)
@@ -186,8 +191,8 @@ def run(argv=None) -> dict:
         for kind in kinds:
             for n in ns:
                 for est in ests:
-                    if est == "ot" and n > a.ot_max_n:
-                        continue  # the (N, N) plan: 0.8 GB per trial at N = 1e4
+                    if est in ("ot", "marginal") and n > a.ot_max_n:
+                        continue  # O(N^2) per trial-step: the (N, N) plan is 0.8 GB per trial at N = 1e4
                     big = n >= 10_000
                     trials, reps = (max(2, a.trials // 4), max(3, a.reps // 2)) if big else (a.trials, a.reps)
                     rows.append(_cell(kind, est, n, model, obs, mean, cov, exact, trials, reps, d, a.params))

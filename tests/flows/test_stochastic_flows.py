@@ -396,7 +396,7 @@ def test_pfpf_gromov_without_proposal_density_would_be_biased(monkeypatch):
 
     def wrong(self, eta0, x_prev, z, prior, generator, log_q0, noise=None, index=None):
         out = integrate_flow(self.flow, self.model, eta0, z, prior, self.schedule, generator=generator)
-        return out.particles, self.model.transition_log_prob(eta0, x_prev)
+        return out.particles, self.model.transition_log_prob(eta0, x_prev), None, None
 
     monkeypatch.setattr(StochasticFlowProposal, "_migrate", wrong)
     model = mild_lg()

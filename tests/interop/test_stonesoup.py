@@ -213,3 +213,48 @@ def test_detection_of_the_wrong_size_and_bad_device():
         FlowParticleUpdater(mm, device="tpu")
     with pytest.raises(ValueError, match=r"dtype: expected 'float64' or 'float32', got 'float16'"):
         FlowParticleUpdater(mm, dtype="float16")
+
+
+@pytest.mark.parametrize("flow", ["edh", "ledh"])
+def test_marginal_weights_with_a_prior_wider_than_q(flow):
+    """A prior cloud much wider than the transition noise (diag(1.5, .5, 1.5, .5) against
+    ``ConstantVelocity(0.05)``) with Li & Coates' predicted flow prior: each standard PF-PF weight
+    divides by its own parent's narrow law and collapses (ESS a few particles, the weighted mean
+    many standard errors off); the marginal weights (``weights="marginal"``) divide by the mixture
+    over parents: their ESS is several times larger on the same clouds and their weighted mean is
+    the Kalman posterior mean within Monte Carlo error (Bonferroni t bound as above)."""
+    tm = CombinedLinearGaussianTransitionModel([ConstantVelocity(0.05), ConstantVelocity(0.05)])
+    cov0 = np.diag([1.5, 0.5, 1.5, 0.5])
+    mm = LinearGaussian(ndim_state=4, mapping=(0, 2), noise_covar=np.diag([0.5, 0.5]))
+    det = Detection(np.array([[1.5], [-0.8]]), timestamp=T0 + DT, measurement_model=mm)
+    kpred = KalmanPredictor(tm).predict(GaussianState(MEAN0.reshape(-1, 1), cov0, timestamp=T0), timestamp=T0 + DT)
+    kf = np.asarray(KalmanUpdater(mm).update(SingleHypothesis(kpred, det)).state_vector, float).ravel()
+    ess, means = {"standard": [], "marginal": []}, []
+    for seed in range(6):
+        np.random.seed(seed)
+        x = np.random.default_rng(seed).multivariate_normal(MEAN0, cov0, 1000).T
+        pred = ParticlePredictor(tm).predict(ParticleState(StateVectors(x), log_weight=np.full(1000, -np.log(1000)),
+                                                           timestamp=T0), timestamp=T0 + DT)
+        for w in ess:
+            post = FlowParticleUpdater(mm, flow=flow, seed=seed, flow_prior="predicted", weights=w).update(
+                SingleHypothesis(pred, det))
+            p = np.exp(np.asarray(post.log_weight, float))
+            ess[w].append(1.0 / (p ** 2).sum())
+            if w == "marginal":
+                means.append(np.asarray(post.state_vector, float) @ p)
+    assert np.mean(ess["marginal"]) > 5 * np.mean(ess["standard"]), ess
+    means = np.array(means)
+    t = np.abs(means.mean(0) - kf) / (means.std(0, ddof=1) / np.sqrt(len(means)))
+    assert (t < 5.6).all(), (means.mean(0), kf)  # about t_5 at 1 - 0.01 / 8
+
+
+def test_marginal_weights_need_a_parent():
+    mm = LinearGaussian(ndim_state=4, mapping=(0, 2), noise_covar=np.diag([0.5, 0.5]))
+    with pytest.raises(Exception, match="weights: expected 'standard' or 'marginal'"):
+        FlowParticleUpdater(mm, weights="mixture")
+    lone = _particles(50)
+    from stonesoup.types.prediction import ParticleStatePrediction
+    pred = ParticleStatePrediction(lone.state_vector, log_weight=lone.log_weight, timestamp=T0 + DT)
+    with pytest.raises(Exception, match="weights: 'marginal' needs the prediction's parent"):
+        FlowParticleUpdater(mm, weights="marginal").update(
+            SingleHypothesis(pred, Detection(np.array([[0.1], [0.2]]), timestamp=T0 + DT, measurement_model=mm)))

@@ -14,7 +14,7 @@ from torch import nn
 from .. import linalg, missing as _missing
 from .. import random as _random
 from .. import resampling as _resampling
-from .._checks import allocation_failure, check_count, check_finite, check_psd, check_same, check_tensor
+from .._checks import allocation_failure, check_choice, check_count, check_finite, check_psd, check_same, check_tensor
 from .._blocks import blockwise
 from ..covariances import Covariance
 from ..models.base import StateSpaceModel
@@ -26,6 +26,7 @@ from ..random import check_generator
 from ..flows.kernels import graph_step
 from ..errors import ArgumentError, ArgumentTypeError
 from . import guards
+from . import marginal as _marginal
 
 
 @dataclass
@@ -581,6 +582,14 @@ class ParticleFilter(Filter):
             filter, step and trials. Recover is the default because a flow's far-tail particle can
             overflow its ``log|det|`` in an otherwise healthy trial, and weight zero is the limit of
             its weight; the count keeps every repair visible.
+        weights: ``"standard"`` (default): each particle weighed against its own parent,
+            ``p(x | x_prev) / q(x | x_prev)``. ``"marginal"``: against the predictive mixture over the
+            previous cloud, ``sum_j W_j p(x | x_j) / ((1/N) sum_j q(x | x_j))`` (the marginal particle
+            filter; :mod:`torchflow.filters.marginal`): O(N^2) per step in memory-bounded blocks; a
+            flow's moves are no longer charged against its own parent's transition density, and with
+            ``proposal_gradient="score"`` the gradient is the O(N^2) score estimator that does not
+            degenerate along the genealogy. The evidence stays unbiased. For the bootstrap proposal
+            and the weighted flow proposals (on a Gaussian transition).
         particle_chunk: evaluate per-particle work (likelihoods; local flows) in blocks of at most
             this many particles to bound memory (``None``: all at once, or the proposal's own
             blocks). The runner sets it from ``memory_budget_gb`` (:meth:`plan_memory`).
@@ -594,8 +603,8 @@ class ParticleFilter(Filter):
     def __init__(self, model, proposal=None, *, n_particles: int = 500, resampling: str = "systematic",
                  ess_threshold: float = 0.5, regularization=None, resampling_gradient: str = "stop_gradient",
                  soft_alpha: float = 0.5, ot_epsilon: float = 0.1, ot_iterations: int = 100, nonfinite: str = "recover",
-                 particle_chunk: Optional[int] = None, proposal_gradient: str = "pathwise", validate: bool = True,
-                 name: Optional[str] = None):
+                 particle_chunk: Optional[int] = None, proposal_gradient: str = "pathwise", weights: str = "standard",
+                 validate: bool = True, name: Optional[str] = None):
         super().__init__(model, validate=validate, name=name)
         if proposal is None:
             proposal = BootstrapProposal(model)
@@ -616,6 +625,15 @@ class ParticleFilter(Filter):
         if proposal_gradient not in PROPOSAL_GRADIENTS:
             raise ArgumentError(f"proposal_gradient: expected one of {PROPOSAL_GRADIENTS}, got {proposal_gradient!r}")
         self.proposal_gradient = proposal_gradient
+        check_choice("weights", weights, _marginal.WEIGHTS)
+        if weights == "marginal" and not proposal.has_ancestor_law:
+            raise ArgumentError(f"weights: 'marginal' needs the proposal's density given every parent, which "
+                                f"{type(proposal).__name__} does not give (on this model); it is available for the "
+                                "bootstrap proposal and the weighted flow proposals on models with a Gaussian "
+                                "transition. Use weights='standard'")
+        #: ``"standard"`` or ``"marginal"`` weights (:mod:`torchflow.filters.marginal`)
+        self.weights = weights
+        proposal.report_ancestor_law = weights == "marginal"
         self.n_particles = int(check_count("n_particles", n_particles))
         #: the resampling part: scheme, ESS trigger, regularisation, gradient estimator
         self.resampler = _resampling.Resampler(model.state_dim, scheme=resampling, ess_threshold=ess_threshold,
@@ -628,7 +646,8 @@ class ParticleFilter(Filter):
         """Whether the whole step may be replayed from a CUDA graph (:mod:`torchflow.flows.kernels.graph_step`):
         the generic step (not overridden), a proposal class and a model class that each declare
         themselves ``graph_safe`` (on the class itself: a subclass may draw otherwise)."""
-        return (type(self).step is ParticleFilter.step and bool(vars(type(self.proposal)).get("graph_safe"))
+        return (type(self).step is ParticleFilter.step and self.weights == "standard"
+                and bool(vars(type(self.proposal)).get("graph_safe"))
                 and kernel_structure(self.model).graph_safe)
 
     resampling_scheme = property(lambda self: self.resampler.scheme)
@@ -700,6 +719,14 @@ class ParticleFilter(Filter):
                                          chunk=self.particle_chunk)
         model = self.model
         z1 = z.unsqueeze(1)
+        if self.weights == "marginal":
+            log_lik = self.per_particle(lambda x: _missing.measurement_log_prob(model, z1, x), prop.particles)
+            log_inc = _marginal.marginal_log_increment(model, prop, state.particles, state.log_weights, log_lik,
+                                                       hold_proposal=score, chunk=self.particle_chunk)
+            uniform = torch.full_like(state.log_weights, -math.log(state.log_weights.shape[-1]))
+            return self.weight_and_resample(prop.particles, uniform, log_inc, generator, state.step + 1,
+                                            cov=prop.cov, fallback=prop.fallback, n_repaired=state.n_repaired,
+                                            extras=ancestor_extras(state, prop.particles))
 
         def measurement_log_prob(z, x):  # of the observed coordinates where z has NaN (torchflow.missing)
             return _missing.measurement_log_prob(model, z, x)

@@ -208,6 +208,8 @@ class FlowOutput:
             batched like the points: ``(B, d)``/``(B, d, d)`` (global), ``(B, N|K, d)`` and
             ``(B, N|K|1, d, d)`` (per particle, clustered). Gaussian and Gaussian-sum particle
             filters and flow-induced mixture proposals are built from it.
+        map_jacobian: with ``map_jacobian=True`` (deterministic flows), each particle's map matrix
+            ``M`` (``eta_1 = M eta_0 + c``): ``(B, 1, d, d)`` (one point per trial) or ``(B, N, d, d)``.
     """
 
     particles: torch.Tensor
@@ -218,6 +220,7 @@ class FlowOutput:
     proposal_cov: Optional[torch.Tensor] = None
     image_mean: Optional[torch.Tensor] = None
     image_cov: Optional[torch.Tensor] = None
+    map_jacobian: Optional[torch.Tensor] = None
 
 
 class ParticleFlow(nn.Module):

@@ -39,7 +39,7 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
                    schedule: Optional[LambdaSchedule] = None, *, generator: Optional[torch.Generator] = None,
                    proposal: Optional[FlowPrior] = None, noise=None, index: Optional[torch.Tensor] = None,
                    points: Union[None, str, LinearisationPoints] = None, gaussian_image: bool = False,
-                   measurement=None, start: Optional[torch.Tensor] = None) -> FlowOutput:
+                   measurement=None, start: Optional[torch.Tensor] = None, map_jacobian: bool = False) -> FlowOutput:
     """Integrate a flow from lambda = 0 to 1 (see the module docstring).
 
     Deterministic flows take Euler steps and accumulate ``log|det(I + eps_j A_j)|``, the
@@ -73,6 +73,11 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
         noise: stochastic flows: optional ``noise(j, shape) -> (B, N, r)`` standard normals of
             pseudo-time step ``j`` (instead of drawing them from ``generator``); a filter that
             flows particles in blocks uses it to keep the draws those of the whole cloud.
+        map_jacobian: deterministic flows: also return each particle's map matrix ``M``
+            (``eta_1 = M eta_0 + c``; the coefficients depend on the points, not on the particle),
+            ``(B, 1, d, d)`` for one point per trial, else ``(B, N, d, d)``: the marginal particle
+            weights push each parent's transition through it (costs a ``d x d`` product per point
+            and pseudo-time step; the reference loop).
         start: where the points start, batched like ``prior.mean`` (default: ``prior.mean``
             itself, as in EDH/LEDH, whose first linearisation point is the prior mean). The prior
             mean ``eta_bar_0`` of the homotopy stays ``prior.mean``; a filter whose prior is
@@ -90,8 +95,11 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
     eps_all, lam_all = schedule.steps(dtype=particles.dtype, device=particles.device)
     eps_host = schedule.host_steps(particles.dtype)
     strategy = resolve_points(flow, "clustered" if points is None and index is not None else points)
+    if map_jacobian and flow.stochastic:
+        raise ArgumentError("map_jacobian: a stochastic flow's map is not deterministic; its law is the output's "
+                            "proposal_mean and proposal_cov (give proposal=)")
     graphable = (measurement is None and proposal is None and noise is None and start is None and not gaussian_image
-                 and select.flow_graph(flow, particles))
+                 and not map_jacobian and select.flow_graph(flow, particles))
     if measurement is None:
         measurement = GaussianMeasurement.from_model(model, z)
     if start is not None:
@@ -107,7 +115,7 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
         out = _integrate_graphed(flow, model, schedule, strategy, particles, z, prior, index, (eps_all, eps_host), lam_all)
     else:
         out = _integrate(flow, measurement, particles, prior, index, strategy.per_particle, (eps_all, eps_host), lam_all,
-                         generator, proposal, noise, gaussian_image, start)
+                         generator, proposal, noise, gaussian_image, start, map_jacobian)
     if squeeze:
         out.aux = out.aux.squeeze(-2)
         if gaussian_image:
@@ -116,7 +124,7 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
 
 
 def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all, lam_all, generator, proposal,
-               noise, gaussian_image, start=None) -> FlowOutput:
+               noise, gaussian_image, start=None, map_jacobian=False) -> FlowOutput:
     """The loop of :func:`integrate_flow`: ``prior`` at ``(B, L, d)`` points, ``index (B, N)`` or
     ``None`` (points broadcast against the particles, or are the particles). A fused kernel takes
     the integration where :func:`torchflow.flows.kernels.select.flow_kernel` chooses one; the loop
@@ -125,16 +133,16 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
     k = d if measurement.support is None else len(measurement.support)
     track = flow.stochastic and proposal is not None
     kernel = select.flow_kernel(flow, measurement, particles, k, per_particle=per_particle, track=track,
-                                gaussian_image=gaussian_image)
+                                gaussian_image=gaussian_image or map_jacobian)
     if kernel is not None:
         return loops.run_flow(kernel, flow, measurement, particles, prior, index, eps_all, lam_all, generator,
                               proposal, noise, start)
     return _reference(flow, measurement, particles, prior, index, per_particle, eps_all, lam_all, generator,
-                      proposal, noise, gaussian_image, start)
+                      proposal, noise, gaussian_image, start, map_jacobian)
 
 
 def _reference(flow, measurement, particles, prior, index, per_particle, eps_all, lam_all, generator, proposal,
-               noise, gaussian_image, start=None) -> FlowOutput:
+               noise, gaussian_image, start=None, map_jacobian=False) -> FlowOutput:
     """The reference pseudo-time loop (module docstring), for every flow and kind of points."""
     B, N, d = particles.shape
     eps_all, eps_host = eps_all  # the step sizes on the device, and as Python floats
@@ -148,8 +156,9 @@ def _reference(flow, measurement, particles, prior, index, per_particle, eps_all
     track = stochastic and proposal is not None
     compose = not stochastic and not per_particle and L * d * d <= N * k
     eye = torch.eye(d, dtype=particles.dtype, device=particles.device)
-    if compose:  # each point's map eta -> M eta + c, composed on (d, d) matrices
+    if compose or map_jacobian:  # each point's map eta -> M eta + c, composed on (d, d) matrices
         M = eye.expand(B, L, d, d)
+    if compose:
         c = torch.zeros(B, L, d, dtype=particles.dtype, device=particles.device)
     if track:  # the law N(mu (B, N, d), Sig (B, N|1, d, d)) the particles were drawn from
         mu, Sig = proposal.mean.expand(B, N, d), proposal.scale_tril @ proposal.scale_tril.transpose(-1, -2)
@@ -166,6 +175,8 @@ def _reference(flow, measurement, particles, prior, index, per_particle, eps_all
         image.step(co, eps_host[j])  # at the points
         if not stochastic:
             log_det = log_det + co.log_det
+        if map_jacobian and not compose:
+            M = (eye + eps * co.dense_A()) @ M
         if compose:
             step = eye + eps * co.dense_A()  # (B, L, d, d)
             M = step @ M
@@ -202,7 +213,10 @@ def _reference(flow, measurement, particles, prior, index, per_particle, eps_all
     if stochastic:
         return image.output(FlowOutput(eta, None, aux))
     log_det = log_det.expand(B, N) if index is None else _gather_points(log_det.unsqueeze(-1), index).squeeze(-1)
-    return image.output(FlowOutput(eta, log_det, aux))
+    out = FlowOutput(eta, log_det, aux)
+    if map_jacobian:
+        out.map_jacobian = M if index is None else _gather_points(M, index)
+    return image.output(out)
 
 
 def which_kernel(flow: ParticleFlow, model, device) -> Optional[str]:

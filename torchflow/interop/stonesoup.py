@@ -80,7 +80,8 @@ from .. import linalg
 from ..flows import FlowPrior, integrate_flow, resolve_points
 from ..models.base import GaussianStateSpaceModel
 from ..models.structure import Structure
-from ..proposals.flow import FLOWS, resolve_flow
+from ..filters import marginal as _marginal
+from ..proposals.flow import FLOWS, law_factor, resolve_flow
 from ..schedules import LambdaSchedule, resolve_schedule
 from ..errors import ArgumentError, ArgumentTypeError, NonFiniteError
 
@@ -281,6 +282,9 @@ class FlowParticleUpdater(Updater):
     flow_prior: str = Property(default="transition", doc="the flow's prior with PF-PF weights: 'transition' "
                                                           "(default: each particle's own N(F x_prev, Q)) or 'predicted' "
                                                           "(N(F x_prev, F P_prev F^T + Q), Li & Coates' EKF-style prior)")
+    weights: str = Property(default="standard", doc="PF-PF weights: 'standard' (each particle against its own "
+                                                     "parent) or 'marginal' (against the mixture over all parents, "
+                                                     "O(N^2): torchflow.filters.marginal)")
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -290,6 +294,8 @@ class FlowParticleUpdater(Updater):
         self._schedule = resolve_schedule(self.schedule)
         if self.flow_prior not in ("transition", "predicted"):
             raise ArgumentError(f"flow_prior: expected 'transition' or 'predicted', got {self.flow_prior!r}")
+        if self.weights not in ("standard", "marginal"):
+            raise ArgumentError(f"weights: expected 'standard' or 'marginal', got {self.weights!r}")
         if self.dtype not in ("float64", "float32"):
             raise ArgumentError(f"dtype: expected 'float64' or 'float32', got {self.dtype!r}")
         self._dtype = getattr(torch, self.dtype)
@@ -367,6 +373,23 @@ class FlowParticleUpdater(Updater):
                 f"Jacobian undefined): the detection's range is {float(model.z[r]):.3g} and {near} of {X.shape[-2]} "
                 f"particles lie within one range-noise standard deviation ({sd:.3g}) of it")
 
+    def _marginal_log_weights(self, out, X, x1, m_pred, LQ, wp, model, z):
+        """Marginal weights (:mod:`torchflow.filters.marginal`): ``p(z | x_i)`` times the mixture of the
+        parents' transitions (their weights ``wp``) over the mixture of the flow's laws given each
+        parent (uniform: slot i propagates parent i); ``(N,)`` numpy."""
+        N = x1.shape[1]
+        if self._flow.stochastic:
+            law = (out.proposal_mean, linalg.safe_cholesky(out.proposal_cov))
+        else:  # the parent's affine map pushes N(F x_prev, Q) to N(x1 - M (eta_0 - F x_prev), M Q M^T)
+            M = out.map_jacobian
+            law = (x1 - linalg.matvec(M, X - m_pred), law_factor(M, LQ))
+        rows = _marginal.pair_rows(1, N, N, x1.shape[-1], x1.element_size())
+        log_rho, = _marginal.mixture_logsumexp(_marginal.gaussian_pairs(x1, m_pred, LQ), [wp.log().unsqueeze(0)], N, rows)
+        log_qbar, = _marginal.mixture_logsumexp(_marginal.gaussian_pairs(x1, *law),
+                                                [torch.full_like(log_rho, -math.log(N))], N, rows)
+        log_w = model.measurement_log_prob(z.unsqueeze(1), x1) + log_rho - log_qbar
+        return log_w[0].double().cpu().numpy()
+
     def update(self, hypothesis, **kwargs):
         """The particles of ``hypothesis.prediction`` moved by the flow towards
         ``hypothesis.measurement``; a ``ParticleStateUpdate`` (resampled if a resampler is set).
@@ -417,6 +440,10 @@ class FlowParticleUpdater(Updater):
             m_pred = (Xp @ F.T).unsqueeze(0)  # (1, N, d): each particle's noise-free prediction
             LQ = linalg.safe_cholesky(Q)
         else:
+            if self.weights == "marginal":
+                raise ArgumentError("weights: 'marginal' needs the prediction's parent particles and a linear-Gaussian "
+                                    "transition model (predict with Stone Soup's ParticlePredictor); this prediction "
+                                    "has none, so only the unweighted flow update is possible (weights='standard')")
             if "unweighted" not in _WARNED:
                 _WARNED.add("unweighted")
                 warnings.warn("FlowParticleUpdater: the prediction carries no parent particles with a linear-Gaussian "
@@ -438,8 +465,10 @@ class FlowParticleUpdater(Updater):
         where = f"the {type(self._flow).__name__} update at {timestamp}"
         with torch.no_grad():
             try:
+                marginal = trans is not None and self.weights == "marginal"
                 out = integrate_flow(self._flow, model, X, z, prior, self._schedule, points=pts,
-                                     generator=self._generator if self._flow.stochastic else None, proposal=proposal)
+                                     generator=self._generator if self._flow.stochastic else None, proposal=proposal,
+                                     map_jacobian=marginal and not self._flow.stochastic)
             except torch.linalg.LinAlgError as err:
                 raise NonFiniteError("FlowParticleUpdater", 0, [], what=f"values in {where} (torch linear algebra "
                                      f"failed: {str(err).splitlines()[0][:120]}){self._singular_hint(model, X)}") from None
@@ -448,7 +477,9 @@ class FlowParticleUpdater(Updater):
             if bad:
                 raise NonFiniteError("FlowParticleUpdater", 0, [], what=f"particle states after {where} ({bad} of {N} "
                                      f"particles){self._singular_hint(model, X)}")
-            if trans is not None:
+            if marginal:
+                log_w = self._marginal_log_weights(out, X, x1, m_pred, LQ, wp, model, z)
+            elif trans is not None:
                 log_q = (out.log_proposal if self._flow.stochastic
                          else linalg.mvn_log_prob(X, m_pred, LQ) - out.log_det)
                 log_w = (torch.as_tensor(lw_prev, **kw) + linalg.mvn_log_prob(x1, m_pred, LQ)

@@ -9,7 +9,7 @@ previous particles and log-weights, the previous estimate, z, the state it carri
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Tuple
 
 import torch
 from torch import nn
@@ -36,6 +36,9 @@ class Proposed:
         fallback: ``(B, N, d)`` finite positions for particles repaired by ``nonfinite="recover"``.
         log_evidence: ``(B,)`` the tracker's Gaussian log-evidence of ``z`` (proposals that track a
             belief; the unweighted flow filters report it), else ``None``.
+        ancestor_law: with :attr:`Proposal.report_ancestor_law`, the Gaussian law of ``x`` given
+            each slot's parent, ``(mean (B, N, d), scale_tril (B, N|1, d, d))``: what the marginal
+            weights' proposal mixture is made of (:mod:`torchflow.filters.marginal`); else ``None``.
     """
 
     particles: torch.Tensor
@@ -43,6 +46,7 @@ class Proposed:
     cov: Optional[Covariance] = None
     fallback: Optional[torch.Tensor] = None
     log_evidence: Optional[torch.Tensor] = None
+    ancestor_law: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
 
 
 class Proposal(nn.Module):
@@ -67,12 +71,21 @@ class Proposal(nn.Module):
             from a CUDA graph (:mod:`torchflow.flows.kernels.graph_step`), when the model declares the
             same. Declared by each class itself, not inherited (a subclass may draw otherwise);
             only the bootstrap proposal says so.
+        report_ancestor_law: set by a filter with marginal weights: :meth:`propose` also returns
+            :attr:`Proposed.ancestor_law` (proposals with :attr:`has_ancestor_law`).
     """
 
     uses_transition_density: bool = True
     graph_safe: bool = False
     #: the proposal reads the model's Gaussian form (all but the bootstrap proposal)
     gaussian_form: bool = True
+    report_ancestor_law: bool = False
+
+    @property
+    def has_ancestor_law(self) -> bool:
+        """Whether the density of a particle given any parent is available for marginal weights:
+        the transition itself (``log_q is None``) or a Gaussian :attr:`Proposed.ancestor_law`."""
+        return False
 
     def __init__(self, model: StateSpaceModel):
         super().__init__()

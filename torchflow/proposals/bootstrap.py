@@ -11,6 +11,10 @@ class BootstrapProposal(Proposal):
     graph_safe = True
     gaussian_form = False  # the core's transition sampler and measurement density suffice
 
+    @property
+    def has_ancestor_law(self) -> bool:
+        return True  # the transition: the filter evaluates it between every pair
+
     def propose(self, particles, log_weights, estimate, z, carry, generator, *, chunk=None) -> Proposed:
         x = self.model.sample_transition(particles, generator)  # (B, N, d)
         return Proposed(x, None, fallback=particles)

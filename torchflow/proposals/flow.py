@@ -92,6 +92,12 @@ class FlowProposal(Proposal):
         model), so per-particle points keep one per trial."""
         return self.covariance == "ekf" and self.model.structure.linear_dynamics and self.model.structure.linear_measurement
 
+    @property
+    def has_ancestor_law(self) -> bool:
+        """Weighted flows: every parent's map is affine (deterministic flows: the pushforward of a
+        Gaussian transition) or its law is tracked exactly (stochastic flows)."""
+        return self.weighted and (self.flow.stochastic or self.model.structure.gaussian_transition)
+
     def init_carry(self, cov, n_particles):
         return self.points.covariance(cov, n_particles, identical=self.identical_covariances)
 
@@ -127,7 +133,9 @@ class FlowProposal(Proposal):
 
     def _migrate(self, eta0, x_prev, z, prior, generator, log_q0, noise=None, index=None):
         """Flow ``eta0`` from ``prior`` at the points (``index``: each particle's point); returns
-        the particles and their log-density ``(B, N)``."""
+        the particles, their log-density ``(B, N)`` and, with :attr:`report_ancestor_law`, the
+        Gaussian law given each parent ``(mean (B, N, d), scale_tril (B, N|1, d, d))`` (else two
+        ``None``)."""
         raise NotImplementedError
 
     def _draw_eta0(self, x_prev, generator):
@@ -147,11 +155,13 @@ class FlowProposal(Proposal):
         L_pred = linalg.safe_cholesky(P_pred)
         prior, index = pts.place(model, x_prev, m_pred, L_pred, z)
         if pts.per_particle:
-            x, log_q = self._flow_blocks(eta0, x_prev, z, prior, generator, log_q0, self.flow_chunk(eta0.shape[1], chunk))
+            x, log_q, law_mean, law_tril = self._flow_blocks(eta0, x_prev, z, prior, generator, log_q0,
+                                                             self.flow_chunk(eta0.shape[1], chunk))
         else:
-            x, log_q = self._migrate(eta0, x_prev, z, prior, generator, log_q0, index=index)
+            x, log_q, law_mean, law_tril = self._migrate(eta0, x_prev, z, prior, generator, log_q0, index=index)
         _, P_post, ll = self.tracker.update(m_pred, P_pred, z.unsqueeze(1) if cov.per_particle else z)
-        return Proposed(x, log_q, cov=cov.like(P_post), fallback=eta0, log_evidence=ll)
+        return Proposed(x, log_q, cov=cov.like(P_post), fallback=eta0, log_evidence=ll,
+                        ancestor_law=(law_mean, law_tril) if self.report_ancestor_law else None)
 
     def _flow_blocks(self, eta0, x_prev, z, prior, generator, log_q0, chunk):
         """Every particle flows with its own prior: blocks of particles are independent."""
@@ -171,7 +181,10 @@ class FlowProposal(Proposal):
 
         def block(eta0, x_prev, m, L, log_q0, particles):
             kw = {"noise": draw(particles)} if blocked and self.flow.stochastic else {}
-            return self._migrate(eta0, x_prev, z, FlowPrior(m, L), generator, log_q0, **kw)
+            x, log_q, law_mean, law_tril = self._migrate(eta0, x_prev, z, FlowPrior(m, L), generator, log_q0, **kw)
+            if law_tril is not None and blocked:  # a factor shared by the block: one per particle, to concatenate
+                law_tril = law_tril.expand(*x.shape, x.shape[-1])
+            return x, log_q, law_mean, law_tril
 
         return blockwise(block, eta0, x_prev, prior.mean, prior.scale_tril, log_q0, pass_slice=True, chunk=chunk)
 
@@ -183,11 +196,20 @@ class InvertibleFlowProposal(FlowProposal):
     """Deterministic flow: ``log q(x) = log p(eta_0 | x_prev) - log|det d x / d eta_0|``."""
 
     def _migrate(self, eta0, x_prev, z, prior, generator, log_q0, noise=None, index=None):
-        out = integrate_flow(self.flow, self.model, eta0, z, prior, self.schedule, points=self.points, index=index)
+        law = self.report_ancestor_law
+        out = integrate_flow(self.flow, self.model, eta0, z, prior, self.schedule, points=self.points, index=index,
+                             map_jacobian=law)
         if log_q0 is None:  # weighted=False
-            return out.particles, None
+            return out.particles, None, None, None
         # jacobian_in_weight=False: seed 004's printed weight (biased evidence; a knob for comparison)
-        return out.particles, (log_q0 - out.log_det if self.jacobian_in_weight else log_q0)
+        log_q = log_q0 - out.log_det if self.jacobian_in_weight else log_q0
+        if not law:
+            return out.particles, log_q, None, None
+        # the parent's affine map x = M eta + c pushes N(f(x_prev), Q) to N(x - M (eta_0 - f(x_prev)), M Q M^T)
+        model, M = self.model, out.map_jacobian
+        mean = out.particles - linalg.matvec(M, eta0 - model.transition_mean(x_prev))
+        Lq = model.transition_scale_tril(x_prev)
+        return out.particles, log_q, mean, law_factor(M, Lq.unsqueeze(-3) if Lq.dim() == 3 else Lq)
 
 
 class StochasticFlowProposal(FlowProposal):
@@ -199,7 +221,16 @@ class StochasticFlowProposal(FlowProposal):
         start = FlowPrior(model.transition_mean(x_prev), model.transition_scale_tril(x_prev)) if self.weighted else None
         out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, generator=generator, proposal=start,
                              noise=noise, points=self.points, index=index)
-        return out.particles, out.log_proposal
+        if not (self.report_ancestor_law and self.weighted):
+            return out.particles, out.log_proposal, None, None
+        return out.particles, out.log_proposal, out.proposal_mean, linalg.safe_cholesky(out.proposal_cov)
+
+
+def law_factor(maps: torch.Tensor, transition_tril: torch.Tensor) -> torch.Tensor:
+    """Lower factor of ``M Q M^T`` from the maps ``M (B, N|1, d, d)`` and ``Q``'s factor ``L``
+    (broadcastable against them): the Cholesky factor of ``(M L)(M L)^T``."""
+    G = maps @ transition_tril
+    return linalg.safe_cholesky(linalg.symmetrize(G @ G.transpose(-1, -2)))
 
 
 def check_informative(proposal, mean: torch.Tensor, who: str) -> None:
