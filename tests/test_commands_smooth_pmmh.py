@@ -140,7 +140,7 @@ def _cfg(**pmmh):
 
 
 def test_priors_from_config_shapes_models_and_constraints():
-    from torchflow.models import AcousticTracking, StochasticVolatility
+    from torchflow.models import TDOA3D, StochasticVolatility
     from torchflow.tasks import prior_from_config, priors_from_config
 
     p = prior_from_config("beta", {"dist": "Normal", "loc": [0.0, 1.0], "scale": 2.0})
@@ -152,11 +152,8 @@ def test_priors_from_config_shapes_models_and_constraints():
         priors_from_config(_cfg(priors={"mu": {"dist": "Normal", "loc": [0, 1], "scale": 1}}), sv)
     with pytest.raises(ConfigError, match="pmmh.priors: expected a prior for at least one"):
         priors_from_config(_cfg(), sv)
-    with pytest.raises(ConfigError, match="AcousticTracking declares none"):
-        priors_from_config(_cfg(priors={"psi": {"dist": "Gamma", "concentration": 1, "rate": 1}}), AcousticTracking())
-    with pytest.raises(ConfigError, match="pmmh.priors.rho: rho is a constrained learnable parameter"):
-        priors_from_config(_cfg(priors={"rho": {"dist": "Uniform", "low": -1, "high": 1}}),
-                           StochasticVolatility(learnable=["rho"]))
+    with pytest.raises(ConfigError, match="TDOA3D declares none"):
+        priors_from_config(_cfg(priors={"speed": {"dist": "Gamma", "concentration": 1, "rate": 1}}), TDOA3D())
     with pytest.raises(ConfigError, match=r"pmmh.priors.rho: expected \{dist: <a torch.distributions class>"):
         prior_from_config("rho", {"low": -1, "high": 1})
 

@@ -318,9 +318,10 @@ def prior_from_config(name: str, spec, dtype=torch.float64):
 
 
 def priors_from_config(cfg: DictConfig, model) -> dict:
-    """``{parameter: prior}`` from ``pmmh.priors``, each a per-trial parameter of ``model`` that is not
-    a constrained learnable parameter; a :class:`ConfigError` naming the key otherwise."""
-    from torch.nn.utils import parametrize
+    """``{parameter: prior}`` from ``pmmh.priors``, each a per-trial parameter of ``model``,
+    one :func:`~torchflow.inference.per_trial_values` accepts; a :class:`ConfigError` naming the key
+    otherwise."""
+    from .inference import per_trial_values
 
     given = cfg.pmmh.get("priors") or {}
     declared = list(getattr(model, "per_trial_parameters", ()) or ())
@@ -338,13 +339,15 @@ def priors_from_config(cfg: DictConfig, model) -> dict:
             hint = f"; did you mean {' or '.join(close)}?" if close else ""
             raise ConfigError(f"pmmh.priors.{name}: expected a per-trial parameter of {kind} ({', '.join(declared)}), "
                               f"got {name!r}{hint}")
-        if parametrize.is_parametrized(model, name):
-            raise ConfigError(f"pmmh.priors.{name}: {name} is a constrained learnable parameter of {kind} "
-                              f"(model.learnable); sample a model built with it fixed (model.learnable=false)")
         priors[name] = prior_from_config(name, spec)
         shape = tuple(getattr(model, name).shape)
         got = tuple(priors[name].batch_shape + priors[name].event_shape)
         require(got == shape, f"pmmh.priors.{name}", f"a prior of {name}'s shape {shape or '(scalar)'}", got or "(scalar)")
+        try:  # what the chains will do: one value per chain (here the model's own, one chain)
+            with per_trial_values(model, {name: getattr(model, name).detach().unsqueeze(0)}):
+                pass
+        except ArgumentError as e:
+            raise ConfigError(f"pmmh.priors.{name}: {e}") from None
     return priors
 
 
