@@ -5,6 +5,8 @@
     torchflow experiment=seed000_table1                        # a paper table
     torchflow -m 'filter=[bpf]' n_particles=100,1000           # sweep; one folder per job
     torchflow model=linear_gaussian model.d=4 'filter=[kf,bpf]' data=series.csv   # recorded observations
+    torchflow experiment=smooth_linear_gaussian                                # smoothers (task=smooth: torchflow.tasks)
+    torchflow experiment=pmmh_stochastic_volatility                            # a parameter posterior (task=pmmh)
 
 (``python -m torchflow`` and ``python experiments/run.py`` are the same command.) Writes the result
 files (:mod:`torchflow.runner.writers`), ``run.log`` and figures into Hydra's output folder. It runs
@@ -27,7 +29,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from . import __version__
+from . import __version__, tasks
 from .runner import (
     STOP, SUMMARY_COLUMNS, ChunkStore, RunStopped, Shard, config as rc, figures, fingerprint, format_table, run_experiment, shell,
     writers,
@@ -172,7 +174,12 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
 
 
 def _run(cfg: DictConfig, out: Path, env: JobEnv) -> int:
-    """The run command's job (in the shell's job environment): build, run, write; the exit status."""
+    """The run command's job (in the shell's job environment): build, run, write; the exit status.
+    ``task=smooth`` / ``task=pmmh``: :mod:`torchflow.tasks`."""
+    task = tasks.check_task(cfg)
+    if task != "filter":
+        model, filters, labels = build(cfg)
+        return tasks.task_job(task, cfg, model, filters, labels, out, env)
     shard = Shard.from_env(str(cfg.device), timeout_minutes=float(cfg.get("dist_timeout_min", 720)))
     try:
         model, filters, labels = build(cfg)

@@ -17,8 +17,9 @@ from omegaconf import OmegaConf
 from .plan import ConfigError, require, check_metric_settings, check_rng_backend, check_seed, check_warmup
 
 _CHECKOUT = Path(__file__).resolve().parents[2]
-#: subtrees of the config whose keys are constructor arguments (checked by the constructors)
-FREE_FORM = ("model", "filter", "hydra")
+#: subtrees of the config whose keys are constructor arguments (checked by the constructors) or named
+#: by the user (the run command's priors and starting values of ``task=pmmh``), by their dotted path
+FREE_FORM = ("model", "filter", "hydra", "pmmh.priors", "pmmh.init")
 #: the command line's name in messages (the entry point that started this process sets it)
 PROG_ENV, ARGV_ENV = "TORCHFLOW_PROG", "TORCHFLOW_ARGV"
 
@@ -79,11 +80,12 @@ def close_keys(key: str, known: Sequence[str]) -> List[str]:
 
 def unknown_keys(cfg: Mapping, known: Mapping, prefix: str = "", free_form: Sequence[str] = FREE_FORM) -> List[str]:
     """Messages for keys of ``cfg`` that ``known`` does not have (outside ``free_form``, the
-    top-level subtrees whose keys are constructor arguments), each naming the closest known ones."""
+    subtrees whose keys are constructor arguments or user-named entries, by their dotted path:
+    ``model``, ``pmmh.priors``), each naming the closest known ones."""
     out = []
     for k, v in cfg.items():
         path = prefix + str(k)
-        if not prefix and k in free_form:
+        if path in free_form:
             continue
         if k not in known:
             close = close_keys(str(k), [str(c) for c in known if c != "defaults"])

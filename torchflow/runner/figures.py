@@ -187,6 +187,112 @@ def estimates_figure(plt, estimate_summary, summary, title: str):
     return fig
 
 
+def smoothing_figure(plt, truth, results, title: str):
+    """One trial's first :data:`ESTIMATE_PANELS` state coordinates over steps 0..T: the truth
+    (``truth (T+1, d)``; ``None``: recorded data), and per filter (``results``: name -> ``mean``,
+    ``sd``, ``filtered_mean``, ``filtered_sd``, each ``(T+1, d)``) the filtered mean (dashed) and
+    the smoothed mean (solid), each with a band of +-2 standard deviations."""
+    colour = colours([{"filter": n} for n in results])
+    d = min(next(iter(results.values()))["mean"].shape[-1], ESTIMATE_PANELS)
+    fig, axes = plt.subplots(1, d, figsize=(4.2 * d, 3.4), squeeze=False)
+    for j, ax in enumerate(axes[0]):
+        for name, r in results.items():
+            steps = range(r["mean"].shape[0])
+            for key, style, alpha, what in (("filtered", "--", 0.08, "filtered"), ("", "-", 0.2, "smoothed")):
+                m = r[f"{key}_mean" if key else "mean"][:, j]
+                sd = r[f"{key}_sd" if key else "sd"][:, j]
+                ax.plot(steps, m, style, color=colour[name], lw=1.2, label=f"{name} {what}")
+                ax.fill_between(steps, m - 2 * sd, m + 2 * sd, color=colour[name], alpha=alpha, lw=0)
+        if truth is not None:
+            ax.plot(range(truth.shape[0]), truth[:, j], color="black", lw=1.0, label="truth")
+        ax.set_xlabel("time step")
+        ax.set_ylabel(f"state coordinate {j}")
+        ax.grid(alpha=0.3)
+    axes[0][-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1))
+    fig.suptitle(title + " (bands: +-2 sd)", fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def save_smoothing_figure(path: Path, truth, results, title: str) -> Path:
+    """``smoothed.png`` (:func:`smoothing_figure`); matplotlib missing: nothing written."""
+    plt = pyplot()
+    if plt is None:
+        return path
+    fig = smoothing_figure(plt, truth, results, title)
+    try:
+        fig.savefig(path, dpi=100)
+    finally:
+        plt.close(fig)
+    return path
+
+
+#: scalar parameter components drawn by the posterior figures
+POSTERIOR_PANELS = 6
+
+
+def scalar_series(draws):
+    """``{component: (C, S)}`` of draws ``{parameter: (C, S, *shape)}``: a scalar parameter by its
+    name (``rho``), a vector or matrix flattened, ``F_0, F_1, ...``."""
+    out = {}
+    for name, v in draws.items():
+        flat = v.reshape(v.shape[0], v.shape[1], -1)
+        out.update({name: flat[..., 0]} if v.dim() == 2 else {f"{name}_{i}": flat[..., i] for i in range(flat.shape[-1])})
+    return out
+
+
+def posterior_figures(plt, draws, truth, title: str):
+    """``(histograms, traces)`` of PMMH draws (``draws``: filter -> parameter -> ``(C, S, ...)``),
+    the first :data:`POSTERIOR_PANELS` scalar components: a histogram of all chains' draws per
+    filter with the truth (``truth``: parameter -> value; ``None``: unknown) as a vertical line;
+    trace plots, one row per filter, one line per chain."""
+    series = {f: scalar_series(d) for f, d in draws.items()}
+    names = list(dict.fromkeys(n for s in series.values() for n in s))[:POSTERIOR_PANELS]
+    true = {} if truth is None else scalar_series({k: v.reshape(1, 1, *v.shape) for k, v in truth.items()})
+    colour = colours([{"filter": f} for f in draws])
+    hist, axes = plt.subplots(1, len(names), figsize=(3.6 * len(names), 3.0), squeeze=False)
+    for ax, n in zip(axes[0], names):
+        for f, s in series.items():
+            if n in s:
+                ax.hist(s[n].reshape(-1).numpy(), bins=40, density=True, alpha=0.45, color=colour[f], label=f)
+        if n in true:
+            ax.axvline(float(true[n].reshape(-1)[0]), color="black", lw=1.2, label="truth")
+        ax.set_xlabel(n)
+        ax.set_ylabel("posterior density")
+    axes[0][-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1))
+    hist.suptitle(title, fontsize=9)
+    hist.tight_layout()
+    trace, taxes = plt.subplots(len(series), len(names), figsize=(3.6 * len(names), 2.4 * len(series)),
+                                squeeze=False)
+    for row, (f, s) in zip(taxes, series.items()):
+        for ax, n in zip(row, names):
+            if n in s:
+                for c in range(s[n].shape[0]):
+                    ax.plot(range(1, s[n].shape[1] + 1), s[n][c].numpy(), lw=0.6, alpha=0.8)
+            if n in true:
+                ax.axhline(float(true[n].reshape(-1)[0]), color="black", lw=1.0)
+            ax.set_title(f"{f}: {n}", fontsize=8)
+            ax.set_xlabel("iteration (after adaptation)")
+    trace.suptitle(title + ", one line per chain", fontsize=9)
+    trace.tight_layout()
+    return hist, trace
+
+
+def save_posterior_figures(out: Path, draws, truth, title: str) -> List[Path]:
+    """``posterior.png`` and ``traces.png`` (:func:`posterior_figures`) in ``out``."""
+    plt = pyplot()
+    if plt is None:
+        return []
+    paths = []
+    for name, fig in zip(("posterior.png", "traces.png"), posterior_figures(plt, draws, truth, title)):
+        try:
+            fig.savefig(Path(out) / name, dpi=100)
+        finally:
+            plt.close(fig)
+        paths.append(Path(out) / name)
+    return paths
+
+
 def save_run_figures(out: Path, model, result, model_name: str) -> List[Path]:
     """``per_step.png``, and for tracking models ``tracks.png`` and ``omat_box.png``, for 3-D
     localisation (a model with receivers) ``scene.png``, of a run; on recorded data (no truth)

@@ -15,8 +15,11 @@ RESULT_FILES = ("summary.csv", "per_step.csv", "per_trial.csv", "results.json", 
                 "per_step.png", "tracks.png", "omat_box.png", "scene.png", "estimates.png")
 #: the files ``torchflow-learn`` writes into its output folder
 LEARN_FILES = ("learn.csv", "learn.json", "curves.png")
+#: the files of ``torchflow task=smooth`` and ``torchflow task=pmmh`` (:mod:`torchflow.tasks`)
+SMOOTH_FILES = ("smoothed.csv", "smoothing.json", "smoothed.png")
+PMMH_FILES = ("posterior.csv", "pmmh.json", "posterior.png", "traces.png")
 #: every command's result files: a folder holding any of them holds an earlier run's results
-ALL_RESULT_FILES = RESULT_FILES + LEARN_FILES
+ALL_RESULT_FILES = RESULT_FILES + LEARN_FILES + SMOOTH_FILES + PMMH_FILES
 
 
 def _atomic(path: Path, write) -> Path:

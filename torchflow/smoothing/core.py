@@ -28,7 +28,8 @@ class SmoothingResult:
         covariances: ``(B, T+1, d, d)`` smoothed covariances (``"rts"``), else ``None``.
         paths: ``(B, M, T+1, d)`` draws of the smoothing law (particle smoothers), else ``None``.
         filtered: the forward pass's :class:`~torchflow.filters.FilterResult` (filtered
-            estimates, log-evidence, ESS).
+            estimates, log-evidence, ESS, and the filtering law's standard deviation of each
+            coordinate ``std (B, T, d)``).
         method: the smoother that ran (``"rts"``, ``"ffbsi"`` or ``"genealogy"``).
     """
 
@@ -66,6 +67,21 @@ def smooth(filt: Filter, observations: torch.Tensor, mean: torch.Tensor, cov: to
         result = smooth(BootstrapParticleFilter(model), observations, mean, cov,
                         torch.Generator().manual_seed(0), n_paths=200)             # FFBSi
     """
+    method = smoothing_method(filt, method)
+    n_paths = check_count("n_paths", n_paths)
+    path_chunk = None if path_chunk is None else check_count("path_chunk", path_chunk, hint=" or None")
+    with torch.no_grad():
+        obs, mean, cov, gaps = _checked(filt, observations, mean, cov, generator)
+        with missing.observations_missing(gaps):
+            if method == "rts":
+                return _rts(filt, obs, mean, cov)
+            return _particles(filt, obs, mean, cov, generator, method, n_paths, n_particles, path_chunk)
+
+
+def smoothing_method(filt: Filter, method: str = "auto") -> str:
+    """The smoother :func:`smooth` runs for ``filt`` with ``method`` (``"auto"``: ``"rts"`` for the
+    Kalman family, ``"ffbsi"`` for particle filters); an :class:`~torchflow.errors.ArgumentError`
+    naming ``method`` when the filter cannot be smoothed that way."""
     if not isinstance(filt, Filter):
         raise ArgumentTypeError(f"filt: expected a torchflow Filter, got {type(filt).__name__}")
     check_choice("method", method, SMOOTHERS)
@@ -83,14 +99,7 @@ def smooth(filt: Filter, observations: torch.Tensor, mean: torch.Tensor, cov: to
     if method == "genealogy" and filt.resampler.gradient == "ot":
         raise ArgumentError(f"method: 'genealogy' follows ancestor indices, which {filt.name}'s optimal-transport "
                             "resampling (resampling_gradient='ot') does not have; use 'ffbsi'")
-    n_paths = check_count("n_paths", n_paths)
-    path_chunk = None if path_chunk is None else check_count("path_chunk", path_chunk, hint=" or None")
-    with torch.no_grad():
-        obs, mean, cov, gaps = _checked(filt, observations, mean, cov, generator)
-        with missing.observations_missing(gaps):
-            if method == "rts":
-                return _rts(filt, obs, mean, cov)
-            return _particles(filt, obs, mean, cov, generator, method, n_paths, n_particles, path_chunk)
+    return method
 
 
 def rts(filt, observations, mean, cov) -> SmoothingResult:
@@ -146,7 +155,7 @@ def _predict(filt, m: torch.Tensor, P: torch.Tensor):
 def _rts(filt, obs, mean, cov) -> SmoothingResult:
     B, T = obs.shape[:2]
     state = filt.init(mean, cov)
-    trace = _Trace(B, obs.device, False, False)
+    trace = _Trace(B, obs.device, False, False, std=True)
     filtered = [(state.mean, state.cov)]
     predicted = []
     for t in range(T):
@@ -188,7 +197,7 @@ def _particles(filt, obs, mean, cov, generator, method, M, n_particles, path_chu
     N, d = state.particles.shape[1:]
     if method == "genealogy":  # each step then keeps its ancestor indices (filters.base.ancestor_extras)
         state.extras = {**state.extras, ANCESTOR: torch.arange(N, device=obs.device).expand(B, N)}
-    trace = _Trace(B, obs.device, False, False)
+    trace = _Trace(B, obs.device, False, False, std=True)
     parts: List[torch.Tensor] = [state.particles]
     lws: List[torch.Tensor] = [state.log_weights]
     ancestors: List[torch.Tensor] = []
