@@ -163,19 +163,22 @@ def check_shapes(model, x: torch.Tensor, who: str, *, gaussian: Optional[bool] =
     is caught where it would broadcast), and ``transition_mean``/``measure`` on one point ``(d,)``
     (what their Jacobians differentiate, under ``vmap``). Draws use a generator of their own (the
     caller's streams are not advanced); no gradient is recorded. Done once per model, dtype, device
-    and batch size. A model declaring :attr:`~torchflow.models.StateSpaceModel.per_trial_parameters`
-    is checked on every trial's particles (its values may be per trial) and not on a lone point."""
+    and batch size. A model whose parameters hold per-trial values
+    (:func:`torchflow.inference.per_trial_values`) is checked again, on every trial's particles and
+    not on a lone point."""
     from .base import GaussianStateSpaceModel
 
     if gaussian is None:
         gaussian = isinstance(model, GaussianStateSpaceModel)
-    key = (x.dtype, x.device, x.shape[0], gaussian)
+    from .trials import trial_names
+
+    per_trial = trial_names(model)  # values per trial now: every trial, no lone point
+    key = (x.dtype, x.device, x.shape[0], gaussian, per_trial)
     done = _checked.setdefault(model, set())
     if key in done:
         return
     B, d, m = x.shape[0], model.state_dim, model.obs_dim
     g = torch.Generator(device=x.device).manual_seed(0)
-    per_trial = bool(getattr(model, "per_trial_parameters", ()))  # values per trial: every trial, no lone point
     b = B if per_trial else min(B, 2)
     particles = x[:b].unsqueeze(1).expand(b, max(min(b, 2), d, m) + 1, d)
     with torch.no_grad():
