@@ -38,10 +38,16 @@ def trial_view(value: torch.Tensor, rank: int, x: torch.Tensor, event: int = 1) 
     """``value`` (shared: ``rank`` dimensions; per trial: ``(B, *shape)``, one more) viewed to broadcast
     against a tensor whose leading dimensions are those of the states ``x (B, ..., d)`` and whose last
     ``event`` dimensions are the value's own: a scalar against ``(B, ..., m)`` is ``(B, 1.., 1)``, a
-    ``(B, d, d)`` matrix against ``(B, ..., d, d)`` is ``(B, 1.., d, d)``. A shared value is returned as
+    ``(B, d, d)`` matrix against ``(B, ..., d, d)`` is ``(B, 1.., d, d)``. States whose leading
+    dimension is a trial-major multiple ``k B`` of the trials (rows ``b k .. b k + k - 1`` are trial
+    b's: the library's convention, as in :func:`torchflow.linalg.standard_normal`; the Gaussian-sum
+    filters flow their components so) take each trial's value k times. A shared value is returned as
     it is."""
     if value.dim() == rank:
         return value
+    n, trials = x.shape[0], value.shape[0]
+    if n != trials and trials and n % trials == 0:
+        value = value.repeat_interleave(n // trials, 0)
     return value.reshape(value.shape[0], *([1] * (x.dim() - 2 + event - rank)), *value.shape[1:])
 
 
