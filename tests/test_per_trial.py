@@ -289,3 +289,15 @@ def test_a_sweep_over_a_grid_in_one_call_finds_the_maximum_likelihood():
         le = F.ExtendedKalmanFilter(truth)(traj.observations.expand(n, -1, -1), mean, cov).log_evidence
     assert abs(float(grid[le.argmax()]) - 8.0) <= 0.2 + 1e-12, le
     assert math.isfinite(float(le.max()))
+
+
+def test_one_stream_for_every_trial_gives_common_random_numbers():
+    """``TrialStreams(seed, [0] * B)``: trials with the same value give the same estimate, bit for bit,
+    and a trial with another value another one."""
+    model = _lg()
+    obs = model.simulate(1, 8, torch.Generator().manual_seed(3)).observations.expand(B, -1, -1)
+    with per_trial_values(model, {"F": LG_VALUES["F"][[0, 1, 0]]}):
+        mean, cov = model.declared_prior(B)
+        out = F.BootstrapParticleFilter(model, n_particles=32)(obs, mean, cov, TrialStreams(1, [0] * B))
+    assert torch.equal(out.estimates[0], out.estimates[2]) and torch.equal(out.log_evidence[0], out.log_evidence[2])
+    assert not torch.equal(out.log_evidence[0], out.log_evidence[1])
