@@ -301,3 +301,14 @@ def test_one_stream_for_every_trial_gives_common_random_numbers():
         out = F.BootstrapParticleFilter(model, n_particles=32)(obs, mean, cov, TrialStreams(1, [0] * B))
     assert torch.equal(out.estimates[0], out.estimates[2]) and torch.equal(out.log_evidence[0], out.log_evidence[2])
     assert not torch.equal(out.log_evidence[0], out.log_evidence[1])
+
+
+def test_a_per_trial_covariance_that_is_not_positive_semidefinite_is_named_with_its_trial():
+    model = _lg()
+    bad = LG_VALUES["Q"].clone()
+    bad[2] = _t([[1.0, 2.0], [2.0, 1.0]])  # eigenvalues 3 and -1
+    obs = model.simulate(B, 3, torch.Generator().manual_seed(0)).observations
+    with per_trial_values(model, {"Q": bad}):
+        mean, cov = model.declared_prior(B)
+        with pytest.raises(ArgumentError, match=r"transition covariance.*batch index 2"):
+            F.ExtendedKalmanFilter(model)(obs, mean, cov)

@@ -111,7 +111,11 @@ def check_covariances(model, who: str = "") -> None:
     (``transition_cov()``, ``measurement_cov()``; state-dependent ones are skipped) are symmetric
     positive semi-definite, naming the model, the covariance and, for a parameter of the model,
     its name. Filters call it once per call (a learnable covariance may leave the cone after an
-    optimiser step; :mod:`torchflow.constraints` keeps one valid by construction)."""
+    optimiser step; :mod:`torchflow.constraints` keeps one valid by construction). Per-trial values
+    (:func:`torchflow.inference.per_trial_values`) are checked trial by trial, ``(B, k, k)``; the
+    error names the first bad trial."""
+    from .trials import trial_names
+
     params = {id(p): n for n, p in model.named_parameters()}
     for what, name in (("transition covariance", "transition_cov"), ("measurement covariance", "measurement_cov")):
         fn = getattr(model, name, None)
@@ -121,11 +125,12 @@ def check_covariances(model, who: str = "") -> None:
             C = fn()
         except (NotImplementedError, TypeError, RuntimeError, ValueError):
             continue  # state-dependent: no constant matrix to check
-        if not isinstance(C, torch.Tensor) or C.dim() != 2:
+        per_trial = C.dim() == 3 and bool(trial_names(model))  # (B, k, k): one per trial, each checked
+        if not isinstance(C, torch.Tensor) or (C.dim() != 2 and not per_trial):
             continue
         k, letters = (model.state_dim, "(d, d)") if name == "transition_cov" else (model.obs_dim, "(m, m)")
-        if tuple(C.shape) != (k, k):  # the method's mistake, named as check_shapes names it
-            _expect(who or type(model).__name__, f"{type(model).__name__}.{name}", C, (k, k), letters)
+        if tuple(C.shape[-2:]) != (k, k):  # the method's mistake, named as check_shapes names it
+            _expect(who or type(model).__name__, f"{type(model).__name__}.{name}", C, (*C.shape[:-2], k, k), letters)
         pname = params.get(id(C))
         label = f"{type(model).__name__}'s {what}" + (f" (parameter {pname!r})" if pname else "")
         if C.requires_grad and not pname:
