@@ -312,3 +312,13 @@ def test_a_per_trial_covariance_that_is_not_positive_semidefinite_is_named_with_
         mean, cov = model.declared_prior(B)
         with pytest.raises(ArgumentError, match=r"transition covariance.*batch index 2"):
             F.ExtendedKalmanFilter(model)(obs, mean, cov)
+
+
+def test_a_covariance_value_outside_its_cholesky_constraint_is_named():
+    model = _lg(learnable=["Q"])
+    bad = LG_VALUES["Q"].clone()
+    bad[1] = _t([[1.0, 2.0], [2.0, 1.0]])
+    with pytest.raises(ArgumentError, match=r"values\['Q'\]: outside CholeskyCovariance's constraint"):
+        with per_trial_values(model, {"Q": bad}):
+            pass
+    assert model.Q.shape == (2, 2)

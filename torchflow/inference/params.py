@@ -27,7 +27,10 @@ def per_trial_values(model, values: Dict[str, torch.Tensor]):
     constraint (valid by construction; a value outside it is refused, naming the parameter), so a
     gradient reaches the values either way. For the block the model also declares a structure
     without the shortcuts that assume one value for every trial (its ``_per_trial_structure``:
-    identity scales, a scalar R read as one number, shared Riccati recursions, captured graphs).
+    identity scales, a scalar R read as one number, matrices read once for all trials, captured
+    graphs), and filters see which names hold per-trial values
+    (:func:`torchflow.models.trials.trial_names`; the Kalman filter's Riccati recursion shared by
+    the trials stands aside).
 
     Raises:
         ArgumentError: a name the model does not declare, a value that is not ``(B, *shape)`` on the
@@ -61,15 +64,17 @@ def per_trial_values(model, values: Dict[str, torch.Tensor]):
                 table, key = plist._parameters, "original"
                 try:
                     value = plist[0].right_inverse(value)
-                except ArgumentError as exc:
-                    raise ArgumentError(f"values[{name!r}]: {exc}") from None
+                except (ArgumentError, RuntimeError) as exc:  # a covariance's Cholesky fails: torch's LinAlgError
+                    raise ArgumentError(f"values[{name!r}]: outside {type(plist[0]).__name__}'s constraint: "
+                                        f"{exc}") from None
             else:
                 table, key = (model._parameters if name in model._parameters else model._buffers), name
             saved.append((table, key, table[key]))
             table[key] = value
         saved.append((model.__dict__, "_trial_names", model.__dict__.get("_trial_names", _ABSENT)))
         model.__dict__["_trial_names"] = tuple(values)
-        structure = model._per_trial_structure(tuple(values)) if values else model.structure
+        hook = getattr(model, "_per_trial_structure", None)
+        structure = hook(tuple(values)) if values and hook is not None else getattr(model, "structure", None)
         saved.append((model.__dict__, "_shared_structure", model.__dict__.get("_shared_structure", _ABSENT)))
         model.__dict__["_shared_structure"] = model.structure
         saved.append((model.__dict__, "structure", model.__dict__.get("structure", _ABSENT)))
