@@ -140,7 +140,8 @@ def _check_equal_to_separate_calls(filter_name, model_name, device="cpu"):
         alone = make_filter(alone_model)(obs[b:b + 1], mean[b:b + 1], cov[b:b + 1], TrialStreams(7, B, key).select([b]),
                                          return_covariances=True)
         close = dict(rtol=tol, atol=tol)
-        torch.testing.assert_close(together.estimates[b], alone.estimates[0], **close, msg=lambda m: f"{key} trial {b}: {m}")
+        torch.testing.assert_close(together.estimates[b], alone.estimates[0], **close,
+                                   msg=lambda m: f"{key} trial {b}: {m}")
         torch.testing.assert_close(together.log_evidence[b], alone.log_evidence[0], **close,
                                    msg=lambda m: f"{key} trial {b}: {m}")
         if alone.covariances is not None:

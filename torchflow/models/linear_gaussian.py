@@ -120,8 +120,8 @@ class LinearGaussian(GaussianStateSpaceModel):
         s = per_trial_structure(self, names, dynamics="F" in names, measurement="H" in names, noise="R" in names)
         if "R" in names:
             R = self.R.detach()
-            s = s.replace(measurement_noise="diagonal" if bool((R == torch.diag_embed(R.diagonal(dim1=-2, dim2=-1))).all())
-                          else "dense")
+            diagonal = bool((R == torch.diag_embed(R.diagonal(dim1=-2, dim2=-1))).all())
+            s = s.replace(measurement_noise="diagonal" if diagonal else "dense")
         return s
 
     # analytic, constant matrices (per trial: (B, ., .), viewed against the states where they are given)

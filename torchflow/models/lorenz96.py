@@ -140,8 +140,9 @@ class Lorenz96(GaussianStateSpaceModel):
     # ---- initial law -------------------------------------------------------------------------
     def initial_state(self, batch_size: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         """``F + N(0, 1)`` per coordinate, then :attr:`spin_up` intervals of the dynamics."""
-        x = self._scale(self.forcing, None, 1) + linalg.standard_normal((batch_size, self.state_dim), dtype=self.H.dtype,
-                                                  device=self.H.device, generator=generator)
+        xi = linalg.standard_normal((batch_size, self.state_dim), dtype=self.H.dtype, device=self.H.device,
+                                    generator=generator)
+        x = self._scale(self.forcing, None, 1) + xi
         with torch.no_grad():
             for _ in range(self.spin_up):
                 x = self.sample_transition(x, generator)
