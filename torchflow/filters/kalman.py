@@ -6,6 +6,7 @@ from typing import Optional, Tuple
 import torch
 
 from .. import linalg, missing
+from ..models.trials import shared_structure, trial_names
 from ..trackers import UnscentedTransform, ekf_predict, ekf_update, kalman_update
 from .base import Filter, GaussianState
 from ..errors import ArgumentTypeError
@@ -64,22 +65,26 @@ class KalmanFilter(ExtendedKalmanFilter):
 
     def __init__(self, model, *, validate: bool = True, name: Optional[str] = None):
         super().__init__(model, validate=validate, name=name)
-        if not (model.structure.linear_dynamics and model.structure.linear_measurement):
+        structure = shared_structure(model)  # per-trial F or H: linear for each trial (steps go per trial)
+        if not (structure.linear_dynamics and structure.linear_measurement):
             raise ArgumentTypeError(f"model: KalmanFilter needs a linear-Gaussian model (a LinearGaussian, or any model "
                             f"declaring linear_dynamics and linear_measurement), got {type(model).__name__} "
-                            f"(linear_dynamics={model.structure.linear_dynamics}, linear_measurement={model.structure.linear_measurement}; "
+                            f"(linear_dynamics={structure.linear_dynamics}, linear_measurement={structure.linear_measurement}; "
                             "use ExtendedKalmanFilter or UnscentedKalmanFilter for nonlinear models)")
 
     def init(self, mean, cov, n_particles=None, generator=None):
         # The Riccati recursion does not depend on the data: when every trial starts from the same
-        # covariance, run it once and share it (a stride-0 expanded view keeps the (B, d, d) shape).
-        if cov.shape[0] > 1 and bool((cov == cov[:1]).all()):
+        # covariance and the model's matrices are the same for every trial, run it once and share it
+        # (a stride-0 expanded view keeps the (B, d, d) shape). Per-trial parameters
+        # (torchflow.inference.per_trial_values) give each trial its own recursion.
+        if cov.shape[0] > 1 and not trial_names(self.model) and bool((cov == cov[:1]).all()):
             cov = cov[:1].expand_as(cov)
         return super().init(mean, cov)
 
     def step(self, state, z, generator=None):
         B = state.mean.shape[0]
-        if B > 1 and state.cov.stride(0) == 0 and not missing.active():  # masks differ between trials
+        # masks differ between trials, and so do per-trial parameters: one recursion per trial
+        if B > 1 and state.cov.stride(0) == 0 and not missing.active() and not trial_names(self.model):
             return self._shared_step(state, z)
         return super().step(state, z, generator)
 

@@ -16,26 +16,80 @@ from ..random import check_generator
 
 @contextlib.contextmanager
 def per_trial_values(model, values: Dict[str, torch.Tensor]):
-    """Within the block, ``model``'s parameters or buffers named in ``values`` hold those tensors
-    (one value per trial, ``(B, ...)``); the model's own are put back afterwards, also on error. A
-    constrained (parametrised) parameter is refused: sample a model built with it as a buffer."""
+    """Within the block, ``model``'s parameters or buffers named in ``values`` hold one value per
+    trial, ``(B, *shape)`` for a parameter of shape ``shape`` (the same B for every name); the model's
+    own are put back afterwards, also on error.
+
+    Every name must be one the model declares in ``per_trial_parameters`` (its methods broadcast
+    those over the trials' states). A constrained learnable parameter (:mod:`torchflow.constraints`)
+    keeps its constraint: its values, given as the constrained values, are mapped to the
+    unconstrained space by the constraint's inverse and the model reads them back through the
+    constraint (valid by construction; a value outside it is refused, naming the parameter), so a
+    gradient reaches the values either way. For the block the model also declares a structure
+    without the shortcuts that assume one value for every trial (its ``_per_trial_structure``:
+    identity scales, a scalar R read as one number, matrices read once for all trials, captured
+    graphs), and filters see which names hold per-trial values
+    (:func:`torchflow.models.trials.trial_names`; the Kalman filter's Riccati recursion shared by
+    the trials stands aside).
+
+    Raises:
+        ArgumentError: a name the model does not declare, a value that is not ``(B, *shape)`` on the
+            model's dtype and device, or trial counts that differ between names.
+    """
     from torch.nn.utils import parametrize
 
-    saved = {}
+    declared = tuple(getattr(model, "per_trial_parameters", ()) or ())
+    who = type(model).__name__
+    saved, B = [], None
     try:
         for name, value in values.items():
-            if parametrize.is_parametrized(model, name):
-                raise ArgumentError(f"{name}: a constrained learnable parameter of {type(model).__name__}; sample "
-                                    "the posterior of a model built with it as a buffer (learnable=False)")
-            table = model._parameters if name in model._parameters else model._buffers
-            if name not in table:
-                raise ArgumentError(f"{name}: {type(model).__name__} has no parameter or buffer of that name")
-            saved[name] = (table, table[name])
-            table[name] = value
+            if name not in declared:
+                raise ArgumentError(f"values: {who} does not declare {name!r} as a per-trial parameter (it declares "
+                                    f"{list(declared)}): its methods would not give each trial its own value")
+            shared = getattr(model, name)
+            if not isinstance(value, torch.Tensor):
+                raise ArgumentTypeError(f"values[{name!r}]: expected a tensor (B, *{tuple(shared.shape)}), got "
+                                        f"{type(value).__name__}")
+            if value.dim() != shared.dim() + 1 or tuple(value.shape[1:]) != tuple(shared.shape) or not value.shape[0]:
+                raise ArgumentError(f"values[{name!r}]: expected one value per trial, (B, *{tuple(shared.shape)}) with "
+                                    f"B >= 1, got {tuple(value.shape)}")
+            if value.dtype != shared.dtype or value.device != shared.device:
+                raise ArgumentError(f"values[{name!r}]: expected {shared.dtype} on {shared.device} (the model's), got "
+                                    f"{value.dtype} on {value.device}")
+            if B is not None and value.shape[0] != B:
+                raise ArgumentError(f"values[{name!r}]: {value.shape[0]} trials, where another value has {B}")
+            B = value.shape[0]
+            if parametrize.is_parametrized(model, name):  # through the same constraint
+                plist = model.parametrizations[name]
+                table, key = plist._parameters, "original"
+                try:
+                    value = plist[0].right_inverse(value)
+                except (ArgumentError, RuntimeError) as exc:  # a covariance's Cholesky fails: torch's LinAlgError
+                    raise ArgumentError(f"values[{name!r}]: outside {type(plist[0]).__name__}'s constraint: "
+                                        f"{exc}") from None
+            else:
+                table, key = (model._parameters if name in model._parameters else model._buffers), name
+            saved.append((table, key, table[key]))
+            table[key] = value
+        saved.append((model.__dict__, "_trial_names", model.__dict__.get("_trial_names", _ABSENT)))
+        model.__dict__["_trial_names"] = tuple(values)
+        hook = getattr(model, "_per_trial_structure", None)
+        structure = hook(tuple(values)) if values and hook is not None else getattr(model, "structure", None)
+        saved.append((model.__dict__, "_shared_structure", model.__dict__.get("_shared_structure", _ABSENT)))
+        model.__dict__["_shared_structure"] = model.structure
+        saved.append((model.__dict__, "structure", model.__dict__.get("structure", _ABSENT)))
+        model.__dict__["structure"] = structure
         yield model
     finally:
-        for name, (table, value) in saved.items():
-            table[name] = value
+        for table, key, value in reversed(saved):
+            if value is _ABSENT:
+                del table[key]
+            else:
+                table[key] = value
+        model.__dict__.pop("_trial_factors", None)
+
+
+_ABSENT = object()
 
 
 class ParameterSpace:

@@ -18,6 +18,7 @@ from .._progress import report
 from .base import GaussianStateSpaceModel, Trajectory
 from .contract import check_simulate_args
 from .structure import Structure
+from .trials import per_trial_structure, trial_view
 from ..errors import ArgumentError, ArgumentTypeError
 
 _X0 = [12, 6, 0.001, 0.001, 32, 32, -0.001, -0.005, 20, 13, -0.1, 0.01, 15, 35, 0.002, 0.002]
@@ -49,9 +50,16 @@ class AcousticTracking(GaussianStateSpaceModel):
             is positive by construction, stored as its logarithm (:class:`~torchflow.constraints.
             Positive`): ``model.psi`` is always the positive value, and the optimiser moves
             ``model.parametrizations.psi.original``.
+
+    Per trial (:func:`torchflow.inference.per_trial_values`): ``psi`` and ``sigma_w`` may each hold one
+    value per trial, ``(B,)`` (learnable ones through their constraint). While ``sigma_w`` is per trial
+    R is declared ``"diagonal"`` (still ``sigma_w^2 I`` in each trial); while ``psi`` is, the flow
+    kernels' named form of h stands aside.
     """
 
     n_targets = 4
+    #: the measurement's amplitude and noise may hold one value per trial, ``(B,)``
+    per_trial_parameters = ("psi", "sigma_w")
     #: linear dynamics, R = sigma_w^2 I, h reads the positions only (``(0, 1, 4, 5, ...)``, k = 2C
     #: of d = 4C), ``z_i = Psi sum_c 1 / (|p_c - s_i| + d0)`` in the flow kernels' named form
     structure = Structure(linear_dynamics=True, measurement_noise="scalar", has_positions=True, graph_safe=True,
@@ -117,6 +125,19 @@ class AcousticTracking(GaussianStateSpaceModel):
         self.register_buffer("prior_std", ps.repeat(C))
         self.area, self.margin, self.max_redraws = float(area), float(margin), int(max_redraws)
 
+    def _per_trial_structure(self, names):
+        return per_trial_structure(self, names, dynamics=False, measurement=False, noise="sigma_w" in names)
+
+    def _psi(self, x, event):
+        """Psi (a scalar, or ``(B,)`` per trial) against states ``x (B, ..., d)``, ``event`` trailing dims."""
+        return trial_view(self.psi, 0, x, event)
+
+    def _sd(self, x, event):
+        """sigma_w against ``x`` (``None``: per trial ``(B, 1.., 1)`` with ``event`` trailing dims)."""
+        if x is None:
+            return self.sigma_w.reshape(*self.sigma_w.shape, *([1] * event)) if self.sigma_w.dim() else self.sigma_w
+        return trial_view(self.sigma_w, 0, x, event)
+
     # ---- dynamics --------------------------------------------------------------------------
     def transition_matrix(self):
         return self.F
@@ -142,19 +163,19 @@ class AcousticTracking(GaussianStateSpaceModel):
         dx = pos[..., 0:1] - self.sensors[:, 0]
         dy = pos[..., 1:2] - self.sensors[:, 1]
         r = torch.sqrt(dx * dx + dy * dy)
-        return (self.psi / (r + self.d0)).sum(-2)
+        return (self._psi(x, 2) / (r + self.d0)).sum(-2)
 
     def measurement_cov(self, x=None):
-        return self.sigma_w**2 * torch.eye(self.obs_dim, dtype=self.sigma_w.dtype, device=self.sigma_w.device)
+        return self._sd(x, 2)**2 * torch.eye(self.obs_dim, dtype=self.sigma_w.dtype, device=self.sigma_w.device)
 
     def measurement_scale_tril(self, x=None):
-        return self.sigma_w * torch.eye(self.obs_dim, dtype=self.sigma_w.dtype, device=self.sigma_w.device)
+        return self._sd(x, 2) * torch.eye(self.obs_dim, dtype=self.sigma_w.dtype, device=self.sigma_w.device)
 
     def measurement_log_prob(self, z, x):
         # diagonal R: avoid the generic triangular solve
-        resid = (z - self.measure(x)) / self.sigma_w
+        resid = (z - self.measure(x)) / self._sd(x, 1)
         m = self.obs_dim
-        return -0.5 * resid.pow(2).sum(-1) - m * torch.log(self.sigma_w) - 0.5 * m * linalg._LOG_2PI
+        return -0.5 * resid.pow(2).sum(-1) - m * torch.log(self._sd(x, 0)) - 0.5 * m * linalg._LOG_2PI
 
     def _sensor_offsets(self, x):
         """Per-sensor offsets and ranges ``(..., m, C)`` (sensor-major, so the Jacobian needs no
@@ -173,7 +194,7 @@ class AcousticTracking(GaussianStateSpaceModel):
         """Position columns of the Jacobian, ``(..., 25, 8)`` in the order of
         :attr:`measurement_support`: dz_s/dpx_c = -Psi (px_c - s_x) / (r (r + d0)^2)."""
         dx, dy, r = self._sensor_offsets(x)
-        return self._support_jacobian(dx, dy, r, 1 / (r + self.d0), self.psi)
+        return self._support_jacobian(dx, dy, r, 1 / (r + self.d0), self._psi(x, 2))
 
     def linearize_measurement(self, x, support=False, scale=None):
         if not support:
@@ -181,7 +202,7 @@ class AcousticTracking(GaussianStateSpaceModel):
         dx, dy, r = self._sensor_offsets(x)
         inv = 1 / (r + self.d0)
         psi = self.psi if scale is None else self.psi * scale  # fold the scale into Psi: free
-        return psi * inv.sum(-1), self._support_jacobian(dx, dy, r, inv, psi)
+        return trial_view(psi, 0, x, 1) * inv.sum(-1), self._support_jacobian(dx, dy, r, inv, trial_view(psi, 0, x, 2))
 
     def measurement_hessian_blocks(self, x, support=False, scale=None):
         """Analytic second derivatives as one block per target, ``(..., m, C, b, b)`` (``b = 2``
@@ -190,7 +211,7 @@ class AcousticTracking(GaussianStateSpaceModel):
         between targets (each measurement is a sum over targets)."""
         dx, dy, r = self._sensor_offsets(x)  # (..., m, C)
         inv = 1 / (r + self.d0)
-        psi = self.psi if scale is None else self.psi * scale
+        psi = trial_view(self.psi if scale is None else self.psi * scale, 0, x, 2)
         ir = 1 / r.clamp_min(torch.finfo(r.dtype).tiny)
         b = psi * inv * inv * ir  # (I - u u^T) coefficient
         c = (2 * psi * inv * inv * inv + b) * ir * ir  # u u^T = (p - s)(p - s)^T / r^2

@@ -28,6 +28,7 @@ from .._progress import report
 from .._checks import check_tensor
 from ..linearize import jacobian
 from .structure import Structure
+from .trials import batch_jacobian, per_trial_structure, trial_names, trial_view
 from ..errors import ArgumentError
 
 
@@ -122,6 +123,14 @@ class StateSpaceModel(nn.Module):
             return t
         raise RuntimeError(f"{type(self).__name__} has no parameters or buffers (register the model's numbers "
                            "as buffers or nn.Parameters: they give its dtype and device)")
+
+    def _per_trial_structure(self, names) -> Structure:
+        """The structure while the parameters ``names`` hold one value per trial
+        (:func:`torchflow.inference.per_trial_values` declares it for the block): by default every
+        shortcut that assumes one value for all trials stands aside
+        (:func:`~torchflow.models.trials.per_trial_structure`); a model that knows which of its
+        matrices a parameter enters says so."""
+        return per_trial_structure(self, names)
 
     # ---- the core ----------------------------------------------------------------------------
     def initial_state(self, batch_size: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
@@ -260,8 +269,10 @@ class GaussianStateSpaceModel(StateSpaceModel):
 
     # ---- dynamics ----------------------------------------------------------------------------
     def transition_mean(self, x: torch.Tensor) -> torch.Tensor:
-        """Noise-free dynamics g(x, E[v]): ``(..., d) -> (..., d)`` (default: ``x F^T``, linear models)."""
-        return x @ self.transition_matrix().transpose(-1, -2)
+        """Noise-free dynamics g(x, E[v]): ``(..., d) -> (..., d)`` (default: ``x F^T``, linear models;
+        a per-trial F ``(B, d, d)`` applies to its trial's states ``(B, ..., d)``)."""
+        F = self.transition_matrix()
+        return linalg.matvec(trial_view(F, 2, x, 2), x) if F.dim() > 2 else x @ F.transpose(-1, -2)
 
     def transition_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Cov[x_k | x_{k-1}] used by filters: broadcastable ``(d, d)`` or ``(..., d, d)``."""
@@ -272,11 +283,12 @@ class GaussianStateSpaceModel(StateSpaceModel):
         return linalg.safe_cholesky(self.transition_cov(x))
 
     def transition_jacobian(self, x: torch.Tensor) -> torch.Tensor:
-        """d g / d x at ``x (..., d)`` -> ``(..., d, d)`` (the matrix of linear dynamics, else torch.func)."""
+        """d g / d x at ``x (..., d)`` -> ``(..., d, d)`` (the matrix of linear dynamics, else torch.func:
+        on single points, or on the whole batch while parameters hold per-trial values)."""
         if self.structure.linear_dynamics:
             F = self.transition_matrix()
-            return F.expand(*x.shape[:-1], *F.shape)
-        return jacobian(self.transition_mean, x)
+            return trial_view(F, 2, x, 2).expand(*x.shape[:-1], *F.shape[-2:])
+        return batch_jacobian(self.transition_mean, x) if trial_names(self) else jacobian(self.transition_mean, x)
 
     def transition_matrix(self) -> torch.Tensor:
         """``(d, d)`` matrix of a linear transition (only when ``structure.linear_dynamics``)."""
@@ -300,8 +312,10 @@ class GaussianStateSpaceModel(StateSpaceModel):
 
     # ---- measurement -------------------------------------------------------------------------
     def measure(self, x: torch.Tensor) -> torch.Tensor:
-        """Noise-free measurement h(x, 0): ``(..., d) -> (..., m)`` (default: ``x H^T``, linear models)."""
-        return x @ self.measurement_matrix().transpose(-1, -2)
+        """Noise-free measurement h(x, 0): ``(..., d) -> (..., m)`` (default: ``x H^T``, linear models;
+        a per-trial H ``(B, m, d)`` applies to its trial's states ``(B, ..., d)``)."""
+        H = self.measurement_matrix()
+        return linalg.matvec(trial_view(H, 2, x, 2), x) if H.dim() > 2 else x @ H.transpose(-1, -2)
 
     def measurement_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
         """R: broadcastable ``(m, m)`` or ``(..., m, m)``."""
@@ -315,8 +329,8 @@ class GaussianStateSpaceModel(StateSpaceModel):
         (vmapped jacrev)."""
         if self.structure.linear_measurement:
             H = self.measurement_matrix()
-            return H.expand(*x.shape[:-1], *H.shape)
-        return jacobian(self.measure, x)
+            return trial_view(H, 2, x, 2).expand(*x.shape[:-1], *H.shape[-2:])
+        return batch_jacobian(self.measure, x) if trial_names(self) else jacobian(self.measure, x)
 
     def measurement_jacobian_support(self, x: torch.Tensor) -> torch.Tensor:
         """dh/dx restricted to :attr:`Structure.measurement_support`: ``(..., m, k)`` (the other columns of

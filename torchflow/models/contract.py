@@ -111,7 +111,11 @@ def check_covariances(model, who: str = "") -> None:
     (``transition_cov()``, ``measurement_cov()``; state-dependent ones are skipped) are symmetric
     positive semi-definite, naming the model, the covariance and, for a parameter of the model,
     its name. Filters call it once per call (a learnable covariance may leave the cone after an
-    optimiser step; :mod:`torchflow.constraints` keeps one valid by construction)."""
+    optimiser step; :mod:`torchflow.constraints` keeps one valid by construction). Per-trial values
+    (:func:`torchflow.inference.per_trial_values`) are checked trial by trial, ``(B, k, k)``; the
+    error names the first bad trial."""
+    from .trials import trial_names
+
     params = {id(p): n for n, p in model.named_parameters()}
     for what, name in (("transition covariance", "transition_cov"), ("measurement covariance", "measurement_cov")):
         fn = getattr(model, name, None)
@@ -121,11 +125,12 @@ def check_covariances(model, who: str = "") -> None:
             C = fn()
         except (NotImplementedError, TypeError, RuntimeError, ValueError):
             continue  # state-dependent: no constant matrix to check
-        if not isinstance(C, torch.Tensor) or C.dim() != 2:
+        per_trial = C.dim() == 3 and bool(trial_names(model))  # (B, k, k): one per trial, each checked
+        if not isinstance(C, torch.Tensor) or (C.dim() != 2 and not per_trial):
             continue
         k, letters = (model.state_dim, "(d, d)") if name == "transition_cov" else (model.obs_dim, "(m, m)")
-        if tuple(C.shape) != (k, k):  # the method's mistake, named as check_shapes names it
-            _expect(who or type(model).__name__, f"{type(model).__name__}.{name}", C, (k, k), letters)
+        if tuple(C.shape[-2:]) != (k, k):  # the method's mistake, named as check_shapes names it
+            _expect(who or type(model).__name__, f"{type(model).__name__}.{name}", C, (*C.shape[:-2], k, k), letters)
         pname = params.get(id(C))
         label = f"{type(model).__name__}'s {what}" + (f" (parameter {pname!r})" if pname else "")
         if C.requires_grad and not pname:
@@ -163,19 +168,22 @@ def check_shapes(model, x: torch.Tensor, who: str, *, gaussian: Optional[bool] =
     is caught where it would broadcast), and ``transition_mean``/``measure`` on one point ``(d,)``
     (what their Jacobians differentiate, under ``vmap``). Draws use a generator of their own (the
     caller's streams are not advanced); no gradient is recorded. Done once per model, dtype, device
-    and batch size. A model declaring :attr:`~torchflow.models.StateSpaceModel.per_trial_parameters`
-    is checked on every trial's particles (its values may be per trial) and not on a lone point."""
+    and batch size. A model whose parameters hold per-trial values
+    (:func:`torchflow.inference.per_trial_values`) is checked again, on every trial's particles and
+    not on a lone point."""
     from .base import GaussianStateSpaceModel
 
     if gaussian is None:
         gaussian = isinstance(model, GaussianStateSpaceModel)
-    key = (x.dtype, x.device, x.shape[0], gaussian)
+    from .trials import trial_names
+
+    per_trial = trial_names(model)  # values per trial now: every trial, no lone point
+    key = (x.dtype, x.device, x.shape[0], gaussian, per_trial)
     done = _checked.setdefault(model, set())
     if key in done:
         return
     B, d, m = x.shape[0], model.state_dim, model.obs_dim
     g = torch.Generator(device=x.device).manual_seed(0)
-    per_trial = bool(getattr(model, "per_trial_parameters", ()))  # values per trial: every trial, no lone point
     b = B if per_trial else min(B, 2)
     particles = x[:b].unsqueeze(1).expand(b, max(min(b, 2), d, m) + 1, d)
     with torch.no_grad():

@@ -13,6 +13,7 @@ from .._checks import (as_real_tensor, check_choice, check_learnable, check_nonn
                        check_psd, check_tensor)
 from .base import GaussianStateSpaceModel
 from .structure import Structure
+from .trials import per_trial_structure, trial_factor, trial_names, trial_view
 from ..errors import ArgumentError
 
 
@@ -41,7 +42,17 @@ class LinearGaussian(GaussianStateSpaceModel):
 
     The structure (R's, and whether F or H is a scaled identity) is fixed at construction: change
     F, H or R in place only through learning (learnable matrices are treated as general).
+
+    Per trial (:func:`torchflow.inference.per_trial_values`): F, Q, H, R, m0 and P0 may each hold one
+    value per trial, ``(B, d, d)``, ``(B, m, m)``, ``(B, d)`` and so on (a learnable Q or R through its
+    constraint). While F (or H) is per trial the model declares no ``linear_dynamics``
+    (``linear_measurement``): filters then read its Jacobian at each state, which is that trial's
+    matrix, and the Kalman filter's Riccati recursion, shared by trials with one covariance, runs per
+    trial.
     """
+
+    #: one value per trial for any of the matrices and the prior (module :mod:`torchflow.models.trials`)
+    per_trial_parameters = ("F", "Q", "H", "R", "m0", "P0")
 
     def __init__(self, F, Q, H, R, m0=None, P0=None, *, learnable=False, measurement_noise: Optional[str] = None):
         super().__init__()
@@ -103,31 +114,62 @@ class LinearGaussian(GaussianStateSpaceModel):
     #: linear dynamics and measurement; R's structure and the identity scales per instance
     structure = Structure(linear_dynamics=True, linear_measurement=True, graph_safe=True)
 
-    # analytic, constant matrices
+    def _per_trial_structure(self, names):
+        """F, H and R as they enter: a per-trial R is declared ``"diagonal"`` when every trial's is
+        (read once, here), else ``"dense"``."""
+        s = per_trial_structure(self, names, dynamics="F" in names, measurement="H" in names, noise="R" in names)
+        if "R" in names:
+            R = self.R.detach()
+            diagonal = bool((R == torch.diag_embed(R.diagonal(dim1=-2, dim2=-1))).all())
+            s = s.replace(measurement_noise="diagonal" if diagonal else "dense")
+        return s
+
+    # analytic, constant matrices (per trial: (B, ., .), viewed against the states where they are given)
     def transition_matrix(self) -> torch.Tensor:
         return self.F
 
     def measurement_matrix(self) -> torch.Tensor:
         return self.H
 
+    def transition_jacobian(self, x):
+        """F at every state ``x (..., d)``: ``(..., d, d)`` (its trial's, per trial)."""
+        return trial_view(self.F, 2, x, 2).expand(*x.shape[:-1], *self.F.shape[-2:])
+
+    def measurement_jacobian(self, x):
+        """H at every state ``x (..., d)``: ``(..., m, d)`` (its trial's, per trial)."""
+        return trial_view(self.H, 2, x, 2).expand(*x.shape[:-1], *self.H.shape[-2:])
+
     def transition_cov(self, x=None):
-        return self.Q
+        return self.Q if x is None else trial_view(self.Q, 2, x, 2)
 
     def transition_scale_tril(self, x=None):
-        return self.Q_tril if self.Q_tril is not None else constraints.scale_tril(self, "Q")
+        L = self._factor("Q", self.Q_tril)
+        return L if x is None else trial_view(L, 2, x, 2)
 
     def measurement_cov(self, x=None):
-        return self.R
+        return self.R if x is None else trial_view(self.R, 2, x, 2)
 
     def measurement_scale_tril(self, x=None):
-        return self.R_tril if self.R_tril is not None else constraints.scale_tril(self, "R")
+        L = self._factor("R", self.R_tril)
+        return L if x is None else trial_view(L, 2, x, 2)
+
+    def _factor(self, name, kept):
+        """The Cholesky factor of Q or R: the one kept from construction, the constraint's (no
+        factorisation; per trial too), or, for per-trial values of a buffer, factored once per value."""
+        if kept is not None and name not in trial_names(self):
+            return kept
+        L = constraints.scale_tril(self, name)
+        return L if L is not None else trial_factor(self, name, getattr(self, name))
 
     def sample_transition(self, x, generator=None):
         """``x F^T + xi L_Q^T`` as two fused matrix products over all leading dims (a scaled
-        identity F, e.g. the sensor network's ``0.9 I``, is a scaled addition instead)."""
+        identity F, e.g. the sensor network's ``0.9 I``, is a scaled addition instead). Per-trial F or
+        Q: each trial's, ``F_b x + L_b xi`` (the same draws)."""
         d = self.state_dim
         flat = x.reshape(-1, d)
         xi = linalg.standard_normal(flat.shape, dtype=x.dtype, device=x.device, generator=generator)
+        if {"F", "Q"} & set(trial_names(self)):
+            return self.transition_mean(x) + linalg.matvec(self.transition_scale_tril(x), xi.reshape(x.shape))
         out = xi @ self.transition_scale_tril().T
         alpha = self.structure.transition_matrix_scale
         if alpha is not None:
@@ -139,7 +181,9 @@ class LinearGaussian(GaussianStateSpaceModel):
     def measurement_log_prob(self, z, x):
         """Whitened residual ``L_R^{-1} z - (L_R^{-1} H) x``: the triangular solve is applied to
         ``H`` and ``z`` once, not to every particle's residual. ``z (..., m)`` broadcasts with
-        ``x (..., d)``."""
+        ``x (..., d)``. Per-trial H or R: the density with each trial's."""
+        if {"H", "R"} & set(trial_names(self)):
+            return linalg.mvn_log_prob(z, self.measure(x), self.measurement_scale_tril(x))
         h, r = self.structure.measurement_matrix_scale, self.structure.measurement_noise_scale
         if h is not None and r is not None and r > 0:  # z = h x + w, R = r I: elementwise residuals
             m = self.obs_dim
@@ -161,13 +205,14 @@ class LinearGaussian(GaussianStateSpaceModel):
         xi = torch.randn(batch_size, self.state_dim, dtype=self.dtype, device=self.device, generator=generator)
         if bool((self.P0 == 0).all()):
             return self.m0.expand(batch_size, -1).clone()
-        return self.m0 + xi @ linalg.safe_cholesky(self.P0).transpose(-1, -2)
+        return self.m0 + linalg.matvec(linalg.safe_cholesky(self.P0), xi)
 
     def initial_belief(self, states0, generator=None) -> Tuple[torch.Tensor, torch.Tensor]:
         return self.declared_prior(states0.shape[0])
 
     def declared_prior(self, batch_size: int) -> Tuple[torch.Tensor, torch.Tensor]:
-        """``N(m0, P0)`` for every trial, ``(B, d)`` and ``(B, d, d)`` (no true state needed)."""
+        """``N(m0, P0)`` for every trial (per trial: each its own), ``(B, d)`` and ``(B, d, d)`` (no true
+        state needed)."""
         return self.m0.expand(batch_size, -1).clone(), self.P0.expand(batch_size, -1, -1).clone()
 
 

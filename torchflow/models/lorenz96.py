@@ -18,6 +18,7 @@ from .. import linalg
 from .._checks import check_nonnegative, check_number, check_positive
 from .base import GaussianStateSpaceModel
 from .structure import Structure
+from .trials import batch_jacobian, per_trial_structure, trial_names, trial_view
 
 
 def lorenz96_tendency(x: torch.Tensor, forcing) -> torch.Tensor:
@@ -52,17 +53,24 @@ class Lorenz96(GaussianStateSpaceModel):
         prior_std: the filters' prior: ``N(x_0 + prior_std xi, prior_std^2 I)``, one draw per trial.
         spin_up: intervals integrated from ``F + N(0, 1)`` before ``x_0`` (onto the attractor).
 
+    Per trial (:func:`torchflow.inference.per_trial_values`): ``forcing``, ``model_noise`` and
+    ``obs_std`` may each hold one value per trial, ``(B,)`` (a sweep over F, say). While ``obs_std``
+    is per trial R is declared ``"diagonal"``; while ``forcing`` is, the Jacobian of the dynamics is
+    taken on the whole batch (forward mode) rather than one state at a time.
+
     Shapes: states ``(..., d)``, observations ``(..., m)``.
     """
 
     structure = Structure(linear_measurement=True, measurement_noise="scalar")
+    #: the forcing and both noise scales may hold one value per trial, ``(B,)``
+    per_trial_parameters = ("forcing", "model_noise", "obs_std")
 
     def __init__(self, *, d: int = 40, forcing: float = 8.0, dt: float = 0.05, substeps: int = 1, obs_every: int = 1,
                  obs_std: float = 1.0, model_noise: float = 0.0, prior_std: float = 1.0, spin_up: int = 100):
         super().__init__()
         self.state_dim = check_number("d", d, lambda v: v >= 4, "an integer >= 4 (the ring needs i-2 .. i+1)",
                                       integer=True)
-        self.forcing = check_number("forcing", forcing)
+        forcing = check_number("forcing", forcing)
         self.dt = check_positive("dt", dt)
         self.substeps = check_number("substeps", substeps, lambda v: v >= 1, "an integer >= 1", integer=True)
         self.obs_every = check_number("obs_every", obs_every, lambda v: 1 <= v <= self.state_dim,
@@ -77,28 +85,47 @@ class Lorenz96(GaussianStateSpaceModel):
         H[torch.arange(self.obs_dim), observed] = 1.0
         self.register_buffer("H", H)  # first: the model's dtype is its first buffer's
         self.register_buffer("observed", observed)
+        self.register_buffer("forcing", torch.tensor(float(forcing), **f64))  # F (a tensor: per trial in a sweep)
         self.register_buffer("obs_std", torch.tensor(obs_std, **f64))
         self.register_buffer("model_noise", torch.tensor(model_noise, **f64))
         self.register_buffer("prior_std", torch.tensor(float(prior_std), **f64))
         self.structure = type(self).structure.replace(
             measurement_noise_scale=obs_std ** 2, measurement_matrix_scale=1.0 if self.obs_every == 1 else None)
 
+    def _per_trial_structure(self, names):
+        return per_trial_structure(self, names, dynamics=False, measurement=False, noise="obs_std" in names)
+
+    def _scale(self, value: torch.Tensor, x: Optional[torch.Tensor], event: int) -> torch.Tensor:
+        """A scalar parameter (or one per trial, ``(B,)``) against states ``x (B, ..., d)`` with
+        ``event`` trailing dims (``x=None``: ``(B, 1.., 1)``)."""
+        if x is None:
+            return value.reshape(*value.shape, *([1] * event)) if value.dim() else value
+        return trial_view(value, 0, x, event)
+
     # ---- dynamics ----------------------------------------------------------------------------
     def transition_mean(self, x: torch.Tensor) -> torch.Tensor:
-        return rk4(x, self.forcing, self.dt, self.substeps)
+        return rk4(x, trial_view(self.forcing, 0, x), self.dt, self.substeps)
+
+    def transition_jacobian(self, x: torch.Tensor) -> torch.Tensor:
+        """``(..., d, d)``: by ``torch.func`` on single states, or on the whole batch (forward mode)
+        while the forcing is per trial."""
+        if "forcing" in trial_names(self):
+            return batch_jacobian(self.transition_mean, x)
+        return super().transition_jacobian(x)
 
     def transition_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
-        return self.model_noise ** 2 * torch.eye(self.state_dim, dtype=self.H.dtype, device=self.H.device)
+        return self._scale(self.model_noise, x, 2) ** 2 * torch.eye(self.state_dim, dtype=self.H.dtype,
+                                                                      device=self.H.device)
 
     def transition_scale_tril(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
-        return self.model_noise * torch.eye(self.state_dim, dtype=self.H.dtype, device=self.H.device)
+        return self._scale(self.model_noise, x, 2) * torch.eye(self.state_dim, dtype=self.H.dtype, device=self.H.device)
 
     def sample_transition(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         """``rk4(x) + model_noise * xi``: the Gaussian transition with its scalar noise factor applied
         as a scaling (the same draws and values as the dense ``(d, d)`` factor, without its ``d^2``
         products per state, which dominate an ensemble step at d = 4000)."""
         xi = linalg.standard_normal(x.shape, dtype=x.dtype, device=x.device, generator=generator)
-        return self.transition_mean(x) + self.model_noise * xi
+        return self.transition_mean(x) + trial_view(self.model_noise, 0, x) * xi
 
     # ---- measurement -------------------------------------------------------------------------
     def measurement_matrix(self) -> torch.Tensor:
@@ -108,13 +135,14 @@ class Lorenz96(GaussianStateSpaceModel):
         return x[..., self.observed]
 
     def measurement_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
-        return self.obs_std ** 2 * torch.eye(self.obs_dim, dtype=self.H.dtype, device=self.H.device)
+        return self._scale(self.obs_std, x, 2) ** 2 * torch.eye(self.obs_dim, dtype=self.H.dtype, device=self.H.device)
 
     # ---- initial law -------------------------------------------------------------------------
     def initial_state(self, batch_size: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         """``F + N(0, 1)`` per coordinate, then :attr:`spin_up` intervals of the dynamics."""
-        x = self.forcing + linalg.standard_normal((batch_size, self.state_dim), dtype=self.H.dtype,
-                                                  device=self.H.device, generator=generator)
+        xi = linalg.standard_normal((batch_size, self.state_dim), dtype=self.H.dtype, device=self.H.device,
+                                    generator=generator)
+        x = self._scale(self.forcing, None, 1) + xi
         with torch.no_grad():
             for _ in range(self.spin_up):
                 x = self.sample_transition(x, generator)

@@ -34,6 +34,7 @@ from ..special import log_bessel_k
 from .base import GaussianStateSpaceModel
 from .structure import Structure
 from .linear_gaussian import sensor_network_covariance
+from .trials import per_trial_structure, trial_view
 from ..errors import ArgumentError
 
 
@@ -51,12 +52,21 @@ class SkewedTPoisson(GaussianStateSpaceModel):
         mean_shift: the Gaussian fit's mean includes ``E[W] gamma`` (True, §14e) or not (False:
             the [LC-code] noise-free propagation ``alpha x``; UNCONF).
         steps: a default horizon for experiments (30, seed 001), not used by the model itself.
+
+    Per trial (:func:`torchflow.inference.per_trial_values`): ``alpha``, ``m1`` and ``m2`` may each hold
+    one value per trial, ``(B,)``. While ``alpha`` is per trial the model declares no
+    ``linear_dynamics`` (its callers read one transition matrix); the Jacobian ``alpha I`` comes from
+    :meth:`transition_jacobian`, each trial's. (``gamma``, ``nu`` and Sigma's constants are fixed: the
+    transition covariance and the density's constants are computed from them once.)
     """
 
     #: linear location, a skewed-t transition (its Gaussian form is the moment fit), R = diag(lambda(x)),
     #: and z_c counts cell c only (lambda_c = m1 exp(m2 x_c)): a diagonal measurement Jacobian
     structure = Structure(linear_dynamics=True, gaussian_transition=False, gaussian_measurement=False,
                           measurement_noise="state_dependent_diagonal", measurement_jacobian_diagonal=True)
+
+    #: the AR coefficient and the Poisson rate's constants may hold one value per trial, ``(B,)``
+    per_trial_parameters = ("alpha", "m1", "m2")
 
     def __init__(self, *, d: int = 144, alpha: float = 0.9, gamma: float = 0.3, nu: int = 7,
                  alpha0: float = 3.0, alpha1: float = 0.01, beta: float = 20.0, m1: float = 1.0,
@@ -99,16 +109,27 @@ class SkewedTPoisson(GaussianStateSpaceModel):
         self._log_c = ((1 - k) * math.log(2) - math.lgamma(nu / 2) - 0.5 * d * math.log(math.pi * nu)
                        - 0.5 * float(linalg.chol_logdet(self.Sigma_tril)))
 
+    def _per_trial_structure(self, names):
+        return per_trial_structure(self, names, dynamics="alpha" in names, measurement=False, noise=False)
+
     # ---- dynamics --------------------------------------------------------------------------
     def location(self, x):
         """``mu = alpha x``, the GH location."""
-        return self.alpha * x
+        return trial_view(self.alpha, 0, x) * x
 
     def transition_mean(self, x):
-        return self.alpha * x + (self.EW * self.gamma if self.mean_shift else 0.0)
+        return self.location(x) + (self.EW * self.gamma if self.mean_shift else 0.0)
 
     def transition_matrix(self):
-        return self.alpha * torch.eye(self.state_dim, dtype=self.Sigma.dtype, device=self.Sigma.device)
+        """``alpha I``: ``(d, d)``, or ``(B, d, d)`` per trial."""
+        alpha = self.alpha.reshape(*self.alpha.shape, 1, 1)
+        return alpha * torch.eye(self.state_dim, dtype=self.Sigma.dtype, device=self.Sigma.device)
+
+    def transition_jacobian(self, x):
+        """``alpha I`` at every state ``x (..., d)`` (each trial's, per trial): ``(..., d, d)``."""
+        d = self.state_dim
+        eye = torch.eye(d, dtype=x.dtype, device=x.device)
+        return (trial_view(self.alpha, 0, x, 2) * eye).expand(*x.shape[:-1], d, d)
 
     def transition_cov(self, x=None):
         return self.Q_st
@@ -147,7 +168,7 @@ class SkewedTPoisson(GaussianStateSpaceModel):
     # ---- measurement -----------------------------------------------------------------------
     def measure(self, x):
         """Poisson rates ``m1 exp(m2 x)`` (the measurement's mean)."""
-        return self.m1 * torch.exp(self.m2 * x)
+        return trial_view(self.m1, 0, x) * torch.exp(trial_view(self.m2, 0, x) * x)
 
     def measurement_cov(self, x=None):
         if x is None:
@@ -160,13 +181,13 @@ class SkewedTPoisson(GaussianStateSpaceModel):
         return torch.diag_embed(self.measure(x).sqrt())
 
     def measurement_jacobian(self, x):
-        return torch.diag_embed(self.m2 * self.measure(x))
+        return torch.diag_embed(trial_view(self.m2, 0, x) * self.measure(x))
 
     def linearize_measurement_diagonal(self, x):
         """``(lambda, m2 lambda, sqrt(lambda))`` with ``lambda = m1 exp(m2 x)``: the diagonals of
         :meth:`linearize_measurement` and :meth:`measurement_scale_tril`, elementwise."""
         lam = self.measure(x)
-        return lam, self.m2 * lam, lam.sqrt()
+        return lam, trial_view(self.m2, 0, x) * lam, lam.sqrt()
 
     def measurement_log_prob(self, z, x):
         """Poisson log-likelihood ``sum_c z_c log lam_c - lam_c - log z_c!`` (the full pmf)."""

@@ -53,6 +53,7 @@ from .._checks import check_choice, check_learnable, check_nonnegative, check_nu
 from ..errors import ArgumentError
 from .base import GaussianStateSpaceModel
 from .structure import Structure
+from .trials import per_trial_structure
 
 #: E[log chi^2_1] = digamma(1/2) + log 2
 LOG_CHI2_MEAN = -1.2703628454614782
@@ -115,6 +116,9 @@ class StochasticVolatility(GaussianStateSpaceModel):
         if self.gaussian_form == "log_squared":
             self.structure = type(self).structure.replace(measurement_noise="scalar",
                                                           measurement_noise_scale=LOG_CHI2_VAR)
+
+    def _per_trial_structure(self, names):
+        return per_trial_structure(self, names, noise=False)  # mu, rho, sigma: the transition alone
 
     def _view(self, p: torch.Tensor, x: torch.Tensor, core: int = 1) -> torch.Tensor:
         """A parameter (a scalar, or one value per trial ``(B,)``) viewed against ``x (B, ..., 1)``,
