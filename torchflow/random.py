@@ -159,15 +159,20 @@ class TrialStreams:
         """Uniform ``[0, 1)`` draws of ``shape`` (leading dim a multiple of B, trial-major)."""
         return self._draw("uniform", shape, dtype, device)
 
-    def _draw(self, kind, shape, dtype, device) -> torch.Tensor:
-        device = torch.device("cpu") if device is None else torch.device(device)
+    def _per_trial(self, shape, dtype):
+        """``(shape, n)``: a draw's shape as ints and its numbers per trial, after checking both."""
+        name = type(self).__name__
         if dtype not in (torch.float64, torch.float32):
-            raise ArgumentTypeError(f"dtype: TrialStreams draws float64 or float32, got {dtype}")
+            raise ArgumentTypeError(f"dtype: {name} draws float64 or float32, got {dtype}")
         shape, B = tuple(int(s) for s in shape), len(self.trials)
         if not shape or shape[0] % B:
-            raise ArgumentError(f"shape: draws from TrialStreams need a leading trial dimension that is a "
+            raise ArgumentError(f"shape: draws from {name} need a leading trial dimension that is a "
                              f"multiple of B = {B} (trial-major), got {shape}")
-        n = math.prod(shape) // B
+        return shape, math.prod(shape) // B
+
+    def _draw(self, kind, shape, dtype, device) -> torch.Tensor:
+        device = torch.device("cpu") if device is None else torch.device(device)
+        shape, n = self._per_trial(shape, dtype)
         if self.backend == "auto":
             self.backend = "numpy" if device.type == "cpu" else "philox"
         if self.backend == "numpy":
@@ -333,14 +338,8 @@ class CorrelatedStreams(TrialStreams):
 
     def _draw(self, kind, shape, dtype, device) -> torch.Tensor:
         device = torch.device("cpu") if device is None else torch.device(device)
-        if dtype not in (torch.float64, torch.float32):
-            raise ArgumentTypeError(f"dtype: CorrelatedStreams draws float64 or float32, got {dtype}")
-        shape, B = tuple(int(s) for s in shape), len(self.trials)
-        if not shape or shape[0] % B:
-            raise ArgumentError(f"shape: draws from CorrelatedStreams need a leading trial dimension that is a "
-                                f"multiple of B = {B} (trial-major), got {shape}")
-        n = math.prod(shape) // B
-        i = self.position
+        shape, n = self._per_trial(shape, dtype)
+        B, i = len(self.trials), self.position
         if i < len(self.tape):
             z = self.tape[i]
             if z.shape[1] != n:
