@@ -353,7 +353,7 @@ class CorrelatedStreams(TrialStreams):
         self.position = i + 1
         if kind == "normal":
             return z.to(dtype).reshape(shape)
-        u = (0.5 * torch.erfc(z * -math.sqrt(0.5))).to(dtype)  # Phi(z), in [0, 1]
+        u = torch.special.ndtr(z).to(dtype)  # Phi(z), in [0, 1]
         below_one = torch.nextafter(torch.ones((), dtype=dtype, device=device), torch.zeros((), dtype=dtype,
                                                                                             device=device))
         return torch.minimum(u, below_one).reshape(shape)

@@ -571,11 +571,11 @@ def sort_order(particles: Tensor, log_weights: Tensor, by: str) -> Tensor:
       weighted by ``log_weights (B, N)`` (signed so that its largest component is positive);
     * ``"hilbert"``: the position along the Hilbert curve of the unit cube (``floor(62 / d)`` bits
       per coordinate, at most 31; ``d <= 62``) of ``Phi((x - m) / s)`` per coordinate, ``m`` and
-      ``s`` the weighted mean and standard deviation (Gerber & Chopin's map): nearby particles
+      ``s`` the weighted mean and standard deviation and ``Phi`` the normal CDF: nearby particles
       get nearby keys, so the order moves little when the particles do.
     """
     x = particles.detach()
-    B, N, d = x.shape
+    d = x.shape[-1]
     if d == 1 or by == "first":
         key = x[..., 0]
     elif by == "principal":
