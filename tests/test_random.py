@@ -194,3 +194,65 @@ def test_philox_same_bits_on_cuda_and_cpu():
     assert torch.equal(a, b.cpu())
     z = TrialStreams(3, 5, "k").normal((5, 1000), dtype=F64, device="cuda")  # auto -> philox on CUDA
     assert z.device.type == "cuda" and torch.isfinite(z).all()
+
+
+def test_correlated_streams_record_then_replay():
+    """A CorrelatedStreams records its normals on first use and replays them after rewind():
+    normals are the tape, uniforms Phi(tape) in [0, 1); a filter run replays bit for bit."""
+    from torchflow.random import CorrelatedStreams
+
+    s = CorrelatedStreams(3, 4, "k")
+    z = s.normal((4, 5), dtype=torch.float64)
+    u = s.uniform((8, 3), dtype=torch.float32)  # two draws per trial (trial-major), as one entry
+    assert [t.shape for t in s.tape] == [(4, 5), (4, 6)] and s.position == 2
+    assert torch.equal(z, s.tape[0])
+    phi = torch.special.ndtr(s.tape[1]).reshape(8, 3)
+    assert u.dtype == torch.float32 and torch.allclose(u.double(), phi, atol=1e-7)
+    s.rewind()
+    assert torch.equal(s.normal((4, 5), dtype=torch.float64), z)
+    assert torch.equal(s.uniform((8, 3), dtype=torch.float32), u)
+    # Phi of a large normal rounds to 1: kept below it
+    big = CorrelatedStreams(0, 1, tape=[torch.full((1, 2), 40.0, dtype=torch.float64)])
+    for dt in (torch.float64, torch.float32):
+        assert float(big.rewind().uniform((1, 2), dtype=dt).max()) < 1.0
+    # a filter's run replays exactly, and its first run equals the recorded numbers' run
+    from conftest import random_lg
+
+    lg = random_lg(2, 2, seed=1)
+    traj = lg.simulate(3, 6, torch.Generator().manual_seed(0))
+    mean, cov = lg.initial_belief(traj.states[:, 0])
+    f = BootstrapParticleFilter(lg, n_particles=16, ess_threshold=1.0)
+    g = CorrelatedStreams(5, 3, f.stream_name)
+    first = f(traj.observations, mean, cov, g).log_evidence
+    n_draws = len(g.tape)
+    again = f(traj.observations, mean, cov, g.rewind()).log_evidence
+    assert torch.equal(first, again) and len(g.tape) == n_draws
+    # trial b's numbers are its own: a selected trial replays its rows
+    one = f(traj.observations[1:2], mean[1:2], cov[1:2], g.select([1]).rewind()).log_evidence
+    assert torch.equal(one, first[1:2])
+
+
+def test_crank_nicolson_moves_keep_the_normal_law():
+    """u' = rho u + sqrt(1 - rho^2) eps: mean 0, variance 1 and correlation rho with u (each within
+    4 standard errors over 40 000 numbers); where() takes rows per trial."""
+    from torchflow.random import CorrelatedStreams
+
+    s = CorrelatedStreams(1, 4, "k")
+    s.normal((4, 10000), dtype=torch.float64)
+    moved = s.crank_nicolson(0.9, seed=2)
+    u, v = s.tape[0].reshape(-1), moved.tape[0].reshape(-1)
+    n = u.numel()
+    assert abs(float(v.mean())) < 4 / math.sqrt(n)
+    assert abs(float(v.var()) - 1) < 4 * math.sqrt(2 / n)
+    corr = float(torch.corrcoef(torch.stack([u, v]))[0, 1])
+    assert abs(corr - 0.9) < 4 * (1 - 0.81) / math.sqrt(n)
+    assert torch.equal(s.crank_nicolson(0.9, seed=2).tape[0], moved.tape[0])  # reproducible
+    keep = torch.tensor([True, False, True, False])
+    merged = moved.where(keep, s)
+    assert torch.equal(merged.tape[0][keep], moved.tape[0][keep])
+    assert torch.equal(merged.tape[0][~keep], s.tape[0][~keep])
+    # a run that asks for other sizes than the tape holds is refused
+    with pytest.raises(ValueError, match="draw 0 asks for 3 numbers per trial, but the tape holds 10000"):
+        moved.normal((4, 3), dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"tape\[0\]: expected a \(B, n\) tensor with B = 4"):
+        CorrelatedStreams(0, 4, tape=[torch.zeros(3, 2)])

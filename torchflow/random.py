@@ -48,7 +48,7 @@ from . import _triton, tuning
 from ._checks import check_choice
 from .errors import ArgumentError, ArgumentTypeError
 
-__all__ = ["TrialStreams", "uniform", "check_generator", "stream_key", "get_state", "set_state"]
+__all__ = ["TrialStreams", "CorrelatedStreams", "uniform", "check_generator", "stream_key", "get_state", "set_state"]
 
 #: numbers per block of a trial's large draw (numpy back end): a draw of more than this many numbers
 #: per trial is filled from child streams, one per block, on several threads. Part of the stream
@@ -159,15 +159,20 @@ class TrialStreams:
         """Uniform ``[0, 1)`` draws of ``shape`` (leading dim a multiple of B, trial-major)."""
         return self._draw("uniform", shape, dtype, device)
 
-    def _draw(self, kind, shape, dtype, device) -> torch.Tensor:
-        device = torch.device("cpu") if device is None else torch.device(device)
+    def _per_trial(self, shape, dtype):
+        """``(shape, n)``: a draw's shape as ints and its numbers per trial, after checking both."""
+        name = type(self).__name__
         if dtype not in (torch.float64, torch.float32):
-            raise ArgumentTypeError(f"dtype: TrialStreams draws float64 or float32, got {dtype}")
+            raise ArgumentTypeError(f"dtype: {name} draws float64 or float32, got {dtype}")
         shape, B = tuple(int(s) for s in shape), len(self.trials)
         if not shape or shape[0] % B:
-            raise ArgumentError(f"shape: draws from TrialStreams need a leading trial dimension that is a "
+            raise ArgumentError(f"shape: draws from {name} need a leading trial dimension that is a "
                              f"multiple of B = {B} (trial-major), got {shape}")
-        n = math.prod(shape) // B
+        return shape, math.prod(shape) // B
+
+    def _draw(self, kind, shape, dtype, device) -> torch.Tensor:
+        device = torch.device("cpu") if device is None else torch.device(device)
+        shape, n = self._per_trial(shape, dtype)
         if self.backend == "auto":
             self.backend = "numpy" if device.type == "cpu" else "philox"
         if self.backend == "numpy":
@@ -247,6 +252,111 @@ class TrialStreams:
         theta = (2.0 * math.pi) * u2
         z = torch.stack((r * torch.cos(theta), r * torch.sin(theta)), -1).reshape(B, -1)[:, :n]
         return z.to(dtype)
+
+
+class CorrelatedStreams(TrialStreams):
+    """Per-trial streams that replay a stored tape of standard normals: the auxiliary variables
+    ``u`` of a correlated pseudo-marginal sampler (:func:`torchflow.inference.pmmh` with
+    ``correlation``; Deligiannidis, Doucet & Pitt 2018).
+
+    Draw ``i`` of a run (the i-th ``normal`` or ``uniform`` call since construction or
+    :meth:`rewind`) takes entry ``i`` of :attr:`tape`, a ``(B, n_i)`` float64 tensor of standard
+    normals; a draw beyond the tape takes fresh normals from the underlying :class:`TrialStreams`
+    (``seed``, ``trials``, ``key``, ``backend``) and appends them (recorded on first use). Uniforms
+    are ``Phi(normal)`` (the standard normal CDF, kept below 1), so every number a filter draws
+    moves continuously with ``u``. :meth:`crank_nicolson` makes the proposal
+    ``u' = rho u + sqrt(1 - rho^2) eps``, which leaves the law ``N(0, I)`` of ``u`` invariant.
+
+    Every filter that draws through :func:`torchflow.linalg.standard_normal` and :func:`uniform`
+    accepts it (it is a :class:`TrialStreams`). A run must ask for the same sizes as the tape
+    holds, draw by draw; otherwise the draw raises (a filter whose number of draws depends on
+    the data cannot replay a tape).
+
+    Args:
+        seed, trials, key, backend: the fresh numbers' streams (:class:`TrialStreams`).
+        tape: the stored normals, a list of ``(B, n_i)`` float64 tensors (default: empty).
+    """
+
+    def __init__(self, seed: int, trials: Union[int, Sequence[int], torch.Tensor], key: Union[str, int] = 0, *,
+                 tape: Optional[Sequence[torch.Tensor]] = None, backend: str = "auto"):
+        super().__init__(seed, trials, key, backend=backend)
+        B = len(self.trials)
+        self.tape = [] if tape is None else list(tape)
+        for i, t in enumerate(self.tape):
+            if not isinstance(t, torch.Tensor) or t.dim() != 2 or t.shape[0] != B:
+                got = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
+                raise ArgumentError(f"tape[{i}]: expected a (B, n) tensor with B = {B} trials, got {got}")
+        self.position = 0  # the next draw's tape entry
+
+    def rewind(self) -> "CorrelatedStreams":
+        """Start replaying the tape from its first entry again (returns self)."""
+        self.position = 0
+        return self
+
+    def crank_nicolson(self, rho: float, seed: int) -> "CorrelatedStreams":
+        """The proposal ``u' = rho u + sqrt(1 - rho^2) eps`` as new streams (positioned at the start),
+        ``eps`` standard normals from ``TrialStreams(seed, trials, (key, "crank_nicolson"))``; draws
+        beyond the tape come from ``TrialStreams(seed, trials, key)``."""
+        rho = float(rho)
+        noise = TrialStreams(seed, self.trials, f"{self.key}:crank_nicolson", backend=self.backend)
+        scale = math.sqrt(max(0.0, 1.0 - rho * rho))
+        tape = [rho * u + scale * noise.normal(u.shape, dtype=u.dtype, device=u.device) for u in self.tape]
+        return CorrelatedStreams(seed, self.trials, self.key, tape=tape, backend=self.backend)
+
+    def where(self, keep: torch.Tensor, other: "CorrelatedStreams") -> "CorrelatedStreams":
+        """Streams whose tape is this one's in trials where ``keep (B,)`` is true and ``other``'s
+        elsewhere (an accept/reject of ``u``); entries only one of them holds are taken from it."""
+        tape = []
+        for i in range(max(len(self.tape), len(other.tape))):
+            if i >= len(other.tape):
+                tape.append(self.tape[i])
+            elif i >= len(self.tape):
+                tape.append(other.tape[i])
+            else:
+                mine, theirs = self.tape[i], other.tape[i]
+                tape.append(torch.where(keep.to(mine.device).reshape(-1, 1), mine, theirs))
+        out = CorrelatedStreams.__new__(CorrelatedStreams)
+        out.__dict__.update(self.__dict__)
+        out.tape, out.position = tape, 0
+        return out
+
+    def get_state(self):
+        return super().get_state(), self.position
+
+    def set_state(self, state) -> None:
+        super().set_state(state[0])
+        self.position = state[1]
+
+    def select(self, index: Union[slice, Sequence[int]]) -> "CorrelatedStreams":
+        pos = list(range(len(self.trials)))[index] if isinstance(index, slice) else [int(i) for i in index]
+        base = TrialStreams.select(self, pos)
+        out = CorrelatedStreams.__new__(CorrelatedStreams)
+        out.__dict__.update(base.__dict__)
+        out.tape = [u[torch.as_tensor(pos, device=u.device)] for u in self.tape]
+        out.position = self.position
+        return out
+
+    def _draw(self, kind, shape, dtype, device) -> torch.Tensor:
+        device = torch.device("cpu") if device is None else torch.device(device)
+        shape, n = self._per_trial(shape, dtype)
+        B, i = len(self.trials), self.position
+        if i < len(self.tape):
+            z = self.tape[i]
+            if z.shape[1] != n:
+                raise ArgumentError(f"CorrelatedStreams: draw {i} asks for {n} numbers per trial, but the tape holds "
+                                    f"{z.shape[1]} there: the filter's draws differ from the run that recorded the "
+                                    "tape (a filter whose number of draws depends on the data cannot replay one)")
+            z = z.to(device)
+        else:
+            z = super()._draw("normal", (B, n), torch.float64, device)
+            self.tape.append(z)
+        self.position = i + 1
+        if kind == "normal":
+            return z.to(dtype).reshape(shape)
+        u = torch.special.ndtr(z).to(dtype)  # Phi(z), in [0, 1]
+        below_one = torch.nextafter(torch.ones((), dtype=dtype, device=device), torch.zeros((), dtype=dtype,
+                                                                                            device=device))
+        return torch.minimum(u, below_one).reshape(shape)
 
 
 def get_state(generator: Optional[Generatorish]):

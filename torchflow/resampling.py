@@ -38,7 +38,7 @@ from typing import Callable, Dict, Optional, Tuple
 import torch
 from torch import Tensor, nn
 
-from . import random as _random, registry
+from . import linalg, random as _random, registry
 from ._checks import check_count, check_float_tensor, shape_str
 from .linalg import standard_normal
 from .errors import ArgumentError
@@ -57,6 +57,9 @@ __all__ = [
     "Resampler",
     "RESAMPLING_GRADIENTS",
     "sinkhorn_transport",
+    "sort_order",
+    "hilbert_index",
+    "SORT_ORDERS",
 ]
 
 ResampleFn = Callable[..., Tensor]
@@ -521,6 +524,77 @@ def sinkhorn_transport(particles: Tensor, log_weights: Tensor, *, epsilon: float
     return torch.exp(log_a[:, :, None] + (f[:, :, None] + g[:, None, :] - C) / eps + (log_b + math.log(N)))
 
 
+#: orders :class:`Resampler` can sort the particles in before resampling (``sort=``)
+SORT_ORDERS = ("first", "principal", "hilbert")
+
+
+def hilbert_index(cells: Tensor, bits: int) -> Tensor:
+    """Position along the d-dimensional Hilbert curve of integer cells ``(..., d)`` in
+    ``[0, 2**bits)`` -> ``(...)`` int64 (``d * bits <= 63``). Consecutive positions are adjacent
+    cells. Skilling's method (AIP Conf. Proc. 707, 2004): the cell's coordinates are turned into
+    the curve's transposed index by one pass of bit exchanges and inversions from the top bit
+    down, Gray-decoded, and the transposed bits interleaved (loops over bits and coordinates, each
+    an elementwise op over all cells)."""
+    x = list(cells.to(torch.int64).unbind(-1))
+    d, top = len(x), 1 << (bits - 1)
+    q = top
+    while q > 1:  # undo the excess work of the curve's construction, top bit first
+        low = q - 1
+        for i in range(d):
+            hit = (x[i] & q) != 0
+            t = (x[0] ^ x[i]) & low
+            x0 = torch.where(hit, x[0] ^ low, x[0] ^ t)
+            if i:
+                x[i] = torch.where(hit, x[i], x[i] ^ t)
+            x[0] = x0
+        q >>= 1
+    for i in range(1, d):  # Gray encode
+        x[i] = x[i] ^ x[i - 1]
+    t, q = torch.zeros_like(x[0]), top
+    while q > 1:
+        t = torch.where((x[d - 1] & q) != 0, t ^ (q - 1), t)
+        q >>= 1
+    x = [xi ^ t for xi in x]
+    index = torch.zeros_like(x[0])
+    for b in range(bits - 1, -1, -1):  # interleave: bit b of every coordinate, most significant first
+        for i in range(d):
+            index = (index << 1) | ((x[i] >> b) & 1)
+    return index
+
+
+def sort_order(particles: Tensor, log_weights: Tensor, by: str) -> Tensor:
+    """``(B, N)`` int64 permutation sorting each trial's ``particles (B, N, d)`` by a scalar key
+    (stable: ties keep their order). In d = 1 the key is the value whatever ``by`` says; else:
+
+    * ``"first"``: the first coordinate;
+    * ``"principal"``: the projection on the leading eigenvector of the cloud's covariance
+      weighted by ``log_weights (B, N)`` (signed so that its largest component is positive);
+    * ``"hilbert"``: the position along the Hilbert curve of the unit cube (``floor(62 / d)`` bits
+      per coordinate, at most 31; ``d <= 62``) of ``Phi((x - m) / s)`` per coordinate, ``m`` and
+      ``s`` the weighted mean and standard deviation and ``Phi`` the normal CDF: nearby particles
+      get nearby keys, so the order moves little when the particles do.
+    """
+    x = particles.detach()
+    d = x.shape[-1]
+    if d == 1 or by == "first":
+        key = x[..., 0]
+    elif by == "principal":
+        _, cov = linalg.weighted_mean_cov(x, log_weights.detach())
+        axis = torch.linalg.eigh(cov)[1][..., -1]                                       # (B, d)
+        sign = torch.where(axis.gather(-1, axis.abs().argmax(-1, keepdim=True)) < 0, -1.0, 1.0)
+        key = torch.einsum("bnd,bd->bn", x, axis * sign)
+    else:
+        if d > 62:
+            raise ArgumentError(f"sort: 'hilbert' keys hold at most 62 dimensions, got d = {d} (use 'principal')")
+        bits = min(31, 62 // d)
+        mean, cov = linalg.weighted_mean_cov(x, log_weights.detach())
+        sd = cov.diagonal(dim1=-2, dim2=-1).clamp_min(torch.finfo(x.dtype).tiny).sqrt()
+        unit = torch.special.ndtr((x - mean[:, None]) / sd[:, None]).double()           # (B, N, d) in [0, 1]
+        cells = (unit * 2.0 ** bits).floor().clamp(0, 2 ** bits - 1).to(torch.int64)
+        key = hilbert_index(cells, bits)
+    return torch.sort(key, dim=1, stable=True)[1]
+
+
 class Resampler(nn.Module):
     """The resampling part of a particle filter: scheme, ESS trigger, regularisation and how
     gradients pass through it.
@@ -556,12 +630,24 @@ class Resampler(nn.Module):
         soft_alpha: the mixture weight of ``"soft"``, in (0, 1].
         ot_epsilon, ot_iterations: the regularisation and the Sinkhorn iterations of ``"ot"``.
         dtype: of the regularisation scale (the model's).
+        sort: ``None`` (default): resample the particles in their order. Else sort each trial's
+            particles by a scalar key before inverting the resampling CDF (:func:`sort_order`):
+            ``"first"`` (the first coordinate), ``"principal"`` (the projection on the weighted
+            cloud's first principal axis) or ``"hilbert"`` (the position along a Hilbert curve);
+            in d = 1 all three sort by the value. Sorted, the ancestors chosen move continuously
+            with the uniforms and the particles (exactly so in d = 1, approximately along the
+            Hilbert curve in higher dimensions), which correlated pseudo-marginal MCMC needs
+            (:func:`torchflow.inference.pmmh` with ``correlation`` turns on ``"hilbert"``). The
+            particles of every trial leave in sorted order, with their weights where the trial is
+            not resampled (a reordering: the same weighted cloud). Not used by ``"ot"``.
     """
 
     def __init__(self, state_dim: int, *, scheme: str = "systematic", ess_threshold: float = 0.5,
                  regularization=None, gradient: str = "none", soft_alpha: float = 0.5,
-                 ot_epsilon: float = 0.1, ot_iterations: int = 100, dtype: torch.dtype = torch.float64):
+                 ot_epsilon: float = 0.1, ot_iterations: int = 100, dtype: torch.dtype = torch.float64,
+                 sort: Optional[str] = None):
         super().__init__()
+        self.sort = sort
         _get_resampler(scheme, "resampling")
         if (isinstance(ess_threshold, bool) or not isinstance(ess_threshold, numbers.Real)
                 or not 0.0 <= float(ess_threshold) <= 1.0):
@@ -588,6 +674,17 @@ class Resampler(nn.Module):
                                  f"got {regularization!r}")
             self.register_buffer("regularization_std", var.sqrt().to(dtype))
 
+    @property
+    def sort(self) -> Optional[str]:
+        """The order particles are sorted in before resampling (``None`` or one of :data:`SORT_ORDERS`)."""
+        return self._sort
+
+    @sort.setter
+    def sort(self, value: Optional[str]) -> None:
+        if value is not None and value not in SORT_ORDERS:
+            raise ArgumentError(f"sort: expected None or one of {SORT_ORDERS}, got {value!r}")
+        self._sort = value
+
     def forward(self, particles: Tensor, log_weights: Tensor, generator, *, cov=None,
                 extras: Optional[Dict[str, Tensor]] = None):
         """Resample the low-ESS trials of ``particles (B, N, d)`` with normalised ``log_weights
@@ -598,11 +695,15 @@ class Resampler(nn.Module):
         every trial is gathered (identity indices where not resampled)."""
         if self.gradient == "ot":
             return self._ot(particles, log_weights, generator, cov, extras)
+        order = None if self.sort is None else sort_order(particles, log_weights, self.sort)
+        lw_in = log_weights if order is None else log_weights.gather(1, order)
         if self.gradient == "soft":
-            idx, resampled, lw_new = self._soft(log_weights, generator)
+            idx, resampled, lw_new = self._soft(lw_in, generator)
         else:
-            idx, resampled, lw_new = resample_if_needed(log_weights, generator, scheme=self.scheme,
+            idx, resampled, lw_new = resample_if_needed(lw_in, generator, scheme=self.scheme,
                                                         ess_threshold=self.ess_threshold, validate=False)
+        if order is not None:  # positions in the sorted cloud -> the particles' own indices
+            idx = order.gather(1, idx)
         particles = gather_particles(particles, idx)
         if self.gradient == "stop_gradient" and torch.is_grad_enabled():  # adds exactly 0: skipped without autograd
             lw_anc = gather_particles(log_weights, idx)
@@ -667,4 +768,5 @@ class Resampler(nn.Module):
     def extra_repr(self) -> str:
         extra = (f", soft_alpha={self.soft_alpha}" if self.gradient == "soft" else
                  f", ot_epsilon={self.ot_epsilon}, ot_iterations={self.ot_iterations}" if self.gradient == "ot" else "")
+        extra += f", sort={self.sort!r}" if self.sort is not None else ""
         return f"scheme={self.scheme!r}, ess_threshold={self.ess_threshold}, gradient={self.gradient!r}{extra}"

@@ -5,6 +5,8 @@ filter, its adaptive random walk), with the same priors and particle count.
 
     python -m experiments.benchmarks.bench_sv_pmmh            # ~5 min on one thread
     python -m experiments.benchmarks.bench_sv_pmmh --steps 200 --iterations 300   # smaller
+    python -m experiments.benchmarks.bench_sv_pmmh --correlation 0.99 --particles 50 --no-peer \
+        --out experiments/benchmarks/results_sv_cpm      # correlated PMMH beside standard, N = 50
 
 Priors (``particles``' conventions): mu ~ N(0, 2^2), rho ~ U(-1, 1), sigma ~ Gamma(1, rate 1).
 Reported per sampler: the posterior mean and standard deviation of each parameter over the kept
@@ -51,19 +53,26 @@ def summarise(name, draws: dict, acceptance, seconds, chains, iterations):
     return row
 
 
-def ours(y, args):
+def ours(y, args, correlation=None):
     from torchflow.filters import BootstrapParticleFilter
     from torchflow.inference import pmmh
     from torchflow.models import StochasticVolatility
 
     model = StochasticVolatility()
     filt = BootstrapParticleFilter(model, n_particles=args.particles)
+    cpu0 = time.process_time()
     res = pmmh(filt, torch.as_tensor(y).reshape(-1, 1), stationary_prior, torch_priors(), args.seed,
                n_chains=args.chains, n_iterations=args.iterations, n_adapt=args.adapt, scale=0.1,
-               init={"mu": -1.0, "rho": 0.9, "sigma": 0.2})
-    return summarise("torchflow pmmh, BPF (C chains in one call per iteration)",
-                     {k: v.numpy() for k, v in res.samples.items()}, res.acceptance.numpy(), res.seconds,
-                     args.chains, args.iterations)
+               init={"mu": -1.0, "rho": 0.9, "sigma": 0.2}, correlation=correlation)
+    name = ("torchflow pmmh, BPF (C chains in one call per iteration)" if correlation is None else
+            f"torchflow correlated pmmh, BPF, rho = {correlation} (resampling every step, sorted)")
+    row = summarise(name, {k: v.numpy() for k, v in res.samples.items()}, res.acceptance.numpy(), res.seconds,
+                    args.chains, args.iterations)
+    # CPU seconds of the process (1 thread): ESS per CPU second does not depend on what else runs
+    row["cpu_seconds"] = time.process_time() - cpu0
+    for k in NAMES:
+        row[k]["ess_per_cpu_sec"] = row[k]["ess"] / row["cpu_seconds"]
+    return row
 
 
 def theirs(y, args):
@@ -95,6 +104,9 @@ def main(argv=None):
     p.add_argument("--adapt", type=int, default=200)
     p.add_argument("--particles", type=int, default=200)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--correlation", type=float, default=None,
+                   help="also run correlated pseudo-marginal PMMH with this rho (beside the standard run)")
+    p.add_argument("--no-peer", action="store_true", help="leave out particles' PMMH")
     p.add_argument("--out", default=str(HERE / "results_sv_pmmh"))
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -102,8 +114,11 @@ def main(argv=None):
 
     y = returns()[: args.steps]
     rows = [ours(y, args)]
+    if args.correlation is not None:
+        rows.append(ours(y, args, args.correlation))
     try:
-        rows.append(theirs(y, args))
+        if not args.no_peer:
+            rows.append(theirs(y, args))
     except ImportError:
         print("particles is not installed: its row is left out")
     lines = [f"# PMMH on stochastic volatility, GBP/USD returns (first {args.steps}), {args.chains} chains x "
@@ -113,6 +128,12 @@ def main(argv=None):
     for r in rows:
         cells = [f"{r[k]['mean']:.3f} ({r[k]['sd']:.3f}), {r[k]['ess']:.0f}, {r[k]['ess_per_sec']:.2f}" for k in NAMES]
         lines.append(f"| {r['sampler']} | {r['acceptance']:.2f} | {r['seconds']:.0f} | " + " | ".join(cells) + " |")
+    if any("cpu_seconds" in r for r in rows):
+        lines += ["", "ESS per CPU second of the process (not wall time: the same under other load):", "",
+                  "| sampler | CPU s | " + " | ".join(f"{k}: ESS/CPU s" for k in NAMES) + " |",
+                  "|---|---|" + "---|" * len(NAMES)]
+        lines += [f"| {r['sampler']} | {r['cpu_seconds']:.0f} | " + " | ".join(
+            f"{r[k]['ess_per_cpu_sec']:.2f}" for k in NAMES) + " |" for r in rows if "cpu_seconds" in r]
     out = Path(args.out)
     out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     out.with_suffix(".json").write_text(json.dumps(dict(settings=vars(args), rows=rows), indent=1) + "\n")
