@@ -289,3 +289,22 @@ def test_pmmh_correlation_errors_and_reproducibility():
     assert torch.equal(runs[0].log_likelihood, runs[1].log_likelihood)
     plain = pmmh(f, obs, prior0, priors, 7, n_chains=3, n_iterations=8, n_adapt=4)
     assert not torch.equal(runs[0].log_likelihood, plain.log_likelihood)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("correlation", [None, 0.9])
+def test_pmmh_cuda(correlation):
+    """A few PMMH iterations with the chains' filter on CUDA (the model, the observations and the
+    prior there; the chains' own draws from a CPU seed): finite log-likelihoods, draws in the prior's
+    support, the same chains for the same seed."""
+    model, obs = _data(10)
+    model = model.to("cuda")
+    obs = obs.to("cuda")
+    f = BootstrapParticleFilter(model, n_particles=64)
+    prior0 = (torch.zeros(1, dtype=F64, device="cuda"), torch.eye(1, dtype=F64, device="cuda"))
+    prior_a = {"a": Uniform(torch.tensor(-1.0, dtype=F64), torch.tensor(1.0, dtype=F64))}
+    runs = [pmmh(f, obs, prior0, prior_a, 3, n_chains=3, n_iterations=6, n_adapt=4, correlation=correlation)
+            for _ in range(2)]
+    a = runs[0].samples["a"]
+    assert torch.isfinite(runs[0].log_likelihood).all() and bool(((a > -1) & (a < 1)).all())
+    assert torch.equal(a.cpu(), runs[1].samples["a"].cpu())

@@ -7,6 +7,11 @@ filter, its adaptive random walk), with the same priors and particle count.
     python -m experiments.benchmarks.bench_sv_pmmh --steps 200 --iterations 300   # smaller
     python -m experiments.benchmarks.bench_sv_pmmh --correlation 0.99 --particles 50 --no-peer \
         --out experiments/benchmarks/results_sv_cpm      # correlated PMMH beside standard, N = 50
+    python -m experiments.benchmarks.bench_sv_pmmh --filter pfpf_ledh --particles 50 --no-peer \
+        --out experiments/benchmarks/results_sv_pmmh_ledh   # PF-PF(LEDH) as the likelihood estimator
+
+``--filter pfpf_ledh``: PF-PF(LEDH) on the log-squared form (``offset``: the series has zero returns);
+its weights and log-evidence are those of the returns, so the posterior is the same.
 
 Priors (``particles``' conventions): mu ~ N(0, 2^2), rho ~ U(-1, 1), sigma ~ Gamma(1, rate 1).
 Reported per sampler: the posterior mean and standard deviation of each parameter over the kept
@@ -54,18 +59,26 @@ def summarise(name, draws: dict, acceptance, seconds, chains, iterations):
 
 
 def ours(y, args, correlation=None):
-    from torchflow.filters import BootstrapParticleFilter
+    from torchflow.filters import BootstrapParticleFilter, ParticleFlowParticleFilter
     from torchflow.inference import pmmh
     from torchflow.models import StochasticVolatility
 
-    model = StochasticVolatility()
-    filt = BootstrapParticleFilter(model, n_particles=args.particles)
+    obs = torch.as_tensor(y).reshape(-1, 1)
+    if args.filter == "pfpf_ledh":
+        # the flow needs the log-squared form (slope one); its weights and evidence are the returns'
+        model = StochasticVolatility(gaussian_form="log_squared", offset=args.offset)
+        obs = model.transform_observations(obs)
+        filt = ParticleFlowParticleFilter(model, flow="ledh", n_particles=args.particles)
+    else:
+        model = StochasticVolatility()
+        filt = BootstrapParticleFilter(model, n_particles=args.particles)
     cpu0 = time.process_time()
-    res = pmmh(filt, torch.as_tensor(y).reshape(-1, 1), stationary_prior, torch_priors(), args.seed,
+    res = pmmh(filt, obs, stationary_prior, torch_priors(), args.seed,
                n_chains=args.chains, n_iterations=args.iterations, n_adapt=args.adapt, scale=0.1,
                init={"mu": -1.0, "rho": 0.9, "sigma": 0.2}, correlation=correlation)
-    name = ("torchflow pmmh, BPF (C chains in one call per iteration)" if correlation is None else
-            f"torchflow correlated pmmh, BPF, rho = {correlation} (resampling every step, sorted)")
+    est = "PF-PF(LEDH)" if args.filter == "pfpf_ledh" else "BPF"
+    name = (f"torchflow pmmh, {est} (C chains in one call per iteration)" if correlation is None else
+            f"torchflow correlated pmmh, {est}, rho = {correlation} (resampling every step, sorted)")
     row = summarise(name, {k: v.numpy() for k, v in res.samples.items()}, res.acceptance.numpy(), res.seconds,
                     args.chains, args.iterations)
     # CPU seconds of the process (1 thread): ESS per CPU second does not depend on what else runs
@@ -107,6 +120,9 @@ def main(argv=None):
     p.add_argument("--correlation", type=float, default=None,
                    help="also run correlated pseudo-marginal PMMH with this rho (beside the standard run)")
     p.add_argument("--no-peer", action="store_true", help="leave out particles' PMMH")
+    p.add_argument("--filter", choices=("bpf", "pfpf_ledh"), default="bpf",
+                   help="our likelihood estimator: the bootstrap PF or PF-PF(LEDH) on the log-squared form")
+    p.add_argument("--offset", type=float, default=1e-4, help="log-squared form: log(y^2 + offset) (zero returns)")
     p.add_argument("--out", default=str(HERE / "results_sv_pmmh"))
     args = p.parse_args(argv)
     torch.set_num_threads(1)

@@ -34,6 +34,7 @@ echo "== CUDA contract tests ($(left) s left)"; date
 timeout "$(cap 300)" python3 -m pytest -q -p no:cacheprovider -rfE tests/filters/test_contract.py tests/flows/test_fused.py \
   tests/test_cudagraphs.py tests/test_graph_step.py tests/test_random.py tests/test_bad_inputs.py tests/test_philox_fused.py \
   tests/models/test_model_contract.py tests/filters/test_missing.py tests/test_smoothing.py \
+  tests/filters/test_marginal.py tests/test_per_trial.py tests/test_inference.py \
   $(ls tests/filters/test_ensemble.py 2>/dev/null) -k "cuda or model_contract" 2>&1 | tail -25 > "$OUT/cuda_tests.txt"
 tail -4 "$OUT/cuda_tests.txt"; { echo; echo "## CUDA tests"; tail -1 "$OUT/cuda_tests.txt"; } >> "$MD"
 
