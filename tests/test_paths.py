@@ -5,12 +5,13 @@ import json
 import pytest
 import torch
 
+from conftest import cuda
 from test_cudagraphs import _Emulated
 from torchflow import cudagraphs, tuning
 from torchflow.experiment import format_table, run_experiment
 from torchflow.filters import BootstrapParticleFilter, ParticleFlowParticleFilter
-from torchflow.flows.kernels import graph_step, paths, select
-from torchflow.models import SensorNetwork, SkewedTPoisson
+from torchflow.flows.kernels import graph_step, paths, select, steps
+from torchflow.models import AcousticTracking, SensorNetwork, SkewedTPoisson
 from torchflow.random import TrialStreams
 from torchflow.runner import ChunkStore, writers
 
@@ -122,3 +123,28 @@ def test_the_runner_records_each_filters_path(tmp_path):
     again = run_experiment(model, filters, trials=2, steps=T, seed=3, chunk_size=1, progress=False,
                            store=ChunkStore(tmp_path / "chunks", resume=True))
     assert again.paths == res.paths and again.per_trial == res.per_trial
+
+
+@cuda
+def test_the_gpu_paths_are_reported():
+    """On CUDA: the bootstrap PF's steps replayed from a graph, PF-PF(LEDH)'s flow loop sent to a
+    graph (its warm-up counted under the Triton kernel), the kernel alone with cuda_graphs=0."""
+    cudagraphs.clear()
+    model = AcousticTracking().to("cuda")
+    g = torch.Generator(device="cuda").manual_seed(0)
+    traj = model.simulate(2, 6, g)
+    obs, (mean, cov) = traj.observations, model.initial_belief(traj.states[:, 0], g)
+    boot = BootstrapParticleFilter(model, n_particles=64)
+    ledh = ParticleFlowParticleFilter(model, flow="ledh", n_particles=64)
+    lanes = "kernel:lanes" if steps.runs_on(torch.device("cuda")) else "torch"
+    try:
+        with torch.no_grad():
+            stepped = boot(obs, mean, cov, TrialStreams(1, 2, boot.stream_name, backend="philox"))
+            graphed = ledh(obs, mean, cov, TrialStreams(1, 2, ledh.stream_name, backend="philox"))
+            with tuning.tuned(cuda_graphs=0):
+                fused = ledh(obs, mean, cov, TrialStreams(1, 2, ledh.stream_name, backend="philox"))
+    finally:
+        cudagraphs.clear()
+    assert stepped.paths.get("graph:step", 0) >= 4 and sum(stepped.paths.values()) == 6
+    assert graphed.paths["graph:flow"] == 6 and set(graphed.paths) <= {"graph:flow", lanes}
+    assert fused.paths == {lanes: 6}
