@@ -14,8 +14,8 @@ paths, and what one count is:
 * ``"graph:step"``: one filter time step replayed from a CUDA graph
   (:mod:`~torchflow.flows.kernels.graph_step`);
 * ``"torch"``: one flow integration or GPFIS transport by the reference PyTorch code, and, in a
-  filter's :meth:`~torchflow.filters.Filter.forward`, one time step that took none of the paths
-  above (a Kalman filter's, a bootstrap PF's, or a step whose decisions all ran in torch).
+  filter's :meth:`~torchflow.filters.Filter.forward`, one time step in which nothing was noted (a
+  Kalman filter's, a bootstrap PF's, an eagerly run graph-safe step).
 
 :meth:`Filter.forward <torchflow.filters.Filter.forward>` records its time steps and reports the
 counts as :attr:`FilterResult.paths <torchflow.filters.FilterResult.paths>`; the runner sums them
