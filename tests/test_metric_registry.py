@@ -18,7 +18,7 @@ BUILT_IN_COLUMNS = [
     "filter", "n_particles", "trials", "steps", "mse", "rmse", "rmse_se", "omat", "omat_kept_mean", "omat_kept_sd",
     "ospa", "declared", "underflows", "ess", "g_eff", "log_evidence", "log_evidence_se", "log_evidence_relmse",
     "lost_tracks", "repaired",
-    "sec_per_step", "warmup_sec", "error",
+    "sec_per_step", "warmup_sec", "path", "error",
 ]
 
 

@@ -415,7 +415,7 @@ _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 RESERVED_NAMES = frozenset({
     "filter", "n_particles", "trials", "steps", "trial", "step", "lost", "omat_kept_mean", "omat_kept_sd",
     "underflows", "log_evidence", "log_evidence_se", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step",
-    "warmup_sec", "error"})
+    "warmup_sec", "path", "error"})
 
 
 def _expect(ok: bool, arg: str, what: str, got) -> None:

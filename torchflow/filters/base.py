@@ -23,7 +23,7 @@ from ..models.structure import kernel_structure
 from ..proposals import BootstrapProposal, Proposal
 from ..proposals.flow import check_informative
 from ..random import check_generator
-from ..flows.kernels import graph_step
+from ..flows.kernels import graph_step, paths as _paths
 from ..errors import ArgumentError, ArgumentTypeError
 from . import guards
 from . import marginal as _marginal
@@ -110,6 +110,11 @@ class FilterResult:
             filters (``None`` for others).
         std: ``(B, T, d)`` the filtering law's standard deviation of each coordinate, if requested
             (``forward(return_std=True)``; :func:`belief_std`).
+        paths: ``{path: count}``: the execution paths the call's time steps took
+            (:mod:`torchflow.flows.kernels.paths`): ``"kernel:<name>"`` per flow integration by a
+            fused kernel, ``"graph:flow"`` / ``"graph:step"`` per integration / step sent to a CUDA
+            graph, ``"torch"`` per integration (or step without any of these) in plain PyTorch.
+            Host-side counts; no number depends on them.
     """
 
     estimates: torch.Tensor
@@ -122,6 +127,7 @@ class FilterResult:
     n_repaired: Optional[torch.Tensor] = None
     g_eff: Optional[torch.Tensor] = None
     std: Optional[torch.Tensor] = None
+    paths: Optional[Dict[str, int]] = None
 
 
 def belief_std(state) -> torch.Tensor:
@@ -402,11 +408,14 @@ class Filter(nn.Module):
         step = self._checkpointed_step if checkpoint_steps and torch.is_grad_enabled() else self.step
         if step == self.step and not gaps and graph_step.eligible(self, state, generator):  # one launch per step (CUDA)
             step = functools.partial(graph_step.run_step, self, memo={})
-        with _missing.observations_missing(gaps):  # NaN: not observed (torchflow.missing)
+        with _missing.observations_missing(gaps), _paths.recording() as used:  # NaN: not observed (torchflow.missing)
+            step = _paths.per_step(step, used)  # each step's kernel / graph / torch path, counted on the host
             state = self._run_steps(state, step, observations, generator, trace, n_particles, progress)
         self._check_trace(trace, warn=True)  # the one host read of the check
         try:  # the per-step outputs stacked: with return_particles, (B, T, N, d) more
-            return trace.result(state)
+            result = trace.result(state)
+            result.paths = used
+            return result
         except Exception as err:
             self._raise_out_of_memory(_uncountable(err), observations.shape[0], n_particles)
             raise

@@ -20,6 +20,7 @@ from typing import Callable, List, Mapping, Optional, Tuple, Union
 
 import torch
 
+from ..flows.kernels import paths
 from .writers import write_text
 from ..errors import ArgumentError
 
@@ -156,10 +157,12 @@ class ChunkStore:
                 continue
             part = {k: data[k][a - r[0]:b - r[0]] for k in CHUNK_FIELDS if k in data}
             part["elapsed"] = float(data.get("elapsed", 0.0)) * (b - a) / (r[1] - r[0])
+            part["paths"] = data.get("paths")  # the paths of the run that computed the saved chunk (its counts)
             parts.append(part)
             reused += b - a
         chunk = {k: torch.cat([p[k] for p in parts]) for k in CHUNK_FIELDS if all(k in p for p in parts)}
-        chunk.update(start=start, stop=stop, elapsed=sum(float(p["elapsed"]) for p in parts))
+        chunk.update(start=start, stop=stop, elapsed=sum(float(p["elapsed"]) for p in parts),
+                     paths=paths.merge(*(p.get("paths") for p in parts)))
         self.reused_trials[name] += reused
         log.info("resume: %s trials %d..%d: %d reused from chunks saved with other boundaries, %d computed",
                  name, start, stop - 1, reused, stop - start - reused)

@@ -16,6 +16,7 @@ from tqdm.auto import tqdm
 from .. import _progress, tuning
 from .._checks import NonFiniteError
 from ..filters.base import Filter
+from ..flows.kernels import paths
 from ..models.base import StateSpaceModel, Trajectory
 from ..random import TrialStreams
 from .checkpoint import CHUNK_FIELDS, ChunkStore
@@ -181,10 +182,14 @@ def say_slow_path(filters: Mapping, device) -> Optional[str]:
 
 def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None) -> dict:
     """Run filter ``f`` on trials ``[s, e)``: the chunk's :data:`CHUNK_FIELDS` as CPU tensors
-    (floats as float64). Padded measurement sets (a trajectory with a ``mask``) pass their mask."""
+    (floats as float64) and ``paths``, the execution paths its steps took
+    (:attr:`~torchflow.filters.FilterResult.paths`). Padded measurement sets (a trajectory with a
+    ``mask``) pass their mask."""
     cb = (lambda n=e - s: bar.update(n)) if bar is not None else None
     res, elapsed = _timed_call(f, name, plan, s, e, progress=cb)
     out = {"start": s, "stop": e, "elapsed": elapsed}
+    if getattr(res, "paths", None) is not None:  # the execution paths taken (torchflow.flows.kernels.paths)
+        out["paths"] = dict(res.paths)
     for key in CHUNK_FIELDS:
         v = getattr(res, key, None)
         if v is not None:
@@ -390,6 +395,8 @@ def run_experiment(
             else:  # sec_per_step: compute time (a loaded chunk: its original time) per trial-step
                 row["sec_per_step"] = sum(float(c["elapsed"]) for c in out.chunks) / (s.n_run * s.steps)
                 row["warmup_sec"] = out.warmup
+                res.paths[name] = paths.merge(*(c.get("paths") for c in out.chunks))
+                row["path"] = paths.describe(res.paths[name])
                 trial_rows, step_rows, res.examples[name] = score_filter(scorer, f, name, row, out.chunks, s.steps)
                 spread = estimate_spread(out.chunks)
                 if spread is not None:

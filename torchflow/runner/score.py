@@ -21,7 +21,7 @@ FIXED_COLUMNS = ("filter", "n_particles", "trials", "steps")
 #: it names (``None``: after every metric; a group whose metric is not registered comes before it)
 RUN_COLUMNS = (("omat", ("omat_kept_mean", "omat_kept_sd")), ("declared", ("underflows",)),
                (None, ("log_evidence", "log_evidence_se", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step",
-                       "warmup_sec", "error")))
+                       "warmup_sec", "path", "error")))
 
 
 def summary_columns() -> List[str]:
@@ -92,6 +92,9 @@ class ExperimentResult:
             of the filter's estimates and their standard deviation over trials (the spread of the
             independent runs; 0 with one trial); filters of point estimates.
         recorded: the data were recorded (no true states: no metric that needs them).
+        paths: ``{filter: {path: count}}``: the execution paths each filter's time steps took,
+            summed over its chunks (:mod:`torchflow.flows.kernels.paths`; the summary's ``path``
+            column names them, most counted first).
     """
 
     summary: List[dict]
@@ -105,6 +108,7 @@ class ExperimentResult:
     failures: Dict[str, str] = field(default_factory=dict)
     estimate_summary: Dict[str, Tuple[torch.Tensor, torch.Tensor]] = field(default_factory=dict)
     recorded: bool = False
+    paths: Dict[str, Dict[str, int]] = field(default_factory=dict)
 
     @property
     def failed(self) -> List[str]:

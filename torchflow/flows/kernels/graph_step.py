@@ -23,7 +23,9 @@ class that each declare ``graph_safe``: the bootstrap proposal; the linear-Gauss
 acoustic tracking), on CUDA, without a gradient, with per-trial Philox streams (a plain
 :class:`~torchflow.random.TrialStreams`), ``tuning.cuda_graphs`` on and at most
 ``tuning.graph_step_max_elems`` state elements (larger steps are bound by the GPU's arithmetic,
-where a graph saves nothing and would keep a large memory pool). Anything else runs eagerly.
+where a graph saves nothing and would keep a large memory pool). Anything else runs eagerly. A
+replayed step is noted (:mod:`~torchflow.flows.kernels.paths`: ``"graph:step"``); an eager one is
+counted by the filter's ``forward`` as ``"torch"``.
 Known limits: process-wide switches outside :func:`torchflow.cudagraphs._settings` (which holds
 the TF32, precision, determinism and autocast flags) are not seen by a cached graph.
 """
@@ -36,7 +38,7 @@ from typing import Optional
 import torch
 
 from ... import cudagraphs, tuning
-from . import select
+from . import paths, select
 from ...random import TrialStreams
 
 __all__ = ["run_step", "eligible"]
@@ -190,6 +192,7 @@ def run_step(filt, state, z: torch.Tensor, generator: TrialStreams, *, memo: Opt
     words = tuple(generator._philox_bits(k, n, dt, dev) for k, _, n, dt, dev in specs)
     fn = _step_function(filt, generator, layout, len(tensors), state.step, specs, entry)
     key = ("filter_step", sig)
+    replays = cudagraphs.stats()["replays"] if paths.listening() else None
     try:
         out = cudagraphs.graphed(key, fn, tuple(tensors) + (z,) + words, name=f"{filt.name}.step")
     except _Mismatch as err:  # the step's draws differ from the recorded ones: it runs eagerly
@@ -200,6 +203,8 @@ def run_step(filt, state, z: torch.Tensor, generator: TrialStreams, *, memo: Opt
                           RuntimeWarning, stacklevel=3)
         generator._counter = counter  # the words drawn for the graph are given back: the eager step draws them
         return filt.step(state, z, generator)
+    if replays is not None and cudagraphs.stats()["replays"] > replays:  # not the capture's eager warm-up
+        paths.note("graph:step")
     return _unflatten(entry["out"], out, state.step + 1)
 
 

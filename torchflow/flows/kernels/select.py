@@ -32,6 +32,10 @@ Kernels (:mod:`torchflow.flows.kernels.steps` wraps them):
 * GPFIS's transport on the CPU (:func:`gpfis_kernel`);
 * the CUDA graph of a deterministic flow's pseudo-time loop (:func:`flow_graph`) and of a whole
   particle-filter step (:func:`graph_step`).
+
+The run-time answers (:func:`flow_kernel`, :func:`gpfis_kernel`, :func:`flow_graph`) are noted
+in :mod:`~torchflow.flows.kernels.paths` while a recording listens (a filter's ``forward`` does:
+:attr:`~torchflow.filters.FilterResult.paths`), so a run says which path it took.
 """
 from __future__ import annotations
 
@@ -40,7 +44,7 @@ from typing import Optional
 import torch
 
 from ... import _triton, missing, tuning
-from . import steps
+from . import paths, steps
 
 #: the tuning knobs (:mod:`torchflow.tuning`) read by the kernel selection, and by nothing else
 KNOBS = ("fused_flows", "fused_info", "fused_measurement", "cuda_graphs", "graph_step_max_elems")
@@ -94,7 +98,16 @@ def flow_kernel(flow, measurement, particles: torch.Tensor, k: int, *, per_parti
     * ``"diagonal"``: otherwise, a ``"daum_huang"`` flow whose measurement is diagonal by
       declaration, on the CPU kernels;
     * ``"gromov"``: a flow offering ``"gromov"``, on the CPU kernels, tiles that fit.
+
+    The integrator asks once per integration; the answer is noted (:mod:`.paths`:
+    ``"kernel:<name>"``, or ``"torch"`` for the reference loop).
     """
+    kernel = _flow_kernel(flow, measurement, particles, k, per_particle, track, gaussian_image)
+    paths.note("torch" if kernel is None else "kernel:" + kernel)
+    return kernel
+
+
+def _flow_kernel(flow, measurement, particles, k, per_particle, track, gaussian_image) -> Optional[str]:
     if not per_particle or gaussian_image or torch.is_grad_enabled() or measurement.observed is not None:
         return None  # (a kernel takes no mask of unobserved coordinates)
     offer = declared(flow, "kernel")
@@ -145,11 +158,13 @@ def gpfis_kernel(measurement, x: torch.Tensor, k: int) -> bool:
     """GPFIS's transport runs as the CPU kernel (:class:`~torchflow.flows.kernels.steps.GPFISSteps`):
     ``(B, N, d)`` particles on the CPU kernels, no gradient recorded, the measurement's second
     derivatives declared (or a linear measurement), tiles that fit and ``k <= 16`` (the kernel keeps
-    ``[W y]^T D``, up to ``(k + 1) k^2`` numbers, per lane)."""
-    if (torch.is_grad_enabled() or x.dim() != 3 or k > 16 or measurement.observed is not None
-            or (measurement.hessian is None and measurement.matrix is None)):
-        return False
-    return cpu_kernels_on(x.device) and _tiles_fit(measurement, x, k)
+    ``[W y]^T D``, up to ``(k + 1) k^2`` numbers, per lane). Noted (:mod:`.paths`): ``"kernel:gpfis"``
+    or ``"torch"``."""
+    fused = (not torch.is_grad_enabled() and x.dim() == 3 and k <= 16 and measurement.observed is None
+             and (measurement.hessian is not None or measurement.matrix is not None)
+             and cpu_kernels_on(x.device) and _tiles_fit(measurement, x, k))
+    paths.note("kernel:gpfis" if fused else "torch")
+    return fused
 
 
 def gpu_form() -> str:
@@ -161,9 +176,12 @@ def gpu_form() -> str:
 def flow_graph(flow, particles: torch.Tensor) -> bool:
     """A deterministic flow's pseudo-time loop is replayed from a CUDA graph
     (:mod:`torchflow.cudagraphs`): CUDA, ``tuning.cuda_graphs``, no gradient recorded, not inside
-    another capture."""
-    return (particles.is_cuda and bool(tuning.get().cuda_graphs) and not flow.stochastic and not missing.active()
-            and not torch.is_grad_enabled() and not torch.cuda.is_current_stream_capturing())
+    another capture. A yes is noted (:mod:`.paths`: ``"graph:flow"``)."""
+    graphed = (particles.is_cuda and bool(tuning.get().cuda_graphs) and not flow.stochastic and not missing.active()
+               and not torch.is_grad_enabled() and not torch.cuda.is_current_stream_capturing())
+    if graphed:
+        paths.note("graph:flow")
+    return graphed
 
 
 def graph_step(filt, x: torch.Tensor, generator, *, emulated: bool = False) -> bool:
