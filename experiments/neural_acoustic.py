@@ -113,7 +113,8 @@ def train(kind: str, n: int, model, data, args):
                 trainer.should_stop = True
             self._snap(used)
 
-    module = FilterLightningModule(make_filter(kind, model, n), lr=args.lr, betas=(0.5, 0.9), seed=args.seed)
+    module = FilterLightningModule(make_filter(kind, model, n), lr=args.lr, betas=(0.5, 0.9), lr_decay=args.lr_decay,
+                                   seed=args.seed)
     trainer = pl.Trainer(max_epochs=100000, logger=False, enable_checkpointing=False, enable_progress_bar=False,
                          enable_model_summary=False, accelerator="cpu", devices=1, callbacks=[Budget()])
     trainer.fit(module, DataLoader(TrajectoryDataset(traj, mean, cov), batch_size=traj.observations.shape[0]))
@@ -199,6 +200,7 @@ def main(argv=None):
     p.add_argument("--eval-particles", type=int, default=200)
     p.add_argument("--repeats", type=int, default=4)
     p.add_argument("--lr", type=float, default=0.02)
+    p.add_argument("--lr-decay", type=float, default=1.0, help="the learning rate's factor after every step")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true", help="a smoke run: tiny sizes and budget")
     p.add_argument("--out", default=str(ROOT / "docs" / "assets"))
