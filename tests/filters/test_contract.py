@@ -8,7 +8,7 @@ from torchflow.filters import (BootstrapParticleFilter, EnsembleKalmanFilter, En
                                LocalEnsembleTransformKalmanFilter, ParticleFlowFilter, ParticleFlowParticleFilter,
                                UnscentedKalmanFilter)
 from torchflow.schedules import ExponentialSchedule
-from torchflow.models import AcousticTracking, Lorenz96, SensorNetwork, SkewedTPoisson
+from torchflow.models import AcousticTracking, Lorenz96, NeuralAcoustic, SensorNetwork, SkewedTPoisson
 from conftest import cuda, random_lg
 from torchflow.random import TrialStreams
 
@@ -44,6 +44,11 @@ CONFIGS.append(("pfpf_ledh-skewed", lambda: SkewedTPoisson(d=16),
 CONFIGS.append(("pfgspf-skewed", lambda: SkewedTPoisson(d=16),
                 lambda m: GaussianSumParticleFilter(m, flow="ledh", n_components=2, particles_per_component=32,
                                                     schedule=_SCHED)))
+# a neural network in the measurement (the acoustic response as a small MLP; 2 targets, 9 sensors)
+for _name, _make_filter in (("bpf", lambda m: BootstrapParticleFilter(m, n_particles=64)),
+                            ("pfpf_ledh", lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=64,
+                                                                               schedule=_SCHED))):
+    CONFIGS.append((f"{_name}-neural", lambda: NeuralAcoustic(n_targets=2, sensor_grid=3), _make_filter))
 IDS = [c[0] for c in CONFIGS]
 
 

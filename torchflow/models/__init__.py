@@ -6,10 +6,11 @@ from .base import GaussianStateSpaceModel, StateSpaceModel, Trajectory
 from .structure import Structure
 from .linear_gaussian import LinearGaussian, SensorNetwork, sensor_network_covariance
 from .lorenz96 import Lorenz96
+from .neural_acoustic import InverseDistance, NeuralAcoustic, ResponseMLP
 from .skewed_t import SkewedTPoisson
 from .stochastic_volatility import StochasticVolatility
 from .tdoa import TDOA3D, TDOAData
 
 __all__ = ["StateSpaceModel", "GaussianStateSpaceModel", "Structure", "Trajectory", "LinearGaussian", "SensorNetwork", "sensor_network_covariance",
-           "AcousticTracking", "SkewedTPoisson", "TDOA3D", "TDOAData", "Lorenz96",
+           "AcousticTracking", "NeuralAcoustic", "ResponseMLP", "InverseDistance", "SkewedTPoisson", "TDOA3D", "TDOAData", "Lorenz96",
            "StochasticVolatility"]
