@@ -552,3 +552,28 @@ def test_kernel_form_follows_tuning():
     assert fused.kernel_form() == "info"
     with tuning.tuned(fused_info=0):
         assert fused.kernel_form() == "rows"
+
+
+def test_the_cpu_kernels_leave_torch_s_thread_count_alone():
+    """Numba's OpenMP threading layer, started by the first kernel launch, used to set the process's
+    OpenMP thread count to NUMBA_NUM_THREADS, torch's included (1 -> 2): timings taken "with one
+    thread" ran two. The kernels start it first and put torch's count back (a fresh process: the
+    layer starts once per process)."""
+    pytest.importorskip("numba")
+    code = textwrap.dedent("""
+        import torch
+        torch.set_num_threads(1)
+        from torchflow.models import SkewedTPoisson
+        from torchflow.filters import ParticleFlowParticleFilter
+        m = SkewedTPoisson(d=9)
+        traj = m.simulate(2, 2, torch.Generator().manual_seed(0))
+        mean, cov = m.initial_belief(traj.states[:, 0])
+        with torch.no_grad():
+            r = ParticleFlowParticleFilter(m, n_particles=16)(traj.observations, mean, cov, torch.Generator().manual_seed(1))
+        print("RESULT", torch.get_num_threads(), sorted(r.paths))
+    """)
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "TRITON_INTERPRET")}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    threads, paths = out.stdout.split("RESULT")[-1].split(maxsplit=1)
+    assert "kernel" in paths and int(threads) == 1, out.stdout

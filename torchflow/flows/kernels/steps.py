@@ -371,9 +371,18 @@ def _numba_threads() -> int:
 
 
 def _set_threads() -> None:
-    """Numba's threads follow torch's (the ``threads`` knob of the runner sets those)."""
+    """Numba's threads follow torch's (the ``threads`` knob of the runner sets those). Numba's
+    threading layer starts at its first parallel launch; with the OpenMP layer that start sets the
+    process's OpenMP thread count to ``NUMBA_NUM_THREADS`` (torch's included: measured 1 -> 2), so
+    it is started here first and torch's count is put back."""
     import numba
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    n = torch.get_num_threads()
+    launch = getattr(getattr(numba.np.ufunc, "parallel", None), "_launch_threads", None)
+    if launch is not None:
+        launch()
+    numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
+    if torch.get_num_threads() != n:
+        torch.set_num_threads(n)
 
 
 def runs_on(device) -> bool:
