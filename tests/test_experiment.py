@@ -80,15 +80,21 @@ def test_runner_float32_and_filter_seeds_independent_of_other_filters():
 def test_runner_warmup_is_untimed_and_moves_no_number():
     """``warmup=True`` (on a GPU: ``"auto"``) makes one untimed call per filter on its first trial
     and reports its seconds as ``warmup_sec``; every trial's numbers stay those of a run without it
-    (each trial draws from its own stream). Off by default on the CPU; a bad value is refused."""
+    (each trial draws from its own stream). ``"auto"`` on the CPU warms up the filters whose flows
+    take the Numba kernels (their first call compiles or loads them), not the others; a bad value
+    is refused."""
     from torchflow.filters import ParticleFlowParticleFilter
+    from torchflow.flows.kernels import steps
     model = AcousticTracking()
     filters = lambda: {"bpf": BootstrapParticleFilter(model, n_particles=40),  # noqa: E731
                        "ledh": ParticleFlowParticleFilter(model, flow="ledh", n_particles=20)}
-    plain = run_experiment(model, filters(), trials=3, steps=3, progress=False)
+    plain = run_experiment(model, filters(), trials=3, steps=3, progress=False, warmup=False)
     warm = run_experiment(model, filters(), trials=3, steps=3, progress=False, warmup=True)
+    auto = run_experiment(model, filters(), trials=3, steps=3, progress=False)
     assert all(r["warmup_sec"] is None for r in plain.summary)
     assert all(r["warmup_sec"] > 0 for r in warm.summary)
+    warmed = {r["filter"]: r["warmup_sec"] is not None for r in auto.summary}
+    assert warmed == {"bpf": False, "ledh": steps.numba_available()}
     drop = lambda rows: [{k: v for k, v in r.items() if k not in ("sec_per_step", "warmup_sec")} for r in rows]  # noqa: E731
     assert drop(warm.per_trial) == drop(plain.per_trial) and drop(warm.summary) == drop(plain.summary)
     with pytest.raises(ValueError, match="warmup"):

@@ -163,15 +163,33 @@ def _timed_call(f: Filter, name: str, plan: RunPlan, s: int, e: int, steps: Opti
     return res, time.perf_counter() - t0
 
 
+def _declares_flow_kernel(f) -> bool:
+    """Whether filter ``f``'s proposal has a flow that offers a fused kernel."""
+    from ..flows.kernels import select
+
+    return select.declared(getattr(getattr(f, "proposal", None), "flow", None), "kernel") is not None
+
+
+def auto_warmup(f, device) -> bool:
+    """``warmup="auto"``: on a GPU always (compiling and loading kernels, graph capture); on the CPU
+    when ``f``'s flow takes a Numba kernel (its first call compiles it or loads it from Numba's
+    cache: seconds that would otherwise land in the first timed chunk); the one-shot localisers are
+    not time-stepped filters and are left alone there."""
+    from ..flows.kernels import steps
+
+    kind = torch.device(device).type
+    return kind == "cuda" or (kind == "cpu" and isinstance(f, Filter) and steps.numba_available()
+                              and _declares_flow_kernel(f))
+
+
 def say_slow_path(filters: Mapping, device) -> Optional[str]:
     """On the CPU without the Numba kernels, say once (a warning in the log) which filters' flows
     will run on the slower torch path, and how to get the fused one; the message, or ``None``."""
-    from ..flows.kernels import select, steps
+    from ..flows.kernels import steps
 
     if torch.device(device).type != "cpu" or steps.numba_available():
         return None
-    slow = [name for name, f in filters.items()
-            if select.declared(getattr(getattr(f, "proposal", None), "flow", None), "kernel") is not None]
+    slow = [name for name, f in filters.items() if _declares_flow_kernel(f)]
     if not slow:
         return None
     text = (f"the CPU kernels (Numba) are not installed: the flows of {', '.join(slow)} run on the slower torch path; "
@@ -337,7 +355,8 @@ def run_experiment(
     filter's timed chunks, one untimed call on its first trial's first two steps (its numbers
     discarded; every trial's stream is its own, so no result moves), so that ``sec_per_step`` is
     the steady-state compute time and the one-time costs (on a GPU, compiling and loading kernels:
-    seconds) are reported apart as ``warmup_sec``; ``"auto"``: on a GPU only. ``trials`` and
+    seconds) are reported apart as ``warmup_sec``; ``"auto"``: on a GPU, and on the CPU for the
+    filters whose flows take the Numba kernels (:func:`auto_warmup`). ``trials`` and
     ``steps`` default to 10.
 
     ``observations``: recorded data, filtered instead of a simulation (no true states): ``(T, m)``
@@ -382,7 +401,7 @@ def run_experiment(
     res = ExperimentResult([], [], [])
     for i, (name, f) in enumerate(filters.items()):
         out = execute(f, name, plan, store=store, progress=progress, desc=f"[{i + 1}/{len(filters)}] {name}",
-                      warmup=s.device.type == "cuda" if warmup == "auto" else warmup)
+                      warmup=auto_warmup(f, s.device) if warmup == "auto" else warmup)
         res.interrupted = out.interrupted
         if plan.shard.is_main:
             row = {**dict.fromkeys(SUMMARY_COLUMNS), "filter": name, "n_particles": f.n_particles,
