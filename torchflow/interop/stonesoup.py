@@ -81,7 +81,7 @@ from ..flows import FlowPrior, integrate_flow, resolve_points
 from ..models.base import GaussianStateSpaceModel
 from ..models.structure import Structure
 from ..filters import marginal as _marginal
-from ..proposals.flow import FLOWS, law_factor, resolve_flow
+from ..proposals.flow import FLOWS, affine_law, resolve_flow
 from ..schedules import LambdaSchedule, resolve_schedule
 from ..errors import ArgumentError, ArgumentTypeError, NonFiniteError
 
@@ -381,8 +381,7 @@ class FlowParticleUpdater(Updater):
         if self._flow.stochastic:
             law = (out.proposal_mean, linalg.safe_cholesky(out.proposal_cov))
         else:  # the parent's affine map pushes N(F x_prev, Q) to N(x1 - M (eta_0 - F x_prev), M Q M^T)
-            M = out.map_jacobian
-            law = (x1 - linalg.matvec(M, X - m_pred), law_factor(M, LQ))
+            law = affine_law(x1, X, m_pred, out.map_jacobian, LQ)
         rows = _marginal.pair_rows(1, N, N, x1.shape[-1], x1.element_size())
         log_rho, = _marginal.mixture_logsumexp(_marginal.gaussian_pairs(x1, m_pred, LQ), [wp.log().unsqueeze(0)], N, rows)
         log_qbar, = _marginal.mixture_logsumexp(_marginal.gaussian_pairs(x1, *law),

@@ -207,9 +207,9 @@ class InvertibleFlowProposal(FlowProposal):
             return out.particles, log_q, None, None
         # the parent's affine map x = M eta + c pushes N(f(x_prev), Q) to N(x - M (eta_0 - f(x_prev)), M Q M^T)
         model, M = self.model, out.map_jacobian
-        mean = out.particles - linalg.matvec(M, eta0 - model.transition_mean(x_prev))
         Lq = model.transition_scale_tril(x_prev)
-        return out.particles, log_q, mean, law_factor(M, Lq.unsqueeze(-3) if Lq.dim() == 3 else Lq)
+        return (out.particles, log_q) + affine_law(out.particles, eta0, model.transition_mean(x_prev), M,
+                                                    Lq.unsqueeze(-3) if Lq.dim() == 3 else Lq)
 
 
 class StochasticFlowProposal(FlowProposal):
@@ -226,11 +226,15 @@ class StochasticFlowProposal(FlowProposal):
         return out.particles, out.log_proposal, out.proposal_mean, linalg.safe_cholesky(out.proposal_cov)
 
 
-def law_factor(maps: torch.Tensor, transition_tril: torch.Tensor) -> torch.Tensor:
-    """Lower factor of ``M Q M^T`` from the maps ``M (B, N|1, d, d)`` and ``Q``'s factor ``L``
-    (broadcastable against them): the Cholesky factor of ``(M L)(M L)^T``."""
+def affine_law(x: torch.Tensor, eta0: torch.Tensor, transition_mean: torch.Tensor, maps: torch.Tensor,
+               transition_tril: torch.Tensor):
+    """The Gaussian law of a deterministic flow's particle given its parent: the affine map
+    ``x = M eta_0 + c`` pushes ``N(f(x_prev), L L^T)`` to ``N(x - M (eta_0 - f(x_prev)), M L L^T M^T)``.
+    ``x``, ``eta0``, ``transition_mean`` ``(B, N, d)``; maps ``M (B, N|1, d, d)``; ``L`` broadcastable
+    against them. Returns ``(mean (B, N, d), scale_tril (B, N|1, d, d))``."""
     G = maps @ transition_tril
-    return linalg.safe_cholesky(linalg.symmetrize(G @ G.transpose(-1, -2)))
+    return (x - linalg.matvec(maps, eta0 - transition_mean),
+            linalg.safe_cholesky(linalg.symmetrize(G @ G.transpose(-1, -2))))
 
 
 def check_informative(proposal, mean: torch.Tensor, who: str) -> None:
