@@ -381,3 +381,94 @@ def test_sort_errors():
         Resampler(2, sort="value")
     with pytest.raises(ValueError, match="at most 62 dimensions"):
         sort_order(torch.zeros(1, 3, 63, dtype=torch.float64), torch.zeros(1, 3, dtype=torch.float64), "hilbert")
+
+
+# ---------------------------------------------------------------------------
+# The one-pass inversion and the CPU's resampling of only the trials that need it
+# ---------------------------------------------------------------------------
+@pytest.mark.parametrize("per_trial", [1, None])
+@pytest.mark.parametrize("shape", [(1, 4096), (3, 1000), (40, 77)])
+def test_one_pass_inversion_equals_the_binary_search(per_trial, shape):
+    """The stratified/systematic positions inverted in one pass give exactly the binary search's
+    indices: random weights with zero-weight particles, uniform weights (integer CDF steps) and
+    uniforms at 0 and just below 1 (where ``i + u`` rounds up to the next integer)."""
+    from torchflow import resampling as R
+
+    b, n = shape
+    g = torch.Generator().manual_seed(3)
+    i = torch.arange(n, dtype=torch.float64)
+    for weights in ("random", "uniform", "spiky"):
+        lw = (torch.randn(b, n, dtype=torch.float64, generator=g) * (2 if weights == "random" else 25)
+              if weights != "uniform" else torch.zeros(b, n, dtype=torch.float64))
+        if weights == "random":
+            lw[:, ::5] = float("-inf")
+        S = R._scaled_cdf(R._unnormalized_weights(lw))
+        draws = [torch.rand(b, n if per_trial is None else 1, dtype=torch.float64, generator=g),
+                 torch.zeros(b, 1, dtype=torch.float64), torch.full((b, 1), 1 - 2.0**-53, dtype=torch.float64)]
+        for u in draws:
+            p = R._below(i + u, i + 1.0).expand(b, n)
+            with monkeypatch_threshold(R, 0):
+                fast = R._invert_strata(S, p)
+            assert torch.equal(fast, R._invert_cdf(S, p)), (weights, u.flatten()[:2])
+
+
+class monkeypatch_threshold:
+    """Set ``_LINEAR_INVERSION_MIN`` within a block (0: always the one-pass inversion)."""
+
+    def __init__(self, module, value):
+        self.module, self.value = module, value
+
+    def __enter__(self):
+        self.old, self.module._LINEAR_INVERSION_MIN = self.module._LINEAR_INVERSION_MIN, self.value
+
+    def __exit__(self, *exc):
+        self.module._LINEAR_INVERSION_MIN = self.old
+
+
+@pytest.mark.parametrize("scheme", ["systematic", "stratified", "multinomial", "residual"])
+@pytest.mark.parametrize("sort", [None, "first"])
+def test_cpu_resamples_only_the_trials_that_need_it(scheme, sort):
+    """``host_reads_cpu=1`` (compute only the trials whose ESS triggers; nothing when none does)
+    and ``0`` (every trial, as on a GPU) give the same particles, weights, per-particle extras and
+    flags, and leave the generator in the same state: for batches where no trial, some trials and
+    every trial resample."""
+    from torchflow import tuning
+    from torchflow.resampling import Resampler
+
+    g = torch.Generator().manual_seed(11)
+    B, N, d = 6, 50, 2
+    x = torch.randn(B, N, d, dtype=torch.float64, generator=g)
+    extra = torch.randn(B, N, 3, dtype=torch.float64, generator=g)
+    flat = torch.zeros(B, N, dtype=torch.float64)
+    peaked = torch.randn(B, N, dtype=torch.float64, generator=g) * 4
+    cases = {"none": flat, "all": peaked, "some": torch.where(torch.arange(B)[:, None] % 2 == 0, peaked, flat)}
+    rs = Resampler(d, scheme=scheme, ess_threshold=0.5, sort=sort)
+    for name, lw in cases.items():
+        lw = lw - torch.logsumexp(lw, 1, keepdim=True)
+        out = {}
+        for rows in (1, 0):
+            gen = torch.Generator().manual_seed(5)
+            with tuning.tuned(host_reads_cpu=rows):
+                p, w, _, ex, r = rs(x, lw, gen, extras={"e": extra})
+            out[rows] = (p, w, ex["e"], r, torch.rand(4, generator=gen, dtype=torch.float64))
+        expected = {"none": 0, "all": B, "some": B // 2}[name]
+        assert int(out[1][3].sum()) == expected, name
+        for a, b in zip(out[1], out[0]):
+            assert torch.equal(a, b), (scheme, sort, name)
+
+
+def test_a_users_scheme_is_computed_for_every_trial():
+    """A scheme a user registers has no split into draws and inversion: it is called for every
+    trial on the CPU too, and the identity kept where the ESS did not trigger."""
+    from torchflow import resampling as R
+
+    calls = []
+
+    def reverse(log_weights, generator=None, *, validate=True):
+        calls.append(tuple(log_weights.shape))
+        return torch.arange(log_weights.shape[1]).flip(0).expand(log_weights.shape).clone()
+
+    lw = torch.stack([torch.zeros(5), torch.tensor([9.0, 0, 0, 0, 0])]).double()
+    idx, resampled, _ = R._resample_rows(lw, normalize_log_weights(lw), None, reverse, 0.5)
+    assert calls == [(2, 5)] and resampled.tolist() == [False, True]
+    assert idx.tolist() == [[0, 1, 2, 3, 4], [4, 3, 2, 1, 0]]

@@ -158,7 +158,7 @@ def solve_triangular(A: torch.Tensor, B: torch.Tensor, *, upper: bool, left: boo
 #: sampler costs several times more per draw, which made the bootstrap PF RNG-bound. It decides
 #: which numbers a torch.Generator draw gets, so it is part of the draw's definition, not a speed
 #: knob (torchflow.tuning).
-FAST_NORMAL_MIN = 1 << 16
+FAST_NORMAL_MIN = 1 << 12
 #: numbers per independent stream of the fast sampler (large draws are filled block-parallel)
 FAST_NORMAL_BLOCK = 1 << 19
 

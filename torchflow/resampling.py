@@ -38,7 +38,7 @@ from typing import Callable, Dict, Optional, Tuple
 import torch
 from torch import Tensor, nn
 
-from . import linalg, random as _random, registry
+from . import linalg, random as _random, registry, tuning as _tuning
 from ._checks import check_count, check_float_tensor, shape_str
 from .linalg import standard_normal
 from .errors import ArgumentError
@@ -60,6 +60,7 @@ __all__ = [
     "sort_order",
     "hilbert_index",
     "SORT_ORDERS",
+    "reads_host",
 ]
 
 ResampleFn = Callable[..., Tensor]
@@ -151,6 +152,29 @@ def _invert_cdf(scaled_cdf: Tensor, positions: Tensor) -> Tensor:
     return idx.clamp_(max=n - 1)
 
 
+#: from this many (trial, particle) pairs on, :func:`_invert_strata` inverts the CDF of the
+#: stratified and systematic schemes (one pass) instead of a binary search per position
+_LINEAR_INVERSION_MIN = 2048
+
+
+def _invert_strata(scaled_cdf: Tensor, positions: Tensor) -> Tensor:
+    """:func:`_invert_cdf` for positions with ``positions[:, j]`` in ``[j, j + 1)`` (the stratified
+    and systematic schemes), in one pass over the particles instead of a binary search per position:
+    the same indices, exactly, at ``O(N)`` rather than ``O(N log N)`` per trial.
+
+    With ``S = scaled_cdf`` and ``p = positions``: ``p`` is increasing, so ``{j : p_j < S_i}`` is
+    the prefix ``[0, C_i)``, and ``p_j`` in ``[j, j + 1)`` gives ``C_i = k + [k < N and p_k < S_i]``
+    with ``k = floor(S_i)``. The index of position ``j``, ``#{i : S_i <= p_j}``, is then
+    ``#{i : C_i <= j}``: a count of the ``C_i`` and its cumulative sum."""
+    b, n = scaled_cdf.shape
+    if b * n < _LINEAR_INVERSION_MIN:  # below this the binary search's single call is quicker
+        return _invert_cdf(scaled_cdf, positions)
+    k = scaled_cdf.floor().to(torch.int64)  # in [0, N]
+    c = k + ((k < n) & (positions.gather(1, k.clamp(max=n - 1)) < scaled_cdf))
+    marks = torch.zeros(b, n + 1, dtype=torch.int64, device=c.device).scatter_add_(1, c, torch.ones_like(c))
+    return marks[:, :n].cumsum(1).clamp_(max=n - 1)
+
+
 def _below(x: Tensor, upper: Tensor) -> Tensor:
     """Clamps ``x`` to be strictly below ``upper`` (elementwise, broadcast)."""
     return torch.minimum(x, torch.nextafter(upper, torch.zeros_like(upper)))
@@ -226,9 +250,13 @@ def multinomial(log_weights: Tensor, generator: Optional[torch.Generator] = None
     """
     _check_log_weights(log_weights, values=validate)
     b, n = log_weights.shape
+    return _multinomial_indices(log_weights, _rand((b, n), log_weights, generator))
+
+
+def _multinomial_indices(log_weights: Tensor, u: Tensor) -> Tensor:
+    n = log_weights.shape[1]
     cdf = _scaled_cdf(_unnormalized_weights(log_weights))
-    positions = _below(_rand((b, n), log_weights, generator) * n, cdf.new_tensor(float(n)))
-    return _invert_cdf(cdf, positions)
+    return _invert_cdf(cdf, _below(u * n, torch.full_like(u, float(n))))
 
 
 def systematic(log_weights: Tensor, generator: Optional[torch.Generator] = None, *, validate: bool = True) -> Tensor:
@@ -251,11 +279,16 @@ def systematic(log_weights: Tensor, generator: Optional[torch.Generator] = None,
     """
     _check_log_weights(log_weights, values=validate)
     b, n = log_weights.shape
+    return _strata_indices(log_weights, _rand((b, 1), log_weights, generator))
+
+
+def _strata_indices(log_weights: Tensor, u: Tensor) -> Tensor:
+    """The systematic (``u (B, 1)``) or stratified (``u (B, N)``) indices of ``log_weights (B, N)``."""
+    n = log_weights.shape[1]
     cdf = _scaled_cdf(_unnormalized_weights(log_weights))
-    u = _rand((b, 1), log_weights, generator)
     i = torch.arange(n, device=cdf.device, dtype=cdf.dtype)
     positions = _below(i + u, i + 1.0)  # N * u_i, kept in [i, i + 1)
-    return _invert_cdf(cdf, positions)
+    return _invert_strata(cdf, positions)
 
 
 def stratified(log_weights: Tensor, generator: Optional[torch.Generator] = None, *, validate: bool = True) -> Tensor:
@@ -274,11 +307,7 @@ def stratified(log_weights: Tensor, generator: Optional[torch.Generator] = None,
     """
     _check_log_weights(log_weights, values=validate)
     b, n = log_weights.shape
-    cdf = _scaled_cdf(_unnormalized_weights(log_weights))
-    u = _rand((b, n), log_weights, generator)
-    i = torch.arange(n, device=cdf.device, dtype=cdf.dtype)
-    positions = _below(i + u, i + 1.0)  # N * u_i, kept in [i, i + 1)
-    return _invert_cdf(cdf, positions)
+    return _strata_indices(log_weights, _rand((b, n), log_weights, generator))
 
 
 def residual(log_weights: Tensor, generator: Optional[torch.Generator] = None, *, validate: bool = True) -> Tensor:
@@ -305,6 +334,11 @@ def residual(log_weights: Tensor, generator: Optional[torch.Generator] = None, *
     """
     _check_log_weights(log_weights, values=validate)
     b, n = log_weights.shape
+    return _residual_indices(log_weights, _rand((b, n), log_weights, generator))
+
+
+def _residual_indices(log_weights: Tensor, u: Tensor) -> Tensor:
+    b, n = log_weights.shape
     w = _unnormalized_weights(log_weights)
     # N * w_i, computed so that uniform weights give exactly 1.
     nw = w * (n / w.sum(dim=1, keepdim=True))
@@ -320,8 +354,7 @@ def residual(log_weights: Tensor, generator: Optional[torch.Generator] = None, *
     res_ok = res.sum(dim=1, keepdim=True) > 0
     res = torch.where(res_ok, res, w)  # guard: all-zero residual rows
     cdf = _scaled_cdf(res)
-    positions = _below(_rand((b, n), log_weights, generator) * n, cdf.new_tensor(float(n)))
-    rand_idx = _invert_cdf(cdf, positions)
+    rand_idx = _invert_cdf(cdf, _below(u * n, torch.full_like(u, float(n))))
 
     return torch.where(j < n_det, det_idx, rand_idx)
 
@@ -370,9 +403,11 @@ def resample_if_needed(
     the ESS of uniform weights is ``N`` only up to rounding, uniform trials may
     also be resampled at ``1`` (harmless: they get uniform weights again).
 
-    The resampler is evaluated for all trials at once (no data-dependent
-    subsetting), so the generator is advanced identically whatever the
-    weights; the exception is ``ess_threshold == 0``, where nothing is drawn.
+    The uniforms are drawn for every trial whatever the weights, so the
+    generator advances identically whichever trials resample; the exception
+    is ``ess_threshold == 0``, where nothing is drawn. On the CPU only the
+    trials that resample are computed (:func:`reads_host`); elsewhere all are,
+    with no host synchronisation. Both give the same indices.
 
     Args:
         log_weights: Unnormalised log weights, shape ``(B, N)``.
@@ -411,16 +446,62 @@ def resample_if_needed(
 
     lw = normalize_log_weights(log_weights, validate=False)
     identity = torch.arange(n, device=lw.device, dtype=torch.int64).expand(b, n)
-    if threshold == 0.0:
-        resampled = torch.zeros(b, dtype=torch.bool, device=lw.device)
-        return identity.clone(), resampled, lw
+    indices, resampled, new_log_weights = _resample_rows(log_weights, lw, generator, resampler, threshold)
+    return (identity.clone() if indices is None else indices), resampled, new_log_weights
 
-    ess = torch.exp(-torch.logsumexp(2.0 * lw, dim=1))
+
+#: the built-in schemes as their uniforms' shape per trial ``(1: one, None: N)`` and the indices
+#: those uniforms give (``fn(log_weights (B, N), u) -> (B, N)``): what lets :func:`_resample_rows`
+#: draw for every trial and compute only the trials that resample
+_SPLIT: Dict[Callable, Tuple[Optional[int], Callable]] = {
+    multinomial: (None, _multinomial_indices), systematic: (1, _strata_indices),
+    stratified: (None, _strata_indices), residual: (None, _residual_indices)}
+
+
+def reads_host(t: Tensor) -> bool:
+    """Whether a filter step may read ``t`` back to decide what to compute: on the CPU a host read
+    costs nothing, so work that no trial needs (a resampling no trial triggers) is skipped; never on
+    a GPU (the read would stall the device and break a CUDA graph), under ``torch.func`` transforms
+    or while ``torch.compile`` traces; ``tuning`` ``host_reads_cpu=0`` turns it off."""
+    return (t.device.type == "cpu" and _tuning.get().host_reads_cpu and not torch._C._functorch.is_functorch_wrapped_tensor(t)
+            and not torch.compiler.is_compiling())
+
+
+def _resample_rows(log_weights: Tensor, lw: Tensor, generator, resampler: Callable, threshold: float,
+                   ess: Optional[Tensor] = None):
+    """``(indices or None, resampled (B,), new_log_weights)`` with ``lw`` the normalised
+    ``log_weights`` and ``ess`` their effective sample size (computed when ``None``); ``None`` stands
+    for identity indices in every trial.
+
+    The uniforms of a built-in scheme are drawn for every trial whatever the weights (each trial's
+    stream advances the same way, so the numbers do not depend on which trials resample). Where
+    :func:`reads_host` allows, only the trials that resample are computed and a step in which none
+    does computes nothing else; elsewhere every trial is computed and the identity kept where the
+    ESS did not trigger (no host synchronisation). Both give the same indices."""
+    b, n = lw.shape
+    if ess is None:
+        ess = torch.exp(-torch.logsumexp(2.0 * lw, dim=1))
     resampled = ess < threshold * n
-    indices = torch.where(resampled[:, None], resampler(log_weights, generator, validate=False), identity)
     uniform = torch.full_like(lw, -math.log(n))
-    new_log_weights = torch.where(resampled[:, None], uniform, lw)
-    return indices, resampled, new_log_weights
+    if threshold == 0.0:  # never resamples: nothing drawn
+        return None, resampled, lw
+    split = _SPLIT.get(resampler)
+    if split is None or not reads_host(lw):
+        indices = resampler(log_weights, generator, validate=False)
+        identity = torch.arange(n, device=lw.device, dtype=torch.int64)
+        return (torch.where(resampled[:, None], indices, identity), resampled,
+                torch.where(resampled[:, None], uniform, lw))
+    per_trial, invert = split
+    u = _rand((b, n if per_trial is None else per_trial), log_weights, generator)
+    rows = resampled.nonzero().squeeze(1)
+    m = rows.numel()
+    if m == 0:
+        return None, resampled, lw
+    if m == b:
+        return invert(log_weights, u), resampled, uniform
+    indices = torch.arange(n, dtype=torch.int64).repeat(b, 1)
+    indices[rows] = invert(log_weights[rows], u[rows])
+    return indices, resampled, torch.where(resampled[:, None], uniform, lw)
 
 
 def gather_particles(x: Tensor, indices: Tensor) -> Tensor:
@@ -686,13 +767,17 @@ class Resampler(nn.Module):
         self._sort = value
 
     def forward(self, particles: Tensor, log_weights: Tensor, generator, *, cov=None,
-                extras: Optional[Dict[str, Tensor]] = None):
+                extras: Optional[Dict[str, Tensor]] = None, ess: Optional[Tensor] = None):
         """Resample the low-ESS trials of ``particles (B, N, d)`` with normalised ``log_weights
         (B, N)``; a per-particle ``cov`` (a :class:`~torchflow.covariances.Covariance`) and
-        ``extras`` (tensors with a leading ``(B, N)``) follow the particles.
+        ``extras`` (tensors with a leading ``(B, N)``) follow the particles. ``ess (B,)``: the
+        weights' effective sample size where the caller has it (computed here otherwise); the
+        weights are then taken as they are, already normalised.
 
-        Returns ``(particles, log_weights, cov, extras, resampled (B,))``. No host synchronisation:
-        every trial is gathered (identity indices where not resampled)."""
+        Returns ``(particles, log_weights, cov, extras, resampled (B,))``. On a GPU there is no host
+        synchronisation: every trial is gathered (identity indices where not resampled). On the CPU
+        (:func:`reads_host`) only the trials that resample are computed, and a step in which none
+        does gathers nothing; the random draws, hence the numbers, are the same either way."""
         if self.gradient == "ot":
             return self._ot(particles, log_weights, generator, cov, extras)
         order = None if self.sort is None else sort_order(particles, log_weights, self.sort)
@@ -700,8 +785,13 @@ class Resampler(nn.Module):
         if self.gradient == "soft":
             idx, resampled, lw_new = self._soft(lw_in, generator)
         else:
-            idx, resampled, lw_new = resample_if_needed(lw_in, generator, scheme=self.scheme,
-                                                        ess_threshold=self.ess_threshold, validate=False)
+            idx, resampled, lw_new = _resample_rows(
+                lw_in, lw_in if ess is not None else normalize_log_weights(lw_in, validate=False), generator,
+                _get_resampler(self.scheme, "scheme"), self.ess_threshold, ess=ess)
+            if idx is None:  # no trial resampled
+                if order is None:  # the particles stay where they are: nothing to gather
+                    return self._regularise(particles, resampled, generator), lw_new, cov, extras or {}, resampled
+                idx = torch.arange(lw_in.shape[1], device=lw_in.device).expand_as(lw_in)
         if order is not None:  # positions in the sorted cloud -> the particles' own indices
             idx = order.gather(1, idx)
         particles = gather_particles(particles, idx)

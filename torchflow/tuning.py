@@ -71,6 +71,13 @@ class Tuning:
             with 0 (default) the CPU reads the failure flags and tries the ladder only when one
             failed; 1 batches it there too (slower on the CPU: ``experiments/RESULTS.md``,
             "Operations and host synchronisations per step"). The same factor either way.
+        host_reads_cpu: on the CPU, where a host read costs nothing, a particle filter's step reads
+            back what work it needs (:func:`torchflow.resampling.reads_host`): the resampling
+            computes (CDF, inversion, gathers) only the trials whose ESS triggered it, and nothing
+            in a step where none did (the uniforms are still drawn for every trial), and the
+            repair of non-finite particles and dead trials is skipped in a step that has none.
+            The same numbers either way. On a GPU every trial is computed with masks (no host
+            read). 0: the GPU's way on the CPU too (what the host-synchronisation tests count).
         jitter_ladder_divisor: the batched jitter ladder of :func:`torchflow.linalg.safe_cholesky`
             (CUDA, or ``batched_jitter_cpu=1``) gathers the failed matrices of a batch of n into
             ``max(min(n, 4096), ceil(n / divisor))`` slots and factors the ladder for those only;
@@ -131,6 +138,7 @@ class Tuning:
     assignment_brute_force_max: int = 7
     assignment_chunk_elems: int = 1 << 24
     batched_jitter_cpu: int = 0
+    host_reads_cpu: int = 1
     jitter_ladder_divisor: int = 16
     cuda_graphs: int = 1
     fused_flows: int = 1

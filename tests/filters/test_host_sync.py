@@ -5,7 +5,8 @@ on CPU with a ``TorchDispatchMode`` over the aten ops that read a value back to 
 (Before they were removed: PF-PF(LEDH) 3, PF-PF(Gromov) 33, the UPF 4 -- the jitter test of
 ``safe_cholesky`` and the Gromov covariance's step size read from a tensor.) ``safe_cholesky``
 reads its failure flags on the CPU by default (a read is free there, its batched jitter ladder is
-not); the step is counted as it runs on CUDA, with ``tuning`` ``batched_jitter_cpu=1``."""
+not), and so does the resampler (which trials resample); the step is counted as it runs on CUDA,
+with ``tuning`` ``batched_jitter_cpu=1, host_reads_cpu=0``."""
 import pytest
 import torch
 

@@ -777,9 +777,12 @@ class ParticleFilter(Filter):
     @staticmethod
     def _nonfinite(particles: torch.Tensor, log_increment: torch.Tensor) -> torch.Tensor:
         """``(B, ...)`` bool: particles with a non-finite coordinate or a NaN/+inf log-increment."""
-        # a particle with a non-finite coordinate has a non-finite coordinate sum (inf - inf = nan):
-        # one reduction instead of an elementwise isfinite over (B, N, d)
-        return torch.isnan(log_increment) | (log_increment == float("inf")) | ~torch.isfinite(particles.sum(-1))
+        # a particle with a non-finite coordinate has a non-finite coordinate sum s (inf - inf = nan):
+        # one reduction instead of an elementwise isfinite over (B, N, d). s - s is 0 where s is
+        # finite and NaN elsewhere, so the sum below is < inf exactly where the log-increment is
+        # neither NaN nor +inf and the particle is finite (five ops)
+        s = particles.sum(-1)
+        return ~((log_increment + (s - s)) < float("inf"))
 
     def account(self, bad_trial: torch.Tensor, dead: torch.Tensor, n_repaired: torch.Tensor):
         """``(n_repaired, invalid)`` after a step whose trials had repaired particles (``bad_trial``)
@@ -815,10 +818,21 @@ class ParticleFilter(Filter):
         """
         if n_repaired is None:
             n_repaired = torch.zeros(particles.shape[0], dtype=torch.long, device=particles.device)
-        # No host synchronisation: every branch below is a masked update over all trials; with
-        # nonfinite="raise" the offending trials are flagged in ``state.invalid`` and
-        # :meth:`Filter.forward` raises after the last step
+        if _resampling.reads_host(log_increment):  # the CPU: one read says whether anything needs repair
+            # s - s is 0 where a particle's coordinate sum s is finite, NaN elsewhere: lw is the sum of
+            # the weights where every particle is finite, and a trial's logsumexp is finite exactly
+            # where no particle needs repair (a non-finite coordinate, a NaN or +inf increment) and
+            # some weight is positive
+            s = particles.sum(-1)
+            lw = prev_log_weights + log_increment + (s - s)
+            inc = torch.logsumexp(lw, dim=-1)
+            if bool(torch.isfinite(inc).all()):  # nothing to repair, no dead trial
+                return self._estimate_and_resample(particles, lw - inc.unsqueeze(-1), inc, generator, step, cov,
+                                                   extras, n_repaired, self.account_clean(n_repaired), None)
         bad = self._nonfinite(particles, log_increment)
+        # No host synchronisation from here: every branch below is a masked update over all trials;
+        # with nonfinite="raise" the offending trials are flagged in ``state.invalid`` and
+        # :meth:`Filter.forward` raises after the last step
         log_increment = log_increment.masked_fill(bad, float("-inf"))
         lw = prev_log_weights + log_increment
         inc = torch.logsumexp(lw, dim=-1)
@@ -829,14 +843,28 @@ class ParticleFilter(Filter):
         # pass over (B, N, d) (:meth:`repair`'s values)
         particles = (particles.masked_fill(bad.unsqueeze(-1), 0.0) if fallback is None
                      else torch.where((bad | dead.unsqueeze(-1)).unsqueeze(-1), fallback, particles))
-        # rows that were not dead see the same lw, hence the same logsumexp as ``inc``
-        lw = lw - torch.logsumexp(lw, dim=-1, keepdim=True)
+        # rows that were not dead see the same lw, hence the same logsumexp as ``inc``; a dead row
+        # keeps the previous weights, which are normalised
+        lw = lw - torch.where(dead, 0.0, inc).unsqueeze(-1)
         inc = inc.masked_fill(dead, float("-inf"))  # the evidence estimate of a dead step is zero
+        return self._estimate_and_resample(particles, lw, inc, generator, step, cov, extras, n_repaired, invalid,
+                                           dead)
+
+    def account_clean(self, n_repaired: torch.Tensor):
+        """:meth:`account` of a step with nothing repaired and no dead trial."""
+        return None if self.nonfinite == "recover" else torch.zeros_like(n_repaired, dtype=torch.bool)
+
+    def _estimate_and_resample(self, particles, lw, inc, generator, step, cov, extras, n_repaired, invalid,
+                               dead) -> "ParticleState":
+        """The weighted mean of normalised ``lw``, the ESS and the resampling (``dead (B,)``: the
+        trials whose step had no particle of positive weight, ``None`` when none had)."""
         w = lw.exp()
-        estimate = torch.einsum("bn,bnd->bd", w, particles)
-        # a dead step keeps the previous weights to go on, but no particle had positive weight: ESS 0
-        ess = (1.0 / w.pow(2).sum(-1)).masked_fill(dead, 0.0)
-        particles, lw_new, cov, extras, resampled = self.resampler(particles, lw, generator, cov=cov, extras=extras)
+        estimate = torch.matmul(w.unsqueeze(-2), particles).squeeze(-2)  # (B, d)
+        ess = (w * w).sum(-1).reciprocal()  # the resampler's trigger (of the weights it goes on with)
+        particles, lw_new, cov, extras, resampled = self.resampler(particles, lw, generator, cov=cov, extras=extras,
+                                                                   ess=ess)
+        if dead is not None:  # a dead step keeps the previous weights to go on, but no particle had positive weight
+            ess = ess.masked_fill(dead, 0.0)
         return ParticleState(particles=particles, log_weights=lw_new, estimate=estimate, ess=ess,
                              log_evidence_increment=inc, resampled=resampled, n_repaired=n_repaired,
                              cov=cov, step=step, extras=extras, invalid=invalid)
