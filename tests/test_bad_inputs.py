@@ -95,8 +95,10 @@ def test_n_particles_not_truncated(value):
 
 
 @pytest.mark.parametrize("kw, match", [
-    (dict(memory_budget_gb=0), r"memory_budget_gb: expected a positive number of GiB, got 0"),
-    (dict(memory_budget_gb=-1.0), r"memory_budget_gb: expected a positive number of GiB, got -1.0"),
+    (dict(memory_budget_gb=0), r"memory_budget_gb: expected a positive number of GiB, or null/auto \(a share of the "
+     r"memory free on the device\), got 0"),
+    (dict(memory_budget_gb=-1.0), r"memory_budget_gb: expected a positive number of GiB, or null/auto .*got -1.0"),
+    (dict(memory_budget_gb="half"), r"memory_budget_gb: expected a positive number of GiB, or null/auto .*got 'half'"),
     (dict(chunk_size=0), r"chunk_size: expected a positive integer \(or None: from memory_budget_gb\), got 0"),
     (dict(chunk_size=2.5), r"chunk_size: expected a positive integer .* got 2.5"),
     (dict(trials="abc"), r"trials: expected a positive integer, got 'abc' \(str\)"),
@@ -125,7 +127,8 @@ def test_tiny_memory_budget_warns_with_the_plan():
     ("filter=[nope]", "error: filter: unknown filter config 'nope'; available: bpf, bs, edh, ekf,"),
     ("n_particles=2.5", "error: filter.bpf: n_particles: expected a positive integer, got 2.5 (float)"),
     ("n_particles=True", "error: filter.bpf: n_particles: expected a positive integer, got True (bool)"),
-    ("memory_budget_gb=0", "error: memory_budget_gb: expected a positive number of GiB, got 0"),
+    ("memory_budget_gb=0", "error: memory_budget_gb: expected a positive number of GiB, or null/auto (a share of the "
+                           "memory free on the device), got 0"),
     ("chunk_size=0", "error: chunk_size: expected a positive integer (or None: from memory_budget_gb), got 0"),
     ("flow@filter.pfpf_ledh.flow=nope", "error: flow@filter.pfpf_ledh.flow: unknown flow config 'nope'; available:"),
     ("tuning.points_per_call=-5", "error: tuning.points_per_call: expected an integer >= 0, got -5"),

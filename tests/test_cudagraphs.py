@@ -2,12 +2,15 @@
 
 On the CPU the capture is emulated (the "graph" re-runs the function on the static buffers), which
 checks the plumbing: the function reads only its static inputs, outputs are cloned, keys capture
-what they must, a failed capture falls back to eager once. On CUDA the real capture is compared
-with the eager run."""
+what they must, a failed capture falls back to eager once, and that the captured function makes no
+tensor from host data and reads nothing back (what a real capture refuses). On CUDA the real
+capture is compared with the eager run."""
+import traceback
 import warnings
 
 import pytest
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from conftest import cuda
 from torchflow import cudagraphs, tuning
@@ -17,8 +20,29 @@ from torchflow.models import AcousticTracking
 from torchflow.schedules import ExponentialSchedule
 
 
+class _CaptureRules(TorchDispatchMode):
+    """What a real CUDA capture refuses, on the CPU: a tensor made from host data inside the captured
+    function (``torch.tensor``, ``new_tensor``, a list index: on a GPU a copy from the host) and a
+    read back to the host (``.item()``, ``bool(t)``, ``nonzero``)."""
+
+    REFUSED = {"aten.lift_fresh.default": "Cannot copy between CPU and CUDA tensors during CUDA graph capture",
+               "aten._local_scalar_dense.default": "operation not permitted when stream is capturing",
+               "aten.nonzero.default": "operation not permitted when stream is capturing"}
+
+    #: the CPU kernels' results come back through ``torch.from_numpy`` (a CPU-only path: on a GPU
+    #: the Triton kernels run instead)
+    CPU_ONLY = ("_cpu_back",)
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        if str(func) in self.REFUSED and not any(f.name in self.CPU_ONLY for f in traceback.extract_stack()):
+            raise RuntimeError(f"{self.REFUSED[str(func)]} ({func}, emulated)")
+        return func(*args, **(kwargs or {}))
+
+
 class _Emulated:
-    """A stand-in for CUDA capture: replay re-runs the function on the captured static buffers."""
+    """A stand-in for CUDA capture: replay re-runs the function on the captured static buffers, as a
+    GPU runs it (``tuning``: no host reads, the batched jitter ladder) and under the capture's rules
+    (:class:`_CaptureRules`)."""
 
     def __init__(self, fail=False):
         self.fail, self.calls = fail, 0
@@ -26,14 +50,19 @@ class _Emulated:
     def warmup(self, fn, inputs):
         return tuple(fn(*inputs))
 
+    @staticmethod
+    def _as_captured(fn, views):
+        with tuning.tuned(host_reads_cpu=0, batched_jitter_cpu=1), _CaptureRules():
+            return tuple(fn(*views))
+
     def capture(self, fn, views):
         if self.fail:
             raise RuntimeError("operation not permitted when stream is capturing")
-        static_out = tuple(fn(*views))
+        static_out = self._as_captured(fn, views)
 
         def replay():
             self.calls += 1
-            for o, n in zip(static_out, fn(*views)):
+            for o, n in zip(static_out, self._as_captured(fn, views)):
                 if o is not None:
                     cudagraphs._compact(o).copy_(cudagraphs._compact(n))
         return replay, static_out

@@ -101,6 +101,28 @@ def test_runner_warmup_is_untimed_and_moves_no_number():
         run_experiment(model, filters(), trials=1, steps=2, progress=False, warmup="yes")
 
 
+def test_warm_up_covers_every_chunk_shape_on_a_gpu(monkeypatch, caplog):
+    """On a GPU the warm-up calls the filter once per distinct chunk size (two steps each), so that
+    no CUDA graph capture or shape-specialised compilation lands in a timed chunk; on the CPU one
+    call on one trial. Each says what it does in the log."""
+    import logging
+    import types
+
+    from torchflow.runner import execute
+
+    calls = []
+    monkeypatch.setattr(execute, "_timed_call", lambda f, name, plan, s, e, steps=None:
+                        calls.append((s, e, steps)) or (None, 0.5))
+    chunks = [(0, 20), (20, 40), (40, 50)]
+    for device, want in (("cuda", [(0, 20, 2), (0, 10, 2)]), ("cpu", [(0, 1, 2)])):
+        calls.clear()
+        plan = types.SimpleNamespace(settings=types.SimpleNamespace(device=torch.device(device)))
+        with caplog.at_level(logging.INFO, logger="torchflow.runner"):
+            seconds = execute.warm_up(None, "ledh", plan, chunks)
+        assert calls == want and seconds == 0.5 * len(want)
+        assert "ledh: warming up on " + "/".join(str(e - s) for s, e, _ in want) in caplog.text
+
+
 def test_runner_errors():
     model = SensorNetwork(d=16)
     with pytest.raises(ValueError, match="dtype"):

@@ -217,3 +217,25 @@ def test_a_stop_during_the_learning_commands_simulation_says_nothing_was_fitted(
         assert "stopped by SIGTERM during the simulation; nothing was computed" in caplog.text
     finally:
         STOP.reset()
+
+
+def test_the_default_memory_budget_is_a_share_of_the_free_memory(monkeypatch):
+    """``memory_budget_gb`` unset (``None`` or ``"auto"``): MEMORY_BUDGET_SHARE of what the device
+    has free when the run is planned, which sizes the chunks and is recorded with where it came
+    from; a given budget is recorded as given."""
+    from torchflow.runner.plan import MEMORY_BUDGET_SHARE
+
+    _available(monkeypatch, 10 * GIB)
+    model = SensorNetwork(d=4)
+    f = BootstrapParticleFilter(model, n_particles=50)
+    for given in (None, "auto"):
+        res = run_experiment(model, {"bpf": f}, trials=3, steps=2, memory_budget_gb=given, progress=False)
+        assert res.config["memory_budget_gb"] == round(MEMORY_BUDGET_SHARE * 10, 3)
+        assert res.config["memory_budget"] == "40% of the 10 GiB available RAM"
+    # the chunks follow the budget: a machine with almost nothing free runs one trial per chunk
+    per_trial = f.bytes_per_trial()
+    _available(monkeypatch, 1.5 * per_trial / MEMORY_BUDGET_SHARE)
+    res = run_experiment(model, {"bpf": f}, trials=3, steps=2, progress=False)
+    assert res.config["chunk_size"] == {"bpf": 1}
+    res = run_experiment(model, {"bpf": f}, trials=3, steps=2, memory_budget_gb=4.0, progress=False)
+    assert res.config["memory_budget_gb"] == 4.0 and res.config["memory_budget"] == "given"

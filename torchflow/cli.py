@@ -152,8 +152,10 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
     lo, hi = result.config["trial_range"]
     which = f"{trials} trials" if (lo, hi) == (0, trials) else f"trials {lo}..{hi - 1} of {trials}"
     source = f" of data={cfg.data}" if data is not None else ""
+    budget = result.config["memory_budget"]
+    budget = "" if budget == "given" else f", memory budget {result.config['memory_budget_gb']:.3g} GiB ({budget})"
     log.info(f"\n{model_name}: {which} x {result.config['steps']} steps{source}, seed {cfg.seed}, "
-             f"{cfg.device}/{cfg.dtype}")
+             f"{cfg.device}/{cfg.dtype}{budget}")
     log.info(format_table(result.summary))
     for name in result.failed:
         where = f" in {result.failures[name]}" if result.failures.get(name) else ""

@@ -178,7 +178,7 @@ def smooth_job(cfg: DictConfig, model, filters: Dict, labels: Dict, out: Path, e
             interrupted = True
             break
         method = methods[name]
-        chunk = _smoothing_chunk(f, method, B, T, d, n_paths, cfg.memory_budget_gb)
+        chunk = _smoothing_chunk(f, method, B, T, d, n_paths, s.memory_budget_gb)
         log.info(f"{name}: {method} smoother, {B} trials x {T} steps" + ("" if method == "rts" else
                  f", {n_paths} paths") + (f", {chunk} trials per call" if chunk < B else ""))
         parts, t0 = [], time.perf_counter()

@@ -8,7 +8,7 @@ import time
 import traceback
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Callable, List, Mapping, Optional, Sequence, Union
+from typing import Callable, List, Mapping, Optional, Sequence, Tuple, Union
 
 import torch
 from tqdm.auto import tqdm
@@ -215,11 +215,20 @@ def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None) -> 
     return out
 
 
-def warm_up(f: Filter, name: str, plan: RunPlan, s: int) -> float:
-    """One untimed call of ``f`` on trial ``s``'s first two steps (its own stream; the result is
-    discarded), so that the timed chunks do not pay the process's one-time costs (a GPU's kernel
-    compilation and loading, library handles, CUDA graph capture); its wall seconds."""
-    return _timed_call(f, name, plan, s, s + 1, steps=2)[1]
+def warm_up(f: Filter, name: str, plan: RunPlan, chunks: Sequence[Tuple[int, int]]) -> float:
+    """Untimed calls of ``f`` on the first two steps of its trials (their own streams; the results
+    are discarded), so that the timed ``chunks`` do not pay the process's one-time costs (kernel
+    compilation and loading, library handles, CUDA graph capture); their wall seconds. On a GPU one
+    call per distinct chunk size (from the first chunk's first trial: CUDA graphs are captured, and
+    kernels may be specialised, per shape); on the CPU one call on one trial (the Numba kernels
+    compile once for every shape)."""
+    if not chunks:
+        return 0.0
+    s0 = chunks[0][0]
+    sizes = sorted({e - s for s, e in chunks}, reverse=True) if plan.settings.device.type == "cuda" else [1]
+    log.info(f"{name}: warming up on {'/'.join(map(str, sizes))} trial(s) x 2 steps (its kernels are compiled on "
+             "a machine's first run and loaded from the cache after)")
+    return sum(_timed_call(f, name, plan, s0, s0 + n, steps=2)[1] for n in sizes)
 
 
 def _one_chunk(f, name, plan, s, e, store, bar) -> dict:
@@ -242,15 +251,15 @@ def _one_chunk(f, name, plan, s, e, store, bar) -> dict:
 def execute(f: Filter, name: str, plan: RunPlan, *, store: Optional[ChunkStore] = None, progress=False,
             desc="", warmup: bool = False) -> Outcome:
     """Run ``f`` over this rank's chunks (a tqdm bar on rank 0 with ``progress``); the ranks' outcome.
-    ``warmup``: first an untimed call on one trial (:func:`warm_up`)."""
+    ``warmup``: first untimed calls on two steps (:func:`warm_up`)."""
     mine = plan.shard.mine(plan.trial_chunks(plan.chunks[name]))
     bar = tqdm(total=sum(e - s for s, e in mine) * plan.settings.steps, unit="trial-step", leave=False,
                dynamic_ncols=True, desc=desc) if progress and plan.shard.is_main else None
     out, where = Outcome(), None
     try:
         if warmup and mine:
-            where = f"the warm-up call (trial {mine[0][0]})"
-            out.warmup = warm_up(f, name, plan, mine[0][0])
+            where = f"the warm-up call (from trial {mine[0][0]})"
+            out.warmup = warm_up(f, name, plan, mine)
         for i, (s, e) in enumerate(mine):
             STOP.check()
             where = f"chunk {i + 1} of {len(mine)} (trials {s}..{e - 1})"
@@ -283,7 +292,8 @@ def gather_outcome(out: Outcome, plan: RunPlan) -> Outcome:
 
 
 def plan_run(model: StateSpaceModel, filters: Mapping[str, Filter], *, trials: Optional[int], steps: Optional[int],
-             seed: int, inits_per_track: int = 1, chunk_size: Optional[int] = None, memory_budget_gb: float = 4.0,
+             seed: int, inits_per_track: int = 1, chunk_size: Optional[int] = None,
+             memory_budget_gb: Optional[float] = None,
              device: Union[str, torch.device] = "cpu", dtype: Union[str, torch.dtype] = "float64",
              rng_backend: str = "auto", trial_range: Optional[Sequence[int]] = None, shard: Optional[Shard] = None,
              simulator: Optional[Callable] = None, observations: Optional[torch.Tensor] = None,
@@ -329,7 +339,7 @@ def plan_run(model: StateSpaceModel, filters: Mapping[str, Filter], *, trials: O
 def run_experiment(
     model: StateSpaceModel, filters: Mapping[str, Filter], *, trials: Optional[int] = None,
     steps: Optional[int] = None, seed: int = 0,
-    inits_per_track: int = 1, chunk_size: Optional[int] = None, memory_budget_gb: float = 4.0,
+    inits_per_track: int = 1, chunk_size: Optional[int] = None, memory_budget_gb: Optional[float] = None,
     device: Union[str, torch.device] = "cpu", dtype: Union[str, torch.dtype] = "float64", ospa_cutoff: float = 40.0,
     ospa_order: float = 1.0, lost_threshold: float = 2.0, burn_in: int = 0, progress: bool = True,
     rng_backend: str = "auto", on_filter_done: Optional[Callable[[List[dict]], None]] = None, store: Optional[ChunkStore] = None,
@@ -344,7 +354,9 @@ def run_experiment(
 
     ``inits_per_track``: trials share a trajectory in groups of this size, each with its own prior
     draw. ``chunk_size``: trials per chunk (``None``: from ``memory_budget_gb`` and the filters'
-    memory formulas). ``ospa_cutoff``, ``ospa_order``, ``lost_threshold``: metric settings;
+    memory formulas). ``memory_budget_gb``: the working memory one chunk may use per time step
+    (``None``: :data:`~torchflow.runner.plan.MEMORY_BUDGET_SHARE` of the memory free on the device
+    when the run is planned; ``config["memory_budget"]`` says which). ``ospa_cutoff``, ``ospa_order``, ``lost_threshold``: metric settings;
     ``burn_in``: steps dropped from the start of the burn-in metrics' trial and summary values
     (``rmse``; fewer than the steps).
     ``on_filter_done(summary rows)`` runs after each filter. ``store``: a
@@ -432,7 +444,8 @@ def run_experiment(
     res.config = dict(
         trials=s.trials, steps=s.steps, seed=s.seed, inits_per_track=s.inits_per_track, chunk_size=plan.chunks,
         particle_chunk={n: f.particle_chunk for n, f in filters.items()},
-        memory_budget_gb=memory_budget_gb, rng_backend=s.rng_backend, world_size=plan.shard.world,
+        memory_budget_gb=round(s.memory_budget_gb, 3), memory_budget=s.budget_from, rng_backend=s.rng_backend,
+        world_size=plan.shard.world,
         trial_range=[s.lo, s.hi], device=str(s.device), dtype=str(s.dtype).replace("torch.", ""),
         tuning=tuning.as_dict(), threads=torch.get_num_threads())
     res.recorded = truthless

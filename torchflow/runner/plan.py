@@ -142,6 +142,22 @@ def filter_chunk(f: Filter, n_run: int, chunk_size: Optional[int], memory_budget
     return min(c, f.preferred_chunk_trials() or c, cap or c)
 
 
+#: the share of the memory available on the run's device (:func:`available_memory`, read when the run
+#: is planned) that one filter chunk may use per time step when ``memory_budget_gb`` is not given
+#: (``None``/``auto``): two fifths, which leaves the simulated data, the results and other processes
+#: room under the size check's warning at :data:`MEMORY_WARN_SHARE`
+MEMORY_BUDGET_SHARE = 0.4
+
+
+def auto_memory_budget(device: torch.device) -> Tuple[float, str]:
+    """``(GiB, how)``: the default memory budget of a run on ``device``, :data:`MEMORY_BUDGET_SHARE`
+    of what :func:`available_memory` finds there (a GPU's free memory, the host's available RAM
+    under its limits); ``how`` says so in words, for the run's header and results."""
+    avail, what = available_memory(device)
+    gib = MEMORY_BUDGET_SHARE * avail / 2**30
+    return gib, f"{100 * MEMORY_BUDGET_SHARE:.0f}% of the {_gib(avail)} {what}"
+
+
 #: the size check refuses a run whose estimated memory exceeds what is available, and warns above
 #: this share of it (other processes need memory too; the estimate is rough)
 MEMORY_WARN_SHARE = 0.5
@@ -353,6 +369,8 @@ class RunSettings:
     rng_backend: str
     lo: int
     hi: int
+    #: where ``memory_budget_gb`` came from: ``"given"`` or the share of the free memory it is
+    budget_from: str = "given"
 
     @property
     def n_run(self) -> int:
@@ -365,13 +383,16 @@ def check_settings(*, trials, steps, seed, inits_per_track, chunk_size, memory_b
     trials = _count("trials", trials)
     if chunk_size is not None:
         chunk_size = _count("chunk_size", chunk_size, hint=" (or None: from memory_budget_gb)")
-    require(_number(memory_budget_gb) and memory_budget_gb > 0, "memory_budget_gb", "a positive number of GiB",
-             memory_budget_gb)
+    auto = memory_budget_gb is None or memory_budget_gb == "auto"
+    require(auto or (_number(memory_budget_gb) and memory_budget_gb > 0), "memory_budget_gb",
+            "a positive number of GiB, or null/auto (a share of the memory free on the device)", memory_budget_gb)
     inits_per_track = _count("inits_per_track", inits_per_track)
     warn_uneven_tracks(trials, inits_per_track)
+    device = resolve_device(device)
+    budget, how = auto_memory_budget(device) if auto else (float(memory_budget_gb), "given")
     return RunSettings(trials, _count("steps", steps), check_seed(seed), inits_per_track,
-                       chunk_size, float(memory_budget_gb), resolve_device(device), resolve_dtype(dtype),
-                       check_rng_backend(rng_backend), *check_trial_range(trial_range, trials))
+                       chunk_size, budget, device, resolve_dtype(dtype),
+                       check_rng_backend(rng_backend), *check_trial_range(trial_range, trials), budget_from=how)
 
 
 def warn_uneven_tracks(trials: int, inits_per_track: int) -> None:
