@@ -21,6 +21,8 @@ written (any other error keeps its traceback); 2 a configuration error or a refu
 from __future__ import annotations
 
 import logging
+import os
+import time
 from pathlib import Path
 from typing import List, Optional
 
@@ -127,7 +129,30 @@ def chunk_store(cfg: DictConfig, labels, data_sha256: Optional[str] = None):
 _Output = shell.Output  # the first failed write turns the exit status to 1
 
 
+def process_age() -> Optional[float]:
+    """Seconds since this process started (Linux ``/proc``, 10 ms resolution), or ``None`` where
+    that cannot be read: the start-up a command pays before its job (interpreter, imports, Hydra)."""
+    try:
+        ticks = os.sysconf("SC_CLK_TCK")
+        start = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19]) / ticks
+        return float(Path("/proc/uptime").read_text().split()[0]) - start
+    except (OSError, ValueError, IndexError, AttributeError):
+        return None
+
+
+def _timings_line(timings, figures_sec: Optional[float]) -> str:
+    """The run's wall seconds by phase, for the log (``result.timings`` with the command's own)."""
+    names = [("startup", "start-up"), ("plan", "data"), ("reference", "reference"), ("filters", "filters"),
+             ("scoring", "scoring"), ("writing", "writing")]
+    parts = [f"{label} {timings[k]:.2f}" for k, label in names if timings.get(k) is not None]
+    if figures_sec is not None:
+        parts.append(f"figures {figures_sec:.2f}")
+    total = process_age()
+    return "wall seconds: " + ", ".join(parts) + ("" if total is None else f"; {total:.2f} since the process started")
+
+
 def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> int:
+    startup = process_age()
     data = rc.recorded_data(cfg, model)
     obs, trials, steps, sha = data if data is not None else (None, cfg.trials, cfg.steps, None)
     store, writer = chunk_store(cfg, labels, sha), _Output(out)
@@ -161,9 +186,15 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
         where = f" in {result.failures[name]}" if result.failures.get(name) else ""
         error = next(r["error"] for r in result.summary if r["filter"] == name)
         log.error(f"!! {name} failed{where}: {error} (traceback in run.log)")
+    result.timings = {"startup": startup, **result.timings}
+    t0 = time.perf_counter()
     writer.attempt("the result files", writers.write_run, out, result, OmegaConf.to_container(cfg, resolve=True))
+    result.timings["writing"] = time.perf_counter() - t0
+    t0, figures_sec = time.perf_counter(), None
     if cfg.plots:
         writer.attempt("the figures", figures.save_run_figures, out, model, result, model_name)
+        figures_sec = time.perf_counter() - t0
+    log.info(_timings_line(result.timings, figures_sec))
     if writer.failed is None:
         log.info(f"results: {shell.shown_path(out)}")
     if result.interrupted:

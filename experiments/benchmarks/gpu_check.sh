@@ -9,7 +9,9 @@
 #   2. the run command as a user runs it: acoustic tracking, PF-PF(LEDH) and the bootstrap PF,
 #      100 trials x 500 particles x 40 steps, float64, on a fresh machine (cold: the kernels compile)
 #      then again (warm), then one chunk of 100 trials, then float32; wall time of each command and
-#      the filters' own seconds per trial-step and warm-up from its summary.csv;
+#      the filters' own seconds per trial-step and warm-up from its summary.csv, the phases of its
+#      wall time from its log, float32 against float64 paired per trial (experiments.benchmarks.paired),
+#      and the start-up (imports, CUDA initialisation) on the machine;
 #   3. bench_gpu's PF-PF(LEDH) rows (one call of 100 and of 500 trials: the kernels' time);
 #   4. Lorenz-96 at d = 4000, 10^5 and 10^6 with the ETKF and LETKF (RMSE and seconds per step).
 #
@@ -57,7 +59,8 @@ print(" " + " ; ".join(f"{r.get('filter')}: {float(r.get('sec_per_step') or 'nan
                         f"warm-up {float(r.get('warmup_sec') or 'nan'):.2f} s, OMAT {float(r.get('omat') or 'nan'):.3f}"
                         + (f", error {r['error']}" if r.get('error') else "") for r in rows) + " |")
 EOF
-  grep -iE "compil|error|warn" "$OUT/run_$label.log" | head -3
+  grep -iE "compil|error|warn|capture" "$OUT/run_$label.log" | head -3
+  grep -E "wall seconds:|memory budget" "$OUT/run_$label.log" | sed "s/^/    $label: /" | tee -a "$OUT/phases.txt"
 }
 { echo; echo "## The run command (acoustic, [pfpf_ledh, bpf], 100 x 500 x 40)"; echo;
   echo "| run | exit | wall s | filters |"; echo "|---|---|---|---|"; } >> "$MD"
@@ -70,10 +73,19 @@ run_cmd chunk100 60 chunk_size=100
 echo "== run command: float32 ($(left) s left)"; date
 run_cmd float32 60 dtype=float32
 tail -5 "$MD"
+{ echo; echo "### Where a command's wall time goes (phases from its log)"; echo; echo '```'; cat "$OUT/phases.txt"; echo '```';
+  echo; echo "### float32 against float64, paired per trial (the warm run and the float32 run: same seed, same trials)"; echo;
+  python3 -m experiments.benchmarks.paired /tmp/runs/warm /tmp/runs/float32 --labels float64,float32 2>&1; } >> "$MD"
+{ echo; echo "### Start-up on this machine"; echo; echo '```';
+  python3 -X importtime -c "import torchflow.cli" 2>&1 | tail -1 | sed 's/^/import torchflow.cli (us, cumulative): /';
+  python3 -c "import time; t = time.perf_counter(); import torch; a = time.perf_counter(); torch.zeros(1, device='cuda'); torch.cuda.synchronize(); print(f'import torch {a - t:.2f} s, CUDA init {time.perf_counter() - a:.2f} s')";
+  echo '```'; } >> "$MD"
 
 echo "== bench_gpu PF-PF(LEDH) ($(left) s left)"; date
 timeout "$(cap 120)" python3 -m experiments.benchmarks.bench_gpu --device cuda --reps 2 --tests 0 --gpfis-trials 0 \
-  --bpf-ns 200 2>&1 | grep -E "^\| " | tail -10 | tee -a "$MD"
+  --bpf-ns 200 > "$OUT/bench_gpu.log" 2>&1
+grep -E "^\| " "$OUT/bench_gpu.log" | tail -10 | tee -a "$MD"
+grep -iE "capture failed|not replayed|warn" "$OUT/bench_gpu.log" | head -5 | sed 's/^/    /' | tee -a "$MD"
 cp experiments/benchmarks/results_gpu.json "$OUT/" 2>/dev/null
 
 echo "== Lorenz-96 d-scaling on the GPU: ETKF, LETKF ($(left) s left)"; date

@@ -429,3 +429,28 @@ def test_sv_pmmh_quick(tmp_path):
     rows = json.loads((tmp_path / "pmmh.json").read_text())["rows"]
     assert [r["sampler"].split()[0] for r in rows] == ["torchflow", "particles"]
     assert all(math.isfinite(r[k]["mean"]) and r[k]["ess"] > 0 for r in rows for k in ("mu", "rho", "sigma"))
+
+
+def test_paired_differences_of_two_runs(tmp_path):
+    """``paired`` pairs the trials both runs have, per filter and metric, and reports the mean
+    difference with its standard error; a run against itself differs by exactly 0, and a shift of
+    every trial by c gives c with SE 0 (z infinite)."""
+    from experiments.benchmarks import paired
+
+    def write(name, rows):
+        d = tmp_path / name
+        d.mkdir()
+        lines = ["filter,trial,omat,log_evidence"] + [f"{f},{t},{o},{l}" for f, t, o, l in rows]
+        (d / "per_trial.csv").write_text("\n".join(lines) + "\n")
+        return d
+
+    a = write("a", [("bpf", 0, 1.0, -5.0), ("bpf", 1, 3.0, -7.0), ("bpf", 2, 2.0, "nan"), ("ledh", 0, 0.5, 1.0)])
+    b = write("b", [("bpf", 0, 1.5, -4.0), ("bpf", 1, 3.5, -8.0), ("bpf", 3, 9.0, 0.0), ("ledh", 0, 0.5, 1.0)])
+    same = paired.paired(paired.read(a), paired.read(a), ["omat"])
+    assert [(r["filter"], r["n"], r["diff"]) for r in same] == [("bpf", 3, 0.0), ("ledh", 1, 0.0)]
+    rows = {(r["filter"], r["metric"]): r for r in paired.paired(paired.read(a), paired.read(b), ["omat", "log_evidence"])}
+    om = rows["bpf", "omat"]
+    assert om["n"] == 2 and om["diff"] == 0.5 and om["se"] == 0.0 and om["z"] == math.inf
+    le = rows["bpf", "log_evidence"]  # trial 2 has no finite value in a; trial 3 is not in a
+    assert le["n"] == 2 and le["diff"] == 0.0 and math.isclose(le["se"], 1.0)
+    assert "| bpf | omat | 2 |" in paired.table(list(rows.values()))

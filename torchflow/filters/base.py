@@ -823,7 +823,7 @@ class ParticleFilter(Filter):
             # the weights where every particle is finite, and a trial's logsumexp is finite exactly
             # where no particle needs repair (a non-finite coordinate, a NaN or +inf increment) and
             # some weight is positive
-            s = particles.sum(-1)
+            s = particles[..., 0] if particles.shape[-1] == 1 else particles.sum(-1)
             lw = prev_log_weights + log_increment + (s - s)
             inc = torch.logsumexp(lw, dim=-1)
             if bool(torch.isfinite(inc).all()):  # nothing to repair, no dead trial

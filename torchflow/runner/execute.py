@@ -396,6 +396,7 @@ def run_experiment(
     metric_settings = check_metric_settings(ospa_cutoff=ospa_cutoff, ospa_order=ospa_order,
                                             lost_threshold=lost_threshold, burn_in=burn_in,
                                             steps=n_steps if isinstance(n_steps, int) and n_steps > 0 else None)
+    t0 = time.perf_counter()
     plan = plan_run(model, filters, trials=trials, steps=steps, seed=seed, inits_per_track=inits_per_track,
                     chunk_size=chunk_size, memory_budget_gb=memory_budget_gb, device=device, dtype=dtype,
                     rng_backend=rng_backend, trial_range=trial_range, shard=shard, simulator=simulator,
@@ -408,12 +409,17 @@ def run_experiment(
                  "log-evidence, the ESS and the estimates' per-step mean and spread")
     if plan.shard.is_main:
         say_slow_path(filters, s.device)
+    t1 = time.perf_counter()
     with before_the_filters("the Kalman filter's reference log-evidence"):
         scorer = make_scorer(model, plan, **metric_settings)
     res = ExperimentResult([], [], [])
+    res.timings = {"plan": t1 - t0, "reference": time.perf_counter() - t1, "filters": 0.0, "scoring": 0.0}
     for i, (name, f) in enumerate(filters.items()):
+        t2 = time.perf_counter()
         out = execute(f, name, plan, store=store, progress=progress, desc=f"[{i + 1}/{len(filters)}] {name}",
                       warmup=auto_warmup(f, s.device) if warmup == "auto" else warmup)
+        t3 = time.perf_counter()
+        res.timings["filters"] += t3 - t2
         res.interrupted = out.interrupted
         if plan.shard.is_main:
             row = {**dict.fromkeys(SUMMARY_COLUMNS), "filter": name, "n_particles": f.n_particles,
@@ -436,6 +442,7 @@ def run_experiment(
                 res.per_step += step_rows
             if on_filter_done is not None and not out.interrupted:
                 on_filter_done(res.summary)
+        res.timings["scoring"] += time.perf_counter() - t3
         if out.interrupted:
             break
     if not plan.shard.is_main:  # rank 0 scores and returns the results

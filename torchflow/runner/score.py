@@ -95,6 +95,11 @@ class ExperimentResult:
         paths: ``{filter: {path: count}}``: the execution paths each filter's time steps took,
             summed over its chunks (:mod:`torchflow.flows.kernels.paths`; the summary's ``path``
             column names them, most counted first).
+        timings: wall seconds of the run's phases: ``plan`` (checks, moving to the device, the
+            simulation or the recorded data), ``reference`` (the Kalman filter's reference
+            log-evidence, where the model has one), ``filters`` (every filter's warm-up and
+            chunks; their own compute is the summary's ``sec_per_step`` and ``warmup_sec``) and
+            ``scoring``; the command line adds its own (start-up, writing, figures) in the log.
     """
 
     summary: List[dict]
@@ -109,6 +114,7 @@ class ExperimentResult:
     estimate_summary: Dict[str, Tuple[torch.Tensor, torch.Tensor]] = field(default_factory=dict)
     recorded: bool = False
     paths: Dict[str, Dict[str, int]] = field(default_factory=dict)
+    timings: Dict[str, float] = field(default_factory=dict)
 
     @property
     def failed(self) -> List[str]:
