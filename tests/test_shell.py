@@ -2,6 +2,7 @@
 the output folder's earlier results and lock file, the job environment. The subprocess tests use
 tiny runs (a few seconds each, most of it Python's start-up)."""
 import json
+import re
 import os
 import signal
 import socket
@@ -261,3 +262,21 @@ def test_sigterm_during_a_run_writes_the_finished_filters_and_exits_143(tmp_path
     assert "interrupted by SIGTERM" in text and "Traceback" not in text
     assert json.loads((tmp_path / "run" / "results.json").read_text())["interrupted"] is True
     assert not (tmp_path / "run" / shell.LOCK_NAME).exists()
+
+
+def test_a_run_says_where_its_wall_time_went(tmp_path):
+    """The run command logs its wall seconds by phase (start-up, data, filters, scoring, writing,
+    figures) and the memory budget it chose; results.json keeps the phases up to the filters'
+    scoring. The phases add up to no more than the process's age."""
+    r = _cli(tmp_path, "run", "model=linear_gaussian", "filter=[kf,bpf]", "trials=2", "steps=3", "n_particles=50",
+             "progress=false", "plots=true", "hydra.run.dir=run")
+    assert r.returncode == 0, r.stderr[-2000:]
+    log = (tmp_path / "run" / "run.log").read_text()
+    line = next(ln for ln in log.splitlines() if "wall seconds:" in ln)
+    found = dict(re.findall(r"(start-up|data|reference|filters|scoring|writing|figures) ([\d.]+)", line))
+    assert set(found) == {"start-up", "data", "reference", "filters", "scoring", "writing", "figures"}, line
+    total = float(re.search(r"; ([\d.]+) since the process started", line).group(1))
+    assert sum(map(float, found.values())) <= total + 0.05 and float(found["start-up"]) > 0
+    assert re.search(r"memory budget [\d.]+ GiB \(40% of the [\d.,]+ [MG]iB ", log), log[-2000:]
+    timings = json.loads((tmp_path / "run" / "results.json").read_text())["timings"]
+    assert set(timings) == {"startup", "plan", "reference", "filters", "scoring"} and timings["filters"] > 0
