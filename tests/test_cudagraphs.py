@@ -47,8 +47,9 @@ class _Emulated:
     def __init__(self, fail=False):
         self.fail, self.calls = fail, 0
 
-    def warmup(self, fn, inputs):
-        return tuple(fn(*inputs))
+    def warmup(self, fn, inputs):  # eager, as on a GPU (its caches, e.g. the jitter ladder, are made here)
+        with tuning.tuned(host_reads_cpu=0, batched_jitter_cpu=1):
+            return tuple(fn(*inputs))
 
     @staticmethod
     def _as_captured(fn, views):

@@ -118,9 +118,23 @@ def test_warm_up_covers_every_chunk_shape_on_a_gpu(monkeypatch, caplog):
         calls.clear()
         plan = types.SimpleNamespace(settings=types.SimpleNamespace(device=torch.device(device)))
         with caplog.at_level(logging.INFO, logger="torchflow.runner"):
-            seconds = execute.warm_up(None, "ledh", plan, chunks)
+            seconds = execute.warm_up(BootstrapParticleFilter(SensorNetwork(d=4)), "ledh", plan, chunks)
         assert calls == want and seconds == 0.5 * len(want)
         assert "ledh: warming up on " + "/".join(str(e - s) for s, e, _ in want) in caplog.text
+
+
+def test_a_localiser_warms_up_on_its_whole_data():
+    """A one-shot localiser has no time axis to cut to two steps: its warm-up (on a GPU by default)
+    runs one trial's whole data and moves no number."""
+    from torchflow.localisation import BootstrapLocaliser
+    from torchflow.models import TDOA3D
+
+    model = TDOA3D()
+    runs = {w: run_experiment(model, {"bs": BootstrapLocaliser(model, n_particles=2000)}, trials=1, progress=False,
+                              warmup=w) for w in (False, True)}
+    assert runs[True].summary[0]["error"] is None and runs[True].summary[0]["warmup_sec"] > 0
+    drop = lambda rows: [{k: v for k, v in r.items() if k not in ("sec_per_step", "warmup_sec")} for r in rows]  # noqa: E731
+    assert drop(runs[True].per_trial) == drop(runs[False].per_trial)
 
 
 def test_runner_errors():

@@ -86,6 +86,35 @@ def test_every_resampling_scheme_is_replayed(emulated, scheme):
     assert cudagraphs.stats()["replays"] > before["replays"]
 
 
+@pytest.mark.parametrize("flow", ["edh", "ledh"])
+@pytest.mark.parametrize("model_name", ["lg", "acoustic"])
+def test_a_pfpf_step_is_replayed_whole(emulated, flow, model_name):
+    """PF-PF with a deterministic flow is captured and replayed whole (its flow loop inside the
+    step's graph: not a graph of its own), with the eager step's numbers; the clustered points are
+    not declared graph-safe and step eagerly."""
+    from torchflow.filters import ClusteredParticleFlowParticleFilter, ParticleFlowParticleFilter
+    from torchflow.flows.kernels import paths
+
+    model = MODELS[model_name]()
+    f = ParticleFlowParticleFilter(model, flow=flow, n_particles=24)
+    assert f.graph_step
+    # the eager step as on a GPU: safe_cholesky's batched jitter ladder (the CPU's default, which
+    # reads the failure flags, gives the same factors only up to round-off); the flows' torch path
+    # (a GPU runs the Triton kernel inside the graph, not the CPU's Numba one)
+    with tuning.tuned(cuda_graphs=0, batched_jitter_cpu=1, fused_flows=0):
+        eager = _run(f, model, T=5)
+    with warnings.catch_warnings(), tuning.tuned(fused_flows=0):
+        warnings.simplefilter("error")  # a capture that fails warns and runs eagerly
+        with paths.recording() as counts:
+            graphed = _run(f, model, T=5)
+    # the same numbers to round-off (LEDH's per-particle products on the graph's static buffers
+    # may take other BLAS paths: 4e-11 measured on acoustic tracking)
+    for name in ("estimates", "log_evidence", "ess", "particles", "log_weights"):
+        torch.testing.assert_close(getattr(graphed, name), getattr(eager, name), rtol=1e-8, atol=1e-8, msg=name)
+    assert counts.get("graph:step", 0) >= 2 and "graph:flow" not in counts, counts
+    assert not ClusteredParticleFlowParticleFilter(model, n_particles=24).graph_step
+
+
 def test_only_declared_steps_go_through_a_graph(emulated):
     model = random_lg(3, 2)
     f = BootstrapParticleFilter(model, n_particles=16)

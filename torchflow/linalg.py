@@ -125,6 +125,19 @@ def small_solve_lower(L: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
 
 
 _LADDERS = {}
+_INDICES = {}
+
+
+def index_tensor(values, device) -> torch.Tensor:
+    """The int64 tensor of the integers ``values`` on ``device``, made once per values and device:
+    an index that a filter step uses (a model's measurement support) without copying it from the
+    host at every step (on a GPU each such copy waits for the host, and a CUDA graph cannot capture
+    one). Read-only: shared by every caller."""
+    key = (tuple(int(v) for v in values), str(device))
+    out = _INDICES.get(key)
+    if out is None:
+        out = _INDICES[key] = torch.tensor(key[0], dtype=torch.int64, device=device)
+    return out
 
 
 def _jitter_ladder(base: float, max_tries: int, dtype, device) -> torch.Tensor:

@@ -482,7 +482,6 @@ def _resample_rows(log_weights: Tensor, lw: Tensor, generator, resampler: Callab
     if ess is None:
         ess = torch.exp(-torch.logsumexp(2.0 * lw, dim=1))
     resampled = ess < threshold * n
-    uniform = torch.full_like(lw, -math.log(n))
     if threshold == 0.0:  # never resamples: nothing drawn
         return None, resampled, lw
     split = _SPLIT.get(resampler)
@@ -490,15 +489,16 @@ def _resample_rows(log_weights: Tensor, lw: Tensor, generator, resampler: Callab
         indices = resampler(log_weights, generator, validate=False)
         identity = torch.arange(n, device=lw.device, dtype=torch.int64)
         return (torch.where(resampled[:, None], indices, identity), resampled,
-                torch.where(resampled[:, None], uniform, lw))
+                torch.where(resampled[:, None], torch.full_like(lw, -math.log(n)), lw))
     per_trial, invert = split
     u = _rand((b, n if per_trial is None else per_trial), log_weights, generator)
-    rows = resampled.nonzero().squeeze(1)
-    m = rows.numel()
+    m = int(resampled.sum())
     if m == 0:
         return None, resampled, lw
+    uniform = torch.full_like(lw, -math.log(n))
     if m == b:
         return invert(log_weights, u), resampled, uniform
+    rows = resampled.nonzero().squeeze(1)
     indices = torch.arange(n, dtype=torch.int64).repeat(b, 1)
     indices[rows] = invert(log_weights[rows], u[rows])
     return indices, resampled, torch.where(resampled[:, None], uniform, lw)

@@ -116,7 +116,7 @@ def kalman_update_scalar_support(mean_pred: torch.Tensor, cov_pred: torch.Tensor
     Returns:
         as :func:`kalman_update`.
     """
-    sup = list(support)
+    sup = linalg.index_tensor(support, cov_pred.device)  # no copy from the host per step
     m, k = H_s.shape[-2], len(sup)
     P_cs = cov_pred[..., :, sup]  # (..., d, k)
     L = linalg.safe_cholesky(P_cs[..., sup, :])  # (..., k, k)

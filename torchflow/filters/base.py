@@ -654,9 +654,11 @@ class ParticleFilter(Filter):
     def graph_step(self) -> bool:
         """Whether the whole step may be replayed from a CUDA graph (:mod:`torchflow.flows.kernels.graph_step`):
         the generic step (not overridden), a proposal class and a model class that each declare
-        themselves ``graph_safe`` (on the class itself: a subclass may draw otherwise)."""
+        themselves ``graph_safe`` (on the class itself: a subclass may draw otherwise), and the
+        proposal's linearisation points, where it has them."""
         return (type(self).step is ParticleFilter.step and self.weights == "standard"
                 and bool(vars(type(self.proposal)).get("graph_safe"))
+                and bool(getattr(getattr(self.proposal, "points", None), "graph_safe", True))
                 and kernel_structure(self.model).graph_safe)
 
     resampling_scheme = property(lambda self: self.resampler.scheme)
@@ -826,7 +828,8 @@ class ParticleFilter(Filter):
             s = particles[..., 0] if particles.shape[-1] == 1 else particles.sum(-1)
             lw = prev_log_weights + log_increment + (s - s)
             inc = torch.logsumexp(lw, dim=-1)
-            if bool(torch.isfinite(inc).all()):  # nothing to repair, no dead trial
+            # finite sum <=> every term finite (a NaN or an infinity makes it NaN or infinite)
+            if math.isfinite(float(inc.detach().sum())):  # nothing to repair, no dead trial
                 return self._estimate_and_resample(particles, lw - inc.unsqueeze(-1), inc, generator, step, cov,
                                                    extras, n_repaired, self.account_clean(n_repaired), None)
         bad = self._nonfinite(particles, log_increment)
@@ -859,7 +862,8 @@ class ParticleFilter(Filter):
         """The weighted mean of normalised ``lw``, the ESS and the resampling (``dead (B,)``: the
         trials whose step had no particle of positive weight, ``None`` when none had)."""
         w = lw.exp()
-        estimate = torch.matmul(w.unsqueeze(-2), particles).squeeze(-2)  # (B, d)
+        estimate = (torch.bmm(w.unsqueeze(1), particles).squeeze(1) if particles.dim() == 3  # (B, d)
+                    else torch.matmul(w.unsqueeze(-2), particles).squeeze(-2))
         ess = (w * w).sum(-1).reciprocal()  # the resampler's trigger (of the weights it goes on with)
         particles, lw_new, cov, extras, resampled = self.resampler(particles, lw, generator, cov=cov, extras=extras,
                                                                    ess=ess)

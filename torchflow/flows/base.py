@@ -181,7 +181,7 @@ class FlowPrior:
         if sup is None or len(sup) == d:
             return replace(self, root=L, cols=L, cols_support=L, cov_cols=L @ L.transpose(-1, -2))
         k, chosen = len(sup), set(sup)
-        perm = torch.tensor(list(sup) + [i for i in range(d) if i not in chosen], device=L.device)
+        perm = linalg.index_tensor(list(sup) + [i for i in range(d) if i not in chosen], L.device)
         inv = torch.argsort(perm)
         P = L @ L.transpose(-1, -2)
         Lp = linalg.safe_cholesky(P.index_select(-1, perm).index_select(-2, perm))

@@ -127,10 +127,14 @@ class LinearisationPoints:
         per_particle: the points are the particles themselves (L = N): a per-particle flow prior,
             covariance tracked per particle, and particles that flow independently (so a filter
             may flow them in blocks to bound memory).
+        graph_safe: :meth:`place` and :meth:`arrange` make the same kernels at every step of one
+            layout, with no host read (the global and per-particle points; not the clustered
+            ones), so a flow filter's whole step may be replayed from a CUDA graph.
     """
 
     name = ""
     per_particle = False
+    graph_safe = True
 
     def covariance(self, cov: torch.Tensor, n_particles: int, identical: bool = False) -> Covariance:
         """The covariance a PF-PF carries from the prior ``cov (B, d, d)``: per trial by default.
@@ -238,6 +242,7 @@ class ClusteredPoints(LinearisationPoints):
     """
 
     name = "clustered"
+    graph_safe = False  # not declared: its K-medoids step is not checked for host reads inside a capture
 
     def __init__(self, n_clusters: int = 100, alpha: float = 0.25, sweeps: int = 10):
         self.n_clusters = check_count("n_clusters", n_clusters)

@@ -69,8 +69,8 @@ class Proposal(nn.Module):
         graph_safe: :meth:`propose` makes the same kernels and the same draws (kinds, shapes) at
             every step of one layout, with no host read, so the filter's whole step may be replayed
             from a CUDA graph (:mod:`torchflow.flows.kernels.graph_step`), when the model declares the
-            same. Declared by each class itself, not inherited (a subclass may draw otherwise);
-            only the bootstrap proposal says so.
+            same. Declared by each class itself, not inherited (a subclass may draw otherwise):
+            the bootstrap proposal and the deterministic flows' proposal (with graph-safe points).
         report_ancestor_law: set by a filter with marginal weights: :meth:`propose` also returns
             :attr:`Proposed.ancestor_law` (proposals with :attr:`has_ancestor_law`).
     """

@@ -193,7 +193,14 @@ class FlowProposal(Proposal):
 
 
 class InvertibleFlowProposal(FlowProposal):
-    """Deterministic flow: ``log q(x) = log p(eta_0 | x_prev) - log|det d x / d eta_0|``."""
+    """Deterministic flow: ``log q(x) = log p(eta_0 | x_prev) - log|det d x / d eta_0|``.
+
+    Graph-safe (:attr:`~torchflow.proposals.Proposal.graph_safe`) where its linearisation points
+    are (:attr:`~torchflow.flows.points.LinearisationPoints.graph_safe`): each step draws ``eta_0``
+    (one normal draw of the cloud's shape) and runs the same kernels, so a PF-PF step with a
+    deterministic flow is replayed from a CUDA graph whole, the flow loop inside it."""
+
+    graph_safe = True
 
     def _migrate(self, eta0, x_prev, z, prior, generator, log_q0, noise=None, index=None):
         law = self.report_ancestor_law

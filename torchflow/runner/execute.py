@@ -221,14 +221,16 @@ def warm_up(f: Filter, name: str, plan: RunPlan, chunks: Sequence[Tuple[int, int
     compilation and loading, library handles, CUDA graph capture); their wall seconds. On a GPU one
     call per distinct chunk size (from the first chunk's first trial: CUDA graphs are captured, and
     kernels may be specialised, per shape); on the CPU one call on one trial (the Numba kernels
-    compile once for every shape)."""
+    compile once for every shape). A one-shot localiser (not a time-stepped filter: its measurements
+    are one set per sensor) is warmed up on its whole data of those trials."""
     if not chunks:
         return 0.0
     s0 = chunks[0][0]
     sizes = sorted({e - s for s, e in chunks}, reverse=True) if plan.settings.device.type == "cuda" else [1]
-    log.info(f"{name}: warming up on {'/'.join(map(str, sizes))} trial(s) x 2 steps (its kernels are compiled on "
-             "a machine's first run and loaded from the cache after)")
-    return sum(_timed_call(f, name, plan, s0, s0 + n, steps=2)[1] for n in sizes)
+    steps = 2 if isinstance(f, Filter) else None
+    log.info(f"{name}: warming up on {'/'.join(map(str, sizes))} trial(s)" + (" x 2 steps" if steps else "")
+             + " (its kernels are compiled on a machine's first run and loaded from the cache after)")
+    return sum(_timed_call(f, name, plan, s0, s0 + n, steps=steps)[1] for n in sizes)
 
 
 def _one_chunk(f, name, plan, s, e, store, bar) -> dict:

@@ -19,8 +19,9 @@ runs eagerly from the stream positions the graph's words took (one warning per f
 
 Used by :meth:`torchflow.filters.Filter.forward` when the filter's step is graph-safe by
 declaration (:attr:`ParticleFilter.graph_step`: the generic step, with a proposal class and a model
-class that each declare ``graph_safe``: the bootstrap proposal; the linear-Gaussian models and
-acoustic tracking), on CUDA, without a gradient, with per-trial Philox streams (a plain
+class that each declare ``graph_safe``: the bootstrap proposal and the deterministic flows'
+proposal with global or per-particle points (PF-PF(EDH), PF-PF(LEDH), geodesic: the flow loop is
+then captured inside the step's graph); the linear-Gaussian models and acoustic tracking), on CUDA, without a gradient, with per-trial Philox streams (a plain
 :class:`~torchflow.random.TrialStreams`), ``tuning.cuda_graphs`` on and at most
 ``tuning.graph_step_max_elems`` state elements (larger steps are bound by the GPU's arithmetic,
 where a graph saves nothing and would keep a large memory pool). Anything else runs eagerly. A
@@ -38,6 +39,7 @@ from typing import Optional
 import torch
 
 from ... import cudagraphs, tuning
+from ...covariances import Covariance
 from . import paths, select
 from ...random import TrialStreams
 
@@ -128,9 +130,10 @@ def eligible(filt, state, generator) -> bool:
 
 
 def _flatten(state):
-    """``(tensors, layout)`` of a dataclass state: its tensor fields (and a tensor dict's items) in
-    order, and what rebuilds it; ``layout`` is None when a field is neither a tensor, None, an int
-    (the step count, not part of the layout) nor a dict of tensors."""
+    """``(tensors, layout)`` of a dataclass state: its tensor fields (and a tensor dict's items, and
+    a :class:`~torchflow.covariances.Covariance`'s matrix) in order, and what rebuilds it; ``layout``
+    is None when a field is neither a tensor, None, an int (the step count, not part of the layout),
+    a dict of tensors nor a covariance."""
     tensors, layout = [], []
     for f in dataclasses.fields(state):
         v = getattr(state, f.name)
@@ -145,6 +148,10 @@ def _flatten(state):
             keys = tuple(sorted(v))
             layout.append((f.name, ("d", keys)))
             tensors += [v[k] for k in keys]
+        elif isinstance(v, Covariance):  # its type and settings are the layout, its matrix a tensor
+            rest = tuple((g.name, getattr(v, g.name)) for g in dataclasses.fields(v) if g.name != "matrix")
+            layout.append((f.name, ("c", type(v), rest)))
+            tensors.append(v.matrix)
         else:
             return None, None
     return tensors, (type(state), tuple(layout))
@@ -158,6 +165,8 @@ def _unflatten(layout, tensors, step: int):
             kw[name] = None
         elif kind == "t":
             kw[name] = next(it)
+        elif kind[0] == "c":
+            kw[name] = kind[1](matrix=next(it), **dict(kind[2]))
         else:
             kw[name] = {k: next(it) for k in kind[1]}
     return cls(**kw)
