@@ -256,3 +256,14 @@ def test_crank_nicolson_moves_keep_the_normal_law():
         moved.normal((4, 3), dtype=torch.float64)
     with pytest.raises(ValueError, match=r"tape\[0\]: expected a \(B, n\) tensor with B = 4"):
         CorrelatedStreams(0, 4, tape=[torch.zeros(3, 2)])
+
+
+def test_index_tensor_is_made_once_per_values_and_device():
+    """``linalg.index_tensor``: the int64 tensor of the values, the same object on every call with
+    equal values and device (no copy from the host per filter step), another for other values."""
+    from torchflow import linalg
+
+    a = linalg.index_tensor((3, 1, 2), "cpu")
+    assert a.dtype == torch.int64 and a.tolist() == [3, 1, 2]
+    assert linalg.index_tensor([3, 1, 2], torch.device("cpu")) is a
+    assert linalg.index_tensor((1, 2), "cpu") is not a
