@@ -6,7 +6,8 @@ batch's size changes BLAS blocking; see README "Reproducibility"). The exception
 formulas in another order: ``fused_flows``, ``fused_info``, ``fused_measurement`` and ``structured_update`` agree
 with their torch/Joseph counterparts to round-off per call, which a chaotic trial (a resampling
 decision, a diverging EKF) can amplify; their statistics are the same (``experiments/RESULTS.md``,
-"CPU kernels"). The defaults were chosen by timing representative runs on a small CPU machine
+"CPU kernels"); ``kernel_float32`` computes a float32 run's GPU kernel in float32 instead of
+float64 (float32 round-off). The defaults were chosen by timing representative runs on a small CPU machine
 (``experiments/RESULTS.md``, "Performance benchmarks"); on another machine, time a
 representative run with ``experiments/benchmarks`` and set them here, from Python or from the
 runner (``python experiments/run.py tuning.points_per_call=40000``).
@@ -106,6 +107,14 @@ class Tuning:
             passes). The same formulas rearranged (round-off); the information form reads W once
             and never re-reads ``L_s`` per row (``experiments/RESULTS.md``, "GPU"). No effect on the
             Numba CPU kernel (it does select the form Triton's interpreter runs on the CPU, in tests).
+        kernel_float32: the GPU lane kernel of ``fused_flows`` computes a float32 run's pseudo-steps
+            in float32 (1), or in float64 as the CPU kernels do, loading and storing float32 (0,
+            the default). In float32 the information form's ``Pi + lam G`` is poorly conditioned
+            where the measurement is sharp: on acoustic tracking (Triton's interpreter, 3
+            pseudo-steps) the particles move 1.5e-4 relative from the float64 flow, against 1e-6
+            for the float64 arithmetic and 1.3e-7 for the torch path in float32. Whether that
+            changes a run's statistics, and what it gains in speed, is for the GPU check to
+            measure (``experiments/benchmarks/gpu_check.sh``); no effect on float64 runs or the CPU.
         fused_measurement: the fused kernel linearises a model that declares its measurement in
             the kernel's terms (:attr:`~torchflow.models.Structure.measurement_form`:
             acoustic tracking) itself, at the points, instead of torch ops writing a
@@ -143,6 +152,7 @@ class Tuning:
     cuda_graphs: int = 1
     fused_flows: int = 1
     fused_info: int = 1
+    kernel_float32: int = 0
     fused_measurement: int = 1
     fused_philox: int = 1
     graph_step_max_elems: int = 1 << 23

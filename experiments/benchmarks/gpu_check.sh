@@ -8,7 +8,8 @@
 #      the random streams and bad inputs), first;
 #   2. the run command as a user runs it: acoustic tracking, PF-PF(LEDH) and the bootstrap PF,
 #      100 trials x 500 particles x 40 steps, float64, on a fresh machine (cold: the kernels compile)
-#      then again (warm), then one chunk of 100 trials, then float32; wall time of each command and
+#      then again (warm), then one chunk of 100 trials, then float32 (the kernel in float64 arithmetic,
+#      then in float32: tuning.kernel_float32=1); wall time of each command and
 #      the filters' own seconds per trial-step and warm-up from its summary.csv, the phases of its
 #      wall time from its log, float32 against float64 paired per trial (experiments.benchmarks.paired),
 #      and the start-up (imports, CUDA initialisation) on the machine;
@@ -72,10 +73,14 @@ echo "== run command: one chunk of 100 ($(left) s left)"; date
 run_cmd chunk100 60 chunk_size=100
 echo "== run command: float32 ($(left) s left)"; date
 run_cmd float32 60 dtype=float32
-tail -5 "$MD"
+echo "== run command: float32 in float32 arithmetic ($(left) s left)"; date
+run_cmd float32_k32 60 dtype=float32 tuning.kernel_float32=1
+tail -6 "$MD"
 { echo; echo "### Where a command's wall time goes (phases from its log)"; echo; echo '```'; cat "$OUT/phases.txt"; echo '```';
   echo; echo "### float32 against float64, paired per trial (the warm run and the float32 run: same seed, same trials)"; echo;
-  python3 -m experiments.benchmarks.paired /tmp/runs/warm /tmp/runs/float32 --labels float64,float32 2>&1; } >> "$MD"
+  python3 -m experiments.benchmarks.paired /tmp/runs/warm /tmp/runs/float32 --labels float64,float32 2>&1; echo;
+  echo "with the kernel in float32 arithmetic (tuning.kernel_float32=1):"; echo;
+  python3 -m experiments.benchmarks.paired /tmp/runs/warm /tmp/runs/float32_k32 --labels float64,float32k 2>&1; } >> "$MD"
 { echo; echo "### Start-up on this machine"; echo; echo '```';
   python3 -X importtime -c "import torchflow.cli" 2>&1 | tail -1 | sed 's/^/import torchflow.cli (us, cumulative): /';
   python3 -c "import time; t = time.perf_counter(); import torch; a = time.perf_counter(); torch.zeros(1, device='cuda'); torch.cuda.synchronize(); print(f'import torch {a - t:.2f} s, CUDA init {time.perf_counter() - a:.2f} s')";

@@ -27,18 +27,23 @@ _F64_PTRS = ("C", "PI", "LAMS", "EPSS", "CONST")
 
 
 def measure(lin: int = 0, warps: int = 1, arch: int = 90, dtype: str = "float64", bk: int = 8, bd: int = 16,
-            layout: str = "rows") -> dict:
-    """Compile ``kernel_<layout>`` (``rows`` or ``info``) for ``sm_<arch>`` and read its resources:
-    ``registers``, ``spill_stores``, ``spill_loads``, ``stack`` (bytes per thread), ``shuffles``,
-    ``ptx_lines``."""
+            layout: str = "rows", compute: str = "float64") -> dict:
+    """Compile ``kernel_<layout>`` (``rows`` or ``info``) for ``sm_<arch>`` with its state in
+    ``dtype`` and its arithmetic in ``compute`` (``tuning.kernel_float32``: ``float32`` for a
+    float32 state) and read its resources: ``registers``, ``spill_stores``, ``spill_loads``,
+    ``stack`` (bytes per thread), ``shuffles``, ``ptx_lines``."""
+    import torch
     import triton
+    import triton.language as tl
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
 
     from torchflow.flows.kernels import gpu as _fused_kernel
     kernel_rows = getattr(_fused_kernel, "kernel_" + layout)
     names = list(inspect.signature(kernel_rows.fn).parameters)
-    const = {"BK": bk, "BD": bd, "BP": 32 * warps, "LIN": lin}
+    ct = torch.float32 if compute == "float32" else torch.float64
+    const = {"BK": bk, "BD": bd, "BP": 32 * warps, "LIN": lin, "DT": tl.float32 if compute == "float32" else tl.float64,
+             "TINY": float(torch.finfo(ct).tiny)}
     ptr = "*fp64" if dtype == "float64" else "*fp32"
     sig = {n: "constexpr" if n in const else "*i64" if n == "SUP" else ptr if n in _STATE_PTRS
            else "*fp64" if n in _F64_PTRS else "i32" for n in names}
@@ -64,12 +69,14 @@ def main(argv=None):
     ap.add_argument("--arch", type=int, default=90)
     ap.add_argument("--warps", type=int, default=1)
     ap.add_argument("--dtype", default="float64", choices=("float64", "float32"))
+    ap.add_argument("--compute", default="float64", choices=("float64", "float32"),
+                    help="the kernel's arithmetic (float32: tuning.kernel_float32=1 on a float32 run)")
     ap.add_argument("--layout", default="info,rows", help="the kernels' forms, comma-separated (info, rows)")
     a = ap.parse_args(argv)
     for layout in a.layout.split(","):
         for lin in (0, 1):
-            r = measure(lin, a.warps, a.arch, a.dtype, layout=layout)
-            print(f"kernel_{layout}, sm_{a.arch}, {a.dtype}, {a.warps} warp(s), LIN={lin}: "
+            r = measure(lin, a.warps, a.arch, a.dtype, layout=layout, compute=a.compute)
+            print(f"kernel_{layout}, sm_{a.arch}, {a.dtype} ({a.compute} arithmetic), {a.warps} warp(s), LIN={lin}: "
                   + ", ".join(f"{k} {v}" for k, v in r.items()))
 
 

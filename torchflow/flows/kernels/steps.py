@@ -35,7 +35,8 @@ once per integration.
 Cholesky root (:func:`~torchflow.flows.gpfis.gpfis_flow`) and the ``log|det|`` of each step's
 ``k x k`` Jacobian, the step's tangents as rank-``2b`` updates.
 
-Arithmetic: float64 inside the kernels (float32 runs load and store their own dtype). The same
+Arithmetic: float64 inside the kernels (float32 runs load and store their own dtype); the GPU lane
+kernel computes a float32 run in float32 with ``tuning.kernel_float32=1`` (not the default). The same
 formulas as the reference loop, reassociated: the numbers agree to round-off
 (``tests/flows/test_fused.py``), not bit for bit. On the CPU the results do not depend on the
 thread count (particles do not interact). Numba compiles a kernel on its first call in a process
@@ -50,7 +51,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from ... import _triton
+from ... import _triton, tuning
 
 __all__ = ["available", "dh_particle_step", "FusedMeasurement", "ParticleSteps", "GromovSteps", "GPFISSteps", "DiagonalSteps"]
 
@@ -168,10 +169,22 @@ def dh_particle_step(W: Optional[torch.Tensor], y: torch.Tensor, L: torch.Tensor
     eta_out, aux_out = torch.empty_like(eta), torch.empty_like(aux)
     BK, BD = tile(k), tile(d)
     bp = 32 * ROWS_WARPS
+    DT, TINY = compute_dtype(eta.dtype)
     kernel[(-(-B * N // bp),)](W, *sW, y, *sY, L, *sL, Ls, *sS, Pc, *sP, mean, *sM, support, eta, aux, *sE, eta_out,
                                 aux_out, log_det, lams, epss, j, sens, const, B * N, N, m, d, k, BK=BK, BD=BD, BP=bp,
-                                LIN=0 if measure is None else measure.kind, num_warps=ROWS_WARPS)
+                                LIN=0 if measure is None else measure.kind, DT=DT, TINY=TINY, num_warps=ROWS_WARPS)
     return eta_out, aux_out
+
+
+def compute_dtype(dtype: torch.dtype):
+    """The GPU lane kernel's arithmetic for particles of ``dtype``: ``(Triton dtype, its smallest
+    normal number)``; float32 where the run is float32 and ``tuning.kernel_float32`` (an H100 has twice
+    as many FP32 units as FP64 ones, and a k x k tile takes half the registers), else float64."""
+    from triton import language as tl
+
+    if dtype == torch.float32 and tuning.get().kernel_float32:
+        return tl.float32, float(torch.finfo(torch.float32).tiny)
+    return tl.float64, float(torch.finfo(torch.float64).tiny)
 
 
 class ParticleSteps:
