@@ -14,13 +14,20 @@
 #      wall time from its log, float32 against float64 paired per trial (experiments.benchmarks.paired),
 #      and the start-up (imports, CUDA initialisation) on the machine;
 #   3. bench_gpu's PF-PF(LEDH) rows (one call of 100 and of 500 trials: the kernels' time);
-#   4. Lorenz-96 at d = 4000, 10^5 and 10^6 with the ETKF and LETKF (RMSE and seconds per step).
+#   4. Lorenz-96 at d = 4000, 10^5 and 10^6 with the ETKF and LETKF (RMSE and seconds per step), and
+#      the run command with a bootstrap PF of 10^7 particles (acoustic, one trial).
 #
 # The device image has torch and Triton but no Hydra: carry .whl with the hydra-core, omegaconf and
 # antlr4-python3-runtime wheels (docs/guide/gpu.md), e.g. run(command="bash experiments/benchmarks/gpu_check.sh",
 # carry=[".whl"]).
+#
+# PARTS (default "tests commands bench") picks what runs, so the checks can be split over two device
+# calls when the CUDA tests take long: PARTS=tests, PARTS=commands (the run command's rows, start-up,
+# float32 pairs), PARTS=bench (bench_gpu, Lorenz-96, a bootstrap PF with 10^7 particles).
 set -u
 export PYTHONUNBUFFERED=1
+PARTS=${PARTS:-"tests commands bench"}
+want() { case " $PARTS " in *" $1 "*) return 0 ;; esac; return 1; }
 END=$((SECONDS + ${BUDGET:-500}))
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
 # byte-compile as `pip install` does for a user (the working tree arrives without __pycache__; compiling
@@ -36,6 +43,7 @@ now() { date +%s.%N; }
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$MD"
 python3 -c "import torch, triton; print('torch', torch.__version__, 'triton', triton.__version__)" | tee -a "$MD"
 
+if want tests; then
 echo "== CUDA contract tests ($(left) s left)"; date
 timeout "$(cap 300)" python3 -m pytest -q -p no:cacheprovider -rfE tests/filters/test_contract.py tests/flows/test_fused.py \
   tests/test_cudagraphs.py tests/test_graph_step.py tests/test_random.py tests/test_bad_inputs.py tests/test_philox_fused.py \
@@ -43,6 +51,7 @@ timeout "$(cap 300)" python3 -m pytest -q -p no:cacheprovider -rfE tests/filters
   tests/filters/test_marginal.py tests/test_per_trial.py tests/test_inference.py \
   $(ls tests/filters/test_ensemble.py 2>/dev/null) -k "cuda or model_contract" 2>&1 | tail -25 > "$OUT/cuda_tests.txt"
 tail -4 "$OUT/cuda_tests.txt"; { echo; echo "## CUDA tests"; tail -1 "$OUT/cuda_tests.txt"; } >> "$MD"
+fi
 
 run_cmd() {  # label, cap, extra settings...
   local label=$1 limit=$2; shift 2
@@ -66,6 +75,7 @@ EOF
   grep -iE "compil|error|warn|capture" "$OUT/run_$label.log" | head -3
   grep -E "wall seconds:|memory budget" "$OUT/run_$label.log" | sed "s/^/    $label: /" | tee -a "$OUT/phases.txt"
 }
+if want commands; then
 { echo; echo "## The run command (acoustic, [pfpf_ledh, bpf], 100 x 500 x 40)"; echo;
   echo "| run | exit | wall s | filters |"; echo "|---|---|---|---|"; } >> "$MD"
 echo "== run command: cold ($(left) s left)"; date
@@ -88,7 +98,9 @@ tail -6 "$MD"
   python3 -X importtime -c "import torchflow.cli" 2>&1 | tail -1 | sed 's/^/import torchflow.cli (us, cumulative): /';
   python3 -c "import time; t = time.perf_counter(); import torch; a = time.perf_counter(); torch.zeros(1, device='cuda'); torch.cuda.synchronize(); print(f'import torch {a - t:.2f} s, CUDA init {time.perf_counter() - a:.2f} s')";
   echo '```'; } >> "$MD"
+fi
 
+if want bench; then
 echo "== bench_gpu PF-PF(LEDH) ($(left) s left)"; date
 timeout "$(cap 120)" python3 -m experiments.benchmarks.bench_gpu --device cuda --reps 2 --tests 0 --gpfis-trials 0 \
   --bpf-ns 200 > "$OUT/bench_gpu.log" 2>&1
@@ -101,4 +113,16 @@ echo "== Lorenz-96 d-scaling on the GPU: ETKF, LETKF ($(left) s left)"; date
   echo "| d | filter | trials | RMSE | s/step | device |"; echo "|---|---|---|---|---|---|"; } >> "$MD"
 timeout "$(cap 150)" python3 -m experiments.benchmarks.bench_lorenz96 --scaling-only --device cuda \
   --dims 4000 100000 1000000 --scaling-steps 100 --out "$OUT/lorenz96_gpu" 2>&1 | grep -E "^\| " | tee -a "$MD"
+
+echo "== a bootstrap PF with 10^7 particles ($(left) s left)"; date
+{ echo; echo "## Bootstrap PF, acoustic, 10^7 particles, 1 trial x 40 steps"; echo; echo "| run | exit | wall s | filters |";
+  echo "|---|---|---|---|"; } >> "$MD"
+t0=$(now)
+timeout "$(cap 120)" python3 -m torchflow model=acoustic 'filter=[bpf]' n_particles=10000000 trials=1 device=cuda \
+  plots=false progress=false hydra.run.dir=/tmp/runs/bpf1e7 > "$OUT/run_bpf1e7.log" 2>&1
+rc=$?
+printf '| bpf 1e7 | %s | %s | %s |\n' "$rc" "$(python3 -c "print(f'{$(now) - $t0:.1f}')")" \
+  "$(grep -E '^\| bpf' "$OUT/run_bpf1e7.log" | head -1 | tr '|' ' ' | tr -s ' ')" >> "$MD"
+cp /tmp/runs/bpf1e7/summary.csv "$OUT/bpf1e7_summary.csv" 2>/dev/null
+fi
 date
