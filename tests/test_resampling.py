@@ -472,3 +472,25 @@ def test_a_users_scheme_is_computed_for_every_trial():
     idx, resampled, _ = R._resample_rows(lw, normalize_log_weights(lw), None, reverse, 0.5)
     assert calls == [(2, 5)] and resampled.tolist() == [False, True]
     assert idx.tolist() == [[0, 1, 2, 3, 4], [4, 3, 2, 1, 0]]
+
+
+def test_host_reads_only_on_plain_cpu_tensors():
+    """``reads_host``: a plain CPU tensor with ``host_reads_cpu`` on; not under ``tuning``
+    ``host_reads_cpu=0``, nor inside a ``torch.func`` transform (where ``bool(t)`` of a wrapped
+    tensor fails or traces)."""
+    from torchflow import tuning
+    from torchflow.resampling import reads_host
+
+    x = torch.ones(3, dtype=torch.float64)
+    assert reads_host(x)
+    with tuning.tuned(host_reads_cpu=0):
+        assert not reads_host(x)
+    seen = []
+
+    def f(t):
+        seen.append(reads_host(t))
+        return t.sum()
+
+    torch.func.grad(f)(x)
+    torch.func.vmap(f)(x.reshape(3, 1))
+    assert seen == [False, False]
