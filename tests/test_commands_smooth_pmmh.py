@@ -128,6 +128,7 @@ def test_pmmh_task_on_a_recorded_series_same_seed_same_draws(tmp_path):
     (["pmmh.priors.rho.low=2"], "pmmh.priors.rho: Uniform(low=2, high=1) is refused by torch.distributions"),
     (["pmmh.iterations=2"], "pmmh.iterations: expected an integer >= 4, got 2"),
     (["pmmh.chain=3"], "pmmh.chain: unknown setting; did you mean pmmh.chains?"),
+    (["pmmh.init={rho: 1.5, sigma: 0.2}"], "pmmh.init.rho: expected a value inside the support of its prior"),
 ])
 def test_pmmh_task_refuses_bad_settings_in_one_line(tmp_path, args, message):
     r = _torchflow(tmp_path, *PMMH, *args)

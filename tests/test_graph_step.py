@@ -114,6 +114,12 @@ def test_a_pfpf_step_is_replayed_whole(emulated, flow, model_name):
     assert counts.get("graph:step", 0) >= 2 and "graph:flow" not in counts, counts
     assert not ClusteredParticleFlowParticleFilter(model, n_particles=24).graph_step
 
+    from torchflow.flows.points import ParticlePoints
+
+    class MyPoints(ParticlePoints):  # a subclass may place points otherwise: it declares itself
+        pass
+    assert not ParticleFlowParticleFilter(model, flow=flow, points=MyPoints(), n_particles=24).graph_step
+
 
 def test_only_declared_steps_go_through_a_graph(emulated):
     model = random_lg(3, 2)

@@ -221,17 +221,18 @@ def test_a_stop_during_the_learning_commands_simulation_says_nothing_was_fitted(
 
 def test_the_default_memory_budget_is_a_share_of_the_free_memory(monkeypatch):
     """``memory_budget_gb`` unset (``None`` or ``"auto"``): MEMORY_BUDGET_SHARE of what the device
-    has free when the run is planned, which sizes the chunks and is recorded with where it came
-    from; a given budget is recorded as given."""
+    has free when the run is planned, rounded down to a power of two GiB (stable chunks while the
+    free memory moves a little), which sizes the chunks and is recorded with where it came from; a
+    given budget is recorded as given."""
     from torchflow.runner.plan import MEMORY_BUDGET_SHARE
 
-    _available(monkeypatch, 10 * GIB)
     model = SensorNetwork(d=4)
     f = BootstrapParticleFilter(model, n_particles=50)
-    for given in (None, "auto"):
+    for given, free, budget in ((None, 10, 4.0), ("auto", 12, 4.0), (None, 3, 1.0)):  # 40%, down to a power of 2
+        _available(monkeypatch, free * GIB)
         res = run_experiment(model, {"bpf": f}, trials=3, steps=2, memory_budget_gb=given, progress=False)
-        assert res.config["memory_budget_gb"] == round(MEMORY_BUDGET_SHARE * 10, 3)
-        assert res.config["memory_budget"] == "40% of the 10 GiB available RAM"
+        assert MEMORY_BUDGET_SHARE == 0.4 and res.config["memory_budget_gb"] == budget
+        assert res.config["memory_budget"] == f"40% of the {free} GiB available RAM, rounded down to a power of two"
     # the chunks follow the budget: a machine with almost nothing free runs one trial per chunk
     per_trial = f.bytes_per_trial()
     _available(monkeypatch, 1.5 * per_trial / MEMORY_BUDGET_SHARE)

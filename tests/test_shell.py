@@ -280,3 +280,21 @@ def test_a_run_says_where_its_wall_time_went(tmp_path):
     assert re.search(r"memory budget [\d.]+ GiB \(40% of the [\d.,]+ [MG]iB ", log), log[-2000:]
     timings = json.loads((tmp_path / "run" / "results.json").read_text())["timings"]
     assert set(timings) == {"startup", "plan", "reference", "filters", "scoring"} and timings["filters"] > 0
+
+
+def test_a_run_whose_start_up_cannot_be_read_still_writes_its_results(tmp_path):
+    """Where the process's age cannot be read (no ``/proc``), ``startup`` is ``None``: results.json
+    records it as null and the log line leaves it out (no crash after the filters ran)."""
+    from torchflow import cli
+    from torchflow.experiment import run_experiment
+    from torchflow.filters import KalmanFilter
+    from torchflow.models import SensorNetwork
+    from torchflow.runner import writers
+
+    model = SensorNetwork(d=4)
+    res = run_experiment(model, {"kf": KalmanFilter(model)}, trials=2, steps=2, progress=False)
+    res.timings = {"startup": None, **res.timings}
+    writers.write_run(tmp_path, res, {})
+    assert json.loads((tmp_path / "results.json").read_text())["timings"]["startup"] is None
+    line = cli._timings_line(res.timings, None)
+    assert line.startswith("wall seconds: data ") and "start-up" not in line

@@ -256,7 +256,7 @@ def multinomial(log_weights: Tensor, generator: Optional[torch.Generator] = None
 def _multinomial_indices(log_weights: Tensor, u: Tensor) -> Tensor:
     n = log_weights.shape[1]
     cdf = _scaled_cdf(_unnormalized_weights(log_weights))
-    return _invert_cdf(cdf, _below(u * n, torch.full_like(u, float(n))))
+    return _invert_cdf(cdf, _below(u * n, u.new_full((), float(n))))
 
 
 def systematic(log_weights: Tensor, generator: Optional[torch.Generator] = None, *, validate: bool = True) -> Tensor:
@@ -354,7 +354,7 @@ def _residual_indices(log_weights: Tensor, u: Tensor) -> Tensor:
     res_ok = res.sum(dim=1, keepdim=True) > 0
     res = torch.where(res_ok, res, w)  # guard: all-zero residual rows
     cdf = _scaled_cdf(res)
-    rand_idx = _invert_cdf(cdf, _below(u * n, torch.full_like(u, float(n))))
+    rand_idx = _invert_cdf(cdf, _below(u * n, u.new_full((), float(n))))
 
     return torch.where(j < n_det, det_idx, rand_idx)
 
@@ -499,7 +499,7 @@ def _resample_rows(log_weights: Tensor, lw: Tensor, generator, resampler: Callab
     if m == b:
         return invert(log_weights, u), resampled, uniform
     rows = resampled.nonzero().squeeze(1)
-    indices = torch.arange(n, dtype=torch.int64).repeat(b, 1)
+    indices = torch.arange(n, dtype=torch.int64, device=lw.device).repeat(b, 1)
     indices[rows] = invert(log_weights[rows], u[rows])
     return indices, resampled, torch.where(resampled[:, None], uniform, lw)
 

@@ -385,7 +385,7 @@ def _init(cfg: DictConfig, priors: dict) -> Optional[dict]:
     out = {}
     for name, v in init.items():
         t = torch.as_tensor(v, dtype=torch.float64)
-        if not bool(torch.exp(priors[name].log_prob(t)).gt(0).all()):
+        if not bool(priors[name].support.check(t).all()):
             raise ConfigError(f"pmmh.init.{name}: expected a value inside the support of its prior "
                               f"({priors[name].support}), got {v!r}")
         out[name] = t

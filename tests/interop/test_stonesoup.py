@@ -250,7 +250,7 @@ def test_marginal_weights_with_a_prior_wider_than_q(flow):
 
 def test_marginal_weights_need_a_parent():
     mm = LinearGaussian(ndim_state=4, mapping=(0, 2), noise_covar=np.diag([0.5, 0.5]))
-    with pytest.raises(Exception, match="weights: expected 'standard' or 'marginal'"):
+    with pytest.raises(Exception, match=r"weights: expected one of \('standard', 'marginal'\)"):
         FlowParticleUpdater(mm, weights="mixture")
     lone = _particles(50)
     from stonesoup.types.prediction import ParticleStatePrediction

@@ -228,3 +228,16 @@ def test_models_import_nothing_above_them_and_no_flow_class_dispatch_outside_the
         if path.parent.name == "kernels" and path.name == "select.py":
             continue
         assert not pattern.search(path.read_text()), path
+
+
+def test_check_covariances_skips_a_method_that_gives_no_tensor():
+    """A user's model whose covariance method returns something other than a tensor (a number, a
+    structured object) is left to the filters' own checks; ``check_covariances`` does not fail on it."""
+    from torchflow.models import SensorNetwork
+    from torchflow.models.contract import check_covariances
+
+    class Scalar(SensorNetwork):
+        def measurement_cov(self, x=None):
+            return 0.5
+
+    check_covariances(Scalar(d=4))  # no AttributeError

@@ -186,3 +186,18 @@ def test_bad_arguments_are_named():
     model = NeuralAcoustic(n_targets=2, initial_state=[10.0, 10, 0, 0, 30, 30, 0, 0], learnable=True)
     assert model.state_dim == 8 and "parametrizations.sigma_w.original" in dict(model.named_parameters())
     assert not hasattr(model, "psi") and math.isclose(float(model.sigma_w), 0.1)
+
+
+def test_the_noise_scale_alone_may_hold_per_trial_values():
+    """The neural model has no physical amplitude psi (its response holds its own): only sigma_w
+    may hold one value per trial, and a per-trial psi is refused by name, not by an AttributeError."""
+    from torchflow.errors import ArgumentError
+    from torchflow.inference import per_trial_values
+
+    model = _small()
+    assert model.per_trial_parameters == ("sigma_w",)
+    with per_trial_values(model, {"sigma_w": torch.tensor([0.1, 0.2], dtype=torch.float64)}):
+        assert model.measurement_cov(torch.zeros(2, 3, model.state_dim, dtype=torch.float64)).shape[0] == 2
+    with pytest.raises(ArgumentError, match="psi"):
+        with per_trial_values(model, {"psi": torch.tensor([1.0, 2.0], dtype=torch.float64)}):
+            pass

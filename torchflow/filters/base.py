@@ -658,7 +658,8 @@ class ParticleFilter(Filter):
         proposal's linearisation points, where it has them."""
         return (type(self).step is ParticleFilter.step and self.weights == "standard"
                 and bool(vars(type(self.proposal)).get("graph_safe"))
-                and bool(getattr(getattr(self.proposal, "points", None), "graph_safe", True))
+                and (getattr(self.proposal, "points", None) is None
+                     or bool(vars(type(self.proposal.points)).get("graph_safe")))
                 and kernel_structure(self.model).graph_safe)
 
     resampling_scheme = property(lambda self: self.resampler.scheme)

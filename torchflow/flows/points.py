@@ -128,13 +128,14 @@ class LinearisationPoints:
             covariance tracked per particle, and particles that flow independently (so a filter
             may flow them in blocks to bound memory).
         graph_safe: :meth:`place` and :meth:`arrange` make the same kernels at every step of one
-            layout, with no host read (the global and per-particle points; not the clustered
-            ones), so a flow filter's whole step may be replayed from a CUDA graph.
+            layout, with no host read, so a flow filter's whole step may be replayed from a CUDA
+            graph. Declared by each class itself, not inherited (the global and per-particle
+            points; not the clustered ones).
     """
 
     name = ""
     per_particle = False
-    graph_safe = True
+    graph_safe = False
 
     def covariance(self, cov: torch.Tensor, n_particles: int, identical: bool = False) -> Covariance:
         """The covariance a PF-PF carries from the prior ``cov (B, d, d)``: per trial by default.
@@ -185,6 +186,7 @@ class GlobalPoints(LinearisationPoints):
     """One point per trial (L = 1): the migrating mean of the trial's prior."""
 
     name = "global"
+    graph_safe = True
 
     def arrange(self, prior, particles, index):
         if index is not None:
@@ -202,6 +204,7 @@ class ParticlePoints(LinearisationPoints):
     (in a PF-PF) its own tracked covariance."""
 
     name = "particle"
+    graph_safe = True
     per_particle = True
 
     def preferred_chunk_trials(self, n_particles):
@@ -242,7 +245,6 @@ class ClusteredPoints(LinearisationPoints):
     """
 
     name = "clustered"
-    graph_safe = False  # not declared: its K-medoids step is not checked for host reads inside a capture
 
     def __init__(self, n_clusters: int = 100, alpha: float = 0.25, sweeps: int = 10):
         self.n_clusters = check_count("n_clusters", n_clusters)

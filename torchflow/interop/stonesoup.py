@@ -77,6 +77,7 @@ from stonesoup.updater.base import Updater
 from stonesoup.updater.particle import ParticleUpdater
 
 from .. import linalg
+from .._checks import check_choice
 from ..flows import FlowPrior, integrate_flow, resolve_points
 from ..models.base import GaussianStateSpaceModel
 from ..models.structure import Structure
@@ -294,8 +295,7 @@ class FlowParticleUpdater(Updater):
         self._schedule = resolve_schedule(self.schedule)
         if self.flow_prior not in ("transition", "predicted"):
             raise ArgumentError(f"flow_prior: expected 'transition' or 'predicted', got {self.flow_prior!r}")
-        if self.weights not in ("standard", "marginal"):
-            raise ArgumentError(f"weights: expected 'standard' or 'marginal', got {self.weights!r}")
+        check_choice("weights", self.weights, _marginal.WEIGHTS)
         if self.dtype not in ("float64", "float32"):
             raise ArgumentError(f"dtype: expected 'float64' or 'float32', got {self.dtype!r}")
         self._dtype = getattr(torch, self.dtype)

@@ -125,8 +125,10 @@ def check_covariances(model, who: str = "") -> None:
             C = fn()
         except (NotImplementedError, TypeError, RuntimeError, ValueError):
             continue  # state-dependent: no constant matrix to check
+        if not isinstance(C, torch.Tensor):
+            continue
         per_trial = C.dim() == 3 and bool(trial_names(model))  # (B, k, k): one per trial, each checked
-        if not isinstance(C, torch.Tensor) or (C.dim() != 2 and not per_trial):
+        if C.dim() != 2 and not per_trial:
             continue
         k, letters = (model.state_dim, "(d, d)") if name == "transition_cov" else (model.obs_dim, "(m, m)")
         if tuple(C.shape[-2:]) != (k, k):  # the method's mistake, named as check_shapes names it

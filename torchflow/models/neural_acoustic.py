@@ -198,6 +198,9 @@ class NeuralAcoustic(AcousticTracking):
             ``initial_state`` with 4C numbers, ``margin``, ``max_redraws``).
     """
 
+    #: the noise scale may hold one value per trial; the response's amplitude is the module's own
+    per_trial_parameters = ("sigma_w",)
+
     #: linear dynamics, R = sigma_w^2 I, h reads positions only (the support is set per instance);
     #: no kernel form (the response is the user's module) and no graph-safety promise
     structure = Structure(linear_dynamics=True, measurement_noise="scalar", has_positions=True)

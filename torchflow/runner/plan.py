@@ -152,10 +152,13 @@ MEMORY_BUDGET_SHARE = 0.4
 def auto_memory_budget(device: torch.device) -> Tuple[float, str]:
     """``(GiB, how)``: the default memory budget of a run on ``device``, :data:`MEMORY_BUDGET_SHARE`
     of what :func:`available_memory` finds there (a GPU's free memory, the host's available RAM
-    under its limits); ``how`` says so in words, for the run's header and results."""
+    under its limits), rounded down to a power of two GiB: the chunks, and so the round-off of
+    filters whose batched linear algebra depends on a call's size, stay the same from run to run
+    while the free memory moves a little. ``how`` says so in words, for the run's header and results."""
     avail, what = available_memory(device)
-    gib = MEMORY_BUDGET_SHARE * avail / 2**30
-    return gib, f"{100 * MEMORY_BUDGET_SHARE:.0f}% of the {_gib(avail)} {what}"
+    share = MEMORY_BUDGET_SHARE * avail / 2**30
+    gib = 2.0 ** math.floor(math.log2(share)) if share > 0 else 0.0
+    return gib, f"{100 * MEMORY_BUDGET_SHARE:.0f}% of the {_gib(avail)} {what}, rounded down to a power of two"
 
 
 #: the size check refuses a run whose estimated memory exceeds what is available, and warns above

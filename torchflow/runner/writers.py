@@ -91,7 +91,8 @@ def write_run(out: Path, result, config: Mapping) -> List[Path]:
             write_text(out / "results.json", json.dumps({
                 "config": dict(config), "run": result.config, "summary": result.summary,
                 "paths": getattr(result, "paths", {}),
-                "timings": {k: round(v, 4) for k, v in getattr(result, "timings", {}).items()}, "interrupted": result.interrupted, "not_run": result.not_run,
+                "timings": {k: None if v is None else round(v, 4) for k, v in getattr(result, "timings", {}).items()},
+                "interrupted": result.interrupted, "not_run": result.not_run,
                 "failed": {n: result.failures.get(n) for n in result.failed}}, indent=2))]
 
 

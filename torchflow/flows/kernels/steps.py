@@ -44,6 +44,7 @@ and caches it on disk; timings are in ``experiments/RESULTS.md`` (benchmarks).
 """
 from __future__ import annotations
 
+import functools
 import importlib
 from dataclasses import dataclass
 from typing import Optional
@@ -180,11 +181,15 @@ def compute_dtype(dtype: torch.dtype):
     """The GPU lane kernel's arithmetic for particles of ``dtype``: ``(Triton dtype, its smallest
     normal number)``; float32 where the run is float32 and ``tuning.kernel_float32`` (an H100 has twice
     as many FP32 units as FP64 ones, and a k x k tile takes half the registers), else float64."""
+    return _compute_dtype(dtype == torch.float32 and bool(tuning.get().kernel_float32))
+
+
+@functools.lru_cache(maxsize=2)
+def _compute_dtype(f32: bool):
     from triton import language as tl
 
-    if dtype == torch.float32 and tuning.get().kernel_float32:
-        return tl.float32, float(torch.finfo(torch.float32).tiny)
-    return tl.float64, float(torch.finfo(torch.float64).tiny)
+    return (tl.float32, float(torch.finfo(torch.float32).tiny)) if f32 else \
+        (tl.float64, float(torch.finfo(torch.float64).tiny))
 
 
 class ParticleSteps:
