@@ -225,8 +225,13 @@ def effective_sample_size(log_weights: Tensor) -> Tensor:
     Raises:
         ValueError: On invalid ``log_weights`` (see :func:`normalize_log_weights`).
     """
-    lw = normalize_log_weights(log_weights)
-    return torch.exp(-torch.logsumexp(2.0 * lw, dim=1))
+    return _ess(normalize_log_weights(log_weights))
+
+
+def _ess(normalised: Tensor) -> Tensor:
+    """``1 / sum_i w_i^2`` of normalised log weights ``(..., N)`` -> ``(...)``, in log space; no
+    validation (the filters' weights are valid by construction)."""
+    return torch.exp(-torch.logsumexp(2.0 * normalised, dim=-1))
 
 
 # ---------------------------------------------------------------------------
@@ -479,11 +484,9 @@ def _resample_rows(log_weights: Tensor, lw: Tensor, generator, resampler: Callab
     does computes nothing else; elsewhere every trial is computed and the identity kept where the
     ESS did not trigger (no host synchronisation). Both give the same indices."""
     b, n = lw.shape
-    if ess is None:
-        ess = torch.exp(-torch.logsumexp(2.0 * lw, dim=1))
-    resampled = ess < threshold * n
     if threshold == 0.0:  # never resamples: nothing drawn
-        return None, resampled, lw
+        return None, torch.zeros(b, dtype=torch.bool, device=lw.device), lw
+    resampled = (_ess(lw) if ess is None else ess) < threshold * n
     split = _SPLIT.get(resampler)
     if split is None or not reads_host(lw):
         indices = resampler(log_weights, generator, validate=False)
@@ -821,7 +824,7 @@ class Resampler(nn.Module):
         identity kept where the ESS did not trigger; per-particle covariances and extras are moved
         by the same convex combinations."""
         B, n = log_weights.shape
-        ess = torch.exp(-torch.logsumexp(2.0 * log_weights, dim=-1))
+        ess = _ess(log_weights)
         resampled = ess < self.ess_threshold * n
         if self.ess_threshold == 0.0:
             return particles, log_weights, cov, extras or {}, resampled
@@ -842,7 +845,7 @@ class Resampler(nn.Module):
         draw), weigh ``W_a / q_a``."""
         B, n = log_weights.shape
         identity = torch.arange(n, device=log_weights.device).expand(B, n)
-        ess = torch.exp(-torch.logsumexp(2.0 * log_weights, dim=-1))
+        ess = _ess(log_weights)
         resampled = ess < self.ess_threshold * n
         if self.ess_threshold == 0.0:
             return identity, resampled, log_weights

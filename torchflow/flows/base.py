@@ -181,8 +181,9 @@ class FlowPrior:
         if sup is None or len(sup) == d:
             return replace(self, root=L, cols=L, cols_support=L, cov_cols=L @ L.transpose(-1, -2))
         k, chosen = len(sup), set(sup)
-        perm = linalg.index_tensor(list(sup) + [i for i in range(d) if i not in chosen], L.device)
-        inv = torch.argsort(perm)
+        order = list(sup) + [i for i in range(d) if i not in chosen]
+        perm = linalg.index_tensor(order, L.device)
+        inv = linalg.index_tensor(sorted(range(d), key=order.__getitem__), L.device)  # perm's inverse
         P = L @ L.transpose(-1, -2)
         Lp = linalg.safe_cholesky(P.index_select(-1, perm).index_select(-2, perm))
         root = Lp.index_select(-2, inv)
