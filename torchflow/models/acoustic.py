@@ -134,8 +134,6 @@ class AcousticTracking(GaussianStateSpaceModel):
 
     def _sd(self, x, event):
         """sigma_w against ``x`` (``None``: per trial ``(B, 1.., 1)`` with ``event`` trailing dims)."""
-        if x is None:
-            return self.sigma_w.reshape(*self.sigma_w.shape, *([1] * event)) if self.sigma_w.dim() else self.sigma_w
         return trial_view(self.sigma_w, 0, x, event)
 
     # ---- dynamics --------------------------------------------------------------------------

@@ -98,8 +98,6 @@ class Lorenz96(GaussianStateSpaceModel):
     def _scale(self, value: torch.Tensor, x: Optional[torch.Tensor], event: int) -> torch.Tensor:
         """A scalar parameter (or one per trial, ``(B,)``) against states ``x (B, ..., d)`` with
         ``event`` trailing dims (``x=None``: ``(B, 1.., 1)``)."""
-        if x is None:
-            return value.reshape(*value.shape, *([1] * event)) if value.dim() else value
         return trial_view(value, 0, x, event)
 
     # ---- dynamics ----------------------------------------------------------------------------

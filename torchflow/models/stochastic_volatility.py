@@ -53,7 +53,7 @@ from .._checks import check_choice, check_learnable, check_nonnegative, check_nu
 from ..errors import ArgumentError
 from .base import GaussianStateSpaceModel
 from .structure import Structure
-from .trials import per_trial_structure
+from .trials import per_trial_structure, trial_view
 
 #: E[log chi^2_1] = digamma(1/2) + log 2
 LOG_CHI2_MEAN = -1.2703628454614782
@@ -123,9 +123,7 @@ class StochasticVolatility(GaussianStateSpaceModel):
     def _view(self, p: torch.Tensor, x: torch.Tensor, core: int = 1) -> torch.Tensor:
         """A parameter (a scalar, or one value per trial ``(B,)``) viewed against ``x (B, ..., 1)``,
         with ``core`` trailing singleton dimensions."""
-        if p.dim() == 0:
-            return p
-        return p.reshape(p.shape[0], *([1] * (x.dim() - 1 - 1 + core)))
+        return trial_view(p, 0, x, core)
 
     # ---- the stationary law ------------------------------------------------------------------
     def stationary_var(self) -> torch.Tensor:

@@ -15,7 +15,7 @@ with them:
 """
 from __future__ import annotations
 
-from typing import Callable, Tuple
+from typing import Callable, Optional, Tuple
 
 import torch
 
@@ -34,7 +34,7 @@ def shared_structure(model):
     return model.__dict__.get("_shared_structure", model.structure)
 
 
-def trial_view(value: torch.Tensor, rank: int, x: torch.Tensor, event: int = 1) -> torch.Tensor:
+def trial_view(value: torch.Tensor, rank: int, x: Optional[torch.Tensor], event: int = 1) -> torch.Tensor:
     """``value`` (shared: ``rank`` dimensions; per trial: ``(B, *shape)``, one more) viewed to broadcast
     against a tensor whose leading dimensions are those of the states ``x (B, ..., d)`` and whose last
     ``event`` dimensions are the value's own: a scalar against ``(B, ..., m)`` is ``(B, 1.., 1)``, a
@@ -42,9 +42,12 @@ def trial_view(value: torch.Tensor, rank: int, x: torch.Tensor, event: int = 1) 
     dimension is a trial-major multiple ``k B`` of the trials (rows ``b k .. b k + k - 1`` are trial
     b's: the library's convention, as in :func:`torchflow.linalg.standard_normal`; the Gaussian-sum
     filters flow their components so) take each trial's value k times. A shared value is returned as
-    it is."""
+    it is. ``x=None``: one row per trial, ``(B, 1.., *shape)`` with ``event - rank`` ones (a
+    parameter's per-trial value where a method is called without states)."""
     if value.dim() == rank:
         return value
+    if x is None:
+        return value.reshape(value.shape[0], *([1] * (event - rank)), *value.shape[1:])
     n, trials = x.shape[0], value.shape[0]
     if n != trials and trials and n % trials == 0:
         value = value.repeat_interleave(n // trials, 0)
