@@ -608,8 +608,8 @@ def test_a_user_method_right_on_the_batch_but_wrong_on_particles_is_named():
     ``(B, N, d)``, where it raised a raw broadcasting error (or broadcast silently)."""
     z = torch.randn(3, 2, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     f = F.BootstrapParticleFilter(UserModel(2, 2, ("measure", "flatten")), n_particles=8)
-    with pytest.raises(TorchflowError, match=r"UserModel\.measure returned shape \(6, 2\) on the particles' layout; "
-                                             r"expected \(B, N, m\) = \(2, 3, 2\)"):
+    with pytest.raises(TorchflowError, match=r"UserModel\.measure returned shape \(8, 2\) on the particles' layout; "
+                                             r"expected \(B, N, m\) = \(2, 4, 2\)"):
         f(z, torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64), torch.Generator().manual_seed(1))
 
 

@@ -32,6 +32,7 @@ from typing import List, Optional, Tuple, Union
 import numpy as np
 import torch
 
+from .covariances import DiagonalCovariance
 from .errors import ArgumentError, ArgumentTypeError
 
 __all__ = ["load_observations", "read_recording", "check_observations", "check_time_step", "declared_prior",
@@ -210,9 +211,13 @@ def declared_prior(model, batch_size: int) -> Tuple[torch.Tensor, torch.Tensor]:
             "or pass the prior explicitly (run_experiment(..., prior=(mean, cov)))")
     mean, cov = fn(batch_size)
     d = model.state_dim
-    if not (isinstance(mean, torch.Tensor) and isinstance(cov, torch.Tensor)
+    kind = DiagonalCovariance if model.structure.prior_covariance == "diagonal" else torch.Tensor
+    if not (isinstance(mean, torch.Tensor) and isinstance(cov, kind)
             and tuple(mean.shape) == (batch_size, d) and tuple(cov.shape) == (batch_size, d, d)):
         got = tuple(getattr(mean, "shape", ())), tuple(getattr(cov, "shape", ()))
+        form = ("a DiagonalCovariance of variances (B, d), as the model declares a diagonal prior"
+                if kind is DiagonalCovariance else "a tensor")
         raise ArgumentError(f"{type(model).__name__}.declared_prior: expected (mean (B, d), cov (B, d, d)) = "
-                            f"(({batch_size}, {d}), ({batch_size}, {d}, {d})), got {got}")
+                            f"(({batch_size}, {d}), ({batch_size}, {d}, {d})), cov {form}; got {got}"
+                            + ("" if isinstance(cov, kind) else f" ({type(cov).__name__})"))
     return mean, cov

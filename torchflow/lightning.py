@@ -21,6 +21,7 @@ from torch import nn
 from torch.utils.data import Dataset
 
 from ._checks import check_count
+from .covariances import dense_prior
 from .data import check_observations, declared_prior
 from .filters.base import Filter
 from .models.base import StateSpaceModel, Trajectory
@@ -99,7 +100,8 @@ class TrajectoryDataset(Dataset):
                                 f"got {'mean' if cov is None else 'cov'} alone")
         if mean is not None and (mean.shape[0] != B or cov.shape[0] != B):
             raise ArgumentError(f"mean, cov: expected {B} trials like the observations, got {mean.shape[0]}, {cov.shape[0]}")
-        self.obs, self.mean, self.cov = obs, mean, cov
+        # a DiagonalCovariance as its matrix: batches are collated from tensors
+        self.obs, self.mean, self.cov = obs, mean, None if cov is None else dense_prior(cov)
 
     def __len__(self) -> int:
         return self.obs.shape[0]

@@ -16,7 +16,7 @@ from .. import random as _random
 from .. import resampling as _resampling
 from .._checks import allocation_failure, check_choice, check_count, check_finite, check_psd, check_same, check_tensor
 from .._blocks import blockwise
-from ..covariances import Covariance
+from ..covariances import Covariance, DiagonalCovariance, sample_prior
 from ..models.base import StateSpaceModel
 from ..models.contract import check_covariances, check_parameters, check_dtype, check_shapes, require_gaussian
 from ..models.structure import kernel_structure
@@ -179,6 +179,10 @@ class Filter(nn.Module):
     #: the filter reads the model's Gaussian form (:class:`~torchflow.models.GaussianStateSpaceModel`);
     #: a particle filter leaves this to its proposal
     gaussian_form = True
+    #: :meth:`init` takes a :class:`~torchflow.covariances.DiagonalCovariance` prior as it is (its
+    #: variances, no ``d x d`` matrix: the ensemble Kalman filters, the bootstrap PF); other filters
+    #: are given its dense matrix by :meth:`check_prior`
+    diagonal_prior = False
     # ---- what the runner reads, declared by every estimator it runs: the filters here, and the
     # TDOA localisers (torchflow.localisation), a second kind whose output is sets, not states ----
     #: ``"states"``: ``forward`` returns a :class:`FilterResult` of point estimates ``(B, T, d)``;
@@ -229,9 +233,13 @@ class Filter(nn.Module):
         return None
 
     def plan_memory(self, budget_bytes: float, n_particles: Optional[int] = None) -> Optional[int]:
-        """Blocks of particles that keep one trial within ``budget_bytes`` (particle filters set
-        :attr:`particle_chunk`); ``None``: the filter has no per-particle blocks."""
+        """Blocks that keep one trial within ``budget_bytes`` (particle filters set
+        :attr:`particle_chunk`, the LETKF its coordinates' ``local_chunk``); ``None``: no blocks."""
         return None
+
+    def describe_blocks(self, chunk: int) -> str:
+        """Words for the blocks :meth:`plan_memory` chose (the runner's warning)."""
+        return f"{chunk} of its {self.n_particles} particles"
 
     # ---- helpers -------------------------------------------------------------------------------
     def check_model(self) -> None:
@@ -255,6 +263,12 @@ class Filter(nn.Module):
         if not isinstance(model, GaussianStateSpaceModel) or (
                 which == "measurement" and model.structure.measurement_noise not in ("scalar", "diagonal", "dense")):
             return
+        scale = model.structure.measurement_noise_scale
+        if which == "measurement" and model.structure.measurement_noise == "scalar" and scale is not None:
+            if not scale > 0:  # R = r I declared: its scale says it (no (m, m) matrix formed)
+                raise ArgumentError(f"{self.name}: the model's measurement covariance is not positive definite "
+                                    f"(declared {scale:g} I); {why}")
+            return
         try:
             C = model.transition_cov() if which == "transition" else model.measurement_cov()
         except (NotImplementedError, TypeError, RuntimeError, ValueError):
@@ -267,17 +281,22 @@ class Filter(nn.Module):
             raise ArgumentError(f"{self.name}: the model's {which} covariance{learnable} is not positive definite "
                                 f"(smallest eigenvalue {ev:.3g}); {why}")
 
-    def check_prior(self, mean: torch.Tensor, cov: torch.Tensor, batch_size: Optional[int] = None
-                    ) -> Tuple[torch.Tensor, torch.Tensor]:
-        """Validate (and broadcast ``(d,)``/``(d, d)`` to) ``mean (B, d)``, ``cov (B, d, d)``."""
+    def check_prior(self, mean: torch.Tensor, cov, batch_size: Optional[int] = None):
+        """Validate (and broadcast ``(d,)``/``(d, d)`` to) ``mean (B, d)``, ``cov (B, d, d)``. A
+        :class:`~torchflow.covariances.DiagonalCovariance` (variances ``(B, d)`` or ``(d,)``) is
+        checked on its variances and kept where the filter declares :attr:`diagonal_prior`, else
+        given as its dense matrix."""
         d = self.model.state_dim
         ref = self.model._reference_tensor()
         if isinstance(mean, torch.Tensor) and mean.dim() == 1 and batch_size is not None:
             mean = mean.expand(batch_size, -1)
+        if isinstance(cov, DiagonalCovariance):
+            return mean, self._check_diagonal_prior(mean, cov, batch_size, d, ref)
         shared = isinstance(cov, torch.Tensor) and cov.dim() == 2
         if shared and tuple(cov.shape) != (d, d):
             raise ArgumentError(f"cov: expected (d, d) = ({d}, {d}) shared by every trial or (B, d, d), got "
-                             f"{tuple(cov.shape)} (per-trial variances (B, d) are torch.diag_embed(variances))")
+                             f"{tuple(cov.shape)} (per-trial variances (B, d) are torch.diag_embed(variances), or "
+                             "torchflow.covariances.DiagonalCovariance(variances) without the matrix)")
         if shared and batch_size is not None:
             cov = cov.expand(batch_size, -1, -1)
         check_tensor("mean", mean, (batch_size, d), "(B, d)")
@@ -291,9 +310,29 @@ class Filter(nn.Module):
             except ValueError as err:
                 if shared and d == mean.shape[0]:  # a (B, d) array of variances looks like (d, d) when B = d
                     raise ArgumentError(f"{err} (a (d, d) matrix shared by every trial was given; if these are "
-                                     "per-trial variances (B, d), pass torch.diag_embed(variances))") from None
+                                     "per-trial variances (B, d), pass torch.diag_embed(variances) or "
+                                     "torchflow.covariances.DiagonalCovariance(variances))") from None
                 raise
         return mean, cov
+
+    def _check_diagonal_prior(self, mean, cov: DiagonalCovariance, batch_size, d: int, ref):
+        """:meth:`check_prior` of a diagonal prior: ``(B, d)`` variances, finite and >= 0."""
+        var = cov.variance
+        if var.dim() == 1 and tuple(var.shape) == (d,) and batch_size is not None:
+            var = var.expand(batch_size, -1)
+        check_tensor("mean", mean, (batch_size, d), "(B, d)")
+        check_tensor("cov.variance", var, (mean.shape[0], d), "(B, d) (a DiagonalCovariance's variances)")
+        check_same("mean", mean, ref)
+        check_same("cov.variance", var, ref)
+        if self.validate:
+            check_finite("mean", mean)
+            check_finite("cov.variance", var)
+            if bool((var < 0).any()):
+                b = int(torch.nonzero((var < 0).any(-1))[0])
+                raise ArgumentError(f"cov.variance: expected variances >= 0 (a diagonal covariance), got "
+                                    f"{float(var[b].min()):.3g} in trial {b}")
+        cov = DiagonalCovariance(var)
+        return cov if self.diagonal_prior else cov.dense()
 
     def _checkpointed_step(self, state, z, generator):
         """:meth:`step` under ``torch.utils.checkpoint``: the recomputation in the backward pass
@@ -662,6 +701,14 @@ class ParticleFilter(Filter):
                      or bool(vars(type(self.proposal.points)).get("graph_safe")))
                 and kernel_structure(self.model).graph_safe)
 
+    @property
+    def diagonal_prior(self) -> bool:
+        """Whether :meth:`init` takes a :class:`~torchflow.covariances.DiagonalCovariance` as it is:
+        when the proposal's class declares it (its :meth:`~torchflow.proposals.Proposal.init_carry`
+        does not read the prior covariance: the bootstrap proposal), and the filter's :meth:`init`
+        is this class's (a subclass with its own, the Gaussian-sum filters, is given the matrix)."""
+        return type(self).init is ParticleFilter.init and bool(vars(type(self.proposal)).get("diagonal_prior"))
+
     resampling_scheme = property(lambda self: self.resampler.scheme)
     ess_threshold = property(lambda self: self.resampler.ess_threshold)
     regularization_std = property(lambda self: self.resampler.regularization_std)
@@ -712,7 +759,7 @@ class ParticleFilter(Filter):
         what the proposal carries (:meth:`~torchflow.proposals.Proposal.init_carry`)."""
         N = self._resolve_n(n_particles)
         B = mean.shape[0]
-        particles = linalg.sample_mvn(mean, linalg.safe_cholesky(cov), (N,), generator)  # (B, N, d)
+        particles = sample_prior(mean, cov, N, generator)  # (B, N, d)
         lw = torch.full((B, N), -math.log(N), dtype=mean.dtype, device=mean.device)
         zero = torch.zeros(B, dtype=mean.dtype, device=mean.device)
         return ParticleState(particles, lw, mean, torch.full_like(zero, float(N)), zero,

@@ -53,6 +53,7 @@ import torch
 
 from .. import linalg
 from .._checks import check_count, check_number
+from ..covariances import sample_prior
 from ..errors import ArgumentError, ArgumentTypeError
 from .base import Filter, ParticleState
 
@@ -133,6 +134,7 @@ class _EnsembleFilter(Filter):
 
     uses_particles = True
     uses_randomness = True  # the initial ensemble (and the EnKF's perturbations, the model noise)
+    diagonal_prior = True  # the initial ensemble is drawn with the variances alone
     random_stream = "ensemble_kalman"  # one family: the filters start from the same ensemble
     estimates_evidence = False  # a Gaussian approximation from the ensemble (module docstring)
 
@@ -166,9 +168,10 @@ class _EnsembleFilter(Filter):
 
     # ---- contract ------------------------------------------------------------------------------
     def init(self, mean, cov, n_particles=None, generator=None) -> ParticleState:
-        """N members per trial drawn from the prior ``N(mean (B, d), cov (B, d, d))``."""
+        """N members per trial drawn from the prior ``N(mean (B, d), cov)``: ``cov (B, d, d)`` or a
+        :class:`~torchflow.covariances.DiagonalCovariance` (variances ``(B, d)``)."""
         N = self._resolve_n(n_particles)
-        X = linalg.sample_mvn(mean, linalg.safe_cholesky(cov), (N,), generator)  # (B, N, d)
+        X = sample_prior(mean, cov, N, generator)  # (B, N, d)
         return self._state(X, torch.zeros_like(mean[:, 0]), 0)
 
     def step(self, state: ParticleState, z: torch.Tensor, generator: Optional[torch.Generator] = None
@@ -383,14 +386,22 @@ class LocalEnsembleTransformKalmanFilter(_EnsembleFilter):
             periodic 1-D domain of ``d`` sites (Lorenz-96), observation ``j`` at the site
             ``model.observed[j]`` (the state coordinate it reads), or at site ``j`` when ``m = d``
             and the model has no ``observed``.
+        local_chunk: run the ``d`` local analyses in blocks of this many coordinates, bounding the
+            ``(B, c, N, K)`` and ``(B, c, N, N)`` intermediates (the same numbers up to round-off;
+            ``None``: all at once, or as the experiment runner's memory budget sets it).
         validate, name: as :class:`~torchflow.filters.Filter`.
 
     Shapes: ensemble ``(B, N, d)``, observations ``z (B, m)`` (NaN: not observed).
     """
 
     def __init__(self, model, *, n_particles: int = 20, inflation: float = 1.0, radius: float = 15.0,
-                 distances: Optional[torch.Tensor] = None, validate: bool = True, name: Optional[str] = None):
+                 distances: Optional[torch.Tensor] = None, local_chunk: Optional[int] = None, validate: bool = True,
+                 name: Optional[str] = None):
         super().__init__(model, n_particles=n_particles, inflation=inflation, validate=validate, name=name)
+        #: the local analyses run in blocks of this many coordinates (``None``: all d at once); the
+        #: experiment runner sets it from the memory budget when one trial exceeds it (:meth:`plan_memory`)
+        self.local_chunk = None if local_chunk is None else check_count(
+            "local_chunk", local_chunk, hint=" (coordinates per block of local analyses) or None")
         ok = isinstance(radius, (int, float)) and not isinstance(radius, bool) and radius > 0 and not math.isnan(radius)
         if not ok:
             raise ArgumentError(f"radius: expected a number > 0 (the localisation radius; inf: no localisation), "
@@ -440,19 +451,42 @@ class LocalEnsembleTransformKalmanFilter(_EnsembleFilter):
         """K: the most observations that one local analysis reads."""
         return self.local_index.shape[1]
 
+    def _local_bytes(self, N: int) -> int:
+        """Bytes of one coordinate's local analysis (its tapered anomalies and ``N x N`` matrices)."""
+        return 8 * N * (2 * self.local_obs + 4 * N)
+
     def bytes_per_trial(self, n_particles=None):
-        N, d, K = self._resolve_n(n_particles), self.model.state_dim, self.local_obs
-        return super().bytes_per_trial(n_particles) + 8 * d * N * (2 * K + 4 * N)
+        N, d = self._resolve_n(n_particles), self.model.state_dim
+        return super().bytes_per_trial(n_particles) + min(d, self.local_chunk or d) * self._local_bytes(N)
+
+    def plan_memory(self, budget_bytes: float, n_particles: Optional[int] = None) -> Optional[int]:
+        """Set :attr:`local_chunk` so that one trial's local analyses fit ``budget_bytes`` with the
+        rest of its step (``None`` when all d fit at once); returns it. Used by the experiment runner."""
+        N, d = self._resolve_n(n_particles), self.model.state_dim
+        rest = super().bytes_per_trial(N)
+        fit = (budget_bytes - rest) // self._local_bytes(N)
+        self.local_chunk = None if fit >= d else max(1, int(fit))
+        return self.local_chunk
+
+    def describe_blocks(self, chunk: int) -> str:
+        return f"{chunk} of its {self.model.state_dim} coordinates' local analyses"
 
     def analysis(self, xbar, A, w, generator):
         idx, s = self.local_index, self.local_taper.to(w.Y.dtype)
-        Yl = w.Y[:, :, idx].permute(0, 2, 1, 3) * s.unsqueeze(1)  # (B, N, d, K) -> (B, d, N, K), tapered
-        dl = w.delta[:, idx] * s  # (B, d, K)
-        Ad = A.transpose(1, 2).unsqueeze(-1)  # (B, d, N, 1): coordinate i's anomalies over the members
-        inc, _, _ = _transform(Yl, dl, Ad)  # (B, d, N, 1)
+        d = idx.shape[0]
+        c = min(d, self.local_chunk or d)
+        parts = []
+        for lo in range(0, d, c):  # blocks of coordinates (memory), not of trials or members
+            i, si = idx[lo:lo + c], s[lo:lo + c]
+            Yl = w.Y[:, :, i].permute(0, 2, 1, 3) * si.unsqueeze(1)  # (B, N, c, K) -> (B, c, N, K), tapered
+            dl = w.delta[:, i] * si  # (B, c, K)
+            Ad = A[:, :, lo:lo + c].transpose(1, 2).unsqueeze(-1)  # (B, c, N, 1): the coordinates' anomalies
+            parts.append(_transform(Yl, dl, Ad)[0].squeeze(-1))  # (B, c, N)
+        inc = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
         # the evidence: the global (unlocalised) Gaussian approximation, one factorisation
         _, quad, logdet_M = _gain_solver(w.Y, w.delta)
-        return xbar + inc.squeeze(-1).transpose(1, 2), self.log_evidence(w, quad, logdet_M)
+        return xbar + inc.transpose(1, 2), self.log_evidence(w, quad, logdet_M)
 
     def extra_repr(self) -> str:
-        return super().extra_repr() + f", radius={self.radius:g}, local_obs={self.local_obs}"
+        chunk = "" if self.local_chunk is None else f", local_chunk={self.local_chunk}"
+        return super().extra_repr() + f", radius={self.radius:g}, local_obs={self.local_obs}{chunk}"

@@ -10,6 +10,7 @@ import torch
 from torch.distributions import Distribution
 
 from .. import linalg, missing
+from ..covariances import dense_prior, sample_prior
 from .._checks import check_count
 from ..errors import ArgumentError, ArgumentTypeError
 from ..models.base import StateSpaceModel
@@ -45,7 +46,7 @@ def conditional_smc(model: StateSpaceModel, observations: torch.Tensor, mean: to
     N = check_count("n_particles", n_particles, minimum=2)
     C, T = observations.shape[:2]
     gaps = bool(torch.isnan(observations).any()) if observations.is_floating_point() else False
-    x = linalg.sample_mvn(mean, linalg.safe_cholesky(cov), (N,), generator)  # (C, N, d)
+    x = sample_prior(mean, cov, N, generator)  # (C, N, d)
     x = torch.cat([x[:, :N - 1], reference[:, :1]], 1)
     parts, ancestors = [x], []
     lw = torch.zeros(C, N, dtype=x.dtype, device=x.device)
@@ -74,7 +75,7 @@ def joint_log_density(model: StateSpaceModel, path: torch.Tensor, observations: 
     """``log p(x_0:T, z_1:T)`` of ``path (C, T+1, d)`` and ``observations (C, T, m)`` (NaN: not
     observed) under the prior ``N(mean, cov)`` of ``x_0``: ``(C,)``."""
     x0, prev, nxt = path[:, 0], path[:, :-1], path[:, 1:]
-    lp = linalg.mvn_log_prob(x0, mean, linalg.safe_cholesky(cov))
+    lp = linalg.mvn_log_prob(x0, mean, linalg.safe_cholesky(dense_prior(cov)))
     lp = lp + model.transition_log_prob(nxt, prev).sum(-1)
     gaps = bool(torch.isnan(observations).any()) if observations.is_floating_point() else False
     with missing.observations_missing(gaps):
@@ -136,7 +137,7 @@ def particle_gibbs(model: StateSpaceModel, observations: torch.Tensor, prior: Un
         mean0, cov0 = prior_of(prior, params0, C)
         with per_trial_values(model, params0):  # a path from the prior, then a conditional sweep
             streams = TrialStreams(base_seed, C, "particle_gibbs_start")
-            x = linalg.sample_mvn(mean0, linalg.safe_cholesky(cov0), (), streams)
+            x = linalg.sample_mvn(mean0, linalg.safe_cholesky(dense_prior(cov0)), (), streams)
             path = [x]
             for _ in range(obs.shape[1]):
                 x = model.sample_transition(x, streams)

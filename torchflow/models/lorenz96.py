@@ -12,13 +12,19 @@ from __future__ import annotations
 
 from typing import Optional, Tuple
 
+import math
+
 import torch
 
 from .. import linalg
+from ..covariances import DiagonalCovariance
 from .._checks import check_nonnegative, check_number, check_positive
 from .base import GaussianStateSpaceModel
 from .structure import Structure
 from .trials import batch_jacobian, per_trial_structure, trial_names, trial_view
+
+
+_LOG_2PI = math.log(2.0 * math.pi)
 
 
 def lorenz96_tendency(x: torch.Tensor, forcing) -> torch.Tensor:
@@ -58,10 +64,16 @@ class Lorenz96(GaussianStateSpaceModel):
     is per trial R is declared ``"diagonal"``; while ``forcing`` is, the Jacobian of the dynamics is
     taken on the whole batch (forward mode) rather than one state at a time.
 
+    Nothing of size ``d x d`` is formed unless a filter asks for it: the prior is a
+    :class:`~torchflow.covariances.DiagonalCovariance` (``prior_std^2`` per coordinate), the
+    densities and samplers use the scalar noise scales, and the ``(m, d)`` matrix H is built by
+    :meth:`measurement_matrix` on demand (the Kalman-type filters). So the ensemble Kalman filters
+    and the bootstrap PF run at ``d = 10^5`` and more.
+
     Shapes: states ``(..., d)``, observations ``(..., m)``.
     """
 
-    structure = Structure(linear_measurement=True, measurement_noise="scalar")
+    structure = Structure(linear_measurement=True, measurement_noise="scalar", prior_covariance="diagonal")
     #: the forcing and both noise scales may hold one value per trial, ``(B,)``
     per_trial_parameters = ("forcing", "model_noise", "obs_std")
 
@@ -81,11 +93,9 @@ class Lorenz96(GaussianStateSpaceModel):
         f64 = dict(dtype=torch.float64)
         observed = torch.arange(0, self.state_dim, self.obs_every)
         self.obs_dim = int(observed.numel())
-        H = torch.zeros(self.obs_dim, self.state_dim, **f64)
-        H[torch.arange(self.obs_dim), observed] = 1.0
-        self.register_buffer("H", H)  # first: the model's dtype is its first buffer's
+        # first: the model's dtype is its first buffer's. F is a tensor (per trial in a sweep)
+        self.register_buffer("forcing", torch.tensor(float(forcing), **f64))
         self.register_buffer("observed", observed)
-        self.register_buffer("forcing", torch.tensor(float(forcing), **f64))  # F (a tensor: per trial in a sweep)
         self.register_buffer("obs_std", torch.tensor(obs_std, **f64))
         self.register_buffer("model_noise", torch.tensor(model_noise, **f64))
         self.register_buffer("prior_std", torch.tensor(float(prior_std), **f64))
@@ -111,12 +121,25 @@ class Lorenz96(GaussianStateSpaceModel):
             return batch_jacobian(self.transition_mean, x)
         return super().transition_jacobian(x)
 
+    def _eye(self, n: int) -> torch.Tensor:
+        return torch.eye(n, dtype=self.dtype, device=self.device)
+
     def transition_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
-        return self._scale(self.model_noise, x, 2) ** 2 * torch.eye(self.state_dim, dtype=self.H.dtype,
-                                                                      device=self.H.device)
+        return self._scale(self.model_noise, x, 2) ** 2 * self._eye(self.state_dim)
 
     def transition_scale_tril(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
-        return self._scale(self.model_noise, x, 2) * torch.eye(self.state_dim, dtype=self.H.dtype, device=self.H.device)
+        return self._scale(self.model_noise, x, 2) * self._eye(self.state_dim)
+
+    def transition_log_prob(self, x_next: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """``log N(x_next; rk4(x), model_noise^2 I)`` elementwise (no ``(d, d)`` factor)."""
+        x = x.expand(torch.broadcast_shapes(x.shape, x_next.shape))
+        return _isotropic_log_prob(x_next - self.transition_mean(x), trial_view(self.model_noise, 0, x))
+
+    def sample_true_transition(self, x: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """:meth:`simulate`'s step: ``rk4(x) + model_noise * xi`` with the core's draws (``torch.randn``
+        of ``x``'s shape), the noise factor applied as a scaling."""
+        xi = torch.randn(x.shape, dtype=x.dtype, device=x.device, generator=generator)
+        return self.transition_mean(x) + trial_view(self.model_noise, 0, x) * xi
 
     def sample_transition(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         """``rk4(x) + model_noise * xi``: the Gaussian transition with its scalar noise factor applied
@@ -127,18 +150,46 @@ class Lorenz96(GaussianStateSpaceModel):
 
     # ---- measurement -------------------------------------------------------------------------
     def measurement_matrix(self) -> torch.Tensor:
-        return self.H
+        """``(m, d)``: ones at ``(j, observed[j])`` (built on each call: ``m d`` numbers)."""
+        H = torch.zeros(self.obs_dim, self.state_dim, dtype=self.dtype, device=self.device)
+        return H.scatter_(-1, self.observed.unsqueeze(-1), 1.0)
+
+    @property
+    def H(self) -> torch.Tensor:
+        """The measurement matrix (:meth:`measurement_matrix`)."""
+        return self.measurement_matrix()
 
     def measure(self, x: torch.Tensor) -> torch.Tensor:
         return x[..., self.observed]
 
     def measurement_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
-        return self._scale(self.obs_std, x, 2) ** 2 * torch.eye(self.obs_dim, dtype=self.H.dtype, device=self.H.device)
+        return self._scale(self.obs_std, x, 2) ** 2 * self._eye(self.obs_dim)
+
+    def measurement_log_prob(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """``log N(z; x_observed, obs_std^2 I)`` elementwise (no ``(m, m)`` factor)."""
+        h = self.measure(x)
+        return _isotropic_log_prob(z - h, trial_view(self.obs_std, 0, h))
+
+    def measurement_log_prob_observed(self, z: torch.Tensor, x: torch.Tensor, observed: torch.Tensor) -> torch.Tensor:
+        """The density of the observed coordinates alone (NaN in ``z``: not observed), elementwise."""
+        h = self.measure(x)
+        shape = torch.broadcast_shapes(h.shape, z.shape, observed.shape)
+        full = observed.expand(shape)
+        var = trial_view(self.obs_std, 0, h) ** 2
+        resid = torch.where(full, z - h, torch.zeros_like(h))
+        terms = resid * resid / var + torch.log(var) + _LOG_2PI
+        return -0.5 * torch.where(full, terms, torch.zeros_like(terms)).sum(-1)
+
+    def sample_measurement(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
+        """``x_observed + obs_std * xi`` with the core's draws (``torch.randn`` of ``(..., m)``)."""
+        mean = self.measure(x)
+        xi = torch.randn(mean.shape, dtype=x.dtype, device=x.device, generator=generator)
+        return mean + trial_view(self.obs_std, 0, mean) * xi
 
     # ---- initial law -------------------------------------------------------------------------
     def initial_state(self, batch_size: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         """``F + N(0, 1)`` per coordinate, then :attr:`spin_up` intervals of the dynamics."""
-        xi = linalg.standard_normal((batch_size, self.state_dim), dtype=self.H.dtype, device=self.H.device,
+        xi = linalg.standard_normal((batch_size, self.state_dim), dtype=self.dtype, device=self.device,
                                     generator=generator)
         x = self._scale(self.forcing, None, 1) + xi
         with torch.no_grad():
@@ -147,10 +198,20 @@ class Lorenz96(GaussianStateSpaceModel):
         return x
 
     def initial_belief(self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
-                       ) -> Tuple[torch.Tensor, torch.Tensor]:
+                       ) -> Tuple[torch.Tensor, DiagonalCovariance]:
+        """Mean ``x_0 + prior_std xi (B, d)`` and the diagonal covariance ``prior_std^2 I``
+        (:class:`~torchflow.covariances.DiagonalCovariance`, variances ``(B, d)``: a view)."""
         xi = linalg.standard_normal(states0.shape, dtype=states0.dtype, device=states0.device, generator=generator)
-        cov = self.prior_std ** 2 * torch.eye(self.state_dim, dtype=states0.dtype, device=states0.device)
-        return states0 + self.prior_std * xi, cov.expand(states0.shape[0], -1, -1).clone()
+        var = (self.prior_std ** 2).to(states0.dtype).expand(states0.shape)
+        return states0 + self.prior_std * xi, DiagonalCovariance(var)
+
+
+def _isotropic_log_prob(resid: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
+    """``log N(resid; 0, std^2 I)`` over the last dim of ``resid (..., n)``, ``std`` broadcastable
+    to ``(..., 1)``."""
+    n = resid.shape[-1]
+    var = std * std
+    return -0.5 * ((resid * resid).sum(-1) / var.squeeze(-1) + n * (torch.log(var.squeeze(-1)) + _LOG_2PI))
 
 
 __all__ = ["Lorenz96", "lorenz96_tendency", "rk4"]

@@ -24,6 +24,8 @@ from ..errors import ArgumentError
 
 #: the declared structures of the measurement noise R
 NOISE = ("scalar", "diagonal", "dense", "state_dependent", "state_dependent_diagonal")
+#: the declared forms of the prior covariance
+PRIOR = ("dense", "diagonal")
 
 
 @dataclass(frozen=True)
@@ -64,6 +66,11 @@ class Structure:
             ``mask`` (TDOA localisation); only estimators declaring the same take them.
         bytes_per_point: rough memory of evaluating the model at one point (intermediates of
             ``measure``, log-densities), for the chunk planner; ``None``: ``32 (d + m)``.
+        prior_covariance: the form of the prior covariance that :meth:`initial_belief` (and
+            ``declared_prior``) return, one of :data:`PRIOR`: ``"dense"`` (a tensor ``(B, d, d)``)
+            or ``"diagonal"`` (a :class:`~torchflow.covariances.DiagonalCovariance` of variances
+            ``(B, d)``: no ``d x d`` matrix, for states of ``d = 10^5`` and more). The chunk planner
+            sizes the priors by it.
     """
 
     linear_dynamics: bool = False
@@ -81,10 +88,13 @@ class Structure:
     has_positions: bool = False
     padded_measurements: bool = False
     bytes_per_point: Optional[int] = None
+    prior_covariance: str = "dense"
 
     def __post_init__(self):
         if self.measurement_noise not in NOISE:
             raise ArgumentError(f"Structure: measurement_noise: expected one of {NOISE}, got {self.measurement_noise!r}")
+        if self.prior_covariance not in PRIOR:
+            raise ArgumentError(f"Structure: prior_covariance: expected one of {PRIOR}, got {self.prior_covariance!r}")
         if self.measurement_support is not None:
             object.__setattr__(self, "measurement_support", tuple(int(i) for i in self.measurement_support))
 

@@ -71,12 +71,16 @@ class Proposal(nn.Module):
             from a CUDA graph (:mod:`torchflow.flows.kernels.graph_step`), when the model declares the
             same. Declared by each class itself, not inherited (a subclass may draw otherwise):
             the bootstrap proposal and the deterministic flows' proposal (with graph-safe points).
+        diagonal_prior: :meth:`init_carry` does not read the prior covariance, so the filter may
+            start from a :class:`~torchflow.covariances.DiagonalCovariance` without its ``d x d``
+            matrix. Declared by each class itself, not inherited: the bootstrap proposal.
         report_ancestor_law: set by a filter with marginal weights: :meth:`propose` also returns
             :attr:`Proposed.ancestor_law` (proposals with :attr:`has_ancestor_law`).
     """
 
     uses_transition_density: bool = True
     graph_safe: bool = False
+    diagonal_prior: bool = False
     #: the proposal reads the model's Gaussian form (all but the bootstrap proposal)
     gaussian_form: bool = True
     report_ancestor_law: bool = False

@@ -9,6 +9,7 @@ class BootstrapProposal(Proposal):
 
     uses_transition_density = False
     graph_safe = True
+    diagonal_prior = True  # the prior's covariance is not carried: its variances suffice
     gaussian_form = False  # the core's transition sampler and measurement density suffice
 
     @property

@@ -12,6 +12,7 @@ from typing import Dict, List, Mapping, Optional, Tuple, Union
 
 import torch
 
+from ..covariances import DiagonalCovariance, prior_bytes
 from .._checks import allocation_failure, check_count
 from ..data import check_observations, declared_prior
 from ..errors import ArgumentError
@@ -137,7 +138,7 @@ def filter_chunk(f: Filter, n_run: int, chunk_size: Optional[int], memory_budget
         pc = f.plan_memory(memory_budget_gb * 2**30)
         if pc is not None:
             warnings.warn(f"memory_budget_gb={memory_budget_gb:g}: {f.name} runs one trial at a time in blocks "
-                          f"of {pc} of its {f.n_particles} particles (estimated {f.bytes_per_trial() / 2**30:.3g} "
+                          f"of {f.describe_blocks(pc)} (estimated {f.bytes_per_trial() / 2**30:.3g} "
                           "GiB per trial); raise the budget if this machine has more memory", stacklevel=2)
     return min(c, f.preferred_chunk_trials() or c, cap or c)
 
@@ -210,7 +211,8 @@ def estimate_memory(model: StateSpaceModel, filters: Mapping[str, Filter], s: "R
     bytes b, each filter's chunk c and memory formula (``bytes_per_trial``), F filters:
 
     * data = the model's :meth:`~torchflow.models.StateSpaceModel.simulation_bytes` (at least
-      b B ((T+1) d + T m)) + b B (d + d^2) (the priors), and the copy of ``inits_per_track`` > 1;
+      b B ((T+1) d + T m)) + b B (d + d^2) (the priors; b B 2d for a
+      declared diagonal prior), and the copy of ``inits_per_track`` > 1;
       ``simulated=False`` (given data): 0;
     * filters = max over filters of c bytes_per_trial + T (4 x 600 + 2 c b (d + 3));
     * results = F (T + n) 512 (the result rows) + 8 n T (2 d + 6) (the scored float64 series).
@@ -220,7 +222,7 @@ def estimate_memory(model: StateSpaceModel, filters: Mapping[str, Filter], s: "R
     traj = b * B * ((T + 1) * d + T * m)
     data = 0
     if simulated:
-        data = max(model.simulation_bytes(math.ceil(B / s.inits_per_track), T), 0) + b * B * (d + d * d)
+        data = max(model.simulation_bytes(math.ceil(B / s.inits_per_track), T), 0) + B * (b * d + prior_bytes(model, b))
         data += traj if s.inits_per_track > 1 else 0
     bookkeeping = T * TENSORS_PER_STEP * TENSOR_BYTES
     work = max((chunks[k] * f.bytes_per_trial() + 2 * T * chunks[k] * b * (d + 3) for k, f in filters.items()),
@@ -345,11 +347,12 @@ def recorded(observations: torch.Tensor, prior=None):
             require(isinstance(prior, (tuple, list)) and len(prior) == 2, "prior", "a pair (mean, cov)",
                     type(prior).__name__)
             mean, cov = prior
-        ok = (isinstance(mean, torch.Tensor) and isinstance(cov, torch.Tensor) and tuple(mean.shape) in ((d,), (trials, d))
-              and tuple(cov.shape) in ((d, d), (trials, d, d)))
-        got = [tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__ for t in (mean, cov)]
-        require(ok, "prior", f"(mean, cov) of shapes (d,) or (B, d) and (d, d) or (B, d, d) with d = {d}, B = {trials}",
-                got)
+        ok = (isinstance(mean, torch.Tensor) and isinstance(cov, (torch.Tensor, DiagonalCovariance))
+              and tuple(mean.shape) in ((d,), (trials, d)) and tuple(cov.shape) in ((d, d), (trials, d, d)))
+        got = [tuple(t.shape) if isinstance(t, (torch.Tensor, DiagonalCovariance)) else type(t).__name__
+               for t in (mean, cov)]
+        require(ok, "prior", f"(mean, cov) of shapes (d,) or (B, d) and (d, d) or (B, d, d) (or a "
+                f"DiagonalCovariance of (d,) or (B, d) variances) with d = {d}, B = {trials}", got)
         mean = mean.detach().to(dtype=model.dtype, device=model.device).expand(trials, d)
         cov = cov.detach().to(dtype=model.dtype, device=model.device).expand(trials, d, d)
         return Trajectory(None, obs), mean, cov
