@@ -13,6 +13,7 @@ from torchflow.experiment import run_experiment
 from torchflow.models import Lorenz96
 from torchflow.models.base import GaussianStateSpaceModel
 from torchflow.random import TrialStreams
+from torchflow.runner import ConfigError
 from torchflow.runner.plan import filter_chunk
 
 F64 = torch.float64
@@ -185,3 +186,13 @@ def test_a_recorded_series_takes_a_diagonal_prior():
                                  "ekf": F.ExtendedKalmanFilter(model)},
                          observations=z, prior=prior, trials=2, progress=False)
     assert all(r["error"] is None for r in res.summary)
+
+
+def test_a_filter_whose_one_trial_cannot_fit_is_named_with_what_would_run():
+    """At d = 10^5 the EKF's d x d matrices need terabytes for one trial: splitting the trials does
+    not help, and the error says which filter and what scales instead."""
+    model = Lorenz96(d=10 ** 5, spin_up=1)
+    filters = {"ekf": F.ExtendedKalmanFilter(model), "etkf": F.EnsembleTransformKalmanFilter(model, n_particles=4)}
+    with pytest.raises(ConfigError, match=r"ekf alone needs about [\d,.]+ GiB for one trial at d = 100000, m = 100000, "
+                                          r"so no split of the trials fits: leave it out of this run.*ensemble Kalman"):
+        run_experiment(model, filters, trials=1, steps=2, progress=False)
