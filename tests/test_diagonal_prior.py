@@ -196,3 +196,53 @@ def test_a_filter_whose_one_trial_cannot_fit_is_named_with_what_would_run():
     with pytest.raises(ConfigError, match=r"ekf alone needs about [\d,.]+ GiB for one trial at d = 100000, m = 100000, "
                                           r"so no split of the trials fits: leave it out of this run.*ensemble Kalman"):
         run_experiment(model, filters, trials=1, steps=2, progress=False)
+
+
+def test_a_local_chunk_given_is_kept_by_the_runner():
+    f = F.LocalEnsembleTransformKalmanFilter(Lorenz96(d=10 ** 6), n_particles=20, local_chunk=1000)
+    assert filter_chunk(f, 1, None, 0.001) == 1 and f.local_chunk == 1000
+
+
+def test_a_shared_diagonal_prior_stays_one_matrix_for_the_filters_that_need_it():
+    f = F.ExtendedKalmanFilter(Lorenz96(d=6))
+    _, dense = f.check_prior(torch.zeros(5, 6, dtype=F64), DiagonalCovariance(torch.full((6,), 2.0, dtype=F64)), 5)
+    assert dense.shape == (5, 6, 6) and dense.stride(0) == 0 and torch.equal(dense[3], 2.0 * torch.eye(6, dtype=F64))
+
+
+def test_the_model_check_forms_no_large_matrix_and_reads_a_declared_scale():
+    """check_covariances does not form a Q or R of more than COVARIANCE_CHECK_NUMBERS numbers
+    (d = 10^5: 80 GB) to check it; a declared R = r I of that size is checked by its scale."""
+    from torchflow.models.contract import check_covariances
+
+    big = Lorenz96(d=10 ** 5)
+    calls = []
+    big.transition_cov = lambda x=None: calls.append("Q")
+    big.measurement_cov = lambda x=None: calls.append("R")
+    check_covariances(big, "x")
+    assert calls == []
+    big.structure = big.structure.replace(measurement_noise_scale=-1.0)
+    with pytest.raises(ArgumentError, match=r"measurement covariance \(-1 I, declared\) is not positive semi-definite"):
+        check_covariances(big, "x")
+
+
+def test_learning_batches_a_diagonal_prior_as_variances():
+    from torchflow.lightning import TrajectoryDataset
+
+    model = Lorenz96(d=8)
+    traj = model.simulate(3, 4, torch.Generator().manual_seed(0))
+    mean, cov = model.initial_belief(traj.states[:, 0], torch.Generator().manual_seed(1))
+    data = TrajectoryDataset(traj, mean, cov)
+    obs, m, v, i = torch.utils.data.default_collate([data[0], data[2]])
+    assert v.shape == (2, 8) and torch.equal(v, cov.variance[[0, 2]])
+
+
+def test_lorenz96_transition_density_runs_the_dynamics_once_per_state():
+    m = Lorenz96(d=10, model_noise=0.5)
+    x = torch.randn(2, 3, 1, 10, dtype=F64)  # (B, paths, 1, d) against particles (B, 1, N, d): FFBSi's layout
+    xn = torch.randn(2, 1, 7, 10, dtype=F64)
+    seen = []
+    rk = m.transition_mean
+    m.transition_mean = lambda v: seen.append(tuple(v.shape)) or rk(v)
+    lp = m.transition_log_prob(xn, x)
+    assert lp.shape == (2, 3, 7) and seen == [(2, 3, 1, 10)]
+    assert torch.allclose(lp, GaussianStateSpaceModel.transition_log_prob(m, xn, x), rtol=1e-12, atol=0)

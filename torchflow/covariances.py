@@ -128,6 +128,10 @@ class DiagonalCovariance:
     def dim(self) -> int:
         return self.variance.dim() + 1
 
+    @property
+    def ndim(self) -> int:
+        return self.dim()
+
     def __len__(self) -> int:
         return self.variance.shape[0]
 
@@ -150,14 +154,17 @@ class DiagonalCovariance:
     def double(self) -> "DiagonalCovariance":
         return DiagonalCovariance(self.variance.double())
 
+    def float(self) -> "DiagonalCovariance":
+        return DiagonalCovariance(self.variance.float())
+
     def expand(self, *sizes) -> "DiagonalCovariance":
         """``expand(B, d, d)`` (or ``-1`` entries) of a shared ``(d,)`` prior: the variances ``(B, d)``
         (a view)."""
         sizes = tuple(sizes[0]) if len(sizes) == 1 and isinstance(sizes[0], (tuple, list, torch.Size)) else sizes
-        if len(sizes) != self.dim() + (self.variance.dim() == 1) or (len(sizes) >= 2 and sizes[-1] != sizes[-2]
-                                                                      and -1 not in sizes[-2:]):
-            raise ArgumentError(f"DiagonalCovariance.expand: expected (B, d, d), got {sizes}")
-        return DiagonalCovariance(self.variance.expand(*sizes[:-1]))
+        d = self.variance.shape[-1]
+        if len(sizes) != 3 or any(s not in (-1, d) for s in sizes[-2:]):
+            raise ArgumentError(f"DiagonalCovariance.expand: expected (B, d, d) with d = {d} (or -1), got {sizes}")
+        return DiagonalCovariance(self.variance.expand(sizes[0], -1))
 
     def clone(self) -> "DiagonalCovariance":
         return DiagonalCovariance(self.variance.clone())

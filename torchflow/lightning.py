@@ -21,7 +21,7 @@ from torch import nn
 from torch.utils.data import Dataset
 
 from ._checks import check_count
-from .covariances import dense_prior
+from .covariances import DiagonalCovariance
 from .data import check_observations, declared_prior
 from .filters.base import Filter
 from .models.base import StateSpaceModel, Trajectory
@@ -65,6 +65,7 @@ def backward_bytes_per_step(filter: Filter, observations: torch.Tensor, mean: to
         total[0] += t.numel() * t.element_size()
         return t
 
+    mean, cov = filter.check_prior(mean, cov, observations.shape[0])  # as forward gives them to init
     try:
         with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
             state = filter.init(mean, cov, None, generator)
@@ -86,8 +87,9 @@ class TrajectoryDataset(Dataset):
         trajectory: a :class:`~torchflow.models.Trajectory` (its observations; the states are not
             read), or recorded observations ``(B, T, m)`` (``(T, m)``: one trial), NaN where not
             observed.
-        mean, cov: per-trial priors ``(B, d)``, ``(B, d, d)``; both ``None`` (default): the
-            model's declared prior.
+        mean, cov: per-trial priors ``(B, d)``, ``(B, d, d)`` (or a
+            :class:`~torchflow.covariances.DiagonalCovariance`: its variances are batched, ``(B, d)``,
+            and the module rebuilds it); both ``None`` (default): the model's declared prior.
     """
 
     def __init__(self, trajectory, mean: Optional[torch.Tensor] = None, cov: Optional[torch.Tensor] = None):
@@ -100,8 +102,9 @@ class TrajectoryDataset(Dataset):
                                 f"got {'mean' if cov is None else 'cov'} alone")
         if mean is not None and (mean.shape[0] != B or cov.shape[0] != B):
             raise ArgumentError(f"mean, cov: expected {B} trials like the observations, got {mean.shape[0]}, {cov.shape[0]}")
-        # a DiagonalCovariance as its matrix: batches are collated from tensors
-        self.obs, self.mean, self.cov = obs, mean, None if cov is None else dense_prior(cov)
+        # a DiagonalCovariance as its variances: batches are collated from tensors ((B, d), rebuilt in _loss)
+        self.obs, self.mean = obs, mean
+        self.cov = cov.variance if isinstance(cov, DiagonalCovariance) else cov
 
     def __len__(self) -> int:
         return self.obs.shape[0]
@@ -219,6 +222,8 @@ class FilterLightningModule(pl.LightningModule):
         obs = batch[0]
         if len(batch) >= 3:
             mean, cov, index = batch[1], batch[2], batch[3] if len(batch) > 3 else None
+            if cov.dim() == 2:  # a batch of variances (B, d) (TrajectoryDataset of a diagonal prior)
+                cov = DiagonalCovariance(cov)
         else:  # no prior given: the model's declared prior at the current parameters (differentiable)
             mean, cov = declared_prior(self.filter.model, obs.shape[0])
             index = batch[1] if len(batch) > 1 else None

@@ -18,7 +18,7 @@ from .._checks import allocation_failure, check_choice, check_count, check_finit
 from .._blocks import blockwise
 from ..covariances import Covariance, DiagonalCovariance, sample_prior
 from ..models.base import StateSpaceModel
-from ..models.contract import check_covariances, check_parameters, check_dtype, check_shapes, require_gaussian
+from ..models.contract import COVARIANCE_CHECK_NUMBERS, check_covariances, check_parameters, check_dtype, check_shapes, require_gaussian
 from ..models.structure import kernel_structure
 from ..proposals import BootstrapProposal, Proposal
 from ..proposals.flow import check_informative
@@ -263,9 +263,11 @@ class Filter(nn.Module):
         if not isinstance(model, GaussianStateSpaceModel) or (
                 which == "measurement" and model.structure.measurement_noise not in ("scalar", "diagonal", "dense")):
             return
-        scale = model.structure.measurement_noise_scale
-        if which == "measurement" and model.structure.measurement_noise == "scalar" and scale is not None:
-            if not scale > 0:  # R = r I declared: its scale says it (no (m, m) matrix formed)
+        k = model.state_dim if which == "transition" else (model.obs_dim or 0)
+        if k * k > COVARIANCE_CHECK_NUMBERS:  # not formed for a check: a declared R = r I by its scale
+            scale = model.structure.measurement_noise_scale
+            if which == "measurement" and model.structure.measurement_noise == "scalar" and scale is not None \
+                    and not scale > 0:
                 raise ArgumentError(f"{self.name}: the model's measurement covariance is not positive definite "
                                     f"(declared {scale:g} I); {why}")
             return
@@ -318,7 +320,8 @@ class Filter(nn.Module):
     def _check_diagonal_prior(self, mean, cov: DiagonalCovariance, batch_size, d: int, ref):
         """:meth:`check_prior` of a diagonal prior: ``(B, d)`` variances, finite and >= 0."""
         var = cov.variance
-        if var.dim() == 1 and tuple(var.shape) == (d,) and batch_size is not None:
+        shared = var.dim() == 1 and tuple(var.shape) == (d,) and batch_size is not None
+        if shared:
             var = var.expand(batch_size, -1)
         check_tensor("mean", mean, (batch_size, d), "(B, d)")
         check_tensor("cov.variance", var, (mean.shape[0], d), "(B, d) (a DiagonalCovariance's variances)")
@@ -331,8 +334,10 @@ class Filter(nn.Module):
                 b = int(torch.nonzero((var < 0).any(-1))[0])
                 raise ArgumentError(f"cov.variance: expected variances >= 0 (a diagonal covariance), got "
                                     f"{float(var[b].min()):.3g} in trial {b}")
-        cov = DiagonalCovariance(var)
-        return cov if self.diagonal_prior else cov.dense()
+        if self.diagonal_prior:
+            return DiagonalCovariance(var)
+        # the matrix: one shared by every trial stays one (a view), as a shared (d, d) prior does
+        return cov.dense().expand(batch_size, d, d) if shared else DiagonalCovariance(var).dense()
 
     def _checkpointed_step(self, state, z, generator):
         """:meth:`step` under ``torch.utils.checkpoint``: the recomputation in the backward pass

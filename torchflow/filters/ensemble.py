@@ -402,6 +402,7 @@ class LocalEnsembleTransformKalmanFilter(_EnsembleFilter):
         #: experiment runner sets it from the memory budget when one trial exceeds it (:meth:`plan_memory`)
         self.local_chunk = None if local_chunk is None else check_count(
             "local_chunk", local_chunk, hint=" (coordinates per block of local analyses) or None")
+        self._local_chunk_given = self.local_chunk is not None  # the runner's plan leaves a given one alone
         ok = isinstance(radius, (int, float)) and not isinstance(radius, bool) and radius > 0 and not math.isnan(radius)
         if not ok:
             raise ArgumentError(f"radius: expected a number > 0 (the localisation radius; inf: no localisation), "
@@ -461,7 +462,10 @@ class LocalEnsembleTransformKalmanFilter(_EnsembleFilter):
 
     def plan_memory(self, budget_bytes: float, n_particles: Optional[int] = None) -> Optional[int]:
         """Set :attr:`local_chunk` so that one trial's local analyses fit ``budget_bytes`` with the
-        rest of its step (``None`` when all d fit at once); returns it. Used by the experiment runner."""
+        rest of its step (``None`` when all d fit at once); returns it. Used by the experiment runner.
+        A ``local_chunk`` given at construction is kept (returns ``None``: nothing planned)."""
+        if self._local_chunk_given:
+            return None
         N, d = self._resolve_n(n_particles), self.model.state_dim
         rest = super().bytes_per_trial(N)
         fit = (budget_bytes - rest) // self._local_bytes(N)

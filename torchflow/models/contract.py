@@ -108,6 +108,11 @@ def check_parameters(model, who: str = "") -> None:
                                 "diverged (lower the learning rate) or it was set so")
 
 
+#: :func:`check_shapes` evaluates the covariances where their dense batch holds at most this many
+#: numbers, and :func:`check_covariances` checks a constant one of at most this many
+COVARIANCE_CHECK_NUMBERS = 2 ** 24
+
+
 def check_covariances(model, who: str = "") -> None:
     """Raise unless the constant transition and measurement covariances of a Gaussian-form model
     (``transition_cov()``, ``measurement_cov()``; state-dependent ones are skipped) are symmetric
@@ -115,13 +120,23 @@ def check_covariances(model, who: str = "") -> None:
     its name. Filters call it once per call (a learnable covariance may leave the cone after an
     optimiser step; :mod:`torchflow.constraints` keeps one valid by construction). Per-trial values
     (:func:`torchflow.inference.per_trial_values`) are checked trial by trial, ``(B, k, k)``; the
-    error names the first bad trial."""
+    error names the first bad trial. A matrix of more than :data:`COVARIANCE_CHECK_NUMBERS` numbers
+    (``k > 4096``) is not formed for the check (a model of ``d = 10^5`` whose filters never form
+    it); a declared scalar R (``measurement_noise_scale``) of that size is checked by its scale."""
     from .trials import trial_names
 
     params = {id(p): n for n, p in model.named_parameters()}
+    structure = model.structure
     for what, name in (("transition covariance", "transition_cov"), ("measurement covariance", "measurement_cov")):
         fn = getattr(model, name, None)
         if fn is None:
+            continue
+        k = model.state_dim if name == "transition_cov" else (model.obs_dim or 0)
+        if k * k > COVARIANCE_CHECK_NUMBERS:  # not formed for a check: a declared R = r I by its scale
+            scale = structure.measurement_noise_scale if structure.measurement_noise == "scalar" else None
+            if name == "measurement_cov" and scale is not None and not scale >= 0:
+                raise ArgumentError(f"{who + ': ' if who else ''}{type(model).__name__}'s {what} ({scale:g} I, "
+                                    "declared) is not positive semi-definite")
             continue
         try:
             C = fn()
@@ -132,7 +147,7 @@ def check_covariances(model, who: str = "") -> None:
         per_trial = C.dim() == 3 and bool(trial_names(model))  # (B, k, k): one per trial, each checked
         if C.dim() != 2 and not per_trial:
             continue
-        k, letters = (model.state_dim, "(d, d)") if name == "transition_cov" else (model.obs_dim, "(m, m)")
+        letters = "(d, d)" if name == "transition_cov" else "(m, m)"
         if tuple(C.shape[-2:]) != (k, k):  # the method's mistake, named as check_shapes names it
             _expect(who or type(model).__name__, f"{type(model).__name__}.{name}", C, (*C.shape[:-2], k, k), letters)
         pname = params.get(id(C))
@@ -157,10 +172,6 @@ def _expect(who: str, method: str, out, shape: Tuple[int, ...], expected: str, b
         if len(lead) <= len(want) and all(g in (1, w) for g, w in zip(reversed(lead), reversed(want))):
             return
     raise ArgumentError(f"{who}: {method} returned shape {got}{where}; expected {expected} = {tuple(shape)}")
-
-
-#: :func:`check_shapes` evaluates the covariances where their dense batch holds at most this many numbers
-COVARIANCE_CHECK_NUMBERS = 2 ** 24
 
 
 def check_shapes(model, x: torch.Tensor, who: str, *, gaussian: Optional[bool] = None) -> None:

@@ -132,8 +132,8 @@ class Lorenz96(GaussianStateSpaceModel):
 
     def transition_log_prob(self, x_next: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """``log N(x_next; rk4(x), model_noise^2 I)`` elementwise (no ``(d, d)`` factor)."""
-        x = x.expand(torch.broadcast_shapes(x.shape, x_next.shape))
-        return _isotropic_log_prob(x_next - self.transition_mean(x), trial_view(self.model_noise, 0, x))
+        resid = x_next - self.transition_mean(x)  # broadcast after the dynamics: rk4 once per state
+        return _isotropic_log_prob(resid, trial_view(self.model_noise, 0, resid))
 
     def sample_true_transition(self, x: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """:meth:`simulate`'s step: ``rk4(x) + model_noise * xi`` with the core's draws (``torch.randn``
