@@ -246,3 +246,25 @@ def test_lorenz96_transition_density_runs_the_dynamics_once_per_state():
     lp = m.transition_log_prob(xn, x)
     assert lp.shape == (2, 3, 7) and seen == [(2, 3, 1, 10)]
     assert torch.allclose(lp, GaussianStateSpaceModel.transition_log_prob(m, xn, x), rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_the_threaded_eigh_gives_the_numbers_of_one_call(threads):
+    from torchflow import linalg
+
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(3, 700, 6, 9, dtype=F64, generator=g)
+    M = A @ A.transpose(-1, -2)
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        lam, V = linalg.eigh(M)
+    finally:
+        torch.set_num_threads(before)
+    lam0, V0 = torch.linalg.eigh(M)
+    assert torch.equal(lam, lam0) and torch.equal(V, V0)
+    small = M[0, :10]
+    assert all(torch.equal(a, b) for a, b in zip(linalg.eigh(small), torch.linalg.eigh(small)))
+    Mg = M[0].clone().requires_grad_()
+    linalg.eigh(Mg)[0].sum().backward()  # one call while gradients are recorded
+    assert Mg.grad is not None and torch.isfinite(Mg.grad).all()

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from . import tuning
-from .random import TrialStreams, fill_numpy
+from .random import TrialStreams, fill_numpy, thread_pool
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -204,6 +204,37 @@ def standard_normal(shape, *, dtype: torch.dtype, device, generator: Optional[to
                               for i, s in enumerate(seeds)], np.float64)
         return out
     return torch.randn(shape, dtype=dtype, device=device, generator=generator)
+
+
+#: :func:`eigh` splits a CPU batch over threads from this many matrices on
+THREADED_EIGH_MIN = 512
+
+
+def eigh(A: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """``torch.linalg.eigh`` of a batch of symmetric matrices ``A (..., n, n)``: ``(eigenvalues
+    (..., n), eigenvectors (..., n, n))``.
+
+    torch solves a CPU batch one matrix after another on one thread. From
+    :data:`THREADED_EIGH_MIN` matrices on, with ``torch.get_num_threads() > 1``, the batch is split
+    into one contiguous part per thread (LAPACK releases the GIL): each matrix is solved by the same
+    routine on its own, so the numbers are those of one call, whatever the thread count. GPU
+    batches, small ones, tensors that record gradients and tensors under a ``torch.func`` transform
+    take one call."""
+    batch = math.prod(A.shape[:-2])
+    workers = min(torch.get_num_threads(), batch // max(1, THREADED_EIGH_MIN // 2))
+    if A.device.type != "cpu" or batch < THREADED_EIGH_MIN or workers < 2 or A.requires_grad or _transformed(A):
+        return torch.linalg.eigh(A)
+    flat = A.reshape(batch, *A.shape[-2:])
+    parts = list(thread_pool(workers).map(torch.linalg.eigh, flat.tensor_split(workers)))
+    lam = torch.cat([p[0] for p in parts]).reshape(*A.shape[:-1])
+    vec = torch.cat([p[1] for p in parts]).reshape(A.shape)
+    return lam, vec
+
+
+def _transformed(x: torch.Tensor) -> bool:
+    """Whether ``x`` is wrapped by a ``torch.func`` transform (vmap, grad): kept on one call."""
+    check = getattr(torch._C._functorch, "is_functorch_wrapped_tensor", None)
+    return bool(check(x)) if check is not None else True
 
 
 def chol_solve(L: torch.Tensor, B: torch.Tensor) -> torch.Tensor:

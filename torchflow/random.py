@@ -66,6 +66,14 @@ def stream_key(name: Union[str, int]) -> int:
     raise ArgumentTypeError(f"key: expected a str or int stream name, got {type(name).__name__}")
 
 
+def thread_pool(workers: int) -> ThreadPoolExecutor:
+    """The process's pool of ``workers`` threads (made once) for work that releases the GIL (numpy's
+    generators, LAPACK): :func:`fill_numpy`, :func:`torchflow.linalg.eigh`."""
+    if workers not in _POOLS:
+        _POOLS[workers] = ThreadPoolExecutor(max_workers=workers)
+    return _POOLS[workers]
+
+
 def fill_numpy(kind: str, tasks, np_dtype, parallel: bool = True) -> None:
     """Fill each ``(numpy Generator, out array)`` task with standard normals (``kind="normal"``) or
     uniforms, on up to ``torch.get_num_threads()`` threads when ``parallel`` (numpy releases the GIL;
@@ -78,9 +86,7 @@ def fill_numpy(kind: str, tasks, np_dtype, parallel: bool = True) -> None:
 
     workers = min(torch.get_num_threads(), len(tasks))
     if parallel and workers > 1:
-        if workers not in _POOLS:
-            _POOLS[workers] = ThreadPoolExecutor(max_workers=workers)
-        list(_POOLS[workers].map(fill, tasks))
+        list(thread_pool(workers).map(fill, tasks))
     else:
         for task in tasks:
             fill(task)

@@ -318,14 +318,14 @@ def _transform(Y: torch.Tensor, delta: torch.Tensor, A: torch.Tensor):
     N, k = Y.shape[-2:]
     c = float(N - 1)
     if N <= k:
-        lam, V = torch.linalg.eigh(_shifted_gram(Y, c))  # lam >= c > 0
+        lam, V = linalg.eigh(_shifted_gram(Y, c))  # lam >= c > 0 (threaded over a large CPU batch)
         Vt = V.transpose(-1, -2)
         wbar = V @ ((Vt @ (Y @ delta.unsqueeze(-1))) / lam.unsqueeze(-1))  # (..., N, 1)
         W = (V * (math.sqrt(c) * lam.rsqrt()).unsqueeze(-2)) @ Vt
         logdet = lam.log().sum(-1)
         out = W @ A
     else:
-        lam, V = torch.linalg.eigh(Y.transpose(-1, -2) @ Y)  # (..., k), (..., k, k)
+        lam, V = linalg.eigh(Y.transpose(-1, -2) @ Y)  # (..., k), (..., k, k)
         lam = lam.clamp_min(0.0)
         YV = Y @ V  # (..., N, k)
         wbar = YV @ ((V.transpose(-1, -2) @ delta.unsqueeze(-1)) / (lam + c).unsqueeze(-1))
