@@ -109,7 +109,7 @@ def symmetric_sqrt(Q: torch.Tensor) -> torch.Tensor:
     Eigenvalues within round-off of zero (``|l| <= d eps_machine l_max``, the eigensolver's own
     accuracy) are set to zero before the square root, which would otherwise magnify ``1e-16`` to
     ``1e-8``; so a rank-deficient Q keeps its rank. No jitter is added."""
-    lam, U = torch.linalg.eigh(linalg.symmetrize(Q))
+    lam, U = linalg.eigh(linalg.symmetrize(Q))  # threaded over a large CPU batch, the same numbers
     tol = lam.amax(-1, keepdim=True).clamp_min(0) * Q.shape[-1] * torch.finfo(Q.dtype).eps
     root = torch.where(lam > tol, lam, torch.zeros_like(lam)).sqrt()
     return (U * root.unsqueeze(-2)) @ U.transpose(-1, -2)

@@ -115,7 +115,7 @@ def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPri
                 m_lam0 = _tri(K0.transpose(-1, -2), w0, upper=True)
                 w = _tri(K1, (u0 + lam1 * r).unsqueeze(-1)) + K0.transpose(-1, -2) @ (u.unsqueeze(-1) - m_lam0)
                 return _tri(K1.transpose(-1, -2), w, upper=True).squeeze(-1)
-            g, U = torch.linalg.eigh(G)
+            g, U = linalg.eigh(G)  # threaded over a large CPU batch, the same numbers
             g = g.clamp_min(0)
             Ut = U.transpose(-1, -2)
             m_lam0 = linalg.matvec(U, linalg.matvec(Ut, u0 + lam0 * r) / (1 + lam0 * g))
