@@ -268,4 +268,3 @@ def test_the_threaded_eigh_gives_the_numbers_of_one_call(threads):
     Mg = M[0].clone().requires_grad_()
     linalg.eigh(Mg)[0].sum().backward()  # one call while gradients are recorded
     assert Mg.grad is not None and torch.isfinite(Mg.grad).all()
-
