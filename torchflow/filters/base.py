@@ -18,7 +18,8 @@ from .._checks import allocation_failure, check_choice, check_count, check_finit
 from .._blocks import blockwise
 from ..covariances import Covariance, DiagonalCovariance, sample_prior
 from ..models.base import StateSpaceModel
-from ..models.contract import COVARIANCE_CHECK_NUMBERS, check_covariances, check_parameters, check_dtype, check_shapes, require_gaussian
+from ..models.contract import (COVARIANCE_CHECK_NUMBERS, check_covariances, check_parameters, check_dtype, check_shapes,
+                               require_gaussian)
 from ..models.structure import kernel_structure
 from ..proposals import BootstrapProposal, Proposal
 from ..proposals.flow import check_informative
