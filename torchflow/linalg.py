@@ -222,7 +222,8 @@ def eigh(A: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
     take one call."""
     batch = math.prod(A.shape[:-2])
     workers = min(torch.get_num_threads(), batch // max(1, THREADED_EIGH_MIN // 2))
-    if A.device.type != "cpu" or batch < THREADED_EIGH_MIN or workers < 2 or A.requires_grad or _transformed(A):
+    if (A.device.type != "cpu" or batch < THREADED_EIGH_MIN or workers < 2 or A.requires_grad
+            or under_func_transform(A)):
         return torch.linalg.eigh(A)
     flat = A.reshape(batch, *A.shape[-2:])
     parts = list(thread_pool(workers).map(torch.linalg.eigh, flat.tensor_split(workers)))
@@ -231,8 +232,9 @@ def eigh(A: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
     return lam, vec
 
 
-def _transformed(x: torch.Tensor) -> bool:
-    """Whether ``x`` is wrapped by a ``torch.func`` transform (vmap, grad): kept on one call."""
+def under_func_transform(x: torch.Tensor) -> bool:
+    """Whether ``x`` is wrapped by a ``torch.func`` transform (vmap, grad, jvp): what may not be
+    read back or split over threads (where torch cannot say, ``True``)."""
     check = getattr(torch._C._functorch, "is_functorch_wrapped_tensor", None)
     return bool(check(x)) if check is not None else True
 

@@ -450,9 +450,10 @@ def resample_if_needed(
     b, n = log_weights.shape
 
     lw = normalize_log_weights(log_weights, validate=False)
-    identity = torch.arange(n, device=lw.device, dtype=torch.int64).expand(b, n)
     indices, resampled, new_log_weights = _resample_rows(log_weights, lw, generator, resampler, threshold)
-    return (identity.clone() if indices is None else indices), resampled, new_log_weights
+    if indices is None:  # no trial resampled: the identity
+        indices = torch.arange(n, device=lw.device, dtype=torch.int64).repeat(b, 1)
+    return indices, resampled, new_log_weights
 
 
 #: the built-in schemes as their uniforms' shape per trial ``(1: one, None: N)`` and the indices
@@ -468,7 +469,7 @@ def reads_host(t: Tensor) -> bool:
     costs nothing, so work that no trial needs (a resampling no trial triggers) is skipped; never on
     a GPU (the read would stall the device and break a CUDA graph), under ``torch.func`` transforms
     or while ``torch.compile`` traces; ``tuning`` ``host_reads_cpu=0`` turns it off."""
-    return (t.device.type == "cpu" and _tuning.get().host_reads_cpu and not torch._C._functorch.is_functorch_wrapped_tensor(t)
+    return (t.device.type == "cpu" and _tuning.get().host_reads_cpu and not linalg.under_func_transform(t)
             and not torch.compiler.is_compiling())
 
 

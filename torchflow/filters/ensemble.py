@@ -217,7 +217,7 @@ class _EnsembleFilter(Filter):
             if noise == "scalar" and scale is not None:  # R = r I declared: no (m, m) matrix formed
                 r = torch.full_like(z, scale)
             else:
-                r = self._measurement_cov(xbar).diagonal(dim1=-2, dim2=-1).expand_as(z)
+                r = self._measurement_variance(xbar).expand_as(z)
             r = torch.where(observed, r, torch.ones_like(r))  # (B, m)
             s = r.sqrt()
             Y, delta, logdet = Y / s.unsqueeze(1), delta / s, r.log().sum(-1)
@@ -229,6 +229,11 @@ class _EnsembleFilter(Filter):
             delta = torch.linalg.solve_triangular(L, delta.unsqueeze(-1), upper=False).squeeze(-1)
             logdet = linalg.chol_logdet(L)
         return _Whitened(Y, delta, logdet, keep.sum(-1), observed)
+
+    def _measurement_variance(self, xbar: torch.Tensor) -> torch.Tensor:
+        """R's diagonal (a diagonal R), at the forecast mean ``xbar (B, d)`` where it depends on the state."""
+        noise = self.model.structure.measurement_noise
+        return self.model.measurement_variance(xbar if noise.startswith("state_dependent") else None)
 
     def _measurement_cov(self, xbar: torch.Tensor) -> torch.Tensor:
         """R, at the forecast mean ``xbar (B, d)`` where it depends on the state."""

@@ -324,6 +324,14 @@ class GaussianStateSpaceModel(StateSpaceModel):
     def measurement_scale_tril(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
         return linalg.safe_cholesky(self.measurement_cov(x))
 
+    def measurement_variance(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """R's diagonal, broadcastable to ``(..., m)``, for a model that declares a diagonal R
+        (``structure.measurement_noise`` ``"scalar"``, ``"diagonal"`` or
+        ``"state_dependent_diagonal"``): what the elementwise densities of partly observed steps and
+        the ensemble filters' whitening read. Default: :meth:`measurement_cov`'s diagonal; a model
+        with many observations overrides it so that no ``(m, m)`` matrix is formed (Lorenz-96)."""
+        return self.measurement_cov(x).diagonal(dim1=-2, dim2=-1)
+
     def measurement_jacobian(self, x: torch.Tensor) -> torch.Tensor:
         """dh/dx at ``x (..., d)`` -> ``(..., m, d)``; the matrix of a linear measurement, else torch.func
         (vmapped jacrev)."""
@@ -414,7 +422,7 @@ class GaussianStateSpaceModel(StateSpaceModel):
         full = observed.expand(shape)
         resid = torch.where(full, z - h, torch.zeros_like(h))
         if self.structure.measurement_noise in ("scalar", "diagonal", "state_dependent_diagonal"):
-            var = self.measurement_cov(x).diagonal(dim1=-2, dim2=-1).expand(shape)
+            var = self.measurement_variance(x).expand(shape)
             terms = resid * resid / var + torch.log(var) + linalg._LOG_2PI
             return -0.5 * torch.where(full, terms, torch.zeros_like(terms)).sum(-1)
         # per trial (the mask's own batch shape), not per particle, where R is constant

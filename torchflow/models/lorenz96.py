@@ -170,15 +170,9 @@ class Lorenz96(GaussianStateSpaceModel):
         h = self.measure(x)
         return _isotropic_log_prob(z - h, trial_view(self.obs_std, 0, h))
 
-    def measurement_log_prob_observed(self, z: torch.Tensor, x: torch.Tensor, observed: torch.Tensor) -> torch.Tensor:
-        """The density of the observed coordinates alone (NaN in ``z``: not observed), elementwise."""
-        h = self.measure(x)
-        shape = torch.broadcast_shapes(h.shape, z.shape, observed.shape)
-        full = observed.expand(shape)
-        var = trial_view(self.obs_std, 0, h) ** 2
-        resid = torch.where(full, z - h, torch.zeros_like(h))
-        terms = resid * resid / var + torch.log(var) + _LOG_2PI
-        return -0.5 * torch.where(full, terms, torch.zeros_like(terms)).sum(-1)
+    def measurement_variance(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """``obs_std^2``: a 0-d scalar, or one value per trial viewed against ``x`` (no ``(m, m)`` matrix)."""
+        return trial_view(self.obs_std, 0, x) ** 2
 
     def sample_measurement(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         """``x_observed + obs_std * xi`` with the core's draws (``torch.randn`` of ``(..., m)``)."""

@@ -298,11 +298,12 @@ def check_memory(model: StateSpaceModel, filters: Mapping[str, Filter], s: "RunS
             alone = [k for k, b in one.items() if b > avail]
             if alone:  # no split of trials helps: one trial of these filters does not fit
                 d, m = model.state_dim, model.obs_dim
-                split = (f"{', '.join(alone)} alone need{'s' if len(alone) == 1 else ''} about "
+                one_filter = len(alone) == 1
+                split = (f"{', '.join(alone)} alone need{'s' if one_filter else ''} about "
                          f"{_gib(max(one[k] for k in alone))} for one trial at d = {d}, m = {m}, so no split of the "
-                         f"trials fits: leave {'it' if len(alone) == 1 else 'them'} out of this run (filter=[...]), lower the "
-                         "model's size, or use "
-                         "filters whose memory grows linearly in d (the ensemble Kalman filters, the bootstrap PF)")
+                         f"trials fits: leave {'it' if one_filter else 'them'} out of this run (filter=[...]), lower "
+                         "the model's size, or use filters whose memory grows linearly in d (the ensemble Kalman "
+                         "filters, the bootstrap PF)")
             raise ConfigError(f"{sizes}: the run needs about {_gib(need)} of memory ({est.parts()}), more than the "
                               f"{where}; {split}")
         if need > MEMORY_WARN_SHARE * avail:
