@@ -271,3 +271,32 @@ def test_the_threaded_eigh_gives_the_numbers_of_one_call(threads):
     Mg = M[0].clone().requires_grad_()
     linalg.eigh(Mg)[0].sum().backward()  # one call while gradients are recorded
     assert Mg.grad is not None and torch.isfinite(Mg.grad).all()
+
+
+def test_the_lightning_module_rebuilds_a_batched_diagonal_prior():
+    """A TrajectoryDataset batches a diagonal prior's variances; the module's loss gives the filter
+    a DiagonalCovariance again, and the memory probe of ``checkpoint_steps="auto"`` checks it first
+    (a Kalman-type filter is given the matrix)."""
+    from torch.utils.data import DataLoader
+
+    from torchflow.lightning import FilterLightningModule, TrajectoryDataset, backward_bytes_per_step
+
+    model = Lorenz96(d=6, model_noise=0.3)
+    traj = model.simulate(4, 5, torch.Generator().manual_seed(0))
+    mean, cov = model.initial_belief(traj.states[:, 0], torch.Generator().manual_seed(1))
+    del model._buffers["forcing"]
+    model.forcing = torch.nn.Parameter(torch.tensor(7.5, dtype=F64))  # learnable F
+    ukf = F.UnscentedKalmanFilter(model)
+    assert backward_bytes_per_step(ukf, traj.observations, mean, cov) > 0
+    batch = next(iter(DataLoader(TrajectoryDataset(traj, mean, cov), batch_size=4)))
+    loss = FilterLightningModule(ukf, lr=0.01)._loss(batch, 0)
+    direct = -ukf(traj.observations, mean, cov.dense()).log_evidence.mean() / traj.observations.shape[1]
+    assert torch.isfinite(loss) and loss.requires_grad
+    assert torch.allclose(loss, direct, rtol=1e-12, atol=0)
+
+
+def test_a_large_declared_measurement_noise_is_checked_by_its_scale():
+    model = Lorenz96(d=5000, spin_up=0)
+    model.structure = model.structure.replace(measurement_noise_scale=0.0)
+    with pytest.raises(ArgumentError, match=r"measurement covariance is not positive definite \(declared 0 I\)"):
+        F.EnsembleTransformKalmanFilter(model, n_particles=4).check_model()
