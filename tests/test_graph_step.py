@@ -26,7 +26,9 @@ def emulated(monkeypatch):
     monkeypatch.setattr(cudagraphs, "_backend", backend)
     monkeypatch.setattr(graph_step, "eligible", lambda filt, state, gen: select.graph_step(filt, state.particles, gen, emulated=True))
     cudagraphs.clear()
-    yield backend
+    # a GPU's step: the CPU's weighting kernel (tuning.fused_weights) never runs in a graph step
+    with tuning.tuned(fused_weights=0):
+        yield backend
     cudagraphs.clear()
 
 

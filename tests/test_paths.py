@@ -18,6 +18,8 @@ from torchflow.runner import ChunkStore, writers
 T = 3
 #: a diagonal measurement too large for the lane tiles: LEDH takes the "diagonal" CPU kernel
 KERNEL = "kernel:diagonal" if select.cpu_kernels_on("cpu") else "torch"
+#: the bootstrap PF's steps on the CPU: weighed and resampled by the CPU kernel (tuning.fused_weights)
+BPF_PATH = "kernel:weights" if steps.weights_available() else "torch"
 
 
 def _data(model, B=2, steps=T, seed=0):
@@ -49,12 +51,17 @@ def test_the_kernel_path_is_reported_when_numba_is_installed():
     assert KERNEL == "kernel:diagonal"  # the CPU kernels are on wherever Numba imports (fused_flows=1)
 
 
-def test_bootstrap_pf_on_the_cpu_reports_torch():
+def test_bootstrap_pf_on_the_cpu_reports_its_weighting_kernel_or_torch():
     model = SkewedTPoisson(d=25)
     obs, mean, cov = _data(model)
+    f = BootstrapParticleFilter(model, n_particles=8)
     with torch.no_grad():
-        res = BootstrapParticleFilter(model, n_particles=8)(obs, mean, cov, torch.Generator().manual_seed(1))
-    assert res.paths == {"torch": T}
+        res = f(obs, mean, cov, torch.Generator().manual_seed(1))
+        with tuning.tuned(fused_weights=0):
+            plain = f(obs, mean, cov, torch.Generator().manual_seed(1))
+    graded = f(obs, mean, cov, torch.Generator().manual_seed(1))  # no gradient is recorded: the kernel
+    assert res.paths == {BPF_PATH: T} and graded.paths == {BPF_PATH: T}
+    assert plain.paths == {"torch": T}
 
 
 def test_recording_moves_no_number(monkeypatch):
@@ -81,7 +88,7 @@ def test_recording_counts_around_any_code_and_nests():
             res = _ledh(model)(obs, mean, cov, torch.Generator().manual_seed(1))
         BootstrapParticleFilter(model, n_particles=8)(obs, mean, cov, torch.Generator().manual_seed(1))
     assert inner == res.paths == {KERNEL: T}
-    assert outer == paths.merge(res.paths, {"torch": T})
+    assert outer == paths.merge(res.paths, {BPF_PATH: T})
     assert not paths.listening()
     assert paths.describe({"torch": 1, "graph:step": 5}) == "graph:step+torch" and paths.describe({}) is None
 
@@ -97,7 +104,7 @@ def test_a_replayed_graph_step_is_reported(monkeypatch):
     obs, mean, cov = _data(model, steps=6)
     f = BootstrapParticleFilter(model, n_particles=16)
     try:
-        with torch.no_grad():
+        with torch.no_grad(), tuning.tuned(fused_weights=0):  # a GPU's step (no CPU weighting kernel)
             res = f(obs, mean, cov, TrialStreams(1, 2, f.stream_name, backend="philox"))
             with tuning.tuned(cuda_graphs=0):
                 eager = f(obs, mean, cov, TrialStreams(1, 2, f.stream_name, backend="philox"))
@@ -113,12 +120,12 @@ def test_the_runner_records_each_filters_path(tmp_path):
     store = ChunkStore(tmp_path / "chunks")
     res = run_experiment(model, filters, trials=2, steps=T, seed=3, chunk_size=1, progress=False, store=store)
     # two chunks of one trial: each filter's counts are summed over its calls
-    assert res.paths == {"bpf": {"torch": 2 * T}, "ledh": {KERNEL: 2 * T}}
-    assert {r["filter"]: r["path"] for r in res.summary} == {"bpf": "torch", "ledh": KERNEL}
+    assert res.paths == {"bpf": {BPF_PATH: 2 * T}, "ledh": {KERNEL: 2 * T}}
+    assert {r["filter"]: r["path"] for r in res.summary} == {"bpf": BPF_PATH, "ledh": KERNEL}
     assert "path" in format_table(res.summary).splitlines()[0]
     writers.write_run(tmp_path, res, {})
     data = json.loads((tmp_path / "results.json").read_text())
-    assert data["paths"] == res.paths and [r["path"] for r in data["summary"]] == ["torch", KERNEL]
+    assert data["paths"] == res.paths and [r["path"] for r in data["summary"]] == [BPF_PATH, KERNEL]
     # a resumed run reads the paths saved with its chunks
     again = run_experiment(model, filters, trials=2, steps=T, seed=3, chunk_size=1, progress=False,
                            store=ChunkStore(tmp_path / "chunks", resume=True))

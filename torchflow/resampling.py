@@ -474,7 +474,7 @@ def reads_host(t: Tensor) -> bool:
 
 
 def _resample_rows(log_weights: Tensor, lw: Tensor, generator, resampler: Callable, threshold: float,
-                   ess: Optional[Tensor] = None):
+                   ess: Optional[Tensor] = None, u: Optional[Tensor] = None):
     """``(indices or None, resampled (B,), new_log_weights)`` with ``lw`` the normalised
     ``log_weights`` and ``ess`` their effective sample size (computed when ``None``); ``None`` stands
     for identity indices in every trial.
@@ -483,7 +483,9 @@ def _resample_rows(log_weights: Tensor, lw: Tensor, generator, resampler: Callab
     stream advances the same way, so the numbers do not depend on which trials resample). Where
     :func:`reads_host` allows, only the trials that resample are computed and a step in which none
     does computes nothing else; elsewhere every trial is computed and the identity kept where the
-    ESS did not trigger (no host synchronisation). Both give the same indices."""
+    ESS did not trigger (no host synchronisation). Both give the same indices. ``u``: the uniforms,
+    already drawn by the caller (:meth:`Resampler.draw_uniforms`; a built-in scheme where
+    :func:`reads_host` allows)."""
     b, n = lw.shape
     if threshold == 0.0:  # never resamples: nothing drawn
         return None, torch.zeros(b, dtype=torch.bool, device=lw.device), lw
@@ -495,7 +497,8 @@ def _resample_rows(log_weights: Tensor, lw: Tensor, generator, resampler: Callab
         return (torch.where(resampled[:, None], indices, identity), resampled,
                 torch.where(resampled[:, None], torch.full_like(lw, -math.log(n)), lw))
     per_trial, invert = split
-    u = _rand((b, n if per_trial is None else per_trial), log_weights, generator)
+    if u is None:
+        u = _rand((b, n if per_trial is None else per_trial), log_weights, generator)
     m = int(resampled.sum())
     if m == 0:
         return None, resampled, lw
@@ -506,6 +509,10 @@ def _resample_rows(log_weights: Tensor, lw: Tensor, generator, resampler: Callab
     indices = torch.arange(n, dtype=torch.int64, device=lw.device).repeat(b, 1)
     indices[rows] = invert(log_weights[rows], u[rows])
     return indices, resampled, torch.where(resampled[:, None], uniform, lw)
+
+
+#: the schemes the CPU weighting kernel implements (:attr:`Resampler.kernel_scheme`)
+_KERNEL_SCHEMES: Dict[Callable, str] = {systematic: "systematic", stratified: "stratified"}
 
 
 def gather_particles(x: Tensor, indices: Tensor) -> Tensor:
@@ -733,7 +740,6 @@ class Resampler(nn.Module):
                  sort: Optional[str] = None):
         super().__init__()
         self.sort = sort
-        _get_resampler(scheme, "resampling")
         if (isinstance(ess_threshold, bool) or not isinstance(ess_threshold, numbers.Real)
                 or not 0.0 <= float(ess_threshold) <= 1.0):
             raise ArgumentError(f"ess_threshold: expected a fraction in [0, 1], got {ess_threshold!r}")
@@ -760,6 +766,37 @@ class Resampler(nn.Module):
             self.register_buffer("regularization_std", var.sqrt().to(dtype))
 
     @property
+    def scheme(self) -> str:
+        """The resampling scheme's name (a key of :data:`RESAMPLERS`)."""
+        return self._scheme
+
+    @scheme.setter
+    def scheme(self, value: str) -> None:
+        self._scheme_fn = _get_resampler(value, "resampling")  # resolved once, not per step
+        self._scheme = value
+
+    @property
+    def kernel_scheme(self) -> Optional[str]:
+        """``"systematic"`` or ``"stratified"`` where a step's resampling may run in the CPU weighting
+        kernel (:func:`torchflow.flows.kernels.select.weights_kernel`): that built-in scheme, no
+        sorting, no regularisation, and a gradient rule that changes nothing without autograd
+        (``"none"``, ``"stop_gradient"``); ``None`` otherwise."""
+        if self.sort is not None or self.regularization_std is not None or self.gradient not in ("none", "stop_gradient"):
+            return None
+        return _KERNEL_SCHEMES.get(self._scheme_fn)
+
+    def draw_uniforms(self, log_weights: Tensor, generator) -> Optional[Tensor]:
+        """The uniforms this resampler's built-in scheme draws for ``log_weights (B, N)``: ``(B, 1)``
+        (systematic) or ``(B, N)`` (stratified, multinomial, residual), from ``generator``, as
+        :meth:`forward` would draw them; ``None`` when ``ess_threshold`` is 0 (nothing is drawn).
+        Passed back as :meth:`forward`'s ``uniforms``, they stand for its own draw."""
+        if self.ess_threshold == 0.0:
+            return None
+        b, n = log_weights.shape
+        per_trial = _SPLIT[self._scheme_fn][0]
+        return _rand((b, n if per_trial is None else per_trial), log_weights, generator)
+
+    @property
     def sort(self) -> Optional[str]:
         """The order particles are sorted in before resampling (``None`` or one of :data:`SORT_ORDERS`)."""
         return self._sort
@@ -771,7 +808,8 @@ class Resampler(nn.Module):
         self._sort = value
 
     def forward(self, particles: Tensor, log_weights: Tensor, generator, *, cov=None,
-                extras: Optional[Dict[str, Tensor]] = None, ess: Optional[Tensor] = None):
+                extras: Optional[Dict[str, Tensor]] = None, ess: Optional[Tensor] = None,
+                uniforms: Optional[Tensor] = None):
         """Resample the low-ESS trials of ``particles (B, N, d)`` with normalised ``log_weights
         (B, N)``; a per-particle ``cov`` (a :class:`~torchflow.covariances.Covariance`) and
         ``extras`` (tensors with a leading ``(B, N)``) follow the particles. ``ess (B,)``: the
@@ -781,7 +819,8 @@ class Resampler(nn.Module):
         Returns ``(particles, log_weights, cov, extras, resampled (B,))``. On a GPU there is no host
         synchronisation: every trial is gathered (identity indices where not resampled). On the CPU
         (:func:`reads_host`) only the trials that resample are computed, and a step in which none
-        does gathers nothing; the random draws, hence the numbers, are the same either way."""
+        does gathers nothing; the random draws, hence the numbers, are the same either way. ``uniforms``:
+        this step's draws, made beforehand by :meth:`draw_uniforms` (a built-in scheme on the CPU)."""
         if self.gradient == "ot":
             return self._ot(particles, log_weights, generator, cov, extras)
         order = None if self.sort is None else sort_order(particles, log_weights, self.sort)
@@ -791,7 +830,7 @@ class Resampler(nn.Module):
         else:
             idx, resampled, lw_new = _resample_rows(
                 lw_in, lw_in if ess is not None else normalize_log_weights(lw_in, validate=False), generator,
-                _get_resampler(self.scheme, "scheme"), self.ess_threshold, ess=ess)
+                self._scheme_fn, self.ess_threshold, ess=ess, u=uniforms)
             if idx is None:  # no trial resampled
                 if order is None:  # the particles stay where they are: nothing to gather
                     return self._regularise(particles, resampled, generator), lw_new, cov, extras or {}, resampled
@@ -853,7 +892,7 @@ class Resampler(nn.Module):
         a = self.soft_alpha
         log_q = log_weights if a == 1.0 else torch.logaddexp(
             log_weights + math.log(a), torch.full_like(log_weights, math.log1p(-a) - math.log(n)))
-        drawn = _get_resampler(self.scheme, "resampling")(log_q.detach(), generator, validate=False)
+        drawn = self._scheme_fn(log_q.detach(), generator, validate=False)
         idx = torch.where(resampled[:, None], drawn, identity)
         lw = gather_particles(log_weights, idx) - gather_particles(log_q, idx)
         lw = lw - torch.logsumexp(lw, dim=-1, keepdim=True)

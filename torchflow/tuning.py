@@ -3,7 +3,7 @@
 Every value here changes only how fast (or in how much memory) a result is computed, never the
 result: the same seed gives the same numbers whatever they are set to (up to round-off where a
 batch's size changes BLAS blocking; see README "Reproducibility"). The exceptions compute the same
-formulas in another order: ``fused_flows``, ``fused_info``, ``fused_measurement`` and ``structured_update`` agree
+formulas in another order: ``fused_flows``, ``fused_info``, ``fused_measurement``, ``fused_weights`` and ``structured_update`` agree
 with their torch/Joseph counterparts to round-off per call, which a chaotic trial (a resampling
 decision, a diverging EKF) can amplify; their statistics are the same (``experiments/RESULTS.md``,
 "CPU kernels"); ``kernel_float32`` computes a float32 run's GPU kernel in float32 instead of
@@ -100,6 +100,15 @@ class Tuning:
             lane kernel run in information form (PFGSPF, d = 144). One kernel keeps each
             particle's small matrices in registers or cache and replaces many small launches and
             passes over memory; timings in ``experiments/RESULTS.md`` ("CPU kernels", "GPU").
+        fused_weights: on the CPU with Numba installed, a particle filter's step (the bootstrap
+            PF's, and any whose particles carry no covariance or extras) weighs, normalises,
+            estimates and resamples (systematic or stratified, no sorting or jitter) in one
+            compiled call per batch (:mod:`torchflow.flows.kernels.cpu_weights`) instead of ~20
+            eager ops of 1-3 us each: what one trial per call at N = 10^3 spends most of its
+            step on. The same formulas; two sums accumulate in another order, so the numbers
+            agree to round-off (a few ulp), and the ancestors are the same unless a position
+            falls within round-off of a CDF step. Runs with gradients recorded take the torch
+            path. 0: the torch path.
         fused_info: the GPU kernel of ``fused_flows`` in information form (1,
             :func:`~torchflow.flows.kernels.gpu.kernel_info`: ``G = W^T W`` and the prior precision,
             one pass over W's rows, no ``L_s`` read per row) or the row form (0,
@@ -152,6 +161,7 @@ class Tuning:
     cuda_graphs: int = 1
     fused_flows: int = 1
     fused_info: int = 1
+    fused_weights: int = 1
     kernel_float32: int = 0
     fused_measurement: int = 1
     fused_philox: int = 1

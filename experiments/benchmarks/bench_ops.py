@@ -76,7 +76,7 @@ def run(argv=None) -> dict:
         mean, cov = model.initial_belief(traj.states[:, 0], g)
         for name, f in filters(model, a.particles).items():
             cpu, cuda = count(f, traj.observations, mean, cov, False), count(f, traj.observations, mean, cov, True)
-            with tuning.tuned(fused_flows=0):  # the torch path (where the default takes a fused CPU kernel)
+            with tuning.tuned(fused_flows=0, fused_weights=0):  # the torch path (where the default takes a CPU kernel)
                 eager = count(f, traj.observations, mean, cov, False).ops
             target = TARGETS.get(name)
             views = sum(n for op, n in cpu.by_op.items() if op in VIEW_OPS)
@@ -86,9 +86,10 @@ def run(argv=None) -> dict:
                                            for op, n in cpu.by_op.most_common(3))))
     md = h.report("# Operations and host synchronisations per filter step", a, info,
                   [f"Acoustic tracking, B = {a.trials} trials, N = {a.particles}, one time step (the second), "
-                   "29 pseudo-steps for the flows. CPU default: the fused EDH/LEDH pseudo-step where Numba is "
+                   "29 pseudo-steps for the flows. CPU default: the fused EDH/LEDH pseudo-step and the particle "
+                   "filters' weighting kernel where Numba is "
                    f"installed ({'here' if fused.runs_on('cpu') else 'not here'}); torch path: "
-                   "`tuning.fused_flows=0`."],
+                   "`tuning.fused_flows=0 fused_weights=0`."],
                   ["filter", "aten ops (CPU default)", "of which not views", "aten ops (torch path)", "syncs (CPU default)",
                    "syncs (as on CUDA)", "target ops", "met (CPU default)", "most frequent ops"],
                   [(r["name"], r["ops"], r["compute_ops"], r["eager_ops"], r["syncs"], r["syncs_cuda"], h.fmt(r["target"], "{}"),

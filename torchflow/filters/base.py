@@ -24,7 +24,7 @@ from ..models.structure import kernel_structure
 from ..proposals import BootstrapProposal, Proposal
 from ..proposals.flow import check_informative
 from ..random import check_generator
-from ..flows.kernels import graph_step, paths as _paths
+from ..flows.kernels import graph_step, paths as _paths, select as _select, steps as _steps
 from ..errors import ArgumentError, ArgumentTypeError
 from . import guards
 from . import marginal as _marginal
@@ -874,7 +874,21 @@ class ParticleFilter(Filter):
         """
         if n_repaired is None:
             n_repaired = torch.zeros(particles.shape[0], dtype=torch.long, device=particles.device)
+        uniforms = None
         if _resampling.reads_host(log_increment):  # the CPU: one read says whether anything needs repair
+            if _select.weights_kernel(particles, prev_log_weights, log_increment, resampler=self.resampler, cov=cov,
+                                      extras=extras):
+                # one compiled call (torchflow.tuning fused_weights); the uniforms are drawn first,
+                # where the reference draws them, and handed on if some trial needs the repair below
+                uniforms = self.resampler.draw_uniforms(prev_log_weights, generator)
+                out = _steps.weigh_resample(particles, prev_log_weights, log_increment, uniforms,
+                                            self.resampler.ess_threshold)
+                if out is not None:
+                    _paths.note("kernel:weights")
+                    x, lw, estimate, ess, inc, resampled = out
+                    return ParticleState(particles=x, log_weights=lw, estimate=estimate, ess=ess,
+                                         log_evidence_increment=inc, resampled=resampled, n_repaired=n_repaired,
+                                         cov=cov, step=step, extras={}, invalid=self.account_clean(n_repaired))
             # s - s is 0 where a particle's coordinate sum s is finite, NaN elsewhere: lw is the sum of
             # the weights where every particle is finite, and a trial's logsumexp is finite exactly
             # where no particle needs repair (a non-finite coordinate, a NaN or +inf increment) and
@@ -885,7 +899,8 @@ class ParticleFilter(Filter):
             # finite sum <=> every term finite (a NaN or an infinity makes it NaN or infinite)
             if math.isfinite(float(inc.detach().sum())):  # nothing to repair, no dead trial
                 return self._estimate_and_resample(particles, lw - inc.unsqueeze(-1), inc, generator, step, cov,
-                                                   extras, n_repaired, self.account_clean(n_repaired), None)
+                                                   extras, n_repaired, self.account_clean(n_repaired), None,
+                                                   uniforms)
         bad = self._nonfinite(particles, log_increment)
         # No host synchronisation from here: every branch below is a masked update over all trials;
         # with nonfinite="raise" the offending trials are flagged in ``state.invalid`` and
@@ -905,22 +920,23 @@ class ParticleFilter(Filter):
         lw = lw - torch.where(dead, 0.0, inc).unsqueeze(-1)
         inc = inc.masked_fill(dead, float("-inf"))  # the evidence estimate of a dead step is zero
         return self._estimate_and_resample(particles, lw, inc, generator, step, cov, extras, n_repaired, invalid,
-                                           dead)
+                                           dead, uniforms)
 
     def account_clean(self, n_repaired: torch.Tensor):
         """:meth:`account` of a step with nothing repaired and no dead trial."""
         return None if self.nonfinite == "recover" else torch.zeros_like(n_repaired, dtype=torch.bool)
 
     def _estimate_and_resample(self, particles, lw, inc, generator, step, cov, extras, n_repaired, invalid,
-                               dead) -> "ParticleState":
+                               dead, uniforms=None) -> "ParticleState":
         """The weighted mean of normalised ``lw``, the ESS and the resampling (``dead (B,)``: the
-        trials whose step had no particle of positive weight, ``None`` when none had)."""
+        trials whose step had no particle of positive weight, ``None`` when none had; ``uniforms``:
+        the resampler's draws when made already)."""
         w = lw.exp()
         estimate = (torch.bmm(w.unsqueeze(1), particles).squeeze(1) if particles.dim() == 3  # (B, d)
                     else torch.matmul(w.unsqueeze(-2), particles).squeeze(-2))
         ess = (w * w).sum(-1).reciprocal()  # the resampler's trigger (of the weights it goes on with)
         particles, lw_new, cov, extras, resampled = self.resampler(particles, lw, generator, cov=cov, extras=extras,
-                                                                   ess=ess)
+                                                                   ess=ess, uniforms=uniforms)
         if dead is not None:  # a dead step keeps the previous weights to go on, but no particle had positive weight
             ess = ess.masked_fill(dead, 0.0)
         return ParticleState(particles=particles, log_weights=lw_new, estimate=estimate, ess=ess,

@@ -7,7 +7,8 @@ paths, and what one count is:
 
 * ``"kernel:lanes"``, ``"kernel:diagonal"``, ``"kernel:gromov"``: one flow integration
   (:func:`~torchflow.flows.integrate_flow`) by that fused kernel (Numba on the CPU, Triton on a
-  GPU); ``"kernel:gpfis"``: one GPFIS transport by the CPU kernel;
+  GPU); ``"kernel:gpfis"``: one GPFIS transport by the CPU kernel; ``"kernel:weights"``: one
+  particle-filter time step weighed and resampled by the CPU kernel;
 * ``"graph:flow"``: one flow integration sent to a CUDA graph (:func:`select.flow_graph`); the
   first call of each graph also runs the integration eagerly (its warm-up), counted once more
   under the path that takes; the capture itself is not counted;
@@ -33,7 +34,8 @@ import torch
 __all__ = ["PATHS", "recording", "note", "listening", "per_step", "describe", "merge"]
 
 #: every path a decision may note
-PATHS = ("kernel:lanes", "kernel:diagonal", "kernel:gromov", "kernel:gpfis", "graph:flow", "graph:step", "torch")
+PATHS = ("kernel:lanes", "kernel:diagonal", "kernel:gromov", "kernel:gpfis", "kernel:weights", "graph:flow", "graph:step",
+         "torch")
 
 _local = threading.local()  # ``stack``: this thread's listening dicts, innermost last
 

@@ -30,6 +30,7 @@ Kernels (:mod:`torchflow.flows.kernels.steps` wraps them):
   the lane tiles, in information form on the CPU;
 * ``"gromov"``: the Gromov flow's Euler-Maruyama pseudo-step and PF-PF(Gromov)'s tracked law on the CPU;
 * GPFIS's transport on the CPU (:func:`gpfis_kernel`);
+* a particle filter's weighting, estimate and resampling on the CPU (:func:`weights_kernel`);
 * the CUDA graph of a deterministic flow's pseudo-time loop (:func:`flow_graph`) and of a whole
   particle-filter step (:func:`graph_step`).
 
@@ -47,7 +48,7 @@ from ... import _triton, missing, tuning
 from . import paths, steps
 
 #: the tuning knobs (:mod:`torchflow.tuning`) read by the kernel selection, and by nothing else
-KNOBS = ("fused_flows", "fused_info", "fused_measurement", "cuda_graphs", "graph_step_max_elems")
+KNOBS = ("fused_flows", "fused_info", "fused_measurement", "fused_weights", "cuda_graphs", "graph_step_max_elems")
 
 #: named measurement forms a kernel linearises itself, and the kernels' code for each
 FORMS = {"inverse_distance_sum": 1}
@@ -165,6 +166,24 @@ def gpfis_kernel(measurement, x: torch.Tensor, k: int) -> bool:
              and cpu_kernels_on(x.device) and _tiles_fit(measurement, x, k))
     paths.note("kernel:gpfis" if fused else "torch")
     return fused
+
+
+def weights_kernel(particles: torch.Tensor, *tensors: torch.Tensor, resampler, cov, extras) -> Optional[str]:
+    """A particle filter's step weighs, estimates and resamples in one CPU kernel call
+    (:func:`~torchflow.flows.kernels.steps.weigh_resample`): ``tuning.fused_weights``, float64
+    ``(B, N, d)`` particles on the CPU with Numba, no gradient recorded through them or
+    ``tensors`` (the weights), nothing carried per particle (no tracked covariance, no extras), and
+    a resampler that declares a kernel scheme
+    (:attr:`~torchflow.resampling.Resampler.kernel_scheme`). Returns that scheme
+    (``"systematic"`` or ``"stratified"``) or ``None``. The caller, which has read the host
+    (:func:`torchflow.resampling.reads_host`), notes ``"kernel:weights"`` when the call succeeds."""
+    if (cov is not None or extras or particles.dtype != torch.float64 or particles.dim() != 3 or not particles.is_cpu
+            or not tuning.get().fused_weights):
+        return None
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (particles,) + tensors):
+        return None
+    scheme = getattr(resampler, "kernel_scheme", None)  # a Resampler's declaration
+    return scheme if scheme is not None and steps.weights_available() else None
 
 
 def gpu_form() -> str:

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import functools
 import importlib
+import math
 from dataclasses import dataclass
 from typing import Optional
 
@@ -361,6 +362,59 @@ def numba_available() -> bool:
         except Exception:  # noqa: BLE001 - any import failure means: not available
             _numba = False
     return _numba
+
+
+#: from this many (trial, particle) pairs on, with more than one torch thread, :func:`weigh_resample`
+#: runs its trials in parallel (the same numbers: trials are independent)
+PARALLEL_WEIGHTS_MIN = 1 << 16
+
+
+def weigh_resample(particles: torch.Tensor, prev_log_weights: torch.Tensor, log_increment: torch.Tensor,
+                   uniforms: Optional[torch.Tensor], threshold: float):
+    """A particle filter's clean weighting step in one Numba call per batch
+    (:mod:`torchflow.flows.kernels.cpu_weights`): float64 CPU tensors ``particles (B, N, d)``,
+    normalised ``prev_log_weights (B, N)``, ``log_increment (B, N)``; ``uniforms`` the resampling
+    scheme's draws, ``(B, 1)`` (systematic) or ``(B, N)`` (stratified), ``None`` when
+    ``threshold`` is 0 (no trial resamples). Returns ``(particles, log_weights, estimate (B, d),
+    ess (B,), log_evidence_increment (B,), resampled (B,))``, the particles the same tensor where
+    no trial resampled; or ``None`` when some trial's increment is not finite (nothing is changed:
+    the caller's reference path repairs)."""
+    from . import cpu_weights as k
+    B, N, d = particles.shape
+    x = particles.detach().contiguous()
+    # outputs and scratch made by NumPy (a tenth of torch.empty's cost), the outputs wrapped once
+    lw, est, ess, inc = np.empty((B, N)), np.empty((B, d)), np.empty(B), np.empty(B)
+    res, idx, e = np.empty(B, dtype=np.bool_), np.empty((B, N), dtype=np.int64), np.empty((B, N))
+    u = np.zeros((B, 1)) if uniforms is None else _np(uniforms.contiguous())
+    parallel = B > 1 and B * N >= PARALLEL_WEIGHTS_MIN and torch.get_num_threads() > 1
+    if parallel:
+        _set_threads()
+    fn = k.weigh_resample_parallel if parallel else k.weigh_resample
+    count = fn(_np(prev_log_weights.contiguous()), _np(log_increment.contiguous()), x.numpy(), u, u.shape[1] > 1,
+               float(threshold) * N if uniforms is not None else 0.0, -math.log(N), lw, est, ess, inc, res, idx, e)
+    if count < 0:
+        return None
+    if count > 0:
+        out = torch.empty_like(x)
+        k.gather_rows(x.numpy(), idx, res, out.numpy())
+        particles = out
+    return (particles,) + tuple(torch.from_numpy(a) for a in (lw, est, ess, inc, res))
+
+
+_weights = None
+
+
+def weights_available() -> bool:
+    """The weighting kernel (:mod:`torchflow.flows.kernels.cpu_weights`) can be imported (cached; as
+    :func:`numba_available`)."""
+    global _weights
+    if _weights is None:
+        try:
+            importlib.import_module("torchflow.flows.kernels.cpu_weights")
+            _weights = True
+        except Exception:  # noqa: BLE001 - any import failure means: not available
+            _weights = False
+    return _weights
 
 
 def _precision_kernel():

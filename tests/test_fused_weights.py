@@ -1,0 +1,179 @@
+"""The CPU weighting kernel (torchflow.flows.kernels.cpu_weights, tuning.fused_weights): a particle
+filter's weighting, estimate, ESS and resampling in one Numba call agree with the torch path to
+round-off, draw the same uniforms, and hand non-finite steps, gradients and other resamplers to the
+torch path."""
+import math
+
+import pytest
+import torch
+
+from torchflow import resampling, tuning
+from torchflow.filters import BootstrapParticleFilter
+from torchflow.flows.kernels import select, steps
+from torchflow.models import SensorNetwork, StochasticVolatility
+from torchflow.random import TrialStreams
+
+pytestmark = pytest.mark.skipif(not steps.weights_available(), reason="needs Numba (the kernels extra)")
+
+
+def _inputs(B=5, N=200, d=3, seed=0, spread=1.5):
+    """Particles, normalised previous log-weights and increments whose spread grows from trial to
+    trial (``0.1 spread`` to ``spread``), so that a threshold splits the batch."""
+    g = torch.Generator().manual_seed(seed)
+    x = torch.randn(B, N, d, dtype=torch.float64, generator=g)
+    prev = 0.1 * torch.randn(B, N, dtype=torch.float64, generator=g)
+    prev = prev - prev.logsumexp(-1, keepdim=True)
+    scale = spread * torch.linspace(0.1, 1.0, B, dtype=torch.float64)[:, None]
+    inc = scale * torch.randn(B, N, dtype=torch.float64, generator=g)
+    return x, prev, inc
+
+
+def _filter(**kw):
+    """A bootstrap PF whose weighting step is called directly (the model only sizes the resampler)."""
+    return BootstrapParticleFilter(SensorNetwork(d=1), **kw)
+
+
+def _both(filt, x, prev, inc, seed=1, make_gen=None, fallback=None):
+    """``weight_and_resample`` with the kernel and with the torch path, each from a fresh generator;
+    returns the two states and the two generators afterwards."""
+    out = []
+    for fused in (1, 0):
+        g = make_gen() if make_gen else torch.Generator().manual_seed(seed)
+        with tuning.tuned(fused_weights=fused), torch.no_grad():
+            st = filt.weight_and_resample(x, prev, inc, g, 1, fallback=x if fallback is None else fallback)
+        out.append((st, g))
+    return out
+
+
+def _close(a, b, rtol=1e-12):
+    assert torch.allclose(a, b, rtol=rtol, atol=1e-13), (a - b).abs().max()
+
+
+@pytest.mark.parametrize("scheme", ["systematic", "stratified"])
+@pytest.mark.parametrize("threshold", [0.0, 0.3, 0.5, 1.0])
+@pytest.mark.parametrize("d", [1, 3])
+def test_the_kernel_gives_the_torch_paths_numbers(scheme, threshold, d):
+    x, prev, inc = _inputs(d=d)
+    f = _filter(resampling=scheme, ess_threshold=threshold)
+    (k, gk), (t, gt) = _both(f, x, prev, inc)
+    _close(k.log_weights, t.log_weights)
+    _close(k.estimate, t.estimate)
+    _close(k.ess, t.ess)
+    _close(k.log_evidence_increment, t.log_evidence_increment)
+    assert torch.equal(k.resampled, t.resampled)
+    assert torch.equal(k.particles, t.particles)  # the same ancestors, exactly
+    assert torch.equal(gk.get_state(), gt.get_state())  # the same draws
+    if threshold in (0.3, 0.5):  # a mixed batch: some trials resampled, some kept
+        assert 0 < int(k.resampled.sum()) < x.shape[0]
+
+
+def test_indices_equal_the_reference_inversion_with_zero_weights_and_ties():
+    """The kernel's ancestors against resampling._strata_indices on weights with exact zeros and
+    equal values, systematic and stratified uniforms including 0."""
+    g = torch.Generator().manual_seed(3)
+    B, N = 6, 64
+    lw = torch.randn(B, N, dtype=torch.float64, generator=g)
+    lw[:, ::5] = float("-inf")  # zero weights
+    lw[1] = 0.0  # ties: equal weights
+    lw[2, 7:20] = lw[2, 7]
+    lw = lw - lw.logsumexp(-1, keepdim=True)
+    x = torch.arange(B * N, dtype=torch.float64).reshape(B, N, 1)
+    for u in (torch.rand(B, 1, dtype=torch.float64, generator=g), torch.zeros(B, 1, dtype=torch.float64),
+              torch.rand(B, N, dtype=torch.float64, generator=g)):
+        # log_increment 0: the normalised weights are lw itself; threshold 1: every trial resamples
+        out = steps.weigh_resample(x, lw, torch.zeros_like(lw), u, 1.0)
+        want = resampling._strata_indices(lw, u)
+        assert torch.equal(out[0][..., 0].long() - torch.arange(B)[:, None] * N, want)
+
+
+def test_a_non_finite_step_takes_the_torch_path_with_the_same_uniforms():
+    x, prev, inc = _inputs()
+    x[1, 3, 0] = float("nan")  # a particle to repair
+    inc[3, 5] = float("inf")  # a NaN/+inf increment to repair
+    inc[4] = float("-inf")  # a dead trial: no weight left
+    f = _filter()
+    (k, gk), (t, gt) = _both(f, x, prev, inc, fallback=torch.zeros_like(x))
+    assert bool(torch.isfinite(k.particles).all())
+    for name in ("particles", "log_weights", "estimate", "ess", "log_evidence_increment", "resampled", "n_repaired"):
+        assert torch.equal(getattr(k, name), getattr(t, name)), name
+    assert torch.equal(gk.get_state(), gt.get_state())
+
+
+def test_per_trial_streams_draw_the_same_uniforms():
+    x, prev, inc = _inputs(B=4)
+    f = _filter(resampling="stratified", ess_threshold=1.0)
+    (k, gk), (t, gt) = _both(f, x, prev, inc, make_gen=lambda: TrialStreams(7, 4, "bpf"))
+    assert torch.equal(k.particles, t.particles)
+    _close(k.log_weights, t.log_weights)
+
+
+def test_parallel_trials_give_the_serial_bits():
+    x, prev, inc = _inputs(B=40, N=2000, d=2)
+    assert x.shape[0] * x.shape[1] >= steps.PARALLEL_WEIGHTS_MIN
+    u = torch.rand(40, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        serial = steps.weigh_resample(x, prev, inc, u, 0.5)
+        torch.set_num_threads(2)
+        parallel = steps.weigh_resample(x, prev, inc, u, 0.5)
+    finally:
+        torch.set_num_threads(threads)
+    for a, b in zip(serial, parallel):
+        assert torch.equal(a, b)
+
+
+def test_what_the_kernel_does_not_cover_takes_the_torch_path():
+    x, prev, inc = _inputs()
+    kw = dict(resampler=None, cov=None, extras=None)
+    for f in (_filter(resampling="multinomial"), _filter(resampling="residual"),
+              _filter(resampling_gradient="soft"), _filter(resampling_gradient="ot")):
+        kw["resampler"] = f.resampler
+        assert select.weights_kernel(x, prev, inc, **kw) is None, f.resampler
+    f = _filter()
+    kw["resampler"] = f.resampler
+    assert select.weights_kernel(x, prev, inc, **kw) == "systematic"
+    f.resampler.sort = "first"
+    assert select.weights_kernel(x, prev, inc, **kw) is None
+    f.resampler.sort = None
+    assert select.weights_kernel(x.float(), prev.float(), inc.float(), **kw) is None  # float32: the torch path
+    assert select.weights_kernel(x, prev, inc, **dict(kw, extras={"ancestor": prev.long()})) is None
+    with tuning.tuned(fused_weights=0):
+        assert select.weights_kernel(x, prev, inc, **kw) is None
+    assert select.weights_kernel(x, prev, inc.requires_grad_(), **kw) is None  # a gradient is recorded
+    with torch.no_grad():
+        assert select.weights_kernel(x, prev, inc, **kw) == "systematic"
+    regular = _filter(regularization=0.1)  # jitter after resampling: the torch path
+    assert select.weights_kernel(x, prev, inc.detach(), **dict(kw, resampler=regular.resampler)) is None
+
+
+def test_a_learnable_model_records_gradients_through_the_torch_path():
+    model = StochasticVolatility(learnable=True)
+    y = 0.5 * torch.randn(1, 20, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    mean, cov = model.declared_prior(1)
+    res = BootstrapParticleFilter(model, n_particles=64)(y, mean, cov, torch.Generator().manual_seed(1))
+    assert res.paths == {"torch": 20}
+    res.log_evidence.sum().backward()
+    assert model.mu.grad is not None and math.isfinite(float(model.mu.grad))
+
+
+def test_a_whole_run_agrees_with_the_torch_path():
+    """Stochastic volatility, 200 steps, 4 trials x 500 particles: round-off, not another run."""
+    model = StochasticVolatility()
+    g = torch.Generator().manual_seed(5)
+    traj = model.simulate(4, 200, g)
+    mean, cov = model.declared_prior(4)
+    f = BootstrapParticleFilter(model, n_particles=500)
+    runs = []
+    for fused in (1, 0):
+        with tuning.tuned(fused_weights=fused), torch.no_grad():
+            runs.append(f(traj.observations, mean, cov, torch.Generator().manual_seed(9)))
+    k, t = runs
+    assert k.paths == {"kernel:weights": 200} and t.paths == {"torch": 200}
+    _close(k.log_evidence, t.log_evidence, rtol=1e-11)
+    _close(k.estimates, t.estimates, rtol=1e-10)
+
+
+def test_a_resampler_without_the_declaration_takes_the_torch_path():
+    x, prev, inc = _inputs()
+    assert select.weights_kernel(x, prev, inc, resampler=torch.nn.Identity(), cov=None, extras=None) is None

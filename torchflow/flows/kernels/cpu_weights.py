@@ -1,0 +1,138 @@
+"""A particle filter's weighting and resampling in one Numba pass per trial, on the CPU.
+
+What :meth:`torchflow.filters.ParticleFilter.weight_and_resample` does with some twenty eager
+operations (each a pass over the ``(B, N)`` weights, 1-3 us of dispatch apiece at small N), done
+in one compiled call (:func:`weigh_resample`):
+
+1. ``lw = lw_prev + log_increment`` (a particle with a non-finite coordinate makes it NaN), the
+   step's evidence increment ``c = logsumexp(lw)`` per trial; any non-finite ``c`` stops the call
+   (return -1) and the filter takes its reference path, which repairs;
+2. the normalised weights ``lw - c``, the weighted mean and the ESS ``1 / sum w^2``, with
+   ``w = exp(lw - max) / sum`` from the exponentials of step 1 (one per particle);
+3. the trials whose ESS is below the threshold: the systematic or stratified indices from the
+   given uniforms, by the reference's rules (:func:`torchflow.resampling._strata_indices`: the
+   CDF of ``exp(lw - max lw)`` scaled to end at exactly N, positions ``j + u_j`` kept below
+   ``j + 1``, index ``#{i : S_i <= p_j}``), and ``-log N`` weights.
+
+:func:`gather_rows` then moves the particles of the resampled trials (others are copied).
+
+The same formulas as the reference code, rounded differently in three places: the sums are
+accumulated in particle order (torch's reductions block and vectorise), the normalised weights
+reuse the logsumexp's exponentials (``exp(lw - max) / sum`` for ``exp(lw - c)``), and so does the
+resampling CDF (the same ``exp(lw - max)``). So the weights, increments and estimates agree to
+round-off (a few ulp), and the ancestors are the same unless a position falls within round-off of
+a CDF step (``tests/test_fused_weights.py``).
+Trials are independent, so the numbers do not depend on the thread count; large batches run
+their trials in parallel (:func:`weigh_resample_parallel`).
+"""
+import math
+
+import numba
+import numpy as np
+
+
+def _weigh_resample(lw_prev, log_inc, x, u, per_particle_u, thresh_n, log_n, lw_out, est, ess, inc, res, idx, e):
+    """Arguments: ``lw_prev``, ``log_inc`` ``(B, N)``; particles ``x (B, N, d)``; uniforms ``u (B, 1)``
+    (systematic) or ``(B, N)`` (stratified: ``per_particle_u``); ``thresh_n`` = threshold x N;
+    ``log_n`` = -log N. Outputs: ``lw_out (B, N)``, ``est (B, d)``, ``ess``, ``inc (B,)``,
+    ``res (B,)`` (resampled), ``idx (B, N)`` (ancestors, written for resampled trials only);
+    ``e (B, N)`` scratch. Returns -1 when some trial's increment is not finite (the outputs are
+    then meaningless), else the number of resampled trials."""
+    B, N = lw_prev.shape
+    d = x.shape[2]
+    bad = 0
+    tots = np.empty(B)
+    for b in numba.prange(B):
+        m = -np.inf
+        for n in range(N):
+            s = x[b, n, 0]
+            for k in range(1, d):
+                s += x[b, n, k]
+            v = lw_prev[b, n] + log_inc[b, n] + (s - s)  # NaN where a coordinate is not finite
+            lw_out[b, n] = v
+            if v > m:
+                m = v
+        tot = 0.0
+        for n in range(N):
+            w = math.exp(lw_out[b, n] - m)  # the one exponential per particle: 1 at the maximum
+            e[b, n] = w
+            tot += w
+        c = m + math.log(tot)
+        inc[b] = c
+        tots[b] = tot
+        if not math.isfinite(c):
+            bad += 1
+    if bad > 0:
+        return -1
+    count = 0
+    for b in numba.prange(B):
+        c = inc[b]
+        r = 1.0 / tots[b]
+        for k in range(d):
+            est[b, k] = 0.0
+        s2 = 0.0
+        for n in range(N):
+            lw_out[b, n] = lw_out[b, n] - c
+            w = e[b, n] * r  # exp(lw - c)
+            s2 += w * w
+            for k in range(d):
+                est[b, k] += w * x[b, n, k]
+        v = 1.0 / s2
+        ess[b] = v
+        flag = v < thresh_n
+        res[b] = flag
+        if flag:
+            count += 1
+            _strata(e, b, u, per_particle_u, idx)
+            for n in range(N):
+                lw_out[b, n] = log_n
+    return count
+
+
+@numba.njit(cache=True, inline="always")
+def _strata(e, b, u, per_particle_u, idx):
+    """Trial ``b``'s systematic/stratified ancestors into ``idx[b]`` from its weights ``e[b]``
+    (``exp(lw - max lw)``), as :func:`torchflow.resampling._strata_indices` defines them: the
+    cumulative weights scaled to end at exactly N, positions ``j + u_j`` kept below ``j + 1``, and
+    the index of position j the number of scaled cumulative weights ``<= p_j`` (at most N - 1)."""
+    N = e.shape[1]
+    cs = np.empty(N)
+    acc = 0.0
+    for n in range(N):
+        acc += e[b, n]
+        cs[n] = acc
+    total = cs[N - 1]
+    scale = N / total
+    fn = float(N)
+    i = 0
+    for j in range(N):
+        uj = u[b, j] if per_particle_u else u[b, 0]
+        p = min(j + uj, np.nextafter(j + 1.0, 0.0))
+        # advance past every i with S_i <= p (S non-decreasing: a merge of two sorted lists)
+        while i < N:
+            S = fn if cs[i] >= total else min(cs[i] * scale, fn)
+            if S <= p:
+                i += 1
+            else:
+                break
+        idx[b, j] = min(i, N - 1)
+
+
+weigh_resample = numba.njit(cache=True)(_weigh_resample)
+weigh_resample_parallel = numba.njit(cache=True, parallel=True)(_weigh_resample)
+
+
+@numba.njit(cache=True)
+def gather_rows(x, idx, res, out):
+    """``out[b] = x[b, idx[b]]`` for the resampled trials (``res``), ``x[b]`` for the others."""
+    B, N, d = x.shape
+    for b in range(B):
+        if res[b]:
+            for n in range(N):
+                a = idx[b, n]
+                for k in range(d):
+                    out[b, n, k] = x[b, a, k]
+        else:
+            for n in range(N):
+                for k in range(d):
+                    out[b, n, k] = x[b, n, k]
