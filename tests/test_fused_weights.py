@@ -177,3 +177,40 @@ def test_a_whole_run_agrees_with_the_torch_path():
 def test_a_resampler_without_the_declaration_takes_the_torch_path():
     x, prev, inc = _inputs()
     assert select.weights_kernel(x, prev, inc, resampler=torch.nn.Identity(), cov=None, extras=None) is None
+
+
+@pytest.mark.parametrize("nonfinite", ["recover", "raise"])
+def test_the_trace_buffers_give_the_kept_steps_numbers(monkeypatch, nonfinite):
+    """A large particle filter's per-step outputs copied into buffers made once (filters.base.
+    TRACE_BUFFER_MIN) are those kept step by step: every output, both non-finite policies."""
+    from torchflow.filters import base
+
+    model = StochasticVolatility()
+    traj = model.simulate(3, 30, torch.Generator().manual_seed(2))
+    mean, cov = model.declared_prior(3)
+    f = BootstrapParticleFilter(model, n_particles=50, nonfinite=nonfinite)
+    runs = []
+    for limit in (0, 2**62):  # buffered, kept
+        monkeypatch.setattr(base, "TRACE_BUFFER_MIN", limit)
+        with torch.no_grad():
+            runs.append(f(traj.observations, mean, cov, torch.Generator().manual_seed(4)))
+    for name in ("estimates", "log_evidence", "log_evidence_increments", "ess", "n_repaired"):
+        assert torch.equal(getattr(runs[0], name), getattr(runs[1], name)), name
+    assert runs[0].estimates.shape == (3, 30, 1)
+
+
+def test_buffered_traces_name_and_warn_the_same_steps(monkeypatch):
+    """The non-finite contract with the trace buffered: a step without the measurement is warned
+    (recover) or raised (raise) naming the same step and trial as the kept steps do."""
+    from test_nonfinite_contract import lg, observations, run
+    from torchflow.errors import NonFiniteError
+    from torchflow.filters import base
+
+    monkeypatch.setattr(base, "TRACE_BUFFER_MIN", 0)
+    z = observations()
+    z[1, 2] = 1e200  # (z - x)^2 / R overflows: every log-weight -inf
+    with pytest.warns(RuntimeWarning, match=r"at 1 step\(s\) \(first at time step 3\) in trial\(s\) \[1\]"):
+        out = run(BootstrapParticleFilter(lg(R=1e-4), n_particles=20), z)
+    assert out.log_evidence[1] == float("-inf") and torch.isfinite(out.log_evidence[[0, 2]]).all()
+    with pytest.raises(NonFiniteError, match=r"at time step 3 in trial\(s\) \[1\]"):
+        run(BootstrapParticleFilter(lg(R=1e-4), n_particles=20, nonfinite="raise"), z)

@@ -380,13 +380,13 @@ class Filter(nn.Module):
         :class:`NonFiniteError` for the earliest non-finite estimate, flagged particles/weights or
         log-evidence increment; with ``warn``, warn of steps that carried no measurement. One host
         read."""
-        if not trace.est:
+        if not trace.n:
             return
         table = guards.table_to_host(guards.first_steps(trace.estimates(), trace.invalid_steps(), trace.increments(),
                                                         getattr(self, "nonfinite", None) == "recover"))
         guards.raise_first(self.name, table)
         if warn:
-            guards.raise_never_measured(self.name, table, len(trace.est))
+            guards.raise_never_measured(self.name, table, trace.n)
             guards.warn_dead_steps(self.name, table)
 
     def forward(
@@ -447,7 +447,8 @@ class Filter(nn.Module):
         except Exception as err:
             self._raise_out_of_memory(_uncountable(err), observations.shape[0], n_particles)
             raise
-        trace = _Trace(observations.shape[0], observations.device, return_covariances, return_particles, return_std)
+        trace = _Trace(observations.shape[0], observations.device, return_covariances, return_particles, return_std,
+                       steps=observations.shape[1])
         if checkpoint_steps is None:
             checkpoint_steps = self.checkpoint_steps
         step = self._checkpointed_step if checkpoint_steps and torch.is_grad_enabled() else self.step
@@ -531,27 +532,69 @@ def _uncountable(err: BaseException) -> BaseException:
     return out
 
 
+#: from this many particle numbers per step (B x N x d) on, :class:`_Trace` copies a particle
+#: filter's per-step estimate, ESS and evidence increment into buffers made once for all T steps
+#: instead of keeping each step's small tensors. Kept, those small blocks are carved by the C
+#: allocator out of the large blocks the step freed, which then no longer fit the next step's large
+#: tensors: the heap grew by ~10 MB a step at B = 100, N = 10^4 (6.5 GB resident after 750 steps,
+#: the step twice as slow from page faults; ``experiments/RESULTS.md``, "Stochastic volatility").
+TRACE_BUFFER_MIN = 1 << 15
+
+
 class _Trace:
     """What :meth:`Filter.forward` keeps of each step: the per-step outputs, and the first
     non-finite step per trial, recorded on the device (reported once, after the last step: no host
-    synchronisation per time step)."""
+    synchronisation per time step). ``steps``: the number of time steps, when known: a large
+    particle filter's small per-step outputs then go into buffers (:data:`TRACE_BUFFER_MIN`)."""
 
-    def __init__(self, B: int, device, covariances: bool, particles: bool, std: bool = False):
-        self.B, self.device = B, device
+    def __init__(self, B: int, device, covariances: bool, particles: bool, std: bool = False,
+                 steps: Optional[int] = None):
+        self.B, self.device, self.steps = B, device, steps
         self.covariances, self.particles, self.std = covariances, particles, std
         self.est, self.inc, self.ess, self.covs, self.parts, self.lws, self.geff = [], [], [], [], [], [], []
         self.stds = []
         self.invalid = []  # per step: (B,) bool or None
+        self.n = 0  # steps added
+        self._buf: Optional[Dict[str, torch.Tensor]] = None  # (B, T, ...) buffers, when buffering
+        self._invalid_seen = False
         self._stacked = None  # (number of steps, stacked estimates (B, T, d))
 
+    def _buffering(self, state) -> bool:
+        """Buffers for a particle filter's state of at least :data:`TRACE_BUFFER_MIN` numbers whose
+        outputs record no gradient (a graph keeps its own references: nothing to gain)."""
+        x = getattr(state, "particles", None)
+        return (self.steps is not None and isinstance(state, ParticleState) and x is not None
+                and x.numel() >= TRACE_BUFFER_MIN and getattr(state, "g_eff", None) is None
+                and not any(t is not None and t.requires_grad
+                            for t in (state.estimate, state.log_evidence_increment, state.ess)))
+
+    def _put(self, name: str, value: torch.Tensor, zeros: bool = False) -> None:
+        buf = self._buf.get(name)
+        if buf is None:
+            shape = (value.shape[0], self.steps) + tuple(value.shape[1:])
+            make = torch.zeros if zeros else torch.empty
+            buf = self._buf[name] = make(shape, dtype=value.dtype, device=value.device)
+        buf.select(1, self.n).copy_(value)
+
     def add(self, state, t: int) -> None:
-        self.est.append(state.estimate)
-        self.invalid.append(getattr(state, "invalid", None))
-        self.inc.append(state.log_evidence_increment)
-        if state.ess is not None:
-            self.ess.append(state.ess)
-        if getattr(state, "g_eff", None) is not None:
-            self.geff.append(state.g_eff)
+        if self.n == 0 and self._buffering(state):
+            self._buf = {}
+        if self._buf is not None:
+            self._put("est", state.estimate)
+            self._put("inc", state.log_evidence_increment)
+            self._put("ess", state.ess)
+            invalid = getattr(state, "invalid", None)
+            if invalid is not None:
+                self._put("invalid", invalid, zeros=True)
+                self._invalid_seen = True
+        else:
+            self.est.append(state.estimate)
+            self.invalid.append(getattr(state, "invalid", None))
+            self.inc.append(state.log_evidence_increment)
+            if state.ess is not None:
+                self.ess.append(state.ess)
+            if getattr(state, "g_eff", None) is not None:
+                self.geff.append(state.g_eff)
         if self.covariances and isinstance(state, GaussianState):
             self.covs.append(state.cov)
         if self.particles and isinstance(state, ParticleState):
@@ -559,17 +602,26 @@ class _Trace:
             self.lws.append(state.log_weights)
         if self.std:
             self.stds.append(belief_std(state))
+        self.n += 1
+
+    def _view(self, name: str) -> Optional[torch.Tensor]:
+        buf = self._buf.get(name)
+        return None if buf is None else buf[:, :self.n]
 
     def estimates(self) -> Optional[torch.Tensor]:
         """The estimates so far, ``(B, T, d)`` (stacked once per length)."""
-        if not self.est:
+        if not self.n:
             return None
+        if self._buf is not None:
+            return self._view("est")
         if self._stacked is None or self._stacked[0] != len(self.est):
             self._stacked = (len(self.est), torch.stack(self.est, 1))
         return self._stacked[1]
 
     def invalid_steps(self) -> Optional[torch.Tensor]:
         """``(B, T)`` steps flagged invalid (``nonfinite="raise"``), ``None`` if no step flags."""
+        if self._buf is not None:
+            return self._view("invalid") if self._invalid_seen else None
         flagged = [i for i in self.invalid if i is not None]
         if not flagged:
             return None
@@ -577,15 +629,16 @@ class _Trace:
 
     def increments(self) -> torch.Tensor:
         """``(B, T)`` log-evidence increments so far."""
-        return torch.stack(self.inc, 1)
+        return self._view("inc") if self._buf is not None else torch.stack(self.inc, 1)
 
     def result(self, state) -> FilterResult:
         def stack(xs):
             return torch.stack(xs, 1) if xs else None
 
-        inc_t = torch.stack(self.inc, 1)
+        inc_t = self.increments()
+        ess = self._view("ess") if self._buf is not None else stack(self.ess)
         return FilterResult(estimates=self.estimates(), log_evidence=inc_t.sum(1), log_evidence_increments=inc_t,
-                            ess=stack(self.ess), covariances=stack(self.covs), particles=stack(self.parts),
+                            ess=ess, covariances=stack(self.covs), particles=stack(self.parts),
                             log_weights=stack(self.lws), n_repaired=getattr(state, "n_repaired", None),
                             g_eff=stack(self.geff), std=stack(self.stds))
 

@@ -14,7 +14,8 @@ in one compiled call (:func:`weigh_resample`):
    CDF of ``exp(lw - max lw)`` scaled to end at exactly N, positions ``j + u_j`` kept below
    ``j + 1``, index ``#{i : S_i <= p_j}``), and ``-log N`` weights.
 
-:func:`gather_rows` then moves the particles of the resampled trials (others are copied).
+The resampled trials' particles are written to a new tensor as their ancestors are found; where
+some trial resampled, the others' are copied beside them.
 
 The same formulas as the reference code, rounded differently in three places: the sums are
 accumulated in particle order (torch's reductions block and vectorise), the normalised weights
@@ -31,13 +32,16 @@ import numba
 import numpy as np
 
 
-def _weigh_resample(lw_prev, log_inc, x, u, per_particle_u, thresh_n, log_n, lw_out, est, ess, inc, res, idx, e):
+def _weigh_resample(lw_prev, log_inc, x, u, per_particle_u, thresh_n, log_n, lw_out, est, ess, inc, res, out):
     """Arguments: ``lw_prev``, ``log_inc`` ``(B, N)``; particles ``x (B, N, d)``; uniforms ``u (B, 1)``
     (systematic) or ``(B, N)`` (stratified: ``per_particle_u``); ``thresh_n`` = threshold x N;
     ``log_n`` = -log N. Outputs: ``lw_out (B, N)``, ``est (B, d)``, ``ess``, ``inc (B,)``,
-    ``res (B,)`` (resampled), ``idx (B, N)`` (ancestors, written for resampled trials only);
-    ``e (B, N)`` scratch. Returns -1 when some trial's increment is not finite (the outputs are
-    then meaningless), else the number of resampled trials."""
+    ``res (B,)`` (resampled) and, where some trial resampled, the particles after resampling in
+    ``out (B, N, d)`` (untouched otherwise). Returns -1 when some trial's increment is not finite
+    (the outputs are then meaningless), else the number of resampled trials.
+
+    No ``(B, N)`` scratch: ``lw_out`` holds ``exp(lw - max)`` between the passes, and a kept trial's
+    log-weights are recomputed from the inputs in a last pass."""
     B, N = lw_prev.shape
     d = x.shape[2]
     bad = 0
@@ -45,17 +49,14 @@ def _weigh_resample(lw_prev, log_inc, x, u, per_particle_u, thresh_n, log_n, lw_
     for b in numba.prange(B):
         m = -np.inf
         for n in range(N):
-            s = x[b, n, 0]
-            for k in range(1, d):
-                s += x[b, n, k]
-            v = lw_prev[b, n] + log_inc[b, n] + (s - s)  # NaN where a coordinate is not finite
+            v = _log_weight(lw_prev, log_inc, x, b, n)
             lw_out[b, n] = v
             if v > m:
                 m = v
         tot = 0.0
         for n in range(N):
             w = math.exp(lw_out[b, n] - m)  # the one exponential per particle: 1 at the maximum
-            e[b, n] = w
+            lw_out[b, n] = w
             tot += w
         c = m + math.log(tot)
         inc[b] = c
@@ -66,14 +67,12 @@ def _weigh_resample(lw_prev, log_inc, x, u, per_particle_u, thresh_n, log_n, lw_
         return -1
     count = 0
     for b in numba.prange(B):
-        c = inc[b]
         r = 1.0 / tots[b]
         for k in range(d):
             est[b, k] = 0.0
         s2 = 0.0
         for n in range(N):
-            lw_out[b, n] = lw_out[b, n] - c
-            w = e[b, n] * r  # exp(lw - c)
+            w = lw_out[b, n] * r  # exp(lw - c)
             s2 += w * w
             for k in range(d):
                 est[b, k] += w * x[b, n, k]
@@ -83,19 +82,40 @@ def _weigh_resample(lw_prev, log_inc, x, u, per_particle_u, thresh_n, log_n, lw_
         res[b] = flag
         if flag:
             count += 1
-            _strata(e, b, u, per_particle_u, idx)
+            _strata(lw_out, b, u, per_particle_u, x, out)
             for n in range(N):
                 lw_out[b, n] = log_n
+        else:
+            c = inc[b]
+            for n in range(N):
+                lw_out[b, n] = _log_weight(lw_prev, log_inc, x, b, n) - c
+    if count > 0:  # the kept trials' particles join the resampled ones in ``out``
+        for b in numba.prange(B):
+            if not res[b]:
+                for n in range(N):
+                    for k in range(d):
+                        out[b, n, k] = x[b, n, k]
     return count
 
 
 @numba.njit(cache=True, inline="always")
-def _strata(e, b, u, per_particle_u, idx):
-    """Trial ``b``'s systematic/stratified ancestors into ``idx[b]`` from its weights ``e[b]``
-    (``exp(lw - max lw)``), as :func:`torchflow.resampling._strata_indices` defines them: the
-    cumulative weights scaled to end at exactly N, positions ``j + u_j`` kept below ``j + 1``, and
-    the index of position j the number of scaled cumulative weights ``<= p_j`` (at most N - 1)."""
+def _log_weight(lw_prev, log_inc, x, b, n):
+    """``lw_prev + log_inc``, NaN where a coordinate of the particle is not finite (``s - s``)."""
+    s = x[b, n, 0]
+    for k in range(1, x.shape[2]):
+        s += x[b, n, k]
+    return lw_prev[b, n] + log_inc[b, n] + (s - s)
+
+
+@numba.njit(cache=True, inline="always")
+def _strata(e, b, u, per_particle_u, x, out):
+    """Trial ``b``'s systematic/stratified resampling of ``x[b]`` into ``out[b]``, from its weights
+    ``e[b]`` (``exp(lw - max lw)``), with the ancestors :func:`torchflow.resampling._strata_indices`
+    defines: the cumulative weights scaled to end at exactly N, positions ``j + u_j`` kept below
+    ``j + 1``, and the ancestor of position j the number of scaled cumulative weights ``<= p_j``
+    (at most N - 1)."""
     N = e.shape[1]
+    d = x.shape[2]
     cs = np.empty(N)
     acc = 0.0
     for n in range(N):
@@ -115,24 +135,10 @@ def _strata(e, b, u, per_particle_u, idx):
                 i += 1
             else:
                 break
-        idx[b, j] = min(i, N - 1)
+        a = min(i, N - 1)
+        for k in range(d):
+            out[b, j, k] = x[b, a, k]
 
 
 weigh_resample = numba.njit(cache=True)(_weigh_resample)
 weigh_resample_parallel = numba.njit(cache=True, parallel=True)(_weigh_resample)
-
-
-@numba.njit(cache=True)
-def gather_rows(x, idx, res, out):
-    """``out[b] = x[b, idx[b]]`` for the resampled trials (``res``), ``x[b]`` for the others."""
-    B, N, d = x.shape
-    for b in range(B):
-        if res[b]:
-            for n in range(N):
-                a = idx[b, n]
-                for k in range(d):
-                    out[b, n, k] = x[b, a, k]
-        else:
-            for n in range(N):
-                for k in range(d):
-                    out[b, n, k] = x[b, n, k]

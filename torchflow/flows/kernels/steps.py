@@ -382,23 +382,20 @@ def weigh_resample(particles: torch.Tensor, prev_log_weights: torch.Tensor, log_
     from . import cpu_weights as k
     B, N, d = particles.shape
     x = particles.detach().contiguous()
-    # outputs and scratch made by NumPy (a tenth of torch.empty's cost), the outputs wrapped once
-    lw, est, ess, inc = np.empty((B, N)), np.empty((B, d)), np.empty(B), np.empty(B)
-    res, idx, e = np.empty(B, dtype=np.bool_), np.empty((B, N), dtype=np.int64), np.empty((B, N))
+    # the small outputs made by NumPy (a tenth of torch.empty's cost) and wrapped once
+    est, ess, inc, res = np.empty((B, d)), np.empty(B), np.empty(B), np.empty(B, dtype=np.bool_)
+    lw, out = torch.empty(B, N, dtype=torch.float64), torch.empty_like(x)
     u = np.zeros((B, 1)) if uniforms is None else _np(uniforms.contiguous())
     parallel = B > 1 and B * N >= PARALLEL_WEIGHTS_MIN and torch.get_num_threads() > 1
     if parallel:
         _set_threads()
     fn = k.weigh_resample_parallel if parallel else k.weigh_resample
     count = fn(_np(prev_log_weights.contiguous()), _np(log_increment.contiguous()), x.numpy(), u, u.shape[1] > 1,
-               float(threshold) * N if uniforms is not None else 0.0, -math.log(N), lw, est, ess, inc, res, idx, e)
+               float(threshold) * N if uniforms is not None else 0.0, -math.log(N), lw.numpy(), est, ess, inc, res,
+               out.numpy())
     if count < 0:
         return None
-    if count > 0:
-        out = torch.empty_like(x)
-        k.gather_rows(x.numpy(), idx, res, out.numpy())
-        particles = out
-    return (particles,) + tuple(torch.from_numpy(a) for a in (lw, est, ess, inc, res))
+    return (out if count > 0 else particles, lw) + tuple(torch.from_numpy(a) for a in (est, ess, inc, res))
 
 
 _weights = None
