@@ -140,6 +140,8 @@ def test_what_the_kernel_does_not_cover_takes_the_torch_path():
     assert select.weights_kernel(x, prev, inc, **dict(kw, extras={"ancestor": prev.long()})) is None
     with tuning.tuned(fused_weights=0):
         assert select.weights_kernel(x, prev, inc, **kw) is None
+    many = select.WEIGHTS_KERNEL_MAX_PARTICLES + 1  # more particles per trial: torch's vectorised passes
+    assert select.weights_kernel(torch.zeros(1, many, 1, dtype=torch.float64), **kw) is None
     assert select.weights_kernel(x, prev, inc.requires_grad_(), **kw) is None  # a gradient is recorded
     with torch.no_grad():
         assert select.weights_kernel(x, prev, inc, **kw) == "systematic"

@@ -100,8 +100,9 @@ class Tuning:
             lane kernel run in information form (PFGSPF, d = 144). One kernel keeps each
             particle's small matrices in registers or cache and replaces many small launches and
             passes over memory; timings in ``experiments/RESULTS.md`` ("CPU kernels", "GPU").
-        fused_weights: on the CPU with Numba installed, a particle filter's step (the bootstrap
-            PF's, and any whose particles carry no covariance or extras) weighs, normalises,
+        fused_weights: on the CPU with Numba installed, a particle filter's step with at most
+            4096 particles per trial (the bootstrap PF's, and any whose particles carry no
+            covariance or extras; ``select.WEIGHTS_KERNEL_MAX_PARTICLES``) weighs, normalises,
             estimates and resamples (systematic or stratified, no sorting or jitter) in one
             compiled call per batch (:mod:`torchflow.flows.kernels.cpu_weights`) instead of ~20
             eager ops of 1-3 us each: what one trial per call at N = 10^3 spends most of its

@@ -168,17 +168,25 @@ def gpfis_kernel(measurement, x: torch.Tensor, k: int) -> bool:
     return fused
 
 
+#: the weighting kernel runs for at most this many particles per trial: its one exponential per
+#: particle is a scalar call (about 4 ns), where torch's are vectorised, so from about 4,000
+#: particles on the torch path's few passes cost less than the calls the kernel saves (the
+#: stochastic-volatility series, one thread: ``experiments/RESULTS.md``)
+WEIGHTS_KERNEL_MAX_PARTICLES = 4096
+
+
 def weights_kernel(particles: torch.Tensor, *tensors: torch.Tensor, resampler, cov, extras) -> Optional[str]:
     """A particle filter's step weighs, estimates and resamples in one CPU kernel call
     (:func:`~torchflow.flows.kernels.steps.weigh_resample`): ``tuning.fused_weights``, float64
-    ``(B, N, d)`` particles on the CPU with Numba, no gradient recorded through them or
+    ``(B, N, d)`` particles on the CPU with Numba, ``N <=`` :data:`WEIGHTS_KERNEL_MAX_PARTICLES`,
+    no gradient recorded through them or
     ``tensors`` (the weights), nothing carried per particle (no tracked covariance, no extras), and
     a resampler that declares a kernel scheme
     (:attr:`~torchflow.resampling.Resampler.kernel_scheme`). Returns that scheme
     (``"systematic"`` or ``"stratified"``) or ``None``. The caller, which has read the host
     (:func:`torchflow.resampling.reads_host`), notes ``"kernel:weights"`` when the call succeeds."""
     if (cov is not None or extras or particles.dtype != torch.float64 or particles.dim() != 3 or not particles.is_cpu
-            or not tuning.get().fused_weights):
+            or particles.shape[1] > WEIGHTS_KERNEL_MAX_PARTICLES or not tuning.get().fused_weights):
         return None
     if torch.is_grad_enabled() and any(t.requires_grad for t in (particles,) + tensors):
         return None
