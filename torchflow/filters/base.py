@@ -532,7 +532,7 @@ def _uncountable(err: BaseException) -> BaseException:
     return out
 
 
-#: from this many particle numbers per step (B x N x d) on, :class:`_Trace` copies a particle
+#: from this many particle numbers per step (B x N x d) on, :class:`_Trace` copies a CPU particle
 #: filter's per-step estimate, ESS and evidence increment into buffers made once for all T steps
 #: instead of keeping each step's small tensors. Kept, those small blocks are carved by the C
 #: allocator out of the large blocks the step freed, which then no longer fit the next step's large
@@ -560,10 +560,11 @@ class _Trace:
         self._stacked = None  # (number of steps, stacked estimates (B, T, d))
 
     def _buffering(self, state) -> bool:
-        """Buffers for a particle filter's state of at least :data:`TRACE_BUFFER_MIN` numbers whose
-        outputs record no gradient (a graph keeps its own references: nothing to gain)."""
+        """Buffers for a particle filter's CPU state of at least :data:`TRACE_BUFFER_MIN` numbers
+        whose outputs record no gradient (a graph keeps its own references: nothing to gain). Not on
+        a GPU: its caching allocator does not fragment so, and each copy would be a launch."""
         x = getattr(state, "particles", None)
-        return (self.steps is not None and isinstance(state, ParticleState) and x is not None
+        return (self.steps is not None and isinstance(state, ParticleState) and x is not None and x.is_cpu
                 and x.numel() >= TRACE_BUFFER_MIN and getattr(state, "g_eff", None) is None
                 and not any(t is not None and t.requires_grad
                             for t in (state.estimate, state.log_evidence_increment, state.ess)))
