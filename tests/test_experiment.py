@@ -80,13 +80,14 @@ def test_runner_float32_and_filter_seeds_independent_of_other_filters():
 def test_runner_warmup_is_untimed_and_moves_no_number():
     """``warmup=True`` (on a GPU: ``"auto"``) makes one untimed call per filter on its first trial
     and reports its seconds as ``warmup_sec``; every trial's numbers stay those of a run without it
-    (each trial draws from its own stream). ``"auto"`` on the CPU warms up the filters whose flows
-    take the Numba kernels (their first call compiles or loads them), not the others; a bad value
-    is refused."""
+    (each trial draws from its own stream). ``"auto"`` on the CPU warms up the filters that take a
+    Numba kernel (a flow's, or the particle filters' weighting kernel: their first call compiles or
+    loads it), not the others (a jittered resampler is not the kernel's); a bad value is refused."""
     from torchflow.filters import ParticleFlowParticleFilter
     from torchflow.flows.kernels import steps
     model = AcousticTracking()
     filters = lambda: {"bpf": BootstrapParticleFilter(model, n_particles=40),  # noqa: E731
+                       "jittered": BootstrapParticleFilter(model, n_particles=40, regularization=0.01),
                        "ledh": ParticleFlowParticleFilter(model, flow="ledh", n_particles=20)}
     plain = run_experiment(model, filters(), trials=3, steps=3, progress=False, warmup=False)
     warm = run_experiment(model, filters(), trials=3, steps=3, progress=False, warmup=True)
@@ -94,7 +95,7 @@ def test_runner_warmup_is_untimed_and_moves_no_number():
     assert all(r["warmup_sec"] is None for r in plain.summary)
     assert all(r["warmup_sec"] > 0 for r in warm.summary)
     warmed = {r["filter"]: r["warmup_sec"] is not None for r in auto.summary}
-    assert warmed == {"bpf": False, "ledh": steps.numba_available()}
+    assert warmed == {"bpf": steps.weights_available(), "jittered": False, "ledh": steps.numba_available()}
     drop = lambda rows: [{k: v for k, v in r.items() if k not in ("sec_per_step", "warmup_sec")} for r in rows]  # noqa: E731
     assert drop(warm.per_trial) == drop(plain.per_trial) and drop(warm.summary) == drop(plain.summary)
     with pytest.raises(ValueError, match="warmup"):
@@ -704,8 +705,23 @@ class _Counting(BootstrapParticleFilter):
 
 def _store_run(model, store, **kw):
     f = _Counting(model, n_particles=30)
+    kw.setdefault("warmup", False)  # (the calls counted are the chunks')
     res = run_experiment(model, {"bpf": f}, trials=6, steps=3, seed=2, progress=False, store=store, **kw)
     return res, f
+
+
+def test_the_warm_up_is_made_only_before_a_chunk_is_computed(tmp_path):
+    """Resuming a run whose chunks are all saved computes nothing, not even the warm-up; with one
+    chunk lost, the warm-up (one trial) comes before it."""
+    from torchflow.runner import ChunkStore
+
+    model = SensorNetwork(d=4)
+    _store_run(model, ChunkStore(tmp_path, {"bpf": "k"}), chunk_size=3)
+    res, f = _store_run(model, ChunkStore(tmp_path, {"bpf": "k"}, resume=True), chunk_size=3, warmup=True)
+    assert f.seen == [] and res.summary[0]["warmup_sec"] is None
+    (tmp_path / "k" / "0000003-0000006.pt").unlink()
+    res, f = _store_run(model, ChunkStore(tmp_path, {"bpf": "k"}, resume=True), chunk_size=3, warmup=True)
+    assert f.seen == [1, 3] and res.summary[0]["warmup_sec"] > 0
 
 
 def test_a_damaged_chunk_file_is_recomputed_with_a_warning(tmp_path):

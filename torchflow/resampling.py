@@ -780,8 +780,10 @@ class Resampler(nn.Module):
         """``"systematic"`` or ``"stratified"`` where a step's resampling may run in the CPU weighting
         kernel (:func:`torchflow.flows.kernels.select.weights_kernel`): that built-in scheme, no
         sorting, no regularisation, and a gradient rule that changes nothing without autograd
-        (``"none"``, ``"stop_gradient"``); ``None`` otherwise."""
-        if self.sort is not None or self.regularization_std is not None or self.gradient not in ("none", "stop_gradient"):
+        (``"none"``, ``"stop_gradient"``), and this class's own :meth:`forward` (a subclass that
+        overrides it is always called); ``None`` otherwise."""
+        if (self.sort is not None or self.regularization_std is not None or self.gradient not in ("none", "stop_gradient")
+                or type(self).forward is not Resampler.forward):
             return None
         return _KERNEL_SCHEMES.get(self._scheme_fn)
 
@@ -790,6 +792,8 @@ class Resampler(nn.Module):
         (systematic) or ``(B, N)`` (stratified, multinomial, residual), from ``generator``, as
         :meth:`forward` would draw them; ``None`` when ``ess_threshold`` is 0 (nothing is drawn).
         Passed back as :meth:`forward`'s ``uniforms``, they stand for its own draw."""
+        if self._scheme_fn not in _SPLIT:
+            raise ArgumentError(f"draw_uniforms: the scheme {self.scheme!r} is not a built-in one; its draws are its own")
         if self.ess_threshold == 0.0:
             return None
         b, n = log_weights.shape

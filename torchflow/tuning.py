@@ -77,8 +77,10 @@ class Tuning:
             computes (CDF, inversion, gathers) only the trials whose ESS triggered it, and nothing
             in a step where none did (the uniforms are still drawn for every trial), and the
             repair of non-finite particles and dead trials is skipped in a step that has none.
-            The same numbers either way. On a GPU every trial is computed with masks (no host
-            read). 0: the GPU's way on the CPU too (what the host-synchronisation tests count).
+            The same numbers either way, except that the weighting kernel (``fused_weights``)
+            needs these reads: with it on, 0 also turns it off (round-off). On a GPU every trial is
+            computed with masks (no host read). 0: the GPU's way on the CPU too (what the
+            host-synchronisation tests count).
         jitter_ladder_divisor: the batched jitter ladder of :func:`torchflow.linalg.safe_cholesky`
             (CUDA, or ``batched_jitter_cpu=1``) gathers the failed matrices of a batch of n into
             ``max(min(n, 4096), ceil(n / divisor))`` slots and factors the ladder for those only;

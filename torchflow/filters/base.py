@@ -928,21 +928,10 @@ class ParticleFilter(Filter):
         """
         if n_repaired is None:
             n_repaired = torch.zeros(particles.shape[0], dtype=torch.long, device=particles.device)
-        uniforms = None
         if _resampling.reads_host(log_increment):  # the CPU: one read says whether anything needs repair
-            if _select.weights_kernel(particles, prev_log_weights, log_increment, resampler=self.resampler, cov=cov,
-                                      extras=extras):
-                # one compiled call (torchflow.tuning fused_weights); the uniforms are drawn first,
-                # where the reference draws them, and handed on if some trial needs the repair below
-                uniforms = self.resampler.draw_uniforms(prev_log_weights, generator)
-                out = _steps.weigh_resample(particles, prev_log_weights, log_increment, uniforms,
-                                            self.resampler.ess_threshold)
-                if out is not None:
-                    _paths.note("kernel:weights")
-                    x, lw, estimate, ess, inc, resampled = out
-                    return ParticleState(particles=x, log_weights=lw, estimate=estimate, ess=ess,
-                                         log_evidence_increment=inc, resampled=resampled, n_repaired=n_repaired,
-                                         cov=cov, step=step, extras={}, invalid=self.account_clean(n_repaired))
+            if self._weights_kernel(particles, prev_log_weights, log_increment, cov, extras):
+                return self._weigh_in_kernel(particles, prev_log_weights, log_increment, generator, step, fallback,
+                                             n_repaired)
             # s - s is 0 where a particle's coordinate sum s is finite, NaN elsewhere: lw is the sum of
             # the weights where every particle is finite, and a trial's logsumexp is finite exactly
             # where no particle needs repair (a non-finite coordinate, a NaN or +inf increment) and
@@ -953,8 +942,48 @@ class ParticleFilter(Filter):
             # finite sum <=> every term finite (a NaN or an infinity makes it NaN or infinite)
             if math.isfinite(float(inc.detach().sum())):  # nothing to repair, no dead trial
                 return self._estimate_and_resample(particles, lw - inc.unsqueeze(-1), inc, generator, step, cov,
-                                                   extras, n_repaired, self.account_clean(n_repaired), None,
-                                                   uniforms)
+                                                   extras, n_repaired, self.account_clean(n_repaired), None)
+        return self._weigh_masked(particles, prev_log_weights, log_increment, generator, step, cov, extras, fallback,
+                                  n_repaired)
+
+    def _weights_kernel(self, particles, prev_log_weights, log_increment, cov, extras) -> bool:
+        """The CPU weighting kernel takes this step (:func:`torchflow.flows.kernels.select.weights_kernel`),
+        where this class weighs, estimates and resamples as :class:`ParticleFilter` does."""
+        cls = type(self)
+        return (cls._estimate_and_resample is ParticleFilter._estimate_and_resample
+                and cls.account_clean is ParticleFilter.account_clean and cls.account is ParticleFilter.account
+                and _select.weights_kernel(particles, prev_log_weights, log_increment, resampler=self.resampler,
+                                           cov=cov, extras=extras) is not None)
+
+    def _weigh_in_kernel(self, particles, prev_log_weights, log_increment, generator, step, fallback, n_repaired):
+        """:meth:`weight_and_resample` by the CPU weighting kernel (``tuning.fused_weights``). The
+        resampler's uniforms are drawn first, where the reference draws them; the trials the kernel
+        flags (a particle to repair, no weight left) take :meth:`_weigh_masked` on their own rows with
+        their rows of those uniforms, so every trial's numbers are those it gets in any batch."""
+        uniforms = self.resampler.draw_uniforms(prev_log_weights, generator)
+        x, lw, estimate, ess, inc, resampled, bad = _steps.weigh_resample(
+            particles, prev_log_weights, log_increment, uniforms, self.resampler.ess_threshold)
+        _paths.note("kernel:weights")
+        invalid = self.account_clean(n_repaired)
+        if bool(bad.any()):
+            rows = bad.nonzero().squeeze(1)
+            sub = self._weigh_masked(particles[rows], prev_log_weights[rows], log_increment[rows], generator, step,
+                                     None, None, None if fallback is None else fallback[rows], n_repaired[rows],
+                                     None if uniforms is None else uniforms[rows])
+            for out, part in ((x, sub.particles), (lw, sub.log_weights), (estimate, sub.estimate), (ess, sub.ess),
+                              (inc, sub.log_evidence_increment), (resampled, sub.resampled)):
+                out[rows] = part
+            n_repaired = n_repaired.index_copy(0, rows, sub.n_repaired)
+            if invalid is not None:
+                invalid = invalid.index_copy(0, rows, sub.invalid)
+        return ParticleState(particles=x, log_weights=lw, estimate=estimate, ess=ess, log_evidence_increment=inc,
+                             resampled=resampled, n_repaired=n_repaired, cov=None, step=step, extras={},
+                             invalid=invalid)
+
+    def _weigh_masked(self, particles, prev_log_weights, log_increment, generator, step, cov, extras, fallback,
+                      n_repaired, uniforms=None) -> "ParticleState":
+        """:meth:`weight_and_resample` with the repair of non-finite particles and dead trials, as
+        masked updates over every trial (``uniforms``: the resampler's draws when made already)."""
         bad = self._nonfinite(particles, log_increment)
         # No host synchronisation from here: every branch below is a masked update over all trials;
         # with nonfinite="raise" the offending trials are flagged in ``state.invalid`` and

@@ -170,16 +170,27 @@ def _declares_flow_kernel(f) -> bool:
     return select.declared(getattr(getattr(f, "proposal", None), "flow", None), "kernel") is not None
 
 
+def _may_weigh_in_kernel(f) -> bool:
+    """Whether particle filter ``f``'s steps may take the CPU weighting kernel (its resampler
+    declares a kernel scheme, it has few enough particles per trial and the kernel imports;
+    :func:`~torchflow.flows.kernels.select.weights_kernel` decides per step)."""
+    from ..flows.kernels import select, steps
+
+    return (getattr(getattr(f, "resampler", None), "kernel_scheme", None) is not None
+            and int(getattr(f, "n_particles", 0) or 0) <= select.WEIGHTS_KERNEL_MAX_PARTICLES
+            and steps.weights_available())
+
+
 def auto_warmup(f, device) -> bool:
     """``warmup="auto"``: on a GPU always (compiling and loading kernels, graph capture); on the CPU
-    when ``f``'s flow takes a Numba kernel (its first call compiles it or loads it from Numba's
-    cache: seconds that would otherwise land in the first timed chunk); the one-shot localisers are
-    not time-stepped filters and are left alone there."""
+    when ``f``'s flow takes a Numba kernel or its steps may take the weighting kernel (a first call
+    compiles a kernel or loads it from Numba's cache: time that would otherwise land in the first
+    timed chunk); the one-shot localisers are not time-stepped filters and are left alone there."""
     from ..flows.kernels import steps
 
     kind = torch.device(device).type
     return kind == "cuda" or (kind == "cpu" and isinstance(f, Filter) and steps.numba_available()
-                              and _declares_flow_kernel(f))
+                              and (_declares_flow_kernel(f) or _may_weigh_in_kernel(f)))
 
 
 def say_slow_path(filters: Mapping, device) -> Optional[str]:
@@ -233,19 +244,26 @@ def warm_up(f: Filter, name: str, plan: RunPlan, chunks: Sequence[Tuple[int, int
     return sum(_timed_call(f, name, plan, s0, s0 + n, steps=steps)[1] for n in sizes)
 
 
-def _one_chunk(f, name, plan, s, e, store, bar) -> dict:
-    """A chunk from the store (saved with these or, resuming, other boundaries) or computed and saved."""
+def _one_chunk(f, name, plan, s, e, store, bar, before=None) -> dict:
+    """A chunk from the store (saved with these or, resuming, other boundaries) or computed and saved;
+    ``before()`` is called before any trial is computed (the warm-up)."""
     steps, meta = plan.settings.steps, plan.meta(f)
+
+    def compute(a, b):
+        if before is not None:
+            before()
+        return run_chunk(f, name, plan, a, b, bar)
+
     if store is None:
-        return run_chunk(f, name, plan, s, e, bar)
+        return compute(s, e)
     chunk = store.load(name, s, e, steps, meta)
     if chunk is not None:
         if bar is not None:
             bar.update((e - s) * steps)
         return chunk
     # trials saved by a run with other chunk boundaries are reused
-    chunk = store.assemble(name, s, e, steps, meta, compute=lambda a, b: run_chunk(f, name, plan, a, b, bar))
-    chunk = chunk if chunk is not None else run_chunk(f, name, plan, s, e, bar)
+    chunk = store.assemble(name, s, e, steps, meta, compute=compute)
+    chunk = chunk if chunk is not None else compute(s, e)
     store.save_or_warn(name, s, e, chunk, meta)
     return chunk
 
@@ -253,19 +271,27 @@ def _one_chunk(f, name, plan, s, e, store, bar) -> dict:
 def execute(f: Filter, name: str, plan: RunPlan, *, store: Optional[ChunkStore] = None, progress=False,
             desc="", warmup: bool = False) -> Outcome:
     """Run ``f`` over this rank's chunks (a tqdm bar on rank 0 with ``progress``); the ranks' outcome.
-    ``warmup``: first untimed calls on two steps (:func:`warm_up`)."""
+    ``warmup``: first untimed calls on two steps (:func:`warm_up`), made before the first chunk
+    that is computed (none when the store holds every chunk)."""
     mine = plan.shard.mine(plan.trial_chunks(plan.chunks[name]))
     bar = tqdm(total=sum(e - s for s, e in mine) * plan.settings.steps, unit="trial-step", leave=False,
                dynamic_ncols=True, desc=desc) if progress and plan.shard.is_main else None
     out, where = Outcome(), None
-    try:
-        if warmup and mine:
+    pending = [bool(warmup and mine)]
+
+    def before():  # the warm-up, once, before the first trial computed (none when every chunk is saved)
+        nonlocal where
+        if pending[0]:
+            pending[0], chunk_where = False, where
             where = f"the warm-up call (from trial {mine[0][0]})"
             out.warmup = warm_up(f, name, plan, mine)
+            where = chunk_where
+
+    try:
         for i, (s, e) in enumerate(mine):
             STOP.check()
             where = f"chunk {i + 1} of {len(mine)} (trials {s}..{e - 1})"
-            out.chunks.append(_one_chunk(f, name, plan, s, e, store, bar))
+            out.chunks.append(_one_chunk(f, name, plan, s, e, store, bar, before))
         STOP.check()
     except KeyboardInterrupt:  # keep what finished; the caller writes it and says so
         out.interrupted = True
@@ -370,7 +396,7 @@ def run_experiment(
     discarded; every trial's stream is its own, so no result moves), so that ``sec_per_step`` is
     the steady-state compute time and the one-time costs (on a GPU, compiling and loading kernels:
     seconds) are reported apart as ``warmup_sec``; ``"auto"``: on a GPU, and on the CPU for the
-    filters whose flows take the Numba kernels (:func:`auto_warmup`). ``trials`` and
+    filters that take a Numba kernel (:func:`auto_warmup`). ``trials`` and
     ``steps`` default to 10.
 
     ``observations``: recorded data, filtered instead of a simulation (no true states): ``(T, m)``

@@ -5,8 +5,9 @@ operations (each a pass over the ``(B, N)`` weights, 1-3 us of dispatch apiece a
 in one compiled call (:func:`weigh_resample`):
 
 1. ``lw = lw_prev + log_increment`` (a particle with a non-finite coordinate makes it NaN), the
-   step's evidence increment ``c = logsumexp(lw)`` per trial; any non-finite ``c`` stops the call
-   (return -1) and the filter takes its reference path, which repairs;
+   step's evidence increment ``c = logsumexp(lw)`` per trial; a trial whose ``c`` is not finite is
+   flagged and left to the filter's reference path, which repairs it (the others are finished
+   here, so a trial's numbers do not depend on its neighbours);
 2. the normalised weights ``lw - c``, the weighted mean and the ESS ``1 / sum w^2``, with
    ``w = exp(lw - max) / sum`` from the exponentials of step 1 (one per particle);
 3. the trials whose ESS is below the threshold: the systematic or stratified indices from the
@@ -27,24 +28,27 @@ Trials are independent, so the numbers do not depend on the thread count; large 
 their trials in parallel (:func:`weigh_resample_parallel`).
 """
 import math
+import types
 
 import numba
 import numpy as np
 
 
-def _weigh_resample(lw_prev, log_inc, x, u, per_particle_u, thresh_n, log_n, lw_out, est, ess, inc, res, out):
+def _weigh_resample(lw_prev, log_inc, x, u, per_particle_u, thresh_n, log_n, lw_out, est, ess, inc, res, out,
+                    bad):
     """Arguments: ``lw_prev``, ``log_inc`` ``(B, N)``; particles ``x (B, N, d)``; uniforms ``u (B, 1)``
     (systematic) or ``(B, N)`` (stratified: ``per_particle_u``); ``thresh_n`` = threshold x N;
     ``log_n`` = -log N. Outputs: ``lw_out (B, N)``, ``est (B, d)``, ``ess``, ``inc (B,)``,
     ``res (B,)`` (resampled) and, where some trial resampled, the particles after resampling in
-    ``out (B, N, d)`` (untouched otherwise). Returns -1 when some trial's increment is not finite
-    (the outputs are then meaningless), else the number of resampled trials.
+    ``out (B, N, d)`` (untouched otherwise); ``bad (B,)``: the trials whose increment is not
+    finite (a particle to repair, or no weight left), whose outputs are left for the caller's
+    reference path. Returns the number of resampled trials among the others.
 
     No ``(B, N)`` scratch: ``lw_out`` holds ``exp(lw - max)`` between the passes, and a kept trial's
-    log-weights are recomputed from the inputs in a last pass."""
+    log-weights are recomputed from the inputs in a last pass. Every trial is computed on its own:
+    its numbers do not depend on the others in the batch."""
     B, N = lw_prev.shape
     d = x.shape[2]
-    bad = 0
     tots = np.empty(B)
     for b in numba.prange(B):
         m = -np.inf
@@ -61,12 +65,12 @@ def _weigh_resample(lw_prev, log_inc, x, u, per_particle_u, thresh_n, log_n, lw_
         c = m + math.log(tot)
         inc[b] = c
         tots[b] = tot
-        if not math.isfinite(c):
-            bad += 1
-    if bad > 0:
-        return -1
+        bad[b] = not math.isfinite(c)
     count = 0
     for b in numba.prange(B):
+        if bad[b]:
+            res[b] = False
+            continue
         r = 1.0 / tots[b]
         for k in range(d):
             est[b, k] = 0.0
@@ -91,7 +95,7 @@ def _weigh_resample(lw_prev, log_inc, x, u, per_particle_u, thresh_n, log_n, lw_
                 lw_out[b, n] = _log_weight(lw_prev, log_inc, x, b, n) - c
     if count > 0:  # the kept trials' particles join the resampled ones in ``out``
         for b in numba.prange(B):
-            if not res[b]:
+            if not res[b] and not bad[b]:
                 for n in range(N):
                     for k in range(d):
                         out[b, n, k] = x[b, n, k]
@@ -140,5 +144,15 @@ def _strata(e, b, u, per_particle_u, x, out):
             out[b, j, k] = x[b, a, k]
 
 
+def _renamed(fn, name: str):
+    """A copy of ``fn`` under another name: Numba's on-disk cache keys a function by its name and
+    line, not by its compile options, so the serial and parallel variants need two names."""
+    extra = {"co_qualname": name} if hasattr(fn.__code__, "co_qualname") else {}  # Python >= 3.11
+    code = fn.__code__.replace(co_name=name, **extra)
+    out = types.FunctionType(code, fn.__globals__, name, fn.__defaults__, fn.__closure__)
+    out.__qualname__ = name
+    return out
+
+
 weigh_resample = numba.njit(cache=True)(_weigh_resample)
-weigh_resample_parallel = numba.njit(cache=True, parallel=True)(_weigh_resample)
+weigh_resample_parallel = numba.njit(cache=True, parallel=True)(_renamed(_weigh_resample, "_weigh_resample_parallel"))

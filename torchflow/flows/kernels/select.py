@@ -179,7 +179,7 @@ def weights_kernel(particles: torch.Tensor, *tensors: torch.Tensor, resampler, c
     """A particle filter's step weighs, estimates and resamples in one CPU kernel call
     (:func:`~torchflow.flows.kernels.steps.weigh_resample`): ``tuning.fused_weights``, float64
     ``(B, N, d)`` particles on the CPU with Numba, ``N <=`` :data:`WEIGHTS_KERNEL_MAX_PARTICLES`,
-    no gradient recorded through them or
+    ``tensors`` (the weights) float64 ``(B, N)``, no gradient recorded through them or
     ``tensors`` (the weights), nothing carried per particle (no tracked covariance, no extras), and
     a resampler that declares a kernel scheme
     (:attr:`~torchflow.resampling.Resampler.kernel_scheme`). Returns that scheme
@@ -188,6 +188,8 @@ def weights_kernel(particles: torch.Tensor, *tensors: torch.Tensor, resampler, c
     if (cov is not None or extras or particles.dtype != torch.float64 or particles.dim() != 3 or not particles.is_cpu
             or particles.shape[1] > WEIGHTS_KERNEL_MAX_PARTICLES or not tuning.get().fused_weights):
         return None
+    if any(t.shape != particles.shape[:2] or t.dtype != torch.float64 or not t.is_cpu for t in tensors):
+        return None  # (the torch path broadcasts a weight of another shape; the kernel reads (B, N))
     if torch.is_grad_enabled() and any(t.requires_grad for t in (particles,) + tensors):
         return None
     scheme = getattr(resampler, "kernel_scheme", None)  # a Resampler's declaration

@@ -376,14 +376,16 @@ def weigh_resample(particles: torch.Tensor, prev_log_weights: torch.Tensor, log_
     normalised ``prev_log_weights (B, N)``, ``log_increment (B, N)``; ``uniforms`` the resampling
     scheme's draws, ``(B, 1)`` (systematic) or ``(B, N)`` (stratified), ``None`` when
     ``threshold`` is 0 (no trial resamples). Returns ``(particles, log_weights, estimate (B, d),
-    ess (B,), log_evidence_increment (B,), resampled (B,))``, the particles the same tensor where
-    no trial resampled; or ``None`` when some trial's increment is not finite (nothing is changed:
-    the caller's reference path repairs)."""
+    ess (B,), log_evidence_increment (B,), resampled (B,), bad (B,))``: the particles the same
+    tensor where no trial resampled and none is bad; ``bad`` flags the trials whose increment is
+    not finite, whose rows are left for the caller's reference path to repair (their particle rows
+    are those of ``particles``, the others undefined)."""
     from . import cpu_weights as k
     B, N, d = particles.shape
     x = particles.detach().contiguous()
     # the small outputs made by NumPy (a tenth of torch.empty's cost) and wrapped once
-    est, ess, inc, res = np.empty((B, d)), np.empty(B), np.empty(B), np.empty(B, dtype=np.bool_)
+    est, ess, inc = np.empty((B, d)), np.empty(B), np.empty(B)
+    res, bad = np.empty(B, dtype=np.bool_), np.empty(B, dtype=np.bool_)
     lw, out = torch.empty(B, N, dtype=torch.float64), torch.empty_like(x)
     u = np.zeros((B, 1)) if uniforms is None else _np(uniforms.contiguous())
     parallel = B > 1 and B * N >= PARALLEL_WEIGHTS_MIN and torch.get_num_threads() > 1
@@ -392,10 +394,14 @@ def weigh_resample(particles: torch.Tensor, prev_log_weights: torch.Tensor, log_
     fn = k.weigh_resample_parallel if parallel else k.weigh_resample
     count = fn(_np(prev_log_weights.contiguous()), _np(log_increment.contiguous()), x.numpy(), u, u.shape[1] > 1,
                float(threshold) * N if uniforms is not None else 0.0, -math.log(N), lw.numpy(), est, ess, inc, res,
-               out.numpy())
-    if count < 0:
-        return None
-    return (out if count > 0 else particles, lw) + tuple(torch.from_numpy(a) for a in (est, ess, inc, res))
+               out.numpy(), bad)
+    n_bad = int(bad.sum())
+    if n_bad and not count:
+        out = x.clone()  # the bad rows are replaced by the caller
+    elif n_bad:
+        rows = torch.from_numpy(bad)
+        out[rows] = x[rows]
+    return (out if count or n_bad else particles, lw) + tuple(torch.from_numpy(a) for a in (est, ess, inc, res, bad))
 
 
 _weights = None
