@@ -965,7 +965,7 @@ class ParticleFilter(Filter):
             particles, prev_log_weights, log_increment, uniforms, self.resampler.ess_threshold)
         _paths.note("kernel:weights")
         invalid = self.account_clean(n_repaired)
-        if bool(bad.any()):
+        if bad is not None:  # (the kernel's count, read on the host already)
             rows = bad.nonzero().squeeze(1)
             sub = self._weigh_masked(particles[rows], prev_log_weights[rows], log_increment[rows], generator, step,
                                      None, None, None if fallback is None else fallback[rows], n_repaired[rows],

@@ -376,10 +376,10 @@ def weigh_resample(particles: torch.Tensor, prev_log_weights: torch.Tensor, log_
     normalised ``prev_log_weights (B, N)``, ``log_increment (B, N)``; ``uniforms`` the resampling
     scheme's draws, ``(B, 1)`` (systematic) or ``(B, N)`` (stratified), ``None`` when
     ``threshold`` is 0 (no trial resamples). Returns ``(particles, log_weights, estimate (B, d),
-    ess (B,), log_evidence_increment (B,), resampled (B,), bad (B,))``: the particles the same
-    tensor where no trial resampled and none is bad; ``bad`` flags the trials whose increment is
-    not finite, whose rows are left for the caller's reference path to repair (their particle rows
-    are those of ``particles``, the others undefined)."""
+    ess (B,), log_evidence_increment (B,), resampled (B,), bad (B,) or None)``: the particles the
+    same tensor where no trial resampled and none is bad; ``bad`` flags the trials whose increment
+    is not finite (``None`` when none is), whose rows are left for the caller's reference path to
+    repair (their particle rows are those of ``particles``, the others undefined)."""
     from . import cpu_weights as k
     B, N, d = particles.shape
     x = particles.detach().contiguous()
@@ -401,7 +401,8 @@ def weigh_resample(particles: torch.Tensor, prev_log_weights: torch.Tensor, log_
     elif n_bad:
         rows = torch.from_numpy(bad)
         out[rows] = x[rows]
-    return (out if count or n_bad else particles, lw) + tuple(torch.from_numpy(a) for a in (est, ess, inc, res, bad))
+    return ((out if count or n_bad else particles, lw) + tuple(torch.from_numpy(a) for a in (est, ess, inc, res))
+            + (torch.from_numpy(bad) if n_bad else None,))
 
 
 _weights = None
