@@ -348,6 +348,18 @@ def _gromov_kernel():
 
 
 _numba = None
+_IMPORTABLE = {}
+
+
+def _importable(module: str) -> bool:
+    """``module`` imports (cached per process; any failure to import means: not available)."""
+    if module not in _IMPORTABLE:
+        try:
+            importlib.import_module(module)
+            _IMPORTABLE[module] = True
+        except Exception:  # noqa: BLE001 - any import failure means: not available
+            _IMPORTABLE[module] = False
+    return _IMPORTABLE[module]
 
 
 def numba_available() -> bool:
@@ -356,11 +368,7 @@ def numba_available() -> bool:
     in its user cache directory; any failure to import means the torch path runs)."""
     global _numba
     if _numba is None:
-        try:
-            importlib.import_module("torchflow.flows.kernels.cpu")  # an availability test
-            _numba = True
-        except Exception:  # noqa: BLE001 - any import failure means: not available
-            _numba = False
+        _numba = _importable("torchflow.flows.kernels.cpu")
     return _numba
 
 
@@ -405,20 +413,10 @@ def weigh_resample(particles: torch.Tensor, prev_log_weights: torch.Tensor, log_
             + (torch.from_numpy(bad) if n_bad else None,))
 
 
-_weights = None
-
-
 def weights_available() -> bool:
-    """The weighting kernel (:mod:`torchflow.flows.kernels.cpu_weights`) can be imported (cached; as
-    :func:`numba_available`)."""
-    global _weights
-    if _weights is None:
-        try:
-            importlib.import_module("torchflow.flows.kernels.cpu_weights")
-            _weights = True
-        except Exception:  # noqa: BLE001 - any import failure means: not available
-            _weights = False
-    return _weights
+    """The weighting kernel (:mod:`torchflow.flows.kernels.cpu_weights`) can be imported: where the
+    CPU kernels can (:func:`numba_available`) and its own module imports."""
+    return numba_available() and _importable("torchflow.flows.kernels.cpu_weights")
 
 
 def _precision_kernel():
