@@ -4,8 +4,8 @@ import torch
 
 from torchflow._checks import NonFiniteError
 from torchflow.filters import (BootstrapParticleFilter, EnsembleKalmanFilter, EnsembleTransformKalmanFilter,
-                               ExtendedKalmanFilter, GaussianSumParticleFilter, KalmanFilter,
-                               LocalEnsembleTransformKalmanFilter, ParticleFlowFilter, ParticleFlowParticleFilter,
+                               ExtendedKalmanFilter, GaussianSumParticleFilter, KalmanFilter, KernelParticleFlowFilter,
+                               LocalEnsembleTransformKalmanFilter, LocalParticleFilter, ParticleFlowFilter, ParticleFlowParticleFilter,
                                UnscentedKalmanFilter)
 from torchflow.schedules import ExponentialSchedule
 from torchflow.models import AcousticTracking, Lorenz96, NeuralAcoustic, SensorNetwork, SkewedTPoisson
@@ -25,6 +25,9 @@ CONFIGS = [
     ("etkf-lg", lambda: random_lg(3, 2), lambda m: EnsembleTransformKalmanFilter(m, n_particles=64, inflation=1.1)),
     ("etkf-acoustic", AcousticTracking, lambda m: EnsembleTransformKalmanFilter(m, n_particles=64)),
     ("letkf-l96", lambda: Lorenz96(d=8), lambda m: LocalEnsembleTransformKalmanFilter(m, n_particles=64, radius=4.0)),
+    ("kpff-lg", lambda: random_lg(3, 2), lambda m: KernelParticleFlowFilter(m, n_particles=64, flow_steps=5)),
+    ("kpff-l96", lambda: Lorenz96(d=8), lambda m: KernelParticleFlowFilter(m, n_particles=64, radius=4.0, flow_steps=5)),
+    ("lpf-l96", lambda: Lorenz96(d=8), lambda m: LocalParticleFilter(m, n_particles=64, radius=4.0, jitter=0.1)),
 ]
 _SCHED = ExponentialSchedule(8, 1.3)
 for _flow in ("edh", "ledh", "geodesic", "gromov", "osd"):

@@ -7,6 +7,7 @@ from .gaussian_sum import (GaussianParticleFilter, GaussianSumParticleFilter, Mi
                            ParticleFlowGaussianParticleFilter, ParticleFlowGaussianSumParticleFilter)
 from .ensemble import (EnsembleKalmanFilter, EnsembleTransformKalmanFilter,
                        LocalEnsembleTransformKalmanFilter)
+from .assimilation import KernelParticleFlowFilter, LocalParticleFilter
 from .kalman import ExtendedKalmanFilter, KalmanFilter, UnscentedKalmanFilter, ekf_predict, kalman_update
 
 __all__ = [
@@ -22,6 +23,8 @@ __all__ = [
     "EnsembleKalmanFilter",
     "EnsembleTransformKalmanFilter",
     "LocalEnsembleTransformKalmanFilter",
+    "KernelParticleFlowFilter",
+    "LocalParticleFilter",
     "BootstrapParticleFilter",
     "ParticleFlowParticleFilter",
     "ClusteredParticleFlowParticleFilter",

@@ -108,6 +108,53 @@ def periodic_neighbours(d: int, positions: torch.Tensor, radius: float) -> Tuple
     return taper, torch.where(valid, ext_index[slot], torch.zeros((), dtype=torch.long))
 
 
+
+def local_observations(model, radius: float, distances: Optional[torch.Tensor] = None
+                       ) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The observations within ``radius`` of each state coordinate, ``(taper (d, K), index (d, K))``:
+    the Gaspari-Cohn taper and the observation index of each (K: the most observations one coordinate
+    reaches; unused slots have taper 0 and index 0), on the CPU.
+
+    ``distances (d, m)`` between state coordinates and observations; ``None``: a periodic 1-D domain
+    of ``d`` sites (Lorenz-96), observation ``j`` at the site ``model.observed[j]`` (the state
+    coordinate it reads), or at site ``j`` when ``m = d`` and the model has no ``observed``. On the
+    ring with ``radius <= d / 2`` no ``(d, m)`` matrix is formed (:func:`periodic_neighbours`)."""
+    d, m = model.state_dim, model.obs_dim
+    if distances is None:
+        observed = getattr(model, "observed", None)
+        if isinstance(observed, torch.Tensor) and tuple(observed.shape) == (m,):
+            positions = observed
+        elif m == d:
+            positions = torch.arange(d)
+        else:
+            raise ArgumentError(
+                f"distances: the model ({type(model).__name__}, d = {d}, m = {m}) does not say which state "
+                "coordinate each observation reads (an `observed` tensor (m,)); pass distances (d, m)")
+        if radius <= d / 2:  # the ring's neighbours directly: no (d, m) matrix
+            return periodic_neighbours(d, positions.cpu(), radius)
+        distances = periodic_distances(d, positions.cpu())
+    elif not isinstance(distances, torch.Tensor):
+        raise ArgumentTypeError(f"distances: expected a tensor (d, m) = ({d}, {m}) or None, "
+                                f"got {type(distances).__name__}")
+    if tuple(distances.shape) != (d, m):
+        raise ArgumentError(f"distances: expected (d, m) = ({d}, {m}), got {tuple(distances.shape)}")
+    dist = distances.detach().to("cpu", torch.float64)
+    if not bool(torch.isfinite(dist).all()) or bool((dist < 0).any()):
+        raise ArgumentError("distances: expected finite distances >= 0")
+    rho = gaspari_cohn(dist, radius)  # (d, m)
+    K = max(1, int((rho > 0).sum(-1).max()))  # observations that reach the best-reached coordinate
+    return rho.topk(K, dim=-1)  # (d, K)
+
+
+def check_radius(radius) -> float:
+    """A localisation radius: a number > 0 (``inf``: no localisation)."""
+    ok = isinstance(radius, (int, float)) and not isinstance(radius, bool) and radius > 0 and not math.isnan(radius)
+    if not ok:
+        raise ArgumentError(f"radius: expected a number > 0 (the localisation radius; inf: no localisation), "
+                            f"got {radius!r}")
+    return float(radius)
+
+
 @dataclass
 class _Whitened:
     """The forecast ensemble seen through the measurement, whitened by R (module docstring).
@@ -408,43 +455,13 @@ class LocalEnsembleTransformKalmanFilter(_EnsembleFilter):
         self.local_chunk = None if local_chunk is None else check_count(
             "local_chunk", local_chunk, hint=" (coordinates per block of local analyses) or None")
         self._local_chunk_given = self.local_chunk is not None  # the runner's plan leaves a given one alone
-        ok = isinstance(radius, (int, float)) and not isinstance(radius, bool) and radius > 0 and not math.isnan(radius)
-        if not ok:
-            raise ArgumentError(f"radius: expected a number > 0 (the localisation radius; inf: no localisation), "
-                                f"got {radius!r}")
-        self.radius = float(radius)
+        self.radius = check_radius(radius)
         if model.structure.measurement_noise not in _DIAGONAL_NOISE:
             raise ArgumentTypeError(
                 f"{self.name}: model: the LETKF tapers each observation's precision, which needs a diagonal "
                 f"measurement noise (declared scalar, diagonal or state_dependent_diagonal); "
                 f"{type(model).__name__} declares {model.structure.measurement_noise!r}. Use the ETKF or the EnKF")
-        d, m = model.state_dim, model.obs_dim
-        if distances is None:
-            observed = getattr(model, "observed", None)
-            if isinstance(observed, torch.Tensor) and tuple(observed.shape) == (m,):
-                positions = observed
-            elif m == d:
-                positions = torch.arange(d)
-            else:
-                raise ArgumentError(
-                    f"distances: the model ({type(model).__name__}, d = {d}, m = {m}) does not say which state "
-                    "coordinate each observation reads (an `observed` tensor (m,)); pass distances (d, m)")
-            if self.radius <= d / 2:  # the ring's neighbours directly: no (d, m) matrix
-                taper, index = periodic_neighbours(d, positions.cpu(), self.radius)
-                self._set_neighbours(taper, index)
-                return
-            distances = periodic_distances(d, positions.cpu())
-        elif not isinstance(distances, torch.Tensor):
-            raise ArgumentTypeError(f"distances: expected a tensor (d, m) = ({d}, {m}) or None, "
-                                    f"got {type(distances).__name__}")
-        if tuple(distances.shape) != (d, m):
-            raise ArgumentError(f"distances: expected (d, m) = ({d}, {m}), got {tuple(distances.shape)}")
-        dist = distances.detach().to("cpu", torch.float64)
-        if not bool(torch.isfinite(dist).all()) or bool((dist < 0).any()):
-            raise ArgumentError("distances: expected finite distances >= 0")
-        rho = gaspari_cohn(dist, self.radius)  # (d, m)
-        K = max(1, int((rho > 0).sum(-1).max()))  # observations that reach the best-reached coordinate
-        self._set_neighbours(*rho.topk(K, dim=-1))  # (d, K)
+        self._set_neighbours(*local_observations(model, self.radius, distances))
 
     def _set_neighbours(self, taper: torch.Tensor, index: torch.Tensor) -> None:
         """``(d, K)`` the observations within reach of each coordinate, and their tapers."""

@@ -5,6 +5,7 @@ from .acoustic import AcousticTracking
 from .base import GaussianStateSpaceModel, StateSpaceModel, Trajectory
 from .structure import Structure
 from .linear_gaussian import LinearGaussian, SensorNetwork, sensor_network_covariance
+from .lorenz63 import Lorenz63
 from .lorenz96 import Lorenz96
 from .neural_acoustic import InverseDistance, NeuralAcoustic, ResponseMLP
 from .skewed_t import SkewedTPoisson
@@ -12,5 +13,5 @@ from .stochastic_volatility import StochasticVolatility
 from .tdoa import TDOA3D, TDOAData
 
 __all__ = ["StateSpaceModel", "GaussianStateSpaceModel", "Structure", "Trajectory", "LinearGaussian", "SensorNetwork", "sensor_network_covariance",
-           "AcousticTracking", "NeuralAcoustic", "ResponseMLP", "InverseDistance", "SkewedTPoisson", "TDOA3D", "TDOAData", "Lorenz96",
+           "AcousticTracking", "NeuralAcoustic", "ResponseMLP", "InverseDistance", "SkewedTPoisson", "TDOA3D", "TDOAData", "Lorenz63", "Lorenz96",
            "StochasticVolatility"]

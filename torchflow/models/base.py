@@ -17,6 +17,7 @@ outputs of a model's methods are shape-checked once per model, on a filter's fir
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 from typing import Optional, Tuple
 
@@ -29,7 +30,7 @@ from .._checks import check_tensor
 from ..linearize import jacobian
 from .structure import Structure
 from .trials import batch_jacobian, per_trial_structure, trial_names, trial_view
-from ..errors import ArgumentError
+from ..errors import ArgumentError, ArgumentTypeError
 
 
 @dataclass
@@ -406,6 +407,23 @@ class GaussianStateSpaceModel(StateSpaceModel):
     def measurement_log_prob(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """log p(z | x) for ``z`` broadcastable to ``(..., m)`` -> ``(...)``."""
         return linalg.mvn_log_prob(z, self.measure(x), self.measurement_scale_tril(x))
+
+    def measurement_log_prob_terms(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """``log p(z_j | x)`` per observation ``(..., m)``, for a measurement whose coordinates are
+        independent given the state (what local particle filters weigh with): here the Gaussian form
+        with a diagonal R (declared ``scalar``, ``diagonal`` or ``state_dependent_diagonal``). A NaN
+        in ``z`` (not observed) gives the term 0. ``z`` broadcastable to ``(..., m)``, ``x (..., d)``."""
+        noise = self.structure.measurement_noise
+        if noise not in ("scalar", "diagonal", "state_dependent_diagonal"):
+            raise ArgumentTypeError(
+                f"{type(self).__name__}.measurement_log_prob_terms: the observations' densities one by one need a "
+                f"diagonal measurement noise (declared scalar, diagonal or state_dependent_diagonal); this model "
+                f"declares {noise!r}. Override measurement_log_prob_terms for another independent measurement law")
+        h = self.measure(x)
+        r = self.measurement_variance(x if noise.startswith("state_dependent") else None)
+        resid = z - h
+        terms = -0.5 * (resid * resid / r + torch.log(r * (2.0 * math.pi)))
+        return torch.where(torch.isnan(z), torch.zeros_like(terms), terms)
 
     def measurement_log_prob_observed(self, z: torch.Tensor, x: torch.Tensor, observed: torch.Tensor) -> torch.Tensor:
         """The density of the observed coordinates (:meth:`StateSpaceModel.measurement_log_prob_observed`):

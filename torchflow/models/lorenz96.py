@@ -20,6 +20,7 @@ from .. import linalg
 from ..covariances import DiagonalCovariance
 from .._checks import check_nonnegative, check_number, check_positive
 from .base import GaussianStateSpaceModel
+from .lorenz63 import rk4_steps
 from .structure import Structure
 from .trials import batch_jacobian, per_trial_structure, trial_names, trial_view
 
@@ -34,14 +35,7 @@ def lorenz96_tendency(x: torch.Tensor, forcing) -> torch.Tensor:
 
 def rk4(x: torch.Tensor, forcing, dt: float, substeps: int) -> torch.Tensor:
     """``x (..., d)`` moved by ``substeps`` classical Runge-Kutta steps of ``dt / substeps``."""
-    h = dt / substeps
-    for _ in range(substeps):  # a loop over sub-steps in time, not over trials or particles
-        k1 = lorenz96_tendency(x, forcing)
-        k2 = lorenz96_tendency(x + 0.5 * h * k1, forcing)
-        k3 = lorenz96_tendency(x + 0.5 * h * k2, forcing)
-        k4 = lorenz96_tendency(x + h * k3, forcing)
-        x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-    return x
+    return rk4_steps(lambda v: lorenz96_tendency(v, forcing), x, dt, substeps)
 
 
 class Lorenz96(GaussianStateSpaceModel):
