@@ -1,10 +1,22 @@
 """Committed per-trial files behind numbers in experiments/RESULTS.md are reproduced by today's code.
 
-12 cases (9 files of seeds 000, 001, 003 and 004; one filter each, its first 1-10 trials). Each
-case reruns the first trials of a committed paper-table run (``trial_range``: the whole run's
-data and per-trial random streams, only the first trials filtered) with the command's settings,
-and compares them with the committed ``per_trial.csv`` row by row. A code change that moves a
-recorded number, or a raw file that no longer matches its command, fails here.
+12 cases (9 files of seeds 000, 001, 003 and 004; one filter each, 1-8 of its first 10 trials). Each
+case reruns trials of a committed paper-table run (``trial_range``: the whole run's data and
+per-trial random streams, only those trials filtered) with the command's settings, and compares
+them with the committed ``per_trial.csv`` row by row. A code change that moves a recorded number,
+or a raw file that no longer matches its command, fails here.
+
+**Which trials.** Some trials are chaotic under round-off: a diverging EKF (sigma_w = 0.001), a
+resampling decision or a flow that a last-bit difference flips. Their numbers depend on the CPU
+(BLAS kernels and blocking differ between processor generations even under one
+``MKL_ENABLE_INSTRUCTIONS``) and on the batch a trial ran in. Measured on a second AVX-512 host
+(2026-12-06, a Sapphire Rapids CPU with AMX; the files were written and first checked on another),
+first 10 trials of each file, native and AVX2: the chaotic trials move by 1e-3 to 10^3 relative
+(the EKF of seed000_table2_40/sw0.001 trials 1, 3, 4, 5, 8; GPFIS trials other than 3 by 3e-2 to
+0.9; PF-PF(LEDH) of seed003 trials 0, 2, 4, 5, 7-9), as much as a changed draw moves them, so they
+test nothing but the host. Each case compares the trials that reproduce to better than
+``REL_TOL / 10`` on both hosts and both instruction sets (the cases' tuples; the largest deviation
+among them 1.7e-5, seed000_table2_pfpf_ledh trial 0 native; seed001_table1_pfgpf trial 2: 4.6e-6).
 
 Tolerance ``REL_TOL`` = 5e-4 relative, derived from two measurements (1 thread, 2026-11-25):
 
@@ -45,55 +57,58 @@ RESULTS = ROOT / "experiments" / "results"
 #: the arithmetic that wrote the committed files (see the module docstring)
 ARITHMETIC = dict(fused_flows=0, structured_update=0)
 
-#: (experiment overrides, filter config key, committed file, its filter label, trials rerun)
+#: (experiment overrides, filter config key, committed file, its filter label, the trials compared: those
+#: that reproduce across hosts and instruction sets, module docstring)
 CASES = {
     "seed000_table1_bpf_seed1": (["experiment=seed000_table1", "seed=1"], "bpf",
-                                 "seed000_table1_bpf200_checks/per_trial_seed1.csv", "bpf", 5),
+                                 "seed000_table1_bpf200_checks/per_trial_seed1.csv", "bpf", (0, 1, 2, 3, 4)),
     "seed000_table2_tight_prior_gromov": (["experiment=seed000_table2", "model.prior_std=[1.0,1.0,0.005,0.005]"],
-                                          "pfpf_gromov", "seed000_table2_tight_prior/per_trial.csv", "pfpf_gromov", 1),
+                                          "pfpf_gromov", "seed000_table2_tight_prior/per_trial.csv", "pfpf_gromov", (0,)),
     "seed000_table2_pfpf_ledh": (["experiment=seed000_table2", "filter.pfpf_edh.n_particles=10000"], "pfpf_ledh",
-                                 "seed000_table2_40/sw0.1/per_trial.csv", "pfpf_ledh", 1),
+                                 "seed000_table2_40/sw0.1/per_trial.csv", "pfpf_ledh", (0,)),
     "seed000_table2_sw0001_pfpf_gromov": (["experiment=seed000_table2", "model.sigma_w=0.001"], "pfpf_gromov",
-                                          "seed000_table2_40/sw0.001/per_trial.csv", "pfpf_gromov", 1),
+                                          "seed000_table2_40/sw0.001/per_trial.csv", "pfpf_gromov", (0,)),
     "seed000_table2_gpfis": (["experiment=seed000_table2", "trials=8", "inits_per_track=1"], "gpfis",
-                             "seed000_table2_40/gpfis_sw0.1/per_trial.csv", "gpfis", 1),
+                             "seed000_table2_40/gpfis_sw0.1/per_trial.csv", "gpfis", (3,)),
     "seed000_table2_sw0001_ekf": (["experiment=seed000_table2", "model.sigma_w=0.001"], "ekf",
-                                  "seed000_table2_40/sw0.001/per_trial.csv", "ekf", 10),
+                                  "seed000_table2_40/sw0.001/per_trial.csv", "ekf", (0, 2, 6, 7, 9)),
     "seed001_table1_pfgpf": (["experiment=seed001_table1", "trials=100"], "pfgpf",
-                             "seed001_table1_100/per_trial.csv", "pfgpf", 1),
+                             "seed001_table1_100/per_trial.csv", "pfgpf", (2,)),
     "seed001_table1_pfpf_ledh": (["experiment=seed001_table1", "trials=100"], "pfpf_ledh",
-                                 "seed001_table1_100/per_trial.csv", "pfpf_ledh", 1),
-    "seed003_table1_ekf": (["experiment=seed003_table1"], "ekf", "seed003_table1_10/per_trial.csv", "ekf", 10),
+                                 "seed001_table1_100/per_trial.csv", "pfpf_ledh", (0,)),
+    "seed003_table1_ekf": (["experiment=seed003_table1"], "ekf", "seed003_table1_10/per_trial.csv", "ekf", (1, 2, 3, 4, 5, 6, 8, 9)),
     "seed003_table1_pfpf_ledh": (["experiment=seed003_table1"], "pfpf_ledh", "seed003_table1_10/per_trial.csv",
-                                 "pfpf_ledh", 1),
+                                 "pfpf_ledh", (3,)),
     "seed003_table1_gpfis": (["experiment=seed003_table1", "trials=20"], "gpfis",
-                             "seed003_table1_20_gpfis_analytic/per_trial.csv", "gpfis", 1),
+                             "seed003_table1_20_gpfis_analytic/per_trial.csv", "gpfis", (3,)),
     # seed 004's clustered rows are not checked: their k-medoids choice is a discrete decision that
     # BLAS round-off flips, so they reproduce only at the same thread count (trial 0 matches with 1
     # thread, not with 2); the file's PF-PF(LEDH) row is checked instead
     "seed004_pfpf_ledh": (["experiment=seed004_clustering", "trials=100"], "pfpf_ledh",
-                          "seed004_clustering_100/per_trial.csv", "pfpf_ledh", 1),
+                          "seed004_clustering_100/per_trial.csv", "pfpf_ledh", (0,)),
 }
 
 
-def _rerun(overrides, key, n):
+def _rerun(overrides, key, lo, hi):
     with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
         cfg = compose("config", overrides=[*overrides, f"filter=[{key}]"])
     model = instantiate(cfg.model)
     f = instantiate(cfg.filter[key], model=model, name=key)
     return run_experiment(model, {key: f}, trials=cfg.trials, steps=cfg.steps, seed=cfg.seed,
-                          inits_per_track=cfg.inits_per_track, progress=False, trial_range=[0, n],
+                          inits_per_track=cfg.inits_per_track, progress=False, trial_range=[lo, hi],
                           ospa_cutoff=float(cfg.metrics.ospa_cutoff), lost_threshold=float(cfg.metrics.lost_threshold))
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_committed_per_trial_file_is_reproduced(case):
-    overrides, key, path, label, n = CASES[case]
+    overrides, key, path, label, trials = CASES[case]
     with open(RESULTS / path) as fh:
-        want = [r for r in csv.DictReader(fh) if r["filter"] == label][:n]
-    assert len(want) == n and [int(r["trial"]) for r in want] == list(range(n))
+        rows = {int(r["trial"]): r for r in csv.DictReader(fh) if r["filter"] == label}
+    assert set(trials) <= set(rows), (trials, sorted(rows))
+    want = [rows[t] for t in trials]
     with tuning.tuned(**ARITHMETIC):
-        got = _rerun(overrides, key, n).per_trial
+        ran = {int(r["trial"]): r for r in _rerun(overrides, key, min(trials), max(trials) + 1).per_trial}
+    got = [ran[t] for t in trials]
     bad = []
     for g, w in zip(got, want):
         for col in ("mse", "omat", "ess", "log_evidence"):
