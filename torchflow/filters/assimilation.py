@@ -61,7 +61,7 @@ from .. import missing as _missing
 from ..random import uniform
 from .._checks import check_count, check_number
 from ..errors import ArgumentError
-from .ensemble import (_EnsembleFilter, _gain_solver, check_radius, gaspari_cohn,
+from .ensemble import (_EnsembleFilter, check_radius, gaspari_cohn,
                        local_observations, periodic_distances)
 
 __all__ = ["KernelParticleFlowFilter", "LocalParticleFilter"]
@@ -104,8 +104,6 @@ class KernelParticleFlowFilter(_EnsembleFilter):
     Shapes: ensemble ``(B, N, d)``, observations ``z (B, m)`` (NaN: not observed).
     """
 
-    random_stream = "ensemble_kalman"  # the same initial ensemble as the ensemble Kalman filters
-
     def __init__(self, model, *, n_particles: int = 20, inflation: float = 1.0, radius: float = math.inf,
                  state_distances: Optional[torch.Tensor] = None, bandwidth: Optional[float] = None,
                  step_size: float = 0.5, flow_steps: int = 30, preconditioner: str = "posterior",
@@ -147,16 +145,13 @@ class KernelParticleFlowFilter(_EnsembleFilter):
 
     def step(self, state, z: torch.Tensor, generator: Optional[torch.Generator] = None):
         """Forecast, inflate, then move the members by the kernel flow towards ``p(x | z)``."""
-        Xf = self.model.sample_transition(state.particles, generator)  # (B, N, d)
-        xbar = Xf.mean(1, keepdim=True)
-        A = Xf - xbar
-        if self.inflation != 1.0:
-            A = A * self.inflation
+        xbar, A = self.forecast(state, generator)
         Xf = xbar + A
-        w = self.whiten(Xf, xbar.squeeze(1), z)
-        _, quad, logdet_M = _gain_solver(w.Y, w.delta)
         X = self.migrate(Xf, xbar, A, z)
-        return self._state(X, self.log_evidence(w, quad, logdet_M), state.step + 1)
+        # a trial with nothing observed keeps its forecast (the prior-only flow would move it by its
+        # finite-N spread correction; masked, no host read)
+        X = torch.where((~torch.isnan(z)).any(-1).view(-1, 1, 1), X, Xf)
+        return self._state(X, self.forecast_evidence(self.whiten(Xf, xbar.squeeze(1), z)), state.step + 1)
 
     def prior_covariance(self, A: torch.Tensor) -> torch.Tensor:
         """The tapered sample covariance ``(B, d, d)`` of the anomalies ``A (B, N, d)``."""
@@ -169,18 +164,19 @@ class KernelParticleFlowFilter(_EnsembleFilter):
         model = self.model
         B_, N, d = Xf.shape
         P = self.prior_covariance(A)
-        L = torch.linalg.cholesky(P)  # a Schur product with a positive definite taper: definite
+        L = linalg.safe_cholesky(P)  # a Schur product with a positive definite taper: definite (jitter if not)
         D = self._posterior_covariance(P, xbar.squeeze(1), z) if self.preconditioner == "posterior" else P
         Dt = D.transpose(1, 2)
         width = (self.alpha(N) * P.diagonal(dim1=-2, dim2=-1)).unsqueeze(1).unsqueeze(1)  # (B, 1, 1, d)
         X = Xf
         for _ in range(self.flow_steps):  # pseudo-time steps, not a loop over trials or members
             g = _grad_log_likelihood(model, z, X)
-            g = g - torch.cholesky_solve((X - xbar).transpose(1, 2), L).transpose(1, 2)  # + grad log prior
+            g = g - linalg.chol_solve(L, (X - xbar).transpose(1, 2)).transpose(1, 2)  # + grad log prior
             diff = X.unsqueeze(1) - X.unsqueeze(2)  # [b, i, j] = x_j - x_i  (B, N, N, d)
-            k = torch.exp(-0.5 * diff * diff / width)
-            mass = k.sum(2)
-            f = ((k * g.unsqueeze(1)).sum(2) - (k * diff).sum(2) / width.squeeze(1)) / mass
+            scaled = diff / width
+            k = torch.exp(-0.5 * diff * scaled)
+            # sum_j k_a(x_j, x_i) (g_j - (x_j - x_i) / width)_a, over the kernel's mass
+            f = (k * (g.unsqueeze(1) - scaled)).sum(2) / k.sum(2)
             X = X + self.step_size * (f @ Dt)
         return X
 
@@ -197,8 +193,7 @@ class KernelParticleFlowFilter(_EnsembleFilter):
         R = torch.where(both, R, eye)
         PHt = P @ H.transpose(1, 2)  # (B, d, m)
         S = H @ PHt + R
-        Ls = torch.linalg.cholesky(S)
-        D = P - PHt @ torch.cholesky_solve(PHt.transpose(1, 2), Ls)
+        D = P - PHt @ linalg.chol_solve(linalg.safe_cholesky(S), PHt.transpose(1, 2))
         return 0.5 * (D + D.transpose(1, 2))
 
     def extra_repr(self) -> str:
@@ -232,8 +227,6 @@ class LocalParticleFilter(_EnsembleFilter):
     Shapes: ensemble ``(B, N, d)``, observations ``z (B, m)`` (NaN: not observed).
     """
 
-    random_stream = "ensemble_kalman"
-
     def __init__(self, model, *, n_particles: int = 40, inflation: float = 1.0, radius: float = 15.0,
                  distances: Optional[torch.Tensor] = None, rtps: float = 0.0, jitter: float = 0.0,
                  validate: bool = True, name: Optional[str] = None):
@@ -242,35 +235,31 @@ class LocalParticleFilter(_EnsembleFilter):
         self.rtps = check_number("rtps", rtps, lambda v: 0 <= v <= 1, "a number in [0, 1] (relaxation to prior spread)")
         self.jitter = check_number("jitter", jitter, lambda v: v >= 0,
                                    "a number >= 0 (jitter relative to the forecast spread)")
-        d, m = model.state_dim, model.obs_dim
-        if math.isinf(self.radius):
-            taper = torch.ones(d, m, dtype=torch.float64)
-            index = torch.arange(m).expand(d, m)
-        else:
+        taper = index = None  # radius = inf: every observation weighs every coordinate
+        if not math.isinf(self.radius):
             taper, index = local_observations(model, self.radius, distances)
-        self.register_buffer("local_index", index.to(model.device), persistent=False)
-        self.register_buffer("local_taper", taper.to(model.dtype).to(model.device), persistent=False)
+            taper, index = taper.to(model.dtype).to(model.device), index.to(model.device)
+        self.register_buffer("local_index", index, persistent=False)
+        self.register_buffer("local_taper", taper, persistent=False)
 
     def bytes_per_trial(self, n_particles=None):
         N, d, m = self._resolve_n(n_particles), self.model.state_dim, self.model.obs_dim
-        return 8 * (10 * N * d + 2 * N * m + 2 * N * d * self.local_index.shape[1])
+        K = m if self.local_index is None else self.local_index.shape[1]
+        return 8 * (10 * N * d + 2 * N * m + 2 * N * d * min(K, m))
 
     def step(self, state, z: torch.Tensor, generator: Optional[torch.Generator] = None):
         """Forecast, then weigh, estimate and resample every coordinate locally."""
-        model = self.model
-        Xf = model.sample_transition(state.particles, generator)  # (B, N, d)
-        xbar = Xf.mean(1, keepdim=True)
-        A = Xf - xbar
-        if self.inflation != 1.0:
-            A = A * self.inflation
-            Xf = xbar + A
+        xbar, A = self.forecast(state, generator)
+        Xf = xbar + A
         B_, N, d = Xf.shape
-        terms = model.measurement_log_prob_terms(z.unsqueeze(1), Xf)  # (B, N, m)
-        idx, taper = self.local_index.to(Xf.device), self.local_taper.to(Xf)  # follow the model's dtype, device
-        lw = (terms[:, :, idx] * taper).sum(-1)  # (B, N, d)
-        lw = lw - torch.logsumexp(lw, 1, keepdim=True)
-        W = lw.exp()
-        estimate = (W * Xf).sum(1)  # (B, d)
+        terms = self.model.measurement_log_prob_terms(z.unsqueeze(1), Xf)  # (B, N, m)
+        if self.local_index is None:  # radius = inf: one set of weights for every coordinate
+            lw = terms.sum(-1, keepdim=True).expand(B_, N, d)
+        else:
+            idx, taper = self.local_index.to(Xf.device), self.local_taper.to(Xf)  # follow the model's dtype, device
+            lw = (terms[:, :, idx] * taper).sum(-1)  # (B, N, d)
+        W = torch.softmax(lw, 1)
+        estimate = (W * Xf).sum(1)  # (B, d): each coordinate's weighted mean
         # systematic resampling, one uniform per trial for every coordinate
         u = uniform((B_, 1), dtype=Xf.dtype, device=Xf.device, generator=generator).unsqueeze(-1)
         points = (torch.arange(N, dtype=Xf.dtype, device=Xf.device).view(1, 1, N) + u) / N  # (B, 1, N)
@@ -278,21 +267,19 @@ class LocalParticleFilter(_EnsembleFilter):
         cdf[..., -1] = 1.0
         ancestors = torch.searchsorted(cdf, points.expand(B_, d, N).contiguous()).clamp_max(N - 1)  # (B, d, N)
         Xa = torch.gather(Xf, 1, ancestors.transpose(1, 2))  # (B, N, d): coordinate i of member n from its ancestor
+        if self.rtps > 0 or self.jitter > 0:
+            sf = A.std(1, keepdim=True)  # (B, 1, d): each coordinate's forecast spread
         if self.rtps > 0:
             ma = Xa.mean(1, keepdim=True)
-            sa = (Xa - ma).square().mean(1, keepdim=True).sqrt()
-            sf = A.square().mean(1, keepdim=True).sqrt()
+            sa = Xa.std(1, keepdim=True)
             scale = torch.where(sa > 0, 1.0 + self.rtps * (sf - sa) / sa.clamp_min(1e-300), torch.ones_like(sa))
             Xa = ma + (Xa - ma) * scale
         if self.jitter > 0:
-            sf = A.square().sum(1, keepdim=True).div(N - 1).sqrt()  # (B, 1, d)
             xi = linalg.standard_normal(Xa.shape, dtype=Xa.dtype, device=Xa.device, generator=generator)
             Xa = Xa + self.jitter * sf * xi
         # the evidence: the forecast ensemble's Gaussian approximation, as the ensemble filters report it
-        w = self.whiten(Xf, xbar.squeeze(1), z)
-        _, quad, logdet_M = _gain_solver(w.Y, w.delta)
-        return dataclasses.replace(self._state(Xa, self.log_evidence(w, quad, logdet_M), state.step + 1),
-                                   estimate=estimate)
+        ll = self.forecast_evidence(self.whiten(Xf, xbar.squeeze(1), z))
+        return dataclasses.replace(self._state(Xa, ll, state.step + 1), estimate=estimate)
 
     def extra_repr(self) -> str:
         return super().extra_repr() + f", radius={self.radius:g}, rtps={self.rtps:g}, jitter={self.jitter:g}"

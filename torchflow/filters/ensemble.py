@@ -108,7 +108,6 @@ def periodic_neighbours(d: int, positions: torch.Tensor, radius: float) -> Tuple
     return taper, torch.where(valid, ext_index[slot], torch.zeros((), dtype=torch.long))
 
 
-
 def local_observations(model, radius: float, distances: Optional[torch.Tensor] = None
                        ) -> Tuple[torch.Tensor, torch.Tensor]:
     """The observations within ``radius`` of each state coordinate, ``(taper (d, K), index (d, K))``:
@@ -224,14 +223,25 @@ class _EnsembleFilter(Filter):
     def step(self, state: ParticleState, z: torch.Tensor, generator: Optional[torch.Generator] = None
              ) -> ParticleState:
         """Forecast every member, inflate the anomalies, analyse with ``z (B, m)`` (NaN: not observed)."""
-        Xf = self.model.sample_transition(state.particles, generator)  # (B, N, d)
-        xbar = Xf.mean(1, keepdim=True)  # (B, 1, d)
-        A = Xf - xbar
-        if self.inflation != 1.0:
-            A = A * self.inflation
+        xbar, A = self.forecast(state, generator)
         w = self.whiten(xbar + A, xbar.squeeze(1), z)
         Xa, ll = self.analysis(xbar, A, w, generator)
         return self._state(Xa, ll, state.step + 1)
+
+    def forecast(self, state: ParticleState, generator: Optional[torch.Generator]) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Every member through the model's transition: the forecast mean ``xbar (B, 1, d)`` and the
+        anomalies ``A (B, N, d)``, multiplied by :attr:`inflation` (the forecast members are ``xbar + A``)."""
+        Xf = self.model.sample_transition(state.particles, generator)  # (B, N, d)
+        xbar = Xf.mean(1, keepdim=True)  # (B, 1, d)
+        A = Xf - xbar
+        return xbar, (A * self.inflation if self.inflation != 1.0 else A)
+
+    def forecast_evidence(self, w: "_Whitened") -> torch.Tensor:
+        """The Gaussian approximation ``(B,)`` of ``log p(z_k | z_{1:k-1})`` from the forecast ensemble
+        seen through the measurement (:meth:`log_evidence`), for analyses that do not factorise ``M``
+        themselves."""
+        _, quad, logdet_M = _gain_solver(w.Y, w.delta)
+        return self.log_evidence(w, quad, logdet_M)
 
     def analysis(self, xbar: torch.Tensor, A: torch.Tensor, w: _Whitened, generator
                  ) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -510,8 +520,7 @@ class LocalEnsembleTransformKalmanFilter(_EnsembleFilter):
             parts.append(_transform(Yl, dl, Ad)[0].squeeze(-1))  # (B, c, N)
         inc = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
         # the evidence: the global (unlocalised) Gaussian approximation, one factorisation
-        _, quad, logdet_M = _gain_solver(w.Y, w.delta)
-        return xbar + inc.transpose(1, 2), self.log_evidence(w, quad, logdet_M)
+        return xbar + inc.transpose(1, 2), self.forecast_evidence(w)
 
     def extra_repr(self) -> str:
         chunk = "" if self.local_chunk is None else f", local_chunk={self.local_chunk}"

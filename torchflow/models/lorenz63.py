@@ -29,9 +29,9 @@ from .. import linalg
 from .._checks import check_nonnegative, check_number, check_positive
 from ..errors import ArgumentError
 from .base import GaussianStateSpaceModel
+from .dynamics import isotropic_log_prob, rk4_steps, rk4_with_tangent
 from .structure import Structure
 
-_LOG_2PI = math.log(2.0 * math.pi)
 #: the mean of the initial law in Sakov et al. (2012) and DAPPER (a point near the attractor)
 SAKOV2012_MEAN = (1.509, -1.531, 25.46)
 
@@ -50,38 +50,6 @@ def lorenz63_tendency_jacobian(x: torch.Tensor, sigma: float = 10.0, rho: float 
     one, zero = torch.ones_like(a), torch.zeros_like(a)
     rows = ((-sigma * one, sigma * one, zero), (rho - c, -one, -a), (b, a, -beta * one))
     return torch.stack([torch.stack(r, -1) for r in rows], -2)
-
-
-def rk4_with_tangent(tendency, tendency_jacobian, x: torch.Tensor, dt: float, substeps: int
-                     ) -> Tuple[torch.Tensor, torch.Tensor]:
-    """``(x_T, J)``: ``x (..., d)`` moved by ``substeps`` classical Runge-Kutta steps of
-    ``dt / substeps`` and the exact Jacobian ``(..., d, d)`` of that discrete map (the stages'
-    derivatives carried alongside, forward mode)."""
-    h = dt / substeps
-    J = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device).expand(*x.shape, x.shape[-1])
-    for _ in range(substeps):  # a loop over sub-steps in time, not over trials or particles
-        k1, D1 = tendency(x), tendency_jacobian(x) @ J
-        x2 = x + 0.5 * h * k1
-        k2, D2 = tendency(x2), tendency_jacobian(x2) @ (J + 0.5 * h * D1)
-        x3 = x + 0.5 * h * k2
-        k3, D3 = tendency(x3), tendency_jacobian(x3) @ (J + 0.5 * h * D2)
-        x4 = x + h * k3
-        k4, D4 = tendency(x4), tendency_jacobian(x4) @ (J + h * D3)
-        x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-        J = J + (h / 6.0) * (D1 + 2.0 * D2 + 2.0 * D3 + D4)
-    return x, J
-
-
-def rk4_steps(tendency, x: torch.Tensor, dt: float, substeps: int) -> torch.Tensor:
-    """``x (..., d)`` moved by ``substeps`` classical Runge-Kutta steps of ``dt / substeps``."""
-    h = dt / substeps
-    for _ in range(substeps):  # a loop over sub-steps in time, not over trials or particles
-        k1 = tendency(x)
-        k2 = tendency(x + 0.5 * h * k1)
-        k3 = tendency(x + 0.5 * h * k2)
-        k4 = tendency(x + h * k3)
-        x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-    return x
 
 
 class Lorenz63(GaussianStateSpaceModel):
@@ -127,7 +95,6 @@ class Lorenz63(GaussianStateSpaceModel):
         model_noise = check_nonnegative("model_noise", model_noise)
         check_positive("prior_std", prior_std)
         self.obs_dim = len(obs)
-        self._deterministic = model_noise == 0.0  # declared at construction: no host read per step
         f64 = dict(dtype=torch.float64)
         self.register_buffer("prior_mean", torch.tensor(mean, **f64))  # first: the model's dtype is its first buffer's
         self.register_buffer("observed", torch.tensor(obs, dtype=torch.long))
@@ -168,15 +135,12 @@ class Lorenz63(GaussianStateSpaceModel):
 
     def transition_log_prob(self, x_next: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """``log N(x_next; g(x), model_noise^2 I)``."""
-        return _isotropic_log_prob(x_next - self.transition_mean(x), self.model_noise)
+        return isotropic_log_prob(x_next - self.transition_mean(x), self.model_noise)
 
     def sample_transition(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
-        """``g(x) + model_noise * xi`` (no draw at all when there is no model noise)."""
-        mean = self.transition_mean(x)
-        if self._deterministic:
-            return mean
+        """``g(x) + model_noise * xi`` (the draw is made without model noise too: the same stream either way)."""
         xi = linalg.standard_normal(x.shape, dtype=x.dtype, device=x.device, generator=generator)
-        return mean + self.model_noise * xi
+        return self.transition_mean(x) + self.model_noise * xi
 
     def sample_true_transition(self, x: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         return self.sample_transition(x, generator)
@@ -197,7 +161,7 @@ class Lorenz63(GaussianStateSpaceModel):
 
     def measurement_log_prob(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """``log N(z; x_observed, obs_std^2 I)``."""
-        return _isotropic_log_prob(z - self.measure(x), self.obs_std)
+        return isotropic_log_prob(z - self.measure(x), self.obs_std)
 
     def sample_measurement(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         mean = self.measure(x)
@@ -222,11 +186,4 @@ class Lorenz63(GaussianStateSpaceModel):
         return mean, cov
 
 
-def _isotropic_log_prob(resid: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
-    """``log N(resid; 0, std^2 I)`` over the last dim of ``resid (..., n)`` (``std`` a 0-d tensor)."""
-    n = resid.shape[-1]
-    var = std * std
-    return -0.5 * ((resid * resid).sum(-1) / var + n * (torch.log(var) + _LOG_2PI))
-
-
-__all__ = ["Lorenz63", "lorenz63_tendency", "lorenz63_tendency_jacobian", "rk4_with_tangent", "rk4_steps"]
+__all__ = ["Lorenz63", "lorenz63_tendency", "lorenz63_tendency_jacobian"]

@@ -12,20 +12,15 @@ from __future__ import annotations
 
 from typing import Optional, Tuple
 
-import math
-
 import torch
 
 from .. import linalg
 from ..covariances import DiagonalCovariance
 from .._checks import check_nonnegative, check_number, check_positive
 from .base import GaussianStateSpaceModel
-from .lorenz63 import rk4_steps
+from .dynamics import isotropic_log_prob, rk4_steps
 from .structure import Structure
 from .trials import batch_jacobian, per_trial_structure, trial_names, trial_view
-
-
-_LOG_2PI = math.log(2.0 * math.pi)
 
 
 def lorenz96_tendency(x: torch.Tensor, forcing) -> torch.Tensor:
@@ -127,7 +122,7 @@ class Lorenz96(GaussianStateSpaceModel):
     def transition_log_prob(self, x_next: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """``log N(x_next; rk4(x), model_noise^2 I)`` elementwise (no ``(d, d)`` factor)."""
         resid = x_next - self.transition_mean(x)  # broadcast after the dynamics: rk4 once per state
-        return _isotropic_log_prob(resid, trial_view(self.model_noise, 0, resid))
+        return isotropic_log_prob(resid, trial_view(self.model_noise, 0, resid))
 
     def sample_true_transition(self, x: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """:meth:`simulate`'s step: ``rk4(x) + model_noise * xi`` with the core's draws (``torch.randn``
@@ -162,7 +157,7 @@ class Lorenz96(GaussianStateSpaceModel):
     def measurement_log_prob(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """``log N(z; x_observed, obs_std^2 I)`` elementwise (no ``(m, m)`` factor)."""
         h = self.measure(x)
-        return _isotropic_log_prob(z - h, trial_view(self.obs_std, 0, h))
+        return isotropic_log_prob(z - h, trial_view(self.obs_std, 0, h))
 
     def measurement_variance(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
         """``obs_std^2``: a 0-d scalar, or one value per trial viewed against ``x`` (no ``(m, m)`` matrix)."""
@@ -192,14 +187,6 @@ class Lorenz96(GaussianStateSpaceModel):
         xi = linalg.standard_normal(states0.shape, dtype=states0.dtype, device=states0.device, generator=generator)
         var = (self.prior_std ** 2).to(states0.dtype).expand(states0.shape)
         return states0 + self.prior_std * xi, DiagonalCovariance(var)
-
-
-def _isotropic_log_prob(resid: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
-    """``log N(resid; 0, std^2 I)`` over the last dim of ``resid (..., n)``, ``std`` broadcastable
-    to ``(..., 1)``."""
-    n = resid.shape[-1]
-    var = std * std
-    return -0.5 * ((resid * resid).sum(-1) / var.squeeze(-1) + n * (torch.log(var.squeeze(-1)) + _LOG_2PI))
 
 
 __all__ = ["Lorenz96", "lorenz96_tendency", "rk4"]
