@@ -274,3 +274,43 @@ def test_letkf_builds_at_a_million_sites_without_a_distance_matrix():
     reached = (taper > 0).sum(-1)  # observations every 4th site, radius 15: 7 or 8 within reach
     assert taper.shape == index.shape == (10**6, 8) and set(reached.unique().tolist()) == {7, 8}
     assert int(index[0, taper[0].argmax()]) == 0 and float(taper[0].max()) == 1.0
+
+
+def test_random_rotation_keeps_mean_and_covariance_and_mixes_members():
+    """``rotate=True`` (DAPPER's ``rot``): the rotation matrices are orthogonal and keep the ones
+    vector, so an ETKF step's analysis mean and sample covariance are those without rotation (to
+    round-off), while the members themselves change."""
+    from torchflow.filters.ensemble import mean_preserving_rotation
+    R = mean_preserving_rotation(4, 7, dtype=torch.float64, device="cpu", generator=torch.Generator().manual_seed(0))
+    eye = torch.eye(7, dtype=torch.float64)
+    torch.testing.assert_close(R @ R.transpose(1, 2), eye.expand(4, 7, 7))
+    torch.testing.assert_close(R.sum(-1), torch.ones(4, 7, dtype=torch.float64))
+    model = Lorenz96(d=8)
+    X0 = 8.0 + 2.0 * torch.randn(3, 7, 8, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    z = model.sample_measurement(model.transition_mean(X0[:, 0]), torch.Generator().manual_seed(2))
+    _, plain = _forecast_and_step(ETKF(model, n_particles=7, inflation=1.1), X0, z)
+    _, rot = _forecast_and_step(ETKF(model, n_particles=7, inflation=1.1, rotate=True), X0, z)
+    m0, P0 = _moments(plain.particles)
+    m1, P1 = _moments(rot.particles)
+    torch.testing.assert_close(m1, m0)
+    torch.testing.assert_close(P1, P0)
+    assert not torch.allclose(rot.particles, plain.particles)
+    with pytest.raises(ArgumentTypeError, match="rotate: expected True or False"):
+        ETKF(model, rotate="yes")
+
+
+def test_analysis_inflation_scales_the_analysis_anomalies():
+    """``inflate="analysis"`` (DAPPER's semantics): the step without inflation, then the analysis
+    anomalies times ``inflation`` (same mean, covariance times inflation^2)."""
+    model = Lorenz96(d=8)
+    X0 = 8.0 + 2.0 * torch.randn(3, 7, 8, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    z = model.sample_measurement(model.transition_mean(X0[:, 0]), torch.Generator().manual_seed(2))
+    for cls in (ETKF, LETKF):
+        _, plain = _forecast_and_step(cls(model, n_particles=7), X0, z)
+        _, infl = _forecast_and_step(cls(model, n_particles=7, inflation=1.3, inflate="analysis"), X0, z)
+        m0, P0 = _moments(plain.particles)
+        m1, P1 = _moments(infl.particles)
+        torch.testing.assert_close(m1, m0)
+        torch.testing.assert_close(P1, 1.3 ** 2 * P0)
+    with pytest.raises(ArgumentError, match="inflate: expected one of"):
+        ETKF(model, inflate="both")

@@ -4,7 +4,9 @@ An ensemble of ``N`` members per trial, ``X (B, N, d)``, stands for the belief. 
 
 1. **forecast**: every member moves through the model's transition (``model.sample_transition``,
    model noise included: a model without noise, Lorenz-96 by default, gives a deterministic
-   forecast); the forecast anomalies ``A = X_f - xbar`` are multiplied by ``inflation >= 1``;
+   forecast); the forecast anomalies ``A = X_f - xbar`` are multiplied by ``inflation >= 1``
+   (or, with ``inflate="analysis"``, the analysis anomalies after step 2, as DAPPER does; an
+   optional random rotation, ``rotate=True``, then mixes the analysis members);
 2. **analysis**: each member is measured with the model's (possibly nonlinear) ``h``
    (``model.measure``; no Jacobian), ``Y = h(X_f) - ybar`` are the measurement anomalies and
    ``delta = z - ybar`` the innovation. Everything is whitened by the model's noise ``R = L L^T``
@@ -58,9 +60,11 @@ from ..errors import ArgumentError, ArgumentTypeError
 from .base import Filter, ParticleState
 
 __all__ = ["EnsembleKalmanFilter", "EnsembleTransformKalmanFilter", "LocalEnsembleTransformKalmanFilter",
-           "gaspari_cohn", "periodic_distances"]
+           "gaspari_cohn", "periodic_distances", "mean_preserving_rotation"]
 
 _DIAGONAL_NOISE = ("scalar", "diagonal", "state_dependent_diagonal")
+#: which anomalies the multiplicative inflation scales
+INFLATE = ("forecast", "analysis")
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
@@ -154,6 +158,32 @@ def check_radius(radius) -> float:
     return float(radius)
 
 
+
+def mean_preserving_rotation(batch: int, n: int, *, dtype, device, generator=None) -> torch.Tensor:
+    """``(batch, n, n)`` random orthogonal matrices ``R`` with ``R 1 = 1``: a Haar-distributed rotation
+    of the ``n - 1``-dimensional complement of the ones vector (QR of a Gaussian matrix, signs fixed by
+    R's diagonal), embedded through the Helmert basis. Applied to an ensemble's anomalies it keeps
+    their mean (zero) and their sample covariance, and mixes the members (the random rotation of
+    square-root filters that DAPPER's ``rot=True`` applies, against members stuck as outliers)."""
+    # the Helmert basis U (n, n - 1): column j is (1, .., 1, -(j + 1), 0, .., 0) / sqrt((j + 1)(j + 2))
+    j = torch.arange(n - 1, device=device)
+    U = torch.triu(torch.ones(n, n - 1, dtype=dtype, device=device))
+    U[j + 1, j] = -(j + 1).to(dtype)
+    U = U / ((j + 1) * (j + 2)).to(dtype).sqrt()
+    G = linalg.standard_normal((batch, n - 1, n - 1), dtype=dtype, device=device, generator=generator)
+    Q, Rq = torch.linalg.qr(G)
+    Q = Q * torch.sign(Rq.diagonal(dim1=-2, dim2=-1)).unsqueeze(-2)
+    return U @ Q @ U.transpose(0, 1) + 1.0 / n
+
+
+def rotate_anomalies(X: torch.Tensor, generator=None) -> torch.Tensor:
+    """The ensemble ``X (B, N, d)`` with its anomalies mixed by :func:`mean_preserving_rotation`
+    (one rotation per trial): the same mean and sample covariance."""
+    R = mean_preserving_rotation(X.shape[0], X.shape[1], dtype=X.dtype, device=X.device, generator=generator)
+    xbar = X.mean(1, keepdim=True)
+    return xbar + R @ (X - xbar)
+
+
 @dataclass
 class _Whitened:
     """The forecast ensemble seen through the measurement, whitened by R (module docstring).
@@ -184,8 +214,8 @@ class _EnsembleFilter(Filter):
     random_stream = "ensemble_kalman"  # one family: the filters start from the same ensemble
     estimates_evidence = False  # a Gaussian approximation from the ensemble (module docstring)
 
-    def __init__(self, model, *, n_particles: int = 20, inflation: float = 1.0, validate: bool = True,
-                 name: Optional[str] = None):
+    def __init__(self, model, *, n_particles: int = 20, inflation: float = 1.0, inflate: str = "forecast",
+                 rotate: bool = False, validate: bool = True, name: Optional[str] = None):
         super().__init__(model, validate=validate, name=name)
         #: ensemble members per trial N (>= 2: anomalies need two members)
         self.n_particles = check_count("n_particles", n_particles, minimum=2,
@@ -193,6 +223,16 @@ class _EnsembleFilter(Filter):
         #: multiplicative inflation of the forecast anomalies (>= 1; 1: none)
         self.inflation = check_number("inflation", inflation, lambda v: v >= 1,
                                       "a finite number >= 1 (multiplicative inflation of the forecast anomalies)")
+        if inflate not in INFLATE:
+            raise ArgumentError(f"inflate: expected one of {INFLATE} (which anomalies `inflation` multiplies), "
+                                f"got {inflate!r}")
+        #: ``"forecast"``: the forecast anomalies are inflated before the analysis; ``"analysis"``: the
+        #: analysis anomalies after it (DAPPER's ``infl``, applied with its ``rot`` in its post-processing)
+        self.inflate = inflate
+        if not isinstance(rotate, bool):
+            raise ArgumentTypeError(f"rotate: expected True or False, got {rotate!r}")
+        #: rotate the analysis anomalies by a random orthogonal matrix that keeps the mean (:func:`mean_preserving_rotation`)
+        self.rotate = rotate
 
     def _resolve_n(self, n_particles):
         return self.n_particles if n_particles is None else check_count(
@@ -226,6 +266,11 @@ class _EnsembleFilter(Filter):
         xbar, A = self.forecast(state, generator)
         w = self.whiten(xbar + A, xbar.squeeze(1), z)
         Xa, ll = self.analysis(xbar, A, w, generator)
+        if self.inflate == "analysis" and self.inflation != 1.0:
+            ma = Xa.mean(1, keepdim=True)
+            Xa = ma + self.inflation * (Xa - ma)
+        if self.rotate:
+            Xa = rotate_anomalies(Xa, generator)
         return self._state(Xa, ll, state.step + 1)
 
     def forecast(self, state: ParticleState, generator: Optional[torch.Generator]) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -234,7 +279,7 @@ class _EnsembleFilter(Filter):
         Xf = self.model.sample_transition(state.particles, generator)  # (B, N, d)
         xbar = Xf.mean(1, keepdim=True)  # (B, 1, d)
         A = Xf - xbar
-        return xbar, (A * self.inflation if self.inflation != 1.0 else A)
+        return xbar, (A * self.inflation if self.inflation != 1.0 and self.inflate == "forecast" else A)
 
     def forecast_evidence(self, w: "_Whitened") -> torch.Tensor:
         """The Gaussian approximation ``(B,)`` of ``log p(z_k | z_{1:k-1})`` from the forecast ensemble
@@ -308,7 +353,8 @@ class _EnsembleFilter(Filter):
         return -0.5 * (w.delta.square().sum(-1) - quad + logdet_S + w.n_obs * _LOG_2PI)
 
     def extra_repr(self) -> str:
-        return f"n_particles={self.n_particles}, inflation={self.inflation:g}"
+        return (f"n_particles={self.n_particles}, inflation={self.inflation:g}"
+                + (f", inflate={self.inflate!r}" if self.inflate != "forecast" else "") + (", rotate=True" if self.rotate else ""))
 
 
 class EnsembleKalmanFilter(_EnsembleFilter):
@@ -324,7 +370,11 @@ class EnsembleKalmanFilter(_EnsembleFilter):
     Args:
         model: a Gaussian-form model (``measure``, ``measurement_cov``, ``sample_transition``).
         n_particles: ensemble members N (>= 2).
-        inflation: multiplicative inflation of the forecast anomalies (>= 1; 1: none).
+        inflation: multiplicative inflation of the anomalies (>= 1; 1: none).
+        inflate: which anomalies ``inflation`` multiplies: ``"forecast"`` (before the analysis) or
+            ``"analysis"`` (after it, as DAPPER's ``infl``: its settings then mean the same here).
+        rotate: mix the analysis anomalies by a random orthogonal matrix that keeps the mean and
+            the sample covariance (:func:`mean_preserving_rotation`; DAPPER's ``rot=True``).
         validate, name: as :class:`~torchflow.filters.Filter`.
 
     Shapes: ensemble ``(B, N, d)``, observations ``z (B, m)`` (NaN: not observed).
@@ -412,7 +462,11 @@ class EnsembleTransformKalmanFilter(_EnsembleFilter):
     Args:
         model: a Gaussian-form model (``measure``, ``measurement_cov``, ``sample_transition``).
         n_particles: ensemble members N (>= 2).
-        inflation: multiplicative inflation of the forecast anomalies (>= 1; 1: none).
+        inflation: multiplicative inflation of the anomalies (>= 1; 1: none).
+        inflate: which anomalies ``inflation`` multiplies: ``"forecast"`` (before the analysis) or
+            ``"analysis"`` (after it, as DAPPER's ``infl``: its settings then mean the same here).
+        rotate: mix the analysis anomalies by a random orthogonal matrix that keeps the mean and
+            the sample covariance (:func:`mean_preserving_rotation`; DAPPER's ``rot=True``).
         validate, name: as :class:`~torchflow.filters.Filter`.
 
     Shapes: ensemble ``(B, N, d)``, observations ``z (B, m)`` (NaN: not observed).
@@ -440,7 +494,11 @@ class LocalEnsembleTransformKalmanFilter(_EnsembleFilter):
         model: a Gaussian-form model with a diagonal measurement noise (declared ``scalar``,
             ``diagonal`` or ``state_dependent_diagonal``).
         n_particles: ensemble members N (>= 2).
-        inflation: multiplicative inflation of the forecast anomalies (>= 1; 1: none).
+        inflation: multiplicative inflation of the anomalies (>= 1; 1: none).
+        inflate: which anomalies ``inflation`` multiplies: ``"forecast"`` (before the analysis) or
+            ``"analysis"`` (after it, as DAPPER's ``infl``: its settings then mean the same here).
+        rotate: mix the analysis anomalies by a random orthogonal matrix that keeps the mean and
+            the sample covariance (:func:`mean_preserving_rotation`; DAPPER's ``rot=True``).
         radius: localisation radius (> 0, ``inf`` allowed): the distance beyond which an
             observation has no influence; the Gaspari-Cohn half-width is ``radius / 2``. The default
             suits Lorenz-96 (d = 40, all observed, N = 20; see the benchmark's results).
@@ -457,9 +515,10 @@ class LocalEnsembleTransformKalmanFilter(_EnsembleFilter):
     """
 
     def __init__(self, model, *, n_particles: int = 20, inflation: float = 1.0, radius: float = 15.0,
-                 distances: Optional[torch.Tensor] = None, local_chunk: Optional[int] = None, validate: bool = True,
-                 name: Optional[str] = None):
-        super().__init__(model, n_particles=n_particles, inflation=inflation, validate=validate, name=name)
+                 distances: Optional[torch.Tensor] = None, local_chunk: Optional[int] = None,
+                 inflate: str = "forecast", rotate: bool = False, validate: bool = True, name: Optional[str] = None):
+        super().__init__(model, n_particles=n_particles, inflation=inflation, inflate=inflate, rotate=rotate,
+                         validate=validate, name=name)
         #: the local analyses run in blocks of this many coordinates (``None``: all d at once); the
         #: experiment runner sets it from the memory budget when one trial exceeds it (:meth:`plan_memory`)
         self.local_chunk = None if local_chunk is None else check_count(
