@@ -4,7 +4,7 @@ import torch
 
 from torchflow._checks import NonFiniteError
 from torchflow.filters import (BootstrapParticleFilter, EnsembleKalmanFilter, EnsembleTransformKalmanFilter,
-                               ExtendedKalmanFilter, GaussianSumParticleFilter, KalmanFilter, KernelParticleFlowFilter,
+                               ExtendedKalmanFilter, GaussianSumParticleFilter, KalmanFilter, KernelParticleFlowFilter, LagOneFlowFilter,
                                LocalEnsembleTransformKalmanFilter, LocalParticleFilter, ParticleFlowFilter, ParticleFlowParticleFilter,
                                UnscentedKalmanFilter)
 from torchflow.schedules import ExponentialSchedule
@@ -28,6 +28,8 @@ CONFIGS = [
     ("kpff-lg", lambda: random_lg(3, 2), lambda m: KernelParticleFlowFilter(m, n_particles=64, flow_steps=5)),
     ("kpff-l96", lambda: Lorenz96(d=8), lambda m: KernelParticleFlowFilter(m, n_particles=64, radius=4.0, flow_steps=5)),
     ("lpf-l96", lambda: Lorenz96(d=8), lambda m: LocalParticleFilter(m, n_particles=64, radius=4.0, jitter=0.1)),
+    ("lag1_flow-lg", lambda: random_lg(3, 2), lambda m: LagOneFlowFilter(m, n_particles=64, flow_steps=5)),
+    ("lag1_flow-l96", lambda: Lorenz96(d=8), lambda m: LagOneFlowFilter(m, n_particles=64, flow_steps=5)),
 ]
 _SCHED = ExponentialSchedule(8, 1.3)
 for _flow in ("edh", "ledh", "geodesic", "gromov", "osd"):

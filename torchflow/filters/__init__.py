@@ -7,7 +7,7 @@ from .gaussian_sum import (GaussianParticleFilter, GaussianSumParticleFilter, Mi
                            ParticleFlowGaussianParticleFilter, ParticleFlowGaussianSumParticleFilter)
 from .ensemble import (EnsembleKalmanFilter, EnsembleTransformKalmanFilter,
                        LocalEnsembleTransformKalmanFilter)
-from .assimilation import KernelParticleFlowFilter, LocalParticleFilter
+from .assimilation import KernelParticleFlowFilter, LagOneFlowFilter, LocalParticleFilter
 from .kalman import ExtendedKalmanFilter, KalmanFilter, UnscentedKalmanFilter, ekf_predict, kalman_update
 
 __all__ = [
@@ -24,6 +24,7 @@ __all__ = [
     "EnsembleTransformKalmanFilter",
     "LocalEnsembleTransformKalmanFilter",
     "KernelParticleFlowFilter",
+    "LagOneFlowFilter",
     "LocalParticleFilter",
     "BootstrapParticleFilter",
     "ParticleFlowParticleFilter",
