@@ -696,7 +696,13 @@ class Resampler(nn.Module):
         scheme: ``multinomial``, ``systematic`` (default), ``stratified`` or ``residual``.
         ess_threshold: resample a trial when ESS < ess_threshold * N (0 never, 1 nearly always).
         regularization: ``None`` (off), a float variance, or a list of d per-coordinate variances
-            of Gaussian jitter added to the particles of resampled trials.
+            of Gaussian jitter added to the particles of resampled trials (absolute: the same
+            whatever the cloud's spread).
+        regularization_relative: ``None`` (off) or a number ``h >= 0``: Gaussian jitter of standard
+            deviation ``h`` times each coordinate's weighted spread before resampling, added to the
+            particles of resampled trials (relative to the cloud, as DAPPER's ``PartFilt(reg=...)``
+            scales its jitter by the weighted covariance; here per coordinate). With both given the
+            variances add.
         gradient: how gradients pass through the ancestor choice.
 
             * ``"none"``: the index gather drops how the ancestors depend on the parameters, so
@@ -737,9 +743,16 @@ class Resampler(nn.Module):
     def __init__(self, state_dim: int, *, scheme: str = "systematic", ess_threshold: float = 0.5,
                  regularization=None, gradient: str = "none", soft_alpha: float = 0.5,
                  ot_epsilon: float = 0.1, ot_iterations: int = 100, dtype: torch.dtype = torch.float64,
-                 sort: Optional[str] = None):
+                 sort: Optional[str] = None, regularization_relative: Optional[float] = None):
         super().__init__()
         self.sort = sort
+        if regularization_relative is not None and (
+                isinstance(regularization_relative, bool) or not isinstance(regularization_relative, numbers.Real)
+                or not 0 <= float(regularization_relative) < math.inf):
+            raise ArgumentError(f"regularization_relative: expected None or a number >= 0 (jitter in units of the "
+                                f"cloud's spread), got {regularization_relative!r}")
+        #: jitter relative to each coordinate's weighted spread (``None``: off)
+        self.regularization_relative = None if regularization_relative is None else float(regularization_relative)
         if (isinstance(ess_threshold, bool) or not isinstance(ess_threshold, numbers.Real)
                 or not 0.0 <= float(ess_threshold) <= 1.0):
             raise ArgumentError(f"ess_threshold: expected a fraction in [0, 1], got {ess_threshold!r}")
@@ -782,7 +795,8 @@ class Resampler(nn.Module):
         sorting, no regularisation, and a gradient rule that changes nothing without autograd
         (``"none"``, ``"stop_gradient"``), and this class's own :meth:`forward` (a subclass that
         overrides it is always called); ``None`` otherwise."""
-        if (self.sort is not None or self.regularization_std is not None or self.gradient not in ("none", "stop_gradient")
+        if (self.sort is not None or self.regularization_std is not None or self.regularization_relative is not None
+                or self.gradient not in ("none", "stop_gradient")
                 or type(self).forward is not Resampler.forward):
             return None
         return _KERNEL_SCHEMES.get(self._scheme_fn)
@@ -825,8 +839,9 @@ class Resampler(nn.Module):
         (:func:`reads_host`) only the trials that resample are computed, and a step in which none
         does gathers nothing; the random draws, hence the numbers, are the same either way. ``uniforms``:
         this step's draws, made beforehand by :meth:`draw_uniforms` (a built-in scheme on the CPU)."""
+        spread = self._spread(particles, log_weights)
         if self.gradient == "ot":
-            return self._ot(particles, log_weights, generator, cov, extras)
+            return self._ot(particles, log_weights, generator, cov, extras, spread)
         order = None if self.sort is None else sort_order(particles, log_weights, self.sort)
         lw_in = log_weights if order is None else log_weights.gather(1, order)
         if self.gradient == "soft":
@@ -837,7 +852,7 @@ class Resampler(nn.Module):
                 self._scheme_fn, self.ess_threshold, ess=ess, u=uniforms)
             if idx is None:  # no trial resampled
                 if order is None:  # the particles stay where they are: nothing to gather
-                    return self._regularise(particles, resampled, generator), lw_new, cov, extras or {}, resampled
+                    return self._regularise(particles, resampled, generator, spread), lw_new, cov, extras or {}, resampled
                 idx = torch.arange(lw_in.shape[1], device=lw_in.device).expand_as(lw_in)
         if order is not None:  # positions in the sorted cloud -> the particles' own indices
             idx = order.gather(1, idx)
@@ -852,18 +867,30 @@ class Resampler(nn.Module):
             cov = cov.resampled(idx)
         if extras:
             extras = {k: gather_particles(v, idx) for k, v in extras.items()}
-        return self._regularise(particles, resampled, generator), lw_new, cov, extras or {}, resampled
+        return self._regularise(particles, resampled, generator, spread), lw_new, cov, extras or {}, resampled
 
-    def _regularise(self, particles: Tensor, resampled: Tensor, generator) -> Tensor:
-        if self.regularization_std is None:
+    def _spread(self, particles: Tensor, log_weights: Tensor) -> Optional[Tensor]:
+        """``(B, 1, d)`` each coordinate's weighted standard deviation, for the relative jitter (else ``None``)."""
+        if self.regularization_relative is None:
+            return None
+        W = torch.softmax(log_weights.detach(), 1).unsqueeze(-1)  # (B, N, 1)
+        x = particles.detach()
+        mean = (W * x).sum(1, keepdim=True)
+        return ((W * (x - mean).square()).sum(1, keepdim=True)).sqrt()
+
+    def _regularise(self, particles: Tensor, resampled: Tensor, generator, spread: Optional[Tensor] = None) -> Tensor:
+        if self.regularization_std is None and spread is None:
             return particles
+        std = 0.0 if self.regularization_std is None else self.regularization_std.to(particles.dtype).square()
+        if spread is not None:
+            std = std + (self.regularization_relative * spread).square()
         # drawn whether or not any trial resampled, so that each trial's stream advances the
         # same way whatever the other trials in its batch do
         noise = standard_normal(particles.shape, dtype=particles.dtype, device=particles.device,
-                                generator=generator) * self.regularization_std
+                                generator=generator) * torch.as_tensor(std, dtype=particles.dtype).sqrt()
         return particles + noise * resampled[:, None, None].to(particles.dtype)
 
-    def _ot(self, particles, log_weights, generator, cov, extras):
+    def _ot(self, particles, log_weights, generator, cov, extras, spread=None):
         """Transport resampling: every trial's plan is computed (no host synchronisation), the
         identity kept where the ESS did not trigger; per-particle covariances and extras are moved
         by the same convex combinations."""
@@ -882,7 +909,7 @@ class Resampler(nn.Module):
             extras = {k: torch.einsum("bij,bi...->bj...", T.to(v.dtype), v) if v.is_floating_point()
                       else gather_particles(v, T.argmax(1)) for k, v in extras.items()}
         lw = torch.where(resampled[:, None], torch.full_like(log_weights, -math.log(n)), log_weights)
-        return self._regularise(particles, resampled, generator), lw, cov, extras or {}, resampled
+        return self._regularise(particles, resampled, generator, spread), lw, cov, extras or {}, resampled
 
     def _soft(self, log_weights: Tensor, generator):
         """Soft resampling: trigger on the ESS of ``W``, draw from ``q`` (no gradient through the

@@ -43,7 +43,23 @@ def test_every_kth_coordinate_is_observed_and_the_matrix_says_the_same():
     assert traj.states.shape == (3, 5, 10) and traj.observations.shape == (3, 4, 4)
 
 
+@pytest.mark.parametrize("op", ["abs", "square"])
+def test_nonlinear_observation_operators_and_their_jacobian(op):
+    """R3's measurements lose the sign; the analytic Jacobian equals torch.func's, and the model says
+    it is nonlinear (no matrix)."""
+    m = Lorenz96(d=10, obs_every=2, obs_operator=op)
+    x = torch.randn(2, 5, 10, dtype=torch.float64)
+    v = x[..., ::2]
+    assert torch.equal(m.measure(x), v.abs() if op == "abs" else v.square())
+    assert not m.structure.linear_measurement
+    J = torch.func.vmap(torch.func.vmap(torch.func.jacrev(m.measure)))(x)
+    torch.testing.assert_close(m.measurement_jacobian(x), J)
+    with pytest.raises(ArgumentError, match="obs_operator: the measurement"):
+        m.measurement_matrix()
+
+
 @pytest.mark.parametrize("kw, match", [
+    (dict(obs_operator="cube"), "obs_operator: expected one of"),
     (dict(d=3), "d: expected an integer >= 4"),
     (dict(dt=0.0), "dt: expected a finite number > 0"),
     (dict(obs_every=0), r"obs_every: expected an integer in \[1, d = 40\]"),

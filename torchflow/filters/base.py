@@ -4,6 +4,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Dict, Optional, Tuple
 
@@ -388,6 +389,11 @@ class Filter(nn.Module):
         if warn:
             guards.raise_never_measured(self.name, table, trace.n)
             guards.warn_dead_steps(self.name, table)
+            if trace.first_collapse is not None:  # a second small read, once per call
+                both = torch.stack((trace.first_collapse, trace.collapse_count)).tolist()
+                text = guards.collapse_warning(self.name, both[0], both[1], trace.n)
+                if text is not None:
+                    warnings.warn(text, RuntimeWarning, stacklevel=3)
 
     def forward(
         self,
@@ -555,6 +561,8 @@ class _Trace:
         self.stds = []
         self.invalid = []  # per step: (B,) bool or None
         self.n = 0  # steps added
+        self.first_collapse = None  # (B,) long: the first step whose cloud had collapsed (0: none), on the device
+        self.collapse_count = None  # (B,) long: how many steps
         self._buf: Optional[Dict[str, torch.Tensor]] = None  # (B, T, ...) buffers, when buffering
         self._invalid_seen = False
         self._stacked = None  # (number of steps, stacked estimates (B, T, d))
@@ -603,6 +611,18 @@ class _Trace:
             self.lws.append(state.log_weights)
         if self.std:
             self.stds.append(belief_std(state))
+        x = getattr(state, "particles", None) if isinstance(state, ParticleState) else None
+        if x is not None and x.dim() == 3 and x.shape[1] >= 2:  # collapse: flagged on the device, read once
+            now = guards.collapsed(x)
+            if self.first_collapse is None:
+                self.first_collapse = torch.zeros(now.shape, dtype=torch.long, device=now.device)
+                self.collapse_count = torch.zeros_like(self.first_collapse)
+                self._collapsed_before = torch.zeros_like(now)
+            # collapsed two steps running: the forecast did not spread the copies again (no model noise)
+            bad = now & self._collapsed_before
+            self._collapsed_before = now
+            self.first_collapse = torch.where((self.first_collapse == 0) & bad, self.n, self.first_collapse)
+            self.collapse_count = self.collapse_count + bad.long()
         self.n += 1
 
     def _view(self, name: str) -> Optional[torch.Tensor]:
@@ -666,7 +686,10 @@ class ParticleFilter(Filter):
         resampling: ``multinomial``, ``systematic``, ``stratified`` or ``residual``.
         ess_threshold: resample a trial when ESS < ess_threshold * N (0 never, 1 nearly always).
         regularization: ``None`` (off), a float variance, or a list of d per-coordinate variances
-            of Gaussian jitter added to the particles of resampled trials.
+            of Gaussian jitter added to the particles of resampled trials (absolute).
+        regularization_relative: ``None`` (off) or ``h >= 0``: jitter of ``h`` times each
+            coordinate's weighted spread before resampling (relative to the cloud, as DAPPER's
+            ``reg``); see :class:`~torchflow.resampling.Resampler`.
         resampling_gradient: how gradients pass through resampling (``"none"``, ``"stop_gradient"``,
             ``"soft"`` or ``"ot"``; see :class:`~torchflow.resampling.Resampler`).
         soft_alpha: the mixture weight of ``resampling_gradient="soft"``, in (0, 1].
@@ -712,7 +735,7 @@ class ParticleFilter(Filter):
                  ess_threshold: float = 0.5, regularization=None, resampling_gradient: str = "stop_gradient",
                  soft_alpha: float = 0.5, ot_epsilon: float = 0.1, ot_iterations: int = 100, nonfinite: str = "recover",
                  particle_chunk: Optional[int] = None, proposal_gradient: str = "pathwise", weights: str = "standard",
-                 validate: bool = True, name: Optional[str] = None):
+                 regularization_relative: Optional[float] = None, validate: bool = True, name: Optional[str] = None):
         super().__init__(model, validate=validate, name=name)
         if proposal is None:
             proposal = BootstrapProposal(model)
@@ -747,7 +770,8 @@ class ParticleFilter(Filter):
         self.resampler = _resampling.Resampler(model.state_dim, scheme=resampling, ess_threshold=ess_threshold,
                                                regularization=regularization, gradient=resampling_gradient,
                                                soft_alpha=soft_alpha, ot_epsilon=ot_epsilon,
-                                               ot_iterations=ot_iterations, dtype=model.dtype)
+                                               ot_iterations=ot_iterations, dtype=model.dtype,
+                                               regularization_relative=regularization_relative)
 
     @property
     def graph_step(self) -> bool:

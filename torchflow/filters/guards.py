@@ -114,6 +114,40 @@ def warn_dead_steps(name: str, table: List[List[int]]) -> None:
         warnings.warn(text, RuntimeWarning, stacklevel=3)
 
 
+#: a cloud whose every coordinate spans at most this many units of round-off (relative to its size)
+#: is collapsed: its particles are copies of fewer than two distinct points
+COLLAPSE_ROUNDOFF = 64
+
+
+def collapsed(particles: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` bool, on the device: whether the cloud ``particles (B, N, d)`` has collapsed, every
+    coordinate's range over the particles being within round-off of its size
+    (``COLLAPSE_ROUNDOFF eps (1 + max |x|)``): fewer than two distinct particles, whatever the
+    weights (copies of one point share equal weights, so the ESS stays high)."""
+    lo, hi = torch.aminmax(particles.detach(), dim=1)  # (B, d)
+    size = torch.maximum(lo.abs(), hi.abs()).amax(-1)
+    tol = COLLAPSE_ROUNDOFF * torch.finfo(particles.dtype).eps * (1.0 + size)
+    return (hi - lo).amax(-1) <= tol
+
+
+def collapse_warning(name: str, first: List[int], count: List[int], steps: int) -> Optional[str]:
+    """The text of the collapse warning, or ``None``: ``first[b]`` the first step (1-based, 0 none) at
+    which trial b's cloud had stayed collapsed (:func:`collapsed`) through two steps running (a single
+    degenerate step whose copies the model's noise spreads again is not a collapse) and ``count[b]`` in
+    how many of the ``steps``."""
+    trials = [b for b, f in enumerate(first) if f > 0]
+    if not trials:
+        return None
+    shown = ", ".join(f"trial {b} from step {first[b]} ({count[b]} of {steps} steps)" for b in trials[:5])
+    more = f" and {len(trials) - 5} more trials" if len(trials) > 5 else ""
+    return (f"{name}: the particle cloud collapsed to fewer than 2 distinct particles (a spread within round-off) in "
+            f"{shown}{more}. The ESS does not show it: copies of one point have equal weights. Its estimates then "
+            "follow one point and its evidence is that point's. A model without noise needs spread put back: "
+            "regularisation after resampling (regularization=..., or relative to the spread: "
+            "regularization_relative=...), or a filter for deterministic dynamics (filter=lag1_flow, kpff, lpf, the "
+            "ensemble Kalman filters)")
+
+
 def _check_step_gradient(name: str, step: int, grad: torch.Tensor) -> None:
     """A tensor hook: raise if the gradient reaching a step's input is non-finite (the step, or a
     later one not yet reported, produced it); one host read."""

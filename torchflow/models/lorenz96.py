@@ -17,10 +17,15 @@ import torch
 from .. import linalg
 from ..covariances import DiagonalCovariance
 from .._checks import check_nonnegative, check_number, check_positive
+from ..errors import ArgumentError
 from .base import GaussianStateSpaceModel
 from .dynamics import isotropic_log_prob, rk4_steps
 from .structure import Structure
 from .trials import batch_jacobian, per_trial_structure, trial_names, trial_view
+
+
+#: what an observation of a coordinate measures (``Lorenz96(obs_operator=...)``)
+OBS_OPERATORS = ("identity", "abs", "square")
 
 
 def lorenz96_tendency(x: torch.Tensor, forcing) -> torch.Tensor:
@@ -43,6 +48,10 @@ class Lorenz96(GaussianStateSpaceModel):
         substeps: Runge-Kutta steps per observation interval.
         obs_every: observe coordinates ``0, k, 2k, ...`` (``m = ceil(d / k)``).
         obs_std: observation noise standard deviation (R = obs_std^2 I).
+        obs_operator: what is measured at an observed coordinate: ``"identity"`` (``x_i``, the
+            default), ``"abs"`` (``|x_i|``) or ``"square"`` (``x_i^2``): the two nonlinear ones lose
+            the sign, so the posterior is bimodal where ``x_i`` is near 0 (regime R3 of the
+            data-assimilation scoreboard).
         model_noise: standard deviation of the additive model noise per interval (0: none; the
             filters that weigh by the transition density then refuse the model, by name).
         prior_std: the filters' prior: ``N(x_0 + prior_std xi, prior_std^2 I)``, one draw per trial.
@@ -67,7 +76,8 @@ class Lorenz96(GaussianStateSpaceModel):
     per_trial_parameters = ("forcing", "model_noise", "obs_std")
 
     def __init__(self, *, d: int = 40, forcing: float = 8.0, dt: float = 0.05, substeps: int = 1, obs_every: int = 1,
-                 obs_std: float = 1.0, model_noise: float = 0.0, prior_std: float = 1.0, spin_up: int = 100):
+                 obs_std: float = 1.0, model_noise: float = 0.0, prior_std: float = 1.0, spin_up: int = 100,
+                 obs_operator: str = "identity"):
         super().__init__()
         self.state_dim = check_number("d", d, lambda v: v >= 4, "an integer >= 4 (the ring needs i-2 .. i+1)",
                                       integer=True)
@@ -88,8 +98,14 @@ class Lorenz96(GaussianStateSpaceModel):
         self.register_buffer("obs_std", torch.tensor(obs_std, **f64))
         self.register_buffer("model_noise", torch.tensor(model_noise, **f64))
         self.register_buffer("prior_std", torch.tensor(float(prior_std), **f64))
+        if obs_operator not in OBS_OPERATORS:
+            raise ArgumentError(f"obs_operator: expected one of {OBS_OPERATORS}, got {obs_operator!r}")
+        #: ``"identity"``, ``"abs"`` or ``"square"`` (what an observation measures)
+        self.obs_operator = obs_operator
+        linear = obs_operator == "identity"
         self.structure = type(self).structure.replace(
-            measurement_noise_scale=obs_std ** 2, measurement_matrix_scale=1.0 if self.obs_every == 1 else None)
+            linear_measurement=linear, measurement_noise_scale=obs_std ** 2,
+            measurement_matrix_scale=1.0 if self.obs_every == 1 and linear else None)
 
     def _per_trial_structure(self, names):
         return per_trial_structure(self, names, dynamics=False, measurement=False, noise="obs_std" in names)
@@ -139,7 +155,11 @@ class Lorenz96(GaussianStateSpaceModel):
 
     # ---- measurement -------------------------------------------------------------------------
     def measurement_matrix(self) -> torch.Tensor:
-        """``(m, d)``: ones at ``(j, observed[j])`` (built on each call: ``m d`` numbers)."""
+        """``(m, d)``: ones at ``(j, observed[j])`` (built on each call: ``m d`` numbers); only for the
+        linear ``obs_operator="identity"``."""
+        if self.obs_operator != "identity":
+            raise ArgumentError(f"obs_operator: the measurement {self.obs_operator!r} is nonlinear and has no "
+                                "matrix; use measurement_jacobian(x)")
         H = torch.zeros(self.obs_dim, self.state_dim, dtype=self.dtype, device=self.device)
         return H.scatter_(-1, self.observed.unsqueeze(-1), 1.0)
 
@@ -149,7 +169,20 @@ class Lorenz96(GaussianStateSpaceModel):
         return self.measurement_matrix()
 
     def measure(self, x: torch.Tensor) -> torch.Tensor:
-        return x[..., self.observed]
+        v = x[..., self.observed]
+        if self.obs_operator == "abs":
+            return v.abs()
+        return v.square() if self.obs_operator == "square" else v
+
+    def measurement_jacobian(self, x: torch.Tensor) -> torch.Tensor:
+        """``(..., m, d)``: the identity's rows of ones, or ``sign(x_i)`` / ``2 x_i`` at ``(j, observed[j])``."""
+        if self.obs_operator == "identity":
+            return super().measurement_jacobian(x)
+        v = x[..., self.observed]
+        slope = torch.sign(v) if self.obs_operator == "abs" else 2.0 * v  # (..., m)
+        J = torch.zeros(*x.shape[:-1], self.obs_dim, self.state_dim, dtype=x.dtype, device=x.device)
+        index = self.observed.view(*([1] * (x.dim() - 1)), -1, 1).expand(*x.shape[:-1], self.obs_dim, 1)
+        return J.scatter(-1, index, slope.unsqueeze(-1))
 
     def measurement_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
         return self._scale(self.obs_std, x, 2) ** 2 * self._eye(self.obs_dim)
