@@ -144,3 +144,27 @@ def test_scalar_support_update_equals_the_joseph_form():
     for a, b in zip(on, off):
         assert ((a - b).abs().max() / b.abs().max()).item() < 1e-12
     assert not all(torch.equal(a, b) for a, b in zip(on, off))  # the knob picks another computation
+
+
+@pytest.mark.parametrize("cls", [ExtendedKalmanFilter, UnscentedKalmanFilter])
+def test_inflation_scales_the_predicted_covariance(cls):
+    """One step with inflation c is the update of the prediction whose covariance is c^2 times the
+    uninflated one; c = 1 is the filter unchanged; c < 1 is refused by name."""
+    from torchflow.errors import ArgumentError
+    from torchflow.filters import GaussianState
+    model = random_lg(3, 2)
+    g = torch.Generator().manual_seed(0)
+    mean = torch.randn(2, 3, generator=g, dtype=torch.float64)
+    cov = torch.eye(3, dtype=torch.float64).expand(2, 3, 3).clone()
+    z = torch.randn(2, 2, generator=g, dtype=torch.float64)
+    state = GaussianState(mean, cov, torch.zeros(2, dtype=torch.float64), 0)
+    f = cls(model, inflation=1.2)
+    out = f.step(state, z)
+    m_pred, P_pred = f.predict(mean, cov)
+    want_mean, want_cov, _ = f.update(m_pred, 1.44 * P_pred, z)
+    torch.testing.assert_close(out.mean, want_mean)
+    torch.testing.assert_close(out.cov, want_cov)
+    plain = cls(model).step(state, z)
+    assert not torch.allclose(plain.cov, out.cov)
+    with pytest.raises(ArgumentError, match="inflation: expected a finite number >= 1"):
+        cls(model, inflation=0.9)

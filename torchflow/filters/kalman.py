@@ -9,13 +9,25 @@ from .. import linalg, missing
 from ..models.trials import shared_structure, trial_names
 from ..trackers import UnscentedTransform, ekf_predict, ekf_update, kalman_update
 from .base import Filter, GaussianState
+from .._checks import check_number
 from ..errors import ArgumentTypeError
 
 __all__ = ["KalmanFilter", "ExtendedKalmanFilter", "UnscentedKalmanFilter", "kalman_update", "ekf_predict"]
 
 
 class _GaussianFilter(Filter):
-    """A Gaussian belief, moved by the subclass's :meth:`predict` and :meth:`update` each step."""
+    """A Gaussian belief, moved by the subclass's :meth:`predict` and :meth:`update` each step.
+
+    ``inflation >= 1`` multiplies the predicted covariance by ``inflation^2`` before the update (the
+    multiplicative inflation of the ensemble filters, whose anomalies it scales by ``inflation``):
+    on chaotic models it makes up for the spread the linearisation (EKF) or the sigma points (UKF)
+    miss. 1: none."""
+
+    def __init__(self, model, *, inflation: float = 1.0, validate: bool = True, name: Optional[str] = None):
+        super().__init__(model, validate=validate, name=name)
+        #: the predicted covariance is multiplied by ``inflation ** 2`` (1: none)
+        self.inflation = check_number("inflation", inflation, lambda v: v >= 1,
+                                      "a finite number >= 1 (multiplicative inflation of the predicted covariance)")
 
     def check_model(self) -> None:
         """With more measurements than states (``m > d``) the predicted measurement's covariance
@@ -33,6 +45,8 @@ class _GaussianFilter(Filter):
 
     def step(self, state, z, generator=None):
         m_pred, P_pred = self.predict(state.mean, state.cov)
+        if self.inflation != 1.0:
+            P_pred = P_pred * self.inflation ** 2
         mean, cov, ll = self.update(m_pred, P_pred, z)
         return GaussianState(mean, cov, ll, state.step + 1)
 
@@ -41,7 +55,12 @@ class ExtendedKalmanFilter(_GaussianFilter):
     """Extended Kalman filter: linearise g at the posterior mean and h at the predicted mean.
 
     Jacobians come from the model (``torch.func`` by default, analytic where the model provides
-    them). On a linear-Gaussian model it is the Kalman filter.
+    them). On a linear-Gaussian model (and ``inflation=1``) it is the Kalman filter.
+
+    Args:
+        model: a Gaussian-form model.
+        inflation: the predicted covariance is multiplied by ``inflation^2`` (>= 1; 1: none).
+        validate, name: as :class:`~torchflow.filters.Filter`.
     """
 
     def predict(self, mean: torch.Tensor, cov: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -121,6 +140,7 @@ class UnscentedKalmanFilter(_GaussianFilter):
     Exact on linear-Gaussian models for any admissible (alpha, beta, kappa).
 
     Args:
+        inflation: the predicted covariance is multiplied by ``inflation^2`` (>= 1; 1: none).
         alpha, beta, kappa: sigma-point spread and weights. Defaults ``alpha = 1``, ``beta = 2``,
             ``kappa = None`` meaning ``3 - d`` (Julier & Uhlmann's ``d + kappa = 3`` rule). On the
             acoustic model (d = 16, prior sd 10 m) ``kappa = 0`` puts sigma points 40 m from the
@@ -128,8 +148,8 @@ class UnscentedKalmanFilter(_GaussianFilter):
     """
 
     def __init__(self, model, *, alpha: float = 1.0, beta: float = 2.0, kappa: Optional[float] = None,
-                 validate: bool = True, name: Optional[str] = None):
-        super().__init__(model, validate=validate, name=name)
+                 inflation: float = 1.0, validate: bool = True, name: Optional[str] = None):
+        super().__init__(model, inflation=inflation, validate=validate, name=name)
         # on the model's device and dtype (a filter built around a CUDA model must not keep CPU weights)
         self.unscented = UnscentedTransform(model.state_dim, alpha=alpha, beta=beta, kappa=kappa,
                                             dtype=model.dtype, device=model.device)

@@ -10,6 +10,7 @@ chaotic for ``d >= 4``; the standard set-up of Sakov & Oke (2008), as DAPPER's
 """
 from __future__ import annotations
 
+import math
 from typing import Optional, Tuple
 
 import torch
@@ -52,6 +53,11 @@ class Lorenz96(GaussianStateSpaceModel):
             default), ``"abs"`` (``|x_i|``) or ``"square"`` (``x_i^2``): the two nonlinear ones lose
             the sign, so the posterior is bimodal where ``x_i`` is near 0 (regime R3 of the
             data-assimilation scoreboard).
+        obs_df: ``None`` (Gaussian errors, the default) or an integer ``nu >= 3``: Student-t errors with
+            ``nu`` degrees of freedom and scale ``obs_std`` (heavy tails; regime R4 uses 3). The
+            Gaussian form the Kalman-type filters use (``measurement_cov``) is then the t law's
+            variance, ``obs_std^2 nu / (nu - 2)`` (moment matching); the density
+            (``measurement_log_prob``, ``measurement_log_prob_terms``) is the t law's own.
         model_noise: standard deviation of the additive model noise per interval (0: none; the
             filters that weigh by the transition density then refuse the model, by name).
         prior_std: the filters' prior: ``N(x_0 + prior_std xi, prior_std^2 I)``, one draw per trial.
@@ -77,7 +83,7 @@ class Lorenz96(GaussianStateSpaceModel):
 
     def __init__(self, *, d: int = 40, forcing: float = 8.0, dt: float = 0.05, substeps: int = 1, obs_every: int = 1,
                  obs_std: float = 1.0, model_noise: float = 0.0, prior_std: float = 1.0, spin_up: int = 100,
-                 obs_operator: str = "identity"):
+                 obs_operator: str = "identity", obs_df: Optional[int] = None):
         super().__init__()
         self.state_dim = check_number("d", d, lambda v: v >= 4, "an integer >= 4 (the ring needs i-2 .. i+1)",
                                       integer=True)
@@ -103,8 +109,16 @@ class Lorenz96(GaussianStateSpaceModel):
         #: ``"identity"``, ``"abs"`` or ``"square"`` (what an observation measures)
         self.obs_operator = obs_operator
         linear = obs_operator == "identity"
+        if obs_df is not None:
+            obs_df = check_number("obs_df", obs_df, lambda v: v >= 3, "None (Gaussian errors) or an integer >= 3 "
+                                  "(Student-t degrees of freedom: a finite variance)", integer=True)
+        #: Student-t degrees of freedom of the observation errors (``None``: Gaussian)
+        self.obs_df = obs_df
+        #: the variance of one observation error over obs_std^2 (1, or nu / (nu - 2) for Student-t)
+        self._variance_factor = 1.0 if obs_df is None else obs_df / (obs_df - 2.0)
         self.structure = type(self).structure.replace(
-            linear_measurement=linear, measurement_noise_scale=obs_std ** 2,
+            linear_measurement=linear, measurement_noise_scale=obs_std ** 2 * self._variance_factor,
+            gaussian_measurement=obs_df is None,
             measurement_matrix_scale=1.0 if self.obs_every == 1 and linear else None)
 
     def _per_trial_structure(self, names):
@@ -185,21 +199,41 @@ class Lorenz96(GaussianStateSpaceModel):
         return J.scatter(-1, index, slope.unsqueeze(-1))
 
     def measurement_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
-        return self._scale(self.obs_std, x, 2) ** 2 * self._eye(self.obs_dim)
+        """``(m, m)``: the errors' variance times I (``obs_std^2``, or the Student-t law's ``obs_std^2 nu / (nu - 2)``)."""
+        return self._scale(self.obs_std, x, 2) ** 2 * self._variance_factor * self._eye(self.obs_dim)
 
     def measurement_log_prob(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-        """``log N(z; x_observed, obs_std^2 I)`` elementwise (no ``(m, m)`` factor)."""
+        """``log N(z; h(x), obs_std^2 I)`` elementwise (no ``(m, m)`` factor), or the Student-t law's."""
+        if self.obs_df is not None:
+            return self.measurement_log_prob_terms(z, x).sum(-1)
         h = self.measure(x)
         return isotropic_log_prob(z - h, trial_view(self.obs_std, 0, h))
 
+    def measurement_log_prob_terms(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """``log p(z_j | x)`` per observation ``(..., m)`` (NaN in ``z``: 0): Gaussian, or Student-t
+        with ``obs_df`` degrees of freedom and scale ``obs_std``."""
+        if self.obs_df is None:
+            return super().measurement_log_prob_terms(z, x)
+        h = self.measure(x)
+        nu, scale = float(self.obs_df), trial_view(self.obs_std, 0, h)
+        u = (z - h) / scale
+        const = math.lgamma(0.5 * (nu + 1)) - math.lgamma(0.5 * nu) - 0.5 * math.log(nu * math.pi)
+        terms = const - torch.log(scale) - 0.5 * (nu + 1) * torch.log1p(u * u / nu)
+        return torch.where(torch.isnan(z), torch.zeros_like(terms), terms)
+
     def measurement_variance(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """``obs_std^2``: a 0-d scalar, or one value per trial viewed against ``x`` (no ``(m, m)`` matrix)."""
-        return trial_view(self.obs_std, 0, x) ** 2
+        """The errors' variance (``obs_std^2``, times ``nu / (nu - 2)`` for Student-t): a 0-d scalar,
+        or one value per trial viewed against ``x`` (no ``(m, m)`` matrix)."""
+        return trial_view(self.obs_std, 0, x) ** 2 * self._variance_factor
 
     def sample_measurement(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
-        """``x_observed + obs_std * xi`` with the core's draws (``torch.randn`` of ``(..., m)``)."""
+        """``h(x) + obs_std * xi`` with the core's draws (``torch.randn`` of ``(..., m)``); Student-t:
+        ``xi / sqrt(chi2_nu / nu)``, the chi-square from ``nu`` more standard normals per observation."""
         mean = self.measure(x)
         xi = torch.randn(mean.shape, dtype=x.dtype, device=x.device, generator=generator)
+        if self.obs_df is not None:
+            g = torch.randn(*mean.shape, self.obs_df, dtype=x.dtype, device=x.device, generator=generator)
+            xi = xi / (g.square().mean(-1)).sqrt()
         return mean + trial_view(self.obs_std, 0, mean) * xi
 
     # ---- initial law -------------------------------------------------------------------------
