@@ -234,3 +234,29 @@ def test_sigterm_during_a_gpfis_step_stops_at_once(monkeypatch):
         assert len(calls) == 2  # nothing ran after the signal
     finally:
         STOP.reset()
+
+
+def test_diagonal_covariances_are_checked_on_their_diagonal():
+    """The O(d^2) path for diagonal matrices (a declared Q = 0, R = r I, a diagonal prior) gives the
+    same verdicts as the factorisation: zero and positive diagonals pass, a negative entry is named
+    with its value, a NaN is named as non-finite, and an off-diagonal entry sends the matrix to the
+    factorisation (here: not symmetric)."""
+    from torchflow._checks import _off_diagonal, check_psd
+    A = torch.randn(3, 5, 5, dtype=torch.float64)
+    off = _off_diagonal(A)
+    mask = ~torch.eye(5, dtype=torch.bool)
+    assert torch.equal(off.reshape(3, -1).sort(-1).values, A[:, mask].sort(-1).values)
+    check_psd("Q", torch.zeros(300, 300, dtype=torch.float64))
+    check_psd("R", 2.0 * torch.eye(300, dtype=torch.float64))
+    bad = torch.eye(300, dtype=torch.float64)
+    bad[7, 7] = -0.5
+    with pytest.raises(ValueError, match=r"R: covariance is not positive semi-definite \(smallest eigenvalue -0.5\)"):
+        check_psd("R", bad)
+    bad = torch.eye(300, dtype=torch.float64)
+    bad[7, 9] = float("nan")
+    with pytest.raises(ValueError, match="R: 1 non-finite value"):
+        check_psd("R", bad)
+    bad = torch.eye(300, dtype=torch.float64)
+    bad[7, 9] = 0.5
+    with pytest.raises(ValueError, match="R: covariance is not symmetric"):
+        check_psd("R", bad)

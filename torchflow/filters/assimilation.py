@@ -68,6 +68,8 @@ from .ensemble import (_EnsembleFilter, check_radius, gaspari_cohn,
 __all__ = ["KernelParticleFlowFilter", "LagOneFlowFilter", "LocalParticleFilter"]
 
 PRECONDITIONERS = ("posterior", "prior")
+#: how the lag-one flow linearises the measurement of the forecast
+LINEARISATIONS = ("members", "bundle")
 
 
 def _grad_log_likelihood(model, z: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
@@ -324,6 +326,11 @@ class LagOneFlowFilter(_EnsembleFilter):
         inflation: multiplicative inflation of the previous analysis anomalies before the flow (>= 1).
         flow_steps, step_ratio: the pseudo-time schedule (Li & Coates' exponential spacing: step
             ``j`` is ``step_ratio`` times step ``j - 1``; ratio 1: uniform).
+        linearisation: ``"members"`` (default): regression over the flowed members (their average
+            sensitivity); ``"bundle"``: over the flowed mean plus the members' anomalies scaled by
+            ``bundle`` (a finite-difference linearisation at the mean, the iterative ensemble
+            Kalman smoother's bundle variant; the same cost).
+        bundle: the bundle's scale, in (0, 1].
         rotate: mix the analysis anomalies by a random mean-preserving rotation (as the ETKF's).
         validate, name: as :class:`~torchflow.filters.Filter`.
 
@@ -335,9 +342,16 @@ class LagOneFlowFilter(_EnsembleFilter):
     """
 
     def __init__(self, model, *, n_particles: int = 20, inflation: float = 1.02, flow_steps: int = 20,
-                 step_ratio: float = 1.2, rotate: bool = False, validate: bool = True, name: Optional[str] = None):
+                 step_ratio: float = 1.2, linearisation: str = "members", bundle: float = 1e-4, rotate: bool = False,
+                 validate: bool = True, name: Optional[str] = None):
         super().__init__(model, n_particles=n_particles, inflation=inflation, rotate=rotate, validate=validate,
                          name=name)
+        if linearisation not in LINEARISATIONS:
+            raise ArgumentError(f"linearisation: expected one of {LINEARISATIONS}, got {linearisation!r}")
+        #: ``"members"``: regression over the flowed members; ``"bundle"``: over the flowed mean plus
+        #: the members' anomalies scaled by :attr:`bundle` (a finite-difference linearisation at the mean)
+        self.linearisation = linearisation
+        self.bundle = check_number("bundle", bundle, lambda v: 0 < v <= 1, "a number in (0, 1] (the bundle's scale)")
         self.flow_steps = check_count("flow_steps", flow_steps, minimum=1, hint=" (steps in pseudo-time)")
         self.step_ratio = check_number("step_ratio", step_ratio, lambda v: v > 0,
                                        "a number > 0 (each pseudo-time step over the previous one)")
@@ -365,9 +379,16 @@ class LagOneFlowFilter(_EnsembleFilter):
         ll = None
         eps, lam = self.schedule.steps(X.dtype, X.device)
         for j in range(self.flow_steps):  # pseudo-time steps, not a loop over trials or members
-            w = self.whiten(self.model.transition_mean(X), X.mean(1), z)  # h(M(x_i)), whitened by R
+            mean = X.mean(1, keepdim=True)
+            members = self.whiten(self.model.transition_mean(X), mean.squeeze(1), z) if (
+                self.linearisation == "members" or ll is None) else None  # h(M(x_i)), whitened by R
             if ll is None:  # the forecast ensemble's evidence, before the flow moves anything
-                ll = self.forecast_evidence(w)
+                ll = self.forecast_evidence(members)
+            if self.linearisation == "bundle":  # h(M(.)) at the mean plus the anomalies scaled down
+                w = self.whiten(self.model.transition_mean(mean + self.bundle * (X - mean)), mean.squeeze(1), z)
+                w.Y = w.Y / self.bundle
+            else:
+                w = members
             X = X + eps[j] * self._drift(X, xbar0, A0, w, lam[j])
         # a trial with nothing observed keeps its members bit for bit (masked, no host read)
         return torch.where((~torch.isnan(z)).any(-1).view(-1, 1, 1), X, X_in), ll
@@ -408,4 +429,5 @@ class LagOneFlowFilter(_EnsembleFilter):
         return A_of(X) + b
 
     def extra_repr(self) -> str:
-        return super().extra_repr() + f", flow_steps={self.flow_steps}, step_ratio={self.step_ratio:g}"
+        return (super().extra_repr() + f", flow_steps={self.flow_steps}, step_ratio={self.step_ratio:g}, "
+                f"linearisation={self.linearisation!r}" + (f", bundle={self.bundle:g}" if self.linearisation == "bundle" else ""))

@@ -19,7 +19,7 @@ from .._checks import allocation_failure, check_choice, check_count, check_finit
 from .._blocks import blockwise
 from ..covariances import Covariance, DiagonalCovariance, sample_prior
 from ..models.base import StateSpaceModel
-from ..models.contract import (COVARIANCE_CHECK_NUMBERS, check_covariances, check_parameters, check_dtype, check_shapes,
+from ..models.contract import (COVARIANCE_CHECK_NUMBERS, DECLARED_CHECK_NUMBERS, check_covariances, check_parameters, check_dtype, check_shapes,
                                require_gaussian)
 from ..models.structure import kernel_structure
 from ..proposals import BootstrapProposal, Proposal
@@ -266,10 +266,10 @@ class Filter(nn.Module):
                 which == "measurement" and model.structure.measurement_noise not in ("scalar", "diagonal", "dense")):
             return
         k = model.state_dim if which == "transition" else (model.obs_dim or 0)
-        if k * k > COVARIANCE_CHECK_NUMBERS:  # not formed for a check: a declared R = r I by its scale
-            scale = model.structure.measurement_noise_scale
-            if which == "measurement" and model.structure.measurement_noise == "scalar" and scale is not None \
-                    and not scale > 0:
+        scale = model.structure.measurement_noise_scale
+        declared_scalar = which == "measurement" and model.structure.measurement_noise == "scalar" and scale is not None
+        if declared_scalar and k * k > DECLARED_CHECK_NUMBERS or k * k > COVARIANCE_CHECK_NUMBERS:  # not formed for a check: a declared R = r I by its scale
+            if declared_scalar and not scale > 0:
                 raise ArgumentError(f"{self.name}: the model's measurement covariance is not positive definite "
                                     f"(declared {scale:g} I); {why}")
             return

@@ -111,6 +111,10 @@ def check_parameters(model, who: str = "") -> None:
 #: :func:`check_shapes` evaluates the covariances where their dense batch holds at most this many
 #: numbers, and :func:`check_covariances` checks a constant one of at most this many
 COVARIANCE_CHECK_NUMBERS = 2 ** 24
+#: above this many numbers (m > 256) a declared scalar R is checked by its declared scale alone (below,
+#: the matrix the model gives is checked too: cheap, and it catches a subclass whose R no longer
+#: matches its parent's declaration)
+DECLARED_CHECK_NUMBERS = 2 ** 16
 
 
 def check_covariances(model, who: str = "") -> None:
@@ -122,7 +126,8 @@ def check_covariances(model, who: str = "") -> None:
     (:func:`torchflow.inference.per_trial_values`) are checked trial by trial, ``(B, k, k)``; the
     error names the first bad trial. A matrix of more than :data:`COVARIANCE_CHECK_NUMBERS` numbers
     (``k > 4096``) is not formed for the check (a model of ``d = 10^5`` whose filters never form
-    it); a declared scalar R (``measurement_noise_scale``) of that size is checked by its scale."""
+    it); a declared scalar R (``measurement_noise_scale``) of more than :data:`DECLARED_CHECK_NUMBERS`
+    numbers is checked by its scale. A diagonal matrix is checked on its diagonal (no factorisation)."""
     from .trials import trial_names
 
     params = {id(p): n for n, p in model.named_parameters()}
@@ -132,8 +137,9 @@ def check_covariances(model, who: str = "") -> None:
         if fn is None:
             continue
         k = model.state_dim if name == "transition_cov" else (model.obs_dim or 0)
-        if k * k > COVARIANCE_CHECK_NUMBERS:  # not formed for a check: a declared R = r I by its scale
-            scale = structure.measurement_noise_scale if structure.measurement_noise == "scalar" else None
+        scale = structure.measurement_noise_scale if structure.measurement_noise == "scalar" else None
+        if name == "measurement_cov" and scale is not None and k * k > DECLARED_CHECK_NUMBERS \
+                or k * k > COVARIANCE_CHECK_NUMBERS:  # not formed for a check: a declared R = r I by its scale
             if name == "measurement_cov" and scale is not None and not scale >= 0:
                 raise ArgumentError(f"{who + ': ' if who else ''}{type(model).__name__}'s {what} ({scale:g} I, "
                                     "declared) is not positive semi-definite")
