@@ -618,8 +618,12 @@ class _Trace:
                 self.first_collapse = torch.zeros(now.shape, dtype=torch.long, device=now.device)
                 self.collapse_count = torch.zeros_like(self.first_collapse)
                 self._collapsed_before = torch.zeros_like(now)
-            # collapsed two steps running: the forecast did not spread the copies again (no model noise)
+            # collapsed two steps running (the forecast did not spread the copies again: no model
+            # noise) while the ESS says 2 or more: a degenerate weight (ESS near 1) shows itself
+            ess = getattr(state, "ess", None)
             bad = now & self._collapsed_before
+            if ess is not None:
+                bad = bad & (ess.detach() >= 2.0)
             self._collapsed_before = now
             self.first_collapse = torch.where((self.first_collapse == 0) & bad, self.n, self.first_collapse)
             self.collapse_count = self.collapse_count + bad.long()

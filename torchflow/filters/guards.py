@@ -132,9 +132,10 @@ def collapsed(particles: torch.Tensor) -> torch.Tensor:
 
 def collapse_warning(name: str, first: List[int], count: List[int], steps: int) -> Optional[str]:
     """The text of the collapse warning, or ``None``: ``first[b]`` the first step (1-based, 0 none) at
-    which trial b's cloud had stayed collapsed (:func:`collapsed`) through two steps running (a single
-    degenerate step whose copies the model's noise spreads again is not a collapse) and ``count[b]`` in
-    how many of the ``steps``."""
+    which trial b's cloud had stayed collapsed (:func:`collapsed`) through two steps running while its
+    ESS read 2 or more (a degenerate weight, ESS near 1, shows itself; a single degenerate step whose
+    copies the model's noise spreads again is not a collapse) and ``count[b]`` in how many of the
+    ``steps``."""
     trials = [b for b, f in enumerate(first) if f > 0]
     if not trials:
         return None

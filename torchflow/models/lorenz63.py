@@ -20,6 +20,7 @@ for a handful of states, where the torch pass costs its ~400 small operations' o
 """
 from __future__ import annotations
 
+import importlib
 import math
 from collections import abc
 from typing import Optional, Sequence, Tuple
@@ -33,10 +34,19 @@ from .base import GaussianStateSpaceModel
 from .dynamics import isotropic_log_prob, rk4_steps, rk4_with_tangent
 from .structure import Structure
 
+_KERNEL: list = []  # [bool] once checked
+
+
 def _kernel_available() -> bool:
-    """Numba is installed and the compiled RK4-tangent kernel imports (cached per process)."""
-    from ..flows.kernels.steps import _importable
-    return _importable("torchflow.models._lorenz63_kernel")
+    """Numba is installed and the compiled RK4-tangent kernel imports (checked once per process; any
+    failure to import means the torch path runs)."""
+    if not _KERNEL:
+        try:
+            importlib.import_module("torchflow.models._lorenz63_kernel")
+            _KERNEL.append(True)
+        except Exception:  # noqa: BLE001 - any import failure means: not available
+            _KERNEL.append(False)
+    return _KERNEL[0]
 
 
 #: the mean of the initial law in Sakov et al. (2012) and DAPPER (a point near the attractor)
