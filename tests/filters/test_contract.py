@@ -30,6 +30,8 @@ CONFIGS = [
     ("lpf-l96", lambda: Lorenz96(d=8), lambda m: LocalParticleFilter(m, n_particles=64, radius=4.0, jitter=0.1)),
     ("lag1_flow-lg", lambda: random_lg(3, 2), lambda m: LagOneFlowFilter(m, n_particles=64, flow_steps=5)),
     ("lag1_flow-l96", lambda: Lorenz96(d=8), lambda m: LagOneFlowFilter(m, n_particles=64, flow_steps=5)),
+    ("lag1_flow_local-l96", lambda: Lorenz96(d=8),
+     lambda m: LagOneFlowFilter(m, n_particles=64, radius=4.0, flow_steps=5)),
 ]
 _SCHED = ExponentialSchedule(8, 1.3)
 for _flow in ("edh", "ledh", "geodesic", "gromov", "osd"):

@@ -202,6 +202,7 @@ class _Whitened:
     logdet_R: torch.Tensor
     n_obs: torch.Tensor
     observed: torch.Tensor
+    scale: Optional[torch.Tensor] = None  # (B, m): R's diagonal's square root (a diagonal R; unobserved: 1)
 
 
 class _EnsembleFilter(Filter):
@@ -323,6 +324,7 @@ class _EnsembleFilter(Filter):
             r = torch.where(observed, r, torch.ones_like(r))  # (B, m)
             s = r.sqrt()
             Y, delta, logdet = Y / s.unsqueeze(1), delta / s, r.log().sum(-1)
+            return _Whitened(Y, delta, logdet, keep.sum(-1), observed, s)
         else:  # dense: unobserved rows and columns replaced by the identity's
             both = observed.unsqueeze(-1) & observed.unsqueeze(-2)
             eye = torch.eye(z.shape[-1], dtype=z.dtype, device=z.device)
