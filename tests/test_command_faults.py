@@ -365,3 +365,20 @@ def test_a_log_file_that_cannot_be_written_does_not_print_a_traceback_per_messag
         assert "Logging error" in capsys.readouterr().err
     finally:
         logger.removeHandler(handler)
+
+
+@pytest.mark.parametrize("script, name, guide", [(RUN, "torchflow", "command-line.md"),
+                                                 (ROOT / "experiments" / "learn.py", "torchflow-learn", "learning.md")])
+def test_help_says_what_the_command_does_with_examples_and_the_documentation(tmp_path, script, name, guide):
+    """``--help`` is a page, not a config dump: what the command does, examples, where the guide
+    is, the config groups, in at most 60 lines; nothing written to disk."""
+    out = _run(tmp_path, "--help", script=script)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    assert len(lines) <= 60, len(lines)
+    assert lines[0].startswith(f"{name}: "), lines[0]
+    assert "Examples:" in out.stdout and f"\n  {name}" in out.stdout
+    assert f"docs/guide/{guide}" in out.stdout
+    assert "\nfilter: " in out.stdout and "\nmodel: " in out.stdout  # the groups are listed
+    assert "_target_" not in out.stdout  # and the composed config is not
+    assert list(tmp_path.iterdir()) == []

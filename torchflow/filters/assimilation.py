@@ -438,7 +438,8 @@ class LagOneFlowFilter(_EnsembleFilter):
 
     def bytes_per_trial(self, n_particles=None):
         N, d, m = self._resolve_n(n_particles), self.model.state_dim, self.model.obs_dim
-        local = 0 if self.local_index is None else 3 * N * d * self.local_index.shape[1]
+        # the neighbourhoods' index and taper (d x K each), and the blocks the drift gathers them in
+        local = 0 if self.local_index is None else 2 * d * self.local_index.shape[1] + 3 * _CACHE_ELEMENTS
         return 8 * (10 * N * d + 6 * N * m + 8 * N * N + (m * m if self._dense_noise else 0) + local)
 
     def step(self, state, z: torch.Tensor, generator: Optional[torch.Generator] = None):
