@@ -105,6 +105,23 @@ def test_pmmh_task_writes_draws_summary_and_figures(tmp_path):
     assert rho["mean"] == pytest.approx(draws.mean()) and rho["ess_per_sec"] == pytest.approx(rho["ess"] / bpf["seconds"])
     assert res["priors"]["rho"] == {"dist": "Uniform", "low": -1, "high": 1} and res["run"]["series"].startswith("trial 0")
     assert (out / "posterior.png").stat().st_size > 0 and (out / "traces.png").stat().st_size > 0
+    # 2 chains x 8 draws cannot have converged: the run says so, per parameter, and pmmh.json records it
+    assert bpf["converged"] is False
+    assert "bpf: rho: the chains have not converged (" in r.stderr and "ESS" in r.stderr
+
+
+def test_pmmh_convergence_warnings_name_the_parameter_and_the_threshold():
+    from torchflow.tasks import ESS_MIN, RHAT_MAX, convergence_warnings
+
+    def summary(rhat, ess):
+        return {"parameters": {"rho": {"rhat": rhat, "ess": ess}}}
+
+    assert convergence_warnings("bpf", summary(1.01, 400.0)) == []
+    (line,) = convergence_warnings("bpf", summary(1.2, 400.0))
+    assert line.startswith("bpf: rho: the chains have not converged (R-hat 1.2 > 1.05)") and RHAT_MAX == 1.05
+    (line,) = convergence_warnings("bpf", summary(1.01, 37.0))
+    assert "(ESS 37 < 100)" in line and ESS_MIN == 100
+    assert "R-hat nan > 1.05" in convergence_warnings("bpf", summary(float("nan"), 400.0))[0]
 
 
 def test_pmmh_task_on_a_recorded_series_same_seed_same_draws(tmp_path):
@@ -186,3 +203,22 @@ def test_to_arviz_without_arviz_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "arviz", None)  # as if not installed
     with pytest.raises(ImportError, match=r"torchflow\[arviz\]"):
         to_arviz(_pmmh_result())
+
+
+def test_posterior_figures_keep_the_truth_inside_the_frame():
+    """A truth outside every draw (rho's 0.97 against draws up to 0.5) is drawn inside the axes,
+    not on their frame: the histogram's x range and the trace's y range are widened to hold it."""
+    pytest.importorskip("matplotlib")
+    from torchflow.runner import figures
+
+    plt = figures.pyplot()
+    draws = {"bpf": {"rho": torch.linspace(-0.5, 0.5, 40, dtype=torch.float64).reshape(2, 20)}}
+    hist, trace = figures.posterior_figures(plt, draws, {"rho": torch.tensor(0.97, dtype=torch.float64)}, "t")
+    try:
+        lo, hi = hist.axes[0].get_xlim()
+        assert hi > 0.97 + 0.01 and lo < -0.5
+        lo, hi = trace.axes[0].get_ylim()
+        assert hi > 0.97 + 0.01 and lo < -0.5
+    finally:
+        plt.close(hist)
+        plt.close(trace)

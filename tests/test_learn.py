@@ -112,6 +112,9 @@ def test_learn_command_writes_the_table_and_curves(tmp_path):
     assert rows[0]["start"] == "5" and rows[0]["truth"] == "10" and rows[0]["reference"]
     assert (tmp_path / "curves.png").stat().st_size > 0 and (tmp_path / "learn.json").exists()
     assert "| bpf | psi |" in r.stdout
+    # quiet unless asked: none of Lightning's own lines or deprecation warnings (lightning_messages=true shows them)
+    for noise in ("GPU available", "TPU available", "Tip:", "Trainer.fit` stopped", "deprecated"):
+        assert noise not in r.stdout + r.stderr, noise
 
 
 @pytest.mark.parametrize("bad, message", [("epochs=0", "epochs: expected a positive integer"),

@@ -42,12 +42,14 @@ error keeps its traceback); 2 a configuration error or a refused output folder (
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
 import signal
 import sys
 import time
+import warnings
 from dataclasses import dataclass, field
 from functools import reduce
 from pathlib import Path
@@ -449,12 +451,35 @@ def _reference_class(name: str) -> str:
     return REGISTRY["filter"][name]
 
 
+@contextlib.contextmanager
+def _lightning_quiet(quiet: bool = True):
+    """Lightning's own lines (which accelerator, its tips, ``Trainer.fit`` stopped) and its
+    deprecation warnings left out of the command's output while it fits (``quiet``); its warnings
+    and errors still show. Lightning sets its loggers' level when imported, so it is imported first."""
+    if not quiet:
+        yield
+        return
+    import pytorch_lightning  # noqa: F401 - sets its loggers' level at import: ours must come after
+
+    names = ("pytorch_lightning", "lightning.pytorch", "lightning_fabric", "lightning")
+    before = {n: logging.getLogger(n).level for n in names}
+    for n in names:
+        logging.getLogger(n).setLevel(logging.WARNING)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", category=DeprecationWarning, module=r"(pytorch_)?lightning")
+            warnings.filterwarnings("ignore", message=r".*treespec.*deprecated")  # Lightning's use of torch's pytree
+            yield
+    finally:
+        for n, level in before.items():
+            logging.getLogger(n).setLevel(level)
+
+
 def _job(cfg: DictConfig, out: Path, env: JobEnv) -> int:
     """The learn command's job (in the shell's job environment); the exit status."""
-    for name in ("pytorch_lightning", "lightning.pytorch", "lightning_fabric"):  # its banners, not our log
-        logging.getLogger(name).setLevel(logging.WARNING)
     try:
-        res = learn(cfg, out, env)
+        with _lightning_quiet(not cfg.get("lightning_messages", False)):
+            res = learn(cfg, out, env)
     except RunStopped as stopped:  # during the simulation: nothing was fitted, nothing is written
         log.warning(str(stopped))
         return STOP.exit_code

@@ -454,6 +454,9 @@ def pmmh_job(cfg: DictConfig, model, filters: Dict, labels: Dict, out: Path, env
     log.info(format_table(table, PMMH_COLUMNS))
     for name, s in summary.items():
         log.info(f"{name}: acceptance per chain {', '.join(f'{a:.2f}' for a in s['acceptance'])}; {s['seconds']:.1f} s")
+    for name, s in summary.items():
+        for line in convergence_warnings(name, s):
+            log.warning(line)
     writer = shell.Output(out)
     rows = [row for name, r in results.items() for row in posterior_rows(name, r)]
     writer.attempt("posterior.csv", writers.write_csv, out / "posterior.csv", rows, posterior_columns(results))
@@ -470,6 +473,28 @@ def pmmh_job(cfg: DictConfig, model, filters: Dict, labels: Dict, out: Path, env
     if writer.failed is None:
         log.info(f"results: {shell.shown_path(out)}")
     return 1 if writer.failed else 0
+
+
+#: the chains are called unconverged above this split R-hat or below this effective sample size
+#: (the thresholds of Vehtari et al. 2021: R-hat < 1.01 for publication, 1.05 as a first screen; ESS >= 100)
+RHAT_MAX, ESS_MIN = 1.05, 100
+
+
+def convergence_warnings(name: str, s: dict) -> List[str]:
+    """One line per parameter of filter ``name``'s PMMH summary ``s`` (:func:`pmmh_summary`) whose
+    split R-hat exceeds :data:`RHAT_MAX` or whose ESS is below :data:`ESS_MIN`: its summaries are
+    not yet a posterior (more iterations, chains, or a better-tuned proposal)."""
+    lines = []
+    for p, v in s["parameters"].items():
+        why = []
+        if v["rhat"] is not None and not v["rhat"] <= RHAT_MAX:  # NaN counts as not converged
+            why.append(f"R-hat {v['rhat']:.3g} > {RHAT_MAX}")
+        if v["ess"] is not None and not v["ess"] >= ESS_MIN:
+            why.append(f"ESS {v['ess']:.3g} < {ESS_MIN}")
+        if why:
+            lines.append(f"{name}: {p}: the chains have not converged ({', '.join(why)}): its mean and sd are not yet "
+                         f"the posterior's; run more iterations (pmmh.iterations) or chains (pmmh.chains)")
+    return lines
 
 
 #: the columns of the PMMH table (terminal) and of each parameter's entry in ``pmmh.json``
@@ -493,8 +518,10 @@ def pmmh_summary(r, truth: Optional[Dict[str, torch.Tensor]]) -> dict:
                              "mcse": None if not ess else sd / math.sqrt(ess),
                              "rhat": None if rh is None else float(rh.reshape(-1)[i]), "ess": ess,
                              "ess_per_sec": None if ess is None else ess / r.seconds}
-    return {"parameters": params, "acceptance": r.acceptance.tolist(), "scale": r.scale.tolist(),
-            "seconds": r.seconds, "mean_log_likelihood": float(r.log_likelihood.double().mean())}
+    out = {"parameters": params, "acceptance": r.acceptance.tolist(), "scale": r.scale.tolist(),
+           "seconds": r.seconds, "mean_log_likelihood": float(r.log_likelihood.double().mean())}
+    out["converged"] = not convergence_warnings("", out)
+    return out
 
 
 def posterior_columns(results: Mapping) -> List[str]:
@@ -529,4 +556,4 @@ def task_job(task: str, cfg: DictConfig, model, filters: Dict, labels: Dict, out
 
 __all__ = ["TASKS", "check_task", "smooth_job", "pmmh_job", "prior_from_config", "priors_from_config",
            "check_pmmh_filter", "smoothing_methods", "smoothed_columns", "smoothed_rows", "posterior_columns",
-           "posterior_rows", "pmmh_summary", "task_job"]
+           "posterior_rows", "pmmh_summary", "convergence_warnings", "RHAT_MAX", "ESS_MIN", "task_job"]

@@ -241,6 +241,16 @@ def scalar_series(draws):
     return out
 
 
+def _include(ax, value: float, axis: str) -> None:
+    """Widen ``ax``'s ``axis`` ("x" or "y") so that ``value`` (a truth line) sits inside, 5 % of
+    the range in from the frame, not on it."""
+    lo, hi = ax.get_xlim() if axis == "x" else ax.get_ylim()
+    lo, hi = min(lo, value), max(hi, value)
+    pad = 0.05 * (hi - lo or abs(value) or 1.0)
+    lim = (min(lo, value - pad), max(hi, value + pad))
+    (ax.set_xlim if axis == "x" else ax.set_ylim)(*lim)
+
+
 def posterior_figures(plt, draws, truth, title: str):
     """``(histograms, traces)`` of PMMH draws (``draws``: filter -> parameter -> ``(C, S, ...)``),
     the first :data:`POSTERIOR_PANELS` scalar components: a histogram of all chains' draws per
@@ -257,6 +267,7 @@ def posterior_figures(plt, draws, truth, title: str):
                 ax.hist(s[n].reshape(-1).numpy(), bins=40, density=True, alpha=0.45, color=colour[f], label=f)
         if n in true:
             ax.axvline(float(true[n].reshape(-1)[0]), color="black", lw=1.2, label="truth")
+            _include(ax, float(true[n].reshape(-1)[0]), "x")
         ax.set_xlabel(n)
         ax.set_ylabel("posterior density")
     axes[0][-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1))
@@ -271,6 +282,7 @@ def posterior_figures(plt, draws, truth, title: str):
                     ax.plot(range(1, s[n].shape[1] + 1), s[n][c].numpy(), lw=0.6, alpha=0.8)
             if n in true:
                 ax.axhline(float(true[n].reshape(-1)[0]), color="black", lw=1.0)
+                _include(ax, float(true[n].reshape(-1)[0]), "y")
             ax.set_title(f"{f}: {n}", fontsize=8)
             ax.set_xlabel("iteration (after adaptation)")
     trace.suptitle(title + ", one line per chain", fontsize=9)
@@ -286,7 +298,7 @@ def save_posterior_figures(out: Path, draws, truth, title: str) -> List[Path]:
     paths = []
     for name, fig in zip(("posterior.png", "traces.png"), posterior_figures(plt, draws, truth, title)):
         try:
-            fig.savefig(Path(out) / name, dpi=100)
+            fig.savefig(Path(out) / name, dpi=100, bbox_inches="tight")  # the legend beside the last panel
         finally:
             plt.close(fig)
         paths.append(Path(out) / name)
