@@ -14,6 +14,7 @@ which Markdown renders as ``:class:`` followed by code. They are rewritten as co
 API reference where the target is documented there (an optional cross-reference: an undocumented
 target, a private helper say, stays plain code and does not warn).
 """
+
 from __future__ import annotations
 
 import ast
@@ -47,7 +48,7 @@ def _split(source: str, path: Path):
     if not doc:
         raise PluginError(f"docs example {path}: needs a module docstring (its first line is the page title)")
     title, _, intro = doc.partition("\n")
-    code = "\n".join(source.splitlines()[module.body[0].end_lineno:]).strip("\n")
+    code = "\n".join(source.splitlines()[module.body[0].end_lineno :]).strip("\n")
     return title.strip(), intro.strip(), code
 
 
@@ -65,8 +66,9 @@ def _run(path: Path) -> str:
         if err.code not in (None, 0):
             raise PluginError(f"docs example {path} exited with status {err.code}:\n{out.getvalue()}") from err
     except Exception as err:
-        raise PluginError(f"docs example {path} failed:\n{traceback.format_exc()}\n"
-                          f"its output before the error:\n{out.getvalue()}") from err
+        raise PluginError(
+            f"docs example {path} failed:\n{traceback.format_exc()}\nits output before the error:\n{out.getvalue()}"
+        ) from err
     finally:
         os.chdir(cwd)
         sys.argv = argv
@@ -74,11 +76,14 @@ def _run(path: Path) -> str:
 
 
 def _page(name: str, title: str, intro: str, code: str, printed: str, figures: list[str]) -> str:
-    parts = [f"# {title}", intro,
-             f"The script, [`{name}.py`]({name}.py), runs when the documentation is built; the output "
-             "and figures below are from that run. Run it yourself with "
-             f"`python docs/examples/{name}.py` in a checkout (it needs the `plot` extra).",
-             f"```python\n{code}\n```"]
+    parts = [
+        f"# {title}",
+        intro,
+        f"The script, [`{name}.py`]({name}.py), runs when the documentation is built; the output "
+        "and figures below are from that run. Run it yourself with "
+        f"`python docs/examples/{name}.py` in a checkout (it needs the `plot` extra).",
+        f"```python\n{code}\n```",
+    ]
     if printed.strip():
         parts += ["## Output", f"```text\n{printed.rstrip()}\n```"]
     if figures:
@@ -108,8 +113,9 @@ def on_files(files, config):
             figures.append(f"{name}_{k}.png")
             files.append(File.generated(config, f"{EXAMPLES}/{name}_{k}.png", content=buf.getvalue()))
         plt.close("all")
-        files.append(File.generated(config, f"{EXAMPLES}/{name}.md",
-                                    content=_page(name, title, intro, code, printed, figures)))
+        files.append(
+            File.generated(config, f"{EXAMPLES}/{name}.md", content=_page(name, title, intro, code, printed, figures))
+        )
         log.info("example %s ran in %.1f s (%d figures)", path.name, time.perf_counter() - start, len(figures))
     return files
 

@@ -9,6 +9,7 @@ Prints a markdown table (the overrides that vary between jobs, then the summary 
 (default: the other varying overrides and the filter), +-1 standard error over the job's trials,
 into ``<sweep_dir>/<Y>_vs_<X>.png``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,7 +22,17 @@ from torchflow.runner.figures import pyplot
 from torchflow.runner.sweep import describe_job, job_dirs, job_override_dict, job_status, varying_overrides
 from torchflow.runner.writers import write_csv
 
-DEFAULT_COLUMNS = ["mse", "omat", "ospa", "ess", "g_eff", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step"]
+DEFAULT_COLUMNS = [
+    "mse",
+    "omat",
+    "ospa",
+    "ess",
+    "g_eff",
+    "log_evidence_relmse",
+    "lost_tracks",
+    "repaired",
+    "sec_per_step",
+]
 
 
 def collect(sweep_dir: Path, columns=None):
@@ -39,21 +50,34 @@ def collect(sweep_dir: Path, columns=None):
         # a damaged results.json was written last, after the complete CSV files: they are merged
         merged = state in ("done", "failed", "damaged") and summary.exists() and (job / "results.json").exists()
         if state == "damaged":
-            message += ("; its summary.csv and per_trial.csv, written before it, are merged" if merged
-                        else "; it has no summary.csv to merge")
+            message += (
+                "; its summary.csv and per_trial.csv, written before it, are merged"
+                if merged
+                else "; it has no summary.csv to merge"
+            )
         if state != "done" or not summary.exists():
-            missing.append({"name": job.name, "state": "missing" if state == "done" else state, "message": message,
-                            "overrides": vary[job.name]})
+            missing.append(
+                {
+                    "name": job.name,
+                    "state": "missing" if state == "done" else state,
+                    "message": message,
+                    "overrides": vary[job.name],
+                }
+            )
         if not merged:
             continue  # a running job's partial summary.csv is not merged
         se = _trial_standard_errors(job / "per_trial.csv")
         with open(summary) as fh:
-            rows += [{"job": job.name, **ov, **r, **{f"{k}_se": v for k, v in se.get(r.get("filter"), {}).items()}}
-                     for r in csv.DictReader(fh)]
+            rows += [
+                {"job": job.name, **ov, **r, **{f"{k}_se": v for k, v in se.get(r.get("filter"), {}).items()}}
+                for r in csv.DictReader(fh)
+            ]
     # overrides shared by every job describe the sweep, not a row: keep only those that vary
     keys = [k for k in keys if len({r.get(k) for r in rows}) > 1]
     cols = ["job", *keys, "filter", "n_particles", "trials", *(columns or DEFAULT_COLUMNS), "error"]
-    cols = list(dict.fromkeys(c for c in cols if any(c in r for r in rows) and (c != "error" or any(r.get(c) for r in rows))))
+    cols = list(
+        dict.fromkeys(c for c in cols if any(c in r for r in rows) and (c != "error" or any(r.get(c) for r in rows)))
+    )
     return rows, cols, missing
 
 
@@ -95,8 +119,9 @@ def plot(rows, keys, spec: str, out_dir: Path) -> Path:
     fig, ax = plt.subplots(figsize=(6, 4))
     for label, pts in lines.items():
         pts.sort()
-        ax.errorbar([p[0] for p in pts], [p[1] for p in pts], yerr=[p[2] for p in pts], marker="o", capsize=3,
-                    label=label)
+        ax.errorbar(
+            [p[0] for p in pts], [p[1] for p in pts], yerr=[p[2] for p in pts], marker="o", capsize=3, label=label
+        )
     ax.set_xlabel(x)
     ax.set_ylabel(y + " (mean +- 1 SE over trials)")
     ax.legend(fontsize=8, title=", ".join(group))
@@ -122,15 +147,22 @@ def main(argv=None):
     ap.add_argument("--plot", default=None, help="X:Y[:GROUP]: draw Y against X (needs matplotlib)")
     args = ap.parse_args(argv)
     if not args.sweep_dir.is_dir():
-        print(f"error: sweep_dir: expected a sweep folder (multirun/<label>/<time>), got {args.sweep_dir}, "
-              "which is not a directory", file=sys.stderr)
+        print(
+            f"error: sweep_dir: expected a sweep folder (multirun/<label>/<time>), got {args.sweep_dir}, "
+            "which is not a directory",
+            file=sys.stderr,
+        )
         sys.exit(2)
     rows, cols, missing = collect(args.sweep_dir, args.columns.split(",") if args.columns else None)
     if not rows and not missing:
-        hint = (" (it is a single run: its table is summary.csv there)" if (args.sweep_dir / "summary.csv").exists()
-                else "")
-        print(f"error: sweep_dir: {args.sweep_dir} holds no sweep jobs (numbered folders 0, 1, ... written by "
-              f"`run.py -m`){hint}", file=sys.stderr)
+        hint = (
+            " (it is a single run: its table is summary.csv there)" if (args.sweep_dir / "summary.csv").exists() else ""
+        )
+        print(
+            f"error: sweep_dir: {args.sweep_dir} holds no sweep jobs (numbered folders 0, 1, ... written by "
+            f"`run.py -m`){hint}",
+            file=sys.stderr,
+        )
         sys.exit(2)
     if not rows:
         print(f"error: sweep_dir: no job in {args.sweep_dir} has results yet:", file=sys.stderr)
@@ -143,8 +175,12 @@ def main(argv=None):
         print("| " + " | ".join(_fmt(r.get(c)) for c in cols) + " |")
     write_csv(args.sweep_dir / "sweep_summary.csv", rows, cols)
     if args.plot:
-        varying = [c for c in cols if c not in ("job", "filter", "n_particles", "trials") and c not in
-                   (*DEFAULT_COLUMNS, *(args.columns.split(",") if args.columns else []))]
+        varying = [
+            c
+            for c in cols
+            if c not in ("job", "filter", "n_particles", "trials")
+            and c not in (*DEFAULT_COLUMNS, *(args.columns.split(",") if args.columns else []))
+        ]
         try:
             print(f"wrote {plot(rows, varying, args.plot, args.sweep_dir)}")
         except ValueError as e:

@@ -10,6 +10,7 @@ another measurement density), accumulating ``log p(z_t | z_{1:t-1})``. With a sm
 resolved by tens of points per standard deviation the quadrature error is far below any Monte
 Carlo error (``n_grid`` 1000 and 4000 agree to ~1e-9 on the tests' series).
 """
+
 from __future__ import annotations
 
 from typing import Callable, Optional, Tuple
@@ -17,8 +18,14 @@ from typing import Callable, Optional, Tuple
 import torch
 
 
-def grid_filter(model, observations: torch.Tensor, *, n_grid: int = 2000, half_width: float = 10.0,
-                measurement_log_prob: Optional[Callable] = None) -> Tuple[float, torch.Tensor]:
+def grid_filter(
+    model,
+    observations: torch.Tensor,
+    *,
+    n_grid: int = 2000,
+    half_width: float = 10.0,
+    measurement_log_prob: Optional[Callable] = None,
+) -> Tuple[float, torch.Tensor]:
     """The log-likelihood of one series and the filtered means.
 
     Args:

@@ -25,6 +25,7 @@ so a swap counts); the true and the initial model are evaluated the same way.
 Writes ``docs/assets/neural_acoustic.csv`` (learning curves), ``docs/assets/neural_acoustic.png``
 (curves and response) and ``experiments/results/neural_acoustic.md`` (the table).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -39,11 +40,11 @@ from pathlib import Path
 # flow kernel call (measured here: 1 -> 2), and process time then counts a spinning second thread
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
-import torch  # noqa: E402
+import torch
 
-from torchflow.filters import BootstrapParticleFilter, ParticleFlowParticleFilter  # noqa: E402
-from torchflow.metrics import omat  # noqa: E402
-from torchflow.models import InverseDistance, NeuralAcoustic, ResponseMLP  # noqa: E402
+from torchflow.filters import BootstrapParticleFilter, ParticleFlowParticleFilter
+from torchflow.metrics import omat
+from torchflow.models import InverseDistance, NeuralAcoustic, ResponseMLP
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -113,10 +114,19 @@ def train(kind: str, n: int, model, data, args):
                 trainer.should_stop = True
             self._snap(used)
 
-    module = FilterLightningModule(make_filter(kind, model, n), lr=args.lr, betas=(0.5, 0.9), lr_decay=args.lr_decay,
-                                   seed=args.seed)
-    trainer = pl.Trainer(max_epochs=100000, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                         enable_model_summary=False, accelerator="cpu", devices=1, callbacks=[Budget()])
+    module = FilterLightningModule(
+        make_filter(kind, model, n), lr=args.lr, betas=(0.5, 0.9), lr_decay=args.lr_decay, seed=args.seed
+    )
+    trainer = pl.Trainer(
+        max_epochs=100000,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        accelerator="cpu",
+        devices=1,
+        callbacks=[Budget()],
+    )
     trainer.fit(module, DataLoader(TrajectoryDataset(traj, mean, cov), batch_size=traj.observations.shape[0]))
     print(f"{kind} N={n}: {losses[-1][0]} steps in {losses[-1][1]:.1f} CPU s; last nll/step {losses[-1][2]:.2f}")
     return snaps, losses
@@ -165,8 +175,15 @@ def figure(rows, curves, out_png):
         a = ax[0] if key == "ll" else ax[1]
         for method in ("pfpf_ledh", "bpf"):
             rs = [r for r in rows if r["method"] == method]
-            a.errorbar([r["cpu_s"] for r in rs], [r[key] for r in rs], yerr=[r[key + "_se"] for r in rs],
-                       marker="o", capsize=3, color=colours[method], label=rs[0]["label"])
+            a.errorbar(
+                [r["cpu_s"] for r in rs],
+                [r[key] for r in rs],
+                yerr=[r[key + "_se"] for r in rs],
+                marker="o",
+                capsize=3,
+                color=colours[method],
+                label=rs[0]["label"],
+            )
         for method, style in (("truth", "k--"), ("initial", "k:")):
             r = next(r for r in rows if r["method"] == method)
             a.axhline(r[key], color=style[0], linestyle=style[1:], label=r["label"])
@@ -218,26 +235,45 @@ def main(argv=None):
     def record(method, label, model, cpu_s=float("nan"), step=0):
         lls, omats, rmses = evaluate(model, data["test"], args)
         (ll, ll_se), (om, om_se), (rmse, rmse_se) = mean_se(lls), mean_se(omats), mean_se(rmses)
-        rows.append(dict(method=method, label=label, step=step, cpu_s=cpu_s, ll=ll, ll_se=ll_se, omat=om,
-                         omat_se=om_se, rmse=rmse, rmse_se=rmse_se, log_response_rms=response_error(model, truth),
-                         ll_repeats=" ".join(f"{v:.3f}" for v in lls)))
-        print(f"{label:>28} step {step:4d} cpu {cpu_s:7.1f}: ll/step {ll:8.2f} ± {ll_se:.2f} ({rows[-1]['ll_repeats']}), "
-              f"OMAT {om:.3f} ± {om_se:.3f}, RMSE {rmse:.3f} ± {rmse_se:.3f}, "
-              f"log-response error {rows[-1]['log_response_rms']:.3f}", flush=True)
+        rows.append(
+            dict(
+                method=method,
+                label=label,
+                step=step,
+                cpu_s=cpu_s,
+                ll=ll,
+                ll_se=ll_se,
+                omat=om,
+                omat_se=om_se,
+                rmse=rmse,
+                rmse_se=rmse_se,
+                log_response_rms=response_error(model, truth),
+                ll_repeats=" ".join(f"{v:.3f}" for v in lls),
+            )
+        )
+        print(
+            f"{label:>28} step {step:4d} cpu {cpu_s:7.1f}: ll/step {ll:8.2f} ± {ll_se:.2f} ({rows[-1]['ll_repeats']}), "
+            f"OMAT {om:.3f} ± {om_se:.3f}, RMSE {rmse:.3f} ± {rmse_se:.3f}, "
+            f"log-response error {rows[-1]['log_response_rms']:.3f}",
+            flush=True,
+        )
 
     record("truth", "true response", truth)
     record("initial", "initial (wrong) response", init)
     finals = {}
     train_cpu = {}
-    for kind, n, label in (("pfpf_ledh", args.pfpf_particles, f"PF-PF(LEDH) N={args.pfpf_particles}"),
-                           ("bpf", args.bpf_particles, f"BPF N={args.bpf_particles}")):
+    for kind, n, label in (
+        ("pfpf_ledh", args.pfpf_particles, f"PF-PF(LEDH) N={args.pfpf_particles}"),
+        ("bpf", args.bpf_particles, f"BPF N={args.bpf_particles}"),
+    ):
         model = copy.deepcopy(init)
         snaps, losses = train(kind, n, model, data["train"], args)
         train_cpu[kind] = losses[-1][1]
         for cpu_s, step, state in snaps:
             if step == 0:  # the initial model, evaluated above
-                rows.append({**next(r for r in rows if r["method"] == "initial"), "method": kind, "label": label,
-                             "cpu_s": 0.0})
+                rows.append(
+                    {**next(r for r in rows if r["method"] == "initial"), "method": kind, "label": label, "cpu_s": 0.0}
+                )
                 continue
             model.load_state_dict(state)
             record(kind, label, model, cpu_s, step)
@@ -254,18 +290,25 @@ def main(argv=None):
     for (label, model), style in zip(finals.items(), ("C0-", "C3--")):
         curves[f"learned through {label}"] = (model, style)
     figure(rows, curves, out / f"{stem}.png")
-    lines = [f"Sizes: {args.targets} targets x {args.grid ** 2} sensors, T = {args.steps}, {args.train_tracks} "
-             f"training and {args.test_tracks} held-out tracks; budget {args.budget:g} CPU s per filter; evaluation "
-             f"PF-PF(LEDH) N = {args.eval_particles}, {args.repeats} repeats (SE over repeats).", "",
-             "| model | optimiser steps | training CPU s | held-out log-lik / step | OMAT (m) | position RMSE (m) | "
-             "log-response RMS error |", "|---|---|---|---|---|---|---|"]
+    lines = [
+        f"Sizes: {args.targets} targets x {args.grid**2} sensors, T = {args.steps}, {args.train_tracks} "
+        f"training and {args.test_tracks} held-out tracks; budget {args.budget:g} CPU s per filter; evaluation "
+        f"PF-PF(LEDH) N = {args.eval_particles}, {args.repeats} repeats (SE over repeats).",
+        "",
+        "| model | optimiser steps | training CPU s | held-out log-lik / step | OMAT (m) | position RMSE (m) | "
+        "log-response RMS error |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for method in ("truth", "initial", "pfpf_ledh", "bpf"):  # the references; each fit at half and all its budget
         rs = [r for r in rows if r["method"] == method]
-        for r in (rs if len(rs) == 1 else [rs[len(rs) // 2], rs[-1]]):
+        for r in rs if len(rs) == 1 else [rs[len(rs) // 2], rs[-1]]:
             cpu = "-" if math.isnan(r["cpu_s"]) else f"{r['cpu_s']:.0f}"
             steps = "-" if len(rs) == 1 else str(r["step"])
-            lines.append(f"| {r['label']} | {steps} | {cpu} | {r['ll']:.2f} ± {r['ll_se']:.2f} | "
-                         f"{r['omat']:.2f} ± {r['omat_se']:.2f} | {r['rmse']:.2f} ± {r['rmse_se']:.2f} | {r['log_response_rms']:.3f} |")
+            lines.append(
+                f"| {r['label']} | {steps} | {cpu} | {r['ll']:.2f} ± {r['ll_se']:.2f} | "
+                f"{r['omat']:.2f} ± {r['omat_se']:.2f} | {r['rmse']:.2f} ± {r['rmse_se']:.2f} | "
+                f"{r['log_response_rms']:.3f} |"
+            )
     text = "\n".join(lines) + "\n"
     print(text)
     if not args.quick:

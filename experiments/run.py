@@ -1,5 +1,6 @@
 """``python experiments/run.py [overrides]``: the ``torchflow`` command (:mod:`torchflow.cli`, whose
 docstring has examples) from a source checkout, with the same configs (``configs/``)."""
+
 from torchflow.cli import main
 
 if __name__ == "__main__":

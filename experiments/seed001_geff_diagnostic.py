@@ -22,6 +22,7 @@ importance-sampling noise, which ``sd_pred`` predicts. If the filter's own-fit `
 error of each component's fitted predictive (N* draws fitting a d-dimensional Gaussian), not by
 the importance sampling within components.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -58,8 +59,9 @@ def run(d: int, G: int, n_star: int, trials: int, steps: int, seed: int, pooled:
     gen = torch.Generator().manual_seed(seed)
     traj = model.simulate(trials, steps, gen)
     mean, cov = model.initial_belief(traj.states[:, 0])
-    f = (PooledFit if pooled else ParticleFlowGaussianSumParticleFilter)(model, n_components=G,
-                                                                        particles_per_component=n_star)
+    f = (PooledFit if pooled else ParticleFlowGaussianSumParticleFilter)(
+        model, n_components=G, particles_per_component=n_star
+    )
     fgen = torch.Generator().manual_seed(seed + 1)
     state = f.init(mean, cov, generator=fgen)
     sd_c, sd_pred, ess_j, g_eff = [], [], [], []
@@ -80,9 +82,15 @@ def run(d: int, G: int, n_star: int, trials: int, steps: int, seed: int, pooled:
             sd_pred.append((1.0 / e - 1.0 / n_star).clamp_min(0).mean(-1).sqrt())
             ess_j.append(e.mean(-1))
             g_eff.append(state.g_eff)
-    st = lambda v: torch.stack(v).mean().item()  # noqa: E731
-    return dict(n_star=n_star, sd_c=st(sd_c), sd_pred=st(sd_pred), ess_j=st(ess_j), g_eff=st(g_eff),
-                g_eff_last=g_eff[-1].mean().item())
+    st = lambda v: torch.stack(v).mean().item()
+    return dict(
+        n_star=n_star,
+        sd_c=st(sd_c),
+        sd_pred=st(sd_pred),
+        ess_j=st(ess_j),
+        g_eff=st(g_eff),
+        g_eff_last=g_eff[-1].mean().item(),
+    )
 
 
 def main(argv=None) -> int:
@@ -93,18 +101,27 @@ def main(argv=None) -> int:
     p.add_argument("--trials", type=int, default=4)
     p.add_argument("--steps", type=int, default=30)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--fit", choices=("own", "pooled", "both"), default="own",
-                   help="each component's own predictive fit (the filter), the pooled control, or both")
+    p.add_argument(
+        "--fit",
+        choices=("own", "pooled", "both"),
+        default="own",
+        help="each component's own predictive fit (the filter), the pooled control, or both",
+    )
     a = p.parse_args(argv)
     print(f"SkewedTPoisson d = {a.d}, PFGSPF G = {a.G}, {a.trials} trials x {a.steps} steps, seed {a.seed}")
-    print("| N* | fit | sd over components of log mean weight, per step | delta-method prediction | "
-          "ESS per component | G_eff (mean over steps) | G_eff at the last step |")
+    print(
+        "| N* | fit | sd over components of log mean weight, per step | delta-method prediction | "
+        "ESS per component | G_eff (mean over steps) | G_eff at the last step |"
+    )
     print("|---|---|---|---|---|---|---|")
     for n in a.n_star:
         for pooled in {"own": (False,), "pooled": (True,), "both": (False, True)}[a.fit]:
             r = run(a.d, a.G, n, a.trials, a.steps, a.seed, pooled)
-            print(f"| {n} | {'pooled' if pooled else 'own'} | {r['sd_c']:.3f} | {r['sd_pred']:.3f} | {r['ess_j']:.1f} | "
-                  f"{r['g_eff']:.2f} | {r['g_eff_last']:.2f} |", flush=True)
+            print(
+                f"| {n} | {'pooled' if pooled else 'own'} | {r['sd_c']:.3f} | {r['sd_pred']:.3f} | {r['ess_j']:.1f} | "
+                f"{r['g_eff']:.2f} | {r['g_eff_last']:.2f} |",
+                flush=True,
+            )
     return 0
 
 

@@ -14,6 +14,7 @@ a <= trial < b only (a common set for every G).
 The SE of a mean is sd / sqrt(n); the runs are independent data sets (``inits_per_track`` = 1). The
 paper's SE is its sd / sqrt(100) and is added in quadrature for the distance.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,8 +28,15 @@ from pathlib import Path
 from experiments.trial_stats import mean_se
 
 #: seed 001 Table 2, N* = 200: G -> (MSE, sd) over 100 runs (MODELS.md section 9)
-PAPER = {1: (0.88, 0.32), 2: (0.77, 0.26), 3: (0.73, 0.24), 4: (0.70, 0.26), 5: (0.69, 0.25),
-         7: (0.67, 0.24), 10: (0.66, 0.23)}
+PAPER = {
+    1: (0.88, 0.32),
+    2: (0.77, 0.26),
+    3: (0.73, 0.24),
+    4: (0.70, 0.26),
+    5: (0.69, 0.25),
+    7: (0.67, 0.24),
+    10: (0.66, 0.23),
+}
 PAPER_RUNS = 100
 PAPER_GEFF = {5: 3.5}  # the seed's text: average G_eff at G = 5 on this model
 
@@ -68,8 +76,19 @@ def table(runs: dict[int, dict[int, tuple[float, float]]]) -> list[dict]:
         mse = [v[0] for v in r.values()]
         m, se, sd = mean_se_sd(mse)
         geff = mean_se_sd([v[1] for v in r.values()])
-        row = dict(G=g, n=len(r), mse=m, se=se, sd=sd, median=statistics.median(mse),
-                   g_eff=geff[0], g_eff_se=geff[1], diff=None, diff_se=None, diff_n=0)
+        row = dict(
+            G=g,
+            n=len(r),
+            mse=m,
+            se=se,
+            sd=sd,
+            median=statistics.median(mse),
+            g_eff=geff[0],
+            g_eff_se=geff[1],
+            diff=None,
+            diff_se=None,
+            diff_n=0,
+        )
         if base is not None and g != 1:
             common = sorted(set(r) & set(base))
             if len(common) > 1:
@@ -83,39 +102,63 @@ def table(runs: dict[int, dict[int, tuple[float, float]]]) -> list[dict]:
 
 
 def markdown(rows: list[dict]) -> str:
-    lines = ["| N* x G | runs | MSE, mean (SE) +- sd | median | G_eff (SE) | minus G = 1, paired (SE), runs | "
-             "paper (100 runs) | ours - paper, in SE |", "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| N* x G | runs | MSE, mean (SE) +- sd | median | G_eff (SE) | minus G = 1, paired (SE), runs | "
+        "paper (100 runs) | ours - paper, in SE |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
         diff = "-" if r["diff"] is None else f"{r['diff']:+.3f} ({r['diff_se']:.3f}), {r['diff_n']}"
         paper = f"{r['paper']:.2f} +- {r['paper_sd']:.2f}" if "paper" in r else "-"
         z = f"{r['z']:+.1f}" if "z" in r else "-"
-        lines.append(f"| 200 x {r['G']} | {r['n']} | {r['mse']:.3f} ({r['se']:.3f}) +- {r['sd']:.3f} | "
-                     f"{r['median']:.3f} | {r['g_eff']:.2f} ({r['g_eff_se']:.2f}) | {diff} | {paper} | {z} |")
+        lines.append(
+            f"| 200 x {r['G']} | {r['n']} | {r['mse']:.3f} ({r['se']:.3f}) +- {r['sd']:.3f} | "
+            f"{r['median']:.3f} | {r['g_eff']:.2f} ({r['g_eff_se']:.2f}) | {diff} | {paper} | {z} |"
+        )
     return "\n".join(lines)
 
 
 def plot(rows: list[dict], path: Path) -> None:
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     gs = [r["G"] for r in rows]
     fig, (a1, a3, a2) = plt.subplots(1, 3, figsize=(15, 4))
-    a1.errorbar([200 * g for g in gs], [r["mse"] for r in rows], yerr=[2 * r["se"] for r in rows],
-                marker="o", capsize=3, label="ours, mean +- 2 SE")
+    a1.errorbar(
+        [200 * g for g in gs],
+        [r["mse"] for r in rows],
+        yerr=[2 * r["se"] for r in rows],
+        marker="o",
+        capsize=3,
+        label="ours, mean +- 2 SE",
+    )
     pg = sorted(PAPER)
     a1.plot([200 * g for g in pg], [PAPER[g][0] for g in pg], "s--", label="seed 001 Table 2 (100 runs)")
     a1.set(xlabel="N_p = 200 G", ylabel="average MSE per dimension", title="PFGSPF, N* = 200, d = 144")
     a1.legend()
     paired = [r for r in rows if r["diff"] is not None]
     a3.axhline(0.0, color="grey", lw=0.8)
-    a3.errorbar([r["G"] for r in paired], [r["diff"] for r in paired], yerr=[2 * r["diff_se"] for r in paired],
-                marker="o", capsize=3, label="ours, paired on the same runs, +- 2 SE")
+    a3.errorbar(
+        [r["G"] for r in paired],
+        [r["diff"] for r in paired],
+        yerr=[2 * r["diff_se"] for r in paired],
+        marker="o",
+        capsize=3,
+        label="ours, paired on the same runs, +- 2 SE",
+    )
     a3.plot(pg[1:], [PAPER[g][0] - PAPER[1][0] for g in pg[1:]], "s--", label="seed 001 (unpaired)")
     a3.set(xlabel="G", ylabel="MSE(G) - MSE(G = 1)", title="the fall with G")
     a3.legend()
-    a2.errorbar(gs, [r["g_eff"] for r in rows], yerr=[2 * r["g_eff_se"] for r in rows], marker="o",
-                capsize=3, label="ours, mean +- 2 SE")
+    a2.errorbar(
+        gs,
+        [r["g_eff"] for r in rows],
+        yerr=[2 * r["g_eff_se"] for r in rows],
+        marker="o",
+        capsize=3,
+        label="ours, mean +- 2 SE",
+    )
     a2.plot(list(PAPER_GEFF), list(PAPER_GEFF.values()), "s", label="seed 001 (text, G = 5)")
     a2.plot(gs, gs, ":", color="grey", label="G_eff = G")
     a2.set(xlabel="G", ylabel="average G_eff", title="effective number of components")

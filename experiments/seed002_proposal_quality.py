@@ -29,6 +29,7 @@ evidence, taken from a bootstrap reference with ``--reference`` prior draws per 
 No claim is made that these numbers give the OSPA of Table II; they show which variants make
 unusable proposals, and where in the grid.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -63,13 +64,19 @@ def scenes(model: TDOA3D, n: int, generator: torch.Generator) -> dict:
     bm, bL = birth_mixture(model.region, 5, 0.5)
     Nb = bm.shape[0]
     z0 = model.measure(src, 0) + model.sigma_v * torch.randn(n, generator=generator, dtype=torch.float64)
-    birth = dict(mean=bm.repeat(n, 1), L=bL.expand(n * Nb, 3, 3).clone(), z=z0.repeat_interleave(Nb),
-                 sensor=0, scene=torch.arange(n).repeat_interleave(Nb))
+    birth = dict(
+        mean=bm.repeat(n, 1),
+        L=bL.expand(n * Nb, 3, 3).clone(),
+        z=z0.repeat_interleave(Nb),
+        sensor=0,
+        scene=torch.arange(n).repeat_interleave(Nb),
+    )
     # legacy: thin (1 m) along sensor 0's gradient at the source, 200 m across it
     g = model.jacobian(src, 0)
     u = g / torch.linalg.vector_norm(g, dim=-1, keepdim=True)
-    P = 200.0 ** 2 * (torch.eye(3, dtype=torch.float64) - u.unsqueeze(-1) * u.unsqueeze(-2)) \
-        + 1.0 ** 2 * u.unsqueeze(-1) * u.unsqueeze(-2)
+    P = 200.0**2 * (torch.eye(3, dtype=torch.float64) - u.unsqueeze(-1) * u.unsqueeze(-2)) + 1.0**2 * u.unsqueeze(
+        -1
+    ) * u.unsqueeze(-2)
     L = torch.linalg.cholesky(P)
     mean = src + (L @ torch.randn(n, 3, 1, generator=generator, dtype=torch.float64)).squeeze(-1)
     z1 = model.measure(src, 1) + model.sigma_v * torch.randn(n, generator=generator, dtype=torch.float64)
@@ -107,8 +114,14 @@ def amplification(flow, model, st, schedule, evaluate_at: str) -> torch.Tensor:
     """``max_l |1 - eps_l k_l|`` per row (the flow run alone, for tests; :func:`evaluate` observes
     the same flow it samples from)."""
     on_step, get = amplification_observer()
-    flow_gaussian(flow, sensor_measurement(model, st["z"], st["sensor"]), FlowPrior(st["mean"], st["L"]),
-                  schedule, evaluate_at, on_step=on_step)
+    flow_gaussian(
+        flow,
+        sensor_measurement(model, st["z"], st["sensor"]),
+        FlowPrior(st["mean"], st["L"]),
+        schedule,
+        evaluate_at,
+        on_step=on_step,
+    )
     return get()
 
 
@@ -119,9 +132,11 @@ def evaluate(model, st, flow, schedule, evaluate_at, n, log_ref, generator) -> d
     L1 = linalg.safe_cholesky(P1)
     xi = torch.randn(mu1.shape[0], n, 3, generator=generator, dtype=torch.float64)
     x = mu1.unsqueeze(1) + xi @ L1.transpose(-1, -2)
-    lo = (linalg.mvn_log_prob(x, st["mean"].unsqueeze(1), st["L"].unsqueeze(1))
-          + model.log_likelihood(st["z"].unsqueeze(-1), x, st["sensor"])
-          - linalg.mvn_log_prob(x, mu1.unsqueeze(1), L1.unsqueeze(1)))
+    lo = (
+        linalg.mvn_log_prob(x, st["mean"].unsqueeze(1), st["L"].unsqueeze(1))
+        + model.log_likelihood(st["z"].unsqueeze(-1), x, st["sensor"])
+        - linalg.mvn_log_prob(x, mu1.unsqueeze(1), L1.unsqueeze(1))
+    )
     ess = torch.exp(2 * torch.logsumexp(lo, -1) - torch.logsumexp(2 * lo, -1))
     # evidence share of each row within its scene (reference)
     scene = st["scene"]
@@ -130,8 +145,7 @@ def evaluate(model, st, flow, schedule, evaluate_at, n, log_ref, generator) -> d
     w = torch.exp(log_ref - zmax[scene])
     w = w / torch.zeros(ns, dtype=torch.float64).index_add(0, scene, w)[scene] / ns
     amp = get_amp()
-    return {"ess": float((w * ess / n).sum()), "deg": float((w * (ess < 10).double()).sum()),
-            "amp": float(amp.max())}
+    return {"ess": float((w * ess / n).sum()), "deg": float((w * (ess < 10).double()).sum()), "amp": float(amp.max())}
 
 
 def main(argv=None) -> int:
@@ -141,16 +155,20 @@ def main(argv=None) -> int:
     ap.add_argument("--reference", type=int, default=20000, help="prior draws per component for the shares")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--stages", nargs="+", default=["birth", "legacy"], choices=["birth", "legacy"])
-    ap.add_argument("--rules", nargs="+", default=list(C_RULES), choices=list(C_RULES),
-                    help="PFI-OS readings of c* (optimal_diffusion_scale)")
+    ap.add_argument(
+        "--rules",
+        nargs="+",
+        default=list(C_RULES),
+        choices=list(C_RULES),
+        help="PFI-OS readings of c* (optimal_diffusion_scale)",
+    )
     ap.add_argument("--os-only", action="store_true", help="only the PFI-OS rows")
     args = ap.parse_args(argv)
     model = TDOA3D()
     gen = torch.Generator().manual_seed(args.seed)
     data = scenes(model, args.scenes, gen)
     print(f"# seed002 proposal quality: {args.scenes} scenes, N_p = {args.n_samples}, seed {args.seed}")
-    print("# cells: ess (mean ESS_n / N_p, evidence-weighted) / deg (evidence share with ESS_n < 10) / "
-          "max|1 - eps k|")
+    print("# cells: ess (mean ESS_n / N_p, evidence-weighted) / deg (evidence share with ESS_n < 10) / max|1 - eps k|")
     for stage in args.stages:
         st = data[stage]
         log_ref = reference_log_evidence(model, st, args.reference, gen)
@@ -161,7 +179,7 @@ def main(argv=None) -> int:
         for method, alpha in METHODS:
             if args.os_only and method != "pfi_os":
                 continue
-            for c_rule in (args.rules if method == "pfi_os" else ("-",)):
+            for c_rule in args.rules if method == "pfi_os" else ("-",):
                 flow = make_flow(method, alpha, c_rule)
                 cells = []
                 for d1, beta in GRIDS:

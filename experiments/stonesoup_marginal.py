@@ -13,6 +13,7 @@ updated weights with its standard error, the ESS difference to the bootstrap ``P
 the same clouds (paired, with its standard error), and the largest |t| of the weighted posterior
 mean against Stone Soup's ``KalmanUpdater`` (standard error from the clouds).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -53,9 +54,9 @@ def main(argv=None):
     for flow in ("ledh", "edh", "gromov"):
         for prior in ("transition", "predicted"):
             for w in ("standard", "marginal"):
-                updaters[f"{flow}, flow_prior={prior}, weights={w}"] = (
-                    lambda s, flow=flow, prior=prior, w=w: FlowParticleUpdater(mm, flow=flow, seed=s, flow_prior=prior,
-                                                                               weights=w))
+                updaters[f"{flow}, flow_prior={prior}, weights={w}"] = lambda s, flow=flow, prior=prior, w=w: (
+                    FlowParticleUpdater(mm, flow=flow, seed=s, flow_prior=prior, weights=w)
+                )
     N, C = a.particles, a.clouds
     rows = {}
     for name, make in updaters.items():
@@ -64,13 +65,14 @@ def main(argv=None):
             np.random.seed(seed)  # Stone Soup's predictor draws from numpy's global state
             x = np.random.default_rng(seed).multivariate_normal(mean0, cov0, N).T
             pred = ParticlePredictor(tm).predict(
-                ParticleState(StateVectors(x), log_weight=np.full(N, -np.log(N)), timestamp=t0), timestamp=t0 + dt)
+                ParticleState(StateVectors(x), log_weight=np.full(N, -np.log(N)), timestamp=t0), timestamp=t0 + dt
+            )
             tic = time.perf_counter()
             post = make(seed).update(SingleHypothesis(pred, det))
             sec += time.perf_counter() - tic
             w = np.exp(np.asarray(post.log_weight, float))
             w /= w.sum()
-            ess.append(1.0 / (w ** 2).sum())
+            ess.append(1.0 / (w**2).sum())
             means.append(np.asarray(post.state_vector, float) @ w)
         means = np.array(means)
         t = np.abs(means.mean(0) - kf) / (means.std(0, ddof=1) / np.sqrt(C))
@@ -81,8 +83,10 @@ def main(argv=None):
     print("|---|---|---|---|---|")
     for name, (ess, tmax, s) in rows.items():
         diff = ess - boot
-        print(f"| {name} | {ess.mean():.1f} ({ess.std(ddof=1) / np.sqrt(C):.1f}) | "
-              f"{diff.mean():+.1f} ({diff.std(ddof=1) / np.sqrt(C):.1f}) | {tmax:.2f} | {s:.3f} |")
+        print(
+            f"| {name} | {ess.mean():.1f} ({ess.std(ddof=1) / np.sqrt(C):.1f}) | "
+            f"{diff.mean():+.1f} ({diff.std(ddof=1) / np.sqrt(C):.1f}) | {tmax:.2f} | {s:.3f} |"
+        )
 
 
 if __name__ == "__main__":

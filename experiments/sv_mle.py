@@ -11,6 +11,7 @@ log-likelihood is evaluated too::
         epochs=300 'learn=[mu,rho,sigma]' '~start' '+start={mu: -0.5, rho: 0.8, sigma: 0.4}' reference=null
     python -m experiments.sv_mle <that run's folder>/learn.csv
 """
+
 from __future__ import annotations
 
 import csv
@@ -50,7 +51,7 @@ def learnt(path: str):
     """The start and final ``(mu, rho, sigma)`` and the epochs of a ``torchflow-learn`` run's
     ``learn.csv`` (one row per parameter: ``parameter, start, final, epochs``)."""
     rows = {r["parameter"]: r for r in csv.DictReader(open(path))}
-    pick = lambda key: tuple(float(rows[k][key]) for k in ("mu", "rho", "sigma"))  # noqa: E731
+    pick = lambda key: tuple(float(rows[k][key]) for k in ("mu", "rho", "sigma"))
     return pick("start"), pick("final"), int(rows["mu"]["epochs"])
 
 
@@ -62,8 +63,10 @@ def main(argv):
     if argv:
         first, last, epochs = learnt(argv[0])
         for label, p in (("learn, start", first), (f"learn, after {epochs} epochs", last)):
-            print(f"{label}: mu {p[0]:.4f}, rho {p[1]:.4f}, sigma {p[2]:.4f}; exact log-likelihood "
-                  f"{exact_log_lik(y, *p):.4f}")
+            print(
+                f"{label}: mu {p[0]:.4f}, rho {p[1]:.4f}, sigma {p[2]:.4f}; exact log-likelihood "
+                f"{exact_log_lik(y, *p):.4f}"
+            )
 
 
 if __name__ == "__main__":

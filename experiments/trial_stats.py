@@ -18,6 +18,7 @@ consecutive trials filter one trajectory from K initialisations). They are not i
 with K > 1 every standard error is taken over the group means (n / K of them) and the bootstrap
 resamples whole groups; the plain per-trial SE would understate the error.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -35,7 +36,7 @@ def _read(path: Path):
 
 def group_means(v: np.ndarray, group: int) -> np.ndarray:
     """Means of consecutive groups of ``group`` trials (a last, shorter group is its own mean)."""
-    return np.asarray([v[i:i + group].mean() for i in range(0, len(v), group)])
+    return np.asarray([v[i : i + group].mean() for i in range(0, len(v), group)])
 
 
 def mean_se(v: np.ndarray, group: int = 1) -> float:
@@ -47,8 +48,15 @@ def mean_se(v: np.ndarray, group: int = 1) -> float:
     return float(g.std(ddof=1) / np.sqrt(len(g)))
 
 
-def trial_table(run: Path, metric: str = "omat", reference: str = "pfpf_ledh", outlier: float = 6.0,
-                resamples: int = 5000, seed: int = 0, group: int = 1):
+def trial_table(
+    run: Path,
+    metric: str = "omat",
+    reference: str = "pfpf_ledh",
+    outlier: float = 6.0,
+    resamples: int = 5000,
+    seed: int = 0,
+    group: int = 1,
+):
     """``(rows, ratios)``: per-filter statistics and paired median ratios and mean differences
     (see the module docstring); ``group``: trials per shared trajectory."""
     if group < 1:
@@ -80,16 +88,34 @@ def trial_table(run: Path, metric: str = "omat", reference: str = "pfpf_ledh", o
         v = np.asarray(v)
         boot = np.median(v[idx], axis=1)
         sec = float(summary[name]["sec_per_step"])
-        rows.append(dict(filter=name, q1=np.quantile(v, 0.25), median=np.median(v), median_se=boot.std(ddof=1),
-                         q3=np.quantile(v, 0.75), mean=v.mean(), mean_se=mean_se(v, group),
-                         outliers=int((v > outlier).sum()), lost=int(np.sum(lost[name])), sec=sec,
-                         time_ratio=sec / ref_sec if ref_sec else None))
+        rows.append(
+            dict(
+                filter=name,
+                q1=np.quantile(v, 0.25),
+                median=np.median(v),
+                median_se=boot.std(ddof=1),
+                q3=np.quantile(v, 0.75),
+                mean=v.mean(),
+                mean_se=mean_se(v, group),
+                outliers=int((v > outlier).sum()),
+                lost=int(np.sum(lost[name])),
+                sec=sec,
+                time_ratio=sec / ref_sec if ref_sec else None,
+            )
+        )
         if reference in values and name != reference:
             ref = np.asarray(values[reference])
             ratio = np.median(v[idx], axis=1) / np.median(ref[idx], axis=1)
-            ratios.append(dict(filter=name, ratio=np.median(v) / np.median(ref),
-                               lo=np.quantile(ratio, 0.025), hi=np.quantile(ratio, 0.975),
-                               diff=float((v - ref).mean()), diff_se=mean_se(v - ref, group)))
+            ratios.append(
+                dict(
+                    filter=name,
+                    ratio=np.median(v) / np.median(ref),
+                    lo=np.quantile(ratio, 0.025),
+                    hi=np.quantile(ratio, 0.975),
+                    diff=float((v - ref).mean()),
+                    diff_se=mean_se(v - ref, group),
+                )
+            )
     return rows, ratios
 
 
@@ -101,7 +127,7 @@ def paired_runs(run: Path, other: Path, metrics=("omat", "mse", "log_evidence", 
     if group < 1:
         raise ValueError(f"group: expected a positive number of trials per trajectory, got {group}")
     a, b = _read(run / "per_trial.csv"), _read(other / "per_trial.csv")
-    key = lambda r: (r["filter"], int(r["trial"]))  # noqa: E731
+    key = lambda r: (r["filter"], int(r["trial"]))
     bmap = {key(r): r for r in b}
     rows = []
     for name in dict.fromkeys(r["filter"] for r in a):
@@ -113,8 +139,18 @@ def paired_runs(run: Path, other: Path, metrics=("omat", "mse", "log_evidence", 
                 continue
             x = np.asarray([float(r[m]) for r, _ in pairs])
             y = np.asarray([float(q[m]) for _, q in pairs])
-            rows.append(dict(filter=name, metric=m, n=len(x), mean=x.mean(), other_mean=y.mean(),
-                             diff=float((x - y).mean()), diff_se=mean_se(x - y, group), changed=int((x != y).sum())))
+            rows.append(
+                dict(
+                    filter=name,
+                    metric=m,
+                    n=len(x),
+                    mean=x.mean(),
+                    other_mean=y.mean(),
+                    diff=float((x - y).mean()),
+                    diff_se=mean_se(x - y, group),
+                    changed=int((x != y).sum()),
+                )
+            )
     return rows
 
 
@@ -125,10 +161,18 @@ def main(argv=None) -> int:
     ap.add_argument("--reference", default="pfpf_ledh")
     ap.add_argument("--outlier", type=float, default=6.0)
     ap.add_argument("--resamples", type=int, default=5000)
-    ap.add_argument("--group", type=int, default=1,
-                    help="trials per shared trajectory (the run's inits_per_track): SEs over group means")
-    ap.add_argument("--against", type=Path, default=None,
-                    help="another run folder of the same trials: paired differences filter by filter")
+    ap.add_argument(
+        "--group",
+        type=int,
+        default=1,
+        help="trials per shared trajectory (the run's inits_per_track): SEs over group means",
+    )
+    ap.add_argument(
+        "--against",
+        type=Path,
+        default=None,
+        help="another run folder of the same trials: paired differences filter by filter",
+    )
     args = ap.parse_args(argv)
     if args.against is not None:
         try:
@@ -136,12 +180,16 @@ def main(argv=None) -> int:
         except (ValueError, FileNotFoundError) as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
-        print(f"| filter | metric | trials | mean | mean in {args.against.name} | paired difference (SE) "
-              "| trials that differ |")
+        print(
+            f"| filter | metric | trials | mean | mean in {args.against.name} | paired difference (SE) "
+            "| trials that differ |"
+        )
         print("|---|---|---|---|---|---|---|")
         for r in rows:
-            print(f"| {r['filter']} | {r['metric']} | {r['n']} | {r['mean']:.4g} | {r['other_mean']:.4g} | "
-                  f"{r['diff']:+.3g} ({r['diff_se']:.3g}) | {r['changed']} |")
+            print(
+                f"| {r['filter']} | {r['metric']} | {r['n']} | {r['mean']:.4g} | {r['other_mean']:.4g} | "
+                f"{r['diff']:+.3g} ({r['diff_se']:.3g}) | {r['changed']} |"
+            )
         return 0
     for f in ("per_trial.csv", "summary.csv"):
         if not (args.run / f).is_file():
@@ -151,23 +199,34 @@ def main(argv=None) -> int:
         print(f"error: --group: expected a positive number of trials per trajectory, got {args.group}", file=sys.stderr)
         return 2
     try:
-        rows, ratios = trial_table(args.run, args.metric, args.reference, args.outlier, args.resamples, group=args.group)
+        rows, ratios = trial_table(
+            args.run, args.metric, args.reference, args.outlier, args.resamples, group=args.group
+        )
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    print(f"| filter | {args.metric} Q1 | median (bootstrap SE) | Q3 | mean (SE) | trials > {args.outlier:g} | lost "
-          f"| s/trial-step | time vs {args.reference} |")
+    print(
+        f"| filter | {args.metric} Q1 | median (bootstrap SE) | Q3 | mean (SE) | trials > {args.outlier:g} | lost "
+        f"| s/trial-step | time vs {args.reference} |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         tr = f"{r['time_ratio']:.2f}" if r["time_ratio"] is not None else "-"
-        print(f"| {r['filter']} | {r['q1']:.3f} | {r['median']:.3f} ({r['median_se']:.3f}) | {r['q3']:.3f} | "
-              f"{r['mean']:.3f} ({r['mean_se']:.3f}) | {r['outliers']} | {r['lost']} | {r['sec']:.3g} | {tr} |")
+        print(
+            f"| {r['filter']} | {r['q1']:.3f} | {r['median']:.3f} ({r['median_se']:.3f}) | {r['q3']:.3f} | "
+            f"{r['mean']:.3f} ({r['mean_se']:.3f}) | {r['outliers']} | {r['lost']} | {r['sec']:.3g} | {tr} |"
+        )
     if ratios:
-        print(f"\n| filter | median ratio to {args.reference} | 95 % paired-bootstrap interval "
-              f"| mean minus {args.reference}, paired (SE) |")
+        print(
+            f"\n| filter | median ratio to {args.reference} | 95 % paired-bootstrap interval "
+            f"| mean minus {args.reference}, paired (SE) |"
+        )
         print("|---|---|---|---|")
         for r in ratios:
-            print(f"| {r['filter']} | {r['ratio']:.3f} | {r['lo']:.3f}-{r['hi']:.3f} | {r['diff']:+.3f} ({r['diff_se']:.3f}) |")
+            print(
+                f"| {r['filter']} | {r['ratio']:.3f} | {r['lo']:.3f}-{r['hi']:.3f} | {r['diff']:+.3f} "
+                f"({r['diff_se']:.3f}) |"
+            )
     return 0
 
 

@@ -8,11 +8,11 @@ from pathlib import Path
 # changes scheduling, not results. Set before torch loads its OpenMP runtime; subprocesses inherit it.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-import pytest  # noqa: E402
-import torch  # noqa: E402
+import pytest
+import torch
 
-from torchflow.models import AcousticTracking, LinearGaussian, SensorNetwork  # noqa: E402
-from torchflow.registry import register_configs  # noqa: E402
+from torchflow.models import AcousticTracking, LinearGaussian, SensorNetwork
+from torchflow.registry import register_configs
 
 register_configs()  # the signature nodes configs/ extend (tests compose the configs without the command line)
 
@@ -83,8 +83,14 @@ def mild_lg(d=3, m=2, seed=0):
     g = torch.Generator().manual_seed(seed)
     H = torch.randn(m, d, generator=g, dtype=torch.float64)
     eye_d = torch.eye(d, dtype=torch.float64)
-    return LinearGaussian(0.9 * eye_d, 0.5 * eye_d, H, 0.1 * torch.eye(m, dtype=torch.float64),
-                          torch.zeros(d, dtype=torch.float64), 0.1 * eye_d)
+    return LinearGaussian(
+        0.9 * eye_d,
+        0.5 * eye_d,
+        H,
+        0.1 * torch.eye(m, dtype=torch.float64),
+        torch.zeros(d, dtype=torch.float64),
+        0.1 * eye_d,
+    )
 
 
 def replicated(model, B, T, seed=0):

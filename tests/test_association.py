@@ -1,4 +1,5 @@
 """Loopy belief propagation for data association against brute-force enumeration."""
+
 import itertools
 
 import pytest
@@ -49,8 +50,13 @@ def test_one_object_is_exact_and_padding_is_ignored():
     xi = 1 + torch.rand(1, 3, generator=g, dtype=torch.float64)
     got = loopy_association(beta, xi).probabilities[0]
     torch.testing.assert_close(got, brute_force(beta[0], xi[0]), rtol=1e-12, atol=1e-12)
-    pb = torch.cat([torch.cat([beta, torch.rand(1, 1, 4, generator=g, dtype=torch.float64)], 1),
-                    torch.rand(1, 2, 1, generator=g, dtype=torch.float64)], -1)  # a padded PO and measurement
+    pb = torch.cat(
+        [
+            torch.cat([beta, torch.rand(1, 1, 4, generator=g, dtype=torch.float64)], 1),
+            torch.rand(1, 2, 1, generator=g, dtype=torch.float64),
+        ],
+        -1,
+    )  # a padded PO and measurement
     px = torch.cat([xi, torch.tensor([[3.0]], dtype=torch.float64)], -1)
     om = torch.tensor([[True, False]])
     mm = torch.tensor([[True, True, True, False]])

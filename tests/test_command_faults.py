@@ -2,6 +2,7 @@
 selections, output folders (quoted, full), resuming, sweeps (overwrite, a stop on joblib) and
 ``collect.py``. Each fault gets one line that names what is wrong (exit status 2 for a setting) or a
 warning, and nothing half done on disk. Subprocess runs are tiny (a few seconds each)."""
+
 import json
 import logging
 import os
@@ -27,8 +28,9 @@ def _env():
 
 
 def _run(cwd, *args, script=RUN):
-    return subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True, cwd=cwd, timeout=180,
-                          env=_env())
+    return subprocess.run(
+        [sys.executable, str(script), *args], capture_output=True, text=True, cwd=cwd, timeout=180, env=_env()
+    )
 
 
 def _lines(text):
@@ -39,12 +41,19 @@ def _lines(text):
 # settings Hydra refuses or cannot read
 
 
-@pytest.mark.parametrize("override, message", [
-    ("n_particle=7", "error: n_particle: unknown setting; did you mean n_particles?"),
-    ("filter.bpf.typo=1", "error: filter.bpf.typo: unknown setting; the settings of filter.bpf are n_particles, "),
-    ("filter.bfp.n_particles=10", "error: filter.bfp.n_particles: expected one of the selected filters kf, bpf, got "
-                                  "bfp; did you mean filter.bpf.n_particles?"),
-], ids=["misspelt-key", "unknown-filter-setting", "misspelt-filter"])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("n_particle=7", "error: n_particle: unknown setting; did you mean n_particles?"),
+        ("filter.bpf.typo=1", "error: filter.bpf.typo: unknown setting; the settings of filter.bpf are n_particles, "),
+        (
+            "filter.bfp.n_particles=10",
+            "error: filter.bfp.n_particles: expected one of the selected filters kf, bpf, got "
+            "bfp; did you mean filter.bpf.n_particles?",
+        ),
+    ],
+    ids=["misspelt-key", "unknown-filter-setting", "misspelt-filter"],
+)
 def test_a_key_the_config_lacks_given_without_plus_gets_did_you_mean_and_exit_2(tmp_path, override, message):
     r = _run(tmp_path, *TINY, "filter=[kf,bpf]", override, "hydra.run.dir=out")
     assert r.returncode == 2, r.stderr[-2000:]
@@ -58,15 +67,20 @@ def test_a_setting_of_a_filter_that_is_not_selected_says_to_select_it():
     tree = {"trials": 2, "filter": {"kf": {"_target_": "x"}, "bpf": {"_target_": "y", "n_particles": 5}}}
     assert unknown_key_message(tree, "filter.ukf.alpha") == (
         "filter.ukf.alpha: expected one of the selected filters kf, bpf, got ukf (not selected; to set it, select it "
-        "too: filter=[kf,bpf,ukf])")
+        "too: filter=[kf,bpf,ukf])"
+    )
     assert unknown_key_message(tree, "trails") == "trails: unknown setting; did you mean trials?"
     assert unknown_key_message(None, "trails") == "trails: unknown setting"
 
 
-@pytest.mark.parametrize("override, hint", [
-    ("hydra.run.dir=ünï码", "\"hydra.run.dir='ünï码'\""),
-    ("label=ünï码 ☃/sub dir", "\"label='ünï码 ☃/sub dir'\""),
-], ids=["folder", "label"])
+@pytest.mark.parametrize(
+    "override, hint",
+    [
+        ("hydra.run.dir=ünï码", "\"hydra.run.dir='ünï码'\""),
+        ("label=ünï码 ☃/sub dir", "\"label='ünï码 ☃/sub dir'\""),
+    ],
+    ids=["folder", "label"],
+)
 def test_an_unquoted_non_ascii_value_gets_a_quoting_hint_and_exit_2(tmp_path, override, hint):
     r = _run(tmp_path, *TINY, "filter=[kf]", override)
     assert r.returncode == 2, r.stderr[-2000:]
@@ -88,9 +102,9 @@ def test_a_hydra_quoted_folder_with_spaces_and_non_ascii_is_written_as_named_and
     assert again.returncode == 2 and _lines(again.stderr) == [
         "error: hydra.run.dir: dir with spaces/uni ünï码 already holds the results of a run (summary.csv, "
         "per_step.csv, per_trial.csv, results.json); choose a new folder (hydra.run.dir=<new folder>) or add "
-        "overwrite=true to replace them"]
+        "overwrite=true to replace them"
+    ]
     assert (folder / "results.json").read_text() == before
-
 
 
 def test_the_results_line_names_the_folder_from_where_the_command_started_also_with_chdir(tmp_path):
@@ -101,6 +115,7 @@ def test_the_results_line_names_the_folder_from_where_the_command_started_also_w
     assert "results: " + os.path.join("out", "a") in done.stdout + done.stderr
     assert (tmp_path / "out" / "a" / "summary.csv").exists()
 
+
 def test_a_filter_selected_twice_is_refused_in_one_line_with_exit_2(capsys):
     from torchflow.cli import main
 
@@ -109,7 +124,8 @@ def test_a_filter_selected_twice_is_refused_in_one_line_with_exit_2(capsys):
     assert stop.value.code == 2
     assert _lines(capsys.readouterr().err) == [
         "error: filter: expected each filter config once, got bpf 2 times in [bpf,kf,bpf] (one row per config); "
-        "select it once, and to compare settings of one filter, sweep them: -m filter.bpf.<key>=a,b"]
+        "select it once, and to compare settings of one filter, sweep them: -m filter.bpf.<key>=a,b"
+    ]
 
 
 def test_a_sweep_over_lists_of_filters_is_not_refused():
@@ -120,12 +136,20 @@ def test_a_sweep_over_lists_of_filters_is_not_refused():
         check_selections(["-m", "filter=[bpf],[kf,kf]"])
 
 
-@pytest.mark.parametrize("trials, inits_per_track, warning, groups", [
-    (4, 3, "inits_per_track=3 does not divide trials=4: the last trajectory is shared by 1 trial, the others by 3 "
-           "(trials=6 keeps the groups equal)", [3, 1]),
-    (4, 10, "inits_per_track=10 is more than trials=4: all 4 trials share one trajectory", [4]),
-    (6, 3, None, [3, 3]),
-])
+@pytest.mark.parametrize(
+    "trials, inits_per_track, warning, groups",
+    [
+        (
+            4,
+            3,
+            "inits_per_track=3 does not divide trials=4: the last trajectory is shared by 1 trial, the others by 3 "
+            "(trials=6 keeps the groups equal)",
+            [3, 1],
+        ),
+        (4, 10, "inits_per_track=10 is more than trials=4: all 4 trials share one trajectory", [4]),
+        (6, 3, None, [3, 3]),
+    ],
+)
 def test_inits_per_track_that_leaves_unequal_groups_of_trials_warns(trials, inits_per_track, warning, groups):
     import warnings
 
@@ -170,8 +194,10 @@ def test_a_full_disk_while_hydra_writes_its_config_is_one_line_naming_the_folder
     (tmp_path / "full_disk.py").write_text(_FULL_DISK)
     r = _run(tmp_path, *TINY, "filter=[kf]", "checkpoint_dir=null", "hydra.run.dir=out", script="full_disk.py")
     assert r.returncode == 1, r.stderr[-2000:]
-    assert _lines(r.stderr) == [f"error: cannot write into {tmp_path / 'out'} (OSError: No space left on device); "
-                                "free space there or choose another folder (hydra.run.dir=<folder>)"]
+    assert _lines(r.stderr) == [
+        f"error: cannot write into {tmp_path / 'out'} (OSError: No space left on device); "
+        "free space there or choose another folder (hydra.run.dir=<folder>)"
+    ]
     assert not (tmp_path / "out" / shell.LOCK_NAME).exists()
 
 
@@ -182,20 +208,23 @@ def test_resume_with_nothing_saved_says_so_and_computes_every_chunk(tmp_path, ca
     from torchflow.cli import chunk_store
 
     with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
-        cfg = compose("config", ["model=linear_gaussian", "filter=[kf,bpf]", "resume=true",
-                                 f"checkpoint_dir={tmp_path / 'ck'}"])
+        cfg = compose(
+            "config", ["model=linear_gaussian", "filter=[kf,bpf]", "resume=true", f"checkpoint_dir={tmp_path / 'ck'}"]
+        )
     labels = {"kf": "kf", "bpf": "bpf"}
     with caplog.at_level(logging.WARNING, logger="torchflow.cli"):
         store = chunk_store(cfg, labels)
     assert [r.getMessage() for r in caplog.records] == [
         f"resume=true: nothing is saved under {tmp_path / 'ck'} with these settings (a new folder, or settings other "
-        "than the saved run's, which save under another key): every chunk is computed"]
+        "than the saved run's, which save under another key): every chunk is computed"
+    ]
     store.save("kf", 0, 2, {"estimates": torch.zeros(2, 3, 4)})
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="torchflow.cli"):
         chunk_store(cfg, labels)
     assert [r.getMessage() for r in caplog.records] == [
-        f"resume=true: nothing is saved under {tmp_path / 'ck'} for bpf with these settings: their chunks are computed"]
+        f"resume=true: nothing is saved under {tmp_path / 'ck'} for bpf with these settings: their chunks are computed"
+    ]
     caplog.clear()
     cfg.resume = False
     with caplog.at_level(logging.WARNING, logger="torchflow.cli"):
@@ -206,12 +235,24 @@ def test_resume_with_nothing_saved_says_so_and_computes_every_chunk(tmp_path, ca
 def test_two_live_runs_sharing_a_checkpoint_dir_keep_their_chunks_apart(tmp_path):
     """Runs of other settings (here seeds) save under other keys; the same settings save the same chunks
     (written atomically), so a shared checkpoint_dir needs no lock (trial_range runs share one)."""
-    def cmd(seed):
-        return [sys.executable, str(RUN), *TINY, "filter=[kf]", f"seed={seed}", "checkpoint_dir=ck",
-                f"hydra.run.dir=run{seed}"]
 
-    procs = [subprocess.Popen(cmd(seed), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
-                              env=_env()) for seed in (0, 1)]
+    def cmd(seed):
+        return [
+            sys.executable,
+            str(RUN),
+            *TINY,
+            "filter=[kf]",
+            f"seed={seed}",
+            "checkpoint_dir=ck",
+            f"hydra.run.dir=run{seed}",
+        ]
+
+    procs = [
+        subprocess.Popen(
+            cmd(seed), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=_env()
+        )
+        for seed in (0, 1)
+    ]
     errs = [p.communicate(timeout=180)[1] for p in procs]
     assert [p.returncode for p in procs] == [0, 0], errs
     saved = sorted(json.loads(f.read_text())["seed"] for f in (tmp_path / "ck").glob("kf-*/settings.json"))
@@ -223,9 +264,20 @@ def test_the_resume_hint_repeats_the_script_as_invoked_from_another_folder(tmp_p
     work = tmp_path / "w"
     work.mkdir()
     script = os.path.relpath(RUN, work)  # python ../../<...>/experiments/run.py
-    cmd = [sys.executable, script, "model=linear_gaussian", "filter=[bpf]", "trials=40", "steps=50",
-           "n_particles=20000", "chunk_size=1", "progress=false", "plots=false", "checkpoint_dir=ck",
-           "hydra.run.dir=run"]
+    cmd = [
+        sys.executable,
+        script,
+        "model=linear_gaussian",
+        "filter=[bpf]",
+        "trials=40",
+        "steps=50",
+        "n_particles=20000",
+        "chunk_size=1",
+        "progress=false",
+        "plots=false",
+        "checkpoint_dir=ck",
+        "hydra.run.dir=run",
+    ]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=work, env=_env())
     deadline = time.time() + 120
     while not list((work / "ck").glob("*/*.pt")) and time.time() < deadline and proc.poll() is None:
@@ -268,8 +320,11 @@ def test_a_sweep_folder_holding_an_earlier_sweeps_jobs_is_refused_or_replaced(tm
     (tmp_path / "1" / ".hydra").mkdir(parents=True)  # killed before it wrote anything
     (tmp_path / "7").mkdir()  # not a job's folder
     assert shell.earlier_results(tmp_path, sweep=True) == ["0/error.txt", "1/"]
-    with pytest.raises(ConfigError, match=r"hydra.sweep.dir: .* already holds the jobs of an earlier sweep "
-                                          r"\(0/error.txt, 1/\); choose a new folder"):
+    with pytest.raises(
+        ConfigError,
+        match=r"hydra.sweep.dir: .* already holds the jobs of an earlier sweep "
+        r"\(0/error.txt, 1/\); choose a new folder",
+    ):
         shell.guard_output_folder(tmp_path, key="hydra.sweep.dir", sweep=True)
     shell.guard_output_folder(tmp_path, sweep=True, replace=True).release()  # resume=true: the same jobs again
     assert failed.exists()
@@ -285,8 +340,9 @@ def test_overwrite_true_on_a_sweep_folder_reports_and_collects_only_the_new_jobs
     sweep = tmp_path / "sw2"
     for n in range(3):
         _job(sweep, str(n), seed=n)
-    r = _run(tmp_path, "-m", *TINY, "filter=[kf]", "checkpoint_dir=null", "seed=5,6", "overwrite=true",
-             "hydra.sweep.dir=sw2")
+    r = _run(
+        tmp_path, "-m", *TINY, "filter=[kf]", "checkpoint_dir=null", "seed=5,6", "overwrite=true", "hydra.sweep.dir=sw2"
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     assert "sweep sw2: 2 jobs, 2 finished, 0 failed" in r.stderr
     assert "warning: overwrite=true: removed 3 job folder(s) of an earlier sweep from sw2 (0, 1, 2)" in r.stderr
@@ -317,11 +373,33 @@ def test_collect_names_a_damaged_results_json_and_merges_its_intact_csvs(tmp_pat
 
 def test_ctrl_c_to_a_joblib_sweep_ends_with_the_report_the_resume_command_and_exit_130(tmp_path):
     pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
-    cmd = [sys.executable, str(RUN), "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "model=linear_gaussian",
-           "filter=[bpf]", "trials=40", "steps=50", "n_particles=20000", "chunk_size=1", "progress=false",
-           "plots=false", "seed=0,1,2", "checkpoint_dir=ck", "hydra.sweep.dir=sw"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
-                            env=_env(), start_new_session=True)  # its own process group, as a terminal's
+    cmd = [
+        sys.executable,
+        str(RUN),
+        "-m",
+        "hydra/launcher=joblib",
+        "hydra.launcher.n_jobs=2",
+        "model=linear_gaussian",
+        "filter=[bpf]",
+        "trials=40",
+        "steps=50",
+        "n_particles=20000",
+        "chunk_size=1",
+        "progress=false",
+        "plots=false",
+        "seed=0,1,2",
+        "checkpoint_dir=ck",
+        "hydra.sweep.dir=sw",
+    ]
+    proc = subprocess.Popen(
+        cmd,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+        env=_env(),
+        start_new_session=True,
+    )  # its own process group, as a terminal's
     deadline = time.time() + 180
     while len(list((tmp_path / "ck").glob("*/*.pt"))) < 2 and time.time() < deadline and proc.poll() is None:
         time.sleep(0.2)
@@ -330,8 +408,10 @@ def test_ctrl_c_to_a_joblib_sweep_ends_with_the_report_the_resume_command_and_ex
     assert proc.returncode == 130, err[-3000:]
     assert "Traceback" not in err and "KeyboardInterrupt" not in err and "leaked" not in err, err[-3000:]
     lines = _lines(err)
-    assert any(ln.startswith(f"sweep {tmp_path / 'sw'} (stopped by Ctrl-C): 3 jobs, 0 finished, 0 failed, 2 "
-                             "interrupted") for ln in lines), lines
+    assert any(
+        ln.startswith(f"sweep {tmp_path / 'sw'} (stopped by Ctrl-C): 3 jobs, 0 finished, 0 failed, 2 interrupted")
+        for ln in lines
+    ), lines
     assert lines[-2] == "stopped by Ctrl-C; the finished chunks are saved: go on with"
     assert lines[-1].strip().startswith(f"python {RUN} -m hydra/launcher=joblib")
     assert lines[-1].endswith(" resume=true")
@@ -358,6 +438,7 @@ def test_a_log_file_that_cannot_be_written_does_not_print_a_traceback_per_messag
         with shell.command_warnings_and_logs():
             logger.error("a message while the disk is full")
             import warnings
+
             assert warnings.formatwarning("groups are unequal", UserWarning, "x.py", 1) == "warning: groups are unequal"
         assert "Logging error" not in capsys.readouterr().err
         assert logging.raiseExceptions  # restored after the job
@@ -367,8 +448,10 @@ def test_a_log_file_that_cannot_be_written_does_not_print_a_traceback_per_messag
         logger.removeHandler(handler)
 
 
-@pytest.mark.parametrize("script, name, guide", [(RUN, "torchflow", "command-line.md"),
-                                                 (ROOT / "experiments" / "learn.py", "torchflow-learn", "learning.md")])
+@pytest.mark.parametrize(
+    "script, name, guide",
+    [(RUN, "torchflow", "command-line.md"), (ROOT / "experiments" / "learn.py", "torchflow-learn", "learning.md")],
+)
 def test_help_says_what_the_command_does_with_examples_and_the_documentation(tmp_path, script, name, guide):
     """``--help`` is a page, not a config dump: what the command does, examples, where the guide
     is, the config groups, in at most 60 lines; nothing written to disk."""

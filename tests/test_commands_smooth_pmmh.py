@@ -1,6 +1,7 @@
 """The ``torchflow`` command's smoothing and PMMH tasks (``task=smooth``, ``task=pmmh``:
 :mod:`torchflow.tasks`): end to end on tiny configs through ``python -m torchflow`` (files, columns,
 numbers that must hold), and their refusals (one line naming the key, exit status 2)."""
+
 import csv
 import json
 import os
@@ -16,17 +17,43 @@ from omegaconf import OmegaConf
 from torchflow.runner.plan import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
-SMOOTH = ["task=smooth", "model=linear_gaussian", "model.d=4", "trials=2", "steps=4", "n_particles=30",
-          "smooth.n_paths=10", "progress=false", "checkpoint_dir=null"]
+SMOOTH = [
+    "task=smooth",
+    "model=linear_gaussian",
+    "model.d=4",
+    "trials=2",
+    "steps=4",
+    "n_particles=30",
+    "smooth.n_paths=10",
+    "progress=false",
+    "checkpoint_dir=null",
+]
 SV_PRIORS = "+pmmh.priors={rho: {dist: Uniform, low: -1, high: 1}, sigma: {dist: Gamma, concentration: 1, rate: 1}}"
-PMMH = ["task=pmmh", "model=stochastic_volatility", "filter=[bpf]", "steps=15", "n_particles=30", "pmmh.chains=2",
-        "pmmh.iterations=8", "pmmh.adapt=4", "progress=false", "checkpoint_dir=null", SV_PRIORS]
+PMMH = [
+    "task=pmmh",
+    "model=stochastic_volatility",
+    "filter=[bpf]",
+    "steps=15",
+    "n_particles=30",
+    "pmmh.chains=2",
+    "pmmh.iterations=8",
+    "pmmh.adapt=4",
+    "progress=false",
+    "checkpoint_dir=null",
+    SV_PRIORS,
+]
 
 
 def _torchflow(tmp_path, *args):
     env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
-    return subprocess.run([sys.executable, "-m", "torchflow", *args, f"hydra.run.dir={tmp_path / 'out'}"],
-                          capture_output=True, text=True, cwd=tmp_path, timeout=180, env=env)
+    return subprocess.run(
+        [sys.executable, "-m", "torchflow", *args, f"hydra.run.dir={tmp_path / 'out'}"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=180,
+        env=env,
+    )
 
 
 def _rows(path):
@@ -74,14 +101,17 @@ def test_smooth_task_genealogy_on_recorded_data_has_no_truth(tmp_path):
     assert not (tmp_path / "out" / "smoothed.png").exists()
 
 
-@pytest.mark.parametrize("args, message", [
-    (["filter=[bpf]", "smooth.method=rts"], "smooth.method: 'rts' smooths the Kalman family"),
-    (["filter=[kf]", "smooth.method=ffbsi"], "(filter.kf)"),
-    (["filter=[enkf]"], "(filter.enkf)"),
-    (["filter=[bpf]", "smooth.n_paths=0"], "smooth.n_paths: expected a positive number of paths, got 0"),
-    (["filter=[kf]", "task=smoothing"], "task: expected one of filter, smooth, pmmh, got 'smoothing'"),
-    (["filter=[kf]", "resume=true"], "resume: expected false with task=smooth"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["filter=[bpf]", "smooth.method=rts"], "smooth.method: 'rts' smooths the Kalman family"),
+        (["filter=[kf]", "smooth.method=ffbsi"], "(filter.kf)"),
+        (["filter=[enkf]"], "(filter.enkf)"),
+        (["filter=[bpf]", "smooth.n_paths=0"], "smooth.n_paths: expected a positive number of paths, got 0"),
+        (["filter=[kf]", "task=smoothing"], "task: expected one of filter, smooth, pmmh, got 'smoothing'"),
+        (["filter=[kf]", "resume=true"], "resume: expected false with task=smooth"),
+    ],
+)
 def test_smooth_task_refuses_bad_settings_in_one_line(tmp_path, args, message):
     r = _torchflow(tmp_path, *SMOOTH, *args)
     assert r.returncode == 2 and message in r.stderr, (r.returncode, r.stderr[-2000:])
@@ -102,8 +132,12 @@ def test_pmmh_task_writes_draws_summary_and_figures(tmp_path):
     rho = bpf["parameters"]["rho"]
     assert rho["truth"] == pytest.approx(0.9702) and rho["rhat"] > 0 and rho["ess"] > 0
     draws = np.array([float(x["rho"]) for x in rows])
-    assert rho["mean"] == pytest.approx(draws.mean()) and rho["ess_per_sec"] == pytest.approx(rho["ess"] / bpf["seconds"])
-    assert res["priors"]["rho"] == {"dist": "Uniform", "low": -1, "high": 1} and res["run"]["series"].startswith("trial 0")
+    assert rho["mean"] == pytest.approx(draws.mean()) and rho["ess_per_sec"] == pytest.approx(
+        rho["ess"] / bpf["seconds"]
+    )
+    assert res["priors"]["rho"] == {"dist": "Uniform", "low": -1, "high": 1} and res["run"]["series"].startswith(
+        "trial 0"
+    )
     assert (out / "posterior.png").stat().st_size > 0 and (out / "traces.png").stat().st_size > 0
     # 2 chains x 8 draws cannot have converged: the run says so, per parameter, and pmmh.json records it
     assert bpf["converged"] is False
@@ -137,16 +171,21 @@ def test_pmmh_task_on_a_recorded_series_same_seed_same_draws(tmp_path):
     assert again.returncode == 0 and (tmp_path / "out" / "posterior.csv").read_text() == a
 
 
-@pytest.mark.parametrize("args, message", [
-    (["+pmmh.priors.nu={dist: Normal, loc: 0, scale: 1}"],
-     "pmmh.priors.nu: expected a per-trial parameter of StochasticVolatility (mu, rho, sigma), got 'nu'"),
-    (["filter=[ekf]"], "filter.ekf: task=pmmh needs a filter whose log-evidence estimates the likelihood"),
-    (["pmmh.priors.rho.dist=Uniformm"], "pmmh.priors.rho.dist: expected a torch.distributions class"),
-    (["pmmh.priors.rho.low=2"], "pmmh.priors.rho: Uniform(low=2, high=1) is refused by torch.distributions"),
-    (["pmmh.iterations=2"], "pmmh.iterations: expected an integer >= 4, got 2"),
-    (["pmmh.chain=3"], "pmmh.chain: unknown setting; did you mean pmmh.chains?"),
-    (["pmmh.init={rho: 1.5, sigma: 0.2}"], "pmmh.init.rho: expected a value inside the support of its prior"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (
+            ["+pmmh.priors.nu={dist: Normal, loc: 0, scale: 1}"],
+            "pmmh.priors.nu: expected a per-trial parameter of StochasticVolatility (mu, rho, sigma), got 'nu'",
+        ),
+        (["filter=[ekf]"], "filter.ekf: task=pmmh needs a filter whose log-evidence estimates the likelihood"),
+        (["pmmh.priors.rho.dist=Uniformm"], "pmmh.priors.rho.dist: expected a torch.distributions class"),
+        (["pmmh.priors.rho.low=2"], "pmmh.priors.rho: Uniform(low=2, high=1) is refused by torch.distributions"),
+        (["pmmh.iterations=2"], "pmmh.iterations: expected an integer >= 4, got 2"),
+        (["pmmh.chain=3"], "pmmh.chain: unknown setting; did you mean pmmh.chains?"),
+        (["pmmh.init={rho: 1.5, sigma: 0.2}"], "pmmh.init.rho: expected a value inside the support of its prior"),
+    ],
+)
 def test_pmmh_task_refuses_bad_settings_in_one_line(tmp_path, args, message):
     r = _torchflow(tmp_path, *PMMH, *args)
     assert r.returncode == 2 and message in r.stderr, (r.returncode, r.stderr[-2000:])
@@ -180,10 +219,15 @@ def _pmmh_result():
     from torchflow.inference import PMMHResult
 
     g = torch.Generator().manual_seed(0)
-    return PMMHResult(samples={"rho": torch.rand(3, 7, generator=g, dtype=torch.float64),
-                               "beta": torch.rand(3, 7, 2, generator=g)},
-                      log_likelihood=torch.randn(3, 7, generator=g), acceptance=torch.ones(3), scale=torch.ones(3),
-                      rhat={}, ess={}, seconds=1.0)
+    return PMMHResult(
+        samples={"rho": torch.rand(3, 7, generator=g, dtype=torch.float64), "beta": torch.rand(3, 7, 2, generator=g)},
+        log_likelihood=torch.randn(3, 7, generator=g),
+        acceptance=torch.ones(3),
+        scale=torch.ones(3),
+        rhat={},
+        ess={},
+        seconds=1.0,
+    )
 
 
 def test_to_arviz_gives_the_draws_by_chain_and_draw():

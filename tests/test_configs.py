@@ -1,6 +1,7 @@
 """Every config composes and builds, with no run, and the component configs stay lean: they extend
 the signature nodes of :mod:`torchflow.registry` and hold only what differs from the defaults.
 A paper-table config that names a missing filter, a wrong key or a bad value fails here, in seconds."""
+
 import inspect
 from pathlib import Path
 
@@ -14,10 +15,19 @@ from torchflow import registry
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 EXPERIMENTS = sorted(p.stem for p in (CONFIGS / "experiment").glob("*.yaml"))
-COMPONENTS = sorted(f"{p.parent.name}/{p.stem}" for g in ("filter", "flow", "model", "schedule")
-                    for p in (CONFIGS / g).glob("*.yaml"))
-TDOA = {"filter/bs", "filter/pfi_d", "filter/pfi_s", "filter/pfi_os", "filter/pfi_os_coarse", "filter/pfi_os_a001",
-        "filter/pfi_os_a05", "model/tdoa"}  # localisers: model=tdoa
+COMPONENTS = sorted(
+    f"{p.parent.name}/{p.stem}" for g in ("filter", "flow", "model", "schedule") for p in (CONFIGS / g).glob("*.yaml")
+)
+TDOA = {
+    "filter/bs",
+    "filter/pfi_d",
+    "filter/pfi_s",
+    "filter/pfi_os",
+    "filter/pfi_os_coarse",
+    "filter/pfi_os_a001",
+    "filter/pfi_os_a05",
+    "model/tdoa",
+}  # localisers: model=tdoa
 SMALL = ["model.d=4", "n_particles=8"]
 
 
@@ -58,11 +68,19 @@ def test_filter_override_selects_exactly_the_named_filters(name):
 @pytest.mark.parametrize("name", COMPONENTS)
 def test_every_component_config_builds(name):
     group, stem = name.split("/")
-    where = {"filter": f"filter=[{stem}]", "model": f"model={stem}", "flow": f"flow@filter.pfpf.flow={stem}",
-             "schedule": f"schedule@filter.pfpf.schedule={stem}"}[group]
+    where = {
+        "filter": f"filter=[{stem}]",
+        "model": f"model={stem}",
+        "flow": f"flow@filter.pfpf.flow={stem}",
+        "schedule": f"schedule@filter.pfpf.schedule={stem}",
+    }[group]
     model = "tdoa" if name in TDOA else stem if group == "model" else "linear_gaussian"
-    cfg = _compose(f"model={model}", *(SMALL if model in ("linear_gaussian", "skewed_t_poisson") else []),
-                   "filter=[pfpf]" if group in ("flow", "schedule") else "filter=[kf]", where)
+    cfg = _compose(
+        f"model={model}",
+        *(SMALL if model in ("linear_gaussian", "skewed_t_poisson") else []),
+        "filter=[pfpf]" if group in ("flow", "schedule") else "filter=[kf]",
+        where,
+    )
     node = cfg.model if group == "model" else cfg.filter[stem if group == "filter" else "pfpf"]
     built = instantiate(node) if group == "model" else instantiate(node, model=instantiate(cfg.model))
     built = getattr(built, group) if group in ("flow", "schedule") else built
@@ -72,8 +90,15 @@ def test_every_component_config_builds(name):
 
 def test_a_key_the_yaml_does_not_name_is_overridden_without_plus():
     assert "ess_threshold" not in OmegaConf.load(CONFIGS / "filter" / "pfpf.yaml")
-    cfg = _compose("model=linear_gaussian", *SMALL, "filter=[pfpf_ledh]", "filter.pfpf_ledh.ess_threshold=0.3",
-                   "flow@filter.pfpf_ledh.flow=osd", "filter.pfpf_ledh.flow.c_rule=printed", "model.sigma_z=0.7")
+    cfg = _compose(
+        "model=linear_gaussian",
+        *SMALL,
+        "filter=[pfpf_ledh]",
+        "filter.pfpf_ledh.ess_threshold=0.3",
+        "flow@filter.pfpf_ledh.flow=osd",
+        "filter.pfpf_ledh.flow.c_rule=printed",
+        "model.sigma_z=0.7",
+    )
     f = instantiate(cfg.filter.pfpf_ledh, model=instantiate(cfg.model))
     assert f.ess_threshold == 0.3 and f.flow.c_rule == "printed" and cfg.model.sigma_z == 0.7
 
@@ -97,8 +122,12 @@ def test_signature_node_holds_the_constructors_defaults_and_builds(path):
         want = list(defaults[key]) if isinstance(defaults.get(key), tuple) else defaults.get(key, path)
         assert value == want and type(value) is type(want), key
     for p in inspect.signature(cls).parameters.values():
-        assert p.name in node or p.default is p.empty or p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD) \
-            or registry.yaml_value(p.default) is registry._NO_YAML, p.name
+        assert (
+            p.name in node
+            or p.default is p.empty
+            or p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+            or registry.yaml_value(p.default) is registry._NO_YAML
+        ), p.name
     if "model" in inspect.signature(cls).parameters:
         local = path.startswith("torchflow.localisation")  # the localisers run on the TDOA model only
         model = instantiate(_compose("model=tdoa").model if local else _compose("model=linear_gaussian", *SMALL).model)
@@ -129,6 +158,18 @@ def test_component_config_holds_only_what_differs(name):
 def test_seed000_table2_has_every_paper_row():
     """Seed 000 Table II's rows (MODELS.md §7 table) at the paper's particle counts unless overridden."""
     cfg = _compose("experiment=seed000_table2")
-    assert set(cfg.filter) == {"pfpf_ledh", "pfpf_edh", "pfpf_gromov", "pfpf_geodesic", "gpfis", "ledh", "edh",
-                               "gromov", "geodesic", "ekf", "ukf", "bpf"}
+    assert set(cfg.filter) == {
+        "pfpf_ledh",
+        "pfpf_edh",
+        "pfpf_gromov",
+        "pfpf_geodesic",
+        "gpfis",
+        "ledh",
+        "edh",
+        "gromov",
+        "geodesic",
+        "ekf",
+        "ukf",
+        "bpf",
+    }
     assert cfg.filter.gpfis.n_particles == 500 and cfg.filter.pfpf_edh.n_particles == 100000

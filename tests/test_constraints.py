@@ -1,5 +1,6 @@
 """Learnable parameters that stay valid: covariances through their Cholesky factor or
 log-variances, positive scalars through their logarithm; the value users read is the constrained one."""
+
 import pytest
 import torch
 
@@ -87,7 +88,7 @@ def test_an_interval_parameter_stays_inside_under_any_optimiser_step():
     constraints.constrain(m, "rho", (-1.0, 1.0))
     assert torch.allclose(m.rho, torch.tensor(0.9, dtype=torch.float64))
     raw = constraints.unconstrained(m, "rho")
-    (m.rho ** 2).backward()
+    (m.rho**2).backward()
     assert raw.grad is not None and float(raw.grad) > 0
     for value in (-30.0, -3.0, 0.0, 3.0, 30.0):  # past |raw| ~ 37 float64 rounds to the bound itself
         with torch.no_grad():
@@ -95,12 +96,19 @@ def test_an_interval_parameter_stays_inside_under_any_optimiser_step():
         assert -1.0 < float(m.rho) < 1.0
 
 
-@pytest.mark.parametrize("constraint, value, match", [
-    ((-1.0, 1.0), 1.5, r"rho: expected a value inside \(-1, 1\)"),
-    ((1.0, -1.0), 0.0, r"rho: expected a constraint in .* or an interval \(low, high\) of finite numbers with low < high"),
-    ((0.0, float("inf")), 1.0, "finite numbers"),
-    ((0.0,), 1.0, "an interval"),
-])
+@pytest.mark.parametrize(
+    "constraint, value, match",
+    [
+        ((-1.0, 1.0), 1.5, r"rho: expected a value inside \(-1, 1\)"),
+        (
+            (1.0, -1.0),
+            0.0,
+            r"rho: expected a constraint in .* or an interval \(low, high\) of finite numbers with low < high",
+        ),
+        ((0.0, float("inf")), 1.0, "finite numbers"),
+        ((0.0,), 1.0, "an interval"),
+    ],
+)
 def test_an_interval_constraint_names_what_is_wrong(constraint, value, match):
     m = torch.nn.Module()
     m.register_buffer("rho", torch.tensor(value, dtype=torch.float64))

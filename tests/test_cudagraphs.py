@@ -5,6 +5,7 @@ checks the plumbing: the function reads only its static inputs, outputs are clon
 what they must, a failed capture falls back to eager once, and that the captured function makes no
 tensor from host data and reads nothing back (what a real capture refuses). On CUDA the real
 capture is compared with the eager run."""
+
 import traceback
 import warnings
 
@@ -25,9 +26,11 @@ class _CaptureRules(TorchDispatchMode):
     function (``torch.tensor``, ``new_tensor``, a list index: on a GPU a copy from the host) and a
     read back to the host (``.item()``, ``bool(t)``, ``nonzero``)."""
 
-    REFUSED = {"aten.lift_fresh.default": "Cannot copy between CPU and CUDA tensors during CUDA graph capture",
-               "aten._local_scalar_dense.default": "operation not permitted when stream is capturing",
-               "aten.nonzero.default": "operation not permitted when stream is capturing"}
+    REFUSED = {
+        "aten.lift_fresh.default": "Cannot copy between CPU and CUDA tensors during CUDA graph capture",
+        "aten._local_scalar_dense.default": "operation not permitted when stream is capturing",
+        "aten.nonzero.default": "operation not permitted when stream is capturing",
+    }
 
     #: the CPU kernels' results come back through ``torch.from_numpy`` (a CPU-only path: on a GPU
     #: the Triton kernels run instead)
@@ -66,6 +69,7 @@ class _Emulated:
             for o, n in zip(static_out, self._as_captured(fn, views)):
                 if o is not None:
                     cudagraphs._compact(o).copy_(cudagraphs._compact(n))
+
         return replay, static_out
 
 
@@ -73,8 +77,11 @@ class _Emulated:
 def emulated(monkeypatch):
     backend = _Emulated()
     monkeypatch.setattr(cudagraphs, "_backend", backend)
-    monkeypatch.setattr(select, "flow_graph", lambda flow, particles: not flow.stochastic
-                        and not torch.is_grad_enabled() and bool(tuning.get().cuda_graphs))
+    monkeypatch.setattr(
+        select,
+        "flow_graph",
+        lambda flow, particles: not flow.stochastic and not torch.is_grad_enabled() and bool(tuning.get().cuda_graphs),
+    )
     cudagraphs.clear()
     yield backend
     cudagraphs.clear()
@@ -91,10 +98,12 @@ def _run(f, model, seed=0, B=3, T=5):
 FILTERS = {
     "ledh": lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=40, schedule=ExponentialSchedule(8, 1.3)),
     "edh": lambda m: ParticleFlowParticleFilter(m, flow="edh", n_particles=40, schedule=ExponentialSchedule(8, 1.3)),
-    "geodesic": lambda m: ParticleFlowParticleFilter(m, flow="geodesic", n_particles=40,
-                                                     schedule=ExponentialSchedule(8, 1.3)),
-    "clustered": lambda m: ClusteredParticleFlowParticleFilter(m, n_particles=40, n_clusters=5,
-                                                               schedule=ExponentialSchedule(8, 1.3)),
+    "geodesic": lambda m: ParticleFlowParticleFilter(
+        m, flow="geodesic", n_particles=40, schedule=ExponentialSchedule(8, 1.3)
+    ),
+    "clustered": lambda m: ClusteredParticleFlowParticleFilter(
+        m, n_particles=40, n_clusters=5, schedule=ExponentialSchedule(8, 1.3)
+    ),
 }
 
 
@@ -175,6 +184,7 @@ def test_broadcast_inputs_stay_compact(emulated):
     def fn(a):
         seen.append(a.stride())
         return (a.sum(-1),)
+
     cudagraphs.graphed("b", fn, (base.expand(5, 3, 2),))
     static = cudagraphs._cache[next(reversed(cudagraphs._cache))].static_in[0]
     assert static.shape == (1, 3, 2) and seen[-1][0] == 0
@@ -208,6 +218,7 @@ def test_cuda_graph_matches_eager(name):
         mean, cov = model.initial_belief(traj.states[:, 0], g)
         with torch.no_grad():
             return FILTERS[name](model)(traj.observations, mean, cov, torch.Generator(device="cuda").manual_seed(1))
+
     with tuning.tuned(cuda_graphs=0):
         eager = run()
     before = cudagraphs.stats()

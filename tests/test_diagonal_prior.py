@@ -1,6 +1,7 @@
 """A diagonal prior covariance (:class:`~torchflow.covariances.DiagonalCovariance`): what it offers
 the code that passes a prior on, which filters take it as it is and which are given its matrix, the
 same draws either way, its checks, and Lorenz-96 at a size where no ``d x d`` matrix could exist."""
+
 import warnings
 
 import pytest
@@ -33,16 +34,23 @@ def test_it_stands_for_its_matrix_where_a_prior_is_passed_on():
     assert torch.equal(cov.diagonal(dim1=-2, dim2=-1), v) and torch.equal(cov.scale(), v.sqrt())
     assert cov.to(torch.float32).dtype == torch.float32 and cov.detach().variance is not None
     shared = DiagonalCovariance(v[0])
-    assert torch.equal(shared.expand(4, 5, 5).variance, v[0].expand(4, 5)) and shared.expand(4, -1, -1).shape == (4, 5, 5)
+    assert torch.equal(shared.expand(4, 5, 5).variance, v[0].expand(4, 5)) and shared.expand(4, -1, -1).shape == (
+        4,
+        5,
+        5,
+    )
     plain = torch.eye(2, dtype=F64)
     assert dense_prior(plain) is plain
 
 
-@pytest.mark.parametrize("bad, match", [
-    (torch.ones(2, 3, 3, dtype=F64), r"variance: expected a floating-point tensor \(B, d\) or \(d,\).*\(2, 3, 3\)"),
-    (torch.ones(3, dtype=torch.long), "floating-point"),
-    ([1.0, 2.0], "got list"),
-])
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        (torch.ones(2, 3, 3, dtype=F64), r"variance: expected a floating-point tensor \(B, d\) or \(d,\).*\(2, 3, 3\)"),
+        (torch.ones(3, dtype=torch.long), "floating-point"),
+        ([1.0, 2.0], "got list"),
+    ],
+)
 def test_a_bad_variance_is_named(bad, match):
     with pytest.raises(ArgumentError, match=match):
         DiagonalCovariance(bad)
@@ -62,11 +70,14 @@ def test_the_draws_are_those_of_the_dense_factor():
     assert a.shape == (3, 7, 5) and torch.allclose(a, b, rtol=0, atol=1e-14)
 
 
-@pytest.mark.parametrize("make", [
-    lambda m: F.EnsembleTransformKalmanFilter(m, n_particles=6),
-    lambda m: F.EnsembleKalmanFilter(m, n_particles=6),
-    lambda m: F.BootstrapParticleFilter(m, n_particles=50),
-])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda m: F.EnsembleTransformKalmanFilter(m, n_particles=6),
+        lambda m: F.EnsembleKalmanFilter(m, n_particles=6),
+        lambda m: F.BootstrapParticleFilter(m, n_particles=50),
+    ],
+)
 def test_filters_that_sample_the_prior_keep_the_variances_and_match_the_matrix(make):
     model = Lorenz96(d=8, model_noise=0.2)
     f = make(model)
@@ -81,11 +92,14 @@ def test_filters_that_sample_the_prior_keep_the_variances_and_match_the_matrix(m
     assert torch.allclose(a.estimates, b.estimates, rtol=0, atol=1e-9)  # 5 steps: round-off has not grown
 
 
-@pytest.mark.parametrize("make", [
-    lambda m: F.ExtendedKalmanFilter(m),
-    lambda m: F.UnscentedKalmanFilter(m),
-    lambda m: F.GaussianParticleFilter(m, n_particles=20),
-])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda m: F.ExtendedKalmanFilter(m),
+        lambda m: F.UnscentedKalmanFilter(m),
+        lambda m: F.GaussianParticleFilter(m, n_particles=20),
+    ],
+)
 def test_the_other_filters_are_given_the_matrix(make):
     model = Lorenz96(d=6, model_noise=0.3)
     f = make(model)
@@ -134,8 +148,12 @@ def test_lorenz96_densities_and_samplers_are_the_gaussian_forms_without_matrices
     h = x[..., ::2]
     expected = torch.where(seen, torch.distributions.Normal(h, 0.7).log_prob(z), torch.zeros(())).sum(-1)
     assert torch.allclose(m.measurement_log_prob_observed(z, x, seen), expected, rtol=1e-13, atol=0)
-    assert torch.allclose(m.measurement_variance(x).expand(3, 5, 6), m.measurement_cov(x).diagonal(dim1=-2, dim2=-1)
-                          .expand(3, 5, 6), rtol=1e-15, atol=0)
+    assert torch.allclose(
+        m.measurement_variance(x).expand(3, 5, 6),
+        m.measurement_cov(x).diagonal(dim1=-2, dim2=-1).expand(3, 5, 6),
+        rtol=1e-15,
+        atol=0,
+    )
     for method in ("sample_measurement", "sample_true_transition"):
         a = getattr(m, method)(x, torch.Generator().manual_seed(1))
         b = getattr(G, method)(m, x, torch.Generator().manual_seed(1))
@@ -147,16 +165,22 @@ def test_lorenz96_densities_and_samplers_are_the_gaussian_forms_without_matrices
 def test_lorenz96_at_a_million_coordinates_runs_without_a_d_by_d_matrix():
     """d = 10^6: one dense (d, d) matrix would be 8 TB, so any that were formed (the prior, H, R, Q,
     the shape checks, the memory plan) would fail at once. The ETKF runs through the runner."""
-    d = 10 ** 6
+    d = 10**6
     model = Lorenz96(d=d, spin_up=1, obs_every=10)
-    res = run_experiment(model, {"etkf": F.EnsembleTransformKalmanFilter(model, n_particles=4)}, trials=1, steps=2,
-                         seed=0, progress=False)
+    res = run_experiment(
+        model,
+        {"etkf": F.EnsembleTransformKalmanFilter(model, n_particles=4)},
+        trials=1,
+        steps=2,
+        seed=0,
+        progress=False,
+    )
     row = res.summary[0]
     assert row["error"] is None and row["trials"] == 1 and 0 < row["rmse"] < 10
 
 
 def test_the_letkf_plans_blocks_of_coordinates_within_the_budget():
-    model = Lorenz96(d=10 ** 6)
+    model = Lorenz96(d=10**6)
     f = F.LocalEnsembleTransformKalmanFilter(model, n_particles=20, radius=15.0)
     whole = f.bytes_per_trial()
     with pytest.warns(UserWarning, match=r"blocks of \d+ of its 1000000 coordinates' local analyses"):
@@ -185,24 +209,32 @@ def test_a_recorded_series_takes_a_diagonal_prior():
     model = Lorenz96(d=8)
     z = model.simulate(1, 6, torch.Generator().manual_seed(0)).observations[0]
     prior = (torch.full((8,), 8.0, dtype=F64), DiagonalCovariance(torch.full((8,), 4.0, dtype=F64)))
-    res = run_experiment(model, {"etkf": F.EnsembleTransformKalmanFilter(model, n_particles=6),
-                                 "ekf": F.ExtendedKalmanFilter(model)},
-                         observations=z, prior=prior, trials=2, progress=False)
+    res = run_experiment(
+        model,
+        {"etkf": F.EnsembleTransformKalmanFilter(model, n_particles=6), "ekf": F.ExtendedKalmanFilter(model)},
+        observations=z,
+        prior=prior,
+        trials=2,
+        progress=False,
+    )
     assert all(r["error"] is None for r in res.summary)
 
 
 def test_a_filter_whose_one_trial_cannot_fit_is_named_with_what_would_run():
     """At d = 10^5 the EKF's d x d matrices need terabytes for one trial: splitting the trials does
     not help, and the error says which filter and what scales instead."""
-    model = Lorenz96(d=10 ** 5, spin_up=1)
+    model = Lorenz96(d=10**5, spin_up=1)
     filters = {"ekf": F.ExtendedKalmanFilter(model), "etkf": F.EnsembleTransformKalmanFilter(model, n_particles=4)}
-    with pytest.raises(ConfigError, match=r"ekf alone needs about [\d,.]+ GiB for one trial at d = 100000, m = 100000, "
-                                          r"so no split of the trials fits: leave it out of this run.*ensemble Kalman"):
+    with pytest.raises(
+        ConfigError,
+        match=r"ekf alone needs about [\d,.]+ GiB for one trial at d = 100000, m = 100000, "
+        r"so no split of the trials fits: leave it out of this run.*ensemble Kalman",
+    ):
         run_experiment(model, filters, trials=1, steps=2, progress=False)
 
 
 def test_a_local_chunk_given_is_kept_by_the_runner():
-    f = F.LocalEnsembleTransformKalmanFilter(Lorenz96(d=10 ** 6), n_particles=20, local_chunk=1000)
+    f = F.LocalEnsembleTransformKalmanFilter(Lorenz96(d=10**6), n_particles=20, local_chunk=1000)
     assert filter_chunk(f, 1, None, 0.001) == 1 and f.local_chunk == 1000
 
 
@@ -217,7 +249,7 @@ def test_the_model_check_forms_no_large_matrix_and_reads_a_declared_scale():
     (d = 10^5: 80 GB) to check it; a declared R = r I of that size is checked by its scale."""
     from torchflow.models.contract import check_covariances
 
-    big = Lorenz96(d=10 ** 5)
+    big = Lorenz96(d=10**5)
     calls = []
     big.transition_cov = lambda x=None: calls.append("Q")
     big.measurement_cov = lambda x=None: calls.append("R")

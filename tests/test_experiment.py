@@ -1,4 +1,5 @@
 """The Monte Carlo runner and the Hydra command line."""
+
 import csv
 import os
 import re
@@ -28,11 +29,21 @@ class _Broken(Filter):
 
 def test_runner_lg_rows_and_reference_evidence():
     model = SensorNetwork(d=16)
-    filters = {"kf": KalmanFilter(model), "bpf": BootstrapParticleFilter(model, n_particles=100),
-               "broken": _Broken(model)}
+    filters = {
+        "kf": KalmanFilter(model),
+        "bpf": BootstrapParticleFilter(model, n_particles=100),
+        "broken": _Broken(model),
+    }
     seen = []
-    res = run_experiment(model, filters, trials=6, steps=4, seed=3, progress=False,
-                         on_filter_done=lambda rows: seen.append([r["filter"] for r in rows]))
+    res = run_experiment(
+        model,
+        filters,
+        trials=6,
+        steps=4,
+        seed=3,
+        progress=False,
+        on_filter_done=lambda rows: seen.append([r["filter"] for r in rows]),
+    )
     assert seen == [["kf"], ["kf", "bpf"], ["kf", "bpf", "broken"]]
     rows = {r["filter"]: r for r in res.summary}
     assert set(rows) == {"kf", "bpf", "broken"}
@@ -69,10 +80,22 @@ def test_runner_tracking_metrics_and_inits_per_track():
 
 def test_runner_float32_and_filter_seeds_independent_of_other_filters():
     model = SensorNetwork(d=16)
-    a = run_experiment(model, {"bpf": BootstrapParticleFilter(model, n_particles=50)}, trials=3, steps=3,
-                       dtype="float32", progress=False)
-    b = run_experiment(model, {"kf": KalmanFilter(model), "bpf": BootstrapParticleFilter(model, n_particles=50)},
-                       trials=3, steps=3, dtype="float32", progress=False)
+    a = run_experiment(
+        model,
+        {"bpf": BootstrapParticleFilter(model, n_particles=50)},
+        trials=3,
+        steps=3,
+        dtype="float32",
+        progress=False,
+    )
+    b = run_experiment(
+        model,
+        {"kf": KalmanFilter(model), "bpf": BootstrapParticleFilter(model, n_particles=50)},
+        trials=3,
+        steps=3,
+        dtype="float32",
+        progress=False,
+    )
     assert a.config["dtype"] == "float32"
     assert a.summary[0]["mse"] == b.summary[1]["mse"]
 
@@ -85,10 +108,13 @@ def test_runner_warmup_is_untimed_and_moves_no_number():
     loads it), not the others (a jittered resampler is not the kernel's); a bad value is refused."""
     from torchflow.filters import ParticleFlowParticleFilter
     from torchflow.flows.kernels import steps
+
     model = AcousticTracking()
-    filters = lambda: {"bpf": BootstrapParticleFilter(model, n_particles=40),  # noqa: E731
-                       "jittered": BootstrapParticleFilter(model, n_particles=40, regularization=0.01),
-                       "ledh": ParticleFlowParticleFilter(model, flow="ledh", n_particles=20)}
+    filters = lambda: {
+        "bpf": BootstrapParticleFilter(model, n_particles=40),
+        "jittered": BootstrapParticleFilter(model, n_particles=40, regularization=0.01),
+        "ledh": ParticleFlowParticleFilter(model, flow="ledh", n_particles=20),
+    }
     plain = run_experiment(model, filters(), trials=3, steps=3, progress=False, warmup=False)
     warm = run_experiment(model, filters(), trials=3, steps=3, progress=False, warmup=True)
     auto = run_experiment(model, filters(), trials=3, steps=3, progress=False)
@@ -96,7 +122,7 @@ def test_runner_warmup_is_untimed_and_moves_no_number():
     assert all(r["warmup_sec"] > 0 for r in warm.summary)
     warmed = {r["filter"]: r["warmup_sec"] is not None for r in auto.summary}
     assert warmed == {"bpf": steps.weights_available(), "jittered": False, "ledh": steps.numba_available()}
-    drop = lambda rows: [{k: v for k, v in r.items() if k not in ("sec_per_step", "warmup_sec")} for r in rows]  # noqa: E731
+    drop = lambda rows: [{k: v for k, v in r.items() if k not in ("sec_per_step", "warmup_sec")} for r in rows]
     assert drop(warm.per_trial) == drop(plain.per_trial) and drop(warm.summary) == drop(plain.summary)
     with pytest.raises(ValueError, match="warmup"):
         run_experiment(model, filters(), trials=1, steps=2, progress=False, warmup="yes")
@@ -112,8 +138,9 @@ def test_warm_up_covers_every_chunk_shape_on_a_gpu(monkeypatch, caplog):
     from torchflow.runner import execute
 
     calls = []
-    monkeypatch.setattr(execute, "_timed_call", lambda f, name, plan, s, e, steps=None:
-                        calls.append((s, e, steps)) or (None, 0.5))
+    monkeypatch.setattr(
+        execute, "_timed_call", lambda f, name, plan, s, e, steps=None: calls.append((s, e, steps)) or (None, 0.5)
+    )
     chunks = [(0, 20), (20, 40), (40, 50)]
     for device, want in (("cuda", [(0, 20, 2), (0, 10, 2)]), ("cpu", [(0, 1, 2)])):
         calls.clear()
@@ -131,10 +158,14 @@ def test_a_localiser_warms_up_on_its_whole_data():
     from torchflow.models import TDOA3D
 
     model = TDOA3D()
-    runs = {w: run_experiment(model, {"bs": BootstrapLocaliser(model, n_particles=2000)}, trials=1, progress=False,
-                              warmup=w) for w in (False, True)}
+    runs = {
+        w: run_experiment(
+            model, {"bs": BootstrapLocaliser(model, n_particles=2000)}, trials=1, progress=False, warmup=w
+        )
+        for w in (False, True)
+    }
     assert runs[True].summary[0]["error"] is None and runs[True].summary[0]["warmup_sec"] > 0
-    drop = lambda rows: [{k: v for k, v in r.items() if k not in ("sec_per_step", "warmup_sec")} for r in rows]  # noqa: E731
+    drop = lambda rows: [{k: v for k, v in r.items() if k not in ("sec_per_step", "warmup_sec")} for r in rows]
     assert drop(runs[True].per_trial) == drop(runs[False].per_trial)
 
 
@@ -151,9 +182,11 @@ def test_runner_caps_local_flow_chunks():
     from torchflow.filters import ParticleFlowParticleFilter
 
     model = AcousticTracking()
-    filters = {"pfpf_ledh": ParticleFlowParticleFilter(model, flow="ledh", n_particles=4000),
-               "pfpf_edh": ParticleFlowParticleFilter(model, flow="edh", n_particles=4000),
-               "ekf": ExtendedKalmanFilter(model)}
+    filters = {
+        "pfpf_ledh": ParticleFlowParticleFilter(model, flow="ledh", n_particles=4000),
+        "pfpf_edh": ParticleFlowParticleFilter(model, flow="edh", n_particles=4000),
+        "ekf": ExtendedKalmanFilter(model),
+    }
     res = run_experiment(model, filters, trials=5, steps=1, progress=False)
     assert res.config["chunk_size"] == {"pfpf_ledh": 2, "pfpf_edh": 5, "ekf": 5}
 
@@ -172,16 +205,37 @@ def _not_the_default_threads():
 
 
 def test_cli_run_writes_results(tmp_path):
-    out = _cli(tmp_path, "model=linear_gaussian", "model.d=16", "filter=[kf,bpf]", "trials=4", "steps=3",
-               "n_particles=50", "seed=0", f"hydra.run.dir={tmp_path}/run", "tuning.cache_bytes_per_call=4096",
-               f"threads={_not_the_default_threads()}")
+    out = _cli(
+        tmp_path,
+        "model=linear_gaussian",
+        "model.d=16",
+        "filter=[kf,bpf]",
+        "trials=4",
+        "steps=3",
+        "n_particles=50",
+        "seed=0",
+        f"hydra.run.dir={tmp_path}/run",
+        "tuning.cache_bytes_per_call=4096",
+        f"threads={_not_the_default_threads()}",
+    )
     assert "| kf |" in out.stdout and "| bpf |" in out.stdout
     run = tmp_path / "run"
     with open(run / "summary.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert [r["filter"] for r in rows] == ["kf", "bpf"]
-    for col in ("filter", "n_particles", "trials", "steps", "mse", "omat", "ospa", "ess", "log_evidence",
-                "lost_tracks", "sec_per_step"):
+    for col in (
+        "filter",
+        "n_particles",
+        "trials",
+        "steps",
+        "mse",
+        "omat",
+        "ospa",
+        "ess",
+        "log_evidence",
+        "lost_tracks",
+        "sec_per_step",
+    ):
         assert col in rows[0]
     assert rows[0]["ess"] == "" and float(rows[1]["ess"]) > 0 and rows[1]["n_particles"] == "50"
     with open(run / "per_step.csv") as fh:
@@ -213,16 +267,29 @@ def test_job_threads(monkeypatch):
 
 
 def test_cli_multirun_sweep_writes_one_folder_per_job(tmp_path):
-    _cli(tmp_path, "-m", "model=linear_gaussian", "model.d=4", "filter=[kf]", "trials=2", "steps=2",
-         "seed=0,1", f"hydra.sweep.dir={tmp_path}/sweep")
+    _cli(
+        tmp_path,
+        "-m",
+        "model=linear_gaussian",
+        "model.d=4",
+        "filter=[kf]",
+        "trials=2",
+        "steps=2",
+        "seed=0,1",
+        f"hydra.sweep.dir={tmp_path}/sweep",
+    )
     jobs = sorted(p.name for p in (tmp_path / "sweep").iterdir() if p.is_dir())
     assert jobs == ["0", "1"]
     for j in jobs:
         assert (tmp_path / "sweep" / j / "summary.csv").exists()
     # the collector gathers both jobs with their overrides; a job without results is reported
     (tmp_path / "sweep" / "2").mkdir()
-    out = subprocess.run([sys.executable, str(ROOT / "experiments" / "collect.py"), str(tmp_path / "sweep")],
-                         capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "experiments" / "collect.py"), str(tmp_path / "sweep")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert out.returncode == 0, out.stderr
     lines = [ln for ln in out.stdout.splitlines() if ln.startswith("| ")]
     assert lines[0].startswith("| job | seed | filter") and len(lines) == 3
@@ -249,8 +316,11 @@ def test_cli_multirun_sweep_writes_one_folder_per_job(tmp_path):
 def test_per_step_plot_keeps_one_colour_per_filter_and_scales_ess_by_n():
     plt = pytest.importorskip("matplotlib.pyplot")
     model = AcousticTracking()
-    filters = {"ekf": ExtendedKalmanFilter(model), "ukf": UnscentedKalmanFilter(model),
-               "bpf": BootstrapParticleFilter(model, n_particles=40)}
+    filters = {
+        "ekf": ExtendedKalmanFilter(model),
+        "ukf": UnscentedKalmanFilter(model),
+        "bpf": BootstrapParticleFilter(model, n_particles=40),
+    }
     res = run_experiment(model, filters, trials=2, steps=3, progress=False)
     fig = figures.per_step_figure(plt, res.per_step, res.summary, "t")
     colours = {}
@@ -258,7 +328,7 @@ def test_per_step_plot_keeps_one_colour_per_filter_and_scales_ess_by_n():
         for line in ax.get_lines():
             colours.setdefault(line.get_label(), set()).add(line.get_color())
     assert set(colours) == {"ekf", "ukf", "bpf"}
-    assert all(len(c) == 1 for c in colours.values())          # the same colour on every panel
+    assert all(len(c) == 1 for c in colours.values())  # the same colour on every panel
     assert len({next(iter(c)) for c in colours.values()}) == 3  # and different filters differ
     ess_ax = [ax for ax in fig.axes if "ESS" in ax.get_ylabel()][0]
     assert ess_ax.get_ylabel() == "ESS / N (N = 40)"
@@ -282,8 +352,10 @@ def test_row_label_names_the_flow_that_ran():
 
     assert row_label("pfpf_clustered", ClusteredParticleFlowParticleFilter(model)) == "pfpf_clustered"
     assert row_label("pfpf_clustered_k30", ClusteredParticleFlowParticleFilter(model)) == "pfpf_clustered_k30"
-    assert (row_label("pfpf_clustered", ClusteredParticleFlowParticleFilter(model, flow="geodesic"))
-            == "pfpf_clustered[flow=geodesic]")
+    assert (
+        row_label("pfpf_clustered", ClusteredParticleFlowParticleFilter(model, flow="geodesic"))
+        == "pfpf_clustered[flow=geodesic]"
+    )
 
 
 def test_runner_keeps_finished_filters_on_interrupt():
@@ -292,9 +364,13 @@ def test_runner_keeps_finished_filters_on_interrupt():
             raise KeyboardInterrupt
 
     model = SensorNetwork(d=4)
-    res = run_experiment(model, {"kf": KalmanFilter(model), "stop": _Interrupt(model),
-                                 "bpf": BootstrapParticleFilter(model, n_particles=10)},
-                         trials=3, steps=2, progress=False)
+    res = run_experiment(
+        model,
+        {"kf": KalmanFilter(model), "stop": _Interrupt(model), "bpf": BootstrapParticleFilter(model, n_particles=10)},
+        trials=3,
+        steps=2,
+        progress=False,
+    )
     assert res.interrupted and res.not_run == ["bpf"]
     assert [r["filter"] for r in res.summary] == ["kf", "stop"]
     assert res.summary[1]["error"] == "interrupted after 0 of 3 trials"
@@ -306,8 +382,17 @@ def test_cli_ctrl_c_writes_finished_results(tmp_path):
     import signal
     import time
 
-    cmd = [sys.executable, str(ROOT / "experiments" / "run.py"), "model=linear_gaussian", "filter=[kf,bpf]",
-           "trials=200", "steps=200", "n_particles=20000", "progress=false", f"hydra.run.dir={tmp_path}/run"]
+    cmd = [
+        sys.executable,
+        str(ROOT / "experiments" / "run.py"),
+        "model=linear_gaussian",
+        "filter=[kf,bpf]",
+        "trials=200",
+        "steps=200",
+        "n_particles=20000",
+        "progress=false",
+        f"hydra.run.dir={tmp_path}/run",
+    ]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
     summary = tmp_path / "run" / "summary.csv"
     deadline = time.time() + 120
@@ -341,12 +426,18 @@ def test_row_label_names_overridden_points():
     from torchflow.filters import ParticleFlowParticleFilter
 
     model = SensorNetwork(d=4)
-    assert row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="ledh", points="global")) \
+    assert (
+        row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="ledh", points="global"))
         == "pfpf_ledh[points=global]"
-    assert row_label("pfpf_edh", ParticleFlowParticleFilter(model, flow="ledh", points="particle")) \
+    )
+    assert (
+        row_label("pfpf_edh", ParticleFlowParticleFilter(model, flow="ledh", points="particle"))
         == "pfpf_edh[flow=ledh]"
-    assert row_label("pfpf_edh", ParticleFlowParticleFilter(model, flow="edh", points="clustered")) \
+    )
+    assert (
+        row_label("pfpf_edh", ParticleFlowParticleFilter(model, flow="edh", points="clustered"))
         == "pfpf_edh[points=clustered]"
+    )
 
 
 def test_row_label_of_gaussian_sum_filters_says_n_star_x_g_and_an_unnamed_flow():
@@ -354,8 +445,10 @@ def test_row_label_of_gaussian_sum_filters_says_n_star_x_g_and_an_unnamed_flow()
 
     model = SensorNetwork(d=4)
     gs = GaussianSumParticleFilter
-    assert row_label("pfgspf", ParticleFlowGaussianSumParticleFilter(model, n_components=3,
-                                                                         particles_per_component=50)) == "pfgspf[50x3]"
+    assert (
+        row_label("pfgspf", ParticleFlowGaussianSumParticleFilter(model, n_components=3, particles_per_component=50))
+        == "pfgspf[50x3]"
+    )
     assert row_label("gspf", gs(model, n_components=2, particles_per_component=10)) == "gspf[10x2]"
     assert row_label("gspf", gs(model, particles_per_component=10, flow="ledh")) == "gspf[10x1,flow=ledh]"
     assert row_label("pfgspf", gs(model, particles_per_component=10, flow="edh")) == "pfgspf[10x1,flow=edh]"
@@ -443,14 +536,28 @@ def test_trial_stats_pairs_a_filter_across_two_runs(tmp_path):
 def test_cli_tdoa_runs_localisers_and_refuses_filters(tmp_path):
     """model=tdoa runs seed 002's localisers (table, per-run CSV, OSPA within [0, cut-off]) and
     refuses a state-space filter with a one-line error."""
-    out = _cli(tmp_path, "model=tdoa", "filter=[pfi_s,bs]", "trials=2", "filter.pfi_s.n_components=5",
-               "filter.pfi_s.samples_per_component=20", "filter.bs.n_particles=500", f"hydra.run.dir={tmp_path}/t")
+    out = _cli(
+        tmp_path,
+        "model=tdoa",
+        "filter=[pfi_s,bs]",
+        "trials=2",
+        "filter.pfi_s.n_components=5",
+        "filter.pfi_s.samples_per_component=20",
+        "filter.bs.n_particles=500",
+        f"hydra.run.dir={tmp_path}/t",
+    )
     assert "| pfi_s |" in out.stdout and "| bs |" in out.stdout
     rows = list(csv.DictReader(open(tmp_path / "t" / "per_trial.csv")))
     assert len(rows) == 4 and all(0 <= float(r["ospa"]) <= 40 for r in rows)
     assert (tmp_path / "t" / "summary.csv").exists() and (tmp_path / "t" / "per_step.csv").exists()
-    cmd = [sys.executable, str(ROOT / "experiments" / "run.py"), "model=tdoa", "filter=[bpf]", "progress=false",
-           f"hydra.run.dir={tmp_path}/u"]
+    cmd = [
+        sys.executable,
+        str(ROOT / "experiments" / "run.py"),
+        "model=tdoa",
+        "filter=[bpf]",
+        "progress=false",
+        f"hydra.run.dir={tmp_path}/u",
+    ]
     bad = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert bad.returncode == 2 and "filter.bpf: BootstrapParticleFilter cannot run on TDOA3D" in bad.stderr
 
@@ -460,7 +567,7 @@ def test_trial_range_reruns_rows_of_a_longer_run():
     from torchflow.models import SensorNetwork
 
     model = SensorNetwork(d=9)
-    make = lambda: {"bpf": BootstrapParticleFilter(model, n_particles=30)}  # noqa: E731
+    make = lambda: {"bpf": BootstrapParticleFilter(model, n_particles=30)}
     full = run_experiment(model, make(), trials=6, steps=3, seed=3, progress=False)
     part = run_experiment(model, make(), trials=6, steps=3, seed=3, progress=False, trial_range=[2, 5])
     assert part.per_trial == full.per_trial[2:5] and part.summary[0]["trials"] == 3
@@ -473,7 +580,9 @@ def test_trial_range_reruns_rows_of_a_longer_run():
     for a, b in zip(sub.per_trial, whole.per_trial):
         assert a["mse"] == pytest.approx(b["mse"], rel=1e-12) and a["log_evidence"] == pytest.approx(b["log_evidence"])
     for bad in ([3, 3], [0, 7], [-1, 2], [1.5, 3], "ab", 4):
-        with pytest.raises(ValueError, match=r"trial_range: expected \[start, stop\] with 0 <= start < stop <= trials = 6"):
+        with pytest.raises(
+            ValueError, match=r"trial_range: expected \[start, stop\] with 0 <= start < stop <= trials = 6"
+        ):
             run_experiment(model, make(), trials=6, steps=3, progress=False, trial_range=bad)
 
 
@@ -549,8 +658,7 @@ def test_seed002_proposal_quality_measures_what_it_says(capsys):
     near["mean"] = near["mean"] * 0.0 + torch.tensor([100.0, -50.0, 20.0], dtype=torch.float64)
     near["z"] = model.measure(near["mean"] + 2.0, near["sensor"])
     log_ref = torch.zeros(2, dtype=torch.float64)
-    good = evaluate(model, near, make_flow("pfi_s", None, "-"), GeometricSchedule(1e-5, 1.5), "end", 400,
-                    log_ref, gen)
+    good = evaluate(model, near, make_flow("pfi_s", None, "-"), GeometricSchedule(1e-5, 1.5), "end", 400, log_ref, gen)
     assert good["ess"] > 0.95 and good["deg"] == 0.0
     assert main(["--scenes", "1", "--n-samples", "20", "--reference", "50"]) == 0
     out = capsys.readouterr().out
@@ -560,7 +668,7 @@ def test_seed002_proposal_quality_measures_what_it_says(capsys):
 
 # --- what a user meets: the faults of the runner, the registry and the harness, as a user sees them ---
 
-_BROKEN = '''
+_BROKEN = """
 from torchflow.filters import KalmanFilter
 
 
@@ -572,7 +680,7 @@ class Broken(KalmanFilter):
 class BadInit(KalmanFilter):
     def __init__(self, *a, **kw):
         raise KeyError("a bug in a constructor")
-'''
+"""
 
 
 def _tf(tmp_path, *args, env=None, script=None):
@@ -587,8 +695,15 @@ _LG = ["model=linear_gaussian", "model.d=4", "trials=2", "steps=3", "n_particles
 
 def test_cli_unwritable_checkpoint_dir_warns_once_and_keeps_the_results(tmp_path):
     (tmp_path / "a_file").write_text("")
-    out = _tf(tmp_path, *_LG, "filter=[kf,bpf]", "chunk_size=1", f"checkpoint_dir={tmp_path}/a_file/ckpt",
-              "plots=false", "hydra.run.dir=run")
+    out = _tf(
+        tmp_path,
+        *_LG,
+        "filter=[kf,bpf]",
+        "chunk_size=1",
+        f"checkpoint_dir={tmp_path}/a_file/ckpt",
+        "plots=false",
+        "hydra.run.dir=run",
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stderr.count("checkpoint_dir: cannot save chunks under") == 1 and "Traceback" not in out.stderr
     rows = list(csv.DictReader(open(tmp_path / "run" / "summary.csv")))
@@ -604,18 +719,40 @@ def test_cli_a_failed_filter_fails_the_run_the_sweep_and_shows_in_collect(tmp_pa
     assert "!! broken failed in chunk 1 of 1 (trials 0..1): RuntimeError: deliberately broken" in out.stderr
     log = (tmp_path / "run" / "run.log").read_text()
     assert "Traceback" in log and "deliberately broken" in log and "SensorNetwork" in log
-    sweep = _tf(tmp_path, "-m", *_LG, "filter=[kf]", broken, "seed=0,1", "plots=false", "checkpoint_dir=null",
-                "hydra.sweep.dir=sweep")
+    sweep = _tf(
+        tmp_path,
+        "-m",
+        *_LG,
+        "filter=[kf]",
+        broken,
+        "seed=0,1",
+        "plots=false",
+        "checkpoint_dir=null",
+        "hydra.sweep.dir=sweep",
+    )
     assert sweep.returncode == 1 and "2 jobs, 0 finished, 2 failed" in sweep.stderr, sweep.stderr[-3000:]
     assert "filter broken failed: RuntimeError: deliberately broken" in sweep.stderr
-    col = subprocess.run([sys.executable, str(ROOT / "experiments" / "collect.py"), str(tmp_path / "sweep")],
-                         capture_output=True, text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    col = subprocess.run(
+        [sys.executable, str(ROOT / "experiments" / "collect.py"), str(tmp_path / "sweep")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=dict(os.environ, PYTHONPATH=str(ROOT)),
+    )
     table = [ln for ln in col.stdout.splitlines() if ln.startswith("| ")]
     assert table[0].endswith("| error |")
     assert sum("deliberately broken" in ln for ln in table) == 2 and sum("| kf |" in ln for ln in table) == 2
     # a bad value in one job of a sweep fails that job at its start, the other finishes
-    bad = _tf(tmp_path, "-m", *_LG, "filter=[kf]", "rng_backend=auto,bogus", "plots=false", "checkpoint_dir=null",
-              "hydra.sweep.dir=sweep2")
+    bad = _tf(
+        tmp_path,
+        "-m",
+        *_LG,
+        "filter=[kf]",
+        "rng_backend=auto,bogus",
+        "plots=false",
+        "checkpoint_dir=null",
+        "hydra.sweep.dir=sweep2",
+    )
     assert bad.returncode == 1 and "2 jobs, 1 finished, 1 failed" in bad.stderr, bad.stderr[-3000:]
     assert "rng_backend: expected one of auto, numpy, philox, got 'bogus'" in bad.stderr
 
@@ -636,13 +773,15 @@ def test_check_config_refuses_values_that_mean_nothing():
     from torchflow.runner.config import check_config
     from torchflow.runner import ConfigError
 
-    cases = {"plots=no": "plots: expected true or false, got 'no'",
-             "metrics.lost_threshold=-1": "metrics.lost_threshold: expected a positive number of metres, got -1",
-             "metrics.ospa_cutoff=0": "metrics.ospa_cutoff: expected a positive number, got 0",
-             f"seed={2**70}": "seed: expected an integer in [0, 2**63), got 1180591620717411303424",
-             "rng_backend=bogus": "rng_backend: expected one of auto, numpy, philox, got 'bogus'",
-             "+metrics.lost_treshold=3": "metrics.lost_treshold: unknown setting; did you mean metrics.lost_threshold?",
-             "+n_particle=7": "n_particle: unknown setting; did you mean n_particles?"}
+    cases = {
+        "plots=no": "plots: expected true or false, got 'no'",
+        "metrics.lost_threshold=-1": "metrics.lost_threshold: expected a positive number of metres, got -1",
+        "metrics.ospa_cutoff=0": "metrics.ospa_cutoff: expected a positive number, got 0",
+        f"seed={2**70}": "seed: expected an integer in [0, 2**63), got 1180591620717411303424",
+        "rng_backend=bogus": "rng_backend: expected one of auto, numpy, philox, got 'bogus'",
+        "+metrics.lost_treshold=3": "metrics.lost_treshold: unknown setting; did you mean metrics.lost_threshold?",
+        "+n_particle=7": "n_particle: unknown setting; did you mean n_particles?",
+    }
     with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
         check_config(compose("config"), {})
         check_config(compose("config", ["experiment=seed001_table2"]), {"experiment": "seed001_table2"})
@@ -658,8 +797,9 @@ def test_cli_reused_output_folder_is_refused_or_cleared(tmp_path):
     assert again.returncode == 2 and "Traceback" not in again.stderr
     assert "error: hydra.run.dir: run already holds the results of a run (summary.csv" in again.stderr
     assert "overwrite=true" in again.stderr
-    over = _tf(tmp_path, *_LG, "filter=[kf]", "checkpoint_dir=null", "plots=false", "overwrite=true",
-               "hydra.run.dir=run")
+    over = _tf(
+        tmp_path, *_LG, "filter=[kf]", "checkpoint_dir=null", "plots=false", "overwrite=true", "hydra.run.dir=run"
+    )
     assert over.returncode == 0 and not (tmp_path / "run" / "per_step.png").exists()
     assert (tmp_path / "run" / "summary.csv").exists()
 
@@ -670,9 +810,11 @@ def test_cli_unwritable_output_folder_and_full_disk_are_one_line(tmp_path):
     assert ro.returncode == 2 and "Traceback" not in ro.stderr
     assert "error: hydra.run.dir: cannot write into" in ro.stderr and "NotADirectoryError" in ro.stderr
     shim = tmp_path / "full_disk.py"
-    shim.write_text("import errno\nimport torchflow.runner.writers as w\n\n\ndef full(*a, **k):\n"
-                    "    raise OSError(errno.ENOSPC, 'No space left on device')\n\n\nw.write_csv = full\n"
-                    "from torchflow.cli import main\nmain()\n")
+    shim.write_text(
+        "import errno\nimport torchflow.runner.writers as w\n\n\ndef full(*a, **k):\n"
+        "    raise OSError(errno.ENOSPC, 'No space left on device')\n\n\nw.write_csv = full\n"
+        "from torchflow.cli import main\nmain()\n"
+    )
     out = _tf(tmp_path, *_LG, "filter=[kf]", "checkpoint_dir=null", "plots=false", "hydra.run.dir=full", script=shim)
     assert out.returncode == 1 and "| kf |" in out.stdout and "Traceback" not in out.stderr
     errors = [ln for ln in out.stderr.splitlines() if ln.startswith("error:")]
@@ -682,13 +824,19 @@ def test_cli_unwritable_output_folder_and_full_disk_are_one_line(tmp_path):
 def test_resume_command_of_a_run_a_sweep_and_torchrun():
     from torchflow.runner.config import resume_command
 
-    assert resume_command("torchflow", ["-m", "seed=0,1", "filter=[kf]", "resume=false"], {}) \
+    assert (
+        resume_command("torchflow", ["-m", "seed=0,1", "filter=[kf]", "resume=false"], {})
         == "torchflow -m seed=0,1 'filter=[kf]' resume=true"
+    )
     assert resume_command("python -m torchflow", ["trials=4"], {}) == "python -m torchflow trials=4 resume=true"
     env = {"WORLD_SIZE": "4", "LOCAL_WORLD_SIZE": "2"}
-    assert resume_command("python experiments/run.py", ["trials=4"], env) \
+    assert (
+        resume_command("python experiments/run.py", ["trials=4"], env)
         == "torchrun --nproc_per_node=2 --nnodes=2 experiments/run.py trials=4 resume=true"
-    assert resume_command("torchflow", [], {"WORLD_SIZE": "2"}) == "torchrun --nproc_per_node=2 -m torchflow resume=true"
+    )
+    assert (
+        resume_command("torchflow", [], {"WORLD_SIZE": "2"}) == "torchrun --nproc_per_node=2 -m torchflow resume=true"
+    )
 
 
 class _Counting(BootstrapParticleFilter):
@@ -778,6 +926,7 @@ def test_explicit_chunk_over_the_memory_budget_warns():
     from torchflow.filters import BootstrapParticleFilter
     from torchflow.models import AcousticTracking
     from torchflow.runner.plan import filter_chunk
+
     f = BootstrapParticleFilter(AcousticTracking(), n_particles=1_000_000)
     with pytest.warns(UserWarning, match=r"chunk_size=100: .* GiB per chunk of 100 trials, over memory_budget_gb=100"):
         assert filter_chunk(f, 500, 100, 100.0) == 100

@@ -2,6 +2,7 @@
 filter's weighting, estimate, ESS and resampling in one Numba call agree with the torch path to
 round-off, draw the same uniforms, and hand non-finite steps, gradients and other resamplers to the
 torch path."""
+
 import math
 
 import pytest
@@ -79,8 +80,11 @@ def test_indices_equal_the_reference_inversion_with_zero_weights_and_ties():
     lw[:, ::5] = float("-inf")  # zero weights (row 1: equal weights between them, not the identity)
     lw = lw - lw.logsumexp(-1, keepdim=True)
     x = torch.arange(B * N, dtype=torch.float64).reshape(B, N, 1)
-    for u in (torch.rand(B, 1, dtype=torch.float64, generator=g), torch.zeros(B, 1, dtype=torch.float64),
-              torch.rand(B, N, dtype=torch.float64, generator=g)):
+    for u in (
+        torch.rand(B, 1, dtype=torch.float64, generator=g),
+        torch.zeros(B, 1, dtype=torch.float64),
+        torch.rand(B, N, dtype=torch.float64, generator=g),
+    ):
         # log_increment 0: the normalised weights are lw itself; threshold 1: every trial resamples
         out = steps.weigh_resample(x, lw, torch.zeros_like(lw), u, 1.0)
         want = resampling._strata_indices(lw, u)
@@ -110,8 +114,11 @@ def test_non_finite_trials_take_the_torch_path_with_their_uniforms():
             assert torch.allclose(a[bad], b[bad], rtol=1e-14, atol=1e-15), name
         else:
             assert torch.equal(a[bad], b[bad]), name
-        assert torch.equal(a[clean], b[clean]) if not a.is_floating_point() else torch.allclose(a[clean], b[clean],
-                                                                                             rtol=1e-12), name
+        assert (
+            torch.equal(a[clean], b[clean])
+            if not a.is_floating_point()
+            else torch.allclose(a[clean], b[clean], rtol=1e-12)
+        ), name
     assert torch.equal(k.particles, t.particles) and bool(k.resampled[clean].any())
     assert k.n_repaired.tolist() == [0, 1, 0, 1, 1]
     assert torch.equal(gk.get_state(), gt.get_state())
@@ -128,10 +135,23 @@ def test_a_trials_numbers_do_not_depend_on_its_neighbours(nonfinite):
     with torch.no_grad():
         whole = f.weight_and_resample(x, prev, inc, u, 1, fallback=torch.zeros_like(x))
         for b in range(B):
-            one = f.weight_and_resample(x[b:b + 1], prev[b:b + 1], inc[b:b + 1], TrialStreams(3, [b], "bpf"), 1,
-                                        fallback=torch.zeros_like(x[b:b + 1]))
-            for name in ("particles", "log_weights", "estimate", "ess", "log_evidence_increment", "resampled",
-                         "n_repaired"):
+            one = f.weight_and_resample(
+                x[b : b + 1],
+                prev[b : b + 1],
+                inc[b : b + 1],
+                TrialStreams(3, [b], "bpf"),
+                1,
+                fallback=torch.zeros_like(x[b : b + 1]),
+            )
+            for name in (
+                "particles",
+                "log_weights",
+                "estimate",
+                "ess",
+                "log_evidence_increment",
+                "resampled",
+                "n_repaired",
+            ):
                 a, w = getattr(one, name)[0], getattr(whole, name)[b]
                 if name == "estimate" and b in (1, 3, 4):  # a repaired trial's: torch's bmm, batch-size round-off
                     assert torch.allclose(a, w, rtol=1e-14, atol=1e-15), (b, name)
@@ -169,8 +189,12 @@ def test_parallel_trials_give_the_serial_bits():
 def test_what_the_kernel_does_not_cover_takes_the_torch_path():
     x, prev, inc = _inputs()
     kw = dict(resampler=None, cov=None, extras=None)
-    for f in (_filter(resampling="multinomial"), _filter(resampling="residual"),
-              _filter(resampling_gradient="soft"), _filter(resampling_gradient="ot")):
+    for f in (
+        _filter(resampling="multinomial"),
+        _filter(resampling="residual"),
+        _filter(resampling_gradient="soft"),
+        _filter(resampling_gradient="ot"),
+    ):
         kw["resampler"] = f.resampler
         assert select.weights_kernel(x, prev, inc, **kw) is None, f.resampler
     f = _filter()

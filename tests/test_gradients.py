@@ -14,6 +14,7 @@ of freedom). The bound is the two-sided Bonferroni quantile at a 1% family-wise 
 t_19(1 - 0.005 / k) (scipy.stats.t.ppf): 3.88, 4.21, 4.45. A correct estimator fails it by chance
 with probability <= 1%; a bias of 4-5 standard errors fails it.
 """
+
 import math
 
 import pytest
@@ -52,18 +53,37 @@ def _grads(filt, model, obs, mean, cov):
     return exact[keep], G.mean(0)[keep], G.std(0)[keep] / math.sqrt(REPS)
 
 
-@pytest.mark.parametrize("kind,d", [("bpf", 2), ("pfpf_edh", 2), ("pfpf_ledh", 2), ("bpf_score", 2),
-                                    ("pfpf_ledh_score", 2), ("bpf", 4), ("pfpf_edh", 4), ("pfpf_ledh_score", 3)])
+@pytest.mark.parametrize(
+    "kind,d",
+    [
+        ("bpf", 2),
+        ("pfpf_edh", 2),
+        ("pfpf_ledh", 2),
+        ("bpf_score", 2),
+        ("pfpf_ledh_score", 2),
+        ("bpf", 4),
+        ("pfpf_edh", 4),
+        ("pfpf_ledh_score", 3),
+    ],
+)
 def test_stop_gradient_matches_the_kalman_gradient(kind, d):
     """F, Q and R, d = 2..4. Also with ``proposal_gradient="score"`` (the proposal held constant):
     unbiased too."""
     model, obs, mean, cov = _setup(d)
     pg = "score" if kind.endswith("_score") else "pathwise"
     flow = kind.split("_")[1] if kind.startswith("pfpf") else None
-    filt = (BootstrapParticleFilter(model, n_particles=1000, resampling_gradient="stop_gradient", proposal_gradient=pg)
-            if flow is None else
-            ParticleFlowParticleFilter(model, flow=flow, n_particles=200, resampling_gradient="stop_gradient",
-                                       proposal_gradient=pg, schedule=ExponentialSchedule(10, 1.2)))  # any schedule
+    filt = (
+        BootstrapParticleFilter(model, n_particles=1000, resampling_gradient="stop_gradient", proposal_gradient=pg)
+        if flow is None
+        else ParticleFlowParticleFilter(
+            model,
+            flow=flow,
+            n_particles=200,
+            resampling_gradient="stop_gradient",
+            proposal_gradient=pg,
+            schedule=ExponentialSchedule(10, 1.2),
+        )
+    )  # any schedule
     exact, est, se = _grads(filt, model, obs, mean, cov)
     assert exact.numel() == d * d + d * (d + 1)
     t = (est - exact) / se
@@ -86,12 +106,15 @@ def test_stop_gradient_forward_is_bit_identical(kind):
     proposal) and agree with the torch path to round-off, not bit for bit, so the torch path is
     pinned here."""
     from torchflow import tuning
+
     model, obs, mean, cov = _setup()
     outs = []
     for est, pg in (("none", "pathwise"), ("stop_gradient", "pathwise"), ("stop_gradient", "score")):
-        f = (BootstrapParticleFilter(model, n_particles=64, resampling_gradient=est, proposal_gradient=pg)
-             if kind == "bpf" else
-             ParticleFlowParticleFilter(model, n_particles=64, resampling_gradient=est, proposal_gradient=pg))
+        f = (
+            BootstrapParticleFilter(model, n_particles=64, resampling_gradient=est, proposal_gradient=pg)
+            if kind == "bpf"
+            else ParticleFlowParticleFilter(model, n_particles=64, resampling_gradient=est, proposal_gradient=pg)
+        )
         with tuning.tuned(fused_flows=0):
             outs.append(f(obs[:4], mean[:4], cov[:4], torch.Generator().manual_seed(5)))
     for other in outs[1:]:
@@ -152,14 +175,15 @@ def test_sinkhorn_transport_marginals_and_mean():
 
 @pytest.mark.parametrize("kind", ["bpf", "pfpf_ledh"])
 def test_ot_resampling_is_differentiable_and_tracks(kind):
-    """"ot" moves resampled trials' particles by transport (per-particle covariances too): every
+    """ "ot" moves resampled trials' particles by transport (per-particle covariances too): every
     trial resamples (ess_threshold = 1), the weights after it are uniform, the evidence stays close
     to the Kalman filter's (biased: measured here, not asserted beyond a loose bound) and every
     parameter gets a finite gradient."""
     model, obs, mean, cov = _setup()
     kw = dict(n_particles=100, resampling_gradient="ot", ess_threshold=1.0, ot_iterations=50)
-    filt = (BootstrapParticleFilter(model, **kw) if kind == "bpf" else
-            ParticleFlowParticleFilter(model, flow="ledh", **kw))
+    filt = (
+        BootstrapParticleFilter(model, **kw) if kind == "bpf" else ParticleFlowParticleFilter(model, flow="ledh", **kw)
+    )
     state = filt.init(mean[:2], cov[:2], generator=torch.Generator().manual_seed(0))
     state = filt.step(state, obs[:2, 0], torch.Generator().manual_seed(1))
     assert bool(state.resampled.all())
@@ -186,9 +210,12 @@ def test_every_particle_filter_takes_the_estimator():
 
     model, *_ = _setup()
     for est in ("stop_gradient", "soft", "ot"):
-        for f in (GPFIS(model, resampling_gradient=est), GaussianSumParticleFilter(model, resampling_gradient=est),
-                  ParticleFilter(model, UnscentedProposal(model), resampling_gradient=est),
-                  ParticleFlowParticleFilter(model, flow="gromov", resampling_gradient=est)):
+        for f in (
+            GPFIS(model, resampling_gradient=est),
+            GaussianSumParticleFilter(model, resampling_gradient=est),
+            ParticleFilter(model, UnscentedProposal(model), resampling_gradient=est),
+            ParticleFlowParticleFilter(model, flow="gromov", resampling_gradient=est),
+        ):
             assert f.resampler.gradient == est
     with pytest.raises(ValueError, match="resampling_gradient"):
         GaussianSumParticleFilter(model, resampling_gradient="bogus")
@@ -196,21 +223,36 @@ def test_every_particle_filter_takes_the_estimator():
 
 def _every_particle_filter(model, **kw):
     """Every particle filter (named, with its flows), built with the constructor arguments ``kw``."""
-    from torchflow.filters import (GPFIS, ClusteredParticleFlowParticleFilter, GaussianParticleFilter,
-                                   GaussianSumParticleFilter, ParticleFilter, ParticleFlowGaussianSumParticleFilter)
+    from torchflow.filters import (
+        GPFIS,
+        ClusteredParticleFlowParticleFilter,
+        GaussianParticleFilter,
+        GaussianSumParticleFilter,
+        ParticleFilter,
+        ParticleFlowGaussianSumParticleFilter,
+    )
     from torchflow.proposals import UnscentedProposal
 
     yield "bpf", BootstrapParticleFilter(model, n_particles=30, **kw)
     for flow in ("edh", "ledh", "geodesic", "gromov", "osd"):
-        yield f"pfpf_{flow}", ParticleFlowParticleFilter(model, flow=flow, n_particles=30,
-                                                         schedule=ExponentialSchedule(4, 1.2), **kw)
-    yield "pfpf_clustered", ClusteredParticleFlowParticleFilter(model, n_particles=30, schedule=ExponentialSchedule(4, 1.2), **kw)
+        yield (
+            f"pfpf_{flow}",
+            ParticleFlowParticleFilter(model, flow=flow, n_particles=30, schedule=ExponentialSchedule(4, 1.2), **kw),
+        )
+    yield (
+        "pfpf_clustered",
+        ClusteredParticleFlowParticleFilter(model, n_particles=30, schedule=ExponentialSchedule(4, 1.2), **kw),
+    )
     yield "gpfis", GPFIS(model, n_particles=30, schedule=ExponentialSchedule(4, 1.2), **kw)
     yield "upf", ParticleFilter(model, UnscentedProposal(model), n_particles=30, **kw)
     yield "gpf", GaussianParticleFilter(model, n_particles=30, **kw)
     yield "gspf", GaussianSumParticleFilter(model, n_components=2, particles_per_component=15, **kw)
-    yield "pfgspf", ParticleFlowGaussianSumParticleFilter(model, n_components=2, particles_per_component=15,
-                                                          schedule=ExponentialSchedule(4, 1.2), **kw)
+    yield (
+        "pfgspf",
+        ParticleFlowGaussianSumParticleFilter(
+            model, n_components=2, particles_per_component=15, schedule=ExponentialSchedule(4, 1.2), **kw
+        ),
+    )
 
 
 def test_every_particle_filter_passes_a_gradient_to_every_parameter():
@@ -239,8 +281,9 @@ def test_stop_gradient_is_every_particle_filter_s_default_and_its_forward_pass_i
     comparison would not reach the estimator); the bootstrap PF's gradients differ."""
     model, obs, mean, cov = _setup()
     o, m, c = obs[:3, :4], mean[:3], cov[:3]
-    for (name, default), (_, none) in zip(_every_particle_filter(model),
-                                          _every_particle_filter(model, resampling_gradient="none")):
+    for (name, default), (_, none) in zip(
+        _every_particle_filter(model), _every_particle_filter(model, resampling_gradient="none")
+    ):
         assert default.resampler.gradient == "stop_gradient" and none.resampler.gradient == "none", name
         a = default(o, m, c, torch.Generator().manual_seed(3))
         b = none(o, m, c, torch.Generator().manual_seed(3))
@@ -270,8 +313,14 @@ def test_marginal_score_gradient_matches_the_kalman_gradient_at_n_1000():
     log_z = KalmanFilter(model)(obs, mean, cov).log_evidence.sum()
     exact = torch.autograd.grad(log_z, [model.F])[0].flatten()
     filt = BootstrapParticleFilter(model, n_particles=1000, weights="marginal", proposal_gradient="score")
-    G = torch.stack([torch.autograd.grad(filt(obs8, mean8, cov8, torch.Generator().manual_seed(100 + r))
-                                         .log_evidence.mean(), [model.F])[0].flatten() for r in range(reps)])
+    G = torch.stack(
+        [
+            torch.autograd.grad(
+                filt(obs8, mean8, cov8, torch.Generator().manual_seed(100 + r)).log_evidence.mean(), [model.F]
+            )[0].flatten()
+            for r in range(reps)
+        ]
+    )
     est, se = G.mean(0), G.std(0) / math.sqrt(reps)
     t = (est - exact) / se
     assert float(t.abs().max()) < 3.9, (exact, est, se)

@@ -4,6 +4,7 @@ On the CPU the capture is emulated as in test_cudagraphs (the "graph" re-runs th
 static buffers), with the Philox back end the GPU uses: that checks the plumbing (the draws split
 into words made outside and numbers made inside, the state flattened and rebuilt, the recorded
 draws checked). On CUDA the real capture is compared with the eager run, bit for bit."""
+
 import warnings
 
 import pytest
@@ -24,7 +25,9 @@ from torchflow.random import TrialStreams
 def emulated(monkeypatch):
     backend = _Emulated()
     monkeypatch.setattr(cudagraphs, "_backend", backend)
-    monkeypatch.setattr(graph_step, "eligible", lambda filt, state, gen: select.graph_step(filt, state.particles, gen, emulated=True))
+    monkeypatch.setattr(
+        graph_step, "eligible", lambda filt, state, gen: select.graph_step(filt, state.particles, gen, emulated=True)
+    )
     cudagraphs.clear()
     # a GPU's step: the CPU's weighting kernel (tuning.fused_weights) never runs in a graph step
     with tuning.tuned(fused_weights=0):
@@ -38,8 +41,13 @@ def _run(f, model, device="cpu", B=3, T=6, seed=0, nonfinite=None):
     traj = model.simulate(B, T, g)
     mean, cov = model.initial_belief(traj.states[:, 0], g)
     with torch.no_grad():
-        return f(traj.observations, mean, cov, TrialStreams(seed + 1, B, f.stream_name, backend="philox"),
-                 return_particles=True)
+        return f(
+            traj.observations,
+            mean,
+            cov,
+            TrialStreams(seed + 1, B, f.stream_name, backend="philox"),
+            return_particles=True,
+        )
 
 
 def _same(a, b):
@@ -120,6 +128,7 @@ def test_a_pfpf_step_is_replayed_whole(emulated, flow, model_name):
 
     class MyPoints(ParticlePoints):  # a subclass may place points otherwise: it declares itself
         pass
+
     assert not ParticleFlowParticleFilter(model, flow=flow, points=MyPoints(), n_particles=24).graph_step
 
 
@@ -141,16 +150,20 @@ def test_only_declared_steps_go_through_a_graph(emulated):
 
     class Undeclared(BootstrapProposal):
         graph_safe = False
+
     assert not ParticleFilter(model, Undeclared(model), n_particles=16).graph_step
 
     class MyModel(type(model)):
         pass
-    assert not BootstrapParticleFilter(MyModel(model.F, model.Q, model.H, model.R, model.m0, model.P0),
-                                       n_particles=16).graph_step
+
+    assert not BootstrapParticleFilter(
+        MyModel(model.F, model.Q, model.H, model.R, model.m0, model.P0), n_particles=16
+    ).graph_step
 
     class OwnStep(BootstrapParticleFilter):
         def step(self, state, z, generator=None):
             return super().step(state, z, generator)
+
     assert not OwnStep(model, n_particles=16).graph_step
 
 
@@ -190,6 +203,7 @@ def test_settings_changed_between_calls_give_the_eager_numbers(emulated):
             eager = _run(f, model)
         _same(eager, _run(f, model))
         _same(eager, _run(f, model))
+
     both()
     f.resampler.ess_threshold = 0.0  # no resampling draw any more
     both()
@@ -232,14 +246,17 @@ def test_subclasses_must_declare_themselves(emulated):
 
     class Sub(BootstrapProposal):
         pass
+
     assert not ParticleFilter(model, Sub(model), n_particles=8).graph_step
 
     class SubSafe(BootstrapProposal):
         graph_safe = True
+
     assert ParticleFilter(model, SubSafe(model), n_particles=8).graph_step
 
     class MyStreams(TrialStreams):
         pass
+
     f = BootstrapParticleFilter(model, n_particles=8)
     x = torch.zeros(2, 8, 3, dtype=torch.float64)
     with torch.no_grad():

@@ -1,4 +1,5 @@
 """Particle MCMC (:mod:`torchflow.inference`): PMMH on batched chains against the exact posterior."""
+
 import math
 
 import pytest
@@ -81,8 +82,7 @@ def test_pmmh_matches_the_exact_posterior(estimator):
     model, obs = _data()
     prior = Uniform(torch.tensor(-1.0, dtype=F64), torch.tensor(1.0, dtype=F64))
     m_exact, s_exact = _exact_posterior(model, obs, prior)
-    filt = (ExtendedKalmanFilter(model) if estimator == "exact"
-            else BootstrapParticleFilter(model, n_particles=400))
+    filt = ExtendedKalmanFilter(model) if estimator == "exact" else BootstrapParticleFilter(model, n_particles=400)
     mean0, cov0 = torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64)
     res = pmmh(filt, obs, (mean0, cov0), {"a": prior}, 0, n_chains=8, n_iterations=300, n_adapt=100)
     a = res.samples["a"]
@@ -108,8 +108,9 @@ def test_diagnostics_on_known_chains():
         x[:, t] = 0.9 * x[:, t - 1] + e[:, t]
     ess = float(effective_sample_size(x))
     assert 0.5 * 16000 / 19 < ess < 1.6 * 16000 / 19
-    stuck = torch.stack([torch.zeros(500, dtype=F64), torch.ones(500, dtype=F64) + 0.01 * torch.randn(500, generator=g,
-                                                                                                    dtype=F64)])
+    stuck = torch.stack(
+        [torch.zeros(500, dtype=F64), torch.ones(500, dtype=F64) + 0.01 * torch.randn(500, generator=g, dtype=F64)]
+    )
     assert float(rhat(stuck)) > 1.5
 
 
@@ -131,11 +132,30 @@ def test_pmmh_same_seed_same_chains():
     model, obs = _data(10)
     f = BootstrapParticleFilter(model, n_particles=50)
     prior0 = (torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64))
-    runs = [pmmh(f, obs, prior0, {"a": Uniform(torch.tensor(-1.0, dtype=F64), torch.tensor(1.0, dtype=F64))}, 7,
-                 n_chains=3, n_iterations=8, n_adapt=4) for _ in range(2)]
+    runs = [
+        pmmh(
+            f,
+            obs,
+            prior0,
+            {"a": Uniform(torch.tensor(-1.0, dtype=F64), torch.tensor(1.0, dtype=F64))},
+            7,
+            n_chains=3,
+            n_iterations=8,
+            n_adapt=4,
+        )
+        for _ in range(2)
+    ]
     assert torch.equal(runs[0].samples["a"], runs[1].samples["a"])
-    other = pmmh(f, obs, prior0, {"a": Uniform(torch.tensor(-1.0, dtype=F64), torch.tensor(1.0, dtype=F64))}, 8,
-                 n_chains=3, n_iterations=8, n_adapt=4)
+    other = pmmh(
+        f,
+        obs,
+        prior0,
+        {"a": Uniform(torch.tensor(-1.0, dtype=F64), torch.tensor(1.0, dtype=F64))},
+        8,
+        n_chains=3,
+        n_iterations=8,
+        n_adapt=4,
+    )
     assert not torch.equal(runs[0].samples["a"], other.samples["a"])
 
 
@@ -174,8 +194,17 @@ def test_particle_gibbs_matches_the_exact_posterior():
     model, obs = _data()
     prior = Uniform(torch.tensor(-1.0, dtype=F64), torch.tensor(1.0, dtype=F64))
     m_exact, s_exact = _exact_posterior(model, obs, prior)
-    res = particle_gibbs(model, obs, (torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64)), {"a": prior}, 0,
-                         n_particles=30, n_chains=8, n_iterations=300, n_adapt=100)
+    res = particle_gibbs(
+        model,
+        obs,
+        (torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64)),
+        {"a": prior},
+        0,
+        n_particles=30,
+        n_chains=8,
+        n_iterations=300,
+        n_adapt=100,
+    )
     a = res.samples["a"]
     ess = float(res.ess["a"])
     se = float(a.std()) / math.sqrt(ess)
@@ -198,8 +227,17 @@ def test_correlated_pmmh_matches_the_exact_posterior(rho, n_particles):
     prior = Uniform(torch.tensor(-1.0, dtype=F64), torch.tensor(1.0, dtype=F64))
     m_exact, s_exact = _exact_posterior(model, obs, prior)
     filt = BootstrapParticleFilter(model, n_particles=n_particles)
-    res = pmmh(filt, obs, (torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64)), {"a": prior}, 0, n_chains=32,
-               n_iterations=300, n_adapt=100, correlation=rho)
+    res = pmmh(
+        filt,
+        obs,
+        (torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64)),
+        {"a": prior},
+        0,
+        n_chains=32,
+        n_iterations=300,
+        n_adapt=100,
+        correlation=rho,
+    )
     a = res.samples["a"]
     ess = float(res.ess["a"])
     se = float(a.std()) / math.sqrt(ess)
@@ -266,10 +304,12 @@ def test_correlation_works_through_every_draw_site(name):
     from torchflow.filters import EnsembleKalmanFilter, GaussianParticleFilter, ParticleFlowParticleFilter
 
     model, obs = _data(15)
-    filt = {"bpf": lambda: BootstrapParticleFilter(model, n_particles=20),
-            "gpf": lambda: GaussianParticleFilter(model, n_particles=20),
-            "enkf": lambda: EnsembleKalmanFilter(model, n_particles=20),
-            "pfpf_edh": lambda: ParticleFlowParticleFilter(model, flow="edh", n_particles=20)}[name]()
+    filt = {
+        "bpf": lambda: BootstrapParticleFilter(model, n_particles=20),
+        "gpf": lambda: GaussianParticleFilter(model, n_particles=20),
+        "enkf": lambda: EnsembleKalmanFilter(model, n_particles=20),
+        "pfpf_edh": lambda: ParticleFlowParticleFilter(model, flow="edh", n_particles=20),
+    }[name]()
     var = [float(_log_ratios(filt, model, obs, 64, 0.7, 0.72, rho, seed=0).var()) for rho in (0.0, 0.99)]
     assert var[0] > 5 * var[1], var
 
@@ -303,8 +343,10 @@ def test_pmmh_cuda(correlation):
     f = BootstrapParticleFilter(model, n_particles=64)
     prior0 = (torch.zeros(1, dtype=F64, device="cuda"), torch.eye(1, dtype=F64, device="cuda"))
     prior_a = {"a": Uniform(torch.tensor(-1.0, dtype=F64), torch.tensor(1.0, dtype=F64))}
-    runs = [pmmh(f, obs, prior0, prior_a, 3, n_chains=3, n_iterations=6, n_adapt=4, correlation=correlation)
-            for _ in range(2)]
+    runs = [
+        pmmh(f, obs, prior0, prior_a, 3, n_chains=3, n_iterations=6, n_adapt=4, correlation=correlation)
+        for _ in range(2)
+    ]
     a = runs[0].samples["a"]
     assert torch.isfinite(runs[0].log_likelihood).all() and bool(((a > -1) & (a < 1)).all())
     assert torch.equal(a.cpu(), runs[1].samples["a"].cpu())

@@ -1,4 +1,5 @@
 """BP localisation with flow-induced mixture importance sampling on 3-D TDOA (seed 002)."""
+
 import pytest
 import torch
 
@@ -20,15 +21,17 @@ def test_one_source_is_found(method):
     within 20 m of the truth (the region is 2 km wide; the OSPA cut-off is 30 m; measured 0.5-17 m
     at these small sizes, G = 10, N_p = 100)."""
     model, data = _scene()
-    loc = FlowMixtureLocaliser(model, method, n_components=10, samples_per_component=100,
-                               schedule=GeometricSchedule(1e-4, 2.0))
+    loc = FlowMixtureLocaliser(
+        model, method, n_components=10, samples_per_component=100, schedule=GeometricSchedule(1e-4, 2.0)
+    )
     res = loc(data.z, generator=TrialStreams(0, range(2), "loc"), mask=data.mask)
     assert res.declared.sum(1).tolist() == [1, 1]
     est = res.positions[res.declared].reshape(2, 3)
     err = (est - data.sources[:, 0]).norm(dim=-1)
     assert (err < 20).all(), err
-    ospa = metrics.ospa(res.positions.unsqueeze(1), data.sources.unsqueeze(1), cutoff=30.0,
-                        X_mask=res.declared.unsqueeze(1))
+    ospa = metrics.ospa(
+        res.positions.unsqueeze(1), data.sources.unsqueeze(1), cutoff=30.0, X_mask=res.declared.unsqueeze(1)
+    )
     torch.testing.assert_close(ospa.flatten(), err)
 
 
@@ -36,8 +39,14 @@ def test_memory_chunks_do_not_change_the_numbers():
     model, data = _scene(n_sources=2, clutter=1.0)
     out = []
     for chunk in (10**8, 5000):
-        loc = FlowMixtureLocaliser(model, "pfi_d", n_components=6, samples_per_component=50,
-                                   schedule=GeometricSchedule(1e-3, 2.0), sample_chunk=chunk)
+        loc = FlowMixtureLocaliser(
+            model,
+            "pfi_d",
+            n_components=6,
+            samples_per_component=50,
+            schedule=GeometricSchedule(1e-3, 2.0),
+            sample_chunk=chunk,
+        )
         out.append(loc(data.z, generator=TrialStreams(0, range(2), "loc"), mask=data.mask))
     torch.testing.assert_close(out[0].state.existence, out[1].state.existence, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(out[0].positions, out[1].positions, rtol=1e-12, atol=1e-9)
@@ -105,8 +114,9 @@ def test_an_underflowing_measurement_is_reported_not_nan(kind, recwarn):
         z[1, 4, -1], mask[1, 4, -1] = 50.0, True
         loc = BootstrapLocaliser(model, n_particles=20000)
     else:
-        loc = FlowMixtureLocaliser(model, kind, n_components=10, samples_per_component=100,
-                                   schedule=GeometricSchedule(1e-4, 2.0))
+        loc = FlowMixtureLocaliser(
+            model, kind, n_components=10, samples_per_component=100, schedule=GeometricSchedule(1e-4, 2.0)
+        )
     res = loc(z, generator=TrialStreams(0, range(2), "loc"), mask=mask)
     assert res.underflow.shape == z.shape
     assert torch.nonzero(res.underflow).tolist() == [[1, 4, z.shape[-1] - 1]]
@@ -134,17 +144,22 @@ def test_runner_reports_underflows(monkeypatch):
         return TDOAData(d.states, z, mask, origin)
 
     monkeypatch.setattr(model, "simulate", simulate)
-    loc = FlowMixtureLocaliser(model, "pfi_d", n_components=5, samples_per_component=50,
-                               schedule=GeometricSchedule(1e-3, 2.0))
-    with pytest.warns(RuntimeWarning, match=r"pfi: every component's weight underflowed .* run 0, sensor 2, "
-                                            r"measurement"):
+    loc = FlowMixtureLocaliser(
+        model, "pfi_d", n_components=5, samples_per_component=50, schedule=GeometricSchedule(1e-3, 2.0)
+    )
+    with pytest.warns(
+        RuntimeWarning,
+        match=r"pfi: every component's weight underflowed .* run 0, sensor 2, "
+        r"measurement",
+    ):
         res = run_experiment(model, {"pfi": loc}, trials=2, progress=False)
     assert [r["underflows"] for r in res.per_trial] == [1, 0] and res.summary[0]["underflows"] == 1
 
 
 def _small(model, method="pfi_d"):
-    return FlowMixtureLocaliser(model, method, n_components=4, samples_per_component=20,
-                                schedule=GeometricSchedule(1e-3, 2.0))
+    return FlowMixtureLocaliser(
+        model, method, n_components=4, samples_per_component=20, schedule=GeometricSchedule(1e-3, 2.0)
+    )
 
 
 def test_runner_localises_each_run_alone_with_its_own_stream():
@@ -152,16 +167,17 @@ def test_runner_localises_each_run_alone_with_its_own_stream():
     largest number of measurements per sensor, with the stream (seed, b, "localise_<method>"):
     the numbers of the former per-run loop. A chunk_size does not batch runs (trials_per_call = 1),
     and a resumed run loads the saved runs."""
-    from torchflow.runner import ChunkStore, run_experiment
+    from torchflow.runner import run_experiment
 
     model = TDOA3D(n_sources=2, clutter_rate=1.0)
     res = run_experiment(model, {"a": _small(model)}, trials=3, seed=4, progress=False)
     data = model.simulate(3, generator=torch.Generator().manual_seed(4))
     for b in range(3):
         M = int(data.mask[b].sum(-1).max())
-        alone = _small(model)(data.z[b:b + 1, :, :M], generator=TrialStreams(4, [b], "localise_pfi_d"),
-                              mask=data.mask[b:b + 1, :, :M])
-        truth = data.sources[b:b + 1].unsqueeze(1)
+        alone = _small(model)(
+            data.z[b : b + 1, :, :M], generator=TrialStreams(4, [b], "localise_pfi_d"), mask=data.mask[b : b + 1, :, :M]
+        )
+        truth = data.sources[b : b + 1].unsqueeze(1)
         ospa = metrics.ospa(alone.positions.unsqueeze(1), truth, cutoff=40.0, X_mask=alone.declared.unsqueeze(1))
         assert res.per_trial[b]["ospa"] == float(ospa) and res.per_trial[b]["declared"] == int(alone.declared.sum())
     assert res.config["chunk_size"] == {"a": 1} and res.config["steps"] == 9 and len(res.per_step) == 9
@@ -184,8 +200,11 @@ def test_a_state_space_filter_is_refused_on_the_tdoa_model():
     from torchflow.runner import ConfigError, run_experiment
 
     model = TDOA3D()
-    with pytest.raises(ConfigError, match=r"filter.bpf: BootstrapParticleFilter cannot run on TDOA3D, whose "
-                                          r"measurements are padded sets"):
+    with pytest.raises(
+        ConfigError,
+        match=r"filter.bpf: BootstrapParticleFilter cannot run on TDOA3D, whose "
+        r"measurements are padded sets",
+    ):
         run_experiment(model, {"bpf": BootstrapParticleFilter(model, n_particles=10)}, trials=1, progress=False)
 
 

@@ -1,5 +1,6 @@
 """The metric registry (torchflow.metrics.REGISTRY): one registered function is a column of the
 summary, per-trial and per-step rows, of the written files and a panel of the per-step figure."""
+
 import csv
 import doctest
 
@@ -15,10 +16,30 @@ from torchflow.runner.score import FIXED_COLUMNS, RUN_COLUMNS
 
 #: the summary columns of the built-in metrics (the committed results files have this header)
 BUILT_IN_COLUMNS = [
-    "filter", "n_particles", "trials", "steps", "mse", "rmse", "rmse_se", "omat", "omat_kept_mean", "omat_kept_sd",
-    "ospa", "declared", "underflows", "ess", "g_eff", "log_evidence", "log_evidence_se", "log_evidence_relmse",
-    "lost_tracks", "repaired",
-    "sec_per_step", "warmup_sec", "path", "error",
+    "filter",
+    "n_particles",
+    "trials",
+    "steps",
+    "mse",
+    "rmse",
+    "rmse_se",
+    "omat",
+    "omat_kept_mean",
+    "omat_kept_sd",
+    "ospa",
+    "declared",
+    "underflows",
+    "ess",
+    "g_eff",
+    "log_evidence",
+    "log_evidence_se",
+    "log_evidence_relmse",
+    "lost_tracks",
+    "repaired",
+    "sec_per_step",
+    "warmup_sec",
+    "path",
+    "error",
 ]
 
 
@@ -178,8 +199,11 @@ def test_bad_registrations_name_the_argument(clean_registry):
 
 def test_a_metric_of_the_wrong_shape_names_itself_and_the_filter(clean_registry):
     metrics.register(metrics.Metric("per_trial_only", "bad", lambda ctx: ctx.estimates[:, 0, 0]))
-    with pytest.raises(ValueError, match=r"filter kf: metric 'per_trial_only': compute returned \(3,\), "
-                                         r"expected \(B, T\) = \(3, 4\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"filter kf: metric 'per_trial_only': compute returned \(3,\), "
+        r"expected \(B, T\) = \(3, 4\)",
+    ):
         _run()
 
 

@@ -1,6 +1,7 @@
 """The non-finite contract of every filter's forward pass and gradients, the model parameters'
 checks, and user models whose methods return the wrong shape (:mod:`torchflow.filters.guards`,
 :mod:`torchflow.models.contract`)."""
+
 import warnings
 
 import pytest
@@ -78,13 +79,17 @@ def run(f, z, gen_seed=1):
 
 # ---- forward: estimates, log-evidence ---------------------------------------------------------
 
+
 def test_kalman_filter_names_a_non_finite_log_evidence_increment():
     """An observation of 1e200 keeps the estimates finite (~1e198) but the log-evidence overflows to
     -inf: the call names the quantity, the step and the trial instead of returning -inf."""
     z = observations()
     z[0, 1, 0] = 1e200
-    with pytest.raises(NonFiniteError, match=r"KalmanFilter: non-finite log-evidence increment at time step 2 "
-                                             r"in trial\(s\) \[0\] \(an observation so far from its prediction") as info:
+    with pytest.raises(
+        NonFiniteError,
+        match=r"KalmanFilter: non-finite log-evidence increment at time step 2 "
+        r"in trial\(s\) \[0\] \(an observation so far from its prediction",
+    ) as info:
         F.KalmanFilter(lg())(z, ZERO2, I2)
     assert (info.value.step, info.value.trials, info.value.what) == (2, [0], "log-evidence increment")
 
@@ -117,8 +122,11 @@ def test_steps_without_the_measurement_are_repaired_and_warned_not_silent():
     z = observations()
     z[1, 2] = 1e200  # (z - x)^2 / R overflows: every log-weight -inf
     f = F.BootstrapParticleFilter(lg(R=1e-4), n_particles=20)
-    with pytest.warns(RuntimeWarning, match=r"no particle's weight carried the measurement at 1 step\(s\) "
-                                            r"\(first at time step 3\) in trial\(s\) \[1\]"):
+    with pytest.warns(
+        RuntimeWarning,
+        match=r"no particle's weight carried the measurement at 1 step\(s\) "
+        r"\(first at time step 3\) in trial\(s\) \[1\]",
+    ):
         out = run(f, z)
     assert out.log_evidence[1] == float("-inf") and torch.isfinite(out.log_evidence[[0, 2]]).all()
     assert int(out.n_repaired[1]) >= 1 and torch.isfinite(out.estimates).all()
@@ -140,6 +148,7 @@ def test_a_healthy_run_gives_no_warning():
 
 
 # ---- learnable parameters and their gradients -------------------------------------------------
+
 
 def acoustic_data(model, seed=0):
     g = torch.Generator().manual_seed(seed)
@@ -166,13 +175,19 @@ def test_a_learnable_noise_scale_that_underflowed_is_named():
     with torch.no_grad():
         model.parametrizations.sigma_w.original.fill_(-800.0)  # sigma_w = exp(-800) = 0
     # m = 25 > d = 16: H P H^T + R is singular with R, so no filter has a measurement density
-    with pytest.raises(ArgumentError, match=r"ExtendedKalmanFilter: the model's measurement covariance \(built from "
-                                            r"learnable parameters\) is not positive definite \(smallest eigenvalue 0\); "
-                                            r"with m = 25 measurements of d = 16 states"):
+    with pytest.raises(
+        ArgumentError,
+        match=r"ExtendedKalmanFilter: the model's measurement covariance \(built from "
+        r"learnable parameters\) is not positive definite \(smallest eigenvalue 0\); "
+        r"with m = 25 measurements of d = 16 states",
+    ):
         F.ExtendedKalmanFilter(model)(z, m0, P0)
     for make in (F.BootstrapParticleFilter, F.ParticleFlowParticleFilter):
-        with pytest.raises(ArgumentError, match=r"measurement covariance \(built from learnable parameters\) is not "
-                                                r"positive definite"):
+        with pytest.raises(
+            ArgumentError,
+            match=r"measurement covariance \(built from learnable parameters\) is not "
+            r"positive definite",
+        ):
             make(model, n_particles=50)(z, m0, P0, torch.Generator().manual_seed(1))
 
 
@@ -181,8 +196,11 @@ def test_a_non_finite_gradient_names_the_step_and_trials_in_the_backward_pass():
     f = F.BootstrapParticleFilter(model, n_particles=50, resampling_gradient="stop_gradient")
     out = run(f, observations())
     assert torch.isfinite(out.log_evidence).all()  # the forward pass is finite
-    with pytest.raises(NonFiniteError, match=r"BootstrapParticleFilter: non-finite gradient \(backward pass\) of the "
-                                             r"step's computation at time step 4 in trial\(s\) \[0, 1, 2\]"):
+    with pytest.raises(
+        NonFiniteError,
+        match=r"BootstrapParticleFilter: non-finite gradient \(backward pass\) of the "
+        r"step's computation at time step 4 in trial\(s\) \[0, 1, 2\]",
+    ):
         out.log_evidence.sum().backward()
 
 
@@ -214,44 +232,55 @@ def test_healthy_gradients_pass_the_checks_unchanged():
 
 # ---- model parameters and user models --------------------------------------------------------
 
-@pytest.mark.parametrize("kw, match", [
-    (dict(sigma_w=float("nan")), "sigma_w: expected a finite number > 0, got nan"),
-    (dict(sigma_w=1e-300), "sigma_w: expected a noise scale whose square is a normal float64"),
-    (dict(psi=-5), "psi: expected a finite number > 0, got -5"),
-    (dict(d0=-1), "d0: expected a finite number > 0, got -1"),
-    (dict(true_noise_scale=-1), "true_noise_scale: expected a finite number > 0, got -1"),
-    (dict(prior_std=(1.0, 1.0, -1.0, 1.0)), r"prior_std\[2\]: expected a finite number > 0"),
-])
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(sigma_w=float("nan")), "sigma_w: expected a finite number > 0, got nan"),
+        (dict(sigma_w=1e-300), "sigma_w: expected a noise scale whose square is a normal float64"),
+        (dict(psi=-5), "psi: expected a finite number > 0, got -5"),
+        (dict(d0=-1), "d0: expected a finite number > 0, got -1"),
+        (dict(true_noise_scale=-1), "true_noise_scale: expected a finite number > 0, got -1"),
+        (dict(prior_std=(1.0, 1.0, -1.0, 1.0)), r"prior_std\[2\]: expected a finite number > 0"),
+    ],
+)
 def test_acoustic_model_parameters_out_of_range_are_named(kw, match):
     with pytest.raises(ArgumentError, match=match):
         AcousticTracking(**kw)
 
 
-@pytest.mark.parametrize("kw, match", [
-    (dict(d=0), r"d: expected a perfect square >= 1"),
-    (dict(d=5), r"d: expected a perfect square >= 1"),
-    (dict(sigma_z=float("inf")), "sigma_z: expected a finite number > 0, got inf"),
-    (dict(alpha1=-1.0), "alpha1: expected a finite number >= 0"),
-    (dict(beta=0.0), "beta: expected a finite number > 0"),
-])
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(d=0), r"d: expected a perfect square >= 1"),
+        (dict(d=5), r"d: expected a perfect square >= 1"),
+        (dict(sigma_z=float("inf")), "sigma_z: expected a finite number > 0, got inf"),
+        (dict(alpha1=-1.0), "alpha1: expected a finite number >= 0"),
+        (dict(beta=0.0), "beta: expected a finite number > 0"),
+    ],
+)
 def test_sensor_network_parameters_out_of_range_are_named(kw, match):
     with pytest.raises(ArgumentError, match=match):
         SensorNetwork(**kw)
 
 
-@pytest.mark.parametrize("bug, method, got, expected", [
-    ("transition_mean_one_column", "transition_mean", r"\(3, 1\)", r"\(B, d\) = \(3, 2\)"),
-    ("measure_one_column", "measure", r"\(3, 1\)", r"\(B, m\) = \(3, 2\)"),
-    ("measure_summed", "measure", r"\(3,\)", r"\(B, m\) = \(3, 2\)"),
-])
+@pytest.mark.parametrize(
+    "bug, method, got, expected",
+    [
+        ("transition_mean_one_column", "transition_mean", r"\(3, 1\)", r"\(B, d\) = \(3, 2\)"),
+        ("measure_one_column", "measure", r"\(3, 1\)", r"\(B, m\) = \(3, 2\)"),
+        ("measure_summed", "measure", r"\(3,\)", r"\(B, m\) = \(3, 2\)"),
+    ],
+)
 @pytest.mark.parametrize("name", ["ekf", "bpf", "pfpf"])
 def test_a_user_model_method_of_the_wrong_shape_is_named_by_every_filter(name, bug, method, got, expected):
     with pytest.raises(ArgumentError, match=rf"UserModel\.{method} returned shape {got}; expected {expected}"):
         run(FILTERS[name](UserModel(bug)), observations())
 
 
-@pytest.mark.parametrize("bug, method", [("transition_mean_one_column", "transition_mean"),
-                                         ("measure_one_column", "measure")])
+@pytest.mark.parametrize(
+    "bug, method", [("transition_mean_one_column", "transition_mean"), ("measure_one_column", "measure")]
+)
 def test_simulate_names_a_user_model_method_of_the_wrong_shape(bug, method):
     with pytest.raises(ArgumentError, match=rf"UserModel\.simulate: UserModel\.{method} returned shape \(2, 1\)"):
         UserModel(bug).simulate(2, 3, torch.Generator().manual_seed(0))

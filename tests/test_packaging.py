@@ -1,5 +1,6 @@
 """The package as installed: every subpackage and the Hydra configs ship, and the command line runs
 from an installed copy outside the checkout (no network: the current environment's setuptools)."""
+
 import os
 import shutil
 import subprocess
@@ -29,8 +30,24 @@ def _install(tmp_path: Path) -> Path:
     for name in ("torchflow", "configs"):
         shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns("__pycache__"))
     site = tmp_path / "site"
-    out = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
-                          "--no-index", "--target", str(site), str(src)], capture_output=True, text=True, timeout=300)
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--no-deps",
+            "--no-build-isolation",
+            "--no-index",
+            "--target",
+            str(site),
+            str(src),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     return site
 
@@ -41,13 +58,39 @@ def test_installed_copy_runs_the_command_line_from_any_folder(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(site), OMP_NUM_THREADS="1")
     work = tmp_path / "elsewhere"
     work.mkdir()
-    where = subprocess.run([sys.executable, "-c", "import torchflow, torchflow.runner.config as c; "
-                            "print(torchflow.__file__); print(c.config_source())"],
-                           capture_output=True, text=True, cwd=work, env=env, timeout=120)
+    where = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import torchflow, torchflow.runner.config as c; print(torchflow.__file__); print(c.config_source())",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=work,
+        env=env,
+        timeout=120,
+    )
     assert where.stdout.splitlines() == [str(site / "torchflow" / "__init__.py"), "pkg://torchflow.configs"], where
-    out = subprocess.run([sys.executable, "-m", "torchflow", "model=linear_gaussian", "filter=[kf]", "trials=2",
-                          "steps=3", "progress=false", "plots=false", "checkpoint_dir=null", "hydra.run.dir=run"],
-                         capture_output=True, text=True, cwd=work, env=env, timeout=300)
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "torchflow",
+            "model=linear_gaussian",
+            "filter=[kf]",
+            "trials=2",
+            "steps=3",
+            "progress=false",
+            "plots=false",
+            "checkpoint_dir=null",
+            "hydra.run.dir=run",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=work,
+        env=env,
+        timeout=300,
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     assert "| kf |" in out.stdout and (work / "run" / "summary.csv").exists()
     assert "SensorNetwork" in (work / "run" / "run.log").read_text()

@@ -10,6 +10,7 @@ per-trial random streams a filter's rows do not depend on which other filters ru
 The PF-PF(LEDH) rows are second tier (``-m slow``; .ci/run runs it after the README's command):
 ~100 s on one core, the longest test of the suite; the other rows take seconds.
 """
+
 import math
 
 import pytest
@@ -22,14 +23,17 @@ from torchflow.models import SensorNetwork
 #: our 100-trial Table I means (RESULTS.md): (MSE, ESS or None)
 TABLE_I = {"kf": (0.0698, None), "pfpf_ledh": (0.0924, 22.4), "pfpf_edh": (0.0938, 22.1), "bpf": (1.23, 1.047)}
 
-FILTERS = {"kf": lambda m: KalmanFilter(m),
-           "pfpf_ledh": lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=200),
-           "pfpf_edh": lambda m: ParticleFlowParticleFilter(m, flow="edh", n_particles=200),
-           "bpf": lambda m: BootstrapParticleFilter(m, n_particles=200)}
+FILTERS = {
+    "kf": lambda m: KalmanFilter(m),
+    "pfpf_ledh": lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=200),
+    "pfpf_edh": lambda m: ParticleFlowParticleFilter(m, flow="edh", n_particles=200),
+    "bpf": lambda m: BootstrapParticleFilter(m, n_particles=200),
+}
 
 
-@pytest.mark.parametrize("name", [pytest.param(n, marks=[pytest.mark.slow] if n == "pfpf_ledh" else [])
-                                  for n in TABLE_I])
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=[pytest.mark.slow] if n == "pfpf_ledh" else []) for n in TABLE_I]
+)
 def test_seed000_table1_rows_stay_put(name):
     model = SensorNetwork(d=64, sigma_z=0.5)
     rows = run_experiment(model, {name: FILTERS[name](model)}, trials=20, steps=10, seed=0, progress=False).per_trial

@@ -1,5 +1,6 @@
 """Which execution path a filter ran (torchflow.flows.kernels.paths): FilterResult.paths, the
 runner's results.json ``paths`` and the summary's ``path`` column; recording moves no number."""
+
 import json
 
 import pytest
@@ -97,8 +98,9 @@ def test_a_replayed_graph_step_is_reported(monkeypatch):
     """With the capture emulated on the CPU (as in test_graph_step): the first steps run eagerly
     (recording the draws, the capture's warm-up), the others are replays."""
     monkeypatch.setattr(cudagraphs, "_backend", _Emulated())
-    monkeypatch.setattr(graph_step, "eligible",
-                        lambda filt, state, gen: select.graph_step(filt, state.particles, gen, emulated=True))
+    monkeypatch.setattr(
+        graph_step, "eligible", lambda filt, state, gen: select.graph_step(filt, state.particles, gen, emulated=True)
+    )
     cudagraphs.clear()
     model = SensorNetwork(d=4)
     obs, mean, cov = _data(model, steps=6)
@@ -127,8 +129,16 @@ def test_the_runner_records_each_filters_path(tmp_path):
     data = json.loads((tmp_path / "results.json").read_text())
     assert data["paths"] == res.paths and [r["path"] for r in data["summary"]] == [BPF_PATH, KERNEL]
     # a resumed run reads the paths saved with its chunks
-    again = run_experiment(model, filters, trials=2, steps=T, seed=3, chunk_size=1, progress=False,
-                           store=ChunkStore(tmp_path / "chunks", resume=True))
+    again = run_experiment(
+        model,
+        filters,
+        trials=2,
+        steps=T,
+        seed=3,
+        chunk_size=1,
+        progress=False,
+        store=ChunkStore(tmp_path / "chunks", resume=True),
+    )
     assert again.paths == res.paths and again.per_trial == res.per_trial
 
 

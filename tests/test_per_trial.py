@@ -8,6 +8,7 @@ Both are round-off bounds: the batched call runs its linear algebra on B matrice
 separate calls take the shortcuts a shared value allows (identity scales, a scalar R), which the
 per-trial call stands aside from.
 """
+
 import math
 
 import pytest
@@ -36,28 +37,47 @@ def _t(rows):
 LG_VALUES = {
     "F": torch.stack([_t([[0.9, 0.1], [0.0, 0.8]]), _t([[0.5, -0.2], [0.3, 0.6]]), _t([[1.0, 0.0], [0.1, 0.95]])]),
     "Q": torch.stack([_t([[0.5, 0.1], [0.1, 0.4]]), _t([[1.0, -0.3], [-0.3, 0.8]]), _t([[0.2, 0.0], [0.0, 0.3]])]),
-    "H": torch.stack([_t([[1.0, 0.0], [0.5, 1.0], [0.0, 1.0]]), _t([[2.0, 0.1], [0.0, 1.0], [1.0, 1.0]]),
-                      _t([[0.5, 0.0], [0.0, 0.5], [0.3, -0.3]])]),
-    "R": torch.stack([0.3 * torch.eye(3, **f64), _t([[1.0, 0.2, 0.0], [0.2, 0.5, 0.1], [0.0, 0.1, 0.7]]),
-                      torch.diag(_t([0.1, 0.2, 0.4]))]),
+    "H": torch.stack(
+        [
+            _t([[1.0, 0.0], [0.5, 1.0], [0.0, 1.0]]),
+            _t([[2.0, 0.1], [0.0, 1.0], [1.0, 1.0]]),
+            _t([[0.5, 0.0], [0.0, 0.5], [0.3, -0.3]]),
+        ]
+    ),
+    "R": torch.stack(
+        [
+            0.3 * torch.eye(3, **f64),
+            _t([[1.0, 0.2, 0.0], [0.2, 0.5, 0.1], [0.0, 0.1, 0.7]]),
+            torch.diag(_t([0.1, 0.2, 0.4])),
+        ]
+    ),
     "m0": _t([[0.0, 1.0], [2.0, -1.0], [0.5, 0.5]]),
     "P0": torch.stack([torch.eye(2, **f64), 0.5 * torch.eye(2, **f64), _t([[2.0, 0.3], [0.3, 1.0]])]),
 }
 EYE4 = torch.eye(4, **f64)
-SENSOR_VALUES = {"F": torch.stack([a * EYE4 for a in (0.9, 0.5, 0.99)]),
-                 "R": torch.stack([r * EYE4 for r in (0.25, 1.0, 0.1)])}
+SENSOR_VALUES = {
+    "F": torch.stack([a * EYE4 for a in (0.9, 0.5, 0.99)]),
+    "R": torch.stack([r * EYE4 for r in (0.25, 1.0, 0.1)]),
+}
 
 
 def _lg(learnable=False, **v):
-    return LinearGaussian(v.get("F", LG_VALUES["F"][0]), v.get("Q", LG_VALUES["Q"][0]), v.get("H", LG_VALUES["H"][0]),
-                          v.get("R", LG_VALUES["R"][0]), v.get("m0", LG_VALUES["m0"][0]),
-                          v.get("P0", LG_VALUES["P0"][0]), learnable=learnable)
+    return LinearGaussian(
+        v.get("F", LG_VALUES["F"][0]),
+        v.get("Q", LG_VALUES["Q"][0]),
+        v.get("H", LG_VALUES["H"][0]),
+        v.get("R", LG_VALUES["R"][0]),
+        v.get("m0", LG_VALUES["m0"][0]),
+        v.get("P0", LG_VALUES["P0"][0]),
+        learnable=learnable,
+    )
 
 
 def _sensor(**v):
     """The sensor network's structure (F = a I, H = I, R = r I: the identity-scale shortcuts)."""
-    return LinearGaussian(v.get("F", 0.9 * EYE4), sensor_network_covariance(2), EYE4, v.get("R", 0.25 * EYE4),
-                          P0=0.5 * EYE4)
+    return LinearGaussian(
+        v.get("F", 0.9 * EYE4), sensor_network_covariance(2), EYE4, v.get("R", 0.25 * EYE4), P0=0.5 * EYE4
+    )
 
 
 def _floats(v):
@@ -69,19 +89,31 @@ MODELS = {
     "lg": (lambda **v: _lg(**v), LG_VALUES, True),
     "lg_learnable": (lambda **v: _lg(learnable=True, **v), {k: LG_VALUES[k] for k in ("F", "Q", "H", "R")}, True),
     "sensor": (_sensor, SENSOR_VALUES, True),
-    "acoustic": (lambda **v: AcousticTracking(**_floats(v)),
-                 {"psi": _t([10.0, 8.0, 12.0]), "sigma_w": _t([0.5, 1.0, 0.3])}, False),
-    "acoustic_learnable": (lambda **v: AcousticTracking(learnable=True, **_floats(v)),
-                           {"psi": _t([10.0, 8.0, 12.0]), "sigma_w": _t([0.5, 1.0, 0.3])}, False),
-    "lorenz96": (lambda **v: Lorenz96(d=8, spin_up=20, **{"model_noise": 0.3, **_floats(v)}),
-                 {"forcing": _t([8.0, 4.0, 10.0]), "model_noise": _t([0.3, 0.5, 0.2]), "obs_std": _t([1.0, 0.5, 2.0])},
-                 False),
-    "skewed": (lambda **v: SkewedTPoisson(d=9, **_floats(v)),
-               {"alpha": _t([0.9, 0.5, 0.7]), "m1": _t([1.0, 2.0, 0.5]), "m2": _t([1 / 3, 0.5, 0.2])}, False),
+    "acoustic": (
+        lambda **v: AcousticTracking(**_floats(v)),
+        {"psi": _t([10.0, 8.0, 12.0]), "sigma_w": _t([0.5, 1.0, 0.3])},
+        False,
+    ),
+    "acoustic_learnable": (
+        lambda **v: AcousticTracking(learnable=True, **_floats(v)),
+        {"psi": _t([10.0, 8.0, 12.0]), "sigma_w": _t([0.5, 1.0, 0.3])},
+        False,
+    ),
+    "lorenz96": (
+        lambda **v: Lorenz96(d=8, spin_up=20, **{"model_noise": 0.3, **_floats(v)}),
+        {"forcing": _t([8.0, 4.0, 10.0]), "model_noise": _t([0.3, 0.5, 0.2]), "obs_std": _t([1.0, 0.5, 2.0])},
+        False,
+    ),
+    "skewed": (
+        lambda **v: SkewedTPoisson(d=9, **_floats(v)),
+        {"alpha": _t([0.9, 0.5, 0.7]), "m1": _t([1.0, 2.0, 0.5]), "m2": _t([1 / 3, 0.5, 0.2])},
+        False,
+    ),
 }
 
 
 # ---- the filters: name -> (factory, the models it runs on) --------------------------------------------
+
 
 def _gs(m, flow=None, G=2):
     return F.GaussianSumParticleFilter(m, flow=flow, n_components=G, particles_per_component=m.state_dim + 3)
@@ -137,16 +169,24 @@ def _check_equal_to_separate_calls(filter_name, model_name, device="cpu"):
         assert getattr(model, k).shape == v.shape[1:]
     for b in range(B):
         alone_model = make(**{k: v[b].cpu() for k, v in values.items()}).to(device)
-        alone = make_filter(alone_model)(obs[b:b + 1], mean[b:b + 1], cov[b:b + 1], TrialStreams(7, B, key).select([b]),
-                                         return_covariances=True)
+        alone = make_filter(alone_model)(
+            obs[b : b + 1],
+            mean[b : b + 1],
+            cov[b : b + 1],
+            TrialStreams(7, B, key).select([b]),
+            return_covariances=True,
+        )
         close = dict(rtol=tol, atol=tol)
-        torch.testing.assert_close(together.estimates[b], alone.estimates[0], **close,
-                                   msg=lambda m: f"{key} trial {b}: {m}")
-        torch.testing.assert_close(together.log_evidence[b], alone.log_evidence[0], **close,
-                                   msg=lambda m: f"{key} trial {b}: {m}")
+        torch.testing.assert_close(
+            together.estimates[b], alone.estimates[0], **close, msg=lambda m: f"{key} trial {b}: {m}"
+        )
+        torch.testing.assert_close(
+            together.log_evidence[b], alone.log_evidence[0], **close, msg=lambda m: f"{key} trial {b}: {m}"
+        )
         if alone.covariances is not None:
-            torch.testing.assert_close(together.covariances[b], alone.covariances[0], **close,
-                                       msg=lambda m: f"{key} trial {b}: {m}")
+            torch.testing.assert_close(
+                together.covariances[b], alone.covariances[0], **close, msg=lambda m: f"{key} trial {b}: {m}"
+            )
     assert len(set(together.log_evidence.tolist())) == B  # the trials' values did differ
 
 
@@ -155,9 +195,18 @@ def test_per_trial_values_give_the_numbers_of_separate_calls(filter_name, model_
     _check_equal_to_separate_calls(filter_name, model_name)
 
 
-CUDA_CASES = [("kf", "lg"), ("ekf", "acoustic"), ("ukf", "lorenz96"), ("enkf", "lorenz96"), ("bpf", "skewed"),
-              ("pfpf_edh", "acoustic"), ("pfpf_ledh", "acoustic_learnable"), ("pfpf_ledh", "sensor"),
-              ("pfgspf", "skewed"), ("gpfis", "acoustic")]
+CUDA_CASES = [
+    ("kf", "lg"),
+    ("ekf", "acoustic"),
+    ("ukf", "lorenz96"),
+    ("enkf", "lorenz96"),
+    ("bpf", "skewed"),
+    ("pfpf_edh", "acoustic"),
+    ("pfpf_ledh", "acoustic_learnable"),
+    ("pfpf_ledh", "sensor"),
+    ("pfgspf", "skewed"),
+    ("gpfis", "acoustic"),
+]
 
 
 @cuda
@@ -168,6 +217,7 @@ def test_per_trial_values_give_the_numbers_of_separate_calls_cuda(filter_name, m
 
 
 # ---- gradients: trial b's log-evidence depends on value b alone ------------------------------------------
+
 
 def _gradient_rows(le, value):
     """``d le[b] / d value`` for every b: ``(B, *value.shape)``."""
@@ -192,7 +242,7 @@ def test_kalman_gradient_is_per_trial_and_that_of_separate_calls():
                 assert float(gF[b, c].abs().max()) == 0 and float(gQ[b, c].abs().max()) == 0
         alone = _lg(F=LG_VALUES["F"][b].clone().requires_grad_(True), Q=LG_VALUES["Q"][b].clone().requires_grad_(True))
         m_b, P_b = alone.declared_prior(1)
-        le_b = F.KalmanFilter(alone)(obs[b:b + 1], m_b, P_b).log_evidence[0]
+        le_b = F.KalmanFilter(alone)(obs[b : b + 1], m_b, P_b).log_evidence[0]
         dF, dQ = torch.autograd.grad(le_b, [alone.F, alone.Q])
         assert float(gF[b, b].abs().max()) > 0
         torch.testing.assert_close(gF[b, b], dF, rtol=1e-10, atol=1e-10)
@@ -209,13 +259,15 @@ def test_particle_filter_gradient_is_per_trial():
     psi = _t([10.0, 8.0, 12.0]).requires_grad_(True)
     with per_trial_values(model, {"psi": psi}):
         le = F.ParticleFlowParticleFilter(model, flow="ledh", n_particles=16)(
-            traj.observations, mean, cov, TrialStreams(3, B, "grad")).log_evidence
+            traj.observations, mean, cov, TrialStreams(3, B, "grad")
+        ).log_evidence
     rows = _gradient_rows(le, psi)
     off = rows[~torch.eye(B, dtype=torch.bool)]
     assert float(off.abs().max()) == 0 and bool((rows.diagonal() != 0).all())
 
 
 # ---- what the block does to the model -----------------------------------------------------------------
+
 
 def test_the_block_declares_a_structure_without_shared_shortcuts_and_restores_the_model():
     model = _sensor()

@@ -2,6 +2,7 @@
 gives the bits of the torch-op Philox, and TrialStreams draw the same numbers with and without it:
 on the CPU through Triton's interpreter (a subprocess with TRITON_INTERPRET=1; skipped where Triton
 is not installed, as in CI), on CUDA with the compiled kernel."""
+
 import json
 import os
 import subprocess
@@ -14,7 +15,7 @@ import torch
 from conftest import ROOT, cuda
 from torchflow import random as R
 
-CHECK = textwrap.dedent('''
+CHECK = textwrap.dedent("""
     import json, sys
     import numpy as np
     import torch
@@ -45,12 +46,18 @@ CHECK = textwrap.dedent('''
         draws[str(dtype)] = dict(fused=fused, equal=[bool(torch.equal(x, y)) for x, y in zip(a, b)],
                                  counters=[s1._counter, s2._counter])
     print("RESULT" + json.dumps(dict(bits=bits, draws=draws)))
-''')
+""")
 
 
 def _check(device, env=None):
-    out = subprocess.run([sys.executable, "-c", CHECK, device], capture_output=True, text=True, cwd=ROOT,
-                         env={**os.environ, **(env or {})}, timeout=600)
+    out = subprocess.run(
+        [sys.executable, "-c", CHECK, device],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, **(env or {})},
+        timeout=600,
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     return json.loads(out.stdout.split("RESULT")[-1])
 
@@ -85,6 +92,7 @@ def test_a_failing_kernel_falls_back_to_the_torch_ops_once(monkeypatch):
     def broken(*a, **k):
         calls.append(1)
         raise RuntimeError("no compiler")
+
     monkeypatch.setattr(R, "_philox_broken", [])
     monkeypatch.setattr(R, "philox4x32_fused", broken)
     monkeypatch.setattr(R, "_philox_kernel", None)
@@ -96,6 +104,7 @@ def test_a_failing_kernel_falls_back_to_the_torch_ops_once(monkeypatch):
     b = R.uniform((3, 7), dtype=torch.float64, device="cpu", generator=s1)  # no second warning, no second try
     monkeypatch.setattr(R, "_philox_fusable", real)
     from torchflow import tuning
+
     with tuning.tuned(fused_philox=0):
         want = [R.uniform((3, 7), dtype=torch.float64, device="cpu", generator=s2) for _ in range(2)]
     assert len(calls) == 1 and torch.equal(a, want[0]) and torch.equal(b, want[1])

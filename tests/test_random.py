@@ -1,4 +1,5 @@
 """Per-trial random streams: numbers independent of chunking, order and config names."""
+
 import math
 
 import pytest
@@ -13,13 +14,19 @@ from torchflow.random import TrialStreams, check_generator, philox4x32
 F64 = torch.float64
 
 
-@pytest.mark.parametrize("counter, key, expected", [
-    # known-answer vectors of Random123 (kat_vectors, philox4x32 with 10 rounds)
-    ([0, 0, 0, 0], [0, 0], [0x6627E8D5, 0xE169C58D, 0xBC57AC4C, 0x9B00DBD8]),
-    ([0xFFFFFFFF] * 4, [0xFFFFFFFF] * 2, [0x408F276D, 0x41C83B0E, 0xA20BC7C6, 0x6D5451FD]),
-    ([0x243F6A88, 0x85A308D3, 0x13198A2E, 0x03707344], [0xA4093822, 0x299F31D0],
-     [0xD16CFE09, 0x94FDCCEB, 0x5001E420, 0x24126EA1]),
-])
+@pytest.mark.parametrize(
+    "counter, key, expected",
+    [
+        # known-answer vectors of Random123 (kat_vectors, philox4x32 with 10 rounds)
+        ([0, 0, 0, 0], [0, 0], [0x6627E8D5, 0xE169C58D, 0xBC57AC4C, 0x9B00DBD8]),
+        ([0xFFFFFFFF] * 4, [0xFFFFFFFF] * 2, [0x408F276D, 0x41C83B0E, 0xA20BC7C6, 0x6D5451FD]),
+        (
+            [0x243F6A88, 0x85A308D3, 0x13198A2E, 0x03707344],
+            [0xA4093822, 0x299F31D0],
+            [0xD16CFE09, 0x94FDCCEB, 0x5001E420, 0x24126EA1],
+        ),
+    ],
+)
 def test_philox_known_answers(counter, key, expected):
     out = philox4x32([torch.tensor(c) for c in counter], [torch.tensor(k) for k in key])
     assert out.tolist() == expected
@@ -29,21 +36,29 @@ def test_philox_known_answers(counter, key, expected):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_trial_draws_do_not_depend_on_the_batch(backend, dtype):
     full = TrialStreams(5, 6, "k", backend=backend)
-    draws = [full.normal((6, 7, 3), dtype=dtype), full.uniform((6, 4), dtype=dtype),
-             full.normal((6 * 5, 2), dtype=dtype)]  # a trial-major multiple of B
+    draws = [
+        full.normal((6, 7, 3), dtype=dtype),
+        full.uniform((6, 4), dtype=dtype),
+        full.normal((6 * 5, 2), dtype=dtype),
+    ]  # a trial-major multiple of B
     for chunk in ([0, 1, 2], [3], [4, 5]):
         part = TrialStreams(5, chunk, "k", backend=backend)
-        got = [part.normal((len(chunk), 7, 3), dtype=dtype), part.uniform((len(chunk), 4), dtype=dtype),
-               part.normal((len(chunk) * 5, 2), dtype=dtype)]
+        got = [
+            part.normal((len(chunk), 7, 3), dtype=dtype),
+            part.uniform((len(chunk), 4), dtype=dtype),
+            part.normal((len(chunk) * 5, 2), dtype=dtype),
+        ]
         rows = torch.tensor(chunk)
         assert torch.equal(got[0], draws[0][rows])
         assert torch.equal(got[1], draws[1][rows])
         assert torch.equal(got[2].reshape(len(chunk), 5, 2), draws[2].reshape(6, 5, 2)[rows])
     # different seeds / keys give different numbers
-    assert not torch.equal(TrialStreams(6, 6, "k", backend=backend).normal((6, 3)),
-                           TrialStreams(5, 6, "k", backend=backend).normal((6, 3)))
-    assert not torch.equal(TrialStreams(5, 6, "j", backend=backend).normal((6, 3)),
-                           TrialStreams(5, 6, "k", backend=backend).normal((6, 3)))
+    assert not torch.equal(
+        TrialStreams(6, 6, "k", backend=backend).normal((6, 3)), TrialStreams(5, 6, "k", backend=backend).normal((6, 3))
+    )
+    assert not torch.equal(
+        TrialStreams(5, 6, "j", backend=backend).normal((6, 3)), TrialStreams(5, 6, "k", backend=backend).normal((6, 3))
+    )
 
 
 def test_large_draws_in_blocks_do_not_depend_on_batch_or_threads():
@@ -96,7 +111,7 @@ def test_stream_moments(backend, dtype):
     k = 2 * n
     assert abs(float(z.mean())) < 5 / math.sqrt(k)
     assert abs(float(z.var()) - 1) < 5 * math.sqrt(2 / k)
-    assert abs(float((z ** 4).mean()) - 3) < 5 * math.sqrt(96 / k)
+    assert abs(float((z**4).mean()) - 3) < 5 * math.sqrt(96 / k)
     assert abs(float(u.mean()) - 0.5) < 5 * math.sqrt(1 / 12 / k)
     # the two trials are uncorrelated
     assert abs(float((z[0] * z[1]).mean())) < 5 / math.sqrt(n)
@@ -142,26 +157,47 @@ def test_runner_numbers_do_not_depend_on_chunks_budget_or_names():
     every chunk size and memory budget; renaming the filter or adding others changes nothing."""
     model = SensorNetwork(d=16)
     runs = []
-    for kw in (dict(chunk_size=1), dict(chunk_size=3), dict(chunk_size=8), dict(memory_budget_gb=1e-4),
-               dict(memory_budget_gb=4.0)):
-        res = run_experiment(model, {"bpf": BootstrapParticleFilter(model, n_particles=64)}, trials=8, steps=4,
-                             seed=11, progress=False, **kw)
+    for kw in (
+        dict(chunk_size=1),
+        dict(chunk_size=3),
+        dict(chunk_size=8),
+        dict(memory_budget_gb=1e-4),
+        dict(memory_budget_gb=4.0),
+    ):
+        res = run_experiment(
+            model,
+            {"bpf": BootstrapParticleFilter(model, n_particles=64)},
+            trials=8,
+            steps=4,
+            seed=11,
+            progress=False,
+            **kw,
+        )
         runs.append(_per_trial(res, "bpf"))
     assert all(r == runs[0] for r in runs[1:])
-    renamed = run_experiment(model, {"kf": KalmanFilter(model),
-                                     "my_bpf": BootstrapParticleFilter(model, n_particles=64)},
-                             trials=8, steps=4, seed=11, progress=False)
+    renamed = run_experiment(
+        model,
+        {"kf": KalmanFilter(model), "my_bpf": BootstrapParticleFilter(model, n_particles=64)},
+        trials=8,
+        steps=4,
+        seed=11,
+        progress=False,
+    )
     assert [dict(r, filter="bpf") for r in _per_trial(renamed, "my_bpf")] == runs[0]
-    other_seed = run_experiment(model, {"bpf": BootstrapParticleFilter(model, n_particles=64)}, trials=8,
-                                steps=4, seed=12, progress=False)
+    other_seed = run_experiment(
+        model, {"bpf": BootstrapParticleFilter(model, n_particles=64)}, trials=8, steps=4, seed=12, progress=False
+    )
     assert _per_trial(other_seed, "bpf") != runs[0]
 
 
-@pytest.mark.parametrize("make", [
-    lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=40),
-    lambda m: ParticleFlowParticleFilter(m, flow="gromov", n_particles=40),
-    lambda m: ParticleFlowFilter(m, flow="edh", n_particles=40),
-])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=40),
+        lambda m: ParticleFlowParticleFilter(m, flow="gromov", n_particles=40),
+        lambda m: ParticleFlowFilter(m, flow="edh", n_particles=40),
+    ],
+)
 def test_runner_flow_filters_chunk_independent_to_round_off(make):
     """Random draws are identical; batched linear algebra (BLAS blocking depends on the batch
     size) may differ in the last bits, so flow filters agree to round-off."""

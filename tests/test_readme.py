@@ -9,6 +9,7 @@ out of reach of the shrink rules fails instead of silently running the full size
 Each distinct command is its own test (pytest-xdist runs them side by side), after the earlier
 commands whose output it reads; the few that take long are second tier (SLOW, ``-m slow``).
 """
+
 import csv
 import os
 import re
@@ -26,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _nav_pages(nav):
     """The Markdown pages of an mkdocs ``nav`` list, in order."""
     for entry in nav:
-        for value in (entry.values() if isinstance(entry, dict) else [entry]):
+        for value in entry.values() if isinstance(entry, dict) else [entry]:
             if isinstance(value, list):
                 yield from _nav_pages(value)
             elif isinstance(value, str) and value.endswith(".md"):
@@ -38,7 +39,7 @@ def _documentation():
     page and the user guide moved to docs/. Pages docs/hooks.py generates at build time (the
     examples' pages, from docs/examples/*.py, which the docs build runs) are not in the tree."""
     cfg = (ROOT / "mkdocs.yml").read_text()
-    nav = yaml.safe_load(cfg[cfg.index("\nnav:"):])["nav"]
+    nav = yaml.safe_load(cfg[cfg.index("\nnav:") :])["nav"]
     pages = [ROOT / "docs" / p for p in _nav_pages(nav)]
     return "\n".join([(ROOT / "README.md").read_text()] + [p.read_text() for p in pages if p.exists()])
 
@@ -53,7 +54,7 @@ SHRINK_PY = [
     ("range(10)", "range(6)"),
     ("truth.simulate(64, 20,", "truth.simulate(16, 5,"),
     ("max_epochs=20", "max_epochs=2"),
-    ('default_root_dir="outputs/lightning"', 'default_root_dir=OUT'),
+    ('default_root_dir="outputs/lightning"', "default_root_dir=OUT"),
     ("n_particles=500, covariance", "n_particles=30, covariance"),
     ("GromovFlow(), n_particles=500", "GromovFlow(), n_particles=30"),
     ("n_clusters=100, alpha=0.25, n_particles=500", "n_clusters=5, alpha=0.25, n_particles=30"),
@@ -63,11 +64,13 @@ SHRINK_PY = [
 #: command-line sizes: replaced where the command sets them, appended where it does not
 SHRINK_CLI = {"trials": "2", "steps": "2", "n_particles": "20"}
 #: seed 002's localisers take their sizes per method (appended to commands naming a seed002 experiment)
-SHRINK_TDOA = ["filter.bs.n_particles=2000"] + [f"filter.{k}.{p}" for k in ("pfi_d", "pfi_s", "pfi_os")
-                                              for p in ("n_components=5", "samples_per_component=20")]
+SHRINK_TDOA = ["filter.bs.n_particles=2000"] + [
+    f"filter.{k}.{p}" for k in ("pfi_d", "pfi_s", "pfi_os") for p in ("n_components=5", "samples_per_component=20")
+]
 #: and Table II's two extra PFI-OS rows
-SHRINK_TDOA2 = [f"filter.{k}.{p}" for k in ("pfi_os_a001", "pfi_os_a05")
-                for p in ("n_components=5", "samples_per_component=20")]
+SHRINK_TDOA2 = [
+    f"filter.{k}.{p}" for k in ("pfi_os_a001", "pfi_os_a05") for p in ("n_components=5", "samples_per_component=20")
+]
 #: experiments/seed002_proposal_quality.py
 SHRINK_QUALITY = {"--scenes": "1", "--n-samples": "20", "--reference": "50"}
 
@@ -83,7 +86,7 @@ ENTRY_POINTS = [("torchflow-learn", "python experiments/learn.py"), ("torchflow"
 def _checkout_form(cmd):
     for name, script in ENTRY_POINTS:
         if cmd == name or cmd.startswith(name + " "):
-            return script + cmd[len(name):]
+            return script + cmd[len(name) :]
     return cmd
 
 
@@ -102,8 +105,14 @@ def commands():
 
 
 #: the scripts this test knows how to shrink and point at tmp_path (one rule each in _run)
-SCRIPTS = {"experiments/run.py", "experiments/learn.py", "experiments/collect.py", "experiments/trial_stats.py",
-           "experiments/seed002_proposal_quality.py", "experiments/benchmarks/run_all.py"}
+SCRIPTS = {
+    "experiments/run.py",
+    "experiments/learn.py",
+    "experiments/collect.py",
+    "experiments/trial_stats.py",
+    "experiments/seed002_proposal_quality.py",
+    "experiments/benchmarks/run_all.py",
+}
 
 #: commands too slow for the default run (second tier, ``pytest -m slow``; .ci/run runs it): a
 #: substring of the command, with its shrunk run's time on one core (one pytest-xdist worker of a
@@ -134,7 +143,7 @@ def _script(tokens):
 def _multirun(tokens):
     """A sweep of experiments/run.py (Hydra's ``-m`` after the script)."""
     script = _script(tokens)
-    return script == "experiments/run.py" and "-m" in tokens[tokens.index(script) + 1:]
+    return script == "experiments/run.py" and "-m" in tokens[tokens.index(script) + 1 :]
 
 
 def _runnable():
@@ -179,8 +188,11 @@ def _cases():
     out = []
     for i, line in runnable:
         slow = [k for k in SLOW if k in line]
-        out.append(pytest.param(i, line, _needs(i, line, runnable), id=_case_id(i, line),
-                                marks=[pytest.mark.slow] if slow else []))
+        out.append(
+            pytest.param(
+                i, line, _needs(i, line, runnable), id=_case_id(i, line), marks=[pytest.mark.slow] if slow else []
+            )
+        )
     return out
 
 
@@ -208,8 +220,9 @@ def test_readme_python_blocks_run(tmp_path):
         script = script.replace(old, new)
     script = f"OUT = {str(tmp_path / 'lightning')!r}\n" + script
     (tmp_path / "readme_blocks.py").write_text(script)
-    out = subprocess.run([sys.executable, str(tmp_path / "readme_blocks.py")], capture_output=True, text=True,
-                         cwd=tmp_path, timeout=600)
+    out = subprocess.run(
+        [sys.executable, str(tmp_path / "readme_blocks.py")], capture_output=True, text=True, cwd=tmp_path, timeout=600
+    )
     assert out.returncode == 0, out.stderr[-4000:]
     assert "OMAT" in out.stdout
     assert not (tmp_path / "lightning_logs").exists()  # Lightning logs go where the README says
@@ -284,17 +297,33 @@ def _run(i, line, tmp_path, ran):
     if script == "experiments/run.py":
         multirun = _multirun(tokens)
         table2 = "experiment=seed002_table2" in tokens  # Table II has no BS row
-        tokens = _recorded(_shrink(tokens), tmp_path) + (SHRINK_TDOA[table2:] if any("experiment=seed002_table" in t for t in tokens)
-                                    else []) + (SHRINK_TDOA2 if table2 else [])
+        tokens = (
+            _recorded(_shrink(tokens), tmp_path)
+            + (SHRINK_TDOA[table2:] if any("experiment=seed002_table" in t for t in tokens) else [])
+            + (SHRINK_TDOA2 if table2 else [])
+        )
         where = tmp_path / f"cmd{i}"
-        tokens += [f"hydra.sweep.dir={where}" if multirun else f"hydra.run.dir={where}", "progress=false",
-                   f"checkpoint_dir={tmp_path}/checkpoints"]
+        tokens += [
+            f"hydra.sweep.dir={where}" if multirun else f"hydra.run.dir={where}",
+            "progress=false",
+            f"checkpoint_dir={tmp_path}/checkpoints",
+        ]
         if multirun:
             ran.last_sweep = where
     elif script == "experiments/learn.py":
         # a folder per command: learn refuses a folder that holds an earlier fit's results
-        tokens = _recorded(tokens + ["epochs=2", "steps=3", "trials=2", "n_particles=20", "plots=false",
-                                     f"hydra.run.dir={tmp_path}/learn{i}"], tmp_path)
+        tokens = _recorded(
+            tokens
+            + [
+                "epochs=2",
+                "steps=3",
+                "trials=2",
+                "n_particles=20",
+                "plots=false",
+                f"hydra.run.dir={tmp_path}/learn{i}",
+            ],
+            tmp_path,
+        )
     elif script == "experiments/collect.py":
         assert ran.last_sweep is not None, "collect.py before any sweep in the documentation"
         tokens = [t if "<time>" not in t else str(ran.last_sweep) for t in tokens]
@@ -334,8 +363,14 @@ def test_readme_command_runs(i, line, needs, tmp_path):
         _run(j, other, tmp_path, ran)
     if _script(_tokens(line)) == "experiments/trial_stats.py":
         metric = _metric(_tokens(line))
-        earlier = [(j, o) for j, o in _runnable() if j < i and _script(_tokens(o)) == "experiments/run.py"
-                   and not _multirun(_tokens(o)) and "resume=true" not in _tokens(o)]
+        earlier = [
+            (j, o)
+            for j, o in _runnable()
+            if j < i
+            and _script(_tokens(o)) == "experiments/run.py"
+            and not _multirun(_tokens(o))
+            and "resume=true" not in _tokens(o)
+        ]
         for j, other in reversed(earlier):
             _run(j, other, tmp_path, ran)
             if ran.runs and _has_metric(ran.runs[-1] / "per_trial.csv", metric):

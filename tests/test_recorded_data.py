@@ -1,4 +1,5 @@
 """Recorded observations: reading files, filtering them (runner, command line), learning on them."""
+
 import csv
 import json
 import os
@@ -26,13 +27,20 @@ class StationaryAR(LinearGaussian):
     with a learnable ``phi`` (``F``)."""
 
     def declared_prior(self, batch_size):
-        var = self.Q / (1 - self.F ** 2)
+        var = self.Q / (1 - self.F**2)
         return self.m0.expand(batch_size, 1), var.expand(batch_size, 1, 1)
 
 
 def _ar(phi, learn=False):
-    return StationaryAR(phi * ONE, 0.5 * ONE, ONE, 0.3 * ONE, torch.zeros(1, dtype=torch.float64), ONE,
-                        learnable=["F"] if learn else False)
+    return StationaryAR(
+        phi * ONE,
+        0.5 * ONE,
+        ONE,
+        0.3 * ONE,
+        torch.zeros(1, dtype=torch.float64),
+        ONE,
+        learnable=["F"] if learn else False,
+    )
 
 
 def _series(model, T, seed=0):
@@ -42,7 +50,9 @@ def _series(model, T, seed=0):
 def _write_csv(path, z, header=True, time_step=None):
     with open(path, "w") as fh:
         if header:
-            fh.write(",".join((["time"] if time_step is not None else []) + [f"z{j}" for j in range(z.shape[1])]) + "\n")
+            fh.write(
+                ",".join((["time"] if time_step is not None else []) + [f"z{j}" for j in range(z.shape[1])]) + "\n"
+            )
         for t, row in enumerate(z.tolist()):
             cells = [repr(t * time_step)] if time_step is not None else []
             fh.write(",".join(cells + ["" if v != v else repr(v) for v in row]) + "\n")
@@ -50,6 +60,7 @@ def _write_csv(path, z, header=True, time_step=None):
 
 
 # ---- files ---------------------------------------------------------------------------------------
+
 
 def test_csv_and_npy_read_back_the_series(tmp_path):
     z = _series(SensorNetwork(d=4), 6).numpy()
@@ -69,22 +80,26 @@ def test_an_empty_cell_or_nan_is_not_observed_and_kept(tmp_path):
     z[1, 2] = np.nan
     path = _write_csv(tmp_path / "z.csv", z)  # an empty cell
     row = z[3].tolist()  # Python floats: their repr is what _write_csv wrote (numpy 2's repr is np.float64(...))
-    text = path.read_text().replace("\n" + ",".join(repr(v) for v in row), "\n" + ",".join(["nan"] + [
-        repr(v) for v in row[1:]]))
+    text = path.read_text().replace(
+        "\n" + ",".join(repr(v) for v in row), "\n" + ",".join(["nan"] + [repr(v) for v in row[1:]])
+    )
     path.write_text(text)
     got = load_observations(path, SensorNetwork(d=4))
     assert torch.isnan(got[1, 2]) and torch.isnan(got[3, 0]) and int(torch.isnan(got).sum()) == 2
 
 
-@pytest.mark.parametrize("content, name, message", [
-    (None, "missing.csv", "data: file not found"),
-    ("z0,z1,z2,z3\n1,2,3\n", "z.csv", "expected 4 columns in every row"),
-    ("z0,z1,z2,z3\n1,2,x,4\n", "z.csv", "got 'x' in line 2, column 3 (z2)"),
-    ("1,2,3,inf\n", "z.csv", "got 1 infinite, the first at row 1, column 4"),
-    ("1,2,3\n", "z.csv", "expected m = 4 measurement coordinates (columns) for SensorNetwork, got 3"),
-    ("1,2,3,4\n", "z.txt", "expected a .csv or .npy file"),
-    ("", "z.csv", "got an empty file"),
-])
+@pytest.mark.parametrize(
+    "content, name, message",
+    [
+        (None, "missing.csv", "data: file not found"),
+        ("z0,z1,z2,z3\n1,2,3\n", "z.csv", "expected 4 columns in every row"),
+        ("z0,z1,z2,z3\n1,2,x,4\n", "z.csv", "got 'x' in line 2, column 3 (z2)"),
+        ("1,2,3,inf\n", "z.csv", "got 1 infinite, the first at row 1, column 4"),
+        ("1,2,3\n", "z.csv", "expected m = 4 measurement coordinates (columns) for SensorNetwork, got 3"),
+        ("1,2,3,4\n", "z.txt", "expected a .csv or .npy file"),
+        ("", "z.csv", "got an empty file"),
+    ],
+)
 def test_bad_files_are_refused_naming_the_argument(tmp_path, content, name, message):
     path = tmp_path / name
     if content is not None:
@@ -103,11 +118,13 @@ def test_a_time_column_must_step_by_the_model_s_dt(tmp_path):
     (tmp_path / "uneven.csv").write_text("t,a,b,c,d\n0,1,1,1,1\n0.05,1,1,1,1\n0.2,1,1,1,1\n")
     with pytest.raises(ArgumentError, match="not uniform"):
         load_observations(tmp_path / "uneven.csv", model)
-    assert load_observations(_write_csv(tmp_path / "any.csv", np.zeros((3, 4)), time_step=0.3),
-                             SensorNetwork(d=4)).shape == (3, 4)  # no dt: any times
+    assert load_observations(
+        _write_csv(tmp_path / "any.csv", np.zeros((3, 4)), time_step=0.3), SensorNetwork(d=4)
+    ).shape == (3, 4)  # no dt: any times
 
 
 # ---- the prior without true states ------------------------------------------------------------------
+
 
 def test_every_built_in_model_s_prior_without_true_states():
     lg = SensorNetwork(d=4)
@@ -115,18 +132,20 @@ def test_every_built_in_model_s_prior_without_true_states():
     assert torch.equal(mean, lg.m0.expand(3, -1)) and torch.equal(cov, lg.P0.expand(3, -1, -1))
     ac = AcousticTracking()
     mean, cov = declared_prior(ac, 2)
-    assert torch.equal(mean, ac.x0.expand(2, -1)) and torch.equal(cov[0].diagonal(), ac.prior_std ** 2)
+    assert torch.equal(mean, ac.x0.expand(2, -1)) and torch.equal(cov[0].diagonal(), ac.prior_std**2)
     st = SkewedTPoisson(d=4)
     mean, cov = declared_prior(st, 2)
     assert torch.equal(mean, torch.zeros(2, 4, dtype=torch.float64)) and cov.shape == (2, 4, 4)
     with pytest.raises(ArgumentError, match="Lorenz96 declares no prior without true states.*prior=\\(mean, cov\\)"):
         declared_prior(Lorenz96(d=4), 2)
     with pytest.raises(ConfigError, match="padded sets"):
-        run_experiment(TDOA3D(), {}, observations=torch.zeros(5, TDOA3D().obs_dim or 1, dtype=torch.float64),
-                       progress=False)
+        run_experiment(
+            TDOA3D(), {}, observations=torch.zeros(5, TDOA3D().obs_dim or 1, dtype=torch.float64), progress=False
+        )
 
 
 # ---- the runner ---------------------------------------------------------------------------------
+
 
 def test_each_trial_filters_the_recorded_series_with_its_own_stream():
     """(T, m): every trial filters the one series from the declared prior; the Kalman filter's
@@ -143,11 +162,15 @@ def test_each_trial_filters_the_recorded_series_with_its_own_stream():
     exact = float(KalmanFilter(model)(z[None], m0, P0).log_evidence)
     assert kf["log_evidence"] == pytest.approx(exact, rel=1e-12) and kf["log_evidence_se"] == pytest.approx(0, abs=1e-9)
     B = 3
-    direct = filters["bpf"](z.expand(B, -1, -1).contiguous(), m0.expand(B, -1), P0.expand(B, -1, -1),
-                            TrialStreams(4, range(B), key=filters["bpf"].stream_name)).log_evidence
+    direct = filters["bpf"](
+        z.expand(B, -1, -1).contiguous(),
+        m0.expand(B, -1),
+        P0.expand(B, -1, -1),
+        TrialStreams(4, range(B), key=filters["bpf"].stream_name),
+    ).log_evidence
     per_trial = torch.tensor([r["log_evidence"] for r in res.per_trial if r["filter"] == "bpf"], dtype=torch.float64)
     assert torch.equal(per_trial, direct) and len(set(per_trial.tolist())) == B  # independent runs
-    assert bpf["log_evidence_se"] == pytest.approx(float(direct.std() / B ** 0.5), rel=1e-12)
+    assert bpf["log_evidence_se"] == pytest.approx(float(direct.std() / B**0.5), rel=1e-12)
     mean, sd, spread = res.estimate_summary["bpf"]
     assert mean.shape == sd.shape == spread.shape == (8, 4) and bool((spread > 0).all())
     # the filtering sd is the filter's own: the Kalman filter's is its covariance's diagonal
@@ -167,11 +190,14 @@ def test_a_batch_of_series_is_one_trial_each_and_sizes_are_checked():
     m0, P0 = model.declared_prior(2)
     assert res.summary[0]["trials"] == 2
     assert [r["log_evidence"] for r in res.per_trial] == pytest.approx(
-        KalmanFilter(model)(z, m0, P0).log_evidence.tolist(), rel=1e-12)
-    for kw, message in (({"trials": 3}, "trials: expected the number of recorded series B = 2"),
-                        ({"steps": 4}, "steps: expected the recorded series' length T = 5"),
-                        ({"inits_per_track": 2}, "inits_per_track: expected 1 with recorded data"),
-                        ({"simulator": lambda *a: None}, "give observations or simulator, not both")):
+        KalmanFilter(model)(z, m0, P0).log_evidence.tolist(), rel=1e-12
+    )
+    for kw, message in (
+        ({"trials": 3}, "trials: expected the number of recorded series B = 2"),
+        ({"steps": 4}, "steps: expected the recorded series' length T = 5"),
+        ({"inits_per_track": 2}, "inits_per_track: expected 1 with recorded data"),
+        ({"simulator": lambda *a: None}, "give observations or simulator, not both"),
+    ):
         with pytest.raises(ConfigError, match=message):
             run_experiment(model, {"kf": KalmanFilter(model)}, observations=z, progress=False, **kw)
     with pytest.raises(ConfigError, match="expected m = 4"):
@@ -186,8 +212,7 @@ def test_a_model_without_a_declared_prior_takes_one_given():
     with pytest.raises(ConfigError, match="declares no prior"):
         run_experiment(l96, {"ekf": ExtendedKalmanFilter(l96)}, observations=z, progress=False)
     prior = (torch.full((8,), 8.0, dtype=torch.float64), 4.0 * torch.eye(8, dtype=torch.float64))
-    res = run_experiment(l96, {"ekf": ExtendedKalmanFilter(l96)}, observations=z, prior=prior, trials=2,
-                         progress=False)
+    res = run_experiment(l96, {"ekf": ExtendedKalmanFilter(l96)}, observations=z, prior=prior, trials=2, progress=False)
     assert res.summary[0]["error"] is None and res.summary[0]["log_evidence"] < 0
     with pytest.raises(ConfigError, match="prior: expected \\(mean, cov\\)"):
         run_experiment(l96, {}, observations=z, prior=(prior[0][:3], prior[1]), progress=False)
@@ -197,24 +222,46 @@ def test_a_series_with_unobserved_coordinates_is_filtered():
     model = SensorNetwork(d=4)
     z = _series(model, 6).clone()
     z[2, 1] = float("nan")
-    res = run_experiment(model, {"kf": KalmanFilter(model), "bpf": BootstrapParticleFilter(model, n_particles=32)},
-                         observations=z, trials=2, progress=False)
+    res = run_experiment(
+        model,
+        {"kf": KalmanFilter(model), "bpf": BootstrapParticleFilter(model, n_particles=32)},
+        observations=z,
+        trials=2,
+        progress=False,
+    )
     assert all(r["error"] is None and np.isfinite(r["log_evidence"]) for r in res.summary)
 
 
 # ---- the command lines ----------------------------------------------------------------------------
 
+
 def _command(script, tmp_path, *args):
     env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
-    return subprocess.run([sys.executable, str(ROOT / "experiments" / script), *args, f"hydra.run.dir={tmp_path / 'out'}"],
-                          capture_output=True, text=True, cwd=tmp_path, timeout=300, env=env)
+    return subprocess.run(
+        [sys.executable, str(ROOT / "experiments" / script), *args, f"hydra.run.dir={tmp_path / 'out'}"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=300,
+        env=env,
+    )
 
 
 def test_the_run_command_filters_a_csv(tmp_path):
     z = _series(SensorNetwork(d=4), 6).numpy()
     _write_csv(tmp_path / "z.csv", z, time_step=1.0)
-    r = _command("run.py", tmp_path, "model=linear_gaussian", "model.d=4", "filter=[kf,bpf]", "n_particles=30",
-                 "trials=3", "data=z.csv", "progress=false", "checkpoint_dir=null")
+    r = _command(
+        "run.py",
+        tmp_path,
+        "model=linear_gaussian",
+        "model.d=4",
+        "filter=[kf,bpf]",
+        "n_particles=30",
+        "trials=3",
+        "data=z.csv",
+        "progress=false",
+        "checkpoint_dir=null",
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     assert "recorded data (no true states): mse, rmse, omat, ospa left out" in r.stdout
     out = tmp_path / "out"
@@ -225,13 +272,15 @@ def test_the_run_command_filters_a_csv(tmp_path):
     assert len(est) == 2 * 6 and list(est[0])[:3] == ["filter", "step", "mean_0"] and "sd_3" in est[0]
     assert (out / "estimates.png").exists() and (out / "per_step.png").exists() and not (out / "tracks.png").exists()
     assert json.loads((out / "results.json").read_text())["config"]["data"] == "z.csv"
-    bad = _command("run.py", tmp_path, "model=linear_gaussian", "model.d=16", "filter=[kf]", "data=z.csv",
-                   "overwrite=true")
+    bad = _command(
+        "run.py", tmp_path, "model=linear_gaussian", "model.d=16", "filter=[kf]", "data=z.csv", "overwrite=true"
+    )
     assert bad.returncode == 2 and "error: data (z.csv): expected m = 16 measurement coordinates" in bad.stderr
     assert "Traceback" not in bad.stderr
 
 
 # ---- learning ---------------------------------------------------------------------------------------
+
 
 def _fit(filt, model, obs, epochs, **kw):
     import pytorch_lightning as pl
@@ -240,8 +289,13 @@ def _fit(filt, model, obs, epochs, **kw):
     from torchflow.lightning import FilterLightningModule, TrajectoryDataset
 
     module = FilterLightningModule(filt, lr=0.05, betas=(0.5, 0.9), lr_decay=0.95, **kw)
-    trainer = pl.Trainer(max_epochs=epochs, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                         enable_model_summary=False)
+    trainer = pl.Trainer(
+        max_epochs=epochs,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+    )
     trainer.fit(module, DataLoader(TrajectoryDataset(obs), batch_size=obs.shape[0]))  # no states, no prior
     return float(model.F.detach())
 
@@ -277,9 +331,22 @@ def test_learning_on_a_recorded_series_reaches_the_kalman_mle_with_a_prior_that_
 def test_the_learn_command_fits_a_csv(tmp_path):
     z = _series(SensorNetwork(d=4), 8).numpy()
     np.savetxt(tmp_path / "z.csv", z, delimiter=",")
-    r = _command("learn.py", tmp_path, "model=linear_gaussian", "model.d=4", "learn=[F]", "~start",
-                 "+start={alpha: 0.5}", "filter=[bpf]", "reference=kf", "data=z.csv", "epochs=2", "trials=2",
-                 "n_particles=20", "plots=false")
+    r = _command(
+        "learn.py",
+        tmp_path,
+        "model=linear_gaussian",
+        "model.d=4",
+        "learn=[F]",
+        "~start",
+        "+start={alpha: 0.5}",
+        "filter=[bpf]",
+        "reference=kf",
+        "data=z.csv",
+        "epochs=2",
+        "trials=2",
+        "n_particles=20",
+        "plots=false",
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     rows = list(csv.DictReader(open(tmp_path / "out" / "learn.csv")))
     assert [(x["filter"], x["parameter"]) for x in rows] == [("bpf", "F"), ("kf", "F")]

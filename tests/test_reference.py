@@ -12,6 +12,7 @@ unweighted LEDH flow filter on the acoustic case, whose particles are never rewe
 Power: the same cases with the seed moved by one (other data and draws) move every filter's largest
 number by 0.4 to 92 relative, 2e4x past the larger tolerance.
 """
+
 import json
 import math
 

@@ -10,11 +10,9 @@ from torchflow.resampling import (
     effective_sample_size,
     gather_particles,
     get_resampler,
-    multinomial,
     normalize_log_weights,
     residual,
     resample_if_needed,
-    stratified,
     systematic,
 )
 
@@ -59,9 +57,7 @@ def test_normalize_log_weights():
 
 def test_ess_uniform_and_one_hot():
     lw_uniform = torch.full((3, 7), 2.5, dtype=torch.float64)
-    torch.testing.assert_close(
-        effective_sample_size(lw_uniform), torch.full((3,), 7.0, dtype=torch.float64)
-    )
+    torch.testing.assert_close(effective_sample_size(lw_uniform), torch.full((3,), 7.0, dtype=torch.float64))
     lw_hot = torch.full((2, 7), -float("inf"))
     lw_hot[0, 3] = 0.0
     lw_hot[1, 6] = -4.0
@@ -212,9 +208,7 @@ def test_resample_if_needed_only_low_ess(scheme):
     keep = ~resampled
     assert torch.equal(idx[keep], torch.arange(n).expand(int(keep.sum()), n))
     torch.testing.assert_close(new_lw[keep], normalize_log_weights(lw)[keep])
-    torch.testing.assert_close(
-        new_lw[resampled], torch.full((2, n), -math.log(n), dtype=torch.float64)
-    )
+    torch.testing.assert_close(new_lw[resampled], torch.full((2, n), -math.log(n), dtype=torch.float64))
     assert idx.dtype == torch.int64 and new_lw.dtype == lw.dtype
     # heavy particles dominate the resampled rows
     assert torch.all(idx[1] == 0) and torch.all(idx[3] == 3)
@@ -310,7 +304,7 @@ def test_hilbert_index_is_a_curve_through_every_cell():
     from torchflow.resampling import hilbert_index
 
     for d, bits in [(2, 1), (2, 4), (3, 3), (4, 2)]:
-        cells = torch.tensor(list(itertools.product(range(2 ** bits), repeat=d)))
+        cells = torch.tensor(list(itertools.product(range(2**bits), repeat=d)))
         h = hilbert_index(cells, bits)
         assert sorted(h.tolist()) == list(range(2 ** (bits * d)))
         walk = cells[torch.argsort(h)]
@@ -328,13 +322,15 @@ def test_sorted_resampling_keeps_the_weighted_cloud(sort, d):
     g = torch.Generator().manual_seed(0)
     B, N = 6, 50
     x = torch.randn(B, N, d, generator=g, dtype=torch.float64)
-    lw = normalize_log_weights(torch.randn(B, N, generator=g, dtype=torch.float64) * torch.tensor(
-        [3.0, 3.0, 3.0, 0.01, 0.01, 0.01], dtype=torch.float64)[:, None])   # the last three: ESS high
+    lw = normalize_log_weights(
+        torch.randn(B, N, generator=g, dtype=torch.float64)
+        * torch.tensor([3.0, 3.0, 3.0, 0.01, 0.01, 0.01], dtype=torch.float64)[:, None]
+    )  # the last three: ESS high
     r = Resampler(d, ess_threshold=0.9, sort=sort)
     tag = torch.arange(N, dtype=torch.float64).expand(B, N)
     out, lw_new, _, extras, resampled = r(x, lw, torch.Generator().manual_seed(1), extras={"tag": tag})
     assert resampled.tolist() == [True] * 3 + [False] * 3
-    src = extras["tag"].long()                                                 # each new particle's source
+    src = extras["tag"].long()  # each new particle's source
     assert torch.equal(out, gather_particles(x, src))
     counts = torch.zeros(B, N, dtype=torch.int64).scatter_add_(1, src, torch.ones_like(src))
     nw = lw.exp() * N
@@ -369,8 +365,9 @@ def test_sorted_resampling_moves_continuously_with_the_uniform():
     assert moved["first"] < 0.1 * moved[None], moved
     # already sorted particles: the same numbers as no sort
     xs = x.sort(1)[0]
-    same = [Resampler(1, ess_threshold=1.0, sort=s)(xs, lw, torch.Generator().manual_seed(3))[0]
-            for s in (None, "first")]
+    same = [
+        Resampler(1, ess_threshold=1.0, sort=s)(xs, lw, torch.Generator().manual_seed(3))[0] for s in (None, "first")
+    ]
     assert torch.equal(same[0], same[1])
 
 
@@ -398,13 +395,19 @@ def test_one_pass_inversion_equals_the_binary_search(per_trial, shape):
     g = torch.Generator().manual_seed(3)
     i = torch.arange(n, dtype=torch.float64)
     for weights in ("random", "uniform", "spiky"):
-        lw = (torch.randn(b, n, dtype=torch.float64, generator=g) * (2 if weights == "random" else 25)
-              if weights != "uniform" else torch.zeros(b, n, dtype=torch.float64))
+        lw = (
+            torch.randn(b, n, dtype=torch.float64, generator=g) * (2 if weights == "random" else 25)
+            if weights != "uniform"
+            else torch.zeros(b, n, dtype=torch.float64)
+        )
         if weights == "random":
             lw[:, ::5] = float("-inf")
         S = R._scaled_cdf(R._unnormalized_weights(lw))
-        draws = [torch.rand(b, n if per_trial is None else 1, dtype=torch.float64, generator=g),
-                 torch.zeros(b, 1, dtype=torch.float64), torch.full((b, 1), 1 - 2.0**-53, dtype=torch.float64)]
+        draws = [
+            torch.rand(b, n if per_trial is None else 1, dtype=torch.float64, generator=g),
+            torch.zeros(b, 1, dtype=torch.float64),
+            torch.full((b, 1), 1 - 2.0**-53, dtype=torch.float64),
+        ]
         for u in draws:
             p = R._below(i + u, i + 1.0).expand(b, n)
             with monkeypatch_threshold(R, 0):

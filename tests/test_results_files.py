@@ -39,6 +39,7 @@ far past the tolerance, so the files are rerun with :data:`ARITHMETIC`, the arit
 them. That the new defaults have the same statistics is measured on the tables' settings
 (RESULTS.md, "CPU kernels").
 """
+
 import csv
 import math
 import re
@@ -60,32 +61,93 @@ ARITHMETIC = dict(fused_flows=0, structured_update=0)
 #: (experiment overrides, filter config key, committed file, its filter label, the trials compared: those
 #: that reproduce across hosts and instruction sets, module docstring)
 CASES = {
-    "seed000_table1_bpf_seed1": (["experiment=seed000_table1", "seed=1"], "bpf",
-                                 "seed000_table1_bpf200_checks/per_trial_seed1.csv", "bpf", (0, 1, 2, 3, 4)),
-    "seed000_table2_tight_prior_gromov": (["experiment=seed000_table2", "model.prior_std=[1.0,1.0,0.005,0.005]"],
-                                          "pfpf_gromov", "seed000_table2_tight_prior/per_trial.csv", "pfpf_gromov", (0,)),
-    "seed000_table2_pfpf_ledh": (["experiment=seed000_table2", "filter.pfpf_edh.n_particles=10000"], "pfpf_ledh",
-                                 "seed000_table2_40/sw0.1/per_trial.csv", "pfpf_ledh", (0,)),
-    "seed000_table2_sw0001_pfpf_gromov": (["experiment=seed000_table2", "model.sigma_w=0.001"], "pfpf_gromov",
-                                          "seed000_table2_40/sw0.001/per_trial.csv", "pfpf_gromov", (0,)),
-    "seed000_table2_gpfis": (["experiment=seed000_table2", "trials=8", "inits_per_track=1"], "gpfis",
-                             "seed000_table2_40/gpfis_sw0.1/per_trial.csv", "gpfis", (3,)),
-    "seed000_table2_sw0001_ekf": (["experiment=seed000_table2", "model.sigma_w=0.001"], "ekf",
-                                  "seed000_table2_40/sw0.001/per_trial.csv", "ekf", (0, 2, 6, 7, 9)),
-    "seed001_table1_pfgpf": (["experiment=seed001_table1", "trials=100"], "pfgpf",
-                             "seed001_table1_100/per_trial.csv", "pfgpf", (2,)),
-    "seed001_table1_pfpf_ledh": (["experiment=seed001_table1", "trials=100"], "pfpf_ledh",
-                                 "seed001_table1_100/per_trial.csv", "pfpf_ledh", (0,)),
-    "seed003_table1_ekf": (["experiment=seed003_table1"], "ekf", "seed003_table1_10/per_trial.csv", "ekf", (1, 2, 3, 4, 5, 6, 8, 9)),
-    "seed003_table1_pfpf_ledh": (["experiment=seed003_table1"], "pfpf_ledh", "seed003_table1_10/per_trial.csv",
-                                 "pfpf_ledh", (3,)),
-    "seed003_table1_gpfis": (["experiment=seed003_table1", "trials=20"], "gpfis",
-                             "seed003_table1_20_gpfis_analytic/per_trial.csv", "gpfis", (3,)),
+    "seed000_table1_bpf_seed1": (
+        ["experiment=seed000_table1", "seed=1"],
+        "bpf",
+        "seed000_table1_bpf200_checks/per_trial_seed1.csv",
+        "bpf",
+        (0, 1, 2, 3, 4),
+    ),
+    "seed000_table2_tight_prior_gromov": (
+        ["experiment=seed000_table2", "model.prior_std=[1.0,1.0,0.005,0.005]"],
+        "pfpf_gromov",
+        "seed000_table2_tight_prior/per_trial.csv",
+        "pfpf_gromov",
+        (0,),
+    ),
+    "seed000_table2_pfpf_ledh": (
+        ["experiment=seed000_table2", "filter.pfpf_edh.n_particles=10000"],
+        "pfpf_ledh",
+        "seed000_table2_40/sw0.1/per_trial.csv",
+        "pfpf_ledh",
+        (0,),
+    ),
+    "seed000_table2_sw0001_pfpf_gromov": (
+        ["experiment=seed000_table2", "model.sigma_w=0.001"],
+        "pfpf_gromov",
+        "seed000_table2_40/sw0.001/per_trial.csv",
+        "pfpf_gromov",
+        (0,),
+    ),
+    "seed000_table2_gpfis": (
+        ["experiment=seed000_table2", "trials=8", "inits_per_track=1"],
+        "gpfis",
+        "seed000_table2_40/gpfis_sw0.1/per_trial.csv",
+        "gpfis",
+        (3,),
+    ),
+    "seed000_table2_sw0001_ekf": (
+        ["experiment=seed000_table2", "model.sigma_w=0.001"],
+        "ekf",
+        "seed000_table2_40/sw0.001/per_trial.csv",
+        "ekf",
+        (0, 2, 6, 7, 9),
+    ),
+    "seed001_table1_pfgpf": (
+        ["experiment=seed001_table1", "trials=100"],
+        "pfgpf",
+        "seed001_table1_100/per_trial.csv",
+        "pfgpf",
+        (2,),
+    ),
+    "seed001_table1_pfpf_ledh": (
+        ["experiment=seed001_table1", "trials=100"],
+        "pfpf_ledh",
+        "seed001_table1_100/per_trial.csv",
+        "pfpf_ledh",
+        (0,),
+    ),
+    "seed003_table1_ekf": (
+        ["experiment=seed003_table1"],
+        "ekf",
+        "seed003_table1_10/per_trial.csv",
+        "ekf",
+        (1, 2, 3, 4, 5, 6, 8, 9),
+    ),
+    "seed003_table1_pfpf_ledh": (
+        ["experiment=seed003_table1"],
+        "pfpf_ledh",
+        "seed003_table1_10/per_trial.csv",
+        "pfpf_ledh",
+        (3,),
+    ),
+    "seed003_table1_gpfis": (
+        ["experiment=seed003_table1", "trials=20"],
+        "gpfis",
+        "seed003_table1_20_gpfis_analytic/per_trial.csv",
+        "gpfis",
+        (3,),
+    ),
     # seed 004's clustered rows are not checked: their k-medoids choice is a discrete decision that
     # BLAS round-off flips, so they reproduce only at the same thread count (trial 0 matches with 1
     # thread, not with 2); the file's PF-PF(LEDH) row is checked instead
-    "seed004_pfpf_ledh": (["experiment=seed004_clustering", "trials=100"], "pfpf_ledh",
-                          "seed004_clustering_100/per_trial.csv", "pfpf_ledh", (0,)),
+    "seed004_pfpf_ledh": (
+        ["experiment=seed004_clustering", "trials=100"],
+        "pfpf_ledh",
+        "seed004_clustering_100/per_trial.csv",
+        "pfpf_ledh",
+        (0,),
+    ),
 }
 
 
@@ -94,9 +156,18 @@ def _rerun(overrides, key, lo, hi):
         cfg = compose("config", overrides=[*overrides, f"filter=[{key}]"])
     model = instantiate(cfg.model)
     f = instantiate(cfg.filter[key], model=model, name=key)
-    return run_experiment(model, {key: f}, trials=cfg.trials, steps=cfg.steps, seed=cfg.seed,
-                          inits_per_track=cfg.inits_per_track, progress=False, trial_range=[lo, hi],
-                          ospa_cutoff=float(cfg.metrics.ospa_cutoff), lost_threshold=float(cfg.metrics.lost_threshold))
+    return run_experiment(
+        model,
+        {key: f},
+        trials=cfg.trials,
+        steps=cfg.steps,
+        seed=cfg.seed,
+        inits_per_track=cfg.inits_per_track,
+        progress=False,
+        trial_range=[lo, hi],
+        ospa_cutoff=float(cfg.metrics.ospa_cutoff),
+        lost_threshold=float(cfg.metrics.lost_threshold),
+    )
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
@@ -124,7 +195,7 @@ def _expand(path):
     m = re.search(r"\{([^}]*)\}", path)
     if not m:
         return [path]
-    return [q for alt in m.group(1).split(",") for q in _expand(path[:m.start()] + alt + path[m.end():])]
+    return [q for alt in m.group(1).split(",") for q in _expand(path[: m.start()] + alt + path[m.end() :])]
 
 
 def test_every_raw_file_named_in_results_md_exists():

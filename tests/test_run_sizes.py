@@ -2,6 +2,7 @@
 memory before anything is simulated; allocation failures of the simulation name trials and steps;
 a long simulation logs its progress; a stop request (SIGINT, SIGTERM, or set in Python) ends the
 simulation within a time step."""
+
 import datetime
 import os
 import signal
@@ -40,17 +41,29 @@ def _available(monkeypatch, nbytes):
 def test_a_run_that_cannot_fit_in_memory_is_refused_before_simulating(monkeypatch):
     _available(monkeypatch, 2 * GIB)
     model = _NoSimulation(d=4)
-    with pytest.raises(ConfigError, match=r"^trials=1000000000, steps=5: the run needs about [\d,.]+ GiB of memory "
-                                          r"\(simulated data [\d,.]+ GiB, filter chunks .*, results [\d,.]+ GiB\), "
-                                          r"more than the 2 GiB available RAM; lower trials or steps \(the simulated "
-                                          r"data alone needs [\d,.]+ GiB; trial_range"):
+    with pytest.raises(
+        ConfigError,
+        match=r"^trials=1000000000, steps=5: the run needs about [\d,.]+ GiB of memory "
+        r"\(simulated data [\d,.]+ GiB, filter chunks .*, results [\d,.]+ GiB\), "
+        r"more than the 2 GiB available RAM; lower trials or steps \(the simulated "
+        r"data alone needs [\d,.]+ GiB; trial_range",
+    ):
         run_experiment(model, {"kf": KalmanFilter(model)}, trials=10**9, steps=5, progress=False)
 
 
 def _estimate(model, filters, trials, steps, chunk):
-    s = plan_module.check_settings(trials=trials, steps=steps, seed=0, inits_per_track=1, chunk_size=chunk,
-                                   memory_budget_gb=4.0, device="cpu", dtype="float64", rng_backend="auto",
-                                   trial_range=None)
+    s = plan_module.check_settings(
+        trials=trials,
+        steps=steps,
+        seed=0,
+        inits_per_track=1,
+        chunk_size=chunk,
+        memory_budget_gb=4.0,
+        device="cpu",
+        dtype="float64",
+        rng_backend="auto",
+        trial_range=None,
+    )
     return plan_module.estimate_memory(model, filters, s, dict.fromkeys(filters, chunk))
 
 
@@ -60,8 +73,11 @@ def test_results_that_cannot_fit_suggest_running_the_trials_in_parts(monkeypatch
     est = _estimate(model, filters, 10**6, 100, 1000)
     assert est.data < est.results
     _available(monkeypatch, (est.data + est.total) / 2)
-    with pytest.raises(ConfigError, match=r"lower trials or steps, or run the trials in parts with "
-                                          r"trial_range=\[start, stop\] \(each part keeps only its trials' results\)"):
+    with pytest.raises(
+        ConfigError,
+        match=r"lower trials or steps, or run the trials in parts with "
+        r"trial_range=\[start, stop\] \(each part keeps only its trials' results\)",
+    ):
         run_experiment(model, filters, trials=10**6, steps=100, chunk_size=1000, progress=False)
 
 
@@ -69,8 +85,11 @@ def test_a_run_that_needs_most_of_the_available_memory_warns(monkeypatch):
     model = SensorNetwork(d=4)
     est = _estimate(model, {"kf": KalmanFilter(model)}, 2, 3, 2)
     _available(monkeypatch, 1.5 * est.total)
-    with pytest.warns(UserWarning, match=r"^trials=2, steps=3: the run needs about [\d.]+ MiB of memory \(.*\), "
-                                         r"67% of the [\d.]+ MiB available RAM; it may run out of memory"):
+    with pytest.warns(
+        UserWarning,
+        match=r"^trials=2, steps=3: the run needs about [\d.]+ MiB of memory \(.*\), "
+        r"67% of the [\d.]+ MiB available RAM; it may run out of memory",
+    ):
         res = run_experiment(model, {"kf": KalmanFilter(model)}, trials=2, steps=3, chunk_size=2, progress=False)
     assert len(res.per_trial) == 2
 
@@ -88,12 +107,17 @@ def test_the_estimate_covers_the_simulated_data_and_priors():
 def test_an_allocation_failure_in_the_simulation_names_trials_and_steps(monkeypatch):
     class _Refused(SensorNetwork):
         def simulate(self, batch_size, steps, generator=None):
-            raise RuntimeError("[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate "
-                               "memory: you tried to allocate 512000000000 bytes. Error code 12")
+            raise RuntimeError(
+                "[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate "
+                "memory: you tried to allocate 512000000000 bytes. Error code 12"
+            )
 
     model = _Refused(d=4)
-    with pytest.raises(ConfigError, match=r"^trials=4, steps=5: the simulation ran out of memory \(one allocation "
-                                          r"of 477 GiB\); lower trials or steps$"):
+    with pytest.raises(
+        ConfigError,
+        match=r"^trials=4, steps=5: the simulation ran out of memory \(one allocation "
+        r"of 477 GiB\); lower trials or steps$",
+    ):
         run_experiment(model, {"kf": KalmanFilter(model)}, trials=4, steps=5, progress=False)
 
 
@@ -143,8 +167,17 @@ def _env():
 
 
 def test_the_command_refuses_a_run_that_cannot_fit_in_one_line_with_exit_2(tmp_path):
-    cmd = [sys.executable, str(ROOT / "experiments" / "run.py"), "model=linear_gaussian", "filter=[kf,bpf]",
-           "trials=1000000000", "steps=5", "n_particles=100", "plots=false", f"hydra.run.dir={tmp_path}/run"]
+    cmd = [
+        sys.executable,
+        str(ROOT / "experiments" / "run.py"),
+        "model=linear_gaussian",
+        "filter=[kf,bpf]",
+        "trials=1000000000",
+        "steps=5",
+        "n_particles=100",
+        "plots=false",
+        f"hydra.run.dir={tmp_path}/run",
+    ]
     out = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=120, env=_env())
     assert out.returncode == 2, out.stderr[-2000:]
     lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
@@ -169,9 +202,19 @@ def _stop_the_command_during_the_simulation(tmp_path, signum, code, name):
     (the process then exits after Python's own teardown) with the signal's exit status; nothing is
     written."""
     run = tmp_path / "run"
-    cmd = [sys.executable, str(ROOT / "experiments" / "run.py"), "model=linear_gaussian", "model.d=1",
-           "filter=[kf]", "trials=1", "steps=500000", "progress=false", "plots=false", "checkpoint_dir=null",
-           f"hydra.run.dir={run}"]
+    cmd = [
+        sys.executable,
+        str(ROOT / "experiments" / "run.py"),
+        "model=linear_gaussian",
+        "model.d=1",
+        "filter=[kf]",
+        "trials=1",
+        "steps=500000",
+        "progress=false",
+        "plots=false",
+        "checkpoint_dir=null",
+        f"hydra.run.dir={run}",
+    ]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=_env())
     try:
         deadline = time.time() + 60

@@ -1,5 +1,6 @@
 """Resumable runs (per-chunk files), torchrun sharding, sweeps on Hydra launchers,
 Lightning DDP. The subprocess tests run the real command lines on 2 CPU processes (gloo)."""
+
 from __future__ import annotations
 
 import csv
@@ -28,7 +29,6 @@ RUN = str(ROOT / "experiments" / "run.py")
 class _StopAfter(BootstrapParticleFilter):
     """A bootstrap PF (it inherits the random streams) that is 'killed' when it starts its chunk number ``k``."""
 
-
     def __init__(self, *a, stop_at: int, **kw):
         super().__init__(*a, **kw)
         self.calls, self.stop_at = 0, stop_at
@@ -42,8 +42,9 @@ class _StopAfter(BootstrapParticleFilter):
 
 def _bpf_run(model, f, store=None, **kw):
     kw.setdefault("warmup", False)  # (the calls counted are the chunks')
-    return run_experiment(model, {"bpf": f}, trials=10, steps=3, seed=4, chunk_size=1, progress=False,
-                          store=store, **kw)
+    return run_experiment(
+        model, {"bpf": f}, trials=10, steps=3, seed=4, chunk_size=1, progress=False, store=store, **kw
+    )
 
 
 def test_resume_computes_only_the_missing_chunks(tmp_path):
@@ -59,7 +60,7 @@ def test_resume_computes_only_the_missing_chunks(tmp_path):
     resumed = _bpf_run(model, f, store)
     assert store.loaded == {"bpf": 5} and store.computed == {"bpf": 5} and f.calls == 5
     assert resumed.per_trial == full.per_trial and resumed.per_step == full.per_step
-    drop = lambda rows: [{k: v for k, v in r.items() if k != "sec_per_step"} for r in rows]  # noqa: E731
+    drop = lambda rows: [{k: v for k, v in r.items() if k != "sec_per_step"} for r in rows]
     assert drop(resumed.summary) == drop(full.summary)
     # without resume every chunk is computed again (and the files overwritten)
     again = ChunkStore(tmp_path, {"bpf": "k"})
@@ -122,7 +123,7 @@ def test_sharded_chunks_reassemble_to_the_single_process_run():
     at ceil(7 / 3) trials so every rank has work) the bootstrap PF is still identical and the
     Kalman filter equal to round-off (batched Cholesky blocks by batch size)."""
     model = SensorNetwork(d=9)
-    filters = lambda: {"kf": KalmanFilter(model), "bpf": BootstrapParticleFilter(model, n_particles=40)}  # noqa: E731
+    filters = lambda: {"kf": KalmanFilter(model), "bpf": BootstrapParticleFilter(model, n_particles=40)}
     kw = dict(trials=7, steps=3, seed=1)
     pinned = run_experiment(model, filters(), progress=False, chunk_size=2, **kw)
     res = _sharded(model, filters, 3, chunk_size=2, **kw)
@@ -131,7 +132,7 @@ def test_sharded_chunks_reassemble_to_the_single_process_run():
     single = run_experiment(model, filters(), progress=False, **kw)
     res = _sharded(model, filters, 3, **kw)
     assert res.config["chunk_size"] == {"kf": 3, "bpf": 3} and single.config["chunk_size"] == {"kf": 7, "bpf": 7}
-    bpf = lambda r: [x for x in r.per_trial if x["filter"] == "bpf"]  # noqa: E731
+    bpf = lambda r: [x for x in r.per_trial if x["filter"] == "bpf"]
     assert bpf(res) == bpf(single)
     for a, b in zip(res.per_trial[:7], single.per_trial[:7]):
         assert a["mse"] == pytest.approx(b["mse"], rel=1e-12) and a["log_evidence"] == pytest.approx(b["log_evidence"])
@@ -147,7 +148,7 @@ def test_a_filter_failing_on_one_rank_fails_its_row_not_the_run():
                 raise RuntimeError("boom")
             return super().forward(obs, *a, **kw)
 
-    filters = lambda: {"bpf": Broken(model, n_particles=20), "kf": KalmanFilter(model)}  # noqa: E731
+    filters = lambda: {"bpf": Broken(model, n_particles=20), "kf": KalmanFilter(model)}
     res = _sharded(model, filters, 2, trials=3, steps=2, seed=0)
     assert res.summary[0]["error"] == "RuntimeError: boom" and res.summary[1]["error"] is None
     assert [r["filter"] for r in res.per_trial] == ["kf"] * 3
@@ -164,8 +165,11 @@ def test_an_interrupt_on_one_rank_stops_every_rank():
                 raise KeyboardInterrupt
             return super().forward(obs, *a, **kw)
 
-    filters = lambda: {"kf": KalmanFilter(model), "bpf": Stopped(model, n_particles=20),  # noqa: E731
-                       "kf2": KalmanFilter(model)}
+    filters = lambda: {
+        "kf": KalmanFilter(model),
+        "bpf": Stopped(model, n_particles=20),
+        "kf2": KalmanFilter(model),
+    }
     res = _sharded(model, filters, 2, trials=3, steps=2, seed=0, warmup=False)  # (a warm-up call has 1 trial too)
     assert res.interrupted and res.not_run == ["kf2"]
     assert res.summary[1]["error"] == "interrupted after 2 of 3 trials"
@@ -188,8 +192,14 @@ def test_a_signal_outside_a_chunk_waits_for_the_next_chunk():
         res = run_experiment(model, {"bpf": Signalled(model, n_particles=20)}, trials=2, steps=2, progress=False)
         assert res.interrupted and res.summary[0]["error"] == "interrupted after 0 of 2 trials"
         STOP.reset()
-        res = run_experiment(model, {"kf": KalmanFilter(model), "bpf": BootstrapParticleFilter(model, n_particles=20)},
-                             trials=2, steps=2, progress=False, on_filter_done=lambda rows: STOP.handler(15, None))
+        res = run_experiment(
+            model,
+            {"kf": KalmanFilter(model), "bpf": BootstrapParticleFilter(model, n_particles=20)},
+            trials=2,
+            steps=2,
+            progress=False,
+            on_filter_done=lambda rows: STOP.handler(15, None),
+        )
         assert res.interrupted and res.summary[0]["error"] is None and len(res.per_trial) == 2
         assert res.summary[1]["error"] == "interrupted after 0 of 2 trials"
     finally:
@@ -210,15 +220,36 @@ def _env():
 def test_cli_sigterm_then_resume_gives_the_uninterrupted_files(tmp_path):
     """End to end: a 10-chunk run killed (SIGTERM) after 5 chunks; ``resume=true``
     computes only the missing chunks and writes the uninterrupted run's files."""
-    args = ["model=linear_gaussian", "model.d=16", "filter=[bpf]", "trials=10", "steps=40", "n_particles=20000",
-            "chunk_size=1", "seed=3", "progress=false", "plots=false", f"checkpoint_dir={tmp_path}/ckpt"]
-    full = subprocess.run([sys.executable, RUN, *args, f"hydra.run.dir={tmp_path}/full", "checkpoint_dir=null"],
-                          capture_output=True, text=True, env=_env(), timeout=300)
+    args = [
+        "model=linear_gaussian",
+        "model.d=16",
+        "filter=[bpf]",
+        "trials=10",
+        "steps=40",
+        "n_particles=20000",
+        "chunk_size=1",
+        "seed=3",
+        "progress=false",
+        "plots=false",
+        f"checkpoint_dir={tmp_path}/ckpt",
+    ]
+    full = subprocess.run(
+        [sys.executable, RUN, *args, f"hydra.run.dir={tmp_path}/full", "checkpoint_dir=null"],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=300,
+    )
     assert full.returncode == 0, full.stderr[-2000:]
-    proc = subprocess.Popen([sys.executable, RUN, *args, f"hydra.run.dir={tmp_path}/killed"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    proc = subprocess.Popen(
+        [sys.executable, RUN, *args, f"hydra.run.dir={tmp_path}/killed"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+    )
     deadline = time.time() + 240
-    files = lambda: list((tmp_path / "ckpt").glob("*/*.pt"))  # noqa: E731
+    files = lambda: list((tmp_path / "ckpt").glob("*/*.pt"))
     while len(files()) < 5 and time.time() < deadline and proc.poll() is None:
         time.sleep(0.01)
     proc.send_signal(signal.SIGTERM)
@@ -226,8 +257,13 @@ def test_cli_sigterm_then_resume_gives_the_uninterrupted_files(tmp_path):
     saved = len(files())
     assert proc.returncode == 143 and "Traceback" not in err, err[-2000:]  # 128 + SIGTERM (torchflow.runner.shell)
     assert 5 <= saved < 10 and "resume=true" in err, err[-2000:]
-    res = subprocess.run([sys.executable, RUN, *args, f"hydra.run.dir={tmp_path}/resumed", "resume=true"],
-                         capture_output=True, text=True, env=_env(), timeout=300)
+    res = subprocess.run(
+        [sys.executable, RUN, *args, f"hydra.run.dir={tmp_path}/resumed", "resume=true"],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=300,
+    )
     assert res.returncode == 0, res.stderr[-2000:]
     assert f"resumed: {saved} chunks loaded" in res.stdout and f"{10 - saved} computed" in res.stdout
     for name in ("per_trial.csv", "per_step.csv"):
@@ -236,22 +272,63 @@ def test_cli_sigterm_then_resume_gives_the_uninterrupted_files(tmp_path):
 
 
 def test_cli_resume_needs_a_checkpoint_dir(tmp_path):
-    out = subprocess.run([sys.executable, RUN, "model=linear_gaussian", "filter=[kf]", "trials=2", "steps=2",
-                          "resume=true", "checkpoint_dir=null", f"hydra.run.dir={tmp_path}"],
-                         capture_output=True, text=True, env=_env(), timeout=120)
+    out = subprocess.run(
+        [
+            sys.executable,
+            RUN,
+            "model=linear_gaussian",
+            "filter=[kf]",
+            "trials=2",
+            "steps=2",
+            "resume=true",
+            "checkpoint_dir=null",
+            f"hydra.run.dir={tmp_path}",
+        ],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=120,
+    )
     assert out.returncode == 2 and "resume=true needs checkpoint_dir" in out.stderr
 
 
 def test_torchrun_two_processes_give_byte_identical_per_trial_csv(tmp_path):
     """End to end: the same command on 1 and on 2 torchrun processes (gloo)."""
-    args = ["model=linear_gaussian", "filter=[bpf]", "trials=40", "steps=10", "n_particles=200", "seed=0",
-            "progress=false", "plots=false", "checkpoint_dir=null"]
-    one = subprocess.run([sys.executable, RUN, *args, f"hydra.run.dir={tmp_path}/one"],
-                         capture_output=True, text=True, env=_env(), timeout=300)
+    args = [
+        "model=linear_gaussian",
+        "filter=[bpf]",
+        "trials=40",
+        "steps=10",
+        "n_particles=200",
+        "seed=0",
+        "progress=false",
+        "plots=false",
+        "checkpoint_dir=null",
+    ]
+    one = subprocess.run(
+        [sys.executable, RUN, *args, f"hydra.run.dir={tmp_path}/one"],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=300,
+    )
     assert one.returncode == 0, one.stderr[-2000:]
-    two = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
-                          RUN, *args, f"hydra.run.dir={tmp_path}/two"],
-                         capture_output=True, text=True, env=_env(), timeout=300)
+    two = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            "--standalone",
+            "--nproc_per_node=2",
+            RUN,
+            *args,
+            f"hydra.run.dir={tmp_path}/two",
+        ],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=300,
+    )
     assert two.returncode == 0, two.stderr[-3000:]
     assert two.stdout.count("| bpf |") == 1  # rank 0 alone prints and writes
     assert (tmp_path / "two" / "per_trial.csv").read_bytes() == (tmp_path / "one" / "per_trial.csv").read_bytes()
@@ -263,25 +340,44 @@ def test_torchrun_two_processes_give_byte_identical_per_trial_csv(tmp_path):
 
 
 def _sweep(tmp_path, launcher=None, values="10,-1,20"):
-    cmd = [sys.executable, RUN, "-m", "model=linear_gaussian", "model.d=4", "filter=[bpf]", "trials=2", "steps=2",
-           f"n_particles={values}", "progress=false", "plots=false", "checkpoint_dir=null",
-           f"hydra.sweep.dir={tmp_path}/sweep"]
+    cmd = [
+        sys.executable,
+        RUN,
+        "-m",
+        "model=linear_gaussian",
+        "model.d=4",
+        "filter=[bpf]",
+        "trials=2",
+        "steps=2",
+        f"n_particles={values}",
+        "progress=false",
+        "plots=false",
+        "checkpoint_dir=null",
+        f"hydra.sweep.dir={tmp_path}/sweep",
+    ]
     if launcher:
         cmd.append(f"hydra/launcher={launcher}")
     return subprocess.run(cmd, capture_output=True, text=True, env=_env(), timeout=400, cwd=tmp_path)
 
 
 def _collect(sweep_dir):
-    return subprocess.run([sys.executable, str(ROOT / "experiments" / "collect.py"), str(sweep_dir)],
-                          capture_output=True, text=True, env=_env(), timeout=120)
+    return subprocess.run(
+        [sys.executable, str(ROOT / "experiments" / "collect.py"), str(sweep_dir)],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=120,
+    )
 
 
 @pytest.mark.parametrize("launcher", [None, "joblib", "submitit_local"])
 def test_sweep_with_a_failing_job_keeps_the_others_and_names_it(tmp_path, launcher):
     """Job 1 (n_particles=-1) fails: jobs 0 and 2 still run, the sweep ends with status 1 and
     names job 1 with its overrides; collect.py merges the two results and names the failure."""
-    plugin = {"joblib": "hydra_plugins.hydra_joblib_launcher",
-              "submitit_local": "hydra_plugins.hydra_submitit_launcher"}.get(launcher)
+    plugin = {
+        "joblib": "hydra_plugins.hydra_joblib_launcher",
+        "submitit_local": "hydra_plugins.hydra_submitit_launcher",
+    }.get(launcher)
     if plugin and importlib.util.find_spec(plugin) is None:
         pytest.skip(f"{launcher} launcher not installed (pip install -e '.[cluster]')")
     out = _sweep(tmp_path, launcher)
@@ -304,10 +400,29 @@ def test_parallel_launchers_keep_every_job_in_the_announced_sweep_folder(tmp_pat
     if importlib.util.find_spec("hydra_plugins.hydra_joblib_launcher") is None:
         pytest.skip("joblib launcher not installed (pip install -e '.[cluster]')")
     env = {k: v for k, v in _env().items() if k != "OMP_NUM_THREADS"}  # threads=null divides the cores
-    out = subprocess.run([sys.executable, RUN, "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
-                          "model=linear_gaussian", "model.d=4",
-                          "filter=[kf]", "trials=2", "steps=2", "seed=0,1,2", "progress=false", "plots=false",
-                          "checkpoint_dir=null"], capture_output=True, text=True, env=env, timeout=300, cwd=tmp_path)
+    out = subprocess.run(
+        [
+            sys.executable,
+            RUN,
+            "-m",
+            "hydra/launcher=joblib",
+            "hydra.launcher.n_jobs=2",
+            "model=linear_gaussian",
+            "model.d=4",
+            "filter=[kf]",
+            "trials=2",
+            "steps=2",
+            "seed=0,1,2",
+            "progress=false",
+            "plots=false",
+            "checkpoint_dir=null",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+        cwd=tmp_path,
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     sweeps = list((tmp_path / "multirun" / "default").iterdir())
     assert len(sweeps) == 1 and sorted(p.name for p in sweeps[0].iterdir() if p.is_dir()) == ["0", "1", "2"]
@@ -323,8 +438,14 @@ def test_lightning_ddp_gradients_equal_single_process(tmp_path):
     script = ROOT / "tests" / "ddp_train.py"
     outs = {}
     for devices in (1, 2):
-        out = subprocess.run([sys.executable, str(script), str(devices), str(tmp_path / f"grad{devices}.pt")],
-                             capture_output=True, text=True, env=_env(), timeout=300, cwd=tmp_path)
+        out = subprocess.run(
+            [sys.executable, str(script), str(devices), str(tmp_path / f"grad{devices}.pt")],
+            capture_output=True,
+            text=True,
+            env=_env(),
+            timeout=300,
+            cwd=tmp_path,
+        )
         assert out.returncode == 0, out.stderr[-3000:]
         outs[devices] = torch.load(tmp_path / f"grad{devices}.pt")
     assert outs[2]["world"] == 2 and outs[1]["world"] == 1

@@ -1,6 +1,7 @@
 """The command shell both commands run in (torchflow.runner.shell): unknown settings, stop signals,
 the output folder's earlier results and lock file, the job environment. The subprocess tests use
 tiny runs (a few seconds each, most of it Python's start-up)."""
+
 import json
 import re
 import os
@@ -19,10 +20,19 @@ from torchflow.runner import shell
 from torchflow.runner.config import close_keys
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = {"run": ["model=linear_gaussian", "model.d=4", "filter=[kf]", "trials=2", "steps=2", "progress=false",
-                "plots=false", "checkpoint_dir=null"],
-        "learn": ["filter=[bpf]", "trials=2", "steps=3", "n_particles=20", "epochs=1", "reference=null",
-                  "plots=false"]}
+TINY = {
+    "run": [
+        "model=linear_gaussian",
+        "model.d=4",
+        "filter=[kf]",
+        "trials=2",
+        "steps=2",
+        "progress=false",
+        "plots=false",
+        "checkpoint_dir=null",
+    ],
+    "learn": ["filter=[bpf]", "trials=2", "steps=3", "n_particles=20", "epochs=1", "reference=null", "plots=false"],
+}
 RESULT = {"run": "summary.csv", "learn": "learn.csv"}
 
 
@@ -36,19 +46,22 @@ def _env():
 
 
 def _cli(tmp_path, command, *args):
-    return subprocess.run(_argv(command, *args), capture_output=True, text=True, cwd=tmp_path, timeout=120,
-                          env=_env())
+    return subprocess.run(_argv(command, *args), capture_output=True, text=True, cwd=tmp_path, timeout=120, env=_env())
 
 
 def _lines(text):
     return [ln for ln in text.splitlines() if ln.strip()]
 
 
-@pytest.mark.parametrize("command, key, message", [
-    ("learn", "+learning_rate=0.5", "error: learning_rate: unknown setting; did you mean lr?"),
-    ("learn", "+bogus=1", "error: bogus: unknown setting"),
-    ("run", "+n_particle=7", "error: n_particle: unknown setting; did you mean n_particles?"),
-    ("run", "+bogus=1", "error: bogus: unknown setting")])
+@pytest.mark.parametrize(
+    "command, key, message",
+    [
+        ("learn", "+learning_rate=0.5", "error: learning_rate: unknown setting; did you mean lr?"),
+        ("learn", "+bogus=1", "error: bogus: unknown setting"),
+        ("run", "+n_particle=7", "error: n_particle: unknown setting; did you mean n_particles?"),
+        ("run", "+bogus=1", "error: bogus: unknown setting"),
+    ],
+)
 def test_unknown_key_is_refused_in_one_line_with_exit_2(tmp_path, command, key, message):
     r = _cli(tmp_path, command, *TINY[command], key, "hydra.run.dir=out")
     assert r.returncode == 2, r.stderr[-2000:]
@@ -76,9 +89,11 @@ def test_earlier_results_are_refused_also_through_a_quoted_hydra_run_dir(tmp_pat
     given = f"'{prev}'" if quoted else "prev"
     r = _cli(tmp_path, command, *TINY[command], f"hydra.run.dir={given}")
     assert r.returncode == 2, r.stderr[-2000:]
-    assert _lines(r.stderr) == [f"error: hydra.run.dir: {prev if quoted else 'prev'} already holds the results of a "
-                                f"run ({RESULT['learn' if command == 'run' else 'run']}); choose a new folder "
-                                "(hydra.run.dir=<new folder>) or add overwrite=true to replace them"]
+    assert _lines(r.stderr) == [
+        f"error: hydra.run.dir: {prev if quoted else 'prev'} already holds the results of a "
+        f"run ({RESULT['learn' if command == 'run' else 'run']}); choose a new folder "
+        "(hydra.run.dir=<new folder>) or add overwrite=true to replace them"
+    ]
     assert sorted(p.name for p in prev.iterdir()) == [RESULT["learn" if command == "run" else "run"]]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["prev"]  # no junk folder
 
@@ -102,9 +117,11 @@ def test_a_folder_whose_lock_a_live_process_holds_is_refused(tmp_path, command):
     lock.write_text(f"{os.getpid()}\n{socket.gethostname()}\npytest\n")  # this test process: alive
     r = _cli(tmp_path, command, *TINY[command], "hydra.run.dir=out")
     assert r.returncode == 2, r.stderr[-2000:]
-    assert _lines(r.stderr) == [f"error: hydra.run.dir: {out} is in use by a running torchflow command (pid "
-                                f"{os.getpid()}, pytest; lock file {lock}); wait for it to finish or choose another "
-                                "folder (hydra.run.dir=<new folder>)"]
+    assert _lines(r.stderr) == [
+        f"error: hydra.run.dir: {out} is in use by a running torchflow command (pid "
+        f"{os.getpid()}, pytest; lock file {lock}); wait for it to finish or choose another "
+        "folder (hydra.run.dir=<new folder>)"
+    ]
     assert lock.read_text().startswith(f"{os.getpid()}\n")  # still the holder's
     assert sorted(p.name for p in out.iterdir()) == [shell.LOCK_NAME]
 
@@ -118,8 +135,10 @@ def test_a_stale_lock_is_taken_over_with_a_warning_and_removed_at_exit(tmp_path,
     (out / shell.LOCK_NAME).write_text(f"{gone.pid}\n{socket.gethostname()}\ntorchflow\n")
     r = _cli(tmp_path, command, *TINY[command], "hydra.run.dir=out")
     assert r.returncode == 0, r.stderr[-2000:]
-    assert f"warning: hydra.run.dir: took over the stale lock {out / shell.LOCK_NAME} of a run that is gone " \
-           f"(pid {gone.pid})" in r.stderr
+    assert (
+        f"warning: hydra.run.dir: took over the stale lock {out / shell.LOCK_NAME} of a run that is gone "
+        f"(pid {gone.pid})" in r.stderr
+    )
     assert (out / RESULT[command]).exists() and not (out / shell.LOCK_NAME).exists()
 
 
@@ -128,15 +147,24 @@ def test_two_runs_started_at_once_into_one_folder_do_not_both_succeed(tmp_path, 
     """Two seeds into one folder (the run command: and one checkpoint_dir): one goes on, the other is
     refused in one line, and the folder's .hydra/config.yaml is the results' run."""
     shared = ["checkpoint_dir=ck"] if command == "run" else []
-    procs = [subprocess.Popen(_argv(command, *TINY[command], *shared, f"seed={seed}", "hydra.run.dir=out"),
-                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=_env())
-             for seed in (0, 1)]
+    procs = [
+        subprocess.Popen(
+            _argv(command, *TINY[command], *shared, f"seed={seed}", "hydra.run.dir=out"),
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=tmp_path,
+            env=_env(),
+        )
+        for seed in (0, 1)
+    ]
     errs = [p.communicate(timeout=120)[1] for p in procs]
     codes = [p.returncode for p in procs]
     assert sorted(codes) == [0, 2], (codes, errs)
     refused = _lines(errs[codes.index(2)])
-    assert len(refused) == 1 and ("is in use by a running torchflow command" in refused[0]
-                                  or "already holds the results of a run" in refused[0]), refused
+    assert len(refused) == 1 and (
+        "is in use by a running torchflow command" in refused[0] or "already holds the results of a run" in refused[0]
+    ), refused
     out = tmp_path / "out"
     assert (out / RESULT[command]).exists() and not (out / shell.LOCK_NAME).exists()
     assert yaml.safe_load((out / ".hydra" / "config.yaml").read_text())["seed"] == codes.index(0)
@@ -211,8 +239,12 @@ def test_job_environment_sets_threads_and_knobs_and_refuses_bad_ones():
         assert (env.device.type, env.dtype, env.threads) == ("cpu", torch.float32, n)
         assert tuning.get().points_per_call == 123 and torch.get_num_threads() == n
     assert (torch.get_num_threads(), tuning.as_dict()) == before
-    for bad, message in [({"dtype": "float16"}, "dtype: expected one of"), ({"threads": 0}, "threads: expected"),
-                         ({"tuning": {"points_per_cal": 1}}, "unknown knob"), ({"device": "tpu"}, "device: expected")]:
+    for bad, message in [
+        ({"dtype": "float16"}, "dtype: expected one of"),
+        ({"threads": 0}, "threads: expected"),
+        ({"tuning": {"points_per_cal": 1}}, "unknown knob"),
+        ({"device": "tpu"}, "device: expected"),
+    ]:
         with pytest.raises(ConfigError, match=message):
             with shell.job_environment(OmegaConf.create({"device": "cpu", **bad})):
                 pass
@@ -245,8 +277,18 @@ def test_both_configs_carry_every_speed_knob_and_the_output_guard():
 
 def test_sigterm_during_a_run_writes_the_finished_filters_and_exits_143(tmp_path):
     """The run command agrees with learning: SIGTERM is 143 (Ctrl-C 130: test_experiment)."""
-    cmd = _argv("run", "model=linear_gaussian", "filter=[kf,bpf]", "trials=200", "steps=200", "n_particles=20000",
-                "progress=false", "plots=false", "checkpoint_dir=null", "hydra.run.dir=run")
+    cmd = _argv(
+        "run",
+        "model=linear_gaussian",
+        "filter=[kf,bpf]",
+        "trials=200",
+        "steps=200",
+        "n_particles=20000",
+        "progress=false",
+        "plots=false",
+        "checkpoint_dir=null",
+        "hydra.run.dir=run",
+    )
     with open(tmp_path / "err.txt", "w") as err:
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, cwd=tmp_path, env=_env())
         summary = tmp_path / "run" / "summary.csv"
@@ -268,8 +310,18 @@ def test_a_run_says_where_its_wall_time_went(tmp_path):
     """The run command logs its wall seconds by phase (start-up, data, filters, scoring, writing,
     figures) and the memory budget it chose; results.json keeps the phases up to the filters'
     scoring. The phases add up to no more than the process's age."""
-    r = _cli(tmp_path, "run", "model=linear_gaussian", "filter=[kf,bpf]", "trials=2", "steps=3", "n_particles=50",
-             "progress=false", "plots=true", "hydra.run.dir=run")
+    r = _cli(
+        tmp_path,
+        "run",
+        "model=linear_gaussian",
+        "filter=[kf,bpf]",
+        "trials=2",
+        "steps=3",
+        "n_particles=50",
+        "progress=false",
+        "plots=true",
+        "hydra.run.dir=run",
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     log = (tmp_path / "run" / "run.log").read_text()
     line = next(ln for ln in log.splitlines() if "wall seconds:" in ln)

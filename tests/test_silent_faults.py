@@ -1,6 +1,7 @@
 """Bad input and faults that ran silently wrong or gave unclear errors (singular or mis-shaped
 covariances, all-invalid weights, bad schedules, learned covariances that left the cone, memory
 limits, a stop signal during a long flow step): one test per case, named after it."""
+
 import pytest
 import torch
 
@@ -24,12 +25,18 @@ def test_pfpf_singular_transition_covariance_is_a_clear_error():
     traj = model.simulate(2, 3, g)
     mean, cov = model.initial_belief(traj.states[:, 0], g)
     f = ParticleFlowParticleFilter(model, flow="ledh", n_particles=20)
-    with pytest.raises(ValueError, match=r"ParticleFlowParticleFilter: the model's transition covariance is not positive definite "
-                                         r"\(smallest eigenvalue 0\); this filter weighs particles by the transition density"):
+    with pytest.raises(
+        ValueError,
+        match=r"ParticleFlowParticleFilter: the model's transition covariance is not positive definite "
+        r"\(smallest eigenvalue 0\); this filter weighs particles by the transition density",
+    ):
         f(traj.observations, mean, cov, g)
     # the filters that do not weigh by the transition density still run
-    for ok in (BootstrapParticleFilter(model, n_particles=20), ParticleFlowFilter(model, n_particles=20),
-               KalmanFilter(model)):
+    for ok in (
+        BootstrapParticleFilter(model, n_particles=20),
+        ParticleFlowFilter(model, n_particles=20),
+        KalmanFilter(model),
+    ):
         res = ok(traj.observations, mean, cov, g)
         assert torch.isfinite(res.estimates).all()
 
@@ -37,8 +44,13 @@ def test_pfpf_singular_transition_covariance_is_a_clear_error():
 def test_pfpf_singular_transition_covariance_in_the_runner_keeps_the_kf_row():
     """Through the runner the PF-PF's row carries the error, the KF's row its numbers."""
     model = _singular_q_model()
-    res = run_experiment(model, {"kf": KalmanFilter(model), "pfpf_ledh": ParticleFlowParticleFilter(model, n_particles=20)},
-                         trials=2, steps=3, progress=False)
+    res = run_experiment(
+        model,
+        {"kf": KalmanFilter(model), "pfpf_ledh": ParticleFlowParticleFilter(model, n_particles=20)},
+        trials=2,
+        steps=3,
+        progress=False,
+    )
     rows = {r["filter"]: r for r in res.summary}
     assert rows["kf"].get("error") in (None, "") and rows["kf"]["mse"] is not None
     assert "transition covariance is not positive definite" in rows["pfpf_ledh"]["error"]
@@ -67,20 +79,30 @@ class _Custom(LambdaSchedule):
         return torch.tensor(self.eps, dtype=torch.float64)
 
 
-@pytest.mark.parametrize("eps, match", [
-    ([0.5, -0.1, 0.6], r"_Custom.step_sizes\(\): expected finite steps > 0, got smallest -0.1"),
-    ([0.1, 0.1], r"_Custom.step_sizes\(\): expected steps summing to 1 \(lambda from 0 to 1\), got a sum of 0.2"),
-    ([0.5, float("nan"), 0.5], r"expected finite steps > 0"),
-])
+@pytest.mark.parametrize(
+    "eps, match",
+    [
+        ([0.5, -0.1, 0.6], r"_Custom.step_sizes\(\): expected finite steps > 0, got smallest -0.1"),
+        ([0.1, 0.1], r"_Custom.step_sizes\(\): expected steps summing to 1 \(lambda from 0 to 1\), got a sum of 0.2"),
+        ([0.5, float("nan"), 0.5], r"expected finite steps > 0"),
+    ],
+)
 def test_custom_schedule_with_bad_steps_is_refused(eps, match):
     model = SensorNetwork(d=4)
     with pytest.raises(ValueError, match=match):
         ParticleFlowParticleFilter(model, n_particles=10, schedule=_Custom(eps))
     x = torch.zeros(1, 3, 4, dtype=torch.float64)
     from torchflow.flows import FlowPrior
+
     with pytest.raises(ValueError, match=match):
-        integrate_flow(LEDHFlow(), model, x, torch.zeros(1, 4, dtype=torch.float64),
-                       FlowPrior(x, torch.eye(4, dtype=torch.float64).expand(1, 3, 4, 4)), _Custom(eps))
+        integrate_flow(
+            LEDHFlow(),
+            model,
+            x,
+            torch.zeros(1, 4, dtype=torch.float64),
+            FlowPrior(x, torch.eye(4, dtype=torch.float64).expand(1, 3, 4, 4)),
+            _Custom(eps),
+        )
 
 
 def test_exponential_schedule_with_fractional_steps_is_refused():
@@ -94,8 +116,11 @@ def test_schedule_given_by_name():
     model = SensorNetwork(d=4)
     f = ParticleFlowParticleFilter(model, n_particles=10, schedule="uniform")
     assert isinstance(f.proposal.schedule, UniformSchedule) and f.proposal.schedule.n_steps == 29
-    with pytest.raises(ValueError, match=r"schedule: expected a LambdaSchedule or one of \('exponential', 'uniform', "
-                                         r"'geometric'\), got 'unifrom'"):
+    with pytest.raises(
+        ValueError,
+        match=r"schedule: expected a LambdaSchedule or one of \('exponential', 'uniform', "
+        r"'geometric'\), got 'unifrom'",
+    ):
         ParticleFlowParticleFilter(model, n_particles=10, schedule="unifrom")
     with pytest.raises(TypeError, match=r"schedule: expected a LambdaSchedule .* got list"):
         resolve_schedule([0.5, 0.5])
@@ -111,8 +136,11 @@ def _lg_data(B=3, d=4):
 
 def test_covariance_passed_as_trial_variances_names_the_shape_given():
     model, traj, mean, cov, g = _lg_data(B=3)
-    with pytest.raises(ValueError, match=r"cov: expected \(d, d\) = \(4, 4\) shared by every trial or \(B, d, d\), "
-                                         r"got \(3, 4\) \(per-trial variances \(B, d\) are torch.diag_embed"):
+    with pytest.raises(
+        ValueError,
+        match=r"cov: expected \(d, d\) = \(4, 4\) shared by every trial or \(B, d, d\), "
+        r"got \(3, 4\) \(per-trial variances \(B, d\) are torch.diag_embed",
+    ):
         KalmanFilter(model)(traj.observations, mean, torch.ones(3, 4, dtype=torch.float64), g)
 
 
@@ -121,16 +149,22 @@ def test_covariance_passed_as_trial_variances_when_b_equals_d_says_so():
     is reported with the likely cause."""
     model, traj, mean, cov, g = _lg_data(B=4)
     variances = torch.arange(1.0, 5.0, dtype=torch.float64).expand(4, 4)  # each trial's variances, by row
-    with pytest.raises(ValueError, match=r"cov: covariance at batch index 0 \(trial\) is not symmetric \(a \(d, d\) "
-                                         r"matrix shared by every trial was given; if these are per-trial variances"):
+    with pytest.raises(
+        ValueError,
+        match=r"cov: covariance at batch index 0 \(trial\) is not symmetric \(a \(d, d\) "
+        r"matrix shared by every trial was given; if these are per-trial variances",
+    ):
         KalmanFilter(model)(traj.observations, mean, variances, g)
 
 
 def test_too_many_particles_says_bytes_and_knobs():
     model, traj, mean, cov, g = _lg_data()
-    with pytest.raises(MemoryError, match=r"BootstrapParticleFilter: out of memory running 3 trials x 100000000000 "
-                                          r"particles \(one allocation of [\d.e+]+ GiB\); estimated [\d.e+]+ GiB per time "
-                                          r"step\. .*particle_chunk=.*memory_budget_gb"):
+    with pytest.raises(
+        MemoryError,
+        match=r"BootstrapParticleFilter: out of memory running 3 trials x 100000000000 "
+        r"particles \(one allocation of [\d.e+]+ GiB\); estimated [\d.e+]+ GiB per time "
+        r"step\. .*particle_chunk=.*memory_budget_gb",
+    ):
         BootstrapParticleFilter(model, n_particles=int(1e11))(traj.observations, mean, cov, g)
 
 
@@ -154,19 +188,28 @@ def test_learned_covariance_that_left_the_cone_names_the_parameter():
     model, the covariance and the parameter (torchflow's own models keep theirs valid by construction)."""
     model, traj, mean, cov, g = _lg_data()
     eye = torch.eye(4, dtype=torch.float64)
-    with pytest.raises(ValueError, match=r"BootstrapParticleFilter: _Raw's transition covariance \(parameter 'Qraw'\): "
-                                         r"covariance is not positive semi-definite \(smallest eigenvalue -1\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"BootstrapParticleFilter: _Raw's transition covariance \(parameter 'Qraw'\): "
+        r"covariance is not positive semi-definite \(smallest eigenvalue -1\)",
+    ):
         BootstrapParticleFilter(_Raw("Q", -eye), n_particles=10)(traj.observations, mean, cov, g)
-    with pytest.raises(ValueError, match=r"KalmanFilter: _Raw's measurement covariance \(parameter 'Rraw'\): "
-                                         r"covariance is not positive semi-definite"):
+    with pytest.raises(
+        ValueError,
+        match=r"KalmanFilter: _Raw's measurement covariance \(parameter 'Rraw'\): "
+        r"covariance is not positive semi-definite",
+    ):
         KalmanFilter(_Raw("R", eye - 2 * torch.ones(4, 4, dtype=torch.float64)))(traj.observations, mean, cov, g)
 
 
 def test_learned_asymmetric_covariance_is_refused():
     model, traj, mean, cov, g = _lg_data()
     Q = torch.eye(4, dtype=torch.float64) + 0.3 * torch.triu(torch.ones(4, 4, dtype=torch.float64), 1)
-    with pytest.raises(ValueError, match=r"KalmanFilter: _Raw's transition covariance \(parameter 'Qraw'\): "
-                                         r"covariance is not symmetric"):
+    with pytest.raises(
+        ValueError,
+        match=r"KalmanFilter: _Raw's transition covariance \(parameter 'Qraw'\): "
+        r"covariance is not symmetric",
+    ):
         KalmanFilter(_Raw("Q", Q))(traj.observations, mean, cov, g)
 
 
@@ -184,17 +227,25 @@ def test_negative_regularization_names_what_is_expected():
 
 def test_trial_streams_for_other_trial_count():
     from torchflow.random import TrialStreams
+
     model, traj, mean, cov, g = _lg_data(B=2)
-    with pytest.raises(ValueError, match=r"BootstrapParticleFilter: generator: TrialStreams made for 5 trials, but the "
-                                         r"observations have B = 2 trials"):
+    with pytest.raises(
+        ValueError,
+        match=r"BootstrapParticleFilter: generator: TrialStreams made for 5 trials, but the "
+        r"observations have B = 2 trials",
+    ):
         BootstrapParticleFilter(model, n_particles=10)(traj.observations, mean, cov, TrialStreams(0, 5, "bpf"))
 
 
 def test_run_experiment_with_a_list_of_filters():
     from torchflow.runner.plan import ConfigError
+
     model = SensorNetwork(d=4)
-    with pytest.raises(ConfigError, match=r"filters: expected a mapping of names to filters, e.g. \{'kf': "
-                                          r"KalmanFilter\(model\)\}, got list"):
+    with pytest.raises(
+        ConfigError,
+        match=r"filters: expected a mapping of names to filters, e.g. \{'kf': "
+        r"KalmanFilter\(model\)\}, got list",
+    ):
         run_experiment(model, [KalmanFilter(model)], trials=2, steps=2, progress=False)
     with pytest.raises(ConfigError, match=r"got a mapping with str"):
         run_experiment(model, {"kf": "kf"}, trials=2, steps=2, progress=False)
@@ -203,11 +254,17 @@ def test_run_experiment_with_a_list_of_filters():
 def test_integrate_flow_with_two_dimensional_particles():
     """Own case: ``(B, d)`` particles gave 'not enough values to unpack'."""
     from torchflow.flows import FlowPrior
+
     model = SensorNetwork(d=4)
     eye = torch.eye(4, dtype=torch.float64)
     with pytest.raises(ValueError, match=r"particles: expected \(B, N, d\) \(trials, particles, state\), got \(3, 4\)"):
-        integrate_flow(LEDHFlow(), model, torch.zeros(3, 4, dtype=torch.float64), torch.zeros(3, 4, dtype=torch.float64),
-                       FlowPrior(torch.zeros(3, 4, dtype=torch.float64), eye.expand(3, 4, 4)))
+        integrate_flow(
+            LEDHFlow(),
+            model,
+            torch.zeros(3, 4, dtype=torch.float64),
+            torch.zeros(3, 4, dtype=torch.float64),
+            FlowPrior(torch.zeros(3, 4, dtype=torch.float64), eye.expand(3, 4, 4)),
+        )
 
 
 def test_sigterm_during_a_gpfis_step_stops_at_once(monkeypatch):
@@ -218,6 +275,7 @@ def test_sigterm_during_a_gpfis_step_stops_at_once(monkeypatch):
     import torchflow.proposals.gpfis as gp
     from torchflow.experiment import STOP
     from torchflow.filters import GPFIS
+
     calls = []
     real = gp.gpfis_flow
 
@@ -226,6 +284,7 @@ def test_sigterm_during_a_gpfis_step_stops_at_once(monkeypatch):
         if len(calls) == 2:  # the second time step of the first chunk
             STOP.handler(15, None)
         return real(*a, **kw)
+
     monkeypatch.setattr(gp, "gpfis_flow", flow)
     model = SensorNetwork(d=4)
     try:
@@ -242,6 +301,7 @@ def test_diagonal_covariances_are_checked_on_their_diagonal():
     with its value, a NaN is named as non-finite, and an off-diagonal entry sends the matrix to the
     factorisation (here: not symmetric)."""
     from torchflow._checks import _off_diagonal, check_psd
+
     A = torch.randn(3, 5, 5, dtype=torch.float64)
     off = _off_diagonal(A)
     mask = ~torch.eye(5, dtype=torch.bool)

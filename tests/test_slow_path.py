@@ -1,4 +1,5 @@
 """The run says once when a flow filter will run on the slower torch path on the CPU (no Numba)."""
+
 import logging
 
 from torchflow.filters import BootstrapParticleFilter, ParticleFlowParticleFilter

@@ -1,12 +1,19 @@
 """Smoothers (:mod:`torchflow.smoothing`): RTS exact against the joint Gaussian, the particle
 smoothers against RTS within Monte Carlo error."""
+
 import math
 
 import pytest
 import torch
 
-from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, GaussianSumParticleFilter, KalmanFilter,
-                               ParticleFlowParticleFilter, UnscentedKalmanFilter)
+from torchflow.filters import (
+    BootstrapParticleFilter,
+    ExtendedKalmanFilter,
+    GaussianSumParticleFilter,
+    KalmanFilter,
+    ParticleFlowParticleFilter,
+    UnscentedKalmanFilter,
+)
 from torchflow.models import AcousticTracking
 from torchflow.random import TrialStreams
 from torchflow.smoothing import smooth
@@ -29,19 +36,19 @@ def _joint_posterior(model, obs, mean, cov):
     for s in range(T + 1):
         A = var[s]
         for t in range(s, T + 1):
-            Sxx[t * d:(t + 1) * d, s * d:(s + 1) * d] = A
-            Sxx[s * d:(s + 1) * d, t * d:(t + 1) * d] = A.T
+            Sxx[t * d : (t + 1) * d, s * d : (s + 1) * d] = A
+            Sxx[s * d : (s + 1) * d, t * d : (t + 1) * d] = A.T
             A = F @ A
     keep = [t for t in range(T) if not torch.isnan(obs[t]).all()]
     Hbig = torch.zeros(len(keep) * m, (T + 1) * d, dtype=F64)
     for i, t in enumerate(keep):
-        Hbig[i * m:(i + 1) * m, (t + 1) * d:(t + 2) * d] = H
+        Hbig[i * m : (i + 1) * m, (t + 1) * d : (t + 2) * d] = H
     mx = torch.cat(mu)
     Szz = Hbig @ Sxx @ Hbig.T + torch.block_diag(*[R] * len(keep))
     K = torch.linalg.solve(Szz, Hbig @ Sxx).T
     post_mean = mx + K @ (obs[keep].reshape(-1) - Hbig @ mx)
     post_cov = Sxx - K @ Hbig @ Sxx
-    covs = torch.stack([post_cov[t * d:(t + 1) * d, t * d:(t + 1) * d] for t in range(T + 1)])
+    covs = torch.stack([post_cov[t * d : (t + 1) * d, t * d : (t + 1) * d] for t in range(T + 1)])
     return post_mean.reshape(T + 1, d), covs
 
 
@@ -73,10 +80,14 @@ def test_rts_with_missing_observations_equals_the_joint_gaussian_of_the_observed
 
 
 @pytest.mark.parametrize("method", ["ffbsi", "genealogy"])
-@pytest.mark.parametrize("make", [
-    lambda m: BootstrapParticleFilter(m, n_particles=400),
-    lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=200),
-], ids=["bpf", "pfpf_ledh"])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda m: BootstrapParticleFilter(m, n_particles=400),
+        lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=200),
+    ],
+    ids=["bpf", "pfpf_ledh"],
+)
 def test_particle_smoothers_agree_with_rts(method, make):
     """One series smoothed by 64 independent runs: each step's smoothed mean, averaged over runs,
     is within 4 Monte Carlo standard errors of RTS at every step and coordinate (the largest of
@@ -95,8 +106,14 @@ def test_particle_smoothers_agree_with_rts(method, make):
     assert float(z.max()) < 4, float(z.max())
     assert float(se.max()) < 0.1  # the test can fail: the standard errors are small (measured 0.03-0.07)
     # the smoothed law is not the filtering law: at the first steps the smoother moved the means
-    assert float((exact[1:-1] - smooth(KalmanFilter(model), obs[:1], mean[:1], cov[:1]).filtered.estimates[0, :-1]
-                  ).abs().max()) > 0.05
+    assert (
+        float(
+            (exact[1:-1] - smooth(KalmanFilter(model), obs[:1], mean[:1], cov[:1]).filtered.estimates[0, :-1])
+            .abs()
+            .max()
+        )
+        > 0.05
+    )
 
 
 def test_ffbsi_numbers_do_not_depend_on_blocks_or_batch():
@@ -125,11 +142,18 @@ def test_smoother_errors():
     with pytest.raises(ValueError, match="n_paths"):
         smooth(BootstrapParticleFilter(model), traj.observations, mean, cov, g, n_paths=0)
     with pytest.raises(ValueError, match="genealogy.*optimal-transport"):
-        smooth(BootstrapParticleFilter(model, resampling_gradient="ot"), traj.observations, mean, cov, g,
-               method="genealogy")
+        smooth(
+            BootstrapParticleFilter(model, resampling_gradient="ot"),
+            traj.observations,
+            mean,
+            cov,
+            g,
+            method="genealogy",
+        )
     with pytest.raises(ValueError, match="a particle filter whose belief is weighted particles"):
-        smooth(GaussianSumParticleFilter(model, n_components=2, particles_per_component=8), traj.observations,
-               mean, cov, g)
+        smooth(
+            GaussianSumParticleFilter(model, n_components=2, particles_per_component=8), traj.observations, mean, cov, g
+        )
     with pytest.raises(TypeError, match="filt: expected a torchflow Filter"):
         smooth(model, traj.observations, mean, cov)
     with pytest.raises(TypeError, match="generator: expected a torch.Generator"):
@@ -142,8 +166,14 @@ def test_acoustic_ffbsi_runs():
     model = AcousticTracking()
     traj = model.simulate(2, 6, torch.Generator().manual_seed(0))
     mean, cov = model.initial_belief(traj.states[:, 0], torch.Generator().manual_seed(1))
-    res = smooth(ParticleFlowParticleFilter(model, flow="edh", n_particles=64), traj.observations, mean, cov,
-                 torch.Generator().manual_seed(2), n_paths=16)
+    res = smooth(
+        ParticleFlowParticleFilter(model, flow="edh", n_particles=64),
+        traj.observations,
+        mean,
+        cov,
+        torch.Generator().manual_seed(2),
+        n_paths=16,
+    )
     assert res.paths.shape == (2, 16, 7, 16) and torch.isfinite(res.paths).all()
 
 
@@ -154,6 +184,13 @@ def test_smoothing_cuda(method):
     traj = model.simulate(2, 4, torch.Generator(device="cuda").manual_seed(0))
     mean, cov = model.initial_belief(traj.states[:, 0])
     filt = KalmanFilter(model) if method == "rts" else ParticleFlowParticleFilter(model, flow="ledh", n_particles=32)
-    res = smooth(filt, traj.observations, mean, cov + torch.eye(3, dtype=F64, device="cuda"),
-                 TrialStreams(0, 2, "s"), method=method, n_paths=8)
+    res = smooth(
+        filt,
+        traj.observations,
+        mean,
+        cov + torch.eye(3, dtype=F64, device="cuda"),
+        TrialStreams(0, 2, "s"),
+        method=method,
+        n_paths=8,
+    )
     assert res.means.device.type == "cuda" and torch.isfinite(res.means).all()

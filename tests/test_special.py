@@ -1,5 +1,6 @@
 """log K_nu(x) (torchflow.special) against scipy.special.kve over the orders the skewed-t model
 needs ((nu + d)/2 up to ~200), and where K overflows, against its small-x expansion."""
+
 import math
 
 import numpy as np
@@ -26,8 +27,12 @@ def test_log_bessel_k_where_k_overflows():
     nu = torch.tensor([75.5, 203.5], dtype=torch.float64)
     x = torch.tensor([1e-3, 1e-2], dtype=torch.float64)
     nn, xx = torch.meshgrid(nu, x, indexing="ij")
-    series = (torch.lgamma(nn) + (nn - 1) * math.log(2) - nn * torch.log(xx)
-              + torch.log1p(-xx**2 / (4 * (nn - 1)) + xx**4 / (32 * (nn - 1) * (nn - 2))))
+    series = (
+        torch.lgamma(nn)
+        + (nn - 1) * math.log(2)
+        - nn * torch.log(xx)
+        + torch.log1p(-(xx**2) / (4 * (nn - 1)) + xx**4 / (32 * (nn - 1) * (nn - 2)))
+    )
     torch.testing.assert_close(log_bessel_k(nn, xx), series, rtol=1e-13, atol=1e-10)
 
 

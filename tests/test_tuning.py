@@ -1,11 +1,16 @@
 """Speed knobs (torchflow.tuning): one documented place, settable from Python and the runner, and
 they never change a number."""
+
 import pytest
 import torch
 
 from torchflow import tuning
-from torchflow.filters import (BootstrapParticleFilter, GaussianSumParticleFilter, ParticleFlowGaussianSumParticleFilter,
-                               ParticleFlowParticleFilter)
+from torchflow.filters import (
+    BootstrapParticleFilter,
+    GaussianSumParticleFilter,
+    ParticleFlowGaussianSumParticleFilter,
+    ParticleFlowParticleFilter,
+)
 from torchflow.flows.points import flow_points_per_call
 from torchflow.models import AcousticTracking, SkewedTPoisson
 from torchflow.random import TrialStreams
@@ -52,8 +57,12 @@ def test_high_dimensional_flows_run_in_cache_sized_blocks():
     assert pf.preferred_chunk_trials() == 1 and pf.flow_chunk() == 50
     gs = ParticleFlowGaussianSumParticleFilter(model, n_components=5, particles_per_component=200)
     assert gs.preferred_chunk_trials() == 1 and gs._row_chunk() == 10
-    assert ParticleFlowGaussianSumParticleFilter(model, n_components=5, particles_per_component=200,
-                                                 particle_chunk=100)._row_chunk() == 20
+    assert (
+        ParticleFlowGaussianSumParticleFilter(
+            model, n_components=5, particles_per_component=200, particle_chunk=100
+        )._row_chunk()
+        == 20
+    )
     assert GaussianSumParticleFilter(model, n_components=5, particles_per_component=200)._row_chunk() is None
     with tuning.tuned(flow_bytes_per_call=0):
         assert flow_points_per_call(model) == 10_000 and pf.flow_chunk() is None and gs._row_chunk() is None
@@ -64,8 +73,10 @@ def test_flow_blocks_and_operator_form_change_speed_not_numbers():
     operator form of A against one pass with A formed; the same estimates and evidence up to
     round-off."""
     model = SkewedTPoisson(d=16)
-    for make in (lambda: ParticleFlowParticleFilter(model, flow="ledh", n_particles=60),
-                 lambda: ParticleFlowGaussianSumParticleFilter(model, n_components=3, particles_per_component=20)):
+    for make in (
+        lambda: ParticleFlowParticleFilter(model, flow="ledh", n_particles=60),
+        lambda: ParticleFlowGaussianSumParticleFilter(model, n_components=3, particles_per_component=20),
+    ):
         # blocks of 16 particles, A as an operator
         with tuning.tuned(flow_bytes_per_call=8 * 16 * 16 * 16, flow_operator_min_dim=0):
             f = make()
@@ -92,5 +103,6 @@ def test_the_runner_config_names_every_knob():
     from pathlib import Path
 
     from omegaconf import OmegaConf
+
     cfg = OmegaConf.load(Path(__file__).resolve().parents[1] / "configs" / "config.yaml")
     assert set(cfg.tuning) == {f.name for f in fields(tuning.Tuning)}

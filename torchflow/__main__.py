@@ -1,4 +1,5 @@
 """``python -m torchflow [overrides]``: the command line (:mod:`torchflow.cli`)."""
+
 from .cli import main
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
 """Memory-bounded evaluation of per-particle work in blocks of particles."""
+
 from __future__ import annotations
 
 from typing import Callable, Optional
@@ -21,8 +22,10 @@ def blockwise(fn: Callable, *tensors, chunk: Optional[int] = None, pass_slice: b
         return fn(*tensors, **kw(slice(0, N)))
     blocks = []
     for s in range(0, N, chunk):
-        args = [t[:, s:s + chunk] if isinstance(t, torch.Tensor) and t.dim() > 1 and t.shape[1] == N else t
-                for t in tensors]
+        args = [
+            t[:, s : s + chunk] if isinstance(t, torch.Tensor) and t.dim() > 1 and t.shape[1] == N else t
+            for t in tensors
+        ]
         blocks.append(fn(*args, **kw(slice(s, s + chunk))))
     if isinstance(blocks[0], tuple):
         return tuple(None if parts[0] is None else torch.cat(parts, 1) for parts in zip(*blocks))

@@ -4,6 +4,7 @@ Every check raises ``ValueError``/``TypeError`` (never ``assert``, which ``pytho
 with a message naming the argument, what was expected and what arrived, in the style of
 ``torch.distributions``.
 """
+
 from __future__ import annotations
 
 import math
@@ -54,7 +55,7 @@ def check_tensor(
 
 def check_finite(name: str, x: torch.Tensor) -> torch.Tensor:
     """Raise if ``x`` holds NaN or inf, reporting how many and the first offending trial."""
-    if x.is_floating_point() and x.numel() > 2 ** 16 and bool(torch.isfinite(x.sum())):
+    if x.is_floating_point() and x.numel() > 2**16 and bool(torch.isfinite(x.sum())):
         return x  # a sum is NaN or infinite if any term is: one reduction, no (x.shape) mask
     bad = ~torch.isfinite(x)
     if bool(bad.any()):
@@ -109,8 +110,10 @@ def check_psd(name: str, cov: torch.Tensor, *, tol: float = 1e-10) -> torch.Tens
     bad = (bad_sym | bad_psd).reshape(-1)
     if bool(bad.any()):
         idx = int(torch.nonzero(bad)[0])
-        why = "not symmetric" if bool(bad_sym.reshape(-1)[idx]) else (
-            f"not positive semi-definite (smallest eigenvalue {float(eig_min.reshape(-1)[idx]):.3g})"
+        why = (
+            "not symmetric"
+            if bool(bad_sym.reshape(-1)[idx])
+            else (f"not positive semi-definite (smallest eigenvalue {float(eig_min.reshape(-1)[idx]):.3g})")
         )
         if cov.dim() == 2:
             raise ArgumentError(f"{name}: covariance is {why}")
@@ -163,7 +166,8 @@ def check_same(name: str, x: torch.Tensor, ref: torch.Tensor, ref_name: str = "t
 def check_count(name: str, value, *, minimum: int = 1, hint: str = "") -> int:
     """An integer ``>= minimum`` (a bool, a fractional float or a string is refused, not truncated)."""
     ok = (isinstance(value, numbers.Integral) and not isinstance(value, bool)) or (
-        isinstance(value, float) and value.is_integer())
+        isinstance(value, float) and value.is_integer()
+    )
     if not ok or int(value) < minimum:
         what = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
         raise ArgumentError(f"{name}: expected {what}{hint}, got {value!r} ({type(value).__name__})")
@@ -174,14 +178,20 @@ def allocation_failure(err: BaseException) -> Optional[str]:
     """``None`` unless ``err`` is an allocator's out-of-memory error (torch's CPU or CUDA allocator,
     Python's ``MemoryError``); then what it asked for, e.g. ``" (one allocation of 477 GiB)"``, or ``""``."""
     text = str(err)
-    if not (isinstance(err, (torch.OutOfMemoryError, MemoryError)) or "can't allocate memory" in text
-            or "out of memory" in text.lower()):
+    if not (
+        isinstance(err, (torch.OutOfMemoryError, MemoryError))
+        or "can't allocate memory" in text
+        or "out of memory" in text.lower()
+    ):
         return None
     asked = re.search(r"allocate (\d+) bytes|allocate ([\d.]+ [KMGT]iB)", text)
     if asked is None:
         return ""
-    return f" (one allocation of {int(asked.group(1)) / 2**30:.3g} GiB)" if asked.group(1) else \
-        f" (one allocation of {asked.group(2)})"
+    return (
+        f" (one allocation of {int(asked.group(1)) / 2**30:.3g} GiB)"
+        if asked.group(1)
+        else f" (one allocation of {asked.group(2)})"
+    )
 
 
 def check_choice(name: str, value, choices):

@@ -1,6 +1,7 @@
 """The Triton kernel of :func:`torchflow.random.philox4x32_fused` (imported only when it is used:
 Triton is an optional dependency). One program handles ``BLOCK`` (trial, counter) pairs; each runs
 the 10 Philox4x32 rounds in 32-bit integer registers."""
+
 import triton
 import triton.language as tl
 

@@ -6,6 +6,7 @@ the loop by raising (the runner's watcher raises ``KeyboardInterrupt`` on a stop
 :class:`torchflow.runner.StopRequest`). Without a watcher a report is one global read. Neutral:
 models report here without importing the runner.
 """
+
 from __future__ import annotations
 
 import contextlib

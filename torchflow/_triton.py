@@ -1,6 +1,7 @@
 """Whether Triton's kernels can run here: shared by the fused flow step (:mod:`torchflow.flows.kernels.steps`)
 and the fused Philox draws (:mod:`torchflow.random`). Triton is an optional dependency (CUDA builds
 of PyTorch bring it)."""
+
 from __future__ import annotations
 
 import importlib
@@ -16,7 +17,7 @@ def available() -> bool:
         try:
             importlib.import_module("triton")  # an availability test
             _available = True
-        except Exception:  # noqa: BLE001 - any import failure means: not available
+        except Exception:
             _available = False
         if _available and interpreted():
             _interpreter_loop_bounds()
@@ -30,7 +31,7 @@ def _interpreter_loop_bounds() -> None:
     only warned. Read the element instead. Interpreter only: compiled kernels are untouched."""
     try:
         from triton.runtime import interpreter
-    except Exception:  # noqa: BLE001 - another Triton: leave it alone
+    except Exception:
         return
     patch = getattr(interpreter, "_patch_lang_tensor", None)
     if patch is None or getattr(patch, "_torchflow", False):
@@ -39,6 +40,7 @@ def _interpreter_loop_bounds() -> None:
     def patched(tensor, scope):
         patch(tensor, scope)
         scope.set_attr(tensor, "__index__", lambda self: int(self.handle.data.reshape(-1)[0]))
+
     patched._torchflow = True
     interpreter._patch_lang_tensor = patched
 
@@ -51,5 +53,6 @@ def interpreted() -> bool:
 def runs_on(device) -> bool:
     """A Triton kernel can run on tensors of ``device``: CUDA, or the CPU under the interpreter."""
     import torch
+
     device = torch.device(device)
     return available() and (device.type == "cuda" or (device.type == "cpu" and interpreted()))

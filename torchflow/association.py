@@ -17,6 +17,7 @@ synchronisation; a converged message is a fixed point of the iteration):
 
 Outputs are the approximate marginals ``p(a_k = m)`` and the messages the PO updates need.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -47,8 +48,13 @@ class Association:
     new_existence: torch.Tensor
 
 
-def loopy_association(beta: torch.Tensor, xi: torch.Tensor, object_mask: Optional[torch.Tensor] = None,
-                      measurement_mask: Optional[torch.Tensor] = None, iterations: int = 20) -> Association:
+def loopy_association(
+    beta: torch.Tensor,
+    xi: torch.Tensor,
+    object_mask: Optional[torch.Tensor] = None,
+    measurement_mask: Optional[torch.Tensor] = None,
+    iterations: int = 20,
+) -> Association:
     """Loopy BP for data association (see the module docstring).
 
     Args:
@@ -66,7 +72,9 @@ def loopy_association(beta: torch.Tensor, xi: torch.Tensor, object_mask: Optiona
     B, K, M1 = beta.shape
     M = M1 - 1
     if xi.shape != (B, M):
-        raise ArgumentError(f"xi: expected (B, M) = ({B}, {M}) to match beta {tuple(beta.shape)}, got {tuple(xi.shape)}")
+        raise ArgumentError(
+            f"xi: expected (B, M) = ({B}, {M}) to match beta {tuple(beta.shape)}, got {tuple(xi.shape)}"
+        )
     iterations = check_count("iterations", iterations)
     om = torch.ones(B, K, dtype=torch.bool, device=beta.device) if object_mask is None else object_mask
     mm = torch.ones(B, M, dtype=torch.bool, device=beta.device) if measurement_mask is None else measurement_mask

@@ -5,7 +5,8 @@
     torchflow experiment=seed000_table1                        # a paper table
     torchflow -m 'filter=[bpf]' n_particles=100,1000           # sweep; one folder per job
     torchflow model=linear_gaussian model.d=4 'filter=[kf,bpf]' data=series.csv   # recorded observations
-    torchflow experiment=smooth_linear_gaussian                                # smoothers (task=smooth: torchflow.tasks)
+    torchflow experiment=smooth_linear_gaussian                                # smoothers (task=smooth:
+    torchflow.tasks)
     torchflow experiment=pmmh_stochastic_volatility                            # a parameter posterior (task=pmmh)
 
 (``python -m torchflow`` and ``python experiments/run.py`` are the same command.) Writes the result
@@ -18,6 +19,7 @@ in memory are refused before anything is simulated. Exit status: 0 done; 1 a fil
 written (any other error keeps its traceback); 2 a configuration error or a refused output folder
 (one line); 130 stopped by Ctrl-C (SIGINT); 143 stopped by SIGTERM.
 """
+
 from __future__ import annotations
 
 import logging
@@ -33,7 +35,17 @@ from omegaconf import DictConfig, OmegaConf
 
 from . import __version__, tasks
 from .runner import (
-    STOP, SUMMARY_COLUMNS, ChunkStore, RunStopped, Shard, config as rc, figures, fingerprint, format_table, run_experiment, shell,
+    STOP,
+    SUMMARY_COLUMNS,
+    ChunkStore,
+    RunStopped,
+    Shard,
+    config as rc,
+    figures,
+    fingerprint,
+    format_table,
+    run_experiment,
+    shell,
     writers,
 )
 from .filters.gaussian_sum import GaussianSumParticleFilter
@@ -43,8 +55,13 @@ from .runner.shell import JobEnv, config_error, job_threads
 log = logging.getLogger("torchflow.cli")
 
 
-_FLOW_NAMES = {"EDHFlow": "edh", "LEDHFlow": "ledh", "GeodesicFlow": "geodesic", "GromovFlow": "gromov",
-               "OptimalDiffusionFlow": "osd"}
+_FLOW_NAMES = {
+    "EDHFlow": "edh",
+    "LEDHFlow": "ledh",
+    "GeodesicFlow": "geodesic",
+    "GromovFlow": "gromov",
+    "OptimalDiffusionFlow": "osd",
+}
 
 
 def flow_label(flow) -> str:
@@ -84,8 +101,10 @@ def row_label(key: str, f) -> str:
 def build(cfg: DictConfig):
     """``(model, {label: filter}, {config key: label})`` from the config."""
     if not cfg.get("filter"):
-        raise ConfigError("filter: select at least one filter, e.g. filter=[kf,bpf]; available: "
-                          + ", ".join(rc.group_options("filter") or []))
+        raise ConfigError(
+            "filter: select at least one filter, e.g. filter=[kf,bpf]; available: "
+            + ", ".join(rc.group_options("filter") or [])
+        )
     model = instantiate(cfg.model)
     filters, labels = {}, {}
     for key, fcfg in cfg.filter.items():
@@ -107,22 +126,31 @@ def chunk_store(cfg: DictConfig, labels, data_sha256: Optional[str] = None):
         if resume:
             raise ConfigError("resume=true needs checkpoint_dir (where the earlier run saved its chunks); it is null")
         return None
-    common = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
-              for k in ("model", "trials", "steps", "seed", "inits_per_track", "device", "dtype", "rng_backend")}
+    common = {
+        k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
+        for k in ("model", "trials", "steps", "seed", "inits_per_track", "device", "dtype", "rng_backend")
+    }
     common["versions"] = {"torchflow": __version__, "torch": torch.__version__}
     if data_sha256 is not None:
         common["data_sha256"] = data_sha256
-    settings = {labels[k]: dict(common, filter=OmegaConf.to_container(fcfg, resolve=True), label=labels[k])
-                for k, fcfg in cfg.filter.items() if k in labels}  # not the settings of unselected filters
-    keys = {label: "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in label) + "-" + fingerprint(s)
-            for label, s in settings.items()}
+    settings = {
+        labels[k]: dict(common, filter=OmegaConf.to_container(fcfg, resolve=True), label=labels[k])
+        for k, fcfg in cfg.filter.items()
+        if k in labels
+    }  # not the settings of unselected filters
+    keys = {
+        label: "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in label) + "-" + fingerprint(s)
+        for label, s in settings.items()
+    }
     store = ChunkStore(Path(hydra.utils.to_absolute_path(str(root))), keys, resume=resume, settings=settings)
     unsaved = [label for label in keys if not store.saved_ranges(label)] if resume else []
     if unsaved:  # a new checkpoint_dir, or settings other than the saved run's (saved under another key)
         every = len(unsaved) == len(keys)
         why = " (a new folder, or settings other than the saved run's, which save under another key)" if every else ""
-        log.warning(f"resume=true: nothing is saved under {store.root}{'' if every else ' for ' + ', '.join(unsaved)} "
-                    f"with these settings{why}: {'every chunk is' if every else 'their chunks are'} computed")
+        log.warning(
+            f"resume=true: nothing is saved under {store.root}{'' if every else ' for ' + ', '.join(unsaved)} "
+            f"with these settings{why}: {'every chunk is' if every else 'their chunks are'} computed"
+        )
     return store
 
 
@@ -142,8 +170,14 @@ def process_age() -> Optional[float]:
 
 def _timings_line(timings, figures_sec: Optional[float]) -> str:
     """The run's wall seconds by phase, for the log (``result.timings`` with the command's own)."""
-    names = [("startup", "start-up"), ("plan", "data"), ("reference", "reference"), ("filters", "filters"),
-             ("scoring", "scoring"), ("writing", "writing")]
+    names = [
+        ("startup", "start-up"),
+        ("plan", "data"),
+        ("reference", "reference"),
+        ("filters", "filters"),
+        ("scoring", "scoring"),
+        ("writing", "writing"),
+    ]
     parts = [f"{label} {timings[k]:.2f}" for k, label in names if timings.get(k) is not None]
     if figures_sec is not None:
         parts.append(f"figures {figures_sec:.2f}")
@@ -158,29 +192,49 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
     store, writer = chunk_store(cfg, labels, sha), _Output(out)
     trial_range = cfg.get("trial_range")
     result = run_experiment(
-        model, filters, trials=trials, steps=steps, seed=cfg.seed, inits_per_track=cfg.inits_per_track,
+        model,
+        filters,
+        trials=trials,
+        steps=steps,
+        seed=cfg.seed,
+        inits_per_track=cfg.inits_per_track,
         observations=obs,
-        chunk_size=cfg.chunk_size, memory_budget_gb=cfg.memory_budget_gb, device=shard.device(cfg.device),
-        dtype=cfg.dtype, ospa_cutoff=cfg.metrics.ospa_cutoff, ospa_order=cfg.metrics.ospa_order,
-        lost_threshold=cfg.metrics.lost_threshold, burn_in=cfg.metrics.get("burn_in", 0), progress=cfg.progress, rng_backend=cfg.rng_backend,
-        on_filter_done=lambda rows: writer.attempt("summary.csv", writers.write_csv, out / "summary.csv", rows,
-                                                   SUMMARY_COLUMNS),  # partial results
-        store=store, shard=shard, warmup=cfg.get("warmup", "auto"),
-        trial_range=OmegaConf.to_container(trial_range) if OmegaConf.is_config(trial_range) else trial_range)
+        chunk_size=cfg.chunk_size,
+        memory_budget_gb=cfg.memory_budget_gb,
+        device=shard.device(cfg.device),
+        dtype=cfg.dtype,
+        ospa_cutoff=cfg.metrics.ospa_cutoff,
+        ospa_order=cfg.metrics.ospa_order,
+        lost_threshold=cfg.metrics.lost_threshold,
+        burn_in=cfg.metrics.get("burn_in", 0),
+        progress=cfg.progress,
+        rng_backend=cfg.rng_backend,
+        on_filter_done=lambda rows: writer.attempt(
+            "summary.csv", writers.write_csv, out / "summary.csv", rows, SUMMARY_COLUMNS
+        ),  # partial results
+        store=store,
+        shard=shard,
+        warmup=cfg.get("warmup", "auto"),
+        trial_range=OmegaConf.to_container(trial_range) if OmegaConf.is_config(trial_range) else trial_range,
+    )
     if result is None:  # a rank other than 0 of a torchrun run: rank 0 writes the files
         return 0
     model_name = cfg.model._target_.split(".")[-1]
     if store is not None and (store.loaded or store.reused_trials):
-        log.info(f"resumed: {sum(store.loaded.values())} chunks loaded from {store.root} "
-                 f"({sum(store.reused_trials.values())} trials of chunks with other boundaries), "
-                 f"{sum(store.computed.values())} computed")
+        log.info(
+            f"resumed: {sum(store.loaded.values())} chunks loaded from {store.root} "
+            f"({sum(store.reused_trials.values())} trials of chunks with other boundaries), "
+            f"{sum(store.computed.values())} computed"
+        )
     lo, hi = result.config["trial_range"]
     which = f"{trials} trials" if (lo, hi) == (0, trials) else f"trials {lo}..{hi - 1} of {trials}"
     source = f" of data={cfg.data}" if data is not None else ""
     budget = result.config["memory_budget"]
     budget = "" if budget == "given" else f", memory budget {result.config['memory_budget_gb']:.3g} GiB ({budget})"
-    log.info(f"\n{model_name}: {which} x {result.config['steps']} steps{source}, seed {cfg.seed}, "
-             f"{cfg.device}/{cfg.dtype}{budget}")
+    log.info(
+        f"\n{model_name}: {which} x {result.config['steps']} steps{source}, seed {cfg.seed}, "
+        f"{cfg.device}/{cfg.dtype}{budget}"
+    )
     log.info(format_table(result.summary))
     for name in result.failed:
         where = f" in {result.failures[name]}" if result.failures.get(name) else ""

@@ -16,6 +16,7 @@ unconstrained tensor (``module.parametrizations.<name>.original``) and the attri
 The covariance constraints also give the factor ``L`` without a Cholesky factorisation
 (:func:`scale_tril`), which the filters use for sampling, whitening and log-densities.
 """
+
 from __future__ import annotations
 
 import math
@@ -28,8 +29,16 @@ from torch.nn.utils import parametrize
 from ._checks import check_psd
 from .errors import ArgumentError
 
-__all__ = ["Positive", "CholeskyCovariance", "DiagonalCovariance", "Interval", "CONSTRAINTS", "constrain",
-           "scale_tril", "unconstrained"]
+__all__ = [
+    "Positive",
+    "CholeskyCovariance",
+    "DiagonalCovariance",
+    "Interval",
+    "CONSTRAINTS",
+    "constrain",
+    "scale_tril",
+    "unconstrained",
+]
 
 
 class Positive(nn.Module):
@@ -91,8 +100,10 @@ class Interval(nn.Module):
 
     def right_inverse(self, value: torch.Tensor) -> torch.Tensor:
         if not bool(((value > self.low) & (value < self.high)).all()):
-            raise ArgumentError(f"an interval parameter: expected every value in ({self.low:g}, {self.high:g}), got "
-                                f"{value.detach().tolist()}")
+            raise ArgumentError(
+                f"an interval parameter: expected every value in ({self.low:g}, {self.high:g}), got "
+                f"{value.detach().tolist()}"
+            )
         return torch.logit((value - self.low) / (self.high - self.low))
 
     def extra_repr(self) -> str:
@@ -107,11 +118,16 @@ def _interval(name: str, constraint) -> Optional[Interval]:
     """The :class:`Interval` of a ``(low, high)`` constraint (``None`` for a named constraint)."""
     if isinstance(constraint, str):
         return None
-    bad = not isinstance(constraint, (tuple, list)) or len(constraint) != 2 or not all(
-        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in constraint)
+    bad = (
+        not isinstance(constraint, (tuple, list))
+        or len(constraint) != 2
+        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in constraint)
+    )
     if bad or not constraint[0] < constraint[1]:
-        raise ArgumentError(f"{name}: expected a constraint in {sorted(CONSTRAINTS)} or an interval (low, high) of "
-                            f"finite numbers with low < high, got {constraint!r}")
+        raise ArgumentError(
+            f"{name}: expected a constraint in {sorted(CONSTRAINTS)} or an interval (low, high) of "
+            f"finite numbers with low < high, got {constraint!r}"
+        )
     return Interval(*constraint)
 
 
@@ -125,19 +141,23 @@ def constrain(module: nn.Module, name: str, constraint, value: Optional[torch.Te
     """
     interval = _interval(name, constraint)
     if interval is None and constraint not in CONSTRAINTS:
-        raise ArgumentError(f"{name}: expected a constraint in {sorted(CONSTRAINTS)} or an interval (low, high), "
-                            f"got {constraint!r}")
+        raise ArgumentError(
+            f"{name}: expected a constraint in {sorted(CONSTRAINTS)} or an interval (low, high), got {constraint!r}"
+        )
     value = getattr(module, name) if value is None else value
     value = torch.as_tensor(value).detach().clone()
     if interval is not None:
         if not bool(((value > interval.low) & (value < interval.high)).all()):
-            raise ArgumentError(f"{name}: expected a value inside ({interval.low:g}, {interval.high:g}) to learn "
-                                f"under an interval parametrisation, got {value.tolist()}")
+            raise ArgumentError(
+                f"{name}: expected a value inside ({interval.low:g}, {interval.high:g}) to learn "
+                f"under an interval parametrisation, got {value.tolist()}"
+            )
     elif constraint != "positive":
         check_psd(name, value)
     elif not bool((value > 0).all()):
-        raise ArgumentError(f"{name}: expected a positive value to learn under a log parametrisation, got "
-                         f"{value.tolist()}")
+        raise ArgumentError(
+            f"{name}: expected a positive value to learn under a log parametrisation, got {value.tolist()}"
+        )
     if name in module._buffers:
         del module._buffers[name]
     elif name in module._parameters:

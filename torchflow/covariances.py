@@ -20,6 +20,7 @@ matrix before the first step. The filters that start from the prior by sampling 
 Kalman filters, the bootstrap PF: :attr:`~torchflow.filters.Filter.diagonal_prior`) use the
 variances directly; the others are given the dense matrix.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -103,8 +104,10 @@ class DiagonalCovariance:
     def __init__(self, variance: torch.Tensor):
         if not isinstance(variance, torch.Tensor) or variance.dim() not in (1, 2) or not variance.is_floating_point():
             got = tuple(variance.shape) if isinstance(variance, torch.Tensor) else type(variance).__name__
-            raise ArgumentError(f"DiagonalCovariance: variance: expected a floating-point tensor (B, d) or (d,) "
-                                f"(the prior's variances), got {got}")
+            raise ArgumentError(
+                f"DiagonalCovariance: variance: expected a floating-point tensor (B, d) or (d,) "
+                f"(the prior's variances), got {got}"
+            )
         self.variance = variance
 
     # ---- what a (B, d, d) tensor offers the code that passes a prior on ----------------------------
@@ -138,8 +141,10 @@ class DiagonalCovariance:
     def __getitem__(self, index) -> "DiagonalCovariance":
         """Trials selected along the first dimension (``cov[s:e]``, ``cov[i]``, ``cov[index]``)."""
         if self.variance.dim() != 2 or isinstance(index, tuple):
-            raise ArgumentError(f"DiagonalCovariance: only trials are selected (cov[s:e], cov[i], cov[index]) "
-                                f"from variances (B, d); got index {index!r} on {tuple(self.variance.shape)}")
+            raise ArgumentError(
+                f"DiagonalCovariance: only trials are selected (cov[s:e], cov[i], cov[index]) "
+                f"from variances (B, d); got index {index!r} on {tuple(self.variance.shape)}"
+            )
         return DiagonalCovariance(self.variance[index])
 
     def to(self, *args, **kwargs) -> "DiagonalCovariance":
@@ -201,8 +206,9 @@ def sample_prior(mean: torch.Tensor, cov, n: int, generator=None) -> torch.Tenso
     from . import linalg
 
     if isinstance(cov, DiagonalCovariance):
-        xi = linalg.standard_normal((mean.shape[0], n, mean.shape[-1]), dtype=mean.dtype, device=mean.device,
-                                    generator=generator)
+        xi = linalg.standard_normal(
+            (mean.shape[0], n, mean.shape[-1]), dtype=mean.dtype, device=mean.device, generator=generator
+        )
         return torch.addcmul(mean.unsqueeze(1), cov.scale().unsqueeze(1), xi)
     return linalg.sample_mvn(mean, linalg.safe_cholesky(cov), (n,), generator)
 
@@ -214,4 +220,12 @@ def prior_bytes(model, element_bytes: int) -> int:
     return element_bytes * (d if model.structure.prior_covariance == "diagonal" else d * d)
 
 
-__all__ = ["Covariance", "TrialCovariance", "ParticleCovariance", "DiagonalCovariance", "dense_prior", "prior_bytes", "sample_prior"]
+__all__ = [
+    "Covariance",
+    "TrialCovariance",
+    "ParticleCovariance",
+    "DiagonalCovariance",
+    "dense_prior",
+    "prior_bytes",
+    "sample_prior",
+]

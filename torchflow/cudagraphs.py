@@ -27,6 +27,7 @@ that choose kernels (TF32, float32 matmul precision, deterministic algorithms, a
 capture and its replays run on the inputs' GPU. Each cached graph keeps its memory pool:
 the cache holds the ``max_graphs`` most recent keys (:func:`clear` frees them all).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -106,15 +107,21 @@ def _static_copy(x: torch.Tensor) -> torch.Tensor:
 
 def _settings() -> tuple:
     """Process-wide settings that change which kernels run (part of every key)."""
-    return (torch.get_float32_matmul_precision(), torch.backends.cuda.matmul.allow_tf32,
-            torch.backends.cudnn.allow_tf32, torch.are_deterministic_algorithms_enabled(),
-            torch.is_autocast_enabled("cuda"))
+    return (
+        torch.get_float32_matmul_precision(),
+        torch.backends.cuda.matmul.allow_tf32,
+        torch.backends.cudnn.allow_tf32,
+        torch.are_deterministic_algorithms_enabled(),
+        torch.is_autocast_enabled("cuda"),
+    )
 
 
 def _signature(inputs) -> tuple:
     """Shapes, dtypes, devices and broadcast pattern of the inputs (part of every key)."""
-    return tuple(None if x is None else (tuple(x.shape), tuple(s == 0 for s in x.stride()), x.dtype, str(x.device))
-                 for x in inputs)
+    return tuple(
+        None if x is None else (tuple(x.shape), tuple(s == 0 for s in x.stride()), x.dtype, str(x.device))
+        for x in inputs
+    )
 
 
 def state_key(*objects) -> tuple:
@@ -134,14 +141,20 @@ def state_key(*objects) -> tuple:
             if isinstance(v, torch.Tensor):
                 items.append((name, v.data_ptr(), tuple(v.shape), v.dtype))
             elif isinstance(v, (bool, int, float, str, type(None))) or (
-                    isinstance(v, tuple) and all(isinstance(e, (bool, int, float, str)) for e in v)):
+                isinstance(v, tuple) and all(isinstance(e, (bool, int, float, str)) for e in v)
+            ):
                 items.append((name, "nan" if isinstance(v, float) and math.isnan(v) else v))
         out.append((id(obj), tuple(items)))
     return tuple(out)
 
 
-def graphed(key: Hashable, fn: Callable[..., Sequence[Optional[torch.Tensor]]],
-            inputs: Tuple[Optional[torch.Tensor], ...], *, name: str = "function") -> Tuple[Optional[torch.Tensor], ...]:
+def graphed(
+    key: Hashable,
+    fn: Callable[..., Sequence[Optional[torch.Tensor]]],
+    inputs: Tuple[Optional[torch.Tensor], ...],
+    *,
+    name: str = "function",
+) -> Tuple[Optional[torch.Tensor], ...]:
     """``fn(*inputs)`` through a CUDA graph captured once per ``key`` (see the module docstring).
 
     Args:
@@ -174,14 +187,18 @@ def _graphed(key, fn, inputs, name):
     views = [None if s is None else s.expand(x.shape) for s, x in zip(static_in, inputs)]
     try:
         replay, static_out = _backend.capture(fn, views)
-    except Exception as err:  # noqa: BLE001 - any capture failure falls back to eager
+    except Exception as err:
         _stats["failures"] += 1
         _cache[key] = None
         _trim()
         if name not in _warned:
             _warned.add(name)
-            warnings.warn(f"{name}: CUDA graph capture failed ({type(err).__name__}: {err}); running it eagerly "
-                          "(set tuning.cuda_graphs=0 to skip the attempt)", RuntimeWarning, stacklevel=3)
+            warnings.warn(
+                f"{name}: CUDA graph capture failed ({type(err).__name__}: {err}); running it eagerly "
+                "(set tuning.cuda_graphs=0 to skip the attempt)",
+                RuntimeWarning,
+                stacklevel=3,
+            )
         return out
     _stats["captures"] += 1
     _cache[key] = _Graph(replay, static_in, static_out, fn)

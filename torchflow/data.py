@@ -22,6 +22,7 @@ learnable parameters follows them). The built-in models declare one (the linear-
 ``x_0 = 0``); Lorenz-96's prior is drawn around the true state, so it has none and recorded data need
 a prior passed explicitly (``run_experiment(..., prior=(mean, cov))``).
 """
+
 from __future__ import annotations
 
 import csv
@@ -35,8 +36,14 @@ import torch
 from .covariances import DiagonalCovariance
 from .errors import ArgumentError, ArgumentTypeError
 
-__all__ = ["load_observations", "read_recording", "check_observations", "check_time_step", "declared_prior",
-           "TIME_COLUMNS"]
+__all__ = [
+    "load_observations",
+    "read_recording",
+    "check_observations",
+    "check_time_step",
+    "declared_prior",
+    "TIME_COLUMNS",
+]
 
 #: names of the time column of a CSV file (case-insensitive)
 TIME_COLUMNS = ("t", "time")
@@ -70,21 +77,26 @@ def _read_csv(path: Path, name: str) -> Tuple[np.ndarray, Optional[np.ndarray]]:
     if header is not None:
         found = [j for j, h in enumerate(header) if h.lower() in TIME_COLUMNS]
         if len(found) > 1:
-            raise ArgumentError(f"{name}: expected at most one time column ({' or '.join(TIME_COLUMNS)}), got "
-                                f"{[header[j] for j in found]} in {path}")
+            raise ArgumentError(
+                f"{name}: expected at most one time column ({' or '.join(TIME_COLUMNS)}), got "
+                f"{[header[j] for j in found]} in {path}"
+            )
         time_col = found[0] if found else None
     values = np.empty((len(rows), width), dtype=np.float64)
     first = 2 if header is not None else 1
     for i, row in enumerate(rows):
         if len(row) != width:
-            raise ArgumentError(f"{name}: expected {width} columns in every row of {path}, got {len(row)} in line "
-                                f"{i + first}")
+            raise ArgumentError(
+                f"{name}: expected {width} columns in every row of {path}, got {len(row)} in line {i + first}"
+            )
         for j, cell in enumerate(row):
             v = number(cell)
             if v is None:
                 col = f"column {j + 1}" + (f" ({header[j]})" if header is not None else "")
-                raise ArgumentError(f"{name}: expected numbers (empty or nan: not observed), got {cell.strip()!r} in "
-                                    f"line {i + first}, {col} of {path}")
+                raise ArgumentError(
+                    f"{name}: expected numbers (empty or nan: not observed), got {cell.strip()!r} in "
+                    f"line {i + first}, {col} of {path}"
+                )
             values[i, j] = v
     if time_col is None:
         return values, None
@@ -97,8 +109,9 @@ def _read_npy(path: Path, name: str) -> np.ndarray:
         arr = np.load(path, allow_pickle=False)
     except ValueError as e:  # an object array (pickled), or not an .npy file
         raise ArgumentError(f"{name}: expected a numeric .npy array, could not read {path} ({e})") from None
-    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)) \
-            or np.issubdtype(arr.dtype, np.bool_):
+    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)) or np.issubdtype(
+        arr.dtype, np.bool_
+    ):
         raise ArgumentError(f"{name}: expected a numeric (float or integer) array in {path}, got dtype {arr.dtype}")
     if arr.ndim == 1:
         arr = arr[:, None]
@@ -135,24 +148,30 @@ def check_observations(observations, model=None, *, name: str = "observations") 
     if not observations.is_floating_point():
         raise ArgumentTypeError(f"{name}: expected a floating-point tensor, got {observations.dtype}")
     if observations.dim() not in (2, 3) or observations.shape[-2] == 0 or observations.shape[0] == 0:
-        raise ArgumentError(f"{name}: expected (T, m) or (B, T, m) with at least one time step, got "
-                            f"{tuple(observations.shape)}")
+        raise ArgumentError(
+            f"{name}: expected (T, m) or (B, T, m) with at least one time step, got {tuple(observations.shape)}"
+        )
     if model is not None:
         m = model.obs_dim
         if model.structure.padded_measurements:
-            raise ArgumentError(f"{name}: {type(model).__name__}'s measurements are padded sets with a mask; "
-                                "recorded data are series (T, m) of a model with a fixed measurement dimension")
+            raise ArgumentError(
+                f"{name}: {type(model).__name__}'s measurements are padded sets with a mask; "
+                "recorded data are series (T, m) of a model with a fixed measurement dimension"
+            )
         if observations.shape[-1] != m:
-            raise ArgumentError(f"{name}: expected m = {m} measurement coordinates (columns) for "
-                                f"{type(model).__name__}, got {observations.shape[-1]} (shape "
-                                f"{tuple(observations.shape)}; a CSV time column named t or time is not counted)")
+            raise ArgumentError(
+                f"{name}: expected m = {m} measurement coordinates (columns) for "
+                f"{type(model).__name__}, got {observations.shape[-1]} (shape "
+                f"{tuple(observations.shape)}; a CSV time column named t or time is not counted)"
+            )
         observations = observations.to(dtype=model.dtype, device=model.device)
     inf = torch.isinf(observations)
     if bool(inf.any()):
         where = torch.nonzero(inf)[0].tolist()
-        at = (f"row {where[-2] + 1}, column {where[-1] + 1}" + (f" of series {where[0]}" if len(where) == 3 else ""))
-        raise ArgumentError(f"{name}: expected finite values (NaN: not observed), got {int(inf.sum())} infinite, the "
-                            f"first at {at}")
+        at = f"row {where[-2] + 1}, column {where[-1] + 1}" + (f" of series {where[0]}" if len(where) == 3 else "")
+        raise ArgumentError(
+            f"{name}: expected finite values (NaN: not observed), got {int(inf.sum())} infinite, the first at {at}"
+        )
     return observations
 
 
@@ -170,16 +189,19 @@ def check_time_step(times: Optional[np.ndarray], model, *, name: str = "data") -
     if not isinstance(dt, (int, float)):
         return
     if not np.all(np.isfinite(times)):
-        raise ArgumentError(f"{name}: expected finite observation times in the time column, got a missing or "
-                            "non-finite one")
+        raise ArgumentError(
+            f"{name}: expected finite observation times in the time column, got a missing or non-finite one"
+        )
     steps = np.diff(times)
     tol = DT_RTOL * max(abs(float(dt)), 1e-300)
     if not np.allclose(steps, steps[0], rtol=0, atol=tol) or abs(steps[0] - dt) > tol:
         lo, hi = float(steps.min()), float(steps.max())
         got = f"{lo:g}" if np.allclose(steps, steps[0], rtol=0, atol=tol) else f"from {lo:g} to {hi:g} (not uniform)"
-        raise ArgumentError(f"{name}: the time column's steps are {got}, but {type(model).__name__} assumes "
-                            f"observations every dt = {dt:g} (set the model's dt, e.g. model.dt={steps[0]:g}, or "
-                            "resample the series; a varying time step is not supported)")
+        raise ArgumentError(
+            f"{name}: the time column's steps are {got}, but {type(model).__name__} assumes "
+            f"observations every dt = {dt:g} (set the model's dt, e.g. model.dt={steps[0]:g}, or "
+            "resample the series; a varying time step is not supported)"
+        )
 
 
 def load_observations(path: Union[str, Path], model=None, *, name: str = "data") -> torch.Tensor:
@@ -207,17 +229,28 @@ def declared_prior(model, batch_size: int) -> Tuple[torch.Tensor, torch.Tensor]:
     if fn is None or getattr(type(model), "declared_prior", None) is StateSpaceModel.declared_prior:
         raise ArgumentError(
             f"model: {type(model).__name__} declares no prior without true states (its initial_belief needs them); "
-            "recorded data need one: give the model a method declared_prior(batch_size) -> (mean (B, d), cov (B, d, d)), "
-            "or pass the prior explicitly (run_experiment(..., prior=(mean, cov)))")
+            "recorded data need one: give the model a method declared_prior(batch_size) -> (mean (B, d), cov (B, "
+            "d, d)), "
+            "or pass the prior explicitly (run_experiment(..., prior=(mean, cov)))"
+        )
     mean, cov = fn(batch_size)
     d = model.state_dim
     kind = DiagonalCovariance if model.structure.prior_covariance == "diagonal" else torch.Tensor
-    if not (isinstance(mean, torch.Tensor) and isinstance(cov, kind)
-            and tuple(mean.shape) == (batch_size, d) and tuple(cov.shape) == (batch_size, d, d)):
+    if not (
+        isinstance(mean, torch.Tensor)
+        and isinstance(cov, kind)
+        and tuple(mean.shape) == (batch_size, d)
+        and tuple(cov.shape) == (batch_size, d, d)
+    ):
         got = tuple(getattr(mean, "shape", ())), tuple(getattr(cov, "shape", ()))
-        form = ("a DiagonalCovariance of variances (B, d), as the model declares a diagonal prior"
-                if kind is DiagonalCovariance else "a tensor")
-        raise ArgumentError(f"{type(model).__name__}.declared_prior: expected (mean (B, d), cov (B, d, d)) = "
-                            f"(({batch_size}, {d}), ({batch_size}, {d}, {d})), cov {form}; got {got}"
-                            + ("" if isinstance(cov, kind) else f" ({type(cov).__name__})"))
+        form = (
+            "a DiagonalCovariance of variances (B, d), as the model declares a diagonal prior"
+            if kind is DiagonalCovariance
+            else "a tensor"
+        )
+        raise ArgumentError(
+            f"{type(model).__name__}.declared_prior: expected (mean (B, d), cov (B, d, d)) = "
+            f"(({batch_size}, {d}), ({batch_size}, {d}, {d})), cov {form}; got {got}"
+            + ("" if isinstance(cov, kind) else f" ({type(cov).__name__})")
+        )
     return mean, cov

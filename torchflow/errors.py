@@ -12,6 +12,7 @@ They subclass the built-in types that the same checks raised before (``ValueErro
 - :class:`NonFiniteError` (a ``FloatingPointError``): a filter produced a NaN or infinite value; the
   message and attributes name the filter, the quantity, the time step and the trials.
 """
+
 from __future__ import annotations
 
 from typing import Sequence

@@ -1,11 +1,19 @@
 """The runner's public names at their old place (the runner is :mod:`torchflow.runner`)."""
+
 from __future__ import annotations
 
-from .runner import (  # noqa: F401
-    STOP, SUMMARY_COLUMNS, ExperimentResult, StopRequest, choose_chunk_size, format_table, resolve_device,
-    resolve_dtype, run_experiment as _run,
+from .runner import (  # noqa: F401 - re-exported at the old place
+    STOP,
+    SUMMARY_COLUMNS,
+    ExperimentResult,
+    StopRequest,
+    choose_chunk_size,
+    format_table,
+    resolve_device,
+    resolve_dtype,
+    run_experiment as _run,
 )
-from .runner.plan import simulate as _simulate  # noqa: F401 - replaceable here (benchmarks give their own data)
+from .runner.plan import simulate as _simulate
 
 
 def run_experiment(model, filters, **kwargs):

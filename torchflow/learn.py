@@ -40,6 +40,7 @@ Exit status: 0 done; 1 a failure (a fit that failed, the results could not be wr
 error keeps its traceback); 2 a configuration error or a refused output folder (one line); 130 stopped by Ctrl-C
 (SIGINT); 143 stopped by SIGTERM.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -67,8 +68,20 @@ from .runner.shell import JobEnv
 
 log = logging.getLogger("torchflow.learn")
 
-COLUMNS = ["filter", "parameter", "start", "final", "truth", "error_vs_truth_pct", "reference",
-           "error_vs_reference_pct", "epochs", "sec_per_epoch", "final_nll_per_step", "note"]
+COLUMNS = [
+    "filter",
+    "parameter",
+    "start",
+    "final",
+    "truth",
+    "error_vs_truth_pct",
+    "reference",
+    "error_vs_reference_pct",
+    "epochs",
+    "sec_per_epoch",
+    "final_nll_per_step",
+    "note",
+]
 
 #: a fit is flagged as diverging (a warning, recorded in learn.json) when a learned parameter's size
 #: (Euclidean norm) grows past this many times its start's (or 1, if the start is smaller) ...
@@ -91,12 +104,19 @@ def _divergence(history: Dict, start: Dict[str, List[float]]) -> Optional[str]:
     :data:`DIVERGENCE_GROWTH` and :data:`DIVERGENCE_RISES`), ``None`` if it is not."""
     for n, v0 in start.items():
         if _norm(history[n][-1]) > DIVERGENCE_GROWTH * max(_norm(v0), 1.0):
-            return f"{n} grew from {_fmt(v0)} to {_fmt(history[n][-1])}, more than {DIVERGENCE_GROWTH:g} times its start"
+            return (
+                f"{n} grew from {_fmt(v0)} to {_fmt(history[n][-1])}, more than {DIVERGENCE_GROWTH:g} times its start"
+            )
     loss, k = history["nll_per_step"], DIVERGENCE_RISES
-    if len(loss) > k and all(loss[-i] > loss[-i - 1] for i in range(1, k + 1)) \
-            and loss[-1] > loss[0] + 0.1 * max(abs(loss[0]), 1.0):
-        return (f"the negative log-evidence per step rose in each of the last {k} epochs, from {loss[0]:.4g} "
-                f"(epoch 1) to {loss[-1]:.4g}")
+    if (
+        len(loss) > k
+        and all(loss[-i] > loss[-i - 1] for i in range(1, k + 1))
+        and loss[-1] > loss[0] + 0.1 * max(abs(loss[0]), 1.0)
+    ):
+        return (
+            f"the negative log-evidence per step rose in each of the last {k} epochs, from {loss[0]:.4g} "
+            f"(epoch 1) to {loss[-1]:.4g}"
+        )
     return None
 
 
@@ -109,12 +129,16 @@ def _rel_error(a: List[float], b: List[float]) -> float:
 def _start(cfg: DictConfig) -> Dict:
     """The ``start`` overrides, checked: each must be a constructor argument of the model (one line
     naming ``start.<key>``, the model's learnable parameters and the closest arguments)."""
-    given = OmegaConf.to_container(cfg.start, resolve=True) if OmegaConf.is_config(cfg.get("start")) else cfg.get("start")
+    given = (
+        OmegaConf.to_container(cfg.start, resolve=True) if OmegaConf.is_config(cfg.get("start")) else cfg.get("start")
+    )
     if given is None:
         return {}
     if not isinstance(given, dict):
-        raise ConfigError(f"start: expected a mapping of constructor arguments of the model to fit, such as "
-                          f"start={{psi: 5.0}}, got {given!r}")
+        raise ConfigError(
+            f"start: expected a mapping of constructor arguments of the model to fit, such as "
+            f"start={{psi: 5.0}}, got {given!r}"
+        )
     cls = hydra.utils.get_class(cfg.model._target_)
     accepted = [k for k in signature_defaults(cls) if k != "learnable"]
     unknown = [k for k in given if k not in accepted]
@@ -124,17 +148,27 @@ def _start(cfg: DictConfig) -> Dict:
         from .lightning import learned_parameters
 
         learnable = ", ".join(learned_parameters(hydra.utils.instantiate(cfg.model, learnable=True)))
-    except Exception:  # noqa: BLE001 - only for the message
+    except Exception:
         learnable = ""
     default = [k for k in unknown if k in (OmegaConf.load(config_dir() / "learn.yaml").get("start") or {})]
     bad = []
     for k in unknown:
         close = close_keys(str(k), accepted)
-        bad.append(f"start.{k}: expected an argument of {cls.__name__}"
-                   + (f" (did you mean start.{' or start.'.join(close)}?)" if close else "") + f", got {k!r}")
-    raise ConfigError("; ".join(bad) + (f"; its learnable parameters: {learnable}" if learnable else "") + (
-        f"; {', '.join(default)} {'is' if len(default) == 1 else 'are'} in learn.yaml's default start, which "
-        "start={...} merges into: replace it with '~start' '+start={...}'" if default else ""))
+        bad.append(
+            f"start.{k}: expected an argument of {cls.__name__}"
+            + (f" (did you mean start.{' or start.'.join(close)}?)" if close else "")
+            + f", got {k!r}"
+        )
+    raise ConfigError(
+        "; ".join(bad)
+        + (f"; its learnable parameters: {learnable}" if learnable else "")
+        + (
+            f"; {', '.join(default)} {'is' if len(default) == 1 else 'are'} in learn.yaml's default start, which "
+            "start={...} merges into: replace it with '~start' '+start={...}'"
+            if default
+            else ""
+        )
+    )
 
 
 def _learner(cfg: DictConfig, env: Optional[JobEnv] = None):
@@ -153,8 +187,8 @@ def _filter_target(name: str) -> Optional[str]:
         return node._target_
     for item in node.get("defaults") or []:
         if isinstance(item, str) and item.endswith("@_here_"):
-            ref = item[:-len("@_here_")]
-            return ref[len("/signature/"):] if ref.startswith("/signature/") else _filter_target(ref)
+            ref = item[: -len("@_here_")]
+            return ref[len("/signature/") :] if ref.startswith("/signature/") else _filter_target(ref)
     return None
 
 
@@ -162,20 +196,29 @@ def _check_evidence(cfg: DictConfig, fcfgs: Dict) -> List[str]:
     """The selected filters whose log-evidence is only an approximation
     (``estimates_evidence = False``): refused (one line naming them and the filters that estimate
     it) unless ``allow_approximate_evidence=true``, then returned (their results are labelled)."""
-    approximate = [k for k, f in fcfgs.items() if not getattr(hydra.utils.get_class(f._target_),
-                                                                 "estimates_evidence", True)]
+    approximate = [
+        k for k, f in fcfgs.items() if not getattr(hydra.utils.get_class(f._target_), "estimates_evidence", True)
+    ]
     if approximate and not cfg.allow_approximate_evidence:
-        good = [n for n in group_options("filter") or [] if (t := _filter_target(n))
-                and getattr(resolve(t), "estimates_evidence", None) is True and getattr(resolve(t), "uses_particles", False)]
+        good = [
+            n
+            for n in group_options("filter") or []
+            if (t := _filter_target(n))
+            and getattr(resolve(t), "estimates_evidence", None) is True
+            and getattr(resolve(t), "uses_particles", False)
+        ]
         names = ", ".join(f"{k} ({hydra.utils.get_class(fcfgs[k]._target_).__name__})" for k in approximate)
         raise ConfigError(
             f"filter: {names} reports a Gaussian approximation of the log-evidence, not an estimate of it, so "
             f"learning through it does not follow the likelihood's gradient; filters whose log-evidence gradient is "
             f"consistent: {', '.join(good)} (and kf on a linear-Gaussian model); or add "
-            "allow_approximate_evidence=true to learn through it anyway (its results are labelled approximate)")
+            "allow_approximate_evidence=true to learn through it anyway (its results are labelled approximate)"
+        )
     for k in approximate:
-        log.warning(f"warning: {k}: learning through an approximate log-evidence (allow_approximate_evidence=true): its "
-                    "results are labelled approximate")
+        log.warning(
+            f"warning: {k}: learning through an approximate log-evidence (allow_approximate_evidence=true): its "
+            "results are labelled approximate"
+        )
     return approximate
 
 
@@ -226,12 +269,17 @@ def _fit(cfg: DictConfig, key: str, fcfg, data, names: List[str], out: Path, env
             kw[key_] = cfg[key_]
     filt = hydra.utils.instantiate(fcfg, **kw).to(device=env.device, dtype=env.dtype)
     try:  # its options' errors (lr_decay, betas, checkpoint_steps, ...) are settings: one line
-        module = FilterLightningModule(filt, lr=cfg.lr, seed=cfg.seed, checkpoint_steps=cfg.checkpoint_steps,
-                                       memory_budget_gb=cfg.memory_budget_gb, lr_decay=cfg.lr_decay,
-                                       common_random_numbers=cfg.common_random_numbers,
-                                       allow_approximate_evidence=cfg.allow_approximate_evidence,
-                                       betas=OmegaConf.to_container(cfg.betas) if OmegaConf.is_config(cfg.betas)
-                                       else cfg.betas)
+        module = FilterLightningModule(
+            filt,
+            lr=cfg.lr,
+            seed=cfg.seed,
+            checkpoint_steps=cfg.checkpoint_steps,
+            memory_budget_gb=cfg.memory_budget_gb,
+            lr_decay=cfg.lr_decay,
+            common_random_numbers=cfg.common_random_numbers,
+            allow_approximate_evidence=cfg.allow_approximate_evidence,
+            betas=OmegaConf.to_container(cfg.betas) if OmegaConf.is_config(cfg.betas) else cfg.betas,
+        )
     except ValueError as e:
         raise ConfigError(str(e)) from e
     history = {"epoch": [], "steps": [], "nll_per_step": [], "seconds": [], **{n: [] for n in names}}
@@ -252,18 +300,30 @@ def _fit(cfg: DictConfig, key: str, fcfg, data, names: List[str], out: Path, env
             history["seconds"].append(time.perf_counter() - self.t0)
             for n in names:
                 history[n].append(_value(model, n))
-            log.info(f"{key} epoch {trainer.current_epoch + 1}: nll/step {history['nll_per_step'][-1]:.4f}, "
-                     + ", ".join(f"{n} {_fmt(history[n][-1])}" for n in names))
+            log.info(
+                f"{key} epoch {trainer.current_epoch + 1}: nll/step {history['nll_per_step'][-1]:.4f}, "
+                + ", ".join(f"{n} {_fmt(history[n][-1])}" for n in names)
+            )
             why = None if diverged else _divergence(history, begin)
             if why:
                 diverged.update(epoch=trainer.current_epoch + 1, reason=why)
-                log.warning(f"warning: {key} is diverging (epoch {diverged['epoch']}): {why}; a smaller lr "
-                            f"(now {cfg.lr}) may help")
+                log.warning(
+                    f"warning: {key} is diverging (epoch {diverged['epoch']}): {why}; a smaller lr "
+                    f"(now {cfg.lr}) may help"
+                )
 
     cpu = env.device is None or env.device.type == "cpu"
-    trainer = pl.Trainer(max_epochs=cfg.epochs, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                         enable_model_summary=False, default_root_dir=str(out), callbacks=[Record(), _stop_callback()],
-                         accelerator="cpu" if cpu else "gpu", devices=1 if cpu else [env.device.index or 0])
+    trainer = pl.Trainer(
+        max_epochs=cfg.epochs,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        default_root_dir=str(out),
+        callbacks=[Record(), _stop_callback()],
+        accelerator="cpu" if cpu else "gpu",
+        devices=1 if cpu else [env.device.index or 0],
+    )
     batch = cfg.batch_size or len(data)
     failed = None
     try:
@@ -273,13 +333,20 @@ def _fit(cfg: DictConfig, key: str, fcfg, data, names: List[str], out: Path, env
             STOP.handler(signal.SIGTERM, None)
     except TorchflowError as e:  # NonFiniteError, a model refused: the module names the filter, what and the epoch
         failed = {"epoch": trainer.current_epoch + 1, "error": str(e)}
-    except Exception as e:  # noqa: BLE001 - a failure: the finished epochs are still written
-        failed = {"epoch": trainer.current_epoch + 1, "error": f"{key}: {type(e).__name__}: {e} (epoch "
-                                                               f"{trainer.current_epoch + 1})"}
+    except Exception as e:
+        failed = {
+            "epoch": trainer.current_epoch + 1,
+            "error": f"{key}: {type(e).__name__}: {e} (epoch {trainer.current_epoch + 1})",
+        }
         log.error(f"{key} failed in epoch {trainer.current_epoch + 1}", exc_info=True)
     stopped = STOP.requested and len(history["epoch"]) < cfg.epochs
-    return {"history": history, "checkpoint_steps": bool(module.checkpoint_steps is True), "stopped": stopped,
-            "diverged": diverged or None, "failed": failed}
+    return {
+        "history": history,
+        "checkpoint_steps": bool(module.checkpoint_steps is True),
+        "stopped": stopped,
+        "diverged": diverged or None,
+        "failed": failed,
+    }
 
 
 def _fmt(v: List[float]) -> str:
@@ -294,14 +361,22 @@ def _rows(fits: Dict, truth: Optional[Dict], start: Dict, names: List[str], refe
         for n in names:
             final = h[n][-1]
             ref = fits[reference]["history"][n][-1] if reference in fits and key != reference else None
-            rows.append({"filter": key, "parameter": n, "start": _fmt(start[n]), "final": _fmt(final),
-                         "truth": "" if truth is None else _fmt(truth[n]),
-                         "error_vs_truth_pct": "" if truth is None else round(_rel_error(final, truth[n]), 3),
-                         "reference": "" if ref is None else _fmt(ref),
-                         "error_vs_reference_pct": "" if ref is None else round(_rel_error(final, ref), 3),
-                         "epochs": len(h["epoch"]),
-                         "sec_per_epoch": round(sum(h["seconds"]) / max(1, len(h["seconds"])), 3),
-                         "final_nll_per_step": round(h["nll_per_step"][-1], 5), "note": _note(fit)})
+            rows.append(
+                {
+                    "filter": key,
+                    "parameter": n,
+                    "start": _fmt(start[n]),
+                    "final": _fmt(final),
+                    "truth": "" if truth is None else _fmt(truth[n]),
+                    "error_vs_truth_pct": "" if truth is None else round(_rel_error(final, truth[n]), 3),
+                    "reference": "" if ref is None else _fmt(ref),
+                    "error_vs_reference_pct": "" if ref is None else round(_rel_error(final, ref), 3),
+                    "epochs": len(h["epoch"]),
+                    "sec_per_epoch": round(sum(h["seconds"]) / max(1, len(h["seconds"])), 3),
+                    "final_nll_per_step": round(h["nll_per_step"][-1], 5),
+                    "note": _note(fit),
+                }
+            )
     return rows
 
 
@@ -326,8 +401,11 @@ def _plot(fits: Dict, truth: Optional[Dict], names: List[str], path: Path) -> No
         h = fit["history"]
         axes[0].plot(h["epoch"], h["nll_per_step"], label=key)
         for ax, n in zip(axes[1:], names):
-            ax.plot(h["epoch"], [v[0] if len(v) == 1 else _norm(v) if truth is None else _rel_error(v, truth[n])
-                                 for v in h[n]], label=key)
+            ax.plot(
+                h["epoch"],
+                [v[0] if len(v) == 1 else _norm(v) if truth is None else _rel_error(v, truth[n]) for v in h[n]],
+                label=key,
+            )
     axes[0].set(xlabel="epoch", ylabel="negative log-evidence per step")
     for ax, n in zip(axes[1:], names):
         scalar = len(next(iter(fits.values()))["history"][n][-1]) == 1
@@ -380,9 +458,17 @@ def learn(cfg: DictConfig, out: Path, env: JobEnv) -> LearnOutcome:
     recorded = recorded_data(cfg, probe)
     if recorded is None:  # simulate the training set from the model config (the truth)
         truth = hydra.utils.instantiate(cfg.model)
-        plan = plan_run(truth, {}, trials=cfg.trials, steps=cfg.steps, seed=cfg.seed,
-                        inits_per_track=cfg.get("inits_per_track", 1), memory_budget_gb=cfg.memory_budget_gb,
-                        device=env.device or "cpu", dtype=env.dtype or "float64")
+        plan = plan_run(
+            truth,
+            {},
+            trials=cfg.trials,
+            steps=cfg.steps,
+            seed=cfg.seed,
+            inits_per_track=cfg.get("inits_per_track", 1),
+            memory_budget_gb=cfg.memory_budget_gb,
+            device=env.device or "cpu",
+            dtype=env.dtype or "float64",
+        )
         data = TrajectoryDataset(plan.traj, plan.mean0, plan.cov0)
         true_values = {n: _value(truth, n) for n in names}
         sizes = {"trials": cfg.trials, "steps": plan.settings.steps, "inits_per_track": plan.settings.inits_per_track}
@@ -395,16 +481,20 @@ def learn(cfg: DictConfig, out: Path, env: JobEnv) -> LearnOutcome:
     given = OmegaConf.to_container(cfg.start, resolve=True) if cfg.get("start") else {}
     fixed = {k: v for k, v in given.items() if k not in names}
     # start is a mapping: an override such as start={psi: 5} merges into the default (its sigma_w stays)
-    log.info(f"model to fit: learned {', '.join(f'{n} from {_fmt(start[n])}' for n in names)}"
-             + (f"; held at start values: {fixed}" if fixed else ""))
+    log.info(
+        f"model to fit: learned {', '.join(f'{n} from {_fmt(start[n])}' for n in names)}"
+        + (f"; held at start values: {fixed}" if fixed else "")
+    )
     res = LearnOutcome([])
     for key, fcfg in fcfgs.items():
         if STOP.requested:
             res.interrupted = True
             res.not_run.append(key)
             continue
-        log.info(f"fitting {', '.join(names)} with {key} ({cfg.epochs} epochs, {len(data)} trials x "
-                 f"{data.obs.shape[1]} steps{'' if recorded is None else ' of data=' + str(cfg.data)})")
+        log.info(
+            f"fitting {', '.join(names)} with {key} ({cfg.epochs} epochs, {len(data)} trials x "
+            f"{data.obs.shape[1]} steps{'' if recorded is None else ' of data=' + str(cfg.data)})"
+        )
         fit = _fit(cfg, key, fcfg, data, names, out, env)
         fit["approximate_evidence"] = key in approximate
         res.interrupted |= fit["stopped"]
@@ -417,18 +507,35 @@ def learn(cfg: DictConfig, out: Path, env: JobEnv) -> LearnOutcome:
     res.rows = _rows(res.fits, true_values, start, names, reference or "")
     writer = shell.Output(out)
     writer.attempt("learn.csv", writers.write_csv, out / "learn.csv", res.rows, COLUMNS)
-    writer.attempt("learn.json", writers.write_text, out / "learn.json", json.dumps({
-        "config": OmegaConf.to_container(cfg, resolve=True), "rows": res.rows,
-        "history": {k: f["history"] for k, f in res.fits.items()},
-        "checkpoint_steps": {k: f["checkpoint_steps"] for k, f in res.fits.items()},
-        "interrupted": res.interrupted, "stopped_by": STOP.name if res.interrupted else None,
-        "not_run": res.not_run, "failed": res.failed,
-        "diverged": {k: f["diverged"] for k, f in res.fits.items() if f["diverged"]},
-        "approximate_evidence": [k for k in fcfgs if k in approximate],
-        "divergence_rule": {"growth": DIVERGENCE_GROWTH, "rises": DIVERGENCE_RISES},
-        "run": {**sizes, "seed": cfg.seed, "device": str(data.obs.device),
-                "dtype": str(data.obs.dtype).replace("torch.", ""), "threads": env.threads,
-                "tuning": env.tuning}}, indent=1))
+    writer.attempt(
+        "learn.json",
+        writers.write_text,
+        out / "learn.json",
+        json.dumps(
+            {
+                "config": OmegaConf.to_container(cfg, resolve=True),
+                "rows": res.rows,
+                "history": {k: f["history"] for k, f in res.fits.items()},
+                "checkpoint_steps": {k: f["checkpoint_steps"] for k, f in res.fits.items()},
+                "interrupted": res.interrupted,
+                "stopped_by": STOP.name if res.interrupted else None,
+                "not_run": res.not_run,
+                "failed": res.failed,
+                "diverged": {k: f["diverged"] for k, f in res.fits.items() if f["diverged"]},
+                "approximate_evidence": [k for k in fcfgs if k in approximate],
+                "divergence_rule": {"growth": DIVERGENCE_GROWTH, "rises": DIVERGENCE_RISES},
+                "run": {
+                    **sizes,
+                    "seed": cfg.seed,
+                    "device": str(data.obs.device),
+                    "dtype": str(data.obs.dtype).replace("torch.", ""),
+                    "threads": env.threads,
+                    "tuning": env.tuning,
+                },
+            },
+            indent=1,
+        ),
+    )
     if cfg.plots and res.fits:
         writer.attempt("curves.png", _plot, res.fits, true_values, names, out / "curves.png")
     res.write_failed = writer.failed
@@ -478,7 +585,7 @@ def _lightning_quiet(quiet: bool = True):
 def _job(cfg: DictConfig, out: Path, env: JobEnv) -> int:
     """The learn command's job (in the shell's job environment); the exit status."""
     try:
-        with _lightning_quiet(not cfg.get("lightning_messages", False)):
+        with _lightning_quiet(not (cfg is not None and cfg.get("lightning_messages", False))):
             res = learn(cfg, out, env)
     except RunStopped as stopped:  # during the simulation: nothing was fitted, nothing is written
         log.warning(str(stopped))
@@ -487,21 +594,26 @@ def _job(cfg: DictConfig, out: Path, env: JobEnv) -> int:
         log.info("\n" + format_table(res.rows, COLUMNS))
     if res.write_failed is None:
         log.info(f"results: {shell.shown_path(out)}")
-    done = ", ".join(f"{k}: {len(res.fits[k]['history']['epoch']) if k in res.fits else 0} of {cfg.epochs} epochs"
-                     for k in [*res.fits, *(k for k in res.failed if k not in res.fits)])
+    done = ", ".join(
+        f"{k}: {len(res.fits[k]['history']['epoch']) if k in res.fits else 0} of {cfg.epochs} epochs"
+        for k in [*res.fits, *(k for k in res.failed if k not in res.fits)]
+    )
     for key, failure in res.failed.items():
         log.error(f"error: {failure['error']}; learn.csv and learn.json hold the epochs that finished ({done})")
     if res.interrupted:
         skipped = f"; not run: {', '.join(res.not_run)}" if res.not_run else ""
-        log.warning(f"interrupted by {STOP.name}: learn.csv and learn.json hold the epochs that finished "
-                    f"({done or 'none'}){skipped}")
+        log.warning(
+            f"interrupted by {STOP.name}: learn.csv and learn.json hold the epochs that finished "
+            f"({done or 'none'}){skipped}"
+        )
         return STOP.exit_code
     return shell.EXIT_FAILED if res.write_failed or res.failed else shell.EXIT_OK
 
 
 #: the ``torchflow-learn`` command of the shell (``start`` holds constructor overrides: free-form)
-LEARN = shell.Command(prog="torchflow-learn", config_name="learn", job=_job,
-                      free_form=("model", "filter", "hydra", "start"))
+LEARN = shell.Command(
+    prog="torchflow-learn", config_name="learn", job=_job, free_form=("model", "filter", "hydra", "start")
+)
 hydra_main = shell.hydra_entry(LEARN)
 
 

@@ -7,6 +7,7 @@ The core library never imports Lightning; import this module explicitly::
 Lightning's ``Trainer`` writes logs and checkpoints under its ``default_root_dir`` (the working
 folder unless given): pass ``default_root_dir=...`` or ``logger=False, enable_checkpointing=False``.
 """
+
 from __future__ import annotations
 
 import math
@@ -52,8 +53,9 @@ def learned_parameters(module: nn.Module) -> Dict[str, torch.Tensor]:
     return {n: reduce(getattr, n.split("."), module) for n in _learnable(module)}
 
 
-def backward_bytes_per_step(filter: Filter, observations: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor,
-                            generator=None) -> int:
+def backward_bytes_per_step(
+    filter: Filter, observations: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, generator=None
+) -> int:
     """Bytes of the tensors autograd keeps for the backward pass of one time step of ``filter``
     (the prior draw and the first step on ``observations (B, T, m)``, counted by a
     ``saved_tensors_hooks``; views of one tensor are counted each time, so an upper estimate). The
@@ -93,15 +95,22 @@ class TrajectoryDataset(Dataset):
     """
 
     def __init__(self, trajectory, mean: Optional[torch.Tensor] = None, cov: Optional[torch.Tensor] = None):
-        obs = trajectory.observations if isinstance(trajectory, Trajectory) else check_observations(
-            trajectory, name="trajectory")
+        obs = (
+            trajectory.observations
+            if isinstance(trajectory, Trajectory)
+            else check_observations(trajectory, name="trajectory")
+        )
         obs = obs.unsqueeze(0) if obs.dim() == 2 else obs
         B = obs.shape[0]
         if (mean is None) != (cov is None):
-            raise ArgumentError("mean, cov: expected both (the trials' priors) or neither (the model's declared prior), "
-                                f"got {'mean' if cov is None else 'cov'} alone")
+            raise ArgumentError(
+                "mean, cov: expected both (the trials' priors) or neither (the model's declared prior), "
+                f"got {'mean' if cov is None else 'cov'} alone"
+            )
         if mean is not None and (mean.shape[0] != B or cov.shape[0] != B):
-            raise ArgumentError(f"mean, cov: expected {B} trials like the observations, got {mean.shape[0]}, {cov.shape[0]}")
+            raise ArgumentError(
+                f"mean, cov: expected {B} trials like the observations, got {mean.shape[0]}, {cov.shape[0]}"
+            )
         # a DiagonalCovariance as its variances: batches are collated from tensors ((B, d), rebuilt in _loss)
         self.obs, self.mean = obs, mean
         self.cov = cov.variance if isinstance(cov, DiagonalCovariance) else cov
@@ -166,30 +175,53 @@ class FilterLightningModule(pl.LightningModule):
     ``psi``) non-finite after an optimiser step (a learning rate too large).
     """
 
-    def __init__(self, filter: Filter, *, lr: float = 1e-2, seed: int = 0, checkpoint_steps="auto",
-                 memory_budget_gb: float = 4.0, lr_decay: float = 1.0, common_random_numbers: bool = False,
-                 betas=(0.9, 0.999), allow_approximate_evidence: bool = False):
+    def __init__(
+        self,
+        filter: Filter,
+        *,
+        lr: float = 1e-2,
+        seed: int = 0,
+        checkpoint_steps="auto",
+        memory_budget_gb: float = 4.0,
+        lr_decay: float = 1.0,
+        common_random_numbers: bool = False,
+        betas=(0.9, 0.999),
+        allow_approximate_evidence: bool = False,
+    ):
         super().__init__()
         if not isinstance(filter, Filter):
-            hint = (" (wrap the model in a filter, e.g. BootstrapParticleFilter(model, n_particles=500) or "
-                    "KalmanFilter(model))") if isinstance(filter, StateSpaceModel) else ""
+            hint = (
+                (
+                    " (wrap the model in a filter, e.g. BootstrapParticleFilter(model, n_particles=500) or "
+                    "KalmanFilter(model))"
+                )
+                if isinstance(filter, StateSpaceModel)
+                else ""
+            )
             raise ArgumentTypeError(f"filter: expected a torchflow Filter, got {type(filter).__name__}{hint}")
         if isinstance(lr, bool) or not isinstance(lr, numbers.Real) or not (math.isfinite(lr) and lr > 0):
             raise ArgumentError(f"lr: expected a positive finite learning rate, got {lr!r}")
         check_count("seed", seed, minimum=0)
         if not isinstance(allow_approximate_evidence, bool):
-            raise ArgumentError(f"allow_approximate_evidence: expected True or False, got {allow_approximate_evidence!r}")
+            raise ArgumentError(
+                f"allow_approximate_evidence: expected True or False, got {allow_approximate_evidence!r}"
+            )
         if not filter.estimates_evidence and not allow_approximate_evidence:
             raise ArgumentError(
                 f"filter: expected a filter that estimates the log-evidence, got {type(filter).__name__}, whose "
                 "log_evidence is a Gaussian approximation (estimates_evidence = False), so its gradient is not the "
                 "likelihood's; learn through a Kalman filter, a bootstrap PF, a PF-PF, a GPFIS or another particle "
-                "filter, or pass allow_approximate_evidence=True")
+                "filter, or pass allow_approximate_evidence=True"
+            )
         if not any(p.requires_grad for p in filter.parameters()):
             raise ArgumentError("filter: its model has no learnable parameters (construct it with learnable=True)")
         if checkpoint_steps not in (True, False, "auto"):
             raise ArgumentError(f"checkpoint_steps: expected True, False or 'auto', got {checkpoint_steps!r}")
-        if isinstance(memory_budget_gb, bool) or not isinstance(memory_budget_gb, (int, float)) or memory_budget_gb <= 0:
+        if (
+            isinstance(memory_budget_gb, bool)
+            or not isinstance(memory_budget_gb, (int, float))
+            or memory_budget_gb <= 0
+        ):
             raise ArgumentError(f"memory_budget_gb: expected a positive number of GB, got {memory_budget_gb!r}")
         self.filter = filter
         self.lr = float(lr)
@@ -201,8 +233,11 @@ class FilterLightningModule(pl.LightningModule):
             raise ArgumentError(f"common_random_numbers: expected True or False, got {common_random_numbers!r}")
         self.lr_decay, self.common_random_numbers = float(lr_decay), common_random_numbers
         betas = tuple(betas) if isinstance(betas, (list, tuple)) else betas
-        if not (isinstance(betas, tuple) and len(betas) == 2 and all(
-                isinstance(b, (int, float)) and not isinstance(b, bool) and 0 <= b < 1 for b in betas)):
+        if not (
+            isinstance(betas, tuple)
+            and len(betas) == 2
+            and all(isinstance(b, (int, float)) and not isinstance(b, bool) and 0 <= b < 1 for b in betas)
+        ):
             raise ArgumentError(f"betas: expected two Adam decay rates in [0, 1), got {betas!r}")
         self.betas = (float(betas[0]), float(betas[1]))
         self.allow_approximate_evidence = allow_approximate_evidence
@@ -228,9 +263,12 @@ class FilterLightningModule(pl.LightningModule):
             mean, cov = declared_prior(self.filter.model, obs.shape[0])
             index = batch[1] if len(batch) > 1 else None
         if index is not None:  # trial indices: per-trial streams, independent of how trials are batched
-            g = TrialStreams(self.seed, index.reshape(-1).tolist(),
-                             key=f"{self.filter.stream_name}/{stage}" + (
-                                 "" if self.common_random_numbers else f"/epoch{self.current_epoch}"))
+            g = TrialStreams(
+                self.seed,
+                index.reshape(-1).tolist(),
+                key=f"{self.filter.stream_name}/{stage}"
+                + ("" if self.common_random_numbers else f"/epoch{self.current_epoch}"),
+            )
         else:
             g = torch.Generator(device=obs.device).manual_seed(self.seed + batch_idx)
         if self.checkpoint_steps == "auto" and torch.is_grad_enabled():
@@ -244,14 +282,18 @@ class FilterLightningModule(pl.LightningModule):
         except ArgumentError as err:  # the filter refuses the model the optimiser's steps have made
             if self.global_step == 0:
                 raise
-            values = ", ".join(f"{n.removeprefix('model.')} {_describe(v)}"
-                               for n, v in learned_parameters(self.filter).items())
-            raise ArgumentError(f"{self.filter.name}: in epoch {self.current_epoch + 1} the learned parameters ({values}) "
-                                f"give a model the filter refuses ({err})") from err
+            values = ", ".join(
+                f"{n.removeprefix('model.')} {_describe(v)}" for n, v in learned_parameters(self.filter).items()
+            )
+            raise ArgumentError(
+                f"{self.filter.name}: in epoch {self.current_epoch + 1} the learned parameters ({values}) "
+                f"give a model the filter refuses ({err})"
+            ) from err
         bad = ~torch.isfinite(log_evidence.detach())
         if bool(bad.any()):
-            raise NonFiniteError(self.filter.name, 0, torch.nonzero(bad).flatten().tolist(),
-                                 self._in_epoch("log-evidence"))
+            raise NonFiniteError(
+                self.filter.name, 0, torch.nonzero(bad).flatten().tolist(), self._in_epoch("log-evidence")
+            )
         loss = -log_evidence.mean() / obs.shape[1]
         self.log(f"{stage}_nll_per_step", loss, prog_bar=True, batch_size=obs.shape[0])
         return loss
@@ -266,21 +308,27 @@ class FilterLightningModule(pl.LightningModule):
             raise self._with_epoch(err) from err
 
     def on_after_backward(self):
-        bad = [n.removeprefix("model.") for n, ps in _learnable(self.filter).items()
-               if any(p.grad is not None and not bool(torch.isfinite(p.grad).all()) for p in ps)]
+        bad = [
+            n.removeprefix("model.")
+            for n, ps in _learnable(self.filter).items()
+            if any(p.grad is not None and not bool(torch.isfinite(p.grad).all()) for p in ps)
+        ]
         if bad:
             raise NonFiniteError(self.filter.name, 0, [], self._in_epoch(f"gradient of {', '.join(bad)}"))
 
     def on_train_batch_end(self, outputs, batch, batch_idx):
-        bad = [n.removeprefix("model.") for n, v in learned_parameters(self.filter).items()
-               if not bool(torch.isfinite(v).all())]
+        bad = [
+            n.removeprefix("model.")
+            for n, v in learned_parameters(self.filter).items()
+            if not bool(torch.isfinite(v).all())
+        ]
         if bad:
-            raise NonFiniteError(self.filter.name, 0, [],
-                                 f"{', '.join(bad)} after the optimiser step of epoch {self.current_epoch + 1}")
+            raise NonFiniteError(
+                self.filter.name, 0, [], f"{', '.join(bad)} after the optimiser step of epoch {self.current_epoch + 1}"
+            )
 
     def configure_optimizers(self):
-        opt = torch.optim.Adam([p for p in self.filter.parameters() if p.requires_grad], lr=self.lr,
-                               betas=self.betas)
+        opt = torch.optim.Adam([p for p in self.filter.parameters() if p.requires_grad], lr=self.lr, betas=self.betas)
         if self.lr_decay == 1.0:
             return opt
         return {"optimizer": opt, "lr_scheduler": torch.optim.lr_scheduler.ExponentialLR(opt, self.lr_decay)}

@@ -3,6 +3,7 @@
 All functions take arbitrary leading batch dimensions ``(..., d, d)``. No matrix inverse is ever
 formed: solves go through Cholesky factors.
 """
+
 from __future__ import annotations
 
 import math
@@ -119,8 +120,8 @@ def small_solve_lower(L: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
     for i in range(k):
         r = B[..., i, :]
         if i:
-            r = r - (L[..., i:i + 1, :i] @ X[..., :i, :]).squeeze(-2)
-        X[..., i, :] = r / L[..., i, i:i + 1]
+            r = r - (L[..., i : i + 1, :i] @ X[..., :i, :]).squeeze(-2)
+        X[..., i, :] = r / L[..., i, i : i + 1]
     return X
 
 
@@ -154,8 +155,12 @@ def solve_triangular(A: torch.Tensor, B: torch.Tensor, *, upper: bool, left: boo
     matrices (up to ``torchflow.tuning`` ``serial_solve_max_dim``: batched CPU solves loop over
     the batch calling MKL's trsm, which with several threads pays a parallel-region start per tiny
     matrix); otherwise unchanged."""
-    if A.device.type == "cpu" and A.dim() > 2 and A.shape[-1] <= tuning.get().serial_solve_max_dim \
-            and A.shape[:-2].numel() > 1:
+    if (
+        A.device.type == "cpu"
+        and A.dim() > 2
+        and A.shape[-1] <= tuning.get().serial_solve_max_dim
+        and A.shape[:-2].numel() > 1
+    ):
         n = torch.get_num_threads()
         if n > 1:
             torch.set_num_threads(1)
@@ -200,8 +205,11 @@ def standard_normal(shape, *, dtype: torch.dtype, device, generator: Optional[to
         flat = out.numpy().reshape(-1)
         blk = FAST_NORMAL_BLOCK
         seeds = [seed] if n <= blk else np.random.SeedSequence(seed).spawn(-(-n // blk))
-        fill_numpy("normal", [(np.random.Generator(np.random.SFC64(s)), flat[i * blk:(i + 1) * blk])
-                              for i, s in enumerate(seeds)], np.float64)
+        fill_numpy(
+            "normal",
+            [(np.random.Generator(np.random.SFC64(s)), flat[i * blk : (i + 1) * blk]) for i, s in enumerate(seeds)],
+            np.float64,
+        )
         return out
     return torch.randn(shape, dtype=dtype, device=device, generator=generator)
 
@@ -222,8 +230,7 @@ def eigh(A: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
     take one call."""
     batch = math.prod(A.shape[:-2])
     workers = min(torch.get_num_threads(), batch // max(1, THREADED_EIGH_MIN // 2))
-    if (A.device.type != "cpu" or batch < THREADED_EIGH_MIN or workers < 2 or A.requires_grad
-            or under_func_transform(A)):
+    if A.device.type != "cpu" or batch < THREADED_EIGH_MIN or workers < 2 or A.requires_grad or under_func_transform(A):
         return torch.linalg.eigh(A)
     flat = A.reshape(batch, *A.shape[-2:])
     parts = list(thread_pool(workers).map(torch.linalg.eigh, flat.tensor_split(workers)))
@@ -323,8 +330,9 @@ def matvec(A: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return (A @ x.unsqueeze(-1)).squeeze(-1)
 
 
-def sample_mvn(mean: torch.Tensor, scale_tril: torch.Tensor, sample_shape: Tuple[int, ...], generator=None
-               ) -> torch.Tensor:
+def sample_mvn(
+    mean: torch.Tensor, scale_tril: torch.Tensor, sample_shape: Tuple[int, ...], generator=None
+) -> torch.Tensor:
     """Draw ``mean + L xi`` with ``xi ~ N(0, I)``.
 
     Args:

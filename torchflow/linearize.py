@@ -1,4 +1,5 @@
 """Jacobians by ``torch.func``: ``jacrev`` vmapped over any leading batch shape."""
+
 from __future__ import annotations
 
 from typing import Callable

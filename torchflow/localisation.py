@@ -18,6 +18,7 @@ of sensor s. The belief is a set of potential objects (POs), each with an existe
 Declared sources: POs with existence above ``declare``, at their mixture mean. Everything is
 batched over runs x POs x components x measurements x samples (in chunks of ``sample_chunk``).
 """
+
 from __future__ import annotations
 
 import math
@@ -108,23 +109,27 @@ class _Localiser(nn.Module):
     output, padded_measurements, trials_per_call, particle_chunk = "sets", True, 1, None
     method: str
 
-    def plan_memory(self, budget_bytes: float, n_particles=None):  # noqa: D102 - no per-particle blocks
+    def plan_memory(self, budget_bytes: float, n_particles=None):
         return None
 
-    def __init__(self, model: TDOA3D, *, birth_rate, max_objects, prune, declare, bp_iterations, sample_chunk,
-                 name):
+    def __init__(self, model: TDOA3D, *, birth_rate, max_objects, prune, declare, bp_iterations, sample_chunk, name):
         super().__init__()
         if not isinstance(model, TDOA3D):
             raise ArgumentTypeError(f"model: expected a torchflow TDOA3D, got {type(model).__name__}")
         if model.clutter_rate <= 0:
-            raise ArgumentError(f"model.clutter_rate: BP divides by the clutter intensity; expected > 0, got "
-                             f"{model.clutter_rate}")
+            raise ArgumentError(
+                f"model.clutter_rate: BP divides by the clutter intensity; expected > 0, got {model.clutter_rate}"
+            )
         self.model, self.name = model, name or type(self).__name__
         self.birth_rate = check_number("birth_rate", birth_rate, lambda v: v > 0, "> 0")
-        self.prune, self.declare = (check_number(k, v, lambda v: 0 <= v < 1, "a probability in [0, 1)")
-                                    for k, v in (("prune", prune), ("declare", declare)))
-        self.max_objects, self.bp_iterations, self.sample_chunk = (_count(k, v) for k, v in (
-            ("max_objects", max_objects), ("bp_iterations", bp_iterations), ("sample_chunk", sample_chunk)))
+        self.prune, self.declare = (
+            check_number(k, v, lambda v: 0 <= v < 1, "a probability in [0, 1)")
+            for k, v in (("prune", prune), ("declare", declare))
+        )
+        self.max_objects, self.bp_iterations, self.sample_chunk = (
+            _count(k, v)
+            for k, v in (("max_objects", max_objects), ("bp_iterations", bp_iterations), ("sample_chunk", sample_chunk))
+        )
 
     @property
     def stream_name(self) -> str:  # key of the per-run random streams
@@ -136,8 +141,9 @@ class _Localiser(nn.Module):
     def preferred_chunk_trials(self) -> int:
         return self.trials_per_call
 
-    def forward(self, observations: torch.Tensor, mean=None, cov=None, generator=None, *, mask: torch.Tensor,
-                progress=None) -> Localisation:
+    def forward(
+        self, observations: torch.Tensor, mean=None, cov=None, generator=None, *, mask: torch.Tensor, progress=None
+    ) -> Localisation:
         """Localise from measurements ``observations (B, S, M)`` with ``mask`` (bool, same shape;
         :class:`~torchflow.models.TDOAData`), sensor after sensor. ``generator``: a ``torch.Generator``
         or per-run :class:`~torchflow.random.TrialStreams`. ``mean``, ``cov`` (the runner's prior) are
@@ -162,8 +168,13 @@ class _Localiser(nn.Module):
     def init(self, batch_size: int, dtype=torch.float64, device=None) -> POState:  # no PO before the first sensor
         e = torch.zeros(batch_size, 0, dtype=dtype, device=device)
         n = self.G if self.mixture else self.n_particles
-        return POState(e, e.bool(), e.new_zeros(batch_size, 0, n), e.new_zeros(batch_size, 0, n, 3),
-                       e.new_zeros(batch_size, 0, n, 3, 3) if self.mixture else None)
+        return POState(
+            e,
+            e.bool(),
+            e.new_zeros(batch_size, 0, n),
+            e.new_zeros(batch_size, 0, n, 3),
+            e.new_zeros(batch_size, 0, n, 3, 3) if self.mixture else None,
+        )
 
     def _bp(self, state: POState, log_Ik, log_Ib, z_mask, sensor):
         """Loopy BP from the integrals ``log int f_k l_m (B, K, M)`` of the legacy POs and ``log int
@@ -185,12 +196,17 @@ class _Localiser(nn.Module):
 def sensor_measurement(model: TDOA3D, z: torch.Tensor, sensor) -> GaussianMeasurement:
     """The flows' measurement term of sensor ``sensor``'s scalar TDOAs ``z (R,)``, one per batch
     row: ``h`` the model's TDOA of that sensor pair, its gradient, and ``R = sigma_v^2``."""
+
     def linearise(points, support=False, scale=None):
         h, H = model.measure(points, sensor).unsqueeze(-1), model.jacobian(points, sensor).unsqueeze(-2)
         return (h, H) if scale is None else (h * scale, H * scale)
 
-    return GaussianMeasurement(z.reshape(-1, 1), linearise, lambda points: torch.full(
-        (1, 1), model.sigma_v, dtype=points.dtype, device=points.device), "scalar")
+    return GaussianMeasurement(
+        z.reshape(-1, 1),
+        linearise,
+        lambda points: torch.full((1, 1), model.sigma_v, dtype=points.dtype, device=points.device),
+        "scalar",
+    )
 
 
 def birth_mixture(region: float, per_axis: int, sd_factor: float = 0.5, dtype=torch.float64, device=None):
@@ -223,19 +239,48 @@ class FlowMixtureLocaliser(_Localiser):
 
     mixture = True  # POs are Gaussian mixtures (with factors)
 
-    def __init__(self, model: TDOA3D, method: str = "pfi_os", *, n_components: int = 100,
-                 samples_per_component: int = 5000, schedule: Optional[LambdaSchedule] = None, alpha: float = 0.1,
-                 c_rule: str = "printed", birth_rate: float = 0.01, birth_per_axis: int = 5, birth_sd: float = 0.5,
-                 max_objects: int = 30, prune: float = 1e-3, declare: float = 0.5, bp_iterations: int = 20,
-                 jitter: float = 1e-6, sample_chunk: int = 20_000_000, evaluate_at: str = "end",
-                 name: Optional[str] = None):
-        super().__init__(model, birth_rate=birth_rate, max_objects=max_objects, prune=prune, declare=declare,
-                         bp_iterations=bp_iterations, sample_chunk=sample_chunk, name=name)
+    def __init__(
+        self,
+        model: TDOA3D,
+        method: str = "pfi_os",
+        *,
+        n_components: int = 100,
+        samples_per_component: int = 5000,
+        schedule: Optional[LambdaSchedule] = None,
+        alpha: float = 0.1,
+        c_rule: str = "printed",
+        birth_rate: float = 0.01,
+        birth_per_axis: int = 5,
+        birth_sd: float = 0.5,
+        max_objects: int = 30,
+        prune: float = 1e-3,
+        declare: float = 0.5,
+        bp_iterations: int = 20,
+        jitter: float = 1e-6,
+        sample_chunk: int = 20_000_000,
+        evaluate_at: str = "end",
+        name: Optional[str] = None,
+    ):
+        super().__init__(
+            model,
+            birth_rate=birth_rate,
+            max_objects=max_objects,
+            prune=prune,
+            declare=declare,
+            bp_iterations=bp_iterations,
+            sample_chunk=sample_chunk,
+            name=name,
+        )
         if method not in METHODS:
             raise ArgumentError(f"method: expected one of {METHODS}, got {method!r}")
         self.method = method
-        self.flow = (EDHFlow() if method == "pfi_d" else GromovFlow(points="global") if method == "pfi_s"
-                     else OptimalDiffusionFlow(alpha=alpha, points="global", c_rule=c_rule))
+        self.flow = (
+            EDHFlow()
+            if method == "pfi_d"
+            else GromovFlow(points="global")
+            if method == "pfi_s"
+            else OptimalDiffusionFlow(alpha=alpha, points="global", c_rule=c_rule)
+        )
         self.schedule = resolve_schedule(schedule, GeometricSchedule(1e-5, 1.5))
         if len(self.schedule) < 1:
             raise ArgumentError("schedule: expected at least one pseudo-time step, got an empty schedule")
@@ -274,16 +319,26 @@ class FlowMixtureLocaliser(_Localiser):
         for a in range(0, R, per):  # memory chunks (see sample_chunk)
             sl = slice(a, min(R, a + per))
             r = sl.stop - a
-            x, lo, _ = self.proposal.sample(means.new_zeros(B, r), m0[:, sl], L0[:, sl], mu1[:, sl], L1[:, sl],
-                                            lambda x: model.log_likelihood(zr[:, sl].unsqueeze(-1), x, s), n,
-                                            generator)
+            x, lo, _ = self.proposal.sample(
+                means.new_zeros(B, r),
+                m0[:, sl],
+                L0[:, sl],
+                mu1[:, sl],
+                L1[:, sl],
+                lambda x: model.log_likelihood(zr[:, sl].unsqueeze(-1), x, s),
+                n,
+                generator,
+            )
             log_I.append(torch.logsumexp(lo, -1) - math.log(n))
             mean, cov = linalg.weighted_mean_cov(x.reshape(B * r, n, d), lo.reshape(B * r, n))
             pm.append(mean.reshape(B, r, d))
             pc.append(cov.reshape(B, r, d, d) + (self.jitter * scale[:, sl])[..., None, None] * eye)
         shape = (B, K, G, M)
-        return (torch.cat(log_I, 1).reshape(shape), torch.cat(pm, 1).reshape(*shape, d),
-                linalg.safe_cholesky(torch.cat(pc, 1)).reshape(*shape, d, d))
+        return (
+            torch.cat(log_I, 1).reshape(shape),
+            torch.cat(pm, 1).reshape(*shape, d),
+            linalg.safe_cholesky(torch.cat(pc, 1)).reshape(*shape, d, d),
+        )
 
     def update(self, state: POState, z: torch.Tensor, z_mask: torch.Tensor, sensor: int, generator) -> POState:
         """Process the measurements ``z (B, M)`` (real where ``z_mask``) of sensor ``sensor``."""
@@ -305,7 +360,7 @@ class FlowMixtureLocaliser(_Localiser):
         r_all, mask, parts = assoc.new_existence, z_mask, []
         if K:  # legacy POs: "missed" plus one candidate per component and measurement, reduced to G
             missed = state.log_weights + (math.log(1 - pd) if pd < 1 else float("-inf"))
-            hit = (state.log_weights.unsqueeze(-1) + math.log(pd) + log_nu.unsqueeze(2) - log_cf + I)  # (B,K,G,M)
+            hit = state.log_weights.unsqueeze(-1) + math.log(pd) + log_nu.unsqueeze(2) - log_cf + I  # (B,K,G,M)
             cand_w = torch.cat([missed, hit.reshape(B, K, G * M)], -1)
             cand_m = torch.cat([state.means, p_mean.reshape(B, K, G * M, 3)], 2)
             cand_L = torch.cat([state.scale_trils, p_L.reshape(B, K, G * M, 3, 3)], 2)
@@ -319,8 +374,10 @@ class FlowMixtureLocaliser(_Localiser):
         return POState(*_prune_and_cap(r_all, mask, parts, self.prune, self.max_objects), underflow=underflow)
 
     def extra_repr(self) -> str:
-        return (f"method={self.method!r}, n_components={self.G}, samples_per_component={self.n_samples}, "
-                f"schedule={self.schedule!r}")
+        return (
+            f"method={self.method!r}, n_components={self.G}, samples_per_component={self.n_samples}, "
+            f"schedule={self.schedule!r}"
+        )
 
 
 def _prune_and_cap(r, mask, parts, prune: float, max_objects: int):
@@ -345,11 +402,29 @@ class BootstrapLocaliser(_Localiser):
 
     method, mixture = "bs", False  # POs are particle sets
 
-    def __init__(self, model: TDOA3D, *, n_particles: int = 100_000, birth_rate: float = 0.01, max_objects: int = 30,
-                 prune: float = 1e-3, declare: float = 0.5, bp_iterations: int = 20, sample_chunk: int = 20_000_000,
-                 name: Optional[str] = None):
-        super().__init__(model, birth_rate=birth_rate, max_objects=max_objects, prune=prune, declare=declare,
-                         bp_iterations=bp_iterations, sample_chunk=sample_chunk, name=name)
+    def __init__(
+        self,
+        model: TDOA3D,
+        *,
+        n_particles: int = 100_000,
+        birth_rate: float = 0.01,
+        max_objects: int = 30,
+        prune: float = 1e-3,
+        declare: float = 0.5,
+        bp_iterations: int = 20,
+        sample_chunk: int = 20_000_000,
+        name: Optional[str] = None,
+    ):
+        super().__init__(
+            model,
+            birth_rate=birth_rate,
+            max_objects=max_objects,
+            prune=prune,
+            declare=declare,
+            bp_iterations=bp_iterations,
+            sample_chunk=sample_chunk,
+            name=name,
+        )
         self.n_particles = _count("n_particles", n_particles)
 
     def _loglik(self, x, z, s, own: bool = False):
@@ -359,8 +434,10 @@ class BootstrapLocaliser(_Localiser):
         M = z.shape[1]
         per = max(1, self.sample_chunk // max(1, B * K * (1 if own else M) * 3))
         zz = z.reshape(B, M, 1) if own else z.reshape(B, 1, 1, M)
-        out = [self.model.log_likelihood(zz, x[:, :, a:a + per] if own else x[:, :, a:a + per].unsqueeze(-2), s)
-               for a in range(0, N, per)]
+        out = [
+            self.model.log_likelihood(zz, x[:, :, a : a + per] if own else x[:, :, a : a + per].unsqueeze(-2), s)
+            for a in range(0, N, per)
+        ]
         return torch.cat(out, 2)
 
     def update(self, state: POState, z, z_mask, sensor, generator) -> POState:
@@ -374,16 +451,21 @@ class BootstrapLocaliser(_Localiser):
         ll = self._loglik(state.means, z, sensor) if K else torch.zeros(B, 0, N, M, dtype=dt, device=dev)
         log_Ik = torch.logsumexp(state.log_weights.unsqueeze(-1) + ll, 2)  # (B, K, M)
         assoc, log_nu, log_cf, underflow = self._bp(state, log_Ik, log_Ib, z_mask, sensor)
-        terms = torch.cat([torch.full((B, K, N, 1), math.log(1 - pd) if pd < 1 else float("-inf"), dtype=dt,
-                                      device=dev),
-                           math.log(pd) + log_nu.unsqueeze(2) - log_cf + ll], -1)
+        terms = torch.cat(
+            [
+                torch.full((B, K, N, 1), math.log(1 - pd) if pd < 1 else float("-inf"), dtype=dt, device=dev),
+                math.log(pd) + log_nu.unsqueeze(2) - log_cf + ll,
+            ],
+            -1,
+        )
         lw = state.log_weights + torch.logsumexp(terms, -1)  # (B, K, N)
         r_all = torch.cat([_legacy_existence(state.existence, torch.logsumexp(lw, -1)), assoc.new_existence], 1)
         leg = state.means.gather(2, _resample(lw, generator).unsqueeze(-1).expand(B, K, N, 3))
         new = xb.gather(2, _resample(llb, generator).unsqueeze(-1).expand(B, M, N, 3))
         flat = torch.full((B, K + M, N), -math.log(N), dtype=dt, device=dev)
-        r2, m2, lw2, x2 = _prune_and_cap(r_all, torch.cat([state.mask, z_mask], 1), [flat, torch.cat([leg, new], 1)],
-                                         self.prune, self.max_objects)
+        r2, m2, lw2, x2 = _prune_and_cap(
+            r_all, torch.cat([state.mask, z_mask], 1), [flat, torch.cat([leg, new], 1)], self.prune, self.max_objects
+        )
         return POState(r2, m2, lw2, x2, underflow=underflow)  # particles in ``means``, no factors
 
     def extra_repr(self) -> str:

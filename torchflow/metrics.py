@@ -35,7 +35,8 @@ metric that applies gives
 The summary table's columns are ``filter, n_particles, trials, steps``, the registered metrics in
 registration order, and the runner's own columns
 (:data:`torchflow.runner.score.RUN_COLUMNS`). Built in: ``mse``, ``rmse`` (after burn-in, with
-its standard error ``rmse_se``), ``omat``, ``ospa``, ``declared``, ``ess``, ``g_eff``. A new metric is one function and one :func:`register` call
+its standard error ``rmse_se``), ``omat``, ``ospa``, ``declared``, ``ess``, ``g_eff``. A new metric is one function
+and one :func:`register` call
 (:func:`unregister` removes it; :func:`registered` registers for a ``with`` block)::
 
     >>> from torchflow import metrics
@@ -74,8 +75,23 @@ from . import tuning
 from ._checks import check_float_tensor, check_same_device, shape_str
 from .errors import ArgumentError, ArgumentTypeError
 
-__all__ = ["mse", "rmse", "omat", "ospa", "ess", "log_evidence_relative_error", "lost_tracks", "Metric", "MetricContext",
-           "REGISTRY", "RESERVED_NAMES", "register", "unregister", "registered", "applicable"]
+__all__ = [
+    "mse",
+    "rmse",
+    "omat",
+    "ospa",
+    "ess",
+    "log_evidence_relative_error",
+    "lost_tracks",
+    "Metric",
+    "MetricContext",
+    "REGISTRY",
+    "RESERVED_NAMES",
+    "register",
+    "unregister",
+    "registered",
+    "applicable",
+]
 
 
 def _check_pair(x, ref, name: str, ref_name: str, letters: str) -> tuple[torch.Tensor, torch.Tensor]:
@@ -197,14 +213,21 @@ def omat(est_positions: torch.Tensor, true_positions: torch.Tensor) -> torch.Ten
         raise ArgumentError(f"true_positions: expected (B, T, C, k) with k in {{2, 3}}, got {ref}")
     if true_positions.shape[-2] == 0:
         raise ArgumentError(f"true_positions: expected (B, T, C, k) with C >= 1, got {ref}")
-    est_positions, true_positions = _check_pair(est_positions, true_positions, "est_positions", "true_positions",
-                                                "(B, T, C, k)")
+    est_positions, true_positions = _check_pair(
+        est_positions, true_positions, "est_positions", "true_positions", "(B, T, C, k)"
+    )
     dist = _pairwise_dist(true_positions, est_positions)  # (B, T, C, C)
     return _min_assignment_cost(dist) / true_positions.shape[-2]
 
 
-def ospa(X: torch.Tensor, Y: torch.Tensor, cutoff: float = 40.0, order: float = 1.0,
-         X_mask: Optional[torch.Tensor] = None, Y_mask: Optional[torch.Tensor] = None) -> torch.Tensor:
+def ospa(
+    X: torch.Tensor,
+    Y: torch.Tensor,
+    cutoff: float = 40.0,
+    order: float = 1.0,
+    X_mask: Optional[torch.Tensor] = None,
+    Y_mask: Optional[torch.Tensor] = None,
+) -> torch.Tensor:
     """OSPA distance between point sets (Schuhmacher et al. 2008), of fixed or varying cardinality.
 
     With ``m = |X| <= n = |Y|`` (the sets are swapped otherwise),
@@ -229,8 +252,9 @@ def ospa(X: torch.Tensor, Y: torch.Tensor, cutoff: float = 40.0, order: float = 
     check_float_tensor(X, "X", "(B, T, m, k)", ndim=4)
     check_float_tensor(Y, "Y", f"(B, T, n, k) matching X {shape_str(X.shape)} in B, T, k", ndim=4)
     if Y.shape[:2] != X.shape[:2] or Y.shape[-1] != X.shape[-1]:
-        raise ArgumentError(f"Y: expected (B, T, n, k) matching X {shape_str(X.shape)} in B, T, k, "
-                         f"got {shape_str(Y.shape)}")
+        raise ArgumentError(
+            f"Y: expected (B, T, n, k) matching X {shape_str(X.shape)} in B, T, k, got {shape_str(Y.shape)}"
+        )
     if X.shape[-1] == 0:
         raise ArgumentError(f"X: expected (B, T, m, k) with k >= 1, got {shape_str(X.shape)}")
     check_same_device(Y, X, "Y", "X")
@@ -257,18 +281,23 @@ def _ospa_masked(X, Y, cutoff, order, X_mask, Y_mask) -> torch.Tensor:
     B, T, m = X.shape[:3]
     n = Y.shape[2]
     for name, mask, size, what in (("X_mask", X_mask, m, "m"), ("Y_mask", Y_mask, n, "n")):
-        if mask is not None and (not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool
-                                 or tuple(mask.shape) != (B, T, size)):
+        if mask is not None and (
+            not isinstance(mask, torch.Tensor) or mask.dtype != torch.bool or tuple(mask.shape) != (B, T, size)
+        ):
             got = shape_str(mask.shape) if isinstance(mask, torch.Tensor) else type(mask).__name__
-            raise ArgumentError(f"{name}: expected a bool tensor (B, T, {what}) = ({B}, {T}, {size}), got {got}"
-                             + (f" of {mask.dtype}" if isinstance(mask, torch.Tensor) else ""))
+            raise ArgumentError(
+                f"{name}: expected a bool tensor (B, T, {what}) = ({B}, {T}, {size}), got {got}"
+                + (f" of {mask.dtype}" if isinstance(mask, torch.Tensor) else "")
+            )
     xm = torch.ones(B, T, m, dtype=torch.bool, device=X.device) if X_mask is None else X_mask.to(X.device)
     ym = torch.ones(B, T, n, dtype=torch.bool, device=X.device) if Y_mask is None else Y_mask.to(X.device)
     K = max(m, n)
     if K == 0:
         return X.new_zeros(B, T)
-    pad = lambda P, M, k: (torch.cat([P, P.new_zeros(B, T, K - k, P.shape[-1])], 2),  # noqa: E731
-                           torch.cat([M, M.new_zeros(B, T, K - k)], 2))
+    pad = lambda P, M, k: (
+        torch.cat([P, P.new_zeros(B, T, K - k, P.shape[-1])], 2),
+        torch.cat([M, M.new_zeros(B, T, K - k)], 2),
+    )
     X, xm = pad(X, xm, m)
     Y, ym = pad(Y, ym, n)
     cp = cutoff**order
@@ -344,6 +373,7 @@ def lost_tracks(omat_per_step: torch.Tensor, threshold: float = 2.0) -> torch.Te
 
 # --------------------------------------------------------------------------- the metric registry
 
+
 @dataclass(frozen=True, eq=False)
 class MetricContext:
     """What a metric sees of one filter's scored trials (``B`` trials, ``T`` steps, CPU float64).
@@ -412,10 +442,29 @@ _REDUCTIONS = (None, "mean", "last")
 _YSCALES = ("linear", "log", "per_particle")
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 #: column names the runner writes itself (summary, per-trial and per-step files): no metric may take one
-RESERVED_NAMES = frozenset({
-    "filter", "n_particles", "trials", "steps", "trial", "step", "lost", "omat_kept_mean", "omat_kept_sd",
-    "underflows", "log_evidence", "log_evidence_se", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step",
-    "warmup_sec", "path", "error"})
+RESERVED_NAMES = frozenset(
+    {
+        "filter",
+        "n_particles",
+        "trials",
+        "steps",
+        "trial",
+        "step",
+        "lost",
+        "omat_kept_mean",
+        "omat_kept_sd",
+        "underflows",
+        "log_evidence",
+        "log_evidence_se",
+        "log_evidence_relmse",
+        "lost_tracks",
+        "repaired",
+        "sec_per_step",
+        "warmup_sec",
+        "path",
+        "error",
+    }
+)
 
 
 def _expect(ok: bool, arg: str, what: str, got) -> None:
@@ -463,11 +512,17 @@ class Metric:
     standard_error: bool = False
 
     def __post_init__(self):
-        _expect(isinstance(self.name, str) and bool(_NAME.match(self.name)), "name",
-                "a column name (letters, digits, _; not starting with a digit)", self.name)
+        _expect(
+            isinstance(self.name, str) and bool(_NAME.match(self.name)),
+            "name",
+            "a column name (letters, digits, _; not starting with a digit)",
+            self.name,
+        )
         if self.name in RESERVED_NAMES:
-            raise ArgumentError(f"name: {self.name!r} is a column the runner writes itself; reserved: "
-                             f"{', '.join(sorted(RESERVED_NAMES))}")
+            raise ArgumentError(
+                f"name: {self.name!r} is a column the runner writes itself; reserved: "
+                f"{', '.join(sorted(RESERVED_NAMES))}"
+            )
         _expect(isinstance(self.label, str), "label", "a string (the figure's y label)", self.label)
         _expect(callable(self.compute), "compute", "a callable compute(ctx) -> (B, T) tensor", self.compute)
         _expect(callable(self.applies), "applies", "a callable applies(ctx) -> bool", self.applies)
@@ -504,8 +559,9 @@ class Metric:
             raise RuntimeError(f"metric {self.name!r}: compute failed: {type(err).__name__}: {err}") from err
         if not isinstance(value, torch.Tensor) or tuple(value.shape) != ctx.shape:
             got = shape_str(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
-            raise ArgumentError(f"metric {self.name!r}: compute returned {got}, expected (B, T) = "
-                             f"{shape_str(ctx.shape)}")
+            raise ArgumentError(
+                f"metric {self.name!r}: compute returned {got}, expected (B, T) = {shape_str(ctx.shape)}"
+            )
         return value.detach()
 
 
@@ -520,8 +576,10 @@ def register(metric: Metric, *, replace: bool = False) -> Metric:
     _expect(isinstance(metric, Metric), "metric", "a torchflow.metrics.Metric", metric)
     _expect(isinstance(replace, bool), "replace", "a bool", replace)
     if metric.name in _REGISTRY and not replace:
-        raise ArgumentError(f"metric: a metric named {metric.name!r} is already registered "
-                         f"(unregister({metric.name!r}) first, or register(..., replace=True))")
+        raise ArgumentError(
+            f"metric: a metric named {metric.name!r} is already registered "
+            f"(unregister({metric.name!r}) first, or register(..., replace=True))"
+        )
     taken = {c for m in _REGISTRY.values() if m.name != metric.name for c in m.columns}
     clash = sorted(taken & set(metric.columns))
     if clash:
@@ -591,8 +649,13 @@ def _ospa(ctx: MetricContext) -> torch.Tensor:
     ``(B, T, K, k)``) and the true positions ``(B, T, C, k)``:
     ``((1/n) (min_pi sum_{i<m} min(c, ||x_i - y_pi(i)||)**p + c**p (n - m)))**(1/p)`` with
     ``m <= n`` the two sets' sizes (:func:`ospa`)."""
-    return ospa(ctx.est_positions, ctx.true_positions, cutoff=ctx.settings.get("ospa_cutoff", 40.0),
-                order=ctx.settings.get("ospa_order", 1.0), X_mask=ctx.mask)
+    return ospa(
+        ctx.est_positions,
+        ctx.true_positions,
+        cutoff=ctx.settings.get("ospa_cutoff", 40.0),
+        order=ctx.settings.get("ospa_order", 1.0),
+        X_mask=ctx.mask,
+    )
 
 
 def _declared(ctx: MetricContext) -> torch.Tensor:
@@ -626,12 +689,14 @@ def _has_g_eff(ctx: MetricContext) -> bool:
     return "g_eff" in ctx.outputs
 
 
-for _m in (Metric("mse", "MSE", _mse, yscale="log"),
-           Metric("rmse", "RMSE", _rmse, yscale="log", burn_in=True, standard_error=True),
-           Metric("omat", "OMAT (m)", _omat, tracking),
-           Metric("ospa", "OSPA (m)", _ospa, _tracking_or_sets),
-           Metric("declared", "declared sources", _declared, sets, plot=False, needs_truth=False),
-           Metric("ess", "ESS", _ess, _has_ess, higher_is_better=True, yscale="per_particle", needs_truth=False),
-           Metric("g_eff", "G_eff", _g_eff, _has_g_eff, higher_is_better=True, plot=False, needs_truth=False)):
+for _m in (
+    Metric("mse", "MSE", _mse, yscale="log"),
+    Metric("rmse", "RMSE", _rmse, yscale="log", burn_in=True, standard_error=True),
+    Metric("omat", "OMAT (m)", _omat, tracking),
+    Metric("ospa", "OSPA (m)", _ospa, _tracking_or_sets),
+    Metric("declared", "declared sources", _declared, sets, plot=False, needs_truth=False),
+    Metric("ess", "ESS", _ess, _has_ess, higher_is_better=True, yscale="per_particle", needs_truth=False),
+    Metric("g_eff", "G_eff", _g_eff, _has_g_eff, higher_is_better=True, plot=False, needs_truth=False),
+):
     register(_m)
 del _m

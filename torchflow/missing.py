@@ -29,6 +29,7 @@ graphs, which do not take masks, then stand aside for that call). Code that call
 
 A non-finite value other than NaN (``inf``) is an error, not a missing value.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -38,8 +39,17 @@ from typing import Optional, Tuple
 
 import torch
 
-__all__ = ["active", "measurement_log_prob", "partial_observations", "observations_missing", "observed", "gaussian_rows", "masked_noise", "unobserved_correction",
-           "observed_like"]
+__all__ = [
+    "active",
+    "measurement_log_prob",
+    "partial_observations",
+    "observations_missing",
+    "observed",
+    "gaussian_rows",
+    "masked_noise",
+    "unobserved_correction",
+    "observed_like",
+]
 
 _ACTIVE = contextvars.ContextVar("torchflow_observations_missing", default=False)
 
@@ -87,8 +97,9 @@ def masked_noise(R: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return R * outer + torch.diag_embed(1 - mf)
 
 
-def unobserved_correction(mask: torch.Tensor, log_var: Optional[torch.Tensor] = None,
-                          dtype: Optional[torch.dtype] = None) -> torch.Tensor:
+def unobserved_correction(
+    mask: torch.Tensor, log_var: Optional[torch.Tensor] = None, dtype: Optional[torch.dtype] = None
+) -> torch.Tensor:
     """What to add to a log-density evaluated with the masked algebra to get the density of the
     observed rows alone: ``sum over unobserved rows of (log(2 pi) + log_var) / 2`` (``log_var``:
     the log-variance the masked algebra left on the unobserved diagonal, ``None`` for 1) in
@@ -99,8 +110,9 @@ def unobserved_correction(mask: torch.Tensor, log_var: Optional[torch.Tensor] = 
     return (un * (_HALF_LOG_2PI + 0.5 * log_var)).sum(-1)
 
 
-def gaussian_rows(z: torch.Tensor, z_pred: torch.Tensor, H: torch.Tensor, R: torch.Tensor
-                  ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+def gaussian_rows(
+    z: torch.Tensor, z_pred: torch.Tensor, H: torch.Tensor, R: torch.Tensor
+) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The masked form of a Gaussian measurement update with NaN (unobserved) coordinates in ``z``.
 
     Args:

@@ -9,6 +9,7 @@ and host synchronisations (reads of a tensor's value back to the host, which sta
 
 Counted with a ``TorchDispatchMode``, so it works on the CPU and counts what would run on a GPU.
 """
+
 from __future__ import annotations
 
 from collections import Counter
@@ -17,8 +18,9 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 #: aten ops that read a value back to the host: ``bool(t)``, ``.item()``, ``float(t)``
 #: (``_local_scalar_dense``), ``is_nonzero``, ``item``, and ``nonzero`` (a data-dependent shape)
-SYNC_OPS = frozenset({"aten._local_scalar_dense.default", "aten.is_nonzero.default", "aten.item.default",
-                      "aten.nonzero.default"})
+SYNC_OPS = frozenset(
+    {"aten._local_scalar_dense.default", "aten.is_nonzero.default", "aten.item.default", "aten.nonzero.default"}
+)
 
 __all__ = ["OpCounter", "SYNC_OPS"]
 

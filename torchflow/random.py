@@ -17,7 +17,8 @@ Back ends (``backend=``):
 
 * ``"numpy"`` (default on CPU): one ``numpy.random.Generator(SFC64)`` per trial, seeded by a
   ``SeedSequence([seed, key, trial])``; normals by numpy's ziggurat (exact float64 / float32
-  normals; their cost: ``experiments/RESULTS.md``, "Per-trial random streams"). Large draws are filled on parallel threads (numpy releases the
+  normals; their cost: ``experiments/RESULTS.md``, "Per-trial random streams"). Large draws are filled on parallel
+  threads (numpy releases the
   GIL), one task per trial or, for more than :data:`BLOCK` numbers per trial, per block of the
   trial's draw from child streams the trial spawns; the numbers do not depend on the thread count.
 * ``"philox"`` (default on CUDA, available on every device): counter-based Philox4x32-10
@@ -32,6 +33,7 @@ whatever the chunking. The two back ends give different (equally valid) numbers,
 (numpy) and CUDA (philox) runs agree only statistically; pass ``backend="philox"`` on CPU to get
 the CUDA run's integer stream.
 """
+
 from __future__ import annotations
 
 import copy
@@ -78,6 +80,7 @@ def fill_numpy(kind: str, tasks, np_dtype, parallel: bool = True) -> None:
     """Fill each ``(numpy Generator, out array)`` task with standard normals (``kind="normal"``) or
     uniforms, on up to ``torch.get_num_threads()`` threads when ``parallel`` (numpy releases the GIL;
     the numbers do not depend on the thread count)."""
+
     def fill(task):
         if kind == "normal":
             task[0].standard_normal(out=task[1], dtype=np_dtype)
@@ -109,8 +112,14 @@ class TrialStreams:
     returns a ``TrialStreams`` over a subset that continues those streams' states.
     """
 
-    def __init__(self, seed: int, trials: Union[int, Sequence[int], torch.Tensor], key: Union[str, int] = 0,
-                 *, backend: str = "auto"):
+    def __init__(
+        self,
+        seed: int,
+        trials: Union[int, Sequence[int], torch.Tensor],
+        key: Union[str, int] = 0,
+        *,
+        backend: str = "auto",
+    ):
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or int(seed) < 0:
             raise ArgumentError(f"seed: expected a non-negative int, got {seed!r}")
         check_choice("backend", backend, ("auto", "numpy", "philox"))
@@ -123,9 +132,9 @@ class TrialStreams:
             if not idx or min(idx) < 0:
                 raise ArgumentError(f"trials: expected non-empty non-negative trial indices, got {idx[:10]}")
         self.seed, self.key, self.trials, self.backend = int(seed), stream_key(key), idx, backend
-        self._np = None        # list of numpy Generators (numpy back end), created lazily
-        self._counter = 0      # philox: 128-bit blocks consumed per trial so far
-        self._keys = None      # philox: (B, 2) int64 key words
+        self._np = None  # list of numpy Generators (numpy back end), created lazily
+        self._counter = 0  # philox: 128-bit blocks consumed per trial so far
+        self._keys = None  # philox: (B, 2) int64 key words
 
     def get_state(self):
         """A snapshot of every trial's stream position (restored by :meth:`set_state`)."""
@@ -172,8 +181,10 @@ class TrialStreams:
             raise ArgumentTypeError(f"dtype: {name} draws float64 or float32, got {dtype}")
         shape, B = tuple(int(s) for s in shape), len(self.trials)
         if not shape or shape[0] % B:
-            raise ArgumentError(f"shape: draws from {name} need a leading trial dimension that is a "
-                             f"multiple of B = {B} (trial-major), got {shape}")
+            raise ArgumentError(
+                f"shape: draws from {name} need a leading trial dimension that is a "
+                f"multiple of B = {B} (trial-major), got {shape}"
+            )
         return shape, math.prod(shape) // B
 
     def _draw(self, kind, shape, dtype, device) -> torch.Tensor:
@@ -203,7 +214,7 @@ class TrialStreams:
                 tasks.append((gen, arr[b]))
             else:
                 kids = gen.spawn(-(-n // BLOCK))
-                tasks += [(kid, arr[b, i * BLOCK:(i + 1) * BLOCK]) for i, kid in enumerate(kids)]
+                tasks += [(kid, arr[b, i * BLOCK : (i + 1) * BLOCK]) for i, kid in enumerate(kids)]
         fill_numpy(kind, tasks, np_dtype, parallel=B * n >= tuning.get().parallel_draw_min)  # speed only
         return out
 
@@ -229,14 +240,14 @@ class TrialStreams:
         if _philox_fusable(device):  # one kernel for the rounds, the same bits
             try:
                 bits = philox4x32_fused(keys, self._counter, blocks).reshape(B, -1)[:, :words]
-            except Exception as exc:  # noqa: BLE001 - a Triton that cannot build the kernel here
+            except Exception as exc:
                 _philox_failed(exc)
         if bits is None:
             ctr = self._counter + torch.arange(blocks, device=device, dtype=torch.int64)  # (blocks,)
             zero = torch.zeros(B, blocks, dtype=torch.int64, device=device)
             c = [(ctr & 0xFFFFFFFF).expand(B, blocks), (ctr >> 32).expand(B, blocks), zero, zero]
             key = (keys[:, :1].expand(B, blocks), keys[:, 1:].expand(B, blocks))
-            bits = philox4x32(c, key).reshape(B, -1)[:, :words]                        # (B, words)
+            bits = philox4x32(c, key).reshape(B, -1)[:, :words]  # (B, words)
         self._counter += blocks
         return bits
 
@@ -283,8 +294,15 @@ class CorrelatedStreams(TrialStreams):
         tape: the stored normals, a list of ``(B, n_i)`` float64 tensors (default: empty).
     """
 
-    def __init__(self, seed: int, trials: Union[int, Sequence[int], torch.Tensor], key: Union[str, int] = 0, *,
-                 tape: Optional[Sequence[torch.Tensor]] = None, backend: str = "auto"):
+    def __init__(
+        self,
+        seed: int,
+        trials: Union[int, Sequence[int], torch.Tensor],
+        key: Union[str, int] = 0,
+        *,
+        tape: Optional[Sequence[torch.Tensor]] = None,
+        backend: str = "auto",
+    ):
         super().__init__(seed, trials, key, backend=backend)
         B = len(self.trials)
         self.tape = [] if tape is None else list(tape)
@@ -349,9 +367,11 @@ class CorrelatedStreams(TrialStreams):
         if i < len(self.tape):
             z = self.tape[i]
             if z.shape[1] != n:
-                raise ArgumentError(f"CorrelatedStreams: draw {i} asks for {n} numbers per trial, but the tape holds "
-                                    f"{z.shape[1]} there: the filter's draws differ from the run that recorded the "
-                                    "tape (a filter whose number of draws depends on the data cannot replay one)")
+                raise ArgumentError(
+                    f"CorrelatedStreams: draw {i} asks for {n} numbers per trial, but the tape holds "
+                    f"{z.shape[1]} there: the filter's draws differ from the run that recorded the "
+                    "tape (a filter whose number of draws depends on the data cannot replay one)"
+                )
             z = z.to(device)
         else:
             z = super()._draw("normal", (B, n), torch.float64, device)
@@ -360,8 +380,9 @@ class CorrelatedStreams(TrialStreams):
         if kind == "normal":
             return z.to(dtype).reshape(shape)
         u = torch.special.ndtr(z).to(dtype)  # Phi(z), in [0, 1]
-        below_one = torch.nextafter(torch.ones((), dtype=dtype, device=device), torch.zeros((), dtype=dtype,
-                                                                                            device=device))
+        below_one = torch.nextafter(
+            torch.ones((), dtype=dtype, device=device), torch.zeros((), dtype=dtype, device=device)
+        )
         return torch.minimum(u, below_one).reshape(shape)
 
 
@@ -413,9 +434,12 @@ _philox_broken = []  # the error of a kernel that failed to build or run here: t
 def _philox_failed(exc: Exception) -> None:
     """Fall back to the torch ops for the rest of the process, with one warning (the same bits)."""
     _philox_broken.append(exc)
-    warnings.warn(f"torchflow.random: the fused Philox kernel failed ({type(exc).__name__}: {exc}); "
-                  "drawing with torch ops instead (the same numbers, more kernel launches)", RuntimeWarning,
-                  stacklevel=3)
+    warnings.warn(
+        f"torchflow.random: the fused Philox kernel failed ({type(exc).__name__}: {exc}); "
+        "drawing with torch ops instead (the same numbers, more kernel launches)",
+        RuntimeWarning,
+        stacklevel=3,
+    )
 
 
 def _philox_fusable(device) -> bool:
@@ -434,6 +458,7 @@ def philox4x32_fused(keys: torch.Tensor, counter: int, blocks: int, rounds: int 
     global _philox_kernel
     if _philox_kernel is None:
         from ._philox_kernel import philox_kernel
+
         _philox_kernel = philox_kernel
     B = keys.shape[0]
     keys = keys.contiguous()
@@ -455,21 +480,28 @@ def check_generator(generator, who: str = "generator", trials: Optional[int] = N
     ``None`` is refused: a filter that silently fell back on torch's global random state would not
     be reproducible from its arguments."""
     if isinstance(generator, TrialStreams) and trials is not None and len(generator) != int(trials):
-        raise ArgumentError(f"{who}: TrialStreams made for {len(generator)} trials, but the observations have "
-                         f"B = {int(trials)} trials (make it with TrialStreams(seed, {int(trials)}, ...), or "
-                         f"select trials with streams[a:b])")
+        raise ArgumentError(
+            f"{who}: TrialStreams made for {len(generator)} trials, but the observations have "
+            f"B = {int(trials)} trials (make it with TrialStreams(seed, {int(trials)}, ...), or "
+            f"select trials with streams[a:b])"
+        )
     if isinstance(generator, (torch.Generator, TrialStreams)):
         return generator
-    raise ArgumentTypeError(f"{who}: expected a torch.Generator or torchflow.random.TrialStreams, "
-                    f"got {type(generator).__name__}{generator_hint(generator)}")
+    raise ArgumentTypeError(
+        f"{who}: expected a torch.Generator or torchflow.random.TrialStreams, "
+        f"got {type(generator).__name__}{generator_hint(generator)}"
+    )
 
 
 def generator_hint(generator) -> str:
     """How to pass randomness instead of ``generator`` (an int seed or ``None``), for error messages."""
     if isinstance(generator, (int, np.integer)) and not isinstance(generator, bool):
         return f" (for a seed, pass torch.Generator().manual_seed({int(generator)}))"
-    return " (randomness comes only from a passed generator: pass torch.Generator().manual_seed(seed))" \
-        if generator is None else ""
+    return (
+        " (randomness comes only from a passed generator: pass torch.Generator().manual_seed(seed))"
+        if generator is None
+        else ""
+    )
 
 
 def uniform(shape, *, dtype, device, generator: Optional[Generatorish]) -> torch.Tensor:

@@ -7,6 +7,7 @@ differs, and ``filter.bpf.ess_threshold=0.3`` works without a ``+``. Left out of
 no default (``model``), ``*args``/``**kwargs`` (followed into the keyword-only arguments of the base class
 receiving them) and defaults YAML cannot hold (tensors, callables, objects). The command line registers
 the nodes before Hydra composes; code composing configs/ itself calls :func:`register_configs` first."""
+
 from __future__ import annotations
 
 import importlib
@@ -21,26 +22,65 @@ def _kind(module: str, **names: str) -> Dict[str, str]:
 
 #: kind -> name -> "module.attribute"
 REGISTRY: Dict[str, Dict[str, str]] = {
-    "filter": _kind("torchflow.filters", kf="KalmanFilter", ekf="ExtendedKalmanFilter", ukf="UnscentedKalmanFilter",
-                    pf="ParticleFilter", bpf="BootstrapParticleFilter", pfpf="ParticleFlowParticleFilter",
-                    pfpf_clustered="ClusteredParticleFlowParticleFilter", flow_filter="ParticleFlowFilter",
-                    gpfis="GaussianParticleFlowImportanceSampler", gspf="GaussianSumParticleFilter",
-                    pfgspf="ParticleFlowGaussianSumParticleFilter", enkf="EnsembleKalmanFilter",
-                    etkf="EnsembleTransformKalmanFilter", letkf="LocalEnsembleTransformKalmanFilter",
-                    kpff="KernelParticleFlowFilter", lpf="LocalParticleFilter",
-                    lag1_flow="LagOneFlowFilter"),
+    "filter": _kind(
+        "torchflow.filters",
+        kf="KalmanFilter",
+        ekf="ExtendedKalmanFilter",
+        ukf="UnscentedKalmanFilter",
+        pf="ParticleFilter",
+        bpf="BootstrapParticleFilter",
+        pfpf="ParticleFlowParticleFilter",
+        pfpf_clustered="ClusteredParticleFlowParticleFilter",
+        flow_filter="ParticleFlowFilter",
+        gpfis="GaussianParticleFlowImportanceSampler",
+        gspf="GaussianSumParticleFilter",
+        pfgspf="ParticleFlowGaussianSumParticleFilter",
+        enkf="EnsembleKalmanFilter",
+        etkf="EnsembleTransformKalmanFilter",
+        letkf="LocalEnsembleTransformKalmanFilter",
+        kpff="KernelParticleFlowFilter",
+        lpf="LocalParticleFilter",
+        lag1_flow="LagOneFlowFilter",
+    ),
     "localiser": _kind("torchflow.localisation", bs="BootstrapLocaliser", pfi="FlowMixtureLocaliser"),
-    "flow": _kind("torchflow.flows", edh="EDHFlow", ledh="LEDHFlow", geodesic="GeodesicFlow", gromov="GromovFlow",
-                  osd="OptimalDiffusionFlow"),
-    "proposal": _kind("torchflow.proposals", bootstrap="BootstrapProposal", flow="flow_proposal",
-                      gpfis="GPFISProposal", unscented="UnscentedProposal"),
-    "model": _kind("torchflow.models", acoustic="AcousticTracking", linear_gaussian="SensorNetwork",
-                   skewed_t_poisson="SkewedTPoisson", tdoa="TDOA3D", lorenz63="Lorenz63", lorenz96="Lorenz96",
-                   stochastic_volatility="StochasticVolatility"),
-    "schedule": _kind("torchflow.schedules", exponential="ExponentialSchedule", uniform="UniformSchedule",
-                      geometric="GeometricSchedule"),
-    "resampling": _kind("torchflow.resampling", multinomial="multinomial", systematic="systematic",
-                        stratified="stratified", residual="residual"),
+    "flow": _kind(
+        "torchflow.flows",
+        edh="EDHFlow",
+        ledh="LEDHFlow",
+        geodesic="GeodesicFlow",
+        gromov="GromovFlow",
+        osd="OptimalDiffusionFlow",
+    ),
+    "proposal": _kind(
+        "torchflow.proposals",
+        bootstrap="BootstrapProposal",
+        flow="flow_proposal",
+        gpfis="GPFISProposal",
+        unscented="UnscentedProposal",
+    ),
+    "model": _kind(
+        "torchflow.models",
+        acoustic="AcousticTracking",
+        linear_gaussian="SensorNetwork",
+        skewed_t_poisson="SkewedTPoisson",
+        tdoa="TDOA3D",
+        lorenz63="Lorenz63",
+        lorenz96="Lorenz96",
+        stochastic_volatility="StochasticVolatility",
+    ),
+    "schedule": _kind(
+        "torchflow.schedules",
+        exponential="ExponentialSchedule",
+        uniform="UniformSchedule",
+        geometric="GeometricSchedule",
+    ),
+    "resampling": _kind(
+        "torchflow.resampling",
+        multinomial="multinomial",
+        systematic="systematic",
+        stratified="stratified",
+        residual="residual",
+    ),
 }
 GROUP = "signature"  #: the ConfigStore group of the nodes: ``/signature/<module.Class>`` in a defaults list
 _NO_YAML = object()
@@ -82,12 +122,20 @@ def signature_defaults(target: Callable) -> Dict[str, Any]:
     keyword-only arguments of the torchflow base class receiving them; a base's positional ones are the
     subclass's to give)."""
     out: Dict[str, Any] = {}
-    chain = [c for c in target.__mro__ if "__init__" in vars(c) and c.__module__.startswith("torchflow")] \
-        if inspect.isclass(target) else [target]
+    chain = (
+        [c for c in target.__mro__ if "__init__" in vars(c) and c.__module__.startswith("torchflow")]
+        if inspect.isclass(target)
+        else [target]
+    )
     for depth, fn in enumerate(chain):
         params = inspect.signature(fn).parameters.values()
-        out.update({p.name: p.default for p in params if p.default is not p.empty and p.name not in out
-                    and (depth == 0 or p.kind is p.KEYWORD_ONLY)})
+        out.update(
+            {
+                p.name: p.default
+                for p in params
+                if p.default is not p.empty and p.name not in out and (depth == 0 or p.kind is p.KEYWORD_ONLY)
+            }
+        )
         if not any(p.kind is p.VAR_KEYWORD for p in params):
             break
     return out
@@ -96,8 +144,10 @@ def signature_defaults(target: Callable) -> Dict[str, Any]:
 def signature_node(target: Callable, path: str = "") -> Dict[str, Any]:
     """``_target_`` (``path``, default the defining module's) and every default YAML can hold."""
     node = {k: yaml_value(v) for k, v in signature_defaults(target).items()}
-    return {"_target_": path or f"{target.__module__}.{target.__qualname__}",
-            **{k: v for k, v in node.items() if v is not _NO_YAML}}
+    return {
+        "_target_": path or f"{target.__module__}.{target.__qualname__}",
+        **{k: v for k, v in node.items() if v is not _NO_YAML},
+    }
 
 
 def targets() -> Dict[str, type]:
@@ -114,5 +164,15 @@ def register_configs() -> None:
         ConfigStore.instance().store(group=GROUP, name=path, node=signature_node(cls, path), provider="torchflow")
 
 
-__all__ = ["REGISTRY", "GROUP", "resolve", "lookup", "table", "yaml_value", "signature_defaults", "signature_node",
-           "targets", "register_configs"]
+__all__ = [
+    "REGISTRY",
+    "GROUP",
+    "resolve",
+    "lookup",
+    "table",
+    "yaml_value",
+    "signature_defaults",
+    "signature_node",
+    "targets",
+    "register_configs",
+]

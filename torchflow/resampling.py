@@ -97,8 +97,9 @@ def _check_log_weights(log_weights: object, name: str = "log_weights", values: b
         if bool(has_nan_or_posinf):
             raise ArgumentError(f"{name}: expected no NaN or +inf values, got some")
         if not bool(row_ok):
-            raise ArgumentError(f"{name}: expected at least one finite log weight in every trial (row), got a row "
-                             "that is entirely -inf")
+            raise ArgumentError(
+                f"{name}: expected at least one finite log weight in every trial (row), got a row that is entirely -inf"
+            )
     return log_weights
 
 
@@ -443,9 +444,7 @@ def resample_if_needed(
         or not isinstance(ess_threshold, numbers.Real)
         or not (0.0 <= float(ess_threshold) <= 1.0)
     ):
-        raise ArgumentError(
-            f"ess_threshold: expected a real number in [0, 1], got {ess_threshold!r}"
-        )
+        raise ArgumentError(f"ess_threshold: expected a real number in [0, 1], got {ess_threshold!r}")
     threshold = float(ess_threshold)
     b, n = log_weights.shape
 
@@ -460,8 +459,11 @@ def resample_if_needed(
 #: those uniforms give (``fn(log_weights (B, N), u) -> (B, N)``): what lets :func:`_resample_rows`
 #: draw for every trial and compute only the trials that resample
 _SPLIT: Dict[Callable, Tuple[Optional[int], Callable]] = {
-    multinomial: (None, _multinomial_indices), systematic: (1, _strata_indices),
-    stratified: (None, _strata_indices), residual: (None, _residual_indices)}
+    multinomial: (None, _multinomial_indices),
+    systematic: (1, _strata_indices),
+    stratified: (None, _strata_indices),
+    residual: (None, _residual_indices),
+}
 
 
 def reads_host(t: Tensor) -> bool:
@@ -469,12 +471,23 @@ def reads_host(t: Tensor) -> bool:
     costs nothing, so work that no trial needs (a resampling no trial triggers) is skipped; never on
     a GPU (the read would stall the device and break a CUDA graph), under ``torch.func`` transforms
     or while ``torch.compile`` traces; ``tuning`` ``host_reads_cpu=0`` turns it off."""
-    return (t.device.type == "cpu" and _tuning.get().host_reads_cpu and not linalg.under_func_transform(t)
-            and not torch.compiler.is_compiling())
+    return (
+        t.device.type == "cpu"
+        and _tuning.get().host_reads_cpu
+        and not linalg.under_func_transform(t)
+        and not torch.compiler.is_compiling()
+    )
 
 
-def _resample_rows(log_weights: Tensor, lw: Tensor, generator, resampler: Callable, threshold: float,
-                   ess: Optional[Tensor] = None, u: Optional[Tensor] = None):
+def _resample_rows(
+    log_weights: Tensor,
+    lw: Tensor,
+    generator,
+    resampler: Callable,
+    threshold: float,
+    ess: Optional[Tensor] = None,
+    u: Optional[Tensor] = None,
+):
     """``(indices or None, resampled (B,), new_log_weights)`` with ``lw`` the normalised
     ``log_weights`` and ``ess`` their effective sample size (computed when ``None``); ``None`` stands
     for identity indices in every trial.
@@ -494,8 +507,11 @@ def _resample_rows(log_weights: Tensor, lw: Tensor, generator, resampler: Callab
     if split is None or not reads_host(lw):
         indices = resampler(log_weights, generator, validate=False)
         identity = torch.arange(n, device=lw.device, dtype=torch.int64)
-        return (torch.where(resampled[:, None], indices, identity), resampled,
-                torch.where(resampled[:, None], torch.full_like(lw, -math.log(n)), lw))
+        return (
+            torch.where(resampled[:, None], indices, identity),
+            resampled,
+            torch.where(resampled[:, None], torch.full_like(lw, -math.log(n)), lw),
+        )
     per_trial, invert = split
     if u is None:
         u = _rand((b, n if per_trial is None else per_trial), log_weights, generator)
@@ -544,8 +560,7 @@ def gather_particles(x: Tensor, indices: Tensor) -> Tensor:
         raise ArgumentError(f"indices: expected an integer dtype, got {indices.dtype}")
     if indices.shape[0] != x.shape[0]:
         raise ArgumentError(
-            f"indices: expected shape (B, N) with B = x.shape[0] = {x.shape[0]}, "
-            f"got shape {tuple(indices.shape)}"
+            f"indices: expected shape (B, N) with B = x.shape[0] = {x.shape[0]}, got shape {tuple(indices.shape)}"
         )
     batch = torch.arange(x.shape[0], device=x.device)[:, None]
     return x[batch, indices.to(device=x.device, dtype=torch.int64)]
@@ -555,8 +570,9 @@ def gather_particles(x: Tensor, indices: Tensor) -> Tensor:
 RESAMPLING_GRADIENTS = ("none", "stop_gradient", "soft", "ot")
 
 
-def sinkhorn_transport(particles: Tensor, log_weights: Tensor, *, epsilon: float = 0.1,
-                       iterations: int = 100) -> Tensor:
+def sinkhorn_transport(
+    particles: Tensor, log_weights: Tensor, *, epsilon: float = 0.1, iterations: int = 100
+) -> Tensor:
     """Entropy-regularised optimal transport from the weighted particles to uniform weights
     (Corenflos, Thornton, Deligiannidis & Doucet 2021), batched over trials, in log space.
 
@@ -672,7 +688,7 @@ def sort_order(particles: Tensor, log_weights: Tensor, by: str) -> Tensor:
         key = x[..., 0]
     elif by == "principal":
         _, cov = linalg.weighted_mean_cov(x, log_weights.detach())
-        axis = torch.linalg.eigh(cov)[1][..., -1]                                       # (B, d)
+        axis = torch.linalg.eigh(cov)[1][..., -1]  # (B, d)
         sign = torch.where(axis.gather(-1, axis.abs().argmax(-1, keepdim=True)) < 0, -1.0, 1.0)
         key = torch.einsum("bnd,bd->bn", x, axis * sign)
     else:
@@ -681,8 +697,8 @@ def sort_order(particles: Tensor, log_weights: Tensor, by: str) -> Tensor:
         bits = min(31, 62 // d)
         mean, cov = linalg.weighted_mean_cov(x, log_weights.detach())
         sd = cov.diagonal(dim1=-2, dim2=-1).clamp_min(torch.finfo(x.dtype).tiny).sqrt()
-        unit = torch.special.ndtr((x - mean[:, None]) / sd[:, None]).double()           # (B, N, d) in [0, 1]
-        cells = (unit * 2.0 ** bits).floor().clamp(0, 2 ** bits - 1).to(torch.int64)
+        unit = torch.special.ndtr((x - mean[:, None]) / sd[:, None]).double()  # (B, N, d) in [0, 1]
+        cells = (unit * 2.0**bits).floor().clamp(0, 2**bits - 1).to(torch.int64)
         key = hilbert_index(cells, bits)
     return torch.sort(key, dim=1, stable=True)[1]
 
@@ -740,21 +756,39 @@ class Resampler(nn.Module):
             not resampled (a reordering: the same weighted cloud). Not used by ``"ot"``.
     """
 
-    def __init__(self, state_dim: int, *, scheme: str = "systematic", ess_threshold: float = 0.5,
-                 regularization=None, gradient: str = "none", soft_alpha: float = 0.5,
-                 ot_epsilon: float = 0.1, ot_iterations: int = 100, dtype: torch.dtype = torch.float64,
-                 sort: Optional[str] = None, regularization_relative: Optional[float] = None):
+    def __init__(
+        self,
+        state_dim: int,
+        *,
+        scheme: str = "systematic",
+        ess_threshold: float = 0.5,
+        regularization=None,
+        gradient: str = "none",
+        soft_alpha: float = 0.5,
+        ot_epsilon: float = 0.1,
+        ot_iterations: int = 100,
+        dtype: torch.dtype = torch.float64,
+        sort: Optional[str] = None,
+        regularization_relative: Optional[float] = None,
+    ):
         super().__init__()
         self.sort = sort
         if regularization_relative is not None and (
-                isinstance(regularization_relative, bool) or not isinstance(regularization_relative, numbers.Real)
-                or not 0 <= float(regularization_relative) < math.inf):
-            raise ArgumentError(f"regularization_relative: expected None or a number >= 0 (jitter in units of the "
-                                f"cloud's spread), got {regularization_relative!r}")
+            isinstance(regularization_relative, bool)
+            or not isinstance(regularization_relative, numbers.Real)
+            or not 0 <= float(regularization_relative) < math.inf
+        ):
+            raise ArgumentError(
+                f"regularization_relative: expected None or a number >= 0 (jitter in units of the "
+                f"cloud's spread), got {regularization_relative!r}"
+            )
         #: jitter relative to each coordinate's weighted spread (``None``: off)
         self.regularization_relative = None if regularization_relative is None else float(regularization_relative)
-        if (isinstance(ess_threshold, bool) or not isinstance(ess_threshold, numbers.Real)
-                or not 0.0 <= float(ess_threshold) <= 1.0):
+        if (
+            isinstance(ess_threshold, bool)
+            or not isinstance(ess_threshold, numbers.Real)
+            or not 0.0 <= float(ess_threshold) <= 1.0
+        ):
             raise ArgumentError(f"ess_threshold: expected a fraction in [0, 1], got {ess_threshold!r}")
         if gradient not in RESAMPLING_GRADIENTS:
             raise ArgumentError(f"resampling_gradient: expected one of {RESAMPLING_GRADIENTS}, got {gradient!r}")
@@ -774,8 +808,9 @@ class Resampler(nn.Module):
             if var.dim() == 0:
                 var = var.expand(d)
             if var.shape != (d,) or bool((var < 0).any()):
-                raise ArgumentError(f"regularization: expected a non-negative variance or {d} of them, "
-                                 f"got {regularization!r}")
+                raise ArgumentError(
+                    f"regularization: expected a non-negative variance or {d} of them, got {regularization!r}"
+                )
             self.register_buffer("regularization_std", var.sqrt().to(dtype))
 
     @property
@@ -795,9 +830,13 @@ class Resampler(nn.Module):
         sorting, no regularisation, and a gradient rule that changes nothing without autograd
         (``"none"``, ``"stop_gradient"``), and this class's own :meth:`forward` (a subclass that
         overrides it is always called); ``None`` otherwise."""
-        if (self.sort is not None or self.regularization_std is not None or self.regularization_relative is not None
-                or self.gradient not in ("none", "stop_gradient")
-                or type(self).forward is not Resampler.forward):
+        if (
+            self.sort is not None
+            or self.regularization_std is not None
+            or self.regularization_relative is not None
+            or self.gradient not in ("none", "stop_gradient")
+            or type(self).forward is not Resampler.forward
+        ):
             return None
         return _KERNEL_SCHEMES.get(self._scheme_fn)
 
@@ -807,7 +846,9 @@ class Resampler(nn.Module):
         :meth:`forward` would draw them; ``None`` when ``ess_threshold`` is 0 (nothing is drawn).
         Passed back as :meth:`forward`'s ``uniforms``, they stand for its own draw."""
         if self._scheme_fn not in _SPLIT:
-            raise ArgumentError(f"draw_uniforms: the scheme {self.scheme!r} is not a built-in one; its draws are its own")
+            raise ArgumentError(
+                f"draw_uniforms: the scheme {self.scheme!r} is not a built-in one; its draws are its own"
+            )
         if self.ess_threshold == 0.0:
             return None
         b, n = log_weights.shape
@@ -825,9 +866,17 @@ class Resampler(nn.Module):
             raise ArgumentError(f"sort: expected None or one of {SORT_ORDERS}, got {value!r}")
         self._sort = value
 
-    def forward(self, particles: Tensor, log_weights: Tensor, generator, *, cov=None,
-                extras: Optional[Dict[str, Tensor]] = None, ess: Optional[Tensor] = None,
-                uniforms: Optional[Tensor] = None):
+    def forward(
+        self,
+        particles: Tensor,
+        log_weights: Tensor,
+        generator,
+        *,
+        cov=None,
+        extras: Optional[Dict[str, Tensor]] = None,
+        ess: Optional[Tensor] = None,
+        uniforms: Optional[Tensor] = None,
+    ):
         """Resample the low-ESS trials of ``particles (B, N, d)`` with normalised ``log_weights
         (B, N)``; a per-particle ``cov`` (a :class:`~torchflow.covariances.Covariance`) and
         ``extras`` (tensors with a leading ``(B, N)``) follow the particles. ``ess (B,)``: the
@@ -848,11 +897,23 @@ class Resampler(nn.Module):
             idx, resampled, lw_new = self._soft(lw_in, generator)
         else:
             idx, resampled, lw_new = _resample_rows(
-                lw_in, lw_in if ess is not None else normalize_log_weights(lw_in, validate=False), generator,
-                self._scheme_fn, self.ess_threshold, ess=ess, u=uniforms)
+                lw_in,
+                lw_in if ess is not None else normalize_log_weights(lw_in, validate=False),
+                generator,
+                self._scheme_fn,
+                self.ess_threshold,
+                ess=ess,
+                u=uniforms,
+            )
             if idx is None:  # no trial resampled
                 if order is None:  # the particles stay where they are: nothing to gather
-                    return self._regularise(particles, resampled, generator, spread), lw_new, cov, extras or {}, resampled
+                    return (
+                        self._regularise(particles, resampled, generator, spread),
+                        lw_new,
+                        cov,
+                        extras or {},
+                        resampled,
+                    )
                 idx = torch.arange(lw_in.shape[1], device=lw_in.device).expand_as(lw_in)
         if order is not None:  # positions in the sorted cloud -> the particles' own indices
             idx = order.gather(1, idx)
@@ -886,8 +947,10 @@ class Resampler(nn.Module):
             std = std + (self.regularization_relative * spread).square()
         # drawn whether or not any trial resampled, so that each trial's stream advances the
         # same way whatever the other trials in its batch do
-        noise = standard_normal(particles.shape, dtype=particles.dtype, device=particles.device,
-                                generator=generator) * torch.as_tensor(std, dtype=particles.dtype).sqrt()
+        noise = (
+            standard_normal(particles.shape, dtype=particles.dtype, device=particles.device, generator=generator)
+            * torch.as_tensor(std, dtype=particles.dtype).sqrt()
+        )
         return particles + noise * resampled[:, None, None].to(particles.dtype)
 
     def _ot(self, particles, log_weights, generator, cov, extras, spread=None):
@@ -906,8 +969,12 @@ class Resampler(nn.Module):
         if cov is not None:
             cov = cov.transported(T)
         if extras:
-            extras = {k: torch.einsum("bij,bi...->bj...", T.to(v.dtype), v) if v.is_floating_point()
-                      else gather_particles(v, T.argmax(1)) for k, v in extras.items()}
+            extras = {
+                k: torch.einsum("bij,bi...->bj...", T.to(v.dtype), v)
+                if v.is_floating_point()
+                else gather_particles(v, T.argmax(1))
+                for k, v in extras.items()
+            }
         lw = torch.where(resampled[:, None], torch.full_like(log_weights, -math.log(n)), log_weights)
         return self._regularise(particles, resampled, generator, spread), lw, cov, extras or {}, resampled
 
@@ -921,8 +988,11 @@ class Resampler(nn.Module):
         if self.ess_threshold == 0.0:
             return identity, resampled, log_weights
         a = self.soft_alpha
-        log_q = log_weights if a == 1.0 else torch.logaddexp(
-            log_weights + math.log(a), torch.full_like(log_weights, math.log1p(-a) - math.log(n)))
+        log_q = (
+            log_weights
+            if a == 1.0
+            else torch.logaddexp(log_weights + math.log(a), torch.full_like(log_weights, math.log1p(-a) - math.log(n)))
+        )
         drawn = self._scheme_fn(log_q.detach(), generator, validate=False)
         idx = torch.where(resampled[:, None], drawn, identity)
         lw = gather_particles(log_weights, idx) - gather_particles(log_q, idx)
@@ -930,7 +1000,12 @@ class Resampler(nn.Module):
         return idx, resampled, torch.where(resampled[:, None], lw, log_weights)
 
     def extra_repr(self) -> str:
-        extra = (f", soft_alpha={self.soft_alpha}" if self.gradient == "soft" else
-                 f", ot_epsilon={self.ot_epsilon}, ot_iterations={self.ot_iterations}" if self.gradient == "ot" else "")
+        extra = (
+            f", soft_alpha={self.soft_alpha}"
+            if self.gradient == "soft"
+            else f", ot_epsilon={self.ot_epsilon}, ot_iterations={self.ot_iterations}"
+            if self.gradient == "ot"
+            else ""
+        )
         extra += f", sort={self.sort!r}" if self.sort is not None else ""
         return f"scheme={self.scheme!r}, ess_threshold={self.ess_threshold}, gradient={self.gradient!r}{extra}"

@@ -4,6 +4,7 @@ A schedule is a sequence of step sizes ``eps_1..eps_n`` summing to one; ``lambda
 pseudo-time after step j (``lambda_n = 1``). Flows evaluate their drift at ``lambda_j`` (the
 value after the increment), as in Li & Coates' code.
 """
+
 from __future__ import annotations
 
 from typing import Optional, Tuple
@@ -65,8 +66,10 @@ class LambdaSchedule:
         if not bool(torch.isfinite(eps).all()) or bool((eps <= 0).any()):
             raise ArgumentError(f"{name}.step_sizes(): expected finite steps > 0, got smallest {eps.min().item():.4g}")
         if abs(eps.sum().item() - 1.0) > 1e-9:
-            raise ArgumentError(f"{name}.step_sizes(): expected steps summing to 1 (lambda from 0 to 1), "
-                             f"got a sum of {eps.sum().item():.6g}")
+            raise ArgumentError(
+                f"{name}.step_sizes(): expected steps summing to 1 (lambda from 0 to 1), "
+                f"got a sum of {eps.sum().item():.6g}"
+            )
         cache[key] = eps
         return eps
 
@@ -153,7 +156,9 @@ def resolve_schedule(schedule, default: Optional[LambdaSchedule] = None, *, name
             raise ArgumentError(f"{name}: expected a LambdaSchedule or one of {tuple(SCHEDULES)}, got {schedule!r}")
         return SCHEDULES[schedule]()
     if not isinstance(schedule, LambdaSchedule):
-        raise ArgumentTypeError(f"{name}: expected a LambdaSchedule (torchflow.schedules) or one of {tuple(SCHEDULES)}, "
-                        f"got {type(schedule).__name__}")
+        raise ArgumentTypeError(
+            f"{name}: expected a LambdaSchedule (torchflow.schedules) or one of {tuple(SCHEDULES)}, "
+            f"got {type(schedule).__name__}"
+        )
     schedule.check()
     return schedule

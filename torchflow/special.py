@@ -15,6 +15,7 @@ shape, differentiable in ``x`` and ``nu`` by autograd, no host synchronisation. 
 ``scipy.special.kve``: better than 1e-10 relative for nu in [0.5, 250] and x in [1e-3, 1e4]
 (``tests/test_special.py``).
 """
+
 from __future__ import annotations
 
 import math

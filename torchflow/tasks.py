@@ -50,6 +50,7 @@ unweighted flow filters; the Kalman filter on a linear-Gaussian model is exact a
 ends ``task=smooth`` after the filter that runs (the finished filters' results are written) and
 ``task=pmmh`` at once (nothing is written: a chain cut short is no sample).
 """
+
 from __future__ import annotations
 
 import json
@@ -83,10 +84,18 @@ def check_task(cfg: Mapping) -> str:
     task = cfg.get("task", "filter")
     require(task in TASKS, "task", f"one of {', '.join(TASKS)}", task)
     if task != "filter":
-        require(not cfg.get("resume", False), "resume", f"false with task={task} (only task=filter saves chunks)",
-                cfg.get("resume"))
-        require(cfg.get("trial_range") is None, "trial_range", f"null with task={task} (every trial runs)",
-                cfg.get("trial_range"))
+        require(
+            not cfg.get("resume", False),
+            "resume",
+            f"false with task={task} (only task=filter saves chunks)",
+            cfg.get("resume"),
+        )
+        require(
+            cfg.get("trial_range") is None,
+            "trial_range",
+            f"null with task={task} (every trial runs)",
+            cfg.get("trial_range"),
+        )
         world = int(os.environ.get("WORLD_SIZE", "1") or 1)
         require(world == 1, "task", f"filter under torchrun (task={task} runs in one process)", task)
     return task
@@ -99,22 +108,43 @@ def _data(cfg: DictConfig, model, filters, env, one_series: bool = False):
     data = rc.recorded_data(cfg, model)
     obs, n, steps, sha = data if data is not None else (None, cfg.trials, cfg.steps, None)
     if one_series:
-        require(obs is None or obs.dim() == 2 or obs.shape[0] == 1, "data", "one recorded series (T, m) or "
-                "(1, T, m): task=pmmh samples the posterior given one series", f"{obs.shape[0]} series" if obs is not None
-                else None)
+        require(
+            obs is None or obs.dim() == 2 or obs.shape[0] == 1,
+            "data",
+            "one recorded series (T, m) or (1, T, m): task=pmmh samples the posterior given one series",
+            f"{obs.shape[0]} series" if obs is not None else None,
+        )
         n = 1
-    plan = plan_run(model, filters, trials=n, steps=steps, seed=cfg.seed,
-                    inits_per_track=cfg.inits_per_track, chunk_size=cfg.chunk_size,
-                    memory_budget_gb=cfg.memory_budget_gb, device=env.device or cfg.device,
-                    dtype=env.dtype or cfg.dtype, rng_backend=cfg.rng_backend, observations=obs)
+    plan = plan_run(
+        model,
+        filters,
+        trials=n,
+        steps=steps,
+        seed=cfg.seed,
+        inits_per_track=cfg.inits_per_track,
+        chunk_size=cfg.chunk_size,
+        memory_budget_gb=cfg.memory_budget_gb,
+        device=env.device or cfg.device,
+        dtype=env.dtype or cfg.dtype,
+        rng_backend=cfg.rng_backend,
+        observations=obs,
+    )
     return plan, sha
 
 
 def _settings(cfg: DictConfig, plan, sha) -> dict:
     s = plan.settings
-    return {"trials": s.trials, "steps": s.steps, "seed": s.seed, "device": str(s.device),
-            "dtype": str(s.dtype).replace("torch.", ""), "rng_backend": s.rng_backend, "threads": torch.get_num_threads(),
-            "data": cfg.get("data"), "data_sha256": sha}
+    return {
+        "trials": s.trials,
+        "steps": s.steps,
+        "seed": s.seed,
+        "device": str(s.device),
+        "dtype": str(s.dtype).replace("torch.", ""),
+        "rng_backend": s.rng_backend,
+        "threads": torch.get_num_threads(),
+        "data": cfg.get("data"),
+        "data_sha256": sha,
+    }
 
 
 def _mean_se(values: torch.Tensor) -> tuple:
@@ -125,6 +155,7 @@ def _mean_se(values: torch.Tensor) -> tuple:
 
 
 # ---- task=smooth ---------------------------------------------------------------------------------
+
 
 def smoothing_methods(cfg: DictConfig, filters: Mapping, labels: Mapping) -> Dict[str, str]:
     """``{label: the smoother it runs}`` for ``smooth.method``; a filter it does not fit is a
@@ -139,8 +170,10 @@ def smoothing_methods(cfg: DictConfig, filters: Mapping, labels: Mapping) -> Dic
             out[name] = smoothing_method(f, method)
         except ArgumentError as e:
             why = str(e).split(": ", 1)[1] if str(e).startswith("method: ") else str(e)
-            raise ConfigError(f"smooth.method: {why} (filter.{key_of.get(name, name)}); select filters it fits or "
-                              f"another smooth.method") from None
+            raise ConfigError(
+                f"smooth.method: {why} (filter.{key_of.get(name, name)}); select filters it fits or "
+                f"another smooth.method"
+            ) from None
     return out
 
 
@@ -163,11 +196,19 @@ def smooth_job(cfg: DictConfig, model, filters: Dict, labels: Dict, out: Path, e
 
     methods = smoothing_methods(cfg, filters, labels)
     n_paths = cfg.smooth.n_paths
-    require(isinstance(n_paths, int) and not isinstance(n_paths, bool) and n_paths >= 1, "smooth.n_paths",
-            "a positive number of paths", n_paths)
+    require(
+        isinstance(n_paths, int) and not isinstance(n_paths, bool) and n_paths >= 1,
+        "smooth.n_paths",
+        "a positive number of paths",
+        n_paths,
+    )
     path_chunk = cfg.smooth.path_chunk
-    require(path_chunk is None or (isinstance(path_chunk, int) and not isinstance(path_chunk, bool) and path_chunk >= 1),
-            "smooth.path_chunk", "a positive number of paths or null", path_chunk)
+    require(
+        path_chunk is None or (isinstance(path_chunk, int) and not isinstance(path_chunk, bool) and path_chunk >= 1),
+        "smooth.path_chunk",
+        "a positive number of paths or null",
+        path_chunk,
+    )
     plan, sha = _data(cfg, model, filters, env)
     s, traj = plan.settings, plan.traj
     truth = None if traj.states is None else traj.states
@@ -179,16 +220,29 @@ def smooth_job(cfg: DictConfig, model, filters: Dict, labels: Dict, out: Path, e
             break
         method = methods[name]
         chunk = _smoothing_chunk(f, method, B, T, d, n_paths, s.memory_budget_gb)
-        log.info(f"{name}: {method} smoother, {B} trials x {T} steps" + ("" if method == "rts" else
-                 f", {n_paths} paths") + (f", {chunk} trials per call" if chunk < B else ""))
+        log.info(
+            f"{name}: {method} smoother, {B} trials x {T} steps"
+            + ("" if method == "rts" else f", {n_paths} paths")
+            + (f", {chunk} trials per call" if chunk < B else "")
+        )
         parts, t0 = [], time.perf_counter()
         try:
             with torch.no_grad(), STOP.interruptible():
                 for a in range(0, B, chunk):
                     e = min(B, a + chunk)
                     g = TrialStreams(s.seed, range(a, e), key=f.stream_name, backend=s.rng_backend)
-                    parts.append(smooth(f, traj.observations[a:e], plan.mean0[a:e], plan.cov0[a:e], g, method=method,
-                                        n_paths=n_paths, path_chunk=path_chunk))
+                    parts.append(
+                        smooth(
+                            f,
+                            traj.observations[a:e],
+                            plan.mean0[a:e],
+                            plan.cov0[a:e],
+                            g,
+                            method=method,
+                            n_paths=n_paths,
+                            path_chunk=path_chunk,
+                        )
+                    )
         except KeyboardInterrupt:
             interrupted = True
             break
@@ -197,34 +251,73 @@ def smooth_job(cfg: DictConfig, model, filters: Dict, labels: Dict, out: Path, e
     if not results:
         log.warning(f"interrupted by {STOP.name} before the first filter finished: nothing is written")
         return STOP.exit_code
-    summary = [_smoothing_summary(name, r, truth, f_n=filters[name].n_particles, n_paths=n_paths)
-               for name, r in results.items()]
-    log.info(f"\n{type(model).__name__}: {B} trials x {T} steps" + (f" of data={cfg.data}" if cfg.get("data") else "")
-             + f", seed {s.seed}, {s.device}/{str(s.dtype).replace('torch.', '')}")
+    summary = [
+        _smoothing_summary(name, r, truth, f_n=filters[name].n_particles, n_paths=n_paths)
+        for name, r in results.items()
+    ]
+    log.info(
+        f"\n{type(model).__name__}: {B} trials x {T} steps"
+        + (f" of data={cfg.data}" if cfg.get("data") else "")
+        + f", seed {s.seed}, {s.device}/{str(s.dtype).replace('torch.', '')}"
+    )
     log.info(format_table(summary, SMOOTH_COLUMNS))
     for name, r in results.items():
         rows += smoothed_rows(name, r, truth)
     writer = shell.Output(out)
     writer.attempt("smoothed.csv", writers.write_csv, out / "smoothed.csv", rows, smoothed_columns(d))
-    writer.attempt("smoothing.json", writers.write_text, out / "smoothing.json", json.dumps({
-        "config": OmegaConf.to_container(cfg, resolve=True), "run": _settings(cfg, plan, sha), "summary": summary,
-        "interrupted": interrupted, "not_run": [n for n in filters if n not in results]}, indent=1))
+    writer.attempt(
+        "smoothing.json",
+        writers.write_text,
+        out / "smoothing.json",
+        json.dumps(
+            {
+                "config": OmegaConf.to_container(cfg, resolve=True),
+                "run": _settings(cfg, plan, sha),
+                "summary": summary,
+                "interrupted": interrupted,
+                "not_run": [n for n in filters if n not in results],
+            },
+            indent=1,
+        ),
+    )
     if cfg.plots:
         title = f"{type(model).__name__}: trial 0" + (" of recorded data" if truth is None else "")
-        writer.attempt("smoothed.png", figures.save_smoothing_figure, out / "smoothed.png",
-                       None if truth is None else truth[0].cpu(), {n: _trial0(r) for n, r in results.items()}, title)
+        writer.attempt(
+            "smoothed.png",
+            figures.save_smoothing_figure,
+            out / "smoothed.png",
+            None if truth is None else truth[0].cpu(),
+            {n: _trial0(r) for n, r in results.items()},
+            title,
+        )
     if writer.failed is None:
         log.info(f"results: {shell.shown_path(out)}")
     if interrupted:
-        log.warning(f"interrupted by {STOP.name}: the results of the filters that finished are written; not run: "
-                    f"{', '.join(n for n in filters if n not in results)}")
+        log.warning(
+            f"interrupted by {STOP.name}: the results of the filters that finished are written; not run: "
+            f"{', '.join(n for n in filters if n not in results)}"
+        )
         return STOP.exit_code
     return 1 if writer.failed else 0
 
 
 #: the columns of the smoothing summary (terminal table and ``smoothing.json``)
-SMOOTH_COLUMNS = ["filter", "method", "n_particles", "n_paths", "trials", "steps", "rmse_filtered", "rmse_filtered_se",
-                  "rmse_smoothed", "rmse_smoothed_se", "rmse_change", "rmse_change_se", "log_evidence", "seconds"]
+SMOOTH_COLUMNS = [
+    "filter",
+    "method",
+    "n_particles",
+    "n_paths",
+    "trials",
+    "steps",
+    "rmse_filtered",
+    "rmse_filtered_se",
+    "rmse_smoothed",
+    "rmse_smoothed_se",
+    "rmse_change",
+    "rmse_change_se",
+    "log_evidence",
+    "seconds",
+]
 
 
 def _smoothed(parts, plan, method: str, seconds: float) -> dict:
@@ -238,10 +331,15 @@ def _smoothed(parts, plan, method: str, seconds: float) -> dict:
     f_mean = torch.cat([p.filtered.estimates for p in parts]).cpu()
     f_sd = torch.cat([p.filtered.std for p in parts]).cpu()
     prior_sd = plan.cov0.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt().cpu()
-    return {"method": method, "mean": mean, "sd": sd, "seconds": seconds,
-            "filtered_mean": torch.cat([plan.mean0.cpu().unsqueeze(1), f_mean], 1),
-            "filtered_sd": torch.cat([prior_sd.unsqueeze(1), f_sd], 1),
-            "log_evidence": torch.cat([p.filtered.log_evidence for p in parts]).cpu()}
+    return {
+        "method": method,
+        "mean": mean,
+        "sd": sd,
+        "seconds": seconds,
+        "filtered_mean": torch.cat([plan.mean0.cpu().unsqueeze(1), f_mean], 1),
+        "filtered_sd": torch.cat([prior_sd.unsqueeze(1), f_sd], 1),
+        "log_evidence": torch.cat([p.filtered.log_evidence for p in parts]).cpu(),
+    }
 
 
 def _trial0(r: dict) -> dict:
@@ -250,9 +348,16 @@ def _trial0(r: dict) -> dict:
 
 def _smoothing_summary(name: str, r: dict, truth: Optional[torch.Tensor], f_n, n_paths: int) -> dict:
     B, T1 = r["mean"].shape[:2]
-    row = {"filter": name, "method": r["method"], "n_particles": f_n, "n_paths": None if r["method"] == "rts" else n_paths,
-           "trials": B, "steps": T1 - 1, "log_evidence": float(r["log_evidence"].double().mean()),
-           "seconds": r["seconds"]}
+    row = {
+        "filter": name,
+        "method": r["method"],
+        "n_particles": f_n,
+        "n_paths": None if r["method"] == "rts" else n_paths,
+        "trials": B,
+        "steps": T1 - 1,
+        "log_evidence": float(r["log_evidence"].double().mean()),
+        "seconds": r["seconds"],
+    }
     if truth is not None:  # per trial: the RMSE averaged over steps 1..T; mean and se over trials
         x = truth[:, 1:].cpu()
         err_f = metrics.rmse(r["filtered_mean"][:, 1:].to(x.dtype), x).mean(1)
@@ -275,8 +380,12 @@ def smoothed_rows(name: str, r: dict, truth: Optional[torch.Tensor]) -> List[dic
     """The rows of ``smoothed.csv`` of one filter (:func:`smoothed_columns`); step 0 is the initial
     state (its filtered columns: the filters' prior)."""
     B, T1, d = r["mean"].shape
-    cols = {"filtered_mean": r["filtered_mean"], "filtered_sd": r["filtered_sd"], "smoothed_mean": r["mean"],
-            "smoothed_sd": r["sd"]}
+    cols = {
+        "filtered_mean": r["filtered_mean"],
+        "filtered_sd": r["filtered_sd"],
+        "smoothed_mean": r["mean"],
+        "smoothed_sd": r["sd"],
+    }
     if truth is not None:
         cols["truth"] = truth.cpu()
     flat = {k: v.double().reshape(B * T1, d).tolist() for k, v in cols.items()}
@@ -291,6 +400,7 @@ def smoothed_rows(name: str, r: dict, truth: Optional[torch.Tensor]) -> List[dic
 
 # ---- task=pmmh -----------------------------------------------------------------------------------
 
+
 def prior_from_config(name: str, spec, dtype=torch.float64):
     """A ``torch.distributions`` prior from its config ``{dist: <class name>, <argument>: <value>, ...}``
     (``{dist: Uniform, low: -1, high: 1}``; a list value is a vector argument); any problem is a
@@ -299,16 +409,24 @@ def prior_from_config(name: str, spec, dtype=torch.float64):
 
     key = f"pmmh.priors.{name}"
     spec = OmegaConf.to_container(spec, resolve=True) if OmegaConf.is_config(spec) else spec
-    require(isinstance(spec, dict) and isinstance(spec.get("dist"), str), key,
-            "{dist: <a torch.distributions class>, <its arguments>}, e.g. {dist: Uniform, low: -1, high: 1}", spec)
+    require(
+        isinstance(spec, dict) and isinstance(spec.get("dist"), str),
+        key,
+        "{dist: <a torch.distributions class>, <its arguments>}, e.g. {dist: Uniform, low: -1, high: 1}",
+        spec,
+    )
     args = {k: v for k, v in spec.items() if k != "dist"}
     cls = getattr(D, spec["dist"], None)
     if not (isinstance(cls, type) and issubclass(cls, D.Distribution)) or cls is D.Distribution:
-        close = rc.close_keys(spec["dist"], [n for n in dir(D) if isinstance(getattr(D, n), type)
-                                             and issubclass(getattr(D, n), D.Distribution)])
+        close = rc.close_keys(
+            spec["dist"],
+            [n for n in dir(D) if isinstance(getattr(D, n), type) and issubclass(getattr(D, n), D.Distribution)],
+        )
         hint = f"; did you mean {' or '.join(close)}?" if close else ""
-        raise ConfigError(f"{key}.dist: expected a torch.distributions class (Normal, Uniform, Gamma, Beta, "
-                          f"LogNormal, HalfNormal, ...), got {spec['dist']!r}{hint}")
+        raise ConfigError(
+            f"{key}.dist: expected a torch.distributions class (Normal, Uniform, Gamma, Beta, "
+            f"LogNormal, HalfNormal, ...), got {spec['dist']!r}{hint}"
+        )
     try:
         tensors = {k: v if isinstance(v, bool) else torch.as_tensor(v, dtype=dtype) for k, v in args.items()}
         return cls(**tensors, validate_args=True)
@@ -327,22 +445,32 @@ def priors_from_config(cfg: DictConfig, model) -> dict:
     declared = list(getattr(model, "per_trial_parameters", ()) or ())
     kind = type(model).__name__
     if not declared:
-        raise ConfigError(f"model: task=pmmh samples parameters that a model declares per trial (one value per chain); "
-                          f"{kind} declares none (StochasticVolatility does: mu, rho, sigma)")
-    require(len(given) > 0, "pmmh.priors", f"a prior for at least one of {kind}'s per-trial parameters "
-            f"({', '.join(declared)}), e.g. '+pmmh.priors={{{declared[0]}: {{dist: Normal, loc: 0, scale: 1}}}}'",
-            "none")
+        raise ConfigError(
+            f"model: task=pmmh samples parameters that a model declares per trial (one value per chain); "
+            f"{kind} declares none (StochasticVolatility does: mu, rho, sigma)"
+        )
+    require(
+        len(given) > 0,
+        "pmmh.priors",
+        f"a prior for at least one of {kind}'s per-trial parameters "
+        f"({', '.join(declared)}), e.g. '+pmmh.priors={{{declared[0]}: {{dist: Normal, loc: 0, scale: 1}}}}'",
+        "none",
+    )
     priors = {}
     for name, spec in given.items():
         if name not in declared:
             close = rc.close_keys(str(name), declared)
             hint = f"; did you mean {' or '.join(close)}?" if close else ""
-            raise ConfigError(f"pmmh.priors.{name}: expected a per-trial parameter of {kind} ({', '.join(declared)}), "
-                              f"got {name!r}{hint}")
+            raise ConfigError(
+                f"pmmh.priors.{name}: expected a per-trial parameter of {kind} ({', '.join(declared)}), "
+                f"got {name!r}{hint}"
+            )
         priors[name] = prior_from_config(name, spec)
         shape = tuple(getattr(model, name).shape)
         got = tuple(priors[name].batch_shape + priors[name].event_shape)
-        require(got == shape, f"pmmh.priors.{name}", f"a prior of {name}'s shape {shape or '(scalar)'}", got or "(scalar)")
+        require(
+            got == shape, f"pmmh.priors.{name}", f"a prior of {name}'s shape {shape or '(scalar)'}", got or "(scalar)"
+        )
         try:  # what the chains will do: one value per chain (here the model's own, one chain)
             with per_trial_values(model, {name: getattr(model, name).detach().unsqueeze(0)}):
                 pass
@@ -360,9 +488,11 @@ def check_pmmh_filter(key: str, f) -> None:
 
     if isinstance(f, KalmanFilter) or (isinstance(f, ParticleFilter) and f.estimates_evidence):
         return
-    raise ConfigError(f"filter.{key}: task=pmmh needs a filter whose log-evidence estimates the likelihood without "
-                      f"bias (a weighted particle filter: bpf, pfpf_ledh, pfpf_edh, upf, gpfis, ...; or kf on a "
-                      f"linear-Gaussian model, exact), got {type(f).__name__}, whose log-evidence is an approximation")
+    raise ConfigError(
+        f"filter.{key}: task=pmmh needs a filter whose log-evidence estimates the likelihood without "
+        f"bias (a weighted particle filter: bpf, pfpf_ledh, pfpf_edh, upf, gpfis, ...; or kf on a "
+        f"linear-Gaussian model, exact), got {type(f).__name__}, whose log-evidence is an approximation"
+    )
 
 
 def _int(cfg, key: str, minimum: int) -> int:
@@ -380,14 +510,17 @@ def _init(cfg: DictConfig, priors: dict) -> Optional[dict]:
     for name in init:
         require(name in priors, f"pmmh.init.{name}", f"a parameter with a prior ({', '.join(priors)})", name)
     missing = [n for n in priors if n not in init]
-    require(not missing, "pmmh.init", f"a starting value for every parameter with a prior (missing {missing})",
-            sorted(init))
+    require(
+        not missing, "pmmh.init", f"a starting value for every parameter with a prior (missing {missing})", sorted(init)
+    )
     out = {}
     for name, v in init.items():
         t = torch.as_tensor(v, dtype=torch.float64)
         if not bool(priors[name].support.check(t).all()):
-            raise ConfigError(f"pmmh.init.{name}: expected a value inside the support of its prior "
-                              f"({priors[name].support}), got {v!r}")
+            raise ConfigError(
+                f"pmmh.init.{name}: expected a value inside the support of its prior "
+                f"({priors[name].support}), got {v!r}"
+            )
         out[name] = t
     return out
 
@@ -422,10 +555,18 @@ def pmmh_job(cfg: DictConfig, model, filters: Dict, labels: Dict, out: Path, env
     chains, iterations = _int(cfg, "pmmh.chains", 1), _int(cfg, "pmmh.iterations", 4)
     adapt = _int(cfg, "pmmh.adapt", 0)
     scale, target = cfg.pmmh.scale, cfg.pmmh.target_acceptance
-    require(isinstance(scale, (int, float)) and not isinstance(scale, bool) and scale > 0, "pmmh.scale",
-            "a positive random-walk sd", scale)
-    require(target is None or (isinstance(target, (int, float)) and 0 < target < 1), "pmmh.target_acceptance",
-            "null or a rate in (0, 1)", target)
+    require(
+        isinstance(scale, (int, float)) and not isinstance(scale, bool) and scale > 0,
+        "pmmh.scale",
+        "a positive random-walk sd",
+        scale,
+    )
+    require(
+        target is None or (isinstance(target, (int, float)) and 0 < target < 1),
+        "pmmh.target_acceptance",
+        "null or a rate in (0, 1)",
+        target,
+    )
     init = _init(cfg, priors)
     truth = {n: getattr(model, n).detach().double().cpu().clone() for n in priors}
     plan, sha = _data(cfg, model, filters, env, one_series=True)
@@ -434,13 +575,25 @@ def pmmh_job(cfg: DictConfig, model, filters: Dict, labels: Dict, out: Path, env
     prior = _initial_prior(model, plan)
     results, interrupted = {}, False
     for name, f in filters.items():
-        log.info(f"{name}: PMMH of {', '.join(priors)}, {chains} chains x ({adapt} adaptation + {iterations}) "
-                 f"iterations on {series.shape[0]} steps" + (f" of data={cfg.data}" if recorded else " (trial 0)"))
+        log.info(
+            f"{name}: PMMH of {', '.join(priors)}, {chains} chains x ({adapt} adaptation + {iterations}) "
+            f"iterations on {series.shape[0]} steps" + (f" of data={cfg.data}" if recorded else " (trial 0)")
+        )
         try:
             with STOP.interruptible():
-                results[name] = pmmh(f, series, prior, priors, cfg.seed, n_chains=chains, n_iterations=iterations,
-                                     n_adapt=adapt, init=init, scale=float(scale),
-                                     target_acceptance=None if target is None else float(target))
+                results[name] = pmmh(
+                    f,
+                    series,
+                    prior,
+                    priors,
+                    cfg.seed,
+                    n_chains=chains,
+                    n_iterations=iterations,
+                    n_adapt=adapt,
+                    init=init,
+                    scale=float(scale),
+                    target_acceptance=None if target is None else float(target),
+                )
         except KeyboardInterrupt:
             interrupted = True
             break
@@ -460,12 +613,27 @@ def pmmh_job(cfg: DictConfig, model, filters: Dict, labels: Dict, out: Path, env
     writer = shell.Output(out)
     rows = [row for name, r in results.items() for row in posterior_rows(name, r)]
     writer.attempt("posterior.csv", writers.write_csv, out / "posterior.csv", rows, posterior_columns(results))
-    writer.attempt("pmmh.json", writers.write_text, out / "pmmh.json", json.dumps({
-        "config": OmegaConf.to_container(cfg, resolve=True),
-        "run": {**_settings(cfg, plan, sha), "trials": 1, "series": "data" if recorded else "trial 0 of the simulation",
-                "chains": chains, "iterations": iterations, "adapt": adapt},
-        "priors": {n: OmegaConf.to_container(cfg.pmmh.priors[n], resolve=True) for n in priors},
-        "filters": summary}, indent=1))
+    writer.attempt(
+        "pmmh.json",
+        writers.write_text,
+        out / "pmmh.json",
+        json.dumps(
+            {
+                "config": OmegaConf.to_container(cfg, resolve=True),
+                "run": {
+                    **_settings(cfg, plan, sha),
+                    "trials": 1,
+                    "series": "data" if recorded else "trial 0 of the simulation",
+                    "chains": chains,
+                    "iterations": iterations,
+                    "adapt": adapt,
+                },
+                "priors": {n: OmegaConf.to_container(cfg.pmmh.priors[n], resolve=True) for n in priors},
+                "filters": summary,
+            },
+            indent=1,
+        ),
+    )
     if cfg.plots:
         draws = {name: {n: v.detach().double().cpu() for n, v in r.samples.items()} for name, r in results.items()}
         title = f"{type(model).__name__}: PMMH, {chains} chains x {iterations} draws"
@@ -492,8 +660,10 @@ def convergence_warnings(name: str, s: dict) -> List[str]:
         if v["ess"] is not None and not v["ess"] >= ESS_MIN:
             why.append(f"ESS {v['ess']:.3g} < {ESS_MIN}")
         if why:
-            lines.append(f"{name}: {p}: the chains have not converged ({', '.join(why)}): its mean and sd are not yet "
-                         f"the posterior's; run more iterations (pmmh.iterations) or chains (pmmh.chains)")
+            lines.append(
+                f"{name}: {p}: the chains have not converged ({', '.join(why)}): its mean and sd are not yet "
+                f"the posterior's; run more iterations (pmmh.iterations) or chains (pmmh.chains)"
+            )
     return lines
 
 
@@ -514,12 +684,22 @@ def pmmh_summary(r, truth: Optional[Dict[str, torch.Tensor]]) -> dict:
         for i, (cname, draws) in enumerate(comps.items()):
             ess = None if es is None else float(es.reshape(-1)[i])
             sd = float(draws.std())
-            params[cname] = {"truth": None if t is None else float(t[i]), "mean": float(draws.mean()), "sd": sd,
-                             "mcse": None if not ess else sd / math.sqrt(ess),
-                             "rhat": None if rh is None else float(rh.reshape(-1)[i]), "ess": ess,
-                             "ess_per_sec": None if ess is None else ess / r.seconds}
-    out = {"parameters": params, "acceptance": r.acceptance.tolist(), "scale": r.scale.tolist(),
-           "seconds": r.seconds, "mean_log_likelihood": float(r.log_likelihood.double().mean())}
+            params[cname] = {
+                "truth": None if t is None else float(t[i]),
+                "mean": float(draws.mean()),
+                "sd": sd,
+                "mcse": None if not ess else sd / math.sqrt(ess),
+                "rhat": None if rh is None else float(rh.reshape(-1)[i]),
+                "ess": ess,
+                "ess_per_sec": None if ess is None else ess / r.seconds,
+            }
+    out = {
+        "parameters": params,
+        "acceptance": r.acceptance.tolist(),
+        "scale": r.scale.tolist(),
+        "seconds": r.seconds,
+        "mean_log_likelihood": float(r.log_likelihood.double().mean()),
+    }
     out["converged"] = not convergence_warnings("", out)
     return out
 
@@ -541,8 +721,17 @@ def posterior_rows(name: str, r) -> List[dict]:
         comps.update({k: c.tolist() for k, c in figures.scalar_series({pname: v.detach().double().cpu()}).items()})
     ll = r.log_likelihood.double().cpu().tolist()
     C, S = r.log_likelihood.shape
-    return [{"filter": name, "chain": c, "iteration": s + 1, "log_likelihood": ll[c][s],
-             **{k: v[c][s] for k, v in comps.items()}} for c in range(C) for s in range(S)]
+    return [
+        {
+            "filter": name,
+            "chain": c,
+            "iteration": s + 1,
+            "log_likelihood": ll[c][s],
+            **{k: v[c][s] for k, v in comps.items()},
+        }
+        for c in range(C)
+        for s in range(S)
+    ]
 
 
 def task_job(task: str, cfg: DictConfig, model, filters: Dict, labels: Dict, out: Path, env) -> int:
@@ -554,6 +743,22 @@ def task_job(task: str, cfg: DictConfig, model, filters: Dict, labels: Dict, out
         return STOP.exit_code
 
 
-__all__ = ["TASKS", "check_task", "smooth_job", "pmmh_job", "prior_from_config", "priors_from_config",
-           "check_pmmh_filter", "smoothing_methods", "smoothed_columns", "smoothed_rows", "posterior_columns",
-           "posterior_rows", "pmmh_summary", "convergence_warnings", "RHAT_MAX", "ESS_MIN", "task_job"]
+__all__ = [
+    "TASKS",
+    "check_task",
+    "smooth_job",
+    "pmmh_job",
+    "prior_from_config",
+    "priors_from_config",
+    "check_pmmh_filter",
+    "smoothing_methods",
+    "smoothed_columns",
+    "smoothed_rows",
+    "posterior_columns",
+    "posterior_rows",
+    "pmmh_summary",
+    "convergence_warnings",
+    "RHAT_MAX",
+    "ESS_MIN",
+    "task_job",
+]

@@ -13,6 +13,7 @@ unscented particle filter's per-particle UKF). Any leading batch shape works: pe
   :meth:`~UnscentedTransform.predict` and :meth:`~UnscentedTransform.update`.
 * :class:`Tracker`: a model and one of the two, as a module (``tracker(model, "ekf" | "ukf")``).
 """
+
 from __future__ import annotations
 
 from typing import Optional, Tuple
@@ -81,8 +82,13 @@ def ekf_update(model, mean_pred: torch.Tensor, cov_pred: torch.Tensor, z: torch.
     (:func:`kalman_update_scalar_support`; ``torchflow.tuning`` ``structured_update``, default 1);
     otherwise :func:`kalman_update`."""
     support = model.structure.measurement_support
-    if (tuning.get().structured_update and not model.structure.linear_measurement and model.structure.measurement_noise == "scalar"
-            and support is not None and len(support) <= model.obs_dim):
+    if (
+        tuning.get().structured_update
+        and not model.structure.linear_measurement
+        and model.structure.measurement_noise == "scalar"
+        and support is not None
+        and len(support) <= model.obs_dim
+    ):
         h, Hs = model.linearize_measurement(mean_pred, support=True)
         sigma2 = model.measurement_cov(mean_pred)[..., 0, 0]
         return kalman_update_scalar_support(mean_pred, cov_pred, z, h, Hs, sigma2, support)
@@ -90,8 +96,15 @@ def ekf_update(model, mean_pred: torch.Tensor, cov_pred: torch.Tensor, z: torch.
     return kalman_update(mean_pred, cov_pred, z, model.measure(mean_pred), H, model.measurement_cov(mean_pred))
 
 
-def kalman_update_scalar_support(mean_pred: torch.Tensor, cov_pred: torch.Tensor, z: torch.Tensor,
-                                 z_pred: torch.Tensor, H_s: torch.Tensor, sigma2: torch.Tensor, support):
+def kalman_update_scalar_support(
+    mean_pred: torch.Tensor,
+    cov_pred: torch.Tensor,
+    z: torch.Tensor,
+    z_pred: torch.Tensor,
+    H_s: torch.Tensor,
+    sigma2: torch.Tensor,
+    support,
+):
     """:func:`kalman_update` for ``R = sigma2 I`` and a Jacobian whose nonzero columns are
     ``support`` (k of d), in ``k x k`` algebra (Woodbury), for ``m >= k`` measurements.
 
@@ -158,8 +171,16 @@ class UnscentedTransform(nn.Module):
         dtype, device: of the weights (the model's).
     """
 
-    def __init__(self, state_dim: int, *, alpha: float = 1.0, beta: float = 2.0, kappa: Optional[float] = None,
-                 dtype=torch.float64, device=None):
+    def __init__(
+        self,
+        state_dim: int,
+        *,
+        alpha: float = 1.0,
+        beta: float = 2.0,
+        kappa: Optional[float] = None,
+        dtype=torch.float64,
+        device=None,
+    ):
         super().__init__()
         d = int(state_dim)
         if kappa is None:
@@ -235,8 +256,11 @@ class Tracker(nn.Module):
         if unscented and kind != "ukf":
             raise ArgumentError(f"{sorted(unscented)}: sigma-point settings need kind='ukf', got {kind!r}")
         self.model, self.kind = model, kind
-        self.unscented = (UnscentedTransform(model.state_dim, dtype=model.dtype, device=model.device, **unscented)
-                          if kind == "ukf" else None)
+        self.unscented = (
+            UnscentedTransform(model.state_dim, dtype=model.dtype, device=model.device, **unscented)
+            if kind == "ukf"
+            else None
+        )
 
     def predict(self, mean: torch.Tensor, cov: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
         """``(..., d)``, ``(..., d, d)`` -> predicted mean and covariance."""
@@ -259,4 +283,13 @@ def tracker(model, kind: str = "ekf", **unscented) -> Tracker:
     return Tracker(model, kind, **unscented)
 
 
-__all__ = ["kalman_update", "kalman_update_scalar_support", "ekf_predict", "ekf_update", "UnscentedTransform", "Tracker", "tracker", "TRACKERS"]
+__all__ = [
+    "kalman_update",
+    "kalman_update_scalar_support",
+    "ekf_predict",
+    "ekf_update",
+    "UnscentedTransform",
+    "Tracker",
+    "tracker",
+    "TRACKERS",
+]

@@ -3,7 +3,8 @@
 Every value here changes only how fast (or in how much memory) a result is computed, never the
 result: the same seed gives the same numbers whatever they are set to (up to round-off where a
 batch's size changes BLAS blocking; see README "Reproducibility"). The exceptions compute the same
-formulas in another order: ``fused_flows``, ``fused_info``, ``fused_measurement``, ``fused_weights`` and ``structured_update`` agree
+formulas in another order: ``fused_flows``, ``fused_info``, ``fused_measurement``, ``fused_weights`` and
+``structured_update`` agree
 with their torch/Joseph counterparts to round-off per call, which a chaotic trial (a resampling
 decision, a diverging EKF) can amplify; their statistics are the same (``experiments/RESULTS.md``,
 "CPU kernels"); ``kernel_float32`` computes a float32 run's GPU kernel in float32 instead of
@@ -25,6 +26,7 @@ Usage::
     with tuning.tuned(serial_solve_max_dim=0):
         ...                               # set within a block
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -186,7 +188,7 @@ def get() -> Tuning:
     return _current
 
 
-def set(**knobs) -> Tuning:  # noqa: A001 - the module's verb
+def set(**knobs) -> Tuning:
     """Change some knobs for the process; returns the previous settings. Unknown names raise."""
     global _current
     known = {f.name for f in fields(Tuning)}
@@ -194,8 +196,9 @@ def set(**knobs) -> Tuning:  # noqa: A001 - the module's verb
     if unknown:
         raise ArgumentError(f"tuning: unknown knob(s) {unknown}; expected some of {sorted(known)}")
     previous = _current
-    _current = replace(_current, **{k: int(v) if isinstance(v, float) and v.is_integer() else v
-                                    for k, v in knobs.items()})
+    _current = replace(
+        _current, **{k: int(v) if isinstance(v, float) and v.is_integer() else v for k, v in knobs.items()}
+    )
     return previous
 
 

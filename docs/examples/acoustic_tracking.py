@@ -10,6 +10,7 @@ same trials (small sizes: a few trials, few particles, a short horizon) and draw
 trial's tracks and each filter's OMAT (the optimal-assignment position error, in metres) per time
 step. The sizes of the published comparisons, and their results, are in `experiments/RESULTS.md`.
 """
+
 import matplotlib.pyplot as plt
 import torch
 
@@ -19,21 +20,21 @@ from torchflow.models import AcousticTracking
 
 model = AcousticTracking(sigma_w=0.1)
 g = torch.Generator().manual_seed(3)
-traj = model.simulate(4, 25, g)                           # 4 trials x 25 steps
-mean, cov = model.initial_belief(traj.states[:, 0], g)    # the per-trial prior, drawn around the truth
+traj = model.simulate(4, 25, g)  # 4 trials x 25 steps
+mean, cov = model.initial_belief(traj.states[:, 0], g)  # the per-trial prior, drawn around the truth
 
 filters = {
     "EKF": ExtendedKalmanFilter(model),
     "bootstrap PF, N=500": BootstrapParticleFilter(model, n_particles=500),
     "PF-PF(LEDH), N=50": ParticleFlowParticleFilter(model, flow="ledh", n_particles=50),
 }
-truth = model.positions(traj.states[:, 1:])               # (B, T, 4 targets, 2)
+truth = model.positions(traj.states[:, 1:])  # (B, T, 4 targets, 2)
 omat = {}
 tracks = {}
 for name, f in filters.items():
     res = f(traj.observations, mean, cov, torch.Generator().manual_seed(1))
     tracks[name] = model.positions(res.estimates)
-    omat[name] = metrics.omat(tracks[name], truth)        # (B, T)
+    omat[name] = metrics.omat(tracks[name], truth)  # (B, T)
     print(f"{name:22s} OMAT {omat[name].mean():6.2f} m")
 
 fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 5.4), gridspec_kw={"width_ratios": [1, 1.3]})
@@ -54,5 +55,5 @@ ax2.set(yscale="log", xlabel="time step", ylabel="OMAT (m), mean over trials", t
 ax2.legend(fontsize=8)
 fig.tight_layout()
 
-if __name__ == "__main__":   # run by hand: show the figure (the documentation build saves it instead)
+if __name__ == "__main__":  # run by hand: show the figure (the documentation build saves it instead)
     plt.show()

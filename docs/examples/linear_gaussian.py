@@ -7,6 +7,7 @@ filter on the same simulated trials (a 4-dimensional state, 2 measured coordinat
 measurement noise so that the likelihood is peaked), and compares their state estimates and
 their log-evidence estimates with the Kalman filter's.
 """
+
 import matplotlib.pyplot as plt
 import torch
 
@@ -17,12 +18,12 @@ from torchflow.models import LinearGaussian
 d, m = 4, 2
 F = 0.9 * torch.eye(d, dtype=torch.float64)
 Q = 0.5 * torch.eye(d, dtype=torch.float64)
-H = torch.eye(m, d, dtype=torch.float64)                  # the first two coordinates are measured
-R = 0.01 * torch.eye(m, dtype=torch.float64)              # a peaked likelihood
+H = torch.eye(m, d, dtype=torch.float64)  # the first two coordinates are measured
+R = 0.01 * torch.eye(m, dtype=torch.float64)  # a peaked likelihood
 model = LinearGaussian(F, Q, H, R, torch.zeros(d), torch.eye(d, dtype=torch.float64))
 
 g = torch.Generator().manual_seed(0)
-traj = model.simulate(20, 25, g)                          # 20 trials x 25 steps
+traj = model.simulate(20, 25, g)  # 20 trials x 25 steps
 mean, cov = model.initial_belief(traj.states[:, 0])
 
 filters = {
@@ -30,8 +31,7 @@ filters = {
     "PF-PF(LEDH), N=100": ParticleFlowParticleFilter(model, flow=LEDHFlow(), n_particles=100),
     "bootstrap PF, N=100": BootstrapParticleFilter(model, n_particles=100),
 }
-results = {name: f(traj.observations, mean, cov, torch.Generator().manual_seed(1))
-           for name, f in filters.items()}
+results = {name: f(traj.observations, mean, cov, torch.Generator().manual_seed(1)) for name, f in filters.items()}
 
 exact = results["KF"]
 print(f"{'filter':22s} {'MSE':>8s} {'|log Z - log Z_KF|':>20s} {'mean ESS / N':>13s}")
@@ -45,15 +45,19 @@ fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.6))
 steps = torch.arange(1, traj.observations.shape[1] + 1)
 for i, (name, res) in enumerate(results.items()):
     if name == "KF":
-        continue                                          # the reference: zero distance, no ESS
+        continue  # the reference: zero distance, no ESS
     ax1.plot(steps, ((res.estimates - exact.estimates) ** 2).sum(-1).mean(0), color=f"C{i}", label=name)
     ax2.plot(steps, (res.ess / 100).mean(0), color=f"C{i}", label=name)
-ax1.set(yscale="log", xlabel="time step", ylabel="squared distance to the KF mean",
-        title="distance to the exact posterior mean")
+ax1.set(
+    yscale="log",
+    xlabel="time step",
+    ylabel="squared distance to the KF mean",
+    title="distance to the exact posterior mean",
+)
 ax2.set(xlabel="time step", ylabel="ESS / N", ylim=(0, 1.05), title="effective sample size")
 ax1.legend(fontsize=8)
 ax2.legend(fontsize=8)
 fig.tight_layout()
 
-if __name__ == "__main__":   # run by hand: show the figure (the documentation build saves it instead)
+if __name__ == "__main__":  # run by hand: show the figure (the documentation build saves it instead)
     plt.show()

@@ -24,6 +24,7 @@ The script simulates a few trials with the model's own `simulate()`, runs
 Gaussian form, and draws the first trial's log-volatility, its filtered estimate and the
 observations. [Define your own model](../guide/custom-models.md) has the whole contract.
 """
+
 import math
 
 import matplotlib.pyplot as plt
@@ -46,7 +47,7 @@ class StochasticVolatility(StateSpaceModel):
     state_dim = 1
     obs_dim = 1
 
-    def __init__(self, mu=-1.02, rho=0.9702, sigma=0.178):   # particles' StochVol defaults
+    def __init__(self, mu=-1.02, rho=0.9702, sigma=0.178):  # particles' StochVol defaults
         super().__init__()
         self.register_buffer("mu", torch.tensor(mu, dtype=torch.float64))
         self.register_buffer("rho", torch.tensor(rho, dtype=torch.float64))
@@ -55,13 +56,13 @@ class StochasticVolatility(StateSpaceModel):
     # the true x_0 of each of B trials, (B, 1): a draw from the stationary law N(mu, sigma^2 / (1 - rho^2))
     def initial_state(self, batch_size, generator=None):
         x0 = torch.zeros(batch_size, 1, dtype=self.dtype, device=self.device)
-        stationary_sd = self.sigma / torch.sqrt(1 - self.rho ** 2)
+        stationary_sd = self.sigma / torch.sqrt(1 - self.rho**2)
         return self.mu + stationary_sd * normal_like(x0, generator)
 
     # the filters' prior N(mean (B, 1), cov (B, 1, 1)): the stationary law, whatever the truth
     def initial_belief(self, states0, generator=None):
         B = states0.shape[0]
-        stationary_var = self.sigma ** 2 / (1 - self.rho ** 2)
+        stationary_var = self.sigma**2 / (1 - self.rho**2)
         return self.mu * states0.new_ones(B, 1), stationary_var * states0.new_ones(B, 1, 1)
 
     # x ~ p(x_t | x_{t-1} = x), for x of any shape (..., 1)
@@ -71,7 +72,7 @@ class StochasticVolatility(StateSpaceModel):
     # log p(x_next | x) -> (...)
     def transition_log_prob(self, x_next, x):
         r = (x_next - self.mu - self.rho * (x - self.mu)) / self.sigma
-        return (-0.5 * r ** 2 - torch.log(self.sigma) - 0.5 * LOG_2PI).sum(-1)
+        return (-0.5 * r**2 - torch.log(self.sigma) - 0.5 * LOG_2PI).sum(-1)
 
     # y ~ p(y_t | x_t = x) = N(0, exp(x))
     def sample_measurement(self, x, generator=None):
@@ -79,7 +80,7 @@ class StochasticVolatility(StateSpaceModel):
 
     # log p(y | x) -> (...), y broadcast against x's leading shape
     def measurement_log_prob(self, z, x):
-        return (-0.5 * z ** 2 * torch.exp(-x) - 0.5 * x - 0.5 * LOG_2PI).sum(-1)
+        return (-0.5 * z**2 * torch.exp(-x) - 0.5 * x - 0.5 * LOG_2PI).sum(-1)
 
 
 model = StochasticVolatility()
@@ -88,14 +89,14 @@ g = torch.Generator().manual_seed(0)
 # simulate B trials of T steps: simulate() follows from initial_state, sample_transition and sample_measurement
 B, T = 8, 200
 data = model.simulate(B, T, g)
-states, observations = data.states, data.observations      # (B, T+1, 1), (B, T, 1)
+states, observations = data.states, data.observations  # (B, T+1, 1), (B, T, 1)
 
 mean, cov = model.initial_belief(states[:, 0])
 bpf = BootstrapParticleFilter(model, n_particles=1000)
 res = bpf(observations, mean, cov, torch.Generator().manual_seed(1))
 
 rmse = ((res.estimates - states[:, 1:]) ** 2).mean().sqrt()
-prior_rmse = ((states[:, 1:] - model.mu) ** 2).mean().sqrt()     # the stationary mean mu as the estimate
+prior_rmse = ((states[:, 1:] - model.mu) ** 2).mean().sqrt()  # the stationary mean mu as the estimate
 print(f"RMSE of the filtered log-volatility {rmse:.3f} (the stationary mean: {prior_rmse:.3f})")
 print(f"log-evidence per trial: {res.log_evidence.mean():.1f} (mean of {B} trials)")
 print(f"mean ESS: {res.ess.mean():.0f} of {bpf.n_particles} particles")
@@ -121,5 +122,5 @@ ax2.set(xlabel="t", ylabel="log-volatility x_t")
 ax2.legend(fontsize=8)
 fig.tight_layout()
 
-if __name__ == "__main__":   # run by hand: show the figure (the documentation build saves it instead)
+if __name__ == "__main__":  # run by hand: show the figure (the documentation build saves it instead)
     plt.show()

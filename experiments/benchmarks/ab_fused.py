@@ -11,6 +11,7 @@ forms with the measurement inside and the torch path only.
 
     python -m experiments.benchmarks.ab_fused --device cuda --trials 100
 """
+
 from __future__ import annotations
 
 import sys
@@ -21,17 +22,32 @@ from . import profile_step
 def main(argv=None):
     argv = list(sys.argv[1:] if argv is None else argv)
     quick = "--short" in argv  # the two forms with the measurement inside, and the torch path
-    variants = ([] if quick else [("1", "0", "1", "1"), ("1", "0", "1", "0")]) + [
-        ("1", "1", "1", "1"), ("1", "1", "1", "0")] + ([] if quick else [("1", "1", "2", "1"), ("1", "1", "2", "0")]) + [
-        ("0", "0", "0", "0")]
+    variants = (
+        ([] if quick else [("1", "0", "1", "1"), ("1", "0", "1", "0")])
+        + [("1", "1", "1", "1"), ("1", "1", "1", "0")]
+        + ([] if quick else [("1", "1", "2", "1"), ("1", "1", "2", "0")])
+        + [("0", "0", "0", "0")]
+    )
     best = None
     for fused, inside, warps, info in variants:
         name = f"fused={fused} measurement={inside} warps={warps} info={info}"
         try:
-            r = profile_step.run([x for x in argv if x != "--short"] + [
-                "--top", "0", "--fused", fused, "--fused-measurement", inside, "--rows-warps", warps, "--fused-info",
-                info])
-        except Exception as exc:  # noqa: BLE001 - one failing variant must not hide the others
+            r = profile_step.run(
+                [x for x in argv if x != "--short"]
+                + [
+                    "--top",
+                    "0",
+                    "--fused",
+                    fused,
+                    "--fused-measurement",
+                    inside,
+                    "--rows-warps",
+                    warps,
+                    "--fused-info",
+                    info,
+                ]
+            )
+        except Exception as exc:
             print(f"{name}: FAILED {type(exc).__name__}: {str(exc)[:2000]}", flush=True)
             continue
         if fused != "0" and (best is None or r["sec_per_trial_step"] < best[0]):

@@ -16,9 +16,11 @@ with a ``SystematicResampler`` (every step; the subclass only records the ESS); 
 ``GromovFlowParticleUpdater`` (a hard-coded 20-step Euler-Maruyama integration, ratio 2, ``P`` the
 particles' sample covariance, one particle at a time, weights unchanged), which diverges on this model
 and then raises; ``gromov_repaired``: the same updater with only its diffusion's square root replaced
-(``B B^T = Q``; :func:`_repaired_gromov` says what is wrong with the shipped one), nothing tuned. The prior particles come from ``default_rng(seed)``; numpy's
+(``B B^T = Q``; :func:`_repaired_gromov` says what is wrong with the shipped one), nothing tuned. The prior particles
+come from ``default_rng(seed)``; numpy's
 global RNG (process noise, flow diffusion, resampler offset) is seeded with ``seed``.
 """
+
 from __future__ import annotations
 
 import datetime
@@ -38,9 +40,11 @@ from . import harness as h
 
 GOAL = 30.0
 OURS = ("flow_gromov", "gromov", "ledh", "bpf")
-PEERS = (("gromov", "GromovFlowParticleUpdater (Stone Soup)"),
-         ("gromov_repaired", "GromovFlowParticleUpdater (Stone Soup), square root repaired"),
-         ("bootstrap", "ParticleUpdater bootstrap (Stone Soup)"))
+PEERS = (
+    ("gromov", "GromovFlowParticleUpdater (Stone Soup)"),
+    ("gromov_repaired", "GromovFlowParticleUpdater (Stone Soup), square root repaired"),
+    ("bootstrap", "ParticleUpdater bootstrap (Stone Soup)"),
+)
 _POSITION_INDICES = (0, 1, 4, 5, 8, 9, 12, 13)  # [px, py] of each target in the target-major state
 
 
@@ -135,7 +139,8 @@ def _repaired_gromov():
 
 
 def run_stonesoup(kind: str, model, obs, prior_mean, prior_cov, n_particles: int, seed: int):
-    """Stone Soup's ``kind`` filter (``"gromov"``, ``"gromov_repaired"`` or ``"bootstrap"``) on one trial of ``model``: ``obs
+    """Stone Soup's ``kind`` filter (``"gromov"``, ``"gromov_repaired"`` or ``"bootstrap"``) on one trial of
+    ``model``: ``obs
     (T, 25)``, prior ``(16,)``, ``(16, 16)``. Returns the seconds of each completed step's predict +
     update, the estimates ``(steps completed, 16)`` and the error that stopped it (None or its text)."""
     from stonesoup.models.transition.linear import LinearGaussianTimeInvariantTransitionModel
@@ -145,17 +150,31 @@ def run_stonesoup(kind: str, model, obs, prior_mean, prior_cov, n_particles: int
     from stonesoup.types.state import ParticleState
     from stonesoup.updater.particle import GromovFlowParticleUpdater, ParticleUpdater
 
-    np64 = lambda t: t.detach().cpu().double().numpy()  # noqa: E731
+    np64 = lambda t: t.detach().cpu().double().numpy()
     obs, prior_mean, prior_cov = map(np64, (obs, prior_mean, prior_cov))
     Measurement, Resampler, StateVector, StateVectors, Repaired = _classes()
     sensors = np64(model.sensors)
-    measurement = Measurement(ndim_state=16, mapping=_POSITION_INDICES, sensors=sensors, psi=float(model.psi),
-                              d0=float(model.d0), noise_covar=float(model.sigma_w) ** 2 * np.eye(sensors.shape[0]))
-    predictor = ParticlePredictor(LinearGaussianTimeInvariantTransitionModel(
-        transition_matrix=np64(model.F), covariance_matrix=np64(model.transition_cov())))
+    measurement = Measurement(
+        ndim_state=16,
+        mapping=_POSITION_INDICES,
+        sensors=sensors,
+        psi=float(model.psi),
+        d0=float(model.d0),
+        noise_covar=float(model.sigma_w) ** 2 * np.eye(sensors.shape[0]),
+    )
+    predictor = ParticlePredictor(
+        LinearGaussianTimeInvariantTransitionModel(
+            transition_matrix=np64(model.F), covariance_matrix=np64(model.transition_cov())
+        )
+    )
     resampler = Resampler() if kind == "bootstrap" else None
-    updater = (ParticleUpdater(measurement, resampler=resampler) if kind == "bootstrap" else
-               Repaired(measurement) if kind == "gromov_repaired" else GromovFlowParticleUpdater(measurement))
+    updater = (
+        ParticleUpdater(measurement, resampler=resampler)
+        if kind == "bootstrap"
+        else Repaired(measurement)
+        if kind == "gromov_repaired"
+        else GromovFlowParticleUpdater(measurement)
+    )
 
     np.random.seed(seed)
     N, t0 = int(n_particles), datetime.datetime(2000, 1, 1)
@@ -176,8 +195,9 @@ def run_stonesoup(kind: str, model, obs, prior_mean, prior_cov, n_particles: int
                 tb = traceback.extract_tb(exc.__traceback__)
                 ss = [f for f in tb if "stonesoup" in f.filename]
                 frames = ([ss[-1]] if ss and ss[-1] is not tb[-1] else []) + [tb[-1]]
-                where = "; ".join(f"{'/'.join(Path(f.filename).parts[-2:])}:{f.lineno} {f.name}: {f.line}"
-                                  for f in frames)
+                where = "; ".join(
+                    f"{'/'.join(Path(f.filename).parts[-2:])}:{f.lineno} {f.name}: {f.line}" for f in frames
+                )
                 error = f"step {k}: {type(exc).__name__}: {exc} [at {where}]"
                 break
             estimates.append(np.asarray(state.mean, np.float64).reshape(-1))
@@ -192,12 +212,13 @@ def omat(est: torch.Tensor, truth: torch.Tensor, model) -> float:
 def peer_row(kind, label, model, traj, mean, cov, a) -> dict:
     """Stone Soup's ``kind`` filter over ``--peer-trials`` trajectories, one trial at a time."""
     times, rmses, finite, completed, fails, omats, steps = [], [], [], 0, [], [], []
-    pos = lambda x: x[:, list(_POSITION_INDICES)].reshape(len(x), -1, 2)  # noqa: E731  (steps, targets, 2)
+    pos = lambda x: x[:, list(_POSITION_INDICES)].reshape(len(x), -1, 2)
     with h.blas_limit(a.peer_threads):
         for b in range(a.peer_trials):
-            t, est, error = run_stonesoup(kind, model, traj.observations[b, : a.peer_steps], mean[b], cov[b],
-                                          a.particles, a.seed + b)
-            truth = traj.states[b, 1: 1 + len(est)].double().numpy()
+            t, est, error = run_stonesoup(
+                kind, model, traj.observations[b, : a.peer_steps], mean[b], cov[b], a.particles, a.seed + b
+            )
+            truth = traj.states[b, 1 : 1 + len(est)].double().numpy()
             with np.errstate(over="ignore", invalid="ignore"):  # a diverged filter's errors overflow
                 sq = np.sum((pos(est) - pos(truth)) ** 2, -1)  # (steps, targets)
             times += t
@@ -211,40 +232,85 @@ def peer_row(kind, label, model, traj, mean, cov, a) -> dict:
                 fails.append(f"trial {b}: step {len(est) + 1} raised {error[:160]}")
     per_ts = float(np.mean(times)) if times else float("nan")
     print(f"[peer] {label}: {per_ts:.4g} s/step over {completed} completed steps; failures: {fails}")
-    return dict(name=label, side="peer", trials=a.peer_trials, steps=a.peer_steps, steps_completed=completed,
-                per_ts=per_ts, finite=all(finite), position_rmse=float(np.nanmax(rmses)) if rmses else float("nan"),
-                step_position_rmse=steps, failures=fails, chunk=1, omat=float(np.mean(omats)) if omats else None,
-                stonesoup=getattr(h.peer("stonesoup"), "__version__", None))
+    return dict(
+        name=label,
+        side="peer",
+        trials=a.peer_trials,
+        steps=a.peer_steps,
+        steps_completed=completed,
+        per_ts=per_ts,
+        finite=all(finite),
+        position_rmse=float(np.nanmax(rmses)) if rmses else float("nan"),
+        step_position_rmse=steps,
+        failures=fails,
+        chunk=1,
+        omat=float(np.mean(omats)) if omats else None,
+        stonesoup=getattr(h.peer("stonesoup"), "__version__", None),
+    )
 
 
 def run(argv=None) -> dict:
-    a = h.options(__doc__, argv, dict(trials=4, steps=3, peer_trials=1, peer_steps=2), trials=20, steps=10,
-                  particles=500, peer_trials=3, peer_steps=5, sigma_w=0.1, seed=0, threads=None, peer_threads=1,
-                  no_peer=False)  # peer_threads: numpy BLAS threads for Stone Soup (0: default)
+    a = h.options(
+        __doc__,
+        argv,
+        dict(trials=4, steps=3, peer_trials=1, peer_steps=2),
+        trials=20,
+        steps=10,
+        particles=500,
+        peer_trials=3,
+        peer_steps=5,
+        sigma_w=0.1,
+        seed=0,
+        threads=None,
+        peer_threads=1,
+        no_peer=False,
+    )  # peer_threads: numpy BLAS threads for Stone Soup (0: default)
     with h.session("bench_acoustic", argv, a.threads) as info:
         model = AcousticTracking(sigma_w=a.sigma_w)
         traj, mean, cov = h.simulate(model, max(a.trials, a.peer_trials), max(a.steps, a.peer_steps), a.seed)
-        obs, truth = traj.observations[: a.trials, : a.steps], traj.states[: a.trials, 1: a.steps + 1]
+        obs, truth = traj.observations[: a.trials, : a.steps], traj.states[: a.trials, 1 : a.steps + 1]
         rows = []
         for key in OURS:
             f = h.make_filter(key, model, a.particles)
             chunk = f.preferred_chunk_trials() or a.trials
-            t = h.time_filter(f, obs, mean[: a.trials], cov[: a.trials], chunk, h.streams(a.seed + 1, f.stream_name),
-                              warm_randomness=lambda s, e: torch.Generator().manual_seed(a.seed + 1))  # as the runner
+            t = h.time_filter(
+                f,
+                obs,
+                mean[: a.trials],
+                cov[: a.trials],
+                chunk,
+                h.streams(a.seed + 1, f.stream_name),
+                warm_randomness=lambda s, e: torch.Generator().manual_seed(a.seed + 1),
+            )  # as the runner
             est = torch.cat([p.estimates for p in t.result])
             d = model.positions(est.double()) - model.positions(truth.double())
-            rows.append(dict(name=f"{h.LABELS[key]} (torchflow)", side="ours", trials=a.trials, steps=a.steps,
-                             chunk=min(chunk, a.trials), per_ts=t.min / (a.trials * a.steps), wall=t.min,
-                             finite=bool(torch.isfinite(est).all()), omat=omat(est, truth, model), error=None,
-                             position_rmse=float(d.pow(2).sum(-1).mean().sqrt())))
+            rows.append(
+                dict(
+                    name=f"{h.LABELS[key]} (torchflow)",
+                    side="ours",
+                    trials=a.trials,
+                    steps=a.steps,
+                    chunk=min(chunk, a.trials),
+                    per_ts=t.min / (a.trials * a.steps),
+                    wall=t.min,
+                    finite=bool(torch.isfinite(est).all()),
+                    omat=omat(est, truth, model),
+                    error=None,
+                    position_rmse=float(d.pow(2).sum(-1).mean().sqrt()),
+                )
+            )
             print(rows[-1], flush=True)
         if not a.no_peer:
             have = h.peer("stonesoup", "updater.particle") is not None
             for kind, label in PEERS:
-                rows.append(peer_row(kind, label, model, traj, mean, cov, a) if have else
-                            dict(name=label, side="peer", status=h.skipped("stonesoup"), per_ts=None))
-    shipped, ref, boot = (next((r for r in rows if r["name"] == label and r["per_ts"] is not None), None)
-                          for _, label in PEERS)
+                rows.append(
+                    peer_row(kind, label, model, traj, mean, cov, a)
+                    if have
+                    else dict(name=label, side="peer", status=h.skipped("stonesoup"), per_ts=None)
+                )
+    shipped, ref, boot = (
+        next((r for r in rows if r["name"] == label and r["per_ts"] is not None), None) for _, label in PEERS
+    )
     for r in rows:
         r["vs_stonesoup_gromov"] = ref["per_ts"] / r["per_ts"] if ref and r["side"] == "ours" else None
         r["vs_stonesoup_gromov_shipped"] = shipped["per_ts"] / r["per_ts"] if shipped and r["side"] == "ours" else None
@@ -268,28 +334,61 @@ def markdown(info, rows, a) -> str:
     notes = []
     for r in rows:
         if r["side"] == "peer" and not r.get("status"):
-            notes.append(f"- {r['name']} (stonesoup {r.get('stonesoup')}): {r['steps_completed']} of "
-                         f"{r['trials'] * r['steps']} steps completed; worst position RMSE "
-                         f"{h.fmt(r['position_rmse'])} m.")
+            notes.append(
+                f"- {r['name']} (stonesoup {r.get('stonesoup')}): {r['steps_completed']} of "
+                f"{r['trials'] * r['steps']} steps completed; worst position RMSE "
+                f"{h.fmt(r['position_rmse'])} m."
+            )
             notes += [f"  - {msg}" for msg in r.get("failures", [])]
             steps = [e for e in (r.get("step_position_rmse") or []) if e]
             if r["name"].startswith("Gromov") and steps:
-                notes.append("  - per-step position RMSE (m) by trial: "
-                             + "; ".join(", ".join(h.fmt(v, "{:.2g}") for v in e) for e in steps))
+                notes.append(
+                    "  - per-step position RMSE (m) by trial: "
+                    + "; ".join(", ".join(h.fmt(v, "{:.2g}") for v in e) for e in steps)
+                )
     return h.report(
-        "## Acoustic tracking vs Stone Soup", a, info,
-        [f"Stone Soup with numpy BLAS threads {a.peer_threads or 'default'}. Acoustic model sigma_w = {a.sigma_w}, "
-         f"N = {a.particles}; ours {a.trials} trials x {a.steps} steps (float64, trials per call in the table), Stone "
-         f"Soup {a.peer_trials} trials x up to {a.peer_steps} steps (its time is the mean over completed steps)."],
-        ["filter", "s / trial-step", "Stone Soup Gromov (repaired) time / ours", "Stone Soup Gromov (shipped) time / ours",
-         "Stone Soup bootstrap time / ours", "goal", "met", "position RMSE (m)", "OMAT (m)", "status", "trials per call"],
-        [[r["name"], h.fmt(r["per_ts"], "{:.4g}"), h.fmt(r.get("vs_stonesoup_gromov"), "{:.1f}x"),
-          h.fmt(r.get("vs_stonesoup_gromov_shipped"), "{:.1f}x"),
-          h.fmt(r.get("vs_stonesoup_bootstrap"), "{:.1f}x"), h.fmt(r.get("goal"), ">= {:.0f}x"),
-          h.met_cell(r.get("met")), h.fmt(r.get("position_rmse")), h.fmt(r.get("omat")), status(r),
-          r.get("chunk", "-")] for r in rows],
-        *notes, "- Ratios are Stone Soup's time per step over ours per trial-step: both are the cost of "
-                "filtering one trajectory for one time step.")
+        "## Acoustic tracking vs Stone Soup",
+        a,
+        info,
+        [
+            f"Stone Soup with numpy BLAS threads {a.peer_threads or 'default'}. Acoustic model sigma_w = {a.sigma_w}, "
+            f"N = {a.particles}; ours {a.trials} trials x {a.steps} steps (float64, trials per call in the "
+            "table), Stone "
+            f"Soup {a.peer_trials} trials x up to {a.peer_steps} steps (its time is the mean over completed steps)."
+        ],
+        [
+            "filter",
+            "s / trial-step",
+            "Stone Soup Gromov (repaired) time / ours",
+            "Stone Soup Gromov (shipped) time / ours",
+            "Stone Soup bootstrap time / ours",
+            "goal",
+            "met",
+            "position RMSE (m)",
+            "OMAT (m)",
+            "status",
+            "trials per call",
+        ],
+        [
+            [
+                r["name"],
+                h.fmt(r["per_ts"], "{:.4g}"),
+                h.fmt(r.get("vs_stonesoup_gromov"), "{:.1f}x"),
+                h.fmt(r.get("vs_stonesoup_gromov_shipped"), "{:.1f}x"),
+                h.fmt(r.get("vs_stonesoup_bootstrap"), "{:.1f}x"),
+                h.fmt(r.get("goal"), ">= {:.0f}x"),
+                h.met_cell(r.get("met")),
+                h.fmt(r.get("position_rmse")),
+                h.fmt(r.get("omat")),
+                status(r),
+                r.get("chunk", "-"),
+            ]
+            for r in rows
+        ],
+        *notes,
+        "- Ratios are Stone Soup's time per step over ours per trial-step: both are the cost of "
+        "filtering one trajectory for one time step.",
+    )
 
 
 if __name__ == "__main__":

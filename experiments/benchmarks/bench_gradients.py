@@ -13,7 +13,8 @@ prior, the Kalman log-evidence and its gradient with respect to F) for the peer 
 ``peer_pydpf_gradients.py``, which runs where PyDPF installs (Python >= 3.12) and needs no torchflow.
 
 Model: linear-Gaussian (``--d``, default 2), T = 20, F, Q and R learnable (Q and R through their
-Cholesky parametrisation): at d = 2, 12 gradient entries, 10 of them non-zero (the raw upper triangles of Q and R have none). One simulated trajectory; every run
+Cholesky parametrisation): at d = 2, 12 gradient entries, 10 of them non-zero (the raw upper triangles of Q and R
+have none). One simulated trajectory; every run
 filters it afresh. Per cell, ``reps`` repetitions of the mean over ``trials`` runs of
 ``grad log Z_hat`` (what an optimiser follows). ``bias``: the Euclidean norm of (mean - exact);
 ``max |t|``: the largest entry of (mean - exact) / SE, SE from the repetitions (|t| > 4 is a
@@ -31,6 +32,7 @@ pass of ``--memory-trials`` trials adds, with and without ``checkpoint_steps`` (
 recomputed in the backward pass), measured as the growth of the peak resident set (``VmHWM``) in a
 fresh process per cell, with its seconds.
 """
+
 from __future__ import annotations
 
 import json
@@ -61,8 +63,9 @@ def problem(T: int, d: int = 2):
     truth = LinearGaussian(F, 0.5 * eye, eye, 0.5 * eye, torch.zeros(d, dtype=torch.float64), eye)
     traj = truth.simulate(1, T, torch.Generator().manual_seed(1))
     mean, cov = truth.initial_belief(traj.states[:, 0])
-    model = LinearGaussian(F.clone(), 0.5 * eye, eye, 0.5 * eye, torch.zeros(d, dtype=torch.float64), eye,
-                           learnable=["F", "Q", "R"])
+    model = LinearGaussian(
+        F.clone(), 0.5 * eye, eye, 0.5 * eye, torch.zeros(d, dtype=torch.float64), eye, learnable=["F", "Q", "R"]
+    )
     return model, traj.observations, mean, cov
 
 
@@ -73,8 +76,11 @@ def _flat(grads):
 def _filter(kind: str, model, n: int, est: str):
     # "marginal": marginal weights with the proposal held constant and stop_gradient resampling,
     # the O(N^2) score estimator (torchflow.filters.marginal)
-    kw = (dict(n_particles=n, weights="marginal", proposal_gradient="score") if est == "marginal" else
-          dict(n_particles=n, resampling_gradient=est, ot_iterations=50))
+    kw = (
+        dict(n_particles=n, weights="marginal", proposal_gradient="score")
+        if est == "marginal"
+        else dict(n_particles=n, resampling_gradient=est, ot_iterations=50)
+    )
     if kind == "bpf":
         return BootstrapParticleFilter(model, **kw)
     return ParticleFlowParticleFilter(model, flow="ledh", schedule=ExponentialSchedule(10, 1.2), **kw)
@@ -112,18 +118,28 @@ def _cell(kind, est, n, model, obs, mean, cov, exact, trials, reps, d, which="al
 
     with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
         f(o[:1], m[:1], c[:1], torch.Generator().manual_seed(8))
-    return dict(filter=FILTERS[kind], estimator=est, d=d, N=n, trials=trials, reps=reps,
-                bias=float((mu - exact[keep]).norm()),
-                max_t=float(((mu - exact[keep]) / (sd / math.sqrt(reps))).abs().max()),
-                sd_run=float((sd * math.sqrt(trials)).norm()), exact_norm=float(exact.norm()),
-                fwd=fwd, fwd_bwd=sorted(fb)[len(fb) // 2], saved_mb=saved[0] / 1e6)
+    return dict(
+        filter=FILTERS[kind],
+        estimator=est,
+        d=d,
+        N=n,
+        trials=trials,
+        reps=reps,
+        bias=float((mu - exact[keep]).norm()),
+        max_t=float(((mu - exact[keep]) / (sd / math.sqrt(reps))).abs().max()),
+        sd_run=float((sd * math.sqrt(trials)).norm()),
+        exact_norm=float(exact.norm()),
+        fwd=fwd,
+        fwd_bwd=sorted(fb)[len(fb) // 2],
+        saved_mb=saved[0] / 1e6,
+    )
 
 
 def write_problem(path: str, steps: int, d: int) -> dict:
     """Save :func:`problem` with its exact log-evidence and gradient with respect to F (for peers)."""
     model, obs, mean, cov = problem(steps, d)
     log_z = KalmanFilter(model)(obs, mean, cov).log_evidence.sum()
-    grad_f, = torch.autograd.grad(log_z, [model.F])
+    (grad_f,) = torch.autograd.grad(log_z, [model.F])
     data = {k: v.detach().clone() for k, v in dict(F=model.F, Q=model.Q, R=model.R, H=model.H).items()}
     data.update(obs=obs, mean=mean, cov=cov, log_z=log_z.detach(), grad_F=grad_f)
     torch.save(data, path)
@@ -161,20 +177,42 @@ def _hwm_kb() -> int:
 
 
 def _peak(kind, n, trials, steps, d, ckpt, threads) -> dict:
-    code = ("import json, torch; torch.set_num_threads(%d); from experiments.benchmarks.bench_gradients import "
-            "peak_child; print(json.dumps(peak_child(%r, %d, %d, %d, %d, %r)))" % (threads, kind, n, trials, steps, d, ckpt))
+    code = (
+        "import json, torch; torch.set_num_threads(%d); from experiments.benchmarks.bench_gradients import "
+        "peak_child; print(json.dumps(peak_child(%r, %d, %d, %d, %d, %r)))" % (threads, kind, n, trials, steps, d, ckpt)
+    )
     out = subprocess.run([sys.executable, "-c", code], cwd=h.HERE.parent.parent, capture_output=True, text=True)
     if out.returncode != 0:
         raise RuntimeError(f"bench_gradients: the memory cell {kind} N={n} failed:\n{out.stderr[-2000:]}")
-    return dict(filter=FILTERS[kind], N=n, trials=trials, d=d, checkpoint_steps=ckpt,
-                **json.loads(out.stdout.strip().splitlines()[-1]))
+    return dict(
+        filter=FILTERS[kind],
+        N=n,
+        trials=trials,
+        d=d,
+        checkpoint_steps=ckpt,
+        **json.loads(out.stdout.strip().splitlines()[-1]),
+    )
 
 
 def run(argv=None) -> dict:
-    a = h.options(__doc__, argv, dict(n="100,1000", trials=8, reps=4, steps=10, memory_n=2000), n="100,1000,10000",
-                  trials=20, reps=10, steps=20, threads=2, filters="bpf,ledh", estimators=",".join(ESTIMATORS), d=2,
-                  ot_max_n=2000, memory_n=10000, memory_trials=8, write_problem="",
-                  params="all")
+    a = h.options(
+        __doc__,
+        argv,
+        dict(n="100,1000", trials=8, reps=4, steps=10, memory_n=2000),
+        n="100,1000,10000",
+        trials=20,
+        reps=10,
+        steps=20,
+        threads=2,
+        filters="bpf,ledh",
+        estimators=",".join(ESTIMATORS),
+        d=2,
+        ot_max_n=2000,
+        memory_n=10000,
+        memory_trials=8,
+        write_problem="",
+        params="all",
+    )
     if a.params not in ("all", "F"):
         raise SystemExit(f"--params: expected all or F, got {a.params!r}")
     ns = h.ints(a.n, "--n")
@@ -201,24 +239,67 @@ def run(argv=None) -> dict:
             for ckpt in (False, True):
                 memory.append(_peak(kind, int(a.memory_n), int(a.memory_trials), a.steps, d, ckpt, a.threads))
                 print(memory[-1], flush=True)
-    head = ["filter", "estimator", "d", "N", "runs", "bias", "max abs t", "sd/run", "abs exact", "fwd s/ts",
-            "fwd+bwd s/ts", "bwd/fwd", "saved MB/trial"]
-    table = [(r["filter"], r["estimator"], r["d"], r["N"], r["trials"] * r["reps"], h.fmt(r["bias"]), h.fmt(r["max_t"], "{:.1f}"),
-              h.fmt(r["sd_run"]), h.fmt(r["exact_norm"]), h.fmt(r["fwd"]), h.fmt(r["fwd_bwd"]),
-              h.fmt(r["fwd_bwd"] / r["fwd"], "{:.1f}"), h.fmt(r["saved_mb"])) for r in rows]
+    head = [
+        "filter",
+        "estimator",
+        "d",
+        "N",
+        "runs",
+        "bias",
+        "max abs t",
+        "sd/run",
+        "abs exact",
+        "fwd s/ts",
+        "fwd+bwd s/ts",
+        "bwd/fwd",
+        "saved MB/trial",
+    ]
+    table = [
+        (
+            r["filter"],
+            r["estimator"],
+            r["d"],
+            r["N"],
+            r["trials"] * r["reps"],
+            h.fmt(r["bias"]),
+            h.fmt(r["max_t"], "{:.1f}"),
+            h.fmt(r["sd_run"]),
+            h.fmt(r["exact_norm"]),
+            h.fmt(r["fwd"]),
+            h.fmt(r["fwd_bwd"]),
+            h.fmt(r["fwd_bwd"] / r["fwd"], "{:.1f}"),
+            h.fmt(r["saved_mb"]),
+        )
+        for r in rows
+    ]
     more = []
     if memory:
-        more = [f"Peak memory of one forward + backward pass ({a.memory_trials} trials, T = {a.steps}, d = {d}, "
-                "stop_gradient), growth of the peak resident set in a fresh process:", ""] + h.md_table(
+        more = [
+            f"Peak memory of one forward + backward pass ({a.memory_trials} trials, T = {a.steps}, d = {d}, "
+            "stop_gradient), growth of the peak resident set in a fresh process:",
+            "",
+        ] + h.md_table(
             ["filter", "N", "checkpoint_steps", "peak MB", "seconds"],
-            [(r["filter"], r["N"], r["checkpoint_steps"], h.fmt(r["peak_mb"], "{:.0f}"), h.fmt(r["seconds"]))
-             for r in memory])
-    md = h.report("# Gradients through particle filters: bias, spread, cost", a, info,
-                  [f"Linear-Gaussian d = {d}, T = {a.steps}; gradient with respect to "
-                   f"{'F alone' if a.params == 'F' else 'F and the raw Cholesky parameters of Q and R'}; "
-                   "exact gradient: the Kalman filter's (autograd). "
-                   "See the module docstring for the columns. N = 10^4 cells use a quarter of the trials and half "
-                   "the repetitions."], head, table, *more)
+            [
+                (r["filter"], r["N"], r["checkpoint_steps"], h.fmt(r["peak_mb"], "{:.0f}"), h.fmt(r["seconds"]))
+                for r in memory
+            ],
+        )
+    md = h.report(
+        "# Gradients through particle filters: bias, spread, cost",
+        a,
+        info,
+        [
+            f"Linear-Gaussian d = {d}, T = {a.steps}; gradient with respect to "
+            f"{'F alone' if a.params == 'F' else 'F and the raw Cholesky parameters of Q and R'}; "
+            "exact gradient: the Kalman filter's (autograd). "
+            "See the module docstring for the columns. N = 10^4 cells use a quarter of the trials and half "
+            "the repetitions."
+        ],
+        head,
+        table,
+        *more,
+    )
     return dict(markdown=md, rows=rows, memory=memory, machine=info, args=vars(a))
 
 

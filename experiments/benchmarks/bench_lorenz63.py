@@ -13,6 +13,7 @@ DAPPER's settings are its file's suggested ones; ours are the experiment config'
 
 Writes ``results_lorenz63.md`` and ``.json`` beside this file (``--out`` to change).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -36,11 +37,17 @@ DAPPER = [
 OURS = [
     ("UKF", "ukf", {}),
     ("ETKF N=10 infl 1.02 (no rotation)", "etkf", dict(n_particles=10, inflation=1.02)),
-    ("ETKF N=10 infl 1.02 rotate, analysis inflation (DAPPER's semantics)", "etkf",
-     dict(n_particles=10, inflation=1.02, inflate="analysis", rotate=True)),
+    (
+        "ETKF N=10 infl 1.02 rotate, analysis inflation (DAPPER's semantics)",
+        "etkf",
+        dict(n_particles=10, inflation=1.02, inflate="analysis", rotate=True),
+    ),
     ("EnKF (perturbed obs) N=10 infl 1.04", "enkf", dict(n_particles=10, inflation=1.04)),
-    ("EnKF (perturbed obs) N=10 infl 1.04, analysis inflation (DAPPER's semantics)", "enkf",
-     dict(n_particles=10, inflation=1.04, inflate="analysis")),
+    (
+        "EnKF (perturbed obs) N=10 infl 1.04, analysis inflation (DAPPER's semantics)",
+        "enkf",
+        dict(n_particles=10, inflation=1.04, inflate="analysis"),
+    ),
     ("KPFF N=20", "kpff", dict(n_particles=20)),
     ("KPFF N=100", "kpff", dict(n_particles=100)),
     ("LPF (global) N=100 jitter 0.1", "lpf", dict(n_particles=100, radius=float("inf"), jitter=0.1)),
@@ -76,8 +83,11 @@ def dapper_worker(inp: str, out: str) -> None:
             means[b] = xp.stats.mu.a  # (Ko + 1, 3): the analysis means at the observation times
         res[label] = dict(means=means, sec_per_step=secs / (B * T))
         print(label, flush=True)
-    np.savez(out, **{f"{k}|means": v["means"] for k, v in res.items()},
-             **{f"{k}|sec": v["sec_per_step"] for k, v in res.items()})
+    np.savez(
+        out,
+        **{f"{k}|means": v["means"] for k, v in res.items()},
+        **{f"{k}|sec": v["sec_per_step"] for k, v in res.items()},
+    )
 
 
 def fine_truth(model, states):
@@ -113,27 +123,41 @@ def compare(args):
     for label, name, kw in OURS:
         est, sec = run_ours(name, kw, model, traj, mean, cov)
         per_trial = rmse_after(est, truth, args.burn_in)
-        rows.append(dict(library="torchflow", setting=label, rmse=mean_se(per_trial), trials=per_trial.tolist(),
-                         sec_per_step=sec))
+        rows.append(
+            dict(
+                library="torchflow", setting=label, rmse=mean_se(per_trial), trials=per_trial.tolist(), sec_per_step=sec
+            )
+        )
         print(rows[-1]["setting"], rows[-1]["rmse"], flush=True)
     if args.dapper_python:
         fine = fine_truth(model, traj.states)
-        torch.testing.assert_close(fine[:, ::model.substeps], traj.states, rtol=0, atol=1e-9)
+        torch.testing.assert_close(fine[:, :: model.substeps], traj.states, rtol=0, atol=1e-9)
         with tempfile.TemporaryDirectory() as tmp:
             inp, out = os.path.join(tmp, "in.npz"), os.path.join(tmp, "out.npz")
-            np.savez(inp, fine_states=fine.numpy(), observations=traj.observations.numpy(),
-                     mean0=model.prior_mean.numpy(), methods=json.dumps([(lb, n, kw) for lb, n, kw, _ in DAPPER]))
-            env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1",
-                       MPLBACKEND="agg")
-            subprocess.run([args.dapper_python, str(Path(__file__)), "--dapper-worker", inp, out], check=True,
-                           env=env)
+            np.savez(
+                inp,
+                fine_states=fine.numpy(),
+                observations=traj.observations.numpy(),
+                mean0=model.prior_mean.numpy(),
+                methods=json.dumps([(lb, n, kw) for lb, n, kw, _ in DAPPER]),
+            )
+            env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1", MPLBACKEND="agg")
+            subprocess.run([args.dapper_python, str(Path(__file__)), "--dapper-worker", inp, out], check=True, env=env)
             got = np.load(out)
             from experiments.benchmarks.bench_lorenz96 import mean_se, rmse_after  # (this side has torch)
+
             for label, _, _, published in DAPPER:
                 per_trial = rmse_after(torch.as_tensor(got[f"{label}|means"]), truth, args.burn_in)
-                rows.append(dict(library="DAPPER 1.7.1", setting=label, rmse=mean_se(per_trial),
-                                 trials=per_trial.tolist(), sec_per_step=float(got[f"{label}|sec"]),
-                                 published=published))
+                rows.append(
+                    dict(
+                        library="DAPPER 1.7.1",
+                        setting=label,
+                        rmse=mean_se(per_trial),
+                        trials=per_trial.tolist(),
+                        sec_per_step=float(got[f"{label}|sec"]),
+                        published=published,
+                    )
+                )
                 print(label, rows[-1]["rmse"], flush=True)
     return rows
 
@@ -155,8 +179,10 @@ def write(args, rows):
     ]
     for r in rows:
         pub = f"{r['published']:.2f}" if r.get("published") is not None else ""
-        lines.append(f"| {r['library']} | {r['setting']} | {r['rmse'][0]:.3f} ± {r['rmse'][1]:.3f} | {pub} | "
-                     f"{r['sec_per_step']:.2e} |")
+        lines.append(
+            f"| {r['library']} | {r['setting']} | {r['rmse'][0]:.3f} ± {r['rmse'][1]:.3f} | {pub} | "
+            f"{r['sec_per_step']:.2e} |"
+        )
     out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     out.with_suffix(".json").write_text(json.dumps(dict(args=vars(args), rows=rows), indent=1))
     print("\n".join(lines))

@@ -16,6 +16,7 @@ their cost as the dimension grows.
 
 Writes ``results_lorenz96.md`` and ``.json`` beside this file (``--out`` to change).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -32,18 +33,41 @@ HERE = Path(__file__).resolve().parent
 #: distance at which its Gaspari-Cohn taper is exp(-1/2) (half-width 1.82 r), ours the distance at
 #: which the taper vanishes (2 x half-width): loc_rad 4 -> 14.56
 PAIRS = [
-    ("ETKF N=24 infl 1.013", "EnKF", dict(upd_a="Sqrt", N=24, infl=1.013, rot=True), "etkf",
-     dict(n_particles=24, inflation=1.013)),
-    ("EnKF (perturbed obs) N=40 infl 1.06", "EnKF", dict(upd_a="PertObs", N=40, infl=1.06), "enkf",
-     dict(n_particles=40, inflation=1.06)),
-    ("LETKF N=7 infl 1.04 loc 4 (ours: radius 14.56)", "LETKF", dict(N=7, infl=1.04, rot=True, loc_rad=4), "letkf",
-     dict(n_particles=7, inflation=1.04, radius=2 * 1.82 * 4)),
-    ("LETKF N=20 infl 1.02 loc 4 (ours: radius 14.56)", "LETKF", dict(N=20, infl=1.02, rot=True, loc_rad=4), "letkf",
-     dict(n_particles=20, inflation=1.02, radius=2 * 1.82 * 4)),
+    (
+        "ETKF N=24 infl 1.013",
+        "EnKF",
+        dict(upd_a="Sqrt", N=24, infl=1.013, rot=True),
+        "etkf",
+        dict(n_particles=24, inflation=1.013),
+    ),
+    (
+        "EnKF (perturbed obs) N=40 infl 1.06",
+        "EnKF",
+        dict(upd_a="PertObs", N=40, infl=1.06),
+        "enkf",
+        dict(n_particles=40, inflation=1.06),
+    ),
+    (
+        "LETKF N=7 infl 1.04 loc 4 (ours: radius 14.56)",
+        "LETKF",
+        dict(N=7, infl=1.04, rot=True, loc_rad=4),
+        "letkf",
+        dict(n_particles=7, inflation=1.04, radius=2 * 1.82 * 4),
+    ),
+    (
+        "LETKF N=20 infl 1.02 loc 4 (ours: radius 14.56)",
+        "LETKF",
+        dict(N=20, infl=1.02, rot=True, loc_rad=4),
+        "letkf",
+        dict(n_particles=20, inflation=1.02, radius=2 * 1.82 * 4),
+    ),
 ]
 #: DAPPER 1.7.1's published rmse.a for this set-up (mods/Lorenz96/sakov2008.py), where it lists one
-PUBLISHED = {"ETKF N=24 infl 1.013": 0.18, "EnKF (perturbed obs) N=40 infl 1.06": 0.22,
-             "LETKF N=7 infl 1.04 loc 4 (ours: radius 14.56)": 0.22}
+PUBLISHED = {
+    "ETKF N=24 infl 1.013": 0.18,
+    "EnKF (perturbed obs) N=40 infl 1.06": 0.22,
+    "LETKF N=7 infl 1.04 loc 4 (ours: radius 14.56)": 0.22,
+}
 
 
 # ------------------------------------------------------------------ the DAPPER side (its own interpreter)
@@ -73,8 +97,11 @@ def dapper_worker(inp: str, out: str) -> None:
             secs += time.perf_counter() - t0
             means[b] = xp.stats.mu.a  # (Ko + 1, d): the analysis means at the observation times
         res[label] = dict(means=means, sec_per_step=secs / (B * (T1 - 1)))
-    np.savez(out, **{f"{k}|means": v["means"] for k, v in res.items()},
-             **{f"{k}|sec": v["sec_per_step"] for k, v in res.items()})
+    np.savez(
+        out,
+        **{f"{k}|means": v["means"] for k, v in res.items()},
+        **{f"{k}|sec": v["sec_per_step"] for k, v in res.items()},
+    )
 
 
 def run_dapper(python: str, states, observations, mean0, methods):
@@ -82,11 +109,18 @@ def run_dapper(python: str, states, observations, mean0, methods):
 
     with tempfile.TemporaryDirectory() as tmp:
         inp, out = os.path.join(tmp, "in.npz"), os.path.join(tmp, "out.npz")
-        np.savez(inp, states=states.numpy(), observations=observations.numpy(), mean0=mean0.numpy(),
-                 prior_var=1.0, methods=json.dumps(methods))
+        np.savez(
+            inp,
+            states=states.numpy(),
+            observations=observations.numpy(),
+            mean0=mean0.numpy(),
+            prior_var=1.0,
+            methods=json.dumps(methods),
+        )
         env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1", MPLBACKEND="agg")
-        subprocess.run([python, str(Path(__file__)), "--dapper-worker", inp, out], check=True, env=env,
-                       stdout=subprocess.DEVNULL)
+        subprocess.run(
+            [python, str(Path(__file__)), "--dapper-worker", inp, out], check=True, env=env, stdout=subprocess.DEVNULL
+        )
         got = np.load(out)
         return {label: (got[f"{label}|means"], float(got[f"{label}|sec"])) for label, _, _ in methods}
 
@@ -115,8 +149,12 @@ def run_ours(name, kwargs, model, traj, mean, cov, seed=2):
 
     def call(b, steps=None):
         T = traj.observations.shape[1] if steps is None else steps
-        return f(traj.observations[b:b + 1, :T], mean[b:b + 1], cov[b:b + 1],
-                 torch.Generator(device=device).manual_seed(seed + b)).estimates
+        return f(
+            traj.observations[b : b + 1, :T],
+            mean[b : b + 1],
+            cov[b : b + 1],
+            torch.Generator(device=device).manual_seed(seed + b),
+        ).estimates
 
     if device.type == "cuda":
         call(0, 2)
@@ -137,14 +175,24 @@ def compare(args):
     truth = traj.states[:, 1:]
     dapper = None
     if args.dapper_python:
-        dapper = run_dapper(args.dapper_python, traj.states, traj.observations, mean,
-                            [(label, name, kw) for label, name, kw, _, _ in PAIRS])
+        dapper = run_dapper(
+            args.dapper_python,
+            traj.states,
+            traj.observations,
+            mean,
+            [(label, name, kw) for label, name, kw, _, _ in PAIRS],
+        )
     rows = []
     for label, dname, dkw, ours, okw in PAIRS:
         est, sec = run_ours(ours, okw, model, traj, mean, cov)
         per_trial = rmse_after(est, truth, args.burn_in)
-        row = dict(setting=label, ours=mean_se(per_trial), ours_trials=per_trial.tolist(), ours_sec_per_step=sec,
-                   published=PUBLISHED.get(label))
+        row = dict(
+            setting=label,
+            ours=mean_se(per_trial),
+            ours_trials=per_trial.tolist(),
+            ours_sec_per_step=sec,
+            published=PUBLISHED.get(label),
+        )
         if dapper is not None:
             means, dsec = dapper[label]
             per_trial = rmse_after(torch.as_tensor(means), truth, args.burn_in)
@@ -165,8 +213,10 @@ def scaling(args):
         trials = 1 if d >= 4000 else 2
         traj = model.simulate(trials, args.scaling_steps, torch.Generator(device=device).manual_seed(args.seed))
         mean, cov = model.initial_belief(traj.states[:, 0], torch.Generator(device=device).manual_seed(args.seed + 1))
-        for name, kw in (("etkf", dict(n_particles=28, inflation=1.02)),
-                         ("letkf", dict(n_particles=20, inflation=1.02, radius=15.0))):
+        for name, kw in (
+            ("etkf", dict(n_particles=28, inflation=1.02)),
+            ("letkf", dict(n_particles=20, inflation=1.02, radius=15.0)),
+        ):
             est, sec = run_ours(name, kw, model, traj, mean, cov)
             r = mean_se(rmse_after(est, traj.states[:, 1:].cpu(), args.scaling_steps // 4))
             rows.append(dict(d=d, filter=name, trials=trials, rmse=r, sec_per_step=sec, device=str(device)))
@@ -176,7 +226,7 @@ def scaling(args):
 
 def write(args, cmp_rows, scale_rows):
     out = Path(args.out)
-    fmt = lambda ms: "" if ms is None else f"{ms[0]:.3f} ± {ms[1]:.3f}"  # noqa: E731
+    fmt = lambda ms: "" if ms is None else f"{ms[0]:.3f} ± {ms[1]:.3f}"
     lines = [
         "# Lorenz-96 (Sakov & Oke 2008): ensemble Kalman filters, torchflow vs DAPPER",
         "",
@@ -186,7 +236,7 @@ def write(args, cmp_rows, scale_rows):
         "N(x0 + xi, I) per trial for both libraries. Time: seconds per assimilation step of one trial, 1 thread, "
         "on a shared 2-core CPU (other jobs running; DAPPER's time includes its own statistics).",
         "",
-        f"Command: `python -m experiments.benchmarks.bench_lorenz96 --dapper-python <python with dapper 1.7.1>`",
+        "Command: `python -m experiments.benchmarks.bench_lorenz96 --dapper-python <python with dapper 1.7.1>`",
         "",
         "| setting | torchflow RMSE | DAPPER RMSE (same data) | DAPPER published | torchflow s/step | DAPPER s/step |",
         "|---|---|---|---|---|---|",
@@ -194,25 +244,37 @@ def write(args, cmp_rows, scale_rows):
     for r in cmp_rows:
         pub = "" if r["published"] is None else f"{r['published']:.2f}"
         dsec = f"{r['dapper_sec_per_step']:.2e}" if "dapper_sec_per_step" in r else "not run"
-        lines.append(f"| {r['setting']} | {fmt(r['ours'])} | {fmt(r.get('dapper')) or 'not run'} | {pub} | "
-                     f"{r['ours_sec_per_step']:.2e} | {dsec} |")
+        lines.append(
+            f"| {r['setting']} | {fmt(r['ours'])} | {fmt(r.get('dapper')) or 'not run'} | {pub} | "
+            f"{r['ours_sec_per_step']:.2e} | {dsec} |"
+        )
     lines += ["", "Per-trial RMSE (torchflow; DAPPER):", ""]
     for r in cmp_rows:
-        trials = lambda key: ", ".join(f"{v:.3f}" for v in r.get(key, [])) or "not run"  # noqa: E731
+        trials = lambda key: ", ".join(f"{v:.3f}" for v in r.get(key, [])) or "not run"
         lines.append(f"- {r['setting']}: {trials('ours_trials')}; {trials('dapper_trials')}")
-    lines += ["", "Differences of method (not of data): DAPPER inflates the analysis ensemble and applies a random "
-              "rotation (`rot=True`) to the square-root filters' anomalies, ours inflates the forecast anomalies and "
-              "uses the symmetric square root; DAPPER's taper radius is where its Gaspari-Cohn taper is exp(-1/2) "
-              "(half-width 1.82 r), ours where it vanishes (2 x 1.82 x 4 = 14.56).", "",
-              f"## d-scaling (CPU, 1 thread; {args.scaling_steps} steps, burn-in {args.scaling_steps // 4})", "",
-              "| d | filter | trials | RMSE | s/step |", "|---|---|---|---|---|"]
+    lines += [
+        "",
+        "Differences of method (not of data): DAPPER inflates the analysis ensemble and applies a random "
+        "rotation (`rot=True`) to the square-root filters' anomalies, ours inflates the forecast anomalies and "
+        "uses the symmetric square root; DAPPER's taper radius is where its Gaspari-Cohn taper is exp(-1/2) "
+        "(half-width 1.82 r), ours where it vanishes (2 x 1.82 x 4 = 14.56).",
+        "",
+        f"## d-scaling (CPU, 1 thread; {args.scaling_steps} steps, burn-in {args.scaling_steps // 4})",
+        "",
+        "| d | filter | trials | RMSE | s/step |",
+        "|---|---|---|---|---|",
+    ]
     for r in scale_rows:
         lines.append(f"| {r['d']} | {r['filter']} | {r['trials']} | {fmt(r['rmse'])} | {r['sec_per_step']:.2e} |")
-    lines += ["", "PF-PF(LEDH) is not in the table: the set-up has no model noise, so the transition density its "
-              "weights need does not exist (the filter refuses the model by name)."]
+    lines += [
+        "",
+        "PF-PF(LEDH) is not in the table: the set-up has no model noise, so the transition density its "
+        "weights need does not exist (the filter refuses the model by name).",
+    ]
     out.with_suffix(".md").write_text("\n".join(lines) + "\n")
-    out.with_suffix(".json").write_text(json.dumps(dict(settings=vars(args), compare=cmp_rows, scaling=scale_rows),
-                                                   indent=1, default=str) + "\n")
+    out.with_suffix(".json").write_text(
+        json.dumps(dict(settings=vars(args), compare=cmp_rows, scaling=scale_rows), indent=1, default=str) + "\n"
+    )
     print("\n".join(lines))
 
 
@@ -237,11 +299,15 @@ def main(argv=None):
     torch.set_num_threads(1)
     if args.scaling_only:
         rows = scaling(args)
-        Path(args.out).with_suffix(".json").write_text(json.dumps(dict(settings=vars(args), scaling=rows), indent=1,
-                                                                  default=str) + "\n")
+        Path(args.out).with_suffix(".json").write_text(
+            json.dumps(dict(settings=vars(args), scaling=rows), indent=1, default=str) + "\n"
+        )
         for r in rows:
-            print(f"| {r['d']} | {r['filter']} | {r['trials']} | {r['rmse'][0]:.3f} +- {r['rmse'][1]:.3f} | "
-                  f"{r['sec_per_step']:.2e} | {r['device']} |", flush=True)
+            print(
+                f"| {r['d']} | {r['filter']} | {r['trials']} | {r['rmse'][0]:.3f} +- {r['rmse'][1]:.3f} | "
+                f"{r['sec_per_step']:.2e} | {r['device']} |",
+                flush=True,
+            )
         return
     write(args, compare(args), scaling(args))
 

@@ -11,6 +11,7 @@ mismatch needs a script.
 Prints one Markdown row per regime (RMSE after the burn-in, mean and standard error over trials;
 s per step of the batched call; mean ESS) and writes them to ``results_lorenz96_pfpf.json``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,8 +23,13 @@ import torch
 
 HERE = Path(__file__).resolve().parent
 #: the Lorenz96 settings of the scoreboard's regimes (configs/experiment/lorenz96_*.yaml)
-REGIMES = {"r1": {}, "r2": dict(dt=0.4, substeps=8), "r3": dict(obs_every=2, obs_operator="abs"),
-           "r4": dict(obs_df=3), "l63": {}}
+REGIMES = {
+    "r1": {},
+    "r2": dict(dt=0.4, substeps=8),
+    "r3": dict(obs_every=2, obs_operator="abs"),
+    "r4": dict(obs_df=3),
+    "l63": {},
+}
 #: the burn-in of each (the experiments' metrics.burn_in): Lorenz-63 DAPPER's 64 steps, Lorenz-96 200
 BURN_IN = {"l63": 64}
 
@@ -45,9 +51,20 @@ def run(regime: str, flow: str, n: int, noise: float, trials: int, steps: int, b
     out = f(traj.observations, mean, cov, TrialStreams(seed + 2, trials, f.stream_name))
     sec = (time.perf_counter() - t0) / steps
     per_trial = (out.estimates - traj.states[:, 1:]).square().mean(-1).sqrt()[:, burn_in:].mean(-1)
-    return dict(regime=regime, flow=flow, n=n, noise=noise, trials=trials, steps=steps, burn_in=burn_in,
-                rmse=float(per_trial.mean()), se=float(per_trial.std() / trials ** 0.5),
-                per_trial=[round(float(v), 4) for v in per_trial], ess=float(out.ess.mean()), sec_per_step=sec)
+    return dict(
+        regime=regime,
+        flow=flow,
+        n=n,
+        noise=noise,
+        trials=trials,
+        steps=steps,
+        burn_in=burn_in,
+        rmse=float(per_trial.mean()),
+        se=float(per_trial.std() / trials**0.5),
+        per_trial=[round(float(v), 4) for v in per_trial],
+        ess=float(out.ess.mean()),
+        sec_per_step=sec,
+    )
 
 
 def main(argv=None):
@@ -69,8 +86,11 @@ def main(argv=None):
         burn = a.burn_in if a.burn_in is not None else BURN_IN.get(r, 200)
         row = run(r, a.flow, a.n, a.noise, a.trials, a.steps, burn)
         rows.append(row)
-        print(f"| {r.upper()} | {a.flow.upper()} | {a.n} | {a.noise:g} | {row['rmse']:.3f} +- {row['se']:.3f} | "
-              f"{row['ess']:.1f} | {row['sec_per_step']:.3g} |", flush=True)
+        print(
+            f"| {r.upper()} | {a.flow.upper()} | {a.n} | {a.noise:g} | {row['rmse']:.3f} +- {row['se']:.3f} | "
+            f"{row['ess']:.1f} | {row['sec_per_step']:.3g} |",
+            flush=True,
+        )
     Path(a.out).write_text(json.dumps(rows, indent=1) + "\n")
 
 

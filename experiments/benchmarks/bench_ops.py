@@ -14,15 +14,25 @@ the schedule's pseudo-steps (29 here), not with B or N. ``of which not views``: 
 those that only make a view (``view``, ``expand``, ``unsqueeze``, ``permute``, ...; no kernel on a
 GPU), i.e. about the kernel launches.
 """
+
 from __future__ import annotations
 
 import torch
 
 from torchflow import tuning
-from torchflow.filters import (GPFIS, BootstrapParticleFilter, ClusteredParticleFlowParticleFilter,
-                               ExtendedKalmanFilter, GaussianParticleFilter, GaussianSumParticleFilter,
-                               ParticleFilter, ParticleFlowFilter, ParticleFlowGaussianSumParticleFilter,
-                               ParticleFlowParticleFilter, UnscentedKalmanFilter)
+from torchflow.filters import (
+    GPFIS,
+    BootstrapParticleFilter,
+    ClusteredParticleFlowParticleFilter,
+    ExtendedKalmanFilter,
+    GaussianParticleFilter,
+    GaussianSumParticleFilter,
+    ParticleFilter,
+    ParticleFlowFilter,
+    ParticleFlowGaussianSumParticleFilter,
+    ParticleFlowParticleFilter,
+    UnscentedKalmanFilter,
+)
 from torchflow.flows.kernels import steps as fused
 from torchflow.models import AcousticTracking
 from torchflow.profiling import OpCounter
@@ -33,26 +43,64 @@ from . import harness as h
 
 TARGETS = {"PF-PF(LEDH)": 1000, "PF-PF(Gromov)": 1500, "GPFIS": 3000}
 #: ops that only make a new view of a tensor's memory: no kernel on a GPU
-VIEW_OPS = frozenset(f"aten.{n}.default" for n in ("view", "expand", "_unsafe_view", "unsqueeze", "squeeze", "permute",
-                                                   "transpose", "t", "alias", "detach", "as_strided", "diagonal"))
-VIEW_OPS = VIEW_OPS | {"aten.select.int", "aten.slice.Tensor", "aten.squeeze.dim", "aten.transpose.int",
-                       "aten.split.Tensor", "aten.unbind.int", "aten.squeeze.dims"}
+VIEW_OPS = frozenset(
+    f"aten.{n}.default"
+    for n in (
+        "view",
+        "expand",
+        "_unsafe_view",
+        "unsqueeze",
+        "squeeze",
+        "permute",
+        "transpose",
+        "t",
+        "alias",
+        "detach",
+        "as_strided",
+        "diagonal",
+    )
+)
+VIEW_OPS = VIEW_OPS | {
+    "aten.select.int",
+    "aten.slice.Tensor",
+    "aten.squeeze.dim",
+    "aten.transpose.int",
+    "aten.split.Tensor",
+    "aten.unbind.int",
+    "aten.squeeze.dims",
+}
 
 
 def filters(model, n: int) -> dict:
     """Every filter family, by its table name."""
-    out = {"EKF": ExtendedKalmanFilter(model), "UKF": UnscentedKalmanFilter(model),
-           "BPF": BootstrapParticleFilter(model, n_particles=n)}
-    for flow, name in (("edh", "EDH"), ("ledh", "LEDH"), ("geodesic", "geodesic"), ("gromov", "Gromov"),
-                       ("osd", "OSD")):
+    out = {
+        "EKF": ExtendedKalmanFilter(model),
+        "UKF": UnscentedKalmanFilter(model),
+        "BPF": BootstrapParticleFilter(model, n_particles=n),
+    }
+    for flow, name in (
+        ("edh", "EDH"),
+        ("ledh", "LEDH"),
+        ("geodesic", "geodesic"),
+        ("gromov", "Gromov"),
+        ("osd", "OSD"),
+    ):
         out[f"PF-PF({name})"] = ParticleFlowParticleFilter(model, flow=flow, n_particles=n)
-    out.update({"clustered PF-PF": ClusteredParticleFlowParticleFilter(model, n_particles=n),
-                "GPFIS": GPFIS(model, n_particles=n), "UPF": ParticleFilter(model, UnscentedProposal(model), n_particles=n),
-                "GPF": GaussianParticleFilter(model, n_particles=n),
-                "GSPF (2 components)": GaussianSumParticleFilter(model, n_components=2, particles_per_component=max(n // 2, 20)),
-                "PFGSPF (2 components)": ParticleFlowGaussianSumParticleFilter(model, n_components=2,
-                                                                                 particles_per_component=max(n // 2, 20)),
-                "flow filter (LEDH)": ParticleFlowFilter(model, flow="ledh", n_particles=n)})
+    out.update(
+        {
+            "clustered PF-PF": ClusteredParticleFlowParticleFilter(model, n_particles=n),
+            "GPFIS": GPFIS(model, n_particles=n),
+            "UPF": ParticleFilter(model, UnscentedProposal(model), n_particles=n),
+            "GPF": GaussianParticleFilter(model, n_particles=n),
+            "GSPF (2 components)": GaussianSumParticleFilter(
+                model, n_components=2, particles_per_component=max(n // 2, 20)
+            ),
+            "PFGSPF (2 components)": ParticleFlowGaussianSumParticleFilter(
+                model, n_components=2, particles_per_component=max(n // 2, 20)
+            ),
+            "flow filter (LEDH)": ParticleFlowFilter(model, flow="ledh", n_particles=n),
+        }
+    )
     return out
 
 
@@ -80,20 +128,58 @@ def run(argv=None) -> dict:
                 eager = count(f, traj.observations, mean, cov, False).ops
             target = TARGETS.get(name)
             views = sum(n for op, n in cpu.by_op.items() if op in VIEW_OPS)
-            rows.append(dict(name=name, ops=cpu.ops, eager_ops=eager, compute_ops=cpu.ops - views, syncs=len(cpu.syncs),
-                             syncs_cuda=len(cuda.syncs), target=target, met=None if target is None else cpu.ops <= target,
-                             top=", ".join(f"{op.replace('aten.', '').replace('.default', '')} {n}"
-                                           for op, n in cpu.by_op.most_common(3))))
-    md = h.report("# Operations and host synchronisations per filter step", a, info,
-                  [f"Acoustic tracking, B = {a.trials} trials, N = {a.particles}, one time step (the second), "
-                   "29 pseudo-steps for the flows. CPU default: the fused EDH/LEDH pseudo-step and the particle "
-                   "filters' weighting kernel where Numba is "
-                   f"installed ({'here' if fused.runs_on('cpu') else 'not here'}); torch path: "
-                   "`tuning.fused_flows=0 fused_weights=0`."],
-                  ["filter", "aten ops (CPU default)", "of which not views", "aten ops (torch path)", "syncs (CPU default)",
-                   "syncs (as on CUDA)", "target ops", "met (CPU default)", "most frequent ops"],
-                  [(r["name"], r["ops"], r["compute_ops"], r["eager_ops"], r["syncs"], r["syncs_cuda"], h.fmt(r["target"], "{}"),
-                    h.met_cell(r["met"]), r["top"]) for r in rows])
+            rows.append(
+                dict(
+                    name=name,
+                    ops=cpu.ops,
+                    eager_ops=eager,
+                    compute_ops=cpu.ops - views,
+                    syncs=len(cpu.syncs),
+                    syncs_cuda=len(cuda.syncs),
+                    target=target,
+                    met=None if target is None else cpu.ops <= target,
+                    top=", ".join(
+                        f"{op.replace('aten.', '').replace('.default', '')} {n}" for op, n in cpu.by_op.most_common(3)
+                    ),
+                )
+            )
+    md = h.report(
+        "# Operations and host synchronisations per filter step",
+        a,
+        info,
+        [
+            f"Acoustic tracking, B = {a.trials} trials, N = {a.particles}, one time step (the second), "
+            "29 pseudo-steps for the flows. CPU default: the fused EDH/LEDH pseudo-step and the particle "
+            "filters' weighting kernel where Numba is "
+            f"installed ({'here' if fused.runs_on('cpu') else 'not here'}); torch path: "
+            "`tuning.fused_flows=0 fused_weights=0`."
+        ],
+        [
+            "filter",
+            "aten ops (CPU default)",
+            "of which not views",
+            "aten ops (torch path)",
+            "syncs (CPU default)",
+            "syncs (as on CUDA)",
+            "target ops",
+            "met (CPU default)",
+            "most frequent ops",
+        ],
+        [
+            (
+                r["name"],
+                r["ops"],
+                r["compute_ops"],
+                r["eager_ops"],
+                r["syncs"],
+                r["syncs_cuda"],
+                h.fmt(r["target"], "{}"),
+                h.met_cell(r["met"]),
+                r["top"],
+            )
+            for r in rows
+        ],
+    )
     return dict(rows=rows, markdown=md, machine=info, args=vars(a))
 
 

@@ -9,6 +9,7 @@ larger points are skipped). The last row of a table is the log-log slope (the sc
 
     python -m experiments.benchmarks.bench_scaling                      # full (~10-15 min, 2-core CPU)
 """
+
 from __future__ import annotations
 
 import argparse
@@ -25,21 +26,48 @@ from torchflow.models import AcousticTracking, SensorNetwork
 from . import harness as h
 
 LABELS = {k: h.LABELS[k] for k in ("kf", "ekf", "bpf", "edh", "ledh", "gromov")}
-CURVE_FILTERS = {"N": ("bpf", "edh", "ledh", "gromov"),
-                 "d": ("kf", "bpf", "edh", "ledh", "gromov"),
-                 "B": ("kf", "ekf", "bpf", "edh", "ledh", "gromov")}
+CURVE_FILTERS = {
+    "N": ("bpf", "edh", "ledh", "gromov"),
+    "d": ("kf", "bpf", "edh", "ledh", "gromov"),
+    "B": ("kf", "ekf", "bpf", "edh", "ledh", "gromov"),
+}
 MAX_REPEATS = 100
 #: one colour and marker per filter, the same in every panel
-STYLE = {"KF": ("tab:blue", "s"), "EKF": ("tab:cyan", "D"), "BPF": ("tab:orange", "o"),
-         "PF-PF(EDH)": ("tab:green", "^"), "PF-PF(LEDH)": ("tab:red", "v"), "PF-PF(Gromov)": ("tab:purple", "P")}
+STYLE = {
+    "KF": ("tab:blue", "s"),
+    "EKF": ("tab:cyan", "D"),
+    "BPF": ("tab:orange", "o"),
+    "PF-PF(EDH)": ("tab:green", "^"),
+    "PF-PF(LEDH)": ("tab:red", "v"),
+    "PF-PF(Gromov)": ("tab:purple", "P"),
+}
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    a = h.options(__doc__, argv, dict(ns="100,300,1000", ds="16,36,64", bs="1,4,16", steps=2, trials=1, b_curve_n=100,
-                                      time_budget=0.1), curves="N,d,B", ns="100,1000,10000,100000",
-                  ds="16,36,64,144,256,400", bs="1,4,16,64,256", filters="kf,ekf,bpf,edh,ledh,gromov", steps=3,
-                  trials=2, d_curve_n=200, b_curve_n=500, b_curve_lg_d=64, time_budget=0.5, max_point_seconds=60.0,
-                  memory_gb=4.0, dtype="float64", device="cpu", threads=None, seed=0, no_plot=False, quiet=False)
+    a = h.options(
+        __doc__,
+        argv,
+        dict(ns="100,300,1000", ds="16,36,64", bs="1,4,16", steps=2, trials=1, b_curve_n=100, time_budget=0.1),
+        curves="N,d,B",
+        ns="100,1000,10000,100000",
+        ds="16,36,64,144,256,400",
+        bs="1,4,16,64,256",
+        filters="kf,ekf,bpf,edh,ledh,gromov",
+        steps=3,
+        trials=2,
+        d_curve_n=200,
+        b_curve_n=500,
+        b_curve_lg_d=64,
+        time_budget=0.5,
+        max_point_seconds=60.0,
+        memory_gb=4.0,
+        dtype="float64",
+        device="cpu",
+        threads=None,
+        seed=0,
+        no_plot=False,
+        quiet=False,
+    )
     a.ns, a.ds, a.bs = (sorted(set(h.ints(getattr(a, k), "--" + k))) for k in ("ns", "ds", "bs"))
     a.curves = h.keys_option(a.curves, CURVE_FILTERS, "--curves")
     a.filters = h.keys_option(a.filters, LABELS)
@@ -51,8 +79,14 @@ def _available_bytes(device: torch.device) -> Optional[int]:
     if device.type == "cuda":
         return torch.cuda.mem_get_info(device)[0]
     with contextlib.suppress(OSError):
-        return next((int(line.split()[1]) * 1024 for line in Path("/proc/meminfo").read_text().splitlines()
-                     if line.startswith("MemAvailable:")), None)
+        return next(
+            (
+                int(line.split()[1]) * 1024
+                for line in Path("/proc/meminfo").read_text().splitlines()
+                if line.startswith("MemAvailable:")
+            ),
+            None,
+        )
     return None
 
 
@@ -102,9 +136,18 @@ def run_curve(curve: str, args, data, device, log) -> List[dict]:
     budget = int(args.memory_gb * 2**30)
     for key, mname, x, N, d, trials in curve_points(curve, args):
         label = LABELS[key]
-        row = {"curve": curve, "filter": label, "model": "acoustic" if mname == "acoustic" else "sensor network",
-               "N": N, "d": d, "B": trials, "trials": trials, "steps": args.steps,
-               "s_per_trial_step": None, "status": "ok"}
+        row = {
+            "curve": curve,
+            "filter": label,
+            "model": "acoustic" if mname == "acoustic" else "sensor network",
+            "N": N,
+            "d": d,
+            "B": trials,
+            "trials": trials,
+            "steps": args.steps,
+            "s_per_trial_step": None,
+            "status": "ok",
+        }
         rows.append(row)
         hist = history.setdefault(key, [])
         try:
@@ -121,29 +164,46 @@ def run_curve(curve: str, args, data, device, log) -> List[dict]:
             if oom.get(key):
                 row["status"] = "skipped: a smaller point of this filter ran out of memory"
             elif run_est is not None and row["est_point_s"] > args.max_point_seconds:
-                row["status"] = (f"skipped: estimated {row['est_point_s']:.0f} s > --max-point-seconds "
-                                 f"{args.max_point_seconds:g}")
+                row["status"] = (
+                    f"skipped: estimated {row['est_point_s']:.0f} s > --max-point-seconds {args.max_point_seconds:g}"
+                )
             elif avail is not None and per_trial > avail:
-                row["status"] = (f"skipped: estimated {per_trial / 2**30:.1f} GB per trial > "
-                                 f"{avail / 2**30:.1f} GB available")
+                row["status"] = (
+                    f"skipped: estimated {per_trial / 2**30:.1f} GB per trial > {avail / 2**30:.1f} GB available"
+                )
             if row["status"] != "ok":
                 continue
             _, obs, mean, cov = data(mname, d, trials)
             t0 = time.perf_counter()
             g = torch.Generator(device=device).manual_seed(args.seed)  # one generator for every call
-            t = h.time_filter(filt, obs, mean, cov, chunk, lambda start, stop: g, budget=args.time_budget,
-                              max_repeats=MAX_REPEATS, device=device)
+            t = h.time_filter(
+                filt,
+                obs,
+                mean,
+                cov,
+                chunk,
+                lambda start, stop: g,
+                budget=args.time_budget,
+                max_repeats=MAX_REPEATS,
+                device=device,
+            )
             row["point_s"] = time.perf_counter() - t0
             row["s_per_trial_step"] = t.min / (trials * args.steps)
             row["mean_s_per_trial_step"] = t.mean / (trials * args.steps)
             row["repeats"] = len(t.times)
             hist.append((x, t.min))
-            log(f"[{curve}] {label:14s} x={x:<7d} {row['s_per_trial_step']:.3g} s/trial-step "
-                f"({row['repeats']} run(s), {chunk} trials/call, point {row['point_s']:.1f} s)")
-        except Exception as exc:  # noqa: BLE001  (record and go on)
+            log(
+                f"[{curve}] {label:14s} x={x:<7d} {row['s_per_trial_step']:.3g} s/trial-step "
+                f"({row['repeats']} run(s), {chunk} trials/call, point {row['point_s']:.1f} s)"
+            )
+        except Exception as exc:
             row["status"] = f"error: {type(exc).__name__}: {' '.join(str(exc).split())[:200]}"
-            oom[key] = oom.get(key) or isinstance(exc, MemoryError) or "out of memory" in str(exc).lower() \
+            oom[key] = (
+                oom.get(key)
+                or isinstance(exc, MemoryError)
+                or "out of memory" in str(exc).lower()
                 or type(exc).__name__ == "OutOfMemoryError"
+            )
         finally:
             if row["status"] != "ok":
                 log(f"[{curve}] {label:14s} x={x:<7d} {row['status']}")
@@ -156,8 +216,11 @@ _xkey = {"N": "N", "d": "d", "B": "trials"}.get  # the row item a curve's x is
 
 
 def _column(row: dict, curve: str) -> str:
-    return {"KF": "KF (sensor net)", "EKF": "EKF (acoustic)"}.get(row["filter"], row["filter"]) if curve == "B" \
+    return (
+        {"KF": "KF (sensor net)", "EKF": "EKF (acoustic)"}.get(row["filter"], row["filter"])
+        if curve == "B"
         else row["filter"]
+    )
 
 
 def loglog_slope(points: List[tuple]) -> Optional[float]:
@@ -174,8 +237,9 @@ def points(rows: List[dict], curve: str) -> Dict[str, list]:
     cols: Dict[str, list] = {}
     for r in rows:
         if r["curve"] == curve:
-            cols.setdefault(_column(r, curve), []).extend([(r[_xkey(curve)], r["s_per_trial_step"])]
-                                                          if r["status"] == "ok" else [])
+            cols.setdefault(_column(r, curve), []).extend(
+                [(r[_xkey(curve)], r["s_per_trial_step"])] if r["status"] == "ok" else []
+            )
     return {c: sorted(p) for c, p in cols.items()}
 
 
@@ -189,11 +253,12 @@ def _cell(r: Optional[dict]) -> str:
 HEADINGS = {
     "N": "particle count N\n\nAcoustic tracking (d = 16, m = 25), {a.trials} trial(s) x {a.steps} steps per point.",
     "d": "state dimension d\n\nLinear-Gaussian sensor network `SensorNetwork(d=d)` (m = d), particle filters at "
-         "N = {a.d_curve_n}, {a.trials} trial(s) x {a.steps} steps per point.",
+    "N = {a.d_curve_n}, {a.trials} trial(s) x {a.steps} steps per point.",
     "B": "trials per call B\n\nAll B trials in one call, {a.steps} steps. BPF and PF-PFs: acoustic tracking, N = "
-         "{a.b_curve_n}. KF (sensor net): the exact Kalman filter on `SensorNetwork(d={a.b_curve_lg_d})`. EKF "
-         "(acoustic): the extended Kalman filter stands in as the Gaussian filter on the nonlinear acoustic model, "
-         "where the KF does not apply."}
+    "{a.b_curve_n}. KF (sensor net): the exact Kalman filter on `SensorNetwork(d={a.b_curve_lg_d})`. EKF "
+    "(acoustic): the extended Kalman filter stands in as the Gaussian filter on the nonlinear acoustic model, "
+    "where the KF does not apply.",
+}
 
 
 def markdown(rows: List[dict], a, info: dict) -> str:
@@ -205,7 +270,9 @@ def markdown(rows: List[dict], a, info: dict) -> str:
         f"{a.memory_gb:g} GB. A point is skipped when its time extrapolated from the smaller points "
         f"(linear, or the last log-log slope if steeper) exceeds {a.max_point_seconds:g} s. "
         "The last row of each table is the least-squares log-log slope over the timed points "
-        "(the scaling exponent of the time per trial-step).", ""]
+        "(the scaling exponent of the time per trial-step).",
+        "",
+    ]
     for curve in a.curves:
         cr = [r for r in rows if r["curve"] == curve]
         if not cr:
@@ -216,10 +283,16 @@ def markdown(rows: List[dict], a, info: dict) -> str:
         cell = {(r[xk], _column(r, curve)): r for r in cr}
         sl = {c: loglog_slope(p) for c, p in points(rows, curve).items()}
         out += ["### Seconds per trial-step vs " + HEADINGS[curve].format(a=a), ""] + h.md_table(
-            [curve] + cols, [[x] + [_cell(cell.get((x, c))) for c in cols] for x in xs]
-            + [["**log-log slope**"] + [f"**{sl[c]:.2f}**" if sl.get(c) is not None else "n/a" for c in cols]])
-        notes = [f"- {c} at {curve} = {x}: {cell[(x, c)]['status']}" for x in xs for c in cols
-                 if (x, c) in cell and cell[(x, c)]["status"] != "ok"]
+            [curve] + cols,
+            [[x] + [_cell(cell.get((x, c))) for c in cols] for x in xs]
+            + [["**log-log slope**"] + [f"**{sl[c]:.2f}**" if sl.get(c) is not None else "n/a" for c in cols]],
+        )
+        notes = [
+            f"- {c} at {curve} = {x}: {cell[(x, c)]['status']}"
+            for x in xs
+            for c in cols
+            if (x, c) in cell and cell[(x, c)]["status"] != "ok"
+        ]
         out += ([""] + notes if notes else []) + [""]
     return "\n".join(out)
 
@@ -229,9 +302,11 @@ def plot(rows: List[dict], a, path: Path) -> Optional[str]:
         print("(matplotlib not installed: no plot)")
         return None
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import matplotlib.ticker  # noqa: F401
+    import matplotlib.ticker
+
     curves = [c for c in a.curves if any(r["curve"] == c for r in rows)]
     if not curves:
         return None
@@ -241,20 +316,36 @@ def plot(rows: List[dict], a, path: Path) -> Optional[str]:
             if pts:
                 sl = loglog_slope(pts)
                 color, marker = STYLE.get(c.split(" ")[0], (None, "o"))
-                ax.plot(*zip(*pts), marker=marker, linestyle="-", color=color,
-                        label=c + (f" (slope {sl:.2f})" if sl is not None else ""))
+                ax.plot(
+                    *zip(*pts),
+                    marker=marker,
+                    linestyle="-",
+                    color=color,
+                    label=c + (f" (slope {sl:.2f})" if sl is not None else ""),
+                )
         ax.set(xscale="log", yscale="log", xlabel=HEADINGS[curve].partition("\n")[0], ylabel="seconds per trial-step")
         xs = sorted({r[_xkey(curve)] for r in rows if r["curve"] == curve})
         ax.set_xticks(xs)
-        ax.set_xticklabels([f"{x:g}" if x < 1e4 else f"1e{round(math.log10(x))}" if math.log10(x).is_integer()
-                            else f"{x:.0e}" for x in xs])
+        ax.set_xticklabels(
+            [
+                f"{x:g}" if x < 1e4 else f"1e{round(math.log10(x))}" if math.log10(x).is_integer() else f"{x:.0e}"
+                for x in xs
+            ]
+        )
         ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
-        ax.set_title({"N": "acoustic tracking", "d": f"sensor network, N = {a.d_curve_n}",
-                      "B": f"acoustic N = {a.b_curve_n} / sensor net d = {a.b_curve_lg_d}"}[curve], fontsize=10)
+        ax.set_title(
+            {
+                "N": "acoustic tracking",
+                "d": f"sensor network, N = {a.d_curve_n}",
+                "B": f"acoustic N = {a.b_curve_n} / sensor net d = {a.b_curve_lg_d}",
+            }[curve],
+            fontsize=10,
+        )
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle(f"torchflow scaling ({a.device}, {a.dtype}, {a.threads or torch.get_num_threads()} threads)",
-                 fontsize=11)
+    fig.suptitle(
+        f"torchflow scaling ({a.device}, {a.dtype}, {a.threads or torch.get_num_threads()} threads)", fontsize=11
+    )
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)

@@ -3,6 +3,7 @@ with ``TrialStreams`` (one stream per trial, as ``run_experiment``), interleaved
 
     python -m experiments.benchmarks.bench_streams            # ~3 min on 2 cores
 """
+
 from __future__ import annotations
 
 import torch
@@ -40,33 +41,76 @@ def run(argv=None) -> dict:
                 for k, mk in kinds.items():
                     t = h.time_calls(lambda: h.filter_chunks(f, traj.observations, mean, cov, chunk, mk))
                     best[k] = min(best[k], t.min / (B * T))
-            rows.append(dict(case=name, trials=B, steps=T, generator=best["generator"], streams=best["streams"],
-                             ratio=best["streams"] / best["generator"]))
+            rows.append(
+                dict(
+                    case=name,
+                    trials=B,
+                    steps=T,
+                    generator=best["generator"],
+                    streams=best["streams"],
+                    ratio=best["streams"] / best["generator"],
+                )
+            )
             print(rows[-1], flush=True)
         # the draws alone: normals are ~30 % of a filter's time at most (BPF, N=1e4, d=64), so their cost
         # bounds the filters' far more tightly than whole-call timings on a noisy VM
         for B, n in ((25, 12_800), (100, 12_800), (3, 640_000), (8, 12_500)):
             best = {}
             for k, gen in (("generator", torch.Generator().manual_seed(0)), ("streams", TrialStreams(0, B, "bench"))):
-                t = h.time_calls(lambda: linalg.standard_normal((B, n), dtype=torch.float64, device="cpu",
-                                                                generator=gen), repeats=5 * a.repeats)
+                t = h.time_calls(
+                    lambda: linalg.standard_normal((B, n), dtype=torch.float64, device="cpu", generator=gen),
+                    repeats=5 * a.repeats,
+                )
                 best[k] = t.min / (B * n) * 1e9
-            draws.append(dict(B=B, n=n, generator_ns=best["generator"], streams_ns=best["streams"],
-                              ratio=best["streams"] / best["generator"]))
+            draws.append(
+                dict(
+                    B=B,
+                    n=n,
+                    generator_ns=best["generator"],
+                    streams_ns=best["streams"],
+                    ratio=best["streams"] / best["generator"],
+                )
+            )
             print(draws[-1], flush=True)
-    md = h.report("# Per-trial random streams: cost", a, info,
-                  [f"{a.threads} threads, minimum over {a.repeats} interleaved repeats. Seconds per trial-step of the "
-                   "same filter calls with one `torch.Generator` per call and with `TrialStreams` (one stream per "
-                   "trial, as `run_experiment` uses them)."],
-                  ["case", "trials x steps", "generator s", "streams s", "streams / generator"],
-                  [[r["case"], f"{r['trials']} x {r['steps']}", f"{r['generator']:.4g}", f"{r['streams']:.4g}",
-                    f"{r['ratio']:.3f}"] for r in rows],
-                  "Normal draws alone (float64, ns per number, minimum of repeats):", "",
-                  *h.md_table(["trials x numbers per trial", "generator ns", "streams ns", "ratio"],
-                              [[f"{r['B']} x {r['n']}", f"{r['generator_ns']:.2f}", f"{r['streams_ns']:.2f}",
-                                f"{r['ratio']:.3f}"] for r in draws]))
-    return {"threads": a.threads, "repeats": a.repeats, "rows": rows, "draws": draws, "machine": info,
-            "args": vars(a), "markdown": md}
+    md = h.report(
+        "# Per-trial random streams: cost",
+        a,
+        info,
+        [
+            f"{a.threads} threads, minimum over {a.repeats} interleaved repeats. Seconds per trial-step of the "
+            "same filter calls with one `torch.Generator` per call and with `TrialStreams` (one stream per "
+            "trial, as `run_experiment` uses them)."
+        ],
+        ["case", "trials x steps", "generator s", "streams s", "streams / generator"],
+        [
+            [
+                r["case"],
+                f"{r['trials']} x {r['steps']}",
+                f"{r['generator']:.4g}",
+                f"{r['streams']:.4g}",
+                f"{r['ratio']:.3f}",
+            ]
+            for r in rows
+        ],
+        "Normal draws alone (float64, ns per number, minimum of repeats):",
+        "",
+        *h.md_table(
+            ["trials x numbers per trial", "generator ns", "streams ns", "ratio"],
+            [
+                [f"{r['B']} x {r['n']}", f"{r['generator_ns']:.2f}", f"{r['streams_ns']:.2f}", f"{r['ratio']:.3f}"]
+                for r in draws
+            ],
+        ),
+    )
+    return {
+        "threads": a.threads,
+        "repeats": a.repeats,
+        "rows": rows,
+        "draws": draws,
+        "machine": info,
+        "args": vars(a),
+        "markdown": md,
+    }
 
 
 if __name__ == "__main__":

@@ -7,7 +7,8 @@ the log-squared Gaussian form beside them.
 
 Data: ``particles.datasets.GBP_vs_USD_9798`` (751 daily rates, 1997-1999), preprocessed as
 ``particles`` does for its SV examples: 100 x the log-returns, 750 points
-(``python -m experiments.data.gbpusd out.csv`` writes the same numbers as a CSV). Model: ``StochasticVolatility()`` with ``particles.StochVol``'s default parameters
+(``python -m experiments.data.gbpusd out.csv`` writes the same numbers as a CSV). Model: ``StochasticVolatility()``
+with ``particles.StochVol``'s default parameters
 (mu = -1.02, rho = 0.9702, sigma = 0.178).
 
 Rows, each ``runs`` independent runs on the one series (log-likelihood mean, standard deviation, the
@@ -26,11 +27,11 @@ an unbiased likelihood estimate, with its standard error; seconds per run):
 The Monte Carlo standard error of a mean over runs is ``sd / sqrt(runs)``; a difference of two
 independent means has the root sum of squares of theirs. Everything runs on one thread (torch, BLAS).
 """
+
 from __future__ import annotations
 
 import math
 import time
-from pathlib import Path
 from typing import List
 
 import numpy as np
@@ -57,9 +58,18 @@ def stats(name: str, ll: np.ndarray, exact: float, seconds_per_run: float, **ext
     R = ll.size
     sd = float(ll.std(ddof=1)) if R > 1 else float("nan")
     ratio = np.exp(ll - exact)
-    return dict(name=name, runs=R, mean=float(ll.mean()), sd=sd, se=sd / math.sqrt(R), diff=float(ll.mean() - exact),
-                ratio=float(ratio.mean()), ratio_se=float(ratio.std(ddof=1) / math.sqrt(R)) if R > 1 else float("nan"),
-                sec_per_run=seconds_per_run, **extra)
+    return dict(
+        name=name,
+        runs=R,
+        mean=float(ll.mean()),
+        sd=sd,
+        se=sd / math.sqrt(R),
+        diff=float(ll.mean() - exact),
+        ratio=float(ratio.mean()),
+        ratio_se=float(ratio.std(ddof=1) / math.sqrt(R)) if R > 1 else float("nan"),
+        sec_per_run=seconds_per_run,
+        **extra,
+    )
 
 
 def ours(f, obs: torch.Tensor, model, runs: int, batched: bool, n: int, seed: int) -> (np.ndarray, float):
@@ -68,13 +78,23 @@ def ours(f, obs: torch.Tensor, model, runs: int, batched: bool, n: int, seed: in
     mean, cov = model.initial_belief(torch.zeros(1, 1, dtype=torch.float64))
     calls = [(runs, seed)] if batched else [(1, seed + i) for i in range(runs)]
     with torch.no_grad():  # a warm-up call (compiled kernels, first-call checks), untimed
-        f(obs[:, :20].expand(2, -1, -1), mean.expand(2, -1), cov.expand(2, -1, -1), torch.Generator().manual_seed(0),
-          n_particles=n)
+        f(
+            obs[:, :20].expand(2, -1, -1),
+            mean.expand(2, -1),
+            cov.expand(2, -1, -1),
+            torch.Generator().manual_seed(0),
+            n_particles=n,
+        )
     out, t0 = [], time.perf_counter()
     with torch.no_grad():
         for B, s in calls:
-            res = f(obs.expand(B, -1, -1), mean.expand(B, -1), cov.expand(B, -1, -1), torch.Generator().manual_seed(s),
-                    n_particles=n)
+            res = f(
+                obs.expand(B, -1, -1),
+                mean.expand(B, -1),
+                cov.expand(B, -1, -1),
+                torch.Generator().manual_seed(s),
+                n_particles=n,
+            )
             out.append(res.log_evidence)
     return torch.cat(out).numpy(), (time.perf_counter() - t0) / runs
 
@@ -102,8 +122,19 @@ def flow_specs(text: str) -> List[tuple]:
 
 
 def run(argv) -> dict:
-    a = h.options(__doc__, argv, QUICK, steps=0, runs=100, ns="1000,10000", single_runs="100,10",
-                  flows="ledh:1000:10,ledh:100:50,edh:1000:20", flow_single=2, offset=1e-4, seed=0)
+    a = h.options(
+        __doc__,
+        argv,
+        QUICK,
+        steps=0,
+        runs=100,
+        ns="1000,10000",
+        single_runs="100,10",
+        flows="ledh:1000:10,ledh:100:50,edh:1000:20",
+        flow_single=2,
+        offset=1e-4,
+        seed=0,
+    )
     ns, single = h.ints(a.ns, "--ns"), h.ints(a.single_runs, "--single-runs")
     if len(single) != len(ns):
         raise SystemExit("--single-runs: expected one count per --ns value")
@@ -121,8 +152,21 @@ def run(argv) -> dict:
         t0 = time.perf_counter()
         exact, _ = grid_filter(model, obs[0])
         t_grid = time.perf_counter() - t0
-        rows.append(dict(name="exact (grid, 2000 points)", runs=1, mean=exact, sd=0.0, se=0.0, diff=0.0, ratio=1.0,
-                         ratio_se=0.0, sec_per_run=t_grid, N=None, mode="-"))
+        rows.append(
+            dict(
+                name="exact (grid, 2000 points)",
+                runs=1,
+                mean=exact,
+                sd=0.0,
+                se=0.0,
+                diff=0.0,
+                ratio=1.0,
+                ratio_se=0.0,
+                sec_per_run=t_grid,
+                N=None,
+                mode="-",
+            )
+        )
         bpf = BootstrapParticleFilter(model)
         for n, n_single in zip(ns, single):
             if particles is not None:
@@ -146,22 +190,60 @@ def run(argv) -> dict:
         peer = next((r for r in rows if r["name"] == "particles BPF" and r["N"] == n), None)
         if peer is not None:
             d, se = mine["mean"] - peer["mean"], math.hypot(mine["se"], peer["se"])
-            pairs.append(dict(N=n, diff=d, se=se, z=d / se, var_ratio=(mine["sd"] / peer["sd"]) ** 2,
-                              time_ratio=peer["sec_per_run"] / mine["sec_per_run"]))
-    head = ["estimator", "N", "mode", "runs", "mean log-lik", "sd", "SE", "mean - exact", "mean exp(ll - exact)",
-            "s/run"]
-    table = [[r["name"], h.fmt(r["N"], "{}"), r["mode"], r["runs"], f"{r['mean']:.4f}", h.fmt(r["sd"], "{:.4f}"),
-              h.fmt(r["se"], "{:.4f}"), h.fmt(r["diff"], "{:+.4f}"),
-              "1" if r["runs"] == 1 else f"{r['ratio']:.3f} +- {r['ratio_se']:.3f}", h.fmt(r["sec_per_run"], "{:.3g}")]
-             for r in rows]
-    more = ["`mean exp(ll - exact)` is 1 for an unbiased likelihood estimate; where the log-likelihood's sd is "
-            "about 1 or more its mean is carried by rare runs and few runs understate it (and its SE).", "",
-            "Ours (B = runs, one call) minus particles at equal N: " + "; ".join(
-        f"N = {p['N']}: {p['diff']:+.4f} +- {p['se']:.4f} ({p['z']:+.1f} SE), variance ratio ours/particles "
-        f"{p['var_ratio']:.2f}, particles' s/run over ours {p['time_ratio']:.2f}x" for p in pairs)
-        if pairs else "particles not installed: no peer rows (pip install -e '.[bench]')"]
-    intro = [f"Series: GBP/USD daily log-returns x 100, T = {T}; StochasticVolatility() = particles' StochVol "
-             f"defaults; the log-squared form with offset {a.offset:g}. One thread (torch and BLAS) on a shared machine."]
+            pairs.append(
+                dict(
+                    N=n,
+                    diff=d,
+                    se=se,
+                    z=d / se,
+                    var_ratio=(mine["sd"] / peer["sd"]) ** 2,
+                    time_ratio=peer["sec_per_run"] / mine["sec_per_run"],
+                )
+            )
+    head = [
+        "estimator",
+        "N",
+        "mode",
+        "runs",
+        "mean log-lik",
+        "sd",
+        "SE",
+        "mean - exact",
+        "mean exp(ll - exact)",
+        "s/run",
+    ]
+    table = [
+        [
+            r["name"],
+            h.fmt(r["N"], "{}"),
+            r["mode"],
+            r["runs"],
+            f"{r['mean']:.4f}",
+            h.fmt(r["sd"], "{:.4f}"),
+            h.fmt(r["se"], "{:.4f}"),
+            h.fmt(r["diff"], "{:+.4f}"),
+            "1" if r["runs"] == 1 else f"{r['ratio']:.3f} +- {r['ratio_se']:.3f}",
+            h.fmt(r["sec_per_run"], "{:.3g}"),
+        ]
+        for r in rows
+    ]
+    more = [
+        "`mean exp(ll - exact)` is 1 for an unbiased likelihood estimate; where the log-likelihood's sd is "
+        "about 1 or more its mean is carried by rare runs and few runs understate it (and its SE).",
+        "",
+        "Ours (B = runs, one call) minus particles at equal N: "
+        + "; ".join(
+            f"N = {p['N']}: {p['diff']:+.4f} +- {p['se']:.4f} ({p['z']:+.1f} SE), variance ratio ours/particles "
+            f"{p['var_ratio']:.2f}, particles' s/run over ours {p['time_ratio']:.2f}x"
+            for p in pairs
+        )
+        if pairs
+        else "particles not installed: no peer rows (pip install -e '.[bench]')",
+    ]
+    intro = [
+        f"Series: GBP/USD daily log-returns x 100, T = {T}; StochasticVolatility() = particles' StochVol "
+        f"defaults; the log-squared form with offset {a.offset:g}. One thread (torch and BLAS) on a shared machine."
+    ]
     md = h.report("# Stochastic volatility: log-likelihood on GBP/USD (bench_sv)", a, info, intro, head, table, *more)
     return dict(machine=info, rows=rows, pairs=pairs, exact=exact, T=T, args=vars(a), markdown=md)
 

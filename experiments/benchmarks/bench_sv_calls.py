@@ -9,6 +9,7 @@ trial. A quick before/after of a change to the particle filters' step (run it at
 interleaved, or with a ``knob=value`` of :mod:`torchflow.tuning` against its default); ``bench_sv`` is
 the full comparison with ``particles`` and the exact filter.
 """
+
 import sys
 import time
 
@@ -35,12 +36,22 @@ def main(specs) -> dict:
     for spec in (a for a in specs if "=" not in a):
         B, n, reps = map(int, spec.split(":"))
         with torch.no_grad():
-            f(y[:, :20].expand(2, -1, -1), mean.expand(2, -1), cov.expand(2, -1, -1), torch.Generator().manual_seed(0),
-              n_particles=n)
+            f(
+                y[:, :20].expand(2, -1, -1),
+                mean.expand(2, -1),
+                cov.expand(2, -1, -1),
+                torch.Generator().manual_seed(0),
+                n_particles=n,
+            )
             t0 = time.perf_counter()
             for i in range(reps):
-                f(y.expand(B, -1, -1), mean.expand(B, -1), cov.expand(B, -1, -1), torch.Generator().manual_seed(i),
-                  n_particles=n)
+                f(
+                    y.expand(B, -1, -1),
+                    mean.expand(B, -1),
+                    cov.expand(B, -1, -1),
+                    torch.Generator().manual_seed(i),
+                    n_particles=n,
+                )
             out[spec] = (time.perf_counter() - t0) / reps / B
         print(f"B={B} N={n} reps={reps}: {out[spec]:.4f} s/trial", flush=True)
     return out

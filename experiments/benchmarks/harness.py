@@ -3,6 +3,7 @@ libraries and the results files. A benchmark module's ``run(argv)`` returns ``{"
 "markdown", "args", ...}``; ``python -m experiments.benchmarks.<module>`` also writes ``results_<name>.md``
 and ``.json`` here (``--quick``: ``results_<name>_quick.*``; ``--out``: elsewhere).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -20,9 +21,17 @@ from typing import Any, Callable, Iterable, List, Optional, Sequence
 
 import torch
 
-from torchflow.filters import (GPFIS, BootstrapParticleFilter, ExtendedKalmanFilter, GaussianSumParticleFilter,
-                               KalmanFilter, ParticleFlowFilter, ParticleFlowGaussianSumParticleFilter,
-                               ParticleFlowParticleFilter, UnscentedKalmanFilter)
+from torchflow.filters import (
+    GPFIS,
+    BootstrapParticleFilter,
+    ExtendedKalmanFilter,
+    GaussianSumParticleFilter,
+    KalmanFilter,
+    ParticleFlowFilter,
+    ParticleFlowGaussianSumParticleFilter,
+    ParticleFlowParticleFilter,
+    UnscentedKalmanFilter,
+)
 from torchflow.random import TrialStreams
 
 HERE = Path(__file__).resolve().parent
@@ -43,14 +52,21 @@ class Timing:
     mean = property(lambda self: sum(self.times) / len(self.times))
 
 
-def time_calls(fn: Callable[[], Any], repeats: int = 1, warmup: int = 0, budget: Optional[float] = None,
-               max_repeats: int = 100, device=None) -> Timing:
+def time_calls(
+    fn: Callable[[], Any],
+    repeats: int = 1,
+    warmup: int = 0,
+    budget: Optional[float] = None,
+    max_repeats: int = 100,
+    device=None,
+) -> Timing:
     """Call ``fn()`` ``warmup`` times, then time it ``repeats`` times or, with ``budget``, until the timed
     calls add up to ``budget`` seconds (at least once, at most ``max_repeats`` times); the CUDA queue
     of ``device`` is synchronised before each clock read."""
     if int(repeats) < 1 or int(warmup) < 0 or int(max_repeats) < 1:
-        raise ValueError(f"time_calls: expected repeats >= 1, warmup >= 0, max_repeats >= 1, got "
-                         f"{repeats}, {warmup}, {max_repeats}")
+        raise ValueError(
+            f"time_calls: expected repeats >= 1, warmup >= 0, max_repeats >= 1, got {repeats}, {warmup}, {max_repeats}"
+        )
     if budget is not None and not budget >= 0:
         raise ValueError(f"time_calls: budget: expected seconds >= 0, got {budget}")
     cuda = device is not None and torch.device(device).type == "cuda"
@@ -79,12 +95,15 @@ def filter_chunks(f, obs, mean, cov, chunk: Optional[int], randomness: Callable[
     B = obs.shape[0]
     chunk = chunk or B
     with torch.no_grad():
-        return [f(obs[s:s + chunk], mean[s:s + chunk], cov[s:s + chunk], randomness(s, min(s + chunk, B)))
-                for s in range(0, B, chunk)]
+        return [
+            f(obs[s : s + chunk], mean[s : s + chunk], cov[s : s + chunk], randomness(s, min(s + chunk, B)))
+            for s in range(0, B, chunk)
+        ]
 
 
-def time_filter(f, obs, mean, cov, chunk: Optional[int], randomness, warm=(1, 1), warm_randomness=None,
-                **timing) -> Timing:
+def time_filter(
+    f, obs, mean, cov, chunk: Optional[int], randomness, warm=(1, 1), warm_randomness=None, **timing
+) -> Timing:
     """An untimed call on the first ``warm = (trials, steps)``, then :func:`time_calls` (``timing``) of
     :func:`filter_chunks` (``warm_randomness``: the warm-up's randomness)."""
     b, k = warm
@@ -123,8 +142,11 @@ def blas_limit(n_threads: int):
 def blas_threads() -> str:
     """``"openblas:1,..."``: numpy/scipy's BLAS libraries and their thread counts now."""
     tpc = peer("threadpoolctl")
-    infos = [] if tpc is None else [f"{i['internal_api']}:{i['num_threads']}" for i in tpc.threadpool_info()
-                                    if i["user_api"] == "blas"]
+    infos = (
+        []
+        if tpc is None
+        else [f"{i['internal_api']}:{i['num_threads']}" for i in tpc.threadpool_info() if i["user_api"] == "blas"]
+    )
     return ",".join(infos) or "?"
 
 
@@ -137,8 +159,11 @@ def loadavg() -> Optional[list]:
 
 def _cpu_name() -> str:
     with contextlib.suppress(OSError, StopIteration):
-        return next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                    if line.startswith("model name"))
+        return next(
+            line.split(":", 1)[1].strip()
+            for line in Path("/proc/cpuinfo").read_text().splitlines()
+            if line.startswith("model name")
+        )
     return platform.processor() or platform.machine() or "unknown CPU"
 
 
@@ -147,9 +172,17 @@ def machine(device=None, **extra) -> dict:
     import numpy as np
 
     device = torch.device(device or "cpu")
-    info = dict(platform=platform.platform(), processor=_cpu_name(), cpus=os.cpu_count(),
-                python=platform.python_version(), torch=torch.__version__, numpy=np.__version__,
-                torch_threads=torch.get_num_threads(), device=str(device), load_start=loadavg())
+    info = dict(
+        platform=platform.platform(),
+        processor=_cpu_name(),
+        cpus=os.cpu_count(),
+        python=platform.python_version(),
+        torch=torch.__version__,
+        numpy=np.__version__,
+        torch_threads=torch.get_num_threads(),
+        device=str(device),
+        load_start=loadavg(),
+    )
     with contextlib.suppress(ValueError, OSError, AttributeError):
         info["mem_total_gb"] = round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1)
     if device.type == "cuda":
@@ -160,21 +193,30 @@ def machine(device=None, **extra) -> dict:
 
 def machine_line(info: dict) -> str:
     """``Machine: ...`` line of a report, with the load at start and end (items missing: ``?``)."""
-    get = lambda k: info.get(k, "?")  # noqa: E731
+    get = lambda k: info.get(k, "?")
     gpu = f", GPU {info['gpu']}" if info.get("gpu") else ""
     mem = f", {info['mem_total_gb']} GiB RAM" if info.get("mem_total_gb") else ""
     threads = info.get("torch_threads", info.get("threads", "?"))
-    return (f"Machine: {get('platform')}, {get('processor')}, {get('cpus')} CPUs{mem}; python {get('python')}, "
-            f"torch {get('torch')} ({threads} threads), numpy {get('numpy')}; device {get('device')}{gpu}. "
-            f"Load average (1/5/15 min) at start {info.get('load_start')}, at end {info.get('load_end')}.")
+    return (
+        f"Machine: {get('platform')}, {get('processor')}, {get('cpus')} CPUs{mem}; python {get('python')}, "
+        f"torch {get('torch')} ({threads} threads), numpy {get('numpy')}; device {get('device')}{gpu}. "
+        f"Load average (1/5/15 min) at start {info.get('load_start')}, at end {info.get('load_end')}."
+    )
 
 
 def header(title: str, quick: bool, info: dict, *lines: str) -> List[str]:
     """Opening lines of a report: the title, the machine, ``lines`` and the command."""
-    return [title + (" (--quick)" if quick else ""), "", machine_line(info), *lines, f"Command: `{info['command']}`", ""]
+    return [
+        title + (" (--quick)" if quick else ""),
+        "",
+        machine_line(info),
+        *lines,
+        f"Command: `{info['command']}`",
+        "",
+    ]
 
 
-command = lambda name, argv: " ".join(["python -m experiments.benchmarks." + name, *map(str, argv or [])])  # noqa
+command = lambda name, argv: " ".join(["python -m experiments.benchmarks." + name, *map(str, argv or [])])
 
 
 def peer(name: str, *submodules: str):
@@ -196,15 +238,29 @@ def skipped(name: str) -> str:
 
 
 FLOWS = {"ledh": "LEDH", "edh": "EDH", "gromov": "Gromov", "geodesic": "Geodesic", "osd": "OSD"}
-LABELS = {"kf": "KF", "ekf": "EKF", "ukf": "UKF", "bpf": "BPF", "pfgspf": "PFGSPF", "gspf": "GSPF", "gpfis": "GPFIS",
-          **{f: f"PF-PF({n})" for f, n in FLOWS.items()}, **{f"flow_{f}": f"{n} flow" for f, n in FLOWS.items()}}
+LABELS = {
+    "kf": "KF",
+    "ekf": "EKF",
+    "ukf": "UKF",
+    "bpf": "BPF",
+    "pfgspf": "PFGSPF",
+    "gspf": "GSPF",
+    "gpfis": "GPFIS",
+    **{f: f"PF-PF({n})" for f, n in FLOWS.items()},
+    **{f"flow_{f}": f"{n} flow" for f, n in FLOWS.items()},
+}
 #: key -> (class, constructor settings, whether it takes ``n_particles``)
-FILTERS = {"kf": (KalmanFilter, {}, False), "ekf": (ExtendedKalmanFilter, {}, False),
-           "ukf": (UnscentedKalmanFilter, {}, False), "bpf": (BootstrapParticleFilter, {}, True),
-           "gpfis": (GPFIS, {}, True),
-           "gspf": (GaussianSumParticleFilter, {}, False), "pfgspf": (ParticleFlowGaussianSumParticleFilter, {}, False),
-           **{f: (ParticleFlowParticleFilter, dict(flow=f), True) for f in FLOWS},
-           **{f"flow_{f}": (ParticleFlowFilter, dict(flow=f), True) for f in FLOWS}}
+FILTERS = {
+    "kf": (KalmanFilter, {}, False),
+    "ekf": (ExtendedKalmanFilter, {}, False),
+    "ukf": (UnscentedKalmanFilter, {}, False),
+    "bpf": (BootstrapParticleFilter, {}, True),
+    "gpfis": (GPFIS, {}, True),
+    "gspf": (GaussianSumParticleFilter, {}, False),
+    "pfgspf": (ParticleFlowGaussianSumParticleFilter, {}, False),
+    **{f: (ParticleFlowParticleFilter, dict(flow=f), True) for f in FLOWS},
+    **{f"flow_{f}": (ParticleFlowFilter, dict(flow=f), True) for f in FLOWS},
+}
 
 
 def make_filter(key: str, model, n_particles: Optional[int] = None, **kw):
@@ -273,8 +329,9 @@ def session(name: str, argv, threads: Optional[int] = None, device=None, **extra
         info["load_end"] = loadavg()
 
 
-def report(title: str, a, info: dict, intro: Sequence[str], head: Sequence[str], rows: Iterable[Sequence],
-           *more: str) -> str:
+def report(
+    title: str, a, info: dict, intro: Sequence[str], head: Sequence[str], rows: Iterable[Sequence], *more: str
+) -> str:
     """Markdown of a run: :func:`header` (``intro`` its lines), the table, then ``more`` lines."""
     lines = header(title, a.quick, info, *intro) + md_table(head, rows) + ([""] if more else []) + list(more)
     return "\n".join(lines) + "\n"
@@ -313,8 +370,9 @@ def write_results(res: dict, name: str, quick: bool = False, out: Optional[str] 
     md = path.with_suffix(".md") if path.suffix == ".json" else path
     md.parent.mkdir(parents=True, exist_ok=True)
     md.write_text(res["markdown"])
-    md.with_suffix(".json").write_text(json.dumps({k: v for k, v in res.items() if k != "markdown"},
-                                                  indent=1, default=str))
+    md.with_suffix(".json").write_text(
+        json.dumps({k: v for k, v in res.items() if k != "markdown"}, indent=1, default=str)
+    )
     print(res["markdown"])
     print(f"wrote {md} and {md.with_suffix('.json')}")
     return md

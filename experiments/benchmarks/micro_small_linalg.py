@@ -9,6 +9,7 @@ Per op: microseconds per call (median of ``--reps`` after a warm-up), for the li
 (:func:`torchflow.linalg.small_cholesky`, :func:`torchflow.linalg.small_solve_lower`), which on a GPU
 may beat the batched LAPACK-style kernels for tiny matrices.
 """
+
 from __future__ import annotations
 
 import statistics
@@ -34,8 +35,17 @@ def _time(fn, reps, sync):
 
 
 def run(argv=None) -> dict:
-    a = h.options(__doc__, argv, dict(batch=2000, reps=3), device="cpu", batch=50_000, ks="8,16", reps=20,
-                  dtype="float64", threads=2)
+    a = h.options(
+        __doc__,
+        argv,
+        dict(batch=2000, reps=3),
+        device="cpu",
+        batch=50_000,
+        ks="8,16",
+        reps=20,
+        dtype="float64",
+        threads=2,
+    )
     torch.set_num_threads(a.threads)
     device, dtype = torch.device(a.device), getattr(torch, a.dtype)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
@@ -45,8 +55,10 @@ def run(argv=None) -> dict:
         X = torch.randn(a.batch, k, k, generator=g, device=device, dtype=dtype)
         A = X @ X.transpose(-1, -2) / k + torch.eye(k, device=device, dtype=dtype)
         L = torch.linalg.cholesky(A)
-        V, v = torch.randn(a.batch, k, k, generator=g, device=device, dtype=dtype), torch.randn(
-            a.batch, k, 1, generator=g, device=device, dtype=dtype)
+        V, v = (
+            torch.randn(a.batch, k, k, generator=g, device=device, dtype=dtype),
+            torch.randn(a.batch, k, 1, generator=g, device=device, dtype=dtype),
+        )
         ops = {
             "cholesky_ex": lambda: torch.linalg.cholesky_ex(A),
             "small_cholesky": lambda: linalg.small_cholesky(A),

@@ -9,6 +9,7 @@ zero is what two runs with equal statistics give. Trials share their random stre
 one seed, so pairing removes most of the Monte Carlo noise that separates two independent runs.
 Rows: a markdown table on stdout.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -48,18 +49,32 @@ def paired(a: Dict, b: Dict, metrics: Sequence[str]) -> List[dict]:
             mean = sum(d) / n
             sd = math.sqrt(sum((v - mean) ** 2 for v in d) / (n - 1)) if n > 1 else float("nan")
             se = sd / math.sqrt(n)
-            rows.append(dict(filter=name, metric=m, n=n, mean_a=sum(x for x, _ in pairs) / n,
-                             mean_b=sum(y for _, y in pairs) / n, diff=mean, se=se,
-                             z=mean / se if se > 0 else (0.0 if mean == 0 else float("inf"))))
+            rows.append(
+                dict(
+                    filter=name,
+                    metric=m,
+                    n=n,
+                    mean_a=sum(x for x, _ in pairs) / n,
+                    mean_b=sum(y for _, y in pairs) / n,
+                    diff=mean,
+                    se=se,
+                    z=mean / se if se > 0 else (0.0 if mean == 0 else float("inf")),
+                )
+            )
     return rows
 
 
 def table(rows: List[dict], a_label: str = "A", b_label: str = "B") -> str:
     """The rows as a markdown table."""
-    out = [f"| filter | metric | pairs | mean {a_label} | mean {b_label} | {b_label} - {a_label} | SE | z |",
-           "|---|---|---|---|---|---|---|---|"]
-    out += [f"| {r['filter']} | {r['metric']} | {r['n']} | {r['mean_a']:.6g} | {r['mean_b']:.6g} | {r['diff']:+.3g} | "
-            f"{r['se']:.3g} | {r['z']:+.2f} |" for r in rows]
+    out = [
+        f"| filter | metric | pairs | mean {a_label} | mean {b_label} | {b_label} - {a_label} | SE | z |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    out += [
+        f"| {r['filter']} | {r['metric']} | {r['n']} | {r['mean_a']:.6g} | {r['mean_b']:.6g} | {r['diff']:+.3g} | "
+        f"{r['se']:.3g} | {r['z']:+.2f} |"
+        for r in rows
+    ]
     return "\n".join(out)
 
 

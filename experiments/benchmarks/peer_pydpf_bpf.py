@@ -27,6 +27,7 @@ around each):
 Python >= 3.12; it imports polars and numpydoc at import time for its data-loading helpers, which
 are not used here: where they are missing the script puts empty stand-ins in ``sys.modules`` first.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -51,6 +52,7 @@ def _stub_missing(*names):
                 if attr.startswith("__"):
                     raise AttributeError(attr)
                 return type(attr, (), {})
+
             m.__getattr__ = ga
             sys.modules[n] = m
 
@@ -83,8 +85,9 @@ def pydpf_available() -> bool:
     return True
 
 
-def compare(device, ns, trials: int = 100, steps: int = 10, d: int = 64, dtype=torch.float32, reps: int = 3,
-            log=print) -> list:
+def compare(
+    device, ns, trials: int = 100, steps: int = 10, d: int = 64, dtype=torch.float32, reps: int = 3, log=print
+) -> list:
     """One row per N: seconds per trial-step of ``torchflow`` (defaults), ``torchflow, resample always``
     and ``PyDPF`` (``None`` with ``PyDPF error`` when it fails, e.g. out of memory), on ``device``."""
     device = torch.device(device)
@@ -125,29 +128,40 @@ def _compare(device, ns, trials, steps, d, dtype, reps, log):
         def log_density(self, state, **data):
             return torch.distributions.MultivariateNormal(zero, scale_tril=LQ).log_prob(state)
 
-    ssm = pydpf.FilteringModel(dynamic_model=pydpf.LinearGaussian(weight=F, bias=zero, cholesky_covariance=LQ, generator=pg),
-                               observation_model=pydpf.LinearGaussian(weight=H, bias=zero.clone(), cholesky_covariance=LR,
-                                                                      generator=pg),
-                               prior_model=Prior())
+    ssm = pydpf.FilteringModel(
+        dynamic_model=pydpf.LinearGaussian(weight=F, bias=zero, cholesky_covariance=LQ, generator=pg),
+        observation_model=pydpf.LinearGaussian(weight=H, bias=zero.clone(), cholesky_covariance=LR, generator=pg),
+        prior_model=Prior(),
+    )
     peer = pydpf.ParticleFilter(pydpf.MultinomialResampler(generator=pg), ssm)
     obs_tb = obs.transpose(0, 1).contiguous()  # PyDPF is time-major (T, B, m)
     rows = []
     for n in ns:
         row = {"N": int(n)}
-        for name, kw, gen in (("torchflow", {}, "streams"), ("torchflow, torch.Generator", {}, "torch"),
-                              ("torchflow, resample always", dict(resampling="multinomial", ess_threshold=1.0), "streams")):
+        for name, kw, gen in (
+            ("torchflow", {}, "streams"),
+            ("torchflow, torch.Generator", {}, "torch"),
+            ("torchflow, resample always", dict(resampling="multinomial", ess_threshold=1.0), "streams"),
+        ):
             f = BootstrapParticleFilter(model, n_particles=int(n), **kw)
-            tg = (torch.Generator(device=device).manual_seed(2) if gen == "torch"
-                  else TrialStreams(2, trials, f.stream_name))  # made once: calls continue the streams
+            tg = (
+                torch.Generator(device=device).manual_seed(2)
+                if gen == "torch"
+                else TrialStreams(2, trials, f.stream_name)
+            )  # made once: calls continue the streams
 
             def ours(f=f, tg=tg):
                 with torch.no_grad():
                     f(obs, mean, cov, tg)
+
             row[name] = _time(ours, reps, device) / (trials * steps)
 
         def theirs(n=int(n)):
             with torch.no_grad():
-                peer(n_particles=n, time_extent=steps - 1, aggregation_function=pydpf.FilteringMean(), observation=obs_tb)
+                peer(
+                    n_particles=n, time_extent=steps - 1, aggregation_function=pydpf.FilteringMean(), observation=obs_tb
+                )
+
         try:
             row["PyDPF"] = _time(theirs, reps, device) / (trials * steps)
         except RuntimeError as err:  # out of memory at the largest N, say
@@ -169,20 +183,35 @@ def main(argv=None):
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     device = torch.device(a.device)
-    rows = compare(device, [int(float(v)) for v in a.ns.split(",")], a.trials, a.steps, a.d, getattr(torch, a.dtype),
-                   a.reps, log=lambda line: print(line, flush=True))
+    rows = compare(
+        device,
+        [int(float(v)) for v in a.ns.split(",")],
+        a.trials,
+        a.steps,
+        a.d,
+        getattr(torch, a.dtype),
+        a.reps,
+        log=lambda line: print(line, flush=True),
+    )
     import pydpf
+
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
-    lines = [f"# Bootstrap PF: torchflow against PyDPF {getattr(pydpf, '__version__', '1.2.3')}",
-             "", f"{name}, torch {torch.__version__}, {a.dtype}, SensorNetwork d = {a.d}, {a.trials} trials x {a.steps} steps "
-             f"per call, best of {a.reps} after a warm-up; seconds per trial-step. ratio = PyDPF / torchflow (> 1: torchflow faster).",
-             "", "| N | torchflow | torchflow, torch.Generator | torchflow, resample always | PyDPF | ratio (default) "
-             "| ratio (torch.Generator) | ratio (resample always) |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"# Bootstrap PF: torchflow against PyDPF {getattr(pydpf, '__version__', '1.2.3')}",
+        "",
+        f"{name}, torch {torch.__version__}, {a.dtype}, SensorNetwork d = {a.d}, {a.trials} trials x {a.steps} steps "
+        f"per call, best of {a.reps} after a warm-up; seconds per trial-step. ratio = PyDPF / torchflow (> 1: "
+        "torchflow faster).",
+        "",
+        "| N | torchflow | torchflow, torch.Generator | torchflow, resample always | PyDPF | ratio (default) "
+        "| ratio (torch.Generator) | ratio (resample always) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
         p, t, tg, t1 = r["PyDPF"], r["torchflow"], r["torchflow, torch.Generator"], r["torchflow, resample always"]
-        peer, ratio, ratio_g, ratio1 = (("error", "-", "-", "-") if p is None else
-                                        (f"{p:.3g}", f"{p / t:.2f}", f"{p / tg:.2f}", f"{p / t1:.2f}"))
+        peer, ratio, ratio_g, ratio1 = (
+            ("error", "-", "-", "-") if p is None else (f"{p:.3g}", f"{p / t:.2f}", f"{p / tg:.2f}", f"{p / t1:.2f}")
+        )
         lines.append(f"| {r['N']} | {t:.3g} | {tg:.3g} | {t1:.3g} | {peer} | {ratio} | {ratio_g} | {ratio1} |")
     md = "\n".join(lines) + "\n"
     print(md)

@@ -63,6 +63,7 @@ of the forward value is ~1e-7 relative and only touches the printed log-likeliho
 ``NegLogDataLikelihood_Loss`` is a kernel-density loss against a ground-truth state, not the
 log-evidence, so it is not used.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -87,6 +88,7 @@ with warnings.catch_warnings():
 
 try:
     from importlib.metadata import version as _version
+
     PYDPF_VERSION = _version("pydpf")
 except Exception:  # pragma: no cover
     PYDPF_VERSION = getattr(pydpf, "__version__", "unknown")
@@ -101,8 +103,9 @@ class PredictedPrior(pydpf.Module):
     the first observed state, built from the F parameter on every call so that its gradient flows
     through the first step (a reparameterised draw, as in a filter that starts at x_0)."""
 
-    def __init__(self, F: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, Q: torch.Tensor,
-                 generator: torch.Generator):
+    def __init__(
+        self, F: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, Q: torch.Tensor, generator: torch.Generator
+    ):
         super().__init__()
         self.F = F
         self.m0 = mean
@@ -145,8 +148,9 @@ def build_ssm(P: dict, F: torch.Tensor, g: torch.Generator):
     d = F.shape[0]
     zero = torch.zeros(d, dtype=DTYPE)
     dyn = pydpf.LinearGaussian(weight=F, bias=zero, cholesky_covariance=torch.linalg.cholesky(P["Q"]), generator=g)
-    obs = pydpf.LinearGaussian(weight=P["H"], bias=zero.clone(), cholesky_covariance=torch.linalg.cholesky(P["R"]),
-                               generator=g)
+    obs = pydpf.LinearGaussian(
+        weight=P["H"], bias=zero.clone(), cholesky_covariance=torch.linalg.cholesky(P["R"]), generator=g
+    )
     prior = PredictedPrior(F, P["mean"][0], P["cov"][0], P["Q"], g)
     return pydpf.FilteringModel(dynamic_model=dyn, observation_model=obs, prior_model=prior)
 
@@ -159,8 +163,9 @@ def build_filter(est: str, ssm, g: torch.Generator, a):
     if est == "soft":
         return pydpf.SoftDPF(ssm, softness=a.soft_alpha, resampling_generator=g, multinomial=True)
     if est == "ot":
-        return pydpf.OptimalTransportDPF(ssm, regularisation=a.ot_epsilon, max_iterations=a.ot_iterations,
-                                         transport_gradient_clip=a.ot_clip)
+        return pydpf.OptimalTransportDPF(
+            ssm, regularisation=a.ot_epsilon, max_iterations=a.ot_iterations, transport_gradient_clip=a.ot_clip
+        )
     if est == "dpf_detach":
         return pydpf.DPF(ssm, resampling_generator=g, multinomial=True)
     if est == "marginal_stop_gradient":
@@ -173,7 +178,7 @@ CLASS_OF = {
     "stop_gradient": "StopGradientDPF(multinomial=True)",
     "soft": "SoftDPF(softness={alpha}, multinomial=True)",
     "ot": "OptimalTransportDPF(regularisation={eps}, max_iterations={iters}, decay_rate=0.9, min_update_size=0.01, "
-          "transport_gradient_clip={clip})",
+    "transport_gradient_clip={clip})",
     "dpf_detach": "DPF(multinomial=True)",
     "marginal_stop_gradient": "MarginalStopGradientDPF(multinomial=True)",
 }
@@ -184,11 +189,13 @@ def log_evidence(pf, n: int, obs_tb: torch.Tensor) -> torch.Tensor:
     T = obs_tb.shape[0]
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        out = pf(n_particles=n, time_extent=T - 1, aggregation_function=pydpf.LogLikelihoodFactors(),
-                 observation=obs_tb)
+        out = pf(
+            n_particles=n, time_extent=T - 1, aggregation_function=pydpf.LogLikelihoodFactors(), observation=obs_tb
+        )
     if out.shape[0] != T:  # PyDPF stops early (with a warning) when every weight of a trial vanishes
-        raise RuntimeError(f"PyDPF stopped after {out.shape[0]} of {T} steps: "
-                           + "; ".join(str(w.message) for w in caught))
+        raise RuntimeError(
+            f"PyDPF stopped after {out.shape[0]} of {T} steps: " + "; ".join(str(w.message) for w in caught)
+        )
     return out.to(DTYPE).sum(0)
 
 
@@ -202,17 +209,21 @@ def kalman_check(P: dict) -> dict:
     prior = pydpf.MultivariateGaussian(mean=m1, cholesky_covariance=torch.linalg.cholesky(P1), generator=g)
     zero = torch.zeros(d, dtype=DTYPE)
     dyn = pydpf.LinearGaussian(weight=F, bias=zero, cholesky_covariance=torch.linalg.cholesky(P["Q"]), generator=g)
-    obs = pydpf.LinearGaussian(weight=P["H"], bias=zero.clone(), cholesky_covariance=torch.linalg.cholesky(P["R"]),
-                               generator=g)
+    obs = pydpf.LinearGaussian(
+        weight=P["H"], bias=zero.clone(), cholesky_covariance=torch.linalg.cholesky(P["R"]), generator=g
+    )
     kf = pydpf.KalmanFilter(prior_model=prior, dynamic_model=dyn, observation_model=obs)
     obs_tb = time_major(P["obs"], 1)
     _, _, factors = kf(time_extent=obs_tb.shape[0] - 1, observation=obs_tb)
     log_z = factors.sum()
     (grad,) = torch.autograd.grad(log_z, F)
     log_z = log_z.item()
-    return dict(log_z=log_z, grad_F=grad.tolist(),
-                log_z_err=abs(log_z - float(P["log_z"])),
-                grad_err=float((grad - P["grad_F"]).abs().max()))
+    return dict(
+        log_z=log_z,
+        grad_F=grad.tolist(),
+        log_z_err=abs(log_z - float(P["log_z"])),
+        grad_err=float((grad - P["grad_F"]).abs().max()),
+    )
 
 
 def particle_check(P: dict, n: int, trials: int, seed: int) -> dict:
@@ -226,7 +237,7 @@ def particle_check(P: dict, n: int, trials: int, seed: int) -> dict:
     sd = float(lz.std()) if trials > 1 else float("nan")
     se = sd / math.sqrt(trials)
     # E[log Z_hat] ~ log Z - Var/2 (Jensen): allow that on top of 5 standard errors
-    tol = 5 * se + 0.5 * sd ** 2
+    tol = 5 * se + 0.5 * sd**2
     return dict(N=n, trials=trials, mean=mean, se=se, sd=sd, tol=tol, err=mean - float(P["log_z"]))
 
 
@@ -277,14 +288,25 @@ def run_cell(P: dict, est: str, n: int, a) -> dict:
     ex = exact.flatten()
     mu = Gk.mean(0)
     sd = Gk.std(0) if k > 1 else torch.full_like(mu, float("nan"))
-    return dict(library="PyDPF", estimator=est, pydpf_class=CLASS_OF[est].format(
-                    alpha=a.soft_alpha, eps=a.ot_epsilon, iters=a.ot_iterations, clip=a.ot_clip),
-                N=n, trials=a.trials, trials_per_call=sizes[0], reps=a.reps, finite_reps=k, runs=a.trials * k,
-                bias=float((mu - ex).norm()),
-                max_t=float(((mu - ex) / (sd / math.sqrt(k))).abs().max()),
-                sd_run=float((sd * math.sqrt(a.trials)).norm()), exact_norm=float(ex.norm()),
-                fwd=statistics.median(fwd) if fwd else float("nan"), fwd_bwd=statistics.median(fb),
-                mean_grad=mu.reshape(exact.shape).tolist(), sd_grad=sd.reshape(exact.shape).tolist())
+    return dict(
+        library="PyDPF",
+        estimator=est,
+        pydpf_class=CLASS_OF[est].format(alpha=a.soft_alpha, eps=a.ot_epsilon, iters=a.ot_iterations, clip=a.ot_clip),
+        N=n,
+        trials=a.trials,
+        trials_per_call=sizes[0],
+        reps=a.reps,
+        finite_reps=k,
+        runs=a.trials * k,
+        bias=float((mu - ex).norm()),
+        max_t=float(((mu - ex) / (sd / math.sqrt(k))).abs().max()),
+        sd_run=float((sd * math.sqrt(a.trials)).norm()),
+        exact_norm=float(ex.norm()),
+        fwd=statistics.median(fwd) if fwd else float("nan"),
+        fwd_bwd=statistics.median(fb),
+        mean_grad=mu.reshape(exact.shape).tolist(),
+        sd_grad=sd.reshape(exact.shape).tolist(),
+    )
 
 
 def fmt(x, spec="{:.3g}"):
@@ -294,8 +316,9 @@ def fmt(x, spec="{:.3g}"):
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--problem", default=str(Path(__file__).resolve().parent / "gradients_problem.pt"))
     p.add_argument("--n", default="100,1000", help="particle counts, comma-separated")
     p.add_argument("--trials", type=int, default=20)
@@ -303,16 +326,21 @@ def parse_args(argv=None):
     p.add_argument("--fwd-reps", type=int, default=3, help="no_grad forward calls timed per cell (median)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--estimators", default=",".join(DEFAULT_ESTIMATORS),
-                   help=f"of {DEFAULT_ESTIMATORS + EXTRA_ESTIMATORS}")
+    p.add_argument(
+        "--estimators", default=",".join(DEFAULT_ESTIMATORS), help=f"of {DEFAULT_ESTIMATORS + EXTRA_ESTIMATORS}"
+    )
     p.add_argument("--soft-alpha", type=float, default=0.5)
     p.add_argument("--ot-epsilon", type=float, default=0.1)
     p.add_argument("--ot-iterations", type=int, default=50)
     p.add_argument("--ot-clip", type=float, default=1.0, help="PyDPF's transport_gradient_clip (its default 1)")
     p.add_argument("--ot-max-n", type=int, default=1000)
-    p.add_argument("--mem-gb", type=float, default=6.0,
-                   help="memory budget of one batched call of the O(N^2) estimators (ot): their trials are split "
-                        "into calls that fit it (0: never split)")
+    p.add_argument(
+        "--mem-gb",
+        type=float,
+        default=6.0,
+        help="memory budget of one batched call of the O(N^2) estimators (ot): their trials are split "
+        "into calls that fit it (0: never split)",
+    )
     p.add_argument("--check-n", type=int, default=10000, help="particles of the large-N log-likelihood check")
     p.add_argument("--check-trials", type=int, default=16)
     p.add_argument("--out", default=None, help="write the markdown here and a .json beside it")
@@ -333,22 +361,30 @@ def main(argv=None) -> dict:
     torch.manual_seed(a.seed)
     P = load_problem(a.problem)
     T = P["obs"].shape[1]
-    command = "python " + " ".join([os.path.relpath(sys.argv[0]) if argv is None else "peer_pydpf_gradients.py"]
-                                   + (sys.argv[1:] if argv is None else list(argv)))
+    command = "python " + " ".join(
+        [os.path.relpath(sys.argv[0]) if argv is None else "peer_pydpf_gradients.py"]
+        + (sys.argv[1:] if argv is None else list(argv))
+    )
     started = time.time()
 
     kc = kalman_check(P)
-    print(f"PyDPF KalmanFilter (predicted prior built from F): log Z = {kc['log_z']:.6f} "
-          f"(file {float(P['log_z']):.6f}, |diff| {kc['log_z_err']:.2e}); grad_F max |diff| {kc['grad_err']:.2e}",
-          flush=True)
+    print(
+        f"PyDPF KalmanFilter (predicted prior built from F): log Z = {kc['log_z']:.6f} "
+        f"(file {float(P['log_z']):.6f}, |diff| {kc['log_z_err']:.2e}); grad_F max |diff| {kc['grad_err']:.2e}",
+        flush=True,
+    )
     assert kc["log_z_err"] < 1e-6, f"PyDPF's Kalman log Z {kc['log_z']} != {float(P['log_z'])}"
-    assert kc["grad_err"] < 1e-6 * max(1.0, float(P["grad_F"].abs().max())), \
+    assert kc["grad_err"] < 1e-6 * max(1.0, float(P["grad_F"].abs().max())), (
         f"PyDPF's Kalman gradient {kc['grad_F']} != {P['grad_F'].tolist()}"
+    )
     t0 = time.perf_counter()
     pc = particle_check(P, a.check_n, a.check_trials, a.seed + 99)
-    print(f"PyDPF particle filter N = {pc['N']} ({pc['trials']} trials): mean log Z_hat = {pc['mean']:.4f} "
-          f"+- {pc['se']:.4f} (SE), error {pc['err']:+.4f}, tolerance {pc['tol']:.4f} "
-          f"({time.perf_counter() - t0:.1f} s)", flush=True)
+    print(
+        f"PyDPF particle filter N = {pc['N']} ({pc['trials']} trials): mean log Z_hat = {pc['mean']:.4f} "
+        f"+- {pc['se']:.4f} (SE), error {pc['err']:+.4f}, tolerance {pc['tol']:.4f} "
+        f"({time.perf_counter() - t0:.1f} s)",
+        flush=True,
+    )
     assert abs(pc["err"]) <= pc["tol"], f"PyDPF's particle log Z {pc['mean']} is off {float(P['log_z'])}"
 
     rows = []
@@ -360,8 +396,11 @@ def main(argv=None) -> dict:
             t0 = time.perf_counter()
             rows.append(run_cell(P, est, n, a))
             r = rows[-1]
-            print(f"{est:>22s} N={n:<6d} bias {r['bias']:.3g} max|t| {r['max_t']:.1f} sd/run {r['sd_run']:.3g} "
-                  f"fwd {r['fwd']:.3g} fwd+bwd {r['fwd_bwd']:.3g} s/ts ({time.perf_counter() - t0:.1f} s)", flush=True)
+            print(
+                f"{est:>22s} N={n:<6d} bias {r['bias']:.3g} max|t| {r['max_t']:.1f} sd/run {r['sd_run']:.3g} "
+                f"fwd {r['fwd']:.3g} fwd+bwd {r['fwd_bwd']:.3g} s/ts ({time.perf_counter() - t0:.1f} s)",
+                flush=True,
+            )
 
     head = ["library", "estimator", "N", "runs", "bias", "max abs t", "sd/run", "abs exact", "fwd s/ts", "fwd+bwd s/ts"]
     lines = [
@@ -377,29 +416,58 @@ def main(argv=None) -> dict:
         f"Checks: PyDPF KalmanFilter log Z = {kc['log_z']:.6f} (exact {float(P['log_z']):.6f}), its grad_F within "
         f"{kc['grad_err']:.1e}; PyDPF particle filter N = {pc['N']}, {pc['trials']} trials: mean log Z_hat "
         f"{pc['mean']:.4f} +- {pc['se']:.4f}.",
-        "Estimators: " + "; ".join(f"{e}: {CLASS_OF[e].format(alpha=a.soft_alpha, eps=a.ot_epsilon, iters=a.ot_iterations, clip=a.ot_clip)}"
-                                    for e in a.ests) + ". Per cell: " + f"{a.reps} repetitions x {a.trials} trials; "
+        "Estimators: "
+        + "; ".join(
+            f"{e}: {CLASS_OF[e].format(alpha=a.soft_alpha, eps=a.ot_epsilon, iters=a.ot_iterations, clip=a.ot_clip)}"
+            for e in a.ests
+        )
+        + ". Per cell: "
+        + f"{a.reps} repetitions x {a.trials} trials; "
         f"ot skipped above N = {a.ot_max_n}. Trials run in one batched call, except where the runs column says "
-        f"otherwise (ot: split to fit --mem-gb {a.mem_gb:g}; the gradient is that of the mean over all trials either way).",
+        f"otherwise (ot: split to fit --mem-gb {a.mem_gb:g}; the gradient is that of the mean over all trials "
+        "either way).",
         f"Command: `{command}`",
         "",
         "| " + " | ".join(head) + " |",
         "|" + "---|" * len(head),
     ]
     for r in rows:
-        runs = str(r["runs"]) + ("" if r["finite_reps"] == r["reps"] else f" ({r['reps'] - r['finite_reps']} reps non-finite)")
+        runs = str(r["runs"]) + (
+            "" if r["finite_reps"] == r["reps"] else f" ({r['reps'] - r['finite_reps']} reps non-finite)"
+        )
         if r["trials_per_call"] < r["trials"]:
             runs += f" ({r['trials_per_call']} trials/call)"
-        cells = ["PyDPF", r["estimator"], str(r["N"]), runs, fmt(r["bias"]), fmt(r["max_t"], "{:.1f}"), fmt(r["sd_run"]),
-                 fmt(r["exact_norm"]), fmt(r["fwd"]), fmt(r["fwd_bwd"])]
+        cells = [
+            "PyDPF",
+            r["estimator"],
+            str(r["N"]),
+            runs,
+            fmt(r["bias"]),
+            fmt(r["max_t"], "{:.1f}"),
+            fmt(r["sd_run"]),
+            fmt(r["exact_norm"]),
+            fmt(r["fwd"]),
+            fmt(r["fwd_bwd"]),
+        ]
         lines.append("| " + " | ".join(cells) + " |")
     md = "\n".join(lines) + "\n"
     print()
     print(md, flush=True)
-    result = dict(markdown=md, rows=rows, kalman_check=kc, particle_check=pc, pydpf_version=PYDPF_VERSION,
-                  torch_version=torch.__version__, threads=a.threads, resampling="multinomial, every step",
-                  args={k: v for k, v in vars(a).items()}, command=command, seconds=time.time() - started,
-                  exact_grad_F=P["grad_F"].tolist(), exact_log_z=float(P["log_z"]))
+    result = dict(
+        markdown=md,
+        rows=rows,
+        kalman_check=kc,
+        particle_check=pc,
+        pydpf_version=PYDPF_VERSION,
+        torch_version=torch.__version__,
+        threads=a.threads,
+        resampling="multinomial, every step",
+        args={k: v for k, v in vars(a).items()},
+        command=command,
+        seconds=time.time() - started,
+        exact_grad_F=P["grad_F"].tolist(),
+        exact_log_z=float(P["log_z"]),
+    )
     if a.out:
         os.makedirs(os.path.dirname(os.path.abspath(a.out)) or ".", exist_ok=True)
         with open(a.out, "w") as fh:

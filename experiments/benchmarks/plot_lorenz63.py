@@ -10,6 +10,7 @@ on the same data as reference lines (``results_lorenz63.json``, ``bench_lorenz63
 ``docs/assets/lorenz63_rmse_n.png`` and ``results_lorenz63_n.json`` (per N and filter: the mean
 RMSE, its standard error over trials and the per-trial RMSEs, so a lost trial shows).
 """
+
 from __future__ import annotations
 
 import json
@@ -19,10 +20,8 @@ import torch
 
 HERE = Path(__file__).resolve().parent
 ASSETS = HERE.parents[1] / "docs" / "assets"
-FILTERS = {"lag1_flow": dict(), "kpff": dict(),
-           "etkf": dict(inflation=1.02, inflate="analysis", rotate=True)}
-LABELS = {"lag1_flow": "lag-one flow (EDH)", "kpff": "kernel particle flow (KPFF)",
-          "etkf": "ETKF, infl 1.02, rotation"}
+FILTERS = {"lag1_flow": dict(), "kpff": dict(), "etkf": dict(inflation=1.02, inflate="analysis", rotate=True)}
+LABELS = {"lag1_flow": "lag-one flow (EDH)", "kpff": "kernel particle flow (KPFF)", "etkf": "ETKF, infl 1.02, rotation"}
 SIZES = [10, 20, 40, 100]
 
 
@@ -40,9 +39,18 @@ def rmse_against_n(trials=10, steps=1000, burn_in=64, seed=0):
             f = lookup("filter", name)(model, n_particles=n, **kw)
             est = f(traj.observations, mean, cov, TrialStreams(seed + 2, trials, f.stream_name)).estimates
             per_trial = (est - traj.states[:, 1:]).pow(2).mean(-1).sqrt()[:, burn_in:].mean(-1)
-            rows.append(dict(filter=name, n=n, rmse=float(per_trial.mean()), se=float(per_trial.std() / trials ** 0.5),
-                             per_trial=[round(float(v), 4) for v in per_trial], trials=trials, steps=steps,
-                             burn_in=burn_in))
+            rows.append(
+                dict(
+                    filter=name,
+                    n=n,
+                    rmse=float(per_trial.mean()),
+                    se=float(per_trial.std() / trials**0.5),
+                    per_trial=[round(float(v), 4) for v in per_trial],
+                    trials=trials,
+                    steps=steps,
+                    burn_in=burn_in,
+                )
+            )
             print(rows[-1], flush=True)
     return rows
 
@@ -61,19 +69,33 @@ def main():
     else:
         rows = rmse_against_n()
         (HERE / "results_lorenz63_n.json").write_text(json.dumps(rows, indent=1) + "\n")
-    dapper = {r["setting"].split()[0]: r for r in json.loads((HERE / "results_lorenz63.json").read_text())["rows"]
-              if r["library"].startswith("DAPPER")}
+    dapper = {
+        r["setting"].split()[0]: r
+        for r in json.loads((HERE / "results_lorenz63.json").read_text())["rows"]
+        if r["library"].startswith("DAPPER")
+    }
     fig, ax = plt.subplots(figsize=(8.2, 3.8))
     for name in FILTERS:
         rs = [r for r in rows if r["filter"] == name]
-        ax.errorbar([r["n"] for r in rs], [r["rmse"] for r in rs], yerr=[r["se"] for r in rs], marker="o",
-                    capsize=3, label=LABELS[name])
+        ax.errorbar(
+            [r["n"] for r in rs],
+            [r["rmse"] for r in rs],
+            yerr=[r["se"] for r in rs],
+            marker="o",
+            capsize=3,
+            label=LABELS[name],
+        )
     for key, style in (("iEnKS", "--"), ("PartFilt", ":")):
         r = dapper.get(key)
         if r is not None:
             ax.axhline(r["rmse"][0], color="grey", lw=0.9, ls=style, label=f"DAPPER {r['setting']} (same data)")
-    ax.set(xscale="log", yscale="log", xlabel="ensemble members N", ylabel="analysis RMSE",
-           title="Lorenz-63 (Sakov et al. 2012 set-up)")
+    ax.set(
+        xscale="log",
+        yscale="log",
+        xlabel="ensemble members N",
+        ylabel="analysis RMSE",
+        title="Lorenz-63 (Sakov et al. 2012 set-up)",
+    )
     ax.set_xticks(SIZES, [str(n) for n in SIZES])
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     fig.tight_layout()

@@ -7,6 +7,7 @@
 Writes ``docs/assets/lorenz96_rmse_n.png``, ``docs/assets/lorenz96_rmse_d.png`` and
 ``results_lorenz96_n.json`` (the RMSE-against-N numbers: mean and standard error over trials).
 """
+
 from __future__ import annotations
 
 import json
@@ -36,8 +37,17 @@ def rmse_against_n(trials=3, steps=500, burn_in=100, seed=0):
         f = lookup("filter", name)(model, n_particles=n, **kw)
         est = f(traj.observations, mean, cov, TrialStreams(seed + 2, trials, f.stream_name)).estimates
         per_trial = (est - traj.states[:, 1:]).pow(2).mean(-1).sqrt()[:, burn_in:].mean(-1)
-        rows.append(dict(filter=name, n=n, rmse=float(per_trial.mean()),
-                         se=float(per_trial.std() / trials ** 0.5), trials=trials, steps=steps, burn_in=burn_in))
+        rows.append(
+            dict(
+                filter=name,
+                n=n,
+                rmse=float(per_trial.mean()),
+                se=float(per_trial.std() / trials**0.5),
+                trials=trials,
+                steps=steps,
+                burn_in=burn_in,
+            )
+        )
         print(rows[-1], flush=True)
     return rows
 
@@ -54,11 +64,21 @@ def main():
     fig, ax = plt.subplots(figsize=(5.2, 3.6))
     for name in [*FILTERS, "bpf"]:
         rs = [r for r in rows if r["filter"] == name]
-        ax.errorbar([r["n"] for r in rs], [r["rmse"] for r in rs], yerr=[r["se"] for r in rs], marker="o",
-                    label=name.upper() if name != "bpf" else "bootstrap PF (particles)")
+        ax.errorbar(
+            [r["n"] for r in rs],
+            [r["rmse"] for r in rs],
+            yerr=[r["se"] for r in rs],
+            marker="o",
+            label=name.upper() if name != "bpf" else "bootstrap PF (particles)",
+        )
     ax.axhline(1.0, color="grey", lw=0.8, ls="--", label="observation noise")
-    ax.set(xscale="log", yscale="log", xlabel="ensemble members / particles N", ylabel="analysis RMSE",
-           title="Lorenz-96, d = 40 (Sakov & Oke 2008 set-up)")
+    ax.set(
+        xscale="log",
+        yscale="log",
+        xlabel="ensemble members / particles N",
+        ylabel="analysis RMSE",
+        title="Lorenz-96, d = 40 (Sakov & Oke 2008 set-up)",
+    )
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(ASSETS / "lorenz96_rmse_n.png", dpi=120)
@@ -68,8 +88,13 @@ def main():
         rs = [r for r in scaling if r["filter"] == name]
         line = ax.plot([r["d"] for r in rs], [r["rmse"][0] for r in rs], marker="o", label=f"{label} (CPU)")[0]
         ax.plot(*zip(*GPU[name]), marker="s", ls="none", color=line.get_color(), label=f"{label} (H100)")
-    ax.set(xscale="log", yscale="log", xlabel="state dimension d", ylabel="analysis RMSE",
-           title="Lorenz-96: RMSE against d")
+    ax.set(
+        xscale="log",
+        yscale="log",
+        xlabel="state dimension d",
+        ylabel="analysis RMSE",
+        title="Lorenz-96: RMSE against d",
+    )
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(ASSETS / "lorenz96_rmse_d.png", dpi=120)

@@ -8,6 +8,7 @@ numbers; this script writes them from an installed ``particles`` (``pip install 
     python -m experiments.data.gbpusd gbpusd_returns.csv
     torchflow model=stochastic_volatility data=gbpusd_returns.csv 'filter=[bpf,pfpf_ledh]'
 """
+
 from __future__ import annotations
 
 import sys

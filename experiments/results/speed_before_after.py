@@ -5,13 +5,21 @@ redesign; RESULTS.md, "Speed before and after the redesign"):
     PYTHONPATH=/tmp/before python experiments/results/speed_before_after.py before [name filters...]
     PYTHONPATH=/tmp/after python experiments/results/speed_before_after.py after [name filters...]
 """
-import sys, time, json, torch
+
+import sys
+import time
+import json
+import torch
+
 torch.set_num_threads(2)
-import torchflow
 from torchflow.models import AcousticTracking
-from torchflow.filters import (BootstrapParticleFilter, ParticleFlowParticleFilter, GPFIS,
-                               ParticleFlowGaussianSumParticleFilter)
-from torchflow.random import TrialStreams
+from torchflow.filters import (
+    BootstrapParticleFilter,
+    ParticleFlowParticleFilter,
+    GPFIS,
+    ParticleFlowGaussianSumParticleFilter,
+)
+
 label = sys.argv[1]
 B, T = 4, 10
 model = AcousticTracking()

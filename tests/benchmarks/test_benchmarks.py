@@ -1,6 +1,7 @@
 """Benchmark-suite plumbing (no timing claims): the harness (timing loop, writer, peer skip path,
 filters by name), headline goals, statuses, the flop model and each benchmark on a micro or
 ``--quick`` configuration."""
+
 import json
 import math
 import sys
@@ -10,9 +11,21 @@ import numpy as np
 import pytest
 import torch
 
-from experiments.benchmarks import (bench_acoustic, bench_float32, bench_flops, bench_foundation, bench_gaussian_sum,
-                                    bench_gpu, bench_memory, bench_pfpf, bench_scaling, bench_streams, bench_sv, harness,
-                                    run_all)
+from experiments.benchmarks import (
+    bench_acoustic,
+    bench_float32,
+    bench_flops,
+    bench_foundation,
+    bench_gaussian_sum,
+    bench_gpu,
+    bench_memory,
+    bench_pfpf,
+    bench_scaling,
+    bench_streams,
+    bench_sv,
+    harness,
+    run_all,
+)
 from torchflow.models import SensorNetwork
 
 
@@ -55,8 +68,18 @@ def test_writer_writes_table_rows_and_json(tmp_path, capsys):
 
 def test_machine_and_command():
     info = harness.machine(command="x")
-    assert set(info) >= {"platform", "processor", "cpus", "python", "torch", "numpy", "torch_threads", "device",
-                         "load_start", "command"}
+    assert set(info) >= {
+        "platform",
+        "processor",
+        "cpus",
+        "python",
+        "torch",
+        "numpy",
+        "torch_threads",
+        "device",
+        "load_start",
+        "command",
+    }
     info["load_end"] = harness.loadavg()
     line = harness.machine_line(info)
     assert line.startswith("Machine: ") and f"{info['cpus']} CPUs" in line and "at end" in line
@@ -82,8 +105,11 @@ def test_foundation_quick_with_peers():
     pytest.importorskip("filterpy")
     pytest.importorskip("particles")
     res = bench_foundation.run(["--quick", "--particles", "200", "--bpf-trials", "2", "--peer-trials", "1"])
-    assert [r["name"] for r in res["rows"]] == ["Kalman filter vs filterpy", "UKF vs filterpy",
-                                                "Bootstrap PF vs particles"]
+    assert [r["name"] for r in res["rows"]] == [
+        "Kalman filter vs filterpy",
+        "UKF vs filterpy",
+        "Bootstrap PF vs particles",
+    ]
     assert all(r["per_ts_ours"] > 0 and r["per_ts_peer"] > 0 and "status" not in r for r in res["rows"])
     assert res["rows"][0]["max_abs_diff_estimates"] < 1e-8 and res["rows"][1]["max_abs_diff_estimates"] < 1e-6
 
@@ -94,8 +120,10 @@ def test_make_filter_by_name():
     f = harness.make_filter("pfpf_ledh", model, 7)
     assert type(f).__name__ == "ParticleFlowParticleFilter" and f.n_particles == 7
     assert type(harness.make_filter("flow_gromov", model, 5)).__name__ == "ParticleFlowFilter"
-    assert type(harness.make_filter("pfgspf", model, n_components=2, particles_per_component=6)).__name__ \
+    assert (
+        type(harness.make_filter("pfgspf", model, n_components=2, particles_per_component=6)).__name__
         == "ParticleFlowGaussianSumParticleFilter"
+    )
     with pytest.raises(ValueError, match="unknown filter 'nope'"):
         harness.make_filter("nope", model)
     with pytest.raises(SystemExit, match="--filters: unknown"):
@@ -125,16 +153,38 @@ def test_status_and_goal_flags():
 
 def test_headline_collects_every_goal():
     results = {
-        "foundation": {"rows": [dict(name="KF", setting="d=64", per_ts_ours=1e-6, per_ts_peer=1e-4, ratio=100.0,
-                                     goal=50.0, met=True)]},
-        "acoustic": {"rows": [
-            dict(name="PF-PF(LEDH) (torchflow)", side="ours", per_ts=0.05, vs_stonesoup_gromov=40.0,
-                 vs_stonesoup_gromov_shipped=80.0, goal=30.0, met=True, vs_stonesoup_bootstrap=None),
-            dict(name="BPF (torchflow)", side="ours", per_ts=0.001, vs_stonesoup_gromov=2000.0,
-                 vs_stonesoup_gromov_shipped=4000.0, goal=None, met=None, vs_stonesoup_bootstrap=2.0),
-            dict(name="GromovFlowParticleUpdater (Stone Soup)", side="peer", per_ts=4.0),
-            dict(name="GromovFlowParticleUpdater (Stone Soup), square root repaired", side="peer", per_ts=2.0),
-            dict(name="ParticleUpdater bootstrap (Stone Soup)", side="peer", per_ts=0.002)]},
+        "foundation": {
+            "rows": [
+                dict(name="KF", setting="d=64", per_ts_ours=1e-6, per_ts_peer=1e-4, ratio=100.0, goal=50.0, met=True)
+            ]
+        },
+        "acoustic": {
+            "rows": [
+                dict(
+                    name="PF-PF(LEDH) (torchflow)",
+                    side="ours",
+                    per_ts=0.05,
+                    vs_stonesoup_gromov=40.0,
+                    vs_stonesoup_gromov_shipped=80.0,
+                    goal=30.0,
+                    met=True,
+                    vs_stonesoup_bootstrap=None,
+                ),
+                dict(
+                    name="BPF (torchflow)",
+                    side="ours",
+                    per_ts=0.001,
+                    vs_stonesoup_gromov=2000.0,
+                    vs_stonesoup_gromov_shipped=4000.0,
+                    goal=None,
+                    met=None,
+                    vs_stonesoup_bootstrap=2.0,
+                ),
+                dict(name="GromovFlowParticleUpdater (Stone Soup)", side="peer", per_ts=4.0),
+                dict(name="GromovFlowParticleUpdater (Stone Soup), square root repaired", side="peer", per_ts=2.0),
+                dict(name="ParticleUpdater bootstrap (Stone Soup)", side="peer", per_ts=0.002),
+            ]
+        },
     }
     rows = run_all._headline(results)
     names = [r[0] for r in rows]
@@ -151,12 +201,22 @@ def test_headline_collects_every_goal():
 
 def test_headline_has_the_cpu_goals():
     results = {
-        "pfpf": {"rows": [dict(filter="PF-PF(LEDH)", N=500, sec_per_trial_step=0.07, vs_ledh=1.0),
-                          dict(filter="GPFIS", N=500, sec_per_trial_step=0.7, vs_ledh=10.0)]},
-        "flops": {"rows": [dict(name="PF-PF(LEDH), acoustic, N=500", gflops=3.0), dict(name="gemm_2048", gflops=100.0)]},
+        "pfpf": {
+            "rows": [
+                dict(filter="PF-PF(LEDH)", N=500, sec_per_trial_step=0.07, vs_ledh=1.0),
+                dict(filter="GPFIS", N=500, sec_per_trial_step=0.7, vs_ledh=10.0),
+            ]
+        },
+        "flops": {
+            "rows": [dict(name="PF-PF(LEDH), acoustic, N=500", gflops=3.0), dict(name="gemm_2048", gflops=100.0)]
+        },
         "gaussian_sum": {"rows": [dict(key="pfgspf", filter="PFGSPF (200 x 5)", s_per_trial_step=1.5)]},
-        "ops": {"rows": [dict(name="PF-PF(LEDH)", ops=4000, target=1000, met=False),
-                         dict(name="BPF", ops=130, target=None, met=None)]},
+        "ops": {
+            "rows": [
+                dict(name="PF-PF(LEDH)", ops=4000, target=1000, met=False),
+                dict(name="BPF", ops=130, target=None, met=None),
+            ]
+        },
     }
     rows = {r[0]: r for r in run_all._headline(results)}
     g = rows["GPFIS time / PF-PF(LEDH) time"]
@@ -168,8 +228,9 @@ def test_headline_has_the_cpu_goals():
 
 
 def test_pfpf_bench_runs_gpfis_on_its_trial_subset():
-    res = bench_pfpf.run(["--trials", "2", "--steps", "1", "--particles", "20", "--filters", "ledh,gpfis",
-                          "--gpfis-trials", "1"])
+    res = bench_pfpf.run(
+        ["--trials", "2", "--steps", "1", "--particles", "20", "--filters", "ledh,gpfis", "--gpfis-trials", "1"]
+    )
     rows = {r["filter"]: r for r in res["rows"]}
     assert rows["GPFIS"]["trials"] == 1 and rows["PF-PF(LEDH)"]["trials"] == 2
     assert rows["GPFIS"]["goal"] == 5.0 and rows["GPFIS"]["met"] == (rows["GPFIS"]["vs_ledh"] <= 5)
@@ -186,7 +247,9 @@ def test_gpu_section_plumbing_on_the_cpu(tmp_path):
     gpfis = next(r for r in rows if r["name"].startswith("GPFIS / PF-PF(LEDH)"))
     assert gpfis["ratio"] > 0 and gpfis["met"] == (gpfis["ratio"] <= bench_gpu.GPFIS_GOAL)
     flat = next(r for r in rows if "cost per trial-step" in r["name"])
-    assert flat["ratio"] == pytest.approx(ledh[1]["per_ts"] / ledh[0]["per_ts"]) and flat["met"] == (flat["ratio"] <= 1.05)
+    assert flat["ratio"] == pytest.approx(ledh[1]["per_ts"] / ledh[0]["per_ts"]) and flat["met"] == (
+        flat["ratio"] <= 1.05
+    )
     if sys.version_info < (3, 12):  # PyDPF needs Python >= 3.12
         assert any(r["name"] == "BPF vs PyDPF" and r["status"].startswith("skipped") for r in rows)
     assert "| PF-PF(LEDH) cost per trial-step, 4 / 2 trials |" in (tmp_path / "all.md").read_text()
@@ -196,8 +259,10 @@ def test_gpu_section_plumbing_on_the_cpu(tmp_path):
 def test_gpu_section_keeps_its_rows_when_the_peer_comparison_fails(tmp_path, monkeypatch):
     """A failing PyDPF comparison (on the H100 it once raised from a stub module) becomes a FAILED
     row; the PF-PF(LEDH) and GPFIS rows before it stay, with each first call's time."""
+
     def broken(*args, **kwargs):
         raise RuntimeError("peer broke")
+
     monkeypatch.setattr(bench_gpu.peer, "pydpf_available", lambda: True)
     monkeypatch.setattr(bench_gpu.peer, "compare", broken)
     res = bench_gpu.run(["--device", "cpu", "--quick", "--out", str(tmp_path / "gpu.md")])
@@ -212,6 +277,7 @@ def test_pydpf_stubs_can_be_made_twice():
     """The stand-ins for PyDPF's unused imports: a second call (the availability check, then the
     comparison) must not ask ``find_spec`` about the stub ("polars.__spec__ is None")."""
     from experiments.benchmarks import peer_pydpf_bpf as peer
+
     name = "torchflow_test_missing_module_xyz"
     try:
         peer._stub_missing(name)
@@ -251,7 +317,9 @@ def test_memory_case_runs_in_its_own_process():
 
 
 def test_pfpf_bench_micro():
-    res = bench_pfpf.run(["--trials", "3", "--steps", "1", "--particles", "10", "--filters", "bpf,ledh", "--chunk", "2"])
+    res = bench_pfpf.run(
+        ["--trials", "3", "--steps", "1", "--particles", "10", "--filters", "bpf,ledh", "--chunk", "2"]
+    )
     assert [r["filter"] for r in res["rows"]] == ["BPF", "PF-PF(LEDH)"]
     assert all(r["sec_per_trial_step"] > 0 and r["chunk"] == 2 and r["N"] == 10 for r in res["rows"])
     assert res["rows"][1]["vs_ledh"] == 1.0
@@ -271,8 +339,23 @@ def test_streams_bench_micro(monkeypatch):
 
 
 def test_float32_bench_micro():
-    res = bench_float32.run(["--tables", "lg", "--filters", "kf,bpf", "--lg-trials", "3", "--steps-lg", "2",
-                             "--lg-d", "4", "--particles-lg", "20", "--quiet"])
+    res = bench_float32.run(
+        [
+            "--tables",
+            "lg",
+            "--filters",
+            "kf,bpf",
+            "--lg-trials",
+            "3",
+            "--steps-lg",
+            "2",
+            "--lg-d",
+            "4",
+            "--particles-lg",
+            "20",
+            "--quiet",
+        ]
+    )
     kf, bpf = res["rows"]
     assert kf["filter"] == "KF" and kf["verdict"] == "ok" and kf["max_est_diff_rel"] < 1e-4  # round-off only
     assert kf["sec_per_step64"] > 0 and kf["sec_per_step32"] > 0 and bpf["sec_per_step64"] > 0
@@ -282,8 +365,9 @@ def test_float32_bench_micro():
 
 
 def test_flops_bench_micro(monkeypatch):
-    monkeypatch.setattr(bench_flops, "throughputs", lambda: dict(gemm_2048=100.0, bmm_16x8x8=10.0,
-                                                                 bmm_gram_25x8=5.0, bmm_16x16x16=20.0))
+    monkeypatch.setattr(
+        bench_flops, "throughputs", lambda: dict(gemm_2048=100.0, bmm_16x8x8=10.0, bmm_gram_25x8=5.0, bmm_16x16x16=20.0)
+    )
     res = bench_flops.run(["--particles", "20", "--trials", "2", "--steps", "1"])
     ledh = res["rows"][0]
     assert ledh["gflops"] == pytest.approx(ledh["gflop_per_trial_step"] / ledh["per_ts"])
@@ -322,21 +406,64 @@ def test_gaussian_sum_bench_micro():
 
 def test_bench_scaling_micro(tmp_path):
     assert math.isclose(bench_scaling.loglog_slope([(10, 2.0), (100, 20.0), (1000, 200.0)]), 1.0)
-    res = bench_scaling.run(["--curves", "N,d,B", "--ns", "10,20", "--ds", "4,9", "--bs", "1,2", "--steps", "1",
-                             "--trials", "1", "--time-budget", "0", "--d-curve-n", "10", "--b-curve-n", "10",
-                             "--no-plot", "--quiet", "--out", str(tmp_path / "s.md")])
+    res = bench_scaling.run(
+        [
+            "--curves",
+            "N,d,B",
+            "--ns",
+            "10,20",
+            "--ds",
+            "4,9",
+            "--bs",
+            "1,2",
+            "--steps",
+            "1",
+            "--trials",
+            "1",
+            "--time-budget",
+            "0",
+            "--d-curve-n",
+            "10",
+            "--b-curve-n",
+            "10",
+            "--no-plot",
+            "--quiet",
+            "--out",
+            str(tmp_path / "s.md"),
+        ]
+    )
     rows = res["rows"]
     assert {r["curve"] for r in rows} == {"N", "d", "B"}
     assert len(rows) == 4 * 2 + 5 * 2 + 6 * 2
-    assert all(r["status"] == "ok" and r["s_per_trial_step"] > 0 and r["repeats"] == 1 for r in rows), \
-        [r["status"] for r in rows if r["status"] != "ok"]
+    assert all(r["status"] == "ok" and r["s_per_trial_step"] > 0 and r["repeats"] == 1 for r in rows), [
+        r["status"] for r in rows if r["status"] != "ok"
+    ]
     assert res["plot"] is None and "log-log slope" in res["markdown"] and "EKF (acoustic)" in res["markdown"]
     assert set(res["machine"]) >= {"platform", "cpus", "torch", "torch_threads", "load_start", "load_end"}
 
     # a point whose extrapolated time exceeds the cap is recorded as skipped, not dropped
-    res = bench_scaling.run(["--curves", "N", "--ns", "10,20", "--filters", "bpf", "--steps", "1", "--trials", "1",
-                             "--time-budget", "0", "--max-point-seconds", "0", "--no-plot", "--quiet",
-                             "--out", str(tmp_path / "t.md")])
+    res = bench_scaling.run(
+        [
+            "--curves",
+            "N",
+            "--ns",
+            "10,20",
+            "--filters",
+            "bpf",
+            "--steps",
+            "1",
+            "--trials",
+            "1",
+            "--time-budget",
+            "0",
+            "--max-point-seconds",
+            "0",
+            "--no-plot",
+            "--quiet",
+            "--out",
+            str(tmp_path / "t.md"),
+        ]
+    )
     assert [r["status"][:7] for r in res["rows"]] == ["ok", "skipped"]
     assert "skipped" in res["markdown"]
 
@@ -345,8 +472,26 @@ def test_bench_gradients_micro(tmp_path):
     """Rows for each estimator, the exact gradient's scale, positive costs; --estimators is checked."""
     from experiments.benchmarks import bench_gradients
 
-    res = bench_gradients.run(["--n", "30", "--trials", "2", "--reps", "3", "--steps", "3", "--filters", "bpf",
-                               "--estimators", "none,stop_gradient,ot", "--memory-n", "50", "--memory-trials", "2"])
+    res = bench_gradients.run(
+        [
+            "--n",
+            "30",
+            "--trials",
+            "2",
+            "--reps",
+            "3",
+            "--steps",
+            "3",
+            "--filters",
+            "bpf",
+            "--estimators",
+            "none,stop_gradient,ot",
+            "--memory-n",
+            "50",
+            "--memory-trials",
+            "2",
+        ]
+    )
     assert [r["estimator"] for r in res["rows"]] == ["none", "stop_gradient", "ot"]
     for r in res["rows"]:
         assert r["exact_norm"] > 0 and r["fwd"] > 0 and r["fwd_bwd"] > 0 and r["saved_mb"] > 0
@@ -392,6 +537,7 @@ def test_repaired_gromov_square_root():
     assert np.allclose(B @ B.T, Q, atol=1e-10)
     ssp = pytest.importorskip("stonesoup.updater.particle")
     from stonesoup.functions import cholesky_eps
+
     U = cholesky_eps(Q)
     assert not np.allclose(U @ U.T, Q, atol=1e-3)  # the shipped root: the upper factor, pivots floored
     Repaired = bench_acoustic._classes()[-1]
@@ -404,8 +550,23 @@ def test_sv_quick(tmp_path):
     run per call), the flow rows, and the comparison with particles (whose dataset it reads); the
     CSV that experiments.data.gbpusd writes holds the same series."""
     pytest.importorskip("particles")
-    res = bench_sv.run(["--quick", "--steps", "20", "--ns", "100", "--single-runs", "1", "--flows", "ledh:20:2",
-                        "--flow-single", "0", "--out", str(tmp_path / "sv.md")])
+    res = bench_sv.run(
+        [
+            "--quick",
+            "--steps",
+            "20",
+            "--ns",
+            "100",
+            "--single-runs",
+            "1",
+            "--flows",
+            "ledh:20:2",
+            "--flow-single",
+            "0",
+            "--out",
+            str(tmp_path / "sv.md"),
+        ]
+    )
     names = [(r["name"], r["mode"]) for r in res["rows"]]
     assert names[0][0].startswith("exact") and res["T"] == 20
     assert ("ours BPF", "B = 4, one call") in names and ("ours BPF", "B = 1 per call") in names
@@ -424,8 +585,22 @@ def test_sv_pmmh_quick(tmp_path):
     pytest.importorskip("particles")
     from experiments.benchmarks import bench_sv_pmmh
 
-    bench_sv_pmmh.main(["--steps", "20", "--iterations", "6", "--adapt", "3", "--chains", "2", "--particles", "30",
-                        "--out", str(tmp_path / "pmmh")])
+    bench_sv_pmmh.main(
+        [
+            "--steps",
+            "20",
+            "--iterations",
+            "6",
+            "--adapt",
+            "3",
+            "--chains",
+            "2",
+            "--particles",
+            "30",
+            "--out",
+            str(tmp_path / "pmmh"),
+        ]
+    )
     rows = json.loads((tmp_path / "pmmh.json").read_text())["rows"]
     assert [r["sampler"].split()[0] for r in rows] == ["torchflow", "particles"]
     assert all(math.isfinite(r[k]["mean"]) and r[k]["ess"] > 0 for r in rows for k in ("mu", "rho", "sigma"))
@@ -448,7 +623,9 @@ def test_paired_differences_of_two_runs(tmp_path):
     b = write("b", [("bpf", 0, 1.5, -4.0), ("bpf", 1, 3.5, -8.0), ("bpf", 3, 9.0, 0.0), ("ledh", 0, 0.5, 1.0)])
     same = paired.paired(paired.read(a), paired.read(a), ["omat"])
     assert [(r["filter"], r["n"], r["diff"]) for r in same] == [("bpf", 3, 0.0), ("ledh", 1, 0.0)]
-    rows = {(r["filter"], r["metric"]): r for r in paired.paired(paired.read(a), paired.read(b), ["omat", "log_evidence"])}
+    rows = {
+        (r["filter"], r["metric"]): r for r in paired.paired(paired.read(a), paired.read(b), ["omat", "log_evidence"])
+    }
     om = rows["bpf", "omat"]
     assert om["n"] == 2 and om["diff"] == 0.5 and om["se"] == 0.0 and om["z"] == math.inf
     le = rows["bpf", "log_evidence"]  # trial 2 has no finite value in a; trial 3 is not in a

@@ -3,6 +3,7 @@ analysis in a linear-Gaussian model is near the Kalman update of its forecast en
 particle filter weighs each coordinate by its nearby observations only, and with an infinite radius
 is the bootstrap PF resampling every step; Lorenz-63 (Sakov et al. 2012) RMSEs from short runs;
 bad inputs."""
+
 import math
 
 import pytest
@@ -19,9 +20,14 @@ KPFF, LPF, LAG1 = KernelParticleFlowFilter, LocalParticleFilter, LagOneFlowFilte
 
 def _state(X0):
     B, N = X0.shape[:2]
-    return ParticleState(X0, torch.full((B, N), -math.log(N), dtype=X0.dtype), X0.mean(1),
-                         torch.full((B,), float(N), dtype=X0.dtype), torch.zeros(B, dtype=X0.dtype),
-                         torch.zeros(B, dtype=torch.bool))
+    return ParticleState(
+        X0,
+        torch.full((B, N), -math.log(N), dtype=X0.dtype),
+        X0.mean(1),
+        torch.full((B,), float(N), dtype=X0.dtype),
+        torch.zeros(B, dtype=X0.dtype),
+        torch.zeros(B, dtype=torch.bool),
+    )
 
 
 def _moments(X):
@@ -67,8 +73,9 @@ def test_kernel_flow_with_nothing_observed_keeps_the_forecast():
     torch.testing.assert_close(out.particles, Xf)
 
 
-@pytest.mark.parametrize("linearisation, covariance", [("members", "prior"), ("bundle", "prior"),
-                                                        ("members", "current")])
+@pytest.mark.parametrize(
+    "linearisation, covariance", [("members", "prior"), ("bundle", "prior"), ("members", "current")]
+)
 def test_lag_one_flow_reaches_the_kalman_update_of_the_previous_ensemble(linearisation, covariance):
     """Linear-Gaussian model, N = 64: the flowed members' mean and covariance against the Kalman
     update of the previous ensemble's moments by ``z`` through ``H F`` (the measurement of the
@@ -89,8 +96,15 @@ def test_lag_one_flow_reaches_the_kalman_update_of_the_previous_ensemble(lineari
     K = P @ H.T @ torch.linalg.inv(H @ P @ H.T + R)
     mk = xb + ((z - model.measure(model.transition_mean(xb))).unsqueeze(1) @ K.transpose(1, 2)).squeeze(1)
     Pk = P - K @ H @ P
-    Xa, ll = LAG1(model, n_particles=N, inflation=1.0, flow_steps=400, step_ratio=1.0,
-                  linearisation=linearisation, covariance=covariance).migrate(X0, z)
+    Xa, ll = LAG1(
+        model,
+        n_particles=N,
+        inflation=1.0,
+        flow_steps=400,
+        step_ratio=1.0,
+        linearisation=linearisation,
+        covariance=covariance,
+    ).migrate(X0, z)
     ma, Pa = _moments(Xa)
     vk = Pk.diagonal(dim1=1, dim2=2)
     assert float(((ma - mk) / vk.sqrt()).abs().max()) < 0.005
@@ -106,6 +120,7 @@ def test_localised_lag_one_drift_is_the_tapered_cross_covariance_gain(block, mon
     distances; two sites unobserved. ``block = 1``: the neighbourhood gathered one slot at a time."""
     from torchflow.filters import assimilation
     from torchflow.filters.ensemble import gaspari_cohn, periodic_distances
+
     if block is not None:
         monkeypatch.setattr(assimilation, "_CACHE_ELEMENTS", block)
     d, N, radius = 12, 7, 5.0
@@ -138,7 +153,7 @@ def test_lag_one_flow_model_likelihood_is_the_gaussian_one_for_gaussian_errors_a
     z = 3.0 + torch.randn(2, d, generator=g, dtype=torch.float64)
     z[0, 4] = float("nan")
     for model in (Lorenz96(d=d), Lorenz96(d=d, obs_every=2, obs_operator="abs")):
-        zz = z[:, :model.obs_dim]
+        zz = z[:, : model.obs_dim]
         fg, fm = (LAG1(model, n_particles=N, radius=4.0, likelihood=lk) for lk in ("gaussian", "model"))
         Xm = model.transition_mean(X)
         w = fg.whiten(Xm, X.mean(1), zz)
@@ -219,9 +234,12 @@ def test_local_pf_rtps_and_jitter_restore_spread():
     X0 = 8.0 + 2.0 * torch.randn(2, 32, 8, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     z = model.sample_measurement(model.transition_mean(X0[:, 0]), torch.Generator().manual_seed(5))
     sf = model.sample_transition(X0).std(1)
-    spread = {key: LPF(model, n_particles=32, radius=4.0, **kw).step(_state(X0), z, torch.Generator().manual_seed(1)
-                                                                      ).particles.std(1)
-              for key, kw in (("none", {}), ("rtps", dict(rtps=1.0)), ("jitter", dict(jitter=0.5)))}
+    spread = {
+        key: LPF(model, n_particles=32, radius=4.0, **kw)
+        .step(_state(X0), z, torch.Generator().manual_seed(1))
+        .particles.std(1)
+        for key, kw in (("none", {}), ("rtps", dict(rtps=1.0)), ("jitter", dict(jitter=0.5)))
+    }
     alive = spread["none"] > 0
     assert bool(alive.any()) and bool((~alive).any())  # the case has both kinds of coordinate
     torch.testing.assert_close(spread["rtps"][alive], sf[alive])
@@ -232,10 +250,13 @@ def test_local_pf_rtps_and_jitter_restore_spread():
     assert bool((ratio > 0.25).all()) and bool((ratio < 1.5).all()), ratio
 
 
-@pytest.mark.parametrize("cls,kwargs,bound", [
-    (KPFF, dict(n_particles=20), 0.85),
-    pytest.param(LAG1, dict(n_particles=20), 0.45, marks=pytest.mark.slow),  # 16-18 s: the second tier
-])
+@pytest.mark.parametrize(
+    "cls,kwargs,bound",
+    [
+        (KPFF, dict(n_particles=20), 0.85),
+        pytest.param(LAG1, dict(n_particles=20), 0.45, marks=pytest.mark.slow),  # 16-18 s: the second tier
+    ],
+)
 def test_lorenz63_sakov2012_rmse(cls, kwargs, bound):
     """Sakov et al. (2012) set-up (all observed every 0.25, R = 2 I, no model noise), 2 trials x 300
     steps, RMSE after 60 steps. Measured here: KPFF 0.659 and 0.648; over 10 trials x 1000 steps the
@@ -264,8 +285,9 @@ def test_kernel_flow_tracks_lorenz96_sakov2008():
     model = Lorenz96()
     traj = model.simulate(2, 300, torch.Generator().manual_seed(0))
     mean, cov = model.initial_belief(traj.states[:, 0], torch.Generator().manual_seed(1))
-    est = KPFF(model, n_particles=20, radius=15.0)(traj.observations, mean, cov,
-                                                   torch.Generator().manual_seed(2)).estimates
+    est = KPFF(model, n_particles=20, radius=15.0)(
+        traj.observations, mean, cov, torch.Generator().manual_seed(2)
+    ).estimates
     rmse = (est - traj.states[:, 1:]).square().mean(-1).sqrt()[:, 100:].mean(1)
     assert bool((rmse > 0.3).all()) and bool((rmse < 0.5).all()), rmse
 
@@ -285,10 +307,13 @@ def test_lag_one_flow_tracks_lorenz96_sakov2008():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("regime, kwargs, bound", [
-    ("r1", dict(n_particles=20, radius=30.0, inflation=1.01), (0.12, 0.26)),
-    ("r4", dict(n_particles=20, radius=20.0, inflation=1.02, likelihood="model"), (0.15, 0.28)),
-])
+@pytest.mark.parametrize(
+    "regime, kwargs, bound",
+    [
+        ("r1", dict(n_particles=20, radius=30.0, inflation=1.01), (0.12, 0.26)),
+        ("r4", dict(n_particles=20, radius=20.0, inflation=1.02, likelihood="model"), (0.15, 0.28)),
+    ],
+)
 def test_localised_lag_one_flow_tracks_lorenz96(regime, kwargs, bound):
     """The localised lag-one flow, 2 trials x 300 steps, RMSE after 100 steps. R1 (Sakov & Oke
     2008), N = 20: measured here 0.171 and 0.184, where the global flow at N = 20 loses trials (1.3-3.8).

@@ -1,4 +1,5 @@
 """Bootstrap PF against the exact Kalman posterior on a small linear-Gaussian model."""
+
 import math
 
 import pytest
@@ -41,7 +42,9 @@ def test_bpf_resampling_threshold_zero_never_resamples():
     f1 = BootstrapParticleFilter(model, n_particles=50, ess_threshold=1.0)
     state = f1.step(f1.init(mean, cov, None, g), traj.observations[:, 0], g)
     assert state.resampled.all()
-    torch.testing.assert_close(state.log_weights, torch.full_like(state.log_weights, -torch.log(torch.tensor(50.0)).item()))
+    torch.testing.assert_close(
+        state.log_weights, torch.full_like(state.log_weights, -torch.log(torch.tensor(50.0)).item())
+    )
 
 
 def test_bpf_regularization_jitters_resampled_particles_only():
@@ -64,12 +67,14 @@ def test_a_collapsed_cloud_is_warned_of_whatever_the_ess():
     one collapsed step alone is not warned of (measured: 1 such step per trial in this run)."""
     import warnings
     from torchflow.models import Lorenz63
+
     model = Lorenz63()
     traj = model.simulate(2, 100, torch.Generator().manual_seed(0))
     mean, cov = model.initial_belief(traj.states[:, 0])
     with pytest.warns(RuntimeWarning, match=r"collapsed to fewer than 2 distinct particles .* trial 0 from step \d+"):
-        res = BootstrapParticleFilter(model, n_particles=20)(traj.observations, mean, cov,
-                                                             torch.Generator().manual_seed(1))
+        res = BootstrapParticleFilter(model, n_particles=20)(
+            traj.observations, mean, cov, torch.Generator().manual_seed(1)
+        )
     assert bool((res.ess[:, -1] > 19.9).all())  # the ESS does not show it
     noisy = Lorenz63(model_noise=0.5)
     with warnings.catch_warnings():
@@ -82,6 +87,7 @@ def test_relative_regularization_scales_with_the_cloud():
     weighted variance before resampling (N = 20000: the variance after is (1 + h^2) times the
     cloud's within 5 %, about 5 standard errors), whatever the cloud's scale; h = 0 adds nothing."""
     from torchflow.resampling import Resampler
+
     N = 20000
     g = torch.Generator().manual_seed(0)
     x = torch.randn(1, N, 2, generator=g, dtype=torch.float64) * torch.tensor([1.0, 100.0], dtype=torch.float64)

@@ -1,5 +1,6 @@
 """Clustered PF-PF(LEDH) (seed 004; MODELS.md §11): exactness at K = N, unbiased log-evidence for any
 K, the batched K-medoids and the mixed distance."""
+
 import math
 
 import pytest
@@ -23,10 +24,12 @@ def test_k_equal_n_is_pfpf_ledh_on_the_same_draws():
     traj = model.simulate(4, 5, g)
     mean, cov = model.initial_belief(traj.states[:, 0])
     N = 32
-    ledh = ParticleFlowParticleFilter(model, flow="ledh", n_particles=N)(traj.observations, mean, cov,
-                                                                            TrialStreams(0, 4, "pfpf"))
-    clus = ClusteredParticleFlowParticleFilter(model, n_clusters=N, n_particles=N)(traj.observations, mean, cov,
-                                                                                   TrialStreams(0, 4, "pfpf"))
+    ledh = ParticleFlowParticleFilter(model, flow="ledh", n_particles=N)(
+        traj.observations, mean, cov, TrialStreams(0, 4, "pfpf")
+    )
+    clus = ClusteredParticleFlowParticleFilter(model, n_clusters=N, n_particles=N)(
+        traj.observations, mean, cov, TrialStreams(0, 4, "pfpf")
+    )
     torch.testing.assert_close(clus.estimates, ledh.estimates, rtol=0, atol=1e-10)
     torch.testing.assert_close(clus.log_evidence, ledh.log_evidence, rtol=0, atol=1e-10)
     torch.testing.assert_close(clus.ess, ledh.ess, rtol=0, atol=1e-10)
@@ -90,8 +93,9 @@ def test_cluster_distance_properties():
         assert D.shape == (2, 30, 30)
         torch.testing.assert_close(D, D.transpose(-1, -2))
         assert (D >= -1e-12).all() and (D <= 2 + 1e-12).all()
-        torch.testing.assert_close(D.diagonal(dim1=-2, dim2=-1), torch.zeros(2, 30, dtype=torch.float64),
-                                   atol=1e-12, rtol=0)
+        torch.testing.assert_close(
+            D.diagonal(dim1=-2, dim2=-1), torch.zeros(2, 30, dtype=torch.float64), atol=1e-12, rtol=0
+        )
     # alpha = 1: only the measured coordinates count
     D1 = cluster_distance(eta, zeta, 1.0, support=(0, 1, 2))
     eta2 = eta.clone()
@@ -107,10 +111,12 @@ def test_clustered_on_acoustic_and_argument_errors():
     traj = model.simulate(2, 3, g)
     mean, cov = model.initial_belief(traj.states[:, 0], g)
     res = ClusteredParticleFlowParticleFilter(model, n_clusters=10, n_particles=60)(
-        traj.observations, mean, cov, TrialStreams(0, 2, "pfpf"))
+        traj.observations, mean, cov, TrialStreams(0, 2, "pfpf")
+    )
     assert torch.isfinite(res.estimates).all() and torch.isfinite(res.log_evidence).all()
     gromov = ClusteredParticleFlowParticleFilter(model, flow="gromov", n_clusters=10, n_particles=60)(
-        traj.observations, mean, cov, TrialStreams(0, 2, "pfpf"))
+        traj.observations, mean, cov, TrialStreams(0, 2, "pfpf")
+    )
     assert torch.isfinite(gromov.estimates).all() and torch.isfinite(gromov.log_evidence).all()
     with pytest.raises(ValueError, match=r"n_clusters: expected a positive integer, got 0"):
         ClusteredParticleFlowParticleFilter(model, n_clusters=0)
@@ -139,9 +145,11 @@ def test_clustered_gromov_with_k_equal_n_is_pfpf_gromov_on_lg():
     g = torch.Generator().manual_seed(0)
     traj = model.simulate(3, 4, g)
     mean, cov = model.initial_belief(traj.states[:, 0])
-    a = ParticleFlowParticleFilter(model, flow="gromov", n_particles=16)(traj.observations, mean, cov,
-                                                                           TrialStreams(0, 3, "pfpf"))
+    a = ParticleFlowParticleFilter(model, flow="gromov", n_particles=16)(
+        traj.observations, mean, cov, TrialStreams(0, 3, "pfpf")
+    )
     b = ClusteredParticleFlowParticleFilter(model, flow="gromov", n_clusters=16, n_particles=16)(
-        traj.observations, mean, cov, TrialStreams(0, 3, "pfpf"))
+        traj.observations, mean, cov, TrialStreams(0, 3, "pfpf")
+    )
     torch.testing.assert_close(b.estimates, a.estimates, rtol=0, atol=1e-10)
     torch.testing.assert_close(b.log_evidence, a.log_evidence, rtol=0, atol=1e-10)

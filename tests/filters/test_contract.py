@@ -1,12 +1,24 @@
 """One contract test over all filters, plus bad-input errors and reproducibility."""
+
 import pytest
 import torch
 
 from torchflow._checks import NonFiniteError
-from torchflow.filters import (BootstrapParticleFilter, EnsembleKalmanFilter, EnsembleTransformKalmanFilter,
-                               ExtendedKalmanFilter, GaussianSumParticleFilter, KalmanFilter, KernelParticleFlowFilter, LagOneFlowFilter,
-                               LocalEnsembleTransformKalmanFilter, LocalParticleFilter, ParticleFlowFilter, ParticleFlowParticleFilter,
-                               UnscentedKalmanFilter)
+from torchflow.filters import (
+    BootstrapParticleFilter,
+    EnsembleKalmanFilter,
+    EnsembleTransformKalmanFilter,
+    ExtendedKalmanFilter,
+    GaussianSumParticleFilter,
+    KalmanFilter,
+    KernelParticleFlowFilter,
+    LagOneFlowFilter,
+    LocalEnsembleTransformKalmanFilter,
+    LocalParticleFilter,
+    ParticleFlowFilter,
+    ParticleFlowParticleFilter,
+    UnscentedKalmanFilter,
+)
 from torchflow.schedules import ExponentialSchedule
 from torchflow.models import AcousticTracking, Lorenz96, NeuralAcoustic, SensorNetwork, SkewedTPoisson
 from conftest import cuda, random_lg
@@ -26,35 +38,70 @@ CONFIGS = [
     ("etkf-acoustic", AcousticTracking, lambda m: EnsembleTransformKalmanFilter(m, n_particles=64)),
     ("letkf-l96", lambda: Lorenz96(d=8), lambda m: LocalEnsembleTransformKalmanFilter(m, n_particles=64, radius=4.0)),
     ("kpff-lg", lambda: random_lg(3, 2), lambda m: KernelParticleFlowFilter(m, n_particles=64, flow_steps=5)),
-    ("kpff-l96", lambda: Lorenz96(d=8), lambda m: KernelParticleFlowFilter(m, n_particles=64, radius=4.0, flow_steps=5)),
+    (
+        "kpff-l96",
+        lambda: Lorenz96(d=8),
+        lambda m: KernelParticleFlowFilter(m, n_particles=64, radius=4.0, flow_steps=5),
+    ),
     ("lpf-l96", lambda: Lorenz96(d=8), lambda m: LocalParticleFilter(m, n_particles=64, radius=4.0, jitter=0.1)),
     ("lag1_flow-lg", lambda: random_lg(3, 2), lambda m: LagOneFlowFilter(m, n_particles=64, flow_steps=5)),
     ("lag1_flow-l96", lambda: Lorenz96(d=8), lambda m: LagOneFlowFilter(m, n_particles=64, flow_steps=5)),
-    ("lag1_flow_local-l96", lambda: Lorenz96(d=8),
-     lambda m: LagOneFlowFilter(m, n_particles=64, radius=4.0, flow_steps=5)),
+    (
+        "lag1_flow_local-l96",
+        lambda: Lorenz96(d=8),
+        lambda m: LagOneFlowFilter(m, n_particles=64, radius=4.0, flow_steps=5),
+    ),
 ]
 _SCHED = ExponentialSchedule(8, 1.3)
 for _flow in ("edh", "ledh", "geodesic", "gromov", "osd"):
     for _mname, _make_model in (("lg", lambda: random_lg(3, 2)), ("acoustic", AcousticTracking)):
-        CONFIGS.append((f"pfpf_{_flow}-{_mname}", _make_model,
-                        lambda m, fl=_flow: ParticleFlowParticleFilter(m, flow=fl, n_particles=64, schedule=_SCHED)))
-        CONFIGS.append((f"{_flow}-{_mname}", _make_model,
-                        lambda m, fl=_flow: ParticleFlowFilter(m, flow=fl, n_particles=64, schedule=_SCHED)))
+        CONFIGS.append(
+            (
+                f"pfpf_{_flow}-{_mname}",
+                _make_model,
+                lambda m, fl=_flow: ParticleFlowParticleFilter(m, flow=fl, n_particles=64, schedule=_SCHED),
+            )
+        )
+        CONFIGS.append(
+            (
+                f"{_flow}-{_mname}",
+                _make_model,
+                lambda m, fl=_flow: ParticleFlowFilter(m, flow=fl, n_particles=64, schedule=_SCHED),
+            )
+        )
 for _flow in (None, "ledh"):  # GSPF and PFGSPF, G = 2 x 32 particles
     for _mname, _make_model in (("lg", lambda: random_lg(3, 2)), ("acoustic", AcousticTracking)):
-        CONFIGS.append((f"{'pf' if _flow else ''}gspf-{_mname}", _make_model,
-                        lambda m, fl=_flow: GaussianSumParticleFilter(m, flow=fl, n_components=2,
-                                                                      particles_per_component=32, schedule=_SCHED)))
+        CONFIGS.append(
+            (
+                f"{'pf' if _flow else ''}gspf-{_mname}",
+                _make_model,
+                lambda m, fl=_flow: GaussianSumParticleFilter(
+                    m, flow=fl, n_components=2, particles_per_component=32, schedule=_SCHED
+                ),
+            )
+        )
 # the declared diagonal measurement Jacobian (skewed-t dynamics, Poisson counts; d = 16 here)
-CONFIGS.append(("pfpf_ledh-skewed", lambda: SkewedTPoisson(d=16),
-                lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=64, schedule=_SCHED)))
-CONFIGS.append(("pfgspf-skewed", lambda: SkewedTPoisson(d=16),
-                lambda m: GaussianSumParticleFilter(m, flow="ledh", n_components=2, particles_per_component=32,
-                                                    schedule=_SCHED)))
+CONFIGS.append(
+    (
+        "pfpf_ledh-skewed",
+        lambda: SkewedTPoisson(d=16),
+        lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=64, schedule=_SCHED),
+    )
+)
+CONFIGS.append(
+    (
+        "pfgspf-skewed",
+        lambda: SkewedTPoisson(d=16),
+        lambda m: GaussianSumParticleFilter(
+            m, flow="ledh", n_components=2, particles_per_component=32, schedule=_SCHED
+        ),
+    )
+)
 # a neural network in the measurement (the acoustic response as a small MLP; 2 targets, 9 sensors)
-for _name, _make_filter in (("bpf", lambda m: BootstrapParticleFilter(m, n_particles=64)),
-                            ("pfpf_ledh", lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=64,
-                                                                               schedule=_SCHED))):
+for _name, _make_filter in (
+    ("bpf", lambda m: BootstrapParticleFilter(m, n_particles=64)),
+    ("pfpf_ledh", lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=64, schedule=_SCHED)),
+):
     CONFIGS.append((f"{_name}-neural", lambda: NeuralAcoustic(n_targets=2, sensor_grid=3), _make_filter))
 IDS = [c[0] for c in CONFIGS]
 
@@ -230,8 +277,11 @@ def nan_likelihood_run():
 def test_non_finite_error_names_filter_step_trial():
     model, traj, mean, cov = nan_likelihood_run()
     f = BootstrapParticleFilter(model, n_particles=16, nonfinite="raise", name="bpf-test")
-    with pytest.raises(NonFiniteError, match=r"bpf-test: non-finite particles or weights (and log-evidence increment )?at time step 3 "
-                                             r"in trial\(s\) \[1\]") as e:
+    with pytest.raises(
+        NonFiniteError,
+        match=r"bpf-test: non-finite particles or weights (and log-evidence increment )?at time step 3 "
+        r"in trial\(s\) \[1\]",
+    ) as e:
         f(traj.observations, mean, cov, torch.Generator().manual_seed(0))
     assert e.value.step == 3 and e.value.trials == [1]
 
@@ -244,9 +294,14 @@ def test_trace_finds_the_first_bad_step_per_trial():
     from types import SimpleNamespace
     from torchflow.filters import guards
     from torchflow.filters.base import _Trace
+
     tr = _Trace(3, "cpu", False, False)
     nan, inf = float("nan"), float("inf")
-    ests = [torch.tensor([[0.0], [0.0], [0.0]]), torch.tensor([[0.0], [nan], [0.0]]), torch.tensor([[0.0], [nan], [0.0]])]
+    ests = [
+        torch.tensor([[0.0], [0.0], [0.0]]),
+        torch.tensor([[0.0], [nan], [0.0]]),
+        torch.tensor([[0.0], [nan], [0.0]]),
+    ]
     invs = [None, torch.tensor([False, False, False]), torch.tensor([True, True, False])]
     incs = [torch.zeros(3), torch.zeros(3), torch.tensor([0.0, 0.0, -inf])]
     for t, (e, i, c) in enumerate(zip(ests, invs, incs)):

@@ -2,15 +2,20 @@
 moments (exact); the EnKF's perturbed mean follows its exact sampling law and approaches the KF;
 the LETKF with an infinite radius is the ETKF and its taper localises; Lorenz-96 (Sakov & Oke 2008)
 RMSEs near the published ones; missing observations (NaN); bad inputs."""
+
 import math
 
 import pytest
 import torch
 
-from torchflow import linalg
 from torchflow.errors import ArgumentError, ArgumentTypeError
-from torchflow.filters import (EnsembleKalmanFilter, EnsembleTransformKalmanFilter, KalmanFilter,
-                               LocalEnsembleTransformKalmanFilter, ParticleState)
+from torchflow.filters import (
+    EnsembleKalmanFilter,
+    EnsembleTransformKalmanFilter,
+    KalmanFilter,
+    LocalEnsembleTransformKalmanFilter,
+    ParticleState,
+)
 from torchflow.filters.ensemble import gaspari_cohn, periodic_distances
 from torchflow.models import LinearGaussian, Lorenz96, SensorNetwork
 from torchflow.trackers import kalman_update
@@ -24,9 +29,14 @@ def _forecast_and_step(f, X0, z, seed=3):
     g = torch.Generator().manual_seed(seed)
     Xf = f.model.sample_transition(X0, torch.Generator().manual_seed(seed))
     B, N = X0.shape[:2]
-    state = ParticleState(X0, torch.full((B, N), -math.log(N), dtype=X0.dtype), X0.mean(1),
-                          torch.full((B,), float(N), dtype=X0.dtype), torch.zeros(B, dtype=X0.dtype),
-                          torch.zeros(B, dtype=torch.bool))
+    state = ParticleState(
+        X0,
+        torch.full((B, N), -math.log(N), dtype=X0.dtype),
+        X0.mean(1),
+        torch.full((B,), float(N), dtype=X0.dtype),
+        torch.zeros(B, dtype=X0.dtype),
+        torch.zeros(B, dtype=torch.bool),
+    )
     return Xf, f.step(state, z, g)
 
 
@@ -40,7 +50,7 @@ def _kalman_of_ensemble(model, Xf, z, inflation=1.0):
     """Kalman update (observed coordinates of ``z`` only) of the inflated forecast ensemble's sample
     mean and covariance; returns mean, covariance and log N(z_o; H_o xbar, H_o P H_o^T + R_oo)."""
     mean, P = _moments(Xf)
-    P = P * inflation ** 2
+    P = P * inflation**2
     H, R = model.measurement_matrix(), model.measurement_cov()
     out = []
     for b in range(z.shape[0]):  # a reference, trial by trial (observed rows differ)
@@ -57,12 +67,20 @@ def _prior_ensemble(model, B, N, seed=0):
 
 def _diagonal_r_model():
     F, Q, H, _ = _lg_mats(5, 3)
-    return LinearGaussian(F, Q, torch.randn(3, 5, generator=torch.Generator().manual_seed(4), dtype=torch.float64),
-                          torch.diag(torch.tensor([0.5, 1.0, 2.0], dtype=torch.float64)), measurement_noise="diagonal")
+    return LinearGaussian(
+        F,
+        Q,
+        torch.randn(3, 5, generator=torch.Generator().manual_seed(4), dtype=torch.float64),
+        torch.diag(torch.tensor([0.5, 1.0, 2.0], dtype=torch.float64)),
+        measurement_noise="diagonal",
+    )
 
 
-@pytest.mark.parametrize("make_model", [lambda: random_lg(5, 3), _diagonal_r_model, lambda: SensorNetwork(d=9)],
-                         ids=["dense_R", "diagonal_R", "scalar_R"])
+@pytest.mark.parametrize(
+    "make_model",
+    [lambda: random_lg(5, 3), _diagonal_r_model, lambda: SensorNetwork(d=9)],
+    ids=["dense_R", "diagonal_R", "scalar_R"],
+)
 @pytest.mark.parametrize("inflation", [1.0, 1.3])
 @pytest.mark.parametrize("missing", [False, True])
 def test_etkf_analysis_is_the_kalman_update_of_the_forecast_ensemble(make_model, inflation, missing):
@@ -81,7 +99,9 @@ def test_etkf_analysis_is_the_kalman_update_of_the_forecast_ensemble(make_model,
     torch.testing.assert_close(state.estimate, mean_k, atol=1e-10, rtol=0)
     torch.testing.assert_close(cov_a, cov_k, atol=1e-10, rtol=0)
     torch.testing.assert_close(state.log_evidence_increment, ll_k, atol=1e-10, rtol=0)
-    assert (state.ess == N).all() and torch.allclose(state.log_weights.exp().sum(-1), torch.ones(B, dtype=torch.float64))
+    assert (state.ess == N).all() and torch.allclose(
+        state.log_weights.exp().sum(-1), torch.ones(B, dtype=torch.float64)
+    )
 
 
 @pytest.mark.parametrize("cls", [ETKF, ENKF, LETKF])
@@ -199,10 +219,13 @@ def test_gaspari_cohn():
     assert torch.equal(gaspari_cohn(r, math.inf), torch.ones_like(r))
 
 
-@pytest.mark.parametrize("cls,kwargs,bound", [
-    (ETKF, dict(n_particles=28, inflation=1.02), 0.23),
-    (LETKF, dict(n_particles=20, inflation=1.02, radius=15.0), 0.25),
-])
+@pytest.mark.parametrize(
+    "cls,kwargs,bound",
+    [
+        (ETKF, dict(n_particles=28, inflation=1.02), 0.23),
+        (LETKF, dict(n_particles=20, inflation=1.02, radius=15.0), 0.25),
+    ],
+)
 def test_lorenz96_sakov2008_rmse(cls, kwargs, bound):
     """Sakov & Oke (2008) set-up (d = 40, dt = 0.05, all observed, R = I): analysis RMSE after 100
     steps of burn-in, 4 trials x 500 steps. DAPPER's published: ETKF (Sqrt, N = 28, infl 1.02)
@@ -257,8 +280,9 @@ def test_ring_neighbours_equal_the_distance_matrix(obs_every, radius):
 
     model = Lorenz96(d=40, obs_every=obs_every)
     direct = LocalEnsembleTransformKalmanFilter(model, n_particles=10, radius=radius)
-    dense = LocalEnsembleTransformKalmanFilter(model, n_particles=10, radius=radius,
-                                               distances=periodic_distances(40, model.observed))
+    dense = LocalEnsembleTransformKalmanFilter(
+        model, n_particles=10, radius=radius, distances=periodic_distances(40, model.observed)
+    )
     assert direct.local_obs == dense.local_obs
     traj = model.simulate(2, 10, torch.Generator().manual_seed(0))
     mean, cov = model.initial_belief(traj.states[:, 0], torch.Generator().manual_seed(1))
@@ -281,6 +305,7 @@ def test_random_rotation_keeps_mean_and_covariance_and_mixes_members():
     vector, so an ETKF step's analysis mean and sample covariance are those without rotation (to
     round-off), while the members themselves change."""
     from torchflow.filters.ensemble import mean_preserving_rotation
+
     R = mean_preserving_rotation(4, 7, dtype=torch.float64, device="cpu", generator=torch.Generator().manual_seed(0))
     eye = torch.eye(7, dtype=torch.float64)
     torch.testing.assert_close(R @ R.transpose(1, 2), eye.expand(4, 7, 7))
@@ -311,6 +336,6 @@ def test_analysis_inflation_scales_the_analysis_anomalies():
         m0, P0 = _moments(plain.particles)
         m1, P1 = _moments(infl.particles)
         torch.testing.assert_close(m1, m0)
-        torch.testing.assert_close(P1, 1.3 ** 2 * P0)
+        torch.testing.assert_close(P1, 1.3**2 * P0)
     with pytest.raises(ArgumentError, match="inflate: expected one of"):
         ETKF(model, inflate="both")

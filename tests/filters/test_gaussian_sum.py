@@ -1,12 +1,18 @@
 """Gaussian and Gaussian-sum particle filters, with and without the LEDH flow (MODELS.md §9)."""
+
 import math
 
 import pytest
 import torch
 
 from torchflow._checks import NonFiniteError
-from torchflow.filters import (GaussianParticleFilter, GaussianSumParticleFilter, KalmanFilter,
-                               ParticleFlowGaussianParticleFilter, ParticleFlowGaussianSumParticleFilter)
+from torchflow.filters import (
+    GaussianParticleFilter,
+    GaussianSumParticleFilter,
+    KalmanFilter,
+    ParticleFlowGaussianParticleFilter,
+    ParticleFlowGaussianSumParticleFilter,
+)
 from torchflow.filters.gaussian_sum import MixtureState, mixture_update
 from torchflow.models import AcousticTracking
 from torchflow.random import TrialStreams
@@ -31,12 +37,16 @@ def _run_states(f, obs, mean, cov, gen):
     return states
 
 
-@pytest.mark.parametrize("make", [
-    lambda m: GaussianParticleFilter(m, n_particles=40000),
-    lambda m: GaussianParticleFilter(m, n_particles=40000, redraw_eta0=True),
-    lambda m: ParticleFlowGaussianParticleFilter(m, particles_per_component=4000),
-    lambda m: ParticleFlowGaussianParticleFilter(m, particles_per_component=4000, linearize_at="particle"),
-], ids=["gpf", "gpf-redraw", "pfgpf", "pfgpf-particle"])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda m: GaussianParticleFilter(m, n_particles=40000),
+        lambda m: GaussianParticleFilter(m, n_particles=40000, redraw_eta0=True),
+        lambda m: ParticleFlowGaussianParticleFilter(m, particles_per_component=4000),
+        lambda m: ParticleFlowGaussianParticleFilter(m, particles_per_component=4000, linearize_at="particle"),
+    ],
+    ids=["gpf", "gpf-redraw", "pfgpf", "pfgpf-particle"],
+)
 def test_gaussian_filters_match_the_kalman_posterior(make):
     """Linear-Gaussian model, large N*: after each of 4 steps the component's mean and covariance
     equal the KF posterior, to Monte Carlo error. 20 independent trials on the same data. Two
@@ -110,8 +120,9 @@ def test_bank_update_equals_each_component_alone(flow):
     traj = model.simulate(2, 1, g)
     mean, cov = model.initial_belief(traj.states[:, 0], g)
     G, n = 3, 30
-    bank = GaussianSumParticleFilter(model, flow=flow, n_components=G, particles_per_component=n, schedule=SCHED,
-                                     init="spread")
+    bank = GaussianSumParticleFilter(
+        model, flow=flow, n_components=G, particles_per_component=n, schedule=SCHED, init="spread"
+    )
     one = GaussianSumParticleFilter(model, flow=flow, n_components=1, particles_per_component=n, schedule=SCHED)
     streams = TrialStreams(0, range(2), bank.stream_name)
     state = bank.init(mean, cov, None, streams)
@@ -121,9 +132,17 @@ def test_bank_update_equals_each_component_alone(flow):
     new = bank.update(state, z, *draws)
     log_ev = []
     for j in range(G):
-        sj = MixtureState(torch.zeros(2, 1, dtype=mean.dtype), state.means[:, j:j + 1], state.covs[:, j:j + 1],
-                          state.estimate, state.ess, state.g_eff, state.ess, state.n_repaired)
-        nj = one.update(sj, z, *(t[:, j:j + 1] for t in draws))
+        sj = MixtureState(
+            torch.zeros(2, 1, dtype=mean.dtype),
+            state.means[:, j : j + 1],
+            state.covs[:, j : j + 1],
+            state.estimate,
+            state.ess,
+            state.g_eff,
+            state.ess,
+            state.n_repaired,
+        )
+        nj = one.update(sj, z, *(t[:, j : j + 1] for t in draws))
         torch.testing.assert_close(new.means[:, j], nj.means[:, 0], rtol=1e-10, atol=1e-10)
         torch.testing.assert_close(new.covs[:, j], nj.covs[:, 0], rtol=1e-10, atol=1e-12)
         log_ev.append(nj.log_evidence_increment)
@@ -139,8 +158,9 @@ def test_equal_mixture_weights_give_g_eff_equal_to_g():
         la, _, g_eff = mixture_update(torch.full((3, G), -math.log(G), dtype=torch.float64), log_w)
         torch.testing.assert_close(g_eff, torch.full((3,), float(G), dtype=torch.float64))
     # unequal weights: G_eff strictly inside (1, G)
-    la, _, g_eff = mixture_update(torch.log(torch.tensor([[0.7, 0.2, 0.1]], dtype=torch.float64)),
-                                  torch.zeros(1, 3, 4, dtype=torch.float64))
+    la, _, g_eff = mixture_update(
+        torch.log(torch.tensor([[0.7, 0.2, 0.1]], dtype=torch.float64)), torch.zeros(1, 3, 4, dtype=torch.float64)
+    )
     torch.testing.assert_close(g_eff, torch.tensor([1 / (0.49 + 0.04 + 0.01)], dtype=torch.float64))
 
 
@@ -176,8 +196,9 @@ def test_particle_blocks_do_not_change_the_numbers():
     mean, cov = model.initial_belief(traj.states[:, 0], g)
     runs = []
     for chunk in (None, 25):
-        f = ParticleFlowGaussianSumParticleFilter(model, n_components=2, particles_per_component=30, schedule=SCHED,
-                                                  particle_chunk=chunk)
+        f = ParticleFlowGaussianSumParticleFilter(
+            model, n_components=2, particles_per_component=30, schedule=SCHED, particle_chunk=chunk
+        )
         runs.append(f(traj.observations, mean, cov, TrialStreams(0, range(2), f.stream_name)))
     torch.testing.assert_close(runs[0].estimates, runs[1].estimates, rtol=1e-10, atol=1e-10)
 
@@ -242,8 +263,9 @@ def test_top_component_estimate_is_the_heaviest_components_mean():
     g = torch.Generator().manual_seed(0)
     traj = model.simulate(2, 2, g)
     mean, cov = model.initial_belief(traj.states[:, 0], g)
-    f = ParticleFlowGaussianSumParticleFilter(model, n_components=3, particles_per_component=20, schedule=SCHED,
-                                              estimate="top_component")
+    f = ParticleFlowGaussianSumParticleFilter(
+        model, n_components=3, particles_per_component=20, schedule=SCHED, estimate="top_component"
+    )
     streams = TrialStreams(0, range(2), f.stream_name)
     s = f.step(f.init(mean, cov, None, streams), traj.observations[:, 0], streams)
     top = s.log_alpha.argmax(-1)

@@ -1,5 +1,6 @@
 """GPFIS (Bunch & Godsill 2016; MODELS.md §6, §13): the exact Gaussian transport on linear models,
 the autodiff Jacobian including dH/dx on a nonlinear one, unbiased log-evidence, and tracking."""
+
 import math
 
 import pytest
@@ -102,12 +103,22 @@ def test_analytic_jacobian_matches_autodiff_for_every_constant_noise(noise):
     model, z, prior, x0 = _acoustic_flow_setting()
     m = model.obs_dim
     g = torch.Generator().manual_seed(9)
-    LR = {"scalar": 0.1 * torch.eye(m, dtype=torch.float64),
-          "diagonal": torch.diag(0.05 + 0.1 * torch.rand(m, generator=g, dtype=torch.float64)),
-          "dense": torch.linalg.cholesky(0.01 * torch.eye(m, dtype=torch.float64)
-                                         + 0.002 * (lambda a: a @ a.T)(torch.randn(m, m, generator=g, dtype=torch.float64)))}[noise]
-    meas = GaussianMeasurement(z, model.linearize_measurement, lambda x: LR, noise, support=model.structure.measurement_support,
-                               hessian=model.measurement_hessian_blocks)
+    LR = {
+        "scalar": 0.1 * torch.eye(m, dtype=torch.float64),
+        "diagonal": torch.diag(0.05 + 0.1 * torch.rand(m, generator=g, dtype=torch.float64)),
+        "dense": torch.linalg.cholesky(
+            0.01 * torch.eye(m, dtype=torch.float64)
+            + 0.002 * (lambda a: a @ a.T)(torch.randn(m, m, generator=g, dtype=torch.float64))
+        ),
+    }[noise]
+    meas = GaussianMeasurement(
+        z,
+        model.linearize_measurement,
+        lambda x: LR,
+        noise,
+        support=model.structure.measurement_support,
+        hessian=model.measurement_hessian_blocks,
+    )
     _same_flow(meas, x0, prior, ExponentialSchedule(8, 1.4))
 
 
@@ -146,8 +157,9 @@ def test_gpfis_log_evidence_unbiased_on_lg():
     model = mild_lg()
     obs, mean, cov = replicated(model, 400, 6)
     logz = KalmanFilter(model)(obs[:1], mean[:1], cov[:1]).log_evidence
-    res = GPFIS(model, n_particles=32, schedule=ExponentialSchedule(8, 1.5))(obs, mean, cov,
-                                                                           TrialStreams(1, 400, "gpfis"))
+    res = GPFIS(model, n_particles=32, schedule=ExponentialSchedule(8, 1.5))(
+        obs, mean, cov, TrialStreams(1, 400, "gpfis")
+    )
     r = torch.exp(res.log_evidence - logz)
     se = r.std() / math.sqrt(r.numel())
     assert abs(float(r.mean()) - 1) < 4 * float(se), (float(r.mean()), float(se))

@@ -7,6 +7,7 @@ on CPU with a ``TorchDispatchMode`` over the aten ops that read a value back to 
 reads its failure flags on the CPU by default (a read is free there, its batched jitter ladder is
 not), and so does the resampler (which trials resample); the step is counted as it runs on CUDA,
 with ``tuning`` ``batched_jitter_cpu=1, host_reads_cpu=0``."""
+
 import pytest
 import torch
 
@@ -45,8 +46,10 @@ def test_no_filter_step_synchronises(key):
 
 def test_kalman_step_does_not_synchronise():
     eye = torch.eye(3, dtype=torch.float64)
-    counts = _second_step(LinearGaussian(0.9 * eye, 0.1 * eye, eye, 0.2 * eye), KalmanFilter(
-        LinearGaussian(0.9 * eye, 0.1 * eye, eye, 0.2 * eye)))
+    counts = _second_step(
+        LinearGaussian(0.9 * eye, 0.1 * eye, eye, 0.2 * eye),
+        KalmanFilter(LinearGaussian(0.9 * eye, 0.1 * eye, eye, 0.2 * eye)),
+    )
     assert counts.ops > 0 and counts.syncs == []
 
 
@@ -115,7 +118,7 @@ def test_safe_cholesky_ladder_slots(monkeypatch):
     with tuning.tuned(batched_jitter_cpu=1):
         L = linalg.safe_cholesky(many)
     assert torch.equal(L[:64], whole[3:4].expand(64, d, d))  # the smallest jitter that works
-    top = 10.0 * torch.finfo(torch.float64).eps * 10.0 ** 5 * bad.diagonal().abs().mean()
+    top = 10.0 * torch.finfo(torch.float64).eps * 10.0**5 * bad.diagonal().abs().mean()
     assert torch.equal(L[64:69], torch.linalg.cholesky(bad + top * eye).expand(5, d, d))  # the largest
     assert not torch.equal(L[64], L[0])
     assert bool(torch.isnan(L[69]).all()) and torch.equal(L[70:], torch.linalg.cholesky(A[70:]))

@@ -1,4 +1,5 @@
 """Kalman-family exactness: KF vs an independent dense joint-Gaussian computation; EKF/UKF = KF."""
+
 import pytest
 import torch
 from torch.func import functional_call
@@ -19,7 +20,7 @@ def dense_joint(model, z):
     Fp = [torch.linalg.matrix_power(F, k) for k in range(T + 1)]
     for k in range(T + 1):
         for j in range(k + 1):
-            M[k * d:(k + 1) * d, j * d:(j + 1) * d] = Fp[k - j]
+            M[k * d : (k + 1) * d, j * d : (j + 1) * d] = Fp[k - j]
     src_cov = torch.block_diag(P0, *([Q] * T))
     Cx = M @ src_cov @ M.T
     mx = M[:, :d] @ m0
@@ -32,9 +33,9 @@ def dense_joint(model, z):
     means = []
     for k in range(1, T + 1):
         idx = slice(0, k * m)
-        Cxz = Cx1[(k - 1) * d:k * d] @ Hb[idx].T  # Cov(x_k, z_{1:k})
+        Cxz = Cx1[(k - 1) * d : k * d] @ Hb[idx].T  # Cov(x_k, z_{1:k})
         gain = torch.linalg.solve(Cz[idx, idx], Cxz.T).T
-        means.append(mx[k * d:(k + 1) * d] + (zf[:, idx] - mz[idx]) @ gain.T)
+        means.append(mx[k * d : (k + 1) * d] + (zf[:, idx] - mz[idx]) @ gain.T)
     return logz, torch.stack(means, 1)
 
 
@@ -94,8 +95,9 @@ def test_kf_log_evidence_gradcheck():
     names = ["F", "parametrizations.Q.original", "H"]  # Q through its Cholesky parametrisation
 
     def f(Fm, Qm, Hm):
-        out = functional_call(kf, {"model." + n: v for n, v in zip(names, (Fm, Qm, Hm))},
-                              (traj.observations, mean, cov))
+        out = functional_call(
+            kf, {"model." + n: v for n, v in zip(names, (Fm, Qm, Hm))}, (traj.observations, mean, cov)
+        )
         return out.log_evidence
 
     inputs = tuple(model.get_parameter(n).detach().clone().requires_grad_(True) for n in names)
@@ -122,6 +124,7 @@ def test_scalar_support_update_equals_the_joseph_form():
     from torchflow import tuning
     from torchflow.models import AcousticTracking
     from torchflow.trackers import ekf_update, kalman_update, kalman_update_scalar_support
+
     m = AcousticTracking()
     g = torch.Generator().manual_seed(0)
     traj = m.simulate(3, 2, g)
@@ -152,6 +155,7 @@ def test_inflation_scales_the_predicted_covariance(cls):
     uninflated one; c = 1 is the filter unchanged; c < 1 is refused by name."""
     from torchflow.errors import ArgumentError
     from torchflow.filters import GaussianState
+
     model = random_lg(3, 2)
     g = torch.Generator().manual_seed(0)
     mean = torch.randn(2, 3, generator=g, dtype=torch.float64)

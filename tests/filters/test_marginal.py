@@ -1,4 +1,5 @@
 """Marginal particle weights (``weights="marginal"``, :mod:`torchflow.filters.marginal`)."""
+
 import math
 
 import pytest
@@ -21,8 +22,11 @@ def _flow_filter(model, flow, points, **kw):
 def _problem(model, B, T, seed=0):
     traj = model.simulate(1, T, torch.Generator().manual_seed(seed))
     mean, cov = model.initial_belief(traj.states[:, 0], torch.Generator().manual_seed(seed + 1))
-    return (traj.observations.expand(B, -1, -1).contiguous(), mean.expand(B, -1).contiguous(),
-            cov.expand(B, -1, -1).contiguous())
+    return (
+        traj.observations.expand(B, -1, -1).contiguous(),
+        mean.expand(B, -1).contiguous(),
+        cov.expand(B, -1, -1).contiguous(),
+    )
 
 
 @pytest.mark.parametrize("flow,points", FLOWS)
@@ -57,8 +61,8 @@ def test_pairs_match_the_direct_densities():
         direct = linalg.mvn_log_prob(x.unsqueeze(2), mu.unsqueeze(1), full.unsqueeze(1))
         torch.testing.assert_close(pairs.block(slice(0, N)), direct, atol=1e-10, rtol=1e-10)
         lw = torch.log_softmax(torch.randn(B, J, generator=g, dtype=F64), -1)
-        whole, = marginal.mixture_logsumexp(pairs, [lw], N, N)
-        rows2, = marginal.mixture_logsumexp(pairs, [lw], N, 2)
+        (whole,) = marginal.mixture_logsumexp(pairs, [lw], N, N)
+        (rows2,) = marginal.mixture_logsumexp(pairs, [lw], N, 2)
         torch.testing.assert_close(whole, torch.logsumexp(direct + lw.unsqueeze(1), -1), atol=1e-10, rtol=1e-10)
         torch.testing.assert_close(rows2, whole, atol=1e-12, rtol=1e-12)
 
@@ -69,8 +73,12 @@ def test_bootstrap_marginal_weights_equal_the_standard_ones_after_resampling():
     evidence and estimates (round-off)."""
     model = random_lg(d=2, m=2, seed=1)
     obs, mean, cov = _problem(model, 4, 6)
-    out = [BootstrapParticleFilter(model, n_particles=50, ess_threshold=1.0, weights=w)(
-        obs, mean, cov, torch.Generator().manual_seed(3)) for w in ("standard", "marginal")]
+    out = [
+        BootstrapParticleFilter(model, n_particles=50, ess_threshold=1.0, weights=w)(
+            obs, mean, cov, torch.Generator().manual_seed(3)
+        )
+        for w in ("standard", "marginal")
+    ]
     torch.testing.assert_close(out[1].log_evidence, out[0].log_evidence, atol=1e-9, rtol=0)
     torch.testing.assert_close(out[1].estimates, out[0].estimates, atol=1e-9, rtol=0)
 
@@ -83,8 +91,11 @@ def test_marginal_evidence_is_unbiased(kind):
     B, T = 200, 6
     obs, mean, cov = _problem(model, B, T, seed=4)
     log_z = KalmanFilter(model)(obs[:1], mean[:1], cov[:1]).log_evidence
-    f = (BootstrapParticleFilter(model, n_particles=100, weights="marginal") if kind == "bpf" else
-         _flow_filter(model, kind, None, n_particles=50, weights="marginal"))
+    f = (
+        BootstrapParticleFilter(model, n_particles=100, weights="marginal")
+        if kind == "bpf"
+        else _flow_filter(model, kind, None, n_particles=50, weights="marginal")
+    )
     with torch.no_grad():
         ratio = (f(obs, mean, cov, torch.Generator().manual_seed(11)).log_evidence - log_z).exp()
     se = ratio.std() / math.sqrt(B)
@@ -118,8 +129,12 @@ def test_errors():
 def test_chunks_do_not_change_the_numbers():
     model = random_lg(d=2, m=2, seed=3)
     obs, mean, cov = _problem(model, 3, 4)
-    out = [ParticleFlowParticleFilter(model, flow="ledh", n_particles=30, weights="marginal", particle_chunk=c)(
-        obs, mean, cov, torch.Generator().manual_seed(1)).log_evidence for c in (None, 7)]
+    out = [
+        ParticleFlowParticleFilter(model, flow="ledh", n_particles=30, weights="marginal", particle_chunk=c)(
+            obs, mean, cov, torch.Generator().manual_seed(1)
+        ).log_evidence
+        for c in (None, 7)
+    ]
     torch.testing.assert_close(out[0], out[1], atol=1e-10, rtol=0)
 
 
@@ -131,7 +146,9 @@ def test_marginal_cuda(flow, points):
     model = mild_lg(d=2, m=2).to("cuda")
     traj = model.simulate(3, 4, torch.Generator(device="cuda").manual_seed(0))
     mean, cov = model.initial_belief(traj.states[:, 0], torch.Generator(device="cuda").manual_seed(1))
-    for f in (BootstrapParticleFilter(model, n_particles=64, weights="marginal"),
-              _flow_filter(model, flow, points, n_particles=64, weights="marginal")):
+    for f in (
+        BootstrapParticleFilter(model, n_particles=64, weights="marginal"),
+        _flow_filter(model, flow, points, n_particles=64, weights="marginal"),
+    ):
         res = f(traj.observations, mean, cov, torch.Generator(device="cuda").manual_seed(3))
         assert torch.isfinite(res.log_evidence).all() and bool((res.ess > 1).all())

@@ -1,12 +1,18 @@
 """Missing observations (NaN = not observed) in every filter (:mod:`torchflow.missing`)."""
+
 import math
 
 import pytest
 import torch
 
 from torchflow import missing, tuning
-from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, KalmanFilter, ParticleFlowFilter,
-                               ParticleFlowParticleFilter, UnscentedKalmanFilter)
+from torchflow.filters import (
+    BootstrapParticleFilter,
+    ExtendedKalmanFilter,
+    KalmanFilter,
+    ParticleFlowParticleFilter,
+    UnscentedKalmanFilter,
+)
 from torchflow.flows.kernels import select
 from torchflow.models import LinearGaussian, StateSpaceModel
 from torchflow.linalg import standard_normal
@@ -54,8 +60,14 @@ def test_kalman_family_equals_the_reduced_model(noise, make):
     model's to 1e-10, for a dense and a declared diagonal R."""
     base = random_lg(3, 4, seed=2)
     R = base.measurement_cov() if noise == "dense" else torch.diag(base.measurement_cov().diagonal())
-    model = LinearGaussian(base.transition_matrix(), base.transition_cov(), base.measurement_matrix(), R,
-                           P0=torch.eye(3, dtype=F64), measurement_noise=noise)
+    model = LinearGaussian(
+        base.transition_matrix(),
+        base.transition_cov(),
+        base.measurement_matrix(),
+        R,
+        P0=torch.eye(3, dtype=F64),
+        measurement_noise=noise,
+    )
     traj = model.simulate(6, 12, torch.Generator().manual_seed(0))
     obs = _with_gaps(traj.observations, 0.2, 1, whole=[(0, 3), (4, 0)])
     mean, cov = model.initial_belief(traj.states[:, 0])
@@ -76,11 +88,15 @@ def test_a_step_with_nothing_observed_is_a_prediction():
     torch.testing.assert_close(res.covariances[:, 1], F @ res.covariances[:, 0] @ F.T + Q)
 
 
-@pytest.mark.parametrize("make", [
-    lambda m: BootstrapParticleFilter(m, n_particles=1000),
-    lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=200),
-    lambda m: ParticleFlowParticleFilter(m, flow="edh", n_particles=200),
-], ids=["bpf", "pfpf_ledh", "pfpf_edh"])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda m: BootstrapParticleFilter(m, n_particles=1000),
+        lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=200),
+        lambda m: ParticleFlowParticleFilter(m, flow="edh", n_particles=200),
+    ],
+    ids=["bpf", "pfpf_ledh", "pfpf_edh"],
+)
 def test_particle_evidence_is_unbiased_with_gaps(make):
     """One series with 20 % of its coordinates missing, filtered by 200 independent runs: the
     evidence estimate Z_hat / Z (Z: the Kalman filter's, exact) averages to 1 within 3 of its
@@ -119,18 +135,27 @@ def test_masked_flow_migrates_with_the_observed_rows_only():
     model = random_lg(3, 3, seed=4)
     keep = torch.tensor([0, 2])
     R = model.measurement_cov()
-    reduced = LinearGaussian(model.transition_matrix(), model.transition_cov(), model.measurement_matrix()[keep],
-                             R[keep][:, keep], P0=torch.eye(3, dtype=F64))
-    full = LinearGaussian(model.transition_matrix(), model.transition_cov(), model.measurement_matrix(), R,
-                          P0=torch.eye(3, dtype=F64))
+    reduced = LinearGaussian(
+        model.transition_matrix(),
+        model.transition_cov(),
+        model.measurement_matrix()[keep],
+        R[keep][:, keep],
+        P0=torch.eye(3, dtype=F64),
+    )
+    full = LinearGaussian(
+        model.transition_matrix(), model.transition_cov(), model.measurement_matrix(), R, P0=torch.eye(3, dtype=F64)
+    )
     traj = full.simulate(4, 5, torch.Generator().manual_seed(0))
     obs = traj.observations.clone()
     obs[..., 1] = float("nan")
     mean, cov = full.initial_belief(traj.states[:, 0])
     for flow in ("edh", "ledh"):
-        a = ParticleFlowParticleFilter(full, flow=flow, n_particles=50)(obs, mean, cov, torch.Generator().manual_seed(1))
-        b = ParticleFlowParticleFilter(reduced, flow=flow, n_particles=50)(obs[..., keep], mean, cov,
-                                                                           torch.Generator().manual_seed(1))
+        a = ParticleFlowParticleFilter(full, flow=flow, n_particles=50)(
+            obs, mean, cov, torch.Generator().manual_seed(1)
+        )
+        b = ParticleFlowParticleFilter(reduced, flow=flow, n_particles=50)(
+            obs[..., keep], mean, cov, torch.Generator().manual_seed(1)
+        )
         torch.testing.assert_close(a.estimates, b.estimates, atol=1e-9, rtol=1e-9)
         torch.testing.assert_close(a.log_evidence, b.log_evidence, atol=1e-9, rtol=1e-9)
 
@@ -151,10 +176,15 @@ def test_no_kernel_takes_a_mask():
     assert torch.equal(a.estimates, b.estimates)
     with missing.observations_missing():
         from torchflow.flows import GaussianMeasurement
+
         meas = GaussianMeasurement.from_model(model, obs[:, 0])
         assert meas.observed is not None
-        assert select.flow_kernel(f.flow, meas, torch.zeros(3, 32, 3, dtype=F64), 3, per_particle=True, track=False,
-                                  gaussian_image=False) is None
+        assert (
+            select.flow_kernel(
+                f.flow, meas, torch.zeros(3, 32, 3, dtype=F64), 3, per_particle=True, track=False, gaussian_image=False
+            )
+            is None
+        )
 
 
 def test_gradients_are_finite_through_gaps():
@@ -211,8 +241,11 @@ def test_core_only_model_takes_whole_steps_and_refuses_partial_ones():
     res = f(obs, mean, cov, torch.Generator().manual_seed(1))
     assert res.log_evidence_increments[2, 1] == 0 and torch.isfinite(res.estimates).all()
     obs[0, 3, 1] = float("nan")  # one coordinate
-    with pytest.raises(ValueError, match=r"BootstrapParticleFilter: observations: step 4 of trial 0 is partly observed"
-                                         r".*measurement_log_prob_observed"):
+    with pytest.raises(
+        ValueError,
+        match=r"BootstrapParticleFilter: observations: step 4 of trial 0 is partly observed"
+        r".*measurement_log_prob_observed",
+    ):
         f(obs, mean, cov, torch.Generator().manual_seed(1))
 
 

@@ -1,4 +1,5 @@
 """PF-PF and unweighted flow filters."""
+
 import math
 
 import pytest
@@ -6,8 +7,7 @@ import torch
 from torch.func import functional_call
 
 from torchflow.experiment import run_experiment
-from torchflow.filters import (BootstrapParticleFilter, KalmanFilter, ParticleFlowFilter,
-                               ParticleFlowParticleFilter)
+from torchflow.filters import BootstrapParticleFilter, KalmanFilter, ParticleFlowFilter, ParticleFlowParticleFilter
 from torchflow.flows import EDHFlow, LEDHFlow
 from torchflow.models import AcousticTracking
 from torchflow.schedules import ExponentialSchedule, UniformSchedule
@@ -49,7 +49,9 @@ def test_pfpf_without_jacobian_term_would_be_biased(monkeypatch):
     model = mild_lg()
     obs, mean, cov = _replicated(model, 400, 6)
     logz = KalmanFilter(model)(obs[:1], mean[:1], cov[:1]).log_evidence
-    res = ParticleFlowParticleFilter(model, flow="ledh", n_particles=16)(obs, mean, cov, torch.Generator().manual_seed(1))
+    res = ParticleFlowParticleFilter(model, flow="ledh", n_particles=16)(
+        obs, mean, cov, torch.Generator().manual_seed(1)
+    )
     r = torch.exp(res.log_evidence - logz)
     assert abs(float(r.mean()) - 1) > 10 * float(r.std() / 20), float(r.mean())
 
@@ -90,9 +92,12 @@ def test_unweighted_flow_filter_tracks_kf_on_lg(flow):
 
 def test_pfpf_ledh_beats_bpf_on_acoustic():
     model = AcousticTracking()
-    filters = {"pfpf_ledh": ParticleFlowParticleFilter(model, flow="ledh", n_particles=100,
-                                                       schedule=ExponentialSchedule(15, 1.3)),
-               "bpf": BootstrapParticleFilter(model, n_particles=100)}
+    filters = {
+        "pfpf_ledh": ParticleFlowParticleFilter(
+            model, flow="ledh", n_particles=100, schedule=ExponentialSchedule(15, 1.3)
+        ),
+        "bpf": BootstrapParticleFilter(model, n_particles=100),
+    }
     res = run_experiment(model, filters, trials=4, steps=12, seed=1, progress=False)
     rows = {r["filter"]: r for r in res.summary}
     assert rows["pfpf_ledh"]["omat"] < 0.5 * rows["bpf"]["omat"], (rows["pfpf_ledh"]["omat"], rows["bpf"]["omat"])
@@ -130,12 +135,14 @@ def test_pfpf_log_evidence_gradcheck(flow):
     model = random_lg(2, 2, seed=6, learnable=True)
     traj = model.simulate(1, 2, torch.Generator().manual_seed(0))
     mean, cov = model.initial_belief(traj.states[:, 0])
-    f = ParticleFlowParticleFilter(model, flow=flow, n_particles=3, ess_threshold=0.0,
-                                   schedule=ExponentialSchedule(5, 1.2))
+    f = ParticleFlowParticleFilter(
+        model, flow=flow, n_particles=3, ess_threshold=0.0, schedule=ExponentialSchedule(5, 1.2)
+    )
 
     def fn(Fm, Hm):
-        out = functional_call(f, {"model.F": Fm, "model.H": Hm},
-                              (traj.observations, mean, cov, torch.Generator().manual_seed(1)))
+        out = functional_call(
+            f, {"model.F": Fm, "model.H": Hm}, (traj.observations, mean, cov, torch.Generator().manual_seed(1))
+        )
         return out.log_evidence
 
     inputs = (model.F.detach().clone().requires_grad_(True), model.H.detach().clone().requires_grad_(True))
@@ -172,9 +179,17 @@ def test_hydra_pairs_any_pfpf_with_any_flow_and_schedule():
 
     cfg_dir = str(Path(__file__).resolve().parents[2] / "configs")
     with initialize_config_dir(config_dir=cfg_dir, version_base="1.3"):
-        cfg = compose("config", overrides=["model=linear_gaussian", "model.d=4", "filter=[pfpf_ledh,pfpf_edh,edh]",
-                                           "flow@filter.pfpf_ledh.flow=edh", "schedule@filter.pfpf_edh.schedule=uniform",
-                                           "filter.pfpf_edh.schedule.n_steps=7"])
+        cfg = compose(
+            "config",
+            overrides=[
+                "model=linear_gaussian",
+                "model.d=4",
+                "filter=[pfpf_ledh,pfpf_edh,edh]",
+                "flow@filter.pfpf_ledh.flow=edh",
+                "schedule@filter.pfpf_edh.schedule=uniform",
+                "filter.pfpf_edh.schedule.n_steps=7",
+            ],
+        )
     model = instantiate(cfg.model)
     fs = {k: instantiate(v, model=model) for k, v in cfg.filter.items()}
     assert type(fs["pfpf_ledh"].flow) is EDHFlow

@@ -1,13 +1,22 @@
 """The performance paths compute exactly what the plain formulas compute: the
 measurement-support reduction, the Gromov diffusion in operator form, the fused covariance
 propagation, the single-threaded triangular solves and the model's shared linearisation."""
+
 import pytest
 import torch
 
 from torchflow import linalg, tuning
 from torchflow.filters import ParticleFlowParticleFilter
-from torchflow.flows import (EDHFlow, FlowPrior, GeodesicFlow, GromovFlow, LEDHFlow, OptimalDiffusionFlow,
-                             daum_huang_coefficients, integrate_flow)
+from torchflow.flows import (
+    EDHFlow,
+    FlowPrior,
+    GeodesicFlow,
+    GromovFlow,
+    LEDHFlow,
+    OptimalDiffusionFlow,
+    daum_huang_coefficients,
+    integrate_flow,
+)
 from torchflow.models import AcousticTracking
 from torchflow.schedules import ExponentialSchedule
 
@@ -46,8 +55,11 @@ def test_acoustic_support_jacobian_and_linearisation():
     torch.testing.assert_close(H, J)
 
 
-@pytest.mark.parametrize("flow", [LEDHFlow(), GeodesicFlow(), GromovFlow(), OptimalDiffusionFlow(c=0.3),
-                                  GromovFlow(noise_root="symmetric")], ids=lambda f: type(f).__name__)
+@pytest.mark.parametrize(
+    "flow",
+    [LEDHFlow(), GeodesicFlow(), GromovFlow(), OptimalDiffusionFlow(c=0.3), GromovFlow(noise_root="symmetric")],
+    ids=lambda f: type(f).__name__,
+)
 def test_support_reduction_equals_full_path(flow):
     """k x k systems at the measured coordinates give the d x d path's drift, log-det and diffusion."""
     model, z, aux, P = _acoustic_points()
@@ -125,8 +137,7 @@ def test_stochastic_integrator_fused_covariance_matches_plain_recursion():
     sched = ExponentialSchedule(n_steps=6)
     V = linalg.safe_cholesky(model.transition_cov())
     g = torch.Generator().manual_seed(0)
-    out = integrate_flow(GromovFlow(), model, aux, z, prior, sched, generator=g,
-                         proposal=FlowPrior(aux, V))
+    out = integrate_flow(GromovFlow(), model, aux, z, prior, sched, generator=g, proposal=FlowPrior(aux, V))
     eps_all, lam_all = sched.steps(dtype=F64)
     Sig = (V @ V.T).expand(1, 4, 16, 16)
     a = aux
@@ -162,10 +173,10 @@ def test_standard_normal_fast_path_is_reproducible_and_normal():
     c = standard_normal((n,), dtype=F64, device="cpu", generator=torch.Generator().manual_seed(8))
     assert torch.equal(a, b) and not torch.equal(a, c)
     # moments within 5 Monte Carlo standard errors: mean (1/sqrt n), variance (sqrt(2/n)), kurtosis
-    se = n ** -0.5
+    se = n**-0.5
     assert abs(float(a.mean())) < 5 * se
-    assert abs(float(a.var()) - 1) < 5 * (2 ** 0.5) * se
-    assert abs(float((a**4).mean()) - 3) < 5 * (96 ** 0.5) * se
+    assert abs(float(a.var()) - 1) < 5 * (2**0.5) * se
+    assert abs(float((a**4).mean()) - 3) < 5 * (96**0.5) * se
     # the generator advances: two draws from one generator differ
     g = torch.Generator().manual_seed(7)
     first = standard_normal((n,), dtype=F64, device="cpu", generator=g)
@@ -185,7 +196,7 @@ def test_standard_normal_fast_path_is_reproducible_and_normal():
     assert torch.equal(x1, x2)
     blocks = x1[: 2 * FAST_NORMAL_BLOCK].reshape(2, -1)
     assert not torch.equal(blocks[0], blocks[1])
-    assert abs(float(torch.corrcoef(blocks)[0, 1])) < 5 * FAST_NORMAL_BLOCK ** -0.5
+    assert abs(float(torch.corrcoef(blocks)[0, 1])) < 5 * FAST_NORMAL_BLOCK**-0.5
     # small or float32 draws are torch.randn's
     small = standard_normal((5, 3), dtype=F64, device="cpu", generator=torch.Generator().manual_seed(1))
     torch.testing.assert_close(small, torch.randn(5, 3, dtype=F64, generator=torch.Generator().manual_seed(1)))
@@ -214,9 +225,11 @@ def test_particle_chunking_gives_the_same_filter_output():
     model = AcousticTracking()
     traj = model.simulate(2, 3, torch.Generator().manual_seed(1))
     mean, cov = model.initial_belief(traj.states[:, 0], torch.Generator().manual_seed(2))
-    for make in (lambda c: BootstrapParticleFilter(model, n_particles=300, particle_chunk=c),
-                 lambda c: ParticleFlowParticleFilter(model, flow="ledh", n_particles=60, particle_chunk=c),
-                 lambda c: ParticleFlowParticleFilter(model, flow="edh", n_particles=60, particle_chunk=c)):
+    for make in (
+        lambda c: BootstrapParticleFilter(model, n_particles=300, particle_chunk=c),
+        lambda c: ParticleFlowParticleFilter(model, flow="ledh", n_particles=60, particle_chunk=c),
+        lambda c: ParticleFlowParticleFilter(model, flow="edh", n_particles=60, particle_chunk=c),
+    ):
         with torch.no_grad():
             whole = make(None)(traj.observations, mean, cov, torch.Generator().manual_seed(5))
             parts = make(23)(traj.observations, mean, cov, torch.Generator().manual_seed(5))
@@ -236,8 +249,14 @@ def test_plan_memory_and_runner_chunk_particles_under_a_small_budget():
     assert f.plan_memory(10 * per_trial) is None
     c = f.plan_memory(per_trial / 4)
     assert c is not None and 400 <= c <= 500
-    res = run_experiment(model, {"bpf": BootstrapParticleFilter(model, n_particles=2000)}, trials=2, steps=2,
-                         memory_budget_gb=per_trial / 4 / 2**30, progress=False)
+    res = run_experiment(
+        model,
+        {"bpf": BootstrapParticleFilter(model, n_particles=2000)},
+        trials=2,
+        steps=2,
+        memory_budget_gb=per_trial / 4 / 2**30,
+        progress=False,
+    )
     assert res.config["chunk_size"]["bpf"] == 1 and 400 <= res.config["particle_chunk"]["bpf"] <= 500
 
 
@@ -276,8 +295,11 @@ def test_daum_huang_operator_form_equals_the_formed_matrix(case):
     B, N, d, m = 2, 3, 6, 5
     k = 4 if case == "support" else d
     dt = torch.float32 if case == "float32" else F64
-    W = torch.randn(m, k, dtype=F64, generator=g) if case == "shared_W" else \
-        torch.randn(B, N, m, k, dtype=F64, generator=g)
+    W = (
+        torch.randn(m, k, dtype=F64, generator=g)
+        if case == "shared_W"
+        else torch.randn(B, N, m, k, dtype=F64, generator=g)
+    )
     y = torch.randn(B, N, m, dtype=F64, generator=g)
     X = torch.randn(B, N, d, d, dtype=F64, generator=g)
     Lfull = linalg.safe_cholesky(X @ X.transpose(-1, -2) + torch.eye(d, dtype=F64))
@@ -299,6 +321,7 @@ def test_daum_huang_operator_form_equals_the_formed_matrix(case):
     assert op.A is not None  # and kept
     if case == "float32":  # the flow's low-precision path: operator applied in float64, run's dtype out
         from torchflow.flows.measurement import Linearisation
+
         prior = FlowPrior(eta.to(dt), L.to(dt)).reduced(None)
         with tuning.tuned(flow_operator_min_dim=0):
             co = EDHFlow().coefficients_at(Linearisation(W.to(dt), y.to(dt)), prior, lam.to(dt), eps.to(dt))
@@ -312,10 +335,17 @@ def test_operator_form_is_chosen_by_size_and_cannot_be_gathered_without_form():
     for k, expect_operator in ((31, False), (32, True)):
         W = torch.randn(1, 2, k, k, dtype=F64, generator=g)
         L = torch.eye(k, dtype=F64).expand(1, 2, k, k)
-        co = daum_huang_coefficients(W, torch.zeros(1, 2, k, dtype=F64), L, torch.zeros(1, 2, k, dtype=F64),
-                                     torch.tensor(0.5, dtype=F64), torch.tensor(0.1, dtype=F64))
+        co = daum_huang_coefficients(
+            W,
+            torch.zeros(1, 2, k, dtype=F64),
+            L,
+            torch.zeros(1, 2, k, dtype=F64),
+            torch.tensor(0.5, dtype=F64),
+            torch.tensor(0.1, dtype=F64),
+        )
         assert (co.A is None) == expect_operator  # tuning.flow_operator_min_dim = 32
     from torchflow.flows import FlowCoefficients
+
     bare = FlowCoefficients(None, torch.zeros(1, 2, 3), None, apply_A=lambda V: V)
     with pytest.raises(TypeError, match="only as an operator"):
         bare.matrix()

@@ -1,4 +1,5 @@
 """Flowing Gaussian parameters (seed 002's flow-induced proposal; MODELS.md §12.1-12.2)."""
+
 import math
 
 import pytest
@@ -28,8 +29,12 @@ def test_gromov_parameter_flow_is_the_kalman_posterior_on_any_grid():
     """P_l = M(lambda_l)^{-1} exactly at every step, so 5 coarse steps suffice (PFI-S)."""
     model, mu, P, z, post = _linear_case()
     for sched in (ExponentialSchedule(5, 2.0), UniformSchedule(3)):
-        m1, P1 = flow_gaussian(GromovFlow(points="global"), GaussianMeasurement.from_model(model, z),
-                               FlowPrior(mu, torch.linalg.cholesky(P)), sched)
+        m1, P1 = flow_gaussian(
+            GromovFlow(points="global"),
+            GaussianMeasurement.from_model(model, z),
+            FlowPrior(mu, torch.linalg.cholesky(P)),
+            sched,
+        )
         torch.testing.assert_close(m1, post[0], rtol=1e-10, atol=1e-10)
         torch.testing.assert_close(P1, post[1], rtol=1e-10, atol=1e-10)
 
@@ -97,7 +102,7 @@ def test_flowed_mixture_evidence_is_unbiased(ratio):
     zz = z.expand(B * G, 2)
     m1, P1 = prop.flowed(mb, Lb, GaussianMeasurement.from_model(model, zz))
     L1 = torch.linalg.cholesky(P1)
-    loglik = lambda x: model.measurement_log_prob(z.reshape(1, 1, 1, 2), x)  # noqa: E731
+    loglik = lambda x: model.measurement_log_prob(z.reshape(1, 1, 1, 2), x)
     x, log_omega, log_ev = prop.sample(lw, mb, Lb, m1, L1, loglik, 20, TrialStreams(0, range(B), "fmix"))
     assert x.shape == (B, G, 20, d) and log_omega.shape == (B, G, 20)
     Z = (log_ev - exact).exp()  # ratio to the exact evidence

@@ -1,5 +1,4 @@
 """Lambda schedules and EDH/LEDH flows: exactness on linear-Gaussian models, exact log|det|."""
-import math
 
 import pytest
 import torch
@@ -116,7 +115,9 @@ def test_log_det_equals_jacobian_of_full_map(flow):
     x0 = mean + 0.3 * torch.randn(1, 16, dtype=torch.float64, generator=g)
 
     def f(x):
-        return integrate_flow(flow, model, x.reshape(1, 1, 16), z, _prior(flow, mean, L, 1), sched).particles.reshape(16)
+        return integrate_flow(flow, model, x.reshape(1, 1, 16), z, _prior(flow, mean, L, 1), sched).particles.reshape(
+            16
+        )
 
     J = jacrev(f)(x0[0])
     sign, logabs = torch.linalg.slogdet(J)

@@ -2,6 +2,7 @@
 path: Triton's kernel on the CPU through its interpreter (a subprocess with TRITON_INTERPRET=1;
 skipped where Triton is not installed) and on CUDA compiled; Numba's CPU kernel (skipped where
 Numba is not installed)."""
+
 import json
 import os
 import subprocess
@@ -21,7 +22,8 @@ def _kernel(flow, meas, x, k):
     """The flow kernel the selection picks at per-particle points (no tracked law, no image)."""
     return S.flow_kernel(flow, meas, x, k, per_particle=True, track=False, gaussian_image=False)
 
-CHECK = textwrap.dedent('''
+
+CHECK = textwrap.dedent("""
     import json, sys
     import torch
     from torchflow import tuning
@@ -76,15 +78,22 @@ CHECK = textwrap.dedent('''
         "acoustic, P's condition ~1e6": case(AcousticTracking(), 2, 3, torch.float64, False, LEDHFlow(), spread=3.0),
         **({} if only_acoustic else {"linear, shared W, EDH at particles": case(lg(), 2, 3, torch.float64, False,
                                                                                   EDHFlow())}),
-        "acoustic, 40 particles (two programs of 32)": case(AcousticTracking(), 2, 20, torch.float64, False, LEDHFlow()),
+        "acoustic, 40 particles (two programs of 32)": case(AcousticTracking(), 2, 20, torch.float64, False,
+        LEDHFlow()),
     }
     print("RESULT" + json.dumps(res))
-''')
+""")
 
 
 def _check(device, inside, env=None, layout=None):
-    out = subprocess.run([sys.executable, "-c", CHECK, device, str(inside)] + ([layout] if layout else []), capture_output=True, text=True, cwd=ROOT,
-                         env={**os.environ, **(env or {})}, timeout=600)
+    out = subprocess.run(
+        [sys.executable, "-c", CHECK, device, str(inside)] + ([layout] if layout else []),
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, **(env or {})},
+        timeout=600,
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     return json.loads(out.stdout.split("RESULT")[-1])
 
@@ -112,7 +121,7 @@ def test_fused_step_matches_torch_in_triton_interpreter(inside, layout):
     _assert_close(_check("cpu", inside, {"TRITON_INTERPRET": "1"}, layout), 1e-11, 1e-4)
 
 
-F32_CHECK = textwrap.dedent('''
+F32_CHECK = textwrap.dedent("""
     import json, sys
     import torch
     from torchflow import tuning
@@ -138,7 +147,7 @@ F32_CHECK = textwrap.dedent('''
                         ((o.aux.double() - ref.aux).abs().max() / ref.aux.abs().max()).item())
     print("RESULT" + json.dumps({"f32": err(run(torch.float32, 1, 1)), "f64": err(run(torch.float32, 1, 0)),
                                  "torch": err(run(torch.float32, 0, 0))}))
-''')
+""")
 
 
 def test_float32_arithmetic_in_the_gpu_kernel():
@@ -148,8 +157,14 @@ def test_float32_arithmetic_in_the_gpu_kernel():
     float64 arithmetic (the default) and 1.3e-7 for the torch path in float32. The bounds: within
     1e-3, and above 1e-5 (so float32 arithmetic did run: float64 arithmetic stays 10x below)."""
     pytest.importorskip("triton")
-    out = subprocess.run([sys.executable, "-c", F32_CHECK], capture_output=True, text=True, cwd=ROOT,
-                         env={**os.environ, "TRITON_INTERPRET": "1"}, timeout=600)
+    out = subprocess.run(
+        [sys.executable, "-c", F32_CHECK],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, "TRITON_INTERPRET": "1"},
+        timeout=600,
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     err = json.loads(out.stdout.split("RESULT")[-1])
     assert 1e-5 < err["f32"] < 1e-3 and err["f64"] < 1e-5 and err["torch"] < 1e-5, err
@@ -161,8 +176,14 @@ def test_fused_step_matches_torch_with_numba_on_cpu(inside):
     40 particles (one partly filled group of lanes)."""
     pytest.importorskip("numba")
     env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
-    out = subprocess.run([sys.executable, "-c", CHECK, "cpu", str(inside)], capture_output=True, text=True, cwd=ROOT,
-                         env=env, timeout=600)
+    out = subprocess.run(
+        [sys.executable, "-c", CHECK, "cpu", str(inside)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env=env,
+        timeout=600,
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     _assert_close(json.loads(out.stdout.split("RESULT")[-1]), 1e-11, 1e-4)
 
@@ -174,6 +195,7 @@ def test_cpu_kernel_gives_the_same_bits_on_any_thread_count_and_split():
     from torchflow.flows import FlowPrior, LEDHFlow, integrate_flow
     from torchflow.models import AcousticTracking
     from torchflow.schedules import ExponentialSchedule
+
     model = AcousticTracking()
     g = torch.Generator().manual_seed(3)
     traj = model.simulate(2, 2, g)
@@ -187,15 +209,24 @@ def test_cpu_kernel_gives_the_same_bits_on_any_thread_count_and_split():
         torch.set_num_threads(threads)
         try:
             with torch.no_grad():
-                out = integrate_flow(LEDHFlow(), model, x[:, sl], z, FlowPrior(x[:, sl] + 0.1, L[:, sl]),
-                                     ExponentialSchedule(4, 1.2), points="particle")
+                out = integrate_flow(
+                    LEDHFlow(),
+                    model,
+                    x[:, sl],
+                    z,
+                    FlowPrior(x[:, sl] + 0.1, L[:, sl]),
+                    ExponentialSchedule(4, 1.2),
+                    points="particle",
+                )
         finally:
             torch.set_num_threads(n)
         return out.particles, out.log_det
 
     whole = flow(slice(None), 2)
-    for got in (flow(slice(None), 1), tuple(torch.cat(p, 1) for p in zip(flow(slice(0, 32), 2),
-                                                                        flow(slice(32, None), 1)))):
+    for got in (
+        flow(slice(None), 1),
+        tuple(torch.cat(p, 1) for p in zip(flow(slice(0, 32), 2), flow(slice(32, None), 1))),
+    ):
         assert all(torch.equal(a, b) for a, b in zip(got, whole))
 
 
@@ -210,6 +241,7 @@ def test_fused_gromov_step_matches_torch_on_cpu(inside, tracked):
     from torchflow.flows import FlowPrior, GromovFlow, integrate_flow
     from torchflow.flows import integrate as I
     from torchflow.models import AcousticTracking
+
     m = AcousticTracking()
     g = torch.Generator().manual_seed(0)
     B, N, d = 2, 70, 16
@@ -223,8 +255,19 @@ def test_fused_gromov_step_matches_torch_on_cpu(inside, tracked):
         with tuning.tuned(fused_flows=fz, fused_measurement=inside), torch.no_grad():
             meas = I.GaussianMeasurement.from_model(m, traj.observations[:, 1])
             assert (_kernel(GromovFlow(), meas, x, 8) == "gromov") == bool(fz)
-            outs.append(integrate_flow(GromovFlow(), m, x, traj.observations[:, 1], FlowPrior(x + 0.1, L), None,
-                                       points="particle", proposal=law, generator=torch.Generator().manual_seed(4)))
+            outs.append(
+                integrate_flow(
+                    GromovFlow(),
+                    m,
+                    x,
+                    traj.observations[:, 1],
+                    FlowPrior(x + 0.1, L),
+                    None,
+                    points="particle",
+                    proposal=law,
+                    generator=torch.Generator().manual_seed(4),
+                )
+            )
     keys = ("particles", "aux") + (("log_proposal", "proposal_mean", "proposal_cov") if tracked else ())
     for k in keys:
         a, b = getattr(outs[0], k), getattr(outs[1], k)
@@ -236,6 +279,7 @@ def _gpfis_case(model, B, N, per_particle_cov, dtype=torch.float64, seed=0):
     """GPFIS's inputs: particles drawn from the transition of jittered states, its prior (per-particle
     means; the model's shared factor, or per-particle factors), the observation."""
     from torchflow.flows import FlowPrior
+
     g = torch.Generator().manual_seed(seed)
     model = model.to(dtype=dtype)
     d = model.state_dim
@@ -254,6 +298,7 @@ def _gpfis(model, x0, prior, z, steps=5, **tuned):
     from torchflow.flows import GaussianMeasurement
     from torchflow.flows.gpfis import gpfis_flow
     from torchflow.schedules import ExponentialSchedule
+
     with tuning.tuned(**tuned), torch.no_grad():
         return gpfis_flow(GaussianMeasurement.from_model(model, z), x0, prior, ExponentialSchedule(steps, 1.2))
 
@@ -267,8 +312,8 @@ def test_fused_gpfis_matches_torch_on_cpu(inside, case):
     per-particle factors, in float32, and a linear-Gaussian model (second derivatives zero)."""
     pytest.importorskip("numba")
     from torchflow.flows import FlowPrior, GaussianMeasurement
-    from torchflow.flows import gpfis as GP
     from torchflow.models import AcousticTracking, LinearGaussian
+
     if case == "linear":
         if inside:
             pytest.skip("the kernel linearises only the acoustic measurement itself")
@@ -286,8 +331,13 @@ def test_fused_gpfis_matches_torch_on_cpu(inside, case):
     if dtype == torch.float32:  # the kernel computes in float64: against the torch path in float64
         # (the torch path in float32 is 3e-3 off in the particles and 7e-2 in log|det| here; the
         # kernel 3e-5 when torch linearises in float32, 3e-6 when it linearises itself)
-        ref = _gpfis(model.to(dtype=torch.float64), x0.double(),
-                     FlowPrior(prior.mean.double(), prior.scale_tril.double()), z.double(), fused_flows=0)
+        ref = _gpfis(
+            model.to(dtype=torch.float64),
+            x0.double(),
+            FlowPrior(prior.mean.double(), prior.scale_tril.double()),
+            z.double(),
+            fused_flows=0,
+        )
         tol = 1e-4
     else:
         ref = _gpfis(model, x0, prior, z, fused_flows=0)
@@ -306,6 +356,7 @@ def test_fused_gpfis_gives_the_same_bits_on_any_thread_count_and_split():
     pytest.importorskip("numba")
     from torchflow.flows import FlowPrior
     from torchflow.models import AcousticTracking
+
     model, x0, prior, z = _gpfis_case(AcousticTracking(), 2, 130, False, seed=3)
 
     def run(sl, threads):
@@ -317,7 +368,10 @@ def test_fused_gpfis_gives_the_same_bits_on_any_thread_count_and_split():
             torch.set_num_threads(n)
 
     whole = run(slice(None), 2)
-    for got in (run(slice(None), 1), tuple(torch.cat(p, 1) for p in zip(run(slice(0, 32), 2), run(slice(32, None), 1)))):
+    for got in (
+        run(slice(None), 1),
+        tuple(torch.cat(p, 1) for p in zip(run(slice(0, 32), 2), run(slice(32, None), 1))),
+    ):
         assert all(torch.equal(a, b) for a, b in zip(got, whole))
 
 
@@ -330,6 +384,7 @@ def test_fused_gpfis_only_where_it_applies(monkeypatch):
     from torchflow.flows.kernels import steps as fused
     from torchflow.flows import gpfis as GP
     from torchflow.models import AcousticTracking
+
     model, x0, prior, z = _gpfis_case(AcousticTracking(), 1, 4, False)
     meas = GaussianMeasurement.from_model(model, z)
     monkeypatch.setattr(fused, "_numba", True)
@@ -356,6 +411,7 @@ def _diag_case(d, B, N, shared, dtype=torch.float64, seed=0):
     Gaussian-sum component's) or one per particle (as PF-PF(LEDH)'s)."""
     from torchflow.flows import FlowPrior
     from torchflow.models import SkewedTPoisson
+
     g = torch.Generator().manual_seed(seed)
     model = SkewedTPoisson(d=d).to(dtype=dtype)
     traj = model.simulate(B, 2, g)
@@ -369,6 +425,7 @@ def _diag_case(d, B, N, shared, dtype=torch.float64, seed=0):
 def _flow(model, x, prior, z, flow=None, **tuned):
     from torchflow import tuning
     from torchflow.flows import LEDHFlow, integrate_flow
+
     with tuning.tuned(**tuned), torch.no_grad():
         return integrate_flow(flow or LEDHFlow(), model, x, z, prior, None, points="particle")
 
@@ -380,7 +437,7 @@ def test_fused_diagonal_step_matches_torch_on_cpu(case):
     particles of the skewed-t / Poisson model at d = 64."""
     pytest.importorskip("numba")
     from torchflow.flows import EDHFlow, GaussianMeasurement, LEDHFlow
-    from torchflow.flows import integrate as I
+
     dtype = torch.float32 if case == "float32" else torch.float64
     model, x, prior, z = _diag_case(64, 2, 30, case != "per-particle priors", dtype)
     flow = EDHFlow() if case.startswith("EDH") else LEDHFlow()
@@ -401,6 +458,7 @@ def test_fused_diagonal_step_matches_torch_on_cpu(case):
 def test_fused_diagonal_step_gives_the_same_bits_on_any_thread_count_and_split():
     pytest.importorskip("numba")
     from torchflow.flows import FlowPrior
+
     model, x, prior, z = _diag_case(64, 1, 40, False, seed=2)
 
     def run(sl, threads):
@@ -426,6 +484,7 @@ def test_gaussian_sum_flows_all_particles_at_once_with_the_diagonal_kernel():
     from torchflow.flows import LEDHFlow
     from torchflow.flows import which_kernel
     from torchflow.models import AcousticTracking, SkewedTPoisson
+
     model = SkewedTPoisson(d=144)
     f = ParticleFlowGaussianSumParticleFilter(model, n_components=5, particles_per_component=200)
     assert (which_kernel(f.flow, model, "cpu") == "diagonal") and f.flow_chunk("cpu") is None
@@ -443,6 +502,7 @@ def test_cpu_precision_from_factor():
     import numba
     import numpy as np
     from torchflow.flows.kernels.cpu import precision_from_factor
+
     g = torch.Generator().manual_seed(0)
     A = torch.randn(2, 5, 33, 33, dtype=torch.float64, generator=g)
     L = torch.linalg.cholesky(A @ A.transpose(-1, -2) / 33 + torch.eye(33, dtype=torch.float64))
@@ -464,17 +524,30 @@ def test_diagonal_rows_are_the_linearisation_diagonal():
     from torchflow.flows import GaussianMeasurement
     from torchflow.models import AcousticTracking, SkewedTPoisson
     from torchflow.models.base import GaussianStateSpaceModel
+
     model, x, _, z = _diag_case(16, 2, 5, True)
     meas = GaussianMeasurement.from_model(model, z)
     lin = meas.at(x)
-    for rows in (meas.at_diagonal(x), GaussianMeasurement(
-            z, model.linearize_measurement, model.measurement_scale_tril, "diagonal", diagonal=True,
-            diagonal_rows=lambda p: GaussianStateSpaceModel.linearize_measurement_diagonal(model, p)).at_diagonal(x)):
+    for rows in (
+        meas.at_diagonal(x),
+        GaussianMeasurement(
+            z,
+            model.linearize_measurement,
+            model.measurement_scale_tril,
+            "diagonal",
+            diagonal=True,
+            diagonal_rows=lambda p: GaussianStateSpaceModel.linearize_measurement_diagonal(model, p),
+        ).at_diagonal(x),
+    ):
         assert torch.equal(rows[0], lin.diag) and torch.equal(rows[1], lin.y)
     assert isinstance(model, SkewedTPoisson)
     acoustic = AcousticTracking()
-    assert GaussianMeasurement.from_model(acoustic, torch.zeros(1, 25, dtype=torch.float64)).at_diagonal(
-        torch.zeros(1, 3, 16, dtype=torch.float64)) is None
+    assert (
+        GaussianMeasurement.from_model(acoustic, torch.zeros(1, 25, dtype=torch.float64)).at_diagonal(
+            torch.zeros(1, 3, 16, dtype=torch.float64)
+        )
+        is None
+    )
 
 
 def test_not_fused_without_a_kernel_on_cpu(monkeypatch):
@@ -484,6 +557,7 @@ def test_not_fused_without_a_kernel_on_cpu(monkeypatch):
     from torchflow.flows import LEDHFlow
     from torchflow.models import AcousticTracking
     from torchflow.flows import GromovFlow
+
     monkeypatch.setattr(fused, "_numba", False)
     m = AcousticTracking()
     meas = I.GaussianMeasurement.from_model(m, torch.zeros(1, 25, dtype=torch.float64))
@@ -492,17 +566,22 @@ def test_not_fused_without_a_kernel_on_cpu(monkeypatch):
         assert not _kernel(GromovFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8) == "gromov"
         assert not _kernel(GromovFlow(noise_root="symmetric"), meas, torch.zeros(1, 4, 16), 8) == "gromov"
         from torchflow.models import SkewedTPoisson
+
         poisson = I.GaussianMeasurement.from_model(SkewedTPoisson(d=64), torch.zeros(1, 64, dtype=torch.float64))
         assert not _kernel(LEDHFlow(), poisson, torch.zeros(1, 4, 64, dtype=torch.float64), 64) == "diagonal"
     monkeypatch.setattr(fused, "_numba", True)
     with torch.no_grad():
         assert _kernel(LEDHFlow(), poisson, torch.zeros(1, 4, 64, dtype=torch.float64), 64) == "diagonal"
-        assert not _kernel(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 64) == "diagonal"  # W not diagonal
+        assert (
+            not _kernel(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 64) == "diagonal"
+        )  # W not diagonal
         assert not _kernel(GromovFlow(), poisson, torch.zeros(1, 4, 64, dtype=torch.float64), 64) == "diagonal"
     assert not _kernel(LEDHFlow(), poisson, torch.zeros(1, 4, 64, dtype=torch.float64), 64) == "diagonal"  # a gradient
     with torch.no_grad():
         assert _kernel(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8) == "lanes"
-    assert not _kernel(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8) == "lanes"  # a gradient is recorded
+    assert (
+        not _kernel(LEDHFlow(), meas, torch.zeros(1, 4, 16, dtype=torch.float64), 8) == "lanes"
+    )  # a gradient is recorded
 
 
 @cuda
@@ -525,6 +604,7 @@ def test_fused_kernel_keeps_each_particle_in_one_thread_on_sm90(inside, layout):
     pytest.importorskip("triton")
     sys.path.insert(0, str(ROOT))
     from experiments.benchmarks.kernel_registers import measure
+
     r = measure(lin=inside, warps=1, arch=90, layout=layout)
     assert r["shuffles"] == 0, r
     bound = {"rows": 2200, "info": 3000}[layout]  # bytes; measured 1.6-1.8 KB and 2.6-2.7 KB with Triton 3.6
@@ -553,8 +633,12 @@ def test_which_measurements_the_kernel_linearises_itself():
         assert S.measured_inside(meas, sup, 8) is None
     assert S.measured_inside(meas, None, 8) is None  # no declared support
     assert measurement_form(Moved()) is None and measurement_form(AcousticTracking())[0] == "inverse_distance_sum"
-    lg = LinearGaussian(torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64),
-                        torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64))
+    lg = LinearGaussian(
+        torch.eye(2, dtype=torch.float64),
+        torch.eye(2, dtype=torch.float64),
+        torch.eye(2, dtype=torch.float64),
+        torch.eye(2, dtype=torch.float64),
+    )
     assert I.GaussianMeasurement.from_model(lg, torch.zeros(1, 2, dtype=torch.float64)).form is None
 
 
@@ -563,6 +647,7 @@ def test_gpu_tiles_bounded_by_the_register_budget():
     tiles (k = 8, m = 25, d = 16) fit, k = 16 (the skewed-t model at d = 16) takes the torch path;
     the CPU's cache-sized bound is larger."""
     from torchflow.flows.kernels.select import tiles_fit
+
     assert tiles_fit(25, 8, 16, "cuda") and tiles_fit(2, 3, 3, "cuda")
     assert not tiles_fit(16, 16, 16, "cuda") and tiles_fit(16, 16, 16, "cpu")
     assert not tiles_fit(144, 144, 144, "cpu")
@@ -574,6 +659,7 @@ def test_info_factors_are_the_prior_precision_and_c():
     ``P_s^{-1}`` (``P_s^{-1} L_s L_s^T = I``), float64 from float32 inputs, broadcasting a shared
     covariance's ``(B, 1, ...)`` against per-particle ones."""
     from torchflow.flows.kernels import steps as fused
+
     g = torch.Generator().manual_seed(0)
     A = torch.randn(2, 3, 6, 6, dtype=torch.float64, generator=g)
     root = torch.linalg.cholesky(A @ A.transpose(-1, -2) + torch.eye(6, dtype=torch.float64))
@@ -582,8 +668,9 @@ def test_info_factors_are_the_prior_precision_and_c():
     assert C.dtype == Pi.dtype == torch.float64 and C.shape == (2, 3, 6, 4) and Pi.shape == (2, 3, 4, 4)
     assert torch.allclose(C @ Ls, L, atol=1e-5)
     assert torch.allclose(C[..., :4, :], torch.eye(4, dtype=torch.float64).expand(2, 3, 4, 4), atol=1e-5)
-    assert torch.allclose(Pi @ (Ls @ Ls.transpose(-1, -2)), torch.eye(4, dtype=torch.float64).expand(2, 3, 4, 4),
-                          atol=1e-4)
+    assert torch.allclose(
+        Pi @ (Ls @ Ls.transpose(-1, -2)), torch.eye(4, dtype=torch.float64).expand(2, 3, 4, 4), atol=1e-4
+    )
     C1, Pi1 = fused.info_factors(L[:, :1], Ls)  # one L for all particles, per-particle L_s
     assert C1.shape == (2, 3, 6, 4) and torch.allclose(C1 @ Ls, L[:, :1].expand(2, 3, 6, 4), atol=1e-12)
 
@@ -592,6 +679,7 @@ def test_kernel_form_follows_tuning():
     """``tuning.fused_info`` picks the GPU kernel's form (information form by default)."""
     from torchflow import tuning
     from torchflow.flows.kernels import steps as fused
+
     assert fused.kernel_form() == "info"
     with tuning.tuned(fused_info=0):
         assert fused.kernel_form() == "rows"
@@ -612,7 +700,8 @@ def test_the_cpu_kernels_leave_torch_s_thread_count_alone():
         traj = m.simulate(2, 2, torch.Generator().manual_seed(0))
         mean, cov = m.initial_belief(traj.states[:, 0])
         with torch.no_grad():
-            r = ParticleFlowParticleFilter(m, n_particles=16)(traj.observations, mean, cov, torch.Generator().manual_seed(1))
+            r = ParticleFlowParticleFilter(m, n_particles=16)(traj.observations, mean, cov,
+            torch.Generator().manual_seed(1))
         print("RESULT", torch.get_num_threads(), sorted(r.paths))
     """)
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "TRITON_INTERPRET")}

@@ -1,5 +1,6 @@
 """Flows take explicit tensors: the whitened measurement at the points, built from a
 GaussianMeasurement that the filter (not the flow) chooses."""
+
 import pytest
 import torch
 
@@ -38,8 +39,9 @@ def test_the_filter_chooses_the_measurement(flow):
     z = torch.randn(2, 2, generator=g, dtype=torch.float64)
     L = linalg.safe_cholesky(1.3 * torch.eye(3, dtype=torch.float64)).expand(2, 3, 3)
     prior = FlowPrior(x.mean(1), L) if flow.points != "particle" else FlowPrior(x, L[:, None])
-    meas_b = GaussianMeasurement(z, b.linearize_measurement, b.measurement_scale_tril, "dense",
-                                 matrix=b.measurement_matrix(), measure=b.measure)
+    meas_b = GaussianMeasurement(
+        z, b.linearize_measurement, b.measurement_scale_tril, "dense", matrix=b.measurement_matrix(), measure=b.measure
+    )
     out_ab = integrate_flow(flow, a, x, z, prior, measurement=meas_b, generator=torch.Generator().manual_seed(1))
     out_b = integrate_flow(flow, b, x, z, prior, generator=torch.Generator().manual_seed(1))
     out_a = integrate_flow(flow, a, x, z, prior, generator=torch.Generator().manual_seed(1))

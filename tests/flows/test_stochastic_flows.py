@@ -1,5 +1,6 @@
 """Geodesic, Gromov and optimised-diffusion flows, the stochastic integrator's proposal recursion,
 the seed 002 schedule, and the PF-PF built on them."""
+
 import math
 
 import pytest
@@ -8,10 +9,18 @@ from torch.func import jacrev
 
 from torchflow import linalg
 from torchflow.filters import KalmanFilter, ParticleFlowFilter, ParticleFlowParticleFilter
-from torchflow.filters.kalman import kalman_update
-from torchflow.flows import (EDHFlow, FlowCoefficients, FlowPrior, GeodesicFlow, GromovFlow, LEDHFlow,
-                             OptimalDiffusionFlow, diffusion_condition_number, integrate_flow,
-                             optimal_diffusion_scale, symmetric_sqrt)
+from torchflow.flows import (
+    EDHFlow,
+    FlowCoefficients,
+    FlowPrior,
+    GeodesicFlow,
+    GromovFlow,
+    OptimalDiffusionFlow,
+    diffusion_condition_number,
+    integrate_flow,
+    optimal_diffusion_scale,
+    symmetric_sqrt,
+)
 from torchflow.flows.measurement import whiten
 from torchflow.models import AcousticTracking
 from torchflow.schedules import ExponentialSchedule, GeometricSchedule, UniformSchedule
@@ -77,7 +86,9 @@ def test_coefficients_match_dense_formulas(model_name):
     G = gro.noise_factor[0]
     torch.testing.assert_close(G @ G.T, Mi @ J @ Mi)
     torch.testing.assert_close(gro.dense_A(), geo.dense_A())
-    sym = GromovFlow(points="global", noise_root="symmetric").coefficients(model, zz, a, prior, lam, eps).noise_factor[0]
+    sym = (
+        GromovFlow(points="global", noise_root="symmetric").coefficients(model, zz, a, prior, lam, eps).noise_factor[0]
+    )
     torch.testing.assert_close(sym, sym.T)
     torch.testing.assert_close(sym @ sym, Mi @ J @ Mi)
     c = 0.7
@@ -137,9 +148,16 @@ def test_gromov_diffusion_is_rank_deficient_on_acoustic_and_integrates_finite():
     for root in ("factor", "symmetric"):
         N = 200
         x0 = linalg.sample_mvn(mean, L, (N,), g)
-        out = integrate_flow(GromovFlow(noise_root=root), model, x0, z, _prior(GromovFlow(), mean, L, N),
-                             ExponentialSchedule(29, 1.2), generator=g,
-                             proposal=FlowPrior(mean.unsqueeze(1).expand(2, N, 16), L.unsqueeze(1)))
+        out = integrate_flow(
+            GromovFlow(noise_root=root),
+            model,
+            x0,
+            z,
+            _prior(GromovFlow(), mean, L, N),
+            ExponentialSchedule(29, 1.2),
+            generator=g,
+            proposal=FlowPrior(mean.unsqueeze(1).expand(2, N, 16), L.unsqueeze(1)),
+        )
         assert torch.isfinite(out.particles).all() and torch.isfinite(out.log_proposal).all()
 
 
@@ -170,7 +188,9 @@ def test_optimal_c_minimises_objective(case):
     lam, eps = torch.tensor(0.2, dtype=F64), torch.tensor(0.01, dtype=F64)
 
     def A_at(c):
-        return OptimalDiffusionFlow(c=float(c), points="global").coefficients(model, z, mean, prior, lam, eps).dense_A()[0]
+        return (
+            OptimalDiffusionFlow(c=float(c), points="global").coefficients(model, z, mean, prior, lam, eps).dense_A()[0]
+        )
 
     flow = OptimalDiffusionFlow(alpha=alpha, points="global")
     W, _ = whiten(model, mean, z)
@@ -178,7 +198,7 @@ def test_optimal_c_minimises_objective(case):
     S = (W @ L).transpose(-1, -2) @ (W @ L)
     c_star = float(flow.scale(S, lam)[0])
     assert c_star > 0
-    J = lambda cs: _objective([A_at(c) for c in cs], cs, alpha)  # noqa: E731
+    J = lambda cs: _objective([A_at(c) for c in cs], cs, alpha)
     Js = J([c_star, 0.9 * c_star, 1.1 * c_star, 0.5 * c_star, 2 * c_star])
     assert (Js[0] < Js[1:]).all(), Js
     # numeric minimisation: golden section on log c over [1e-6, 1e6] (J is convex in c)
@@ -202,8 +222,9 @@ def test_optimal_scale_closed_form_and_seed_convention():
     # c = 2 c', so our objective kappa + 0.1 c is theirs with alpha' = 0.2
     seed = (torch.sqrt((k_max - k_min) / 0.2) - k_min).clamp_min(0)
     torch.testing.assert_close(c / 2, seed)
-    torch.testing.assert_close(optimal_diffusion_scale(k_min, k_max, 0.05) / 2,
-                               (torch.sqrt((k_max - k_min) / 0.1) - k_min).clamp_min(0))
+    torch.testing.assert_close(
+        optimal_diffusion_scale(k_min, k_max, 0.05) / 2, (torch.sqrt((k_max - k_min) / 0.1) - k_min).clamp_min(0)
+    )
     assert float(c[2]) == 0.0  # nearly isotropic drift: no diffusion needed
     k = torch.stack([k_min, k_max], -1)
     for i in range(3):
@@ -256,11 +277,20 @@ def test_gromov_proposal_recursion_is_the_exact_posterior_at_any_schedule(local)
     x0 = linalg.sample_mvn(mean, L, (N,), g)
     flow = GromovFlow(points="particle" if local else "global")
     for sched in (UniformSchedule(1), ExponentialSchedule(5, 1.5), GeometricSchedule(1e-3, 2.0)):
-        out = integrate_flow(flow, model, x0, z, _prior(flow, mean, L, N), sched, generator=g,
-                             proposal=FlowPrior(mean.unsqueeze(1).expand(2, N, 4), L.unsqueeze(1)))
+        out = integrate_flow(
+            flow,
+            model,
+            x0,
+            z,
+            _prior(flow, mean, L, N),
+            sched,
+            generator=g,
+            proposal=FlowPrior(mean.unsqueeze(1).expand(2, N, 4), L.unsqueeze(1)),
+        )
         torch.testing.assert_close(out.proposal_mean, post_m.unsqueeze(1).expand(2, N, 4), rtol=0, atol=1e-10)
-        torch.testing.assert_close(out.proposal_cov.expand(2, N, 4, 4), post_P.unsqueeze(1).expand(2, N, 4, 4),
-                                   rtol=0, atol=1e-10)
+        torch.testing.assert_close(
+            out.proposal_cov.expand(2, N, 4, 4), post_P.unsqueeze(1).expand(2, N, 4, 4), rtol=0, atol=1e-10
+        )
 
 
 def test_osd_proposal_recursion_converges_to_the_posterior_as_schedule_is_refined():
@@ -271,10 +301,22 @@ def test_osd_proposal_recursion_converges_to_the_posterior_as_schedule_is_refine
     x0 = mean.unsqueeze(1)
     errs = []
     for n in (10, 100, 1000):
-        out = integrate_flow(OptimalDiffusionFlow(points="global"), model, x0, z, FlowPrior(mean, L), UniformSchedule(n),
-                             generator=g, proposal=FlowPrior(x0, L.unsqueeze(1)))
-        errs.append(max(float((out.proposal_mean[:, 0] - post_m).abs().max()),
-                        float((out.proposal_cov[:, 0] - post_P).abs().max())))
+        out = integrate_flow(
+            OptimalDiffusionFlow(points="global"),
+            model,
+            x0,
+            z,
+            FlowPrior(mean, L),
+            UniformSchedule(n),
+            generator=g,
+            proposal=FlowPrior(x0, L.unsqueeze(1)),
+        )
+        errs.append(
+            max(
+                float((out.proposal_mean[:, 0] - post_m).abs().max()),
+                float((out.proposal_cov[:, 0] - post_P).abs().max()),
+            )
+        )
     assert errs[0] > errs[1] > errs[2] and errs[2] < 1e-2 * float(post_P.abs().max()), errs
     assert errs[1] / errs[2] > 5  # first order
 
@@ -289,8 +331,7 @@ def test_stochastic_recursion_with_zero_diffusion_equals_log_det_weight():
 
         def coefficients_at(self, *a):
             co = super().coefficients_at(*a)
-            return FlowCoefficients(co.A, co.b, None, noise_factor=torch.zeros_like(co.A[..., :1]),
-                                    support=co.support)
+            return FlowCoefficients(co.A, co.b, None, noise_factor=torch.zeros_like(co.A[..., :1]), support=co.support)
 
     model = AcousticTracking()
     g = torch.Generator().manual_seed(0)
@@ -320,15 +361,25 @@ def test_geodesic_log_det_equals_jacobian_of_full_map():
     flow = GeodesicFlow()
 
     def f(x):
-        return integrate_flow(flow, model, x.reshape(1, 1, 16), z, _prior(flow, mean, L, 1), sched).particles.reshape(16)
+        return integrate_flow(flow, model, x.reshape(1, 1, 16), z, _prior(flow, mean, L, 1), sched).particles.reshape(
+            16
+        )
 
     sign, logabs = torch.linalg.slogdet(jacrev(f)(x0[0]))
     out = integrate_flow(flow, model, x0.reshape(1, 1, 16), z, _prior(flow, mean, L, 1), sched)
     assert sign > 0 and abs(float(out.log_det[0, 0]) - float(logabs)) < 1e-9
 
 
-@pytest.mark.parametrize("flow", [GromovFlow(points="global"), GromovFlow(), GromovFlow(points="global", noise_root="symmetric"),
-                                  OptimalDiffusionFlow(points="global")], ids=["gromov-global", "gromov-local", "gromov-sym", "osd"])
+@pytest.mark.parametrize(
+    "flow",
+    [
+        GromovFlow(points="global"),
+        GromovFlow(),
+        GromovFlow(points="global", noise_root="symmetric"),
+        OptimalDiffusionFlow(points="global"),
+    ],
+    ids=["gromov-global", "gromov-local", "gromov-sym", "osd"],
+)
 def test_stochastic_cloud_matches_kf_posterior_in_distribution(flow):
     """Prior samples pushed through the stochastic flow have the KF posterior's mean and covariance
     within 5 Monte Carlo sd (plus, for the optimised diffusion, its Euler bias at 200 steps; the
@@ -357,15 +408,26 @@ def test_geodesic_cloud_over_contracts():
     x0 = linalg.sample_mvn(mean, L, (N,), g)
     out = integrate_flow(GeodesicFlow(points="global"), model, x0, z, FlowPrior(mean, L), UniformSchedule(200))
     _, C = linalg.weighted_mean_cov(out.particles, torch.zeros(2, N, dtype=F64))
-    assert (torch.linalg.eigvalsh(post_P - C) > 0).any(-1).all() and (C.diagonal(0, -2, -1) < post_P.diagonal(0, -2, -1)).all()
+    assert (torch.linalg.eigvalsh(post_P - C) > 0).any(-1).all() and (
+        C.diagonal(0, -2, -1) < post_P.diagonal(0, -2, -1)
+    ).all()
 
 
 def test_stochastic_flow_is_reproducible_and_uses_the_generator():
     model, mean, P, z, *_ = _lg_problem(3, 5)
     L = linalg.safe_cholesky(P)
     x0 = linalg.sample_mvn(mean, L, (50,), torch.Generator().manual_seed(0))
-    run = lambda s: integrate_flow(GromovFlow(points="global"), model, x0, z, FlowPrior(mean, L), UniformSchedule(5),  # noqa: E731
-                                   generator=torch.Generator().manual_seed(s)).particles
+    run = lambda s: (
+        integrate_flow(
+            GromovFlow(points="global"),
+            model,
+            x0,
+            z,
+            FlowPrior(mean, L),
+            UniformSchedule(5),
+            generator=torch.Generator().manual_seed(s),
+        ).particles
+    )
     torch.testing.assert_close(run(1), run(1), rtol=0, atol=0)
     assert (run(1) - run(2)).abs().max() > 1e-3
 
@@ -468,9 +530,16 @@ def test_hydra_composes_the_new_flow_filters_and_schedule():
     cfg_dir = str(Path(__file__).resolve().parents[2] / "configs")
     names = ["geodesic", "gromov", "pfpf_geodesic", "pfpf_gromov", "pfpf_osd"]
     with initialize_config_dir(config_dir=cfg_dir, version_base="1.3"):
-        cfg = compose("config", overrides=["model=linear_gaussian", "model.d=4", f"filter=[{','.join(names)}]",
-                                           "schedule@filter.pfpf_osd.schedule=geometric",
-                                           "filter.pfpf_osd.flow.alpha=0.5"])
+        cfg = compose(
+            "config",
+            overrides=[
+                "model=linear_gaussian",
+                "model.d=4",
+                f"filter=[{','.join(names)}]",
+                "schedule@filter.pfpf_osd.schedule=geometric",
+                "filter.pfpf_osd.flow.alpha=0.5",
+            ],
+        )
     model = instantiate(cfg.model)
     fs = {k: instantiate(v, model=model) for k, v in cfg.filter.items()}
     assert type(fs["pfpf_gromov"].flow) is GromovFlow and type(fs["gromov"].flow) is GromovFlow
@@ -479,7 +548,9 @@ def test_hydra_composes_the_new_flow_filters_and_schedule():
     assert isinstance(fs["pfpf_osd"].schedule, GeometricSchedule) and len(fs["pfpf_osd"].schedule) == 14
 
 
-@pytest.mark.parametrize("flow", [GeodesicFlow(), OptimalDiffusionFlow(), GromovFlow()], ids=["geodesic", "osd", "gromov"])
+@pytest.mark.parametrize(
+    "flow", [GeodesicFlow(), OptimalDiffusionFlow(), GromovFlow()], ids=["geodesic", "osd", "gromov"]
+)
 def test_shared_prior_factor_path_equals_per_particle_path(flow):
     """Linear models share one prior factor per trial, (B, 1, d, d); the shared-solve path must give
     the same coefficients as the same factor expanded per particle, (B, N, d, d)."""

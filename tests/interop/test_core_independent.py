@@ -1,5 +1,6 @@
 """The core never imports the optional interop libraries (Stone Soup): torchflow and every core
 subpackage import with ``stonesoup`` blocked."""
+
 import subprocess
 import sys
 

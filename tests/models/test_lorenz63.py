@@ -1,5 +1,6 @@
 """Lorenz-63: the Runge-Kutta map's Jacobian is exact (against torch.func), the Sakov et al. (2012)
 defaults, the per-observation densities, and bad inputs."""
+
 import math
 
 import pytest
@@ -25,6 +26,7 @@ def test_the_compiled_jacobian_equals_the_torch_tangents():
     takes the torch path (differentiable)."""
     from torchflow.models.dynamics import rk4_with_tangent
     from torchflow.models.lorenz63 import _kernel_available
+
     if not _kernel_available():
         pytest.skip("Numba is not installed")
     model = Lorenz63()

@@ -1,5 +1,6 @@
 """Lorenz-96: the tendency, the Runge-Kutta integration, the observation operator, the settings'
 checks, and filters tracking the Sakov & Oke (2008) set-up."""
+
 import numpy as np
 import pytest
 import torch
@@ -13,16 +14,23 @@ from torchflow.models.lorenz96 import lorenz96_tendency, rk4
 def test_the_tendency_is_lorenz96_on_a_ring():
     x = torch.randn(3, 7, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     d = x.shape[-1]
-    expected = torch.stack([(x[:, (i + 1) % d] - x[:, (i - 2) % d]) * x[:, (i - 1) % d] - x[:, i] + 8.0
-                            for i in range(d)], -1)
+    expected = torch.stack(
+        [(x[:, (i + 1) % d] - x[:, (i - 2) % d]) * x[:, (i - 1) % d] - x[:, i] + 8.0 for i in range(d)], -1
+    )
     assert torch.allclose(lorenz96_tendency(x, 8.0), expected, rtol=0, atol=1e-12)
 
 
 def test_runge_kutta_converges_to_the_ode_solution_at_fourth_order():
     scipy_integrate = pytest.importorskip("scipy.integrate")
     x0 = 8.0 + torch.randn(40, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
-    ref = scipy_integrate.solve_ivp(lambda t, y: lorenz96_tendency(torch.from_numpy(y), 8.0).numpy(), (0.0, 0.05),
-                                    x0.numpy(), method="DOP853", rtol=1e-13, atol=1e-13).y[:, -1]
+    ref = scipy_integrate.solve_ivp(
+        lambda t, y: lorenz96_tendency(torch.from_numpy(y), 8.0).numpy(),
+        (0.0, 0.05),
+        x0.numpy(),
+        method="DOP853",
+        rtol=1e-13,
+        atol=1e-13,
+    ).y[:, -1]
     err = [float(np.abs(rk4(x0, 8.0, 0.05, n).numpy() - ref).max()) for n in (1, 2, 4)]
     assert err[0] < 5e-3 and err[2] < 2e-5  # the state moves by ~2.4 over the interval
     assert 10 < err[0] / err[1] < 25 and 10 < err[1] / err[2] < 25  # halving the step: error / 16
@@ -78,18 +86,21 @@ def test_student_t_observation_errors():
     torch.testing.assert_close(m.measurement_log_prob(zz, xx), torch.as_tensor(want.sum()))
 
 
-@pytest.mark.parametrize("kw, match", [
-    (dict(obs_df=2), "obs_df: expected None .Gaussian errors. or an integer >= 3"),
-    (dict(obs_operator="cube"), "obs_operator: expected one of"),
-    (dict(d=3), "d: expected an integer >= 4"),
-    (dict(dt=0.0), "dt: expected a finite number > 0"),
-    (dict(obs_every=0), r"obs_every: expected an integer in \[1, d = 40\]"),
-    (dict(obs_every=41), r"obs_every: expected an integer in \[1, d = 40\]"),
-    (dict(obs_std=0.0), "obs_std: expected a finite number > 0"),
-    (dict(model_noise=-1.0), "model_noise: expected a finite number >= 0"),
-    (dict(forcing=float("nan")), "forcing: expected a finite number"),
-    (dict(substeps=0), "substeps: expected an integer >= 1"),
-])
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(obs_df=2), "obs_df: expected None .Gaussian errors. or an integer >= 3"),
+        (dict(obs_operator="cube"), "obs_operator: expected one of"),
+        (dict(d=3), "d: expected an integer >= 4"),
+        (dict(dt=0.0), "dt: expected a finite number > 0"),
+        (dict(obs_every=0), r"obs_every: expected an integer in \[1, d = 40\]"),
+        (dict(obs_every=41), r"obs_every: expected an integer in \[1, d = 40\]"),
+        (dict(obs_std=0.0), "obs_std: expected a finite number > 0"),
+        (dict(model_noise=-1.0), "model_noise: expected a finite number >= 0"),
+        (dict(forcing=float("nan")), "forcing: expected a finite number"),
+        (dict(substeps=0), "substeps: expected an integer >= 1"),
+    ],
+)
 def test_bad_settings_are_named(kw, match):
     with pytest.raises(ArgumentError, match=match):
         Lorenz96(**kw)
@@ -118,5 +129,7 @@ def test_without_model_noise_filters_that_need_the_transition_density_refuse_by_
     with pytest.raises(ArgumentError, match="transition covariance is not positive definite"):
         F.ParticleFlowParticleFilter(m, n_particles=20)(traj.observations, mean, cov, torch.Generator().manual_seed(0))
     m, traj, mean, cov = _sakov(model_noise=0.1, T=3)
-    out = F.ParticleFlowParticleFilter(m, n_particles=20)(traj.observations, mean, cov, torch.Generator().manual_seed(0))
+    out = F.ParticleFlowParticleFilter(m, n_particles=20)(
+        traj.observations, mean, cov, torch.Generator().manual_seed(0)
+    )
     assert torch.isfinite(out.log_evidence).all()

@@ -1,5 +1,6 @@
 """The model contract: a core of six methods that runs the bootstrap PF and the runner, the
 Gaussian form the other filters need, the declared structure, and the first-call shape check."""
+
 import math
 import pathlib
 import re
@@ -9,16 +10,27 @@ import torch
 from torch import nn
 
 from torchflow.experiment import run_experiment
-from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, KalmanFilter,
-                               ParticleFlowGaussianParticleFilter, ParticleFlowGaussianSumParticleFilter,
-                               ParticleFlowParticleFilter)
+from torchflow.filters import (
+    BootstrapParticleFilter,
+    ExtendedKalmanFilter,
+    KalmanFilter,
+    ParticleFlowGaussianParticleFilter,
+    ParticleFlowGaussianSumParticleFilter,
+    ParticleFlowParticleFilter,
+)
 from torchflow.linalg import standard_normal
 from torchflow.models import GaussianStateSpaceModel, LinearGaussian, StateSpaceModel, Structure
 from torchflow.models.structure import kernel_structure
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
-CORE = ("initial_state", "initial_belief", "sample_transition", "transition_log_prob", "sample_measurement",
-        "measurement_log_prob")
+CORE = (
+    "initial_state",
+    "initial_belief",
+    "sample_transition",
+    "transition_log_prob",
+    "sample_measurement",
+    "measurement_log_prob",
+)
 
 
 class StochasticVolatility(StateSpaceModel):
@@ -32,7 +44,7 @@ class StochasticVolatility(StateSpaceModel):
         self.register_buffer("sigma", torch.tensor(sigma, dtype=torch.float64))
 
     def _var0(self):
-        return self.sigma ** 2 / (1 - self.phi ** 2)
+        return self.sigma**2 / (1 - self.phi**2)
 
     def initial_state(self, batch_size, generator=None):
         xi = standard_normal((batch_size, 1), dtype=self.dtype, device=self.device, generator=generator)
@@ -47,7 +59,7 @@ class StochasticVolatility(StateSpaceModel):
 
     def transition_log_prob(self, x_next, x):
         r = (x_next - self.phi * x).squeeze(-1)
-        return -0.5 * (math.log(2 * math.pi) + 2 * torch.log(self.sigma) + r * r / self.sigma ** 2)
+        return -0.5 * (math.log(2 * math.pi) + 2 * torch.log(self.sigma) + r * r / self.sigma**2)
 
     def sample_measurement(self, x, generator=None):
         return (x / 2).exp() * standard_normal(x.shape, dtype=x.dtype, device=x.device, generator=generator)
@@ -66,8 +78,15 @@ def test_the_core_is_six_methods_and_the_model_class_at_most_fifteen_public_memb
     assert set(CORE) <= members
     assert len(members) <= 15, sorted(members)
     # what the core does not say (the Gaussian form, kernel hooks) lives elsewhere
-    for name in ("transition_mean", "measure", "linearize_measurement", "bytes_per_point", "fused_measurement",
-                 "graph_safe", "linear_dynamics"):
+    for name in (
+        "transition_mean",
+        "measure",
+        "linearize_measurement",
+        "bytes_per_point",
+        "fused_measurement",
+        "graph_safe",
+        "linear_dynamics",
+    ):
         assert name not in members
 
 
@@ -85,8 +104,9 @@ def test_a_core_only_model_runs_the_bootstrap_filter_and_the_runner():
     # the filter tracks the log-volatility better than the prior mean 0 does
     err = (out.estimates - traj.states[:, 1:]).square().mean()
     assert err < traj.states[:, 1:].square().mean()
-    res = run_experiment(model, {"bpf": BootstrapParticleFilter(model, n_particles=100)}, trials=3, steps=10,
-                         progress=False)
+    res = run_experiment(
+        model, {"bpf": BootstrapParticleFilter(model, n_particles=100)}, trials=3, steps=10, progress=False
+    )
     assert res is not None and not res.failures
 
 
@@ -96,23 +116,35 @@ def test_the_builtin_stochastic_volatility_has_this_core():
     from torchflow.models import StochasticVolatility as Builtin
 
     mine, builtin = StochasticVolatility(phi=0.9, sigma=0.5), Builtin(mu=0.0, rho=0.9, sigma=0.5)
-    a, b = mine.simulate(3, 20, torch.Generator().manual_seed(0)), builtin.simulate(3, 20, torch.Generator().manual_seed(0))
+    a, b = (
+        mine.simulate(3, 20, torch.Generator().manual_seed(0)),
+        builtin.simulate(3, 20, torch.Generator().manual_seed(0)),
+    )
     assert torch.allclose(a.states, b.states) and torch.allclose(a.observations, b.observations)
     x, xn = a.states[:, :-1], a.states[:, 1:]
     assert torch.allclose(mine.transition_log_prob(xn, x), builtin.transition_log_prob(xn, x))
-    assert torch.allclose(mine.measurement_log_prob(a.observations, xn), builtin.measurement_log_prob(a.observations, xn))
+    assert torch.allclose(
+        mine.measurement_log_prob(a.observations, xn), builtin.measurement_log_prob(a.observations, xn)
+    )
     for m0, c0 in zip(mine.initial_belief(a.states[:, 0]), builtin.initial_belief(a.states[:, 0])):
         assert torch.allclose(m0, c0)
     mean, cov = mine.initial_belief(a.states[:, 0])
-    r = [BootstrapParticleFilter(m, n_particles=50)(a.observations, mean, cov, torch.Generator().manual_seed(1))
-         for m in (mine, builtin)]
+    r = [
+        BootstrapParticleFilter(m, n_particles=50)(a.observations, mean, cov, torch.Generator().manual_seed(1))
+        for m in (mine, builtin)
+    ]
     assert torch.allclose(r[0].log_evidence, r[1].log_evidence)
 
 
 def test_filters_that_need_the_gaussian_form_refuse_a_core_only_model_by_name():
     model = StochasticVolatility()
-    for cls in (KalmanFilter, ExtendedKalmanFilter, ParticleFlowParticleFilter, ParticleFlowGaussianParticleFilter,
-                ParticleFlowGaussianSumParticleFilter):
+    for cls in (
+        KalmanFilter,
+        ExtendedKalmanFilter,
+        ParticleFlowParticleFilter,
+        ParticleFlowGaussianParticleFilter,
+        ParticleFlowGaussianSumParticleFilter,
+    ):
         with pytest.raises(TypeError, match="gives only the core.*Gaussian form"):
             cls(model)
 
@@ -146,14 +178,22 @@ class _WrongMeasure(GaussianStateSpaceModel):
         return states0.clone(), torch.eye(2, dtype=torch.float64).expand(states0.shape[0], 2, 2).clone()
 
 
-@pytest.mark.parametrize("make", [lambda m: BootstrapParticleFilter(m, n_particles=8), ExtendedKalmanFilter,
-                                  lambda m: ParticleFlowParticleFilter(m, n_particles=8)],
-                         ids=["bpf", "ekf", "pfpf"])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda m: BootstrapParticleFilter(m, n_particles=8),
+        ExtendedKalmanFilter,
+        lambda m: ParticleFlowParticleFilter(m, n_particles=8),
+    ],
+    ids=["bpf", "ekf", "pfpf"],
+)
 def test_a_wrong_output_shape_names_the_method_expected_and_received(make):
     model = _WrongMeasure()
     obs = torch.zeros(2, 3, 2, dtype=torch.float64)
     mean, cov = model.initial_belief(torch.zeros(2, 2, dtype=torch.float64))
-    with pytest.raises(ValueError, match=re.escape("_WrongMeasure.measure returned shape (2, 1); expected (B, m) = (2, 2)")):
+    with pytest.raises(
+        ValueError, match=re.escape("_WrongMeasure.measure returned shape (2, 1); expected (B, m) = (2, 2)")
+    ):
         make(model)(obs, mean, cov, torch.Generator().manual_seed(0))
 
 
@@ -184,8 +224,12 @@ def test_a_missing_core_method_is_named():
 def test_the_shape_check_draws_from_its_own_generator():
     """The check leaves the caller's stream where it was: the numbers of a filter do not depend on
     whether its model was checked before."""
-    model = LinearGaussian(0.9 * torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64),
-                           torch.eye(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64))
+    model = LinearGaussian(
+        0.9 * torch.eye(2, dtype=torch.float64),
+        torch.eye(2, dtype=torch.float64),
+        torch.eye(2, dtype=torch.float64),
+        torch.eye(2, dtype=torch.float64),
+    )
     traj = model.simulate(3, 5, torch.Generator().manual_seed(1))
     mean, cov = model.initial_belief(traj.states[:, 0])
     f = BootstrapParticleFilter(model, n_particles=16)
@@ -221,8 +265,9 @@ def test_models_import_nothing_above_them_and_no_flow_class_dispatch_outside_the
     models = ROOT / "torchflow" / "models"
     for path in models.glob("*.py"):
         text = path.read_text()
-        assert not re.search(r"from \.\.(flows|filters|proposals|runner|trackers)\b|import torchflow\.(flows|filters)",
-                             text), path.name
+        assert not re.search(
+            r"from \.\.(flows|filters|proposals|runner|trackers)\b|import torchflow\.(flows|filters)", text
+        ), path.name
     pattern = re.compile(r"type\([^)]*\)\s+(is|in|==)\s")
     for path in (ROOT / "torchflow").rglob("*.py"):
         if path.parent.name == "kernels" and path.name == "select.py":

@@ -1,5 +1,6 @@
 """NeuralAcoustic: acoustic tracking whose sensor response is a module (a small MLP), learned
 through the filters' log-evidence."""
+
 import math
 
 import pytest
@@ -35,11 +36,17 @@ def test_with_the_inverse_distance_response_it_is_the_acoustic_model():
     for name in ("measure", "measurement_jacobian", "measurement_jacobian_support"):
         torch.testing.assert_close(getattr(ours, name)(x), getattr(ref, name)(x), atol=1e-12, rtol=1e-12)
     for support in (False, True):
-        torch.testing.assert_close(ours.measurement_hessian_blocks(x, support, 2.0),
-                                   ref.measurement_hessian_blocks(x, support, 2.0), atol=1e-10, rtol=1e-12)
+        torch.testing.assert_close(
+            ours.measurement_hessian_blocks(x, support, 2.0),
+            ref.measurement_hessian_blocks(x, support, 2.0),
+            atol=1e-10,
+            rtol=1e-12,
+        )
         for u, v in zip(ours.linearize_measurement(x, support, 0.5), ref.linearize_measurement(x, support, 0.5)):
             torch.testing.assert_close(u, v, atol=1e-12, rtol=1e-12)
-    torch.testing.assert_close(ours.measurement_log_prob(a.observations, x), ref.measurement_log_prob(a.observations, x))
+    torch.testing.assert_close(
+        ours.measurement_log_prob(a.observations, x), ref.measurement_log_prob(a.observations, x)
+    )
     assert ours.structure.measurement_support == ref.structure.measurement_support
     assert ours.structure.measurement_form is None  # no kernel's own arithmetic for a user's response
 
@@ -77,8 +84,9 @@ def test_a_response_without_derivatives_is_differentiated_by_forward_mode():
     x = _points(closed, (4,))
     torch.testing.assert_close(plain.measure(x), closed.measure(x))
     torch.testing.assert_close(plain.measurement_jacobian(x), closed.measurement_jacobian(x), atol=1e-12, rtol=1e-10)
-    torch.testing.assert_close(plain.measurement_hessian_blocks(x, True), closed.measurement_hessian_blocks(x, True),
-                               atol=1e-10, rtol=1e-8)
+    torch.testing.assert_close(
+        plain.measurement_hessian_blocks(x, True), closed.measurement_hessian_blocks(x, True), atol=1e-10, rtol=1e-8
+    )
 
 
 def test_it_passes_the_model_contract_checks_in_both_precisions():
@@ -91,9 +99,15 @@ def test_it_passes_the_model_contract_checks_in_both_precisions():
         assert torch.isfinite(traj.observations).all()
 
 
-@pytest.mark.parametrize("make", [lambda m: BootstrapParticleFilter(m, n_particles=64),
-                                  lambda m: ParticleFlowParticleFilter(m, n_particles=16, schedule=SCHED),
-                                  lambda m: ExtendedKalmanFilter(m)], ids=["bpf", "pfpf_ledh", "ekf"])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda m: BootstrapParticleFilter(m, n_particles=64),
+        lambda m: ParticleFlowParticleFilter(m, n_particles=16, schedule=SCHED),
+        lambda m: ExtendedKalmanFilter(m),
+    ],
+    ids=["bpf", "pfpf_ledh", "ekf"],
+)
 def test_filters_run_on_it(make):
     model = _small()
     g = torch.Generator().manual_seed(0)
@@ -104,11 +118,15 @@ def test_filters_run_on_it(make):
     assert torch.isfinite(out.log_evidence).all()
 
 
-@pytest.mark.parametrize("make", [
-    lambda m: BootstrapParticleFilter(m, n_particles=64),
-    lambda m: ParticleFlowParticleFilter(m, n_particles=16, schedule=SCHED),
-    lambda m: ParticleFlowParticleFilter(m, n_particles=16, schedule=SCHED, proposal_gradient="score")],
-    ids=["bpf", "pfpf_ledh_pathwise", "pfpf_ledh_score"])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda m: BootstrapParticleFilter(m, n_particles=64),
+        lambda m: ParticleFlowParticleFilter(m, n_particles=16, schedule=SCHED),
+        lambda m: ParticleFlowParticleFilter(m, n_particles=16, schedule=SCHED, proposal_gradient="score"),
+    ],
+    ids=["bpf", "pfpf_ledh_pathwise", "pfpf_ledh_score"],
+)
 def test_the_log_evidence_gradient_reaches_every_mlp_parameter(make):
     model = _small()
     g = torch.Generator().manual_seed(0)
@@ -116,8 +134,12 @@ def test_the_log_evidence_gradient_reaches_every_mlp_parameter(make):
     mean, cov = model.initial_belief(traj.states[:, 0], g)
     make(model)(traj.observations, mean, cov, g).log_evidence.sum().backward()
     names = [n for n, _ in model.named_parameters()]
-    assert names == ["response.layers.0.weight", "response.layers.0.bias", "response.layers.1.weight",
-                     "response.layers.1.bias"]
+    assert names == [
+        "response.layers.0.weight",
+        "response.layers.0.bias",
+        "response.layers.1.weight",
+        "response.layers.1.bias",
+    ]
     for n, p in model.named_parameters():
         assert p.grad is not None and torch.isfinite(p.grad).all(), n
         assert float(p.grad.abs().max()) > 0, n
@@ -144,13 +166,24 @@ def test_a_short_fit_through_the_lightning_module_raises_the_log_likelihood():
     def loglik():
         pf = BootstrapParticleFilter(model, n_particles=2000)
         with torch.no_grad():
-            return torch.stack([pf(traj.observations, mean, cov, torch.Generator().manual_seed(s)).log_evidence.mean()
-                                for s in range(4)])
+            return torch.stack(
+                [
+                    pf(traj.observations, mean, cov, torch.Generator().manual_seed(s)).log_evidence.mean()
+                    for s in range(4)
+                ]
+            )
 
     before = loglik()
     module = FilterLightningModule(BootstrapParticleFilter(model, n_particles=300), lr=0.01, betas=(0.5, 0.9))
-    trainer = pl.Trainer(max_epochs=12, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                         enable_model_summary=False, accelerator="cpu", devices=1)
+    trainer = pl.Trainer(
+        max_epochs=12,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        accelerator="cpu",
+        devices=1,
+    )
     trainer.fit(module, DataLoader(TrajectoryDataset(traj, mean, cov), batch_size=4))
     rise = loglik() - before
     assert float(rise.mean()) > 4 * float(rise.std()) / 2 and float(rise.mean()) > 1.0, rise

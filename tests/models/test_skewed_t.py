@@ -1,6 +1,7 @@
 """The GH skewed-t / Poisson model (MODELS.md §3): exact density (integrates to 1, matches a
 scipy-Bessel evaluation), exact sampling (mean and covariance of the Gaussian fit), Poisson
 likelihood, and filters running on it."""
+
 import math
 
 import numpy as np
@@ -25,7 +26,9 @@ def _scipy_log_density(model, x_next, x):
     gSg = g @ Si @ g
     zeta = np.sqrt((nu + q) * gSg)
     k = (nu + d) / 2
-    logc = (1 - k) * math.log(2) - special.gammaln(nu / 2) - d / 2 * math.log(math.pi * nu) - 0.5 * np.linalg.slogdet(S)[1]
+    logc = (
+        (1 - k) * math.log(2) - special.gammaln(nu / 2) - d / 2 * math.log(math.pi * nu) - 0.5 * np.linalg.slogdet(S)[1]
+    )
     return logc + np.log(special.kve(k, zeta)) - zeta + r @ (Si @ g) + k * (np.log(zeta) - np.log1p(q / nu))
 
 
@@ -96,8 +99,10 @@ def test_filters_run_on_the_skewed_t_model():
     traj = model.simulate(4, 5, g)
     mean, cov = model.initial_belief(traj.states[:, 0])
     mse = {}
-    for name, f in (("bpf", BootstrapParticleFilter(model, n_particles=100)),
-                    ("pfpf", ParticleFlowParticleFilter(model, flow="ledh", n_particles=100))):
+    for name, f in (
+        ("bpf", BootstrapParticleFilter(model, n_particles=100)),
+        ("pfpf", ParticleFlowParticleFilter(model, flow="ledh", n_particles=100)),
+    ):
         res = f(traj.observations, mean, cov, TrialStreams(0, 4, name))
         assert torch.isfinite(res.estimates).all() and torch.isfinite(res.log_evidence).all(), name
         mse[name] = float((res.estimates - traj.states[:, 1:]).pow(2).mean())
@@ -159,8 +164,11 @@ def test_counts_must_be_non_negative_integers():
     for bad, what in ((-1.0, "-1.0"), (2.5, "2.5")):
         z = torch.ones(1, 3, 4, dtype=torch.float64)
         z[0, 1, 2] = bad
-        with pytest.raises(ValueError, match=rf"observations: expected Poisson counts .* got {what} at trial 0, "
-                                             r"step 1, cell 2"):
+        with pytest.raises(
+            ValueError,
+            match=rf"observations: expected Poisson counts .* got {what} at trial 0, "
+            r"step 1, cell 2",
+        ):
             f(z, mean, cov, torch.Generator().manual_seed(0))
 
 
@@ -189,8 +197,10 @@ def test_declared_diagonal_jacobian_gives_the_same_numbers():
     lin = GaussianMeasurement.from_model(diag, traj.observations[:, 0]).at(x)
     assert lin.diag is not None and torch.equal(lin.diag, lin.W.diagonal(dim1=-2, dim2=-1))
     assert GaussianMeasurement.from_model(dense, traj.observations[:, 0]).at(x).diag is None
-    for make in (lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=20),
-                 lambda m: ParticleFlowGaussianSumParticleFilter(m, n_components=2, particles_per_component=d + 1)):
+    for make in (
+        lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=20),
+        lambda m: ParticleFlowGaussianSumParticleFilter(m, n_components=2, particles_per_component=d + 1),
+    ):
         out = []
         for model in (diag, dense):
             f = make(model)

@@ -1,6 +1,7 @@
 """Stochastic volatility: densities against the closed forms and ``particles``' StochVol, the two
 Gaussian forms and the log-squared transform, learnable parameters, the zero-slope warning of the
 flow filters, and the particle filters' log-likelihood against an exact grid filter."""
+
 import math
 import warnings
 
@@ -35,9 +36,14 @@ def _series(T=100, seed=0, **kw):
 
 # ---- the model's laws ------------------------------------------------------------------------
 
+
 def test_densities_are_the_closed_forms_and_the_stationary_law():
     m = StochasticVolatility(mu=-0.5, rho=0.8, sigma=0.3)
-    x, xn, y = torch.tensor([[-1.0], [0.2]], **f64), torch.tensor([[-0.7], [0.4]], **f64), torch.tensor([[0.3], [-2.0]], **f64)
+    x, xn, y = (
+        torch.tensor([[-1.0], [0.2]], **f64),
+        torch.tensor([[-0.7], [0.4]], **f64),
+        torch.tensor([[0.3], [-2.0]], **f64),
+    )
     mean = -0.5 + 0.8 * (x + 0.5)
     want = -0.5 * math.log(2 * math.pi * 0.09) - (xn - mean).squeeze(-1) ** 2 / (2 * 0.09)
     assert torch.allclose(m.transition_log_prob(xn, x), want, atol=1e-14)
@@ -55,7 +61,7 @@ def test_densities_agree_with_particles_stochvol():
     m = StochasticVolatility()
     assert (float(m.mu), float(m.rho), float(m.sigma)) == (ref.mu, ref.rho, ref.sigma)
     xp, x, y = np.array([-1.5, -1.0, 0.3]), np.array([-1.4, -0.9, 0.1]), np.array([0.5, -0.2, 1.0])
-    col = lambda a: torch.tensor(a, **f64).reshape(-1, 1)  # noqa: E731
+    col = lambda a: torch.tensor(a, **f64).reshape(-1, 1)
     assert np.allclose(m.transition_log_prob(col(x), col(xp)).numpy(), ref.PX(1, xp).logpdf(x), atol=1e-12)
     assert np.allclose(m.measurement_log_prob(col(y), col(x)).numpy(), ref.PY(1, xp, x).logpdf(y), atol=1e-12)
     assert math.isclose(float(m.stationary_var().sqrt()), ref.sig0(), rel_tol=1e-12)
@@ -79,16 +85,18 @@ def test_the_log_squared_observation_is_the_state_plus_a_log_chi_square():
     n = w.numel()
     assert abs(float(w.mean()) - LOG_CHI2_MEAN) < 4 * math.sqrt(LOG_CHI2_VAR / n)
     assert abs(float(w.var()) / LOG_CHI2_VAR - 1) < 0.03  # the log chi^2's kurtosis is 7: SE of the ratio ~0.006
-    assert math.isclose(LOG_CHI2_MEAN, float(torch.special.digamma(torch.tensor(0.5, **f64))) + math.log(2),
-                        abs_tol=1e-14)
+    assert math.isclose(
+        LOG_CHI2_MEAN, float(torch.special.digamma(torch.tensor(0.5, **f64))) + math.log(2), abs_tol=1e-14
+    )
     zs = torch.linspace(-40.0, 8.0, 200001, **f64).reshape(-1, 1)
     x0 = torch.full_like(zs, -0.7)
     dens = m.log_squared_log_prob(zs, x0).exp()
     assert abs(float(torch.trapezoid(dens, zs.squeeze(-1))) - 1) < 1e-8
     y = torch.exp(zs / 2)
     returns = StochasticVolatility()
-    assert torch.allclose(m.log_squared_log_prob(zs, x0), returns.measurement_log_prob(y, x0) + torch.log(y).squeeze(-1),
-                          atol=1e-10)
+    assert torch.allclose(
+        m.log_squared_log_prob(zs, x0), returns.measurement_log_prob(y, x0) + torch.log(y).squeeze(-1), atol=1e-10
+    )
 
 
 def test_the_log_squared_form_weighs_with_the_returns_density():
@@ -97,11 +105,14 @@ def test_the_log_squared_form_weighs_with_the_returns_density():
     x = torch.tensor([[-1.0], [0.5], [-2.0]], **f64)
     returns, logsq = StochasticVolatility(), StochasticVolatility(gaussian_form="log_squared", offset=1e-6)
     z = logsq.transform_observations(y)
-    assert torch.allclose(z, torch.log(y ** 2 + 1e-6))
+    assert torch.allclose(z, torch.log(y**2 + 1e-6))
     assert torch.allclose(logsq.measurement_log_prob(z, x), returns.measurement_log_prob(y, x), atol=1e-9)
     assert torch.equal(returns.transform_observations(y), y)
-    with pytest.raises(ArgumentError, match=r"1 value\(s\) whose log-square is not finite \(first at index \(2, 0\)"
-                                            r".*offset > 0"):
+    with pytest.raises(
+        ArgumentError,
+        match=r"1 value\(s\) whose log-square is not finite \(first at index \(2, 0\)"
+        r".*offset > 0",
+    ):
         StochasticVolatility(gaussian_form="log_squared").transform_observations(y)
 
 
@@ -109,7 +120,9 @@ def test_both_forms_give_the_bootstrap_filter_the_same_weights_and_evidence():
     returns, traj = _series(T=40)
     logsq = StochasticVolatility(gaussian_form="log_squared")
     mean, cov = returns.initial_belief(traj.states[:, 0])
-    a = F.BootstrapParticleFilter(returns, n_particles=100)(traj.observations, mean, cov, torch.Generator().manual_seed(1))
+    a = F.BootstrapParticleFilter(returns, n_particles=100)(
+        traj.observations, mean, cov, torch.Generator().manual_seed(1)
+    )
     z = logsq.transform_observations(traj.observations)
     b = F.BootstrapParticleFilter(logsq, n_particles=100)(z, mean, cov, torch.Generator().manual_seed(1))
     assert torch.allclose(a.log_evidence, b.log_evidence, atol=1e-9)
@@ -129,7 +142,7 @@ def test_the_gaussian_forms_and_their_declared_structure():
     with pytest.raises(ArgumentError, match="R = exp\\(x\\) depends on the state"):
         returns.measurement_cov()
     assert torch.allclose(logsq.measure(x), x - 1.2703628454614782)
-    assert torch.allclose(logsq.measurement_cov(), torch.full((1, 1), math.pi ** 2 / 2, **f64))
+    assert torch.allclose(logsq.measurement_cov(), torch.full((1, 1), math.pi**2 / 2, **f64))
     for m in (returns, logsq):  # the analytic Jacobians and diagonal forms are torch.func's and the dense ones
         assert torch.allclose(m.measurement_jacobian(x), jacobian(m.measure, x))
         assert torch.allclose(m.transition_jacobian(x), jacobian(m.transition_mean, x))
@@ -138,15 +151,18 @@ def test_the_gaussian_forms_and_their_declared_structure():
         assert torch.allclose(sd, m.measurement_scale_tril(x).squeeze(-1).expand_as(sd))
 
 
-@pytest.mark.parametrize("kw, match", [
-    (dict(rho=1.0), r"rho: expected a number in \(-1, 1\)"),
-    (dict(rho=-1.5), r"rho: expected a number in \(-1, 1\)"),
-    (dict(sigma=0.0), "sigma: expected a finite number > 0"),
-    (dict(mu=float("nan")), "mu: expected a finite number"),
-    (dict(gaussian_form="log"), r"gaussian_form: expected one of \('returns', 'log_squared'\)"),
-    (dict(offset=-1e-3), "offset: expected a finite number >= 0"),
-    (dict(learnable=["phi"]), "learnable: expected a bool or a subset of"),
-])
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(rho=1.0), r"rho: expected a number in \(-1, 1\)"),
+        (dict(rho=-1.5), r"rho: expected a number in \(-1, 1\)"),
+        (dict(sigma=0.0), "sigma: expected a finite number > 0"),
+        (dict(mu=float("nan")), "mu: expected a finite number"),
+        (dict(gaussian_form="log"), r"gaussian_form: expected one of \('returns', 'log_squared'\)"),
+        (dict(offset=-1e-3), "offset: expected a finite number >= 0"),
+        (dict(learnable=["phi"]), "learnable: expected a bool or a subset of"),
+    ],
+)
 def test_bad_settings_are_named(kw, match):
     with pytest.raises(ArgumentError, match=match):
         StochasticVolatility(**kw)
@@ -163,7 +179,9 @@ def test_learnable_parameters_stay_valid_and_get_gradients():
         m.parametrizations.sigma.original.fill_(-15.0)
     assert -1 < float(m.rho.detach()) < 1 and float(m.sigma.detach()) > 0 and torch.isfinite(m.stationary_var())
     m = StochasticVolatility(learnable=["sigma"])
-    assert {n for n, _ in m.named_parameters()} == {"parametrizations.sigma.original"} and "rho" in dict(m.named_buffers())
+    assert {n for n, _ in m.named_parameters()} == {"parametrizations.sigma.original"} and "rho" in dict(
+        m.named_buffers()
+    )
     m = StochasticVolatility(learnable=True)
     traj = m.simulate(2, 20, torch.Generator().manual_seed(0))
     mean, cov = m.initial_belief(traj.states[:, 0])
@@ -175,6 +193,7 @@ def test_learnable_parameters_stay_valid_and_get_gradients():
 
 # ---- the zero-slope warning ------------------------------------------------------------------
 
+
 def test_a_flow_on_the_returns_form_does_not_move_particles():
     """h(x) = 0: the flows' drift vanishes and PF-PF is the bootstrap PF, draw for draw."""
     m, traj = _series(T=20)
@@ -182,14 +201,21 @@ def test_a_flow_on_the_returns_form_does_not_move_particles():
     a = F.BootstrapParticleFilter(m, n_particles=64)(traj.observations, mean, cov, torch.Generator().manual_seed(1))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        b = F.ParticleFlowParticleFilter(m, flow="ledh", n_particles=64)(traj.observations, mean, cov,
-                                                                        torch.Generator().manual_seed(1))
+        b = F.ParticleFlowParticleFilter(m, flow="ledh", n_particles=64)(
+            traj.observations, mean, cov, torch.Generator().manual_seed(1)
+        )
     assert torch.allclose(a.log_evidence, b.log_evidence, atol=1e-10)
 
 
-@pytest.mark.parametrize("make", [lambda m: F.ParticleFlowParticleFilter(m, flow="ledh", n_particles=8),
-                                  lambda m: F.ParticleFlowParticleFilter(m, flow="edh", n_particles=8),
-                                  lambda m: F.ParticleFlowFilter(m, n_particles=8)], ids=["pfpf_ledh", "pfpf_edh", "ledh"])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda m: F.ParticleFlowParticleFilter(m, flow="ledh", n_particles=8),
+        lambda m: F.ParticleFlowParticleFilter(m, flow="edh", n_particles=8),
+        lambda m: F.ParticleFlowFilter(m, n_particles=8),
+    ],
+    ids=["pfpf_ledh", "pfpf_edh", "ledh"],
+)
 def test_flow_filters_warn_once_of_a_zero_slope_measurement(make):
     m = StochasticVolatility()
     f = make(m)
@@ -198,8 +224,14 @@ def test_flow_filters_warn_once_of_a_zero_slope_measurement(make):
         check_informative(f.proposal, mean, f.name)
     assert len(caught) == 1
     text = str(caught[0].message)
-    for part in (f.name, "StochasticVolatility", "zero Jacobian", "will not move the particles",
-                 "bootstrap particle filter", "gaussian_form='log_squared'"):
+    for part in (
+        f.name,
+        "StochasticVolatility",
+        "zero Jacobian",
+        "will not move the particles",
+        "bootstrap particle filter",
+        "gaussian_form='log_squared'",
+    ):
         assert part in text, part
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -227,6 +259,7 @@ def test_forward_warns_once_of_a_zero_slope_measurement():
 
 
 # ---- log-likelihoods against the exact grid filter -------------------------------------------
+
 
 def test_the_grid_filter_has_converged():
     m, traj = _series(T=100)
@@ -259,8 +292,9 @@ def test_pfpf_on_the_log_squared_form_agrees_with_the_grid_filter():
     assert abs(grid_filter(returns, y_abs)[0] - exact) < 1e-9
     B = 100
     mean, cov = m.initial_belief(traj.states[:, 0].expand(B, -1))
-    out = F.ParticleFlowParticleFilter(m, flow="ledh", n_particles=100)(z.expand(B, -1, -1), mean, cov,
-                                                                       torch.Generator().manual_seed(4))
+    out = F.ParticleFlowParticleFilter(m, flow="ledh", n_particles=100)(
+        z.expand(B, -1, -1), mean, cov, torch.Generator().manual_seed(4)
+    )
     _z_scale_check(out.log_evidence, exact)
 
 
@@ -284,8 +318,11 @@ def test_per_trial_parameters_give_the_numbers_of_separate_calls():
     from torchflow.inference import per_trial_values
     from torchflow.random import TrialStreams
 
-    values = {"mu": torch.tensor([-1.0, -0.5, 0.2], **f64), "rho": torch.tensor([0.9, 0.5, -0.3], **f64),
-              "sigma": torch.tensor([0.2, 0.4, 0.8], **f64)}
+    values = {
+        "mu": torch.tensor([-1.0, -0.5, 0.2], **f64),
+        "rho": torch.tensor([0.9, 0.5, -0.3], **f64),
+        "sigma": torch.tensor([0.2, 0.4, 0.8], **f64),
+    }
     m = StochasticVolatility()
     y = StochasticVolatility().simulate(1, 12, torch.Generator().manual_seed(0)).observations.expand(3, -1, -1)
     f = F.BootstrapParticleFilter(m, n_particles=64)
@@ -296,10 +333,12 @@ def test_per_trial_parameters_give_the_numbers_of_separate_calls():
     for b in range(3):
         mb = StochasticVolatility(**{k: float(v[b]) for k, v in values.items()})
         mean_b, cov_b = mb.declared_prior(1)
-        alone = F.BootstrapParticleFilter(mb, n_particles=64)(y[b:b + 1], mean_b, cov_b, TrialStreams(5, 3, "sv").select([b]))
+        alone = F.BootstrapParticleFilter(mb, n_particles=64)(
+            y[b : b + 1], mean_b, cov_b, TrialStreams(5, 3, "sv").select([b])
+        )
         torch.testing.assert_close(alone.log_evidence[0], together.log_evidence[b], rtol=1e-12, atol=1e-12)
         torch.testing.assert_close(alone.estimates[0], together.estimates[b], rtol=1e-12, atol=1e-12)
-        ekf_alone = F.ExtendedKalmanFilter(mb)(y[b:b + 1], mean_b, cov_b).log_evidence[0]
+        ekf_alone = F.ExtendedKalmanFilter(mb)(y[b : b + 1], mean_b, cov_b).log_evidence[0]
         torch.testing.assert_close(ekf_alone, ekf_together[b], rtol=1e-12, atol=1e-12)
 
 
@@ -309,8 +348,11 @@ def test_per_trial_parameters_in_the_flows(flow):
     from torchflow.inference import per_trial_values
     from torchflow.random import TrialStreams
 
-    values = {"mu": torch.tensor([-1.0, 0.3], **f64), "rho": torch.tensor([0.9, 0.4], **f64),
-              "sigma": torch.tensor([0.2, 0.6], **f64)}
+    values = {
+        "mu": torch.tensor([-1.0, 0.3], **f64),
+        "rho": torch.tensor([0.9, 0.4], **f64),
+        "sigma": torch.tensor([0.2, 0.6], **f64),
+    }
     m = StochasticVolatility(gaussian_form="log_squared")
     z = m.simulate(1, 8, torch.Generator().manual_seed(0)).observations.expand(2, -1, -1)
     f = F.ParticleFlowParticleFilter(m, flow=flow, n_particles=16)
@@ -320,6 +362,7 @@ def test_per_trial_parameters_in_the_flows(flow):
     for b in range(2):
         mb = StochasticVolatility(gaussian_form="log_squared", **{k: float(v[b]) for k, v in values.items()})
         mean_b, cov_b = mb.declared_prior(1)
-        alone = F.ParticleFlowParticleFilter(mb, flow=flow, n_particles=16)(z[b:b + 1], mean_b, cov_b,
-                                                                           TrialStreams(5, 2, "sv").select([b]))
+        alone = F.ParticleFlowParticleFilter(mb, flow=flow, n_particles=16)(
+            z[b : b + 1], mean_b, cov_b, TrialStreams(5, 2, "sv").select([b])
+        )
         torch.testing.assert_close(alone.log_evidence[0], together.log_evidence[b], rtol=1e-10, atol=1e-10)

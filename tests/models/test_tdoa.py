@@ -1,4 +1,5 @@
 """The 3-D TDOA scenario of seed 002 (MODELS.md §12.3)."""
+
 import math
 
 import pytest
@@ -78,7 +79,9 @@ def test_flowed_gaussian_on_a_tdoa_measurement_moves_towards_the_source():
 def test_bad_input():
     with pytest.raises(ValueError, match=r"receivers: receivers 0 and 1 coincide"):
         TDOA3D(receivers=[[0.0, 0, 0], [0.0, 0, 0], [1.0, 0, 0]], pairs=[(0, 2)])
-    with pytest.raises(ValueError, match=r"pairs: expected pairs \(a, b\) of distinct receiver indices in \[0, 6\), got \(0, 7\)"):
+    with pytest.raises(
+        ValueError, match=r"pairs: expected pairs \(a, b\) of distinct receiver indices in \[0, 6\), got \(0, 7\)"
+    ):
         TDOA3D(pairs=[(0, 7)])
     with pytest.raises(ValueError, match="pairs: expected at least one"):
         TDOA3D(pairs=[])

@@ -1,4 +1,5 @@
 """The unscented particle filter: the ParticleFilter with UnscentedProposal (one proposal file)."""
+
 import math
 
 import pytest
@@ -66,8 +67,10 @@ def test_ekf_and_ukf_proposals_agree_on_a_linear_model():
     declared identical (one (B, 1, d, d) per trial)."""
     model = random_lg()
     traj, mean, cov, _ = simulate_with_belief(model, 4, 5)
-    runs = [upf(model, n=32, covariance=c)(traj.observations, mean, cov, torch.Generator().manual_seed(3))
-            for c in ("ukf", "ekf")]
+    runs = [
+        upf(model, n=32, covariance=c)(traj.observations, mean, cov, torch.Generator().manual_seed(3))
+        for c in ("ukf", "ekf")
+    ]
     torch.testing.assert_close(runs[0].estimates, runs[1].estimates, rtol=1e-8, atol=1e-10)
     torch.testing.assert_close(runs[0].log_evidence, runs[1].log_evidence, rtol=1e-8, atol=1e-10)
     carry = UnscentedProposal(model).init_carry(cov, 32)
@@ -105,6 +108,7 @@ def test_transition_prior_is_the_linearised_optimal_proposal():
     optimal proposal p(x_k | x_{k-1}, z_k): the KF update of N(F x, Q) with z (checked against
     kalman_update); a bad prior name is refused naming the argument."""
     from torchflow.trackers import kalman_update
+
     model = random_lg()
     prop = UnscentedProposal(model, prior="transition")
     assert prop.init_carry(torch.eye(3).expand(2, 3, 3), 8) is None
@@ -112,8 +116,14 @@ def test_transition_prior_is_the_linearised_optimal_proposal():
     z = torch.randn(2, model.obs_dim, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
     out = prop.propose(x, None, None, z, None, torch.Generator().manual_seed(2))
     m = model.transition_mean(x)
-    mean, cov, _ = kalman_update(m, model.transition_cov(m), z.unsqueeze(1), model.measure(m),
-                                 model.measurement_matrix(), model.measurement_cov(m))
+    mean, cov, _ = kalman_update(
+        m,
+        model.transition_cov(m),
+        z.unsqueeze(1),
+        model.measure(m),
+        model.measurement_matrix(),
+        model.measurement_cov(m),
+    )
     xi = torch.randn(x.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
     L = torch.linalg.cholesky(cov)
     torch.testing.assert_close(out.particles, mean + (L @ xi.unsqueeze(-1)).squeeze(-1), rtol=1e-7, atol=1e-9)

@@ -7,6 +7,7 @@ redesign) can be checked trial by trial against the numbers of the code before i
 The cases run through :func:`torchflow.experiment.run_experiment`, so each trial draws from its own
 random stream and the numbers do not depend on chunking.
 """
+
 from __future__ import annotations
 
 import json
@@ -16,8 +17,14 @@ import torch
 
 from torchflow import tuning
 from torchflow.experiment import run_experiment
-from torchflow.filters import (BootstrapParticleFilter, ExtendedKalmanFilter, KalmanFilter, ParticleFlowFilter,
-                               ParticleFlowParticleFilter, UnscentedKalmanFilter)
+from torchflow.filters import (
+    BootstrapParticleFilter,
+    ExtendedKalmanFilter,
+    KalmanFilter,
+    ParticleFlowFilter,
+    ParticleFlowParticleFilter,
+    UnscentedKalmanFilter,
+)
 from torchflow.models import AcousticTracking, SensorNetwork
 from torchflow.schedules import ExponentialSchedule
 
@@ -28,8 +35,11 @@ FLOWS = ("edh", "ledh", "geodesic", "gromov", "osd")
 
 def _filters(model, N, linear):
     sched = ExponentialSchedule(12, 1.2)
-    out = {"ekf": ExtendedKalmanFilter(model), "ukf": UnscentedKalmanFilter(model),
-           "bpf": BootstrapParticleFilter(model, n_particles=N)}
+    out = {
+        "ekf": ExtendedKalmanFilter(model),
+        "ukf": UnscentedKalmanFilter(model),
+        "bpf": BootstrapParticleFilter(model, n_particles=N),
+    }
     if linear:
         out["kf"] = KalmanFilter(model)
     for fl in FLOWS:

@@ -48,6 +48,7 @@ weighted members. Neither weighs by ``p(x_k | x_{k-1})``, which deterministic dy
 **Missing observations.** A NaN in ``z (B, m)`` is not observed: its likelihood term (and its row
 of ``H`` in the preconditioner) is left out; a step with nothing observed is a pure forecast.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -62,8 +63,15 @@ from ..random import uniform
 from ..schedules import ExponentialSchedule
 from .._checks import check_count, check_number
 from ..errors import ArgumentError, ArgumentTypeError
-from .ensemble import (_DIAGONAL_NOISE, _EnsembleFilter, check_radius, gaspari_cohn,
-                       local_observations, periodic_distances, rotate_anomalies)
+from .ensemble import (
+    _DIAGONAL_NOISE,
+    _EnsembleFilter,
+    check_radius,
+    gaspari_cohn,
+    local_observations,
+    periodic_distances,
+    rotate_anomalies,
+)
 
 __all__ = ["KernelParticleFlowFilter", "LagOneFlowFilter", "LocalParticleFilter"]
 
@@ -112,20 +120,40 @@ class KernelParticleFlowFilter(_EnsembleFilter):
     Shapes: ensemble ``(B, N, d)``, observations ``z (B, m)`` (NaN: not observed).
     """
 
-    def __init__(self, model, *, n_particles: int = 20, inflation: float = 1.0, radius: float = math.inf,
-                 state_distances: Optional[torch.Tensor] = None, bandwidth: Optional[float] = None,
-                 step_size: float = 0.5, flow_steps: int = 30, preconditioner: str = "posterior",
-                 validate: bool = True, name: Optional[str] = None):
+    def __init__(
+        self,
+        model,
+        *,
+        n_particles: int = 20,
+        inflation: float = 1.0,
+        radius: float = math.inf,
+        state_distances: Optional[torch.Tensor] = None,
+        bandwidth: Optional[float] = None,
+        step_size: float = 0.5,
+        flow_steps: int = 30,
+        preconditioner: str = "posterior",
+        validate: bool = True,
+        name: Optional[str] = None,
+    ):
         super().__init__(model, n_particles=n_particles, inflation=inflation, validate=validate, name=name)
         d = model.state_dim
         self.radius = check_radius(radius)
         if math.isinf(self.radius) and state_distances is None and self.n_particles <= d:
             raise ArgumentError(
                 f"n_particles: without a taper (radius = inf) the prior covariance of {self.n_particles} members in "
-                f"d = {d} dimensions is singular; use more than {d} members or a finite radius")
+                f"d = {d} dimensions is singular; use more than {d} members or a finite radius"
+            )
         #: ``alpha`` (``None``: ``1 / N``)
-        self.bandwidth = None if bandwidth is None else check_number(
-            "bandwidth", bandwidth, lambda v: v > 0, "a number > 0 (the kernel width relative to the prior variance)")
+        self.bandwidth = (
+            None
+            if bandwidth is None
+            else check_number(
+                "bandwidth",
+                bandwidth,
+                lambda v: v > 0,
+                "a number > 0 (the kernel width relative to the prior variance)",
+            )
+        )
         self.step_size = check_number("step_size", step_size, lambda v: v > 0, "a number > 0 (pseudo-time step)")
         self.flow_steps = check_count("flow_steps", flow_steps, minimum=1, hint=" (Euler steps in pseudo-time)")
         if preconditioner not in PRECONDITIONERS:
@@ -136,8 +164,10 @@ class KernelParticleFlowFilter(_EnsembleFilter):
             if state_distances is None:
                 dist = periodic_distances(d, torch.arange(d))
             elif not isinstance(state_distances, torch.Tensor) or tuple(state_distances.shape) != (d, d):
-                raise ArgumentError(f"state_distances: expected a tensor (d, d) = ({d}, {d}) or None, got "
-                                    f"{getattr(state_distances, 'shape', type(state_distances).__name__)}")
+                raise ArgumentError(
+                    f"state_distances: expected a tensor (d, d) = ({d}, {d}) or None, got "
+                    f"{getattr(state_distances, 'shape', type(state_distances).__name__)}"
+                )
             else:
                 dist = state_distances.detach().to("cpu", torch.float64)
             taper = gaspari_cohn(dist, self.radius).to(model.dtype).to(model.device)
@@ -206,8 +236,10 @@ class KernelParticleFlowFilter(_EnsembleFilter):
 
     def extra_repr(self) -> str:
         bw = "1/N" if self.bandwidth is None else f"{self.bandwidth:g}"
-        return (super().extra_repr() + f", radius={self.radius:g}, bandwidth={bw}, step_size={self.step_size:g}, "
-                f"flow_steps={self.flow_steps}, preconditioner={self.preconditioner!r}")
+        return (
+            super().extra_repr() + f", radius={self.radius:g}, bandwidth={bw}, step_size={self.step_size:g}, "
+            f"flow_steps={self.flow_steps}, preconditioner={self.preconditioner!r}"
+        )
 
 
 class LocalParticleFilter(_EnsembleFilter):
@@ -235,14 +267,25 @@ class LocalParticleFilter(_EnsembleFilter):
     Shapes: ensemble ``(B, N, d)``, observations ``z (B, m)`` (NaN: not observed).
     """
 
-    def __init__(self, model, *, n_particles: int = 40, inflation: float = 1.0, radius: float = 15.0,
-                 distances: Optional[torch.Tensor] = None, rtps: float = 0.0, jitter: float = 0.0,
-                 validate: bool = True, name: Optional[str] = None):
+    def __init__(
+        self,
+        model,
+        *,
+        n_particles: int = 40,
+        inflation: float = 1.0,
+        radius: float = 15.0,
+        distances: Optional[torch.Tensor] = None,
+        rtps: float = 0.0,
+        jitter: float = 0.0,
+        validate: bool = True,
+        name: Optional[str] = None,
+    ):
         super().__init__(model, n_particles=n_particles, inflation=inflation, validate=validate, name=name)
         self.radius = check_radius(radius)
         self.rtps = check_number("rtps", rtps, lambda v: 0 <= v <= 1, "a number in [0, 1] (relaxation to prior spread)")
-        self.jitter = check_number("jitter", jitter, lambda v: v >= 0,
-                                   "a number >= 0 (jitter relative to the forecast spread)")
+        self.jitter = check_number(
+            "jitter", jitter, lambda v: v >= 0, "a number >= 0 (jitter relative to the forecast spread)"
+        )
         taper = index = None  # radius = inf: every observation weighs every coordinate
         if not math.isinf(self.radius):
             taper, index = local_observations(model, self.radius, distances)
@@ -380,12 +423,27 @@ class LagOneFlowFilter(_EnsembleFilter):
     Shapes: ensemble ``(B, N, d)``, observations ``z (B, m)``.
     """
 
-    def __init__(self, model, *, n_particles: int = 20, inflation: float = 1.02, flow_steps: int = 20,
-                 step_ratio: float = 1.2, linearisation: str = "members", bundle: float = 1e-4, rotate: bool = True,
-                 covariance: Optional[str] = None, radius: float = math.inf, distances: Optional[torch.Tensor] = None,
-                 likelihood: str = "gaussian", validate: bool = True, name: Optional[str] = None):
-        super().__init__(model, n_particles=n_particles, inflation=inflation, rotate=rotate, validate=validate,
-                         name=name)
+    def __init__(
+        self,
+        model,
+        *,
+        n_particles: int = 20,
+        inflation: float = 1.02,
+        flow_steps: int = 20,
+        step_ratio: float = 1.2,
+        linearisation: str = "members",
+        bundle: float = 1e-4,
+        rotate: bool = True,
+        covariance: Optional[str] = None,
+        radius: float = math.inf,
+        distances: Optional[torch.Tensor] = None,
+        likelihood: str = "gaussian",
+        validate: bool = True,
+        name: Optional[str] = None,
+    ):
+        super().__init__(
+            model, n_particles=n_particles, inflation=inflation, rotate=rotate, validate=validate, name=name
+        )
         if linearisation not in LINEARISATIONS:
             raise ArgumentError(f"linearisation: expected one of {LINEARISATIONS}, got {linearisation!r}")
         self.radius = check_radius(radius)
@@ -397,19 +455,25 @@ class LagOneFlowFilter(_EnsembleFilter):
         if local and covariance == "prior":
             raise ArgumentError(
                 f"covariance: a finite radius ({self.radius:g}) localises the flowed members' covariance, so it "
-                "needs covariance='current' (or None); got 'prior' (the exact flow is global: radius=inf)")
+                "needs covariance='current' (or None); got 'prior' (the exact flow is global: radius=inf)"
+            )
         if covariance == "current" and linearisation == "bundle":
-            raise ArgumentError("linearisation: covariance='current' reads the flowed members' own measurements "
-                                "(their cross-covariance), so it needs linearisation='members'; got 'bundle'")
+            raise ArgumentError(
+                "linearisation: covariance='current' reads the flowed members' own measurements "
+                "(their cross-covariance), so it needs linearisation='members'; got 'bundle'"
+            )
         if likelihood not in LIKELIHOODS:
             raise ArgumentError(f"likelihood: expected one of {LIKELIHOODS}, got {likelihood!r}")
         if likelihood == "model" and covariance != "current":
-            raise ArgumentError("likelihood: 'model' (the score of the model's own measurement density) drives the "
-                                "flow in the members' covariance, so it needs covariance='current' or a finite radius")
+            raise ArgumentError(
+                "likelihood: 'model' (the score of the model's own measurement density) drives the "
+                "flow in the members' covariance, so it needs covariance='current' or a finite radius"
+            )
         if likelihood == "model" and model.structure.measurement_noise not in _DIAGONAL_NOISE:
             raise ArgumentTypeError(
                 f"{self.name}: model: likelihood='model' reads each observation's density on its own, which needs a "
-                f"diagonal measurement noise; {type(model).__name__} declares {model.structure.measurement_noise!r}")
+                f"diagonal measurement noise; {type(model).__name__} declares {model.structure.measurement_noise!r}"
+            )
         #: ``"gaussian"``: the Gaussian of R; ``"model"``: the score of the model's own density of each
         #: observation (``measurement_log_prob_terms``, additive errors: a function of ``z - h(x)``)
         self.likelihood = likelihood
@@ -422,7 +486,8 @@ class LagOneFlowFilter(_EnsembleFilter):
                 raise ArgumentTypeError(
                     f"{self.name}: model: a finite radius tapers each observation's influence, which needs a "
                     f"diagonal measurement noise (declared scalar, diagonal or state_dependent_diagonal); "
-                    f"{type(model).__name__} declares {model.structure.measurement_noise!r}. Use radius=inf")
+                    f"{type(model).__name__} declares {model.structure.measurement_noise!r}. Use radius=inf"
+                )
             taper, index = local_observations(model, self.radius, distances)
             taper, index = taper.to(model.dtype).to(model.device), index.to(model.device)
         self.register_buffer("local_index", index, persistent=False)
@@ -432,8 +497,9 @@ class LagOneFlowFilter(_EnsembleFilter):
         self.linearisation = linearisation
         self.bundle = check_number("bundle", bundle, lambda v: 0 < v <= 1, "a number in (0, 1] (the bundle's scale)")
         self.flow_steps = check_count("flow_steps", flow_steps, minimum=1, hint=" (steps in pseudo-time)")
-        self.step_ratio = check_number("step_ratio", step_ratio, lambda v: v > 0,
-                                       "a number > 0 (each pseudo-time step over the previous one)")
+        self.step_ratio = check_number(
+            "step_ratio", step_ratio, lambda v: v > 0, "a number > 0 (each pseudo-time step over the previous one)"
+        )
         self.schedule = ExponentialSchedule(self.flow_steps, self.step_ratio)
 
     def bytes_per_trial(self, n_particles=None):
@@ -547,9 +613,9 @@ class LagOneFlowFilter(_EnsembleFilter):
         blk = max(1, min(d, _CACHE_ELEMENTS // (B * K * N)))  # coordinates per block: about 2^16 numbers, in cache
         parts = []
         for lo in range(0, d, blk):  # blocks of coordinates (memory), not of trials or members
-            i, r = idx[lo:lo + blk], rho[lo:lo + blk]  # (blk, K)
+            i, r = idx[lo : lo + blk], rho[lo : lo + blk]  # (blk, K)
             Yl = Yt.index_select(1, i.reshape(-1)).view(B, -1, K, N)  # (B, blk, K, N): the nearby observations
-            C = (Yl * Dt[:, lo:lo + blk].unsqueeze(2)).sum(-1) * r  # (B, blk, K): tapered cross-covariance
+            C = (Yl * Dt[:, lo : lo + blk].unsqueeze(2)).sum(-1) * r  # (B, blk, K): tapered cross-covariance
             cl = ct.index_select(1, i.reshape(-1)).view(B, -1, K, N)  # (B, blk, K, N): the residuals there
             parts.append((C.unsqueeze(-1) * cl).sum(2))  # (B, blk, N)
         drift = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
@@ -557,7 +623,10 @@ class LagOneFlowFilter(_EnsembleFilter):
 
     def extra_repr(self) -> str:
         local = ("" if self.local_index is None else f", radius={self.radius:g}") + (
-            f", likelihood={self.likelihood!r}" if self.likelihood != "gaussian" else "")
-        return (super().extra_repr() + f", flow_steps={self.flow_steps}, step_ratio={self.step_ratio:g}, "
-                f"covariance={self.covariance!r}{local}, linearisation={self.linearisation!r}"
-                + (f", bundle={self.bundle:g}" if self.linearisation == "bundle" else ""))
+            f", likelihood={self.likelihood!r}" if self.likelihood != "gaussian" else ""
+        )
+        return (
+            super().extra_repr() + f", flow_steps={self.flow_steps}, step_ratio={self.step_ratio:g}, "
+            f"covariance={self.covariance!r}{local}, linearisation={self.linearisation!r}"
+            + (f", bundle={self.bundle:g}" if self.linearisation == "bundle" else "")
+        )

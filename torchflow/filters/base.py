@@ -1,4 +1,5 @@
 """The filter contract shared by every filter: ``init`` / ``step`` / ``forward``."""
+
 from __future__ import annotations
 
 import contextlib
@@ -6,7 +7,7 @@ import functools
 import math
 import warnings
 from dataclasses import dataclass, field
-from typing import Dict, Optional, Tuple
+from typing import Dict, Optional
 
 import torch
 import torch.utils.checkpoint
@@ -19,8 +20,15 @@ from .._checks import allocation_failure, check_choice, check_count, check_finit
 from .._blocks import blockwise
 from ..covariances import Covariance, DiagonalCovariance, sample_prior
 from ..models.base import StateSpaceModel
-from ..models.contract import (COVARIANCE_CHECK_NUMBERS, DECLARED_CHECK_NUMBERS, check_covariances, check_parameters, check_dtype, check_shapes,
-                               require_gaussian)
+from ..models.contract import (
+    COVARIANCE_CHECK_NUMBERS,
+    DECLARED_CHECK_NUMBERS,
+    check_covariances,
+    check_parameters,
+    check_dtype,
+    check_shapes,
+    require_gaussian,
+)
 from ..models.structure import kernel_structure
 from ..proposals import BootstrapProposal, Proposal
 from ..proposals.flow import check_informative
@@ -203,15 +211,22 @@ class Filter(nn.Module):
         super().__init__()
         self.name = name or type(self).__name__
         if not isinstance(model, StateSpaceModel):
-            raise ArgumentTypeError(f"{self.name}: model: expected a torchflow StateSpaceModel, got {type(model).__name__}")
+            raise ArgumentTypeError(
+                f"{self.name}: model: expected a torchflow StateSpaceModel, got {type(model).__name__}"
+            )
         if self.gaussian_form:
             require_gaussian(model, self.name)
         self.model = model
         self.validate = validate
 
     # ---- contract ------------------------------------------------------------------------------
-    def init(self, mean: torch.Tensor, cov: torch.Tensor, n_particles: Optional[int] = None,
-             generator: Optional[torch.Generator] = None):
+    def init(
+        self,
+        mean: torch.Tensor,
+        cov: torch.Tensor,
+        n_particles: Optional[int] = None,
+        generator: Optional[torch.Generator] = None,
+    ):
         """Initial state from the prior ``N(mean (B, d), cov (B, d, d))``."""
         raise NotImplementedError
 
@@ -263,15 +278,20 @@ class Filter(nn.Module):
 
         model = self.model
         if not isinstance(model, GaussianStateSpaceModel) or (
-                which == "measurement" and model.structure.measurement_noise not in ("scalar", "diagonal", "dense")):
+            which == "measurement" and model.structure.measurement_noise not in ("scalar", "diagonal", "dense")
+        ):
             return
         k = model.state_dim if which == "transition" else (model.obs_dim or 0)
         scale = model.structure.measurement_noise_scale
         declared_scalar = which == "measurement" and model.structure.measurement_noise == "scalar" and scale is not None
-        if declared_scalar and k * k > DECLARED_CHECK_NUMBERS or k * k > COVARIANCE_CHECK_NUMBERS:  # not formed for a check: a declared R = r I by its scale
+        if (
+            declared_scalar and k * k > DECLARED_CHECK_NUMBERS or k * k > COVARIANCE_CHECK_NUMBERS
+        ):  # not formed for a check: a declared R = r I by its scale
             if declared_scalar and not scale > 0:
-                raise ArgumentError(f"{self.name}: the model's measurement covariance is not positive definite "
-                                    f"(declared {scale:g} I); {why}")
+                raise ArgumentError(
+                    f"{self.name}: the model's measurement covariance is not positive definite "
+                    f"(declared {scale:g} I); {why}"
+                )
             return
         try:
             C = model.transition_cov() if which == "transition" else model.measurement_cov()
@@ -282,8 +302,10 @@ class Filter(nn.Module):
         if bool((torch.linalg.cholesky_ex(C.detach())[1] > 0).any()):  # the error path reads the eigenvalue
             ev = torch.linalg.eigvalsh(linalg.symmetrize(C.detach())).min().item()
             learnable = " (built from learnable parameters)" if C.requires_grad else ""
-            raise ArgumentError(f"{self.name}: the model's {which} covariance{learnable} is not positive definite "
-                                f"(smallest eigenvalue {ev:.3g}); {why}")
+            raise ArgumentError(
+                f"{self.name}: the model's {which} covariance{learnable} is not positive definite "
+                f"(smallest eigenvalue {ev:.3g}); {why}"
+            )
 
     def check_prior(self, mean: torch.Tensor, cov, batch_size: Optional[int] = None):
         """Validate (and broadcast ``(d,)``/``(d, d)`` to) ``mean (B, d)``, ``cov (B, d, d)``. A
@@ -298,9 +320,11 @@ class Filter(nn.Module):
             return mean, self._check_diagonal_prior(mean, cov, batch_size, d, ref)
         shared = isinstance(cov, torch.Tensor) and cov.dim() == 2
         if shared and tuple(cov.shape) != (d, d):
-            raise ArgumentError(f"cov: expected (d, d) = ({d}, {d}) shared by every trial or (B, d, d), got "
-                             f"{tuple(cov.shape)} (per-trial variances (B, d) are torch.diag_embed(variances), or "
-                             "torchflow.covariances.DiagonalCovariance(variances) without the matrix)")
+            raise ArgumentError(
+                f"cov: expected (d, d) = ({d}, {d}) shared by every trial or (B, d, d), got "
+                f"{tuple(cov.shape)} (per-trial variances (B, d) are torch.diag_embed(variances), or "
+                "torchflow.covariances.DiagonalCovariance(variances) without the matrix)"
+            )
         if shared and batch_size is not None:
             cov = cov.expand(batch_size, -1, -1)
         check_tensor("mean", mean, (batch_size, d), "(B, d)")
@@ -313,9 +337,11 @@ class Filter(nn.Module):
                 check_psd("cov", cov)
             except ValueError as err:
                 if shared and d == mean.shape[0]:  # a (B, d) array of variances looks like (d, d) when B = d
-                    raise ArgumentError(f"{err} (a (d, d) matrix shared by every trial was given; if these are "
-                                     "per-trial variances (B, d), pass torch.diag_embed(variances) or "
-                                     "torchflow.covariances.DiagonalCovariance(variances))") from None
+                    raise ArgumentError(
+                        f"{err} (a (d, d) matrix shared by every trial was given; if these are "
+                        "per-trial variances (B, d), pass torch.diag_embed(variances) or "
+                        "torchflow.covariances.DiagonalCovariance(variances))"
+                    ) from None
                 raise
         return mean, cov
 
@@ -334,8 +360,10 @@ class Filter(nn.Module):
             check_finite("cov.variance", var)
             if bool((var < 0).any()):
                 b = int(torch.nonzero((var < 0).any(-1))[0])
-                raise ArgumentError(f"cov.variance: expected variances >= 0 (a diagonal covariance), got "
-                                    f"{float(var[b].min()):.3g} in trial {b}")
+                raise ArgumentError(
+                    f"cov.variance: expected variances >= 0 (a diagonal covariance), got "
+                    f"{float(var[b].min()):.3g} in trial {b}"
+                )
         if self.diagonal_prior:
             return DiagonalCovariance(var)
         # the matrix: one shared by every trial stays one (a view), as a shared (d, d) prior does
@@ -368,13 +396,14 @@ class Filter(nn.Module):
         n = getattr(self, "n_particles", None) if n_particles is None else n_particles
         try:
             est = f"; estimated {self.bytes_per_trial(n) * trials / 2**30:.3g} GiB per time step"
-        except Exception:  # noqa: BLE001 - the estimate is a courtesy
+        except Exception:
             est = ""
         what = f"{trials} trials" + (f" x {int(n)} particles" if n is not None else "")
-        raise MemoryError(f"{self.name}: out of memory running {what}{size}{est}. Use fewer particles, or fewer "
-                          "trials per call; particle filters can also work on blocks of particles "
-                          "(particle_chunk=...); the runner sizes its calls from memory_budget_gb (and chunk_size)"
-                          ) from err
+        raise MemoryError(
+            f"{self.name}: out of memory running {what}{size}{est}. Use fewer particles, or fewer "
+            "trials per call; particle filters can also work on blocks of particles "
+            "(particle_chunk=...); the runner sizes its calls from memory_budget_gb (and chunk_size)"
+        ) from err
 
     def _check_trace(self, trace: "_Trace", *, warn: bool) -> None:
         """The non-finite contract after the steps so far (:mod:`.guards`): raise
@@ -383,8 +412,14 @@ class Filter(nn.Module):
         read."""
         if not trace.n:
             return
-        table = guards.table_to_host(guards.first_steps(trace.estimates(), trace.invalid_steps(), trace.increments(),
-                                                        getattr(self, "nonfinite", None) == "recover"))
+        table = guards.table_to_host(
+            guards.first_steps(
+                trace.estimates(),
+                trace.invalid_steps(),
+                trace.increments(),
+                getattr(self, "nonfinite", None) == "recover",
+            )
+        )
         guards.raise_first(self.name, table)
         if warn:
             guards.raise_never_measured(self.name, table, trace.n)
@@ -433,8 +468,9 @@ class Filter(nn.Module):
         """
         check_dtype(self.model, self.name)
         if progress is not None and not callable(progress):
-            raise ArgumentTypeError(f"progress: expected a callable invoked after each step (or None), got "
-                                    f"{type(progress).__name__}")
+            raise ArgumentTypeError(
+                f"progress: expected a callable invoked after each step (or None), got {type(progress).__name__}"
+            )
         if n_particles is not None:  # a count even where the filter has no particles (it is then unused)
             check_count("n_particles", n_particles)
         if self.validate:
@@ -453,8 +489,14 @@ class Filter(nn.Module):
         except Exception as err:
             self._raise_out_of_memory(_uncountable(err), observations.shape[0], n_particles)
             raise
-        trace = _Trace(observations.shape[0], observations.device, return_covariances, return_particles, return_std,
-                       steps=observations.shape[1])
+        trace = _Trace(
+            observations.shape[0],
+            observations.device,
+            return_covariances,
+            return_particles,
+            return_std,
+            steps=observations.shape[1],
+        )
         if checkpoint_steps is None:
             checkpoint_steps = self.checkpoint_steps
         step = self._checkpointed_step if checkpoint_steps and torch.is_grad_enabled() else self.step
@@ -488,7 +530,8 @@ class Filter(nn.Module):
                     f"{self.name}: observations: step {t + 1} of trial {b} is partly observed (NaN in some of its "
                     f"{observations.shape[-1]} coordinates), but {type(self.model).__name__} gives no density of "
                     "the observed coordinates alone: a whole step may be missing (all NaN), or the model overrides "
-                    "measurement_log_prob_observed(z, x, observed) (or declares a Gaussian measurement)")
+                    "measurement_log_prob_observed(z, x, observed) (or declares a Gaussian measurement)"
+                )
         return True
 
     def _run_steps(self, state, step, observations, generator, trace, n_particles, progress):
@@ -509,7 +552,6 @@ class Filter(nn.Module):
             if progress is not None:
                 progress()
         return state
-
 
 
 #: the key of :attr:`ParticleState.extras` under which a particle filter keeps each step's ancestor
@@ -553,8 +595,9 @@ class _Trace:
     synchronisation per time step). ``steps``: the number of time steps, when known: a large
     particle filter's small per-step outputs then go into buffers (:data:`TRACE_BUFFER_MIN`)."""
 
-    def __init__(self, B: int, device, covariances: bool, particles: bool, std: bool = False,
-                 steps: Optional[int] = None):
+    def __init__(
+        self, B: int, device, covariances: bool, particles: bool, std: bool = False, steps: Optional[int] = None
+    ):
         self.B, self.device, self.steps = B, device, steps
         self.covariances, self.particles, self.std = covariances, particles, std
         self.est, self.inc, self.ess, self.covs, self.parts, self.lws, self.geff = [], [], [], [], [], [], []
@@ -572,10 +615,17 @@ class _Trace:
         whose outputs record no gradient (a graph keeps its own references: nothing to gain). Not on
         a GPU: its caching allocator does not fragment so, and each copy would be a launch."""
         x = getattr(state, "particles", None)
-        return (self.steps is not None and isinstance(state, ParticleState) and x is not None and x.is_cpu
-                and x.numel() >= TRACE_BUFFER_MIN and getattr(state, "g_eff", None) is None
-                and not any(t is not None and t.requires_grad
-                            for t in (state.estimate, state.log_evidence_increment, state.ess)))
+        return (
+            self.steps is not None
+            and isinstance(state, ParticleState)
+            and x is not None
+            and x.is_cpu
+            and x.numel() >= TRACE_BUFFER_MIN
+            and getattr(state, "g_eff", None) is None
+            and not any(
+                t is not None and t.requires_grad for t in (state.estimate, state.log_evidence_increment, state.ess)
+            )
+        )
 
     def _put(self, name: str, value: torch.Tensor, zeros: bool = False) -> None:
         buf = self._buf.get(name)
@@ -631,7 +681,7 @@ class _Trace:
 
     def _view(self, name: str) -> Optional[torch.Tensor]:
         buf = self._buf.get(name)
-        return None if buf is None else buf[:, :self.n]
+        return None if buf is None else buf[:, : self.n]
 
     def estimates(self) -> Optional[torch.Tensor]:
         """The estimates so far, ``(B, T, d)`` (stacked once per length)."""
@@ -662,10 +712,19 @@ class _Trace:
 
         inc_t = self.increments()
         ess = self._view("ess") if self._buf is not None else stack(self.ess)
-        return FilterResult(estimates=self.estimates(), log_evidence=inc_t.sum(1), log_evidence_increments=inc_t,
-                            ess=ess, covariances=stack(self.covs), particles=stack(self.parts),
-                            log_weights=stack(self.lws), n_repaired=getattr(state, "n_repaired", None),
-                            g_eff=stack(self.geff), std=stack(self.stds))
+        return FilterResult(
+            estimates=self.estimates(),
+            log_evidence=inc_t.sum(1),
+            log_evidence_increments=inc_t,
+            ess=ess,
+            covariances=stack(self.covs),
+            particles=stack(self.parts),
+            log_weights=stack(self.lws),
+            n_repaired=getattr(state, "n_repaired", None),
+            g_eff=stack(self.geff),
+            std=stack(self.stds),
+        )
+
 
 NONFINITE = ("recover", "raise")
 PROPOSAL_GRADIENTS = ("pathwise", "score")
@@ -735,25 +794,44 @@ class ParticleFilter(Filter):
 
     gaussian_form = False  # the proposal states what it needs of the model
 
-    def __init__(self, model, proposal=None, *, n_particles: int = 500, resampling: str = "systematic",
-                 ess_threshold: float = 0.5, regularization=None, resampling_gradient: str = "stop_gradient",
-                 soft_alpha: float = 0.5, ot_epsilon: float = 0.1, ot_iterations: int = 100, nonfinite: str = "recover",
-                 particle_chunk: Optional[int] = None, proposal_gradient: str = "pathwise", weights: str = "standard",
-                 regularization_relative: Optional[float] = None, validate: bool = True, name: Optional[str] = None):
+    def __init__(
+        self,
+        model,
+        proposal=None,
+        *,
+        n_particles: int = 500,
+        resampling: str = "systematic",
+        ess_threshold: float = 0.5,
+        regularization=None,
+        resampling_gradient: str = "stop_gradient",
+        soft_alpha: float = 0.5,
+        ot_epsilon: float = 0.1,
+        ot_iterations: int = 100,
+        nonfinite: str = "recover",
+        particle_chunk: Optional[int] = None,
+        proposal_gradient: str = "pathwise",
+        weights: str = "standard",
+        regularization_relative: Optional[float] = None,
+        validate: bool = True,
+        name: Optional[str] = None,
+    ):
         super().__init__(model, validate=validate, name=name)
         if proposal is None:
             proposal = BootstrapProposal(model)
         elif not isinstance(proposal, nn.Module) and callable(proposal):
             proposal = proposal(model)
         if not isinstance(proposal, Proposal):
-            raise ArgumentTypeError(f"proposal: expected a torchflow Proposal (or a callable model -> Proposal), "
-                            f"got {type(proposal).__name__}")
+            raise ArgumentTypeError(
+                f"proposal: expected a torchflow Proposal (or a callable model -> Proposal), "
+                f"got {type(proposal).__name__}"
+            )
         if proposal.model is not model:
             raise ArgumentError("proposal: built for another model than the filter's (pass the same model to both)")
         #: how particles are drawn and with what density (:mod:`torchflow.proposals`)
         self.proposal = proposal
-        self.particle_chunk = None if particle_chunk is None else check_count(
-            "particle_chunk", particle_chunk, hint=" or None")
+        self.particle_chunk = (
+            None if particle_chunk is None else check_count("particle_chunk", particle_chunk, hint=" or None")
+        )
         if nonfinite not in NONFINITE:
             raise ArgumentError(f"nonfinite: expected one of {NONFINITE}, got {nonfinite!r}")
         self.nonfinite = nonfinite
@@ -762,20 +840,29 @@ class ParticleFilter(Filter):
         self.proposal_gradient = proposal_gradient
         check_choice("weights", weights, _marginal.WEIGHTS)
         if weights == "marginal" and not proposal.has_ancestor_law:
-            raise ArgumentError(f"weights: 'marginal' needs the proposal's density given every parent, which "
-                                f"{type(proposal).__name__} does not give (on this model); it is available for the "
-                                "bootstrap proposal and the weighted flow proposals on models with a Gaussian "
-                                "transition. Use weights='standard'")
+            raise ArgumentError(
+                f"weights: 'marginal' needs the proposal's density given every parent, which "
+                f"{type(proposal).__name__} does not give (on this model); it is available for the "
+                "bootstrap proposal and the weighted flow proposals on models with a Gaussian "
+                "transition. Use weights='standard'"
+            )
         #: ``"standard"`` or ``"marginal"`` weights (:mod:`torchflow.filters.marginal`)
         self.weights = weights
         proposal.report_ancestor_law = weights == "marginal"
         self.n_particles = int(check_count("n_particles", n_particles))
         #: the resampling part: scheme, ESS trigger, regularisation, gradient estimator
-        self.resampler = _resampling.Resampler(model.state_dim, scheme=resampling, ess_threshold=ess_threshold,
-                                               regularization=regularization, gradient=resampling_gradient,
-                                               soft_alpha=soft_alpha, ot_epsilon=ot_epsilon,
-                                               ot_iterations=ot_iterations, dtype=model.dtype,
-                                               regularization_relative=regularization_relative)
+        self.resampler = _resampling.Resampler(
+            model.state_dim,
+            scheme=resampling,
+            ess_threshold=ess_threshold,
+            regularization=regularization,
+            gradient=resampling_gradient,
+            soft_alpha=soft_alpha,
+            ot_epsilon=ot_epsilon,
+            ot_iterations=ot_iterations,
+            dtype=model.dtype,
+            regularization_relative=regularization_relative,
+        )
 
     @property
     def graph_step(self) -> bool:
@@ -783,11 +870,16 @@ class ParticleFilter(Filter):
         the generic step (not overridden), a proposal class and a model class that each declare
         themselves ``graph_safe`` (on the class itself: a subclass may draw otherwise), and the
         proposal's linearisation points, where it has them."""
-        return (type(self).step is ParticleFilter.step and self.weights == "standard"
-                and bool(vars(type(self.proposal)).get("graph_safe"))
-                and (getattr(self.proposal, "points", None) is None
-                     or bool(vars(type(self.proposal.points)).get("graph_safe")))
-                and kernel_structure(self.model).graph_safe)
+        return (
+            type(self).step is ParticleFilter.step
+            and self.weights == "standard"
+            and bool(vars(type(self.proposal)).get("graph_safe"))
+            and (
+                getattr(self.proposal, "points", None) is None
+                or bool(vars(type(self.proposal.points)).get("graph_safe"))
+            )
+            and kernel_structure(self.model).graph_safe
+        )
 
     @property
     def diagonal_prior(self) -> bool:
@@ -832,15 +924,19 @@ class ParticleFilter(Filter):
         on the model's constant covariance (``transition_cov()``); a state-dependent one is left to
         the steps' non-finite handling."""
         super().check_model()
-        self.require_definite("measurement",
+        self.require_definite(
+            "measurement",
             "particle filters weigh particles by the measurement density p(z | x), which a singular covariance "
             "does not have, so no weight would carry the measurement. Give the model a positive definite "
-            "measurement noise, or use a Kalman filter (which handles a singular R when H P H^T is positive definite)")
+            "measurement noise, or use a Kalman filter (which handles a singular R when H P H^T is positive definite)",
+        )
         if getattr(self.proposal, "uses_transition_density", True) and self.model.structure.gaussian_transition:
-            self.require_definite("transition",
+            self.require_definite(
+                "transition",
                 "this filter weighs particles by the transition density p(x_k | x_(k-1)), which a singular "
                 "covariance does not have. Give the model a positive definite transition noise, or use a filter "
-                "that does not need the density: the bootstrap PF, the unweighted flow filter or a Kalman filter")
+                "that does not need the density: the bootstrap PF, the unweighted flow filter or a Kalman filter",
+            )
 
     def init(self, mean, cov, n_particles=None, generator=None) -> "ParticleState":
         """N particles per trial from the prior ``N(mean (B, d), cov (B, d, d))``, uniform weights and
@@ -850,10 +946,16 @@ class ParticleFilter(Filter):
         particles = sample_prior(mean, cov, N, generator)  # (B, N, d)
         lw = torch.full((B, N), -math.log(N), dtype=mean.dtype, device=mean.device)
         zero = torch.zeros(B, dtype=mean.dtype, device=mean.device)
-        return ParticleState(particles, lw, mean, torch.full_like(zero, float(N)), zero,
-                             torch.zeros(B, dtype=torch.bool, device=mean.device),
-                             n_repaired=torch.zeros(B, dtype=torch.long, device=mean.device),
-                             cov=self.proposal.init_carry(cov, N))
+        return ParticleState(
+            particles,
+            lw,
+            mean,
+            torch.full_like(zero, float(N)),
+            zero,
+            torch.zeros(B, dtype=torch.bool, device=mean.device),
+            n_repaired=torch.zeros(B, dtype=torch.long, device=mean.device),
+            cov=self.proposal.init_carry(cov, N),
+        )
 
     def step(self, state: "ParticleState", z: torch.Tensor, generator: Optional[torch.Generator] = None):
         """One step: propose, weigh, estimate, resample (class docstring). Per-particle evaluations
@@ -862,23 +964,34 @@ class ParticleFilter(Filter):
         # the proposal held constant: built without a graph (no tensors kept for a backward pass that
         # would not use them), its outputs detached; only the weight's model densities carry gradients
         with torch.no_grad() if score else contextlib.nullcontext():
-            prop = self.proposal.propose(state.particles, state.log_weights, state.estimate, z, state.cov, generator,
-                                         chunk=self.particle_chunk)
+            prop = self.proposal.propose(
+                state.particles, state.log_weights, state.estimate, z, state.cov, generator, chunk=self.particle_chunk
+            )
         model = self.model
         z1 = z.unsqueeze(1)
         if self.weights == "marginal":
             log_lik = self.per_particle(lambda x: _missing.measurement_log_prob(model, z1, x), prop.particles)
-            log_inc = _marginal.marginal_log_increment(model, prop, state.particles, state.log_weights, log_lik,
-                                                       hold_proposal=score, chunk=self.particle_chunk)
+            log_inc = _marginal.marginal_log_increment(
+                model, prop, state.particles, state.log_weights, log_lik, hold_proposal=score, chunk=self.particle_chunk
+            )
             uniform = torch.full_like(state.log_weights, -math.log(state.log_weights.shape[-1]))
-            return self.weight_and_resample(prop.particles, uniform, log_inc, generator, state.step + 1,
-                                            cov=prop.cov, fallback=prop.fallback, n_repaired=state.n_repaired,
-                                            extras=ancestor_extras(state, prop.particles))
+            return self.weight_and_resample(
+                prop.particles,
+                uniform,
+                log_inc,
+                generator,
+                state.step + 1,
+                cov=prop.cov,
+                fallback=prop.fallback,
+                n_repaired=state.n_repaired,
+                extras=ancestor_extras(state, prop.particles),
+            )
 
         def measurement_log_prob(z, x):  # of the observed coordinates where z has NaN (torchflow.missing)
             return _missing.measurement_log_prob(model, z, x)
 
         if prop.log_q is None:
+
             def weigh(x, x_prev):
                 ll = measurement_log_prob(z1, x)
                 if not score:
@@ -889,13 +1002,22 @@ class ParticleFilter(Filter):
 
             log_inc = self.per_particle(weigh, prop.particles, state.particles)
         else:
+
             def weigh(x, x_prev, log_q):
                 return model.transition_log_prob(x, x_prev) + measurement_log_prob(z1, x) - log_q
 
             log_inc = self.per_particle(weigh, prop.particles, state.particles, prop.log_q)
-        return self.weight_and_resample(prop.particles, state.log_weights, log_inc, generator, state.step + 1,
-                                        cov=prop.cov, fallback=prop.fallback, n_repaired=state.n_repaired,
-                                        extras=ancestor_extras(state, prop.particles))
+        return self.weight_and_resample(
+            prop.particles,
+            state.log_weights,
+            log_inc,
+            generator,
+            state.step + 1,
+            cov=prop.cov,
+            fallback=prop.fallback,
+            n_repaired=state.n_repaired,
+            extras=ancestor_extras(state, prop.particles),
+        )
 
     def per_particle(self, fn, *tensors, pass_slice: bool = False, chunk: Optional[int] = None):
         """``fn(*tensors)`` in blocks of :attr:`particle_chunk` particles (or ``chunk``, when given;
@@ -909,8 +1031,11 @@ class ParticleFilter(Filter):
         bad_trial (B,))``. No host synchronisation."""
         bad = self._nonfinite(particles, log_increment)
         fb = torch.zeros_like(particles) if fallback is None else fallback
-        return (torch.where(bad.unsqueeze(-1), fb, particles), log_increment.masked_fill(bad, float("-inf")),
-                bad.flatten(1).any(-1))
+        return (
+            torch.where(bad.unsqueeze(-1), fb, particles),
+            log_increment.masked_fill(bad, float("-inf")),
+            bad.flatten(1).any(-1),
+        )
 
     @staticmethod
     def _nonfinite(particles: torch.Tensor, log_increment: torch.Tensor) -> torch.Tensor:
@@ -958,8 +1083,9 @@ class ParticleFilter(Filter):
             n_repaired = torch.zeros(particles.shape[0], dtype=torch.long, device=particles.device)
         if _resampling.reads_host(log_increment):  # the CPU: one read says whether anything needs repair
             if self._weights_kernel(particles, prev_log_weights, log_increment, cov, extras):
-                return self._weigh_in_kernel(particles, prev_log_weights, log_increment, generator, step, fallback,
-                                             n_repaired)
+                return self._weigh_in_kernel(
+                    particles, prev_log_weights, log_increment, generator, step, fallback, n_repaired
+                )
             # s - s is 0 where a particle's coordinate sum s is finite, NaN elsewhere: lw is the sum of
             # the weights where every particle is finite, and a trial's logsumexp is finite exactly
             # where no particle needs repair (a non-finite coordinate, a NaN or +inf increment) and
@@ -969,19 +1095,35 @@ class ParticleFilter(Filter):
             inc = torch.logsumexp(lw, dim=-1)
             # finite sum <=> every term finite (a NaN or an infinity makes it NaN or infinite)
             if math.isfinite(float(inc.detach().sum())):  # nothing to repair, no dead trial
-                return self._estimate_and_resample(particles, lw - inc.unsqueeze(-1), inc, generator, step, cov,
-                                                   extras, n_repaired, self.account_clean(n_repaired), None)
-        return self._weigh_masked(particles, prev_log_weights, log_increment, generator, step, cov, extras, fallback,
-                                  n_repaired)
+                return self._estimate_and_resample(
+                    particles,
+                    lw - inc.unsqueeze(-1),
+                    inc,
+                    generator,
+                    step,
+                    cov,
+                    extras,
+                    n_repaired,
+                    self.account_clean(n_repaired),
+                    None,
+                )
+        return self._weigh_masked(
+            particles, prev_log_weights, log_increment, generator, step, cov, extras, fallback, n_repaired
+        )
 
     def _weights_kernel(self, particles, prev_log_weights, log_increment, cov, extras) -> bool:
         """The CPU weighting kernel takes this step (:func:`torchflow.flows.kernels.select.weights_kernel`),
         where this class weighs, estimates and resamples as :class:`ParticleFilter` does."""
         cls = type(self)
-        return (cls._estimate_and_resample is ParticleFilter._estimate_and_resample
-                and cls.account_clean is ParticleFilter.account_clean and cls.account is ParticleFilter.account
-                and _select.weights_kernel(particles, prev_log_weights, log_increment, resampler=self.resampler,
-                                           cov=cov, extras=extras) is not None)
+        return (
+            cls._estimate_and_resample is ParticleFilter._estimate_and_resample
+            and cls.account_clean is ParticleFilter.account_clean
+            and cls.account is ParticleFilter.account
+            and _select.weights_kernel(
+                particles, prev_log_weights, log_increment, resampler=self.resampler, cov=cov, extras=extras
+            )
+            is not None
+        )
 
     def _weigh_in_kernel(self, particles, prev_log_weights, log_increment, generator, step, fallback, n_repaired):
         """:meth:`weight_and_resample` by the CPU weighting kernel (``tuning.fused_weights``). The
@@ -990,26 +1132,63 @@ class ParticleFilter(Filter):
         their rows of those uniforms, so every trial's numbers are those it gets in any batch."""
         uniforms = self.resampler.draw_uniforms(prev_log_weights, generator)
         x, lw, estimate, ess, inc, resampled, bad = _steps.weigh_resample(
-            particles, prev_log_weights, log_increment, uniforms, self.resampler.ess_threshold)
+            particles, prev_log_weights, log_increment, uniforms, self.resampler.ess_threshold
+        )
         _paths.note("kernel:weights")
         invalid = self.account_clean(n_repaired)
         if bad is not None:  # (the kernel's count, read on the host already)
             rows = bad.nonzero().squeeze(1)
-            sub = self._weigh_masked(particles[rows], prev_log_weights[rows], log_increment[rows], generator, step,
-                                     None, None, None if fallback is None else fallback[rows], n_repaired[rows],
-                                     None if uniforms is None else uniforms[rows])
-            for out, part in ((x, sub.particles), (lw, sub.log_weights), (estimate, sub.estimate), (ess, sub.ess),
-                              (inc, sub.log_evidence_increment), (resampled, sub.resampled)):
+            sub = self._weigh_masked(
+                particles[rows],
+                prev_log_weights[rows],
+                log_increment[rows],
+                generator,
+                step,
+                None,
+                None,
+                None if fallback is None else fallback[rows],
+                n_repaired[rows],
+                None if uniforms is None else uniforms[rows],
+            )
+            for out, part in (
+                (x, sub.particles),
+                (lw, sub.log_weights),
+                (estimate, sub.estimate),
+                (ess, sub.ess),
+                (inc, sub.log_evidence_increment),
+                (resampled, sub.resampled),
+            ):
                 out[rows] = part
             n_repaired = n_repaired.index_copy(0, rows, sub.n_repaired)
             if invalid is not None:
                 invalid = invalid.index_copy(0, rows, sub.invalid)
-        return ParticleState(particles=x, log_weights=lw, estimate=estimate, ess=ess, log_evidence_increment=inc,
-                             resampled=resampled, n_repaired=n_repaired, cov=None, step=step, extras={},
-                             invalid=invalid)
+        return ParticleState(
+            particles=x,
+            log_weights=lw,
+            estimate=estimate,
+            ess=ess,
+            log_evidence_increment=inc,
+            resampled=resampled,
+            n_repaired=n_repaired,
+            cov=None,
+            step=step,
+            extras={},
+            invalid=invalid,
+        )
 
-    def _weigh_masked(self, particles, prev_log_weights, log_increment, generator, step, cov, extras, fallback,
-                      n_repaired, uniforms=None) -> "ParticleState":
+    def _weigh_masked(
+        self,
+        particles,
+        prev_log_weights,
+        log_increment,
+        generator,
+        step,
+        cov,
+        extras,
+        fallback,
+        n_repaired,
+        uniforms=None,
+    ) -> "ParticleState":
         """:meth:`weight_and_resample` with the repair of non-finite particles and dead trials, as
         masked updates over every trial (``uniforms``: the resampler's draws when made already)."""
         bad = self._nonfinite(particles, log_increment)
@@ -1024,35 +1203,54 @@ class ParticleFilter(Filter):
         lw = torch.where(dead.unsqueeze(-1), prev_log_weights, lw)
         # repaired particles, and every particle of a dead trial, take the fallback position: one
         # pass over (B, N, d) (:meth:`repair`'s values)
-        particles = (particles.masked_fill(bad.unsqueeze(-1), 0.0) if fallback is None
-                     else torch.where((bad | dead.unsqueeze(-1)).unsqueeze(-1), fallback, particles))
+        particles = (
+            particles.masked_fill(bad.unsqueeze(-1), 0.0)
+            if fallback is None
+            else torch.where((bad | dead.unsqueeze(-1)).unsqueeze(-1), fallback, particles)
+        )
         # rows that were not dead see the same lw, hence the same logsumexp as ``inc``; a dead row
         # keeps the previous weights, which are normalised
         lw = lw - torch.where(dead, 0.0, inc).unsqueeze(-1)
         inc = inc.masked_fill(dead, float("-inf"))  # the evidence estimate of a dead step is zero
-        return self._estimate_and_resample(particles, lw, inc, generator, step, cov, extras, n_repaired, invalid,
-                                           dead, uniforms)
+        return self._estimate_and_resample(
+            particles, lw, inc, generator, step, cov, extras, n_repaired, invalid, dead, uniforms
+        )
 
     def account_clean(self, n_repaired: torch.Tensor):
         """:meth:`account` of a step with nothing repaired and no dead trial."""
         return None if self.nonfinite == "recover" else torch.zeros_like(n_repaired, dtype=torch.bool)
 
-    def _estimate_and_resample(self, particles, lw, inc, generator, step, cov, extras, n_repaired, invalid,
-                               dead, uniforms=None) -> "ParticleState":
+    def _estimate_and_resample(
+        self, particles, lw, inc, generator, step, cov, extras, n_repaired, invalid, dead, uniforms=None
+    ) -> "ParticleState":
         """The weighted mean of normalised ``lw``, the ESS and the resampling (``dead (B,)``: the
         trials whose step had no particle of positive weight, ``None`` when none had; ``uniforms``:
         the resampler's draws when made already)."""
         w = lw.exp()
-        estimate = (torch.bmm(w.unsqueeze(1), particles).squeeze(1) if particles.dim() == 3  # (B, d)
-                    else torch.matmul(w.unsqueeze(-2), particles).squeeze(-2))
+        estimate = (
+            torch.bmm(w.unsqueeze(1), particles).squeeze(1)
+            if particles.dim() == 3  # (B, d)
+            else torch.matmul(w.unsqueeze(-2), particles).squeeze(-2)
+        )
         ess = (w * w).sum(-1).reciprocal()  # the resampler's trigger (of the weights it goes on with)
-        particles, lw_new, cov, extras, resampled = self.resampler(particles, lw, generator, cov=cov, extras=extras,
-                                                                   ess=ess, uniforms=uniforms)
+        particles, lw_new, cov, extras, resampled = self.resampler(
+            particles, lw, generator, cov=cov, extras=extras, ess=ess, uniforms=uniforms
+        )
         if dead is not None:  # a dead step keeps the previous weights to go on, but no particle had positive weight
             ess = ess.masked_fill(dead, 0.0)
-        return ParticleState(particles=particles, log_weights=lw_new, estimate=estimate, ess=ess,
-                             log_evidence_increment=inc, resampled=resampled, n_repaired=n_repaired,
-                             cov=cov, step=step, extras=extras, invalid=invalid)
+        return ParticleState(
+            particles=particles,
+            log_weights=lw_new,
+            estimate=estimate,
+            ess=ess,
+            log_evidence_increment=inc,
+            resampled=resampled,
+            n_repaired=n_repaired,
+            cov=cov,
+            step=step,
+            extras=extras,
+            invalid=invalid,
+        )
 
     def extra_repr(self) -> str:
         return f"n_particles={self.n_particles}, nonfinite={self.nonfinite!r}"

@@ -1,4 +1,5 @@
 """Bootstrap particle filter (Gordon, Salmond & Smith 1993)."""
+
 from __future__ import annotations
 
 from .base import ParticleFilter

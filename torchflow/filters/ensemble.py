@@ -14,7 +14,8 @@ An ensemble of ``N`` members per trial, ``X (B, N, d)``, stands for the belief. 
    ``N``-dimensional ensemble space with the matrix ``M = (N - 1) I_N + Y_w Y_w^T`` (``(B, N, N)``).
    It is solved there when ``N <= m``, else through the ``m x m`` matrix
    ``Y_w^T Y_w + (N - 1) I_m`` (the same numbers up to round-off, at the cost of the smaller one: a
-   large ensemble of a few observations never forms ``N x N`` matrices). With ``P_f = A^T A / (N - 1)`` this is the Kalman update with the ensemble's
+   large ensemble of a few observations never forms ``N x N`` matrices). With ``P_f = A^T A / (N - 1)`` this is the
+   Kalman update with the ensemble's
    covariance: ``K = P_f H^T (H P_f H^T + R)^{-1} = A^T M^{-1} Y_w L^{-1}`` (push-through identity,
    ``H A^T`` replaced by ``Y^T``).
 
@@ -45,6 +46,7 @@ hence :attr:`estimates_evidence` is ``False`` (the runner does not score it).
 The state is a :class:`~torchflow.filters.ParticleState` with uniform weights (``ESS = N``), the
 estimate being the analysis ensemble's mean.
 """
+
 from __future__ import annotations
 
 import math
@@ -59,8 +61,14 @@ from ..covariances import sample_prior
 from ..errors import ArgumentError, ArgumentTypeError
 from .base import Filter, ParticleState
 
-__all__ = ["EnsembleKalmanFilter", "EnsembleTransformKalmanFilter", "LocalEnsembleTransformKalmanFilter",
-           "gaspari_cohn", "periodic_distances", "mean_preserving_rotation"]
+__all__ = [
+    "EnsembleKalmanFilter",
+    "EnsembleTransformKalmanFilter",
+    "LocalEnsembleTransformKalmanFilter",
+    "gaspari_cohn",
+    "periodic_distances",
+    "mean_preserving_rotation",
+]
 
 _DIAGONAL_NOISE = ("scalar", "diagonal", "state_dependent_diagonal")
 #: which anomalies the multiplicative inflation scales
@@ -75,7 +83,7 @@ def gaspari_cohn(dist: torch.Tensor, radius: float) -> torch.Tensor:
     if math.isinf(radius):
         return torch.ones_like(dist)
     r = dist / (0.5 * radius)
-    near = ((-0.25 * r + 0.5) * r + 0.625) * r ** 3 - (5.0 / 3.0) * r ** 2 + 1.0
+    near = ((-0.25 * r + 0.5) * r + 0.625) * r**3 - (5.0 / 3.0) * r**2 + 1.0
     rs = r.clamp_min(1e-300)  # the far branch is used only for 1 < r < 2
     far = ((((r / 12.0 - 0.5) * r + 0.625) * r + 5.0 / 3.0) * r - 5.0) * r + 4.0 - 2.0 / (3.0 * rs)
     return torch.where(r <= 1, near, torch.where(r < 2, far, torch.zeros_like(r))).clamp_min(0.0)
@@ -112,8 +120,9 @@ def periodic_neighbours(d: int, positions: torch.Tensor, radius: float) -> Tuple
     return taper, torch.where(valid, ext_index[slot], torch.zeros((), dtype=torch.long))
 
 
-def local_observations(model, radius: float, distances: Optional[torch.Tensor] = None
-                       ) -> Tuple[torch.Tensor, torch.Tensor]:
+def local_observations(
+    model, radius: float, distances: Optional[torch.Tensor] = None
+) -> Tuple[torch.Tensor, torch.Tensor]:
     """The observations within ``radius`` of each state coordinate, ``(taper (d, K), index (d, K))``:
     the Gaspari-Cohn taper and the observation index of each (K: the most observations one coordinate
     reaches; unused slots have taper 0 and index 0), on the CPU.
@@ -132,13 +141,15 @@ def local_observations(model, radius: float, distances: Optional[torch.Tensor] =
         else:
             raise ArgumentError(
                 f"distances: the model ({type(model).__name__}, d = {d}, m = {m}) does not say which state "
-                "coordinate each observation reads (an `observed` tensor (m,)); pass distances (d, m)")
+                "coordinate each observation reads (an `observed` tensor (m,)); pass distances (d, m)"
+            )
         if radius <= d / 2:  # the ring's neighbours directly: no (d, m) matrix
             return periodic_neighbours(d, positions.cpu(), radius)
         distances = periodic_distances(d, positions.cpu())
     elif not isinstance(distances, torch.Tensor):
-        raise ArgumentTypeError(f"distances: expected a tensor (d, m) = ({d}, {m}) or None, "
-                                f"got {type(distances).__name__}")
+        raise ArgumentTypeError(
+            f"distances: expected a tensor (d, m) = ({d}, {m}) or None, got {type(distances).__name__}"
+        )
     if tuple(distances.shape) != (d, m):
         raise ArgumentError(f"distances: expected (d, m) = ({d}, {m}), got {tuple(distances.shape)}")
     dist = distances.detach().to("cpu", torch.float64)
@@ -153,10 +164,10 @@ def check_radius(radius) -> float:
     """A localisation radius: a number > 0 (``inf``: no localisation)."""
     ok = isinstance(radius, (int, float)) and not isinstance(radius, bool) and radius > 0 and not math.isnan(radius)
     if not ok:
-        raise ArgumentError(f"radius: expected a number > 0 (the localisation radius; inf: no localisation), "
-                            f"got {radius!r}")
+        raise ArgumentError(
+            f"radius: expected a number > 0 (the localisation radius; inf: no localisation), got {radius!r}"
+        )
     return float(radius)
-
 
 
 def mean_preserving_rotation(batch: int, n: int, *, dtype, device, generator=None) -> torch.Tensor:
@@ -215,29 +226,48 @@ class _EnsembleFilter(Filter):
     random_stream = "ensemble_kalman"  # one family: the filters start from the same ensemble
     estimates_evidence = False  # a Gaussian approximation from the ensemble (module docstring)
 
-    def __init__(self, model, *, n_particles: int = 20, inflation: float = 1.0, inflate: str = "forecast",
-                 rotate: bool = False, validate: bool = True, name: Optional[str] = None):
+    def __init__(
+        self,
+        model,
+        *,
+        n_particles: int = 20,
+        inflation: float = 1.0,
+        inflate: str = "forecast",
+        rotate: bool = False,
+        validate: bool = True,
+        name: Optional[str] = None,
+    ):
         super().__init__(model, validate=validate, name=name)
         #: ensemble members per trial N (>= 2: anomalies need two members)
-        self.n_particles = check_count("n_particles", n_particles, minimum=2,
-                                       hint=" (ensemble members; anomalies need at least two)")
+        self.n_particles = check_count(
+            "n_particles", n_particles, minimum=2, hint=" (ensemble members; anomalies need at least two)"
+        )
         #: multiplicative inflation of the forecast anomalies (>= 1; 1: none)
-        self.inflation = check_number("inflation", inflation, lambda v: v >= 1,
-                                      "a finite number >= 1 (multiplicative inflation of the forecast anomalies)")
+        self.inflation = check_number(
+            "inflation",
+            inflation,
+            lambda v: v >= 1,
+            "a finite number >= 1 (multiplicative inflation of the forecast anomalies)",
+        )
         if inflate not in INFLATE:
-            raise ArgumentError(f"inflate: expected one of {INFLATE} (which anomalies `inflation` multiplies), "
-                                f"got {inflate!r}")
+            raise ArgumentError(
+                f"inflate: expected one of {INFLATE} (which anomalies `inflation` multiplies), got {inflate!r}"
+            )
         #: ``"forecast"``: the forecast anomalies are inflated before the analysis; ``"analysis"``: the
         #: analysis anomalies after it (DAPPER's ``infl``, applied with its ``rot`` in its post-processing)
         self.inflate = inflate
         if not isinstance(rotate, bool):
             raise ArgumentTypeError(f"rotate: expected True or False, got {rotate!r}")
-        #: rotate the analysis anomalies by a random orthogonal matrix that keeps the mean (:func:`mean_preserving_rotation`)
+        #: rotate the analysis anomalies by a random orthogonal matrix that keeps the mean
+        # (:func:`mean_preserving_rotation`)
         self.rotate = rotate
 
     def _resolve_n(self, n_particles):
-        return self.n_particles if n_particles is None else check_count(
-            "n_particles", n_particles, minimum=2, hint=" (ensemble members)")
+        return (
+            self.n_particles
+            if n_particles is None
+            else check_count("n_particles", n_particles, minimum=2, hint=" (ensemble members)")
+        )
 
     def bytes_per_trial(self, n_particles=None):
         N, d, m = self._resolve_n(n_particles), self.model.state_dim, self.model.obs_dim
@@ -250,8 +280,11 @@ class _EnsembleFilter(Filter):
     def check_model(self) -> None:
         """The measurement noise R must be positive definite: the analysis whitens by it."""
         super().check_model()
-        self.require_definite("measurement", "ensemble Kalman filters whiten the measurements by R. Give the model "
-                                             "a positive definite measurement noise")
+        self.require_definite(
+            "measurement",
+            "ensemble Kalman filters whiten the measurements by R. Give the model "
+            "a positive definite measurement noise",
+        )
 
     # ---- contract ------------------------------------------------------------------------------
     def init(self, mean, cov, n_particles=None, generator=None) -> ParticleState:
@@ -261,8 +294,7 @@ class _EnsembleFilter(Filter):
         X = sample_prior(mean, cov, N, generator)  # (B, N, d)
         return self._state(X, torch.zeros_like(mean[:, 0]), 0)
 
-    def step(self, state: ParticleState, z: torch.Tensor, generator: Optional[torch.Generator] = None
-             ) -> ParticleState:
+    def step(self, state: ParticleState, z: torch.Tensor, generator: Optional[torch.Generator] = None) -> ParticleState:
         """Forecast every member, inflate the anomalies, analyse with ``z (B, m)`` (NaN: not observed)."""
         xbar, A = self.forecast(state, generator)
         w = self.whiten(xbar + A, xbar.squeeze(1), z)
@@ -289,8 +321,9 @@ class _EnsembleFilter(Filter):
         _, quad, logdet_M = _gain_solver(w.Y, w.delta)
         return self.log_evidence(w, quad, logdet_M)
 
-    def analysis(self, xbar: torch.Tensor, A: torch.Tensor, w: _Whitened, generator
-                 ) -> Tuple[torch.Tensor, torch.Tensor]:
+    def analysis(
+        self, xbar: torch.Tensor, A: torch.Tensor, w: _Whitened, generator
+    ) -> Tuple[torch.Tensor, torch.Tensor]:
         """Analysis ensemble ``(B, N, d)`` and log-evidence increment ``(B,)`` from the forecast mean
         ``xbar (B, 1, d)``, (inflated) anomalies ``A (B, N, d)`` and the whitened measurement ``w``."""
         raise NotImplementedError
@@ -300,9 +333,15 @@ class _EnsembleFilter(Filter):
     def _state(X: torch.Tensor, ll: torch.Tensor, step: int) -> ParticleState:
         B, N = X.shape[:2]
         lw = torch.full((B, N), -math.log(N), dtype=X.dtype, device=X.device)
-        return ParticleState(particles=X, log_weights=lw, estimate=X.mean(1), ess=torch.full_like(ll, float(N)),
-                             log_evidence_increment=ll, resampled=torch.zeros(B, dtype=torch.bool, device=X.device),
-                             step=step)
+        return ParticleState(
+            particles=X,
+            log_weights=lw,
+            estimate=X.mean(1),
+            ess=torch.full_like(ll, float(N)),
+            log_evidence_increment=ll,
+            resampled=torch.zeros(B, dtype=torch.bool, device=X.device),
+            step=step,
+        )
 
     def whiten(self, Xf: torch.Tensor, xbar: torch.Tensor, z: torch.Tensor) -> _Whitened:
         """Measure the forecast members ``Xf (B, N, d)`` and whiten anomalies and innovation by R
@@ -355,8 +394,11 @@ class _EnsembleFilter(Filter):
         return -0.5 * (w.delta.square().sum(-1) - quad + logdet_S + w.n_obs * _LOG_2PI)
 
     def extra_repr(self) -> str:
-        return (f"n_particles={self.n_particles}, inflation={self.inflation:g}"
-                + (f", inflate={self.inflate!r}" if self.inflate != "forecast" else "") + (", rotate=True" if self.rotate else ""))
+        return (
+            f"n_particles={self.n_particles}, inflation={self.inflation:g}"
+            + (f", inflate={self.inflate!r}" if self.inflate != "forecast" else "")
+            + (", rotate=True" if self.rotate else "")
+        )
 
 
 class EnsembleKalmanFilter(_EnsembleFilter):
@@ -402,7 +444,7 @@ def _gain_solver(Y: torch.Tensor, delta: torch.Tensor):
     Yt = Y.transpose(-1, -2)
     if N <= k:
         L = torch.linalg.cholesky(_shifted_gram(Y, c))  # (..., N, N); c I + PSD: positive definite
-        b = (Y @ delta.unsqueeze(-1))
+        b = Y @ delta.unsqueeze(-1)
         quad = (b * linalg.chol_solve(L, b)).sum((-2, -1))
         return (lambda A: Yt @ linalg.chol_solve(L, A)), quad, linalg.chol_logdet(L)
     L = torch.linalg.cholesky(_shifted_gram(Yt, c))  # (..., k, k)
@@ -516,22 +558,44 @@ class LocalEnsembleTransformKalmanFilter(_EnsembleFilter):
     Shapes: ensemble ``(B, N, d)``, observations ``z (B, m)`` (NaN: not observed).
     """
 
-    def __init__(self, model, *, n_particles: int = 20, inflation: float = 1.0, radius: float = 15.0,
-                 distances: Optional[torch.Tensor] = None, local_chunk: Optional[int] = None,
-                 inflate: str = "forecast", rotate: bool = False, validate: bool = True, name: Optional[str] = None):
-        super().__init__(model, n_particles=n_particles, inflation=inflation, inflate=inflate, rotate=rotate,
-                         validate=validate, name=name)
+    def __init__(
+        self,
+        model,
+        *,
+        n_particles: int = 20,
+        inflation: float = 1.0,
+        radius: float = 15.0,
+        distances: Optional[torch.Tensor] = None,
+        local_chunk: Optional[int] = None,
+        inflate: str = "forecast",
+        rotate: bool = False,
+        validate: bool = True,
+        name: Optional[str] = None,
+    ):
+        super().__init__(
+            model,
+            n_particles=n_particles,
+            inflation=inflation,
+            inflate=inflate,
+            rotate=rotate,
+            validate=validate,
+            name=name,
+        )
         #: the local analyses run in blocks of this many coordinates (``None``: all d at once); the
         #: experiment runner sets it from the memory budget when one trial exceeds it (:meth:`plan_memory`)
-        self.local_chunk = None if local_chunk is None else check_count(
-            "local_chunk", local_chunk, hint=" (coordinates per block of local analyses) or None")
+        self.local_chunk = (
+            None
+            if local_chunk is None
+            else check_count("local_chunk", local_chunk, hint=" (coordinates per block of local analyses) or None")
+        )
         self._local_chunk_given = self.local_chunk is not None  # the runner's plan leaves a given one alone
         self.radius = check_radius(radius)
         if model.structure.measurement_noise not in _DIAGONAL_NOISE:
             raise ArgumentTypeError(
                 f"{self.name}: model: the LETKF tapers each observation's precision, which needs a diagonal "
                 f"measurement noise (declared scalar, diagonal or state_dependent_diagonal); "
-                f"{type(model).__name__} declares {model.structure.measurement_noise!r}. Use the ETKF or the EnKF")
+                f"{type(model).__name__} declares {model.structure.measurement_noise!r}. Use the ETKF or the EnKF"
+            )
         self._set_neighbours(*local_observations(model, self.radius, distances))
 
     def _set_neighbours(self, taper: torch.Tensor, index: torch.Tensor) -> None:
@@ -574,10 +638,10 @@ class LocalEnsembleTransformKalmanFilter(_EnsembleFilter):
         c = min(d, self.local_chunk or d)
         parts = []
         for lo in range(0, d, c):  # blocks of coordinates (memory), not of trials or members
-            i, si = idx[lo:lo + c], s[lo:lo + c]
+            i, si = idx[lo : lo + c], s[lo : lo + c]
             Yl = w.Y[:, :, i].permute(0, 2, 1, 3) * si.unsqueeze(1)  # (B, N, c, K) -> (B, c, N, K), tapered
             dl = w.delta[:, i] * si  # (B, c, K)
-            Ad = A[:, :, lo:lo + c].transpose(1, 2).unsqueeze(-1)  # (B, c, N, 1): the coordinates' anomalies
+            Ad = A[:, :, lo : lo + c].transpose(1, 2).unsqueeze(-1)  # (B, c, N, 1): the coordinates' anomalies
             parts.append(_transform(Yl, dl, Ad)[0].squeeze(-1))  # (B, c, N)
         inc = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
         # the evidence: the global (unlocalised) Gaussian approximation, one factorisation

@@ -44,6 +44,7 @@ Choices the paper leaves open are knobs (defaults first):
 Gaussian-sum predictive, ``log sum_j alpha^j (1/N*) sum_i w^{ij}``: an approximation (the fit is not
 the model's predictive), so it is not scored against a reference (``estimates_evidence = False``).
 """
+
 from __future__ import annotations
 
 import math
@@ -162,19 +163,42 @@ class GaussianSumParticleFilter(ParticleFilter):
     random_stream = "gaussian_sum"
     estimates_evidence = False
 
-    def __init__(self, model, *, n_components: int = 1, particles_per_component: int = 500, flow=None,
-                 schedule: Optional[LambdaSchedule] = None, linearize_at: str = "auxiliary",
-                 redraw_eta0: bool = False, init: str = "prior", jitter: float = 1e-6, estimate: str = "mixture_mean",
-                 nonfinite: str = "recover", particle_chunk: Optional[int] = None,
-                 resampling_gradient: str = "stop_gradient", validate: bool = True, name: Optional[str] = None):
+    def __init__(
+        self,
+        model,
+        *,
+        n_components: int = 1,
+        particles_per_component: int = 500,
+        flow=None,
+        schedule: Optional[LambdaSchedule] = None,
+        linearize_at: str = "auxiliary",
+        redraw_eta0: bool = False,
+        init: str = "prior",
+        jitter: float = 1e-6,
+        estimate: str = "mixture_mean",
+        nonfinite: str = "recover",
+        particle_chunk: Optional[int] = None,
+        resampling_gradient: str = "stop_gradient",
+        validate: bool = True,
+        name: Optional[str] = None,
+    ):
         G = check_count("n_components", n_components)
         n = check_count("particles_per_component", particles_per_component)
         d = model.state_dim
         if n < d + 1:
-            raise ArgumentError(f"particles_per_component: expected at least d + 1 = {d + 1} to fit a {d} x {d} "
-                             f"covariance per component, got {n}")
-        super().__init__(model, n_particles=G * n, nonfinite=nonfinite, particle_chunk=particle_chunk,
-                         resampling_gradient=resampling_gradient, validate=validate, name=name)
+            raise ArgumentError(
+                f"particles_per_component: expected at least d + 1 = {d + 1} to fit a {d} x {d} "
+                f"covariance per component, got {n}"
+            )
+        super().__init__(
+            model,
+            n_particles=G * n,
+            nonfinite=nonfinite,
+            particle_chunk=particle_chunk,
+            resampling_gradient=resampling_gradient,
+            validate=validate,
+            name=name,
+        )
         self.linearize_at = check_choice("linearize_at", linearize_at, LINEARIZE_AT)
         self.estimate = check_choice("estimate", estimate, ESTIMATES)
         self.init_mode = check_choice("init", init, INITS)
@@ -186,16 +210,20 @@ class GaussianSumParticleFilter(ParticleFilter):
         if self.flow is not None:  # the flows linearise h and start from the transition mean
             require_gaussian(model, self.name)
         if self.flow is not None and self.flow.stochastic:
-            raise ArgumentError(f"flow: the Gaussian-sum filters weigh with the flow's log|det|, so the flow must be "
-                             f"deterministic (EDH/LEDH family), got {type(self.flow).__name__}")
+            raise ArgumentError(
+                f"flow: the Gaussian-sum filters weigh with the flow's log|det|, so the flow must be "
+                f"deterministic (EDH/LEDH family), got {type(self.flow).__name__}"
+            )
         self.n_components, self.particles_per_component = G, n
         self.schedule = resolve_schedule(schedule)
         self.redraw_eta0, self.jitter = redraw_eta0, float(jitter)
 
     def extra_repr(self) -> str:
-        return (f"n_components={self.n_components}, particles_per_component={self.particles_per_component}, "
-                f"linearize_at={self.linearize_at!r}, redraw_eta0={self.redraw_eta0}, init={self.init_mode!r}, "
-                f"estimate={self.estimate!r}")
+        return (
+            f"n_components={self.n_components}, particles_per_component={self.particles_per_component}, "
+            f"linearize_at={self.linearize_at!r}, redraw_eta0={self.redraw_eta0}, init={self.init_mode!r}, "
+            f"estimate={self.estimate!r}"
+        )
 
     def bytes_per_trial(self, n_particles=None):
         G, n = self.n_components, self.particles_per_component
@@ -208,14 +236,21 @@ class GaussianSumParticleFilter(ParticleFilter):
     def preferred_chunk_trials(self, n_particles=None):
         if self.flow is None:
             return super().preferred_chunk_trials(n_particles)
-        return max(1, min(ParticlePoints().preferred_chunk_trials(self.n_particles),
-                          flow_points_per_call(self.model) // self.n_particles))
+        return max(
+            1,
+            min(
+                ParticlePoints().preferred_chunk_trials(self.n_particles),
+                flow_points_per_call(self.model) // self.n_particles,
+            ),
+        )
 
     # ---- contract ------------------------------------------------------------------------------
     def init(self, mean, cov, n_particles=None, generator=None) -> MixtureState:
         if n_particles is not None and self._resolve_n(n_particles) != self.n_particles:
-            raise ArgumentError(f"n_particles: a Gaussian-sum filter's total is n_components x particles_per_component "
-                             f"= {self.n_particles}; set those instead (got n_particles={n_particles})")
+            raise ArgumentError(
+                f"n_particles: a Gaussian-sum filter's total is n_components x particles_per_component "
+                f"= {self.n_particles}; set those instead (got n_particles={n_particles})"
+            )
         B, d = mean.shape
         G = self.n_components
         if self.init_mode == "spread":
@@ -225,9 +260,16 @@ class GaussianSumParticleFilter(ParticleFilter):
         covs = cov.unsqueeze(1).expand(B, G, d, d)
         log_alpha = torch.full((B, G), -math.log(G), dtype=mean.dtype, device=mean.device)
         zero = torch.zeros(B, dtype=mean.dtype, device=mean.device)
-        return MixtureState(log_alpha, means, covs, (log_alpha.exp().unsqueeze(-1) * means).sum(1),
-                            torch.full_like(zero, float(self.n_particles)), torch.full_like(zero, float(G)),
-                            zero, torch.zeros(B, dtype=torch.long, device=mean.device))
+        return MixtureState(
+            log_alpha,
+            means,
+            covs,
+            (log_alpha.exp().unsqueeze(-1) * means).sum(1),
+            torch.full_like(zero, float(self.n_particles)),
+            torch.full_like(zero, float(G)),
+            zero,
+            torch.zeros(B, dtype=torch.long, device=mean.device),
+        )
 
     def step(self, state: MixtureState, z: torch.Tensor, generator=None) -> MixtureState:
         draws = self.draw(state, generator)
@@ -240,8 +282,9 @@ class GaussianSumParticleFilter(ParticleFilter):
         B, G, d = state.means.shape
         n = self.particles_per_component
         L_post = linalg.safe_cholesky(state.covs)
-        xi = linalg.standard_normal((B, G, n, d), dtype=state.means.dtype, device=state.means.device,
-                                    generator=generator)
+        xi = linalg.standard_normal(
+            (B, G, n, d), dtype=state.means.dtype, device=state.means.device, generator=generator
+        )
         x_prev = state.means.unsqueeze(2) + xi @ L_post.transpose(-1, -2)
         eta0 = self.model.sample_transition(x_prev.reshape(B, G * n, d), generator).reshape(B, G, n, d)
         mu_bar = eta0.mean(2)
@@ -361,6 +404,15 @@ GSPF = GaussianSumParticleFilter
 PFGPF = ParticleFlowGaussianParticleFilter
 PFGSPF = ParticleFlowGaussianSumParticleFilter
 
-__all__ = ["MixtureState", "mixture_update", "GaussianSumParticleFilter", "GaussianParticleFilter",
-           "ParticleFlowGaussianParticleFilter", "ParticleFlowGaussianSumParticleFilter", "GPF", "GSPF", "PFGPF",
-           "PFGSPF"]
+__all__ = [
+    "MixtureState",
+    "mixture_update",
+    "GaussianSumParticleFilter",
+    "GaussianParticleFilter",
+    "ParticleFlowGaussianParticleFilter",
+    "ParticleFlowGaussianSumParticleFilter",
+    "GPF",
+    "GSPF",
+    "PFGPF",
+    "PFGSPF",
+]

@@ -1,6 +1,7 @@
 """Gaussian particle flow importance sampling (GPFIS; Bunch & Godsill 2016): the
 particle filter with the GPFIS proposal (:class:`~torchflow.proposals.GPFISProposal`; the transport
 is :func:`~torchflow.flows.gpfis.gpfis_flow`)."""
+
 from __future__ import annotations
 
 from typing import Optional
@@ -36,8 +37,16 @@ class GaussianParticleFlowImportanceSampler(ParticleFilter):
 
     random_stream = "gpfis"
 
-    def __init__(self, model, *, schedule: Optional[LambdaSchedule] = None, root: str = "cholesky",
-                 jacobian: str = "analytic", gamma: float = 0.0, **kwargs):
+    def __init__(
+        self,
+        model,
+        *,
+        schedule: Optional[LambdaSchedule] = None,
+        root: str = "cholesky",
+        jacobian: str = "analytic",
+        gamma: float = 0.0,
+        **kwargs,
+    ):
         if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or gamma != 0:
             raise ArgumentError(f"gamma: only the deterministic GPFIS (gamma = 0) is implemented, got {gamma!r}")
         super().__init__(model, GPFISProposal(model, schedule, root, jacobian), **kwargs)

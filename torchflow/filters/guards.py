@@ -18,6 +18,7 @@ Everything a filter returns is finite, or the call says where it was not:
   parameter of the model whose gradient is non-finite although every step's was finite is named
   by a hook on the parameter. One host read per step in the backward pass (none in the forward).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -34,8 +35,7 @@ from ..errors import NonFiniteError
 QUANTITIES = ("estimate", "particles or weights", "log-evidence increment")
 
 
-def first_steps(est: torch.Tensor, invalid: Optional[torch.Tensor], inc: torch.Tensor, recover: bool
-                ) -> torch.Tensor:
+def first_steps(est: torch.Tensor, invalid: Optional[torch.Tensor], inc: torch.Tensor, recover: bool) -> torch.Tensor:
     """Per trial, on the device: ``(B, 6)`` long tensor ``[first bad step, estimate bad then,
     invalid then, increment bad then, first dead step, dead steps]`` (steps 1-based, 0 where none).
 
@@ -59,8 +59,15 @@ def first_steps(est: torch.Tensor, invalid: Optional[torch.Tensor], inc: torch.T
     at = (first - 1).clamp(max=T - 1).unsqueeze(1)
     flags = [q.gather(1, at).squeeze(1) & (first <= T) for q in (est_bad, inv, inc_bad)]
     first_dead = torch.where(dead, steps, T + 1).amin(1)
-    return torch.stack([first.masked_fill(first > T, 0), *[f.long() for f in flags],
-                        first_dead.masked_fill(first_dead > T, 0), dead.sum(1)], 1)
+    return torch.stack(
+        [
+            first.masked_fill(first > T, 0),
+            *[f.long() for f in flags],
+            first_dead.masked_fill(first_dead > T, 0),
+            dead.sum(1),
+        ],
+        1,
+    )
 
 
 def raise_first(name: str, table: List[List[int]]) -> None:
@@ -74,8 +81,10 @@ def raise_first(name: str, table: List[List[int]]) -> None:
     what = [q for k, q in enumerate(QUANTITIES) if any(table[i][1 + k] for i in trials)]
     err = NonFiniteError(name, step, trials, what=" and ".join(what) or "estimate")
     if what == [QUANTITIES[2]]:  # finite estimates: the density of the observation itself under/overflowed
-        err.args = (err.args[0] + " (an observation so far from its prediction, or a predicted spread so small, "
-                    "that its density under- or overflows: look at that step's observations and the noise scales)",)
+        err.args = (
+            err.args[0] + " (an observation so far from its prediction, or a predicted spread so small, "
+            "that its density under- or overflows: look at that step's observations and the noise scales)",
+        )
     raise err
 
 
@@ -86,9 +95,16 @@ def raise_never_measured(name: str, table: List[List[int]], steps: int) -> None:
     measurement function returning NaN, a noise scale that underflows)."""
     never = [i for i, r in enumerate(table) if r[5] >= steps]
     if never:
-        raise NonFiniteError(name, 1, never, what=(
-            f"log-evidence (-inf: no particle's weight carried the measurement at any of the {steps} step(s), every "
-            "weight zero or invalid; look at the measurement model's noise scale and outputs)"))
+        raise NonFiniteError(
+            name,
+            1,
+            never,
+            what=(
+                f"log-evidence (-inf: no particle's weight carried the measurement at any of the {steps} step(s), "
+                "every "
+                "weight zero or invalid; look at the measurement model's noise scale and outputs)"
+            ),
+        )
 
 
 def dead_step_warning(name: str, table: List[List[int]]) -> Optional[str]:
@@ -101,10 +117,12 @@ def dead_step_warning(name: str, table: List[List[int]]) -> Optional[str]:
     more = "" if len(trials) <= 10 else f" (and {len(trials) - 10} more)"
     steps = sum(n for _, _, n in dead)
     first = min(s for _, s, _ in dead)
-    return (f"{name}: no particle's weight carried the measurement at {steps} step(s) (first at time step {first}) "
-            f"in trial(s) {shown}{more}: every weight was zero or invalid, so those steps kept the previous "
-            "particles (nonfinite='recover') and those trials' log-evidence is -inf. Look at the measurement "
-            "model (a tiny noise scale, NaN outputs) or use more particles; nonfinite='raise' makes this an error")
+    return (
+        f"{name}: no particle's weight carried the measurement at {steps} step(s) (first at time step {first}) "
+        f"in trial(s) {shown}{more}: every weight was zero or invalid, so those steps kept the previous "
+        "particles (nonfinite='recover') and those trials' log-evidence is -inf. Look at the measurement "
+        "model (a tiny noise scale, NaN outputs) or use more particles; nonfinite='raise' makes this an error"
+    )
 
 
 def warn_dead_steps(name: str, table: List[List[int]]) -> None:
@@ -141,12 +159,14 @@ def collapse_warning(name: str, first: List[int], count: List[int], steps: int) 
         return None
     shown = ", ".join(f"trial {b} from step {first[b]} ({count[b]} of {steps} steps)" for b in trials[:5])
     more = f" and {len(trials) - 5} more trials" if len(trials) > 5 else ""
-    return (f"{name}: the particle cloud collapsed to fewer than 2 distinct particles (a spread within round-off) in "
-            f"{shown}{more}. The ESS does not show it: copies of one point have equal weights. Its estimates then "
-            "follow one point and its evidence is that point's. A model without noise needs spread put back: "
-            "regularisation after resampling (regularization=..., or relative to the spread: "
-            "regularization_relative=...), or a filter for deterministic dynamics (filter=lag1_flow, kpff, lpf, the "
-            "ensemble Kalman filters)")
+    return (
+        f"{name}: the particle cloud collapsed to fewer than 2 distinct particles (a spread within round-off) in "
+        f"{shown}{more}. The ESS does not show it: copies of one point have equal weights. Its estimates then "
+        "follow one point and its evidence is that point's. A model without noise needs spread put back: "
+        "regularisation after resampling (regularization=..., or relative to the spread: "
+        "regularization_relative=...), or a filter for deterministic dynamics (filter=lag1_flow, kpff, lpf, the "
+        "ensemble Kalman filters)"
+    )
 
 
 def _check_step_gradient(name: str, step: int, grad: torch.Tensor) -> None:
@@ -156,8 +176,9 @@ def _check_step_gradient(name: str, step: int, grad: torch.Tensor) -> None:
         return
     bad = ~torch.isfinite(grad.reshape(grad.shape[0], -1)).all(1)
     if bool(bad.any()):
-        raise NonFiniteError(name, step, torch.nonzero(bad).flatten().tolist(),
-                             what="gradient (backward pass) of the step's computation")
+        raise NonFiniteError(
+            name, step, torch.nonzero(bad).flatten().tolist(), what="gradient (backward pass) of the step's computation"
+        )
 
 
 #: state fields a step returns but the next step does not read (their gradients come from the trace)
@@ -170,8 +191,9 @@ def guard_state(state, name: str, step: int):
     grad, for ``step`` (1-based: the step this state is the input of); returns ``state``."""
     keys = _INPUT_FIELDS.get(type(state))
     if keys is None:
-        keys = _INPUT_FIELDS[type(state)] = tuple(f.name for f in dataclasses.fields(state)
-                                                  if f.name not in _OUTPUTS_ONLY)
+        keys = _INPUT_FIELDS[type(state)] = tuple(
+            f.name for f in dataclasses.fields(state) if f.name not in _OUTPUTS_ONLY
+        )
     for k in keys:
         t = getattr(state, k)
         if isinstance(t, torch.Tensor) and t.requires_grad and t.dim() >= 1:
@@ -201,8 +223,13 @@ def parameter_hooks(model: torch.nn.Module, name: str) -> list:
 
         def hook(g, label=label):
             if g is not None and not bool(torch.isfinite(g).all()):
-                raise NonFiniteError(name, 0, [], what=f"gradient of the model parameter {label!r} (every step's "
-                                     "gradient was finite: the parameter's own terms overflowed)")
+                raise NonFiniteError(
+                    name,
+                    0,
+                    [],
+                    what=f"gradient of the model parameter {label!r} (every step's "
+                    "gradient was finite: the parameter's own terms overflowed)",
+                )
             return g
 
         handles.append(p.register_hook(hook))
@@ -214,5 +241,14 @@ def table_to_host(t: torch.Tensor) -> List[List[int]]:
     return t.cpu().tolist()
 
 
-__all__: Tuple[str, ...] = ("first_steps", "raise_first", "raise_never_measured", "dead_step_warning", "warn_dead_steps", "guard_state",
-                            "parameter_hooks", "replace_parameter_hooks", "QUANTITIES")
+__all__: Tuple[str, ...] = (
+    "first_steps",
+    "raise_first",
+    "raise_never_measured",
+    "dead_step_warning",
+    "warn_dead_steps",
+    "guard_state",
+    "parameter_hooks",
+    "replace_parameter_hooks",
+    "QUANTITIES",
+)

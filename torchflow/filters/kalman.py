@@ -1,4 +1,5 @@
 """Kalman-type filters: Kalman (exact, linear-Gaussian), extended and unscented Kalman filters."""
+
 from __future__ import annotations
 
 from typing import Optional, Tuple
@@ -26,8 +27,12 @@ class _GaussianFilter(Filter):
     def __init__(self, model, *, inflation: float = 1.0, validate: bool = True, name: Optional[str] = None):
         super().__init__(model, validate=validate, name=name)
         #: the predicted covariance is multiplied by ``inflation ** 2`` (1: none)
-        self.inflation = check_number("inflation", inflation, lambda v: v >= 1,
-                                      "a finite number >= 1 (multiplicative inflation of the predicted covariance)")
+        self.inflation = check_number(
+            "inflation",
+            inflation,
+            lambda v: v >= 1,
+            "a finite number >= 1 (multiplicative inflation of the predicted covariance)",
+        )
 
     def check_model(self) -> None:
         """With more measurements than states (``m > d``) the predicted measurement's covariance
@@ -36,9 +41,11 @@ class _GaussianFilter(Filter):
         super().check_model()
         m, d = self.model.obs_dim, self.model.state_dim
         if m > d:
-            self.require_definite("measurement",
+            self.require_definite(
+                "measurement",
                 f"with m = {m} measurements of d = {d} states, H P H^T + R is then singular and the measurement "
-                "density (the log-evidence) does not exist. Give the model a positive definite measurement noise")
+                "density (the log-evidence) does not exist. Give the model a positive definite measurement noise",
+            )
 
     def init(self, mean, cov, n_particles=None, generator=None):
         return GaussianState(mean, cov, torch.zeros_like(mean[:, 0]), 0)
@@ -46,7 +53,7 @@ class _GaussianFilter(Filter):
     def step(self, state, z, generator=None):
         m_pred, P_pred = self.predict(state.mean, state.cov)
         if self.inflation != 1.0:
-            P_pred = P_pred * self.inflation ** 2
+            P_pred = P_pred * self.inflation**2
         mean, cov, ll = self.update(m_pred, P_pred, z)
         return GaussianState(mean, cov, ll, state.step + 1)
 
@@ -86,10 +93,12 @@ class KalmanFilter(ExtendedKalmanFilter):
         super().__init__(model, validate=validate, name=name)
         structure = shared_structure(model)  # per-trial F or H: linear for each trial (steps go per trial)
         if not (structure.linear_dynamics and structure.linear_measurement):
-            raise ArgumentTypeError(f"model: KalmanFilter needs a linear-Gaussian model (a LinearGaussian, or any model "
-                            f"declaring linear_dynamics and linear_measurement), got {type(model).__name__} "
-                            f"(linear_dynamics={structure.linear_dynamics}, linear_measurement={structure.linear_measurement}; "
-                            "use ExtendedKalmanFilter or UnscentedKalmanFilter for nonlinear models)")
+            raise ArgumentTypeError(
+                f"model: KalmanFilter needs a linear-Gaussian model (a LinearGaussian, or any model "
+                f"declaring linear_dynamics and linear_measurement), got {type(model).__name__} "
+                f"(linear_dynamics={structure.linear_dynamics}, linear_measurement={structure.linear_measurement}; "
+                "use ExtendedKalmanFilter or UnscentedKalmanFilter for nonlinear models)"
+            )
 
     def init(self, mean, cov, n_particles=None, generator=None):
         # The Riccati recursion does not depend on the data: when every trial starts from the same
@@ -147,12 +156,22 @@ class UnscentedKalmanFilter(_GaussianFilter):
             mean, outside the field, and the UKF diverges (OMAT ~23 m vs ~5.7 m with 3 - d).
     """
 
-    def __init__(self, model, *, alpha: float = 1.0, beta: float = 2.0, kappa: Optional[float] = None,
-                 inflation: float = 1.0, validate: bool = True, name: Optional[str] = None):
+    def __init__(
+        self,
+        model,
+        *,
+        alpha: float = 1.0,
+        beta: float = 2.0,
+        kappa: Optional[float] = None,
+        inflation: float = 1.0,
+        validate: bool = True,
+        name: Optional[str] = None,
+    ):
         super().__init__(model, inflation=inflation, validate=validate, name=name)
         # on the model's device and dtype (a filter built around a CUDA model must not keep CPU weights)
-        self.unscented = UnscentedTransform(model.state_dim, alpha=alpha, beta=beta, kappa=kappa,
-                                            dtype=model.dtype, device=model.device)
+        self.unscented = UnscentedTransform(
+            model.state_dim, alpha=alpha, beta=beta, kappa=kappa, dtype=model.dtype, device=model.device
+        )
 
     alpha = property(lambda self: self.unscented.alpha)
     beta = property(lambda self: self.unscented.beta)

@@ -27,6 +27,7 @@ deterministic flows (each parent's affine map ``eta -> M eta + c`` pushes ``N(f(
 on the previous particles and ``z``, not on the particle's own noise) and the stochastic flows (the
 exact Gaussian law tracked through the flow).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -42,7 +43,7 @@ from .. import linalg
 WEIGHTS = ("standard", "marginal")
 
 #: default memory of one block of pair evaluations (bytes); the blocks split the rows i
-PAIR_BLOCK_BYTES = 64 * 2 ** 20
+PAIR_BLOCK_BYTES = 64 * 2**20
 
 
 def pair_rows(B: int, N: int, J: int, d: int, itemsize: int, chunk: Optional[int] = None) -> int:
@@ -102,13 +103,17 @@ class SharedGaussianPairs(Pairs):
 def mixture_logsumexp(pairs: Pairs, log_weights: Sequence[torch.Tensor], N: int, rows: int) -> List[torch.Tensor]:
     """``log sum_j exp(log_w[b, j] + log k(x_i, j))`` for each weight vector ``log_w (B, J)``, i < N,
     in blocks of ``rows`` rows. Returns ``(B, N)`` per weight vector."""
+
     def block(sl: slice, *lws):
         return tuple(pairs.logsumexp(sl, lw) for lw in lws)
 
     # with autograd on, each block is recomputed in the backward pass rather than kept: the pair
     # matrices are O(B N^2) per step, the saved inputs O(B N d)
-    run = ((lambda sl: torch.utils.checkpoint.checkpoint(block, sl, *log_weights, use_reentrant=False))
-           if torch.is_grad_enabled() else (lambda sl: block(sl, *log_weights)))
+    run = (
+        (lambda sl: torch.utils.checkpoint.checkpoint(block, sl, *log_weights, use_reentrant=False))
+        if torch.is_grad_enabled()
+        else (lambda sl: block(sl, *log_weights))
+    )
     outs = [run(slice(s, min(N, s + rows))) for s in range(0, N, rows)]
     return [torch.cat(parts, 1) for parts in zip(*outs)]
 
@@ -174,11 +179,20 @@ def transition_pairs(model, x: torch.Tensor, x_prev: torch.Tensor) -> Pairs:
         nxt = xi.unsqueeze(2).expand(B, n, J, d).reshape(B, n * J, d)
         prev = x_prev.unsqueeze(1).expand(B, n, J, d).reshape(B, n * J, d)
         return model.transition_log_prob(nxt, prev).reshape(B, n, J)
+
     return FunctionPairs(pair)
 
 
-def marginal_log_increment(model, prop, x_prev: torch.Tensor, log_weights: torch.Tensor, log_lik: torch.Tensor,
-                           *, hold_proposal: bool, chunk: Optional[int] = None) -> torch.Tensor:
+def marginal_log_increment(
+    model,
+    prop,
+    x_prev: torch.Tensor,
+    log_weights: torch.Tensor,
+    log_lik: torch.Tensor,
+    *,
+    hold_proposal: bool,
+    chunk: Optional[int] = None,
+) -> torch.Tensor:
     """``(B, N)`` marginal log-weights (module docstring) before normalisation, to be added to the
     uniform ``-log N`` of the slots.
 
@@ -200,8 +214,8 @@ def marginal_log_increment(model, prop, x_prev: torch.Tensor, log_weights: torch
     if prop.log_q is None:  # q is the transition: one pair matrix, two mixtures
         log_rho, log_qbar = mixture_logsumexp(trans, (log_weights, uniform), N, rows)
         return log_lik + log_rho - (log_qbar.detach() if hold_proposal else log_qbar)
-    log_rho, = mixture_logsumexp(trans, (log_weights,), N, rows)
+    (log_rho,) = mixture_logsumexp(trans, (log_weights,), N, rows)
     mean, scale_tril = prop.ancestor_law
     with torch.no_grad() if hold_proposal else contextlib.nullcontext():
-        log_qbar, = mixture_logsumexp(gaussian_pairs(x, mean, scale_tril), (uniform,), N, rows)
+        (log_qbar,) = mixture_logsumexp(gaussian_pairs(x, mean, scale_tril), (uniform,), N, rows)
     return log_lik + log_rho - log_qbar

@@ -3,6 +3,7 @@
 through the same flow proposal (:mod:`torchflow.proposals.flow`); the weighting and resampling are
 :class:`~torchflow.filters.ParticleFilter`'s.
 """
+
 from __future__ import annotations
 
 from typing import Optional
@@ -68,12 +69,31 @@ class ParticleFlowParticleFilter(_FlowSettings, ParticleFilter):
 
     random_stream = "pfpf"
 
-    def __init__(self, model, *, flow=None, schedule: Optional[LambdaSchedule] = None, covariance: str = "ekf",
-                 points: Optional[str] = None, n_clusters: int = 100, alpha: float = 0.25, sweeps: int = 10,
-                 jacobian_in_weight: bool = True, **kwargs):
-        proposal = flow_proposal(model, flow, schedule=schedule, covariance=covariance, points=points,
-                                 n_clusters=n_clusters, alpha=alpha, sweeps=sweeps,
-                                 jacobian_in_weight=jacobian_in_weight)
+    def __init__(
+        self,
+        model,
+        *,
+        flow=None,
+        schedule: Optional[LambdaSchedule] = None,
+        covariance: str = "ekf",
+        points: Optional[str] = None,
+        n_clusters: int = 100,
+        alpha: float = 0.25,
+        sweeps: int = 10,
+        jacobian_in_weight: bool = True,
+        **kwargs,
+    ):
+        proposal = flow_proposal(
+            model,
+            flow,
+            schedule=schedule,
+            covariance=covariance,
+            points=points,
+            n_clusters=n_clusters,
+            alpha=alpha,
+            sweeps=sweeps,
+            jacobian_in_weight=jacobian_in_weight,
+        )
         super().__init__(model, proposal, **kwargs)
 
     def flow_chunk(self, n_particles: Optional[int] = None) -> Optional[int]:
@@ -137,13 +157,23 @@ class ParticleFlowFilter(_FlowSettings, Filter):
     uses_randomness = True
     random_stream = "flow_filter"
 
-    def __init__(self, model, *, flow=None, schedule: Optional[LambdaSchedule] = None,
-                 n_particles: int = 500, covariance: str = "ekf", points: Optional[str] = None,
-                 validate: bool = True, name: Optional[str] = None):
+    def __init__(
+        self,
+        model,
+        *,
+        flow=None,
+        schedule: Optional[LambdaSchedule] = None,
+        n_particles: int = 500,
+        covariance: str = "ekf",
+        points: Optional[str] = None,
+        validate: bool = True,
+        name: Optional[str] = None,
+    ):
         super().__init__(model, validate=validate, name=name)
         self.n_particles = check_count("n_particles", n_particles)
-        self.proposal = flow_proposal(model, flow, schedule=schedule, covariance=covariance, points=points,
-                                      weighted=False)
+        self.proposal = flow_proposal(
+            model, flow, schedule=schedule, covariance=covariance, points=points, weighted=False
+        )
 
     def bytes_per_trial(self, n_particles=None):
         return self.proposal.flow_bytes(n_particles or self.n_particles, cov_mats=8)
@@ -159,5 +189,4 @@ class ParticleFlowFilter(_FlowSettings, Filter):
         N = state.n_particles or self.n_particles
         x_prev = linalg.sample_mvn(state.mean, linalg.safe_cholesky(state.cov), (N,), generator)  # re-draw (B, N, d)
         prop = self.proposal.propose(x_prev, None, state.mean, z, TrialCovariance(state.cov), generator)
-        return GaussianState(prop.particles.mean(1), prop.cov.matrix, prop.log_evidence, state.step + 1,
-                             n_particles=N)
+        return GaussianState(prop.particles.mean(1), prop.cov.matrix, prop.log_evidence, state.step + 1, n_particles=N)

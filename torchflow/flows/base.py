@@ -14,6 +14,7 @@ exactly: the coefficients depend only on the deterministic auxiliary point, so `
 Gaussian with ``mu_j = (I + eps_j A_j) mu_{j-1} + eps_j b_j`` and
 ``S_j = (I + eps_j A_j) S_{j-1} (I + eps_j A_j)^T + eps_j Q_j``.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -72,8 +73,9 @@ class FlowCoefficients:
         one, or formed once from ``form_A``."""
         if self.A is None:
             if self.form_A is None:
-                raise ArgumentTypeError("these flow coefficients give A only as an operator (apply_A) and cannot form it: "
-                                "give A or form_A")
+                raise ArgumentTypeError(
+                    "these flow coefficients give A only as an operator (apply_A) and cannot form it: give A or form_A"
+                )
             self.A = self.form_A()
         return self.A
 
@@ -109,16 +111,25 @@ class FlowCoefficients:
         point's cluster (``index (B, N)``); shared tensors (no point dimension) stay as they are.
         ``log_det`` is not gathered (it belongs to the points)."""
         if self.apply_A is not None and self.form_A is None:
-            raise NotImplementedError("coefficients given as a closure (apply_A without form_A) cannot be gathered "
-                                      "to clustered particles: give tensors (A, noise_factor or noise_product)")
+            raise NotImplementedError(
+                "coefficients given as a closure (apply_A without form_A) cannot be gathered "
+                "to clustered particles: give tensors (A, noise_factor or noise_product)"
+            )
         A = None if self.A is None and self.apply_A is None else self.matrix()
 
         def g(t):
             return None if t is None or t.dim() < 3 else _gather_points(t, index)
 
-        pair = lambda p: None if p is None else (g(p[0]), p[1] if p[1].dim() < 3 else g(p[1]))  # noqa: E731
-        return FlowCoefficients(g(A), g(self.b), None, noise_factor=g(self.noise_factor), support=self.support,
-                                noise_cov_pair=pair(self.noise_cov_pair), noise_product=pair(self.noise_product))
+        pair = lambda p: None if p is None else (g(p[0]), p[1] if p[1].dim() < 3 else g(p[1]))
+        return FlowCoefficients(
+            g(A),
+            g(self.b),
+            None,
+            noise_factor=g(self.noise_factor),
+            support=self.support,
+            noise_cov_pair=pair(self.noise_cov_pair),
+            noise_product=pair(self.noise_product),
+        )
 
     def cols(self, x: torch.Tensor) -> torch.Tensor:
         """The coordinates of ``x (..., d)`` that A acts on (all, or ``support``)."""
@@ -188,8 +199,9 @@ class FlowPrior:
         Lp = linalg.safe_cholesky(P.index_select(-1, perm).index_select(-2, perm))
         root = Lp.index_select(-2, inv)
         cols, cols_s = root[..., :k].contiguous(), Lp[..., :k, :k].contiguous()  # views are slow in bmm
-        return replace(self, support=perm[:k], root=root, cols=cols, cols_support=cols_s,
-                       cov_cols=cols @ cols_s.transpose(-1, -2))
+        return replace(
+            self, support=perm[:k], root=root, cols=cols, cols_support=cols_s, cov_cols=cols @ cols_s.transpose(-1, -2)
+        )
 
 
 @dataclass
@@ -257,8 +269,9 @@ class ParticleFlow(nn.Module):
         """
         raise NotImplementedError
 
-    def coefficients(self, model, z: torch.Tensor, aux: torch.Tensor, prior: FlowPrior,
-                     lam: torch.Tensor, eps: torch.Tensor) -> FlowCoefficients:
+    def coefficients(
+        self, model, z: torch.Tensor, aux: torch.Tensor, prior: FlowPrior, lam: torch.Tensor, eps: torch.Tensor
+    ) -> FlowCoefficients:
         """Convenience: :meth:`coefficients_at` with the model's own measurement term linearised at
         ``aux`` (``(B, d)`` or ``(B, L, d)``); ``z (B, m)``."""
         meas = GaussianMeasurement.from_model(model, z)

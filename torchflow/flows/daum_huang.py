@@ -17,6 +17,7 @@ step's Jacobian determinant follows from the same factors,
 both symmetric positive definite when ``lambda >= eps/2`` (true for any schedule evaluated at the
 pseudo-time after the step), so the map is always invertible and ``log|det|`` is exact and finite.
 """
+
 from __future__ import annotations
 
 import torch
@@ -26,8 +27,9 @@ from .base import FlowCoefficients, FlowPrior, ParticleFlow
 from .measurement import Linearisation
 
 
-def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, support=None,
-                            P_cols=None, operator=None, W_diag=None) -> FlowCoefficients:
+def daum_huang_coefficients(
+    W, y, L, eta_bar0, lam, eps, *, L_support=None, support=None, P_cols=None, operator=None, W_diag=None
+) -> FlowCoefficients:
     """EDH/LEDH drift from the whitened linearisation.
 
     Args:
@@ -59,7 +61,7 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
     eye = torch.eye(k, dtype=L.dtype, device=L.device)
     diag = operator and W_diag is not None
     if operator:
-        W_times = _row_scaling(W_diag) if diag else (lambda M: W @ M)  # noqa: E731  W M for stacked M
+        W_times = _row_scaling(W_diag) if diag else (lambda M: W @ M)
         WL = W_times(Ls)  # (..., m, k)
         S = linalg.symmetrize(WL.transpose(-1, -2) @ WL)
         Wy = (W_diag * y).contiguous() if diag else _whitened_rhs(W, y)
@@ -72,6 +74,7 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
     # P H^T R^{-1} (z - e) = L L_s^T W^T y
     Pg = linalg.matvec(L, linalg.matvec(Ls.transpose(-1, -2), Wy)) if P_cols is None else linalg.matvec(P_cols, Wy)
     if operator:
+
         def apply_A(V):  # -1/2 L (I + lam S)^{-1} (W L_s)^T W V_s for stacked vectors V (..., d, r)
             Vs = V if support is None else V[..., support, :]
             return -0.5 * (L @ linalg.chol_solve(K, WL.transpose(-1, -2) @ W_times(Vs)))
@@ -90,6 +93,7 @@ def daum_huang_coefficients(W, y, L, eta_bar0, lam, eps, *, L_support=None, supp
 
         def A_times(v):
             return linalg.matvec(A, co.cols(v))
+
     # b = (I + 2 lam A) u,  u = (I + lam A) Pg + A eta_bar0 = Pg + A (lam Pg + eta_bar0): two
     # single-vector products (a batched d x k @ k x 2 product costs more than two d x k @ k x 1)
     u = Pg + A_times(lam * Pg + eta_bar0)
@@ -141,18 +145,41 @@ class EDHFlow(ParticleFlow):
         W, y = lin.W, lin.y
         dt = prior.cols.dtype
         if self.promote_low_precision and dt in (torch.float32, torch.float16, torch.bfloat16):
-            up = (lambda t: t.to(torch.float64))  # noqa: E731
+            up = lambda t: t.to(torch.float64)
             # P_cols is not reused: it was rounded independently of L in low precision
-            co = daum_huang_coefficients(up(W), up(y), up(prior.cols), up(prior.mean), up(lam), up(eps),
-                                         L_support=up(prior.cols_support), support=prior.support,
-                                         W_diag=None if lin.diag is None else up(lin.diag))
+            co = daum_huang_coefficients(
+                up(W),
+                up(y),
+                up(prior.cols),
+                up(prior.mean),
+                up(lam),
+                up(eps),
+                L_support=up(prior.cols_support),
+                support=prior.support,
+                W_diag=None if lin.diag is None else up(lin.diag),
+            )
             if co.A is None:  # operator form: apply (and form) in float64, hand back the run's dtype
-                return FlowCoefficients(None, co.b.to(dt), co.log_det.to(dt), support=co.support,
-                                        apply_A=lambda V: co.apply_A(V.to(torch.float64)).to(dt),
-                                        form_A=lambda: co.matrix().to(dt))
+                return FlowCoefficients(
+                    None,
+                    co.b.to(dt),
+                    co.log_det.to(dt),
+                    support=co.support,
+                    apply_A=lambda V: co.apply_A(V.to(torch.float64)).to(dt),
+                    form_A=lambda: co.matrix().to(dt),
+                )
             return FlowCoefficients(co.A.to(dt), co.b.to(dt), co.log_det.to(dt), support=co.support)
-        return daum_huang_coefficients(W, y, prior.cols, prior.mean, lam, eps, L_support=prior.cols_support,
-                                       support=prior.support, P_cols=prior.cov_cols, W_diag=lin.diag)
+        return daum_huang_coefficients(
+            W,
+            y,
+            prior.cols,
+            prior.mean,
+            lam,
+            eps,
+            L_support=prior.cols_support,
+            support=prior.support,
+            P_cols=prior.cov_cols,
+            W_diag=lin.diag,
+        )
 
 
 class LEDHFlow(EDHFlow):

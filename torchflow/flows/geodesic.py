@@ -38,6 +38,7 @@ Cholesky factor of Q does not exist; this factor needs none. (Any ``G`` with ``G
 the same Euler-Maruyama law; the symmetric PSD root ``Q^{1/2}`` is available with
 ``noise_root="symmetric"`` and costs an eigendecomposition per point.)
 """
+
 from __future__ import annotations
 
 from typing import Optional, Union
@@ -87,15 +88,14 @@ def _homotopy_terms(W, y, L, lam, need_factor: bool = False, L_support=None, ext
         # per trial, with the N vectors as extra right-hand sides of the same solve
         Ks = K.squeeze(-3)
         Ls = L.expand(*K.shape[:-2], *L.shape[-2:]).squeeze(-3)
-        rhs = torch.cat([M.expand(*K.shape[:-1], M.shape[-1]).squeeze(-3) for M in mats]
-                        + [WLty.transpose(-1, -2)], -1)
+        rhs = torch.cat([M.expand(*K.shape[:-1], M.shape[-1]).squeeze(-3) for M in mats] + [WLty.transpose(-1, -2)], -1)
         X = Ls @ linalg.chol_solve(Ks, rhs)  # (..., d, k + r + N)
-        E = X[..., k:k + r].unsqueeze(-3) if r else None
-        return S, K, None, X[..., :k].unsqueeze(-3), X[..., k + r:].transpose(-1, -2), E
+        E = X[..., k : k + r].unsqueeze(-3) if r else None
+        return S, K, None, X[..., :k].unsqueeze(-3), X[..., k + r :].transpose(-1, -2), E
     shape = torch.broadcast_shapes(T.shape[:-2], WLty.shape[:-1], *([extra.shape[:-2]] if r else []))
     rhs = torch.cat([M.expand(*shape, k, M.shape[-1]) for M in mats] + [WLty.expand(*shape, k).unsqueeze(-1)], -1)
     X = linalg.matmul(L, linalg.chol_solve(K, rhs))  # [M^-1 J | L (I + lam S)^-1 V | M^-1 H^T R^-1 (z - e)]
-    return S, K, None, X[..., :k], X[..., k + r], (X[..., k:k + r] if r else None)
+    return S, K, None, X[..., :k], X[..., k + r], (X[..., k : k + r] if r else None)
 
 
 def _terms(lin: Linearisation, prior, lam, need_factor=False):
@@ -183,8 +183,7 @@ class GromovFlow(_HomotopyFlow):
             W, y = lin.W, lin.y
             Lk = prior.cols_support
             S, K, _, C, g, Nc = _homotopy_terms(W, y, prior.cols, lam, L_support=Lk, extra=Lk.transpose(-1, -2))
-            return FlowCoefficients(-C, g, None, support=prior.support, noise_cov_pair=(C, Nc),
-                                    noise_product=(Nc, W))
+            return FlowCoefficients(-C, g, None, support=prior.support, noise_cov_pair=(C, Nc), noise_product=(Nc, W))
         prior, S, K, G, C, g = _terms(lin, prior, lam, need_factor=True)
         return FlowCoefficients(-C, g, None, noise_factor=_noise_root(G, self.noise_root), support=prior.support)
 
@@ -199,8 +198,9 @@ def diffusion_condition_number(k: torch.Tensor, c) -> torch.Tensor:
 C_RULES = ("literal_shift", "printed", "printed_shift")
 
 
-def optimal_diffusion_scale(k_min: torch.Tensor, k_max: torch.Tensor, alpha: float,
-                            rule: str = "literal_shift") -> torch.Tensor:
+def optimal_diffusion_scale(
+    k_min: torch.Tensor, k_max: torch.Tensor, alpha: float, rule: str = "literal_shift"
+) -> torch.Tensor:
     """Closed-form minimiser of ``J(c) = kappa(c) + alpha c`` over ``c >= 0``.
 
     With ``Q = c M^{-1}`` and our SDE convention (diffusion enters the Fokker-Planck equation as
@@ -219,7 +219,8 @@ def optimal_diffusion_scale(k_min: torch.Tensor, k_max: torch.Tensor, alpha: flo
 
     ``rule="printed"`` returns seed 002's printed value itself as the diffusion scale,
     ``c = max{0, sqrt((k_max - k_min)/alpha) - k_min}`` with ``Q = c M^{-1}`` (our reading of the
-    typeset formula of Zhang, Khojasteh, Atanasov & Meyer 2024, for the flow-induced proposals); ``rule="literal_shift"`` (default) the minimiser above;
+    typeset formula of Zhang, Khojasteh, Atanasov & Meyer 2024, for the flow-induced proposals);
+    ``rule="literal_shift"`` (default) the minimiser above;
     ``rule="printed_shift"`` the printed value ``c'`` in the convention it minimises, i.e. as the
     shift of the drift (``A_s = A - c' I``), which keeps the posterior only with ``Q = 2 c' M^{-1}``:
     it returns ``c = 2 c'``, twice ``printed`` (a third UNCONF reading, tested against seed 002's
@@ -255,8 +256,14 @@ class OptimalDiffusionFlow(_HomotopyFlow):
     stochastic = True
     _shown = ("alpha", "c", "points", "noise_root", "c_rule")
 
-    def __init__(self, alpha: float = 0.1, c: Union[str, float] = "optimal", points: str = "particle",
-                 noise_root: str = "factor", c_rule: str = "literal_shift"):
+    def __init__(
+        self,
+        alpha: float = 0.1,
+        c: Union[str, float] = "optimal",
+        points: str = "particle",
+        noise_root: str = "factor",
+        c_rule: str = "literal_shift",
+    ):
         super().__init__(points, noise_root)
         if float(alpha) <= 0:
             raise ArgumentError(f"alpha: expected > 0, got {alpha}")
@@ -295,5 +302,11 @@ class OptimalDiffusionFlow(_HomotopyFlow):
         return FlowCoefficients(A, b, None, noise_factor=_noise_root(factor, self.noise_root))
 
 
-__all__ = ["GeodesicFlow", "GromovFlow", "OptimalDiffusionFlow", "optimal_diffusion_scale",
-           "diffusion_condition_number", "symmetric_sqrt"]
+__all__ = [
+    "GeodesicFlow",
+    "GromovFlow",
+    "OptimalDiffusionFlow",
+    "optimal_diffusion_scale",
+    "diffusion_condition_number",
+    "symmetric_sqrt",
+]

@@ -40,6 +40,7 @@ SIMD lanes, each tangent's ``dG`` applied as a rank-``2b`` update instead of a `
 ``log|det|`` from a QR of the step Jacobian instead of an LU; it agrees with this module's torch path
 to round-off.
 """
+
 from __future__ import annotations
 
 from typing import Optional
@@ -63,8 +64,14 @@ def _tri(L, b, upper=False):
     return linalg.solve_triangular(L, b, upper=upper)
 
 
-def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPrior,
-               schedule: Optional[LambdaSchedule] = None, root: str = "cholesky", jacobian: str = "analytic"):
+def gpfis_flow(
+    measurement: GaussianMeasurement,
+    x: torch.Tensor,
+    prior: FlowPrior,
+    schedule: Optional[LambdaSchedule] = None,
+    root: str = "cholesky",
+    jacobian: str = "analytic",
+):
     """Move ``x (B, N, d)`` with the GPFIS transport from ``prior`` (``m_0 (B, N, d)``, factor
     broadcastable to ``(B, N, d, d)``); returns ``(x_1 (B, N, d), log|det dx_1/dx_0| (B, N))``.
 
@@ -120,12 +127,15 @@ def gpfis_flow(measurement: GaussianMeasurement, x: torch.Tensor, prior: FlowPri
             Ut = U.transpose(-1, -2)
             m_lam0 = linalg.matvec(U, linalg.matvec(Ut, u0 + lam0 * r) / (1 + lam0 * g))
             m_lam1 = linalg.matvec(U, linalg.matvec(Ut, u0 + lam1 * r) / (1 + lam1 * g))
-            return m_lam1 + linalg.matvec(U, linalg.matvec(Ut, u - m_lam0) * torch.sqrt((1 + lam0 * g) / (1 + lam1 * g)))
+            return m_lam1 + linalg.matvec(
+                U, linalg.matvec(Ut, u - m_lam0) * torch.sqrt((1 + lam0 * g) / (1 + lam1 * g))
+            )
 
         xs = x if sup is None else x[..., sup]
         if analytic:
-            u_new, jac = _cholesky_step_and_jacobian(measurement, x_now, xs, sup, C, C_inv, u0, lam0, lam1, eye,
-                                                     tangents)
+            u_new, jac = _cholesky_step_and_jacobian(
+                measurement, x_now, xs, sup, C, C_inv, u0, lam0, lam1, eye, tangents
+            )
         else:
             u_new, jac = vmap(lambda t: jvp(step, (xs,), (t,)), out_dims=(None, -1))(tangents)
         # x'_s = C u'(x_s): det(dx'/dx) = det(C) det(du'/dx_s) (the other coordinates follow
@@ -141,9 +151,17 @@ def _fused_flow(measurement, x, prior, sup, k, eps_all, lam_all):
     the model itself (acoustic), else one call per step with the whitened linearisation and the
     second-derivative blocks from torch."""
     inside = select.measured_inside(measurement, sup, k)
-    steps = kernel_steps.GPFISSteps(prior.cols_support, prior.cols, prior.mean, sup, lam_all.to(torch.float64),
-                                    eps_all.to(torch.float64), inside, measurement.inv_sigma,
-                                    measurement.z_scaled if inside is not None else None)
+    steps = kernel_steps.GPFISSteps(
+        prior.cols_support,
+        prior.cols,
+        prior.mean,
+        sup,
+        lam_all.to(torch.float64),
+        eps_all.to(torch.float64),
+        inside,
+        measurement.inv_sigma,
+        measurement.z_scaled if inside is not None else None,
+    )
     log_det = torch.zeros(x.shape[:-1], dtype=torch.float64)
     x = x.contiguous()
     if inside is not None:
@@ -177,11 +195,14 @@ def _cholesky_step_and_jacobian(measurement, x_now, xs, sup, C, C_inv, u0, lam0,
     tangent a column. The measurement's second derivatives enter once, through one product
     ``[W y]^T dW`` (``(k + 1) x m x k^2`` per point); the rest is ``k x k`` algebra per tangent.
     """
-    D = measurement.derivative(x_now, sup)  # (..., m, n_b, b, b): dW_t[a, (c', j)] = [c == c'] D[a, c, i, j], t = (c, i)
+    D = measurement.derivative(
+        x_now, sup
+    )  # (..., m, n_b, b, b): dW_t[a, (c', j)] = [c == c'] D[a, c, i, j], t = (c, i)
     if D is not None:  # the model's second derivatives, R constant: dy_t = dW_t x_s
         lin = measurement.at(x_now, sup)
         W, y, Wdy = lin.W, lin.y, None
     else:  # forward mode through the whitened linearisation, one dense block
+
         def lin_at(v):
             lin = measurement.at(v if sup is None else x_now.index_copy(-1, sup, v), sup)
             return lin.W, lin.y
@@ -210,8 +231,9 @@ def _cholesky_step_and_jacobian(measurement, x_now, xs, sup, C, C_inv, u0, lam0,
     Zb = linalg.matmul(Wy.transpose(-1, -2), D.expand(*batch, *D.shape[-4:]).reshape(*batch, m, nb * bs * bs))
     # E_t = W^T dW_t (..., k_t, k, k): E[(c, i), i', (c, j)] = Zb[i', (c, i, j)], zero off the blocks
     E = Zb.new_zeros(*batch, nb, bs, k, nb, bs)
-    E.diagonal(dim1=-5, dim2=-2).copy_(Zb[..., :k, :].view(*batch, k, nb, bs, bs).permute(
-        *range(len(batch)), -2, -4, -1, -3))  # (..., i, i', j, c)
+    E.diagonal(dim1=-5, dim2=-2).copy_(
+        Zb[..., :k, :].view(*batch, k, nb, bs, bs).permute(*range(len(batch)), -2, -4, -1, -3)
+    )  # (..., i, i', j, c)
     E = E.view(*batch, k, k, k)
     F = E + E.transpose(-1, -2)  # dW_t^T W + W^T dW_t (..., k_t, k, k)
     F_rows = F.view(*batch, k * k, k)

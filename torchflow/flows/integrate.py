@@ -19,6 +19,7 @@ coefficients depend only on the deterministic points, so
 ``mu_j = (I + eps_j A_j) mu_{j-1} + eps_j b_j``, ``S_j = (I + eps_j A_j) S_{j-1} (I + eps_j A_j)^T + eps_j Q_j``);
 and, on request, the Gaussian image ``(mu_1, Sigma_1)`` of each point's prior.
 """
+
 from __future__ import annotations
 
 from typing import Optional, Union
@@ -35,11 +36,24 @@ from .points import LinearisationPoints, resolve_points
 from ..errors import ArgumentError, ArgumentTypeError
 
 
-def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.Tensor, prior: FlowPrior,
-                   schedule: Optional[LambdaSchedule] = None, *, generator: Optional[torch.Generator] = None,
-                   proposal: Optional[FlowPrior] = None, noise=None, index: Optional[torch.Tensor] = None,
-                   points: Union[None, str, LinearisationPoints] = None, gaussian_image: bool = False,
-                   measurement=None, start: Optional[torch.Tensor] = None, map_jacobian: bool = False) -> FlowOutput:
+def integrate_flow(
+    flow: ParticleFlow,
+    model,
+    particles: torch.Tensor,
+    z: torch.Tensor,
+    prior: FlowPrior,
+    schedule: Optional[LambdaSchedule] = None,
+    *,
+    generator: Optional[torch.Generator] = None,
+    proposal: Optional[FlowPrior] = None,
+    noise=None,
+    index: Optional[torch.Tensor] = None,
+    points: Union[None, str, LinearisationPoints] = None,
+    gaussian_image: bool = False,
+    measurement=None,
+    start: Optional[torch.Tensor] = None,
+    map_jacobian: bool = False,
+) -> FlowOutput:
     """Integrate a flow from lambda = 0 to 1 (see the module docstring).
 
     Deterministic flows take Euler steps and accumulate ``log|det(I + eps_j A_j)|``, the
@@ -96,26 +110,55 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
     eps_host = schedule.host_steps(particles.dtype)
     strategy = resolve_points(flow, "clustered" if points is None and index is not None else points)
     if map_jacobian and flow.stochastic:
-        raise ArgumentError("map_jacobian: a stochastic flow's map is not deterministic; its law is the output's "
-                            "proposal_mean and proposal_cov (give proposal=)")
-    graphable = (measurement is None and proposal is None and noise is None and start is None and not gaussian_image
-                 and not map_jacobian and select.flow_graph(flow, particles))
+        raise ArgumentError(
+            "map_jacobian: a stochastic flow's map is not deterministic; its law is the output's "
+            "proposal_mean and proposal_cov (give proposal=)"
+        )
+    graphable = (
+        measurement is None
+        and proposal is None
+        and noise is None
+        and start is None
+        and not gaussian_image
+        and not map_jacobian
+        and select.flow_graph(flow, particles)
+    )
     if measurement is None:
         measurement = GaussianMeasurement.from_model(model, z)
     if start is not None:
         if start.shape != prior.mean.shape:
-            raise ArgumentError(f"start: expected the points' starting positions shaped like prior.mean "
-                             f"{tuple(prior.mean.shape)}, got {tuple(start.shape)}")
+            raise ArgumentError(
+                f"start: expected the points' starting positions shaped like prior.mean "
+                f"{tuple(prior.mean.shape)}, got {tuple(start.shape)}"
+            )
         if gaussian_image:
-            raise ArgumentError("start: the Gaussian image follows the prior mean (the points' own start); "
-                             "give either start or gaussian_image=True")
+            raise ArgumentError(
+                "start: the Gaussian image follows the prior mean (the points' own start); "
+                "give either start or gaussian_image=True"
+            )
     prior, index, squeeze = strategy.arrange(prior, particles, index)
     start = None if start is None else start.reshape(prior.mean.shape)
     if graphable:
-        out = _integrate_graphed(flow, model, schedule, strategy, particles, z, prior, index, (eps_all, eps_host), lam_all)
+        out = _integrate_graphed(
+            flow, model, schedule, strategy, particles, z, prior, index, (eps_all, eps_host), lam_all
+        )
     else:
-        out = _integrate(flow, measurement, particles, prior, index, strategy.per_particle, (eps_all, eps_host), lam_all,
-                         generator, proposal, noise, gaussian_image, start, map_jacobian)
+        out = _integrate(
+            flow,
+            measurement,
+            particles,
+            prior,
+            index,
+            strategy.per_particle,
+            (eps_all, eps_host),
+            lam_all,
+            generator,
+            proposal,
+            noise,
+            gaussian_image,
+            start,
+            map_jacobian,
+        )
     if squeeze:
         out.aux = out.aux.squeeze(-2)
         if gaussian_image:
@@ -123,8 +166,22 @@ def integrate_flow(flow: ParticleFlow, model, particles: torch.Tensor, z: torch.
     return out
 
 
-def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all, lam_all, generator, proposal,
-               noise, gaussian_image, start=None, map_jacobian=False) -> FlowOutput:
+def _integrate(
+    flow,
+    measurement,
+    particles,
+    prior,
+    index,
+    per_particle,
+    eps_all,
+    lam_all,
+    generator,
+    proposal,
+    noise,
+    gaussian_image,
+    start=None,
+    map_jacobian=False,
+) -> FlowOutput:
     """The loop of :func:`integrate_flow`: ``prior`` at ``(B, L, d)`` points, ``index (B, N)`` or
     ``None`` (points broadcast against the particles, or are the particles). A fused kernel takes
     the integration where :func:`torchflow.flows.kernels.select.flow_kernel` chooses one; the loop
@@ -132,17 +189,53 @@ def _integrate(flow, measurement, particles, prior, index, per_particle, eps_all
     d = particles.shape[-1]
     k = d if measurement.support is None else len(measurement.support)
     track = flow.stochastic and proposal is not None
-    kernel = select.flow_kernel(flow, measurement, particles, k, per_particle=per_particle, track=track,
-                                gaussian_image=gaussian_image or map_jacobian)
+    kernel = select.flow_kernel(
+        flow,
+        measurement,
+        particles,
+        k,
+        per_particle=per_particle,
+        track=track,
+        gaussian_image=gaussian_image or map_jacobian,
+    )
     if kernel is not None:
-        return loops.run_flow(kernel, flow, measurement, particles, prior, index, eps_all, lam_all, generator,
-                              proposal, noise, start)
-    return _reference(flow, measurement, particles, prior, index, per_particle, eps_all, lam_all, generator,
-                      proposal, noise, gaussian_image, start, map_jacobian)
+        return loops.run_flow(
+            kernel, flow, measurement, particles, prior, index, eps_all, lam_all, generator, proposal, noise, start
+        )
+    return _reference(
+        flow,
+        measurement,
+        particles,
+        prior,
+        index,
+        per_particle,
+        eps_all,
+        lam_all,
+        generator,
+        proposal,
+        noise,
+        gaussian_image,
+        start,
+        map_jacobian,
+    )
 
 
-def _reference(flow, measurement, particles, prior, index, per_particle, eps_all, lam_all, generator, proposal,
-               noise, gaussian_image, start=None, map_jacobian=False) -> FlowOutput:
+def _reference(
+    flow,
+    measurement,
+    particles,
+    prior,
+    index,
+    per_particle,
+    eps_all,
+    lam_all,
+    generator,
+    proposal,
+    noise,
+    gaussian_image,
+    start=None,
+    map_jacobian=False,
+) -> FlowOutput:
     """The reference pseudo-time loop (module docstring), for every flow and kind of points."""
     B, N, d = particles.shape
     eps_all, eps_host = eps_all  # the step sizes on the device, and as Python floats
@@ -170,8 +263,10 @@ def _reference(flow, measurement, particles, prior, index, per_particle, eps_all
         eps, lam = eps_steps[j], lam_steps[j]
         co = flow.coefficients_at(measurement.at(aux, prior.support), prior, lam, eps)
         if stochastic and (co.A is None or not co.has_noise):
-            raise ArgumentTypeError(f"{type(flow).__name__}: a stochastic flow must give an explicit A and a diffusion "
-                            "(noise_factor or noise_product)")
+            raise ArgumentTypeError(
+                f"{type(flow).__name__}: a stochastic flow must give an explicit A and a diffusion "
+                "(noise_factor or noise_product)"
+            )
         image.step(co, eps_host[j])  # at the points
         if not stochastic:
             log_det = log_det + co.log_det
@@ -194,8 +289,11 @@ def _reference(flow, measurement, particles, prior, index, per_particle, eps_all
         eta = eta + eps * drifts[0]
         if stochastic:
             shape = (B, N, at.noise_rank)
-            xi = noise(j, shape) if noise is not None else linalg.standard_normal(
-                shape, dtype=eta.dtype, device=eta.device, generator=generator)
+            xi = (
+                noise(j, shape)
+                if noise is not None
+                else linalg.standard_normal(shape, dtype=eta.dtype, device=eta.device, generator=generator)
+            )
             eta = eta + eps.sqrt() * at.diffuse(xi)
             if track:
                 mu = mu + eps * drifts[-1]
@@ -236,23 +334,43 @@ def _integrate_graphed(flow, model, schedule, strategy, particles, z, prior, ind
 
     def fn(particles, z, index, *prior_fields):
         measurement = GaussianMeasurement.from_model(model, z)
-        out = _integrate(flow, measurement, particles, FlowPrior(*prior_fields), index, per_particle, eps_all, lam_all,
-                         None, None, None, False)
+        out = _integrate(
+            flow,
+            measurement,
+            particles,
+            FlowPrior(*prior_fields),
+            index,
+            per_particle,
+            eps_all,
+            lam_all,
+            None,
+            None,
+            None,
+            False,
+        )
         return out.particles, out.log_det, out.aux
 
     key = ("integrate_flow", cudagraphs.state_key(flow, model, schedule, strategy), tuning.get())
-    eta, log_det, aux = cudagraphs.graphed(key, fn, (particles, z, index) + fields,
-                                           name=f"integrate_flow({type(flow).__name__})")
+    eta, log_det, aux = cudagraphs.graphed(
+        key, fn, (particles, z, index) + fields, name=f"integrate_flow({type(flow).__name__})"
+    )
     return FlowOutput(eta, log_det, aux)
 
 
 EVALUATE_AT = ("end", "start")
 
 
-def flow_gaussian(flow: ParticleFlow, measurement, prior: FlowPrior, schedule: Optional[LambdaSchedule] = None,
-                  evaluate_at: str = "end", on_step=None):
+def flow_gaussian(
+    flow: ParticleFlow,
+    measurement,
+    prior: FlowPrior,
+    schedule: Optional[LambdaSchedule] = None,
+    evaluate_at: str = "end",
+    on_step=None,
+):
     """Flow the *parameters* of Gaussians instead of particles (seed 002's flow-induced proposal,
-    Zhang, Khojasteh, Atanasov & Meyer 2024, eqs 6-7): for each prior ``N(mu_0, P_0)``, linearise the measurement at the migrating
+    Zhang, Khojasteh, Atanasov & Meyer 2024, eqs 6-7): for each prior ``N(mu_0, P_0)``, linearise the measurement at
+    the migrating
     mean and step
 
         mu_l = mu_{l-1} + eps_l (A_l mu_{l-1} + b_l),
@@ -339,9 +457,11 @@ def _propagate_cov(Sig, co: "FlowCoefficients", eps: float, eye):
     pair = co.noise_cov_pair
     shapes = [Sig.shape[:-2], A.shape[:-2]] + ([p.shape[:-2] for p in pair] if pair is not None else [])
     batch = torch.broadcast_shapes(*shapes)
-    _flat3 = lambda x: (x if x.shape[:-2] == batch else x.expand(*batch, *x.shape[-2:])).reshape(-1, *x.shape[-2:])  # noqa: E731
+    _flat3 = lambda x: (x if x.shape[:-2] == batch else x.expand(*batch, *x.shape[-2:])).reshape(-1, *x.shape[-2:])
     S3, A3 = _flat3(Sig), _flat3(A)
-    V = torch.baddbmm(S3, A3, S3[:, sup], alpha=e)  # rows by basic indexing: a contiguous copy, cheaper than index_select on the CPU
+    V = torch.baddbmm(
+        S3, A3, S3[:, sup], alpha=e
+    )  # rows by basic indexing: a contiguous copy, cheaper than index_select on the CPU
     out = torch.baddbmm(V, V.index_select(-1, sup), A3.transpose(-1, -2), alpha=e)
     if pair is not None:
         out = torch.baddbmm(out, _flat3(pair[0]), _flat3(pair[1]).transpose(-1, -2), alpha=e)

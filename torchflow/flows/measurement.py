@@ -13,6 +13,7 @@ integrator evaluates it at the current points and hands the flow the whitened te
 A filter with a state-dependent R, per-component moments (Gaussian-sum filters) or one term per
 associated measurement builds its own ``GaussianMeasurement``.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -77,11 +78,21 @@ class GaussianMeasurement:
             identity's), so the flow sees the observed rows alone; no kernel takes a mask.
     """
 
-    def __init__(self, z: torch.Tensor, linearise: Callable, scale_tril: Callable, noise: str,
-                 matrix: Optional[torch.Tensor] = None, measure: Optional[Callable] = None,
-                 support: Optional[Sequence[int]] = None, diagonal: bool = False,
-                 hessian: Optional[Callable] = None, form=None, diagonal_rows: Optional[Callable] = None,
-                 observed: Optional[torch.Tensor] = None):
+    def __init__(
+        self,
+        z: torch.Tensor,
+        linearise: Callable,
+        scale_tril: Callable,
+        noise: str,
+        matrix: Optional[torch.Tensor] = None,
+        measure: Optional[Callable] = None,
+        support: Optional[Sequence[int]] = None,
+        diagonal: bool = False,
+        hessian: Optional[Callable] = None,
+        form=None,
+        diagonal_rows: Optional[Callable] = None,
+        observed: Optional[torch.Tensor] = None,
+    ):
         if noise not in ("scalar", "diagonal", "dense"):
             raise ArgumentError(f"noise: expected 'scalar', 'diagonal' or 'dense', got {noise!r}")
         self.observed = observed
@@ -113,13 +124,20 @@ class GaussianMeasurement:
         linear = model.structure.linear_measurement
         constant_r = model.structure.measurement_noise in ("scalar", "diagonal", "dense")
         observed = ~torch.isnan(z) if missing.active() else None  # NaN: not observed
-        return cls(z, model.linearize_measurement, model.measurement_scale_tril, noise, observed=observed,
-                   matrix=model.measurement_matrix() if linear else None, measure=model.measure if linear else None,
-                   support=model.structure.measurement_support,
-                   diagonal=model.structure.measurement_jacobian_diagonal and not linear,
-                   hessian=model.measurement_hessian_blocks if constant_r and not linear else None,
-                   form=measurement_form(model) if noise == "scalar" and not linear else None,
-                   diagonal_rows=model.linearize_measurement_diagonal)
+        return cls(
+            z,
+            model.linearize_measurement,
+            model.measurement_scale_tril,
+            noise,
+            observed=observed,
+            matrix=model.measurement_matrix() if linear else None,
+            measure=model.measure if linear else None,
+            support=model.structure.measurement_support,
+            diagonal=model.structure.measurement_jacobian_diagonal and not linear,
+            hessian=model.measurement_hessian_blocks if constant_r and not linear else None,
+            form=measurement_form(model) if noise == "scalar" and not linear else None,
+            diagonal_rows=model.linearize_measurement_diagonal,
+        )
 
     def _scalar_inv_sigma(self, points):
         return 1 / self.scale_tril(points).diagonal(dim1=-2, dim2=-1)[..., 0]  # 0-d: "scalar" R is constant
@@ -221,6 +239,7 @@ def _masked_factor(scale_tril: Callable, observed: torch.Tensor) -> Callable:
     """``points -> the factor of R`` with the unobserved rows and columns of R replaced by the
     identity's (:func:`torchflow.missing.masked_noise`), per trial ``(B, 1.., m, m)`` (per point for
     a state-dependent R)."""
+
     def factor(points):
         L = scale_tril(points)
         R = L @ L.transpose(-1, -2)

@@ -24,6 +24,7 @@ integrator or of the particle filters. Everything is batched over trials: the K-
 over a fixed number of sweeps (like pseudo-time steps), with no convergence test and so no host
 synchronisation (a converged assignment is a fixed point of the sweep).
 """
+
 from __future__ import annotations
 
 from typing import Optional, Sequence, Tuple, Union
@@ -38,8 +39,9 @@ from .daum_huang import LEDHFlow
 from ..errors import ArgumentError
 
 
-def cluster_distance(eta_bar: torch.Tensor, zeta: torch.Tensor, alpha: float = 0.25,
-                     support: Optional[Sequence[int]] = None) -> torch.Tensor:
+def cluster_distance(
+    eta_bar: torch.Tensor, zeta: torch.Tensor, alpha: float = 0.25, support: Optional[Sequence[int]] = None
+) -> torch.Tensor:
     """Mixed distance ``phi_ij = alpha d~_ij + (1 - alpha) (1 - p_ij)`` between particles.
 
     Args:
@@ -142,8 +144,9 @@ class LinearisationPoints:
         ``identical`` declares that per-particle covariances would all be equal (ignored here)."""
         return TrialCovariance(cov)
 
-    def place(self, model, x_prev: torch.Tensor, mean: torch.Tensor, scale_tril: torch.Tensor,
-              z: torch.Tensor) -> Tuple[FlowPrior, Optional[torch.Tensor]]:
+    def place(
+        self, model, x_prev: torch.Tensor, mean: torch.Tensor, scale_tril: torch.Tensor, z: torch.Tensor
+    ) -> Tuple[FlowPrior, Optional[torch.Tensor]]:
         """The flow's Gaussian prior at the points and each particle's point.
 
         Args:
@@ -169,8 +172,9 @@ class LinearisationPoints:
         ``points_per_call`` particles per call; one point per trial does not."""
         return None
 
-    def arrange(self, prior: FlowPrior, particles: torch.Tensor,
-                index: Optional[torch.Tensor]) -> Tuple[FlowPrior, Optional[torch.Tensor], bool]:
+    def arrange(
+        self, prior: FlowPrior, particles: torch.Tensor, index: Optional[torch.Tensor]
+    ) -> Tuple[FlowPrior, Optional[torch.Tensor], bool]:
         """The integrator's view: ``(prior at (B, L, d) points, index (B, N) or None, squeeze)``;
         ``squeeze``: the caller gave per-trial tensors ``(B, d)``, so outputs at the points drop L."""
         raise NotImplementedError
@@ -315,7 +319,9 @@ def resolve_points(flow, points: Union[None, str, LinearisationPoints] = None, *
     if points is None:
         points = flow.points
     if points not in POINTS:
-        raise ArgumentError(f"points: expected one of {tuple(POINTS)}, a LinearisationPoints or None "
-                         f"(the flow's default), got {points!r}")
+        raise ArgumentError(
+            f"points: expected one of {tuple(POINTS)}, a LinearisationPoints or None "
+            f"(the flow's default), got {points!r}"
+        )
     cls = POINTS[points]
     return cls(**knobs) if cls is ClusteredPoints else cls()

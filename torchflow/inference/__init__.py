@@ -13,11 +13,21 @@
 * :func:`rhat` and :func:`effective_sample_size`: convergence diagnostics of the chains.
 * :func:`to_arviz`: the draws as an ArviZ ``InferenceData`` (the optional ``arviz`` extra).
 """
+
 from .convert import to_arviz
 from .diagnostics import effective_sample_size, rhat
 from .gibbs import conditional_smc, joint_log_density, particle_gibbs
 from .params import per_trial_values
 from .pmmh import PMMHResult, pmmh
 
-__all__ = ["pmmh", "particle_gibbs", "conditional_smc", "joint_log_density", "PMMHResult", "per_trial_values", "rhat",
-           "effective_sample_size", "to_arviz"]
+__all__ = [
+    "pmmh",
+    "particle_gibbs",
+    "conditional_smc",
+    "joint_log_density",
+    "PMMHResult",
+    "per_trial_values",
+    "rhat",
+    "effective_sample_size",
+    "to_arviz",
+]

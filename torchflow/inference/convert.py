@@ -1,4 +1,5 @@
 """Draws of the particle MCMC samplers as an ArviZ object (the optional ``arviz`` extra)."""
+
 from __future__ import annotations
 
 from ..errors import ArgumentTypeError
@@ -18,8 +19,9 @@ def to_arviz(result):
     try:
         import arviz
     except ImportError as e:
-        raise ImportError("to_arviz needs ArviZ, the optional extra 'arviz': pip install 'torchflow[arviz]' "
-                          "(or pip install arviz)") from e
+        raise ImportError(
+            "to_arviz needs ArviZ, the optional extra 'arviz': pip install 'torchflow[arviz]' (or pip install arviz)"
+        ) from e
     samples, ll = getattr(result, "samples", None), getattr(result, "log_likelihood", None)
     if not isinstance(samples, dict) or ll is None:
         raise ArgumentTypeError(f"result: expected a PMMHResult (samples, log_likelihood), got {type(result).__name__}")

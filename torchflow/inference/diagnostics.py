@@ -6,6 +6,7 @@ first two dimensions. The formulas are the standard ones of Gelman et al. (Bayes
 the effective sample size sums the chains' combined autocorrelations up to Geyer's initial
 positive sequence.
 """
+
 from __future__ import annotations
 
 import torch
@@ -23,7 +24,7 @@ def _check(draws: torch.Tensor, who: str) -> torch.Tensor:
 def _split(draws: torch.Tensor) -> torch.Tensor:
     """Each chain cut in two halves: ``(C, S, ...)`` -> ``(2C, S // 2, ...)``."""
     half = draws.shape[1] // 2
-    return torch.cat([draws[:, :half], draws[:, draws.shape[1] - half:]], 0)
+    return torch.cat([draws[:, :half], draws[:, draws.shape[1] - half :]], 0)
 
 
 def rhat(draws: torch.Tensor) -> torch.Tensor:

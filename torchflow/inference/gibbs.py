@@ -1,5 +1,6 @@
 """Particle Gibbs: conditional SMC with ancestor sampling, and a Metropolis-within-Gibbs parameter
 step, on chains batched in the trial dimension."""
+
 from __future__ import annotations
 
 import math
@@ -21,8 +22,15 @@ from .params import ParameterSpace, RandomWalk, cpu_generator, one_series, per_t
 from .pmmh import PMMHResult
 
 
-def conditional_smc(model: StateSpaceModel, observations: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor,
-                    reference: torch.Tensor, n_particles: int, generator) -> torch.Tensor:
+def conditional_smc(
+    model: StateSpaceModel,
+    observations: torch.Tensor,
+    mean: torch.Tensor,
+    cov: torch.Tensor,
+    reference: torch.Tensor,
+    n_particles: int,
+    generator,
+) -> torch.Tensor:
     """One sweep of conditional SMC with ancestor sampling (Lindsten, Jordan & Schon 2014) for the
     bootstrap proposal: a new path whose law, given the ``reference`` path, leaves the smoothing
     distribution ``p(x_0:T | z_1:T)`` invariant.
@@ -47,7 +55,7 @@ def conditional_smc(model: StateSpaceModel, observations: torch.Tensor, mean: to
     C, T = observations.shape[:2]
     gaps = bool(torch.isnan(observations).any()) if observations.is_floating_point() else False
     x = sample_prior(mean, cov, N, generator)  # (C, N, d)
-    x = torch.cat([x[:, :N - 1], reference[:, :1]], 1)
+    x = torch.cat([x[:, : N - 1], reference[:, :1]], 1)
     parts, ancestors = [x], []
     lw = torch.zeros(C, N, dtype=x.dtype, device=x.device)
     with missing.observations_missing(gaps):
@@ -56,9 +64,9 @@ def conditional_smc(model: StateSpaceModel, observations: torch.Tensor, mean: to
             ref = reference[:, t].unsqueeze(1)  # (C, 1, d)
             u = uniform((C,), dtype=x.dtype, device=x.device, generator=generator)
             a_ref = _categorical(lw + model.transition_log_prob(ref, x), u)  # ancestor sampling
-            a = torch.cat([a[:, :N - 1], a_ref.unsqueeze(1)], 1)
+            a = torch.cat([a[:, : N - 1], a_ref.unsqueeze(1)], 1)
             moved = model.sample_transition(gather_particles(x, a), generator)
-            x = torch.cat([moved[:, :N - 1], ref], 1)
+            x = torch.cat([moved[:, : N - 1], ref], 1)
             lw = missing.measurement_log_prob(model, observations[:, t - 1].unsqueeze(1), x)
             parts.append(x)
             ancestors.append(a)
@@ -70,8 +78,9 @@ def conditional_smc(model: StateSpaceModel, observations: torch.Tensor, mean: to
     return torch.cat(path[::-1], 1)  # (C, T+1, d)
 
 
-def joint_log_density(model: StateSpaceModel, path: torch.Tensor, observations: torch.Tensor, mean: torch.Tensor,
-                      cov: torch.Tensor) -> torch.Tensor:
+def joint_log_density(
+    model: StateSpaceModel, path: torch.Tensor, observations: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor
+) -> torch.Tensor:
     """``log p(x_0:T, z_1:T)`` of ``path (C, T+1, d)`` and ``observations (C, T, m)`` (NaN: not
     observed) under the prior ``N(mean, cov)`` of ``x_0``: ``(C,)``."""
     x0, prev, nxt = path[:, 0], path[:, :-1], path[:, 1:]
@@ -83,11 +92,21 @@ def joint_log_density(model: StateSpaceModel, path: torch.Tensor, observations: 
     return lp
 
 
-def particle_gibbs(model: StateSpaceModel, observations: torch.Tensor, prior: Union[Callable, tuple],
-                   priors: Dict[str, Distribution], generator: Union[torch.Generator, int], *, n_particles: int = 100,
-                   n_chains: int = 4, n_iterations: int = 1000, n_adapt: int = 200,
-                   init: Optional[Dict[str, torch.Tensor]] = None, scale: float = 0.5,
-                   target_acceptance: Optional[float] = None) -> PMMHResult:
+def particle_gibbs(
+    model: StateSpaceModel,
+    observations: torch.Tensor,
+    prior: Union[Callable, tuple],
+    priors: Dict[str, Distribution],
+    generator: Union[torch.Generator, int],
+    *,
+    n_particles: int = 100,
+    n_chains: int = 4,
+    n_iterations: int = 1000,
+    n_adapt: int = 200,
+    init: Optional[Dict[str, torch.Tensor]] = None,
+    scale: float = 0.5,
+    target_acceptance: Optional[float] = None,
+) -> PMMHResult:
     """Sample the joint posterior of parameters and states by particle Gibbs with ancestor sampling,
     C chains batched in the trial dimension (the parameters in ``priors`` declared per-trial by the
     model, as for :func:`~torchflow.inference.pmmh`).
@@ -161,8 +180,9 @@ def particle_gibbs(model: StateSpaceModel, observations: torch.Tensor, prior: Un
                 kept_lj.append(lj)
     if not kept_u:
         raise ArgumentError("n_iterations: expected at least one kept draw")
-    return PMMHResult.of(space, torch.stack(kept_u, 1), torch.stack(kept_lj, 1), accepted / S, walk,
-                         time.perf_counter() - t0)
+    return PMMHResult.of(
+        space, torch.stack(kept_u, 1), torch.stack(kept_lj, 1), accepted / S, walk, time.perf_counter() - t0
+    )
 
 
 __all__ = ["conditional_smc", "joint_log_density", "particle_gibbs"]

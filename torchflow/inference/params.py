@@ -1,5 +1,6 @@
 """What the particle MCMC samplers share: the parameters' unconstrained space and priors, per-trial
 parameter values, and the adaptive random walk."""
+
 from __future__ import annotations
 
 import contextlib
@@ -44,18 +45,25 @@ def per_trial_values(model, values: Dict[str, torch.Tensor]):
     try:
         for name, value in values.items():
             if name not in declared:
-                raise ArgumentError(f"values: {who} does not declare {name!r} as a per-trial parameter (it declares "
-                                    f"{list(declared)}): its methods would not give each trial its own value")
+                raise ArgumentError(
+                    f"values: {who} does not declare {name!r} as a per-trial parameter (it declares "
+                    f"{list(declared)}): its methods would not give each trial its own value"
+                )
             shared = getattr(model, name)
             if not isinstance(value, torch.Tensor):
-                raise ArgumentTypeError(f"values[{name!r}]: expected a tensor (B, *{tuple(shared.shape)}), got "
-                                        f"{type(value).__name__}")
+                raise ArgumentTypeError(
+                    f"values[{name!r}]: expected a tensor (B, *{tuple(shared.shape)}), got {type(value).__name__}"
+                )
             if value.dim() != shared.dim() + 1 or tuple(value.shape[1:]) != tuple(shared.shape) or not value.shape[0]:
-                raise ArgumentError(f"values[{name!r}]: expected one value per trial, (B, *{tuple(shared.shape)}) with "
-                                    f"B >= 1, got {tuple(value.shape)}")
+                raise ArgumentError(
+                    f"values[{name!r}]: expected one value per trial, (B, *{tuple(shared.shape)}) with "
+                    f"B >= 1, got {tuple(value.shape)}"
+                )
             if value.dtype != shared.dtype or value.device != shared.device:
-                raise ArgumentError(f"values[{name!r}]: expected {shared.dtype} on {shared.device} (the model's), got "
-                                    f"{value.dtype} on {value.device}")
+                raise ArgumentError(
+                    f"values[{name!r}]: expected {shared.dtype} on {shared.device} (the model's), got "
+                    f"{value.dtype} on {value.device}"
+                )
             if B is not None and value.shape[0] != B:
                 raise ArgumentError(f"values[{name!r}]: {value.shape[0]} trials, where another value has {B}")
             B = value.shape[0]
@@ -65,8 +73,9 @@ def per_trial_values(model, values: Dict[str, torch.Tensor]):
                 try:
                     value = plist[0].right_inverse(value)
                 except (ArgumentError, RuntimeError) as exc:  # a covariance's Cholesky fails: torch's LinAlgError
-                    raise ArgumentError(f"values[{name!r}]: outside {type(plist[0]).__name__}'s constraint: "
-                                        f"{exc}") from None
+                    raise ArgumentError(
+                        f"values[{name!r}]: outside {type(plist[0]).__name__}'s constraint: {exc}"
+                    ) from None
             else:
                 table, key = (model._parameters if name in model._parameters else model._buffers), name
             saved.append((table, key, table[key]))
@@ -104,11 +113,14 @@ class ParameterSpace:
         declared = tuple(getattr(model, "per_trial_parameters", ()) or ())
         for name, dist in priors.items():
             if not isinstance(dist, Distribution):
-                raise ArgumentTypeError(f"priors[{name!r}]: expected a torch.distributions.Distribution, "
-                                        f"got {type(dist).__name__}")
+                raise ArgumentTypeError(
+                    f"priors[{name!r}]: expected a torch.distributions.Distribution, got {type(dist).__name__}"
+                )
             if name not in declared:
-                raise ArgumentError(f"priors: {type(model).__name__} does not declare {name!r} as a per-trial "
-                                    f"parameter (it declares {list(declared)}): a chain's value must reach its own trial")
+                raise ArgumentError(
+                    f"priors: {type(model).__name__} does not declare {name!r} as a per-trial "
+                    f"parameter (it declares {list(declared)}): a chain's value must reach its own trial"
+                )
         self.model, self.priors, self.C = model, priors, check_count("n_chains", n_chains)
         self.names = list(priors)
         self.transforms = {n: transform_to(priors[n].support) for n in self.names}
@@ -122,7 +134,7 @@ class ParameterSpace:
     def _blocks(self, u: torch.Tensor):
         i = 0
         for n in self.names:
-            uu = u[..., i:i + self.sizes[n]].reshape(*u.shape[:-1], *self.shapes[n])
+            uu = u[..., i : i + self.sizes[n]].reshape(*u.shape[:-1], *self.shapes[n])
             yield n, uu
             i += self.sizes[n]
 
@@ -194,7 +206,7 @@ class RandomWalk:
         log_alpha = torch.nan_to_num(log_alpha, nan=-math.inf)
         ok = torch.log(torch.rand(log_alpha.shape, generator=self.generator, dtype=torch.float64)) < log_alpha
         if it <= self.n_adapt:
-            self.log_scale = self.log_scale + (ok.double() - self.target) / it ** 0.6
+            self.log_scale = self.log_scale + (ok.double() - self.target) / it**0.6
         return ok
 
     def visit(self, u: torch.Tensor, it: int) -> None:
@@ -210,7 +222,7 @@ class RandomWalk:
         mean = self._sum / self._n
         cov = self._outer / self._n - torch.outer(mean, mean)
         cov = 0.5 * (cov + cov.T) + 1e-10 * torch.eye(self.dim, dtype=torch.float64)
-        L, info = torch.linalg.cholesky_ex(cov * (2.38 ** 2 / self.dim))
+        L, info = torch.linalg.cholesky_ex(cov * (2.38**2 / self.dim))
         if int(info) == 0:
             if not self._relative:  # from here on the scale multiplies the visited covariance's shape
                 self.log_scale = torch.zeros_like(self.log_scale)
@@ -224,8 +236,10 @@ def cpu_generator(generator) -> torch.Generator:
         return torch.Generator().manual_seed(generator)
     check_generator(generator, "generator")
     if not isinstance(generator, torch.Generator) or generator.device.type != "cpu":
-        raise ArgumentError("generator: expected a seed or a CPU torch.Generator (the chains' own draws; the "
-                            "filters' streams are made on the model's device)")
+        raise ArgumentError(
+            "generator: expected a seed or a CPU torch.Generator (the chains' own draws; the "
+            "filters' streams are made on the model's device)"
+        )
     return generator
 
 

@@ -1,4 +1,5 @@
 """Particle marginal Metropolis-Hastings on chains batched in the trial dimension."""
+
 from __future__ import annotations
 
 import contextlib
@@ -43,21 +44,38 @@ class PMMHResult:
     seconds: float
 
     @classmethod
-    def of(cls, space, U: torch.Tensor, ll: torch.Tensor, acceptance: torch.Tensor, walk, seconds: float
-           ) -> "PMMHResult":
+    def of(
+        cls, space, U: torch.Tensor, ll: torch.Tensor, acceptance: torch.Tensor, walk, seconds: float
+    ) -> "PMMHResult":
         """The result from the kept unconstrained draws ``U (C, S, p)``, with the diagnostics."""
         samples = space.constrained(U)
         enough = U.shape[1] >= 4
-        return cls(samples=samples, log_likelihood=ll, acceptance=acceptance, scale=walk.log_scale.exp(),
-                   rhat={n: rhat(v) for n, v in samples.items()} if enough else {},
-                   ess={n: effective_sample_size(v) for n, v in samples.items()} if enough else {},
-                   seconds=seconds)
+        return cls(
+            samples=samples,
+            log_likelihood=ll,
+            acceptance=acceptance,
+            scale=walk.log_scale.exp(),
+            rhat={n: rhat(v) for n, v in samples.items()} if enough else {},
+            ess={n: effective_sample_size(v) for n, v in samples.items()} if enough else {},
+            seconds=seconds,
+        )
 
 
-def pmmh(filt: Filter, observations: torch.Tensor, prior: Union[Callable, tuple], priors: Dict[str, Distribution],
-         generator: Union[torch.Generator, int], *, n_chains: int = 4, n_iterations: int = 1000, n_adapt: int = 200,
-         init: Optional[Dict[str, torch.Tensor]] = None, scale: float = 0.5,
-         target_acceptance: Optional[float] = None, correlation: Optional[float] = None) -> PMMHResult:
+def pmmh(
+    filt: Filter,
+    observations: torch.Tensor,
+    prior: Union[Callable, tuple],
+    priors: Dict[str, Distribution],
+    generator: Union[torch.Generator, int],
+    *,
+    n_chains: int = 4,
+    n_iterations: int = 1000,
+    n_adapt: int = 200,
+    init: Optional[Dict[str, torch.Tensor]] = None,
+    scale: float = 0.5,
+    target_acceptance: Optional[float] = None,
+    correlation: Optional[float] = None,
+) -> PMMHResult:
     """Sample the posterior of model parameters given ``observations`` by particle marginal
     Metropolis-Hastings, the filter's log-evidence estimate standing in for the likelihood.
 
@@ -160,8 +178,9 @@ def pmmh(filt: Filter, observations: torch.Tensor, prior: Union[Callable, tuple]
                 accepted += accept.double()
                 kept_u.append(u)
                 kept_ll.append(ll)
-    return PMMHResult.of(space, torch.stack(kept_u, 1), torch.stack(kept_ll, 1), accepted / S, walk,
-                         time.perf_counter() - t0)
+    return PMMHResult.of(
+        space, torch.stack(kept_u, 1), torch.stack(kept_ll, 1), accepted / S, walk, time.perf_counter() - t0
+    )
 
 
 def check_correlation(correlation, filt: Filter) -> Optional[float]:
@@ -170,11 +189,15 @@ def check_correlation(correlation, filt: Filter) -> Optional[float]:
     if correlation is None:
         return None
     if isinstance(correlation, bool) or not isinstance(correlation, numbers.Real) or not 0 <= correlation < 1:
-        raise ArgumentError(f"correlation: expected None or a number rho in [0, 1) (the Crank-Nicolson "
-                            f"correlation of the auxiliary normals; 0.99 is typical), got {correlation!r}")
+        raise ArgumentError(
+            f"correlation: expected None or a number rho in [0, 1) (the Crank-Nicolson "
+            f"correlation of the auxiliary normals; 0.99 is typical), got {correlation!r}"
+        )
     if not filt.uses_randomness:
-        raise ArgumentError(f"correlation: {filt.name} draws no random numbers (its log-likelihood is exact), so "
-                            "there is nothing to correlate; leave correlation=None")
+        raise ArgumentError(
+            f"correlation: {filt.name} draws no random numbers (its log-likelihood is exact), so "
+            "there is nothing to correlate; leave correlation=None"
+        )
     return float(correlation)
 
 

@@ -53,6 +53,7 @@ not symmetric positive definite) raises :class:`~torchflow.errors.ArgumentError`
 the flow runs; a non-finite result of the flow raises :class:`~torchflow.errors.NonFiniteError`.
 Whatever ``update`` returns is finite.
 """
+
 from __future__ import annotations
 
 import datetime
@@ -112,19 +113,25 @@ def _noise_covariance(model, name: str) -> np.ndarray:
     try:
         R = np.asarray(model.covar(), dtype=float)
     except TypeError as err:
-        raise ArgumentTypeError(f"{name}: {type(model).__name__}.covar() needs arguments ({err}); supported: "
-                                "models with a constant noise covariance") from None
+        raise ArgumentTypeError(
+            f"{name}: {type(model).__name__}.covar() needs arguments ({err}); supported: "
+            "models with a constant noise covariance"
+        ) from None
     what = f"{name}.noise_covar" if hasattr(model, "noise_covar") else f"{name}.covar()"
     m = int(model.ndim_meas)
     if R.shape != (m, m):
         raise ArgumentError(f"{what}: expected a {m} x {m} matrix (ndim_meas = {m}), got shape {R.shape}")
     if not np.isfinite(R).all():
-        raise ArgumentError(f"{what}: expected a finite symmetric positive definite matrix, got "
-                            f"{int((~np.isfinite(R)).sum())} NaN or infinite entries")
+        raise ArgumentError(
+            f"{what}: expected a finite symmetric positive definite matrix, got "
+            f"{int((~np.isfinite(R)).sum())} NaN or infinite entries"
+        )
     asym = float(np.abs(R - R.T).max())
     if asym > 1e-9 * max(float(np.abs(R).max()), np.finfo(float).tiny):
-        raise ArgumentError(f"{what}: expected a symmetric positive definite matrix, got an asymmetric one "
-                            f"(largest |R - R^T| = {asym:.3g})")
+        raise ArgumentError(
+            f"{what}: expected a symmetric positive definite matrix, got an asymmetric one "
+            f"(largest |R - R^T| = {asym:.3g})"
+        )
     low = float(np.linalg.eigvalsh(R).min())
     if not low > 0:
         raise ArgumentError(f"{what}: expected a symmetric positive definite matrix, got smallest eigenvalue {low:.3g}")
@@ -140,12 +147,15 @@ def _particles(state, name: str, n=None):
     if N == 0:
         raise ArgumentError(f"{name}.state_vector: expected at least one particle, got none (shape {X.shape})")
     if n is not None and N != n:
-        raise ArgumentError(f"{name}.state_vector: expected {n} particles (one per particle of the prediction), "
-                            f"got {N}")
+        raise ArgumentError(
+            f"{name}.state_vector: expected {n} particles (one per particle of the prediction), got {N}"
+        )
     bad = np.flatnonzero(~np.isfinite(X).all(0))
     if bad.size:
-        raise ArgumentError(f"{name}.state_vector: expected finite particles, got {bad.size} of {N} with NaN or "
-                            f"infinite entries (particles {_shown(bad)})")
+        raise ArgumentError(
+            f"{name}.state_vector: expected finite particles, got {bad.size} of {N} with NaN or "
+            f"infinite entries (particles {_shown(bad)})"
+        )
     lw = getattr(state, "log_weight", None)
     if lw is None:
         raise ArgumentError(f"{name}.log_weight: expected {N} log-weights, got None")
@@ -154,11 +164,14 @@ def _particles(state, name: str, n=None):
         raise ArgumentError(f"{name}.log_weight: expected {N} log-weights (one per particle), got shape {lw.shape}")
     for count, kind in ((np.isnan(lw).sum(), "NaN"), (np.isposinf(lw).sum(), "+inf")):
         if count:
-            raise ArgumentError(f"{name}.log_weight: expected real log-weights (-inf for a zero weight), got {count} "
-                                f"{kind} of {N}")
+            raise ArgumentError(
+                f"{name}.log_weight: expected real log-weights (-inf for a zero weight), got {count} {kind} of {N}"
+            )
     if np.isneginf(lw).all():
-        raise ArgumentError(f"{name}.log_weight: expected at least one positive weight, got all {N} weights zero "
-                            "(every log-weight -inf)")
+        raise ArgumentError(
+            f"{name}.log_weight: expected at least one positive weight, got all {N} weights zero "
+            "(every log-weight -inf)"
+        )
     return X, lw
 
 
@@ -177,8 +190,9 @@ class StoneSoupMeasurement(GaussianStateSpaceModel):
 
     structure = Structure(measurement_noise="dense")
 
-    def __init__(self, model: MeasurementModel, z: np.ndarray, dtype=torch.float64, device=None,
-                 name: str = "measurement_model"):
+    def __init__(
+        self, model: MeasurementModel, z: np.ndarray, dtype=torch.float64, device=None, name: str = "measurement_model"
+    ):
         super().__init__()
         R = _noise_covariance(model, name)
         self.ss = model
@@ -274,18 +288,26 @@ class FlowParticleUpdater(Updater):
 
     flow: str = Property(default="ledh", doc=f"the flow: one of {sorted(FLOWS)} or a torchflow ParticleFlow")
     points: str = Property(default=None, doc="linearisation points ('global', 'particle'); default: the flow's own")
-    schedule: LambdaSchedule = Property(default=None, doc="pseudo-time schedule (default: 29 exponential steps, "
-                                                          "ratio 1.2) or a name ('exponential', 'uniform')")
+    schedule: LambdaSchedule = Property(
+        default=None,
+        doc="pseudo-time schedule (default: 29 exponential steps, ratio 1.2) or a name ('exponential', 'uniform')",
+    )
     resampler: Resampler = Property(default=None, doc="Stone Soup resampler applied after the update (optional)")
     dtype: str = Property(default="float64", doc="'float64' (default) or 'float32'")
     device: str = Property(default="cpu", doc="torch device of the flow ('cpu', 'cuda')")
     seed: int = Property(default=0, doc="seed of the stochastic flows' diffusion noise (a torch.Generator)")
-    flow_prior: str = Property(default="transition", doc="the flow's prior with PF-PF weights: 'transition' "
-                                                          "(default: each particle's own N(F x_prev, Q)) or 'predicted' "
-                                                          "(N(F x_prev, F P_prev F^T + Q), Li & Coates' EKF-style prior)")
-    weights: str = Property(default="standard", doc="PF-PF weights: 'standard' (each particle against its own "
-                                                     "parent) or 'marginal' (against the mixture over all parents, "
-                                                     "O(N^2): torchflow.filters.marginal)")
+    flow_prior: str = Property(
+        default="transition",
+        doc="the flow's prior with PF-PF weights: 'transition' "
+        "(default: each particle's own N(F x_prev, Q)) or 'predicted' "
+        "(N(F x_prev, F P_prev F^T + Q), Li & Coates' EKF-style prior)",
+    )
+    weights: str = Property(
+        default="standard",
+        doc="PF-PF weights: 'standard' (each particle against its own "
+        "parent) or 'marginal' (against the mixture over all parents, "
+        "O(N^2): torchflow.filters.marginal)",
+    )
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -302,8 +324,10 @@ class FlowParticleUpdater(Updater):
         try:
             self._generator = torch.Generator(device=self.device).manual_seed(int(self.seed))
         except RuntimeError as err:
-            raise ArgumentError(f"device: expected a torch device such as 'cpu' or 'cuda', got {self.device!r} "
-                             f"({str(err).splitlines()[0][:80]})") from None
+            raise ArgumentError(
+                f"device: expected a torch device such as 'cpu' or 'cuda', got {self.device!r} "
+                f"({str(err).splitlines()[0][:80]})"
+            ) from None
 
     predict_measurement = ParticleUpdater.predict_measurement
 
@@ -312,8 +336,9 @@ class FlowParticleUpdater(Updater):
         if hypothesis.measurement.measurement_model is not None:
             return hypothesis.measurement.measurement_model, "detection.measurement_model"
         if self.measurement_model is None:
-            raise ArgumentError("FlowParticleUpdater: no measurement model: give measurement_model= or detections that "
-                             "carry one")
+            raise ArgumentError(
+                "FlowParticleUpdater: no measurement model: give measurement_model= or detections that carry one"
+            )
         return self.measurement_model, "measurement_model"
 
     @staticmethod
@@ -326,9 +351,11 @@ class FlowParticleUpdater(Updater):
         parent = getattr(pred, "parent", None)
         tq = getattr(parent, "timestamp", None)
         before = f", before the prediction's parent at {tq}" if tq is not None and td < tq else ""
-        raise ArgumentError(f"detection.timestamp: expected the prediction's timestamp {tp}, got {td} "
-                            f"({'after' if td > tp else 'before'} it by {abs(td - tp)}{before}); predict to the "
-                            "detection's time first: predictor.predict(prior, timestamp=detection.timestamp)")
+        raise ArgumentError(
+            f"detection.timestamp: expected the prediction's timestamp {tp}, got {td} "
+            f"({'after' if td > tp else 'before'} it by {abs(td - tp)}{before}); predict to the "
+            "detection's time first: predictor.predict(prior, timestamp=detection.timestamp)"
+        )
 
     @staticmethod
     def _transition(pred, N):
@@ -342,19 +369,25 @@ class FlowParticleUpdater(Updater):
         if pred.timestamp is not None and parent.timestamp is not None:
             dt = pred.timestamp - parent.timestamp
             if dt < datetime.timedelta(0):
-                raise ArgumentError(f"prediction.timestamp: expected a time at or after its parent's {parent.timestamp}, "
-                                    f"got {pred.timestamp} (a negative interval: detections out of order? the "
-                                    "transition model cannot predict backwards)")
+                raise ArgumentError(
+                    f"prediction.timestamp: expected a time at or after its parent's {parent.timestamp}, "
+                    f"got {pred.timestamp} (a negative interval: detections out of order? the "
+                    "transition model cannot predict backwards)"
+                )
         try:
             F, Q = np.asarray(tm.matrix(time_interval=dt), float), np.asarray(tm.covar(time_interval=dt), float)
         except (AttributeError, TypeError) as err:
-            raise ArgumentError(f"prediction.timestamp: {type(tm).__name__} needs the interval between the prediction "
-                                f"and its parent, got timestamps {pred.timestamp} and {parent.timestamp} ({err})") from None
+            raise ArgumentError(
+                f"prediction.timestamp: {type(tm).__name__} needs the interval between the prediction "
+                f"and its parent, got timestamps {pred.timestamp} and {parent.timestamp} ({err})"
+            ) from None
         scale = max(float(np.abs(Q).max(initial=0.0)), np.finfo(float).tiny)
         if not (np.isfinite(F).all() and np.isfinite(Q).all()) or np.linalg.eigvalsh(Q).min() < -1e-9 * scale:
-            raise ArgumentError(f"prediction.transition_model: expected a finite matrix and a positive semi-definite "
-                                f"covariance over the interval {dt}, got covar() with smallest eigenvalue "
-                                f"{np.linalg.eigvalsh(np.nan_to_num(Q)).min():.3g}")
+            raise ArgumentError(
+                f"prediction.transition_model: expected a finite matrix and a positive semi-definite "
+                f"covariance over the interval {dt}, got covar() with smallest eigenvalue "
+                f"{np.linalg.eigvalsh(np.nan_to_num(Q)).min():.3g}"
+            )
         return F, Q, Xp, lwp
 
     @staticmethod
@@ -369,9 +402,11 @@ class FlowParticleUpdater(Updater):
         near = int((torch.linalg.vector_norm(X[..., idx] - off, dim=-1) <= sd).sum())
         if not near and float(model.z[r]) > sd:
             return ""
-        return (f"; {type(model.ss).__name__} is singular at its sensor position {off.tolist()} (range 0: bearing and "
-                f"Jacobian undefined): the detection's range is {float(model.z[r]):.3g} and {near} of {X.shape[-2]} "
-                f"particles lie within one range-noise standard deviation ({sd:.3g}) of it")
+        return (
+            f"; {type(model.ss).__name__} is singular at its sensor position {off.tolist()} (range 0: bearing and "
+            f"Jacobian undefined): the detection's range is {float(model.z[r]):.3g} and {near} of {X.shape[-2]} "
+            f"particles lie within one range-noise standard deviation ({sd:.3g}) of it"
+        )
 
     def _marginal_log_weights(self, out, X, x1, m_pred, LQ, wp, model, z):
         """Marginal weights (:mod:`torchflow.filters.marginal`): ``p(z | x_i)`` times the mixture of the
@@ -383,9 +418,12 @@ class FlowParticleUpdater(Updater):
         else:  # the parent's affine map pushes N(F x_prev, Q) to N(x1 - M (eta_0 - F x_prev), M Q M^T)
             law = affine_law(x1, X, m_pred, out.map_jacobian, LQ)
         rows = _marginal.pair_rows(1, N, N, x1.shape[-1], x1.element_size())
-        log_rho, = _marginal.mixture_logsumexp(_marginal.gaussian_pairs(x1, m_pred, LQ), [wp.log().unsqueeze(0)], N, rows)
-        log_qbar, = _marginal.mixture_logsumexp(_marginal.gaussian_pairs(x1, *law),
-                                                [torch.full_like(log_rho, -math.log(N))], N, rows)
+        (log_rho,) = _marginal.mixture_logsumexp(
+            _marginal.gaussian_pairs(x1, m_pred, LQ), [wp.log().unsqueeze(0)], N, rows
+        )
+        (log_qbar,) = _marginal.mixture_logsumexp(
+            _marginal.gaussian_pairs(x1, *law), [torch.full_like(log_rho, -math.log(N))], N, rows
+        )
         log_w = model.measurement_log_prob(z.unsqueeze(1), x1) + log_rho - log_qbar
         return log_w[0].double().cpu().numpy()
 
@@ -400,12 +438,16 @@ class FlowParticleUpdater(Updater):
         definite) raises an ``ArgumentError`` that names it; a non-finite result of the flow raises
         a ``NonFiniteError``. Whatever is returned is finite."""
         if not (hasattr(hypothesis, "prediction") and hasattr(hypothesis, "measurement")):
-            raise ArgumentTypeError(f"hypothesis: expected a Stone Soup SingleHypothesis (a prediction and a detection), "
-                                    f"got {type(hypothesis).__name__}")
+            raise ArgumentTypeError(
+                f"hypothesis: expected a Stone Soup SingleHypothesis (a prediction and a detection), "
+                f"got {type(hypothesis).__name__}"
+            )
         pred = hypothesis.prediction
         if not hasattr(pred, "log_weight") or np.ndim(pred.state_vector) != 2:
-            raise ArgumentTypeError(f"FlowParticleUpdater: expected a particle prediction (ParticleStatePrediction), got "
-                            f"{type(pred).__name__}")
+            raise ArgumentTypeError(
+                f"FlowParticleUpdater: expected a particle prediction (ParticleStatePrediction), got "
+                f"{type(pred).__name__}"
+            )
         Xn, lw_prev = _particles(pred, "prediction")
         timestamp = self._timestamp(pred, hypothesis.measurement)
         if not hypothesis:  # a missed detection: the prediction carried forward
@@ -416,17 +458,23 @@ class FlowParticleUpdater(Updater):
             raise ArgumentError(f"detection.state_vector: expected {int(mm.ndim_meas)} values, got None")
         zv = np.asarray(hypothesis.measurement.state_vector, dtype=float).ravel()
         if zv.size != int(mm.ndim_meas):
-            raise ArgumentError(f"FlowParticleUpdater: the detection has {zv.size} values, {type(mm).__name__} measures "
-                             f"ndim_meas = {int(mm.ndim_meas)}")
+            raise ArgumentError(
+                f"FlowParticleUpdater: the detection has {zv.size} values, {type(mm).__name__} measures "
+                f"ndim_meas = {int(mm.ndim_meas)}"
+            )
         if not np.isfinite(zv).all():
-            raise ArgumentError(f"detection.state_vector: expected finite values, got {zv.tolist()} (NaN or infinite "
-                                f"at entries {_shown(np.flatnonzero(~np.isfinite(zv)))})")
+            raise ArgumentError(
+                f"detection.state_vector: expected finite values, got {zv.tolist()} (NaN or infinite "
+                f"at entries {_shown(np.flatnonzero(~np.isfinite(zv)))})"
+            )
         model = StoneSoupMeasurement(mm, zv, name=mm_name, **kw)
         X = torch.as_tensor(Xn.T, **kw).unsqueeze(0)  # (1, N, d)
         N, d = X.shape[1], X.shape[2]
         if model.state_dim != d:
-            raise ArgumentError(f"FlowParticleUpdater: the measurement model has ndim_state {model.state_dim}, the "
-                             f"particles {d} dimensions")
+            raise ArgumentError(
+                f"FlowParticleUpdater: the measurement model has ndim_state {model.state_dim}, the "
+                f"particles {d} dimensions"
+            )
         trans = self._transition(pred, N)
         w = torch.as_tensor(np.exp(lw_prev - logsumexp(lw_prev)), **kw)
         if trans is not None:
@@ -440,20 +488,27 @@ class FlowParticleUpdater(Updater):
             LQ = linalg.safe_cholesky(Q)
         else:
             if self.weights == "marginal":
-                raise ArgumentError("weights: 'marginal' needs the prediction's parent particles and a linear-Gaussian "
-                                    "transition model (predict with Stone Soup's ParticlePredictor); this prediction "
-                                    "has none, so only the unweighted flow update is possible (weights='standard')")
+                raise ArgumentError(
+                    "weights: 'marginal' needs the prediction's parent particles and a linear-Gaussian "
+                    "transition model (predict with Stone Soup's ParticlePredictor); this prediction "
+                    "has none, so only the unweighted flow update is possible (weights='standard')"
+                )
             if "unweighted" not in _WARNED:
                 _WARNED.add("unweighted")
-                warnings.warn("FlowParticleUpdater: the prediction carries no parent particles with a linear-Gaussian "
-                              "transition model, so the update is the unweighted flow filter (particles keep their "
-                              "weights); predict with Stone Soup's ParticlePredictor and a linear-Gaussian transition "
-                              "for PF-PF weights", UserWarning, stacklevel=2)
+                warnings.warn(
+                    "FlowParticleUpdater: the prediction carries no parent particles with a linear-Gaussian "
+                    "transition model, so the update is the unweighted flow filter (particles keep their "
+                    "weights); predict with Stone Soup's ParticlePredictor and a linear-Gaussian transition "
+                    "for PF-PF weights",
+                    UserWarning,
+                    stacklevel=2,
+                )
             mean = w @ X[0]
             P = ((X[0] - mean).T * w) @ (X[0] - mean)
             m_pred = X
-        L = linalg.safe_cholesky(linalg.symmetrize(P) + 1e-12 * P.diagonal().abs().max().clamp_min(1.0)
-                                 * torch.eye(d, **kw))
+        L = linalg.safe_cholesky(
+            linalg.symmetrize(P) + 1e-12 * P.diagonal().abs().max().clamp_min(1.0) * torch.eye(d, **kw)
+        )
         pts = resolve_points(self._flow, self.points)
         if pts.per_particle:
             prior = FlowPrior(m_pred, L.expand(1, N, d, d))
@@ -465,34 +520,66 @@ class FlowParticleUpdater(Updater):
         with torch.no_grad():
             try:
                 marginal = trans is not None and self.weights == "marginal"
-                out = integrate_flow(self._flow, model, X, z, prior, self._schedule, points=pts,
-                                     generator=self._generator if self._flow.stochastic else None, proposal=proposal,
-                                     map_jacobian=marginal and not self._flow.stochastic)
+                out = integrate_flow(
+                    self._flow,
+                    model,
+                    X,
+                    z,
+                    prior,
+                    self._schedule,
+                    points=pts,
+                    generator=self._generator if self._flow.stochastic else None,
+                    proposal=proposal,
+                    map_jacobian=marginal and not self._flow.stochastic,
+                )
             except torch.linalg.LinAlgError as err:
-                raise NonFiniteError("FlowParticleUpdater", 0, [], what=f"values in {where} (torch linear algebra "
-                                     f"failed: {str(err).splitlines()[0][:120]}){self._singular_hint(model, X)}") from None
+                raise NonFiniteError(
+                    "FlowParticleUpdater",
+                    0,
+                    [],
+                    what=f"values in {where} (torch linear algebra "
+                    f"failed: {str(err).splitlines()[0][:120]}){self._singular_hint(model, X)}",
+                ) from None
             x1 = out.particles
             bad = int((~torch.isfinite(x1).all(-1)).sum())
             if bad:
-                raise NonFiniteError("FlowParticleUpdater", 0, [], what=f"particle states after {where} ({bad} of {N} "
-                                     f"particles){self._singular_hint(model, X)}")
+                raise NonFiniteError(
+                    "FlowParticleUpdater",
+                    0,
+                    [],
+                    what=f"particle states after {where} ({bad} of {N} particles){self._singular_hint(model, X)}",
+                )
             if marginal:
                 log_w = self._marginal_log_weights(out, X, x1, m_pred, LQ, wp, model, z)
             elif trans is not None:
-                log_q = (out.log_proposal if self._flow.stochastic
-                         else linalg.mvn_log_prob(X, m_pred, LQ) - out.log_det)
-                log_w = (torch.as_tensor(lw_prev, **kw) + linalg.mvn_log_prob(x1, m_pred, LQ)
-                         + model.measurement_log_prob(z.unsqueeze(1), x1) - log_q)[0]
+                log_q = out.log_proposal if self._flow.stochastic else linalg.mvn_log_prob(X, m_pred, LQ) - out.log_det
+                log_w = (
+                    torch.as_tensor(lw_prev, **kw)
+                    + linalg.mvn_log_prob(x1, m_pred, LQ)
+                    + model.measurement_log_prob(z.unsqueeze(1), x1)
+                    - log_q
+                )[0]
                 log_w = log_w.double().cpu().numpy()
             else:
                 log_w = lw_prev.copy()
         bad = int((np.isnan(log_w) | np.isposinf(log_w)).sum())
         if bad or np.isneginf(log_w).all():
-            raise NonFiniteError("FlowParticleUpdater", 0, [], what=f"log-weights after {where} "
-                                 f"({bad or N} of {N} particles NaN, +inf or all -inf){self._singular_hint(model, X)}")
+            raise NonFiniteError(
+                "FlowParticleUpdater",
+                0,
+                [],
+                what=f"log-weights after {where} "
+                f"({bad or N} of {N} particles NaN, +inf or all -inf){self._singular_hint(model, X)}",
+            )
         log_w = log_w - logsumexp(log_w)
-        update = Update.from_state(pred, state_vector=StateVectors(x1[0].double().cpu().numpy().T), log_weight=log_w,
-                                   hypothesis=hypothesis, timestamp=timestamp, target_type=ParticleStateUpdate)
+        update = Update.from_state(
+            pred,
+            state_vector=StateVectors(x1[0].double().cpu().numpy().T),
+            log_weight=log_w,
+            hypothesis=hypothesis,
+            timestamp=timestamp,
+            target_type=ParticleStateUpdate,
+        )
         if self.resampler is not None:
             update = self.resampler.resample(update)
         return update

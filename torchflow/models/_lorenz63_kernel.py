@@ -2,6 +2,7 @@
 float64: at d = 3 the torch path's cost is per-operation overhead (25 substeps x 4 stages of small
 products), which a compiled loop removes. Imported only where Numba is installed
 (:func:`torchflow.flows.kernels.steps._importable`); the torch path gives the same numbers to round-off."""
+
 from __future__ import annotations
 
 import numba
@@ -40,10 +41,12 @@ def rk4_tangent(states, h, substeps, sigma, rho, beta):
             for col in range(3):  # the tangent of each column of J through the four stages
                 v0, v1, v2 = J[0, col], J[1, col], J[2, col]
                 t1 = _tangent(x, y, z, v0, v1, v2, sigma, rho, beta)
-                t2 = _tangent(a[0], a[1], a[2], v0 + 0.5 * h * t1[0], v1 + 0.5 * h * t1[1], v2 + 0.5 * h * t1[2],
-                              sigma, rho, beta)
-                t3 = _tangent(b[0], b[1], b[2], v0 + 0.5 * h * t2[0], v1 + 0.5 * h * t2[1], v2 + 0.5 * h * t2[2],
-                              sigma, rho, beta)
+                t2 = _tangent(
+                    a[0], a[1], a[2], v0 + 0.5 * h * t1[0], v1 + 0.5 * h * t1[1], v2 + 0.5 * h * t1[2], sigma, rho, beta
+                )
+                t3 = _tangent(
+                    b[0], b[1], b[2], v0 + 0.5 * h * t2[0], v1 + 0.5 * h * t2[1], v2 + 0.5 * h * t2[2], sigma, rho, beta
+                )
                 t4 = _tangent(c[0], c[1], c[2], v0 + h * t3[0], v1 + h * t3[1], v2 + h * t3[2], sigma, rho, beta)
                 Jn[0, col] = v0 + h / 6.0 * (t1[0] + 2.0 * t2[0] + 2.0 * t3[0] + t4[0])
                 Jn[1, col] = v1 + h / 6.0 * (t1[1] + 2.0 * t2[1] + 2.0 * t3[1] + t4[1])

@@ -4,6 +4,7 @@ C = 4 targets move with nearly constant velocity in a 40 m x 40 m field; 25 acou
 5 x 5 grid measure the summed amplitude ``z_s = sum_c Psi / (|p_c - s_s| + d0) + w_s``.
 State layout is target-major: ``x = [px1, py1, vx1, vy1, px2, ...]`` (d = 16, m = 25).
 """
+
 from __future__ import annotations
 
 import math
@@ -62,23 +63,47 @@ class AcousticTracking(GaussianStateSpaceModel):
     per_trial_parameters = ("psi", "sigma_w")
     #: linear dynamics, R = sigma_w^2 I, h reads the positions only (``(0, 1, 4, 5, ...)``, k = 2C
     #: of d = 4C), ``z_i = Psi sum_c 1 / (|p_c - s_i| + d0)`` in the flow kernels' named form
-    structure = Structure(linear_dynamics=True, measurement_noise="scalar", has_positions=True, graph_safe=True,
-                          measurement_support=tuple(4 * c + i for c in range(4) for i in (0, 1)),
-                          measurement_form=("inverse_distance_sum", ("sensors", "psi", "d0")))
+    structure = Structure(
+        linear_dynamics=True,
+        measurement_noise="scalar",
+        has_positions=True,
+        graph_safe=True,
+        measurement_support=tuple(4 * c + i for c in range(4) for i in (0, 1)),
+        measurement_form=("inverse_distance_sum", ("sensors", "psi", "d0")),
+    )
 
-    def __init__(self, *, sigma_w: float = 0.1, psi: float = 10.0, d0: float = 0.1, true_noise_scale: float = 0.05,
-                 filter_noise: str = "inflated", area: float = 40.0, sensor_grid: int = 5,
-                 prior_std: Sequence[float] = (10.0, 10.0, 1.0, 1.0), initial_state: Optional[Sequence[float]] = None,
-                 margin: float = 0.05, max_redraws: int = 10000, learnable=False):
+    def __init__(
+        self,
+        *,
+        sigma_w: float = 0.1,
+        psi: float = 10.0,
+        d0: float = 0.1,
+        true_noise_scale: float = 0.05,
+        filter_noise: str = "inflated",
+        area: float = 40.0,
+        sensor_grid: int = 5,
+        prior_std: Sequence[float] = (10.0, 10.0, 1.0, 1.0),
+        initial_state: Optional[Sequence[float]] = None,
+        margin: float = 0.05,
+        max_redraws: int = 10000,
+        learnable=False,
+    ):
         super().__init__()
-        for name, value in (("sigma_w", sigma_w), ("psi", psi), ("d0", d0), ("true_noise_scale", true_noise_scale),
-                            ("area", area)):
+        for name, value in (
+            ("sigma_w", sigma_w),
+            ("psi", psi),
+            ("d0", d0),
+            ("true_noise_scale", true_noise_scale),
+            ("area", area),
+        ):
             check_positive(name, value)
         f64_range = torch.finfo(torch.float64)
         if not f64_range.tiny <= float(sigma_w) * float(sigma_w) < math.inf:
-            raise ArgumentError(f"sigma_w: expected a noise scale whose square is a normal float64 (in "
-                                f"[{f64_range.tiny ** 0.5:.3g}, {f64_range.max ** 0.5:.3g}]), got {sigma_w!r} (the "
-                                "measurement covariance sigma_w^2 I would underflow to a singular matrix or overflow)")
+            raise ArgumentError(
+                f"sigma_w: expected a noise scale whose square is a normal float64 (in "
+                f"[{f64_range.tiny**0.5:.3g}, {f64_range.max**0.5:.3g}]), got {sigma_w!r} (the "
+                "measurement covariance sigma_w^2 I would underflow to a singular matrix or overflow)"
+            )
         sensor_grid = check_number("sensor_grid", sensor_grid, lambda v: v >= 1, "an integer >= 1", integer=True)
         check_number("margin", margin, lambda v: 0 <= v < 0.5, "a fraction of the area in [0, 0.5)")
         check_number("max_redraws", max_redraws, lambda v: v >= 1, "an integer >= 1", integer=True)
@@ -120,8 +145,10 @@ class AcousticTracking(GaussianStateSpaceModel):
         self.register_buffer("x0", x0)
         lo, hi = margin * area, (1 - margin) * area
         if not self._inside(x0.reshape(1, C, 4)[..., :2], lo, hi):  # simulate keeps every track inside
-            raise ArgumentError(f"initial_state: expected target positions inside the field [margin, 1 - margin] * "
-                                f"area = [{lo:g}, {hi:g}]^2, got {x0.reshape(C, 4)[:, :2].tolist()}")
+            raise ArgumentError(
+                f"initial_state: expected target positions inside the field [margin, 1 - margin] * "
+                f"area = [{lo:g}, {hi:g}]^2, got {x0.reshape(C, 4)[:, :2].tolist()}"
+            )
         self.register_buffer("prior_std", ps.repeat(C))
         self.area, self.margin, self.max_redraws = float(area), float(margin), int(max_redraws)
 
@@ -164,7 +191,7 @@ class AcousticTracking(GaussianStateSpaceModel):
         return (self._psi(x, 2) / (r + self.d0)).sum(-2)
 
     def measurement_cov(self, x=None):
-        return self._sd(x, 2)**2 * torch.eye(self.obs_dim, dtype=self.sigma_w.dtype, device=self.sigma_w.device)
+        return self._sd(x, 2) ** 2 * torch.eye(self.obs_dim, dtype=self.sigma_w.dtype, device=self.sigma_w.device)
 
     def measurement_scale_tril(self, x=None):
         return self._sd(x, 2) * torch.eye(self.obs_dim, dtype=self.sigma_w.dtype, device=self.sigma_w.device)
@@ -274,9 +301,11 @@ class AcousticTracking(GaussianStateSpaceModel):
                 if todo.numel() == 0:
                     break
             else:
-                raise ArgumentError(f"AcousticTracking.simulate: {todo.numel()} target tracks still leave the field "
-                                    f"[{lo:g}, {hi:g}]^2 after max_redraws={self.max_redraws} redraws (fewer steps, a "
-                                    "larger area or a smaller margin keep them inside)")
+                raise ArgumentError(
+                    f"AcousticTracking.simulate: {todo.numel()} target tracks still leave the field "
+                    f"[{lo:g}, {hi:g}]^2 after max_redraws={self.max_redraws} redraws (fewer steps, a "
+                    "larger area or a smaller margin keep them inside)"
+                )
             # (B*C, T+1, 4) -> (B, T+1, C*4), target-major
             states = tracks.reshape(batch_size, C, steps + 1, 4).transpose(1, 2).reshape(batch_size, steps + 1, 4 * C)
             obs = self.sample_measurement(states[:, 1:], generator)
@@ -294,14 +323,17 @@ class AcousticTracking(GaussianStateSpaceModel):
         """Prior mean ``m_0 = x_0 + sigma_0 * xi``, redrawn until all four positions lie in the
         field; covariance ``diag(sigma_0^2)``. Returns ``(B, 16)``, ``(B, 16, 16)``."""
         if not isinstance(generator, torch.Generator):
-            raise ArgumentTypeError(f"AcousticTracking.initial_belief: generator: expected a torch.Generator (the prior "
-                            f"mean is drawn), got {type(generator).__name__}")
+            raise ArgumentTypeError(
+                f"AcousticTracking.initial_belief: generator: expected a torch.Generator (the prior "
+                f"mean is drawn), got {type(generator).__name__}"
+            )
         B = states0.shape[0]
         mean = torch.empty_like(states0)
         todo = torch.arange(B, device=states0.device)
         for _ in range(self.max_redraws):
-            xi = torch.randn(todo.numel(), self.state_dim, dtype=states0.dtype, device=states0.device,
-                             generator=generator)
+            xi = torch.randn(
+                todo.numel(), self.state_dim, dtype=states0.dtype, device=states0.device, generator=generator
+            )
             cand = states0[todo] + self.prior_std * xi
             ok = self._inside(self.positions(cand), 0.0, self.area)
             mean[todo[ok]] = cand[ok]

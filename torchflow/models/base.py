@@ -14,6 +14,7 @@ what a kernel may exploit) is one record, :class:`~torchflow.models.structure.St
 outputs of a model's methods are shape-checked once per model, on a filter's first call
 (:func:`torchflow.models.contract.check_shapes`), with an error naming the method.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -51,8 +52,9 @@ class Trajectory:
 
 
 def _missing(model, method: str, what: str):
-    return NotImplementedError(f"{type(model).__name__}.{method}: not given; a model gives {what} "
-                               "(torchflow.models.StateSpaceModel's core)")
+    return NotImplementedError(
+        f"{type(model).__name__}.{method}: not given; a model gives {what} (torchflow.models.StateSpaceModel's core)"
+    )
 
 
 class StateSpaceModel(nn.Module):
@@ -122,8 +124,10 @@ class StateSpaceModel(nn.Module):
     def _reference_tensor(self) -> torch.Tensor:
         for t in itertools.chain(self.parameters(), self.buffers()):
             return t
-        raise RuntimeError(f"{type(self).__name__} has no parameters or buffers (register the model's numbers "
-                           "as buffers or nn.Parameters: they give its dtype and device)")
+        raise RuntimeError(
+            f"{type(self).__name__} has no parameters or buffers (register the model's numbers "
+            "as buffers or nn.Parameters: they give its dtype and device)"
+        )
 
     def _per_trial_structure(self, names) -> Structure:
         """The structure while the parameters ``names`` hold one value per trial
@@ -138,8 +142,9 @@ class StateSpaceModel(nn.Module):
         """True initial states ``x_0 (B, d)``."""
         raise _missing(self, "initial_state", "initial_state(batch_size, generator) -> (B, d)")
 
-    def initial_belief(self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
-                       ) -> Tuple[torch.Tensor, torch.Tensor]:
+    def initial_belief(
+        self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
+    ) -> Tuple[torch.Tensor, torch.Tensor]:
         """The filters' prior for each trial given the true ``states0 (B, d)``: mean ``(B, d)`` and
         covariance ``(B, d, d)``."""
         raise _missing(self, "initial_belief", "initial_belief(states0, generator) -> ((B, d), (B, d, d))")
@@ -203,8 +208,9 @@ class StateSpaceModel(nn.Module):
             who = f"{type(self).__name__}.simulate"
             if not isinstance(x, torch.Tensor) or tuple(x.shape) != (batch_size, self.state_dim):
                 got = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
-                raise ArgumentError(f"{who}: initial_state returned {got}; expected (B, d) = "
-                                    f"({batch_size}, {self.state_dim})")
+                raise ArgumentError(
+                    f"{who}: initial_state returned {got}; expected (B, d) = ({batch_size}, {self.state_dim})"
+                )
             check_shapes(self, x, who)  # every method's output shape, once per model and layout
             # written into the outputs step by step (a list of 2 T small tensors would cost more than the data)
             states, obs = x.new_empty((x.shape[0], steps + 1, *x.shape[1:])), None
@@ -237,16 +243,21 @@ class StateSpaceModel(nn.Module):
         """Raise a clear error unless ``observations`` is a ``(B, T, m)`` tensor on the model's
         dtype and device whose values are finite or NaN (NaN: not observed, :mod:`torchflow.missing`;
         ``inf`` is an error)."""
-        check_tensor("observations", observations, (None, None, self.obs_dim), "(B, T, m)",
-                     dtype=self.dtype, device=self.device)
+        check_tensor(
+            "observations", observations, (None, None, self.obs_dim), "(B, T, m)", dtype=self.dtype, device=self.device
+        )
         if observations.shape[0] == 0 or observations.shape[1] == 0:
-            raise ArgumentError(f"observations: expected (B, T, m) with at least one trial and one time step, "
-                             f"got {tuple(observations.shape)}")
+            raise ArgumentError(
+                f"observations: expected (B, T, m) with at least one trial and one time step, "
+                f"got {tuple(observations.shape)}"
+            )
         inf = torch.isinf(observations)
         if bool(inf.any()):  # NaN marks a missing value; an infinity is an error
             trials = torch.nonzero(inf.flatten(1).any(-1)).flatten().tolist()
-            raise ArgumentError(f"observations: {int(inf.sum())} infinite value(s), in trial(s) {trials[:10]} "
-                                "(NaN marks a value not observed; inf is not a measurement)")
+            raise ArgumentError(
+                f"observations: {int(inf.sum())} infinite value(s), in trial(s) {trials[:10]} "
+                "(NaN marks a value not observed; inf is not a measurement)"
+            )
         return observations
 
 
@@ -377,7 +388,11 @@ class GaussianStateSpaceModel(StateSpaceModel):
         second derivatives overrides it."""
         from torch.func import jvp, vmap
 
-        idx = list(self.structure.measurement_support) if support and self.structure.measurement_support is not None else None
+        idx = (
+            list(self.structure.measurement_support)
+            if support and self.structure.measurement_support is not None
+            else None
+        )
         index = None if idx is None else torch.tensor(idx, device=x.device)
         xs = x if index is None else x[..., index]
         k = xs.shape[-1]
@@ -418,7 +433,8 @@ class GaussianStateSpaceModel(StateSpaceModel):
             raise ArgumentTypeError(
                 f"{type(self).__name__}.measurement_log_prob_terms: the observations' densities one by one need a "
                 f"diagonal measurement noise (declared scalar, diagonal or state_dependent_diagonal); this model "
-                f"declares {noise!r}. Override measurement_log_prob_terms for another independent measurement law")
+                f"declares {noise!r}. Override measurement_log_prob_terms for another independent measurement law"
+            )
         h = self.measure(x)
         r = self.measurement_variance(x if noise.startswith("state_dependent") else None)
         resid = z - h
@@ -445,8 +461,9 @@ class GaussianStateSpaceModel(StateSpaceModel):
             return -0.5 * torch.where(full, terms, torch.zeros_like(terms)).sum(-1)
         # per trial (the mask's own batch shape), not per particle, where R is constant
         R = missing.masked_noise(self.measurement_cov(x), observed)
-        return (linalg.mvn_log_prob(resid, torch.zeros_like(resid), linalg.safe_cholesky(R))
-                + missing.unobserved_correction(full, dtype=h.dtype))
+        return linalg.mvn_log_prob(
+            resid, torch.zeros_like(resid), linalg.safe_cholesky(R)
+        ) + missing.unobserved_correction(full, dtype=h.dtype)
 
     def sample_measurement(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         """Draw z ~ p(z | x) for ``x (..., d)`` -> ``(..., m)``."""

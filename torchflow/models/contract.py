@@ -9,6 +9,7 @@
 * :func:`check_dtype`, :func:`check_simulate_args`, :func:`check_covariances`: argument and
   parameter checks with clear errors.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -34,22 +35,30 @@ def require_gaussian(model, who: str) -> None:
     from .base import GaussianStateSpaceModel, StateSpaceModel
 
     if not isinstance(model, StateSpaceModel):
-        raise ArgumentTypeError(f"{who}: model: expected a torchflow.models.StateSpaceModel, got {type(model).__name__}")
+        raise ArgumentTypeError(
+            f"{who}: model: expected a torchflow.models.StateSpaceModel, got {type(model).__name__}"
+        )
     if not isinstance(model, GaussianStateSpaceModel):
-        raise ArgumentTypeError(f"{who}: model: {type(model).__name__} gives only the core (samplers and densities); "
-                        f"{who} needs the Gaussian form ({', '.join(GAUSSIAN_FORM)}): subclass "
-                        "torchflow.models.GaussianStateSpaceModel, or use BootstrapParticleFilter")
+        raise ArgumentTypeError(
+            f"{who}: model: {type(model).__name__} gives only the core (samplers and densities); "
+            f"{who} needs the Gaussian form ({', '.join(GAUSSIAN_FORM)}): subclass "
+            "torchflow.models.GaussianStateSpaceModel, or use BootstrapParticleFilter"
+        )
 
 
 def check_dtype(model, who: str) -> None:
     """Raise unless the model is in float32 or float64 (the precisions filters support), with values
     (not on the meta device)."""
     if model.dtype not in (torch.float32, torch.float64):
-        raise ArgumentTypeError(f"{who}: the model is in {model.dtype}; filters and simulation run in float32 or "
-                        "float64 (convert with model.double() or model.float())")
+        raise ArgumentTypeError(
+            f"{who}: the model is in {model.dtype}; filters and simulation run in float32 or "
+            "float64 (convert with model.double() or model.float())"
+        )
     if model.device.type == "meta":
-        raise ArgumentError(f"{who}: the model is on the meta device, which holds shapes but no values; filters and "
-                            "simulation need its numbers (model.to_empty(device=...) and load them, or build it on cpu)")
+        raise ArgumentError(
+            f"{who}: the model is on the meta device, which holds shapes but no values; filters and "
+            "simulation need its numbers (model.to_empty(device=...) and load them, or build it on cpu)"
+        )
 
 
 def check_simulate_args(model, batch_size, steps, generator) -> Tuple[int, int]:
@@ -59,8 +68,9 @@ def check_simulate_args(model, batch_size, steps, generator) -> Tuple[int, int]:
     batch_size = check_count(f"{who}: batch_size", batch_size)
     steps = check_count(f"{who}: steps", steps)
     if not isinstance(generator, torch.Generator):
-        raise ArgumentTypeError(f"{who}: generator: expected a torch.Generator, got {type(generator).__name__}"
-                        f"{generator_hint(generator)}")
+        raise ArgumentTypeError(
+            f"{who}: generator: expected a torch.Generator, got {type(generator).__name__}{generator_hint(generator)}"
+        )
     check_dtype(model, who)
     return batch_size, steps
 
@@ -75,9 +85,15 @@ def check_simulated(who: str, traj) -> None:
         if n:
             b, t = (int(v) for v in torch.nonzero(bad)[0])
             step = t if what == "states" else t + 1
-            raise NonFiniteError(who, step, sorted(set(torch.nonzero(bad)[:, 0].tolist())), what=(
-                f"simulated {what} ({n} (trial, step) pair(s), first trial {b}; the model's parameters or "
-                "methods give NaN/inf there)"))
+            raise NonFiniteError(
+                who,
+                step,
+                sorted(set(torch.nonzero(bad)[:, 0].tolist())),
+                what=(
+                    f"simulated {what} ({n} (trial, step) pair(s), first trial {b}; the model's parameters or "
+                    "methods give NaN/inf there)"
+                ),
+            )
 
 
 def check_parameters(model, who: str = "") -> None:
@@ -103,18 +119,20 @@ def check_parameters(model, who: str = "") -> None:
     for (name, v), bad in zip(values.items(), flags):
         if bad:
             shown = v.detach().flatten()[:4].tolist()
-            raise ArgumentError(f"{who + ': ' if who else ''}{type(model).__name__}'s learnable parameter {name!r} is "
-                                f"not finite (values {shown}{' ...' if v.numel() > 4 else ''}); an optimiser step "
-                                "diverged (lower the learning rate) or it was set so")
+            raise ArgumentError(
+                f"{who + ': ' if who else ''}{type(model).__name__}'s learnable parameter {name!r} is "
+                f"not finite (values {shown}{' ...' if v.numel() > 4 else ''}); an optimiser step "
+                "diverged (lower the learning rate) or it was set so"
+            )
 
 
 #: :func:`check_shapes` evaluates the covariances where their dense batch holds at most this many
 #: numbers, and :func:`check_covariances` checks a constant one of at most this many
-COVARIANCE_CHECK_NUMBERS = 2 ** 24
+COVARIANCE_CHECK_NUMBERS = 2**24
 #: above this many numbers (m > 256) a declared scalar R is checked by its declared scale alone (below,
 #: the matrix the model gives is checked too: cheap, and it catches a subclass whose R no longer
 #: matches its parent's declaration)
-DECLARED_CHECK_NUMBERS = 2 ** 16
+DECLARED_CHECK_NUMBERS = 2**16
 
 
 def check_covariances(model, who: str = "") -> None:
@@ -138,11 +156,17 @@ def check_covariances(model, who: str = "") -> None:
             continue
         k = model.state_dim if name == "transition_cov" else (model.obs_dim or 0)
         scale = structure.measurement_noise_scale if structure.measurement_noise == "scalar" else None
-        if name == "measurement_cov" and scale is not None and k * k > DECLARED_CHECK_NUMBERS \
-                or k * k > COVARIANCE_CHECK_NUMBERS:  # not formed for a check: a declared R = r I by its scale
+        if (
+            name == "measurement_cov"
+            and scale is not None
+            and k * k > DECLARED_CHECK_NUMBERS
+            or k * k > COVARIANCE_CHECK_NUMBERS
+        ):  # not formed for a check: a declared R = r I by its scale
             if name == "measurement_cov" and scale is not None and not scale >= 0:
-                raise ArgumentError(f"{who + ': ' if who else ''}{type(model).__name__}'s {what} ({scale:g} I, "
-                                    "declared) is not positive semi-definite")
+                raise ArgumentError(
+                    f"{who + ': ' if who else ''}{type(model).__name__}'s {what} ({scale:g} I, "
+                    "declared) is not positive semi-definite"
+                )
             continue
         try:
             C = fn()
@@ -163,13 +187,15 @@ def check_covariances(model, who: str = "") -> None:
         check_psd(f"{who + ': ' if who else ''}{label}", C.detach())
 
 
-def _expect(who: str, method: str, out, shape: Tuple[int, ...], expected: str, broadcast_ok: bool = False,
-            where: str = "") -> None:
+def _expect(
+    who: str, method: str, out, shape: Tuple[int, ...], expected: str, broadcast_ok: bool = False, where: str = ""
+) -> None:
     """Raise unless ``out`` is a tensor of ``shape`` (or, with ``broadcast_ok``, broadcastable to it
     with the same trailing dimensions); ``where`` says on which inputs."""
     if not isinstance(out, torch.Tensor):
-        raise ArgumentTypeError(f"{who}: {method} returned {type(out).__name__}{where}; expected a tensor {expected} "
-                        f"= {tuple(shape)}")
+        raise ArgumentTypeError(
+            f"{who}: {method} returned {type(out).__name__}{where}; expected a tensor {expected} = {tuple(shape)}"
+        )
     got = tuple(out.shape)
     if got == tuple(shape):
         return

@@ -1,6 +1,7 @@
 """Numerical pieces shared by the models of continuous-time dynamics (Lorenz-63, Lorenz-96):
 classical Runge-Kutta integration, with or without the exact Jacobian of the discrete map, and the
 isotropic Gaussian density that their scalar noise factors give."""
+
 from __future__ import annotations
 
 import math
@@ -24,8 +25,9 @@ def rk4_steps(tendency, x: torch.Tensor, dt: float, substeps: int) -> torch.Tens
     return x
 
 
-def rk4_with_tangent(tendency, tendency_jacobian, x: torch.Tensor, dt: float, substeps: int
-                     ) -> Tuple[torch.Tensor, torch.Tensor]:
+def rk4_with_tangent(
+    tendency, tendency_jacobian, x: torch.Tensor, dt: float, substeps: int
+) -> Tuple[torch.Tensor, torch.Tensor]:
     """``(x_T, J)``: ``x (..., d)`` moved by ``substeps`` classical Runge-Kutta steps of
     ``dt / substeps`` and the exact Jacobian ``(..., d, d)`` of that discrete map (the stages'
     derivatives carried alongside, forward mode)."""

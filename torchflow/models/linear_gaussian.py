@@ -1,4 +1,5 @@
 """Linear-Gaussian state-space model and the spatial sensor network of Li & Coates (2017) §V."""
+
 from __future__ import annotations
 
 import math
@@ -9,8 +10,16 @@ from torch import nn
 
 from .. import constraints, linalg
 from ..linalg import _LOG_2PI
-from .._checks import (as_real_tensor, check_choice, check_learnable, check_nonnegative, check_number, check_positive,
-                       check_psd, check_tensor)
+from .._checks import (
+    as_real_tensor,
+    check_choice,
+    check_learnable,
+    check_nonnegative,
+    check_number,
+    check_positive,
+    check_psd,
+    check_tensor,
+)
 from .base import GaussianStateSpaceModel
 from .structure import Structure
 from .trials import per_trial_structure, trial_factor, trial_names, trial_view
@@ -77,13 +86,16 @@ class LinearGaussian(GaussianStateSpaceModel):
         learn = check_learnable(learnable, names)
         diagonal = bool((R == torch.diag_embed(R.diagonal())).all())
         if measurement_noise is None:
-            measurement_noise = ("dense" if "R" in learn or not diagonal else
-                                 "scalar" if _identity_scale(R) is not None else "diagonal")
+            measurement_noise = (
+                "dense" if "R" in learn or not diagonal else "scalar" if _identity_scale(R) is not None else "diagonal"
+            )
         for name, val in zip(names, (F, Q, H, R)):
             if name in ("Q", "R") and name in learn:  # valid by construction (torchflow.constraints)
                 if bool((torch.linalg.cholesky_ex(val)[1] > 0).any()):
-                    raise ArgumentError(f"{name}: a learnable covariance is parametrised by its Cholesky factor, "
-                                     f"so it must be positive definite; got a singular matrix")
+                    raise ArgumentError(
+                        f"{name}: a learnable covariance is parametrised by its Cholesky factor, "
+                        f"so it must be positive definite; got a singular matrix"
+                    )
                 self.register_buffer(name, val.clone())
                 kind = "diagonal" if name == "R" and measurement_noise == "diagonal" else "cholesky"
                 constraints.constrain(self, name, kind)
@@ -105,7 +117,8 @@ class LinearGaussian(GaussianStateSpaceModel):
             transition_matrix_scale=None if "F" in learn else _identity_scale(F),
             measurement_matrix_scale=None if "H" in learn else _identity_scale(H),
             measurement_noise_scale=None if "R" in learn else _identity_scale(R),
-            measurement_noise=measurement_noise)
+            measurement_noise=measurement_noise,
+        )
         if measurement_noise == "scalar" and self.structure.measurement_noise_scale is None:
             raise ArgumentError("measurement_noise: declared 'scalar' but R is not a constant multiple of I")
         if measurement_noise == "diagonal" and not diagonal:
@@ -226,9 +239,9 @@ def _identity_scale(M: torch.Tensor) -> Optional[float]:
     return float(c) if bool((M == c * torch.eye(M.shape[0], dtype=M.dtype, device=M.device)).all()) else None
 
 
-
-def sensor_network_covariance(grid_size: int, alpha0: float = 3.0, alpha1: float = 0.01,
-                              beta: float = 20.0) -> torch.Tensor:
+def sensor_network_covariance(
+    grid_size: int, alpha0: float = 3.0, alpha1: float = 0.01, beta: float = 20.0
+) -> torch.Tensor:
     """Process noise of the spatial sensor network: ``Sigma_ij = alpha0 exp(-|R_i - R_j|^2 / beta)
     + alpha1 delta_ij`` over a ``grid_size x grid_size`` grid with unit spacing (``d = grid_size^2``).
 
@@ -259,20 +272,45 @@ class SensorNetwork(LinearGaussian):
 
     structure = LinearGaussian.structure  # declared again: graph-safe and kernel-ready as its parent
 
-    def __init__(self, *, d: int = 64, alpha: float = 0.9, alpha0: float = 3.0, alpha1: float = 0.01,
-                 beta: float = 20.0, sigma_z: float = 0.5, prior_var: float = 0.0, learnable: bool = False):
-        d = check_number("d", d, lambda v: v >= 1 and round(math.sqrt(v)) ** 2 == v,
-                         "a perfect square >= 1 (grid side^2: 1, 4, 9, ..., 64)", integer=True)
+    def __init__(
+        self,
+        *,
+        d: int = 64,
+        alpha: float = 0.9,
+        alpha0: float = 3.0,
+        alpha1: float = 0.01,
+        beta: float = 20.0,
+        sigma_z: float = 0.5,
+        prior_var: float = 0.0,
+        learnable: bool = False,
+    ):
+        d = check_number(
+            "d",
+            d,
+            lambda v: v >= 1 and round(math.sqrt(v)) ** 2 == v,
+            "a perfect square >= 1 (grid side^2: 1, 4, 9, ..., 64)",
+            integer=True,
+        )
         g = int(round(math.sqrt(d)))
         check_number("alpha", alpha)
         check_nonnegative("alpha0", alpha0)
         check_nonnegative("alpha1", alpha1)  # alpha0 = alpha1 = 0: Q = 0 (singular, for filters that allow it)
         for name, value in (("beta", beta), ("sigma_z", sigma_z)):
             check_positive(name, value)
-        check_number("sigma_z", sigma_z, lambda v: float(v) * float(v) < math.inf,
-                     "a noise scale whose square is a finite float64 (the measurement covariance sigma_z^2 I)")
+        check_number(
+            "sigma_z",
+            sigma_z,
+            lambda v: float(v) * float(v) < math.inf,
+            "a noise scale whose square is a finite float64 (the measurement covariance sigma_z^2 I)",
+        )
         check_nonnegative("prior_var", prior_var)
         eye = torch.eye(d, dtype=torch.float64)
-        super().__init__(F=alpha * eye, Q=sensor_network_covariance(g, alpha0, alpha1, beta), H=eye,
-                         R=sigma_z**2 * eye, m0=torch.zeros(d, dtype=torch.float64), P0=prior_var * eye,
-                         learnable=learnable)
+        super().__init__(
+            F=alpha * eye,
+            Q=sensor_network_covariance(g, alpha0, alpha1, beta),
+            H=eye,
+            R=sigma_z**2 * eye,
+            m0=torch.zeros(d, dtype=torch.float64),
+            P0=prior_var * eye,
+            learnable=learnable,
+        )

@@ -18,6 +18,7 @@ batched over all states): one pass of ``4 substeps`` small products instead of `
 one state at a time; on the CPU in float64 with Numba installed, one compiled loop (under 1 ms a call
 for a handful of states, where the torch pass costs its ~400 small operations' overhead).
 """
+
 from __future__ import annotations
 
 import importlib
@@ -44,7 +45,7 @@ def _kernel_available() -> bool:
         try:
             importlib.import_module("torchflow.models._lorenz63_kernel")
             _KERNEL.append(True)
-        except Exception:  # noqa: BLE001 - any import failure means: not available
+        except Exception:
             _KERNEL.append(False)
     return _KERNEL[0]
 
@@ -53,15 +54,15 @@ def _kernel_available() -> bool:
 SAKOV2012_MEAN = (1.509, -1.531, 25.46)
 
 
-def lorenz63_tendency(x: torch.Tensor, sigma: float = 10.0, rho: float = 28.0, beta: float = 8.0 / 3.0
-                      ) -> torch.Tensor:
+def lorenz63_tendency(x: torch.Tensor, sigma: float = 10.0, rho: float = 28.0, beta: float = 8.0 / 3.0) -> torch.Tensor:
     """``dx/dt`` of Lorenz-63 for ``x (..., 3)``."""
     a, b, c = x.unbind(-1)
     return torch.stack((sigma * (b - a), a * (rho - c) - b, a * b - beta * c), -1)
 
 
-def lorenz63_tendency_jacobian(x: torch.Tensor, sigma: float = 10.0, rho: float = 28.0, beta: float = 8.0 / 3.0
-                               ) -> torch.Tensor:
+def lorenz63_tendency_jacobian(
+    x: torch.Tensor, sigma: float = 10.0, rho: float = 28.0, beta: float = 8.0 / 3.0
+) -> torch.Tensor:
     """The tendency's Jacobian ``(..., 3, 3)`` at ``x (..., 3)``."""
     a, b, c = x.unbind(-1)
     one, zero = torch.ones_like(a), torch.zeros_like(a)
@@ -89,21 +90,36 @@ class Lorenz63(GaussianStateSpaceModel):
 
     structure = Structure(linear_measurement=True, measurement_noise="scalar", prior_covariance="dense")
 
-    def __init__(self, *, sigma: float = 10.0, rho: float = 28.0, beta: float = 8.0 / 3.0, dt: float = 0.25,
-                 substeps: int = 25, observed: Sequence[int] = (0, 1, 2), obs_std: float = math.sqrt(2.0),
-                 model_noise: float = 0.0, prior_mean: Sequence[float] = SAKOV2012_MEAN,
-                 prior_std: float = math.sqrt(2.0)):
+    def __init__(
+        self,
+        *,
+        sigma: float = 10.0,
+        rho: float = 28.0,
+        beta: float = 8.0 / 3.0,
+        dt: float = 0.25,
+        substeps: int = 25,
+        observed: Sequence[int] = (0, 1, 2),
+        obs_std: float = math.sqrt(2.0),
+        model_noise: float = 0.0,
+        prior_mean: Sequence[float] = SAKOV2012_MEAN,
+        prior_std: float = math.sqrt(2.0),
+    ):
         super().__init__()
         self.state_dim = 3
-        self.sigma, self.rho, self.beta = (check_number(n, v) for n, v in (("sigma", sigma), ("rho", rho),
-                                                                          ("beta", beta)))
+        self.sigma, self.rho, self.beta = (
+            check_number(n, v) for n, v in (("sigma", sigma), ("rho", rho), ("beta", beta))
+        )
         self.dt = check_positive("dt", dt)
         self.substeps = check_number("substeps", substeps, lambda v: v >= 1, "an integer >= 1", integer=True)
         obs = list(observed) if isinstance(observed, abc.Sequence) and not isinstance(observed, str) else None
-        if (not obs or any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < 3 for i in obs)
-                or len(set(obs)) != len(obs)):
-            raise ArgumentError(f"observed: expected distinct coordinate indices in 0..2 (a non-empty list), "
-                                f"got {observed!r}")
+        if (
+            not obs
+            or any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < 3 for i in obs)
+            or len(set(obs)) != len(obs)
+        ):
+            raise ArgumentError(
+                f"observed: expected distinct coordinate indices in 0..2 (a non-empty list), got {observed!r}"
+            )
         mean = list(prior_mean) if isinstance(prior_mean, abc.Sequence) and not isinstance(prior_mean, str) else None
         if mean is None or len(mean) != 3:
             raise ArgumentError(f"prior_mean: expected 3 numbers, got {prior_mean!r}")
@@ -119,8 +135,10 @@ class Lorenz63(GaussianStateSpaceModel):
         self.register_buffer("model_noise", torch.tensor(float(model_noise), **f64))
         self.register_buffer("prior_std", torch.tensor(float(prior_std), **f64))
         self.structure = type(self).structure.replace(
-            measurement_noise_scale=obs_std ** 2, measurement_matrix_scale=1.0 if obs == [0, 1, 2] else None,
-            measurement_support=None if obs == [0, 1, 2] else tuple(obs))
+            measurement_noise_scale=obs_std**2,
+            measurement_matrix_scale=1.0 if obs == [0, 1, 2] else None,
+            measurement_support=None if obs == [0, 1, 2] else tuple(obs),
+        )
 
     def _tendency(self, x):
         return lorenz63_tendency(x, self.sigma, self.rho, self.beta)
@@ -144,6 +162,7 @@ class Lorenz63(GaussianStateSpaceModel):
         relative); elsewhere the batched torch tangents."""
         if x.device.type == "cpu" and x.dtype == torch.float64 and not x.requires_grad and _kernel_available():
             from ._lorenz63_kernel import rk4_tangent
+
             flat = x.detach().reshape(-1, 3).contiguous().numpy()
             mean, jac = rk4_tangent(flat, self.dt / self.substeps, self.substeps, self.sigma, self.rho, self.beta)
             return torch.from_numpy(mean).reshape(x.shape), torch.from_numpy(jac).reshape(*x.shape, 3)
@@ -153,7 +172,7 @@ class Lorenz63(GaussianStateSpaceModel):
         return torch.eye(n, dtype=self.dtype, device=self.device)
 
     def transition_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
-        return self.model_noise ** 2 * self._eye(3)
+        return self.model_noise**2 * self._eye(3)
 
     def transition_scale_tril(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
         return self.model_noise * self._eye(3)
@@ -179,10 +198,10 @@ class Lorenz63(GaussianStateSpaceModel):
         return x[..., self.observed]
 
     def measurement_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
-        return self.obs_std ** 2 * self._eye(self.obs_dim)
+        return self.obs_std**2 * self._eye(self.obs_dim)
 
     def measurement_variance(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
-        return self.obs_std ** 2
+        return self.obs_std**2
 
     def measurement_log_prob(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """``log N(z; x_observed, obs_std^2 I)``."""
@@ -199,15 +218,16 @@ class Lorenz63(GaussianStateSpaceModel):
         xi = linalg.standard_normal((batch_size, 3), dtype=self.dtype, device=self.device, generator=generator)
         return self.prior_mean + self.prior_std * xi
 
-    def initial_belief(self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
-                       ) -> Tuple[torch.Tensor, torch.Tensor]:
+    def initial_belief(
+        self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
+    ) -> Tuple[torch.Tensor, torch.Tensor]:
         """The initial law itself for every trial (it does not look at the truth): mean ``(B, 3)``
         and covariance ``prior_std^2 I`` ``(B, 3, 3)``."""
         return self.declared_prior(states0.shape[0])
 
     def declared_prior(self, batch_size: int) -> Tuple[torch.Tensor, torch.Tensor]:
         mean = self.prior_mean.expand(batch_size, 3).clone()
-        cov = (self.prior_std ** 2 * self._eye(3)).expand(batch_size, 3, 3).clone()
+        cov = (self.prior_std**2 * self._eye(3)).expand(batch_size, 3, 3).clone()
         return mean, cov
 
 

@@ -8,6 +8,7 @@ chaotic for ``d >= 4``; the standard set-up of Sakov & Oke (2008), as DAPPER's
 ``mods/Lorenz96/sakov2008.py`` gives it, is ``d = 40``, ``dt = 0.05``, every coordinate observed,
 ``R = I``, no model noise.
 """
+
 from __future__ import annotations
 
 import math
@@ -81,17 +82,35 @@ class Lorenz96(GaussianStateSpaceModel):
     #: the forcing and both noise scales may hold one value per trial, ``(B,)``
     per_trial_parameters = ("forcing", "model_noise", "obs_std")
 
-    def __init__(self, *, d: int = 40, forcing: float = 8.0, dt: float = 0.05, substeps: int = 1, obs_every: int = 1,
-                 obs_std: float = 1.0, model_noise: float = 0.0, prior_std: float = 1.0, spin_up: int = 100,
-                 obs_operator: str = "identity", obs_df: Optional[int] = None):
+    def __init__(
+        self,
+        *,
+        d: int = 40,
+        forcing: float = 8.0,
+        dt: float = 0.05,
+        substeps: int = 1,
+        obs_every: int = 1,
+        obs_std: float = 1.0,
+        model_noise: float = 0.0,
+        prior_std: float = 1.0,
+        spin_up: int = 100,
+        obs_operator: str = "identity",
+        obs_df: Optional[int] = None,
+    ):
         super().__init__()
-        self.state_dim = check_number("d", d, lambda v: v >= 4, "an integer >= 4 (the ring needs i-2 .. i+1)",
-                                      integer=True)
+        self.state_dim = check_number(
+            "d", d, lambda v: v >= 4, "an integer >= 4 (the ring needs i-2 .. i+1)", integer=True
+        )
         forcing = check_number("forcing", forcing)
         self.dt = check_positive("dt", dt)
         self.substeps = check_number("substeps", substeps, lambda v: v >= 1, "an integer >= 1", integer=True)
-        self.obs_every = check_number("obs_every", obs_every, lambda v: 1 <= v <= self.state_dim,
-                                      f"an integer in [1, d = {self.state_dim}]", integer=True)
+        self.obs_every = check_number(
+            "obs_every",
+            obs_every,
+            lambda v: 1 <= v <= self.state_dim,
+            f"an integer in [1, d = {self.state_dim}]",
+            integer=True,
+        )
         self.spin_up = check_number("spin_up", spin_up, lambda v: v >= 0, "an integer >= 0", integer=True)
         obs_std, model_noise = check_positive("obs_std", obs_std), check_nonnegative("model_noise", model_noise)
         check_positive("prior_std", prior_std)
@@ -110,16 +129,23 @@ class Lorenz96(GaussianStateSpaceModel):
         self.obs_operator = obs_operator
         linear = obs_operator == "identity"
         if obs_df is not None:
-            obs_df = check_number("obs_df", obs_df, lambda v: v >= 3, "None (Gaussian errors) or an integer >= 3 "
-                                  "(Student-t degrees of freedom: a finite variance)", integer=True)
+            obs_df = check_number(
+                "obs_df",
+                obs_df,
+                lambda v: v >= 3,
+                "None (Gaussian errors) or an integer >= 3 (Student-t degrees of freedom: a finite variance)",
+                integer=True,
+            )
         #: Student-t degrees of freedom of the observation errors (``None``: Gaussian)
         self.obs_df = obs_df
         #: the variance of one observation error over obs_std^2 (1, or nu / (nu - 2) for Student-t)
         self._variance_factor = 1.0 if obs_df is None else obs_df / (obs_df - 2.0)
         self.structure = type(self).structure.replace(
-            linear_measurement=linear, measurement_noise_scale=obs_std ** 2 * self._variance_factor,
+            linear_measurement=linear,
+            measurement_noise_scale=obs_std**2 * self._variance_factor,
             gaussian_measurement=obs_df is None,
-            measurement_matrix_scale=1.0 if self.obs_every == 1 and linear else None)
+            measurement_matrix_scale=1.0 if self.obs_every == 1 and linear else None,
+        )
 
     def _per_trial_structure(self, names):
         return per_trial_structure(self, names, dynamics=False, measurement=False, noise="obs_std" in names)
@@ -172,8 +198,10 @@ class Lorenz96(GaussianStateSpaceModel):
         """``(m, d)``: ones at ``(j, observed[j])`` (built on each call: ``m d`` numbers); only for the
         linear ``obs_operator="identity"``."""
         if self.obs_operator != "identity":
-            raise ArgumentError(f"obs_operator: the measurement {self.obs_operator!r} is nonlinear and has no "
-                                "matrix; use measurement_jacobian(x)")
+            raise ArgumentError(
+                f"obs_operator: the measurement {self.obs_operator!r} is nonlinear and has no "
+                "matrix; use measurement_jacobian(x)"
+            )
         H = torch.zeros(self.obs_dim, self.state_dim, dtype=self.dtype, device=self.device)
         return H.scatter_(-1, self.observed.unsqueeze(-1), 1.0)
 
@@ -199,7 +227,8 @@ class Lorenz96(GaussianStateSpaceModel):
         return J.scatter(-1, index, slope.unsqueeze(-1))
 
     def measurement_cov(self, x: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """``(m, m)``: the errors' variance times I (``obs_std^2``, or the Student-t law's ``obs_std^2 nu / (nu - 2)``)."""
+        """``(m, m)``: the errors' variance times I (``obs_std^2``, or the Student-t law's
+        ``obs_std^2 nu / (nu - 2)``)."""
         return self._scale(self.obs_std, x, 2) ** 2 * self._variance_factor * self._eye(self.obs_dim)
 
     def measurement_log_prob(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -239,20 +268,22 @@ class Lorenz96(GaussianStateSpaceModel):
     # ---- initial law -------------------------------------------------------------------------
     def initial_state(self, batch_size: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         """``F + N(0, 1)`` per coordinate, then :attr:`spin_up` intervals of the dynamics."""
-        xi = linalg.standard_normal((batch_size, self.state_dim), dtype=self.dtype, device=self.device,
-                                    generator=generator)
+        xi = linalg.standard_normal(
+            (batch_size, self.state_dim), dtype=self.dtype, device=self.device, generator=generator
+        )
         x = self._scale(self.forcing, None, 1) + xi
         with torch.no_grad():
             for _ in range(self.spin_up):
                 x = self.sample_transition(x, generator)
         return x
 
-    def initial_belief(self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
-                       ) -> Tuple[torch.Tensor, DiagonalCovariance]:
+    def initial_belief(
+        self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
+    ) -> Tuple[torch.Tensor, DiagonalCovariance]:
         """Mean ``x_0 + prior_std xi (B, d)`` and the diagonal covariance ``prior_std^2 I``
         (:class:`~torchflow.covariances.DiagonalCovariance`, variances ``(B, d)``: a view)."""
         xi = linalg.standard_normal(states0.shape, dtype=states0.dtype, device=states0.device, generator=generator)
-        var = (self.prior_std ** 2).to(states0.dtype).expand(states0.shape)
+        var = (self.prior_std**2).to(states0.dtype).expand(states0.shape)
         return states0 + self.prior_std * xi, DiagonalCovariance(var)
 
 

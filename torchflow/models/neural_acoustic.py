@@ -20,6 +20,7 @@ responses here do, in closed form) is differentiated by it, any other by forward
 * :class:`InverseDistance`: ``g(r) = Psi / (r + d0)``, the physical law as a module; with it
   :class:`NeuralAcoustic` gives the numbers of :class:`~torchflow.models.AcousticTracking`.
 """
+
 from __future__ import annotations
 
 import math
@@ -58,7 +59,7 @@ class InverseDistance(nn.Module):
         inv = 1 / (r + self.d0)
         g = self.psi * inv
         out = (g, -g * inv, 2 * g * inv * inv)
-        return out[:order + 1]
+        return out[: order + 1]
 
 
 class ResponseMLP(nn.Module):
@@ -117,7 +118,7 @@ class ResponseMLP(nn.Module):
                 ddx = t * dda - 2 * x * t * da * da
             if order >= 1:
                 dx = t * da
-        return tuple(v.squeeze(-1) for v in (x, dx, ddx)[:order + 1])
+        return tuple(v.squeeze(-1) for v in (x, dx, ddx)[: order + 1])
 
     def derivatives(self, r: torch.Tensor, order: int = 1) -> Tuple[torch.Tensor, ...]:
         """``(g, g', g'')`` up to ``order`` at ``r (...)``, each ``(...)``: with ``q = 1 / (r + d0)``,
@@ -132,8 +133,15 @@ class ResponseMLP(nn.Module):
             out.append(g * q * q * (f[1] * f[1] + f[2] - f[1]))
         return tuple(out)
 
-    def fit(self, target: Callable[[torch.Tensor], torch.Tensor], r_max: float, *, points: int = 200,
-            steps: int = 1500, lr: float = 0.01) -> float:
+    def fit(
+        self,
+        target: Callable[[torch.Tensor], torch.Tensor],
+        r_max: float,
+        *,
+        points: int = 200,
+        steps: int = 1500,
+        lr: float = 0.01,
+    ) -> float:
         """Fit the response to ``target`` (a positive function of distance) by least squares on the
         log scale over ``points`` distances spaced evenly in ``log(r + d0)`` on ``[0, r_max]``
         (full-batch Adam, ``steps`` steps): to start a model from a chosen wrong law. Returns the
@@ -145,8 +153,9 @@ class ResponseMLP(nn.Module):
         with torch.no_grad():
             goal = torch.log(target(r))
         if not bool(torch.isfinite(goal).all()):
-            raise ArgumentError("target: expected positive finite amplitudes on [0, r_max], got a non-positive or "
-                                "non-finite value")
+            raise ArgumentError(
+                "target: expected positive finite amplitudes on [0, r_max], got a non-positive or non-finite value"
+            )
         opt = torch.optim.Adam(self.parameters(), lr=lr)
         for _ in range(check_count("steps", steps)):
             opt.zero_grad()
@@ -205,32 +214,55 @@ class NeuralAcoustic(AcousticTracking):
     #: no kernel form (the response is the user's module) and no graph-safety promise
     structure = Structure(linear_dynamics=True, measurement_noise="scalar", has_positions=True)
 
-    def __init__(self, response: Optional[nn.Module] = None, *, n_targets: int = 4, sigma_w: float = 0.1,
-                 true_noise_scale: float = 0.05, filter_noise: str = "inflated", area: float = 40.0,
-                 sensor_grid: int = 5, prior_std: Sequence[float] = (10.0, 10.0, 1.0, 1.0),
-                 initial_state: Optional[Sequence[float]] = None, margin: float = 0.05, max_redraws: int = 10000,
-                 learnable=False):
+    def __init__(
+        self,
+        response: Optional[nn.Module] = None,
+        *,
+        n_targets: int = 4,
+        sigma_w: float = 0.1,
+        true_noise_scale: float = 0.05,
+        filter_noise: str = "inflated",
+        area: float = 40.0,
+        sensor_grid: int = 5,
+        prior_std: Sequence[float] = (10.0, 10.0, 1.0, 1.0),
+        initial_state: Optional[Sequence[float]] = None,
+        margin: float = 0.05,
+        max_redraws: int = 10000,
+        learnable=False,
+    ):
         C = check_count("n_targets", n_targets)
         if initial_state is None and C > len(_X0) // 4:
-            raise ArgumentError(f"n_targets: expected at most {len(_X0) // 4} without an initial_state (the default "
-                                f"has {len(_X0) // 4} targets), got {C}")
+            raise ArgumentError(
+                f"n_targets: expected at most {len(_X0) // 4} without an initial_state (the default "
+                f"has {len(_X0) // 4} targets), got {C}"
+            )
         if response is None:
             response = ResponseMLP()
         if not isinstance(response, nn.Module):
-            raise ArgumentTypeError(f"response: expected an nn.Module mapping distances to amplitudes, got "
-                                    f"{type(response).__name__}")
+            raise ArgumentTypeError(
+                f"response: expected an nn.Module mapping distances to amplitudes, got {type(response).__name__}"
+            )
         learn = check_learnable(learnable, ("sigma_w",))
         object.__setattr__(self, "n_targets", C)  # read by AcousticTracking.__init__ (a class attribute there)
-        super().__init__(sigma_w=sigma_w, true_noise_scale=true_noise_scale, filter_noise=filter_noise, area=area,
-                         sensor_grid=sensor_grid, prior_std=prior_std,
-                         initial_state=_X0[:4 * C] if initial_state is None else initial_state, margin=margin,
-                         max_redraws=max_redraws, learnable=sorted(learn))
+        super().__init__(
+            sigma_w=sigma_w,
+            true_noise_scale=true_noise_scale,
+            filter_noise=filter_noise,
+            area=area,
+            sensor_grid=sensor_grid,
+            prior_std=prior_std,
+            initial_state=_X0[: 4 * C] if initial_state is None else initial_state,
+            margin=margin,
+            max_redraws=max_redraws,
+            learnable=sorted(learn),
+        )
         del self.psi, self.d0  # the physical law's constants: the response holds its own
         self.response = response.to(dtype=torch.float64)
         width = sum(p.numel() for p in response.parameters()) + 8
         self.structure = type(self).structure.replace(
             measurement_support=tuple(4 * c + i for c in range(C) for i in (0, 1)),
-            bytes_per_point=8 * 6 * C * self.obs_dim * width)
+            bytes_per_point=8 * 6 * C * self.obs_dim * width,
+        )
 
     # ---- measurement -----------------------------------------------------------------------
     def _response(self, r: torch.Tensor, order: int) -> Tuple[torch.Tensor, ...]:

@@ -22,6 +22,7 @@ and Gaussian proposals use its Gaussian fit (§14e): mean ``alpha x + E[W] gamma
 chi-square over nu, ``sum_j eta_j^2 / nu`` with standard normals, from the caller's generator (or
 per-trial streams) without rejection sampling.
 """
+
 from __future__ import annotations
 
 import math
@@ -62,21 +63,38 @@ class SkewedTPoisson(GaussianStateSpaceModel):
 
     #: linear location, a skewed-t transition (its Gaussian form is the moment fit), R = diag(lambda(x)),
     #: and z_c counts cell c only (lambda_c = m1 exp(m2 x_c)): a diagonal measurement Jacobian
-    structure = Structure(linear_dynamics=True, gaussian_transition=False, gaussian_measurement=False,
-                          measurement_noise="state_dependent_diagonal", measurement_jacobian_diagonal=True)
+    structure = Structure(
+        linear_dynamics=True,
+        gaussian_transition=False,
+        gaussian_measurement=False,
+        measurement_noise="state_dependent_diagonal",
+        measurement_jacobian_diagonal=True,
+    )
 
     #: the AR coefficient and the Poisson rate's constants may hold one value per trial, ``(B,)``
     per_trial_parameters = ("alpha", "m1", "m2")
 
-    def __init__(self, *, d: int = 144, alpha: float = 0.9, gamma: float = 0.3, nu: int = 7,
-                 alpha0: float = 3.0, alpha1: float = 0.01, beta: float = 20.0, m1: float = 1.0,
-                 m2: float = 1.0 / 3.0, mean_shift: bool = True):
+    def __init__(
+        self,
+        *,
+        d: int = 144,
+        alpha: float = 0.9,
+        gamma: float = 0.3,
+        nu: int = 7,
+        alpha0: float = 3.0,
+        alpha1: float = 0.01,
+        beta: float = 20.0,
+        m1: float = 1.0,
+        m2: float = 1.0 / 3.0,
+        mean_shift: bool = True,
+    ):
         super().__init__()
         if isinstance(d, bool) or not isinstance(d, int) or d < 1 or round(math.sqrt(d)) ** 2 != d:
             raise ArgumentError(f"d: expected a perfect square (144, 400, ...), got {d!r}")
         if isinstance(nu, bool) or not isinstance(nu, int) or nu <= 4:
-            raise ArgumentError(f"nu: expected an integer > 4 (Var[W] must exist; 1/W is drawn as chi2_nu / nu), "
-                             f"got {nu!r}")
+            raise ArgumentError(
+                f"nu: expected an integer > 4 (Var[W] must exist; 1/W is drawn as chi2_nu / nu), got {nu!r}"
+            )
         for name, value in (("alpha", alpha), ("gamma", gamma), ("m2", m2)):
             check_number(name, value)
         check_nonnegative("alpha0", alpha0)
@@ -102,12 +120,18 @@ class SkewedTPoisson(GaussianStateSpaceModel):
         self.register_buffer("Sigma_inv_gamma", Sg)
         self.register_buffer("gSg", (self.gamma * Sg).sum())
         if not bool(torch.isfinite(Q).all() and torch.isfinite(self.gSg)):
-            raise ArgumentError(f"gamma: the skewness {gamma!r} overflows the transition covariance E[W] Sigma + Var[W] "
-                                "gamma gamma^T or gamma^T Sigma^-1 gamma (with alpha0, alpha1, beta given); expected a "
-                                "smaller skewness or noise floor alpha1")
+            raise ArgumentError(
+                f"gamma: the skewness {gamma!r} overflows the transition covariance E[W] Sigma + Var[W] "
+                "gamma gamma^T or gamma^T Sigma^-1 gamma (with alpha0, alpha1, beta given); expected a "
+                "smaller skewness or noise floor alpha1"
+            )
         k = (nu + d) / 2
-        self._log_c = ((1 - k) * math.log(2) - math.lgamma(nu / 2) - 0.5 * d * math.log(math.pi * nu)
-                       - 0.5 * float(linalg.chol_logdet(self.Sigma_tril)))
+        self._log_c = (
+            (1 - k) * math.log(2)
+            - math.lgamma(nu / 2)
+            - 0.5 * d * math.log(math.pi * nu)
+            - 0.5 * float(linalg.chol_logdet(self.Sigma_tril))
+        )
 
     def _per_trial_structure(self, names):
         return per_trial_structure(self, names, dynamics="alpha" in names, measurement=False, noise=False)
@@ -151,8 +175,10 @@ class SkewedTPoisson(GaussianStateSpaceModel):
         bad = ((observations < 0) | (observations != observations.round())) & ~torch.isnan(observations)
         if bool(bad.any()):
             b, t, c = [int(v) for v in torch.nonzero(bad)[0]]
-            raise ArgumentError(f"observations: expected Poisson counts (non-negative integers), got "
-                             f"{float(observations[b, t, c])!r} at trial {b}, step {t}, cell {c}")
+            raise ArgumentError(
+                f"observations: expected Poisson counts (non-negative integers), got "
+                f"{float(observations[b, t, c])!r} at trial {b}, step {t}, cell {c}"
+            )
         return observations
 
     def transition_log_prob(self, x_next, x):
@@ -162,8 +188,12 @@ class SkewedTPoisson(GaussianStateSpaceModel):
         q = u.pow(2).sum(-1)
         k = (self.nu + self.state_dim) / 2
         zeta = torch.sqrt((self.nu + q) * self.gSg)
-        return (self._log_c + log_bessel_k(k, zeta) + (r * self.Sigma_inv_gamma).sum(-1)
-                + k * (torch.log(zeta) - torch.log1p(q / self.nu)))
+        return (
+            self._log_c
+            + log_bessel_k(k, zeta)
+            + (r * self.Sigma_inv_gamma).sum(-1)
+            + k * (torch.log(zeta) - torch.log1p(q / self.nu))
+        )
 
     # ---- measurement -----------------------------------------------------------------------
     def measure(self, x):

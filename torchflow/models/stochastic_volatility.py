@@ -41,6 +41,7 @@ log-squared form is that of the Gaussian approximation of z.
 
 Shapes: states ``(..., 1)``, observations ``(..., 1)``.
 """
+
 from __future__ import annotations
 
 import math
@@ -58,7 +59,7 @@ from .trials import per_trial_structure, trial_view
 #: E[log chi^2_1] = digamma(1/2) + log 2
 LOG_CHI2_MEAN = -1.2703628454614782
 #: Var[log chi^2_1] = trigamma(1/2) = pi^2 / 2
-LOG_CHI2_VAR = math.pi ** 2 / 2
+LOG_CHI2_VAR = math.pi**2 / 2
 LOG_2PI = math.log(2 * math.pi)
 #: the Gaussian forms (``gaussian_form``)
 FORMS = ("returns", "log_squared")
@@ -93,8 +94,16 @@ class StochasticVolatility(GaussianStateSpaceModel):
     per_trial_parameters = ("mu", "rho", "sigma")
     structure = Structure(measurement_noise="state_dependent_diagonal", measurement_jacobian_diagonal=True)
 
-    def __init__(self, *, mu: float = -1.02, rho: float = 0.9702, sigma: float = 0.178,
-                 gaussian_form: str = "returns", offset: float = 0.0, learnable=False):
+    def __init__(
+        self,
+        *,
+        mu: float = -1.02,
+        rho: float = 0.9702,
+        sigma: float = 0.178,
+        gaussian_form: str = "returns",
+        offset: float = 0.0,
+        learnable=False,
+    ):
         super().__init__()
         mu = check_number("mu", mu)
         rho = check_number("rho", rho, lambda v: -1 < v < 1, "a number in (-1, 1) (a stationary AR(1))")
@@ -114,8 +123,9 @@ class StochasticVolatility(GaussianStateSpaceModel):
         if "sigma" in learn:
             constraints.constrain(self, "sigma", "positive")
         if self.gaussian_form == "log_squared":
-            self.structure = type(self).structure.replace(measurement_noise="scalar",
-                                                          measurement_noise_scale=LOG_CHI2_VAR)
+            self.structure = type(self).structure.replace(
+                measurement_noise="scalar", measurement_noise_scale=LOG_CHI2_VAR
+            )
 
     def _per_trial_structure(self, names):
         return per_trial_structure(self, names, noise=False)  # mu, rho, sigma: the transition alone
@@ -128,15 +138,16 @@ class StochasticVolatility(GaussianStateSpaceModel):
     # ---- the stationary law ------------------------------------------------------------------
     def stationary_var(self) -> torch.Tensor:
         """``sigma^2 / (1 - rho^2)``, the variance of x_t under the stationary law (a scalar)."""
-        return self.sigma ** 2 / (1 - self.rho ** 2)
+        return self.sigma**2 / (1 - self.rho**2)
 
     def initial_state(self, batch_size: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
         """``x_0 (B, 1)`` from the stationary law ``N(mu, sigma^2 / (1 - rho^2))``."""
         xi = linalg.standard_normal((batch_size, 1), dtype=self.dtype, device=self.device, generator=generator)
         return self._view(self.mu, xi) + self._view(self.stationary_var(), xi).sqrt() * xi
 
-    def initial_belief(self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
-                       ) -> Tuple[torch.Tensor, torch.Tensor]:
+    def initial_belief(
+        self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
+    ) -> Tuple[torch.Tensor, torch.Tensor]:
         """The stationary law for every trial, whatever the truth: mean ``(B, 1)``, covariance ``(B, 1, 1)``."""
         return self.declared_prior(states0.shape[0])
 
@@ -198,8 +209,10 @@ class StochasticVolatility(GaussianStateSpaceModel):
         if self.gaussian_form == "log_squared":
             return torch.full((1, 1), math.sqrt(LOG_CHI2_VAR), dtype=self.dtype, device=self.device)
         if x is None:
-            raise ArgumentError("StochasticVolatility.measurement_scale_tril: R = exp(x) depends on the state "
-                                "(gaussian_form='returns'); pass x")
+            raise ArgumentError(
+                "StochasticVolatility.measurement_scale_tril: R = exp(x) depends on the state "
+                "(gaussian_form='returns'); pass x"
+            )
         return torch.exp(0.5 * x).unsqueeze(-1)
 
     def linearize_measurement_diagonal(self, x: torch.Tensor):
@@ -251,9 +264,11 @@ class StochasticVolatility(GaussianStateSpaceModel):
         bad = ~torch.isfinite(z)
         if bool(bad.any()):
             first = tuple(int(i) for i in torch.nonzero(bad)[0])
-            raise ArgumentError(f"returns: {int(bad.sum())} value(s) whose log-square is not finite (first at index "
-                                f"{first}: {float(returns[first])!r}); a zero return needs offset > 0 "
-                                "(StochasticVolatility(gaussian_form='log_squared', offset=...))")
+            raise ArgumentError(
+                f"returns: {int(bad.sum())} value(s) whose log-square is not finite (first at index "
+                f"{first}: {float(returns[first])!r}); a zero return needs offset > 0 "
+                "(StochasticVolatility(gaussian_form='log_squared', offset=...))"
+            )
         return z
 
     def extra_repr(self) -> str:

@@ -16,6 +16,7 @@ by a captured graph or a kernel's arithmetic. They hold only for the class that 
 record: a subclass that inherits its parent's record unchanged (it may have changed a method) gets
 neither, until it declares a record of its own (:func:`kernel_structure`).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -92,7 +93,9 @@ class Structure:
 
     def __post_init__(self):
         if self.measurement_noise not in NOISE:
-            raise ArgumentError(f"Structure: measurement_noise: expected one of {NOISE}, got {self.measurement_noise!r}")
+            raise ArgumentError(
+                f"Structure: measurement_noise: expected one of {NOISE}, got {self.measurement_noise!r}"
+            )
         if self.prior_covariance not in PRIOR:
             raise ArgumentError(f"Structure: prior_covariance: expected one of {PRIOR}, got {self.prior_covariance!r}")
         if self.measurement_support is not None:

@@ -14,6 +14,7 @@ the state is the static sources ``(3 n,)`` and ``observations (B, S, M)`` are pa
 with a ``mask`` (:class:`TDOAData`): only the localisers of :mod:`torchflow.localisation` run on it.
 Defaults: §12.3 (UNCONF: the seed's pair list and source count appear only in a figure).
 """
+
 from __future__ import annotations
 
 import operator
@@ -79,20 +80,32 @@ class TDOA3D(GaussianStateSpaceModel):
     obs_dim = None  # masked measurement sets of varying size (structure.padded_measurements)
     structure = Structure(has_positions=True, padded_measurements=True)
 
-    def __init__(self, receivers: Optional[torch.Tensor] = None, pairs: Optional[Sequence[Sequence[int]]] = None, *,
-                 speed: float = 1500.0, sigma_v: float = 5e-4, p_d: float = 0.95, clutter_rate: float = 1.0,
-                 n_sources: int = 3, region: float = 1000.0):
+    def __init__(
+        self,
+        receivers: Optional[torch.Tensor] = None,
+        pairs: Optional[Sequence[Sequence[int]]] = None,
+        *,
+        speed: float = 1500.0,
+        sigma_v: float = 5e-4,
+        p_d: float = 0.95,
+        clutter_rate: float = 1.0,
+        n_sources: int = 3,
+        region: float = 1000.0,
+    ):
         super().__init__()
-        self.speed, self.sigma_v, self.region = (check_number(k, v, lambda v: v > 0, "a positive number") for k, v
-                                                 in (("speed", speed), ("sigma_v", sigma_v), ("region", region)))
+        self.speed, self.sigma_v, self.region = (
+            check_number(k, v, lambda v: v > 0, "a positive number")
+            for k, v in (("speed", speed), ("sigma_v", sigma_v), ("region", region))
+        )
         rec = face_receivers(self.region) if receivers is None else as_real_tensor("receivers", receivers)
         if rec.dim() != 2 or rec.shape[-1] != 3 or rec.shape[0] < 2:
             raise ArgumentError(f"receivers: expected (V, 3) positions with V >= 2, got {tuple(rec.shape)}")
         gap = torch.cdist(rec, rec) + torch.eye(len(rec), dtype=rec.dtype) * 1e300
         if bool((gap <= 0).any()):
             i, j = [int(v) for v in torch.nonzero(gap <= 0)[0]]
-            raise ArgumentError(f"receivers: receivers {i} and {j} coincide at {rec[i].tolist()}; a pair needs two "
-                             "distinct positions")
+            raise ArgumentError(
+                f"receivers: receivers {i} and {j} coincide at {rec[i].tolist()}; a pair needs two distinct positions"
+            )
         try:  # integer indices: operator.index refuses 0.5 and "a" (int() would truncate or parse them)
             pairs = plus_minus_pairs() if pairs is None else [tuple(operator.index(v) for v in p) for p in pairs]
         except TypeError:
@@ -101,8 +114,9 @@ class TDOA3D(GaussianStateSpaceModel):
             raise ArgumentError("pairs: expected at least one receiver pair (a, b), got none")
         for p in pairs:
             if len(p) != 2 or p[0] == p[1] or not all(0 <= v < len(rec) for v in p):
-                raise ArgumentError(f"pairs: expected pairs (a, b) of distinct receiver indices in [0, {len(rec)}), "
-                                 f"got {p}")
+                raise ArgumentError(
+                    f"pairs: expected pairs (a, b) of distinct receiver indices in [0, {len(rec)}), got {p}"
+                )
         self.p_d = check_number("p_d", p_d, lambda v: 0 < v <= 1, "a detection probability in (0, 1]")
         self.clutter_rate = check_number("clutter_rate", clutter_rate, lambda v: v >= 0, "a mean clutter count >= 0")
         check_number("n_sources", n_sources, lambda v: isinstance(v, int) and v >= 0, "an integer >= 0")
@@ -133,7 +147,7 @@ class TDOA3D(GaussianStateSpaceModel):
     def initial_belief(self, states0: torch.Tensor, generator=None):
         """Moments of the uniform prior on the region, ``(B, 3 n)`` and ``(B, 3 n, 3 n)`` (no draw)."""
         B, d = states0.shape
-        cov = torch.eye(d, dtype=states0.dtype, device=states0.device) * (self.region ** 2 / 3)
+        cov = torch.eye(d, dtype=states0.dtype, device=states0.device) * (self.region**2 / 3)
         return states0.new_zeros(B, d), cov.expand(B, d, d)
 
     def _ends(self, sensor):
@@ -149,8 +163,10 @@ class TDOA3D(GaussianStateSpaceModel):
     def jacobian(self, x: torch.Tensor, sensor) -> torch.Tensor:
         """``dh_s/dx = ((x - p_a)/||x - p_a|| - (x - p_b)/||x - p_b||) / c``, ``(..., 3)``."""
         da, db = (x - p.to(x.dtype) for p in self._ends(sensor))
-        return (da / torch.linalg.vector_norm(da, dim=-1, keepdim=True)
-                - db / torch.linalg.vector_norm(db, dim=-1, keepdim=True)) / self.speed
+        return (
+            da / torch.linalg.vector_norm(da, dim=-1, keepdim=True)
+            - db / torch.linalg.vector_norm(db, dim=-1, keepdim=True)
+        ) / self.speed
 
     def feasible_half_width(self, sensor) -> torch.Tensor:
         """``||p_a - p_b|| / c``: TDOAs of sensor s lie in ``[-w, w]``."""
@@ -175,12 +191,15 @@ class TDOA3D(GaussianStateSpaceModel):
             got = f"{tuple(mask.shape)} of {mask.dtype}" if isinstance(mask, torch.Tensor) else type(mask).__name__
             raise ArgumentError(f"mask: expected a bool tensor shaped like z {tuple(z.shape)}, got {got}")
 
-    def simulate(self, batch_size: int, steps: Optional[int] = None, generator: Optional[torch.Generator] = None
-                 ) -> TDOAData:
+    def simulate(
+        self, batch_size: int, steps: Optional[int] = None, generator: Optional[torch.Generator] = None
+    ) -> TDOAData:
         """``batch_size`` scenes drawn together (a scene depends on ``batch_size``), each sensor's
         measurements in random order, padded to the largest count. ``steps``: ``None`` or :attr:`n_steps`."""
         if steps is not None and steps != self.n_steps:
-            raise ArgumentError(f"steps: TDOA3D has one step per sensor; expected None or {self.n_steps}, got {steps!r}")
+            raise ArgumentError(
+                f"steps: TDOA3D has one step per sensor; expected None or {self.n_steps}, got {steps!r}"
+            )
         B, _ = check_simulate_args(self, batch_size, self.n_steps, generator)
         n, S = self.n_sources, self.n_sensors
         dt, dev = self.receivers.dtype, self.receivers.device
@@ -207,9 +226,11 @@ class TDOA3D(GaussianStateSpaceModel):
         return TDOAData(states, z.masked_fill(~mask, 0.0), mask, origin.masked_fill(~mask, -1))
 
     def extra_repr(self) -> str:
-        return (f"receivers={len(self.receivers)}, sensors={self.n_sensors}, speed={self.speed}, "
-                f"sigma_v={self.sigma_v}, p_d={self.p_d}, clutter_rate={self.clutter_rate}, "
-                f"n_sources={self.n_sources}, region={self.region}")
+        return (
+            f"receivers={len(self.receivers)}, sensors={self.n_sensors}, speed={self.speed}, "
+            f"sigma_v={self.sigma_v}, p_d={self.p_d}, clutter_rate={self.clutter_rate}, "
+            f"n_sources={self.n_sources}, region={self.region}"
+        )
 
 
 __all__ = ["TDOA3D", "TDOAData", "face_receivers", "plus_minus_pairs"]

@@ -13,6 +13,7 @@ with them:
 * :func:`batch_jacobian`: Jacobians of a map that reads per-trial values (it cannot be evaluated on
   one point at a time under ``vmap``, as :func:`torchflow.linearize.jacobian` does).
 """
+
 from __future__ import annotations
 
 from typing import Callable, Optional, Tuple
@@ -83,8 +84,9 @@ def batch_jacobian(fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor) 
     return cols.movedim(0, -1)
 
 
-def per_trial_structure(model, names, *, dynamics: bool = True, measurement: bool = True,
-                        noise: bool = True) -> "Structure":  # noqa: F821
+def per_trial_structure(
+    model, names, *, dynamics: bool = True, measurement: bool = True, noise: bool = True
+) -> "Structure":  # noqa: F821 - imported where used (models.base imports this module)
     """The structure ``model`` declares while ``names`` hold per-trial values, from its own: the
     shortcuts that assume one value for every trial stand aside. ``dynamics``: the transition
     matrix depends on them (no longer ``linear_dynamics``: its callers read one matrix, not one per
@@ -104,8 +106,10 @@ def per_trial_structure(model, names, *, dynamics: bool = True, measurement: boo
     if measurement:
         changes.update(linear_measurement=False, measurement_matrix_scale=None)
     if noise:
-        changes.update(measurement_noise_scale=None,
-                       measurement_noise="diagonal" if s.measurement_noise == "scalar" else s.measurement_noise)
+        changes.update(
+            measurement_noise_scale=None,
+            measurement_noise="diagonal" if s.measurement_noise == "scalar" else s.measurement_noise,
+        )
     return s.replace(**changes)
 
 

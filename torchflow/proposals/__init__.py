@@ -8,6 +8,7 @@
 
 The contract is in ``base.py`` (:class:`Proposal`, :class:`Proposed`).
 """
+
 from .base import Proposal, Proposed
 from .bootstrap import BootstrapProposal
 from .flow import FLOWS, FlowProposal, InvertibleFlowProposal, StochasticFlowProposal, flow_proposal, resolve_flow
@@ -15,6 +16,17 @@ from .gpfis import GPFISProposal
 from .mixture import FlowedMixtureProposal
 from .unscented import UnscentedProposal
 
-__all__ = ["Proposal", "Proposed", "BootstrapProposal", "FlowProposal", "InvertibleFlowProposal",
-           "StochasticFlowProposal", "flow_proposal", "resolve_flow", "FLOWS", "GPFISProposal", "UnscentedProposal",
-           "FlowedMixtureProposal"]
+__all__ = [
+    "Proposal",
+    "Proposed",
+    "BootstrapProposal",
+    "FlowProposal",
+    "InvertibleFlowProposal",
+    "StochasticFlowProposal",
+    "flow_proposal",
+    "resolve_flow",
+    "FLOWS",
+    "GPFISProposal",
+    "UnscentedProposal",
+    "FlowedMixtureProposal",
+]

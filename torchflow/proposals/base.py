@@ -6,6 +6,7 @@ proposal only says how particles are drawn and with what density, from explicit 
 previous particles and log-weights, the previous estimate, z, the state it carries between steps
 (a tracked covariance), a generator, and the largest block of particles to evaluate at once.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -103,8 +104,17 @@ class Proposal(nn.Module):
         """The state carried into the first step, from the prior covariance ``cov (B, d, d)``."""
         return None
 
-    def propose(self, particles: torch.Tensor, log_weights: torch.Tensor, estimate: torch.Tensor, z: torch.Tensor,
-                carry: Optional[Covariance], generator, *, chunk: Optional[int] = None) -> Proposed:
+    def propose(
+        self,
+        particles: torch.Tensor,
+        log_weights: torch.Tensor,
+        estimate: torch.Tensor,
+        z: torch.Tensor,
+        carry: Optional[Covariance],
+        generator,
+        *,
+        chunk: Optional[int] = None,
+    ) -> Proposed:
         """Particles for observation ``z (B, m)``.
 
         Args:

@@ -1,4 +1,5 @@
 """The bootstrap proposal (Gordon, Salmond & Smith 1993): ``q`` is the transition."""
+
 from __future__ import annotations
 
 from .base import Proposal, Proposed

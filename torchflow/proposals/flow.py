@@ -9,6 +9,7 @@ Both own the flow, the lambda schedule, the linearisation points (global, per pa
 and the covariance tracker (EKF/UKF, :mod:`torchflow.trackers`) that gives the flow its prior; the
 tracked covariance is the state they carry between steps.
 """
+
 from __future__ import annotations
 
 import warnings
@@ -68,9 +69,19 @@ class FlowProposal(Proposal):
             flow filters: no transition density, no tracked proposal law), ``log_q`` is ``None``.
     """
 
-    def __init__(self, model, flow=None, schedule: Optional[LambdaSchedule] = None, covariance: str = "ekf",
-                 points=None, n_clusters: int = 100, alpha: float = 0.25, sweeps: int = 10,
-                 jacobian_in_weight: bool = True, weighted: bool = True):
+    def __init__(
+        self,
+        model,
+        flow=None,
+        schedule: Optional[LambdaSchedule] = None,
+        covariance: str = "ekf",
+        points=None,
+        n_clusters: int = 100,
+        alpha: float = 0.25,
+        sweeps: int = 10,
+        jacobian_in_weight: bool = True,
+        weighted: bool = True,
+    ):
         super().__init__(model)
         self.flow = resolve_flow(flow)
         self.schedule = resolve_schedule(schedule)
@@ -90,7 +101,11 @@ class FlowProposal(Proposal):
     def identical_covariances(self) -> bool:
         """EKF covariances of a linear model evolve identically for every particle (declared by the
         model), so per-particle points keep one per trial."""
-        return self.covariance == "ekf" and self.model.structure.linear_dynamics and self.model.structure.linear_measurement
+        return (
+            self.covariance == "ekf"
+            and self.model.structure.linear_dynamics
+            and self.model.structure.linear_measurement
+        )
 
     @property
     def has_ancestor_law(self) -> bool:
@@ -155,13 +170,20 @@ class FlowProposal(Proposal):
         L_pred = linalg.safe_cholesky(P_pred)
         prior, index = pts.place(model, x_prev, m_pred, L_pred, z)
         if pts.per_particle:
-            x, log_q, law_mean, law_tril = self._flow_blocks(eta0, x_prev, z, prior, generator, log_q0,
-                                                             self.flow_chunk(eta0.shape[1], chunk))
+            x, log_q, law_mean, law_tril = self._flow_blocks(
+                eta0, x_prev, z, prior, generator, log_q0, self.flow_chunk(eta0.shape[1], chunk)
+            )
         else:
             x, log_q, law_mean, law_tril = self._migrate(eta0, x_prev, z, prior, generator, log_q0, index=index)
         _, P_post, ll = self.tracker.update(m_pred, P_pred, z.unsqueeze(1) if cov.per_particle else z)
-        return Proposed(x, log_q, cov=cov.like(P_post), fallback=eta0, log_evidence=ll,
-                        ancestor_law=(law_mean, law_tril) if self.report_ancestor_law else None)
+        return Proposed(
+            x,
+            log_q,
+            cov=cov.like(P_post),
+            fallback=eta0,
+            log_evidence=ll,
+            ancestor_law=(law_mean, law_tril) if self.report_ancestor_law else None,
+        )
 
     def _flow_blocks(self, eta0, x_prev, z, prior, generator, log_q0, chunk):
         """Every particle flows with its own prior: blocks of particles are independent."""
@@ -172,11 +194,14 @@ class FlowProposal(Proposal):
         def draw(sl):
             """A block's diffusion noise: slices of whole-cloud draws (one per pseudo-time step, drawn
             when the first block needs it), so blocking does not change the numbers."""
+
             def noise(j, shape):
                 if j not in tape:
-                    tape[j] = linalg.standard_normal((B, N, shape[-1]), dtype=eta0.dtype, device=eta0.device,
-                                                     generator=generator)
+                    tape[j] = linalg.standard_normal(
+                        (B, N, shape[-1]), dtype=eta0.dtype, device=eta0.device, generator=generator
+                    )
                 return tape[j][:, sl]
+
             return noise
 
         def block(eta0, x_prev, m, L, log_q0, particles):
@@ -204,8 +229,9 @@ class InvertibleFlowProposal(FlowProposal):
 
     def _migrate(self, eta0, x_prev, z, prior, generator, log_q0, noise=None, index=None):
         law = self.report_ancestor_law
-        out = integrate_flow(self.flow, self.model, eta0, z, prior, self.schedule, points=self.points, index=index,
-                             map_jacobian=law)
+        out = integrate_flow(
+            self.flow, self.model, eta0, z, prior, self.schedule, points=self.points, index=index, map_jacobian=law
+        )
         if log_q0 is None:  # weighted=False
             return out.particles, None, None, None
         # jacobian_in_weight=False: seed 004's printed weight (biased evidence; a knob for comparison)
@@ -215,8 +241,9 @@ class InvertibleFlowProposal(FlowProposal):
         # the parent's affine map x = M eta + c pushes N(f(x_prev), Q) to N(x - M (eta_0 - f(x_prev)), M Q M^T)
         model, M = self.model, out.map_jacobian
         Lq = model.transition_scale_tril(x_prev)
-        return (out.particles, log_q) + affine_law(out.particles, eta0, model.transition_mean(x_prev), M,
-                                                    Lq.unsqueeze(-3) if Lq.dim() == 3 else Lq)
+        return (out.particles, log_q) + affine_law(
+            out.particles, eta0, model.transition_mean(x_prev), M, Lq.unsqueeze(-3) if Lq.dim() == 3 else Lq
+        )
 
 
 class StochasticFlowProposal(FlowProposal):
@@ -226,22 +253,40 @@ class StochasticFlowProposal(FlowProposal):
     def _migrate(self, eta0, x_prev, z, prior, generator, log_q0, noise=None, index=None):
         model = self.model
         start = FlowPrior(model.transition_mean(x_prev), model.transition_scale_tril(x_prev)) if self.weighted else None
-        out = integrate_flow(self.flow, model, eta0, z, prior, self.schedule, generator=generator, proposal=start,
-                             noise=noise, points=self.points, index=index)
+        out = integrate_flow(
+            self.flow,
+            model,
+            eta0,
+            z,
+            prior,
+            self.schedule,
+            generator=generator,
+            proposal=start,
+            noise=noise,
+            points=self.points,
+            index=index,
+        )
         if not (self.report_ancestor_law and self.weighted):
             return out.particles, out.log_proposal, None, None
         return out.particles, out.log_proposal, out.proposal_mean, linalg.safe_cholesky(out.proposal_cov)
 
 
-def affine_law(x: torch.Tensor, eta0: torch.Tensor, transition_mean: torch.Tensor, maps: torch.Tensor,
-               transition_tril: torch.Tensor):
+def affine_law(
+    x: torch.Tensor,
+    eta0: torch.Tensor,
+    transition_mean: torch.Tensor,
+    maps: torch.Tensor,
+    transition_tril: torch.Tensor,
+):
     """The Gaussian law of a deterministic flow's particle given its parent: the affine map
     ``x = M eta_0 + c`` pushes ``N(f(x_prev), L L^T)`` to ``N(x - M (eta_0 - f(x_prev)), M L L^T M^T)``.
     ``x``, ``eta0``, ``transition_mean`` ``(B, N, d)``; maps ``M (B, N|1, d, d)``; ``L`` broadcastable
     against them. Returns ``(mean (B, N, d), scale_tril (B, N|1, d, d))``."""
     G = maps @ transition_tril
-    return (x - linalg.matvec(maps, eta0 - transition_mean),
-            linalg.safe_cholesky(linalg.symmetrize(G @ G.transpose(-1, -2))))
+    return (
+        x - linalg.matvec(maps, eta0 - transition_mean),
+        linalg.safe_cholesky(linalg.symmetrize(G @ G.transpose(-1, -2))),
+    )
 
 
 def check_informative(proposal, mean: torch.Tensor, who: str) -> None:
@@ -258,11 +303,15 @@ def check_informative(proposal, mean: torch.Tensor, who: str) -> None:
         _, H = proposal.model.linearize_measurement(mean.detach())  # (B, m, d)
         flat = not bool(H.ne(0).any())
     if flat:
-        warnings.warn(f"{who}: the Gaussian measurement form of {type(proposal.model).__name__} has a zero Jacobian "
-                      "dh/dx at the prior mean, so it carries no information about the state: the flow will not move "
-                      "the particles (the filter is the bootstrap PF at a flow's cost). Use the bootstrap particle "
-                      "filter, or a Gaussian form whose measurement depends on the state (stochastic volatility: "
-                      "gaussian_form='log_squared')", UserWarning, stacklevel=2)
+        warnings.warn(
+            f"{who}: the Gaussian measurement form of {type(proposal.model).__name__} has a zero Jacobian "
+            "dh/dx at the prior mean, so it carries no information about the state: the flow will not move "
+            "the particles (the filter is the bootstrap PF at a flow's cost). Use the bootstrap particle "
+            "filter, or a Gaussian form whose measurement depends on the state (stochastic volatility: "
+            "gaussian_form='log_squared')",
+            UserWarning,
+            stacklevel=2,
+        )
 
 
 def flow_proposal(model, flow=None, **kwargs) -> FlowProposal:

@@ -1,6 +1,7 @@
 """GPFIS as a proposal (Bunch & Godsill 2016; the transport is :func:`torchflow.flows.gpfis.gpfis_flow`):
 the Gaussian transition moved by progressively linearised Gaussian flows, with the map's exact
 autodiff ``log|det|`` in ``log q``, so the particle filter's evidence estimate is unbiased."""
+
 from __future__ import annotations
 
 from typing import Optional
@@ -26,8 +27,9 @@ class GPFISProposal(Proposal):
             :func:`~torchflow.flows.gpfis.gpfis_flow`.
     """
 
-    def __init__(self, model, schedule: Optional[LambdaSchedule] = None, root: str = "cholesky",
-                 jacobian: str = "analytic"):
+    def __init__(
+        self, model, schedule: Optional[LambdaSchedule] = None, root: str = "cholesky", jacobian: str = "analytic"
+    ):
         super().__init__(model)
         self.root = check_choice("root", root, ROOTS)
         self.jacobian = check_choice("jacobian", jacobian, JACOBIANS)

@@ -1,5 +1,6 @@
 """Flow-induced Gaussian-mixture importance sampling (seed 002: Zhang et al. 2024, eqs 6-7): the flow moves the
 parameters of every prior component, and the flowed mixture is the proposal."""
+
 from __future__ import annotations
 
 import math
@@ -45,8 +46,13 @@ class FlowedMixtureProposal(nn.Module):
             coefficients (:func:`~torchflow.flows.flow_gaussian`).
     """
 
-    def __init__(self, flow: ParticleFlow, schedule: Optional[LambdaSchedule] = None, ratio: str = "mixture",
-                 evaluate_at: str = "end"):
+    def __init__(
+        self,
+        flow: ParticleFlow,
+        schedule: Optional[LambdaSchedule] = None,
+        ratio: str = "mixture",
+        evaluate_at: str = "end",
+    ):
         super().__init__()
         if not isinstance(flow, ParticleFlow):
             raise ArgumentTypeError(f"flow: expected a torchflow ParticleFlow, got {type(flow).__name__}")
@@ -66,8 +72,17 @@ class FlowedMixtureProposal(nn.Module):
         mu1, P1 = flow_gaussian(self.flow, measurement, FlowPrior(mu, L), self.schedule, self.evaluate_at)
         return mu1.reshape(*batch, G, d), P1.reshape(*batch, G, d, d)
 
-    def sample(self, log_w: torch.Tensor, means: torch.Tensor, scale_trils: torch.Tensor, flowed_means: torch.Tensor,
-               flowed_scale_trils: torch.Tensor, log_likelihood, n_samples: int, generator):
+    def sample(
+        self,
+        log_w: torch.Tensor,
+        means: torch.Tensor,
+        scale_trils: torch.Tensor,
+        flowed_means: torch.Tensor,
+        flowed_scale_trils: torch.Tensor,
+        log_likelihood,
+        n_samples: int,
+        generator,
+    ):
         """Draw ``n_samples`` from every flowed component and weigh them.
 
         Args:

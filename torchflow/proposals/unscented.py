@@ -20,11 +20,11 @@ linearisation). The published UPF (``prior="posterior"``) predicts from the carr
 transition density supports, and the weights ``p(x_k | x_{k-1}) / q`` can collapse when ``Q`` is small
 (acoustic tracking: experiments/RESULTS.md).
 """
+
 from __future__ import annotations
 
 from typing import Optional
 
-import torch
 
 from .. import linalg
 from ..covariances import ParticleCovariance
@@ -48,8 +48,15 @@ class UnscentedProposal(Proposal):
 
     random_stream = "upf"
 
-    def __init__(self, model, covariance: str = "ukf", alpha: float = 1.0, beta: float = 2.0,
-                 kappa: Optional[float] = None, prior: str = "posterior"):
+    def __init__(
+        self,
+        model,
+        covariance: str = "ukf",
+        alpha: float = 1.0,
+        beta: float = 2.0,
+        kappa: Optional[float] = None,
+        prior: str = "posterior",
+    ):
         super().__init__(model)
         if prior not in ("posterior", "transition"):
             raise ArgumentError(f"prior: expected 'posterior' or 'transition', got {prior!r}")
@@ -76,11 +83,13 @@ class UnscentedProposal(Proposal):
         if carry is not None and carry.identical:  # equal for every particle (sigma points broadcast them)
             P_post = P_post[:, :1]
         L = linalg.safe_cholesky(P_post)
-        xi = linalg.standard_normal(particles.shape, dtype=particles.dtype, device=particles.device,
-                                    generator=generator)
+        xi = linalg.standard_normal(
+            particles.shape, dtype=particles.dtype, device=particles.device, generator=generator
+        )
         x = mean + linalg.matvec(L, xi)
-        return Proposed(x, linalg.mvn_log_prob(x, mean, L), cov=None if carry is None else carry.like(P_post),
-                        fallback=m_pred)
+        return Proposed(
+            x, linalg.mvn_log_prob(x, mean, L), cov=None if carry is None else carry.like(P_post), fallback=m_pred
+        )
 
     def bytes_per_trial(self, n_particles):
         N, d, m = int(n_particles), self.model.state_dim, self.model.obs_dim

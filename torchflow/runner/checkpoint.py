@@ -6,6 +6,7 @@
 Files are written to a temporary name and renamed, and carry a SHA-256 checksum of their tensors;
 a file that cannot be read, is damaged or whose header does not match is recomputed with a warning.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -65,8 +66,14 @@ class ChunkStore:
     chunks of other boundaries; ``save_error`` says why saving stopped (else ``None``).
     """
 
-    def __init__(self, root: Union[str, Path], keys: Optional[Mapping[str, str]] = None, *, resume: bool = False,
-                 settings: Optional[Mapping[str, dict]] = None):
+    def __init__(
+        self,
+        root: Union[str, Path],
+        keys: Optional[Mapping[str, str]] = None,
+        *,
+        resume: bool = False,
+        settings: Optional[Mapping[str, dict]] = None,
+    ):
         if not isinstance(resume, bool):
             raise ArgumentError(f"resume: expected True or False, got {resume!r}")
         self.root, self.keys, self.resume, self.settings = Path(root), dict(keys or {}), resume, dict(settings or {})
@@ -87,12 +94,17 @@ class ChunkStore:
             return None
         try:
             data = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as e:  # noqa: BLE001 - a damaged file is recomputed, not fatal
+        except Exception as e:
             return _again(f"resume: cannot read {path} ({type(e).__name__}: {e})")
         est = data.get("estimates")
-        ok = (data.get("key") == self.keys.get(name, name) and data.get("start") == start and data.get("stop") == stop
-              and isinstance(est, torch.Tensor) and tuple(est.shape[:2]) == (stop - start, steps)
-              and (data.get("meta") is None or meta is None or data["meta"] == dict(meta)))  # no meta: older file
+        ok = (
+            data.get("key") == self.keys.get(name, name)
+            and data.get("start") == start
+            and data.get("stop") == stop
+            and isinstance(est, torch.Tensor)
+            and tuple(est.shape[:2]) == (stop - start, steps)
+            and (data.get("meta") is None or meta is None or data["meta"] == dict(meta))
+        )  # no meta: older file
         if not ok:
             return _again(f"resume: {path} was saved with other settings")
         if data.get("checksum") is not None and data["checksum"] != checksum(data):
@@ -108,14 +120,24 @@ class ChunkStore:
             write_text(folder / "settings.json", json.dumps(self.settings[name], indent=2, sort_keys=True, default=str))
         path = self._path(name, start, stop)
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        torch.save({**dict(chunk), "key": self.keys.get(name, name), "start": start, "stop": stop,
-                    "meta": dict(meta) if meta is not None else None, "checksum": checksum(chunk)}, tmp)
+        torch.save(
+            {
+                **dict(chunk),
+                "key": self.keys.get(name, name),
+                "start": start,
+                "stop": stop,
+                "meta": dict(meta) if meta is not None else None,
+                "checksum": checksum(chunk),
+            },
+            tmp,
+        )
         os.replace(tmp, path)
         self.computed[name] += 1
         return path
 
-    def save_or_warn(self, name: str, start: int, stop: int, chunk: Mapping, meta: Optional[Mapping] = None
-                     ) -> Optional[Path]:
+    def save_or_warn(
+        self, name: str, start: int, stop: int, chunk: Mapping, meta: Optional[Mapping] = None
+    ) -> Optional[Path]:
         """:meth:`save`, but a store that cannot write warns once and saves nothing more."""
         if self.save_error is not None:
             return None
@@ -123,8 +145,11 @@ class ChunkStore:
             return self.save(name, start, stop, chunk, meta)
         except OSError as e:
             self.save_error = f"{type(e).__name__}: {e.strerror or e}"
-            warnings.warn(f"checkpoint_dir: cannot save chunks under {self.root} ({self.save_error}); the run "
-                          "goes on without checkpoints (a later resume computes these chunks again)", stacklevel=2)
+            warnings.warn(
+                f"checkpoint_dir: cannot save chunks under {self.root} ({self.save_error}); the run "
+                "goes on without checkpoints (a later resume computes these chunks again)",
+                stacklevel=2,
+            )
             return None
 
     def saved_ranges(self, name: str) -> List[Tuple[int, int]]:
@@ -135,12 +160,22 @@ class ChunkStore:
         found = (_CHUNK_NAME.match(p.name) for p in folder.iterdir())
         return sorted((int(m.group(1)), int(m.group(2))) for m in found if m)
 
-    def assemble(self, name: str, start: int, stop: int, steps: int, meta: Optional[Mapping],
-                 compute: Callable[[int, int], Mapping]) -> Optional[dict]:
+    def assemble(
+        self,
+        name: str,
+        start: int,
+        stop: int,
+        steps: int,
+        meta: Optional[Mapping],
+        compute: Callable[[int, int], Mapping],
+    ) -> Optional[dict]:
         """Trials ``[start, stop)`` from chunks saved with other boundaries, ``compute(a, b)``
         filling the trials none holds; ``None`` when not resuming or no saved trial overlaps."""
-        saved = [r for r in (self.saved_ranges(name) if self.resume else []) if r[0] < stop and r[1] > start
-                 and r != (start, stop)]
+        saved = [
+            r
+            for r in (self.saved_ranges(name) if self.resume else [])
+            if r[0] < stop and r[1] > start and r != (start, stop)
+        ]
         if not saved:
             return None
         pieces, p = [], start  # (a, b, the saved range holding trials [a, b) or None): saved trials and the gaps
@@ -155,15 +190,25 @@ class ChunkStore:
             if data is None:
                 parts.append(dict(compute(a, b)))
                 continue
-            part = {k: data[k][a - r[0]:b - r[0]] for k in CHUNK_FIELDS if k in data}
+            part = {k: data[k][a - r[0] : b - r[0]] for k in CHUNK_FIELDS if k in data}
             part["elapsed"] = float(data.get("elapsed", 0.0)) * (b - a) / (r[1] - r[0])
             part["paths"] = data.get("paths")  # the paths of the run that computed the saved chunk (its counts)
             parts.append(part)
             reused += b - a
         chunk = {k: torch.cat([p[k] for p in parts]) for k in CHUNK_FIELDS if all(k in p for p in parts)}
-        chunk.update(start=start, stop=stop, elapsed=sum(float(p["elapsed"]) for p in parts),
-                     paths=paths.merge(*(p.get("paths") for p in parts)))
+        chunk.update(
+            start=start,
+            stop=stop,
+            elapsed=sum(float(p["elapsed"]) for p in parts),
+            paths=paths.merge(*(p.get("paths") for p in parts)),
+        )
         self.reused_trials[name] += reused
-        log.info("resume: %s trials %d..%d: %d reused from chunks saved with other boundaries, %d computed",
-                 name, start, stop - 1, reused, stop - start - reused)
+        log.info(
+            "resume: %s trials %d..%d: %d reused from chunks saved with other boundaries, %d computed",
+            name,
+            start,
+            stop - 1,
+            reused,
+            stop - start - reused,
+        )
         return chunk

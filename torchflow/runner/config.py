@@ -1,5 +1,6 @@
 """The command line's configuration: where the Hydra configs are, and checks of a composed config
 and of the command line that Hydra itself does not make (one clear line each, no traceback)."""
+
 from __future__ import annotations
 
 import contextlib
@@ -58,21 +59,24 @@ def check_selections(argv: Sequence[str]) -> None:
             continue
         unknown = [v for v in dict.fromkeys(re.findall(r"[^\[\],\s]+", value)) if v not in options]
         if unknown:
-            raise ConfigError(f"{lhs}: unknown {group} config {', '.join(repr(u) for u in unknown)}; "
-                              f"available: {', '.join(options)}")
+            raise ConfigError(
+                f"{lhs}: unknown {group} config {', '.join(repr(u) for u in unknown)}; available: {', '.join(options)}"
+            )
         for selection in re.findall(r"\[([^\]]*)\]", value):
             names = [v.strip() for v in selection.split(",") if v.strip()]
             twice = next((v for v in names if names.count(v) > 1), None)
             if twice:
-                raise ConfigError(f"{lhs}: expected each {group} config once, got {twice} {names.count(twice)} times "
-                                  f"in [{selection}] (one row per config); select it once, and to compare settings "
-                                  f"of one {group}, sweep them: -m {group}.{twice}.<key>=a,b")
+                raise ConfigError(
+                    f"{lhs}: expected each {group} config once, got {twice} {names.count(twice)} times "
+                    f"in [{selection}] (one row per config); select it once, and to compare settings "
+                    f"of one {group}, sweep them: -m {group}.{twice}.<key>=a,b"
+                )
 
 
 def close_keys(key: str, known: Sequence[str]) -> List[str]:
     """The known keys a mistyped ``key`` most likely meant: difflib's close matches, and the keys
     whose word initials spell it or that it abbreviates (``learning_rate`` -> ``lr``)."""
-    initials = lambda k: "".join(w[0] for w in k.split("_") if w)  # noqa: E731
+    initials = lambda k: "".join(w[0] for w in k.split("_") if w)
     close = difflib.get_close_matches(key, known, n=3, cutoff=0.6)
     close += [c for c in known if c not in close and "_" in key + c and (initials(key) == c or initials(c) == key)]
     return close[:3]
@@ -103,8 +107,11 @@ def compose_config(config_name: str, overrides: Sequence[str]):
 
     src = config_source()
     GlobalHydra.instance().clear()
-    init = (initialize_config_module(src[len("pkg://"):], version_base="1.3") if src.startswith("pkg://")
-            else initialize_config_dir(src, version_base="1.3"))
+    init = (
+        initialize_config_module(src[len("pkg://") :], version_base="1.3")
+        if src.startswith("pkg://")
+        else initialize_config_dir(src, version_base="1.3")
+    )
     with init:
         return compose(config_name, list(overrides), return_hydra_config=True)
 
@@ -132,8 +139,11 @@ def unknown_override_messages(config_name: str, argv: Sequence[str], key: str) -
             parsed.append(parser.parse_override(arg))
     bad, tree = [key], None
     for _ in range(len(parsed) + 1):
-        args = [f"{o.get_key_element()}={next(o.sweep_string_iterator())}" if o.is_sweep_override() else o.input_line
-                for o in parsed if o.key_or_group not in bad]  # a sweep: its first value
+        args = [
+            f"{o.get_key_element()}={next(o.sweep_string_iterator())}" if o.is_sweep_override() else o.input_line
+            for o in parsed
+            if o.key_or_group not in bad
+        ]  # a sweep: its first value
         try:
             tree = OmegaConf.to_container(compose_config(config_name, args), resolve=False)
             break
@@ -161,10 +171,12 @@ def unknown_key_message(tree: Optional[Mapping], key: str) -> str:
         node, i = node[parts[i]], i + 1
     if not isinstance(node, Mapping) or i == len(parts):
         return f"{key}: unknown setting"
-    where, missing, tail = ".".join(parts[:i]), parts[i], "".join("." + p for p in parts[i + 1:])
+    where, missing, tail = ".".join(parts[:i]), parts[i], "".join("." + p for p in parts[i + 1 :])
     known = [str(k) for k in node if not str(k).startswith("_") and k != "defaults"]
-    close = [f"{where + '.' if where else ''}{c}{tail if _has(node[c], parts[i + 1:]) else ''}"
-             for c in close_keys(missing, known)]
+    close = [
+        f"{where + '.' if where else ''}{c}{tail if _has(node[c], parts[i + 1 :]) else ''}"
+        for c in close_keys(missing, known)
+    ]
     did_you_mean = f"; did you mean {' or '.join(close)}?" if close else ""
     if where == "filter":
         text = f"{key}: expected one of the selected filters {', '.join(known)}, got {missing}"
@@ -194,13 +206,19 @@ def unreadable_override_message(argv: Sequence[str]) -> Optional[str]:
             if not rhs or rhs[:1] in "'\"":
                 return f"{arg}: Hydra cannot read this override ({e}); see Hydra's override grammar"
             quoted = f"\"{lhs}='{rhs}'\"" if "'" not in rhs + lhs else shlex.quote(f'{lhs}="{rhs}"')
-            return (f"{lhs}: expected a value Hydra can read unquoted (ASCII letters, digits, _-./:), got {rhs!r} "
-                    f"({e}); quote it for Hydra inside the shell's quotes: {quoted}")
+            return (
+                f"{lhs}: expected a value Hydra can read unquoted (ASCII letters, digits, _-./:), got {rhs!r} "
+                f"({e}); quote it for Hydra inside the shell's quotes: {quoted}"
+            )
     return None
 
 
-def check_config(cfg: Mapping, choices: Mapping[str, Optional[str]], config_name: str = "config",
-                 free_form: Sequence[str] = FREE_FORM) -> None:
+def check_config(
+    cfg: Mapping,
+    choices: Mapping[str, Optional[str]],
+    config_name: str = "config",
+    free_form: Sequence[str] = FREE_FORM,
+) -> None:
     """What a composed config of the command whose primary config is ``config_name`` (``config``:
     ``torchflow``; ``learn``: ``torchflow-learn``) must satisfy before anything is built: no
     unknown settings (outside ``free_form``), booleans that are booleans, a seed in range, and
@@ -223,9 +241,13 @@ def check_config(cfg: Mapping, choices: Mapping[str, Optional[str]], config_name
     if "metrics" in known:
         m = cfg.get("metrics") or {}
         steps = cfg.get("steps")
-        check_metric_settings(ospa_cutoff=m.get("ospa_cutoff"), ospa_order=m.get("ospa_order"),
-                              lost_threshold=m.get("lost_threshold"), burn_in=m.get("burn_in", 0),
-                              steps=steps if isinstance(steps, int) and not isinstance(steps, bool) and steps > 0 else None)
+        check_metric_settings(
+            ospa_cutoff=m.get("ospa_cutoff"),
+            ospa_order=m.get("ospa_order"),
+            lost_threshold=m.get("lost_threshold"),
+            burn_in=m.get("burn_in", 0),
+            steps=steps if isinstance(steps, int) and not isinstance(steps, bool) and steps > 0 else None,
+        )
 
 
 def invoked_as(argv0: str, default: str) -> str:
@@ -241,7 +263,7 @@ def collect_command(sweep_dir, env: Optional[Mapping[str, str]] = None) -> str:
     """The command that merges a sweep's jobs: ``experiments/collect.py`` beside the ``run.py`` this
     process was started as (``python ../experiments/run.py``: ``python ../experiments/collect.py``)."""
     prog = (os.environ if env is None else env).get(PROG_ENV, "")
-    script = prog[len("python "):] if prog.startswith("python ") else ""
+    script = prog[len("python ") :] if prog.startswith("python ") else ""
     script = shlex.split(script)[0] if script else ""
     collect = str(Path(script).with_name("collect.py")) if Path(script).name == "run.py" else "experiments/collect.py"
     return f"python {shlex.quote(collect)} {shlex.quote(str(sweep_dir))}"
@@ -253,8 +275,9 @@ def remember_command(prog: str, argv: Sequence[str]) -> None:
     os.environ.setdefault(ARGV_ENV, json.dumps(list(argv)))
 
 
-def resume_command(prog: Optional[str] = None, argv: Optional[Sequence[str]] = None,
-                   env: Optional[Mapping[str, str]] = None) -> str:
+def resume_command(
+    prog: Optional[str] = None, argv: Optional[Sequence[str]] = None, env: Optional[Mapping[str, str]] = None
+) -> str:
     """The command line of this run (all of a sweep's jobs: ``-m`` and every override) with
     ``resume=true``; under torchrun the same number of processes, so the chunks are the same."""
     env = os.environ if env is None else env
@@ -299,8 +322,12 @@ def recorded_data(cfg: Mapping, model):
     path = cfg.get("data")
     if path is None:
         return None
-    require(isinstance(path, str) and path != "", "data", "the path of a .csv or .npy file of recorded observations, "
-            "or null", path)
+    require(
+        isinstance(path, str) and path != "",
+        "data",
+        "the path of a .csv or .npy file of recorded observations, or null",
+        path,
+    )
     full = Path(to_absolute_path(path))
     try:
         obs = load_observations(full, model, name="data")
@@ -310,9 +337,14 @@ def recorded_data(cfg: Mapping, model):
     trials = cfg.trials
     if obs.dim() == 3:
         B = obs.shape[0]
-        require("trials" not in given or trials == B, "trials", f"the {B} series of data={path} (one trial per "
-                "series; leave trials unset)", trials)
+        require(
+            "trials" not in given or trials == B,
+            "trials",
+            f"the {B} series of data={path} (one trial per series; leave trials unset)",
+            trials,
+        )
         trials = B
-    require("steps" not in given or cfg.steps == T, "steps", f"the {T} rows of data={path} (leave steps unset)",
-            cfg.steps)
+    require(
+        "steps" not in given or cfg.steps == T, "steps", f"the {T} rows of data={path} (leave steps unset)", cfg.steps
+    )
     return obs, trials, T, hashlib.sha256(full.read_bytes()).hexdigest()

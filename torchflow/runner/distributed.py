@@ -1,6 +1,7 @@
 """One experiment over ``torchrun`` processes (README, "Scaling out"): every rank simulates the same
 data, runs chunks ``rank, rank + world, ...`` of each filter and sends its per-trial results to rank 0.
 """
+
 from __future__ import annotations
 
 import datetime
@@ -35,7 +36,7 @@ class Shard:
 
     def mine(self, chunks: List) -> List:
         """This rank's chunks of ``chunks`` (round-robin)."""
-        return chunks[self.rank::self.world]
+        return chunks[self.rank :: self.world]
 
     def gather(self, obj: Any) -> Optional[List[Any]]:
         """Every rank's ``obj`` in rank order on rank 0 (``None`` elsewhere); ``[obj]`` when
@@ -67,8 +68,9 @@ class Shard:
         if not dist.is_initialized():
             if cuda:
                 torch.cuda.set_device(local)
-            dist.init_process_group(backend="nccl" if cuda else "gloo",
-                                    timeout=datetime.timedelta(minutes=float(timeout_minutes)))
+            dist.init_process_group(
+                backend="nccl" if cuda else "gloo", timeout=datetime.timedelta(minutes=float(timeout_minutes))
+            )
         return Shard(rank=rank, world=world, local_rank=local)
 
     def device(self, device: str) -> str:
@@ -76,7 +78,9 @@ class Shard:
         run; an explicit ``cuda:<i>`` there is refused (every rank would share GPU i)."""
         if self.world > 1 and str(device).startswith("cuda"):
             if str(device) != "cuda":
-                raise ArgumentError(f"device: expected 'cuda' under torchrun (rank r uses cuda:LOCAL_RANK), got {device!r}")
+                raise ArgumentError(
+                    f"device: expected 'cuda' under torchrun (rank r uses cuda:LOCAL_RANK), got {device!r}"
+                )
             return f"cuda:{self.local_rank}"
         return str(device)
 

@@ -1,6 +1,7 @@
 """``run_experiment``: plan -> execute (every filter over its chunks of trials, with stop requests,
 checkpoints and shards; a failing filter's traceback goes to the ``torchflow.runner`` log) -> score.
 """
+
 from __future__ import annotations
 
 import logging
@@ -24,8 +25,16 @@ from .distributed import Shard
 from .. import metrics
 from ..data import check_observations
 from ..errors import ArgumentError
-from .plan import (ConfigError, RunPlan, check_metric_settings, check_settings, check_warmup, data_sizes, make_plan,
-                   recorded)
+from .plan import (
+    ConfigError,
+    RunPlan,
+    check_metric_settings,
+    check_settings,
+    check_warmup,
+    data_sizes,
+    make_plan,
+    recorded,
+)
 from .score import SUMMARY_COLUMNS, ExperimentResult, estimate_spread, make_scorer, score_filter
 
 log = logging.getLogger("torchflow.runner")
@@ -44,7 +53,7 @@ class StopRequest:
     def __init__(self):
         self.requested, self.signum, self._depth = False, None, 0
 
-    def handler(self, signum, frame):  # noqa: ARG002 - signal handler signature
+    def handler(self, signum, frame):
         self.requested = True
         if self.signum is None and isinstance(signum, int):
             self.signum = int(signum)
@@ -176,9 +185,11 @@ def _may_weigh_in_kernel(f) -> bool:
     :func:`~torchflow.flows.kernels.select.weights_kernel` decides per step)."""
     from ..flows.kernels import select, steps
 
-    return (getattr(getattr(f, "resampler", None), "kernel_scheme", None) is not None
-            and int(getattr(f, "n_particles", 0) or 0) <= select.WEIGHTS_KERNEL_MAX_PARTICLES
-            and steps.weights_available())
+    return (
+        getattr(getattr(f, "resampler", None), "kernel_scheme", None) is not None
+        and int(getattr(f, "n_particles", 0) or 0) <= select.WEIGHTS_KERNEL_MAX_PARTICLES
+        and steps.weights_available()
+    )
 
 
 def auto_warmup(f, device) -> bool:
@@ -189,8 +200,12 @@ def auto_warmup(f, device) -> bool:
     from ..flows.kernels import steps
 
     kind = torch.device(device).type
-    return kind == "cuda" or (kind == "cpu" and isinstance(f, Filter) and steps.numba_available()
-                              and (_declares_flow_kernel(f) or _may_weigh_in_kernel(f)))
+    return kind == "cuda" or (
+        kind == "cpu"
+        and isinstance(f, Filter)
+        and steps.numba_available()
+        and (_declares_flow_kernel(f) or _may_weigh_in_kernel(f))
+    )
 
 
 def say_slow_path(filters: Mapping, device) -> Optional[str]:
@@ -203,8 +218,10 @@ def say_slow_path(filters: Mapping, device) -> Optional[str]:
     slow = [name for name, f in filters.items() if _declares_flow_kernel(f)]
     if not slow:
         return None
-    text = (f"the CPU kernels (Numba) are not installed: the flows of {', '.join(slow)} run on the slower torch path; "
-            "pip install 'torchflow[kernels]' (or numba) for the fused kernels")
+    text = (
+        f"the CPU kernels (Numba) are not installed: the flows of {', '.join(slow)} run on the slower torch path; "
+        "pip install 'torchflow[kernels]' (or numba) for the fused kernels"
+    )
     log.warning(text)
     return text
 
@@ -239,8 +256,11 @@ def warm_up(f: Filter, name: str, plan: RunPlan, chunks: Sequence[Tuple[int, int
     s0 = chunks[0][0]
     sizes = sorted({e - s for s, e in chunks}, reverse=True) if plan.settings.device.type == "cuda" else [1]
     steps = 2 if isinstance(f, Filter) else None
-    log.info(f"{name}: warming up on {'/'.join(map(str, sizes))} trial(s)" + (" x 2 steps" if steps else "")
-             + " (its kernels are compiled on a machine's first run and loaded from the cache after)")
+    log.info(
+        f"{name}: warming up on {'/'.join(map(str, sizes))} trial(s)"
+        + (" x 2 steps" if steps else "")
+        + " (its kernels are compiled on a machine's first run and loaded from the cache after)"
+    )
     return sum(_timed_call(f, name, plan, s0, s0 + n, steps=steps)[1] for n in sizes)
 
 
@@ -268,14 +288,31 @@ def _one_chunk(f, name, plan, s, e, store, bar, before=None) -> dict:
     return chunk
 
 
-def execute(f: Filter, name: str, plan: RunPlan, *, store: Optional[ChunkStore] = None, progress=False,
-            desc="", warmup: bool = False) -> Outcome:
+def execute(
+    f: Filter,
+    name: str,
+    plan: RunPlan,
+    *,
+    store: Optional[ChunkStore] = None,
+    progress=False,
+    desc="",
+    warmup: bool = False,
+) -> Outcome:
     """Run ``f`` over this rank's chunks (a tqdm bar on rank 0 with ``progress``); the ranks' outcome.
     ``warmup``: first untimed calls on two steps (:func:`warm_up`), made before the first chunk
     that is computed (none when the store holds every chunk)."""
     mine = plan.shard.mine(plan.trial_chunks(plan.chunks[name]))
-    bar = tqdm(total=sum(e - s for s, e in mine) * plan.settings.steps, unit="trial-step", leave=False,
-               dynamic_ncols=True, desc=desc) if progress and plan.shard.is_main else None
+    bar = (
+        tqdm(
+            total=sum(e - s for s, e in mine) * plan.settings.steps,
+            unit="trial-step",
+            leave=False,
+            dynamic_ncols=True,
+            desc=desc,
+        )
+        if progress and plan.shard.is_main
+        else None
+    )
     out, where = Outcome(), None
     pending = [bool(warmup and mine)]
 
@@ -295,7 +332,7 @@ def execute(f: Filter, name: str, plan: RunPlan, *, store: Optional[ChunkStore] 
         STOP.check()
     except KeyboardInterrupt:  # keep what finished; the caller writes it and says so
         out.interrupted = True
-    except Exception as err:  # noqa: BLE001 - one failing filter must not lose the others' results
+    except Exception as err:
         out.error, out.where = f"{type(err).__name__}: {err}", where
         log.error("filter %s failed in %s: %s\n%s", name, out.where, out.error, traceback.format_exc().rstrip())
     finally:
@@ -319,13 +356,25 @@ def gather_outcome(out: Outcome, plan: RunPlan) -> Outcome:
     return Outcome(chunks, failed[1], failed[3], interrupted, out.warmup)
 
 
-def plan_run(model: StateSpaceModel, filters: Mapping[str, Filter], *, trials: Optional[int], steps: Optional[int],
-             seed: int, inits_per_track: int = 1, chunk_size: Optional[int] = None,
-             memory_budget_gb: Optional[float] = None,
-             device: Union[str, torch.device] = "cpu", dtype: Union[str, torch.dtype] = "float64",
-             rng_backend: str = "auto", trial_range: Optional[Sequence[int]] = None, shard: Optional[Shard] = None,
-             simulator: Optional[Callable] = None, observations: Optional[torch.Tensor] = None,
-             prior=None) -> RunPlan:
+def plan_run(
+    model: StateSpaceModel,
+    filters: Mapping[str, Filter],
+    *,
+    trials: Optional[int],
+    steps: Optional[int],
+    seed: int,
+    inits_per_track: int = 1,
+    chunk_size: Optional[int] = None,
+    memory_budget_gb: Optional[float] = None,
+    device: Union[str, torch.device] = "cpu",
+    dtype: Union[str, torch.dtype] = "float64",
+    rng_backend: str = "auto",
+    trial_range: Optional[Sequence[int]] = None,
+    shard: Optional[Shard] = None,
+    simulator: Optional[Callable] = None,
+    observations: Optional[torch.Tensor] = None,
+    prior=None,
+) -> RunPlan:
     """The arguments checked (:func:`~torchflow.runner.plan.check_settings`; a model with
     ``n_steps`` sets the steps), the model (and ``filters``, which may be empty) moved to the
     device and dtype, the chunks chosen, the run's memory checked (a run that cannot fit is refused
@@ -341,38 +390,69 @@ def plan_run(model: StateSpaceModel, filters: Mapping[str, Filter], *, trials: O
     ``trials`` / ``steps`` ``None``: 10 (the data's B) and 10 (the data's T)."""
     if observations is not None:
         if simulator is not None:
-            raise ConfigError("observations: recorded data replace the simulation; give observations or simulator, "
-                              "not both")
+            raise ConfigError(
+                "observations: recorded data replace the simulation; give observations or simulator, not both"
+            )
         try:
             observations = check_observations(observations, model)
         except ArgumentError as e:
             raise ConfigError(str(e)) from None
         if inits_per_track != 1:
-            raise ConfigError(f"inits_per_track: expected 1 with recorded data (every trial filters the recorded "
-                              f"series), got {inits_per_track!r}")
+            raise ConfigError(
+                f"inits_per_track: expected 1 with recorded data (every trial filters the recorded "
+                f"series), got {inits_per_track!r}"
+            )
         trials, steps = data_sizes(observations, trials, steps)
         simulator = recorded(observations, prior)
     elif prior is not None:
-        raise ConfigError("prior: a prior is given with recorded observations only (a simulation draws each trial's "
-                          "prior around its true initial state)")
+        raise ConfigError(
+            "prior: a prior is given with recorded observations only (a simulation draws each trial's "
+            "prior around its true initial state)"
+        )
     trials = 10 if trials is None else trials
     steps = 10 if steps is None else steps
-    s = check_settings(trials=trials, steps=getattr(model, "n_steps", steps), seed=seed, chunk_size=chunk_size,
-                       inits_per_track=inits_per_track, memory_budget_gb=memory_budget_gb, device=device, dtype=dtype,
-                       rng_backend=rng_backend, trial_range=trial_range)
+    s = check_settings(
+        trials=trials,
+        steps=getattr(model, "n_steps", steps),
+        seed=seed,
+        chunk_size=chunk_size,
+        inits_per_track=inits_per_track,
+        memory_budget_gb=memory_budget_gb,
+        device=device,
+        dtype=dtype,
+        rng_backend=rng_backend,
+        trial_range=trial_range,
+    )
     with before_the_filters("the simulation"):
         return make_plan(model, filters, s, shard, simulator)
 
 
 def run_experiment(
-    model: StateSpaceModel, filters: Mapping[str, Filter], *, trials: Optional[int] = None,
-    steps: Optional[int] = None, seed: int = 0,
-    inits_per_track: int = 1, chunk_size: Optional[int] = None, memory_budget_gb: Optional[float] = None,
-    device: Union[str, torch.device] = "cpu", dtype: Union[str, torch.dtype] = "float64", ospa_cutoff: float = 40.0,
-    ospa_order: float = 1.0, lost_threshold: float = 2.0, burn_in: int = 0, progress: bool = True,
-    rng_backend: str = "auto", on_filter_done: Optional[Callable[[List[dict]], None]] = None, store: Optional[ChunkStore] = None,
-    shard: Optional[Shard] = None, trial_range: Optional[Sequence[int]] = None, simulator: Optional[Callable] = None,
-    warmup: Union[str, bool] = "auto", observations: Optional[torch.Tensor] = None, prior=None,
+    model: StateSpaceModel,
+    filters: Mapping[str, Filter],
+    *,
+    trials: Optional[int] = None,
+    steps: Optional[int] = None,
+    seed: int = 0,
+    inits_per_track: int = 1,
+    chunk_size: Optional[int] = None,
+    memory_budget_gb: Optional[float] = None,
+    device: Union[str, torch.device] = "cpu",
+    dtype: Union[str, torch.dtype] = "float64",
+    ospa_cutoff: float = 40.0,
+    ospa_order: float = 1.0,
+    lost_threshold: float = 2.0,
+    burn_in: int = 0,
+    progress: bool = True,
+    rng_backend: str = "auto",
+    on_filter_done: Optional[Callable[[List[dict]], None]] = None,
+    store: Optional[ChunkStore] = None,
+    shard: Optional[Shard] = None,
+    trial_range: Optional[Sequence[int]] = None,
+    simulator: Optional[Callable] = None,
+    warmup: Union[str, bool] = "auto",
+    observations: Optional[torch.Tensor] = None,
+    prior=None,
 ) -> Optional[ExperimentResult]:
     """Simulate ``trials`` trajectories of ``steps`` steps once (``model.n_steps``, where the model
     has one, sets it) and run every filter of ``filters`` (``{name: filter holding model}``) on the
@@ -384,7 +464,8 @@ def run_experiment(
     draw. ``chunk_size``: trials per chunk (``None``: from ``memory_budget_gb`` and the filters'
     memory formulas). ``memory_budget_gb``: the working memory one chunk may use per time step
     (``None``: :data:`~torchflow.runner.plan.MEMORY_BUDGET_SHARE` of the memory free on the device
-    when the run is planned; ``config["memory_budget"]`` says which). ``ospa_cutoff``, ``ospa_order``, ``lost_threshold``: metric settings;
+    when the run is planned; ``config["memory_budget"]`` says which). ``ospa_cutoff``, ``ospa_order``,
+    ``lost_threshold``: metric settings;
     ``burn_in``: steps dropped from the start of the burn-in metrics' trial and summary values
     (``rmse``; fewer than the steps).
     ``on_filter_done(summary rows)`` runs after each filter. ``store``: a
@@ -416,25 +497,51 @@ def run_experiment(
     :class:`~torchflow.runner.plan.ConfigError` before anything runs.
     """
     if not isinstance(filters, Mapping) or not all(isinstance(f, torch.nn.Module) for f in filters.values()):
-        got = type(filters).__name__ if not isinstance(filters, Mapping) else "a mapping with " + ", ".join(
-            sorted({type(f).__name__ for f in filters.values() if not isinstance(f, torch.nn.Module)}))
-        raise ConfigError(f"filters: expected a mapping of names to filters, e.g. {{'kf': KalmanFilter(model)}}, got {got}")
+        got = (
+            type(filters).__name__
+            if not isinstance(filters, Mapping)
+            else "a mapping with "
+            + ", ".join(sorted({type(f).__name__ for f in filters.values() if not isinstance(f, torch.nn.Module)}))
+        )
+        raise ConfigError(
+            f"filters: expected a mapping of names to filters, e.g. {{'kf': KalmanFilter(model)}}, got {got}"
+        )
     check_warmup(warmup)
     n_steps = getattr(model, "n_steps", steps)
-    metric_settings = check_metric_settings(ospa_cutoff=ospa_cutoff, ospa_order=ospa_order,
-                                            lost_threshold=lost_threshold, burn_in=burn_in,
-                                            steps=n_steps if isinstance(n_steps, int) and n_steps > 0 else None)
+    metric_settings = check_metric_settings(
+        ospa_cutoff=ospa_cutoff,
+        ospa_order=ospa_order,
+        lost_threshold=lost_threshold,
+        burn_in=burn_in,
+        steps=n_steps if isinstance(n_steps, int) and n_steps > 0 else None,
+    )
     t0 = time.perf_counter()
-    plan = plan_run(model, filters, trials=trials, steps=steps, seed=seed, inits_per_track=inits_per_track,
-                    chunk_size=chunk_size, memory_budget_gb=memory_budget_gb, device=device, dtype=dtype,
-                    rng_backend=rng_backend, trial_range=trial_range, shard=shard, simulator=simulator,
-                    observations=observations, prior=prior)
+    plan = plan_run(
+        model,
+        filters,
+        trials=trials,
+        steps=steps,
+        seed=seed,
+        inits_per_track=inits_per_track,
+        chunk_size=chunk_size,
+        memory_budget_gb=memory_budget_gb,
+        device=device,
+        dtype=dtype,
+        rng_backend=rng_backend,
+        trial_range=trial_range,
+        shard=shard,
+        simulator=simulator,
+        observations=observations,
+        prior=prior,
+    )
     s = plan.settings
     truthless = plan.traj.states is None
     if truthless and plan.shard.is_main:
         left = [name for name, m in metrics.REGISTRY.items() if m.needs_truth]
-        log.info(f"recorded data (no true states): {', '.join(left) or 'no metric'} left out; reported: the "
-                 "log-evidence, the ESS and the estimates' per-step mean and spread")
+        log.info(
+            f"recorded data (no true states): {', '.join(left) or 'no metric'} left out; reported: the "
+            "log-evidence, the ESS and the estimates' per-step mean and spread"
+        )
     if plan.shard.is_main:
         say_slow_path(filters, s.device)
     t1 = time.perf_counter()
@@ -444,17 +551,31 @@ def run_experiment(
     res.timings = {"plan": t1 - t0, "reference": time.perf_counter() - t1, "filters": 0.0, "scoring": 0.0}
     for i, (name, f) in enumerate(filters.items()):
         t2 = time.perf_counter()
-        out = execute(f, name, plan, store=store, progress=progress, desc=f"[{i + 1}/{len(filters)}] {name}",
-                      warmup=auto_warmup(f, s.device) if warmup == "auto" else warmup)
+        out = execute(
+            f,
+            name,
+            plan,
+            store=store,
+            progress=progress,
+            desc=f"[{i + 1}/{len(filters)}] {name}",
+            warmup=auto_warmup(f, s.device) if warmup == "auto" else warmup,
+        )
         t3 = time.perf_counter()
         res.timings["filters"] += t3 - t2
         res.interrupted = out.interrupted
         if plan.shard.is_main:
-            row = {**dict.fromkeys(SUMMARY_COLUMNS), "filter": name, "n_particles": f.n_particles,
-                   "trials": s.n_run, "steps": s.steps}
+            row = {
+                **dict.fromkeys(SUMMARY_COLUMNS),
+                "filter": name,
+                "n_particles": f.n_particles,
+                "trials": s.n_run,
+                "steps": s.steps,
+            }
             res.summary.append(row)
             if out.interrupted:
-                row["error"] = f"interrupted after {sum(c['stop'] - c['start'] for c in out.chunks)} of {s.n_run} trials"
+                row["error"] = (
+                    f"interrupted after {sum(c['stop'] - c['start'] for c in out.chunks)} of {s.n_run} trials"
+                )
             elif out.error is not None:
                 row["error"], res.failures[name] = out.error, out.where
             else:  # sec_per_step: compute time (a loaded chunk: its original time) per trial-step
@@ -477,13 +598,24 @@ def run_experiment(
         return None
     res.not_run = [n for n in filters if n not in {r["filter"] for r in res.summary}]
     res.config = dict(
-        trials=s.trials, steps=s.steps, seed=s.seed, inits_per_track=s.inits_per_track, chunk_size=plan.chunks,
+        trials=s.trials,
+        steps=s.steps,
+        seed=s.seed,
+        inits_per_track=s.inits_per_track,
+        chunk_size=plan.chunks,
         particle_chunk={n: f.particle_chunk for n, f in filters.items()},
-        memory_budget_gb=round(s.memory_budget_gb, 3), memory_budget=s.budget_from, rng_backend=s.rng_backend,
+        memory_budget_gb=round(s.memory_budget_gb, 3),
+        memory_budget=s.budget_from,
+        rng_backend=s.rng_backend,
         world_size=plan.shard.world,
-        trial_range=[s.lo, s.hi], device=str(s.device), dtype=str(s.dtype).replace("torch.", ""),
-        tuning=tuning.as_dict(), threads=torch.get_num_threads())
+        trial_range=[s.lo, s.hi],
+        device=str(s.device),
+        dtype=str(s.dtype).replace("torch.", ""),
+        tuning=tuning.as_dict(),
+        threads=torch.get_num_threads(),
+    )
     res.recorded = truthless
-    res.trajectory = Trajectory(None if truthless else plan.traj.states[s.lo:s.hi].cpu(),
-                                plan.traj.observations[s.lo:s.hi].cpu())
+    res.trajectory = Trajectory(
+        None if truthless else plan.traj.states[s.lo : s.hi].cpu(), plan.traj.observations[s.lo : s.hi].cpu()
+    )
     return res

@@ -2,6 +2,7 @@
 returns a figure (``None``: nothing to draw); a filter keeps one colour everywhere (:func:`colours`).
 The per-step figure's panels, labels and axes follow :data:`torchflow.metrics.REGISTRY`.
 """
+
 from __future__ import annotations
 
 import logging
@@ -12,8 +13,7 @@ from .. import metrics
 
 log = logging.getLogger("torchflow.runner")
 
-COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
-           "#bcbd22", "#17becf"]
+COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf"]
 
 
 def pyplot():
@@ -81,8 +81,9 @@ def per_step_figure(plt, per_step, summary, title: str):
             ax.set_title("not defined for: " + ", ".join(missing), fontsize=7)
         ax.grid(alpha=0.3)
     named = [n for n in colour if n in handles]
-    fig.legend([handles[n] for n in named], named, loc="lower center", ncol=min(len(named), 6), fontsize=8,
-               frameon=False)
+    fig.legend(
+        [handles[n] for n in named], named, loc="lower center", ncol=min(len(named), 6), fontsize=8, frameon=False
+    )
     fig.suptitle(title)
     fig.tight_layout(rect=(0, 0.1, 1, 1))
     return fig
@@ -144,8 +145,14 @@ def scene_figure(plt, model, trajectory, examples, summary, title: str):
     fig = plt.figure(figsize=(6.5, 5.5))
     ax = fig.add_subplot(projection="3d")
     ax.scatter(*model.receivers.cpu().T, marker="s", s=40, c="k", label="receivers")
-    ax.scatter(*model.positions(trajectory.states[0, 0]).cpu().T, marker="*", s=160, c="gold", edgecolors="k",
-               label="true sources")
+    ax.scatter(
+        *model.positions(trajectory.states[0, 0]).cpu().T,
+        marker="*",
+        s=160,
+        c="gold",
+        edgecolors="k",
+        label="true sources",
+    )
     for i, (name, pos) in enumerate(examples.items()):
         mark = "o^vDs<>"[i % 7]
         if len(pos):
@@ -237,7 +244,9 @@ def scalar_series(draws):
     out = {}
     for name, v in draws.items():
         flat = v.reshape(v.shape[0], v.shape[1], -1)
-        out.update({name: flat[..., 0]} if v.dim() == 2 else {f"{name}_{i}": flat[..., i] for i in range(flat.shape[-1])})
+        out.update(
+            {name: flat[..., 0]} if v.dim() == 2 else {f"{name}_{i}": flat[..., i] for i in range(flat.shape[-1])}
+        )
     return out
 
 
@@ -273,8 +282,7 @@ def posterior_figures(plt, draws, truth, title: str):
     axes[0][-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1))
     hist.suptitle(title, fontsize=9)
     hist.tight_layout()
-    trace, taxes = plt.subplots(len(series), len(names), figsize=(3.6 * len(names), 2.4 * len(series)),
-                                squeeze=False)
+    trace, taxes = plt.subplots(len(series), len(names), figsize=(3.6 * len(names), 2.4 * len(series)), squeeze=False)
     for row, (f, s) in zip(taxes, series.items()):
         for ax, n in zip(row, names):
             if n in s:
@@ -316,16 +324,20 @@ def save_run_figures(out: Path, model, result, model_name: str) -> List[Path]:
     figs = {"per_step.png": lambda: per_step_figure(plt, res.per_step, res.summary, f"{model_name}, {n} trials")}
     truth = res.trajectory is not None and res.trajectory.states is not None
     if res.recorded:
-        figs["estimates.png"] = lambda: estimates_figure(plt, res.estimate_summary, res.summary,
-                                                         f"{model_name}: recorded data, mean and spread over {n} trials")
+        figs["estimates.png"] = lambda: estimates_figure(
+            plt, res.estimate_summary, res.summary, f"{model_name}: recorded data, mean and spread over {n} trials"
+        )
     if hasattr(model, "receivers") and truth:
-        figs["scene.png"] = lambda: scene_figure(plt, model, res.trajectory, res.examples, res.summary,
-                                                 f"{model_name}: run 0, true and declared sources")
+        figs["scene.png"] = lambda: scene_figure(
+            plt, model, res.trajectory, res.examples, res.summary, f"{model_name}: run 0, true and declared sources"
+        )
     elif model.structure.has_positions and truth:
-        figs["tracks.png"] = lambda: tracks_figure(plt, model, res.trajectory, res.examples, res.summary,
-                                                   f"{model_name}: trial 0, true and estimated tracks")
+        figs["tracks.png"] = lambda: tracks_figure(
+            plt, model, res.trajectory, res.examples, res.summary, f"{model_name}: trial 0, true and estimated tracks"
+        )
         figs["omat_box.png"] = lambda: omat_box_figure(
-            plt, res.per_trial, res.summary, f"{model_name}: per-trial OMAT against time per step, {n} trials")
+            plt, res.per_trial, res.summary, f"{model_name}: per-trial OMAT against time per step, {n} trials"
+        )
     for name, draw in figs.items():
         fig = draw()
         if fig is not None:

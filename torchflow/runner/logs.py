@@ -1,5 +1,6 @@
 """Logging of the command line: messages below WARNING to stdout, the rest to stderr, everything
 (with tracebacks) to the run's ``run.log`` (see ``configs/hydra/job_logging/torchflow.yaml``)."""
+
 from __future__ import annotations
 
 import logging

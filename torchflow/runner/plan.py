@@ -1,6 +1,7 @@
 """Plan a run: check its arguments, simulate the data once, choose every filter's chunks of trials
 from its memory formulas (trials draw from per-trial streams: the plan never changes their numbers).
 """
+
 from __future__ import annotations
 
 import math
@@ -14,7 +15,7 @@ import torch
 
 from ..covariances import DiagonalCovariance, prior_bytes
 from .._checks import allocation_failure, check_count
-from ..data import check_observations, declared_prior
+from ..data import declared_prior
 from ..errors import ArgumentError
 from ..filters.base import Filter
 from ..models.base import StateSpaceModel, Trajectory
@@ -52,8 +53,10 @@ def resolve_device(device: Union[str, torch.device]) -> torch.device:
         dev = None
     require(dev is not None and dev.type in ("cpu", "cuda"), "device", "'cpu', 'cuda' or 'cuda:<index>'", device)
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device: 'cuda' requested but torch.cuda.is_available() is False "
-                          "(a CPU-only torch build, or no GPU visible)")
+        raise ConfigError(
+            "device: 'cuda' requested but torch.cuda.is_available() is False "
+            "(a CPU-only torch build, or no GPU visible)"
+        )
     return dev
 
 
@@ -100,16 +103,23 @@ def _number(v) -> bool:
 def check_metric_settings(*, ospa_cutoff, ospa_order, lost_threshold, burn_in=0, steps: Optional[int] = None) -> dict:
     """OSPA cut-off (> 0), order (>= 1), the lost-track threshold (> 0, metres of OMAT) and the
     burn-in (an integer >= 0 of steps, fewer than ``steps`` when given)."""
-    rules = {"ospa_cutoff": (ospa_cutoff, 0.0, "a positive number"), "ospa_order": (ospa_order, 1.0, "a number >= 1"),
-             "lost_threshold": (lost_threshold, 0.0, "a positive number of metres")}
+    rules = {
+        "ospa_cutoff": (ospa_cutoff, 0.0, "a positive number"),
+        "ospa_order": (ospa_order, 1.0, "a number >= 1"),
+        "lost_threshold": (lost_threshold, 0.0, "a positive number of metres"),
+    }
     for name, (v, low, what) in rules.items():
         require(_number(v) and v >= low and (name == "ospa_order" or v > low), f"metrics.{name}", what, v)
     whole = isinstance(burn_in, int) and not isinstance(burn_in, bool)
     if steps is None:
         require(whole and burn_in >= 0, "metrics.burn_in", "an integer >= 0 (steps dropped from the start)", burn_in)
     else:
-        require(whole and 0 <= burn_in < steps, "metrics.burn_in",
-                f"an integer in [0, steps = {steps}) (steps dropped from the start of the scores)", burn_in)
+        require(
+            whole and 0 <= burn_in < steps,
+            "metrics.burn_in",
+            f"an integer in [0, steps = {steps}) (steps dropped from the start of the scores)",
+            burn_in,
+        )
     return {**{name: float(v) for name, (v, _, _) in rules.items()}, "burn_in": int(burn_in)}
 
 
@@ -129,17 +139,23 @@ def filter_chunk(f: Filter, n_run: int, chunk_size: Optional[int], memory_budget
         c = min(int(chunk_size), cap or int(chunk_size))
         need = c * f.bytes_per_trial()
         if need > memory_budget_gb * 2**30:
-            warnings.warn(f"chunk_size={chunk_size}: {f.name} is estimated at {need / 2**30:.3g} GiB per chunk of {c} "
-                          f"trials, over memory_budget_gb={memory_budget_gb:g}; it may run out of memory (leave "
-                          "chunk_size unset to size chunks from the budget)", stacklevel=2)
+            warnings.warn(
+                f"chunk_size={chunk_size}: {f.name} is estimated at {need / 2**30:.3g} GiB per chunk of {c} "
+                f"trials, over memory_budget_gb={memory_budget_gb:g}; it may run out of memory (leave "
+                "chunk_size unset to size chunks from the budget)",
+                stacklevel=2,
+            )
         return c
     c = choose_chunk_size({"f": f}, n_run, memory_budget_gb)
     if c == 1 and f.particle_chunk is None:  # one trial may still exceed it: chunk particles
         pc = f.plan_memory(memory_budget_gb * 2**30)
         if pc is not None:
-            warnings.warn(f"memory_budget_gb={memory_budget_gb:g}: {f.name} runs one trial at a time in blocks "
-                          f"of {f.describe_blocks(pc)} (estimated {f.bytes_per_trial() / 2**30:.3g} "
-                          "GiB per trial); raise the budget if this machine has more memory", stacklevel=2)
+            warnings.warn(
+                f"memory_budget_gb={memory_budget_gb:g}: {f.name} runs one trial at a time in blocks "
+                f"of {f.describe_blocks(pc)} (estimated {f.bytes_per_trial() / 2**30:.3g} "
+                "GiB per trial); raise the budget if this machine has more memory",
+                stacklevel=2,
+            )
     return min(c, f.preferred_chunk_trials() or c, cap or c)
 
 
@@ -178,8 +194,9 @@ SCORED_SERIES = 6
 
 def _gib(n: float) -> str:
     """``n`` bytes in MiB or GiB (three digits; whole GiB from 1000)."""
-    return f"{n / 2**20:.3g} MiB" if n < 2**28 else f"{n / 2**30:.3g} GiB" if n < 1000 * 2**30 else \
-        f"{n / 2**30:,.0f} GiB"
+    return (
+        f"{n / 2**20:.3g} MiB" if n < 2**28 else f"{n / 2**30:.3g} GiB" if n < 1000 * 2**30 else f"{n / 2**30:,.0f} GiB"
+    )
 
 
 @dataclass
@@ -204,8 +221,13 @@ class MemoryEstimate:
         return f"simulated data {_gib(self.data)}, filter chunks {_gib(self.filters)}, results {_gib(self.results)}"
 
 
-def estimate_memory(model: StateSpaceModel, filters: Mapping[str, Filter], s: "RunSettings", chunks: Mapping[str, int],
-                    simulated: bool = True) -> MemoryEstimate:
+def estimate_memory(
+    model: StateSpaceModel,
+    filters: Mapping[str, Filter],
+    s: "RunSettings",
+    chunks: Mapping[str, int],
+    simulated: bool = True,
+) -> MemoryEstimate:
     """The memory of a run (:class:`MemoryEstimate`), from its sizes: ``trials`` B, ``steps`` T, the
     run's trials n (``trial_range``), the state and measurement dimensions d and m, the dtype's
     bytes b, each filter's chunk c and memory formula (``bytes_per_trial``), F filters:
@@ -225,8 +247,9 @@ def estimate_memory(model: StateSpaceModel, filters: Mapping[str, Filter], s: "R
         data = max(model.simulation_bytes(math.ceil(B / s.inits_per_track), T), 0) + B * (b * d + prior_bytes(model, b))
         data += traj if s.inits_per_track > 1 else 0
     bookkeeping = T * TENSORS_PER_STEP * TENSOR_BYTES
-    work = max((chunks[k] * f.bytes_per_trial() + 2 * T * chunks[k] * b * (d + 3) for k, f in filters.items()),
-               default=0)
+    work = max(
+        (chunks[k] * f.bytes_per_trial() + 2 * T * chunks[k] * b * (d + 3) for k, f in filters.items()), default=0
+    )
     results = len(filters) * (T + n) * ROW_BYTES + 8 * n * T * (2 * d + SCORED_SERIES) if filters else 0
     if s.device.type == "cpu":
         return MemoryEstimate(data, work + (bookkeeping if filters else 0), results)
@@ -273,8 +296,13 @@ def _kib(text: str, key: str) -> int:
     return int(text.split(key, 1)[1].split()[0]) * 1024
 
 
-def check_memory(model: StateSpaceModel, filters: Mapping[str, Filter], s: "RunSettings", chunks: Mapping[str, int],
-                 simulated: bool = True) -> MemoryEstimate:
+def check_memory(
+    model: StateSpaceModel,
+    filters: Mapping[str, Filter],
+    s: "RunSettings",
+    chunks: Mapping[str, int],
+    simulated: bool = True,
+) -> MemoryEstimate:
     """The size check before anything is simulated: a :class:`ConfigError` naming trials and steps,
     the estimate (:func:`estimate_memory`) and the memory available (:func:`available_memory`) when
     the run cannot fit; a warning when it needs more than :data:`MEMORY_WARN_SHARE` of it. A run on a
@@ -290,26 +318,35 @@ def check_memory(model: StateSpaceModel, filters: Mapping[str, Filter], s: "RunS
         avail, what = available_memory(dev)
         where = f"{_gib(avail)} {what}" + ("" if dev.type == "cpu" else f" ({dev})")
         if need > avail:
-            split = (f"lower trials or steps (the simulated data alone needs {_gib(data)}; trial_range runs a part "
-                     "of the trials but simulates them all)" if data > avail else
-                     "lower trials or steps, or run the trials in parts with trial_range=[start, stop] (each part "
-                     "keeps only its trials' results)")
+            split = (
+                f"lower trials or steps (the simulated data alone needs {_gib(data)}; trial_range runs a part "
+                "of the trials but simulates them all)"
+                if data > avail
+                else "lower trials or steps, or run the trials in parts with trial_range=[start, stop] (each part "
+                "keeps only its trials' results)"
+            )
             one = {k: f.bytes_per_trial() for k, f in filters.items()} if dev == s.device else {}
             alone = [k for k, b in one.items() if b > avail]
             if alone:  # no split of trials helps: one trial of these filters does not fit
                 d, m = model.state_dim, model.obs_dim
                 one_filter = len(alone) == 1
-                split = (f"{', '.join(alone)} alone need{'s' if one_filter else ''} about "
-                         f"{_gib(max(one[k] for k in alone))} for one trial at d = {d}, m = {m}, so no split of the "
-                         f"trials fits: leave {'it' if one_filter else 'them'} out of this run (filter=[...]), lower "
-                         "the model's size, or use filters whose memory grows linearly in d (the ensemble Kalman "
-                         "filters, the bootstrap PF)")
-            raise ConfigError(f"{sizes}: the run needs about {_gib(need)} of memory ({est.parts()}), more than the "
-                              f"{where}; {split}")
+                split = (
+                    f"{', '.join(alone)} alone need{'s' if one_filter else ''} about "
+                    f"{_gib(max(one[k] for k in alone))} for one trial at d = {d}, m = {m}, so no split of the "
+                    f"trials fits: leave {'it' if one_filter else 'them'} out of this run (filter=[...]), lower "
+                    "the model's size, or use filters whose memory grows linearly in d (the ensemble Kalman "
+                    "filters, the bootstrap PF)"
+                )
+            raise ConfigError(
+                f"{sizes}: the run needs about {_gib(need)} of memory ({est.parts()}), more than the {where}; {split}"
+            )
         if need > MEMORY_WARN_SHARE * avail:
-            warnings.warn(f"{sizes}: the run needs about {_gib(need)} of memory ({est.parts()}), "
-                          f"{100 * need / avail:.0f}% of the {where}; it may run out of memory if other processes "
-                          "need some", stacklevel=3)
+            warnings.warn(
+                f"{sizes}: the run needs about {_gib(need)} of memory ({est.parts()}), "
+                f"{100 * need / avail:.0f}% of the {where}; it may run out of memory if other processes "
+                "need some",
+                stacklevel=3,
+            )
     return est
 
 
@@ -330,8 +367,13 @@ def data_sizes(observations: torch.Tensor, trials: Optional[int], steps: Optiona
     T = observations.shape[-2]
     if observations.dim() == 3:
         B = observations.shape[0]
-        require(trials is None or trials == B, "trials", f"the number of recorded series B = {B} (data (B, T, m): one "
-                f"trial per series; leave trials unset or give {B})", trials)
+        require(
+            trials is None or trials == B,
+            "trials",
+            f"the number of recorded series B = {B} (data (B, T, m): one "
+            f"trial per series; leave trials unset or give {B})",
+            trials,
+        )
         trials = B
     require(steps is None or steps == T, "steps", f"the recorded series' length T = {T} (leave steps unset)", steps)
     return (10 if trials is None else trials), T
@@ -354,15 +396,30 @@ def recorded(observations: torch.Tensor, prior=None):
             except ArgumentError as e:
                 raise ConfigError(str(e)) from None
         else:
-            require(isinstance(prior, (tuple, list)) and len(prior) == 2, "prior", "a pair (mean, cov)",
-                    type(prior).__name__)
+            require(
+                isinstance(prior, (tuple, list)) and len(prior) == 2,
+                "prior",
+                "a pair (mean, cov)",
+                type(prior).__name__,
+            )
             mean, cov = prior
-        ok = (isinstance(mean, torch.Tensor) and isinstance(cov, (torch.Tensor, DiagonalCovariance))
-              and tuple(mean.shape) in ((d,), (trials, d)) and tuple(cov.shape) in ((d, d), (trials, d, d)))
-        got = [tuple(t.shape) if isinstance(t, (torch.Tensor, DiagonalCovariance)) else type(t).__name__
-               for t in (mean, cov)]
-        require(ok, "prior", f"(mean, cov) of shapes (d,) or (B, d) and (d, d) or (B, d, d) (or a "
-                f"DiagonalCovariance of (d,) or (B, d) variances) with d = {d}, B = {trials}", got)
+        ok = (
+            isinstance(mean, torch.Tensor)
+            and isinstance(cov, (torch.Tensor, DiagonalCovariance))
+            and tuple(mean.shape) in ((d,), (trials, d))
+            and tuple(cov.shape) in ((d, d), (trials, d, d))
+        )
+        got = [
+            tuple(t.shape) if isinstance(t, (torch.Tensor, DiagonalCovariance)) else type(t).__name__
+            for t in (mean, cov)
+        ]
+        require(
+            ok,
+            "prior",
+            f"(mean, cov) of shapes (d,) or (B, d) and (d, d) or (B, d, d) (or a "
+            f"DiagonalCovariance of (d,) or (B, d) variances) with d = {d}, B = {trials}",
+            got,
+        )
         mean = mean.detach().to(dtype=model.dtype, device=model.device).expand(trials, d)
         cov = cov.detach().to(dtype=model.dtype, device=model.device).expand(trials, d, d)
         return Trajectory(None, obs), mean, cov
@@ -393,22 +450,37 @@ class RunSettings:
         return self.hi - self.lo
 
 
-def check_settings(*, trials, steps, seed, inits_per_track, chunk_size, memory_budget_gb, device, dtype,
-                   rng_backend, trial_range) -> RunSettings:
+def check_settings(
+    *, trials, steps, seed, inits_per_track, chunk_size, memory_budget_gb, device, dtype, rng_backend, trial_range
+) -> RunSettings:
     """Every run argument checked; a bad one raises :class:`ConfigError` naming it."""
     trials = _count("trials", trials)
     if chunk_size is not None:
         chunk_size = _count("chunk_size", chunk_size, hint=" (or None: from memory_budget_gb)")
     auto = memory_budget_gb is None or memory_budget_gb == "auto"
-    require(auto or (_number(memory_budget_gb) and memory_budget_gb > 0), "memory_budget_gb",
-            "a positive number of GiB, or null/auto (a share of the memory free on the device)", memory_budget_gb)
+    require(
+        auto or (_number(memory_budget_gb) and memory_budget_gb > 0),
+        "memory_budget_gb",
+        "a positive number of GiB, or null/auto (a share of the memory free on the device)",
+        memory_budget_gb,
+    )
     inits_per_track = _count("inits_per_track", inits_per_track)
     warn_uneven_tracks(trials, inits_per_track)
     device = resolve_device(device)
     budget, how = auto_memory_budget(device) if auto else (float(memory_budget_gb), "given")
-    return RunSettings(trials, _count("steps", steps), check_seed(seed), inits_per_track,
-                       chunk_size, budget, device, resolve_dtype(dtype),
-                       check_rng_backend(rng_backend), *check_trial_range(trial_range, trials), budget_from=how)
+    return RunSettings(
+        trials,
+        _count("steps", steps),
+        check_seed(seed),
+        inits_per_track,
+        chunk_size,
+        budget,
+        device,
+        resolve_dtype(dtype),
+        check_rng_backend(rng_backend),
+        *check_trial_range(trial_range, trials),
+        budget_from=how,
+    )
 
 
 def warn_uneven_tracks(trials: int, inits_per_track: int) -> None:
@@ -416,14 +488,19 @@ def warn_uneven_tracks(trials: int, inits_per_track: int) -> None:
     the groups are not all that size: ``inits_per_track`` above ``trials`` (every trial shares one
     trajectory) or not dividing it (the last trajectory has fewer trials)."""
     if inits_per_track > trials:
-        warnings.warn(f"inits_per_track={inits_per_track} is more than trials={trials}: all {trials} trials share "
-                      f"one trajectory (inits_per_track={trials} says so)", stacklevel=3)
+        warnings.warn(
+            f"inits_per_track={inits_per_track} is more than trials={trials}: all {trials} trials share "
+            f"one trajectory (inits_per_track={trials} says so)",
+            stacklevel=3,
+        )
     elif trials % inits_per_track:
         last = trials % inits_per_track
-        warnings.warn(f"inits_per_track={inits_per_track} does not divide trials={trials}: the last trajectory is "
-                      f"shared by {last} trial{'s' if last > 1 else ''}, the others by {inits_per_track} (trials="
-                      f"{-(-trials // inits_per_track) * inits_per_track} keeps the groups equal)",
-                      stacklevel=3)
+        warnings.warn(
+            f"inits_per_track={inits_per_track} does not divide trials={trials}: the last trajectory is "
+            f"shared by {last} trial{'s' if last > 1 else ''}, the others by {inits_per_track} (trials="
+            f"{-(-trials // inits_per_track) * inits_per_track} keeps the groups equal)",
+            stacklevel=3,
+        )
 
 
 @dataclass
@@ -444,12 +521,25 @@ class RunPlan:
     def meta(self, f: Filter) -> dict:
         """What a saved chunk's header must repeat (see :class:`~torchflow.runner.checkpoint.ChunkStore`)."""
         s = self.settings
-        return dict(seed=s.seed, trials=s.trials, steps=s.steps, inits_per_track=s.inits_per_track,
-                    stream=f.stream_name, rng_backend=s.rng_backend, dtype=str(s.dtype), device=s.device.type)
+        return dict(
+            seed=s.seed,
+            trials=s.trials,
+            steps=s.steps,
+            inits_per_track=s.inits_per_track,
+            stream=f.stream_name,
+            rng_backend=s.rng_backend,
+            dtype=str(s.dtype),
+            device=s.device.type,
+        )
 
 
-def make_plan(model: StateSpaceModel, filters: Mapping[str, Filter], settings: RunSettings,
-              shard: Optional[Shard] = None, simulator=None) -> RunPlan:
+def make_plan(
+    model: StateSpaceModel,
+    filters: Mapping[str, Filter],
+    settings: RunSettings,
+    shard: Optional[Shard] = None,
+    simulator=None,
+) -> RunPlan:
     """Move model and filters to the run's device/dtype, simulate, and choose the chunks.
     ``simulator``: replaces :func:`simulate` (same signature), e.g. to filter given data."""
     s = settings
@@ -458,8 +548,10 @@ def make_plan(model: StateSpaceModel, filters: Mapping[str, Filter], settings: R
         if f.model is not model:
             raise ConfigError(f"filters[{name!r}]: holds a different model instance than `model`")
         if model.structure.padded_measurements and not f.padded_measurements:
-            raise ConfigError(f"filter.{name}: {type(f).__name__} cannot run on {type(model).__name__}, whose "
-                              "measurements are padded sets with a mask; select a localiser (bs, pfi_d, pfi_s, pfi_os)")
+            raise ConfigError(
+                f"filter.{name}: {type(f).__name__} cannot run on {type(model).__name__}, whose "
+                "measurements are padded sets with a mask; select a localiser (bs, pfi_d, pfi_s, pfi_os)"
+            )
         f.to(device=s.device, dtype=s.dtype)
     shard = shard or Shard()
     chunks = {name: filter_chunk(f, s.n_run, s.chunk_size, s.memory_budget_gb) for name, f in filters.items()}
@@ -473,7 +565,7 @@ def make_plan(model: StateSpaceModel, filters: Mapping[str, Filter], settings: R
         asked = allocation_failure(err)
         if asked is None:
             raise
-        raise ConfigError(f"trials={s.trials}, steps={s.steps}: the simulation ran out of memory{asked}; lower "
-                          "trials or steps") from None
+        raise ConfigError(
+            f"trials={s.trials}, steps={s.steps}: the simulation ran out of memory{asked}; lower trials or steps"
+        ) from None
     return RunPlan(s, traj, mean0, cov0, chunks, shard)
-

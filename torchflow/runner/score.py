@@ -1,4 +1,5 @@
 """Score a filter's chunks: the summary row, per-trial and per-step metrics; the result container."""
+
 from __future__ import annotations
 
 import warnings
@@ -19,9 +20,24 @@ from .plan import RunPlan, filter_chunk
 FIXED_COLUMNS = ("filter", "n_particles", "trials", "steps")
 #: the runner's own summary columns (not per-step metrics), each group after the registered metric
 #: it names (``None``: after every metric; a group whose metric is not registered comes before it)
-RUN_COLUMNS = (("omat", ("omat_kept_mean", "omat_kept_sd")), ("declared", ("underflows",)),
-               (None, ("log_evidence", "log_evidence_se", "log_evidence_relmse", "lost_tracks", "repaired", "sec_per_step",
-                       "warmup_sec", "path", "error")))
+RUN_COLUMNS = (
+    ("omat", ("omat_kept_mean", "omat_kept_sd")),
+    ("declared", ("underflows",)),
+    (
+        None,
+        (
+            "log_evidence",
+            "log_evidence_se",
+            "log_evidence_relmse",
+            "lost_tracks",
+            "repaired",
+            "sec_per_step",
+            "warmup_sec",
+            "path",
+            "error",
+        ),
+    ),
+)
 
 
 def summary_columns() -> List[str]:
@@ -140,8 +156,12 @@ class Scorer:
     @property
     def settings(self) -> Dict[str, float]:
         """The metric settings a :class:`~torchflow.metrics.MetricContext` carries."""
-        return {"ospa_cutoff": self.ospa_cutoff, "ospa_order": self.ospa_order, "lost_threshold": self.lost_threshold,
-                "burn_in": self.burn_in}
+        return {
+            "ospa_cutoff": self.ospa_cutoff,
+            "ospa_order": self.ospa_order,
+            "lost_threshold": self.lost_threshold,
+            "burn_in": self.burn_in,
+        }
 
 
 def make_scorer(model: StateSpaceModel, plan: RunPlan, **settings) -> Scorer:
@@ -149,14 +169,22 @@ def make_scorer(model: StateSpaceModel, plan: RunPlan, **settings) -> Scorer:
     exact log-evidence is the reference of ``log_evidence_relmse``."""
     s = plan.settings
     states = plan.traj.states  # None: recorded data
-    truth = None if states is None else states[s.lo:s.hi, 1:].double().cpu()  # chunks come back as CPU float64
+    truth = None if states is None else states[s.lo : s.hi, 1:].double().cpu()  # chunks come back as CPU float64
     ref = None
     if plan.shard.is_main and model.structure.linear_dynamics and model.structure.linear_measurement:
         with torch.no_grad():
             kf = KalmanFilter(model, validate=False)
             c = filter_chunk(kf, s.n_run, s.chunk_size, s.memory_budget_gb)
-            ref = torch.cat([kf(plan.traj.observations[a:b], plan.mean0[a:b], plan.cov0[a:b]).log_evidence
-                             for a, b in plan.trial_chunks(c)]).double().cpu()
+            ref = (
+                torch.cat(
+                    [
+                        kf(plan.traj.observations[a:b], plan.mean0[a:b], plan.cov0[a:b]).log_evidence
+                        for a, b in plan.trial_chunks(c)
+                    ]
+                )
+                .double()
+                .cpu()
+            )
     return Scorer(model, truth, s.lo, reference_logz=ref, **settings)
 
 
@@ -170,10 +198,20 @@ _NOT_OUTPUTS = ("start", "stop", "elapsed", "estimates", "estimate_mask", "std")
 
 def context(sc: Scorer, f: Filter, chunks: List[dict]) -> metrics.MetricContext:
     """The :class:`~torchflow.metrics.MetricContext` of one filter's chunks (concatenated over trials)."""
-    outputs = {k: _cat(chunks, k) for k, v in chunks[0].items()
-               if k not in _NOT_OUTPUTS and isinstance(v, torch.Tensor) and all(k in c for c in chunks)}
-    return metrics.MetricContext(model=sc.model, filter=f, estimates=_cat(chunks, "estimates"), truth=sc.truth,
-                                 mask=_cat(chunks, "estimate_mask"), outputs=outputs, settings=sc.settings)
+    outputs = {
+        k: _cat(chunks, k)
+        for k, v in chunks[0].items()
+        if k not in _NOT_OUTPUTS and isinstance(v, torch.Tensor) and all(k in c for c in chunks)
+    }
+    return metrics.MetricContext(
+        model=sc.model,
+        filter=f,
+        estimates=_cat(chunks, "estimates"),
+        truth=sc.truth,
+        mask=_cat(chunks, "estimate_mask"),
+        outputs=outputs,
+        settings=sc.settings,
+    )
 
 
 def _values(ctx: metrics.MetricContext, name: str) -> Dict[str, tuple]:
@@ -185,8 +223,13 @@ def _values(ctx: metrics.MetricContext, name: str) -> Dict[str, tuple]:
         for m in metrics.applicable(ctx):
             v = m.evaluate(ctx)
             how = m.trial_reduction(ctx)
-            out[m.name] = (v.double(), how, how == "last" and not v.is_floating_point(), m.first_step(ctx),
-                           m.standard_error)
+            out[m.name] = (
+                v.double(),
+                how,
+                how == "last" and not v.is_floating_point(),
+                m.first_step(ctx),
+                m.standard_error,
+            )
         return out
     except (RuntimeError, ValueError) as err:  # the metrics' own errors: add the filter's name
         if type(err) not in (RuntimeError, ValueError, ArgumentError):
@@ -219,8 +262,10 @@ def _summary(cols: Dict[str, tuple]) -> Dict[str, float]:
 def _trial(cols: Dict[str, tuple], b: int) -> dict:
     """Trial ``b``'s values: the mean over its steps (from the burn-in on), or its last step's (an
     int for counts)."""
-    return {k: (int(v[b, -1]) if integer else float(v[b, -1])) if how == "last" else float(v[b, start:].mean())
-            for k, (v, how, integer, start, _) in cols.items()}
+    return {
+        k: (int(v[b, -1]) if integer else float(v[b, -1])) if how == "last" else float(v[b, start:].mean())
+        for k, (v, how, integer, start, _) in cols.items()
+    }
 
 
 def score_sets(sc: Scorer, ctx: metrics.MetricContext, name: str, row: dict, cols: Dict[str, tuple], steps: int):
@@ -233,11 +278,21 @@ def score_sets(sc: Scorer, ctx: metrics.MetricContext, name: str, row: dict, col
     if under is not None:
         lost = [f"run {b + sc.lo}, sensor {s}, measurement {m}" for b, s, m in torch.nonzero(under).tolist()]
         if lost:
-            warnings.warn(f"{name}: every component's weight underflowed (measurement treated as clutter) at "
-                          + "; ".join(lost), RuntimeWarning, stacklevel=2)
+            warnings.warn(
+                f"{name}: every component's weight underflowed (measurement treated as clutter) at " + "; ".join(lost),
+                RuntimeWarning,
+                stacklevel=2,
+            )
         counts = under.flatten(1).sum(1)
-    per_trial = [{"filter": name, "trial": sc.lo + b, **_trial(cols, b),
-                  **({} if counts is None else {"underflows": int(counts[b])})} for b in range(est.shape[0])]
+    per_trial = [
+        {
+            "filter": name,
+            "trial": sc.lo + b,
+            **_trial(cols, b),
+            **({} if counts is None else {"underflows": int(counts[b])}),
+        }
+        for b in range(est.shape[0])
+    ]
     row.update(_summary(cols))
     if counts is not None:
         row["underflows"] = int(counts.sum())
@@ -257,7 +312,7 @@ def score_filter(sc: Scorer, f: Filter, name: str, row: dict, chunks: List[dict]
     if f.estimates_evidence:
         row["log_evidence"] = float(logz.mean())
         if n_run > 1:  # the standard error of the mean over trials
-            row["log_evidence_se"] = float(logz.std() / n_run ** 0.5)
+            row["log_evidence_se"] = float(logz.std() / n_run**0.5)
         if sc.reference_logz is not None:
             row["log_evidence_relmse"] = float(metrics.log_evidence_relative_error(logz, sc.reference_logz).mean())
     if "n_repaired" in ctx.outputs:
@@ -268,10 +323,21 @@ def score_filter(sc: Scorer, f: Filter, name: str, row: dict, chunks: List[dict]
         om = cols["omat"][0] if "omat" in cols else metrics.omat(ctx.est_positions, ctx.true_positions)
         lost = metrics.lost_tracks(om, threshold=sc.lost_threshold)
         kept = om.mean(1)[~lost]
-        row.update(lost_tracks=int(lost.sum()), omat_kept_mean=float(kept.mean()) if kept.numel() else None,
-                   omat_kept_sd=float(kept.std()) if kept.numel() > 1 else None)
-    per_trial = [{"filter": name, "trial": sc.lo + b, **({} if logz is None else {"log_evidence": float(logz[b])}),
-                  **_trial(cols, b), **({} if lost is None else {"lost": bool(lost[b])})} for b in range(n_run)]
+        row.update(
+            lost_tracks=int(lost.sum()),
+            omat_kept_mean=float(kept.mean()) if kept.numel() else None,
+            omat_kept_sd=float(kept.std()) if kept.numel() > 1 else None,
+        )
+    per_trial = [
+        {
+            "filter": name,
+            "trial": sc.lo + b,
+            **({} if logz is None else {"log_evidence": float(logz[b])}),
+            **_trial(cols, b),
+            **({} if lost is None else {"lost": bool(lost[b])}),
+        }
+        for b in range(n_run)
+    ]
     return per_trial, _per_step(name, cols, steps), chunks[0]["estimates"][0]
 
 
@@ -293,6 +359,6 @@ def format_table(summary: List[dict], columns: Optional[List[str]] = None) -> st
     """Markdown table of the summary rows (default columns: :func:`summary_columns`), dropping
     columns that are empty in every row."""
     cols = [c for c in columns or summary_columns() if any(r.get(c) is not None for r in summary)]
-    fmt = lambda v: "" if v is None else f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
+    fmt = lambda v: "" if v is None else f"{v:.4g}" if isinstance(v, float) else str(v)
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     return "\n".join(lines + ["| " + " | ".join(fmt(r.get(c)) for c in cols) + " |" for r in summary])

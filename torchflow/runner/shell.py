@@ -42,6 +42,7 @@ Exit status (every command): 0 done; 1 a failure (a filter failed, the results c
 written, or any other error, which keeps its traceback); 2 a configuration error or a refused
 output folder (one line); 130 stopped by SIGINT (Ctrl-C); 143 stopped by SIGTERM.
 """
+
 from __future__ import annotations
 
 import atexit
@@ -187,8 +188,11 @@ def job_environment(cfg: DictConfig):
     device = resolve_device(cfg.device) if "device" in cfg else None
     dtype = resolve_dtype(cfg.dtype) if "dtype" in cfg else None
     given = cfg.get("tuning") or {}
-    knobs = {k: v for k, v in (OmegaConf.to_container(given) if OmegaConf.is_config(given) else dict(given)).items()
-             if v is not None}
+    knobs = {
+        k: v
+        for k, v in (OmegaConf.to_container(given) if OmegaConf.is_config(given) else dict(given)).items()
+        if v is not None
+    }
     with contextlib.ExitStack() as stack:
         try:
             stack.enter_context(tuning.tuned(**knobs))
@@ -236,7 +240,9 @@ def _started_after(pid: int, when: float) -> bool:
     ``False`` where it cannot be told (no ``/proc``)."""
     try:
         ticks = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19])
-        boot = next(float(ln.split()[1]) for ln in Path("/proc/stat").read_text().splitlines() if ln.startswith("btime"))
+        boot = next(
+            float(ln.split()[1]) for ln in Path("/proc/stat").read_text().splitlines() if ln.startswith("btime")
+        )
         return boot + ticks / os.sysconf("SC_CLK_TCK") > when + 2.0
     except (OSError, ValueError, IndexError, StopIteration):
         return False
@@ -255,8 +261,12 @@ def _read_lock(path: Path) -> Optional[dict]:
         pid = int(lines[0])
     except (IndexError, ValueError):
         pid = None
-    return {"pid": pid, "host": lines[1] if len(lines) > 1 else "", "command": lines[2] if len(lines) > 2 else "",
-            "mtime": mtime}
+    return {
+        "pid": pid,
+        "host": lines[1] if len(lines) > 1 else "",
+        "command": lines[2] if len(lines) > 2 else "",
+        "mtime": mtime,
+    }
 
 
 def _holder_alive(info: dict) -> bool:
@@ -290,8 +300,10 @@ class OutputLock:
         if self.took_over is None:
             return None
         who = f"pid {self.took_over['pid']}" if self.took_over["pid"] is not None else "an unreadable lock"
-        return (f"{self.key}: took over the stale lock {self.path} of a run that is gone ({who}); its results, "
-                "if any, count as an earlier run's")
+        return (
+            f"{self.key}: took over the stale lock {self.path} of a run that is gone ({who}); its results, "
+            "if any, count as an earlier run's"
+        )
 
     def acquire(self) -> "OutputLock":
         for _ in range(3):
@@ -300,8 +312,10 @@ class OutputLock:
             except FileExistsError:
                 fd = None
             except OSError as e:
-                raise ConfigError(f"{self.key}: cannot create the lock file {self.path} ({type(e).__name__}: "
-                                  f"{e.strerror or e}); choose a writable folder with {self.key}=<folder>") from None
+                raise ConfigError(
+                    f"{self.key}: cannot create the lock file {self.path} ({type(e).__name__}: "
+                    f"{e.strerror or e}); choose a writable folder with {self.key}=<folder>"
+                ) from None
             if fd is None:
                 info = _read_lock(self.path)
                 if info is None:
@@ -316,7 +330,8 @@ class OutputLock:
                     raise ConfigError(
                         f"{self.key}: {self.folder} is in use by a running torchflow command ({who}{host}"
                         f"{', ' + info['command'] if info['command'] else ''}; lock file {self.path}); wait for it to "
-                        f"finish or choose another folder ({self.key}=<new folder>)")
+                        f"finish or choose another folder ({self.key}=<new folder>)"
+                    )
                 if self._remove_stale(info):
                     self.took_over = info
                 continue
@@ -325,8 +340,10 @@ class OutputLock:
             self.held = True
             _HELD[self.path] = self
             return self
-        raise ConfigError(f"{self.key}: cannot take the lock {self.path} (other runs keep taking it); "
-                          f"choose another folder ({self.key}=<new folder>)")
+        raise ConfigError(
+            f"{self.key}: cannot take the lock {self.path} (other runs keep taking it); "
+            f"choose another folder ({self.key}=<new folder>)"
+        )
 
     def _remove_stale(self, info: dict) -> bool:
         """Remove the lock if it still is the stale one ``info`` describes (under an ``flock`` of
@@ -405,9 +422,16 @@ def earlier_results(folder: Path, sweep: bool = False) -> List[str]:
     return [n for n in ALL_RESULT_FILES if (folder / n).exists()]
 
 
-def guard_output_folder(folder: Path, *, key: str = "hydra.run.dir", shown: Optional[str] = None,
-                        replace: bool = False, sweep: bool = False, clear_jobs: bool = False,
-                        command: str = "torchflow") -> OutputLock:
+def guard_output_folder(
+    folder: Path,
+    *,
+    key: str = "hydra.run.dir",
+    shown: Optional[str] = None,
+    replace: bool = False,
+    sweep: bool = False,
+    clear_jobs: bool = False,
+    command: str = "torchflow",
+) -> OutputLock:
     """Make ``folder`` ready for a run, or raise a one-line :class:`ConfigError`: it must be
     writable (created if missing), no live run may hold it, and it must hold no earlier results
     unless ``replace`` (``overwrite=true`` / ``resume=true``). A sweep folder (``sweep``) with
@@ -422,24 +446,31 @@ def guard_output_folder(folder: Path, *, key: str = "hydra.run.dir", shown: Opti
         probe.write_text("")
         probe.unlink()
     except OSError as e:
-        raise ConfigError(f"{key}: cannot write into {folder} ({type(e).__name__}: {e.strerror or e}); choose a "
-                          f"writable folder with {key}=<folder>") from None
+        raise ConfigError(
+            f"{key}: cannot write into {folder} ({type(e).__name__}: {e.strerror or e}); choose a "
+            f"writable folder with {key}=<folder>"
+        ) from None
     lock = OutputLock(folder, key, command).acquire()
     found = earlier_results(folder, sweep)
     if found and not replace:
         lock.release()
         what = "the jobs of an earlier sweep" if sweep else "the results of a run"
-        raise ConfigError(f"{key}: {shown} already holds {what} ({', '.join(found[:4])}"
-                          f"{', ...' if len(found) > 4 else ''}); choose a new folder ({key}=<new folder>) or add "
-                          "overwrite=true to replace them")
+        raise ConfigError(
+            f"{key}: {shown} already holds {what} ({', '.join(found[:4])}"
+            f"{', ...' if len(found) > 4 else ''}); choose a new folder ({key}=<new folder>) or add "
+            "overwrite=true to replace them"
+        )
     if sweep and clear_jobs:
         jobs = earlier_jobs(folder)
         for job in jobs:
             shutil.rmtree(job, ignore_errors=True)
         (folder / "sweep_summary.csv").unlink(missing_ok=True)
         if jobs:  # said, not silent: overwrite=true removed another sweep's finished work
-            print(f"warning: overwrite=true: removed {len(jobs)} job folder(s) of an earlier sweep from {shown} "
-                  f"({', '.join(Path(j).name for j in jobs[:6])}{', ...' if len(jobs) > 6 else ''})", file=sys.stderr)
+            print(
+                f"warning: overwrite=true: removed {len(jobs)} job folder(s) of an earlier sweep from {shown} "
+                f"({', '.join(Path(j).name for j in jobs[:6])}{', ...' if len(jobs) > 6 else ''})",
+                file=sys.stderr,
+            )
     return lock
 
 
@@ -457,8 +488,15 @@ class OutputGuard(Callback):
             given = str(OmegaConf.select(config, key))
             overwrite, resume = (OmegaConf.select(config, k, default=False) is True for k in ("overwrite", "resume"))
             folder = Path(given) if Path(given).is_absolute() else Path.cwd() / given
-            lock = guard_output_folder(folder, key=key, shown=given, replace=overwrite or resume, sweep=sweep,
-                                       clear_jobs=overwrite, command=os.environ.get(rc.PROG_ENV, "torchflow"))
+            lock = guard_output_folder(
+                folder,
+                key=key,
+                shown=given,
+                replace=overwrite or resume,
+                sweep=sweep,
+                clear_jobs=overwrite,
+                command=os.environ.get(rc.PROG_ENV, "torchflow"),
+            )
             GUARDED[key] = folder
             if sweep:  # a stopped sweep's end tells how to go on only where chunks were saved
                 GUARDED["checkpoint_dir"] = OmegaConf.select(config, "checkpoint_dir", default=None)
@@ -521,10 +559,11 @@ def _job(command: Command, cfg: DictConfig) -> int:
     except KeyboardInterrupt:  # a stop the job did not catch (raised by Python's own handler)
         if not STOP.requested:
             STOP.handler(signal.SIGINT, None)
-        log.warning(f"interrupted ({STOP.name}) outside the job's safe points: only the results "
-                    "written before it are there")
+        log.warning(
+            f"interrupted ({STOP.name}) outside the job's safe points: only the results written before it are there"
+        )
         return STOP.exit_code
-    except Exception as e:  # noqa: BLE001 - configuration errors: one line; anything else: its traceback
+    except Exception as e:
         bad = config_error(e)
         if bad is not None:
             message, code = f"error: {bad}", EXIT_CONFIG
@@ -556,7 +595,7 @@ def shown_path(path) -> str:
     return os.path.abspath(path) if rel.startswith("..") else rel
 
 
-def _one_line_warning(message, category, filename, lineno, line=None) -> str:  # noqa: ARG001
+def _one_line_warning(message, category, filename, lineno, line=None) -> str:
     """A warning as the commands print it: ``warning: <message>`` (the category unless it is the
     generic ``UserWarning``), without Python's file, line and echoed source."""
     kind = "" if category in (UserWarning, RuntimeWarning) else f" ({category.__name__})"
@@ -628,14 +667,17 @@ def hydra_error(e: Exception, command: Command, argv: Sequence[str]) -> tuple:
         return rc.unreadable_override_message(argv) or _one_line(e), EXIT_CONFIG
     if isinstance(e, ConfigCompositionException):
         key = rc.missing_override_key(str(e))
-        return "; ".join(rc.unknown_override_messages(command.config_name, argv, key)) if key else _one_line(e), \
-            EXIT_CONFIG
+        return "; ".join(rc.unknown_override_messages(command.config_name, argv, key)) if key else _one_line(
+            e
+        ), EXIT_CONFIG
     bad = next((x for x in _causes(e) if isinstance(x, OSError) and x.errno in _WRITE_ERRNOS), None)
     if bad is not None:
         key = "hydra.sweep.dir" if "hydra.sweep.dir" in GUARDED else "hydra.run.dir"
         where = bad.filename or GUARDED.get(key) or "the output folder"
-        return (f"cannot write into {where} ({type(bad).__name__}: {bad.strerror or bad}); free space there or "
-                f"choose another folder ({key}=<folder>)"), EXIT_FAILED
+        return (
+            f"cannot write into {where} ({type(bad).__name__}: {bad.strerror or bad}); free space there or "
+            f"choose another folder ({key}=<folder>)"
+        ), EXIT_FAILED
     return None, EXIT_FAILED
 
 
@@ -661,14 +703,20 @@ def _end_of_stopped_sweep(command: Command) -> None:
 
     report_sweep(Path(GUARDED["hydra.sweep.dir"]), stopped_by=STOP.name)
     if command.resumable and GUARDED.get("checkpoint_dir") is not None:
-        print(f"stopped by {STOP.name}; the finished chunks are saved: go on with\n  {rc.resume_command()}",
-              file=sys.stderr)
+        print(
+            f"stopped by {STOP.name}; the finished chunks are saved: go on with\n  {rc.resume_command()}",
+            file=sys.stderr,
+        )
     else:
         print(f"stopped by {STOP.name}", file=sys.stderr)
 
 
-def main(command: Command, argv: Optional[List[str]] = None, prog: Optional[str] = None,
-         entry: Optional[Callable[[], None]] = None) -> None:
+def main(
+    command: Command,
+    argv: Optional[List[str]] = None,
+    prog: Optional[str] = None,
+    entry: Optional[Callable[[], None]] = None,
+) -> None:
     """Start ``command`` with ``argv`` (default ``sys.argv[1:]``; Hydra overrides): refuse unknown
     config names in group selections (one line, exit 2), set the stop handlers, run Hydra (``entry``:
     the command's :func:`hydra_entry`), say Hydra's own errors in one line (:func:`hydra_error`), end a
@@ -686,8 +734,12 @@ def main(command: Command, argv: Optional[List[str]] = None, prog: Optional[str]
         print(f"error: {e}", file=sys.stderr)
         sys.exit(EXIT_CONFIG)
     if int(rank):  # ranks other than 0 of a torchrun run write no Hydra folder or log (rank 0 does)
-        argv += [f"hydra.run.dir={tempfile.gettempdir()}/torchflow-rank{rank}-{os.getppid()}",
-                 "hydra.output_subdir=null", "hydra/job_logging=disabled", "hydra/hydra_logging=disabled"]
+        argv += [
+            f"hydra.run.dir={tempfile.gettempdir()}/torchflow-rank{rank}-{os.getppid()}",
+            "hydra.output_subdir=null",
+            "hydra/job_logging=disabled",
+            "hydra/hydra_logging=disabled",
+        ]
     STOP.reset()
     install_stop_handlers()
     GUARDED.clear()
@@ -699,7 +751,7 @@ def main(command: Command, argv: Optional[List[str]] = None, prog: Optional[str]
             (entry or hydra_entry(command))()
     except SystemExit as e:
         code = e.code if isinstance(e.code, int) else (EXIT_OK if e.code is None else EXIT_FAILED)
-    except Exception as e:  # noqa: BLE001 - Hydra's own errors: one line where they are a setting's
+    except Exception as e:
         message, code = hydra_error(e, command, argv)
         if message is None and full_errors:
             raise
@@ -718,7 +770,25 @@ register_configs()  # the signature nodes the component configs extend (at impor
 # the main process's value, so every job lands in the one announced folder
 OmegaConf.register_new_resolver("tf_pid", lambda: str(os.getpid()), replace=True, use_cache=True)
 
-__all__ = ["Command", "GUARDED", "JobEnv", "LOCK_NAME", "Output", "OutputGuard", "OutputLock", "config_error",
-           "earlier_jobs", "earlier_results", "guard_output_folder", "hydra_entry", "hydra_error",
-           "install_stop_handlers", "job_environment", "job_threads", "main", "release_locks", "run_job",
-           "torch_threads"]
+__all__ = [
+    "Command",
+    "GUARDED",
+    "JobEnv",
+    "LOCK_NAME",
+    "Output",
+    "OutputGuard",
+    "OutputLock",
+    "config_error",
+    "earlier_jobs",
+    "earlier_results",
+    "guard_output_folder",
+    "hydra_entry",
+    "hydra_error",
+    "install_stop_handlers",
+    "job_environment",
+    "job_threads",
+    "main",
+    "release_locks",
+    "run_job",
+    "torch_threads",
+]

@@ -1,6 +1,7 @@
 """Hydra sweeps (any launcher): what happened to every job, from its folder (``error.txt``,
 ``results.json``); :class:`SweepReport` says it at the end, ``experiments/collect.py`` too.
 """
+
 from __future__ import annotations
 
 import json
@@ -66,8 +67,10 @@ def describe_job(name: str, state: str, message: str, overrides: dict) -> str:
     if state == "interrupted":
         return f"{head} was interrupted (Ctrl-C or SIGTERM): rerun it with resume=true"
     if state == "damaged":
-        return (f"{head}: {message}; to write it again, rerun the job into its folder (its overrides are in "
-                ".hydra/overrides.yaml there) with hydra.run.dir=<that folder> overwrite=true")
+        return (
+            f"{head}: {message}; to write it again, rerun the job into its folder (its overrides are in "
+            ".hydra/overrides.yaml there) with hydra.run.dir=<that folder> overwrite=true"
+        )
     return f"{head} has no results (still running, killed, or never started)"
 
 
@@ -80,8 +83,11 @@ def report_sweep(sweep: Path, stopped_by: Optional[str] = None) -> dict:
     count = {k: sum(s[0] == k for s in bad.values()) for k in ("failed", "interrupted", "missing", "damaged")}
     damaged = f", {count['damaged']} with a damaged results.json" if count["damaged"] else ""
     stopped = f" (stopped by {stopped_by})" if stopped_by else ""
-    print(f"sweep {sweep}{stopped}: {len(jobs)} jobs, {len(jobs) - len(bad)} finished, {count['failed']} failed, "
-          f"{count['interrupted']} interrupted, {count['missing']} without results{damaged}", file=sys.stderr)
+    print(
+        f"sweep {sweep}{stopped}: {len(jobs)} jobs, {len(jobs) - len(bad)} finished, {count['failed']} failed, "
+        f"{count['interrupted']} interrupted, {count['missing']} without results{damaged}",
+        file=sys.stderr,
+    )
     vary = varying_overrides(jobs)
     for n, (state, msg) in bad.items():
         print("  " + describe_job(n, state, msg, vary[n]), file=sys.stderr)

@@ -1,5 +1,6 @@
 """Result files of a run: CSV and JSON, written atomically (a temporary file renamed), so an
 interrupted write never leaves a truncated table beside complete ones."""
+
 from __future__ import annotations
 
 import csv
@@ -11,8 +12,19 @@ from typing import List, Mapping, Optional
 from .score import summary_columns
 
 #: every file a run may write into its output folder (a reused folder is cleared of these)
-RESULT_FILES = ("summary.csv", "per_step.csv", "per_trial.csv", "results.json", "error.txt", "estimates.csv",
-                "per_step.png", "tracks.png", "omat_box.png", "scene.png", "estimates.png")
+RESULT_FILES = (
+    "summary.csv",
+    "per_step.csv",
+    "per_trial.csv",
+    "results.json",
+    "error.txt",
+    "estimates.csv",
+    "per_step.png",
+    "tracks.png",
+    "omat_box.png",
+    "scene.png",
+    "estimates.png",
+)
 #: the files ``torchflow-learn`` writes into its output folder
 LEARN_FILES = ("learn.csv", "learn.json", "curves.png")
 #: the files of ``torchflow task=smooth`` and ``torchflow task=pmmh`` (:mod:`torchflow.tasks`)
@@ -39,8 +51,9 @@ def write_csv(path: Path, rows: List[Mapping], columns: Optional[List[str]] = No
     """Write ``rows`` (``None`` as an empty cell) to ``path`` atomically; default columns: every key,
     ``filter``, ``step``, ``trial`` first, then the others sorted (so the per-step and per-trial
     files hold every registered metric that applied)."""
-    columns = list(columns or sorted({k for r in rows for k in r},
-                                     key=lambda k: (k not in ("filter", "step", "trial"), k)))
+    columns = list(
+        columns or sorted({k for r in rows for k in r}, key=lambda k: (k not in ("filter", "step", "trial"), k))
+    )
 
     def write(fh):
         w = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
@@ -64,9 +77,15 @@ def estimate_rows(estimate_summary: Mapping) -> List[dict]:
     for name, (mean, sd, spread) in estimate_summary.items():
         d = mean.shape[-1]
         for t in range(mean.shape[0]):
-            rows.append({"filter": name, "step": t + 1, **{f"mean_{j}": float(mean[t, j]) for j in range(d)},
-                         **{f"sd_{j}": None if sd is None else float(sd[t, j]) for j in range(d)},
-                         **{f"spread_{j}": float(spread[t, j]) for j in range(d)}})
+            rows.append(
+                {
+                    "filter": name,
+                    "step": t + 1,
+                    **{f"mean_{j}": float(mean[t, j]) for j in range(d)},
+                    **{f"sd_{j}": None if sd is None else float(sd[t, j]) for j in range(d)},
+                    **{f"spread_{j}": float(spread[t, j]) for j in range(d)},
+                }
+            )
     return rows
 
 
@@ -85,15 +104,29 @@ def write_run(out: Path, result, config: Mapping) -> List[Path]:
     A run on recorded data also writes ``estimates.csv`` (:func:`write_estimates`)."""
     out = Path(out)
     extra = [write_estimates(out / "estimates.csv", result.estimate_summary)] if result.recorded else []
-    return extra + [write_csv(out / "summary.csv", result.summary, summary_columns()),
-            write_csv(out / "per_step.csv", result.per_step),
-            write_csv(out / "per_trial.csv", result.per_trial),
-            write_text(out / "results.json", json.dumps({
-                "config": dict(config), "run": result.config, "summary": result.summary,
-                "paths": getattr(result, "paths", {}),
-                "timings": {k: None if v is None else round(v, 4) for k, v in getattr(result, "timings", {}).items()},
-                "interrupted": result.interrupted, "not_run": result.not_run,
-                "failed": {n: result.failures.get(n) for n in result.failed}}, indent=2))]
+    return extra + [
+        write_csv(out / "summary.csv", result.summary, summary_columns()),
+        write_csv(out / "per_step.csv", result.per_step),
+        write_csv(out / "per_trial.csv", result.per_trial),
+        write_text(
+            out / "results.json",
+            json.dumps(
+                {
+                    "config": dict(config),
+                    "run": result.config,
+                    "summary": result.summary,
+                    "paths": getattr(result, "paths", {}),
+                    "timings": {
+                        k: None if v is None else round(v, 4) for k, v in getattr(result, "timings", {}).items()
+                    },
+                    "interrupted": result.interrupted,
+                    "not_run": result.not_run,
+                    "failed": {n: result.failures.get(n) for n in result.failed},
+                },
+                indent=2,
+            ),
+        ),
+    ]
 
 
 def clear_results(out: Path, names=ALL_RESULT_FILES) -> None:

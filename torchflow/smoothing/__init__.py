@@ -14,6 +14,7 @@ One entry, :func:`smooth`, for every filter:
 
 Paths are ``(B, M, T+1, d)`` with index 0 the initial state, and means ``(B, T+1, d)``.
 """
+
 from .core import SMOOTHERS, SmoothingResult, ffbsi, genealogy, rts, smooth, smoothing_method
 
 __all__ = ["smooth", "smoothing_method", "SmoothingResult", "rts", "ffbsi", "genealogy", "SMOOTHERS"]

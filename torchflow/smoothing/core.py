@@ -1,4 +1,5 @@
 """The smoothers behind :func:`torchflow.smoothing.smooth` (package docstring)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -40,9 +41,18 @@ class SmoothingResult:
     method: str
 
 
-def smooth(filt: Filter, observations: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor,
-           generator=None, *, method: str = "auto", n_paths: int = 100, n_particles: Optional[int] = None,
-           path_chunk: Optional[int] = None) -> SmoothingResult:
+def smooth(
+    filt: Filter,
+    observations: torch.Tensor,
+    mean: torch.Tensor,
+    cov: torch.Tensor,
+    generator=None,
+    *,
+    method: str = "auto",
+    n_paths: int = 100,
+    n_particles: Optional[int] = None,
+    path_chunk: Optional[int] = None,
+) -> SmoothingResult:
     """Smooth ``observations (B, T, m)`` (NaN: not observed) from the prior ``N(mean, cov)`` with
     ``filt``'s forward pass.
 
@@ -90,15 +100,21 @@ def smoothing_method(filt: Filter, method: str = "auto") -> str:
     if method == "auto":
         method = "rts" if gaussian else "ffbsi"
     if method == "rts" and not gaussian:
-        raise ArgumentError(f"method: 'rts' smooths the Kalman family (KalmanFilter, ExtendedKalmanFilter, "
-                            f"UnscentedKalmanFilter), got {filt.name}; a particle filter takes 'ffbsi' or 'genealogy'")
+        raise ArgumentError(
+            f"method: 'rts' smooths the Kalman family (KalmanFilter, ExtendedKalmanFilter, "
+            f"UnscentedKalmanFilter), got {filt.name}; a particle filter takes 'ffbsi' or 'genealogy'"
+        )
     if method in ("ffbsi", "genealogy") and not particle:
-        raise ArgumentError(f"method: {method!r} smooths a particle filter whose belief is weighted particles "
-                            f"(a ParticleFilter: bootstrap, PF-PF, GPFIS, UPF), got {filt.name}"
-                            + ("; the Kalman family takes 'rts'" if gaussian else ""))
+        raise ArgumentError(
+            f"method: {method!r} smooths a particle filter whose belief is weighted particles "
+            f"(a ParticleFilter: bootstrap, PF-PF, GPFIS, UPF), got {filt.name}"
+            + ("; the Kalman family takes 'rts'" if gaussian else "")
+        )
     if method == "genealogy" and filt.resampler.gradient == "ot":
-        raise ArgumentError(f"method: 'genealogy' follows ancestor indices, which {filt.name}'s optimal-transport "
-                            "resampling (resampling_gradient='ot') does not have; use 'ffbsi'")
+        raise ArgumentError(
+            f"method: 'genealogy' follows ancestor indices, which {filt.name}'s optimal-transport "
+            "resampling (resampling_gradient='ot') does not have; use 'ffbsi'"
+        )
     return method
 
 
@@ -135,6 +151,7 @@ def _finish(filt, trace: _Trace, state) -> FilterResult:
 
 
 # ---- Rauch-Tung-Striebel ---------------------------------------------------------------------------
+
 
 def _predict(filt, m: torch.Tensor, P: torch.Tensor):
     """Predicted mean and covariance of step t+1 and the cross-covariance ``D = Cov(x_t, x_t+1)``
@@ -180,6 +197,7 @@ def _rts(filt, obs, mean, cov) -> SmoothingResult:
 
 
 # ---- particle smoothers --------------------------------------------------------------------------
+
 
 def _categorical(log_w: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """One index per row of ``log_w (..., N)`` at the uniform ``u (...)``: the resamplers' inverse
@@ -247,11 +265,11 @@ def _ffbsi(model, parts, lws, M, generator, result, chunk) -> SmoothingResult:
         prev, lw = parts[t].unsqueeze(1), lws[t].unsqueeze(1)  # (B, 1, N, d), (B, 1, N)
         blocks = []
         for s in range(0, M, chunk):
-            xb = x[:, s:s + chunk].unsqueeze(2)  # (B, c, 1, d)
+            xb = x[:, s : s + chunk].unsqueeze(2)  # (B, c, 1, d)
             logw = lw + model.transition_log_prob(xb, prev)  # (B, c, N)
             # a path no particle can reach (every density underflowed): its filtering weights alone
             logw = torch.where(torch.isfinite(logw.logsumexp(-1, keepdim=True)), logw, lw.expand_as(logw))
-            blocks.append(_categorical(logw, u[:, s:s + chunk]))
+            blocks.append(_categorical(logw, u[:, s : s + chunk]))
         x = gather_particles(parts[t], torch.cat(blocks, 1))
         paths.append(x)
     paths = torch.stack(paths[::-1], 2)  # (B, M, T+1, d)

@@ -21,6 +21,7 @@ Triton kernel are then ``M u``, so no row is computed or stored twice.
 :func:`gromov_step` is the same treatment of the Gromov flow's Euler-Maruyama step at per-particle
 points, with PF-PF(Gromov)'s tracked Gaussian law (a ``d x d`` covariance per particle).
 """
+
 import math
 
 import numba
@@ -128,7 +129,9 @@ def dh_step(W, y, L, Ls, Pc, mean, sup, eta, aux, eta_out, aux_out, log_det, lam
     acoustic form of :class:`~torchflow.flows.kernels.steps.FusedMeasurement` (``y`` holds ``z / sigma``
     ``(B, 1, m)``, ``const = [Psi / sigma, d0]``, ``sens (m, 2)``; ``W`` not read). The algebra of
     :func:`torchflow.flows.kernels.gpu.kernel_rows`: three solves with ``Q = I + lam S``."""
-    B, N, d, k, m, lam, eps, psi, d0, P, total, per, groups, nblocks = _grid(eta, sup, sens, y, lin, lams, epss, const, j)
+    B, N, d, k, m, lam, eps, psi, d0, P, total, per, groups, nblocks = _grid(
+        eta, sup, sens, y, lin, lams, epss, const, j
+    )
     for blk in numba.prange(nblocks):
         bb = np.empty(P, np.int64)
         nn = np.empty(P, np.int64)
@@ -294,9 +297,11 @@ def _solve_lanes(K, t, x, k, P):
     _forward_lanes(K, t, x, k, P)
     _backward_lanes(K, x, x, k, P)
 
+
 @numba.njit(cache=True, parallel=True, error_model="numpy")
-def gromov_step(W, y, L, Ls, sup, eta, aux, mu, Sig, xi, eta_out, aux_out, mu_out, Sig_out, lams, epss, j, lin, sens,
-                const, track):
+def gromov_step(
+    W, y, L, Ls, sup, eta, aux, mu, Sig, xi, eta_out, aux_out, mu_out, Sig_out, lams, epss, j, lin, sens, const, track
+):
     """One Euler-Maruyama pseudo-step of the Gromov flow at per-particle points (the operator form
     of :class:`~torchflow.flows.GromovFlow`, ``noise_root="factor"``) for every particle of ``eta
     (B, N, d)``, with ``LANES`` particles side by side as :func:`dh_step`.
@@ -307,7 +312,9 @@ def gromov_step(W, y, L, Ls, sup, eta, aux, mu, Sig, xi, eta_out, aux_out, mu_ou
     point and (``track`` 1) the mean ``mu`` of its Gaussian law move; the law's covariance
     ``Sig (B|1, N|1, d, d)`` becomes ``(I - eps C_s) Sig (I - eps C_s)^T + eps C N^T`` in
     ``Sig_out (B, N, d, d)`` (``C_s``: C in the support columns). Inputs as :func:`dh_step`."""
-    B, N, d, k, m, lam, eps, psi, d0, P, total, per, groups, nblocks = _grid(eta, sup, sens, y, lin, lams, epss, const, j)
+    B, N, d, k, m, lam, eps, psi, d0, P, total, per, groups, nblocks = _grid(
+        eta, sup, sens, y, lin, lams, epss, const, j
+    )
     root = math.sqrt(eps)
     for blk in numba.prange(nblocks):
         bb = np.empty(P, np.int64)
@@ -466,6 +473,7 @@ def _row_hessian(i, lin, Wr, yr, Dg, xs, sens, psi, d0, w, s1, Dr, k, nb, bs, P)
                     for q in range(P):
                         Dr[c, e, f, q] = Dg[i, c, e, f, q]
 
+
 @numba.njit(cache=True, inline="always")
 def _upper_times(K, t, x, k, P):
     """``x = K^T t`` for each lane (``K`` lower); ``x`` is not ``t``."""
@@ -613,13 +621,75 @@ def gpfis_step(W, y, D, C, cols, mean, sup, x, x_out, log_det, lams, epss, j0, j
     ``log|det C|`` (the map of the other coordinates is triangular with unit diagonal)."""
     B, N, d, k, m, _, _, psi, d0, P, total, per, groups, nblocks = _grid(x, sup, sens, y, lin, lams, epss, const, j0)
     for blk in numba.prange(nblocks):
-        _gpfis_block(blk, per, groups, total, W, y, D, C, cols, mean, sup, x, x_out, log_det, lams, epss, j0, j1, lin,
-                     sens, const, nb, bs, B, N, d, k, m, psi, d0, P)
+        _gpfis_block(
+            blk,
+            per,
+            groups,
+            total,
+            W,
+            y,
+            D,
+            C,
+            cols,
+            mean,
+            sup,
+            x,
+            x_out,
+            log_det,
+            lams,
+            epss,
+            j0,
+            j1,
+            lin,
+            sens,
+            const,
+            nb,
+            bs,
+            B,
+            N,
+            d,
+            k,
+            m,
+            psi,
+            d0,
+            P,
+        )
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _gpfis_block(blk, per, groups, total, W, y, D, C, cols, mean, sup, x, x_out, log_det, lams, epss, j0, j1, lin, sens,
-                 const, nb, bs, B, N, d, k, m, psi, d0, P):
+def _gpfis_block(
+    blk,
+    per,
+    groups,
+    total,
+    W,
+    y,
+    D,
+    C,
+    cols,
+    mean,
+    sup,
+    x,
+    x_out,
+    log_det,
+    lams,
+    epss,
+    j0,
+    j1,
+    lin,
+    sens,
+    const,
+    nb,
+    bs,
+    B,
+    N,
+    d,
+    k,
+    m,
+    psi,
+    d0,
+    P,
+):
     """Block ``blk`` of :func:`gpfis_step`'s parallel loop (a function of its own: Numba compiles
     a parallel loop's body slowly)."""
     bbi = np.empty(P, np.int64)
@@ -640,12 +710,42 @@ def _gpfis_block(blk, per, groups, total, W, y, D, C, cols, mean, sup, x, x_out,
         for q in range(P):
             p = min(grp * P + q, total - 1)
             bbi[q], nni[q] = p // N, p % N
-        Cl, Ci, Sw, T, G, K0, K1, N0, N1, J = (mat[0], mat[1], mat[2], mat[3], mat[4], mat[5], mat[6], mat[7],
-                                               mat[8], mat[9])
-        xs, u0, w, Wy, r, u, b0, m0, v, b1 = (vec[0], vec[1], vec[2], vec[3], vec[4], vec[5], vec[6], vec[7],
-                                              vec[8], vec[9])
-        un, m1, Cm0, Cm1, drx, qv, rhs, dm0, dm1, col = (vec[10], vec[11], vec[12], vec[13], vec[14], vec[15],
-                                                         vec[16], vec[17], vec[18], vec[19])
+        Cl, Ci, Sw, T, G, K0, K1, N0, N1, J = (
+            mat[0],
+            mat[1],
+            mat[2],
+            mat[3],
+            mat[4],
+            mat[5],
+            mat[6],
+            mat[7],
+            mat[8],
+            mat[9],
+        )
+        xs, u0, w, Wy, r, u, b0, m0, v, b1 = (
+            vec[0],
+            vec[1],
+            vec[2],
+            vec[3],
+            vec[4],
+            vec[5],
+            vec[6],
+            vec[7],
+            vec[8],
+            vec[9],
+        )
+        un, m1, Cm0, Cm1, drx, qv, rhs, dm0, dm1, col = (
+            vec[10],
+            vec[11],
+            vec[12],
+            vec[13],
+            vec[14],
+            vec[15],
+            vec[16],
+            vec[17],
+            vec[18],
+            vec[19],
+        )
         ph0, ph1, tmp, ms = vec[20], vec[21], vec[22], vec[23]
         et, A0, B0, A1, B1 = tb[0], tb[1], tb[2], tb[3], tb[4]
         s1, ldc, ld = sc[0], sc[1], sc[2]
@@ -836,6 +936,7 @@ def _chol_into(Pinv, dgn, h, K, d):
                 K[r, j] = math.sqrt(a) if j == r else a / K[j, j]
         r0 += nr
 
+
 @numba.njit(cache=True, fastmath={"reassoc", "contract"})
 def _chol_solve_into(K, X, n, d):
     """``X[:n] <- (K K^T)^{-1} X[:n]`` for ``n`` right-hand sides as rows of ``X (r, d)``: forward
@@ -873,8 +974,28 @@ def dh_diag_step(Wd, y, Pinv, Pc, mean, eta, aux, eta_out, aux_out, log_det, lam
     K_, X_, v_ = np.empty((slots, d, d)), np.empty((slots, 3, d)), np.empty((slots, 3, d))
     for p in numba.prange(total):  # one particle per iteration: even shares of the particles
         t = numba.get_thread_id()
-        _diag_particle(p, N, d, Wd, y, Pinv, Pc, mean, eta, aux, eta_out, aux_out, log_det, lam, eps, K_[t], X_[t],
-                       v_[t, 0], v_[t, 1], v_[t, 2])
+        _diag_particle(
+            p,
+            N,
+            d,
+            Wd,
+            y,
+            Pinv,
+            Pc,
+            mean,
+            eta,
+            aux,
+            eta_out,
+            aux_out,
+            log_det,
+            lam,
+            eps,
+            K_[t],
+            X_[t],
+            v_[t, 0],
+            v_[t, 1],
+            v_[t, 2],
+        )
 
 
 @numba.njit(cache=True, fastmath={"reassoc", "contract"})

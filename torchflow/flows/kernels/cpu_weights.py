@@ -27,6 +27,7 @@ a CDF step (``tests/test_fused_weights.py``).
 Trials are independent, so the numbers do not depend on the thread count; large batches run
 their trials in parallel (:func:`weigh_resample_parallel`).
 """
+
 import math
 import types
 
@@ -34,8 +35,7 @@ import numba
 import numpy as np
 
 
-def _weigh_resample(lw_prev, log_inc, x, u, per_particle_u, thresh_n, log_n, lw_out, est, ess, inc, res, out,
-                    bad):
+def _weigh_resample(lw_prev, log_inc, x, u, per_particle_u, thresh_n, log_n, lw_out, est, ess, inc, res, out, bad):
     """Arguments: ``lw_prev``, ``log_inc`` ``(B, N)``; particles ``x (B, N, d)``; uniforms ``u (B, 1)``
     (systematic) or ``(B, N)`` (stratified: ``per_particle_u``); ``thresh_n`` = threshold x N;
     ``log_n`` = -log N. Outputs: ``lw_out (B, N)``, ``est (B, d)``, ``ess``, ``inc (B,)``,

@@ -1,5 +1,6 @@
 """The Triton kernel of :mod:`torchflow.flows.kernels.steps` (imported only when it is used: Triton is an
 optional dependency)."""
+
 import triton
 import triton.language as tl
 
@@ -15,6 +16,7 @@ import triton.language as tl
 # default all the same, since it reads no ``L_s`` per row of W (register and spill counts:
 # ``experiments/benchmarks/kernel_registers.py``; timings: ``experiments/RESULTS.md``, "GPU"). Tiles
 # loaded as ``[BK, BP]`` with J and J L_s kept spilled far more and shuffled between threads.
+
 
 @triton.jit
 def _pick(v, rk, i):
@@ -95,12 +97,33 @@ def _st(ptrs, v, mask, R: tl.constexpr, BP: tl.constexpr):
     """Store a ``[R, BP]`` tile through a flat view (see :func:`_ld`)."""
     ptrs = tl.broadcast_to(ptrs, (R, BP))
     mask = tl.broadcast_to(mask, (R, BP))
-    tl.store(tl.reshape(ptrs, (R * BP,)), tl.reshape(v, (R * BP,)).to(ptrs.dtype.element_ty), mask=tl.reshape(mask, (R * BP,)))
+    tl.store(
+        tl.reshape(ptrs, (R * BP,)),
+        tl.reshape(v, (R * BP,)).to(ptrs.dtype.element_ty),
+        mask=tl.reshape(mask, (R * BP,)),
+    )
 
 
 @triton.jit
-def _w_row(wrow, yrow, SENS, i, sWm, sYm, m2, pm, rk, aux_s, psi, d0, LIN: tl.constexpr, BK: tl.constexpr,
-           BP: tl.constexpr, DT: tl.constexpr, TINY: tl.constexpr):
+def _w_row(
+    wrow,
+    yrow,
+    SENS,
+    i,
+    sWm,
+    sYm,
+    m2,
+    pm,
+    rk,
+    aux_s,
+    psi,
+    d0,
+    LIN: tl.constexpr,
+    BK: tl.constexpr,
+    BP: tl.constexpr,
+    DT: tl.constexpr,
+    TINY: tl.constexpr,
+):
     """Row ``i`` of W ``[BK, BP]`` and entry ``i`` of y ``[BP]``: read from memory (``LIN = 0``), or
     computed at the points ``aux_s`` (``LIN = 1``, see :func:`kernel_rows`)."""
     yi = tl.load(yrow + i * sYm, mask=pm, other=0.0).to(DT)
@@ -119,8 +142,32 @@ def _w_row(wrow, yrow, SENS, i, sWm, sYm, m2, pm, rk, aux_s, psi, d0, LIN: tl.co
 
 
 @triton.jit
-def _setup(W, sWb, sWn, sWk, Y, sYb, sYn, SUP, AUX, sEb, sEn, sEd, LAMS, EPSS, j, CONST, BN, N, d, k,
-           BK: tl.constexpr, BD: tl.constexpr, BP: tl.constexpr, DT: tl.constexpr):
+def _setup(
+    W,
+    sWb,
+    sWn,
+    sWk,
+    Y,
+    sYb,
+    sYn,
+    SUP,
+    AUX,
+    sEb,
+    sEn,
+    sEd,
+    LAMS,
+    EPSS,
+    j,
+    CONST,
+    BN,
+    N,
+    d,
+    k,
+    BK: tl.constexpr,
+    BD: tl.constexpr,
+    BP: tl.constexpr,
+    DT: tl.constexpr,
+):
     """What both kernels' pseudo-steps start from: the program's particles ``p [BP]`` (trial ``b``,
     particle ``n``, mask ``pm``), the ranges and masks of the k- and d-axes, the step's ``lam`` and
     ``eps``, the support, the lower-triangle mask, the particles' points at the support ``aux_s
@@ -148,10 +195,61 @@ def _setup(W, sWb, sWn, sWk, Y, sYb, sYn, SUP, AUX, sEb, sEn, sEd, LAMS, EPSS, j
 
 
 @triton.jit(do_not_specialize=["j"])
-def kernel_rows(W, sWb, sWn, sWm, sWk, Y, sYb, sYn, sYm, Lp, sLb, sLn, sLd, sLk, LS, sSb, sSn, sSi, sSj,
-                PC, sPb, sPn, sPd, sPk, MEAN, sMb, sMn, sMd, SUP, ETA, AUX, sEb, sEn, sEd, ETA_OUT, AUX_OUT,
-                LOGDET, LAMS, EPSS, j, SENS, CONST, BN, N, m, d, k, BK: tl.constexpr, BD: tl.constexpr,
-                BP: tl.constexpr, LIN: tl.constexpr, DT: tl.constexpr, TINY: tl.constexpr):
+def kernel_rows(
+    W,
+    sWb,
+    sWn,
+    sWm,
+    sWk,
+    Y,
+    sYb,
+    sYn,
+    sYm,
+    Lp,
+    sLb,
+    sLn,
+    sLd,
+    sLk,
+    LS,
+    sSb,
+    sSn,
+    sSi,
+    sSj,
+    PC,
+    sPb,
+    sPn,
+    sPd,
+    sPk,
+    MEAN,
+    sMb,
+    sMn,
+    sMd,
+    SUP,
+    ETA,
+    AUX,
+    sEb,
+    sEn,
+    sEd,
+    ETA_OUT,
+    AUX_OUT,
+    LOGDET,
+    LAMS,
+    EPSS,
+    j,
+    SENS,
+    CONST,
+    BN,
+    N,
+    m,
+    d,
+    k,
+    BK: tl.constexpr,
+    BD: tl.constexpr,
+    BP: tl.constexpr,
+    LIN: tl.constexpr,
+    DT: tl.constexpr,
+    TINY: tl.constexpr,
+):
     """One pseudo-step for BP particles, one per thread. With ``Q = I + lam S``, ``V = W L_s``,
     ``S = V^T V`` and ``t(v) = L_s^T W^T W v_s = sum_i V_i (W_i . v_s)`` over the rows i,
     ``A v = -1/2 L Q^{-1} t(v)``; since the rows ``support`` of L are ``L_s``,
@@ -167,7 +265,8 @@ def kernel_rows(W, sWb, sWn, sWm, sWk, Y, sYb, sYn, sYm, Lp, sLb, sLn, sLd, sLk,
     by a scalar ``1 / sigma``: ``CONST = [Psi / sigma, d0]`` and ``Y`` holds ``z / sigma``
     (acoustic tracking; :func:`torchflow.flows.kernels.steps.dh_particle_step`)."""
     p, pm, b, n, rk, rd, lam, eps, m2, md2, sup, tri, es, aux_s, wrow, yrow, psi, d0 = _setup(
-        W, sWb, sWn, sWk, Y, sYb, sYn, SUP, AUX, sEb, sEn, sEd, LAMS, EPSS, j, CONST, BN, N, d, k, BK, BD, BP, DT)
+        W, sWb, sWn, sWk, Y, sYb, sYn, SUP, AUX, sEb, sEn, sEd, LAMS, EPSS, j, CONST, BN, N, d, k, BK, BD, BP, DT
+    )
     # pass 1: W^T y, then Pg at the measured coordinates
     Wy = tl.zeros((BK, BP), dtype=DT)
     for i in range(m):
@@ -176,8 +275,7 @@ def kernel_rows(W, sWb, sWn, sWm, sWk, Y, sYb, sYn, sYm, Lp, sLb, sLn, sLd, sLk,
     pbase = PC + b[None, :] * sPb + n[None, :] * sPn
     Pg_s = tl.zeros((BK, BP), dtype=DT)
     for c in tl.static_range(BK):
-        Pg_s += _ld(pbase + sup[:, None] * sPd + c * sPk, m2 & (c < k), BK, BP, DT) * \
-            _pick(Wy, rk, c)[None, :]
+        Pg_s += _ld(pbase + sup[:, None] * sPd + c * sPk, m2 & (c < k), BK, BP, DT) * _pick(Wy, rk, c)[None, :]
     mean_s = _ld(MEAN + b[None, :] * sMb + n[None, :] * sMn + sup[:, None] * sMd, m2, BK, BP, DT)
     x1_s = lam * Pg_s + mean_s
     eta_s = _ld(ETA + es, m2, BK, BP, DT)
@@ -218,8 +316,7 @@ def kernel_rows(W, sWb, sWn, sWm, sWk, Y, sYb, sYn, sYm, Lp, sLb, sLn, sLd, sLk,
     Le = tl.zeros((BD, BP), dtype=DT)
     La = tl.zeros((BD, BP), dtype=DT)
     for c in tl.static_range(BK):
-        Pg += _ld(pbase + rd[:, None] * sPd + c * sPk, md2 & (c < k), BD, BP, DT) * \
-            _pick(Wy, rk, c)[None, :]
+        Pg += _ld(pbase + rd[:, None] * sPd + c * sPk, md2 & (c < k), BD, BP, DT) * _pick(Wy, rk, c)[None, :]
         lc = _ld(lcol + c * sLk, md2 & (c < k), BD, BP, DT)
         Le += lc * _pick(re, rk, c)[None, :]
         La += lc * _pick(ra, rk, c)[None, :]
@@ -245,10 +342,61 @@ def _sym_tile(base, sI, sJ, m2, k, rk, tri, BK: tl.constexpr, BP: tl.constexpr, 
 
 
 @triton.jit(do_not_specialize=["j"])
-def kernel_info(W, sWb, sWn, sWm, sWk, Y, sYb, sYn, sYm, C, sCb, sCn, sCd, sCk, PI, sIb, sIn, sIi, sIj,
-                PC, sPb, sPn, sPd, sPk, MEAN, sMb, sMn, sMd, SUP, ETA, AUX, sEb, sEn, sEd, ETA_OUT, AUX_OUT,
-                LOGDET, LAMS, EPSS, j, SENS, CONST, BN, N, m, d, k, BK: tl.constexpr, BD: tl.constexpr,
-                BP: tl.constexpr, LIN: tl.constexpr, DT: tl.constexpr, TINY: tl.constexpr):
+def kernel_info(
+    W,
+    sWb,
+    sWn,
+    sWm,
+    sWk,
+    Y,
+    sYb,
+    sYn,
+    sYm,
+    C,
+    sCb,
+    sCn,
+    sCd,
+    sCk,
+    PI,
+    sIb,
+    sIn,
+    sIi,
+    sIj,
+    PC,
+    sPb,
+    sPn,
+    sPd,
+    sPk,
+    MEAN,
+    sMb,
+    sMn,
+    sMd,
+    SUP,
+    ETA,
+    AUX,
+    sEb,
+    sEn,
+    sEd,
+    ETA_OUT,
+    AUX_OUT,
+    LOGDET,
+    LAMS,
+    EPSS,
+    j,
+    SENS,
+    CONST,
+    BN,
+    N,
+    m,
+    d,
+    k,
+    BK: tl.constexpr,
+    BD: tl.constexpr,
+    BP: tl.constexpr,
+    LIN: tl.constexpr,
+    DT: tl.constexpr,
+    TINY: tl.constexpr,
+):
     """The pseudo-step of :func:`kernel_rows` in information form, one pass over the rows of W.
     With ``G = W^T W`` (the point's whitened information, accumulated row by row: no ``L_s`` read
     per row), ``P_s = L_s L_s^T``, the prior precision ``Pi = P_s^{-1}`` and ``C = L L_s^{-1}``
@@ -260,7 +408,8 @@ def kernel_info(W, sWb, sWn, sWm, sWk, Y, sYb, sYn, sYm, C, sCb, sCn, sCd, sCk, 
     ``log det (I + eps A) = log det (Pi + (lam - eps/2) G) - log det M`` (the ``log det P_s`` of
     each cancels). Registers hold G, not S and four k-vectors of sums, and ``L_s`` is not read."""
     p, pm, b, n, rk, rd, lam, eps, m2, md2, sup, tri, es, aux_s, wrow, yrow, psi, d0 = _setup(
-        W, sWb, sWn, sWk, Y, sYb, sYn, SUP, AUX, sEb, sEn, sEd, LAMS, EPSS, j, CONST, BN, N, d, k, BK, BD, BP, DT)
+        W, sWb, sWn, sWk, Y, sYb, sYn, SUP, AUX, sEb, sEn, sEd, LAMS, EPSS, j, CONST, BN, N, d, k, BK, BD, BP, DT
+    )
     G = tl.zeros((BK, BK, BP), dtype=DT)
     Wy = tl.zeros((BK, BP), dtype=DT)
     for i in range(m):

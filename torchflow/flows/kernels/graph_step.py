@@ -21,7 +21,8 @@ Used by :meth:`torchflow.filters.Filter.forward` when the filter's step is graph
 declaration (:attr:`ParticleFilter.graph_step`: the generic step, with a proposal class and a model
 class that each declare ``graph_safe``: the bootstrap proposal and the deterministic flows'
 proposal with global or per-particle points (PF-PF(EDH), PF-PF(LEDH), geodesic: the flow loop is
-then captured inside the step's graph); the linear-Gaussian models and acoustic tracking), on CUDA, without a gradient, with per-trial Philox streams (a plain
+then captured inside the step's graph); the linear-Gaussian models and acoustic tracking), on CUDA, without a
+gradient, with per-trial Philox streams (a plain
 :class:`~torchflow.random.TrialStreams`), ``tuning.cuda_graphs`` on and at most
 ``tuning.graph_step_max_elems`` state elements (larger steps are bound by the GPU's arithmetic,
 where a graph saves nothing and would keep a large memory pool). Anything else runs eagerly. A
@@ -30,6 +31,7 @@ counted by the filter's ``forward`` as ``"torch"``.
 Known limits: process-wide switches outside :func:`torchflow.cudagraphs._settings` (which holds
 the TF32, precision, determinism and autocast flags) are not seen by a cached graph.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -62,7 +64,7 @@ class _Recording(TrialStreams):
     """Delegates every draw to ``real`` and records ``(kind, shape, n, dtype, device)``; replayable
     while every draw is a Philox draw on ``device`` (the step's)."""
 
-    def __init__(self, real: TrialStreams, device):  # noqa: D107 - no TrialStreams.__init__: a view of ``real``
+    def __init__(self, real: TrialStreams, device):
         self.__dict__.update(real.__dict__)
         self.real, self.device, self.specs, self.replayable = real, torch.device(device), [], True
 
@@ -91,15 +93,16 @@ class _Recording(TrialStreams):
 class _Tape(TrialStreams):
     """Hands out the recorded draws, made from given Philox words, in order."""
 
-    def __init__(self, template: dict, specs, words):  # noqa: D107
+    def __init__(self, template: dict, specs, words):
         self.__dict__.update(template)
         self.specs, self.words, self.i = specs, words, 0
 
     @staticmethod
     def template(real: TrialStreams) -> dict:
         """What a tape keeps of the real streams: their identity (seed, key, trials, back end)."""
-        return dict(seed=real.seed, key=real.key, trials=real.trials, backend="philox", _np=None, _counter=0,
-                    _keys=None)
+        return dict(
+            seed=real.seed, key=real.key, trials=real.trials, backend="philox", _np=None, _counter=0, _keys=None
+        )
 
     def _draw(self, kind, shape, dtype, device):
         if self.i >= len(self.specs):
@@ -208,8 +211,11 @@ def run_step(filt, state, z: torch.Tensor, generator: TrialStreams, *, memo: Opt
         per_filter[sig] = None
         if filt not in _warned:
             _warned.add(filt)
-            warnings.warn(f"{filt.name}: its step is not replayed from a CUDA graph ({err}); running it eagerly",
-                          RuntimeWarning, stacklevel=3)
+            warnings.warn(
+                f"{filt.name}: its step is not replayed from a CUDA graph ({err}); running it eagerly",
+                RuntimeWarning,
+                stacklevel=3,
+            )
         generator._counter = counter  # the words drawn for the graph are given back: the eager step draws them
         return filt.step(state, z, generator)
     if replays is not None and cudagraphs.stats()["replays"] > replays:  # not the capture's eager warm-up
@@ -225,7 +231,7 @@ def _step_function(filt, generator, layout, n_in: int, step: int, specs, entry):
     streams = _Tape.template(generator)
 
     def fn(*args):
-        tape = _Tape(streams, specs, args[n_in + 1:])
+        tape = _Tape(streams, specs, args[n_in + 1 :])
         new = filt.step(_unflatten(layout, args[:n_in], step), args[n_in], tape)
         if tape.i != len(specs):
             raise _Mismatch(f"the step made {tape.i} of the {len(specs)} recorded draws")
@@ -234,4 +240,5 @@ def _step_function(filt, generator, layout, n_in: int, step: int, specs, entry):
             raise _Mismatch(f"{type(new).__name__} has fields a graph cannot return")
         entry["out"] = out_layout
         return tuple(flat)
+
     return fn

@@ -4,6 +4,7 @@
 :func:`torchflow.flows.kernels.select.flow_kernel` chose; it returns what the reference loop
 (:func:`torchflow.flows.integrate._integrate`) returns for the same inputs, to round-off.
 """
+
 from __future__ import annotations
 
 import torch
@@ -14,8 +15,20 @@ from . import select, steps
 from ...errors import ArgumentError
 
 
-def run_flow(kernel: str, flow, measurement, particles: torch.Tensor, prior, index, eps_all, lam_all, generator,
-             proposal, noise, start=None) -> FlowOutput:
+def run_flow(
+    kernel: str,
+    flow,
+    measurement,
+    particles: torch.Tensor,
+    prior,
+    index,
+    eps_all,
+    lam_all,
+    generator,
+    proposal,
+    noise,
+    start=None,
+) -> FlowOutput:
     """Integrate ``flow`` with ``kernel`` (``"lanes"``, ``"diagonal"`` or ``"gromov"``).
 
     Args: as :func:`torchflow.flows.integrate._integrate` (``prior`` at per-particle points
@@ -44,9 +57,18 @@ def run_flow(kernel: str, flow, measurement, particles: torch.Tensor, prior, ind
         log_det = log_det.to(particles.dtype)
     elif kernel == "lanes":
         inside = select.measured_inside(measurement, prior.support, k)
-        step = steps.ParticleSteps(prior.cols, prior.cols_support, prior.cov_cols, prior.mean, prior.support,
-                                   lams, epss, inside, measurement.inv_sigma,
-                                   measurement.z_scaled if inside is not None else None)
+        step = steps.ParticleSteps(
+            prior.cols,
+            prior.cols_support,
+            prior.cov_cols,
+            prior.mean,
+            prior.support,
+            lams,
+            epss,
+            inside,
+            measurement.inv_sigma,
+            measurement.z_scaled if inside is not None else None,
+        )
         for j in range(len(eps_all)):
             if inside is not None:
                 eta, aux = step(j, eta, aux, log_det)
@@ -67,15 +89,27 @@ def _gromov(flow, measurement, eta, aux, prior, proposal, lams, epss, k, generat
         mu, Sig = proposal.mean.expand(B, N, d), proposal.scale_tril @ proposal.scale_tril.transpose(-1, -2)
         Sig = Sig.expand(B, 1, d, d) if Sig.dim() == 2 else Sig
     inside = select.measured_inside(measurement, prior.support, k)
-    step = steps.GromovSteps(prior.cols, prior.cols_support, prior.support, lams, epss, inside,
-                             measurement.inv_sigma, measurement.z_scaled if inside is not None else None)
+    step = steps.GromovSteps(
+        prior.cols,
+        prior.cols_support,
+        prior.support,
+        lams,
+        epss,
+        inside,
+        measurement.inv_sigma,
+        measurement.z_scaled if inside is not None else None,
+    )
     shape = (B, N, measurement.z.shape[-1])  # the diffusion N (W^T xi) draws one normal per measurement row
     for j in range(len(epss)):
         lin = None if inside is not None else measurement.at(aux, prior.support)
-        xi = noise(j, shape) if noise is not None else linalg.standard_normal(
-            shape, dtype=eta.dtype, device=eta.device, generator=generator)
-        eta, aux, mu_j, Sig_j = step(j, eta, aux, mu if track else None, Sig if track else None, xi,
-                                     *(() if lin is None else (lin.W, lin.y)))
+        xi = (
+            noise(j, shape)
+            if noise is not None
+            else linalg.standard_normal(shape, dtype=eta.dtype, device=eta.device, generator=generator)
+        )
+        eta, aux, mu_j, Sig_j = step(
+            j, eta, aux, mu if track else None, Sig if track else None, xi, *(() if lin is None else (lin.W, lin.y))
+        )
         if track:
             mu, Sig = mu_j, Sig_j
     if track:  # each particle's log-density under its law

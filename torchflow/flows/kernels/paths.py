@@ -23,6 +23,7 @@ counts as :attr:`FilterResult.paths <torchflow.filters.FilterResult.paths>`; the
 over a filter's chunks (``results.json``'s ``paths``, the summary's ``path`` column:
 :func:`describe`).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -34,8 +35,16 @@ import torch
 __all__ = ["PATHS", "recording", "note", "listening", "per_step", "describe", "merge"]
 
 #: every path a decision may note
-PATHS = ("kernel:lanes", "kernel:diagonal", "kernel:gromov", "kernel:gpfis", "kernel:weights", "graph:flow", "graph:step",
-         "torch")
+PATHS = (
+    "kernel:lanes",
+    "kernel:diagonal",
+    "kernel:gromov",
+    "kernel:gpfis",
+    "kernel:weights",
+    "graph:flow",
+    "graph:step",
+    "torch",
+)
 
 _local = threading.local()  # ``stack``: this thread's listening dicts, innermost last
 
@@ -75,12 +84,14 @@ def note(path: str) -> None:
 def per_step(step: Callable, counts: Mapping[str, int]) -> Callable:
     """``step`` that notes ``"torch"`` for a call in which no path was noted into ``counts``
     (a time step that ran no kernel, no graph and no flow integration)."""
+
     def run(*args, **kwargs):
         before = sum(counts.values())
         out = step(*args, **kwargs)
         if sum(counts.values()) == before:
             note("torch")
         return out
+
     return run
 
 

@@ -38,6 +38,7 @@ The run-time answers (:func:`flow_kernel`, :func:`gpfis_kernel`, :func:`flow_gra
 in :mod:`~torchflow.flows.kernels.paths` while a recording listens (a filter's ``forward`` does:
 :attr:`~torchflow.filters.FilterResult.paths`), so a run says which path it took.
 """
+
 from __future__ import annotations
 
 from typing import Optional
@@ -68,8 +69,12 @@ def cpu_kernels_on(device) -> bool:
     """The Numba CPU kernels may run on ``device``: the CPU (not under Triton's interpreter),
     ``tuning.fused_flows`` on and the kernels' module importable."""
     device = torch.device(device)
-    return (bool(tuning.get().fused_flows) and device.type == "cpu" and not _triton.runs_on(device)
-            and steps.numba_available())
+    return (
+        bool(tuning.get().fused_flows)
+        and device.type == "cpu"
+        and not _triton.runs_on(device)
+        and steps.numba_available()
+    )
 
 
 def tiles_fit(m: int, k: int, d: int, device="cpu") -> bool:
@@ -84,12 +89,15 @@ def tiles_fit(m: int, k: int, d: int, device="cpu") -> bool:
 
 
 def _tiles_fit(measurement, particles, k) -> bool:
-    return (tiles_fit(measurement.z.shape[-1], k, particles.shape[-1], particles.device)
-            and particles.dtype in (torch.float32, torch.float64))
+    return tiles_fit(measurement.z.shape[-1], k, particles.shape[-1], particles.device) and particles.dtype in (
+        torch.float32,
+        torch.float64,
+    )
 
 
-def flow_kernel(flow, measurement, particles: torch.Tensor, k: int, *, per_particle: bool, track: bool,
-                gaussian_image: bool) -> Optional[str]:
+def flow_kernel(
+    flow, measurement, particles: torch.Tensor, k: int, *, per_particle: bool, track: bool, gaussian_image: bool
+) -> Optional[str]:
     """The kernel that integrates ``flow`` (one of :data:`FLOW_KERNELS`), or ``None``: the reference loop.
 
     Kernels run at per-particle points, with no gradient recorded and no Gaussian image asked for:
@@ -113,11 +121,13 @@ def _flow_kernel(flow, measurement, particles, k, per_particle, track, gaussian_
         return None  # (a kernel takes no mask of unobserved coordinates)
     offer = declared(flow, "kernel")
     if offer == "daum_huang" and not track:
-        if (tuning.get().fused_flows and steps.runs_on(particles.device)
-                and _tiles_fit(measurement, particles, k)):
+        if tuning.get().fused_flows and steps.runs_on(particles.device) and _tiles_fit(measurement, particles, k):
             return "lanes"
-        if (measurement.diagonal and particles.dtype in (torch.float32, torch.float64)
-                and cpu_kernels_on(particles.device)):
+        if (
+            measurement.diagonal
+            and particles.dtype in (torch.float32, torch.float64)
+            and cpu_kernels_on(particles.device)
+        ):
             return "diagonal"
         return None
     if offer == "gromov" and cpu_kernels_on(particles.device) and _tiles_fit(measurement, particles, k):
@@ -135,8 +145,7 @@ def per_particle_kernel(flow, model, device) -> Optional[str]:
     if not (model.structure.measurement_jacobian_diagonal and noise_ok) or model.structure.linear_measurement:
         return None
     d = model.state_dim
-    if (declared(flow, "kernel") == "daum_huang" and not tiles_fit(model.obs_dim, d, d)
-            and cpu_kernels_on(device)):
+    if declared(flow, "kernel") == "daum_huang" and not tiles_fit(model.obs_dim, d, d) and cpu_kernels_on(device):
         return "diagonal"
     return None
 
@@ -146,8 +155,7 @@ def measured_inside(measurement, support, k) -> Optional["steps.FusedMeasurement
     pseudo-step), or ``None``: ``tuning.fused_measurement``, a named form (:data:`FORMS`) declared
     by the model, a prepared scalar R, pairs of position coordinates as the support."""
     form = measurement.form
-    if (form is None or not tuning.get().fused_measurement or measurement.inv_sigma is None
-            or support is None or k % 2):
+    if form is None or not tuning.get().fused_measurement or measurement.inv_sigma is None or support is None or k % 2:
         return None
     name, (sensors, psi, d0) = form
     if name not in FORMS or measurement.z.shape[-1] != sensors.shape[0]:
@@ -161,9 +169,15 @@ def gpfis_kernel(measurement, x: torch.Tensor, k: int) -> bool:
     derivatives declared (or a linear measurement), tiles that fit and ``k <= 16`` (the kernel keeps
     ``[W y]^T D``, up to ``(k + 1) k^2`` numbers, per lane). Noted (:mod:`.paths`): ``"kernel:gpfis"``
     or ``"torch"``."""
-    fused = (not torch.is_grad_enabled() and x.dim() == 3 and k <= 16 and measurement.observed is None
-             and (measurement.hessian is not None or measurement.matrix is not None)
-             and cpu_kernels_on(x.device) and _tiles_fit(measurement, x, k))
+    fused = (
+        not torch.is_grad_enabled()
+        and x.dim() == 3
+        and k <= 16
+        and measurement.observed is None
+        and (measurement.hessian is not None or measurement.matrix is not None)
+        and cpu_kernels_on(x.device)
+        and _tiles_fit(measurement, x, k)
+    )
     paths.note("kernel:gpfis" if fused else "torch")
     return fused
 
@@ -185,8 +199,15 @@ def weights_kernel(particles: torch.Tensor, *tensors: torch.Tensor, resampler, c
     (:attr:`~torchflow.resampling.Resampler.kernel_scheme`). Returns that scheme
     (``"systematic"`` or ``"stratified"``) or ``None``. The caller, which has read the host
     (:func:`torchflow.resampling.reads_host`), notes ``"kernel:weights"`` when the call succeeds."""
-    if (cov is not None or extras or particles.dtype != torch.float64 or particles.dim() != 3 or not particles.is_cpu
-            or particles.shape[1] > WEIGHTS_KERNEL_MAX_PARTICLES or not tuning.get().fused_weights):
+    if (
+        cov is not None
+        or extras
+        or particles.dtype != torch.float64
+        or particles.dim() != 3
+        or not particles.is_cpu
+        or particles.shape[1] > WEIGHTS_KERNEL_MAX_PARTICLES
+        or not tuning.get().fused_weights
+    ):
         return None
     if any(t.shape != particles.shape[:2] or t.dtype != torch.float64 or not t.is_cpu for t in tensors):
         return None  # (the torch path broadcasts a weight of another shape; the kernel reads (B, N))
@@ -206,8 +227,14 @@ def flow_graph(flow, particles: torch.Tensor) -> bool:
     """A deterministic flow's pseudo-time loop is replayed from a CUDA graph
     (:mod:`torchflow.cudagraphs`): CUDA, ``tuning.cuda_graphs``, no gradient recorded, not inside
     another capture. A yes is noted (:mod:`.paths`: ``"graph:flow"``)."""
-    graphed = (particles.is_cuda and bool(tuning.get().cuda_graphs) and not flow.stochastic and not missing.active()
-               and not torch.is_grad_enabled() and not torch.cuda.is_current_stream_capturing())
+    graphed = (
+        particles.is_cuda
+        and bool(tuning.get().cuda_graphs)
+        and not flow.stochastic
+        and not missing.active()
+        and not torch.is_grad_enabled()
+        and not torch.cuda.is_current_stream_capturing()
+    )
     if graphed:
         paths.note("graph:flow")
     return graphed
@@ -224,7 +251,13 @@ def graph_step(filt, x: torch.Tensor, generator, *, emulated: bool = False) -> b
     from ...random import TrialStreams
 
     t = tuning.get()
-    return ((emulated or (x.is_cuda and not torch.cuda.is_current_stream_capturing())) and not missing.active()
-            and bool(getattr(filt, "graph_step", False)) and bool(t.cuda_graphs) and not torch.is_grad_enabled()
-            and type(generator) is TrialStreams and generator.backend in ("auto", "philox")
-            and x.numel() <= t.graph_step_max_elems)
+    return (
+        (emulated or (x.is_cuda and not torch.cuda.is_current_stream_capturing()))
+        and not missing.active()
+        and bool(getattr(filt, "graph_step", False))
+        and bool(t.cuda_graphs)
+        and not torch.is_grad_enabled()
+        and type(generator) is TrialStreams
+        and generator.backend in ("auto", "philox")
+        and x.numel() <= t.graph_step_max_elems
+    )

@@ -42,6 +42,7 @@ formulas as the reference loop, reassociated: the numbers agree to round-off
 thread count (particles do not interact). Numba compiles a kernel on its first call in a process
 and caches it on disk; timings are in ``experiments/RESULTS.md`` (benchmarks).
 """
+
 from __future__ import annotations
 
 import functools
@@ -55,7 +56,15 @@ import torch
 
 from ... import _triton, tuning
 
-__all__ = ["available", "dh_particle_step", "FusedMeasurement", "ParticleSteps", "GromovSteps", "GPFISSteps", "DiagonalSteps"]
+__all__ = [
+    "available",
+    "dh_particle_step",
+    "FusedMeasurement",
+    "ParticleSteps",
+    "GromovSteps",
+    "GPFISSteps",
+    "DiagonalSteps",
+]
 
 available, interpreted = _triton.available, _triton.interpreted  # shared with torchflow.random's fused draws
 
@@ -67,16 +76,17 @@ _kernels = {}
 ROWS_WARPS = 1
 
 
-
 def kernel_form() -> str:
     """The GPU lane kernel's form, as :func:`torchflow.flows.kernels.select.gpu_form` chooses it."""
     from .select import gpu_form
+
     return gpu_form()
 
 
 def _build(form: str):
     if form not in _kernels:
         from . import gpu
+
         _kernels[form] = getattr(gpu, "kernel_" + form)
     return _kernels[form]
 
@@ -109,7 +119,8 @@ def tile(x: int) -> int:
 
 @dataclass
 class FusedMeasurement:
-    """A measurement the fused kernel linearises itself (``tuning`` ``fused_measurement=1``), so that no ``(B, N, m, k)`` Jacobian is written and read per
+    """A measurement the fused kernel linearises itself (``tuning`` ``fused_measurement=1``), so that no
+    ``(B, N, m, k)`` Jacobian is written and read per
     pseudo-step. ``kind`` 1: ``h_i(x) = psi sum_c 1 / (|p_c - s_i| + d0)`` over the 2-D positions
     ``p_c`` (support coordinates ``2c, 2c + 1``) and sensors ``s_i`` (``sensors (m, 2)``), with a
     scalar R (acoustic tracking: :attr:`~torchflow.models.Structure.measurement_form`)."""
@@ -120,11 +131,25 @@ class FusedMeasurement:
     d0: torch.Tensor
 
 
-def dh_particle_step(W: Optional[torch.Tensor], y: torch.Tensor, L: torch.Tensor, Ls: torch.Tensor, Pc: torch.Tensor,
-                     mean: torch.Tensor, support: Optional[torch.Tensor], eta: torch.Tensor, aux: torch.Tensor,
-                     log_det: torch.Tensor, lams: torch.Tensor, epss: torch.Tensor, j: int,
-                     measure: Optional[FusedMeasurement] = None, inv_sigma: Optional[torch.Tensor] = None,
-                     info=None, form: Optional[str] = None):
+def dh_particle_step(
+    W: Optional[torch.Tensor],
+    y: torch.Tensor,
+    L: torch.Tensor,
+    Ls: torch.Tensor,
+    Pc: torch.Tensor,
+    mean: torch.Tensor,
+    support: Optional[torch.Tensor],
+    eta: torch.Tensor,
+    aux: torch.Tensor,
+    log_det: torch.Tensor,
+    lams: torch.Tensor,
+    epss: torch.Tensor,
+    j: int,
+    measure: Optional[FusedMeasurement] = None,
+    inv_sigma: Optional[torch.Tensor] = None,
+    info=None,
+    form: Optional[str] = None,
+):
     """One Euler step of EDH/LEDH at per-particle points, fused (see the module docstring).
 
     Args:
@@ -172,9 +197,44 @@ def dh_particle_step(W: Optional[torch.Tensor], y: torch.Tensor, L: torch.Tensor
     BK, BD = tile(k), tile(d)
     bp = 32 * ROWS_WARPS
     DT, TINY = compute_dtype(eta.dtype)
-    kernel[(-(-B * N // bp),)](W, *sW, y, *sY, L, *sL, Ls, *sS, Pc, *sP, mean, *sM, support, eta, aux, *sE, eta_out,
-                                aux_out, log_det, lams, epss, j, sens, const, B * N, N, m, d, k, BK=BK, BD=BD, BP=bp,
-                                LIN=0 if measure is None else measure.kind, DT=DT, TINY=TINY, num_warps=ROWS_WARPS)
+    kernel[(-(-B * N // bp),)](
+        W,
+        *sW,
+        y,
+        *sY,
+        L,
+        *sL,
+        Ls,
+        *sS,
+        Pc,
+        *sP,
+        mean,
+        *sM,
+        support,
+        eta,
+        aux,
+        *sE,
+        eta_out,
+        aux_out,
+        log_det,
+        lams,
+        epss,
+        j,
+        sens,
+        const,
+        B * N,
+        N,
+        m,
+        d,
+        k,
+        BK=BK,
+        BD=BD,
+        BP=bp,
+        LIN=0 if measure is None else measure.kind,
+        DT=DT,
+        TINY=TINY,
+        num_warps=ROWS_WARPS,
+    )
     return eta_out, aux_out
 
 
@@ -189,8 +249,11 @@ def compute_dtype(dtype: torch.dtype):
 def _compute_dtype(f32: bool):
     from triton import language as tl
 
-    return (tl.float32, float(torch.finfo(torch.float32).tiny)) if f32 else \
-        (tl.float64, float(torch.finfo(torch.float64).tiny))
+    return (
+        (tl.float32, float(torch.finfo(torch.float32).tiny))
+        if f32
+        else (tl.float64, float(torch.finfo(torch.float64).tiny))
+    )
 
 
 class ParticleSteps:
@@ -216,13 +279,29 @@ class ParticleSteps:
         if not self.cpu:
             if self.measure is not None:
                 W, y = None, self.z_scaled
-            return dh_particle_step(W, y, *self.prior, eta, aux, log_det, self.lams, self.epss, j,
-                                    measure=self.measure, inv_sigma=self.inv_sigma, info=self.info,
-                                    form=self.form)
+            return dh_particle_step(
+                W,
+                y,
+                *self.prior,
+                eta,
+                aux,
+                log_det,
+                self.lams,
+                self.epss,
+                j,
+                measure=self.measure,
+                inv_sigma=self.inv_sigma,
+                info=self.info,
+                form=self.form,
+            )
         Wn, yn, lin, sens, const = _cpu_rows(self.lin, W, y)
         e64, a64 = _f64(eta, 3), _f64(aux, 3)
         eta_out, aux_out = np.empty_like(e64), np.empty_like(a64)
-        ld = log_det if log_det.dtype == torch.float64 and log_det.is_contiguous() else log_det.to(torch.float64).contiguous()
+        ld = (
+            log_det
+            if log_det.dtype == torch.float64 and log_det.is_contiguous()
+            else log_det.to(torch.float64).contiguous()
+        )
         _set_threads()
         _cpu_kernel()(Wn, yn, *self.args, e64, a64, eta_out, aux_out, _np(ld), *self.sched, j, lin, sens, const)
         if ld is not log_det:
@@ -256,8 +335,9 @@ class GromovSteps:
             m64, S64 = np.zeros((1, 1, 1)), np.zeros((1, 1, 1, 1))
             outs += [m64, S64]
         _set_threads()
-        _gromov_kernel()(Wn, yn, *self.args, e64, a64, m64, S64, _f64(xi, 3), *outs, *self.sched, j, lin, sens, const,
-                         int(track))
+        _gromov_kernel()(
+            Wn, yn, *self.args, e64, a64, m64, S64, _f64(xi, 3), *outs, *self.sched, j, lin, sens, const, int(track)
+        )
         res = _cpu_back(outs if track else outs[:2], eta.dtype)
         return tuple(res) if track else (res[0], res[1], None, None)
 
@@ -284,8 +364,19 @@ class DiagonalSteps:
         e64, a64 = _f64(eta, 3), _f64(aux, 3)
         eta_out, aux_out = np.empty_like(e64), np.empty_like(a64)
         _set_threads()
-        _diag_kernel()(_f64(Wd, 3), _f64(y, 3), *self.args, e64, a64, eta_out, aux_out, _np(log_det), *self.sched, j,
-                       _numba_threads())
+        _diag_kernel()(
+            _f64(Wd, 3),
+            _f64(y, 3),
+            *self.args,
+            e64,
+            a64,
+            eta_out,
+            aux_out,
+            _np(log_det),
+            *self.sched,
+            j,
+            _numba_threads(),
+        )
         return tuple(_cpu_back((eta_out, aux_out), eta.dtype))
 
 
@@ -324,8 +415,13 @@ def _cpu_constants(lams, epss, measure, inv_sigma, z_scaled):
     sched = (_f64(lams, 1), _f64(epss, 1))
     if measure is None:
         return sched, None
-    return sched, (np.zeros((1, 1, 1, 1)), _f64(z_scaled.unsqueeze(-2), 3), 1, _f64(measure.sensors, 2),
-                   _f64(torch.stack([measure.psi * inv_sigma, measure.d0]), 1))
+    return sched, (
+        np.zeros((1, 1, 1, 1)),
+        _f64(z_scaled.unsqueeze(-2), 3),
+        1,
+        _f64(measure.sensors, 2),
+        _f64(torch.stack([measure.psi * inv_sigma, measure.d0]), 1),
+    )
 
 
 def _cpu_rows(lin, W, y):
@@ -344,6 +440,7 @@ def _cpu_back(arrays, dtype):
 
 def _gromov_kernel():
     from .cpu import gromov_step
+
     return gromov_step
 
 
@@ -357,7 +454,7 @@ def _importable(module: str) -> bool:
         try:
             importlib.import_module(module)
             _IMPORTABLE[module] = True
-        except Exception:  # noqa: BLE001 - any import failure means: not available
+        except Exception:
             _IMPORTABLE[module] = False
     return _IMPORTABLE[module]
 
@@ -377,8 +474,13 @@ def numba_available() -> bool:
 PARALLEL_WEIGHTS_MIN = 1 << 16
 
 
-def weigh_resample(particles: torch.Tensor, prev_log_weights: torch.Tensor, log_increment: torch.Tensor,
-                   uniforms: Optional[torch.Tensor], threshold: float):
+def weigh_resample(
+    particles: torch.Tensor,
+    prev_log_weights: torch.Tensor,
+    log_increment: torch.Tensor,
+    uniforms: Optional[torch.Tensor],
+    threshold: float,
+):
     """A particle filter's clean weighting step in one Numba call per batch
     (:mod:`torchflow.flows.kernels.cpu_weights`): float64 CPU tensors ``particles (B, N, d)``,
     normalised ``prev_log_weights (B, N)``, ``log_increment (B, N)``; ``uniforms`` the resampling
@@ -389,6 +491,7 @@ def weigh_resample(particles: torch.Tensor, prev_log_weights: torch.Tensor, log_
     is not finite (``None`` when none is), whose rows are left for the caller's reference path to
     repair (their particle rows are those of ``particles``, the others undefined)."""
     from . import cpu_weights as k
+
     B, N, d = particles.shape
     x = particles.detach().contiguous()
     # the small outputs made by NumPy (a tenth of torch.empty's cost) and wrapped once
@@ -400,17 +503,33 @@ def weigh_resample(particles: torch.Tensor, prev_log_weights: torch.Tensor, log_
     if parallel:
         _set_threads()
     fn = k.weigh_resample_parallel if parallel else k.weigh_resample
-    count = fn(_np(prev_log_weights.contiguous()), _np(log_increment.contiguous()), x.numpy(), u, u.shape[1] > 1,
-               float(threshold) * N if uniforms is not None else 0.0, -math.log(N), lw.numpy(), est, ess, inc, res,
-               out.numpy(), bad)
+    count = fn(
+        _np(prev_log_weights.contiguous()),
+        _np(log_increment.contiguous()),
+        x.numpy(),
+        u,
+        u.shape[1] > 1,
+        float(threshold) * N if uniforms is not None else 0.0,
+        -math.log(N),
+        lw.numpy(),
+        est,
+        ess,
+        inc,
+        res,
+        out.numpy(),
+        bad,
+    )
     n_bad = int(bad.sum())
     if n_bad and not count:
         out = x.clone()  # the bad rows are replaced by the caller
     elif n_bad:
         rows = torch.from_numpy(bad)
         out[rows] = x[rows]
-    return ((out if count or n_bad else particles, lw) + tuple(torch.from_numpy(a) for a in (est, ess, inc, res))
-            + (torch.from_numpy(bad) if n_bad else None,))
+    return (
+        (out if count or n_bad else particles, lw)
+        + tuple(torch.from_numpy(a) for a in (est, ess, inc, res))
+        + (torch.from_numpy(bad) if n_bad else None,)
+    )
 
 
 def weights_available() -> bool:
@@ -421,26 +540,31 @@ def weights_available() -> bool:
 
 def _precision_kernel():
     from .cpu import precision_from_factor
+
     return precision_from_factor
 
 
 def _diag_kernel():
     from .cpu import dh_diag_step
+
     return dh_diag_step
 
 
 def _gpfis_kernel():
     from .cpu import gpfis_step
+
     return gpfis_step
 
 
 def _cpu_kernel():
     from .cpu import dh_step
+
     return dh_step
 
 
 def _numba_threads() -> int:
     import numba
+
     return int(numba.config.NUMBA_NUM_THREADS)
 
 
@@ -450,6 +574,7 @@ def _set_threads() -> None:
     process's OpenMP thread count to ``NUMBA_NUM_THREADS`` (torch's included: measured 1 -> 2), so
     it is started here first and torch's count is put back."""
     import numba
+
     n = torch.get_num_threads()
     launch = getattr(getattr(numba.np.ufunc, "parallel", None), "_launch_threads", None)
     if launch is not None:
