@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchflow.experiment import run_experiment
+from torchflow.runner import run_experiment
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter, ParticleFlowFilter, ParticleFlowParticleFilter
 from torchflow.models import AcousticTracking, SensorNetwork
 

@@ -10,7 +10,7 @@ import torch
 import torchflow.filters as F
 from torchflow.covariances import DiagonalCovariance, dense_prior, sample_prior
 from torchflow.errors import ArgumentError
-from torchflow.experiment import run_experiment
+from torchflow.runner import run_experiment
 from torchflow.models import Lorenz96
 from torchflow.models.base import GaussianStateSpaceModel
 from torchflow.random import TrialStreams

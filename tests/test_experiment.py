@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchflow.experiment import SUMMARY_COLUMNS, choose_chunk_size, format_table, run_experiment
+from torchflow.runner import SUMMARY_COLUMNS, choose_chunk_size, format_table, run_experiment
 from torchflow.filters import BootstrapParticleFilter, ExtendedKalmanFilter, Filter, KalmanFilter, UnscentedKalmanFilter
 from torchflow.models import AcousticTracking, SensorNetwork
 from torchflow.runner import figures

@@ -28,7 +28,7 @@ from hypothesis import HealthCheck, event, given, settings, strategies as st
 
 import torchflow.filters as F
 from torchflow.errors import NonFiniteError, TorchflowError
-from torchflow.experiment import run_experiment
+from torchflow.runner import run_experiment
 from torchflow.models import (
     AcousticTracking,
     GaussianStateSpaceModel,

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchflow import metrics
-from torchflow.experiment import SUMMARY_COLUMNS, format_table, run_experiment
+from torchflow.runner import SUMMARY_COLUMNS, format_table, run_experiment
 from torchflow.filters import BootstrapParticleFilter, ExtendedKalmanFilter, KalmanFilter
 from torchflow.models import AcousticTracking, SensorNetwork
 from torchflow.runner import figures, summary_columns, writers

@@ -9,7 +9,7 @@ import torch
 from conftest import cuda
 from test_cudagraphs import _Emulated
 from torchflow import cudagraphs, tuning
-from torchflow.experiment import format_table, run_experiment
+from torchflow.runner import format_table, run_experiment
 from torchflow.filters import BootstrapParticleFilter, ParticleFlowParticleFilter
 from torchflow.flows.kernels import graph_step, paths, select, steps
 from torchflow.models import AcousticTracking, SensorNetwork, SkewedTPoisson

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from conftest import cuda
-from torchflow.experiment import run_experiment
+from torchflow.runner import run_experiment
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter, ParticleFlowFilter, ParticleFlowParticleFilter
 from torchflow.models import AcousticTracking, SensorNetwork
 from torchflow.random import TrialStreams, check_generator, philox4x32

@@ -13,7 +13,7 @@ import torch
 from tests.conftest import ROOT
 from torchflow.data import declared_prior, load_observations
 from torchflow.errors import ArgumentError
-from torchflow.experiment import run_experiment
+from torchflow.runner import run_experiment
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter
 from torchflow.models import TDOA3D, AcousticTracking, LinearGaussian, Lorenz96, SensorNetwork, SkewedTPoisson
 from torchflow.random import TrialStreams

@@ -50,7 +50,7 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from torchflow import tuning
-from torchflow.experiment import run_experiment
+from torchflow.runner import run_experiment
 
 ROOT = Path(__file__).resolve().parents[1]
 REL_TOL = 5e-4  # see the module docstring: 10x the measured cross-instruction-set rounding

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from torchflow import _progress
-from torchflow.experiment import run_experiment
+from torchflow.runner import run_experiment
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter
 from torchflow.models import AcousticTracking, SensorNetwork, SkewedTPoisson
 from torchflow.runner import STOP, ConfigError, RunStopped, plan_run

@@ -16,9 +16,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchflow.checkpoint import ChunkStore, fingerprint
-from torchflow.distributed import Shard
-from torchflow.experiment import run_experiment
+from torchflow.runner import ChunkStore, fingerprint
+from torchflow.runner import Shard
+from torchflow.runner import run_experiment
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter
 from torchflow.models import SensorNetwork
 
@@ -179,7 +179,7 @@ def test_a_signal_outside_a_chunk_waits_for_the_next_chunk():
     """STOP.handler (installed for SIGINT/SIGTERM by run.py) raises inside a chunk at once;
     outside one (here: while the runner reports a finished filter) it stops the run at the next
     chunk, after the finished filter is scored."""
-    from torchflow.experiment import STOP
+    from torchflow.runner import STOP
 
     model = SensorNetwork(d=9)
 

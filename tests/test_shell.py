@@ -338,7 +338,7 @@ def test_a_run_whose_start_up_cannot_be_read_still_writes_its_results(tmp_path):
     """Where the process's age cannot be read (no ``/proc``), ``startup`` is ``None``: results.json
     records it as null and the log line leaves it out (no crash after the filters ran)."""
     from torchflow import cli
-    from torchflow.experiment import run_experiment
+    from torchflow.runner import run_experiment
     from torchflow.filters import KalmanFilter
     from torchflow.models import SensorNetwork
     from torchflow.runner import writers

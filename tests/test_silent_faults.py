@@ -5,7 +5,7 @@ limits, a stop signal during a long flow step): one test per case, named after i
 import pytest
 import torch
 
-from torchflow.experiment import run_experiment
+from torchflow.runner import run_experiment
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter, ParticleFlowFilter, ParticleFlowParticleFilter
 from torchflow.flows import LEDHFlow, integrate_flow
 from torchflow.models import SensorNetwork
@@ -273,7 +273,7 @@ def test_sigterm_during_a_gpfis_step_stops_at_once(monkeypatch):
     not at the end of the chunk (measured through the command line on SkewedTPoisson, d = 144,
     N = 20: SIGTERM 40 s into a 378 s step, stopped 1.5 s later)."""
     import torchflow.proposals.gpfis as gp
-    from torchflow.experiment import STOP
+    from torchflow.runner import STOP
     from torchflow.filters import GPFIS
 
     calls = []

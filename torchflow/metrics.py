@@ -40,7 +40,7 @@ and one :func:`register` call
 (:func:`unregister` removes it; :func:`registered` registers for a ``with`` block)::
 
     >>> from torchflow import metrics
-    >>> from torchflow.experiment import run_experiment
+    >>> from torchflow.runner import run_experiment
     >>> from torchflow.filters import KalmanFilter
     >>> from torchflow.models import SensorNetwork
     >>> def max_abs_error(ctx):

@@ -42,7 +42,6 @@ import torch
 __all__ = [
     "active",
     "measurement_log_prob",
-    "partial_observations",
     "observations_missing",
     "observed",
     "gaussian_rows",
@@ -143,18 +142,3 @@ def measurement_log_prob(model, z: torch.Tensor, x: torch.Tensor) -> torch.Tenso
         return model.measurement_log_prob(z, x)
     mask, zf = observed(z)
     return model.measurement_log_prob_observed(zf, x, mask)
-
-
-def partial_observations(model) -> bool:
-    """Whether ``model`` weighs a measurement with some of its coordinates missing, as its class
-    declares by what it gives: a ``measurement_log_prob_observed`` of its own, or the Gaussian
-    form's with ``structure.gaussian_measurement`` (a one-coordinate measurement: always, a gap is
-    then a whole step). Particle filters refuse a partly observed step otherwise."""
-    from .models.base import GaussianStateSpaceModel, StateSpaceModel
-
-    own = type(model).measurement_log_prob_observed
-    if own is StateSpaceModel.measurement_log_prob_observed:
-        return model.obs_dim == 1
-    if own is GaussianStateSpaceModel.measurement_log_prob_observed:
-        return model.obs_dim == 1 or model.structure.gaussian_measurement
-    return True

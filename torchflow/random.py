@@ -9,7 +9,7 @@ last, in one process or in several: chunking only selects which streams run toge
 (:meth:`TrialStreams.select`).
 
 Filters accept a ``TrialStreams`` wherever they accept a ``torch.Generator`` (argument
-``generator``); :func:`torchflow.experiment.run_experiment` always passes one. With a plain
+``generator``); :func:`torchflow.runner.run_experiment` always passes one. With a plain
 ``torch.Generator`` the batch shares one stream (fine for a single call, but then trial ``b``'s
 numbers depend on the batch it ran in).
 

@@ -17,11 +17,10 @@ from __future__ import annotations
 import argparse
 import math
 from typing import Dict, List, Optional
-from unittest import mock
 
 import torch
 
-import torchflow.experiment as tfx
+import torchflow.runner as tfx
 from torchflow.filters import KalmanFilter
 from torchflow.models import AcousticTracking, SensorNetwork
 from torchflow.models.base import Trajectory
@@ -69,7 +68,7 @@ def given_data(traj: Trajectory, mean: torch.Tensor, cov: torch.Tensor):
             cov.to(device=dev, dtype=dt),
         )
 
-    return mock.patch.object(tfx, "_simulate", simulate)
+    return simulate
 
 
 def _se(values: List[float]) -> Optional[float]:
@@ -103,19 +102,19 @@ def run_precision(table, keys, dtype, traj, mean, cov, a, ref_logz) -> Dict[str,
                 f(traj.observations[:2, :1].to(dt), mean[:2].to(dt), cov[:2].to(dt), torch.Generator().manual_seed(0))
         except Exception:
             pass
-    with given_data(traj, mean, cov):
-        res = tfx.run_experiment(
-            model,
-            filters,
-            trials=a.trials,
-            steps=a.steps,
-            seed=a.seed,
-            inits_per_track=1,
-            chunk_size=None,
-            memory_budget_gb=a.memory_gb,
-            dtype=dtype,
-            progress=False,
-        )
+    res = tfx.run_experiment(  # the shared data, through the runner's simulator argument
+        model,
+        filters,
+        simulator=given_data(traj, mean, cov),
+        trials=a.trials,
+        steps=a.steps,
+        seed=a.seed,
+        inits_per_track=1,
+        chunk_size=None,
+        memory_budget_gb=a.memory_gb,
+        dtype=dtype,
+        progress=False,
+    )
     out = {}
     for key, (name, f) in zip(keys, filters.items()):
         row = next(r for r in res.summary if r["filter"] == name)

@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch.func import functional_call
 
-from torchflow.experiment import run_experiment
+from torchflow.runner import run_experiment
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter, ParticleFlowFilter, ParticleFlowParticleFilter
 from torchflow.flows import EDHFlow, LEDHFlow
 from torchflow.models import AcousticTracking

@@ -240,7 +240,7 @@ def test_particle_chunking_gives_the_same_filter_output():
 
 
 def test_plan_memory_and_runner_chunk_particles_under_a_small_budget():
-    from torchflow.experiment import run_experiment
+    from torchflow.runner import run_experiment
     from torchflow.filters import BootstrapParticleFilter
 
     model = AcousticTracking()

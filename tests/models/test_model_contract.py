@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch import nn
 
-from torchflow.experiment import run_experiment
+from torchflow.runner import run_experiment
 from torchflow.filters import (
     BootstrapParticleFilter,
     ExtendedKalmanFilter,

@@ -19,7 +19,7 @@ from .. import resampling as _resampling
 from .._checks import allocation_failure, check_choice, check_count, check_finite, check_psd, check_same, check_tensor
 from .._blocks import blockwise
 from ..covariances import Covariance, DiagonalCovariance, sample_prior
-from ..models.base import StateSpaceModel
+from ..models.base import StateSpaceModel, partial_observations
 from ..models.contract import (
     COVARIANCE_CHECK_NUMBERS,
     DECLARED_CHECK_NUMBERS,
@@ -173,7 +173,7 @@ class Filter(nn.Module):
     #: whether the filter draws random numbers (then ``forward`` requires a generator)
     uses_randomness = False
     #: stable name of the filter's random streams (:class:`~torchflow.random.TrialStreams` key in
-    #: :func:`~torchflow.experiment.run_experiment`): part of the reproducibility contract, so it
+    #: :func:`~torchflow.runner.run_experiment`): part of the reproducibility contract, so it
     #: is declared per filter family and never derived from config or class names; ``None`` means
     #: the class name. Filters with the same stream name share common random numbers in one run.
     random_stream: Optional[str] = None
@@ -518,11 +518,11 @@ class Filter(nn.Module):
         """Whether ``observations (B, T, m)`` hold NaN (values not observed, :mod:`torchflow.missing`):
         one host read per call, before the first step. Raises when a step is partly observed and
         this filter weighs particles with a model whose measurement density cannot leave out single
-        coordinates (:func:`torchflow.missing.partial_observations`)."""
+        coordinates (:func:`torchflow.models.base.partial_observations`)."""
         nan = torch.isnan(observations) if observations.is_floating_point() else None
         if nan is None or not bool(nan.any()):
             return False
-        if self.uses_particles and not _missing.partial_observations(self.model):
+        if self.uses_particles and not partial_observations(self.model):
             partial = nan.any(-1) & ~nan.all(-1)  # (B, T)
             if bool(partial.any()):
                 b, t = (int(i) for i in torch.nonzero(partial)[0])

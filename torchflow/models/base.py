@@ -25,7 +25,7 @@ from typing import Optional, Tuple
 import torch
 from torch import nn
 
-from .. import linalg
+from .. import linalg, missing
 from .._progress import report
 from .._checks import check_tensor
 from ..linearize import jacobian
@@ -188,7 +188,7 @@ class StateSpaceModel(nn.Module):
             missing one at a time overrides it (the Gaussian form does, exactly; a model with
             conditionally independent coordinates sums their densities over the observed ones);
             filters refuse a partly observed step for a model that does not
-            (:func:`torchflow.missing.partial_observations`).
+            (:func:`torchflow.models.base.partial_observations`).
         """
         ll = self.measurement_log_prob(z, x)
         return torch.where(observed.any(-1), ll, torch.zeros_like(ll))
@@ -449,8 +449,6 @@ class GaussianStateSpaceModel(StateSpaceModel):
         Other measurement laws take whole-step gaps only, unless the model overrides this."""
         if not self.structure.gaussian_measurement:
             return super().measurement_log_prob_observed(z, x, observed)
-        from .. import missing
-
         h = self.measure(x)
         shape = torch.broadcast_shapes(h.shape, z.shape, observed.shape)
         full = observed.expand(shape)
@@ -484,3 +482,16 @@ class GaussianStateSpaceModel(StateSpaceModel):
 
     def _simulation_transition(self, x: torch.Tensor, generator) -> torch.Tensor:
         return self.sample_true_transition(x, generator)
+
+
+def partial_observations(model) -> bool:
+    """Whether ``model`` weighs a measurement with some of its coordinates missing, as its class
+    declares by what it gives: a ``measurement_log_prob_observed`` of its own, or the Gaussian
+    form's with ``structure.gaussian_measurement`` (a one-coordinate measurement: always, a gap is
+    then a whole step). Particle filters refuse a partly observed step otherwise."""
+    own = type(model).measurement_log_prob_observed
+    if own is StateSpaceModel.measurement_log_prob_observed:
+        return model.obs_dim == 1
+    if own is GaussianStateSpaceModel.measurement_log_prob_observed:
+        return model.obs_dim == 1 or model.structure.gaussian_measurement
+    return True
