@@ -21,6 +21,7 @@ from typing import Dict, List, Optional
 import torch
 
 import torchflow.runner as tfx
+from torchflow.runner.plan import simulate
 from torchflow.filters import KalmanFilter
 from torchflow.models import AcousticTracking, SensorNetwork
 from torchflow.models.base import Trajectory
@@ -233,7 +234,7 @@ def run_table(table: str, a) -> List[dict]:
     )
     model64 = make_model(table, a.lg_d)
     gen = torch.Generator().manual_seed(int(a.seed))
-    traj, mean, cov = tfx._simulate(model64, ta.trials, ta.steps, 1, gen)
+    traj, mean, cov = simulate(model64, ta.trials, ta.steps, 1, gen)
     ref_logz = None
     if table == "lg":  # exact log Z: the float64 Kalman filter on the shared data
         with torch.no_grad():
