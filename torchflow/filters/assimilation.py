@@ -96,6 +96,20 @@ def _grad_log_likelihood(model, z: torch.Tensor, X: torch.Tensor) -> torch.Tenso
     return g
 
 
+def _register_neighbours(f, distances: Optional[torch.Tensor]) -> None:
+    """``f.local_index``, ``f.local_taper`` ``(d, K)``: the observations within ``f.radius`` of each
+    coordinate and their Gaspari-Cohn tapers (:func:`~torchflow.filters.ensemble.local_observations`),
+    on the model's dtype and device; both ``None`` when the radius is infinite (every observation
+    everywhere)."""
+    taper = index = None
+    if not math.isinf(f.radius):
+        model = f.model
+        taper, index = local_observations(model, f.radius, distances)
+        taper, index = taper.to(model.dtype).to(model.device), index.to(model.device)
+    f.register_buffer("local_index", index, persistent=False)
+    f.register_buffer("local_taper", taper, persistent=False)
+
+
 class KernelParticleFlowFilter(_EnsembleFilter):
     """Particle flow filter with a matrix-valued kernel (module docstring; Pulido & van Leeuwen 2019,
     Hu & van Leeuwen 2021). Needs no transition density: it runs on deterministic dynamics.
@@ -286,12 +300,7 @@ class LocalParticleFilter(_EnsembleFilter):
         self.jitter = check_number(
             "jitter", jitter, lambda v: v >= 0, "a number >= 0 (jitter relative to the forecast spread)"
         )
-        taper = index = None  # radius = inf: every observation weighs every coordinate
-        if not math.isinf(self.radius):
-            taper, index = local_observations(model, self.radius, distances)
-            taper, index = taper.to(model.dtype).to(model.device), index.to(model.device)
-        self.register_buffer("local_index", index, persistent=False)
-        self.register_buffer("local_taper", taper, persistent=False)
+        _register_neighbours(self, distances)  # radius = inf: every observation weighs every coordinate
 
     def bytes_per_trial(self, n_particles=None):
         N, d, m = self._resolve_n(n_particles), self.model.state_dim, self.model.obs_dim
@@ -480,7 +489,6 @@ class LagOneFlowFilter(_EnsembleFilter):
         #: ``"prior"``: Daum & Huang's exact flow with the previous analysis covariance throughout (global);
         #: ``"current"``: the flowed members' covariance at every pseudo-time (localisable, ``radius``)
         self.covariance = covariance
-        taper = index = None
         if local:
             if model.structure.measurement_noise not in _DIAGONAL_NOISE:
                 raise ArgumentTypeError(
@@ -488,10 +496,7 @@ class LagOneFlowFilter(_EnsembleFilter):
                     f"diagonal measurement noise (declared scalar, diagonal or state_dependent_diagonal); "
                     f"{type(model).__name__} declares {model.structure.measurement_noise!r}. Use radius=inf"
                 )
-            taper, index = local_observations(model, self.radius, distances)
-            taper, index = taper.to(model.dtype).to(model.device), index.to(model.device)
-        self.register_buffer("local_index", index, persistent=False)
-        self.register_buffer("local_taper", taper, persistent=False)
+        _register_neighbours(self, distances)
         #: ``"members"``: regression over the flowed members; ``"bundle"``: over the flowed mean plus
         #: the members' anomalies scaled by :attr:`bundle` (a finite-difference linearisation at the mean)
         self.linearisation = linearisation
