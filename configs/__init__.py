@@ -1,2 +1,2 @@
 # read as pkg://torchflow.configs (an installed copy): register the signature nodes its configs extend
-__import__("torchflow.registry").registry.register_configs()
+__import__("torchflow.core.registry").core.registry.register_configs()

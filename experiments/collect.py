@@ -18,9 +18,9 @@ import csv
 import sys
 from pathlib import Path
 
-from torchflow.runner.figures import pyplot
-from torchflow.runner.sweep import describe_job, job_dirs, job_override_dict, job_status, varying_overrides
-from torchflow.runner.writers import write_csv
+from torchflow.app.runner.figures import pyplot
+from torchflow.app.runner.sweep import describe_job, job_dirs, job_override_dict, job_status, varying_overrides
+from torchflow.app.runner.writers import write_csv
 
 DEFAULT_COLUMNS = [
     "mse",

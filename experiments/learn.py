@@ -1,7 +1,7 @@
-"""``python experiments/learn.py [overrides]``: the ``torchflow-learn`` command (:mod:`torchflow.learn`,
+"""``python experiments/learn.py [overrides]``: the ``torchflow-learn`` command (:mod:`torchflow.app.learn`,
 whose docstring has examples) from a source checkout."""
 
-from torchflow.learn import main
+from torchflow.app.learn import main
 
 if __name__ == "__main__":
     main()

@@ -11,9 +11,10 @@ Also prints the mean and sd of ``log Zhat - log Z`` (the Kalman filter gives log
 """
 
 import torch
+
+from torchflow.core.random import TrialStreams
+from torchflow.filters import BootstrapParticleFilter, KalmanFilter, ParticleFlowParticleFilter
 from torchflow.models import SensorNetwork
-from torchflow.filters import KalmanFilter, ParticleFlowParticleFilter, BootstrapParticleFilter
-from torchflow.random import TrialStreams
 
 model = SensorNetwork(d=64, sigma_z=0.5)
 g = torch.Generator().manual_seed(0)

@@ -10,7 +10,7 @@ and is learned by maximum likelihood through
 * (b) the bootstrap PF, N = 1000,
 
 both with ``resampling_gradient="stop_gradient"``, through
-:class:`~torchflow.lightning.FilterLightningModule` (Adam, lr 0.02, betas (0.5, 0.9); one optimiser
+:class:`~torchflow.app.lightning.FilterLightningModule` (Adam, lr 0.02, betas (0.5, 0.9); one optimiser
 step per epoch on all training tracks, fresh random numbers each step), each for the same CPU-time
 budget (``time.process_time()``, one thread). Snapshots of the MLP are taken at fixed fractions of
 the budget and evaluated afterwards on held-out tracks: log-likelihood per step (PF-PF(LEDH),
@@ -42,8 +42,8 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
 import torch
 
+from torchflow.core.metrics import omat
 from torchflow.filters import BootstrapParticleFilter, ParticleFlowParticleFilter
-from torchflow.metrics import omat
 from torchflow.models import InverseDistance, NeuralAcoustic, ResponseMLP
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -84,7 +84,7 @@ def train(kind: str, n: int, model, data, args):
     import pytorch_lightning as pl
     from torch.utils.data import DataLoader
 
-    from torchflow.lightning import FilterLightningModule, TrajectoryDataset
+    from torchflow.app.lightning import FilterLightningModule, TrajectoryDataset
 
     traj, mean, cov = data
     marks = [args.budget * f for f in (0.0, 0.125, 0.25, 0.5, 0.75, 1.0)]

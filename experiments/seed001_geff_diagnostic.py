@@ -32,9 +32,9 @@ from unittest import mock
 
 import torch
 
+from torchflow.core import linalg
 from torchflow.filters import ParticleFlowGaussianSumParticleFilter, gaussian_sum
 from torchflow.filters.gaussian_sum import mixture_update
-from torchflow import linalg
 from torchflow.models import SkewedTPoisson
 
 

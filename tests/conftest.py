@@ -11,8 +11,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import pytest
 import torch
 
+from torchflow.core.registry import register_configs
 from torchflow.models import AcousticTracking, LinearGaussian, SensorNetwork
-from torchflow.registry import register_configs
 
 register_configs()  # the signature nodes configs/ extend (tests compose the configs without the command line)
 

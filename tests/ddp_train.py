@@ -11,8 +11,8 @@ import pytorch_lightning as pl
 import torch
 from torch.utils.data import DataLoader
 
+from torchflow.app.lightning import FilterLightningModule, TrajectoryDataset
 from torchflow.filters import BootstrapParticleFilter
-from torchflow.lightning import FilterLightningModule, TrajectoryDataset
 from torchflow.models import LinearGaussian
 
 

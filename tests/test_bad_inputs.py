@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchflow.runner import run_experiment
+from torchflow.app.runner import run_experiment
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter, ParticleFlowFilter, ParticleFlowParticleFilter
 from torchflow.models import AcousticTracking, SensorNetwork
 
@@ -88,10 +88,10 @@ def test_zero_time_steps(acoustic_data):
     [
         (
             3,
-            r"generator: expected a torch.Generator or torchflow.random.TrialStreams, got int \(for a seed, pass "
+            r"generator: expected a torch.Generator or torchflow.core.random.TrialStreams, got int \(for a seed, pass "
             r"torch.Generator\(\).manual_seed\(3\)\)",
         ),
-        (None, r"generator: expected a torch.Generator or torchflow.random.TrialStreams, got NoneType"),
+        (None, r"generator: expected a torch.Generator or torchflow.core.random.TrialStreams, got NoneType"),
     ],
 )
 def test_filter_generator(acoustic_data, make, gen, match):
@@ -240,7 +240,7 @@ def _lg(dtype=torch.float64, d=2):
 @pytest.mark.parametrize("n", [2**62, 10**30])
 @pytest.mark.parametrize("streams", [False, True])
 def test_a_particle_count_past_what_torch_can_count_is_an_out_of_memory_error_naming_the_filter(n, streams):
-    from torchflow.random import TrialStreams
+    from torchflow.core.random import TrialStreams
 
     f = BootstrapParticleFilter(_lg(), n_particles=8)
     gen = TrialStreams(0, 2) if streams else torch.Generator().manual_seed(0)
@@ -351,7 +351,7 @@ _I2 = [[1.0, 0.0], [0.0, 1.0]]
 def test_model_arguments_of_the_wrong_kind_are_named(make, match):
     """Strings, None, complex numbers, NaN, overflowing scales and non-collections are refused naming
     the argument (they raised a raw TypeError/ValueError/OverflowError, or were silently cast)."""
-    from torchflow.errors import TorchflowError
+    from torchflow.core.errors import TorchflowError
 
     with pytest.raises(TorchflowError, match=match):
         make()
@@ -425,7 +425,7 @@ _TWO = [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]
     ],
 )
 def test_tdoa_receivers_pairs_and_region_are_named(kw, match):
-    from torchflow.errors import TorchflowError
+    from torchflow.core.errors import TorchflowError
     from torchflow.models import TDOA3D
 
     with pytest.raises(TorchflowError, match=match):

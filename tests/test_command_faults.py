@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from torchflow.runner import ConfigError, shell
-from torchflow.runner.config import check_selections, invoked_as, unknown_key_message
+from torchflow.app.runner import ConfigError, shell
+from torchflow.app.runner.config import check_selections, invoked_as, unknown_key_message
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = ROOT / "experiments" / "run.py"
@@ -117,7 +117,7 @@ def test_the_results_line_names_the_folder_from_where_the_command_started_also_w
 
 
 def test_a_filter_selected_twice_is_refused_in_one_line_with_exit_2(capsys):
-    from torchflow.cli import main
+    from torchflow.app.cli import main
 
     with pytest.raises(SystemExit) as stop:
         main(["model=linear_gaussian", "filter=[bpf,kf,bpf]", "trials=4"])
@@ -155,8 +155,8 @@ def test_inits_per_track_that_leaves_unequal_groups_of_trials_warns(trials, init
 
     import torch
 
+    from torchflow.app.runner.execute import plan_run
     from torchflow.models import SensorNetwork
-    from torchflow.runner.execute import plan_run
 
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
@@ -185,7 +185,7 @@ def full(cfg, filename, output_dir):
 
 
 hydra.core.utils._save_config = full  # where Hydra writes .hydra/config.yaml
-from torchflow.cli import main
+from torchflow.app.cli import main
 main()
 """
 
@@ -205,14 +205,14 @@ def test_resume_with_nothing_saved_says_so_and_computes_every_chunk(tmp_path, ca
     import torch
     from hydra import compose, initialize_config_dir
 
-    from torchflow.cli import chunk_store
+    from torchflow.app.cli import chunk_store
 
     with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
         cfg = compose(
             "config", ["model=linear_gaussian", "filter=[kf,bpf]", "resume=true", f"checkpoint_dir={tmp_path / 'ck'}"]
         )
     labels = {"kf": "kf", "bpf": "bpf"}
-    with caplog.at_level(logging.WARNING, logger="torchflow.cli"):
+    with caplog.at_level(logging.WARNING, logger="torchflow.app.cli"):
         store = chunk_store(cfg, labels)
     assert [r.getMessage() for r in caplog.records] == [
         f"resume=true: nothing is saved under {tmp_path / 'ck'} with these settings (a new folder, or settings other "
@@ -220,14 +220,14 @@ def test_resume_with_nothing_saved_says_so_and_computes_every_chunk(tmp_path, ca
     ]
     store.save("kf", 0, 2, {"estimates": torch.zeros(2, 3, 4)})
     caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="torchflow.cli"):
+    with caplog.at_level(logging.WARNING, logger="torchflow.app.cli"):
         chunk_store(cfg, labels)
     assert [r.getMessage() for r in caplog.records] == [
         f"resume=true: nothing is saved under {tmp_path / 'ck'} for bpf with these settings: their chunks are computed"
     ]
     caplog.clear()
     cfg.resume = False
-    with caplog.at_level(logging.WARNING, logger="torchflow.cli"):
+    with caplog.at_level(logging.WARNING, logger="torchflow.app.cli"):
         chunk_store(cfg, labels)
     assert caplog.records == []  # not resuming: nothing to say
 
@@ -353,7 +353,7 @@ def test_overwrite_true_on_a_sweep_folder_reports_and_collects_only_the_new_jobs
 
 def test_collect_names_a_damaged_results_json_and_merges_its_intact_csvs(tmp_path, capsys):
     from experiments.collect import collect, main
-    from torchflow.runner.sweep import report_sweep
+    from torchflow.app.runner.sweep import report_sweep
 
     sweep = tmp_path / "sw"
     damaged = _job(sweep, "0", seed=0, text=json.dumps({"summary": [{"filter": "kf", "error": None}]})[:20])

@@ -1,5 +1,5 @@
 """The ``torchflow`` command's smoothing and PMMH tasks (``task=smooth``, ``task=pmmh``:
-:mod:`torchflow.tasks`): end to end on tiny configs through ``python -m torchflow`` (files, columns,
+:mod:`torchflow.app.tasks`): end to end on tiny configs through ``python -m torchflow`` (files, columns,
 numbers that must hold), and their refusals (one line naming the key, exit status 2)."""
 
 import csv
@@ -14,7 +14,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from torchflow.runner.plan import ConfigError
+from torchflow.app.runner.plan import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOOTH = [
@@ -145,7 +145,7 @@ def test_pmmh_task_writes_draws_summary_and_figures(tmp_path):
 
 
 def test_pmmh_convergence_warnings_name_the_parameter_and_the_threshold():
-    from torchflow.tasks import ESS_MIN, RHAT_MAX, convergence_warnings
+    from torchflow.app.tasks import ESS_MIN, RHAT_MAX, convergence_warnings
 
     def summary(rhat, ess):
         return {"parameters": {"rho": {"rhat": rhat, "ess": ess}}}
@@ -197,8 +197,8 @@ def _cfg(**pmmh):
 
 
 def test_priors_from_config_shapes_models_and_constraints():
+    from torchflow.app.tasks import prior_from_config, priors_from_config
     from torchflow.models import TDOA3D, StochasticVolatility
-    from torchflow.tasks import prior_from_config, priors_from_config
 
     p = prior_from_config("beta", {"dist": "Normal", "loc": [0.0, 1.0], "scale": 2.0})
     assert p.batch_shape == (2,) and p.loc.dtype == torch.float64
@@ -253,7 +253,7 @@ def test_posterior_figures_keep_the_truth_inside_the_frame():
     """A truth outside every draw (rho's 0.97 against draws up to 0.5) is drawn inside the axes,
     not on their frame: the histogram's x range and the trace's y range are widened to hold it."""
     pytest.importorskip("matplotlib")
-    from torchflow.runner import figures
+    from torchflow.app.runner import figures
 
     plt = figures.pyplot()
     draws = {"bpf": {"rho": torch.linspace(-0.5, 0.5, 40, dtype=torch.float64).reshape(2, 20)}}

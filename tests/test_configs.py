@@ -1,5 +1,5 @@
 """Every config composes and builds, with no run, and the component configs stay lean: they extend
-the signature nodes of :mod:`torchflow.registry` and hold only what differs from the defaults.
+the signature nodes of :mod:`torchflow.core.registry` and hold only what differs from the defaults.
 A paper-table config that names a missing filter, a wrong key or a bad value fails here, in seconds."""
 
 import inspect
@@ -11,7 +11,7 @@ from hydra.errors import ConfigCompositionException, InstantiationException
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from torchflow import registry
+from torchflow.core import registry
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 EXPERIMENTS = sorted(p.stem for p in (CONFIGS / "experiment").glob("*.yaml"))

@@ -4,7 +4,7 @@ log-variances, positive scalars through their logarithm; the value users read is
 import pytest
 import torch
 
-from torchflow import constraints
+from torchflow.core import constraints
 from torchflow.filters import KalmanFilter
 from torchflow.models import AcousticTracking, LinearGaussian
 

@@ -1,4 +1,4 @@
-"""CUDA graph capture of the deterministic flows' loop (torchflow.cudagraphs, tuning.cuda_graphs).
+"""CUDA graph capture of the deterministic flows' loop (torchflow.core.cudagraphs, tuning.cuda_graphs).
 
 On the CPU the capture is emulated (the "graph" re-runs the function on the static buffers), which
 checks the plumbing: the function reads only its static inputs, outputs are cloned, keys capture
@@ -11,14 +11,14 @@ import warnings
 
 import pytest
 import torch
+from conftest import cuda
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from conftest import cuda
-from torchflow import cudagraphs, tuning
+from torchflow.core import cudagraphs, tuning
 from torchflow.filters import ClusteredParticleFlowParticleFilter, ParticleFlowParticleFilter
-from torchflow.flows.kernels import select
+from torchflow.flows import select
+from torchflow.flows.schedules import ExponentialSchedule
 from torchflow.models import AcousticTracking
-from torchflow.schedules import ExponentialSchedule
 
 
 class _CaptureRules(TorchDispatchMode):

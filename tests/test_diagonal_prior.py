@@ -1,4 +1,4 @@
-"""A diagonal prior covariance (:class:`~torchflow.covariances.DiagonalCovariance`): what it offers
+"""A diagonal prior covariance (:class:`~torchflow.core.covariances.DiagonalCovariance`): what it offers
 the code that passes a prior on, which filters take it as it is and which are given its matrix, the
 same draws either way, its checks, and Lorenz-96 at a size where no ``d x d`` matrix could exist."""
 
@@ -8,14 +8,13 @@ import pytest
 import torch
 
 import torchflow.filters as F
-from torchflow.covariances import DiagonalCovariance, dense_prior, sample_prior
-from torchflow.errors import ArgumentError
-from torchflow.runner import run_experiment
+from torchflow.app.runner import ConfigError, run_experiment
+from torchflow.app.runner.plan import filter_chunk
+from torchflow.core.covariances import DiagonalCovariance, dense_prior, sample_prior
+from torchflow.core.errors import ArgumentError
+from torchflow.core.random import TrialStreams
 from torchflow.models import Lorenz96
 from torchflow.models.base import GaussianStateSpaceModel
-from torchflow.random import TrialStreams
-from torchflow.runner import ConfigError
-from torchflow.runner.plan import filter_chunk
 
 F64 = torch.float64
 
@@ -261,7 +260,7 @@ def test_the_model_check_forms_no_large_matrix_and_reads_a_declared_scale():
 
 
 def test_learning_batches_a_diagonal_prior_as_variances():
-    from torchflow.lightning import TrajectoryDataset
+    from torchflow.app.lightning import TrajectoryDataset
 
     model = Lorenz96(d=8)
     traj = model.simulate(3, 4, torch.Generator().manual_seed(0))
@@ -285,7 +284,7 @@ def test_lorenz96_transition_density_runs_the_dynamics_once_per_state():
 
 @pytest.mark.parametrize("threads", [1, 2, 3])
 def test_the_threaded_eigh_gives_the_numbers_of_one_call(threads):
-    from torchflow import linalg
+    from torchflow.core import linalg
 
     g = torch.Generator().manual_seed(0)
     A = torch.randn(3, 700, 6, 9, dtype=F64, generator=g)
@@ -311,7 +310,7 @@ def test_the_lightning_module_rebuilds_a_batched_diagonal_prior():
     (a Kalman-type filter is given the matrix)."""
     from torch.utils.data import DataLoader
 
-    from torchflow.lightning import FilterLightningModule, TrajectoryDataset, backward_bytes_per_step
+    from torchflow.app.lightning import FilterLightningModule, TrajectoryDataset, backward_bytes_per_step
 
     model = Lorenz96(d=6, model_noise=0.3)
     traj = model.simulate(4, 5, torch.Generator().manual_seed(0))

@@ -1,10 +1,10 @@
 """The Monte Carlo runner and the Hydra command line."""
 
 import csv
+import json
+import math
 import os
 import re
-import math
-import json
 import subprocess
 import sys
 import warnings
@@ -13,11 +13,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchflow.runner import SUMMARY_COLUMNS, choose_chunk_size, format_table, run_experiment
+from torchflow.app.cli import row_label
+from torchflow.app.runner import SUMMARY_COLUMNS, choose_chunk_size, figures, format_table, run_experiment
 from torchflow.filters import BootstrapParticleFilter, ExtendedKalmanFilter, Filter, KalmanFilter, UnscentedKalmanFilter
 from torchflow.models import AcousticTracking, SensorNetwork
-from torchflow.runner import figures
-from torchflow.cli import row_label
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -135,7 +134,7 @@ def test_warm_up_covers_every_chunk_shape_on_a_gpu(monkeypatch, caplog):
     import logging
     import types
 
-    from torchflow.runner import execute
+    from torchflow.app.runner import execute
 
     calls = []
     monkeypatch.setattr(
@@ -145,7 +144,7 @@ def test_warm_up_covers_every_chunk_shape_on_a_gpu(monkeypatch, caplog):
     for device, want in (("cuda", [(0, 20, 2), (0, 10, 2)]), ("cpu", [(0, 1, 2)])):
         calls.clear()
         plan = types.SimpleNamespace(settings=types.SimpleNamespace(device=torch.device(device)))
-        with caplog.at_level(logging.INFO, logger="torchflow.runner"):
+        with caplog.at_level(logging.INFO, logger="torchflow.app.runner"):
             seconds = execute.warm_up(BootstrapParticleFilter(SensorNetwork(d=4)), "ledh", plan, chunks)
         assert calls == want and seconds == 0.5 * len(want)
         assert "ledh: warming up on " + "/".join(str(e - s) for s, e, _ in want) in caplog.text
@@ -252,8 +251,8 @@ def test_job_threads(monkeypatch):
     sweep, one job); a bad value is one line."""
     import os
 
-    from torchflow.cli import job_threads
-    from torchflow.runner import ConfigError
+    from torchflow.app.cli import job_threads
+    from torchflow.app.runner import ConfigError
 
     assert job_threads(3) == 3
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
@@ -341,7 +340,7 @@ def test_per_step_plot_keeps_one_colour_per_filter_and_scales_ess_by_n():
 
 
 def test_row_label_names_the_flow_that_ran():
-    from torchflow.filters import ParticleFlowParticleFilter, ParticleFlowFilter
+    from torchflow.filters import ParticleFlowFilter, ParticleFlowParticleFilter
 
     model = SensorNetwork(d=4)
     assert row_label("pfpf_ledh", ParticleFlowParticleFilter(model, flow="edh")) == "pfpf_ledh[flow=edh]"
@@ -619,7 +618,6 @@ def test_seed001_geff_diagnostic_runs_and_pooled_fit_is_shared(capsys):
     """experiments/seed001_geff_diagnostic.py: the spy sees the filter's log-weights (so its numbers
     are the filter's), and the pooled control gives every component the same predictive fit."""
     from experiments.seed001_geff_diagnostic import PooledFit, main, run
-
     from torchflow.models import SkewedTPoisson
 
     own = run(d=4, G=3, n_star=20, trials=2, steps=3, seed=1)
@@ -642,9 +640,8 @@ def test_seed002_proposal_quality_measures_what_it_says(capsys):
     EDH overshoots on the coarse (2, 1e-4) grid from the 200 m birth components while the step at
     lambda_l never amplifies, and the command prints both stages."""
     from experiments.seed002_proposal_quality import amplification, evaluate, main, make_flow, scenes
-
+    from torchflow.flows.schedules import GeometricSchedule
     from torchflow.models import TDOA3D
-    from torchflow.schedules import GeometricSchedule
 
     model = TDOA3D()
     gen = torch.Generator().manual_seed(3)
@@ -770,8 +767,8 @@ def test_cli_configuration_errors_are_one_line_and_bugs_keep_their_traceback(tmp
 def test_check_config_refuses_values_that_mean_nothing():
     from hydra import compose, initialize_config_dir
 
-    from torchflow.runner.config import check_config
-    from torchflow.runner import ConfigError
+    from torchflow.app.runner import ConfigError
+    from torchflow.app.runner.config import check_config
 
     cases = {
         "plots=no": "plots: expected true or false, got 'no'",
@@ -811,9 +808,9 @@ def test_cli_unwritable_output_folder_and_full_disk_are_one_line(tmp_path):
     assert "error: hydra.run.dir: cannot write into" in ro.stderr and "NotADirectoryError" in ro.stderr
     shim = tmp_path / "full_disk.py"
     shim.write_text(
-        "import errno\nimport torchflow.runner.writers as w\n\n\ndef full(*a, **k):\n"
+        "import errno\nimport torchflow.app.runner.writers as w\n\n\ndef full(*a, **k):\n"
         "    raise OSError(errno.ENOSPC, 'No space left on device')\n\n\nw.write_csv = full\n"
-        "from torchflow.cli import main\nmain()\n"
+        "from torchflow.app.cli import main\nmain()\n"
     )
     out = _tf(tmp_path, *_LG, "filter=[kf]", "checkpoint_dir=null", "plots=false", "hydra.run.dir=full", script=shim)
     assert out.returncode == 1 and "| kf |" in out.stdout and "Traceback" not in out.stderr
@@ -822,7 +819,7 @@ def test_cli_unwritable_output_folder_and_full_disk_are_one_line(tmp_path):
 
 
 def test_resume_command_of_a_run_a_sweep_and_torchrun():
-    from torchflow.runner.config import resume_command
+    from torchflow.app.runner.config import resume_command
 
     assert (
         resume_command("torchflow", ["-m", "seed=0,1", "filter=[kf]", "resume=false"], {})
@@ -861,7 +858,7 @@ def _store_run(model, store, **kw):
 def test_the_warm_up_is_made_only_before_a_chunk_is_computed(tmp_path):
     """Resuming a run whose chunks are all saved computes nothing, not even the warm-up; with one
     chunk lost, the warm-up (one trial) comes before it."""
-    from torchflow.runner import ChunkStore
+    from torchflow.app.runner import ChunkStore
 
     model = SensorNetwork(d=4)
     _store_run(model, ChunkStore(tmp_path, {"bpf": "k"}), chunk_size=3)
@@ -873,7 +870,7 @@ def test_the_warm_up_is_made_only_before_a_chunk_is_computed(tmp_path):
 
 
 def test_a_damaged_chunk_file_is_recomputed_with_a_warning(tmp_path):
-    from torchflow.runner import ChunkStore
+    from torchflow.app.runner import ChunkStore
 
     model = SensorNetwork(d=4)
     full, _ = _store_run(model, ChunkStore(tmp_path, {"bpf": "k"}), chunk_size=3)
@@ -893,7 +890,7 @@ def test_a_damaged_chunk_file_is_recomputed_with_a_warning(tmp_path):
 
 
 def test_resume_with_another_chunk_size_reuses_the_saved_trials(tmp_path):
-    from torchflow.runner import ChunkStore
+    from torchflow.app.runner import ChunkStore
 
     model = SensorNetwork(d=4)
     full, _ = _store_run(model, ChunkStore(tmp_path, {"bpf": "k"}), chunk_size=2)
@@ -910,7 +907,7 @@ def test_resume_with_another_chunk_size_reuses_the_saved_trials(tmp_path):
 
 
 def test_a_store_that_cannot_write_warns_once_and_the_results_stay():
-    from torchflow.runner import ChunkStore
+    from torchflow.app.runner import ChunkStore
 
     model = SensorNetwork(d=4)
     store = ChunkStore(Path(__file__), {"bpf": "k"})  # a file: no folder can be made under it
@@ -923,9 +920,9 @@ def test_a_store_that_cannot_write_warns_once_and_the_results_stay():
 def test_explicit_chunk_over_the_memory_budget_warns():
     """An explicit chunk_size is used as given, but one whose estimate exceeds memory_budget_gb says so
     (a GPU run with chunk_size=100 and 1e6 particles asked for 80 GB in one tensor)."""
+    from torchflow.app.runner.plan import filter_chunk
     from torchflow.filters import BootstrapParticleFilter
     from torchflow.models import AcousticTracking
-    from torchflow.runner.plan import filter_chunk
 
     f = BootstrapParticleFilter(AcousticTracking(), n_particles=1_000_000)
     with pytest.warns(UserWarning, match=r"chunk_size=100: .* GiB per chunk of 100 trials, over memory_budget_gb=100"):

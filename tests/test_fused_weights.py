@@ -8,11 +8,12 @@ import math
 import pytest
 import torch
 
-from torchflow import resampling, tuning
+from torchflow.core import paths, resampling, tuning
+from torchflow.core.random import TrialStreams
 from torchflow.filters import BootstrapParticleFilter
-from torchflow.flows.kernels import paths, select, steps
+from torchflow.flows import select
+from torchflow.flows.kernels import steps
 from torchflow.models import SensorNetwork, StochasticVolatility
-from torchflow.random import TrialStreams
 
 pytestmark = pytest.mark.skipif(not steps.weights_available(), reason="needs Numba (the kernels extra)")
 
@@ -276,7 +277,8 @@ def test_buffered_traces_name_and_warn_the_same_steps(monkeypatch):
     """The non-finite contract with the trace buffered: a step without the measurement is warned
     (recover) or raised (raise) naming the same step and trial as the kept steps do."""
     from test_nonfinite_contract import lg, observations, run
-    from torchflow.errors import NonFiniteError
+
+    from torchflow.core.errors import NonFiniteError
     from torchflow.filters import base
 
     monkeypatch.setattr(base, "TRACE_BUFFER_MIN", 0)

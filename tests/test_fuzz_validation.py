@@ -1,5 +1,5 @@
 """Property-based fuzz of input validation: every call either returns finite results of the inputs'
-shapes or raises torchflow's own error naming what was wrong (:mod:`torchflow.errors`), never a raw
+shapes or raises torchflow's own error naming what was wrong (:mod:`torchflow.core.errors`), never a raw
 torch error and never a silent broadcast.
 
 * every filter's ``forward`` on a small linear-Gaussian model, with bad observations, priors,
@@ -24,22 +24,23 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from hypothesis import HealthCheck, event, given, settings, strategies as st
+from hypothesis import HealthCheck, event, given, settings
+from hypothesis import strategies as st
 
 import torchflow.filters as F
-from torchflow.errors import NonFiniteError, TorchflowError
-from torchflow.runner import run_experiment
+from torchflow.app.runner import run_experiment
+from torchflow.core.errors import NonFiniteError, TorchflowError
+from torchflow.core.random import TrialStreams
+from torchflow.flows.schedules import ExponentialSchedule
 from torchflow.models import (
+    TDOA3D,
     AcousticTracking,
     GaussianStateSpaceModel,
     LinearGaussian,
     SensorNetwork,
     SkewedTPoisson,
     StochasticVolatility,
-    TDOA3D,
 )
-from torchflow.random import TrialStreams
-from torchflow.schedules import ExponentialSchedule
 
 #: fresh random examples, this many per test (0: the fixed examples CI runs)
 DEEP = int(os.environ.get("TORCHFLOW_FUZZ_EXAMPLES", "0"))
@@ -846,7 +847,7 @@ def test_the_runner_names_each_bad_setting(plant, data, second):
     runner_case(data, [plant] + ([second] if second is not None and second[0] != plant[0] else []))
 
 
-# ---- found by the fuzz and left to the runner's owners (torchflow/runner/plan.py): strict, so that a fix
+# ---- found by the fuzz and left to the runner's owners (torchflow/app/runner/plan.py): strict, so that a fix
 # ---- shows here as an unexpected pass to turn into a plain test ---------------------------------------
 
 

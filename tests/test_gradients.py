@@ -22,7 +22,7 @@ import torch
 
 from experiments.benchmarks.bench_gradients import problem
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter, ParticleFlowParticleFilter
-from torchflow.schedules import ExponentialSchedule
+from torchflow.flows.schedules import ExponentialSchedule
 
 REPS, B, T = 20, 40, 20
 T_CRIT = {10: 3.88, 21: 4.21, 36: 4.45}  # t_19(1 - 0.005 / k), k non-zero entries (docstring)
@@ -105,7 +105,7 @@ def test_stop_gradient_forward_is_bit_identical(kind):
     kernels (``tuning.fused_flows``) run only where no gradient is recorded (the score estimator's
     proposal) and agree with the torch path to round-off, not bit for bit, so the torch path is
     pinned here."""
-    from torchflow import tuning
+    from torchflow.core import tuning
 
     model, obs, mean, cov = _setup()
     outs = []
@@ -159,7 +159,7 @@ def test_soft_alpha_is_checked(alpha):
 def test_sinkhorn_transport_marginals_and_mean():
     """Columns of the plan sum to one (each new particle a convex combination), rows to N W within
     the Sinkhorn tolerance, so the transported cloud keeps the weighted mean."""
-    from torchflow.resampling import sinkhorn_transport
+    from torchflow.core.resampling import sinkhorn_transport
 
     g = torch.Generator().manual_seed(0)
     x = torch.randn(3, 200, 2, dtype=torch.float64, generator=g)

@@ -1,4 +1,4 @@
-"""A particle filter's whole step replayed from a CUDA graph (torchflow.flows.kernels.graph_step).
+"""A particle filter's whole step replayed from a CUDA graph (torchflow.filters.graph_step).
 
 On the CPU the capture is emulated as in test_cudagraphs (the "graph" re-runs the function on its
 static buffers), with the Philox back end the GPU uses: that checks the plumbing (the draws split
@@ -9,16 +9,15 @@ import warnings
 
 import pytest
 import torch
-
 from conftest import cuda, random_lg
 from test_cudagraphs import _Emulated
-from torchflow import cudagraphs, tuning
-from torchflow.filters import BootstrapParticleFilter, ParticleFilter
-from torchflow.flows.kernels import graph_step
-from torchflow.flows.kernels import select
+
+from torchflow.core import cudagraphs, tuning
+from torchflow.core.random import TrialStreams
+from torchflow.filters import BootstrapParticleFilter, ParticleFilter, graph_step
+from torchflow.flows import select
 from torchflow.models import AcousticTracking, SensorNetwork
 from torchflow.proposals import BootstrapProposal
-from torchflow.random import TrialStreams
 
 
 @pytest.fixture
@@ -102,8 +101,8 @@ def test_a_pfpf_step_is_replayed_whole(emulated, flow, model_name):
     """PF-PF with a deterministic flow is captured and replayed whole (its flow loop inside the
     step's graph: not a graph of its own), with the eager step's numbers; the clustered points are
     not declared graph-safe and step eagerly."""
+    from torchflow.core import paths
     from torchflow.filters import ClusteredParticleFlowParticleFilter, ParticleFlowParticleFilter
-    from torchflow.flows.kernels import paths
 
     model = MODELS[model_name]()
     f = ParticleFlowParticleFilter(model, flow=flow, n_particles=24)

@@ -6,10 +6,10 @@ import pytest
 import torch
 from torch.distributions import Normal, Uniform
 
+from torchflow.core.linalg import standard_normal
 from torchflow.filters import BootstrapParticleFilter, ExtendedKalmanFilter
 from torchflow.inference import effective_sample_size, pmmh, rhat
 from torchflow.inference.params import per_trial_values
-from torchflow.linalg import standard_normal
 from torchflow.models import GaussianStateSpaceModel, Structure
 
 F64 = torch.float64
@@ -164,9 +164,10 @@ def test_conditional_smc_leaves_the_smoothing_law_invariant():
     path (after 30 sweeps) is within 4 standard errors of the RTS smoothed means at every step and
     coordinate (the standard error from the spread of the 16 chains' averages)."""
     from conftest import random_lg
+
+    from torchflow.core.random import TrialStreams
     from torchflow.filters import KalmanFilter
     from torchflow.inference import conditional_smc
-    from torchflow.random import TrialStreams
     from torchflow.smoothing import smooth
 
     model = random_lg(2, 2, seed=3)
@@ -252,8 +253,8 @@ def test_correlated_pmmh_matches_the_exact_posterior(rho, n_particles):
 def _log_ratios(filt, model, obs, R, a0, a1, rho, seed=1):
     """``(R,)`` log-likelihood ratios ``log p(z | a1, u') - log p(z | a0, u)`` with ``u'`` a Crank-
     Nicolson move of ``u`` (as :func:`pmmh` with ``correlation=rho`` proposes)."""
+    from torchflow.core.random import CorrelatedStreams
     from torchflow.inference.pmmh import sorted_resampling
-    from torchflow.random import CorrelatedStreams
 
     mean, cov = torch.zeros(R, 1, dtype=F64), torch.eye(1, dtype=F64).expand(R, 1, 1)
     o = obs.expand(R, -1, -1)
@@ -275,7 +276,7 @@ def test_correlation_shrinks_the_variance_of_the_log_likelihood_ratio():
     0.14, so 8 is 10 standard errors below). With rho = 0 the ratio has the law of standard PMMH's
     (independent TrialStreams runs): the variances agree within 4 standard errors of their log,
     and the means within 4 standard errors."""
-    from torchflow.random import TrialStreams
+    from torchflow.core.random import TrialStreams
 
     model, obs = _data()
     R = 200

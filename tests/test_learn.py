@@ -13,11 +13,11 @@ import pytest
 import torch
 
 from tests.conftest import ROOT
+from torchflow.app.lightning import FilterLightningModule, backward_bytes_per_step
+from torchflow.core.random import TrialStreams
 from torchflow.filters import BootstrapParticleFilter, ParticleFlowParticleFilter
-from torchflow.lightning import FilterLightningModule, backward_bytes_per_step
+from torchflow.flows.schedules import ExponentialSchedule
 from torchflow.models import AcousticTracking
-from torchflow.random import TrialStreams
-from torchflow.schedules import ExponentialSchedule
 
 
 def _acoustic(B=2, T=4):
@@ -82,7 +82,7 @@ def test_bootstrap_pf_gradient_moves_the_acoustic_amplitude_towards_the_truth():
     import pytorch_lightning as pl
     from torch.utils.data import DataLoader
 
-    from torchflow.lightning import TrajectoryDataset
+    from torchflow.app.lightning import TrajectoryDataset
 
     truth = AcousticTracking()
     g = torch.Generator().manual_seed(0)
@@ -203,8 +203,8 @@ def test_learning_simulates_through_the_runner_with_the_job_environment(tmp_path
     trials share a trajectory), on the job's dtype; threads and speed knobs reach the job."""
     from hydra import compose, initialize_config_dir
 
-    import torchflow.runner.plan as plan
-    from torchflow import learn
+    import torchflow.app.runner.plan as plan
+    from torchflow.app import learn
 
     calls, simulate = [], plan.simulate
     threads = 2 if torch.get_num_threads() == 1 else 1  # not this process's count, so that setting it shows
@@ -246,9 +246,9 @@ def test_learning_simulates_through_the_runner_with_the_job_environment(tmp_path
 def test_learn_config_accepts_free_form_start_values_and_refuses_unknown_keys():
     from hydra import compose, initialize_config_dir
 
-    from torchflow.runner import ConfigError
-    from torchflow.runner.config import check_config
-    from torchflow.learn import LEARN
+    from torchflow.app.learn import LEARN
+    from torchflow.app.runner import ConfigError
+    from torchflow.app.runner.config import check_config
 
     with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
         check_config(compose("learn", ["start={psi: 4.0, sigma_w: 0.2}"]), {}, "learn", LEARN.free_form)

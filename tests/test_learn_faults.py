@@ -12,7 +12,7 @@ import sys
 import pytest
 
 from tests.conftest import ROOT
-from torchflow.learn import DIVERGENCE_GROWTH, _divergence
+from torchflow.app.learn import DIVERGENCE_GROWTH, _divergence
 
 TINY = ["filter=[bpf]", "trials=2", "steps=3", "n_particles=50", "epochs=2", "reference=null", "plots=false"]
 
@@ -170,12 +170,12 @@ def test_a_non_finite_log_evidence_during_learning_ends_the_fit_naming_the_filte
     the other filters go on; the finished epochs are written; exit status 1."""
     shim = tmp_path / "faulty.py"
     shim.write_text(
-        "from torchflow.errors import NonFiniteError\nfrom torchflow.filters import BootstrapParticleFilter\n"
+        "from torchflow.core.errors import NonFiniteError\nfrom torchflow.filters import BootstrapParticleFilter\n"
         "calls = [0]\nforward = BootstrapParticleFilter.forward\n\n\n"
         "def faulty(self, *a, **k):\n    calls[0] += 1\n    if calls[0] == 2:\n"
         "        raise NonFiniteError(self.name, 3, [1], 'log-evidence increment')\n    return forward(self, *a, "
         "**k)\n\n\n"
-        "BootstrapParticleFilter.forward = faulty\nfrom torchflow.learn import main\nmain()\n"
+        "BootstrapParticleFilter.forward = faulty\nfrom torchflow.app.learn import main\nmain()\n"
     )
     r = _learn(tmp_path, *TINY, "epochs=3", "reference=ekf", script=shim)
     assert r.returncode == 1, r.stderr[-2000:]

@@ -5,8 +5,8 @@ pl = pytest.importorskip("pytorch_lightning")
 
 from torch.utils.data import DataLoader
 
+from torchflow.app.lightning import FilterLightningModule, TrajectoryDataset
 from torchflow.filters import KalmanFilter, ParticleFlowParticleFilter
-from torchflow.lightning import FilterLightningModule, TrajectoryDataset
 from torchflow.models import LinearGaussian
 
 
@@ -59,7 +59,7 @@ def test_lightning_rejects_filter_without_parameters():
 
 
 def test_lightning_no_validation_warning_and_validated_variant(tmp_path, recwarn):
-    from torchflow.lightning import ValidatedFilterLightningModule
+    from torchflow.app.lightning import ValidatedFilterLightningModule
 
     traj, mean, cov = _data(B=16, T=5)
     eye = torch.eye(2, dtype=torch.float64)
@@ -113,7 +113,7 @@ def _eye_lg(**kw):
 
 
 def test_a_model_given_instead_of_a_filter_is_refused_naming_the_argument_with_a_hint():
-    from torchflow.errors import ArgumentTypeError
+    from torchflow.core.errors import ArgumentTypeError
 
     with pytest.raises(
         ArgumentTypeError,
@@ -140,14 +140,14 @@ def test_a_model_given_instead_of_a_filter_is_refused_naming_the_argument_with_a
     ],
 )
 def test_learning_rate_seed_and_the_evidence_opt_in_are_checked_at_construction(bad):
-    from torchflow.errors import ArgumentError
+    from torchflow.core.errors import ArgumentError
 
     with pytest.raises(ArgumentError, match=f"^{next(iter(bad))}: expected"):
         FilterLightningModule(KalmanFilter(_eye_lg(learnable=["F"])), **bad)
 
 
 def test_learning_through_a_filter_without_a_consistent_evidence_is_refused_unless_allowed():
-    from torchflow.errors import ArgumentError
+    from torchflow.core.errors import ArgumentError
     from torchflow.filters import GaussianSumParticleFilter, ParticleFlowFilter
 
     for f in (
@@ -176,7 +176,7 @@ def _fit_until_it_fails(module, traj, mean, cov, epochs=3):
 
 
 def test_a_non_finite_log_evidence_stops_learning_naming_the_filter_trials_and_epoch():
-    from torchflow.errors import NonFiniteError
+    from torchflow.core.errors import NonFiniteError
 
     class Faulty(KalmanFilter):  # from its second call (epoch 2 with one batch per epoch), trial 1's is NaN
         calls = 0
@@ -193,7 +193,7 @@ def test_a_non_finite_log_evidence_stops_learning_naming_the_filter_trials_and_e
 
 
 def test_a_non_finite_gradient_stops_learning_naming_the_parameter_and_epoch():
-    from torchflow.errors import NonFiniteError
+    from torchflow.core.errors import NonFiniteError
 
     traj, mean, cov = _data(B=4, T=5)
     model, calls = _eye_lg(learnable=["F"]), [0]
@@ -209,7 +209,7 @@ def test_a_non_finite_gradient_stops_learning_naming_the_parameter_and_epoch():
 
 
 def test_a_parameter_made_non_finite_by_an_optimiser_step_stops_learning_naming_it_and_the_epoch():
-    from torchflow.errors import NonFiniteError
+    from torchflow.core.errors import NonFiniteError
     from torchflow.filters import BootstrapParticleFilter
     from torchflow.models import AcousticTracking
 

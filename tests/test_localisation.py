@@ -3,11 +3,11 @@
 import pytest
 import torch
 
-from torchflow import metrics
+from torchflow.core import metrics
+from torchflow.core.random import TrialStreams
+from torchflow.flows.schedules import GeometricSchedule
 from torchflow.localisation import FlowMixtureLocaliser, birth_mixture
 from torchflow.models import TDOA3D
-from torchflow.random import TrialStreams
-from torchflow.schedules import GeometricSchedule
 
 
 def _scene(n_sources=1, runs=2, clutter=0.05, seed=0):
@@ -128,8 +128,8 @@ def test_an_underflowing_measurement_is_reported_not_nan(kind, recwarn):
 
 def test_runner_reports_underflows(monkeypatch):
     """The runner warns with the localiser, run, sensor and measurement, and counts them."""
+    from torchflow.app.runner import run_experiment
     from torchflow.models.tdoa import TDOAData
-    from torchflow.runner import run_experiment
 
     model = TDOA3D(n_sources=1, clutter_rate=0.05, p_d=1.0)
     real = model.simulate
@@ -167,7 +167,7 @@ def test_runner_localises_each_run_alone_with_its_own_stream():
     largest number of measurements per sensor, with the stream (seed, b, "localise_<method>"):
     the numbers of the former per-run loop. A chunk_size does not batch runs (trials_per_call = 1),
     and a resumed run loads the saved runs."""
-    from torchflow.runner import run_experiment
+    from torchflow.app.runner import run_experiment
 
     model = TDOA3D(n_sources=2, clutter_rate=1.0)
     res = run_experiment(model, {"a": _small(model)}, trials=3, seed=4, progress=False)
@@ -186,7 +186,7 @@ def test_runner_localises_each_run_alone_with_its_own_stream():
 
 
 def test_resume_loads_the_saved_runs(tmp_path):
-    from torchflow.runner import ChunkStore, run_experiment
+    from torchflow.app.runner import ChunkStore, run_experiment
 
     model = TDOA3D(n_sources=1, clutter_rate=0.5)
     first = run_experiment(model, {"a": _small(model)}, trials=2, progress=False, store=ChunkStore(tmp_path))
@@ -196,8 +196,8 @@ def test_resume_loads_the_saved_runs(tmp_path):
 
 
 def test_a_state_space_filter_is_refused_on_the_tdoa_model():
+    from torchflow.app.runner import ConfigError, run_experiment
     from torchflow.filters import BootstrapParticleFilter
-    from torchflow.runner import ConfigError, run_experiment
 
     model = TDOA3D()
     with pytest.raises(
@@ -212,7 +212,7 @@ def test_an_interrupted_run_keeps_the_finished_runs(tmp_path):
     """A stop request (Ctrl-C / SIGTERM through STOP) during run 1 of the first localiser ends the
     job at once: run 0 is saved in the checkpoint store, the row says so, and the second
     localiser does not start."""
-    from torchflow.runner import STOP, ChunkStore, run_experiment
+    from torchflow.app.runner import STOP, ChunkStore, run_experiment
 
     model = TDOA3D(n_sources=1, clutter_rate=0.05, p_d=1.0)
     loc, other = _small(model), _small(model, "pfi_s")
@@ -237,7 +237,7 @@ def test_an_interrupted_run_keeps_the_finished_runs(tmp_path):
 
 def test_scene_figure_draws_receivers_sources_and_each_localisers_declared_sources():
     plt = pytest.importorskip("matplotlib.pyplot")
-    from torchflow.runner import figures
+    from torchflow.app.runner import figures
 
     model, data = _scene(n_sources=2)
     examples = {"a": data.sources[0, :1], "b": torch.zeros(0, 3, dtype=torch.float64)}

@@ -1,4 +1,4 @@
-"""The metric registry (torchflow.metrics.REGISTRY): one registered function is a column of the
+"""The metric registry (torchflow.core.metrics.REGISTRY): one registered function is a column of the
 summary, per-trial and per-step rows, of the written files and a panel of the per-step figure."""
 
 import csv
@@ -7,12 +7,11 @@ import doctest
 import pytest
 import torch
 
-from torchflow import metrics
-from torchflow.runner import SUMMARY_COLUMNS, format_table, run_experiment
+from torchflow.app.runner import SUMMARY_COLUMNS, figures, format_table, run_experiment, summary_columns, writers
+from torchflow.app.runner.score import FIXED_COLUMNS, RUN_COLUMNS
+from torchflow.core import metrics
 from torchflow.filters import BootstrapParticleFilter, ExtendedKalmanFilter, KalmanFilter
 from torchflow.models import AcousticTracking, SensorNetwork
-from torchflow.runner import figures, summary_columns, writers
-from torchflow.runner.score import FIXED_COLUMNS, RUN_COLUMNS
 
 #: the summary columns of the built-in metrics (the committed results files have this header)
 BUILT_IN_COLUMNS = [
@@ -176,7 +175,7 @@ def test_bad_registrations_name_the_argument(clean_registry):
         metrics.Metric("toy", "toy", compute=3.0)
     with pytest.raises(TypeError, match=r"^applies: expected a callable"):
         metrics.Metric("toy", "toy", max_abs_error, applies="tracking")
-    with pytest.raises(TypeError, match=r"^metric: expected a torchflow.metrics.Metric"):
+    with pytest.raises(TypeError, match=r"^metric: expected a torchflow.core.metrics.Metric"):
         metrics.register(max_abs_error)
     with pytest.raises(TypeError, match=r"^name: expected a column name"):
         metrics.Metric("max abs", "toy", max_abs_error)

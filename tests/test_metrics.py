@@ -1,4 +1,4 @@
-"""Tests for torchflow.metrics (hand-computed cases, float64)."""
+"""Tests for torchflow.core.metrics (hand-computed cases, float64)."""
 
 import math
 
@@ -7,8 +7,8 @@ import torch
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 
-from torchflow import metrics, tuning
-from torchflow.metrics import ess, log_evidence_relative_error, lost_tracks, mse, omat, ospa
+from torchflow.core import metrics, tuning
+from torchflow.core.metrics import ess, log_evidence_relative_error, lost_tracks, mse, omat, ospa
 
 DT = torch.float64
 
@@ -234,8 +234,8 @@ def test_error_message_contains_shapes():
 def _ospa_reference(x, y, c, p):
     """Schuhmacher et al.'s OSPA of two lists of points by scipy's assignment (Stone Soup's
     definition: the cut-off distance to the power p, mean over max(|x|, |y|), then the p-th root)."""
-    from scipy.optimize import linear_sum_assignment
     import numpy
+    from scipy.optimize import linear_sum_assignment
 
     m, n = len(x), len(y)
     if m == 0 and n == 0:

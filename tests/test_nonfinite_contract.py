@@ -9,7 +9,7 @@ import torch
 from torch import nn
 
 import torchflow.filters as F
-from torchflow.errors import ArgumentError, NonFiniteError, TorchflowError
+from torchflow.core.errors import ArgumentError, NonFiniteError, TorchflowError
 from torchflow.models import AcousticTracking, GaussianStateSpaceModel, LinearGaussian, SensorNetwork
 
 I2 = torch.eye(2, dtype=torch.float64)

@@ -5,8 +5,9 @@ import os
 import shutil
 import subprocess
 import sys
-import tomllib
 from pathlib import Path
+
+import tomllib
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -62,7 +63,7 @@ def test_installed_copy_runs_the_command_line_from_any_folder(tmp_path):
         [
             sys.executable,
             "-c",
-            "import torchflow, torchflow.runner.config as c; print(torchflow.__file__); print(c.config_source())",
+            "import torchflow, torchflow.app.runner.config as c; print(torchflow.__file__); print(c.config_source())",
         ],
         capture_output=True,
         text=True,
@@ -95,4 +96,4 @@ def test_installed_copy_runs_the_command_line_from_any_folder(tmp_path):
     assert "| kf |" in out.stdout and (work / "run" / "summary.csv").exists()
     assert "SensorNetwork" in (work / "run" / "run.log").read_text()
     # the console script's entry point is recorded
-    assert any("torchflow = torchflow.cli:main" in p.read_text() for p in site.glob("*.dist-info/entry_points.txt"))
+    assert any("torchflow = torchflow.app.cli:main" in p.read_text() for p in site.glob("*.dist-info/entry_points.txt"))

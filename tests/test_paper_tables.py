@@ -16,7 +16,7 @@ import math
 import pytest
 import torch
 
-from torchflow.runner import run_experiment
+from torchflow.app.runner import run_experiment
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter, ParticleFlowParticleFilter
 from torchflow.models import SensorNetwork
 

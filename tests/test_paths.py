@@ -1,20 +1,20 @@
-"""Which execution path a filter ran (torchflow.flows.kernels.paths): FilterResult.paths, the
+"""Which execution path a filter ran (torchflow.core.paths): FilterResult.paths, the
 runner's results.json ``paths`` and the summary's ``path`` column; recording moves no number."""
 
 import json
 
 import pytest
 import torch
-
 from conftest import cuda
 from test_cudagraphs import _Emulated
-from torchflow import cudagraphs, tuning
-from torchflow.runner import format_table, run_experiment
-from torchflow.filters import BootstrapParticleFilter, ParticleFlowParticleFilter
-from torchflow.flows.kernels import graph_step, paths, select, steps
+
+from torchflow.app.runner import ChunkStore, format_table, run_experiment, writers
+from torchflow.core import cudagraphs, paths, tuning
+from torchflow.core.random import TrialStreams
+from torchflow.filters import BootstrapParticleFilter, ParticleFlowParticleFilter, graph_step
+from torchflow.flows import select
+from torchflow.flows.kernels import steps
 from torchflow.models import AcousticTracking, SensorNetwork, SkewedTPoisson
-from torchflow.random import TrialStreams
-from torchflow.runner import ChunkStore, writers
 
 T = 3
 #: a diagonal measurement too large for the lane tiles: LEDH takes the "diagonal" CPU kernel

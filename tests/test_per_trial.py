@@ -3,7 +3,7 @@ values give the numbers of B separate calls, each with its trial's value as the 
 every model that declares per-trial parameters and every filter family that runs on it.
 
 Deterministic filters agree to 1e-10, particle filters to 1e-9 with per-trial random streams
-(:class:`~torchflow.random.TrialStreams`: trial b draws the same numbers alone and in the batch).
+(:class:`~torchflow.core.random.TrialStreams`: trial b draws the same numbers alone and in the batch).
 Both are round-off bounds: the batched call runs its linear algebra on B matrices at once, and the
 separate calls take the shortcuts a shared value allows (identity scales, a scalar R), which the
 per-trial call stands aside from.
@@ -13,16 +13,16 @@ import math
 
 import pytest
 import torch
+from conftest import cuda
 
 import torchflow.filters as F
-from torchflow import constraints
-from torchflow.errors import ArgumentError, ArgumentTypeError
+from torchflow.core import constraints
+from torchflow.core.errors import ArgumentError, ArgumentTypeError
+from torchflow.core.random import TrialStreams
 from torchflow.inference import per_trial_values
 from torchflow.models import AcousticTracking, LinearGaussian, Lorenz96, SkewedTPoisson
 from torchflow.models.linear_gaussian import sensor_network_covariance
 from torchflow.proposals import UnscentedProposal
-from torchflow.random import TrialStreams
-from conftest import cuda
 
 f64 = dict(dtype=torch.float64)
 B, T = 3, 4

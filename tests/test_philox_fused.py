@@ -1,4 +1,4 @@
-"""The Triton Philox4x32 kernel of per-trial random streams (torchflow.random.philox4x32_fused)
+"""The Triton Philox4x32 kernel of per-trial random streams (torchflow.core.random.philox4x32_fused)
 gives the bits of the torch-op Philox, and TrialStreams draw the same numbers with and without it:
 on the CPU through Triton's interpreter (a subprocess with TRITON_INTERPRET=1; skipped where Triton
 is not installed, as in CI), on CUDA with the compiled kernel."""
@@ -11,16 +11,16 @@ import textwrap
 
 import pytest
 import torch
-
 from conftest import ROOT, cuda
-from torchflow import random as R
+
+from torchflow.core import random as R
 
 CHECK = textwrap.dedent("""
     import json, sys
     import numpy as np
     import torch
-    from torchflow import linalg, tuning
-    from torchflow import random as R
+    from torchflow.core import linalg, tuning
+    from torchflow.core import random as R
 
     device = sys.argv[1]
     keys = torch.tensor(np.random.default_rng(0).integers(0, 2**32, size=(5, 2)), dtype=torch.int64, device=device)
@@ -103,7 +103,7 @@ def test_a_failing_kernel_falls_back_to_the_torch_ops_once(monkeypatch):
         a = R.uniform((3, 7), dtype=torch.float64, device="cpu", generator=s1)
     b = R.uniform((3, 7), dtype=torch.float64, device="cpu", generator=s1)  # no second warning, no second try
     monkeypatch.setattr(R, "_philox_fusable", real)
-    from torchflow import tuning
+    from torchflow.core import tuning
 
     with tuning.tuned(fused_philox=0):
         want = [R.uniform((3, 7), dtype=torch.float64, device="cpu", generator=s2) for _ in range(2)]

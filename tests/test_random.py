@@ -4,12 +4,12 @@ import math
 
 import pytest
 import torch
-
 from conftest import cuda
-from torchflow.runner import run_experiment
+
+from torchflow.app.runner import run_experiment
+from torchflow.core.random import TrialStreams, check_generator, philox4x32
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter, ParticleFlowFilter, ParticleFlowParticleFilter
 from torchflow.models import AcousticTracking, SensorNetwork
-from torchflow.random import TrialStreams, check_generator, philox4x32
 
 F64 = torch.float64
 
@@ -62,7 +62,7 @@ def test_trial_draws_do_not_depend_on_the_batch(backend, dtype):
 
 
 def test_large_draws_in_blocks_do_not_depend_on_batch_or_threads():
-    from torchflow.random import BLOCK
+    from torchflow.core.random import BLOCK
 
     n = 2 * BLOCK + 5  # three blocks per trial, filled on parallel threads
     threads = torch.get_num_threads()
@@ -235,7 +235,7 @@ def test_philox_same_bits_on_cuda_and_cpu():
 def test_correlated_streams_record_then_replay():
     """A CorrelatedStreams records its normals on first use and replays them after rewind():
     normals are the tape, uniforms Phi(tape) in [0, 1); a filter run replays bit for bit."""
-    from torchflow.random import CorrelatedStreams
+    from torchflow.core.random import CorrelatedStreams
 
     s = CorrelatedStreams(3, 4, "k")
     z = s.normal((4, 5), dtype=torch.float64)
@@ -271,7 +271,7 @@ def test_correlated_streams_record_then_replay():
 def test_crank_nicolson_moves_keep_the_normal_law():
     """u' = rho u + sqrt(1 - rho^2) eps: mean 0, variance 1 and correlation rho with u (each within
     4 standard errors over 40 000 numbers); where() takes rows per trial."""
-    from torchflow.random import CorrelatedStreams
+    from torchflow.core.random import CorrelatedStreams
 
     s = CorrelatedStreams(1, 4, "k")
     s.normal((4, 10000), dtype=torch.float64)
@@ -297,7 +297,7 @@ def test_crank_nicolson_moves_keep_the_normal_law():
 def test_index_tensor_is_made_once_per_values_and_device():
     """``linalg.index_tensor``: the int64 tensor of the values, the same object on every call with
     equal values and device (no copy from the host per filter step), another for other values."""
-    from torchflow import linalg
+    from torchflow.core import linalg
 
     a = linalg.index_tensor((3, 1, 2), "cpu")
     assert a.dtype == torch.int64 and a.tolist() == [3, 1, 2]

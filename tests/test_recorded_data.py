@@ -11,13 +11,12 @@ import pytest
 import torch
 
 from tests.conftest import ROOT
-from torchflow.data import declared_prior, load_observations
-from torchflow.errors import ArgumentError
-from torchflow.runner import run_experiment
+from torchflow.app.data import declared_prior, load_observations
+from torchflow.app.runner import ConfigError, run_experiment
+from torchflow.core.errors import ArgumentError
+from torchflow.core.random import TrialStreams
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter
 from torchflow.models import TDOA3D, AcousticTracking, LinearGaussian, Lorenz96, SensorNetwork, SkewedTPoisson
-from torchflow.random import TrialStreams
-from torchflow.runner import ConfigError
 
 ONE = torch.ones(1, 1, dtype=torch.float64)
 
@@ -286,7 +285,7 @@ def _fit(filt, model, obs, epochs, **kw):
     import pytorch_lightning as pl
     from torch.utils.data import DataLoader
 
-    from torchflow.lightning import FilterLightningModule, TrajectoryDataset
+    from torchflow.app.lightning import FilterLightningModule, TrajectoryDataset
 
     module = FilterLightningModule(filt, lr=0.05, betas=(0.5, 0.9), lr_decay=0.95, **kw)
     trainer = pl.Trainer(

@@ -1,18 +1,18 @@
-"""Tests for torchflow.resampling."""
+"""Tests for torchflow.core.resampling."""
 
 import math
 
 import pytest
 import torch
 
-from torchflow.resampling import (
+from torchflow.core.resampling import (
     RESAMPLERS,
     effective_sample_size,
     gather_particles,
     get_resampler,
     normalize_log_weights,
-    residual,
     resample_if_needed,
+    residual,
     systematic,
 )
 
@@ -301,7 +301,7 @@ def test_hilbert_index_is_a_curve_through_every_cell():
     """Every cell of the grid gets its own position, and consecutive positions are adjacent cells."""
     import itertools
 
-    from torchflow.resampling import hilbert_index
+    from torchflow.core.resampling import hilbert_index
 
     for d, bits in [(2, 1), (2, 4), (3, 3), (4, 2)]:
         cells = torch.tensor(list(itertools.product(range(2**bits), repeat=d)))
@@ -317,7 +317,7 @@ def test_sorted_resampling_keeps_the_weighted_cloud(sort, d):
     """With particles sorted first, systematic resampling still gives particle i floor(N w_i) or
     ceil(N w_i) copies, the resampled particles leave in sorted order (d = 1), and a trial that is
     not resampled keeps its weighted cloud (reordered)."""
-    from torchflow.resampling import Resampler, sort_order
+    from torchflow.core.resampling import Resampler, sort_order
 
     g = torch.Generator().manual_seed(0)
     B, N = 6, 50
@@ -348,8 +348,8 @@ def test_sorted_resampling_keeps_the_weighted_cloud(sort, d):
 def test_sorted_resampling_moves_continuously_with_the_uniform():
     """d = 1: nudging the systematic uniform (through a CorrelatedStreams tape) moves the sorted
     resampled cloud by far less than the unsorted one (an index that shifts picks a neighbour)."""
-    from torchflow.random import CorrelatedStreams
-    from torchflow.resampling import Resampler
+    from torchflow.core.random import CorrelatedStreams
+    from torchflow.core.resampling import Resampler
 
     g = torch.Generator().manual_seed(2)
     B, N = 200, 100
@@ -372,7 +372,7 @@ def test_sorted_resampling_moves_continuously_with_the_uniform():
 
 
 def test_sort_errors():
-    from torchflow.resampling import Resampler, sort_order
+    from torchflow.core.resampling import Resampler, sort_order
 
     with pytest.raises(ValueError, match=r"sort: expected None or one of \('first', 'principal', 'hilbert'\)"):
         Resampler(2, sort="value")
@@ -389,7 +389,7 @@ def test_one_pass_inversion_equals_the_binary_search(per_trial, shape):
     """The stratified/systematic positions inverted in one pass give exactly the binary search's
     indices: random weights with zero-weight particles, uniform weights (integer CDF steps) and
     uniforms at 0 and just below 1 (where ``i + u`` rounds up to the next integer)."""
-    from torchflow import resampling as R
+    from torchflow.core import resampling as R
 
     b, n = shape
     g = torch.Generator().manual_seed(3)
@@ -435,8 +435,8 @@ def test_cpu_resamples_only_the_trials_that_need_it(scheme, sort):
     and ``0`` (every trial, as on a GPU) give the same particles, weights, per-particle extras and
     flags, and leave the generator in the same state: for batches where no trial, some trials and
     every trial resample."""
-    from torchflow import tuning
-    from torchflow.resampling import Resampler
+    from torchflow.core import tuning
+    from torchflow.core.resampling import Resampler
 
     g = torch.Generator().manual_seed(11)
     B, N, d = 6, 50, 2
@@ -463,7 +463,7 @@ def test_cpu_resamples_only_the_trials_that_need_it(scheme, sort):
 def test_a_users_scheme_is_computed_for_every_trial():
     """A scheme a user registers has no split into draws and inversion: it is called for every
     trial on the CPU too, and the identity kept where the ESS did not trigger."""
-    from torchflow import resampling as R
+    from torchflow.core import resampling as R
 
     calls = []
 
@@ -481,8 +481,8 @@ def test_host_reads_only_on_plain_cpu_tensors():
     """``reads_host``: a plain CPU tensor with ``host_reads_cpu`` on; not under ``tuning``
     ``host_reads_cpu=0``, nor inside a ``torch.func`` transform (where ``bool(t)`` of a wrapped
     tensor fails or traces)."""
-    from torchflow import tuning
-    from torchflow.resampling import reads_host
+    from torchflow.core import tuning
+    from torchflow.core.resampling import reads_host
 
     x = torch.ones(3, dtype=torch.float64)
     assert reads_host(x)

@@ -32,7 +32,7 @@ Tolerance ``REL_TOL`` = 5e-4 relative, derived from two measurements (1 thread, 
 ``.ci/run`` runs this file under both instruction sets.
 
 The files were written by the flows' torch path and the ``m x m`` Joseph-form EKF update; the
-fused CPU kernel and the ``k x k`` update (``torchflow.tuning`` ``fused_flows``,
+fused CPU kernel and the ``k x k`` update (``torchflow.core.tuning`` ``fused_flows``,
 ``structured_update``, defaults since 2026-11-26) compute the same formulas in another order, and
 their round-off moves chaotic trials (a diverging EKF at sigma_w = 0.001, resampling decisions)
 far past the tolerance, so the files are rerun with :data:`ARITHMETIC`, the arithmetic that wrote
@@ -49,8 +49,8 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from torchflow import tuning
-from torchflow.runner import run_experiment
+from torchflow.app.runner import run_experiment
+from torchflow.core import tuning
 
 ROOT = Path(__file__).resolve().parents[1]
 REL_TOL = 5e-4  # see the module docstring: 10x the measured cross-instruction-set rounding

@@ -15,13 +15,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchflow import _progress
-from torchflow.runner import run_experiment
+from torchflow.app.runner import STOP, ConfigError, RunStopped, plan_run, run_experiment
+from torchflow.app.runner import plan as plan_module
+from torchflow.app.runner.shell import LOCK_NAME
+from torchflow.core import progress as _progress
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter
 from torchflow.models import AcousticTracking, SensorNetwork, SkewedTPoisson
-from torchflow.runner import STOP, ConfigError, RunStopped, plan_run
-from torchflow.runner import plan as plan_module
-from torchflow.runner.shell import LOCK_NAME
 
 ROOT = Path(__file__).resolve().parents[1]
 GIB = 2**30
@@ -247,7 +246,7 @@ def _text(path: Path) -> str:
 def test_a_stop_during_the_learning_commands_simulation_says_nothing_was_fitted(monkeypatch, caplog):
     """The learning command ends a stop before its first fit as the run command does: the stop's own
     line and 128 + the signal, not the shell's generic 'outside the job's safe points'."""
-    import torchflow.learn as learn_module
+    import torchflow.app.learn as learn_module
 
     def stopped(*args, **kwargs):
         STOP.handler(signal.SIGTERM, None)
@@ -267,7 +266,7 @@ def test_the_default_memory_budget_is_a_share_of_the_free_memory(monkeypatch):
     has free when the run is planned, rounded down to a power of two GiB (stable chunks while the
     free memory moves a little), which sizes the chunks and is recorded with where it came from; a
     given budget is recorded as given."""
-    from torchflow.runner.plan import MEMORY_BUDGET_SHARE
+    from torchflow.app.runner.plan import MEMORY_BUDGET_SHARE
 
     model = SensorNetwork(d=4)
     f = BootstrapParticleFilter(model, n_particles=50)

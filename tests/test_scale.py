@@ -4,8 +4,8 @@ Lightning DDP. The subprocess tests run the real command lines on 2 CPU processe
 from __future__ import annotations
 
 import csv
-import json
 import importlib.util
+import json
 import os
 import signal
 import subprocess
@@ -16,9 +16,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchflow.runner import ChunkStore, fingerprint
-from torchflow.runner import Shard
-from torchflow.runner import run_experiment
+from torchflow.app.runner import ChunkStore, Shard, fingerprint, run_experiment
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter
 from torchflow.models import SensorNetwork
 
@@ -179,7 +177,7 @@ def test_a_signal_outside_a_chunk_waits_for_the_next_chunk():
     """STOP.handler (installed for SIGINT/SIGTERM by run.py) raises inside a chunk at once;
     outside one (here: while the runner reports a finished filter) it stops the run at the next
     chunk, after the finished filter is scored."""
-    from torchflow.runner import STOP
+    from torchflow.app.runner import STOP
 
     model = SensorNetwork(d=9)
 
@@ -255,7 +253,7 @@ def test_cli_sigterm_then_resume_gives_the_uninterrupted_files(tmp_path):
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     saved = len(files())
-    assert proc.returncode == 143 and "Traceback" not in err, err[-2000:]  # 128 + SIGTERM (torchflow.runner.shell)
+    assert proc.returncode == 143 and "Traceback" not in err, err[-2000:]  # 128 + SIGTERM (torchflow.app.runner.shell)
     assert 5 <= saved < 10 and "resume=true" in err, err[-2000:]
     res = subprocess.run(
         [sys.executable, RUN, *args, f"hydra.run.dir={tmp_path}/resumed", "resume=true"],

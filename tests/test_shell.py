@@ -1,10 +1,10 @@
-"""The command shell both commands run in (torchflow.runner.shell): unknown settings, stop signals,
+"""The command shell both commands run in (torchflow.app.runner.shell): unknown settings, stop signals,
 the output folder's earlier results and lock file, the job environment. The subprocess tests use
 tiny runs (a few seconds each, most of it Python's start-up)."""
 
 import json
-import re
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -15,9 +15,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from torchflow.runner import ConfigError
-from torchflow.runner import shell
-from torchflow.runner.config import close_keys
+from torchflow.app.runner import ConfigError, shell
+from torchflow.app.runner.config import close_keys
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = {
@@ -230,7 +229,7 @@ def test_job_environment_sets_threads_and_knobs_and_refuses_bad_ones():
     import torch
     from omegaconf import OmegaConf
 
-    from torchflow import tuning
+    from torchflow.core import tuning
 
     before = torch.get_num_threads(), tuning.as_dict()
     n = 2 if before[0] == 1 else 1  # a count other than this process's, so that setting it shows
@@ -251,7 +250,7 @@ def test_job_environment_sets_threads_and_knobs_and_refuses_bad_ones():
 
 
 def test_stop_request_exit_codes_follow_the_signal():
-    from torchflow.runner import STOP
+    from torchflow.app.runner import STOP
 
     try:
         STOP.reset()
@@ -266,12 +265,12 @@ def test_stop_request_exit_codes_follow_the_signal():
 
 
 def test_both_configs_carry_every_speed_knob_and_the_output_guard():
-    from torchflow import tuning
+    from torchflow.core import tuning
 
     for name in ("config", "learn"):
         cfg = yaml.safe_load((ROOT / "configs" / f"{name}.yaml").read_text())
         assert set(cfg["tuning"]) == set(tuning.as_dict()), name
-        assert cfg["hydra"]["callbacks"]["output_guard"]["_target_"] == "torchflow.runner.shell.OutputGuard", name
+        assert cfg["hydra"]["callbacks"]["output_guard"]["_target_"] == "torchflow.app.runner.shell.OutputGuard", name
         assert {"device", "dtype", "threads", "seed", "inits_per_track", "overwrite"} <= set(cfg), name
 
 
@@ -337,11 +336,10 @@ def test_a_run_says_where_its_wall_time_went(tmp_path):
 def test_a_run_whose_start_up_cannot_be_read_still_writes_its_results(tmp_path):
     """Where the process's age cannot be read (no ``/proc``), ``startup`` is ``None``: results.json
     records it as null and the log line leaves it out (no crash after the filters ran)."""
-    from torchflow import cli
-    from torchflow.runner import run_experiment
+    from torchflow.app import cli
+    from torchflow.app.runner import run_experiment, writers
     from torchflow.filters import KalmanFilter
     from torchflow.models import SensorNetwork
-    from torchflow.runner import writers
 
     model = SensorNetwork(d=4)
     res = run_experiment(model, {"kf": KalmanFilter(model)}, trials=2, steps=2, progress=False)

@@ -5,12 +5,12 @@ limits, a stop signal during a long flow step): one test per case, named after i
 import pytest
 import torch
 
-from torchflow.runner import run_experiment
+from torchflow.app.runner import run_experiment
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter, ParticleFlowFilter, ParticleFlowParticleFilter
 from torchflow.flows import LEDHFlow, integrate_flow
+from torchflow.flows.schedules import ExponentialSchedule, LambdaSchedule, UniformSchedule, resolve_schedule
 from torchflow.models import SensorNetwork
 from torchflow.models.contract import check_covariances
-from torchflow.schedules import ExponentialSchedule, LambdaSchedule, UniformSchedule, resolve_schedule
 
 
 def _singular_q_model():
@@ -226,7 +226,7 @@ def test_negative_regularization_names_what_is_expected():
 
 
 def test_trial_streams_for_other_trial_count():
-    from torchflow.random import TrialStreams
+    from torchflow.core.random import TrialStreams
 
     model, traj, mean, cov, g = _lg_data(B=2)
     with pytest.raises(
@@ -238,7 +238,7 @@ def test_trial_streams_for_other_trial_count():
 
 
 def test_run_experiment_with_a_list_of_filters():
-    from torchflow.runner.plan import ConfigError
+    from torchflow.app.runner.plan import ConfigError
 
     model = SensorNetwork(d=4)
     with pytest.raises(
@@ -273,7 +273,7 @@ def test_sigterm_during_a_gpfis_step_stops_at_once(monkeypatch):
     not at the end of the chunk (measured through the command line on SkewedTPoisson, d = 144,
     N = 20: SIGTERM 40 s into a 378 s step, stopped 1.5 s later)."""
     import torchflow.proposals.gpfis as gp
-    from torchflow.runner import STOP
+    from torchflow.app.runner import STOP
     from torchflow.filters import GPFIS
 
     calls = []
@@ -300,7 +300,7 @@ def test_diagonal_covariances_are_checked_on_their_diagonal():
     same verdicts as the factorisation: zero and positive diagonals pass, a negative entry is named
     with its value, a NaN is named as non-finite, and an off-diagonal entry sends the matrix to the
     factorisation (here: not symmetric)."""
-    from torchflow._checks import _off_diagonal, check_psd
+    from torchflow.core.checks import _off_diagonal, check_psd
 
     A = torch.randn(3, 5, 5, dtype=torch.float64)
     off = _off_diagonal(A)

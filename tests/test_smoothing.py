@@ -5,7 +5,9 @@ import math
 
 import pytest
 import torch
+from conftest import cuda, mild_lg, random_lg
 
+from torchflow.core.random import TrialStreams
 from torchflow.filters import (
     BootstrapParticleFilter,
     ExtendedKalmanFilter,
@@ -15,9 +17,7 @@ from torchflow.filters import (
     UnscentedKalmanFilter,
 )
 from torchflow.models import AcousticTracking
-from torchflow.random import TrialStreams
 from torchflow.smoothing import smooth
-from conftest import cuda, mild_lg, random_lg
 
 F64 = torch.float64
 

@@ -1,4 +1,4 @@
-"""log K_nu(x) (torchflow.special) against scipy.special.kve over the orders the skewed-t model
+"""log K_nu(x) (torchflow.core.special) against scipy.special.kve over the orders the skewed-t model
 needs ((nu + d)/2 up to ~200), and where K overflows, against its small-x expansion."""
 
 import math
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchflow.special import log_bessel_k
+from torchflow.core.special import log_bessel_k
 
 scipy_special = pytest.importorskip("scipy.special")
 

@@ -1,10 +1,11 @@
-"""Speed knobs (torchflow.tuning): one documented place, settable from Python and the runner, and
+"""Speed knobs (torchflow.core.tuning): one documented place, settable from Python and the runner, and
 they never change a number."""
 
 import pytest
 import torch
 
-from torchflow import tuning
+from torchflow.core import tuning
+from torchflow.core.random import TrialStreams
 from torchflow.filters import (
     BootstrapParticleFilter,
     GaussianSumParticleFilter,
@@ -13,7 +14,6 @@ from torchflow.filters import (
 )
 from torchflow.flows.points import flow_points_per_call
 from torchflow.models import AcousticTracking, SkewedTPoisson
-from torchflow.random import TrialStreams
 
 
 def _run(filt, model, B=3, T=3):
@@ -97,7 +97,7 @@ def test_bad_knobs_are_named():
 
 
 def test_the_runner_config_names_every_knob():
-    """configs/config.yaml's ``tuning`` block lists exactly torchflow.tuning's knobs, so each can be
+    """configs/config.yaml's ``tuning`` block lists exactly torchflow.core.tuning's knobs, so each can be
     set from the command line without ``+`` (a knob missing there made ``tuning.<knob>=0`` an error)."""
     from dataclasses import fields
     from pathlib import Path

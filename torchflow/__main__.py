@@ -1,6 +1,6 @@
-"""``python -m torchflow [overrides]``: the command line (:mod:`torchflow.cli`)."""
+"""``python -m torchflow [overrides]``: the command line (:mod:`torchflow.app.cli`)."""
 
-from .cli import main
+from torchflow.app.cli import main
 
 if __name__ == "__main__":
     main(prog="python -m torchflow")

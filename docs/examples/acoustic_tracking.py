@@ -14,7 +14,7 @@ step. The sizes of the published comparisons, and their results, are in `experim
 import matplotlib.pyplot as plt
 import torch
 
-from torchflow import metrics
+from torchflow.core import metrics
 from torchflow.filters import BootstrapParticleFilter, ExtendedKalmanFilter, ParticleFlowParticleFilter
 from torchflow.models import AcousticTracking
 

@@ -16,8 +16,8 @@ which linearise h(x), refuse it when they are built, and the bootstrap particle 
 core with two Gaussian forms added, for the flows and the Kalman family). The
 model holds its parameters as buffers, so `model.double()`, `model.to("cuda")` and learning
 (`nn.Parameter`s instead of buffers) work as for the built-in models. Its random draws go through
-`torchflow.linalg.standard_normal`, which takes a `torch.Generator` or torchflow's per-trial
-random streams (`torchflow.random.TrialStreams`, what the command-line runner passes).
+`torchflow.core.linalg.standard_normal`, which takes a `torch.Generator` or torchflow's per-trial
+random streams (`torchflow.core.random.TrialStreams`, what the command-line runner passes).
 
 The script simulates a few trials with the model's own `simulate()`, runs
 `torchflow.filters.BootstrapParticleFilter` on them, shows the refusal of a filter that needs the
@@ -30,10 +30,10 @@ import math
 import matplotlib.pyplot as plt
 import torch
 
+from torchflow.core.linalg import standard_normal
+from torchflow.core.random import TrialStreams
 from torchflow.filters import BootstrapParticleFilter, ExtendedKalmanFilter
-from torchflow.linalg import standard_normal
 from torchflow.models import StateSpaceModel
-from torchflow.random import TrialStreams
 
 LOG_2PI = math.log(2 * math.pi)
 

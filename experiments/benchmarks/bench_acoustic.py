@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchflow import metrics
+from torchflow.core import metrics
 from torchflow.models import AcousticTracking
 
 from . import harness as h

@@ -20,8 +20,8 @@ from typing import Dict, List, Optional
 
 import torch
 
-import torchflow.runner as tfx
-from torchflow.runner.plan import simulate
+import torchflow.app.runner as tfx
+from torchflow.app.runner.plan import simulate
 from torchflow.filters import KalmanFilter
 from torchflow.models import AcousticTracking, SensorNetwork
 from torchflow.models.base import Trajectory

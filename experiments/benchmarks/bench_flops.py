@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import torch
 
+from torchflow.flows.schedules import ExponentialSchedule
 from torchflow.models import AcousticTracking
-from torchflow.schedules import ExponentialSchedule
 
 from . import harness as h
 
@@ -93,7 +93,7 @@ def throughputs() -> dict:
 
 def fused_path(model, n_particles: int) -> bool:
     """PF-PF(LEDH) takes the fused pseudo-step here (Numba on the CPU, ``tuning.fused_flows``)."""
-    from torchflow import tuning
+    from torchflow.core import tuning
     from torchflow.flows.kernels import steps as fused
 
     return bool(tuning.get().fused_flows) and fused.runs_on("cpu")

@@ -123,7 +123,7 @@ def run_filterpy(f, x0, P0, Z, trials: int, args):
 
 
 def cholesky_upper_jitter(A: np.ndarray, max_tries: int = 6) -> np.ndarray:
-    """filterpy's ``scipy.linalg.cholesky`` with ``torchflow.linalg.safe_cholesky``'s jitter fallback."""
+    """filterpy's ``scipy.linalg.cholesky`` with ``torchflow.core.linalg.safe_cholesky``'s jitter fallback."""
     try:
         return scipy.linalg.cholesky(A)
     except np.linalg.LinAlgError:

@@ -32,7 +32,7 @@ import time
 
 import torch
 
-from torchflow import tuning
+from torchflow.core import tuning
 from torchflow.models import AcousticTracking
 
 from . import harness as h

@@ -45,8 +45,8 @@ import time
 import torch
 
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter, ParticleFlowParticleFilter
+from torchflow.flows.schedules import ExponentialSchedule
 from torchflow.models import LinearGaussian
-from torchflow.schedules import ExponentialSchedule
 
 from . import harness as h
 

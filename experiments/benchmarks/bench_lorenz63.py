@@ -24,7 +24,6 @@ import sys
 import tempfile
 from pathlib import Path
 
-
 HERE = Path(__file__).resolve().parent
 #: DAPPER methods (label, class, arguments, its file's published rmse.a)
 DAPPER = [
@@ -58,9 +57,9 @@ def dapper_worker(inp: str, out: str) -> None:
     """Run DAPPER's methods on the data of ``inp`` (npz) and save the analysis means."""
     import time
 
-    import numpy as np
     import dapper.da_methods as da
     import dapper.mods as modelling
+    import numpy as np
     from dapper.mods.Lorenz63 import sakov2012
     from dapper.tools.seeding import set_seed
 
@@ -94,6 +93,7 @@ def fine_truth(model, states):
     """``(B, 25 T + 1, 3)``: the truth at every integration step, from the observation-time states
     ``(B, T + 1, 3)`` (the same arithmetic: one RK4 step of 0.01 at a time)."""
     import torch
+
     from torchflow.models.dynamics import rk4_steps
 
     B, T1, _ = states.shape
@@ -111,8 +111,9 @@ def fine_truth(model, states):
 def compare(args):
     import numpy as np
     import torch
-    from torchflow.models import Lorenz63
+
     from experiments.benchmarks.bench_lorenz96 import mean_se, rmse_after, run_ours
+    from torchflow.models import Lorenz63
 
     torch.set_num_threads(1)
     model = Lorenz63()

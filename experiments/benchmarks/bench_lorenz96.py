@@ -73,9 +73,9 @@ PUBLISHED = {
 # ------------------------------------------------------------------ the DAPPER side (its own interpreter)
 def dapper_worker(inp: str, out: str) -> None:
     """Run DAPPER's methods on the truth/observations of ``inp`` (npz) and save analysis means."""
-    import numpy as np
     import dapper.da_methods as da
     import dapper.mods as modelling
+    import numpy as np
     from dapper.mods.Lorenz96 import sakov2008
     from dapper.tools.seeding import set_seed
 
@@ -141,7 +141,8 @@ def mean_se(x):
 def run_ours(name, kwargs, model, traj, mean, cov, seed=2):
     """One call per trial (as DAPPER runs); on a GPU the first call of each is untimed (warm-up)."""
     import torch
-    from torchflow.registry import lookup
+
+    from torchflow.core.registry import lookup
 
     f = lookup("filter", name)(model, **kwargs)
     device = traj.observations.device
@@ -167,6 +168,7 @@ def run_ours(name, kwargs, model, traj, mean, cov, seed=2):
 
 def compare(args):
     import torch
+
     from torchflow.models import Lorenz96
 
     model = Lorenz96()
@@ -204,6 +206,7 @@ def compare(args):
 
 def scaling(args):
     import torch
+
     from torchflow.models import Lorenz96
 
     rows = []

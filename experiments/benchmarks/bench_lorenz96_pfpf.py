@@ -35,10 +35,10 @@ BURN_IN = {"l63": 64}
 
 
 def run(regime: str, flow: str, n: int, noise: float, trials: int, steps: int, burn_in: int, seed: int = 0) -> dict:
+    from torchflow.core.random import TrialStreams
     from torchflow.filters import ParticleFlowParticleFilter
     from torchflow.flows import EDHFlow, LEDHFlow
     from torchflow.models import Lorenz63, Lorenz96
-    from torchflow.random import TrialStreams
 
     cls = Lorenz63 if regime == "l63" else Lorenz96
     truth_model = cls(**REGIMES[regime])

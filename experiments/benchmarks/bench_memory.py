@@ -19,7 +19,7 @@ CASES = {"bpf": "BPF", "ledh": "PF-PF(LEDH)", "gromov": "PF-PF(Gromov)"}
 
 def _case(a) -> dict:
     """Run one case in this process and return its numbers."""
-    from torchflow.runner import run_experiment
+    from torchflow.app.runner import run_experiment
     from torchflow.models import AcousticTracking
 
     with h.torch_threads(a.threads):

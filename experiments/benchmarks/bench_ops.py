@@ -1,6 +1,6 @@
 """Operations and host synchronisations per filter step: what each filter asks of a GPU.
 Every aten op is a kernel launch on a GPU and every read of a value back to the host stalls its
-queue; both are counted on the CPU with :class:`torchflow.profiling.OpCounter` over one time step
+queue; both are counted on the CPU with :class:`torchflow.core.profiling.OpCounter` over one time step
 (the second: the first includes set-up) of every filter on acoustic tracking (d = 16, m = 25).
 
     python -m experiments.benchmarks.bench_ops            # B = 4 trials, N = 100; seconds
@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import torch
 
-from torchflow import tuning
+from torchflow.core import tuning
+from torchflow.core.profiling import OpCounter
+from torchflow.core.random import TrialStreams
 from torchflow.filters import (
     GPFIS,
     BootstrapParticleFilter,
@@ -35,9 +37,7 @@ from torchflow.filters import (
 )
 from torchflow.flows.kernels import steps as fused
 from torchflow.models import AcousticTracking
-from torchflow.profiling import OpCounter
 from torchflow.proposals import UnscentedProposal
-from torchflow.random import TrialStreams
 
 from . import harness as h
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import torch
 
-from torchflow import metrics
+from torchflow.core import metrics
 from torchflow.models import AcousticTracking
 
 from . import harness as h

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import torch
 
-from torchflow import linalg
+from torchflow.core import linalg
+from torchflow.core.random import TrialStreams
 from torchflow.models import AcousticTracking, SensorNetwork
-from torchflow.random import TrialStreams
 
 from . import harness as h
 

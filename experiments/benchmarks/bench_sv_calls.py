@@ -6,7 +6,7 @@
 Each argument is ``B:N:reps``: ``reps`` calls of B trials at N particles on the 750 GBP/USD returns
 (``experiments.data.gbpusd``; needs ``particles``) after an untimed warm-up call; prints seconds per
 trial. A quick before/after of a change to the particle filters' step (run it at both commits,
-interleaved, or with a ``knob=value`` of :mod:`torchflow.tuning` against its default); ``bench_sv`` is
+interleaved, or with a ``knob=value`` of :mod:`torchflow.core.tuning` against its default); ``bench_sv`` is
 the full comparison with ``particles`` and the exact filter.
 """
 
@@ -19,7 +19,7 @@ import torch
 def main(specs) -> dict:
     """``{spec: seconds per trial}`` of each ``"B:N:reps"`` in ``specs`` (printed as they finish)."""
     from experiments.data.gbpusd import returns
-    from torchflow import tuning
+    from torchflow.core import tuning
     from torchflow.filters import BootstrapParticleFilter
     from torchflow.models import StochasticVolatility
 

@@ -111,7 +111,8 @@ def ours(y, args, correlation=None):
 
 def theirs(y, args):
     import particles.distributions as dists
-    from particles import mcmc, state_space_models as ssm
+    from particles import mcmc
+    from particles import state_space_models as ssm
 
     prior = dists.StructDist(
         {"mu": dists.Normal(scale=2.0), "rho": dists.Uniform(a=-1.0, b=1.0), "sigma": dists.Gamma(a=1.0, b=1.0)}

@@ -95,7 +95,7 @@ tail -6 "$MD"
   echo "with the kernel in float32 arithmetic (tuning.kernel_float32=1):"; echo;
   python3 -m experiments.benchmarks.paired /tmp/runs/warm /tmp/runs/float32_k32 --labels float64,float32k 2>&1; } >> "$MD"
 { echo; echo "### Start-up on this machine"; echo; echo '```';
-  python3 -X importtime -c "import torchflow.cli" 2>&1 | tail -1 | sed 's/^/import torchflow.cli (us, cumulative): /';
+  python3 -X importtime -c "import torchflow.app.cli" 2>&1 | tail -1 | sed 's/^/import torchflow.app.cli (us, cumulative): /';
   python3 -c "import time; t = time.perf_counter(); import torch; a = time.perf_counter(); torch.zeros(1, device='cuda'); torch.cuda.synchronize(); print(f'import torch {a - t:.2f} s, CUDA init {time.perf_counter() - a:.2f} s')";
   echo '```'; } >> "$MD"
 fi

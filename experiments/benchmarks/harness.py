@@ -21,6 +21,7 @@ from typing import Any, Callable, Iterable, List, Optional, Sequence
 
 import torch
 
+from torchflow.core.random import TrialStreams
 from torchflow.filters import (
     GPFIS,
     BootstrapParticleFilter,
@@ -32,7 +33,6 @@ from torchflow.filters import (
     ParticleFlowParticleFilter,
     UnscentedKalmanFilter,
 )
-from torchflow.random import TrialStreams
 
 HERE = Path(__file__).resolve().parent
 

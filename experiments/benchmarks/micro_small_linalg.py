@@ -6,7 +6,7 @@ on this device (a PF-PF(LEDH) step on acoustic tracking factors B x N matrices o
 
 Per op: microseconds per call (median of ``--reps`` after a warm-up), for the library call
 (``torch.linalg``) and for the column-by-column formulas in plain tensor ops
-(:func:`torchflow.linalg.small_cholesky`, :func:`torchflow.linalg.small_solve_lower`), which on a GPU
+(:func:`torchflow.core.linalg.small_cholesky`, :func:`torchflow.core.linalg.small_solve_lower`), which on a GPU
 may beat the batched LAPACK-style kernels for tiny matrices.
 """
 
@@ -17,7 +17,7 @@ import time
 
 import torch
 
-from torchflow import linalg
+from torchflow.core import linalg
 
 from . import harness as h
 

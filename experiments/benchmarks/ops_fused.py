@@ -17,10 +17,12 @@ import os
 
 os.environ["TRITON_INTERPRET"] = "1"
 import sys
+
 import torch
 from torch.utils._python_dispatch import _disable_current_modes
+
+from experiments.benchmarks.bench_ops import VIEW_OPS, count, filters
 from torchflow.flows.kernels import steps as fused
-from experiments.benchmarks.bench_ops import filters, count, VIEW_OPS
 from torchflow.models import AcousticTracking
 
 
@@ -55,10 +57,11 @@ for name in ("PF-PF(LEDH)", "flow filter (LEDH)") if sys.argv[1:] != ["bpf"] els
     print("  most frequent:", ", ".join(f"{op.replace('aten.', '')} {n}" for op, n in c.by_op.most_common(6)))
 
 
-from torchflow import random as R, tuning
+from torchflow.core import random as R
+from torchflow.core import tuning
+from torchflow.core.profiling import OpCounter
 from torchflow.filters import BootstrapParticleFilter
 from torchflow.models import SensorNetwork
-from torchflow.profiling import OpCounter
 
 philox_calls = [0]
 R.philox4x32_fused = counted(R.philox4x32_fused, philox_calls)

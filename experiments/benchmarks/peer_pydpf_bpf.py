@@ -14,7 +14,7 @@ around each):
 * ``torchflow``: ``BootstrapParticleFilter`` with its defaults (systematic resampling when ESS < N/2),
   drawing from per-trial streams (``TrialStreams``, as the experiment runner does; on CUDA its step is
   then replayed from a CUDA graph up to ``tuning.graph_step_max_elems`` state elements:
-  :mod:`torchflow.flows.kernels.graph_step`);
+  :mod:`torchflow.filters.graph_step`);
 * ``torchflow, torch.Generator``: the same filter drawing from one ``torch.Generator`` for the batch
   (as PyDPF does): every step launched op by op;
 * ``torchflow, resample always``: multinomial resampling at every step (``ess_threshold=1.0``), as
@@ -106,9 +106,9 @@ def _compare(device, ns, trials, steps, d, dtype, reps, log):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         import pydpf
+    from torchflow.core.random import TrialStreams
     from torchflow.filters import BootstrapParticleFilter
     from torchflow.models import SensorNetwork
-    from torchflow.random import TrialStreams
 
     model = SensorNetwork(d=d).to(device=device, dtype=dtype)
     g = torch.Generator(device=device).manual_seed(0)

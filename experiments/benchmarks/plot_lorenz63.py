@@ -26,9 +26,9 @@ SIZES = [10, 20, 40, 100]
 
 
 def rmse_against_n(trials=10, steps=1000, burn_in=64, seed=0):
+    from torchflow.core.random import TrialStreams
+    from torchflow.core.registry import lookup
     from torchflow.models import Lorenz63
-    from torchflow.random import TrialStreams
-    from torchflow.registry import lookup
 
     model = Lorenz63()
     traj = model.simulate(trials, steps, torch.Generator().manual_seed(seed))

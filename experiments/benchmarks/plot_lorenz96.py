@@ -24,9 +24,9 @@ GPU = {"letkf": [(4000, 0.209)], "etkf": [(4000, 4.78)]}  # results_gpu_check.md
 
 
 def rmse_against_n(trials=3, steps=500, burn_in=100, seed=0):
+    from torchflow.core.random import TrialStreams
+    from torchflow.core.registry import lookup
     from torchflow.models import Lorenz96
-    from torchflow.registry import lookup
-    from torchflow.random import TrialStreams
 
     model = Lorenz96()
     traj = model.simulate(trials, steps, torch.Generator().manual_seed(seed))

@@ -22,7 +22,7 @@ import time
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-from torchflow import tuning
+from torchflow.core import tuning
 from torchflow.models import AcousticTracking
 
 from . import harness as h

@@ -6,19 +6,20 @@ redesign; RESULTS.md, "Speed before and after the redesign"):
     PYTHONPATH=/tmp/after python experiments/results/speed_before_after.py after [name filters...]
 """
 
+import json
 import sys
 import time
-import json
+
 import torch
 
 torch.set_num_threads(2)
-from torchflow.models import AcousticTracking
 from torchflow.filters import (
-    BootstrapParticleFilter,
-    ParticleFlowParticleFilter,
     GPFIS,
+    BootstrapParticleFilter,
     ParticleFlowGaussianSumParticleFilter,
+    ParticleFlowParticleFilter,
 )
+from torchflow.models import AcousticTracking
 
 label = sys.argv[1]
 B, T = 4, 10

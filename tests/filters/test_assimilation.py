@@ -8,12 +8,12 @@ import math
 
 import pytest
 import torch
+from conftest import random_lg
 
-from torchflow.errors import ArgumentError
-from torchflow.missing import observations_missing
+from torchflow.core.errors import ArgumentError
+from torchflow.core.missing import observations_missing
 from torchflow.filters import KernelParticleFlowFilter, LagOneFlowFilter, LocalParticleFilter, ParticleState
 from torchflow.models import Lorenz63, Lorenz96
-from conftest import random_lg
 
 KPFF, LPF, LAG1 = KernelParticleFlowFilter, LocalParticleFilter, LagOneFlowFilter
 

@@ -4,9 +4,9 @@ import math
 
 import pytest
 import torch
+from conftest import random_lg, simulate_with_belief
 
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter
-from conftest import random_lg, simulate_with_belief
 
 
 @pytest.mark.parametrize("scheme", ["systematic", "multinomial"])
@@ -66,6 +66,7 @@ def test_a_collapsed_cloud_is_warned_of_whatever_the_ess():
     the first step. With model noise a degenerate step's copies spread again at the next forecast:
     one collapsed step alone is not warned of (measured: 1 such step per trial in this run)."""
     import warnings
+
     from torchflow.models import Lorenz63
 
     model = Lorenz63()
@@ -86,7 +87,7 @@ def test_relative_regularization_scales_with_the_cloud():
     """Equal weights, resampling forced: the jitter's variance is h^2 times each coordinate's
     weighted variance before resampling (N = 20000: the variance after is (1 + h^2) times the
     cloud's within 5 %, about 5 standard errors), whatever the cloud's scale; h = 0 adds nothing."""
-    from torchflow.resampling import Resampler
+    from torchflow.core.resampling import Resampler
 
     N = 20000
     g = torch.Generator().manual_seed(0)

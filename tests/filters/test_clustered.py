@@ -5,13 +5,12 @@ import math
 
 import pytest
 import torch
-
 from conftest import mild_lg, random_lg, replicated
+
+from torchflow.core.random import TrialStreams
 from torchflow.filters import ClusteredParticleFlowParticleFilter, KalmanFilter, ParticleFlowParticleFilter
 from torchflow.flows import cluster_distance, kmedoids
 from torchflow.models import AcousticTracking
-from torchflow.random import TrialStreams
-
 
 _replicated = replicated
 

@@ -2,8 +2,10 @@
 
 import pytest
 import torch
+from conftest import cuda, random_lg
 
-from torchflow._checks import NonFiniteError
+from torchflow.core.checks import NonFiniteError
+from torchflow.core.random import TrialStreams
 from torchflow.filters import (
     BootstrapParticleFilter,
     EnsembleKalmanFilter,
@@ -19,10 +21,8 @@ from torchflow.filters import (
     ParticleFlowParticleFilter,
     UnscentedKalmanFilter,
 )
-from torchflow.schedules import ExponentialSchedule
+from torchflow.flows.schedules import ExponentialSchedule
 from torchflow.models import AcousticTracking, Lorenz96, NeuralAcoustic, SensorNetwork, SkewedTPoisson
-from conftest import cuda, random_lg
-from torchflow.random import TrialStreams
 
 # (name, model factory, filter factory): every filter on every model it supports
 CONFIGS = [
@@ -292,6 +292,7 @@ def test_trace_finds_the_first_bad_step_per_trial():
     quantities were bad then; a -inf increment of a recovering particle filter is a step without
     the measurement (counted), not an error."""
     from types import SimpleNamespace
+
     from torchflow.filters import guards
     from torchflow.filters.base import _Trace
 

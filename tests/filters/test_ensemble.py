@@ -7,8 +7,10 @@ import math
 
 import pytest
 import torch
+from conftest import random_lg
 
-from torchflow.errors import ArgumentError, ArgumentTypeError
+from torchflow.core.errors import ArgumentError, ArgumentTypeError
+from torchflow.core.trackers import kalman_update
 from torchflow.filters import (
     EnsembleKalmanFilter,
     EnsembleTransformKalmanFilter,
@@ -18,8 +20,6 @@ from torchflow.filters import (
 )
 from torchflow.filters.ensemble import gaspari_cohn, periodic_distances
 from torchflow.models import LinearGaussian, Lorenz96, SensorNetwork
-from torchflow.trackers import kalman_update
-from conftest import random_lg
 
 ETKF, ENKF, LETKF = EnsembleTransformKalmanFilter, EnsembleKalmanFilter, LocalEnsembleTransformKalmanFilter
 

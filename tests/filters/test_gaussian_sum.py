@@ -4,8 +4,10 @@ import math
 
 import pytest
 import torch
+from conftest import mild_lg, random_lg, simulate_with_belief
 
-from torchflow._checks import NonFiniteError
+from torchflow.core.checks import NonFiniteError
+from torchflow.core.random import TrialStreams
 from torchflow.filters import (
     GaussianParticleFilter,
     GaussianSumParticleFilter,
@@ -14,10 +16,8 @@ from torchflow.filters import (
     ParticleFlowGaussianSumParticleFilter,
 )
 from torchflow.filters.gaussian_sum import MixtureState, mixture_update
+from torchflow.flows.schedules import ExponentialSchedule
 from torchflow.models import AcousticTracking
-from torchflow.random import TrialStreams
-from torchflow.schedules import ExponentialSchedule
-from conftest import mild_lg, random_lg, simulate_with_belief
 
 SCHED = ExponentialSchedule(8, 1.3)
 

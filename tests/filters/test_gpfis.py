@@ -5,15 +5,15 @@ import math
 
 import pytest
 import torch
-
 from conftest import mild_lg, random_lg, replicated
-from torchflow import linalg
+
+from torchflow.core import linalg
+from torchflow.core.random import TrialStreams
 from torchflow.filters import KalmanFilter
 from torchflow.filters.gpfis import GPFIS, gpfis_flow
 from torchflow.flows import FlowPrior, GaussianMeasurement
+from torchflow.flows.schedules import ExponentialSchedule, UniformSchedule
 from torchflow.models import AcousticTracking
-from torchflow.random import TrialStreams
-from torchflow.schedules import ExponentialSchedule, UniformSchedule
 
 
 def _lg_step(model, B=2, N=5, seed=0):

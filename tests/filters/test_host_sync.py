@@ -12,10 +12,10 @@ import pytest
 import torch
 
 from experiments.benchmarks.bench_ops import count, filters
-from torchflow import linalg, tuning
+from torchflow.core import linalg, tuning
+from torchflow.core.profiling import OpCounter
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter
 from torchflow.models import AcousticTracking, LinearGaussian, SensorNetwork
-from torchflow.profiling import OpCounter
 
 CountSyncs = OpCounter
 N = 40

@@ -2,10 +2,10 @@
 
 import pytest
 import torch
+from conftest import random_lg
 from torch.func import functional_call
 
 from torchflow.filters import ExtendedKalmanFilter, KalmanFilter, UnscentedKalmanFilter
-from conftest import random_lg
 
 
 def dense_joint(model, z):
@@ -121,9 +121,9 @@ def test_scalar_support_update_equals_the_joseph_form():
     """The k x k (Woodbury) EKF update of a scalar-R model with a measurement support
     (``tuning.structured_update``) gives kalman_update's posterior and log-density to round-off,
     per particle, including for a nearly singular support block."""
-    from torchflow import tuning
+    from torchflow.core import tuning
+    from torchflow.core.trackers import ekf_update, kalman_update, kalman_update_scalar_support
     from torchflow.models import AcousticTracking
-    from torchflow.trackers import ekf_update, kalman_update, kalman_update_scalar_support
 
     m = AcousticTracking()
     g = torch.Generator().manual_seed(0)
@@ -153,7 +153,7 @@ def test_scalar_support_update_equals_the_joseph_form():
 def test_inflation_scales_the_predicted_covariance(cls):
     """One step with inflation c is the update of the prediction whose covariance is c^2 times the
     uninflated one; c = 1 is the filter unchanged; c < 1 is refused by name."""
-    from torchflow.errors import ArgumentError
+    from torchflow.core.errors import ArgumentError
     from torchflow.filters import GaussianState
 
     model = random_lg(3, 2)

@@ -4,12 +4,11 @@ import math
 
 import pytest
 import torch
-
-from torchflow.filters import BootstrapParticleFilter, GPFIS, KalmanFilter, ParticleFlowParticleFilter
-from torchflow.filters import marginal
-from torchflow.errors import ArgumentError
-from torchflow import linalg
 from conftest import cuda, mild_lg, random_lg
+
+from torchflow.core import linalg
+from torchflow.core.errors import ArgumentError
+from torchflow.filters import GPFIS, BootstrapParticleFilter, KalmanFilter, ParticleFlowParticleFilter, marginal
 
 F64 = torch.float64
 FLOWS = [("edh", "global"), ("ledh", "particle"), ("ledh", "clustered"), ("gromov", "particle")]

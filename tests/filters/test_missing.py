@@ -1,11 +1,14 @@
-"""Missing observations (NaN = not observed) in every filter (:mod:`torchflow.missing`)."""
+"""Missing observations (NaN = not observed) in every filter (:mod:`torchflow.core.missing`)."""
 
 import math
 
 import pytest
 import torch
+from conftest import cuda, mild_lg, random_lg
+from filters.test_contract import CONFIGS, IDS
 
-from torchflow import missing, tuning
+from torchflow.core import missing, tuning
+from torchflow.core.linalg import standard_normal
 from torchflow.filters import (
     BootstrapParticleFilter,
     ExtendedKalmanFilter,
@@ -13,11 +16,8 @@ from torchflow.filters import (
     ParticleFlowParticleFilter,
     UnscentedKalmanFilter,
 )
-from torchflow.flows.kernels import select
+from torchflow.flows import select
 from torchflow.models import LinearGaussian, StateSpaceModel
-from torchflow.linalg import standard_normal
-from conftest import cuda, mild_lg, random_lg
-from filters.test_contract import CONFIGS, IDS
 
 F64 = torch.float64
 
@@ -250,7 +250,7 @@ def test_core_only_model_takes_whole_steps_and_refuses_partial_ones():
 
 
 def test_step_takes_gaps_inside_the_context():
-    """``step`` called directly: inside :func:`torchflow.missing.observations_missing` a NaN is not
+    """``step`` called directly: inside :func:`torchflow.core.missing.observations_missing` a NaN is not
     observed; the same numbers as ``forward``."""
     model = random_lg(3, 2)
     traj = model.simulate(2, 3, torch.Generator().manual_seed(0))

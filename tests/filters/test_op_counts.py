@@ -1,5 +1,5 @@
 """Aten ops per time step of the flow filters, counted on the CPU with a
-``TorchDispatchMode`` (:class:`torchflow.profiling.OpCounter`) over one time step (the second) on
+``TorchDispatchMode`` (:class:`torchflow.core.profiling.OpCounter`) over one time step (the second) on
 acoustic tracking: on a GPU each op is a dispatch and most are a kernel launch. At per-particle
 points the counts do not depend on the trials or particles (PF-PF(LEDH): the same at 2 x 20 as at
 4 x 100), only on the code and the 29 pseudo-steps of the default schedule; a global flow (EDH)
@@ -27,7 +27,7 @@ import pytest
 import torch
 
 from experiments.benchmarks.bench_ops import count, filters
-from torchflow import tuning
+from torchflow.core import tuning
 from torchflow.models import AcousticTracking
 
 #: ops per time step on the CPU's default path, measured when the budgets were set

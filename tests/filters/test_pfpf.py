@@ -4,15 +4,14 @@ import math
 
 import pytest
 import torch
+from conftest import mild_lg, random_lg, replicated, simulate_with_belief
 from torch.func import functional_call
 
-from torchflow.runner import run_experiment
+from torchflow.app.runner import run_experiment
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter, ParticleFlowFilter, ParticleFlowParticleFilter
 from torchflow.flows import EDHFlow, LEDHFlow
+from torchflow.flows.schedules import ExponentialSchedule, UniformSchedule
 from torchflow.models import AcousticTracking
-from torchflow.schedules import ExponentialSchedule, UniformSchedule
-from conftest import mild_lg, random_lg, replicated, simulate_with_belief
-
 
 _replicated = replicated
 

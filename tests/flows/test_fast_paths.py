@@ -5,7 +5,7 @@ propagation, the single-threaded triangular solves and the model's shared linear
 import pytest
 import torch
 
-from torchflow import linalg, tuning
+from torchflow.core import linalg, tuning
 from torchflow.filters import ParticleFlowParticleFilter
 from torchflow.flows import (
     EDHFlow,
@@ -17,8 +17,8 @@ from torchflow.flows import (
     daum_huang_coefficients,
     integrate_flow,
 )
+from torchflow.flows.schedules import ExponentialSchedule
 from torchflow.models import AcousticTracking
-from torchflow.schedules import ExponentialSchedule
 
 F64 = torch.float64
 
@@ -165,7 +165,7 @@ def test_edh_flow_global_path_with_support():
 
 # ---- noise, structure and memory --------------------------------------------------------------------
 def test_standard_normal_fast_path_is_reproducible_and_normal():
-    from torchflow.linalg import FAST_NORMAL_MIN, standard_normal
+    from torchflow.core.linalg import FAST_NORMAL_MIN, standard_normal
 
     n = 4 * FAST_NORMAL_MIN
     a = standard_normal((n,), dtype=F64, device="cpu", generator=torch.Generator().manual_seed(7))
@@ -182,7 +182,7 @@ def test_standard_normal_fast_path_is_reproducible_and_normal():
     first = standard_normal((n,), dtype=F64, device="cpu", generator=g)
     assert not torch.equal(first, standard_normal((n,), dtype=F64, device="cpu", generator=g))
     # above FAST_NORMAL_BLOCK: independent streams per block, the same numbers for any thread count
-    from torchflow.linalg import FAST_NORMAL_BLOCK
+    from torchflow.core.linalg import FAST_NORMAL_BLOCK
 
     big = (2 * FAST_NORMAL_BLOCK + 5,)
     threads = torch.get_num_threads()
@@ -240,7 +240,7 @@ def test_particle_chunking_gives_the_same_filter_output():
 
 
 def test_plan_memory_and_runner_chunk_particles_under_a_small_budget():
-    from torchflow.runner import run_experiment
+    from torchflow.app.runner import run_experiment
     from torchflow.filters import BootstrapParticleFilter
 
     model = AcousticTracking()

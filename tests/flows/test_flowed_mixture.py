@@ -4,13 +4,13 @@ import math
 
 import pytest
 import torch
-
 from conftest import random_lg
+
+from torchflow.core.random import TrialStreams
 from torchflow.filters.kalman import kalman_update
 from torchflow.flows import EDHFlow, FlowPrior, GaussianMeasurement, GromovFlow, OptimalDiffusionFlow, flow_gaussian
+from torchflow.flows.schedules import ExponentialSchedule, UniformSchedule
 from torchflow.proposals import FlowedMixtureProposal
-from torchflow.random import TrialStreams
-from torchflow.schedules import ExponentialSchedule, UniformSchedule
 
 
 def _linear_case(B=4, seed=0):

@@ -2,14 +2,14 @@
 
 import pytest
 import torch
+from conftest import random_lg
 from torch.func import jacrev
 
-from torchflow import linalg
+from torchflow.core import linalg
 from torchflow.filters.kalman import kalman_update
 from torchflow.flows import EDHFlow, FlowPrior, LEDHFlow, integrate_flow
+from torchflow.flows.schedules import ExponentialSchedule, UniformSchedule
 from torchflow.models import AcousticTracking
-from torchflow.schedules import ExponentialSchedule, UniformSchedule
-from conftest import random_lg
 
 
 def test_exponential_schedule_matches_li_coates():

@@ -11,10 +11,9 @@ import textwrap
 
 import pytest
 import torch
-
 from conftest import ROOT, cuda
 
-from torchflow.flows.kernels import select as S
+from torchflow.flows import select as S
 from torchflow.flows.measurement import measurement_form
 
 
@@ -26,13 +25,13 @@ def _kernel(flow, meas, x, k):
 CHECK = textwrap.dedent("""
     import json, sys
     import torch
-    from torchflow import tuning
+    from torchflow.core import tuning
     from torchflow.flows import integrate_flow, FlowPrior, LEDHFlow, EDHFlow
     from torchflow.models import AcousticTracking, LinearGaussian
-    from torchflow.schedules import ExponentialSchedule
+    from torchflow.flows.schedules import ExponentialSchedule
     from torchflow.flows import integrate as I
     from torchflow.flows.kernels import steps as fused
-    from torchflow.flows.kernels import select as S
+    from torchflow.flows import select as S
 
     device = sys.argv[1]
     fused.ROWS_WARPS = 1  # 32 particles per program
@@ -124,10 +123,10 @@ def test_fused_step_matches_torch_in_triton_interpreter(inside, layout):
 F32_CHECK = textwrap.dedent("""
     import json, sys
     import torch
-    from torchflow import tuning
+    from torchflow.core import tuning
     from torchflow.flows import integrate_flow, FlowPrior, LEDHFlow
     from torchflow.models import AcousticTracking
-    from torchflow.schedules import ExponentialSchedule
+    from torchflow.flows.schedules import ExponentialSchedule
 
     def run(dtype, fused, kf32, B=2, N=3):
         g = torch.Generator().manual_seed(0)
@@ -193,8 +192,8 @@ def test_cpu_kernel_gives_the_same_bits_on_any_thread_count_and_split():
     or as 64 + 66 (other lanes and blocks), give the same bits."""
     pytest.importorskip("numba")
     from torchflow.flows import FlowPrior, LEDHFlow, integrate_flow
+    from torchflow.flows.schedules import ExponentialSchedule
     from torchflow.models import AcousticTracking
-    from torchflow.schedules import ExponentialSchedule
 
     model = AcousticTracking()
     g = torch.Generator().manual_seed(3)
@@ -237,7 +236,7 @@ def test_fused_gromov_step_matches_torch_on_cpu(inside, tracked):
     particles, points and tracked Gaussian law (mean, covariance, log-density) of the torch path to
     round-off, for 2 x 70 particles (a partly filled group of 64 lanes) with per-particle priors."""
     pytest.importorskip("numba")
-    from torchflow import tuning
+    from torchflow.core import tuning
     from torchflow.flows import FlowPrior, GromovFlow, integrate_flow
     from torchflow.flows import integrate as I
     from torchflow.models import AcousticTracking
@@ -294,10 +293,10 @@ def _gpfis_case(model, B, N, per_particle_cov, dtype=torch.float64, seed=0):
 
 
 def _gpfis(model, x0, prior, z, steps=5, **tuned):
-    from torchflow import tuning
+    from torchflow.core import tuning
     from torchflow.flows import GaussianMeasurement
     from torchflow.flows.gpfis import gpfis_flow
-    from torchflow.schedules import ExponentialSchedule
+    from torchflow.flows.schedules import ExponentialSchedule
 
     with tuning.tuned(**tuned), torch.no_grad():
         return gpfis_flow(GaussianMeasurement.from_model(model, z), x0, prior, ExponentialSchedule(steps, 1.2))
@@ -379,10 +378,10 @@ def test_fused_gpfis_only_where_it_applies(monkeypatch):
     """The torch path runs with a gradient recorded, ``fused_flows=0``, without Numba, or without
     declared second derivatives (a state-dependent R); the autodiff Jacobian and the symmetric root
     never reach the kernel."""
-    from torchflow import tuning
+    from torchflow.core import tuning
     from torchflow.flows import GaussianMeasurement
-    from torchflow.flows.kernels import steps as fused
     from torchflow.flows import gpfis as GP
+    from torchflow.flows.kernels import steps as fused
     from torchflow.models import AcousticTracking
 
     model, x0, prior, z = _gpfis_case(AcousticTracking(), 1, 4, False)
@@ -423,7 +422,7 @@ def _diag_case(d, B, N, shared, dtype=torch.float64, seed=0):
 
 
 def _flow(model, x, prior, z, flow=None, **tuned):
-    from torchflow import tuning
+    from torchflow.core import tuning
     from torchflow.flows import LEDHFlow, integrate_flow
 
     with tuning.tuned(**tuned), torch.no_grad():
@@ -479,10 +478,9 @@ def test_gaussian_sum_flows_all_particles_at_once_with_the_diagonal_kernel():
     """With the diagonal CPU kernel no ``d x d`` matrix per particle is built, so the Gaussian-sum
     filter does not cut its particles into cache-sized blocks; on the torch path it does."""
     pytest.importorskip("numba")
-    from torchflow import tuning
+    from torchflow.core import tuning
     from torchflow.filters import ParticleFlowGaussianSumParticleFilter
-    from torchflow.flows import LEDHFlow
-    from torchflow.flows import which_kernel
+    from torchflow.flows import LEDHFlow, which_kernel
     from torchflow.models import AcousticTracking, SkewedTPoisson
 
     model = SkewedTPoisson(d=144)
@@ -501,6 +499,7 @@ def test_cpu_precision_from_factor():
     pytest.importorskip("numba")
     import numba
     import numpy as np
+
     from torchflow.flows.kernels.cpu import precision_from_factor
 
     g = torch.Generator().manual_seed(0)
@@ -552,11 +551,10 @@ def test_diagonal_rows_are_the_linearisation_diagonal():
 
 def test_not_fused_without_a_kernel_on_cpu(monkeypatch):
     """On the CPU without Numba (and without Triton's interpreter) the torch path runs."""
-    from torchflow.flows.kernels import steps as fused
+    from torchflow.flows import GromovFlow, LEDHFlow
     from torchflow.flows import integrate as I
-    from torchflow.flows import LEDHFlow
+    from torchflow.flows.kernels import steps as fused
     from torchflow.models import AcousticTracking
-    from torchflow.flows import GromovFlow
 
     monkeypatch.setattr(fused, "_numba", False)
     m = AcousticTracking()
@@ -614,7 +612,7 @@ def test_fused_kernel_keeps_each_particle_in_one_thread_on_sm90(inside, layout):
 def test_which_measurements_the_kernel_linearises_itself():
     """Only a model that declares its measurement in the kernel's terms (acoustic tracking, not a
     subclass that changes it), with its scalar R prepared and ``tuning.fused_measurement`` on."""
-    from torchflow import tuning
+    from torchflow.core import tuning
     from torchflow.flows import integrate as I
     from torchflow.models import AcousticTracking, LinearGaussian
 
@@ -646,7 +644,7 @@ def test_gpu_tiles_bounded_by_the_register_budget():
     """On a GPU the lane kernel holds a particle's k x k matrices in registers: acoustic tracking's
     tiles (k = 8, m = 25, d = 16) fit, k = 16 (the skewed-t model at d = 16) takes the torch path;
     the CPU's cache-sized bound is larger."""
-    from torchflow.flows.kernels.select import tiles_fit
+    from torchflow.flows.select import tiles_fit
 
     assert tiles_fit(25, 8, 16, "cuda") and tiles_fit(2, 3, 3, "cuda")
     assert not tiles_fit(16, 16, 16, "cuda") and tiles_fit(16, 16, 16, "cpu")
@@ -676,13 +674,13 @@ def test_info_factors_are_the_prior_precision_and_c():
 
 
 def test_kernel_form_follows_tuning():
-    """``tuning.fused_info`` picks the GPU kernel's form (information form by default)."""
-    from torchflow import tuning
-    from torchflow.flows.kernels import steps as fused
+    """``tuning.fused_info`` picks the GPU kernel's form (information form by default), and
+    ``tuning.kernel_float32`` its arithmetic (float64 by default)."""
+    from torchflow.core import tuning
 
-    assert fused.kernel_form() == "info"
-    with tuning.tuned(fused_info=0):
-        assert fused.kernel_form() == "rows"
+    assert S.gpu_form() == "info" and not S.gpu_float32()
+    with tuning.tuned(fused_info=0, kernel_float32=1):
+        assert S.gpu_form() == "rows" and S.gpu_float32()
 
 
 def test_the_cpu_kernels_leave_torch_s_thread_count_alone():

@@ -4,12 +4,12 @@ linear-Gaussian model: the Kalman posterior N(m+, P+)."""
 
 import pytest
 import torch
-
 from conftest import random_lg
-from torchflow import linalg
+
+from torchflow.core import linalg
 from torchflow.filters import kalman_update
 from torchflow.flows import EDHFlow, FlowPrior, GeodesicFlow, GromovFlow, LEDHFlow, OptimalDiffusionFlow, integrate_flow
-from torchflow.schedules import ExponentialSchedule, GeometricSchedule, UniformSchedule
+from torchflow.flows.schedules import ExponentialSchedule, GeometricSchedule, UniformSchedule
 
 SCHEDULES = [ExponentialSchedule(), UniformSchedule(7), GeometricSchedule(first_step=1e-2, ratio=2.0)]
 

@@ -3,9 +3,9 @@ GaussianMeasurement that the filter (not the flow) chooses."""
 
 import pytest
 import torch
-
 from conftest import random_lg
-from torchflow import linalg
+
+from torchflow.core import linalg
 from torchflow.flows import EDHFlow, FlowPrior, GromovFlow, LEDHFlow, integrate_flow
 from torchflow.flows.measurement import GaussianMeasurement
 from torchflow.models import AcousticTracking, LinearGaussian

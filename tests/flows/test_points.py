@@ -4,6 +4,7 @@ clustered points, and the pairing reproduces the flow classes that fix them."""
 import pytest
 import torch
 
+from torchflow.core.random import TrialStreams
 from torchflow.filters import ParticleFlowFilter, ParticleFlowParticleFilter
 from torchflow.flows import (
     ClusteredPoints,
@@ -16,7 +17,6 @@ from torchflow.flows import (
     integrate_flow,
 )
 from torchflow.models import AcousticTracking
-from torchflow.random import TrialStreams
 
 
 def _data(B=3, T=3):
@@ -101,6 +101,7 @@ def test_a_new_points_strategy_plugs_in_without_library_edits():
     import math
 
     from conftest import mild_lg, replicated
+
     from torchflow.filters import KalmanFilter
 
     model = mild_lg()

@@ -5,9 +5,12 @@ import math
 
 import pytest
 import torch
+from conftest import mild_lg, random_lg
+from conftest import replicated as _replicated
+from test_flows import _lg_problem, _prior
 from torch.func import jacrev
 
-from torchflow import linalg
+from torchflow.core import linalg
 from torchflow.filters import KalmanFilter, ParticleFlowFilter, ParticleFlowParticleFilter
 from torchflow.flows import (
     EDHFlow,
@@ -22,11 +25,8 @@ from torchflow.flows import (
     symmetric_sqrt,
 )
 from torchflow.flows.measurement import whiten
+from torchflow.flows.schedules import ExponentialSchedule, GeometricSchedule, UniformSchedule
 from torchflow.models import AcousticTracking
-from torchflow.schedules import ExponentialSchedule, GeometricSchedule, UniformSchedule
-from conftest import mild_lg, random_lg
-from test_flows import _lg_problem, _prior
-from conftest import replicated as _replicated
 
 F64 = torch.float64
 

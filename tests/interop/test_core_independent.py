@@ -9,7 +9,7 @@ from conftest import ROOT
 CODE = """
 import sys
 sys.modules["stonesoup"] = None  # any 'import stonesoup' now raises ImportError
-import torchflow, torchflow.filters, torchflow.flows, torchflow.models, torchflow.proposals, torchflow.runner
+import torchflow, torchflow.filters, torchflow.flows, torchflow.models, torchflow.proposals, torchflow.app.runner
 import torchflow.interop  # the package itself is light; only torchflow.interop.stonesoup needs Stone Soup
 try:
     import torchflow.interop.stonesoup

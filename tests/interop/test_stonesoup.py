@@ -73,6 +73,7 @@ def test_gromov_gaussian_image_is_the_kalman_posterior():
     """The flow's Gaussian image on a linear-Gaussian Stone Soup model: torchflow's Gromov flow maps
     the prior N(m, P) exactly to the KalmanUpdater's posterior on any schedule."""
     import torch
+
     from torchflow.flows import FlowPrior, GromovFlow, flow_gaussian
     from torchflow.flows.measurement import GaussianMeasurement
 
@@ -137,7 +138,7 @@ def test_bearing_range_matches_stone_soup_function_and_wraps_angles():
     assert (np.abs(h[0] - z[0, 0]) <= np.pi + 1e-12).all()  # within pi of the detection
     np.testing.assert_allclose(h[1], ref[1], rtol=1e-12)
     # the analytic Jacobian is torch.func's
-    from torchflow.linearize import jacobian
+    from torchflow.core.linearize import jacobian
 
     xt = torch.as_tensor(x.T)
     np.testing.assert_allclose(

@@ -22,7 +22,7 @@ from stonesoup.types.state import ParticleState
 from stonesoup.types.update import ParticleStateUpdate
 
 import torchflow.interop.stonesoup as tss
-from torchflow.errors import ArgumentError, ArgumentTypeError, NonFiniteError
+from torchflow.core.errors import ArgumentError, ArgumentTypeError, NonFiniteError
 from torchflow.interop.stonesoup import FlowParticleUpdater, StoneSoupMeasurement
 
 # the guide's scenario: a CV target, a bearing-range sensor at (50, 0); few particles (speed)

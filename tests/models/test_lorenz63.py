@@ -7,7 +7,7 @@ import pytest
 import torch
 from torch.func import jacrev, vmap
 
-from torchflow.errors import ArgumentError
+from torchflow.core.errors import ArgumentError
 from torchflow.models import Lorenz63, Lorenz96
 
 

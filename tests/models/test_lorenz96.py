@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import torchflow.filters as F
-from torchflow.errors import ArgumentError
+from torchflow.core.errors import ArgumentError
 from torchflow.models import Lorenz96
 from torchflow.models.lorenz96 import lorenz96_tendency, rk4
 

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from torchflow.linearize import jacobian
+from torchflow.core.linearize import jacobian
 from torchflow.models import AcousticTracking, LinearGaussian, SensorNetwork, sensor_network_covariance
 
 

@@ -7,11 +7,11 @@ import pytest
 import torch
 from torch import nn
 
+from torchflow.core.linearize import jacobian
 from torchflow.filters import BootstrapParticleFilter, ExtendedKalmanFilter, ParticleFlowParticleFilter
-from torchflow.linearize import jacobian
+from torchflow.flows.schedules import ExponentialSchedule
 from torchflow.models import AcousticTracking, GaussianStateSpaceModel, InverseDistance, NeuralAcoustic, ResponseMLP
 from torchflow.models.contract import check_shapes
-from torchflow.schedules import ExponentialSchedule
 
 SCHED = ExponentialSchedule(8, 1.3)
 
@@ -154,7 +154,7 @@ def test_a_short_fit_through_the_lightning_module_raises_the_log_likelihood():
     pl = pytest.importorskip("pytorch_lightning")
     from torch.utils.data import DataLoader
 
-    from torchflow.lightning import FilterLightningModule, TrajectoryDataset
+    from torchflow.app.lightning import FilterLightningModule, TrajectoryDataset
 
     truth = NeuralAcoustic(InverseDistance(), n_targets=1, sensor_grid=3)
     g = torch.Generator().manual_seed(0)
@@ -224,7 +224,7 @@ def test_bad_arguments_are_named():
 def test_the_noise_scale_alone_may_hold_per_trial_values():
     """The neural model has no physical amplitude psi (its response holds its own): only sigma_w
     may hold one value per trial, and a per-trial psi is refused by name, not by an AttributeError."""
-    from torchflow.errors import ArgumentError
+    from torchflow.core.errors import ArgumentError
     from torchflow.inference import per_trial_values
 
     model = _small()

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
+from torchflow.core.random import TrialStreams
 from torchflow.models import SkewedTPoisson
-from torchflow.random import TrialStreams
 
 special = pytest.importorskip("scipy.special")
 stats = pytest.importorskip("scipy.stats")
@@ -134,8 +134,8 @@ def test_pfpf_evidence_on_the_skewed_t_model_matches_the_bootstrap_filter():
     agrees with a 2e4-particle BPF's within 4 combined standard errors."""
     import math
 
+    from torchflow.core.random import TrialStreams
     from torchflow.filters import BootstrapParticleFilter, ParticleFlowParticleFilter
-    from torchflow.random import TrialStreams
 
     model = SkewedTPoisson(d=4)
     traj = model.simulate(1, 3, torch.Generator().manual_seed(3))
@@ -179,11 +179,11 @@ def test_declared_diagonal_jacobian_gives_the_same_numbers():
     declaration (d = 36: the operator form, k >= 32), on the torch path."""
     import torch
 
-    from torchflow import tuning
+    from torchflow.core import tuning
+    from torchflow.core.random import TrialStreams
     from torchflow.filters import ParticleFlowGaussianSumParticleFilter, ParticleFlowParticleFilter
     from torchflow.flows.measurement import GaussianMeasurement
     from torchflow.models import SkewedTPoisson
-    from torchflow.random import TrialStreams
 
     class Dense(SkewedTPoisson):
         structure = SkewedTPoisson.structure.replace(measurement_jacobian_diagonal=False)

@@ -10,8 +10,8 @@ import torch
 
 import torchflow.filters as F
 from experiments.grid_filter import grid_filter
-from torchflow.errors import ArgumentError
-from torchflow.linearize import jacobian
+from torchflow.core.errors import ArgumentError
+from torchflow.core.linearize import jacobian
 from torchflow.models import StochasticVolatility
 from torchflow.models.stochastic_volatility import LOG_CHI2_MEAN, LOG_CHI2_VAR
 from torchflow.proposals.flow import check_informative
@@ -315,8 +315,8 @@ def test_per_trial_parameters_give_the_numbers_of_separate_calls():
     """mu, rho, sigma as one value per trial (MCMC chains): the bootstrap PF's per-trial results
     equal separate calls with each trial's scalar values and its own stream, bit for bit up to
     round-off; the EKF too (the Gaussian form's transition reads them)."""
+    from torchflow.core.random import TrialStreams
     from torchflow.inference import per_trial_values
-    from torchflow.random import TrialStreams
 
     values = {
         "mu": torch.tensor([-1.0, -0.5, 0.2], **f64),
@@ -345,8 +345,8 @@ def test_per_trial_parameters_give_the_numbers_of_separate_calls():
 @pytest.mark.parametrize("flow", ["ledh", "edh"])
 def test_per_trial_parameters_in_the_flows(flow):
     """PF-PF on the log-squared form with per-trial mu, rho, sigma: the numbers of separate calls."""
+    from torchflow.core.random import TrialStreams
     from torchflow.inference import per_trial_values
-    from torchflow.random import TrialStreams
 
     values = {
         "mu": torch.tensor([-1.0, 0.3], **f64),

@@ -7,9 +7,9 @@ import torch
 from torch.func import jacrev, vmap
 
 from torchflow.flows import EDHFlow, FlowPrior, GromovFlow, flow_gaussian
+from torchflow.flows.schedules import ExponentialSchedule
 from torchflow.localisation import sensor_measurement
 from torchflow.models import TDOA3D
-from torchflow.schedules import ExponentialSchedule
 
 
 def test_default_geometry():

@@ -4,11 +4,11 @@ import math
 
 import pytest
 import torch
+from conftest import ROOT, mild_lg, random_lg, replicated, simulate_with_belief
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from conftest import mild_lg, random_lg, replicated, simulate_with_belief, ROOT
-from torchflow.covariances import ParticleCovariance
+from torchflow.core.covariances import ParticleCovariance
 from torchflow.filters import KalmanFilter, ParticleFilter
 from torchflow.models import AcousticTracking
 from torchflow.proposals import UnscentedProposal
@@ -107,7 +107,7 @@ def test_transition_prior_is_the_linearised_optimal_proposal():
     """prior="transition" carries nothing and, on a linear-Gaussian model, draws from the exact
     optimal proposal p(x_k | x_{k-1}, z_k): the KF update of N(F x, Q) with z (checked against
     kalman_update); a bad prior name is refused naming the argument."""
-    from torchflow.trackers import kalman_update
+    from torchflow.core.trackers import kalman_update
 
     model = random_lg()
     prop = UnscentedProposal(model, prior="transition")

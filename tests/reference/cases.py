@@ -4,7 +4,7 @@ redesign) can be checked trial by trial against the numbers of the code before i
     python -m tests.reference.cases          # rewrite per_trial.json (only when a change is meant
                                              # to change the numbers; say so in the commit)
 
-The cases run through :func:`torchflow.runner.run_experiment`, so each trial draws from its own
+The cases run through :func:`torchflow.app.runner.run_experiment`, so each trial draws from its own
 random stream and the numbers do not depend on chunking.
 """
 
@@ -15,8 +15,8 @@ from pathlib import Path
 
 import torch
 
-from torchflow import tuning
-from torchflow.runner import run_experiment
+from torchflow.app.runner import run_experiment
+from torchflow.core import tuning
 from torchflow.filters import (
     BootstrapParticleFilter,
     ExtendedKalmanFilter,
@@ -25,8 +25,8 @@ from torchflow.filters import (
     ParticleFlowParticleFilter,
     UnscentedKalmanFilter,
 )
+from torchflow.flows.schedules import ExponentialSchedule
 from torchflow.models import AcousticTracking, SensorNetwork
-from torchflow.schedules import ExponentialSchedule
 
 HERE = Path(__file__).resolve().parent
 

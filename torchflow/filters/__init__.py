@@ -1,19 +1,48 @@
-"""Filters: every filter is an ``nn.Module`` with the ``init`` / ``step`` / ``forward`` contract."""
+"""Filters: every filter is an ``nn.Module`` with the ``init`` / ``step`` / ``forward`` contract.
 
-from .base import Filter, FilterResult, GaussianState, ParticleFilter, ParticleFilterBase, ParticleState
-from .bootstrap import BootstrapParticleFilter
-from .pfpf import ClusteredParticleFlowParticleFilter, ParticleFlowFilter, ParticleFlowParticleFilter
-from .gpfis import GPFIS, GaussianParticleFlowImportanceSampler
-from .gaussian_sum import (
+May import: :mod:`torchflow.core`, :mod:`torchflow.models`, :mod:`torchflow.flows` (its kernels
+only through :mod:`torchflow.flows.select`), :mod:`torchflow.proposals`.
+
+* :mod:`.base`: the contract (:class:`Filter`) and the particle filter of every proposal
+  (:class:`ParticleFilter`); :mod:`.guards`: non-finite values; :mod:`.marginal`: the marginal
+  weights; :mod:`.graph_step`: a particle filter's whole step replayed from a CUDA graph;
+* :mod:`.kalman` (KF, EKF, UKF), :mod:`.bootstrap`, :mod:`.pfpf` (PF-PF, clustered PF-PF),
+  :mod:`.gpfis`, :mod:`.gaussian_sum` (Gaussian and Gaussian-sum PFs), :mod:`.ensemble`
+  (ensemble Kalman filters), :mod:`.assimilation` (localised and lag-one flow filters for data
+  assimilation).
+"""
+
+from torchflow.filters.assimilation import KernelParticleFlowFilter, LagOneFlowFilter, LocalParticleFilter
+from torchflow.filters.base import (
+    Filter,
+    FilterResult,
+    GaussianState,
+    ParticleFilter,
+    ParticleFilterBase,
+    ParticleState,
+)
+from torchflow.filters.bootstrap import BootstrapParticleFilter
+from torchflow.filters.ensemble import (
+    EnsembleKalmanFilter,
+    EnsembleTransformKalmanFilter,
+    LocalEnsembleTransformKalmanFilter,
+)
+from torchflow.filters.gaussian_sum import (
     GaussianParticleFilter,
     GaussianSumParticleFilter,
     MixtureState,
     ParticleFlowGaussianParticleFilter,
     ParticleFlowGaussianSumParticleFilter,
 )
-from .ensemble import EnsembleKalmanFilter, EnsembleTransformKalmanFilter, LocalEnsembleTransformKalmanFilter
-from .assimilation import KernelParticleFlowFilter, LagOneFlowFilter, LocalParticleFilter
-from .kalman import ExtendedKalmanFilter, KalmanFilter, UnscentedKalmanFilter, ekf_predict, kalman_update
+from torchflow.filters.gpfis import GPFIS, GaussianParticleFlowImportanceSampler
+from torchflow.filters.kalman import (
+    ExtendedKalmanFilter,
+    KalmanFilter,
+    UnscentedKalmanFilter,
+    ekf_predict,
+    kalman_update,
+)
+from torchflow.filters.pfpf import ClusteredParticleFlowParticleFilter, ParticleFlowFilter, ParticleFlowParticleFilter
 
 __all__ = [
     "Filter",

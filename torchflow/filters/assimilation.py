@@ -57,13 +57,12 @@ from typing import Optional
 
 import torch
 
-from .. import linalg
-from .. import missing as _missing
-from ..random import uniform
-from ..schedules import ExponentialSchedule
-from .._checks import check_count, check_number
-from ..errors import ArgumentError, ArgumentTypeError
-from .ensemble import (
+from torchflow.core import linalg
+from torchflow.core import missing as _missing
+from torchflow.core.checks import check_count, check_number
+from torchflow.core.errors import ArgumentError, ArgumentTypeError
+from torchflow.core.random import uniform
+from torchflow.filters.ensemble import (
     _DIAGONAL_NOISE,
     _EnsembleFilter,
     check_radius,
@@ -72,6 +71,7 @@ from .ensemble import (
     periodic_distances,
     rotate_anomalies,
 )
+from torchflow.flows.schedules import ExponentialSchedule
 
 __all__ = ["KernelParticleFlowFilter", "LagOneFlowFilter", "LocalParticleFilter"]
 
@@ -422,7 +422,7 @@ class LagOneFlowFilter(_EnsembleFilter):
         rotate: mix the analysis members by a random mean-preserving rotation (as the ETKF's, and
             DAPPER's iEnKS with ``rot=True``); on by default: without it members that strayed stay
             outliers, and on Lorenz-63 one trial in ten lost the truth at N = 20 and 40 (with it, none;
-            RESULTS.md).
+            ``python -m experiments.benchmarks.bench_lorenz63``).
         validate, name: as :class:`~torchflow.filters.Filter`.
 
     The evidence is the Gaussian approximation of the forecast ensemble ``M(x_i)`` seen through the

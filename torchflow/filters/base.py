@@ -13,30 +13,39 @@ import torch
 import torch.utils.checkpoint
 from torch import nn
 
-from .. import linalg, missing as _missing
-from .. import random as _random
-from .. import resampling as _resampling
-from .._checks import allocation_failure, check_choice, check_count, check_finite, check_psd, check_same, check_tensor
-from .._blocks import blockwise
-from ..covariances import Covariance, DiagonalCovariance, sample_prior
-from ..models.base import StateSpaceModel, partial_observations
-from ..models.contract import (
+from torchflow.core import linalg
+from torchflow.core import missing as _missing
+from torchflow.core import paths as _paths
+from torchflow.core import random as _random
+from torchflow.core import resampling as _resampling
+from torchflow.core.blocks import blockwise
+from torchflow.core.checks import (
+    allocation_failure,
+    check_choice,
+    check_count,
+    check_finite,
+    check_psd,
+    check_same,
+    check_tensor,
+)
+from torchflow.core.covariances import Covariance, DiagonalCovariance, sample_prior
+from torchflow.core.errors import ArgumentError, ArgumentTypeError
+from torchflow.core.random import check_generator
+from torchflow.filters import graph_step, guards
+from torchflow.filters import marginal as _marginal
+from torchflow.flows import select as _select
+from torchflow.models.base import StateSpaceModel, partial_observations, require_gaussian
+from torchflow.models.contract import (
     COVARIANCE_CHECK_NUMBERS,
     DECLARED_CHECK_NUMBERS,
     check_covariances,
-    check_parameters,
     check_dtype,
+    check_parameters,
     check_shapes,
-    require_gaussian,
 )
-from ..models.structure import kernel_structure
-from ..proposals import BootstrapProposal, Proposal
-from ..proposals.flow import check_informative
-from ..random import check_generator
-from ..flows.kernels import graph_step, paths as _paths, select as _select, steps as _steps
-from ..errors import ArgumentError, ArgumentTypeError
-from . import guards
-from . import marginal as _marginal
+from torchflow.models.structure import kernel_structure
+from torchflow.proposals import BootstrapProposal, Proposal
+from torchflow.proposals.flow import check_informative
 
 
 @dataclass
@@ -80,7 +89,7 @@ class ParticleState:
         resampled: ``(B,)`` bool, which trials were resampled this step.
         n_repaired: ``(B,)`` number of steps so far in which non-finite particles or weights were
             repaired (``nonfinite="recover"``).
-        cov: optional :class:`~torchflow.covariances.Covariance` carried between steps (a PF-PF's
+        cov: optional :class:`~torchflow.core.covariances.Covariance` carried between steps (a PF-PF's
             tracked covariance: per trial or per particle, typed, not guessed from its shape).
         step: number of observations processed.
         extras: filter-specific tensors with a leading ``(B, N)`` that follow resampling.
@@ -121,7 +130,7 @@ class FilterResult:
         std: ``(B, T, d)`` the filtering law's standard deviation of each coordinate, if requested
             (``forward(return_std=True)``; :func:`belief_std`).
         paths: ``{path: count}``: the execution paths the call's time steps took
-            (:mod:`torchflow.flows.kernels.paths`): ``"kernel:<name>"`` per flow integration by a
+            (:mod:`torchflow.core.paths`): ``"kernel:<name>"`` per flow integration by a
             fused kernel, ``"graph:flow"`` / ``"graph:step"`` per integration / step sent to a CUDA
             graph, ``"torch"`` per integration (or step without any of these) in plain PyTorch.
             Host-side counts; no number depends on them.
@@ -159,7 +168,7 @@ class Filter(nn.Module):
     """Base class: a filter holds its model (a submodule) and its settings, never the belief.
 
     Subclasses implement :meth:`init` and :meth:`step`; :meth:`forward` runs them over time,
-    validates inputs and raises :class:`~torchflow._checks.NonFiniteError` naming the filter,
+    validates inputs and raises :class:`~torchflow.core.checks.NonFiniteError` naming the filter,
     step and trials where an estimate stops being finite.
 
     Args:
@@ -172,8 +181,8 @@ class Filter(nn.Module):
     uses_particles = False
     #: whether the filter draws random numbers (then ``forward`` requires a generator)
     uses_randomness = False
-    #: stable name of the filter's random streams (:class:`~torchflow.random.TrialStreams` key in
-    #: :func:`~torchflow.runner.run_experiment`): part of the reproducibility contract, so it
+    #: stable name of the filter's random streams (:class:`~torchflow.core.random.TrialStreams` key in
+    #: :func:`~torchflow.app.runner.run_experiment`): part of the reproducibility contract, so it
     #: is declared per filter family and never derived from config or class names; ``None`` means
     #: the class name. Filters with the same stream name share common random numbers in one run.
     random_stream: Optional[str] = None
@@ -183,13 +192,13 @@ class Filter(nn.Module):
     #: default of ``forward(checkpoint_steps=...)``: recompute each time step in the backward pass
     checkpoint_steps = False
     #: under autograd, check the gradient flowing back into every step and the model parameters'
-    #: gradients, raising :class:`~torchflow.errors.NonFiniteError` naming the step, trials or
+    #: gradients, raising :class:`~torchflow.core.errors.NonFiniteError` naming the step, trials or
     #: parameter (:mod:`torchflow.filters.guards`; one host read per step of the backward pass)
     check_gradients = True
     #: the filter reads the model's Gaussian form (:class:`~torchflow.models.GaussianStateSpaceModel`);
     #: a particle filter leaves this to its proposal
     gaussian_form = True
-    #: :meth:`init` takes a :class:`~torchflow.covariances.DiagonalCovariance` prior as it is (its
+    #: :meth:`init` takes a :class:`~torchflow.core.covariances.DiagonalCovariance` prior as it is (its
     #: variances, no ``d x d`` matrix: the ensemble Kalman filters, the bootstrap PF); other filters
     #: are given its dense matrix by :meth:`check_prior`
     diagonal_prior = False
@@ -274,7 +283,7 @@ class Filter(nn.Module):
         ``why``: what this filter needs it for, and what to do. One factorisation and host read per
         call (before the first step); a state-dependent covariance is left to the steps' non-finite
         handling."""
-        from ..models.base import GaussianStateSpaceModel
+        from torchflow.models.base import GaussianStateSpaceModel
 
         model = self.model
         if not isinstance(model, GaussianStateSpaceModel) or (
@@ -309,7 +318,7 @@ class Filter(nn.Module):
 
     def check_prior(self, mean: torch.Tensor, cov, batch_size: Optional[int] = None):
         """Validate (and broadcast ``(d,)``/``(d, d)`` to) ``mean (B, d)``, ``cov (B, d, d)``. A
-        :class:`~torchflow.covariances.DiagonalCovariance` (variances ``(B, d)`` or ``(d,)``) is
+        :class:`~torchflow.core.covariances.DiagonalCovariance` (variances ``(B, d)`` or ``(d,)``) is
         checked on its variances and kept where the filter declares :attr:`diagonal_prior`, else
         given as its dense matrix."""
         d = self.model.state_dim
@@ -323,7 +332,7 @@ class Filter(nn.Module):
             raise ArgumentError(
                 f"cov: expected (d, d) = ({d}, {d}) shared by every trial or (B, d, d), got "
                 f"{tuple(cov.shape)} (per-trial variances (B, d) are torch.diag_embed(variances), or "
-                "torchflow.covariances.DiagonalCovariance(variances) without the matrix)"
+                "torchflow.core.covariances.DiagonalCovariance(variances) without the matrix)"
             )
         if shared and batch_size is not None:
             cov = cov.expand(batch_size, -1, -1)
@@ -340,7 +349,7 @@ class Filter(nn.Module):
                     raise ArgumentError(
                         f"{err} (a (d, d) matrix shared by every trial was given; if these are "
                         "per-trial variances (B, d), pass torch.diag_embed(variances) or "
-                        "torchflow.covariances.DiagonalCovariance(variances))"
+                        "torchflow.core.covariances.DiagonalCovariance(variances))"
                     ) from None
                 raise
         return mean, cov
@@ -450,7 +459,7 @@ class Filter(nn.Module):
             observations: ``(B, T, m)``.
             mean, cov: prior per trial (``(d,)`` / ``(d, d)`` are broadcast over trials).
             generator: source of all randomness: a ``torch.Generator`` (one stream for the
-                batch) or :class:`~torchflow.random.TrialStreams` (one stream per trial, so a
+                batch) or :class:`~torchflow.core.random.TrialStreams` (one stream per trial, so a
                 trial's numbers do not depend on the batch it runs in). Required by filters that
                 draw random numbers (particle filters, flow filters).
             n_particles: override the filter's particle count (particle filters).
@@ -502,7 +511,10 @@ class Filter(nn.Module):
         step = self._checkpointed_step if checkpoint_steps and torch.is_grad_enabled() else self.step
         if step == self.step and not gaps and graph_step.eligible(self, state, generator):  # one launch per step (CUDA)
             step = functools.partial(graph_step.run_step, self, memo={})
-        with _missing.observations_missing(gaps), _paths.recording() as used:  # NaN: not observed (torchflow.missing)
+        with (
+            _missing.observations_missing(gaps),
+            _paths.recording() as used,
+        ):  # NaN: not observed (torchflow.core.missing)
             step = _paths.per_step(step, used)  # each step's kernel / graph / torch path, counted on the host
             state = self._run_steps(state, step, observations, generator, trace, n_particles, progress)
         self._check_trace(trace, warn=True)  # the one host read of the check
@@ -515,7 +527,7 @@ class Filter(nn.Module):
             raise
 
     def check_missing(self, observations: torch.Tensor) -> bool:
-        """Whether ``observations (B, T, m)`` hold NaN (values not observed, :mod:`torchflow.missing`):
+        """Whether ``observations (B, T, m)`` hold NaN (values not observed, :mod:`torchflow.core.missing`):
         one host read per call, before the first step. Raises when a step is partly observed and
         this filter weighs particles with a model whose measurement density cannot leave out single
         coordinates (:func:`torchflow.models.base.partial_observations`)."""
@@ -585,7 +597,7 @@ def _uncountable(err: BaseException) -> BaseException:
 #: instead of keeping each step's small tensors. Kept, those small blocks are carved by the C
 #: allocator out of the large blocks the step freed, which then no longer fit the next step's large
 #: tensors: the heap grew by ~10 MB a step at B = 100, N = 10^4 (6.5 GB resident after 750 steps,
-#: the step twice as slow from page faults; ``experiments/RESULTS.md``, "Stochastic volatility").
+#: the step twice as slow from page faults; ``python -m experiments.benchmarks.bench_sv``).
 TRACE_BUFFER_MIN = 1 << 15
 
 
@@ -730,13 +742,18 @@ NONFINITE = ("recover", "raise")
 PROPOSAL_GRADIENTS = ("pathwise", "score")
 
 
+#: the methods of :class:`ParticleFilter` that a fast path stands in for (:attr:`ParticleFilter.kept`)
+_KEPT = ("init", "step", "_estimate_and_resample", "account_clean", "account")
+_KEPT_FOR_WEIGHTS = frozenset(("_estimate_and_resample", "account_clean", "account"))
+
+
 class ParticleFilter(Filter):
     """The particle filter: one step for every proposal.
 
     ``propose`` (the :class:`~torchflow.proposals.Proposal`, fed tensors) -> weigh
     ``log w_k = log w_{k-1} + log p(x_k | x_{k-1}) + log p(z_k | x_k) - log q(x_k | x_{k-1}, z_k)``
     (a proposal that draws from the transition, ``log_q = None``, leaves the likelihood alone) ->
-    estimate (weighted mean) -> resample (:class:`~torchflow.resampling.Resampler`). The named
+    estimate (weighted mean) -> resample (:class:`~torchflow.core.resampling.Resampler`). The named
     filters (:class:`~torchflow.filters.BootstrapParticleFilter`, PF-PF, GPFIS, ...) are this class
     with their proposal.
 
@@ -752,9 +769,9 @@ class ParticleFilter(Filter):
             of Gaussian jitter added to the particles of resampled trials (absolute).
         regularization_relative: ``None`` (off) or ``h >= 0``: jitter of ``h`` times each
             coordinate's weighted spread before resampling (relative to the cloud, as DAPPER's
-            ``reg``); see :class:`~torchflow.resampling.Resampler`.
+            ``reg``); see :class:`~torchflow.core.resampling.Resampler`.
         resampling_gradient: how gradients pass through resampling (``"none"``, ``"stop_gradient"``,
-            ``"soft"`` or ``"ot"``; see :class:`~torchflow.resampling.Resampler`).
+            ``"soft"`` or ``"ot"``; see :class:`~torchflow.core.resampling.Resampler`).
         soft_alpha: the mixture weight of ``resampling_gradient="soft"``, in (0, 1].
         ot_epsilon, ot_iterations: regularisation (relative to the cloud's spread) and Sinkhorn
             iterations of ``resampling_gradient="ot"``.
@@ -772,7 +789,7 @@ class ParticleFilter(Filter):
             position or log-weight gets weight zero (and a finite fallback position: its pre-flow
             draw); a trial left with no valid particle keeps its previous weights and the fallback
             particles; each step with a repair is counted per trial in ``n_repaired`` (the runner's
-            ``repaired`` column). ``"raise"``: :class:`~torchflow._checks.NonFiniteError` names the
+            ``repaired`` column). ``"raise"``: :class:`~torchflow.core.checks.NonFiniteError` names the
             filter, step and trials. Recover is the default because a flow's far-tail particle can
             overflow its ``log|det|`` in an otherwise healthy trial, and weight zero is the limit of
             its weight; the count keeps every repair visible.
@@ -793,6 +810,16 @@ class ParticleFilter(Filter):
     uses_randomness = True
 
     gaussian_form = False  # the proposal states what it needs of the model
+
+    #: which of this class's methods the class keeps as they are (:data:`_KEPT`): a subclass's set is
+    #: declared once, when the subclass is made (:meth:`__init_subclass__`). The fast paths that stand
+    #: in for these methods (the CUDA-graph step, the diagonal prior, the weighting kernel) run only
+    #: where the code they replace is the code the filter has.
+    kept: frozenset = frozenset()
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        cls.kept = frozenset(name for name in _KEPT if getattr(cls, name) is getattr(ParticleFilter, name))
 
     def __init__(
         self,
@@ -866,12 +893,12 @@ class ParticleFilter(Filter):
 
     @property
     def graph_step(self) -> bool:
-        """Whether the whole step may be replayed from a CUDA graph (:mod:`torchflow.flows.kernels.graph_step`):
+        """Whether the whole step may be replayed from a CUDA graph (:mod:`torchflow.filters.graph_step`):
         the generic step (not overridden), a proposal class and a model class that each declare
         themselves ``graph_safe`` (on the class itself: a subclass may draw otherwise), and the
         proposal's linearisation points, where it has them."""
         return (
-            type(self).step is ParticleFilter.step
+            "step" in self.kept
             and self.weights == "standard"
             and bool(vars(type(self.proposal)).get("graph_safe"))
             and (
@@ -883,11 +910,11 @@ class ParticleFilter(Filter):
 
     @property
     def diagonal_prior(self) -> bool:
-        """Whether :meth:`init` takes a :class:`~torchflow.covariances.DiagonalCovariance` as it is:
+        """Whether :meth:`init` takes a :class:`~torchflow.core.covariances.DiagonalCovariance` as it is:
         when the proposal's class declares it (its :meth:`~torchflow.proposals.Proposal.init_carry`
         does not read the prior covariance: the bootstrap proposal), and the filter's :meth:`init`
         is this class's (a subclass with its own, the Gaussian-sum filters, is given the matrix)."""
-        return type(self).init is ParticleFilter.init and bool(vars(type(self.proposal)).get("diagonal_prior"))
+        return "init" in self.kept and bool(vars(type(self.proposal)).get("diagonal_prior"))
 
     resampling_scheme = property(lambda self: self.resampler.scheme)
     ess_threshold = property(lambda self: self.resampler.ess_threshold)
@@ -987,7 +1014,7 @@ class ParticleFilter(Filter):
                 extras=ancestor_extras(state, prop.particles),
             )
 
-        def measurement_log_prob(z, x):  # of the observed coordinates where z has NaN (torchflow.missing)
+        def measurement_log_prob(z, x):  # of the observed coordinates where z has NaN (torchflow.core.missing)
             return _missing.measurement_log_prob(model, z, x)
 
         if prop.log_q is None:
@@ -1021,7 +1048,7 @@ class ParticleFilter(Filter):
 
     def per_particle(self, fn, *tensors, pass_slice: bool = False, chunk: Optional[int] = None):
         """``fn(*tensors)`` in blocks of :attr:`particle_chunk` particles (or ``chunk``, when given;
-        :func:`torchflow._blocks.blockwise`)."""
+        :func:`torchflow.core.blocks.blockwise`)."""
         return blockwise(fn, *tensors, chunk=self.particle_chunk if chunk is None else chunk, pass_slice=pass_slice)
 
     def repair(self, particles: torch.Tensor, log_increment: torch.Tensor, fallback: Optional[torch.Tensor]):
@@ -1112,13 +1139,10 @@ class ParticleFilter(Filter):
         )
 
     def _weights_kernel(self, particles, prev_log_weights, log_increment, cov, extras) -> bool:
-        """The CPU weighting kernel takes this step (:func:`torchflow.flows.kernels.select.weights_kernel`),
+        """The CPU weighting kernel takes this step (:func:`torchflow.flows.select.weights_kernel`),
         where this class weighs, estimates and resamples as :class:`ParticleFilter` does."""
-        cls = type(self)
         return (
-            cls._estimate_and_resample is ParticleFilter._estimate_and_resample
-            and cls.account_clean is ParticleFilter.account_clean
-            and cls.account is ParticleFilter.account
+            _KEPT_FOR_WEIGHTS <= self.kept
             and _select.weights_kernel(
                 particles, prev_log_weights, log_increment, resampler=self.resampler, cov=cov, extras=extras
             )
@@ -1131,7 +1155,7 @@ class ParticleFilter(Filter):
         flags (a particle to repair, no weight left) take :meth:`_weigh_masked` on their own rows with
         their rows of those uniforms, so every trial's numbers are those it gets in any batch."""
         uniforms = self.resampler.draw_uniforms(prev_log_weights, generator)
-        x, lw, estimate, ess, inc, resampled, bad = _steps.weigh_resample(
+        x, lw, estimate, ess, inc, resampled, bad = _select.weigh_resample(
             particles, prev_log_weights, log_increment, uniforms, self.resampler.ess_threshold
         )
         _paths.note("kernel:weights")
@@ -1255,6 +1279,8 @@ class ParticleFilter(Filter):
     def extra_repr(self) -> str:
         return f"n_particles={self.n_particles}, nonfinite={self.nonfinite!r}"
 
+
+ParticleFilter.kept = frozenset(_KEPT)
 
 #: the former name of :class:`ParticleFilter` (kept for users' code)
 ParticleFilterBase = ParticleFilter

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .base import ParticleFilter
+from torchflow.filters.base import ParticleFilter
 
 
 class BootstrapParticleFilter(ParticleFilter):

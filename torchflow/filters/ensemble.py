@@ -55,11 +55,11 @@ from typing import Optional, Tuple
 
 import torch
 
-from .. import linalg
-from .._checks import check_count, check_number
-from ..covariances import sample_prior
-from ..errors import ArgumentError, ArgumentTypeError
-from .base import Filter, ParticleState
+from torchflow.core import linalg
+from torchflow.core.checks import check_count, check_number
+from torchflow.core.covariances import sample_prior
+from torchflow.core.errors import ArgumentError, ArgumentTypeError
+from torchflow.filters.base import Filter, ParticleState
 
 __all__ = [
     "EnsembleKalmanFilter",
@@ -289,7 +289,7 @@ class _EnsembleFilter(Filter):
     # ---- contract ------------------------------------------------------------------------------
     def init(self, mean, cov, n_particles=None, generator=None) -> ParticleState:
         """N members per trial drawn from the prior ``N(mean (B, d), cov)``: ``cov (B, d, d)`` or a
-        :class:`~torchflow.covariances.DiagonalCovariance` (variances ``(B, d)``)."""
+        :class:`~torchflow.core.covariances.DiagonalCovariance` (variances ``(B, d)``)."""
         N = self._resolve_n(n_particles)
         X = sample_prior(mean, cov, N, generator)  # (B, N, d)
         return self._state(X, torch.zeros_like(mean[:, 0]), 0)

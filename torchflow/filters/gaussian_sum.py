@@ -1,5 +1,5 @@
-"""Gaussian and Gaussian-sum particle filters, with and without a particle flow (seed 001:
-Comandur, Li & Nannuru 2022, eqs 4-16; Kotecha & Djuric 2003).
+"""Gaussian and Gaussian-sum particle filters, with and without a particle flow (Comandur,
+Li & Nannuru 2022, eqs 4-16; Kotecha & Djuric 2003).
 
 The belief is a mixture ``sum_j alpha^j N(mu^j, Sigma^j)`` of G components; no resampling anywhere.
 One step, for all trials and all G components in one batched call (components are rows of a
@@ -53,16 +53,16 @@ from typing import Optional
 
 import torch
 
-from .. import linalg, missing
-from .._checks import check_choice, check_count
-from ..flows import FlowPrior, integrate_flow, which_kernel
-from ..flows.points import ParticlePoints, flow_points_per_call
-from ..schedules import LambdaSchedule, resolve_schedule
-from ..proposals import resolve_flow
-from ..models.contract import require_gaussian
-from ..models.structure import bytes_per_point
-from .base import ParticleFilter
-from ..errors import ArgumentError
+from torchflow.core import linalg, missing
+from torchflow.core.checks import check_choice, check_count
+from torchflow.core.errors import ArgumentError
+from torchflow.filters.base import ParticleFilter
+from torchflow.flows import FlowPrior, integrate_flow, which_kernel
+from torchflow.flows.points import ParticlePoints, flow_points_per_call
+from torchflow.flows.schedules import LambdaSchedule, resolve_schedule
+from torchflow.models.base import require_gaussian
+from torchflow.models.structure import bytes_per_point
+from torchflow.proposals import resolve_flow
 
 LINEARIZE_AT = ("auxiliary", "particle")
 ESTIMATES = ("mixture_mean", "top_component")
@@ -142,7 +142,7 @@ class GaussianSumParticleFilter(ParticleFilter):
             only mask). The total is ``n_particles = G N*``.
         flow: ``None`` (no flow: GPF/GSPF), ``"ledh"`` or a deterministic
             :class:`~torchflow.flows.ParticleFlow` with per-particle points (PFGPF/PFGSPF).
-        schedule: lambda schedule of the flow (default exponential, 29 steps, ratio 1.2; §1).
+        schedule: lambda schedule of the flow (default exponential, 29 steps, ratio 1.2, as Li & Coates 2017).
         linearize_at: ``"auxiliary"`` (default) or ``"particle"``; see the module docstring.
         redraw_eta0: redraw ``eta_0`` from the fitted predictive (default False, the seed's).
         init: ``"prior"`` (default) or ``"spread"``.
@@ -152,7 +152,7 @@ class GaussianSumParticleFilter(ParticleFilter):
         nonfinite: ``"recover"`` (default): particles with a non-finite position or weight get
             weight zero; a component left with none keeps its predicted moments and gets
             ``alpha = 0``; a trial left with none keeps its mixture weights. ``"raise"``: the
-            trial is reported by :class:`~torchflow._checks.NonFiniteError`.
+            trial is reported by :class:`~torchflow.core.checks.NonFiniteError`.
         particle_chunk: flow at most this many of a trial's particles per pass (memory).
         resampling_gradient: accepted for every particle filter's sake (validated like theirs);
             these filters never resample: each step draws afresh from the fitted Gaussians by
@@ -306,7 +306,7 @@ class GaussianSumParticleFilter(ParticleFilter):
         rows = self._row_chunk(z.device)
 
         def loglik(xs):  # on the trial's G N* particles (the model's batch is the trials)
-            return missing.measurement_log_prob(model, z1, xs)  # observed coordinates only (torchflow.missing)
+            return missing.measurement_log_prob(model, z1, xs)  # observed coordinates only (torchflow.core.missing)
 
         if self.flow is None:
             x = eta0

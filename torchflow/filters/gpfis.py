@@ -6,11 +6,11 @@ from __future__ import annotations
 
 from typing import Optional
 
-from ..flows.gpfis import gpfis_flow
-from ..proposals import GPFISProposal
-from ..schedules import LambdaSchedule
-from .base import ParticleFilter
-from ..errors import ArgumentError
+from torchflow.core.errors import ArgumentError
+from torchflow.filters.base import ParticleFilter
+from torchflow.flows.gpfis import gpfis_flow
+from torchflow.flows.schedules import LambdaSchedule
+from torchflow.proposals import GPFISProposal
 
 
 class GaussianParticleFlowImportanceSampler(ParticleFilter):
@@ -31,7 +31,7 @@ class GaussianParticleFlowImportanceSampler(ParticleFilter):
             ``"autodiff"`` (forward mode through the whole step); the symmetric root always uses
             autodiff.
         gamma: diffusion rate; only 0 (deterministic, Bunch & Godsill's suggestion followed by
-            seed 003) is implemented.
+            Li & Coates 2016) is implemented.
         other arguments: see :class:`~torchflow.filters.ParticleFilter`.
     """
 

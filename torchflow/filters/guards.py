@@ -4,7 +4,7 @@ Everything a filter returns is finite, or the call says where it was not:
 
 - **Estimates, particles and weights, log-evidence increments** (forward pass): recorded on the
   device at every step and read once after the last step (no host synchronisation per step);
-  the earliest offending step raises :class:`~torchflow.errors.NonFiniteError` naming the filter,
+  the earliest offending step raises :class:`~torchflow.core.errors.NonFiniteError` naming the filter,
   the quantity, the step and the trials.
 - **Steps that carried no measurement** (particle filters, ``nonfinite="recover"``): a step in
   which every particle's weight is zero (underflowed, or invalid and repaired) keeps the previous
@@ -29,7 +29,7 @@ from typing import List, Optional, Tuple
 
 import torch
 
-from ..errors import NonFiniteError
+from torchflow.core.errors import NonFiniteError
 
 #: quantities in the order :class:`NonFiniteError` lists them
 QUANTITIES = ("estimate", "particles or weights", "log-evidence increment")

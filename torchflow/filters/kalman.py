@@ -6,12 +6,12 @@ from typing import Optional, Tuple
 
 import torch
 
-from .. import linalg, missing
-from ..models.trials import shared_structure, trial_names
-from ..trackers import UnscentedTransform, ekf_predict, ekf_update, kalman_update
-from .base import Filter, GaussianState
-from .._checks import check_number
-from ..errors import ArgumentTypeError
+from torchflow.core import linalg, missing
+from torchflow.core.checks import check_number
+from torchflow.core.errors import ArgumentTypeError
+from torchflow.core.trackers import UnscentedTransform, ekf_predict, ekf_update, kalman_update
+from torchflow.filters.base import Filter, GaussianState
+from torchflow.models.trials import shared_structure, trial_names
 
 __all__ = ["KalmanFilter", "ExtendedKalmanFilter", "UnscentedKalmanFilter", "kalman_update", "ekf_predict"]
 
@@ -143,7 +143,7 @@ class KalmanFilter(ExtendedKalmanFilter):
 
 class UnscentedKalmanFilter(_GaussianFilter):
     """Unscented Kalman filter (scaled sigma points, Wan & van der Merwe; the transform is
-    :class:`~torchflow.trackers.UnscentedTransform`).
+    :class:`~torchflow.core.trackers.UnscentedTransform`).
 
     ``2d + 1`` sigma points ``m``, ``m +- sqrt(d + lambda) L_i`` with ``lambda = alpha^2 (d + kappa) - d``.
     Exact on linear-Gaussian models for any admissible (alpha, beta, kappa).

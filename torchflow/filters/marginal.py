@@ -37,7 +37,7 @@ from typing import Callable, List, Optional, Sequence
 import torch
 import torch.utils.checkpoint
 
-from .. import linalg
+from torchflow.core import linalg
 
 #: ``weights=`` choices of :class:`~torchflow.filters.ParticleFilter`
 WEIGHTS = ("standard", "marginal")

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 from typing import Optional
 
-from .._checks import check_count
-from .. import linalg
-from ..covariances import TrialCovariance
-from ..proposals import flow_proposal
-from ..schedules import LambdaSchedule
-from .base import Filter, GaussianState, ParticleFilter
+from torchflow.core import linalg
+from torchflow.core.checks import check_count
+from torchflow.core.covariances import TrialCovariance
+from torchflow.filters.base import Filter, GaussianState, ParticleFilter
+from torchflow.flows.schedules import LambdaSchedule
+from torchflow.proposals import flow_proposal
 
 
 class _FlowSettings:
@@ -63,7 +63,7 @@ class ParticleFlowParticleFilter(_FlowSettings, ParticleFilter):
         n_clusters, alpha, sweeps: knobs of clustered points given by name, see
             :class:`ClusteredParticleFlowParticleFilter`.
         jacobian_in_weight: deterministic flows: keep ``log|det|`` in the weight (default True;
-            False is seed 004's printed weight, whose evidence is biased).
+            False is the weight printed in Li & Coates' clustered PF-PF paper, whose evidence is biased).
         other arguments: see :class:`~torchflow.filters.ParticleFilter`.
     """
 
@@ -103,7 +103,7 @@ class ParticleFlowParticleFilter(_FlowSettings, ParticleFilter):
 
 
 class ClusteredParticleFlowParticleFilter(ParticleFlowParticleFilter):
-    """Clustered PF-PF(LEDH) (seed 004: Li & Coates' clustered PF-PF, Algorithms 1-2): the flow is linearised at K
+    """Clustered PF-PF(LEDH) (Li & Coates' clustered PF-PF, Algorithms 1-2): the flow is linearised at K
     cluster medoids instead of at every particle, and every particle moves with its cluster's
     affine map, so the flow costs O(N_lambda K + N) instead of O(N_lambda N).
 
@@ -120,7 +120,7 @@ class ClusteredParticleFlowParticleFilter(ParticleFlowParticleFilter):
     Args:
         n_clusters: K (default 100); ``K >= N`` makes every particle its own medoid (PF-PF(LEDH)
             with a shared P, which on linear models is PF-PF(LEDH) exactly).
-        alpha: weight of the Euclidean part of the distance (default 0.25; seed 004: results
+        alpha: weight of the Euclidean part of the distance (default 0.25; the paper: results
             similar for alpha in {0, .25, .5, .75, 1}).
         sweeps: K-medoids assign/update sweeps (default 10; the paper does not fix a number).
         jacobian_in_weight: include ``theta^(k)`` in the weight (default True: the proposal density

@@ -1,10 +1,29 @@
 """Particle flows: modules that state the drift (and, for stochastic flows, the diffusion) of the
 log-homotopy at linearisation points (:mod:`.points`); :func:`integrate_flow` steps any of them,
-at any points, over a lambda schedule."""
+at any points, over a lambda schedule.
 
-from .base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow
-from .daum_huang import EDHFlow, LEDHFlow, daum_huang_coefficients
-from .points import (
+May import: :mod:`torchflow.core`, :mod:`torchflow.models`, :mod:`torchflow.flows.kernels`.
+
+* :mod:`.base`, :mod:`.daum_huang`, :mod:`.geodesic`, :mod:`.gpfis`: the flows; :mod:`.points`:
+  where they are linearised; :mod:`.measurement`: the Gaussian measurement they read;
+  :mod:`.schedules`: pseudo-time schedules; :mod:`.integrate`: the reference integrator;
+* :mod:`.select`: which fused kernel runs (the one place that decides); :mod:`.loops`: the
+  pseudo-time loops that drive a chosen kernel.
+"""
+
+from torchflow.flows.base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow
+from torchflow.flows.daum_huang import EDHFlow, LEDHFlow, daum_huang_coefficients
+from torchflow.flows.geodesic import (
+    GeodesicFlow,
+    GromovFlow,
+    OptimalDiffusionFlow,
+    diffusion_condition_number,
+    optimal_diffusion_scale,
+    symmetric_sqrt,
+)
+from torchflow.flows.integrate import flow_gaussian, integrate_flow, which_kernel
+from torchflow.flows.measurement import GaussianMeasurement, Linearisation
+from torchflow.flows.points import (
     POINTS,
     ClusteredPoints,
     GlobalPoints,
@@ -13,16 +32,6 @@ from .points import (
     cluster_distance,
     kmedoids,
     resolve_points,
-)
-from .integrate import flow_gaussian, integrate_flow, which_kernel
-from .measurement import GaussianMeasurement, Linearisation
-from .geodesic import (
-    GeodesicFlow,
-    GromovFlow,
-    OptimalDiffusionFlow,
-    diffusion_condition_number,
-    optimal_diffusion_scale,
-    symmetric_sqrt,
 )
 
 __all__ = [

@@ -23,9 +23,9 @@ from typing import Callable, Optional, Tuple
 import torch
 from torch import nn
 
-from .. import linalg
-from .measurement import GaussianMeasurement
-from ..errors import ArgumentTypeError
+from torchflow.core import linalg
+from torchflow.core.errors import ArgumentTypeError
+from torchflow.flows.measurement import GaussianMeasurement
 
 
 @dataclass
@@ -249,7 +249,7 @@ class ParticleFlow(nn.Module):
             (not inherited: a subclass that changes the coefficients declares it again, or runs the
             reference loop): ``"daum_huang"`` (the exact Daum-Huang coefficients), ``"gromov"`` (the
             Gromov flow with its exact diffusion factor) or ``None``. The kernel layer
-            (:mod:`torchflow.flows.kernels.select`) reads it.
+            (:mod:`torchflow.flows.select`) reads it.
     """
 
     points: str = "global"

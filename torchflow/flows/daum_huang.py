@@ -22,9 +22,9 @@ from __future__ import annotations
 
 import torch
 
-from .. import linalg, tuning
-from .base import FlowCoefficients, FlowPrior, ParticleFlow
-from .measurement import Linearisation
+from torchflow.core import linalg, tuning
+from torchflow.flows.base import FlowCoefficients, FlowPrior, ParticleFlow
+from torchflow.flows.measurement import Linearisation
 
 
 def daum_huang_coefficients(
@@ -45,14 +45,14 @@ def daum_huang_coefficients(
         P_cols: ``L L_support^T = P[..., :, support]`` if precomputed (:attr:`FlowPrior.cov_cols`).
         operator: give A as an operator (``apply_A``, with ``form_A`` for uses that need the
             matrix) instead of forming it; ``None`` (default): when ``k`` is at least
-            ``torchflow.tuning`` ``flow_operator_min_dim``.
+            ``torchflow.core.tuning`` ``flow_operator_min_dim``.
         W_diag: ``(..., m)`` the diagonal of W when W is diagonal (:attr:`Linearisation.diag`); the
             operator form then scales rows instead of multiplying by W (``d x d x d`` -> ``d x d``
             per point; the same numbers: the products' other terms are exact zeros).
 
     A particle's flow applies A to only a few vectors, so for large k the operator form skips the
-    ``k``-column solve and ``d x k x k`` product that form A (timings: ``experiments/RESULTS.md``,
-    "Gaussian sum at d = 144"); both give the same numbers up to round-off.
+    ``k``-column solve and ``d x k x k`` product that form A (timings:
+    ``python -m experiments.benchmarks.bench_gaussian_sum``); both give the same numbers up to round-off.
     """
     Ls = L if L_support is None else L_support
     k = Ls.shape[-1]
@@ -139,7 +139,7 @@ class EDHFlow(ParticleFlow):
 
     points = "global"
     promote_low_precision = True
-    kernel = "daum_huang"  # declared per class (torchflow.flows.kernels.select)
+    kernel = "daum_huang"  # declared per class (torchflow.flows.select)
 
     def coefficients_at(self, lin: Linearisation, prior: FlowPrior, lam, eps):
         W, y = lin.W, lin.y

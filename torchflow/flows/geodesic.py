@@ -1,5 +1,5 @@
 """Geodesic, Gromov and optimised-diffusion flows (Daum & Huang's Gromov flow; Pal & Coates 2019;
-Dai & Daum; seed 002 for the optimised diffusion).
+Dai & Daum; Zhang, Khojasteh, Atanasov & Meyer 2024 for the optimised diffusion).
 
 All three transport the Gaussian homotopy ``p(x, lambda) = N(m(lambda), M(lambda)^{-1})`` with
 
@@ -43,15 +43,15 @@ from __future__ import annotations
 
 from typing import Optional, Union
 
-from ..errors import ArgumentError
 import torch
 
-from .. import linalg
-from .._checks import check_choice
-from .base import FlowCoefficients, FlowPrior, ParticleFlow
-from .daum_huang import _gram_terms
-from .measurement import Linearisation
-from .points import POINTS
+from torchflow.core import linalg
+from torchflow.core.checks import check_choice
+from torchflow.core.errors import ArgumentError
+from torchflow.flows.base import FlowCoefficients, FlowPrior, ParticleFlow
+from torchflow.flows.daum_huang import _gram_terms
+from torchflow.flows.measurement import Linearisation
+from torchflow.flows.points import POINTS
 
 
 def _homotopy_terms(W, y, L, lam, need_factor: bool = False, L_support=None, extra=None):
@@ -211,20 +211,20 @@ def optimal_diffusion_scale(
 
         c* = 2 max{0, sqrt((k_max - k_min) / (2 alpha)) - k_min}.
 
-    Seed 002 prints ``max{0, sqrt((k_max - k_min)/alpha) - k_min}``: the minimiser of
+    Zhang et al. (2024) print ``max{0, sqrt((k_max - k_min)/alpha) - k_min}``: the minimiser of
     ``kappa + alpha c'`` for the convention ``A_s = A - c' I`` (a diffusion without the factor 1/2,
     so the same physical noise has ``c' = c/2``). Our objective penalises that noise as
-    ``alpha c = 2 alpha c'``, so ``c*/2`` is seed 002's formula with ``alpha -> 2 alpha``; to
-    reproduce seed 002's minimiser exactly, halve ``alpha``.
+    ``alpha c = 2 alpha c'``, so ``c*/2`` is their formula with ``alpha -> 2 alpha``; to
+    reproduce their minimiser exactly, halve ``alpha``.
 
-    ``rule="printed"`` returns seed 002's printed value itself as the diffusion scale,
+    ``rule="printed"`` returns the printed value itself as the diffusion scale,
     ``c = max{0, sqrt((k_max - k_min)/alpha) - k_min}`` with ``Q = c M^{-1}`` (our reading of the
     typeset formula of Zhang, Khojasteh, Atanasov & Meyer 2024, for the flow-induced proposals);
     ``rule="literal_shift"`` (default) the minimiser above;
     ``rule="printed_shift"`` the printed value ``c'`` in the convention it minimises, i.e. as the
     shift of the drift (``A_s = A - c' I``), which keeps the posterior only with ``Q = 2 c' M^{-1}``:
-    it returns ``c = 2 c'``, twice ``printed`` (a third UNCONF reading, tested against seed 002's
-    Table II in RESULTS.md).
+    it returns ``c = 2 c'``, twice ``printed`` (a third reading: the paper does not say which convention
+    its Table II used).
     """
     if alpha <= 0:
         raise ArgumentError(f"alpha: expected > 0, got {alpha}")
@@ -237,7 +237,7 @@ def optimal_diffusion_scale(
 class OptimalDiffusionFlow(_HomotopyFlow):
     """EDH drift plus diffusion ``Q = c M^{-1}`` with ``c`` minimising the stiffness objective
     ``kappa(A_s) + alpha c`` at every pseudo-time step and linearisation point (Dai & Daum;
-    seed 002's optimised stochastic flow).
+    the optimised stochastic flow of Zhang et al. 2024).
 
     ``-A_EDH = M^{-1} J / 2`` has eigenvalues ``k_i = s_i / (2 (1 + lambda s_i))`` with ``s_i`` the
     eigenvalues of ``S = L^T J L``, so only ``S``'s extreme eigenvalues are needed. ``c`` is a
@@ -245,7 +245,7 @@ class OptimalDiffusionFlow(_HomotopyFlow):
     computed without gradient.
 
     Args:
-        alpha: weight of the diffusion magnitude in the objective (default 0.1, seed 002).
+        alpha: weight of the diffusion magnitude in the objective (default 0.1, as Zhang et al. 2024).
         c: ``"optimal"`` (default) or a fixed non-negative diffusion scale (``c = 0`` is EDH/LEDH).
         points: default linearisation points, ``"particle"`` (default) or ``"global"``.
         noise_root: ``"factor"`` (``sqrt(c) L K^{-T}``) or ``"symmetric"``.

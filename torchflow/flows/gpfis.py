@@ -26,7 +26,7 @@ Computed in whitened prior coordinates with the model's measurement support (k m
 coordinates of d): with ``P_0 = root root^T`` (:meth:`~torchflow.flows.FlowPrior.reduced`), only
 the first k whitened coordinates move, and the Jacobian needs only k tangent directions.
 
-The root ``T`` is a choice (UNCONF in the papers; every root gives the exact transport of the
+The root ``T`` is a choice (the papers do not fix it; every root gives the exact transport of the
 linearised Gaussian and an exact weight): ``root="cholesky"`` (default) is
 ``T = root K_1^{-T} K_0^T root^{-1}`` with ``K K^T = I + lam G``, ``G = root^T H^T R^{-1} H root``:
 triangular algebra whose derivative exists everywhere. ``root="symmetric"`` is the principal
@@ -48,13 +48,13 @@ from typing import Optional
 import torch
 from torch.func import jvp, vmap
 
-from .. import linalg
-from .._checks import check_choice
-from ..schedules import LambdaSchedule, resolve_schedule
-from .kernels import select
-from .kernels import steps as kernel_steps
-from .base import FlowPrior
-from .measurement import GaussianMeasurement
+from torchflow.core import linalg
+from torchflow.core.checks import check_choice
+from torchflow.flows import select
+from torchflow.flows.base import FlowPrior
+from torchflow.flows.kernels import steps as kernel_steps
+from torchflow.flows.measurement import GaussianMeasurement
+from torchflow.flows.schedules import LambdaSchedule, resolve_schedule
 
 ROOTS = ("cholesky", "symmetric")
 JACOBIANS = ("analytic", "autodiff")

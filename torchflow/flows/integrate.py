@@ -26,14 +26,14 @@ from typing import Optional, Union
 
 import torch
 
-from .. import cudagraphs, linalg, tuning
-from .._checks import check_choice
-from ..schedules import LambdaSchedule, resolve_schedule
-from .base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow, _gather_points
-from .kernels import loops, select
-from .measurement import GaussianMeasurement
-from .points import LinearisationPoints, resolve_points
-from ..errors import ArgumentError, ArgumentTypeError
+from torchflow.core import cudagraphs, linalg, tuning
+from torchflow.core.checks import check_choice
+from torchflow.core.errors import ArgumentError, ArgumentTypeError
+from torchflow.flows import loops, select
+from torchflow.flows.base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow, _gather_points
+from torchflow.flows.measurement import GaussianMeasurement
+from torchflow.flows.points import LinearisationPoints, resolve_points
+from torchflow.flows.schedules import LambdaSchedule, resolve_schedule
 
 
 def integrate_flow(
@@ -184,7 +184,7 @@ def _integrate(
 ) -> FlowOutput:
     """The loop of :func:`integrate_flow`: ``prior`` at ``(B, L, d)`` points, ``index (B, N)`` or
     ``None`` (points broadcast against the particles, or are the particles). A fused kernel takes
-    the integration where :func:`torchflow.flows.kernels.select.flow_kernel` chooses one; the loop
+    the integration where :func:`torchflow.flows.select.flow_kernel` chooses one; the loop
     below is the reference."""
     d = particles.shape[-1]
     k = d if measurement.support is None else len(measurement.support)
@@ -320,7 +320,7 @@ def _reference(
 def which_kernel(flow: ParticleFlow, model, device) -> Optional[str]:
     """The fused kernel a no-gradient :func:`integrate_flow` of ``flow`` at per-particle points on
     ``model`` takes on ``device``, as far as it is known before the measurement is built
-    (:func:`torchflow.flows.kernels.select.per_particle_kernel`): ``"diagonal"`` or ``None``."""
+    (:func:`torchflow.flows.select.per_particle_kernel`): ``"diagonal"`` or ``None``."""
     return select.per_particle_kernel(flow, model, device)
 
 
@@ -368,7 +368,7 @@ def flow_gaussian(
     evaluate_at: str = "end",
     on_step=None,
 ):
-    """Flow the *parameters* of Gaussians instead of particles (seed 002's flow-induced proposal,
+    """Flow the *parameters* of Gaussians instead of particles (the flow-induced proposal of
     Zhang, Khojasteh, Atanasov & Meyer 2024, eqs 6-7): for each prior ``N(mu_0, P_0)``, linearise the measurement at
     the migrating
     mean and step

@@ -21,9 +21,9 @@ from typing import Callable, Optional, Sequence, Tuple
 
 import torch
 
-from .. import linalg, missing
-from ..models.structure import kernel_structure
-from ..errors import ArgumentError
+from torchflow.core import linalg, missing
+from torchflow.core.errors import ArgumentError
+from torchflow.models.structure import kernel_structure
 
 
 @dataclass
@@ -66,13 +66,13 @@ class GaussianMeasurement:
             :meth:`derivative`; only for a constant R (``None``: not available).
         form: the measurement in a named form that a kernel may linearise itself, ``(name,
             tensors)`` (the model's declared :attr:`~torchflow.models.Structure.measurement_form`
-            with its parameters; :data:`torchflow.flows.kernels.select.FORMS`), or ``None``.
+            with its parameters; :data:`torchflow.flows.select.FORMS`), or ``None``.
         diagonal_rows: ``points -> (h, dh/dx's diagonal, L_R's diagonal)`` for a ``diagonal``
             measurement with a diagonal R
             (:meth:`~torchflow.models.GaussianStateSpaceModel.linearize_measurement_diagonal`), for
             :meth:`at_diagonal`; ``None``: not available.
         observed: ``(B, m)`` bool, the coordinates of ``z`` that were observed (missing
-            observations, :mod:`torchflow.missing`; ``z`` then holds a finite filler elsewhere), or
+            observations, :mod:`torchflow.core.missing`; ``z`` then holds a finite filler elsewhere), or
             ``None``: all. The whitened rows of the unobserved coordinates are zero (for a dense
             R, whitened by the factor of R with those rows and columns replaced by the
             identity's), so the flow sees the observed rows alone; no kernel takes a mask.
@@ -98,7 +98,7 @@ class GaussianMeasurement:
         self.observed = observed
         if observed is not None:
             z = torch.where(observed, z, torch.zeros_like(z))
-            if noise == "dense":  # whiten the observed block by its own factor (torchflow.missing)
+            if noise == "dense":  # whiten the observed block by its own factor (torchflow.core.missing)
                 scale_tril = _masked_factor(scale_tril, observed)
             form = None  # a kernel's own linearisation takes no mask
         self.z, self.linearise, self.scale_tril, self.noise = z, linearise, scale_tril, noise
@@ -237,7 +237,7 @@ class GaussianMeasurement:
 
 def _masked_factor(scale_tril: Callable, observed: torch.Tensor) -> Callable:
     """``points -> the factor of R`` with the unobserved rows and columns of R replaced by the
-    identity's (:func:`torchflow.missing.masked_noise`), per trial ``(B, 1.., m, m)`` (per point for
+    identity's (:func:`torchflow.core.missing.masked_noise`), per trial ``(B, 1.., m, m)`` (per point for
     a state-dependent R)."""
 
     def factor(points):

@@ -6,13 +6,13 @@ with the coefficients of its point (:func:`~torchflow.flows.integrate_flow`):
 * :class:`GlobalPoints`: L = 1, the trial's migrating mean (EDH, PF-PF(EDH));
 * :class:`ParticlePoints`: L = N, each particle's own auxiliary point (LEDH, PF-PF(LEDH));
 * :class:`ClusteredPoints`: L = K medoids of a batched K-medoids on the mixed particle distance,
-  with a ``(B, N) -> K`` index (seed 004: Li & Coates' clustered PF-PF, Algorithms 1-2).
+  with a ``(B, N) -> K`` index (Li & Coates' clustered PF-PF, Algorithms 1-2).
 
 A strategy says three things, and nothing else in the flow layer or the particle filters depends
 on which strategy it is:
 
 * :meth:`LinearisationPoints.covariance`: the type of covariance a PF-PF carries for it
-  (:mod:`torchflow.covariances`: per trial, or per particle);
+  (:mod:`torchflow.core.covariances`: per trial, or per particle);
 * :meth:`LinearisationPoints.place`: the flow's Gaussian prior at the points and each particle's
   point, from the tracker's prediction (a filter's view);
 * :meth:`LinearisationPoints.arrange`: the prior as ``(B, L, d)`` and the index (the integrator's
@@ -31,12 +31,12 @@ from typing import Optional, Sequence, Tuple, Union
 
 import torch
 
-from .. import resampling, tuning
-from .._checks import check_count
-from ..covariances import Covariance, ParticleCovariance, TrialCovariance
-from .base import FlowPrior
-from .daum_huang import LEDHFlow
-from ..errors import ArgumentError
+from torchflow.core import resampling, tuning
+from torchflow.core.checks import check_count
+from torchflow.core.covariances import Covariance, ParticleCovariance, TrialCovariance
+from torchflow.core.errors import ArgumentError
+from torchflow.flows.base import FlowPrior
+from torchflow.flows.daum_huang import LEDHFlow
 
 
 def cluster_distance(
@@ -55,7 +55,7 @@ def cluster_distance(
     Returns:
         ``(B, N, N)``: ``d~ = 2 d / max d`` (Euclidean, in [0, 2]) and ``1 - p`` with ``p`` the
         Pearson correlation of the ``d``-vectors ``zeta^i`` and ``zeta^j`` (each centred by its
-        own component mean; UNCONF in the seed: all d components are used), also in [0, 2].
+        own component mean; the paper does not say which components: all d are used), also in [0, 2].
     """
     if not 0.0 <= float(alpha) <= 1.0:
         raise ArgumentError(f"alpha: expected a weight in [0, 1], got {alpha}")
@@ -111,7 +111,7 @@ def kmedoids(dist: torch.Tensor, n_clusters: int, sweeps: int = 20) -> Tuple[tor
 
 
 def flow_points_per_call(model) -> int:
-    """Points (trials x particles) per call of a per-particle flow on ``model``: ``torchflow.tuning``
+    """Points (trials x particles) per call of a per-particle flow on ``model``: ``torchflow.core.tuning``
     ``points_per_call``, capped so that one batch of the points' ``k x k`` matrices (k = the
     measured state coordinates) stays within ``flow_bytes_per_call`` (0: no cap)."""
     sup = model.structure.measurement_support
@@ -168,7 +168,7 @@ class LinearisationPoints:
     def preferred_chunk_trials(self, n_particles: int) -> Optional[int]:
         """Trials per call that keep this strategy's per-point work fast (``None``: no preference,
         the memory plan decides). Per-particle and clustered points batch small per-point algebra
-        (and the clustered N x N distances), which slows down past ``torchflow.tuning``
+        (and the clustered N x N distances), which slows down past ``torchflow.core.tuning``
         ``points_per_call`` particles per call; one point per trial does not."""
         return None
 
@@ -234,7 +234,7 @@ class ParticlePoints(LinearisationPoints):
 
 
 class ClusteredPoints(LinearisationPoints):
-    """K medoids (seed 004: Li & Coates' clustered PF-PF, Algorithms 1-2): the particles' noise-free predictions
+    """K medoids (Li & Coates' clustered PF-PF, Algorithms 1-2): the particles' noise-free predictions
     ``eta_bar^i = g(x_{k-1}^i)`` are clustered by :func:`kmedoids` on :func:`cluster_distance`
     (Euclidean on the measured coordinates and the correlation of the lambda = 0 LEDH velocities);
     cluster k's flow starts at its medoid's ``eta_bar`` with the trial's covariance.
@@ -276,8 +276,7 @@ class ClusteredPoints(LinearisationPoints):
         return kmedoids(dist, self.n_clusters, self.sweeps)
 
     # the (B, N, N) distance sweeps of K-medoids fall out of cache like per-particle flows, so
-    # clustered points take as many trials per call as per-particle points (experiments/RESULTS.md,
-    # the clustered PF-PF section)
+    # clustered points take as many trials per call as per-particle points
     preferred_chunk_trials = ParticlePoints.preferred_chunk_trials
 
     def extra_bytes(self, n_particles, state_dim):

@@ -12,13 +12,16 @@
   per-trial parameters).
 * :func:`rhat` and :func:`effective_sample_size`: convergence diagnostics of the chains.
 * :func:`to_arviz`: the draws as an ArviZ ``InferenceData`` (the optional ``arviz`` extra).
+
+May import: :mod:`torchflow.core`, :mod:`torchflow.models`, :mod:`torchflow.proposals`, :mod:`torchflow.smoothing`,
+:mod:`torchflow.filters`.
 """
 
-from .convert import to_arviz
-from .diagnostics import effective_sample_size, rhat
-from .gibbs import conditional_smc, joint_log_density, particle_gibbs
-from .params import per_trial_values
-from .pmmh import PMMHResult, pmmh
+from torchflow.inference.convert import to_arviz
+from torchflow.inference.diagnostics import effective_sample_size, rhat
+from torchflow.inference.gibbs import conditional_smc, joint_log_density, particle_gibbs
+from torchflow.inference.params import per_trial_values
+from torchflow.inference.pmmh import PMMHResult, pmmh
 
 __all__ = [
     "pmmh",

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..errors import ArgumentTypeError
+from torchflow.core.errors import ArgumentTypeError
 
 
 def to_arviz(result):

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from ..errors import ArgumentError
+from torchflow.core.errors import ArgumentError
 
 
 def _check(draws: torch.Tensor, who: str) -> torch.Tensor:

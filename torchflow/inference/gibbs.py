@@ -10,16 +10,16 @@ from typing import Callable, Dict, Optional, Union
 import torch
 from torch.distributions import Distribution
 
-from .. import linalg, missing
-from ..covariances import dense_prior, sample_prior
-from .._checks import check_count
-from ..errors import ArgumentError, ArgumentTypeError
-from ..models.base import StateSpaceModel
-from ..random import TrialStreams, uniform
-from ..resampling import gather_particles, multinomial
-from ..smoothing.core import _categorical
-from .params import ParameterSpace, RandomWalk, cpu_generator, one_series, per_trial_values, prior_of
-from .pmmh import PMMHResult
+from torchflow.core import linalg, missing
+from torchflow.core.checks import check_count
+from torchflow.core.covariances import dense_prior, sample_prior
+from torchflow.core.errors import ArgumentError, ArgumentTypeError
+from torchflow.core.random import TrialStreams, uniform
+from torchflow.core.resampling import gather_particles, multinomial
+from torchflow.inference.params import ParameterSpace, RandomWalk, cpu_generator, one_series, per_trial_values, prior_of
+from torchflow.inference.pmmh import PMMHResult
+from torchflow.models.base import StateSpaceModel
+from torchflow.smoothing.core import _categorical
 
 
 def conditional_smc(
@@ -46,7 +46,7 @@ def conditional_smc(
         mean, cov: the prior of ``x_0``, ``(C, d)``, ``(C, d, d)``.
         reference: ``(C, T+1, d)`` the current path of each chain.
         n_particles: N (>= 2).
-        generator: ``torch.Generator`` or :class:`~torchflow.random.TrialStreams` (one per chain).
+        generator: ``torch.Generator`` or :class:`~torchflow.core.random.TrialStreams` (one per chain).
 
     Returns:
         ``(C, T+1, d)`` the new paths.

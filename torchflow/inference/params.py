@@ -10,9 +10,9 @@ from typing import Dict, Optional
 import torch
 from torch.distributions import Distribution, transform_to
 
-from .._checks import check_count
-from ..errors import ArgumentError, ArgumentTypeError
-from ..random import check_generator
+from torchflow.core.checks import check_count
+from torchflow.core.errors import ArgumentError, ArgumentTypeError
+from torchflow.core.random import check_generator
 
 
 @contextlib.contextmanager
@@ -22,7 +22,7 @@ def per_trial_values(model, values: Dict[str, torch.Tensor]):
     own are put back afterwards, also on error.
 
     Every name must be one the model declares in ``per_trial_parameters`` (its methods broadcast
-    those over the trials' states). A constrained learnable parameter (:mod:`torchflow.constraints`)
+    those over the trials' states). A constrained learnable parameter (:mod:`torchflow.core.constraints`)
     keeps its constraint: its values, given as the constrained values, are mapped to the
     unconstrained space by the constraint's inverse and the model reads them back through the
     constraint (valid by construction; a value outside it is refused, naming the parameter), so a

@@ -11,13 +11,13 @@ from typing import Callable, Dict, Optional, Union
 import torch
 from torch.distributions import Distribution
 
-from .._checks import check_count
-from ..errors import ArgumentError, ArgumentTypeError
-from ..filters.base import Filter
-from ..random import CorrelatedStreams, TrialStreams
-from ..resampling import Resampler
-from .diagnostics import effective_sample_size, rhat
-from .params import ParameterSpace, RandomWalk, cpu_generator, one_series, per_trial_values, prior_of
+from torchflow.core.checks import check_count
+from torchflow.core.errors import ArgumentError, ArgumentTypeError
+from torchflow.core.random import CorrelatedStreams, TrialStreams
+from torchflow.core.resampling import Resampler
+from torchflow.filters.base import Filter
+from torchflow.inference.diagnostics import effective_sample_size, rhat
+from torchflow.inference.params import ParameterSpace, RandomWalk, cpu_generator, one_series, per_trial_values, prior_of
 
 
 @dataclass
@@ -104,7 +104,7 @@ def pmmh(
         priors: name -> ``torch.distributions.Distribution`` of the parameter's constrained value
             (its ``event_shape``/``batch_shape`` give the parameter's shape).
         generator: a seed (int) or a ``torch.Generator``: the chains' proposals and accept/reject
-            draws; the filter's particles come from per-chain :class:`~torchflow.random.TrialStreams`
+            draws; the filter's particles come from per-chain :class:`~torchflow.core.random.TrialStreams`
             seeded from it, one fresh stream per iteration.
         n_chains: C.
         n_iterations: draws kept per chain (after adaptation).
@@ -116,7 +116,7 @@ def pmmh(
         correlation: ``None`` (default): a fresh stream per iteration. A number ``rho`` in
             ``[0, 1)``: correlated pseudo-marginal MCMC (Deligiannidis, Doucet & Pitt 2018). Each
             chain keeps the standard normals ``u`` its filter run drew
-            (:class:`~torchflow.random.CorrelatedStreams`; uniforms are ``Phi(u)``); an iteration
+            (:class:`~torchflow.core.random.CorrelatedStreams`; uniforms are ``Phi(u)``); an iteration
             proposes ``(theta', u')`` with ``u' = rho u + sqrt(1 - rho^2) eps`` and accepts or
             rejects both. The chain targets the same posterior for any ``rho`` (the move leaves
             ``u ~ N(0, I)`` invariant); with ``rho`` near 1 the two log-likelihood estimates are

@@ -29,7 +29,7 @@ each particle's own law ``N(F x_prev, Q)``, so the flow carries exactly the dist
 was drawn from; ``"predicted"``: ``P = F P_prev F^T + Q`` (``P_prev`` the parent's weighted sample
 covariance), the spread of the whole cloud, like Li & Coates' EKF covariance. Both give exact
 weights; on Stone Soup's tutorial scenario ``"transition"`` doubles the ESS of the bootstrap
-``ParticleUpdater`` where ``"predicted"`` falls to a third of it (RESULTS.md, "Stone Soup"): a prior
+``ParticleUpdater`` where ``"predicted"`` falls to a third of it (``experiments/stonesoup_example.py``): a prior
 wider than the particles' own law over-contracts them. Without a parent ``P`` is the prediction's
 weighted sample covariance and ``eta_bar_0`` the particle itself (or the weighted mean).
 
@@ -49,8 +49,8 @@ the hypothesis, not resampled). The posterior carries the prediction's timestamp
 another time is refused (predict to its time first), one without a timestamp is taken at the
 prediction's. Bad input (no particles, non-finite particles or detection, NaN/+inf or all -inf
 log-weights, a parent of another size, a prediction before its parent, a noise covariance that is
-not symmetric positive definite) raises :class:`~torchflow.errors.ArgumentError` naming it, before
-the flow runs; a non-finite result of the flow raises :class:`~torchflow.errors.NonFiniteError`.
+not symmetric positive definite) raises :class:`~torchflow.core.errors.ArgumentError` naming it, before
+the flow runs; a non-finite result of the flow raises :class:`~torchflow.core.errors.NonFiniteError`.
 Whatever ``update`` returns is finite.
 """
 
@@ -63,12 +63,11 @@ import warnings
 import numpy as np
 import torch
 from scipy.special import logsumexp
-
 from stonesoup.base import Property
+from stonesoup.models.base import GaussianModel, LinearModel
 from stonesoup.models.measurement.base import MeasurementModel
 from stonesoup.models.measurement.linear import LinearGaussian as _SSLinearGaussian
 from stonesoup.models.measurement.nonlinear import CartesianToBearingRange, CartesianToElevationBearingRange
-from stonesoup.models.base import GaussianModel, LinearModel
 from stonesoup.resampler import Resampler
 from stonesoup.types.angle import Angle
 from stonesoup.types.array import StateVectors
@@ -77,15 +76,15 @@ from stonesoup.types.update import ParticleStateUpdate, Update
 from stonesoup.updater.base import Updater
 from stonesoup.updater.particle import ParticleUpdater
 
-from .. import linalg
-from .._checks import check_choice
-from ..flows import FlowPrior, integrate_flow, resolve_points
-from ..models.base import GaussianStateSpaceModel
-from ..models.structure import Structure
-from ..filters import marginal as _marginal
-from ..proposals.flow import FLOWS, affine_law, resolve_flow
-from ..schedules import LambdaSchedule, resolve_schedule
-from ..errors import ArgumentError, ArgumentTypeError, NonFiniteError
+from torchflow.core import linalg
+from torchflow.core.checks import check_choice
+from torchflow.core.errors import ArgumentError, ArgumentTypeError, NonFiniteError
+from torchflow.filters import marginal as _marginal
+from torchflow.flows import FlowPrior, integrate_flow, resolve_points
+from torchflow.flows.schedules import LambdaSchedule, resolve_schedule
+from torchflow.models.base import GaussianStateSpaceModel
+from torchflow.models.structure import Structure
+from torchflow.proposals.flow import FLOWS, affine_law, resolve_flow
 
 __all__ = ["FlowParticleUpdater", "StoneSoupMeasurement", "SUPPORTED_MEASUREMENT_MODELS"]
 

@@ -12,15 +12,15 @@ from typing import Optional, Sequence, Tuple
 
 import torch
 
-from .. import constraints, linalg
-from ..linalg import block_diagonal
-from .._checks import as_real_tensor, check_choice, check_learnable, check_number, check_positive
-from .._progress import report
-from .base import GaussianStateSpaceModel, Trajectory
-from .contract import check_simulate_args
-from .structure import Structure
-from .trials import per_trial_structure, trial_view
-from ..errors import ArgumentError, ArgumentTypeError
+from torchflow.core import constraints, linalg
+from torchflow.core.checks import as_real_tensor, check_choice, check_learnable, check_number, check_positive
+from torchflow.core.errors import ArgumentError, ArgumentTypeError
+from torchflow.core.linalg import block_diagonal
+from torchflow.core.progress import report
+from torchflow.models.base import GaussianStateSpaceModel, Trajectory
+from torchflow.models.contract import check_simulate_args
+from torchflow.models.structure import Structure
+from torchflow.models.trials import per_trial_structure, trial_view
 
 _X0 = [12, 6, 0.001, 0.001, 32, 32, -0.001, -0.005, 20, 13, -0.1, 0.01, 15, 35, 0.002, 0.002]
 
@@ -48,7 +48,7 @@ class AcousticTracking(GaussianStateSpaceModel):
             ``[margin, 1 - margin] * area`` (0.05).
         max_redraws: cap on rejection rounds before an error is raised.
         learnable: parameters to learn, a subset of ``["psi", "sigma_w"]`` (``True``: both). Each
-            is positive by construction, stored as its logarithm (:class:`~torchflow.constraints.
+            is positive by construction, stored as its logarithm (:class:`~torchflow.core.constraints.
             Positive`): ``model.psi`` is always the positive value, and the optimiser moves
             ``model.parametrizations.psi.original``.
 

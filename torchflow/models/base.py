@@ -25,13 +25,14 @@ from typing import Optional, Tuple
 import torch
 from torch import nn
 
-from .. import linalg, missing
-from .._progress import report
-from .._checks import check_tensor
-from ..linearize import jacobian
-from .structure import Structure
-from .trials import batch_jacobian, per_trial_structure, trial_names, trial_view
-from ..errors import ArgumentError, ArgumentTypeError
+from torchflow.core import linalg, missing
+from torchflow.core.checks import check_tensor
+from torchflow.core.errors import ArgumentError, ArgumentTypeError
+from torchflow.core.linearize import jacobian
+from torchflow.core.progress import report
+from torchflow.models.contract import GAUSSIAN_FORM, check_shapes, check_simulate_args, check_simulated
+from torchflow.models.structure import Structure
+from torchflow.models.trials import batch_jacobian, per_trial_structure, trial_names, trial_view
 
 
 @dataclass
@@ -70,7 +71,7 @@ class StateSpaceModel(nn.Module):
     and states ``state_dim`` (d), ``obs_dim`` (m) and its :attr:`structure`. :meth:`simulate`
     follows from the core. Parameters are buffers or ``nn.Parameter``\ s (learnable).
     Randomness comes only through the ``generator`` passed in: draw with
-    :func:`torchflow.linalg.standard_normal` (it also serves the runner's per-trial streams).
+    :func:`torchflow.core.linalg.standard_normal` (it also serves the runner's per-trial streams).
 
     Example (stochastic volatility, ``x_k = phi x_{k-1} + sigma v_k``, ``z_k | x_k ~ N(0, exp(x_k))``)::
 
@@ -100,6 +101,10 @@ class StateSpaceModel(nn.Module):
                 z, x = z.squeeze(-1), x.squeeze(-1)  # variance exp(x)
                 return -0.5 * (torch.log(torch.tensor(2 * torch.pi, dtype=x.dtype)) + x + z * z * (-x).exp())
     """
+
+    #: the Gaussian form is given (:class:`GaussianStateSpaceModel` declares it): the shape checks of
+    #: :mod:`torchflow.models.contract` read this declaration
+    _gaussian: bool = False
 
     state_dim: int
     obs_dim: int
@@ -154,7 +159,7 @@ class StateSpaceModel(nn.Module):
         ``(B, d)`` and covariance ``(B, d, d)``, computed from the current parameters (differentiably,
         where they are learnable). The default raises: a model whose prior needs the truth (its
         :meth:`initial_belief` draws around it) runs recorded data only with a prior given
-        explicitly (:func:`torchflow.data.declared_prior`)."""
+        explicitly (:func:`torchflow.app.data.declared_prior`)."""
         raise _missing(self, "declared_prior", "declared_prior(batch_size) -> ((B, d), (B, d, d))")
 
     def sample_transition(self, x: torch.Tensor, generator: Optional[torch.Generator] = None) -> torch.Tensor:
@@ -175,7 +180,7 @@ class StateSpaceModel(nn.Module):
 
     def measurement_log_prob_observed(self, z: torch.Tensor, x: torch.Tensor, observed: torch.Tensor) -> torch.Tensor:
         """``log p(z_o | x)``, the density of the observed coordinates of ``z`` alone (missing
-        observations, :mod:`torchflow.missing`).
+        observations, :mod:`torchflow.core.missing`).
 
         Args:
             z: broadcastable to ``(..., m)``, finite (its unobserved coordinates hold a filler).
@@ -200,8 +205,6 @@ class StateSpaceModel(nn.Module):
         Returns:
             :class:`Trajectory` with states ``(B, T+1, d)`` and observations ``(B, T, m)``.
         """
-        from .contract import check_shapes, check_simulate_args, check_simulated
-
         batch_size, steps = check_simulate_args(self, batch_size, steps, generator)
         with torch.no_grad():
             x = self.initial_state(batch_size, generator)
@@ -241,7 +244,7 @@ class StateSpaceModel(nn.Module):
 
     def check_observations(self, observations: torch.Tensor) -> torch.Tensor:
         """Raise a clear error unless ``observations`` is a ``(B, T, m)`` tensor on the model's
-        dtype and device whose values are finite or NaN (NaN: not observed, :mod:`torchflow.missing`;
+        dtype and device whose values are finite or NaN (NaN: not observed, :mod:`torchflow.core.missing`;
         ``inf`` is an error)."""
         check_tensor(
             "observations", observations, (None, None, self.obs_dim), "(B, T, m)", dtype=self.dtype, device=self.device
@@ -261,6 +264,21 @@ class StateSpaceModel(nn.Module):
         return observations
 
 
+def require_gaussian(model, who: str) -> None:
+    """Raise unless ``model`` has the Gaussian form (a
+    :class:`~torchflow.models.GaussianStateSpaceModel`), naming the filter ``who``."""
+    if not isinstance(model, StateSpaceModel):
+        raise ArgumentTypeError(
+            f"{who}: model: expected a torchflow.models.StateSpaceModel, got {type(model).__name__}"
+        )
+    if not isinstance(model, GaussianStateSpaceModel):
+        raise ArgumentTypeError(
+            f"{who}: model: {type(model).__name__} gives only the core (samplers and densities); "
+            f"{who} needs the Gaussian form ({', '.join(GAUSSIAN_FORM)}): subclass "
+            "torchflow.models.GaussianStateSpaceModel, or use BootstrapParticleFilter"
+        )
+
+
 class GaussianStateSpaceModel(StateSpaceModel):
     """The Gaussian form of a state-space model: ``x_k = g(x_{k-1}) + v_k``, ``v_k ~ N(0, Q)`` and
     ``z_k = h(x_k) + w_k``, ``w_k ~ N(0, R)`` (Q and R may depend on the state).
@@ -278,6 +296,8 @@ class GaussianStateSpaceModel(StateSpaceModel):
     :meth:`simulate` draws the truth with :meth:`sample_true_transition`, whose noise factor
     :meth:`true_transition_scale_tril` may differ from the filters' (acoustic tracking).
     """
+
+    _gaussian = True
 
     # ---- dynamics ----------------------------------------------------------------------------
     def transition_mean(self, x: torch.Tensor) -> torch.Tensor:
@@ -445,7 +465,7 @@ class GaussianStateSpaceModel(StateSpaceModel):
         """The density of the observed coordinates (:meth:`StateSpaceModel.measurement_log_prob_observed`):
         for a Gaussian measurement (``structure.gaussian_measurement``), exactly
         ``log N(z_o; h_o(x), R_oo)``: elementwise for a declared diagonal R, else through R with its
-        unobserved rows and columns replaced by the identity's (:func:`torchflow.missing.masked_noise`).
+        unobserved rows and columns replaced by the identity's (:func:`torchflow.core.missing.masked_noise`).
         Other measurement laws take whole-step gaps only, unless the model overrides this."""
         if not self.structure.gaussian_measurement:
             return super().measurement_log_prob_observed(z, x, observed)

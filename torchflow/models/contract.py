@@ -5,7 +5,6 @@
   (a user model whose ``measure()`` returns ``(..., 1)`` where m = 2 would otherwise broadcast
   into plausible, wrong numbers). Once per model and dtype/device/batch layout; no host
   synchronisation (shapes are Python integers).
-* :func:`require_gaussian`: a filter that needs the Gaussian form says so at construction.
 * :func:`check_dtype`, :func:`check_simulate_args`, :func:`check_covariances`: argument and
   parameter checks with clear errors.
 """
@@ -19,31 +18,15 @@ from typing import Optional, Tuple
 
 import torch
 
-from .._checks import check_count, check_psd
-from ..random import generator_hint
-from ..errors import ArgumentError, ArgumentTypeError, NonFiniteError
+from torchflow.core.checks import check_count, check_psd
+from torchflow.core.errors import ArgumentError, ArgumentTypeError, NonFiniteError
+from torchflow.core.random import generator_hint
+from torchflow.models.trials import trial_names
 
 #: the Gaussian form's methods a filter reads (beyond the core)
 GAUSSIAN_FORM = ("transition_mean", "transition_cov", "measure", "measurement_cov")
 
 _checked: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()  # model -> set of checked keys
-
-
-def require_gaussian(model, who: str) -> None:
-    """Raise unless ``model`` has the Gaussian form (a
-    :class:`~torchflow.models.GaussianStateSpaceModel`), naming the filter ``who``."""
-    from .base import GaussianStateSpaceModel, StateSpaceModel
-
-    if not isinstance(model, StateSpaceModel):
-        raise ArgumentTypeError(
-            f"{who}: model: expected a torchflow.models.StateSpaceModel, got {type(model).__name__}"
-        )
-    if not isinstance(model, GaussianStateSpaceModel):
-        raise ArgumentTypeError(
-            f"{who}: model: {type(model).__name__} gives only the core (samplers and densities); "
-            f"{who} needs the Gaussian form ({', '.join(GAUSSIAN_FORM)}): subclass "
-            "torchflow.models.GaussianStateSpaceModel, or use BootstrapParticleFilter"
-        )
 
 
 def check_dtype(model, who: str) -> None:
@@ -140,14 +123,12 @@ def check_covariances(model, who: str = "") -> None:
     (``transition_cov()``, ``measurement_cov()``; state-dependent ones are skipped) are symmetric
     positive semi-definite, naming the model, the covariance and, for a parameter of the model,
     its name. Filters call it once per call (a learnable covariance may leave the cone after an
-    optimiser step; :mod:`torchflow.constraints` keeps one valid by construction). Per-trial values
+    optimiser step; :mod:`torchflow.core.constraints` keeps one valid by construction). Per-trial values
     (:func:`torchflow.inference.per_trial_values`) are checked trial by trial, ``(B, k, k)``; the
     error names the first bad trial. A matrix of more than :data:`COVARIANCE_CHECK_NUMBERS` numbers
     (``k > 4096``) is not formed for the check (a model of ``d = 10^5`` whose filters never form
     it); a declared scalar R (``measurement_noise_scale``) of more than :data:`DECLARED_CHECK_NUMBERS`
     numbers is checked by its scale. A diagonal matrix is checked on its diagonal (no factorisation)."""
-    from .trials import trial_names
-
     params = {id(p): n for n, p in model.named_parameters()}
     structure = model.structure
     for what, name in (("transition covariance", "transition_cov"), ("measurement covariance", "measurement_cov")):
@@ -223,12 +204,8 @@ def check_shapes(model, x: torch.Tensor, who: str, *, gaussian: Optional[bool] =
     and batch size. A model whose parameters hold per-trial values
     (:func:`torchflow.inference.per_trial_values`) is checked again, on every trial's particles and
     not on a lone point."""
-    from .base import GaussianStateSpaceModel
-
     if gaussian is None:
-        gaussian = isinstance(model, GaussianStateSpaceModel)
-    from .trials import trial_names
-
+        gaussian = bool(getattr(model, "_gaussian", False))
     per_trial = trial_names(model)  # values per trial now: every trial, no lone point
     key = (x.dtype, x.device, x.shape[0], gaussian, per_trial)
     done = _checked.setdefault(model, set())

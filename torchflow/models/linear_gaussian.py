@@ -8,9 +8,8 @@ from typing import Optional, Tuple
 import torch
 from torch import nn
 
-from .. import constraints, linalg
-from ..linalg import _LOG_2PI
-from .._checks import (
+from torchflow.core import constraints, linalg
+from torchflow.core.checks import (
     as_real_tensor,
     check_choice,
     check_learnable,
@@ -20,10 +19,11 @@ from .._checks import (
     check_psd,
     check_tensor,
 )
-from .base import GaussianStateSpaceModel
-from .structure import Structure
-from .trials import per_trial_structure, trial_factor, trial_names, trial_view
-from ..errors import ArgumentError
+from torchflow.core.errors import ArgumentError
+from torchflow.core.linalg import _LOG_2PI
+from torchflow.models.base import GaussianStateSpaceModel
+from torchflow.models.structure import Structure
+from torchflow.models.trials import per_trial_structure, trial_factor, trial_names, trial_view
 
 
 class LinearGaussian(GaussianStateSpaceModel):
@@ -42,7 +42,7 @@ class LinearGaussian(GaussianStateSpaceModel):
         P0: ``(d, d)`` initial covariance (default zeros: x_0 = m0 known).
         learnable: ``True`` makes F, Q, H, R learnable (else buffers); a list such as ``["F", "H"]``
             makes only those learnable. F and H are plain ``nn.Parameter``s; a learnable Q or R
-            stays positive definite by construction (:mod:`torchflow.constraints`): ``model.Q``
+            stays positive definite by construction (:mod:`torchflow.core.constraints`): ``model.Q``
             is ``L L^T`` with ``L`` lower triangular with a positive diagonal (a diagonal R,
             ``measurement_noise="diagonal"``, is ``diag(exp(log-variances))``); the optimiser
             moves ``model.parametrizations.Q.original`` and ``model.Q`` is always the valid value.
@@ -90,7 +90,7 @@ class LinearGaussian(GaussianStateSpaceModel):
                 "dense" if "R" in learn or not diagonal else "scalar" if _identity_scale(R) is not None else "diagonal"
             )
         for name, val in zip(names, (F, Q, H, R)):
-            if name in ("Q", "R") and name in learn:  # valid by construction (torchflow.constraints)
+            if name in ("Q", "R") and name in learn:  # valid by construction (torchflow.core.constraints)
                 if bool((torch.linalg.cholesky_ex(val)[1] > 0).any()):
                     raise ArgumentError(
                         f"{name}: a learnable covariance is parametrised by its Cholesky factor, "

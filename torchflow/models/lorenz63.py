@@ -28,12 +28,12 @@ from typing import Optional, Sequence, Tuple
 
 import torch
 
-from .. import linalg
-from .._checks import check_nonnegative, check_number, check_positive
-from ..errors import ArgumentError
-from .base import GaussianStateSpaceModel
-from .dynamics import isotropic_log_prob, rk4_steps, rk4_with_tangent
-from .structure import Structure
+from torchflow.core import linalg
+from torchflow.core.checks import check_nonnegative, check_number, check_positive
+from torchflow.core.errors import ArgumentError
+from torchflow.models.base import GaussianStateSpaceModel
+from torchflow.models.dynamics import isotropic_log_prob, rk4_steps, rk4_with_tangent
+from torchflow.models.structure import Structure
 
 _KERNEL: list = []  # [bool] once checked
 
@@ -161,7 +161,7 @@ class Lorenz63(GaussianStateSpaceModel):
         (:mod:`torchflow.models._lorenz63_kernel`: the same numbers to round-off, about 1e-15
         relative); elsewhere the batched torch tangents."""
         if x.device.type == "cpu" and x.dtype == torch.float64 and not x.requires_grad and _kernel_available():
-            from ._lorenz63_kernel import rk4_tangent
+            from torchflow.models._lorenz63_kernel import rk4_tangent
 
             flat = x.detach().reshape(-1, 3).contiguous().numpy()
             mean, jac = rk4_tangent(flat, self.dt / self.substeps, self.substeps, self.sigma, self.rho, self.beta)

@@ -16,15 +16,14 @@ from typing import Optional, Tuple
 
 import torch
 
-from .. import linalg
-from ..covariances import DiagonalCovariance
-from .._checks import check_nonnegative, check_number, check_positive
-from ..errors import ArgumentError
-from .base import GaussianStateSpaceModel
-from .dynamics import isotropic_log_prob, rk4_steps
-from .structure import Structure
-from .trials import batch_jacobian, per_trial_structure, trial_names, trial_view
-
+from torchflow.core import linalg
+from torchflow.core.checks import check_nonnegative, check_number, check_positive
+from torchflow.core.covariances import DiagonalCovariance
+from torchflow.core.errors import ArgumentError
+from torchflow.models.base import GaussianStateSpaceModel
+from torchflow.models.dynamics import isotropic_log_prob, rk4_steps
+from torchflow.models.structure import Structure
+from torchflow.models.trials import batch_jacobian, per_trial_structure, trial_names, trial_view
 
 #: what an observation of a coordinate measures (``Lorenz96(obs_operator=...)``)
 OBS_OPERATORS = ("identity", "abs", "square")
@@ -70,7 +69,7 @@ class Lorenz96(GaussianStateSpaceModel):
     taken on the whole batch (forward mode) rather than one state at a time.
 
     Nothing of size ``d x d`` is formed unless a filter asks for it: the prior is a
-    :class:`~torchflow.covariances.DiagonalCovariance` (``prior_std^2`` per coordinate), the
+    :class:`~torchflow.core.covariances.DiagonalCovariance` (``prior_std^2`` per coordinate), the
     densities and samplers use the scalar noise scales, and the ``(m, d)`` matrix H is built by
     :meth:`measurement_matrix` on demand (the Kalman-type filters). So the ensemble Kalman filters
     and the bootstrap PF run at ``d = 10^5`` and more.
@@ -281,7 +280,7 @@ class Lorenz96(GaussianStateSpaceModel):
         self, states0: torch.Tensor, generator: Optional[torch.Generator] = None
     ) -> Tuple[torch.Tensor, DiagonalCovariance]:
         """Mean ``x_0 + prior_std xi (B, d)`` and the diagonal covariance ``prior_std^2 I``
-        (:class:`~torchflow.covariances.DiagonalCovariance`, variances ``(B, d)``: a view)."""
+        (:class:`~torchflow.core.covariances.DiagonalCovariance`, variances ``(B, d)``: a view)."""
         xi = linalg.standard_normal(states0.shape, dtype=states0.dtype, device=states0.device, generator=generator)
         var = (self.prior_std**2).to(states0.dtype).expand(states0.shape)
         return states0 + self.prior_std * xi, DiagonalCovariance(var)

@@ -8,7 +8,7 @@ sensor grid, noise, prior and simulation) with the per-target sensor response
 
 ``g`` is any ``nn.Module`` that maps distances ``r (...)`` to positive amplitudes ``(...)``
 elementwise. Its parameters are the model's (``model.parameters()``), so a filter's log-evidence
-backpropagates into them and :class:`~torchflow.lightning.FilterLightningModule` learns them like
+backpropagates into them and :class:`~torchflow.app.lightning.FilterLightningModule` learns them like
 any other parameter. The flows and the EKF/UKF need ``dh/dx`` (GPFIS also the second derivatives):
 ``dz_s / dp_c = g'(r) (p_c - s_s) / r``; a response that gives ``derivatives(r, order)`` (as both
 responses here do, in closed form) is differentiated by it, any other by forward-mode autodiff
@@ -30,10 +30,10 @@ import torch
 from torch import nn
 from torch.func import jvp
 
-from .._checks import check_count, check_learnable, check_positive
-from ..errors import ArgumentError, ArgumentTypeError
-from .acoustic import _X0, AcousticTracking
-from .structure import Structure
+from torchflow.core.checks import check_count, check_learnable, check_positive
+from torchflow.core.errors import ArgumentError, ArgumentTypeError
+from torchflow.models.acoustic import _X0, AcousticTracking
+from torchflow.models.structure import Structure
 
 
 class InverseDistance(nn.Module):

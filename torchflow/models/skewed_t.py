@@ -12,8 +12,8 @@ density is the multivariate GH skewed-t with location ``mu = alpha x_{k-1}``:
     q = (x - mu)^T Sigma^{-1} (x - mu),  zeta = sqrt((nu + q) gamma^T Sigma^{-1} gamma),
     log c = (1 - (nu+d)/2) log 2 - lgamma(nu/2) - (d/2) log(pi nu) - (1/2) log|Sigma|,
 
-with ``log K`` from :func:`torchflow.special.log_bessel_k` (order 75.5 at d = 144). Flows, trackers
-and Gaussian proposals use its Gaussian fit (§14e): mean ``alpha x + E[W] gamma`` and covariance
+with ``log K`` from :func:`torchflow.core.special.log_bessel_k` (order 75.5 at d = 144). Flows, trackers
+and Gaussian proposals use its Gaussian fit (as Pal & Coates 2019): mean ``alpha x + E[W] gamma`` and covariance
 ``Q_st = E[W] Sigma + Var[W] gamma gamma^T``. The measurement noise is state dependent
 (``R = diag(m1 exp(m2 x))``, the Poisson variance at the linearisation point), declared as
 ``measurement_noise = "state_dependent_diagonal"``.
@@ -29,14 +29,14 @@ import math
 
 import torch
 
-from .. import linalg
-from .._checks import check_nonnegative, check_number, check_positive
-from ..special import log_bessel_k
-from .base import GaussianStateSpaceModel
-from .structure import Structure
-from .linear_gaussian import sensor_network_covariance
-from .trials import per_trial_structure, trial_view
-from ..errors import ArgumentError
+from torchflow.core import linalg
+from torchflow.core.checks import check_nonnegative, check_number, check_positive
+from torchflow.core.errors import ArgumentError
+from torchflow.core.special import log_bessel_k
+from torchflow.models.base import GaussianStateSpaceModel
+from torchflow.models.linear_gaussian import sensor_network_covariance
+from torchflow.models.structure import Structure
+from torchflow.models.trials import per_trial_structure, trial_view
 
 
 class SkewedTPoisson(GaussianStateSpaceModel):
@@ -50,9 +50,9 @@ class SkewedTPoisson(GaussianStateSpaceModel):
         nu: degrees of freedom, an integer > 4 (7).
         alpha0, alpha1, beta: Sigma's sensor-network constants (3, 0.01, 20).
         m1, m2: Poisson rate ``m1 exp(m2 x)`` (1, 1/3).
-        mean_shift: the Gaussian fit's mean includes ``E[W] gamma`` (True, §14e) or not (False:
-            the [LC-code] noise-free propagation ``alpha x``; UNCONF).
-        steps: a default horizon for experiments (30, seed 001), not used by the model itself.
+        mean_shift: the Gaussian fit's mean includes ``E[W] gamma`` (True, as Pal & Coates 2019) or not (False:
+            Li & Coates' published code's noise-free propagation ``alpha x``).
+        steps: a default horizon for experiments (30, as Comandur et al. 2022), not used by the model itself.
 
     Per trial (:func:`torchflow.inference.per_trial_values`): ``alpha``, ``m1`` and ``m2`` may each hold
     one value per trial, ``(B,)``. While ``alpha`` is per trial the model declares no

@@ -49,12 +49,12 @@ from typing import Optional, Tuple
 
 import torch
 
-from .. import constraints, linalg
-from .._checks import check_choice, check_learnable, check_nonnegative, check_number, check_positive
-from ..errors import ArgumentError
-from .base import GaussianStateSpaceModel
-from .structure import Structure
-from .trials import per_trial_structure, trial_view
+from torchflow.core import constraints, linalg
+from torchflow.core.checks import check_choice, check_learnable, check_nonnegative, check_number, check_positive
+from torchflow.core.errors import ArgumentError
+from torchflow.models.base import GaussianStateSpaceModel
+from torchflow.models.structure import Structure
+from torchflow.models.trials import per_trial_structure, trial_view
 
 #: E[log chi^2_1] = digamma(1/2) + log 2
 LOG_CHI2_MEAN = -1.2703628454614782
@@ -81,7 +81,7 @@ class StochasticVolatility(GaussianStateSpaceModel):
         learnable: parameters to learn, a subset of ``["mu", "rho", "sigma"]`` (``True``: all).
             ``mu`` is a plain ``nn.Parameter``; ``rho`` lives in (-1, 1) (a scaled sigmoid) and
             ``sigma`` is positive (its logarithm is learnt), by construction
-            (:mod:`torchflow.constraints`).
+            (:mod:`torchflow.core.constraints`).
 
     Structure: a Gaussian, affine transition (not ``linear_dynamics``: the mean has the offset
     ``(1 - rho) mu``); ``m = d = 1`` (a diagonal Jacobian); R state-dependent

@@ -21,7 +21,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from typing import Optional, Tuple
-from ..errors import ArgumentError
+
+from torchflow.core.errors import ArgumentError
 
 #: the declared structures of the measurement noise R
 NOISE = ("scalar", "diagonal", "dense", "state_dependent", "state_dependent_diagonal")
@@ -69,7 +70,7 @@ class Structure:
             ``measure``, log-densities), for the chunk planner; ``None``: ``32 (d + m)``.
         prior_covariance: the form of the prior covariance that :meth:`initial_belief` (and
             ``declared_prior``) return, one of :data:`PRIOR`: ``"dense"`` (a tensor ``(B, d, d)``)
-            or ``"diagonal"`` (a :class:`~torchflow.covariances.DiagonalCovariance` of variances
+            or ``"diagonal"`` (a :class:`~torchflow.core.covariances.DiagonalCovariance` of variances
             ``(B, d)``: no ``d x d`` matrix, for states of ``d = 10^5`` and more). The chunk planner
             sizes the priors by it.
     """

@@ -1,4 +1,4 @@
-"""3-D source localisation from time differences of arrival (seed 002: Zhang, Khojasteh, Atanasov &
+"""3-D source localisation from time differences of arrival (Zhang, Khojasteh, Atanasov &
 Meyer 2024, the TDOA scenario).
 
 Static sources ``x`` in the cube ``[-r, r]^3`` are heard by V receivers; sensor s is a receiver pair
@@ -12,7 +12,7 @@ sensor) uniform on the feasible interval ``[-||p_a - p_b|| / c, ||p_a - p_b|| / 
 As a :class:`~torchflow.models.StateSpaceModel`, the sensors are the time steps (:attr:`TDOA3D.n_steps`),
 the state is the static sources ``(3 n,)`` and ``observations (B, S, M)`` are padded with 0 and come
 with a ``mask`` (:class:`TDOAData`): only the localisers of :mod:`torchflow.localisation` run on it.
-Defaults: §12.3 (UNCONF: the seed's pair list and source count appear only in a figure).
+Defaults: the paper's pair list and source count appear only in a figure; ours are read from it.
 """
 
 from __future__ import annotations
@@ -23,11 +23,11 @@ from typing import Optional, Sequence
 
 import torch
 
-from .base import GaussianStateSpaceModel, Trajectory
-from .contract import check_simulate_args
-from .structure import Structure
-from .._checks import as_real_tensor, check_number
-from ..errors import ArgumentError
+from torchflow.core.checks import as_real_tensor, check_number
+from torchflow.core.errors import ArgumentError
+from torchflow.models.base import GaussianStateSpaceModel, Trajectory
+from torchflow.models.contract import check_simulate_args
+from torchflow.models.structure import Structure
 
 
 def face_receivers(half_width: float = 1000.0) -> torch.Tensor:
@@ -64,7 +64,7 @@ class TDOAData(Trajectory):
 
 
 class TDOA3D(GaussianStateSpaceModel):
-    """The TDOA scenario of seed 002 (see the module docstring).
+    """The TDOA scenario of Zhang et al. 2024 (see the module docstring).
 
     Args:
         receivers: ``(V, 3)`` receiver positions (default :func:`face_receivers`).

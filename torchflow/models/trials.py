@@ -11,7 +11,7 @@ with them:
 * :func:`trial_view`: a parameter viewed to broadcast against states ``(B, ..., d)``;
 * :func:`trial_factor`: the Cholesky factor of a per-trial covariance, factored once per value;
 * :func:`batch_jacobian`: Jacobians of a map that reads per-trial values (it cannot be evaluated on
-  one point at a time under ``vmap``, as :func:`torchflow.linearize.jacobian` does).
+  one point at a time under ``vmap``, as :func:`torchflow.core.linearize.jacobian` does).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from typing import Callable, Optional, Tuple
 
 import torch
 
-from .. import linalg
+from torchflow.core import linalg
 
 
 def trial_names(model) -> Tuple[str, ...]:
@@ -41,7 +41,7 @@ def trial_view(value: torch.Tensor, rank: int, x: Optional[torch.Tensor], event:
     ``event`` dimensions are the value's own: a scalar against ``(B, ..., m)`` is ``(B, 1.., 1)``, a
     ``(B, d, d)`` matrix against ``(B, ..., d, d)`` is ``(B, 1.., d, d)``. States whose leading
     dimension is a trial-major multiple ``k B`` of the trials (rows ``b k .. b k + k - 1`` are trial
-    b's: the library's convention, as in :func:`torchflow.linalg.standard_normal`; the Gaussian-sum
+    b's: the library's convention, as in :func:`torchflow.core.linalg.standard_normal`; the Gaussian-sum
     filters flow their components so) take each trial's value k times. A shared value is returned as
     it is. ``x=None``: one row per trial, ``(B, 1.., *shape)`` with ``event - rank`` ones (a
     parameter's per-trial value where a method is called without states)."""
@@ -57,7 +57,7 @@ def trial_view(value: torch.Tensor, rank: int, x: Optional[torch.Tensor], event:
 
 def trial_factor(model, name: str, value: torch.Tensor) -> torch.Tensor:
     """The lower Cholesky factor of the per-trial covariance ``value (B, k, k)`` held by ``model.<name>``,
-    factored once per value (:func:`torchflow.linalg.safe_cholesky`) and reused while the same tensor
+    factored once per value (:func:`torchflow.core.linalg.safe_cholesky`) and reused while the same tensor
     is in place; a value that records gradients is factored at every call (a kept factor would hold a
     graph that a first backward pass frees)."""
     if value.requires_grad:

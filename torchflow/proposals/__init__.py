@@ -7,14 +7,23 @@
 * :class:`FlowedMixtureProposal` (``mixture.py``): flow-induced Gaussian-mixture importance sampling.
 
 The contract is in ``base.py`` (:class:`Proposal`, :class:`Proposed`).
+
+May import: :mod:`torchflow.core`, :mod:`torchflow.models`, :mod:`torchflow.flows` (not its kernels).
 """
 
-from .base import Proposal, Proposed
-from .bootstrap import BootstrapProposal
-from .flow import FLOWS, FlowProposal, InvertibleFlowProposal, StochasticFlowProposal, flow_proposal, resolve_flow
-from .gpfis import GPFISProposal
-from .mixture import FlowedMixtureProposal
-from .unscented import UnscentedProposal
+from torchflow.proposals.base import Proposal, Proposed
+from torchflow.proposals.bootstrap import BootstrapProposal
+from torchflow.proposals.flow import (
+    FLOWS,
+    FlowProposal,
+    InvertibleFlowProposal,
+    StochasticFlowProposal,
+    flow_proposal,
+    resolve_flow,
+)
+from torchflow.proposals.gpfis import GPFISProposal
+from torchflow.proposals.mixture import FlowedMixtureProposal
+from torchflow.proposals.unscented import UnscentedProposal
 
 __all__ = [
     "Proposal",

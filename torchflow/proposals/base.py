@@ -15,12 +15,11 @@ from typing import Optional, Tuple
 import torch
 from torch import nn
 
-from .. import tuning
-from ..covariances import Covariance
-from ..models.base import StateSpaceModel
-from ..models.contract import require_gaussian
-from ..models.structure import bytes_per_point
-from ..errors import ArgumentTypeError
+from torchflow.core import tuning
+from torchflow.core.covariances import Covariance
+from torchflow.core.errors import ArgumentTypeError
+from torchflow.models.base import StateSpaceModel, require_gaussian
+from torchflow.models.structure import bytes_per_point
 
 
 @dataclass
@@ -32,7 +31,7 @@ class Proposed:
         log_q: ``(B, N)`` log proposal density of each particle given its parent, or ``None``
             when ``q`` is the transition itself (the weight is then the likelihood alone).
         cov: the state the proposal carries to the next step (a tracked
-            :class:`~torchflow.covariances.Covariance`: per trial, or per particle and resampled
+            :class:`~torchflow.core.covariances.Covariance`: per trial, or per particle and resampled
             with them), or ``None``.
         fallback: ``(B, N, d)`` finite positions for particles repaired by ``nonfinite="recover"``.
         log_evidence: ``(B,)`` the tracker's Gaussian log-evidence of ``z`` (proposals that track a
@@ -69,11 +68,11 @@ class Proposal(nn.Module):
             :class:`~torchflow.models.GaussianStateSpaceModel`; checked at construction).
         graph_safe: :meth:`propose` makes the same kernels and the same draws (kinds, shapes) at
             every step of one layout, with no host read, so the filter's whole step may be replayed
-            from a CUDA graph (:mod:`torchflow.flows.kernels.graph_step`), when the model declares the
+            from a CUDA graph (:mod:`torchflow.filters.graph_step`), when the model declares the
             same. Declared by each class itself, not inherited (a subclass may draw otherwise):
             the bootstrap proposal and the deterministic flows' proposal (with graph-safe points).
         diagonal_prior: :meth:`init_carry` does not read the prior covariance, so the filter may
-            start from a :class:`~torchflow.covariances.DiagonalCovariance` without its ``d x d``
+            start from a :class:`~torchflow.core.covariances.DiagonalCovariance` without its ``d x d``
             matrix. Declared by each class itself, not inherited: the bootstrap proposal.
         report_ancestor_law: set by a filter with marginal weights: :meth:`propose` also returns
             :attr:`Proposed.ancestor_law` (proposals with :attr:`has_ancestor_law`).
@@ -123,7 +122,7 @@ class Proposal(nn.Module):
             estimate: ``(B, d)`` the previous weighted-mean estimate (before resampling).
             z: ``(B, m)``.
             carry: what the previous step returned as :attr:`Proposed.cov` (or :meth:`init_carry`).
-            generator: ``torch.Generator`` or per-trial :class:`~torchflow.random.TrialStreams`.
+            generator: ``torch.Generator`` or per-trial :class:`~torchflow.core.random.TrialStreams`.
             chunk: evaluate per-particle work in blocks of at most this many particles (``None``:
                 the proposal's own choice).
         """
@@ -137,6 +136,6 @@ class Proposal(nn.Module):
 
     def preferred_chunk_trials(self, n_particles: int) -> Optional[int]:
         """Largest number of trials per call that runs at full speed (``None``: memory decides).
-        Whole-cloud passes stay cache-resident up to a measured size (:mod:`torchflow.tuning`)."""
+        Whole-cloud passes stay cache-resident up to a measured size (:mod:`torchflow.core.tuning`)."""
         per_trial = int(n_particles) * self.model.state_dim * torch.finfo(self.model.dtype).bits // 8
         return max(1, tuning.get().cache_bytes_per_call // max(per_trial, 1))

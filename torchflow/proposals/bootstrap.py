@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .base import Proposal, Proposed
+from torchflow.proposals.base import Proposal, Proposed
 
 
 class BootstrapProposal(Proposal):

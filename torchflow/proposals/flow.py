@@ -6,7 +6,7 @@
   Gaussian transition (Pal & Coates 2019, Algorithm 1).
 
 Both own the flow, the lambda schedule, the linearisation points (global, per particle, clustered)
-and the covariance tracker (EKF/UKF, :mod:`torchflow.trackers`) that gives the flow its prior; the
+and the covariance tracker (EKF/UKF, :mod:`torchflow.core.trackers`) that gives the flow its prior; the
 tracked covariance is the state they carry between steps.
 """
 
@@ -17,17 +17,17 @@ from typing import Optional
 
 import torch
 
-from .. import linalg, registry
-from ..flows import FlowPrior, LEDHFlow, ParticleFlow, integrate_flow, resolve_points
-from ..flows.points import ClusteredPoints, flow_points_per_call
-from ..schedules import LambdaSchedule, resolve_schedule
-from ..trackers import tracker
-from .._blocks import blockwise
-from ..models.structure import bytes_per_point
-from .base import Proposal, Proposed
-from ..errors import ArgumentError, ArgumentTypeError
+from torchflow.core import linalg, registry
+from torchflow.core.blocks import blockwise
+from torchflow.core.errors import ArgumentError, ArgumentTypeError
+from torchflow.core.trackers import tracker
+from torchflow.flows import FlowPrior, LEDHFlow, ParticleFlow, integrate_flow, resolve_points
+from torchflow.flows.points import ClusteredPoints, flow_points_per_call
+from torchflow.flows.schedules import LambdaSchedule, resolve_schedule
+from torchflow.models.structure import bytes_per_point
+from torchflow.proposals.base import Proposal, Proposed
 
-#: flows by config name (:data:`torchflow.registry.REGISTRY`)
+#: flows by config name (:data:`torchflow.core.registry.REGISTRY`)
 FLOWS = registry.table("flow")
 
 
@@ -49,7 +49,7 @@ class FlowProposal(Proposal):
     """A particle flow as proposal (base of the invertible and stochastic flow proposals).
 
     Each step: the tracker predicts the flow's Gaussian prior where the carried covariance lives
-    (at each particle, or at the trial's estimate: :mod:`torchflow.covariances`), the
+    (at each particle, or at the trial's estimate: :mod:`torchflow.core.covariances`), the
     linearisation points place it (:meth:`~torchflow.flows.points.LinearisationPoints.place`),
     the flow migrates ``eta_0 ~ p(. | x_{k-1})``, and the tracker updates the covariance.
     Particles that flow independently (per-particle points) are flowed in blocks to bound memory.
@@ -64,7 +64,8 @@ class FlowProposal(Proposal):
         n_clusters, alpha, sweeps: knobs of clustered points given by name
             (:class:`~torchflow.flows.points.ClusteredPoints`; checked whatever the points).
         jacobian_in_weight: invertible flows: include ``log|det|`` in ``log q`` (default True;
-            False is seed 004's printed weight, whose evidence is biased: a knob for comparison).
+            False is the weight printed in Li & Coates' clustered PF-PF paper, whose evidence is biased:
+            a knob for comparison).
         weighted: compute ``log q`` (default); ``False`` moves the particles only (the unweighted
             flow filters: no transition density, no tracked proposal law), ``log_q`` is ``None``.
     """
@@ -234,7 +235,7 @@ class InvertibleFlowProposal(FlowProposal):
         )
         if log_q0 is None:  # weighted=False
             return out.particles, None, None, None
-        # jacobian_in_weight=False: seed 004's printed weight (biased evidence; a knob for comparison)
+        # jacobian_in_weight=False: the clustered PF-PF paper's printed weight (biased evidence; a knob for comparison)
         log_q = log_q0 - out.log_det if self.jacobian_in_weight else log_q0
         if not law:
             return out.particles, log_q, None, None

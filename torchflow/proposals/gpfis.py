@@ -6,13 +6,13 @@ from __future__ import annotations
 
 from typing import Optional
 
-from ..flows import FlowPrior, GaussianMeasurement
-from .._checks import check_choice
-from ..flows.gpfis import JACOBIANS, ROOTS, gpfis_flow
-from ..schedules import LambdaSchedule, resolve_schedule
-from .._blocks import blockwise
-from ..models.structure import bytes_per_point
-from .base import Proposal, Proposed
+from torchflow.core.blocks import blockwise
+from torchflow.core.checks import check_choice
+from torchflow.flows import FlowPrior, GaussianMeasurement
+from torchflow.flows.gpfis import JACOBIANS, ROOTS, gpfis_flow
+from torchflow.flows.schedules import LambdaSchedule, resolve_schedule
+from torchflow.models.structure import bytes_per_point
+from torchflow.proposals.base import Proposal, Proposed
 
 
 class GPFISProposal(Proposal):

@@ -1,5 +1,5 @@
-"""Flow-induced Gaussian-mixture importance sampling (seed 002: Zhang et al. 2024, eqs 6-7): the flow moves the
-parameters of every prior component, and the flowed mixture is the proposal."""
+"""Flow-induced Gaussian-mixture importance sampling (Zhang, Khojasteh, Atanasov & Meyer 2024, eqs 6-7):
+the flow moves the parameters of every prior component, and the flowed mixture is the proposal."""
 
 from __future__ import annotations
 
@@ -9,18 +9,17 @@ from typing import Optional
 import torch
 from torch import nn
 
-from .. import linalg
-from ..flows import FlowPrior, ParticleFlow, flow_gaussian
-from ..flows.integrate import EVALUATE_AT
-from ..schedules import LambdaSchedule, resolve_schedule
-from ..errors import ArgumentError, ArgumentTypeError
-
+from torchflow.core import linalg
+from torchflow.core.errors import ArgumentError, ArgumentTypeError
+from torchflow.flows import FlowPrior, ParticleFlow, flow_gaussian
+from torchflow.flows.integrate import EVALUATE_AT
+from torchflow.flows.schedules import LambdaSchedule, resolve_schedule
 
 RATIOS = ("mixture", "component")
 
 
 class FlowedMixtureProposal(nn.Module):
-    """Flow-induced Gaussian-mixture importance sampling (seed 002: Zhang, Khojasteh, Atanasov &
+    """Flow-induced Gaussian-mixture importance sampling (Zhang, Khojasteh, Atanasov &
     Meyer 2024, eqs 6-7).
 
     Instead of moving particles, the flow moves the *parameters* of every prior component
@@ -39,8 +38,8 @@ class FlowedMixtureProposal(nn.Module):
     Args:
         flow: a :class:`~torchflow.flows.ParticleFlow` (its points are ignored: one point per
             component, its migrating mean).
-        schedule: lambda schedule (default exponential, 29 steps, ratio 1.2; seed 002 uses
-            :class:`~torchflow.schedules.GeometricSchedule` grids).
+        schedule: lambda schedule (default exponential, 29 steps, ratio 1.2; Zhang et al. use
+            :class:`~torchflow.flows.schedules.GeometricSchedule` grids).
         ratio: ``"mixture"`` or ``"component"``.
         evaluate_at: ``"end"`` (default) or ``"start"``: the pseudo-time of each step's flow
             coefficients (:func:`~torchflow.flows.flow_gaussian`).

@@ -18,20 +18,19 @@ optimal importance density ``p(x_k | x_{k-1}^i, z_k)`` (Doucet, Godsill & Andrie
 linearisation). The published UPF (``prior="posterior"``) predicts from the carried posterior
 ``P_{k-1}^i``, which is wider than ``Q``: its draws move further towards ``z_k`` than the
 transition density supports, and the weights ``p(x_k | x_{k-1}) / q`` can collapse when ``Q`` is small
-(acoustic tracking: experiments/RESULTS.md).
+(acoustic tracking).
 """
 
 from __future__ import annotations
 
 from typing import Optional
 
-
-from .. import linalg
-from ..covariances import ParticleCovariance
-from ..trackers import tracker
-from ..models.structure import bytes_per_point
-from .base import Proposal, Proposed
-from ..errors import ArgumentError
+from torchflow.core import linalg
+from torchflow.core.covariances import ParticleCovariance
+from torchflow.core.errors import ArgumentError
+from torchflow.core.trackers import tracker
+from torchflow.models.structure import bytes_per_point
+from torchflow.proposals.base import Proposal, Proposed
 
 
 class UnscentedProposal(Proposal):
@@ -41,7 +40,7 @@ class UnscentedProposal(Proposal):
         model: the state-space model (Gaussian noise; its Gaussian fit otherwise).
         covariance: ``"ukf"`` (default, the UPF) or ``"ekf"`` (the extended Kalman PF).
         alpha, beta, kappa: the UKF's sigma-point settings
-            (:class:`~torchflow.trackers.UnscentedTransform`; ``kappa=None`` is ``3 - d``).
+            (:class:`~torchflow.core.trackers.UnscentedTransform`; ``kappa=None`` is ``3 - d``).
         prior: ``"posterior"`` (the published UPF: predict each particle's carried posterior) or
             ``"transition"`` (predict ``N(f(x^i), Q)``: the linearised optimal proposal).
     """

@@ -13,8 +13,10 @@ One entry, :func:`smooth`, for every filter:
   density needed, cheap, but the early steps collapse onto few ancestors: path degeneracy).
 
 Paths are ``(B, M, T+1, d)`` with index 0 the initial state, and means ``(B, T+1, d)``.
+
+May import: :mod:`torchflow.core`, :mod:`torchflow.models`, :mod:`torchflow.filters`.
 """
 
-from .core import SMOOTHERS, SmoothingResult, ffbsi, genealogy, rts, smooth, smoothing_method
+from torchflow.smoothing.core import SMOOTHERS, SmoothingResult, ffbsi, genealogy, rts, smooth, smoothing_method
 
 __all__ = ["smooth", "smoothing_method", "SmoothingResult", "rts", "ffbsi", "genealogy", "SMOOTHERS"]

@@ -7,14 +7,14 @@ from typing import List, Optional
 
 import torch
 
-from .. import linalg, missing
-from .._checks import check_choice, check_count
-from ..errors import ArgumentError, ArgumentTypeError
-from ..filters.base import ANCESTOR, Filter, FilterResult, GaussianState, ParticleFilter, _Trace
-from ..filters.kalman import _GaussianFilter
-from ..random import check_generator, uniform
-from .. import resampling as _resampling
-from ..resampling import gather_particles
+from torchflow.core import linalg, missing
+from torchflow.core import resampling as _resampling
+from torchflow.core.checks import check_choice, check_count
+from torchflow.core.errors import ArgumentError, ArgumentTypeError
+from torchflow.core.random import check_generator, uniform
+from torchflow.core.resampling import gather_particles
+from torchflow.filters.base import ANCESTOR, Filter, FilterResult, GaussianState, ParticleFilter, _Trace
+from torchflow.filters.kalman import _GaussianFilter
 
 #: the methods of :func:`smooth`
 SMOOTHERS = ("auto", "rts", "ffbsi", "genealogy")
@@ -90,13 +90,13 @@ def smooth(
 
 def smoothing_method(filt: Filter, method: str = "auto") -> str:
     """The smoother :func:`smooth` runs for ``filt`` with ``method`` (``"auto"``: ``"rts"`` for the
-    Kalman family, ``"ffbsi"`` for particle filters); an :class:`~torchflow.errors.ArgumentError`
+    Kalman family, ``"ffbsi"`` for particle filters); an :class:`~torchflow.core.errors.ArgumentError`
     naming ``method`` when the filter cannot be smoothed that way."""
     if not isinstance(filt, Filter):
         raise ArgumentTypeError(f"filt: expected a torchflow Filter, got {type(filt).__name__}")
     check_choice("method", method, SMOOTHERS)
     gaussian = isinstance(filt, _GaussianFilter)
-    particle = isinstance(filt, ParticleFilter) and type(filt).init is ParticleFilter.init
+    particle = isinstance(filt, ParticleFilter) and "init" in filt.kept
     if method == "auto":
         method = "rts" if gaussian else "ffbsi"
     if method == "rts" and not gaussian:
@@ -201,7 +201,7 @@ def _rts(filt, obs, mean, cov) -> SmoothingResult:
 
 def _categorical(log_w: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """One index per row of ``log_w (..., N)`` at the uniform ``u (...)``: the resamplers' inverse
-    CDF (:mod:`torchflow.resampling`: a zero weight is never drawn), one position per row."""
+    CDF (:mod:`torchflow.core.resampling`: a zero weight is never drawn), one position per row."""
     N = log_w.shape[-1]
     rows = log_w.reshape(-1, N)
     cdf = _resampling._scaled_cdf(_resampling._unnormalized_weights(rows))

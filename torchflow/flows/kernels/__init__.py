@@ -1,16 +1,18 @@
-"""The kernel layer of the flows: fused CPU (Numba) and GPU (Triton) pseudo-steps and the one
-module that chooses them.
+"""The compiled kernels beneath the flows: fused CPU (Numba) and GPU (Triton) pseudo-steps and
+the particle filter's weighting kernel.
 
-* :mod:`~torchflow.flows.kernels.select`: which kernel runs (every eligibility rule, and the only
-  reader of the kernels' tuning knobs);
-* :mod:`~torchflow.flows.kernels.loops`: the pseudo-time loops that drive a chosen kernel;
+May import: :mod:`torchflow.core` only (not the flows above it: a kernel is handed tensors and
+the choices made for it).
+
 * :mod:`~torchflow.flows.kernels.steps`: the kernels' set-up and calls, with their maths;
-* :mod:`~torchflow.flows.kernels.graph_step`: a particle filter's whole time step replayed from a
-  CUDA graph (the random draws split into words made outside the graph);
-* :mod:`~torchflow.flows.kernels.cpu` (Numba) and :mod:`~torchflow.flows.kernels.gpu` (Triton):
-  the compiled code, imported only when used (the ``kernels`` extra).
+* :mod:`~torchflow.flows.kernels.cpu`, :mod:`~torchflow.flows.kernels.cpu_weights` (Numba) and
+  :mod:`~torchflow.flows.kernels.gpu` (Triton): the compiled code, imported only when used (the
+  ``kernels`` extra).
 
-Nothing outside this package decides whether a kernel runs; the reference loop
+Whether a kernel runs is decided in one module, :mod:`torchflow.flows.select`, which reads the
+declarations of flows, measurements, models, proposals and filters and the kernels' tuning knobs;
+:mod:`torchflow.flows.loops` drives the chosen kernel through pseudo-time. Filters and the runner
+ask :mod:`~torchflow.flows.select` and import nothing from here. The reference loop
 (:func:`torchflow.flows.integrate_flow`) is what runs otherwise, and the kernels agree with it to
 round-off.
 """

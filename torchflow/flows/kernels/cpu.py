@@ -11,8 +11,8 @@ blocks, and none are reassociated across lanes: a run gives the same bits with 1
 Why lanes of 64 and not 8 (one register): with 8 the lane loops are unrolled before the loop
 vectoriser sees them and Numba's pipeline does not SLP-vectorise them, so the code stayed scalar
 (2,800 scalar against 16 vector arithmetic instructions in its assembly); at 64 the loop vectoriser
-runs (with run-time alias checks between the scratch arrays). Timings: ``experiments/RESULTS.md``,
-"CPU kernels".
+runs (with run-time alias checks between the scratch arrays). Timings:
+``python -m experiments.benchmarks.bench_ops``.
 
 One pass over the rows of W accumulates ``W^T y``, ``S = V^T V`` (lower triangle) and
 ``M = V^T W`` (``V_i = L_s^T W_i``); the four products ``t(u) = sum_i V_i (W_i . u)`` of the
@@ -905,8 +905,8 @@ def _chol_into(Pinv, dgn, h, K, d):
     """Lower Cholesky factor ``K`` of ``Pinv + h diag(dgn)`` (``Pinv`` read in full, symmetric), row
     by row (Cholesky-Banachiewicz), four rows at a time: each entry is a contiguous dot product of two
     rows, vectorised by reassociating it, and each load of an earlier row serves four (fewer loads
-    per flop than one or two rows at a time; the rate against torch's batched ``cholesky_ex`` is in
-    ``experiments/RESULTS.md``, "CPU kernels")."""
+    per flop than one or two rows at a time; its rate against torch's batched ``cholesky_ex``:
+    ``python -m experiments.benchmarks.micro_small_linalg``)."""
     r0 = 0
     while r0 < d:
         nr = min(4, d - r0)

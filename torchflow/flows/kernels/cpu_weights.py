@@ -11,7 +11,7 @@ in one compiled call (:func:`weigh_resample`):
 2. the normalised weights ``lw - c``, the weighted mean and the ESS ``1 / sum w^2``, with
    ``w = exp(lw - max) / sum`` from the exponentials of step 1 (one per particle);
 3. the trials whose ESS is below the threshold: the systematic or stratified indices from the
-   given uniforms, by the reference's rules (:func:`torchflow.resampling._strata_indices`: the
+   given uniforms, by the reference's rules (:func:`torchflow.core.resampling._strata_indices`: the
    CDF of ``exp(lw - max lw)`` scaled to end at exactly N, positions ``j + u_j`` kept below
    ``j + 1``, index ``#{i : S_i <= p_j}``), and ``-log N`` weights.
 
@@ -114,7 +114,7 @@ def _log_weight(lw_prev, log_inc, x, b, n):
 @numba.njit(cache=True, inline="always")
 def _strata(e, b, u, per_particle_u, x, out):
     """Trial ``b``'s systematic/stratified resampling of ``x[b]`` into ``out[b]``, from its weights
-    ``e[b]`` (``exp(lw - max lw)``), with the ancestors :func:`torchflow.resampling._strata_indices`
+    ``e[b]`` (``exp(lw - max lw)``), with the ancestors :func:`torchflow.core.resampling._strata_indices`
     defines: the cumulative weights scaled to end at exactly N, positions ``j + u_j`` kept below
     ``j + 1``, and the ancestor of position j the number of scaled cumulative weights ``<= p_j``
     (at most N - 1)."""

@@ -4,7 +4,6 @@ optional dependency)."""
 import triton
 import triton.language as tl
 
-
 # One particle per thread. Tiles put the particle axis last: ``[BK, BP]`` for a k-vector of BP
 # particles and ``[BK, BK, BP]`` for their k x k matrices. Triton's default layout gives each thread
 # whole matrices (the threads run along the last axis), so the Cholesky factors, solves and products
@@ -14,7 +13,7 @@ import triton.language as tl
 # Compiled for sm_90 with Triton 3.6, both kernels use no shuffles between threads and spill some
 # registers to local memory, ``kernel_info`` more than ``kernel_rows``; ``kernel_info`` is the
 # default all the same, since it reads no ``L_s`` per row of W (register and spill counts:
-# ``experiments/benchmarks/kernel_registers.py``; timings: ``experiments/RESULTS.md``, "GPU"). Tiles
+# ``experiments/benchmarks/kernel_registers.py``; timings: ``experiments/benchmarks/bench_gpu.py``). Tiles
 # loaded as ``[BK, BP]`` with J and J L_s kept spilled far more and shuffled between threads.
 
 

@@ -1,8 +1,8 @@
 """Fused pseudo-steps of the particle flows at per-particle points, and their set-up.
 
 The wrappers here turn a flow integration's tensors into the kernels' arguments once per
-integration and call one kernel per pseudo-step; :mod:`torchflow.flows.kernels.select` decides
-whether they run, :mod:`torchflow.flows.kernels.loops` drives them.
+integration and call one kernel per pseudo-step; :mod:`torchflow.flows.select` decides
+whether they run, :mod:`torchflow.flows.loops` drives them.
 
 **EDH/LEDH** (:func:`dh_particle_step`, :class:`ParticleSteps`): the exact Daum-Huang coefficients
 (Daum & Huang 2010; Ding & Coates 2012) at each particle's point,
@@ -40,7 +40,7 @@ kernel computes a float32 run in float32 with ``tuning.kernel_float32=1`` (not t
 formulas as the reference loop, reassociated: the numbers agree to round-off
 (``tests/flows/test_fused.py``), not bit for bit. On the CPU the results do not depend on the
 thread count (particles do not interact). Numba compiles a kernel on its first call in a process
-and caches it on disk; timings are in ``experiments/RESULTS.md`` (benchmarks).
+and caches it on disk; ``python -m experiments.benchmarks.bench_ops`` times the kernels.
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from ... import _triton, tuning
+from torchflow.core import _triton
 
 __all__ = [
     "available",
@@ -66,7 +66,7 @@ __all__ = [
     "DiagonalSteps",
 ]
 
-available, interpreted = _triton.available, _triton.interpreted  # shared with torchflow.random's fused draws
+available, interpreted = _triton.available, _triton.interpreted  # shared with torchflow.core.random's fused draws
 
 
 _kernels = {}
@@ -76,16 +76,9 @@ _kernels = {}
 ROWS_WARPS = 1
 
 
-def kernel_form() -> str:
-    """The GPU lane kernel's form, as :func:`torchflow.flows.kernels.select.gpu_form` chooses it."""
-    from .select import gpu_form
-
-    return gpu_form()
-
-
 def _build(form: str):
     if form not in _kernels:
-        from . import gpu
+        from torchflow.flows.kernels import gpu
 
         _kernels[form] = getattr(gpu, "kernel_" + form)
     return _kernels[form]
@@ -148,7 +141,8 @@ def dh_particle_step(
     measure: Optional[FusedMeasurement] = None,
     inv_sigma: Optional[torch.Tensor] = None,
     info=None,
-    form: Optional[str] = None,
+    form: str = "info",
+    float32: bool = False,
 ):
     """One Euler step of EDH/LEDH at per-particle points, fused (see the module docstring).
 
@@ -163,12 +157,13 @@ def dh_particle_step(
         lams, epss: the schedule's pseudo-times and step sizes (device tensors); j: the step.
         measure, inv_sigma: a :class:`FusedMeasurement` and the 0-d ``1 / sigma`` of its scalar R.
         info: :func:`info_factors` ``(L, Ls)`` if computed already; form: the kernel's form,
-            ``"info"`` or ``"rows"`` (default :func:`kernel_form`).
+            ``"info"`` or ``"rows"``; float32: the arithmetic in float32 for float32 particles (both
+            chosen by :mod:`torchflow.flows.select`: :func:`~torchflow.flows.select.gpu_form`,
+            :func:`~torchflow.flows.select.gpu_float32`).
 
     Returns:
         ``(eta, aux)`` after the step (new tensors).
     """
-    form = kernel_form() if form is None else form
     kernel = _build(form)
     B, N, d = eta.shape
     if support is None:
@@ -196,7 +191,7 @@ def dh_particle_step(
     eta_out, aux_out = torch.empty_like(eta), torch.empty_like(aux)
     BK, BD = tile(k), tile(d)
     bp = 32 * ROWS_WARPS
-    DT, TINY = compute_dtype(eta.dtype)
+    DT, TINY = _compute_dtype(float32 and eta.dtype == torch.float32)
     kernel[(-(-B * N // bp),)](
         W,
         *sW,
@@ -238,13 +233,6 @@ def dh_particle_step(
     return eta_out, aux_out
 
 
-def compute_dtype(dtype: torch.dtype):
-    """The GPU lane kernel's arithmetic for particles of ``dtype``: ``(Triton dtype, its smallest
-    normal number)``; float32 where the run is float32 and ``tuning.kernel_float32`` (an H100 has twice
-    as many FP32 units as FP64 ones, and a k x k tile takes half the registers), else float64."""
-    return _compute_dtype(dtype == torch.float32 and bool(tuning.get().kernel_float32))
-
-
 @functools.lru_cache(maxsize=2)
 def _compute_dtype(f32: bool):
     from triton import language as tl
@@ -263,11 +251,14 @@ class ParticleSteps:
     On CUDA (or Triton's interpreter) Triton's kernel; on the CPU Numba's
     (:mod:`torchflow.flows.kernels.cpu`), whose inputs are converted to NumPy here once."""
 
-    def __init__(self, L, Ls, Pc, mean, support, lams, epss, measure=None, inv_sigma=None, z_scaled=None):
+    def __init__(
+        self, L, Ls, Pc, mean, support, lams, epss, measure=None, inv_sigma=None, z_scaled=None, *, form, float32
+    ):
         self.prior = (L, Ls, Pc, mean, support)
+        self.float32 = float32
         self.lams, self.epss, self.measure, self.inv_sigma, self.z_scaled = lams, epss, measure, inv_sigma, z_scaled
         self.cpu = mean.device.type == "cpu" and not _triton.runs_on(mean.device)
-        self.form = kernel_form()
+        self.form = form
         self.info = info_factors(L, Ls) if not self.cpu and self.form == "info" else None
         if self.cpu:
             d = mean.shape[-1]
@@ -293,6 +284,7 @@ class ParticleSteps:
                 inv_sigma=self.inv_sigma,
                 info=self.info,
                 form=self.form,
+                float32=self.float32,
             )
         Wn, yn, lin, sens, const = _cpu_rows(self.lin, W, y)
         e64, a64 = _f64(eta, 3), _f64(aux, 3)
@@ -439,7 +431,7 @@ def _cpu_back(arrays, dtype):
 
 
 def _gromov_kernel():
-    from .cpu import gromov_step
+    from torchflow.flows.kernels.cpu import gromov_step
 
     return gromov_step
 
@@ -490,7 +482,7 @@ def weigh_resample(
     same tensor where no trial resampled and none is bad; ``bad`` flags the trials whose increment
     is not finite (``None`` when none is), whose rows are left for the caller's reference path to
     repair (their particle rows are those of ``particles``, the others undefined)."""
-    from . import cpu_weights as k
+    from torchflow.flows.kernels import cpu_weights as k
 
     B, N, d = particles.shape
     x = particles.detach().contiguous()
@@ -539,25 +531,25 @@ def weights_available() -> bool:
 
 
 def _precision_kernel():
-    from .cpu import precision_from_factor
+    from torchflow.flows.kernels.cpu import precision_from_factor
 
     return precision_from_factor
 
 
 def _diag_kernel():
-    from .cpu import dh_diag_step
+    from torchflow.flows.kernels.cpu import dh_diag_step
 
     return dh_diag_step
 
 
 def _gpfis_kernel():
-    from .cpu import gpfis_step
+    from torchflow.flows.kernels.cpu import gpfis_step
 
     return gpfis_step
 
 
 def _cpu_kernel():
-    from .cpu import dh_step
+    from torchflow.flows.kernels.cpu import dh_step
 
     return dh_step
 

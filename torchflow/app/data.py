@@ -1,0 +1,256 @@
+"""Recorded observations: read a series from a file, check it against a model, and the filters'
+prior without true states.
+
+File formats (:func:`load_observations`):
+
+* ``.csv``: one row per time step; every numeric column is a measurement coordinate, in order,
+  except a column named ``t`` or ``time`` (the observation times). A header row is optional (a
+  first row that is not all numbers is a header); without one every column is a coordinate. An
+  empty cell or ``nan`` is a coordinate not observed at that step (NaN).
+* ``.npy``: a float array ``(T, m)`` (one series), ``(B, T, m)`` (B series) or ``(T,)`` (``m = 1``);
+  no time column.
+
+NaN marks a coordinate not observed and is passed through to the filters; an infinite value is
+refused, naming its row and column.
+
+The prior (:func:`declared_prior`): a model's :meth:`initial_belief` takes the true initial
+states (the runner draws the prior around them in simulations); recorded data have none, so the
+filters start from the model's *declared* prior, ``model.declared_prior(batch_size) -> (mean (B, d),
+cov (B, d, d))``, computed from the model's parameters (differentiably: a stationary prior of
+learnable parameters follows them). The built-in models declare one (the linear-Gaussian model:
+``N(m0, P0)``; the acoustic model: ``N(x0, diag(prior_std^2))``; the skewed-t Poisson model: its known
+``x_0 = 0``); Lorenz-96's prior is drawn around the true state, so it has none and recorded data need
+a prior passed explicitly (``run_experiment(..., prior=(mean, cov))``).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+from typing import List, Optional, Tuple, Union
+
+import numpy as np
+import torch
+
+from torchflow.core.covariances import DiagonalCovariance
+from torchflow.core.errors import ArgumentError, ArgumentTypeError
+
+__all__ = [
+    "load_observations",
+    "read_recording",
+    "check_observations",
+    "check_time_step",
+    "declared_prior",
+    "TIME_COLUMNS",
+]
+
+#: names of the time column of a CSV file (case-insensitive)
+TIME_COLUMNS = ("t", "time")
+#: relative tolerance of the check of the time column's spacing against the model's ``dt``
+DT_RTOL = 1e-6
+
+
+def _read_csv(path: Path, name: str) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+    """``(values (T, m), times (T,) or None)`` of a CSV file (see the module docstring)."""
+    with open(path, newline="") as fh:
+        rows = [r for r in csv.reader(fh) if any(c.strip() for c in r)]
+    if not rows:
+        raise ArgumentError(f"{name}: expected a CSV file with one row per time step, got an empty file {path}")
+
+    def number(cell: str) -> Optional[float]:
+        c = cell.strip()
+        if c == "":
+            return math.nan
+        try:
+            return float(c)
+        except ValueError:
+            return None
+
+    header: Optional[List[str]] = None
+    if any(number(c) is None for c in rows[0]):
+        header, rows = [c.strip() for c in rows[0]], rows[1:]
+    if not rows:
+        raise ArgumentError(f"{name}: expected at least one row of numbers after the header of {path}, got none")
+    width = len(header) if header is not None else len(rows[0])
+    time_col = None
+    if header is not None:
+        found = [j for j, h in enumerate(header) if h.lower() in TIME_COLUMNS]
+        if len(found) > 1:
+            raise ArgumentError(
+                f"{name}: expected at most one time column ({' or '.join(TIME_COLUMNS)}), got "
+                f"{[header[j] for j in found]} in {path}"
+            )
+        time_col = found[0] if found else None
+    values = np.empty((len(rows), width), dtype=np.float64)
+    first = 2 if header is not None else 1
+    for i, row in enumerate(rows):
+        if len(row) != width:
+            raise ArgumentError(
+                f"{name}: expected {width} columns in every row of {path}, got {len(row)} in line {i + first}"
+            )
+        for j, cell in enumerate(row):
+            v = number(cell)
+            if v is None:
+                col = f"column {j + 1}" + (f" ({header[j]})" if header is not None else "")
+                raise ArgumentError(
+                    f"{name}: expected numbers (empty or nan: not observed), got {cell.strip()!r} in "
+                    f"line {i + first}, {col} of {path}"
+                )
+            values[i, j] = v
+    if time_col is None:
+        return values, None
+    times = values[:, time_col]
+    return np.delete(values, time_col, axis=1), times
+
+
+def _read_npy(path: Path, name: str) -> np.ndarray:
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except ValueError as e:  # an object array (pickled), or not an .npy file
+        raise ArgumentError(f"{name}: expected a numeric .npy array, could not read {path} ({e})") from None
+    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)) or np.issubdtype(
+        arr.dtype, np.bool_
+    ):
+        raise ArgumentError(f"{name}: expected a numeric (float or integer) array in {path}, got dtype {arr.dtype}")
+    if arr.ndim == 1:
+        arr = arr[:, None]
+    if arr.ndim not in (2, 3):
+        raise ArgumentError(f"{name}: expected an array (T, m), (B, T, m) or (T,) in {path}, got shape {arr.shape}")
+    return arr.astype(np.float64)
+
+
+def read_recording(path: Union[str, Path], *, name: str = "data") -> Tuple[np.ndarray, Optional[np.ndarray]]:
+    """``(observations, times)`` of a ``.csv`` or ``.npy`` file (the module docstring's formats):
+    observations ``(T, m)`` or ``(B, T, m)`` float64 (NaN: not observed), the CSV time column
+    ``(T,)`` or ``None``. ``name``: the argument named in errors."""
+    if not isinstance(path, (str, Path)):
+        raise ArgumentTypeError(f"{name}: expected the path of a .csv or .npy file, got {type(path).__name__}")
+    p = Path(path)
+    if not p.is_file():
+        raise ArgumentError(f"{name}: file not found: {p}" + (" (a folder)" if p.is_dir() else ""))
+    suffix = p.suffix.lower()
+    if suffix == ".csv":
+        return _read_csv(p, name)
+    if suffix == ".npy":
+        return _read_npy(p, name), None
+    raise ArgumentError(f"{name}: expected a .csv or .npy file, got {p.name!r}")
+
+
+def check_observations(observations, model=None, *, name: str = "observations") -> torch.Tensor:
+    """``observations`` ``(T, m)`` or ``(B, T, m)`` checked: a floating-point tensor (an array is
+    converted), at least one step, ``m`` equal to ``model.obs_dim`` where a model is given, no
+    infinite value (NaN: not observed, kept); on the model's dtype and device where given."""
+    if isinstance(observations, np.ndarray):
+        observations = torch.from_numpy(np.asarray(observations, dtype=np.float64))
+    if not isinstance(observations, torch.Tensor):
+        raise ArgumentTypeError(f"{name}: expected a tensor (T, m) or (B, T, m), got {type(observations).__name__}")
+    if not observations.is_floating_point():
+        raise ArgumentTypeError(f"{name}: expected a floating-point tensor, got {observations.dtype}")
+    if observations.dim() not in (2, 3) or observations.shape[-2] == 0 or observations.shape[0] == 0:
+        raise ArgumentError(
+            f"{name}: expected (T, m) or (B, T, m) with at least one time step, got {tuple(observations.shape)}"
+        )
+    if model is not None:
+        m = model.obs_dim
+        if model.structure.padded_measurements:
+            raise ArgumentError(
+                f"{name}: {type(model).__name__}'s measurements are padded sets with a mask; "
+                "recorded data are series (T, m) of a model with a fixed measurement dimension"
+            )
+        if observations.shape[-1] != m:
+            raise ArgumentError(
+                f"{name}: expected m = {m} measurement coordinates (columns) for "
+                f"{type(model).__name__}, got {observations.shape[-1]} (shape "
+                f"{tuple(observations.shape)}; a CSV time column named t or time is not counted)"
+            )
+        observations = observations.to(dtype=model.dtype, device=model.device)
+    inf = torch.isinf(observations)
+    if bool(inf.any()):
+        where = torch.nonzero(inf)[0].tolist()
+        at = f"row {where[-2] + 1}, column {where[-1] + 1}" + (f" of series {where[0]}" if len(where) == 3 else "")
+        raise ArgumentError(
+            f"{name}: expected finite values (NaN: not observed), got {int(inf.sum())} infinite, the first at {at}"
+        )
+    return observations
+
+
+def check_time_step(times: Optional[np.ndarray], model, *, name: str = "data") -> None:
+    """Where ``model`` has a scalar time step ``dt`` and ``times`` (the file's time column) are
+    given: the spacing must be uniform and equal to ``dt`` (relative tolerance :data:`DT_RTOL`),
+    else an error says what the model assumes. A model without ``dt`` takes any times."""
+    dt = getattr(model, "dt", None) if model is not None else None
+    if times is None or dt is None or len(times) < 2:
+        return
+    if isinstance(dt, torch.Tensor):
+        if dt.numel() != 1:
+            return
+        dt = float(dt)
+    if not isinstance(dt, (int, float)):
+        return
+    if not np.all(np.isfinite(times)):
+        raise ArgumentError(
+            f"{name}: expected finite observation times in the time column, got a missing or non-finite one"
+        )
+    steps = np.diff(times)
+    tol = DT_RTOL * max(abs(float(dt)), 1e-300)
+    if not np.allclose(steps, steps[0], rtol=0, atol=tol) or abs(steps[0] - dt) > tol:
+        lo, hi = float(steps.min()), float(steps.max())
+        got = f"{lo:g}" if np.allclose(steps, steps[0], rtol=0, atol=tol) else f"from {lo:g} to {hi:g} (not uniform)"
+        raise ArgumentError(
+            f"{name}: the time column's steps are {got}, but {type(model).__name__} assumes "
+            f"observations every dt = {dt:g} (set the model's dt, e.g. model.dt={steps[0]:g}, or "
+            "resample the series; a varying time step is not supported)"
+        )
+
+
+def load_observations(path: Union[str, Path], model=None, *, name: str = "data") -> torch.Tensor:
+    """Recorded observations from a ``.csv`` or ``.npy`` file (formats in the module docstring),
+    as a float64 tensor ``(T, m)`` (``(B, T, m)`` for a 3-D ``.npy``): NaN where not observed.
+
+    With ``model``: the column count must be its ``m``, the tensor comes on its dtype and device,
+    and a CSV time column must step by its ``dt`` where it has one (:func:`check_time_step`).
+    Errors name ``name`` (the command line's setting, ``data``), the file and what is wrong: a file
+    not found, a wrong column count, a non-numeric cell (its line and column), an infinite value."""
+    values, times = read_recording(path, name=name)
+    obs = check_observations(torch.from_numpy(values), model, name=f"{name} ({Path(path).name})")
+    check_time_step(times, model, name=name)
+    return obs
+
+
+def declared_prior(model, batch_size: int) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The filters' prior without true states: ``model.declared_prior(batch_size)``, checked to be
+    ``(mean (B, d), cov (B, d, d))``. Call it where the parameters may have changed (each optimiser
+    step): it is computed from them, and differentiable where they are. A model without one raises
+    an error saying how to give it (or to pass a prior explicitly)."""
+    from torchflow.models.base import StateSpaceModel
+
+    fn = getattr(model, "declared_prior", None)
+    if fn is None or getattr(type(model), "declared_prior", None) is StateSpaceModel.declared_prior:
+        raise ArgumentError(
+            f"model: {type(model).__name__} declares no prior without true states (its initial_belief needs them); "
+            "recorded data need one: give the model a method declared_prior(batch_size) -> (mean (B, d), cov (B, "
+            "d, d)), "
+            "or pass the prior explicitly (run_experiment(..., prior=(mean, cov)))"
+        )
+    mean, cov = fn(batch_size)
+    d = model.state_dim
+    kind = DiagonalCovariance if model.structure.prior_covariance == "diagonal" else torch.Tensor
+    if not (
+        isinstance(mean, torch.Tensor)
+        and isinstance(cov, kind)
+        and tuple(mean.shape) == (batch_size, d)
+        and tuple(cov.shape) == (batch_size, d, d)
+    ):
+        got = tuple(getattr(mean, "shape", ())), tuple(getattr(cov, "shape", ()))
+        form = (
+            "a DiagonalCovariance of variances (B, d), as the model declares a diagonal prior"
+            if kind is DiagonalCovariance
+            else "a tensor"
+        )
+        raise ArgumentError(
+            f"{type(model).__name__}.declared_prior: expected (mean (B, d), cov (B, d, d)) = "
+            f"(({batch_size}, {d}), ({batch_size}, {d}, {d})), cov {form}; got {got}"
+            + ("" if isinstance(cov, kind) else f" ({type(cov).__name__})")
+        )
+    return mean, cov
