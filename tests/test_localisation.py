@@ -247,3 +247,27 @@ def test_scene_figure_draws_receivers_sources_and_each_localisers_declared_sourc
     assert labels == ["receivers", "true sources", "a", "b (none declared)"]
     assert [len(c.get_offsets()) for c in ax.collections] == [6, 2, 1, 0]
     plt.close(fig)
+
+
+def test_the_localisers_and_the_filters_declare_one_runner_protocol():
+    """What the runner reads is one declared base (torchflow.filters.Estimator): the localisers
+    declare sets, masked measurements, one run per call and per-run streams; the filters states."""
+    from torchflow.filters import BootstrapParticleFilter, Estimator, KalmanFilter
+    from torchflow.localisation import BootstrapLocaliser, FlowMixtureLocaliser
+    from torchflow.models import SensorNetwork
+
+    model = TDOA3D(n_sources=1, clutter_rate=0.05, p_d=1.0, region=50.0, sigma_v=1e-3)
+    for loc in (BootstrapLocaliser(model, n_particles=100), FlowMixtureLocaliser(model)):
+        assert isinstance(loc, Estimator)
+        assert (loc.output, loc.padded_measurements, loc.trials_per_call, loc.preferred_chunk_trials()) == (
+            "sets",
+            True,
+            1,
+            1,
+        )
+        assert loc.stream_name == f"localise_{loc.method}" and loc.plan_memory(1e9) is None
+        assert loc.bytes_per_trial() == loc.bytes_per_trial(n_particles=7) == 64 * loc.sample_chunk
+    lg = SensorNetwork(d=4)
+    for f in (KalmanFilter(lg), BootstrapParticleFilter(lg, n_particles=10)):
+        assert isinstance(f, Estimator) and f.output == "states" and not f.padded_measurements
+        assert f.preferred_chunk_trials() is None or f.preferred_chunk_trials() > 1

@@ -243,12 +243,14 @@ def test_run_experiment_with_a_list_of_filters():
     model = SensorNetwork(d=4)
     with pytest.raises(
         ConfigError,
-        match=r"filters: expected a mapping of names to filters, e.g. \{'kf': "
-        r"KalmanFilter\(model\)\}, got list",
+        match=r"filters: expected a mapping of names to filters \(torchflow Estimators: the filters and the "
+        r"localisers\), e.g. \{'kf': KalmanFilter\(model\)\}, got list",
     ):
         run_experiment(model, [KalmanFilter(model)], trials=2, steps=2, progress=False)
     with pytest.raises(ConfigError, match=r"got a mapping with str"):
         run_experiment(model, {"kf": "kf"}, trials=2, steps=2, progress=False)
+    with pytest.raises(ConfigError, match=r"got a mapping with Linear"):  # a module, but not an estimator
+        run_experiment(model, {"lin": torch.nn.Linear(2, 2)}, trials=2, steps=2, progress=False)
 
 
 def test_integrate_flow_with_two_dimensional_particles():

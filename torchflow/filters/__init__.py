@@ -14,6 +14,7 @@ only through :mod:`torchflow.flows.select`), :mod:`torchflow.proposals`.
 
 from torchflow.filters.assimilation import KernelParticleFlowFilter, LagOneFlowFilter, LocalParticleFilter
 from torchflow.filters.base import (
+    Estimator,
     Filter,
     FilterResult,
     GaussianState,
@@ -45,6 +46,7 @@ from torchflow.filters.kalman import (
 from torchflow.filters.pfpf import ClusteredParticleFlowParticleFilter, ParticleFlowFilter, ParticleFlowParticleFilter
 
 __all__ = [
+    "Estimator",
     "Filter",
     "FilterResult",
     "GaussianState",

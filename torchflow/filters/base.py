@@ -164,7 +164,64 @@ def belief_std(state) -> torch.Tensor:
     return (alpha * spread).sum(1).clamp_min(0).sqrt()
 
 
-class Filter(nn.Module):
+class Estimator(nn.Module):
+    """What the Monte Carlo runner (:func:`torchflow.app.runner.run_experiment`) reads of everything
+    it runs: the filters (:class:`Filter`) and the TDOA localisers
+    (:mod:`torchflow.localisation`). Both derive from this class and declare these members; the
+    runner reads nothing else of them.
+
+    Declarations (class attributes; a subclass overrides them):
+
+    * :attr:`output`: ``"states"`` (``forward`` returns a :class:`FilterResult` of point estimates
+      ``(B, T, d)``) or ``"sets"`` (declared sources with a mask, scored as sets);
+    * :attr:`padded_measurements`: ``forward`` takes measurement sets padded with a ``mask``;
+    * :attr:`trials_per_call`: the most trials one call takes (``None``: any number);
+    * :attr:`n_particles`, :attr:`particle_chunk`: particles per trial and the block of particles
+      per-particle work runs in (``None`` where it has none);
+    * :attr:`uses_randomness`, :attr:`random_stream` (:attr:`stream_name`): whether it draws, and
+      the stable key of its per-trial random streams;
+    * :attr:`estimates_evidence`: its ``log_evidence`` is worth scoring.
+
+    Sizes (methods): :meth:`bytes_per_trial`, :meth:`preferred_chunk_trials`, :meth:`plan_memory`
+    and :meth:`describe_blocks`, all taking ``n_particles=None`` (the estimator's own count).
+    Set in ``__init__``: :attr:`name` (the label in results) and :attr:`model`.
+    """
+
+    output = "states"
+    padded_measurements = False
+    trials_per_call: Optional[int] = None
+    n_particles: Optional[int] = None
+    particle_chunk: Optional[int] = None
+    uses_randomness = False
+    random_stream: Optional[str] = None
+    estimates_evidence = True
+    name: str
+
+    @property
+    def stream_name(self) -> str:
+        """The key of this estimator's random streams (:attr:`random_stream` or the class name)."""
+        return self.random_stream or type(self).__name__
+
+    def bytes_per_trial(self, n_particles: Optional[int] = None) -> int:
+        """Rough peak memory of one trial in one step, used to size chunks of trials."""
+        raise NotImplementedError(f"{type(self).__name__}.bytes_per_trial")
+
+    def preferred_chunk_trials(self, n_particles: Optional[int] = None) -> Optional[int]:
+        """Largest number of trials per call that runs at full speed (``None``: no limit beyond
+        memory). Used by the experiment runner when no ``chunk_size`` is given."""
+        return self.trials_per_call
+
+    def plan_memory(self, budget_bytes: float, n_particles: Optional[int] = None) -> Optional[int]:
+        """Blocks that keep one trial within ``budget_bytes`` (particle filters set
+        :attr:`particle_chunk`, the LETKF its coordinates' ``local_chunk``); ``None``: no blocks."""
+        return None
+
+    def describe_blocks(self, chunk: int) -> str:
+        """Words for the blocks :meth:`plan_memory` chose (the runner's warning)."""
+        return f"{chunk} of its {self.n_particles} particles"
+
+
+class Filter(Estimator):
     """Base class: a filter holds its model (a submodule) and its settings, never the belief.
 
     Subclasses implement :meth:`init` and :meth:`step`; :meth:`forward` runs them over time,
@@ -179,13 +236,6 @@ class Filter(nn.Module):
     """
 
     uses_particles = False
-    #: whether the filter draws random numbers (then ``forward`` requires a generator)
-    uses_randomness = False
-    #: stable name of the filter's random streams (:class:`~torchflow.core.random.TrialStreams` key in
-    #: :func:`~torchflow.app.runner.run_experiment`): part of the reproducibility contract, so it
-    #: is declared per filter family and never derived from config or class names; ``None`` means
-    #: the class name. Filters with the same stream name share common random numbers in one run.
-    random_stream: Optional[str] = None
     #: whether ``log_evidence`` is an estimate of p(z_{1:T}) worth scoring (False for filters that
     #: only carry a Gaussian approximation of it, such as the unweighted flow filters)
     estimates_evidence = True
@@ -202,19 +252,8 @@ class Filter(nn.Module):
     #: variances, no ``d x d`` matrix: the ensemble Kalman filters, the bootstrap PF); other filters
     #: are given its dense matrix by :meth:`check_prior`
     diagonal_prior = False
-    # ---- what the runner reads, declared by every estimator it runs: the filters here, and the
-    # TDOA localisers (torchflow.localisation), a second kind whose output is sets, not states ----
-    #: ``"states"``: ``forward`` returns a :class:`FilterResult` of point estimates ``(B, T, d)``;
-    #: the localisers declare ``"sets"`` (declared sources with a mask, scored as sets)
-    output = "states"
-    #: particles per trial (particle filters), else ``None``
-    n_particles: Optional[int] = None
-    #: per-particle work in blocks of this many particles (particle filters; ``None``: all at once)
-    particle_chunk: Optional[int] = None
-    #: the most trials one call takes (``None``: any number)
-    trials_per_call: Optional[int] = None
-    #: ``forward`` takes measurement sets padded with a ``mask`` (the localisers)
-    padded_measurements = False
+    # what the runner reads (output, n_particles, particle_chunk, trials_per_call, random_stream,
+    # uses_randomness, ...) is declared by :class:`Estimator`
 
     def __init__(self, model: StateSpaceModel, *, validate: bool = True, name: Optional[str] = None):
         super().__init__()
@@ -243,29 +282,10 @@ class Filter(nn.Module):
         """Process one observation ``z (B, m)``; returns the new state."""
         raise NotImplementedError
 
-    @property
-    def stream_name(self) -> str:
-        """The key of this filter's random streams (:attr:`random_stream` or the class name)."""
-        return self.random_stream or type(self).__name__
-
     def bytes_per_trial(self, n_particles: Optional[int] = None) -> int:
         """Rough peak memory of one trial in one step, used to size chunks of trials."""
         d, m = self.model.state_dim, self.model.obs_dim
         return 8 * 8 * (d * d + m * d + m * m)
-
-    def preferred_chunk_trials(self, n_particles: Optional[int] = None) -> Optional[int]:
-        """Largest number of trials per call that runs at full speed (``None``: no limit beyond
-        memory). Used by the experiment runner when no ``chunk_size`` is given."""
-        return None
-
-    def plan_memory(self, budget_bytes: float, n_particles: Optional[int] = None) -> Optional[int]:
-        """Blocks that keep one trial within ``budget_bytes`` (particle filters set
-        :attr:`particle_chunk`, the LETKF its coordinates' ``local_chunk``); ``None``: no blocks."""
-        return None
-
-    def describe_blocks(self, chunk: int) -> str:
-        """Words for the blocks :meth:`plan_memory` chose (the runner's warning)."""
-        return f"{chunk} of its {self.n_particles} particles"
 
     # ---- helpers -------------------------------------------------------------------------------
     def check_model(self) -> None:

@@ -27,13 +27,13 @@ from typing import Optional
 
 import torch
 import torch.nn.functional as F
-from torch import nn
 
 from torchflow.core import linalg
 from torchflow.core.checks import check_count as _count
 from torchflow.core.errors import ArgumentError, ArgumentTypeError
 from torchflow.core.random import check_generator, uniform
 from torchflow.core.resampling import systematic
+from torchflow.filters.base import Estimator
 from torchflow.flows import EDHFlow, GaussianMeasurement, GromovFlow, OptimalDiffusionFlow
 from torchflow.flows.schedules import GeometricSchedule, LambdaSchedule, resolve_schedule
 from torchflow.localisation.association import loopy_association
@@ -85,7 +85,7 @@ class Localisation:
         return self.estimate_mask[:, -1]
 
 
-class _Localiser(nn.Module):
+class _Localiser(Estimator):
     """What both localisers share: BP, pruning, declaration, the run over the sensors (:meth:`forward`)
     and what the runner reads. A localiser's draws depend on the padded number of measurements of
     its batch, so it declares ``trials_per_call = 1`` (the runner gives it one run per chunk) and
@@ -104,13 +104,11 @@ class _Localiser(nn.Module):
         name: label in results (default: the class name).
     """
 
-    #: the runner's declarations (:class:`~torchflow.filters.Filter` declares the same names): sets
-    #: of declared sources, masked measurement sets, one run per call, no per-particle blocks
-    output, padded_measurements, trials_per_call, particle_chunk = "sets", True, 1, None
+    # the runner's declarations (:class:`~torchflow.filters.base.Estimator`): sets of declared
+    # sources, masked measurement sets, one run per call, per-run random streams
+    output, padded_measurements, trials_per_call, uses_randomness = "sets", True, 1, True
+    estimates_evidence = False
     method: str
-
-    def plan_memory(self, budget_bytes: float, n_particles=None):
-        return None
 
     def __init__(self, model: TDOA3D, *, birth_rate, max_objects, prune, declare, bp_iterations, sample_chunk, name):
         super().__init__()
@@ -135,11 +133,8 @@ class _Localiser(nn.Module):
     def stream_name(self) -> str:  # key of the per-run random streams
         return f"localise_{self.method}"
 
-    def bytes_per_trial(self) -> int:  # rough peak memory of one run: a pass of sample_chunk numbers
+    def bytes_per_trial(self, n_particles=None) -> int:  # rough peak memory of one run: a pass of sample_chunk numbers
         return 8 * 8 * self.sample_chunk
-
-    def preferred_chunk_trials(self) -> int:
-        return self.trials_per_call
 
     def forward(
         self, observations: torch.Tensor, mean=None, cov=None, generator=None, *, mask: torch.Tensor, progress=None

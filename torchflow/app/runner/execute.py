@@ -33,7 +33,7 @@ from torchflow.core import progress as _progress
 from torchflow.core.checks import NonFiniteError
 from torchflow.core.errors import ArgumentError
 from torchflow.core.random import TrialStreams
-from torchflow.filters.base import Filter
+from torchflow.filters.base import Estimator, Filter
 from torchflow.flows import select
 from torchflow.models.base import StateSpaceModel, Trajectory
 
@@ -472,15 +472,16 @@ def run_experiment(
     (:func:`~torchflow.app.runner.plan.check_memory`), raises
     :class:`~torchflow.app.runner.plan.ConfigError` before anything runs.
     """
-    if not isinstance(filters, Mapping) or not all(isinstance(f, torch.nn.Module) for f in filters.values()):
+    if not isinstance(filters, Mapping) or not all(isinstance(f, Estimator) for f in filters.values()):
         got = (
             type(filters).__name__
             if not isinstance(filters, Mapping)
             else "a mapping with "
-            + ", ".join(sorted({type(f).__name__ for f in filters.values() if not isinstance(f, torch.nn.Module)}))
+            + ", ".join(sorted({type(f).__name__ for f in filters.values() if not isinstance(f, Estimator)}))
         )
         raise ConfigError(
-            f"filters: expected a mapping of names to filters, e.g. {{'kf': KalmanFilter(model)}}, got {got}"
+            f"filters: expected a mapping of names to filters (torchflow Estimators: the filters and the "
+            f"localisers), e.g. {{'kf': KalmanFilter(model)}}, got {got}"
         )
     check_warmup(warmup)
     n_steps = getattr(model, "n_steps", steps)
