@@ -1,4 +1,4 @@
-"""log Z error of the PF-PFs and the BPF on seed 000 Table I (LG d = 64, N = 200, T = 10, 100 trials)
+"""log Z error of the PF-PFs and the BPF on Pal & Coates (2019) Table I (LG d = 64, N = 200, T = 10, 100 trials)
 under several definitions of the paper's "relative MSE of log Z" (the paper does not define it):
 
 * final: ``((log Zhat_T - log Z_T) / log Z_T)^2`` averaged over trials (the runner's column);

@@ -1,7 +1,7 @@
 """Per-trial statistics of a run folder: quartiles of a per-trial metric with bootstrap standard
 errors, and paired-bootstrap ratios of medians against a reference filter.
 
-    python experiments/trial_stats.py outputs/seed004_clustering/<run> --metric omat --reference pfpf_ledh
+    python experiments/trial_stats.py outputs/li_coates_clustering/<run> --metric omat --reference pfpf_ledh
 
 Reads ``per_trial.csv`` and ``summary.csv`` of one run; prints a Markdown table: Q1, median
 (bootstrap SE), Q3, mean (SE), trials above ``--outlier`` and lost (the run's ``lost`` column),

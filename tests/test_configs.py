@@ -38,7 +38,7 @@ def _compose(*overrides):
 
 
 def test_there_are_experiment_configs():
-    assert len(EXPERIMENTS) >= 10 and "seed000_table2" in EXPERIMENTS
+    assert len(EXPERIMENTS) >= 10 and "pal2019_table2" in EXPERIMENTS
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
@@ -50,15 +50,15 @@ def test_experiment_config_builds_its_model_and_filters(name):
         assert instantiate(fcfg, model=model) is not None, (name, key)
 
 
-@pytest.mark.parametrize("name", [e for e in EXPERIMENTS if e != "seed002_stiffness_geometric"])
+@pytest.mark.parametrize("name", [e for e in EXPERIMENTS if e != "zhang2024_stiffness_geometric"])
 def test_filter_override_selects_exactly_the_named_filters(name):
     """``filter=[...]`` replaces an experiment's selection: every filter an experiment runs is in
     the filter group (its other rows are group configs such as ``pfpf_clustered_k30``), so no row is
     built that the command line did not name; the experiment's settings for the others stay as
     settings only (no ``_target_``; the runner skips them with a message). Not
-    ``seed002_stiffness_geometric``: it sets its four filters' schedule group in its defaults list,
+    ``zhang2024_stiffness_geometric``: it sets its four filters' schedule group in its defaults list,
     so Hydra refuses a selection without them ("Could not override ... No match")."""
-    local = name.startswith("seed002_table")
+    local = name.startswith("zhang2024_table")
     pick = "pfi_d" if local else "ekf"
     cfg = _compose(f"experiment={name}", f"filter=[{pick}]")
     built = sorted(k for k, v in cfg.filter.items() if "_target_" in v)
@@ -155,9 +155,9 @@ def test_component_config_holds_only_what_differs(name):
             assert isinstance(value, dict) or value != inherited[key], f"{name}: {key}: {value!r} is the default"
 
 
-def test_seed000_table2_has_every_paper_row():
-    """Seed 000 Table II's rows (MODELS.md §7 table) at the paper's particle counts unless overridden."""
-    cfg = _compose("experiment=seed000_table2")
+def test_pal2019_table2_has_every_paper_row():
+    """Pal & Coates (2019) Table II's rows (table) at the paper's particle counts unless overridden."""
+    cfg = _compose("experiment=pal2019_table2")
     assert set(cfg.filter) == {
         "pfpf_ledh",
         "pfpf_edh",

@@ -533,7 +533,7 @@ def test_trial_stats_pairs_a_filter_across_two_runs(tmp_path):
 
 
 def test_cli_tdoa_runs_localisers_and_refuses_filters(tmp_path):
-    """model=tdoa runs seed 002's localisers (table, per-run CSV, OSPA within [0, cut-off]) and
+    """model=tdoa runs Zhang et al.'s (2024) localisers (table, per-run CSV, OSPA within [0, cut-off]) and
     refuses a state-space filter with a one-line error."""
     out = _cli(
         tmp_path,
@@ -585,10 +585,10 @@ def test_trial_range_reruns_rows_of_a_longer_run():
             run_experiment(model, make(), trials=6, steps=3, progress=False, trial_range=bad)
 
 
-def test_seed001_table2_report_pairs_runs_with_g1(tmp_path, capsys):
-    """experiments/seed001_table2_report.py: per-G statistics, the paired difference to G = 1 on the
+def test_comandur2022_table2_report_pairs_runs_with_g1(tmp_path, capsys):
+    """experiments/comandur2022_table2_report.py: per-G statistics, the paired difference to G = 1 on the
     runs both have (its SE from the per-run differences), --trials, and the distance to the paper."""
-    from experiments.seed001_table2_report import PAPER, main, read_runs, table
+    from experiments.comandur2022_table2_report import PAPER, main, read_runs, table
 
     g1 = {0: 1.0, 1: 2.0, 2: 3.0, 3: 4.0}
     g5 = {0: 0.9, 1: 1.7, 2: 2.9, 5: 9.0}  # run 3 missing, run 5 has no G = 1 partner
@@ -614,10 +614,10 @@ def test_seed001_table2_report_pairs_runs_with_g1(tmp_path, capsys):
         read_runs(tmp_path, (10, 20))
 
 
-def test_seed001_geff_diagnostic_runs_and_pooled_fit_is_shared(capsys):
-    """experiments/seed001_geff_diagnostic.py: the spy sees the filter's log-weights (so its numbers
+def test_comandur2022_geff_diagnostic_runs_and_pooled_fit_is_shared(capsys):
+    """experiments/comandur2022_geff_diagnostic.py: the spy sees the filter's log-weights (so its numbers
     are the filter's), and the pooled control gives every component the same predictive fit."""
-    from experiments.seed001_geff_diagnostic import PooledFit, main, run
+    from experiments.comandur2022_geff_diagnostic import PooledFit, main, run
     from torchflow.models import SkewedTPoisson
 
     own = run(d=4, G=3, n_star=20, trials=2, steps=3, seed=1)
@@ -634,12 +634,12 @@ def test_seed001_geff_diagnostic_runs_and_pooled_fit_is_shared(capsys):
     assert "| 10 | own |" in out and "| 10 | pooled |" in out
 
 
-def test_seed002_proposal_quality_measures_what_it_says(capsys):
-    """experiments/seed002_proposal_quality.py: a near-linear case (prior sd 5 m) gives the Gromov
+def test_zhang2024_proposal_quality_measures_what_it_says(capsys):
+    """experiments/zhang2024_proposal_quality.py: a near-linear case (prior sd 5 m) gives the Gromov
     flow an almost exact proposal (ESS fraction near 1), the explicit Euler step (`start`) of
     EDH overshoots on the coarse (2, 1e-4) grid from the 200 m birth components while the step at
     lambda_l never amplifies, and the command prints both stages."""
-    from experiments.seed002_proposal_quality import amplification, evaluate, main, make_flow, scenes
+    from experiments.zhang2024_proposal_quality import amplification, evaluate, main, make_flow, scenes
     from torchflow.flows.schedules import GeometricSchedule
     from torchflow.models import TDOA3D
 
@@ -781,7 +781,7 @@ def test_check_config_refuses_values_that_mean_nothing():
     }
     with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):
         check_config(compose("config"), {})
-        check_config(compose("config", ["experiment=seed001_table2"]), {"experiment": "seed001_table2"})
+        check_config(compose("config", ["experiment=comandur2022_table2"]), {"experiment": "comandur2022_table2"})
         for override, message in cases.items():
             with pytest.raises(ConfigError, match=re.escape(message)):
                 check_config(compose("config", [override]), {})

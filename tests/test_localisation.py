@@ -1,4 +1,4 @@
-"""BP localisation with flow-induced mixture importance sampling on 3-D TDOA (seed 002)."""
+"""BP localisation with flow-induced mixture importance sampling on 3-D TDOA (Zhang et al. (2024))."""
 
 import pytest
 import torch

@@ -1,5 +1,5 @@
 """Regression tests of reproduced paper tables at reduced size: the first 20 of the 100 trials of
-seed 000 Table I (LG sensor network d = 64, N = 200, T = 10), whose data and draws are those of the
+Pal & Coates (2019) Table I (LG sensor network d = 64, N = 200, T = 10), whose data and draws are those of the
 full run (per-trial streams), must give our full-run means (experiments/RESULTS.md, "Rerun with
 per-trial random streams") within 4 standard errors of the 20-trial mean. A change that moves a
 Table I number beyond Monte Carlo error fails here.
@@ -34,7 +34,7 @@ FILTERS = {
 @pytest.mark.parametrize(
     "name", [pytest.param(n, marks=[pytest.mark.slow] if n == "pfpf_ledh" else []) for n in TABLE_I]
 )
-def test_seed000_table1_rows_stay_put(name):
+def test_pal2019_table1_rows_stay_put(name):
     model = SensorNetwork(d=64, sigma_z=0.5)
     rows = run_experiment(model, {name: FILTERS[name](model)}, trials=20, steps=10, seed=0, progress=False).per_trial
     mse_ref, ess_ref = TABLE_I[name]

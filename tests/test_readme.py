@@ -63,7 +63,7 @@ SHRINK_PY = [
 ]
 #: command-line sizes: replaced where the command sets them, appended where it does not
 SHRINK_CLI = {"trials": "2", "steps": "2", "n_particles": "20"}
-#: seed 002's localisers take their sizes per method (appended to commands naming a seed002 experiment)
+#: Zhang et al.'s (2024) localisers take their sizes per method (appended to commands naming a seed002 experiment)
 SHRINK_TDOA = ["filter.bs.n_particles=2000"] + [
     f"filter.{k}.{p}" for k in ("pfi_d", "pfi_s", "pfi_os") for p in ("n_components=5", "samples_per_component=20")
 ]
@@ -71,7 +71,7 @@ SHRINK_TDOA = ["filter.bs.n_particles=2000"] + [
 SHRINK_TDOA2 = [
     f"filter.{k}.{p}" for k in ("pfi_os_a001", "pfi_os_a05") for p in ("n_components=5", "samples_per_component=20")
 ]
-#: experiments/seed002_proposal_quality.py
+#: experiments/zhang2024_proposal_quality.py
 SHRINK_QUALITY = {"--scenes": "1", "--n-samples": "20", "--reference": "50"}
 
 
@@ -110,7 +110,7 @@ SCRIPTS = {
     "experiments/learn.py",
     "experiments/collect.py",
     "experiments/trial_stats.py",
-    "experiments/seed002_proposal_quality.py",
+    "experiments/zhang2024_proposal_quality.py",
     "experiments/benchmarks/run_all.py",
     "torchflow.core.layers",
 }
@@ -119,7 +119,7 @@ SCRIPTS = {
 #: substring of the command, with its shrunk run's time on one core (one pytest-xdist worker of a
 #: 2-core machine); every other command takes 3-15 s
 SLOW = {
-    "experiment=seed002_table1": "40 s: the bootstrap localiser's 2,000 particles and three PFI localisers",
+    "experiment=zhang2024_table1": "40 s: the bootstrap localiser's 2,000 particles and three PFI localisers",
 }
 
 
@@ -299,10 +299,10 @@ def _run(i, line, tmp_path, ran):
     multirun = False
     if script == "experiments/run.py":
         multirun = _multirun(tokens)
-        table2 = "experiment=seed002_table2" in tokens  # Table II has no BS row
+        table2 = "experiment=zhang2024_table2" in tokens  # Table II has no BS row
         tokens = (
             _recorded(_shrink(tokens), tmp_path)
-            + (SHRINK_TDOA[table2:] if any("experiment=seed002_table" in t for t in tokens) else [])
+            + (SHRINK_TDOA[table2:] if any("experiment=zhang2024_table" in t for t in tokens) else [])
             + (SHRINK_TDOA2 if table2 else [])
         )
         where = tmp_path / f"cmd{i}"
@@ -336,7 +336,7 @@ def _run(i, line, tmp_path, ran):
         fit = [r for r in ran.runs if _has_metric(r / "per_trial.csv", metric)]
         assert fit, f"trial_stats.py --metric {metric} before any documented run with that metric"
         tokens = [t if "<run>" not in t else str(fit[-1]) for t in tokens]
-    elif script == "experiments/seed002_proposal_quality.py":
+    elif script == "experiments/zhang2024_proposal_quality.py":
         for flag, small in SHRINK_QUALITY.items():
             if flag in tokens:
                 tokens[tokens.index(flag) + 1] = small

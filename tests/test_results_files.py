@@ -12,17 +12,17 @@ resampling decision or a flow that a last-bit difference flips. Their numbers de
 ``MKL_ENABLE_INSTRUCTIONS``) and on the batch a trial ran in. Measured on a second AVX-512 host
 (2026-12-06, a Sapphire Rapids CPU with AMX; the files were written and first checked on another),
 first 10 trials of each file, native and AVX2: the chaotic trials move by 1e-3 to 10^3 relative
-(the EKF of seed000_table2_40/sw0.001 trials 1, 3, 4, 5, 8; GPFIS trials other than 3 by 3e-2 to
+(the EKF of pal2019_table2_40/sw0.001 trials 1, 3, 4, 5, 8; GPFIS trials other than 3 by 3e-2 to
 0.9; PF-PF(LEDH) of seed003 trials 0, 2, 4, 5, 7-9), as much as a changed draw moves them, so they
 test nothing but the host. Each case compares the trials that reproduce to better than
 ``REL_TOL / 10`` on both hosts and both instruction sets (the cases' tuples; the largest deviation
-among them 1.7e-5, seed000_table2_pfpf_ledh trial 0 native; seed001_table1_pfgpf trial 2: 4.6e-6).
+among them 1.7e-5, pal2019_table2_pfpf_ledh trial 0 native; comandur2022_table1_pfgpf trial 2: 4.6e-6).
 
 Tolerance ``REL_TOL`` = 5e-4 relative, derived from two measurements (1 thread, 2026-11-25):
 
 * rounding across instruction sets: the files were written on an AVX-512 CPU; under
   ``MKL_ENABLE_INSTRUCTIONS=AVX2 ATEN_CPU_CAPABILITY=avx2`` (a CPU without AVX-512) the largest
-  relative deviation over all cases is 4.8e-5 (seed001_table1_pfgpf: the d = 64 covariance fits
+  relative deviation over all cases is 4.8e-5 (comandur2022_table1_pfgpf: the d = 64 covariance fits
   round differently; every other case reproduces to the last digit). The tolerance is 10x that.
 * power: the same cases rerun with the filter's random stream renamed (same data, other draws) move
   their numbers by 3.6e-3 relative at the least and 6.5e-2 to 1.2 in the median per case, so a
@@ -61,90 +61,90 @@ ARITHMETIC = dict(fused_flows=0, structured_update=0)
 #: (experiment overrides, filter config key, committed file, its filter label, the trials compared: those
 #: that reproduce across hosts and instruction sets, module docstring)
 CASES = {
-    "seed000_table1_bpf_seed1": (
-        ["experiment=seed000_table1", "seed=1"],
+    "pal2019_table1_bpf_seed1": (
+        ["experiment=pal2019_table1", "seed=1"],
         "bpf",
-        "seed000_table1_bpf200_checks/per_trial_seed1.csv",
+        "pal2019_table1_bpf200_checks/per_trial_seed1.csv",
         "bpf",
         (0, 1, 2, 3, 4),
     ),
-    "seed000_table2_tight_prior_gromov": (
-        ["experiment=seed000_table2", "model.prior_std=[1.0,1.0,0.005,0.005]"],
+    "pal2019_table2_tight_prior_gromov": (
+        ["experiment=pal2019_table2", "model.prior_std=[1.0,1.0,0.005,0.005]"],
         "pfpf_gromov",
-        "seed000_table2_tight_prior/per_trial.csv",
+        "pal2019_table2_tight_prior/per_trial.csv",
         "pfpf_gromov",
         (0,),
     ),
-    "seed000_table2_pfpf_ledh": (
-        ["experiment=seed000_table2", "filter.pfpf_edh.n_particles=10000"],
+    "pal2019_table2_pfpf_ledh": (
+        ["experiment=pal2019_table2", "filter.pfpf_edh.n_particles=10000"],
         "pfpf_ledh",
-        "seed000_table2_40/sw0.1/per_trial.csv",
+        "pal2019_table2_40/sw0.1/per_trial.csv",
         "pfpf_ledh",
         (0,),
     ),
-    "seed000_table2_sw0001_pfpf_gromov": (
-        ["experiment=seed000_table2", "model.sigma_w=0.001"],
+    "pal2019_table2_sw0001_pfpf_gromov": (
+        ["experiment=pal2019_table2", "model.sigma_w=0.001"],
         "pfpf_gromov",
-        "seed000_table2_40/sw0.001/per_trial.csv",
+        "pal2019_table2_40/sw0.001/per_trial.csv",
         "pfpf_gromov",
         (0,),
     ),
-    "seed000_table2_gpfis": (
-        ["experiment=seed000_table2", "trials=8", "inits_per_track=1"],
+    "pal2019_table2_gpfis": (
+        ["experiment=pal2019_table2", "trials=8", "inits_per_track=1"],
         "gpfis",
-        "seed000_table2_40/gpfis_sw0.1/per_trial.csv",
+        "pal2019_table2_40/gpfis_sw0.1/per_trial.csv",
         "gpfis",
         (3,),
     ),
-    "seed000_table2_sw0001_ekf": (
-        ["experiment=seed000_table2", "model.sigma_w=0.001"],
+    "pal2019_table2_sw0001_ekf": (
+        ["experiment=pal2019_table2", "model.sigma_w=0.001"],
         "ekf",
-        "seed000_table2_40/sw0.001/per_trial.csv",
+        "pal2019_table2_40/sw0.001/per_trial.csv",
         "ekf",
         (0, 2, 6, 7, 9),
     ),
-    "seed001_table1_pfgpf": (
-        ["experiment=seed001_table1", "trials=100"],
+    "comandur2022_table1_pfgpf": (
+        ["experiment=comandur2022_table1", "trials=100"],
         "pfgpf",
-        "seed001_table1_100/per_trial.csv",
+        "comandur2022_table1_100/per_trial.csv",
         "pfgpf",
         (2,),
     ),
-    "seed001_table1_pfpf_ledh": (
-        ["experiment=seed001_table1", "trials=100"],
+    "comandur2022_table1_pfpf_ledh": (
+        ["experiment=comandur2022_table1", "trials=100"],
         "pfpf_ledh",
-        "seed001_table1_100/per_trial.csv",
+        "comandur2022_table1_100/per_trial.csv",
         "pfpf_ledh",
         (0,),
     ),
-    "seed003_table1_ekf": (
-        ["experiment=seed003_table1"],
+    "li2016_table1_ekf": (
+        ["experiment=li2016_table1"],
         "ekf",
-        "seed003_table1_10/per_trial.csv",
+        "li2016_table1_10/per_trial.csv",
         "ekf",
         (1, 2, 3, 4, 5, 6, 8, 9),
     ),
-    "seed003_table1_pfpf_ledh": (
-        ["experiment=seed003_table1"],
+    "li2016_table1_pfpf_ledh": (
+        ["experiment=li2016_table1"],
         "pfpf_ledh",
-        "seed003_table1_10/per_trial.csv",
+        "li2016_table1_10/per_trial.csv",
         "pfpf_ledh",
         (3,),
     ),
-    "seed003_table1_gpfis": (
-        ["experiment=seed003_table1", "trials=20"],
+    "li2016_table1_gpfis": (
+        ["experiment=li2016_table1", "trials=20"],
         "gpfis",
-        "seed003_table1_20_gpfis_analytic/per_trial.csv",
+        "li2016_table1_20_gpfis_analytic/per_trial.csv",
         "gpfis",
         (3,),
     ),
-    # seed 004's clustered rows are not checked: their k-medoids choice is a discrete decision that
+    # the clustered PF-PF paper's clustered rows are not checked: their k-medoids choice is a discrete decision that
     # BLAS round-off flips, so they reproduce only at the same thread count (trial 0 matches with 1
     # thread, not with 2); the file's PF-PF(LEDH) row is checked instead
-    "seed004_pfpf_ledh": (
-        ["experiment=seed004_clustering", "trials=100"],
+    "li_coates_clustering_pfpf_ledh": (
+        ["experiment=li_coates_clustering", "trials=100"],
         "pfpf_ledh",
-        "seed004_clustering_100/per_trial.csv",
+        "li_coates_clustering_100/per_trial.csv",
         "pfpf_ledh",
         (0,),
     ),

@@ -1,7 +1,7 @@
 """The GPU goals in one table (``run_all --device cuda`` runs it; any device works, the goals
 are stated for an H100/H200):
 
-* PF-PF(LEDH) on seed 000 Table II's setting (acoustic, sigma_w = 0.1, N = 500, 40 steps, float64)
+* PF-PF(LEDH) on Pal & Coates (2019) Table II's setting (acoustic, sigma_w = 0.1, N = 500, 40 steps, float64)
   for each ``--trials`` count in one call (``chunk = trials``, per-trial streams as the runner):
   wall seconds of the call, after an untimed warm-up of the same shape; goals: 100 trials under
   0.5 s, 500 trials under 2 s, and the cost per trial-step flat or falling as trials grow (met when

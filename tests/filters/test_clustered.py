@@ -1,4 +1,4 @@
-"""Clustered PF-PF(LEDH) (seed 004; MODELS.md §11): exactness at K = N, unbiased log-evidence for any
+"""Clustered PF-PF(LEDH) (the clustered PF-PF paper (Li & Coates)): exactness at K = N, unbiased log-evidence for any
 K, the batched K-medoids and the mixed distance."""
 
 import math

@@ -1,4 +1,4 @@
-"""Gaussian and Gaussian-sum particle filters, with and without the LEDH flow (MODELS.md §9)."""
+"""Gaussian and Gaussian-sum particle filters, with and without the LEDH flow."""
 
 import math
 

@@ -1,4 +1,4 @@
-"""GPFIS (Bunch & Godsill 2016; MODELS.md §6, §13): the exact Gaussian transport on linear models,
+"""GPFIS (Bunch & Godsill 2016, §13): the exact Gaussian transport on linear models,
 the autodiff Jacobian including dH/dx on a nonlinear one, unbiased log-evidence, and tracking."""
 
 import math

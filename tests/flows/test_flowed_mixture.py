@@ -1,4 +1,4 @@
-"""Flowing Gaussian parameters (seed 002's flow-induced proposal; MODELS.md §12.1-12.2)."""
+"""Flowing Gaussian parameters (Zhang et al.'s (2024) flow-induced proposal-12.2)."""
 
 import math
 

@@ -1,5 +1,5 @@
 """Geodesic, Gromov and optimised-diffusion flows, the stochastic integrator's proposal recursion,
-the seed 002 schedule, and the PF-PF built on them."""
+the Zhang et al. (2024) schedule, and the PF-PF built on them."""
 
 import math
 
@@ -31,7 +31,7 @@ from torchflow.models import AcousticTracking
 F64 = torch.float64
 
 
-# ---- seed 002 schedule ----------------------------------------------------------------------------
+# ---- Zhang et al. (2024) schedule ----------------------------------------------------------------------------
 def test_geometric_schedule_closes_at_one():
     for (d1, beta), n in (((1e-4, 2.0), 14), ((1e-5, 1.5), 27), ((1.0, 2.0), 1)):
         s = GeometricSchedule(d1, beta)
@@ -218,7 +218,7 @@ def test_optimal_scale_closed_form_and_seed_convention():
     k_min = torch.tensor([0.0, 0.5, 2.0], dtype=F64)
     k_max = torch.tensor([40.0, 3.0, 2.05], dtype=F64)
     c = optimal_diffusion_scale(k_min, k_max, 0.1)
-    # seed 002's formula minimises kappa + alpha' c' with A_s = A - c' I; the same noise is our
+    # Zhang et al.'s (2024) formula minimises kappa + alpha' c' with A_s = A - c' I; the same noise is our
     # c = 2 c', so our objective kappa + 0.1 c is theirs with alpha' = 0.2
     seed = (torch.sqrt((k_max - k_min) / 0.2) - k_min).clamp_min(0)
     torch.testing.assert_close(c / 2, seed)
@@ -234,7 +234,7 @@ def test_optimal_scale_closed_form_and_seed_convention():
             assert abs(float(grid[Jg.argmin()]) - float(c[i])) < 2e-3 * (4 * float(c[i]) + 1)
     with pytest.raises(ValueError, match="alpha"):
         optimal_diffusion_scale(k_min, k_max, 0.0)
-    # the printed rule: seed 002's value as the diffusion scale itself (MODELS.md 12.1), the exact
+    # the printed rule: Zhang et al.'s (2024) value as the diffusion scale itself (MODELS.md 12.1), the exact
     # minimiser of (k_max + c)/(k_min + c) + alpha c
     printed = optimal_diffusion_scale(k_min, k_max, 0.1, rule="printed")
     torch.testing.assert_close(printed, (torch.sqrt((k_max - k_min) / 0.1) - k_min).clamp_min(0))
@@ -471,7 +471,7 @@ def test_pfpf_gromov_without_proposal_density_would_be_biased(monkeypatch):
 
 
 def test_pfpf_gromov_ess_above_ledh_and_geodesic_far_below_on_sensor_network():
-    """Seed 000 Table I ordering on a small sensor network (d = 16, 10 trials, N = 100)."""
+    """Pal & Coates (2019) Table I ordering on a small sensor network (d = 16, 10 trials, N = 100)."""
     from torchflow.models import SensorNetwork
 
     model = SensorNetwork(d=16)

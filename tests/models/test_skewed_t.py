@@ -1,4 +1,4 @@
-"""The GH skewed-t / Poisson model (MODELS.md §3): exact density (integrates to 1, matches a
+"""The GH skewed-t / Poisson model: exact density (integrates to 1, matches a
 scipy-Bessel evaluation), exact sampling (mean and covariance of the Gaussian fit), Poisson
 likelihood, and filters running on it."""
 
@@ -128,7 +128,7 @@ def test_declared_diagonal_noise_whitens_like_the_general_path():
 
 def test_pfpf_evidence_on_the_skewed_t_model_matches_the_bootstrap_filter():
     """Stochastic flows track a Gaussian proposal law, so on a non-Gaussian transition their eta_0
-    must come from the Gaussian fit (MODELS.md §14e) while the weight keeps the exact skewed-t
+    must come from the Gaussian fit while the weight keeps the exact skewed-t
     density. Drawing eta_0 from the skewed-t itself made PF-PF(Gromov)'s evidence wrong by a factor
     of ~1e9 here. The mean evidence (ratio to a common constant) of PF-PF(Gromov) and PF-PF(LEDH)
     agrees with a 2e4-particle BPF's within 4 combined standard errors."""

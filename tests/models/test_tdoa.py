@@ -1,4 +1,4 @@
-"""The 3-D TDOA scenario of seed 002 (MODELS.md §12.3)."""
+"""The 3-D TDOA scenario of Zhang et al. (2024)."""
 
 import math
 

@@ -2,7 +2,7 @@
 
     torchflow                                                  # default acoustic comparison
     torchflow model=linear_gaussian 'filter=[kf,bpf]' trials=100 steps=10 n_particles=200
-    torchflow experiment=seed000_table1                        # a paper table
+    torchflow experiment=pal2019_table1                        # a paper table
     torchflow -m 'filter=[bpf]' n_particles=100,1000           # sweep; one folder per job
     torchflow model=linear_gaussian model.d=4 'filter=[kf,bpf]' data=series.csv   # recorded observations
     torchflow experiment=smooth_linear_gaussian                                # smoothers (task=smooth:

@@ -1,9 +1,9 @@
-"""Seed 001 Table 2 (d = 144) from per-trial files: the N* = 200 column against G, paired with G = 1,
+"""Comandur et al. (2022) Table 2 (d = 144) from per-trial files: the N* = 200 column against G, paired with G = 1,
 and the G_eff-against-G and MSE-against-N_p figures (the seed's Figs 2 and 1, PFGSPF only) with the
 paired fall of MSE from G = 1.
 
-    python -m experiments.seed001_table2_report experiments/results/seed001_table2_gpu \
-        --plot experiments/figures/seed001_table2_gpu.png
+    python -m experiments.comandur2022_table2_report experiments/results/comandur2022_table2_gpu \
+        --plot experiments/figures/comandur2022_table2_gpu.png
 
 Reads ``per_trial_G<G>.csv`` (columns ``trial``, ``mse``, ``g_eff``; one row per run, written by
 ``experiments/run.py`` as ``per_trial.csv``) for every G found. Prints a Markdown table: per G the
@@ -27,7 +27,7 @@ from pathlib import Path
 
 from experiments.trial_stats import mean_se
 
-#: seed 001 Table 2, N* = 200: G -> (MSE, sd) over 100 runs (MODELS.md section 9)
+#: Comandur et al. (2022) Table 2, N* = 200: G -> (MSE, sd) over 100 runs (MODELS.md section 9)
 PAPER = {
     1: (0.88, 0.32),
     2: (0.77, 0.26),
@@ -135,7 +135,7 @@ def plot(rows: list[dict], path: Path) -> None:
         label="ours, mean +- 2 SE",
     )
     pg = sorted(PAPER)
-    a1.plot([200 * g for g in pg], [PAPER[g][0] for g in pg], "s--", label="seed 001 Table 2 (100 runs)")
+    a1.plot([200 * g for g in pg], [PAPER[g][0] for g in pg], "s--", label="Comandur et al. (2022) Table 2 (100 runs)")
     a1.set(xlabel="N_p = 200 G", ylabel="average MSE per dimension", title="PFGSPF, N* = 200, d = 144")
     a1.legend()
     paired = [r for r in rows if r["diff"] is not None]
@@ -148,7 +148,7 @@ def plot(rows: list[dict], path: Path) -> None:
         capsize=3,
         label="ours, paired on the same runs, +- 2 SE",
     )
-    a3.plot(pg[1:], [PAPER[g][0] - PAPER[1][0] for g in pg[1:]], "s--", label="seed 001 (unpaired)")
+    a3.plot(pg[1:], [PAPER[g][0] - PAPER[1][0] for g in pg[1:]], "s--", label="Comandur et al. (2022) (unpaired)")
     a3.set(xlabel="G", ylabel="MSE(G) - MSE(G = 1)", title="the fall with G")
     a3.legend()
     a2.errorbar(
@@ -159,7 +159,7 @@ def plot(rows: list[dict], path: Path) -> None:
         capsize=3,
         label="ours, mean +- 2 SE",
     )
-    a2.plot(list(PAPER_GEFF), list(PAPER_GEFF.values()), "s", label="seed 001 (text, G = 5)")
+    a2.plot(list(PAPER_GEFF), list(PAPER_GEFF.values()), "s", label="Comandur et al. (2022) (text, G = 5)")
     a2.plot(gs, gs, ":", color="grey", label="G_eff = G")
     a2.set(xlabel="G", ylabel="average G_eff", title="effective number of components")
     a2.legend()

@@ -1,7 +1,7 @@
-"""How good is each flowed Gaussian as an importance-sampling proposal? Seed 002's Table II
+"""How good is each flowed Gaussian as an importance-sampling proposal? Zhang et al.'s (2024) Table II
 variants, one TDOA measurement at a time, without belief propagation.
 
-    python -m experiments.seed002_proposal_quality --scenes 32 --n-samples 500
+    python -m experiments.zhang2024_proposal_quality --scenes 32 --n-samples 500
 
 Table II's cells differ only in how each prior component is flowed (method, alpha, the (beta,
 Delta_1) grid) and, on our side, in two UNCONF readings: where a lambda step takes its coefficients
@@ -167,7 +167,7 @@ def main(argv=None) -> int:
     model = TDOA3D()
     gen = torch.Generator().manual_seed(args.seed)
     data = scenes(model, args.scenes, gen)
-    print(f"# seed002 proposal quality: {args.scenes} scenes, N_p = {args.n_samples}, seed {args.seed}")
+    print(f"# Zhang et al. (2024) proposal quality: {args.scenes} scenes, N_p = {args.n_samples}, seed {args.seed}")
     print("# cells: ess (mean ESS_n / N_p, evidence-weighted) / deg (evidence share with ESS_n < 10) / max|1 - eps k|")
     for stage in args.stages:
         st = data[stage]

@@ -1,7 +1,7 @@
 """Why PFGSPF's components stay alike (low G_eff) on the skewed-t / Poisson model: a step-by-step
 look at the mixture weights.
 
-    python -m experiments.seed001_geff_diagnostic --d 36 --G 5 --n-star 50 200 --trials 2 --steps 15 --fit both
+    python -m experiments.comandur2022_geff_diagnostic --d 36 --G 5 --n-star 50 200 --trials 2 --steps 15 --fit both
 
 Every component starts from the same prior (``init=prior``), so the components differ only by
 Monte Carlo noise, and ``log alpha_j`` moves each step by the component's log mean weight
