@@ -5,7 +5,7 @@ and particle count, and what the backward pass costs.
     python -m experiments.benchmarks.bench_gradients --estimators none,stop_gradient,soft   # ~15 min, 2 cores
     python -m experiments.benchmarks.bench_gradients --d 8 --n 100,1000 --memory-n 0       # where it breaks
     python -m experiments.benchmarks.bench_gradients --quick
-    python -m experiments.benchmarks.bench_gradients --write-problem experiments/benchmarks/gradients_problem.pt
+    python -m experiments.benchmarks.bench_gradients --write-problem experiments/benchmarks/results/gradients_problem.pt
 
 ``--params F``: the gradient with respect to F alone (as the PyDPF peer script measures it).
 ``--write-problem PATH`` only saves the d = ``--d``, T = ``--steps`` problem (F, Q, R, H, observations,

@@ -11,7 +11,7 @@ DAPPER's settings are its file's suggested ones; ours are the experiment config'
 
     python -m experiments.benchmarks.bench_lorenz63 --dapper-python /path/to/venv-with-dapper/bin/python
 
-Writes ``results_lorenz63.md`` and ``.json`` beside this file (``--out`` to change).
+Writes ``results_lorenz63.md`` and ``.json`` in ``results/`` (``--out`` to change).
 """
 
 from __future__ import annotations
@@ -199,7 +199,7 @@ def main(argv=None):
     p.add_argument("--steps", type=int, default=1000)
     p.add_argument("--burn-in", type=int, default=64)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default=str(HERE / "results_lorenz63"))
+    p.add_argument("--out", default=str(HERE / "results" / "results_lorenz63"))
     args = p.parse_args(argv)
     write(args, compare(args))
 

@@ -14,7 +14,7 @@ their cost as the dimension grows.
 
     python -m experiments.benchmarks.bench_lorenz96 --dapper-python /path/to/venv-with-dapper/bin/python
 
-Writes ``results_lorenz96.md`` and ``.json`` beside this file (``--out`` to change).
+Writes ``results_lorenz96.md`` and ``.json`` in ``results/`` (``--out`` to change).
 """
 
 from __future__ import annotations
@@ -291,7 +291,7 @@ def main(argv=None):
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--dims", type=int, nargs="*", default=[40, 400, 4000])
     p.add_argument("--scaling-steps", type=int, default=200)
-    p.add_argument("--out", default=str(HERE / "results_lorenz96"))
+    p.add_argument("--out", default=str(HERE / "results" / "results_lorenz96"))
     p.add_argument("--device", default="cpu", help="the d-scaling's device (cuda: a GPU run of the scaling only)")
     p.add_argument("--scaling-only", action="store_true", help="skip the DAPPER comparison")
     args = p.parse_args(argv)

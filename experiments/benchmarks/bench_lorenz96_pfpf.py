@@ -76,7 +76,7 @@ def main(argv=None):
     p.add_argument("--trials", type=int, default=10)
     p.add_argument("--steps", type=int, default=1000)
     p.add_argument("--burn-in", type=int, default=None, help="steps left out of the RMSE (default: 200, Lorenz-63 64)")
-    p.add_argument("--out", default=str(HERE / "results_lorenz96_pfpf.json"))
+    p.add_argument("--out", default=str(HERE / "results" / "results_lorenz96_pfpf.json"))
     a = p.parse_args(argv)
     torch.set_num_threads(1)
     rows = []

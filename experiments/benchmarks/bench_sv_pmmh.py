@@ -6,9 +6,9 @@ filter, its adaptive random walk), with the same priors and particle count.
     python -m experiments.benchmarks.bench_sv_pmmh            # ~5 min on one thread
     python -m experiments.benchmarks.bench_sv_pmmh --steps 200 --iterations 300   # smaller
     python -m experiments.benchmarks.bench_sv_pmmh --correlation 0.99 --particles 50 --no-peer \
-        --out experiments/benchmarks/results_sv_cpm      # correlated PMMH beside standard, N = 50
+        --out experiments/benchmarks/results/results_sv_cpm      # correlated PMMH beside standard, N = 50
     python -m experiments.benchmarks.bench_sv_pmmh --filter pfpf_ledh --particles 50 --no-peer \
-        --out experiments/benchmarks/results_sv_pmmh_ledh   # PF-PF(LEDH) as the likelihood estimator
+        --out experiments/benchmarks/results/results_sv_pmmh_ledh   # PF-PF(LEDH) as the likelihood estimator
 
 ``--filter pfpf_ledh``: PF-PF(LEDH) on the log-squared form (``offset``: the series has zero returns);
 its weights and log-evidence are those of the returns, so the posterior is the same.
@@ -17,7 +17,7 @@ Priors (``particles``' conventions): mu ~ N(0, 2^2), rho ~ U(-1, 1), sigma ~ Gam
 Reported per sampler: the posterior mean and standard deviation of each parameter over the kept
 draws of all chains, the acceptance rate, the effective sample size (all chains, split-chain
 autocorrelation, :func:`torchflow.inference.effective_sample_size` for both) and ESS per second of
-sampling. Writes ``results_sv_pmmh.md`` and ``.json`` beside this file.
+sampling. Writes ``results_sv_pmmh.md`` and ``.json`` in ``results/``.
 """
 
 from __future__ import annotations
@@ -166,7 +166,7 @@ def main(argv=None):
         help="our likelihood estimator: the bootstrap PF or PF-PF(LEDH) on the log-squared form",
     )
     p.add_argument("--offset", type=float, default=1e-4, help="log-squared form: log(y^2 + offset) (zero returns)")
-    p.add_argument("--out", default=str(HERE / "results_sv_pmmh"))
+    p.add_argument("--out", default=str(HERE / "results" / "results_sv_pmmh"))
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     from ..data.gbpusd import returns

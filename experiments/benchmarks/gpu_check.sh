@@ -106,7 +106,7 @@ timeout "$(cap 120)" python3 -m experiments.benchmarks.bench_gpu --device cuda -
   --bpf-ns 200 > "$OUT/bench_gpu.log" 2>&1
 grep -E "^\| " "$OUT/bench_gpu.log" | tail -10 | tee -a "$MD"
 grep -iE "capture failed|not replayed|warn" "$OUT/bench_gpu.log" | head -5 | sed 's/^/    /' | tee -a "$MD"
-cp experiments/benchmarks/results_gpu.json "$OUT/" 2>/dev/null
+cp experiments/benchmarks/results/results_gpu.json "$OUT/" 2>/dev/null
 
 echo "== Lorenz-96 d-scaling on the GPU: ETKF, LETKF ($(left) s left)"; date
 { echo; echo "## Lorenz-96 on the GPU (ETKF N = 28, LETKF N = 20, 100 steps, RMSE after 25)"; echo;

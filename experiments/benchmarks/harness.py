@@ -1,7 +1,7 @@
 """The one harness of the benchmarks: options, the timing loop, filters by name, the machine, peer
 libraries and the results files. A benchmark module's ``run(argv)`` returns ``{"machine", "rows",
 "markdown", "args", ...}``; ``python -m experiments.benchmarks.<module>`` also writes ``results_<name>.md``
-and ``.json`` here (``--quick``: ``results_<name>_quick.*``; ``--out``: elsewhere).
+and ``.json`` in ``results/`` (``--quick``: ``results_<name>_quick.*``; ``--out``: elsewhere).
 """
 
 from __future__ import annotations
@@ -35,6 +35,8 @@ from torchflow.filters import (
 )
 
 HERE = Path(__file__).resolve().parent
+#: where the benchmarks' result files live, apart from the scripts
+RESULTS = HERE / "results"
 
 
 class CheckFailed(RuntimeError):
@@ -360,8 +362,8 @@ def md_table(head: Sequence[str], rows: Iterable[Sequence]) -> List[str]:
 
 
 def results_path(name: str, quick: bool = False, out: Optional[str] = None) -> Path:
-    """Markdown path of a run: ``out`` or ``results_<name>[_quick].md`` in this folder."""
-    return Path(out) if out else HERE / (f"results_{name}_quick.md" if quick else f"results_{name}.md")
+    """Markdown path of a run: ``out`` or ``results_<name>[_quick].md`` in :data:`RESULTS`."""
+    return Path(out) if out else RESULTS / (f"results_{name}_quick.md" if quick else f"results_{name}.md")
 
 
 def write_results(res: dict, name: str, quick: bool = False, out: Optional[str] = None) -> Path:

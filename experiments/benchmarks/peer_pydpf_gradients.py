@@ -6,7 +6,7 @@ for comparison with ``bench_gradients`` (torchflow's estimators).
 Run with a Python that has PyDPF (it does not need torchflow), from the repository root:
 
     python experiments/benchmarks/peer_pydpf_gradients.py [--n 100,1000] [--trials 20] [--reps 10]
-        [--threads 2] [--out experiments/benchmarks/results_peer_pydpf.md]
+        [--threads 2] [--out experiments/benchmarks/results/results_peer_pydpf.md]
 
 Model (the torchflow convention): ``x_0 ~ N(mean, cov)``; for t = 1..T: ``x_t = F x_{t-1} + N(0, Q)``,
 ``z_t = H x_t + N(0, R)`` with ``z_t = obs[0, t-1]``; ``log Z = sum_t log p(z_t | z_{1:t-1})``; x_0 is not
@@ -319,7 +319,7 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    p.add_argument("--problem", default=str(Path(__file__).resolve().parent / "gradients_problem.pt"))
+    p.add_argument("--problem", default=str(Path(__file__).resolve().parent / "results" / "gradients_problem.pt"))
     p.add_argument("--n", default="100,1000", help="particle counts, comma-separated")
     p.add_argument("--trials", type=int, default=20)
     p.add_argument("--reps", type=int, default=10)

@@ -65,13 +65,13 @@ def main():
 
     torch.set_num_threads(1)
     if "--replot" in sys.argv[1:]:
-        rows = json.loads((HERE / "results_lorenz63_n.json").read_text())
+        rows = json.loads((HERE / "results" / "results_lorenz63_n.json").read_text())
     else:
         rows = rmse_against_n()
-        (HERE / "results_lorenz63_n.json").write_text(json.dumps(rows, indent=1) + "\n")
+        (HERE / "results" / "results_lorenz63_n.json").write_text(json.dumps(rows, indent=1) + "\n")
     dapper = {
         r["setting"].split()[0]: r
-        for r in json.loads((HERE / "results_lorenz63.json").read_text())["rows"]
+        for r in json.loads((HERE / "results" / "results_lorenz63.json").read_text())["rows"]
         if r["library"].startswith("DAPPER")
     }
     fig, ax = plt.subplots(figsize=(8.2, 3.8))

@@ -60,7 +60,7 @@ def main():
 
     torch.set_num_threads(1)
     rows = rmse_against_n()
-    (HERE / "results_lorenz96_n.json").write_text(json.dumps(rows, indent=1) + "\n")
+    (HERE / "results" / "results_lorenz96_n.json").write_text(json.dumps(rows, indent=1) + "\n")
     fig, ax = plt.subplots(figsize=(5.2, 3.6))
     for name in [*FILTERS, "bpf"]:
         rs = [r for r in rows if r["filter"] == name]
@@ -82,7 +82,7 @@ def main():
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(ASSETS / "lorenz96_rmse_n.png", dpi=120)
-    scaling = json.loads((HERE / "results_lorenz96.json").read_text())["scaling"]
+    scaling = json.loads((HERE / "results" / "results_lorenz96.json").read_text())["scaling"]
     fig, ax = plt.subplots(figsize=(5.2, 3.6))
     for name, label in (("etkf", "ETKF, N = 28"), ("letkf", "LETKF, N = 20")):
         rs = [r for r in scaling if r["filter"] == name]

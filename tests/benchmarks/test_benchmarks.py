@@ -376,7 +376,7 @@ def test_flops_bench_micro(monkeypatch):
 
 
 def test_run_all_runs_a_section_and_writes_both_reports(tmp_path, monkeypatch):
-    monkeypatch.setattr(harness, "HERE", tmp_path)  # the sections' results files go here
+    monkeypatch.setattr(harness, "RESULTS", tmp_path)  # the sections' results files go here
     res = run_all.run(["--only", "gaussian_sum", "--quick"])
     assert not res["failures"] and list(res["results"]) == ["gaussian_sum"]
     assert (tmp_path / "results_gaussian_sum_quick.json").exists()

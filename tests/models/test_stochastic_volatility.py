@@ -366,3 +366,41 @@ def test_per_trial_parameters_in_the_flows(flow):
             z[b : b + 1], mean_b, cov_b, TrialStreams(5, 2, "sv").select([b])
         )
         torch.testing.assert_close(alone.log_evidence[0], together.log_evidence[b], rtol=1e-10, atol=1e-10)
+
+
+def test_a_slope_zero_only_at_the_prior_mean_is_not_flat():
+    """``h(x) = x^3 / 20`` has a zero Jacobian at a prior mean of 0 but not one standard deviation
+    away: a flow linearised at the particles moves them, so there is no warning (the custom-model
+    guide's example); at a prior whose variance is zero the slope is zero everywhere it is asked."""
+    from torchflow.models import GaussianStateSpaceModel, Structure
+
+    class Cubic(GaussianStateSpaceModel):
+        state_dim = obs_dim = 1
+        structure = Structure(measurement_noise="scalar")
+
+        def __init__(self):
+            super().__init__()
+            self.register_buffer("Q", torch.eye(1, **f64))
+
+        def transition_mean(self, x):
+            return x / 2
+
+        def transition_cov(self, x=None):
+            return self.Q
+
+        def measure(self, x):
+            return x**3 / 20
+
+        def measurement_cov(self, x=None):
+            return self.Q
+
+    mean, cov = torch.zeros(3, 1, **f64), torch.eye(1, **f64).expand(3, 1, 1)
+    f = F.ParticleFlowParticleFilter(Cubic(), flow="ledh", n_particles=8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_informative(f.proposal, mean, f.name, cov)
+        check_informative(
+            F.ParticleFlowParticleFilter(Cubic(), flow="ledh", n_particles=8).proposal, mean, f.name
+        )  # no cov: a unit step
+    with pytest.warns(UserWarning, match="zero Jacobian"):
+        check_informative(F.ParticleFlowParticleFilter(Cubic(), n_particles=8).proposal, mean, f.name, 0 * cov)

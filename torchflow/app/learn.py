@@ -63,6 +63,7 @@ from torchflow.app.runner import STOP, RunStopped, format_table, plan_run, shell
 from torchflow.app.runner.config import close_keys, config_dir, group_options, recorded_data
 from torchflow.app.runner.plan import ConfigError
 from torchflow.app.runner.shell import JobEnv
+from torchflow.app.runner.writers import save_figure
 from torchflow.core.errors import TorchflowError
 from torchflow.core.registry import resolve, signature_defaults
 
@@ -414,7 +415,7 @@ def _plot(fits: Dict, truth: Optional[Dict], names: List[str], path: Path) -> No
         ax.set(xlabel="epoch", ylabel=n if scalar else f"{n}: norm" if truth is None else f"{n}: % error vs truth")
     axes[-1].legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
 
 

@@ -510,7 +510,7 @@ class Filter(Estimator):
         if self.validate:  # once per model and batch layout: each method's output shape, naming the method
             check_shapes(self.model, mean.detach(), self.name, gaussian=self.gaussian_form or None)
             # a flow whose model's measurement Jacobian is zero cannot move the particles: said once
-            check_informative(getattr(self, "proposal", None), mean, self.name)
+            check_informative(getattr(self, "proposal", None), mean, self.name, cov)
         if self.uses_randomness:
             check_generator(generator, f"{self.name}: generator", observations.shape[0])
         try:

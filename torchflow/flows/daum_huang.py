@@ -133,7 +133,7 @@ class EDHFlow(ParticleFlow):
             float64 (default True). Its offset ``b`` cancels terms ``~lam |S|`` times larger than
             itself, and ``S = L^T H^T R^-1 H L`` reaches ~5e11 on acoustic tracking with
             sigma_w = 0.001: in float32 that drift is wrong by metres and PF-PF(EDH/LEDH) lose every
-            track (``experiments/benchmarks/results_float32.md``). Everything else stays in the
+            track (``experiments/benchmarks/results/results_float32.md``). Everything else stays in the
             run's precision.
     """
 

@@ -19,6 +19,7 @@ import torch
 
 from torchflow.core import linalg, registry
 from torchflow.core.blocks import blockwise
+from torchflow.core.covariances import DiagonalCovariance
 from torchflow.core.errors import ArgumentError, ArgumentTypeError
 from torchflow.core.trackers import tracker
 from torchflow.flows import FlowPrior, LEDHFlow, ParticleFlow, integrate_flow, resolve_points
@@ -290,26 +291,37 @@ def affine_law(
     )
 
 
-def check_informative(proposal, mean: torch.Tensor, who: str) -> None:
+def check_informative(proposal, mean: torch.Tensor, who: str, cov=None) -> None:
     """Warn, once per proposal, when a flow proposal's model has a Gaussian measurement form whose
-    Jacobian ``dh/dx`` is zero at every trial's prior ``mean (B, d)``: the flow's drift is then zero,
-    it does not move the particles, and the filter is the bootstrap PF at a flow's cost (a model
-    whose information sits in a state-dependent R, as stochastic volatility's ``h(x) = 0``,
-    ``R(x) = exp(x)``). ``who`` names the filter. Anything but a :class:`FlowProposal` (or
-    ``None``) is left alone. One linearisation and one host read: call it before the first step."""
+    Jacobian ``dh/dx`` is zero at every trial's prior ``mean (B, d)`` and one prior standard
+    deviation either side of it (``cov``: ``(B, d, d)``, a
+    :class:`~torchflow.core.covariances.DiagonalCovariance`, or ``None``: a unit step). The flow's
+    drift is then zero near the prior, so it does not move the particles and the filter is the
+    bootstrap PF at a flow's cost. Stochastic volatility's ``h(x) = 0``, ``R(x) = exp(x)`` is such a
+    model: its information sits in a state-dependent R. A Jacobian that vanishes only at the mean,
+    such as that of ``h(x) = x^3`` at 0, is not flat: particles linearised where they are still move.
+    ``who`` names the filter. Anything but a :class:`FlowProposal` (or ``None``) is left alone.
+    One batched linearisation at ``3 B`` points and one host read: call it before the first step."""
     if not isinstance(proposal, FlowProposal) or proposal._informative_checked:
         return
     proposal._informative_checked = True
     with torch.no_grad():
-        _, H = proposal.model.linearize_measurement(mean.detach())  # (B, m, d)
+        mean = mean.detach()
+        if cov is None:
+            sd = torch.ones_like(mean)
+        else:
+            var = cov.variance if isinstance(cov, DiagonalCovariance) else cov.detach().diagonal(dim1=-2, dim2=-1)
+            sd = var.expand_as(mean).clamp_min(0).sqrt()
+        points = torch.cat([mean, mean + sd, mean - sd], 0)  # (3 B, d)
+        _, H = proposal.model.linearize_measurement(points)  # (3 B, m, d)
         flat = not bool(H.ne(0).any())
     if flat:
         warnings.warn(
             f"{who}: the Gaussian measurement form of {type(proposal.model).__name__} has a zero Jacobian "
-            "dh/dx at the prior mean, so it carries no information about the state: the flow will not move "
-            "the particles (the filter is the bootstrap PF at a flow's cost). Use the bootstrap particle "
-            "filter, or a Gaussian form whose measurement depends on the state (stochastic volatility: "
-            "gaussian_form='log_squared')",
+            "dh/dx at the prior mean and one prior standard deviation either side of it, so it carries no "
+            "information about the state: the flow will not move the particles (the filter is the bootstrap "
+            "PF at a flow's cost). Use the bootstrap particle filter, or a Gaussian form whose measurement "
+            "depends on the state (stochastic volatility: gaussian_form='log_squared')",
             UserWarning,
             stacklevel=2,
         )

@@ -12,7 +12,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import re
 import warnings
 from collections import Counter
@@ -21,7 +20,7 @@ from typing import Callable, List, Mapping, Optional, Tuple, Union
 
 import torch
 
-from torchflow.app.runner.writers import write_text
+from torchflow.app.runner.writers import replace_atomically, write_text
 from torchflow.core import paths
 from torchflow.core.errors import ArgumentError
 
@@ -90,8 +89,10 @@ class ChunkStore:
         """The saved chunk of trials ``[start, stop)`` of filter ``name``, or ``None`` (not resuming, not
         saved, or saved with other settings); ``meta``: run settings the file's header must repeat."""
         path = self._path(name, start, stop)
-        if not self.resume or not path.exists():
+        if not self.resume or not (path.exists() or path.is_symlink()):
             return None
+        if path.is_symlink() or not path.is_file():  # a chunk is a file this store wrote, never a link
+            return _again(f"resume: {path} is not a regular file (a link or another kind of entry): not read")
         try:
             data = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as e:
@@ -119,19 +120,15 @@ class ChunkStore:
         if name in self.settings and not (folder / "settings.json").exists():
             write_text(folder / "settings.json", json.dumps(self.settings[name], indent=2, sort_keys=True, default=str))
         path = self._path(name, start, stop)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        torch.save(
-            {
-                **dict(chunk),
-                "key": self.keys.get(name, name),
-                "start": start,
-                "stop": stop,
-                "meta": dict(meta) if meta is not None else None,
-                "checksum": checksum(chunk),
-            },
-            tmp,
-        )
-        os.replace(tmp, path)
+        record = {
+            **dict(chunk),
+            "key": self.keys.get(name, name),
+            "start": start,
+            "stop": stop,
+            "meta": dict(meta) if meta is not None else None,
+            "checksum": checksum(chunk),
+        }
+        replace_atomically(path, lambda fh: torch.save(record, fh), binary=True)  # never through a link
         self.computed[name] += 1
         return path
 

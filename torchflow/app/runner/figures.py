@@ -9,6 +9,7 @@ import logging
 from pathlib import Path
 from typing import List
 
+from torchflow.app.runner.writers import save_figure
 from torchflow.core import metrics
 
 log = logging.getLogger("torchflow.app.runner")
@@ -228,7 +229,7 @@ def save_smoothing_figure(path: Path, truth, results, title: str) -> Path:
         return path
     fig = smoothing_figure(plt, truth, results, title)
     try:
-        fig.savefig(path, dpi=100)
+        save_figure(fig, path, dpi=100)
     finally:
         plt.close(fig)
     return path
@@ -306,7 +307,7 @@ def save_posterior_figures(out: Path, draws, truth, title: str) -> List[Path]:
     paths = []
     for name, fig in zip(("posterior.png", "traces.png"), posterior_figures(plt, draws, truth, title)):
         try:
-            fig.savefig(Path(out) / name, dpi=100, bbox_inches="tight")  # the legend beside the last panel
+            save_figure(fig, Path(out) / name, dpi=100, bbox_inches="tight")  # the legend beside the last panel
         finally:
             plt.close(fig)
         paths.append(Path(out) / name)
@@ -342,7 +343,7 @@ def save_run_figures(out: Path, model, result, model_name: str) -> List[Path]:
         fig = draw()
         if fig is not None:
             try:
-                fig.savefig(Path(out) / name, dpi=110, bbox_inches="tight" if name == "tracks.png" else None)
+                save_figure(fig, Path(out) / name, dpi=110, bbox_inches="tight" if name == "tracks.png" else None)
             finally:
                 plt.close(fig)
             paths.append(Path(out) / name)

@@ -74,7 +74,7 @@ from omegaconf.errors import OmegaConfBaseException
 from torchflow.app.runner import config as rc
 from torchflow.app.runner.execute import STOP
 from torchflow.app.runner.plan import ConfigError, resolve_device, resolve_dtype
-from torchflow.app.runner.writers import ALL_RESULT_FILES
+from torchflow.app.runner.writers import ALL_RESULT_FILES, exclusive_temp
 from torchflow.core import tuning
 from torchflow.core.registry import register_configs
 
@@ -442,8 +442,8 @@ def guard_output_folder(
     folder, shown = Path(folder), shown or str(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        probe = folder / f".torchflow-write-test.{os.getpid()}"
-        probe.write_text("")
+        fd, probe = exclusive_temp(folder / ".torchflow-write-test")  # created exclusively: no link followed
+        os.close(fd)
         probe.unlink()
     except OSError as e:
         raise ConfigError(

@@ -6,8 +6,9 @@ from __future__ import annotations
 import csv
 import json
 import os
+import tempfile
 from pathlib import Path
-from typing import List, Mapping, Optional
+from typing import List, Mapping, Optional, Tuple
 
 from torchflow.app.runner.score import summary_columns
 
@@ -34,17 +35,47 @@ PMMH_FILES = ("posterior.csv", "pmmh.json", "posterior.png", "traces.png")
 ALL_RESULT_FILES = RESULT_FILES + LEARN_FILES + SMOOTH_FILES + PMMH_FILES
 
 
-def _atomic(path: Path, write) -> Path:
+def exclusive_temp(path: Path) -> Tuple[int, Path]:
+    """``(descriptor, name)`` of a new temporary file beside ``path``, created exclusively (a random
+    name opened with ``O_CREAT | O_EXCL``, mode 0600: :func:`tempfile.mkstemp`). In a folder others
+    can write (a shared ``checkpoint_dir`` or output folder) no link planted at a guessable name is
+    followed: the name is not guessable, and an existing entry of that name, a link included, makes
+    the open fail instead of writing through it."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    return fd, Path(name)
+
+
+def replace_atomically(path: Path, write, binary: bool = False) -> Path:
+    """Write ``path`` whole or not at all: ``write(file)`` into an :func:`exclusive_temp` file, then
+    rename it over ``path`` (a rename replaces a link at ``path`` itself, it does not follow it)."""
+    path = Path(path)
+    fd, tmp = exclusive_temp(path)
     try:
-        with open(tmp, "w", newline="") as fh:
+        with os.fdopen(fd, "wb" if binary else "w", **({} if binary else {"newline": ""})) as fh:
             write(fh)
+        os.chmod(tmp, 0o644 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
     return path
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+_atomic = replace_atomically
+
+
+def save_figure(fig, path: Path, **kwargs) -> Path:
+    """``fig.savefig`` into ``path`` through :func:`replace_atomically` (never through a link at
+    ``path`` or a temporary name); the format follows the file's suffix."""
+    path = Path(path)
+    return replace_atomically(path, lambda fh: fig.savefig(fh, format=path.suffix.lstrip(".") or "png", **kwargs), True)
 
 
 def write_csv(path: Path, rows: List[Mapping], columns: Optional[List[str]] = None) -> Path:

@@ -1,0 +1,74 @@
+"""Nothing is written through a link planted in a shared folder (cases SEC1, SEC2): temporary files
+are created exclusively under random names, and a chunk file that is a link is neither read nor
+followed."""
+
+import itertools
+import os
+
+import pytest
+import torch
+
+from torchflow.app.runner.checkpoint import ChunkStore
+from torchflow.app.runner.shell import guard_output_folder
+from torchflow.app.runner.writers import exclusive_temp, write_text
+
+
+def _victim(tmp_path):
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious user data")
+    return victim
+
+
+def test_a_result_file_is_not_written_through_a_link_at_the_old_temporary_name(tmp_path):
+    victim, out = _victim(tmp_path), tmp_path / "out"
+    out.mkdir()
+    (out / f".summary.csv.{os.getpid()}.tmp").symlink_to(victim)  # the name the writers used to take
+    write_text(out / "summary.csv", "a,b\n")
+    assert victim.read_text() == "precious user data"
+    assert (out / "summary.csv").read_text() == "a,b\n" and not (out / "summary.csv").is_symlink()
+
+
+def test_exclusive_temporary_files_refuse_an_existing_entry(tmp_path, monkeypatch):
+    """Even at a name an attacker guessed, the temporary file is not opened through a link: the
+    exclusive open fails (mkstemp then tries other names, here all the same one, and gives up)."""
+    import tempfile
+
+    victim, out = _victim(tmp_path), tmp_path / "out"
+    out.mkdir()
+    (out / ".summary.csv.fixed.tmp").symlink_to(victim)
+    monkeypatch.setattr(tempfile, "_get_candidate_names", lambda: itertools.repeat("fixed"))
+    monkeypatch.setattr(tempfile, "TMP_MAX", 5)
+    with pytest.raises(FileExistsError):
+        exclusive_temp(out / "summary.csv")
+    assert victim.read_text() == "precious user data"
+
+
+def test_a_chunk_is_not_saved_through_a_link_nor_a_linked_chunk_loaded(tmp_path):
+    victim, root = _victim(tmp_path), tmp_path / "ck"
+    store = ChunkStore(root, {"bpf": "bpf-key"}, resume=True)
+    folder = store.folder("bpf")
+    folder.mkdir(parents=True)
+    (folder / f".0000000-0000002.pt.{os.getpid()}.tmp").symlink_to(victim)  # case SEC1's planted link
+    chunk = {"estimates": torch.zeros(2, 3, 1, dtype=torch.float64)}
+    path = store.save("bpf", 0, 2, chunk)
+    assert victim.read_text() == "precious user data" and not path.is_symlink()
+    assert store.load("bpf", 0, 2, steps=3) is not None  # the store's own file reads back
+    # a link planted at the chunk's own name (to a chunk elsewhere) is refused, with a warning
+    elsewhere = tmp_path / "elsewhere.pt"
+    os.replace(path, elsewhere)
+    path.symlink_to(elsewhere)
+    with pytest.warns(UserWarning, match="is not a regular file"):
+        assert store.load("bpf", 0, 2, steps=3) is None
+    store.save("bpf", 0, 2, chunk)  # saving replaces the link itself, not its target
+    assert not path.is_symlink() and elsewhere.exists()
+
+
+def test_the_output_folder_probe_does_not_truncate_a_linked_file(tmp_path):
+    victim, out = _victim(tmp_path), tmp_path / "run"
+    out.mkdir()
+    (out / f".torchflow-write-test.{os.getpid()}").symlink_to(victim)  # case SEC2
+    lock = guard_output_folder(out, key="hydra.run.dir", command="torchflow")
+    try:
+        assert victim.read_text() == "precious user data"
+    finally:
+        lock.release()
