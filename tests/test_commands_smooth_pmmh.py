@@ -184,6 +184,10 @@ def test_pmmh_task_on_a_recorded_series_same_seed_same_draws(tmp_path):
         (["pmmh.iterations=2"], "pmmh.iterations: expected an integer >= 4, got 2"),
         (["pmmh.chain=3"], "pmmh.chain: unknown setting; did you mean pmmh.chains?"),
         (["pmmh.init={rho: 1.5, sigma: 0.2}"], "pmmh.init.rho: expected a value inside the support of its prior"),
+        (  # case M10: a Normal on a standard deviation gave negative draws
+            ["~pmmh.priors.sigma", "+pmmh.priors.sigma={dist: Normal, loc: 0.0, scale: 1.0}"],
+            "pmmh.priors.sigma: Normal's support (Real()) reaches outside sigma's domain (GreaterThan(lower_bound=0",
+        ),
     ],
 )
 def test_pmmh_task_refuses_bad_settings_in_one_line(tmp_path, args, message):
@@ -266,3 +270,17 @@ def test_posterior_figures_keep_the_truth_inside_the_frame():
     finally:
         plt.close(hist)
         plt.close(trace)
+
+
+def test_an_override_merged_into_another_prior_says_how_to_replace_it():
+    """Case M03: ``pmmh.priors={sigma: {dist: Normal, ...}}`` over an experiment's Gamma merges the two
+    (Normal with ``concentration`` and ``rate``); the error now says to delete the old prior first."""
+    from torchflow.app.tasks import prior_from_config
+
+    merged = {"dist": "Normal", "concentration": 1.0, "rate": 1.0, "loc": 0.0, "scale": 1.0}
+    with pytest.raises(ConfigError, match="unexpected keyword") as err:
+        prior_from_config("sigma", merged)
+    assert "delete that one first: '~pmmh.priors.sigma' '+pmmh.priors.sigma={dist: Normal, ...}'" in str(err.value)
+    with pytest.raises(ConfigError) as err:
+        prior_from_config("rho", {"dist": "Uniform", "low": 2, "high": 1})
+    assert "delete that one first" not in str(err.value)  # the hint only where arguments were merged in

@@ -351,3 +351,67 @@ def test_pmmh_cuda(correlation):
     a = runs[0].samples["a"]
     assert torch.isfinite(runs[0].log_likelihood).all() and bool(((a > -1) & (a < 1)).all())
     assert torch.equal(a.cpu(), runs[1].samples["a"].cpu())
+
+
+# ---- per-trial values and priors that cannot be right (issue cases P01, P07, P09, M10, P11) --------
+
+
+def _lg():
+    from torchflow.models import LinearGaussian
+
+    eye = torch.eye(2, dtype=F64)
+    return LinearGaussian(0.9 * eye, 0.2 * eye, eye, 0.1 * eye, torch.zeros(2, dtype=F64), eye)
+
+
+def test_per_trial_values_for_another_number_of_trials_are_refused_naming_the_parameter():
+    """Cases P01, P09: values for 2 trials on a call of 3 (and 3 on 2) gave raw broadcast errors."""
+    from torchflow.core.errors import ArgumentError
+    from torchflow.filters import KalmanFilter
+
+    model = _lg()
+    traj = model.simulate(3, 6, torch.Generator().manual_seed(0))
+    mean, cov = model.initial_belief(traj.states[:, 0])
+    F = model.F.detach().expand(2, 2, 2).clone()
+    with per_trial_values(model, {"F": F}):
+        with pytest.raises(ArgumentError, match=r"LinearGaussian.F holds values for 2 trials .* filters 3 trials"):
+            KalmanFilter(model)(traj.observations, mean, cov)
+        out = KalmanFilter(model)(traj.observations[:2], mean[:2], cov[:2])  # the matching call runs
+        assert torch.isfinite(out.log_evidence).all()
+
+
+def test_per_trial_values_must_be_finite():
+    """Case P07: NaN values were accepted and surfaced as a non-finite estimate that named no parameter."""
+    from torchflow.core.errors import ArgumentError
+
+    model = _lg()
+    F = model.F.detach().expand(3, 2, 2).clone()
+    F[1, 0, 0] = float("nan")
+    with pytest.raises(
+        ArgumentError, match=r"values\['F'\]: expected finite values, got NaN or infinity in trial\(s\) \[1\]"
+    ):
+        with per_trial_values(model, {"F": F}):
+            pass
+    assert torch.isfinite(model.F).all()  # the model's own value is back
+
+
+def test_a_prior_reaching_outside_the_parameter_s_domain_is_refused():
+    """Cases M10, P11: a Normal prior on sigma > 0 gave negative draws of a standard deviation."""
+    from torch.distributions import Gamma, HalfNormal
+
+    from torchflow.core.errors import ArgumentError
+    from torchflow.inference.params import ParameterSpace
+    from torchflow.models import StochasticVolatility
+
+    sv = StochasticVolatility()
+    with pytest.raises(ArgumentError, match=r"priors\['sigma'\]: Normal's support \(Real\(\)\) reaches outside"):
+        ParameterSpace(sv, {"sigma": Normal(0.0, 1.0)}, 2)
+    with pytest.raises(ArgumentError, match=r"priors\['rho'\]: Uniform's support"):
+        ParameterSpace(sv, {"rho": Uniform(-2.0, 1.0)}, 2)
+    for ok in (
+        {"sigma": Gamma(2.0, 2.0)},
+        {"sigma": HalfNormal(1.0)},
+        {"rho": Uniform(-1.0, 1.0)},
+        {"mu": Normal(0.0, 1.0)},
+    ):
+        ParameterSpace(sv, ok, 2)  # supports inside the domains (a shared end point has probability zero)
+    ParameterSpace(ScalarAR(), {"a": Normal(0.0, 1.0)}, 2)  # a model that declares no domain: anything

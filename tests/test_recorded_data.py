@@ -115,7 +115,7 @@ def test_a_time_column_must_step_by_the_model_s_dt(tmp_path):
     with pytest.raises(ArgumentError, match="steps are 0.1, but Lorenz96 assumes observations every dt = 0.05"):
         load_observations(_write_csv(tmp_path / "bad.csv", z, time_step=0.1), model)
     (tmp_path / "uneven.csv").write_text("t,a,b,c,d\n0,1,1,1,1\n0.05,1,1,1,1\n0.2,1,1,1,1\n")
-    with pytest.raises(ArgumentError, match="not uniform"):
+    with pytest.raises(ArgumentError, match=r"uniform time step, got 0.05 and then 0.15 \(row 3"):
         load_observations(tmp_path / "uneven.csv", model)
     assert load_observations(
         _write_csv(tmp_path / "any.csv", np.zeros((3, 4)), time_step=0.3), SensorNetwork(d=4)
@@ -352,3 +352,70 @@ def test_the_learn_command_fits_a_csv(tmp_path):
     assert rows[0]["truth"] == "" and rows[0]["reference"] != "" and rows[0]["epochs"] == "2"
     run = json.loads((tmp_path / "out" / "learn.json").read_text())["run"]
     assert run["data"] == "z.csv" and run["trials"] == 2 and run["steps"] == 8 and len(run["data_sha256"]) == 64
+
+
+# ---- files that cannot be right, or cannot be read (issue cases D07-D37) ----------------------------
+
+
+def test_a_time_column_must_step_forwards_uniformly_even_without_a_model_dt(tmp_path):
+    """Cases D26, D27: a model without ``dt`` used to take any times, the column dropped unread."""
+    lg = SensorNetwork(d=4)
+    cases = {
+        "uneven": ("0,.1,.2,.5", r"uniform time step, got 0.1 and then 0.3 \(row 4"),
+        "decreasing": ("0.3,0.2,0.1,0", r"increase row by row, got 0.2 after 0.3 in row 2"),
+        "constant": ("0,0,0,0", r"increase row by row, got 0 after 0 in row 2"),
+    }
+    for name, (times, message) in cases.items():
+        rows = "".join(f"{t},1,2,3,4\n" for t in times.split(","))
+        (tmp_path / f"{name}.csv").write_text("time,a,b,c,d\n" + rows)
+        with pytest.raises(ArgumentError, match=message):
+            load_observations(tmp_path / f"{name}.csv", lg)
+    (tmp_path / "even.csv").write_text("time,a,b,c,d\n0,1,2,3,4\n0.5,1,2,3,4\n1.0,1,2,3,4\n")
+    assert load_observations(tmp_path / "even.csv", lg).shape == (3, 4)
+
+
+def test_a_series_with_no_observation_is_refused(tmp_path):
+    """Case D09: an all-NaN file gave log-evidence 0 and a normal-looking table."""
+    lg = SensorNetwork(d=4)
+    (tmp_path / "allnan.csv").write_text("a,b,c,d\nnan,nan,nan,nan\n,,,\n")
+    with pytest.raises(ArgumentError, match=r"the series holds no observation \(every value is NaN\)"):
+        load_observations(tmp_path / "allnan.csv", lg)
+    arr = np.full((3, 4, 4), np.nan)
+    arr[0, 1, 0] = 1.0  # series 0 has one value; 1 and 2 none
+    np.save(tmp_path / "allnan.npy", arr)
+    with pytest.raises(ArgumentError, match=r"series \[1, 2\] hold no observation"):
+        load_observations(tmp_path / "allnan.npy", lg)
+
+
+def test_a_value_whose_square_overflows_is_refused_naming_its_cell(tmp_path):
+    """Cases D07, D07b: a 1e308 cell stopped the run in the hidden Kalman reference, blamed on it."""
+    (tmp_path / "huge.csv").write_text("a,b,c,d\n1,2,3,4\n3,1e308,1,1\n")
+    with pytest.raises(ArgumentError, match=r"values below 1.34e\+154 .* got 1e\+308 at row 2, column 2"):
+        load_observations(tmp_path / "huge.csv", SensorNetwork(d=4))
+
+
+def test_files_that_are_not_what_their_name_says_get_one_clear_line(tmp_path):
+    """Cases D20 (semicolons), D21 (bytes), D23 (CSV text named .npy), D35 (a comment line)."""
+    lg = SensorNetwork(d=4)
+    (tmp_path / "semi.csv").write_text("1.0;2.0;3.0;4.0\n3.0;4.0;5.0;6.0\n")
+    with pytest.raises(ArgumentError, match="expected comma-separated columns, got semicolons"):
+        load_observations(tmp_path / "semi.csv", lg)
+    (tmp_path / "bytes.csv").write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(ArgumentError, match=r"expected a text CSV file \(UTF-8\), but .* is not text"):
+        load_observations(tmp_path / "bytes.csv", lg)
+    (tmp_path / "text.npy").write_text("1,2,3,4\n3,4,5,6\n")
+    with pytest.raises(ArgumentError, match="does not start with NumPy's header") as err:
+        load_observations(tmp_path / "text.npy", lg)
+    assert "pickle" not in str(err.value)
+    (tmp_path / "comment.csv").write_text("# recorded 2024\na,b,c,d\n1,2,3,4\n3,4,5,6\n")
+    torch.testing.assert_close(
+        load_observations(tmp_path / "comment.csv", lg),
+        torch.tensor([[1.0, 2.0, 3.0, 4.0], [3.0, 4.0, 5.0, 6.0]], dtype=torch.float64),
+    )
+
+
+def test_a_home_folder_path_is_expanded(tmp_path, monkeypatch):
+    """Case D37: ``~/file.csv`` was joined onto the working folder."""
+    monkeypatch.setenv("HOME", str(tmp_path))
+    (tmp_path / "good.csv").write_text("a,b,c,d\n1,2,3,4\n")
+    assert load_observations("~/good.csv", SensorNetwork(d=4)).shape == (1, 4)

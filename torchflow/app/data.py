@@ -3,10 +3,11 @@ prior without true states.
 
 File formats (:func:`load_observations`):
 
-* ``.csv``: one row per time step; every numeric column is a measurement coordinate, in order,
-  except a column named ``t`` or ``time`` (the observation times). A header row is optional (a
-  first row that is not all numbers is a header); without one every column is a coordinate. An
-  empty cell or ``nan`` is a coordinate not observed at that step (NaN).
+* ``.csv`` (UTF-8 text, commas between columns): one row per time step; every numeric column is a
+  measurement coordinate, in order, except a column named ``t`` or ``time`` (the observation times,
+  which must step uniformly forwards). A header row is optional (a first row that is not all
+  numbers is a header); without one every column is a coordinate. A line starting with ``#`` is a
+  comment. An empty cell or ``nan`` is a coordinate not observed at that step (NaN).
 * ``.npy``: a float array ``(T, m)`` (one series), ``(B, T, m)`` (B series) or ``(T,)`` (``m = 1``);
   no time column.
 
@@ -53,10 +54,24 @@ DT_RTOL = 1e-6
 
 def _read_csv(path: Path, name: str) -> Tuple[np.ndarray, Optional[np.ndarray]]:
     """``(values (T, m), times (T,) or None)`` of a CSV file (see the module docstring)."""
-    with open(path, newline="") as fh:
-        rows = [r for r in csv.reader(fh) if any(c.strip() for c in r)]
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = [r for r in csv.reader(fh) if any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
+    except UnicodeDecodeError as e:
+        raise ArgumentError(
+            f"{name}: expected a text CSV file (UTF-8), but {path} is not text (byte 0x{e.object[e.start]:02x} at "
+            f"position {e.start}); a NumPy array must be saved as .npy"
+        ) from None
+    except csv.Error as e:
+        raise ArgumentError(f"{name}: expected a CSV file, could not read {path} ({e})") from None
     if not rows:
         raise ArgumentError(f"{name}: expected a CSV file with one row per time step, got an empty file {path}")
+    for sep, word in ((";", "semicolons"), ("\t", "tabs"), ("|", "bars")):
+        if len(rows[0]) == 1 and sep in rows[0][0] and all(len(r) == 1 for r in rows[:5]):
+            raise ArgumentError(
+                f"{name}: expected comma-separated columns, got {word} in {path} (line 1: {rows[0][0][:60]!r}); "
+                "save the file with commas as separators"
+            )
 
     def number(cell: str) -> Optional[float]:
         c = cell.strip()
@@ -105,6 +120,13 @@ def _read_csv(path: Path, name: str) -> Tuple[np.ndarray, Optional[np.ndarray]]:
 
 
 def _read_npy(path: Path, name: str) -> np.ndarray:
+    with open(path, "rb") as fh:
+        magic = fh.read(6)
+    if magic != b"\x93NUMPY":
+        raise ArgumentError(
+            f"{name}: expected a NumPy .npy file, but {path} does not start with NumPy's header "
+            "(a CSV text file must end in .csv; an array saved with numpy.save ends in .npy)"
+        )
     try:
         arr = np.load(path, allow_pickle=False)
     except ValueError as e:  # an object array (pickled), or not an .npy file
@@ -126,7 +148,7 @@ def read_recording(path: Union[str, Path], *, name: str = "data") -> Tuple[np.nd
     ``(T,)`` or ``None``. ``name``: the argument named in errors."""
     if not isinstance(path, (str, Path)):
         raise ArgumentTypeError(f"{name}: expected the path of a .csv or .npy file, got {type(path).__name__}")
-    p = Path(path)
+    p = Path(path).expanduser()
     if not p.is_file():
         raise ArgumentError(f"{name}: file not found: {p}" + (" (a folder)" if p.is_dir() else ""))
     suffix = p.suffix.lower()
@@ -137,10 +159,14 @@ def read_recording(path: Union[str, Path], *, name: str = "data") -> Tuple[np.nd
     raise ArgumentError(f"{name}: expected a .csv or .npy file, got {p.name!r}")
 
 
-def check_observations(observations, model=None, *, name: str = "observations") -> torch.Tensor:
+def check_observations(
+    observations, model=None, *, name: str = "observations", require_observed: bool = True
+) -> torch.Tensor:
     """``observations`` ``(T, m)`` or ``(B, T, m)`` checked: a floating-point tensor (an array is
     converted), at least one step, ``m`` equal to ``model.obs_dim`` where a model is given, no
-    infinite value (NaN: not observed, kept); on the model's dtype and device where given."""
+    infinite value and none whose square overflows (NaN: not observed, kept), and, with
+    ``require_observed``, at least one observed value in every series; on the model's dtype and
+    device where given."""
     if isinstance(observations, np.ndarray):
         observations = torch.from_numpy(np.asarray(observations, dtype=np.float64))
     if not isinstance(observations, torch.Tensor):
@@ -165,42 +191,74 @@ def check_observations(observations, model=None, *, name: str = "observations") 
                 f"{tuple(observations.shape)}; a CSV time column named t or time is not counted)"
             )
         observations = observations.to(dtype=model.dtype, device=model.device)
+
+    def at(where) -> str:
+        return f"row {where[-2] + 1}, column {where[-1] + 1}" + (f" of series {where[0]}" if len(where) == 3 else "")
+
     inf = torch.isinf(observations)
     if bool(inf.any()):
-        where = torch.nonzero(inf)[0].tolist()
-        at = f"row {where[-2] + 1}, column {where[-1] + 1}" + (f" of series {where[0]}" if len(where) == 3 else "")
         raise ArgumentError(
-            f"{name}: expected finite values (NaN: not observed), got {int(inf.sum())} infinite, the first at {at}"
+            f"{name}: expected finite values (NaN: not observed), got {int(inf.sum())} infinite, the first at "
+            f"{at(torch.nonzero(inf)[0].tolist())}"
         )
+    limit = math.sqrt(torch.finfo(observations.dtype).max)  # a square beyond it overflows
+    huge = observations.abs() > limit
+    if bool(huge.any()):
+        first = torch.nonzero(huge)[0].tolist()
+        raise ArgumentError(
+            f"{name}: expected values below {limit:.3g} in magnitude ({observations.dtype}: their squares "
+            f"overflow), got {float(observations[tuple(first)]):.3g} at {at(first)}; rescale the series"
+        )
+    if require_observed:
+        empty = torch.isnan(observations).flatten(-2).all(-1).reshape(-1)
+        if bool(empty.any()):
+            which = torch.nonzero(empty).squeeze(1).tolist()
+            what = "the series" if observations.dim() == 2 else f"series {which[:10]}"
+            raise ArgumentError(
+                f"{name}: {what} hold{'s' if len(which) == 1 else ''} no observation (every value is NaN): "
+                "there is nothing to filter"
+            )
     return observations
 
 
 def check_time_step(times: Optional[np.ndarray], model, *, name: str = "data") -> None:
-    """Where ``model`` has a scalar time step ``dt`` and ``times`` (the file's time column) are
-    given: the spacing must be uniform and equal to ``dt`` (relative tolerance :data:`DT_RTOL`),
-    else an error says what the model assumes. A model without ``dt`` takes any times."""
-    dt = getattr(model, "dt", None) if model is not None else None
-    if times is None or dt is None or len(times) < 2:
+    """The file's time column (``times``; ``None``: none) must be finite and step forwards
+    uniformly (relative tolerance :data:`DT_RTOL`): filters assume one step between rows. Where
+    ``model`` has a scalar time step ``dt``, the step must also equal it. Errors name the first
+    bad row."""
+    if times is None or len(times) < 2:
         return
-    if isinstance(dt, torch.Tensor):
-        if dt.numel() != 1:
-            return
-        dt = float(dt)
-    if not isinstance(dt, (int, float)):
-        return
-    if not np.all(np.isfinite(times)):
+    bad = np.nonzero(~np.isfinite(times))[0]
+    if len(bad):
         raise ArgumentError(
-            f"{name}: expected finite observation times in the time column, got a missing or non-finite one"
+            f"{name}: expected finite observation times in the time column, got {times[bad[0]]} in row {bad[0] + 1}"
         )
     steps = np.diff(times)
-    tol = DT_RTOL * max(abs(float(dt)), 1e-300)
-    if not np.allclose(steps, steps[0], rtol=0, atol=tol) or abs(steps[0] - dt) > tol:
-        lo, hi = float(steps.min()), float(steps.max())
-        got = f"{lo:g}" if np.allclose(steps, steps[0], rtol=0, atol=tol) else f"from {lo:g} to {hi:g} (not uniform)"
+    dt = getattr(model, "dt", None) if model is not None else None
+    if isinstance(dt, torch.Tensor):
+        dt = float(dt) if dt.numel() == 1 else None
+    dt = float(dt) if isinstance(dt, (int, float)) else None
+    scale = abs(dt) if dt else max(abs(float(steps[0])), 1e-300)
+    tol = DT_RTOL * scale
+    back = np.nonzero(steps <= 0)[0]
+    if len(back):
+        i = int(back[0])
         raise ArgumentError(
-            f"{name}: the time column's steps are {got}, but {type(model).__name__} assumes "
+            f"{name}: expected observation times that increase row by row, got {times[i + 1]:g} after "
+            f"{times[i]:g} in row {i + 2} of the time column"
+        )
+    uneven = np.nonzero(np.abs(steps - steps[0]) > tol)[0]
+    if len(uneven):
+        i = int(uneven[0])
+        raise ArgumentError(
+            f"{name}: expected a uniform time step, got {steps[0]:g} and then {steps[i]:g} (row {i + 2} of the "
+            "time column); a varying time step is not supported: resample the series"
+        )
+    if dt is not None and abs(steps[0] - dt) > tol:
+        raise ArgumentError(
+            f"{name}: the time column's steps are {steps[0]:g}, but {type(model).__name__} assumes "
             f"observations every dt = {dt:g} (set the model's dt, e.g. model.dt={steps[0]:g}, or "
-            "resample the series; a varying time step is not supported)"
+            "resample the series)"
         )
 
 

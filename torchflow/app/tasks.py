@@ -70,6 +70,7 @@ from torchflow.app.runner.plan import ConfigError, require
 from torchflow.core import metrics
 from torchflow.core.errors import ArgumentError
 from torchflow.core.random import TrialStreams
+from torchflow.models.trials import parameter_domain, support_within
 
 log = logging.getLogger("torchflow.app.tasks")
 
@@ -431,7 +432,13 @@ def prior_from_config(name: str, spec, dtype=torch.float64):
         return cls(**tensors, validate_args=True)
     except (TypeError, ValueError, RuntimeError) as e:
         given = ", ".join(f"{k}={v}" for k, v in args.items())
-        raise ConfigError(f"{key}: {spec['dist']}({given}) is refused by torch.distributions: {e}") from None
+        hint = (
+            f"; an override is merged into the prior the experiment already sets, so to replace it delete that "
+            f"one first: '~{key}' '+{key}={{dist: {spec['dist']}, ...}}'"
+            if "unexpected keyword" in str(e)
+            else ""
+        )
+        raise ConfigError(f"{key}: {spec['dist']}({given}) is refused by torch.distributions: {e}{hint}") from None
 
 
 def priors_from_config(cfg: DictConfig, model) -> dict:
@@ -475,6 +482,14 @@ def priors_from_config(cfg: DictConfig, model) -> dict:
                 pass
         except ArgumentError as e:
             raise ConfigError(f"pmmh.priors.{name}: {e}") from None
+        domain = parameter_domain(model, name)
+        if not support_within(priors[name].support, domain):
+            raise ConfigError(
+                f"pmmh.priors.{name}: {type(priors[name]).__name__}'s support ({priors[name].support}) reaches "
+                f"outside {name}'s domain ({domain}) in {type(model).__name__}: its draws would not be valid "
+                "values; choose a prior on that domain "
+                "(a positive parameter: Gamma, LogNormal or HalfNormal)"
+            )
     return priors
 
 

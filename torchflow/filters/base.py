@@ -44,6 +44,7 @@ from torchflow.models.contract import (
     check_shapes,
 )
 from torchflow.models.structure import kernel_structure
+from torchflow.models.trials import check_trial_count
 from torchflow.proposals import BootstrapProposal, Proposal
 from torchflow.proposals.flow import check_informative
 
@@ -507,6 +508,7 @@ class Filter(Estimator):
             self.check_model()
         gaps = self.check_missing(observations)
         mean, cov = self.check_prior(mean, cov, observations.shape[0])
+        check_trial_count(self.model, observations.shape[0], self.name)  # per-trial values: one per trial
         if self.validate:  # once per model and batch layout: each method's output shape, naming the method
             check_shapes(self.model, mean.detach(), self.name, gaussian=self.gaussian_form or None)
             # a flow whose model's measurement Jacobian is zero cannot move the particles: said once

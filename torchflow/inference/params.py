@@ -13,6 +13,7 @@ from torch.distributions import Distribution, transform_to
 from torchflow.core.checks import check_count
 from torchflow.core.errors import ArgumentError, ArgumentTypeError
 from torchflow.core.random import check_generator
+from torchflow.models.trials import parameter_domain, support_within
 
 
 @contextlib.contextmanager
@@ -66,6 +67,12 @@ def per_trial_values(model, values: Dict[str, torch.Tensor]):
                 )
             if B is not None and value.shape[0] != B:
                 raise ArgumentError(f"values[{name!r}]: {value.shape[0]} trials, where another value has {B}")
+            finite = torch.isfinite(value.detach()).reshape(value.shape[0], -1).all(1)
+            if not bool(finite.all()):  # once, on entering the block (not in a filter step)
+                bad = torch.nonzero(~finite).squeeze(1).tolist()
+                raise ArgumentError(
+                    f"values[{name!r}]: expected finite values, got NaN or infinity in trial(s) {bad[:10]}"
+                )
             B = value.shape[0]
             if parametrize.is_parametrized(model, name):  # through the same constraint
                 plist = model.parametrizations[name]
@@ -120,6 +127,13 @@ class ParameterSpace:
                 raise ArgumentError(
                     f"priors: {type(model).__name__} does not declare {name!r} as a per-trial "
                     f"parameter (it declares {list(declared)}): a chain's value must reach its own trial"
+                )
+            domain = parameter_domain(model, name)
+            if not support_within(dist.support, domain):
+                raise ArgumentError(
+                    f"priors[{name!r}]: {type(dist).__name__}'s support ({dist.support}) reaches outside "
+                    f"{type(model).__name__}.{name}'s domain ({domain}): draws there are not valid values; "
+                    "choose a prior on that domain (for a positive parameter: Gamma, LogNormal, HalfNormal)"
                 )
         self.model, self.priors, self.C = model, priors, check_count("n_chains", n_chains)
         self.names = list(priors)

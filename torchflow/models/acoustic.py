@@ -11,6 +11,7 @@ import math
 from typing import Optional, Sequence, Tuple
 
 import torch
+from torch.distributions import constraints as support
 
 from torchflow.core import constraints, linalg
 from torchflow.core.checks import as_real_tensor, check_choice, check_learnable, check_number, check_positive
@@ -60,7 +61,7 @@ class AcousticTracking(GaussianStateSpaceModel):
 
     n_targets = 4
     #: the measurement's amplitude and noise may hold one value per trial, ``(B,)``
-    per_trial_parameters = ("psi", "sigma_w")
+    per_trial_parameters = {"psi": support.positive, "sigma_w": support.positive}
     #: linear dynamics, R = sigma_w^2 I, h reads the positions only (``(0, 1, 4, 5, ...)``, k = 2C
     #: of d = 4C), ``z_i = Psi sum_c 1 / (|p_c - s_i| + d0)`` in the flow kernels' named form
     structure = Structure(

@@ -112,7 +112,9 @@ class StateSpaceModel(nn.Module):
     structure: Structure = Structure()
     #: names of the parameters that may carry a leading trial dimension ``(B, ...)``: one value per
     #: trial (or MCMC chain, :func:`torchflow.inference.pmmh`), broadcast by the model's methods over
-    #: any leading shape ``(B, ...)`` of their inputs
+    #: any leading shape ``(B, ...)`` of their inputs. A dict also declares each one's domain, name ->
+    #: a ``torch.distributions.constraints`` object (``positive``, ``interval(-1, 1)``, ...): a
+    #: particle-MCMC prior must put no mass outside it (:func:`torchflow.models.trials.parameter_domain`)
     per_trial_parameters: tuple = ()
 
     # ---- dtype / device --------------------------------------------------------------------

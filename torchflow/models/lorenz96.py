@@ -15,6 +15,7 @@ import math
 from typing import Optional, Tuple
 
 import torch
+from torch.distributions import constraints as support
 
 from torchflow.core import linalg
 from torchflow.core.checks import check_nonnegative, check_number, check_positive
@@ -79,7 +80,11 @@ class Lorenz96(GaussianStateSpaceModel):
 
     structure = Structure(linear_measurement=True, measurement_noise="scalar", prior_covariance="diagonal")
     #: the forcing and both noise scales may hold one value per trial, ``(B,)``
-    per_trial_parameters = ("forcing", "model_noise", "obs_std")
+    per_trial_parameters = {
+        "forcing": support.real,
+        "model_noise": support.greater_than_eq(0.0),
+        "obs_std": support.positive,
+    }
 
     def __init__(
         self,

@@ -48,6 +48,7 @@ import math
 from typing import Optional, Tuple
 
 import torch
+from torch.distributions import constraints as support
 
 from torchflow.core import constraints, linalg
 from torchflow.core.checks import check_choice, check_learnable, check_nonnegative, check_number, check_positive
@@ -91,7 +92,7 @@ class StochasticVolatility(GaussianStateSpaceModel):
     state_dim = 1
     obs_dim = 1
     #: mu, rho and sigma may hold one value per trial, ``(B,)`` (MCMC chains: :mod:`torchflow.inference`)
-    per_trial_parameters = ("mu", "rho", "sigma")
+    per_trial_parameters = {"mu": support.real, "rho": support.interval(-1.0, 1.0), "sigma": support.positive}
     structure = Structure(measurement_noise="state_dependent_diagonal", measurement_jacobian_diagonal=True)
 
     def __init__(

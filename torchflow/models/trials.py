@@ -21,12 +21,63 @@ from typing import Callable, Optional, Tuple
 import torch
 
 from torchflow.core import linalg
+from torchflow.core.errors import ArgumentError
 
 
 def trial_names(model) -> Tuple[str, ...]:
     """The names of ``model``'s parameters that hold one value per trial now (set by
     :func:`torchflow.inference.per_trial_values`; ``()`` outside it)."""
     return model.__dict__.get("_trial_names", ())
+
+
+def parameter_domain(model, name: str):
+    """The domain ``model`` declares for per-trial parameter ``name`` (a
+    ``torch.distributions.constraints`` object), or ``None`` where it declares none (a tuple of
+    names, or a name without one)."""
+    declared = getattr(model, "per_trial_parameters", ()) or ()
+    return declared.get(name) if isinstance(declared, dict) else None
+
+
+def _bounds(c):
+    """``(low, high)`` of a scalar interval constraint, or ``None``."""
+    from torch.distributions import constraints as C
+
+    inf = float("inf")
+    if c is C.real or isinstance(c, type(C.real)):
+        return (-inf, inf)
+    if isinstance(c, (type(C.greater_than(0.0)), type(C.greater_than_eq(0.0)))):
+        return (float(c.lower_bound), inf)
+    if isinstance(c, type(C.less_than(0.0))):
+        return (-inf, float(c.upper_bound))
+    if isinstance(c, (type(C.interval(0.0, 1.0)), type(C.half_open_interval(0.0, 1.0)))):
+        return (float(c.lower_bound), float(c.upper_bound))
+    return None
+
+
+def support_within(support, domain) -> bool:
+    """A distribution's ``support`` lies inside a parameter's ``domain`` (both
+    ``torch.distributions.constraints``), as far as their bounds tell: a Gamma's ``[0, inf)`` fits a
+    positive parameter (the end point has probability zero), a Normal's real line does not. A
+    constraint of another kind (matrices, simplices) is taken as fitting."""
+    if domain is None or support is domain:
+        return True
+    s, d = _bounds(support), _bounds(domain)
+    if s is None or d is None:
+        return True
+    return s[0] >= d[0] and s[1] <= d[1]  # a shared end point has probability zero under a density
+
+
+def check_trial_count(model, batch_size: int, who: str) -> None:
+    """Raise unless every per-trial value of ``model`` (:func:`trial_names`) has ``batch_size``
+    trials: a filter called on B trials reads trial b's value for trial b. Shapes only: no host read."""
+    for name in trial_names(model):
+        got = getattr(model, name).shape[0]
+        if got != batch_size:
+            raise ArgumentError(
+                f"{who}: {type(model).__name__}.{name} holds values for {got} trials "
+                f"(torchflow.inference.per_trial_values), but the call filters {batch_size} trials "
+                f"(observations (B, T, m) with B = {batch_size}); give one value per trial"
+            )
 
 
 def shared_structure(model):
@@ -113,4 +164,14 @@ def per_trial_structure(
     return s.replace(**changes)
 
 
-__all__ = ["trial_names", "shared_structure", "trial_view", "trial_factor", "batch_jacobian", "per_trial_structure"]
+__all__ = [
+    "trial_names",
+    "check_trial_count",
+    "parameter_domain",
+    "support_within",
+    "shared_structure",
+    "trial_view",
+    "trial_factor",
+    "batch_jacobian",
+    "per_trial_structure",
+]
