@@ -284,3 +284,38 @@ def test_an_override_merged_into_another_prior_says_how_to_replace_it():
     with pytest.raises(ConfigError) as err:
         prior_from_config("rho", {"dist": "Uniform", "low": 2, "high": 1})
     assert "delete that one first" not in str(err.value)  # the hint only where arguments were merged in
+
+
+def test_an_interrupted_pmmh_keeps_the_finished_filters_posteriors(tmp_path):
+    """Case M17: Ctrl-C during the second filter's chains wrote nothing; now the first filter's
+    posterior is written, the interrupted one is named, and the exit status is still 130."""
+    code = (
+        "import sys\n"
+        "import torchflow.inference as inference\n"
+        "real, calls = inference.pmmh, []\n"
+        "def pmmh(*a, **k):\n"
+        "    calls.append(1)\n"
+        "    if len(calls) == 2:\n"
+        "        raise KeyboardInterrupt\n"
+        "    return real(*a, **k)\n"
+        "inference.pmmh = pmmh\n"
+        "from torchflow.app.cli import main\n"
+        "sys.argv = ['torchflow', *sys.argv[1:]]\n"
+        "main()\n"
+    )
+    args = [a for a in PMMH if not a.startswith("filter=")] + ["filter=[bpf,pfpf_ledh]", "plots=false"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
+    r = subprocess.run(
+        [sys.executable, "-c", code, *args, f"hydra.run.dir={tmp_path / 'out'}"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env=env,
+        timeout=300,
+    )
+    assert r.returncode == 130, r.stderr[-2000:]
+    assert "during pfpf_ledh's PMMH" in r.stderr and "the finished posteriors (bpf) are" in r.stderr
+    rows = (tmp_path / "out" / "posterior.csv").read_text().splitlines()
+    assert len(rows) > 1 and {row.split(",")[0] for row in rows[1:]} == {"bpf"}
+    run = json.loads((tmp_path / "out" / "pmmh.json").read_text())["run"]
+    assert run["interrupted"] == "pfpf_ledh" and run["not_run"] == ["pfpf_ledh"]

@@ -172,3 +172,20 @@ def test_inflation_scales_the_predicted_covariance(cls):
     assert not torch.allclose(plain.cov, out.cov)
     with pytest.raises(ArgumentError, match="inflation: expected a finite number >= 1"):
         cls(model, inflation=0.9)
+
+
+def test_the_ukf_refuses_a_singular_measurement_noise_naming_it():
+    """Case X31: R = 0 ran until the sigma points collapsed (a non-finite estimate at step 3 that
+    named nothing); the KF and the EKF run the same model (m <= d, Joseph form)."""
+    from torchflow.core.errors import ArgumentError
+    from torchflow.filters import ExtendedKalmanFilter, KalmanFilter, UnscentedKalmanFilter
+    from torchflow.models import LinearGaussian
+
+    eye = torch.eye(2, dtype=torch.float64)
+    model = LinearGaussian(0.9 * eye, 0.2 * eye, eye, 0 * eye, torch.zeros(2, dtype=torch.float64), eye)
+    traj = model.simulate(2, 5, torch.Generator().manual_seed(0))
+    mean, cov = model.initial_belief(traj.states[:, 0])
+    with pytest.raises(ArgumentError, match="UnscentedKalmanFilter: .*measurement covariance is not positive definite"):
+        UnscentedKalmanFilter(model)(traj.observations, mean, cov)
+    for f in (KalmanFilter(model), ExtendedKalmanFilter(model)):
+        assert torch.isfinite(f(traj.observations, mean, cov).estimates).all()

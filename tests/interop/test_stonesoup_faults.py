@@ -10,7 +10,7 @@ import pytest
 stonesoup = pytest.importorskip("stonesoup")
 
 from stonesoup.models.measurement.linear import LinearGaussian
-from stonesoup.models.measurement.nonlinear import CartesianToBearingRange
+from stonesoup.models.measurement.nonlinear import CartesianToBearingRange, CartesianToElevationBearingRange
 from stonesoup.models.transition.linear import CombinedLinearGaussianTransitionModel, ConstantVelocity
 from stonesoup.predictor.particle import ParticlePredictor
 from stonesoup.resampler.particle import SystematicResampler
@@ -328,3 +328,40 @@ def test_non_finite_flow_weights_raise_a_non_finite_error(monkeypatch):
         rf"2020-01-01 00:00:05 \({N} of {N} particles",
     ):
         _update(_prediction())
+
+
+# ---- issue cases SS9, SS11, SS12, SS14, SS26: one line naming the argument ------------------------
+
+
+@pytest.mark.parametrize(
+    "model",
+    [
+        CartesianToBearingRange(ndim_state=4, mapping=(0, 5), noise_covar=np.diag([0.01, 1.0])),
+        CartesianToElevationBearingRange(ndim_state=4, mapping=(0, 2, 4), noise_covar=np.diag([0.01, 0.01, 1.0])),
+    ],
+)
+def test_a_mapping_outside_the_state_is_refused(model):
+    with pytest.raises(ArgumentError, match=r"measurement_model.mapping: expected state indices in \[0, 4\)"):
+        StoneSoupMeasurement(model, np.zeros(model.ndim_meas))
+
+
+@pytest.mark.parametrize(
+    "resampler, got",
+    [(SystematicResampler, "the class SystematicResampler"), ("systematic", "'systematic'")],
+)
+def test_a_resampler_must_be_an_instance(resampler, got):
+    with pytest.raises(ArgumentTypeError, match=f"resampler: expected a Stone Soup Resampler instance .*got {got}"):
+        FlowParticleUpdater(RADAR, resampler=resampler)
+    FlowParticleUpdater(RADAR, resampler=SystematicResampler())  # an instance is fine
+
+
+@pytest.mark.parametrize("seed", ["abc", 1.5, True])
+def test_a_seed_must_be_an_integer(seed):
+    with pytest.raises(ArgumentTypeError, match="seed: expected an integer"):
+        FlowParticleUpdater(RADAR, seed=seed)
+
+
+def test_a_detection_carrying_a_transition_model_is_refused(monkeypatch):
+    _no_flow(monkeypatch)
+    with pytest.raises(ArgumentTypeError, match="detection.measurement_model: expected a Stone Soup MeasurementModel"):
+        _update(_prediction(), _det(model=TM))

@@ -587,7 +587,7 @@ def pmmh_job(cfg: DictConfig, model, filters: Dict, labels: Dict, out: Path, env
     series = plan.traj.observations[0]
     recorded = plan.traj.states is None
     prior = _initial_prior(model, plan)
-    results, interrupted = {}, False
+    results, interrupted = {}, None
     for name, f in filters.items():
         log.info(
             f"{name}: PMMH of {', '.join(priors)}, {chains} chains x ({adapt} adaptation + {iterations}) "
@@ -609,11 +609,16 @@ def pmmh_job(cfg: DictConfig, model, filters: Dict, labels: Dict, out: Path, env
                     target_acceptance=None if target is None else float(target),
                 )
         except KeyboardInterrupt:
-            interrupted = True
+            interrupted = name
             break
-    if interrupted:
+    if interrupted is not None and not results:
         log.warning(f"interrupted by {STOP.name} during PMMH: a chain cut short is no sample; nothing is written")
         return STOP.exit_code
+    if interrupted is not None:  # what finished is kept, as the run command keeps finished filters
+        log.warning(
+            f"interrupted by {STOP.name} during {interrupted}'s PMMH: its chains cut short are no sample and are "
+            f"not written; the finished posteriors ({', '.join(results)}) are"
+        )
     known = None if recorded else truth
     summary = {name: pmmh_summary(r, known) for name, r in results.items()}
     table = [{"filter": name, "parameter": p, **v} for name, s in summary.items() for p, v in s["parameters"].items()]
@@ -641,6 +646,8 @@ def pmmh_job(cfg: DictConfig, model, filters: Dict, labels: Dict, out: Path, env
                     "chains": chains,
                     "iterations": iterations,
                     "adapt": adapt,
+                    "interrupted": interrupted,
+                    "not_run": [n for n in filters if n not in results],
                 },
                 "priors": {n: OmegaConf.to_container(cfg.pmmh.priors[n], resolve=True) for n in priors},
                 "filters": summary,
@@ -654,6 +661,8 @@ def pmmh_job(cfg: DictConfig, model, filters: Dict, labels: Dict, out: Path, env
         writer.attempt("posterior.png", figures.save_posterior_figures, out, draws, known, title)
     if writer.failed is None:
         log.info(f"results: {shell.shown_path(out)}")
+    if interrupted is not None:
+        return STOP.exit_code
     return 1 if writer.failed else 0
 
 

@@ -177,6 +177,17 @@ class UnscentedKalmanFilter(_GaussianFilter):
     beta = property(lambda self: self.unscented.beta)
     kappa = property(lambda self: self.unscented.kappa)
 
+    def check_model(self) -> None:
+        """R must be positive definite: with a singular R the update makes the posterior covariance
+        singular in the exactly measured directions, the next step's sigma points collapse onto a
+        lower-dimensional set, and their measurement covariance is no longer invertible."""
+        super().check_model()
+        self.require_definite(
+            "measurement",
+            "the UKF's sigma points collapse once an exact measurement (zero noise) has been absorbed. Give the "
+            "model a positive definite measurement noise, or use the Kalman filter or the EKF",
+        )
+
     def predict(self, mean: torch.Tensor, cov: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
         """Unscented prediction for ``(..., d)``, ``(..., d, d)`` (any leading shape)."""
         return self.unscented.predict(self.model, mean, cov)

@@ -209,6 +209,11 @@ class StoneSoupMeasurement(GaussianStateSpaceModel):
         elif isinstance(model, (CartesianToBearingRange, CartesianToElevationBearingRange)):
             self.kind = "polar" if isinstance(model, CartesianToBearingRange) else "spherical"
             self.mapping = tuple(int(i) for i in model.mapping)
+            if any(not 0 <= i < self.state_dim for i in self.mapping):
+                raise ArgumentError(
+                    f"{name}.mapping: expected state indices in [0, {self.state_dim}) (ndim_state = "
+                    f"{self.state_dim}), got {self.mapping}"
+                )
             off = np.asarray(model.translation_offset, dtype=float).ravel()
             self.register_buffer("offset", torch.as_tensor(off, **kw))
             self.register_buffer("rot", torch.as_tensor(np.asarray(model.rotation_matrix, dtype=float), **kw))
@@ -320,6 +325,15 @@ class FlowParticleUpdater(Updater):
         if self.dtype not in ("float64", "float32"):
             raise ArgumentError(f"dtype: expected 'float64' or 'float32', got {self.dtype!r}")
         self._dtype = getattr(torch, self.dtype)
+        if self.resampler is not None and (
+            isinstance(self.resampler, type) or not callable(getattr(self.resampler, "resample", None))
+        ):
+            got = f"the class {self.resampler.__name__}" if isinstance(self.resampler, type) else repr(self.resampler)
+            raise ArgumentTypeError(
+                f"resampler: expected a Stone Soup Resampler instance (e.g. SystematicResampler()), got {got}"
+            )
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)):
+            raise ArgumentTypeError(f"seed: expected an integer, got {self.seed!r}")
         try:
             self._generator = torch.Generator(device=self.device).manual_seed(int(self.seed))
         except RuntimeError as err:
@@ -333,7 +347,13 @@ class FlowParticleUpdater(Updater):
     def _measurement_model(self, hypothesis):
         """``(model, name)``: the detection's model if it carries one (Stone Soup's rule), else the updater's."""
         if hypothesis.measurement.measurement_model is not None:
-            return hypothesis.measurement.measurement_model, "detection.measurement_model"
+            model = hypothesis.measurement.measurement_model
+            if not isinstance(model, MeasurementModel):
+                raise ArgumentTypeError(
+                    f"detection.measurement_model: expected a Stone Soup MeasurementModel, got "
+                    f"{type(model).__name__} (a transition model?)"
+                )
+            return model, "detection.measurement_model"
         if self.measurement_model is None:
             raise ArgumentError(
                 "FlowParticleUpdater: no measurement model: give measurement_model= or detections that carry one"
