@@ -19,7 +19,14 @@ import sys
 from pathlib import Path
 
 from torchflow.app.runner.figures import pyplot
-from torchflow.app.runner.sweep import describe_job, job_dirs, job_override_dict, job_status, varying_overrides
+from torchflow.app.runner.sweep import (
+    TASK_RESULTS,
+    describe_job,
+    job_dirs,
+    job_override_dict,
+    job_status,
+    varying_overrides,
+)
 from torchflow.app.runner.writers import write_csv
 
 DEFAULT_COLUMNS = [
@@ -161,6 +168,14 @@ def main(argv=None):
         print(
             f"error: sweep_dir: {args.sweep_dir} holds no sweep jobs (numbered folders 0, 1, ... written by "
             f"`run.py -m`){hint}",
+            file=sys.stderr,
+        )
+        sys.exit(2)
+    tasks = sorted({n for j in job_dirs(args.sweep_dir) for n in TASK_RESULTS if (j / n).exists()})
+    if not rows and tasks:
+        print(
+            f"error: sweep_dir: the jobs of {args.sweep_dir} ran a task (their results are {', '.join(tasks)} "
+            "in each job folder); collect.py merges the run command's summary.csv of each job",
             file=sys.stderr,
         )
         sys.exit(2)

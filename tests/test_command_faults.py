@@ -465,3 +465,30 @@ def test_help_says_what_the_command_does_with_examples_and_the_documentation(tmp
     assert "\nfilter: " in out.stdout and "\nmodel: " in out.stdout  # the groups are listed
     assert "_target_" not in out.stdout  # and the composed config is not
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_sweep_of_tasks_counts_its_finished_jobs_and_collect_says_what_it_merges(tmp_path, capsys):
+    """Cases C01, C02: sweeps of task=smooth / task=pmmh reported "0 finished ... 2 without results"
+    although both jobs wrote their results, and collect.py said no job had results yet."""
+    from experiments.collect import main
+    from torchflow.app.runner.sweep import job_status, report_sweep
+
+    sweep = tmp_path / "sw"
+    for name, seed, file, content in (
+        ("0", 0, "smoothing.json", {"summary": [{"filter": "kf"}]}),
+        ("1", 1, "pmmh.json", {"run": {"interrupted": None}, "filters": {}}),
+        ("2", 2, "pmmh.json", {"run": {"interrupted": "bpf"}, "filters": {}}),
+    ):
+        job = sweep / name
+        (job / ".hydra").mkdir(parents=True)
+        (job / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump([f"seed={seed}"]))
+        (job / file).write_text(json.dumps(content))
+    assert [job_status(sweep / n)[0] for n in "012"] == ["done", "done", "interrupted"]
+    counts = report_sweep(sweep)
+    assert "3 jobs, 2 finished, 0 failed, 1 interrupted, 0 without results" in capsys.readouterr().err
+    assert counts["missing"] == 0
+    with pytest.raises(SystemExit) as stop:
+        main([str(sweep)])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert "ran a task (their results are pmmh.json, smoothing.json in each job folder)" in err

@@ -133,3 +133,22 @@ def test_without_model_noise_filters_that_need_the_transition_density_refuse_by_
         traj.observations, mean, cov, torch.Generator().manual_seed(0)
     )
     assert torch.isfinite(out.log_evidence).all()
+
+
+def test_a_dimension_too_large_for_memory_is_refused_naming_d(monkeypatch):
+    """Case L07: ``d = 1e9`` failed inside the constructor with the allocator's raw error (8 GB for
+    the observed index) wrapped by Hydra; the error now names d. The allocator's failure is
+    simulated: the message is torch's own."""
+    import torchflow.models.lorenz96 as L
+
+    def arange(*args, **kwargs):
+        raise RuntimeError(
+            "[enforce fail at alloc_cpu.cpp:127] . DefaultCPUAllocator: can't allocate memory: you tried to "
+            "allocate 8000000000 bytes. Error code 12 (Cannot allocate memory)"
+        )
+
+    monkeypatch.setattr(L.torch, "arange", arange)
+    with pytest.raises(
+        ArgumentError, match=r"d: 1000000000 coordinates do not fit in memory \(one allocation of 7.45 GiB\)"
+    ):
+        Lorenz96(d=10**9)

@@ -18,7 +18,7 @@ import torch
 from torch.distributions import constraints as support
 
 from torchflow.core import linalg
-from torchflow.core.checks import check_nonnegative, check_number, check_positive
+from torchflow.core.checks import allocation_failure, check_nonnegative, check_number, check_positive
 from torchflow.core.covariances import DiagonalCovariance
 from torchflow.core.errors import ArgumentError
 from torchflow.models.base import GaussianStateSpaceModel
@@ -119,7 +119,17 @@ class Lorenz96(GaussianStateSpaceModel):
         obs_std, model_noise = check_positive("obs_std", obs_std), check_nonnegative("model_noise", model_noise)
         check_positive("prior_std", prior_std)
         f64 = dict(dtype=torch.float64)
-        observed = torch.arange(0, self.state_dim, self.obs_every)
+        try:
+            observed = torch.arange(0, self.state_dim, self.obs_every)
+        except RuntimeError as err:  # the first d-sized allocation: say which setting does not fit
+            why = allocation_failure(err)
+            if why is None:
+                raise
+            raise ArgumentError(
+                f"d: {self.state_dim} coordinates do not fit in memory{why}: the model keeps the index of its "
+                f"observed coordinates and every state takes {8 * self.state_dim / 2**30:.3g} GiB per trial; "
+                "choose a smaller d"
+            ) from None
         self.obs_dim = int(observed.numel())
         # first: the model's dtype is its first buffer's. F is a tensor (per trial in a sweep)
         self.register_buffer("forcing", torch.tensor(float(forcing), **f64))

@@ -14,6 +14,9 @@ from hydra.experimental.callback import Callback
 
 from torchflow.app.runner.config import collect_command
 
+#: the file a task's job writes last (``task=smooth``, ``task=pmmh``), read where it has no ``results.json``
+TASK_RESULTS = ("smoothing.json", "pmmh.json")
+
 
 def job_dirs(sweep_dir: Path) -> List[Path]:
     """A sweep's job folders (named by job number), in job order (none if ``sweep_dir`` is not a folder)."""
@@ -29,6 +32,8 @@ def job_status(job: Path) -> tuple:
     if err.exists():
         lines = [ln for ln in err.read_text().splitlines() if ln.strip()]
         return "failed", (lines[-1] if lines else "error")
+    if not res.exists():  # a task's job: its own JSON file, written last (task=smooth, task=pmmh)
+        res = next((Path(job) / n for n in TASK_RESULTS if (Path(job) / n).exists()), res)
     try:
         data = json.loads(res.read_text())
         if not isinstance(data, dict):
@@ -38,7 +43,7 @@ def job_status(job: Path) -> tuple:
     except (ValueError, OSError) as e:
         return "damaged", f"{res} is damaged ({type(e).__name__}: {e})"
     errors = {r["filter"]: r["error"] for r in data.get("summary", []) if r.get("error")}
-    if data.get("interrupted"):
+    if data.get("interrupted") or (data.get("run") or {}).get("interrupted"):
         return "interrupted", ""
     return ("failed", "; ".join(f"filter {n} failed: {e}" for n, e in errors.items())) if errors else ("done", "")
 
