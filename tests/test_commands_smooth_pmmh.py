@@ -108,6 +108,10 @@ def test_smooth_task_genealogy_on_recorded_data_has_no_truth(tmp_path):
         (["filter=[kf]", "smooth.method=ffbsi"], "(filter.kf)"),
         (["filter=[enkf]"], "(filter.enkf)"),
         (["filter=[bpf]", "smooth.n_paths=0"], "smooth.n_paths: expected a positive number of paths, got 0"),
+        (  # case S12: 1e8 paths failed in the allocator with a raw traceback
+            ["filter=[bpf]", "smooth.n_paths=100000000", "memory_budget_gb=1"],
+            "smooth.n_paths: 100000000 paths of 5 steps x d = 4 take 14.9 GiB per trial, more than memory_budget_gb = ",
+        ),
         (["filter=[kf]", "task=smoothing"], "task: expected one of filter, smooth, pmmh, got 'smoothing'"),
         (["filter=[kf]", "resume=true"], "resume: expected false with task=smooth"),
     ],

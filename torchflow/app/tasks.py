@@ -213,6 +213,12 @@ def smooth_job(cfg: DictConfig, model, filters: Dict, labels: Dict, out: Path, e
     s, traj = plan.settings, plan.traj
     truth = None if traj.states is None else traj.states
     B, T, d = s.trials, s.steps, model.state_dim
+    paths_gb = (T + 1) * n_paths * d * 8 / 2**30  # one trial's smoothed paths, held whole
+    if any(m != "rts" for m in methods.values()) and paths_gb > s.memory_budget_gb:
+        raise ConfigError(
+            f"smooth.n_paths: {n_paths} paths of {T + 1} steps x d = {d} take {paths_gb:.3g} GiB per trial, more than "
+            f"memory_budget_gb = {s.memory_budget_gb:g}; choose fewer paths (or a larger memory_budget_gb)"
+        )
     results, rows, interrupted = {}, [], False
     for name, f in filters.items():
         if STOP.requested:
