@@ -323,3 +323,15 @@ def test_an_interrupted_pmmh_keeps_the_finished_filters_posteriors(tmp_path):
     assert len(rows) > 1 and {row.split(",")[0] for row in rows[1:]} == {"bpf"}
     run = json.loads((tmp_path / "out" / "pmmh.json").read_text())["run"]
     assert run["interrupted"] == "pfpf_ledh" and run["not_run"] == ["pfpf_ledh"]
+
+
+def test_smoothing_deterministic_dynamics_by_ffbsi_is_refused_in_one_line(tmp_path):
+    """Case S10 on the command line: refused before any filter runs, naming the filter."""
+    args = ["task=smooth", "model=lorenz96", "model.d=8", "filter=[bpf]", "trials=2", "steps=5", "n_particles=20"]
+    r = _torchflow(tmp_path, *args, "progress=false", "checkpoint_dir=null")
+    assert r.returncode == 2 and "transition covariance is not positive definite" in r.stderr, r.stderr[-2000:]
+    assert "(filter.bpf)" in r.stderr and "Traceback" not in r.stderr
+    ok = _torchflow(
+        tmp_path, *args, "smooth.method=genealogy", "progress=false", "checkpoint_dir=null", "overwrite=true"
+    )
+    assert ok.returncode == 0 and (tmp_path / "out" / "smoothed.csv").exists(), ok.stderr[-2000:]

@@ -194,3 +194,21 @@ def test_smoothing_cuda(method):
         n_paths=8,
     )
     assert res.means.device.type == "cuda" and torch.isfinite(res.means).all()
+
+
+def test_ffbsi_refuses_deterministic_dynamics_naming_the_transition_covariance():
+    """Case S10: Lorenz-96 without model noise has no transition density; FFBSi's backward weights
+    were all NaN and were written as a result. The genealogy needs no density and runs."""
+    from torchflow.core.errors import ArgumentError
+    from torchflow.filters import BootstrapParticleFilter
+    from torchflow.models import Lorenz96
+    from torchflow.smoothing import smooth
+
+    model = Lorenz96(d=8)  # model_noise = 0
+    traj = model.simulate(2, 3, torch.Generator().manual_seed(0))
+    mean, cov = model.initial_belief(traj.states[:, 0], torch.Generator().manual_seed(1))
+    f = BootstrapParticleFilter(model, n_particles=20)
+    with pytest.raises(ArgumentError, match="FFBSi weighs every path backwards by the transition density"):
+        smooth(f, traj.observations, mean, cov, torch.Generator().manual_seed(0), method="ffbsi", n_paths=4)
+    out = smooth(f, traj.observations, mean, cov, torch.Generator().manual_seed(0), method="genealogy", n_paths=4)
+    assert torch.isfinite(out.means).all()

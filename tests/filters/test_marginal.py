@@ -151,3 +151,21 @@ def test_marginal_cuda(flow, points):
     ):
         res = f(traj.observations, mean, cov, torch.Generator(device="cuda").manual_seed(3))
         assert torch.isfinite(res.log_evidence).all() and bool((res.ess > 1).all())
+
+
+def test_marginal_weights_refuse_deterministic_dynamics_up_front():
+    """Case A08: on Lorenz-96 without model noise the marginal weights failed as a -inf evidence that
+    blamed the measurement model; the transition covariance is now named before the first step."""
+    from torchflow.core.errors import ArgumentError
+    from torchflow.filters import BootstrapParticleFilter
+    from torchflow.models import Lorenz96
+
+    model = Lorenz96(d=8)
+    traj = model.simulate(2, 3, torch.Generator().manual_seed(0))
+    mean, cov = model.initial_belief(traj.states[:, 0], torch.Generator().manual_seed(1))
+    with pytest.raises(ArgumentError, match="transition covariance is not positive definite.*weights='marginal'"):
+        BootstrapParticleFilter(model, n_particles=20, weights="marginal")(
+            traj.observations, mean, cov, torch.Generator().manual_seed(0)
+        )
+    out = BootstrapParticleFilter(model, n_particles=20)(traj.observations, mean, cov, torch.Generator().manual_seed(0))
+    assert torch.isfinite(out.estimates).all()  # the standard bootstrap weights need no transition density

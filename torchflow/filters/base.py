@@ -979,12 +979,20 @@ class ParticleFilter(Filter):
             "does not have, so no weight would carry the measurement. Give the model a positive definite "
             "measurement noise, or use a Kalman filter (which handles a singular R when H P H^T is positive definite)",
         )
-        if getattr(self.proposal, "uses_transition_density", True) and self.model.structure.gaussian_transition:
+        marginal = self.weights == "marginal"
+        if (
+            getattr(self.proposal, "uses_transition_density", True) or marginal
+        ) and self.model.structure.gaussian_transition:
             self.require_definite(
                 "transition",
-                "this filter weighs particles by the transition density p(x_k | x_(k-1)), which a singular "
-                "covariance does not have. Give the model a positive definite transition noise, or use a filter "
-                "that does not need the density: the bootstrap PF, the unweighted flow filter or a Kalman filter",
+                (
+                    "weights='marginal' weighs every particle by the transition density from every parent"
+                    if marginal
+                    else "this filter weighs particles by the transition density p(x_k | x_(k-1))"
+                )
+                + ", which a singular covariance does not have. Give the model a positive definite transition "
+                "noise, or use a filter that does not need the density: the bootstrap PF (standard weights), the "
+                "unweighted flow filter or a Kalman filter",
             )
 
     def init(self, mean, cov, n_particles=None, generator=None) -> "ParticleState":

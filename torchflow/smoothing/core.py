@@ -115,6 +115,13 @@ def smoothing_method(filt: Filter, method: str = "auto") -> str:
             f"method: 'genealogy' follows ancestor indices, which {filt.name}'s optimal-transport "
             "resampling (resampling_gradient='ot') does not have; use 'ffbsi'"
         )
+    if method == "ffbsi" and filt.model.structure.gaussian_transition:
+        filt.require_definite(
+            "transition",
+            "FFBSi weighs every path backwards by the transition density p(x_k | x_(k-1)), which a singular "
+            "transition covariance (deterministic dynamics) does not have. Give the model a positive definite "
+            "transition noise, or use method='genealogy' (the particle filter's ancestral lines)",
+        )
     return method
 
 
