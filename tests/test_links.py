@@ -72,3 +72,30 @@ def test_the_output_folder_probe_does_not_truncate_a_linked_file(tmp_path):
         assert victim.read_text() == "precious user data"
     finally:
         lock.release()
+
+
+def test_a_chunk_with_non_finite_estimates_is_computed_again(tmp_path):
+    """Case K06: a chunk rewritten with NaN estimates and a matching checksum resumed into NaN metrics
+    with an empty error column; a run that computed NaN would have stopped with NonFiniteError."""
+    import math
+
+    from torchflow.app.runner.checkpoint import checksum
+
+    store = ChunkStore(tmp_path / "ck", {"bpf": "bpf-key"}, resume=True)
+    chunk = {
+        "estimates": torch.zeros(2, 3, 1, dtype=torch.float64),
+        "log_evidence": torch.zeros(2, dtype=torch.float64),
+    }
+    path = store.save("bpf", 0, 2, chunk)
+    assert store.load("bpf", 0, 2, steps=3) is not None
+    data = torch.load(path, weights_only=True)
+    data["estimates"][1, 2, 0] = math.nan
+    data["checksum"] = checksum(data)  # crafted to match
+    torch.save(data, path)
+    with pytest.warns(UserWarning, match="holds NaN or infinite estimates"):
+        assert store.load("bpf", 0, 2, steps=3) is None
+    data["estimates"][1, 2, 0] = 0.0
+    data["log_evidence"][0] = -math.inf  # no weight carried the measurement: a finished run's -inf is kept
+    data["checksum"] = checksum(data)
+    torch.save(data, path)
+    assert store.load("bpf", 0, 2, steps=3) is not None

@@ -110,6 +110,10 @@ class ChunkStore:
             return _again(f"resume: {path} was saved with other settings")
         if data.get("checksum") is not None and data["checksum"] != checksum(data):
             return _again(f"resume: {path} is damaged (its checksum does not match its contents)")
+        logz = data.get("log_evidence")
+        if not bool(torch.isfinite(est).all()) or (isinstance(logz, torch.Tensor) and bool(torch.isnan(logz).any())):
+            # a run that computed these numbers would have stopped with NonFiniteError: not a chunk it saved
+            return _again(f"resume: {path} holds NaN or infinite estimates, which no finished chunk has")
         self.loaded[name] += 1
         return data
 
