@@ -104,7 +104,7 @@ DTYPES = [torch.float64, torch.float32, torch.int64, torch.float16, torch.bool, 
 # ---- the property ---------------------------------------------------------------------------------
 
 
-def check_outcome(call, blame, shape, *, extreme=False, particles=False, memory=False):
+def check_outcome(call, blame, shape, *, extreme=False, particles=False, memory=False, name=None):
     """``call()`` returns finite results of ``shape = (B, T, d)`` or raises a :class:`TorchflowError`
     naming one of ``blame`` (the planted faults; none: the call must run). With ``extreme`` (finite
     inputs far in the tails) a :class:`NonFiniteError` naming the filter will do; with ``memory`` (a
@@ -121,6 +121,7 @@ def check_outcome(call, blame, shape, *, extreme=False, particles=False, memory=
             return err
         except NonFiniteError as err:
             assert extreme or any(b in str(err) for b in blame), f"{err!r} (planted: {sorted(blame)})"
+            assert name is None or err.filter_name == name, f"{err!r} does not name the filter {name!r}"
             return err
         except TorchflowError as err:
             assert blame, f"valid inputs refused: {err!r}"
@@ -337,6 +338,7 @@ def forward_case(data, name, d, m, B, T, dtype, plants, returns):
         extreme="extreme" in tags.values(),
         particles=f.uses_particles,
         memory=isinstance(n, int) and n == HUGE and "n_particles" in blame,
+        name=f.name,
     )
     event(type(out).__name__)
 
@@ -847,8 +849,7 @@ def test_the_runner_names_each_bad_setting(plant, data, second):
     runner_case(data, [plant] + ([second] if second is not None and second[0] != plant[0] else []))
 
 
-# ---- found by the fuzz and left to the runner's owners (torchflow/app/runner/plan.py): strict, so that a fix
-# ---- shows here as an unexpected pass to turn into a plain test ---------------------------------------
+# ---- found by the fuzz in the runner (torchflow/app/runner/plan.py) and fixed there: plain tests now ----
 
 
 def _run(**kwargs):

@@ -229,6 +229,14 @@ def test_a_series_with_unobserved_coordinates_is_filtered():
         progress=False,
     )
     assert all(r["error"] is None and np.isfinite(r["log_evidence"]) for r in res.summary)
+    # the gap reaches the filters as a gap: the runner's Kalman evidence is that of the series with
+    # the coordinate unobserved, not of one with a zero there
+    mean, cov = declared_prior(model, 1)
+    with torch.no_grad():
+        gap = float(KalmanFilter(model)(z.unsqueeze(0), mean, cov).log_evidence)
+        zero = float(KalmanFilter(model)(torch.nan_to_num(z).unsqueeze(0), mean, cov).log_evidence)
+    kf = next(r for r in res.summary if r["filter"] == "kf")["log_evidence"]
+    assert kf == pytest.approx(gap, rel=1e-9, abs=1e-9) and abs(zero - gap) > 1e-3, (kf, gap, zero)
 
 
 # ---- the command lines ----------------------------------------------------------------------------
@@ -419,3 +427,19 @@ def test_a_home_folder_path_is_expanded(tmp_path, monkeypatch):
     monkeypatch.setenv("HOME", str(tmp_path))
     (tmp_path / "good.csv").write_text("a,b,c,d\n1,2,3,4\n")
     assert load_observations("~/good.csv", SensorNetwork(d=4)).shape == (1, 4)
+
+
+def test_the_command_line_s_recorded_data_keep_their_gaps(tmp_path):
+    """What the command line reads (``data=<file>``) reaches the runner with NaN where a cell is
+    empty: a loader or runner that filled gaps with zeros fails here, not only on finite checks."""
+    from omegaconf import OmegaConf
+
+    from torchflow.app.runner.config import recorded_data
+
+    model = SensorNetwork(d=4)
+    z = np.arange(12.0).reshape(3, 4)
+    z[1, 2] = np.nan
+    path = _write_csv(tmp_path / "gaps.csv", z)
+    obs, trials, steps, sha = recorded_data(OmegaConf.create({"data": str(path), "trials": 2, "steps": 3}), model)
+    assert steps == 3 and torch.isnan(obs[1, 2]) and int(torch.isnan(obs).sum()) == 1
+    torch.testing.assert_close(torch.nan_to_num(obs), torch.nan_to_num(torch.from_numpy(z)))

@@ -161,8 +161,8 @@ def test_smoother_errors():
 
 
 def test_acoustic_ffbsi_runs():
-    """A nonlinear model: finite paths, smoothed OMAT-free sanity (the smoother's mean at the last
-    step is the filter's weighted mean in expectation; here just finite and shaped)."""
+    """A nonlinear model: finite paths of the right shape, whose consecutive states are joined by
+    the transition density (a path assembled without the backward weights would not be)."""
     model = AcousticTracking()
     traj = model.simulate(2, 6, torch.Generator().manual_seed(0))
     mean, cov = model.initial_belief(traj.states[:, 0], torch.Generator().manual_seed(1))
@@ -175,6 +175,16 @@ def test_acoustic_ffbsi_runs():
         n_paths=16,
     )
     assert res.paths.shape == (2, 16, 7, 16) and torch.isfinite(res.paths).all()
+    # FFBSi draws each path's state at t given its state at t + 1 by the transition density: along
+    # the drawn paths that density is higher than along the same states paired across paths
+    # (where two paths share their state the pairing changes nothing: those pairs are left out;
+    # measured over three seeds: along -10.5 to -15.5, across -16.2 to -25.7)
+    x_next, x_prev = res.paths[:, :, 2:], res.paths[:, :, 1:-1]
+    other = x_prev.roll(1, dims=1)
+    differ = (x_prev != other).any(-1)
+    along = model.transition_log_prob(x_next, x_prev)[differ].mean()
+    across = model.transition_log_prob(x_next, other)[differ].mean()
+    assert int(differ.sum()) >= 4 and float(along) > float(across) + 2.0, (float(along), float(across))
 
 
 @cuda

@@ -121,7 +121,7 @@ def test_the_unscented_kalman_filter_tracks_the_sakov_set_up_well_below_the_obse
     m, traj, mean, cov = _sakov()
     out = F.UnscentedKalmanFilter(m)(traj.observations, mean, cov)
     rmse = (out.estimates - traj.states[:, 1:]).pow(2).mean(-1).sqrt()[:, 100:].mean()
-    assert float(rmse) < 0.5
+    assert float(rmse) < 0.25, float(rmse)  # 0.20 measured: a quarter of slack, not a 2.5x bound
 
 
 def test_without_model_noise_filters_that_need_the_transition_density_refuse_by_name():
