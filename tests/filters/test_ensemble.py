@@ -4,6 +4,7 @@ the LETKF with an infinite radius is the ETKF and its taper localises; Lorenz-96
 RMSEs near the published ones; missing observations (NaN); bad inputs."""
 
 import math
+import warnings
 
 import pytest
 import torch
@@ -339,3 +340,29 @@ def test_analysis_inflation_scales_the_analysis_anomalies():
         torch.testing.assert_close(P1, 1.3**2 * P0)
     with pytest.raises(ArgumentError, match="inflate: expected one of"):
         ETKF(model, inflate="both")
+
+
+def test_the_ensemble_evidence_keeps_its_digits_when_r_is_tiny():
+    """Case X33: at R = 1e-300 I the ETKF's log-evidence was about 1e284 (the EnKF's -3, the KF's
+    -10): |delta_w|^2 and b^T M^{-1} b, both about 1/r, were subtracted. The whitened Mahalanobis
+    term is now computed directly where the observations are fewer than the members, and the
+    evidence at R = 1e-300 is the one at R = 1e-12 (to 2e-5, measured)."""
+    from torchflow.filters import EnsembleKalmanFilter, EnsembleTransformKalmanFilter, KalmanFilter
+    from torchflow.models import LinearGaussian
+
+    eye = torch.eye(2, dtype=torch.float64)
+    out = {}
+    for r in (1e-12, 1e-300):
+        m = LinearGaussian(0.9 * eye, 0.2 * eye, eye, r * eye, torch.zeros(2, dtype=torch.float64), eye)
+        t = m.simulate(3, 6, torch.Generator().manual_seed(0))
+        mean, cov = m.initial_belief(t.states[:, 0])
+        out[r] = [KalmanFilter(m)(t.observations, mean, cov).log_evidence]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the analysis ensemble collapses onto the exact observations
+            for F in (EnsembleKalmanFilter, EnsembleTransformKalmanFilter):
+                out[r].append(
+                    F(m, n_particles=200)(t.observations, mean, cov, torch.Generator().manual_seed(1)).log_evidence
+                )
+    for a, b in zip(out[1e-12], out[1e-300]):
+        torch.testing.assert_close(b, a, rtol=0, atol=1e-3)  # measured: up to 2e-5 apart
+    assert (out[1e-300][2] - out[1e-300][0]).abs().max() < 0.5  # the ETKF near the exact evidence

@@ -318,8 +318,8 @@ class _EnsembleFilter(Filter):
         """The Gaussian approximation ``(B,)`` of ``log p(z_k | z_{1:k-1})`` from the forecast ensemble
         seen through the measurement (:meth:`log_evidence`), for analyses that do not factorise ``M``
         themselves."""
-        _, quad, logdet_M = _gain_solver(w.Y, w.delta)
-        return self.log_evidence(w, quad, logdet_M)
+        _, maha, logdet_M = _gain_solver(w.Y, w.delta)
+        return self.log_evidence(w, maha, logdet_M)
 
     def analysis(
         self, xbar: torch.Tensor, A: torch.Tensor, w: _Whitened, generator
@@ -384,14 +384,13 @@ class _EnsembleFilter(Filter):
         return self.model.measurement_cov(xbar) if noise.startswith("state_dependent") else self.model.measurement_cov()
 
     @staticmethod
-    def log_evidence(w: _Whitened, quad: torch.Tensor, logdet_M: torch.Tensor) -> torch.Tensor:
+    def log_evidence(w: _Whitened, maha: torch.Tensor, logdet_M: torch.Tensor) -> torch.Tensor:
         """``log N(z; ybar, Y^T Y / (N - 1) + R)`` ``(B,)`` over the observed coordinates, from
-        ``quad = b^T M^{-1} b`` (``b = Y_w delta_w``) and ``log det M``: with
-        ``S = L (I + Y_w^T Y_w / (N - 1)) L^T``, ``log det S = log det R + log det M - N log(N - 1)``
-        and ``delta^T S^{-1} delta = |delta_w|^2 - b^T M^{-1} b``."""
+        ``maha = delta^T S^{-1} delta`` (:func:`_gain_solver`) and ``log det M``: with
+        ``S = L (I + Y_w^T Y_w / (N - 1)) L^T``, ``log det S = log det R + log det M - N log(N - 1)``."""
         N = w.Y.shape[-2]
         logdet_S = w.logdet_R + logdet_M - N * math.log(N - 1)
-        return -0.5 * (w.delta.square().sum(-1) - quad + logdet_S + w.n_obs * _LOG_2PI)
+        return -0.5 * (maha + logdet_S + w.n_obs * _LOG_2PI)
 
     def extra_repr(self) -> str:
         return (
@@ -427,30 +426,32 @@ class EnsembleKalmanFilter(_EnsembleFilter):
     def analysis(self, xbar, A, w, generator):
         xi = linalg.standard_normal(w.Y.shape, dtype=w.Y.dtype, device=w.Y.device, generator=generator)
         D = w.delta.unsqueeze(1) - w.Y + xi * w.observed.to(xi.dtype).unsqueeze(1)  # (B, N, m) member innovations
-        solve, quad, logdet_M = _gain_solver(w.Y, w.delta)
+        solve, maha, logdet_M = _gain_solver(w.Y, w.delta)
         Xa = xbar + A + D @ solve(A)  # member i: x_i + A^T M^{-1} Y_w d_i
-        return Xa, self.log_evidence(w, quad, logdet_M)
+        return Xa, self.log_evidence(w, maha, logdet_M)
 
 
 def _gain_solver(Y: torch.Tensor, delta: torch.Tensor):
-    """``(solve, b^T M^{-1} b, log det M)`` for whitened anomalies ``Y (..., N, k)`` and innovation
+    """``(solve, maha, log det M)`` for whitened anomalies ``Y (..., N, k)`` and innovation
     ``delta (..., k)``, with ``M = (N - 1) I_N + Y Y^T`` and ``b = Y delta``; ``solve(A (..., N, p))``
-    is ``Y^T M^{-1} A (..., k, p)``. One Cholesky factorisation of the smaller of ``M`` (``N x N``)
-    and ``S = Y^T Y + (N - 1) I_k`` (``k x k``; push-through ``Y^T M^{-1} = S^{-1} Y^T``, and
-    ``b^T M^{-1} b = |delta|^2 - (N - 1) delta^T S^{-1} delta``,
-    ``log det M = (N - k) log(N - 1) + log det S``)."""
+    is ``Y^T M^{-1} A (..., k, p)``; ``maha = delta^T (I + Y^T Y / (N - 1))^{-1} delta``, the
+    innovation's whitened Mahalanobis term. One Cholesky factorisation of the smaller of ``M``
+    (``N x N``: ``maha = |delta|^2 - b^T M^{-1} b``) and ``S = Y^T Y + (N - 1) I_k`` (``k x k``:
+    ``maha = (N - 1) delta^T S^{-1} delta``, computed as such: with a tiny R both ``|delta|^2`` and
+    ``b^T M^{-1} b`` are huge and their difference would lose every digit; push-through
+    ``Y^T M^{-1} = S^{-1} Y^T``, ``log det M = (N - k) log(N - 1) + log det S``)."""
     N, k = Y.shape[-2:]
     c = float(N - 1)
     Yt = Y.transpose(-1, -2)
     if N <= k:
         L = torch.linalg.cholesky(_shifted_gram(Y, c))  # (..., N, N); c I + PSD: positive definite
         b = Y @ delta.unsqueeze(-1)
-        quad = (b * linalg.chol_solve(L, b)).sum((-2, -1))
-        return (lambda A: Yt @ linalg.chol_solve(L, A)), quad, linalg.chol_logdet(L)
+        maha = delta.square().sum(-1) - (b * linalg.chol_solve(L, b)).sum((-2, -1))
+        return (lambda A: Yt @ linalg.chol_solve(L, A)), maha, linalg.chol_logdet(L)
     L = torch.linalg.cholesky(_shifted_gram(Yt, c))  # (..., k, k)
     dl = delta.unsqueeze(-1)
-    quad = delta.square().sum(-1) - c * (dl * linalg.chol_solve(L, dl)).sum((-2, -1))
-    return (lambda A: linalg.chol_solve(L, Yt @ A)), quad, (N - k) * math.log(c) + linalg.chol_logdet(L)
+    maha = c * (dl * linalg.chol_solve(L, dl)).sum((-2, -1))  # directly: no |delta|^2 - b^T M^{-1} b
+    return (lambda A: linalg.chol_solve(L, Yt @ A)), maha, (N - k) * math.log(c) + linalg.chol_logdet(L)
 
 
 def _shifted_gram(Y: torch.Tensor, c: float) -> torch.Tensor:
@@ -462,7 +463,7 @@ def _shifted_gram(Y: torch.Tensor, c: float) -> torch.Tensor:
 
 def _transform(Y: torch.Tensor, delta: torch.Tensor, A: torch.Tensor):
     """The ETKF's analysis in weight space: ``(A^T (wbar 1^T + W))^T (..., N, p)`` (the analysis
-    members about the forecast mean), ``b^T M^{-1} b`` and ``log det M``, for whitened anomalies
+    members about the forecast mean), ``maha`` (as :func:`_gain_solver`) and ``log det M``, for whitened anomalies
     ``Y (..., N, k)``, innovation ``delta (..., k)`` and state anomalies ``A (..., N, p)``;
     ``M = (N - 1) I + Y Y^T``, ``wbar = M^{-1} Y delta``, ``W = sqrt(N - 1) M^{-1/2}`` (symmetric).
 
@@ -480,18 +481,19 @@ def _transform(Y: torch.Tensor, delta: torch.Tensor, A: torch.Tensor):
         W = (V * (math.sqrt(c) * lam.rsqrt()).unsqueeze(-2)) @ Vt
         logdet = lam.log().sum(-1)
         out = W @ A
+        maha = delta.square().sum(-1) - ((Y @ delta.unsqueeze(-1)) * wbar).sum((-2, -1))
     else:
         lam, V = linalg.eigh(Y.transpose(-1, -2) @ Y)  # (..., k), (..., k, k)
         lam = lam.clamp_min(0.0)
         YV = Y @ V  # (..., N, k)
-        wbar = YV @ ((V.transpose(-1, -2) @ delta.unsqueeze(-1)) / (lam + c).unsqueeze(-1))
+        Vd = V.transpose(-1, -2) @ delta.unsqueeze(-1)  # (..., k, 1)
+        wbar = YV @ (Vd / (lam + c).unsqueeze(-1))
+        maha = (c * Vd.squeeze(-1).square() / (lam + c)).sum(-1)  # directly (see _gain_solver)
         sc = (lam + c).sqrt()
         g = -1.0 / (sc * (math.sqrt(c) + sc))
         out = A + YV @ (g.unsqueeze(-1) * (YV.transpose(-1, -2) @ A))
         logdet = (N - k) * math.log(c) + (lam + c).log().sum(-1)
-    b = Y @ delta.unsqueeze(-1)
-    quad = (b * wbar).sum((-2, -1))
-    return out + wbar.transpose(-1, -2) @ A, quad, logdet
+    return out + wbar.transpose(-1, -2) @ A, maha, logdet
 
 
 class EnsembleTransformKalmanFilter(_EnsembleFilter):
@@ -517,8 +519,8 @@ class EnsembleTransformKalmanFilter(_EnsembleFilter):
     """
 
     def analysis(self, xbar, A, w, generator):
-        inc, quad, logdet_M = _transform(w.Y, w.delta, A)
-        return xbar + inc, self.log_evidence(w, quad, logdet_M)
+        inc, maha, logdet_M = _transform(w.Y, w.delta, A)
+        return xbar + inc, self.log_evidence(w, maha, logdet_M)
 
 
 class LocalEnsembleTransformKalmanFilter(_EnsembleFilter):
