@@ -99,3 +99,12 @@ def test_a_chunk_with_non_finite_estimates_is_computed_again(tmp_path):
     data["checksum"] = checksum(data)
     torch.save(data, path)
     assert store.load("bpf", 0, 2, steps=3) is not None
+
+
+def test_result_files_keep_the_mode_a_plain_open_gives(tmp_path):
+    """The exclusive temporary file is created 0600; the result it becomes is 0644 less the umask,
+    as before (others sharing the folder can still read the results)."""
+    from torchflow.app.runner import writers
+
+    path = write_text(tmp_path / "summary.csv", "a\n")
+    assert path.stat().st_mode & 0o777 == 0o644 & ~writers._UMASK

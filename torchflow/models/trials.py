@@ -19,6 +19,7 @@ from __future__ import annotations
 from typing import Callable, Optional, Tuple
 
 import torch
+from torch.distributions import constraints as C
 
 from torchflow.core import linalg
 from torchflow.core.errors import ArgumentError
@@ -40,8 +41,6 @@ def parameter_domain(model, name: str):
 
 def _bounds(c):
     """``(low, high)`` of a scalar interval constraint, or ``None``."""
-    from torch.distributions import constraints as C
-
     inf = float("inf")
     if c is C.real or isinstance(c, type(C.real)):
         return (-inf, inf)

@@ -35,6 +35,17 @@ PMMH_FILES = ("posterior.csv", "pmmh.json", "posterior.png", "traces.png")
 ALL_RESULT_FILES = RESULT_FILES + LEARN_FILES + SMOOTH_FILES + PMMH_FILES
 
 
+def _read_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+#: the process's umask, read once at import (reading it means setting it, which is process-wide:
+#: not done per write while other threads may create files)
+_UMASK = _read_umask()
+
+
 def exclusive_temp(path: Path) -> Tuple[int, Path]:
     """``(descriptor, name)`` of a new temporary file beside ``path``, created exclusively (a random
     name opened with ``O_CREAT | O_EXCL``, mode 0600: :func:`tempfile.mkstemp`). In a folder others
@@ -54,21 +65,12 @@ def replace_atomically(path: Path, write, binary: bool = False) -> Path:
     try:
         with os.fdopen(fd, "wb" if binary else "w", **({} if binary else {"newline": ""})) as fh:
             write(fh)
-        os.chmod(tmp, 0o644 & ~_umask())
+        os.chmod(tmp, 0o644 & ~_UMASK)  # mkstemp's 0600, widened as open() would have made it
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
     return path
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-_atomic = replace_atomically
 
 
 def save_figure(fig, path: Path, **kwargs) -> Path:
@@ -91,11 +93,11 @@ def write_csv(path: Path, rows: List[Mapping], columns: Optional[List[str]] = No
         w.writeheader()
         w.writerows({k: ("" if r.get(k) is None else r.get(k)) for k in columns} for r in rows)
 
-    return _atomic(path, write)
+    return replace_atomically(path, write)
 
 
 def write_text(path: Path, text: str) -> Path:
-    return _atomic(path, lambda fh: fh.write(text))
+    return replace_atomically(path, lambda fh: fh.write(text))
 
 
 def estimate_rows(estimate_summary: Mapping) -> List[dict]:
