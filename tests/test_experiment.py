@@ -815,7 +815,33 @@ def test_cli_unwritable_output_folder_and_full_disk_are_one_line(tmp_path):
     out = _tf(tmp_path, *_LG, "filter=[kf]", "checkpoint_dir=null", "plots=false", "hydra.run.dir=full", script=shim)
     assert out.returncode == 1 and "| kf |" in out.stdout and "Traceback" not in out.stderr
     errors = [ln for ln in out.stderr.splitlines() if ln.startswith("error:")]
-    assert errors == [f"error: cannot write summary.csv into {tmp_path / 'full'} (OSError: No space left on device)"]
+    assert errors == [
+        f"error: cannot write summary.partial.csv into {tmp_path / 'full'} (OSError: No space left on device)"
+    ]
+
+
+def test_a_folder_that_turns_read_only_mid_run_leaves_a_summary_marked_partial(tmp_path):
+    """F01: the summary written after each filter is ``summary.partial.csv``; ``summary.csv`` is
+    written only with the run's other files, after which the partial one goes. A folder that stops
+    taking writes after the first filter (here: every write after the first fails) keeps the
+    finished filter's row under the partial name and no ``summary.csv`` that looks complete."""
+    shim = tmp_path / "read_only_later.py"
+    shim.write_text(
+        "import errno\nimport torchflow.app.runner.writers as w\n\nreal, calls = w.write_csv, []\n\n\n"
+        "def later(*a, **k):\n    calls.append(a[0])\n    if len(calls) > 1:\n"
+        "        raise PermissionError(errno.EPERM, 'Operation not permitted')\n    return real(*a, **k)\n\n\n"
+        "w.write_csv = later\nfrom torchflow.app.cli import main\nmain()\n"
+    )
+    args = (*_LG, "filter=[kf,bpf]", "checkpoint_dir=null", "plots=false")
+    out = _tf(tmp_path, *args, "hydra.run.dir=ro", script=shim)
+    assert out.returncode == 1 and "Traceback" not in out.stderr
+    assert f"error: cannot write summary.partial.csv into {tmp_path / 'ro'} (PermissionError" in out.stderr
+    assert not (tmp_path / "ro" / "summary.csv").exists()
+    with open(tmp_path / "ro" / "summary.partial.csv") as fh:
+        assert [r["filter"] for r in csv.DictReader(fh)] == ["kf"]
+    done = _tf(tmp_path, *args, "hydra.run.dir=ok")  # a run that ends leaves no partial summary
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "ok" / "summary.csv").exists() and not (tmp_path / "ok" / "summary.partial.csv").exists()
 
 
 def test_resume_command_of_a_run_a_sweep_and_torchrun():

@@ -212,9 +212,9 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
         burn_in=cfg.metrics.get("burn_in", 0),
         progress=cfg.progress,
         rng_backend=cfg.rng_backend,
-        on_filter_done=lambda rows: writer.attempt(
-            "summary.csv", writers.write_csv, out / "summary.csv", rows, SUMMARY_COLUMNS
-        ),  # partial results
+        on_filter_done=lambda rows: writer.attempt(  # the finished filters' rows, under a partial name
+            writers.PARTIAL_SUMMARY, writers.write_csv, out / writers.PARTIAL_SUMMARY, rows, SUMMARY_COLUMNS
+        ),
         store=store,
         shard=shard,
         warmup=cfg.get("warmup", "auto"),

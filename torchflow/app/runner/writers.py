@@ -12,9 +12,14 @@ from typing import List, Mapping, Optional, Tuple
 
 from torchflow.app.runner.score import summary_columns
 
+#: the summary of the filters finished so far, rewritten after each filter while a run goes on and
+#: removed once ``summary.csv`` is written: a run stopped before its end (a folder that became
+#: read-only, a killed process) leaves this name, never a ``summary.csv`` that looks complete
+PARTIAL_SUMMARY = "summary.partial.csv"
 #: every file a run may write into its output folder (a reused folder is cleared of these)
 RESULT_FILES = (
     "summary.csv",
+    PARTIAL_SUMMARY,
     "per_step.csv",
     "per_trial.csv",
     "results.json",
@@ -134,10 +139,11 @@ def write_run(out: Path, result, config: Mapping) -> List[Path]:
     """``summary.csv`` (columns: :func:`~torchflow.app.runner.score.summary_columns`, which follow
     :data:`torchflow.core.metrics.REGISTRY`), ``per_step.csv``, ``per_trial.csv`` and ``results.json``
     of an :class:`~torchflow.app.runner.score.ExperimentResult`; ``config``: the settings to record.
-    A run on recorded data also writes ``estimates.csv`` (:func:`write_estimates`)."""
+    A run on recorded data also writes ``estimates.csv`` (:func:`write_estimates`). Once every file
+    is written, the run's :data:`PARTIAL_SUMMARY` goes."""
     out = Path(out)
     extra = [write_estimates(out / "estimates.csv", result.estimate_summary)] if result.recorded else []
-    return extra + [
+    written = extra + [
         write_csv(out / "summary.csv", result.summary, summary_columns()),
         write_csv(out / "per_step.csv", result.per_step),
         write_csv(out / "per_trial.csv", result.per_trial),
@@ -160,6 +166,8 @@ def write_run(out: Path, result, config: Mapping) -> List[Path]:
             ),
         ),
     ]
+    (out / PARTIAL_SUMMARY).unlink(missing_ok=True)
+    return written
 
 
 def clear_results(out: Path, names=ALL_RESULT_FILES) -> None:
