@@ -96,6 +96,49 @@ def test_pmmh_matches_the_exact_posterior(estimator):
     assert float(model.a) == pytest.approx(0.8)  # the model's own value is left alone
 
 
+def test_pmmh_carries_the_current_likelihood_estimate_and_runs_the_filter_once_per_iteration():
+    """Pseudo-marginal MCMC is exact because the current state's likelihood estimate is kept until a
+    proposal replaces it; re-estimating it each iteration (Monte Carlo within Metropolis) targets
+    another law. So: one filter call per iteration (plus one at the start), and on every rejected
+    iteration the recorded log-likelihood is the previous one, bit for bit."""
+    model, obs = _data(15)
+    filt = BootstrapParticleFilter(model, n_particles=30)
+    calls = []
+    filt.register_forward_hook(lambda *_: calls.append(1))
+    prior = Uniform(torch.tensor(-1.0, dtype=F64), torch.tensor(1.0, dtype=F64))
+    prior0 = (torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64))
+    res = pmmh(filt, obs, prior0, {"a": prior}, 0, n_chains=4, n_iterations=40, n_adapt=10)
+    assert len(calls) == 1 + 10 + 40
+    a, ll = res.samples["a"], res.log_likelihood
+    stayed = a[:, 1:] == a[:, :-1]
+    assert 10 < int(stayed.sum()) < stayed.numel() - 10, int(stayed.sum())  # both kinds of step happened
+    assert torch.equal(ll[:, 1:][stayed], ll[:, :-1][stayed])
+    assert (ll[:, 1:][~stayed] != ll[:, :-1][~stayed]).all()
+
+
+@pytest.mark.slow
+def test_pmmh_is_exact_where_monte_carlo_within_metropolis_is_not():
+    """With a noisy likelihood estimate (bootstrap PF, N = 200, T = 40: log-likelihood standard
+    deviation about 1) PMMH still samples the exact posterior: over C = 32 chains of 400 kept draws
+    the posterior mean and standard deviation of a agree with quadrature within 4 of their Monte
+    Carlo standard errors (sd / sqrt(ESS); relative 1 / sqrt(2 ESS)). Re-estimating the current
+    state's likelihood at each iteration (Monte Carlo within Metropolis) fails this, over-dispersed
+    and shifted: measured z 9.1 (mean) and 7.0 (sd) here, with the exact sampler's z 0.5 and 0.0
+    (ESS 699). The default-tier PMMH tests at N = 400 could not tell the two apart (z 2.97)."""
+    model, obs = _data()
+    prior = Uniform(torch.tensor(-1.0, dtype=F64), torch.tensor(1.0, dtype=F64))
+    m_exact, s_exact = _exact_posterior(model, obs, prior)
+    filt = BootstrapParticleFilter(model, n_particles=200)
+    prior0 = (torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64))
+    res = pmmh(filt, obs, prior0, {"a": prior}, 0, n_chains=32, n_iterations=400, n_adapt=200)
+    a = res.samples["a"]
+    ess = float(res.ess["a"])
+    assert ess > 200 and float(res.rhat["a"]) < 1.1, (ess, float(res.rhat["a"]))
+    z_mean = (float(a.mean()) - m_exact) / (float(a.std()) / math.sqrt(ess))
+    z_sd = (float(a.std()) / s_exact - 1) * math.sqrt(2 * ess)
+    assert abs(z_mean) < 4 and abs(z_sd) < 4, (z_mean, z_sd, ess)
+
+
 def test_diagnostics_on_known_chains():
     g = torch.Generator().manual_seed(0)
     iid = torch.randn(4, 2000, generator=g, dtype=F64)
