@@ -6,8 +6,10 @@ File formats (:func:`load_observations`):
 * ``.csv`` (UTF-8 text, commas between columns): one row per time step; every numeric column is a
   measurement coordinate, in order, except a column named ``t`` or ``time`` (the observation times,
   which must step uniformly forwards). A header row is optional (a first row that is not all
-  numbers is a header); without one every column is a coordinate. A line starting with ``#`` is a
-  comment. An empty cell or ``nan`` is a coordinate not observed at that step (NaN).
+  numbers is a header, and must hold names only); without one every column is a coordinate. A
+  line starting with ``#`` is a comment, an empty line is skipped; a row of empty cells (``,``;
+  ``""`` in a one-column file, as ``csv`` and pandas write it) is a step with nothing observed. An
+  empty cell or ``nan`` is a coordinate not observed at that step (NaN).
 * ``.npy``: a float array ``(T, m)`` (one series), ``(B, T, m)`` (B series) or ``(T,)`` (``m = 1``);
   no time column.
 
@@ -53,10 +55,15 @@ DT_RTOL = 1e-6
 
 
 def _read_csv(path: Path, name: str) -> Tuple[np.ndarray, Optional[np.ndarray]]:
-    """``(values (T, m), times (T,) or None)`` of a CSV file (see the module docstring)."""
+    """``(values (T, m), times (T,) or None)`` of a CSV file (see the module docstring). Errors
+    name the file's own line numbers (comment and blank lines counted)."""
     try:
         with open(path, newline="", encoding="utf-8") as fh:
-            rows = [r for r in csv.reader(fh) if any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
+            reader, kept = csv.reader(fh), []
+            for r in reader:
+                blank = not r or (len(r) == 1 and r[0] != "" and not r[0].strip())  # '""': one empty cell
+                if not blank and not r[0].lstrip().startswith("#"):  # ",,": a step with nothing observed
+                    kept.append((reader.line_num, r))
     except UnicodeDecodeError as e:
         raise ArgumentError(
             f"{name}: expected a text CSV file (UTF-8), but {path} is not text (byte 0x{e.object[e.start]:02x} at "
@@ -64,13 +71,14 @@ def _read_csv(path: Path, name: str) -> Tuple[np.ndarray, Optional[np.ndarray]]:
         ) from None
     except csv.Error as e:
         raise ArgumentError(f"{name}: expected a CSV file, could not read {path} ({e})") from None
-    if not rows:
+    if not kept:
         raise ArgumentError(f"{name}: expected a CSV file with one row per time step, got an empty file {path}")
+    lines, rows = [n for n, _ in kept], [r for _, r in kept]
     for sep, word in ((";", "semicolons"), ("\t", "tabs"), ("|", "bars")):
         if len(rows[0]) == 1 and sep in rows[0][0] and all(len(r) == 1 for r in rows[:5]):
             raise ArgumentError(
-                f"{name}: expected comma-separated columns, got {word} in {path} (line 1: {rows[0][0][:60]!r}); "
-                "save the file with commas as separators"
+                f"{name}: expected comma-separated columns, got {word} in {path} (line {lines[0]}: "
+                f"{rows[0][0][:60]!r}); save the file with commas as separators"
             )
 
     def number(cell: str) -> Optional[float]:
@@ -84,7 +92,14 @@ def _read_csv(path: Path, name: str) -> Tuple[np.ndarray, Optional[np.ndarray]]:
 
     header: Optional[List[str]] = None
     if any(number(c) is None for c in rows[0]):
-        header, rows = [c.strip() for c in rows[0]], rows[1:]
+        numbers = [c.strip() for c in rows[0] if c.strip() and number(c) is not None]
+        if numbers:  # names and numbers in one row: a data row with a typo, or a header with a number
+            raise ArgumentError(
+                f"{name}: expected a header of column names or a row of numbers in line {lines[0]} of {path}, "
+                f"got both ({', '.join(repr(c.strip()) for c in rows[0][:6])}); fix the cell that is not a "
+                "number, or name every column"
+            )
+        header, rows, lines = [c.strip() for c in rows[0]], rows[1:], lines[1:]
     if not rows:
         raise ArgumentError(f"{name}: expected at least one row of numbers after the header of {path}, got none")
     width = len(header) if header is not None else len(rows[0])
@@ -98,11 +113,10 @@ def _read_csv(path: Path, name: str) -> Tuple[np.ndarray, Optional[np.ndarray]]:
             )
         time_col = found[0] if found else None
     values = np.empty((len(rows), width), dtype=np.float64)
-    first = 2 if header is not None else 1
     for i, row in enumerate(rows):
         if len(row) != width:
             raise ArgumentError(
-                f"{name}: expected {width} columns in every row of {path}, got {len(row)} in line {i + first}"
+                f"{name}: expected {width} columns in every row of {path}, got {len(row)} in line {lines[i]}"
             )
         for j, cell in enumerate(row):
             v = number(cell)
@@ -110,7 +124,7 @@ def _read_csv(path: Path, name: str) -> Tuple[np.ndarray, Optional[np.ndarray]]:
                 col = f"column {j + 1}" + (f" ({header[j]})" if header is not None else "")
                 raise ArgumentError(
                     f"{name}: expected numbers (empty or nan: not observed), got {cell.strip()!r} in "
-                    f"line {i + first}, {col} of {path}"
+                    f"line {lines[i]}, {col} of {path}"
                 )
             values[i, j] = v
     if time_col is None:

@@ -36,7 +36,9 @@ def per_trial_values(model, values: Dict[str, torch.Tensor]):
 
     Raises:
         ArgumentError: a name the model does not declare, a value that is not ``(B, *shape)`` on the
-            model's dtype and device, or trial counts that differ between names.
+            model's dtype and device, a non-finite value, a value outside the domain the model
+            declares for the name (:func:`torchflow.models.trials.parameter_domain`: a negative
+            ``sigma``), or trial counts that differ between names.
     """
     from torch.nn.utils import parametrize
 
@@ -73,6 +75,17 @@ def per_trial_values(model, values: Dict[str, torch.Tensor]):
                 raise ArgumentError(
                     f"values[{name!r}]: expected finite values, got NaN or infinity in trial(s) {bad[:10]}"
                 )
+            domain = parameter_domain(model, name)
+            if domain is not None:  # the model's declared domain (also once, on entering the block)
+                inside = domain.check(value.detach()).reshape(value.shape[0], -1).all(1)
+                if not bool(inside.all()):
+                    bad = torch.nonzero(~inside).squeeze(1).tolist()
+                    first = value.detach()[bad[0]]
+                    shown = f"{float(first):.6g}" if first.numel() == 1 else "a value outside it"
+                    raise ArgumentError(
+                        f"values[{name!r}]: expected values in {who}'s domain of {name} ({domain}), got "
+                        f"{shown} in trial(s) {bad[:10]}"
+                    )
             B = value.shape[0]
             if parametrize.is_parametrized(model, name):  # through the same constraint
                 plist = model.parametrizations[name]
