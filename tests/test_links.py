@@ -1,4 +1,4 @@
-"""Nothing is written through a link planted in a shared folder (cases SEC1, SEC2): temporary files
+"""Nothing is written through a link planted in a shared folder (cases SEC1, SEC2, Q125, Q126): temporary files
 are created exclusively under random names, and a chunk file that is a link is neither read nor
 followed."""
 
@@ -108,3 +108,88 @@ def test_result_files_keep_the_mode_a_plain_open_gives(tmp_path):
 
     path = write_text(tmp_path / "summary.csv", "a\n")
     assert path.stat().st_mode & 0o777 == 0o644 & ~writers._UMASK
+
+
+@pytest.mark.parametrize("name", ["run.log", ".hydra/overrides.yaml", ".hydra/config.yaml", ".hydra", "multirun.yaml"])
+def test_a_folder_with_a_link_where_hydra_or_the_log_write_is_refused(tmp_path, name):
+    """Q125, Q126: Hydra writes ``.hydra/*.yaml`` and the log with a plain ``open``, before the job,
+    so a link planted at one of those names (or at ``.hydra`` itself) is refused by the output
+    guard in one line naming it, and its target is left untouched."""
+    from torchflow.app.runner.plan import ConfigError
+
+    victim, out = _victim(tmp_path), tmp_path / "run"
+    (out / name).parent.mkdir(parents=True, exist_ok=True)
+    (out / name).symlink_to(victim if name != ".hydra" else tmp_path)
+    with pytest.raises(ConfigError, match=rf"hydra.run.dir: .* holds links at names a run writes itself \({name} -> "):
+        guard_output_folder(out, key="hydra.run.dir", command="torchflow")
+    assert victim.read_text() == "precious user data"
+    assert not (out / ".torchflow.lock").exists()
+
+
+def test_a_sweep_folder_with_a_link_in_a_job_folder_or_as_a_job_folder_is_refused(tmp_path):
+    from torchflow.app.runner.plan import ConfigError
+
+    victim, sweep = _victim(tmp_path), tmp_path / "sw"
+    (sweep / "0" / ".hydra").mkdir(parents=True)
+    (sweep / "0" / ".hydra" / "hydra.yaml").symlink_to(victim)
+    (sweep / "1").symlink_to(tmp_path)
+    with pytest.raises(ConfigError, match=r"0/.hydra/hydra.yaml -> .*, 1 -> "):
+        guard_output_folder(sweep, key="hydra.sweep.dir", sweep=True, replace=True, command="torchflow")
+    assert victim.read_text() == "precious user data"
+
+
+def test_the_run_log_is_not_appended_through_a_link_planted_after_the_check(tmp_path):
+    """The log handler opens ``run.log`` with ``O_NOFOLLOW``: a link planted between the guard's
+    check and the open makes the open fail rather than append to the target; a plain file is
+    appended to as :class:`logging.FileHandler` does."""
+    import logging
+
+    from torchflow.app.runner.logs import NoFollowFileHandler
+
+    victim = _victim(tmp_path)
+    (tmp_path / "run.log").symlink_to(victim)
+    with pytest.raises(OSError):
+        NoFollowFileHandler(str(tmp_path / "run.log"))
+    assert victim.read_text() == "precious user data"
+    handler = NoFollowFileHandler(str(tmp_path / "plain.log"))
+    handler.emit(logging.LogRecord("t", logging.INFO, "x", 1, "first", None, None))
+    handler.close()
+    handler = NoFollowFileHandler(str(tmp_path / "plain.log"))
+    handler.emit(logging.LogRecord("t", logging.INFO, "x", 1, "second", None, None))
+    handler.close()
+    assert (tmp_path / "plain.log").read_text() == "first\nsecond\n"
+
+
+def test_a_run_into_a_folder_with_a_linked_run_log_is_refused_end_to_end(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    victim, out = _victim(tmp_path), tmp_path / "run"
+    out.mkdir()
+    (out / "run.log").symlink_to(victim)
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, PYTHONPATH=str(root), OMP_NUM_THREADS="1")
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "torchflow",
+            "model=linear_gaussian",
+            "filter=[kf]",
+            "trials=1",
+            "steps=2",
+            "plots=false",
+            "progress=false",
+            "checkpoint_dir=null",
+            f"hydra.run.dir={out}",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env=env,
+        timeout=120,
+    )
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert r.stderr.strip().splitlines()[-1].startswith("error: hydra.run.dir: ")
+    assert victim.read_text() == "precious user data"

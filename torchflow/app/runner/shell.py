@@ -422,6 +422,32 @@ def earlier_results(folder: Path, sweep: bool = False) -> List[str]:
     return [n for n in ALL_RESULT_FILES if (folder / n).exists()]
 
 
+#: what Hydra and the log write into a run's folder (not through the result writers' exclusive files)
+HYDRA_WRITES = (".hydra", "multirun.yaml")
+
+
+def _links_at_writes(folder: Path) -> List[Path]:
+    """Links in ``folder`` at names that Hydra or the run's log write with a plain ``open``: the
+    ``.hydra`` folder and its files, ``multirun.yaml`` and the ``*.log`` files."""
+    names = [folder / n for n in HYDRA_WRITES] + sorted(folder.glob("*.log"))
+    found = [p for p in names if p.is_symlink()]
+    hydra = folder / ".hydra"
+    if hydra.is_dir() and not hydra.is_symlink():
+        found += sorted(p for p in hydra.iterdir() if p.is_symlink())
+    return found
+
+
+def planted_links(folder: Path, sweep: bool = False) -> List[Path]:
+    """The links a run in ``folder`` would write through (:func:`_links_at_writes`); for a sweep
+    folder also those of its existing job folders, and job folders that are links themselves."""
+    folder = Path(folder)
+    found = _links_at_writes(folder)
+    if sweep:
+        for job in sorted(p for p in folder.iterdir() if p.name.isdigit()):
+            found += [job] if job.is_symlink() else _links_at_writes(job) if job.is_dir() else []
+    return found
+
+
 def guard_output_folder(
     folder: Path,
     *,
@@ -450,6 +476,14 @@ def guard_output_folder(
             f"{key}: cannot write into {folder} ({type(e).__name__}: {e.strerror or e}); choose a "
             f"writable folder with {key}=<folder>"
         ) from None
+    links = planted_links(folder, sweep)
+    if links:  # Hydra's own writes (.hydra/*.yaml) would follow them: refused, never written through
+        shown_links = ", ".join(f"{p.relative_to(folder)} -> {os.readlink(p)}" for p in links[:3])
+        raise ConfigError(
+            f"{key}: {shown} holds links at names a run writes itself ({shown_links}"
+            f"{', ...' if len(links) > 3 else ''}); a run would write through them into their targets: remove "
+            f"the links or choose another folder ({key}=<new folder>)"
+        )
     lock = OutputLock(folder, key, command).acquire()
     found = earlier_results(folder, sweep)
     if found and not replace:
