@@ -492,3 +492,22 @@ def test_a_sweep_of_tasks_counts_its_finished_jobs_and_collect_says_what_it_merg
     assert stop.value.code == 2
     err = capsys.readouterr().err
     assert "ran a task (their results are pmmh.json, smoothing.json in each job folder)" in err
+
+
+def test_a_constructor_s_message_keeps_its_own_closing_quote():
+    """Q34: ``got '.inf'`` lost its closing quote (both ends were stripped of quotes whatever they
+    held); only a message quoted whole (a KeyError's) loses its quotes."""
+    from hydra.errors import InstantiationException
+
+    def wrapped(cause):
+        try:
+            try:
+                raise cause
+            except Exception as c:
+                raise InstantiationException("Error in call\nfull_key: filter.lpf") from c
+        except InstantiationException as e:
+            return shell.config_error(e)
+
+    got = wrapped(ValueError("radius: expected a number > 0, got '.inf'"))
+    assert got == "filter.lpf: radius: expected a number > 0, got '.inf'"
+    assert wrapped(TypeError("'learnable'")) == "filter.lpf: learnable"

@@ -458,3 +458,15 @@ def test_a_prior_reaching_outside_the_parameter_s_domain_is_refused():
     ):
         ParameterSpace(sv, ok, 2)  # supports inside the domains (a shared end point has probability zero)
     ParameterSpace(ScalarAR(), {"a": Normal(0.0, 1.0)}, 2)  # a model that declares no domain: anything
+
+
+def test_the_effective_sample_size_of_stuck_chains_is_at_most_their_draws():
+    """Q61: two chains of 6 draws that hardly move (one jump) gave an ESS of 85 from 12 draws; it is
+    now at most the draws, so the task's convergence warning (ESS < its minimum) fires."""
+    from torchflow.app.tasks import convergence_warnings
+
+    a = torch.tensor([[4.288] + [7.0516] * 5, [7.0724] * 6], dtype=F64)
+    ess = float(effective_sample_size(a))
+    assert 0 < ess <= 12, ess
+    summary = {"parameters": {"forcing": {"rhat": float(rhat(a)), "ess": ess}}}
+    assert any("ESS" in w for w in convergence_warnings("bpf", summary))

@@ -201,3 +201,25 @@ def test_an_unwritable_output_folder_is_refused_in_one_line_before_learning(tmp_
         f"error: hydra.run.dir: cannot write into {tmp_path / 'a_file' / 'learn'} "
         "(NotADirectoryError: Not a directory); choose a writable folder with hydra.run.dir=<folder>"
     ]
+
+
+def test_a_model_without_learnable_parameters_is_named_with_the_models_that_have_them(tmp_path):
+    """Q63: Lorenz-96 takes no ``learnable=``; the refusal says so and lists the models
+    torchflow-learn fits, instead of relaying the constructor's unexpected-keyword error."""
+    r = _learn(
+        tmp_path,
+        "model=lorenz96",
+        "model.d=8",
+        "filter=[bpf]",
+        "trials=2",
+        "steps=5",
+        "epochs=1",
+        "reference=null",
+        "~start",
+        "learn=[forcing]",
+    )
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert _errors(r.stderr) == [
+        "error: model: Lorenz96 has no learnable parameters (it takes no learnable=...), so torchflow-learn "
+        "cannot fit it; the models it fits: acoustic, linear_gaussian, stochastic_volatility"
+    ]

@@ -443,3 +443,14 @@ def test_the_command_line_s_recorded_data_keep_their_gaps(tmp_path):
     obs, trials, steps, sha = recorded_data(OmegaConf.create({"data": str(path), "trials": 2, "steps": 3}), model)
     assert steps == 3 and torch.isnan(obs[1, 2]) and int(torch.isnan(obs).sum()) == 1
     torch.testing.assert_close(torch.nan_to_num(obs), torch.nan_to_num(torch.from_numpy(z)))
+
+
+def test_a_pipe_a_device_or_a_folder_is_named_as_such_not_as_missing(tmp_path):
+    """Q86: a named pipe (reading it would block) or a link to a device is not a regular file;
+    the message says what it is rather than 'file not found'."""
+    os.mkfifo(tmp_path / "fifo.csv")
+    (tmp_path / "zero.npy").symlink_to("/dev/zero")
+    (tmp_path / "folder.csv").mkdir()
+    for name, kind in (("fifo.csv", "a named pipe"), ("zero.npy", "a device or socket"), ("folder.csv", "a folder")):
+        with pytest.raises(ArgumentError, match=f"^data: expected a regular .csv or .npy file, got {kind}: "):
+            load_observations(tmp_path / name, SensorNetwork(d=4))

@@ -163,8 +163,11 @@ def read_recording(path: Union[str, Path], *, name: str = "data") -> Tuple[np.nd
     if not isinstance(path, (str, Path)):
         raise ArgumentTypeError(f"{name}: expected the path of a .csv or .npy file, got {type(path).__name__}")
     p = Path(path).expanduser()
-    if not p.is_file():
-        raise ArgumentError(f"{name}: file not found: {p}" + (" (a folder)" if p.is_dir() else ""))
+    if not p.exists():
+        raise ArgumentError(f"{name}: file not found: {p}")
+    if not p.is_file():  # reading a pipe or a device would block or never end
+        kind = "a folder" if p.is_dir() else "a named pipe" if p.is_fifo() else "a device or socket"
+        raise ArgumentError(f"{name}: expected a regular .csv or .npy file, got {kind}: {p}")
     suffix = p.suffix.lower()
     if suffix == ".csv":
         return _read_csv(p, name)

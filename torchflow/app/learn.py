@@ -172,24 +172,48 @@ def _start(cfg: DictConfig) -> Dict:
     )
 
 
+def _learns(target: str) -> bool:
+    """Whether the model class ``target`` is built with learnable parameters (a ``learnable``
+    argument)."""
+    return "learnable" in signature_defaults(resolve(target))
+
+
+def _check_learnable_model(cfg: DictConfig) -> None:
+    """A model without learnable parameters (no ``learnable`` argument: Lorenz-63, Lorenz-96) is
+    refused in one line naming the models that have them."""
+    target = cfg.model._target_
+    if _learns(target):
+        return
+    models = []
+    for name in group_options("model") or []:
+        found = _filter_target(name, "model")
+        if found and _learns(found):
+            models.append(name)
+    raise ConfigError(
+        f"model: {target.split('.')[-1]} has no learnable parameters (it takes no learnable=...), so "
+        f"torchflow-learn cannot fit it; the models it fits: {', '.join(models)}"
+    )
+
+
 def _learner(cfg: DictConfig, env: Optional[JobEnv] = None):
     """The model to fit: the model config with ``learnable=<learn>`` and the ``start`` overrides, on
     the job's device and dtype."""
     learn = OmegaConf.to_container(cfg.learn, resolve=True) if OmegaConf.is_config(cfg.learn) else cfg.learn
+    _check_learnable_model(cfg)
     model = hydra.utils.instantiate(cfg.model, learnable=learn, **_start(cfg))
     return model if env is None else model.to(device=env.device, dtype=env.dtype)
 
 
-def _filter_target(name: str) -> Optional[str]:
-    """The class path of the filter config ``configs/filter/<name>.yaml`` (its ``_target_``, or
-    that of the config or signature node it extends)."""
-    node = OmegaConf.load(config_dir() / "filter" / f"{name}.yaml")
+def _filter_target(name: str, group: str = "filter") -> Optional[str]:
+    """The class path of the config ``configs/<group>/<name>.yaml`` (its ``_target_``, or that of
+    the config or signature node it extends)."""
+    node = OmegaConf.load(config_dir() / group / f"{name}.yaml")
     if "_target_" in node:
         return node._target_
     for item in node.get("defaults") or []:
         if isinstance(item, str) and item.endswith("@_here_"):
             ref = item[: -len("@_here_")]
-            return ref[len("/signature/") :] if ref.startswith("/signature/") else _filter_target(ref)
+            return ref[len("/signature/") :] if ref.startswith("/signature/") else _filter_target(ref, group)
     return None
 
 

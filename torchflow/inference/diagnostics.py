@@ -40,7 +40,8 @@ def rhat(draws: torch.Tensor) -> torch.Tensor:
 
 def effective_sample_size(draws: torch.Tensor) -> torch.Tensor:
     """Effective sample size of ``draws (C, S, ...)`` -> ``(...)`` (all chains together), from the
-    split chains' autocorrelation (FFT), summed in pairs while the pairs stay positive."""
+    split chains' autocorrelation (FFT), summed in pairs while the pairs stay positive; at most
+    the number of draws (``C * S``, an even S per chain)."""
     x = _split(_check(draws, "effective_sample_size"))
     m, n = x.shape[:2]
     xc = x - x.mean(1, keepdim=True)
@@ -56,7 +57,9 @@ def effective_sample_size(draws: torch.Tensor) -> torch.Tensor:
     tau = -1 + 2 * (pairs * positive).sum(0)
     if not isinstance(tau, torch.Tensor) or tau.dim() == 0:
         tau = torch.as_tensor(tau)
-    return m * n / tau.clamp(min=1 / (m * n))
+    # at most the number of draws: a Metropolis-Hastings chain's draws are at best independent, and
+    # with few draws the autocorrelation sum is noise that can put the estimate far above them
+    return (m * n / tau.clamp(min=1 / (m * n))).clamp(max=m * n)
 
 
 __all__ = ["rhat", "effective_sample_size"]

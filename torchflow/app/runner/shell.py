@@ -121,7 +121,10 @@ def config_error(e: BaseException) -> Optional[str]:
     if not isinstance(cause, (ValueError, TypeError)):
         return None
     key = [ln.split(":", 1)[1].strip() + ": " for ln in str(e).splitlines() if ln.startswith("full_key:")]
-    return (key[-1] if key else "") + str(cause).strip("'\"")
+    text = str(cause)
+    if len(text) >= 2 and text[0] == text[-1] and text[0] in "'\"":  # a KeyError's quotes, both ends only
+        text = text[1:-1]
+    return (key[-1] if key else "") + text
 
 
 def multirun() -> bool:
