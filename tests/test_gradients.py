@@ -325,3 +325,37 @@ def test_marginal_score_gradient_matches_the_kalman_gradient_at_n_1000():
     t = (est - exact) / se
     assert float(t.abs().max()) < 3.9, (exact, est, se)
     assert float((G.std(0) * math.sqrt(B8)).max()) < 0.5  # the per-run spread stays that small
+
+
+def test_the_lag_one_flow_s_log_evidence_has_the_finite_difference_gradient():
+    """Q72: with more members than state coordinates (N = 20, d = 4) the flow's regression went
+    through an N x N eigendecomposition whose N - d repeated zero eigenvalues (and a masked
+    reciprocal) made the gradient NaN, so learning through lag1_flow always failed. The d x d
+    Cholesky form used there now gives the central finite difference's gradient (same streams)."""
+    from torchflow.filters import LagOneFlowFilter
+    from torchflow.models import SensorNetwork
+
+    model = SensorNetwork(d=4, learnable=["R"])
+    with torch.no_grad():
+        traj = model.simulate(2, 5, torch.Generator().manual_seed(0))
+    mean, cov = model.initial_belief(traj.states[:, 0], torch.Generator().manual_seed(1))
+
+    def log_evidence():
+        res = LagOneFlowFilter(model, n_particles=20)(traj.observations, mean, cov, torch.Generator().manual_seed(2))
+        return res.log_evidence.sum()
+
+    log_evidence().backward()
+    p = next(model.parameters())
+    grad, eps = p.grad.clone(), 1e-6
+    assert torch.isfinite(grad).all() and float(grad.abs().max()) > 1.0
+    with torch.no_grad():
+        p.view(-1)[0] += eps
+        up = float(log_evidence())
+        p.view(-1)[0] -= 2 * eps
+        down = float(log_evidence())
+        p.view(-1)[0] += eps
+    assert abs(float(grad.view(-1)[0]) - (up - down) / (2 * eps)) < 1e-5 * abs(float(grad.view(-1)[0])), (
+        grad,
+        up,
+        down,
+    )

@@ -6,6 +6,7 @@ import pytest
 import torch
 from torch.distributions import Normal, Uniform
 
+from torchflow.core.errors import ArgumentError
 from torchflow.core.linalg import standard_normal
 from torchflow.filters import BootstrapParticleFilter, ExtendedKalmanFilter
 from torchflow.inference import effective_sample_size, pmmh, rhat
@@ -470,3 +471,18 @@ def test_the_effective_sample_size_of_stuck_chains_is_at_most_their_draws():
     assert 0 < ess <= 12, ess
     summary = {"parameters": {"forcing": {"rhat": float(rhat(a)), "ess": ess}}}
     assert any("ESS" in w for w in convergence_warnings("bpf", summary))
+
+
+def test_pmmh_refuses_an_approximate_log_evidence_unless_allowed():
+    """Q93: the Python ``pmmh`` ran the ETKF (a Gaussian approximation of the evidence) and returned a
+    'posterior'; like ``task=pmmh`` it now refuses it by name, and runs it when asked to."""
+    from torchflow.filters import EnsembleTransformKalmanFilter
+
+    model, obs = _data(10)
+    prior = {"a": Uniform(torch.tensor(-1.0, dtype=F64), torch.tensor(1.0, dtype=F64))}
+    prior0 = (torch.zeros(1, dtype=F64), torch.eye(1, dtype=F64))
+    filt = EnsembleTransformKalmanFilter(model, n_particles=10)
+    with pytest.raises(ArgumentError, match="^filt: pmmh needs .* got EnsembleTransformKalmanFilter, whose"):
+        pmmh(filt, obs, prior0, prior, 0, n_chains=2, n_iterations=4, n_adapt=2)
+    res = pmmh(filt, obs, prior0, prior, 0, n_chains=2, n_iterations=4, n_adapt=2, allow_approximate_evidence=True)
+    assert res.samples["a"].shape == (2, 4)

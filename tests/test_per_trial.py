@@ -375,3 +375,32 @@ def test_a_covariance_value_outside_its_cholesky_constraint_is_named():
         with per_trial_values(model, {"Q": bad}):
             pass
     assert model.Q.shape == (2, 2)
+
+
+def test_per_trial_measurement_noise_reaches_the_local_filters_terms_trial_by_trial():
+    """Q38, Q40: a per-trial ``obs_std`` (B,) with particles (B, N, d) gave a raw broadcast error in
+    the per-observation densities the LPF and the localised lag-one flow weigh with; each trial's
+    terms are now those of the model with that trial's own value, and both filters run."""
+    from torchflow.filters import LagOneFlowFilter, LocalParticleFilter
+    from torchflow.inference import per_trial_values
+    from torchflow.models import Lorenz96
+
+    g = torch.Generator().manual_seed(0)
+    model = Lorenz96(d=8)
+    x = torch.randn(2, 5, 8, generator=g, dtype=torch.float64)
+    z = torch.randn(2, 1, 8, generator=g, dtype=torch.float64)
+    stds = torch.tensor([0.5, 1.0], dtype=torch.float64)
+    with per_trial_values(model, {"obs_std": stds}):
+        terms = model.measurement_log_prob_terms(z, x)
+    for b, s in enumerate(stds.tolist()):
+        alone = Lorenz96(d=8, obs_std=s).measurement_log_prob_terms(z[b], x[b])
+        assert torch.allclose(terms[b], alone, rtol=1e-12, atol=0), b
+    traj = model.simulate(2, 4, torch.Generator().manual_seed(1))
+    mean, cov = traj.states[:, 0], 0.1 * torch.eye(8, dtype=torch.float64).expand(2, 8, 8)
+    for filt in (
+        LocalParticleFilter(model, n_particles=10, radius=3.0),
+        LagOneFlowFilter(model, n_particles=10, radius=3.0, likelihood="model"),
+    ):
+        with per_trial_values(model, {"obs_std": stds}):
+            res = filt(traj.observations, mean, cov, torch.Generator().manual_seed(2))
+        assert torch.isfinite(res.estimates).all(), type(filt).__name__

@@ -557,13 +557,23 @@ class LagOneFlowFilter(_EnsembleFilter):
         mean = X.mean(1, keepdim=True)
         D = X - mean  # (B, N, d)
         # H v = Y^T (D D^T)^+ D v: the minimum-norm least-squares fit of Y = D H^T
-        G = linalg.symmetrize(D @ D.transpose(1, 2))
-        evals, V = torch.linalg.eigh(G)
-        cut = evals[..., -1:] * (N * torch.finfo(X.dtype).eps * 10)
-        inv = torch.where(evals > cut, 1.0 / evals.clamp_min(torch.finfo(X.dtype).tiny), torch.zeros_like(evals))
-        Gp = (V * inv.unsqueeze(-2)) @ V.transpose(1, 2)  # (B, N, N)
-        C = Gp @ w.Y  # (B, N, m): H v = C^T D v
-        H_of = lambda v: (D @ v.transpose(1, 2)).transpose(1, 2) @ C  # v (B, k, d) -> H v (B, k, m)
+        if N > X.shape[2]:  # (shapes only) D (N, d) of rank d: H^T = (D^T D)^{-1} D^T Y, a d x d
+            # Cholesky solve; the N x N eigendecomposition's gradient is undefined at the N - d
+            # repeated zero eigenvalues of D D^T (NaN when learning through the flow)
+            Dt = D.transpose(1, 2)
+            M = linalg.chol_solve(linalg.safe_cholesky(linalg.symmetrize(Dt @ D)), Dt @ w.Y)  # (B, d, m)
+            H_of = lambda v: v @ M  # v (B, k, d) -> H v (B, k, m)
+        else:
+            G = linalg.symmetrize(D @ D.transpose(1, 2))
+            evals, V = torch.linalg.eigh(G)
+            cut = evals[..., -1:] * (N * torch.finfo(X.dtype).eps * 10)
+            kept = evals > cut
+            # 1 / evals only where kept: the other branch's reciprocal (of a tiny floor) would put
+            # 0 * inf = NaN into the gradient of the model's parameters
+            inv = torch.where(kept, 1.0 / torch.where(kept, evals, torch.ones_like(evals)), torch.zeros_like(evals))
+            Gp = (V * inv.unsqueeze(-2)) @ V.transpose(1, 2)  # (B, N, N)
+            C = Gp @ w.Y  # (B, N, m): H v = C^T D v
+            H_of = lambda v: (D @ v.transpose(1, 2)).transpose(1, 2) @ C  # v (B, k, d) -> H v (B, k, m)
         AH = H_of(A0)  # (B, N, m): A0 H^T, so P H^T = A0^T AH and H P H^T = AH^T AH
         # (lam AH^T AH + I)^{-1} u = u - lam AH^T (I + lam AH AH^T)^{-1} AH u (push-through, N x N)
         K = lam * (AH @ AH.transpose(1, 2))

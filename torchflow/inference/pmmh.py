@@ -75,6 +75,7 @@ def pmmh(
     scale: float = 0.5,
     target_acceptance: Optional[float] = None,
     correlation: Optional[float] = None,
+    allow_approximate_evidence: bool = False,
 ) -> PMMHResult:
     """Sample the posterior of model parameters given ``observations`` by particle marginal
     Metropolis-Hastings, the filter's log-evidence estimate standing in for the likelihood.
@@ -127,6 +128,11 @@ def pmmh(
             was set), so that the ancestors move continuously with ``u`` (exactly in d = 1;
             approximately in higher dimensions, where the gain is smaller).
 
+        allow_approximate_evidence: run with a filter whose log-evidence is only a Gaussian
+            approximation (``estimates_evidence = False``: the ensemble Kalman filters, the
+            Gaussian-sum and unweighted flow filters, the lag-one flow, the KPFF), refused by
+            default: the chain then samples an approximate posterior, not the exact one.
+
     Returns:
         :class:`PMMHResult`.
     """
@@ -134,6 +140,13 @@ def pmmh(
 
     if not isinstance(filt, Filter):
         raise ArgumentTypeError(f"filt: expected a torchflow Filter, got {type(filt).__name__}")
+    if not filt.estimates_evidence and allow_approximate_evidence is not True:
+        raise ArgumentError(
+            f"filt: pmmh needs a log-evidence that estimates the likelihood without bias (a weighted "
+            f"particle filter; the Kalman filter, or the EKF/UKF on a linear-Gaussian model: exact), got "
+            f"{type(filt).__name__}, whose log-evidence is a Gaussian approximation; pass "
+            f"allow_approximate_evidence=True to sample the approximate posterior it gives"
+        )
     model = filt.model
     space = ParameterSpace(model, priors, n_chains)
     C, S = space.C, check_count("n_iterations", n_iterations)

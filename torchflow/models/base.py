@@ -459,6 +459,8 @@ class GaussianStateSpaceModel(StateSpaceModel):
             )
         h = self.measure(x)
         r = self.measurement_variance(x if noise.startswith("state_dependent") else None)
+        if r.dim() > 1 and not noise.startswith("state_dependent"):  # per-trial (B, m): one row per trial
+            r = trial_view(r, 1, h)
         resid = z - h
         terms = -0.5 * (resid * resid / r + torch.log(r * (2.0 * math.pi)))
         return torch.where(torch.isnan(z), torch.zeros_like(terms), terms)
