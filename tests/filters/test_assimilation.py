@@ -369,3 +369,33 @@ def test_bad_inputs_are_named():
         LPF(m96, rtps=1.5)
     with pytest.raises(ArgumentError, match="jitter: expected a number >= 0"):
         LPF(m96, jitter=-0.1)
+
+
+def test_a_diverged_flow_or_ensemble_is_named_with_the_filter_s_own_knobs():
+    """Q03, Q08, Q94: a KPFF step too large or a huge inflation made the members non-finite and a raw
+    ``LinAlgError`` came from the ensemble's Cholesky; the factor is NaN there now, so the
+    non-finite check names the filter, step and trials, and its hint names the filter's knobs."""
+    from torchflow.core.errors import NonFiniteError
+    from torchflow.filters import KernelParticleFlowFilter, LagOneFlowFilter
+    from torchflow.models import Lorenz63
+
+    model = Lorenz63()
+    traj = model.simulate(2, 6, torch.Generator().manual_seed(0))
+    mean, cov = model.initial_belief(traj.states[:, 0], torch.Generator().manual_seed(1))
+    for filt, knob in (
+        (KernelParticleFlowFilter(model, n_particles=10, step_size=1e6), "a smaller step_size"),
+        (LagOneFlowFilter(model, n_particles=10, inflation=1e6), "a smaller inflation"),
+    ):
+        with pytest.raises(NonFiniteError, match=rf"^{filt.name}: non-finite estimate.* at time step \d .*{knob}"):
+            filt(traj.observations, mean, cov, torch.Generator().manual_seed(2))
+
+
+def test_a_lorenz_simulation_that_blows_up_names_the_integration_step():
+    """Q17: Lorenz-63 at dt = 5 (RK4 steps of 0.2) blew up and the error blamed 'the model's
+    parameters or methods'; it names the step and the settings that fix it."""
+    from torchflow.core.errors import NonFiniteError
+    from torchflow.models import Lorenz63, Lorenz96
+
+    for model, h in ((Lorenz63(dt=5.0), "0.2"), (Lorenz96(d=8, dt=2.0), "2")):
+        with pytest.raises(NonFiniteError, match=rf"the Runge-Kutta step dt / substeps = {h} is too large .*substeps"):
+            model.simulate(2, 5, torch.Generator().manual_seed(0))

@@ -247,7 +247,7 @@ class FilterLightningModule(pl.LightningModule):
 
     def _with_epoch(self, err: NonFiniteError) -> NonFiniteError:
         """``err`` (raised by the filter) with the epoch in its quantity."""
-        return NonFiniteError(err.filter_name, err.step, err.trials, self._in_epoch(err.what))
+        return NonFiniteError(err.filter_name, err.step, err.trials, self._in_epoch(err.what), hint=err.hint)
 
     def forward(self, observations, mean, cov, generator: Optional[torch.Generator] = None):
         return self.filter(observations, mean, cov, generator)

@@ -15,7 +15,7 @@ They subclass the built-in types that the same checks raised before (``ValueErro
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Optional, Sequence
 
 
 class TorchflowError(Exception):
@@ -38,18 +38,23 @@ class NonFiniteError(TorchflowError, FloatingPointError):
         step: 1-based time step (0 where the quantity is not tied to a step, e.g. a gradient).
         trials: indices of the offending trials (within the batch that was being filtered).
         what: the quantity ("estimate", "log-evidence increment", "gradient of psi", ...).
+        hint: what to look at or change, in brackets after the rest (``None``: nothing).
     """
 
-    def __init__(self, filter_name: str, step: int, trials: Sequence[int], what: str = "estimate"):
+    def __init__(
+        self, filter_name: str, step: int, trials: Sequence[int], what: str = "estimate", hint: Optional[str] = None
+    ):
         self.filter_name = filter_name
         self.step = step
         self.trials = list(trials)
         self.what = what
+        self.hint = hint
         shown = self.trials[:10]
         more = "" if len(self.trials) <= 10 else f" (and {len(self.trials) - 10} more)"
         where = f" at time step {step}" if step else ""
         which = f" in trial(s) {shown}{more}" if self.trials else ""
-        super().__init__(f"{filter_name}: non-finite {what}{where}{which}")
+        advice = f" ({hint})" if hint else ""
+        super().__init__(f"{filter_name}: non-finite {what}{where}{which}{advice}")
 
     def __reduce__(self):  # picklable across processes (joblib sweeps, DDP)
-        return (type(self), (self.filter_name, self.step, self.trials, self.what))
+        return (type(self), (self.filter_name, self.step, self.trials, self.what, self.hint))

@@ -134,6 +134,12 @@ class KernelParticleFlowFilter(_EnsembleFilter):
     Shapes: ensemble ``(B, N, d)``, observations ``z (B, m)`` (NaN: not observed).
     """
 
+    nonfinite_hint = (
+        "the flow diverged: a smaller step_size with more flow_steps (preconditioner='prior' needs a step "
+        "about 25 times smaller than 'posterior'), a smaller inflation, or, for a strongly nonlinear "
+        "measurement, another filter (lag1_flow, lpf)"
+    )
+
     def __init__(
         self,
         model,
@@ -431,6 +437,11 @@ class LagOneFlowFilter(_EnsembleFilter):
 
     Shapes: ensemble ``(B, N, d)``, observations ``z (B, m)``.
     """
+
+    nonfinite_hint = (
+        "the members diverged: a smaller inflation, more flow_steps, or dynamics that blow up at the "
+        "model's time step (a smaller dt or more substeps)"
+    )
 
     def __init__(
         self,

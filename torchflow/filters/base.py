@@ -240,6 +240,8 @@ class Filter(Estimator):
     #: whether ``log_evidence`` is an estimate of p(z_{1:T}) worth scoring (False for filters that
     #: only carry a Gaussian approximation of it, such as the unweighted flow filters)
     estimates_evidence = True
+    #: advice added to a :class:`NonFiniteError` for a non-finite estimate (the filter's own knobs)
+    nonfinite_hint: Optional[str] = None
     #: default of ``forward(checkpoint_steps=...)``: recompute each time step in the backward pass
     checkpoint_steps = False
     #: under autograd, check the gradient flowing back into every step and the model parameters'
@@ -450,7 +452,7 @@ class Filter(Estimator):
                 getattr(self, "nonfinite", None) == "recover",
             )
         )
-        guards.raise_first(self.name, table)
+        guards.raise_first(self.name, table, getattr(self, "nonfinite_hint", None))
         if warn:
             guards.raise_never_measured(self.name, table, trace.n)
             guards.warn_dead_steps(self.name, table)

@@ -70,22 +70,22 @@ def first_steps(est: torch.Tensor, invalid: Optional[torch.Tensor], inc: torch.T
     )
 
 
-def raise_first(name: str, table: List[List[int]]) -> None:
+def raise_first(name: str, table: List[List[int]], hint: Optional[str] = None) -> None:
     """Raise :class:`NonFiniteError` for the earliest bad step in ``table`` (rows of
-    :func:`first_steps`, read to the host), naming every quantity bad at that step; return if none."""
+    :func:`first_steps`, read to the host), naming every quantity bad at that step; return if none.
+    ``hint``: the filter's own advice for a non-finite estimate (its :attr:`nonfinite_hint`)."""
     bad = [(r[0], i) for i, r in enumerate(table) if r[0] > 0]
     if not bad:
         return
     step = min(s for s, _ in bad)
     trials = [i for s, i in bad if s == step]
     what = [q for k, q in enumerate(QUANTITIES) if any(table[i][1 + k] for i in trials)]
-    err = NonFiniteError(name, step, trials, what=" and ".join(what) or "estimate")
     if what == [QUANTITIES[2]]:  # finite estimates: the density of the observation itself under/overflowed
-        err.args = (
-            err.args[0] + " (an observation so far from its prediction, or a predicted spread so small, "
-            "that its density under- or overflows: look at that step's observations and the noise scales)",
+        hint = (
+            "an observation so far from its prediction, or a predicted spread so small, that its density "
+            "under- or overflows: look at that step's observations and the noise scales"
         )
-    raise err
+    raise NonFiniteError(name, step, trials, what=" and ".join(what) or "estimate", hint=hint)
 
 
 def raise_never_measured(name: str, table: List[List[int]], steps: int) -> None:

@@ -228,7 +228,7 @@ class StateSpaceModel(nn.Module):
                 states[:, k + 1], obs[:, k] = x, z
                 report(k + 1, steps)  # the runner's watcher: progress, stop requests
             traj = Trajectory(states, obs)
-        check_simulated(who, traj)
+        check_simulated(who, traj, getattr(self, "simulation_hint", None))
         return traj
 
     def simulation_bytes(self, batch_size: int, steps: int) -> int:

@@ -58,10 +58,11 @@ def check_simulate_args(model, batch_size, steps, generator) -> Tuple[int, int]:
     return batch_size, steps
 
 
-def check_simulated(who: str, traj) -> None:
+def check_simulated(who: str, traj, hint: Optional[str] = None) -> None:
     """Raise unless a simulated trajectory's states and observations are finite, naming the first
     (trial, step) and the count (one host read per simulation): non-finite simulated data come from
-    the model (a parameter or a method returning NaN/inf), not from the observations' user."""
+    the model (a parameter or a method returning NaN/inf), not from the observations' user.
+    ``hint``: the model's own advice (its ``simulation_hint``, e.g. an integration step too large)."""
     for what, x in (("states", traj.states), ("observations", traj.observations)):
         bad = ~torch.isfinite(x).all(-1)  # (B, T)
         n = int(bad.sum())
@@ -72,10 +73,8 @@ def check_simulated(who: str, traj) -> None:
                 who,
                 step,
                 sorted(set(torch.nonzero(bad)[:, 0].tolist())),
-                what=(
-                    f"simulated {what} ({n} (trial, step) pair(s), first trial {b}; the model's parameters or "
-                    "methods give NaN/inf there)"
-                ),
+                what=f"simulated {what} ({n} (trial, step) pair(s), first trial {b})",
+                hint=hint or "the model's parameters or methods give NaN/inf there",
             )
 
 

@@ -140,6 +140,15 @@ class Lorenz63(GaussianStateSpaceModel):
             measurement_support=None if obs == [0, 1, 2] else tuple(obs),
         )
 
+    @property
+    def simulation_hint(self) -> str:
+        """The advice of a simulation that blows up (:func:`~torchflow.models.contract.check_simulated`)."""
+        h = float(self.dt) / int(self.substeps)
+        return (
+            f"the Runge-Kutta step dt / substeps = {h:g} is too large for these dynamics: more substeps "
+            "(model.substeps) or a smaller dt"
+        )
+
     def _tendency(self, x):
         return lorenz63_tendency(x, self.sigma, self.rho, self.beta)
 

@@ -161,6 +161,15 @@ class Lorenz96(GaussianStateSpaceModel):
             measurement_matrix_scale=1.0 if self.obs_every == 1 and linear else None,
         )
 
+    @property
+    def simulation_hint(self) -> str:
+        """The advice of a simulation that blows up (:func:`~torchflow.models.contract.check_simulated`)."""
+        h = float(self.dt) / int(self.substeps)
+        return (
+            f"the Runge-Kutta step dt / substeps = {h:g} is too large for these dynamics: more substeps "
+            "(model.substeps) or a smaller dt"
+        )
+
     def _per_trial_structure(self, names):
         return per_trial_structure(self, names, dynamics=False, measurement=False, noise="obs_std" in names)
 

@@ -167,7 +167,7 @@ def _timed_call(f: Filter, name: str, plan: RunPlan, s: int, e: int, steps: Opti
         try:
             res = f(traj.observations[s:e, :T], plan.mean0[s:e], plan.cov0[s:e], g, progress=progress, **mask)
         except NonFiniteError as err:  # report trial indices in the whole run
-            raise NonFiniteError(name, err.step, [s + i for i in err.trials], what=err.what) from None
+            raise NonFiniteError(name, err.step, [s + i for i in err.trials], what=err.what, hint=err.hint) from None
     sync()
     return res, time.perf_counter() - t0
 

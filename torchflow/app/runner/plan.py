@@ -17,7 +17,7 @@ from torchflow.app.data import declared_prior
 from torchflow.app.runner.distributed import Shard
 from torchflow.core.checks import allocation_failure, check_count
 from torchflow.core.covariances import DiagonalCovariance, prior_bytes
-from torchflow.core.errors import ArgumentError
+from torchflow.core.errors import ArgumentError, NonFiniteError
 from torchflow.filters.base import Filter
 from torchflow.models.base import StateSpaceModel, Trajectory
 
@@ -353,7 +353,10 @@ def check_memory(
 def simulate(model: StateSpaceModel, trials: int, steps: int, inits_per_track: int, generator):
     """``trials`` trajectories (groups of ``inits_per_track`` share one) and each trial's prior."""
     n_tracks = math.ceil(trials / inits_per_track)
-    traj = model.simulate(n_tracks, steps, generator)
+    try:
+        traj = model.simulate(n_tracks, steps, generator)
+    except NonFiniteError as e:  # the model's settings (a step too large, a parameter): one line, exit 2
+        raise ConfigError(f"model: {e}") from None
     if inits_per_track > 1:
         traj = traj[torch.arange(trials, device=traj.states.device) // inits_per_track]
     mean, cov = model.initial_belief(traj.states[:, 0], generator)
