@@ -399,3 +399,41 @@ def test_a_lorenz_simulation_that_blows_up_names_the_integration_step():
     for model, h in ((Lorenz63(dt=5.0), "0.2"), (Lorenz96(d=8, dt=2.0), "2")):
         with pytest.raises(NonFiniteError, match=rf"the Runge-Kutta step dt / substeps = {h} is too large .*substeps"):
             model.simulate(2, 5, torch.Generator().manual_seed(0))
+
+
+def test_distances_are_checked_whatever_the_radius_and_the_geometry_is_the_model_s():
+    """Q27-Q30, Q92: NaN or negative ``state_distances`` were accepted (a 'taper' of 124), given
+    distances went unchecked at an infinite radius (and skipped the N <= d refusal), and every
+    model was localised on a 1-D ring. Distances are checked whenever given; without them a finite
+    radius measures in the model's declared geometry (Lorenz-96's ring, the sensor grid), and a
+    model that declares none is refused."""
+    from torchflow.filters import LocalEnsembleTransformKalmanFilter
+    from torchflow.filters.ensemble import gaspari_cohn
+    from torchflow.models import SensorNetwork
+
+    l96 = Lorenz96(d=8)
+    bad = torch.zeros(8, 8, dtype=torch.float64)
+    bad[1, 2] = math.nan
+    with pytest.raises(ArgumentError, match=r"^state_distances: expected finite distances >= 0, got nan at \(1, 2\)"):
+        KernelParticleFlowFilter(l96, n_particles=10, radius=3.0, state_distances=bad)
+    with pytest.raises(ArgumentError, match=r"^state_distances: expected finite distances >= 0, got -5.0"):
+        KernelParticleFlowFilter(l96, n_particles=10, radius=3.0, state_distances=-5 * torch.ones(8, 8))
+    with pytest.raises(ArgumentError, match="^n_particles: without a taper"):
+        KernelParticleFlowFilter(l96, n_particles=5, state_distances=torch.zeros(8, 8))
+    with pytest.raises(TypeError, match="^distances: expected a tensor"):
+        LagOneFlowFilter(l96, distances="not a tensor")
+    with pytest.raises(ArgumentError, match="^distances: expected finite distances"):
+        LocalParticleFilter(l96, distances=torch.full((8, 8), math.nan))
+    for make in (
+        lambda m: LocalEnsembleTransformKalmanFilter(m, radius=0.5),
+        lambda m: LocalParticleFilter(m, radius=0.5),
+        lambda m: KernelParticleFlowFilter(m, n_particles=10, radius=0.5),
+    ):
+        with pytest.raises(ArgumentError, match="Lorenz63 declares no distances between its state coordinates"):
+            make(Lorenz63())
+    LocalParticleFilter(Lorenz63(), radius=math.inf)  # no localisation: no geometry needed
+    grid = SensorNetwork(d=16)  # a 4 x 4 grid: sensor 5 at (2, 2), sensor 6 at (3, 2), sensor 9 at (2, 3)
+    kpff = KernelParticleFlowFilter(grid, n_particles=10, radius=2.0)
+    dist = grid.site_distances()
+    assert float(dist[5, 6]) == 1.0 and float(dist[5, 10]) == pytest.approx(math.sqrt(2))
+    torch.testing.assert_close(kpff.taper, gaspari_cohn(dist, 2.0))

@@ -65,7 +65,9 @@ from torchflow.core.random import uniform
 from torchflow.filters.ensemble import (
     _DIAGONAL_NOISE,
     _EnsembleFilter,
+    check_distances,
     check_radius,
+    declared_distances,
     gaspari_cohn,
     local_observations,
     periodic_distances,
@@ -102,6 +104,8 @@ def _register_neighbours(f, distances: Optional[torch.Tensor]) -> None:
     on the model's dtype and device; both ``None`` when the radius is infinite (every observation
     everywhere)."""
     taper = index = None
+    if distances is not None:  # checked even where an infinite radius leaves them unused
+        check_distances("distances", distances, (f.model.state_dim, f.model.obs_dim))
     if not math.isinf(f.radius):
         model = f.model
         taper, index = local_observations(model, f.radius, distances)
@@ -121,8 +125,9 @@ class KernelParticleFlowFilter(_EnsembleFilter):
             untapered sample covariance must be invertible).
         inflation: multiplicative inflation of the forecast anomalies (>= 1).
         radius: the distance at which the Gaspari-Cohn taper of the prior covariance vanishes
-            (``inf``: no taper). Distances: ``state_distances`` or, by default, a ring of ``d`` sites.
-        state_distances: ``(d, d)`` distances between state coordinates (``None``: the ring).
+            (``inf``: no taper). Distances: ``state_distances`` or, by default, the model's declared
+            geometry (Lorenz-96's ring, ``model.site_distances()``; a model declaring none is refused).
+        state_distances: ``(d, d)`` distances between state coordinates (``None``: the model's).
         bandwidth: ``alpha``, the kernel's width relative to each coordinate's prior variance
             (``None``: ``1 / N``, Hu & van Leeuwen's choice, which gives nearly the Kalman spread in a
             linear-Gaussian model; wider kernels give a narrower analysis ensemble).
@@ -158,7 +163,7 @@ class KernelParticleFlowFilter(_EnsembleFilter):
         super().__init__(model, n_particles=n_particles, inflation=inflation, validate=validate, name=name)
         d = model.state_dim
         self.radius = check_radius(radius)
-        if math.isinf(self.radius) and state_distances is None and self.n_particles <= d:
+        if math.isinf(self.radius) and self.n_particles <= d:
             raise ArgumentError(
                 f"n_particles: without a taper (radius = inf) the prior covariance of {self.n_particles} members in "
                 f"d = {d} dimensions is singular; use more than {d} members or a finite radius"
@@ -180,16 +185,14 @@ class KernelParticleFlowFilter(_EnsembleFilter):
             raise ArgumentError(f"preconditioner: expected one of {PRECONDITIONERS}, got {preconditioner!r}")
         self.preconditioner = preconditioner
         taper = None
+        given = None if state_distances is None else check_distances("state_distances", state_distances, (d, d))
         if not math.isinf(self.radius):
-            if state_distances is None:
+            if given is not None:
+                dist = given
+            elif model.structure.sites == "ring":
                 dist = periodic_distances(d, torch.arange(d))
-            elif not isinstance(state_distances, torch.Tensor) or tuple(state_distances.shape) != (d, d):
-                raise ArgumentError(
-                    f"state_distances: expected a tensor (d, d) = ({d}, {d}) or None, got "
-                    f"{getattr(state_distances, 'shape', type(state_distances).__name__)}"
-                )
             else:
-                dist = state_distances.detach().to("cpu", torch.float64)
+                dist = declared_distances(model, "state_distances")
             taper = gaspari_cohn(dist, self.radius).to(model.dtype).to(model.device)
         self.register_buffer("taper", taper, persistent=False)
 

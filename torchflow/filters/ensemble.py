@@ -127,15 +127,22 @@ def local_observations(
     the Gaspari-Cohn taper and the observation index of each (K: the most observations one coordinate
     reaches; unused slots have taper 0 and index 0), on the CPU.
 
-    ``distances (d, m)`` between state coordinates and observations; ``None``: a periodic 1-D domain
-    of ``d`` sites (Lorenz-96), observation ``j`` at the site ``model.observed[j]`` (the state
-    coordinate it reads), or at site ``j`` when ``m = d`` and the model has no ``observed``. On the
-    ring with ``radius <= d / 2`` no ``(d, m)`` matrix is formed (:func:`periodic_neighbours`)."""
+    ``distances (d, m)`` between state coordinates and observations; ``None``: the model's declared
+    geometry, observation ``j`` at the site ``model.observed[j]`` (the state coordinate it reads),
+    or at site ``j`` when ``m = d`` and the model has no ``observed``: a ring of ``d`` sites where
+    the model declares ``structure.sites = "ring"`` (Lorenz-96; with ``radius <= d / 2`` no ``(d, m)``
+    matrix is formed, :func:`periodic_neighbours`), else its ``site_distances()``; a model that
+    declares neither is refused (a 1-D ring is not every model's geometry). ``radius = inf`` needs
+    no geometry."""
     d, m = model.state_dim, model.obs_dim
-    if distances is None:
+    if distances is not None:
+        dist = check_distances("distances", distances, (d, m))
+    elif math.isinf(radius):  # no localisation: every observation everywhere, no geometry needed
+        return torch.ones(d, m, dtype=torch.float64), torch.arange(m).expand(d, m).clone()
+    else:
         observed = getattr(model, "observed", None)
         if isinstance(observed, torch.Tensor) and tuple(observed.shape) == (m,):
-            positions = observed
+            positions = observed.cpu()
         elif m == d:
             positions = torch.arange(d)
         else:
@@ -143,21 +150,44 @@ def local_observations(
                 f"distances: the model ({type(model).__name__}, d = {d}, m = {m}) does not say which state "
                 "coordinate each observation reads (an `observed` tensor (m,)); pass distances (d, m)"
             )
-        if radius <= d / 2:  # the ring's neighbours directly: no (d, m) matrix
-            return periodic_neighbours(d, positions.cpu(), radius)
-        distances = periodic_distances(d, positions.cpu())
-    elif not isinstance(distances, torch.Tensor):
-        raise ArgumentTypeError(
-            f"distances: expected a tensor (d, m) = ({d}, {m}) or None, got {type(distances).__name__}"
-        )
-    if tuple(distances.shape) != (d, m):
-        raise ArgumentError(f"distances: expected (d, m) = ({d}, {m}), got {tuple(distances.shape)}")
-    dist = distances.detach().to("cpu", torch.float64)
-    if not bool(torch.isfinite(dist).all()) or bool((dist < 0).any()):
-        raise ArgumentError("distances: expected finite distances >= 0")
+        if model.structure.sites == "ring":
+            if radius <= d / 2:  # the ring's neighbours directly: no (d, m) matrix
+                return periodic_neighbours(d, positions, radius)
+            dist = periodic_distances(d, positions)
+        else:
+            dist = declared_distances(model, "distances")[:, positions]
     rho = gaspari_cohn(dist, radius)  # (d, m)
     K = max(1, int((rho > 0).sum(-1).max()))  # observations that reach the best-reached coordinate
     return rho.topk(K, dim=-1)  # (d, K)
+
+
+def check_distances(name: str, distances, shape: Tuple[int, int]) -> torch.Tensor:
+    """``distances`` checked: a tensor of ``shape``, finite and ``>= 0``; float64 on the CPU."""
+    if not isinstance(distances, torch.Tensor):
+        raise ArgumentTypeError(f"{name}: expected a tensor {shape} or None, got {type(distances).__name__}")
+    if tuple(distances.shape) != tuple(shape):
+        raise ArgumentError(f"{name}: expected a tensor {tuple(shape)}, got {tuple(distances.shape)}")
+    dist = distances.detach().to("cpu", torch.float64)
+    bad = ~torch.isfinite(dist) | (dist < 0)
+    if bool(bad.any()):
+        i, j = torch.nonzero(bad)[0].tolist()
+        raise ArgumentError(f"{name}: expected finite distances >= 0, got {float(dist[i, j])} at ({i}, {j})")
+    return dist
+
+
+def declared_distances(model, name: str) -> torch.Tensor:
+    """The model's ``(d, d)`` :meth:`site_distances` (checked), or a one-line refusal naming ``name``
+    where it declares none."""
+    d = model.state_dim
+    method = getattr(model, "site_distances", None)  # a model with a geometry of its own (the sensor grid)
+    found = method() if callable(method) else None
+    if found is None:
+        raise ArgumentError(
+            f"{name}: {type(model).__name__} declares no distances between its state coordinates (site_distances(); "
+            f"Lorenz-96's sites are a ring, the sensor network's a grid), so a finite radius has nothing to measure: "
+            f"pass {name} or use radius=inf (no localisation)"
+        )
+    return check_distances(f"{type(model).__name__}.site_distances()", found, (d, d))
 
 
 def check_radius(radius) -> float:

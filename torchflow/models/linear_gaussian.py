@@ -239,17 +239,23 @@ def _identity_scale(M: torch.Tensor) -> Optional[float]:
     return float(c) if bool((M == c * torch.eye(M.shape[0], dtype=M.dtype, device=M.device)).all()) else None
 
 
+def sensor_grid(grid_size: int) -> torch.Tensor:
+    """``(d, 2)`` positions of the sensors on a ``grid_size x grid_size`` grid with unit spacing,
+    x fastest (index ``s = grid_size * iy + ix``)."""
+    coords = torch.linspace(1.0, float(grid_size), grid_size, dtype=torch.float64)
+    yy, xx = torch.meshgrid(coords, coords, indexing="ij")
+    return torch.stack([xx.reshape(-1), yy.reshape(-1)], -1)
+
+
 def sensor_network_covariance(
     grid_size: int, alpha0: float = 3.0, alpha1: float = 0.01, beta: float = 20.0
 ) -> torch.Tensor:
     """Process noise of the spatial sensor network: ``Sigma_ij = alpha0 exp(-|R_i - R_j|^2 / beta)
     + alpha1 delta_ij`` over a ``grid_size x grid_size`` grid with unit spacing (``d = grid_size^2``).
 
-    Sensor order: x fastest (index ``s = grid_size * iy + ix``).
+    Sensor order: x fastest (index ``s = grid_size * iy + ix``, :func:`sensor_grid`).
     """
-    coords = torch.linspace(1.0, float(grid_size), grid_size, dtype=torch.float64)
-    yy, xx = torch.meshgrid(coords, coords, indexing="ij")
-    R = torch.stack([xx.reshape(-1), yy.reshape(-1)], -1)  # (d, 2), x fastest
+    R = sensor_grid(grid_size)  # (d, 2)
     sq = (R[:, None, :] - R[None, :, :]).pow(2).sum(-1)
     d = grid_size * grid_size
     return alpha0 * torch.exp(-sq / beta) + alpha1 * torch.eye(d, dtype=torch.float64)
@@ -314,3 +320,9 @@ class SensorNetwork(LinearGaussian):
             P0=prior_var * eye,
             learnable=learnable,
         )
+
+    def site_distances(self) -> torch.Tensor:
+        """``(d, d)`` Euclidean distances between the sensors on their grid (unit spacing,
+        :func:`sensor_grid`): the localising filters' geometry; sensor j observes coordinate j."""
+        R = sensor_grid(int(round(math.sqrt(self.state_dim))))
+        return (R[:, None, :] - R[None, :, :]).pow(2).sum(-1).sqrt()

@@ -78,7 +78,9 @@ class Lorenz96(GaussianStateSpaceModel):
     Shapes: states ``(..., d)``, observations ``(..., m)``.
     """
 
-    structure = Structure(linear_measurement=True, measurement_noise="scalar", prior_covariance="diagonal")
+    structure = Structure(
+        linear_measurement=True, measurement_noise="scalar", prior_covariance="diagonal", sites="ring"
+    )
     #: the forcing and both noise scales may hold one value per trial, ``(B,)``
     per_trial_parameters = {
         "forcing": support.real,

@@ -73,6 +73,10 @@ class Structure:
             or ``"diagonal"`` (a :class:`~torchflow.core.covariances.DiagonalCovariance` of variances
             ``(B, d)``: no ``d x d`` matrix, for states of ``d = 10^5`` and more). The chunk planner
             sizes the priors by it.
+        sites: the geometry the localising filters measure a radius in when no distances are given:
+            ``"ring"`` (the state coordinates are sites ``0 .. d-1`` on a ring of period ``d``:
+            Lorenz-96), or ``None``: the model's own ``site_distances() -> (d, d)`` where it has
+            one (the sensor network's grid), else none (a finite radius then needs distances).
     """
 
     linear_dynamics: bool = False
@@ -91,8 +95,11 @@ class Structure:
     padded_measurements: bool = False
     bytes_per_point: Optional[int] = None
     prior_covariance: str = "dense"
+    sites: Optional[str] = None
 
     def __post_init__(self):
+        if self.sites not in (None, "ring"):
+            raise ArgumentError(f"Structure: sites: expected None or 'ring', got {self.sites!r}")
         if self.measurement_noise not in NOISE:
             raise ArgumentError(
                 f"Structure: measurement_noise: expected one of {NOISE}, got {self.measurement_noise!r}"
