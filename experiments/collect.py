@@ -63,6 +63,9 @@ def collect(sweep_dir: Path, columns=None):
                 else "; it has no summary.csv to merge"
             )
         if state != "done" or not summary.exists():
+            task = next((n for n in TASK_RESULTS if (job / n).exists()), None)
+            if state == "done" and task is not None:  # a finished task=smooth / task=pmmh job: not a run's table
+                state, message = "task", task
             missing.append(
                 {
                     "name": job.name,

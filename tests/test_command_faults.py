@@ -492,6 +492,21 @@ def test_a_sweep_of_tasks_counts_its_finished_jobs_and_collect_says_what_it_merg
     assert stop.value.code == 2
     err = capsys.readouterr().err
     assert "ran a task (their results are pmmh.json, smoothing.json in each job folder)" in err
+    # Q75: a sweep mixing task=filter and task=smooth: the run's table is merged, the smoothing job is
+    # named as such, not as a job 'without results (still running, killed, or never started)'
+    mixed = tmp_path / "mixed"
+    for name, task in (("0", "filter"), ("1", "smooth")):
+        job = mixed / name
+        (job / ".hydra").mkdir(parents=True)
+        (job / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump([f"task={task}"]))
+    (mixed / "0" / "summary.csv").write_text("filter,rmse\nkf,0.5\n")
+    (mixed / "0" / "results.json").write_text(json.dumps({"summary": [{"filter": "kf"}]}))
+    (mixed / "1" / "smoothing.json").write_text(json.dumps({"summary": [{"filter": "kf"}]}))
+    main([str(mixed)])
+    out = capsys.readouterr().out
+    assert "| 0 | kf |" in out
+    assert "job 1 (task=smooth) ran a task: its results are smoothing.json in its folder" in out
+    assert "without results" not in out and "has no results" not in out
 
 
 def test_a_constructor_s_message_keeps_its_own_closing_quote():

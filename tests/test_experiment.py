@@ -393,11 +393,11 @@ def test_cli_ctrl_c_writes_finished_results(tmp_path):
         f"hydra.run.dir={tmp_path}/run",
     ]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
-    summary = tmp_path / "run" / "summary.csv"
+    summary, partial = tmp_path / "run" / "summary.csv", tmp_path / "run" / "summary.partial.csv"
     deadline = time.time() + 120
-    while not summary.exists() and time.time() < deadline and proc.poll() is None:
+    while not partial.exists() and time.time() < deadline and proc.poll() is None:  # the first filter is done
         time.sleep(0.2)
-    assert summary.exists(), proc.communicate()[1][-2000:]
+    assert partial.exists(), proc.communicate()[1][-2000:]
     time.sleep(1.0)
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=120)
@@ -405,6 +405,7 @@ def test_cli_ctrl_c_writes_finished_results(tmp_path):
     assert "Traceback" not in err and "interrupted by Ctrl-C" in err and "resume=true" in err
     for name in ("summary.csv", "per_step.csv", "per_trial.csv", "results.json"):
         assert (tmp_path / "run" / name).exists(), name
+    assert not partial.exists()  # the interrupted run's own summary.csv replaces it
     rows = list(csv.DictReader(open(summary)))
     assert [r["filter"] for r in rows] == ["kf", "bpf"] and rows[1]["error"].startswith("interrupted after")
     assert json.loads((tmp_path / "run" / "results.json").read_text())["interrupted"] is True
@@ -923,6 +924,7 @@ def test_resume_with_another_chunk_size_reuses_the_saved_trials(tmp_path):
     store = ChunkStore(tmp_path, {"bpf": "k"}, resume=True)
     res, f = _store_run(model, store, chunk_size=3)
     assert f.seen == [] and store.reused_trials == {"bpf": 6} and res.per_trial == full.per_trial
+    assert store.computed == {}  # Q84: chunks put together from saved trials are not 'computed'
     (tmp_path / "k" / "0000002-0000004.pt").unlink()  # trials 2, 3 lost: only they are computed
     for p in (tmp_path / "k").glob("0000000-0000003.pt"):
         p.unlink()

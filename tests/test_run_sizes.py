@@ -282,3 +282,19 @@ def test_the_default_memory_budget_is_a_share_of_the_free_memory(monkeypatch):
     assert res.config["chunk_size"] == {"bpf": 1}
     res = run_experiment(model, {"bpf": f}, trials=3, steps=2, memory_budget_gb=4.0, progress=False)
     assert res.config["memory_budget_gb"] == 4.0 and res.config["memory_budget"] == "given"
+
+
+def test_a_budget_below_one_trial_of_a_filter_that_cannot_split_it_is_warned_and_recorded():
+    """Q79: ``memory_budget_gb=1e-9`` ran the ETKF silently (one trial is kilobytes and an ensemble
+    filter has no particle blocks) and results.json recorded the budget as 0.0."""
+    from torchflow.filters import EnsembleTransformKalmanFilter
+    from torchflow.models import Lorenz96
+
+    model = Lorenz96(d=8)
+    f = EnsembleTransformKalmanFilter(model, n_particles=10)
+    with pytest.warns(
+        UserWarning,
+        match=r"memory_budget_gb=1e-09: one trial of EnsembleTransformKalmanFilter is estimated at .* over the budget",
+    ):
+        res = run_experiment(model, {"etkf": f}, trials=2, steps=2, memory_budget_gb=1e-9, progress=False)
+    assert res.config["memory_budget_gb"] == 1e-9 and res.config["chunk_size"] == {"etkf": 1}

@@ -263,7 +263,7 @@ def test_cli_sigterm_then_resume_gives_the_uninterrupted_files(tmp_path):
         timeout=300,
     )
     assert res.returncode == 0, res.stderr[-2000:]
-    assert f"resumed: {saved} chunks loaded" in res.stdout and f"{10 - saved} computed" in res.stdout
+    assert f"resumed: {saved} saved chunks read" in res.stdout and f"{10 - saved} chunks computed" in res.stdout
     for name in ("per_trial.csv", "per_step.csv"):
         assert (tmp_path / "resumed" / name).read_bytes() == (tmp_path / "full" / name).read_bytes(), name
     assert _csv_rows(tmp_path / "resumed" / "summary.csv") == _csv_rows(tmp_path / "full" / "summary.csv")

@@ -290,7 +290,7 @@ def test_sigterm_during_a_run_writes_the_finished_filters_and_exits_143(tmp_path
     )
     with open(tmp_path / "err.txt", "w") as err:
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, cwd=tmp_path, env=_env())
-        summary = tmp_path / "run" / "summary.csv"
+        summary = tmp_path / "run" / "summary.partial.csv"  # the first filter is done
         deadline = time.time() + 60
         while not summary.exists() and time.time() < deadline and proc.poll() is None:
             time.sleep(0.1)

@@ -139,6 +139,12 @@ def test_smoother_errors():
         smooth(KalmanFilter(model), traj.observations, mean, cov, method="ffbsi")
     with pytest.raises(ValueError, match="method: expected one of"):
         smooth(KalmanFilter(model), traj.observations, mean, cov, method="forward")
+    from torchflow.filters import EnsembleTransformKalmanFilter, LagOneFlowFilter
+
+    for filt in (EnsembleTransformKalmanFilter(model), LagOneFlowFilter(model)):  # Q42: not a circle of hints
+        for method in ("auto", "rts", "ffbsi", "genealogy"):
+            with pytest.raises(ValueError, match=f"^method: no smoother takes {filt.name} .*smooth one of those"):
+                smooth(filt, traj.observations, mean, cov, g, method=method)
     with pytest.raises(ValueError, match="n_paths"):
         smooth(BootstrapParticleFilter(model), traj.observations, mean, cov, g, n_paths=0)
     with pytest.raises(ValueError, match="genealogy.*optimal-transport"):

@@ -437,3 +437,28 @@ def test_distances_are_checked_whatever_the_radius_and_the_geometry_is_the_model
     dist = grid.site_distances()
     assert float(dist[5, 6]) == 1.0 and float(dist[5, 10]) == pytest.approx(math.sqrt(2))
     torch.testing.assert_close(kpff.taper, gaspari_cohn(dist, 2.0))
+
+
+def test_the_lpf_s_collapse_warning_names_its_own_knobs():
+    """Q30b: the LPF's collapse warning sent the user to ``regularization=`` (a bootstrap PF's
+    argument the LPF refuses) and to the LPF itself; it names ``jitter`` and ``rtps`` now."""
+    model = Lorenz63()
+    traj = model.simulate(2, 10, torch.Generator().manual_seed(0))
+    mean, cov = model.initial_belief(traj.states[:, 0], torch.Generator().manual_seed(1))
+    with pytest.warns(RuntimeWarning, match="collapsed") as caught:
+        LocalParticleFilter(model, n_particles=20, radius=math.inf)(
+            traj.observations, mean, cov, torch.Generator().manual_seed(2)
+        )
+    text = " ".join(str(w.message) for w in caught if "collapsed" in str(w.message))
+    assert "jitter=" in text and "rtps=" in text and "regularization=" not in text, text
+
+
+def test_the_lpf_refuses_a_dense_measurement_noise_when_built():
+    """Q72b: a learnable R (dense) reached the LPF and failed at its first step, naming torch's
+    internal subclass and advising an override; it is refused when the filter is built, naming
+    the model's own class and the filters that take it."""
+    from torchflow.core.errors import ArgumentTypeError
+    from torchflow.models import SensorNetwork
+
+    with pytest.raises(ArgumentTypeError, match=r"; SensorNetwork declares 'dense' \(a learned R is a dense matrix\)"):
+        LocalParticleFilter(SensorNetwork(d=4, learnable=["R"]), radius=math.inf)

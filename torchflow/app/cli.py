@@ -225,9 +225,9 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
     model_name = cfg.model._target_.split(".")[-1]
     if store is not None and (store.loaded or store.reused_trials):
         log.info(
-            f"resumed: {sum(store.loaded.values())} chunks loaded from {store.root} "
-            f"({sum(store.reused_trials.values())} trials of chunks with other boundaries), "
-            f"{sum(store.computed.values())} computed"
+            f"resumed: {sum(store.loaded.values())} saved chunks read from {store.root} "
+            f"({sum(store.reused_trials.values())} trials reused from chunks with other boundaries), "
+            f"{sum(store.computed.values())} chunks computed"
         )
     lo, hi = result.config["trial_range"]
     which = f"{trials} trials" if (lo, hi) == (0, trials) else f"trials {lo}..{hi - 1} of {trials}"

@@ -74,6 +74,7 @@ from torchflow.filters.ensemble import (
     rotate_anomalies,
 )
 from torchflow.flows.schedules import ExponentialSchedule
+from torchflow.models.base import GaussianStateSpaceModel
 
 __all__ = ["KernelParticleFlowFilter", "LagOneFlowFilter", "LocalParticleFilter"]
 
@@ -290,6 +291,12 @@ class LocalParticleFilter(_EnsembleFilter):
     Shapes: ensemble ``(B, N, d)``, observations ``z (B, m)`` (NaN: not observed).
     """
 
+    collapse_remedy = (
+        "jitter after resampling (jitter=..., relative to the forecast spread) or relaxation to the prior "
+        "spread (rtps=...), or a filter that moves its members rather than resampling them (filter=lag1_flow, "
+        "kpff, the ensemble Kalman filters)"
+    )
+
     def __init__(
         self,
         model,
@@ -309,6 +316,16 @@ class LocalParticleFilter(_EnsembleFilter):
         self.jitter = check_number(
             "jitter", jitter, lambda v: v >= 0, "a number >= 0 (jitter relative to the forecast spread)"
         )
+        noise = model.structure.measurement_noise
+        own_terms = type(model).measurement_log_prob_terms is not GaussianStateSpaceModel.measurement_log_prob_terms
+        if noise not in _DIAGONAL_NOISE and not own_terms:  # before any work, not at the first step
+            who = type(model).__name__.removeprefix("Parametrized")  # a learnable model's class: torch's subclass
+            raise ArgumentTypeError(
+                f"{self.name}: model: the local particle filter weighs each observation on its own, which needs "
+                f"observations independent given the state: a diagonal measurement noise (declared scalar, "
+                f"diagonal or state_dependent_diagonal) or the model's own measurement_log_prob_terms; {who} "
+                f"declares {noise!r} (a learned R is a dense matrix). Use kpff, lag1_flow or an ensemble Kalman filter"
+            )
         _register_neighbours(self, distances)  # radius = inf: every observation weighs every coordinate
 
     def bytes_per_trial(self, n_particles=None):

@@ -458,7 +458,9 @@ class Filter(Estimator):
             guards.warn_dead_steps(self.name, table)
             if trace.first_collapse is not None:  # a second small read, once per call
                 both = torch.stack((trace.first_collapse, trace.collapse_count)).tolist()
-                text = guards.collapse_warning(self.name, both[0], both[1], trace.n)
+                text = guards.collapse_warning(
+                    self.name, both[0], both[1], trace.n, getattr(self, "collapse_remedy", None)
+                )
                 if text is not None:
                     warnings.warn(text, RuntimeWarning, stacklevel=3)
 

@@ -148,12 +148,23 @@ def collapsed(particles: torch.Tensor) -> torch.Tensor:
     return (hi - lo).amax(-1) <= tol
 
 
-def collapse_warning(name: str, first: List[int], count: List[int], steps: int) -> Optional[str]:
+#: what puts spread back into a collapsed cloud, for a particle filter that resamples
+COLLAPSE_REMEDY = (
+    "regularisation after resampling (regularization=..., or relative to the spread: "
+    "regularization_relative=...), or a filter for deterministic dynamics (filter=lag1_flow, kpff, lpf, the "
+    "ensemble Kalman filters)"
+)
+
+
+def collapse_warning(
+    name: str, first: List[int], count: List[int], steps: int, remedy: Optional[str] = None
+) -> Optional[str]:
     """The text of the collapse warning, or ``None``: ``first[b]`` the first step (1-based, 0 none) at
     which trial b's cloud had stayed collapsed (:func:`collapsed`) through two steps running while its
     ESS read 2 or more (a degenerate weight, ESS near 1, shows itself; a single degenerate step whose
     copies the model's noise spreads again is not a collapse) and ``count[b]`` in how many of the
-    ``steps``."""
+    ``steps``. ``remedy``: the filter's own way to put spread back (its ``collapse_remedy``;
+    default :data:`COLLAPSE_REMEDY`)."""
     trials = [b for b, f in enumerate(first) if f > 0]
     if not trials:
         return None
@@ -163,9 +174,7 @@ def collapse_warning(name: str, first: List[int], count: List[int], steps: int) 
         f"{name}: the particle cloud collapsed to fewer than 2 distinct particles (a spread within round-off) in "
         f"{shown}{more}. The ESS does not show it: copies of one point have equal weights. Its estimates then "
         "follow one point and its evidence is that point's. A model without noise needs spread put back: "
-        "regularisation after resampling (regularization=..., or relative to the spread: "
-        "regularization_relative=...), or a filter for deterministic dynamics (filter=lag1_flow, kpff, lpf, the "
-        "ensemble Kalman filters)"
+        f"{remedy or COLLAPSE_REMEDY}"
     )
 
 

@@ -97,6 +97,13 @@ def smoothing_method(filt: Filter, method: str = "auto") -> str:
     check_choice("method", method, SMOOTHERS)
     gaussian = isinstance(filt, _GaussianFilter)
     particle = isinstance(filt, ParticleFilter) and "init" in filt.kept
+    if not gaussian and not particle:  # ensembles and flows that carry no weighted-particle belief
+        raise ArgumentError(
+            f"method: no smoother takes {filt.name} ({type(filt).__name__}): 'rts' smooths the Kalman family "
+            f"(kf, ekf, ukf) and 'ffbsi'/'genealogy' a particle filter whose belief is weighted particles "
+            f"(bpf, the PF-PFs, gpfis, upf), while the ensemble filters and unweighted flows keep neither; "
+            f"smooth one of those filters instead"
+        )
     if method == "auto":
         method = "rts" if gaussian else "ffbsi"
     if method == "rts" and not gaussian:

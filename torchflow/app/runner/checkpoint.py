@@ -117,8 +117,12 @@ class ChunkStore:
         self.loaded[name] += 1
         return data
 
-    def save(self, name: str, start: int, stop: int, chunk: Mapping, meta: Optional[Mapping] = None) -> Path:
-        """Write one finished chunk (CPU tensors and floats) atomically, with ``meta`` in its header."""
+    def save(
+        self, name: str, start: int, stop: int, chunk: Mapping, meta: Optional[Mapping] = None, computed: bool = True
+    ) -> Path:
+        """Write one finished chunk (CPU tensors and floats) atomically, with ``meta`` in its header;
+        ``computed``: it was computed here (counted in :attr:`computed`), not put together from
+        chunks saved with other boundaries (:meth:`assemble`, counted in :attr:`reused_trials`)."""
         folder = self.folder(name)
         folder.mkdir(parents=True, exist_ok=True)
         if name in self.settings and not (folder / "settings.json").exists():
@@ -133,17 +137,18 @@ class ChunkStore:
             "checksum": checksum(chunk),
         }
         replace_atomically(path, lambda fh: torch.save(record, fh), binary=True)  # never through a link
-        self.computed[name] += 1
+        if computed:
+            self.computed[name] += 1
         return path
 
     def save_or_warn(
-        self, name: str, start: int, stop: int, chunk: Mapping, meta: Optional[Mapping] = None
+        self, name: str, start: int, stop: int, chunk: Mapping, meta: Optional[Mapping] = None, computed: bool = True
     ) -> Optional[Path]:
         """:meth:`save`, but a store that cannot write warns once and saves nothing more."""
         if self.save_error is not None:
             return None
         try:
-            return self.save(name, start, stop, chunk, meta)
+            return self.save(name, start, stop, chunk, meta, computed)
         except OSError as e:
             self.save_error = f"{type(e).__name__}: {e.strerror or e}"
             warnings.warn(

@@ -258,9 +258,9 @@ def _one_chunk(f, name, plan, s, e, store, bar, before=None) -> dict:
             bar.update((e - s) * steps)
         return chunk
     # trials saved by a run with other chunk boundaries are reused
-    chunk = store.assemble(name, s, e, steps, meta, compute=compute)
-    chunk = chunk if chunk is not None else compute(s, e)
-    store.save_or_warn(name, s, e, chunk, meta)
+    assembled = store.assemble(name, s, e, steps, meta, compute=compute)
+    chunk = assembled if assembled is not None else compute(s, e)
+    store.save_or_warn(name, s, e, chunk, meta, computed=assembled is None)
     return chunk
 
 
@@ -581,7 +581,7 @@ def run_experiment(
         inits_per_track=s.inits_per_track,
         chunk_size=plan.chunks,
         particle_chunk={n: f.particle_chunk for n, f in filters.items()},
-        memory_budget_gb=round(s.memory_budget_gb, 3),
+        memory_budget_gb=float(f"{s.memory_budget_gb:.4g}"),  # 4 significant digits: a tiny budget is not 0
         memory_budget=s.budget_from,
         rng_backend=s.rng_backend,
         world_size=plan.shard.world,

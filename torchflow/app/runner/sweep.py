@@ -71,6 +71,8 @@ def describe_job(name: str, state: str, message: str, overrides: dict) -> str:
         return f"{head} failed: {message}"
     if state == "interrupted":
         return f"{head} was interrupted (Ctrl-C or SIGTERM): rerun it with resume=true"
+    if state == "task":  # finished, with a task's results (collect.py merges the run command's tables)
+        return f"{head} ran a task: its results are {message} in its folder, not a summary.csv to merge"
     if state == "damaged":
         return (
             f"{head}: {message}; to write it again, rerun the job into its folder (its overrides are in "
