@@ -454,3 +454,24 @@ def test_a_pipe_a_device_or_a_folder_is_named_as_such_not_as_missing(tmp_path):
     for name, kind in (("fifo.csv", "a named pipe"), ("zero.npy", "a device or socket"), ("folder.csv", "a folder")):
         with pytest.raises(ArgumentError, match=f"^data: expected a regular .csv or .npy file, got {kind}: "):
             load_observations(tmp_path / name, SensorNetwork(d=4))
+
+
+def test_a_pandas_header_of_numbered_columns_beside_a_time_column_is_a_header(tmp_path):
+    """pandas writes integer column labels with a named time index as ``time,0,1,2,3``: a header
+    (names of the time column beside numbers), read as before; a first row mixing other names and
+    numbers is refused (a data row with a typo, or a header with a number)."""
+    (tmp_path / "pd.csv").write_text("time,0,1,2,3\n0.0,1,2,3,4\n0.5,5,6,7,8\n")
+    got = load_observations(tmp_path / "pd.csv", SensorNetwork(d=4))
+    assert got.tolist() == [[1.0, 2.0, 3.0, 4.0], [5.0, 6.0, 7.0, 8.0]]
+    (tmp_path / "typo.csv").write_text("1,2,x,4\n5,6,7,8\n")
+    with pytest.raises(ArgumentError, match="header of column names or a row of numbers in line 1"):
+        load_observations(tmp_path / "typo.csv", SensorNetwork(d=4))
+
+
+def test_trailing_rows_of_empty_cells_are_steps_with_a_warning(tmp_path):
+    """A row of empty cells is a step with nothing observed; trailing ones (a spreadsheet's
+    habit) are kept, with a warning naming them."""
+    (tmp_path / "xl.csv").write_text("1,2,3,4\n,,,\n5,6,7,8\n,,,\n,,,\n")
+    with pytest.warns(UserWarning, match=r"the last 2 row\(s\) of .*xl.csv \(from line 4\) hold only empty cells"):
+        got = load_observations(tmp_path / "xl.csv", SensorNetwork(d=4))
+    assert got.shape == (5, 4) and torch.isnan(got[1]).all() and torch.isnan(got[3:]).all()

@@ -143,7 +143,7 @@ def test_smoother_errors():
 
     for filt in (EnsembleTransformKalmanFilter(model), LagOneFlowFilter(model)):  # Q42: not a circle of hints
         for method in ("auto", "rts", "ffbsi", "genealogy"):
-            with pytest.raises(ValueError, match=f"^method: no smoother takes {filt.name} .*smooth one of those"):
+            with pytest.raises(ValueError, match=f"^method: no smoother takes {filt.name} .*Smooth one of those"):
                 smooth(filt, traj.observations, mean, cov, g, method=method)
     with pytest.raises(ValueError, match="n_paths"):
         smooth(BootstrapParticleFilter(model), traj.observations, mean, cov, g, n_paths=0)

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import csv
 import math
+import warnings
 from pathlib import Path
 from typing import List, Optional, Tuple, Union
 
@@ -92,8 +93,11 @@ def _read_csv(path: Path, name: str) -> Tuple[np.ndarray, Optional[np.ndarray]]:
 
     header: Optional[List[str]] = None
     if any(number(c) is None for c in rows[0]):
+        words = [c.strip() for c in rows[0] if number(c) is None]
         numbers = [c.strip() for c in rows[0] if c.strip() and number(c) is not None]
-        if numbers:  # names and numbers in one row: a data row with a typo, or a header with a number
+        # names and numbers in one row: a data row with a typo, or a header with a number; but a time
+        # column's name beside numbered columns (pandas' integer column labels: time,0,1,2) is a header
+        if numbers and not all(w.lower() in TIME_COLUMNS for w in words):
             raise ArgumentError(
                 f"{name}: expected a header of column names or a row of numbers in line {lines[0]} of {path}, "
                 f"got both ({', '.join(repr(c.strip()) for c in rows[0][:6])}); fix the cell that is not a "
@@ -127,6 +131,15 @@ def _read_csv(path: Path, name: str) -> Tuple[np.ndarray, Optional[np.ndarray]]:
                     f"line {lines[i]}, {col} of {path}"
                 )
             values[i, j] = v
+    empty_tail = 0
+    while empty_tail < len(rows) - 1 and all(not c.strip() for c in rows[-1 - empty_tail]):
+        empty_tail += 1
+    if empty_tail:  # kept (a step with nothing observed), but said: a spreadsheet's trailing empty rows look so
+        warnings.warn(
+            f"{name}: the last {empty_tail} row(s) of {path} (from line {lines[-empty_tail]}) hold only empty "
+            "cells: they are steps with nothing observed; delete them if they are not",
+            stacklevel=3,
+        )
     if time_col is None:
         return values, None
     times = values[:, time_col]

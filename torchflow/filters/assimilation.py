@@ -371,6 +371,31 @@ class LocalParticleFilter(_EnsembleFilter):
         return super().extra_repr() + f", radius={self.radius:g}, rtps={self.rtps:g}, jitter={self.jitter:g}"
 
 
+def _pseudo_inverse(S: torch.Tensor, n: int) -> torch.Tensor:
+    """The pseudo-inverse of a symmetric positive semi-definite ``S (B, k, k)`` (a Gram matrix of
+    ``n`` members): its eigenvalues below ``10 n eps`` times the largest are taken as zero. The
+    reciprocal is taken only of the kept ones (a floored reciprocal in the other branch of a
+    ``where`` would put ``0 * inf = NaN`` into gradients)."""
+    evals, V = torch.linalg.eigh(linalg.symmetrize(S))
+    kept = evals > evals[..., -1:] * (n * torch.finfo(S.dtype).eps * 10)
+    inv = torch.where(kept, 1.0 / torch.where(kept, evals, torch.ones_like(evals)), torch.zeros_like(evals))
+    return (V * inv.unsqueeze(-2)) @ V.transpose(-1, -2)
+
+
+def _ridge_solve(S: torch.Tensor, b: torch.Tensor, n: int) -> torch.Tensor:
+    """``(S + delta I)^{-1} b`` for a symmetric positive semi-definite ``S (B, k, k)`` (a Gram matrix
+    of ``n`` members) and ``b (B, k, p)``, with ``delta = 10 n eps trace(S)`` (at least
+    ``sqrt(tiny)``): where :func:`_pseudo_inverse` cuts the directions below ``10 n eps`` of the
+    largest, this ridge damps them, smoothly, so that the gradient stays defined where members
+    coincide (a known initial state: ``S = 0``) or eigenvalues repeat, which differentiating
+    through an eigendecomposition is not (it divides by their gaps). Elsewhere the two agree to
+    about ``10 n eps cond``."""
+    tiny = torch.finfo(S.dtype).tiny ** 0.5
+    delta = (S.diagonal(dim1=-2, dim2=-1).sum(-1) * (n * torch.finfo(S.dtype).eps * 10)).clamp_min(tiny)
+    shifted = linalg.symmetrize(S) + delta[..., None, None] * torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
+    return linalg.chol_solve(linalg.safe_cholesky(shifted), b)
+
+
 class LagOneFlowFilter(_EnsembleFilter):
     """The exact (EDH) particle flow on the lag-one target: the previous analysis members move to
     ``p(x_{k-1} | z_{1:k})`` and the model carries them to time ``k``.
@@ -588,22 +613,14 @@ class LagOneFlowFilter(_EnsembleFilter):
         mean = X.mean(1, keepdim=True)
         D = X - mean  # (B, N, d)
         # H v = Y^T (D D^T)^+ D v: the minimum-norm least-squares fit of Y = D H^T
-        if N > X.shape[2]:  # (shapes only) D (N, d) of rank d: H^T = (D^T D)^{-1} D^T Y, a d x d
-            # Cholesky solve; the N x N eigendecomposition's gradient is undefined at the N - d
-            # repeated zero eigenvalues of D D^T (NaN when learning through the flow)
+        if N > X.shape[2]:  # (shapes only) the d x d form: H^T = (D^T D)^+ D^T Y, the same fit (D^T D's
+            # nonzero eigenvalues are D D^T's), as a ridge solve; the N x N form's gradient is undefined
+            # at the N - d repeated zero eigenvalues of D D^T (NaN when learning through the flow)
             Dt = D.transpose(1, 2)
-            M = linalg.chol_solve(linalg.safe_cholesky(linalg.symmetrize(Dt @ D)), Dt @ w.Y)  # (B, d, m)
+            M = _ridge_solve(Dt @ D, Dt @ w.Y, N)  # (B, d, m)
             H_of = lambda v: v @ M  # v (B, k, d) -> H v (B, k, m)
         else:
-            G = linalg.symmetrize(D @ D.transpose(1, 2))
-            evals, V = torch.linalg.eigh(G)
-            cut = evals[..., -1:] * (N * torch.finfo(X.dtype).eps * 10)
-            kept = evals > cut
-            # 1 / evals only where kept: the other branch's reciprocal (of a tiny floor) would put
-            # 0 * inf = NaN into the gradient of the model's parameters
-            inv = torch.where(kept, 1.0 / torch.where(kept, evals, torch.ones_like(evals)), torch.zeros_like(evals))
-            Gp = (V * inv.unsqueeze(-2)) @ V.transpose(1, 2)  # (B, N, N)
-            C = Gp @ w.Y  # (B, N, m): H v = C^T D v
+            C = _pseudo_inverse(D @ D.transpose(1, 2), N) @ w.Y  # (B, N, m): H v = C^T D v
             H_of = lambda v: (D @ v.transpose(1, 2)).transpose(1, 2) @ C  # v (B, k, d) -> H v (B, k, m)
         AH = H_of(A0)  # (B, N, m): A0 H^T, so P H^T = A0^T AH and H P H^T = AH^T AH
         # (lam AH^T AH + I)^{-1} u = u - lam AH^T (I + lam AH AH^T)^{-1} AH u (push-through, N x N)

@@ -169,7 +169,7 @@ class Lorenz96(GaussianStateSpaceModel):
         h = float(self.dt) / int(self.substeps)
         return (
             f"the Runge-Kutta step dt / substeps = {h:g} is too large for these dynamics: more substeps "
-            "(model.substeps) or a smaller dt"
+            "(model.substeps) or a smaller dt; or parameters that make the system itself blow up"
         )
 
     def _per_trial_structure(self, names):

@@ -97,12 +97,16 @@ def smoothing_method(filt: Filter, method: str = "auto") -> str:
     check_choice("method", method, SMOOTHERS)
     gaussian = isinstance(filt, _GaussianFilter)
     particle = isinstance(filt, ParticleFilter) and "init" in filt.kept
-    if not gaussian and not particle:  # ensembles and flows that carry no weighted-particle belief
+    if not gaussian and not particle:  # ensembles, flows, refitting particle filters: no belief to smooth
+        why = (
+            "it refits its belief (a Gaussian or Gaussian sum) at each step instead of keeping weighted particles"
+            if isinstance(filt, ParticleFilter)
+            else "the ensemble filters and unweighted flows keep neither a Gaussian belief nor weighted particles"
+        )
         raise ArgumentError(
             f"method: no smoother takes {filt.name} ({type(filt).__name__}): 'rts' smooths the Kalman family "
             f"(kf, ekf, ukf) and 'ffbsi'/'genealogy' a particle filter whose belief is weighted particles "
-            f"(bpf, the PF-PFs, gpfis, upf), while the ensemble filters and unweighted flows keep neither; "
-            f"smooth one of those filters instead"
+            f"(bpf, the PF-PFs, gpfis, upf); {why}. Smooth one of those filters instead"
         )
     if method == "auto":
         method = "rts" if gaussian else "ffbsi"

@@ -156,11 +156,11 @@ def filter_chunk(f: Filter, n_run: int, chunk_size: Optional[int], memory_budget
                 "GiB per trial); raise the budget if this machine has more memory",
                 stacklevel=2,
             )
-        elif f.bytes_per_trial() > memory_budget_gb * 2**30:  # nothing smaller to run than one trial
-            warnings.warn(
+        elif f.bytes_per_trial() > memory_budget_gb * 2**30 and not getattr(f, "_local_chunk_given", False):
+            warnings.warn(  # nothing smaller to run than one trial (a given local_chunk is the user's choice)
                 f"memory_budget_gb={memory_budget_gb:g}: one trial of {f.name} is estimated at "
-                f"{f.bytes_per_trial() / 2**30:.3g} GiB per time step, over the budget, and it has no smaller "
-                "unit of work: it runs one trial at a time over the budget (raise memory_budget_gb)",
+                f"{f.bytes_per_trial() / 2**30:.3g} GiB, over the budget, and it has no smaller unit of work: "
+                "it runs one trial at a time over the budget (raise memory_budget_gb)",
                 stacklevel=2,
             )
     return min(c, f.preferred_chunk_trials() or c, cap or c)

@@ -431,11 +431,14 @@ HYDRA_WRITES = (".hydra", "multirun.yaml")
 
 def _links_at_writes(folder: Path) -> List[Path]:
     """Links in ``folder`` at names that Hydra or the run's log write with a plain ``open``: the
-    ``.hydra`` folder and its files, ``multirun.yaml`` and the ``*.log`` files."""
+    ``.hydra`` folder and its files, ``multirun.yaml`` and the ``*.log`` files; and a ``.hydra``
+    folder another user owns (who could put links into it after this check)."""
     names = [folder / n for n in HYDRA_WRITES] + sorted(folder.glob("*.log"))
     found = [p for p in names if p.is_symlink()]
     hydra = folder / ".hydra"
     if hydra.is_dir() and not hydra.is_symlink():
+        if hasattr(os, "getuid") and hydra.stat().st_uid != os.getuid():  # another user could plant links later
+            found.append(hydra)
         found += sorted(p for p in hydra.iterdir() if p.is_symlink())
     return found
 
@@ -481,7 +484,12 @@ def guard_output_folder(
         ) from None
     links = planted_links(folder, sweep)
     if links:  # Hydra's own writes (.hydra/*.yaml) would follow them: refused, never written through
-        shown_links = ", ".join(f"{p.relative_to(folder)} -> {os.readlink(p)}" for p in links[:3])
+        shown_links = ", ".join(
+            f"{p.relative_to(folder)} -> {os.readlink(p)}"
+            if p.is_symlink()
+            else f"{p.relative_to(folder)} (another user's)"
+            for p in links[:3]
+        )
         raise ConfigError(
             f"{key}: {shown} holds links at names a run writes itself ({shown_links}"
             f"{', ...' if len(links) > 3 else ''}); a run would write through them into their targets: remove "
