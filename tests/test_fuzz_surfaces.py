@@ -1,7 +1,6 @@
-"""Property-based fuzz of the newer surfaces (issue 59): recorded files, per-trial values and the
-task settings. Each example either gives the right result (the values written, a finite filter
-result) or raises torchflow's own error naming what was wrong; never a raw error, never a silent
-change of the data.
+"""Property-based fuzz of recorded files, per-trial values and the task settings. Each example
+either gives the right result (the values written, a finite filter result) or raises torchflow's
+own error naming what was wrong; never a raw error, never a silent change of the data.
 
 Examples are drawn as in ``tests/test_fuzz_validation.py`` (``derandomize=True``: CI draws the
 same ones; ``TORCHFLOW_FUZZ_EXAMPLES=3000`` fuzzes deeper with fresh examples).
@@ -22,15 +21,13 @@ import pytest
 import torch
 from hypothesis import event, given
 from hypothesis import strategies as st
+from test_fuzz_validation import fuzz
 
 from torchflow.app.data import load_observations
 from torchflow.core.errors import TorchflowError
 from torchflow.filters import BootstrapParticleFilter, KalmanFilter
 from torchflow.inference.params import per_trial_values
 from torchflow.models import LinearGaussian, StochasticVolatility
-
-sys.path.insert(0, str(Path(__file__).parent))
-from test_fuzz_validation import fuzz  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 F64 = torch.float64

@@ -193,3 +193,17 @@ def test_a_run_into_a_folder_with_a_linked_run_log_is_refused_end_to_end(tmp_pat
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-2000:]
     assert r.stderr.strip().splitlines()[-1].startswith("error: hydra.run.dir: ")
     assert victim.read_text() == "precious user data"
+
+
+def test_a_hydra_folder_another_user_owns_is_refused(tmp_path, monkeypatch):
+    """Another user who owns ``.hydra`` could put links into it after the guard's check, before
+    Hydra writes its files: such a folder is refused, naming it (here the folder is made to look
+    foreign by a different user id)."""
+    from torchflow.app.runner.plan import ConfigError
+
+    out = tmp_path / "run"
+    (out / ".hydra").mkdir(parents=True)
+    guard_output_folder(out, key="hydra.run.dir", command="torchflow").release()  # our own: accepted
+    monkeypatch.setattr(os, "getuid", lambda: os.stat(out / ".hydra").st_uid + 1)
+    with pytest.raises(ConfigError, match=r"holds links at names a run writes itself \(.hydra \(another user's\)"):
+        guard_output_folder(out, key="hydra.run.dir", command="torchflow")

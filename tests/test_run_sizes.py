@@ -298,3 +298,19 @@ def test_a_budget_below_one_trial_of_a_filter_that_cannot_split_it_is_warned_and
     ):
         res = run_experiment(model, {"etkf": f}, trials=2, steps=2, memory_budget_gb=1e-9, progress=False)
     assert res.config["memory_budget_gb"] == 1e-9 and res.config["chunk_size"] == {"etkf": 1}
+
+
+def test_a_given_local_chunk_is_not_called_no_smaller_unit_of_work():
+    """The one-trial budget warning is for filters with nothing smaller to run; a LETKF given its own
+    ``local_chunk`` has a smaller unit (the user's), so the warning does not claim otherwise."""
+    import warnings
+
+    from torchflow.filters import LocalEnsembleTransformKalmanFilter
+    from torchflow.models import Lorenz96
+
+    model = Lorenz96(d=8)
+    f = LocalEnsembleTransformKalmanFilter(model, n_particles=10, radius=3.0, local_chunk=2)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        run_experiment(model, {"letkf": f}, trials=2, steps=2, memory_budget_gb=1e-9, progress=False)
+    assert not [w for w in seen if "no smaller unit of work" in str(w.message)]

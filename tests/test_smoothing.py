@@ -139,8 +139,11 @@ def test_smoother_errors():
         smooth(KalmanFilter(model), traj.observations, mean, cov, method="ffbsi")
     with pytest.raises(ValueError, match="method: expected one of"):
         smooth(KalmanFilter(model), traj.observations, mean, cov, method="forward")
-    from torchflow.filters import EnsembleTransformKalmanFilter, LagOneFlowFilter
+    from torchflow.filters import EnsembleTransformKalmanFilter, GaussianParticleFilter, LagOneFlowFilter
 
+    refit = GaussianParticleFilter(model, n_particles=20)  # a particle filter that keeps no weighted particles
+    with pytest.raises(ValueError, match="^method: no smoother takes .* it refits its belief"):
+        smooth(refit, traj.observations, mean, cov, g)
     for filt in (EnsembleTransformKalmanFilter(model), LagOneFlowFilter(model)):  # Q42: not a circle of hints
         for method in ("auto", "rts", "ffbsi", "genealogy"):
             with pytest.raises(ValueError, match=f"^method: no smoother takes {filt.name} .*Smooth one of those"):

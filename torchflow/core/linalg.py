@@ -27,6 +27,16 @@ def symmetrize(A: torch.Tensor) -> torch.Tensor:
 LADDER_MIN_SLOTS = 4096
 
 
+def cholesky_or_nan(A: torch.Tensor) -> torch.Tensor:
+    """The lower Cholesky factor of ``A (..., n, n)``, NaN where it fails, with no host read and
+    no jitter: for matrices definite by construction (``c I + Y Y^T``) that fail only when their
+    inputs are not finite. The NaN then reaches a filter's estimates and its non-finite check names
+    the filter, step and trials, instead of a raw ``LinAlgError``. (:func:`safe_cholesky`: for
+    matrices that may be singular.)"""
+    L, info = torch.linalg.cholesky_ex(A)
+    return torch.where((info > 0)[..., None, None], torch.full_like(L, math.nan), L)
+
+
 def safe_cholesky(A: torch.Tensor, *, max_tries: int = 6) -> torch.Tensor:
     """Lower Cholesky factor of ``A (..., d, d)``, adding diagonal jitter where it fails.
 

@@ -478,23 +478,14 @@ def _gain_solver(Y: torch.Tensor, delta: torch.Tensor):
     c = float(N - 1)
     Yt = Y.transpose(-1, -2)
     if N <= k:
-        L = _cholesky_or_nan(_shifted_gram(Y, c))  # (..., N, N); c I + PSD: positive definite
+        L = linalg.cholesky_or_nan(_shifted_gram(Y, c))  # (..., N, N); c I + PSD: definite unless Y is not finite
         b = Y @ delta.unsqueeze(-1)
         maha = delta.square().sum(-1) - (b * linalg.chol_solve(L, b)).sum((-2, -1))
         return (lambda A: Yt @ linalg.chol_solve(L, A)), maha, linalg.chol_logdet(L)
-    L = _cholesky_or_nan(_shifted_gram(Yt, c))  # (..., k, k)
+    L = linalg.cholesky_or_nan(_shifted_gram(Yt, c))  # (..., k, k)
     dl = delta.unsqueeze(-1)
     maha = c * (dl * linalg.chol_solve(L, dl)).sum((-2, -1))  # directly: no |delta|^2 - b^T M^{-1} b
     return (lambda A: linalg.chol_solve(L, Yt @ A)), maha, (N - k) * math.log(c) + linalg.chol_logdet(L)
-
-
-def _cholesky_or_nan(M: torch.Tensor) -> torch.Tensor:
-    """The Cholesky factor of ``M (..., n, n)``, NaN where it fails. ``c I + Y Y^T`` fails only
-    when ``Y`` is not finite (members that diverged: a flow's step, a huge inflation); the NaN then
-    reaches the estimates, and the filter's non-finite check names the filter, step and trials
-    (with the filter's hint) instead of a raw ``LinAlgError``. No host read."""
-    L, info = torch.linalg.cholesky_ex(M)
-    return torch.where((info > 0)[..., None, None], torch.full_like(L, math.nan), L)
 
 
 def _shifted_gram(Y: torch.Tensor, c: float) -> torch.Tensor:

@@ -12,6 +12,19 @@ import torch
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
+class RungeKuttaModel:
+    """Mixin of the models integrated by :func:`rk4_steps` over ``dt`` in ``substeps`` steps: the
+    advice a simulation that blows up gives (:func:`~torchflow.models.contract.check_simulated`)."""
+
+    @property
+    def simulation_hint(self) -> str:
+        h = float(self.dt) / int(self.substeps)
+        return (
+            f"the Runge-Kutta step dt / substeps = {h:g} is too large for these dynamics: more substeps "
+            "(model.substeps) or a smaller dt; or parameters that make the system itself blow up"
+        )
+
+
 def rk4_steps(tendency, x: torch.Tensor, dt: float, substeps: int) -> torch.Tensor:
     """``x (..., d)`` moved by ``substeps`` classical Runge-Kutta steps of ``dt / substeps`` of
     ``dx/dt = tendency(x)``."""

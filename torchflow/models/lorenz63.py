@@ -32,7 +32,7 @@ from torchflow.core import linalg
 from torchflow.core.checks import check_nonnegative, check_number, check_positive
 from torchflow.core.errors import ArgumentError
 from torchflow.models.base import GaussianStateSpaceModel
-from torchflow.models.dynamics import isotropic_log_prob, rk4_steps, rk4_with_tangent
+from torchflow.models.dynamics import RungeKuttaModel, isotropic_log_prob, rk4_steps, rk4_with_tangent
 from torchflow.models.structure import Structure
 
 _KERNEL: list = []  # [bool] once checked
@@ -70,7 +70,7 @@ def lorenz63_tendency_jacobian(
     return torch.stack([torch.stack(r, -1) for r in rows], -2)
 
 
-class Lorenz63(GaussianStateSpaceModel):
+class Lorenz63(RungeKuttaModel, GaussianStateSpaceModel):
     """Lorenz-63 observed with Gaussian noise (module docstring).
 
     Args:
@@ -138,15 +138,6 @@ class Lorenz63(GaussianStateSpaceModel):
             measurement_noise_scale=obs_std**2,
             measurement_matrix_scale=1.0 if obs == [0, 1, 2] else None,
             measurement_support=None if obs == [0, 1, 2] else tuple(obs),
-        )
-
-    @property
-    def simulation_hint(self) -> str:
-        """The advice of a simulation that blows up (:func:`~torchflow.models.contract.check_simulated`)."""
-        h = float(self.dt) / int(self.substeps)
-        return (
-            f"the Runge-Kutta step dt / substeps = {h:g} is too large for these dynamics: more substeps "
-            "(model.substeps) or a smaller dt; or parameters that make the system itself blow up"
         )
 
     def _tendency(self, x):

@@ -22,7 +22,7 @@ from torchflow.core.checks import allocation_failure, check_nonnegative, check_n
 from torchflow.core.covariances import DiagonalCovariance
 from torchflow.core.errors import ArgumentError
 from torchflow.models.base import GaussianStateSpaceModel
-from torchflow.models.dynamics import isotropic_log_prob, rk4_steps
+from torchflow.models.dynamics import RungeKuttaModel, isotropic_log_prob, rk4_steps
 from torchflow.models.structure import Structure
 from torchflow.models.trials import batch_jacobian, per_trial_structure, trial_names, trial_view
 
@@ -40,7 +40,7 @@ def rk4(x: torch.Tensor, forcing, dt: float, substeps: int) -> torch.Tensor:
     return rk4_steps(lambda v: lorenz96_tendency(v, forcing), x, dt, substeps)
 
 
-class Lorenz96(GaussianStateSpaceModel):
+class Lorenz96(RungeKuttaModel, GaussianStateSpaceModel):
     """Lorenz-96 with observations of every ``obs_every``-th coordinate (module docstring).
 
     Args:
@@ -161,15 +161,6 @@ class Lorenz96(GaussianStateSpaceModel):
             measurement_noise_scale=obs_std**2 * self._variance_factor,
             gaussian_measurement=obs_df is None,
             measurement_matrix_scale=1.0 if self.obs_every == 1 and linear else None,
-        )
-
-    @property
-    def simulation_hint(self) -> str:
-        """The advice of a simulation that blows up (:func:`~torchflow.models.contract.check_simulated`)."""
-        h = float(self.dt) / int(self.substeps)
-        return (
-            f"the Runge-Kutta step dt / substeps = {h:g} is too large for these dynamics: more substeps "
-            "(model.substeps) or a smaller dt; or parameters that make the system itself blow up"
         )
 
     def _per_trial_structure(self, names):
