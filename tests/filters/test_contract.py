@@ -15,6 +15,7 @@ from torchflow.filters import (
     KalmanFilter,
     KernelParticleFlowFilter,
     LagOneFlowFilter,
+    LagOneFlowParticleFilter,
     LocalEnsembleTransformKalmanFilter,
     LocalParticleFilter,
     ParticleFlowFilter,
@@ -51,6 +52,8 @@ CONFIGS = [
         lambda: Lorenz96(d=8),
         lambda m: LagOneFlowFilter(m, n_particles=64, radius=4.0, flow_steps=5),
     ),
+    ("lag1_pfpf-lg", lambda: random_lg(3, 2), lambda m: LagOneFlowParticleFilter(m, n_particles=64, flow_steps=5)),
+    ("lag1_pfpf-l96", lambda: Lorenz96(d=8), lambda m: LagOneFlowParticleFilter(m, n_particles=64, flow_steps=5)),
 ]
 _SCHED = ExponentialSchedule(8, 1.3)
 for _flow in ("edh", "ledh", "geodesic", "gromov", "osd"):

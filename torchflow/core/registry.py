@@ -42,6 +42,7 @@ REGISTRY: Dict[str, Dict[str, str]] = {
         kpff="KernelParticleFlowFilter",
         lpf="LocalParticleFilter",
         lag1_flow="LagOneFlowFilter",
+        lag1_pfpf="LagOneFlowParticleFilter",
     ),
     "localiser": _kind("torchflow.localisation", bs="BootstrapLocaliser", pfi="FlowMixtureLocaliser"),
     "flow": _kind(

@@ -9,7 +9,7 @@ only through :mod:`torchflow.flows.select`), :mod:`torchflow.proposals`.
 * :mod:`.kalman` (KF, EKF, UKF), :mod:`.bootstrap`, :mod:`.pfpf` (PF-PF, clustered PF-PF),
   :mod:`.gpfis`, :mod:`.gaussian_sum` (Gaussian and Gaussian-sum PFs), :mod:`.ensemble`
   (ensemble Kalman filters), :mod:`.assimilation` (localised and lag-one flow filters for data
-  assimilation).
+  assimilation), :mod:`.weighted_flow` (the weighted lag-one flow: a PF-PF on deterministic dynamics).
 """
 
 from torchflow.filters.assimilation import KernelParticleFlowFilter, LagOneFlowFilter, LocalParticleFilter
@@ -44,6 +44,7 @@ from torchflow.filters.kalman import (
     kalman_update,
 )
 from torchflow.filters.pfpf import ClusteredParticleFlowParticleFilter, ParticleFlowFilter, ParticleFlowParticleFilter
+from torchflow.filters.weighted_flow import LagOneFlowParticleFilter
 
 __all__ = [
     "Estimator",
@@ -61,6 +62,7 @@ __all__ = [
     "LocalEnsembleTransformKalmanFilter",
     "KernelParticleFlowFilter",
     "LagOneFlowFilter",
+    "LagOneFlowParticleFilter",
     "LocalParticleFilter",
     "BootstrapParticleFilter",
     "ParticleFlowParticleFilter",

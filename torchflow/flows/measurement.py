@@ -139,6 +139,32 @@ class GaussianMeasurement:
             diagonal_rows=model.linearize_measurement_diagonal,
         )
 
+    @classmethod
+    def lag_one(cls, model, z: torch.Tensor) -> "GaussianMeasurement":
+        """The measurement of the forecast, ``z = h(M(x)) + w`` in the previous state ``x``, for
+        deterministic dynamics ``x_k = M(x_{k-1})``: the likelihood of the lag-one target
+        ``p(x_{k-1} | z_{1:k})``. Linearised by the chain rule, ``d h(M(x)) / dx = H(M(x)) J_M(x)``
+        (:meth:`~torchflow.models.GaussianStateSpaceModel.transition_mean_and_jacobian`: one pass
+        where the model gives it); the noise is the model's R (evaluated at ``M(x)`` where it depends
+        on the state). Every state coordinate is read through ``M``: no support, no matrix."""
+        noise = model.structure.measurement_noise
+        dependent = noise.startswith("state_dependent")
+        if noise == "state_dependent_diagonal":
+            noise = "diagonal"
+        elif noise not in ("scalar", "diagonal", "dense"):
+            noise = "dense"
+
+        def linearise(points, support=False, scale=None):
+            Mx, J = model.transition_mean_and_jacobian(points)
+            h, H = model.linearize_measurement(Mx, scale=scale)
+            return h, H @ J
+
+        def scale_tril(points):
+            return model.measurement_scale_tril(model.transition_mean(points) if dependent else None)
+
+        observed = ~torch.isnan(z) if missing.active() else None
+        return cls(z, linearise, scale_tril, noise, observed=observed)
+
     def _scalar_inv_sigma(self, points):
         return 1 / self.scale_tril(points).diagonal(dim1=-2, dim2=-1)[..., 0]  # 0-d: "scalar" R is constant
 

@@ -324,6 +324,13 @@ class GaussianStateSpaceModel(StateSpaceModel):
             return trial_view(F, 2, x, 2).expand(*x.shape[:-1], *F.shape[-2:])
         return batch_jacobian(self.transition_mean, x) if trial_names(self) else jacobian(self.transition_mean, x)
 
+    def transition_mean_and_jacobian(self, x: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """``(g(x) (..., d), dg/dx (..., d, d))`` at ``x (..., d)``: what a linearisation of the
+        measurement of the forecast, ``h(g(x))``, reads (the lag-one flows). Default:
+        :meth:`transition_mean` and :meth:`transition_jacobian`; a model that computes both in one
+        pass overrides it (Lorenz-63's compiled Runge-Kutta tangents)."""
+        return self.transition_mean(x), self.transition_jacobian(x)
+
     def transition_matrix(self) -> torch.Tensor:
         """``(d, d)`` matrix of a linear transition (only when ``structure.linear_dynamics``)."""
         raise NotImplementedError(f"{type(self).__name__} has no constant transition matrix")
