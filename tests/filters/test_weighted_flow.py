@@ -73,7 +73,7 @@ def test_evidence_is_unbiased_for_the_regularised_target(ess_threshold):
     )
     out = filt.step(state, z, torch.Generator().manual_seed(6))
     # the exact evidence of the regularised target
-    centres, K, mu, L = kernel_prior(base, lw, 0.5)
+    centres, K, mu, U = kernel_prior(base, lw, 0.5)
     HF = model.measurement_matrix() @ model.transition_matrix()
     R = model.measurement_cov()
 
@@ -82,7 +82,7 @@ def test_evidence_is_unbiased_for_the_regularised_target(ess_threshold):
         return torch.distributions.MultivariateNormal(mean @ HF.T, S).log_prob(z[:1])
 
     exact = torch.logsumexp(
-        torch.cat([lw[0] + math.log(0.95) + comp(centres[0], K[0]), math.log(0.05) + comp(mu[0], 3.0 * L[0])]), 0
+        torch.cat([lw[0] + math.log(0.95) + comp(centres[0], K[0]), math.log(0.05) + comp(mu[0], 3.0 * U[0])]), 0
     )
     ratio = (out.log_evidence_increment - exact).exp()
     se = ratio.std() / math.sqrt(B)

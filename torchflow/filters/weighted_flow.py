@@ -10,10 +10,11 @@ a Gaussian kernel whose covariance is ``h^2`` times their weighted covariance ``
 :attr:`bandwidth`, relative to the weighted spread, as DAPPER's ``PartFilt`` scales its
 regularisation), with Liu & West's shrinkage of the centres towards the weighted mean ``mu``
 (``c_j = mu + sqrt(1 - h^2) (x_j - mu)``: the mixture keeps the particles' mean and covariance),
-and a defensive component ``N(mu, kappa^2 Sigma)`` of weight ``epsilon`` (:attr:`defensive`,
-:attr:`defensive_scale`) that keeps the target's tails where the particles have collapsed::
+and a defensive component ``N(mu, kappa^2 U)`` of weight ``epsilon`` (:attr:`defensive`,
+:attr:`defensive_scale`; ``U`` the particles' unweighted covariance, the cloud's extent whatever the
+weights) that keeps the target's tails where the weights have collapsed::
 
-    p̂(x) = (1 - epsilon) sum_j W_j N(x; c_j, h^2 Sigma) + epsilon N(x; mu, kappa^2 Sigma).
+    p̂(x) = (1 - epsilon) sum_j W_j N(x; c_j, h^2 Sigma) + epsilon N(x; mu, kappa^2 U).
 
 No model noise is invented: the target is a density because of the kernel, and the kernel is
 relative to the particles' own spread, so it shrinks as they concentrate.
@@ -82,16 +83,22 @@ def kernel_prior(particles: torch.Tensor, log_weights: torch.Tensor, bandwidth: 
             ``(1 + h^2) Sigma``).
 
     Returns:
-        ``(centres (B, N, d), kernel factor (B, d, d), mean (B, 1, d), factor of Sigma (B, d, d))``;
-        the kernel's covariance is ``factor factor^T = h^2 Sigma``.
+        ``(centres (B, N, d), kernel factor (B, d, d), mean mu (B, 1, d), spread factor (B, d, d))``:
+        the kernel's covariance is ``factor factor^T = h^2 Sigma`` (``Sigma`` the weighted
+        covariance); the spread factor is that of the particles' unweighted covariance, the cloud's
+        extent whatever the weights (the defensive component's scale: it stays wide when the
+        weights have collapsed onto one particle, where ``Sigma`` vanishes).
     """
+    N = particles.shape[1]
     w = log_weights.exp().unsqueeze(-1)  # (B, N, 1)
     mu = (w * particles).sum(1, keepdim=True)
     D = particles - mu
     sigma = linalg.symmetrize((w * D).transpose(1, 2) @ D)  # (B, d, d)
-    L = linalg.safe_cholesky(sigma)  # jitter where the particles have collapsed
+    L = linalg.safe_cholesky(sigma)  # jitter where the weights have collapsed
+    E = particles - particles.mean(1, keepdim=True)
+    spread = linalg.safe_cholesky(linalg.symmetrize(E.transpose(1, 2) @ E / N))
     a = math.sqrt(max(0.0, 1.0 - bandwidth * bandwidth)) if shrink else 1.0
-    return mu + a * D, bandwidth * L, mu, L
+    return mu + a * D, bandwidth * L, mu, spread
 
 
 class LagOneFlowParticleFilter(Filter):
@@ -110,8 +117,8 @@ class LagOneFlowParticleFilter(Filter):
             True: the regularised prior keeps the particles' mean and covariance).
         inflation: multiplicative inflation (>= 1) of the previous particles' anomalies before the
             kernel (1: none).
-        defensive: the weight ``epsilon`` in [0, 1) of the defensive component ``N(mu, kappa^2
-            Sigma)`` (0: none).
+        defensive: the weight ``epsilon`` in [0, 1) of the defensive component ``N(mu, kappa^2 U)``
+            (``U`` the particles' unweighted covariance; 0: none).
         defensive_scale: ``kappa`` (>= 1).
         ess_threshold: choose components by the auxiliary first stage (systematic resampling) when
             its effective sample size is below this fraction of N (in [0, 1]; 1: every step; 0:
@@ -223,7 +230,7 @@ class LagOneFlowParticleFilter(Filter):
         if self.inflation != 1.0:
             wbar = (lw.exp().unsqueeze(-1) * X).sum(1, keepdim=True)
             X = wbar + self.inflation * (X - wbar)
-        centres, K, mu, L = kernel_prior(X, lw, self.bandwidth, shrink=self.shrink)
+        centres, K, mu, U = kernel_prior(X, lw, self.bandwidth, shrink=self.shrink)
         meas = GaussianMeasurement.lag_one(model, z)
         # the target's components: N kernels (shared factor K) and the defensive Gaussian
         eps = self.defensive
@@ -231,7 +238,7 @@ class LagOneFlowParticleFilter(Filter):
         # first stage: each component's linearised evidence of z, lambda ~ w N(z; h(M(c)), H S H^T + R)
         lam = lw_kernel + self._component_evidence(meas, centres, K.unsqueeze(1))
         if eps > 0:
-            wide = self.defensive_scale * L
+            wide = self.defensive_scale * U
             lam = torch.cat([lam, math.log(eps) + self._component_evidence(meas, mu, wide.unsqueeze(1))], 1)
         lam = lam - torch.logsumexp(lam, -1, keepdim=True)
         ess_lam = 1.0 / lam.exp().square().sum(-1)
