@@ -17,7 +17,18 @@ weights) that keeps the target's tails where the weights have collapsed::
     p̂(x) = (1 - epsilon) sum_j W_j N(x; c_j, h^2 Sigma) + epsilon N(x; mu, kappa^2 U).
 
 No model noise is invented: the target is a density because of the kernel, and the kernel is
-relative to the particles' own spread, so it shrinks as they concentrate.
+relative to the particles' own spread, so it shrinks as they concentrate. (``Sigma`` holds
+:data:`FLOOR` times the unweighted covariance too: weights that collapse onto one particle leave the
+kernels a width.)
+
+**The kernels' shape** (:attr:`kernel`). ``"spread"``: every kernel has the covariance
+``h^2 Sigma``. ``"propagated"`` (default): kernel ``j`` has particle ``j``'s own covariance, the
+posterior covariance of the component it was drawn from (the flow's Gaussian image) carried to
+time k by the model's Jacobian, ``J(x) C J(x)^T``, rescaled to the trace of ``h^2 Sigma`` and mixed
+with it (``kernel_mix``, the share of ``h^2 Sigma``): the kernels then lie along the directions the
+dynamics stretch and not across the ones they contract (on Lorenz-63 the attractor is thin: a
+kernel across it puts prior mass where the dynamics leave none). The mixture then keeps the
+particles' mean, and their covariance's trace.
 
 **Proposal: each kernel component's lag-one flow.** Particle ``i`` is drawn from one component
 ``a_i`` of ``p̂`` and moved by the exact Daum-Huang flow (LEDH: its point starts at the component's
@@ -60,16 +71,19 @@ from torchflow.core import linalg
 from torchflow.core import missing as _missing
 from torchflow.core.checks import check_count, check_number
 from torchflow.core.covariances import sample_prior
-from torchflow.core.errors import ArgumentTypeError
+from torchflow.core.errors import ArgumentError, ArgumentTypeError
 from torchflow.core.random import uniform
 from torchflow.filters.base import Filter, ParticleState
 from torchflow.filters.marginal import gaussian_pairs, mixture_logsumexp, pair_rows
 from torchflow.flows import FlowPrior, GaussianMeasurement, LEDHFlow, integrate_flow
 from torchflow.flows.schedules import ExponentialSchedule
 
-__all__ = ["LagOneFlowParticleFilter", "kernel_prior"]
+__all__ = ["LagOneFlowParticleFilter", "kernel_prior", "propagated_kernels"]
 
-_LOG_2PI = math.log(2.0 * math.pi)
+#: ``kernel=`` choices: one covariance for every kernel, or each particle's own propagated one
+KERNELS = ("spread", "propagated")
+#: the unweighted covariance's share in the kernels' ``Sigma``: a floor for weights that collapse onto one particle
+FLOOR = 0.05
 
 
 def kernel_prior(particles: torch.Tensor, log_weights: torch.Tensor, bandwidth: float, *, shrink: bool = True):
@@ -84,8 +98,9 @@ def kernel_prior(particles: torch.Tensor, log_weights: torch.Tensor, bandwidth: 
 
     Returns:
         ``(centres (B, N, d), kernel factor (B, d, d), mean mu (B, 1, d), spread factor (B, d, d))``:
-        the kernel's covariance is ``factor factor^T = h^2 Sigma`` (``Sigma`` the weighted
-        covariance); the spread factor is that of the particles' unweighted covariance, the cloud's
+        the kernel's covariance is ``factor factor^T = h^2 Sigma``, ``Sigma`` the weighted
+        covariance plus :data:`FLOOR` times the unweighted one (weights collapsed onto one particle
+        leave the kernel a width); the spread factor is that of the particles' unweighted covariance, the cloud's
         extent whatever the weights (the defensive component's scale: it stays wide when the
         weights have collapsed onto one particle, where ``Sigma`` vanishes).
     """
@@ -93,12 +108,24 @@ def kernel_prior(particles: torch.Tensor, log_weights: torch.Tensor, bandwidth: 
     w = log_weights.exp().unsqueeze(-1)  # (B, N, 1)
     mu = (w * particles).sum(1, keepdim=True)
     D = particles - mu
-    sigma = linalg.symmetrize((w * D).transpose(1, 2) @ D)  # (B, d, d)
-    L = linalg.safe_cholesky(sigma)  # jitter where the weights have collapsed
     E = particles - particles.mean(1, keepdim=True)
-    spread = linalg.safe_cholesky(linalg.symmetrize(E.transpose(1, 2) @ E / N))
+    unweighted = linalg.symmetrize(E.transpose(1, 2) @ E / N)
+    sigma = linalg.symmetrize((w * D).transpose(1, 2) @ D) + FLOOR * unweighted  # (B, d, d)
+    L = linalg.safe_cholesky(sigma)
+    spread = linalg.safe_cholesky(unweighted)
     a = math.sqrt(max(0.0, 1.0 - bandwidth * bandwidth)) if shrink else 1.0
     return mu + a * D, bandwidth * L, mu, spread
+
+
+def propagated_kernels(factor: torch.Tensor, shape: torch.Tensor, mix: float) -> torch.Tensor:
+    """Each particle's kernel factor ``(B, N, d, d)`` from the spread kernel's ``factor (B, d, d)``
+    (``G = factor factor^T = h^2 Sigma``) and the particles' carried covariances ``shape (B, N, d, d)``:
+    the factor of ``(1 - mix) S_j tr(G) / tr(S_j) + mix G``."""
+    G = factor @ factor.transpose(-1, -2)
+    trace = G.diagonal(dim1=-2, dim2=-1).sum(-1).unsqueeze(1)  # (B, 1)
+    scale = trace / shape.diagonal(dim1=-2, dim2=-1).sum(-1).clamp_min(torch.finfo(shape.dtype).tiny)
+    S = (1 - mix) * shape * scale[..., None, None] + mix * G.unsqueeze(1)
+    return linalg.safe_cholesky(linalg.symmetrize(S))
 
 
 class LagOneFlowParticleFilter(Filter):
@@ -123,12 +150,19 @@ class LagOneFlowParticleFilter(Filter):
         ess_threshold: choose components by the auxiliary first stage (systematic resampling) when
             its effective sample size is below this fraction of N (in [0, 1]; 1: every step; 0:
             never, each particle keeps its own component).
+        kernel: ``"propagated"`` (default: each particle's own covariance carried through its flow
+            and the model's Jacobian, with the trace of ``h^2 Sigma``) or ``"spread"`` (``h^2 Sigma``
+            for every kernel); module docstring.
+        kernel_mix: with ``"propagated"``, the share in (0, 1] of ``h^2 Sigma`` in each kernel (0.05;
+            with none, the carried covariances grow ill-conditioned along the contracting
+            directions and every trial of Lorenz-63 diverged).
         flow_steps, step_ratio: the flow's exponential pseudo-time schedule.
         validate, name: as :class:`~torchflow.filters.Filter`.
 
     The state's ``particles`` are the weighted particles at time k (``log_weights`` normalised,
     ``ess`` their effective sample size, ``resampled`` whether the components were chosen by the
-    first stage); the estimate is their weighted mean. The log-evidence increment estimates the
+    first stage, ``extras["shape"]`` each particle's carried covariance ``(B, N, d, d)`` with
+    ``kernel="propagated"``); the estimate is their weighted mean. The log-evidence increment estimates the
     regularised model's ``log p(z_k | z_{1:k-1})``.
 
     Shapes: particles ``(B, N, d)``, observations ``z (B, m)`` (NaN: not observed).
@@ -154,6 +188,8 @@ class LagOneFlowParticleFilter(Filter):
         defensive: float = 0.01,
         defensive_scale: float = 3.0,
         ess_threshold: float = 0.5,
+        kernel: str = "propagated",
+        kernel_mix: float = 0.05,
         flow_steps: int = 20,
         step_ratio: float = 1.2,
         validate: bool = True,
@@ -179,6 +215,14 @@ class LagOneFlowParticleFilter(Filter):
         )
         self.ess_threshold = check_number(
             "ess_threshold", ess_threshold, lambda v: 0 <= v <= 1, "a number in [0, 1] (a fraction of n_particles)"
+        )
+        if kernel not in KERNELS:
+            raise ArgumentError(f"kernel: expected one of {KERNELS}, got {kernel!r}")
+        #: the kernels' covariance: ``"spread"``, ``h^2 Sigma`` for every particle; ``"propagated"``, each
+        #: particle's own covariance carried through its flow and the model's Jacobian, scaled to the same trace
+        self.kernel = kernel
+        self.kernel_mix = check_number(
+            "kernel_mix", kernel_mix, lambda v: 0 < v <= 1, "a number in (0, 1] (the share of h^2 Sigma in a kernel)"
         )
         self.flow_steps = check_count("flow_steps", flow_steps, minimum=1, hint=" (steps in pseudo-time)")
         self.step_ratio = check_number(
@@ -209,8 +253,13 @@ class LagOneFlowParticleFilter(Filter):
         """N equally weighted particles per trial drawn from the prior ``N(mean (B, d), cov)``."""
         N = self._resolve_n(n_particles)
         X = sample_prior(mean, cov, N, generator)  # (B, N, d)
-        B = X.shape[0]
+        B, d = X.shape[0], X.shape[-1]
+        extras = {}
+        if self.kernel == "propagated":
+            P = cov.dense() if hasattr(cov, "dense") else cov
+            extras["shape"] = P.expand(B, d, d).unsqueeze(1).expand(B, N, d, d).contiguous()
         return ParticleState(
+            extras=extras,
             particles=X,
             log_weights=torch.full((B, N), -math.log(N), dtype=X.dtype, device=X.device),
             estimate=X.mean(1),
@@ -231,12 +280,16 @@ class LagOneFlowParticleFilter(Filter):
             wbar = (lw.exp().unsqueeze(-1) * X).sum(1, keepdim=True)
             X = wbar + self.inflation * (X - wbar)
         centres, K, mu, U = kernel_prior(X, lw, self.bandwidth, shrink=self.shrink)
+        shape = state.extras.get("shape") if self.kernel == "propagated" else None
+        if shape is not None:  # each particle's own shape, with the trace of h^2 Sigma
+            K = propagated_kernels(K, shape, self.kernel_mix)  # (B, N, d, d)
+        Kc = K if K.dim() == 4 else K.unsqueeze(1)  # (B, N|1, d, d)
         meas = GaussianMeasurement.lag_one(model, z)
         # the target's components: N kernels (shared factor K) and the defensive Gaussian
         eps = self.defensive
         lw_kernel = lw + math.log1p(-eps) if eps > 0 else lw
         # first stage: each component's linearised evidence of z, lambda ~ w N(z; h(M(c)), H S H^T + R)
-        lam = lw_kernel + self._component_evidence(meas, centres, K.unsqueeze(1))
+        lam = lw_kernel + self._component_evidence(meas, centres, Kc)
         if eps > 0:
             wide = self.defensive_scale * U
             lam = torch.cat([lam, math.log(eps) + self._component_evidence(meas, mu, wide.unsqueeze(1))], 1)
@@ -248,11 +301,14 @@ class LagOneFlowParticleFilter(Filter):
         idx = torch.where(resample.unsqueeze(-1), drawn, own)
         c0 = torch.cat([centres, mu], 1) if eps > 0 else centres
         c0 = c0.gather(1, idx.unsqueeze(-1).expand(B, N, d))  # (B, N, d): each particle's component centre
+        Kd = Kc.expand(B, N, d, d)
+        if Kc.shape[1] > 1:  # each particle's component's own kernel
+            Kd = Kd.gather(1, idx.clamp_max(N - 1).view(B, N, 1, 1).expand(B, N, d, d))
         if eps > 0:
             is_wide = (idx == N).view(B, N, 1, 1)
-            F0 = torch.where(is_wide, wide.unsqueeze(1), K.unsqueeze(1))  # (B, N, d, d)
+            F0 = torch.where(is_wide, wide.unsqueeze(1), Kd)  # (B, N, d, d)
         else:
-            F0 = K.unsqueeze(1).expand(B, N, d, d)
+            F0 = Kd
         xi = linalg.standard_normal((B, N, d), dtype=dt, device=dev, generator=generator)
         eta = c0 + linalg.matvec(F0, xi)
         out = integrate_flow(
@@ -276,6 +332,10 @@ class LagOneFlowParticleFilter(Filter):
         uniform_w = torch.full((B, N), -math.log(N), dtype=dt, device=dev)
         (lq,) = mixture_logsumexp(gaussian_pairs(x, out.image_mean, img), [uniform_w], N, rows)
         Xk = model.sample_transition(x, generator)  # M(x) for deterministic dynamics
+        extras = {}
+        if self.kernel == "propagated":  # the component's posterior covariance carried to time k (tangent map)
+            J = model.transition_mean_and_jacobian(x)[1]
+            extras["shape"] = linalg.symmetrize(J @ out.image_cov @ J.transpose(-1, -2))
         ll = _missing.measurement_log_prob(model, z.unsqueeze(1), Xk)  # (B, N)
         v = lp + ll - lq
         total = torch.logsumexp(v, -1)
@@ -289,6 +349,7 @@ class LagOneFlowParticleFilter(Filter):
             log_evidence_increment=total - math.log(N),
             resampled=resample,
             step=state.step + 1,
+            extras=extras,
         )
 
     @staticmethod
@@ -310,7 +371,9 @@ class LagOneFlowParticleFilter(Filter):
         return (
             f"n_particles={self.n_particles}, bandwidth={self.bandwidth:g}, shrink={self.shrink}, "
             f"inflation={self.inflation:g}, defensive={self.defensive:g}, defensive_scale={self.defensive_scale:g}, "
-            f"ess_threshold={self.ess_threshold:g}, flow_steps={self.flow_steps}, step_ratio={self.step_ratio:g}"
+            f"ess_threshold={self.ess_threshold:g}, kernel={self.kernel!r}"
+            + (f", kernel_mix={self.kernel_mix:g}" if self.kernel == "propagated" else "")
+            + f", flow_steps={self.flow_steps}, step_ratio={self.step_ratio:g}"
         )
 
 
