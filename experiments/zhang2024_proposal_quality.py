@@ -42,8 +42,8 @@ from torchflow.flows import EDHFlow, GromovFlow, OptimalDiffusionFlow, flow_gaus
 from torchflow.flows.base import FlowPrior
 from torchflow.flows.geodesic import C_RULES
 from torchflow.flows.schedules import GeometricSchedule
-from torchflow.localisation import birth_mixture, sensor_measurement
 from torchflow.models import TDOA3D
+from torchflow.tdoa import birth_mixture, sensor_measurement
 
 GRIDS = ((1e-13, 1.3), (1e-5, 1.5), (1e-4, 2.0))  # (Delta_1, beta): Table II's columns
 METHODS = (("pfi_d", None), ("pfi_s", None), ("pfi_os", 0.01), ("pfi_os", 0.1), ("pfi_os", 0.5))

@@ -5,7 +5,7 @@ import itertools
 import pytest
 import torch
 
-from torchflow.localisation.association import loopy_association
+from torchflow.tdoa.association import loopy_association
 
 
 def brute_force(beta, xi):

@@ -129,7 +129,7 @@ def test_signature_node_holds_the_constructors_defaults_and_builds(path):
             or registry.yaml_value(p.default) is registry._NO_YAML
         ), p.name
     if "model" in inspect.signature(cls).parameters:
-        local = path.startswith("torchflow.localisation")  # the localisers run on the TDOA model only
+        local = path.startswith("torchflow.tdoa")  # the localisers run on the TDOA model only
         model = instantiate(_compose("model=tdoa").model if local else _compose("model=linear_gaussian", *SMALL).model)
         assert isinstance(instantiate(node, model=model, **({"n_particles": 8} if "n_particles" in node else {})), cls)
     else:

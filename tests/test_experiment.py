@@ -153,8 +153,8 @@ def test_warm_up_covers_every_chunk_shape_on_a_gpu(monkeypatch, caplog):
 def test_a_localiser_warms_up_on_its_whole_data():
     """A one-shot localiser has no time axis to cut to two steps: its warm-up (on a GPU by default)
     runs one trial's whole data and moves no number."""
-    from torchflow.localisation import BootstrapLocaliser
     from torchflow.models import TDOA3D
+    from torchflow.tdoa import BootstrapLocaliser
 
     model = TDOA3D()
     runs = {

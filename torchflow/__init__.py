@@ -9,7 +9,7 @@ The package is built in floors; a module imports only from its own floor and the
 3. :mod:`torchflow.flows`: particle flows (their fused kernels in :mod:`torchflow.flows.kernels`);
 4. :mod:`torchflow.proposals`: the particle filters' proposals;
 5. :mod:`torchflow.filters`: the filters;
-6. :mod:`torchflow.smoothing`, :mod:`torchflow.inference`, :mod:`torchflow.localisation`,
+6. :mod:`torchflow.smoothing`, :mod:`torchflow.inference`, :mod:`torchflow.tdoa`,
    :mod:`torchflow.interop`: what is built on filters (smoothers, particle MCMC, multi-object
    localisers, adapters);
 7. :mod:`torchflow.app`: the application (the commands, the Monte Carlo runner, recorded data,

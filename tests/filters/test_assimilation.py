@@ -118,8 +118,8 @@ def test_localised_lag_one_drift_is_the_tapered_cross_covariance_gain(block, mon
     ``-(rho o C) ((y_i + ybar) / 2 - z) / (N - 1)``, ``C (d, m)`` the members' cross-covariance of
     state and whitened measurement (times N - 1) and ``rho`` the Gaspari-Cohn taper of the ring's
     distances; two sites unobserved. ``block = 1``: the neighbourhood gathered one slot at a time."""
+    from torchflow.core.geometry import gaspari_cohn, periodic_distances
     from torchflow.filters import assimilation
-    from torchflow.filters.ensemble import gaspari_cohn, periodic_distances
 
     if block is not None:
         monkeypatch.setattr(assimilation, "_CACHE_ELEMENTS", block)
@@ -407,8 +407,8 @@ def test_distances_are_checked_whatever_the_radius_and_the_geometry_is_the_model
     model was localised on a 1-D ring. Distances are checked whenever given; without them a finite
     radius measures in the model's declared geometry (Lorenz-96's ring, the sensor grid), and a
     model that declares none is refused."""
+    from torchflow.core.geometry import gaspari_cohn
     from torchflow.filters import LocalEnsembleTransformKalmanFilter
-    from torchflow.filters.ensemble import gaspari_cohn
     from torchflow.models import SensorNetwork
 
     l96 = Lorenz96(d=8)

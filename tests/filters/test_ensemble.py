@@ -11,6 +11,7 @@ import torch
 from conftest import random_lg
 
 from torchflow.core.errors import ArgumentError, ArgumentTypeError
+from torchflow.core.geometry import gaspari_cohn, periodic_distances
 from torchflow.core.trackers import kalman_update
 from torchflow.filters import (
     EnsembleKalmanFilter,
@@ -19,7 +20,6 @@ from torchflow.filters import (
     LocalEnsembleTransformKalmanFilter,
     ParticleState,
 )
-from torchflow.filters.ensemble import gaspari_cohn, periodic_distances
 from torchflow.models import LinearGaussian, Lorenz96, SensorNetwork
 
 ETKF, ENKF, LETKF = EnsembleTransformKalmanFilter, EnsembleKalmanFilter, LocalEnsembleTransformKalmanFilter
@@ -277,7 +277,7 @@ def _lg_mats(d, m):
 def test_ring_neighbours_equal_the_distance_matrix(obs_every, radius):
     """The ring's neighbours found directly (no (d, m) matrix: d = 10^5 and more) are the distance
     matrix's: the same LETKF analysis to round-off."""
-    from torchflow.filters.ensemble import periodic_distances
+    from torchflow.core.geometry import periodic_distances
 
     model = Lorenz96(d=40, obs_every=obs_every)
     direct = LocalEnsembleTransformKalmanFilter(model, n_particles=10, radius=radius)
@@ -293,7 +293,7 @@ def test_ring_neighbours_equal_the_distance_matrix(obs_every, radius):
 
 
 def test_letkf_builds_at_a_million_sites_without_a_distance_matrix():
-    from torchflow.filters.ensemble import periodic_neighbours
+    from torchflow.core.geometry import periodic_neighbours
 
     taper, index = periodic_neighbours(10**6, torch.arange(0, 10**6, 4), 15.0)
     reached = (taper > 0).sum(-1)  # observations every 4th site, radius 15: 7 or 8 within reach

@@ -8,8 +8,8 @@ from torch.func import jacrev, vmap
 
 from torchflow.flows import EDHFlow, FlowPrior, GromovFlow, flow_gaussian
 from torchflow.flows.schedules import ExponentialSchedule
-from torchflow.localisation import sensor_measurement
 from torchflow.models import TDOA3D
+from torchflow.tdoa import sensor_measurement
 
 
 def test_default_geometry():

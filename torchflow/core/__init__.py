@@ -10,6 +10,8 @@ Nothing here imports another torchflow package.
   kernel, :mod:`._philox_kernel`, :mod:`._triton`);
 * :mod:`.resampling`: log-weights, effective sample size, resampling schemes, particle gathers;
 * :mod:`.covariances`: covariance types (dense, diagonal, banded) and their estimators;
+* :mod:`.geometry`: localisation geometry (the Gaspari-Cohn taper, a ring's distances, the
+  observations within a radius of each coordinate in a model's declared geometry);
 * :mod:`.constraints`: constrained parameters of learnable models;
 * :mod:`.missing`: missing observations (NaN masks) and the context that declares them;
 * :mod:`.trackers`: Gaussian belief updates (Kalman, EKF, UKF) on ``(..., d)`` beliefs;

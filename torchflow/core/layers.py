@@ -30,7 +30,7 @@ FLOORS: Dict[str, int] = {
     "torchflow.filters": 6,
     "torchflow.smoothing": 7,
     "torchflow.inference": 7,
-    "torchflow.localisation": 7,
+    "torchflow.tdoa": 7,
     "torchflow.interop": 7,
     "torchflow.app": 8,
     "torchflow": 8,  # the root (__init__, __main__): imports the floors below; only the application imports it

@@ -44,7 +44,7 @@ REGISTRY: Dict[str, Dict[str, str]] = {
         lag1_flow="LagOneFlowFilter",
         lag1_pfpf="LagOneFlowParticleFilter",
     ),
-    "localiser": _kind("torchflow.localisation", bs="BootstrapLocaliser", pfi="FlowMixtureLocaliser"),
+    "localiser": _kind("torchflow.tdoa", bs="BootstrapLocaliser", pfi="FlowMixtureLocaliser"),
     "flow": _kind(
         "torchflow.flows",
         edh="EDHFlow",

@@ -61,18 +61,17 @@ from torchflow.core import linalg
 from torchflow.core import missing as _missing
 from torchflow.core.checks import check_count, check_number
 from torchflow.core.errors import ArgumentError, ArgumentTypeError
-from torchflow.core.random import uniform
-from torchflow.filters.ensemble import (
-    _DIAGONAL_NOISE,
-    _EnsembleFilter,
+from torchflow.core.geometry import (
+    DIAGONAL_NOISE,
     check_distances,
     check_radius,
     declared_distances,
     gaspari_cohn,
     local_observations,
     periodic_distances,
-    rotate_anomalies,
 )
+from torchflow.core.random import uniform
+from torchflow.filters.ensemble import _EnsembleFilter, rotate_anomalies
 from torchflow.flows.schedules import ExponentialSchedule
 from torchflow.models.base import GaussianStateSpaceModel
 
@@ -101,7 +100,7 @@ def _grad_log_likelihood(model, z: torch.Tensor, X: torch.Tensor) -> torch.Tenso
 
 def _register_neighbours(f, distances: Optional[torch.Tensor]) -> None:
     """``f.local_index``, ``f.local_taper`` ``(d, K)``: the observations within ``f.radius`` of each
-    coordinate and their Gaspari-Cohn tapers (:func:`~torchflow.filters.ensemble.local_observations`),
+    coordinate and their Gaspari-Cohn tapers (:func:`~torchflow.core.geometry.local_observations`),
     on the model's dtype and device; both ``None`` when the radius is infinite (every observation
     everywhere)."""
     taper = index = None
@@ -318,7 +317,7 @@ class LocalParticleFilter(_EnsembleFilter):
         )
         noise = model.structure.measurement_noise
         own_terms = type(model).measurement_log_prob_terms is not GaussianStateSpaceModel.measurement_log_prob_terms
-        if noise not in _DIAGONAL_NOISE and not own_terms:  # before any work, not at the first step
+        if noise not in DIAGONAL_NOISE and not own_terms:  # before any work, not at the first step
             who = type(model).__name__.removeprefix("Parametrized")  # a learnable model's class: torch's subclass
             raise ArgumentTypeError(
                 f"{self.name}: model: the local particle filter weighs each observation on its own, which needs "
@@ -534,7 +533,7 @@ class LagOneFlowFilter(_EnsembleFilter):
                 "likelihood: 'model' (the score of the model's own measurement density) drives the "
                 "flow in the members' covariance, so it needs covariance='current' or a finite radius"
             )
-        if likelihood == "model" and model.structure.measurement_noise not in _DIAGONAL_NOISE:
+        if likelihood == "model" and model.structure.measurement_noise not in DIAGONAL_NOISE:
             raise ArgumentTypeError(
                 f"{self.name}: model: likelihood='model' reads each observation's density on its own, which needs a "
                 f"diagonal measurement noise; {type(model).__name__} declares {model.structure.measurement_noise!r}"
@@ -546,7 +545,7 @@ class LagOneFlowFilter(_EnsembleFilter):
         #: ``"current"``: the flowed members' covariance at every pseudo-time (localisable, ``radius``)
         self.covariance = covariance
         if local:
-            if model.structure.measurement_noise not in _DIAGONAL_NOISE:
+            if model.structure.measurement_noise not in DIAGONAL_NOISE:
                 raise ArgumentTypeError(
                     f"{self.name}: model: a finite radius tapers each observation's influence, which needs a "
                     f"diagonal measurement noise (declared scalar, diagonal or state_dependent_diagonal); "

@@ -168,7 +168,7 @@ def belief_std(state) -> torch.Tensor:
 class Estimator(nn.Module):
     """What the Monte Carlo runner (:func:`torchflow.app.runner.run_experiment`) reads of everything
     it runs: the filters (:class:`Filter`) and the TDOA localisers
-    (:mod:`torchflow.localisation`). Both derive from this class and declare these members; the
+    (:mod:`torchflow.tdoa`). Both derive from this class and declare these members; the
     runner reads nothing else of them.
 
     Declarations (class attributes; a subclass overrides them):

@@ -11,7 +11,7 @@ sensor) uniform on the feasible interval ``[-||p_a - p_b|| / c, ||p_a - p_b|| / 
 
 As a :class:`~torchflow.models.StateSpaceModel`, the sensors are the time steps (:attr:`TDOA3D.n_steps`),
 the state is the static sources ``(3 n,)`` and ``observations (B, S, M)`` are padded with 0 and come
-with a ``mask`` (:class:`TDOAData`): only the localisers of :mod:`torchflow.localisation` run on it.
+with a ``mask`` (:class:`TDOAData`): only the localisers of :mod:`torchflow.tdoa` run on it.
 Defaults: the paper's pair list and source count appear only in a figure; ours are read from it.
 """
 

@@ -6,8 +6,8 @@ import torch
 from torchflow.core import metrics
 from torchflow.core.random import TrialStreams
 from torchflow.flows.schedules import GeometricSchedule
-from torchflow.localisation import FlowMixtureLocaliser, birth_mixture
 from torchflow.models import TDOA3D
+from torchflow.tdoa import FlowMixtureLocaliser, birth_mixture
 
 
 def _scene(n_sources=1, runs=2, clutter=0.05, seed=0):
@@ -79,7 +79,7 @@ def test_bad_input():
 def test_bootstrap_baseline_finds_a_source_in_a_small_region():
     """The bootstrap sampler works where its particles are dense enough: a 100 m cube, 2e4
     particles per PO (in the seed's 2 km cube it needs millions: BS 2e6 there has OSPA 25.9)."""
-    from torchflow.localisation import BootstrapLocaliser
+    from torchflow.tdoa import BootstrapLocaliser
 
     model = TDOA3D(n_sources=1, clutter_rate=0.05, p_d=1.0, region=50.0, sigma_v=1e-3)
     data = model.simulate(2, generator=torch.Generator().manual_seed(0))
@@ -99,7 +99,7 @@ def test_an_underflowing_measurement_is_reported_not_nan(kind, recwarn):
     """A TDOA far outside every sensor's feasible interval has likelihood exp(-1e10) under every
     sample: both localisers flag that (run, sensor, measurement), treat it as clutter (the source
     is still found, nothing is NaN)."""
-    from torchflow.localisation import BootstrapLocaliser
+    from torchflow.tdoa import BootstrapLocaliser
 
     model, data = _scene(runs=2)
     pad = torch.zeros(2, 9, 1, dtype=data.z.dtype)
@@ -253,8 +253,8 @@ def test_the_localisers_and_the_filters_declare_one_runner_protocol():
     """What the runner reads is one declared base (torchflow.filters.Estimator): the localisers
     declare sets, masked measurements, one run per call and per-run streams; the filters states."""
     from torchflow.filters import BootstrapParticleFilter, Estimator, KalmanFilter
-    from torchflow.localisation import BootstrapLocaliser, FlowMixtureLocaliser
     from torchflow.models import SensorNetwork
+    from torchflow.tdoa import BootstrapLocaliser, FlowMixtureLocaliser
 
     model = TDOA3D(n_sources=1, clutter_rate=0.05, p_d=1.0, region=50.0, sigma_v=1e-3)
     for loc in (BootstrapLocaliser(model, n_particles=100), FlowMixtureLocaliser(model)):

@@ -9,7 +9,7 @@ of sensor s. The belief is a set of potential objects (POs), each with an existe
    paper's birth density is uniform) is flowed by every measurement (:func:`~torchflow.flows.flow_gaussian`:
    PFI-D = EDH, PFI-S = Gromov, PFI-OS = optimised diffusion) and N_p samples are drawn from it; the
    ratio ``N(x; mu_n, P_n) l_m(x) / N(x; mu'_nm, P'_nm)`` gives ``int f_k l_m`` and the moments;
-2. loopy BP (:func:`~torchflow.localisation.association.loopy_association`) gives the association messages;
+2. loopy BP (:func:`~torchflow.tdoa.association.loopy_association`) gives the association messages;
 3. each legacy PO's candidates ("missed" plus one per component and measurement) are weighted by
    the messages and reduced back to G components by systematic resampling (the paper does not say how), with
    existence ``r C / (r C + 1 - r)``; each measurement makes a new PO from the birth mixture;
@@ -36,9 +36,9 @@ from torchflow.core.resampling import systematic
 from torchflow.filters.base import Estimator
 from torchflow.flows import EDHFlow, GaussianMeasurement, GromovFlow, OptimalDiffusionFlow
 from torchflow.flows.schedules import GeometricSchedule, LambdaSchedule, resolve_schedule
-from torchflow.localisation.association import loopy_association
 from torchflow.models.tdoa import TDOA3D, check_number
 from torchflow.proposals import FlowedMixtureProposal
+from torchflow.tdoa.association import loopy_association
 
 METHODS = ("pfi_d", "pfi_s", "pfi_os")
 

@@ -8,8 +8,8 @@ May import: :mod:`torchflow.core`, :mod:`torchflow.models`, :mod:`torchflow.flow
 * :mod:`.association`: loopy belief propagation for the measurement-to-object association.
 """
 
-from torchflow.localisation.association import Association, loopy_association
-from torchflow.localisation.localisers import (
+from torchflow.tdoa.association import Association, loopy_association
+from torchflow.tdoa.localisers import (
     METHODS,
     BootstrapLocaliser,
     FlowMixtureLocaliser,
