@@ -88,7 +88,7 @@ def test_learning_through_a_filter_without_a_consistent_evidence_is_refused(tmp_
     assert (
         line.startswith(f"error: filter: {name} (") and "reports a Gaussian approximation of the log-evidence" in line
     )
-    assert "consistent: bpf, gpfis, pfpf," in line and "pfpf_ledh" in line and " ledh," not in line
+    assert "consistent: bpf, gpfis, lag1_pfpf, pfpf," in line and "pfpf_ledh" in line and " ledh," not in line
     assert "add allow_approximate_evidence=true" in line
     assert not (tmp_path / "out" / "learn.csv").exists()
 

@@ -209,12 +209,13 @@ def compare(args):
         rows.append(dict(library="torchflow", method=label, setting=kw, score=s, trials=per_trial.tolist(), sec=sec))
         print(rows[-1]["method"], s, f"{sec:.2e}", flush=True)
     if args.dapper_python:
-        version = subprocess.run(
+        version = subprocess.run(  # its last line: importing DAPPER may print a warning first
             [args.dapper_python, "-c", "import dapper; print(dapper.__version__)"],
             capture_output=True,
             text=True,
             check=True,
-        ).stdout.strip()
+            env=dict(os.environ, MPLBACKEND="agg"),
+        ).stdout.strip().splitlines()[-1]
         tmodel, ttraj, tspec = _data(args.regime, args.tune_trials, args.steps, args.tune_seed)
         grid = [
             (f"{label}|{i}", cls, kw)

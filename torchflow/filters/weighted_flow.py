@@ -57,7 +57,8 @@ reproduce the Kalman filter (tested). Cost per step: ``flow_steps + 2`` linearis
 at N points (N model runs and Jacobians each) and ``O(N^2 d^2)`` for the mixtures (in blocks).
 
 **Missing observations.** A NaN in ``z (B, m)`` is not observed: its rows drop out of the flow and
-the weights; a step with nothing observed moves the particles by the kernel alone.
+the weights; a trial with nothing observed at a step is a prediction: its particles go through the
+model's transition with their weights, and the step adds nothing to the evidence.
 """
 
 from __future__ import annotations
@@ -340,13 +341,26 @@ class LagOneFlowParticleFilter(Filter):
         v = lp + ll - lq
         total = torch.logsumexp(v, -1)
         lw_new = v - total.unsqueeze(-1)
+        inc = total - math.log(N)
+        if _missing.active():  # a trial with nothing observed: a prediction, its weights kept (no kernel)
+            empty = torch.isnan(z).all(-1)  # (B,)
+            Xp = model.sample_transition(state.particles, generator)
+            Xk = torch.where(empty.view(B, 1, 1), Xp, Xk)
+            lw_new = torch.where(empty.unsqueeze(-1), lw, lw_new)
+            inc = torch.where(empty, torch.zeros_like(inc), inc)
+            resample = resample & ~empty
+            if "shape" in extras:
+                J = model.transition_mean_and_jacobian(state.particles)[1]
+                carried = state.extras.get("shape", extras["shape"])
+                kept = linalg.symmetrize(J @ carried @ J.transpose(-1, -2))
+                extras["shape"] = torch.where(empty.view(B, 1, 1, 1), kept, extras["shape"])
         W = lw_new.exp()
         return ParticleState(
             particles=Xk,
             log_weights=lw_new,
             estimate=(W.unsqueeze(-1) * Xk).sum(1),
             ess=1.0 / W.square().sum(-1),
-            log_evidence_increment=total - math.log(N),
+            log_evidence_increment=inc,
             resampled=resample,
             step=state.step + 1,
             extras=extras,
