@@ -197,6 +197,8 @@ def run_ours(name, kwargs, model, traj, seed=7):
 def compare(args):
     import torch
 
+    from torchflow.core.errors import NonFiniteError
+
     torch.set_num_threads(1)
     cfg = REGIMES[args.regime]
     burn = cfg["burn_in"]
@@ -204,18 +206,27 @@ def compare(args):
     truth = traj.states[:, 1:]
     rows = []
     for label, name, kw in cfg["ours"]:
-        est, sec = run_ours(name, kw, model, traj)
+        try:
+            est, sec = run_ours(name, kw, model, traj)
+        except NonFiniteError as err:  # a filter that went non-finite is a row that says so, not the end of the run
+            print(label, "failed:", err, flush=True)
+            rows.append(dict(library="torchflow", method=label, setting=kw, failed=str(err)))
+            continue
         per_trial, s = score(est, truth, burn, args.lost)
         rows.append(dict(library="torchflow", method=label, setting=kw, score=s, trials=per_trial.tolist(), sec=sec))
         print(rows[-1]["method"], s, f"{sec:.2e}", flush=True)
     if args.dapper_python:
-        version = subprocess.run(  # its last line: importing DAPPER may print a warning first
-            [args.dapper_python, "-c", "import dapper; print(dapper.__version__)"],
-            capture_output=True,
-            text=True,
-            check=True,
-            env=dict(os.environ, MPLBACKEND="agg"),
-        ).stdout.strip().splitlines()[-1]
+        version = (
+            subprocess.run(  # its last line: importing DAPPER may print a warning first
+                [args.dapper_python, "-c", "import dapper; print(dapper.__version__)"],
+                capture_output=True,
+                text=True,
+                check=True,
+                env=dict(os.environ, MPLBACKEND="agg"),
+            )
+            .stdout.strip()
+            .splitlines()[-1]
+        )
         tmodel, ttraj, tspec = _data(args.regime, args.tune_trials, args.steps, args.tune_seed)
         grid = [
             (f"{label}|{i}", cls, kw)
@@ -268,6 +279,9 @@ def write(args, rows):
         "|---|---|---|---|---|---|---|",
     ]
     for r in rows:
+        if "failed" in r:
+            lines.append(f"| {r['library']} | {r['method']} | | failed: {r['failed']} | | | |")
+            continue
         m, se, km, kse, nl = r["score"]
         setting = ", ".join(f"{k}={v}" for k, v in r["setting"].items())
         lines.append(
