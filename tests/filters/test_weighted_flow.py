@@ -102,23 +102,23 @@ def test_evidence_is_unbiased_for_the_regularised_target(ess_threshold, kernel):
 
 
 def test_beats_the_unweighted_lag_one_flow_on_lorenz63():
-    """The weights are what lifts the flow past the Gaussian target: 4 trials x 160 steps of
-    Lorenz-63 (Sakov et al. 2012), RMSE after 60 steps, N = 100 (measured: weighted 0.241 and 0.242
-    with two filter seeds; with kernel="spread" 0.243 and 0.253; the
-    unweighted lag-one flow 0.312 on these data)."""
+    """The weights are what lift the flow past the Gaussian target: 4 trials x 130 steps of
+    Lorenz-63 (Sakov et al. 2012), RMSE after 50 steps (measured: weighted, N = 100 and 6 flow
+    steps, 0.261 / 0.266 / 0.262 with three filter seeds; the unweighted lag-one flow, N = 20 and
+    10 flow steps, 0.382, and 0.361 with 20)."""
     from torchflow.filters import LagOneFlowFilter
 
     model = Lorenz63()
-    traj = model.simulate(4, 160, torch.Generator().manual_seed(3))
+    traj = model.simulate(4, 130, torch.Generator().manual_seed(3))
     mean, cov = model.initial_belief(traj.states[:, 0])
 
     def rmse(filt):
         res = filt(traj.observations, mean, cov, torch.Generator().manual_seed(4))
-        return (res.estimates - traj.states[:, 1:]).square().mean(-1).sqrt()[:, 60:].mean().item()
+        return (res.estimates - traj.states[:, 1:]).square().mean(-1).sqrt()[:, 50:].mean().item()
 
-    weighted = rmse(LagOneFlowParticleFilter(model, n_particles=100, flow_steps=10))
-    unweighted = rmse(LagOneFlowFilter(model, n_particles=50))
-    assert weighted < 0.9 * unweighted, (weighted, unweighted)
+    weighted = rmse(LagOneFlowParticleFilter(model, n_particles=100, flow_steps=6))
+    unweighted = rmse(LagOneFlowFilter(model, n_particles=20, flow_steps=10))
+    assert weighted < 0.85 * unweighted, (weighted, unweighted)
 
 
 def test_missing_observations_and_an_empty_step():
