@@ -91,21 +91,10 @@ def dapper_worker(inp: str, out: str) -> None:
 
 def fine_truth(model, states):
     """``(B, 25 T + 1, 3)``: the truth at every integration step, from the observation-time states
-    ``(B, T + 1, 3)`` (the same arithmetic: one RK4 step of 0.01 at a time)."""
-    import torch
+    ``(B, T + 1, 3)`` (:func:`experiments.benchmarks.bench_dapper._fine_truth`)."""
+    from experiments.benchmarks.bench_dapper import _fine_truth
 
-    from torchflow.models.dynamics import rk4_steps
-
-    B, T1, _ = states.shape
-    h, n = model.dt / model.substeps, model.substeps
-    out = [states[:, :1]]
-    for t in range(T1 - 1):  # a loop over time, not trials
-        x, block = states[:, t], []
-        for _ in range(n):
-            x = rk4_steps(model._tendency, x, h, 1)
-            block.append(x)
-        out.append(torch.stack(block, 1))
-    return torch.cat(out, 1)
+    return _fine_truth(model, states)
 
 
 def compare(args):
