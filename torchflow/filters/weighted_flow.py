@@ -53,7 +53,10 @@ deterministic dynamics; a model with noise draws it, and the weight stays exact:
 regularised target's evidence ``∫ p̂(x) p(z_k | M(x)) dx``, whatever the flow does (it only has to
 be a Gaussian of known law per component); in a linear-Gaussian model with deterministic dynamics
 the regularised prior has the filter's moments and the flow is exact, so the weighted particles
-reproduce the Kalman filter (tested). Cost per step: ``flow_steps + 2`` linearisations of ``h(M(.))``
+reproduce the Kalman filter (tested). The evidence is the regularised model's (the kernel is part
+of it): particle MCMC (:func:`~torchflow.inference.pmmh`) and learning through this filter target
+that model's posterior, which approaches the deterministic model's as the bandwidth falls. Cost per
+step: ``flow_steps + 2`` linearisations of ``h(M(.))``
 at N points (N model runs and Jacobians each) and ``O(N^2 d^2)`` for the mixtures (in blocks).
 
 **Missing observations.** A NaN in ``z (B, m)`` is not observed: its rows drop out of the flow and
