@@ -95,7 +95,7 @@ def test_an_empty_cell_or_nan_is_not_observed_and_kept(tmp_path):
         ("z0,z1,z2,z3\n1,2,x,4\n", "z.csv", "got 'x' in line 2, column 3 (z2)"),
         ("1,2,3,inf\n", "z.csv", "got 1 infinite, the first at row 1, column 4"),
         ("1,2,3\n", "z.csv", "expected m = 4 measurement coordinates (columns) for SensorNetwork, got 3"),
-        ("1,2,3,4\n", "z.txt", "expected a .csv or .npy file"),
+        ("1,2,3,4\n", "z.txt", "expected a .csv, .npy or .npz file"),
         ("", "z.csv", "got an empty file"),
     ],
 )
@@ -440,8 +440,10 @@ def test_the_command_line_s_recorded_data_keep_their_gaps(tmp_path):
     z = np.arange(12.0).reshape(3, 4)
     z[1, 2] = np.nan
     path = _write_csv(tmp_path / "gaps.csv", z)
-    obs, trials, steps, sha = recorded_data(OmegaConf.create({"data": str(path), "trials": 2, "steps": 3}), model)
-    assert steps == 3 and torch.isnan(obs[1, 2]) and int(torch.isnan(obs).sum()) == 1
+    rec = recorded_data(OmegaConf.create({"data": str(path), "trials": 2, "steps": 3}), model)
+    obs, steps = rec.observations, rec.steps
+    assert steps == 3 and rec.states is None and rec.prior is None
+    assert torch.isnan(obs[1, 2]) and int(torch.isnan(obs).sum()) == 1
     torch.testing.assert_close(torch.nan_to_num(obs), torch.nan_to_num(torch.from_numpy(z)))
 
 
@@ -452,7 +454,7 @@ def test_a_pipe_a_device_or_a_folder_is_named_as_such_not_as_missing(tmp_path):
     (tmp_path / "zero.npy").symlink_to("/dev/zero")
     (tmp_path / "folder.csv").mkdir()
     for name, kind in (("fifo.csv", "a named pipe"), ("zero.npy", "a device or socket"), ("folder.csv", "a folder")):
-        with pytest.raises(ArgumentError, match=f"^data: expected a regular .csv or .npy file, got {kind}: "):
+        with pytest.raises(ArgumentError, match=f"^data: expected a regular .csv, .npy or .npz file, got {kind}: "):
             load_observations(tmp_path / name, SensorNetwork(d=4))
 
 

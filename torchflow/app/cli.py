@@ -136,6 +136,9 @@ def chunk_store(cfg: DictConfig, labels, data_sha256: Optional[str] = None):
     common["versions"] = {"torchflow": __version__, "torch": torch.__version__}
     if data_sha256 is not None:
         common["data_sha256"] = data_sha256
+        prior = cfg.get("prior") or {}
+        if any(prior.get(k) is not None for k in ("mean", "cov")):  # the command line's prior changes the numbers
+            common["prior"] = OmegaConf.to_container(prior, resolve=True) if OmegaConf.is_config(prior) else prior
     settings = {
         labels[k]: dict(common, filter=OmegaConf.to_container(fcfg, resolve=True), label=labels[k])
         for k, fcfg in cfg.filter.items()
@@ -191,7 +194,11 @@ def _timings_line(timings, figures_sec: Optional[float]) -> str:
 def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> int:
     startup = process_age()
     data = rc.recorded_data(cfg, model)
-    obs, trials, steps, sha = data if data is not None else (None, cfg.trials, cfg.steps, None)
+    obs, trials, steps, sha = (
+        (data.observations, data.trials, data.steps, data.sha256)
+        if data is not None
+        else (None, cfg.trials, cfg.steps, None)
+    )
     store, writer = chunk_store(cfg, labels, sha), _Output(out)
     trial_range = cfg.get("trial_range")
     result = run_experiment(
@@ -202,6 +209,8 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
         seed=cfg.seed,
         inits_per_track=cfg.inits_per_track,
         observations=obs,
+        states=None if data is None else data.states,
+        prior=None if data is None else data.prior,
         chunk_size=cfg.chunk_size,
         memory_budget_gb=cfg.memory_budget_gb,
         device=shard.device(cfg.device),
@@ -219,6 +228,8 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
         shard=shard,
         warmup=cfg.get("warmup", "auto"),
         trial_range=OmegaConf.to_container(trial_range) if OmegaConf.is_config(trial_range) else trial_range,
+        nonfinite_trials=cfg.get("nonfinite_trials", "lose"),
+        lost_rmse=cfg.metrics.get("lost_rmse"),
     )
     if result is None:  # a rank other than 0 of a torchrun run: rank 0 writes the files
         return 0

@@ -12,11 +12,19 @@ File formats (:func:`load_observations`):
   empty cell or ``nan`` is a coordinate not observed at that step (NaN).
 * ``.npy``: a float array ``(T, m)`` (one series), ``(B, T, m)`` (B series) or ``(T,)`` (``m = 1``);
   no time column.
+* ``.npz`` (``numpy.savez``; :func:`load_recording`): ``observations`` as the ``.npy`` array, and
+  optionally ``states`` (``(T+1, d)`` or ``(B, T+1, d)``: the true states, ``states[..., 0, :]`` the
+  initial state; with them the run is scored as a simulated one), ``prior_mean`` (``(d,)`` or
+  ``(B, d)``) and ``prior_cov`` (``(d, d)`` or ``(B, d, d)``, symmetric positive semi-definite),
+  given together. No other array: a misspelt name is refused, not ignored.
 
 NaN marks a coordinate not observed and is passed through to the filters; an infinite value is
 refused, naming its row and column.
 
-The prior (:func:`declared_prior`): a model's :meth:`initial_belief` takes the true initial
+The prior: the one given (the ``.npz`` file's ``prior_mean`` / ``prior_cov``, or the command line's
+``prior.mean`` / ``prior.cov``: :func:`prior_from_spec`); else, with true states, the model's
+``initial_belief`` at the true initial state (as in a simulation); else (:func:`declared_prior`) a
+model's :meth:`initial_belief` takes the true initial
 states (the runner draws the prior around them in simulations); recorded data have none, so the
 filters start from the model's *declared* prior, ``model.declared_prior(batch_size) -> (mean (B, d),
 cov (B, d, d))``, computed from the model's parameters (differentiably: a stationary prior of
@@ -31,6 +39,7 @@ from __future__ import annotations
 import csv
 import math
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import List, Optional, Tuple, Union
 
@@ -41,6 +50,10 @@ from torchflow.core.covariances import DiagonalCovariance
 from torchflow.core.errors import ArgumentError, ArgumentTypeError
 
 __all__ = [
+    "Recording",
+    "load_recording",
+    "prior_from_spec",
+    "NPZ_ARRAYS",
     "load_observations",
     "read_recording",
     "check_observations",
@@ -169,24 +182,72 @@ def _read_npy(path: Path, name: str) -> np.ndarray:
     return arr.astype(np.float64)
 
 
+#: the arrays a ``.npz`` recording may hold (``observations`` required)
+NPZ_ARRAYS = ("observations", "states", "prior_mean", "prior_cov")
+
+
+def _numeric(arr: np.ndarray, what: str) -> np.ndarray:
+    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)) or np.issubdtype(
+        arr.dtype, np.bool_
+    ):
+        raise ArgumentError(f"{what}: expected a numeric (float or integer) array, got dtype {arr.dtype}")
+    return arr.astype(np.float64)
+
+
+def _read_npz(path: Path, name: str) -> dict:
+    """The arrays of a ``.npz`` recording (:data:`NPZ_ARRAYS`), float64; the observations
+    ``(T, m)`` or ``(B, T, m)`` (``(T,)``: ``m = 1``)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (ValueError, OSError) as e:  # not a zip of arrays, or an object (pickled) array
+        raise ArgumentError(f"{name}: expected a NumPy .npz file (numpy.savez), could not read {path} ({e})") from None
+    unknown = sorted(set(arrays) - set(NPZ_ARRAYS))
+    if unknown:
+        raise ArgumentError(
+            f"{name}: expected arrays named {', '.join(NPZ_ARRAYS)} in {path.name}, got {', '.join(unknown)} too "
+            "(numpy.savez(path, observations=yy, states=xx, ...) names them)"
+        )
+    if "observations" not in arrays:
+        raise ArgumentError(
+            f"{name}: expected an array named observations in {path.name}, got {', '.join(sorted(arrays)) or 'none'}"
+        )
+    out = {k: _numeric(v, f"{name} ({path.name}: {k})") for k, v in arrays.items()}
+    obs = out["observations"]
+    if obs.ndim == 1:
+        out["observations"] = obs = obs[:, None]
+    if obs.ndim not in (2, 3):
+        raise ArgumentError(
+            f"{name}: expected observations (T, m), (B, T, m) or (T,) in {path.name}, got shape {obs.shape}"
+        )
+    return out
+
+
 def read_recording(path: Union[str, Path], *, name: str = "data") -> Tuple[np.ndarray, Optional[np.ndarray]]:
-    """``(observations, times)`` of a ``.csv`` or ``.npy`` file (the module docstring's formats):
-    observations ``(T, m)`` or ``(B, T, m)`` float64 (NaN: not observed), the CSV time column
-    ``(T,)`` or ``None``. ``name``: the argument named in errors."""
-    if not isinstance(path, (str, Path)):
-        raise ArgumentTypeError(f"{name}: expected the path of a .csv or .npy file, got {type(path).__name__}")
-    p = Path(path).expanduser()
-    if not p.exists():
-        raise ArgumentError(f"{name}: file not found: {p}")
-    if not p.is_file():  # reading a pipe or a device would block or never end
-        kind = "a folder" if p.is_dir() else "a named pipe" if p.is_fifo() else "a device or socket"
-        raise ArgumentError(f"{name}: expected a regular .csv or .npy file, got {kind}: {p}")
+    """``(observations, times)`` of a ``.csv``, ``.npy`` or ``.npz`` file (the module docstring's
+    formats): observations ``(T, m)`` or ``(B, T, m)`` float64 (NaN: not observed), the CSV time
+    column ``(T,)`` or ``None``. ``name``: the argument named in errors."""
+    p = _regular_file(path, name)
     suffix = p.suffix.lower()
     if suffix == ".csv":
         return _read_csv(p, name)
     if suffix == ".npy":
         return _read_npy(p, name), None
-    raise ArgumentError(f"{name}: expected a .csv or .npy file, got {p.name!r}")
+    if suffix == ".npz":
+        return _read_npz(p, name)["observations"], None
+    raise ArgumentError(f"{name}: expected a .csv, .npy or .npz file, got {p.name!r}")
+
+
+def _regular_file(path, name: str) -> Path:
+    if not isinstance(path, (str, Path)):
+        raise ArgumentTypeError(f"{name}: expected the path of a .csv, .npy or .npz file, got {type(path).__name__}")
+    p = Path(path).expanduser()
+    if not p.exists():
+        raise ArgumentError(f"{name}: file not found: {p}")
+    if not p.is_file():  # reading a pipe or a device would block or never end
+        kind = "a folder" if p.is_dir() else "a named pipe" if p.is_fifo() else "a device or socket"
+        raise ArgumentError(f"{name}: expected a regular .csv, .npy or .npz file, got {kind}: {p}")
+    return p
 
 
 def check_observations(
@@ -306,6 +367,125 @@ def load_observations(path: Union[str, Path], model=None, *, name: str = "data")
     return obs
 
 
+@dataclass
+class Recording:
+    """A recording (:func:`load_recording`): ``observations`` ``(T, m)`` or ``(B, T, m)`` (NaN: not
+    observed); ``states`` ``(T+1, d)`` or ``(B, T+1, d)`` (the truth, ``states[..., 0, :]`` the
+    initial state) or ``None``; the prior ``prior_mean`` ``(d,)`` / ``(B, d)`` and ``prior_cov``
+    ``(d, d)`` / ``(B, d, d)``, or ``None``. Tensors on the model's dtype and device."""
+
+    observations: torch.Tensor
+    states: Optional[torch.Tensor] = None
+    prior_mean: Optional[torch.Tensor] = None
+    prior_cov: Optional[torch.Tensor] = None
+
+    @property
+    def prior(self) -> Optional[Tuple[torch.Tensor, torch.Tensor]]:
+        return None if self.prior_mean is None else (self.prior_mean, self.prior_cov)
+
+
+def _positive_definite(cov: torch.Tensor, what: str) -> None:
+    if not bool(torch.isfinite(cov).all()):
+        raise ArgumentError(f"{what}: expected finite values, got NaN or infinite entries")
+    asym = (cov - cov.transpose(-1, -2)).abs().amax()
+    if float(asym) > 1e-10 * max(float(cov.abs().amax()), 1e-300):
+        raise ArgumentError(f"{what}: expected a symmetric covariance, got entries that differ by {float(asym):.3g}")
+    low = float(torch.linalg.eigvalsh(cov).amin())  # a known state (a zero covariance) is a prior too
+    if low < -1e-10 * max(float(cov.abs().amax()), 1e-300):
+        raise ArgumentError(f"{what}: expected a positive semi-definite covariance, got an eigenvalue {low:.3g}")
+
+
+def check_prior(mean, cov, d: int, *, name: str = "prior") -> Tuple[torch.Tensor, torch.Tensor]:
+    """``(mean (d,) or (B, d), cov (d, d) or (B, d, d))`` checked: finite, the state dimension
+    ``d``, the covariance symmetric positive semi-definite; float64 tensors. Errors name ``name``."""
+    mean = torch.as_tensor(mean, dtype=torch.float64)
+    cov = torch.as_tensor(cov, dtype=torch.float64)
+    if mean.dim() not in (1, 2) or mean.shape[-1] != d:
+        raise ArgumentError(f"{name} mean: expected shape ({d},) or (B, {d}), got {tuple(mean.shape)}")
+    if not bool(torch.isfinite(mean).all()):
+        raise ArgumentError(f"{name} mean: expected finite values, got NaN or infinite entries")
+    if cov.dim() not in (2, 3) or tuple(cov.shape[-2:]) != (d, d):
+        raise ArgumentError(f"{name} cov: expected shape ({d}, {d}) or (B, {d}, {d}), got {tuple(cov.shape)}")
+    if mean.dim() == 2 and cov.dim() == 3 and mean.shape[0] != cov.shape[0]:
+        raise ArgumentError(f"{name}: mean and cov give {mean.shape[0]} and {cov.shape[0]} trials; expected the same")
+    _positive_definite(cov, f"{name} cov")
+    return mean, cov
+
+
+def prior_from_spec(mean, cov, d: int, *, name: str = "prior") -> Tuple[torch.Tensor, torch.Tensor]:
+    """The prior of the command line (``prior.mean``, ``prior.cov``): ``mean`` a number (every
+    coordinate) or ``d`` numbers; ``cov`` a number (times the identity), ``d`` variances or a
+    ``d x d`` nested list. ``((d,), (d, d))`` float64, checked (:func:`check_prior`)."""
+
+    def numbers(v, what):
+        try:
+            t = torch.as_tensor(v, dtype=torch.float64)
+        except (TypeError, ValueError, RuntimeError):
+            raise ArgumentError(f"{name}.{what}: expected numbers, got {v!r}") from None
+        return t
+
+    m, c = numbers(mean, "mean"), numbers(cov, "cov")
+    if m.dim() == 0:
+        m = m.expand(d).clone()
+    if m.dim() != 1 or m.shape[0] != d:
+        raise ArgumentError(f"{name}.mean: expected a number or {d} numbers (the state dimension), got {mean!r}")
+    if c.dim() == 0:
+        c = c * torch.eye(d, dtype=torch.float64)
+    elif c.dim() == 1 and c.shape[0] == d:
+        c = torch.diag(c)
+    elif c.dim() != 2 or tuple(c.shape) != (d, d):
+        raise ArgumentError(
+            f"{name}.cov: expected a number (times the identity), {d} variances or a {d} x {d} list, got shape "
+            f"{tuple(c.shape)}"
+        )
+    return check_prior(m, c, d, name=name)
+
+
+def load_recording(path: Union[str, Path], model=None, *, name: str = "data") -> Recording:
+    """A recording from a ``.csv``, ``.npy`` or ``.npz`` file (the module docstring's formats):
+    the observations as :func:`load_observations` reads them and, from a ``.npz`` file, the true
+    ``states`` and the prior where it holds them. With ``model``: every array is checked against its
+    dimensions (``states`` ``(T+1, d)`` with the observations ``(T, m)``, ``(B, T+1, d)`` with
+    ``(B, T, m)``; finite; the prior as :func:`check_prior`) and comes on its dtype and device."""
+    p = _regular_file(path, name)
+    if p.suffix.lower() != ".npz":
+        return Recording(load_observations(p, model, name=name))
+    arrays = _read_npz(p, name)
+    where = f"{name} ({p.name})"
+    obs = check_observations(torch.from_numpy(arrays["observations"]), model, name=where)
+    rec = Recording(obs)
+    to = (lambda t: t.to(dtype=model.dtype, device=model.device)) if model is not None else (lambda t: t)
+    if "states" in arrays:
+        x = torch.from_numpy(arrays["states"])
+        T = obs.shape[-2]
+        d = model.state_dim if model is not None else x.shape[-1]
+        want = (T + 1, d) if obs.dim() == 2 else (obs.shape[0], T + 1, d)
+        if tuple(x.shape) != want:
+            raise ArgumentError(
+                f"{where}: expected states of shape {want} (T + 1 rows: the initial state, then one per observation "
+                f"row; d = {d}), got {tuple(x.shape)}"
+            )
+        if not bool(torch.isfinite(x).all()):
+            bad = torch.nonzero(~torch.isfinite(x))[0].tolist()
+            raise ArgumentError(f"{where}: expected finite states, got a NaN or infinite value at index {bad}")
+        rec.states = to(x)
+    given = [k for k in ("prior_mean", "prior_cov") if k in arrays]
+    if len(given) == 1:
+        other = "prior_cov" if given[0] == "prior_mean" else "prior_mean"
+        raise ArgumentError(f"{where}: expected prior_mean and prior_cov together, got {given[0]} without {other}")
+    if given:
+        d = model.state_dim if model is not None else arrays["prior_mean"].shape[-1]
+        mean, cov = check_prior(arrays["prior_mean"], arrays["prior_cov"], d, name=f"{where}: prior")
+        if obs.dim() == 3:
+            for t, what in ((mean, "prior_mean"), (cov, "prior_cov")):
+                if t.dim() == (3 if what == "prior_cov" else 2) and t.shape[0] != obs.shape[0]:
+                    raise ArgumentError(
+                        f"{where}: {what} holds {t.shape[0]} trials, the observations {obs.shape[0]} series"
+                    )
+        rec.prior_mean, rec.prior_cov = to(mean), to(cov)
+    return rec
+
+
 def declared_prior(model, batch_size: int) -> Tuple[torch.Tensor, torch.Tensor]:
     """The filters' prior without true states: ``model.declared_prior(batch_size)``, checked to be
     ``(mean (B, d), cov (B, d, d))``. Call it where the parameters may have changed (each optimiser
@@ -319,7 +499,9 @@ def declared_prior(model, batch_size: int) -> Tuple[torch.Tensor, torch.Tensor]:
             f"model: {type(model).__name__} declares no prior without true states (its initial_belief needs them); "
             "recorded data need one: give the model a method declared_prior(batch_size) -> (mean (B, d), cov (B, "
             "d, d)), "
-            "or pass the prior explicitly (run_experiment(..., prior=(mean, cov)))"
+            "or give the prior: on the command line prior.mean=<number or d numbers> prior.cov=<number, d variances "
+            "or d x d>, in a .npz recording as prior_mean and prior_cov (with its true states the prior is drawn "
+            "around the initial state, as in a simulation), or run_experiment(..., prior=(mean, cov))"
         )
     mean, cov = fn(batch_size)
     d = model.state_dim

@@ -498,7 +498,12 @@ def learn(cfg: DictConfig, out: Path, env: JobEnv) -> LearnOutcome:
         true_values = {n: _value(truth, n) for n in names}
         sizes = {"trials": cfg.trials, "steps": plan.settings.steps, "inits_per_track": plan.settings.inits_per_track}
     else:  # recorded: no truth; each fit starts its filter from its model's declared prior at every step
-        obs, trials, steps, sha = recorded
+        obs, trials, steps, sha = recorded.observations, recorded.trials, recorded.steps, recorded.sha256
+        if recorded.states is not None or recorded.prior is not None:
+            log.info(
+                "data: the recording's states and prior are not used by learning (each fit starts from its "
+                "model's declared prior; the fit is scored against no truth)"
+            )
         data = TrajectoryDataset(obs.expand(trials, -1, -1) if obs.dim() == 2 else obs)
         true_values = None
         sizes = {"trials": trials, "steps": steps, "data": cfg.data, "data_sha256": sha}

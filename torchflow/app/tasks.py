@@ -106,7 +106,11 @@ def _data(cfg: DictConfig, model, filters, env, one_series: bool = False):
     model config, or ``data=``; ``(plan, recorded data sha256 or None)``. ``one_series``: one trial
     (a recorded file of several series is refused)."""
     data = rc.recorded_data(cfg, model)
-    obs, n, steps, sha = data if data is not None else (None, cfg.trials, cfg.steps, None)
+    obs, n, steps, sha = (
+        (data.observations, data.trials, data.steps, data.sha256)
+        if data is not None
+        else (None, cfg.trials, cfg.steps, None)
+    )
     if one_series:
         require(
             obs is None or obs.dim() == 2 or obs.shape[0] == 1,
@@ -128,6 +132,8 @@ def _data(cfg: DictConfig, model, filters, env, one_series: bool = False):
         dtype=env.dtype or cfg.dtype,
         rng_backend=cfg.rng_backend,
         observations=obs,
+        states=None if data is None else data.states,
+        prior=None if data is None else data.prior,
     )
     return plan, sha
 

@@ -72,7 +72,17 @@ from torchflow.core.geometry import (
 )
 from torchflow.core.random import uniform
 from torchflow.filters.ensemble import _EnsembleFilter, rotate_anomalies
-from torchflow.flows.schedules import ExponentialSchedule
+from torchflow.flows.base import FlowPrior
+from torchflow.flows.ensemble import (
+    CACHE_ELEMENTS,
+    EnsembleMeasurement,
+    KernelFlow,
+    LagOneFlow,
+    LocalisedKalmanBucyFlow,
+    ensemble_prior,
+)
+from torchflow.flows.integrate import integrate_flow
+from torchflow.flows.schedules import ExponentialSchedule, UniformSchedule
 from torchflow.models.base import GaussianStateSpaceModel
 
 __all__ = ["KernelParticleFlowFilter", "LagOneFlowFilter", "LocalParticleFilter"]
@@ -84,7 +94,6 @@ LINEARISATIONS = ("members", "bundle")
 FLOW_COVARIANCES = ("prior", "current")
 #: the lag-one flow's likelihood in the members' covariance: R's Gaussian, or the model's own density's score
 LIKELIHOODS = ("gaussian", "model")
-_CACHE_ELEMENTS = 1 << 16  # the localised flow gathers its nearby observations in blocks of about this many numbers
 
 
 def _grad_log_likelihood(model, z: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
@@ -181,6 +190,9 @@ class KernelParticleFlowFilter(_EnsembleFilter):
         )
         self.step_size = check_number("step_size", step_size, lambda v: v > 0, "a number > 0 (pseudo-time step)")
         self.flow_steps = check_count("flow_steps", flow_steps, minimum=1, hint=" (Euler steps in pseudo-time)")
+        #: the flow (:class:`~torchflow.flows.KernelFlow`): ``flow_steps`` Euler steps of ``step_size``
+        self.flow = KernelFlow(self.step_size * self.flow_steps)
+        self.schedule = UniformSchedule(self.flow_steps)
         if preconditioner not in PRECONDITIONERS:
             raise ArgumentError(f"preconditioner: expected one of {PRECONDITIONERS}, got {preconditioner!r}")
         self.preconditioner = preconditioner
@@ -221,25 +233,19 @@ class KernelParticleFlowFilter(_EnsembleFilter):
 
     def migrate(self, Xf: torch.Tensor, xbar: torch.Tensor, A: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """The analysis members ``(B, N, d)`` from the forecast ``Xf (B, N, d)``, its mean
-        ``xbar (B, 1, d)`` and (inflated) anomalies ``A (B, N, d)``."""
+        ``xbar (B, 1, d)`` and (inflated) anomalies ``A (B, N, d)``: the kernel flow
+        (:class:`~torchflow.flows.KernelFlow`) integrated by :func:`~torchflow.flows.integrate_flow`
+        over ``flow_steps`` uniform steps."""
         model = self.model
-        B_, N, d = Xf.shape
+        N = Xf.shape[1]
         P = self.prior_covariance(A)
         L = linalg.safe_cholesky(P)  # a Schur product with a positive definite taper: definite (jitter if not)
         D = self._posterior_covariance(P, xbar.squeeze(1), z) if self.preconditioner == "posterior" else P
-        Dt = D.transpose(1, 2)
-        width = (self.alpha(N) * P.diagonal(dim1=-2, dim2=-1)).unsqueeze(1).unsqueeze(1)  # (B, 1, 1, d)
-        X = Xf
-        for _ in range(self.flow_steps):  # pseudo-time steps, not a loop over trials or members
-            g = _grad_log_likelihood(model, z, X)
-            g = g - linalg.chol_solve(L, (X - xbar).transpose(1, 2)).transpose(1, 2)  # + grad log prior
-            diff = X.unsqueeze(1) - X.unsqueeze(2)  # [b, i, j] = x_j - x_i  (B, N, N, d)
-            scaled = diff / width
-            k = torch.exp(-0.5 * diff * scaled)
-            # sum_j k_a(x_j, x_i) (g_j - (x_j - x_i) / width)_a, over the kernel's mass
-            f = (k * (g.unsqueeze(1) - scaled)).sum(2) / k.sum(2)
-            X = X + self.step_size * (f @ Dt)
-        return X
+        width = self.alpha(N) * P.diagonal(dim1=-2, dim2=-1)  # (B, d)
+        self.flow.prepare(D, width, lambda X: _grad_log_likelihood(model, z, X))
+        prior, meas = FlowPrior(xbar, L), EnsembleMeasurement(z, whiten=None)
+        out = integrate_flow(self.flow, model, Xf, z, prior, self.schedule, points="ensemble", measurement=meas)
+        return out.particles
 
     def _posterior_covariance(self, P: torch.Tensor, xbar: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """``P - P H^T (H P H^T + R)^{-1} H P`` ``(B, d, d)`` with H at the forecast mean (unobserved
@@ -368,31 +374,6 @@ class LocalParticleFilter(_EnsembleFilter):
 
     def extra_repr(self) -> str:
         return super().extra_repr() + f", radius={self.radius:g}, rtps={self.rtps:g}, jitter={self.jitter:g}"
-
-
-def _pseudo_inverse(S: torch.Tensor, n: int) -> torch.Tensor:
-    """The pseudo-inverse of a symmetric positive semi-definite ``S (B, k, k)`` (a Gram matrix of
-    ``n`` members): its eigenvalues below ``10 n eps`` times the largest are taken as zero. The
-    reciprocal is taken only of the kept ones (a floored reciprocal in the other branch of a
-    ``where`` would put ``0 * inf = NaN`` into gradients)."""
-    evals, V = torch.linalg.eigh(linalg.symmetrize(S))
-    kept = evals > evals[..., -1:] * (n * torch.finfo(S.dtype).eps * 10)
-    inv = torch.where(kept, 1.0 / torch.where(kept, evals, torch.ones_like(evals)), torch.zeros_like(evals))
-    return (V * inv.unsqueeze(-2)) @ V.transpose(-1, -2)
-
-
-def _ridge_solve(S: torch.Tensor, b: torch.Tensor, n: int) -> torch.Tensor:
-    """``(S + delta I)^{-1} b`` for a symmetric positive semi-definite ``S (B, k, k)`` (a Gram matrix
-    of ``n`` members) and ``b (B, k, p)``, with ``delta = 10 n eps trace(S)`` (at least
-    ``sqrt(tiny)``): where :func:`_pseudo_inverse` cuts the directions below ``10 n eps`` of the
-    largest, this ridge damps them, smoothly, so that the gradient stays defined where members
-    coincide (a known initial state: ``S = 0``) or eigenvalues repeat, which differentiating
-    through an eigendecomposition is not (it divides by their gaps). Elsewhere the two agree to
-    about ``10 n eps cond``."""
-    tiny = torch.finfo(S.dtype).tiny ** 0.5
-    delta = (S.diagonal(dim1=-2, dim2=-1).sum(-1) * (n * torch.finfo(S.dtype).eps * 10)).clamp_min(tiny)
-    shifted = linalg.symmetrize(S) + delta[..., None, None] * torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
-    return linalg.chol_solve(linalg.safe_cholesky(shifted), b)
 
 
 class LagOneFlowFilter(_EnsembleFilter):
@@ -561,11 +542,18 @@ class LagOneFlowFilter(_EnsembleFilter):
             "step_ratio", step_ratio, lambda v: v > 0, "a number > 0 (each pseudo-time step over the previous one)"
         )
         self.schedule = ExponentialSchedule(self.flow_steps, self.step_ratio)
+        #: the flow (:mod:`torchflow.flows.ensemble`): Daum & Huang's exact flow linearised over the
+        #: members (``covariance="prior"``), or the localised Kalman-Bucy flow (``"current"``)
+        self.flow = (
+            LagOneFlow(self.linearisation, self.bundle)
+            if covariance == "prior"
+            else LocalisedKalmanBucyFlow(self.local_index, self.local_taper, likelihood)
+        )
 
     def bytes_per_trial(self, n_particles=None):
         N, d, m = self._resolve_n(n_particles), self.model.state_dim, self.model.obs_dim
         # the neighbourhoods' index and taper (d x K each), and the blocks the drift gathers them in
-        local = 0 if self.local_index is None else 2 * d * self.local_index.shape[1] + 3 * _CACHE_ELEMENTS
+        local = 0 if self.local_index is None else 2 * d * self.local_index.shape[1] + 3 * CACHE_ELEMENTS
         return 8 * (10 * N * d + 6 * N * m + 8 * N * N + (m * m if self._dense_noise else 0) + local)
 
     def step(self, state, z: torch.Tensor, generator: Optional[torch.Generator] = None):
@@ -577,111 +565,30 @@ class LagOneFlowFilter(_EnsembleFilter):
         return self._state(Xa, ll, state.step + 1)
 
     def migrate(self, X: torch.Tensor, z: torch.Tensor):
-        """The previous analysis members ``X (B, N, d)`` moved by the flow to the lag-one target with
-        ``z (B, m)``, and the forecast evidence ``(B,)`` (before the model carries them to time k)."""
-        X_in = X
-        xbar0 = X.mean(1, keepdim=True)  # (B, 1, d)
-        A0 = (X - xbar0) * (self.inflation / math.sqrt(X.shape[1] - 1))  # P = A0^T A0
-        X = xbar0 + A0 * math.sqrt(X.shape[1] - 1)
-        ll = None
-        eps, lam = self.schedule.steps(X.dtype, X.device)
-        for j in range(self.flow_steps):  # pseudo-time steps, not a loop over trials or members
-            mean = X.mean(1, keepdim=True)
-            Xm = self.model.transition_mean(X) if (self.linearisation == "members" or ll is None) else None
-            members = self.whiten(Xm, mean.squeeze(1), z) if Xm is not None else None  # h(M(x_i)), whitened by R
-            if ll is None:  # the forecast ensemble's evidence, before the flow moves anything
-                ll = self.forecast_evidence(members)
-            if self.linearisation == "bundle":  # h(M(.)) at the mean plus the anomalies scaled down
-                w = self.whiten(self.model.transition_mean(mean + self.bundle * (X - mean)), mean.squeeze(1), z)
-                w.Y = w.Y / self.bundle
-            else:
-                w = members
-            if self.covariance == "current":
-                X = X + eps[j] * self._current_drift(X, w, self._residual(Xm, w, z))
-            else:
-                X = X + eps[j] * self._drift(X, xbar0, A0, w, lam[j])
+        """The previous analysis members ``X (B, N, d)`` moved by the flow (:attr:`flow`, through
+        :func:`~torchflow.flows.integrate_flow`) to the lag-one target with ``z (B, m)``, and the
+        forecast evidence ``(B,)`` (before the model carries them to time k)."""
+        prior = ensemble_prior(X, self.inflation)  # N(xbar, A0^T A0), the anomalies inflated
+        Xi = prior.mean + prior.root.transpose(1, 2) * math.sqrt(X.shape[1] - 1)  # the inflated members
+        w0 = self.measure_images(Xi, z)
+        meas = EnsembleMeasurement(
+            z,
+            whiten=lambda Y: self.measure_images(Y, z),
+            first=w0,
+            log_prob_terms=self.model.measurement_log_prob_terms,
+            transition=self.model.transition_mean,
+        )
+        out = integrate_flow(self.flow, self.model, Xi, z, prior, self.schedule, points="ensemble", measurement=meas)
         # a trial with nothing observed keeps its members bit for bit (masked, no host read)
-        return torch.where((~torch.isnan(z)).any(-1).view(-1, 1, 1), X, X_in), ll
+        return torch.where((~torch.isnan(z)).any(-1).view(-1, 1, 1), out.particles, X), self.forecast_evidence(w0)
 
-    @staticmethod
-    def _drift(X, xbar0, A0, w, lam):
-        """``A X + b`` ``(B, N, d)`` of the exact flow (class docstring) at pseudo-time ``lam``, in
-        the whitened measurement space (``R = I``), with ``H`` the regression of the whitened
-        measurement anomalies ``w.Y (B, N, m)`` on the members' anomalies."""
-        N = X.shape[1]
-        mean = X.mean(1, keepdim=True)
-        D = X - mean  # (B, N, d)
-        # H v = Y^T (D D^T)^+ D v: the minimum-norm least-squares fit of Y = D H^T
-        if N > X.shape[2]:  # (shapes only) the d x d form: H^T = (D^T D)^+ D^T Y, the same fit (D^T D's
-            # nonzero eigenvalues are D D^T's), as a ridge solve; the N x N form's gradient is undefined
-            # at the N - d repeated zero eigenvalues of D D^T (NaN when learning through the flow)
-            Dt = D.transpose(1, 2)
-            M = _ridge_solve(Dt @ D, Dt @ w.Y, N)  # (B, d, m)
-            H_of = lambda v: v @ M  # v (B, k, d) -> H v (B, k, m)
-        else:
-            C = _pseudo_inverse(D @ D.transpose(1, 2), N) @ w.Y  # (B, N, m): H v = C^T D v
-            H_of = lambda v: (D @ v.transpose(1, 2)).transpose(1, 2) @ C  # v (B, k, d) -> H v (B, k, m)
-        AH = H_of(A0)  # (B, N, m): A0 H^T, so P H^T = A0^T AH and H P H^T = AH^T AH
-        # (lam AH^T AH + I)^{-1} u = u - lam AH^T (I + lam AH AH^T)^{-1} AH u (push-through, N x N)
-        K = lam * (AH @ AH.transpose(1, 2))
-        K.diagonal(dim1=-2, dim2=-1).add_(1.0)
-        L = linalg.safe_cholesky(K)
-
-        def S_inv(u):  # u (B, k, m)
-            return u - lam * linalg.chol_solve(L, AH @ u.transpose(1, 2)).transpose(1, 2) @ AH
-
-        def A_of(v):  # A v = -1/2 P H^T S^{-1} H v, v (B, k, d)
-            return -0.5 * (S_inv(H_of(v)) @ AH.transpose(1, 2)) @ A0
-
-        # z - e, whitened: z - (ybar - H xbar) = delta + H xbar (unobserved: zero)
-        innov = w.delta.unsqueeze(1) + H_of(mean) * w.observed.unsqueeze(1).to(X.dtype)
-        v0 = (innov @ AH.transpose(1, 2)) @ A0  # P H^T R^{-1} (z - e)  (B, 1, d)
-        u = v0 + lam * A_of(v0) + A_of(xbar0)
-        b = u + 2 * lam * A_of(u)
-        return A_of(X) + b
-
-    def _residual(self, Xm, w, z):
-        """``c (B, N, m)``: minus the whitened score of the likelihood at the members' midpoints
-        ``(h(M(x_i)) + ybar) / 2``: ``((y_i + ybar) / 2 - z)`` whitened for the Gaussian of R; with
-        ``likelihood="model"``, ``-s * d/dy log p(z | y)`` (``s``: R's square root) from the model's
-        own density of each observation (unobserved: 0)."""
-        if self.likelihood == "gaussian":
-            return 0.5 * w.Y - w.delta.unsqueeze(1)
-        # additive errors: log p(z | y) = f(z - y), so at y = (y_i + ybar) / 2 the score is -f'(z - y),
-        # the derivative in z of the model's own term at z' = z + (y_i - ybar) / 2 and x = M(x_i)
-        half = 0.5 * w.Y * w.scale.unsqueeze(1)  # (y_i - ybar) / 2, unwhitened (unobserved: 0)
-        z0 = torch.where(w.observed, z, torch.zeros_like(z)).unsqueeze(1)  # no NaN enters the gradient
-        with torch.enable_grad():
-            zp = (z0 + half).detach().requires_grad_(True)
-            terms = self.model.measurement_log_prob_terms(zp, Xm.detach())
-            (g,) = torch.autograd.grad(terms.sum(), zp)
-        return g * w.scale.unsqueeze(1) * w.observed.unsqueeze(1).to(g.dtype)  # f'(.) s = -(score) s
-
-    def _current_drift(self, X, w, c):
-        """The drift ``(B, N, d)`` with the flowed members' own covariance (class docstring):
-        ``-(rho o P_lam H^T) c_i`` in the whitened measurement space, ``P_lam H^T`` the members'
-        cross-covariance of state and whitened measurement, tapered by ``rho``, and ``c (B, N, m)``
-        minus the whitened score at the members' midpoints (:meth:`_residual`)."""
-        N = X.shape[1]
-        D = X - X.mean(1, keepdim=True)  # (B, N, d)
-        if self.local_index is None:  # every observation everywhere: N x N algebra
-            T = w.Y @ c.transpose(1, 2)  # (B, N, N): T[n, i] = Y_n . c_i
-            return -(T.transpose(1, 2) @ D) / (N - 1)
-        idx, rho = self.local_index, self.local_taper.to(X.dtype)  # (d, K): the observations near each coordinate
-        (d, K), B = idx.shape, X.shape[0]
-        Yt = w.Y.transpose(1, 2).contiguous()  # (B, m, N)
-        ct = c.transpose(1, 2).contiguous()  # (B, m, N)
-        Dt = D.transpose(1, 2)  # (B, d, N)
-        blk = max(1, min(d, _CACHE_ELEMENTS // (B * K * N)))  # coordinates per block: about 2^16 numbers, in cache
-        parts = []
-        for lo in range(0, d, blk):  # blocks of coordinates (memory), not of trials or members
-            i, r = idx[lo : lo + blk], rho[lo : lo + blk]  # (blk, K)
-            Yl = Yt.index_select(1, i.reshape(-1)).view(B, -1, K, N)  # (B, blk, K, N): the nearby observations
-            C = (Yl * Dt[:, lo : lo + blk].unsqueeze(2)).sum(-1) * r  # (B, blk, K): tapered cross-covariance
-            cl = ct.index_select(1, i.reshape(-1)).view(B, -1, K, N)  # (B, blk, K, N): the residuals there
-            parts.append((C.unsqueeze(-1) * cl).sum(2))  # (B, blk, N)
-        drift = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
-        return -drift.transpose(1, 2) / (N - 1)
+    def measure_images(self, X: torch.Tensor, z: torch.Tensor):
+        """The members' measurements on the lag-one target, ``h(M(x_i))``, whitened by R (at the
+        members' mean where R depends on the state), with the images ``M(x_i)`` kept."""
+        Xm = self.model.transition_mean(X)
+        w = self.whiten(Xm, X.mean(1), z)
+        w.images = Xm
+        return w
 
     def extra_repr(self) -> str:
         local = ("" if self.local_index is None else f", radius={self.radius:g}") + (

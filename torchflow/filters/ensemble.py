@@ -118,6 +118,7 @@ class _Whitened:
     n_obs: torch.Tensor
     observed: torch.Tensor
     scale: Optional[torch.Tensor] = None  # (B, m): R's diagonal's square root (a diagonal R; unobserved: 1)
+    images: Optional[torch.Tensor] = None  # (B, N, d): the states measured, where they are not the members
 
 
 class _EnsembleFilter(Filter):

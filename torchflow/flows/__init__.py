@@ -4,7 +4,9 @@ at any points, over a lambda schedule.
 
 May import: :mod:`torchflow.core`, :mod:`torchflow.models`, :mod:`torchflow.flows.kernels`.
 
-* :mod:`.base`, :mod:`.daum_huang`, :mod:`.geodesic`, :mod:`.gpfis`: the flows; :mod:`.points`:
+* :mod:`.base`, :mod:`.daum_huang`, :mod:`.geodesic`, :mod:`.gpfis`: the flows; :mod:`.ensemble`:
+  the ensemble flows of data assimilation (lag-one, localised Kalman-Bucy, kernel), whose drift is
+  stated at the members (``points="ensemble"``); :mod:`.points`:
   where they are linearised; :mod:`.measurement`: the Gaussian measurement they read;
   :mod:`.schedules`: pseudo-time schedules; :mod:`.integrate`: the reference integrator;
 * :mod:`.select`: which fused kernel runs (the one place that decides); :mod:`.loops`: the
@@ -13,6 +15,16 @@ May import: :mod:`torchflow.core`, :mod:`torchflow.models`, :mod:`torchflow.flow
 
 from torchflow.flows.base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow
 from torchflow.flows.daum_huang import EDHFlow, LEDHFlow, daum_huang_coefficients
+from torchflow.flows.ensemble import (
+    EnsembleFlow,
+    EnsembleMeasurement,
+    KernelFlow,
+    LagOneFlow,
+    LocalisedKalmanBucyFlow,
+    WhitenedMembers,
+    ensemble_prior,
+    regression_jacobian,
+)
 from torchflow.flows.geodesic import (
     GeodesicFlow,
     GromovFlow,
@@ -61,4 +73,12 @@ __all__ = [
     "ClusteredPoints",
     "POINTS",
     "resolve_points",
+    "EnsembleFlow",
+    "EnsembleMeasurement",
+    "WhitenedMembers",
+    "LagOneFlow",
+    "LocalisedKalmanBucyFlow",
+    "KernelFlow",
+    "ensemble_prior",
+    "regression_jacobian",
 ]

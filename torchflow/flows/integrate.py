@@ -31,6 +31,7 @@ from torchflow.core.checks import check_choice
 from torchflow.core.errors import ArgumentError, ArgumentTypeError
 from torchflow.flows import loops, select
 from torchflow.flows.base import FlowCoefficients, FlowOutput, FlowPrior, ParticleFlow, _gather_points
+from torchflow.flows.ensemble import EnsembleFlow, EnsembleMeasurement
 from torchflow.flows.measurement import GaussianMeasurement
 from torchflow.flows.points import LinearisationPoints, resolve_points
 from torchflow.flows.schedules import LambdaSchedule, resolve_schedule
@@ -75,7 +76,11 @@ def integrate_flow(
             particles were drawn from, mean ``(B, N, d)``, factor broadcastable to
             ``(B, N, d, d)``. When given, the output carries ``log_proposal``.
         points: where the flow is linearised: a :class:`~torchflow.flows.points.LinearisationPoints`
-            or its name (``"global"``, ``"particle"``, ``"clustered"``); default: the flow's own
+            or its name (``"global"``, ``"particle"``, ``"clustered"``), or ``"ensemble"``: an
+            ensemble flow (:mod:`~torchflow.flows.ensemble`) states its drift at the members
+            themselves, reading ``measurement`` (an
+            :class:`~torchflow.flows.ensemble.EnsembleMeasurement`) and ``prior``
+            (:func:`~torchflow.flows.ensemble.ensemble_prior`); default: the flow's own
             (:attr:`ParticleFlow.points`), or ``"clustered"`` when ``index`` is given.
         index: ``(B, N)`` the point of each particle (clustered points).
         measurement: the :class:`~torchflow.flows.measurement.GaussianMeasurement` to linearise
@@ -108,6 +113,8 @@ def integrate_flow(
     schedule = resolve_schedule(schedule)
     eps_all, lam_all = schedule.steps(dtype=particles.dtype, device=particles.device)
     eps_host = schedule.host_steps(particles.dtype)
+    if isinstance(flow, EnsembleFlow) or points == "ensemble":
+        return _integrate_ensemble(flow, measurement, particles, prior, eps_all, lam_all)
     strategy = resolve_points(flow, "clustered" if points is None and index is not None else points)
     if map_jacobian and flow.stochastic:
         raise ArgumentError(
@@ -164,6 +171,36 @@ def integrate_flow(
         if gaussian_image:
             out.image_mean, out.image_cov = out.image_mean.squeeze(-2), out.image_cov.squeeze(-3)
     return out
+
+
+def _integrate_ensemble(flow, measurement, particles, prior, eps_all, lam_all) -> FlowOutput:
+    """The loop of an ensemble flow (:mod:`~torchflow.flows.ensemble`, ``points="ensemble"``): at
+    each pseudo-time step the flow states its coefficients at the members themselves, and every
+    member moves by ``eps (A x + b)``; ``log_det`` sums the flow's ``log|det(I + eps A)|`` (the same
+    for every member; ``None`` where the flow states none). ``aux`` is the prior mean."""
+    if not isinstance(flow, EnsembleFlow):
+        raise ArgumentTypeError(
+            f"points: 'ensemble' steps an ensemble flow (torchflow.flows.ensemble), got {type(flow).__name__}"
+        )
+    if not isinstance(measurement, EnsembleMeasurement):
+        raise ArgumentTypeError(
+            f"measurement: an ensemble flow reads an EnsembleMeasurement (the members' whitened measurements), "
+            f"got {type(measurement).__name__}"
+        )
+    B, N, _ = particles.shape
+    X, log_det = particles, None
+    eps_steps, lam_steps = eps_all.unbind(0), lam_all.unbind(0)
+    for j in range(len(eps_steps)):  # pseudo-time steps, not a loop over trials or members
+        eps = eps_steps[j]
+        co = flow.ensemble_coefficients(X, measurement, prior, lam_steps[j], eps, j)
+        if co.b.dim() == 2:  # A x + b shared by the members: A applied to all of them at once
+            AX = co.apply_A(X.transpose(1, 2)).transpose(1, 2) if co.A is None else X @ co.A.transpose(-1, -2)
+            X = X + eps * (AX + co.b.unsqueeze(1))
+        else:  # a drift per member
+            X = X + eps * co.b
+        if co.log_det is not None:
+            log_det = co.log_det if log_det is None else log_det + co.log_det
+    return FlowOutput(X, None if log_det is None else log_det.unsqueeze(1).expand(B, N), prior.mean)
 
 
 def _integrate(

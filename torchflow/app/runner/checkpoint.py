@@ -26,7 +26,17 @@ from torchflow.core.errors import ArgumentError
 
 #: tensors of one chunk, CPU (floats as float64), those the filter's result has: ``estimates (B, T, ...)``
 #: always; ``estimate_mask`` (sets of estimates) and ``underflow`` from the localisers
-CHUNK_FIELDS = ("estimates", "log_evidence", "ess", "n_repaired", "g_eff", "estimate_mask", "underflow", "std")
+CHUNK_FIELDS = (
+    "estimates",
+    "log_evidence",
+    "ess",
+    "n_repaired",
+    "g_eff",
+    "estimate_mask",
+    "underflow",
+    "std",
+    "lost_at",
+)
 _CHUNK_NAME = re.compile(r"^(\d{7})-(\d{7})\.pt$")
 log = logging.getLogger("torchflow.app.runner")
 
@@ -49,6 +59,26 @@ def fingerprint(settings: Mapping) -> str:
     """A short, stable hash of JSON-serialisable ``settings`` (key order does not matter)."""
     text = json.dumps(settings, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+def fill_lost(chunks: List[dict]) -> Optional[str]:
+    """Give the chunks whose every trial was lost (only ``lost_at``) the fields of the others,
+    NaN (floats) or 0 in every row, and give every chunk a ``lost_at`` (zeros where none was
+    lost), so that they concatenate. ``None``, or, when no chunk kept a trial, the error of the
+    last: the filter has nothing to score."""
+    template = next((c for c in chunks if "estimates" in c), None)
+    if template is None:
+        return next((c["error"] for c in reversed(chunks) if "error" in c), None)
+    keys = [k for k in CHUNK_FIELDS if k in template]
+    for c in chunks:
+        n = c["stop"] - c["start"]
+        for k in keys:
+            if k not in c:
+                v = template[k]
+                c[k] = torch.full((n, *v.shape[1:]), float("nan") if v.is_floating_point() else 0, dtype=v.dtype)
+        c.pop("error", None)
+        c.setdefault("lost_at", torch.zeros(n, dtype=torch.long))
+    return None
 
 
 class ChunkStore:
@@ -97,13 +127,14 @@ class ChunkStore:
             data = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as e:
             return _again(f"resume: cannot read {path} ({type(e).__name__}: {e})")
-        est = data.get("estimates")
+        est, lost = data.get("estimates"), data.get("lost_at")
+        lost = lost > 0 if isinstance(lost, torch.Tensor) and tuple(lost.shape) == (stop - start,) else None
+        all_lost = est is None and lost is not None and bool(lost.all())  # only lost_at: every trial lost
         ok = (
             data.get("key") == self.keys.get(name, name)
             and data.get("start") == start
             and data.get("stop") == stop
-            and isinstance(est, torch.Tensor)
-            and tuple(est.shape[:2]) == (stop - start, steps)
+            and (all_lost or (isinstance(est, torch.Tensor) and tuple(est.shape[:2]) == (stop - start, steps)))
             and (data.get("meta") is None or meta is None or data["meta"] == dict(meta))
         )  # no meta: older file
         if not ok:
@@ -111,9 +142,13 @@ class ChunkStore:
         if data.get("checksum") is not None and data["checksum"] != checksum(data):
             return _again(f"resume: {path} is damaged (its checksum does not match its contents)")
         logz = data.get("log_evidence")
-        if not bool(torch.isfinite(est).all()) or (isinstance(logz, torch.Tensor) and bool(torch.isnan(logz).any())):
-            # a run that computed these numbers would have stopped with NonFiniteError: not a chunk it saved
-            return _again(f"resume: {path} holds NaN or infinite estimates, which no finished chunk has")
+        kept = slice(None) if lost is None else ~lost  # a lost trial's rows are NaN
+        if not all_lost and (
+            not bool(torch.isfinite(est[kept]).all())
+            or (isinstance(logz, torch.Tensor) and bool(torch.isnan(logz[kept]).any()))
+        ):
+            # a run that computed these numbers would have marked the trial lost: not a chunk it saved
+            return _again(f"resume: {path} holds NaN or infinite estimates in trials not marked lost")
         self.loaded[name] += 1
         return data
 
@@ -197,11 +232,15 @@ class ChunkStore:
                 parts.append(dict(compute(a, b)))
                 continue
             part = {k: data[k][a - r[0] : b - r[0]] for k in CHUNK_FIELDS if k in data}
+            part.update(start=a, stop=b)
             part["elapsed"] = float(data.get("elapsed", 0.0)) * (b - a) / (r[1] - r[0])
             part["paths"] = data.get("paths")  # the paths of the run that computed the saved chunk (its counts)
             parts.append(part)
             reused += b - a
+        error = fill_lost(parts)  # lost trials: every part gets lost_at, and a part whose trials were all lost NaN rows
         chunk = {k: torch.cat([p[k] for p in parts]) for k in CHUNK_FIELDS if all(k in p for p in parts)}
+        if error is not None:
+            chunk["error"] = error
         chunk.update(
             start=start,
             stop=stop,

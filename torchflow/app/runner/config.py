@@ -9,13 +9,16 @@ import json
 import os
 import re
 import shlex
+from dataclasses import dataclass
 from importlib.resources import files
 from pathlib import Path
-from typing import List, Mapping, Optional, Sequence
+from typing import List, Mapping, Optional, Sequence, Tuple
 
+import torch
 from omegaconf import OmegaConf
 
 from torchflow.app.runner.plan import (
+    NONFINITE_TRIALS,
     ConfigError,
     check_metric_settings,
     check_rng_backend,
@@ -245,6 +248,9 @@ def check_config(
         check_rng_backend(cfg.get("rng_backend"))
     if "warmup" in known:
         check_warmup(cfg.get("warmup", "auto"))
+    if "nonfinite_trials" in known:
+        nft = cfg.get("nonfinite_trials")
+        require(nft in NONFINITE_TRIALS, "nonfinite_trials", " or ".join(NONFINITE_TRIALS), nft)
     if "metrics" in known:
         m = cfg.get("metrics") or {}
         steps = cfg.get("steps")
@@ -254,6 +260,13 @@ def check_config(
             lost_threshold=m.get("lost_threshold"),
             burn_in=m.get("burn_in", 0),
             steps=steps if isinstance(steps, int) and not isinstance(steps, bool) and steps > 0 else None,
+        )
+        r = m.get("lost_rmse")
+        require(
+            r is None or (isinstance(r, (int, float)) and not isinstance(r, bool) and r > 0),
+            "metrics.lost_rmse",
+            "a positive RMSE above which a trial is lost, or null",
+            r,
         )
 
 
@@ -311,35 +324,90 @@ def explicit_overrides() -> List[str]:
     return [str(o).split("=", 1)[0].lstrip("+~") for o in task]
 
 
-def recorded_data(cfg: Mapping, model):
-    """The run's recorded data (``data=<file>``; ``None``: simulate): ``(observations, trials,
-    steps, sha256)``. ``observations``: the file's series on the model's dtype and device
-    (:func:`torchflow.app.data.load_observations`); ``trials``: a ``(T, m)`` series is filtered by
-    ``cfg.trials`` independent runs, a ``(B, T, m)`` file by one run per series (``trials`` set on the
-    command line must then be B); ``steps``: the file's T (``steps`` set on the command line must be
-    T); ``sha256``: of the file's bytes (the checkpoints' key). Any problem: a one-line
-    :class:`ConfigError` naming ``data``."""
+@dataclass
+class RecordedData:
+    """The run's recorded data (:func:`recorded_data`): ``observations`` ``(T, m)`` or ``(B, T, m)``,
+    ``trials``, ``steps``, ``sha256`` of the file's bytes (the checkpoints' key), the true
+    ``states`` (a ``.npz`` file's; ``None``: no truth) and the ``prior`` ``(mean, cov)`` (the
+    command line's ``prior.mean`` / ``prior.cov`` over the file's; ``None``: none given)."""
+
+    observations: torch.Tensor
+    trials: int
+    steps: int
+    sha256: str
+    states: Optional[torch.Tensor] = None
+    prior: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
+
+
+def command_line_prior(cfg: Mapping, model, file_prior=None):
+    """``(mean, cov)`` of ``prior.mean`` / ``prior.cov`` (:func:`torchflow.app.data.prior_from_spec`),
+    each over the file's where given; ``file_prior`` where neither is set; ``None`` where no prior is
+    given anywhere. One of the two without the other (and none in the file): a :class:`ConfigError`."""
+    from torchflow.app.data import prior_from_spec
+    from torchflow.core.errors import ArgumentError
+
+    spec = cfg.get("prior") or {}
+    mean, cov = spec.get("mean"), spec.get("cov")
+    if mean is None and cov is None:
+        return file_prior
+    if OmegaConf.is_config(mean):
+        mean = OmegaConf.to_container(mean)
+    if OmegaConf.is_config(cov):
+        cov = OmegaConf.to_container(cov)
+    d = model.state_dim
+    if (mean is None or cov is None) and file_prior is None:
+        missing = "prior.cov" if cov is None else "prior.mean"
+        raise ConfigError(f"{missing}: expected it with {'prior.mean' if cov is None else 'prior.cov'}, got null")
+    try:
+        m, c = prior_from_spec(mean if mean is not None else 0.0, cov if cov is not None else 1.0, d, name="prior")
+    except ArgumentError as e:
+        raise ConfigError(str(e)) from None
+    if mean is None:
+        m = file_prior[0]
+    if cov is None:
+        c = file_prior[1]
+    return m.to(dtype=model.dtype, device=model.device), c.to(dtype=model.dtype, device=model.device)
+
+
+def recorded_data(cfg: Mapping, model) -> Optional[RecordedData]:
+    """The run's recorded data (``data=<file>``; ``None``: simulate): a :class:`RecordedData`.
+    ``observations``: the file's series on the model's dtype and device
+    (:func:`torchflow.app.data.load_recording`: ``.csv``, ``.npy``, ``.npz`` with ``states`` and a
+    prior); ``trials``: a ``(T, m)`` series is filtered by ``cfg.trials`` independent runs, a
+    ``(B, T, m)`` file by one run per series (``trials`` set on the command line must then be B);
+    ``steps``: the file's T (``steps`` set on the command line must be T). ``prior.mean`` /
+    ``prior.cov`` without ``data``: refused (a simulation draws each trial's prior). Any problem:
+    a one-line :class:`ConfigError` naming ``data`` or ``prior``."""
     import hashlib
 
     from hydra.utils import to_absolute_path
 
-    from torchflow.app.data import load_observations
+    from torchflow.app.data import load_recording
     from torchflow.core.errors import ArgumentError
 
     path = cfg.get("data")
     if path is None:
+        spec = cfg.get("prior") or {}
+        given = [k for k in ("mean", "cov") if spec.get(k) is not None]
+        require(
+            not given,
+            f"prior.{given[0]}" if given else "prior",
+            "null without data= (a simulation draws each trial's prior around its true initial state)",
+            spec.get(given[0]) if given else None,
+        )
         return None
     require(
         isinstance(path, str) and path != "",
         "data",
-        "the path of a .csv or .npy file of recorded observations, or null",
+        "the path of a .csv, .npy or .npz file of recorded observations, or null",
         path,
     )
     full = Path(to_absolute_path(path))
     try:
-        obs = load_observations(full, model, name="data")
+        rec = load_recording(full, model, name="data")
     except ArgumentError as e:
         raise ConfigError(str(e)) from None
+    obs = rec.observations
     given, T = explicit_overrides(), obs.shape[-2]
     trials = cfg.trials
     if obs.dim() == 3:
@@ -354,4 +422,5 @@ def recorded_data(cfg: Mapping, model):
     require(
         "steps" not in given or cfg.steps == T, "steps", f"the {T} rows of data={path} (leave steps unset)", cfg.steps
     )
-    return obs, trials, T, hashlib.sha256(full.read_bytes()).hexdigest()
+    prior = command_line_prior(cfg, model, rec.prior)
+    return RecordedData(obs, trials, T, hashlib.sha256(full.read_bytes()).hexdigest(), rec.states, prior)

@@ -15,9 +15,10 @@ import torch
 from tqdm.auto import tqdm
 
 from torchflow.app.data import check_observations
-from torchflow.app.runner.checkpoint import CHUNK_FIELDS, ChunkStore
+from torchflow.app.runner.checkpoint import CHUNK_FIELDS, ChunkStore, fill_lost
 from torchflow.app.runner.distributed import Shard
 from torchflow.app.runner.plan import (
+    NONFINITE_TRIALS,
     ConfigError,
     RunPlan,
     check_metric_settings,
@@ -150,14 +151,26 @@ class Outcome:
     warmup: Optional[float] = None
 
 
-def _timed_call(f: Filter, name: str, plan: RunPlan, s: int, e: int, steps: Optional[int] = None, progress=None):
-    """``f`` on trials ``[s, e)`` (their first ``steps`` time steps; ``None``: all) with the run's
-    per-trial streams and the trajectory's mask, if any; ``(result, wall seconds)``, synchronised on
-    a GPU. A :class:`NonFiniteError` names the trials by their index in the whole run."""
+def _timed_call(
+    f: Filter,
+    name: str,
+    plan: RunPlan,
+    s: int,
+    e: int,
+    steps: Optional[int] = None,
+    progress=None,
+    trials: Optional[Sequence[int]] = None,
+):
+    """``f`` on trials ``[s, e)`` (or on the run's trials ``trials``, a subset of them; their first
+    ``steps`` time steps; ``None``: all) with the run's per-trial streams and the trajectory's mask,
+    if any; ``(result, wall seconds)``, synchronised on a GPU. A :class:`NonFiniteError` names the
+    trials by their index in the whole run."""
     st, traj = plan.settings, plan.traj
     T = traj.observations.shape[1] if steps is None else min(steps, traj.observations.shape[1])
-    g = TrialStreams(st.seed, range(s, e), key=f.stream_name, backend=st.rng_backend)
-    mask = {"mask": traj.mask[s:e, :T]} if f.padded_measurements else {}  # masked measurement sets
+    which = list(range(s, e)) if trials is None else list(trials)
+    rows = slice(s, e) if trials is None else torch.tensor(which, device=traj.observations.device)
+    g = TrialStreams(st.seed, which, key=f.stream_name, backend=st.rng_backend)
+    mask = {"mask": traj.mask[rows, :T]} if f.padded_measurements else {}  # masked measurement sets
     if traj.states is None and f.output == "states":  # recorded data: each step's spread is reported
         mask["return_std"] = True
     sync = torch.cuda.synchronize if st.device.type == "cuda" else (lambda: None)
@@ -165,9 +178,9 @@ def _timed_call(f: Filter, name: str, plan: RunPlan, s: int, e: int, steps: Opti
     t0 = time.perf_counter()
     with torch.no_grad(), STOP.interruptible():
         try:
-            res = f(traj.observations[s:e, :T], plan.mean0[s:e], plan.cov0[s:e], g, progress=progress, **mask)
+            res = f(traj.observations[rows, :T], plan.mean0[rows], plan.cov0[rows], g, progress=progress, **mask)
         except NonFiniteError as err:  # report trial indices in the whole run
-            raise NonFiniteError(name, err.step, [s + i for i in err.trials], what=err.what, hint=err.hint) from None
+            raise NonFiniteError(name, err.step, [which[i] for i in err.trials], what=err.what, hint=err.hint) from None
     sync()
     return res, time.perf_counter() - t0
 
@@ -202,20 +215,61 @@ def say_slow_path(filters: Mapping, device) -> Optional[str]:
     return text
 
 
-def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None) -> dict:
+def _scatter(v: torch.Tensor, kept: torch.Tensor, n: int) -> torch.Tensor:
+    """``v (k, ...)`` of the kept rows ``kept (k,)`` placed in ``(n, ...)``: NaN (floats), 0 or
+    ``False`` in the rows of the lost trials."""
+    fill = float("nan") if v.is_floating_point() else 0
+    out = torch.full((n, *v.shape[1:]), fill, dtype=v.dtype)
+    out[kept] = v
+    return out
+
+
+def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None, lose: bool = True) -> dict:
     """Run filter ``f`` on trials ``[s, e)``: the chunk's :data:`CHUNK_FIELDS` as CPU tensors
     (floats as float64) and ``paths``, the execution paths its steps took
     (:attr:`~torchflow.filters.FilterResult.paths`). Padded measurement sets (a trajectory with a
-    ``mask``) pass their mask."""
-    cb = (lambda n=e - s: bar.update(n)) if bar is not None else None
-    res, elapsed = _timed_call(f, name, plan, s, e, progress=cb)
+    ``mask``) pass their mask.
+
+    ``lose``: a :class:`NonFiniteError` marks the trials it names lost (``lost_at``: ``(e - s,)``
+    long, the 1-based step at which each went non-finite, 0 for a kept trial) and the chunk is run
+    again without them: every trial draws from its own stream, so the kept trials' numbers are those
+    of a run without the lost ones. The lost trials' rows of the float fields are NaN. Every trial
+    lost: only ``lost_at`` (and ``error``, the last error's text). ``elapsed`` counts every attempt.
+    Without ``lose`` the error is raised."""
+    n_all, lost_at, elapsed = e - s, torch.zeros(e - s, dtype=torch.long), 0.0
+    kept = list(range(s, e))
+    while True:
+        cb = (lambda n=len(kept): bar.update(n)) if bar is not None else None
+        t0 = time.perf_counter()
+        try:
+            res, t = _timed_call(f, name, plan, s, e, progress=cb, trials=None if len(kept) == n_all else kept)
+            elapsed += t
+            break
+        except NonFiniteError as err:
+            elapsed += time.perf_counter() - t0
+            gone = sorted(set(err.trials) & set(kept))
+            if not lose or not gone:
+                raise
+            for i in gone:
+                lost_at[i - s] = max(int(err.step), 1)
+            kept = [i for i in kept if i not in set(gone)]
+            log.warning(
+                f"{name}: trial(s) {gone[:10]}{' ...' if len(gone) > 10 else ''} lost ({err}); "
+                + (f"the chunk's other {len(kept)} trial(s) run again" if kept else "none left in the chunk")
+            )
+            if not kept:
+                return {"start": s, "stop": e, "elapsed": elapsed, "lost_at": lost_at, "error": str(err)}
     out = {"start": s, "stop": e, "elapsed": elapsed}
     if getattr(res, "paths", None) is not None:  # the execution paths taken (torchflow.core.paths)
         out["paths"] = dict(res.paths)
+    rows = torch.tensor([i - s for i in kept], dtype=torch.long)
     for key in CHUNK_FIELDS:
         v = getattr(res, key, None)
         if v is not None:
-            out[key] = (v.double() if v.is_floating_point() else v).cpu()
+            v = (v.double() if v.is_floating_point() else v).cpu()
+            out[key] = v if len(kept) == n_all else _scatter(v, rows, n_all)
+    if bool(lost_at.any()):
+        out["lost_at"] = lost_at
     return out
 
 
@@ -237,18 +291,25 @@ def warm_up(f: Filter, name: str, plan: RunPlan, chunks: Sequence[Tuple[int, int
         + (" x 2 steps" if steps else "")
         + " (its kernels are compiled on a machine's first run and loaded from the cache after)"
     )
-    return sum(_timed_call(f, name, plan, s0, s0 + n, steps=steps)[1] for n in sizes)
+    total = 0.0
+    for n in sizes:
+        t0 = time.perf_counter()
+        try:
+            total += _timed_call(f, name, plan, s0, s0 + n, steps=steps)[1]
+        except NonFiniteError:  # its numbers are discarded: the timed call says which trials went non-finite
+            total += time.perf_counter() - t0
+    return total
 
 
-def _one_chunk(f, name, plan, s, e, store, bar, before=None) -> dict:
+def _one_chunk(f, name, plan, s, e, store, bar, before=None, lose: bool = True) -> dict:
     """A chunk from the store (saved with these or, resuming, other boundaries) or computed and saved;
-    ``before()`` is called before any trial is computed (the warm-up)."""
+    ``before()`` is called before any trial is computed (the warm-up); ``lose``: :func:`run_chunk`'s."""
     steps, meta = plan.settings.steps, plan.meta(f)
 
     def compute(a, b):
         if before is not None:
             before()
-        return run_chunk(f, name, plan, a, b, bar)
+        return run_chunk(f, name, plan, a, b, bar, lose=lose)
 
     if store is None:
         return compute(s, e)
@@ -273,10 +334,13 @@ def execute(
     progress=False,
     desc="",
     warmup: bool = False,
+    nonfinite_trials: str = "lose",
 ) -> Outcome:
     """Run ``f`` over this rank's chunks (a tqdm bar on rank 0 with ``progress``); the ranks' outcome.
     ``warmup``: first untimed calls on two steps (:func:`warm_up`), made before the first chunk
-    that is computed (none when the store holds every chunk)."""
+    that is computed (none when the store holds every chunk). ``nonfinite_trials``
+    (:data:`NONFINITE_TRIALS`): ``"lose"``: a trial that goes non-finite is lost, the others go on
+    (:func:`run_chunk`); ``"fail"``: the filter fails."""
     mine = plan.shard.mine(plan.trial_chunks(plan.chunks[name]))
     bar = (
         tqdm(
@@ -304,7 +368,7 @@ def execute(
         for i, (s, e) in enumerate(mine):
             STOP.check()
             where = f"chunk {i + 1} of {len(mine)} (trials {s}..{e - 1})"
-            out.chunks.append(_one_chunk(f, name, plan, s, e, store, bar, before))
+            out.chunks.append(_one_chunk(f, name, plan, s, e, store, bar, before, lose=nonfinite_trials == "lose"))
         STOP.check()
     except KeyboardInterrupt:  # keep what finished; the caller writes it and says so
         out.interrupted = True
@@ -350,6 +414,7 @@ def plan_run(
     simulator: Optional[Callable] = None,
     observations: Optional[torch.Tensor] = None,
     prior=None,
+    states: Optional[torch.Tensor] = None,
 ) -> RunPlan:
     """The arguments checked (:func:`~torchflow.app.runner.plan.check_settings`; a model with
     ``n_steps`` sets the steps), the model (and ``filters``, which may be empty) moved to the
@@ -362,7 +427,9 @@ def plan_run(
 
     ``observations``: recorded data instead of a simulation (:func:`~torchflow.app.runner.plan.recorded`:
     ``(T, m)`` filtered by every trial, ``(B, T, m)`` one series per trial; sizes by
-    :func:`~torchflow.app.runner.plan.data_sizes`), from ``prior`` or the model's declared prior.
+    :func:`~torchflow.app.runner.plan.data_sizes`), from ``prior`` or the model's declared prior;
+    ``states``: their true states (``(T+1, d)`` or ``(B, T+1, d)``), which make the run scored (and,
+    without ``prior``, the prior is the model's ``initial_belief`` at the true initial state).
     ``trials`` / ``steps`` ``None``: 10 (the data's B) and 10 (the data's T)."""
     if observations is not None:
         if simulator is not None:
@@ -379,7 +446,9 @@ def plan_run(
                 f"series), got {inits_per_track!r}"
             )
         trials, steps = data_sizes(observations, trials, steps)
-        simulator = recorded(observations, prior)
+        simulator = recorded(observations, prior, states)
+    elif states is not None:
+        raise ConfigError("states: true states are given with recorded observations only")
     elif prior is not None:
         raise ConfigError(
             "prior: a prior is given with recorded observations only (a simulation draws each trial's "
@@ -429,6 +498,9 @@ def run_experiment(
     warmup: Union[str, bool] = "auto",
     observations: Optional[torch.Tensor] = None,
     prior=None,
+    nonfinite_trials: str = "lose",
+    lost_rmse: Optional[float] = None,
+    states: Optional[torch.Tensor] = None,
 ) -> Optional[ExperimentResult]:
     """Simulate ``trials`` trajectories of ``steps`` steps once (``model.n_steps``, where the model
     has one, sets it) and run every filter of ``filters`` (``{name: filter holding model}``) on the
@@ -461,10 +533,21 @@ def run_experiment(
     ``(B, T, m)`` holds one series per trial (``trials``: B or unset); ``steps`` is T (or unset);
     NaN marks a coordinate not observed. The filters start from ``prior = (mean, cov)``
     (``(d,)``/``(B, d)``, ``(d, d)``/``(B, d, d)``) or, without it, from the model's declared prior
-    (:func:`torchflow.app.data.declared_prior`). The metrics that need the truth
+    (:func:`torchflow.app.data.declared_prior`). ``states``: the recorded series' true states
+    (``(T+1, d)`` or ``(B, T+1, d)``; a ``.npz`` recording's, :func:`torchflow.app.data.load_recording`):
+    the run is scored as a simulated one is (without ``prior``: the model's ``initial_belief`` at
+    the true initial state, as a simulation draws it). Without states the metrics that need the truth
     (:attr:`~torchflow.core.metrics.Metric.needs_truth`: MSE, RMSE, OMAT, OSPA) are left out (logged once); the
     log-evidence (with its standard error over trials), the ESS and the per-step mean and spread of
     the estimates (``result.estimate_summary``) are reported.
+
+    A trial whose filter goes non-finite (:class:`NonFiniteError` naming it) is *lost* with
+    ``nonfinite_trials="lose"`` (the default; ``"fail"``: the filter's row fails): the chunk runs again
+    without it (the others' numbers do not move: each trial has its own stream), a warning names it,
+    and ``lost_rmse`` (``None``: off) also loses a trial whose RMSE (after ``burn_in``) is above it,
+    as DAPPER counts divergence. The summary row's ``lost_trials`` counts them and every metric,
+    the log-evidence included, is over the kept trials; the per-trial rows say ``lost_trial`` and
+    ``lost_step`` (the step at which it went non-finite; 0: lost by ``lost_rmse`` or kept).
 
     A filter that raises does not stop the run (its row gets the error, ``result.failures`` where);
     Ctrl-C (:data:`STOP`) keeps the finished filters; before the first filter (the simulation) it
@@ -484,6 +567,12 @@ def run_experiment(
             f"localisers), e.g. {{'kf': KalmanFilter(model)}}, got {got}"
         )
     check_warmup(warmup)
+    if nonfinite_trials not in NONFINITE_TRIALS:
+        raise ConfigError(f"nonfinite_trials: expected one of {NONFINITE_TRIALS}, got {nonfinite_trials!r}")
+    if lost_rmse is not None and (
+        isinstance(lost_rmse, bool) or not isinstance(lost_rmse, (int, float)) or not lost_rmse > 0
+    ):
+        raise ConfigError(f"lost_rmse: expected a positive RMSE over which a trial is lost, or None; got {lost_rmse!r}")
     n_steps = getattr(model, "n_steps", steps)
     metric_settings = check_metric_settings(
         ospa_cutoff=ospa_cutoff,
@@ -510,6 +599,7 @@ def run_experiment(
         simulator=simulator,
         observations=observations,
         prior=prior,
+        states=states,
     )
     s = plan.settings
     truthless = plan.traj.states is None
@@ -523,7 +613,7 @@ def run_experiment(
         say_slow_path(filters, s.device)
     t1 = time.perf_counter()
     with before_the_filters("the Kalman filter's reference log-evidence"):
-        scorer = make_scorer(model, plan, **metric_settings)
+        scorer = make_scorer(model, plan, lost_rmse=lost_rmse, **metric_settings)
     res = ExperimentResult([], [], [])
     res.timings = {"plan": t1 - t0, "reference": time.perf_counter() - t1, "filters": 0.0, "scoring": 0.0}
     for i, (name, f) in enumerate(filters.items()):
@@ -536,7 +626,12 @@ def run_experiment(
             progress=progress,
             desc=f"[{i + 1}/{len(filters)}] {name}",
             warmup=auto_warmup(f, s.device) if warmup == "auto" else warmup,
+            nonfinite_trials=nonfinite_trials,
         )
+        if out.error is None and not out.interrupted and out.chunks:
+            every = fill_lost(out.chunks)  # lost trials: NaN rows; none kept: nothing to score
+            if every is not None:
+                out.error, out.where = f"NonFiniteError: every trial lost; the last: {every}", "every chunk"
         t3 = time.perf_counter()
         res.timings["filters"] += t3 - t2
         res.interrupted = out.interrupted

@@ -34,6 +34,11 @@ RNG_BACKENDS = ("auto", "numpy", "philox")
 SEED_LIMIT = 2**63
 
 
+#: what a run does with a trial whose filter goes non-finite (``nonfinite_trials``): ``"lose"``
+#: marks it lost and scores the others, ``"fail"`` fails the filter's row (every trial of it)
+NONFINITE_TRIALS = ("lose", "fail")
+
+
 def require(ok: bool, name: str, what: str, got) -> None:
     """The runner's checks: a :class:`ConfigError` ``name: expected what, got got`` unless ``ok``."""
     if not ok:
@@ -389,17 +394,33 @@ def data_sizes(observations: torch.Tensor, trials: Optional[int], steps: Optiona
     return (10 if trials is None else trials), T
 
 
-def recorded(observations: torch.Tensor, prior=None):
+def recorded(observations: torch.Tensor, prior=None, states: Optional[torch.Tensor] = None):
     """A ``simulator`` (:func:`make_plan`) that simulates nothing: the recorded ``observations``
-    (``(T, m)``: every trial filters the one series; ``(B, T, m)``: one series per trial), no true
-    states (the trajectory's ``states`` is ``None``), and the prior ``prior = (mean, cov)``
-    (``(d,)``/``(B, d)``, ``(d, d)``/``(B, d, d)``) or, if ``None``, the model's declared prior
+    (``(T, m)``: every trial filters the one series; ``(B, T, m)``: one series per trial), the true
+    ``states`` (``(T+1, d)`` / ``(B, T+1, d)``; ``None``: the trajectory's ``states`` is ``None``, no
+    truth), and the prior ``prior = (mean, cov)`` (``(d,)``/``(B, d)``, ``(d, d)``/``(B, d, d)``) or,
+    if ``None``, with states the model's ``initial_belief`` at the true initial state (as
+    :func:`simulate` draws it), without the model's declared prior
     (:func:`torchflow.app.data.declared_prior`)."""
 
     def simulator(model: StateSpaceModel, trials: int, steps: int, inits_per_track: int, generator):
         obs = observations.to(dtype=model.dtype, device=model.device)
         obs = obs.expand(trials, -1, -1).clone() if obs.dim() == 2 else obs  # one copy per trial: contiguous
         d = model.state_dim
+        x = None
+        if states is not None:
+            x = states.to(dtype=model.dtype, device=model.device)
+            x = x.expand(trials, -1, -1).clone() if x.dim() == 2 else x
+            require(
+                tuple(x.shape) == (trials, obs.shape[1] + 1, d),
+                "states",
+                f"the true states ({obs.shape[1] + 1}, {d}) or ({trials}, {obs.shape[1] + 1}, {d}) of the recorded "
+                "series (the initial state, then one row per observation)",
+                tuple(states.shape),
+            )
+        if prior is None and x is not None:  # scored as a simulation: its prior around the true initial state
+            mean, cov = model.initial_belief(x[:, 0], generator)
+            return Trajectory(x, obs), mean, cov
         if prior is None:
             try:
                 mean, cov = declared_prior(model, trials)
@@ -432,7 +453,7 @@ def recorded(observations: torch.Tensor, prior=None):
         )
         mean = mean.detach().to(dtype=model.dtype, device=model.device).expand(trials, d)
         cov = cov.detach().to(dtype=model.dtype, device=model.device).expand(trials, d, d)
-        return Trajectory(None, obs), mean, cov
+        return Trajectory(x, obs), mean, cov
 
     return simulator
 

@@ -30,6 +30,7 @@ RUN_COLUMNS = (
             "log_evidence_se",
             "log_evidence_relmse",
             "lost_tracks",
+            "lost_trials",
             "repaired",
             "sec_per_step",
             "warmup_sec",
@@ -152,6 +153,7 @@ class Scorer:
     lost_threshold: float = 2.0
     burn_in: int = 0
     reference_logz: Optional[torch.Tensor] = None
+    lost_rmse: Optional[float] = None
 
     @property
     def settings(self) -> Dict[str, float]:
@@ -193,11 +195,24 @@ def _cat(chunks: List[dict], key: str) -> Optional[torch.Tensor]:
 
 
 #: chunk entries that are not filter outputs of a :class:`~torchflow.core.metrics.MetricContext`
-_NOT_OUTPUTS = ("start", "stop", "elapsed", "estimates", "estimate_mask", "std")
+_NOT_OUTPUTS = ("start", "stop", "elapsed", "estimates", "estimate_mask", "std", "lost_at")
+
+
+def lost_steps(chunks: List[dict]) -> torch.Tensor:
+    """``(B,)`` long: the step at which each trial of the chunks went non-finite and was lost
+    (:func:`~torchflow.app.runner.execute.run_chunk`), 0 for a kept trial."""
+    return torch.cat(
+        [c["lost_at"] if "lost_at" in c else torch.zeros(c["stop"] - c["start"], dtype=torch.long) for c in chunks]
+    )
 
 
 def context(sc: Scorer, f: Filter, chunks: List[dict]) -> metrics.MetricContext:
-    """The :class:`~torchflow.core.metrics.MetricContext` of one filter's chunks (concatenated over trials)."""
+    """The :class:`~torchflow.core.metrics.MetricContext` of one filter's chunks (concatenated over
+    trials); a lost trial's estimates (NaN) are zeros here: its metrics are computed, never reported."""
+    est, lost = _cat(chunks, "estimates"), lost_steps(chunks) > 0
+    if bool(lost.any()):
+        est = est.clone()
+        est[lost] = 0.0
     outputs = {
         k: _cat(chunks, k)
         for k, v in chunks[0].items()
@@ -206,7 +221,7 @@ def context(sc: Scorer, f: Filter, chunks: List[dict]) -> metrics.MetricContext:
     return metrics.MetricContext(
         model=sc.model,
         filter=f,
-        estimates=_cat(chunks, "estimates"),
+        estimates=est,
         truth=sc.truth,
         mask=_cat(chunks, "estimate_mask"),
         outputs=outputs,
@@ -309,24 +324,36 @@ def score_filter(sc: Scorer, f: Filter, name: str, row: dict, chunks: List[dict]
     if ctx.kind == "sets":
         return score_sets(sc, ctx, name, row, cols, steps)
     logz, n_run = ctx.outputs.get("log_evidence"), ctx.estimates.shape[0]
-    if f.estimates_evidence:
-        row["log_evidence"] = float(logz.mean())
-        if n_run > 1:  # the standard error of the mean over trials
-            row["log_evidence_se"] = float(logz.std() / n_run**0.5)
+    lost_at = lost_steps(chunks)
+    lost = lost_at > 0
+    if sc.lost_rmse is not None and "rmse" in cols:  # DAPPER's count: a trial whose RMSE is over a threshold
+        v, how, _, start, _ = cols["rmse"]
+        lost = lost | ~(_trial_values(v, how, start) <= sc.lost_rmse)  # NaN counts as over
+    keep = ~lost
+    kept = {k: (c[0][keep], *c[1:]) for k, c in cols.items()}  # every reported mean is over the kept trials
+    n_kept = int(keep.sum())
+    if f.estimates_evidence and n_kept:
+        row["log_evidence"] = float(logz[keep].mean())
+        if n_kept > 1:  # the standard error of the mean over trials
+            row["log_evidence_se"] = float(logz[keep].std() / n_kept**0.5)
         if sc.reference_logz is not None:
-            row["log_evidence_relmse"] = float(metrics.log_evidence_relative_error(logz, sc.reference_logz).mean())
+            row["log_evidence_relmse"] = float(
+                metrics.log_evidence_relative_error(logz[keep], sc.reference_logz[keep]).mean()
+            )
     if "n_repaired" in ctx.outputs:
-        row["repaired"] = int(ctx.outputs["n_repaired"].sum())
-    row.update(_summary(cols))
-    lost = None
+        row["repaired"] = int(ctx.outputs["n_repaired"][keep].sum())
+    if n_kept:
+        row.update(_summary(kept))
+    row["lost_trials"] = n_run - n_kept
+    lost_tracks = None
     if sc.model.structure.has_positions and sc.truth is not None:  # lost tracks: OMAT's, registered or not
         om = cols["omat"][0] if "omat" in cols else metrics.omat(ctx.est_positions, ctx.true_positions)
-        lost = metrics.lost_tracks(om, threshold=sc.lost_threshold)
-        kept = om.mean(1)[~lost]
+        lost_tracks = metrics.lost_tracks(om, threshold=sc.lost_threshold) & keep
+        good = om.mean(1)[keep & ~lost_tracks]
         row.update(
-            lost_tracks=int(lost.sum()),
-            omat_kept_mean=float(kept.mean()) if kept.numel() else None,
-            omat_kept_sd=float(kept.std()) if kept.numel() > 1 else None,
+            lost_tracks=int(lost_tracks.sum()),
+            omat_kept_mean=float(good.mean()) if good.numel() else None,
+            omat_kept_sd=float(good.std()) if good.numel() > 1 else None,
         )
     per_trial = [
         {
@@ -334,11 +361,14 @@ def score_filter(sc: Scorer, f: Filter, name: str, row: dict, chunks: List[dict]
             "trial": sc.lo + b,
             **({} if logz is None else {"log_evidence": float(logz[b])}),
             **_trial(cols, b),
-            **({} if lost is None else {"lost": bool(lost[b])}),
+            **(dict.fromkeys([*([] if logz is None else ["log_evidence"]), *cols]) if lost_at[b] > 0 else {}),
+            **({} if lost_tracks is None else {"lost": bool(lost_tracks[b])}),
+            "lost_trial": bool(lost[b]),
+            "lost_step": int(lost_at[b]),
         }
         for b in range(n_run)
     ]
-    return per_trial, _per_step(name, cols, steps), chunks[0]["estimates"][0]
+    return per_trial, _per_step(name, kept if n_kept else cols, steps), chunks[0]["estimates"][0]
 
 
 def estimate_spread(chunks: List[dict]) -> Optional[Tuple[torch.Tensor, Optional[torch.Tensor], torch.Tensor]]:
@@ -349,16 +379,27 @@ def estimate_spread(chunks: List[dict]) -> Optional[Tuple[torch.Tensor, Optional
     independent runs; 0 with one trial). ``None`` for sets (the localisers)."""
     if "estimate_mask" in chunks[0]:
         return None
-    est = _cat(chunks, "estimates")  # (B, T, d) float64
+    keep = lost_steps(chunks) == 0  # the lost trials (NaN) are left out
+    if not bool(keep.any()):
+        return None
+    est = _cat(chunks, "estimates")[keep]  # (B, T, d) float64
     spread = est.std(0) if est.shape[0] > 1 else torch.zeros_like(est[0])
-    sd = _cat(chunks, "std").mean(0) if all("std" in c for c in chunks) else None
+    sd = _cat(chunks, "std")[keep].mean(0) if all("std" in c for c in chunks) else None
     return est.mean(0), sd, spread
+
+
+#: columns the printed table leaves out when they are 0 in every row (the CSV keeps them)
+QUIET_ZERO = ("lost_trials",)
 
 
 def format_table(summary: List[dict], columns: Optional[List[str]] = None) -> str:
     """Markdown table of the summary rows (default columns: :func:`summary_columns`), dropping
-    columns that are empty in every row."""
-    cols = [c for c in columns or summary_columns() if any(r.get(c) is not None for r in summary)]
+    columns that are empty in every row and the :data:`QUIET_ZERO` columns that are 0 in every row."""
+    cols = [
+        c
+        for c in columns or summary_columns()
+        if any(r.get(c) is not None for r in summary) and not (c in QUIET_ZERO and not any(r.get(c) for r in summary))
+    ]
     fmt = lambda v: "" if v is None else f"{v:.4g}" if isinstance(v, float) else str(v)
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     return "\n".join(lines + ["| " + " | ".join(fmt(r.get(c)) for c in cols) + " |" for r in summary])
