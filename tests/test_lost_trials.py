@@ -1,8 +1,6 @@
 """A lost trial is a result, not a crash: a trial whose filter goes non-finite is marked lost, the
 others are scored with the numbers they have without it, and the files say which and how many."""
 
-import csv
-
 import pytest
 import torch
 
@@ -125,33 +123,3 @@ def test_a_chunk_with_lost_trials_is_saved_and_loaded_again(tmp_path):
     c = _run(model, traj, prior, chunk_size=4, store=third)
     assert [r["rmse"] for r in c.per_trial] == [r["rmse"] for r in a.per_trial]
     assert [r["lost_trial"] for r in c.per_trial] == [False, True, True, False]
-
-
-def test_the_command_line_writes_lost_trials(tmp_path):
-    """summary.csv counts them, per_trial.csv names them; a threshold from the command line."""
-    import numpy as np
-
-    from tests.test_recorded_data import _command
-    from torchflow.models import Lorenz96
-
-    l96 = Lorenz96(d=8)
-    traj = l96.simulate(3, 20, torch.Generator().manual_seed(0))
-    np.savez(tmp_path / "l96.npz", observations=traj.observations.numpy(), states=traj.states.numpy())
-    r = _command(
-        "run.py",
-        tmp_path,
-        "model=lorenz96",
-        "model.d=8",
-        "filter=[enkf]",
-        "data=l96.npz",
-        "n_particles=10",
-        "metrics.lost_rmse=1e-6",
-        "progress=false",
-        "plots=false",
-        "checkpoint_dir=null",
-    )
-    assert r.returncode == 0, r.stderr[-3000:]
-    rows = list(csv.DictReader(open(tmp_path / "out" / "summary.csv")))
-    assert rows[0]["lost_trials"] == "3" and rows[0]["rmse"] == ""
-    per = list(csv.DictReader(open(tmp_path / "out" / "per_trial.csv")))
-    assert [p["lost_trial"] for p in per] == ["True"] * 3 and all(float(p["rmse"]) > 1e-6 for p in per)

@@ -124,8 +124,8 @@ def test_the_command_line_s_prior_forms():
 
 def test_the_command_line_filters_lorenz96_from_a_dapper_user_s_arrays(tmp_path):
     """The guide's example: a DAPPER user's ``xx`` (truth from time 0) and ``yy`` (one row per
-    observation) saved with ``numpy.savez``; with the truth the run is scored, without it the prior
-    comes from the command line and the summary has no RMSE."""
+    observation) saved with ``numpy.savez``; with the truth the run is scored (and its lost trials
+    written), without it the prior comes from the command line and the summary has no RMSE."""
     l96 = Lorenz96(d=8)
     traj = l96.simulate(1, 12, torch.Generator().manual_seed(3))
     xx, yy = traj.states[0].numpy(), traj.observations[0].numpy()
@@ -133,18 +133,49 @@ def test_the_command_line_filters_lorenz96_from_a_dapper_user_s_arrays(tmp_path)
     np.savez(tmp_path / "bare.npz", observations=yy)
     common = ["model=lorenz96", "model.d=8", "filter=[enkf]", "n_particles=20", "trials=2", "progress=false"]
     common += ["plots=false", "checkpoint_dir=null"]
-    r = _command("run.py", tmp_path, *common, "data=scored.npz")
+    # scored from the file's states; a threshold no trial meets loses both (summary.csv counts them,
+    # per_trial.csv names them and keeps their RMSE)
+    r = _command("run.py", tmp_path, *common, "data=scored.npz", "metrics.lost_rmse=1e-6")
     assert r.returncode == 0, r.stderr[-3000:]
     row = next(csv.DictReader(open(tmp_path / "out" / "summary.csv")))
-    assert float(row["rmse"]) > 0 and row["trials"] == "2"
+    assert row["lost_trials"] == "2" and row["rmse"] == "" and row["trials"] == "2"
+    per = list(csv.DictReader(open(tmp_path / "out" / "per_trial.csv")))
+    assert [p["lost_trial"] for p in per] == ["True"] * 2 and all(float(p["rmse"]) > 1e-6 for p in per)
+    assert [p["lost_step"] for p in per] == ["0", "0"]
     r = _command("run.py", tmp_path, *common, "data=bare.npz", "prior.mean=3.0", "prior.cov=1.0", "overwrite=true")
     assert r.returncode == 0, r.stderr[-3000:]
     row = next(csv.DictReader(open(tmp_path / "out" / "summary.csv")))
     assert row["rmse"] == "" and float(row["ess"]) > 0
-    bad = _command("run.py", tmp_path, *common, "data=bare.npz", "overwrite=true")
-    assert bad.returncode == 2 and "declares no prior" in bad.stderr and "prior.mean" in bad.stderr
-    bad = _command("run.py", tmp_path, *common, "prior.mean=3.0", "prior.cov=1.0", "overwrite=true")
-    assert bad.returncode == 2 and "prior.mean: expected null without data=" in bad.stderr
+
+
+def test_the_command_line_s_prior_is_read_over_the_file_s_and_refused_without_data(tmp_path):
+    """``prior.mean`` / ``prior.cov`` (:func:`recorded_data`): each over the file's; one alone with
+    none in the file, or either without ``data=``, is a one-line error."""
+    from omegaconf import OmegaConf
+
+    from torchflow.app.runner.config import recorded_data
+
+    l96 = Lorenz96(d=4)
+    traj = l96.simulate(1, 5, torch.Generator().manual_seed(0))
+    yy = traj.observations[0].numpy()
+    np.savez(tmp_path / "bare.npz", observations=yy)
+    np.savez(tmp_path / "prior.npz", observations=yy, prior_mean=np.ones(4), prior_cov=2 * np.eye(4))
+
+    def read(name, **prior):
+        cfg = {"data": str(tmp_path / name) if name else None, "trials": 2, "steps": 5, "prior": prior}
+        return recorded_data(OmegaConf.create(cfg), l96)
+
+    assert read("bare.npz").prior is None and read("prior.npz").prior[0].tolist() == [1.0] * 4
+    m, c = read("prior.npz", mean=[0, 1, 2, 3]).prior  # the mean from the command line, the cov from the file
+    assert m.tolist() == [0.0, 1.0, 2.0, 3.0] and c.diagonal().tolist() == [2.0] * 4
+    m, c = read("bare.npz", mean=3.0, cov=[1, 2, 3, 4]).prior
+    assert m.tolist() == [3.0] * 4 and c.diagonal().tolist() == [1.0, 2.0, 3.0, 4.0]
+    with pytest.raises(ConfigError, match="prior.cov: expected it with prior.mean, got null"):
+        read("bare.npz", mean=3.0)
+    with pytest.raises(ConfigError, match="prior.mean: expected null without data="):
+        read(None, mean=3.0)
+    with pytest.raises(ConfigError, match="prior.mean: expected a number or 4 numbers"):
+        read("bare.npz", mean=[1, 2], cov=1.0)
 
 
 def test_the_guide_s_dapper_user_example_runs(tmp_path, monkeypatch, capsys):

@@ -14,7 +14,13 @@ reported beside the mean of the kept trials. Time: seconds per assimilation step
 
     python -m experiments.benchmarks.bench_dapper --regime l63 --dapper-python /path/to/python-with-dapper
 
-Regimes: ``l63`` (Sakov, Oliver & Bertino 2012, DAPPER's ``mods/Lorenz63/sakov2012``). Writes
+Regimes: ``l63`` (Sakov, Oliver & Bertino 2012, DAPPER's ``mods/Lorenz63/sakov2012``); ``r1``-``r4``,
+Lorenz-96 (d = 40): R1 Sakov & Oke (2008) (DAPPER's ``mods/Lorenz96/sakov2008``), R2 an observation every
+0.4 time units (8 RK4 steps of 0.05), R3 ``|x_i|`` at every other site, R4 Student-t errors (3 degrees of
+freedom; DAPPER's methods see the Gaussian of the t variance, as torchflow's Gaussian-form filters do).
+On Lorenz-96 each trial's prior is the runner's (a draw around the true initial state, given to DAPPER
+as that trial's ``X0``), and torchflow's filters run through the runner on these data (``data=`` with
+states): a trial that goes non-finite or over ``--lost`` is lost, as DAPPER counts them. Writes
 ``results_dapper_<regime>.md`` and ``.json`` in ``results/`` (``--out`` to change).
 """
 
@@ -52,6 +58,81 @@ REGIMES = {
         ],
     ),
 }
+#: DAPPER's Lorenz-96 methods at N = 40 (its loc_rad: the distance where its Gaspari-Cohn taper is
+#: exp(-1/2), half-width 1.82 loc_rad) and the grids around its suggested settings
+_L96_DAPPER = [
+    ("iEnKS Sqrt Lag 1 N=40 rot", "iEnKS", dict(upd_a="Sqrt", N=40, Lag=1, rot=True), dict(infl=[1.0, 1.02, 1.05])),
+    ("EnKF_N N=40 rot", "EnKF_N", dict(N=40, rot=True), dict(infl=[1.0, 1.02])),
+    ("LETKF N=40 rot", "LETKF", dict(N=40, rot=True), dict(infl=[1.02, 1.05], loc_rad=[2, 4])),
+]
+
+
+def _l96(model, burn_in=200, dapper=None, ours=()):
+    return dict(burn_in=burn_in, model=model, dapper=dapper or _L96_DAPPER, ours=list(ours))
+
+
+# the Lorenz-96 scoreboard: R1 Sakov & Oke (2008); R2 an observation every 0.4; R3 |x_i| at every other site;
+# R4 Student-t observation errors (3 degrees of freedom); torchflow's rows: the experiment configs' settings
+REGIMES.update(
+    r1=_l96(
+        {},
+        ours=[
+            ("lag1_flow N=40", "lag1_flow", dict(n_particles=40, inflation=1.01)),
+            (
+                "lag1_flow_local N=40",
+                "lag1_flow",
+                dict(n_particles=40, inflation=1.01, radius=40.0),
+            ),
+        ],
+    ),
+    r2=_l96(
+        dict(dt=0.4, substeps=8),
+        dapper=[
+            (
+                "iEnKS Sqrt Lag 1 N=40 rot",
+                "iEnKS",
+                dict(upd_a="Sqrt", N=40, Lag=1, rot=True),
+                dict(infl=[1.02, 1.05, 1.1]),
+            ),
+            ("EnKF_N N=40 rot", "EnKF_N", dict(N=40, rot=True), dict(infl=[1.0, 1.05])),
+            ("LETKF N=40 rot", "LETKF", dict(N=40, rot=True), dict(infl=[1.05, 1.1, 1.2], loc_rad=[4])),
+        ],
+        ours=[
+            ("lag1_flow N=40", "lag1_flow", dict(n_particles=40, inflation=1.1)),
+            (
+                "lag1_flow_local N=40",
+                "lag1_flow",
+                dict(n_particles=40, inflation=1.1, radius=30.0),
+            ),
+        ],
+    ),
+    r3=_l96(
+        dict(obs_every=2, obs_operator="abs"),
+        ours=[
+            ("lag1_flow N=40", "lag1_flow", dict(n_particles=40, inflation=1.01, rotate=False)),
+            (
+                "lag1_flow_local N=40",
+                "lag1_flow",
+                dict(n_particles=40, inflation=1.02, radius=30.0),
+            ),
+        ],
+    ),
+    r4=_l96(
+        dict(obs_df=3),
+        ours=[
+            (
+                "lag1_flow_local t score N=40",
+                "lag1_flow",
+                dict(n_particles=40, inflation=1.02, radius=30.0, likelihood="model"),
+            ),
+            (
+                "lag1_flow_local Gaussian N=40",
+                "lag1_flow",
+                dict(n_particles=40, inflation=1.02, radius=30.0),
+            ),
+        ],
+    ),
+)
 
 
 def _grid(fixed, axes):
@@ -83,8 +164,35 @@ def dapper_worker(inp: str, out: str) -> None:
             H.X0 = modelling.GaussRV(mu=np.asarray(spec["mean0"]), C=spec["var0"])
             return H
 
+    elif spec["regime"] in ("r1", "r2", "r3", "r4"):
+        from dapper.mods.Lorenz96 import dstep_dx, step
+        from dapper.mods.utils import ens_compatible
+        from dapper.tools.localization import nd_Id_localization
+
+        Nx, every = spec["d"], spec["obs_every"]
+        inds = np.arange(0, Nx, every)
+
+        @ens_compatible
+        def observe(x):
+            return np.abs(x[inds]) if spec["obs_operator"] == "abs" else x[inds]
+
+        obs = dict(M=len(inds), model=observe, noise=spec["obs_var"], localizer=nd_Id_localization((Nx,), (2,), inds))
+        if spec["obs_operator"] != "abs":
+            obs.update(modelling.partial_Id_Obs(Nx, inds))
+
+        def hmm(b):
+            return modelling.HiddenMarkovModel(
+                modelling.Operator(M=Nx, model=step, linear=dstep_dx, noise=0),
+                modelling.Operator(**obs),
+                modelling.Chronology(spec["dt"], dko=spec["dko"], Ko=T - 1, BurnIn=0),
+                modelling.GaussRV(mu=np.asarray(spec["mean0"][b]), C=spec["var0"]),
+            )
+
     else:
         raise SystemExit(f"unknown regime {spec['regime']!r}")
+    if spec["regime"] == "l63":
+        one = hmm
+        hmm = lambda b: one()  # noqa: E731  (one prior for every trial)
     res = {}
     for key, name, kwargs in spec["methods"]:
         means, secs = np.empty((B, T, fine.shape[-1])), 0.0
@@ -92,7 +200,7 @@ def dapper_worker(inp: str, out: str) -> None:
             set_seed(1000 + b)
             xp = getattr(da, name)(**kwargs)
             t0 = time.perf_counter()
-            xp.assimilate(hmm(), fine[b], yy[b], liveplots=False)
+            xp.assimilate(hmm(b), fine[b], yy[b], liveplots=False)
             secs += time.perf_counter() - t0
             means[b] = xp.stats.mu.a  # the analysis means at the observation times
         res[key] = (means, secs / (B * T))
@@ -115,8 +223,25 @@ def _data(regime, trials, steps, seed):
             mean0=model.prior_mean.tolist(),
             var0=float(model.prior_std) ** 2,
         )
-        return model, traj, spec
-    raise SystemExit(f"unknown regime {regime!r}")
+        return model, traj, spec, model.initial_belief(traj.states[:, 0])
+    from torchflow.models import Lorenz96
+
+    model = Lorenz96(**REGIMES[regime]["model"])
+    gen = torch.Generator().manual_seed(seed)  # as the runner draws its data: the trajectories, then the priors
+    traj = model.simulate(trials, steps, gen)
+    mean, cov = model.initial_belief(traj.states[:, 0], gen)
+    var = float(model.prior_std) ** 2
+    spec = dict(
+        dt=model.dt / model.substeps,
+        dko=model.substeps,
+        d=model.state_dim,
+        obs_every=model.obs_every,
+        obs_operator=model.obs_operator,
+        obs_var=float(model.measurement_variance().reshape(-1)[0]),  # the Gaussian form's (Student-t: its variance)
+        mean0=mean.tolist(),
+        var0=var,
+    )
+    return model, traj, spec, (mean, cov)
 
 
 def _fine_truth(model, states):
@@ -126,11 +251,16 @@ def _fine_truth(model, states):
     from torchflow.models.dynamics import rk4_steps
 
     h, n = model.dt / model.substeps, model.substeps
+    tendency = getattr(model, "_tendency", None)
+    if tendency is None:  # Lorenz-96
+        from torchflow.models.lorenz96 import lorenz96_tendency
+
+        tendency = lambda v: lorenz96_tendency(v, model.forcing)  # noqa: E731
     out = [states[:, :1]]
     for t in range(states.shape[1] - 1):  # a loop over time, not trials
         x, block = states[:, t], []
         for _ in range(n):
-            x = rk4_steps(model._tendency, x, h, 1)
+            x = rk4_steps(tendency, x, h, 1)
             block.append(x)
         out.append(torch.stack(block, 1))
     return torch.cat(out, 1)
@@ -138,17 +268,24 @@ def _fine_truth(model, states):
 
 def score(est, truth, burn_in, lost):
     """Per-trial RMSE after ``burn_in``, and ``(mean, se, kept mean, kept se, lost count)``."""
+    per_trial = (est - truth).square().mean(-1).sqrt()[:, burn_in:].mean(-1)
+    return per_trial, _summary(per_trial, None, lost)
+
+
+def _summary(per_trial, bad=None, lost=None):
+    """``(mean, se, kept mean, kept se, lost count)`` of per-trial RMSEs; lost: ``bad`` (B,) bool, or
+    non-finite or over ``lost``."""
     import torch
 
-    per_trial = (est - truth).square().mean(-1).sqrt()[:, burn_in:].mean(-1)
-    bad = ~torch.isfinite(per_trial) | (per_trial > lost)
+    if bad is None:
+        bad = ~torch.isfinite(per_trial) | (per_trial > lost)
 
     def mse(v):
         n = v.numel()
         return (float(v.mean()), float(v.std() / math.sqrt(n)) if n > 1 else float("nan"))
 
     kept = per_trial[~bad]
-    return per_trial, (*mse(per_trial), *(mse(kept) if kept.numel() else (float("nan"),) * 2), int(bad.sum()))
+    return (*mse(per_trial), *(mse(kept) if kept.numel() else (float("nan"),) * 2), int(bad.sum()))
 
 
 def run_dapper(python, regime, model, traj, spec, methods):
@@ -180,7 +317,8 @@ def run_dapper(python, regime, model, traj, spec, methods):
 
 
 def run_ours(name, kwargs, model, traj, seed=7):
-    """torchflow's filter ``name`` on every trial in one call: estimates ``(B, T, d)`` and s/step per trial."""
+    """torchflow's filter ``name`` on every trial in one call: estimates ``(B, T, d)`` and s/step per trial
+    (Lorenz-63: ``Filter.forward`` with one generator, as its results file was measured)."""
     import torch
 
     from torchflow.core import registry
@@ -194,6 +332,37 @@ def run_ours(name, kwargs, model, traj, seed=7):
     return res.estimates, (time.perf_counter() - t0) / (B * T)
 
 
+def run_ours_runner(name, kwargs, model, traj, prior, seed, burn_in, lost):
+    """torchflow's filter ``name`` through the runner on these data (``data=`` with states: the
+    trials' own random streams of ``seed``; every trial in one chunk): ``(per-trial RMSE (B,), lost
+    (B,) bool, s/step per trial, warm-up s)``. A trial that goes non-finite or whose RMSE is over
+    ``lost`` is lost, as DAPPER counts them (its RMSE: NaN when non-finite)."""
+    import torch
+
+    from torchflow.app.runner import run_experiment
+    from torchflow.core import registry
+
+    filt = registry.lookup("filter", name)(model, **kwargs)
+    res = run_experiment(
+        model,
+        {name: filt},
+        observations=traj.observations,
+        states=traj.states,
+        prior=(prior[0], prior[1].to_dense() if hasattr(prior[1], "to_dense") else prior[1]),
+        seed=seed,
+        burn_in=burn_in,
+        lost_rmse=lost,
+        chunk_size=traj.observations.shape[0],
+        progress=False,
+    )
+    row = res.summary[0]
+    if row["error"]:
+        raise RuntimeError(row["error"])
+    per = res.per_trial
+    rmse = torch.tensor([float("nan") if p["rmse"] is None else p["rmse"] for p in per], dtype=torch.float64)
+    return rmse, torch.tensor([p["lost_trial"] for p in per]), row["sec_per_step"], row["warmup_sec"]
+
+
 def compare(args):
     import torch
 
@@ -201,18 +370,22 @@ def compare(args):
 
     torch.set_num_threads(1)
     cfg = REGIMES[args.regime]
-    burn = cfg["burn_in"]
-    model, traj, spec = _data(args.regime, args.trials, args.steps, args.seed)
+    burn = cfg["burn_in"] if args.burn_in is None else args.burn_in
+    model, traj, spec, prior = _data(args.regime, args.trials, args.steps, args.seed)
     truth = traj.states[:, 1:]
     rows = []
     for label, name, kw in cfg["ours"]:
         try:
-            est, sec = run_ours(name, kw, model, traj)
-        except NonFiniteError as err:  # a filter that went non-finite is a row that says so, not the end of the run
+            if args.regime == "l63":
+                est, sec = run_ours(name, kw, model, traj)
+                per_trial, s = score(est, truth, burn, args.lost)
+            else:
+                per_trial, lost, sec, _ = run_ours_runner(name, kw, model, traj, prior, args.seed, burn, args.lost)
+                s = _summary(per_trial, lost)
+        except (NonFiniteError, RuntimeError) as err:  # a filter that failed is a row that says so
             print(label, "failed:", err, flush=True)
             rows.append(dict(library="torchflow", method=label, setting=kw, failed=str(err)))
             continue
-        per_trial, s = score(est, truth, burn, args.lost)
         rows.append(dict(library="torchflow", method=label, setting=kw, score=s, trials=per_trial.tolist(), sec=sec))
         print(rows[-1]["method"], s, f"{sec:.2e}", flush=True)
     if args.dapper_python:
@@ -227,7 +400,7 @@ def compare(args):
             .stdout.strip()
             .splitlines()[-1]
         )
-        tmodel, ttraj, tspec = _data(args.regime, args.tune_trials, args.steps, args.tune_seed)
+        tmodel, ttraj, tspec, _ = _data(args.regime, args.tune_trials, args.tune_steps or args.steps, args.tune_seed)
         grid = [
             (f"{label}|{i}", cls, kw)
             for label, cls, fixed, axes in cfg["dapper"]
@@ -263,13 +436,14 @@ def compare(args):
 
 
 def write(args, rows):
+    burn_in = REGIMES[args.regime]["burn_in"] if args.burn_in is None else args.burn_in
     out = Path(args.out or HERE / "results" / f"results_dapper_{args.regime}")
     lines = [
         f"# {args.regime}: torchflow and DAPPER on identical data",
         "",
         f"Scored: {args.trials} trials x {args.steps} steps (seed {args.seed}); DAPPER's grids tuned on "
         f"{args.tune_trials} other trials (seed {args.tune_seed}). Analysis RMSE after a burn-in of "
-        f"{REGIMES[args.regime]['burn_in']} steps, mean ± standard error over trials; a trial over {args.lost:g} is "
+        f"{burn_in} steps, mean ± standard error over trials; a trial over {args.lost:g} is "
         "lost. s/step: one trial, one thread (DAPPER one trial at a time; torchflow every trial in one call).",
         "",
         f"Command: `python -m experiments.benchmarks.bench_dapper --regime {args.regime} "
@@ -315,6 +489,8 @@ def main(argv=None):
     p.add_argument("--seed", type=int, default=0, help="the scored trials (0: the experiment runner's data)")
     p.add_argument("--tune-trials", type=int, default=4)
     p.add_argument("--tune-seed", type=int, default=1)
+    p.add_argument("--tune-steps", type=int, default=None, help="steps of the tuning trials (default: --steps)")
+    p.add_argument("--burn-in", type=int, default=None, help="steps before scoring (default: the regime's)")
     p.add_argument("--lost", type=float, default=2.0, help="a trial whose RMSE exceeds this is lost")
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)

@@ -80,3 +80,15 @@ def test_a_wrong_pairing_is_refused_naming_it():
         integrate_flow(LagOneFlow(), model, X, z, ensemble_prior(X))
     with pytest.raises(NotImplementedError, match="ensemble flow: integrate it with points='ensemble'"):
         LagOneFlow().coefficients_at(None, prior, 0.5, 0.1)
+
+
+def test_the_guide_s_example_of_an_ensemble_flow_runs(capsys):
+    import re
+
+    from tests.conftest import ROOT
+
+    guide = (ROOT / "docs" / "guide" / "data-assimilation.md").read_text()
+    block = next(b for b in re.findall(r"```python\n(.*?)```", guide, re.S) if "EnsembleMeasurement(z" in b)
+    exec(compile(block, "data-assimilation.md", "exec"), {})
+    out = capsys.readouterr().out
+    assert out.startswith("torch.Size([1, 20, 10]) tensor(-") and "float64" in out

@@ -54,6 +54,7 @@ from torchflow.app.runner import (
 from torchflow.app.runner.plan import ConfigError
 from torchflow.app.runner.shell import JobEnv, config_error, job_threads
 from torchflow.filters.gaussian_sum import GaussianSumParticleFilter
+from torchflow.flows.ensemble import EnsembleFlow
 
 log = logging.getLogger("torchflow.app.cli")
 
@@ -83,8 +84,8 @@ def row_label(key: str, f) -> str:
     ``filter.pfpf_ledh.points=global`` -> ``pfpf_ledh[points=global]``); Gaussian-sum filters: the
     seed's N* x G label too (``gspf[10x2]``)."""
     flow, gs, words = getattr(f, "flow", None), isinstance(f, GaussianSumParticleFilter), key.split("_")
-    if f.output == "sets" or (flow is None and not gs):  # TDOA localisers: the key names the method
-        return key
+    if f.output == "sets" or (flow is None and not gs) or isinstance(flow, EnsembleFlow):
+        return key  # TDOA localisers, the data-assimilation filters (their flow is theirs): the key names it
     fl = None if flow is None else flow_label(flow)
     named = [n for n in sorted(set(_FLOW_NAMES.values()), key=len, reverse=True) if n in words]
     if gs:  # the "pf" Gaussian-sum filters run LEDH, the others no flow
