@@ -104,6 +104,11 @@ REGIMES.update(
                 "lag1_flow",
                 dict(n_particles=40, inflation=1.1, radius=30.0),
             ),
+            (  # tuned on seed-1 trials (4 x 1000): 1.03 / 1.05 / 1.07 x radius 40 / 60 -> 1.05, 40
+                "lag1_flow_local N=40 tuned",
+                "lag1_flow",
+                dict(n_particles=40, inflation=1.05, radius=40.0),
+            ),
         ],
     ),
     r3=_l96(

@@ -172,6 +172,10 @@ class FlowPrior:
     cols: Optional[torch.Tensor] = None
     cols_support: Optional[torch.Tensor] = None
     cov_cols: Optional[torch.Tensor] = None  # P[..., :, support] = cols cols_support^T, (..., d, k)
+    #: a dict for one integration whose measurement is fixed over pseudo-time (a linear measurement
+    #: with a constant R, :attr:`~torchflow.flows.measurement.GaussianMeasurement.fixed`): a flow keeps
+    #: there what it computes once from the prior and W (the Daum-Huang flows: S's eigendecomposition)
+    fixed: Optional[dict] = None
 
     def reduced(self, support) -> "FlowPrior":
         """This prior with the factors the flows use, adapted to the model's measurement support.

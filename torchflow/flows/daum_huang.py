@@ -20,6 +20,8 @@ pseudo-time after the step), so the map is always invertible and ``log|det|`` is
 
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 
 from torchflow.core import linalg, tuning
@@ -28,7 +30,19 @@ from torchflow.flows.measurement import Linearisation
 
 
 def daum_huang_coefficients(
-    W, y, L, eta_bar0, lam, eps, *, L_support=None, support=None, P_cols=None, operator=None, W_diag=None
+    W,
+    y,
+    L,
+    eta_bar0,
+    lam,
+    eps,
+    *,
+    L_support=None,
+    support=None,
+    P_cols=None,
+    operator=None,
+    W_diag=None,
+    fixed: Optional[dict] = None,
 ) -> FlowCoefficients:
     """EDH/LEDH drift from the whitened linearisation.
 
@@ -50,6 +64,15 @@ def daum_huang_coefficients(
             operator form then scales rows instead of multiplying by W (``d x d x d`` -> ``d x d``
             per point; the same numbers: the products' other terms are exact zeros).
 
+        fixed: a dict that lives for one integration, given when W and the prior do not change
+            over pseudo-time (a linear measurement with a constant R: :attr:`GaussianMeasurement.fixed`)
+            and no gradient is recorded: ``S = L_s^T J L_s`` is then the same at every step, so its
+            eigendecomposition ``S = V diag(s) V^T`` (and ``W L_s``) is computed at the first step
+            and kept there, and every later step solves ``(I + lam S) u = v`` as
+            ``V diag(1 / (1 + lam s)) V^T v`` and takes
+            ``log det(I + eps A) = sum log((1 + (lam - eps/2) s) / (1 + lam s))``: no ``k x k``
+            factorisation per step and point. The same coefficients to round-off.
+
     A particle's flow applies A to only a few vectors, so for large k the operator form skips the
     ``k``-column solve and ``d x k x k`` product that form A (timings:
     ``python -m experiments.benchmarks.bench_gaussian_sum``); both give the same numbers up to round-off.
@@ -60,45 +83,85 @@ def daum_huang_coefficients(
         operator = k >= tuning.get().flow_operator_min_dim
     eye = torch.eye(k, dtype=L.dtype, device=L.device)
     diag = operator and W_diag is not None
-    if operator:
-        W_times = _row_scaling(W_diag) if diag else (lambda M: W @ M)
-        WL = W_times(Ls)  # (..., m, k)
-        S = linalg.symmetrize(WL.transpose(-1, -2) @ WL)
-        Wy = (W_diag * y).contiguous() if diag else _whitened_rhs(W, y)
+    if fixed is not None:
+        co, A_times = _fixed_coefficients(fixed, W, y, L, Ls, lam, eps, support, P_cols, operator, W_diag)
+        Pg = co.b  # b is set below from it
     else:
-        T, S, Wy = _gram_terms(W, y, Ls)
-    # I + c S with c >= 0 has eigenvalues >= 1: its Cholesky cannot fail (no jitter retry, no host sync)
-    K = torch.linalg.cholesky_ex(eye + lam * S)[0]
-    K2 = torch.linalg.cholesky_ex(eye + (lam - 0.5 * eps) * S)[0]
-    log_det = linalg.chol_logdet(K2) - linalg.chol_logdet(K)
-    # P H^T R^{-1} (z - e) = L L_s^T W^T y
-    Pg = linalg.matvec(L, linalg.matvec(Ls.transpose(-1, -2), Wy)) if P_cols is None else linalg.matvec(P_cols, Wy)
-    if operator:
+        if operator:
+            W_times = _row_scaling(W_diag) if diag else (lambda M: W @ M)
+            WL = W_times(Ls)  # (..., m, k)
+            S = linalg.symmetrize(WL.transpose(-1, -2) @ WL)
+            Wy = (W_diag * y).contiguous() if diag else _whitened_rhs(W, y)
+        else:
+            T, S, Wy = _gram_terms(W, y, Ls)
+        # I + c S with c >= 0 has eigenvalues >= 1: its Cholesky cannot fail (no jitter retry, no host sync)
+        K = torch.linalg.cholesky_ex(eye + lam * S)[0]
+        K2 = torch.linalg.cholesky_ex(eye + (lam - 0.5 * eps) * S)[0]
+        log_det = linalg.chol_logdet(K2) - linalg.chol_logdet(K)
+        # P H^T R^{-1} (z - e) = L L_s^T W^T y
+        Pg = _prior_gain(L, Ls, Wy, P_cols)
+        if operator:
 
-        def apply_A(V):  # -1/2 L (I + lam S)^{-1} (W L_s)^T W V_s for stacked vectors V (..., d, r)
-            Vs = V if support is None else V[..., support, :]
-            return -0.5 * (L @ linalg.chol_solve(K, WL.transpose(-1, -2) @ W_times(Vs)))
+            def apply_A(V):  # -1/2 L (I + lam S)^{-1} (W L_s)^T W V_s for stacked vectors V (..., d, r)
+                Vs = V if support is None else V[..., support, :]
+                return -0.5 * (L @ linalg.chol_solve(K, WL.transpose(-1, -2) @ W_times(Vs)))
 
-        def form_A():  # -1/2 L (I + lam S)^{-1} L_s^T J, (..., d, k)
-            WLW = (WL.transpose(-1, -2) * W_diag.unsqueeze(-2)).contiguous() if diag else WL.transpose(-1, -2) @ W
-            return -0.5 * (L @ linalg.chol_solve(K, WLW))
+            def form_A():  # -1/2 L (I + lam S)^{-1} L_s^T J, (..., d, k)
+                WLW = (WL.transpose(-1, -2) * W_diag.unsqueeze(-2)).contiguous() if diag else WL.transpose(-1, -2) @ W
+                return -0.5 * (L @ linalg.chol_solve(K, WLW))
 
-        co = FlowCoefficients(None, Pg, log_det, apply_A=apply_A, form_A=form_A, support=support)
+            co = FlowCoefficients(None, Pg, log_det, apply_A=apply_A, form_A=form_A, support=support)
 
-        def A_times(v):
-            return apply_A(v.unsqueeze(-1)).squeeze(-1)
-    else:
-        A = -0.5 * linalg.matmul(L, linalg.chol_solve(K, T))  # -1/2 L (I + lam S)^{-1} L^T J, (..., d, k)
-        co = FlowCoefficients(A, Pg, log_det, support=support)  # b is set below
+            def A_times(v):
+                return apply_A(v.unsqueeze(-1)).squeeze(-1)
+        else:
+            A = -0.5 * linalg.matmul(L, linalg.chol_solve(K, T))  # -1/2 L (I + lam S)^{-1} L^T J, (..., d, k)
+            co = FlowCoefficients(A, Pg, log_det, support=support)  # b is set below
 
-        def A_times(v):
-            return linalg.matvec(A, co.cols(v))
+            def A_times(v):
+                return linalg.matvec(A, co.cols(v))
 
     # b = (I + 2 lam A) u,  u = (I + lam A) Pg + A eta_bar0 = Pg + A (lam Pg + eta_bar0): two
     # single-vector products (a batched d x k @ k x 2 product costs more than two d x k @ k x 1)
     u = Pg + A_times(lam * Pg + eta_bar0)
     co.b = u + 2 * lam * A_times(u)
     return co
+
+
+def _prior_gain(L, Ls, Wy, P_cols):
+    """``P H^T R^{-1} (z - e) = L L_s^T W^T y`` ``(..., d)``."""
+    return linalg.matvec(L, linalg.matvec(Ls.transpose(-1, -2), Wy)) if P_cols is None else linalg.matvec(P_cols, Wy)
+
+
+def _fixed_coefficients(fixed, W, y, L, Ls, lam, eps, support, P_cols, operator, W_diag):
+    """:func:`daum_huang_coefficients` for an integration whose ``S = L_s^T J L_s`` is the same at every
+    pseudo-time (``fixed``, a dict of that integration): at its first step ``S = V diag(s) V^T`` and
+    the two factors of ``A = -1/2 (L V) diag(1 / (1 + lam s)) (V^T L_s^T J)`` are computed and kept;
+    every step then applies A with two products and takes ``log det(I + eps A)`` from ``s``.
+    ``(coefficients with b unset, A_times)``."""
+    if "left" not in fixed:
+        T, S, _ = _gram_terms(W, y, Ls)  # T = L_s^T J (k, m) @ (m, k) per point, once
+        vals, V = torch.linalg.eigh(S)
+        fixed.update(left=L @ V, right=V.transpose(-1, -2) @ T, s=vals.clamp_min(0))  # S >= 0: no negative round-off
+    left, right, s_ = fixed["left"], fixed["right"], fixed["s"]
+    c1 = 1 + lam * s_
+    log_det = (torch.log1p((lam - 0.5 * eps) * s_) - torch.log(c1)).sum(-1)
+    Wy = (W_diag * y).contiguous() if W_diag is not None else _whitened_rhs(W, y)
+    Pg = _prior_gain(L, Ls, Wy, P_cols)
+    inv = (-0.5 / c1).unsqueeze(-1)  # (..., k, 1)
+
+    def apply_A(V):  # A V_s for stacked vectors V (..., d, r)
+        Vs = V if support is None else V[..., support, :]
+        return left @ (inv * (right @ Vs))
+
+    def form_A():  # (..., d, k)
+        return left @ (inv * right)
+
+    if operator:
+        co = FlowCoefficients(None, Pg, log_det, apply_A=apply_A, form_A=form_A, support=support)
+        return co, lambda v: apply_A(v.unsqueeze(-1)).squeeze(-1)
+    co = FlowCoefficients(form_A(), Pg, log_det, support=support)
+    return co, lambda v: linalg.matvec(co.A, co.cols(v))
 
 
 def _row_scaling(w):
@@ -179,6 +242,7 @@ class EDHFlow(ParticleFlow):
             support=prior.support,
             P_cols=prior.cov_cols,
             W_diag=lin.diag,
+            fixed=prior.fixed if not torch.is_grad_enabled() else None,
         )
 
 

@@ -22,6 +22,7 @@ and, on request, the Gaussian image ``(mu_1, Sigma_1)`` of each point's prior.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Optional, Union
 
 import torch
@@ -277,6 +278,8 @@ def _reference(
     B, N, d = particles.shape
     eps_all, eps_host = eps_all  # the step sizes on the device, and as Python floats
     prior = prior.reduced(measurement.support)
+    if getattr(measurement, "fixed", False):  # W fixed over pseudo-time: a flow keeps what it derives from it
+        prior = replace(prior, fixed={})
     measurement.prepare(particles)
     image = _Image(prior, gaussian_image)
     aux, eta = (prior.mean if start is None else start), particles  # (B, L, d), (B, N, d)

@@ -71,6 +71,9 @@ class GaussianMeasurement:
             measurement with a diagonal R
             (:meth:`~torchflow.models.GaussianStateSpaceModel.linearize_measurement_diagonal`), for
             :meth:`at_diagonal`; ``None``: not available.
+        fixed: the whitened Jacobian W is the same at every point and pseudo-time (a linear
+            measurement with a constant R, declared): a flow may keep what it derives from W and
+            the prior for a whole integration (:attr:`~torchflow.flows.base.FlowPrior.fixed`).
         observed: ``(B, m)`` bool, the coordinates of ``z`` that were observed (missing
             observations, :mod:`torchflow.core.missing`; ``z`` then holds a finite filler elsewhere), or
             ``None``: all. The whitened rows of the unobserved coordinates are zero (for a dense
@@ -92,6 +95,7 @@ class GaussianMeasurement:
         form=None,
         diagonal_rows: Optional[Callable] = None,
         observed: Optional[torch.Tensor] = None,
+        fixed: bool = False,
     ):
         if noise not in ("scalar", "diagonal", "dense"):
             raise ArgumentError(f"noise: expected 'scalar', 'diagonal' or 'dense', got {noise!r}")
@@ -108,6 +112,7 @@ class GaussianMeasurement:
         self.hessian = hessian
         self.form = form
         self.diagonal_rows = diagonal_rows if self.diagonal and noise == "diagonal" else None
+        self.fixed = bool(fixed) and matrix is not None
         #: ``1 / sigma`` (0-d) of a declared ``"scalar"`` R, once :meth:`prepare` has run (else ``None``)
         self.inv_sigma = None
         #: ``z / sigma`` ``(B, m)``, once :meth:`prepare` has run (else ``None``)
@@ -137,6 +142,7 @@ class GaussianMeasurement:
             hessian=model.measurement_hessian_blocks if constant_r and not linear else None,
             form=measurement_form(model) if noise == "scalar" and not linear else None,
             diagonal_rows=model.linearize_measurement_diagonal,
+            fixed=linear and constant_r,
         )
 
     @classmethod
