@@ -777,7 +777,9 @@ def test_check_config_refuses_values_that_mean_nothing():
         "metrics.ospa_cutoff=0": "metrics.ospa_cutoff: expected a positive number, got 0",
         f"seed={2**70}": "seed: expected an integer in [0, 2**63), got 1180591620717411303424",
         "rng_backend=bogus": "rng_backend: expected one of auto, numpy, philox, got 'bogus'",
-        "+metrics.lost_treshold=3": "metrics.lost_treshold: unknown setting; did you mean metrics.lost_threshold?",
+        "+metrics.lost_treshold=3": (
+            "metrics.lost_treshold: unknown setting; did you mean metrics.lost_threshold or metrics.lost_rmse?"
+        ),
         "+n_particle=7": "n_particle: unknown setting; did you mean n_particles?",
     }
     with initialize_config_dir(str(ROOT / "configs"), version_base="1.3"):

@@ -41,6 +41,11 @@ weighted members. Neither weighs by ``p(x_k | x_{k-1})``, which deterministic dy
   collapsing. Cost ``O(N d K)`` per step (K: the observations within reach of a coordinate); memory
   ``O(N d)``. With ``radius = inf`` it is the bootstrap PF with resampling at every step.
 
+**The flows** are :mod:`torchflow.flows.ensemble`'s (:class:`~torchflow.flows.KernelFlow`,
+:class:`~torchflow.flows.LagOneFlow`, :class:`~torchflow.flows.LocalisedKalmanBucyFlow`), stepped by
+:func:`~torchflow.flows.integrate_flow` (``points="ensemble"``); the filters here compose "flow,
+then forecast" (or "forecast, then flow") around them and hold the flow as :attr:`flow`.
+
 **Evidence.** Both report the forecast ensemble's Gaussian approximation of
 ``log p(z_k | z_{1:k-1})`` (as the ensemble Kalman filters do), so :attr:`estimates_evidence` is
 ``False``.
