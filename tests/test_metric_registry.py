@@ -34,6 +34,7 @@ BUILT_IN_COLUMNS = [
     "log_evidence_se",
     "log_evidence_relmse",
     "lost_tracks",
+    "lost_trials",
     "repaired",
     "sec_per_step",
     "warmup_sec",

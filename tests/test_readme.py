@@ -248,8 +248,9 @@ def _shrink(tokens):
 
 def _recorded(tokens, tmp_path):
     """A command's ``data=<file>`` (recorded observations) pointed at a file written into tmp_path:
-    a 5-step series (``.csv``) or 2 series (``.npy``) simulated from the command's model
-    (its ``model=`` and ``model.*`` overrides); ``steps`` then comes from the file, not the shrink."""
+    a 5-step series (``.csv``), 2 series (``.npy``) or 2 series with their states (``.npz``)
+    simulated from the command's model (its ``model=`` and ``model.*`` overrides); ``steps`` then
+    comes from the file, not the shrink."""
     import numpy as np
     import torch
     from hydra.utils import instantiate
@@ -262,10 +263,13 @@ def _recorded(tokens, tmp_path):
     name = given[0].split("=", 1)[1]
     cfg = compose_config("config", [t for t in tokens if t.startswith(("model=", "model."))])
     model = instantiate(cfg.model)
-    z = model.simulate(2, 5, torch.Generator().manual_seed(0)).observations.numpy()
+    traj = model.simulate(2, 5, torch.Generator().manual_seed(0))
+    z = traj.observations.numpy()
     path = tmp_path / Path(name).name
     if path.suffix == ".npy":
         np.save(path, z)
+    elif path.suffix == ".npz":  # a recording with its truth: observations and states
+        np.savez(path, observations=z, states=traj.states.numpy())
     else:
         np.savetxt(path, z[0], delimiter=",")
     return [f"data={path}" if t in given else t for t in tokens if not t.startswith("steps=")]

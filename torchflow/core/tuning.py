@@ -104,6 +104,10 @@ class Tuning:
             lane kernel run in information form (PFGSPF, d = 144). One kernel keeps each
             particle's small matrices in registers or cache and replaces many small launches and
             passes over memory; timed by ``experiments/benchmarks/bench_ops.py`` and ``bench_gpu.py``.
+            Also, in the torch path with no gradient recorded, a Daum-Huang flow whose measurement
+            is fixed over pseudo-time (linear, constant R) keeps ``S``'s eigendecomposition for the
+            whole integration (:func:`torchflow.flows.daum_huang_coefficients`, ``fixed``): the same
+            flow to round-off. 0 turns that off too.
         fused_weights: on the CPU with Numba installed, a particle filter's step with at most
             4096 particles per trial (the bootstrap PF's, and any whose particles carry no
             covariance or extras; ``select.WEIGHTS_KERNEL_MAX_PARTICLES``) weighs, normalises,

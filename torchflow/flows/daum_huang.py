@@ -242,7 +242,8 @@ class EDHFlow(ParticleFlow):
             support=prior.support,
             P_cols=prior.cov_cols,
             W_diag=lin.diag,
-            fixed=prior.fixed if not torch.is_grad_enabled() else None,
+            # the kept spectrum: a fast path to round-off, off with a gradient or tuning.fused_flows=0
+            fixed=prior.fixed if not torch.is_grad_enabled() and tuning.get().fused_flows else None,
         )
 
 
