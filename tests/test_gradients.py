@@ -58,12 +58,12 @@ def _grads(filt, model, obs, mean, cov):
     [
         ("bpf", 2),
         ("pfpf_edh", 2),
-        ("pfpf_ledh", 2),
+        pytest.param("pfpf_ledh", 2, marks=pytest.mark.slow),  # 28 s; pfpf_edh and the score form stay
         ("bpf_score", 2),
         ("pfpf_ledh_score", 2),
         ("bpf", 4),
-        ("pfpf_edh", 4),
-        ("pfpf_ledh_score", 3),
+        pytest.param("pfpf_edh", 4, marks=pytest.mark.slow),  # 12 s
+        pytest.param("pfpf_ledh_score", 3, marks=pytest.mark.slow),  # 13 s
     ],
 )
 def test_stop_gradient_matches_the_kalman_gradient(kind, d):

@@ -233,6 +233,7 @@ def test_conditional_smc_leaves_the_smoothing_law_invariant():
     assert float((avg.std(0) / math.sqrt(C)).max()) < 0.15
 
 
+@pytest.mark.slow  # 13 s
 def test_particle_gibbs_matches_the_exact_posterior():
     from torchflow.inference import particle_gibbs
 
@@ -261,6 +262,7 @@ def test_particle_gibbs_matches_the_exact_posterior():
 # ---------------------------------------------------------------------------
 # Correlated pseudo-marginal PMMH
 # ---------------------------------------------------------------------------
+@pytest.mark.slow  # 21 s each
 @pytest.mark.parametrize("rho, n_particles", [(0.0, 100), (0.99, 50)])
 def test_correlated_pmmh_matches_the_exact_posterior(rho, n_particles):
     """PMMH with correlated auxiliary normals targets the same posterior: with rho = 0 (fresh

@@ -120,6 +120,8 @@ SCRIPTS = {
 #: 2-core machine); every other command takes 3-15 s
 SLOW = {
     "experiment=zhang2024_table1": "40 s: the bootstrap localiser's 2,000 particles and three PFI localisers",
+    "benchmarks.run_all": "20-24 s each: the benchmark suite's quick section (and its --device refusal)",
+    "hydra/launcher=": "15 s each: a sweep through a parallel launcher (joblib, submitit)",
 }
 
 

@@ -368,7 +368,10 @@ def _collect(sweep_dir):
     )
 
 
-@pytest.mark.parametrize("launcher", [None, "joblib", "submitit_local"])
+@pytest.mark.parametrize(
+    "launcher",
+    [None, pytest.param("joblib", marks=pytest.mark.slow), pytest.param("submitit_local", marks=pytest.mark.slow)],
+)  # the parallel launchers: 14 s each, second tier
 def test_sweep_with_a_failing_job_keeps_the_others_and_names_it(tmp_path, launcher):
     """Job 1 (n_particles=-1) fails: jobs 0 and 2 still run, the sweep ends with status 1 and
     names job 1 with its overrides; collect.py merges the two results and names the failure."""
@@ -430,6 +433,7 @@ def test_parallel_launchers_keep_every_job_in_the_announced_sweep_folder(tmp_pat
         assert json.loads((sweeps[0] / j / "results.json").read_text())["run"]["threads"] == max(1, cores // 2)
 
 
+@pytest.mark.slow  # 19 s: two processes
 def test_lightning_ddp_gradients_equal_single_process(tmp_path):
     """Trainer(strategy="ddp") on 2 CPU processes (gloo): after one step on 8 trials the
     gradients of the model's parameters equal those of one process on the same 8 trials."""

@@ -101,6 +101,7 @@ def test_evidence_is_unbiased_for_the_regularised_target(ess_threshold, kernel):
         assert bool(out.resampled.all()) == (ess_threshold == 1.0)
 
 
+@pytest.mark.slow  # 11 s; the Kalman and evidence tests stay in the default tier
 def test_beats_the_unweighted_lag_one_flow_on_lorenz63():
     """The weights are what lift the flow past the Gaussian target: 4 trials x 130 steps of
     Lorenz-63 (Sakov et al. 2012), RMSE after 50 steps (measured: weighted, N = 100 and 6 flow

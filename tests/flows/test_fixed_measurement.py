@@ -15,9 +15,7 @@ F64 = dict(dtype=torch.float64)
 def _both(flow, model, particles, z, prior, **kw):
     """The flow integrated with the kept eigendecomposition (no gradient) and with the per-step
     factorisations (gradient recorded, which turns the shortcut off)."""
-    from torchflow.core import tuning
-
-    from torchflow.core import paths
+    from torchflow.core import paths, tuning
 
     with torch.no_grad(), tuning.tuned(fused_flows=1), paths.recording() as taken:
         fast = integrate_flow(flow, model, particles, z, prior, **kw)

@@ -113,6 +113,7 @@ KERNELS = pytest.mark.parametrize("inside", [0, 1], ids=["measurement in torch",
 LAYOUTS = pytest.mark.parametrize("layout", ["info", "rows"])
 
 
+@pytest.mark.slow  # 60-75 s of one core in all (the Triton interpreter); the CPU kernels' twin stays in tier one
 @LAYOUTS
 @KERNELS
 def test_fused_step_matches_torch_in_triton_interpreter(inside, layout):
