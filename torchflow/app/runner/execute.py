@@ -250,9 +250,9 @@ def run_chunk(f: Filter, name: str, plan: RunPlan, s: int, e: int, bar=None, los
             gone = sorted(set(err.trials) & set(kept))
             if not lose or not gone:
                 raise
-            for i in gone:
-                lost_at[i - s] = max(int(err.step), 1)
-            kept = [i for i in kept if i not in set(gone)]
+            lost_at[torch.tensor(gone) - s] = max(int(err.step), 1)
+            gone_set = set(gone)
+            kept = [i for i in kept if i not in gone_set]
             log.warning(
                 f"{name}: trial(s) {gone[:10]}{' ...' if len(gone) > 10 else ''} lost ({err}); "
                 + (f"the chunk's other {len(kept)} trial(s) run again" if kept else "none left in the chunk")
