@@ -371,6 +371,7 @@ def test_collect_names_a_damaged_results_json_and_merges_its_intact_csvs(tmp_pat
     assert f"{damaged / 'results.json'} is damaged" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # 15 s; test_experiment's Ctrl-C of a single run stays in the default tier
 def test_ctrl_c_to_a_joblib_sweep_ends_with_the_report_the_resume_command_and_exit_130(tmp_path):
     pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
     cmd = [

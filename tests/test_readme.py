@@ -122,6 +122,8 @@ SLOW = {
     "experiment=zhang2024_table1": "40 s: the bootstrap localiser's 2,000 particles and three PFI localisers",
     "benchmarks.run_all": "20-24 s each: the benchmark suite's quick section (and its --device refusal)",
     "hydra/launcher=": "15 s each: a sweep through a parallel launcher (joblib, submitit)",
+    "torch.distributed.run": "9 s: two processes (tests/test_scale.py's torchrun test stays in the default tier)",
+    "experiments/trial_stats.py": "15 s: it runs the Pal (2019) table first (test_experiment's trial_stats test stays)",
 }
 
 
@@ -192,7 +194,8 @@ def _cases():
     runnable = _runnable()
     out = []
     for i, line in runnable:
-        slow = [k for k in SLOW if k in line]
+        # a command that reads a slow command's output (collect.py after a launcher's sweep) is slow too
+        slow = [k for k in SLOW for text in [line] + [o for _, o in _needs(i, line, runnable)] if k in text]
         out.append(
             pytest.param(
                 i, line, _needs(i, line, runnable), id=_case_id(i, line), marks=[pytest.mark.slow] if slow else []
@@ -219,6 +222,7 @@ def test_readme_has_the_blocks_we_expect():
             assert _needs(i, line, runnable), f"no earlier command gives this one its input: {line}"
 
 
+@pytest.mark.slow  # 45 s: every README block in one script (the second tier, which .ci/run runs)
 def test_readme_python_blocks_run(tmp_path):
     script = "\n".join(blocks("python"))
     for old, new in SHRINK_PY:

@@ -92,7 +92,8 @@ def test_a_step_with_nothing_observed_is_a_prediction():
     "make",
     [
         lambda m: BootstrapParticleFilter(m, n_particles=1000),
-        lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=200),
+        # LEDH: 15 s, second tier (``-m slow``); EDH takes the same route through the gaps here
+        pytest.param(lambda m: ParticleFlowParticleFilter(m, flow="ledh", n_particles=200), marks=pytest.mark.slow),
         lambda m: ParticleFlowParticleFilter(m, flow="edh", n_particles=200),
     ],
     ids=["bpf", "pfpf_ledh", "pfpf_edh"],
