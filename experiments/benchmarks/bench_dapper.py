@@ -130,6 +130,11 @@ REGIMES.update(
                 "lag1_flow",
                 dict(n_particles=40, inflation=1.02, radius=30.0),
             ),
+            (  # weight_radius 8 chosen on seed-1 trials (15 / 30 lost trials there with systematic resampling)
+                "lag1_pfpf_local N=40",
+                "lag1_pfpf_local",
+                dict(n_particles=40, inflation=1.02, radius=30.0, weight_radius=8.0),
+            ),
         ],
     ),
     r4=_l96(

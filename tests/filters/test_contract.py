@@ -17,6 +17,7 @@ from torchflow.filters import (
     LagOneFlowFilter,
     LagOneFlowParticleFilter,
     LocalEnsembleTransformKalmanFilter,
+    LocalLagOneFlowParticleFilter,
     LocalParticleFilter,
     ParticleFlowFilter,
     ParticleFlowParticleFilter,
@@ -54,6 +55,11 @@ CONFIGS = [
     ),
     ("lag1_pfpf-lg", lambda: random_lg(3, 2), lambda m: LagOneFlowParticleFilter(m, n_particles=64, flow_steps=5)),
     ("lag1_pfpf-l96", lambda: Lorenz96(d=8), lambda m: LagOneFlowParticleFilter(m, n_particles=64, flow_steps=5)),
+    (
+        "lag1_pfpf_local-l96",
+        lambda: Lorenz96(d=8),
+        lambda m: LocalLagOneFlowParticleFilter(m, n_particles=64, radius=4.0, weight_radius=3.0, flow_steps=5),
+    ),
 ]
 _SCHED = ExponentialSchedule(8, 1.3)
 for _flow in ("edh", "ledh", "geodesic", "gromov", "osd"):

@@ -43,6 +43,7 @@ REGISTRY: Dict[str, Dict[str, str]] = {
         lpf="LocalParticleFilter",
         lag1_flow="LagOneFlowFilter",
         lag1_pfpf="LagOneFlowParticleFilter",
+        lag1_pfpf_local="LocalLagOneFlowParticleFilter",
     ),
     "localiser": _kind("torchflow.tdoa", bs="BootstrapLocaliser", pfi="FlowMixtureLocaliser"),
     "flow": _kind(

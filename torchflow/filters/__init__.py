@@ -43,6 +43,7 @@ from torchflow.filters.kalman import (
     ekf_predict,
     kalman_update,
 )
+from torchflow.filters.local_weighted_flow import LocalLagOneFlowParticleFilter
 from torchflow.filters.pfpf import ClusteredParticleFlowParticleFilter, ParticleFlowFilter, ParticleFlowParticleFilter
 from torchflow.filters.weighted_flow import LagOneFlowParticleFilter
 
@@ -63,6 +64,7 @@ __all__ = [
     "KernelParticleFlowFilter",
     "LagOneFlowFilter",
     "LagOneFlowParticleFilter",
+    "LocalLagOneFlowParticleFilter",
     "LocalParticleFilter",
     "BootstrapParticleFilter",
     "ParticleFlowParticleFilter",
