@@ -42,7 +42,9 @@ def test_pfpf_ledh_reports_its_kernel_and_the_torch_path_where_it_takes_it():
         fused = f(obs, mean, cov, torch.Generator().manual_seed(1))
         with tuning.tuned(fused_flows=0):
             plain = f(obs, mean, cov, torch.Generator().manual_seed(1))
-    graded = f(obs, mean, cov, torch.Generator().manual_seed(1))  # a gradient is recorded: no kernel
+    with pytest.warns(UserWarning, match="mean requires grad"):  # a gradient is recorded: no kernel, said once
+        graded = f(obs, mean.clone().requires_grad_(True), cov, torch.Generator().manual_seed(1))
+    assert f(obs, mean, cov, torch.Generator().manual_seed(1)).paths == {KERNEL: T}  # grad mode, nothing to record
     assert fused.paths == {KERNEL: T}
     assert plain.paths == {"torch": T} and graded.paths == {"torch": T}
 

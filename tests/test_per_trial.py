@@ -16,7 +16,7 @@ import torch
 from conftest import cuda
 
 import torchflow.filters as F
-from torchflow.core import constraints
+from torchflow.core import constraints, tuning
 from torchflow.core.errors import ArgumentError, ArgumentTypeError
 from torchflow.core.random import TrialStreams
 from torchflow.inference import per_trial_values
@@ -163,19 +163,23 @@ def _check_equal_to_separate_calls(filter_name, model_name, device="cpu"):
     make, model, values, obs, mean, cov = _data(model_name, device)
     tol = 1e-10 if filter_name in DETERMINISTIC else 1e-9
     key = f"{filter_name}-{model_name}"
-    with per_trial_values(model, values):
+    # the reference loop: the fused flow kernel takes a per-trial parameter and a scalar through different
+    # arithmetic (LEDH on the acoustic model: 1.3e-9 relative in one of 64 numbers, measured), so it is
+    # held to round-off, not to this bound
+    with per_trial_values(model, values), tuning.tuned(fused_flows=0):
         together = make_filter(model)(obs, mean, cov, TrialStreams(7, B, key), return_covariances=True)
     for k, v in values.items():  # the model's own values are back
         assert getattr(model, k).shape == v.shape[1:]
     for b in range(B):
         alone_model = make(**{k: v[b].cpu() for k, v in values.items()}).to(device)
-        alone = make_filter(alone_model)(
-            obs[b : b + 1],
-            mean[b : b + 1],
-            cov[b : b + 1],
-            TrialStreams(7, B, key).select([b]),
-            return_covariances=True,
-        )
+        with tuning.tuned(fused_flows=0):
+            alone = make_filter(alone_model)(
+                obs[b : b + 1],
+                mean[b : b + 1],
+                cov[b : b + 1],
+                TrialStreams(7, B, key).select([b]),
+                return_covariances=True,
+            )
         close = dict(rtol=tol, atol=tol)
         torch.testing.assert_close(
             together.estimates[b], alone.estimates[0], **close, msg=lambda m: f"{key} trial {b}: {m}"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import itertools
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -499,7 +500,60 @@ class Filter(Estimator):
                 backward pass then holds one step's intermediates (a per-particle flow's
                 pseudo-time matrices) instead of all T steps', for about one extra forward pass.
                 Values and gradients are unchanged. ``None``: :attr:`checkpoint_steps` (False).
+
+        A gradient is recorded only where one can flow: with grad mode on but no parameter, buffer
+        or tensor attribute of the filter or its model (:meth:`gradient_source`), and none of
+        ``observations``, ``mean`` and ``cov``, requiring grad, the call runs as under
+        :func:`torch.no_grad` and the fused kernels serve it. Where one does and the filter has a
+        kernel, the first such call warns that the reference PyTorch path runs, naming the tensor.
+        (A tensor that requires grad hidden in a closure is not seen: register it as a parameter or
+        buffer.)
         """
+        source = self.gradient_source(observations, mean, cov) if torch.is_grad_enabled() else None
+        if source is None and torch.is_grad_enabled():  # nothing to differentiate: the kernels' path
+            with torch.no_grad():
+                return self._forward(
+                    observations, mean, cov, generator, n_particles, return_covariances, return_particles,
+                    progress, checkpoint_steps, return_std,
+                )  # fmt: skip
+        if source is not None and not self._said_gradient_path and _select.has_kernel(self):
+            self._said_gradient_path = True
+            warnings.warn(
+                f"{self.name}: a gradient is recorded ({source} requires grad), so the reference PyTorch path runs "
+                "instead of the fused kernels, which record none; under torch.no_grad(), or with nothing requiring "
+                "grad, the kernels run (said once per filter)",
+                UserWarning,
+                stacklevel=2,
+            )
+        return self._forward(
+            observations, mean, cov, generator, n_particles, return_covariances, return_particles, progress,
+            checkpoint_steps, return_std,
+        )  # fmt: skip
+
+    #: the first gradient-recording call's warning has been given (:meth:`forward`)
+    _said_gradient_path = False
+
+    def gradient_source(self, *inputs) -> Optional[str]:
+        """The name of the first tensor a call would differentiate (``"observations"``, ``"mean"``,
+        ``"cov"`` for ``inputs`` in that order, or a parameter, buffer or tensor attribute of this
+        filter and its submodules, its model among them, by its dotted name), or ``None``: nothing
+        requires grad. No device is read."""
+        for name, value in zip(("observations", "mean", "cov"), inputs):
+            if _requires_grad(value):
+                return name
+        for prefix, module in self.named_modules():
+            for name, value in itertools.chain(
+                module.named_parameters(recurse=False), module.named_buffers(recurse=False), vars(module).items()
+            ):
+                if _requires_grad(value):
+                    return f"{prefix}.{name}" if prefix else name
+        return None
+
+    def _forward(
+        self, observations, mean, cov, generator, n_particles, return_covariances, return_particles, progress,
+        checkpoint_steps, return_std,
+    ) -> FilterResult:  # fmt: skip
+        """:meth:`forward`'s work, in the grad mode it chose."""
         check_dtype(self.model, self.name)
         if progress is not None and not callable(progress):
             raise ArgumentTypeError(
@@ -1318,3 +1372,24 @@ ParticleFilter.kept = frozenset(_KEPT)
 
 #: the former name of :class:`ParticleFilter` (kept for users' code)
 ParticleFilterBase = ParticleFilter
+
+
+def _requires_grad(value) -> bool:
+    """``value`` is a tensor that requires grad, or an object (a structured covariance), list, tuple or
+    dict holding one at its first level."""
+    if isinstance(value, torch.Tensor):
+        return value.requires_grad
+    if isinstance(value, (list, tuple)):
+        return any(isinstance(v, torch.Tensor) and v.requires_grad for v in value)
+    if isinstance(value, dict):
+        return any(isinstance(v, torch.Tensor) and v.requires_grad for v in value.values())
+    if isinstance(value, Covariance):  # its tensors, in __slots__ or __dict__
+        names = set(getattr(value, "__dict__", {})) | {
+            n for c in type(value).__mro__ for n in getattr(c, "__slots__", ())
+        }
+        return any(
+            _requires_grad(getattr(value, n, None))
+            for n in names
+            if not isinstance(getattr(value, n, None), Covariance)
+        )
+    return False

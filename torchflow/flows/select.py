@@ -255,6 +255,12 @@ def offers_flow_kernel(filt) -> bool:
     return declared(getattr(getattr(filt, "proposal", None), "flow", None), "kernel") is not None
 
 
+def has_kernel(filt) -> bool:
+    """Filter ``filt`` would take a fused kernel somewhere without a gradient: a flow that declares
+    one (:func:`offers_flow_kernel`) or the CPU weighting kernel (:func:`may_weigh_in_kernel`)."""
+    return offers_flow_kernel(filt) or may_weigh_in_kernel(filt)
+
+
 def may_weigh_in_kernel(filt) -> bool:
     """Particle filter ``filt``'s steps may take the CPU weighting kernel: its resampler declares a
     kernel scheme, it has at most :data:`WEIGHTS_KERNEL_MAX_PARTICLES` particles per trial and the
