@@ -464,7 +464,7 @@ def test_help_says_what_the_command_does_with_examples_and_the_documentation(tmp
     assert "Examples:" in out.stdout and f"\n  {name}" in out.stdout
     assert f"docs/guide/{guide}" in out.stdout
     assert "\nfilter: " in out.stdout and "\nmodel: " in out.stdout  # the groups are listed
-    assert "_target_" not in out.stdout  # and the composed config is not
+    assert "_target_: torchflow." not in out.stdout  # and the composed config is not
     assert list(tmp_path.iterdir()) == []
 
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import List, Optional
 
@@ -111,6 +112,13 @@ def build(cfg: DictConfig):
         )
     model = instantiate(cfg.model)
     filters, labels = {}, {}
+    stray = [k for k, v in cfg.filter.items() if not isinstance(v, Mapping)]
+    if stray:  # a filter config of one's own without its package line merges into the filter node itself
+        raise ConfigError(
+            f"filter: expected one config per filter (filter.<name>: {{_target_: ..., ...}}), got the key(s) "
+            f"{', '.join(map(str, stray))} directly under filter; a filter config of your own starts with the line "
+            "'# @package filter.<name>' (its file name), as torchflow's configs/filter/*.yaml do"
+        )
     for key, fcfg in cfg.filter.items():
         if "_target_" not in fcfg:  # e.g. an experiment's per-filter setting for a filter not selected
             log.warning(f"(filter.{key}: settings given but the filter is not selected; skipped)")

@@ -49,24 +49,62 @@ def config_dir() -> Path:
     return Path(str(files("torchflow.configs"))) if src.startswith("pkg://") else Path(src)
 
 
-def group_options(group: str) -> Optional[List[str]]:
-    """Config names of a group (``filter``, ``model``, ...), ``None`` if there is no such group."""
-    d = config_dir() / group
-    return sorted(p.stem for p in d.glob("*.yaml")) if d.is_dir() else None
+def group_options(group: str, extra_dirs: Sequence[Path] = ()) -> Optional[List[str]]:
+    """Config names of a group (``filter``, ``model``, ...) in torchflow's configs and in
+    ``extra_dirs`` (a user's own config folders, :func:`user_config_dirs`), ``None`` if no folder
+    has such a group."""
+    folders = [d / group for d in (config_dir(), *extra_dirs) if (d / group).is_dir()]
+    return sorted({p.stem for d in folders for p in d.glob("*.yaml")}) if folders else None
+
+
+def user_config_dirs(argv: Sequence[str]) -> List[Path]:
+    """The user's own config folders a command line names, as Hydra reads them: ``--config-dir DIR``
+    (``-cd DIR``, ``--config-dir=DIR``) and the ``file://`` or ``pkg://`` entries of
+    ``hydra.searchpath=[...]``; a folder that does not exist is refused in one line."""
+    out, args = [], list(argv)
+    for i, arg in enumerate(args):
+        value = None
+        if arg in ("--config-dir", "-cd") and i + 1 < len(args):
+            value = args[i + 1]
+        elif arg.startswith("--config-dir="):
+            value = arg.split("=", 1)[1]
+        if value is not None:
+            out.append(("--config-dir", value))
+        if arg.lstrip("+").startswith("hydra.searchpath="):
+            for entry in re.findall(r"[^\[\],\s'\"]+", arg.split("=", 1)[1]):
+                out.append(("hydra.searchpath", entry))
+    dirs = []
+    for source, entry in out:
+        if entry.startswith("pkg://"):
+            try:
+                path = Path(str(files(entry[len("pkg://") :].replace("/", "."))))
+            except (ModuleNotFoundError, TypeError) as err:
+                raise ConfigError(f"{source}: {entry}: no importable package ({err})") from None
+        else:
+            path = Path(entry[len("file://") :] if entry.startswith("file://") else entry).expanduser()
+        if not path.is_dir():
+            raise ConfigError(f"{source}: {entry}: no such folder (a folder of configs: model/<name>.yaml, ...)")
+        dirs.append(path)
+    return dirs
 
 
 def check_selections(argv: Sequence[str]) -> None:
     """Refuse unknown config names in group selections (``filter=[a,b]``, ``model=x``, ``flow@...=edh``,
     sweeps ``filter=a,b`` and ``filter=[a,b],[c]``) with the list of valid names, and a config selected
     twice in one list (``filter=[bpf,bpf]``: the two would be one row), before Hydra composes anything."""
+    extra = user_config_dirs(argv)
     for arg in argv:
         if "=" not in arg or arg.startswith(("hydra.", "-")):
             continue
         lhs, rhs = arg.split("=", 1)
         group = lhs.lstrip("+~").split("@", 1)[0]
-        options, value = None if "." in group or "/" in group else group_options(group), rhs.strip()
-        if options is None or value.startswith(("range(", "choice(", "glob(", "interval(")) or value in ("null", ""):
-            continue
+        options, value = None if "." in group or "/" in group else group_options(group, extra), rhs.strip()
+        if (
+            options is None
+            or value.startswith(("range(", "choice(", "glob(", "interval(", "{"))
+            or value in ("null", "")
+        ):
+            continue  # ("{": a config given inline, model={_target_: mypackage.MyModel, ...})
         unknown = [v for v in dict.fromkeys(re.findall(r"[^\[\],\s]+", value)) if v not in options]
         if unknown:
             raise ConfigError(
@@ -81,6 +119,20 @@ def check_selections(argv: Sequence[str]) -> None:
                     f"in [{selection}] (one row per config); select it once, and to compare settings "
                     f"of one {group}, sweep them: -m {group}.{twice}.<key>=a,b"
                 )
+
+
+def inline_configs(argv: Sequence[str]) -> List[str]:
+    """``argv`` with a whole config given inline for a group that holds one config (``model={_target_:
+    mypackage.MyModel, a: 1}``) made to replace the group's default (``~model +model={...}``) instead
+    of merging into it, which would hand the default's keys to the user's class."""
+    out = []
+    for arg in argv:
+        lhs, _, rhs = arg.partition("=")
+        if lhs in ("model", "schedule") and rhs.strip().startswith("{") and "_target_" in rhs:
+            out += [f"~{lhs}", f"+{lhs}={rhs}"]
+        else:
+            out.append(arg)
+    return out
 
 
 def close_keys(key: str, known: Sequence[str]) -> List[str]:

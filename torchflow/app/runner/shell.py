@@ -774,6 +774,7 @@ def main(
     try:
         rc.check_selections(argv)
         rc.remember_command(prog, argv)
+        argv = rc.inline_configs(argv)  # model={_target_: ...}: the user's whole model, not merged into the default
         if int(rank) and any(a in ("-m", "--multirun") for a in argv):
             raise ConfigError("torchrun runs one job; run a sweep (-m) on a Hydra launcher instead")
     except ConfigError as e:
