@@ -631,3 +631,15 @@ def test_paired_differences_of_two_runs(tmp_path):
     le = rows["bpf", "log_evidence"]  # trial 2 has no finite value in a; trial 3 is not in a
     assert le["n"] == 2 and le["diff"] == 0.0 and math.isclose(le["se"], 1.0)
     assert "| bpf | omat | 2 |" in paired.table(list(rows.values()))
+
+
+def test_the_before_after_benchmark_covers_every_family_and_runs(capsys):
+    """bench_before_after times the particle, flow, Gaussian-sum, ensemble, data-assimilation and TDOA
+    families; one case runs here (a localised weighted lag-one flow: 4 trials x 50 steps)."""
+    from experiments.benchmarks import bench_before_after
+
+    names = set(bench_before_after.cases())
+    assert {"bpf", "pfpf_ledh", "gpfis", "pfgspf", "letkf", "lag1_flow", "lag1_pfpf_local", "kpff", "pfi_d"} <= names
+    bench_before_after.main(["now", "lag1_pfpf_local", "--repeats", "1", "--threads", "1"])
+    out = capsys.readouterr().out
+    assert "now lag1_pfpf_local median s/trial-step" in out and '{"now": {"lag1_pfpf_local": [' in out
