@@ -3,7 +3,8 @@
     python experiments/collect.py multirun/<label>/<time> [--columns omat,ospa,ess,sec_per_step]
     python experiments/collect.py multirun/<label>/<time> --plot filter.pfgspf.n_components:g_eff
 
-Prints a markdown table (the overrides that vary between jobs, then the summary columns), writes
+Prints a markdown table (the overrides that vary between jobs, then every summary column some job
+filled, or those ``--columns`` names), writes
 ``sweep_summary.csv`` into the sweep directory and lists the jobs that failed or have no results
 (any Hydra launcher). ``--plot X:Y[:GROUP]`` also draws Y against X, one line per value of GROUP
 (default: the other varying overrides and the filter), +-1 standard error over the job's trials,
@@ -18,6 +19,7 @@ import csv
 import sys
 from pathlib import Path
 
+from torchflow.app.runner import SUMMARY_COLUMNS
 from torchflow.app.runner.figures import pyplot
 from torchflow.app.runner.sweep import (
     TASK_RESULTS,
@@ -29,25 +31,13 @@ from torchflow.app.runner.sweep import (
 )
 from torchflow.app.runner.writers import write_csv
 
-DEFAULT_COLUMNS = [
-    "mse",
-    "omat",
-    "ospa",
-    "ess",
-    "g_eff",
-    "log_evidence_relmse",
-    "lost_tracks",
-    "repaired",
-    "sec_per_step",
-]
-
 
 def collect(sweep_dir: Path, columns=None):
     """Rows ``{overrides..., filter, columns...}`` of every finished job under ``sweep_dir`` (a job whose
     ``results.json`` is damaged: its CSV files, written before it), the columns, and the jobs without
     (complete) results: ``{"name", "state" ("failed" | "interrupted" | "missing" | "damaged"), "message",
     "overrides"}`` (overrides that vary between jobs)."""
-    rows, missing, keys = [], [], []
+    rows, missing, keys, summary_cols = [], [], [], []
     vary = varying_overrides(job_dirs(sweep_dir))
     for job in job_dirs(sweep_dir):
         ov = job_override_dict(job)
@@ -78,15 +68,22 @@ def collect(sweep_dir: Path, columns=None):
             continue  # a running job's partial summary.csv is not merged
         se = _trial_standard_errors(job / "per_trial.csv")
         with open(summary) as fh:
+            header = next(csv.reader(fh), [])
+            summary_cols += [c for c in header if c not in summary_cols]
+            fh.seek(0)
             rows += [
                 {"job": job.name, **ov, **r, **{f"{k}_se": v for k, v in se.get(r.get("filter"), {}).items()}}
                 for r in csv.DictReader(fh)
             ]
     # overrides shared by every job describe the sweep, not a row: keep only those that vary
     keys = [k for k in keys if len({r.get(k) for r in rows}) > 1]
-    cols = ["job", *keys, "filter", "n_particles", "trials", *(columns or DEFAULT_COLUMNS), "error"]
+    # by default every summary column that some job filled, in the summary's order
+    shown = columns or [c for c in summary_cols if c not in ("filter", "n_particles", "trials", "error")]
+    cols = ["job", *keys, "filter", "n_particles", "trials", *shown, "error"]
     cols = list(
-        dict.fromkeys(c for c in cols if any(c in r for r in rows) and (c != "error" or any(r.get(c) for r in rows)))
+        dict.fromkeys(
+            c for c in cols if any(c in r for r in rows) and (c in ("job", *keys) or any(r.get(c) for r in rows))
+        )
     )
     return rows, cols, missing
 
@@ -197,7 +194,9 @@ def main(argv=None):
             c
             for c in cols
             if c not in ("job", "filter", "n_particles", "trials")
-            and c not in (*DEFAULT_COLUMNS, *(args.columns.split(",") if args.columns else []))
+            and c not in set(SUMMARY_COLUMNS)  # a metric, not a setting that varies
+            and not c.endswith("_se")
+            and c not in (args.columns.split(",") if args.columns else [])
         ]
         try:
             print(f"wrote {plot(rows, varying, args.plot, args.sweep_dir)}")

@@ -218,6 +218,7 @@ def test_cli_run_writes_results(tmp_path):
         f"threads={_not_the_default_threads()}",
     )
     assert "| kf |" in out.stdout and "| bpf |" in out.stdout
+    assert "(the columns: docs/guide/command-line.md#the-summary-columns)" in out.stdout  # under the table
     run = tmp_path / "run"
     with open(run / "summary.csv") as fh:
         rows = list(csv.DictReader(fh))
@@ -299,7 +300,12 @@ def test_cli_multirun_sweep_writes_one_folder_per_job(tmp_path):
     # --plot: Y against X with standard-error bars from each job's per-trial file; a wrong column is refused
     from experiments.collect import collect
 
-    got, _, _ = collect(tmp_path / "sweep")
+    got, cols, _ = collect(tmp_path / "sweep")
+    # every summary column a job filled, in the summary's order: rmse and log_evidence among them, empty ones not
+    summary_header = next(csv.reader(open(tmp_path / "sweep" / "0" / "summary.csv")))
+    filled = [c for c in summary_header if c not in ("filter", "n_particles", "trials") and got[0].get(c)]
+    assert cols == ["job", "seed", "filter", "trials", *filled] and {"rmse", "log_evidence", "mse"} <= set(cols)
+    assert "omat" not in cols  # empty for this model
     per = list(csv.DictReader(open(tmp_path / "sweep" / "0" / "per_trial.csv")))
     mses = [float(r["mse"]) for r in per]
     se = (sum((m - sum(mses) / 2) ** 2 for m in mses) / 1 / 2) ** 0.5

@@ -218,7 +218,7 @@ def test_registered_is_temporary_and_the_module_example_runs(clean_registry):
 
 def test_rmse_after_burn_in_with_standard_errors(tmp_path):
     """``rmse``: per trial, sqrt(mean over coordinates of the squared error) per step, averaged over
-    the steps after ``burn_in``; the summary is the mean over trials with its standard error; the
+    the steps after ``burn_in`` (``mse`` over the same steps); the summary is the mean over trials with its standard error; the
     per-step rows keep every step; ``burn_in`` must leave a step."""
     model = SensorNetwork(d=4)
     kw = dict(trials=4, steps=6, seed=5, progress=False)
@@ -227,7 +227,7 @@ def test_rmse_after_burn_in_with_standard_errors(tmp_path):
     truth = res.trajectory.states[:, 1:].double()
     step_rmse = (est[0] - truth[0]).square().mean(-1).sqrt()  # (T,)
     assert res.per_trial[0]["rmse"] == pytest.approx(float(step_rmse[2:].mean()), rel=1e-12)
-    assert res.per_trial[0]["mse"] == pytest.approx(float(step_rmse.square().mean()), rel=1e-12)  # no burn-in
+    assert res.per_trial[0]["mse"] == pytest.approx(float(step_rmse[2:].square().mean()), rel=1e-12)  # same steps
     trials = torch.tensor([r["rmse"] for r in res.per_trial], dtype=torch.float64)
     assert res.summary[0]["rmse"] == pytest.approx(float(trials.mean()), rel=1e-12)
     assert res.summary[0]["rmse_se"] == pytest.approx(float(trials.std() / 2), rel=1e-12)

@@ -59,6 +59,9 @@ from torchflow.flows.ensemble import EnsembleFlow
 
 log = logging.getLogger("torchflow.app.cli")
 
+#: where the summary table's columns are described (printed under the table)
+COLUMNS_GUIDE = "docs/guide/command-line.md#the-summary-columns"
+
 
 _FLOW_NAMES = {
     "EDHFlow": "edh",
@@ -259,6 +262,7 @@ def _run_filters(cfg: DictConfig, model, filters, labels, out: Path, shard) -> i
         f"{cfg.device}/{cfg.dtype}{budget}"
     )
     log.info(format_table(result.summary))
+    log.info(f"(the columns: {COLUMNS_GUIDE})")
     for name in result.failed:
         where = f" in {result.failures[name]}" if result.failures.get(name) else ""
         error = next(r["error"] for r in result.summary if r["filter"] == name)

@@ -34,7 +34,7 @@ metric that applies gives
 
 The summary table's columns are ``filter, n_particles, trials, steps``, the registered metrics in
 registration order, and the runner's own columns
-(:data:`torchflow.app.runner.score.RUN_COLUMNS`). Built in: ``mse``, ``rmse`` (after burn-in, with
+(:data:`torchflow.app.runner.score.RUN_COLUMNS`). Built in: ``mse`` and ``rmse`` (both after burn-in; ``rmse`` with
 its standard error ``rmse_se``), ``omat``, ``ospa``, ``declared``, ``ess``, ``g_eff``. A new metric is one function
 and one :func:`register` call
 (:func:`unregister` removes it; :func:`registered` registers for a ``with`` block)::
@@ -693,7 +693,7 @@ def _has_g_eff(ctx: MetricContext) -> bool:
 
 
 for _m in (
-    Metric("mse", "MSE", _mse, yscale="log"),
+    Metric("mse", "MSE", _mse, yscale="log", burn_in=True),
     Metric("rmse", "RMSE", _rmse, yscale="log", burn_in=True, standard_error=True),
     Metric("omat", "OMAT (m)", _omat, tracking),
     Metric("ospa", "OSPA (m)", _ospa, _tracking_or_sets),
