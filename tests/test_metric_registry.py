@@ -218,8 +218,8 @@ def test_registered_is_temporary_and_the_module_example_runs(clean_registry):
 
 def test_rmse_after_burn_in_with_standard_errors(tmp_path):
     """``rmse``: per trial, sqrt(mean over coordinates of the squared error) per step, averaged over
-    the steps after ``burn_in`` (``mse`` over the same steps); the summary is the mean over trials with its standard error; the
-    per-step rows keep every step; ``burn_in`` must leave a step."""
+    the steps after ``burn_in`` (``mse`` over the same steps); the summary is the mean over trials
+    with its standard error; the per-step rows keep every step; ``burn_in`` must leave a step."""
     model = SensorNetwork(d=4)
     kw = dict(trials=4, steps=6, seed=5, progress=False)
     res = run_experiment(model, {"kf": KalmanFilter(model)}, burn_in=2, **kw)
