@@ -9,7 +9,8 @@ import torch
 
 from torchflow.core.errors import ArgumentError, ArgumentTypeError
 from torchflow.filters import LagOneFlowFilter, LocalLagOneFlowParticleFilter
-from torchflow.filters.local_weighted_flow import local_transport, observation_neighbourhoods
+from torchflow.filters.ensemble import local_transport
+from torchflow.filters.local_weighted_flow import observation_neighbourhoods
 from torchflow.models import LinearGaussian, Lorenz96
 
 F64 = dict(dtype=torch.float64)
@@ -72,15 +73,17 @@ def test_observation_neighbourhoods_on_a_ring():
 def test_the_quantile_transport_keeps_equal_weights_and_follows_unequal_ones():
     g = torch.Generator().manual_seed(1)
     X = torch.randn(3, 400, 2, generator=g, **F64)
-    torch.testing.assert_close(local_transport(X, torch.zeros(3, 400, 2, **F64)), X, rtol=0, atol=1e-10)
+    torch.testing.assert_close(
+        local_transport(X, torch.full((3, 400, 2), 1 / 400, **F64), "quantile"), X, rtol=0, atol=1e-10
+    )
     lw = -0.5 * (X - 1.0).square() * 4  # tilt towards 1
-    out = local_transport(X, lw)
     W = torch.softmax(lw, 1)
+    out = local_transport(X, W, "quantile")
     wmean = (W * X).sum(1)
     torch.testing.assert_close(out.mean(1), wmean, rtol=0, atol=0.02)
     # monotone per coordinate: the members keep their order
     assert torch.equal(out.argsort(1), X.argsort(1))
-    rs = local_transport(X, lw, "systematic", torch.Generator().manual_seed(2))
+    rs = local_transport(X, W, "systematic", torch.Generator().manual_seed(2))
     assert all(bool(torch.isin(rs[b, :, a], X[b, :, a]).all()) for b in range(3) for a in range(2))
     torch.testing.assert_close(rs.mean(1), wmean, rtol=0, atol=0.05)
 

@@ -75,8 +75,7 @@ from torchflow.core.geometry import (
     local_observations,
     periodic_distances,
 )
-from torchflow.core.random import uniform
-from torchflow.filters.ensemble import _EnsembleFilter, rotate_anomalies
+from torchflow.filters.ensemble import _EnsembleFilter, local_transport, rotate_anomalies
 from torchflow.flows.base import FlowPrior
 from torchflow.flows.ensemble import (
     CACHE_ELEMENTS,
@@ -356,13 +355,7 @@ class LocalParticleFilter(_EnsembleFilter):
             lw = (terms[:, :, idx] * taper).sum(-1)  # (B, N, d)
         W = torch.softmax(lw, 1)
         estimate = (W * Xf).sum(1)  # (B, d): each coordinate's weighted mean
-        # systematic resampling, one uniform per trial for every coordinate
-        u = uniform((B_, 1), dtype=Xf.dtype, device=Xf.device, generator=generator).unsqueeze(-1)
-        points = (torch.arange(N, dtype=Xf.dtype, device=Xf.device).view(1, 1, N) + u) / N  # (B, 1, N)
-        cdf = W.cumsum(1).transpose(1, 2).contiguous()  # (B, d, N)
-        cdf[..., -1] = 1.0
-        ancestors = torch.searchsorted(cdf, points.expand(B_, d, N).contiguous()).clamp_max(N - 1)  # (B, d, N)
-        Xa = torch.gather(Xf, 1, ancestors.transpose(1, 2))  # (B, N, d): coordinate i of member n from its ancestor
+        Xa = local_transport(Xf, W, "systematic", generator)  # one uniform per trial for every coordinate
         if self.rtps > 0 or self.jitter > 0:
             sf = A.std(1, keepdim=True)  # (B, 1, d): each coordinate's forecast spread
         if self.rtps > 0:

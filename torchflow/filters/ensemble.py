@@ -60,6 +60,7 @@ from torchflow.core.checks import check_count, check_number
 from torchflow.core.covariances import sample_prior
 from torchflow.core.errors import ArgumentError, ArgumentTypeError
 from torchflow.core.geometry import DIAGONAL_NOISE, check_radius, local_observations
+from torchflow.core.random import uniform
 from torchflow.filters.base import Filter, ParticleState
 
 __all__ = [
@@ -97,6 +98,36 @@ def rotate_anomalies(X: torch.Tensor, generator=None) -> torch.Tensor:
     R = mean_preserving_rotation(X.shape[0], X.shape[1], dtype=X.dtype, device=X.device, generator=generator)
     xbar = X.mean(1, keepdim=True)
     return xbar + R @ (X - xbar)
+
+
+def local_transport(X: torch.Tensor, weights: torch.Tensor, how: str = "systematic", generator=None) -> torch.Tensor:
+    """Equally weighted members ``(B, N, d)`` from members ``X (B, N, d)`` with one set of normalised
+    weights per coordinate ``weights (B, N, d)`` (each column sums to 1). ``"systematic"``: each
+    coordinate's members resampled systematically with one uniform per trial (``generator``), so
+    neighbouring coordinates with similar weights keep the same ancestors (Penny & Miyoshi's local
+    particle filter); ``"quantile"``: member ``i``'s coordinate moves to the weighted members' quantile at
+    its own rank, ``(rank_i + 1/2) / N``, linear between their mid-point cumulative weights (the
+    monotone, one-dimensional optimal transport map: equal weights leave every member in place, to
+    round-off, and draw nothing)."""
+    B, N, d = X.shape
+    W = weights.transpose(1, 2).contiguous()  # (B, d, N)
+    V = X.transpose(1, 2)  # (B, d, N)
+    if how == "systematic":
+        u = uniform((B, 1), dtype=X.dtype, device=X.device, generator=generator).unsqueeze(-1)
+        points = (torch.arange(N, dtype=X.dtype, device=X.device).view(1, 1, N) + u) / N  # (B, 1, N)
+        cdf = W.cumsum(-1)
+        cdf[..., -1] = 1.0
+        ancestors = torch.searchsorted(cdf, points.expand(B, d, N).contiguous()).clamp_max(N - 1)  # (B, d, N)
+        return V.gather(-1, ancestors).transpose(1, 2)
+    values, order = V.sort(-1)
+    w = W.gather(-1, order)
+    mid = w.cumsum(-1) - 0.5 * w  # the weighted members' mid-point cumulative weights (increasing)
+    q = (order.argsort(-1).to(X.dtype) + 0.5) / N  # each member's own rank's quantile level
+    hi = torch.searchsorted(mid.contiguous(), q.contiguous()).clamp(1, N - 1)
+    m0, m1 = mid.gather(-1, hi - 1), mid.gather(-1, hi)
+    v0, v1 = values.gather(-1, hi - 1), values.gather(-1, hi)
+    t = ((q - m0) / (m1 - m0).clamp_min(torch.finfo(X.dtype).tiny)).clamp(0.0, 1.0)
+    return torch.lerp(v0, v1, t).transpose(1, 2)
 
 
 @dataclass

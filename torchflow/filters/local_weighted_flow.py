@@ -53,12 +53,11 @@ import torch
 from torchflow.core.checks import check_number
 from torchflow.core.errors import ArgumentError, ArgumentTypeError
 from torchflow.core.geometry import DIAGONAL_NOISE, check_radius, local_observations
-from torchflow.core.random import uniform
 from torchflow.filters.assimilation import LagOneFlowFilter
-from torchflow.filters.ensemble import rotate_anomalies
+from torchflow.filters.ensemble import local_transport, rotate_anomalies
 from torchflow.flows.ensemble import ridge_solve
 
-__all__ = ["LocalLagOneFlowParticleFilter", "local_transport", "observation_neighbourhoods"]
+__all__ = ["LocalLagOneFlowParticleFilter", "observation_neighbourhoods"]
 
 #: ``transport=`` choices: the monotone map per coordinate, or systematic resampling per coordinate
 TRANSPORTS = ("quantile", "systematic")
@@ -85,33 +84,6 @@ def observation_neighbourhoods(model, radius: float, distances=None) -> Tuple[to
     out[obs, slot] = coord
     used[obs, slot] = True
     return out, used
-
-
-def local_transport(X: torch.Tensor, log_weights: torch.Tensor, how: str = "quantile", generator=None) -> torch.Tensor:
-    """Equally weighted members ``(B, N, d)`` from members ``X (B, N, d)`` with one set of log-weights
-    per coordinate ``log_weights (B, N, d)`` (module docstring, step 4). ``"quantile"``: member ``i``'s
-    coordinate moves to the weighted quantile at ``(rank_i + 1/2) / N`` (equal weights: unchanged, to
-    round-off);
-    ``"systematic"``: resampled with one uniform per trial (``generator``)."""
-    B, N, d = X.shape
-    W = torch.softmax(log_weights, 1).transpose(1, 2).contiguous()  # (B, d, N)
-    V = X.transpose(1, 2)  # (B, d, N)
-    if how == "systematic":
-        u = uniform((B, 1, 1), dtype=X.dtype, device=X.device, generator=generator)
-        points = (torch.arange(N, dtype=X.dtype, device=X.device).view(1, 1, N) + u) / N
-        cdf = W.cumsum(-1)
-        cdf[..., -1] = 1.0
-        ancestors = torch.searchsorted(cdf, points.expand(B, d, N).contiguous()).clamp_max(N - 1)
-        return V.gather(-1, ancestors).transpose(1, 2)
-    values, order = V.sort(-1)
-    w = W.gather(-1, order)
-    mid = w.cumsum(-1) - 0.5 * w  # the weighted members' mid-point cumulative weights (increasing)
-    q = (order.argsort(-1).to(X.dtype) + 0.5) / N  # each member's own rank's quantile level
-    hi = torch.searchsorted(mid.contiguous(), q.contiguous()).clamp(1, N - 1)
-    m0, m1 = mid.gather(-1, hi - 1), mid.gather(-1, hi)
-    v0, v1 = values.gather(-1, hi - 1), values.gather(-1, hi)
-    t = ((q - m0) / (m1 - m0).clamp_min(torch.finfo(X.dtype).tiny)).clamp(0.0, 1.0)
-    return torch.lerp(v0, v1, t).transpose(1, 2)
 
 
 class LocalLagOneFlowParticleFilter(LagOneFlowFilter):
@@ -207,7 +179,7 @@ class LocalLagOneFlowParticleFilter(LagOneFlowFilter):
         log_w = self.local_log_weights(Xk, z)  # (B, N, d)
         W = torch.softmax(log_w, 1)
         estimate = (W * Xk).sum(1)
-        Xa = local_transport(Xk, log_w, self.transport, generator)
+        Xa = local_transport(Xk, W, self.transport, generator)  # the weights computed once, above
         if self.rotate:
             Xa = rotate_anomalies(Xa, generator)
         ess = (1.0 / W.square().sum(1)).mean(-1)  # (B,): the local ESS averaged over coordinates
