@@ -121,4 +121,4 @@ def test_the_guide_s_example_runs_and_tracks(capsys):
     block = re.search(r"```python\n(.*?)```", guide[start:], re.S).group(1)
     exec(compile(block, "data-assimilation.md", "exec"), {})
     rmse = float(re.search(r"RMSE ([0-9.]+)", capsys.readouterr().out).group(1))
-    assert rmse < 0.45
+    assert rmse < 0.45  # measured 0.30 (4 trials x 100 scored steps); a trial lost on the wrong sign reads above 1
